@@ -1,0 +1,1 @@
+"""Ground station: sample log -> point cloud -> fitted surface -> volume report."""

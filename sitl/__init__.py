@@ -1,0 +1,1 @@
+"""Software-in-the-loop: storage world, stockpiles, missions and vehicle plants."""

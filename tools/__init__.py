@@ -1,0 +1,1 @@
+"""Tools composing the three programs: demo, benchmarks, experiments."""
