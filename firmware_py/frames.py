@@ -1,0 +1,119 @@
+"""Frames and the beam geometry of eqs. (3)-(6), vectorised.
+
+Frames (DESIGN.md section 2):
+- body B: FRD (x forward, y right, z down);
+- local L: NED, as MAVLink LOCAL_POSITION_NED; attitude is ATTITUDE's ZYX Euler (roll, pitch, yaw);
+- storage W: origin at a floor corner, x along the length, y along the width, z up.
+
+The beam at servo angle gamma points along d_B = [0, sin gamma, cos gamma] (gamma = 0 straight
+down, +90 deg to starboard): the sweep plane is perpendicular to forward flight (paper Fig. 1).
+A return at range r is  p_W = R_W<-NED (p_NED + R_NED<-B (r_B + r d_B)) + t_W,  the paper's
+eqs. (3)-(6) with the lever arm made explicit. R_NED<-B = Rz(yaw) Ry(pitch) Rx(roll), the standard
+aerospace ZYX sequence MAVLink uses (the paper's eq. (5) has a typo: the yaw matrix's last row is
+[0 0 1]).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def rot_body_to_ned(roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
+    """R_NED<-B for ZYX Euler angles; inputs broadcast, output shape (..., 3, 3)."""
+    cr, sr = np.cos(roll_rad), np.sin(roll_rad)
+    cp, sp = np.cos(pitch_rad), np.sin(pitch_rad)
+    cy, sy = np.cos(yaw_rad), np.sin(yaw_rad)
+    cr, sr, cp, sp, cy, sy = np.broadcast_arrays(cr, sr, cp, sp, cy, sy)
+    r = np.empty((*cr.shape, 3, 3))
+    r[..., 0, 0] = cy * cp
+    r[..., 0, 1] = cy * sp * sr - sy * cr
+    r[..., 0, 2] = cy * sp * cr + sy * sr
+    r[..., 1, 0] = sy * cp
+    r[..., 1, 1] = sy * sp * sr + cy * cr
+    r[..., 1, 2] = sy * sp * cr - cy * sr
+    r[..., 2, 0] = -sp
+    r[..., 2, 1] = cp * sr
+    r[..., 2, 2] = cp * cr
+    return r
+
+
+def beam_dir_body(servo_rad) -> np.ndarray:
+    """Unit beam direction in B for servo angle(s) gamma; shape (..., 3)."""
+    g = np.asarray(servo_rad, dtype=float)
+    return np.stack([np.zeros_like(g), np.sin(g), np.cos(g)], axis=-1)
+
+
+@dataclass(frozen=True)
+class StorageFrame:
+    """Placement of the storage frame W in the local NED frame.
+
+    Attributes:
+        origin_ned_m: the W origin (floor corner) in NED, m.
+        heading_rad: heading of W's x axis (the building's length), clockwise from north.
+    W's y axis is 90 deg to the left of x seen from above, so W is right-handed with z up.
+    """
+
+    origin_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    heading_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        vals = [*self.origin_ned_m, self.heading_rad]
+        if len(self.origin_ned_m) != 3 or not all(math.isfinite(v) for v in vals):
+            raise ValueError(f"storage frame must be finite: origin {self.origin_ned_m}, "
+                             f"heading {self.heading_rad}")
+
+    @property
+    def rot_w_from_ned(self) -> np.ndarray:
+        c, s = math.cos(self.heading_rad), math.sin(self.heading_rad)
+        return np.array([[c, s, 0.0], [s, -c, 0.0], [0.0, 0.0, -1.0]])
+
+    def ned_to_w(self, p_ned: np.ndarray) -> np.ndarray:
+        """Points (..., 3) from NED to W."""
+        return (np.asarray(p_ned, dtype=float) - np.asarray(self.origin_ned_m)) @ self.rot_w_from_ned.T
+
+    def w_to_ned(self, p_w: np.ndarray) -> np.ndarray:
+        """Points (..., 3) from W to NED (the rotation is its own inverse: symmetric, orthonormal)."""
+        return np.asarray(p_w, dtype=float) @ self.rot_w_from_ned + np.asarray(self.origin_ned_m)
+
+    def yaw_from_w_heading(self, course_w_rad):
+        """NED yaw of a vehicle pointing along a W-frame direction atan2(dy, dx)."""
+        return self.heading_rad - np.asarray(course_w_rad)
+
+    def to_dict(self) -> dict:
+        return {"origin_ned_m": list(self.origin_ned_m), "heading_rad": self.heading_rad}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> StorageFrame:
+        return cls(origin_ned_m=tuple(float(v) for v in d["origin_ned_m"]),
+                   heading_rad=float(d["heading_rad"]))
+
+
+def beam_rays_w(pos_ned_m: np.ndarray, roll_rad, pitch_rad, yaw_rad, servo_rad,
+                lever_arm_body_m, frame: StorageFrame) -> tuple[np.ndarray, np.ndarray]:
+    """Origins and unit directions, in W, of beams fired from the given poses.
+
+    Args:
+        pos_ned_m: (N, 3) vehicle position in NED.
+        roll_rad, pitch_rad, yaw_rad, servo_rad: (N,) angles.
+        lever_arm_body_m: (3,) sensor position relative to the centre of gravity, in B.
+        frame: the storage frame.
+    Returns:
+        (origins (N, 3), directions (N, 3)) in W.
+    """
+    r_nb = rot_body_to_ned(roll_rad, pitch_rad, yaw_rad)
+    r_wn = frame.rot_w_from_ned
+    r_wb = np.einsum("ij,njk->nik", r_wn, r_nb)
+    origins = frame.ned_to_w(pos_ned_m) + r_wb @ np.asarray(lever_arm_body_m, dtype=float)
+    dirs = np.einsum("nij,nj->ni", r_wb, beam_dir_body(servo_rad))
+    return origins, dirs
+
+
+def points_w(pos_ned_m, roll_rad, pitch_rad, yaw_rad, servo_rad, range_m, lever_arm_body_m,
+             frame: StorageFrame) -> np.ndarray:
+    """Eqs. (3)-(6): the (N, 3) points in W hit by beams of the given ranges."""
+    origins, dirs = beam_rays_w(pos_ned_m, roll_rad, pitch_rad, yaw_rad, servo_rad, lever_arm_body_m,
+                                frame)
+    return origins + dirs * np.asarray(range_m, dtype=float)[:, None]

@@ -1,0 +1,418 @@
+"""Crash-safe, append-only sample log: one record per LiDAR range.
+
+The payload process on the drone writes it; the ground station reads it. The
+format is built so that a power cut loses at most the last unfinished block, a
+damaged block is skipped and counted (never fatal), and the reader never raises
+on any bytes.
+
+File format
+-----------
+A sequence of framed blocks, nothing else (no file header outside the blocks)::
+
+    offset  size  field
+    0       4     MAGIC = b"PSLB"
+    4       1     kind: b"H" header, b"S" samples (other kinds: skipped, counted)
+    5       4     payload length, uint32 little-endian, at most MAX_PAYLOAD (16 MiB)
+    9       4     CRC32, uint32 little-endian: zlib.crc32(kind + length bytes + payload)
+    13      n     payload
+
+* The first block is the header: UTF-8 JSON object. The writer adds
+  ``"format": "pilescan-samplelog"``, ``"format_version": 1`` and ``"record_dtype"``
+  (``SAMPLE_DTYPE.descr`` as a JSON list of ``[name, typestr]`` pairs) to the
+  caller's dict. Only the first valid header block is used.
+* Sample blocks: payload is the raw little-endian bytes of ``SAMPLE_DTYPE``
+  records (packed, itemsize 59). A length that is not a multiple of the
+  itemsize makes the block corrupt.
+* Every block is flushed (and fsync'd) as a whole, so after a crash only the
+  final block can be incomplete.
+
+Reader accounting rules
+-----------------------
+A *candidate* is any occurrence of MAGIC; it is *framed* when its declared
+length is <= MAX_PAYLOAD, fits in the data and its CRC matches. Scanning resumes
+after a framed block, or at candidate + 1 after a failure. A *damaged region* is
+a maximal run of bytes between framed blocks (or the data ends); its bytes are
+counted in ``bytes_skipped``. An *expected boundary* is offset 0, the end of a
+framed block, or the declared end of a counted corrupt candidate.
+
+1. A failed candidate counts as one corrupt block only if it starts at an
+   expected boundary (so MAGIC-like bytes inside a damaged payload are not
+   counted again).
+2. A damaged region that does not begin with a candidate (e.g. a flipped magic
+   or leading garbage) counts as one corrupt block.
+3. A candidate whose declared extent runs past the end of the data (including
+   an incomplete 13-byte head) is the truncated final block
+   (``blocks_truncated = 1``) if no framed block follows it; if one does follow,
+   it counts as corrupt under rule 1. A trailing proper prefix of MAGIC at an
+   expected boundary is also a truncated block.
+4. A framed block whose content is unusable (header not a JSON object, sample
+   payload not a whole number of records) counts as corrupt; its bytes count as
+   skipped.
+
+``blocks_corrupt`` is therefore a lower bound on the number of blocks lost to
+damage; a length field damaged in the *final* block is indistinguishable from a
+power cut and reads as truncated.
+"""
+
+from __future__ import annotations
+
+import enum
+import io
+import json
+import os
+import struct
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+
+MAGIC = b"PSLB"
+KIND_HEADER = b"H"
+KIND_SAMPLES = b"S"
+MAX_PAYLOAD = 16 * 1024 * 1024
+FORMAT_NAME = "pilescan-samplelog"
+FORMAT_VERSION = 1
+
+_HEAD = struct.Struct("<4scII")  # magic, kind, payload length, crc32
+HEAD_SIZE = _HEAD.size  # 13
+
+SAMPLE_DTYPE = np.dtype([
+    ("t_s", "<f8"),         # companion clock time, s
+    ("range_m", "<f4"),     # measured range, m (meaningless when NO_RETURN is set)
+    ("servo_rad", "<f4"),   # servo angle gamma, rad (0 = straight down, + to the right/starboard)
+    ("sweep_dir", "i1"),    # +1 / -1 servo sweep direction at this sample
+    ("flags", "<u2"),       # SampleFlags
+    ("x_m", "<f8"), ("y_m", "<f8"), ("z_m", "<f8"),   # vehicle position, local NED, m
+    ("roll_rad", "<f4"), ("pitch_rad", "<f4"), ("yaw_rad", "<f4"),  # vehicle attitude, ZYX Euler, rad
+    ("pose_age_s", "<f4"),  # age of the pose data used to tag this sample, s
+])
+
+
+class SampleFlags(enum.IntFlag):
+    """Per-sample quality flags; any flag in EXCLUDE_FROM_CLOUD keeps a sample out of the cloud."""
+
+    NONE = 0
+    NO_RETURN = 1        # no valid echo (LIDAR-Lite reads 1 cm) or beyond max range
+    STALE_POSE = 2       # pose too old to vouch for
+    NO_POSE = 4          # no pose available at all
+    SENSOR_ERROR = 8     # bus error / timeout on this measurement
+    SERVO_UNCERTAIN = 16  # servo angle cannot be vouched for (stuck / slow servo)
+
+
+EXCLUDE_FROM_CLOUD = (
+    SampleFlags.NO_RETURN
+    | SampleFlags.STALE_POSE
+    | SampleFlags.NO_POSE
+    | SampleFlags.SENSOR_ERROR
+    | SampleFlags.SERVO_UNCERTAIN
+)
+
+_RESERVED_HEADER_KEYS = ("format", "format_version", "record_dtype")
+
+
+def new_records(n: int) -> np.ndarray:
+    """Zeroed records, so callers fill fields by name and never forget one."""
+    return np.zeros(n, dtype=SAMPLE_DTYPE)
+
+
+def encode_block(kind: bytes, payload: bytes) -> bytes:
+    """Frame one block; shared by the log writer and the live UDP stream."""
+    if not isinstance(kind, bytes | bytearray) or len(kind) != 1:
+        raise ValueError(f"block kind must be exactly one byte, got {kind!r}")
+    payload = bytes(payload)
+    if len(payload) > MAX_PAYLOAD:
+        raise ValueError(f"block payload of {len(payload)} bytes exceeds the {MAX_PAYLOAD} byte limit")
+    length = struct.pack("<I", len(payload))
+    crc = zlib.crc32(payload, zlib.crc32(bytes(kind) + length))
+    return MAGIC + bytes(kind) + length + struct.pack("<I", crc) + payload
+
+
+# --------------------------------------------------------------------------- writer
+
+
+def _validated_header(header: Any) -> bytes:
+    """Header payload bytes; rejected up front so a bad header never produces a half-written log."""
+    if not isinstance(header, dict):
+        raise ValueError(f"header must be a dict, got {type(header).__name__}: {header!r}")
+    clash = [k for k in _RESERVED_HEADER_KEYS if k in header]
+    if clash:
+        raise ValueError(f"header keys {clash} are reserved for the writer")
+    full = {**header, "format": FORMAT_NAME, "format_version": FORMAT_VERSION,
+            "record_dtype": [list(pair) for pair in SAMPLE_DTYPE.descr]}
+    try:
+        text = json.dumps(full, allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"header is not JSON-serialisable ({exc}): {header!r}") from exc
+    return text.encode("utf-8")
+
+
+def _validated_block_size(records_per_block: Any) -> int:
+    """records_per_block must give 1 .. MAX_PAYLOAD bytes of records per block."""
+    limit = MAX_PAYLOAD // SAMPLE_DTYPE.itemsize
+    ok_type = isinstance(records_per_block, int | np.integer) and not isinstance(records_per_block, bool)
+    if not ok_type or not 1 <= records_per_block <= limit:
+        raise ValueError(f"records_per_block must be an int in [1, {limit}], got {records_per_block!r}")
+    return int(records_per_block)
+
+
+def _as_records(records: Any) -> np.ndarray:
+    """1-D SAMPLE_DTYPE view of the input; no silent casts, since a wrong layout is a caller bug."""
+    if isinstance(records, np.void):
+        records = np.asarray(records)
+    if not isinstance(records, np.ndarray):
+        raise TypeError(f"records must be a numpy array of SAMPLE_DTYPE, got {type(records).__name__}")
+    if records.dtype != SAMPLE_DTYPE:
+        raise TypeError(f"records must have dtype SAMPLE_DTYPE, got {records.dtype}")
+    if records.ndim > 1:
+        raise ValueError(f"records must be 1-D (or a single record), got shape {records.shape}")
+    return records.reshape(-1)
+
+
+class SampleLogWriter:
+    """Append-only writer; each full block is flushed and fsync'd so a power cut costs <= one block.
+
+    ``fsync=False`` skips every os.fsync (header included) for tests and non-critical logs.
+    ``records_written`` counts records already in the file; ``records_pending`` those still buffered.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], header: dict, records_per_block: int = 500,
+                 fsync: bool = True, *, overwrite: bool = False) -> None:
+        header_payload = _validated_header(header)
+        self._buf = new_records(_validated_block_size(records_per_block))
+        self._fill = 0
+        self._written = 0
+        self._fsync = bool(fsync)
+        self._file: BinaryIO | None = open(path, "wb" if overwrite else "xb")
+        try:
+            self._write_block(KIND_HEADER, header_payload)
+        except BaseException:
+            self._file.close()
+            self._file = None
+            raise
+
+    @property
+    def records_written(self) -> int:
+        """Records already written to the file (buffered ones excluded)."""
+        return self._written
+
+    @property
+    def records_pending(self) -> int:
+        """Records buffered for the next block."""
+        return self._fill
+
+    @property
+    def closed(self) -> bool:
+        return self._file is None
+
+    def append(self, records: np.ndarray | np.void) -> None:
+        """Buffer records, writing every block as soon as it fills."""
+        recs = _as_records(records)
+        if self._file is None:
+            raise ValueError("append() on a closed SampleLogWriter")
+        cap = len(self._buf)
+        i = 0
+        while i < len(recs):
+            take = min(cap - self._fill, len(recs) - i)
+            self._buf[self._fill:self._fill + take] = recs[i:i + take]
+            self._fill += take
+            i += take
+            if self._fill == cap:
+                self._write_samples()
+
+    def flush(self) -> None:
+        """Write buffered records as a (shorter) block, making them crash-safe now."""
+        if self._fill and self._file is not None:
+            self._write_samples()
+
+    def close(self) -> None:
+        """Flush and close; safe to call repeatedly."""
+        if self._file is None:
+            return
+        try:
+            self.flush()
+        finally:
+            self._file.close()
+            self._file = None
+
+    def __enter__(self) -> SampleLogWriter:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def _write_samples(self) -> None:
+        self._write_block(KIND_SAMPLES, self._buf[:self._fill].tobytes())
+        self._written += self._fill
+        self._fill = 0
+
+    def _write_block(self, kind: bytes, payload: bytes) -> None:
+        """Whole block, then flush + fsync: the durability boundary is the block."""
+        if self._file is None:
+            raise ValueError("write on a closed SampleLogWriter")
+        self._file.write(encode_block(kind, payload))
+        self._file.flush()
+        if self._fsync:
+            os.fsync(self._file.fileno())
+
+
+# --------------------------------------------------------------------------- reader
+
+
+@dataclass(frozen=True, eq=False)  # eq=False: array fields make == ambiguous
+class SampleLog:
+    """What could be recovered from a log, plus how much could not."""
+
+    header: dict | None
+    samples: np.ndarray
+    blocks_ok: int
+    blocks_corrupt: int
+    blocks_truncated: int
+    bytes_skipped: int
+    blocks_unknown: int = 0
+
+    @property
+    def intact(self) -> bool:
+        """True when nothing was lost (unknown block kinds are forward-compatible, not damage)."""
+        return self.blocks_corrupt == 0 and self.blocks_truncated == 0
+
+
+_FRAMED, _FAILED, _PAST_EOF = 0, 1, 2
+
+
+class _Scanner:
+    """One pass over the bytes; state lives here so each step stays a small method."""
+
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+        self.view = memoryview(data)
+        self.n = len(data)
+        self.header: dict | None = None
+        self.chunks: list[memoryview] = []
+        self.ok = self.corrupt = self.truncated = self.unknown = self.skipped = 0
+        self._start_region(0)
+
+    def _start_region(self, start: int) -> None:
+        self.region_start = start
+        self.expected = {start}
+        self.pending_past_eof = False  # some candidate ran past EOF
+        self.pending_expected = False  # ... and one of them sat on an expected boundary
+
+    def run(self) -> SampleLog:
+        pos = 0
+        while pos < self.n:
+            i = self.data.find(MAGIC, pos)
+            if i < 0:
+                break
+            pos = self._candidate(i)
+        self._end_region(self.n, at_eof=True)
+        return self._result()
+
+    def _candidate(self, i: int) -> int:
+        """Classify the candidate at i; return where scanning resumes."""
+        status, end = self._frame(i)
+        if status == _FRAMED:
+            self._end_region(i, at_eof=False)
+            self._accept(i, end)
+            self._start_region(end)
+            return end
+        at_expected = i in self.expected
+        if status == _PAST_EOF:
+            self.pending_past_eof = True
+            self.pending_expected |= at_expected
+        elif at_expected:
+            self.corrupt += 1
+            if end is not None:
+                self.expected.add(end)
+        return i + 1
+
+    def _frame(self, i: int) -> tuple[int, int | None]:
+        """(status, declared end) of the candidate block at i."""
+        if self.n - i < HEAD_SIZE:
+            return _PAST_EOF, None
+        _, _, length, crc = _HEAD.unpack_from(self.data, i)
+        if length > MAX_PAYLOAD:
+            return _FAILED, None
+        end = i + HEAD_SIZE + length
+        if end > self.n:
+            return _PAST_EOF, None
+        actual = zlib.crc32(self.view[i + HEAD_SIZE:end], zlib.crc32(self.view[i + 4:i + 9]))
+        return (_FRAMED if actual == crc else _FAILED), end
+
+    def _end_region(self, stop: int, at_eof: bool) -> None:
+        """Apply rules 2 and 3 to the damaged region [region_start, stop)."""
+        start = self.region_start
+        if stop <= start:
+            return
+        self.skipped += stop - start
+        if at_eof and (self.pending_past_eof or self._magic_prefix_at_eof()):
+            self.truncated = 1
+        elif not at_eof and self.pending_expected:
+            self.corrupt += 1
+        if self.data[start:start + len(MAGIC)] != MAGIC and not (at_eof and self._magic_prefix_at_eof()):
+            self.corrupt += 1
+
+    def _magic_prefix_at_eof(self) -> bool:
+        """A cut inside the 4 magic bytes of the final block."""
+        return any(0 < self.n - e < len(MAGIC) and MAGIC.startswith(self.data[e:]) for e in self.expected)
+
+    def _accept(self, i: int, end: int) -> None:
+        """Use a framed block according to its kind (rule 4 for unusable content)."""
+        kind = self.data[i + 4:i + 5]
+        payload = self.view[i + HEAD_SIZE:end]
+        if kind == KIND_SAMPLES:
+            usable = len(payload) % SAMPLE_DTYPE.itemsize == 0
+            if usable:
+                self.chunks.append(payload)
+        elif kind == KIND_HEADER:
+            usable = self._take_header(payload)
+        else:
+            self.unknown += 1
+            return
+        if usable:
+            self.ok += 1
+        else:
+            self.corrupt += 1
+            self.skipped += end - i
+
+    def _take_header(self, payload: memoryview) -> bool:
+        """Decode a header block; only the first valid one is kept."""
+        try:
+            obj = json.loads(bytes(payload).decode("utf-8"))
+        except (ValueError, RecursionError):
+            return False
+        if not isinstance(obj, dict):
+            return False
+        if self.header is None:
+            self.header = obj
+        return True
+
+    def _result(self) -> SampleLog:
+        parts = [np.frombuffer(c, dtype=SAMPLE_DTYPE) for c in self.chunks]
+        samples = np.concatenate(parts) if parts else new_records(0)
+        return SampleLog(self.header, samples, self.ok, self.corrupt, self.truncated,
+                         self.skipped, self.unknown)
+
+
+def _read_source(source: Any) -> bytes:
+    """All bytes of a path, bytes-like object or binary file object."""
+    if isinstance(source, bytes):
+        return source
+    if isinstance(source, bytearray | memoryview):
+        return bytes(source)
+    if isinstance(source, str | os.PathLike):
+        return Path(source).read_bytes()
+    read = getattr(source, "read", None)
+    if read is None or isinstance(source, io.TextIOBase):
+        kind = type(source).__name__
+        raise TypeError(f"source must be a path, bytes-like or binary file object, got {kind}")
+    data = read()
+    if not isinstance(data, bytes | bytearray | memoryview):
+        raise TypeError(f"file object returned {type(data).__name__}, open it in binary mode")
+    return bytes(data)
+
+
+def read_samplelog(source: str | os.PathLike[str] | bytes | bytearray | memoryview | BinaryIO) -> SampleLog:
+    """Recover everything recoverable; never raises on content (only OSError for unreadable paths)."""
+    return _Scanner(_read_source(source)).run()

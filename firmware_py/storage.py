@@ -1,0 +1,53 @@
+"""The storage building: a closed rectangular box in the storage frame W.
+
+Part of the sample-log header contract, so it lives beside the log: the SITL builds the world
+from it and the ground station removes walls and roof with it.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Storage:
+    """Inside dimensions of the building, m: x in [0, length], y in [0, width], z in [0, height]."""
+
+    length_m: float = 60.0
+    width_m: float = 40.0
+    height_m: float = 15.0
+
+    def __post_init__(self) -> None:
+        for name in ("length_m", "width_m", "height_m"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.5 <= v <= 10_000):
+                raise ValueError(f"storage {name.removesuffix('_m')} must be 0.5-10000 m, got {v}")
+
+    @property
+    def floor_area_m2(self) -> float:
+        return self.length_m * self.width_m
+
+    def to_dict(self) -> dict:
+        return {"length_m": self.length_m, "width_m": self.width_m, "height_m": self.height_m}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Storage:
+        return cls(float(d["length_m"]), float(d["width_m"]), float(d["height_m"]))
+
+    @classmethod
+    def parse(cls, text: str) -> Storage:
+        """Parse 'LxWxH' in metres, e.g. '60x40x15'."""
+        m = re.fullmatch(r"\s*([0-9.eE+-]+)\s*[xX*]\s*([0-9.eE+-]+)\s*[xX*]\s*([0-9.eE+-]+)\s*", text)
+        if not m:
+            raise ValueError(f"storage must look like LxWxH in metres (e.g. 60x40x15), got {text!r}")
+        try:
+            vals = [float(g) for g in m.groups()]
+        except ValueError:
+            raise ValueError(f"storage must look like LxWxH in metres (e.g. 60x40x15), got {text!r}") \
+                from None
+        return cls(*vals)
+
+    def __str__(self) -> str:
+        return f"{self.length_m:g}x{self.width_m:g}x{self.height_m:g} m"

@@ -1,0 +1,64 @@
+"""`pilescan-ground`: turn a survey's sample log into a volume report."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+
+from firmware_py.cli_util import ArgumentParser, UserError, finite_float, run_cli
+from ground.report import ReportOptions, make_report
+from ground.surface import DEFAULT_CELL_M, EMPTY_CELL_POLICIES
+
+
+def build_parser() -> ArgumentParser:
+    ap = ArgumentParser(prog="pilescan-ground", description=__doc__)
+    sub = ap.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
+    r = sub.add_parser("report", help="volume report from a run directory or a sample log")
+    r.add_argument("source", metavar="RUN_DIR_OR_LOG", help="run directory (reads truth.json too) or .pslog")
+    r.add_argument("--out", required=True, help="report directory to write")
+    r.add_argument("--truth-volume", type=finite_float, metavar="M3",
+                   help="known true volume, m^3 (overrides truth.json), for Ve (eq. 8)")
+    r.add_argument("--cell", type=finite_float, default=DEFAULT_CELL_M, metavar="M",
+                   help=f"grid cell side for eq. (7), m (default {DEFAULT_CELL_M})")
+    r.add_argument("--empty-cells", choices=EMPTY_CELL_POLICIES, default="leave",
+                   help="cells outside the fitted surface: leave (no volume, the paper) or nearest "
+                        "(extend the surface to the walls)")
+    r.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    r.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    return ap
+
+
+def format_summary(rep: dict) -> str:
+    def pct(v):
+        return "unknown" if v is None else f"{v:.2f} %"
+    truth = rep.get("true_volume_m3")
+    lines = [
+        f"volume        {rep['volume_m3']:12.1f} m^3",
+        f"truth         {'unknown' if truth is None else f'{truth:12.1f} m^3'}",
+        f"Ve (eq. 8)    {pct(rep.get('volume_error_pct')):>12}",
+        f"R_a (eq. 9)   {pct(rep.get('coverage_ratio_pct')):>12}",
+        f"points used   {rep['n_points_used']:12d} of {rep['n_samples']} samples",
+    ]
+    lines += [f"WARNING: {w}" for w in rep.get("warnings", [])]
+    return "\n".join(lines)
+
+
+def _report(args) -> int:
+    if args.truth_volume is not None and args.truth_volume <= 0:
+        raise UserError(f"--truth-volume must be > 0 m^3, got {args.truth_volume:g}")
+    opts = ReportOptions(cell_m=args.cell, empty_cells=args.empty_cells, plots=not args.no_plots,
+                         truth_volume_m3=args.truth_volume)
+    rep = make_report(args.source, args.out, opts)
+    if not args.quiet:
+        print(format_summary(rep))
+        print(f"report written to {args.out} ({rep['elapsed_s']:.2f} s)", file=sys.stderr)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return run_cli("pilescan-ground", lambda: _report(args))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

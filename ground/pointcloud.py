@@ -1,0 +1,91 @@
+"""Samples -> point cloud in the storage frame (eqs. 3-6), and removal of walls and roof.
+
+Walls and roof are removed from the storage dimensions in the log header, with a per-point
+tolerance derived from the sensor's own error model (also in the header): a point is structure
+when it lies within its expected error of a wall or roof plane. No hand-set crop, so the same code
+serves any building and any sensor.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from firmware_py.frames import StorageFrame, beam_rays_w
+from firmware_py.samplelog import EXCLUDE_FROM_CLOUD
+from firmware_py.storage import Storage
+
+N_SIGMA = 3.0
+"""Points within N_SIGMA expected errors of a wall or roof plane are taken as structure."""
+
+
+@dataclass(frozen=True)
+class SensorErrorModel:
+    """1-sigma errors, as the log header states them (all may be 0 for an ideal simulated sensor)."""
+
+    range_sigma_m: float = 0.0
+    range_sigma_rel: float = 0.0
+    resolution_m: float = 0.01
+    position_sigma_m: float = 0.0
+
+    @classmethod
+    def from_header(cls, header: dict) -> SensorErrorModel:
+        s = header.get("sensor", {}) or {}
+        pose = header.get("pose", {}) or {}
+        return cls(float(s.get("range_sigma_m", 0.0)), float(s.get("range_sigma_rel", 0.0)),
+                   float(s.get("resolution_m", 0.01)), float(pose.get("position_sigma_m", 0.0)))
+
+    def range_sigma(self, range_m: np.ndarray) -> np.ndarray:
+        return np.maximum(self.range_sigma_m, self.range_sigma_rel * np.asarray(range_m))
+
+
+@dataclass(frozen=True)
+class Cloud:
+    """Points in W with the beam geometry that produced them.
+
+    Attributes:
+        points_w: (N, 3) hit points of usable samples.
+        dirs_w: (N, 3) unit beam directions.
+        range_m: (N,) ranges.
+        path_w: (M, 3) vehicle positions of all samples (the flown path).
+        n_samples: samples in the log.
+        n_excluded: samples flagged unusable (no return, stale pose, ...) or non-finite.
+    """
+
+    points_w: np.ndarray
+    dirs_w: np.ndarray
+    range_m: np.ndarray
+    path_w: np.ndarray
+    n_samples: int
+    n_excluded: int
+
+
+def cloud_from_samples(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame) -> Cloud:
+    """Eqs. (3)-(6) for every usable sample (flags clear of EXCLUDE_FROM_CLOUD, all fields finite)."""
+    pos = np.column_stack([samples["x_m"], samples["y_m"], samples["z_m"]]).astype(float)
+    fields = [samples[k].astype(float) for k in ("roll_rad", "pitch_rad", "yaw_rad", "servo_rad", "range_m")]
+    finite = np.isfinite(pos).all(axis=1) & np.logical_and.reduce([np.isfinite(f) for f in fields])
+    usable = finite & ((samples["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0) & (samples["range_m"] > 0)
+    roll, pitch, yaw, gamma, rng = (f[usable] for f in fields)
+    origins, dirs = beam_rays_w(pos[usable], roll, pitch, yaw, gamma, lever_arm_body_m, frame)
+    path = frame.ned_to_w(pos[np.isfinite(pos).all(axis=1)])
+    return Cloud(origins + dirs * rng[:, None], dirs, rng, path, len(samples),
+                 int(len(samples) - usable.sum()))
+
+
+def structure_mask(cloud: Cloud, storage: Storage, err: SensorErrorModel) -> np.ndarray:
+    """True for points on a wall or the roof (or outside the building, which only noise puts there).
+
+    A point's tolerance along a plane normal n is its range error projected on n,
+    N_SIGMA * sigma_r(r) * |d . n| plus half the range resolution, plus N_SIGMA position sigmas.
+    """
+    p, d = cloud.points_w, cloud.dirs_w
+    along = N_SIGMA * err.range_sigma(cloud.range_m) + 0.5 * err.resolution_m
+    slack = N_SIGMA * err.position_sigma_m + 1e-3
+    tol_x = along * np.abs(d[:, 0]) + slack
+    tol_y = along * np.abs(d[:, 1]) + slack
+    tol_z = along * np.abs(d[:, 2]) + slack
+    return ((p[:, 0] <= tol_x) | (p[:, 0] >= storage.length_m - tol_x)
+            | (p[:, 1] <= tol_y) | (p[:, 1] >= storage.width_m - tol_y)
+            | (p[:, 2] >= storage.height_m - tol_z))

@@ -1,0 +1,463 @@
+"""Report rendering: report.md, a self-contained report.html, and a PLY point cloud.
+
+The report dict comes from the ground pipeline; any headline key may be missing or None (a SITL
+run knows the true volume, a real survey does not), so every value is rendered defensively and
+shown as "unknown" rather than dropped or raising. Both text formats are built from one
+`ReportContent`, so Markdown and HTML cannot disagree on a number.
+
+The HTML is one file with images inlined as base64 data URIs and no external resources: it must
+open identically on a site laptop with no network, and be mailable as a single attachment. Every
+string that came from the report is HTML-escaped (warnings may quote log contents).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import math
+import numbers
+import os
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote
+
+import numpy as np
+
+ImageMap = Mapping[str, str | Path]
+"""Image name (e.g. "cloud_top", "height_map", "coverage") -> image file."""
+
+REPORT_TITLE = "pilescan volume report"
+UNKNOWN = "unknown"
+
+SUMMARY_KEYS: tuple[str, ...] = (
+    "volume_m3",
+    "true_volume_m3",
+    "volume_error_pct",
+    "coverage_ratio_pct",
+    "n_samples",
+    "n_points_used",
+    "n_points_removed_walls",
+    "cell_size_m",
+    "empty_cell_policy",
+    "storage",
+    "log",
+    "source",
+    "software_version",
+    "elapsed_s",
+)
+"""Headline keys, in table order; every other top-level key (except warnings) goes to "All figures"."""
+
+_SUMMARY_LABELS: dict[str, str] = {
+    "volume_m3": "Stockpile volume",
+    "true_volume_m3": "True volume (reference)",
+    "volume_error_pct": "Volume error Ve (eq. 8)",
+    "coverage_ratio_pct": "Area coverage ratio R_a (eq. 9)",
+    "n_samples": "LiDAR samples",
+    "n_points_used": "Points used for the surface",
+    "n_points_removed_walls": "Points removed (walls/roof)",
+    "cell_size_m": "Grid cell size",
+    "empty_cell_policy": "Empty-cell policy",
+    "storage": "Storage L × W × H",
+    "log": "Log blocks",
+    "source": "Source",
+    "software_version": "Software version",
+    "elapsed_s": "Processing time",
+}
+
+_CLOUD_CAPTION = "Point cloud, top view (coloured by height, flight path in black)"
+_IMAGE_CAPTIONS: dict[str, str] = {
+    "cloud": _CLOUD_CAPTION,
+    "cloud_top": _CLOUD_CAPTION,
+    "height_map": "Fitted height map (white: no surface)",
+    "coverage": "Coverage: points per cell (white: no points), fitted-surface boundary outlined",
+}
+
+METHOD_TEXT = (
+    "Each LiDAR range sample is turned into a point in the storage frame from the drone position "
+    "and attitude and the servo angle of the swept beam (eqs. 3-6 of Alsayed & Nabawy, Drones 2022, "
+    "6, 386). Returns from the walls and the roof are removed using the known storage dimensions, "
+    "leaving the floor and the stockpile. A piecewise-cubic Clough-Tocher surface is fitted to the "
+    "remaining points over their Delaunay triangulation and evaluated on a regular grid; the volume "
+    "is the sum over grid cells of surface height times cell area (eq. 7). Cells outside the "
+    "triangulation have no surface and are treated by the empty-cell policy above. When a reference "
+    "volume is known, the volume error Ve is the absolute difference between the measured and the "
+    "true volume as a percentage of the true volume (eq. 8). The area coverage ratio R_a is the "
+    "projected area of the fitted surface as a percentage of the storage floor area (eq. 9)."
+)
+
+_IMAGE_MIME: dict[str, str] = {
+    ".png": "image/png",
+    ".jpg": "image/jpeg",
+    ".jpeg": "image/jpeg",
+    ".gif": "image/gif",
+    ".svg": "image/svg+xml",
+}
+
+_MAX_INLINE_LIST = 12
+"""Longer lists/arrays are summarised by length in "All figures" instead of printed."""
+
+
+# ------------------------------------------------------------------------------------ number format
+
+
+def _is_missing(v: Any) -> bool:
+    return v is None
+
+
+def _finite_real(v: Any) -> float | None:
+    """The value as a finite float, or None when it is not a real number (or NaN/inf)."""
+    if isinstance(v, bool | np.bool_) or not isinstance(v, numbers.Real):
+        return None
+    f = float(v)
+    return f if math.isfinite(f) else None
+
+
+def fmt_value(v: Any) -> str:
+    """Generic formatting for values without a known unit: ints with separators, floats to 6 digits."""
+    if _is_missing(v):
+        return UNKNOWN
+    if isinstance(v, bool | np.bool_):
+        return "yes" if v else "no"
+    if isinstance(v, numbers.Integral):
+        return f"{int(v):,d}"
+    if isinstance(v, numbers.Real):
+        f = float(v)
+        return f"{f:,.6g}" if math.isfinite(f) else str(f)
+    if isinstance(v, str | Path):
+        return str(v)
+    if isinstance(v, np.ndarray):
+        if v.size > _MAX_INLINE_LIST:
+            return f"array {v.dtype} shape {v.shape}"
+        return "[" + ", ".join(fmt_value(x) for x in v.ravel().tolist()) + "]"
+    if isinstance(v, list | tuple | set | frozenset):
+        items = list(v)
+        if len(items) > _MAX_INLINE_LIST:
+            return f"[{len(items):,} items]"
+        return "[" + ", ".join(fmt_value(x) for x in items) + "]"
+    return str(v)
+
+
+def _fmt_number(v: Any, spec: str, unit: str = "") -> str:
+    """Format a real number with `spec` and unit; None -> unknown; anything else generically."""
+    if _is_missing(v):
+        return UNKNOWN
+    f = _finite_real(v)
+    if f is None:
+        return fmt_value(v)
+    return f"{f:{spec}}{unit}"
+
+
+def fmt_volume(v: Any) -> str:
+    return _fmt_number(v, ",.1f", " m³")
+
+
+def fmt_pct(v: Any) -> str:
+    return _fmt_number(v, ".2f", " %")
+
+
+def fmt_count(v: Any) -> str:
+    if _is_missing(v):
+        return UNKNOWN
+    f = _finite_real(v)
+    if f is None or f != int(f):
+        return fmt_value(v)
+    return f"{int(f):,d}"
+
+
+def _fmt_storage(v: Any) -> str:
+    if not isinstance(v, Mapping):
+        return fmt_value(v)
+    dims = [_fmt_number(v.get(k), ".2f", " m") for k in ("length_m", "width_m", "height_m")]
+    return " × ".join(dims)
+
+
+def _fmt_log(v: Any) -> str:
+    if not isinstance(v, Mapping):
+        return fmt_value(v)
+    parts = [f"{fmt_count(v.get(k))} {name}" for k, name in
+             (("blocks_ok", "ok"), ("blocks_corrupt", "corrupt"), ("blocks_truncated", "truncated"))]
+    return ", ".join(parts)
+
+
+_SUMMARY_FORMAT = {
+    "volume_m3": fmt_volume,
+    "true_volume_m3": fmt_volume,
+    "volume_error_pct": fmt_pct,
+    "coverage_ratio_pct": fmt_pct,
+    "n_samples": fmt_count,
+    "n_points_used": fmt_count,
+    "n_points_removed_walls": fmt_count,
+    "cell_size_m": lambda v: _fmt_number(v, ".3f", " m"),
+    "empty_cell_policy": fmt_value,
+    "storage": _fmt_storage,
+    "log": _fmt_log,
+    "source": fmt_value,
+    "software_version": fmt_value,
+    "elapsed_s": lambda v: _fmt_number(v, ",.2f", " s"),
+}
+
+
+def flatten(d: Mapping[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
+    """Nested mappings -> [(dotted.name, leaf value)], in insertion order."""
+    out: list[tuple[str, Any]] = []
+    for k, v in d.items():
+        name = f"{prefix}.{k}" if prefix else str(k)
+        if isinstance(v, Mapping) and len(v) > 0:
+            out.extend(flatten(v, name))
+        else:
+            out.append((name, "{}" if isinstance(v, Mapping) else v))
+    return out
+
+
+# ------------------------------------------------------------------------------------ content model
+
+
+@dataclass
+class ReportContent:
+    """Everything both renderers print, already formatted as plain (unescaped) strings."""
+
+    headline: str
+    warnings: list[str]
+    summary: list[tuple[str, str]]
+    images: list[tuple[str, Path]] = field(default_factory=list)
+    method: str = METHOD_TEXT
+    extra: list[tuple[str, str]] = field(default_factory=list)
+
+
+def _warnings(report: Mapping[str, Any]) -> list[str]:
+    w = report.get("warnings")
+    if w is None:
+        return []
+    if isinstance(w, str):
+        return [w]
+    if isinstance(w, Iterable):
+        return [str(x) for x in w]
+    return [str(w)]
+
+
+def _image_caption(name: str) -> str:
+    return _IMAGE_CAPTIONS.get(name, name.replace("_", " ").strip().capitalize() or "Figure")
+
+
+def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportContent:
+    """Format the report once, for both Markdown and HTML."""
+    summary = [(_SUMMARY_LABELS[k], _SUMMARY_FORMAT[k](report.get(k))) for k in SUMMARY_KEYS]
+    handled = {*SUMMARY_KEYS, "warnings"}
+    extra_items = {k: v for k, v in report.items() if k not in handled}
+    extra = [(name, fmt_value(v)) for name, v in flatten(extra_items)]
+    return ReportContent(
+        headline=f"Stockpile volume: {fmt_volume(report.get('volume_m3'))}",
+        warnings=_warnings(report),
+        summary=summary,
+        images=[(_image_caption(str(n)), Path(p)) for n, p in (images or {}).items()],
+        extra=extra,
+    )
+
+
+# ------------------------------------------------------------------------------------------ markdown
+
+
+def _md_text(s: str) -> str:
+    """Neutralise characters that would become HTML or break a table row when a viewer renders."""
+    s = s.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+    return " ".join(s.replace("|", "\\|").splitlines())
+
+
+def _md_table(header: tuple[str, str], rows: list[tuple[str, str]]) -> list[str]:
+    lines = [f"| {header[0]} | {header[1]} |", "|---|---|"]
+    lines += [f"| {_md_text(k)} | {_md_text(v)} |" for k, v in rows]
+    return lines
+
+
+def _relative_ref(image: Path, out_dir: Path) -> str:
+    """Image reference relative to the report, URL-quoted (spaces etc.), POSIX separators."""
+    try:
+        rel = os.path.relpath(image.resolve(), out_dir.resolve())
+    except ValueError:  # different drive on Windows
+        rel = image.name
+    return quote(Path(rel).as_posix())
+
+
+def render_markdown(content: ReportContent, out_dir: Path) -> str:
+    """The report.md text; image links are relative to `out_dir`."""
+    lines = [f"# {REPORT_TITLE}", "", f"**{_md_text(content.headline)}**", ""]
+    lines += ["## Warnings", ""]
+    if content.warnings:
+        n = len(content.warnings)
+        lines += [f"> **⚠ {n} warning{'s' if n != 1 else ''}: read before using the volume.**", ">"]
+        lines += [f"> - {_md_text(w)}" for w in content.warnings]
+    else:
+        lines += ["No warnings."]
+    lines += ["", "## Summary", ""]
+    lines += _md_table(("Quantity", "Value"), content.summary)
+    if content.images:
+        lines += ["", "## Figures"]
+        for caption, path in content.images:
+            alt = _md_text(caption).replace("[", "\\[").replace("]", "\\]")
+            lines += ["", f"### {_md_text(caption)}", "", f"![{alt}]({_relative_ref(path, out_dir)})"]
+            if not path.is_file():
+                lines += ["", f"*Image not found: {_md_text(path.name)}*"]
+    lines += ["", "## Method", "", content.method]
+    if content.extra:
+        lines += ["", "## All figures", ""]
+        lines += _md_table(("Name", "Value"), content.extra)
+    return "\n".join(lines) + "\n"
+
+
+def write_markdown(report: Mapping[str, Any], images: ImageMap | None, out_path: str | Path) -> Path:
+    """Write the human-readable report.md; images are referenced by path relative to it."""
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(render_markdown(build_content(report, images), out.parent), encoding="utf-8")
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- html
+
+_CSS = """
+body { font-family: system-ui, -apple-system, "Segoe UI", Roboto, Helvetica, Arial, sans-serif;
+       max-width: 60rem; margin: 2rem auto; padding: 0 1rem; color: #1b1b1b; line-height: 1.45; }
+h1 { border-bottom: 2px solid #444; padding-bottom: .3rem; }
+.headline { font-size: 1.4rem; font-weight: 600; }
+.warnings { background: #fff3cd; border: 2px solid #d39e00; border-left-width: .6rem;
+            padding: .6rem 1rem; border-radius: .3rem; color: #5c4300; }
+.warnings h2 { margin-top: .2rem; color: #8a5a00; }
+.ok { color: #2d6a2d; }
+table { border-collapse: collapse; margin: .5rem 0 1rem; }
+th, td { border: 1px solid #bbb; padding: .25rem .6rem; text-align: left; vertical-align: top; }
+th { background: #eee; }
+td.num { font-variant-numeric: tabular-nums; }
+figure { margin: 1rem 0; }
+figure img { max-width: 100%; height: auto; border: 1px solid #ddd; }
+figcaption { font-size: .9rem; color: #555; }
+.missing { color: #a00; font-style: italic; }
+"""
+
+
+def _e(s: str) -> str:
+    return html.escape(s, quote=True)
+
+
+def _html_table(header: tuple[str, str], rows: list[tuple[str, str]]) -> list[str]:
+    out = ["<table>", f"<tr><th>{_e(header[0])}</th><th>{_e(header[1])}</th></tr>"]
+    out += [f'<tr><td>{_e(k)}</td><td class="num">{_e(v)}</td></tr>' for k, v in rows]
+    out.append("</table>")
+    return out
+
+
+def _data_uri(path: Path) -> str | None:
+    """base64 data URI for an image file, or None if it cannot be read."""
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    mime = _IMAGE_MIME.get(path.suffix.lower(), "image/png")
+    return f"data:{mime};base64,{base64.b64encode(data).decode('ascii')}"
+
+
+def render_html(content: ReportContent) -> str:
+    """The self-contained report.html text (inline CSS, inlined images, nothing fetched)."""
+    parts = [
+        "<!DOCTYPE html>",
+        '<html lang="en">',
+        "<head>",
+        '<meta charset="utf-8">',
+        '<meta name="viewport" content="width=device-width, initial-scale=1">',
+        f"<title>{_e(REPORT_TITLE)}</title>",
+        f"<style>{_CSS}</style>",
+        "</head>",
+        "<body>",
+        f"<h1>{_e(REPORT_TITLE)}</h1>",
+        f'<p class="headline">{_e(content.headline)}</p>',
+    ]
+    if content.warnings:
+        n = len(content.warnings)
+        parts += [
+            '<section class="warnings" role="alert">',
+            f"<h2>⚠ Warnings ({n}): read before using the volume</h2>",
+            "<ul>",
+            *(f"<li>{_e(w)}</li>" for w in content.warnings),
+            "</ul>",
+            "</section>",
+        ]
+    else:
+        parts += ["<h2>Warnings</h2>", '<p class="ok">No warnings.</p>']
+    parts += ["<h2>Summary</h2>", *_html_table(("Quantity", "Value"), content.summary)]
+    if content.images:
+        parts.append("<h2>Figures</h2>")
+        for caption, path in content.images:
+            uri = _data_uri(path)
+            if uri is None:
+                parts.append(f'<p class="missing">Image not found: {_e(caption)} ({_e(path.name)})</p>')
+            else:
+                parts.append(
+                    f'<figure><img alt="{_e(caption)}" src="{uri}">'
+                    f"<figcaption>{_e(caption)}</figcaption></figure>"
+                )
+    parts += ["<h2>Method</h2>", f"<p>{_e(content.method)}</p>"]
+    if content.extra:
+        parts += ["<h2>All figures</h2>", *_html_table(("Name", "Value"), content.extra)]
+    parts += ["</body>", "</html>"]
+    return "\n".join(parts) + "\n"
+
+
+def write_html(report: Mapping[str, Any], images: ImageMap | None, out_path: str | Path) -> Path:
+    """Write report.html: one self-contained file with the same content as report.md."""
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(render_html(build_content(report, images)), encoding="utf-8")
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- ply
+
+_PLY_COLOR_CMAP = "viridis"
+
+
+def height_colors(z: np.ndarray, cmap: str = _PLY_COLOR_CMAP) -> np.ndarray:
+    """(N, 4) uint8 RGBA for heights z, min..max mapped over the colormap (same look as the plots)."""
+    from matplotlib import colormaps
+
+    z = np.asarray(z, dtype=float)
+    if z.size == 0:
+        return np.empty((0, 4), dtype=np.uint8)
+    lo, hi = float(z.min()), float(z.max())
+    t = (z - lo) / (hi - lo) if hi > lo else np.full(z.shape, 0.5)
+    return colormaps[cmap](t, bytes=True)
+
+
+def _empty_ply_header(with_color: bool) -> bytes:
+    props = ["property float x", "property float y", "property float z"]
+    if with_color:
+        props += [f"property uchar {c}" for c in ("red", "green", "blue", "alpha")]
+    lines = ["ply", "format binary_little_endian 1.0", "element vertex 0", *props, "end_header"]
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
+def write_ply(points_w: np.ndarray, out_path: str | Path, heights_as_color: bool = True) -> Path:
+    """Write the cloud as binary PLY (float32 xyz, optional RGBA by height) for any 3-D viewer.
+
+    Rows with NaN/inf are dropped: viewers choke on them and they carry no geometry. An empty
+    cloud still gives a valid PLY with 0 vertices (trimesh cannot export that, so the header is
+    written directly).
+    """
+    pts = np.asarray(points_w, dtype=float)
+    if pts.size == 0:
+        pts = np.empty((0, 3))
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points_w must be (N, 3), got shape {pts.shape}")
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if pts.shape[0] == 0:
+        out.write_bytes(_empty_ply_header(heights_as_color))
+        return out
+
+    import trimesh  # heavy import, only needed here
+
+    colors = height_colors(pts[:, 2]) if heights_as_color else None
+    cloud = trimesh.PointCloud(pts, colors=colors)
+    cloud.export(str(out), file_type="ply", encoding="binary")
+    return out

@@ -1,0 +1,188 @@
+"""The ground pipeline end to end: sample log -> cloud -> surface -> volume -> report files."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+import firmware_py
+from firmware_py.cli_util import UserError
+from firmware_py.frames import StorageFrame
+from firmware_py.samplelog import SampleLog, read_samplelog
+from firmware_py.storage import Storage
+from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask
+from ground.surface import (DEFAULT_CELL_M, Grid, fill_empty, fit_heights, grid_volume,
+                            reconstructed_ratio_pct, volume_error_pct)
+
+SAMPLES_FILE = "samples.pslog"
+TRUTH_FILE = "truth.json"
+LOW_COVERAGE_PCT = 95.0
+HIGH_EXCLUDED_FRACTION = 0.5
+
+
+@dataclass(frozen=True)
+class ReportOptions:
+    cell_m: float = DEFAULT_CELL_M
+    empty_cells: str = "leave"
+    plots: bool = True
+    truth_volume_m3: float | None = None
+
+
+@dataclass(frozen=True)
+class Survey:
+    """Everything computed from one log, for the report writers and for tests."""
+
+    cloud: Cloud
+    pile_points_w: np.ndarray
+    grid: Grid
+    heights_fit: np.ndarray
+    heights: np.ndarray
+    counts: np.ndarray
+    storage: Storage
+
+
+def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
+    """A run directory (log + truth.json) or a bare sample log."""
+    src = Path(source)
+    if src.is_dir():
+        log = src / SAMPLES_FILE
+        if not log.is_file():
+            raise UserError(f"{src} is a directory without a {SAMPLES_FILE} sample log")
+        truth = src / TRUTH_FILE
+        return log, truth if truth.is_file() else None
+    if not src.exists():
+        raise UserError(f"no such run directory or sample log: {src}")
+    return src, None
+
+
+def read_truth_volume(truth_path: Path | None) -> float | None:
+    if truth_path is None:
+        return None
+    try:
+        v = json.loads(truth_path.read_text()).get("true_volume_m3")
+    except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+        raise UserError(f"{truth_path} is not valid JSON") from None
+    if v is None:
+        return None
+    if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+        raise UserError(f"{truth_path}: true_volume_m3 must be a positive number, got {v!r}")
+    return float(v)
+
+
+def header_geometry(log: SampleLog, path: Path) -> tuple[Storage, StorageFrame, np.ndarray]:
+    """Storage, frame and lever arm from the log header, with one clear error when unusable."""
+    if log.header is None:
+        raise UserError(f"{path}: the log header is missing or corrupt, so the storage and sensor "
+                        "geometry are unknown")
+    h = log.header
+    try:
+        storage = Storage.from_dict(h["storage"])
+        frame = StorageFrame.from_dict(h["storage_frame"])
+        lever = np.asarray(h.get("lever_arm_body_m", [0.0, 0.0, 0.0]), dtype=float)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UserError(f"{path}: log header lacks a usable {exc}") from None
+    if lever.shape != (3,) or not np.all(np.isfinite(lever)):
+        raise UserError(f"{path}: log header lever_arm_body_m must be 3 finite numbers")
+    return storage, frame, lever
+
+
+def survey_from_log(log: SampleLog, storage: Storage, frame: StorageFrame, lever: np.ndarray,
+                    opts: ReportOptions) -> Survey:
+    """The computation, free of file handling."""
+    cloud = cloud_from_samples(log.samples, lever, frame)
+    structure = structure_mask(cloud, storage, SensorErrorModel.from_header(log.header or {}))
+    pile = cloud.points_w[~structure]
+    grid = Grid(storage.length_m, storage.width_m, opts.cell_m)
+    fit = fit_heights(pile, grid)
+    return Survey(cloud, pile, grid, fit, fill_empty(fit, opts.empty_cells), grid.counts(pile), storage)
+
+
+def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: float | None) -> dict:
+    g = survey.grid
+    volume = grid_volume(survey.heights, g)
+    ra = reconstructed_ratio_pct(survey.heights_fit)
+    n_struct = len(survey.cloud.points_w) - len(survey.pile_points_w)
+    warnings = []
+    if log.blocks_corrupt or log.blocks_truncated:
+        warnings.append(f"sample log damaged: {log.blocks_corrupt} corrupt and {log.blocks_truncated} "
+                        f"truncated block(s) skipped ({log.bytes_skipped} bytes)")
+    if survey.cloud.n_samples and survey.cloud.n_excluded / survey.cloud.n_samples > HIGH_EXCLUDED_FRACTION:
+        warnings.append(f"{survey.cloud.n_excluded} of {survey.cloud.n_samples} samples unusable "
+                        "(no return, stale pose or sensor error)")
+    if ra < LOW_COVERAGE_PCT:
+        warnings.append(f"only {ra:.1f} % of the floor is reconstructed (R_a); the volume misses the "
+                        "uncovered cells" if opts.empty_cells == "leave" else
+                        f"only {ra:.1f} % of the floor is reconstructed (R_a); the rest is extrapolated")
+    if len(survey.pile_points_w) < 3:
+        warnings.append("fewer than 3 points on the stockpile: no surface could be fitted")
+    return {
+        "volume_m3": volume,
+        "true_volume_m3": truth_m3,
+        "volume_error_pct": volume_error_pct(volume, truth_m3),
+        "coverage_ratio_pct": ra,
+        "n_samples": survey.cloud.n_samples,
+        "n_points_used": len(survey.pile_points_w),
+        "n_points_removed_walls": n_struct,
+        "n_samples_excluded": survey.cloud.n_excluded,
+        "cell_size_m": g.length_m / g.shape[0],
+        "cell_area_m2": g.cell_area_m2,
+        "empty_cell_policy": opts.empty_cells,
+        "uncovered_area_m2": float((~np.isfinite(survey.heights_fit)).sum() * g.cell_area_m2),
+        "storage": survey.storage.to_dict(),
+        "mission_id": (log.header or {}).get("mission_id"),
+        "log": {"blocks_ok": log.blocks_ok, "blocks_corrupt": log.blocks_corrupt,
+                "blocks_truncated": log.blocks_truncated, "bytes_skipped": log.bytes_skipped},
+        "warnings": warnings,
+        "software_version": f"pilescan {firmware_py.__version__}",
+    }
+
+
+def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | None = None) -> dict:
+    """Run the pipeline on a run directory or a log and write the report directory."""
+    t0 = time.perf_counter()
+    opts = opts or ReportOptions()
+    log_path, truth_path = locate_inputs(source)
+    log = read_samplelog(log_path)
+    storage, frame, lever = header_geometry(log, log_path)
+    if len(log.samples) == 0:
+        raise UserError(f"{log_path}: no samples could be read ({log.blocks_corrupt} corrupt block(s))")
+    truth = opts.truth_volume_m3 if opts.truth_volume_m3 is not None else read_truth_volume(truth_path)
+    survey = survey_from_log(log, storage, frame, lever, opts)
+    report = summarise(survey, log, opts, truth)
+    report["source"] = str(source)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    images = write_outputs(survey, report, out, opts.plots)
+    report["elapsed_s"] = time.perf_counter() - t0
+    (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+    from ground.render import write_html, write_markdown
+    write_markdown(report, images, out / "report.md")
+    write_html(report, images, out / "report.html")
+    return report
+
+
+def write_outputs(survey: Survey, report: dict, out: Path, plots: bool) -> dict[str, Path]:
+    """Point cloud and (optionally) the three figures."""
+    from ground.render import write_ply
+    write_ply(survey.pile_points_w, out / "cloud.ply")
+    if not plots:
+        return {}
+    from ground import plots as p
+    lw = (survey.storage.length_m, survey.storage.width_m)
+    path = survey.cloud.path_w[:: max(1, len(survey.cloud.path_w) // 5000)]
+    ra = report["coverage_ratio_pct"]
+    return {
+        "cloud": p.plot_cloud_top(survey.pile_points_w, path, lw, out / "cloud_top.png",
+                                  title=f"Point cloud, top view ({len(survey.pile_points_w)} points)"),
+        "height_map": p.plot_height_map(survey.grid.x_edges, survey.grid.y_edges, survey.heights, lw,
+                                        out / "height_map.png",
+                                        title=f"Fitted surface: {report['volume_m3']:.1f} m³"),
+        "coverage": p.plot_coverage(survey.grid.x_edges, survey.grid.y_edges, survey.counts,
+                                    np.isfinite(survey.heights_fit), lw, out / "coverage.png",
+                                    title=f"Coverage (R_a = {ra:.1f} %)"),
+    }

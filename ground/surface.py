@@ -1,0 +1,108 @@
+"""Surface over the floor and the grid volume: eqs. (7)-(9).
+
+The surface is a scattered-data cubic (Clough-Tocher on the Delaunay triangulation of the
+points), the analogue of MATLAB's `fit(..., 'cubicinterp')` the paper used. It exists only inside
+the convex hull of the points; what happens to cells outside it is the empty-cell policy:
+
+- ``leave`` (default, the paper's method): no surface there, no volume counted; R_a reports the
+  reconstructed fraction so a user sees what was missed.
+- ``nearest``: extend the surface to the walls with the nearest reconstructed cell's height,
+  the usual survey practice for a pile that leans on the walls.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.interpolate import CloughTocher2DInterpolator
+from scipy.spatial import Delaunay, QhullError
+
+EMPTY_CELL_POLICIES = ("leave", "nearest")
+DEFAULT_CELL_M = 0.25
+"""Grid cell side. tools/cell_sensitivity.py shows the volume changes < 0.01 % below it."""
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A regular grid of square-ish cells tiling the floor [0, L] x [0, W]."""
+
+    length_m: float
+    width_m: float
+    cell_m: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.cell_m) and 0.01 <= self.cell_m <= min(self.length_m, self.width_m)):
+            raise ValueError(f"cell size must be between 0.01 m and the building's width, got {self.cell_m}")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return max(1, round(self.length_m / self.cell_m)), max(1, round(self.width_m / self.cell_m))
+
+    @property
+    def x_edges(self) -> np.ndarray:
+        return np.linspace(0.0, self.length_m, self.shape[0] + 1)
+
+    @property
+    def y_edges(self) -> np.ndarray:
+        return np.linspace(0.0, self.width_m, self.shape[1] + 1)
+
+    @property
+    def cell_area_m2(self) -> float:
+        """G_xy of eq. (7): the cells tile the floor exactly."""
+        nx, ny = self.shape
+        return self.length_m * self.width_m / (nx * ny)
+
+    def centres(self) -> tuple[np.ndarray, np.ndarray]:
+        xe, ye = self.x_edges, self.y_edges
+        return np.meshgrid(0.5 * (xe[1:] + xe[:-1]), 0.5 * (ye[1:] + ye[:-1]), indexing="ij")
+
+    def counts(self, points_xy: np.ndarray) -> np.ndarray:
+        """Points per cell, (nx, ny)."""
+        c, _, _ = np.histogram2d(points_xy[:, 0], points_xy[:, 1], bins=(self.x_edges, self.y_edges))
+        return c.astype(np.int64)
+
+
+def fit_heights(points_w: np.ndarray, grid: Grid) -> np.ndarray:
+    """Clough-Tocher surface through the points, sampled at the cell centres; NaN outside the hull."""
+    heights = np.full(grid.shape, np.nan)
+    if len(points_w) < 3:
+        return heights
+    xy = np.ascontiguousarray(points_w[:, :2], dtype=float)
+    try:
+        tri = Delaunay(xy)
+    except (QhullError, ValueError):  # all points collinear or coincident: no surface
+        return heights
+    surface = CloughTocher2DInterpolator(tri, points_w[:, 2])
+    cx, cy = grid.centres()
+    return surface(cx, cy)
+
+
+def fill_empty(heights: np.ndarray, policy: str) -> np.ndarray:
+    """Apply the empty-cell policy to a height grid (see module docstring)."""
+    if policy not in EMPTY_CELL_POLICIES:
+        raise ValueError(f"empty-cell policy must be one of {', '.join(EMPTY_CELL_POLICIES)}, got {policy!r}")
+    empty = ~np.isfinite(heights)
+    if policy == "leave" or not empty.any() or empty.all():
+        return heights
+    _, (ix, iy) = ndimage.distance_transform_edt(empty, return_indices=True)
+    return heights[ix, iy]
+
+
+def grid_volume(heights: np.ndarray, grid: Grid) -> float:
+    """Eq. (7): V = sum H_z G_xy over cells that have a surface."""
+    return float(np.nansum(heights) * grid.cell_area_m2)
+
+
+def volume_error_pct(volume_m3: float, true_volume_m3: float | None) -> float | None:
+    """Eq. (8): |V - V_true| / V_true x 100, or None when the truth is unknown."""
+    if true_volume_m3 is None or not math.isfinite(true_volume_m3) or true_volume_m3 <= 0:
+        return None
+    return abs(volume_m3 - true_volume_m3) / true_volume_m3 * 100.0
+
+
+def reconstructed_ratio_pct(heights: np.ndarray) -> float:
+    """Eq. (9): R_a = projected area of the generated surface / total area, in percent."""
+    return float(np.isfinite(heights).mean() * 100.0)

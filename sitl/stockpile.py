@@ -1,0 +1,188 @@
+"""Stockpiles: the paper's random generator (Sec. 3.1), mesh loading, exact true volume.
+
+A stockpile is a triangle mesh in the storage frame W (metres, z up). Its true volume is computed
+exactly from the mesh the ray tracer sees, so the "truth" and the "world" can never disagree.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from scipy.interpolate import RegularGridInterpolator
+
+from firmware_py.storage import Storage
+
+# Seeds for the paper's two piles in the default 60 x 40 m building, chosen once (tools/find_pile_seeds.py
+# searches them) so the true volumes fall within 2 % of Table 1: 7193.5 and 8763.6 m^3.
+PAPER_PILES = {
+    "1": {"zero_edges": True, "seed": 10, "table1_volume_m3": 7193.5},
+    "2": {"zero_edges": False, "seed": 20, "table1_volume_m3": 8763.6},
+}
+
+
+@dataclass(frozen=True)
+class PileSpec:
+    """Parameters of the paper's random pile generator.
+
+    Attributes:
+        seed: random seed of the control-point heights.
+        zero_edges: heights on the walls forced to 0 (the paper's pile 1) or random (pile 2).
+        height_min_m, height_max_m: range of the random control heights (paper: 1-7 m).
+        control_spacing_m: target spacing of the regular grid of control points.
+        mesh_resolution_m: vertex spacing of the triangulated surface.
+    """
+
+    seed: int = 0
+    zero_edges: bool = True
+    height_min_m: float = 1.0
+    height_max_m: float = 7.0
+    control_spacing_m: float = 10.0
+    mesh_resolution_m: float = 0.25
+
+    def __post_init__(self) -> None:
+        if not (0 <= self.height_min_m <= self.height_max_m and math.isfinite(self.height_max_m)):
+            raise ValueError(f"pile heights must satisfy 0 <= min <= max, got {self.height_min_m}, "
+                             f"{self.height_max_m}")
+        for name in ("control_spacing_m", "mesh_resolution_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be > 0, got {v}")
+
+
+@dataclass(frozen=True)
+class Stockpile:
+    """A pile mesh with its exact volume and where it came from."""
+
+    mesh: trimesh.Trimesh
+    volume_m3: float
+    source: str
+
+    @property
+    def max_height_m(self) -> float:
+        return float(self.mesh.vertices[:, 2].max()) if len(self.mesh.vertices) else 0.0
+
+
+def control_heights(spec: PileSpec, storage: Storage) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Random heights on a regular grid of control points spread over the floor (paper Fig. 5a)."""
+    nx = max(2, round(storage.length_m / spec.control_spacing_m) + 1)
+    ny = max(2, round(storage.width_m / spec.control_spacing_m) + 1)
+    xs = np.linspace(0.0, storage.length_m, nx)
+    ys = np.linspace(0.0, storage.width_m, ny)
+    rng = np.random.default_rng(spec.seed)
+    h = rng.uniform(spec.height_min_m, spec.height_max_m, size=(nx, ny))
+    if spec.zero_edges:
+        h[0, :] = h[-1, :] = h[:, 0] = h[:, -1] = 0.0
+    return xs, ys, h
+
+
+def heightfield_mesh(xs: np.ndarray, ys: np.ndarray, z: np.ndarray) -> trimesh.Trimesh:
+    """Upward-facing triangulated surface through z[i, j] at (xs[i], ys[j])."""
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    vertices = np.column_stack([gx.ravel(), gy.ravel(), z.ravel()])
+    idx = np.arange(gx.size).reshape(gx.shape)
+    a, b = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel()
+    c, d = idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    faces = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+    return trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+
+
+def generate(spec: PileSpec, storage: Storage) -> Stockpile:
+    """The paper's pile: random control heights, a cubic surface through them, triangulated.
+
+    The cubic is the C2 tensor-product spline through the control grid; where it undershoots
+    below the floor (next to zero-height walls) it is clipped to 0, as material cannot.
+    """
+    xs, ys, h = control_heights(spec, storage)
+    surface = RegularGridInterpolator((xs, ys), h, method="cubic")
+    mx = max(2, math.ceil(storage.length_m / spec.mesh_resolution_m) + 1)
+    my = max(2, math.ceil(storage.width_m / spec.mesh_resolution_m) + 1)
+    gx, gy = np.linspace(0.0, storage.length_m, mx), np.linspace(0.0, storage.width_m, my)
+    px, py = np.meshgrid(gx, gy, indexing="ij")
+    z = np.clip(surface(np.column_stack([px.ravel(), py.ravel()])).reshape(px.shape), 0.0, None)
+    mesh = heightfield_mesh(gx, gy, z)
+    return Stockpile(mesh, volume_under_mesh(mesh), f"generated(seed={spec.seed}, "
+                     f"zero_edges={spec.zero_edges})")
+
+
+def paper_pile(name: str, storage: Storage | None = None) -> Stockpile:
+    """Stockpile "1" or "2" of the paper."""
+    if name not in PAPER_PILES:
+        raise ValueError(f"unknown stockpile {name!r}: use 1, 2 or a path to an STL/OBJ mesh")
+    p = PAPER_PILES[name]
+    pile = generate(PileSpec(seed=p["seed"], zero_edges=p["zero_edges"]), storage or Storage())
+    return Stockpile(pile.mesh, pile.volume_m3, f"paper pile {name} ({pile.source})")
+
+
+def volume_under_mesh(mesh: trimesh.Trimesh) -> float:
+    """Exact volume between the mesh and the floor z = 0.
+
+    By the divergence theorem with F = (0, 0, z), sum over faces of (signed projected area x
+    centroid height) is exact for a closed mesh (its enclosed volume) and for an open height field
+    facing up (the volume under it). Faces on the floor contribute nothing either way.
+    """
+    tri = mesh.triangles
+    if len(tri) == 0:
+        return 0.0
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    area_z = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    return float(np.sum(area_z * tri[:, :, 2].mean(axis=1)))
+
+
+def _is_height_field(mesh: trimesh.Trimesh) -> bool:
+    """True when no two faces overlap in top view (projected areas all of one sign, summing up)."""
+    tri = mesh.triangles
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    area_z = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    return bool(np.all(area_z >= -1e-9 * max(1.0, np.abs(area_z).max())))
+
+
+def load_mesh(path: str | Path, storage: Storage) -> Stockpile:
+    """Load an STL/OBJ/PLY pile (z up, metres, storage frame) and check it fits the building.
+
+    A closed mesh is taken as the material body; an open mesh must be an upward height field
+    (a surface over the floor), whose volume is the volume under it. Anything else is refused
+    with a message, because its "volume under the surface" would be ambiguous.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"stockpile mesh not found: {path}")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=True)
+    except Exception as exc:  # trimesh raises many types for bad files
+        raise ValueError(f"cannot read stockpile mesh {path}: {exc}") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ValueError(f"stockpile mesh {path} has no triangles")
+    v = mesh.vertices
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"stockpile mesh {path} has non-finite vertices")
+    tol = 1e-6 * max(storage.length_m, storage.width_m)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    if (lo[0] < -tol or lo[1] < -tol or hi[0] > storage.length_m + tol or hi[1] > storage.width_m + tol
+            or lo[2] < -tol or hi[2] >= storage.height_m):
+        raise ValueError(
+            f"stockpile mesh {path} spans x {lo[0]:.2f}..{hi[0]:.2f}, y {lo[1]:.2f}..{hi[1]:.2f}, "
+            f"z {lo[2]:.2f}..{hi[2]:.2f} m: it must lie inside the {storage} building, on the floor "
+            "(storage frame W: metres, z up)")
+    if mesh.is_watertight:
+        volume = abs(float(mesh.volume))
+    else:
+        if not _is_height_field(mesh):
+            mesh.faces = mesh.faces[:, ::-1]
+            if not _is_height_field(mesh):
+                raise ValueError(f"stockpile mesh {path} is neither closed nor a height field over the "
+                                 "floor; its volume would be ambiguous")
+        volume = volume_under_mesh(mesh)
+    return Stockpile(mesh, volume, f"mesh {path.name}")
+
+
+def resolve(name_or_path: str, storage: Storage) -> Stockpile:
+    """'1' / '2' for the paper's piles, anything else a mesh path."""
+    if name_or_path in PAPER_PILES:
+        return paper_pile(name_or_path, storage)
+    if Path(name_or_path).suffix.lower() in {".stl", ".obj", ".ply", ".off", ".glb"}:
+        return load_mesh(name_or_path, storage)
+    raise ValueError(f"unknown stockpile {name_or_path!r}: use 1, 2 or a path to an STL/OBJ mesh")
