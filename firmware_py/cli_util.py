@@ -35,10 +35,19 @@ def finite_float(text: str) -> float:
     return v
 
 
-def run_cli(prog: str, body: Callable[[], int]) -> int:
-    """Run a command body, turning user-facing failures into one line on stderr and exit code 2."""
+def run_cli(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
+            body: Callable[[argparse.Namespace], int]) -> int:
+    """Parse argv and run body(args), turning user-facing failures into one line on stderr and exit 2.
+
+    Returns the exit code instead of raising SystemExit, so `main(argv)` is callable from tests.
+    """
+    prog = parser.prog
     try:
-        return body()
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, or a bad option already reported in one line
+        return exc.code if isinstance(exc.code, int) else EXIT_USAGE
+    try:
+        return body(args)
     except (UserError, ValueError, FileNotFoundError, IsADirectoryError, NotADirectoryError,
             PermissionError) as exc:
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
@@ -47,7 +56,3 @@ def run_cli(prog: str, body: Callable[[], int]) -> int:
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
-
-
-def argv_or_sys(argv: Sequence[str] | None) -> list[str]:
-    return list(sys.argv[1:] if argv is None else argv)

@@ -56,8 +56,7 @@ def _report(args) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return run_cli("pilescan-ground", lambda: _report(args))
+    return run_cli(build_parser(), argv, _report)
 
 
 if __name__ == "__main__":

@@ -166,10 +166,17 @@ def fmt_count(v: Any) -> str:
     return f"{int(f):,d}"
 
 
+_SUMMARY_SUBKEYS: dict[str, tuple[str, ...]] = {
+    "storage": ("length_m", "width_m", "height_m"),
+    "log": ("blocks_ok", "blocks_corrupt", "blocks_truncated"),
+}
+"""Sub-keys a summary cell shows; any others of the same dict go to "All figures"."""
+
+
 def _fmt_storage(v: Any) -> str:
     if not isinstance(v, Mapping):
         return fmt_value(v)
-    dims = [_fmt_number(v.get(k), ".2f", " m") for k in ("length_m", "width_m", "height_m")]
+    dims = [_fmt_number(v.get(k), ".2f", " m") for k in _SUMMARY_SUBKEYS["storage"]]
     return " × ".join(dims)
 
 
@@ -245,7 +252,12 @@ def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportC
     """Format the report once, for both Markdown and HTML."""
     summary = [(_SUMMARY_LABELS[k], _SUMMARY_FORMAT[k](report.get(k))) for k in SUMMARY_KEYS]
     handled = {*SUMMARY_KEYS, "warnings"}
-    extra_items = {k: v for k, v in report.items() if k not in handled}
+    extra_items: dict[str, Any] = {}
+    for key, shown in _SUMMARY_SUBKEYS.items():  # e.g. log.bytes_skipped: not in the summary cell
+        sub = report.get(key)
+        if isinstance(sub, Mapping):
+            extra_items.update({f"{key}.{k}": v for k, v in sub.items() if k not in shown})
+    extra_items.update({k: v for k, v in report.items() if k not in handled})
     extra = [(name, fmt_value(v)) for name, v in flatten(extra_items)]
     return ReportContent(
         headline=f"Stockpile volume: {fmt_volume(report.get('volume_m3'))}",

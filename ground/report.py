@@ -16,8 +16,15 @@ from firmware_py.frames import StorageFrame
 from firmware_py.samplelog import SampleLog, read_samplelog
 from firmware_py.storage import Storage
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask
-from ground.surface import (DEFAULT_CELL_M, Grid, fill_empty, fit_heights, grid_volume,
-                            reconstructed_ratio_pct, volume_error_pct)
+from ground.surface import (
+    DEFAULT_CELL_M,
+    Grid,
+    fill_empty,
+    fit_heights,
+    grid_volume,
+    reconstructed_ratio_pct,
+    volume_error_pct,
+)
 
 SAMPLES_FILE = "samples.pslog"
 TRUTH_FILE = "truth.json"

@@ -56,8 +56,7 @@ def _fly(args) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return run_cli("pilescan-sitl", lambda: _fly(args))
+    return run_cli(build_parser(), argv, _fly)
 
 
 if __name__ == "__main__":

@@ -68,8 +68,9 @@ class Stockpile:
 
 def control_heights(spec: PileSpec, storage: Storage) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Random heights on a regular grid of control points spread over the floor (paper Fig. 5a)."""
-    nx = max(2, round(storage.length_m / spec.control_spacing_m) + 1)
-    ny = max(2, round(storage.width_m / spec.control_spacing_m) + 1)
+    # At least 4 points a side: a cubic needs them, and a small building still gets a pile.
+    nx = max(4, round(storage.length_m / spec.control_spacing_m) + 1)
+    ny = max(4, round(storage.width_m / spec.control_spacing_m) + 1)
     xs = np.linspace(0.0, storage.length_m, nx)
     ys = np.linspace(0.0, storage.width_m, ny)
     rng = np.random.default_rng(spec.seed)

@@ -38,8 +38,8 @@ def texts(fig) -> str:
 def pixel_rgb(fig, img: np.ndarray, x: float, y: float) -> np.ndarray:
     """RGB (0..1) of the saved PNG at data point (x, y) of the figure's first axes."""
     px, py = fig.axes[0].transData.transform((x, y))
-    row = int(round(img.shape[0] - py))
-    col = int(round(px))
+    row = round(img.shape[0] - float(py))
+    col = round(float(px))
     return img[row, col, :3]
 
 

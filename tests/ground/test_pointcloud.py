@@ -1,0 +1,45 @@
+import numpy as np
+
+from firmware_py.frames import StorageFrame
+from firmware_py.samplelog import SampleFlags, new_records
+from firmware_py.storage import Storage
+from ground.pointcloud import SensorErrorModel, cloud_from_samples, structure_mask
+
+
+def _samples(n):
+    s = new_records(n)
+    s["x_m"], s["y_m"], s["z_m"] = 10.0, 5.0, -12.0
+    s["range_m"] = 12.0
+    return s
+
+
+def test_that_flagged_and_non_finite_samples_stay_out_of_the_cloud():
+    s = _samples(6)
+    s["flags"][1] = SampleFlags.NO_RETURN
+    s["flags"][2] = SampleFlags.STALE_POSE
+    s["range_m"][3] = np.nan
+    s["yaw_rad"][4] = np.inf
+    c = cloud_from_samples(s, [0, 0, 0], StorageFrame())
+    assert len(c.points_w) == 2 and c.n_excluded == 4
+    assert np.allclose(c.points_w, [[10, -5, 0]] * 2)  # NED (10, 5) -> W (10, -5) at heading 0
+
+
+def test_that_wall_and_roof_points_are_recognised_within_their_error():
+    st = Storage(20, 10, 8)
+    s = _samples(5)
+    frame = StorageFrame((0, 0, 0), np.pi / 2)  # W: x east, y north
+    s["x_m"], s["y_m"], s["z_m"] = 5.0, 10.0, -4.0  # W (10, 5, 4), middle of the hall
+    s["servo_rad"] = [np.pi / 2, -np.pi / 2, 0.0, np.pi / 2, 0.0]
+    s["yaw_rad"] = [np.pi / 2, np.pi / 2, np.pi / 2, 0.0, np.pi]  # facing +x_W, +x_W, .., +y_W, -y_W
+    s["pitch_rad"][4] = 0.0
+    s["range_m"] = [5.0, 5.0, 4.0, 10.0, 4.0]
+    s["roll_rad"][4] = np.pi  # upside down: the beam points up at the roof
+    c = cloud_from_samples(s, [0, 0, 0], frame)
+    ideal = structure_mask(c, st, SensorErrorModel())
+    # starboard wall, port wall, floor (not structure), far end wall, roof
+    assert ideal.tolist() == [True, True, False, True, True]
+    # A point 5 cm off the wall is structure only for a sensor whose errors allow it.
+    s["range_m"][0] = 4.95
+    c = cloud_from_samples(s, [0, 0, 0], frame)
+    assert not structure_mask(c, st, SensorErrorModel(resolution_m=0.01))[0]
+    assert structure_mask(c, st, SensorErrorModel(range_sigma_m=0.025))[0]

@@ -1,0 +1,206 @@
+"""Report rendering: Markdown numbers and warnings, self-contained escaped HTML, PLY round trip."""
+
+from __future__ import annotations
+
+import base64
+import re
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+import trimesh
+from matplotlib import colormaps
+
+from ground import render
+
+XSS = "<script>alert('x')</script>"
+
+
+def full_report() -> dict:
+    return {
+        "volume_m3": 12345.678,
+        "true_volume_m3": 12000.0,
+        "volume_error_pct": 2.8806,
+        "coverage_ratio_pct": 85.4,
+        "n_samples": np.int64(123456),
+        "n_points_used": 100000,
+        "n_points_removed_walls": 2345,
+        "cell_size_m": 0.25,
+        "empty_cell_policy": "leave",
+        "storage": {"length_m": 60.0, "width_m": 30.0, "height_m": 12.0},
+        "log": {"blocks_ok": 1200, "blocks_corrupt": 2, "blocks_truncated": 1, "bytes_skipped": 77},
+        "source": "runs/demo",
+        "software_version": "pilescan 0.1.0",
+        "elapsed_s": 3.14159,
+        "warnings": ["sample log damaged: 2 corrupt block(s)", f"odd input {XSS}"],
+        "mission_id": "m-42",
+        "fit": {"rmse_m": 0.0123, "detail": {"n_triangles": 4567}},
+        "uncovered_area_m2": 262.5,
+    }
+
+
+@pytest.fixture
+def images(tmp_path):
+    out = {}
+    rng = np.random.default_rng(0)
+    for name in ("cloud", "height_map", "coverage"):
+        p = tmp_path / f"{name}.png"
+        mpimg.imsave(p, rng.random((8, 12)))
+        out[name] = p
+    return out
+
+
+# ---------------------------------------------------------------------------------------- format
+
+
+def test_number_formats():
+    assert render.fmt_volume(1234567.89) == "1,234,567.9 m³"
+    assert render.fmt_volume(None) == render.UNKNOWN == "unknown"
+    assert render.fmt_pct(1.23456) == "1.23 %"
+    assert render.fmt_count(np.int64(1234567)) == "1,234,567"
+    assert render.fmt_value(np.float64(0.000123456789)) == "0.000123457"
+    assert render.fmt_value(True) == "yes"
+    assert render.fmt_value(list(range(100))) == "[100 items]"
+    assert render.fmt_volume(float("nan")) == "nan"
+
+
+def test_flatten_nested_dicts():
+    flat = render.flatten({"a": 1, "b": {"c": 2, "d": {"e": 3}}, "f": {}})
+    assert flat == [("a", 1), ("b.c", 2), ("b.d.e", 3), ("f", "{}")]
+
+
+# -------------------------------------------------------------------------------------- markdown
+
+
+def test_markdown_contains_numbers_warnings_images_and_method(tmp_path, images):
+    out = render.write_markdown(full_report(), images, tmp_path / "report.md")
+    assert out == tmp_path / "report.md"
+    md = out.read_text(encoding="utf-8")
+    assert md.startswith("# pilescan volume report\n")
+    for expected in [
+        "12,345.7 m³", "12,000.0 m³", "2.88 %", "85.40 %", "123,456", "100,000", "2,345",
+        "0.250 m", "leave", "60.00 m × 30.00 m × 12.00 m", "1,200 ok, 2 corrupt, 1 truncated",
+        "runs/demo", "pilescan 0.1.0", "3.14 s",
+    ]:
+        assert expected in md, expected
+    # Warnings come before the summary and are listed one per line.
+    assert md.index("## Warnings") < md.index("## Summary")
+    assert "> - sample log damaged: 2 corrupt block(s)" in md
+    assert "2 warnings" in md
+    assert "<script>" not in md  # neutralised for viewers that render inline HTML
+    # Images by relative file name.
+    for name in ("cloud.png", "height_map.png", "coverage.png"):
+        assert f"]({name})" in md
+    assert "## Method" in md and "Clough-Tocher" in md and "eq. 9" in md
+    # Other top-level keys, nested ones dotted; headline keys are not repeated there.
+    extra = md[md.index("## All figures"):]
+    for expected in ["| mission_id | m-42 |", "| fit.rmse_m | 0.0123 |", "| fit.detail.n_triangles | 4,567 |",
+                     "| uncovered_area_m2 | 262.5 |", "| log.bytes_skipped | 77 |"]:
+        assert expected in extra, expected
+    assert "volume_m3" not in extra and "log.blocks_ok" not in extra and "storage." not in extra
+
+
+def test_markdown_images_in_subdirectory_are_relative(tmp_path):
+    sub = tmp_path / "figs"
+    sub.mkdir()
+    mpimg.imsave(sub / "a b.png", np.zeros((4, 4)))
+    md = render.write_markdown({}, {"cloud": sub / "a b.png"}, tmp_path / "report.md").read_text()
+    assert "](figs/a%20b.png)" in md
+    assert str(tmp_path) not in md
+
+
+def test_markdown_missing_values_and_no_warnings(tmp_path):
+    md = render.write_markdown({"volume_m3": None, "warnings": []}, {}, tmp_path / "r.md").read_text()
+    assert "No warnings." in md
+    assert "| Stockpile volume | unknown |" in md
+    assert md.count("unknown") >= len(render.SUMMARY_KEYS)
+    assert "## All figures" not in md and "## Figures" not in md
+
+
+def test_markdown_escapes_table_breaking_text(tmp_path):
+    md = render.write_markdown({"source": "a|b\nc"}, None, tmp_path / "r.md").read_text()
+    assert "| Source | a\\|b c |" in md
+
+
+# ------------------------------------------------------------------------------------------ html
+
+
+def test_html_is_self_contained_and_escaped(tmp_path, images):
+    out = render.write_html(full_report(), images, tmp_path / "report.html")
+    page = out.read_text(encoding="utf-8")
+    assert page.startswith("<!DOCTYPE html>")
+    assert "http://" not in page and "https://" not in page
+    assert "<link" not in page and "<script" not in page and "@import" not in page
+    srcs = re.findall(r'src="([^"]*)"', page)
+    assert len(srcs) == 3
+    assert all(s.startswith("data:image/png;base64,") for s in srcs)
+    # Inlined bytes are exactly the PNG files, in the given order.
+    for src, path in zip(srcs, images.values(), strict=True):
+        assert base64.b64decode(src.split(",", 1)[1]) == path.read_bytes()
+    assert "&lt;script&gt;alert(&#x27;x&#x27;)&lt;/script&gt;" in page
+    assert 'class="warnings"' in page
+    assert "sample log damaged: 2 corrupt block(s)" in page
+    for expected in ["12,345.7 m³", "2.88 %", "85.40 %", "fit.detail.n_triangles", "Clough-Tocher"]:
+        assert expected in page, expected
+
+
+def test_html_escapes_keys_and_values_everywhere(tmp_path):
+    rep = {"source": "<b>bold</b>", "<k>": {"x&y": '"quoted"'}}
+    page = render.write_html(rep, {"<img>": tmp_path / "missing.png"}, tmp_path / "r.html").read_text()
+    assert "<b>" not in page and "<k>" not in page and "<img>" not in page
+    assert "&lt;b&gt;bold&lt;/b&gt;" in page
+    assert "&lt;k&gt;.x&amp;y" in page and "&quot;quoted&quot;" in page
+    assert "Image not found" in page and "src=" not in page
+
+
+def test_html_without_warnings_or_data(tmp_path):
+    page = render.write_html({}, None, tmp_path / "r.html").read_text()
+    assert 'class="warnings"' not in page and "No warnings." in page
+    assert "unknown" in page
+
+
+# ------------------------------------------------------------------------------------------- ply
+
+
+def test_ply_round_trip_with_height_colours(tmp_path):
+    rng = np.random.default_rng(1)
+    pts = rng.uniform([0, 0, 0], [60, 30, 8], size=(1000, 3))
+    pts[5] = pts[6]  # duplicates are kept: a cloud, not a mesh
+    out = render.write_ply(pts, tmp_path / "cloud.ply")
+    assert out.read_bytes().startswith(b"ply\nformat binary_little_endian")
+    back = trimesh.load(out)
+    assert len(back.vertices) == len(pts)
+    np.testing.assert_allclose(back.vertices, pts.astype(np.float32), rtol=0, atol=1e-5)
+    colors = np.asarray(back.colors)
+    top = np.array(colormaps["viridis"](1.0, bytes=True))
+    assert np.array_equal(colors[np.argmax(pts[:, 2])], top)
+
+
+def test_ply_without_colours(tmp_path):
+    pts = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    out = render.write_ply(pts, tmp_path / "c.ply", heights_as_color=False)
+    header = out.read_bytes().split(b"end_header")[0]
+    assert b"element vertex 2" in header and b"red" not in header
+    np.testing.assert_allclose(trimesh.load(out).vertices, pts)
+
+
+def test_ply_drops_non_finite_rows(tmp_path):
+    pts = np.array([[1.0, 2.0, 3.0], [np.nan, 0.0, 0.0], [4.0, 5.0, np.inf]])
+    back = trimesh.load(render.write_ply(pts, tmp_path / "c.ply"))
+    np.testing.assert_allclose(back.vertices, pts[:1])
+
+
+@pytest.mark.parametrize("with_color", [True, False])
+def test_ply_empty_cloud_is_valid(tmp_path, with_color):
+    out = render.write_ply(np.empty((0, 3)), tmp_path / "e.ply", heights_as_color=with_color)
+    data = out.read_bytes()
+    assert data.startswith(b"ply\nformat binary_little_endian 1.0\n")
+    assert b"element vertex 0\n" in data and data.endswith(b"end_header\n")
+    assert (b"property uchar red" in data) == with_color
+    loaded = trimesh.load(out)  # must not raise; trimesh returns an empty scene
+    assert len(getattr(loaded, "vertices", [])) == 0
+
+
+def test_ply_rejects_wrong_shape(tmp_path):
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        render.write_ply(np.zeros((4, 2)), tmp_path / "bad.ply")

@@ -1,0 +1,78 @@
+"""End to end: ideal flight -> sample log -> ground report, against the known truth."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from firmware_py.frames import StorageFrame
+from firmware_py.storage import Storage
+from ground.report import ReportOptions, make_report
+from sitl.mission import Mission
+from sitl.run import FlyConfig, fly
+from tests.sitl.conftest import frustum_mesh
+
+REQUIRED_KEYS = {"volume_m3", "true_volume_m3", "volume_error_pct", "coverage_ratio_pct", "n_samples",
+                 "n_points_used"}
+
+
+@pytest.mark.parametrize("pile", ["1", "2"])
+def test_that_paper_piles_at_p_traj_5_come_within_1_percent(tmp_path, pile):
+    fly(FlyConfig(mission=Mission(p_traj=0.05), stockpile=pile), tmp_path / "run")
+    rep = make_report(tmp_path / "run", tmp_path / "rep", ReportOptions(plots=False))
+    assert rep["volume_error_pct"] < 1.0
+    assert rep["coverage_ratio_pct"] > 99.0
+    assert REQUIRED_KEYS <= rep.keys()
+
+
+def test_that_a_cone_stl_comes_within_2_percent(tmp_path):
+    path = tmp_path / "cone.stl"
+    frustum_mesh(12.0, 2.0, 6.0, (30.0, 20.0)).export(path)
+    fly(FlyConfig(mission=Mission(p_traj=0.2), stockpile=str(path)), tmp_path / "run")
+    rep = make_report(tmp_path / "run", tmp_path / "rep", ReportOptions(plots=False))
+    assert rep["true_volume_m3"] == pytest.approx(math.pi * 6 / 3 * (144 + 24 + 4), rel=1e-3)
+    assert rep["volume_error_pct"] < 2.0
+
+
+def test_that_the_result_does_not_depend_on_where_the_building_sits_in_ned(tmp_path):
+    mission = Mission(p_traj=0.1)
+    reps = []
+    for i, frame in enumerate([StorageFrame(), StorageFrame((-20.0, 35.0, 0.4), math.radians(123))]):
+        fly(FlyConfig(mission=mission, frame=frame), tmp_path / f"run{i}")
+        reps.append(make_report(tmp_path / f"run{i}", tmp_path / f"rep{i}", ReportOptions(plots=False)))
+    assert reps[0]["volume_m3"] == pytest.approx(reps[1]["volume_m3"], rel=1e-4)
+    assert reps[1]["volume_error_pct"] < 1.0
+
+
+def test_that_a_full_report_writes_every_output(tmp_path):
+    fly(FlyConfig(mission=Mission(storage=Storage(30, 20, 10), altitude_m=9.0, p_traj=0.1)), tmp_path / "run")
+    rep = make_report(tmp_path / "run", tmp_path / "rep")
+    names = {p.name for p in (tmp_path / "rep").iterdir()}
+    assert {"report.json", "report.md", "report.html", "cloud.ply", "cloud_top.png", "height_map.png",
+            "coverage.png"} <= names
+    on_disk = json.loads((tmp_path / "rep" / "report.json").read_text())
+    assert on_disk["volume_m3"] == pytest.approx(rep["volume_m3"])
+    assert f"{rep['volume_m3']:,.1f}" in (tmp_path / "rep" / "report.md").read_text()
+
+
+def test_that_a_log_cut_by_a_power_failure_still_reports_with_a_warning(tmp_path):
+    fly(FlyConfig(mission=Mission(p_traj=0.1)), tmp_path / "run")
+    log = tmp_path / "run" / "samples.pslog"
+    data = log.read_bytes()
+    log.write_bytes(data[: len(data) * 2 // 3 + 17])
+    rep = make_report(tmp_path / "run", tmp_path / "rep", ReportOptions(plots=False))
+    assert rep["log"]["blocks_truncated"] == 1
+    assert any("damaged" in w for w in rep["warnings"])
+    assert rep["n_samples"] < 0.7 * (len(data) / 59)
+    assert any("reconstructed" in w for w in rep["warnings"])  # a third of the flight is missing
+
+
+def test_that_the_truth_can_be_given_or_absent(tmp_path):
+    fly(FlyConfig(mission=Mission(p_traj=0.1)), tmp_path / "run")
+    log = tmp_path / "run" / "samples.pslog"
+    rep = make_report(log, tmp_path / "a", ReportOptions(plots=False))
+    assert rep["true_volume_m3"] is None and rep["volume_error_pct"] is None
+    rep = make_report(log, tmp_path / "b", ReportOptions(plots=False, truth_volume_m3=rep["volume_m3"] * 1.1))
+    assert rep["volume_error_pct"] == pytest.approx(100 / 11, rel=1e-9)
+    assert np.isfinite(rep["coverage_ratio_pct"])

@@ -1,0 +1,52 @@
+import numpy as np
+import pytest
+
+from ground.surface import Grid, fill_empty, fit_heights, grid_volume, reconstructed_ratio_pct, volume_error_pct
+
+
+def test_that_cells_tile_the_floor_exactly():
+    g = Grid(60, 40, 0.33)
+    nx, ny = g.shape
+    assert g.cell_area_m2 * nx * ny == pytest.approx(2400)
+    assert g.x_edges[-1] == 60 and g.y_edges[-1] == 40
+
+
+def test_that_a_plane_through_scattered_points_gives_its_exact_volume():
+    rng = np.random.default_rng(0)
+    xy = np.vstack([rng.uniform(0, 10, (500, 2)) * [1, 0.5], [[0, 0], [10, 0], [0, 5], [10, 5]]])
+    z = 1.0 + 0.2 * xy[:, 0] + 0.1 * xy[:, 1]
+    g = Grid(10, 5, 0.25)
+    h = fit_heights(np.column_stack([xy, z]), g)
+    assert reconstructed_ratio_pct(h) == pytest.approx(100.0)
+    # integral of 1 + 0.2x + 0.1y over [0,10]x[0,5]: 50 + 50 + 12.5
+    assert grid_volume(h, g) == pytest.approx(112.5, rel=1e-9)
+
+
+def test_that_cells_outside_the_data_are_left_or_filled_by_policy():
+    pts = np.array([[2, 2, 1.0], [8, 2, 1.0], [8, 8, 1.0], [2, 8, 1.0]])
+    g = Grid(10, 10, 0.5)
+    h = fit_heights(pts, g)
+    assert reconstructed_ratio_pct(h) == pytest.approx(36.0)
+    assert grid_volume(fill_empty(h, "leave"), g) == pytest.approx(36.0)
+    assert grid_volume(fill_empty(h, "nearest"), g) == pytest.approx(100.0)
+    with pytest.raises(ValueError, match="policy"):
+        fill_empty(h, "guess")
+
+
+def test_that_degenerate_clouds_give_no_surface_instead_of_an_error():
+    g = Grid(10, 10, 1.0)
+    assert np.isnan(fit_heights(np.zeros((0, 3)), g)).all()
+    line = np.column_stack([np.linspace(0, 10, 20), np.linspace(0, 10, 20), np.ones(20)])
+    assert np.isnan(fit_heights(line, g)).all()
+
+
+def test_that_volume_error_follows_eq_8():
+    assert volume_error_pct(101.0, 100.0) == pytest.approx(1.0)
+    assert volume_error_pct(99.0, 100.0) == pytest.approx(1.0)
+    assert volume_error_pct(99.0, None) is None
+
+
+def test_that_silly_cell_sizes_are_refused():
+    for cell in (0.0, -1.0, float("nan"), 50.0):
+        with pytest.raises(ValueError, match="cell size"):
+            Grid(60, 40, cell)

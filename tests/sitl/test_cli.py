@@ -1,0 +1,46 @@
+"""Every bad input to pilescan-sitl fly: one line, exit code 2, no traceback."""
+
+import pytest
+
+from sitl.cli import main
+
+
+def test_that_fly_writes_a_run(tmp_path, capsys):
+    assert main(["fly", "--stockpile", "1", "--p-traj", "25", "--out", str(tmp_path), "--quiet"]) == 0
+    assert (tmp_path / "samples.pslog").is_file()
+
+
+@pytest.mark.parametrize("extra,match", [
+    (["--stockpile", "7", "--p-traj", "20"], "unknown stockpile"),
+    (["--stockpile", "pile.xyz", "--p-traj", "20"], "unknown stockpile"),
+    (["--stockpile", "missing.stl", "--p-traj", "20"], "not found"),
+    (["--stockpile", "1", "--p-traj", "0"], "P_traj"),
+    (["--stockpile", "1", "--p-traj", "50"], "P_traj"),
+    (["--stockpile", "1", "--p-traj", "75"], "P_traj"),
+    (["--stockpile", "1", "--p-traj", "nan"], "finite"),
+    (["--stockpile", "1", "--p-traj", "ten"], "not a number"),
+    (["--stockpile", "1", "--p-traj", "20", "--storage", "60x40"], "LxWxH"),
+    (["--stockpile", "1", "--p-traj", "20", "--storage", "60x40x10"], "altitude"),
+    (["--stockpile", "1", "--p-traj", "20", "--altitude", "5"], "stockpile top"),
+    (["--stockpile", "1", "--p-traj", "20", "--speed", "-1"], "speed"),
+    (["--stockpile", "1", "--p-traj", "20", "--yaw-rate-max", "inf"], "finite"),
+    (["--stockpile", "1", "--p-traj", "20", "--phase", "20"], "0..19"),
+    (["--stockpile", "1", "--p-traj", "20", "--turn", "zigzag"], "invalid choice"),
+    (["--stockpile", "1", "--p-traj", "20", "--plant", "jsbsim"], "invalid choice"),
+    (["--stockpile", "1"], "--p-traj"),
+])
+def test_that_bad_inputs_fail_with_one_line(tmp_path, capsys, monkeypatch, extra, match):
+    monkeypatch.chdir(tmp_path)
+    code = main(["fly", *extra, "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert match in err
+
+
+def test_that_a_corrupt_mesh_fails_with_one_line(tmp_path, capsys):
+    bad = tmp_path / "pile.stl"
+    bad.write_bytes(b"\x00" * 50)
+    code = main(["fly", "--stockpile", str(bad), "--p-traj", "20", "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "pile.stl" in err
