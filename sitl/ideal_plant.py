@@ -1,7 +1,7 @@
 """Ideal plant: a kinematic vehicle that flies the mission exactly.
 
 Constant speed on the legs, level attitude, and turns in place at the yaw-rate limit at each
-waypoint. It is the reference against which the flight-dynamics plant is judged, and the fast
+waypoint, including the first (arrived at along the closing leg, see sitl.mission). It is the reference against which the flight-dynamics plant is judged, and the fast
 path for parameter sweeps.
 """
 
@@ -45,15 +45,17 @@ class IdealPlant:
         self._leg_len = np.linalg.norm(d, axis=1)
         course_w = np.arctan2(d[:, 1], d[:, 0])
         self._yaw_leg = wrap_pi(frame.yaw_from_w_heading(course_w))
-        turns = wrap_pi(np.diff(self._yaw_leg))  # signed, shortest way
-        # Segment table: a leg, then a turn before each following leg.
+        # turns[i] is the signed (shortest way) turn onto leg i, made on waypoint i; turn 0 is from the
+        # closing leg's heading, the way the vehicle arrives on the loop.
+        turns = wrap_pi(np.diff(np.r_[self._yaw_leg[-1], self._yaw_leg]))
+        self._yaw_before = self._yaw_leg - turns
+        # Segment table: before each leg, the turn onto it.
         starts, kinds, idx = [0.0], [], []
         t = 0.0
         for i, length in enumerate(self._leg_len):
-            if i > 0:
-                kinds.append("turn"), idx.append(i - 1)
-                t += abs(turns[i - 1]) / mission.yaw_rate_max_rad_s
-                starts.append(t)
+            kinds.append("turn"), idx.append(i)
+            t += abs(turns[i]) / mission.yaw_rate_max_rad_s
+            starts.append(t)
             kinds.append("leg"), idx.append(i)
             t += length / mission.speed_m_s
             starts.append(t)
@@ -72,16 +74,11 @@ class IdealPlant:
         tau = t - self._seg_start[seg]
         is_turn = self._seg_kind[seg]
         i = self._seg_idx[seg]
-        # Legs: move from waypoint i towards i+1.  Turns (index i): sit on waypoint i+1, rotating.
-        leg_i = np.where(is_turn, i + 1, i)
+        # Leg i: move from waypoint i towards i+1.  Turn i: sit on waypoint i, rotating onto leg i.
         frac = np.where(is_turn, 0.0, np.minimum(tau * m.speed_m_s / self._leg_len[i], 1.0))
-        xy = self._wp[leg_i] + (self._wp[leg_i + 1] - self._wp[leg_i]) * frac[:, None]
-        turn_i = np.minimum(i, len(self._turns) - 1) if len(self._turns) else i
-        yaw_turn = (self._yaw_leg[np.minimum(i, len(self._yaw_leg) - 1)]
-                    + (np.sign(self._turns[turn_i]) * np.minimum(tau * m.yaw_rate_max_rad_s,
-                                                                   np.abs(self._turns[turn_i]))
-                       if len(self._turns) else 0.0))
-        yaw = np.where(is_turn, yaw_turn, self._yaw_leg[i])
+        xy = self._wp[i] + (self._wp[i + 1] - self._wp[i]) * frac[:, None]
+        turned = np.sign(self._turns[i]) * np.minimum(tau * m.yaw_rate_max_rad_s, np.abs(self._turns[i]))
+        yaw = np.where(is_turn, self._yaw_before[i] + turned, self._yaw_leg[i])
         p_w = np.column_stack([xy, np.full(len(t), m.altitude_m)])
         zeros = np.zeros(len(t))
         return Trajectory(t, self.frame.w_to_ned(p_w), zeros, zeros.copy(), wrap_pi(yaw))

@@ -1,10 +1,14 @@
 """Survey missions: the paper's rectangle (Fig. 7, eqs. 17-18) with one- or two-step corners (Fig. 15).
 
 Waypoints are in the storage frame W (x along the length, y along the width). The rectangle's
-corners sit T_L = P_traj L and T_W = P_traj W in from the walls; the flight starts on corner 1
-facing corner 2 and ends when it is back on corner 1 (counter-clockwise seen from above). Two-step
-corners replace each turning corner C by two waypoints a cut distance before and after C on the
-two legs, so the vehicle turns twice by 45 deg; the paper cut at 10 % of W (Fig. 15 caption).
+corners sit T_L = P_traj L and T_W = P_traj W in from the walls and are flown counter-clockwise
+seen from above. Two-step corners replace each corner C by two waypoints a cut distance before and
+after C on the two legs, so the vehicle turns twice by 45 deg; the paper cut at 10 % of W (Fig. 15
+caption).
+
+The waypoints form a closed loop W0 ... Wn = W0. The vehicle arrives on W0 along the closing leg
+(as it would after flying in from take-off), turns there towards W1 and flies the loop back to W0:
+every waypoint is turned at exactly once, so no corner of the building is favoured or left out.
 """
 
 from __future__ import annotations
@@ -87,16 +91,14 @@ class Mission:
     def waypoints_w(self) -> np.ndarray:
         """Waypoints (K, 2) in W, first == last (the closed loop)."""
         c = self.corners_w()
-        loop = np.vstack([c, c[:1]])
         if self.turn == "one-step":
-            return loop
-        pts = [loop[0]]
-        for i in range(1, len(loop) - 1):
-            u_in = _unit(loop[i] - loop[i - 1])
-            u_out = _unit(loop[i + 1] - loop[i])
-            pts += [loop[i] - self.cut_m * u_in, loop[i] + self.cut_m * u_out]
-        pts.append(loop[-1])
-        return np.array(pts)
+            return np.vstack([c, c[:1]])
+        pts = []
+        for i in range(4):
+            u_in = _unit(c[i] - c[i - 1])
+            u_out = _unit(c[(i + 1) % 4] - c[i])
+            pts += [c[i] - self.cut_m * u_in, c[i] + self.cut_m * u_out]
+        return np.vstack([pts, pts[:1]])
 
     def path_length_m(self) -> float:
         return float(np.linalg.norm(np.diff(self.waypoints_w(), axis=0), axis=1).sum())

@@ -18,12 +18,12 @@ def test_that_corners_follow_eqs_17_and_18():
 def test_that_two_step_corners_cut_10_percent_of_w_before_and_after_each_turn():
     m = Mission(p_traj=0.2, turn="two-step")
     wp = m.waypoints_w()
-    assert len(wp) == 2 + 2 * 3
-    assert np.allclose(wp[1], [44, 8]) and np.allclose(wp[2], [48, 12])
+    assert len(wp) == 2 * 4 + 1 and np.allclose(wp[0], wp[-1])
+    assert np.allclose(wp[0], [12, 12]) and np.allclose(wp[1], [16, 8]) and np.allclose(wp[2], [44, 8])
     headings = np.degrees(np.arctan2(*np.diff(wp, axis=0)[:, ::-1].T))
-    assert np.allclose(np.abs(np.diff(headings) % 360), [45, 45, 45, 45, 45, 45])
-    # Each corner is cut by a 4 m x 4 m triangle: 3 x (8 - 4 sqrt 2) shorter.
-    assert m.path_length_m() == pytest.approx(120 - 3 * (8 - 4 * math.sqrt(2)))
+    assert np.allclose(np.diff(np.r_[headings[-1], headings]) % 360, 45)
+    # Each corner is cut by a 4 m x 4 m triangle: 4 x (8 - 4 sqrt 2) shorter.
+    assert m.path_length_m() == pytest.approx(120 - 4 * (8 - 4 * math.sqrt(2)))
 
 
 @pytest.mark.parametrize("kwargs,match", [
