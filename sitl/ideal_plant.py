@@ -1,8 +1,8 @@
 """Ideal plant: a kinematic vehicle that flies the mission exactly.
 
 Constant speed on the legs, level attitude, and turns in place at the yaw-rate limit at each
-waypoint, including the first (arrived at along the closing leg, see sitl.mission). It is the reference against which the flight-dynamics plant is judged, and the fast
-path for parameter sweeps.
+waypoint, including the first (arrived at along the closing leg, see sitl.mission). It is the
+reference against which the flight-dynamics plant is judged, and the fast path for sweeps.
 """
 
 from __future__ import annotations
