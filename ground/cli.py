@@ -7,7 +7,7 @@ from collections.abc import Sequence
 
 from firmware_py.cli_util import ArgumentParser, UserError, finite_float, run_cli
 from ground.report import ReportOptions, make_report
-from ground.surface import DEFAULT_CELL_M, EMPTY_CELL_POLICIES
+from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, EMPTY_CELL_POLICIES
 
 
 def build_parser() -> ArgumentParser:
@@ -20,9 +20,9 @@ def build_parser() -> ArgumentParser:
                    help="known true volume, m^3 (overrides truth.json), for Ve (eq. 8)")
     r.add_argument("--cell", type=finite_float, default=DEFAULT_CELL_M, metavar="M",
                    help=f"grid cell side for eq. (7), m (default {DEFAULT_CELL_M})")
-    r.add_argument("--empty-cells", choices=EMPTY_CELL_POLICIES, default="leave",
-                   help="cells outside the fitted surface: leave (no volume, the paper) or nearest "
-                        "(extend the surface to the walls)")
+    r.add_argument("--empty-cells", choices=EMPTY_CELL_POLICIES, default=DEFAULT_EMPTY_CELLS,
+                   help="cells outside the fitted surface: nearest (extend the surface to the walls, "
+                        "default) or leave (no volume there, the paper's method)")
     r.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     r.add_argument("--quiet", action="store_true", help="print nothing but errors")
     return ap

@@ -18,6 +18,7 @@ from firmware_py.storage import Storage
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask
 from ground.surface import (
     DEFAULT_CELL_M,
+    DEFAULT_EMPTY_CELLS,
     Grid,
     fill_empty,
     fit_heights,
@@ -35,7 +36,7 @@ HIGH_EXCLUDED_FRACTION = 0.5
 @dataclass(frozen=True)
 class ReportOptions:
     cell_m: float = DEFAULT_CELL_M
-    empty_cells: str = "leave"
+    empty_cells: str = DEFAULT_EMPTY_CELLS
     plots: bool = True
     truth_volume_m3: float | None = None
 

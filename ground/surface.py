@@ -4,10 +4,14 @@ The surface is a scattered-data cubic (Clough-Tocher on the Delaunay triangulati
 points), the analogue of MATLAB's `fit(..., 'cubicinterp')` the paper used. It exists only inside
 the convex hull of the points; what happens to cells outside it is the empty-cell policy:
 
-- ``leave`` (default, the paper's method): no surface there, no volume counted; R_a reports the
-  reconstructed fraction so a user sees what was missed.
-- ``nearest``: extend the surface to the walls with the nearest reconstructed cell's height,
-  the usual survey practice for a pile that leans on the walls.
+- ``nearest`` (default): extend the surface to the walls with the nearest reconstructed cell's
+  height, the usual survey practice: the walls bound the pile, and a pile that leans on them
+  would otherwise lose a strip of volume along every wall whose width depends on where the last
+  sample happened to land (docs/cell_sensitivity.md shows the grid sensitivity this removes).
+- ``leave`` (the paper's method): no surface there, no volume counted.
+
+Either way R_a (eq. 9) is computed from the fitted surface before any filling, and the report
+states the uncovered area, so extrapolation is never hidden.
 """
 
 from __future__ import annotations
@@ -20,7 +24,8 @@ from scipy import ndimage
 from scipy.interpolate import CloughTocher2DInterpolator
 from scipy.spatial import Delaunay, QhullError
 
-EMPTY_CELL_POLICIES = ("leave", "nearest")
+EMPTY_CELL_POLICIES = ("nearest", "leave")
+DEFAULT_EMPTY_CELLS = "nearest"
 DEFAULT_CELL_M = 0.25
 """Grid cell side. tools/cell_sensitivity.py shows the volume changes < 0.01 % below it."""
 

@@ -1,0 +1,83 @@
+"""Benchmarks (medians; never asserted in tests): ground report with and without plots on a
+~100k-sample run, batch ray casting, SITL flight. Usage: python -m tools.bench_ground [--write docs/benchmarks.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from firmware_py.storage import Storage
+from ground.report import ReportOptions, make_report
+from sitl.mission import Mission
+from sitl.raycast import World
+from sitl.run import FlyConfig, fly
+from sitl.stockpile import paper_pile
+
+
+def median_time(fn, repeat: int) -> tuple[float, list[float]]:
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), times
+
+
+def bench_rays(n: int, repeat: int) -> float:
+    world = World(Storage(), paper_pile("1"))
+    rng = np.random.default_rng(0)
+    o = np.column_stack([rng.uniform(3, 57, n), rng.uniform(2, 38, n), np.full(n, 12.0)])
+    g, az = rng.uniform(-np.pi / 2, np.pi / 2, n), rng.uniform(-np.pi, np.pi, n)
+    d = np.column_stack([np.sin(g) * np.cos(az), np.sin(g) * np.sin(az), -np.cos(g)])
+    world.cast(o[:1000], d[:1000])  # warm-up
+    med, _ = median_time(lambda: world.cast(o, d), repeat)
+    return n / med
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--write", type=Path, help="also write the table to this Markdown file")
+    args = ap.parse_args(argv)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        run = Path(tmp) / "run"
+        cfg = FlyConfig(mission=Mission(p_traj=0.05), stockpile="1")
+        fly_med, _ = median_time(lambda: fly(cfg, run, force=True), args.repeat)
+        n = fly(cfg, run, force=True).n_samples
+        rows.append((f"SITL fly, ideal plant, P_traj 5 % ({n:,} samples, {n / 500:.0f} s flight)", fly_med, ""))
+        make_report(run, Path(tmp) / "warm", ReportOptions(plots=False))  # imports and caches warm
+        no_plots, _ = median_time(lambda: make_report(run, Path(tmp) / "r1", ReportOptions(plots=False)), args.repeat)
+        rows.append((f"ground report, no plots ({n:,} samples)", no_plots, "target <= 1 s"))
+        plots, _ = median_time(lambda: make_report(run, Path(tmp) / "r2", ReportOptions()), args.repeat)
+        rows.append((f"ground report, with plots ({n:,} samples)", plots, "target <= 3 s"))
+        cli = [sys.executable, "-m", "ground.cli", "report", str(run), "--out", str(Path(tmp) / "r3"), "--quiet"]
+        cold, _ = median_time(lambda: subprocess.run(cli, check=True), 3)
+        rows.append(("`pilescan-ground report` as a fresh process, with plots (incl. imports)", cold, ""))
+    rate = bench_rays(1_000_000, args.repeat)
+    lines = [f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; "
+             f"medians of {args.repeat} runs (3 for the fresh process).", "",
+             "| benchmark | median | note |", "|---|---|---|"]
+    lines += [f"| {name} | {t:.3f} s | {note} |" for name, t, note in rows]
+    lines.append(f"| batch ray casting, 1 M rays (Embree) | {rate / 1e6:.2f} M rays/s | target >= 1 M rays/s |")
+    text = "\n".join(lines)
+    print(text)
+    if args.write:
+        args.write.parent.mkdir(parents=True, exist_ok=True)
+        args.write.write_text("# Benchmarks\n\nRegenerate with `python -m tools.bench_ground --write "
+                              f"{args.write}`.\n\n{text}\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
