@@ -40,6 +40,15 @@ def rot_body_to_ned(roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
     return r
 
 
+def _rotate(r: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """r @ v for a (3, 3) rotation and vectors (..., 3).
+
+    einsum, not `@`: a matmul over many points goes to a multithreaded BLAS whose spinning threads
+    stall badly when several processes share a small CPU (seen: a 2-process sweep on 2 cores hung).
+    """
+    return np.einsum("ij,...j->...i", r, v)
+
+
 def beam_dir_body(servo_rad) -> np.ndarray:
     """Unit beam direction in B for servo angle(s) gamma; shape (..., 3)."""
     g = np.asarray(servo_rad, dtype=float)
@@ -72,11 +81,11 @@ class StorageFrame:
 
     def ned_to_w(self, p_ned: np.ndarray) -> np.ndarray:
         """Points (..., 3) from NED to W."""
-        return (np.asarray(p_ned, dtype=float) - np.asarray(self.origin_ned_m)) @ self.rot_w_from_ned.T
+        return _rotate(self.rot_w_from_ned, np.asarray(p_ned, dtype=float) - np.asarray(self.origin_ned_m))
 
     def w_to_ned(self, p_w: np.ndarray) -> np.ndarray:
         """Points (..., 3) from W to NED (the rotation is its own inverse: symmetric, orthonormal)."""
-        return np.asarray(p_w, dtype=float) @ self.rot_w_from_ned + np.asarray(self.origin_ned_m)
+        return _rotate(self.rot_w_from_ned.T, np.asarray(p_w, dtype=float)) + np.asarray(self.origin_ned_m)
 
     def yaw_from_w_heading(self, course_w_rad):
         """NED yaw of a vehicle pointing along a W-frame direction atan2(dy, dx)."""
@@ -106,7 +115,7 @@ def beam_rays_w(pos_ned_m: np.ndarray, roll_rad, pitch_rad, yaw_rad, servo_rad,
     r_nb = rot_body_to_ned(roll_rad, pitch_rad, yaw_rad)
     r_wn = frame.rot_w_from_ned
     r_wb = np.einsum("ij,njk->nik", r_wn, r_nb)
-    origins = frame.ned_to_w(pos_ned_m) + r_wb @ np.asarray(lever_arm_body_m, dtype=float)
+    origins = frame.ned_to_w(pos_ned_m) + np.einsum("nij,j->ni", r_wb, np.asarray(lever_arm_body_m, dtype=float))
     dirs = np.einsum("nij,nj->ni", r_wb, beam_dir_body(servo_rad))
     return origins, dirs
 

@@ -99,11 +99,11 @@ def header_geometry(log: SampleLog, path: Path) -> tuple[Storage, StorageFrame, 
     return storage, frame, lever
 
 
-def survey_from_log(log: SampleLog, storage: Storage, frame: StorageFrame, lever: np.ndarray,
-                    opts: ReportOptions) -> Survey:
-    """The computation, free of file handling."""
-    cloud = cloud_from_samples(log.samples, lever, frame)
-    structure = structure_mask(cloud, storage, SensorErrorModel.from_header(log.header or {}))
+def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
+                        lever: np.ndarray, opts: ReportOptions) -> Survey:
+    """The computation, free of file handling (sweeps call it on samples that never touch disk)."""
+    cloud = cloud_from_samples(samples, lever, frame)
+    structure = structure_mask(cloud, storage, SensorErrorModel.from_header(header))
     pile = cloud.points_w[~structure]
     grid = Grid(storage.length_m, storage.width_m, opts.cell_m)
     fit = fit_heights(pile, grid)
@@ -160,7 +160,7 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
     if len(log.samples) == 0:
         raise UserError(f"{log_path}: no samples could be read ({log.blocks_corrupt} corrupt block(s))")
     truth = opts.truth_volume_m3 if opts.truth_volume_m3 is not None else read_truth_volume(truth_path)
-    survey = survey_from_log(log, storage, frame, lever, opts)
+    survey = survey_from_samples(log.samples, log.header or {}, storage, frame, lever, opts)
     report = summarise(survey, log, opts, truth)
     report["source"] = str(source)
     out = Path(out_dir)

@@ -23,6 +23,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.interpolate import CloughTocher2DInterpolator
 from scipy.spatial import Delaunay, QhullError
+from threadpoolctl import threadpool_limits
 
 EMPTY_CELL_POLICIES = ("nearest", "leave")
 DEFAULT_EMPTY_CELLS = "nearest"
@@ -76,13 +77,16 @@ def fit_heights(points_w: np.ndarray, grid: Grid) -> np.ndarray:
     if len(points_w) < 3:
         return heights
     xy = np.ascontiguousarray(points_w[:, :2], dtype=float)
-    try:
-        tri = Delaunay(xy)
-    except (QhullError, ValueError):  # all points collinear or coincident: no surface
-        return heights
-    surface = CloughTocher2DInterpolator(tri, points_w[:, 2])
-    cx, cy = grid.centres()
-    return surface(cx, cy)
+    # One BLAS thread: the triangulation makes tens of thousands of 2x2 LAPACK solves, which a
+    # threaded OpenBLAS turns into thread hand-offs; with two processes on two cores they crawl.
+    with threadpool_limits(limits=1, user_api="blas"):
+        try:
+            tri = Delaunay(xy)
+        except (QhullError, ValueError):  # all points collinear or coincident: no surface
+            return heights
+        surface = CloughTocher2DInterpolator(tri, points_w[:, 2])
+        cx, cy = grid.centres()
+        return surface(cx, cy)
 
 
 def fill_empty(heights: np.ndarray, policy: str) -> np.ndarray:

@@ -69,7 +69,8 @@ class RunResult:
     wall_time_s: float
 
 
-def _header(cfg: FlyConfig, wf: Waveform, pile: piles.Stockpile) -> dict:
+def log_header(cfg: FlyConfig, wf: Waveform) -> dict:
+    """The sample-log header of a SITL flight: what the ground station needs to place the points."""
     return {
         "software": f"pilescan {firmware_py.__version__}",
         "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
@@ -117,7 +118,7 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
     log_path = out / SAMPLES_FILE
     log_path.unlink(missing_ok=True)
     # The batch path writes a finished flight at once: one fsync at the end is enough.
-    with SampleLogWriter(log_path, _header(cfg, wf, pile), records_per_block=500, fsync=False) as w:
+    with SampleLogWriter(log_path, log_header(cfg, wf), records_per_block=500, fsync=False) as w:
         w.append(records)
     with open(log_path, "rb") as f:
         os.fsync(f.fileno())
