@@ -83,7 +83,8 @@ def render(results: list[dict], wall_s: float) -> str:
               "|---|---|---|---|---|---|"]
     for pile in ("1", "2"):
         rows = [r for r in results if r["pile"] == pile]
-        mean = lambda key, pol=None: np.mean([np.mean(r[key][pol] if pol else r[key]) for r in rows])  # noqa: E731
+        def mean(key, pol=None, rows=rows):
+            return np.mean([np.mean(r[key][pol] if pol else r[key]) for r in rows])
         lines.append(f"| {pile} | {mean('ve', 'nearest'):.2f} | {mean('ve', 'leave'):.2f} | {PAPER_TABLE2[pile][0]} | "
                      f"{mean('ra'):.1f} | {PAPER_TABLE2[pile][1]} |")
     lines += ["", f"{len(results) * N_POSITIONS} flights-worth of samples in {wall_s:.0f} s wall time."]
