@@ -48,8 +48,7 @@ def run_cli(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
         return exc.code if isinstance(exc.code, int) else EXIT_USAGE
     try:
         return body(args)
-    except (UserError, ValueError, FileNotFoundError, IsADirectoryError, NotADirectoryError,
-            PermissionError) as exc:
+    except (UserError, ValueError, OSError) as exc:  # OSError: missing file, disk full, permission...
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"{prog}: error: {msg}", file=sys.stderr)
         return EXIT_USAGE

@@ -44,3 +44,11 @@ def test_that_a_corrupt_mesh_fails_with_one_line(tmp_path, capsys):
     code = main(["fly", "--stockpile", str(bad), "--p-traj", "20", "--out", str(tmp_path / "run")])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "pile.stl" in err
+
+
+def test_that_an_out_path_that_is_a_file_fails_with_one_line(tmp_path, capsys):
+    blocker = tmp_path / "blocker"
+    blocker.write_text("x")
+    code = main(["fly", "--stockpile", "1", "--p-traj", "20", "--out", str(blocker / "run")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err
