@@ -103,6 +103,7 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
     out = Path(out_dir)
     if (out / SAMPLES_FILE).exists() and not force:
         raise ValueError(f"{out} already holds a run; choose another --out or pass --force")
+    out.mkdir(parents=True, exist_ok=True)  # fail before any work when --out is unusable
     storage = cfg.mission.storage
     pile = piles.resolve(cfg.stockpile, storage)
     check_clearance(cfg.mission, pile)
@@ -114,7 +115,6 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
     wf = cfg.servo_waveform()
     records = sample_flight(plant.states(t), wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame)
 
-    out.mkdir(parents=True, exist_ok=True)
     log_path = out / SAMPLES_FILE
     log_path.unlink(missing_ok=True)
     # The batch path writes a finished flight at once: one fsync at the end is enough.
