@@ -32,7 +32,10 @@ def build_parser() -> ArgumentParser:
     f.add_argument("--phase", type=int, default=0, metavar="K",
                    help=f"servo initial position 0..{2 * N_PHASES - 1} (Fig. 9: {N_PHASES} phases x 2 "
                         f"directions; K >= {N_PHASES} sweeps the other way)")
-    f.add_argument("--plant", choices=PLANTS, default="ideal", help="vehicle model")
+    f.add_argument("--plant", choices=PLANTS, default="jsbsim",
+                   help="vehicle: jsbsim (F450 flight dynamics + autopilot, default) or ideal (kinematic)")
+    f.add_argument("--payload-mass", type=finite_float, default=0.040, metavar="KG",
+                   help="payload mass, kg (0.040: LIDAR-Lite + servo; 0.370 2D LiDAR; 0.830 3D)")
     f.add_argument("--seed", type=int, default=0, help="seed of the run's random draws")
     f.add_argument("--out", required=True, help="run directory to write")
     f.add_argument("--force", action="store_true", help="overwrite a run already in --out")
@@ -46,7 +49,7 @@ def _fly(args) -> int:
                       yaw_rate_max_rad_s=math.radians(args.yaw_rate_max))
     cfg = FlyConfig(mission=mission, stockpile=args.stockpile, waveform=args.waveform,
                     servo_peak_rate_rad_s=args.servo_rate, initial_position=args.phase, plant=args.plant,
-                    seed=args.seed)
+                    payload_kg=args.payload_mass, seed=args.seed)
     progress = None if args.quiet else (lambda msg: print(f"pilescan-sitl: {msg}", file=sys.stderr))
     res = fly(cfg, args.out, force=args.force, progress=progress)
     if not args.quiet:

@@ -23,14 +23,15 @@ from firmware_py.samplelog import SampleLogWriter
 from firmware_py.servo_waveform import Waveform, initial_position, named_waveform
 from sitl import stockpile as piles
 from sitl.batch_sampler import LidarSpec, sample_flight
-from sitl.ideal_plant import IdealPlant
+from sitl.flight import PAYLOAD_1D_KG, fly_mission
+from sitl.ideal_plant import IdealPlant, Trajectory
 from sitl.mission import Mission
 from sitl.raycast import World
 
 SAMPLES_FILE = "samples.pslog"
 TRUTH_FILE = "truth.json"
 PILE_FILE = "pile.stl"
-PLANTS = ("ideal",)
+PLANTS = ("jsbsim", "ideal")
 
 
 @dataclass(frozen=True)
@@ -42,7 +43,8 @@ class FlyConfig:
     waveform: str = "semi-triangular"
     servo_peak_rate_rad_s: float = 5.0
     initial_position: int = 0
-    plant: str = "ideal"
+    plant: str = "jsbsim"
+    payload_kg: float = PAYLOAD_1D_KG
     seed: int = 0
     lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10)
     frame: StorageFrame = field(default_factory=StorageFrame)
@@ -52,6 +54,8 @@ class FlyConfig:
         if self.plant not in PLANTS:
             raise ValueError(f"unknown plant {self.plant!r}; available: {', '.join(PLANTS)}")
         initial_position(self.initial_position)  # validates the range
+        if not (math.isfinite(self.payload_kg) and 0.0 <= self.payload_kg <= 2.0):
+            raise ValueError(f"payload mass must be 0-2 kg, got {self.payload_kg}")
         if len(self.lever_arm_body_m) != 3 or not all(math.isfinite(v) for v in self.lever_arm_body_m):
             raise ValueError(f"lever arm must be 3 finite numbers, got {self.lever_arm_body_m}")
         self.servo_waveform()  # validates the name and rate
@@ -67,6 +71,7 @@ class RunResult:
     duration_s: float
     true_volume_m3: float
     wall_time_s: float
+    energy_j: float | None = None
 
 
 def log_header(cfg: FlyConfig, wf: Waveform) -> dict:
@@ -109,11 +114,10 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
     check_clearance(cfg.mission, pile)
     say(f"stockpile: {pile.source}, true volume {pile.volume_m3:.1f} m^3")
     world = World(storage, pile, max_range_m=cfg.lidar.max_range_m)
-    plant = IdealPlant(cfg.mission, cfg.frame)
-    t = plant.sample_times(cfg.lidar.rate_hz)
-    say(f"flying {cfg.mission.path_length_m():.0f} m ({plant.duration_s:.0f} s, {len(t)} samples)")
+    say(f"flying {cfg.mission.path_length_m():.0f} m with the {cfg.plant} plant")
+    traj, duration_s, energy_j = fly_trajectory(cfg)
     wf = cfg.servo_waveform()
-    records = sample_flight(plant.states(t), wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame)
+    records = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame)
 
     log_path = out / SAMPLES_FILE
     log_path.unlink(missing_ok=True)
@@ -134,8 +138,9 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
         "mission": cfg.mission.to_dict(),
         "mission_id": cfg.mission.mission_id,
         "plant": cfg.plant,
-        "flight_time_s": plant.duration_s,
-        "energy_j": None,
+        "flight_time_s": duration_s,
+        "energy_j": energy_j,
+        "payload_kg": cfg.payload_kg if cfg.plant == "jsbsim" else None,
         "n_samples": len(records),
         "servo_initial_position": cfg.initial_position,
         "waveform": cfg.waveform,
@@ -143,5 +148,19 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
     }
     (out / TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
     n_ret = int(np.count_nonzero(records["flags"] == 0))
-    say(f"wrote {out}: {len(records)} samples ({n_ret} returns)")
-    return RunResult(out, len(records), plant.duration_s, pile.volume_m3, time.perf_counter() - t0)
+    say(f"wrote {out}: {len(records)} samples ({n_ret} returns), {duration_s:.0f} s flight"
+        + (f", {energy_j / 1000:.1f} kJ" if energy_j is not None else ""))
+    return RunResult(out, len(records), duration_s, pile.volume_m3, time.perf_counter() - t0, energy_j)
+
+
+def fly_trajectory(cfg: FlyConfig) -> tuple[Trajectory, float, float | None]:
+    """The flown trajectory at the LiDAR's sample times, the flight time and the energy (None: ideal)."""
+    if cfg.plant == "ideal":
+        plant = IdealPlant(cfg.mission, cfg.frame)
+        return plant.states(plant.sample_times(cfg.lidar.rate_hz)), plant.duration_s, None
+    flown = fly_mission(cfg.mission, cfg.frame, payload_kg=cfg.payload_kg)
+    if not flown.completed:
+        raise ValueError(f"the vehicle did not complete the mission within {flown.duration_s:.0f} s "
+                         f"(reached {len(flown.reached)} of {len(cfg.mission.waypoints_w()) - 1} waypoints)")
+    t = np.arange(int(flown.duration_s * cfg.lidar.rate_hz) + 1) / cfg.lidar.rate_hz
+    return flown.trajectory_at(t), flown.duration_s, flown.energy_j

@@ -26,7 +26,7 @@ def test_that_fly_writes_a_run(tmp_path, capsys):
     (["--stockpile", "1", "--p-traj", "20", "--yaw-rate-max", "inf"], "finite"),
     (["--stockpile", "1", "--p-traj", "20", "--phase", "20"], "0..19"),
     (["--stockpile", "1", "--p-traj", "20", "--turn", "zigzag"], "invalid choice"),
-    (["--stockpile", "1", "--p-traj", "20", "--plant", "jsbsim"], "invalid choice"),
+    (["--stockpile", "1", "--p-traj", "20", "--plant", "webots"], "invalid choice"),
     (["--stockpile", "1"], "--p-traj"),
 ])
 def test_that_bad_inputs_fail_with_one_line(tmp_path, capsys, monkeypatch, extra, match):
