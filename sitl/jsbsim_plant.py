@@ -13,7 +13,9 @@ which its FCS sums straight into `fcs/cmdEsc*_nd` (its own stability loops are l
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import functools
+import io
 import math
 import os
 import shutil
@@ -55,17 +57,23 @@ def _aircraft_dir() -> str:
     return str(dst.parent)
 
 
+_LIBC = ctypes.CDLL(None)
+
+
 @contextlib.contextmanager
 def _quiet_c_output() -> Iterator[None]:
-    """Silence what the C++ library writes to fds 1 and 2 (Python's own streams are flushed first)."""
+    """Silence what JSBSim prints: at the fd level, and at Python's level too, because its bindings
+    send C++ output to Python's sys.stdout when that is not a plain file (pytest, Jupyter)."""
     sys.stdout.flush()
     sys.stderr.flush()
     saved = [os.dup(1), os.dup(2)]
     try:
-        with open(os.devnull, "wb") as null:
+        with open(os.devnull, "wb") as null, contextlib.redirect_stdout(io.StringIO()), \
+                contextlib.redirect_stderr(io.StringIO()):
             os.dup2(null.fileno(), 1)
             os.dup2(null.fileno(), 2)
             yield
+            _LIBC.fflush(None)  # C++ streams sit on C stdio buffers: flush them while still silenced
     finally:
         os.dup2(saved[0], 1)
         os.dup2(saved[1], 2)
