@@ -1,15 +1,23 @@
-"""`pilescan-sitl`: fly survey missions in the software-in-the-loop simulator."""
+"""`pilescan-sitl`: fly survey missions in the software-in-the-loop simulator.
+
+fly    lockstep, as fast as the CPU allows, writing a run directory;
+serve  the vehicle as a MAVLink autopilot on UDP, in real time (or N x), for MAVProxy, QGC, the payload;
+plan   export the survey as a QGC WPL 110 mission file.
+"""
 
 from __future__ import annotations
 
 import math
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from firmware_py.cli_util import ArgumentParser, finite_float, run_cli
+from firmware_py.frames import StorageFrame
 from firmware_py.servo_waveform import N_PHASES
 from firmware_py.storage import Storage
 from sitl.mission import TURN_MODES, Mission
+from sitl.mission_plan import write_qgc_wpl
 from sitl.run import PLANTS, FlyConfig, fly
 
 
@@ -18,13 +26,7 @@ def build_parser() -> ArgumentParser:
     sub = ap.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
     f = sub.add_parser("fly", help="fly a survey and write a run directory")
     f.add_argument("--stockpile", required=True, help="1, 2 (the paper's piles) or an STL/OBJ mesh path")
-    f.add_argument("--p-traj", type=finite_float, required=True, metavar="PCT",
-                   help="waypoint offset from the walls, percent of L and W (eqs. 17-18), 0-50")
-    f.add_argument("--storage", default="60x40x15", help="building LxWxH in metres (default 60x40x15)")
-    f.add_argument("--turn", choices=TURN_MODES, default="one-step", help="corner turns (Fig. 15)")
-    f.add_argument("--speed", type=finite_float, default=1.0, help="flight speed, m/s (default 1.0)")
-    f.add_argument("--altitude", type=finite_float, default=12.0, help="flight height, m (default 12)")
-    f.add_argument("--yaw-rate-max", type=finite_float, default=30.0, help="max yaw rate, deg/s (default 30)")
+    _mission_options(f, p_traj_required=True)
     f.add_argument("--waveform", choices=("semi-triangular", "sinusoidal"), default="semi-triangular",
                    help="servo waveform (eq. 1; C=0.95 or C=0)")
     f.add_argument("--servo-rate", type=finite_float, default=5.0,
@@ -40,13 +42,42 @@ def build_parser() -> ArgumentParser:
     f.add_argument("--out", required=True, help="run directory to write")
     f.add_argument("--force", action="store_true", help="overwrite a run already in --out")
     f.add_argument("--quiet", action="store_true", help="print nothing but errors")
+
+    sv = sub.add_parser("serve", help="run the vehicle as a MAVLink autopilot on a network link, in real time")
+    sv.add_argument("--mavlink", default="udp:127.0.0.1:14550",
+                    help="where to serve: udp:HOST:PORT listens (clients use udpout:HOST:PORT), "
+                         "udpout:HOST:PORT sends to a fixed peer (default udp:127.0.0.1:14550)")
+    sv.add_argument("--speedup", type=finite_float, default=1.0, help="simulated seconds per wall second")
+    sv.add_argument("--duration", type=finite_float, default=None, metavar="S",
+                    help="stop after S simulated seconds (default: run until Ctrl-C / SIGTERM)")
+    sv.add_argument("--vehicle", choices=("jsbsim", "kinematic"), default="jsbsim")
+    _mission_options(sv, p_traj_required=False)
+    sv.add_argument("--out", default="runs/serve", help="directory for telemetry.tlog and mission.waypoints")
+
+    pl = sub.add_parser("plan", help="export the survey as a QGC WPL 110 mission (.waypoints)")
+    _mission_options(pl, p_traj_required=True)
+    pl.add_argument("--out", required=True, help="plan file to write (.waypoints)")
     return ap
 
 
+def _mission_options(p: ArgumentParser, p_traj_required: bool) -> None:
+    p.add_argument("--p-traj", type=finite_float, required=p_traj_required, default=None if p_traj_required else 20.0,
+                   metavar="PCT", help="waypoint offset from the walls, percent of L and W (eqs. 17-18), 0-50")
+    p.add_argument("--storage", default="60x40x15", help="building LxWxH in metres (default 60x40x15)")
+    p.add_argument("--turn", choices=TURN_MODES, default="one-step", help="corner turns (Fig. 15)")
+    p.add_argument("--speed", type=finite_float, default=1.0, help="flight speed, m/s (default 1.0)")
+    p.add_argument("--altitude", type=finite_float, default=12.0, help="flight height, m (default 12)")
+    p.add_argument("--yaw-rate-max", type=finite_float, default=30.0, help="max yaw rate, deg/s (default 30)")
+
+
+def _mission(args) -> Mission:
+    return Mission(storage=Storage.parse(args.storage), p_traj=args.p_traj / 100.0, turn=args.turn,
+                   speed_m_s=args.speed, altitude_m=args.altitude,
+                   yaw_rate_max_rad_s=math.radians(args.yaw_rate_max))
+
+
 def _fly(args) -> int:
-    mission = Mission(storage=Storage.parse(args.storage), p_traj=args.p_traj / 100.0, turn=args.turn,
-                      speed_m_s=args.speed, altitude_m=args.altitude,
-                      yaw_rate_max_rad_s=math.radians(args.yaw_rate_max))
+    mission = _mission(args)
     cfg = FlyConfig(mission=mission, stockpile=args.stockpile, waveform=args.waveform,
                     servo_peak_rate_rad_s=args.servo_rate, initial_position=args.phase, plant=args.plant,
                     payload_kg=args.payload_mass, seed=args.seed)
@@ -58,8 +89,23 @@ def _fly(args) -> int:
     return 0
 
 
+def _plan(args) -> int:
+    path = write_qgc_wpl(args.out, _mission(args), StorageFrame())
+    print(f"plan written to {path} (load it with MAVProxy 'wp load', QGroundControl or Mission Planner)")
+    return 0
+
+
+def _serve(args) -> int:
+    from sitl.serve import serve
+    return serve(_mission(args), args.mavlink, args.speedup, args.duration, args.vehicle, Path(args.out))
+
+
+def _dispatch(args) -> int:
+    return {"fly": _fly, "serve": _serve, "plan": _plan}[args.command](args)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    return run_cli(build_parser(), argv, _fly)
+    return run_cli(build_parser(), argv, _dispatch)
 
 
 if __name__ == "__main__":

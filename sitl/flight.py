@@ -10,8 +10,11 @@ recorded at every physics step and interpolated to the LiDAR's sample times.
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -19,6 +22,7 @@ from firmware_py.frames import StorageFrame
 from sitl.ideal_plant import Trajectory, wrap_pi
 from sitl.jsbsim_plant import PlantConfig
 from sitl.jsbsim_vehicle import JsbsimVehicle, VehicleConfig
+from sitl.mavlink_vehicle import MavlinkVehicleServer, PipeTransport
 from sitl.mission import Mission
 from sitl.vehicle_api import FlightMode, NavItem, NavKind
 
@@ -67,16 +71,42 @@ SETTLE_S = 10.0
 
 
 def fly_mission(mission: Mission, frame: StorageFrame, payload_kg: float = PAYLOAD_1D_KG,
-                dt_s: float = 1.0 / 200.0, timeout_s: float | None = None) -> FlownMission:
-    """Fly the survey with JSBSim + autopilot as fast as the CPU allows."""
+                dt_s: float = 1.0 / 200.0, timeout_s: float | None = None,
+                tlog_path: str | Path | None = None) -> FlownMission:
+    """Fly the survey with JSBSim + autopilot as fast as the CPU allows.
+
+    With tlog_path, the vehicle also runs its MAVLink server (streams at their default rates, on an
+    in-memory link nobody answers yet) and everything it sends goes into that telemetry log.
+    """
     start, yaw0 = start_pose(mission, frame)
     cfg = VehicleConfig(plant=PlantConfig(dt_s=dt_s, payload_kg=payload_kg, start_ned_m=start,
                                           start_yaw_rad=yaw0, airborne=True),
                         speed_m_s=mission.speed_m_s, yaw_rate_max_rad_s=mission.yaw_rate_max_rad_s,
                         altitude_m=mission.altitude_m)
     v = JsbsimVehicle(cfg, armed=True, mode=FlightMode.GUIDED)
+    with contextlib.ExitStack() as stack:
+        tick = _telemetry(stack, v, tlog_path)
+        return _fly(v, mission, frame, dt_s, timeout_s, tick)
+
+
+def _telemetry(stack: contextlib.ExitStack, v: JsbsimVehicle, tlog_path: str | Path | None) -> Callable[[], None]:
+    """A per-step hook that serves MAVLink into a tlog, or does nothing."""
+    if tlog_path is None:
+        return lambda: None
+    server_end, client_end = PipeTransport.pair()
+    server = stack.enter_context(MavlinkVehicleServer(v, server_end, tlog_path=tlog_path))
+
+    def tick() -> None:
+        server.update()
+        client_end.recv()  # drain: no peer in a lockstep flight without the payload
+    return tick
+
+
+def _fly(v: JsbsimVehicle, mission: Mission, frame: StorageFrame, dt_s: float, timeout_s: float | None,
+         tick: Callable[[], None]) -> FlownMission:
     for _ in range(int(SETTLE_S / dt_s)):
         v.step()
+        tick()
     t0, e0 = v.plant.t_s, v.plant.energy_j
     v.load_mission(mission_nav_items(mission, frame))
     v.start_mission()
@@ -90,6 +120,7 @@ def fly_mission(mission: Mission, frame: StorageFrame, payload_kg: float = PAYLO
     k = 0
     while k < n_max and v.mode == FlightMode.AUTO:
         v.step()
+        tick()
         k += 1
         t[k], states[k] = v.plant.t_s - t0, v.raw_state
     return FlownMission(t[: k + 1], states[: k + 1], v.plant.energy_j - e0, float(t[k]),

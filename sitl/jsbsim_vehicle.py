@@ -117,9 +117,9 @@ class JsbsimVehicle:
                    yaw_rad=self._hold.yaw_rad)
         if self.landed:
             self._landing = False
-            self._advance_if_item(NavKind.LAND)
-            self.armed = False
+            self.armed = False  # before advancing: a mission that ends landed stays in its mode
             self._texts.append("landed and disarmed")
+            self._advance_if_item(NavKind.LAND)
         return t
 
     def _mission_target(self) -> Target:

@@ -1,7 +1,8 @@
 """Fly a mission in the SITL and write a run directory.
 
 Run directory (DESIGN section 4): `samples.pslog` (sample log), `truth.json` (true volume, storage,
-mission, seeds, config), `pile.stl` (the stockpile mesh the LiDAR saw).
+mission, seeds, energy, config), `pile.stl` (the stockpile mesh the LiDAR saw), `telemetry.tlog`
+(the vehicle's MAVLink traffic, JSBSim plant) and `mission.waypoints` (the plan, QGC WPL 110).
 """
 
 from __future__ import annotations
@@ -26,11 +27,14 @@ from sitl.batch_sampler import LidarSpec, sample_flight
 from sitl.flight import PAYLOAD_1D_KG, fly_mission
 from sitl.ideal_plant import IdealPlant, Trajectory
 from sitl.mission import Mission
+from sitl.mission_plan import write_qgc_wpl
 from sitl.raycast import World
 
 SAMPLES_FILE = "samples.pslog"
 TRUTH_FILE = "truth.json"
 PILE_FILE = "pile.stl"
+TLOG_FILE = "telemetry.tlog"
+PLAN_FILE = "mission.waypoints"
 PLANTS = ("jsbsim", "ideal")
 
 
@@ -115,7 +119,7 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
     say(f"stockpile: {pile.source}, true volume {pile.volume_m3:.1f} m^3")
     world = World(storage, pile, max_range_m=cfg.lidar.max_range_m)
     say(f"flying {cfg.mission.path_length_m():.0f} m with the {cfg.plant} plant")
-    traj, duration_s, energy_j = fly_trajectory(cfg)
+    traj, duration_s, energy_j = fly_trajectory(cfg, out / TLOG_FILE)
     wf = cfg.servo_waveform()
     records = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame)
 
@@ -127,6 +131,7 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
     with open(log_path, "rb") as f:
         os.fsync(f.fileno())
     pile.mesh.export(out / PILE_FILE)
+    write_qgc_wpl(out / PLAN_FILE, cfg.mission, cfg.frame)
     truth = {
         "true_volume_m3": pile.volume_m3,
         "stockpile": cfg.stockpile,
@@ -153,12 +158,15 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
     return RunResult(out, len(records), duration_s, pile.volume_m3, time.perf_counter() - t0, energy_j)
 
 
-def fly_trajectory(cfg: FlyConfig) -> tuple[Trajectory, float, float | None]:
-    """The flown trajectory at the LiDAR's sample times, the flight time and the energy (None: ideal)."""
+def fly_trajectory(cfg: FlyConfig, tlog_path: Path | None = None) -> tuple[Trajectory, float, float | None]:
+    """The flown trajectory at the LiDAR's sample times, the flight time and the energy (None: ideal).
+
+    With tlog_path, the JSBSim vehicle's MAVLink telemetry is logged there (the ideal plant has none).
+    """
     if cfg.plant == "ideal":
         plant = IdealPlant(cfg.mission, cfg.frame)
         return plant.states(plant.sample_times(cfg.lidar.rate_hz)), plant.duration_s, None
-    flown = fly_mission(cfg.mission, cfg.frame, payload_kg=cfg.payload_kg)
+    flown = fly_mission(cfg.mission, cfg.frame, payload_kg=cfg.payload_kg, tlog_path=tlog_path)
     if not flown.completed:
         raise ValueError(f"the vehicle did not complete the mission within {flown.duration_s:.0f} s "
                          f"(reached {len(flown.reached)} of {len(cfg.mission.waypoints_w()) - 1} waypoints)")
