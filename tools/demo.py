@@ -6,6 +6,7 @@ Pile 1 of the paper at P_traj = 20 %, the baseline mission of Table 1, ideal pla
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -15,7 +16,7 @@ from sitl.mission import Mission
 from sitl.run import FlyConfig, fly
 
 
-def summary_table(rep: dict, fly_s: float, ground_s: float) -> str:
+def summary_table(rep: dict, fly_s: float, ground_s: float, flight: dict | None = None) -> str:
     def fmt(v, unit="", spec=".2f"):
         return "unknown" if v is None else f"{v:{spec}}{unit}"
     rows = [
@@ -24,6 +25,8 @@ def summary_table(rep: dict, fly_s: float, ground_s: float) -> str:
         ("Ve (eq. 8)", fmt(rep["volume_error_pct"], " %")),
         ("R_a (eq. 9)", fmt(rep["coverage_ratio_pct"], " %")),
         ("points used", f"{rep['n_points_used']:,} of {rep['n_samples']:,} samples"),
+        *([("flight", f"{flight['flight_time_s']:.0f} s, {flight['energy_j'] / 1000:.1f} kJ ({flight['plant']} plant)")]
+          if flight and flight.get("energy_j") is not None else []),
         ("wall time", f"{fly_s + ground_s:.2f} s (flight {fly_s:.2f} s, ground {ground_s:.2f} s)"),
     ]
     w = max(len(k) for k, _ in rows)
@@ -39,15 +42,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--p-traj", type=float, default=20.0, help="percent")
     args = ap.parse_args(argv)
     out = Path(args.out)
-    print(f"pilescan demo: stockpile {args.stockpile}, P_traj {args.p_traj:g} %, 60x40x15 m building, "
-          "1 m/s at 12 m, 30 deg/s yaw, semi-triangular servo at 5 rad/s, LiDAR 500 Hz")
+    print(f"pilescan demo: stockpile {args.stockpile}, P_traj {args.p_traj:g} %, 60x40x15 m building, JSBSim F450 "
+          "at 1 m/s and 12 m, 30 deg/s yaw, semi-triangular servo at 5 rad/s, LiDAR 500 Hz")
     t0 = time.perf_counter()
     fly(FlyConfig(mission=Mission(p_traj=args.p_traj / 100), stockpile=args.stockpile), out / "run", force=True,
         progress=lambda m: print(f"  sitl: {m}"))
     t1 = time.perf_counter()
     rep = make_report(out / "run", out / "report", ReportOptions())
     t2 = time.perf_counter()
-    print(summary_table(rep, t1 - t0, t2 - t1))
+    truth = json.loads((out / "run" / "truth.json").read_text())
+    print(summary_table(rep, t1 - t0, t2 - t1, truth))
     print(f"report: {(out / 'report' / 'report.html').resolve()}")
     return 0
 
