@@ -1,0 +1,64 @@
+"""Hardware abstraction layer: the small protocols the payload's drivers are written against.
+
+Hardware backends (smbus2 I2C, Linux sysfs PWM, PCA9685, MAVLink over serial/UDP) and the SITL's
+emulated devices both implement these, chosen by URL-like strings (DESIGN section 7), so the
+drivers above never know which they run on.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+
+class I2CError(OSError):
+    """A failed bus transfer (NACK, arbitration lost, timeout): what smbus2 raises as OSError."""
+
+
+class I2CBus(Protocol):
+    """An I2C master. Addresses are 7-bit. Every method raises I2CError on a failed transfer."""
+
+    def write(self, addr: int, data: bytes) -> None:
+        """One write transfer (START, addr+W, data..., STOP)."""
+
+    def read(self, addr: int, n: int) -> bytes:
+        """One read transfer of n bytes (START, addr+R, n bytes, STOP)."""
+
+    def write_read(self, addr: int, data: bytes, n: int) -> bytes:
+        """A combined transfer with a repeated START between the write and the read.
+
+        Only for devices that support it; the LIDAR-Lite v3 does not (use write then read).
+        """
+
+    def close(self) -> None: ...
+
+
+class PwmOutput(Protocol):
+    """One servo/ESC PWM channel at a fixed frame rate (50 Hz for hobby servos)."""
+
+    def set_pulse_us(self, pulse_us: float) -> None:
+        """Command a pulse width in microseconds; ValueError outside the backend's range."""
+
+    def disable(self) -> None:
+        """Stop pulsing (the servo goes limp)."""
+
+    def close(self) -> None: ...
+
+
+class Clock(Protocol):
+    """Monotonic time for the payload. In SITL lockstep, sleeping is what advances the world."""
+
+    def now_ns(self) -> int: ...
+
+    def sleep_until_ns(self, t_ns: int) -> None:
+        """Return at (or just after) monotonic time t_ns; at once if that is already past."""
+
+
+class MavlinkLink(Protocol):
+    """A MAVLink 2 connection to the autopilot (pymavlink message objects in and out)."""
+
+    def send(self, msg: Any) -> None: ...
+
+    def recv(self) -> list[Any]:
+        """All complete messages received so far (never blocks; bad bytes are dropped and counted)."""
+
+    def close(self) -> None: ...
