@@ -1,0 +1,150 @@
+"""The sweeping servo: pulse-width calibration, the eq. (1) waveform, and a model of where it is.
+
+A hobby servo has no position feedback, so the angle at a LiDAR sample is a prediction: the
+commanded waveform passed through a model of the servo (a first-order lag with a slew-rate
+limit, the two numbers a bench calibration gives). The command is issued ahead of the waveform
+(lag plus half a PWM frame) so the shaft follows eq. (1) rather than a delayed copy of it; where
+the waveform asks for more than the servo's top speed it cannot, and the model says so.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from firmware_py.hal import PwmOutput
+from firmware_py.servo_waveform import Waveform
+
+
+@dataclass(frozen=True)
+class ServoCalibration:
+    """Pulse width <-> angle, and the servo's dynamics.
+
+    Attributes:
+        center_us: pulse at gamma = 0 (beam straight down).
+        us_per_rad: pulse change per radian (positive: larger pulse turns the beam to starboard).
+        min_us, max_us: the pulse range the servo accepts.
+        slew_rad_s: the servo's top speed (datasheet ~0.2 s/60 deg -> 5.2 rad/s).
+        lag_s: time constant of its position loop.
+    """
+
+    center_us: float = 1500.0
+    us_per_rad: float = 1000.0 / math.pi
+    min_us: float = 1000.0
+    max_us: float = 2000.0
+    slew_rad_s: float = 5.0
+    lag_s: float = 0.02
+
+    def __post_init__(self) -> None:
+        vals = (self.center_us, self.us_per_rad, self.min_us, self.max_us, self.slew_rad_s, self.lag_s)
+        if not all(math.isfinite(v) for v in vals):
+            raise ValueError(f"servo calibration must be finite: {self}")
+        if not (500.0 <= self.min_us < self.center_us < self.max_us <= 2500.0):
+            raise ValueError(f"servo pulses must satisfy 500 <= min < center < max <= 2500 us, got "
+                             f"{self.min_us}, {self.center_us}, {self.max_us}")
+        if self.us_per_rad == 0 or self.slew_rad_s <= 0 or self.lag_s < 0:
+            raise ValueError(f"servo us_per_rad != 0, slew > 0 and lag >= 0 needed, got {self}")
+
+    def pulse_us(self, angle_rad: float) -> float:
+        """Pulse for an angle, clamped to the servo's range."""
+        p = self.center_us + angle_rad * self.us_per_rad
+        return min(self.max_us, max(self.min_us, p))
+
+    def angle_rad(self, pulse_us: float) -> float:
+        return (pulse_us - self.center_us) / self.us_per_rad
+
+
+class ServoModel:
+    """First-order lag with a slew limit, stepped in time: the predicted shaft angle."""
+
+    def __init__(self, cal: ServoCalibration, angle_rad: float = 0.0) -> None:
+        self.cal = cal
+        self.angle_rad = angle_rad
+
+    def advance(self, dt_s: float, target_rad: float) -> float:
+        """Move towards target for dt_s and return the angle.
+
+        Exact solution of d(err)/dt = -clip(err / lag, +-slew): rate-limited while the error is
+        above slew * lag, exponential after. Being exact, it gives the same angle however time
+        is chunked, so the firmware's prediction and the SITL's plant agree to rounding.
+        """
+        if dt_s <= 0:
+            return self.angle_rad
+        a, s, tau = self.angle_rad, self.cal.slew_rad_s, self.cal.lag_s
+        err = target_rad - a
+        sign = 1.0 if err >= 0 else -1.0
+        e_sat = s * tau
+        if abs(err) > e_sat:
+            t_lin = (abs(err) - e_sat) / s
+            if dt_s <= t_lin:
+                self.angle_rad = a + sign * s * dt_s
+                return self.angle_rad
+            dt_s -= t_lin
+            err = sign * e_sat
+        self.angle_rad = target_rad - (err * math.exp(-dt_s / tau) if tau > 0 else 0.0)
+        return self.angle_rad
+
+
+def servo_angles(t_s: np.ndarray, cmd_t_s: np.ndarray, cmd_rad: np.ndarray, cal: ServoCalibration,
+                 angle0_rad: float = 0.0) -> np.ndarray:
+    """Batch version: the modelled angle at sorted times t_s, for commands held from cmd_t_s on.
+
+    The same ServoModel stepping as the payload, so batch and per-sample paths agree exactly.
+    """
+    model = ServoModel(cal, angle0_rad)
+    out = np.empty(len(t_s))
+    events = np.concatenate([np.asarray(cmd_t_s, float), np.asarray(t_s, float)])
+    kinds = np.concatenate([np.zeros(len(cmd_t_s), int), np.ones(len(t_s), int)])
+    idx = np.concatenate([np.arange(len(cmd_t_s)), np.arange(len(t_s))])
+    order = np.lexsort((kinds, events))  # at equal times, a command takes effect before a query
+    t_prev, target = float(events[order[0]]) if len(order) else 0.0, angle0_rad
+    for k in order:
+        t = float(events[k])
+        model.advance(t - t_prev, target)
+        t_prev = t
+        if kinds[k] == 0:
+            target = float(cmd_rad[idx[k]])
+        else:
+            out[idx[k]] = model.angle_rad
+    return out
+
+
+class SweepServo:
+    """Drives the servo along the waveform through a PwmOutput and predicts its angle.
+
+    Call `update(t_s)` at least at the PWM frame rate (50 Hz); `angle_at(t_s)` gives the modelled
+    angle for any time since the last update (the model is advanced, never rewound).
+    """
+
+    def __init__(self, pwm: PwmOutput, waveform: Waveform, cal: ServoCalibration | None = None,
+                 frame_s: float = 0.02) -> None:
+        self.pwm, self.waveform = pwm, waveform
+        self.cal = cal or ServoCalibration()
+        self.frame_s = frame_s
+        self.model = ServoModel(self.cal, float(waveform.angle(0.0)))
+        self._t_model = 0.0
+        self._target = float(waveform.angle(0.0))
+        self._next_cmd_s = 0.0
+
+    def command_angle(self, t_s: float) -> float:
+        """Commanded angle at t: the waveform ahead by the servo's lag plus half a PWM frame (the
+        average delay of a command held for a frame), clamped to what the pulses can reach."""
+        a = float(self.waveform.angle(t_s + self.cal.lag_s + 0.5 * self.frame_s))
+        return self.cal.angle_rad(self.cal.pulse_us(a))
+
+    def update(self, t_s: float) -> None:
+        """Send a new pulse when a PWM frame is due (the servo only sees one per frame anyway)."""
+        if t_s + 1e-12 < self._next_cmd_s:
+            return
+        self.angle_at(t_s)
+        self._target = self.command_angle(t_s)
+        self.pwm.set_pulse_us(self.cal.pulse_us(self._target))
+        self._next_cmd_s = t_s + self.frame_s
+
+    def angle_at(self, t_s: float) -> float:
+        if t_s > self._t_model:
+            self.model.advance(t_s - self._t_model, self._target)
+            self._t_model = t_s
+        return self.model.angle_rad

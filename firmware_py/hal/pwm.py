@@ -1,0 +1,154 @@
+"""PWM outputs for the servo: Linux sysfs PWM, a PCA9685 on the I2C bus, or the autopilot's servo
+output through MAVLink (MAV_CMD_DO_SET_SERVO). Chosen by URL:
+
+    pwm:sysfs:CHIP:CHANNEL            /sys/class/pwm/pwmchipCHIP/pwmCHANNEL
+    pwm:pca9685:I2C_BUS:ADDR:CHANNEL  e.g. pwm:pca9685:1:0x40:0
+    pwm:mavlink:SERVO_N               the autopilot's SERVOn output (needs the MAVLink link)
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from firmware_py.hal import I2CBus, MavlinkLink, PwmOutput
+
+FRAME_HZ = 50.0
+
+
+def _check_pulse(pulse_us: float, lo: float = 500.0, hi: float = 2500.0) -> float:
+    if not (math.isfinite(pulse_us) and lo <= pulse_us <= hi):
+        raise ValueError(f"servo pulse must be {lo:g}-{hi:g} us, got {pulse_us}")
+    return float(pulse_us)
+
+
+class SysfsPwm:
+    """A Linux PWM channel through /sys/class/pwm (e.g. the Raspberry Pi's hardware PWM)."""
+
+    def __init__(self, chip: int, channel: int, frame_hz: float = FRAME_HZ, root: str | Path = "/sys/class/pwm"):
+        self.dir = Path(root) / f"pwmchip{chip}"
+        if not self.dir.is_dir():
+            raise OSError(f"no PWM chip at {self.dir} (enable the PWM overlay, e.g. dtoverlay=pwm)")
+        self.ch = self.dir / f"pwm{channel}"
+        if not self.ch.is_dir():
+            (self.dir / "export").write_text(str(channel))
+        self.period_ns = round(1e9 / frame_hz)
+        (self.ch / "period").write_text(str(self.period_ns))
+        (self.ch / "enable").write_text("1")
+
+    def set_pulse_us(self, pulse_us: float) -> None:
+        (self.ch / "duty_cycle").write_text(str(round(_check_pulse(pulse_us) * 1000)))
+
+    def disable(self) -> None:
+        (self.ch / "enable").write_text("0")
+
+    def close(self) -> None:
+        self.disable()
+
+
+class Pca9685Pwm:
+    """One channel of a PCA9685 16-channel PWM driver (I2C, 25 MHz oscillator, 12-bit)."""
+
+    _MODE1, _PRESCALE, _LED0_ON_L = 0x00, 0xFE, 0x06
+    _SLEEP, _AI, _RESTART = 0x10, 0x20, 0x80
+    OSC_HZ = 25_000_000
+
+    def __init__(self, bus: I2CBus, addr: int = 0x40, channel: int = 0, frame_hz: float = FRAME_HZ,
+                 sleep: Callable[[float], None] | None = None) -> None:
+        if not (0 <= channel <= 15):
+            raise ValueError(f"PCA9685 channel must be 0-15, got {channel}")
+        self.bus, self.addr, self.channel = bus, addr, channel
+        self.frame_hz = frame_hz
+        self.prescale = prescale_for(frame_hz)
+        # Sleep to set the prescaler, wake with auto-increment, restart (datasheet sec. 7.3.1.1).
+        bus.write(addr, bytes([self._MODE1, self._SLEEP | self._AI]))
+        bus.write(addr, bytes([self._PRESCALE, self.prescale]))
+        bus.write(addr, bytes([self._MODE1, self._AI]))
+        if sleep is not None:
+            sleep(0.0005)  # oscillator start-up, 500 us
+        bus.write(addr, bytes([self._MODE1, self._AI | self._RESTART]))
+
+    @property
+    def actual_frame_hz(self) -> float:
+        return self.OSC_HZ / (4096 * (self.prescale + 1))
+
+    def set_pulse_us(self, pulse_us: float) -> None:
+        ticks = round(_check_pulse(pulse_us) * 1e-6 * self.actual_frame_hz * 4096)
+        reg = self._LED0_ON_L + 4 * self.channel
+        self.bus.write(self.addr, bytes([reg, 0, 0, ticks & 0xFF, ticks >> 8]))
+
+    def disable(self) -> None:
+        reg = self._LED0_ON_L + 4 * self.channel
+        self.bus.write(self.addr, bytes([reg, 0, 0, 0, 0x10]))  # full OFF bit
+
+    def close(self) -> None:
+        self.disable()
+
+
+def prescale_for(frame_hz: float) -> int:
+    """PCA9685 prescaler: round(25 MHz / (4096 f)) - 1 (121 at 50 Hz)."""
+    if not (math.isfinite(frame_hz) and 24 <= frame_hz <= 1526):
+        raise ValueError(f"PCA9685 frame rate must be 24-1526 Hz, got {frame_hz}")
+    return round(Pca9685Pwm.OSC_HZ / (4096 * frame_hz)) - 1
+
+
+class MavlinkServoPwm:
+    """The servo on an autopilot output, commanded with MAV_CMD_DO_SET_SERVO (one per PWM frame)."""
+
+    MAV_CMD_DO_SET_SERVO = 183
+
+    def __init__(self, link: MavlinkLink, servo_n: int, mav: Any, target_system: int = 1,
+                 target_component: int = 1) -> None:
+        if not (1 <= servo_n <= 32):
+            raise ValueError(f"autopilot servo output must be 1-32, got {servo_n}")
+        self.link, self.servo_n, self.mav = link, servo_n, mav
+        self.target = (target_system, target_component)
+
+    def set_pulse_us(self, pulse_us: float) -> None:
+        p = round(_check_pulse(pulse_us))
+        self.link.send(self.mav.command_long_encode(*self.target, self.MAV_CMD_DO_SET_SERVO, 0, self.servo_n, p,
+                                                    0, 0, 0, 0, 0))
+
+    def disable(self) -> None:
+        self.link.send(self.mav.command_long_encode(*self.target, self.MAV_CMD_DO_SET_SERVO, 0, self.servo_n, 0,
+                                                    0, 0, 0, 0, 0))
+
+    def close(self) -> None:
+        self.disable()
+
+
+_REGISTRY: dict[str, Callable[[str], PwmOutput]] = {}
+
+
+def register_pwm_backend(scheme: str, factory: Callable[[str], PwmOutput]) -> None:
+    """Let another layer (the SITL) provide `pwm:SCHEME:...` outputs without firmware_py importing it."""
+    _REGISTRY[scheme] = factory
+
+
+def open_pwm(url: str, i2c_opener: Callable[[str], I2CBus] | None = None, link: MavlinkLink | None = None,
+             mav: Any = None) -> PwmOutput:
+    """A PwmOutput from its URL (see the module docstring)."""
+    m = re.fullmatch(r"pwm:([a-z0-9]+)(?::(.*))?", url.strip())
+    if not m:
+        raise ValueError(f"PWM output must look like pwm:sysfs:0:0, pwm:pca9685:1:0x40:0 or pwm:mavlink:9, got {url!r}")
+    scheme, rest = m.group(1), m.group(2) or ""
+    parts = rest.split(":") if rest else []
+    try:
+        if scheme == "sysfs" and len(parts) == 2:
+            return SysfsPwm(int(parts[0]), int(parts[1]))
+        if scheme == "pca9685" and len(parts) == 3:
+            if i2c_opener is None:
+                raise ValueError("a PCA9685 output needs an I2C bus")
+            return Pca9685Pwm(i2c_opener(f"i2c:{parts[0]}"), int(parts[1], 0), int(parts[2]))
+        if scheme == "mavlink" and len(parts) == 1:
+            if link is None or mav is None:
+                raise ValueError("a MAVLink servo output needs the autopilot link")
+            return MavlinkServoPwm(link, int(parts[0]), mav)
+    except ValueError as exc:
+        raise ValueError(f"bad PWM output {url!r}: {exc}") from None
+    if scheme in _REGISTRY:
+        return _REGISTRY[scheme](url)
+    raise ValueError(f"bad PWM output {url!r}: expected pwm:sysfs:CHIP:CH, pwm:pca9685:BUS:ADDR:CH or pwm:mavlink:N")

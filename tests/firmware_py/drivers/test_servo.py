@@ -1,0 +1,79 @@
+import math
+
+import numpy as np
+import pytest
+
+from firmware_py.drivers.servo import ServoCalibration, ServoModel, SweepServo, servo_angles
+from firmware_py.hal.clock import SimClock
+from firmware_py.servo_waveform import named_waveform
+from sitl.devices.servo_emu import EmulatedServo
+
+
+def test_that_calibration_maps_angles_to_pulses_and_back_within_the_range():
+    cal = ServoCalibration()
+    assert cal.pulse_us(0.0) == 1500
+    assert cal.pulse_us(math.pi / 2) == pytest.approx(2000)
+    assert cal.pulse_us(3.0) == 2000  # clamped
+    assert cal.angle_rad(cal.pulse_us(0.4)) == pytest.approx(0.4)
+
+
+@pytest.mark.parametrize("kwargs", [dict(min_us=1600), dict(us_per_rad=0), dict(slew_rad_s=0), dict(lag_s=-1),
+                                    dict(center_us=math.nan)])
+def test_that_bad_calibrations_are_refused(kwargs):
+    with pytest.raises(ValueError):
+        ServoCalibration(**kwargs)
+
+
+def test_that_the_model_is_slew_limited_and_settles_on_the_target():
+    m = ServoModel(ServoCalibration(slew_rad_s=5.0, lag_s=0.02))
+    assert m.advance(0.1, 1.0) == pytest.approx(0.5, abs=1e-9)  # 0.1 s at 5 rad/s
+    m.advance(1.0, 1.0)
+    assert m.angle_rad == pytest.approx(1.0, abs=1e-6)
+
+
+def test_that_the_driven_servo_follows_eq_1_and_the_model_predicts_the_plant():
+    wf = named_waveform("semi-triangular", k=3)
+    clock = SimClock()
+    plant = EmulatedServo(clock, angle0_rad=float(wf.angle(0.0)))
+    servo = SweepServo(plant, wf)
+    errs_model, errs_wave = [], []
+    for k in range(1, 3000):  # 6 s at 500 Hz
+        t_ns = k * 2_000_000
+        clock.set_ns(t_ns)
+        servo.update(t_ns * 1e-9)
+        truth = plant.angle_at(t_ns)
+        errs_model.append(abs(servo.angle_at(t_ns * 1e-9) - truth))
+        errs_wave.append(abs(float(wf.angle(t_ns * 1e-9)) - truth))
+    assert max(errs_model) < 1e-9  # same calibration: the prediction is the plant
+    assert np.median(errs_wave) < math.radians(2.0)  # lead-compensated: the shaft tracks eq. (1)
+
+
+def test_that_a_slower_real_servo_shows_as_a_prediction_error():
+    wf = named_waveform("semi-triangular")
+    clock = SimClock()
+    plant = EmulatedServo(clock, ServoCalibration(slew_rad_s=3.0), angle0_rad=float(wf.angle(0.0)))
+    servo = SweepServo(plant, wf)
+    worst = 0.0
+    for k in range(1, 2000):
+        clock.set_ns(k * 2_000_000)
+        servo.update(k * 0.002)
+        worst = max(worst, abs(servo.angle_at(k * 0.002) - plant.angle_at(k * 2_000_000)))
+    assert worst > math.radians(5)
+
+
+def test_that_the_batch_servo_model_equals_the_stepped_one():
+    cal = ServoCalibration()
+    cmd_t = np.arange(0, 2, 0.02)
+    cmd = np.sin(cmd_t * 3)
+    t = np.sort(np.random.default_rng(1).uniform(0, 2, 300))
+    batch = servo_angles(t, cmd_t, cmd, cal)
+    m, tp, target, k = ServoModel(cal), 0.0, 0.0, 0
+    stepped = []
+    for tq in t:
+        while k < len(cmd_t) and cmd_t[k] <= tq:
+            m.advance(cmd_t[k] - tp, target)
+            tp, target, k = cmd_t[k], cmd[k], k + 1
+        m.advance(tq - tp, target)
+        tp = tq
+        stepped.append(m.angle_rad)
+    assert np.allclose(batch, stepped, atol=1e-12)
