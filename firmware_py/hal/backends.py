@@ -1,0 +1,81 @@
+"""Open an I2C bus from its URL, so the drivers above never know which backend they run on.
+
+    i2c:/dev/i2c-N   a Linux adapter through smbus2 (the Raspberry Pi header is i2c:/dev/i2c-1)
+    i2c:N            the same, by bus number
+    SCHEME[:...]     any backend another layer registered with `register_i2c_backend`
+
+The SITL registers its simulated bus (`sitl`) here: firmware_py never imports sitl, the SITL
+imports firmware_py and hands it a factory, as crazyflie's `get_link_driver(uri)` picks a link.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+
+from firmware_py.hal import I2CBus
+from firmware_py.hal.i2c_smbus import SmbusI2CBus
+
+I2CFactory = Callable[[str], I2CBus]
+"""Makes a bus from the full URL (so a backend can read its own options after the scheme)."""
+
+_SCHEME = re.compile(r"[a-z][a-z0-9+.-]*")
+_BUILTIN = "i2c"
+_BACKENDS: dict[str, I2CFactory] = {}
+_FORMS = "i2c:/dev/i2c-N or i2c:N"
+
+
+def register_i2c_backend(scheme: str, factory: I2CFactory) -> None:
+    """Let another layer provide `SCHEME:...` buses (re-registering a scheme replaces it)."""
+    if not isinstance(scheme, str) or not _SCHEME.fullmatch(scheme):
+        raise ValueError(f"I2C backend scheme must be lower-case letters/digits (e.g. 'sitl'), got {scheme!r}")
+    if scheme == _BUILTIN:
+        raise ValueError(f"I2C backend scheme {scheme!r} is the built-in smbus2 backend and cannot be replaced")
+    if not callable(factory):
+        raise ValueError(f"I2C backend factory for {scheme!r} must be callable, got {factory!r}")
+    _BACKENDS[scheme] = factory
+
+
+def unregister_i2c_backend(scheme: str) -> None:
+    """Forget a registered scheme (a SITL run tearing down); unknown schemes are ignored."""
+    _BACKENDS.pop(scheme, None)
+
+
+def registered_i2c_schemes() -> list[str]:
+    """Every scheme open_i2c accepts, the built-in one first."""
+    return [_BUILTIN, *sorted(_BACKENDS)]
+
+
+def parse_i2c_url(url: str) -> int | str:
+    """The smbus2 bus argument of an `i2c:` URL: a bus number or a /dev path.
+
+    Raises:
+        ValueError: the URL is not i2c:/dev/i2c-N or i2c:N (the message names it).
+    """
+    if not isinstance(url, str):
+        raise ValueError(f"I2C bus URL must be a string like {_FORMS}, got {url!r}")
+    m = re.fullmatch(r"i2c:(?:(\d+)|(/dev/\S+))", url.strip())
+    if not m:
+        raise ValueError(f"malformed I2C bus URL {url!r}: expected {_FORMS}")
+    return int(m.group(1)) if m.group(1) is not None else m.group(2)
+
+
+def open_i2c(url: str) -> I2CBus:
+    """An I2CBus from its URL (see the module docstring).
+
+    Raises:
+        ValueError: a malformed URL or an unknown scheme (the message names the URL).
+        RuntimeError: `i2c:` without smbus2 installed.
+        I2CError: the adapter cannot be opened.
+    """
+    if not isinstance(url, str) or not url.strip():
+        raise ValueError(f"I2C bus URL must be a non-empty string like {_FORMS}, got {url!r}")
+    text = url.strip()
+    scheme = text.split(":", 1)[0]
+    if scheme == _BUILTIN:
+        return SmbusI2CBus(parse_i2c_url(text))
+    factory = _BACKENDS.get(scheme)
+    if factory is None:
+        raise ValueError(f"malformed I2C bus URL {url!r}: unknown scheme {scheme!r} "
+                         f"(known: {', '.join(registered_i2c_schemes())}; expected {_FORMS})")
+    return factory(text)
