@@ -1,10 +1,12 @@
 """The payload loop: range, servo, pose, log — at 500 Hz, on hardware or, unchanged, in the SITL.
 
 Each tick: take one LiDAR reading (its time is when the acquisition was triggered), advance the
-servo (a new pulse every PWM frame), pump the MAVLink link, tag the reading with the servo's
-modelled angle and the pose interpolated at the reading's time, and append the record to the
-sample log (which writes, flushes and fsyncs a block every `records_per_block` records). The loop
-sleeps on the HAL clock until the next tick; in the SITL that sleep is what advances the world.
+servo (a new pulse every PWM frame), pump the MAVLink link. A reading waits in a short queue until
+the autopilot's poses on both sides of its time have arrived (they come over a link with latency),
+then it is tagged with the servo's modelled angle and the pose interpolated at its time and
+appended to the sample log (which writes, flushes and fsyncs a block every `records_per_block`
+records). A reading whose pose has not arrived after `max_pose_wait_s` is logged flagged stale.
+The loop sleeps on the HAL clock until the next tick; in the SITL that sleep advances the world.
 
 Flags say what cannot be vouched for (no echo, bus error, stale or missing pose, servo unsure);
 the ground station drops flagged samples, so a sample is never tagged with a pose it should not
@@ -13,6 +15,7 @@ have.
 
 from __future__ import annotations
 
+import collections
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -45,6 +48,7 @@ class PoseSource(Protocol):
 class LoopConfig:
     rate_hz: float = 500.0
     max_pose_age_s: float = 0.1
+    max_pose_wait_s: float = 0.25
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.rate_hz) and 1.0 <= self.rate_hz <= 2000.0):
@@ -78,15 +82,34 @@ class PayloadLoop:
         self.stats = LoopStats()
         self._cpu = cpu_clock  # a real CPU-time clock to measure the loop's own cost (benchmarks)
         self._next_ns = self.t0_ns
+        self._pending: collections.deque = collections.deque()
 
     def tick(self) -> None:
-        """One sample."""
+        """One sample: read, move the servo, pump the link, log what can now be tagged."""
         cpu0 = self._cpu() if self._cpu else 0
+        self.servo.update((self.clock.now_ns() - self.t0_ns) * 1e-9)  # first: pulses on the tick grid
         reading = self.sensor.read()
-        t_ns = reading.t_ns
-        t_s = (t_ns - self.t0_ns) * 1e-9
-        self.servo.update((self.clock.now_ns() - self.t0_ns) * 1e-9)
+        t_s = (reading.t_ns - self.t0_ns) * 1e-9
+        self._pending.append((reading, self.servo.angle_at(t_s),
+                              1 if float(self.servo.waveform.rate(t_s)) >= 0 else -1))
         self.pose.pump()
+        self._tag_ready(self.clock.now_ns())
+        self.stats.ticks += 1
+        if self._cpu:
+            self.stats.busy_ns_total += self._cpu() - cpu0
+
+    def _tag_ready(self, now_ns: int, flush: bool = False) -> None:
+        wait_ns = round(self.cfg.max_pose_wait_s * 1e9)
+        while self._pending:
+            reading, servo_rad, sweep = self._pending[0]
+            p = self.pose.pose_at(reading.t_ns)
+            settled = p is not None and not getattr(p, "missing", False) and not p.stale
+            if not (settled or flush or now_ns - reading.t_ns >= wait_ns):
+                break  # its pose is still on the way; later readings are newer still
+            self._pending.popleft()
+            self.log.append(self._record(reading, servo_rad, sweep, p))
+
+    def _record(self, reading: RangeReading, servo_rad: float, sweep: int, p: Any) -> Any:
         rec = new_records(1)[0]
         flags = SampleFlags.NONE
         status = getattr(reading.status, "name", str(reading.status))
@@ -94,11 +117,10 @@ class PayloadLoop:
             flags |= SampleFlags.NO_RETURN
         elif status != "OK" or reading.range_m is None:
             flags |= SampleFlags.SENSOR_ERROR
-        rec["t_s"] = t_ns * 1e-9
+        rec["t_s"] = reading.t_ns * 1e-9
         rec["range_m"] = reading.range_m if reading.range_m is not None else 0.0
-        rec["servo_rad"] = self.servo.angle_at(t_s)
-        rec["sweep_dir"] = 1 if float(self.servo.waveform.rate(t_s)) >= 0 else -1
-        p = self.pose.pose_at(t_ns)
+        rec["servo_rad"] = servo_rad
+        rec["sweep_dir"] = sweep
         if p is None or getattr(p, "missing", False):
             flags |= SampleFlags.NO_POSE
         else:
@@ -111,10 +133,7 @@ class PayloadLoop:
         for f in SampleFlags:
             if f and f in flags:
                 self.stats.flagged[f.name] += 1
-        self.log.append(rec)
-        self.stats.ticks += 1
-        if self._cpu:
-            self.stats.busy_ns_total += self._cpu() - cpu0
+        return rec
 
     def run(self, duration_s: float | None = None, should_stop: Callable[[], bool] = lambda: False) -> LoopStats:
         """Tick at the configured rate until duration_s has passed or should_stop() says so."""
@@ -129,5 +148,6 @@ class PayloadLoop:
             self.clock.sleep_until_ns(self._next_ns)
             self.tick()
             self._next_ns += self.period_ns
+        self._tag_ready(self.clock.now_ns(), flush=True)
         self.log.flush()
         return self.stats

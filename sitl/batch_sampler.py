@@ -10,6 +10,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from firmware_py.drivers.servo import ServoCalibration, modelled_sweep
 from firmware_py.frames import StorageFrame, beam_rays_w
 from firmware_py.samplelog import SAMPLE_DTYPE, SampleFlags
 from firmware_py.servo_waveform import Waveform
@@ -49,14 +50,20 @@ class LidarSpec:
 
 
 def sample_flight(traj: Trajectory, waveform: Waveform, world: World, lidar: LidarSpec,
-                  lever_arm_body_m, frame: StorageFrame) -> np.ndarray:
+                  lever_arm_body_m, frame: StorageFrame, servo: ServoCalibration | None = None,
+                  servo_t0_s: float = 0.0) -> np.ndarray:
     """Records (SAMPLE_DTYPE) of a LiDAR on the swept servo along a trajectory.
 
-    Ideal sensing: the servo follows eq. (1) exactly, the pose is the true pose (age 0), the
-    range is the true range quantised to the sensor resolution; no echo within the max range
-    reads as the sensor's 1 cm and is flagged NO_RETURN.
+    Ideal sensing: the pose is the true pose (age 0), the range is the true range quantised to
+    the sensor resolution; no echo within the max range reads as the sensor's 1 cm and is flagged
+    NO_RETURN. The servo follows eq. (1) exactly, or, given a calibration, the modelled shaft of a
+    servo driven as the payload drives it from time servo_t0_s (the same functions the payload
+    uses, so the two paths can be compared sample for sample).
     """
-    gamma = waveform.angle(traj.t_s)
+    if servo is None:
+        gamma = waveform.angle(traj.t_s)
+    else:
+        gamma = modelled_sweep(waveform, servo, traj.t_s - servo_t0_s)
     origins, dirs = beam_rays_w(traj.pos_ned_m, traj.roll_rad, traj.pitch_rad, traj.yaw_rad, gamma,
                                 lever_arm_body_m, frame)
     r = world.cast(origins, dirs, max_range_m=lidar.max_range_m).range_m

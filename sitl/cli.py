@@ -18,7 +18,7 @@ from firmware_py.servo_waveform import N_PHASES
 from firmware_py.storage import Storage
 from sitl.mission import TURN_MODES, Mission
 from sitl.mission_plan import write_qgc_wpl
-from sitl.run import PLANTS, FlyConfig, fly
+from sitl.run import PAYLOADS, PLANTS, FlyConfig, fly
 
 
 def build_parser() -> ArgumentParser:
@@ -36,6 +36,11 @@ def build_parser() -> ArgumentParser:
                         f"directions; K >= {N_PHASES} sweeps the other way)")
     f.add_argument("--plant", choices=PLANTS, default="jsbsim",
                    help="vehicle: jsbsim (F450 flight dynamics + autopilot, default) or ideal (kinematic)")
+    f.add_argument("--payload", choices=PAYLOADS, default="batch",
+                   help="samples from the vectorised batch path (fast) or the unchanged payload firmware in the "
+                        "loop over MAVLink and emulated I2C/PWM devices")
+    f.add_argument("--latency-ms", type=finite_float, nargs=2, default=(0.0, 0.0), metavar=("MIN", "MAX"),
+                   help="firmware payload only: random MAVLink latency range, ms")
     f.add_argument("--payload-mass", type=finite_float, default=0.040, metavar="KG",
                    help="payload mass, kg (0.040: LIDAR-Lite + servo; 0.370 2D LiDAR; 0.830 3D)")
     f.add_argument("--seed", type=int, default=0, help="seed of the run's random draws")
@@ -80,7 +85,8 @@ def _fly(args) -> int:
     mission = _mission(args)
     cfg = FlyConfig(mission=mission, stockpile=args.stockpile, waveform=args.waveform,
                     servo_peak_rate_rad_s=args.servo_rate, initial_position=args.phase, plant=args.plant,
-                    payload_kg=args.payload_mass, seed=args.seed)
+                    payload=args.payload, latency_ms=tuple(args.latency_ms), payload_kg=args.payload_mass,
+                    seed=args.seed)
     progress = None if args.quiet else (lambda msg: print(f"pilescan-sitl: {msg}", file=sys.stderr))
     res = fly(cfg, args.out, force=args.force, progress=progress)
     if not args.quiet:

@@ -36,6 +36,7 @@ PILE_FILE = "pile.stl"
 TLOG_FILE = "telemetry.tlog"
 PLAN_FILE = "mission.waypoints"
 PLANTS = ("jsbsim", "ideal")
+PAYLOADS = ("batch", "firmware")
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,8 @@ class FlyConfig:
     servo_peak_rate_rad_s: float = 5.0
     initial_position: int = 0
     plant: str = "jsbsim"
+    payload: str = "batch"
+    latency_ms: tuple[float, float] = (0.0, 0.0)
     payload_kg: float = PAYLOAD_1D_KG
     seed: int = 0
     lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10)
@@ -57,6 +60,13 @@ class FlyConfig:
     def __post_init__(self) -> None:
         if self.plant not in PLANTS:
             raise ValueError(f"unknown plant {self.plant!r}; available: {', '.join(PLANTS)}")
+        if self.payload not in PAYLOADS:
+            raise ValueError(f"unknown payload {self.payload!r}; available: {', '.join(PAYLOADS)}")
+        if self.payload == "firmware" and self.plant != "jsbsim":
+            raise ValueError("the firmware payload needs the jsbsim plant (it talks MAVLink to the vehicle)")
+        lo, hi = self.latency_ms
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi <= 1000):
+            raise ValueError(f"link latency must satisfy 0 <= min <= max <= 1000 ms, got {self.latency_ms}")
         initial_position(self.initial_position)  # validates the range
         if not (math.isfinite(self.payload_kg) and 0.0 <= self.payload_kg <= 2.0):
             raise ValueError(f"payload mass must be 0-2 kg, got {self.payload_kg}")
@@ -117,17 +127,24 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
     pile = piles.resolve(cfg.stockpile, storage)
     check_clearance(cfg.mission, pile)
     say(f"stockpile: {pile.source}, true volume {pile.volume_m3:.1f} m^3")
-    world = World(storage, pile, max_range_m=cfg.lidar.max_range_m)
-    say(f"flying {cfg.mission.path_length_m():.0f} m with the {cfg.plant} plant")
-    traj, duration_s, energy_j = fly_trajectory(cfg, out / TLOG_FILE)
+    say(f"flying {cfg.mission.path_length_m():.0f} m with the {cfg.plant} plant, {cfg.payload} payload")
     wf = cfg.servo_waveform()
-    records = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame)
-
     log_path = out / SAMPLES_FILE
     log_path.unlink(missing_ok=True)
-    # The batch path writes a finished flight at once: one fsync at the end is enough.
-    with SampleLogWriter(log_path, log_header(cfg, wf), records_per_block=500, fsync=False) as w:
-        w.append(records)
+    if cfg.payload == "firmware":
+        from sitl.payload_runner import fly_firmware
+        run = fly_firmware(cfg, log_path, log_header(cfg, wf), latency_ms=cfg.latency_ms, tlog_path=out / TLOG_FILE,
+                           seed=cfg.seed)
+        if not run.completed:
+            raise ValueError(f"the vehicle did not complete the mission within {run.duration_s:.0f} s")
+        records, duration_s, energy_j = run.records, run.duration_s, run.energy_j
+    else:
+        world = World(storage, pile, max_range_m=cfg.lidar.max_range_m)
+        traj, duration_s, energy_j = fly_trajectory(cfg, out / TLOG_FILE)
+        records = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame)
+        # The batch path writes a finished flight at once: one fsync at the end is enough.
+        with SampleLogWriter(log_path, log_header(cfg, wf), records_per_block=500, fsync=False) as w:
+            w.append(records)
     with open(log_path, "rb") as f:
         os.fsync(f.fileno())
     pile.mesh.export(out / PILE_FILE)
@@ -143,6 +160,7 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
         "mission": cfg.mission.to_dict(),
         "mission_id": cfg.mission.mission_id,
         "plant": cfg.plant,
+        "payload": cfg.payload,
         "flight_time_s": duration_s,
         "energy_j": energy_j,
         "payload_kg": cfg.payload_kg if cfg.plant == "jsbsim" else None,

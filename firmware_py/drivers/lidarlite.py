@@ -491,7 +491,11 @@ class LidarLite:
         cfg = self.config
         deadline = t_ns + cfg.timeout_ns
         polls = 0
-        next_poll = t_ns
+        # No acquisition can end before the shortest the part makes (one signal count): sleep until
+        # then rather than polling a part that must still be busy (less bus traffic, less CPU).
+        p = self._preset
+        next_poll = t_ns + acquisition_time_ns(p.sig_count_val, p.acq_config, signal_counts=1)
+        self.clock.sleep_until_ns(next_poll)
         while True:
             polls += 1
             try:

@@ -111,6 +111,22 @@ def servo_angles(t_s: np.ndarray, cmd_t_s: np.ndarray, cmd_rad: np.ndarray, cal:
     return out
 
 
+def command_angles(waveform: Waveform, cal: ServoCalibration, t_s: np.ndarray, frame_s: float = 0.02) -> np.ndarray:
+    """Commanded angles at times t_s: the waveform ahead by the servo's lag plus half a PWM frame
+    (the average delay of a command held for a frame), clamped to what the pulses can reach."""
+    a = waveform.angle(np.asarray(t_s, dtype=float) + cal.lag_s + 0.5 * frame_s)
+    pulse = np.clip(cal.center_us + a * cal.us_per_rad, cal.min_us, cal.max_us)
+    return (pulse - cal.center_us) / cal.us_per_rad
+
+
+def modelled_sweep(waveform: Waveform, cal: ServoCalibration, t_s: np.ndarray, frame_s: float = 0.02) -> np.ndarray:
+    """Batch path: the shaft angle at times t_s of a servo driven as SweepServo drives it (a pulse at
+    every frame from t = 0), starting at rest on the waveform's initial angle."""
+    t = np.asarray(t_s, dtype=float)
+    cmd_t = np.arange(0.0, (t.max() if len(t) else 0.0) + frame_s, frame_s)
+    return servo_angles(t, cmd_t, command_angles(waveform, cal, cmd_t, frame_s), cal, float(waveform.angle(0.0)))
+
+
 class SweepServo:
     """Drives the servo along the waveform through a PwmOutput and predicts its angle.
 
@@ -129,10 +145,7 @@ class SweepServo:
         self._next_cmd_s = 0.0
 
     def command_angle(self, t_s: float) -> float:
-        """Commanded angle at t: the waveform ahead by the servo's lag plus half a PWM frame (the
-        average delay of a command held for a frame), clamped to what the pulses can reach."""
-        a = float(self.waveform.angle(t_s + self.cal.lag_s + 0.5 * self.frame_s))
-        return self.cal.angle_rad(self.cal.pulse_us(a))
+        return float(command_angles(self.waveform, self.cal, np.array([t_s]), self.frame_s)[0])
 
     def update(self, t_s: float) -> None:
         """Send a new pulse when a PWM frame is due (the servo only sees one per frame anyway)."""

@@ -1,0 +1,227 @@
+"""Firmware in the loop, lockstep: the unchanged payload code against the simulated world.
+
+One simulated clock (the companion computer's) drives everything. When the payload sleeps on it,
+`World.advance_to` steps the vehicle (JSBSim + autopilot) and its MAVLink server up to that time;
+the server's bytes reach the payload only when the payload's clock has reached the time they were
+sent plus the link latency, so the payload never sees the future. The LIDAR-Lite emulator asks the
+world for the true range at each acquisition: the vehicle's true pose at that instant
+(interpolated between physics steps) and the servo plant's true shaft angle, ray traced.
+
+The companion clock runs at an offset from the autopilot's boot clock (as on a real drone), so the
+payload's time synchronisation has something to do.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from firmware_py.frames import StorageFrame, beam_rays_w
+from firmware_py.hal.clock import SimClock
+from sitl.ideal_plant import wrap_pi
+from sitl.jsbsim_vehicle import JsbsimVehicle
+from sitl.mavlink_vehicle import MavlinkVehicleServer, PipeTransport
+from sitl.raycast import World
+
+
+class DelayedPipe:
+    """One direction of a link: bytes become readable `latency` after they were sent (sim time)."""
+
+    def __init__(self, clock_ns, latency_ns=lambda: 0) -> None:
+        self._clock_ns = clock_ns
+        self._latency_ns = latency_ns
+        self._q: collections.deque[tuple[int, bytes]] = collections.deque()
+        self._last_due = 0
+
+    def send_at(self, t_ns: int, data: bytes) -> None:
+        if data:
+            due = max(t_ns + int(self._latency_ns()), self._last_due)  # a serial link keeps order
+            self._last_due = due
+            self._q.append((due, bytes(data)))
+
+    def recv(self) -> bytes:
+        now = self._clock_ns()
+        out = bytearray()
+        while self._q and self._q[0][0] <= now:
+            out += self._q.popleft()[1]
+        return bytes(out)
+
+
+@dataclass(frozen=True)
+class TruePose:
+    pos_ned_m: np.ndarray
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+
+
+class SimWorld:
+    """Vehicle + MAVLink server + building, advanced in lockstep with the payload's clock."""
+
+    def __init__(self, vehicle: JsbsimVehicle, world: World, frame: StorageFrame, clock: SimClock,
+                 boot_offset_ns: int, lever_arm_body_m, latency_ns=lambda: 0, tlog_path=None) -> None:
+        self.vehicle, self.world, self.frame, self.clock = vehicle, world, frame, clock
+        self.boot_offset_ns = boot_offset_ns  # companion time = vehicle time + offset
+        self.lever = np.asarray(lever_arm_body_m, dtype=float)
+        server_end, self._payload_end = PipeTransport.pair()
+        self._down = DelayedPipe(clock.now_ns, latency_ns)
+        self._server_end = server_end
+        self.server = MavlinkVehicleServer(vehicle, _ServerSide(server_end, self), tlog_path=tlog_path)
+        self._up = DelayedPipe(self._vehicle_now_companion_ns, latency_ns)
+        self._hist: collections.deque[tuple[float, tuple[float, ...]]] = collections.deque(maxlen=64)
+        self._hist.append((vehicle.state().t_s, vehicle.raw_state))
+        self.history: list[tuple[float, tuple[float, ...]]] = [self._hist[-1]]  # the whole true flight
+        self.servo_angle_at = None  # set by the runner: t_ns -> true shaft angle
+        clock.set_advance(self.advance_to)
+
+    # -- the payload's end of the MAVLink link ---------------------------------------------------
+    def payload_send(self, data: bytes) -> None:
+        self._up.send_at(self.clock.now_ns(), data)
+
+    def payload_recv(self) -> bytes:
+        return self._down.recv()
+
+    def _vehicle_now_companion_ns(self) -> int:
+        return round(self.vehicle.state().t_s * 1e9) + self.boot_offset_ns
+
+    # -- time ------------------------------------------------------------------------------------
+    def vehicle_time_ns(self, companion_ns: int) -> int:
+        return companion_ns - self.boot_offset_ns
+
+    def advance_to(self, t_ns: int) -> None:
+        """Step the vehicle until its clock has passed companion time t_ns."""
+        target_s = self.vehicle_time_ns(t_ns) * 1e-9
+        while self._hist[-1][0] < target_s:
+            self.vehicle.step()
+            self.server.update()
+            self._hist.append((self.vehicle.state().t_s, self.vehicle.raw_state))
+            self.history.append(self._hist[-1])
+
+    def pose_at(self, t_ns: int) -> TruePose:
+        """The vehicle's true pose at companion time t_ns (linear between physics steps)."""
+        self.advance_to(t_ns)
+        ts = self.vehicle_time_ns(t_ns) * 1e-9
+        hist = self._hist
+        i = len(hist) - 1
+        while i > 0 and hist[i - 1][0] > ts:
+            i -= 1
+        (t0, s0), (t1, s1) = hist[max(i - 1, 0)], hist[i]
+        w = 0.0 if t1 <= t0 else min(1.0, max(0.0, (ts - t0) / (t1 - t0)))
+        lerp = lambda a, b: a + (b - a) * w  # noqa: E731
+        pos = np.array([lerp(s0[k], s1[k]) for k in range(3)])
+        yaw = s0[8] + wrap_pi(s1[8] - s0[8]) * w
+        return TruePose(pos, lerp(s0[6], s1[6]), lerp(s0[7], s1[7]), float(wrap_pi(yaw)))
+
+    def true_range_m(self, t_ns: int) -> float | None:
+        """What the LiDAR sees at companion time t_ns: true pose, true servo angle, ray traced."""
+        p = self.pose_at(t_ns)
+        gamma = self.servo_angle_at(t_ns) if self.servo_angle_at else 0.0
+        o, d = beam_rays_w(p.pos_ned_m[None], [p.roll_rad], [p.pitch_rad], [p.yaw_rad], np.array([gamma]),
+                           self.lever, self.frame)
+        r = self.world.cast(o, d).range_m[0]
+        return None if not math.isfinite(r) else float(r)
+
+
+class _ServerSide:
+    """The server's transport: what it sends goes down the delayed pipe; it reads what is due."""
+
+    def __init__(self, end: PipeTransport, world: SimWorld) -> None:
+        self._end, self._world = end, world
+
+    def send(self, data: bytes) -> None:
+        self._world._down.send_at(self._world._vehicle_now_companion_ns(), data)
+
+    def recv(self) -> bytes:
+        return self._world._up.recv()
+
+    def close(self) -> None:
+        pass
+
+
+@dataclass(frozen=True)
+class FirmwareRun:
+    """What a firmware-in-the-loop flight produced."""
+
+    records: np.ndarray
+    duration_s: float
+    energy_j: float
+    completed: bool
+    loop: object  # LoopStats
+    lidar_counters: dict
+    pose_status: dict
+    true_t_s: np.ndarray  # the vehicle's true flight, companion seconds
+    true_states: np.ndarray  # (N, 12) as JsbsimVehicle.raw_state
+
+
+def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = (0.0, 0.0),
+                 boot_offset_s: float = 1234.5, tlog_path=None, seed: int = 0) -> FirmwareRun:
+    """Fly `cfg` (a sitl.run.FlyConfig) with the unchanged payload firmware in the loop.
+
+    The vehicle settles on W0, the payload starts, waits for its time sync to converge, the
+    survey flies; the payload logs every sample to log_path until the vehicle is back on W0.
+    """
+    from firmware_py.drivers.lidarlite import PRESET_FAST_500HZ, LidarLite, LidarLiteConfig
+    from firmware_py.drivers.servo import ServoCalibration, SweepServo
+    from firmware_py.hal.mavlink_link import ByteStreamLink
+    from firmware_py.payload import LoopConfig, PayloadLoop
+    from firmware_py.pose_tracker import PoseTracker
+    from firmware_py.samplelog import SampleLogWriter, read_samplelog
+    from sitl import stockpile as piles
+    from sitl.devices.i2c_sim import SimI2CBus
+    from sitl.devices.lidarlite_emu import EmulatedLidarLite
+    from sitl.devices.servo_emu import EmulatedServo
+    from sitl.flight import SETTLE_S, mission_nav_items, start_pose
+    from sitl.jsbsim_plant import PlantConfig
+    from sitl.jsbsim_vehicle import VehicleConfig
+    from sitl.vehicle_api import FlightMode
+
+    m = cfg.mission
+    start, yaw0 = start_pose(m, cfg.frame)
+    vcfg = VehicleConfig(plant=PlantConfig(payload_kg=cfg.payload_kg, start_ned_m=start, start_yaw_rad=yaw0,
+                                           airborne=True),
+                         speed_m_s=m.speed_m_s, yaw_rate_max_rad_s=m.yaw_rate_max_rad_s, altitude_m=m.altitude_m)
+    vehicle = JsbsimVehicle(vcfg, armed=True, mode=FlightMode.GUIDED)
+    pile = piles.resolve(cfg.stockpile, m.storage)
+    world = World(m.storage, pile, max_range_m=cfg.lidar.max_range_m)
+    rng = np.random.default_rng(seed)
+    lo, hi = latency_ms
+    latency = (lambda: 0) if hi <= 0 else (lambda: int(rng.uniform(lo, hi) * 1e6))
+    clock = SimClock(start_ns=round(boot_offset_s * 1e9))
+    sim = SimWorld(vehicle, world, cfg.frame, clock, boot_offset_ns=round(boot_offset_s * 1e9),
+                   lever_arm_body_m=cfg.lever_arm_body_m, latency_ns=latency, tlog_path=tlog_path)
+    wf = cfg.servo_waveform()
+    cal = ServoCalibration()
+    t0_ns = clock.now_ns()
+    plant = EmulatedServo(clock, cal, angle0_rad=float(wf.angle(0.0)))
+    sim.servo_angle_at = plant.angle_at
+    bus = SimI2CBus(clock)
+    bus.attach(0x62, EmulatedLidarLite(clock, sim.true_range_m))
+    lidar = LidarLite(bus, clock, LidarLiteConfig(preset=PRESET_FAST_500HZ))
+    link = ByteStreamLink(sim.payload_send, sim.payload_recv)
+    tracker = PoseTracker(link, clock)
+    tracker.start()
+    servo = SweepServo(plant, wf, cal)
+    # Let the vehicle settle and the payload's time sync converge before the survey starts.
+    settle_end = t0_ns + round(SETTLE_S * 1e9)
+    while clock.now_ns() < settle_end:
+        clock.sleep_until_ns(clock.now_ns() + 10_000_000)
+        servo.update((clock.now_ns() - t0_ns) * 1e-9)
+        tracker.pump()
+    vehicle.load_mission(mission_nav_items(m, cfg.frame))
+    vehicle.start_mission()
+    e0, ts0 = vehicle.plant.energy_j, vehicle.state().t_s
+    log_path = str(log_path)
+    with SampleLogWriter(log_path, header, records_per_block=500, fsync=False, overwrite=True) as log:
+        loop = PayloadLoop(lidar, servo, tracker, clock, log, LoopConfig(rate_hz=cfg.lidar.rate_hz), t0_ns=t0_ns)
+        timeout_s = 3 * (m.path_length_m() / m.speed_m_s + 2 * math.pi / m.yaw_rate_max_rad_s) + 60
+        stats = loop.run(duration_s=SETTLE_S + timeout_s, should_stop=lambda: vehicle.mode != FlightMode.AUTO)
+    sim.server.close()
+    status = tracker.status() if hasattr(tracker, "status") else {}
+    true_t = np.array([t for t, _ in sim.history]) + boot_offset_s
+    true_s = np.array([st for _, st in sim.history])
+    return FirmwareRun(read_samplelog(log_path).samples, vehicle.state().t_s - ts0, vehicle.plant.energy_j - e0,
+                       vehicle.mode != FlightMode.AUTO and vehicle.current_item() == -1, stats,
+                       dict(lidar.counters), status, true_t, true_s)
