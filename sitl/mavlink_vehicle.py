@@ -58,6 +58,7 @@ os.environ["MAVLINK20"] = "1"  # for mavutil users in this process; the v20 dial
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from firmware_py.hal.mavlink_link import MavlinkFramer
 from sitl.vehicle_api import CommandRejected, FlightMode, NavItem, NavKind, Vehicle, VehicleState
 
 TLOG_EPOCH_US = 1_704_067_200_000_000
@@ -228,77 +229,6 @@ def make_transport(url: str) -> Transport:
     raise ValueError(f"unsupported transport {url!r} (use udp:HOST:PORT or udpout:HOST:PORT)")
 
 
-# ----- framing ----------------------------------------------------------------------------------
-
-class _Framer:
-    """Cuts a byte stream into MAVLink frames checked by pymavlink; resynchronises one byte at a time."""
-
-    MAGIC_V1 = 0xFE
-    MAGIC_V2 = 0xFD
-
-    def __init__(self, mav: mavlink.MAVLink) -> None:
-        self._mav = mav
-        self._buf = bytearray()
-        self.bad_bytes = 0
-        self.bad_frames = 0
-
-    def feed(self, data: bytes) -> list[mavlink.MAVLink_message]:
-        self._buf += data
-        buf, out, i = self._buf, [], 0
-        while i < len(buf):
-            if buf[i] not in (self.MAGIC_V1, self.MAGIC_V2):
-                j = self._next_magic(i)
-                self.bad_bytes += j - i
-                i = j
-                continue
-            total = self._frame_length(i)
-            if total is None:
-                break  # header incomplete
-            if total == 0:
-                self._reject(1)
-                i += 1
-                continue
-            if len(buf) - i < total:
-                break  # wait for the rest of the frame
-            msg = self._decode(bytearray(buf[i:i + total]))
-            if msg is None:
-                self._reject(1)
-                i += 1
-                continue
-            out.append(msg)
-            i += total
-        del self._buf[:i]
-        return out
-
-    def _next_magic(self, start: int) -> int:
-        hits = [j for j in (self._buf.find(self.MAGIC_V1, start), self._buf.find(self.MAGIC_V2, start)) if j >= 0]
-        return min(hits) if hits else len(self._buf)
-
-    def _frame_length(self, i: int) -> int | None:
-        """Whole frame length from the header at i; None if incomplete, 0 if the header is impossible."""
-        buf = self._buf
-        if len(buf) - i < 3:
-            return None
-        if buf[i] == self.MAGIC_V1:
-            return 6 + buf[i + 1] + 2
-        flags = buf[i + 2]
-        if flags & ~mavlink.MAVLINK_IFLAG_SIGNED:
-            return 0
-        return 10 + buf[i + 1] + 2 + (mavlink.MAVLINK_SIGNATURE_BLOCK_LEN if flags else 0)
-
-    def _decode(self, frame: bytearray) -> mavlink.MAVLink_message | None:
-        try:
-            msg = self._mav.decode(frame)
-        except Exception:  # pymavlink raises MAVError, and struct/Unicode errors on hostile input
-            return None
-        if isinstance(msg, (mavlink.MAVLink_unknown, mavlink.MAVLink_bad_data)):
-            return None
-        return msg
-
-    def _reject(self, nbytes: int) -> None:
-        self.bad_frames += 1
-        self.bad_bytes += nbytes
-
 
 # ----- mission storage --------------------------------------------------------------------------
 
@@ -404,7 +334,7 @@ class MavlinkVehicleServer:
         self.sysid, self.compid = sysid, compid
         self.home_lat_deg, self.home_lon_deg, self.home_alt_m = home_lat_deg, home_lon_deg, home_alt_m
         self._mav = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
-        self._framer = _Framer(self._mav)
+        self._framer = MavlinkFramer(self._mav)  # the payload's framer: one parser for both ends
         self._tlog: BinaryIO | None = Path(tlog_path).open("wb") if tlog_path is not None else None
         self.stats: dict[str, Any] = {
             "rx_messages": 0, "rx_bad_bytes": 0, "rx_parse_errors": 0, "rx_not_for_us": 0,

@@ -23,7 +23,7 @@ from firmware_py.frames import StorageFrame, beam_rays_w
 from firmware_py.hal.clock import SimClock
 from sitl.ideal_plant import wrap_pi
 from sitl.jsbsim_vehicle import JsbsimVehicle
-from sitl.mavlink_vehicle import MavlinkVehicleServer, PipeTransport
+from sitl.mavlink_vehicle import MavlinkVehicleServer
 from sitl.raycast import World
 
 
@@ -66,10 +66,8 @@ class SimWorld:
         self.vehicle, self.world, self.frame, self.clock = vehicle, world, frame, clock
         self.boot_offset_ns = boot_offset_ns  # companion time = vehicle time + offset
         self.lever = np.asarray(lever_arm_body_m, dtype=float)
-        server_end, self._payload_end = PipeTransport.pair()
         self._down = DelayedPipe(clock.now_ns, latency_ns)
-        self._server_end = server_end
-        self.server = MavlinkVehicleServer(vehicle, _ServerSide(server_end, self), tlog_path=tlog_path)
+        self.server = MavlinkVehicleServer(vehicle, _ServerSide(self), tlog_path=tlog_path)
         self._up = DelayedPipe(self._vehicle_now_companion_ns, latency_ns)
         self._hist: collections.deque[tuple[float, tuple[float, ...]]] = collections.deque(maxlen=64)
         self._hist.append((vehicle.state().t_s, vehicle.raw_state))
@@ -128,8 +126,8 @@ class SimWorld:
 class _ServerSide:
     """The server's transport: what it sends goes down the delayed pipe; it reads what is due."""
 
-    def __init__(self, end: PipeTransport, world: SimWorld) -> None:
-        self._end, self._world = end, world
+    def __init__(self, world: SimWorld) -> None:
+        self._world = world
 
     def send(self, data: bytes) -> None:
         self._world._down.send_at(self._world._vehicle_now_companion_ns(), data)

@@ -14,6 +14,20 @@ class I2CError(OSError):
     """A failed bus transfer (NACK, arbitration lost, timeout): what smbus2 raises as OSError."""
 
 
+def check_i2c_addr(addr: int) -> int:
+    """A 7-bit address, or ValueError naming the bad value (every I2CBus backend checks the same way)."""
+    if isinstance(addr, bool) or not isinstance(addr, int) or not 0 <= addr <= 0x7F:
+        raise ValueError(f"I2C address must be a 7-bit integer 0x00-0x7f, got {addr!r}")
+    return addr
+
+
+def check_read_len(n: int) -> int:
+    """A read length >= 1, or ValueError naming the bad value."""
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"I2C read length must be an integer >= 1, got {n!r}")
+    return n
+
+
 class I2CBus(Protocol):
     """An I2C master. Addresses are 7-bit. Every method raises I2CError on a failed transfer."""
 

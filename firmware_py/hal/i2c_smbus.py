@@ -16,7 +16,7 @@ import importlib
 from types import ModuleType
 from typing import Any
 
-from firmware_py.hal import I2CError
+from firmware_py.hal import I2CError, check_i2c_addr, check_read_len
 
 _INSTALL_HINT = "smbus2 is not installed (pip install smbus2, or the project's 'hw' extra)"
 
@@ -46,16 +46,8 @@ def _device(bus: int | str) -> int | str:
     raise ValueError(f"I2C bus must be a bus number or a /dev path such as /dev/i2c-1, got {bus!r}")
 
 
-def _check_addr(addr: int) -> int:
-    if isinstance(addr, bool) or not isinstance(addr, int) or not 0 <= addr <= 0x7F:
-        raise ValueError(f"I2C address must be a 7-bit integer 0x00-0x7f, got {addr!r}")
-    return addr
-
-
-def _check_count(n: int) -> int:
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise ValueError(f"I2C read length must be an integer >= 1, got {n!r}")
-    return n
+_check_addr = check_i2c_addr
+_check_count = check_read_len
 
 
 class SmbusI2CBus:

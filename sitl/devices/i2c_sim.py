@@ -19,7 +19,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from firmware_py.hal import I2CError
+from firmware_py.hal import I2CError, check_i2c_addr, check_read_len
 from firmware_py.hal.backends import register_i2c_backend
 from firmware_py.hal.clock import SimClock
 
@@ -42,16 +42,8 @@ class SimI2CDevice(Protocol):
         """The n bytes a read transfer clocks out."""
 
 
-def _check_addr(addr: int) -> int:
-    if isinstance(addr, bool) or not isinstance(addr, int) or not 0 <= addr <= 0x7F:
-        raise ValueError(f"I2C address must be a 7-bit integer 0x00-0x7f, got {addr!r}")
-    return addr
-
-
-def _check_count(n: int) -> int:
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise ValueError(f"I2C read length must be an integer >= 1, got {n!r}")
-    return n
+_check_addr = check_i2c_addr
+_check_count = check_read_len
 
 
 class SimI2CBus:
