@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+from sitl.autopilot import wrap_pi
 from sitl.vehicle_api import CommandRejected, FlightMode, NavItem, NavKind, VehicleState
 
 PARAM_LIMITS: dict[str, tuple[float, float]] = {
@@ -56,11 +57,6 @@ MIN_VOLTAGE_V = 13.0
 SUPPORTED_MODES = frozenset({FlightMode.STABILIZE, FlightMode.GUIDED, FlightMode.LOITER,
                              FlightMode.AUTO, FlightMode.LAND})
 UNARMABLE_MODES = frozenset({FlightMode.AUTO, FlightMode.LAND})
-
-
-def wrap_pi(angle_rad: float) -> float:
-    """Angle wrapped to [-pi, pi): the shortest signed turn."""
-    return (angle_rad + math.pi) % (2 * math.pi) - math.pi
 
 
 def _check_positive(name: str, value: float) -> float:

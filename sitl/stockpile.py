@@ -128,16 +128,18 @@ def volume_under_mesh(mesh: trimesh.Trimesh) -> float:
     tri = mesh.triangles
     if len(tri) == 0:
         return 0.0
+    return float(np.sum(_projected_areas(tri) * tri[:, :, 2].mean(axis=1)))
+
+
+def _projected_areas(tri: np.ndarray) -> np.ndarray:
+    """Signed top-view areas of triangles (N, 3, 3): positive when the face looks up."""
     e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    area_z = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
-    return float(np.sum(area_z * tri[:, :, 2].mean(axis=1)))
+    return 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
 
 
 def _is_height_field(mesh: trimesh.Trimesh) -> bool:
     """True when no two faces overlap in top view (projected areas all of one sign, summing up)."""
-    tri = mesh.triangles
-    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    area_z = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    area_z = _projected_areas(mesh.triangles)
     return bool(np.all(area_z >= -1e-9 * max(1.0, np.abs(area_z).max())))
 
 
