@@ -120,6 +120,26 @@ def beam_rays_w(pos_ned_m: np.ndarray, roll_rad, pitch_rad, yaw_rad, servo_rad,
     return origins, dirs
 
 
+def beam_ray_w(pos_ned_m, roll_rad: float, pitch_rad: float, yaw_rad: float, servo_rad: float,
+               lever_arm_body_m, frame: StorageFrame) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """One beam of `beam_rays_w`, in plain floats: the emulated LiDAR fires one ray per sample, where
+    numpy's per-call overhead would cost more than the arithmetic (tests check both agree)."""
+    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
+    r = ((cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr),
+         (sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr),
+         (-sp, cp * sr, cp * cr))
+    lx, ly, lz = (float(v) for v in lever_arm_body_m)
+    sg, cg = math.sin(servo_rad), math.cos(servo_rad)
+    o_ned = [float(pos_ned_m[i]) + r[i][0] * lx + r[i][1] * ly + r[i][2] * lz - frame.origin_ned_m[i]
+             for i in range(3)]
+    d_ned = [r[i][1] * sg + r[i][2] * cg for i in range(3)]
+    c, s = math.cos(frame.heading_rad), math.sin(frame.heading_rad)  # rot_w_from_ned, written out
+    return ((c * o_ned[0] + s * o_ned[1], s * o_ned[0] - c * o_ned[1], -o_ned[2]),
+            (c * d_ned[0] + s * d_ned[1], s * d_ned[0] - c * d_ned[1], -d_ned[2]))
+
+
 def points_w(pos_ned_m, roll_rad, pitch_rad, yaw_rad, servo_rad, range_m, lever_arm_body_m,
              frame: StorageFrame) -> np.ndarray:
     """Eqs. (3)-(6): the (N, 3) points in W hit by beams of the given ranges."""

@@ -21,9 +21,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+import numpy as np
+
 from firmware_py.drivers.servo import SweepServo
 from firmware_py.hal import Clock
-from firmware_py.samplelog import SampleFlags, SampleLogWriter, new_records
+from firmware_py.samplelog import SAMPLE_DTYPE, SampleFlags, SampleLogWriter
+
+_NO_RETURN, _SENSOR_ERROR = int(SampleFlags.NO_RETURN), int(SampleFlags.SENSOR_ERROR)
+_NO_POSE, _STALE_POSE = int(SampleFlags.NO_POSE), int(SampleFlags.STALE_POSE)
 
 
 class RangeReading(Protocol):
@@ -90,8 +95,7 @@ class PayloadLoop:
         self.servo.update((self.clock.now_ns() - self.t0_ns) * 1e-9)  # first: pulses on the tick grid
         reading = self.sensor.read()
         t_s = (reading.t_ns - self.t0_ns) * 1e-9
-        self._pending.append((reading, self.servo.angle_at(t_s),
-                              1 if float(self.servo.waveform.rate(t_s)) >= 0 else -1))
+        self._pending.append((reading, self.servo.angle_at(t_s), self.servo.waveform.sweep_direction_at(t_s)))
         self.pose.pump()
         self._tag_ready(self.clock.now_ns())
         self.stats.ticks += 1
@@ -109,31 +113,30 @@ class PayloadLoop:
             self._pending.popleft()
             self.log.append(self._record(reading, servo_rad, sweep, p))
 
-    def _record(self, reading: RangeReading, servo_rad: float, sweep: int, p: Any) -> Any:
-        rec = new_records(1)[0]
-        flags = SampleFlags.NONE
+    def _record(self, reading: RangeReading, servo_rad: float, sweep: int, p: Any) -> np.ndarray:
+        """One SAMPLE_DTYPE record (0-d array), built from a tuple in field order: ~5x cheaper than
+        setting fields one by one, and this runs 500 times a second."""
+        flags = 0
         status = getattr(reading.status, "name", str(reading.status))
         if status == "NO_RETURN":
-            flags |= SampleFlags.NO_RETURN
+            flags |= _NO_RETURN
         elif status != "OK" or reading.range_m is None:
-            flags |= SampleFlags.SENSOR_ERROR
-        rec["t_s"] = reading.t_ns * 1e-9
-        rec["range_m"] = reading.range_m if reading.range_m is not None else 0.0
-        rec["servo_rad"] = servo_rad
-        rec["sweep_dir"] = sweep
+            flags |= _SENSOR_ERROR
+        rng_m = reading.range_m if reading.range_m is not None else 0.0
         if p is None or getattr(p, "missing", False):
-            flags |= SampleFlags.NO_POSE
+            flags |= _NO_POSE
+            pose = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         else:
             if p.stale or p.age_s > self.cfg.max_pose_age_s:
-                flags |= SampleFlags.STALE_POSE
-            rec["x_m"], rec["y_m"], rec["z_m"] = p.pos_ned_m
-            rec["roll_rad"], rec["pitch_rad"], rec["yaw_rad"] = p.roll_rad, p.pitch_rad, p.yaw_rad
-            rec["pose_age_s"] = p.age_s
-        rec["flags"] = int(flags)
-        for f in SampleFlags:
-            if f and f in flags:
-                self.stats.flagged[f.name] += 1
-        return rec
+                flags |= _STALE_POSE
+            x, y, z = p.pos_ned_m
+            pose = (x, y, z, p.roll_rad, p.pitch_rad, p.yaw_rad, p.age_s)
+        if flags:
+            for f in SampleFlags:
+                if f & flags:
+                    self.stats.flagged[f.name] += 1
+        # Field order of SAMPLE_DTYPE: t_s, range_m, servo_rad, sweep_dir, flags, x, y, z, r, p, y, age.
+        return np.array((reading.t_ns * 1e-9, rng_m, servo_rad, sweep, flags, *pose), dtype=SAMPLE_DTYPE)
 
     def run(self, duration_s: float | None = None, should_stop: Callable[[], bool] = lambda: False) -> LoopStats:
         """Tick at the configured rate until duration_s has passed or should_stop() says so."""

@@ -208,9 +208,15 @@ class SampleLogWriter:
 
     def append(self, records: np.ndarray | np.void) -> None:
         """Buffer records, writing every block as soon as it fills."""
-        recs = _as_records(records)
         if self._file is None:
             raise ValueError("append() on a closed SampleLogWriter")
+        if type(records) is np.ndarray and records.ndim == 0 and records.dtype == SAMPLE_DTYPE:
+            self._buf[self._fill] = records  # one record at a time, the payload loop's case: fast path
+            self._fill += 1
+            if self._fill == len(self._buf):
+                self._write_samples()
+            return
+        recs = _as_records(records)
         cap = len(self._buf)
         i = 0
         while i < len(recs):

@@ -68,6 +68,12 @@ class Waveform:
         """+1 where the angle is increasing, -1 where it is decreasing (0 never returned)."""
         return np.where(self.rate(t_s) >= 0.0, 1, -1).astype(np.int8)
 
+    def sweep_direction_at(self, t_s: float) -> int:
+        """`sweep_direction` for one time, in plain floats (the payload asks 500 times a second).
+        Eq. (2)'s sign is that of -direction * sin(theta): its other factors are positive."""
+        theta = self.direction * 2.0 * math.pi * self.frequency_hz * t_s + self.phase_rad
+        return 1 if -self.direction * math.sin(theta) >= 0.0 else -1
+
 
 def _gain(shape_c: float, amplitude_rad: float) -> float:
     """gamma_max / asin(C) * C, the factor that tends to gamma_max as C -> 0."""

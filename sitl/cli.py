@@ -36,9 +36,10 @@ def build_parser() -> ArgumentParser:
                         f"directions; K >= {N_PHASES} sweeps the other way)")
     f.add_argument("--plant", choices=PLANTS, default="jsbsim",
                    help="vehicle: jsbsim (F450 flight dynamics + autopilot, default) or ideal (kinematic)")
-    f.add_argument("--payload", choices=PAYLOADS, default="batch",
-                   help="samples from the vectorised batch path (fast) or the unchanged payload firmware in the "
-                        "loop over MAVLink and emulated I2C/PWM devices")
+    f.add_argument("--payload", choices=PAYLOADS, default=None,
+                   help="firmware: the unchanged payload firmware in the loop over MAVLink and emulated I2C/PWM "
+                        "devices (default with --plant jsbsim); batch: the vectorised sampler (fast; the default "
+                        "with --plant ideal, which has no autopilot to talk to)")
     f.add_argument("--latency-ms", type=finite_float, nargs=2, default=(0.0, 0.0), metavar=("MIN", "MAX"),
                    help="firmware payload only: random MAVLink latency range, ms")
     f.add_argument("--payload-mass", type=finite_float, default=0.040, metavar="KG",
@@ -81,12 +82,17 @@ def _mission(args) -> Mission:
                    yaw_rate_max_rad_s=math.radians(args.yaw_rate_max))
 
 
+def _default_payload(plant: str) -> str:
+    """The firmware in the loop needs an autopilot to talk to; the ideal plant has none."""
+    return "firmware" if plant == "jsbsim" else "batch"
+
+
 def _fly(args) -> int:
     mission = _mission(args)
     cfg = FlyConfig(mission=mission, stockpile=args.stockpile, waveform=args.waveform,
                     servo_peak_rate_rad_s=args.servo_rate, initial_position=args.phase, plant=args.plant,
-                    payload=args.payload, latency_ms=tuple(args.latency_ms), payload_kg=args.payload_mass,
-                    seed=args.seed)
+                    payload=args.payload or _default_payload(args.plant), latency_ms=tuple(args.latency_ms),
+                    payload_kg=args.payload_mass, seed=args.seed)
     progress = None if args.quiet else (lambda msg: print(f"pilescan-sitl: {msg}", file=sys.stderr))
     res = fly(cfg, args.out, force=args.force, progress=progress)
     if not args.quiet:

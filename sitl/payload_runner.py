@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware_py.frames import StorageFrame, beam_rays_w
+from firmware_py.frames import StorageFrame, beam_ray_w
 from firmware_py.hal.clock import SimClock
-from sitl.ideal_plant import wrap_pi
+from sitl.autopilot import wrap_pi
 from sitl.jsbsim_vehicle import JsbsimVehicle
 from sitl.mavlink_vehicle import MavlinkVehicleServer
 from sitl.raycast import World
@@ -52,7 +52,7 @@ class DelayedPipe:
 
 @dataclass(frozen=True)
 class TruePose:
-    pos_ned_m: np.ndarray
+    pos_ned_m: tuple[float, float, float]
     roll_rad: float
     pitch_rad: float
     yaw_rad: float
@@ -89,18 +89,21 @@ class SimWorld:
     def vehicle_time_ns(self, companion_ns: int) -> int:
         return companion_ns - self.boot_offset_ns
 
-    def advance_to(self, t_ns: int) -> None:
-        """Step the vehicle until its clock has passed companion time t_ns."""
+    def advance_to(self, t_ns: int) -> int:
+        """Step the vehicle until its clock has passed companion time t_ns; return the companion
+        time up to which it is now stepped (the clock's horizon: no call needed before it)."""
         target_s = self.vehicle_time_ns(t_ns) * 1e-9
         while self._hist[-1][0] < target_s:
             self.vehicle.step()
             self.server.update()
             self._hist.append((self.vehicle.state().t_s, self.vehicle.raw_state))
             self.history.append(self._hist[-1])
+        return math.floor(self._hist[-1][0] * 1e9) + self.boot_offset_ns
 
     def pose_at(self, t_ns: int) -> TruePose:
         """The vehicle's true pose at companion time t_ns (linear between physics steps)."""
-        self.advance_to(t_ns)
+        if t_ns > self.clock.now_ns():  # the clock has stepped the world up to its own time already
+            self.advance_to(t_ns)
         ts = self.vehicle_time_ns(t_ns) * 1e-9
         hist = self._hist
         i = len(hist) - 1
@@ -109,18 +112,17 @@ class SimWorld:
         (t0, s0), (t1, s1) = hist[max(i - 1, 0)], hist[i]
         w = 0.0 if t1 <= t0 else min(1.0, max(0.0, (ts - t0) / (t1 - t0)))
         lerp = lambda a, b: a + (b - a) * w  # noqa: E731
-        pos = np.array([lerp(s0[k], s1[k]) for k in range(3)])
+        pos = (lerp(s0[0], s1[0]), lerp(s0[1], s1[1]), lerp(s0[2], s1[2]))
         yaw = s0[8] + wrap_pi(s1[8] - s0[8]) * w
-        return TruePose(pos, lerp(s0[6], s1[6]), lerp(s0[7], s1[7]), float(wrap_pi(yaw)))
+        return TruePose(pos, lerp(s0[6], s1[6]), lerp(s0[7], s1[7]), wrap_pi(yaw))
 
     def true_range_m(self, t_ns: int) -> float | None:
         """What the LiDAR sees at companion time t_ns: true pose, true servo angle, ray traced."""
         p = self.pose_at(t_ns)
         gamma = self.servo_angle_at(t_ns) if self.servo_angle_at else 0.0
-        o, d = beam_rays_w(p.pos_ned_m[None], [p.roll_rad], [p.pitch_rad], [p.yaw_rad], np.array([gamma]),
-                           self.lever, self.frame)
-        r = self.world.cast(o, d).range_m[0]
-        return None if not math.isfinite(r) else float(r)
+        o, d = beam_ray_w(p.pos_ned_m, p.roll_rad, p.pitch_rad, p.yaw_rad, gamma, self.lever, self.frame)
+        r = self.world.cast_one(o, d)
+        return None if not math.isfinite(r) else r
 
 
 class _ServerSide:

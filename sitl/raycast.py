@@ -6,6 +6,7 @@ micrometres, far below the LiDAR's 1 cm resolution (the tests check analytic hit
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -75,5 +76,13 @@ class World:
         return Hits(r, geom, pts)
 
     def cast_one(self, origin_w, dir_w) -> float:
-        """Range of one ray, m (NaN when there is no return within the max range)."""
-        return float(self.cast(np.asarray(origin_w)[None], np.asarray(dir_w)[None]).range_m[0])
+        """Range of one ray, m (NaN when there is no return within the max range).
+
+        The emulated LiDAR's path, one ray per sample: straight to Embree with no batch bookkeeping.
+        """
+        d = np.asarray(dir_w, dtype=float)
+        o32 = np.asarray(origin_w, dtype=np.float32).reshape(1, 3)
+        d32 = (d / math.sqrt(float(d @ d))).astype(np.float32).reshape(1, 3)
+        res = self._scene.run(o32, d32, output=1)
+        r = float(res["tfar"][0])
+        return r if res["primID"][0] >= 0 and r <= self.max_range_m else math.nan

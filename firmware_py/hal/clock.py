@@ -20,24 +20,34 @@ class MonotonicClock:
 
 class SimClock:
     """Simulated time. `sleep_until_ns` calls `advance(t_ns)`, which the SITL uses to step the world
-    up to t_ns in lockstep; `advance_by_ns` lets emulated devices charge time for bus transfers."""
+    up to t_ns in lockstep; `advance_by_ns` lets emulated devices charge time for bus transfers.
 
-    def __init__(self, start_ns: int = 0, advance: Callable[[int], None] | None = None) -> None:
+    `advance` may return the time (ns) up to which the world is already stepped; the clock then
+    skips calling it until time passes that horizon. A 500 Hz payload sleeps ~20 times per sample
+    (bus transfers, busy polls) while the physics steps every few ms: most calls have nothing to do.
+    Returning None means "call me every time".
+    """
+
+    def __init__(self, start_ns: int = 0, advance: Callable[[int], int | None] | None = None) -> None:
         self._t = int(start_ns)
         self._advance = advance
+        self._horizon = -1
 
     def now_ns(self) -> int:
         return self._t
 
-    def set_advance(self, advance: Callable[[int], None] | None) -> None:
+    def set_advance(self, advance: Callable[[int], int | None] | None) -> None:
         self._advance = advance
+        self._horizon = -1
 
     def sleep_until_ns(self, t_ns: int) -> None:
+        t_ns = int(t_ns)
         if t_ns <= self._t:
             return
-        if self._advance is not None:
-            self._advance(int(t_ns))
-        self._t = max(self._t, int(t_ns))
+        if self._advance is not None and t_ns > self._horizon:
+            horizon = self._advance(t_ns)
+            self._horizon = -1 if horizon is None else int(horizon)
+        self._t = t_ns
 
     def advance_by_ns(self, dt_ns: int) -> None:
         """Time passing without the payload sleeping (e.g. an I2C transfer on the wire)."""

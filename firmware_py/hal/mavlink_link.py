@@ -171,12 +171,16 @@ class _FramedLink:
         if self.closed:
             return []
         out: list[Any] = []
+        got = False
         try:
             for chunk in self._read_chunks():
+                got = True
                 self.stats["rx_bytes"] += len(chunk)
                 out.extend(self._framer.feed(chunk))
         except OSError as exc:
             self._io_error(exc)
+        if not got:
+            return out  # the usual case at 500 Hz: nothing new, no bookkeeping
         f = self._framer
         self.stats["rx_messages"] += len(out)
         self.stats["rx_bad_bytes"] = f.bad_bytes

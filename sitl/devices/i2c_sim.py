@@ -99,12 +99,16 @@ class SimI2CBus:
         """Time on the wire for n bytes (address bytes included), 9 clocks each."""
         return n_bytes * BITS_PER_BYTE * 1_000_000_000 // self.bitrate_hz
 
-    def _device(self, op: str, addr: int) -> SimI2CDevice:
+    def _device(self, op: str, addr: int, n: int | None = None) -> SimI2CDevice:
         """The addressed device, or an I2CError after charging the NACKed address byte."""
-        _check_addr(addr)
+        device = self.devices.get(addr) if type(addr) is int else None  # attached ones were checked at attach()
+        if device is None:
+            _check_addr(addr)
+        if n is not None and (self._closed or device is None or self.fault_until_ns >= 0
+                              or self._nack_probability > 0.0):
+            op = f"{op} of {n} bytes"  # only for the error messages below
         if self._closed:
             raise I2CError(errno.EBADF, f"I2C {op} at 0x{addr:02x}: simulated bus is closed")
-        device = self.devices.get(addr)
         reason = None
         if device is None:
             reason = "no device"
@@ -120,7 +124,7 @@ class SimI2CBus:
 
     def _charge(self, n_bytes: int) -> None:
         self.counters["bytes"] += n_bytes
-        self.clock.advance_by_ns(self.wire_time_ns(n_bytes))
+        self.clock.advance_by_ns(n_bytes * BITS_PER_BYTE * 1_000_000_000 // self.bitrate_hz)
 
     def write(self, addr: int, data: bytes) -> None:
         device = self._device("write", addr)
@@ -131,14 +135,15 @@ class SimI2CBus:
 
     def read(self, addr: int, n: int) -> bytes:
         _check_count(n)
-        device = self._device(f"read of {n} bytes", addr)
+        device = self._device("read", addr, n)
         self.counters["read"] += 1
         self._charge(1 + n)
-        return self._checked(device.on_read(n), n, addr)
+        data = device.on_read(n)
+        return data if type(data) is bytes and len(data) == n else self._checked(data, n, addr)
 
     def write_read(self, addr: int, data: bytes, n: int) -> bytes:
         _check_count(n)
-        device = self._device(f"write-read of {n} bytes", addr)
+        device = self._device("write-read", addr, n)
         data = bytes(data)
         self.counters["write_read"] += 1
         self._charge(1 + len(data) + 1 + n)

@@ -79,6 +79,7 @@ MEASURE_DELAY = 0x45
 ACQ_SETTINGS = 0x5D
 POWER_CONTROL = 0x65
 AUTO_INCREMENT = 0x80
+_BUSY, _HEALTH, _INVALID_SIGNAL = int(StatusFlag.BUSY), int(StatusFlag.HEALTH), int(StatusFlag.INVALID_SIGNAL)
 
 POWER_ON: dict[int, int] = {
     STATUS: int(StatusFlag.HEALTH), SIG_COUNT_VAL: 0x80, ACQ_CONFIG_REG: 0x08, OUTER_LOOP_COUNT: 0x01,
@@ -212,7 +213,7 @@ class EmulatedLidarLite:
         self.regs[FULL_DELAY_HIGH], self.regs[FULL_DELAY_LOW] = cm >> 8, cm & 0xFF
         self.regs[VELOCITY] = max(-128, min(127, cm - prev)) & 0xFF
         r = acq.true_range_m
-        if acq.status & StatusFlag.INVALID_SIGNAL or r is None:
+        if acq.status & _INVALID_SIGNAL or r is None:
             self.regs[SIGNAL_STRENGTH] = self.regs[PEAK_CORR] = 0
         else:  # rough inverse-square strength; a saturated peak when integration stopped early
             self.regs[SIGNAL_STRENGTH] = max(16, min(255, round(255 * (4.0 / max(r, 4.0)) ** 2)))
@@ -241,10 +242,10 @@ class EmulatedLidarLite:
             if self.range_noise_sigma_m > 0.0:
                 measured += float(self.rng.normal(0.0, self.range_noise_sigma_m))
             cm = max(0, min(0xFFFF, math.floor(measured * 100.0 + 0.5)))
-            status = int(StatusFlag.HEALTH)
+            status = _HEALTH
         else:
             counts, cm = n_max, 1
-            status = int(StatusFlag.HEALTH | StatusFlag.INVALID_SIGNAL)
+            status = _HEALTH | _INVALID_SIGNAL
         duration = acquisition_time_ns(n_max, acq_config, bias=bias, ref_count_val=self.regs[REF_COUNT_VAL],
                                        signal_counts=counts)
         acq = Acquisition(t0, t0 + duration, true_r, cm, status, counts, bias)
@@ -296,7 +297,7 @@ class EmulatedLidarLite:
 
     def _read_reg(self, reg: int) -> int:
         if reg == STATUS:
-            return self.regs[STATUS] | (StatusFlag.BUSY if self._busy() else 0)
+            return self.regs[STATUS] | (_BUSY if self._busy() else 0)
         return self.regs[reg]
 
     def on_write_read(self, data: bytes, n: int) -> bytes:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from firmware_py.frames import StorageFrame, beam_dir_body, points_w, rot_body_to_ned
+from firmware_py.frames import StorageFrame, beam_dir_body, beam_ray_w, beam_rays_w, points_w, rot_body_to_ned
 
 
 def test_that_body_to_ned_matches_scipy_zyx_euler():
@@ -59,6 +59,20 @@ def test_that_points_follow_eqs_3_to_6_sample_by_sample():
         d_b = np.array([0.0, math.sin(gamma[i]), math.cos(gamma[i])])
         p_ned = pos[i] + r_nb @ (lever + rng_m[i] * d_b)
         assert np.allclose(got[i], frame.ned_to_w(p_ned), atol=1e-9)
+
+
+@pytest.mark.parametrize("heading", [0.0, 0.4, -2.5])
+def test_that_the_one_ray_path_equals_the_vectorised_one(heading):
+    rng = np.random.default_rng(11)
+    n = 30
+    pos = rng.normal(size=(n, 3)) * 10
+    roll, pitch, yaw = rng.uniform(-0.3, 0.3, n), rng.uniform(-0.3, 0.3, n), rng.uniform(-3, 3, n)
+    gamma = rng.uniform(-1.5, 1.5, n)
+    lever, frame = (0.05, -0.02, 0.1), StorageFrame((1.0, 2.0, -0.5), heading)
+    o, d = beam_rays_w(pos, roll, pitch, yaw, gamma, lever, frame)
+    for i in range(n):
+        oi, di = beam_ray_w(pos[i], roll[i], pitch[i], yaw[i], gamma[i], lever, frame)
+        assert np.allclose(oi, o[i], atol=1e-12) and np.allclose(di, d[i], atol=1e-12)
 
 
 def test_that_a_bad_frame_is_refused():

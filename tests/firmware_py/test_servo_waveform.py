@@ -61,6 +61,14 @@ def test_that_sweep_direction_follows_the_rate_sign():
     assert np.array_equal(wf.sweep_direction(t), np.where(wf.rate(t) >= 0, 1, -1))
 
 
+@pytest.mark.parametrize("name", ["semi-triangular", "sinusoidal"])
+@pytest.mark.parametrize("k", [0, 7, 10, 19])
+def test_that_the_scalar_sweep_direction_equals_the_vectorised_one(name, k):
+    wf = named_waveform(name, k=k)
+    t = np.linspace(0, 4, 997)
+    assert [wf.sweep_direction_at(float(x)) for x in t] == wf.sweep_direction(t).tolist()
+
+
 @pytest.mark.parametrize("kwargs", [dict(shape_c=1.0), dict(shape_c=-0.1), dict(frequency_hz=0),
                                     dict(frequency_hz=math.nan), dict(direction=0),
                                     dict(amplitude_rad=2.0), dict(phase_rad=math.inf)])

@@ -1,13 +1,22 @@
 """Every bad input to pilescan-sitl fly: one line, exit code 2, no traceback."""
 
+import json
+
 import pytest
 
 from sitl.cli import main
 
 
-def test_that_fly_writes_a_run(tmp_path, capsys):
+def test_that_fly_writes_a_run_with_the_firmware_in_the_loop_by_default(tmp_path, capsys):
     assert main(["fly", "--stockpile", "1", "--p-traj", "25", "--out", str(tmp_path), "--quiet"]) == 0
     assert (tmp_path / "samples.pslog").is_file()
+    assert json.loads((tmp_path / "truth.json").read_text())["payload"] == "firmware"
+
+
+def test_that_the_ideal_plant_defaults_to_the_batch_sampler(tmp_path, capsys):
+    assert main(["fly", "--stockpile", "1", "--p-traj", "25", "--plant", "ideal", "--out", str(tmp_path),
+                 "--quiet"]) == 0
+    assert json.loads((tmp_path / "truth.json").read_text())["payload"] == "batch"
 
 
 @pytest.mark.parametrize("extra,match", [
@@ -28,6 +37,7 @@ def test_that_fly_writes_a_run(tmp_path, capsys):
     (["--stockpile", "1", "--p-traj", "20", "--turn", "zigzag"], "invalid choice"),
     (["--stockpile", "1", "--p-traj", "20", "--plant", "webots"], "invalid choice"),
     (["--stockpile", "1"], "--p-traj"),
+    (["--stockpile", "1", "--p-traj", "20", "--plant", "ideal", "--payload", "firmware"], "jsbsim plant"),
 ])
 def test_that_bad_inputs_fail_with_one_line(tmp_path, capsys, monkeypatch, extra, match):
     monkeypatch.chdir(tmp_path)

@@ -329,3 +329,42 @@ def test_that_presets_carry_the_garmin_library_values():
 def test_that_bad_configuration_and_records_are_value_errors_naming_the_value(make, match):
     with pytest.raises(ValueError, match=match):
         make()
+
+
+def _read_on_ticks(rig, n):
+    out = []
+    for _ in range(n):
+        rig.clock.sleep_until_ns((rig.clock.now_ns() // TICK_NS + 1) * TICK_NS)
+        out.append(rig.lidar.read())
+    return out
+
+
+def test_that_the_first_busy_poll_learns_the_acquisition_time():
+    rig = Rig(12.0, PRESET_FAST_500HZ, bias_every=1000)
+    first, *rest = _read_on_ticks(rig, 50)
+    assert first.polls >= 4  # nothing learned yet: from the shortest possible acquisition, 0.1 ms grid
+    assert all(r.status == ReadStatus.OK for r in rest)
+    assert max(r.polls for r in rest[2:]) <= 2  # then one poll before the learned time, one after
+
+
+def test_that_a_shorter_acquisition_is_still_collected_and_relearned():
+    rig = Rig(12.0, PRESET_FAST_500HZ, bias_every=1000)
+    _read_on_ticks(rig, 20)
+    rig.range_m = 0.6  # a strong short-range return ends integration early
+    readings = _read_on_ticks(rig, 20)
+    assert all(r.status == ReadStatus.OK and r.range_m == pytest.approx(0.6) for r in readings)
+    # Each reading collected within one poll interval of what it learned; latency shrinks back.
+    lat = [rig.part.last_acquisition.t_done_ns - rig.part.last_acquisition.t_start_ns]
+    assert lat[0] < PRESET_FAST_500HZ.worst_acquisition_ns(bias=False)
+    assert rig.lidar._done_after_ns[False] - lat[0] <= 2 * rig.lidar.config.poll_interval_ns
+
+
+def test_that_one_late_collection_does_not_push_later_polls_past_the_worst_case():
+    rig = Rig(12.0, PRESET_FAST_500HZ, bias_every=1000)
+    _read_on_ticks(rig, 5)
+    t_ns = rig.lidar.measure_start()
+    rig.clock.sleep_until_ns(t_ns + 5_000_000)  # the process was descheduled for 5 ms
+    assert rig.lidar.measure_finish().status == ReadStatus.OK
+    assert rig.lidar._done_after_ns[False] <= PRESET_FAST_500HZ.worst_acquisition_ns(bias=False)
+    nxt = _read_on_ticks(rig, 1)[0]
+    assert rig.clock.now_ns() - nxt.t_ns < TICK_NS  # the next reading still fits its 2 ms tick
