@@ -130,6 +130,7 @@ class PoseTracker:
         self._rate_t0_ns: int | None = None
         self._rates_hz: dict[str, float] = {}
         self._last_heartbeat_rx_ns: int | None = None
+        self._autopilot_base_mode: int | None = None
         self._replies_seen = 0
         self.stats: Counter[str] = Counter()
 
@@ -183,6 +184,17 @@ class PoseTracker:
             "tracker": dict(self.stats),
         }
 
+    @property
+    def autopilot_base_mode(self) -> int | None:
+        """base_mode (MAV_MODE_FLAG bits) of the autopilot's last HEARTBEAT; None before one arrived."""
+        return self._autopilot_base_mode
+
+    @property
+    def autopilot_armed(self) -> bool | None:
+        """Whether the autopilot's last HEARTBEAT said armed (MAV_MODE_FLAG_SAFETY_ARMED); None before one."""
+        mode = self._autopilot_base_mode
+        return None if mode is None else bool(mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+
     # ----- receive ----------------------------------------------------------------------------------
 
     def _from_autopilot(self, msg: Any) -> bool:
@@ -208,6 +220,7 @@ class PoseTracker:
             self._on_command_ack(msg)
         elif kind == "HEARTBEAT":
             self._last_heartbeat_rx_ns = now
+            self._autopilot_base_mode = int(msg.base_mode)
         elif hasattr(msg, "time_boot_ms"):
             self._check_boot(msg.time_boot_ms, now)
 

@@ -20,6 +20,7 @@ from ground.surface import (
     DEFAULT_CELL_M,
     DEFAULT_EMPTY_CELLS,
     Grid,
+    clip_to_building,
     fill_empty,
     fit_heights,
     grid_volume,
@@ -52,6 +53,7 @@ class Survey:
     heights: np.ndarray
     counts: np.ndarray
     storage: Storage
+    n_cells_clipped: int = 0  # cells whose fit left the building (see surface.clip_to_building)
 
 
 def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
@@ -106,8 +108,9 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     structure = structure_mask(cloud, storage, SensorErrorModel.from_header(header))
     pile = cloud.points_w[~structure]
     grid = Grid(storage.length_m, storage.width_m, opts.cell_m)
-    fit = fit_heights(pile, grid)
-    return Survey(cloud, pile, grid, fit, fill_empty(fit, opts.empty_cells), grid.counts(pile), storage)
+    fit, n_clipped = clip_to_building(fit_heights(pile, grid), storage.height_m)
+    return Survey(cloud, pile, grid, fit, fill_empty(fit, opts.empty_cells), grid.counts(pile), storage,
+                  n_clipped)
 
 
 def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: float | None) -> dict:
@@ -128,6 +131,9 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
                         f"only {ra:.1f} % of the floor is reconstructed (R_a); the rest is extrapolated")
     if len(survey.pile_points_w) < 3:
         warnings.append("fewer than 3 points on the stockpile: no surface could be fitted")
+    if survey.n_cells_clipped:
+        warnings.append(f"the fitted surface left the building in {survey.n_cells_clipped} cells (clipped to the "
+                        "floor and roof): points contradict each other there, e.g. a LiDAR buried in the pile")
     return {
         "volume_m3": volume,
         "true_volume_m3": truth_m3,
@@ -140,6 +146,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "cell_size_m": g.length_m / g.shape[0],
         "cell_area_m2": g.cell_area_m2,
         "empty_cell_policy": opts.empty_cells,
+        "n_cells_clipped": survey.n_cells_clipped,
         "uncovered_area_m2": float((~np.isfinite(survey.heights_fit)).sum() * g.cell_area_m2),
         "storage": survey.storage.to_dict(),
         "mission_id": (log.header or {}).get("mission_id"),

@@ -57,6 +57,10 @@ def build_parser() -> ArgumentParser:
     sv.add_argument("--duration", type=finite_float, default=None, metavar="S",
                     help="stop after S simulated seconds (default: run until Ctrl-C / SIGTERM)")
     sv.add_argument("--vehicle", choices=("jsbsim", "kinematic"), default="jsbsim")
+    sv.add_argument("--devices", default=None, metavar="tcp:HOST:PORT",
+                    help="also serve the emulated LIDAR-Lite (I2C 0x62) and servo (PWM channel 0) there, for "
+                         "`pilescan-payload --hal sitl:HOST:PORT` in another process (needs --speedup 1)")
+    sv.add_argument("--stockpile", default="1", help="with --devices: 1, 2 or an STL/OBJ mesh path (default 1)")
     _mission_options(sv, p_traj_required=False)
     sv.add_argument("--out", default="runs/serve", help="directory for telemetry.tlog and mission.waypoints")
 
@@ -109,7 +113,8 @@ def _plan(args) -> int:
 
 def _serve(args) -> int:
     from sitl.serve import serve
-    return serve(_mission(args), args.mavlink, args.speedup, args.duration, args.vehicle, Path(args.out))
+    return serve(_mission(args), args.mavlink, args.speedup, args.duration, args.vehicle, Path(args.out),
+                 devices_url=args.devices, stockpile=args.stockpile)
 
 
 def _dispatch(args) -> int:

@@ -174,19 +174,26 @@ def _parse_udp_url(url: str) -> tuple[str, str, int]:
 
 
 class UdpTransport:
-    """UDP like ArduPilot SITL: "udp:HOST:PORT" listens there and replies to the last client heard;
-    "udpout:HOST:PORT" sends to that fixed address. Port 0 listens on a free port (see local_address)."""
+    """UDP like ArduPilot SITL: "udp:HOST:PORT" listens there and replies to its clients;
+    "udpout:HOST:PORT" sends to that fixed address. Port 0 listens on a free port (see local_address).
+
+    A listening transport sends to every client heard within `peer_timeout_s` (at most `max_peers`),
+    like a MAVLink router: a ground station and the companion's payload can share one port
+    (ArduPilot would give each its own SERIALn port; one port is simpler to run by hand).
+    """
 
     MAX_DATAGRAMS_PER_RECV = 1000
 
-    def __init__(self, address: str) -> None:
+    def __init__(self, address: str, peer_timeout_s: float = 10.0, max_peers: int = 8,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         kind, host, port = _parse_udp_url(address)
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.setblocking(False)
         self._fixed_peer = kind == "udpout"
-        self.peer_address: tuple[str, int] | None = None
+        self._peers: dict[tuple[str, int], float] = {}  # address -> last heard (clock seconds)
+        self._peer_timeout_s, self._max_peers, self._clock = peer_timeout_s, max_peers, clock
         if self._fixed_peer:
-            self.peer_address = (host, port)
+            self._peers[(host, port)] = math.inf
         else:
             self._sock.bind((host, port))
         self.dropped_packets = 0
@@ -195,14 +202,28 @@ class UdpTransport:
     def local_address(self) -> tuple[str, int]:
         return self._sock.getsockname()
 
+    @property
+    def peer_address(self) -> tuple[str, int] | None:
+        """The most recently heard client (or the fixed peer)."""
+        return max(self._peers, key=self._peers.__getitem__) if self._peers else None
+
+    @property
+    def peers(self) -> list[tuple[str, int]]:
+        return list(self._peers)
+
     def send(self, data: bytes) -> None:
-        if self.peer_address is None:
+        if not self._peers:
             self.dropped_packets += 1  # nobody has talked to us yet
             return
-        try:
-            self._sock.sendto(data, self.peer_address)
-        except OSError:
-            self.dropped_packets += 1
+        if not self._fixed_peer:
+            oldest = self._clock() - self._peer_timeout_s
+            for addr in [a for a, t in self._peers.items() if t < oldest]:
+                del self._peers[addr]  # a client gone quiet: stop sending to it
+        for addr in self._peers:
+            try:
+                self._sock.sendto(data, addr)
+            except OSError:
+                self.dropped_packets += 1
 
     def recv(self) -> bytes:
         chunks = []
@@ -214,7 +235,9 @@ class UdpTransport:
             except OSError:
                 break  # e.g. ICMP port unreachable reported on some platforms
             if not self._fixed_peer:
-                self.peer_address = addr
+                self._peers[addr] = self._clock()
+                if len(self._peers) > self._max_peers:
+                    del self._peers[min(self._peers, key=self._peers.__getitem__)]
             chunks.append(data)
         return b"".join(chunks)
 
@@ -914,11 +937,13 @@ def _heading_cdeg(yaw_rad: float) -> int:
 def run_realtime(server: MavlinkVehicleServer, vehicle: Vehicle, speedup: float = 1.0,
                  duration_s: float | None = None, stop_event: threading.Event | None = None, *,
                  clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep) -> float:
+                 sleep: Callable[[float], None] = time.sleep,
+                 on_step: Callable[[], None] | None = None) -> float:
     """Step the vehicle and serve MAVLink, paced so simulated time runs `speedup` times the wall clock.
 
     Runs until duration_s of simulated time has passed or stop_event is set; returns the simulated
-    seconds run. If the CPU cannot keep up it runs flat out (no catch-up skipping).
+    seconds run. If the CPU cannot keep up it runs flat out (no catch-up skipping). `on_step` runs
+    after every physics step (the networked SITL records the true pose for its emulated LiDAR).
     """
     if not (math.isfinite(speedup) and speedup > 0):
         raise ValueError(f"speedup must be > 0, got {speedup}")
@@ -931,6 +956,8 @@ def run_realtime(server: MavlinkVehicleServer, vehicle: Vehicle, speedup: float 
             break
         vehicle.step()
         server.update()
+        if on_step is not None:
+            on_step()
         t_sim = vehicle.state().t_s
         delay = t0_wall + (t_sim - t0_sim) / speedup - clock()
         if delay > 0:

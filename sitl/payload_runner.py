@@ -58,6 +58,28 @@ class TruePose:
     yaw_rad: float
 
 
+def pose_from_history(hist, ts: float) -> TruePose:
+    """The true pose at vehicle time ts from a time-ordered sequence of (t_s, raw_state) physics
+    steps, linear between the two that bracket it (clamped at the ends)."""
+    i = len(hist) - 1
+    while i > 0 and hist[i - 1][0] > ts:
+        i -= 1
+    (t0, s0), (t1, s1) = hist[max(i - 1, 0)], hist[i]
+    w = 0.0 if t1 <= t0 else min(1.0, max(0.0, (ts - t0) / (t1 - t0)))
+    lerp = lambda a, b: a + (b - a) * w  # noqa: E731
+    pos = (lerp(s0[0], s1[0]), lerp(s0[1], s1[1]), lerp(s0[2], s1[2]))
+    yaw = s0[8] + wrap_pi(s1[8] - s0[8]) * w
+    return TruePose(pos, lerp(s0[6], s1[6]), lerp(s0[7], s1[7]), wrap_pi(yaw))
+
+
+def beam_range_m(world: World, frame: StorageFrame, lever_arm_body_m, pose: TruePose, servo_rad: float) -> float | None:
+    """What the LiDAR sees from a true pose at a true servo angle (None: no return within range)."""
+    o, d = beam_ray_w(pose.pos_ned_m, pose.roll_rad, pose.pitch_rad, pose.yaw_rad, servo_rad, lever_arm_body_m,
+                      frame)
+    r = world.cast_one(o, d)
+    return None if not math.isfinite(r) else r
+
+
 class SimWorld:
     """Vehicle + MAVLink server + building, advanced in lockstep with the payload's clock."""
 
@@ -104,25 +126,12 @@ class SimWorld:
         """The vehicle's true pose at companion time t_ns (linear between physics steps)."""
         if t_ns > self.clock.now_ns():  # the clock has stepped the world up to its own time already
             self.advance_to(t_ns)
-        ts = self.vehicle_time_ns(t_ns) * 1e-9
-        hist = self._hist
-        i = len(hist) - 1
-        while i > 0 and hist[i - 1][0] > ts:
-            i -= 1
-        (t0, s0), (t1, s1) = hist[max(i - 1, 0)], hist[i]
-        w = 0.0 if t1 <= t0 else min(1.0, max(0.0, (ts - t0) / (t1 - t0)))
-        lerp = lambda a, b: a + (b - a) * w  # noqa: E731
-        pos = (lerp(s0[0], s1[0]), lerp(s0[1], s1[1]), lerp(s0[2], s1[2]))
-        yaw = s0[8] + wrap_pi(s1[8] - s0[8]) * w
-        return TruePose(pos, lerp(s0[6], s1[6]), lerp(s0[7], s1[7]), wrap_pi(yaw))
+        return pose_from_history(self._hist, self.vehicle_time_ns(t_ns) * 1e-9)
 
     def true_range_m(self, t_ns: int) -> float | None:
         """What the LiDAR sees at companion time t_ns: true pose, true servo angle, ray traced."""
-        p = self.pose_at(t_ns)
         gamma = self.servo_angle_at(t_ns) if self.servo_angle_at else 0.0
-        o, d = beam_ray_w(p.pos_ned_m, p.roll_rad, p.pitch_rad, p.yaw_rad, gamma, self.lever, self.frame)
-        r = self.world.cast_one(o, d)
-        return None if not math.isfinite(r) else r
+        return beam_range_m(self.world, self.frame, self.lever, self.pose_at(t_ns), gamma)
 
 
 class _ServerSide:

@@ -53,8 +53,29 @@ class World:
         self._scene = rtcs.EmbreeScene()
         # Geometry ids follow insertion order: building first (GEOM_BUILDING), then the pile.
         TriangleMesh(self._scene, building_triangles(storage).astype(np.float32))
+        self._pile_top_m = -math.inf
         if pile is not None and len(pile.mesh.faces):
             TriangleMesh(self._scene, np.ascontiguousarray(pile.mesh.triangles, dtype=np.float32))
+            self._pile_top_m = float(pile.mesh.bounds[1, 2])
+
+    def buried(self, points_w: np.ndarray) -> np.ndarray:
+        """Which points (N, 3) lie inside the stockpile: below its surface seen from the roof.
+
+        A sensor there sees nothing (its window is in the material). It happens in the SITL, never
+        in flight: the simulated vehicle stands on the floor, and a take-off spot the pile covers
+        puts the LiDAR under the pile's surface, whose rays would otherwise reach the floor
+        beneath it and give the ground station contradictory points.
+        """
+        p = np.asarray(points_w, dtype=float).reshape(-1, 3)
+        out = np.zeros(len(p), dtype=bool)
+        low = np.flatnonzero(p[:, 2] < self._pile_top_m)  # only these can be inside; in flight: none
+        if len(low):
+            top = np.column_stack([p[low, :2], np.full(len(low), self.storage.height_m - 1e-3)])
+            res = self._scene.run(top.astype(np.float32), np.tile(np.float32([0.0, 0.0, -1.0]), (len(low), 1)),
+                                  output=1)
+            hit_z = top[:, 2] - res["tfar"].astype(np.float64)
+            out[low] = (res["geomID"] == GEOM_PILE) & (res["primID"] >= 0) & (hit_z > p[low, 2])
+        return out
 
     def cast(self, origins_w: np.ndarray, dirs_w: np.ndarray, max_range_m: float | None = None) -> Hits:
         """Cast rays (N, 3) from origins along unit directions; ranges beyond max are NaN."""
@@ -69,7 +90,7 @@ class World:
         res = self._scene.run(np.ascontiguousarray(o64, dtype=np.float32),
                               np.ascontiguousarray(unit, dtype=np.float32), output=1)
         r = res["tfar"].astype(np.float64)
-        ok = (res["primID"] >= 0) & (r <= limit)
+        ok = (res["primID"] >= 0) & (r <= limit) & ~self.buried(o64)
         r = np.where(ok, r, np.nan)
         geom = np.where(ok, res["geomID"], -1).astype(np.int32)
         pts = o64 + unit * r[:, None]
@@ -80,6 +101,8 @@ class World:
 
         The emulated LiDAR's path, one ray per sample: straight to Embree with no batch bookkeeping.
         """
+        if origin_w[2] < self._pile_top_m and self.buried(origin_w)[0]:
+            return math.nan
         d = np.asarray(dir_w, dtype=float)
         o32 = np.asarray(origin_w, dtype=np.float32).reshape(1, 3)
         d32 = (d / math.sqrt(float(d @ d))).astype(np.float32).reshape(1, 3)

@@ -7,7 +7,6 @@ mission, seeds, energy, config), `pile.stl` (the stockpile mesh the LiDAR saw), 
 
 from __future__ import annotations
 
-import datetime as dt
 import json
 import math
 import os
@@ -20,6 +19,7 @@ import numpy as np
 
 import firmware_py
 from firmware_py.frames import StorageFrame
+from firmware_py.header import build_log_header
 from firmware_py.samplelog import SampleLogWriter
 from firmware_py.servo_waveform import Waveform, initial_position, named_waveform
 from sitl import stockpile as piles
@@ -90,20 +90,10 @@ class RunResult:
 
 def log_header(cfg: FlyConfig, wf: Waveform) -> dict:
     """The sample-log header of a SITL flight: what the ground station needs to place the points."""
-    return {
-        "software": f"pilescan {firmware_py.__version__}",
-        "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "source": f"sitl/{cfg.plant}",
-        "sensor": cfg.lidar.to_dict(),
-        "lever_arm_body_m": list(cfg.lever_arm_body_m),
-        "servo": {"waveform": cfg.waveform, "shape_c": wf.shape_c, "frequency_hz": wf.frequency_hz,
-                  "amplitude_rad": wf.amplitude_rad, "phase_rad": wf.phase_rad, "direction": wf.direction,
-                  "initial_position": cfg.initial_position},
-        "mission_id": cfg.mission.mission_id,
-        "mission": cfg.mission.to_dict(),
-        "storage": cfg.mission.storage.to_dict(),
-        "storage_frame": cfg.frame.to_dict(),
-    }
+    return build_log_header(source=f"sitl/{cfg.plant}", sensor=cfg.lidar.to_dict(),
+                            lever_arm_body_m=cfg.lever_arm_body_m, waveform_name=cfg.waveform, waveform=wf,
+                            initial_position=cfg.initial_position, storage=cfg.mission.storage, frame=cfg.frame,
+                            mission_id=cfg.mission.mission_id, mission=cfg.mission.to_dict())
 
 
 def check_clearance(mission: Mission, pile: piles.Stockpile) -> None:

@@ -2,6 +2,7 @@
 
     i2c:/dev/i2c-N   a Linux adapter through smbus2 (the Raspberry Pi header is i2c:/dev/i2c-1)
     i2c:N            the same, by bus number
+    tcp:HOST:PORT    the SITL's simulated bus over the networked-SITL device bridge (firmware_py.hal.bridge)
     SCHEME[:...]     any backend another layer registered with `register_i2c_backend`
 
 The SITL registers its simulated bus (`sitl`) here: firmware_py never imports sitl, the SITL
@@ -21,7 +22,15 @@ I2CFactory = Callable[[str], I2CBus]
 
 _SCHEME = re.compile(r"[a-z][a-z0-9+.-]*")
 _BUILTIN = "i2c"
-_BACKENDS: dict[str, I2CFactory] = {}
+
+
+def _open_bridge(url: str) -> I2CBus:
+    """The device bridge, imported on first use (only a networked SITL run needs sockets here)."""
+    from firmware_py.hal.bridge import open_bridge_i2c
+    return open_bridge_i2c(url)
+
+
+_BACKENDS: dict[str, I2CFactory] = {"tcp": _open_bridge}
 _FORMS = "i2c:/dev/i2c-N or i2c:N"
 
 

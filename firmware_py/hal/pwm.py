@@ -4,6 +4,8 @@ output through MAVLink (MAV_CMD_DO_SET_SERVO). Chosen by URL:
     pwm:sysfs:CHIP:CHANNEL            /sys/class/pwm/pwmchipCHIP/pwmCHANNEL
     pwm:pca9685:I2C_BUS:ADDR:CHANNEL  e.g. pwm:pca9685:1:0x40:0
     pwm:mavlink:SERVO_N               the autopilot's SERVOn output (needs the MAVLink link)
+    pwm:tcp:HOST:PORT:CHANNEL         a SITL PWM output (its emulated servo) over the networked-SITL
+                                      device bridge (firmware_py.hal.bridge)
 """
 
 from __future__ import annotations
@@ -120,7 +122,13 @@ class MavlinkServoPwm:
         self.disable()
 
 
-_REGISTRY: dict[str, Callable[[str], PwmOutput]] = {}
+def _open_bridge(url: str) -> PwmOutput:
+    """The device bridge, imported on first use (it imports this module for _check_pulse)."""
+    from firmware_py.hal.bridge import open_bridge_pwm
+    return open_bridge_pwm(url)
+
+
+_REGISTRY: dict[str, Callable[[str], PwmOutput]] = {"tcp": _open_bridge}
 
 
 def register_pwm_backend(scheme: str, factory: Callable[[str], PwmOutput]) -> None:

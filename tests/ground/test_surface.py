@@ -1,7 +1,15 @@
 import numpy as np
 import pytest
 
-from ground.surface import Grid, fill_empty, fit_heights, grid_volume, reconstructed_ratio_pct, volume_error_pct
+from ground.surface import (
+    Grid,
+    clip_to_building,
+    fill_empty,
+    fit_heights,
+    grid_volume,
+    reconstructed_ratio_pct,
+    volume_error_pct,
+)
 
 
 def test_that_cells_tile_the_floor_exactly():
@@ -50,3 +58,18 @@ def test_that_silly_cell_sizes_are_refused():
     for cell in (0.0, -1.0, float("nan"), 50.0):
         with pytest.raises(ValueError, match="cell size"):
             Grid(60, 40, cell)
+
+
+def test_that_contradictory_points_overshoot_and_are_clipped_to_the_building_and_counted():
+    rng = np.random.default_rng(0)
+    top = np.column_stack([rng.uniform(0, 20, (3000, 2)), np.ones(3000)])  # material 1 m deep
+    line = np.column_stack([np.linspace(1, 19, 200), np.full(200, 10.0)])
+    # The floor "seen" 2 mm from points on the top: what a LiDAR buried in the pile reports.
+    floor = np.column_stack([line, np.zeros(200)])
+    above = np.column_stack([line + np.array([0.0, 0.002]), np.ones(200)])
+    raw = fit_heights(np.vstack([top, floor, above]), Grid(20, 20, 0.25))
+    assert np.nanmin(raw) < -1.0 or np.nanmax(raw) > 10.0  # the cubic runs away
+    h, n_off = clip_to_building(raw, 8.0)
+    assert np.nanmin(h) >= 0.0 and np.nanmax(h) <= 8.0 and n_off > 0
+    assert np.array_equal(np.isnan(h), np.isnan(raw))  # coverage (R_a) unchanged
+    assert clip_to_building(np.array([[0.05, 7.95, np.nan]]), 8.0)[1] == 0  # within tolerance: not counted

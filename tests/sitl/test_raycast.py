@@ -85,3 +85,17 @@ def test_that_bad_queries_are_refused():
     with pytest.raises(ValueError):
         World(Storage(), max_range_m=0)
     assert len(world.cast(np.zeros((0, 3)), np.zeros((0, 3))).range_m) == 0
+
+
+def test_that_a_sensor_inside_the_pile_sees_nothing_and_one_above_it_sees_the_surface():
+    mesh = frustum_mesh(12.0, 2.0, 6.0, np.array([30.0, 20.0]), segments=256)
+    world = World(Storage(), Stockpile(mesh, volume_under_mesh(mesh), "cone"))
+    inside = np.array([[30.0, 20.0, 3.0], [25.0, 20.0, 0.05]])  # under the flat top; on the floor under the flank
+    outside = np.array([[30.0, 20.0, 6.5], [5.0, 5.0, 0.05], [45.0, 20.0, 1.0]])
+    assert world.buried(inside).tolist() == [True, True]
+    assert world.buried(outside).tolist() == [False, False, False]
+    sideways = np.array([[1.0, 0.0, 0.0]] * 2)
+    assert np.isnan(world.cast(inside, sideways).range_m).all()  # not the floor under the pile, not the wall
+    assert np.isnan(world.cast_one(inside[1], sideways[0]))
+    assert world.cast_one(outside[0], [0.0, 0.0, -1.0]) == pytest.approx(0.5, abs=MM)
+    assert world.cast(outside[1:], sideways, max_range_m=100.0).range_m == pytest.approx([55.0, 15.0], abs=MM)

@@ -1,0 +1,524 @@
+"""The payload program on the companion computer, assembled: what `pilescan-payload` runs.
+
+`PayloadApp` opens the hardware named by URLs (MAVLink link, I2C bus, PWM output: DESIGN section 7),
+builds the same parts the SITL's lockstep runner builds (`sitl.payload_runner.fly_firmware`), on the
+real monotonic clock: pose tracker, LIDAR-Lite driver, sweeping servo, sample log and the 500 Hz
+`PayloadLoop`; then runs the loop until told to stop.
+
+Around the loop, through its `should_stop` hook (called every tick, so each check is cheap):
+
+- stop conditions: `request_stop` (the CLI's SIGINT/SIGTERM handlers call it), `duration_s`, and
+  with `stop_on_disarm` the autopilot's HEARTBEAT showing disarmed after it had shown armed;
+- health to the ground station at 1 Hz (`firmware_py.health`), sent on the pose tracker's link;
+- a progress line on stderr every few seconds unless quiet;
+- SET_GPS_GLOBAL_ORIGIN (indoor EKF origin) re-sent every few seconds until LOCAL_POSITION_NED arrives.
+
+The optional live UDP stream (`firmware_py.live_stream`) is hooked in by handing the loop a sink that
+forwards every record to the log and to the stream, so the loop itself is unchanged.
+
+Shutdown, whatever stopped the loop (and also after an error): the loop has already tagged and logged
+its pending readings (flagged if their pose never came); a STATUSTEXT says why we stop; the log is
+closed (its last partial block written and fsync'd); the servo PWM is disabled; the stream, the link
+and the bus are closed. Each step runs even if an earlier one failed, and a failure is reported, not
+hidden.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from firmware_py.cli_util import UserError
+from firmware_py.drivers.lidarlite import DEFAULT_ADDRESS, PRESET_FAST_500HZ, LidarLite, LidarLiteConfig, preset_by_name
+from firmware_py.drivers.servo import ServoCalibration, SweepServo
+from firmware_py.frames import StorageFrame
+from firmware_py.hal import Clock, I2CBus, MavlinkLink, PwmOutput
+from firmware_py.hal.backends import open_i2c, parse_i2c_url
+from firmware_py.hal.clock import MonotonicClock
+from firmware_py.hal.mavlink_link import mavutil_device, open_mavlink
+from firmware_py.hal.pwm import open_pwm
+from firmware_py.header import build_log_header, sensor_spec
+from firmware_py.health import HealthMonitor, HealthSnapshot
+from firmware_py.live_stream import MAX_RECORDS, LiveStreamSender, parse_stream_url
+from firmware_py.payload import LoopConfig, LoopStats, PayloadLoop
+from firmware_py.pose import set_gps_global_origin_msg
+from firmware_py.pose_tracker import PoseTracker, PoseTrackerConfig
+from firmware_py.samplelog import SampleFlags, SampleLogWriter
+from firmware_py.servo_waveform import Waveform, named_waveform
+from firmware_py.storage import Storage
+
+PROG = "pilescan-payload"
+DEFAULT_MAVLINK_URL = "udpout:127.0.0.1:14550"
+DEFAULT_I2C_URL = "i2c:1"
+DEFAULT_PWM_URL = "pwm:sysfs:0:0"
+DEFAULT_PRESET = PRESET_FAST_500HZ.name
+_MAVLINK_BUILTIN = ("serial", "udp", "udpin", "udpout", "tcp")
+ORIGIN_RESEND_S = 5.0
+ORIGIN_ATTEMPTS = 5
+
+
+def _finite(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+@dataclass(frozen=True)
+class PayloadConfig:
+    """Everything `pilescan-payload` can be told (CLI options in brackets).
+
+    Attributes:
+        out_path: the sample log to write [--out]; never overwritten unless `force` [--force].
+        mavlink_url: link to the autopilot [--mavlink]: serial:/dev/ttyAMA0:921600, udp:HOST:PORT,
+            udpout:HOST:PORT, tcp:HOST:PORT, or a registered scheme.
+        i2c_url: the LIDAR-Lite's bus [--i2c]: i2c:1, i2c:/dev/i2c-1, tcp:HOST:PORT (SITL bridge), ...
+        pwm_url: the servo's output [--pwm]: pwm:sysfs:CHIP:CH, pwm:pca9685:BUS:ADDR:CH, pwm:mavlink:N,
+            pwm:tcp:HOST:PORT:CH (SITL bridge), ...
+        preset: LIDAR-Lite register preset name [--preset] (`firmware_py.drivers.lidarlite.PRESETS`).
+        i2c_address: the LIDAR-Lite's 7-bit address.
+        rate_hz: payload loop / LiDAR sample rate, Hz [--rate].
+        waveform, servo_peak_rate_rad_s, initial_position: the eq. (1) sweep
+            [--waveform, --servo-rate, --phase], as `pilescan-sitl fly`.
+        servo: pulse-width calibration and dynamics of the servo.
+        storage: building L x W x H [--storage]; frame: its placement in local NED.
+        lever_arm_body_m: sensor position from the centre of gravity, body FRD, m [--lever-arm].
+        range_sigma_m, range_sigma_rel: the sensor's range error model written to the header (the
+            ground station sizes its wall tolerances with it): LIDAR-Lite v3 datasheet by default.
+        duration_s: stop after this long; None = until stopped [--duration].
+        stop_on_disarm: stop when the autopilot disarms after having been armed [--stop-on-disarm].
+        stream_url: live sample stream to the ground, udp:HOST:PORT; None = off [--stream].
+        stream_records_per_datagram: records batched per datagram.
+        send_origin: (lat deg, lon deg, alt m MSL) sent as SET_GPS_GLOBAL_ORIGIN at start [--send-origin].
+        mission_id: ties the log to a mission plan [--mission-id].
+        target_system, target_component: the autopilot's MAVLink ids.
+        pose_stream_hz: ATTITUDE / LOCAL_POSITION_NED rate asked of the autopilot.
+        max_pose_age_s, max_pose_wait_s: `LoopConfig`'s pose limits.
+        records_per_block: records per fsync'd log block (a power cut loses at most one block).
+        fsync: fsync every block (off only for tests).
+        health_period_s: NAMED_VALUE_FLOAT period, s.
+        status_period_s: progress line period on stderr, s.
+        quiet: no progress or summary lines (warnings and errors still print) [--quiet].
+    """
+
+    out_path: str | os.PathLike[str] = "samples.pslog"
+    force: bool = False
+    mavlink_url: str = DEFAULT_MAVLINK_URL
+    i2c_url: str = DEFAULT_I2C_URL
+    pwm_url: str = DEFAULT_PWM_URL
+    preset: str = DEFAULT_PRESET
+    i2c_address: int = DEFAULT_ADDRESS
+    rate_hz: float = 500.0
+    waveform: str = "semi-triangular"
+    servo_peak_rate_rad_s: float = 5.0
+    initial_position: int = 0
+    servo: ServoCalibration = field(default_factory=ServoCalibration)
+    storage: Storage = field(default_factory=Storage)
+    frame: StorageFrame = field(default_factory=StorageFrame)
+    lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10)
+    range_sigma_m: float = 0.025
+    range_sigma_rel: float = 0.01
+    duration_s: float | None = None
+    stop_on_disarm: bool = False
+    stream_url: str | None = None
+    stream_records_per_datagram: int = 20
+    send_origin: tuple[float, float, float] | None = None
+    mission_id: str | None = None
+    target_system: int = 1
+    target_component: int = 1
+    pose_stream_hz: float = 50.0
+    max_pose_age_s: float = 0.1
+    max_pose_wait_s: float = 0.25
+    records_per_block: int = 500
+    fsync: bool = True
+    health_period_s: float = 1.0
+    status_period_s: float = 5.0
+    quiet: bool = False
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.out_path, str | os.PathLike) or not str(self.out_path).strip():
+            raise ValueError(f"sample log path must be a non-empty path, got {self.out_path!r}")
+        self._check_urls()
+        preset_by_name(self.preset)
+        if isinstance(self.i2c_address, bool) or not isinstance(self.i2c_address, int) \
+                or not 0x08 <= self.i2c_address <= 0x77:
+            raise ValueError(f"I2C address must be a 7-bit address 0x08-0x77, got {self.i2c_address!r}")
+        self.loop_config()  # rate and pose ages
+        if not (_finite(self.max_pose_wait_s) and 0.0 < self.max_pose_wait_s <= 10.0):
+            raise ValueError(f"max pose wait must be in (0, 10] s, got {self.max_pose_wait_s!r}")
+        self.servo_waveform()  # name, rate, initial position
+        if not isinstance(self.servo, ServoCalibration):
+            raise ValueError(f"servo must be a ServoCalibration, got {self.servo!r}")
+        if not isinstance(self.storage, Storage) or not isinstance(self.frame, StorageFrame):
+            raise ValueError("storage and frame must be a Storage and a StorageFrame")
+        lever = tuple(self.lever_arm_body_m)
+        if len(lever) != 3 or not all(_finite(v) for v in lever):
+            raise ValueError(f"lever arm must be 3 finite numbers (x y z, m), got {self.lever_arm_body_m!r}")
+        self.sensor()  # the error model
+        if self.duration_s is not None and not (_finite(self.duration_s) and self.duration_s > 0):
+            raise ValueError(f"duration must be > 0 s, got {self.duration_s!r}")
+        if self.stream_url is not None:
+            parse_stream_url(self.stream_url)
+        n = self.stream_records_per_datagram
+        if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_RECORDS:
+            raise ValueError(f"records per datagram must be 1-{MAX_RECORDS}, got {n!r}")
+        if self.send_origin is not None:
+            if len(tuple(self.send_origin)) != 3:
+                raise ValueError(f"EKF origin must be LAT LON ALT, got {self.send_origin!r}")
+            set_gps_global_origin_msg(*self.send_origin)  # range checks
+        if self.mission_id is not None and (not isinstance(self.mission_id, str) or not self.mission_id.strip()):
+            raise ValueError(f"mission id must be a non-empty string, got {self.mission_id!r}")
+        PoseTrackerConfig(target_system=self.target_system, target_component=self.target_component,
+                          stream_hz=self.pose_stream_hz)
+        n = self.records_per_block
+        if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 100_000:
+            raise ValueError(f"records per block must be 1-100000, got {n!r}")
+        for name in ("health_period_s", "status_period_s"):
+            v = getattr(self, name)
+            if not (_finite(v) and 0.05 <= v <= 3600.0):
+                raise ValueError(f"{name} must be 0.05-3600 s, got {v!r}")
+
+    def _check_urls(self) -> None:
+        for name, url in (("MAVLink", self.mavlink_url), ("I2C bus", self.i2c_url), ("PWM output", self.pwm_url)):
+            if not isinstance(url, str) or not url.strip():
+                raise ValueError(f"{name} URL must be a non-empty string like SCHEME:..., got {url!r}")
+        if self.mavlink_url.split(":", 1)[0] in _MAVLINK_BUILTIN or ":" not in self.mavlink_url:
+            mavutil_device(self.mavlink_url)  # registered schemes are checked when opened
+        if self.i2c_url.split(":", 1)[0] == "i2c":
+            parse_i2c_url(self.i2c_url)
+        pwm = self.pwm_url.strip()
+        if not pwm.startswith("pwm:") or not pwm[4:].split(":", 1)[0].isalnum():
+            raise ValueError(f"PWM output must look like pwm:sysfs:0:0, pwm:pca9685:1:0x40:0, pwm:mavlink:9 or "
+                             f"pwm:tcp:HOST:PORT:CH, got {self.pwm_url!r}")
+
+    def loop_config(self) -> LoopConfig:
+        return LoopConfig(rate_hz=self.rate_hz, max_pose_age_s=self.max_pose_age_s,
+                          max_pose_wait_s=self.max_pose_wait_s)
+
+    def servo_waveform(self) -> Waveform:
+        return named_waveform(self.waveform, self.servo_peak_rate_rad_s, self.initial_position)
+
+    def sensor(self) -> dict[str, Any]:
+        """The header's sensor dict: LIDAR-Lite v3, at our rate, with the preset's modelled range."""
+        return sensor_spec(self.rate_hz, max_range_m=preset_by_name(self.preset).max_range_m,
+                           range_sigma_m=self.range_sigma_m, range_sigma_rel=self.range_sigma_rel)
+
+    def log_header(self) -> dict[str, Any]:
+        """The sample-log header (`firmware_py.header`), with the payload's hardware setup appended."""
+        return build_log_header(
+            source="payload", sensor=self.sensor(), lever_arm_body_m=[float(v) for v in self.lever_arm_body_m],
+            waveform_name=self.waveform, waveform=self.servo_waveform(), initial_position=self.initial_position,
+            storage=self.storage, frame=self.frame, mission_id=self.mission_id,
+            extra={"servo_calibration": asdict(self.servo),
+                   "payload": {"mavlink": self.mavlink_url, "i2c": self.i2c_url, "pwm": self.pwm_url,
+                               "lidar_preset": self.preset, "i2c_address": self.i2c_address,
+                               "rate_hz": self.rate_hz, "records_per_block": self.records_per_block}})
+
+
+@dataclass(frozen=True)
+class PayloadResult:
+    """How a run ended and what it produced."""
+
+    stop_reason: str
+    out_path: Path
+    elapsed_s: float
+    readings: int
+    records_logged: int
+    records_flagged: int
+    loop: LoopStats | None
+    lidar_counters: dict[str, int]
+    stream: dict[str, int] | None
+    health: dict[str, int]
+    link: dict[str, Any]
+    pose_status: str
+    close_errors: tuple[str, ...] = ()
+
+
+class _RecordSink:
+    """What the loop logs into: the sample log, plus the live stream when there is one; counts records."""
+
+    def __init__(self, log: SampleLogWriter, stream: LiveStreamSender | None) -> None:
+        self.log, self.stream = log, stream
+        self.records = 0
+        self.flagged = 0
+
+    def append(self, records: Any) -> None:
+        self.log.append(records)  # first: the log is the record, the stream only a preview
+        self.records += int(np.size(records))
+        self.flagged += int(np.count_nonzero(records["flags"]))
+        if self.stream is not None:
+            self.stream.append(records)
+
+    def flush(self) -> None:
+        self.log.flush()
+        if self.stream is not None:
+            self.stream.flush()
+
+    def close(self) -> None:
+        self.log.close()
+
+
+class PayloadApp:
+    """The payload program (module docstring). `run()` once; `request_stop()` from anywhere.
+
+    Args:
+        cfg: the configuration.
+        clock: the payload clock (default: the real monotonic clock).
+        link, bus, pwm: already-open hardware to use instead of opening the configured URLs; the app
+            takes ownership and closes them at the end.
+        err: where progress, warnings and the summary go (None: nowhere).
+        prog: the name prefixed to those lines.
+    """
+
+    def __init__(self, cfg: PayloadConfig, *, clock: Clock | None = None, link: MavlinkLink | None = None,
+                 bus: I2CBus | None = None, pwm: PwmOutput | None = None, err: TextIO | None = sys.stderr,
+                 prog: str = PROG) -> None:
+        self.cfg = cfg
+        self.clock = clock or MonotonicClock()
+        self.link, self.bus, self.pwm = link, bus, pwm
+        self.err, self.prog = err, prog
+        self.lidar: LidarLite | None = None
+        self.tracker: PoseTracker | None = None
+        self.stream: LiveStreamSender | None = None
+        self.log: SampleLogWriter | None = None
+        self.sink: _RecordSink | None = None
+        self.loop: PayloadLoop | None = None
+        self.health: HealthMonitor | None = None
+        self._stop_reason: str | None = None
+        self._ran = False
+        self._was_armed = False
+        self._next_status_ns = 0
+        self._status_prev: tuple[int, int] | None = None
+        self._origin_sent = 0
+        self._next_origin_ns = 0
+        self._close_errors: list[str] = []
+        self.health_errors = 0
+
+    # ----- control --------------------------------------------------------------------------------
+
+    def request_stop(self, reason: str = "stop requested") -> None:
+        """Ask the loop to stop at its next tick (safe from a signal handler or another thread).
+
+        No lock: a signal handler runs in the main thread and would deadlock on one the loop holds;
+        the first reason wins, and a race between two only decides which reason is reported.
+        """
+        if self._stop_reason is None:
+            self._stop_reason = reason
+
+    @property
+    def stop_reason(self) -> str | None:
+        return self._stop_reason
+
+    def run(self) -> PayloadResult:
+        """Open everything, run the loop until a stop condition, shut down cleanly (module docstring).
+
+        Raises:
+            UserError: the log exists (without force), or hardware cannot be opened (names the URL).
+            OSError: the log cannot be written.
+        """
+        if self._ran:
+            raise RuntimeError("a PayloadApp runs once")
+        self._ran = True
+        t_start = self.clock.now_ns()
+        try:
+            self._open()
+            if self._stop_reason is None:
+                self._say(f"logging to {self.cfg.out_path} at {self.cfg.rate_hz:g} Hz (preset {self.cfg.preset}); "
+                          f"MAVLink {self.cfg.mavlink_url}, I2C {self.cfg.i2c_url}, PWM {self.cfg.pwm_url}"
+                          + (f", stream {self.cfg.stream_url}" if self.cfg.stream_url else ""))
+                self._send_health([self.health.event(mavlink.MAV_SEVERITY_INFO,
+                                                     f"started, {self.cfg.rate_hz:g} Hz")])
+                self.loop.run(duration_s=self.cfg.duration_s, should_stop=self._should_stop)
+            self.request_stop("duration reached")
+        except BaseException as exc:
+            self.request_stop(f"error: {type(exc).__name__}")
+            raise
+        finally:
+            self._shutdown()
+        return self._result((self.clock.now_ns() - t_start) / 1e9)
+
+    # ----- start-up -------------------------------------------------------------------------------
+
+    def _open(self) -> None:
+        cfg = self.cfg
+        out = Path(cfg.out_path)
+        if out.exists() and not cfg.force:
+            raise UserError(f"{out} already exists; choose another --out or pass --force")
+        if not out.parent.is_dir():
+            raise UserError(f"cannot write {out}: directory {out.parent} does not exist")
+        if self.link is None:
+            self.link = _opening("MAVLink link", cfg.mavlink_url, lambda: open_mavlink(cfg.mavlink_url))
+        if self.bus is None:
+            self.bus = _opening("I2C bus", cfg.i2c_url, lambda: open_i2c(cfg.i2c_url))
+        lidar_cfg = LidarLiteConfig(address=cfg.i2c_address, preset=preset_by_name(cfg.preset))
+        self.lidar = _opening(f"LIDAR-Lite at 0x{cfg.i2c_address:02x} on", cfg.i2c_url,
+                              lambda: LidarLite(self.bus, self.clock, lidar_cfg))
+        if self.pwm is None:
+            self.pwm = _opening("PWM output", cfg.pwm_url, lambda: open_pwm(
+                cfg.pwm_url, i2c_opener=open_i2c, link=self.link, mav=getattr(self.link, "mav", None)))
+        if cfg.stream_url is not None:
+            self.stream = LiveStreamSender(cfg.stream_url, cfg.stream_records_per_datagram)
+        self.tracker = PoseTracker(self.link, self.clock, cfg.target_system, cfg.pose_stream_hz,
+                                   target_component=cfg.target_component,
+                                   max_pose_age_ns=round(cfg.max_pose_age_s * 1e9))
+        self._send_origin(self.clock.now_ns())
+        self.tracker.start()
+        self.log = SampleLogWriter(out, cfg.log_header(), records_per_block=cfg.records_per_block, fsync=cfg.fsync,
+                                   overwrite=cfg.force)
+        self.sink = _RecordSink(self.log, self.stream)
+        servo = SweepServo(self.pwm, cfg.servo_waveform(), cfg.servo)
+        self.loop = PayloadLoop(self.lidar, servo, self.tracker, self.clock, self.sink, cfg.loop_config())
+        self.health = HealthMonitor(self.loop.t0_ns, cfg.health_period_s)
+        self._next_status_ns = self.loop.t0_ns + round(cfg.status_period_s * 1e9)
+        self._status_prev = (self.loop.t0_ns, 0)
+
+    # ----- every tick (PayloadLoop's should_stop) -------------------------------------------------
+
+    def _should_stop(self) -> bool:
+        if self._stop_reason is not None:
+            return True
+        now = self.clock.now_ns()
+        if self.health.due(now):
+            self._send_health(self.health.update(self.snapshot(now)))
+            if self.stream is not None:
+                self.stream.flush()
+        if not self.cfg.quiet and now >= self._next_status_ns:
+            self._status_line(now)
+        if self._origin_sent and now >= self._next_origin_ns:
+            self._send_origin(now)
+        if self.cfg.stop_on_disarm:
+            armed = self.tracker.autopilot_armed
+            if armed:
+                self._was_armed = True
+            elif armed is False and self._was_armed:
+                self.request_stop("autopilot disarmed")
+        return self._stop_reason is not None
+
+    def snapshot(self, now_ns: int) -> HealthSnapshot:
+        """The health counters now (for `HealthMonitor`)."""
+        st = self.tracker.status()
+        c = self.lidar.counters
+        flagged = self.loop.stats.flagged
+        return HealthSnapshot(
+            t_ns=now_ns, readings=self.loop.stats.ticks, logged=self.sink.records,
+            sensor_errors=c["bus_errors"] + c["timeouts"] + c["config_errors"], pose_ok=bool(st["pose_ok"]),
+            pose_age_s=st["pose_age_s"], pose_status=str(st["pose_status"]),
+            timesync_converged=bool(st["timesync"]["converged"]),
+            stale=flagged[SampleFlags.STALE_POSE.name] + flagged[SampleFlags.NO_POSE.name],
+            overruns=self.loop.stats.overruns)
+
+    def _send_health(self, msgs: list[Any]) -> None:
+        for msg in msgs:
+            try:
+                self.link.send(msg)
+            except (OSError, ValueError) as exc:  # health must never stop the payload
+                self.health_errors += 1
+                if self.health_errors == 1:
+                    self._warn(f"health message not sent: {exc}")
+
+    def _send_origin(self, now: int) -> None:
+        """SET_GPS_GLOBAL_ORIGIN, again every few seconds until LOCAL_POSITION_NED arrives (a few tries)."""
+        origin = self.cfg.send_origin
+        if origin is None:
+            return
+        if self._origin_sent and (self.tracker.buffer.ever_position or self._origin_sent >= ORIGIN_ATTEMPTS):
+            self._origin_sent = 0  # done: stop checking
+            return
+        self.link.send(set_gps_global_origin_msg(*origin, target_system=self.cfg.target_system))
+        self._origin_sent += 1
+        self._next_origin_ns = now + round(ORIGIN_RESEND_S * 1e9)
+
+    def _status_line(self, now: int) -> None:
+        t_prev, n_prev = self._status_prev
+        n = self.loop.stats.ticks
+        rate = (n - n_prev) * 1e9 / (now - t_prev) if now > t_prev else 0.0
+        self._status_prev = (now, n)
+        self._next_status_ns = now + round(self.cfg.status_period_s * 1e9)
+        st = self.tracker.status()
+        age = st["pose_age_s"]
+        pose = f"pose age {age:.3f} s" if age is not None else "no pose yet"
+        if not st["pose_ok"]:
+            pose += f" ({str(st['pose_status'])[:90]})"
+        c = self.lidar.counters
+        errors = c["bus_errors"] + c["timeouts"] + c["config_errors"]
+        self._say(f"{(now - self.loop.t0_ns) / 1e9:7.1f} s  {rate:5.0f} Hz  samples {self.sink.records}  "
+                  f"flagged {self.sink.flagged}  sensor errors {errors}  overruns {self.loop.stats.overruns}  {pose}")
+
+    # ----- shutdown -------------------------------------------------------------------------------
+
+    def _shutdown(self) -> None:
+        reason = self._stop_reason or "stopped"
+        if self.health is not None and self.link is not None:
+            self._step("stop message", lambda: self._send_health(
+                [self.health.event(mavlink.MAV_SEVERITY_NOTICE, f"stopping: {reason}")]))
+        if self.log is not None:
+            self._step("closing the sample log", self.log.close)
+        if self.pwm is not None:
+            self._step("disabling the servo PWM", self.pwm.disable)
+            self._step("closing the servo PWM", self.pwm.close)
+        if self.stream is not None:
+            self._step("closing the live stream", self.stream.close)
+        if self.link is not None:
+            self._step("closing the MAVLink link", self.link.close)
+        if self.bus is not None:
+            self._step("closing the I2C bus", self.bus.close)
+
+    def _step(self, what: str, action: Callable[[], Any]) -> None:
+        try:
+            action()
+        except Exception as exc:  # every step runs; a failure is reported, not hidden
+            msg = f"{what} failed: {type(exc).__name__}: {exc}"
+            self._close_errors.append(msg)
+            self._warn(msg)
+
+    def _result(self, elapsed_s: float) -> PayloadResult:
+        loop = self.loop
+        st = self.tracker.status() if self.tracker is not None else {}
+        res = PayloadResult(
+            stop_reason=self._stop_reason or "stopped", out_path=Path(self.cfg.out_path), elapsed_s=elapsed_s,
+            readings=loop.stats.ticks if loop else 0, records_logged=self.sink.records if self.sink else 0,
+            records_flagged=self.sink.flagged if self.sink else 0, loop=loop.stats if loop else None,
+            lidar_counters=dict(self.lidar.counters) if self.lidar else {},
+            stream=dict(self.stream.stats) if self.stream else None,
+            health=dict(self.health.sent) if self.health else {}, link=dict(st.get("link", {})),
+            pose_status=str(st.get("pose_status", "")), close_errors=tuple(self._close_errors))
+        self._say(f"stopped ({res.stop_reason}) after {elapsed_s:.1f} s: {res.records_logged} samples "
+                  f"({res.records_flagged} flagged) in {res.out_path}")
+        return res
+
+    # ----- output ---------------------------------------------------------------------------------
+
+    def _say(self, text: str) -> None:
+        if not self.cfg.quiet:
+            self._print(text)
+
+    def _warn(self, text: str) -> None:
+        self._print(f"warning: {text}")
+
+    def _print(self, text: str) -> None:
+        if self.err is not None:
+            try:
+                print(f"{self.prog}: {text}", file=self.err, flush=True)
+            except (OSError, ValueError):
+                pass  # a closed stderr must not stop the payload
+
+
+def _opening(what: str, url: str, opener: Callable[[], Any]) -> Any:
+    """Open hardware; a failure becomes one line naming what and the URL (UserError, exit 2)."""
+    try:
+        return opener()
+    except ValueError:
+        raise  # already names the URL (malformed, unknown scheme)
+    except (OSError, RuntimeError) as exc:  # I2CError is an OSError; RuntimeError: smbus2 missing
+        detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise UserError(f"cannot open {what} {url}: {detail}") from exc
+
+
+def run_payload(cfg: PayloadConfig, **kwargs: Any) -> PayloadResult:
+    """Run the payload once (`PayloadApp(cfg, **kwargs).run()`)."""
+    return PayloadApp(cfg, **kwargs).run()

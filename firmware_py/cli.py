@@ -1,0 +1,132 @@
+"""`pilescan-payload`: the survey payload on the drone's companion computer (LIDAR-Lite on a sweeping servo,
+poses from the autopilot over MAVLink, a crash-safe sample log). Stops on SIGINT/SIGTERM (Ctrl-C), after
+--duration, or with --stop-on-disarm when the autopilot disarms; the log is complete either way.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+import signal
+import sys
+from collections.abc import Callable, Iterator, Sequence
+
+from firmware_py.app import (
+    DEFAULT_I2C_URL,
+    DEFAULT_MAVLINK_URL,
+    DEFAULT_PRESET,
+    DEFAULT_PWM_URL,
+    PROG,
+    PayloadApp,
+    PayloadConfig,
+)
+from firmware_py.cli_util import ArgumentParser, UserError, finite_float, run_cli
+from firmware_py.drivers.lidarlite import PRESETS
+from firmware_py.servo_waveform import N_PHASES
+from firmware_py.storage import Storage
+
+_HAL_RE = re.compile(r"sitl:(?P<host>[^\s:]+):(?P<port>\d{1,5})")
+
+
+def hal_urls(hal: str) -> tuple[str, str]:
+    """--hal sitl:HOST:PORT -> (I2C URL, PWM URL) of the networked SITL's device bridge."""
+    m = _HAL_RE.fullmatch(hal.strip())
+    if m is None or not 1 <= int(m.group("port")) <= 65535:
+        raise UserError(f"--hal must look like sitl:HOST:PORT (the SITL's device bridge), got {hal!r}")
+    host, port = m.group("host"), int(m.group("port"))
+    return f"tcp:{host}:{port}", f"pwm:tcp:{host}:{port}:0"
+
+
+def build_parser() -> ArgumentParser:
+    ap = ArgumentParser(prog=PROG, description=__doc__)
+    hw = ap.add_argument_group("hardware (URLs)")
+    hw.add_argument("--mavlink", default=DEFAULT_MAVLINK_URL, metavar="URL",
+                    help="link to the autopilot: serial:/dev/ttyAMA0:921600, udp:HOST:PORT (listen), "
+                         f"udpout:HOST:PORT, tcp:HOST:PORT (default {DEFAULT_MAVLINK_URL})")
+    hw.add_argument("--i2c", default=None, metavar="URL",
+                    help=f"the LIDAR-Lite's I2C bus: i2c:1, i2c:/dev/i2c-1, tcp:HOST:PORT (default {DEFAULT_I2C_URL})")
+    hw.add_argument("--pwm", default=None, metavar="URL",
+                    help="the servo's PWM output: pwm:sysfs:CHIP:CH, pwm:pca9685:BUS:ADDR:CH, pwm:mavlink:N, "
+                         f"pwm:tcp:HOST:PORT:CH (default {DEFAULT_PWM_URL})")
+    hw.add_argument("--hal", default=None, metavar="sitl:HOST:PORT",
+                    help="the networked SITL's device bridge: sets --i2c tcp:HOST:PORT and --pwm pwm:tcp:HOST:PORT:0")
+    out = ap.add_argument_group("output")
+    out.add_argument("--out", required=True, metavar="PATH", help="sample log to write (.pslog)")
+    out.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    out.add_argument("--stream", default=None, metavar="URL",
+                     help="also stream samples live to the ground station: udp:HOST:PORT")
+    out.add_argument("--mission-id", default=None, metavar="ID", help="mission id written to the log header")
+    out.add_argument("--quiet", action="store_true", help="no progress lines (warnings and errors still print)")
+    sv = ap.add_argument_group("sensor and servo")
+    sv.add_argument("--preset", default=DEFAULT_PRESET, metavar="NAME",
+                    help=f"LIDAR-Lite preset: {', '.join(PRESETS)} (default {DEFAULT_PRESET})")
+    sv.add_argument("--rate", type=finite_float, default=500.0, metavar="HZ", help="sample rate, Hz (default 500)")
+    sv.add_argument("--waveform", choices=("semi-triangular", "sinusoidal"), default="semi-triangular",
+                    help="servo waveform (eq. 1; C=0.95 or C=0)")
+    sv.add_argument("--servo-rate", type=finite_float, default=5.0, metavar="RAD_S",
+                    help="peak servo rate, rad/s (sets f; default 5 -> 0.67 Hz semi-triangular)")
+    sv.add_argument("--phase", type=int, default=0, metavar="K",
+                    help=f"servo initial position 0..{2 * N_PHASES - 1} (Fig. 9: {N_PHASES} phases x 2 directions; "
+                         f"K >= {N_PHASES} sweeps the other way)")
+    sv.add_argument("--lever-arm", type=finite_float, nargs=3, default=(0.0, 0.0, 0.10), metavar=("X", "Y", "Z"),
+                    help="sensor position from the centre of gravity, body FRD, m (default 0 0 0.10)")
+    sv.add_argument("--storage", default="60x40x15", metavar="LxWxH",
+                    help="building inside dimensions in metres, for the log header (default 60x40x15)")
+    st = ap.add_argument_group("stopping and the autopilot")
+    st.add_argument("--duration", type=finite_float, default=None, metavar="S",
+                    help="stop after S seconds (default: until Ctrl-C / SIGTERM)")
+    st.add_argument("--stop-on-disarm", action="store_true",
+                    help="stop when the autopilot's HEARTBEAT shows disarmed after having shown armed")
+    st.add_argument("--send-origin", type=finite_float, nargs=3, default=None, metavar=("LAT", "LON", "ALT"),
+                    help="send SET_GPS_GLOBAL_ORIGIN (deg, deg, m MSL) at start: an indoor EKF needs an origin "
+                         "before it publishes LOCAL_POSITION_NED")
+    return ap
+
+
+def config_from_args(args) -> PayloadConfig:
+    """PayloadConfig from parsed options (ValueError / UserError for bad values, one line each)."""
+    i2c, pwm = args.i2c or DEFAULT_I2C_URL, args.pwm or DEFAULT_PWM_URL
+    if args.hal is not None:
+        if args.i2c is not None or args.pwm is not None:
+            raise UserError("--hal sets --i2c and --pwm: give either --hal or those two")
+        i2c, pwm = hal_urls(args.hal)
+    return PayloadConfig(
+        out_path=args.out, force=args.force, mavlink_url=args.mavlink, i2c_url=i2c, pwm_url=pwm,
+        preset=args.preset, rate_hz=args.rate, waveform=args.waveform, servo_peak_rate_rad_s=args.servo_rate,
+        initial_position=args.phase, storage=Storage.parse(args.storage),
+        lever_arm_body_m=tuple(args.lever_arm), duration_s=args.duration, stop_on_disarm=args.stop_on_disarm,
+        stream_url=args.stream, send_origin=tuple(args.send_origin) if args.send_origin is not None else None,
+        mission_id=args.mission_id, quiet=args.quiet)
+
+
+@contextlib.contextmanager
+def stop_on_signals(stop: Callable[[str], None],
+                    signums: Sequence[int] = (signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
+    """Route the signals to stop(reason) while inside, restoring the previous handlers after."""
+    def handler(signum: int, _frame: object) -> None:
+        stop(f"signal {signal.Signals(signum).name}")
+
+    previous = {}
+    try:
+        for s in signums:
+            previous[s] = signal.signal(s, handler)
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def _run(args) -> int:
+    cfg = config_from_args(args)
+    app = PayloadApp(cfg, err=sys.stderr)
+    with stop_on_signals(app.request_stop):
+        app.run()
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return run_cli(build_parser(), argv, _run)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

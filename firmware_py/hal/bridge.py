@@ -1,0 +1,377 @@
+"""The networked-SITL device bridge, client side: the unchanged payload firmware, running as its own
+process, reaches the SITL's emulated I2C devices and servo PWM over one TCP connection.
+
+URL forms (routed by `open_i2c` and `open_pwm`):
+
+    tcp:HOST:PORT                 an I2CBus on the bridge (e.g. tcp:127.0.0.1:5761)
+    pwm:tcp:HOST:PORT:CHANNEL     PWM output CHANNEL (0-255) on the bridge
+
+HOST may be a name, an IPv4 address or a bracketed IPv6 address ([::1]). Handles on the same
+HOST:PORT share one connection per process (the I2C bus and the servo are served in order); the
+socket closes when the last handle does.
+
+Protocol (version 1), little-endian, strict request/response on one TCP stream:
+
+    frame    = u16 length, u8 code, `length` payload bytes   (struct "<HB"; length <= MAX_PAYLOAD)
+    request  code = op, response code = status
+
+    op                   request payload               OK response payload
+    0x01 HELLO           u16 version                   u16 version, u8 n, n x u8 I2C address,
+                                                       u8 m, m x u8 PWM channel
+    0x10 I2C_WRITE       u8 addr, data...              (empty)
+    0x11 I2C_READ        u8 addr, u16 n                n bytes
+    0x12 I2C_WRITE_READ  u8 addr, u16 n, data...       n bytes (combined transfer, repeated START)
+    0x20 PWM_SET         u8 channel, f64 pulse_us      (empty)
+    0x21 PWM_DISABLE     u8 channel                    (empty)
+
+    status 0x00 OK; 0x01 NACK (the device did not answer: I2CError EREMOTEIO, as smbus2 reports it);
+    0x02 BAD_REQUEST (malformed frame, unknown op or channel, wrong version); 0x03 ERROR (the device
+    model raised). Non-OK payloads are a one-line UTF-8 message.
+
+The client says HELLO on every (re)connect and refuses a server of another version. A server may
+close a connection whose framing it cannot follow (e.g. a length above MAX_PAYLOAD).
+
+Failure policy: each request has a deadline (`timeout_s`). A refused connection, a timeout, a lost
+connection or an unparseable answer raises I2CError (OSError) at once and drops the socket, so a late
+answer can never be taken for the next request's; the next call reconnects (the SITL may restart).
+The LIDAR driver counts such an error as a bus error and carries on, as with a flaky wire.
+
+This module never imports `sitl`: the server (sitl.devices.bridge_server) imports these constants.
+"""
+
+from __future__ import annotations
+
+import errno
+import re
+import socket
+import struct
+import threading
+import time
+from typing import Final
+
+from firmware_py.hal import I2CError, check_i2c_addr, check_read_len
+from firmware_py.hal.pwm import _check_pulse
+
+VERSION: Final = 1
+HEADER: Final = struct.Struct("<HB")
+MAX_PAYLOAD: Final = 1024
+"""Largest frame payload either side sends; also the longest I2C read (a LIDAR reads 2 bytes)."""
+
+OP_HELLO: Final = 0x01
+OP_I2C_WRITE: Final = 0x10
+OP_I2C_READ: Final = 0x11
+OP_I2C_WRITE_READ: Final = 0x12
+OP_PWM_SET: Final = 0x20
+OP_PWM_DISABLE: Final = 0x21
+
+STATUS_OK: Final = 0x00
+STATUS_NACK: Final = 0x01
+STATUS_BAD_REQUEST: Final = 0x02
+STATUS_ERROR: Final = 0x03
+
+HINT: Final = "is `pilescan-sitl serve --devices ...` running?"
+I2C_FORM: Final = "tcp:HOST:PORT"
+PWM_FORM: Final = "pwm:tcp:HOST:PORT:CHANNEL"
+_HOST = r"(\[[\w:.%]+\]|[\w.-]+)"  # a name or IPv4, or a bracketed IPv6 (ASCII only)
+
+
+def _endpoint(host: str, port: int) -> str:
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
+def _parse(url: object, pattern: str, form: str, port_min: int) -> re.Match[str]:
+    m = re.fullmatch(pattern, url.strip(), re.ASCII) if isinstance(url, str) else None
+    if m is None or not port_min <= int(m.group(2)) <= 65535:
+        raise ValueError(f"malformed device bridge URL {url!r}: expected {form} (port {port_min}-65535)")
+    return m
+
+
+def parse_tcp_url(url: str, *, allow_port_zero: bool = False) -> tuple[str, int]:
+    """(host, port) of `tcp:HOST:PORT`; port 0 (any free port) only where a server binds.
+
+    Raises:
+        ValueError: a one-line message naming the URL and the expected form.
+    """
+    m = _parse(url, rf"tcp:{_HOST}:(\d{{1,5}})", I2C_FORM, 0 if allow_port_zero else 1)
+    return m.group(1).strip("[]"), int(m.group(2))
+
+
+def parse_pwm_url(url: str) -> tuple[str, int, int]:
+    """(host, port, channel) of `pwm:tcp:HOST:PORT:CHANNEL` (ValueError naming the URL otherwise)."""
+    m = _parse(url, rf"pwm:tcp:{_HOST}:(\d{{1,5}}):(\d{{1,3}})", PWM_FORM, 1)
+    if int(m.group(3)) > 255:
+        raise ValueError(f"malformed device bridge URL {url!r}: expected {PWM_FORM} (channel 0-255)")
+    return m.group(1).strip("[]"), int(m.group(2)), int(m.group(3))
+
+
+_SHARED: dict[tuple[str, int], BridgeConnection] = {}
+_SHARED_LOCK = threading.RLock()
+"""Guards _SHARED and every connection's user count, so a handle never retains a closing connection."""
+
+
+class BridgeConnection:
+    """One TCP connection to a device bridge server, shared by the bus and PWM handles on it.
+
+    Connects (and says HELLO) at once, so a wrong address fails at start-up with a clear message.
+    Thread-safe: a lock spans each request and its response.
+
+    Raises:
+        I2CError: the server cannot be reached or speaks another protocol version.
+    """
+
+    def __init__(self, host: str, port: int, timeout_s: float = 1.0) -> None:
+        if not (isinstance(timeout_s, int | float) and 0 < timeout_s < float("inf")):
+            raise ValueError(f"device bridge timeout must be a positive number of seconds, got {timeout_s!r}")
+        self.host, self.port, self.timeout_s = host, int(port), float(timeout_s)
+        self.endpoint = _endpoint(host, self.port)
+        self.i2c_addresses: tuple[int, ...] = ()
+        self.pwm_channels: tuple[int, ...] = ()
+        self.counters: dict[str, int] = dict.fromkeys(("requests", "connects", "failures"), 0)
+        self._lock = threading.Lock()
+        self._sock: socket.socket | None = None
+        self._users = 0
+        self.closed = False
+        with self._lock:
+            self._connect()
+
+    # -- transport -----------------------------------------------------------------------------
+
+    def _connect(self) -> None:
+        try:
+            sock = socket.create_connection((self.host, self.port), timeout=self.timeout_s)
+        except OSError as exc:
+            self.counters["failures"] += 1
+            reason = exc.strerror or str(exc) or type(exc).__name__
+            code = exc.errno if isinstance(exc.errno, int) and exc.errno > 0 else errno.EHOSTUNREACH  # gaierror < 0
+            raise I2CError(code,
+                           f"cannot connect to the device bridge at {self.endpoint}: {reason}; {HINT}") from None
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._sock = sock
+        self.counters["connects"] += 1
+        try:
+            body = self._checked(OP_HELLO, *self._exchange(OP_HELLO, struct.pack("<H", VERSION)))
+            self.i2c_addresses, self.pwm_channels = self._parse_hello(body)
+        except I2CError:
+            self._fail()  # never keep a connection whose version was not agreed
+            raise
+
+    def _parse_hello(self, body: bytes) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        try:
+            version, n = struct.unpack_from("<HB", body)
+            addrs, m, channels = body[3:3 + n], body[3 + n], body[4 + n:]
+            if version == VERSION and len(addrs) == n and len(channels) == m:
+                return tuple(addrs), tuple(channels)
+        except (struct.error, IndexError):
+            pass
+        raise I2CError(errno.EPROTO, f"{self.endpoint} is not a version {VERSION} device bridge "
+                                     f"(HELLO answer {body[:16].hex() or 'empty'}); {HINT}")
+
+    def _fail(self) -> None:
+        """Drop the socket after a failure, so the next request reconnects instead of reading a stale answer."""
+        if self._sock is not None:
+            self.counters["failures"] += 1
+            self._sock.close()
+            self._sock = None
+
+    def _recv_exactly(self, sock: socket.socket, n: int, deadline: float) -> bytes:
+        buf = bytearray()
+        while len(buf) < n:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise TimeoutError("timed out")
+            sock.settimeout(remaining)
+            chunk = sock.recv(n - len(buf))
+            if not chunk:
+                raise ConnectionResetError(errno.ECONNRESET, "connection closed by the server")
+            buf += chunk
+        return bytes(buf)
+
+    def _exchange(self, op: int, payload: bytes) -> tuple[int, bytes]:
+        """Send one request and read its response, within timeout_s; I2CError (socket dropped) otherwise."""
+        sock = self._sock
+        assert sock is not None
+        deadline = time.monotonic() + self.timeout_s
+        try:
+            sock.settimeout(self.timeout_s)
+            sock.sendall(HEADER.pack(len(payload), op) + payload)
+            length, status = HEADER.unpack(self._recv_exactly(sock, HEADER.size, deadline))
+            body = self._recv_exactly(sock, length, deadline)
+        except OSError as exc:  # socket.timeout is TimeoutError, an OSError
+            self._fail()
+            if isinstance(exc, TimeoutError):
+                code, reason = errno.ETIMEDOUT, f"no answer within {self.timeout_s:g} s"
+            else:
+                code, reason = exc.errno or errno.EIO, exc.strerror or str(exc)
+            raise I2CError(code, f"device bridge at {self.endpoint}: op 0x{op:02x} failed: {reason}") from None
+        return status, body
+
+    def _checked(self, op: int, status: int, body: bytes) -> bytes:
+        if status == STATUS_OK:
+            return body
+        msg = body.decode("utf-8", "replace")
+        if status == STATUS_NACK:
+            raise I2CError(errno.EREMOTEIO, msg)
+        if status == STATUS_BAD_REQUEST:
+            raise I2CError(errno.EPROTO, f"device bridge at {self.endpoint} refused op 0x{op:02x}: {msg}")
+        if status == STATUS_ERROR:
+            raise I2CError(errno.EIO, f"device bridge at {self.endpoint}: device error: {msg}")
+        self._fail()
+        raise I2CError(errno.EPROTO, f"device bridge at {self.endpoint}: unknown status 0x{status:02x}")
+
+    def request(self, op: int, payload: bytes = b"") -> bytes:
+        """One request's OK payload; I2CError for a NACK, a refusal, a device error or a lost link.
+
+        Reconnects first if an earlier request failed.
+        """
+        with self._lock:
+            if self.closed:
+                raise I2CError(errno.EBADF, f"device bridge connection to {self.endpoint} is closed")
+            self.counters["requests"] += 1
+            if self._sock is None:
+                self._connect()
+            return self._checked(op, *self._exchange(op, payload))
+
+    # -- sharing -------------------------------------------------------------------------------
+
+    def retain(self) -> None:
+        """One more handle uses this connection."""
+        with _SHARED_LOCK:
+            if self.closed:
+                raise I2CError(errno.EBADF, f"device bridge connection to {self.endpoint} is closed")
+            self._users += 1
+
+    def release(self) -> None:
+        """A handle is done with this connection; the last one closes it."""
+        with _SHARED_LOCK:
+            self._users = max(0, self._users - 1)
+            if self._users == 0:
+                self.close()
+
+    def close(self) -> None:
+        """Close the socket now (handles still open get I2CError EBADF). Idempotent."""
+        with _SHARED_LOCK:
+            if _SHARED.get((self.host, self.port)) is self:
+                del _SHARED[(self.host, self.port)]
+        with self._lock:
+            self.closed = True
+            if self._sock is not None:
+                self._sock.close()
+                self._sock = None
+
+
+def shared_connection(host: str, port: int, timeout_s: float = 1.0) -> BridgeConnection:
+    """This process's connection to HOST:PORT, made on first use. Wrap it in a handle to keep it open."""
+    with _SHARED_LOCK:
+        conn = _SHARED.get((host, port))
+        if conn is None or conn.closed:
+            conn = _SHARED[(host, port)] = BridgeConnection(host, port, timeout_s)
+        return conn
+
+
+class BridgeI2CBus:
+    """An I2CBus whose transfers run on the SITL's simulated bus, behind a device bridge."""
+
+    def __init__(self, conn: BridgeConnection) -> None:
+        conn.retain()
+        self.conn = conn
+        self._closed = False
+
+    def _request(self, op: int, payload: bytes) -> bytes:
+        if self._closed:
+            raise I2CError(errno.EBADF, f"device bridge I2C bus on {self.conn.endpoint} is closed")
+        return self.conn.request(op, payload)
+
+    @staticmethod
+    def _check_data(data: bytes, room: int) -> bytes:
+        data = bytes(data)
+        if len(data) > room:
+            raise ValueError(f"I2C write of {len(data)} bytes exceeds the device bridge's {room}-byte limit")
+        return data
+
+    def write(self, addr: int, data: bytes) -> None:
+        data = self._check_data(data, MAX_PAYLOAD - 1)
+        self._request(OP_I2C_WRITE, bytes((check_i2c_addr(addr),)) + data)
+
+    def read(self, addr: int, n: int) -> bytes:
+        check_i2c_addr(addr)
+        if check_read_len(n) > MAX_PAYLOAD:
+            raise ValueError(f"I2C read of {n} bytes exceeds the device bridge's {MAX_PAYLOAD}-byte limit")
+        return self._sized(self._request(OP_I2C_READ, struct.pack("<BH", addr, n)), n)
+
+    def write_read(self, addr: int, data: bytes, n: int) -> bytes:
+        check_i2c_addr(addr)
+        if check_read_len(n) > MAX_PAYLOAD:
+            raise ValueError(f"I2C read of {n} bytes exceeds the device bridge's {MAX_PAYLOAD}-byte limit")
+        data = self._check_data(data, MAX_PAYLOAD - 3)
+        return self._sized(self._request(OP_I2C_WRITE_READ, struct.pack("<BH", addr, n) + data), n)
+
+    def _sized(self, data: bytes, n: int) -> bytes:
+        if len(data) != n:
+            raise I2CError(errno.EPROTO, f"device bridge at {self.conn.endpoint} answered a read of {n} bytes "
+                                         f"with {len(data)}")
+        return data
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self.conn.release()
+
+
+class BridgePwm:
+    """A PwmOutput on the SITL (e.g. its emulated servo), behind a device bridge.
+
+    Failures of the link raise I2CError, an OSError like a sysfs write failure.
+    """
+
+    def __init__(self, conn: BridgeConnection, channel: int) -> None:
+        if isinstance(channel, bool) or not isinstance(channel, int) or not 0 <= channel <= 255:
+            raise ValueError(f"device bridge PWM channel must be an integer 0-255, got {channel!r}")
+        if channel not in conn.pwm_channels:
+            have = ", ".join(map(str, conn.pwm_channels)) or "none"
+            raise ValueError(f"the device bridge at {conn.endpoint} has no PWM channel {channel} (it has: {have})")
+        conn.retain()
+        self.conn, self.channel = conn, channel
+        self._closed = False
+
+    def _request(self, op: int, payload: bytes) -> None:
+        if self._closed:
+            raise I2CError(errno.EBADF, f"device bridge PWM channel {self.channel} on {self.conn.endpoint} is closed")
+        self.conn.request(op, payload)
+
+    def set_pulse_us(self, pulse_us: float) -> None:
+        self._request(OP_PWM_SET, struct.pack("<Bd", self.channel, _check_pulse(pulse_us)))
+
+    def disable(self) -> None:
+        self._request(OP_PWM_DISABLE, bytes((self.channel,)))
+
+    def close(self) -> None:
+        """Disable the output (as the other PWM backends do) if the link allows, then let go of it."""
+        if self._closed:
+            return
+        try:
+            self.disable()
+        except OSError:
+            pass  # the SITL is gone: nothing left to disable
+        finally:
+            self._closed = True
+            self.conn.release()
+
+
+def open_bridge_i2c(url: str, timeout_s: float = 1.0) -> BridgeI2CBus:
+    """`open_i2c('tcp:HOST:PORT')`: a bus handle on this process's shared connection to the bridge."""
+    host, port = parse_tcp_url(url)
+    with _SHARED_LOCK:
+        return BridgeI2CBus(shared_connection(host, port, timeout_s))
+
+
+def open_bridge_pwm(url: str, timeout_s: float = 1.0) -> BridgePwm:
+    """`open_pwm('pwm:tcp:HOST:PORT:CHANNEL')`: a PWM handle on the shared connection to the bridge."""
+    host, port, channel = parse_pwm_url(url)
+    with _SHARED_LOCK:
+        conn = shared_connection(host, port, timeout_s)
+        try:
+            return BridgePwm(conn, channel)
+        except ValueError as exc:
+            if conn._users == 0:
+                conn.close()  # nobody else uses it: do not leave the socket open
+            raise ValueError(f"bad PWM output {url!r}: {exc}") from None

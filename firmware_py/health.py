@@ -1,0 +1,189 @@
+"""Payload health for the ground station: NAMED_VALUE_FLOAT values at 1 Hz, STATUSTEXT on state changes.
+
+`HealthMonitor` is pure apart from building pymavlink message objects: it is fed `HealthSnapshot`s
+(cumulative counters read from the loop, the LiDAR driver and the pose tracker, stamped with the
+payload clock) and returns the messages due; the caller sends them on the link the pose tracker uses.
+No clock, no I/O, so tests feed it snapshots and read its messages.
+
+Values (names at most 10 characters, MAVLink's char[10]; MAVProxy graphs them, QGC shows them in its
+MAVLink inspector):
+
+    PS_RATE     LiDAR readings per second over the last period, Hz
+    PS_LOGGED   records in the sample log (written or buffered)
+    PS_I2CERR   cumulative sensor failures: bus errors + busy timeouts + failed configuration transfers
+    PS_POSEAGE  age of the newest pose, s (-1: no pose received yet)
+    PS_STALE    cumulative samples flagged STALE_POSE or NO_POSE
+    PS_OVERRUN  cumulative loop ticks missed (the loop fell a whole period behind)
+
+STATUSTEXT (at most 50 characters, prefixed "pilescan: "): started and stopping (the caller's
+`event`), pose acquired / lost / regained, a pose still missing 10 s after start (with the reason:
+no time sync, no local position (EKF origin?)), LiDAR errors appearing, the LiDAR failing every
+reading, and its recovery. Severities follow ArduPilot's use: INFO for routine, NOTICE for
+recoveries and stopping, WARNING for degraded data, ERROR when nothing usable is coming.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+NAME_MAX = 10
+"""NAMED_VALUE_FLOAT.name is char[10]."""
+TEXT_MAX = 50
+"""STATUSTEXT.text is char[50] (longer texts would need chunking; ours never are)."""
+TEXT_PREFIX = "pilescan: "
+
+RATE, LOGGED, I2C_ERRORS, POSE_AGE, STALE, OVERRUNS = (
+    "PS_RATE", "PS_LOGGED", "PS_I2CERR", "PS_POSEAGE", "PS_STALE", "PS_OVERRUN")
+VALUE_NAMES = (RATE, LOGGED, I2C_ERRORS, POSE_AGE, STALE, OVERRUNS)
+
+NO_POSE_WARNING_S = 10.0
+"""A pose still missing this long after the start is reported once, with the reason."""
+
+
+def named_value_msg(name: str, value: float, time_boot_ms: int) -> Any:
+    """NAMED_VALUE_FLOAT; ValueError for a name MAVLink would silently truncate or a non-ASCII one."""
+    if not isinstance(name, str) or not 1 <= len(name) <= NAME_MAX or not name.isascii():
+        raise ValueError(f"NAMED_VALUE_FLOAT name must be 1-{NAME_MAX} ASCII characters, got {name!r}")
+    return mavlink.MAVLink_named_value_float_message(int(time_boot_ms) & 0xFFFFFFFF, name.encode("ascii"),
+                                                     float(value))
+
+
+def statustext_msg(severity: int, text: str) -> Any:
+    """STATUSTEXT of at most 50 characters (longer text is cut, ending in '~'); non-ASCII becomes '?'."""
+    if not (isinstance(severity, int) and mavlink.MAV_SEVERITY_EMERGENCY <= severity <= mavlink.MAV_SEVERITY_DEBUG):
+        raise ValueError(f"STATUSTEXT severity must be a MAV_SEVERITY 0-7, got {severity!r}")
+    raw = str(text).encode("ascii", "replace")
+    if len(raw) > TEXT_MAX:
+        raw = raw[:TEXT_MAX - 1] + b"~"
+    return mavlink.MAVLink_statustext_message(severity, raw)
+
+
+@dataclass(frozen=True)
+class HealthSnapshot:
+    """Cumulative payload counters at one instant (all counts since the start).
+
+    Attributes:
+        t_ns: payload clock time of the snapshot.
+        readings: LiDAR readings taken (loop ticks).
+        logged: records in the sample log, written or buffered.
+        sensor_errors: bus errors + busy timeouts + failed configuration transfers.
+        pose_ok: the pose tracker vouches for its pose now (time sync converged, pose fresh).
+        pose_age_s: age of the newest pose, s; None before any.
+        pose_status: the tracker's one-line pose status (used to say why a pose is missing).
+        timesync_converged: the tracker's clock mapping is trusted.
+        stale: samples flagged STALE_POSE or NO_POSE.
+        overruns: loop ticks missed.
+    """
+
+    t_ns: int
+    readings: int
+    logged: int
+    sensor_errors: int
+    pose_ok: bool
+    pose_age_s: float | None
+    pose_status: str = ""
+    timesync_converged: bool = False
+    stale: int = 0
+    overruns: int = 0
+
+
+class HealthMonitor:
+    """Turns snapshots into NAMED_VALUE_FLOAT (every period) and STATUSTEXT (on state changes).
+
+    Args:
+        t0_ns: payload start time (time_boot_ms counts from it).
+        period_s: how often values are sent (and state changes looked for).
+    """
+
+    def __init__(self, t0_ns: int, period_s: float = 1.0) -> None:
+        if not (isinstance(period_s, int | float) and math.isfinite(period_s) and 0.05 <= period_s <= 60.0):
+            raise ValueError(f"health period must be 0.05-60 s, got {period_s!r}")
+        self.t0_ns = int(t0_ns)
+        self.period_ns = round(period_s * 1e9)
+        self._next_ns = self.t0_ns
+        self._prev: HealthSnapshot | None = None
+        self.pose_state = "waiting"  # waiting -> ok -> lost -> ok ...
+        self.sensor_state = "ok"  # ok | errors | failed
+        self._no_pose_warned = False
+        self.rate_hz = 0.0
+        self.sent: dict[str, int] = {"values": 0, "texts": 0}
+
+    def _boot_ms(self, t_ns: int) -> int:
+        return max(0, (t_ns - self.t0_ns) // 1_000_000)
+
+    def event(self, severity: int, text: str) -> Any:
+        """A STATUSTEXT for something the caller knows (started, stopping)."""
+        self.sent["texts"] += 1
+        return statustext_msg(severity, TEXT_PREFIX + text)
+
+    def due(self, now_ns: int) -> bool:
+        """Whether `update` would send values now (cheap: the payload asks every tick)."""
+        return now_ns >= self._next_ns or now_ns < self._next_ns - self.period_ns
+
+    def update(self, snap: HealthSnapshot) -> list[Any]:
+        """The messages due at snap.t_ns: nothing between periods; values and any state changes at one."""
+        if not self.due(snap.t_ns):
+            return []
+        self._next_ns = max(self._next_ns + self.period_ns, snap.t_ns)
+        prev = self._prev
+        self._prev = snap
+        out = self._pose_events(snap)
+        if prev is not None and snap.t_ns > prev.t_ns:
+            self.rate_hz = (snap.readings - prev.readings) * 1e9 / (snap.t_ns - prev.t_ns)
+            out += self._sensor_events(snap.readings - prev.readings, snap.sensor_errors - prev.sensor_errors)
+        ms = self._boot_ms(snap.t_ns)
+        age = -1.0 if snap.pose_age_s is None or not math.isfinite(snap.pose_age_s) else snap.pose_age_s
+        out += [named_value_msg(RATE, self.rate_hz, ms), named_value_msg(LOGGED, snap.logged, ms),
+                named_value_msg(I2C_ERRORS, snap.sensor_errors, ms), named_value_msg(POSE_AGE, age, ms),
+                named_value_msg(STALE, snap.stale, ms), named_value_msg(OVERRUNS, snap.overruns, ms)]
+        self.sent["values"] += len(VALUE_NAMES)
+        return out
+
+    def _text(self, severity: int, text: str) -> list[Any]:
+        return [self.event(severity, text)]
+
+    def _pose_events(self, snap: HealthSnapshot) -> list[Any]:
+        age = "" if snap.pose_age_s is None else f" (age {snap.pose_age_s:.2f} s)"
+        if snap.pose_ok:
+            if self.pose_state == "waiting":
+                self.pose_state = "ok"
+                return self._text(mavlink.MAV_SEVERITY_INFO, "pose acquired")
+            if self.pose_state == "lost":
+                self.pose_state = "ok"
+                return self._text(mavlink.MAV_SEVERITY_NOTICE, "pose regained")
+            return []
+        if self.pose_state == "ok":
+            self.pose_state = "lost"
+            return self._text(mavlink.MAV_SEVERITY_WARNING, "pose lost" + age)
+        if (self.pose_state == "waiting" and not self._no_pose_warned
+                and snap.t_ns - self.t0_ns >= NO_POSE_WARNING_S * 1e9):
+            self._no_pose_warned = True
+            return self._text(mavlink.MAV_SEVERITY_WARNING, "no pose: " + _why_no_pose(snap))
+        return []
+
+    def _sensor_events(self, readings: int, errors: int) -> list[Any]:
+        if readings <= 0:
+            return []  # no readings this period (stopping, or a stalled loop): nothing to judge
+        state = "ok" if errors <= 0 else ("failed" if errors >= readings else "errors")
+        if state == self.sensor_state:
+            return []
+        self.sensor_state = state
+        if state == "failed":
+            return self._text(mavlink.MAV_SEVERITY_ERROR, f"LiDAR failing: {errors} errors/{readings} reads")
+        if state == "errors":
+            return self._text(mavlink.MAV_SEVERITY_WARNING, f"LiDAR errors: {errors} of {readings} reads")
+        return self._text(mavlink.MAV_SEVERITY_NOTICE, "LiDAR ok again")
+
+
+def _why_no_pose(snap: HealthSnapshot) -> str:
+    if not snap.timesync_converged:
+        return "time sync not converged"
+    if snap.pose_status.startswith("no LOCAL_POSITION_NED"):
+        return "no local position (EKF origin?)"
+    if snap.pose_status.startswith("no ATTITUDE"):
+        return "no ATTITUDE stream"
+    return "pose too old" if snap.pose_age_s is not None else "no pose messages"

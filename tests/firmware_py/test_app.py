@@ -1,0 +1,444 @@
+"""The payload program end to end, in real time, against the SITL's emulated devices and autopilot.
+
+The rig: an emulated LIDAR-Lite (fixed 5 m range) on a simulated I2C bus registered as `sitl`, an
+emulated servo registered as PWM `pwm:emu`, and the SITL's MAVLink autopilot (a kinematic vehicle)
+served over UDP by `run_realtime` in a background thread, behind a transport that records what the
+payload sends and runs test actions (arm, disarm) in the server's thread. The payload runs on the real
+monotonic clock; nothing asserts on timing, only on what was logged and sent.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+import queue
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from firmware_py.app import PayloadApp, PayloadConfig
+from firmware_py.cli_util import UserError
+from firmware_py.hal import pwm as pwm_backends
+from firmware_py.hal.backends import unregister_i2c_backend
+from firmware_py.hal.clock import MonotonicClock
+from firmware_py.hal.mavlink_link import MavlinkFramer
+from firmware_py.live_stream import LiveStreamReceiver
+from firmware_py.samplelog import HEAD_SIZE, SAMPLE_DTYPE, SampleFlags, read_samplelog
+from sitl.devices.i2c_sim import SimI2CBus, register_sim_bus
+from sitl.devices.lidarlite_emu import EmulatedLidarLite
+from sitl.devices.servo_emu import EmulatedServo
+from sitl.kinematic_vehicle import KinematicVehicle
+from sitl.mavlink_vehicle import MavlinkVehicleServer, UdpTransport, run_realtime
+
+RANGE_M = 5.0
+HOME_NED = (3.0, 4.0, 0.0)
+REPO = Path(__file__).resolve().parents[2]
+
+
+class WallSimClock(MonotonicClock):
+    """Real time for the emulated devices: a transfer's wire time has really passed, nothing to charge."""
+
+    def advance_by_ns(self, dt_ns: int) -> None:
+        pass
+
+
+class SpyTransport:
+    """The server's UDP transport, also parsing what the payload sends and running queued test actions
+    in the server's thread (so the vehicle is only ever touched by one thread)."""
+
+    def __init__(self, inner: UdpTransport) -> None:
+        self.inner = inner
+        self.framer = MavlinkFramer()
+        self.received: list = []
+        self.actions: queue.SimpleQueue = queue.SimpleQueue()
+
+    def send(self, data: bytes) -> None:
+        self.inner.send(data)
+
+    def recv(self) -> bytes:
+        while not self.actions.empty():
+            self.actions.get()()
+        data = self.inner.recv()
+        if data:
+            self.received.extend(self.framer.feed(data))
+        return data
+
+    def close(self) -> None:
+        self.inner.close()
+
+    def of_type(self, kind: str) -> list:
+        return [m for m in list(self.received) if m.get_type() == kind]
+
+    def texts(self) -> list[str]:
+        return [m.text for m in self.of_type("STATUSTEXT")]
+
+
+class Autopilot:
+    """The SITL autopilot on UDP in a background thread (real time)."""
+
+    def __init__(self, armed: bool = False) -> None:
+        self.vehicle = KinematicVehicle(dt_s=0.002, home_ned_m=HOME_NED)
+        if armed:
+            self.vehicle.arm()
+        self.spy = SpyTransport(UdpTransport("udp:127.0.0.1:0"))
+        self.server = MavlinkVehicleServer(self.vehicle, self.spy)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=run_realtime, args=(self.server, self.vehicle),
+                                       kwargs={"stop_event": self.stop}, daemon=True)
+        self.thread.start()
+
+    @property
+    def url(self) -> str:
+        return f"udpout:127.0.0.1:{self.spy.inner.local_address[1]}"
+
+    def wait_for(self, cond, timeout_s: float = 5.0) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if cond():
+                return True
+            time.sleep(0.02)
+        return cond()
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(timeout=5.0)
+        self.spy.close()
+
+
+@pytest.fixture
+def devices():
+    """LIDAR-Lite on `sitl`, servo on `pwm:emu`, unregistered afterwards."""
+    clock = WallSimClock()
+    bus = SimI2CBus(clock)
+    lidar = EmulatedLidarLite(clock, lambda _t_ns: RANGE_M)
+    bus.attach(0x62, lidar)
+    register_sim_bus(bus, "sitl")
+    servo = EmulatedServo(clock)
+    pwm_backends.register_pwm_backend("emu", lambda _url: servo)
+    yield bus, lidar, servo
+    unregister_i2c_backend("sitl")
+    pwm_backends._REGISTRY.pop("emu", None)
+
+
+@pytest.fixture
+def autopilot():
+    ap = Autopilot()
+    yield ap
+    ap.close()
+
+
+def payload_config(tmp_path: Path, mavlink_url: str, **kw) -> PayloadConfig:
+    base = {"out_path": tmp_path / "samples.pslog", "mavlink_url": mavlink_url, "i2c_url": "sitl",
+            "pwm_url": "pwm:emu", "fsync": False, "records_per_block": 100, "quiet": True}
+    return PayloadConfig(**{**base, **kw})
+
+
+def stop_later(app: PayloadApp, after_s: float) -> threading.Timer:
+    timer = threading.Timer(after_s, app.request_stop, ["test over"])
+    timer.daemon = True
+    timer.start()
+    return timer
+
+
+# ----- configuration ---------------------------------------------------------------------------------
+
+@pytest.mark.parametrize(("field", "value", "words"), [
+    ("rate_hz", 0.0, "rate"),
+    ("rate_hz", float("nan"), "rate"),
+    ("preset", "turbo", "preset"),
+    ("waveform", "square", "waveform"),
+    ("initial_position", 20, "initial position"),
+    ("lever_arm_body_m", (0.0, 0.0), "lever arm"),
+    ("lever_arm_body_m", (0.0, float("inf"), 0.0), "lever arm"),
+    ("duration_s", 0.0, "duration"),
+    ("stream_url", "tcp:1.2.3.4:5", "stream"),
+    ("stream_url", "udp:host:70000", "port"),
+    ("send_origin", (91.0, 0.0, 0.0), "latitude"),
+    ("mavlink_url", "bogus", "MAVLink"),
+    ("mavlink_url", "udpout:127.0.0.1:0", "port"),
+    ("i2c_url", "i2c:abc", "I2C"),
+    ("pwm_url", "servo0", "PWM"),
+    ("i2c_address", 0x80, "address"),
+    ("range_sigma_m", -0.1, "range_sigma_m"),
+    ("records_per_block", 0, "block"),
+    ("max_pose_wait_s", 0.0, "pose wait"),
+])
+def test_that_a_bad_config_value_is_refused_in_one_line_naming_it(field, value, words):
+    with pytest.raises(ValueError) as err:
+        PayloadConfig(**{field: value})
+    msg = str(err.value)
+    assert words.lower() in msg.lower() and "\n" not in msg
+
+
+def test_that_the_default_config_is_the_papers_500_hz_survey_on_a_raspberry_pi():
+    cfg = PayloadConfig()
+    assert cfg.rate_hz == 500.0 and cfg.preset == "fast-500hz"
+    assert (cfg.mavlink_url, cfg.i2c_url, cfg.pwm_url) == ("udpout:127.0.0.1:14550", "i2c:1", "pwm:sysfs:0:0")
+    assert cfg.fsync and not cfg.force and cfg.duration_s is None and cfg.stream_url is None
+
+
+def test_that_the_log_header_has_what_the_ground_station_reads():
+    from ground.pointcloud import SensorErrorModel
+    header = PayloadConfig(range_sigma_m=0.03, lever_arm_body_m=(0.1, 0.0, 0.2)).log_header()
+    err = SensorErrorModel.from_header(header)
+    assert (err.range_sigma_m, err.range_sigma_rel, err.resolution_m) == (0.03, 0.01, 0.01)
+    assert header["source"] == "payload" and header["lever_arm_body_m"] == [0.1, 0.0, 0.2]
+    assert header["storage"] == {"length_m": 60.0, "width_m": 40.0, "height_m": 15.0}
+    assert header["payload"]["lidar_preset"] == "fast-500hz"
+
+
+# ----- end to end, in process ----------------------------------------------------------------------
+
+def test_that_the_payload_logs_posed_samples_and_reports_health_to_the_autopilot(tmp_path, devices, autopilot):
+    _bus, emu_lidar, emu_servo = devices
+    receiver = LiveStreamReceiver("udp:127.0.0.1:0")
+    streamed = []
+    cfg = payload_config(tmp_path, autopilot.url, stream_url=f"udp:127.0.0.1:{receiver.local_address[1]}")
+    err = io.StringIO()
+    app = PayloadApp(cfg, err=err)
+    done = threading.Event()
+
+    def drain():
+        while not done.is_set():
+            streamed.append(receiver.poll())
+            time.sleep(0.02)
+
+    drainer = threading.Thread(target=drain, daemon=True)
+    drainer.start()
+    stop_later(app, 2.5)
+    try:
+        res = app.run()
+    finally:
+        done.set()
+        drainer.join(timeout=5.0)
+    streamed.append(receiver.poll())
+    receiver.close()
+    assert autopilot.wait_for(lambda: any("stopping" in t for t in autopilot.spy.texts()))
+
+    assert res.stop_reason == "test over" and res.close_errors == ()
+    log = read_samplelog(cfg.out_path)
+    assert log.intact and log.header["source"] == "payload"
+    s = log.samples
+    assert len(s) == res.records_logged == res.readings > 200
+    assert emu_lidar.counters["acquisitions"] >= len(s)
+    good = s[s["flags"] == 0]
+    assert len(good) > 100, res.pose_status  # the pose arrived and tagged samples
+    assert np.all(good["range_m"] == np.float32(RANGE_M))
+    assert np.allclose(good["x_m"], HOME_NED[0]) and np.allclose(good["y_m"], HOME_NED[1])
+    assert np.allclose(good["z_m"], 0.0) and np.all(np.isfinite(good["yaw_rad"]))
+    first_good = np.flatnonzero(s["flags"] == 0)[0]
+    assert np.all(s["flags"][:first_good] & (SampleFlags.NO_POSE | SampleFlags.STALE_POSE))
+    assert np.all(np.diff(s["t_s"]) > 0)
+    assert np.ptp(good["servo_rad"]) > 0.5  # the servo swept
+
+    names = {m.name for m in autopilot.spy.of_type("NAMED_VALUE_FLOAT")}
+    assert {"PS_RATE", "PS_I2CERR", "PS_POSEAGE", "PS_STALE", "PS_LOGGED"} <= names
+    texts = autopilot.spy.texts()
+    assert any(t.startswith("pilescan: started") for t in texts)
+    assert "pilescan: pose acquired" in texts
+    assert texts[-1] == "pilescan: stopping: test over"
+    assert all(len(t) <= 50 for t in texts)
+    assert autopilot.server.stats["rx_by_type"]["HEARTBEAT"] >= 1
+
+    assert emu_servo.pulses > 50 and not emu_servo.enabled  # swept, then disabled at shutdown
+    got = np.concatenate(streamed)
+    assert got.dtype == SAMPLE_DTYPE and len(got) == len(s)
+    assert got.tobytes() == s.tobytes()  # the live stream carried exactly the logged records
+
+
+def test_that_stop_on_disarm_stops_once_the_autopilot_disarms_after_arming(tmp_path, devices):
+    ap = Autopilot(armed=True)
+    try:
+        cfg = payload_config(tmp_path, ap.url, stop_on_disarm=True, duration_s=20.0)
+        app = PayloadApp(cfg, err=None)
+        threading.Timer(1.5, ap.spy.actions.put, [ap.vehicle.disarm]).start()
+        res = app.run()
+    finally:
+        ap.close()
+    assert res.stop_reason == "autopilot disarmed"
+    assert res.elapsed_s < 15.0
+    assert read_samplelog(cfg.out_path).intact
+
+
+def test_that_a_disarmed_autopilot_that_never_armed_does_not_stop_the_payload(tmp_path, devices, autopilot):
+    cfg = payload_config(tmp_path, autopilot.url, stop_on_disarm=True, duration_s=1.5)
+    res = PayloadApp(cfg, err=None).run()
+    assert res.stop_reason == "duration reached"
+    assert autopilot.vehicle.state().armed is False
+
+
+def test_that_the_payload_runs_without_an_autopilot_and_flags_every_sample(tmp_path, devices):
+    cfg = payload_config(tmp_path, "udpout:127.0.0.1:9", duration_s=0.5, quiet=False)  # nobody listens
+    err = io.StringIO()
+    res = PayloadApp(cfg, err=err).run()
+    s = read_samplelog(cfg.out_path).samples
+    assert res.stop_reason == "duration reached" and len(s) == res.records_logged > 0
+    assert np.all(s["flags"] & SampleFlags.NO_POSE) and res.records_flagged == len(s)
+    assert "stopped (duration reached)" in err.getvalue()
+
+
+def test_that_the_ekf_origin_is_sent_when_asked(tmp_path, devices, autopilot):
+    cfg = payload_config(tmp_path, autopilot.url, duration_s=0.5, send_origin=(53.4668, -2.2339, 50.0))
+    PayloadApp(cfg, err=None).run()
+    assert autopilot.wait_for(lambda: autopilot.spy.of_type("SET_GPS_GLOBAL_ORIGIN"))
+    msg = autopilot.spy.of_type("SET_GPS_GLOBAL_ORIGIN")[0]
+    assert (msg.latitude, msg.longitude, msg.altitude) == (534668000, -22339000, 50000)
+
+
+def test_that_an_existing_log_is_refused_before_any_hardware_is_opened(tmp_path, devices):
+    out = tmp_path / "samples.pslog"
+    out.write_bytes(b"precious")
+    with pytest.raises(UserError, match="already exists"):
+        PayloadApp(payload_config(tmp_path, "udpout:127.0.0.1:9"), err=None).run()
+    assert out.read_bytes() == b"precious"
+    assert devices[2].pulses == 0
+
+
+def test_that_a_failed_open_closes_what_was_opened_and_leaves_no_log(tmp_path, devices):
+    bus, _lidar, _servo = devices
+    bus.detach(0x62)  # no LIDAR-Lite on the bus
+    cfg = payload_config(tmp_path, "udpout:127.0.0.1:9")
+    app = PayloadApp(cfg, err=None)
+    with pytest.raises(UserError, match=r"LIDAR-Lite at 0x62 on sitl"):
+        app.run()
+    assert not cfg.out_path.exists()
+    assert app.link.closed
+
+
+# ----- as a process: signals -------------------------------------------------------------------------
+
+LAUNCHER = """
+import sys
+from firmware_py.hal.clock import MonotonicClock
+from firmware_py.hal.pwm import register_pwm_backend
+from sitl.devices.i2c_sim import SimI2CBus, register_sim_bus
+from sitl.devices.lidarlite_emu import EmulatedLidarLite
+from sitl.devices.servo_emu import EmulatedServo
+
+class WallSimClock(MonotonicClock):
+    def advance_by_ns(self, dt_ns):
+        pass
+
+clock = WallSimClock()
+bus = SimI2CBus(clock)
+bus.attach(0x62, EmulatedLidarLite(clock, lambda t_ns: 5.0))
+register_sim_bus(bus, "sitl")
+register_pwm_backend("emu", lambda url: EmulatedServo(clock))
+from firmware_py.cli import main
+raise SystemExit(main(sys.argv[1:]))
+"""
+"""`python -m firmware_py.cli` with the emulated devices registered first (no device bridge needed)."""
+
+BLOCK = 500
+BLOCK_BYTES = HEAD_SIZE + BLOCK * SAMPLE_DTYPE.itemsize
+
+
+def start_payload(out: Path, mavlink_url: str, *extra: str) -> subprocess.Popen:
+    args = [sys.executable, "-c", LAUNCHER, "--out", str(out), "--mavlink", mavlink_url, "--i2c", "sitl",
+            "--pwm", "pwm:emu", *extra]
+    return subprocess.Popen(args, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+
+def wait_for_blocks(proc: subprocess.Popen, out: Path, blocks: int, timeout_s: float = 30.0) -> None:
+    """Until the log holds `blocks` full sample blocks past its header (the size says so)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, proc.communicate()[1]
+        if out.exists() and out.stat().st_size >= blocks * BLOCK_BYTES + 200:
+            return
+        time.sleep(0.05)
+    proc.kill()
+    raise AssertionError(f"the payload wrote no {blocks} blocks: {proc.communicate()[1]}")
+
+
+def test_that_sigterm_stops_the_payload_cleanly_with_a_complete_log(tmp_path, autopilot):
+    out = tmp_path / "run.pslog"
+    proc = start_payload(out, autopilot.url)
+    try:
+        wait_for_blocks(proc, out, 1)
+        proc.send_signal(signal.SIGTERM)
+        _stdout, stderr = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, stderr
+    assert "Traceback" not in stderr
+    summary = re.search(r"stopped \(signal SIGTERM\) after [0-9.]+ s: (\d+) samples", stderr)
+    assert summary is not None, stderr
+    log = read_samplelog(out)
+    assert log.intact and log.blocks_corrupt == 0 and log.blocks_truncated == 0
+    assert len(log.samples) == int(summary.group(1)) > BLOCK  # every sample, the last partial block too
+    assert autopilot.wait_for(lambda: "pilescan: stopping: signal SIGTERM" in autopilot.spy.texts())
+
+
+def test_that_sigint_stops_the_payload_like_sigterm(tmp_path):
+    out = tmp_path / "run.pslog"
+    proc = start_payload(out, "udpout:127.0.0.1:9", "--quiet")
+    try:
+        wait_for_blocks(proc, out, 1)
+        proc.send_signal(signal.SIGINT)
+        _stdout, stderr = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0 and stderr == ""
+    assert read_samplelog(out).intact
+
+
+def test_that_sigkill_loses_at_most_the_unfinished_block(tmp_path):
+    out = tmp_path / "run.pslog"
+    proc = start_payload(out, "udpout:127.0.0.1:9", "--quiet")
+    try:
+        wait_for_blocks(proc, out, 2)
+        proc.kill()
+        proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == -signal.SIGKILL
+    log = read_samplelog(out)
+    assert log.header is not None and log.header["source"] == "payload"
+    assert log.blocks_corrupt == 0 and log.blocks_truncated <= 1
+    assert len(log.samples) >= 2 * BLOCK and len(log.samples) % BLOCK == 0  # every complete block, nothing else
+    assert math.isclose(log.samples["range_m"][-1], 5.0)
+
+
+def test_that_python_m_firmware_py_cli_runs_on_the_sitl_device_bridge_and_stops_on_sigterm(tmp_path, autopilot):
+    """The real entry point, unmodified, with --hal sitl:HOST:PORT: the SITL's devices over TCP."""
+    bridge_server = pytest.importorskip("sitl.devices.bridge_server")
+    clock = WallSimClock()
+    bus = SimI2CBus(clock)
+    emu = EmulatedLidarLite(clock, lambda _t: RANGE_M)
+    bus.attach(0x62, emu)
+    servo = EmulatedServo(clock)
+    out = tmp_path / "run.pslog"
+    with bridge_server.DeviceBridgeServer(bus, {0: servo}) as bridge:
+        host, port = bridge.address
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "firmware_py.cli", "--out", str(out), "--mavlink", autopilot.url,
+             "--hal", f"sitl:{host}:{port}", "--rate", "200"],
+            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 30.0
+            while emu.counters["acquisitions"] < 200 and time.monotonic() < deadline:
+                assert proc.poll() is None, proc.communicate()[1]
+                time.sleep(0.05)
+            proc.send_signal(signal.SIGTERM)
+            _stdout, stderr = proc.communicate(timeout=20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == 0 and "Traceback" not in stderr, stderr
+    log = read_samplelog(out)
+    assert log.intact and len(log.samples) >= 200
+    assert len(log.samples) == emu.counters["acquisitions"]  # every reading taken was logged
+    assert servo.pulses > 0 and not servo.enabled  # disabled through the bridge at shutdown

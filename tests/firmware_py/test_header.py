@@ -1,0 +1,96 @@
+"""The sample-log header: one builder for the SITL and the payload, read by the ground station."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from firmware_py.app import PayloadConfig
+from firmware_py.frames import StorageFrame
+from firmware_py.header import SENSOR_KEYS, build_log_header, sensor_spec
+from firmware_py.samplelog import SampleLogWriter, read_samplelog
+from firmware_py.servo_waveform import named_waveform
+from firmware_py.storage import Storage
+
+STANDARD_KEYS = ["software", "created_utc", "source", "sensor", "lever_arm_body_m", "servo", "mission_id",
+                 "mission", "storage", "storage_frame"]
+
+
+def header(**kw):
+    wf = named_waveform("sinusoidal", 4.0, 3)
+    base = {"source": "payload", "sensor": sensor_spec(500.0), "lever_arm_body_m": (0.0, 0.0, 0.1),
+            "waveform_name": "sinusoidal", "waveform": wf, "initial_position": 3, "storage": Storage(),
+            "frame": StorageFrame((1.0, 2.0, 0.0), 0.5), "created_utc": "2025-01-01T00:00:00+00:00"}
+    return build_log_header(**{**base, **kw})
+
+
+def test_that_the_sensor_keys_are_the_sitls_lidar_spec_keys():
+    from sitl.batch_sampler import LidarSpec
+    assert tuple(LidarSpec().to_dict()) == SENSOR_KEYS
+    assert tuple(sensor_spec(500.0)) == SENSOR_KEYS
+    assert sensor_spec(500.0) == {**LidarSpec().to_dict()}  # the datasheet defaults agree too
+
+
+def test_that_the_header_has_the_standard_keys_in_order_with_the_servo_waveform():
+    h = header()
+    assert list(h) == STANDARD_KEYS
+    assert h["source"] == "payload" and h["software"].startswith("pilescan ")
+    assert h["servo"] == {"waveform": "sinusoidal", "shape_c": 0.0, "frequency_hz": pytest.approx(4.0 / math.pi**2),
+                          "amplitude_rad": math.pi / 2, "phase_rad": pytest.approx(math.pi * 3.5 / 10),
+                          "direction": 1, "initial_position": 3}
+    assert h["storage_frame"] == {"origin_ned_m": [1.0, 2.0, 0.0], "heading_rad": 0.5}
+    assert h["mission_id"] is None and h["mission"] is None
+
+
+def test_that_the_sitl_log_header_is_built_by_the_same_function_with_its_values():
+    from sitl.run import FlyConfig, log_header
+    cfg = FlyConfig()
+    h = log_header(cfg, cfg.servo_waveform())
+    assert list(h) == STANDARD_KEYS
+    assert h["source"] == "sitl/jsbsim" and h["sensor"] == cfg.lidar.to_dict()
+    assert h["mission_id"] == cfg.mission.mission_id and h["mission"] == cfg.mission.to_dict()
+    assert h["storage"] == cfg.mission.storage.to_dict() and h["lever_arm_body_m"] == [0.0, 0.0, 0.10]
+
+
+def test_that_the_ground_station_reads_the_payload_header(tmp_path):
+    from ground.pointcloud import SensorErrorModel
+    from ground.report import header_geometry
+    cfg = PayloadConfig(storage=Storage(30.0, 20.0, 8.0), lever_arm_body_m=(0.05, 0.0, 0.12), range_sigma_m=0.03)
+    path = tmp_path / "x.pslog"
+    SampleLogWriter(path, cfg.log_header(), fsync=False).close()
+    log = read_samplelog(path)
+    storage, frame, lever = header_geometry(log, path)
+    assert (storage.length_m, storage.width_m, storage.height_m) == (30.0, 20.0, 8.0)
+    assert frame == StorageFrame() and list(lever) == [0.05, 0.0, 0.12]
+    err = SensorErrorModel.from_header(log.header)
+    assert (err.range_sigma_m, err.range_sigma_rel, err.resolution_m) == (0.03, 0.01, 0.01)
+    assert log.header["servo_calibration"]["center_us"] == 1500.0
+    json.dumps(log.header)
+
+
+def test_that_extra_keys_are_appended_but_cannot_replace_a_standard_one():
+    h = header(extra={"payload": {"rate_hz": 500.0}})
+    assert list(h)[-1] == "payload"
+    with pytest.raises(ValueError, match="storage"):
+        header(extra={"storage": {}})
+
+
+@pytest.mark.parametrize("lever", [(0.0, 0.0), (0.0, float("nan"), 0.0), ("a", 0.0, 0.0)])
+def test_that_a_bad_lever_arm_is_refused(lever):
+    with pytest.raises(ValueError, match="lever arm"):
+        header(lever_arm_body_m=lever)
+
+
+@pytest.mark.parametrize(("kw", "name"), [({"rate_hz": 0.0}, "rate_hz"), ({"range_sigma_m": -1.0}, "range_sigma_m"),
+                                          ({"max_range_m": float("inf")}, "max_range_m"), ({"model": ""}, "model")])
+def test_that_a_bad_sensor_value_is_refused_by_name(kw, name):
+    args = {"rate_hz": 500.0, **kw}
+    with pytest.raises(ValueError, match=name):
+        sensor_spec(**args)
+
+
+def test_that_created_utc_defaults_to_now_in_iso_utc():
+    h = header(created_utc=None)
+    assert h["created_utc"].endswith("+00:00") and len(h["created_utc"]) == 25

@@ -1,0 +1,144 @@
+"""Networked SITL, end to end, as three separate programs talk on a real drone:
+
+1. `pilescan-sitl serve --devices tcp:...`: the autopilot (JSBSim + ours) on MAVLink/UDP, and the
+   emulated LIDAR-Lite and servo behind the TCP device bridge, in real time;
+2. `pilescan-payload --mavlink udpout:... --hal sitl:...`: the unchanged payload firmware, its own process;
+3. a scripted ground station (pymavlink): upload the plan, arm, AUTO, wait for the landing.
+
+Then the ground station builds the report from the payload's log. With --compare, the same survey is
+flown in lockstep (`fly --payload firmware`) and the volumes are set side by side. Real time: the
+default survey takes ~3 minutes of wall time.
+
+    python -m tools.fly_networked --stockpile 1 --p-traj 20 --out runs/networked --compare
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from ground.report import ReportOptions, make_report
+from sitl.gcs import fly_plan
+from sitl.mission import Mission
+from sitl.run import PLAN_FILE, SAMPLES_FILE, FlyConfig, fly
+
+
+def free_port(kind: int) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_tcp(port: int, proc: subprocess.Popen, timeout_s: float) -> None:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if proc.poll() is not None:
+            err = proc.stderr.read() if proc.stderr else ""
+            raise RuntimeError(f"the SITL exited early ({proc.returncode}): {err}")
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                return
+        except OSError:
+            time.sleep(0.1)
+    raise RuntimeError(f"the SITL's device bridge did not open port {port} within {timeout_s:g} s")
+
+
+def _stop(proc: subprocess.Popen, timeout_s: float = 10.0) -> int:
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode
+
+
+@dataclass(frozen=True)
+class NetworkedRun:
+    out: Path
+    report: dict
+    wall_s: float
+    payload_exit: int
+
+
+def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Path, phase: int = 0,
+                  timeout_s: float = 900.0, say=print) -> NetworkedRun:
+    """Run the three programs for one survey; the run directory gets samples.pslog and a report."""
+    out.mkdir(parents=True, exist_ok=True)
+    mav_port, dev_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
+    t0 = time.perf_counter()
+    sitl = subprocess.Popen([sys.executable, "-m", "sitl.cli", "serve", "--mavlink", f"udp:127.0.0.1:{mav_port}",
+                             "--devices", f"tcp:127.0.0.1:{dev_port}", "--stockpile", stockpile, "--storage", storage,
+                             *mission_args, "--out", str(out)], stderr=subprocess.PIPE, text=True)
+    payload = None
+    try:
+        wait_tcp(dev_port, sitl, 30.0)
+        say(f"SITL up: MAVLink udp:127.0.0.1:{mav_port}, devices tcp:127.0.0.1:{dev_port}")
+        payload = subprocess.Popen([sys.executable, "-m", "firmware_py.cli", "--mavlink",
+                                    f"udpout:127.0.0.1:{mav_port}", "--hal", f"sitl:127.0.0.1:{dev_port}",
+                                    "--out", str(out / SAMPLES_FILE), "--force", "--storage", storage,
+                                    "--phase", str(phase), "--stop-on-disarm", "--quiet"])
+        time.sleep(2.0)  # the payload's time sync and pose streams settle before take-off
+        fly_plan(f"udpout:127.0.0.1:{mav_port}", out / PLAN_FILE, timeout_s, say=lambda m: say(f"  {m}"))
+        say("landed and disarmed")
+        try:
+            payload.wait(timeout=15.0)  # --stop-on-disarm
+        except subprocess.TimeoutExpired:
+            say("payload still running after the disarm: stopping it")
+        code = _stop(payload)
+    finally:
+        if payload is not None:
+            _stop(payload)
+        _stop(sitl)
+    wall = time.perf_counter() - t0
+    rep = make_report(out, out / "report", ReportOptions(plots=False))
+    return NetworkedRun(out, rep, wall, code)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--stockpile", default="1")
+    ap.add_argument("--p-traj", type=float, default=20.0, help="percent")
+    ap.add_argument("--storage", default="60x40x15")
+    ap.add_argument("--altitude", type=float, default=12.0)
+    ap.add_argument("--speed", type=float, default=1.0, help="m/s")
+    ap.add_argument("--phase", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=Path("runs/networked"))
+    ap.add_argument("--compare", action="store_true", help="also fly the lockstep SITL and compare volumes")
+    ap.add_argument("--json", type=Path, help="write the figures here")
+    args = ap.parse_args(argv)
+    mission_args = ["--p-traj", f"{args.p_traj:g}", "--altitude", f"{args.altitude:g}", "--speed", f"{args.speed:g}"]
+    net = fly_networked(mission_args, args.storage, args.stockpile, args.out / "networked", args.phase)
+    v_net = net.report["volume_m3"]
+    print(f"networked: {v_net:,.1f} m^3, Ve {net.report['volume_error_pct']:.3f} %, "
+          f"{net.report['n_samples']:,} samples, {net.wall_s:.0f} s wall, payload exit {net.payload_exit}")
+    figures = {"networked_volume_m3": v_net, "networked_ve_pct": net.report["volume_error_pct"],
+               "networked_samples": net.report["n_samples"], "networked_wall_s": net.wall_s,
+               "true_volume_m3": net.report["true_volume_m3"]}
+    if args.compare:
+        from firmware_py.storage import Storage
+        cfg = FlyConfig(mission=Mission(storage=Storage.parse(args.storage), p_traj=args.p_traj / 100,
+                                        altitude_m=args.altitude, speed_m_s=args.speed),
+                        stockpile=args.stockpile, payload="firmware", initial_position=args.phase)
+        fly(cfg, args.out / "lockstep", force=True)
+        lock = make_report(args.out / "lockstep", args.out / "lockstep" / "report", ReportOptions(plots=False))
+        diff = 100.0 * (v_net - lock["volume_m3"]) / lock["volume_m3"]
+        print(f"lockstep:  {lock['volume_m3']:,.1f} m^3, Ve {lock['volume_error_pct']:.3f} %, "
+              f"{lock['n_samples']:,} samples")
+        print(f"networked vs lockstep volume: {diff:+.3f} % (target within 0.5 %)")
+        figures.update(lockstep_volume_m3=lock["volume_m3"], lockstep_ve_pct=lock["volume_error_pct"],
+                       networked_vs_lockstep_pct=diff)
+    if args.json:
+        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+    return 0 if net.payload_exit == 0 else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
