@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from firmware_py.samplelog import SAMPLE_DTYPE, new_records
+from firmware_py.samplelog import SAMPLE_DTYPE, RecordBatcher, new_records
 
 MAGIC = b"PSLV"
 VERSION = 1
@@ -120,8 +120,7 @@ class LiveStreamSender:
             sock = socket.socket(family, socket.SOCK_DGRAM)
             sock.setblocking(False)
         self._sock = sock
-        self._buf = new_records(records_per_datagram)
-        self._fill = 0
+        self._batch = RecordBatcher(records_per_datagram, self._send)
         self.seq = 0
         self.stats: dict[str, int] = {"datagrams": 0, "records": 0, "send_errors": 0, "records_dropped": 0}
         self.last_error: str | None = None
@@ -129,21 +128,12 @@ class LiveStreamSender:
 
     def append(self, records: np.ndarray | np.void) -> None:
         """Queue records; every full batch goes out at once. Never raises for network trouble."""
-        recs = np.asarray(records).reshape(-1)
-        cap = len(self._buf)
-        i = 0
-        while i < len(recs):
-            take = min(cap - self._fill, len(recs) - i)
-            self._buf[self._fill:self._fill + take] = recs[i:i + take]
-            self._fill += take
-            i += take
-            if self._fill == cap:
-                self._send_buffer()
+        recs = np.asarray(records)
+        self._batch.add(recs if recs.ndim == 0 else recs.reshape(-1))
 
     def flush(self) -> None:
         """Send a partial batch now (the payload does this every second, so a slow rate still streams)."""
-        if self._fill:
-            self._send_buffer()
+        self._batch.flush()
 
     def close(self) -> None:
         if self.closed:
@@ -155,11 +145,11 @@ class LiveStreamSender:
         except OSError:
             pass
 
-    def _send_buffer(self) -> None:
-        n, self._fill = self._fill, 0
+    def _send(self, batch: np.ndarray) -> None:
+        n = len(batch)
         if self.closed:
             return
-        data = encode_datagram(self.seq, self._buf[:n])
+        data = encode_datagram(self.seq, batch)
         self.seq = (self.seq + 1) & 0xFFFFFFFF  # a lost datagram still uses its number: the receiver sees the gap
         try:
             self._sock.sendto(data, self.address)

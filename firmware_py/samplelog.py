@@ -62,6 +62,7 @@ import json
 import os
 import struct
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -170,6 +171,44 @@ def _as_records(records: Any) -> np.ndarray:
     return records.reshape(-1)
 
 
+class RecordBatcher:
+    """Records gathered into fixed-size batches: `emit(batch)` gets each full one as it fills (and a
+    partial one on `flush`). The batch is a view into a reused buffer: emit must consume it at once.
+    The sample log's blocks and the live stream's datagrams are both batches."""
+
+    def __init__(self, size: int, emit: Callable[[np.ndarray], None]) -> None:
+        self._buf = new_records(size)
+        self._fill = 0
+        self._emit = emit
+
+    @property
+    def pending(self) -> int:
+        return self._fill
+
+    def add(self, recs: np.ndarray) -> None:
+        """Add a 0-d record or a 1-D array of them (SAMPLE_DTYPE, unchecked: callers check)."""
+        cap = len(self._buf)
+        if recs.ndim == 0:  # one record at a time, the payload loop's case: fast path
+            self._buf[self._fill] = recs
+            self._fill += 1
+            if self._fill == cap:
+                self.flush()
+            return
+        i = 0
+        while i < len(recs):
+            take = min(cap - self._fill, len(recs) - i)
+            self._buf[self._fill:self._fill + take] = recs[i:i + take]
+            self._fill += take
+            i += take
+            if self._fill == cap:
+                self.flush()
+
+    def flush(self) -> None:
+        if self._fill:
+            n, self._fill = self._fill, 0
+            self._emit(self._buf[:n])
+
+
 class SampleLogWriter:
     """Append-only writer; each full block is flushed and fsync'd so a power cut costs <= one block.
 
@@ -180,8 +219,7 @@ class SampleLogWriter:
     def __init__(self, path: str | os.PathLike[str], header: dict, records_per_block: int = 500,
                  fsync: bool = True, *, overwrite: bool = False) -> None:
         header_payload = _validated_header(header)
-        self._buf = new_records(_validated_block_size(records_per_block))
-        self._fill = 0
+        self._batch = RecordBatcher(_validated_block_size(records_per_block), self._write_samples)
         self._written = 0
         self._fsync = bool(fsync)
         self._file: BinaryIO | None = open(path, "wb" if overwrite else "xb")
@@ -200,7 +238,7 @@ class SampleLogWriter:
     @property
     def records_pending(self) -> int:
         """Records buffered for the next block."""
-        return self._fill
+        return self._batch.pending
 
     @property
     def closed(self) -> bool:
@@ -211,26 +249,14 @@ class SampleLogWriter:
         if self._file is None:
             raise ValueError("append() on a closed SampleLogWriter")
         if type(records) is np.ndarray and records.ndim == 0 and records.dtype == SAMPLE_DTYPE:
-            self._buf[self._fill] = records  # one record at a time, the payload loop's case: fast path
-            self._fill += 1
-            if self._fill == len(self._buf):
-                self._write_samples()
-            return
-        recs = _as_records(records)
-        cap = len(self._buf)
-        i = 0
-        while i < len(recs):
-            take = min(cap - self._fill, len(recs) - i)
-            self._buf[self._fill:self._fill + take] = recs[i:i + take]
-            self._fill += take
-            i += take
-            if self._fill == cap:
-                self._write_samples()
+            self._batch.add(records)  # the payload loop's one record a tick, checked cheaply
+        else:
+            self._batch.add(_as_records(records))
 
     def flush(self) -> None:
         """Write buffered records as a (shorter) block, making them crash-safe now."""
-        if self._fill and self._file is not None:
-            self._write_samples()
+        if self._file is not None:
+            self._batch.flush()
 
     def close(self) -> None:
         """Flush and close; safe to call repeatedly."""
@@ -248,10 +274,9 @@ class SampleLogWriter:
     def __exit__(self, *exc_info: object) -> None:
         self.close()
 
-    def _write_samples(self) -> None:
-        self._write_block(KIND_SAMPLES, self._buf[:self._fill].tobytes())
-        self._written += self._fill
-        self._fill = 0
+    def _write_samples(self, batch: np.ndarray) -> None:
+        self._write_block(KIND_SAMPLES, batch.tobytes())
+        self._written += len(batch)
 
     def _write_block(self, kind: bytes, payload: bytes) -> None:
         """Whole block, then flush + fsync: the durability boundary is the block."""

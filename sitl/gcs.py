@@ -30,7 +30,7 @@ class ScriptedGcs:
         self.say = say or (lambda _m: None)
         self._last_hb = 0.0
         self._heartbeat()
-        hb = self._wait(lambda m: m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 1, timeout_s)
+        hb = self.wait(lambda m: m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 1, timeout_s)
         if hb is None:
             raise GcsError(f"no HEARTBEAT from an autopilot on {url} within {timeout_s:g} s")
         self.target = (hb.get_srcSystem(), hb.get_srcComponent())
@@ -45,7 +45,7 @@ class ScriptedGcs:
             self.conn.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
             self._last_hb = now
 
-    def _wait(self, pred: Callable[[Any], bool], timeout_s: float) -> Any | None:
+    def wait(self, pred: Callable[[Any], bool], timeout_s: float) -> Any | None:
         """The first message satisfying pred (keeping our heartbeat going and the armed state current)."""
         end = time.monotonic() + timeout_s
         while time.monotonic() < end:
@@ -71,7 +71,7 @@ class ScriptedGcs:
         self.conn.mav.mission_count_send(*self.target, n)
         end = time.monotonic() + timeout_s
         while time.monotonic() < end:
-            m = self._wait(lambda m: m.get_type() in ("MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"),
+            m = self.wait(lambda m: m.get_type() in ("MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"),
                            end - time.monotonic())
             if m is None:
                 break
@@ -89,7 +89,7 @@ class ScriptedGcs:
     def command(self, command: int, *params: float, timeout_s: float = 5.0) -> None:
         p = [*params, *[0.0] * (7 - len(params))]
         self.conn.mav.command_long_send(*self.target, command, 0, *p)
-        ack = self._wait(lambda m: m.get_type() == "COMMAND_ACK" and m.command == command, timeout_s)
+        ack = self.wait(lambda m: m.get_type() == "COMMAND_ACK" and m.command == command, timeout_s)
         if ack is None:
             raise GcsError(f"no COMMAND_ACK for command {command} within {timeout_s:g} s")
         if ack.result != mavutil.mavlink.MAV_RESULT_ACCEPTED:
@@ -108,19 +108,24 @@ class ScriptedGcs:
         """Until the vehicle has landed and disarmed (the plan's last item is a LAND)."""
         end = time.monotonic() + timeout_s
         is_hb = lambda m: m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 1  # noqa: E731
-        if self._wait(lambda m: is_hb(m) and self.armed, 5.0) is None:  # a heartbeat since arming says so
+        if self.wait(lambda m: is_hb(m) and self.armed, 5.0) is None:  # a heartbeat since arming says so
             raise GcsError("the vehicle never reported itself armed")
-        if self._wait(lambda m: is_hb(m) and not self.armed, end - time.monotonic()) is None:
+        if self.wait(lambda m: is_hb(m) and not self.armed, end - time.monotonic()) is None:
             raise GcsError(f"the vehicle was still armed after {timeout_s:g} s")
 
 
-def fly_plan(url: str, plan: str | Path, timeout_s: float, say: Callable[[str], None] | None = None) -> None:
-    """Upload, arm, AUTO, and wait for the landing: one survey flight, as an operator would fly it."""
+def fly_plan(url: str, plan: str | Path, timeout_s: float, say: Callable[[str], None] | None = None,
+             fly_s: float | None = None) -> None:
+    """Upload, arm, AUTO, and wait for the landing: one survey flight, as an operator would fly it.
+    With fly_s, return that long after AUTO instead (the vehicle flies on)."""
     gcs = ScriptedGcs(url, say=say)
     try:
         gcs.upload(plan)
         gcs.arm()
         gcs.auto()
-        gcs.wait_disarmed(timeout_s)
+        if fly_s is not None:
+            gcs.wait(lambda m: False, fly_s)  # keep our heartbeat going meanwhile
+        else:
+            gcs.wait_disarmed(timeout_s)
     finally:
         gcs.close()

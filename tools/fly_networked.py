@@ -69,8 +69,11 @@ class NetworkedRun:
 
 
 def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Path, phase: int = 0,
-                  timeout_s: float = 900.0, say=print) -> NetworkedRun:
-    """Run the three programs for one survey; the run directory gets samples.pslog and a report."""
+                  timeout_s: float = 900.0, flight_s: float | None = None, say=print) -> NetworkedRun:
+    """Run the three programs for one survey; the run directory gets samples.pslog and a report.
+
+    With flight_s, stop the payload (SIGTERM) that long after AUTO instead of waiting for the landing.
+    """
     out.mkdir(parents=True, exist_ok=True)
     mav_port, dev_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
     t0 = time.perf_counter()
@@ -86,12 +89,14 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
                                     "--out", str(out / SAMPLES_FILE), "--force", "--storage", storage,
                                     "--phase", str(phase), "--stop-on-disarm", "--quiet"])
         time.sleep(2.0)  # the payload's time sync and pose streams settle before take-off
-        fly_plan(f"udpout:127.0.0.1:{mav_port}", out / PLAN_FILE, timeout_s, say=lambda m: say(f"  {m}"))
-        say("landed and disarmed")
-        try:
-            payload.wait(timeout=15.0)  # --stop-on-disarm
-        except subprocess.TimeoutExpired:
-            say("payload still running after the disarm: stopping it")
+        fly_plan(f"udpout:127.0.0.1:{mav_port}", out / PLAN_FILE, timeout_s, say=lambda m: say(f"  {m}"),
+                 fly_s=flight_s)
+        if flight_s is None:
+            say("landed and disarmed")
+            try:
+                payload.wait(timeout=15.0)  # --stop-on-disarm
+            except subprocess.TimeoutExpired:
+                say("payload still running after the disarm: stopping it")
         code = _stop(payload)
     finally:
         if payload is not None:

@@ -1,0 +1,35 @@
+"""The networked SITL end to end: `pilescan-sitl serve --devices`, `pilescan-payload --hal sitl:` and a
+scripted ground station as three processes on real sockets, in real time (about 25 s)."""
+
+import numpy as np
+
+from firmware_py.frames import StorageFrame, beam_rays_w
+from firmware_py.samplelog import EXCLUDE_FROM_CLOUD, read_samplelog
+from firmware_py.storage import Storage
+from sitl import stockpile as piles
+from sitl.raycast import World
+from tools.fly_networked import fly_networked
+
+
+def test_that_the_payload_process_ranges_the_served_world_with_correct_pose_tags(tmp_path):
+    storage = Storage(24, 16, 10)
+    run = fly_networked(["--p-traj", "25", "--altitude", "9", "--speed", "2"], "24x16x10", "1", tmp_path / "net",
+                        flight_s=12.0, say=lambda _m: None)
+    assert run.payload_exit == 0  # SIGTERM: a clean stop
+    log = read_samplelog(tmp_path / "net" / "samples.pslog")
+    assert log.blocks_corrupt == 0 and log.blocks_truncated == 0
+    s = log.samples
+    assert len(s) > 0.8 * 500 * 12  # ~500 Hz from well before take-off to the stop
+    good = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
+    assert len(good) > 0.5 * len(s)
+    assert np.ptp(good["servo_rad"]) > np.radians(120)  # the servo swept
+    assert np.ptp(good["z_m"]) > 3.0  # and the vehicle climbed while we logged
+    # Each logged pose and servo angle, ray traced in the served world, gives the range measured.
+    world = World(storage, piles.resolve(str(tmp_path / "net" / "pile.stl"), storage))
+    pos = np.column_stack([good["x_m"], good["y_m"], good["z_m"]])
+    o, d = beam_rays_w(pos, good["roll_rad"], good["pitch_rad"], good["yaw_rad"], good["servo_rad"],
+                       np.array(log.header["lever_arm_body_m"]), StorageFrame())
+    err = good["range_m"] - world.cast(o, d).range_m
+    err = np.abs(err[np.isfinite(err)])
+    assert np.median(err) < 0.01 and np.percentile(err, 90) < 0.03
+    assert run.report["volume_m3"] > 0
