@@ -37,7 +37,14 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_py.cli_util import UserError
-from firmware_py.drivers.lidarlite import DEFAULT_ADDRESS, PRESET_FAST_500HZ, LidarLite, LidarLiteConfig, preset_by_name
+from firmware_py.drivers.lidarlite import (
+    DEFAULT_ADDRESS,
+    PRESET_FAST_500HZ,
+    LidarLite,
+    LidarLiteConfig,
+    busy_deadline_ns,
+    preset_by_name,
+)
 from firmware_py.drivers.servo import ServoCalibration, SweepServo
 from firmware_py.frames import StorageFrame
 from firmware_py.hal import Clock, I2CBus, MavlinkLink, PwmOutput
@@ -140,11 +147,17 @@ class PayloadConfig:
     status_period_s: float = 5.0
     quiet: bool = False
 
+    def busy_deadline_ns(self) -> int:
+        """The LiDAR's busy deadline at this rate (a stuck part must not stop the loop keeping it)."""
+        if not _finite(self.rate_hz) or self.rate_hz <= 0:
+            raise ValueError(f"payload rate must be 1-2000 Hz, got {self.rate_hz!r}")
+        return busy_deadline_ns(preset_by_name(self.preset), self.rate_hz)
+
     def __post_init__(self) -> None:
         if not isinstance(self.out_path, str | os.PathLike) or not str(self.out_path).strip():
             raise ValueError(f"sample log path must be a non-empty path, got {self.out_path!r}")
         self._check_urls()
-        preset_by_name(self.preset)
+        self.busy_deadline_ns()  # the preset exists and can sustain the rate
         if isinstance(self.i2c_address, bool) or not isinstance(self.i2c_address, int) \
                 or not 0x08 <= self.i2c_address <= 0x77:
             raise ValueError(f"I2C address must be a 7-bit address 0x08-0x77, got {self.i2c_address!r}")
@@ -355,7 +368,8 @@ class PayloadApp:
             self.link = _opening("MAVLink link", cfg.mavlink_url, lambda: open_mavlink(cfg.mavlink_url))
         if self.bus is None:
             self.bus = _opening("I2C bus", cfg.i2c_url, lambda: open_i2c(cfg.i2c_url))
-        lidar_cfg = LidarLiteConfig(address=cfg.i2c_address, preset=preset_by_name(cfg.preset))
+        lidar_cfg = LidarLiteConfig(address=cfg.i2c_address, preset=preset_by_name(cfg.preset),
+                                    busy_timeout_ns=cfg.busy_deadline_ns())
         self.lidar = _opening(f"LIDAR-Lite at 0x{cfg.i2c_address:02x} on", cfg.i2c_url,
                               lambda: LidarLite(self.bus, self.clock, lidar_cfg))
         if self.pwm is None:

@@ -24,7 +24,7 @@ from sitl.devices.bridge_server import DeviceBridgeServer, parse_bridge_url
 from sitl.devices.i2c_sim import SimI2CBus
 from sitl.devices.lidarlite_emu import ADDRESS, EmulatedLidarLite
 from sitl.devices.servo_emu import EmulatedServo
-from sitl.payload_runner import TruePose, beam_range_m, pose_from_history
+from sitl.payload_runner import TruePose, beam_range_m, pose_from_history, state_tuple
 from sitl.raycast import World
 from sitl.vehicle_api import Vehicle
 
@@ -50,15 +50,6 @@ class WallSimClock:
 
     def advance_by_ns(self, dt_ns: int) -> None:
         """Wire time passes for real on the network; nothing to add."""
-
-
-def _state_tuple(vehicle: Vehicle) -> tuple[float, ...]:
-    """(n, e, d, vn, ve, vd, roll, pitch, yaw) of any Vehicle, as pose_from_history reads it."""
-    raw = getattr(vehicle, "raw_state", None)
-    if raw is not None:
-        return tuple(raw)
-    s = vehicle.state()
-    return (*s.pos_ned_m, *s.vel_ned_m_s, s.roll_rad, s.pitch_rad, s.yaw_rad)
 
 
 class NetworkedDevices:
@@ -106,7 +97,7 @@ class NetworkedDevices:
     def record(self) -> None:
         """Keep the vehicle's true state after a physics step."""
         with self.lock:
-            self._hist.append((self.vehicle.state().t_s, _state_tuple(self.vehicle)))
+            self._hist.append((self.vehicle.state().t_s, state_tuple(self.vehicle)))
 
     def pose_at(self, t_ns: int) -> TruePose:
         with self.lock:

@@ -25,6 +25,7 @@ from sitl.autopilot import wrap_pi
 from sitl.jsbsim_vehicle import JsbsimVehicle
 from sitl.mavlink_vehicle import MavlinkVehicleServer
 from sitl.raycast import World
+from sitl.vehicle_api import Vehicle
 
 
 class DelayedPipe:
@@ -58,6 +59,15 @@ class TruePose:
     yaw_rad: float
 
 
+def state_tuple(vehicle) -> tuple[float, ...]:
+    """(n, e, d, vn, ve, vd, roll, pitch, yaw, ...) of any Vehicle, as pose_from_history reads it."""
+    raw = getattr(vehicle, "raw_state", None)
+    if raw is not None:
+        return tuple(raw)
+    s = vehicle.state()
+    return (*s.pos_ned_m, *s.vel_ned_m_s, s.roll_rad, s.pitch_rad, s.yaw_rad)
+
+
 def pose_from_history(hist, ts: float) -> TruePose:
     """The true pose at vehicle time ts from a time-ordered sequence of (t_s, raw_state) physics
     steps, linear between the two that bracket it (clamped at the ends)."""
@@ -83,7 +93,7 @@ def beam_range_m(world: World, frame: StorageFrame, lever_arm_body_m, pose: True
 class SimWorld:
     """Vehicle + MAVLink server + building, advanced in lockstep with the payload's clock."""
 
-    def __init__(self, vehicle: JsbsimVehicle, world: World, frame: StorageFrame, clock: SimClock,
+    def __init__(self, vehicle: Vehicle, world: World, frame: StorageFrame, clock: SimClock,
                  boot_offset_ns: int, lever_arm_body_m, latency_ns=lambda: 0, tlog_path=None) -> None:
         self.vehicle, self.world, self.frame, self.clock = vehicle, world, frame, clock
         self.boot_offset_ns = boot_offset_ns  # companion time = vehicle time + offset
@@ -92,7 +102,7 @@ class SimWorld:
         self.server = MavlinkVehicleServer(vehicle, _ServerSide(self), tlog_path=tlog_path)
         self._up = DelayedPipe(self._vehicle_now_companion_ns, latency_ns)
         self._hist: collections.deque[tuple[float, tuple[float, ...]]] = collections.deque(maxlen=64)
-        self._hist.append((vehicle.state().t_s, vehicle.raw_state))
+        self._hist.append((vehicle.state().t_s, state_tuple(vehicle)))
         self.history: list[tuple[float, tuple[float, ...]]] = [self._hist[-1]]  # the whole true flight
         self.servo_angle_at = None  # set by the runner: t_ns -> true shaft angle
         clock.set_advance(self.advance_to)
@@ -118,7 +128,7 @@ class SimWorld:
         while self._hist[-1][0] < target_s:
             self.vehicle.step()
             self.server.update()
-            self._hist.append((self.vehicle.state().t_s, self.vehicle.raw_state))
+            self._hist.append((self.vehicle.state().t_s, state_tuple(self.vehicle)))
             self.history.append(self._hist[-1])
         return math.floor(self._hist[-1][0] * 1e9) + self.boot_offset_ns
 
@@ -172,7 +182,7 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     The vehicle settles on W0, the payload starts, waits for its time sync to converge, the
     survey flies; the payload logs every sample to log_path until the vehicle is back on W0.
     """
-    from firmware_py.drivers.lidarlite import PRESET_FAST_500HZ, LidarLite, LidarLiteConfig
+    from firmware_py.drivers.lidarlite import PRESET_FAST_500HZ, LidarLite, LidarLiteConfig, busy_deadline_ns
     from firmware_py.drivers.servo import ServoCalibration, SweepServo
     from firmware_py.hal.mavlink_link import ByteStreamLink
     from firmware_py.payload import LoopConfig, PayloadLoop
@@ -208,7 +218,8 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     sim.servo_angle_at = plant.angle_at
     bus = SimI2CBus(clock)
     bus.attach(0x62, EmulatedLidarLite(clock, sim.true_range_m))
-    lidar = LidarLite(bus, clock, LidarLiteConfig(preset=PRESET_FAST_500HZ))
+    lidar = LidarLite(bus, clock, LidarLiteConfig(
+        preset=PRESET_FAST_500HZ, busy_timeout_ns=busy_deadline_ns(PRESET_FAST_500HZ, cfg.lidar.rate_hz)))
     link = ByteStreamLink(sim.payload_send, sim.payload_recv)
     tracker = PoseTracker(link, clock)
     tracker.start()

@@ -268,7 +268,8 @@ class LidarLiteConfig:
         busy_timeout_ns: give up on busy this long after the trigger; None = twice the preset's
             worst-case modelled acquisition + 1 ms.
         reset_after_failures: reset the part after this many consecutive readings that are 0 cm
-            (PX4's known stuck state), TIMEOUT or BUS_ERROR (PX4 ll40ls uses 20).
+            (PX4's known stuck state), TIMEOUT or BUS_ERROR (PX4 ll40ls uses 20); doubled after each
+            reset that did not help (up to MAX_RESET_BACKOFF times), back to this after a good reading.
         reset_after_no_valid: also reset after this many consecutive readings without a range of
             any kind, 1 cm no-returns included; None = never. A sweep past far walls gives a few
             hundred ms of legitimate no-returns, so the default (2 s at 500 Hz) is longer than the
@@ -313,6 +314,29 @@ class LidarLiteConfig:
         return 2 * self.preset.worst_acquisition_ns(bias=True) + 1_000_000
 
 
+def busy_deadline_ns(preset: Preset, rate_hz: float, poll_interval_ns: int = 100_000) -> int:
+    """A busy deadline that lets a loop at rate_hz keep its rate when the part sticks busy.
+
+    Four fifths of the loop period (the rest is the trigger, the reads and the loop's own work),
+    but never less than the preset's worst acquisition with bias correction plus one poll, so a
+    healthy part is never cut off. A preset whose worst acquisition does not fit in the period at
+    all cannot sustain the rate: ValueError, naming the rate that would work.
+    """
+    if not (math.isfinite(rate_hz) and rate_hz > 0):
+        raise ValueError(f"sample rate must be > 0 Hz, got {rate_hz!r}")
+    period = round(1e9 / rate_hz)
+    worst = preset.worst_acquisition_ns(bias=True)
+    if worst + poll_interval_ns >= period:
+        raise ValueError(f"LIDAR-Lite preset {preset.name!r} takes up to {worst / 1e6:.2f} ms a reading; "
+                         f"{rate_hz:g} Hz leaves {period / 1e6:.2f} ms: use a rate up to "
+                         f"{math.floor(1e9 / (worst + poll_interval_ns) * 0.8)} Hz or a faster preset")
+    return max(worst + poll_interval_ns, round(0.8 * period))
+
+
+MAX_RESET_BACKOFF = 32
+"""A stuck part is reset after 20, 40, 80 ... failures, at most 32 x 20 (about 1.3 s at 500 Hz)."""
+
+
 COUNTER_NAMES = ("ok", "no_return", "timeouts", "bus_errors", "implausible", "resets", "reconfigs",
                  "config_errors", "bias")
 """ok + no_return + timeouts + bus_errors is the number of readings; implausible is the part of
@@ -350,6 +374,7 @@ class LidarLite:
         self._failure_run = 0
         self._no_valid_run = 0
         self._since_readback = 0
+        self._reset_after = self.config.reset_after_failures  # grows while resets do not help
         self._done_after_ns: dict[bool, int | None] = {False: None, True: None}  # learned busy time
         self._shortest_ns = acquisition_time_ns(self._preset.sig_count_val, self._preset.acq_config, signal_counts=1)
         self._worst_ns = {b: self._preset.worst_acquisition_ns(bias=b) for b in (False, True)}
@@ -555,6 +580,7 @@ class LidarLite:
         self.counters[name] += 1
         if reading.status == ReadStatus.OK:
             self._failure_run = self._no_valid_run = 0
+            self._reset_after = self.config.reset_after_failures
             return
         self._no_valid_run += 1
         zero = reading.status == ReadStatus.NO_RETURN and raw_cm == 0
@@ -563,6 +589,10 @@ class LidarLite:
         else:
             self._failure_run += 1
         cfg = self.config
-        if self._failure_run >= cfg.reset_after_failures or (
+        if self._failure_run >= self._reset_after or (
                 cfg.reset_after_no_valid is not None and self._no_valid_run >= cfg.reset_after_no_valid):
+            # A reset that did not help is not repeated as often: each costs ~25 ms of no readings,
+            # and a part that stays stuck would otherwise spend much of the loop's time resetting.
+            if self._failure_run >= self._reset_after:
+                self._reset_after = min(2 * self._reset_after, MAX_RESET_BACKOFF * cfg.reset_after_failures)
             self.reset()

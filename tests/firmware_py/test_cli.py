@@ -84,6 +84,7 @@ def test_that_hal_sitl_points_i2c_and_pwm_at_the_device_bridge():
 @pytest.mark.parametrize(("argv", "word"), [
     (["--preset", "warp-speed"], "preset"),
     (["--rate", "0"], "rate"),
+    (["--preset", "default", "--rate", "500"], "faster preset"),
     (["--rate", "nan"], "rate"),
     (["--mavlink", "carrier-pigeon"], "MAVLink URL"),
     (["--mavlink", "udpout:127.0.0.1:99999"], "port"),

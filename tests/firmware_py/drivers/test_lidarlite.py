@@ -13,6 +13,7 @@ from firmware_py.drivers.lidarlite import (
     Preset,
     Reading,
     ReadStatus,
+    busy_deadline_ns,
     preset_by_name,
 )
 from firmware_py.hal import I2CError
@@ -368,3 +369,25 @@ def test_that_one_late_collection_does_not_push_later_polls_past_the_worst_case(
     assert rig.lidar._done_after_ns[False] <= PRESET_FAST_500HZ.worst_acquisition_ns(bias=False)
     nxt = _read_on_ticks(rig, 1)[0]
     assert rig.clock.now_ns() - nxt.t_ns < TICK_NS  # the next reading still fits its 2 ms tick
+
+
+def test_that_the_busy_deadline_fits_the_loop_period_without_cutting_off_a_healthy_part():
+    d = busy_deadline_ns(PRESET_FAST_500HZ, 500.0)
+    assert PRESET_FAST_500HZ.worst_acquisition_ns(bias=True) < d < TICK_NS
+    slow = busy_deadline_ns(PRESET_DEFAULT, 100.0)
+    assert slow >= PRESET_DEFAULT.worst_acquisition_ns(bias=True) + 100_000
+    with pytest.raises(ValueError, match=r"up to 2[0-9]{2} Hz or a faster preset"):
+        busy_deadline_ns(PRESET_DEFAULT, 500.0)
+
+
+def test_that_resets_back_off_while_the_part_stays_stuck_and_come_back_after_a_good_reading():
+    rig = Rig(9.87, PRESET_FAST_500HZ)
+    rig.part.stuck_busy = True
+    _read_on_ticks(rig, 620)
+    assert rig.lidar.counters["timeouts"] == 620
+    assert rig.lidar.counters["resets"] == 5  # after 20, 40, 80, 160 and 320 more failures, not 31 times
+    rig.part.stuck_busy = False
+    assert _read_on_ticks(rig, 1)[0].status == ReadStatus.OK
+    rig.part.stuck_busy = True
+    _read_on_ticks(rig, 20)
+    assert rig.lidar.counters["resets"] == 6  # the next fault is met at the base threshold again
