@@ -114,13 +114,17 @@ class Autopilot:
         if t.yaw_rad is not None or t.speed_m_s <= 0.0:
             v_des = 0.0
         else:
-            v_des = min(t.speed_m_s, g.speed_k * dist / max(abs(e_psi), 1e-3))
+            # Eq. (15) sets the speed; we fly it towards the target, not along the current heading,
+            # and scale it by how well the nose points there. The paper's law alone keeps ~0.3 m/s
+            # along the old heading through a corner, which at 6 deg/s (15 s for 90 deg) carries the
+            # vehicle 3-4 m past the waypoint (through the wall at P_traj 5 %), and at 1 deg/s 12 m.
+            v_des = min(t.speed_m_s, g.speed_k * dist / max(abs(e_psi), 1e-3)) * max(0.0, math.cos(e_psi))
         self.last_yaw_rate_cmd, self.last_speed_cmd = yaw_rate_cmd, v_des
-        e_v = v_des - u_fwd
+        e_v = v_des * math.cos(e_psi) - u_fwd
         self._i_vel = clip(self._i_vel + e_v * dt, -g.vel_i_limit / g.vel_ki, g.vel_i_limit / g.vel_ki)
         pitch_cmd = -clip(g.vel_kp * e_v + g.vel_ki * self._i_vel, -g.max_tilt_rad, g.max_tilt_rad)
         v_lat = -vn * math.sin(yaw) + ve * math.cos(yaw)
-        roll_cmd = clip(-g.lat_kp * v_lat, -g.max_tilt_rad, g.max_tilt_rad)
+        roll_cmd = clip(g.lat_kp * (v_des * math.sin(e_psi) - v_lat), -g.max_tilt_rad, g.max_tilt_rad)
         # --- attitude P -> rate PID
         rate_cmd = (g.att_kp * wrap_pi(roll_cmd - roll), g.att_kp * wrap_pi(pitch_cmd - pitch),
                     yaw_rate_cmd)

@@ -64,6 +64,20 @@ def test_that_the_yaw_rate_limit_is_never_exceeded_by_more_than_10_percent(limit
     assert peak >= 0.8 * limit_dps  # the limit is actually used in the turns
 
 
+@pytest.mark.parametrize("limit_dps", [30.0, 6.0, 1.0])
+def test_that_corners_are_turned_without_flying_past_the_waypoint(limit_dps):
+    """P_traj 5 % puts the loop 2-3 m from the walls: a vehicle that keeps moving along its old heading
+    while turning slowly would leave the building."""
+    mission = Mission(p_traj=0.05, yaw_rate_max_rad_s=math.radians(limit_dps))
+    flown = fly_mission(mission, StorageFrame())
+    assert flown.completed
+    wp = mission.waypoints_w()
+    x, y = flown.states[:, 0], -flown.states[:, 1]  # W from NED with the default frame
+    margin = 0.5
+    assert x.min() > wp[:, 0].min() - margin and x.max() < wp[:, 0].max() + margin
+    assert y.min() > wp[:, 1].min() - margin and y.max() < wp[:, 1].max() + margin
+
+
 def test_that_energy_grows_when_flying_slower_and_carrying_more():
     base = fly_mission(Mission(p_traj=0.3), StorageFrame())
     slow = fly_mission(Mission(p_traj=0.3, speed_m_s=0.5), StorageFrame())

@@ -1,0 +1,260 @@
+"""The paper's experiments as data, and the function that runs one case of them.
+
+An `Experiment` is one configuration of Sec. 4 (waveform, speed, yaw-rate limit, corner turns,
+sensor, noise); a case is (experiment, stockpile, P_traj). A case flies once (the JSBSim vehicle;
+the flight depends on the mission and the payload mass, not on the pile, so flights are cached
+and shared across piles), then samples that flight for each of the 20 servo initial positions of
+Fig. 9 (and each noise draw) through the same vectorised math the run-directory path uses, and
+computes Ve (eq. 8, both empty-cell policies), R_a (eq. 9) and the flight's energy. The 2D and 3D
+LiDARs scan the same kind of flight (with their own payload mass) and go through the ground
+station's binned path. Experiments can also be read from a TOML file:
+
+    [[experiment]]
+    name = "yaw-6"
+    figure = "Fig. 17"
+    yaw_rate_max_dps = 6
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import tomllib
+from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
+
+import numpy as np
+
+from firmware_py.frames import StorageFrame
+from ground.report import ReportOptions, survey_from_samples
+from ground.surface import EMPTY_CELL_POLICIES, fill_empty, grid_volume, reconstructed_ratio_pct, volume_error_pct
+from sitl.batch_sampler import NoiseSpec, sample_flight
+from sitl.flight import PAYLOAD_1D_KG, FlownMission, fly_mission
+from sitl.ideal_plant import IdealPlant
+from sitl.mission import TURN_MODES, Mission
+from sitl.raycast import World
+from sitl.run import PLANTS, FlyConfig, log_header
+from sitl.stockpile import paper_pile
+from tools.sweep import Case, cached
+
+SWEEP_VERSION = "2"
+"""Part of every case and flight cache key: bump it when the simulation changes what a case computes
+(the cache cannot see code). 2: the autopilot flies towards the target through corners."""
+P_TRAJ_PCT = (5, 10, 15, 20, 25, 30)
+PILES = ("1", "2")
+N_POSITIONS = 20
+SENSORS = ("1d", "2d", "3d")
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """One configuration of the paper's Sec. 4 (defaults: the baseline of Table 1)."""
+
+    name: str
+    figure: str = ""
+    sensor: str = "1d"
+    waveform: str = "semi-triangular"
+    speed_m_s: float = 1.0
+    yaw_rate_max_dps: float = 30.0
+    turn: str = "one-step"
+    noise_draws: int = 0
+    plant: str = "jsbsim"
+
+    def __post_init__(self) -> None:
+        if not self.name or not self.name.replace("-", "").replace("_", "").replace(".", "").isalnum():
+            raise ValueError(f"experiment name must be letters, digits, '-', '_' or '.', got {self.name!r}")
+        if self.sensor not in SENSORS:
+            raise ValueError(f"experiment {self.name}: sensor must be one of {', '.join(SENSORS)}, got {self.sensor!r}")
+        if self.turn not in TURN_MODES:
+            raise ValueError(f"experiment {self.name}: turn must be one of {', '.join(TURN_MODES)}, got {self.turn!r}")
+        if not (isinstance(self.noise_draws, int) and 0 <= self.noise_draws <= 1000):
+            raise ValueError(f"experiment {self.name}: noise_draws must be 0-1000, got {self.noise_draws!r}")
+        if self.plant not in PLANTS:
+            raise ValueError(f"experiment {self.name}: plant must be one of {', '.join(PLANTS)}, got {self.plant!r}")
+        if self.noise_draws and self.sensor != "1d":
+            raise ValueError(f"experiment {self.name}: noise draws are for the 1D LiDAR (Appendix A)")
+        self.mission(5)  # speed, yaw rate: validated by Mission
+        FlyConfig(waveform=self.waveform)  # the waveform name
+
+    @property
+    def payload_kg(self) -> float:
+        """The sensor's mass (Sec. 4.5: 40 g, 370 g, 830 g)."""
+        if self.sensor == "1d":
+            return PAYLOAD_1D_KG
+        from sitl.scanners import HOKUYO_UTM_30LX, VELODYNE_PUCK_LITE
+        return (HOKUYO_UTM_30LX if self.sensor == "2d" else VELODYNE_PUCK_LITE).payload_kg
+
+    def mission(self, p_traj_pct: float) -> Mission:
+        return Mission(p_traj=p_traj_pct / 100.0, speed_m_s=self.speed_m_s, turn=self.turn,
+                       yaw_rate_max_rad_s=math.radians(self.yaw_rate_max_dps))
+
+    def flight_key(self, p_traj_pct: float) -> str:
+        """What the flight depends on (not the pile, the waveform or the noise)."""
+        return (f"flight-v{SWEEP_VERSION}-{self.plant}-p{p_traj_pct:g}-v{self.speed_m_s:g}-yaw{self.yaw_rate_max_dps:g}"
+                f"-{self.turn}-m{self.payload_kg:g}")
+
+
+PAPER_EXPERIMENTS: tuple[Experiment, ...] = (
+    Experiment("baseline", "Fig. 11, 19, 20; Table 2"),
+    Experiment("sinusoidal", "Fig. 13", waveform="sinusoidal"),
+    Experiment("speed-0.5", "Fig. 14", speed_m_s=0.5),
+    Experiment("speed-2", "Fig. 14", speed_m_s=2.0),
+    Experiment("two-step", "Fig. 16", turn="two-step"),
+    Experiment("yaw-17", "Fig. 17, 18", yaw_rate_max_dps=17.0),
+    Experiment("yaw-6", "Fig. 17, 18; Table 2", yaw_rate_max_dps=6.0),
+    Experiment("yaw-1", "Fig. 17, 18; Table 2", yaw_rate_max_dps=1.0),
+    Experiment("2d", "Fig. 22, 23; Table 2", sensor="2d"),
+    Experiment("3d", "Fig. 22, 23; Table 2", sensor="3d"),
+)
+"""What `python -m tools.reproduce` runs by default: every configuration of Table 2 and Sec. 4."""
+
+NOISE_EXPERIMENT = Experiment("noise", "Fig. A1", noise_draws=20)
+"""Appendix A: 20 noise draws for each servo position (400 surveys a point): run on request."""
+
+IDEAL_EXPERIMENT = Experiment("baseline-ideal", "Fig. 11 (ideal plant)", plant="ideal")
+"""The baseline flown by the kinematic plant (no flight dynamics): what the autopilot costs."""
+
+ALL_EXPERIMENTS = {e.name: e for e in (*PAPER_EXPERIMENTS, NOISE_EXPERIMENT, IDEAL_EXPERIMENT)}
+
+
+def load_experiments(path: str | Path) -> list[Experiment]:
+    """Experiments from a TOML file ([[experiment]] tables with Experiment's fields)."""
+    try:
+        data = tomllib.loads(Path(path).read_text())
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"cannot read experiments from {path}: {exc}") from None
+    tables = data.get("experiment")
+    if not isinstance(tables, list) or not tables or not all(isinstance(t, dict) for t in tables):
+        raise ValueError(f"{path}: expected one or more [[experiment]] tables")
+    known = {f.name for f in fields(Experiment)}
+    out = []
+    for t in tables:
+        unknown = sorted(set(t) - known)
+        if unknown:
+            raise ValueError(f"{path}: unknown experiment field(s) {', '.join(unknown)} "
+                             f"(known: {', '.join(sorted(known))})")
+        try:
+            out.append(Experiment(**t))
+        except TypeError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+    names = [e.name for e in out]
+    if len(set(names)) != len(names):
+        raise ValueError(f"{path}: experiment names must be unique")
+    return out
+
+
+def cases_for(experiments: list[Experiment], piles=PILES, p_traj_pct=P_TRAJ_PCT,
+              positions: int = N_POSITIONS) -> list[Case]:
+    """One case per (experiment, pile, P_traj), the experiment's fields in the case (so the cache key
+    changes when a configuration does). `positions` < 20 takes that many, spread
+    over the 20 (`servo_positions`), for a quick look."""
+    if not 1 <= positions <= N_POSITIONS:
+        raise ValueError(f"servo positions must be 1-{N_POSITIONS}, got {positions}")
+    return [Case.make(e.name, pile=pile, p_traj_pct=float(p), positions=positions, version=SWEEP_VERSION, **asdict(e))
+            for e in experiments for pile in piles for p in p_traj_pct]
+
+
+def servo_positions(n: int) -> list[int]:
+    """n of the 20 initial positions, evenly spread (2 -> the same phase in both directions)."""
+    return [round(i * N_POSITIONS / n) for i in range(n)]
+
+
+def experiment_of(case: Case) -> Experiment:
+    return Experiment(**{f.name: case.get(f.name) for f in fields(Experiment)})
+
+
+# ----- running one case --------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class _IdealFlight:
+    """The ideal plant's flight with FlownMission's interface (no energy: it has no motors)."""
+
+    mission: Mission
+
+    @property
+    def _plant(self) -> IdealPlant:
+        return IdealPlant(self.mission, StorageFrame())
+
+    @property
+    def duration_s(self) -> float:
+        return self._plant.duration_s
+
+    def trajectory_at(self, t_s: np.ndarray):
+        return self._plant.states(t_s)
+
+    energy_j = None
+    completed = True
+
+
+def _flight(e: Experiment, p_pct: float, cache_dir: Path) -> FlownMission | _IdealFlight:
+    cfg = FlyConfig(mission=e.mission(p_pct))
+    if e.plant == "ideal":
+        return _IdealFlight(cfg.mission)
+    return cached(cache_dir, e.flight_key(p_pct),
+                  lambda: fly_mission(cfg.mission, cfg.frame, payload_kg=e.payload_kg))
+
+
+def run_case(case: Case, cache_dir: str | Path = "runs/sweep-cache") -> list[dict]:
+    """Rows of one case: one per servo position (and noise draw) for the 1D LiDAR, one for 2D/3D.
+    Flights are cached under cache_dir (give workers a shared directory)."""
+    cache_dir = Path(cache_dir)
+    e = experiment_of(case)
+    pile_name, p_pct = case.get("pile"), case.get("p_traj_pct")
+    t0 = time.perf_counter()
+    flown = _flight(e, p_pct, cache_dir)
+    if not flown.completed:
+        raise RuntimeError(f"{e.name}, P_traj {p_pct} %: the vehicle did not complete the mission")
+    base = FlyConfig(mission=e.mission(p_pct), stockpile=pile_name, waveform=e.waveform)
+    storage = base.mission.storage
+    pile = paper_pile(pile_name, storage)
+    common = {"energy_j": flown.energy_j, "flight_s": flown.duration_s, "true_volume_m3": pile.volume_m3}
+    if e.sensor != "1d":
+        rows = [_scanner_row(e, flown, base, pile)]
+    else:
+        world = World(storage, pile, base.lidar.max_range_m)
+        t = np.arange(int(flown.duration_s * base.lidar.rate_hz) + 1) / base.lidar.rate_hz
+        traj = flown.trajectory_at(t)
+        rows = []
+        for k in servo_positions(case.get("positions", N_POSITIONS)):
+            cfg = replace(base, initial_position=k)
+            wf = cfg.servo_waveform()
+            for draw in range(max(1, e.noise_draws)):
+                noise = NoiseSpec() if e.noise_draws else None
+                rng = np.random.default_rng([int(p_pct), int(pile_name), k, draw]) if noise else None
+                samples = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame, noise=noise,
+                                        rng=rng)
+                header = log_header(cfg, wf)
+                if noise is not None:  # the ground station widens its wall tolerance by the pose noise
+                    header = {**header, "pose": {"position_sigma_m": noise.position_sigma_m}}
+                sv = survey_from_samples(samples, header, storage, cfg.frame, np.array(cfg.lever_arm_body_m),
+                                         ReportOptions(plots=False))
+                rows.append({"position": k, "draw": draw, **_metrics(sv, pile.volume_m3),
+                             "n_points": len(sv.pile_points_w)})
+    elapsed = time.perf_counter() - t0
+    return [{**r, **common, "case_s": elapsed / len(rows)} for r in rows]
+
+
+def _metrics(sv, true_m3: float) -> dict:
+    out = {f"ve_{pol}_pct": volume_error_pct(grid_volume(fill_empty(sv.heights_fit, pol), sv.grid), true_m3)
+           for pol in EMPTY_CELL_POLICIES}
+    out["ra_pct"] = reconstructed_ratio_pct(sv.heights_fit)
+    out["cells_clipped"] = sv.n_cells_clipped
+    return out
+
+
+def _scanner_row(e: Experiment, flown: FlownMission, base: FlyConfig, pile) -> dict:
+    """One 2D/3D survey: the scan streamed in chunks into the ground station's fixed-size bins."""
+    from ground.binning import HeightBinner, survey_from_points
+    from ground.pointcloud import SensorErrorModel
+    from sitl.scanners import HOKUYO_UTM_30LX, VELODYNE_PUCK_LITE, scan_flight
+
+    spec = HOKUYO_UTM_30LX if e.sensor == "2d" else VELODYNE_PUCK_LITE
+    storage = base.mission.storage
+    world = World(storage, pile, spec.max_range_m)
+    binner = HeightBinner(storage, SensorErrorModel(range_sigma_m=spec.range_sigma_m))
+    n = 0
+    for chunk in scan_flight(flown.trajectory_at, flown.duration_s, spec, world, base.lever_arm_body_m, base.frame):
+        binner.add(chunk.points_w, chunk.range_m, chunk.dirs_w)
+        n += len(chunk.range_m)
+    sv = survey_from_points(binner, storage, ReportOptions(plots=False))
+    return {"position": -1, "draw": 0, **_metrics(sv, pile.volume_m3), "n_points": n}
