@@ -268,6 +268,13 @@ class SampleLogWriter:
             self._file.close()
             self._file = None
 
+    def abandon(self) -> None:
+        """Close without writing the buffered records: exactly what a power cut leaves (the blocks
+        already written stay). For fault injection and tests."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
     def __enter__(self) -> SampleLogWriter:
         return self
 

@@ -15,6 +15,7 @@ import numpy as np
 from firmware_py.frames import StorageFrame, beam_rays_w
 from firmware_py.samplelog import EXCLUDE_FROM_CLOUD
 from firmware_py.storage import Storage
+from firmware_py.sweep_check import stuck_sweep_mask
 
 N_SIGMA = 3.0
 """Points within N_SIGMA expected errors of a wall or roof plane are taken as structure."""
@@ -59,23 +60,35 @@ class Cloud:
     path_w: np.ndarray
     n_samples: int
     n_excluded: int
+    n_servo_suspect: int = 0  # of n_excluded: in sweep periods whose ranges show a stuck servo
+    sweep_dir: np.ndarray | None = None  # (N,) +1 / -1 per point: which way the servo was sweeping
 
 
-def cloud_from_samples(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame) -> Cloud:
-    """Eqs. (3)-(6) for every usable sample (flags clear of EXCLUDE_FROM_CLOUD, all fields finite)."""
+def cloud_from_samples(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame,
+                       sweep_period_s: float | None = None) -> Cloud:
+    """Eqs. (3)-(6) for every usable sample (flags clear of EXCLUDE_FROM_CLOUD, all fields finite).
+
+    With the servo's sweep period, samples in periods where the ranges do not move like a swept
+    beam's (a stuck servo: `firmware_py.sweep_check`) are excluded too: their angles are wrong.
+    """
     pos = np.column_stack([samples["x_m"], samples["y_m"], samples["z_m"]]).astype(float)
     fields = [samples[k].astype(float) for k in ("roll_rad", "pitch_rad", "yaw_rad", "servo_rad", "range_m")]
     finite = np.isfinite(pos).all(axis=1) & np.logical_and.reduce([np.isfinite(f) for f in fields])
     usable = finite & ((samples["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0) & (samples["range_m"] > 0)
+    suspect = np.zeros(len(samples), dtype=bool)
+    if sweep_period_s is not None and len(samples):
+        suspect = stuck_sweep_mask(samples["t_s"], samples["range_m"], usable, sweep_period_s)
+        usable &= ~suspect
     roll, pitch, yaw, gamma, rng = (f[usable] for f in fields)
     origins, dirs = beam_rays_w(pos[usable], roll, pitch, yaw, gamma, lever_arm_body_m, frame)
     path = frame.ned_to_w(pos[np.isfinite(pos).all(axis=1)])
     return Cloud(origins + dirs * rng[:, None], dirs, rng, path, len(samples),
-                 int(len(samples) - usable.sum()))
+                 int(len(samples) - usable.sum()), int(suspect.sum()), samples["sweep_dir"][usable])
 
 
 def structure_mask(cloud: Cloud, storage: Storage, err: SensorErrorModel) -> np.ndarray:
-    """True for points on a wall or the roof (or outside the building, which only noise puts there).
+    """True for points on a wall or the roof, or outside the building (below the floor included), which
+    only noise or a sensor glitch puts there.
 
     A point's tolerance along a plane normal n is its range error projected on n,
     N_SIGMA * sigma_r(r) * |d . n| plus half the range resolution, plus N_SIGMA position sigmas.
@@ -88,4 +101,5 @@ def structure_mask(cloud: Cloud, storage: Storage, err: SensorErrorModel) -> np.
     tol_z = along * np.abs(d[:, 2]) + slack
     return ((p[:, 0] <= tol_x) | (p[:, 0] >= storage.length_m - tol_x)
             | (p[:, 1] <= tol_y) | (p[:, 1] >= storage.width_m - tol_y)
-            | (p[:, 2] >= storage.height_m - tol_z))
+            | (p[:, 2] >= storage.height_m - tol_z)
+            | (p[:, 2] < -tol_z))  # under the floor: a reading no beam could give (a glitch)

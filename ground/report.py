@@ -15,6 +15,7 @@ from firmware_py.cli_util import UserError
 from firmware_py.frames import StorageFrame
 from firmware_py.samplelog import SampleLog, read_samplelog
 from firmware_py.storage import Storage
+from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask
 from ground.surface import (
     DEFAULT_CELL_M,
@@ -54,6 +55,7 @@ class Survey:
     counts: np.ndarray
     storage: Storage
     n_cells_clipped: int = 0  # cells whose fit left the building (see surface.clip_to_building)
+    sweep_disagreement_m: float | None = None  # ground.consistency: rising vs falling sweeps
 
 
 def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
@@ -101,16 +103,28 @@ def header_geometry(log: SampleLog, path: Path) -> tuple[Storage, StorageFrame, 
     return storage, frame, lever
 
 
+def _sweep_period_s(header: dict) -> float | None:
+    """The servo's sweep period from the log header (None: unknown, no stuck-servo check)."""
+    try:
+        f = float((header.get("servo") or {})["frequency_hz"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    return 1.0 / f if np.isfinite(f) and f > 0 else None
+
+
 def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
                         lever: np.ndarray, opts: ReportOptions) -> Survey:
     """The computation, free of file handling (sweeps call it on samples that never touch disk)."""
-    cloud = cloud_from_samples(samples, lever, frame)
+    cloud = cloud_from_samples(samples, lever, frame, sweep_period_s=_sweep_period_s(header))
     structure = structure_mask(cloud, storage, SensorErrorModel.from_header(header))
     pile = cloud.points_w[~structure]
     grid = Grid(storage.length_m, storage.width_m, opts.cell_m)
     fit, n_clipped = clip_to_building(fit_heights(pile, grid), storage.height_m)
+    disagreement = None
+    if cloud.sweep_dir is not None:
+        disagreement, _ = sweep_disagreement_m(pile, cloud.sweep_dir[~structure], grid)
     return Survey(cloud, pile, grid, fit, fill_empty(fit, opts.empty_cells), grid.counts(pile), storage,
-                  n_clipped)
+                  n_clipped, disagreement)
 
 
 def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: float | None) -> dict:
@@ -131,6 +145,13 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
                         f"only {ra:.1f} % of the floor is reconstructed (R_a); the rest is extrapolated")
     if len(survey.pile_points_w) < 3:
         warnings.append("fewer than 3 points on the stockpile: no surface could be fitted")
+    if survey.cloud.n_servo_suspect:
+        warnings.append(f"{survey.cloud.n_servo_suspect} samples left out: in those sweep periods the ranges did not "
+                        "move like a swept beam's (servo stuck or slow?)")
+    if survey.sweep_disagreement_m is not None and survey.sweep_disagreement_m > MAX_SWEEP_DISAGREEMENT_M:
+        warnings.append(f"the two sweep directions disagree by {survey.sweep_disagreement_m:.2f} m (median per cell): "
+                        "the servo's angles are wrong (slower or laggier than its calibration?); do not trust "
+                        "this volume")
     if survey.n_cells_clipped:
         warnings.append(f"the fitted surface left the building in {survey.n_cells_clipped} cells (clipped to the "
                         "floor and roof): points contradict each other there, e.g. a LiDAR buried in the pile")
@@ -147,6 +168,8 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "cell_area_m2": g.cell_area_m2,
         "empty_cell_policy": opts.empty_cells,
         "n_cells_clipped": survey.n_cells_clipped,
+        "n_samples_servo_suspect": survey.cloud.n_servo_suspect,
+        "sweep_disagreement_m": survey.sweep_disagreement_m,
         "uncovered_area_m2": float((~np.isfinite(survey.heights_fit)).sum() * g.cell_area_m2),
         "storage": survey.storage.to_dict(),
         "mission_id": (log.header or {}).get("mission_id"),

@@ -160,6 +160,10 @@ class _ServerSide:
         pass
 
 
+class _PowerCut(Exception):
+    """Raised from the loop's hook: the payload loses power mid-flight."""
+
+
 @dataclass(frozen=True)
 class FirmwareRun:
     """What a firmware-in-the-loop flight produced."""
@@ -173,14 +177,17 @@ class FirmwareRun:
     pose_status: dict
     true_t_s: np.ndarray  # the vehicle's true flight, companion seconds
     true_states: np.ndarray  # (N, 12) as JsbsimVehicle.raw_state
+    faults: dict | None = None  # what the fault injector did (counters), when faults were injected
 
 
 def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = (0.0, 0.0),
-                 boot_offset_s: float = 1234.5, tlog_path=None, seed: int = 0) -> FirmwareRun:
+                 boot_offset_s: float = 1234.5, tlog_path=None, seed: int = 0, faults=None) -> FirmwareRun:
     """Fly `cfg` (a sitl.run.FlyConfig) with the unchanged payload firmware in the loop.
 
     The vehicle settles on W0, the payload starts, waits for its time sync to converge, the
     survey flies; the payload logs every sample to log_path until the vehicle is back on W0.
+    `faults` (a sitl.faults.FaultSpec) injects link, sensor, servo and power faults; a power cut
+    ends the run there, leaving the log as the cut leaves it.
     """
     from firmware_py.drivers.lidarlite import PRESET_FAST_500HZ, LidarLite, LidarLiteConfig, busy_deadline_ns
     from firmware_py.drivers.servo import ServoCalibration, SweepServo
@@ -192,6 +199,7 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     from sitl.devices.i2c_sim import SimI2CBus
     from sitl.devices.lidarlite_emu import EmulatedLidarLite
     from sitl.devices.servo_emu import EmulatedServo
+    from sitl.faults import FaultInjector, FaultSpec
     from sitl.flight import SETTLE_S, mission_nav_items, start_pose
     from sitl.jsbsim_plant import PlantConfig
     from sitl.jsbsim_vehicle import VehicleConfig
@@ -211,13 +219,18 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     clock = SimClock(start_ns=round(boot_offset_s * 1e9))
     sim = SimWorld(vehicle, world, cfg.frame, clock, boot_offset_ns=round(boot_offset_s * 1e9),
                    lever_arm_body_m=cfg.lever_arm_body_m, latency_ns=latency, tlog_path=tlog_path)
+    inj = FaultInjector(faults or FaultSpec())
+    down, up = inj.link(sim._down.send_at), inj.link(sim._up.send_at)
+    sim._down.send_at, sim._up.send_at = down.send_at, up.send_at
     wf = cfg.servo_waveform()
     cal = ServoCalibration()
     t0_ns = clock.now_ns()
     plant = EmulatedServo(clock, cal, angle0_rad=float(wf.angle(0.0)))
     sim.servo_angle_at = plant.angle_at
     bus = SimI2CBus(clock)
-    bus.attach(0x62, EmulatedLidarLite(clock, sim.true_range_m))
+    part = EmulatedLidarLite(clock, inj.range_at(sim.true_range_m))
+    bus.attach(0x62, part)
+    inj.attach(bus, part, plant)
     lidar = LidarLite(bus, clock, LidarLiteConfig(
         preset=PRESET_FAST_500HZ, busy_timeout_ns=busy_deadline_ns(PRESET_FAST_500HZ, cfg.lidar.rate_hz)))
     link = ByteStreamLink(sim.payload_send, sim.payload_recv)
@@ -232,16 +245,33 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
         tracker.pump()
     vehicle.load_mission(mission_nav_items(m, cfg.frame))
     vehicle.start_mission()
+    inj.start_survey(clock.now_ns())
     e0, ts0 = vehicle.plant.energy_j, vehicle.state().t_s
     log_path = str(log_path)
-    with SampleLogWriter(log_path, header, records_per_block=500, fsync=False, overwrite=True) as log:
-        loop = PayloadLoop(lidar, servo, tracker, clock, log, LoopConfig(rate_hz=cfg.lidar.rate_hz), t0_ns=t0_ns)
-        timeout_s = 3 * (m.path_length_m() / m.speed_m_s + 2 * math.pi / m.yaw_rate_max_rad_s) + 60
-        stats = loop.run(duration_s=SETTLE_S + timeout_s, should_stop=lambda: vehicle.mode != FlightMode.AUTO)
+    log = SampleLogWriter(log_path, header, records_per_block=500, fsync=False, overwrite=True)
+    loop = PayloadLoop(lidar, servo, tracker, clock, log, LoopConfig(rate_hz=cfg.lidar.rate_hz), t0_ns=t0_ns)
+    timeout_s = 3 * (m.path_length_m() / m.speed_m_s + 2 * math.pi / m.yaw_rate_max_rad_s) + 60
+
+    def should_stop() -> bool:
+        now = clock.now_ns()
+        inj.tick(now)
+        if inj.power_cut_due(now):
+            raise _PowerCut
+        return vehicle.mode != FlightMode.AUTO
+
+    cut = False
+    try:
+        stats = loop.run(duration_s=SETTLE_S + timeout_s, should_stop=should_stop)
+        log.close()
+    except _PowerCut:
+        log.abandon()  # what was written stays; the buffered block is lost, as on the drone
+        stats, cut = loop.stats, True
     sim.server.close()
     status = tracker.status() if hasattr(tracker, "status") else {}
     true_t = np.array([t for t, _ in sim.history]) + boot_offset_s
     true_s = np.array([st for _, st in sim.history])
     return FirmwareRun(read_samplelog(log_path).samples, vehicle.state().t_s - ts0, vehicle.plant.energy_j - e0,
-                       vehicle.mode != FlightMode.AUTO and vehicle.current_item() == -1, stats,
-                       dict(lidar.counters), status, true_t, true_s)
+                       not cut and vehicle.mode != FlightMode.AUTO and vehicle.current_item() == -1, stats,
+                       dict(lidar.counters), status, true_t, true_s,
+                       {"link_down": down.counters, "link_up": up.counters, **inj.counters,
+                        "i2c_nacks": bus.counters["nack"], "power_cut": cut, "loop": stats})

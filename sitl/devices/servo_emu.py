@@ -20,6 +20,7 @@ class EmulatedServo:
         self._t_ns = clock.now_ns()
         self._target = angle0_rad
         self.enabled = True
+        self.stuck = False  # a fault: the shaft no longer moves (pulses still arrive)
         self.pulses = 0
 
     def set_pulse_us(self, pulse_us: float) -> None:
@@ -39,7 +40,7 @@ class EmulatedServo:
     def angle_at(self, t_ns: int) -> float:
         """Shaft angle at t_ns (not before the last query: the plant moves forward only)."""
         if t_ns > self._t_ns:
-            if self.enabled:
+            if self.enabled and not self.stuck:
                 self.model.advance((t_ns - self._t_ns) * 1e-9, self._target)
             self._t_ns = t_ns
         return self.model.angle_rad

@@ -1,0 +1,52 @@
+"""Is the servo really sweeping? A hobby servo has no position feedback, but the ranges tell.
+
+A fixed beam's range changes only as fast as the vehicle moves it (about the flight speed, a few
+m/s at most, apart from jumps at edges). A beam swept at the paper's 5 rad/s changes range at
+r·tan(incidence)·5 rad/s: tens of m/s at 12 m for most of the sweep. So, per sweep period, the
+median rate of range change over 50 ms steps separates the two by an order of magnitude: below
+`MIN_SWEEP_RANGE_RATE_M_S` the servo is stuck (or the beam blocked) and the angles logged for that
+period cannot be vouched for. 50 ms steps keep 1 cm quantisation and 2.5 cm noise (~1 m/s) far
+below the threshold.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+MIN_SWEEP_RANGE_RATE_M_S = 5.0
+"""Median |dr/dt| below this over a sweep period: not sweeping (see the module docstring)."""
+LAG_S = 0.05
+MIN_SAMPLES = 20
+
+
+def stuck_sweep_mask(t_s: np.ndarray, range_m: np.ndarray, usable: np.ndarray, period_s: float,
+                     min_rate_m_s: float = MIN_SWEEP_RANGE_RATE_M_S, lag_s: float = LAG_S) -> np.ndarray:
+    """True for usable samples in sweep periods whose ranges do not move like a swept beam's.
+
+    Periods with fewer than MIN_SAMPLES usable samples, or spanning less than 3/4 of a period, are
+    not judged (False).
+    """
+    t = np.asarray(t_s, dtype=float)
+    r = np.asarray(range_m, dtype=float)
+    ok = np.asarray(usable, dtype=bool) & np.isfinite(t) & np.isfinite(r)
+    out = np.zeros(len(t), dtype=bool)
+    idx = np.flatnonzero(ok)
+    if len(idx) < MIN_SAMPLES or not (np.isfinite(period_s) and period_s > 0):
+        return out
+    tu, ru = t[idx], r[idx]
+    # rate over ~lag_s: compare each sample with the first one at least lag_s later
+    j = np.searchsorted(tu, tu + lag_s)
+    has = j < len(tu)
+    rate = np.full(len(tu), np.nan)
+    rate[has] = np.abs(ru[j[has]] - ru[has]) / np.maximum(tu[j[has]] - tu[has], 1e-9)
+    window = np.floor((tu - tu[0]) / period_s).astype(np.int64)
+    for w in np.unique(window):
+        sel = window == w
+        vals = rate[sel]
+        vals = vals[np.isfinite(vals)]
+        span = tu[sel][-1] - tu[sel][0]
+        # Only whole periods are judged: a piece of one can sit in the dwell at a sweep's end, where
+        # even a working servo barely moves the beam.
+        if span >= 0.75 * period_s and len(vals) >= MIN_SAMPLES and np.median(vals) < min_rate_m_s:
+            out[idx[sel]] = True
+    return out

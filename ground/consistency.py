@@ -1,0 +1,39 @@
+"""Do the two sweep directions see the same surface? The check that catches a wrong servo model.
+
+A hobby servo has no feedback: the angle logged with each sample is the firmware's model of the
+shaft. If the real servo is slower than its calibration (or lags more), the model is wrong in
+opposite senses on the two sweep directions (the shaft trails the command one way, then the
+other), so the points of the rising and the falling sweeps land at different heights. With a good
+model they agree to a few centimetres (the cells' own sampling); the median disagreement per cell
+is the measure, and above `MAX_SWEEP_DISAGREEMENT_M` the report says the angles cannot be trusted.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ground.surface import Grid
+
+MAX_SWEEP_DISAGREEMENT_M = 0.3
+"""Ten times what a correct model shows with 1 cm ranges, three times Appendix A's pose noise."""
+MIN_POINTS_PER_CELL = 3
+MIN_CELLS = 20
+
+
+def sweep_disagreement_m(points_w: np.ndarray, sweep_dir: np.ndarray, grid: Grid) -> tuple[float | None, int]:
+    """(median |mean z of rising-sweep points - mean z of falling-sweep points| over cells with
+    MIN_POINTS_PER_CELL of each, number of such cells); None when fewer than MIN_CELLS compare."""
+    p = np.asarray(points_w, dtype=float)
+    d = np.asarray(sweep_dir)
+    sums = []
+    for direction in (1, -1):
+        q = p[d == direction]
+        cnt, _, _ = np.histogram2d(q[:, 0], q[:, 1], bins=(grid.x_edges, grid.y_edges))
+        zs, _, _ = np.histogram2d(q[:, 0], q[:, 1], bins=(grid.x_edges, grid.y_edges), weights=q[:, 2])
+        sums.append((cnt, zs))
+    (c1, z1), (c2, z2) = sums
+    both = (c1 >= MIN_POINTS_PER_CELL) & (c2 >= MIN_POINTS_PER_CELL)
+    n = int(both.sum())
+    if n < MIN_CELLS:
+        return None, n
+    return float(np.median(np.abs(z1[both] / c1[both] - z2[both] / c2[both]))), n

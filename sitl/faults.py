@@ -1,0 +1,214 @@
+"""Fault injection for firmware-in-the-loop runs: what real flights break, on the simulated clock.
+
+Modelled on ArduPilot's `SIM_*` parameters: every fault is a setting of `FaultSpec`, driven by
+simulated time (seconds from the start of the survey) and one seed, so a (spec, seed) pair replays
+exactly. `FaultInjector` applies a spec to the lockstep SITL's parts (`sitl.payload_runner`):
+
+- MAVLink link, both directions: packet loss, duplication, reordering, an outage window (added
+  latency and jitter are the runner's `latency_ms`);
+- the LIDAR-Lite: I2C NACK rate, stuck busy for a window, a power glitch (registers back to their
+  power-on values), garbage reads, and glitch readings (a spurious maximum range or 1 cm);
+- the servo: stuck at some instant (the shaft stops; pulses keep going out), slow (the real servo
+  slews slower than its calibration says);
+- the payload process: a power cut at some instant (the log keeps what was written by then).
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, fields, replace
+
+import numpy as np
+
+GLITCH_RANGE_M = 40.0
+"""A glitch "maximum range" reading: the LIDAR-Lite's rated range, whatever the beam points at."""
+
+
+def _window(name: str, w: tuple[float, float] | None) -> None:
+    if w is None:
+        return
+    if len(w) != 2 or not all(math.isfinite(v) for v in w) or w[0] < 0 or w[1] <= 0:
+        raise ValueError(f"fault {name} must be (start s >= 0, duration s > 0), got {w!r}")
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    """One run's faults (all off by default). Times are seconds from the start of the survey."""
+
+    seed: int = 0
+    link_loss_pct: float = 0.0
+    link_dup_pct: float = 0.0
+    link_reorder_pct: float = 0.0
+    link_outage: tuple[float, float] | None = None
+    i2c_nack_pct: float = 0.0
+    lidar_stuck_busy: tuple[float, float] | None = None
+    lidar_power_glitch_at_s: float | None = None
+    lidar_garbage_pct: float = 0.0
+    lidar_glitch_pct: float = 0.0
+    servo_stuck_at_s: float | None = None
+    servo_slow_factor: float = 1.0
+    power_cut_at_s: float | None = None
+
+    def __post_init__(self) -> None:
+        for f in ("link_loss_pct", "link_dup_pct", "link_reorder_pct", "i2c_nack_pct", "lidar_garbage_pct",
+                  "lidar_glitch_pct"):
+            v = getattr(self, f)
+            if not (isinstance(v, int | float) and math.isfinite(v) and 0.0 <= v <= 100.0):
+                raise ValueError(f"fault {f} must be a percentage 0-100, got {v!r}")
+        _window("link_outage", self.link_outage)
+        _window("lidar_stuck_busy", self.lidar_stuck_busy)
+        for f in ("lidar_power_glitch_at_s", "servo_stuck_at_s", "power_cut_at_s"):
+            v = getattr(self, f)
+            if v is not None and not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"fault {f} must be a time >= 0 s, got {v!r}")
+        if not (math.isfinite(self.servo_slow_factor) and 0.05 <= self.servo_slow_factor <= 1.0):
+            raise ValueError(f"fault servo_slow_factor must be in [0.05, 1] (1 = as calibrated), "
+                             f"got {self.servo_slow_factor!r}")
+
+    @property
+    def active(self) -> list[str]:
+        """The faults this spec turns on (for tables and logs)."""
+        default = FaultSpec()
+        return [f.name for f in fields(self) if f.name != "seed" and getattr(self, f.name) != getattr(default, f.name)]
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class FaultyLink:
+    """One direction of the MAVLink link, packet by packet: loss, duplication, reordering, outage.
+
+    Wraps a `send_at(t_ns, data)` (the runner's delayed pipe); `survey_t0_ns` maps fault windows.
+    """
+
+    def __init__(self, send_at: Callable[[int, bytes], None], spec: FaultSpec, rng: np.random.Generator,
+                 survey_t0_ns: Callable[[], int | None]) -> None:
+        self._send_at, self.spec, self.rng, self._t0 = send_at, spec, rng, survey_t0_ns
+        self._held: collections.deque[bytes] = collections.deque()
+        self.counters = dict.fromkeys(("packets", "lost", "duplicated", "reordered", "outage_lost"), 0)
+
+    def _in_outage(self, t_ns: int) -> bool:
+        t0, w = self._t0(), self.spec.link_outage
+        if t0 is None or w is None:
+            return False
+        t = (t_ns - t0) / 1e9
+        return w[0] <= t < w[0] + w[1]
+
+    def send_at(self, t_ns: int, data: bytes) -> None:
+        self.counters["packets"] += 1
+        s, r = self.spec, self.rng
+        if self._in_outage(t_ns):
+            self.counters["outage_lost"] += 1
+            return
+        if s.link_loss_pct and r.random() * 100 < s.link_loss_pct:
+            self.counters["lost"] += 1
+            return
+        if s.link_reorder_pct and not self._held and r.random() * 100 < s.link_reorder_pct:
+            self._held.append(data)  # goes out after the next packet
+            self.counters["reordered"] += 1
+            return
+        self._send_at(t_ns, data)
+        while self._held:
+            self._send_at(t_ns, self._held.popleft())
+        if s.link_dup_pct and r.random() * 100 < s.link_dup_pct:
+            self._send_at(t_ns, data)
+            self.counters["duplicated"] += 1
+
+
+class FaultInjector:
+    """Applies a FaultSpec to one lockstep run; `tick(now_ns)` fires the timed faults."""
+
+    def __init__(self, spec: FaultSpec) -> None:
+        self.spec = spec
+        self.rng = np.random.default_rng(spec.seed)
+        self.survey_t0_ns: int | None = None
+        self.counters: dict[str, int] = dict.fromkeys(("lidar_glitches", "power_glitches", "servo_stuck"), 0)
+        self._lidar = self._bus = self._servo = None
+        self._stuck_done = self._glitch_done = self._servo_done = False
+
+    # -- wiring -------------------------------------------------------------------------------------
+    def link(self, send_at: Callable[[int, bytes], None]) -> FaultyLink:
+        return FaultyLink(send_at, self.spec, np.random.default_rng(self.rng.integers(2**63)),
+                          lambda: self.survey_t0_ns)
+
+    def range_at(self, true_range_at: Callable[[int], float | None]) -> Callable[[int], float | None]:
+        """The emulator's view of the world, with glitch readings mixed in."""
+        p = self.spec.lidar_glitch_pct / 100.0
+        if p <= 0:
+            return true_range_at
+        rng = np.random.default_rng(self.rng.integers(2**63))
+
+        def glitchy(t_ns: int) -> float | None:
+            if rng.random() < p:
+                self.counters["lidar_glitches"] += 1
+                return GLITCH_RANGE_M if rng.random() < 0.5 else 0.01
+            return true_range_at(t_ns)
+        return glitchy
+
+    def attach(self, bus, lidar, servo) -> None:
+        """The simulated I2C bus, the emulated LIDAR-Lite and the emulated servo of the run."""
+        self._bus, self._lidar, self._servo = bus, lidar, servo
+        if self.spec.i2c_nack_pct:
+            bus.rng = np.random.default_rng(self.rng.integers(2**63))
+            bus.nack_probability = self.spec.i2c_nack_pct / 100.0
+        if self.spec.lidar_garbage_pct:
+            lidar.rng = np.random.default_rng(self.rng.integers(2**63))
+            lidar.garbage_reads = self.spec.lidar_garbage_pct / 100.0
+        if self.spec.servo_slow_factor != 1.0:
+            slow = replace(servo.cal, slew_rad_s=servo.cal.slew_rad_s * self.spec.servo_slow_factor)
+            servo.cal = slow
+            servo.model.cal = slow
+
+    def start_survey(self, now_ns: int) -> None:
+        self.survey_t0_ns = now_ns
+
+    def t_s(self, now_ns: int) -> float | None:
+        return None if self.survey_t0_ns is None else (now_ns - self.survey_t0_ns) / 1e9
+
+    def tick(self, now_ns: int) -> None:
+        t = self.t_s(now_ns)
+        if t is None:
+            return
+        s = self.spec
+        if s.lidar_stuck_busy is not None and self._lidar is not None:
+            a, d = s.lidar_stuck_busy
+            self._lidar.stuck_busy = a <= t < a + d
+        if s.lidar_power_glitch_at_s is not None and not self._glitch_done and t >= s.lidar_power_glitch_at_s:
+            self._lidar.power_glitch()
+            self._glitch_done = True
+            self.counters["power_glitches"] += 1
+        if s.servo_stuck_at_s is not None and not self._servo_done and t >= s.servo_stuck_at_s:
+            self._servo.stuck = True
+            self._servo_done = True
+            self.counters["servo_stuck"] += 1
+
+    def power_cut_due(self, now_ns: int) -> bool:
+        t = self.t_s(now_ns)
+        return t is not None and self.spec.power_cut_at_s is not None and t >= self.spec.power_cut_at_s
+
+
+def wrongly_tagged(records: np.ndarray, true_t_s: np.ndarray, true_states: np.ndarray, *, pos_tol_m: float = 0.10,
+                   att_tol_rad: float = math.radians(1.0)) -> np.ndarray:
+    """Samples logged unflagged whose pose is not the vehicle's true pose at their time.
+
+    The tolerances are what a correct tag can miss by: interpolation between 50 Hz poses over a
+    lossy link and the time-sync error (about a centimetre and a tenth of a degree here); a sample
+    tagged with an old pose misses by the distance flown meanwhile (1 m/s: 10 cm per 100 ms).
+    """
+    from firmware_py.samplelog import EXCLUDE_FROM_CLOUD
+
+    ok = (records["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0
+    r = records[ok]
+    t = r["t_s"].astype(float)
+    truth = np.column_stack([np.interp(t, true_t_s, true_states[:, k]) for k in range(3)])
+    pos_err = np.linalg.norm(np.column_stack([r["x_m"], r["y_m"], r["z_m"]]) - truth, axis=1)
+    att_err = np.zeros(len(r))
+    for k, name in ((6, "roll_rad"), (7, "pitch_rad"), (8, "yaw_rad")):
+        true_a = np.interp(t, true_t_s, np.unwrap(true_states[:, k]))
+        d = (r[name].astype(float) - true_a + np.pi) % (2 * np.pi) - np.pi
+        att_err = np.maximum(att_err, np.abs(d))
+    bad = np.zeros(len(records), dtype=bool)
+    bad[np.flatnonzero(ok)] = (pos_err > pos_tol_m) | (att_err > att_tol_rad)
+    return bad

@@ -1,0 +1,83 @@
+"""Fault injection in the lockstep SITL: each fault class, short and seeded. The payload never tags a
+sample with a pose it cannot vouch for, loses nothing but the unfinished block at a power cut, and the
+ground station leaves out (and says so) what a stuck or mis-modelled servo produced."""
+
+import numpy as np
+import pytest
+
+from firmware_py.samplelog import SampleFlags, read_samplelog
+from firmware_py.storage import Storage
+from ground.report import ReportOptions, survey_from_samples
+from ground.surface import grid_volume, volume_error_pct
+from sitl.faults import FaultSpec, wrongly_tagged
+from sitl.mission import Mission
+from sitl.payload_runner import fly_firmware
+from sitl.run import FlyConfig, log_header
+from sitl.stockpile import resolve
+
+CFG = FlyConfig(mission=Mission(storage=Storage(30, 20, 10), p_traj=0.2, altitude_m=9.0), stockpile="1",
+                payload="firmware")
+
+
+def fly(tmp_path, **faults):
+    wf = CFG.servo_waveform()
+    header = log_header(CFG, wf)
+    run = fly_firmware(CFG, tmp_path / "s.pslog", header, faults=FaultSpec(seed=3, **faults), seed=3)
+    s = read_samplelog(tmp_path / "s.pslog").samples
+    sv = survey_from_samples(s, header, CFG.mission.storage, CFG.frame, np.array(CFG.lever_arm_body_m),
+                             ReportOptions(plots=False))
+    ve = volume_error_pct(grid_volume(sv.heights, sv.grid), resolve("1", CFG.mission.storage).volume_m3)
+    return run, s, sv, ve
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory):
+    return fly(tmp_path_factory.mktemp("clean"))
+
+
+def test_that_the_fault_spec_refuses_bad_settings():
+    for bad in ({"link_loss_pct": 120}, {"link_outage": (5.0, 0.0)}, {"servo_slow_factor": 0.0},
+                {"power_cut_at_s": -1.0}):
+        with pytest.raises(ValueError, match="fault"):
+            FaultSpec(**bad)
+    assert FaultSpec(link_loss_pct=10).active == ["link_loss_pct"]
+
+
+def test_that_30_percent_packet_loss_tags_nothing_wrongly_and_keeps_the_volume(tmp_path, clean):
+    run, s, _sv, ve = fly(tmp_path, link_loss_pct=30)
+    assert run.faults["link_down"]["lost"] > 100 and run.completed
+    assert not wrongly_tagged(s, run.true_t_s, run.true_states).any()
+    assert abs(ve - clean[3]) < 1.0
+
+
+def test_that_a_link_outage_flags_its_samples_and_recovers(tmp_path):
+    run, s, _sv, _ve = fly(tmp_path, link_outage=(10.0, 3.0))
+    stale = (s["flags"] & int(SampleFlags.STALE_POSE | SampleFlags.NO_POSE)) != 0
+    assert stale.sum() > 500  # the outage's samples (500 Hz, 3 s, minus what was already in flight)
+    assert not wrongly_tagged(s, run.true_t_s, run.true_states).any()
+    assert stale[-1000:].sum() == 0  # recovered without a restart
+
+
+def test_that_i2c_nacks_and_glitches_never_reach_the_cloud_as_points(tmp_path, clean):
+    run, s, _sv, ve = fly(tmp_path, i2c_nack_pct=5, lidar_glitch_pct=1)
+    assert run.faults["i2c_nacks"] > 100 and run.faults["lidar_glitches"] > 50
+    assert np.count_nonzero(s["flags"] & int(SampleFlags.SENSOR_ERROR)) > 100
+    assert abs(ve - clean[3]) < 0.5
+
+
+def test_that_a_stuck_servo_is_detected_by_the_ground_station(tmp_path):
+    _run, _s, sv, _ve = fly(tmp_path, servo_stuck_at_s=20.0)
+    assert sv.cloud.n_servo_suspect > 1000
+
+
+def test_that_a_slow_servo_is_reported_as_untrustworthy(tmp_path, clean):
+    _run, _s, sv, _ve = fly(tmp_path, servo_slow_factor=0.6)
+    assert clean[2].sweep_disagreement_m < 0.1
+    assert sv.sweep_disagreement_m > 0.3
+
+
+def test_that_a_power_cut_loses_at_most_the_unfinished_block(tmp_path):
+    run, s, _sv, _ve = fly(tmp_path, power_cut_at_s=12.3)
+    assert not run.completed and run.faults["power_cut"]
+    assert len(s) % 500 == 0 and len(s) > 0
+    assert 0 <= run.loop.ticks - len(s) < 500 + 200  # the block being filled, plus readings awaiting poses
