@@ -16,6 +16,11 @@ Around the loop, through its `should_stop` hook (called every tick, so each chec
 The optional live UDP stream (`firmware_py.live_stream`) is hooked in by handing the loop a sink that
 forwards every record to the log and to the stream, so the loop itself is unchanged.
 
+Link security (`signing`, `--signing-key FILE`): the MAVLink link signs everything it sends and drops
+unsigned, forged and replayed frames (`firmware_py.hal.signing`); the live stream's datagrams carry an
+authentication tag made with the same key, stamped on the link's signing clock. The start-up line and
+STATUSTEXT say the link is signed; the progress line counts refused frames.
+
 Shutdown, whatever stopped the loop (and also after an error): the loop has already tagged and logged
 its pending readings (flagged if their pose never came); a STATUSTEXT says why we stop; the log is
 closed (its last partial block written and fsync'd); the servo PWM is disabled; the stream, the link
@@ -52,6 +57,7 @@ from firmware_py.hal.backends import open_i2c, parse_i2c_url
 from firmware_py.hal.clock import MonotonicClock
 from firmware_py.hal.mavlink_link import mavutil_device, open_mavlink
 from firmware_py.hal.pwm import open_pwm
+from firmware_py.hal.signing import SigningConfig
 from firmware_py.header import build_log_header, sensor_spec
 from firmware_py.health import HealthMonitor, HealthSnapshot
 from firmware_py.live_stream import MAX_RECORDS, LiveStreamSender, parse_stream_url
@@ -101,6 +107,8 @@ class PayloadConfig:
         stop_on_disarm: stop when the autopilot disarms after having been armed [--stop-on-disarm].
         stream_url: live sample stream to the ground, udp:HOST:PORT; None = off [--stream].
         stream_records_per_datagram: records batched per datagram.
+        signing: MAVLink 2 signing of the autopilot link, and authentication of the live stream with
+            the same key [--signing-key FILE, --allow-unsigned]; None = off.
         send_origin: (lat deg, lon deg, alt m MSL) sent as SET_GPS_GLOBAL_ORIGIN at start [--send-origin].
         mission_id: ties the log to a mission plan [--mission-id].
         target_system, target_component: the autopilot's MAVLink ids.
@@ -134,6 +142,7 @@ class PayloadConfig:
     stop_on_disarm: bool = False
     stream_url: str | None = None
     stream_records_per_datagram: int = 20
+    signing: SigningConfig | None = None
     send_origin: tuple[float, float, float] | None = None
     mission_id: str | None = None
     target_system: int = 1
@@ -180,6 +189,8 @@ class PayloadConfig:
         n = self.stream_records_per_datagram
         if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_RECORDS:
             raise ValueError(f"records per datagram must be 1-{MAX_RECORDS}, got {n!r}")
+        if self.signing is not None and not isinstance(self.signing, SigningConfig):
+            raise ValueError(f"signing must be a SigningConfig, got {type(self.signing).__name__}")
         if self.send_origin is not None:
             if len(tuple(self.send_origin)) != 3:
                 raise ValueError(f"EKF origin must be LAT LON ALT, got {self.send_origin!r}")
@@ -250,6 +261,7 @@ class PayloadResult:
     link: dict[str, Any]
     pose_status: str
     close_errors: tuple[str, ...] = ()
+    signing_active: bool = False
 
 
 class _RecordSink:
@@ -343,9 +355,11 @@ class PayloadApp:
             if self._stop_reason is None:
                 self._say(f"logging to {self.cfg.out_path} at {self.cfg.rate_hz:g} Hz (preset {self.cfg.preset}); "
                           f"MAVLink {self.cfg.mavlink_url}, I2C {self.cfg.i2c_url}, PWM {self.cfg.pwm_url}"
-                          + (f", stream {self.cfg.stream_url}" if self.cfg.stream_url else ""))
-                self._send_health([self.health.event(mavlink.MAV_SEVERITY_INFO,
-                                                     f"started, {self.cfg.rate_hz:g} Hz")])
+                          + (f", stream {self.cfg.stream_url}" if self.cfg.stream_url else "")
+                          + self._signing_note())
+                self._send_health([self.health.event(
+                    mavlink.MAV_SEVERITY_INFO,
+                    f"started, {self.cfg.rate_hz:g} Hz" + (", link signed" if self.signing_active else ""))])
                 self.loop.run(duration_s=self.cfg.duration_s, should_stop=self._should_stop)
             self.request_stop("duration reached")
         except BaseException as exc:
@@ -365,7 +379,10 @@ class PayloadApp:
         if not out.parent.is_dir():
             raise UserError(f"cannot write {out}: directory {out.parent} does not exist")
         if self.link is None:
-            self.link = _opening("MAVLink link", cfg.mavlink_url, lambda: open_mavlink(cfg.mavlink_url))
+            self.link = _opening("MAVLink link", cfg.mavlink_url,
+                                 lambda: open_mavlink(cfg.mavlink_url, signing=cfg.signing))
+        elif cfg.signing is not None and not self.signing_active:
+            self._warn("the MAVLink link given to the payload does not sign; signing applies to links it opens")
         if self.bus is None:
             self.bus = _opening("I2C bus", cfg.i2c_url, lambda: open_i2c(cfg.i2c_url))
         lidar_cfg = LidarLiteConfig(address=cfg.i2c_address, preset=preset_by_name(cfg.preset),
@@ -376,7 +393,10 @@ class PayloadApp:
             self.pwm = _opening("PWM output", cfg.pwm_url, lambda: open_pwm(
                 cfg.pwm_url, i2c_opener=open_i2c, link=self.link, mav=getattr(self.link, "mav", None)))
         if cfg.stream_url is not None:
-            self.stream = LiveStreamSender(cfg.stream_url, cfg.stream_records_per_datagram)
+            signer = getattr(self.link, "signer", None)
+            self.stream = LiveStreamSender(
+                cfg.stream_url, cfg.stream_records_per_datagram, key=cfg.signing.key if cfg.signing else None,
+                stamp_source=signer.now if signer is not None else None)
         self.tracker = PoseTracker(self.link, self.clock, cfg.target_system, cfg.pose_stream_hz,
                                    target_component=cfg.target_component,
                                    max_pose_age_ns=round(cfg.max_pose_age_s * 1e9))
@@ -390,6 +410,29 @@ class PayloadApp:
         self.health = HealthMonitor(self.loop.t0_ns, cfg.health_period_s)
         self._next_status_ns = self.loop.t0_ns + round(cfg.status_period_s * 1e9)
         self._status_prev = (self.loop.t0_ns, 0)
+
+    @property
+    def signing_active(self) -> bool:
+        """Whether the MAVLink link signs and checks (it was opened with a key)."""
+        return bool(getattr(self.link, "signing_active", False))
+
+    def _signing_note(self) -> str:
+        if not self.signing_active:
+            return ""
+        signer = getattr(self.link, "signer", None)
+        cfg = signer.config if signer is not None else self.cfg.signing
+        if cfg is None:
+            return "; MAVLink signing on"
+        note = f"; MAVLink signing on (link id {cfg.link_id}"
+        note += ", unsigned frames accepted)" if cfg.allow_unsigned else ", unsigned frames refused)"
+        if self.stream is not None and self.stream.authenticated:
+            note += ", stream authenticated"
+        return note
+
+    def auth_rejects(self) -> int:
+        """Frames the link refused: unsigned, forged or replayed (0 without signing)."""
+        stats = getattr(self.link, "stats", {})
+        return sum(int(stats.get(k, 0)) for k in ("rx_unsigned", "rx_bad_signature", "rx_replayed"))
 
     # ----- every tick (PayloadLoop's should_stop) -------------------------------------------------
 
@@ -460,8 +503,10 @@ class PayloadApp:
             pose += f" ({str(st['pose_status'])[:90]})"
         c = self.lidar.counters
         errors = c["bus_errors"] + c["timeouts"] + c["config_errors"]
+        auth = f"  refused frames {self.auth_rejects()}" if self.signing_active else ""
         self._say(f"{(now - self.loop.t0_ns) / 1e9:7.1f} s  {rate:5.0f} Hz  samples {self.sink.records}  "
-                  f"flagged {self.sink.flagged}  sensor errors {errors}  overruns {self.loop.stats.overruns}  {pose}")
+                  f"flagged {self.sink.flagged}  sensor errors {errors}  overruns {self.loop.stats.overruns}{auth}  "
+                  f"{pose}")
 
     # ----- shutdown -------------------------------------------------------------------------------
 
@@ -500,7 +545,8 @@ class PayloadApp:
             lidar_counters=dict(self.lidar.counters) if self.lidar else {},
             stream=dict(self.stream.stats) if self.stream else None,
             health=dict(self.health.sent) if self.health else {}, link=dict(st.get("link", {})),
-            pose_status=str(st.get("pose_status", "")), close_errors=tuple(self._close_errors))
+            pose_status=str(st.get("pose_status", "")), close_errors=tuple(self._close_errors),
+            signing_active=self.signing_active)
         self._say(f"stopped ({res.stop_reason}) after {elapsed_s:.1f} s: {res.records_logged} samples "
                   f"({res.records_flagged} flagged) in {res.out_path}")
         return res

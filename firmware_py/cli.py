@@ -22,6 +22,7 @@ from firmware_py.app import (
 )
 from firmware_py.cli_util import ArgumentParser, UserError, finite_float, run_cli
 from firmware_py.drivers.lidarlite import PRESETS
+from firmware_py.hal.signing import SigningConfig, load_key
 from firmware_py.servo_waveform import N_PHASES
 from firmware_py.storage import Storage
 
@@ -72,6 +73,14 @@ def build_parser() -> ArgumentParser:
                     help="sensor position from the centre of gravity, body FRD, m (default 0 0 0.10)")
     sv.add_argument("--storage", default="60x40x15", metavar="LxWxH",
                     help="building inside dimensions in metres, for the log header (default 60x40x15)")
+    sec = ap.add_argument_group("link security")
+    sec.add_argument("--signing-key", default=None, metavar="FILE",
+                     help="MAVLink 2 signing key file: 64 hex digits, or a passphrase line (key = its SHA-256, as "
+                          "MAVProxy's 'signing setup'); not readable by others (chmod 600). Signs what we send, "
+                          "refuses unsigned, forged and replayed frames, and authenticates the --stream datagrams")
+    sec.add_argument("--allow-unsigned", action="store_true",
+                     help="with --signing-key: also accept UNSIGNED frames (mixed setups while migrating; "
+                          "forged and replayed signed frames are still refused)")
     st = ap.add_argument_group("stopping and the autopilot")
     st.add_argument("--duration", type=finite_float, default=None, metavar="S",
                     help="stop after S seconds (default: until Ctrl-C / SIGTERM)")
@@ -83,8 +92,18 @@ def build_parser() -> ArgumentParser:
     return ap
 
 
+def signing_from_args(args) -> SigningConfig | None:
+    """--signing-key / --allow-unsigned -> SigningConfig (None without a key); one-line errors."""
+    if args.signing_key is None:
+        if args.allow_unsigned:
+            raise UserError("--allow-unsigned needs --signing-key")
+        return None
+    return SigningConfig(load_key(args.signing_key), allow_unsigned=args.allow_unsigned)
+
+
 def config_from_args(args) -> PayloadConfig:
     """PayloadConfig from parsed options (ValueError / UserError for bad values, one line each)."""
+    signing = signing_from_args(args)
     i2c, pwm = args.i2c or DEFAULT_I2C_URL, args.pwm or DEFAULT_PWM_URL
     if args.hal is not None:
         if args.i2c is not None or args.pwm is not None:
@@ -96,7 +115,7 @@ def config_from_args(args) -> PayloadConfig:
         initial_position=args.phase, storage=Storage.parse(args.storage),
         lever_arm_body_m=tuple(args.lever_arm), duration_s=args.duration, stop_on_disarm=args.stop_on_disarm,
         stream_url=args.stream, send_origin=tuple(args.send_origin) if args.send_origin is not None else None,
-        mission_id=args.mission_id, quiet=args.quiet)
+        mission_id=args.mission_id, quiet=args.quiet, signing=signing)
 
 
 @contextlib.contextmanager

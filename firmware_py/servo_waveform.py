@@ -19,6 +19,8 @@ import numpy as np
 
 N_PHASES = 10
 """Initial positions per sweep direction (the paper's Fig. 9)."""
+MAX_FREQUENCY_HZ = 25.0
+"""Fastest sweep: half the 50 Hz servo PWM frame rate (a faster one cannot be commanded; the paper's is 0.67 Hz)."""
 
 
 @dataclass(frozen=True)
@@ -42,8 +44,8 @@ class Waveform:
     def __post_init__(self) -> None:
         if not (math.isfinite(self.shape_c) and 0.0 <= self.shape_c < 1.0):
             raise ValueError(f"waveform shape C_gamma must be in [0, 1), got {self.shape_c}")
-        if not (math.isfinite(self.frequency_hz) and self.frequency_hz > 0.0):
-            raise ValueError(f"servo frequency must be > 0 Hz, got {self.frequency_hz}")
+        if not (math.isfinite(self.frequency_hz) and 0.0 < self.frequency_hz <= MAX_FREQUENCY_HZ):
+            raise ValueError(f"servo frequency must be in (0, {MAX_FREQUENCY_HZ:g}] Hz, got {self.frequency_hz}")
         if not (math.isfinite(self.amplitude_rad) and 0.0 < self.amplitude_rad <= math.pi / 2):
             raise ValueError(f"servo amplitude must be in (0, pi/2] rad, got {self.amplitude_rad}")
         if not math.isfinite(self.phase_rad):
@@ -110,7 +112,12 @@ def frequency_for_peak_rate(peak_rate_rad_s: float, shape_c: float,
     """The f that makes the servo reach a given peak rate (Table 1: 5 rad/s -> 0.67 Hz at C=0.95)."""
     if not (math.isfinite(peak_rate_rad_s) and peak_rate_rad_s > 0):
         raise ValueError(f"peak servo rate must be > 0 rad/s, got {peak_rate_rad_s}")
-    return peak_rate_rad_s / (2.0 * math.pi * _gain(shape_c, amplitude_rad))
+    f = peak_rate_rad_s / (2.0 * math.pi * _gain(shape_c, amplitude_rad))
+    if f > MAX_FREQUENCY_HZ:
+        top = peak_rate(shape_c, MAX_FREQUENCY_HZ, amplitude_rad)
+        raise ValueError(f"peak servo rate {peak_rate_rad_s:g} rad/s needs a {f:.3g} Hz sweep; at most {top:.0f} rad/s "
+                         f"({MAX_FREQUENCY_HZ:g} Hz: a 50 Hz PWM frame cannot command a faster sweep)")
+    return f
 
 
 def initial_position(k: int, n_phases: int = N_PHASES) -> tuple[float, int]:

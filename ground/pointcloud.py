@@ -8,6 +8,7 @@ serves any building and any sensor.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,10 +33,19 @@ class SensorErrorModel:
 
     @classmethod
     def from_header(cls, header: dict) -> SensorErrorModel:
+        """The model a log header states; ValueError naming the field when one is not a number >= 0."""
         s = header.get("sensor", {}) or {}
         pose = header.get("pose", {}) or {}
-        return cls(float(s.get("range_sigma_m", 0.0)), float(s.get("range_sigma_rel", 0.0)),
-                   float(s.get("resolution_m", 0.01)), float(pose.get("position_sigma_m", 0.0)))
+        if not isinstance(s, dict) or not isinstance(pose, dict):
+            raise ValueError("log header sensor and pose must be JSON objects")
+        values = []
+        for where, d, name, default in (("sensor", s, "range_sigma_m", 0.0), ("sensor", s, "range_sigma_rel", 0.0),
+                                        ("sensor", s, "resolution_m", 0.01), ("pose", pose, "position_sigma_m", 0.0)):
+            v = d.get(name, default)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"log header {where}.{name} must be a finite number >= 0, got {v!r}")
+            values.append(float(v))
+        return cls(*values)
 
     def range_sigma(self, range_m: np.ndarray) -> np.ndarray:
         return np.maximum(self.range_sigma_m, self.range_sigma_rel * np.asarray(range_m))

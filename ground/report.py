@@ -96,10 +96,16 @@ def header_geometry(log: SampleLog, path: Path) -> tuple[Storage, StorageFrame, 
         storage = Storage.from_dict(h["storage"])
         frame = StorageFrame.from_dict(h["storage_frame"])
         lever = np.asarray(h.get("lever_arm_body_m", [0.0, 0.0, 0.0]), dtype=float)
-    except (KeyError, TypeError, ValueError) as exc:
+    except KeyError as exc:
         raise UserError(f"{path}: log header lacks a usable {exc}") from None
+    except (TypeError, ValueError) as exc:
+        raise UserError(f"{path}: log header storage, storage_frame or lever_arm_body_m is malformed: {exc}") from None
     if lever.shape != (3,) or not np.all(np.isfinite(lever)):
         raise UserError(f"{path}: log header lever_arm_body_m must be 3 finite numbers")
+    try:
+        SensorErrorModel.from_header(h)
+    except ValueError as exc:
+        raise UserError(f"{path}: {exc}") from None
     return storage, frame, lever
 
 
@@ -184,6 +190,9 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
     """Run the pipeline on a run directory or a log and write the report directory."""
     t0 = time.perf_counter()
     opts = opts or ReportOptions()
+    for what, path in (("run directory or sample log", source), ("report directory (--out)", out_dir)):
+        if not str(path).strip():  # Path("") is the current directory
+            raise UserError(f"the {what} must be a non-empty path")
     log_path, truth_path = locate_inputs(source)
     log = read_samplelog(log_path)
     storage, frame, lever = header_geometry(log, log_path)

@@ -29,6 +29,8 @@ EMPTY_CELL_POLICIES = ("nearest", "leave")
 DEFAULT_EMPTY_CELLS = "nearest"
 DEFAULT_CELL_M = 0.25
 """Grid cell side. tools/cell_sensitivity.py shows the volume changes < 0.01 % below it."""
+MAX_CELLS = 25_000_000
+"""Largest grid (a few hundred MB per array): 60 x 40 m in 0.01 m cells fits, a 10 km building in 0.25 m does not."""
 
 
 @dataclass(frozen=True)
@@ -42,6 +44,10 @@ class Grid:
     def __post_init__(self) -> None:
         if not (math.isfinite(self.cell_m) and 0.01 <= self.cell_m <= min(self.length_m, self.width_m)):
             raise ValueError(f"cell size must be between 0.01 m and the building's width, got {self.cell_m}")
+        nx, ny = self.shape
+        if nx * ny > MAX_CELLS:  # a big building (as a log header may claim) with fine cells: refuse, not MemoryError
+            raise ValueError(f"a {self.length_m:g} x {self.width_m:g} m floor in {self.cell_m:g} m cells is "
+                             f"{nx * ny:,} cells, more than {MAX_CELLS:,}: use a larger cell size")
 
     @property
     def shape(self) -> tuple[int, int]:

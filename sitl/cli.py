@@ -12,10 +12,11 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from firmware_py.cli_util import ArgumentParser, finite_float, run_cli
+from firmware_py.cli_util import ArgumentParser, UserError, finite_float, run_cli
 from firmware_py.frames import StorageFrame
 from firmware_py.servo_waveform import N_PHASES
 from firmware_py.storage import Storage
+from sitl.faults import FaultSpec
 from sitl.mission import TURN_MODES, Mission
 from sitl.mission_plan import write_qgc_wpl
 from sitl.run import PAYLOADS, PLANTS, FlyConfig, fly
@@ -44,6 +45,11 @@ def build_parser() -> ArgumentParser:
                    help="firmware payload only: random MAVLink latency range, ms")
     f.add_argument("--payload-mass", type=finite_float, default=0.040, metavar="KG",
                    help="payload mass, kg (0.040: LIDAR-Lite + servo; 0.370 2D LiDAR; 0.830 3D)")
+    f.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
+                   help="inject a fault (firmware payload; repeatable): link_loss_pct=10, link_dup_pct=5, "
+                        "link_reorder_pct=5, link_outage=START,DUR, i2c_nack_pct=5, lidar_stuck_busy=START,DUR, "
+                        "lidar_power_glitch_at_s=T, lidar_garbage_pct=2, lidar_glitch_pct=1, servo_stuck_at_s=T, "
+                        "servo_slow_factor=0.6, power_cut_at_s=T (times from the survey start; seeded by --seed)")
     f.add_argument("--seed", type=int, default=0, help="seed of the run's random draws")
     f.add_argument("--out", required=True, help="run directory to write")
     f.add_argument("--force", action="store_true", help="overwrite a run already in --out")
@@ -63,6 +69,12 @@ def build_parser() -> ArgumentParser:
     sv.add_argument("--stockpile", default="1", help="with --devices: 1, 2 or an STL/OBJ mesh path (default 1)")
     _mission_options(sv, p_traj_required=False)
     sv.add_argument("--out", default="runs/serve", help="directory for telemetry.tlog and mission.waypoints")
+    sv.add_argument("--signing-key", default=None, metavar="FILE",
+                    help="MAVLink 2 signing key file (64 hex digits, or a passphrase line: key = its SHA-256, as "
+                         "MAVProxy's 'signing setup'; chmod 600): sign everything, refuse unsigned, forged and "
+                         "replayed frames; only clients that sent a signed frame are answered")
+    sv.add_argument("--allow-unsigned", action="store_true",
+                    help="with --signing-key: also accept unsigned frames (mixed setups)")
 
     pl = sub.add_parser("plan", help="export the survey as a QGC WPL 110 mission (.waypoints)")
     _mission_options(pl, p_traj_required=True)
@@ -96,7 +108,8 @@ def _fly(args) -> int:
     cfg = FlyConfig(mission=mission, stockpile=args.stockpile, waveform=args.waveform,
                     servo_peak_rate_rad_s=args.servo_rate, initial_position=args.phase, plant=args.plant,
                     payload=args.payload or _default_payload(args.plant), latency_ms=tuple(args.latency_ms),
-                    payload_kg=args.payload_mass, seed=args.seed)
+                    payload_kg=args.payload_mass, seed=args.seed,
+                    faults=FaultSpec.parse(args.fault, seed=args.seed) if args.fault else None)
     progress = None if args.quiet else (lambda msg: print(f"pilescan-sitl: {msg}", file=sys.stderr))
     res = fly(cfg, args.out, force=args.force, progress=progress)
     if not args.quiet:
@@ -111,10 +124,20 @@ def _plan(args) -> int:
     return 0
 
 
+def _signing(args):
+    from firmware_py.hal.signing import SigningConfig, load_key
+    if args.signing_key is None:
+        if args.allow_unsigned:
+            raise UserError("--allow-unsigned needs --signing-key")
+        return None
+    return SigningConfig(load_key(args.signing_key), allow_unsigned=args.allow_unsigned)
+
+
 def _serve(args) -> int:
+    signing = _signing(args)  # a bad key file fails before anything starts
     from sitl.serve import serve
     return serve(_mission(args), args.mavlink, args.speedup, args.duration, args.vehicle, Path(args.out),
-                 devices_url=args.devices, stockpile=args.stockpile)
+                 devices_url=args.devices, stockpile=args.stockpile, signing=signing)
 
 
 def _dispatch(args) -> int:

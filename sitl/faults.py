@@ -67,6 +67,26 @@ class FaultSpec:
             raise ValueError(f"fault servo_slow_factor must be in [0.05, 1] (1 = as calibrated), "
                              f"got {self.servo_slow_factor!r}")
 
+    @classmethod
+    def parse(cls, items: list[str], seed: int = 0) -> FaultSpec:
+        """From `NAME=VALUE` strings (the CLI's --fault): numbers, or `START,DURATION` for windows."""
+        known = {f.name: f for f in fields(cls) if f.name != "seed"}
+        values: dict = {}
+        for item in items:
+            name, sep, text = item.partition("=")
+            name = name.strip().replace("-", "_")
+            if not sep or name not in known:
+                raise ValueError(f"bad fault {item!r}: expected NAME=VALUE with NAME one of {', '.join(known)}")
+            try:
+                nums = tuple(float(v) for v in text.split(","))
+            except ValueError:
+                raise ValueError(f"bad fault {item!r}: {text!r} is not a number (or START,DURATION)") from None
+            window = name in ("link_outage", "lidar_stuck_busy")
+            if len(nums) != (2 if window else 1):
+                raise ValueError(f"bad fault {item!r}: {name} takes " + ("START,DURATION" if window else "one number"))
+            values[name] = nums if window else nums[0]
+        return cls(seed=seed, **values)
+
     @property
     def active(self) -> list[str]:
         """The faults this spec turns on (for tables and logs)."""

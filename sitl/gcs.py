@@ -7,6 +7,7 @@ MAVLink, so it flies ArduPilot SITL the same way.
 
 from __future__ import annotations
 
+import struct
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -64,10 +65,8 @@ class ScriptedGcs:
 
     def upload(self, plan: str | Path, timeout_s: float = 20.0) -> int:
         """Upload a QGC WPL 110 plan with the mission protocol; returns the item count."""
-        loader = mavwp.MAVWPLoader(target_system=self.target[0], target_component=self.target[1])
-        n = loader.load(str(plan))
-        if n == 0:
-            raise GcsError(f"{plan}: no mission items")
+        items = load_plan(plan, self.target)
+        n = len(items)
         self.conn.mav.mission_count_send(*self.target, n)
         end = time.monotonic() + timeout_s
         while time.monotonic() < end:
@@ -80,10 +79,9 @@ class ScriptedGcs:
                     raise GcsError(f"mission upload refused: MAV_MISSION_RESULT {m.type}")
                 self.say(f"mission of {n} items accepted")
                 return n
-            w = loader.wp(m.seq)
-            self.conn.mav.mission_item_int_send(
-                *self.target, m.seq, w.frame, w.command, w.current, w.autocontinue, w.param1, w.param2, w.param3,
-                w.param4, round(w.x * 1e7), round(w.y * 1e7), w.z)
+            if not 0 <= m.seq < n:
+                raise GcsError(f"the vehicle asked for mission item {m.seq} of a {n}-item plan")
+            self.conn.mav.send(items[m.seq])
         raise GcsError(f"mission upload of {plan} timed out after {timeout_s:g} s")
 
     def command(self, command: int, *params: float, timeout_s: float = 5.0) -> None:
@@ -112,6 +110,37 @@ class ScriptedGcs:
             raise GcsError("the vehicle never reported itself armed")
         if self.wait(lambda m: is_hb(m) and not self.armed, end - time.monotonic()) is None:
             raise GcsError(f"the vehicle was still armed after {timeout_s:g} s")
+
+
+def load_plan(plan: str | Path, target: tuple[int, int] = (1, 1)) -> list[Any]:
+    """The MISSION_ITEM_INT messages of a QGC WPL 110 plan, each checked to fit its wire format (so an upload
+    never fails half-way); GcsError naming the file (and the item) for anything else."""
+    try:
+        with open(plan, encoding="utf-8") as f:
+            first = f.readline().strip()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise GcsError(f"cannot read mission plan {plan}: {exc}") from None
+    if first != "QGC WPL 110":
+        raise GcsError(f"{plan}: not a QGC WPL 110 mission plan")
+    loader = mavwp.MAVWPLoader(target_system=target[0], target_component=target[1])
+    try:
+        n = loader.load(str(plan))
+    except (mavwp.MAVWPError, ValueError, OSError) as exc:  # ValueError: a number that is not one
+        raise GcsError(f"{plan}: malformed mission plan: {exc}") from None
+    if n == 0:
+        raise GcsError(f"{plan}: no mission items")
+    items, mav = [], mavutil.mavlink.MAVLink(None)
+    for seq in range(n):
+        w = loader.wp(seq)
+        try:
+            msg = mavutil.mavlink.MAVLink_mission_item_int_message(
+                *target, seq, w.frame, w.command, w.current, w.autocontinue, w.param1, w.param2, w.param3, w.param4,
+                round(w.x * 1e7), round(w.y * 1e7), w.z)
+            msg.pack(mav)  # struct.error / OverflowError for a value the message cannot carry
+        except (struct.error, OverflowError, ValueError) as exc:
+            raise GcsError(f"{plan}: mission item {seq} cannot be sent: {exc}") from None
+        items.append(msg)
+    return items
 
 
 def fly_plan(url: str, plan: str | Path, timeout_s: float, say: Callable[[str], None] | None = None,

@@ -37,7 +37,15 @@ Choices, where MAVLink or ArduPilot leave room:
   Frames of message ids outside the ardupilotmega dialect cannot be checked and are skipped the
   same way.
 - COMMAND_ACK for SET_MODE carries command = 11 (the message id), as ArduPilot sends it.
-- Telemetry log timestamps are TLOG_EPOCH_US + simulated time, so two runs give identical logs.
+- Telemetry log timestamps are TLOG_EPOCH_US + simulated time, so two runs give identical logs
+  (unless signing is on: signatures carry wall-clock timestamps).
+- Signing (`signing=SigningConfig(...)`, `pilescan-sitl serve --signing-key FILE`): as the payload's
+  links (`firmware_py.hal.mavlink_link`): everything sent is signed; unsigned, forged and replayed
+  frames are refused (never handled, never logged) and counted in stats (`rx_unsigned`,
+  `rx_bad_signature`, `rx_replayed`; `rx_signed`, `rx_unsigned_accepted`). On a listening
+  `UdpTransport` a client only becomes a destination once one of its datagrams held an
+  authenticated frame, so a client without the key hears nothing (and cannot aim our telemetry
+  at a spoofed address).
 """
 
 from __future__ import annotations
@@ -59,6 +67,7 @@ os.environ["MAVLINK20"] = "1"  # for mavutil users in this process; the v20 dial
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_py.hal.mavlink_link import MavlinkFramer
+from firmware_py.hal.signing import MavlinkSigner, SigningConfig
 from sitl.vehicle_api import CommandRejected, FlightMode, NavItem, NavKind, Vehicle, VehicleState
 
 TLOG_EPOCH_US = 1_704_067_200_000_000
@@ -226,7 +235,15 @@ class UdpTransport:
                 self.dropped_packets += 1
 
     def recv(self) -> bytes:
-        chunks = []
+        """Every datagram received, joined; each sender becomes (or stays) a client."""
+        got = self.recv_datagrams()
+        for _data, addr in got:
+            self.add_peer(addr)
+        return b"".join(data for data, _addr in got)
+
+    def recv_datagrams(self) -> list[tuple[bytes, tuple[str, int]]]:
+        """Every datagram received, with its sender, WITHOUT learning the senders (see add_peer)."""
+        got = []
         for _ in range(self.MAX_DATAGRAMS_PER_RECV):
             try:
                 data, addr = self._sock.recvfrom(65535)
@@ -234,12 +251,16 @@ class UdpTransport:
                 break
             except OSError:
                 break  # e.g. ICMP port unreachable reported on some platforms
-            if not self._fixed_peer:
-                self._peers[addr] = self._clock()
-                if len(self._peers) > self._max_peers:
-                    del self._peers[min(self._peers, key=self._peers.__getitem__)]
-            chunks.append(data)
-        return b"".join(chunks)
+            got.append((data, addr))
+        return got
+
+    def add_peer(self, addr: tuple[str, int]) -> None:
+        """Send to addr from now on (a listening transport; refreshes a known client)."""
+        if self._fixed_peer:
+            return
+        self._peers[addr] = self._clock()
+        if len(self._peers) > self._max_peers:
+            del self._peers[min(self._peers, key=self._peers.__getitem__)]
 
     def close(self) -> None:
         self._sock.close()
@@ -348,7 +369,7 @@ class MavlinkVehicleServer:
 
     def __init__(self, vehicle: Vehicle, transport: Transport, tlog_path: str | os.PathLike[str] | None = None,
                  sysid: int = 1, compid: int = 1, home_lat_deg: float = 53.4668, home_lon_deg: float = -2.2339,
-                 home_alt_m: float = 50.0) -> None:
+                 home_alt_m: float = 50.0, signing: SigningConfig | MavlinkSigner | None = None) -> None:
         if not (math.isfinite(home_lat_deg) and abs(home_lat_deg) < 90 and math.isfinite(home_lon_deg)
                 and abs(home_lon_deg) <= 180 and math.isfinite(home_alt_m)):
             raise ValueError(f"bad home position {home_lat_deg}, {home_lon_deg}, {home_alt_m}")
@@ -357,11 +378,19 @@ class MavlinkVehicleServer:
         self.sysid, self.compid = sysid, compid
         self.home_lat_deg, self.home_lon_deg, self.home_alt_m = home_lat_deg, home_lon_deg, home_alt_m
         self._mav = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
-        self._framer = MavlinkFramer(self._mav)  # the payload's framer: one parser for both ends
+        if signing is not None and not isinstance(signing, MavlinkSigner):
+            signing = MavlinkSigner(signing)
+        self.signer: MavlinkSigner | None = signing
+        if self.signer is not None:
+            self.signer.attach(self._mav)  # the encoder signs; the framer's own decoder does not check
+            self._framer = MavlinkFramer(mavlink.MAVLink(None), signer=self.signer)
+        else:
+            self._framer = MavlinkFramer(self._mav)  # the payload's framer: one parser for both ends
         self._tlog: BinaryIO | None = Path(tlog_path).open("wb") if tlog_path is not None else None
         self.stats: dict[str, Any] = {
             "rx_messages": 0, "rx_bad_bytes": 0, "rx_parse_errors": 0, "rx_not_for_us": 0,
             "tx_messages": 0, "handler_errors": 0, "rx_by_type": Counter(), "tx_by_type": Counter(),
+            "rx_signed": 0, "rx_unsigned": 0, "rx_bad_signature": 0, "rx_replayed": 0, "rx_unsigned_accepted": 0,
         }
         self._now_s = 0.0
         self._state: VehicleState | None = None
@@ -408,15 +437,40 @@ class MavlinkVehicleServer:
         """Handle everything received, report vehicle events, send the streams now due (simulated time)."""
         self._state = self.vehicle.state()
         self._now_s = self._state.t_s
-        data = self.transport.recv()
-        if data:
-            for msg in self._framer.feed(data):
-                self._handle(msg)
-            self.stats["rx_bad_bytes"] = self._framer.bad_bytes
-            self.stats["rx_parse_errors"] = self._framer.bad_frames
+        if self.signer is not None and hasattr(self.transport, "recv_datagrams"):
+            self._receive_authenticated_datagrams()
+        else:
+            data = self.transport.recv()
+            if data:
+                for msg in self._framer.feed(data):
+                    self._handle(msg)
+                self._update_rx_stats()
         self._report_vehicle_events()
         self._service_upload_timeout()
         self._send_due_streams()
+
+    def _receive_authenticated_datagrams(self) -> None:
+        """Signed UDP: only a sender whose datagram held an authenticated frame becomes a client."""
+        got = self.transport.recv_datagrams()
+        for data, addr in got:
+            msgs = self._framer.feed(data)
+            if msgs:
+                self.transport.add_peer(addr)
+            for msg in msgs:
+                self._handle(msg)
+        if got:
+            self._update_rx_stats()
+
+    def _update_rx_stats(self) -> None:
+        self.stats["rx_bad_bytes"] = self._framer.bad_bytes
+        self.stats["rx_parse_errors"] = self._framer.bad_frames
+        if self.signer is not None:
+            for key in ("signed", "unsigned", "bad_signature", "replayed", "unsigned_accepted"):
+                self.stats[f"rx_{key}"] = self.signer.stats[key]
+
+    @property
+    def signing_active(self) -> bool:
+        return self.signer is not None
 
     def close(self) -> None:
         """Close the telemetry log (the transport belongs to the caller)."""
@@ -901,7 +955,7 @@ class MavlinkVehicleServer:
             self._send(self._mav.statustext_encode(severity, chunk, self._statustext_id, k // STATUSTEXT_LEN))
 
     def _send(self, msg: Any) -> None:
-        buf = msg.pack(self._mav)
+        buf = self.signer.pack(msg, self._mav) if self.signer is not None else msg.pack(self._mav)
         self._mav.seq = (self._mav.seq + 1) % 256
         self.transport.send(buf)
         self._log(buf)

@@ -57,7 +57,10 @@ def write_qgc_wpl(path: str | Path, mission: Mission, frame: StorageFrame, origi
 
 def read_qgc_wpl(path: str | Path) -> list[list[float]]:
     """Rows of a QGC WPL 110 file, for checks; ValueError naming the line on a malformed file."""
-    text = Path(path).read_text().splitlines()
+    try:
+        text = Path(path).read_text(encoding="utf-8").splitlines()
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a QGC WPL 110 file (not UTF-8 text)") from None
     if not text or not text[0].startswith("QGC WPL 110"):
         raise ValueError(f"{path}: not a QGC WPL 110 file")
     rows = []

@@ -24,6 +24,7 @@ from firmware_py.samplelog import SampleLogWriter
 from firmware_py.servo_waveform import Waveform, initial_position, named_waveform
 from sitl import stockpile as piles
 from sitl.batch_sampler import LidarSpec, sample_flight
+from sitl.faults import FaultSpec
 from sitl.flight import PAYLOAD_1D_KG, fly_mission
 from sitl.ideal_plant import IdealPlant, Trajectory
 from sitl.mission import Mission
@@ -56,12 +57,15 @@ class FlyConfig:
     lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10)
     frame: StorageFrame = field(default_factory=StorageFrame)
     lidar: LidarSpec = field(default_factory=LidarSpec)
+    faults: FaultSpec | None = None  # fault injection (sitl.faults), firmware payload only
 
     def __post_init__(self) -> None:
         if self.plant not in PLANTS:
             raise ValueError(f"unknown plant {self.plant!r}; available: {', '.join(PLANTS)}")
         if self.payload not in PAYLOADS:
             raise ValueError(f"unknown payload {self.payload!r}; available: {', '.join(PAYLOADS)}")
+        if self.faults is not None and self.faults.active and self.payload != "firmware":
+            raise ValueError("fault injection needs the firmware payload (--payload firmware)")
         if self.payload == "firmware" and self.plant != "jsbsim":
             raise ValueError("the firmware payload needs the jsbsim plant (it talks MAVLink to the vehicle)")
         lo, hi = self.latency_ms
@@ -72,6 +76,8 @@ class FlyConfig:
             raise ValueError(f"payload mass must be 0-2 kg, got {self.payload_kg}")
         if len(self.lever_arm_body_m) != 3 or not all(math.isfinite(v) for v in self.lever_arm_body_m):
             raise ValueError(f"lever arm must be 3 finite numbers, got {self.lever_arm_body_m}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
         self.servo_waveform()  # validates the name and rate
 
     def servo_waveform(self) -> Waveform:
@@ -109,6 +115,8 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
     """Fly cfg with the selected plant and write the run directory."""
     t0 = time.perf_counter()
     say = progress or (lambda _msg: None)
+    if not str(out_dir).strip():  # Path("") is the current directory: never write a run there by accident
+        raise ValueError("the run directory (--out) must be a non-empty path")
     out = Path(out_dir)
     if (out / SAMPLES_FILE).exists() and not force:
         raise ValueError(f"{out} already holds a run; choose another --out or pass --force")
@@ -124,9 +132,13 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
     if cfg.payload == "firmware":
         from sitl.payload_runner import fly_firmware
         run = fly_firmware(cfg, log_path, log_header(cfg, wf), latency_ms=cfg.latency_ms, tlog_path=out / TLOG_FILE,
-                           seed=cfg.seed)
-        if not run.completed:
+                           seed=cfg.seed, faults=cfg.faults)
+        if run.faults and run.faults.get("power_cut"):
+            say(f"power cut at {cfg.faults.power_cut_at_s:g} s: the log holds the blocks written by then")
+        elif not run.completed:
             raise ValueError(f"the vehicle did not complete the mission within {run.duration_s:.0f} s")
+        if cfg.faults is not None and cfg.faults.active:
+            say(f"faults injected: {', '.join(cfg.faults.active)}")
         records, duration_s, energy_j = run.records, run.duration_s, run.energy_j
     else:
         world = World(storage, pile, max_range_m=cfg.lidar.max_range_m)
@@ -151,6 +163,7 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
         "mission_id": cfg.mission.mission_id,
         "plant": cfg.plant,
         "payload": cfg.payload,
+        "faults": cfg.faults.to_dict() if cfg.faults is not None and cfg.faults.active else None,
         "flight_time_s": duration_s,
         "energy_j": energy_j,
         "payload_kg": cfg.payload_kg if cfg.plant == "jsbsim" else None,

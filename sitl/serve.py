@@ -3,6 +3,11 @@
 The vehicle waits on the floor below W0 of the survey (the plan's home), disarmed. The plan is
 written next to the telemetry log so a ground station can load it; the local NED origin (the
 storage frame's corner) is the EKF origin both use for global positions.
+
+With `signing` (`--signing-key FILE`) the autopilot signs everything it sends and refuses unsigned,
+forged and replayed frames; a UDP client is only sent to once it has sent a signed frame
+(MAVProxy: `signing setup PASSPHRASE`, or `signing key FILE` with the same key, before connecting;
+pymavlink: `conn.setup_signing(key)`). The emulated device bridge (--devices) is not covered.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from pathlib import Path
 
 import firmware_py
 from firmware_py.frames import StorageFrame
+from firmware_py.hal.signing import SigningConfig
 from sitl import stockpile as piles
 from sitl.devices.bridge_server import parse_bridge_url
 from sitl.flight import start_pose
@@ -41,7 +47,7 @@ def make_vehicle(kind: str, mission: Mission, frame: StorageFrame):
 
 
 def serve(mission: Mission, url: str, speedup: float, duration_s: float | None, kind: str, out: Path,
-          devices_url: str | None = None, stockpile: str = "1") -> int:
+          devices_url: str | None = None, stockpile: str = "1", signing: SigningConfig | None = None) -> int:
     if not (math.isfinite(speedup) and 0 < speedup <= 1000):
         raise ValueError(f"--speedup must be in (0, 1000], got {speedup:g}")
     if duration_s is not None and not duration_s > 0:
@@ -68,25 +74,34 @@ def serve(mission: Mission, url: str, speedup: float, duration_s: float | None, 
     vehicle = make_vehicle(kind, mission, frame)
     transport = make_transport(url)
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     lat0, lon0, alt0 = DEFAULT_ORIGIN
     devices = None
     try:
         if world is not None:
             devices = NetworkedDevices(vehicle, world, devices_url, frame=frame,
                                        lever_arm_body_m=defaults.lever_arm_body_m).start()
+        signed = ""
+        if signing is not None:
+            signed = "; MAVLink signing on" + (" (unsigned frames accepted)" if signing.allow_unsigned else "")
         print(f"pilescan-sitl: serving a {kind} quadcopter on {url} ({speedup:g}x real time); plan: {plan}"
-              + (f"; LiDAR and servo on {devices.url} (pile {stockpile}, {pile.volume_m3:.1f} m^3)" if devices else ""),
-              file=sys.stderr, flush=True)
+              + (f"; LiDAR and servo on {devices.url} (pile {stockpile}, {pile.volume_m3:.1f} m^3)" if devices else "")
+              + signed, file=sys.stderr, flush=True)
         with MavlinkVehicleServer(vehicle, transport, tlog_path=out / TLOG_FILE, home_lat_deg=lat0,
-                                  home_lon_deg=lon0, home_alt_m=alt0) as server:
+                                  home_lon_deg=lon0, home_alt_m=alt0, signing=signing) as server:
             sim_s = run_realtime(server, vehicle, speedup=speedup, duration_s=duration_s, stop_event=stop,
                                  on_step=devices.record if devices else None)
     finally:
         if devices is not None:
             devices.close()
         transport.close()
-    print(f"pilescan-sitl: stopped after {sim_s:.1f} simulated seconds; telemetry in {out / TLOG_FILE}",
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    refused = ""
+    if signing is not None:
+        st = server.stats
+        refused = (f"; refused {st['rx_unsigned']} unsigned, {st['rx_bad_signature']} badly signed and "
+                   f"{st['rx_replayed']} replayed frames")
+    print(f"pilescan-sitl: stopped after {sim_s:.1f} simulated seconds; telemetry in {out / TLOG_FILE}{refused}",
           file=sys.stderr)
     return 0

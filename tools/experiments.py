@@ -61,20 +61,31 @@ class Experiment:
     plant: str = "jsbsim"
 
     def __post_init__(self) -> None:
-        if not self.name or not self.name.replace("-", "").replace("_", "").replace(".", "").isalnum():
+        if not isinstance(self.name, str) or not self.name.replace("-", "").replace("_", "").replace(".", "").isalnum():
             raise ValueError(f"experiment name must be letters, digits, '-', '_' or '.', got {self.name!r}")
+        for key in ("figure", "sensor", "waveform", "turn", "plant"):  # a config file can hold any TOML value
+            if not isinstance(getattr(self, key), str):
+                raise ValueError(f"experiment {self.name}: {key} must be a string, got {getattr(self, key)!r}")
+        for key in ("speed_m_s", "yaw_rate_max_dps"):
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                raise ValueError(f"experiment {self.name}: {key} must be a number, got {v!r}")
         if self.sensor not in SENSORS:
             raise ValueError(f"experiment {self.name}: sensor must be one of {', '.join(SENSORS)}, got {self.sensor!r}")
         if self.turn not in TURN_MODES:
             raise ValueError(f"experiment {self.name}: turn must be one of {', '.join(TURN_MODES)}, got {self.turn!r}")
-        if not (isinstance(self.noise_draws, int) and 0 <= self.noise_draws <= 1000):
+        n = self.noise_draws
+        if isinstance(n, bool) or not (isinstance(n, int) and 0 <= n <= 1000):
             raise ValueError(f"experiment {self.name}: noise_draws must be 0-1000, got {self.noise_draws!r}")
         if self.plant not in PLANTS:
             raise ValueError(f"experiment {self.name}: plant must be one of {', '.join(PLANTS)}, got {self.plant!r}")
         if self.noise_draws and self.sensor != "1d":
             raise ValueError(f"experiment {self.name}: noise draws are for the 1D LiDAR (Appendix A)")
-        self.mission(5)  # speed, yaw rate: validated by Mission
-        FlyConfig(waveform=self.waveform)  # the waveform name
+        try:
+            self.mission(5)  # speed, yaw rate: validated by Mission
+            FlyConfig(waveform=self.waveform)  # the waveform name
+        except ValueError as exc:
+            raise ValueError(f"experiment {self.name}: {exc}") from None
 
     @property
     def payload_kg(self) -> float:
@@ -135,7 +146,7 @@ def load_experiments(path: str | Path) -> list[Experiment]:
                              f"(known: {', '.join(sorted(known))})")
         try:
             out.append(Experiment(**t))
-        except TypeError as exc:
+        except (TypeError, ValueError) as exc:
             raise ValueError(f"{path}: {exc}") from None
     names = [e.name for e in out]
     if len(set(names)) != len(names):

@@ -294,6 +294,18 @@ def _experiments(args) -> list[Experiment]:
     return [ALL_EXPERIMENTS[n] for n in names]
 
 
+def _check_outputs(args) -> None:
+    """Make the output directories now: an unusable --cache, --rows or --write fails before the sweep, not after."""
+    for opt, path in (("--rows", args.rows), ("--write", args.write)):
+        if path is not None and path.is_dir():
+            raise ValueError(f"{opt} {path} is a directory; give a file path")
+    dirs = [args.cache, args.rows.parent]
+    if args.write is not None:
+        dirs += [args.write.parent, args.figures or args.write.parent / "figures"]
+    for d in dirs:
+        d.mkdir(parents=True, exist_ok=True)
+
+
 def _body(args) -> int:
     exps = _experiments(args)
     if any(not 0 < p < 50 for p in args.p_traj):
@@ -301,6 +313,7 @@ def _body(args) -> int:
     if args.jobs is not None and args.jobs < 1:
         raise ValueError("--jobs must be >= 1")
     cases = cases_for(exps, tuple(args.piles), tuple(args.p_traj), positions=args.positions)
+    _check_outputs(args)
     print(f"{len(cases)} cases ({len(exps)} experiments x {len(args.piles)} piles x {len(args.p_traj)} P_traj)",
           file=sys.stderr)
     n_todo = len(missing_cases(cases, args.cache))

@@ -63,7 +63,7 @@ def parse_i2c_url(url: str) -> int | str:
     """
     if not isinstance(url, str):
         raise ValueError(f"I2C bus URL must be a string like {_FORMS}, got {url!r}")
-    m = re.fullmatch(r"i2c:(?:(\d+)|(/dev/\S+))", url.strip())
+    m = re.fullmatch(r"i2c:(?:(\d+)|(/dev/\S+))", url.strip(), re.ASCII)  # ASCII digits only, as the bridge
     if not m:
         raise ValueError(f"malformed I2C bus URL {url!r}: expected {_FORMS}")
     return int(m.group(1)) if m.group(1) is not None else m.group(2)

@@ -14,11 +14,25 @@ so both survive garbage the same way: a frame that fails its CRC costs one byte,
 (possibly corrupt) header claims, so one bad length byte cannot swallow the valid frames behind it.
 Nothing on the receive path raises for bad data; everything is counted in `stats`.
 
+Signing (`signing=SigningConfig(...)`, `firmware_py.hal.signing`): every frame we send is signed
+(MAVLink 2 signature: link id, 48-bit timestamp, SHA-256-based tag); a received frame is delivered
+only if its signature checks out and its timestamp is newer than the last one accepted from that
+sender; unsigned, forged and replayed frames are refused and counted (`rx_unsigned`,
+`rx_bad_signature`, `rx_replayed`; `rx_signed` counts authenticated frames, `rx_unsigned_accepted`
+unsigned ones let in by `allow_unsigned`). Authentication is checked after the CRC: a frame that
+fails its CRC still costs one byte of resync; a refused frame has passed its CRC, so its length is
+as trustworthy as an accepted frame's and it is skipped whole, like one (its payload, which a
+sender without the key chose, is never scanned for frames, and it is not counted as line noise).
+On a listening UDP link (udp:HOST:PORT) a sender is only kept as a destination if its datagram
+held an authenticated frame, so unauthenticated senders cannot make us send to them. Without a
+key everything is as before: signed frames from others are delivered without a check.
+
 The companion's 1 Hz HEARTBEAT is the caller's job (`heartbeat_msg()`); the pose tracker sends it.
 """
 
 from __future__ import annotations
 
+import inspect
 import re
 from collections.abc import Callable
 from typing import Any
@@ -26,6 +40,7 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_py.hal import MavlinkLink
+from firmware_py.hal.signing import MavlinkSigner, SigningConfig
 
 DEFAULT_SERIAL_BAUD = 921_600
 """The usual companion UART rate on a Pixhawk TELEM2 (SERIAL2_BAUD = 921)."""
@@ -53,14 +68,21 @@ class MavlinkFramer:
     """Cuts a byte stream into MAVLink 1/2 frames checked by pymavlink; resynchronises one byte at a time.
 
     Frames of message ids outside the dialect cannot be CRC-checked (no CRC_EXTRA) and are skipped
-    like bad frames. Signed frames are accepted without checking the signature (no key is set).
+    like bad frames. Without a signer, signed frames are accepted without checking the signature.
+    With one (`MavlinkSigner`), a CRC-checked frame is delivered only if `signer.verify` accepts it;
+    a refused frame is counted in the signer's stats (not in bad_bytes / bad_frames: it is not line
+    noise) and skipped whole, as an accepted frame is: its CRC vouches for its length. The decoder
+    `mav` must not have a pymavlink signing key: the signer does the checking.
     """
 
     _MAGIC_V1 = mavlink.PROTOCOL_MARKER_V1  # 0xFE
     _MAGIC_V2 = mavlink.PROTOCOL_MARKER_V2  # 0xFD
 
-    def __init__(self, mav: mavlink.MAVLink | None = None) -> None:
+    def __init__(self, mav: mavlink.MAVLink | None = None, signer: MavlinkSigner | None = None) -> None:
         self._mav = mav if mav is not None else mavlink.MAVLink(None)
+        if signer is not None and self._mav.signing.secret_key is not None:
+            raise ValueError("MavlinkFramer checks signatures with its signer: give it a decoder without a key")
+        self.signer = signer
         self._buf = bytearray()
         self._last_seq: dict[tuple[int, int], int] = {}
         self.bad_bytes = 0
@@ -88,6 +110,14 @@ class MavlinkFramer:
                 self.bad_bytes += 1
                 i += 1
                 continue
+            if self.signer is not None:
+                frame = buf[i:i + total]
+                if self.signer.verify(frame) is not None:  # unsigned, forged or replayed: counted there
+                    i += total  # well-formed (its CRC passed): skipped whole, its payload never scanned
+                    continue
+                msg._signed = bool(frame[2] & mavlink.MAVLINK_IFLAG_SIGNED) and frame[0] == self._MAGIC_V2
+                if msg._signed:
+                    msg._link_id = frame[-13]
             out.append(msg)
             self._count_seq(msg)
             i += total
@@ -133,28 +163,49 @@ class MavlinkFramer:
 
 # ----- links --------------------------------------------------------------------------------------
 
+_SIGNING_STATS = (("rx_signed", "signed"), ("rx_unsigned", "unsigned"), ("rx_bad_signature", "bad_signature"),
+                  ("rx_replayed", "replayed"), ("rx_unsigned_accepted", "unsigned_accepted"))
+
+
+def _signer(signing: SigningConfig | MavlinkSigner | None) -> MavlinkSigner | None:
+    if signing is None or isinstance(signing, MavlinkSigner):
+        return signing
+    return MavlinkSigner(signing)  # ValueError for anything but a SigningConfig
+
+
 class _FramedLink:
     """Shared send/recv bookkeeping; subclasses provide _read_chunks, _write and _close."""
 
-    def __init__(self, source_system: int, source_component: int) -> None:
+    def __init__(self, source_system: int, source_component: int,
+                 signing: SigningConfig | MavlinkSigner | None = None) -> None:
         for name, value in (("source_system", source_system), ("source_component", source_component)):
             if not (isinstance(value, int) and 1 <= value <= 255):
                 raise ValueError(f"{name} must be an integer 1-255, got {value!r}")
         self.mav = mavlink.MAVLink(None, srcSystem=source_system, srcComponent=source_component)
         """Our encoder (source ids, sequence); `link.mav.xxx_encode(...)` builds messages to send."""
-        self._framer = MavlinkFramer(mavlink.MAVLink(None))
+        self.signer = _signer(signing)
+        """The link's signing state (`firmware_py.hal.signing.MavlinkSigner`), None when unsigned."""
+        if self.signer is not None:
+            self.signer.attach(self.mav)
+        self._framer = MavlinkFramer(mavlink.MAVLink(None), signer=self.signer)
         self.stats: dict[str, int] = {
             "rx_bytes": 0, "rx_messages": 0, "rx_bad_bytes": 0, "rx_bad_frames": 0, "rx_seq_lost": 0,
             "tx_messages": 0, "tx_errors": 0, "io_errors": 0,
+            **{name: 0 for name, _ in _SIGNING_STATS},
         }
         self.last_error: str | None = None
         self.closed = False
 
+    @property
+    def signing_active(self) -> bool:
+        """Whether we sign what we send and check what we receive."""
+        return self.signer is not None
+
     def send(self, msg: Any) -> None:
-        """Pack with our ids and sequence and write; a failed write is counted (stats, last_error)."""
+        """Pack with our ids and sequence (signed, with a key) and write; a failed write is counted."""
         if self.closed:
             raise ValueError("send on a closed MAVLink link")
-        buf = msg.pack(self.mav)
+        buf = self.signer.pack(msg, self.mav) if self.signer is not None else msg.pack(self.mav)
         self.mav.seq = (self.mav.seq + 1) % 256
         try:
             ok = self._write(bytes(buf))
@@ -173,10 +224,13 @@ class _FramedLink:
         out: list[Any] = []
         got = False
         try:
-            for chunk in self._read_chunks():
+            for chunk, new_peer in self._read_chunks():
                 got = True
                 self.stats["rx_bytes"] += len(chunk)
-                out.extend(self._framer.feed(chunk))
+                msgs = self._framer.feed(chunk)
+                out.extend(msgs)
+                if new_peer is not None and self.signer is not None and not msgs:
+                    self._forget_peer(new_peer)  # nothing authenticated from it: do not answer it
         except OSError as exc:
             self._io_error(exc)
         if not got:
@@ -186,6 +240,9 @@ class _FramedLink:
         self.stats["rx_bad_bytes"] = f.bad_bytes
         self.stats["rx_bad_frames"] = f.bad_frames
         self.stats["rx_seq_lost"] = f.seq_lost
+        if self.signer is not None:
+            for name, key in _SIGNING_STATS:
+                self.stats[name] = self.signer.stats[key]
         return out
 
     def close(self) -> None:
@@ -203,8 +260,12 @@ class _FramedLink:
         self.stats["io_errors"] += 1
         self.last_error = f"{type(exc).__name__}: {exc}"
 
-    def _read_chunks(self) -> list[bytes]:
+    def _read_chunks(self) -> list[tuple[bytes, Any]]:
+        """Chunks read now, each with the sender it made us learn (a UDP client), or None."""
         raise NotImplementedError
+
+    def _forget_peer(self, peer: Any) -> None:
+        """Stop sending to a sender learnt from a chunk that held nothing authenticated."""
 
     def _write(self, data: bytes) -> bool:
         raise NotImplementedError
@@ -222,13 +283,14 @@ class ByteStreamLink(_FramedLink):
 
     def __init__(self, send_bytes: Callable[[bytes], None], recv_bytes: Callable[[], bytes],
                  source_system: int = COMPANION_SYSTEM_ID, source_component: int = COMPANION_COMPONENT_ID,
-                 close: Callable[[], None] | None = None) -> None:
-        super().__init__(source_system, source_component)
+                 close: Callable[[], None] | None = None, *,
+                 signing: SigningConfig | MavlinkSigner | None = None) -> None:
+        super().__init__(source_system, source_component, signing)
         self._send_bytes, self._recv_bytes, self._close_cb = send_bytes, recv_bytes, close
 
-    def _read_chunks(self) -> list[bytes]:
+    def _read_chunks(self) -> list[tuple[bytes, Any]]:
         data = self._recv_bytes()
-        return [bytes(data)] if data else []
+        return [(bytes(data), None)] if data else []
 
     def _write(self, data: bytes) -> bool:
         self._send_bytes(data)
@@ -290,12 +352,14 @@ class PymavlinkLink(_FramedLink):
 
     mavutil provides the transport (sockets, pyserial, its serial baud-rate workaround); parsing is
     MavlinkFramer's, so stats mean the same on every link. `connect` replaces mavutil for tests.
+    `signing`: sign and check (module docstring).
     """
 
     def __init__(self, url: str, source_system: int = COMPANION_SYSTEM_ID,
                  source_component: int = COMPANION_COMPONENT_ID, *,
-                 connect: Callable[..., Any] | None = None) -> None:
-        super().__init__(source_system, source_component)
+                 connect: Callable[..., Any] | None = None,
+                 signing: SigningConfig | MavlinkSigner | None = None) -> None:
+        super().__init__(source_system, source_component, signing)
         self.url = url
         device, baud = mavutil_device(url)
         if connect is None:
@@ -315,8 +379,12 @@ class PymavlinkLink(_FramedLink):
         getsockname = getattr(sock, "getsockname", None)
         return getsockname() if getsockname is not None else None
 
-    def _read_chunks(self) -> list[bytes]:
+    def _read_chunks(self) -> list[tuple[bytes, Any]]:
         chunks = []
+        # mavutil's listening UDP socket answers every address it has heard (its `clients`); with a
+        # key, a datagram's sender is only kept there if the datagram held an authenticated frame
+        clients = getattr(self._conn, "clients", None) if self.signer is not None else None
+        known = set(clients) if isinstance(clients, set) else None
         for _ in range(_MAX_READS_PER_RECV):
             try:
                 data = self._conn.recv(_READ_CHUNK)
@@ -325,8 +393,20 @@ class PymavlinkLink(_FramedLink):
                 break
             if not data:  # mavutil returns "" (a str) when a socket has nothing
                 break
-            chunks.append(bytes(data))
+            new_peer = None
+            if known is not None:
+                added = clients - known
+                if added:
+                    new_peer = added.pop()
+                    known.add(new_peer)
+            chunks.append((bytes(data), new_peer))
         return chunks
+
+    def _forget_peer(self, peer: Any) -> None:
+        self._conn.clients.discard(peer)
+        alive = getattr(self._conn, "clients_last_alive", None)
+        if isinstance(alive, dict):
+            alive.pop(peer, None)
 
     def _write(self, data: bytes) -> bool:
         result = self._conn.write(data)
@@ -357,12 +437,28 @@ def unregister_mavlink_backend(scheme: str) -> None:
 
 
 def open_mavlink(url: str, source_system: int = COMPANION_SYSTEM_ID,
-                 source_component: int = COMPANION_COMPONENT_ID) -> MavlinkLink:
-    """A MavlinkLink from its URL: a registered backend's scheme, else a PymavlinkLink."""
+                 source_component: int = COMPANION_COMPONENT_ID, *,
+                 signing: SigningConfig | None = None) -> MavlinkLink:
+    """A MavlinkLink from its URL: a registered backend's scheme, else a PymavlinkLink.
+
+    With `signing`, a registered backend must take a `signing=` keyword (ValueError otherwise).
+    """
     if not isinstance(url, str):
         raise ValueError(f"MAVLink URL must be a string, got {url!r}")
     scheme = url.strip().split(":", 1)[0]
     factory = _REGISTRY.get(scheme)
     if factory is not None:
-        return factory(url.strip())
-    return PymavlinkLink(url, source_system, source_component)
+        if signing is None:
+            return factory(url.strip())
+        if not _takes_keyword(factory, "signing"):
+            raise ValueError(f"MAVLink backend {scheme!r} does not support signing")
+        return factory(url.strip(), signing=signing)
+    return PymavlinkLink(url, source_system, source_component, signing=signing)
+
+
+def _takes_keyword(fn: Callable[..., Any], name: str) -> bool:
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+        return False
+    return any(p.name == name or p.kind is inspect.Parameter.VAR_KEYWORD for p in params)

@@ -16,7 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from firmware_py.hal import I2CBus, MavlinkLink, PwmOutput
+from firmware_py.hal import I2CBus, MavlinkLink, PwmOutput, check_i2c_addr
 
 FRAME_HZ = 50.0
 
@@ -62,6 +62,7 @@ class Pca9685Pwm:
                  sleep: Callable[[float], None] | None = None) -> None:
         if not (0 <= channel <= 15):
             raise ValueError(f"PCA9685 channel must be 0-15, got {channel}")
+        check_i2c_addr(addr)
         self.bus, self.addr, self.channel = bus, addr, channel
         self.frame_hz = frame_hz
         self.prescale = prescale_for(frame_hz)
@@ -150,7 +151,13 @@ def open_pwm(url: str, i2c_opener: Callable[[str], I2CBus] | None = None, link: 
         if scheme == "pca9685" and len(parts) == 3:
             if i2c_opener is None:
                 raise ValueError("a PCA9685 output needs an I2C bus")
-            return Pca9685Pwm(i2c_opener(f"i2c:{parts[0]}"), int(parts[1], 0), int(parts[2]))
+            addr, channel = check_i2c_addr(int(parts[1], 0)), int(parts[2])  # before the bus is opened
+            bus = i2c_opener(f"i2c:{parts[0]}")
+            try:
+                return Pca9685Pwm(bus, addr, channel)
+            except BaseException:
+                bus.close()
+                raise
         if scheme == "mavlink" and len(parts) == 1:
             if link is None or mav is None:
                 raise ValueError("a MAVLink servo output needs the autopilot link")

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import signal
+import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,10 +15,15 @@ from firmware_py.cli_util import UserError
 from firmware_py.hal import pwm as pwm_backends
 from firmware_py.hal.backends import unregister_i2c_backend
 from firmware_py.hal.clock import MonotonicClock
+from firmware_py.hal.mavlink_link import MavlinkFramer
+from firmware_py.hal.signing import SigningConfig
+from firmware_py.live_stream import LiveStreamReceiver
 from firmware_py.samplelog import SampleFlags, read_samplelog
 from sitl.devices.i2c_sim import SimI2CBus, register_sim_bus
 from sitl.devices.lidarlite_emu import EmulatedLidarLite
 from sitl.devices.servo_emu import EmulatedServo
+from sitl.kinematic_vehicle import KinematicVehicle
+from sitl.mavlink_vehicle import MavlinkVehicleServer, UdpTransport, run_realtime
 
 NOBODY = "udpout:127.0.0.1:9"  # the discard port: no autopilot there
 
@@ -170,3 +178,89 @@ def test_that_hal_urls_refuses_anything_but_sitl_host_port():
     for bad in ("sitl", "sitl:host", "sitl:host:port", "sitl:host:70000", "i2c:1"):
         with pytest.raises(UserError):
             hal_urls(bad)
+
+
+# ----- link security ------------------------------------------------------------------------------
+
+KEY = bytes(range(1, 33))
+
+
+def key_file(tmp_path, mode: int = 0o600, text: str = KEY.hex()):
+    path = tmp_path / "link.key"
+    path.write_text(text + "\n")
+    path.chmod(mode)
+    return path
+
+
+def test_that_a_signing_key_reaches_the_config(tmp_path):
+    cfg = parse("--signing-key", str(key_file(tmp_path)))
+    assert cfg.signing.key == KEY and not cfg.signing.allow_unsigned and cfg.signing.link_id == 0
+    assert KEY.hex() not in repr(cfg)
+    assert parse("--signing-key", str(key_file(tmp_path)), "--allow-unsigned").signing.allow_unsigned
+    assert parse().signing is None
+
+
+@pytest.mark.parametrize(("argv", "word"), [
+    (["--signing-key", "/nonexistent"], "does not exist"),
+    (["--allow-unsigned"], "--allow-unsigned needs --signing-key"),
+])
+def test_that_a_bad_signing_key_is_one_line_and_exit_2(capsys, tmp_path, argv, word):
+    out = tmp_path / "x.pslog"
+    err = run_bad(capsys, "--out", str(out), "--mavlink", NOBODY, *argv)
+    assert word in err and not out.exists()
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX permission bits")
+def test_that_a_world_readable_or_empty_signing_key_is_one_line_and_exit_2(capsys, tmp_path):
+    err = run_bad(capsys, "--out", str(tmp_path / "x.pslog"), "--signing-key", str(key_file(tmp_path, 0o644)))
+    assert "chmod 600" in err
+    err = run_bad(capsys, "--out", str(tmp_path / "x.pslog"), "--signing-key", str(key_file(tmp_path, text="")))
+    assert "empty" in err
+
+
+class SignedAutopilot:
+    """The SITL autopilot with a signing key, on UDP, in real time in a background thread."""
+
+    def __init__(self, key: bytes, tlog: Path) -> None:
+        self.vehicle = KinematicVehicle(dt_s=0.002, home_ned_m=(3.0, 4.0, 0.0))
+        self.transport = UdpTransport("udp:127.0.0.1:0")
+        self.server = MavlinkVehicleServer(self.vehicle, self.transport, tlog_path=tlog, signing=SigningConfig(key))
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=run_realtime, args=(self.server, self.vehicle),
+                                       kwargs={"stop_event": self.stop}, daemon=True)
+        self.thread.start()
+
+    @property
+    def url(self) -> str:
+        return f"udpout:127.0.0.1:{self.transport.local_address[1]}"
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(timeout=5.0)
+        self.server.close()
+        self.transport.close()
+
+
+def test_that_a_signed_payload_flies_on_a_signed_autopilot_and_streams_authenticated(capsys, tmp_path, devices):
+    out, tlog = tmp_path / "x.pslog", tmp_path / "autopilot.tlog"
+    ap = SignedAutopilot(KEY, tlog)
+    rx = LiveStreamReceiver("udp:127.0.0.1:0", key=KEY, allowed_peers=["127.0.0.1"])
+    try:
+        rc = main(["--out", str(out), "--mavlink", ap.url, "--i2c", "sitl", "--pwm", "pwm:emu", "--duration", "2.0",
+                   "--rate", "200", "--signing-key", str(key_file(tmp_path)),
+                   "--stream", f"udp:127.0.0.1:{rx.local_address[1]}"])
+        streamed = rx.poll()
+    finally:
+        ap.close()
+        rx.close()
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert "MAVLink signing on (link id 0, unsigned frames refused), stream authenticated" in err
+    s = read_samplelog(out).samples
+    assert np.count_nonzero(s["flags"] == 0) > 50  # signed poses arrived and placed the samples
+    assert len(streamed) == len(s) and streamed.tobytes() == s.tobytes()
+    assert rx.stats["bad_tag"] == rx.stats["unauthenticated"] == rx.stats["replayed"] == rx.stats["rejected_peer"] == 0
+    st = ap.server.stats
+    assert st["rx_signed"] == st["rx_messages"] > 0 and st["rx_unsigned"] == st["rx_bad_signature"] == 0
+    texts = [m.text for m in MavlinkFramer().feed(tlog.read_bytes()) if m.get_type() == "STATUSTEXT"]
+    assert "pilescan: started, 200 Hz, link signed" in texts

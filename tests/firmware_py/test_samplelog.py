@@ -346,6 +346,84 @@ def test_damage_anywhere_spares_blocks_outside_it(log5, pos: int, garbage: bytes
         assert not log.intact
 
 
+_json_scalars = st.one_of(st.none(), st.booleans(), st.integers(-(2**70), 2**70),
+                         st.floats(allow_nan=False, allow_infinity=False), st.text(max_size=20))
+_json = st.recursive(_json_scalars, lambda inner: st.one_of(st.lists(inner, max_size=4),
+                                                            st.dictionaries(st.text(max_size=8), inner, max_size=4)),
+                     max_leaves=20)
+_user_headers = st.dictionaries(st.text(max_size=12).filter(lambda k: k not in sl._RESERVED_HEADER_KEYS), _json,
+                                max_size=6)
+
+
+@pytest.fixture(scope="module")
+def scratch(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("fuzz") / "h.pslog"
+
+
+@FAST
+@given(header=_user_headers, n=st.integers(0, 3))
+def test_any_json_header_round_trips_through_writer_and_reader(scratch, header: dict, n: int) -> None:
+    recs = make_records(n, seed=n)
+    with SampleLogWriter(scratch, header, records_per_block=2, fsync=False, overwrite=True) as w:
+        w.append(recs)
+    log = read_samplelog(scratch)
+    assert log.intact and same_records(log.samples, recs)
+    assert {k: v for k, v in log.header.items() if k not in sl._RESERVED_HEADER_KEYS} == header
+    assert log.header["format"] == sl.FORMAT_NAME
+
+
+@FAST
+@given(payload=st.one_of(_json.map(json.dumps), st.recursive(_json_scalars | st.floats(), st.lists).map(json.dumps),
+                         st.text(max_size=200), st.binary(max_size=200).map(lambda b: b.decode("latin-1"))),
+       encoding=st.sampled_from(["utf-8", "utf-16", "latin-1"]))
+def test_header_block_with_any_payload_gives_its_json_object_or_none(payload: str, encoding: str) -> None:
+    """Any header content in a valid block: the header is the JSON object it holds, or None (block corrupt)."""
+    raw = payload.encode(encoding, errors="replace")
+    recs = make_records(2, seed=11)
+    log = read_samplelog(encode_block(b"H", raw) + encode_block(b"S", recs.tobytes()))
+    try:
+        expected = json.loads(raw.decode("utf-8"))
+    except (ValueError, RecursionError):
+        expected = None
+    if not isinstance(expected, dict):
+        expected = None
+    assert log.header == expected or (expected is not None and json.dumps(log.header) == json.dumps(expected))
+    assert (log.blocks_ok, log.blocks_corrupt) == ((2, 0) if expected is not None else (1, 1))
+    assert same_records(log.samples, recs)
+
+
+_no_magic = st.binary(max_size=64).map(lambda b: b.replace(MAGIC[:1], b"Q"))
+"""Block bodies holding no MAGIC, nor a prefix of it (which would be a block boundary of its own)."""
+
+
+@FAST
+@given(length=st.one_of(st.integers(0, 2**32 - 1), st.sampled_from([MAX_PAYLOAD, MAX_PAYLOAD + 1, 2**32 - 1])),
+       kind=st.sampled_from([b"H", b"S", b"?"]), crc=st.integers(0, 2**32 - 1), body=_no_magic,
+       n_after=st.integers(1, 3))
+def test_any_declared_length_costs_only_its_own_block(length: int, kind: bytes, crc: int, body: bytes,
+                                                      n_after: int) -> None:
+    """A block head claiming any length (up to 4 GiB), then good blocks: only the liar is lost, counted."""
+    recs = make_records(3 * n_after, seed=length % 1000)
+    good = b"".join(encode_block(b"S", recs[3 * k:3 * k + 3].tobytes()) for k in range(n_after))
+    liar = MAGIC + kind + struct.pack("<II", length, crc) + body
+    log = read_samplelog(encode_block(b"H", b'{"n": 1}') + liar + good)
+    assert log.header == {"n": 1} and same_records(log.samples, recs)
+    assert log.blocks_ok == 1 + n_after and log.blocks_corrupt >= 1 and log.blocks_truncated == 0
+    assert log.bytes_skipped == len(liar)
+
+
+@FAST
+@given(length=st.integers(0, 2**32 - 1), body=_no_magic)
+def test_any_declared_length_in_the_final_block_reads_as_truncated_or_corrupt(length: int, body: bytes) -> None:
+    recs = make_records(3, seed=12)
+    good = encode_block(b"H", b"{}") + encode_block(b"S", recs.tobytes())
+    liar = MAGIC + b"S" + struct.pack("<II", length, 0) + body
+    log = read_samplelog(good + liar)
+    assert same_records(log.samples, recs) and log.bytes_skipped == len(liar)
+    past_eof = length <= MAX_PAYLOAD and len(body) < length
+    assert (log.blocks_truncated, log.blocks_corrupt) == ((1, 0) if past_eof else (0, 1))
+
+
 # --------------------------------------------------------------------------- writer validation
 
 
@@ -441,3 +519,35 @@ def test_that_a_100k_record_log_reads_back_whole(tmp_path: Path) -> None:
     log = read_samplelog(data)
     assert log.blocks_ok == 201 and log.samples.size == 100_000
     assert np.array_equal(log.samples, recs)
+
+
+class _FullDisk:
+    """A file that takes `room` more bytes, writes what fits of the next write, then fails ENOSPC."""
+
+    def __init__(self, f, room):
+        self.f, self.room = f, room
+
+    def write(self, data):
+        if len(data) > self.room:
+            self.f.write(data[: self.room])  # a real full disk can take part of a write
+            self.room = 0
+            raise OSError(28, "No space left on device")
+        self.room -= len(data)
+        return self.f.write(data)
+
+    def __getattr__(self, name):
+        return getattr(self.f, name)
+
+
+def test_that_a_full_disk_stops_the_writer_loudly_and_keeps_every_whole_block(tmp_path):
+    path = tmp_path / "full.pslog"
+    w = SampleLogWriter(path, {"test": True}, records_per_block=100, fsync=False)
+    w._file = _FullDisk(w._file, room=3 * (100 * SAMPLE_DTYPE.itemsize + 64) + 50)
+    recs = new_records(1000)
+    recs["t_s"] = np.arange(1000)
+    with pytest.raises(OSError, match="No space"):
+        w.append(recs)
+    w.abandon()
+    log = read_samplelog(path)
+    assert len(log.samples) == 300 and np.array_equal(log.samples["t_s"], np.arange(300))
+    assert log.blocks_corrupt == 0 and log.blocks_truncated == 1  # the block that did not fit

@@ -1,6 +1,8 @@
 """Every bad input to pilescan-sitl fly: one line, exit code 2, no traceback."""
 
 import json
+import os
+import signal
 
 import pytest
 
@@ -62,3 +64,43 @@ def test_that_an_out_path_that_is_a_file_fails_with_one_line(tmp_path, capsys):
     code = main(["fly", "--stockpile", "1", "--p-traj", "20", "--out", str(blocker / "run")])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "Traceback" not in err
+
+
+# ----- serve: link security --------------------------------------------------------------------------
+
+def _key_file(tmp_path, mode: int = 0o600):
+    path = tmp_path / "link.key"
+    path.write_text(bytes(range(1, 33)).hex() + "\n")
+    path.chmod(mode)
+    return path
+
+
+@pytest.mark.parametrize(("extra", "match"), [
+    (["--signing-key", "/nonexistent/link.key"], "does not exist"),
+    (["--allow-unsigned"], "--allow-unsigned needs --signing-key"),
+])
+def test_that_a_bad_signing_key_fails_serve_with_one_line_before_anything_starts(tmp_path, capsys, extra, match):
+    out = tmp_path / "serve"
+    code = main(["serve", "--vehicle", "kinematic", "--duration", "0.1", "--out", str(out), *extra])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err
+    assert match in err and not out.exists()
+
+
+def test_that_a_world_readable_signing_key_is_refused_by_serve(tmp_path, capsys):
+    if os.name != "posix":
+        pytest.skip("POSIX permission bits")
+    key = _key_file(tmp_path, mode=0o644)
+    code = main(["serve", "--vehicle", "kinematic", "--out", str(tmp_path / "serve"), "--signing-key", str(key)])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "chmod 600" in err
+
+
+def test_that_serve_with_a_signing_key_says_so_and_reports_what_it_refused(tmp_path, capsys):
+    handlers = (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM))
+    code = main(["serve", "--vehicle", "kinematic", "--mavlink", "udp:127.0.0.1:0", "--duration", "0.2",
+                 "--speedup", "20", "--out", str(tmp_path / "serve"), "--signing-key", str(_key_file(tmp_path))])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "MAVLink signing on" in err and "refused 0 unsigned, 0 badly signed and 0 replayed frames" in err
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == handlers  # restored

@@ -81,3 +81,26 @@ def test_that_a_power_cut_loses_at_most_the_unfinished_block(tmp_path):
     assert not run.completed and run.faults["power_cut"]
     assert len(s) % 500 == 0 and len(s) > 0
     assert 0 <= run.loop.ticks - len(s) < 500 + 200  # the block being filled, plus readings awaiting poses
+
+
+def test_that_faults_parse_from_the_command_line_form():
+    spec = FaultSpec.parse(["link_loss_pct=10", "link-outage=20,5", "servo_slow_factor=0.6"], seed=4)
+    assert spec == FaultSpec(seed=4, link_loss_pct=10, link_outage=(20.0, 5.0), servo_slow_factor=0.6)
+    for bad, words in (("warp=1", "NAME one of"), ("link_loss_pct", "NAME=VALUE"), ("link_loss_pct=x", "not a number"),
+                       ("link_outage=3", "START,DURATION"), ("link_loss_pct=200", "percentage")):
+        with pytest.raises(ValueError, match=words):
+            FaultSpec.parse([bad])
+
+
+def test_that_fly_takes_faults_and_records_them_in_the_run(tmp_path, capsys):
+    import json
+
+    from sitl.cli import main
+    assert main(["fly", "--stockpile", "1", "--p-traj", "30", "--storage", "30x20x10", "--altitude", "9",
+                 "--fault", "power_cut_at_s=5", "--out", str(tmp_path), "--quiet"]) == 0
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    assert truth["faults"]["power_cut_at_s"] == 5.0
+    assert len(read_samplelog(tmp_path / "samples.pslog").samples) % 500 == 0
+    assert main(["fly", "--stockpile", "1", "--p-traj", "30", "--plant", "ideal", "--fault", "link_loss_pct=5",
+                 "--out", str(tmp_path / "b")]) == 2
+    assert "firmware payload" in capsys.readouterr().err

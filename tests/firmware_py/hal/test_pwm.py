@@ -63,3 +63,24 @@ def test_that_the_autopilot_servo_is_commanded_with_do_set_servo():
 def test_that_bad_pwm_urls_are_refused_with_a_message(url):
     with pytest.raises(ValueError, match="PWM"):
         open_pwm(url)
+
+
+@pytest.mark.parametrize("url", ["pwm:pca9685:1:0x80:0", "pwm:pca9685:1:zz:0", "pwm:pca9685:1:0x40:x"])
+def test_that_a_bad_pca9685_address_or_channel_is_refused_before_the_bus_is_opened(url):
+    opened = []
+    with pytest.raises(ValueError, match="bad PWM output"):
+        open_pwm(url, i2c_opener=opened.append)
+    assert opened == []
+
+
+def test_that_the_pca9685_bus_is_closed_when_the_output_cannot_be_set_up():
+    class Bus(RecordingBus):
+        closed = False
+
+        def close(self):
+            self.closed = True
+
+    bus = Bus()
+    with pytest.raises(ValueError, match="channel must be 0-15"):
+        open_pwm("pwm:pca9685:1:0x40:16", i2c_opener=lambda _url: bus)
+    assert bus.closed

@@ -288,3 +288,54 @@ def test_that_random_bytes_never_kill_the_server(shared_server, chunks):
     assert shared_server._thread.is_alive()
     with connect(shared_server) as s:
         assert hello(s)[0] == STATUS_OK
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(_frame, min_size=1, max_size=8))
+def test_that_pipelined_well_framed_requests_get_one_answer_each_in_order(shared_server, frames):
+    with connect(shared_server) as s:
+        s.sendall(b"".join(frames))
+        answers = [answer(s) for _ in frames]
+        assert hello(s)[0] == STATUS_OK  # the connection is still in step after them
+    for (status, body), frame in zip(answers, frames, strict=True):
+        assert status in (STATUS_OK, STATUS_NACK, STATUS_BAD_REQUEST, STATUS_ERROR)
+        assert status == STATUS_OK or (body and b"\n" not in body)
+        if status == STATUS_OK and frame[2] in (OP_I2C_READ, OP_I2C_WRITE_READ):
+            assert len(body) == struct.unpack_from("<H", frame, 4)[0]
+
+
+@pytest.fixture(scope="module")
+def quiet_server():
+    """Well-behaved devices only (no Boom), never started: requests go straight to handle_request."""
+    lock = threading.Lock()
+    bus = SimI2CBus(SimClock())
+    bus.attach(REG, Register(lock))
+    srv = DeviceBridgeServer(bus, {3: RecordingPwm()}, lock=lock)
+    yield srv
+    srv.close()
+
+
+_ops = st.one_of(st.sampled_from([OP_HELLO, OP_I2C_WRITE, OP_I2C_READ, OP_I2C_WRITE_READ, OP_PWM_SET, OP_PWM_DISABLE]),
+                 st.integers(0, 255))
+_payloads = st.one_of(
+    st.binary(max_size=MAX_PAYLOAD + 8),
+    st.builds(lambda a, n, rest: struct.pack("<BH", a, n) + rest, st.sampled_from([REG, 0x62, 0x7F, 0x80, 0xFF]),
+              st.sampled_from([0, 1, 2, MAX_PAYLOAD, MAX_PAYLOAD + 1, 0xFFFF]), st.binary(max_size=8)),
+    st.builds(lambda ch, us: struct.pack("<Bd", ch, us), st.sampled_from([0, 3, 255]), st.floats()),
+    st.builds(lambda v: struct.pack("<H", v), st.sampled_from([VERSION, 0, 2, 0xFFFF])),
+)
+
+
+@settings(max_examples=400, deadline=None)
+@given(op=_ops, payload=_payloads)
+def test_that_any_request_to_good_devices_gets_a_status_never_an_internal_error(quiet_server, op, payload):
+    """ERROR is for a device model that raised; with well-behaved devices every answer is OK, NACK (nobody at
+    that address) or BAD_REQUEST, and the counters say which."""
+    before = dict(quiet_server.counters)
+    status, body = quiet_server.handle_request(op, payload)
+    after = quiet_server.counters
+    assert status in (STATUS_OK, STATUS_NACK, STATUS_BAD_REQUEST), body
+    assert len(body) <= MAX_PAYLOAD and (status == STATUS_OK or (body and b"\n" not in body))
+    assert after["requests"] == before["requests"] + 1 and after["errors"] == before["errors"]
+    assert after["nacks"] - before["nacks"] == (status == STATUS_NACK)
+    assert after["bad_requests"] - before["bad_requests"] == (status == STATUS_BAD_REQUEST)
