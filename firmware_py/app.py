@@ -56,7 +56,7 @@ from firmware_py.hal import Clock, I2CBus, MavlinkLink, PwmOutput
 from firmware_py.hal.backends import open_i2c, parse_i2c_url
 from firmware_py.hal.clock import MonotonicClock
 from firmware_py.hal.mavlink_link import mavutil_device, open_mavlink
-from firmware_py.hal.pwm import open_pwm
+from firmware_py.hal.pwm import check_pwm_url, open_pwm
 from firmware_py.hal.signing import SigningConfig
 from firmware_py.header import build_log_header, sensor_spec
 from firmware_py.health import HealthMonitor, HealthSnapshot
@@ -215,10 +215,7 @@ class PayloadConfig:
             mavutil_device(self.mavlink_url)  # registered schemes are checked when opened
         if self.i2c_url.split(":", 1)[0] == "i2c":
             parse_i2c_url(self.i2c_url)
-        pwm = self.pwm_url.strip()
-        if not pwm.startswith("pwm:") or not pwm[4:].split(":", 1)[0].isalnum():
-            raise ValueError(f"PWM output must look like pwm:sysfs:0:0, pwm:pca9685:1:0x40:0, pwm:mavlink:9 or "
-                             f"pwm:tcp:HOST:PORT:CH, got {self.pwm_url!r}")
+        check_pwm_url(self.pwm_url)  # before anything is opened
 
     def loop_config(self) -> LoopConfig:
         return LoopConfig(rate_hz=self.rate_hz, max_pose_age_s=self.max_pose_age_s,

@@ -22,6 +22,7 @@ from firmware_py.app import (
 )
 from firmware_py.cli_util import ArgumentParser, UserError, finite_float, run_cli
 from firmware_py.drivers.lidarlite import PRESETS
+from firmware_py.hal.bridge import parse_tcp_url
 from firmware_py.hal.signing import SigningConfig, load_key
 from firmware_py.servo_waveform import N_PHASES
 from firmware_py.storage import Storage
@@ -35,6 +36,10 @@ def hal_urls(hal: str) -> tuple[str, str]:
     if m is None or not 1 <= int(m.group("port")) <= 65535:
         raise UserError(f"--hal must look like sitl:HOST:PORT (the SITL's device bridge), got {hal!r}")
     host, port = m.group("host"), int(m.group("port"))
+    try:
+        parse_tcp_url(f"tcp:{host}:{port}")  # the bridge's own check, before anything is opened
+    except ValueError:
+        raise UserError(f"--hal must look like sitl:HOST:PORT (the SITL's device bridge), got {hal!r}") from None
     return f"tcp:{host}:{port}", f"pwm:tcp:{host}:{port}:0"
 
 
@@ -104,6 +109,9 @@ def signing_from_args(args) -> SigningConfig | None:
 def config_from_args(args) -> PayloadConfig:
     """PayloadConfig from parsed options (ValueError / UserError for bad values, one line each)."""
     signing = signing_from_args(args)
+    for opt, value in (("--i2c", args.i2c), ("--pwm", args.pwm)):
+        if value is not None and not value.strip():
+            raise UserError(f"{opt} must be a non-empty URL (leave it out for the default)")
     i2c, pwm = args.i2c or DEFAULT_I2C_URL, args.pwm or DEFAULT_PWM_URL
     if args.hal is not None:
         if args.i2c is not None or args.pwm is not None:

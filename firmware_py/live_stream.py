@@ -127,7 +127,10 @@ def parse_stream_url(url: str, *, allow_port_zero: bool = False) -> tuple[str, i
     port = int(m.group("port"))
     if not (0 if allow_port_zero else 1) <= port <= 65535:
         raise ValueError(f"live stream port {port} out of range in {url!r}")
-    return m.group("host").strip("[]"), port
+    host = m.group("host").strip("[]")
+    if not host:
+        raise ValueError(f"live stream URL {url!r} has an empty host")
+    return host, port
 
 
 def _tag_key(key: bytes | None) -> bytes | None:

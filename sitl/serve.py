@@ -62,6 +62,17 @@ def serve(mission: Mission, url: str, speedup: float, duration_s: float | None, 
         pile = piles.resolve(stockpile, mission.storage)
         check_clearance(mission, pile)
         world = World(mission.storage, pile, max_range_m=defaults.lidar.max_range_m)
+    transport = make_transport(url)  # a bad --mavlink fails before anything is written
+    try:
+        return _serve(mission, url, speedup, duration_s, kind, out, devices_url, stockpile, signing, frame,
+                      defaults, world, transport)
+    finally:
+        transport.close()
+
+
+def _serve(mission, url, speedup, duration_s, kind, out, devices_url, stockpile, signing, frame, defaults, world,
+           transport) -> int:
+    pile = world.pile if world is not None else None
     out.mkdir(parents=True, exist_ok=True)
     plan = write_qgc_wpl(out / PLAN_FILE, mission, frame)
     if world is not None:
@@ -72,7 +83,6 @@ def serve(mission: Mission, url: str, speedup: float, duration_s: float | None, 
                  "payload": "networked", "software": f"pilescan {firmware_py.__version__}"}
         (out / TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
     vehicle = make_vehicle(kind, mission, frame)
-    transport = make_transport(url)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     lat0, lon0, alt0 = DEFAULT_ORIGIN

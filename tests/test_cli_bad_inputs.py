@@ -127,7 +127,7 @@ CASES = [
     ("sitl", [*SERVE, "--devices", "tcp:127.0.0.1:0", "--speedup", "2", "--out", "{t}/s"], "--speedup 1"),
     ("sitl", [*SERVE, "--devices", "tcp:127.0.0.1:0", "--stockpile", "{d}/random.stl", "--out", "{t}/s"],
      "random.stl"),
-    ("sitl", [*SERVE, "--mavlink", "bad", "--out", "{d}/blocker/s"], "Not a directory"),
+    ("sitl", [*SERVE, "--mavlink", "udp:127.0.0.1:0", "--out", "{d}/blocker/s"], "Not a directory"),
     ("sitl", [*SERVE, "--p-traj", "70", "--out", "{t}/s"], "P_traj"),
     # ----- pilescan-ground
     ("ground", [], "required: command"),
@@ -228,22 +228,17 @@ def test_that_a_bad_input_is_one_line_on_stderr_and_exit_code_2(inputs, tmp_path
     assert out == ""
     assert words.lower() in err.lower()
     written = [p for p in tmp_path.rglob("*") if p.is_file() and p.relative_to(tmp_path).parts[0] != "s"]
-    assert written == []  # (an empty --out directory may be left; serve's "s": see the xfail at the end)
+    assert written == []
 
 
-# ----- reported, not ours to fix (files another session owns): strict xfails that flip when fixed -------------
+# ----- found by this walk and fixed: hardware and files are touched only after every option is checked ----
 
-@pytest.mark.xfail(strict=True, reason="reported: PayloadConfig checks only the i2c: scheme, so a malformed --pwm is "
-                                       "found after the MAVLink link and the I2C bus are open, and named as an I2C "
-                                       "error when the bus cannot be opened")
 def test_that_a_malformed_pwm_url_is_named_before_any_hardware_is_opened(tmp_path, capsys):
     code, _, err = run(capsys, "payload", ["--out", str(tmp_path / "x.pslog"), *PAY, "--pwm", "pwm:sysfs:a:b"])
     check_one_line_error("payload", code, err)
     assert "pwm:sysfs:a:b" in err
 
 
-@pytest.mark.xfail(strict=True, reason="reported: `--i2c ''` / `--pwm ''` silently fall back to the defaults "
-                                       "(i2c:1, pwm:sysfs:0:0) instead of being refused")
 @pytest.mark.parametrize("opt", ["--i2c", "--pwm"])
 def test_that_an_empty_device_url_is_refused(tmp_path, capsys, opt):
     code, _, err = run(capsys, "payload", ["--out", str(tmp_path / "x.pslog"), "--mavlink", NOBODY, opt, ""])
@@ -251,8 +246,6 @@ def test_that_an_empty_device_url_is_refused(tmp_path, capsys, opt):
     assert "non-empty" in err
 
 
-@pytest.mark.xfail(strict=True, reason="reported: serve writes mission.waypoints into --out and builds the vehicle "
-                                       "before it checks the --mavlink URL")
 def test_that_serve_refuses_a_bad_mavlink_url_before_writing_anything(tmp_path, capsys):
     code, _, err = run(capsys, "sitl", [*SERVE, "--mavlink", "udp:localhost:99999", "--out", str(tmp_path / "s")])
     check_one_line_error("sitl", code, err)

@@ -137,6 +137,34 @@ def register_pwm_backend(scheme: str, factory: Callable[[str], PwmOutput]) -> No
     _REGISTRY[scheme] = factory
 
 
+def check_pwm_url(url: str) -> None:
+    """Refuse a malformed PWM URL without opening anything (ValueError naming it), so a program can
+    check all its options before it touches the hardware. Registered schemes are checked when opened."""
+    m = re.fullmatch(r"pwm:([a-z0-9]+)(?::(.*))?", url.strip()) if isinstance(url, str) else None
+    if not m:
+        raise ValueError(f"PWM output must look like pwm:sysfs:0:0, pwm:pca9685:1:0x40:0 or pwm:mavlink:9, got {url!r}")
+    scheme, parts = m.group(1), (m.group(2) or "").split(":") if m.group(2) else []
+    try:
+        if scheme == "sysfs" and len(parts) == 2 and all(p.isascii() and p.isdigit() for p in parts):
+            return
+        if scheme == "pca9685" and len(parts) == 3 and parts[0].isascii() and parts[0].isdigit():
+            check_i2c_addr(int(parts[1], 0))
+            if parts[2].isascii() and parts[2].isdigit() and int(parts[2]) < 16:
+                return
+        if scheme == "mavlink" and len(parts) == 1 and parts[0].isascii() and parts[0].isdigit():
+            return
+        if scheme == "tcp":
+            from firmware_py.hal.bridge import parse_pwm_url
+            parse_pwm_url(url.strip())
+            return
+    except ValueError as exc:
+        raise ValueError(f"bad PWM output {url!r}: {exc}") from None
+    if scheme in _REGISTRY and scheme not in ("sysfs", "pca9685", "mavlink", "tcp"):
+        return
+    raise ValueError(f"bad PWM output {url!r}: expected pwm:sysfs:CHIP:CH, pwm:pca9685:BUS:ADDR:CH (CH 0-15), "
+                     "pwm:mavlink:N or pwm:tcp:HOST:PORT:CH")
+
+
 def open_pwm(url: str, i2c_opener: Callable[[str], I2CBus] | None = None, link: MavlinkLink | None = None,
              mav: Any = None) -> PwmOutput:
     """A PwmOutput from its URL (see the module docstring)."""

@@ -174,12 +174,10 @@ def test_that_hal_sitl_urls_are_a_user_error_or_two_bridge_urls(url):
     except UserError as exc:
         one_line_value_error(exc)
         return
-    got = parsed_or_value_error(bridge.parse_tcp_url, i2c)  # should always parse: see the xfail below
+    got = parsed_or_value_error(bridge.parse_tcp_url, i2c)  # always parses: hal_urls checks the host the bridge's way
     assert got is None or got[1] == bridge.parse_pwm_url(pwm_url)[1]
 
 
-@pytest.mark.xfail(strict=True, reason="reported: hal_urls takes any host, the bridge URL it builds is refused later, "
-                                       "after the MAVLink link is open, naming a tcp: URL the user never typed")
 @pytest.mark.parametrize("hal", ["sitl:a/b:5761", "sitl:\x1b:1"])
 def test_that_hal_urls_only_accepts_hosts_the_device_bridge_accepts(hal):
     try:
@@ -233,11 +231,10 @@ def test_that_the_sitl_autopilot_transport_urls_parse_or_fail_in_one_line(no_har
 def test_that_stream_urls_parse_or_fail_in_one_line(url, allow_zero):
     got = parsed_or_value_error(parse_stream_url, url, allow_port_zero=allow_zero)
     if got is not None:
-        assert isinstance(got[0], str)  # non-empty: see the xfail below
+        assert isinstance(got[0], str)  # non-empty (see the test below)
         check_port(got[1], allow_zero)
 
 
-@pytest.mark.xfail(strict=True, reason="reported: parse_stream_url takes a lone bracket for a host and strips it to ''")
 @pytest.mark.parametrize("url", ["udp:[:14600", "udp:]:14600", "udp:[]:14600"])
 def test_that_a_stream_url_never_parses_to_an_empty_host(url):
     host, _ = parsed_or_value_error(parse_stream_url, url) or ("?", 0)
