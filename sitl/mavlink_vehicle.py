@@ -394,6 +394,7 @@ class MavlinkVehicleServer:
         }
         self._now_s = 0.0
         self._state: VehicleState | None = None
+        self._next_any_due_s = 0.0  # earliest next_due_s of any stream (skip the scan until then)
         self._streams = {mid: _Stream(self._interval(hz), self._interval(hz)) for mid, hz in STREAM_DEFAULT_HZ.items()}
         self._statustext_id = 0
         self._upload: _Upload | None = None
@@ -608,6 +609,7 @@ class MavlinkVehicleServer:
         else:
             raise ValueError(f"interval {interval_us} us is invalid")
         stream.next_due_s = self._now_s
+        self._next_any_due_s = 0.0  # recompute at the next update
         return []
 
     def _cmd_get_message_interval(self, p: tuple[float, ...]) -> list[Any]:
@@ -867,6 +869,8 @@ class MavlinkVehicleServer:
 
     def _send_due_streams(self) -> None:
         now = self._now_s
+        if now + 1e-9 < self._next_any_due_s:
+            return  # nothing due: most physics steps (200 Hz physics, 50 Hz streams)
         for msg_id, stream in self._streams.items():
             if stream.interval_s <= 0 or now + 1e-9 < stream.next_due_s:
                 continue
@@ -876,6 +880,8 @@ class MavlinkVehicleServer:
             stream.next_due_s += stream.interval_s
             if stream.next_due_s <= now + 1e-9:
                 stream.next_due_s = now + stream.interval_s  # fell behind (rare updates): no bursts
+        due = [st.next_due_s for st in self._streams.values() if st.interval_s > 0]
+        self._next_any_due_s = min(due) if due else math.inf
 
     def _build_stream_message(self, msg_id: int) -> Any | None:
         return self._builders[msg_id](self._state or self.vehicle.state())

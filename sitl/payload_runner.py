@@ -199,7 +199,7 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     from sitl.devices.i2c_sim import SimI2CBus
     from sitl.devices.lidarlite_emu import EmulatedLidarLite
     from sitl.devices.servo_emu import EmulatedServo
-    from sitl.faults import FaultInjector, FaultSpec
+    from sitl.faults import FaultInjector
     from sitl.flight import SETTLE_S, mission_nav_items, start_pose
     from sitl.jsbsim_plant import PlantConfig
     from sitl.jsbsim_vehicle import VehicleConfig
@@ -219,18 +219,20 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     clock = SimClock(start_ns=round(boot_offset_s * 1e9))
     sim = SimWorld(vehicle, world, cfg.frame, clock, boot_offset_ns=round(boot_offset_s * 1e9),
                    lever_arm_body_m=cfg.lever_arm_body_m, latency_ns=latency, tlog_path=tlog_path)
-    inj = FaultInjector(faults or FaultSpec())
-    down, up = inj.link(sim._down.send_at), inj.link(sim._up.send_at)
-    sim._down.send_at, sim._up.send_at = down.send_at, up.send_at
+    inj = FaultInjector(faults) if faults is not None and faults.active else None  # none: the plain path
+    if inj is not None:
+        down, up = inj.link(sim._down.send_at), inj.link(sim._up.send_at)
+        sim._down.send_at, sim._up.send_at = down.send_at, up.send_at
     wf = cfg.servo_waveform()
     cal = ServoCalibration()
     t0_ns = clock.now_ns()
     plant = EmulatedServo(clock, cal, angle0_rad=float(wf.angle(0.0)))
     sim.servo_angle_at = plant.angle_at
     bus = SimI2CBus(clock)
-    part = EmulatedLidarLite(clock, inj.range_at(sim.true_range_m))
+    part = EmulatedLidarLite(clock, inj.range_at(sim.true_range_m) if inj else sim.true_range_m)
     bus.attach(0x62, part)
-    inj.attach(bus, part, plant)
+    if inj is not None:
+        inj.attach(bus, part, plant)
     lidar = LidarLite(bus, clock, LidarLiteConfig(
         preset=PRESET_FAST_500HZ, busy_timeout_ns=busy_deadline_ns(PRESET_FAST_500HZ, cfg.lidar.rate_hz)))
     link = ByteStreamLink(sim.payload_send, sim.payload_recv)
@@ -245,7 +247,8 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
         tracker.pump()
     vehicle.load_mission(mission_nav_items(m, cfg.frame))
     vehicle.start_mission()
-    inj.start_survey(clock.now_ns())
+    if inj is not None:
+        inj.start_survey(clock.now_ns())
     e0, ts0 = vehicle.plant.energy_j, vehicle.state().t_s
     log_path = str(log_path)
     log = SampleLogWriter(log_path, header, records_per_block=500, fsync=False, overwrite=True)
@@ -253,10 +256,11 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     timeout_s = 3 * (m.path_length_m() / m.speed_m_s + 2 * math.pi / m.yaw_rate_max_rad_s) + 60
 
     def should_stop() -> bool:
-        now = clock.now_ns()
-        inj.tick(now)
-        if inj.power_cut_due(now):
-            raise _PowerCut
+        if inj is not None:
+            now = clock.now_ns()
+            inj.tick(now)
+            if inj.power_cut_due(now):
+                raise _PowerCut
         return vehicle.mode != FlightMode.AUTO
 
     cut = False
@@ -273,5 +277,6 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     return FirmwareRun(read_samplelog(log_path).samples, vehicle.state().t_s - ts0, vehicle.plant.energy_j - e0,
                        not cut and vehicle.mode != FlightMode.AUTO and vehicle.current_item() == -1, stats,
                        dict(lidar.counters), status, true_t, true_s,
+                       None if inj is None else
                        {"link_down": down.counters, "link_up": up.counters, **inj.counters,
                         "i2c_nacks": bus.counters["nack"], "power_cut": cut, "loop": stats})

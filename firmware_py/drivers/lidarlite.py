@@ -333,6 +333,8 @@ def busy_deadline_ns(preset: Preset, rate_hz: float, poll_interval_ns: int = 100
     return max(worst + poll_interval_ns, round(0.8 * period))
 
 
+_REG_BYTES = [bytes((r,)) for r in range(256)]  # register-address writes without a fresh bytes() each time
+
 MAX_RESET_BACKOFF = 32
 """A stuck part is reset after 20, 40, 80 ... failures, at most 32 x 20 (about 1.3 s at 500 Hz)."""
 
@@ -388,7 +390,7 @@ class LidarLite:
 
     def _read_regs(self, reg: int, n: int) -> bytes:
         """Write the register address (STOP), then read n bytes in a separate transfer."""
-        self.bus.write(self.config.address, bytes((reg,)))
+        self.bus.write(self.config.address, _REG_BYTES[reg])
         data = bytes(self.bus.read(self.config.address, n))
         if len(data) != n:
             raise I2CError(f"short read at 0x{self.config.address:02x} register 0x{reg:02x}: "

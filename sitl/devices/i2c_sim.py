@@ -128,16 +128,22 @@ class SimI2CBus:
 
     def write(self, addr: int, data: bytes) -> None:
         device = self._device("write", addr)
-        data = bytes(data)
-        self.counters["write"] += 1
-        self._charge(1 + len(data))
+        if type(data) is not bytes:
+            data = bytes(data)
+        counters = self.counters
+        counters["write"] += 1
+        n = 1 + len(data)
+        counters["bytes"] += n
+        self.clock.advance_by_ns(n * BITS_PER_BYTE * 1_000_000_000 // self.bitrate_hz)
         device.on_write(data)
 
     def read(self, addr: int, n: int) -> bytes:
         _check_count(n)
         device = self._device("read", addr, n)
-        self.counters["read"] += 1
-        self._charge(1 + n)
+        counters = self.counters
+        counters["read"] += 1
+        counters["bytes"] += 1 + n
+        self.clock.advance_by_ns((1 + n) * BITS_PER_BYTE * 1_000_000_000 // self.bitrate_hz)
         data = device.on_read(n)
         return data if type(data) is bytes and len(data) == n else self._checked(data, n, addr)
 
