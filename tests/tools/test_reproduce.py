@@ -63,3 +63,13 @@ def test_that_bad_options_fail_in_one_line(tmp_path, capsys, argv, words):
     assert main([*argv, "--cache", str(tmp_path / "c"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and words in err and "Traceback" not in err
+
+
+def test_that_a_noise_experiment_draws_per_position_and_logs_the_draws(tmp_path):
+    cfg = tmp_path / "noise.toml"
+    cfg.write_text('[[experiment]]\nname = "noise"\nnoise_draws = 2\n')
+    assert main(["--config", str(cfg), "--piles", "1", "--p-traj", "25", "--positions", "1", "--jobs", "1",
+                 "--cache", str(tmp_path / "cache"), "--rows", str(tmp_path / "rows.csv"), "--quiet"]) == 0
+    rows = read_rows_csv(tmp_path / "rows.csv")
+    assert [r["draw"] for r in rows] == [0, 1]
+    assert rows[0]["ve_nearest_pct"] != rows[1]["ve_nearest_pct"]  # two different noise draws
