@@ -159,8 +159,9 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
                         "the servo's angles are wrong (slower or laggier than its calibration?); do not trust "
                         "this volume")
     if survey.n_cells_clipped:
-        warnings.append(f"the fitted surface left the building in {survey.n_cells_clipped} cells (clipped to the "
-                        "floor and roof): points contradict each other there, e.g. a LiDAR buried in the pile")
+        warnings.append(f"the fitted surface left the building in {survey.n_cells_clipped} cells (left empty, "
+                        "filled by the empty-cell policy): points contradict each other there, e.g. a LiDAR buried "
+                        "in the pile")
     return {
         "volume_m3": volume,
         "true_volume_m3": truth_m3,

@@ -96,14 +96,17 @@ def fit_heights(points_w: np.ndarray, grid: Grid) -> np.ndarray:
 
 
 def clip_to_building(heights: np.ndarray, height_m: float, tolerance_m: float = 0.5) -> tuple[np.ndarray, int]:
-    """Heights limited to the building, [0, height_m], and how many cells were off by more than
-    tolerance_m. Material cannot be under the floor or above the roof. A cubic dips a little below
-    the floor where samples are sparse (a few cm to ~0.2 m at a pile's toe: clipped, not counted); a
-    cubic through points that contradict each other (two heights at nearly the same spot) overshoots
-    without bound, and those cells are counted so the report can say so."""
-    h = np.asarray(heights, dtype=float)
+    """Cells whose fit left the building by more than tolerance_m become empty (NaN), and their count.
+
+    A cubic through points that contradict each other (two heights at nearly the same spot)
+    overshoots without bound: such a cell has no surface, and the empty-cell policy (and R_a) treat
+    it as uncovered. Smaller dips below the floor are kept as they are: with noisy points the fit
+    wanders a few cm either side of the floor, and clamping only the low side would add volume.
+    """
+    h = np.array(heights, dtype=float)
     off = np.isfinite(h) & ((h < -tolerance_m) | (h > height_m + tolerance_m))
-    return np.clip(h, 0.0, height_m), int(off.sum())
+    h[off] = np.nan
+    return h, int(off.sum())
 
 
 def fill_empty(heights: np.ndarray, policy: str) -> np.ndarray:

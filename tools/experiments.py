@@ -37,9 +37,11 @@ from sitl.run import PLANTS, FlyConfig, log_header
 from sitl.stockpile import paper_pile
 from tools.sweep import Case, cached
 
-SWEEP_VERSION = "2"
-"""Part of every case and flight cache key: bump it when the simulation changes what a case computes
-(the cache cannot see code). 2: the autopilot flies towards the target through corners."""
+SWEEP_VERSION = "3"
+"""Part of every case key: bump it when the simulation or the ground station changes what a case
+computes (the cache cannot see code). 3: runaway surface cells are emptied, not clamped to the floor."""
+FLIGHT_VERSION = "2"
+"""Part of every flight key. 2: the autopilot flies towards the target through corners."""
 P_TRAJ_PCT = (5, 10, 15, 20, 25, 30)
 PILES = ("1", "2")
 N_POSITIONS = 20
@@ -101,8 +103,8 @@ class Experiment:
 
     def flight_key(self, p_traj_pct: float) -> str:
         """What the flight depends on (not the pile, the waveform or the noise)."""
-        return (f"flight-v{SWEEP_VERSION}-{self.plant}-p{p_traj_pct:g}-v{self.speed_m_s:g}-yaw{self.yaw_rate_max_dps:g}"
-                f"-{self.turn}-m{self.payload_kg:g}")
+        return (f"flight-v{FLIGHT_VERSION}-{self.plant}-p{p_traj_pct:g}-v{self.speed_m_s:g}"
+                f"-yaw{self.yaw_rate_max_dps:g}-{self.turn}-m{self.payload_kg:g}")
 
 
 PAPER_EXPERIMENTS: tuple[Experiment, ...] = (

@@ -106,7 +106,7 @@ def _did(r: dict) -> str:
     if r["disagreement_m"] is not None and r["disagreement_m"] > MAX_SWEEP_DISAGREEMENT_M:
         parts.append(f"ground: sweep directions disagree by {r['disagreement_m']:.2f} m, volume marked untrustworthy")
     if r["clipped"]:
-        parts.append(f"ground: {r['clipped']} cells clipped to the building")
+        parts.append(f"ground: {r['clipped']} runaway surface cells left empty")
     if r["cut"]:
         parts.append("log ends at the last whole block; the report covers the flight up to the cut")
     if r["overruns"]:
