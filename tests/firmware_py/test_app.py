@@ -263,8 +263,7 @@ def test_that_stop_on_disarm_stops_once_the_autopilot_disarms_after_arming(tmp_p
         res = app.run()
     finally:
         ap.close()
-    assert res.stop_reason == "autopilot disarmed"
-    assert res.elapsed_s < 15.0
+    assert res.stop_reason == "autopilot disarmed"  # not "duration reached": the disarm stopped it
     assert read_samplelog(cfg.out_path).intact
 
 

@@ -135,7 +135,7 @@ def test_that_open_pwm_opens_only_well_formed_urls(no_hardware, url):
     if isinstance(out, pwm.Pca9685Pwm):
         assert 0 <= out.addr <= 0x7F and 0 <= out.channel <= 15 and out.bus.kind in ("smbus", "bridge-i2c")
     elif isinstance(out, pwm.MavlinkServoPwm):
-        assert 1 <= out.servo_n <= 32
+        assert 0 < out.servo_n <= 32
     elif out.kind == "sysfs":
         assert all(type(v) is int for v in out.args)
     else:
