@@ -346,8 +346,8 @@ def _body(args) -> int:
                                               "date": time.strftime("%Y-%m-%d"), "cpus": os.cpu_count()}))
         try:
             fresh = json.loads(fresh_file.read_text())
-            fresh_note = (f"; from an empty cache these {fresh['cases']} cases took {fresh['wall_s'] / 60:.1f} min "
-                          f"of wall time on {fresh['cpus']} cores ({fresh['date']})")
+            fresh_note = (f"; the last run that computed all {fresh['cases']} cases took {fresh['wall_s'] / 60:.1f} "
+                          f"min of wall time on {fresh['cpus']} cores ({fresh['date']})")
         except (OSError, ValueError, KeyError):
             fresh_note = ""
         timing = (f"{len(rows):,} surveys; this run took {wall / 60:.1f} min of wall time with {n_todo} of "
