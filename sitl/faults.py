@@ -4,12 +4,17 @@ Modelled on ArduPilot's `SIM_*` parameters: every fault is a setting of `FaultSp
 simulated time (seconds from the start of the survey) and one seed, so a (spec, seed) pair replays
 exactly. `FaultInjector` applies a spec to the lockstep SITL's parts (`sitl.payload_runner`):
 
-- MAVLink link, both directions: packet loss, duplication, reordering, an outage window (added
-  latency and jitter are the runner's `latency_ms`);
+- MAVLink link, both directions: packet loss, duplication, reordering, an outage window, added
+  latency and jitter (a serial link keeps its order: jitter delays what follows too);
+- the autopilot: a reboot (silent for a while, then `time_boot_ms` restarts from 0 and the message
+  rates it was asked for are forgotten);
+- the companion computer: its wall clock jumps (an NTP step or an RTC-less boot setting the time);
+  the payload times samples on the monotonic clock, so only wall-clock users see it (MAVLink signing
+  timestamps, log labels);
 - the LIDAR-Lite: I2C NACK rate, stuck busy for a window, a power glitch (registers back to their
   power-on values), garbage reads, and glitch readings (a spurious maximum range or 1 cm);
 - the servo: stuck at some instant (the shaft stops; pulses keep going out), slow (the real servo
-  slews slower than its calibration says);
+  slews slower than its calibration says), delayed (a dead time before it answers a pulse);
 - the payload process: a power cut at some instant (the log keeps what was written by then).
 """
 
@@ -33,6 +38,11 @@ def _window(name: str, w: tuple[float, float] | None) -> None:
         raise ValueError(f"fault {name} must be (start s >= 0, duration s > 0), got {w!r}")
 
 
+PAIRS = {"link_outage": "START,DURATION", "lidar_stuck_busy": "START,DURATION",
+         "autopilot_reboot": "AT,SILENT_S", "clock_jump": "AT,JUMP_S"}
+"""The faults given as two numbers (the CLI's `NAME=A,B`)."""
+
+
 @dataclass(frozen=True)
 class FaultSpec:
     """One run's faults (all off by default). Times are seconds from the start of the survey."""
@@ -42,6 +52,10 @@ class FaultSpec:
     link_dup_pct: float = 0.0
     link_reorder_pct: float = 0.0
     link_outage: tuple[float, float] | None = None
+    link_latency_ms: float = 0.0
+    link_jitter_ms: float = 0.0
+    autopilot_reboot: tuple[float, float] | None = None
+    clock_jump: tuple[float, float] | None = None
     i2c_nack_pct: float = 0.0
     lidar_stuck_busy: tuple[float, float] | None = None
     lidar_power_glitch_at_s: float | None = None
@@ -49,6 +63,7 @@ class FaultSpec:
     lidar_glitch_pct: float = 0.0
     servo_stuck_at_s: float | None = None
     servo_slow_factor: float = 1.0
+    servo_delay_ms: float = 0.0
     power_cut_at_s: float | None = None
 
     def __post_init__(self) -> None:
@@ -59,6 +74,15 @@ class FaultSpec:
                 raise ValueError(f"fault {f} must be a percentage 0-100, got {v!r}")
         _window("link_outage", self.link_outage)
         _window("lidar_stuck_busy", self.lidar_stuck_busy)
+        _window("autopilot_reboot", self.autopilot_reboot)  # (at s, silent s)
+        for f, top in (("link_latency_ms", 10_000.0), ("link_jitter_ms", 10_000.0), ("servo_delay_ms", 1_000.0)):
+            v = getattr(self, f)
+            if not (isinstance(v, int | float) and math.isfinite(v) and 0.0 <= v <= top):
+                raise ValueError(f"fault {f} must be 0-{top:g} ms, got {v!r}")
+        if self.clock_jump is not None:
+            c = self.clock_jump
+            if len(c) != 2 or not all(math.isfinite(v) for v in c) or c[0] < 0 or c[1] == 0 or abs(c[1]) > 86_400:
+                raise ValueError(f"fault clock_jump must be (at s >= 0, jump s != 0, |jump| <= 1 day), got {c!r}")
         for f in ("lidar_power_glitch_at_s", "servo_stuck_at_s", "power_cut_at_s"):
             v = getattr(self, f)
             if v is not None and not (math.isfinite(v) and v >= 0):
@@ -81,9 +105,10 @@ class FaultSpec:
                 nums = tuple(float(v) for v in text.split(","))
             except ValueError:
                 raise ValueError(f"bad fault {item!r}: {text!r} is not a number (or START,DURATION)") from None
-            window = name in ("link_outage", "lidar_stuck_busy")
-            if len(nums) != (2 if window else 1):
-                raise ValueError(f"bad fault {item!r}: {name} takes " + ("START,DURATION" if window else "one number"))
+            pair = PAIRS.get(name)
+            if len(nums) != (2 if pair else 1):
+                raise ValueError(f"bad fault {item!r}: {name} takes " + (pair or "one number"))
+            window = pair is not None
             values[name] = nums if window else nums[0]
         return cls(seed=seed, **values)
 
@@ -107,7 +132,7 @@ class FaultyLink:
                  survey_t0_ns: Callable[[], int | None]) -> None:
         self._send_at, self.spec, self.rng, self._t0 = send_at, spec, rng, survey_t0_ns
         self._held: collections.deque[bytes] = collections.deque()
-        self.counters = dict.fromkeys(("packets", "lost", "duplicated", "reordered", "outage_lost"), 0)
+        self.counters = dict.fromkeys(("packets", "lost", "duplicated", "reordered", "outage_lost", "delayed"), 0)
 
     def _in_outage(self, t_ns: int) -> bool:
         t0, w = self._t0(), self.spec.link_outage
@@ -129,12 +154,22 @@ class FaultyLink:
             self._held.append(data)  # goes out after the next packet
             self.counters["reordered"] += 1
             return
-        self._send_at(t_ns, data)
+        t_out = t_ns + self._delay_ns()
+        self._send_at(t_out, data)
         while self._held:
-            self._send_at(t_ns, self._held.popleft())
+            self._send_at(t_out, self._held.popleft())
         if s.link_dup_pct and r.random() * 100 < s.link_dup_pct:
-            self._send_at(t_ns, data)
+            self._send_at(t_out, data)
             self.counters["duplicated"] += 1
+
+    def _delay_ns(self) -> int:
+        """Added latency plus uniform jitter; the pipe below keeps the order (a serial link)."""
+        s = self.spec
+        if not (s.link_latency_ms or s.link_jitter_ms):
+            return 0
+        ms = s.link_latency_ms + (self.rng.random() * s.link_jitter_ms if s.link_jitter_ms else 0.0)
+        self.counters["delayed"] += 1
+        return round(ms * 1e6)
 
 
 class FaultInjector:
@@ -144,9 +179,12 @@ class FaultInjector:
         self.spec = spec
         self.rng = np.random.default_rng(spec.seed)
         self.survey_t0_ns: int | None = None
-        self.counters: dict[str, int] = dict.fromkeys(("lidar_glitches", "power_glitches", "servo_stuck"), 0)
+        self.counters: dict[str, int] = dict.fromkeys(("lidar_glitches", "power_glitches", "servo_stuck",
+                                                       "autopilot_reboots", "clock_jumps"), 0)
         self._lidar = self._bus = self._servo = None
-        self._stuck_done = self._glitch_done = self._servo_done = False
+        self._stuck_done = self._glitch_done = self._servo_done = self._reboot_done = self._jump_done = False
+        self.reboot: Callable[[float], None] | None = None  # set by the runner: reboot the autopilot, silent s
+        self.wall_offset_s = 0.0  # the companion's wall clock minus the true time (the clock_jump fault)
 
     # -- wiring -------------------------------------------------------------------------------------
     def link(self, send_at: Callable[[int, bytes], None]) -> FaultyLink:
@@ -180,6 +218,12 @@ class FaultInjector:
             slow = replace(servo.cal, slew_rad_s=servo.cal.slew_rad_s * self.spec.servo_slow_factor)
             servo.cal = slow
             servo.model.cal = slow
+        if self.spec.servo_delay_ms:
+            servo.delay_ns = round(self.spec.servo_delay_ms * 1e6)
+
+    def wall_clock(self, true_wall_s: Callable[[], float]) -> Callable[[], float]:
+        """The companion's wall clock (Unix s) as the payload reads it: the true one, plus any jump."""
+        return lambda: true_wall_s() + self.wall_offset_s
 
     def start_survey(self, now_ns: int) -> None:
         self.survey_t0_ns = now_ns
@@ -199,6 +243,15 @@ class FaultInjector:
             self._lidar.power_glitch()
             self._glitch_done = True
             self.counters["power_glitches"] += 1
+        if s.autopilot_reboot is not None and not self._reboot_done and t >= s.autopilot_reboot[0]:
+            if self.reboot is not None:
+                self.reboot(s.autopilot_reboot[1])
+            self._reboot_done = True
+            self.counters["autopilot_reboots"] += 1
+        if s.clock_jump is not None and not self._jump_done and t >= s.clock_jump[0]:
+            self.wall_offset_s += s.clock_jump[1]
+            self._jump_done = True
+            self.counters["clock_jumps"] += 1
         if s.servo_stuck_at_s is not None and not self._servo_done and t >= s.servo_stuck_at_s:
             self._servo.stuck = True
             self._servo_done = True

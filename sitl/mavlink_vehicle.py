@@ -393,6 +393,8 @@ class MavlinkVehicleServer:
             "rx_signed": 0, "rx_unsigned": 0, "rx_bad_signature": 0, "rx_replayed": 0, "rx_unsigned_accepted": 0,
         }
         self._now_s = 0.0
+        self._boot_epoch_s = 0.0  # vehicle time at which the autopilot last booted (time_boot_ms 0)
+        self._silent_until_s = -math.inf  # rebooting until then: deaf and mute
         self._state: VehicleState | None = None
         self._next_any_due_s = 0.0  # earliest next_due_s of any stream (skip the scan until then)
         self._streams = {mid: _Stream(self._interval(hz), self._interval(hz)) for mid, hz in STREAM_DEFAULT_HZ.items()}
@@ -438,6 +440,9 @@ class MavlinkVehicleServer:
         """Handle everything received, report vehicle events, send the streams now due (simulated time)."""
         self._state = self.vehicle.state()
         self._now_s = self._state.t_s
+        if self._now_s < self._silent_until_s:
+            self.transport.recv()  # a rebooting autopilot hears nothing
+            return
         if self.signer is not None and hasattr(self.transport, "recv_datagrams"):
             self._receive_authenticated_datagrams()
         else:
@@ -449,6 +454,23 @@ class MavlinkVehicleServer:
         self._report_vehicle_events()
         self._service_upload_timeout()
         self._send_due_streams()
+
+    def reboot(self, silent_s: float = 3.0) -> None:
+        """The flight controller restarts (a SITL fault, like ArduPilot's reboot under SIM_*): silent for
+        silent_s, then time_boot_ms counts again from 0 and the message rates set with
+        SET_MESSAGE_INTERVAL are back to their defaults. The simulated vehicle keeps flying and keeps
+        its mission (a real one in the air would not): this is the companion's view of a reboot.
+        """
+        if not (math.isfinite(silent_s) and silent_s >= 0):
+            raise ValueError(f"reboot silence must be >= 0 s, got {silent_s!r}")
+        self._now_s = self.vehicle.state().t_s
+        self._silent_until_s = self._boot_epoch_s = self._now_s + silent_s
+        self._upload = None
+        for stream in self._streams.values():
+            stream.interval_s = stream.default_interval_s
+            stream.next_due_s = self._boot_epoch_s
+        self._next_any_due_s = self._boot_epoch_s
+        self.stats["reboots"] = self.stats.get("reboots", 0) + 1
 
     def _receive_authenticated_datagrams(self) -> None:
         """Signed UDP: only a sender whose datagram held an authenticated frame becomes a client."""
@@ -522,7 +544,7 @@ class MavlinkVehicleServer:
 
     def _on_timesync(self, msg: Any) -> None:
         if msg.tc1 == 0:  # a request: answer with our clock, echoing theirs (as ArduPilot does)
-            self._send(self._mav.timesync_encode(round(self._now_s * 1e9), msg.ts1))
+            self._send(self._mav.timesync_encode(round((self._now_s - self._boot_epoch_s) * 1e9), msg.ts1))
 
     # ----- commands -------------------------------------------------------------------------------
 
@@ -888,7 +910,7 @@ class MavlinkVehicleServer:
 
     @property
     def _boot_ms(self) -> int:
-        return round(self._now_s * 1000) & 0xFFFFFFFF
+        return round((self._now_s - self._boot_epoch_s) * 1000) & 0xFFFFFFFF
 
     def _heartbeat(self, s: VehicleState) -> Any:
         base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if s.armed else 0)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import collections
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +27,12 @@ from sitl.jsbsim_vehicle import JsbsimVehicle
 from sitl.mavlink_vehicle import MavlinkVehicleServer
 from sitl.raycast import World
 from sitl.vehicle_api import Vehicle
+
+SendAt = Callable[[int, bytes], None]
+"""One direction of a link: send_at(t_ns, data) puts bytes on the wire at time t_ns."""
+
+WALL_EPOCH_S = 1_790_000_000.0
+"""The companion's wall clock (Unix s) when its simulated monotonic clock reads 0 (late 2026)."""
 
 
 class DelayedPipe:
@@ -94,13 +101,14 @@ class SimWorld:
     """Vehicle + MAVLink server + building, advanced in lockstep with the payload's clock."""
 
     def __init__(self, vehicle: Vehicle, world: World, frame: StorageFrame, clock: SimClock,
-                 boot_offset_ns: int, lever_arm_body_m, latency_ns=lambda: 0, tlog_path=None) -> None:
+                 boot_offset_ns: int, lever_arm_body_m, latency_ns=lambda: 0, tlog_path=None, signing=None) -> None:
         self.vehicle, self.world, self.frame, self.clock = vehicle, world, frame, clock
         self.boot_offset_ns = boot_offset_ns  # companion time = vehicle time + offset
         self.lever = np.asarray(lever_arm_body_m, dtype=float)
         self._down = DelayedPipe(clock.now_ns, latency_ns)
-        self.server = MavlinkVehicleServer(vehicle, _ServerSide(self), tlog_path=tlog_path)
+        self.server = MavlinkVehicleServer(vehicle, _ServerSide(self), tlog_path=tlog_path, signing=signing)
         self._up = DelayedPipe(self._vehicle_now_companion_ns, latency_ns)
+        self._down_send_at, self._up_send_at = self._down.send_at, self._up.send_at
         self._hist: collections.deque[tuple[float, tuple[float, ...]]] = collections.deque(maxlen=64)
         self._hist.append((vehicle.state().t_s, state_tuple(vehicle)))
         self.history: list[tuple[float, tuple[float, ...]]] = [self._hist[-1]]  # the whole true flight
@@ -108,8 +116,15 @@ class SimWorld:
         clock.set_advance(self.advance_to)
 
     # -- the payload's end of the MAVLink link ---------------------------------------------------
+    def wrap_links(self, wrap: Callable[[str, SendAt], SendAt]) -> None:
+        """Put something between each end of the MAVLink link and its pipe (fault injection, tests):
+        `wrap(direction, send_at)` returns the send_at to use instead; direction is "down" (autopilot
+        to payload) or "up". Wrappers stack: a later one wraps the earlier."""
+        self._down_send_at = wrap("down", self._down_send_at)
+        self._up_send_at = wrap("up", self._up_send_at)
+
     def payload_send(self, data: bytes) -> None:
-        self._up.send_at(self.clock.now_ns(), data)
+        self._up_send_at(self.clock.now_ns(), data)
 
     def payload_recv(self) -> bytes:
         return self._down.recv()
@@ -151,7 +166,7 @@ class _ServerSide:
         self._world = world
 
     def send(self, data: bytes) -> None:
-        self._world._down.send_at(self._world._vehicle_now_companion_ns(), data)
+        self._world._down_send_at(self._world._vehicle_now_companion_ns(), data)
 
     def recv(self) -> bytes:
         return self._world._up.recv()
@@ -181,13 +196,16 @@ class FirmwareRun:
 
 
 def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = (0.0, 0.0),
-                 boot_offset_s: float = 1234.5, tlog_path=None, seed: int = 0, faults=None) -> FirmwareRun:
+                 boot_offset_s: float = 1234.5, tlog_path=None, seed: int = 0, faults=None,
+                 signing_key: bytes | None = None) -> FirmwareRun:
     """Fly `cfg` (a sitl.run.FlyConfig) with the unchanged payload firmware in the loop.
 
     The vehicle settles on W0, the payload starts, waits for its time sync to converge, the
     survey flies; the payload logs every sample to log_path until the vehicle is back on W0.
-    `faults` (a sitl.faults.FaultSpec) injects link, sensor, servo and power faults; a power cut
-    ends the run there, leaving the log as the cut leaves it.
+    `faults` (a sitl.faults.FaultSpec) injects link, sensor, servo, autopilot, clock and power
+    faults; a power cut ends the run there, leaving the log as the cut leaves it. With
+    `signing_key` both ends sign (MAVLink 2) and refuse what is not, each stamping with its own
+    simulated wall clock (the companion's can jump: the clock_jump fault).
     """
     from firmware_py.drivers.lidarlite import PRESET_FAST_500HZ, LidarLite, LidarLiteConfig, busy_deadline_ns
     from firmware_py.drivers.servo import ServoCalibration, SweepServo
@@ -217,12 +235,24 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     lo, hi = latency_ms
     latency = (lambda: 0) if hi <= 0 else (lambda: int(rng.uniform(lo, hi) * 1e6))
     clock = SimClock(start_ns=round(boot_offset_s * 1e9))
-    sim = SimWorld(vehicle, world, cfg.frame, clock, boot_offset_ns=round(boot_offset_s * 1e9),
-                   lever_arm_body_m=cfg.lever_arm_body_m, latency_ns=latency, tlog_path=tlog_path)
     inj = FaultInjector(faults) if faults is not None and faults.active else None  # none: the plain path
+    true_wall_s = lambda: WALL_EPOCH_S + clock.now_ns() * 1e-9  # noqa: E731
+    companion_wall_s = inj.wall_clock(true_wall_s) if inj is not None else true_wall_s
+    server_signer = payload_signer = None
+    if signing_key is not None:
+        from firmware_py.hal.signing import MavlinkSigner, SigningConfig
+        server_signer = MavlinkSigner(SigningConfig(signing_key), clock=true_wall_s)
+        payload_signer = MavlinkSigner(SigningConfig(signing_key), clock=companion_wall_s)
+    sim = SimWorld(vehicle, world, cfg.frame, clock, boot_offset_ns=round(boot_offset_s * 1e9),
+                   lever_arm_body_m=cfg.lever_arm_body_m, latency_ns=latency, tlog_path=tlog_path,
+                   signing=server_signer)
+    links = {}
     if inj is not None:
-        down, up = inj.link(sim._down.send_at), inj.link(sim._up.send_at)
-        sim._down.send_at, sim._up.send_at = down.send_at, up.send_at
+        def wrap(direction: str, send_at: SendAt) -> SendAt:
+            links[direction] = inj.link(send_at)
+            return links[direction].send_at
+        sim.wrap_links(wrap)
+        inj.reboot = sim.server.reboot
     wf = cfg.servo_waveform()
     cal = ServoCalibration()
     t0_ns = clock.now_ns()
@@ -235,7 +265,7 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
         inj.attach(bus, part, plant)
     lidar = LidarLite(bus, clock, LidarLiteConfig(
         preset=PRESET_FAST_500HZ, busy_timeout_ns=busy_deadline_ns(PRESET_FAST_500HZ, cfg.lidar.rate_hz)))
-    link = ByteStreamLink(sim.payload_send, sim.payload_recv)
+    link = ByteStreamLink(sim.payload_send, sim.payload_recv, signing=payload_signer)
     tracker = PoseTracker(link, clock)
     tracker.start()
     servo = SweepServo(plant, wf, cal)
@@ -278,5 +308,8 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
                        not cut and vehicle.mode != FlightMode.AUTO and vehicle.current_item() == -1, stats,
                        dict(lidar.counters), status, true_t, true_s,
                        None if inj is None else
-                       {"link_down": down.counters, "link_up": up.counters, **inj.counters,
-                        "i2c_nacks": bus.counters["nack"], "power_cut": cut, "loop": stats})
+                       {"link_down": links["down"].counters, "link_up": links["up"].counters, **inj.counters,
+                        "i2c_nacks": bus.counters["nack"], "power_cut": cut, "loop": stats,
+                        "signing": {"payload": dict(payload_signer.stats), "autopilot": dict(server_signer.stats)}
+                        if signing_key is not None else None,
+                        "autopilot_reboots": sim.server.stats.get("reboots", 0)})

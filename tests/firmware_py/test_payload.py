@@ -67,15 +67,19 @@ class Rig:
             preset=PRESET_FAST_500HZ, busy_timeout_ns=busy_deadline_ns(PRESET_FAST_500HZ, 500.0)))
         self.drop_position_after_ns: int | None = None
         self.drop_position_until_ns: int | None = None
-        send_down = self.sim._down.send_at
 
-        def downlink(t_ns: int, data: bytes) -> None:
-            if self.drop_position_after_ns is not None and \
-                    self.drop_position_after_ns <= t_ns < (self.drop_position_until_ns or 2**63):
-                data = strip_messages(data, LOCAL_POSITION_NED)
-            send_down(t_ns, data)
+        def wrap(direction, send_at):
+            if direction != "down":
+                return send_at
 
-        self.sim._down.send_at = downlink
+            def downlink(t_ns: int, data: bytes) -> None:
+                if self.drop_position_after_ns is not None and \
+                        self.drop_position_after_ns <= t_ns < (self.drop_position_until_ns or 2**63):
+                    data = strip_messages(data, LOCAL_POSITION_NED)
+                send_at(t_ns, data)
+            return downlink
+
+        self.sim.wrap_links(wrap)
         self.tracker = PoseTracker(ByteStreamLink(self.sim.payload_send, self.sim.payload_recv), self.clock)
         self.tracker.start()
         self.servo = SweepServo(self.plant, named_waveform("semi-triangular"))

@@ -19,10 +19,11 @@ CFG = FlyConfig(mission=Mission(storage=Storage(30, 20, 10), p_traj=0.2, altitud
                 payload="firmware")
 
 
-def fly(tmp_path, **faults):
+def fly(tmp_path, signing_key=None, **faults):
     wf = CFG.servo_waveform()
     header = log_header(CFG, wf)
-    run = fly_firmware(CFG, tmp_path / "s.pslog", header, faults=FaultSpec(seed=3, **faults), seed=3)
+    run = fly_firmware(CFG, tmp_path / "s.pslog", header, faults=FaultSpec(seed=3, **faults), seed=3,
+                       signing_key=signing_key)
     s = read_samplelog(tmp_path / "s.pslog").samples
     sv = survey_from_samples(s, header, CFG.mission.storage, CFG.frame, np.array(CFG.lever_arm_body_m),
                              ReportOptions(plots=False))
@@ -83,11 +84,62 @@ def test_that_a_power_cut_loses_at_most_the_unfinished_block(tmp_path):
     assert 0 <= run.loop.ticks - len(s) < 500 + 200  # the block being filled, plus readings awaiting poses
 
 
+def test_that_an_autopilot_reboot_flags_the_samples_it_cannot_vouch_for_and_recovers(tmp_path, clean):
+    run, s, _sv, ve = fly(tmp_path, autopilot_reboot=(10.0, 3.0))
+    assert run.faults["autopilot_reboots"] == 1 and run.completed
+    unposed = (s["flags"] & int(SampleFlags.STALE_POSE | SampleFlags.NO_POSE)) != 0
+    assert unposed.sum() > 3 * 500 * 0.8  # at least the silent 3 s at 500 Hz
+    assert run.pose_status["timesync"]["resets"] >= 1  # time_boot_ms restarted: the old mapping was dropped
+    assert not wrongly_tagged(s, run.true_t_s, run.true_states).any()
+    assert unposed[-1000:].sum() == 0  # streams asked for again, time re-synced: no restart needed
+    assert abs(ve - clean[3]) < 0.5
+
+
+def test_that_added_latency_and_jitter_tag_nothing_wrongly(tmp_path, clean):
+    run, s, _sv, ve = fly(tmp_path, link_latency_ms=50, link_jitter_ms=30)
+    assert run.faults["link_down"]["delayed"] > 1000
+    assert run.pose_status["timesync"]["rtt_min_ms"] > 100  # the delay was really there, both ways
+    assert not wrongly_tagged(s, run.true_t_s, run.true_states).any()
+    assert abs(ve - clean[3]) < 0.5
+
+
+@pytest.mark.parametrize("jump_s", [3600.0, -3600.0])
+def test_that_a_companion_clock_jump_breaks_neither_signing_nor_tagging(tmp_path, clean, jump_s):
+    run, s, _sv, ve = fly(tmp_path, signing_key=bytes(range(32)), clock_jump=(10.0, jump_s))
+    assert run.faults["clock_jumps"] == 1
+    for end in ("payload", "autopilot"):  # signing stamps never went back, so nothing was refused as a replay
+        st = run.faults["signing"][end]
+        assert st["signed"] > 500 and st["replayed"] == st["bad_signature"] == st["unsigned"] == 0
+    flags = s["flags"] & int(SampleFlags.STALE_POSE | SampleFlags.NO_POSE)
+    assert np.count_nonzero(flags) == 0 and not wrongly_tagged(s, run.true_t_s, run.true_states).any()
+    assert abs(ve - clean[3]) < 0.05
+
+
+def test_that_a_delayed_servo_is_reported_as_untrustworthy(tmp_path, clean):
+    _run, _s, sv, _ve = fly(tmp_path, servo_delay_ms=30)
+    assert sv.sweep_disagreement_m > 0.3 > clean[2].sweep_disagreement_m
+
+
+def test_that_the_emulated_servo_acts_on_a_pulse_only_after_its_delay():
+    from firmware_py.hal.clock import SimClock
+    from sitl.devices.servo_emu import EmulatedServo
+    clock = SimClock()
+    servo = EmulatedServo(clock)
+    servo.delay_ns = 30_000_000
+    servo.set_pulse_us(2000.0)
+    assert servo.angle_at(29_000_000) == 0.0
+    assert servo.angle_at(60_000_000) > 0.05
+
+
 def test_that_faults_parse_from_the_command_line_form():
-    spec = FaultSpec.parse(["link_loss_pct=10", "link-outage=20,5", "servo_slow_factor=0.6"], seed=4)
-    assert spec == FaultSpec(seed=4, link_loss_pct=10, link_outage=(20.0, 5.0), servo_slow_factor=0.6)
+    spec = FaultSpec.parse(["link_loss_pct=10", "link-outage=20,5", "servo_slow_factor=0.6",
+                            "clock_jump=12,-3600", "autopilot_reboot=30,2.5"], seed=4)
+    assert spec == FaultSpec(seed=4, link_loss_pct=10, link_outage=(20.0, 5.0), servo_slow_factor=0.6,
+                             clock_jump=(12.0, -3600.0), autopilot_reboot=(30.0, 2.5))
     for bad, words in (("warp=1", "NAME one of"), ("link_loss_pct", "NAME=VALUE"), ("link_loss_pct=x", "not a number"),
-                       ("link_outage=3", "START,DURATION"), ("link_loss_pct=200", "percentage")):
+                       ("link_outage=3", "START,DURATION"), ("link_loss_pct=200", "percentage"),
+                       ("clock_jump=5", "AT,JUMP_S"), ("clock_jump=5,0", "jump s != 0"),
+                       ("servo_delay_ms=-1", "ms"), ("link_jitter_ms=nan", "ms")):
         with pytest.raises(ValueError, match=words):
             FaultSpec.parse([bad])
 
