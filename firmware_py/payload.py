@@ -89,6 +89,11 @@ class PayloadLoop:
         self._next_ns = self.t0_ns
         self._pending: collections.deque = collections.deque()
 
+    @property
+    def pending(self) -> int:
+        """Readings taken and still waiting for their pose (not yet handed to the log)."""
+        return len(self._pending)
+
     def tick(self) -> None:
         """One sample: read, move the servo, pump the link, log what can now be tagged."""
         cpu0 = self._cpu() if self._cpu else 0

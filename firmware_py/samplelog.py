@@ -214,15 +214,17 @@ class SampleLogWriter:
 
     ``fsync=False`` skips every os.fsync (header included) for tests and non-critical logs.
     ``records_written`` counts records already in the file; ``records_pending`` those still buffered.
+    ``opener(path, mode)`` opens the file (default ``open``): the simulator's disk-full fault uses it.
     """
 
     def __init__(self, path: str | os.PathLike[str], header: dict, records_per_block: int = 500,
-                 fsync: bool = True, *, overwrite: bool = False) -> None:
+                 fsync: bool = True, *, overwrite: bool = False,
+                 opener: Callable[[str | os.PathLike[str], str], BinaryIO] = open) -> None:
         header_payload = _validated_header(header)
         self._batch = RecordBatcher(_validated_block_size(records_per_block), self._write_samples)
         self._written = 0
         self._fsync = bool(fsync)
-        self._file: BinaryIO | None = open(path, "wb" if overwrite else "xb")
+        self._file: BinaryIO | None = opener(path, "wb" if overwrite else "xb")
         try:
             self._write_block(KIND_HEADER, header_payload)
         except BaseException:

@@ -15,12 +15,14 @@ exactly. `FaultInjector` applies a spec to the lockstep SITL's parts (`sitl.payl
   power-on values), garbage reads, and glitch readings (a spurious maximum range or 1 cm);
 - the servo: stuck at some instant (the shaft stops; pulses keep going out), slow (the real servo
   slews slower than its calibration says), delayed (a dead time before it answers a pulse);
-- the payload process: a power cut at some instant (the log keeps what was written by then).
+- the payload process: a power cut at some instant (the log keeps what was written by then);
+- the companion's disk: full from some instant (a write takes what fits, then fails with ENOSPC).
 """
 
 from __future__ import annotations
 
 import collections
+import errno
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields, replace
@@ -65,6 +67,7 @@ class FaultSpec:
     servo_slow_factor: float = 1.0
     servo_delay_ms: float = 0.0
     power_cut_at_s: float | None = None
+    disk_full_at_s: float | None = None
 
     def __post_init__(self) -> None:
         for f in ("link_loss_pct", "link_dup_pct", "link_reorder_pct", "i2c_nack_pct", "lidar_garbage_pct",
@@ -83,7 +86,7 @@ class FaultSpec:
             c = self.clock_jump
             if len(c) != 2 or not all(math.isfinite(v) for v in c) or c[0] < 0 or c[1] == 0 or abs(c[1]) > 86_400:
                 raise ValueError(f"fault clock_jump must be (at s >= 0, jump s != 0, |jump| <= 1 day), got {c!r}")
-        for f in ("lidar_power_glitch_at_s", "servo_stuck_at_s", "power_cut_at_s"):
+        for f in ("lidar_power_glitch_at_s", "servo_stuck_at_s", "power_cut_at_s", "disk_full_at_s"):
             v = getattr(self, f)
             if v is not None and not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"fault {f} must be a time >= 0 s, got {v!r}")
@@ -257,9 +260,36 @@ class FaultInjector:
             self._servo_done = True
             self.counters["servo_stuck"] += 1
 
+    def opener(self, clock_ns: Callable[[], int]) -> Callable[[str, str], DiskFullFile]:
+        """A SampleLogWriter opener whose file fills up at disk_full_at_s (see DiskFullFile)."""
+        def full() -> bool:
+            t = self.t_s(clock_ns())
+            return t is not None and self.spec.disk_full_at_s is not None and t >= self.spec.disk_full_at_s
+        return lambda path, mode: DiskFullFile(open(path, mode), full)  # the writer closes it
+
     def power_cut_due(self, now_ns: int) -> bool:
         t = self.t_s(now_ns)
         return t is not None and self.spec.power_cut_at_s is not None and t >= self.spec.power_cut_at_s
+
+
+class DiskFullFile:
+    """A file on a disk that fills up: once `full()`, a write stores half of what it was given (a
+    real full disk can take part of a write) and fails with ENOSPC, as do all later ones."""
+
+    def __init__(self, f, full: Callable[[], bool]) -> None:
+        self._f, self._full = f, full
+        self.failed_writes = 0
+
+    def write(self, data) -> int:
+        if self._full():
+            if not self.failed_writes:
+                self._f.write(bytes(data)[: len(data) // 2])
+            self.failed_writes += 1
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return self._f.write(data)
+
+    def __getattr__(self, name: str):
+        return getattr(self._f, name)
 
 
 def wrongly_tagged(records: np.ndarray, true_t_s: np.ndarray, true_states: np.ndarray, *, pos_tol_m: float = 0.10,

@@ -281,7 +281,9 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
         inj.start_survey(clock.now_ns())
     e0, ts0 = vehicle.plant.energy_j, vehicle.state().t_s
     log_path = str(log_path)
-    log = SampleLogWriter(log_path, header, records_per_block=500, fsync=False, overwrite=True)
+    log = SampleLogWriter(log_path, header, records_per_block=500, fsync=False, overwrite=True,
+                          opener=inj.opener(clock.now_ns) if inj is not None and faults.disk_full_at_s is not None
+                          else open)
     loop = PayloadLoop(lidar, servo, tracker, clock, log, LoopConfig(rate_hz=cfg.lidar.rate_hz), t0_ns=t0_ns)
     timeout_s = 3 * (m.path_length_m() / m.speed_m_s + 2 * math.pi / m.yaw_rate_max_rad_s) + 60
 
@@ -293,23 +295,30 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
                 raise _PowerCut
         return vehicle.mode != FlightMode.AUTO
 
-    cut = False
+    cut = disk_full = False
     try:
         stats = loop.run(duration_s=SETTLE_S + timeout_s, should_stop=should_stop)
         log.close()
     except _PowerCut:
         log.abandon()  # what was written stays; the buffered block is lost, as on the drone
         stats, cut = loop.stats, True
+    except OSError as exc:  # the disk filled: pilescan-payload stops with this error (exit 1)
+        if inj is None or faults.disk_full_at_s is None:
+            raise
+        log.abandon()
+        stats, disk_full = loop.stats, str(exc)
     sim.server.close()
     status = tracker.status() if hasattr(tracker, "status") else {}
     true_t = np.array([t for t, _ in sim.history]) + boot_offset_s
     true_s = np.array([st for _, st in sim.history])
     return FirmwareRun(read_samplelog(log_path).samples, vehicle.state().t_s - ts0, vehicle.plant.energy_j - e0,
-                       not cut and vehicle.mode != FlightMode.AUTO and vehicle.current_item() == -1, stats,
+                       not (cut or disk_full) and vehicle.mode != FlightMode.AUTO and vehicle.current_item() == -1,
+                       stats,
                        dict(lidar.counters), status, true_t, true_s,
                        None if inj is None else
                        {"link_down": links["down"].counters, "link_up": links["up"].counters, **inj.counters,
-                        "i2c_nacks": bus.counters["nack"], "power_cut": cut, "loop": stats,
+                        "i2c_nacks": bus.counters["nack"], "power_cut": cut, "disk_full": disk_full, "loop": stats,
+                        "pending_at_stop": loop.pending if (cut or disk_full) else 0,
                         "signing": {"payload": dict(payload_signer.stats), "autopilot": dict(server_signer.stats)}
                         if signing_key is not None else None,
                         "autopilot_reboots": sim.server.stats.get("reboots", 0)})

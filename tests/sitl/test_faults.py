@@ -131,6 +131,15 @@ def test_that_the_emulated_servo_acts_on_a_pulse_only_after_its_delay():
     assert servo.angle_at(60_000_000) > 0.05
 
 
+def test_that_a_full_disk_stops_the_log_at_its_last_whole_block(tmp_path):
+    run, s, _sv, _ve = fly(tmp_path, disk_full_at_s=12.3)
+    assert not run.completed and "No space" in run.faults["disk_full"]
+    log = read_samplelog(tmp_path / "s.pslog")
+    assert log.blocks_truncated == 1 and log.blocks_corrupt == 0  # the block the disk took half of
+    assert len(s) % 500 == 0 and len(s) > 0
+    assert 0 <= run.loop.ticks - len(s) < 500 + 200
+
+
 def test_that_faults_parse_from_the_command_line_form():
     spec = FaultSpec.parse(["link_loss_pct=10", "link-outage=20,5", "servo_slow_factor=0.6",
                             "clock_jump=12,-3600", "autopilot_reboot=30,2.5"], seed=4)
