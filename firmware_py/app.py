@@ -19,7 +19,9 @@ forwards every record to the log and to the stream, so the loop itself is unchan
 Link security (`signing`, `--signing-key FILE`): the MAVLink link signs everything it sends and drops
 unsigned, forged and replayed frames (`firmware_py.hal.signing`); the live stream's datagrams carry an
 authentication tag made with the same key, stamped on the link's signing clock. The start-up line and
-STATUSTEXT say the link is signed; the progress line counts refused frames.
+STATUSTEXT say the link is signed; the progress line counts refused frames. `device_key` (the CLI sets it to
+the same key when the I2C bus or PWM output is the networked SITL's device bridge) authenticates that
+bridge connection: a wrong key, or a key on one side only, fails at start-up in one line.
 
 Shutdown, whatever stopped the loop (and also after an error): the loop has already tagged and logged
 its pending readings (flagged if their pose never came); a STATUSTEXT says why we stop; the log is
@@ -54,6 +56,7 @@ from firmware_py.drivers.servo import ServoCalibration, SweepServo
 from firmware_py.frames import StorageFrame
 from firmware_py.hal import Clock, I2CBus, MavlinkLink, PwmOutput
 from firmware_py.hal.backends import open_i2c, parse_i2c_url
+from firmware_py.hal.bridge import check_bridge_key
 from firmware_py.hal.clock import MonotonicClock
 from firmware_py.hal.mavlink_link import mavutil_device, open_mavlink
 from firmware_py.hal.pwm import check_pwm_url, open_pwm
@@ -109,6 +112,8 @@ class PayloadConfig:
         stream_records_per_datagram: records batched per datagram.
         signing: MAVLink 2 signing of the autopilot link, and authentication of the live stream with
             the same key [--signing-key FILE, --allow-unsigned]; None = off.
+        device_key: the 32-byte key the device bridge (tcp: / pwm:tcp: URLs, --hal sitl:) authenticates
+            with [--signing-key FILE with --hal or bridge URLs]; ignored by local buses; None = off.
         send_origin: (lat deg, lon deg, alt m MSL) sent as SET_GPS_GLOBAL_ORIGIN at start [--send-origin].
         mission_id: ties the log to a mission plan [--mission-id].
         target_system, target_component: the autopilot's MAVLink ids.
@@ -143,6 +148,7 @@ class PayloadConfig:
     stream_url: str | None = None
     stream_records_per_datagram: int = 20
     signing: SigningConfig | None = None
+    device_key: bytes | None = field(default=None, repr=False)
     send_origin: tuple[float, float, float] | None = None
     mission_id: str | None = None
     target_system: int = 1
@@ -191,6 +197,7 @@ class PayloadConfig:
             raise ValueError(f"records per datagram must be 1-{MAX_RECORDS}, got {n!r}")
         if self.signing is not None and not isinstance(self.signing, SigningConfig):
             raise ValueError(f"signing must be a SigningConfig, got {type(self.signing).__name__}")
+        check_bridge_key(self.device_key)
         if self.send_origin is not None:
             if len(tuple(self.send_origin)) != 3:
                 raise ValueError(f"EKF origin must be LAT LON ALT, got {self.send_origin!r}")
@@ -353,7 +360,8 @@ class PayloadApp:
                 self._say(f"logging to {self.cfg.out_path} at {self.cfg.rate_hz:g} Hz (preset {self.cfg.preset}); "
                           f"MAVLink {self.cfg.mavlink_url}, I2C {self.cfg.i2c_url}, PWM {self.cfg.pwm_url}"
                           + (f", stream {self.cfg.stream_url}" if self.cfg.stream_url else "")
-                          + self._signing_note())
+                          + self._signing_note()
+                          + ("; device bridge authenticated" if self.bridge_authenticated else ""))
                 self._send_health([self.health.event(
                     mavlink.MAV_SEVERITY_INFO,
                     f"started, {self.cfg.rate_hz:g} Hz" + (", link signed" if self.signing_active else ""))])
@@ -381,14 +389,15 @@ class PayloadApp:
         elif cfg.signing is not None and not self.signing_active:
             self._warn("the MAVLink link given to the payload does not sign; signing applies to links it opens")
         if self.bus is None:
-            self.bus = _opening("I2C bus", cfg.i2c_url, lambda: open_i2c(cfg.i2c_url))
+            self.bus = _opening("I2C bus", cfg.i2c_url, lambda: open_i2c(cfg.i2c_url, key=cfg.device_key))
         lidar_cfg = LidarLiteConfig(address=cfg.i2c_address, preset=preset_by_name(cfg.preset),
                                     busy_timeout_ns=cfg.busy_deadline_ns())
         self.lidar = _opening(f"LIDAR-Lite at 0x{cfg.i2c_address:02x} on", cfg.i2c_url,
                               lambda: LidarLite(self.bus, self.clock, lidar_cfg))
         if self.pwm is None:
             self.pwm = _opening("PWM output", cfg.pwm_url, lambda: open_pwm(
-                cfg.pwm_url, i2c_opener=open_i2c, link=self.link, mav=getattr(self.link, "mav", None)))
+                cfg.pwm_url, i2c_opener=open_i2c, link=self.link, mav=getattr(self.link, "mav", None),
+                key=cfg.device_key))
         if cfg.stream_url is not None:
             signer = getattr(self.link, "signer", None)
             self.stream = LiveStreamSender(
@@ -407,6 +416,11 @@ class PayloadApp:
         self.health = HealthMonitor(self.loop.t0_ns, cfg.health_period_s)
         self._next_status_ns = self.loop.t0_ns + round(cfg.status_period_s * 1e9)
         self._status_prev = (self.loop.t0_ns, 0)
+
+    @property
+    def bridge_authenticated(self) -> bool:
+        """Whether the I2C bus or the PWM output is a device bridge connection that authenticated."""
+        return any(getattr(getattr(h, "conn", None), "authenticated", False) for h in (self.bus, self.pwm))
 
     @property
     def signing_active(self) -> bool:

@@ -5,11 +5,9 @@ poses from the autopilot over MAVLink, a crash-safe sample log). Stops on SIGINT
 
 from __future__ import annotations
 
-import contextlib
 import re
-import signal
 import sys
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Sequence
 
 from firmware_py.app import (
     DEFAULT_I2C_URL,
@@ -20,7 +18,7 @@ from firmware_py.app import (
     PayloadApp,
     PayloadConfig,
 )
-from firmware_py.cli_util import ArgumentParser, UserError, finite_float, run_cli
+from firmware_py.cli_util import ArgumentParser, UserError, finite_float, run_cli, stop_on_signals
 from firmware_py.drivers.lidarlite import PRESETS
 from firmware_py.hal.bridge import parse_tcp_url
 from firmware_py.hal.signing import SigningConfig, load_key
@@ -82,7 +80,8 @@ def build_parser() -> ArgumentParser:
     sec.add_argument("--signing-key", default=None, metavar="FILE",
                      help="MAVLink 2 signing key file: 64 hex digits, or a passphrase line (key = its SHA-256, as "
                           "MAVProxy's 'signing setup'); not readable by others (chmod 600). Signs what we send, "
-                          "refuses unsigned, forged and replayed frames, and authenticates the --stream datagrams")
+                          "refuses unsigned, forged and replayed frames, authenticates the --stream datagrams and, "
+                          "with --hal or tcp: device URLs, the connection to the SITL's device bridge")
     sec.add_argument("--allow-unsigned", action="store_true",
                      help="with --signing-key: also accept UNSIGNED frames (mixed setups while migrating; "
                           "forged and replayed signed frames are still refused)")
@@ -106,6 +105,11 @@ def signing_from_args(args) -> SigningConfig | None:
     return SigningConfig(load_key(args.signing_key), allow_unsigned=args.allow_unsigned)
 
 
+def uses_device_bridge(i2c_url: str, pwm_url: str) -> bool:
+    """Whether either URL is the networked SITL's device bridge (the one device link a key authenticates)."""
+    return i2c_url.strip().startswith("tcp:") or pwm_url.strip().startswith("pwm:tcp:")
+
+
 def config_from_args(args) -> PayloadConfig:
     """PayloadConfig from parsed options (ValueError / UserError for bad values, one line each)."""
     signing = signing_from_args(args)
@@ -117,30 +121,14 @@ def config_from_args(args) -> PayloadConfig:
         if args.i2c is not None or args.pwm is not None:
             raise UserError("--hal sets --i2c and --pwm: give either --hal or those two")
         i2c, pwm = hal_urls(args.hal)
+    device_key = signing.key if signing is not None and uses_device_bridge(i2c, pwm) else None
     return PayloadConfig(
         out_path=args.out, force=args.force, mavlink_url=args.mavlink, i2c_url=i2c, pwm_url=pwm,
         preset=args.preset, rate_hz=args.rate, waveform=args.waveform, servo_peak_rate_rad_s=args.servo_rate,
         initial_position=args.phase, storage=Storage.parse(args.storage),
         lever_arm_body_m=tuple(args.lever_arm), duration_s=args.duration, stop_on_disarm=args.stop_on_disarm,
         stream_url=args.stream, send_origin=tuple(args.send_origin) if args.send_origin is not None else None,
-        mission_id=args.mission_id, quiet=args.quiet, signing=signing)
-
-
-@contextlib.contextmanager
-def stop_on_signals(stop: Callable[[str], None],
-                    signums: Sequence[int] = (signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
-    """Route the signals to stop(reason) while inside, restoring the previous handlers after."""
-    def handler(signum: int, _frame: object) -> None:
-        stop(f"signal {signal.Signals(signum).name}")
-
-    previous = {}
-    try:
-        for s in signums:
-            previous[s] = signal.signal(s, handler)
-        yield
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
+        mission_id=args.mission_id, quiet=args.quiet, signing=signing, device_key=device_key)
 
 
 def _run(args) -> int:

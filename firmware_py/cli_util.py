@@ -6,9 +6,11 @@ Lives in firmware_py because every program may import it (the payload runs alone
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
+import signal
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 EXIT_USAGE = 2
 
@@ -55,3 +57,24 @@ def run_cli(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
+
+
+@contextlib.contextmanager
+def stop_on_signals(stop: Callable[[str], None],
+                    signums: Sequence[int] = (signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
+    """Route the signals to stop(reason) while inside, restoring the previous handlers after.
+
+    Here (not in a program's cli) so the payload and the ground station's `listen` share it without
+    the ground importing the payload program.
+    """
+    def handler(signum: int, _frame: object) -> None:
+        stop(f"signal {signal.Signals(signum).name}")
+
+    previous = {}
+    try:
+        for s in signums:
+            previous[s] = signal.signal(s, handler)
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)

@@ -448,6 +448,12 @@ class LiveStreamReceiver:
             raise ValueError("this receiver has no socket")
         return self._sock.getsockname()[:2]
 
+    def fileno(self) -> int:
+        """The socket's descriptor, so a caller can wait for datagrams (select) instead of spinning on poll."""
+        if self._sock is None:
+            raise ValueError("this receiver has no socket")
+        return self._sock.fileno()
+
     def feed(self, data: bytes, peer: tuple[str, int] | None = None) -> np.ndarray:
         """Records of one datagram from peer (empty if refused or malformed: counted, never raised)."""
         if self._allowed is not None and not self._peer_allowed(peer):

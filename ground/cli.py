@@ -1,4 +1,5 @@
-"""`pilescan-ground`: turn a survey's sample log into a volume report."""
+"""`pilescan-ground`: turn a survey's sample log into a volume report (`report`), or receive the payload's
+live sample stream into a sample log (`listen`)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import sys
 from collections.abc import Sequence
 
 from firmware_py.cli_util import ArgumentParser, UserError, finite_float, run_cli
+from ground import listen
 from ground.report import ReportOptions, make_report
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, EMPTY_CELL_POLICIES
 
@@ -24,7 +26,31 @@ def build_parser() -> ArgumentParser:
                    help="cells outside the fitted surface: nearest (extend the surface to the walls, "
                         "default) or leave (no volume there, the paper's method)")
     r.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    r.add_argument("--no-despike", action="store_true",
+                   help="keep isolated one- or two-sample range spikes (default: left out, with a threshold "
+                        "derived from the log header; see ground/despike.py)")
     r.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    ls = sub.add_parser("listen", help="receive the payload's live sample stream (pilescan-payload --stream) "
+                                       "into a sample log, with a status line and a summary")
+    ls.add_argument("--stream", required=True, metavar="udp:HOST:PORT",
+                    help="where to listen: the address the payload's --stream sends to (udp:0.0.0.0:PORT: "
+                         "every interface)")
+    ls.add_argument("--signing-key", default=None, metavar="FILE",
+                    help="the payload's key file (64 hex digits or a passphrase line; chmod 600): take only "
+                         "authenticated, fresh datagrams; unauthenticated, forged and replayed ones are refused "
+                         "and counted")
+    ls.add_argument("--allow-peer", action="append", default=None, metavar="HOST[:PORT]",
+                    help="take datagrams only from this sender (repeatable; without a port: any port of HOST)")
+    ls.add_argument("--out", default=None, metavar="FILE.pslog",
+                    help="sample log to write the records to (default: count them only)")
+    ls.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    ls.add_argument("--header", default=None, metavar="FILE",
+                    help="log header to write: a sample log's (.pslog) or a JSON object; it carries the "
+                         "storage and sensor geometry the report needs (default: a minimal header, which "
+                         "`report` refuses)")
+    ls.add_argument("--duration", type=finite_float, default=None, metavar="S",
+                    help="stop after S seconds (default: until Ctrl-C / SIGTERM)")
+    ls.add_argument("--quiet", action="store_true", help="print nothing but errors")
     return ap
 
 
@@ -47,7 +73,7 @@ def _report(args) -> int:
     if args.truth_volume is not None and args.truth_volume <= 0:
         raise UserError(f"--truth-volume must be > 0 m^3, got {args.truth_volume:g}")
     opts = ReportOptions(cell_m=args.cell, empty_cells=args.empty_cells, plots=not args.no_plots,
-                         truth_volume_m3=args.truth_volume)
+                         truth_volume_m3=args.truth_volume, despike=not args.no_despike)
     rep = make_report(args.source, args.out, opts)
     if not args.quiet:
         print(format_summary(rep))
@@ -55,8 +81,19 @@ def _report(args) -> int:
     return 0
 
 
+def _listen(args) -> int:
+    res = listen.listen(listen.config_from_args(args), err=None if args.quiet else sys.stderr)
+    if not args.quiet:
+        print(listen.format_summary(res), flush=True)
+    return 0
+
+
+def _command(args) -> int:
+    return {"report": _report, "listen": _listen}[args.command](args)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    return run_cli(build_parser(), argv, _report)
+    return run_cli(build_parser(), argv, _command)
 
 
 if __name__ == "__main__":

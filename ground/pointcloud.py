@@ -3,7 +3,8 @@
 Walls and roof are removed from the storage dimensions in the log header, with a per-point
 tolerance derived from the sensor's own error model (also in the header): a point is structure
 when it lies within its expected error of a wall or roof plane. No hand-set crop, so the same code
-serves any building and any sensor.
+serves any building and any sensor. Isolated range spikes (garbage reads, glitches) are removed
+before that, from the time-ordered samples (`ground.despike`), with a threshold derived the same way.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from firmware_py.frames import StorageFrame, beam_rays_w
 from firmware_py.samplelog import EXCLUDE_FROM_CLOUD
 from firmware_py.storage import Storage
 from firmware_py.sweep_check import stuck_sweep_mask
+from ground.despike import SpikeThreshold, spike_mask
 
 N_SIGMA = 3.0
 """Points within N_SIGMA expected errors of a wall or roof plane are taken as structure."""
@@ -71,20 +73,27 @@ class Cloud:
     n_samples: int
     n_excluded: int
     n_servo_suspect: int = 0  # of n_excluded: in sweep periods whose ranges show a stuck servo
+    n_spikes: int = 0  # of n_excluded: isolated one- or two-sample range spikes (ground.despike)
     sweep_dir: np.ndarray | None = None  # (N,) +1 / -1 per point: which way the servo was sweeping
 
 
 def cloud_from_samples(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame,
-                       sweep_period_s: float | None = None) -> Cloud:
+                       sweep_period_s: float | None = None, spike_threshold: SpikeThreshold | None = None) -> Cloud:
     """Eqs. (3)-(6) for every usable sample (flags clear of EXCLUDE_FROM_CLOUD, all fields finite).
 
-    With the servo's sweep period, samples in periods where the ranges do not move like a swept
-    beam's (a stuck servo: `firmware_py.sweep_check`) are excluded too: their angles are wrong.
+    With a spike threshold, isolated one- or two-sample range spikes are excluded first
+    (`ground.despike`: a range no surface could give between its neighbours'). With the servo's sweep
+    period, samples in periods where the ranges do not move like a swept beam's (a stuck servo:
+    `firmware_py.sweep_check`) are excluded too: their angles are wrong.
     """
     pos = np.column_stack([samples["x_m"], samples["y_m"], samples["z_m"]]).astype(float)
     fields = [samples[k].astype(float) for k in ("roll_rad", "pitch_rad", "yaw_rad", "servo_rad", "range_m")]
     finite = np.isfinite(pos).all(axis=1) & np.logical_and.reduce([np.isfinite(f) for f in fields])
     usable = finite & ((samples["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0) & (samples["range_m"] > 0)
+    spikes = np.zeros(len(samples), dtype=bool)
+    if spike_threshold is not None and len(samples):
+        spikes = spike_mask(samples["t_s"], samples["range_m"], usable, spike_threshold)
+        usable &= ~spikes
     suspect = np.zeros(len(samples), dtype=bool)
     if sweep_period_s is not None and len(samples):
         suspect = stuck_sweep_mask(samples["t_s"], samples["range_m"], usable, sweep_period_s)
@@ -93,7 +102,8 @@ def cloud_from_samples(samples: np.ndarray, lever_arm_body_m, frame: StorageFram
     origins, dirs = beam_rays_w(pos[usable], roll, pitch, yaw, gamma, lever_arm_body_m, frame)
     path = frame.ned_to_w(pos[np.isfinite(pos).all(axis=1)])
     return Cloud(origins + dirs * rng[:, None], dirs, rng, path, len(samples),
-                 int(len(samples) - usable.sum()), int(suspect.sum()), samples["sweep_dir"][usable])
+                 int(len(samples) - usable.sum()), n_servo_suspect=int(suspect.sum()),
+                 n_spikes=int(spikes.sum()), sweep_dir=samples["sweep_dir"][usable])
 
 
 def structure_mask(cloud: Cloud, storage: Storage, err: SensorErrorModel) -> np.ndarray:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +16,9 @@ from firmware_py.frames import StorageFrame
 from firmware_py.samplelog import SampleLog, read_samplelog
 from firmware_py.storage import Storage
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
+from ground.despike import SpikeThreshold
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask
+from ground.servo_timing import ServoTiming, estimate_servo_timing, retimed
 from ground.surface import (
     DEFAULT_CELL_M,
     DEFAULT_EMPTY_CELLS,
@@ -41,6 +43,8 @@ class ReportOptions:
     empty_cells: str = DEFAULT_EMPTY_CELLS
     plots: bool = True
     truth_volume_m3: float | None = None
+    servo_retiming: bool = True  # re-estimate the servo's timing when the sweeps disagree (ground.servo_timing)
+    despike: bool = True  # leave out isolated one-/two-sample range spikes (ground.despike; threshold from the header)
 
 
 @dataclass(frozen=True)
@@ -56,6 +60,8 @@ class Survey:
     storage: Storage
     n_cells_clipped: int = 0  # cells whose fit left the building (see surface.clip_to_building)
     sweep_disagreement_m: float | None = None  # ground.consistency: rising vs falling sweeps
+    servo_timing: ServoTiming | None = None  # the re-estimated servo motion, when its model was wrong
+    servo_retimed: bool = False  # the angles above are the re-estimated ones
 
 
 def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
@@ -120,8 +126,36 @@ def _sweep_period_s(header: dict) -> float | None:
 
 def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
                         lever: np.ndarray, opts: ReportOptions) -> Survey:
-    """The computation, free of file handling (sweeps call it on samples that never touch disk)."""
-    cloud = cloud_from_samples(samples, lever, frame, sweep_period_s=_sweep_period_s(header))
+    """The computation, free of file handling (sweeps call it on samples that never touch disk).
+
+    When the two sweep directions disagree (a servo slower or laggier than its model), the servo's
+    real motion is re-estimated from the sweeps; if that brings them into agreement the survey is
+    computed with the re-estimated angles (and says so), else it stays marked untrustworthy.
+    """
+    survey = _survey(samples, header, storage, frame, lever, opts)
+    before = survey.sweep_disagreement_m
+    if not (opts.servo_retiming and before is not None and before > MAX_SWEEP_DISAGREEMENT_M):
+        return survey
+    err = SensorErrorModel.from_header(header)
+    spikes = SpikeThreshold.from_header(header) if opts.despike else None
+
+    def disagreement(s: np.ndarray) -> float | None:  # the survey's cloud, less the stuck-servo check (range-only)
+        cloud = cloud_from_samples(s, lever, frame, spike_threshold=spikes)
+        keep = ~structure_mask(cloud, storage, err)
+        return sweep_disagreement_m(cloud.points_w[keep], cloud.sweep_dir[keep], survey.grid)[0]
+
+    timing = estimate_servo_timing(samples, disagreement, before)
+    if timing is None or timing.disagreement_after_m > MAX_SWEEP_DISAGREEMENT_M:
+        return replace(survey, servo_timing=timing)
+    fixed = _survey(retimed(samples, timing.delay_s, timing.gain, timing.center_rad), header, storage, frame, lever,
+                    opts)
+    return replace(fixed, servo_timing=timing, servo_retimed=True)
+
+
+def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame, lever: np.ndarray,
+            opts: ReportOptions) -> Survey:
+    spikes = SpikeThreshold.from_header(header) if opts.despike else None
+    cloud = cloud_from_samples(samples, lever, frame, sweep_period_s=_sweep_period_s(header), spike_threshold=spikes)
     structure = structure_mask(cloud, storage, SensorErrorModel.from_header(header))
     pile = cloud.points_w[~structure]
     grid = Grid(storage.length_m, storage.width_m, opts.cell_m)
@@ -154,10 +188,20 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
     if survey.cloud.n_servo_suspect:
         warnings.append(f"{survey.cloud.n_servo_suspect} samples left out: in those sweep periods the ranges did not "
                         "move like a swept beam's (servo stuck or slow?)")
+    st = survey.servo_timing
+    if survey.servo_retimed and st is not None:
+        warnings.append(f"the servo's angles were re-estimated from the sweeps: its shaft trails the firmware's "
+                        f"model by {st.delay_s * 1e3:.0f} ms and swings {st.gain * 100:.0f} % as far (the two sweep "
+                        f"directions disagreed by {st.disagreement_before_m:.2f} m, now "
+                        f"{st.disagreement_after_m:.2f} m); recalibrate the servo before the next flight")
+    if survey.cloud.n_spikes:
+        warnings.append(f"{survey.cloud.n_spikes} isolated range spikes left out: samples that disagreed with both "
+                        "time-neighbours while those agreed (garbage or glitch readings)")
     if survey.sweep_disagreement_m is not None and survey.sweep_disagreement_m > MAX_SWEEP_DISAGREEMENT_M:
         warnings.append(f"the two sweep directions disagree by {survey.sweep_disagreement_m:.2f} m (median per cell): "
                         "the servo's angles are wrong (slower or laggier than its calibration?); do not trust "
-                        "this volume")
+                        "this volume" + (f" (re-estimating its timing got them no closer than "
+                                         f"{st.disagreement_after_m:.2f} m)" if st is not None else ""))
     if survey.n_cells_clipped:
         warnings.append(f"the fitted surface left the building in {survey.n_cells_clipped} cells (left empty, "
                         "filled by the empty-cell policy): points contradict each other there, e.g. a LiDAR buried "
@@ -176,7 +220,12 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "empty_cell_policy": opts.empty_cells,
         "n_cells_clipped": survey.n_cells_clipped,
         "n_samples_servo_suspect": survey.cloud.n_servo_suspect,
+        "n_samples_spikes": survey.cloud.n_spikes,
+        "despike": opts.despike,
         "sweep_disagreement_m": survey.sweep_disagreement_m,
+        "servo_timing": None if st is None else {
+            "applied": survey.servo_retimed, "delay_s": st.delay_s, "gain": st.gain,
+            "disagreement_before_m": st.disagreement_before_m, "disagreement_after_m": st.disagreement_after_m},
         "uncovered_area_m2": float((~np.isfinite(survey.heights_fit)).sum() * g.cell_area_m2),
         "storage": survey.storage.to_dict(),
         "mission_id": (log.header or {}).get("mission_id"),

@@ -72,9 +72,18 @@ def build_parser() -> ArgumentParser:
     sv.add_argument("--signing-key", default=None, metavar="FILE",
                     help="MAVLink 2 signing key file (64 hex digits, or a passphrase line: key = its SHA-256, as "
                          "MAVProxy's 'signing setup'; chmod 600): sign everything, refuse unsigned, forged and "
-                         "replayed frames; only clients that sent a signed frame are answered")
+                         "replayed frames; only clients that sent a signed frame are answered; with --devices the key "
+                         "also authenticates the device bridge")
     sv.add_argument("--allow-unsigned", action="store_true",
                     help="with --signing-key: also accept unsigned frames (mixed setups)")
+    sv.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
+                    help="inject a fault (repeatable; the names of fly's --fault): link_loss_pct=10, link_dup_pct, "
+                         "link_reorder_pct, link_outage=START,DUR, link_latency_ms, link_jitter_ms, "
+                         "autopilot_reboot=AT,SILENT_S; with --devices also i2c_nack_pct, lidar_stuck_busy=START,DUR, "
+                         "lidar_power_glitch_at_s, lidar_garbage_pct, lidar_glitch_pct, servo_stuck_at_s, "
+                         "servo_slow_factor, servo_delay_ms. Times count from the mission start (AUTO); the "
+                         "SIM_PS_* parameters change faults while it runs")
+    sv.add_argument("--seed", type=int, default=0, help="seed of the fault draws (default 0)")
 
     pl = sub.add_parser("plan", help="export the survey as a QGC WPL 110 mission (.waypoints)")
     _mission_options(pl, p_traj_required=True)
@@ -135,9 +144,11 @@ def _signing(args):
 
 def _serve(args) -> int:
     signing = _signing(args)  # a bad key file fails before anything starts
-    from sitl.serve import serve
-    return serve(_mission(args), args.mavlink, args.speedup, args.duration, args.vehicle, Path(args.out),
-                 devices_url=args.devices, stockpile=args.stockpile, signing=signing)
+    from sitl.serve import ServeOptions, serve
+    return serve(ServeOptions(mission=_mission(args), url=args.mavlink, speedup=args.speedup,
+                              duration_s=args.duration, vehicle=args.vehicle, out=Path(args.out),
+                              devices_url=args.devices, stockpile=args.stockpile, signing=signing,
+                              faults=FaultSpec.parse(args.fault, seed=args.seed)))
 
 
 def _dispatch(args) -> int:

@@ -46,6 +46,9 @@ Choices, where MAVLink or ArduPilot leave room:
   `UdpTransport` a client only becomes a destination once one of its datagrams held an
   authenticated frame, so a client without the key hears nothing (and cannot aim our telemetry
   at a spoofed address).
+- Parameters: the vehicle's (`PS_*`) and, with `extra_params` (any `ParamProvider`), more beside
+  them, listed, read and set alike, sorted by name; `pilescan-sitl serve` serves its `SIM_PS_*`
+  fault parameters this way (`sitl.fault_params`).
 """
 
 from __future__ import annotations
@@ -362,6 +365,23 @@ class _Unsupported(Exception):
     """A command or message id this vehicle does not implement (MAV_RESULT_UNSUPPORTED)."""
 
 
+class ParamProvider(Protocol):
+    """Parameters served beside the vehicle's own (e.g. `sitl.fault_params.FaultParams`: the SIM_PS_*)."""
+
+    def names(self) -> list[str]:
+        """The names now available (a vehicle parameter of the same name wins)."""
+
+    def get(self, name: str) -> float: ...
+
+    def set(self, name: str, value: float) -> float | None:
+        """Set at once; KeyError for an unknown name, ValueError for a bad value (nothing changed).
+
+        Returns the value the PARAM_VALUE acknowledging it carries, or None for get(name): an action
+        parameter acknowledges what it did (a ground station such as MAVProxy re-sends a set until the
+        value it sent comes back), then reads back its state.
+        """
+
+
 # ----- the server -------------------------------------------------------------------------------
 
 class MavlinkVehicleServer:
@@ -369,12 +389,14 @@ class MavlinkVehicleServer:
 
     def __init__(self, vehicle: Vehicle, transport: Transport, tlog_path: str | os.PathLike[str] | None = None,
                  sysid: int = 1, compid: int = 1, home_lat_deg: float = 53.4668, home_lon_deg: float = -2.2339,
-                 home_alt_m: float = 50.0, signing: SigningConfig | MavlinkSigner | None = None) -> None:
+                 home_alt_m: float = 50.0, signing: SigningConfig | MavlinkSigner | None = None,
+                 extra_params: ParamProvider | None = None) -> None:
         if not (math.isfinite(home_lat_deg) and abs(home_lat_deg) < 90 and math.isfinite(home_lon_deg)
                 and abs(home_lon_deg) <= 180 and math.isfinite(home_alt_m)):
             raise ValueError(f"bad home position {home_lat_deg}, {home_lon_deg}, {home_alt_m}")
         self.vehicle = vehicle
         self.transport = transport
+        self.extra_params = extra_params  # listed, read and set with the vehicle's parameters
         self.sysid, self.compid = sysid, compid
         self.home_lat_deg, self.home_lon_deg, self.home_alt_m = home_lat_deg, home_lon_deg, home_alt_m
         self._mav = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
@@ -666,11 +688,26 @@ class MavlinkVehicleServer:
     # ----- parameters -----------------------------------------------------------------------------
 
     def _param_names(self) -> list[str]:
-        return sorted(self.vehicle.params)
+        """The vehicle's parameters and the extra ones (extra_params), sorted by name as ArduPilot does."""
+        extra = self.extra_params.names() if self.extra_params is not None else []
+        return sorted(set(self.vehicle.params).union(extra))
 
-    def _send_param(self, name: str) -> None:
+    def _param_value(self, name: str) -> float:
+        if name in self.vehicle.params:
+            return self.vehicle.params[name]
+        return self.extra_params.get(name)
+
+    def _set_param(self, name: str, value: float) -> float | None:
+        """Set a vehicle or an extra parameter; the value to acknowledge with (None: read it back)."""
+        if name in self.vehicle.params or self.extra_params is None or name not in self.extra_params.names():
+            self.vehicle.set_param(name, value)  # KeyError for a name nobody has
+            return None
+        return self.extra_params.set(name, value)
+
+    def _send_param(self, name: str, value: float | None = None) -> None:
         names = self._param_names()
-        self._send(self._mav.param_value_encode(name.encode("ascii", "replace")[:16], self.vehicle.params[name],
+        value = self._param_value(name) if value is None else value
+        self._send(self._mav.param_value_encode(name.encode("ascii", "replace")[:16], value,
                                                 mavlink.MAV_PARAM_TYPE_REAL32, len(names), names.index(name)))
 
     def _on_param_request_list(self, msg: Any) -> None:
@@ -682,19 +719,20 @@ class MavlinkVehicleServer:
         if msg.param_index >= 0:
             if msg.param_index < len(names):
                 self._send_param(names[msg.param_index])
-        elif msg.param_id in self.vehicle.params:
+        elif msg.param_id in names:
             self._send_param(msg.param_id)
 
     def _on_param_set(self, msg: Any) -> None:
         name = msg.param_id
+        ack = None
         try:
-            self.vehicle.set_param(name, msg.param_value)
+            ack = self._set_param(name, msg.param_value)
         except KeyError:
             self._statustext(mavlink.MAV_SEVERITY_WARNING, f"unknown parameter {name}")
             return
         except ValueError as exc:
             self._statustext(mavlink.MAV_SEVERITY_WARNING, f"param {name} not set: {exc}")
-        self._send_param(name)
+        self._send_param(name, ack)
 
     # ----- mission upload -------------------------------------------------------------------------
 

@@ -110,6 +110,29 @@ def check_clearance(mission: Mission, pile: piles.Stockpile) -> None:
                          f"(clearance {mission.min_clearance_m:g} m needed)")
 
 
+def truth_record(pile: piles.Stockpile, stockpile: str, mission: Mission, frame: StorageFrame, *, plant: str,
+                 payload: str, seed: int, faults: FaultSpec | None = None, **flight) -> dict:
+    """truth.json: what the ground station checks a survey against (the world, the mission, the faults,
+    how it was flown); `flight` adds what the flight gave (flight time, energy, samples ...).
+    Written by `fly` and by `serve --devices` (payload "networked")."""
+    return {
+        "true_volume_m3": pile.volume_m3,
+        "stockpile": stockpile,
+        "stockpile_source": pile.source,
+        "pile_seed": piles.PAPER_PILES.get(stockpile, {}).get("seed"),
+        "seed": seed,
+        "storage": mission.storage.to_dict(),
+        "storage_frame": frame.to_dict(),
+        "mission": mission.to_dict(),
+        "mission_id": mission.mission_id,
+        "plant": plant,
+        "payload": payload,
+        "faults": faults.to_dict() if faults is not None and faults.active else None,
+        **flight,
+        "software": f"pilescan {firmware_py.__version__}",
+    }
+
+
 def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
         progress: Callable[[str], None] | None = None) -> RunResult:
     """Fly cfg with the selected plant and write the run directory."""
@@ -151,27 +174,10 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
         os.fsync(f.fileno())
     pile.mesh.export(out / PILE_FILE)
     write_qgc_wpl(out / PLAN_FILE, cfg.mission, cfg.frame)
-    truth = {
-        "true_volume_m3": pile.volume_m3,
-        "stockpile": cfg.stockpile,
-        "stockpile_source": pile.source,
-        "pile_seed": piles.PAPER_PILES.get(cfg.stockpile, {}).get("seed"),
-        "seed": cfg.seed,
-        "storage": storage.to_dict(),
-        "storage_frame": cfg.frame.to_dict(),
-        "mission": cfg.mission.to_dict(),
-        "mission_id": cfg.mission.mission_id,
-        "plant": cfg.plant,
-        "payload": cfg.payload,
-        "faults": cfg.faults.to_dict() if cfg.faults is not None and cfg.faults.active else None,
-        "flight_time_s": duration_s,
-        "energy_j": energy_j,
-        "payload_kg": cfg.payload_kg if cfg.plant == "jsbsim" else None,
-        "n_samples": len(records),
-        "servo_initial_position": cfg.initial_position,
-        "waveform": cfg.waveform,
-        "software": f"pilescan {firmware_py.__version__}",
-    }
+    truth = truth_record(pile, cfg.stockpile, cfg.mission, cfg.frame, plant=cfg.plant, payload=cfg.payload,
+                         seed=cfg.seed, faults=cfg.faults, flight_time_s=duration_s, energy_j=energy_j,
+                         payload_kg=cfg.payload_kg if cfg.plant == "jsbsim" else None, n_samples=len(records),
+                         servo_initial_position=cfg.initial_position, waveform=cfg.waveform)
     (out / TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
     n_ret = int(np.count_nonzero(records["flags"] == 0))
     say(f"wrote {out}: {len(records)} samples ({n_ret} returns), {duration_s:.0f} s flight"

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import random
+import socket
 from pathlib import Path
 
 import pytest
@@ -31,6 +32,8 @@ NOBODY = "udpout:127.0.0.1:9"  # the discard port: no autopilot there
 FLY = ["fly", "--stockpile", "1", "--p-traj", "20", "--quiet"]
 SERVE = ["serve", "--vehicle", "kinematic", "--duration", "1"]  # if a case ever got through, it would end
 PAY = ["--mavlink", NOBODY, "--i2c", "i2c:/dev/i2c-nonexistent-77"]
+LISTEN = ["listen", "--duration", "1"]  # if a case ever got through, it would end
+LSTREAM = ["--stream", "udp:127.0.0.1:14599"]
 REP = ["--cache", "cache", "--rows", "rows.csv", "--quiet", "--experiments", "baseline-ideal", "--piles", "1",
        "--positions", "1"]
 
@@ -66,6 +69,12 @@ def inputs(tmp_path_factory) -> Path:
     (d / "typed.toml").write_text('[[experiment]]\nname = 5\n')
     (d / "dup.toml").write_text('[[experiment]]\nname = "a"\n[[experiment]]\nname = "a"\n')
     (d / "noise-2d.toml").write_text('[[experiment]]\nname = "n"\nsensor = "2d"\nnoise_draws = 3\n')
+    (d / "open.key").write_text("11" * 32 + "\n")
+    (d / "open.key").chmod(0o644)  # readable by everyone: refused
+    (d / "short.key").write_text("abc123\n")
+    (d / "short.key").chmod(0o600)
+    (d / "list.json").write_text("[1, 2]")
+    (d / "layout.json").write_text('{"record_dtype": [["t_s", "<f8"]]}')
     run = d / "old-run"
     run.mkdir()
     (run / "samples.pslog").write_bytes(b"yesterday's survey")
@@ -129,6 +138,20 @@ CASES = [
      "random.stl"),
     ("sitl", [*SERVE, "--mavlink", "udp:127.0.0.1:0", "--out", "{d}/blocker/s"], "Not a directory"),
     ("sitl", [*SERVE, "--p-traj", "70", "--out", "{t}/s"], "P_traj"),
+    # ... serve --fault: fly's names, checked, and refused where the payload is another process
+    ("sitl", [*SERVE, "--fault", "power_cut_at_s=5", "--out", "{t}/s"], "another process"),
+    ("sitl", [*SERVE, "--fault", "clock_jump=5,10", "--out", "{t}/s"], "real clock"),
+    ("sitl", [*SERVE, "--fault", "i2c_nack_pct=5", "--out", "{t}/s"], "needs --devices"),
+    ("sitl", [*SERVE, "--fault", "servo_stuck_at_s=5", "--out", "{t}/s"], "needs --devices"),
+    ("sitl", [*SERVE, "--fault", "warp=1", "--out", "{t}/s"], "NAME one of"),
+    ("sitl", [*SERVE, "--fault", "link_loss_pct", "--out", "{t}/s"], "NAME=VALUE"),
+    ("sitl", [*SERVE, "--fault", "link_loss_pct=200", "--out", "{t}/s"], "percentage"),
+    ("sitl", [*SERVE, "--fault", "link_loss_pct=nan", "--out", "{t}/s"], "percentage"),
+    ("sitl", [*SERVE, "--fault", "link_outage=3", "--out", "{t}/s"], "START,DURATION"),
+    ("sitl", [*SERVE, "--fault", "autopilot_reboot=5,-1", "--out", "{t}/s"], "autopilot_reboot"),
+    ("sitl", [*SERVE, "--fault", "link_latency_ms=x", "--out", "{t}/s"], "not a number"),
+    ("sitl", [*SERVE, "--seed", "-1", "--fault", "link_loss_pct=5", "--out", "{t}/s"], "seed"),
+    ("sitl", [*SERVE, "--seed", "1.5", "--out", "{t}/s"], "invalid int"),
     # ----- pilescan-ground
     ("ground", [], "required: command"),
     ("ground", ["volume"], "invalid choice"),
@@ -152,6 +175,34 @@ CASES = [
     ("ground", ["report", "{d}/good.pslog", "--out", ""], "non-empty"),
     ("ground", ["report", "{d}/good.pslog", "--out", "{d}/blocker", "--no-plots"], "File exists"),
     ("ground", ["report", "{d}/good.pslog", "--out", "{d}/blocker/r", "--no-plots"], "blocker"),
+    # ... listen: every bad option fails before the socket is bound or the log is created
+    ("ground", ["listen"], "--stream"),
+    ("ground", [*LISTEN, *LSTREAM, "--warp"], "unrecognized arguments"),
+    ("ground", [*LISTEN, "--stream", "tcp:127.0.0.1:14599"], "udp:HOST:PORT"),
+    ("ground", [*LISTEN, "--stream", "udp::14599"], "udp:HOST:PORT"),
+    ("ground", [*LISTEN, "--stream", "udp:127.0.0.1:0"], "port"),
+    ("ground", [*LISTEN, "--stream", "udp:127.0.0.1:70000"], "port"),
+    ("ground", [*LISTEN, "--stream", "udp:192.0.2.1:14599"], "cannot listen"),  # not an address of ours
+    ("ground", [*LISTEN, *LSTREAM, "--duration", "0"], "> 0"),
+    ("ground", [*LISTEN, *LSTREAM, "--duration", "nan"], "finite"),
+    ("ground", [*LISTEN, *LSTREAM, "--signing-key", "{d}/missing.key"], "does not exist"),
+    ("ground", [*LISTEN, *LSTREAM, "--signing-key", "{d}/open.key"], "chmod 600"),
+    ("ground", [*LISTEN, *LSTREAM, "--signing-key", "{d}/short.key"], "hex digits"),
+    ("ground", [*LISTEN, *LSTREAM, "--signing-key", "{d}/adir.pslog"], "directory"),
+    ("ground", [*LISTEN, *LSTREAM, "--allow-peer", "127.0.0.1:0"], "1-65535"),
+    ("ground", [*LISTEN, *LSTREAM, "--allow-peer", ""], "allowed peer"),
+    ("ground", [*LISTEN, *LSTREAM, "--allow-peer", "[::1"], "allowed peer"),
+    ("ground", [*LISTEN, *LSTREAM, "--out", ""], "non-empty"),
+    ("ground", [*LISTEN, *LSTREAM, "--out", "{d}/old.pslog"], "--force"),
+    ("ground", [*LISTEN, *LSTREAM, "--out", "{d}/adir.pslog"], "is a directory"),
+    ("ground", [*LISTEN, *LSTREAM, "--out", "{d}/blocker/x.pslog"], "does not exist"),
+    ("ground", [*LISTEN, *LSTREAM, "--out", "{t}/no/such/dir/x.pslog"], "does not exist"),
+    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/missing.json"], "cannot read"),
+    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/adir.pslog"], "cannot read"),
+    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/random.pslog"], "neither a sample log"),
+    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/list-header.pslog"], "missing or corrupt"),
+    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/list.json"], "JSON object"),
+    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/layout.json"], "another layout"),
     # ----- pilescan-payload
     ("payload", ["--out"], "expected one argument"),
     ("payload", ["--out", "{t}/x.pslog", "--warp"], "unrecognized arguments"),
@@ -244,6 +295,16 @@ def test_that_an_empty_device_url_is_refused(tmp_path, capsys, opt):
     code, _, err = run(capsys, "payload", ["--out", str(tmp_path / "x.pslog"), "--mavlink", NOBODY, opt, ""])
     check_one_line_error("payload", code, err)
     assert "non-empty" in err
+
+
+def test_that_listen_refuses_a_port_in_use_before_creating_its_log(tmp_path, capsys):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        port = taken.getsockname()[1]
+        code, _, err = run(capsys, "ground", [*LISTEN, "--stream", f"udp:127.0.0.1:{port}",
+                                              "--out", str(tmp_path / "x.pslog")])
+    check_one_line_error("ground", code, err)
+    assert "in use" in err and not (tmp_path / "x.pslog").exists()
 
 
 def test_that_serve_refuses_a_bad_mavlink_url_before_writing_anything(tmp_path, capsys):

@@ -116,6 +116,7 @@ class ReadStatus(IntEnum):
     NO_RETURN = 1  # the part measured and saw no valid echo (reads 1 cm, or 0)
     TIMEOUT = 2  # busy did not clear before the deadline
     BUS_ERROR = 3  # an I2C transfer failed, or the bytes read cannot be a distance
+    RESETTING = 4  # the part is reloading after an automatic reset: not triggered, no bus traffic
 
 
 @dataclass(frozen=True)
@@ -339,10 +340,10 @@ MAX_RESET_BACKOFF = 32
 """A stuck part is reset after 20, 40, 80 ... failures, at most 32 x 20 (about 1.3 s at 500 Hz)."""
 
 
-COUNTER_NAMES = ("ok", "no_return", "timeouts", "bus_errors", "implausible", "resets", "reconfigs",
+COUNTER_NAMES = ("ok", "no_return", "timeouts", "bus_errors", "resetting", "implausible", "resets", "reconfigs",
                  "config_errors", "bias")
-"""ok + no_return + timeouts + bus_errors is the number of readings; implausible is the part of
-bus_errors whose bytes could not be a distance; config_errors counts failed transfers while
+"""ok + no_return + timeouts + bus_errors + resetting is the number of readings; implausible is the
+part of bus_errors whose bytes could not be a distance; config_errors counts failed transfers while
 resetting, configuring or reading back; bias counts bias-corrected triggers."""
 
 
@@ -351,6 +352,7 @@ class _Pending:
     t_ns: int
     bias: bool
     error: I2CError | None = None
+    resetting: bool = False
 
 
 class LidarLite:
@@ -377,6 +379,7 @@ class LidarLite:
         self._no_valid_run = 0
         self._since_readback = 0
         self._reset_after = self.config.reset_after_failures  # grows while resets do not help
+        self._reloaded_at_ns: int | None = None  # an automatic reset is under way until then
         self._done_after_ns: dict[bool, int | None] = {False: None, True: None}  # learned busy time
         self._shortest_ns = acquisition_time_ns(self._preset.sig_count_val, self._preset.acq_config, signal_counts=1)
         self._worst_ns = {b: self._preset.worst_acquisition_ns(bias=b) for b in (False, True)}
@@ -447,6 +450,7 @@ class LidarLite:
         """
         if self._pending is not None:
             raise RuntimeError("reset() during a measurement: call measure_finish() first")
+        self._reloaded_at_ns = None  # this one waits: it supersedes an automatic reset under way
         self.counters["resets"] += 1
         log.warning("resetting the LIDAR-Lite at 0x%02x", self.config.address)
         ok = True
@@ -464,6 +468,27 @@ class LidarLite:
         self._bias_countdown = 0
         self._failure_run = self._no_valid_run = 0
         return ok
+
+    def _start_reset(self) -> None:
+        """The automatic reset, without blocking: the reset command now, the preset once the part
+        has reloaded (`measure_start` after reset_wait_ns). Meanwhile readings come back RESETTING at
+        the loop's rate, so a payload keeps its tick grid (servo pulses, pose pumping, health)."""
+        self.counters["resets"] += 1
+        log.warning("resetting the LIDAR-Lite at 0x%02x", self.config.address)
+        try:
+            self._write_reg(_REG_ACQ_COMMAND, _CMD_RESET)
+        except I2CError as exc:
+            self._config_error("reset command", exc)
+        self._reloaded_at_ns = self.clock.now_ns() + self.config.reset_wait_ns
+        self._bias_countdown = 0
+        self._failure_run = self._no_valid_run = 0
+
+    def _finish_reset(self) -> None:
+        self._reloaded_at_ns = None
+        try:
+            self.configure()
+        except I2CError as exc:
+            self._config_error("configuring after reset", exc)
 
     def _config_error(self, what: str, exc: I2CError) -> None:
         self.counters["config_errors"] += 1
@@ -489,6 +514,12 @@ class LidarLite:
         """
         if self._pending is not None:
             raise RuntimeError("measure_start() called twice without measure_finish()")
+        if self._reloaded_at_ns is not None:
+            now = self.clock.now_ns()
+            if now < self._reloaded_at_ns:
+                self._pending = _Pending(now, False, resetting=True)
+                return now
+            self._finish_reset()
         bias = self._bias_countdown <= 0
         try:
             self._write_reg(_REG_ACQ_COMMAND, _CMD_MEASURE_BIAS if bias else _CMD_MEASURE)
@@ -511,6 +542,9 @@ class LidarLite:
         if pending is None:
             raise RuntimeError("measure_finish() without measure_start()")
         self._pending = None
+        if pending.resetting:
+            self.counters["resetting"] += 1
+            return Reading(None, ReadStatus.RESETTING, pending.t_ns, 0)
         if pending.error is not None:
             self.last_error = pending.error
             reading, raw_cm = Reading(None, ReadStatus.BUS_ERROR, pending.t_ns, 0), None
@@ -597,4 +631,4 @@ class LidarLite:
             # and a part that stays stuck would otherwise spend much of the loop's time resetting.
             if self._failure_run >= self._reset_after:
                 self._reset_after = min(2 * self._reset_after, MAX_RESET_BACKOFF * cfg.reset_after_failures)
-            self.reset()
+            self._start_reset()

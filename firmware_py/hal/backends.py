@@ -7,6 +7,10 @@
 
 The SITL registers its simulated bus (`sitl`) here: firmware_py never imports sitl, the SITL
 imports firmware_py and hands it a factory, as crazyflie's `get_link_driver(uri)` picks a link.
+
+`open_i2c(url, key=...)`: the key authenticates the device bridge (`tcp:`), the one bus that is a
+network link; a local bus (`i2c:`, a registered in-process backend) has no link to authenticate and
+ignores it, so a program can pass its key whatever bus it was given.
 """
 
 from __future__ import annotations
@@ -24,10 +28,10 @@ _SCHEME = re.compile(r"[a-z][a-z0-9+.-]*")
 _BUILTIN = "i2c"
 
 
-def _open_bridge(url: str) -> I2CBus:
+def _open_bridge(url: str, key: bytes | None = None) -> I2CBus:
     """The device bridge, imported on first use (only a networked SITL run needs sockets here)."""
     from firmware_py.hal.bridge import open_bridge_i2c
-    return open_bridge_i2c(url)
+    return open_bridge_i2c(url, key=key)
 
 
 _BACKENDS: dict[str, I2CFactory] = {"tcp": _open_bridge}
@@ -69,13 +73,16 @@ def parse_i2c_url(url: str) -> int | str:
     return int(m.group(1)) if m.group(1) is not None else m.group(2)
 
 
-def open_i2c(url: str) -> I2CBus:
+def open_i2c(url: str, *, key: bytes | None = None) -> I2CBus:
     """An I2CBus from its URL (see the module docstring).
 
+    Args:
+        key: the 32-byte key the device bridge (`tcp:`) authenticates with; ignored by local buses.
+
     Raises:
-        ValueError: a malformed URL or an unknown scheme (the message names the URL).
+        ValueError: a malformed URL or an unknown scheme (the message names the URL), or a bad key.
         RuntimeError: `i2c:` without smbus2 installed.
-        I2CError: the adapter cannot be opened.
+        I2CError: the adapter cannot be opened (EACCES: the device bridge refused or failed authentication).
     """
     if not isinstance(url, str) or not url.strip():
         raise ValueError(f"I2C bus URL must be a non-empty string like {_FORMS}, got {url!r}")
@@ -87,4 +94,6 @@ def open_i2c(url: str) -> I2CBus:
     if factory is None:
         raise ValueError(f"malformed I2C bus URL {url!r}: unknown scheme {scheme!r} "
                          f"(known: {', '.join(registered_i2c_schemes())}; expected {_FORMS})")
+    if factory is _open_bridge:
+        return _open_bridge(text, key=key)
     return factory(text)

@@ -31,6 +31,29 @@ Protocol (version 1), little-endian, strict request/response on one TCP stream:
 The client says HELLO on every (re)connect and refuses a server of another version. A server may
 close a connection whose framing it cannot follow (e.g. a length above MAX_PAYLOAD).
 
+Authentication (optional; both ends given the same 32-byte key, the MAVLink signing key file:
+`firmware_py.hal.signing.load_key`). A keyed client runs a challenge-response handshake right after
+connecting, before HELLO, in the same request/response framing:
+
+    op                   request payload               OK response payload
+    0x02 AUTH_CHALLENGE  u16 auth version (1)          16-byte server nonce Ns (fresh, random)
+    0x03 AUTH_PROVE      16-byte client nonce Nc,      32-byte server proof
+                         32-byte client proof
+
+    client proof = HMAC-SHA256(key, Ns || Nc || b"pilescan device bridge v1: client")
+    server proof = HMAC-SHA256(key, Ns || Nc || b"pilescan device bridge v1: server")
+
+The server checks the client's proof (constant time) and answers with its own, which the client
+checks: neither side talks to an impostor, and since each side's nonce is fresh, a recorded
+handshake cannot be replayed to either. The two labels keep a proof from being reflected back.
+A keyed server answers any other request before a good AUTH_PROVE, and a bad proof, with status
+0x04 AUTH (a one-line message) and closes the connection; it also drops a client that has not
+authenticated within AUTH_TIMEOUT_S. A server without a key answers the AUTH ops with
+BAD_REQUEST, which a keyed client reports as "this bridge does not authenticate" (it never falls
+back to talking unauthenticated). The handshake authenticates the connection, not each frame: the
+frames after it carry no MAC (the bridge is a SITL device link on a local network; someone who can
+inject into an established TCP stream there is out of scope).
+
 Failure policy: each request has a deadline (`timeout_s`). A refused connection, a timeout, a lost
 connection or an unparseable answer raises I2CError (OSError) at once and drops the socket, so a late
 answer can never be taken for the next request's; the next call reconnects (the SITL may restart).
@@ -42,7 +65,10 @@ This module never imports `sitl`: the server (sitl.devices.bridge_server) import
 from __future__ import annotations
 
 import errno
+import hashlib
+import hmac
 import re
+import secrets
 import socket
 import struct
 import threading
@@ -51,6 +77,7 @@ from typing import Final
 
 from firmware_py.hal import I2CError, check_i2c_addr, check_read_len
 from firmware_py.hal.pwm import _check_pulse
+from firmware_py.hal.signing import KEY_SIZE
 
 VERSION: Final = 1
 HEADER: Final = struct.Struct("<HB")
@@ -58,6 +85,8 @@ MAX_PAYLOAD: Final = 1024
 """Largest frame payload either side sends; also the longest I2C read (a LIDAR reads 2 bytes)."""
 
 OP_HELLO: Final = 0x01
+OP_AUTH_CHALLENGE: Final = 0x02
+OP_AUTH_PROVE: Final = 0x03
 OP_I2C_WRITE: Final = 0x10
 OP_I2C_READ: Final = 0x11
 OP_I2C_WRITE_READ: Final = 0x12
@@ -68,6 +97,15 @@ STATUS_OK: Final = 0x00
 STATUS_NACK: Final = 0x01
 STATUS_BAD_REQUEST: Final = 0x02
 STATUS_ERROR: Final = 0x03
+STATUS_AUTH: Final = 0x04
+"""Authentication required or failed; the server closes the connection after sending it."""
+
+AUTH_VERSION: Final = 1
+NONCE_SIZE: Final = 16
+PROOF_SIZE: Final = 32
+AUTH_TIMEOUT_S: Final = 5.0
+"""A keyed server drops a client that has not authenticated this long after connecting."""
+_PROOF_LABEL: Final = b"pilescan device bridge v1: "
 
 HINT: Final = "is `pilescan-sitl serve --devices ...` running?"
 I2C_FORM: Final = "tcp:HOST:PORT"
@@ -104,7 +142,26 @@ def parse_pwm_url(url: str) -> tuple[str, int, int]:
     return m.group(1).strip("[]"), int(m.group(2)), int(m.group(3))
 
 
-_SHARED: dict[tuple[str, int], BridgeConnection] = {}
+def check_bridge_key(key: bytes | None) -> bytes | None:
+    """The key as bytes (None: no authentication); ValueError for anything but 32 non-zero bytes."""
+    if key is None:
+        return None
+    if not isinstance(key, bytes | bytearray) or len(key) != KEY_SIZE:
+        raise ValueError(f"device bridge key must be {KEY_SIZE} bytes (firmware_py.hal.signing.load_key)")
+    if not any(key):
+        raise ValueError("device bridge key is all zeros")
+    return bytes(key)
+
+
+def auth_proof(key: bytes, role: str, server_nonce: bytes, client_nonce: bytes) -> bytes:
+    """The handshake proof of `role` ("client" or "server") for these nonces (module docstring)."""
+    if role not in ("client", "server"):
+        raise ValueError(f"role must be 'client' or 'server', got {role!r}")
+    msg = bytes(server_nonce) + bytes(client_nonce) + _PROOF_LABEL + role.encode("ascii")
+    return hmac.new(key, msg, hashlib.sha256).digest()
+
+
+_SHARED: dict[tuple[str, int, bytes | None], BridgeConnection] = {}
 _SHARED_LOCK = threading.RLock()
 """Guards _SHARED and every connection's user count, so a handle never retains a closing connection."""
 
@@ -112,16 +169,22 @@ _SHARED_LOCK = threading.RLock()
 class BridgeConnection:
     """One TCP connection to a device bridge server, shared by the bus and PWM handles on it.
 
-    Connects (and says HELLO) at once, so a wrong address fails at start-up with a clear message.
-    Thread-safe: a lock spans each request and its response.
+    Connects (authenticates, with a key) and says HELLO at once, so a wrong address or key fails at
+    start-up with a clear message. Thread-safe: a lock spans each request and its response.
+
+    Args:
+        key: the 32-byte key: run the authentication handshake on every (re)connect and refuse a
+            server that does not authenticate or cannot prove it holds the key. None: no handshake.
 
     Raises:
-        I2CError: the server cannot be reached or speaks another protocol version.
+        I2CError: the server cannot be reached, speaks another protocol version, or fails
+            authentication (errno EACCES: a wrong or missing key on either side).
     """
 
-    def __init__(self, host: str, port: int, timeout_s: float = 1.0) -> None:
+    def __init__(self, host: str, port: int, timeout_s: float = 1.0, *, key: bytes | None = None) -> None:
         if not (isinstance(timeout_s, int | float) and 0 < timeout_s < float("inf")):
             raise ValueError(f"device bridge timeout must be a positive number of seconds, got {timeout_s!r}")
+        self._key = check_bridge_key(key)
         self.host, self.port, self.timeout_s = host, int(port), float(timeout_s)
         self.endpoint = _endpoint(host, self.port)
         self.i2c_addresses: tuple[int, ...] = ()
@@ -149,11 +212,36 @@ class BridgeConnection:
         self._sock = sock
         self.counters["connects"] += 1
         try:
+            if self._key is not None:
+                self._authenticate(self._key)
             body = self._checked(OP_HELLO, *self._exchange(OP_HELLO, struct.pack("<H", VERSION)))
             self.i2c_addresses, self.pwm_channels = self._parse_hello(body)
         except I2CError:
-            self._fail()  # never keep a connection whose version was not agreed
+            self._fail()  # never keep a connection whose version (or key) was not agreed
             raise
+
+    @property
+    def authenticated(self) -> bool:
+        """Whether this connection runs the authentication handshake (it was given a key)."""
+        return self._key is not None
+
+    def _authenticate(self, key: bytes) -> None:
+        """The challenge-response handshake (module docstring); I2CError EACCES if either side fails it."""
+        status, body = self._exchange(OP_AUTH_CHALLENGE, struct.pack("<H", AUTH_VERSION))
+        if status == STATUS_BAD_REQUEST:
+            raise I2CError(errno.EACCES, f"the device bridge at {self.endpoint} does not authenticate (it was "
+                                         f"started without a key): refused; give `pilescan-sitl serve --devices` "
+                                         f"the same --signing-key")
+        server_nonce = self._checked(OP_AUTH_CHALLENGE, status, body)
+        if len(server_nonce) != NONCE_SIZE:
+            raise I2CError(errno.EPROTO, f"device bridge at {self.endpoint} sent a {len(server_nonce)}-byte "
+                                         f"challenge (expected {NONCE_SIZE})")
+        client_nonce = secrets.token_bytes(NONCE_SIZE)
+        proof = auth_proof(key, "client", server_nonce, client_nonce)
+        server_proof = self._checked(OP_AUTH_PROVE, *self._exchange(OP_AUTH_PROVE, client_nonce + proof))
+        if not hmac.compare_digest(server_proof, auth_proof(key, "server", server_nonce, client_nonce)):
+            raise I2CError(errno.EACCES, f"the device bridge at {self.endpoint} could not prove it holds the key "
+                                         f"(another key, or not the SITL you meant): refused")
 
     def _parse_hello(self, body: bytes) -> tuple[tuple[int, ...], tuple[int, ...]]:
         try:
@@ -215,6 +303,11 @@ class BridgeConnection:
             raise I2CError(errno.EPROTO, f"device bridge at {self.endpoint} refused op 0x{op:02x}: {msg}")
         if status == STATUS_ERROR:
             raise I2CError(errno.EIO, f"device bridge at {self.endpoint}: device error: {msg}")
+        if status == STATUS_AUTH:
+            self._fail()  # the server closes the connection after this answer
+            hint = ("give the payload the SITL's key (--signing-key FILE)" if self._key is None
+                    else "both sides need the same key file")
+            raise I2CError(errno.EACCES, f"device bridge at {self.endpoint} refused us: {msg}; {hint}")
         self._fail()
         raise I2CError(errno.EPROTO, f"device bridge at {self.endpoint}: unknown status 0x{status:02x}")
 
@@ -250,8 +343,8 @@ class BridgeConnection:
     def close(self) -> None:
         """Close the socket now (handles still open get I2CError EBADF). Idempotent."""
         with _SHARED_LOCK:
-            if _SHARED.get((self.host, self.port)) is self:
-                del _SHARED[(self.host, self.port)]
+            if _SHARED.get((self.host, self.port, self._key)) is self:
+                del _SHARED[(self.host, self.port, self._key)]
         with self._lock:
             self.closed = True
             if self._sock is not None:
@@ -259,12 +352,14 @@ class BridgeConnection:
                 self._sock = None
 
 
-def shared_connection(host: str, port: int, timeout_s: float = 1.0) -> BridgeConnection:
-    """This process's connection to HOST:PORT, made on first use. Wrap it in a handle to keep it open."""
+def shared_connection(host: str, port: int, timeout_s: float = 1.0, *, key: bytes | None = None) -> BridgeConnection:
+    """This process's connection to HOST:PORT (with this key, or none), made on first use. Wrap it in a
+    handle to keep it open. Handles given different keys never share a connection."""
+    key = check_bridge_key(key)
     with _SHARED_LOCK:
-        conn = _SHARED.get((host, port))
+        conn = _SHARED.get((host, port, key))
         if conn is None or conn.closed:
-            conn = _SHARED[(host, port)] = BridgeConnection(host, port, timeout_s)
+            conn = _SHARED[(host, port, key)] = BridgeConnection(host, port, timeout_s, key=key)
         return conn
 
 
@@ -357,18 +452,20 @@ class BridgePwm:
             self.conn.release()
 
 
-def open_bridge_i2c(url: str, timeout_s: float = 1.0) -> BridgeI2CBus:
-    """`open_i2c('tcp:HOST:PORT')`: a bus handle on this process's shared connection to the bridge."""
+def open_bridge_i2c(url: str, timeout_s: float = 1.0, *, key: bytes | None = None) -> BridgeI2CBus:
+    """`open_i2c('tcp:HOST:PORT')`: a bus handle on this process's shared connection to the bridge
+    (authenticated with `key` when given)."""
     host, port = parse_tcp_url(url)
     with _SHARED_LOCK:
-        return BridgeI2CBus(shared_connection(host, port, timeout_s))
+        return BridgeI2CBus(shared_connection(host, port, timeout_s, key=key))
 
 
-def open_bridge_pwm(url: str, timeout_s: float = 1.0) -> BridgePwm:
-    """`open_pwm('pwm:tcp:HOST:PORT:CHANNEL')`: a PWM handle on the shared connection to the bridge."""
+def open_bridge_pwm(url: str, timeout_s: float = 1.0, *, key: bytes | None = None) -> BridgePwm:
+    """`open_pwm('pwm:tcp:HOST:PORT:CHANNEL')`: a PWM handle on the shared connection to the bridge
+    (authenticated with `key` when given)."""
     host, port, channel = parse_pwm_url(url)
     with _SHARED_LOCK:
-        conn = shared_connection(host, port, timeout_s)
+        conn = shared_connection(host, port, timeout_s, key=key)
         try:
             return BridgePwm(conn, channel)
         except ValueError as exc:

@@ -6,6 +6,8 @@ output through MAVLink (MAV_CMD_DO_SET_SERVO). Chosen by URL:
     pwm:mavlink:SERVO_N               the autopilot's SERVOn output (needs the MAVLink link)
     pwm:tcp:HOST:PORT:CHANNEL         a SITL PWM output (its emulated servo) over the networked-SITL
                                       device bridge (firmware_py.hal.bridge)
+
+`open_pwm(url, key=...)`: the key authenticates the device bridge; the other outputs ignore it.
 """
 
 from __future__ import annotations
@@ -123,10 +125,10 @@ class MavlinkServoPwm:
         self.disable()
 
 
-def _open_bridge(url: str) -> PwmOutput:
+def _open_bridge(url: str, key: bytes | None = None) -> PwmOutput:
     """The device bridge, imported on first use (it imports this module for _check_pulse)."""
     from firmware_py.hal.bridge import open_bridge_pwm
-    return open_bridge_pwm(url)
+    return open_bridge_pwm(url, key=key)
 
 
 _REGISTRY: dict[str, Callable[[str], PwmOutput]] = {"tcp": _open_bridge}
@@ -166,8 +168,9 @@ def check_pwm_url(url: str) -> None:
 
 
 def open_pwm(url: str, i2c_opener: Callable[[str], I2CBus] | None = None, link: MavlinkLink | None = None,
-             mav: Any = None) -> PwmOutput:
-    """A PwmOutput from its URL (see the module docstring)."""
+             mav: Any = None, *, key: bytes | None = None) -> PwmOutput:
+    """A PwmOutput from its URL (see the module docstring); `key` authenticates the device bridge
+    (`pwm:tcp:`) and is ignored by the local outputs."""
     m = re.fullmatch(r"pwm:([a-z0-9]+)(?::(.*))?", url.strip())
     if not m:
         raise ValueError(f"PWM output must look like pwm:sysfs:0:0, pwm:pca9685:1:0x40:0 or pwm:mavlink:9, got {url!r}")
@@ -193,5 +196,6 @@ def open_pwm(url: str, i2c_opener: Callable[[str], I2CBus] | None = None, link: 
     except ValueError as exc:
         raise ValueError(f"bad PWM output {url!r}: {exc}") from None
     if scheme in _REGISTRY:
-        return _REGISTRY[scheme](url)
+        factory = _REGISTRY[scheme]
+        return _open_bridge(url, key=key) if factory is _open_bridge else factory(url)
     raise ValueError(f"bad PWM output {url!r}: expected pwm:sysfs:CHIP:CH, pwm:pca9685:BUS:ADDR:CH or pwm:mavlink:N")

@@ -10,35 +10,54 @@ the vehicle's pose, so every device call is made holding the caller's `lock`.
 Whatever a client sends, the thread survives: a frame it can parse but not accept (unknown op, wrong
 size, bad address or channel, wrong version) gets BAD_REQUEST and the connection stays; a length
 above MAX_PAYLOAD gets BAD_REQUEST and the connection is closed (the stream cannot be resynchronised).
+
+With `key=` (the 32-byte MAVLink signing key, `pilescan-sitl serve --signing-key FILE`) a client must
+pass the challenge-response handshake (firmware_py.hal.bridge's docstring) before anything else: a
+request before it, a wrong proof, or no handshake within AUTH_TIMEOUT_S gets status AUTH (when it
+sent something) and the connection is closed; `counters` count them (`unauthenticated`,
+`auth_failed`; `authenticated` the handshakes passed). The handshake authenticates the connection,
+not each frame.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hmac
 import logging
 import math
+import secrets
 import selectors
 import socket
 import struct
 import threading
+import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
 from firmware_py.hal import I2CError, PwmOutput
 from firmware_py.hal.bridge import (
+    AUTH_TIMEOUT_S,
+    AUTH_VERSION,
     HEADER,
     MAX_PAYLOAD,
+    NONCE_SIZE,
+    OP_AUTH_CHALLENGE,
+    OP_AUTH_PROVE,
     OP_HELLO,
     OP_I2C_READ,
     OP_I2C_WRITE,
     OP_I2C_WRITE_READ,
     OP_PWM_DISABLE,
     OP_PWM_SET,
+    PROOF_SIZE,
+    STATUS_AUTH,
     STATUS_BAD_REQUEST,
     STATUS_ERROR,
     STATUS_NACK,
     STATUS_OK,
     VERSION,
+    auth_proof,
+    check_bridge_key,
     parse_tcp_url,
 )
 
@@ -67,9 +86,12 @@ def _one_line(exc: BaseException) -> str:
 
 
 class _Client:
-    def __init__(self, sock: socket.socket, peer: Any) -> None:
+    def __init__(self, sock: socket.socket, peer: Any, authenticated: bool) -> None:
         self.sock, self.peer = sock, peer
         self.buf = bytearray()
+        self.authenticated = authenticated
+        self.nonce: bytes | None = None  # the challenge sent, until it is answered
+        self.connected_at = time.monotonic()
 
 
 class DeviceBridgeServer:
@@ -82,10 +104,13 @@ class DeviceBridgeServer:
         pwm_outputs: PWM channel number (0-255) -> output, e.g. {0: EmulatedServo(...)}.
         host, port: where to listen (port 0: any free port).
         lock: held around every device call (the SITL's world lock); None = no locking.
+        key: the 32-byte key clients must authenticate with (module docstring); None: anyone who can
+            reach the port drives the devices, as before.
     """
 
     def __init__(self, bus: Any, pwm_outputs: Mapping[int, PwmOutput] | None = None, host: str = "127.0.0.1",
-                 port: int = 0, lock: Any = None) -> None:
+                 port: int = 0, lock: Any = None, *, key: bytes | None = None) -> None:
+        self._key = check_bridge_key(key)
         self.bus = bus
         self.pwm_outputs = dict(pwm_outputs or {})
         for ch in self.pwm_outputs:
@@ -93,7 +118,8 @@ class DeviceBridgeServer:
                 raise ValueError(f"device bridge PWM channel must be an integer 0-255, got {ch!r}")
         self._lock = lock if lock is not None else contextlib.nullcontext()
         self.counters: dict[str, int] = dict.fromkeys(
-            ("requests", "nacks", "bad_requests", "errors", "clients", "dropped"), 0)
+            ("requests", "nacks", "bad_requests", "errors", "clients", "dropped", "authenticated",
+             "unauthenticated", "auth_failed"), 0)
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         self._listener = socket.create_server((host, port), family=family)
         self._listener.setblocking(False)
@@ -126,6 +152,11 @@ class DeviceBridgeServer:
     def client_count(self) -> int:
         """Clients connected now."""
         return len(self._clients)
+
+    @property
+    def authenticates(self) -> bool:
+        """Whether clients must pass the authentication handshake (the server has a key)."""
+        return self._key is not None
 
     # -- lifecycle -------------------------------------------------------------------------------
 
@@ -166,11 +197,14 @@ class DeviceBridgeServer:
     # -- the socket loop ---------------------------------------------------------------------------
 
     def _run(self) -> None:
+        sweep_s = AUTH_TIMEOUT_S / 5 if self._key is not None else None
         while not self._stop.is_set():
             try:
-                events = self._sel.select()
+                events = self._sel.select(sweep_s)
             except (OSError, ValueError):  # closed under us
                 return
+            if self._key is not None:
+                self._expire_unauthenticated()
             for key, _ in events:
                 if self._stop.is_set():
                     return
@@ -193,7 +227,7 @@ class DeviceBridgeServer:
             return
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         sock.settimeout(SEND_TIMEOUT_S)  # recv only runs when readable; this bounds sendall
-        client = _Client(sock, peer)
+        client = _Client(sock, peer, authenticated=self._key is None)
         self._clients[sock] = client
         self._sel.register(sock, selectors.EVENT_READ, client)
         self.counters["clients"] += 1
@@ -231,8 +265,57 @@ class DeviceBridgeServer:
                 return
             payload = bytes(buf[HEADER.size:end])
             del buf[:end]
-            if not self._send(client, *self.handle_request(op, payload)):
+            if op in (OP_AUTH_CHALLENGE, OP_AUTH_PROVE):
+                answer = self._auth(client, op, payload)
+            elif not client.authenticated:
+                self.counters["unauthenticated"] += 1
+                self._send(client, STATUS_AUTH, b"this device bridge requires authentication "
+                                                b"(it was started with a key)")
+                self._drop(client, f"op 0x{op:02x} before authenticating")
                 return
+            else:
+                answer = self.handle_request(op, payload)
+            if not self._send(client, *answer):
+                return
+            if answer[0] == STATUS_AUTH:
+                self._drop(client, "failed authentication")
+                return
+
+    # -- authentication ------------------------------------------------------------------------------
+
+    def _auth(self, client: _Client, op: int, payload: bytes) -> tuple[int, bytes]:
+        """One step of the handshake: (status, answer); STATUS_AUTH means drop the client after sending it."""
+        if self._key is None:
+            self.counters["bad_requests"] += 1
+            return STATUS_BAD_REQUEST, b"this device bridge does not authenticate (it was started without a key)"
+        if client.authenticated:
+            self.counters["bad_requests"] += 1
+            return STATUS_BAD_REQUEST, b"already authenticated"
+        if op == OP_AUTH_CHALLENGE:
+            if len(payload) != 2 or struct.unpack("<H", payload)[0] != AUTH_VERSION:
+                self.counters["bad_requests"] += 1
+                return STATUS_BAD_REQUEST, f"AUTH_CHALLENGE needs u16 auth version {AUTH_VERSION}".encode()
+            client.nonce = secrets.token_bytes(NONCE_SIZE)
+            return STATUS_OK, client.nonce
+        server_nonce, client.nonce = client.nonce, None  # one proof per challenge
+        if server_nonce is None or len(payload) != NONCE_SIZE + PROOF_SIZE:
+            self.counters["auth_failed"] += 1
+            return STATUS_AUTH, b"authentication failed: AUTH_PROVE without a challenge, or malformed"
+        client_nonce, proof = payload[:NONCE_SIZE], payload[NONCE_SIZE:]
+        if not hmac.compare_digest(proof, auth_proof(self._key, "client", server_nonce, client_nonce)):
+            self.counters["auth_failed"] += 1
+            return STATUS_AUTH, b"authentication failed: wrong key"
+        client.authenticated = True
+        self.counters["authenticated"] += 1
+        log.debug("device bridge: client %s authenticated", client.peer)
+        return STATUS_OK, auth_proof(self._key, "server", server_nonce, client_nonce)
+
+    def _expire_unauthenticated(self) -> None:
+        """Drop clients that connected but have not authenticated in time (they hold a socket each)."""
+        cutoff = time.monotonic() - AUTH_TIMEOUT_S
+        for client in [c for c in self._clients.values() if not c.authenticated and c.connected_at < cutoff]:
+            self.counters["unauthenticated"] += 1
+            self._drop(client, f"not authenticated within {AUTH_TIMEOUT_S:g} s")
 
     def _send(self, client: _Client, status: int, body: bytes) -> bool:
         try:

@@ -194,13 +194,28 @@ def test_that_a_run_of_no_returns_resets_the_part_and_reapplies_the_preset():
     for _ in range(9):
         rig.lidar.read()
     assert rig.lidar.counters["resets"] == 0
-    t_before = rig.clock.now_ns()
     rig.lidar.read()
     assert rig.lidar.counters["resets"] == rig.part.counters["resets"] == 1
-    assert rig.clock.now_ns() - t_before >= 22_000_000  # waited for the part to reload
-    assert rig.part.regs[SIG_COUNT_VAL] == PRESET_FAST_500HZ.sig_count_val
+    # The reset does not block the loop: readings on the 500 Hz tick grid come back RESETTING, with
+    # no bus traffic, until the part has had its reload time; then the preset goes back on.
     rig.range_m = 2.5
-    assert rig.lidar.read().range_m == pytest.approx(2.5)
+    t_reset = rig.clock.now_ns()
+    transfers = len(rig.bus.calls)
+    during = _read_on_ticks(rig, 10)
+    assert all(r.status == ReadStatus.RESETTING for r in during) and len(rig.bus.calls) == transfers
+    assert rig.clock.now_ns() - t_reset < 22_000_000 and rig.lidar.counters["resetting"] == 10
+    after = _read_on_ticks(rig, 5)
+    assert after[-1].status == ReadStatus.OK and after[-1].range_m == pytest.approx(2.5)
+    first_ok = next(r for r in during + after if r.status == ReadStatus.OK)
+    assert first_ok.t_ns - t_reset >= LidarLiteConfig().reset_wait_ns  # waited for the part to reload
+    assert rig.part.regs[SIG_COUNT_VAL] == PRESET_FAST_500HZ.sig_count_val
+
+
+def test_that_an_explicit_reset_still_waits_for_the_part():
+    rig = Rig(2.5, PRESET_FAST_500HZ)
+    t0 = rig.clock.now_ns()
+    assert rig.lidar.reset()
+    assert rig.clock.now_ns() - t0 >= 22_000_000 and rig.lidar.read().range_m == pytest.approx(2.5)
 
 
 def test_that_twenty_zero_centimetre_readings_reset_the_part_as_px4_does():
@@ -383,11 +398,13 @@ def test_that_the_busy_deadline_fits_the_loop_period_without_cutting_off_a_healt
 def test_that_resets_back_off_while_the_part_stays_stuck_and_come_back_after_a_good_reading():
     rig = Rig(9.87, PRESET_FAST_500HZ)
     rig.part.stuck_busy = True
-    _read_on_ticks(rig, 620)
-    assert rig.lidar.counters["timeouts"] == 620
+    while rig.lidar.counters["timeouts"] < 620:
+        _read_on_ticks(rig, 1)
     assert rig.lidar.counters["resets"] == 5  # after 20, 40, 80, 160 and 320 more failures, not 31 times
+    assert 4 * 11 <= rig.lidar.counters["resetting"] <= 4 * 14  # ~25 ms of 2 ms ticks each: not blocked
     rig.part.stuck_busy = False
-    assert _read_on_ticks(rig, 1)[0].status == ReadStatus.OK
+    back = _read_on_ticks(rig, 15)  # the fifth reset reloads first
+    assert {r.status for r in back[:-1]} <= {ReadStatus.RESETTING, ReadStatus.OK} and back[-1].status == ReadStatus.OK
     rig.part.stuck_busy = True
     _read_on_ticks(rig, 20)
     assert rig.lidar.counters["resets"] == 6  # the next fault is met at the base threshold again

@@ -1,0 +1,430 @@
+"""`pilescan-ground listen`: the ground end of the payload's live sample stream (`pilescan-payload --stream`).
+
+Receives the PSLV datagrams (`firmware_py.live_stream`), shows a one-line status about once a second
+(records, rate, lost and late datagrams, datagrams refused by reason) and appends the records to a
+sample log (`firmware_py.samplelog`, the same format the payload writes on the drone), until SIGINT /
+SIGTERM or `--duration`; then a summary. The drone's own log stays the record: the stream is UDP, so
+datagrams can be lost (counted from sequence gaps), and the live log holds what arrived, in arrival
+order (a datagram reordered by the network lands late; a duplicate of an unauthenticated datagram is
+written twice, an authenticated one is refused as a replay).
+
+Security: with `key` (`--signing-key FILE`, the payload's key file) only authenticated, fresh
+datagrams are taken; unauthenticated, forged (bad tag) and replayed ones are refused and counted.
+With `allowed_peers` (`--allow-peer HOST[:PORT]`) datagrams from any other address are refused,
+key or not. A receiver without a key takes both formats and does not check tags.
+
+The log header. The stream carries records only, not the payload's header (storage, sensor model,
+lever arm, servo: what the report needs to turn records into a volume). So:
+
+- with `--header FILE` (a sample log, e.g. the payload's log of an earlier flight with the same setup
+  or a SITL run, or a JSON file holding a header object), that header is written, with a
+  ``live_stream`` entry added (where and how the records were received): `pilescan-ground report`
+  can then process the live log as it would the drone's;
+- without it, a minimal header: ``software``, ``created_utc``, ``source: "live-stream"`` and
+  ``live_stream``. `read_samplelog` reads the records; `pilescan-ground report` refuses the log in
+  one line (the header lacks the storage geometry) rather than guess a building.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import select
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from firmware_py.cli_util import UserError, stop_on_signals
+from firmware_py.hal.signing import load_key
+from firmware_py.header import software_version, utc_now_iso
+from firmware_py.live_stream import LiveStreamReceiver, PeerSpec, parse_stream_url
+from firmware_py.samplelog import FORMAT_NAME, MAGIC, SAMPLE_DTYPE, SampleLogWriter, read_samplelog
+
+PROG = "pilescan-ground listen"
+STATUS_PERIOD_S = 1.0
+LIVE_SOURCE = "live-stream"
+"""``source`` of the minimal header written when no --header is given."""
+REFUSAL_REASONS = ("malformed", "rejected_peer", "unauthenticated", "bad_tag", "replayed")
+"""`LiveStreamReceiver.stats` keys that count refused datagrams."""
+GEOMETRY_KEYS = ("storage", "storage_frame", "lever_arm_body_m", "sensor")
+"""Header keys the report needs; a --header without them is written anyway, with a warning."""
+_RESERVED = ("format", "format_version", "record_dtype")
+_MAX_WAIT_S = 0.25
+"""Longest wait for a datagram, so a stop request (signal) is seen promptly."""
+
+
+def parse_peer(text: str) -> PeerSpec:
+    """`--allow-peer` value -> a host (any port) or (host, port): HOST, HOST:PORT, [IPv6] or [IPv6]:PORT
+    (an IPv6 address without brackets is a host). ValueError (one line) for anything else."""
+    form = "HOST, HOST:PORT or [IPv6]:PORT"
+    t = text.strip() if isinstance(text, str) else ""
+    host, port = t, None
+    if t.startswith("["):
+        end = t.find("]")
+        rest = t[end + 1:] if end > 0 else None
+        if rest is None or (rest and not rest.startswith(":")):
+            raise ValueError(f"allowed peer must look like {form}, got {text!r}")
+        host, port = t[1:end], (rest[1:] if rest else None)
+    elif t.count(":") == 1:
+        host, port = t.split(":")
+    if not host or any(c.isspace() for c in host):
+        raise ValueError(f"allowed peer must look like {form}, got {text!r}")
+    if port is None:
+        return host
+    if not (port.isascii() and port.isdigit() and 1 <= int(port) <= 65535):
+        raise ValueError(f"allowed peer port must be 1-65535 in {text!r}")
+    return host, int(port)
+
+
+def load_header(path: str | Path) -> dict[str, Any]:
+    """The header in FILE for the live log: a sample log's header, or a JSON object (module docstring).
+
+    Raises:
+        UserError: unreadable, neither a sample log with a header nor a JSON object, or a header of
+            another log format or record layout (one line naming the file).
+    """
+    where = f"header file {path}"
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise UserError(f"cannot read {where}: {exc.strerror or exc}") from None
+    if data.startswith(MAGIC):
+        header = read_samplelog(data).header
+        if header is None:
+            raise UserError(f"{where} is a sample log whose header is missing or corrupt")
+    else:
+        try:
+            header = json.loads(data.decode("utf-8"))
+        except (UnicodeDecodeError, ValueError, RecursionError):
+            raise UserError(f"{where} is neither a sample log (.pslog) nor a JSON header object") from None
+        if not isinstance(header, dict):
+            raise UserError(f"{where} must hold a JSON object (a sample-log header), got {type(header).__name__}")
+    if header.get("format", FORMAT_NAME) != FORMAT_NAME:
+        raise UserError(f"{where} is a header of another format ({header.get('format')!r})")
+    layout = [list(pair) for pair in SAMPLE_DTYPE.descr]
+    if "record_dtype" in header and header["record_dtype"] != layout:
+        raise UserError(f"{where} describes records of another layout than this version's")
+    return {k: v for k, v in header.items() if k not in _RESERVED}
+
+
+@dataclass(frozen=True)
+class ListenConfig:
+    """What `listen` is told (CLI options in brackets).
+
+    Attributes:
+        url: udp:HOST:PORT to listen on [--stream] (port 0: any free port, for tests; see
+            `Listener.local_address`).
+        key: the 32-byte link key: take only authenticated, fresh datagrams [--signing-key FILE].
+        allowed_peers: take datagrams only from these (host or (host, port)) [--allow-peer]; None: anyone.
+        out_path: sample log to write [--out]; None: receive and count only.
+        force: overwrite out_path if it exists [--force].
+        header: the header to write (reserved keys stripped: `load_header`) [--header]; None: minimal.
+        header_from: where `header` came from (recorded in the log).
+        duration_s: stop after this long [--duration]; None: until stopped.
+        status_period_s: status line period.
+        records_per_block: records per fsync'd log block.
+        fsync: fsync each block (off only for tests).
+        quiet: no status lines or warnings [--quiet].
+    """
+
+    url: str
+    key: bytes | None = field(default=None, repr=False)
+    allowed_peers: tuple[PeerSpec, ...] | None = None
+    out_path: Path | None = None
+    force: bool = False
+    header: dict[str, Any] | None = None
+    header_from: str | None = None
+    duration_s: float | None = None
+    status_period_s: float = STATUS_PERIOD_S
+    records_per_block: int = 500
+    fsync: bool = True
+    quiet: bool = False
+
+    def __post_init__(self) -> None:
+        parse_stream_url(self.url, allow_port_zero=True)
+        if self.duration_s is not None and not (math.isfinite(self.duration_s) and self.duration_s > 0):
+            raise ValueError(f"--duration must be > 0 s, got {self.duration_s!r}")
+        if not (math.isfinite(self.status_period_s) and self.status_period_s > 0):
+            raise ValueError(f"status period must be > 0 s, got {self.status_period_s!r}")
+
+    def log_header(self) -> dict[str, Any]:
+        """The header the live log gets (module docstring)."""
+        live = {"url": self.url, "authenticated": self.key is not None,
+                "allowed_peers": None if self.allowed_peers is None else [
+                    p if isinstance(p, str) else list(p) for p in self.allowed_peers],
+                "received_by": software_version(), "started_utc": utc_now_iso(), "header_from": self.header_from}
+        if self.header is None:
+            return {"software": software_version(), "created_utc": live["started_utc"], "source": LIVE_SOURCE,
+                    "live_stream": live}
+        return {**self.header, "live_stream": live}
+
+
+@dataclass(frozen=True)
+class ListenResult:
+    """How a `listen` ended and what it received (`stats`: `LiveStreamReceiver.stats`)."""
+
+    url: str
+    stop_reason: str
+    elapsed_s: float
+    records: int
+    flagged: int
+    stats: dict[str, int]
+    authenticated: bool
+    out_path: Path | None
+    header_from: str | None
+    last_refusal: str | None
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def refused(self) -> dict[str, int]:
+        """Refused datagrams by reason (reasons with none left out)."""
+        return {k: self.stats[k] for k in REFUSAL_REASONS if self.stats.get(k)}
+
+
+def _refused_text(refused: dict[str, int]) -> str:
+    total = sum(refused.values())
+    return f"{total} ({', '.join(f'{k} {v}' for k, v in refused.items())})" if total else "0"
+
+
+class Listener:
+    """Receives the live stream into a sample log. `open()` (or `run()`, which opens if needed), then
+    `pump()` by hand or `run()` until `request_stop()` / the duration; `close()` always (idempotent).
+
+    Args:
+        cfg: the configuration.
+        err: where status lines and warnings go (None: nowhere).
+        clock: monotonic seconds (tests may drive it).
+    """
+
+    def __init__(self, cfg: ListenConfig, *, err: TextIO | None = sys.stderr,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.cfg, self.err, self.clock = cfg, err, clock
+        self.rx: LiveStreamReceiver | None = None
+        self.log: SampleLogWriter | None = None
+        self.records = 0
+        self.flagged = 0
+        self._stop_reason: str | None = None
+        self._t0: float | None = None
+        self._status_prev: tuple[float, int] | None = None
+        self._live_line = False
+        self._warnings: list[str] = []
+        self._warned_unverified = False
+        self._bound_url: str | None = None
+
+    # ----- control -------------------------------------------------------------------------------
+
+    def request_stop(self, reason: str = "stop requested") -> None:
+        """Stop at the next wake-up (at most `_MAX_WAIT_S` away); safe from a signal handler."""
+        if self._stop_reason is None:
+            self._stop_reason = reason
+
+    @property
+    def local_address(self) -> tuple[str, int]:
+        if self.rx is None:
+            raise ValueError("the listener is not open")
+        return self.rx.local_address
+
+    def open(self) -> None:
+        """Check the output, bind the socket, create the log (in that order, so nothing is written for a
+        port that cannot be had). UserError / ValueError (one line) for anything the user must fix."""
+        if self.rx is not None:
+            return
+        cfg = self.cfg
+        out = cfg.out_path
+        if out is not None:
+            if out.is_dir():
+                raise UserError(f"--out {out} is a directory; give a file name such as {out / 'live.pslog'}")
+            if out.exists() and not cfg.force:
+                raise UserError(f"{out} already exists; choose another --out or pass --force")
+            if not out.parent.is_dir():
+                raise UserError(f"cannot write {out}: directory {out.parent} does not exist")
+        try:
+            self.rx = LiveStreamReceiver(cfg.url, key=cfg.key, allowed_peers=cfg.allowed_peers)
+        except OSError as exc:  # address in use, not an address of this machine, name does not resolve
+            raise UserError(f"cannot listen on {cfg.url}: {exc.strerror or exc}") from None
+        if out is not None:
+            try:
+                self.log = SampleLogWriter(out, cfg.log_header(), records_per_block=cfg.records_per_block,
+                                           fsync=cfg.fsync, overwrite=cfg.force)
+            except BaseException as exc:
+                self.rx.close()
+                self.rx = None
+                if isinstance(exc, OSError):
+                    raise UserError(f"cannot write {out}: {exc.strerror or exc}") from None
+                raise
+        if cfg.header is not None:
+            missing = [k for k in GEOMETRY_KEYS if k not in cfg.header]
+            if missing:
+                self._warn(f"header from {cfg.header_from} lacks {', '.join(missing)}: "
+                           f"`pilescan-ground report` will refuse the live log")
+        host, port = self.rx.local_address
+        self._bound_url = f"udp:[{host}]:{port}" if ":" in host else f"udp:{host}:{port}"
+        self._t0 = self.clock()
+        self._status_prev = (self._t0, 0)
+
+    def pump(self, timeout_s: float = 0.0) -> int:
+        """Wait up to timeout_s for datagrams, take every one that has arrived, log their records;
+        returns how many records were taken (refused datagrams are counted in the receiver's stats)."""
+        if self.rx is None:
+            raise ValueError("the listener is not open")
+        ready, _, _ = select.select([self.rx], [], [], max(0.0, timeout_s))
+        if not ready:
+            return 0
+        recs = self.rx.poll()
+        if len(recs):
+            if self.log is not None:
+                self.log.append(recs)
+            self.records += len(recs)
+            self.flagged += int(np.count_nonzero(recs["flags"]))
+        if self.rx.stats["unverified"] and not self._warned_unverified:
+            self._warned_unverified = True
+            self._warn("the stream is authenticated but this listener has no key (--signing-key): "
+                       "its tags are not checked")
+        return len(recs)
+
+    def run(self) -> ListenResult:
+        """Receive until `request_stop` or the duration; close; the result. The log is closed (its
+        last block written) however this ends."""
+        self.open()
+        period = self.cfg.status_period_s
+        end = None if self.cfg.duration_s is None else self._t0 + self.cfg.duration_s
+        next_status = self._t0 + period
+        try:
+            while self._stop_reason is None:
+                now = self.clock()
+                if end is not None and now >= end:
+                    self.request_stop("duration reached")
+                    break
+                self.pump(min(_MAX_WAIT_S, next_status - now, math.inf if end is None else end - now))
+                now = self.clock()
+                if now >= next_status:
+                    self._status(now)
+                    if self.log is not None:
+                        self.log.flush()  # what arrived is on disk within a status period
+                    next_status = max(next_status + period, now)
+        finally:
+            self.close()
+        return self.result()
+
+    def close(self) -> None:
+        """Close the log (writing its last block) and the socket; safe to call repeatedly."""
+        try:
+            if self.log is not None:
+                self.log.close()
+        finally:
+            if self.rx is not None:
+                self.rx.close()
+            if self._live_line:
+                self._print("")
+                self._live_line = False
+
+    # ----- reporting -----------------------------------------------------------------------------
+
+    def result(self) -> ListenResult:
+        stats = dict(self.rx.stats) if self.rx is not None else {}
+        warnings = list(self._warnings)
+        if not stats.get("datagrams"):
+            refused = sum(stats.get(k, 0) for k in REFUSAL_REASONS)
+            warnings.append("no datagrams accepted" + (f" ({refused} refused)" if refused else "")
+                            + ": is the payload streaming to this address (pilescan-payload --stream udp:HOST:PORT)"
+                            + (" with the same key?" if self.cfg.key is not None else "?"))
+        return ListenResult(
+            url=self._bound_url or self.cfg.url, stop_reason=self._stop_reason or "stopped",
+            elapsed_s=0.0 if self._t0 is None else self.clock() - self._t0, records=self.records,
+            flagged=self.flagged, stats=stats, authenticated=self.cfg.key is not None,
+            out_path=self.cfg.out_path, header_from=self.cfg.header_from,
+            last_refusal=self.rx.last_error if self.rx is not None else None, warnings=tuple(warnings))
+
+    def status_line(self, now: float) -> str:
+        """The one-line status: elapsed, records and rate since the last line, datagrams, losses, refusals."""
+        t_prev, n_prev = self._status_prev or (now, self.records)
+        rate = (self.records - n_prev) / (now - t_prev) if now > t_prev else 0.0
+        self._status_prev = (now, self.records)
+        st = self.rx.stats
+        refused = {k: st[k] for k in REFUSAL_REASONS if st[k]}
+        return (f"{now - self._t0:6.1f} s  records {self.records} ({rate:.0f}/s)  datagrams {st['datagrams']}  "
+                f"lost {st['lost']}  late {st['late']}  refused {_refused_text(refused)}")
+
+    def _status(self, now: float) -> None:
+        line = self.status_line(now)
+        if self.cfg.quiet or self.err is None:
+            return
+        if _isatty(self.err):  # rewrite one line in a terminal; one line per status in a log file
+            self._write(f"\r{PROG}: {line}\x1b[K")
+            self._live_line = True
+        else:
+            self._print(f"{PROG}: {line}")
+
+    def _warn(self, text: str) -> None:
+        self._warnings.append(text)
+        if not self.cfg.quiet:
+            if self._live_line:
+                self._print("")
+                self._live_line = False
+            self._print(f"{PROG}: warning: {text}")
+
+    def _print(self, text: str) -> None:
+        self._write(text + "\n")
+
+    def _write(self, text: str) -> None:
+        if self.err is not None:
+            try:
+                self.err.write(text)
+                self.err.flush()
+            except (OSError, ValueError):
+                pass  # a closed stderr must not stop the receiving
+
+
+def _isatty(stream: Any) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, OSError, ValueError):
+        return False
+
+
+def format_summary(res: ListenResult) -> str:
+    """The final summary, one fact a line (stdout)."""
+    st = res.stats
+    rate = res.records / res.elapsed_s if res.elapsed_s > 0 else 0.0
+    log = (f"{res.out_path}" + (f" (header from {res.header_from})" if res.header_from
+                                else " (minimal header: no storage geometry)")
+           if res.out_path is not None else "none (no --out)")
+    lines = [
+        f"listened      {res.elapsed_s:.1f} s on {res.url}" + (" (authenticated)" if res.authenticated else ""),
+        f"records       {res.records} ({res.flagged} flagged) in {st.get('datagrams', 0)} datagrams, {rate:.1f}/s",
+        f"lost          {st.get('lost', 0)} datagrams (late {st.get('late', 0)}, "
+        f"sender restarts {st.get('restarts', 0)})",
+        f"refused       {_refused_text(res.refused)}",
+    ]
+    if res.refused and res.last_refusal:
+        lines.append(f"last refusal  {res.last_refusal}")
+    lines += [f"log           {log}", f"stopped       {res.stop_reason}"]
+    lines += [f"WARNING: {w}" for w in res.warnings]
+    return "\n".join(lines)
+
+
+def config_from_args(args: Any) -> ListenConfig:
+    """ListenConfig from the parsed `listen` options; one-line UserError / ValueError for bad ones."""
+    parse_stream_url(args.stream)  # port 0 is refused here: the payload must know where to send
+    if args.duration is not None and args.duration <= 0:
+        raise UserError(f"--duration must be > 0 s, got {args.duration:g}")
+    peers = tuple(parse_peer(p) for p in args.allow_peer) if args.allow_peer else None
+    key = load_key(args.signing_key) if args.signing_key is not None else None
+    if args.out is not None and not args.out.strip():
+        raise UserError("--out must be a non-empty path")
+    header = load_header(args.header) if args.header is not None else None
+    return ListenConfig(url=args.stream.strip(), key=key, allowed_peers=peers,
+                        out_path=Path(args.out) if args.out is not None else None, force=args.force,
+                        header=header, header_from=args.header, duration_s=args.duration, quiet=args.quiet)
+
+
+def listen(cfg: ListenConfig, *, err: TextIO | None = sys.stderr) -> ListenResult:
+    """Run a `Listener` with SIGINT/SIGTERM routed to its stop (call from the main thread)."""
+    listener = Listener(cfg, err=err)
+    with stop_on_signals(listener.request_stop):
+        return listener.run()

@@ -1,0 +1,244 @@
+"""`pilescan-ground listen`: a real LiveStreamSender to the listener over localhost UDP, in-process; records land
+intact in a sample log; unauthenticated, forged, replayed and disallowed datagrams are refused and counted."""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import io
+import json
+import os
+import signal
+import socket
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from firmware_py.cli_util import UserError
+from firmware_py.hal.signing import signing_timestamp
+from firmware_py.live_stream import LiveStreamSender, encode_datagram
+from firmware_py.samplelog import SampleLogWriter, new_records, read_samplelog
+from ground.cli import main
+from ground.listen import LIVE_SOURCE, ListenConfig, Listener, format_summary, load_header, parse_peer
+from tests.ground.test_report_fuzz import BASE_HEADER
+
+KEY = bytes(range(1, 33))
+OTHER = bytes(range(2, 34))
+
+
+def records(n: int, t0: float = 0.0) -> np.ndarray:
+    r = new_records(n)
+    r["t_s"] = t0 + np.arange(n) * 0.002
+    r["range_m"] = 5.0 + np.arange(n) * 0.01
+    r["servo_rad"] = np.linspace(-1, 1, n)
+    r["sweep_dir"] = 1
+    r["flags"] = np.arange(n) % 3 == 0
+    r["x_m"], r["y_m"], r["z_m"] = 1.0, 2.0, -12.0
+    return r
+
+
+@contextlib.contextmanager
+def listening(tmp_path: Path, **kw):
+    """An open Listener on a free localhost port, writing tmp_path/live.pslog; closed on exit."""
+    cfg = ListenConfig(url="udp:127.0.0.1:0", out_path=tmp_path / "live.pslog", fsync=False, **kw)
+    listener = Listener(cfg, err=io.StringIO())
+    listener.open()
+    try:
+        yield listener
+    finally:
+        listener.close()
+
+
+def url_of(listener: Listener) -> str:
+    return f"udp:127.0.0.1:{listener.local_address[1]}"
+
+
+def pump_until(listener: Listener, done, timeout_s: float = 5.0) -> None:
+    """Take datagrams until done(stats) holds (or give up: the assertions after say what is missing)."""
+    deadline = time.monotonic() + timeout_s
+    while not done(listener.rx.stats) and time.monotonic() < deadline:
+        listener.pump(0.05)
+
+
+def send(url: str, recs: np.ndarray, **kw) -> LiveStreamSender:
+    tx = LiveStreamSender(url, **kw)
+    tx.append(recs)
+    tx.close()
+    return tx
+
+
+def test_that_unsigned_records_arrive_intact_in_a_readable_log(tmp_path):
+    sent = records(125)
+    with listening(tmp_path) as ls:
+        send(url_of(ls), sent)
+        pump_until(ls, lambda st: st["records"] >= 125)
+        res = ls.result()
+    log = read_samplelog(tmp_path / "live.pslog")
+    assert log.intact and log.samples.tobytes() == sent.tobytes()
+    assert log.header["source"] == LIVE_SOURCE and log.header["live_stream"]["authenticated"] is False
+    assert res.records == 125 and res.flagged == int(np.count_nonzero(sent["flags"]))
+    assert res.stats["datagrams"] == 7 and res.refused == {} and res.warnings == ()
+
+
+def test_that_signed_records_arrive_and_unauthenticated_forged_and_replayed_ones_are_refused(tmp_path):
+    good, forged, plain = records(60), records(40, t0=100.0), records(20, t0=200.0)
+    with listening(tmp_path, key=KEY) as ls:
+        url = url_of(ls)
+        port = ls.local_address[1]
+        send(url, forged, key=OTHER)  # another key: bad tags
+        send(url, plain)  # no key: version 1, unauthenticated
+        send(url, good, key=KEY)
+        replay = encode_datagram(7, records(3, t0=300.0), key=KEY, stamp=signing_timestamp(time.time()),
+                                 sender_id=9)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.sendto(replay, ls.local_address)
+            s.sendto(replay, ls.local_address)  # captured and played again
+        pump_until(ls, lambda st: st["records"] >= 63 and st["bad_tag"] >= 2 and st["unauthenticated"] >= 1
+                   and st["replayed"] >= 1)
+        res = ls.result()
+    assert res.refused == {"bad_tag": 2, "unauthenticated": 1, "replayed": 1}
+    samples = read_samplelog(tmp_path / "live.pslog").samples
+    assert len(samples) == 63 and set(np.floor(samples["t_s"] / 100)) == {0.0, 3.0}  # none refused got in
+    assert samples[np.argsort(samples["t_s"], kind="stable")][:60].tobytes() == good.tobytes()
+    summary = format_summary(res)
+    assert res.authenticated and "refused       4 (unauthenticated 1, bad_tag 2, replayed 1)" in summary
+    assert f"on udp:127.0.0.1:{port} (authenticated)" in summary  # the port it got
+
+
+def test_that_only_allowed_peers_are_heard(tmp_path):
+    allowed = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    allowed.bind(("127.0.0.1", 0))
+    with listening(tmp_path, allowed_peers=(("127.0.0.1", allowed.getsockname()[1]),)) as ls:
+        url = url_of(ls)
+        send(url, records(30, t0=50.0))  # its own socket, another port
+        send(url, records(10), sock=allowed)
+        pump_until(ls, lambda st: st["records"] >= 10 and st["rejected_peer"] >= 2)
+        res = ls.result()
+    assert res.refused == {"rejected_peer": 2} and res.records == 10
+    assert np.all(read_samplelog(tmp_path / "live.pslog").samples["t_s"] < 50.0)
+    assert "not an allowed peer" in res.last_refusal
+
+
+def test_that_a_header_file_is_written_with_the_live_stream_noted(tmp_path):
+    src = tmp_path / "setup.pslog"
+    with SampleLogWriter(src, BASE_HEADER, fsync=False):
+        pass
+    header = load_header(src)
+    assert "record_dtype" not in header and header["storage"] == BASE_HEADER["storage"]
+    with listening(tmp_path, header=header, header_from=str(src)) as ls:
+        send(url_of(ls), records(5))
+        pump_until(ls, lambda st: st["records"] >= 5)
+    log = read_samplelog(tmp_path / "live.pslog")
+    assert {k: log.header[k] for k in BASE_HEADER} == BASE_HEADER  # what the report needs, unchanged
+    assert log.header["live_stream"]["header_from"] == str(src) and len(log.samples) == 5
+    as_json = tmp_path / "header.json"
+    as_json.write_text(json.dumps(BASE_HEADER))
+    assert load_header(as_json) == BASE_HEADER
+
+
+@pytest.mark.parametrize(("content", "words"), [
+    (b"", "neither a sample log"),
+    (b"\xff\xfe not text", "neither a sample log"),
+    (b"[1, 2]", "JSON object"),
+    (b'{"record_dtype": [["t_s", "<f8"]]}', "another layout"),
+    (b'{"format": "other-log"}', "another format"),
+    (b"PSLB and then nothing", "missing or corrupt"),
+])
+def test_that_a_bad_header_file_is_a_one_line_user_error(tmp_path, content, words):
+    path = tmp_path / "h"
+    path.write_bytes(content)
+    with pytest.raises(UserError, match=words) as excinfo:
+        load_header(path)
+    assert str(path) in str(excinfo.value) and "\n" not in str(excinfo.value)
+
+
+@pytest.mark.parametrize(("text", "peer"), [
+    ("10.0.0.5", "10.0.0.5"), ("10.0.0.5:14600", ("10.0.0.5", 14600)), ("drone.local", "drone.local"),
+    ("::1", "::1"), ("[::1]", "::1"), ("[fe80::1]:9", ("fe80::1", 9)),
+])
+def test_that_peers_parse(text, peer):
+    assert parse_peer(text) == peer
+
+
+@pytest.mark.parametrize("text", ["", " ", ":80", "h:", "h:0", "h:65536", "h:x", "[::1", "[::1]x", "[]:5", "a b"])
+def test_that_bad_peers_are_value_errors(text):
+    with pytest.raises(ValueError, match="allowed peer"):
+        parse_peer(text)
+
+
+# ----- the command, end to end: status lines, a clean stop on SIGTERM, the summary ------------------------
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def port_taken(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError as exc:
+            return exc.errno == errno.EADDRINUSE
+    return False
+
+
+def test_that_the_command_logs_a_signed_stream_until_sigterm(tmp_path, capsys):
+    port, out = free_port(), tmp_path / "live.pslog"
+    key = tmp_path / "link.key"
+    key.write_text(KEY.hex() + "\n")
+    key.chmod(0o600)
+    sent = records(200)
+    outcome = {}
+
+    def payload() -> None:
+        """Stream once the listener is up, wait until its log holds everything, then stop it like Ctrl-C would."""
+        deadline = time.monotonic() + 10.0
+        while not port_taken(port) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        if not port_taken(port):
+            return  # never came up: nothing to stop (the duration below ends it)
+        send(f"udp:127.0.0.1:{port}", sent, key=KEY)
+        send(f"udp:127.0.0.1:{port}", records(20, t0=100.0), key=OTHER)
+        while time.monotonic() < deadline and len(read_samplelog(out).samples) < len(sent):
+            time.sleep(0.05)  # the listener writes what arrived once a second
+        outcome["logged"] = len(read_samplelog(out).samples)
+        if port_taken(port):  # still running, so its handler is installed
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    thread = threading.Thread(target=payload)
+    thread.start()
+    try:
+        rc = main(["listen", "--stream", f"udp:127.0.0.1:{port}", "--signing-key", str(key), "--out", str(out),
+                   "--duration", "20"])
+    finally:
+        thread.join()
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    assert "stopped       signal SIGTERM" in cap.out and "refused       1 (bad_tag 1)" in cap.out
+    assert f"records       {len(sent)} " in cap.out
+    assert "pilescan-ground listen: " in cap.err and "datagrams 10" in cap.err  # a status line
+    log = read_samplelog(out)
+    assert log.intact and log.samples.tobytes() == sent.tobytes()
+    assert log.header["live_stream"]["authenticated"] is True
+
+
+def test_that_a_port_in_use_is_one_line_and_exit_2(tmp_path, capsys):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        port = taken.getsockname()[1]
+        rc = main(["listen", "--stream", f"udp:127.0.0.1:{port}", "--out", str(tmp_path / "x.pslog")])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "Traceback" not in err
+    assert f"cannot listen on udp:127.0.0.1:{port}" in err and "in use" in err
+    assert not (tmp_path / "x.pslog").exists()  # nothing written for a port it could not have
+
+
+def test_that_a_timed_listen_with_nothing_arriving_ends_with_a_warning(tmp_path, capsys):
+    rc = main(["listen", "--stream", f"udp:127.0.0.1:{free_port()}", "--duration", "0.2"])
+    cap = capsys.readouterr()
+    assert rc == 0 and "stopped       duration reached" in cap.out
+    assert "WARNING: no datagrams accepted" in cap.out and "log           none (no --out)" in cap.out
