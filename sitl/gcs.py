@@ -7,6 +7,7 @@ MAVLink, so it flies ArduPilot SITL the same way.
 
 from __future__ import annotations
 
+import os
 import struct
 import time
 from collections.abc import Callable
@@ -26,8 +27,14 @@ class GcsError(RuntimeError):
 class ScriptedGcs:
     """One pymavlink connection to the autopilot, as a GCS (system 255)."""
 
-    def __init__(self, url: str, timeout_s: float = 10.0, say: Callable[[str], None] | None = None) -> None:
+    def __init__(self, url: str, timeout_s: float = 10.0, say: Callable[[str], None] | None = None,
+                 signing_key: bytes | None = None) -> None:
+        if signing_key is not None and mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":
+            os.environ["MAVLINK20"] = "1"  # signing is MAVLink 2 only; mavutil picks the version from this
+            mavutil.set_dialect("ardupilotmega")
         self.conn = mavutil.mavlink_connection(url, source_system=255, source_component=190, autoreconnect=True)
+        if signing_key is not None:  # as MAVProxy's `signing key`: sign ours, check theirs
+            self.conn.setup_signing(signing_key, sign_outgoing=True)
         self.say = say or (lambda _m: None)
         self._last_hb = 0.0
         self._heartbeat()
@@ -144,10 +151,10 @@ def load_plan(plan: str | Path, target: tuple[int, int] = (1, 1)) -> list[Any]:
 
 
 def fly_plan(url: str, plan: str | Path, timeout_s: float, say: Callable[[str], None] | None = None,
-             fly_s: float | None = None) -> None:
+             fly_s: float | None = None, signing_key: bytes | None = None) -> None:
     """Upload, arm, AUTO, and wait for the landing: one survey flight, as an operator would fly it.
     With fly_s, return that long after AUTO instead (the vehicle flies on)."""
-    gcs = ScriptedGcs(url, say=say)
+    gcs = ScriptedGcs(url, say=say, signing_key=signing_key)
     try:
         gcs.upload(plan)
         gcs.arm()

@@ -23,6 +23,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from firmware_py.hal.signing import load_key
 from ground.report import ReportOptions, make_report
 from sitl.gcs import fly_plan
 from sitl.mission import Mission
@@ -69,17 +70,21 @@ class NetworkedRun:
 
 
 def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Path, phase: int = 0,
-                  timeout_s: float = 900.0, flight_s: float | None = None, say=print) -> NetworkedRun:
+                  timeout_s: float = 900.0, flight_s: float | None = None, say=print,
+                  signing_key: Path | None = None) -> NetworkedRun:
     """Run the three programs for one survey; the run directory gets samples.pslog and a report.
 
     With flight_s, stop the payload (SIGTERM) that long after AUTO instead of waiting for the landing.
+    With signing_key (a key file), all three sign their MAVLink and the device bridge asks for the key.
     """
     out.mkdir(parents=True, exist_ok=True)
+    keyed = ["--signing-key", str(signing_key)] if signing_key is not None else []
+    key = load_key(signing_key) if signing_key is not None else None
     mav_port, dev_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
     t0 = time.perf_counter()
     sitl = subprocess.Popen([sys.executable, "-m", "sitl.cli", "serve", "--mavlink", f"udp:127.0.0.1:{mav_port}",
                              "--devices", f"tcp:127.0.0.1:{dev_port}", "--stockpile", stockpile, "--storage", storage,
-                             *mission_args, "--out", str(out)], stderr=subprocess.PIPE, text=True)
+                             *mission_args, "--out", str(out), *keyed], stderr=subprocess.PIPE, text=True)
     payload = None
     try:
         wait_tcp(dev_port, sitl, 30.0)
@@ -87,10 +92,10 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
         payload = subprocess.Popen([sys.executable, "-m", "firmware_py.cli", "--mavlink",
                                     f"udpout:127.0.0.1:{mav_port}", "--hal", f"sitl:127.0.0.1:{dev_port}",
                                     "--out", str(out / SAMPLES_FILE), "--force", "--storage", storage,
-                                    "--phase", str(phase), "--stop-on-disarm", "--quiet"])
+                                    "--phase", str(phase), "--stop-on-disarm", "--quiet", *keyed])
         time.sleep(2.0)  # the payload's time sync and pose streams settle before take-off
         fly_plan(f"udpout:127.0.0.1:{mav_port}", out / PLAN_FILE, timeout_s, say=lambda m: say(f"  {m}"),
-                 fly_s=flight_s)
+                 fly_s=flight_s, signing_key=key)
         if flight_s is None:
             say("landed and disarmed")
             try:
@@ -118,9 +123,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("runs/networked"))
     ap.add_argument("--compare", action="store_true", help="also fly the lockstep SITL and compare volumes")
     ap.add_argument("--json", type=Path, help="write the figures here")
+    ap.add_argument("--signing-key", type=Path, default=None, metavar="FILE",
+                    help="sign MAVLink on every link and authenticate the device bridge with this key file")
     args = ap.parse_args(argv)
     mission_args = ["--p-traj", f"{args.p_traj:g}", "--altitude", f"{args.altitude:g}", "--speed", f"{args.speed:g}"]
-    net = fly_networked(mission_args, args.storage, args.stockpile, args.out / "networked", args.phase)
+    net = fly_networked(mission_args, args.storage, args.stockpile, args.out / "networked", args.phase,
+                        signing_key=args.signing_key)
     v_net = net.report["volume_m3"]
     print(f"networked: {v_net:,.1f} m^3, Ve {net.report['volume_error_pct']:.3f} %, "
           f"{net.report['n_samples']:,} samples, {net.wall_s:.0f} s wall, payload exit {net.payload_exit}")

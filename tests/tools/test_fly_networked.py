@@ -33,3 +33,15 @@ def test_that_the_payload_process_ranges_the_served_world_with_correct_pose_tags
     err = np.abs(err[np.isfinite(err)])
     assert np.median(err) < 0.01 and np.percentile(err, 90) < 0.03
     assert run.report["volume_m3"] > 0
+
+
+def test_that_a_signed_networked_flight_works_with_the_key_on_every_link_and_the_bridge(tmp_path):
+    key_file = tmp_path / "link.key"
+    key_file.write_text("ab" * 32 + "\n")
+    key_file.chmod(0o600)
+    run = fly_networked(["--p-traj", "25", "--altitude", "9", "--speed", "2"], "24x16x10", "1", tmp_path / "net",
+                        flight_s=4.0, say=lambda _m: None, signing_key=key_file)
+    assert run.payload_exit == 0
+    s = read_samplelog(tmp_path / "net" / "samples.pslog").samples
+    good = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
+    assert len(good) > 500  # signed poses arrived and tagged samples
