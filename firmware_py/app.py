@@ -52,7 +52,7 @@ from firmware_py.drivers.lidarlite import (
     busy_deadline_ns,
     preset_by_name,
 )
-from firmware_py.drivers.servo import ServoCalibration, SweepServo
+from firmware_py.drivers.servo import PWM_FRAME_S, ServoCalibration, SweepServo
 from firmware_py.frames import StorageFrame
 from firmware_py.hal import Clock, I2CBus, MavlinkLink, PwmOutput
 from firmware_py.hal.backends import open_i2c, parse_i2c_url
@@ -236,8 +236,13 @@ class PayloadConfig:
         return sensor_spec(self.rate_hz, max_range_m=preset_by_name(self.preset).max_range_m,
                            range_sigma_m=self.range_sigma_m, range_sigma_rel=self.range_sigma_rel)
 
-    def log_header(self) -> dict[str, Any]:
-        """The sample-log header (`firmware_py.header`), with the payload's hardware setup appended."""
+    def log_header(self, sweep_t0_s: float | None = None) -> dict[str, Any]:
+        """The sample-log header (`firmware_py.header`), with the payload's hardware setup appended.
+
+        sweep_t0_s: when the servo sweep starts, on the samples' clock; with the calibration it lets
+        the ground station re-simulate the servo (`ground.servo_timing`) if the real one differs.
+        """
+        drive = {} if sweep_t0_s is None else {"servo_drive": {"t0_s": float(sweep_t0_s), "frame_s": PWM_FRAME_S}}
         return build_log_header(
             source="payload", sensor=self.sensor(), lever_arm_body_m=[float(v) for v in self.lever_arm_body_m],
             waveform_name=self.waveform, waveform=self.servo_waveform(), initial_position=self.initial_position,
@@ -245,7 +250,8 @@ class PayloadConfig:
             extra={"servo_calibration": asdict(self.servo),
                    "payload": {"mavlink": self.mavlink_url, "i2c": self.i2c_url, "pwm": self.pwm_url,
                                "lidar_preset": self.preset, "i2c_address": self.i2c_address,
-                               "rate_hz": self.rate_hz, "records_per_block": self.records_per_block}})
+                               "rate_hz": self.rate_hz, "records_per_block": self.records_per_block},
+                   **drive})
 
 
 @dataclass(frozen=True)
@@ -408,11 +414,12 @@ class PayloadApp:
                                    max_pose_age_ns=round(cfg.max_pose_age_s * 1e9))
         self._send_origin(self.clock.now_ns())
         self.tracker.start()
-        self.log = SampleLogWriter(out, cfg.log_header(), records_per_block=cfg.records_per_block, fsync=cfg.fsync,
-                                   overwrite=cfg.force)
+        t0_ns = self.clock.now_ns()  # the sweep's time origin, written in the header before the first sample
+        self.log = SampleLogWriter(out, cfg.log_header(sweep_t0_s=t0_ns * 1e-9),
+                                   records_per_block=cfg.records_per_block, fsync=cfg.fsync, overwrite=cfg.force)
         self.sink = _RecordSink(self.log, self.stream)
         servo = SweepServo(self.pwm, cfg.servo_waveform(), cfg.servo)
-        self.loop = PayloadLoop(self.lidar, servo, self.tracker, self.clock, self.sink, cfg.loop_config())
+        self.loop = PayloadLoop(self.lidar, servo, self.tracker, self.clock, self.sink, cfg.loop_config(), t0_ns=t0_ns)
         self.health = HealthMonitor(self.loop.t0_ns, cfg.health_period_s)
         self._next_status_ns = self.loop.t0_ns + round(cfg.status_period_s * 1e9)
         self._status_prev = (self.loop.t0_ns, 0)

@@ -18,7 +18,7 @@ from firmware_py.storage import Storage
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
 from ground.despike import SpikeThreshold
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask
-from ground.servo_timing import ServoTiming, estimate_servo_timing, retimed
+from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
 from ground.surface import (
     DEFAULT_CELL_M,
     DEFAULT_EMPTY_CELLS,
@@ -144,11 +144,13 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
         keep = ~structure_mask(cloud, storage, err)
         return sweep_disagreement_m(cloud.points_w[keep], cloud.sweep_dir[keep], survey.grid)[0]
 
-    timing = estimate_servo_timing(samples, disagreement, before)
+    motion = Resimulated.from_header(header) or ShiftScale(sweep_center_rad(samples["servo_rad"]))
+    halves = np.random.default_rng(0).choice(np.array([-1, 1]), len(survey.pile_points_w))  # seeded: reports replay
+    floor, _ = sweep_disagreement_m(survey.pile_points_w, halves, survey.grid)
+    timing = estimate_servo_timing(samples, disagreement, before, motion, floor_m=floor or 0.0)
     if timing is None or timing.disagreement_after_m > MAX_SWEEP_DISAGREEMENT_M:
         return replace(survey, servo_timing=timing)
-    fixed = _survey(retimed(samples, timing.delay_s, timing.gain, timing.center_rad), header, storage, frame, lever,
-                    opts)
+    fixed = _survey(motion.apply(samples, timing.delay_s, timing.gain), header, storage, frame, lever, opts)
     return replace(fixed, servo_timing=timing, servo_retimed=True)
 
 
@@ -190,8 +192,11 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
                         "move like a swept beam's (servo stuck or slow?)")
     st = survey.servo_timing
     if survey.servo_retimed and st is not None:
-        warnings.append(f"the servo's angles were re-estimated from the sweeps: its shaft trails the firmware's "
-                        f"model by {st.delay_s * 1e3:.0f} ms and swings {st.gain * 100:.0f} % as far (the two sweep "
+        how = (f"it answers pulses {st.delay_s * 1e3:.0f} ms late and slews at {st.gain * 100:.0f} % of its "
+               "calibrated rate" if st.model == Resimulated.name else
+               f"its shaft trails the firmware's model by {st.delay_s * 1e3:.0f} ms and swings {st.gain * 100:.0f} % "
+               "as far")
+        warnings.append(f"the servo's angles were re-estimated from the sweeps ({st.model}): {how} (the two sweep "
                         f"directions disagreed by {st.disagreement_before_m:.2f} m, now "
                         f"{st.disagreement_after_m:.2f} m); recalibrate the servo before the next flight")
     if survey.cloud.n_spikes:
@@ -224,7 +229,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "despike": opts.despike,
         "sweep_disagreement_m": survey.sweep_disagreement_m,
         "servo_timing": None if st is None else {
-            "applied": survey.servo_retimed, "delay_s": st.delay_s, "gain": st.gain,
+            "applied": survey.servo_retimed, "model": st.model, "delay_s": st.delay_s, "gain": st.gain,
             "disagreement_before_m": st.disagreement_before_m, "disagreement_after_m": st.disagreement_after_m},
         "uncovered_area_m2": float((~np.isfinite(survey.heights_fit)).sum() * g.cell_area_m2),
         "storage": survey.storage.to_dict(),

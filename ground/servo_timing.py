@@ -9,10 +9,17 @@ servo does wrong on the paper's semi-triangular sweep:
   exactly, since a delayed pulse train gives a delayed trajectory;
 - a slower top speed than calibrated: on a triangle wave the shaft then slews at its own limit
   all the time and turns back early, so its path is again a triangle, of the same centre and
-  period but a smaller swing, and later: g * (model(t - d) - c) + c with g < 1.
+  period but a smaller swing, and later.
 
-So the real angle is modelled as gamma(t) = c + g * (gamma_model(t - d) - c), c the centre of the
-logged sweep, and (d, g) is chosen to make the two sweep directions agree best: a coarse grid,
+When the log header says how the servo was driven (its calibration and when the sweep started,
+`servo_calibration` and `servo_drive`, written by the payload and the SITL), the firmware's own
+servo model is run again on the same pulses, answering them d late and slewing at g times the
+calibrated rate (`Resimulated`): exact for both faults, turn-backs included. Otherwise the real
+angle is approximated from the logged one as c + g (gamma_model(t - d) - c), c the centre of the
+logged sweep (`ShiftScale`): exact for a dead time; for a slow servo right along the sweep but
+not where it turns back (the real shaft turns in a sharp corner where the command is rounded).
+
+Either way (d, g) is chosen to make the two sweep directions agree best: a coarse grid over both,
 then alternating fine line searches (the objective is a median over histogram cells: piecewise
 flat, which gradient and simplex methods stall on). The fit is accepted only if it brings the
 disagreement under the trust threshold; it is reported either way, never applied silently.
@@ -21,28 +28,32 @@ disagreement under the trust threshold; it is reported either way, never applied
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
+
+from firmware_py.drivers.servo import ServoCalibration, modelled_sweep
+from firmware_py.servo_waveform import Waveform
 
 DELAY_RANGE_S = (-0.05, 0.15)
 """Dead times searched: a faster-than-modelled servo leads (d < 0); 150 ms is 3 pulse periods at
 the 50 Hz PWM frame and a fifth of the paper's 0.67 Hz sweep period."""
 GAIN_RANGE = (0.3, 1.2)
-"""Swing ratios searched: a servo at 30 % of its calibrated speed to one 20 % faster."""
-COARSE_DELAY_STEP_S = 0.01
-COARSE_GAIN_STEP = 0.05
-FINE_STEPS = 5  # each side of the coarse optimum, at a fifth of the coarse step
+"""Speed (or swing) ratios searched: a servo at 30 % of its calibrated speed to one 20 % faster."""
+COARSE_DELAY_STEP_S = 0.025
+COARSE_GAIN_STEP = 0.1
+FINE_STEPS = 5  # each side of the current optimum, at a fifth (then a twenty-fifth) of the coarse step
 MAX_FINE_ROUNDS = 8
 
 
 @dataclass(frozen=True)
 class ServoTiming:
-    """What the sweeps say about the real servo: it trails the model by delay_s and swings gain times as far."""
+    """What the sweeps say about the real servo: it answers delay_s late, and its speed (re-simulated)
+    or its swing (shift-scale) is gain times the model's."""
 
     delay_s: float
     gain: float
-    center_rad: float
+    model: str  # Resimulated.name or ShiftScale.name
     disagreement_before_m: float
     disagreement_after_m: float
     evaluations: int
@@ -62,8 +73,7 @@ def retimed(samples: np.ndarray, delay_s: float, gain: float, center_rad: float)
     t = samples["t_s"].astype(float)
     model = samples["servo_rad"].astype(float)
     shifted = np.interp(t - delay_s, t, model)  # t is the log's time order; ends clamp
-    angle = center_rad + gain * (shifted - center_rad)
-    out["servo_rad"] = angle
+    out["servo_rad"] = center_rad + gain * (shifted - center_rad)
     if "sweep_dir" in samples.dtype.names and len(samples) > 1:
         # The direction of the model, shifted: the real shaft turns back d later than the model did.
         d_idx = np.interp(t - delay_s, t, samples["sweep_dir"].astype(float))
@@ -71,41 +81,118 @@ def retimed(samples: np.ndarray, delay_s: float, gain: float, center_rad: float)
     return out
 
 
+@dataclass(frozen=True)
+class ShiftScale:
+    """The real shaft from the logged angles alone: c + g (gamma_model(t - d) - c)."""
+
+    center_rad: float
+    name = "shift-scale"
+
+    def apply(self, samples: np.ndarray, delay_s: float, gain: float) -> np.ndarray:
+        return retimed(samples, delay_s, gain, self.center_rad)
+
+
+@dataclass
+class Resimulated:
+    """The firmware's servo model run again on the pulses it sent, the servo answering them delay_s
+    late and slewing at gain times its calibrated rate."""
+
+    waveform: Waveform
+    cal: ServoCalibration
+    t0_s: float
+    frame_s: float
+    name = "servo model"
+    _nominal: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @classmethod
+    def from_header(cls, header: dict) -> Resimulated | None:
+        """From the header's servo, servo_calibration and servo_drive; None if any is missing or bad."""
+        try:
+            sv, drive = header["servo"], header["servo_drive"]
+            wf = Waveform(float(sv["shape_c"]), float(sv["frequency_hz"]), float(sv["amplitude_rad"]),
+                          float(sv["phase_rad"]), int(sv["direction"]))
+            cal = ServoCalibration(**{k: float(v) for k, v in header["servo_calibration"].items()})
+            t0, frame = float(drive["t0_s"]), float(drive["frame_s"])
+        except (KeyError, TypeError, ValueError, AttributeError):
+            return None
+        if not (np.isfinite(t0) and np.isfinite(frame) and 0 < frame <= 1.0):
+            return None
+        return cls(wf, cal, t0, frame)
+
+    def angles(self, t_s: np.ndarray, delay_s: float = 0.0, gain: float = 1.0) -> np.ndarray:
+        cal = replace(self.cal, slew_rad_s=self.cal.slew_rad_s * gain)
+        return modelled_sweep(self.waveform, cal, np.asarray(t_s, dtype=float) - self.t0_s - delay_s, self.frame_s)
+
+    def apply(self, samples: np.ndarray, delay_s: float, gain: float) -> np.ndarray:
+        """The logged angles plus what the fault changes (re-simulated faulty minus re-simulated
+        nominal): the re-simulation's own small differences from the payload's model (its pulses
+        go out on the loop's ticks, not on an exact 20 ms grid: up to ~0.5 deg) cancel."""
+        out = samples.copy()
+        t = samples["t_s"]
+        key = (len(t), float(t[0]), float(t[-1])) if len(t) else (0,)
+        if key not in self._nominal:  # the same for every candidate (d, g) of a search
+            self._nominal.clear()
+            self._nominal[key] = self.angles(t)
+        angle = samples["servo_rad"].astype(float) + self.angles(t, delay_s, gain) - self._nominal[key]
+        out["servo_rad"] = angle
+        if len(samples) > 1:
+            turning = np.sign(np.gradient(angle))
+            out["sweep_dir"] = np.where(turning == 0, samples["sweep_dir"], turning).astype(samples["sweep_dir"].dtype)
+        return out
+
+
 def _grid(lo: float, hi: float, step: float) -> np.ndarray:
     return np.round(np.arange(lo, hi + step / 2, step), 6)
 
 
 def estimate_servo_timing(samples: np.ndarray, disagreement: Callable[[np.ndarray], float | None],
-                          before_m: float) -> ServoTiming | None:
-    """(d, g) that minimise disagreement(retimed samples) (module docstring); None if it cannot be
-    measured (too few cells where both sweep directions land)."""
-    center = sweep_center_rad(samples["servo_rad"])
+                          before_m: float, motion: ShiftScale | Resimulated | None = None,
+                          floor_m: float = 0.0) -> ServoTiming | None:
+    """(d, g) that minimise disagreement(motion.apply(samples, d, g)) (module docstring; default
+    motion: ShiftScale about the logged sweep's centre); None if it cannot be measured (too few
+    cells where both sweep directions land).
+
+    Two models compete: a dead time alone (g = 1), and a dead time with a speed (or swing) factor.
+    The second always fits at least as well, and a smaller swing makes the sweeps agree more for
+    the wrong reason (the far, grazing points, where angle errors matter most, move in), so the
+    dead time alone is kept unless the factor improves the agreement by more than floor_m: the
+    statistic's own noise (the disagreement of two random halves of the same points).
+    """
+    motion = motion if motion is not None else ShiftScale(sweep_center_rad(samples["servo_rad"]))
     evals = 0
     cache: dict[tuple[float, float], float] = {}
 
     def cost(d: float, g: float) -> float:
         nonlocal evals
-        key = (round(d, 6), round(g, 6))
+        key = (round(float(d), 6), round(float(g), 6))
         if key not in cache:
             evals += 1
-            v = disagreement(retimed(samples, d, g, center))
+            v = disagreement(motion.apply(samples, key[0], key[1]))
             cache[key] = np.inf if v is None else v
         return cache[key]
 
     def best_of(ds, gs) -> tuple[float, float]:
-        return min(((d, g) for d in ds for g in gs), key=lambda dg: cost(*dg))
+        return min(((round(float(d), 6), round(float(g), 6)) for d in ds for g in gs), key=lambda dg: cost(*dg))
 
-    d, g = best_of(_grid(*DELAY_RANGE_S, COARSE_DELAY_STEP_S), [1.0])
-    d, g = best_of([d], _grid(*GAIN_RANGE, COARSE_GAIN_STEP))
-    d, g = best_of(_grid(*DELAY_RANGE_S, COARSE_DELAY_STEP_S), [g])  # the delay again, at that swing
     fine = np.arange(-FINE_STEPS, FINE_STEPS + 1)
-    for _ in range(MAX_FINE_ROUNDS):  # the two are coupled (a later shaft also looks smaller): alternate
-        d1, g1 = best_of(d + COARSE_DELAY_STEP_S / FINE_STEPS * fine, [g])
-        d1, g1 = best_of([d1], g1 + COARSE_GAIN_STEP / FINE_STEPS * fine)
-        if (round(d1, 6), round(g1, 6)) == (round(d, 6), round(g, 6)):
-            break
-        d, g = d1, g1
+
+    def refine(d: float, g: float, with_gain: bool) -> tuple[float, float]:
+        for level in (FINE_STEPS, FINE_STEPS**2):
+            for _ in range(MAX_FINE_ROUNDS):  # coupled (a later servo also looks slower): alternate
+                d1, g1 = best_of(d + COARSE_DELAY_STEP_S / level * fine, [g])
+                if with_gain:
+                    d1, g1 = best_of([d1], g1 + COARSE_GAIN_STEP / level * fine)
+                if (d1, g1) == (d, g):
+                    break
+                d, g = d1, g1
+        return d, g
+
+    delays = _grid(*DELAY_RANGE_S, COARSE_DELAY_STEP_S)
+    d_only = refine(*best_of(delays, [1.0]), with_gain=False)
+    # The two trade against each other along a narrow valley: the coarse search covers both at once.
+    both = refine(*best_of(delays, _grid(*GAIN_RANGE, COARSE_GAIN_STEP)), with_gain=True)
+    d, g = d_only if cost(*d_only) <= cost(*both) + floor_m else both
     after = cost(d, g)
     if not np.isfinite(after):
         return None
-    return ServoTiming(float(d), float(g), center, before_m, float(after), evals)
+    return ServoTiming(d, g, motion.name, before_m, float(after), evals)

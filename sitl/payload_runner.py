@@ -16,7 +16,7 @@ from __future__ import annotations
 import collections
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -281,6 +281,10 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
         inj.start_survey(clock.now_ns())
     e0, ts0 = vehicle.plant.energy_j, vehicle.state().t_s
     log_path = str(log_path)
+    # What the payload app writes too: the servo's calibration and when its sweep started, so the
+    # ground station can re-simulate a servo that does not move as modelled (ground.servo_timing).
+    header = {**header, "servo_calibration": asdict(cal),
+              "servo_drive": {"t0_s": t0_ns * 1e-9, "frame_s": servo.frame_s}}
     log = SampleLogWriter(log_path, header, records_per_block=500, fsync=False, overwrite=True,
                           opener=inj.opener(clock.now_ns) if inj is not None and faults.disk_full_at_s is not None
                           else open)

@@ -109,7 +109,7 @@ def run_scenario(sc: Scenario, cfg: FlyConfig, tmp: Path) -> dict:
     storage = cfg.mission.storage
     pile = resolve(cfg.stockpile, storage)
     opts = ReportOptions(plots=False)
-    sv = survey_from_samples(s, header, storage, cfg.frame, np.array(cfg.lever_arm_body_m), opts)
+    sv = survey_from_samples(s, log.header, storage, cfg.frame, np.array(cfg.lever_arm_body_m), opts)
     rep = summarise(sv, log, opts, pile.volume_m3)
     bad = wrongly_tagged(s, run.true_t_s, run.true_states)
     flagged = {f.name: int(np.count_nonzero(s["flags"] & int(f))) for f in SampleFlags if f}

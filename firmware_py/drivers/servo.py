@@ -17,6 +17,9 @@ import numpy as np
 from firmware_py.hal import PwmOutput
 from firmware_py.servo_waveform import Waveform
 
+PWM_FRAME_S = 0.02
+"""A hobby servo's PWM frame (50 Hz): the sweep sends one pulse per frame."""
+
 
 @dataclass(frozen=True)
 class ServoCalibration:
@@ -111,7 +114,8 @@ def servo_angles(t_s: np.ndarray, cmd_t_s: np.ndarray, cmd_rad: np.ndarray, cal:
     return out
 
 
-def command_angles(waveform: Waveform, cal: ServoCalibration, t_s: np.ndarray, frame_s: float = 0.02) -> np.ndarray:
+def command_angles(waveform: Waveform, cal: ServoCalibration, t_s: np.ndarray,
+                   frame_s: float = PWM_FRAME_S) -> np.ndarray:
     """Commanded angles at times t_s: the waveform ahead by the servo's lag plus half a PWM frame
     (the average delay of a command held for a frame), clamped to what the pulses can reach."""
     a = waveform.angle(np.asarray(t_s, dtype=float) + cal.lag_s + 0.5 * frame_s)
@@ -119,7 +123,8 @@ def command_angles(waveform: Waveform, cal: ServoCalibration, t_s: np.ndarray, f
     return (pulse - cal.center_us) / cal.us_per_rad
 
 
-def modelled_sweep(waveform: Waveform, cal: ServoCalibration, t_s: np.ndarray, frame_s: float = 0.02) -> np.ndarray:
+def modelled_sweep(waveform: Waveform, cal: ServoCalibration, t_s: np.ndarray,
+                   frame_s: float = PWM_FRAME_S) -> np.ndarray:
     """Batch path: the shaft angle at times t_s of a servo driven as SweepServo drives it (a pulse at
     every frame from t = 0), starting at rest on the waveform's initial angle."""
     t = np.asarray(t_s, dtype=float)
@@ -135,7 +140,7 @@ class SweepServo:
     """
 
     def __init__(self, pwm: PwmOutput, waveform: Waveform, cal: ServoCalibration | None = None,
-                 frame_s: float = 0.02) -> None:
+                 frame_s: float = PWM_FRAME_S) -> None:
         self.pwm, self.waveform = pwm, waveform
         self.cal = cal or ServoCalibration()
         self.frame_s = frame_s

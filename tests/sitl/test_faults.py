@@ -24,7 +24,8 @@ def fly(tmp_path, signing_key=None, **faults):
     header = log_header(CFG, wf)
     run = fly_firmware(CFG, tmp_path / "s.pslog", header, faults=FaultSpec(seed=3, **faults), seed=3,
                        signing_key=signing_key)
-    s = read_samplelog(tmp_path / "s.pslog").samples
+    log = read_samplelog(tmp_path / "s.pslog")
+    s, header = log.samples, log.header  # the runner adds the servo calibration and the sweep's start
     sv = survey_from_samples(s, header, CFG.mission.storage, CFG.frame, np.array(CFG.lever_arm_body_m),
                              ReportOptions(plots=False))
     ve = volume_error_pct(grid_volume(sv.heights, sv.grid), resolve("1", CFG.mission.storage).volume_m3)
@@ -77,12 +78,12 @@ def test_that_a_slow_servo_is_detected_and_its_motion_re_estimated(tmp_path, cle
     st = sv.servo_timing
     assert st.disagreement_before_m > 0.3 and sv.servo_retimed
     assert abs(st.gain - 0.6) < 0.05  # a triangle slewed at 60 % of the speed swings 60 % as far
-    header = log_header(CFG, CFG.servo_waveform())
-    raw = survey_from_samples(s, header, CFG.mission.storage, CFG.frame, np.array(CFG.lever_arm_body_m),
+    raw = survey_from_samples(s, read_samplelog(tmp_path / "s.pslog").header, CFG.mission.storage, CFG.frame,
+                              np.array(CFG.lever_arm_body_m),
                               ReportOptions(plots=False, servo_retiming=False))
     assert raw.sweep_disagreement_m > 0.3 and raw.servo_timing is None
     raw_ve = volume_error_pct(grid_volume(raw.heights, raw.grid), resolve("1", CFG.mission.storage).volume_m3)
-    assert abs(ve - clean[3]) < abs(raw_ve - clean[3]) / 4  # much closer, if not exact (see servo_timing)
+    assert abs(raw_ve - clean[3]) > 10 and abs(ve - clean[3]) < 0.5  # re-simulated: the volume is back
 
 
 def test_that_a_power_cut_loses_at_most_the_unfinished_block(tmp_path):
