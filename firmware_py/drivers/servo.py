@@ -92,26 +92,49 @@ class ServoModel:
 
 def servo_angles(t_s: np.ndarray, cmd_t_s: np.ndarray, cmd_rad: np.ndarray, cal: ServoCalibration,
                  angle0_rad: float = 0.0) -> np.ndarray:
-    """Batch version: the modelled angle at sorted times t_s, for commands held from cmd_t_s on.
+    """Batch version: the modelled angle at times t_s (any order), for commands held from cmd_t_s on.
 
-    The same ServoModel stepping as the payload, so batch and per-sample paths agree exactly.
+    The same exact ServoModel solution as the payload's stepping: the state is stepped from command
+    to command (one Python step per PWM frame), then every query is advanced from the state at the
+    command before it, vectorised. Being exact, the split does not change the angles (to rounding).
+    A command takes effect before a query at the same instant; before the first command the shaft
+    rests at angle0_rad.
     """
+    t = np.asarray(t_s, dtype=float)
+    order = np.argsort(np.asarray(cmd_t_s, dtype=float), kind="stable")
+    ct = np.asarray(cmd_t_s, dtype=float)[order]
+    cr = np.asarray(cmd_rad, dtype=float)[order]
+    start = np.empty(len(ct))  # the angle at each command's instant
     model = ServoModel(cal, angle0_rad)
-    out = np.empty(len(t_s))
-    events = np.concatenate([np.asarray(cmd_t_s, float), np.asarray(t_s, float)])
-    kinds = np.concatenate([np.zeros(len(cmd_t_s), int), np.ones(len(t_s), int)])
-    idx = np.concatenate([np.arange(len(cmd_t_s)), np.arange(len(t_s))])
-    order = np.lexsort((kinds, events))  # at equal times, a command takes effect before a query
-    t_prev, target = float(events[order[0]]) if len(order) else 0.0, angle0_rad
-    for k in order:
-        t = float(events[k])
-        model.advance(t - t_prev, target)
-        t_prev = t
-        if kinds[k] == 0:
-            target = float(cmd_rad[idx[k]])
-        else:
-            out[idx[k]] = model.angle_rad
+    target = angle0_rad
+    for k in range(len(ct)):
+        if k:
+            model.advance(ct[k] - ct[k - 1], target)
+        start[k] = model.angle_rad
+        target = cr[k]
+    out = np.full(len(t), float(angle0_rad))
+    k = np.searchsorted(ct, t, side="right") - 1
+    after = k >= 0
+    if after.any():
+        kk = k[after]
+        out[after] = _advance(start[kk], t[after] - ct[kk], cr[kk], cal)
     return out
+
+
+def _advance(a: np.ndarray, dt: np.ndarray, target: np.ndarray, cal: ServoCalibration) -> np.ndarray:
+    """ServoModel.advance for arrays: slew-limited while the error exceeds slew * lag, then exponential."""
+    s, tau = cal.slew_rad_s, cal.lag_s
+    err = target - a
+    sign = np.where(err >= 0, 1.0, -1.0)
+    e_sat = s * tau
+    big = np.abs(err) > e_sat
+    t_lin = np.where(big, (np.abs(err) - e_sat) / s, 0.0)
+    on_slew = big & (dt <= t_lin)
+    err_end = np.where(big, sign * e_sat, err)  # the error when the exponential part starts
+    dt_exp = np.maximum(dt - t_lin, 0.0)
+    decay = np.exp(-dt_exp / tau) if tau > 0 else np.zeros_like(dt_exp)
+    angle = np.where(on_slew, a + sign * s * dt, target - err_end * decay)
+    return np.where(dt > 0, angle, a)
 
 
 def command_angles(waveform: Waveform, cal: ServoCalibration, t_s: np.ndarray,

@@ -77,3 +77,24 @@ def test_that_the_batch_servo_model_equals_the_stepped_one():
         tp = tq
         stepped.append(m.angle_rad)
     assert np.allclose(batch, stepped, atol=1e-12)
+
+
+@pytest.mark.parametrize("lag_s", [0.02, 0.0])
+def test_that_the_batch_model_matches_stepping_through_slew_limited_steps_in_any_query_order(lag_s):
+    cal = ServoCalibration(slew_rad_s=2.0, lag_s=lag_s)
+    cmd_t = np.arange(0.1, 3, 0.02)
+    cmd = np.where((cmd_t // 0.5) % 2 == 0, 1.2, -1.2)  # square wave: long slews, then settling
+    t = np.random.default_rng(2).uniform(-0.5, 3.2, 500)  # unsorted, some before the first command
+    batch = servo_angles(t, cmd_t, cmd, cal, angle0_rad=0.3)
+    order = np.argsort(t)
+    m, tp, target, k = ServoModel(cal, 0.3), -0.5, 0.3, 0
+    stepped = np.empty(len(t))
+    for i in order:
+        while k < len(cmd_t) and cmd_t[k] <= t[i]:
+            m.advance(cmd_t[k] - tp, target)
+            tp, target, k = cmd_t[k], cmd[k], k + 1
+        m.advance(t[i] - tp, target)
+        tp = t[i]
+        stepped[i] = m.angle_rad
+    assert np.allclose(batch, stepped, atol=1e-9)
+    assert np.all(batch[t < 0.1] == 0.3)
