@@ -133,6 +133,7 @@ def run_scenario(sc: Scenario, cfg: FlyConfig, tmp: Path) -> dict:
         "clock_jumps": f.get("clock_jumps", 0), "signed": sc.signed, "signing_refused": refused,
         "timesync_resets": run.pose_status.get("timesync", {}).get("resets", 0),
         "blocks_truncated": log.blocks_truncated, "wall_s": time.perf_counter() - t0,
+        "servo_timing": sv.servo_timing if sv.servo_retimed else None,
     }
 
 
@@ -154,6 +155,11 @@ def _did(r: dict) -> str:
         parts.append("LiDAR " + ", ".join(f"{k} {v}" for k, v in r["lidar"].items()))
     if r["glitches"]:
         parts.append(f"{r['glitches']} glitch readings")
+    st = r.get("servo_timing")
+    if st is not None:
+        parts.append(f"ground: servo re-simulated ({st.model}): {st.delay_s * 1e3:.0f} ms late, "
+                     f"{st.gain * 100:.0f} % speed; sweeps disagree {st.disagreement_before_m:.2f} -> "
+                     f"{st.disagreement_after_m:.2f} m")
     if r["cut"]:
         parts.append("log ends at the last whole block; the report covers the flight up to the cut")
     if r["disk_full"]:
