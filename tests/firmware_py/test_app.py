@@ -393,11 +393,13 @@ def test_that_sigint_stops_the_payload_like_sigterm(tmp_path):
     assert read_samplelog(out).intact
 
 
-def test_that_sigkill_loses_at_most_the_unfinished_block(tmp_path):
+@pytest.mark.parametrize("seed", [1, 2])
+def test_that_sigkill_loses_at_most_the_unfinished_block(tmp_path, seed):
     out = tmp_path / "run.pslog"
     proc = start_payload(out, "udpout:127.0.0.1:9", "--quiet")
     try:
         wait_for_blocks(proc, out, 2)
+        time.sleep(np.random.default_rng(seed).uniform(0.0, 1.0))  # anywhere within the next blocks
         proc.kill()
         proc.communicate(timeout=20)
     finally:
