@@ -374,7 +374,9 @@ class PayloadApp:
                 self.loop.run(duration_s=self.cfg.duration_s, should_stop=self._should_stop)
             self.request_stop("duration reached")
         except BaseException as exc:
-            self.request_stop(f"error: {type(exc).__name__}")
+            # What the operator's ground station shows: say what failed (e.g. "No space left on device").
+            detail = (getattr(exc, "strerror", None) or str(exc).splitlines()[0]) if str(exc) else ""
+            self.request_stop(f"error: {detail or type(exc).__name__}")
             raise
         finally:
             self._shutdown()
@@ -532,7 +534,8 @@ class PayloadApp:
         reason = self._stop_reason or "stopped"
         if self.health is not None and self.link is not None:
             self._step("stop message", lambda: self._send_health(
-                [self.health.event(mavlink.MAV_SEVERITY_NOTICE, f"stopping: {reason}")]))
+                [self.health.event(mavlink.MAV_SEVERITY_CRITICAL if reason.startswith("error")
+                                   else mavlink.MAV_SEVERITY_NOTICE, f"stopping: {reason}")]))
         if self.log is not None:
             self._step("closing the sample log", self.log.close)
         if self.pwm is not None:

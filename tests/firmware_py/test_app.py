@@ -254,6 +254,42 @@ def test_that_the_payload_logs_posed_samples_and_reports_health_to_the_autopilot
     assert got.tobytes() == s.tobytes()  # the live stream carried exactly the logged records
 
 
+def test_that_a_full_disk_stops_the_payload_telling_the_operator_why_and_keeps_every_whole_block(
+        tmp_path, devices, autopilot, monkeypatch):
+    import errno
+    import functools
+
+    from firmware_py import app as app_module
+    from firmware_py.samplelog import SampleLogWriter
+
+    class FillingFile:  # takes 40 kB, then ENOSPC (the first failing write takes what fits)
+        def __init__(self, f):
+            self.f, self.room = f, 40_000
+
+        def write(self, data):
+            if len(data) > self.room:
+                self.f.write(bytes(data)[: self.room])
+                self.room = 0
+                raise OSError(errno.ENOSPC, "No space left on device")
+            self.room -= len(data)
+            return self.f.write(data)
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+    monkeypatch.setattr(app_module, "SampleLogWriter", functools.partial(
+        SampleLogWriter, opener=lambda path, mode: FillingFile(open(path, mode))))
+    cfg = payload_config(tmp_path, autopilot.url, duration_s=20.0)
+    with pytest.raises(OSError, match="No space"):
+        PayloadApp(cfg, err=None).run()
+    assert autopilot.wait_for(lambda: "pilescan: stopping: error: No space left on device" in autopilot.spy.texts())
+    stop = [m for m in autopilot.spy.of_type("STATUSTEXT") if "No space" in str(m.text)]
+    assert stop and all(m.severity == 2 for m in stop)  # MAV_SEVERITY_CRITICAL: the operator should land
+    log = read_samplelog(cfg.out_path)
+    assert log.blocks_corrupt == 0 and log.blocks_truncated == 1 and len(log.samples) % cfg.records_per_block == 0
+    assert len(log.samples) > 0 and log.header["servo_drive"]["t0_s"] <= log.samples["t_s"][0]
+
+
 def test_that_stop_on_disarm_stops_once_the_autopilot_disarms_after_arming(tmp_path, devices):
     ap = Autopilot(armed=True)
     try:
