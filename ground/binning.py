@@ -120,7 +120,7 @@ def survey_from_points(binner: HeightBinner, storage: Storage, opts: ReportOptio
     """
     pile = binner.points()
     grid = Grid(storage.length_m, storage.width_m, opts.cell_m)
-    fit, n_clipped = clip_to_building(fit_heights(pile, grid), storage.height_m)
+    fit, n_clipped = clip_to_building(fit_heights(pile, grid, opts.surface_fit), storage.height_m)
     counts, _, _ = np.histogram2d(pile[:, 0], pile[:, 1], bins=(grid.x_edges, grid.y_edges),
                                   weights=binner.counts())
     path = np.empty((0, 3)) if path_w is None else np.asarray(path_w, dtype=float).reshape(-1, 3)

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from firmware_py.cli_util import ArgumentParser, UserError, finite_float, run_cli
 from ground import listen
 from ground.report import ReportOptions, make_report
-from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, EMPTY_CELL_POLICIES
+from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
 
 
 def build_parser() -> ArgumentParser:
@@ -26,6 +26,9 @@ def build_parser() -> ArgumentParser:
                    help="cells outside the fitted surface: nearest (extend the surface to the walls, "
                         "default) or leave (no volume there, the paper's method)")
     r.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    r.add_argument("--surface-fit", choices=SURFACE_FITS, default=DEFAULT_SURFACE_FIT,
+                   help="cubic-limited (default: the cubic, kept within each triangle's data, robust to noise), "
+                        "cubic (the paper's MATLAB 'cubicinterp'), or linear")
     r.add_argument("--no-despike", action="store_true",
                    help="keep isolated one- or two-sample range spikes (default: left out, with a threshold "
                         "derived from the log header; see ground/despike.py)")
@@ -73,7 +76,8 @@ def _report(args) -> int:
     if args.truth_volume is not None and args.truth_volume <= 0:
         raise UserError(f"--truth-volume must be > 0 m^3, got {args.truth_volume:g}")
     opts = ReportOptions(cell_m=args.cell, empty_cells=args.empty_cells, plots=not args.no_plots,
-                         truth_volume_m3=args.truth_volume, despike=not args.no_despike)
+                         truth_volume_m3=args.truth_volume, despike=not args.no_despike,
+                         surface_fit=args.surface_fit)
     rep = make_report(args.source, args.out, opts)
     if not args.quiet:
         print(format_summary(rep))

@@ -22,6 +22,7 @@ from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_s
 from ground.surface import (
     DEFAULT_CELL_M,
     DEFAULT_EMPTY_CELLS,
+    DEFAULT_SURFACE_FIT,
     Grid,
     clip_to_building,
     fill_empty,
@@ -43,6 +44,7 @@ class ReportOptions:
     empty_cells: str = DEFAULT_EMPTY_CELLS
     plots: bool = True
     truth_volume_m3: float | None = None
+    surface_fit: str = DEFAULT_SURFACE_FIT  # ground.surface.SURFACE_FITS ("cubic" is the paper's)
     servo_retiming: bool = True  # re-estimate the servo's timing when the sweeps disagree (ground.servo_timing)
     despike: bool = True  # leave out isolated one-/two-sample range spikes (ground.despike; threshold from the header)
 
@@ -161,7 +163,7 @@ def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageF
     structure = structure_mask(cloud, storage, SensorErrorModel.from_header(header))
     pile = cloud.points_w[~structure]
     grid = Grid(storage.length_m, storage.width_m, opts.cell_m)
-    fit, n_clipped = clip_to_building(fit_heights(pile, grid), storage.height_m)
+    fit, n_clipped = clip_to_building(fit_heights(pile, grid, opts.surface_fit), storage.height_m)
     disagreement = None
     if cloud.sweep_dir is not None:
         disagreement, _ = sweep_disagreement_m(pile, cloud.sweep_dir[~structure], grid)
@@ -223,6 +225,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "cell_size_m": g.length_m / g.shape[0],
         "cell_area_m2": g.cell_area_m2,
         "empty_cell_policy": opts.empty_cells,
+        "surface_fit": opts.surface_fit,
         "n_cells_clipped": survey.n_cells_clipped,
         "n_samples_servo_suspect": survey.cloud.n_servo_suspect,
         "n_samples_spikes": survey.cloud.n_spikes,

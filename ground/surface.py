@@ -1,8 +1,15 @@
 """Surface over the floor and the grid volume: eqs. (7)-(9).
 
 The surface is a scattered-data cubic (Clough-Tocher on the Delaunay triangulation of the
-points), the analogue of MATLAB's `fit(..., 'cubicinterp')` the paper used. It exists only inside
-the convex hull of the points; what happens to cells outside it is the empty-cell policy:
+points), the analogue of MATLAB's `fit(..., 'cubicinterp')` the paper used, by default limited:
+in each triangle it may not leave the range of its three points' heights (``cubic-limited``).
+With exact points the limit almost never bites; with noisy ones (a 1° servo angle error moves a
+far point 0.3-0.5 m) the cubic's gradients, estimated from points that contradict each other,
+carry it metres past its data across the long triangles between sparse tracks, and the limiter
+is what keeps Appendix A's noise from costing several percent of volume (docs/design-notes.md).
+``cubic`` is the paper's unlimited fit, ``linear`` the piecewise-planar one. The surface exists
+only inside the convex hull of the points; what happens to cells outside it is the empty-cell
+policy:
 
 - ``nearest`` (default): extend the surface to the walls with the nearest reconstructed cell's
   height, the usual survey practice: the walls bound the pile, and a pile that leans on them
@@ -21,10 +28,12 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
-from scipy.interpolate import CloughTocher2DInterpolator
+from scipy.interpolate import CloughTocher2DInterpolator, LinearNDInterpolator
 from scipy.spatial import Delaunay, QhullError
 from threadpoolctl import threadpool_limits
 
+SURFACE_FITS = ("cubic-limited", "cubic", "linear")
+DEFAULT_SURFACE_FIT = "cubic-limited"
 EMPTY_CELL_POLICIES = ("nearest", "leave")
 DEFAULT_EMPTY_CELLS = "nearest"
 DEFAULT_CELL_M = 0.25
@@ -77,8 +86,11 @@ class Grid:
         return c.astype(np.int64)
 
 
-def fit_heights(points_w: np.ndarray, grid: Grid) -> np.ndarray:
-    """Clough-Tocher surface through the points, sampled at the cell centres; NaN outside the hull."""
+def fit_heights(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_SURFACE_FIT) -> np.ndarray:
+    """The surface through the points (module docstring: SURFACE_FITS), sampled at the cell centres;
+    NaN outside the hull."""
+    if method not in SURFACE_FITS:
+        raise ValueError(f"surface fit must be one of {', '.join(SURFACE_FITS)}, got {method!r}")
     heights = np.full(grid.shape, np.nan)
     if len(points_w) < 3:
         return heights
@@ -90,9 +102,18 @@ def fit_heights(points_w: np.ndarray, grid: Grid) -> np.ndarray:
             tri = Delaunay(xy)
         except (QhullError, ValueError):  # all points collinear or coincident: no surface
             return heights
-        surface = CloughTocher2DInterpolator(tri, points_w[:, 2])
+        z = np.asarray(points_w[:, 2], dtype=float)
         cx, cy = grid.centres()
-        return surface(cx, cy)
+        if method == "linear":
+            return LinearNDInterpolator(tri, z)(cx, cy)
+        heights = CloughTocher2DInterpolator(tri, z)(cx, cy)
+        if method == "cubic":
+            return heights
+        simplex = tri.find_simplex(np.column_stack([cx.ravel(), cy.ravel()])).reshape(cx.shape)
+        inside = simplex >= 0
+        zv = z[tri.simplices[simplex[inside]]]  # (n, 3) heights of each cell's triangle
+        heights[inside] = np.clip(heights[inside], zv.min(axis=1), zv.max(axis=1))
+        return heights
 
 
 def clip_to_building(heights: np.ndarray, height_m: float, tolerance_m: float = 0.5) -> tuple[np.ndarray, int]:

@@ -37,9 +37,10 @@ from sitl.run import PLANTS, FlyConfig, log_header
 from sitl.stockpile import paper_pile
 from tools.sweep import Case, cached
 
-SWEEP_VERSION = "3"
+SWEEP_VERSION = "4"
 """Part of every case key: bump it when the simulation or the ground station changes what a case
-computes (the cache cannot see code). 3: runaway surface cells are emptied, not clamped to the floor."""
+computes (the cache cannot see code). 3: runaway surface cells are emptied, not clamped to the floor;
+4: the cubic surface is limited to its triangles' data by default, despiking, servo re-timing."""
 FLIGHT_VERSION = "2"
 """Part of every flight key. 2: the autopilot flies towards the target through corners."""
 P_TRAJ_PCT = (5, 10, 15, 20, 25, 30)

@@ -67,10 +67,41 @@ def test_that_contradictory_points_overshoot_and_their_cells_are_emptied_and_cou
     # The floor "seen" 2 mm from points on the top: what a LiDAR buried in the pile reports.
     floor = np.column_stack([line, np.zeros(200)])
     above = np.column_stack([line + np.array([0.0, 0.002]), np.ones(200)])
-    raw = fit_heights(np.vstack([top, floor, above]), Grid(20, 20, 0.25))
-    assert np.nanmin(raw) < -1.0 or np.nanmax(raw) > 10.0  # the cubic runs away
+    pts = np.vstack([top, floor, above])
+    raw = fit_heights(pts, Grid(20, 20, 0.25), "cubic")
+    assert np.nanmin(raw) < -1.0 or np.nanmax(raw) > 10.0  # the paper's cubic runs away
+    limited = fit_heights(pts, Grid(20, 20, 0.25))  # the default keeps each triangle within its data
+    assert np.nanmin(limited) >= 0.0 and np.nanmax(limited) <= 1.0
+    assert np.array_equal(np.isnan(limited), np.isnan(raw))
     h, n_off = clip_to_building(raw, 8.0)
     assert n_off > 0 and np.nanmin(h) >= -0.5 and np.nanmax(h) <= 8.5
     assert np.isnan(h).sum() == np.isnan(raw).sum() + n_off  # those cells are uncovered now
     small = np.array([[-0.2, 8.3, np.nan, 1.0]])
     assert np.array_equal(clip_to_building(small, 8.0)[0], small, equal_nan=True)  # noise-level dips stay
+
+
+@pytest.mark.parametrize("method", ["cubic-limited", "cubic", "linear"])
+def test_that_every_fit_is_exact_on_a_plane(method):
+    rng = np.random.default_rng(1)
+    xy = np.vstack([rng.uniform(0, 10, (400, 2)) * [1, 0.5], [[0, 0], [10, 0], [0, 5], [10, 5]]])
+    g = Grid(10, 5, 0.25)
+    h = fit_heights(np.column_stack([xy, 2.0 + 0.3 * xy[:, 0] - 0.1 * xy[:, 1]]), g, method)
+    assert grid_volume(h, g) == pytest.approx(50 * 2.0 + 0.3 * 50 * 5 - 0.1 * 10 * 12.5, rel=1e-9)
+
+
+def test_that_the_limited_cubic_keeps_the_cubic_on_a_smooth_dome_and_tames_noise():
+    rng = np.random.default_rng(2)
+    xy = rng.uniform(0, 20, (3000, 2))
+    dome = 5.0 * np.exp(-((xy[:, 0] - 10) ** 2 + (xy[:, 1] - 10) ** 2) / 30.0)
+    g = Grid(20, 20, 0.25)
+    exact = {m: fit_heights(np.column_stack([xy, dome]), g, m) for m in ("cubic-limited", "cubic")}
+    assert np.nanmax(np.abs(exact["cubic-limited"] - exact["cubic"])) < 0.02  # the limit hardly bites
+    noisy = np.column_stack([xy + rng.normal(0, 0.2, xy.shape), dome + rng.normal(0, 0.2, len(dome))])
+    lim, cub = fit_heights(noisy, g), fit_heights(noisy, g, "cubic")
+    assert np.nanmax(lim) <= noisy[:, 2].max() and np.nanmin(lim) >= noisy[:, 2].min()
+    assert np.nanmax(np.abs(cub - lim)) > 0.05  # the unlimited one overshoots somewhere
+
+
+def test_that_an_unknown_fit_is_refused():
+    with pytest.raises(ValueError, match="surface fit"):
+        fit_heights(np.zeros((5, 3)), Grid(10, 10, 1.0), "spline")
