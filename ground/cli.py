@@ -32,6 +32,9 @@ def build_parser() -> ArgumentParser:
     r.add_argument("--no-despike", action="store_true",
                    help="keep isolated one- or two-sample range spikes (default: left out, with a threshold "
                         "derived from the log header; see ground/despike.py)")
+    r.add_argument("--no-servo-retiming", action="store_true",
+                   help="when the two sweep directions disagree, only warn (default: re-estimate the servo's dead "
+                        "time and speed from the sweeps and use them if they agree; see ground/servo_timing.py)")
     r.add_argument("--quiet", action="store_true", help="print nothing but errors")
     ls = sub.add_parser("listen", help="receive the payload's live sample stream (pilescan-payload --stream) "
                                        "into a sample log, with a status line and a summary")
@@ -77,7 +80,7 @@ def _report(args) -> int:
         raise UserError(f"--truth-volume must be > 0 m^3, got {args.truth_volume:g}")
     opts = ReportOptions(cell_m=args.cell, empty_cells=args.empty_cells, plots=not args.no_plots,
                          truth_volume_m3=args.truth_volume, despike=not args.no_despike,
-                         surface_fit=args.surface_fit)
+                         surface_fit=args.surface_fit, servo_retiming=not args.no_servo_retiming)
     rep = make_report(args.source, args.out, opts)
     if not args.quiet:
         print(format_summary(rep))

@@ -31,6 +31,18 @@ def test_that_the_report_command_prints_the_summary(run_dir, tmp_path, capsys):
     assert "Ve (eq. 8)" in out and "R_a (eq. 9)" in out
 
 
+def test_that_the_ground_options_reach_the_report(run_dir, tmp_path, capsys):
+    assert main(["report", str(run_dir), "--out", str(tmp_path / "r"), "--no-plots", "--surface-fit", "linear",
+                 "--no-despike", "--no-servo-retiming"]) == 0
+    rep = json.loads((tmp_path / "r" / "report.json").read_text())
+    assert rep["surface_fit"] == "linear" and rep["despike"] is False
+    assert main(["report", str(run_dir), "--out", str(tmp_path / "d"), "--no-plots"]) == 0
+    assert json.loads((tmp_path / "d" / "report.json").read_text())["surface_fit"] == "cubic-limited"
+    capsys.readouterr()
+    _one_line_error(capsys, ["report", str(run_dir), "--out", str(tmp_path / "x"), "--surface-fit", "spline"],
+                    "--surface-fit")
+
+
 def test_that_bad_inputs_fail_cleanly(run_dir, tmp_path, capsys):
     out = str(tmp_path / "r")
     _one_line_error(capsys, ["report", str(tmp_path / "missing"), "--out", out], "no such run")

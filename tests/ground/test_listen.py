@@ -20,24 +20,16 @@ import pytest
 from firmware_py.cli_util import UserError
 from firmware_py.hal.signing import signing_timestamp
 from firmware_py.live_stream import LiveStreamSender, encode_datagram
-from firmware_py.samplelog import SampleLogWriter, new_records, read_samplelog
+from firmware_py.samplelog import SampleLogWriter, read_samplelog
 from ground.cli import main
 from ground.listen import LIVE_SOURCE, ListenConfig, Listener, format_summary, load_header, parse_peer
+from tests.firmware_py.test_live_stream import records
 from tests.ground.test_report_fuzz import BASE_HEADER
 
 KEY = bytes(range(1, 33))
 OTHER = bytes(range(2, 34))
 
 
-def records(n: int, t0: float = 0.0) -> np.ndarray:
-    r = new_records(n)
-    r["t_s"] = t0 + np.arange(n) * 0.002
-    r["range_m"] = 5.0 + np.arange(n) * 0.01
-    r["servo_rad"] = np.linspace(-1, 1, n)
-    r["sweep_dir"] = 1
-    r["flags"] = np.arange(n) % 3 == 0
-    r["x_m"], r["y_m"], r["z_m"] = 1.0, 2.0, -12.0
-    return r
 
 
 @contextlib.contextmanager
