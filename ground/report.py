@@ -134,12 +134,12 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     real motion is re-estimated from the sweeps; if that brings them into agreement the survey is
     computed with the re-estimated angles (and says so), else it stays marked untrustworthy.
     """
-    survey = _survey(samples, header, storage, frame, lever, opts)
+    err = SensorErrorModel.from_header(header)
+    spikes = SpikeThreshold.from_header(header) if opts.despike else None
+    survey = _survey(samples, header, storage, frame, lever, opts, err, spikes)
     before = survey.sweep_disagreement_m
     if not (opts.servo_retiming and before is not None and before > MAX_SWEEP_DISAGREEMENT_M):
         return survey
-    err = SensorErrorModel.from_header(header)
-    spikes = SpikeThreshold.from_header(header) if opts.despike else None
 
     def disagreement(s: np.ndarray) -> float | None:  # the survey's cloud, less the stuck-servo check (range-only)
         cloud = cloud_from_samples(s, lever, frame, spike_threshold=spikes)
@@ -152,15 +152,15 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     timing = estimate_servo_timing(samples, disagreement, before, motion, floor_m=floor or 0.0)
     if timing is None or timing.disagreement_after_m > MAX_SWEEP_DISAGREEMENT_M:
         return replace(survey, servo_timing=timing)
-    fixed = _survey(motion.apply(samples, timing.delay_s, timing.gain), header, storage, frame, lever, opts)
+    fixed = _survey(motion.apply(samples, timing.delay_s, timing.gain), header, storage, frame, lever, opts, err,
+                    spikes)
     return replace(fixed, servo_timing=timing, servo_retimed=True)
 
 
 def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame, lever: np.ndarray,
-            opts: ReportOptions) -> Survey:
-    spikes = SpikeThreshold.from_header(header) if opts.despike else None
+            opts: ReportOptions, err: SensorErrorModel, spikes: SpikeThreshold | None) -> Survey:
     cloud = cloud_from_samples(samples, lever, frame, sweep_period_s=_sweep_period_s(header), spike_threshold=spikes)
-    structure = structure_mask(cloud, storage, SensorErrorModel.from_header(header))
+    structure = structure_mask(cloud, storage, err)
     pile = cloud.points_w[~structure]
     grid = Grid(storage.length_m, storage.width_m, opts.cell_m)
     fit, n_clipped = clip_to_building(fit_heights(pile, grid, opts.surface_fit), storage.height_m)

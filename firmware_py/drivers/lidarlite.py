@@ -450,24 +450,11 @@ class LidarLite:
         """
         if self._pending is not None:
             raise RuntimeError("reset() during a measurement: call measure_finish() first")
-        self._reloaded_at_ns = None  # this one waits: it supersedes an automatic reset under way
-        self.counters["resets"] += 1
-        log.warning("resetting the LIDAR-Lite at 0x%02x", self.config.address)
-        ok = True
-        try:
-            self._write_reg(_REG_ACQ_COMMAND, _CMD_RESET)
-        except I2CError as exc:
-            self._config_error("reset command", exc)
-            ok = False
-        self.clock.sleep_until_ns(self.clock.now_ns() + self.config.reset_wait_ns)
-        try:
-            self.configure()
-        except I2CError as exc:
-            self._config_error("configuring after reset", exc)
-            ok = False
-        self._bias_countdown = 0
-        self._failure_run = self._no_valid_run = 0
-        return ok
+        errors = self.counters["config_errors"]
+        self._start_reset()  # this one waits: it supersedes an automatic reset under way
+        self.clock.sleep_until_ns(self._reloaded_at_ns)
+        self._finish_reset()
+        return self.counters["config_errors"] == errors
 
     def _start_reset(self) -> None:
         """The automatic reset, without blocking: the reset command now, the preset once the part
