@@ -43,7 +43,15 @@ from typing import Any, TextIO
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from firmware_py.cli_util import UserError
+from firmware_py.core.cli import UserError
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.header import build_log_header, sensor_spec
+from firmware_py.core.samplelog import SampleFlags, SampleLogWriter
+from firmware_py.core.sensor import LIDARLITE_V3
+from firmware_py.core.servo_model import PWM_FRAME_S, ServoCalibration
+from firmware_py.core.storage import Storage
+from firmware_py.core.stream_format import MAX_RECORDS, parse_stream_url
+from firmware_py.core.waveform import Waveform, named_waveform
 from firmware_py.drivers.lidarlite import (
     DEFAULT_ADDRESS,
     PRESET_FAST_500HZ,
@@ -52,8 +60,7 @@ from firmware_py.drivers.lidarlite import (
     busy_deadline_ns,
     preset_by_name,
 )
-from firmware_py.drivers.servo import PWM_FRAME_S, ServoCalibration, SweepServo
-from firmware_py.frames import StorageFrame
+from firmware_py.drivers.servo import SweepServo
 from firmware_py.hal import Clock, I2CBus, MavlinkLink, PwmOutput
 from firmware_py.hal.backends import open_i2c, parse_i2c_url
 from firmware_py.hal.bridge import check_bridge_key
@@ -61,15 +68,11 @@ from firmware_py.hal.clock import MonotonicClock
 from firmware_py.hal.mavlink_link import mavutil_device, open_mavlink
 from firmware_py.hal.pwm import check_pwm_url, open_pwm
 from firmware_py.hal.signing import SigningConfig
-from firmware_py.header import build_log_header, sensor_spec
 from firmware_py.health import HealthMonitor, HealthSnapshot
-from firmware_py.live_stream import MAX_RECORDS, LiveStreamSender, parse_stream_url
+from firmware_py.live_stream import LiveStreamSender
 from firmware_py.payload import LoopConfig, LoopStats, PayloadLoop
 from firmware_py.pose import set_gps_global_origin_msg
 from firmware_py.pose_tracker import PoseTracker, PoseTrackerConfig
-from firmware_py.samplelog import SampleFlags, SampleLogWriter
-from firmware_py.servo_waveform import Waveform, named_waveform
-from firmware_py.storage import Storage
 
 PROG = "pilescan-payload"
 DEFAULT_MAVLINK_URL = "udpout:127.0.0.1:14550"
@@ -141,8 +144,8 @@ class PayloadConfig:
     storage: Storage = field(default_factory=Storage)
     frame: StorageFrame = field(default_factory=StorageFrame)
     lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10)
-    range_sigma_m: float = 0.025
-    range_sigma_rel: float = 0.01
+    range_sigma_m: float = LIDARLITE_V3.range_sigma_m
+    range_sigma_rel: float = LIDARLITE_V3.range_sigma_rel
     duration_s: float | None = None
     stop_on_disarm: bool = False
     stream_url: str | None = None
@@ -237,7 +240,7 @@ class PayloadConfig:
                            range_sigma_m=self.range_sigma_m, range_sigma_rel=self.range_sigma_rel)
 
     def log_header(self, sweep_t0_s: float | None = None) -> dict[str, Any]:
-        """The sample-log header (`firmware_py.header`), with the payload's hardware setup appended.
+        """The sample-log header (`firmware_py.core.header`), with the payload's hardware setup appended.
 
         sweep_t0_s: when the servo sweep starts, on the samples' clock; with the calibration it lets
         the ground station re-simulate the servo (`ground.servo_timing`) if the real one differs.

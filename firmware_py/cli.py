@@ -18,12 +18,13 @@ from firmware_py.app import (
     PayloadApp,
     PayloadConfig,
 )
-from firmware_py.cli_util import ArgumentParser, UserError, finite_float, run_cli, stop_on_signals
+from firmware_py.core.cli import ArgumentParser, UserError, finite_float, run_cli, stop_on_signals
+from firmware_py.core.keys import load_key
+from firmware_py.core.storage import Storage
+from firmware_py.core.waveform import N_PHASES
 from firmware_py.drivers.lidarlite import PRESETS
 from firmware_py.hal.bridge import parse_tcp_url
-from firmware_py.hal.signing import SigningConfig, load_key
-from firmware_py.servo_waveform import N_PHASES
-from firmware_py.storage import Storage
+from firmware_py.hal.signing import SigningConfig
 
 _HAL_RE = re.compile(r"sitl:(?P<host>[^\s:]+):(?P<port>\d{1,5})")
 

@@ -23,9 +23,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from firmware_py.core.samplelog import SAMPLE_DTYPE, SampleFlags, SampleLogWriter
 from firmware_py.drivers.servo import SweepServo
 from firmware_py.hal import Clock
-from firmware_py.samplelog import SAMPLE_DTYPE, SampleFlags, SampleLogWriter
 
 _NO_RETURN, _SENSOR_ERROR = int(SampleFlags.NO_RETURN), int(SampleFlags.SENSOR_ERROR)
 _NO_POSE, _STALE_POSE = int(SampleFlags.NO_POSE), int(SampleFlags.STALE_POSE)

@@ -24,7 +24,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from firmware_py.samplelog import SampleFlags
+from firmware_py.core.samplelog import SampleFlags
 
 _NAN = float("nan")
 _NAN3 = (_NAN, _NAN, _NAN)

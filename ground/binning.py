@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from firmware_py.storage import Storage
+from firmware_py.core.storage import Storage
 from ground.pointcloud import N_SIGMA, Cloud, SensorErrorModel, structure_mask
 from ground.report import ReportOptions, Survey
 from ground.surface import Grid, clip_to_building, fill_empty, fit_heights

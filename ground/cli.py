@@ -6,7 +6,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Sequence
 
-from firmware_py.cli_util import ArgumentParser, UserError, finite_float, run_cli
+from firmware_py.core.cli import ArgumentParser, UserError, finite_float, run_cli
 from ground import listen
 from ground.report import ReportOptions, make_report
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS

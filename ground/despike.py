@@ -71,7 +71,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware_py.servo_waveform import peak_rate
+from firmware_py.core.waveform import peak_rate
 
 N_SIGMA = 4.0
 """Noise allowance of T and A, in sigmas of the difference of two samples (1e-6 false positives per sample)."""

@@ -2,7 +2,7 @@
 
 Receives the PSLV datagrams (`firmware_py.live_stream`), shows a one-line status about once a second
 (records, rate, lost and late datagrams, datagrams refused by reason) and appends the records to a
-sample log (`firmware_py.samplelog`, the same format the payload writes on the drone), until SIGINT /
+sample log (`firmware_py.core.samplelog`, the same format the payload writes on the drone), until SIGINT /
 SIGTERM or `--duration`; then a summary. The drone's own log stays the record: the stream is UDP, so
 datagrams can be lost (counted from sequence gaps), and the live log holds what arrived, in arrival
 order (a datagram reordered by the network lands late; a duplicate of an unauthenticated datagram is
@@ -39,11 +39,12 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from firmware_py.cli_util import UserError, stop_on_signals
-from firmware_py.hal.signing import load_key
-from firmware_py.header import software_version, utc_now_iso
-from firmware_py.live_stream import LiveStreamReceiver, PeerSpec, parse_stream_url
-from firmware_py.samplelog import FORMAT_NAME, MAGIC, SAMPLE_DTYPE, SampleLogWriter, read_samplelog
+from firmware_py.core.cli import UserError, stop_on_signals
+from firmware_py.core.header import software_version, utc_now_iso
+from firmware_py.core.keys import load_key
+from firmware_py.core.samplelog import FORMAT_NAME, MAGIC, SAMPLE_DTYPE, SampleLogWriter, read_samplelog
+from firmware_py.core.stream_format import parse_stream_url
+from ground.live_receiver import LiveStreamReceiver, PeerSpec
 
 PROG = "pilescan-ground listen"
 STATUS_PERIOD_S = 1.0

@@ -14,11 +14,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware_py.frames import StorageFrame, beam_rays_w
-from firmware_py.samplelog import EXCLUDE_FROM_CLOUD
-from firmware_py.storage import Storage
-from firmware_py.sweep_check import stuck_sweep_mask
+from firmware_py.core.frames import StorageFrame, beam_rays_w
+from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
+from firmware_py.core.storage import Storage
 from ground.despike import SpikeThreshold, spike_mask
+from ground.sweep_check import stuck_sweep_mask
 
 N_SIGMA = 3.0
 """Points within N_SIGMA expected errors of a wall or roof plane are taken as structure."""
@@ -84,7 +84,7 @@ def cloud_from_samples(samples: np.ndarray, lever_arm_body_m, frame: StorageFram
     With a spike threshold, isolated one- or two-sample range spikes are excluded first
     (`ground.despike`: a range no surface could give between its neighbours'). With the servo's sweep
     period, samples in periods where the ranges do not move like a swept beam's (a stuck servo:
-    `firmware_py.sweep_check`) are excluded too: their angles are wrong.
+    `ground.sweep_check`) are excluded too: their angles are wrong.
     """
     pos = np.column_stack([samples["x_m"], samples["y_m"], samples["z_m"]]).astype(float)
     fields = [samples[k].astype(float) for k in ("roll_rad", "pitch_rad", "yaw_rad", "servo_rad", "range_m")]

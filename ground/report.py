@@ -10,11 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
-import firmware_py
-from firmware_py.cli_util import UserError
-from firmware_py.frames import StorageFrame
-from firmware_py.samplelog import SampleLog, read_samplelog
-from firmware_py.storage import Storage
+from firmware_py.core.cli import UserError
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.rundir import SAMPLES_FILE, TRUTH_FILE
+from firmware_py.core.samplelog import SampleLog, read_samplelog
+from firmware_py.core.storage import Storage
+from firmware_py.core.version import software_version
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
 from ground.despike import SpikeThreshold
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask
@@ -32,8 +33,6 @@ from ground.surface import (
     volume_error_pct,
 )
 
-SAMPLES_FILE = "samples.pslog"
-TRUTH_FILE = "truth.json"
 LOW_COVERAGE_PCT = 95.0
 HIGH_EXCLUDED_FRACTION = 0.5
 
@@ -240,7 +239,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "log": {"blocks_ok": log.blocks_ok, "blocks_corrupt": log.blocks_corrupt,
                 "blocks_truncated": log.blocks_truncated, "bytes_skipped": log.bytes_skipped},
         "warnings": warnings,
-        "software_version": f"pilescan {firmware_py.__version__}",
+        "software_version": software_version(),
     }
 
 

@@ -32,8 +32,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from firmware_py.drivers.servo import ServoCalibration, modelled_sweep
-from firmware_py.servo_waveform import Waveform
+from firmware_py.core.servo_model import ServoCalibration, modelled_sweep
+from firmware_py.core.waveform import Waveform
 
 DELAY_RANGE_S = (-0.05, 0.15)
 """Dead times searched: a faster-than-modelled servo leads (d < 0); 150 ms is 3 pulse periods at

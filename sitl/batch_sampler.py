@@ -10,43 +10,13 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from firmware_py.drivers.servo import ServoCalibration, modelled_sweep
-from firmware_py.frames import StorageFrame, beam_rays_w
-from firmware_py.samplelog import SAMPLE_DTYPE, SampleFlags
-from firmware_py.servo_waveform import Waveform
+from firmware_py.core.frames import StorageFrame, beam_rays_w
+from firmware_py.core.samplelog import SAMPLE_DTYPE, SampleFlags
+from firmware_py.core.sensor import LIDARLITE_V3_NO_RETURN_M, RangefinderSpec
+from firmware_py.core.servo_model import ServoCalibration, modelled_sweep
+from firmware_py.core.waveform import Waveform
 from sitl.ideal_plant import Trajectory
-from sitl.raycast import LIDAR_MAX_RANGE_M, World
-
-NO_RETURN_READING_M = 0.01
-"""What a LIDAR-Lite v3 reads when no echo comes back: 1 cm."""
-
-
-@dataclass(frozen=True)
-class LidarSpec:
-    """The single-point LiDAR (defaults: Garmin LIDAR-Lite v3, Table 1 and its datasheet).
-
-    range_sigma_m / range_sigma_rel describe the datasheet accuracy (+-2.5 cm below 5 m, ~1 %
-    beyond); they travel in the log header so the ground station can size its tolerances.
-    """
-
-    model: str = "Garmin LIDAR-Lite v3"
-    rate_hz: float = 500.0
-    max_range_m: float = LIDAR_MAX_RANGE_M
-    resolution_m: float = 0.01
-    range_sigma_m: float = 0.025
-    range_sigma_rel: float = 0.01
-    beam_divergence_rad: float = 0.008
-
-    def __post_init__(self) -> None:
-        for name in ("rate_hz", "max_range_m"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"LiDAR {name} must be > 0, got {v}")
-        if not (np.isfinite(self.resolution_m) and self.resolution_m >= 0):
-            raise ValueError(f"LiDAR resolution must be >= 0 m, got {self.resolution_m}")
-
-    def to_dict(self) -> dict:
-        return asdict(self)
+from sitl.raycast import World
 
 
 @dataclass(frozen=True)
@@ -66,7 +36,7 @@ class NoiseSpec:
                 raise ValueError(f"noise {name} must be finite and >= 0, got {v}")
 
 
-def sample_flight(traj: Trajectory, waveform: Waveform, world: World, lidar: LidarSpec,
+def sample_flight(traj: Trajectory, waveform: Waveform, world: World, lidar: RangefinderSpec,
                   lever_arm_body_m, frame: StorageFrame, servo: ServoCalibration | None = None,
                   servo_t0_s: float = 0.0, noise: NoiseSpec | None = None,
                   rng: np.random.Generator | None = None) -> np.ndarray:
@@ -95,7 +65,7 @@ def sample_flight(traj: Trajectory, waveform: Waveform, world: World, lidar: Lid
     no_ret = ~np.isfinite(r)
     rec = np.zeros(len(traj.t_s), dtype=SAMPLE_DTYPE)
     rec["t_s"] = traj.t_s
-    rec["range_m"] = np.where(no_ret, NO_RETURN_READING_M, r)
+    rec["range_m"] = np.where(no_ret, LIDARLITE_V3_NO_RETURN_M, r)
     rec["servo_rad"] = gamma
     rec["sweep_dir"] = waveform.sweep_direction(traj.t_s)
     rec["flags"] = np.where(no_ret, int(SampleFlags.NO_RETURN), 0)

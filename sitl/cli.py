@@ -12,10 +12,10 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from firmware_py.cli_util import ArgumentParser, UserError, finite_float, run_cli
-from firmware_py.frames import StorageFrame
-from firmware_py.servo_waveform import N_PHASES
-from firmware_py.storage import Storage
+from firmware_py.core.cli import ArgumentParser, UserError, finite_float, run_cli
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.storage import Storage
+from firmware_py.core.waveform import N_PHASES
 from sitl.faults import FaultSpec
 from sitl.mission import TURN_MODES, Mission
 from sitl.mission_plan import write_qgc_wpl
@@ -134,7 +134,8 @@ def _plan(args) -> int:
 
 
 def _signing(args):
-    from firmware_py.hal.signing import SigningConfig, load_key
+    from firmware_py.core.keys import load_key
+    from firmware_py.hal.signing import SigningConfig
     if args.signing_key is None:
         if args.allow_unsigned:
             raise UserError("--allow-unsigned needs --signing-key")

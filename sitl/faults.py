@@ -300,7 +300,7 @@ def wrongly_tagged(records: np.ndarray, true_t_s: np.ndarray, true_states: np.nd
     lossy link and the time-sync error (about a centimetre and a tenth of a degree here); a sample
     tagged with an old pose misses by the distance flown meanwhile (1 m/s: 10 cm per 100 ms).
     """
-    from firmware_py.samplelog import EXCLUDE_FROM_CLOUD
+    from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
 
     ok = (records["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0
     r = records[ok]

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_py.frames import StorageFrame
+from firmware_py.core.frames import StorageFrame
 from sitl.ideal_plant import Trajectory, wrap_pi
 from sitl.jsbsim_plant import PlantConfig
 from sitl.jsbsim_vehicle import JsbsimVehicle, VehicleConfig

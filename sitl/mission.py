@@ -20,7 +20,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from firmware_py.storage import Storage
+from firmware_py.core.storage import Storage
 
 TURN_MODES = ("one-step", "two-step")
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_py.frames import StorageFrame
+from firmware_py.core.frames import StorageFrame
 from sitl.mavlink_vehicle import ned_to_global
 from sitl.mission import Mission
 

@@ -26,8 +26,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from firmware_py.drivers.servo import ServoCalibration
-from firmware_py.frames import StorageFrame
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.servo_model import ServoCalibration
 from sitl.devices.bridge_server import DeviceBridgeServer, parse_bridge_url
 from sitl.devices.i2c_sim import SimI2CBus
 from sitl.devices.lidarlite_emu import ADDRESS, EmulatedLidarLite

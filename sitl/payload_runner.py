@@ -20,7 +20,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from firmware_py.frames import StorageFrame, beam_ray_w
+from firmware_py.core.frames import StorageFrame, beam_ray_w
 from firmware_py.hal.clock import SimClock
 from sitl.autopilot import wrap_pi
 from sitl.jsbsim_vehicle import JsbsimVehicle
@@ -207,12 +207,13 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     `signing_key` both ends sign (MAVLink 2) and refuse what is not, each stamping with its own
     simulated wall clock (the companion's can jump: the clock_jump fault).
     """
+    from firmware_py.core.samplelog import SampleLogWriter, read_samplelog
+    from firmware_py.core.servo_model import ServoCalibration
     from firmware_py.drivers.lidarlite import PRESET_FAST_500HZ, LidarLite, LidarLiteConfig, busy_deadline_ns
-    from firmware_py.drivers.servo import ServoCalibration, SweepServo
+    from firmware_py.drivers.servo import SweepServo
     from firmware_py.hal.mavlink_link import ByteStreamLink
     from firmware_py.payload import LoopConfig, PayloadLoop
     from firmware_py.pose_tracker import PoseTracker
-    from firmware_py.samplelog import SampleLogWriter, read_samplelog
     from sitl import stockpile as piles
     from sitl.devices.i2c_sim import SimI2CBus
     from sitl.devices.lidarlite_emu import EmulatedLidarLite

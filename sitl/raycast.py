@@ -13,10 +13,10 @@ import numpy as np
 from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
 
-from firmware_py.storage import Storage
+from firmware_py.core.sensor import LIDARLITE_V3
+from firmware_py.core.storage import Storage
 from sitl.stockpile import Stockpile
 
-LIDAR_MAX_RANGE_M = 40.0
 """Garmin LIDAR-Lite v3 range (Table 1)."""
 
 GEOM_BUILDING, GEOM_PILE = 0, 1
@@ -44,7 +44,7 @@ class World:
     """Storage + stockpile, queried with rays in the storage frame W."""
 
     def __init__(self, storage: Storage, pile: Stockpile | None = None,
-                 max_range_m: float = LIDAR_MAX_RANGE_M) -> None:
+                 max_range_m: float = LIDARLITE_V3.max_range_m) -> None:
         if not (np.isfinite(max_range_m) and max_range_m > 0):
             raise ValueError(f"max range must be > 0 m, got {max_range_m}")
         self.storage = storage

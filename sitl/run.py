@@ -17,13 +17,15 @@ from pathlib import Path
 
 import numpy as np
 
-import firmware_py
-from firmware_py.frames import StorageFrame
-from firmware_py.header import build_log_header
-from firmware_py.samplelog import SampleLogWriter
-from firmware_py.servo_waveform import Waveform, initial_position, named_waveform
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.header import build_log_header
+from firmware_py.core.rundir import PILE_FILE, PLAN_FILE, SAMPLES_FILE, TLOG_FILE, TRUTH_FILE
+from firmware_py.core.samplelog import SampleLogWriter
+from firmware_py.core.sensor import LIDARLITE_V3, RangefinderSpec
+from firmware_py.core.version import software_version
+from firmware_py.core.waveform import Waveform, initial_position, named_waveform
 from sitl import stockpile as piles
-from sitl.batch_sampler import LidarSpec, sample_flight
+from sitl.batch_sampler import sample_flight
 from sitl.faults import FaultSpec
 from sitl.flight import PAYLOAD_1D_KG, fly_mission
 from sitl.ideal_plant import IdealPlant, Trajectory
@@ -31,11 +33,6 @@ from sitl.mission import Mission
 from sitl.mission_plan import write_qgc_wpl
 from sitl.raycast import World
 
-SAMPLES_FILE = "samples.pslog"
-TRUTH_FILE = "truth.json"
-PILE_FILE = "pile.stl"
-TLOG_FILE = "telemetry.tlog"
-PLAN_FILE = "mission.waypoints"
 PLANTS = ("jsbsim", "ideal")
 PAYLOADS = ("batch", "firmware")
 
@@ -56,7 +53,7 @@ class FlyConfig:
     seed: int = 0
     lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10)
     frame: StorageFrame = field(default_factory=StorageFrame)
-    lidar: LidarSpec = field(default_factory=LidarSpec)
+    lidar: RangefinderSpec = LIDARLITE_V3
     faults: FaultSpec | None = None  # fault injection (sitl.faults), firmware payload only
 
     def __post_init__(self) -> None:
@@ -129,7 +126,7 @@ def truth_record(pile: piles.Stockpile, stockpile: str, mission: Mission, frame:
         "payload": payload,
         "faults": faults.to_dict() if faults is not None and faults.active else None,
         **flight,
-        "software": f"pilescan {firmware_py.__version__}",
+        "software": software_version(),
     }
 
 

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware_py.frames import StorageFrame, rot_body_to_ned
+from firmware_py.core.frames import StorageFrame, rot_body_to_ned
 from sitl.ideal_plant import Trajectory
 from sitl.raycast import World
 

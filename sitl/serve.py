@@ -26,7 +26,8 @@ import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from firmware_py.frames import StorageFrame
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.rundir import PILE_FILE, PLAN_FILE, TLOG_FILE, TRUTH_FILE
 from firmware_py.hal.signing import SigningConfig
 from sitl import stockpile as piles
 from sitl.devices.bridge_server import parse_bridge_url
@@ -40,7 +41,7 @@ from sitl.mission import Mission
 from sitl.mission_plan import DEFAULT_ORIGIN, write_qgc_wpl
 from sitl.networked import NetworkedDevices, NetworkedFaults, check_networked_faults
 from sitl.raycast import World
-from sitl.run import PILE_FILE, PLAN_FILE, TLOG_FILE, TRUTH_FILE, FlyConfig, check_clearance, truth_record
+from sitl.run import FlyConfig, check_clearance, truth_record
 
 VEHICLES = ("jsbsim", "kinematic")
 

@@ -14,7 +14,7 @@ import numpy as np
 import trimesh
 from scipy.interpolate import RegularGridInterpolator
 
-from firmware_py.storage import Storage
+from firmware_py.core.storage import Storage
 
 # Seeds for the paper's two piles in the default 60 x 40 m building, chosen once (tools/find_pile_seeds.py
 # searches them) so the true volumes fall within 2 % of Table 1: 7193.5 and 8763.6 m^3.

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from firmware_py import cli as payload_cli
-from firmware_py.samplelog import encode_block
+from firmware_py.core.samplelog import encode_block
 from ground import cli as ground_cli
 from sitl import cli as sitl_cli
 from tests.ground.test_report_fuzz import BASE_HEADER, floor_samples

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_py.storage import Storage
+from firmware_py.core.storage import Storage
 from ground.report import ReportOptions, make_report
 from sitl.mission import Mission
 from sitl.raycast import World

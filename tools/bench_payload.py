@@ -17,12 +17,12 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from firmware_py.core.samplelog import SampleLogWriter
+from firmware_py.core.waveform import named_waveform
 from firmware_py.drivers.lidarlite import PRESET_FAST_500HZ, LidarLite, LidarLiteConfig
 from firmware_py.drivers.servo import SweepServo
 from firmware_py.hal.clock import SimClock
 from firmware_py.payload import LoopConfig, PayloadLoop
-from firmware_py.samplelog import SampleLogWriter
-from firmware_py.servo_waveform import named_waveform
 from sitl.mission import Mission
 from sitl.run import FlyConfig, fly
 

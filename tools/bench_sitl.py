@@ -11,7 +11,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from firmware_py.frames import StorageFrame
+from firmware_py.core.frames import StorageFrame
 from sitl.flight import fly_mission
 from sitl.mission import Mission
 from sitl.run import FlyConfig, fly

@@ -11,8 +11,8 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from firmware_py.frames import StorageFrame
-from firmware_py.samplelog import read_samplelog
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.samplelog import read_samplelog
 from ground.pointcloud import SensorErrorModel, cloud_from_samples, structure_mask
 from ground.surface import DEFAULT_CELL_M, EMPTY_CELL_POLICIES, Grid, fill_empty, fit_heights, grid_volume
 from sitl.mission import Mission

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_py.frames import StorageFrame
+from firmware_py.core.frames import StorageFrame
 from ground.report import ReportOptions, survey_from_samples
 from ground.surface import EMPTY_CELL_POLICIES, fill_empty, grid_volume, reconstructed_ratio_pct, volume_error_pct
 from sitl.batch_sampler import NoiseSpec, sample_flight

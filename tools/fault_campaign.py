@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_py.cli_util import ArgumentParser, UserError, finite_float, run_cli
+from firmware_py.core.cli import ArgumentParser, UserError, finite_float, run_cli
+from firmware_py.core.samplelog import SampleFlags, read_samplelog
 from firmware_py.payload import LoopConfig
-from firmware_py.samplelog import SampleFlags, read_samplelog
 from ground.report import ReportOptions, summarise, survey_from_samples
 from sitl.faults import FaultSpec, wrongly_tagged
 from sitl.mission import Mission

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from firmware_py.storage import Storage
+from firmware_py.core.storage import Storage
 from sitl.stockpile import PAPER_PILES, PileSpec, generate
 
 

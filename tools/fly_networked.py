@@ -23,11 +23,12 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from firmware_py.hal.signing import load_key
+from firmware_py.core.keys import load_key
+from firmware_py.core.rundir import PLAN_FILE, SAMPLES_FILE
 from ground.report import ReportOptions, make_report
 from sitl.gcs import fly_plan
 from sitl.mission import Mission
-from sitl.run import PLAN_FILE, SAMPLES_FILE, FlyConfig, fly
+from sitl.run import FlyConfig, fly
 
 
 def free_port(kind: int) -> int:
@@ -136,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
                "networked_samples": net.report["n_samples"], "networked_wall_s": net.wall_s,
                "true_volume_m3": net.report["true_volume_m3"]}
     if args.compare:
-        from firmware_py.storage import Storage
+        from firmware_py.core.storage import Storage
         cfg = FlyConfig(mission=Mission(storage=Storage.parse(args.storage), p_traj=args.p_traj / 100,
                                         altitude_m=args.altitude, speed_m_s=args.speed),
                         stockpile=args.stockpile, payload="firmware", initial_position=args.phase)

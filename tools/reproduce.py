@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_py.cli_util import ArgumentParser, run_cli
+from firmware_py.core.cli import ArgumentParser, run_cli
 from tools.experiments import (
     ALL_EXPERIMENTS,
     P_TRAJ_PCT,

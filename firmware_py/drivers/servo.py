@@ -1,158 +1,16 @@
-"""The sweeping servo: pulse-width calibration, the eq. (1) waveform, and a model of where it is.
+"""The sweeping servo driver: drives eq. (1) through a PWM output and predicts the shaft angle.
 
-A hobby servo has no position feedback, so the angle at a LiDAR sample is a prediction: the
-commanded waveform passed through a model of the servo (a first-order lag with a slew-rate
-limit, the two numbers a bench calibration gives). The command is issued ahead of the waveform
-(lag plus half a PWM frame) so the shaft follows eq. (1) rather than a delayed copy of it; where
-the waveform asks for more than the servo's top speed it cannot, and the model says so.
+The calibration and the lag + slew model it predicts with are a shared contract
+(`firmware_py.core.servo_model`); this module is the part only the drone runs.
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-
 import numpy as np
 
+from firmware_py.core.servo_model import PWM_FRAME_S, ServoCalibration, ServoModel, command_angles
+from firmware_py.core.waveform import Waveform
 from firmware_py.hal import PwmOutput
-from firmware_py.servo_waveform import Waveform
-
-PWM_FRAME_S = 0.02
-"""A hobby servo's PWM frame (50 Hz): the sweep sends one pulse per frame."""
-
-
-@dataclass(frozen=True)
-class ServoCalibration:
-    """Pulse width <-> angle, and the servo's dynamics.
-
-    Attributes:
-        center_us: pulse at gamma = 0 (beam straight down).
-        us_per_rad: pulse change per radian (positive: larger pulse turns the beam to starboard).
-        min_us, max_us: the pulse range the servo accepts.
-        slew_rad_s: the servo's top speed (datasheet ~0.2 s/60 deg -> 5.2 rad/s).
-        lag_s: time constant of its position loop.
-    """
-
-    center_us: float = 1500.0
-    us_per_rad: float = 1000.0 / math.pi
-    min_us: float = 1000.0
-    max_us: float = 2000.0
-    slew_rad_s: float = 5.0
-    lag_s: float = 0.02
-
-    def __post_init__(self) -> None:
-        vals = (self.center_us, self.us_per_rad, self.min_us, self.max_us, self.slew_rad_s, self.lag_s)
-        if not all(math.isfinite(v) for v in vals):
-            raise ValueError(f"servo calibration must be finite: {self}")
-        if not (500.0 <= self.min_us < self.center_us < self.max_us <= 2500.0):
-            raise ValueError(f"servo pulses must satisfy 500 <= min < center < max <= 2500 us, got "
-                             f"{self.min_us}, {self.center_us}, {self.max_us}")
-        if self.us_per_rad == 0 or self.slew_rad_s <= 0 or self.lag_s < 0:
-            raise ValueError(f"servo us_per_rad != 0, slew > 0 and lag >= 0 needed, got {self}")
-
-    def pulse_us(self, angle_rad: float) -> float:
-        """Pulse for an angle, clamped to the servo's range."""
-        p = self.center_us + angle_rad * self.us_per_rad
-        return min(self.max_us, max(self.min_us, p))
-
-    def angle_rad(self, pulse_us: float) -> float:
-        return (pulse_us - self.center_us) / self.us_per_rad
-
-
-class ServoModel:
-    """First-order lag with a slew limit, stepped in time: the predicted shaft angle."""
-
-    def __init__(self, cal: ServoCalibration, angle_rad: float = 0.0) -> None:
-        self.cal = cal
-        self.angle_rad = angle_rad
-
-    def advance(self, dt_s: float, target_rad: float) -> float:
-        """Move towards target for dt_s and return the angle.
-
-        Exact solution of d(err)/dt = -clip(err / lag, +-slew): rate-limited while the error is
-        above slew * lag, exponential after. Being exact, it gives the same angle however time
-        is chunked, so the firmware's prediction and the SITL's plant agree to rounding.
-        """
-        if dt_s <= 0:
-            return self.angle_rad
-        a, s, tau = self.angle_rad, self.cal.slew_rad_s, self.cal.lag_s
-        err = target_rad - a
-        sign = 1.0 if err >= 0 else -1.0
-        e_sat = s * tau
-        if abs(err) > e_sat:
-            t_lin = (abs(err) - e_sat) / s
-            if dt_s <= t_lin:
-                self.angle_rad = a + sign * s * dt_s
-                return self.angle_rad
-            dt_s -= t_lin
-            err = sign * e_sat
-        self.angle_rad = target_rad - (err * math.exp(-dt_s / tau) if tau > 0 else 0.0)
-        return self.angle_rad
-
-
-def servo_angles(t_s: np.ndarray, cmd_t_s: np.ndarray, cmd_rad: np.ndarray, cal: ServoCalibration,
-                 angle0_rad: float = 0.0) -> np.ndarray:
-    """Batch version: the modelled angle at times t_s (any order), for commands held from cmd_t_s on.
-
-    The same exact ServoModel solution as the payload's stepping: the state is stepped from command
-    to command (one Python step per PWM frame), then every query is advanced from the state at the
-    command before it, vectorised. Being exact, the split does not change the angles (to rounding).
-    A command takes effect before a query at the same instant; before the first command the shaft
-    rests at angle0_rad.
-    """
-    t = np.asarray(t_s, dtype=float)
-    order = np.argsort(np.asarray(cmd_t_s, dtype=float), kind="stable")
-    ct = np.asarray(cmd_t_s, dtype=float)[order]
-    cr = np.asarray(cmd_rad, dtype=float)[order]
-    start = np.empty(len(ct))  # the angle at each command's instant
-    model = ServoModel(cal, angle0_rad)
-    target = angle0_rad
-    for k in range(len(ct)):
-        if k:
-            model.advance(ct[k] - ct[k - 1], target)
-        start[k] = model.angle_rad
-        target = cr[k]
-    out = np.full(len(t), float(angle0_rad))
-    k = np.searchsorted(ct, t, side="right") - 1
-    after = k >= 0
-    if after.any():
-        kk = k[after]
-        out[after] = _advance(start[kk], t[after] - ct[kk], cr[kk], cal)
-    return out
-
-
-def _advance(a: np.ndarray, dt: np.ndarray, target: np.ndarray, cal: ServoCalibration) -> np.ndarray:
-    """ServoModel.advance for arrays: slew-limited while the error exceeds slew * lag, then exponential."""
-    s, tau = cal.slew_rad_s, cal.lag_s
-    err = target - a
-    sign = np.where(err >= 0, 1.0, -1.0)
-    e_sat = s * tau
-    big = np.abs(err) > e_sat
-    t_lin = np.where(big, (np.abs(err) - e_sat) / s, 0.0)
-    on_slew = big & (dt <= t_lin)
-    err_end = np.where(big, sign * e_sat, err)  # the error when the exponential part starts
-    dt_exp = np.maximum(dt - t_lin, 0.0)
-    decay = np.exp(-dt_exp / tau) if tau > 0 else np.zeros_like(dt_exp)
-    angle = np.where(on_slew, a + sign * s * dt, target - err_end * decay)
-    return np.where(dt > 0, angle, a)
-
-
-def command_angles(waveform: Waveform, cal: ServoCalibration, t_s: np.ndarray,
-                   frame_s: float = PWM_FRAME_S) -> np.ndarray:
-    """Commanded angles at times t_s: the waveform ahead by the servo's lag plus half a PWM frame
-    (the average delay of a command held for a frame), clamped to what the pulses can reach."""
-    a = waveform.angle(np.asarray(t_s, dtype=float) + cal.lag_s + 0.5 * frame_s)
-    pulse = np.clip(cal.center_us + a * cal.us_per_rad, cal.min_us, cal.max_us)
-    return (pulse - cal.center_us) / cal.us_per_rad
-
-
-def modelled_sweep(waveform: Waveform, cal: ServoCalibration, t_s: np.ndarray,
-                   frame_s: float = PWM_FRAME_S) -> np.ndarray:
-    """Batch path: the shaft angle at times t_s of a servo driven as SweepServo drives it (a pulse at
-    every frame from t = 0), starting at rest on the waveform's initial angle."""
-    t = np.asarray(t_s, dtype=float)
-    cmd_t = np.arange(0.0, (t.max() if len(t) else 0.0) + frame_s, frame_s)
-    return servo_angles(t, cmd_t, command_angles(waveform, cal, cmd_t, frame_s), cal, float(waveform.angle(0.0)))
 
 
 class SweepServo:

@@ -7,6 +7,7 @@ drivers above never know which they run on.
 
 from __future__ import annotations
 
+import math
 from typing import Any, Protocol
 
 
@@ -26,6 +27,13 @@ def check_read_len(n: int) -> int:
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"I2C read length must be an integer >= 1, got {n!r}")
     return n
+
+
+def check_pulse_us(pulse_us: float, lo: float = 500.0, hi: float = 2500.0) -> float:
+    """A servo pulse width within what any hobby servo output can send, or ValueError naming it."""
+    if not (math.isfinite(pulse_us) and lo <= pulse_us <= hi):
+        raise ValueError(f"servo pulse must be {lo:g}-{hi:g} us, got {pulse_us}")
+    return float(pulse_us)
 
 
 class I2CBus(Protocol):

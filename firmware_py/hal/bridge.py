@@ -32,7 +32,7 @@ The client says HELLO on every (re)connect and refuses a server of another versi
 close a connection whose framing it cannot follow (e.g. a length above MAX_PAYLOAD).
 
 Authentication (optional; both ends given the same 32-byte key, the MAVLink signing key file:
-`firmware_py.hal.signing.load_key`). A keyed client runs a challenge-response handshake right after
+`firmware_py.core.keys.load_key`). A keyed client runs a challenge-response handshake right after
 connecting, before HELLO, in the same request/response framing:
 
     op                   request payload               OK response payload
@@ -75,9 +75,8 @@ import threading
 import time
 from typing import Final
 
-from firmware_py.hal import I2CError, check_i2c_addr, check_read_len
-from firmware_py.hal.pwm import _check_pulse
-from firmware_py.hal.signing import KEY_SIZE
+from firmware_py.core.keys import KEY_SIZE
+from firmware_py.hal import I2CError, check_i2c_addr, check_pulse_us, check_read_len
 
 VERSION: Final = 1
 HEADER: Final = struct.Struct("<HB")
@@ -147,7 +146,7 @@ def check_bridge_key(key: bytes | None) -> bytes | None:
     if key is None:
         return None
     if not isinstance(key, bytes | bytearray) or len(key) != KEY_SIZE:
-        raise ValueError(f"device bridge key must be {KEY_SIZE} bytes (firmware_py.hal.signing.load_key)")
+        raise ValueError(f"device bridge key must be {KEY_SIZE} bytes (firmware_py.core.keys.load_key)")
     if not any(key):
         raise ValueError("device bridge key is all zeros")
     return bytes(key)
@@ -434,7 +433,7 @@ class BridgePwm:
         self.conn.request(op, payload)
 
     def set_pulse_us(self, pulse_us: float) -> None:
-        self._request(OP_PWM_SET, struct.pack("<Bd", self.channel, _check_pulse(pulse_us)))
+        self._request(OP_PWM_SET, struct.pack("<Bd", self.channel, check_pulse_us(pulse_us)))
 
     def disable(self) -> None:
         self._request(OP_PWM_DISABLE, bytes((self.channel,)))

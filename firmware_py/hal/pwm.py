@@ -18,15 +18,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from firmware_py.hal import I2CBus, MavlinkLink, PwmOutput, check_i2c_addr
+from firmware_py.hal import I2CBus, MavlinkLink, PwmOutput, check_i2c_addr, check_pulse_us
 
 FRAME_HZ = 50.0
-
-
-def _check_pulse(pulse_us: float, lo: float = 500.0, hi: float = 2500.0) -> float:
-    if not (math.isfinite(pulse_us) and lo <= pulse_us <= hi):
-        raise ValueError(f"servo pulse must be {lo:g}-{hi:g} us, got {pulse_us}")
-    return float(pulse_us)
 
 
 class SysfsPwm:
@@ -44,7 +38,7 @@ class SysfsPwm:
         (self.ch / "enable").write_text("1")
 
     def set_pulse_us(self, pulse_us: float) -> None:
-        (self.ch / "duty_cycle").write_text(str(round(_check_pulse(pulse_us) * 1000)))
+        (self.ch / "duty_cycle").write_text(str(round(check_pulse_us(pulse_us) * 1000)))
 
     def disable(self) -> None:
         (self.ch / "enable").write_text("0")
@@ -81,7 +75,7 @@ class Pca9685Pwm:
         return self.OSC_HZ / (4096 * (self.prescale + 1))
 
     def set_pulse_us(self, pulse_us: float) -> None:
-        ticks = round(_check_pulse(pulse_us) * 1e-6 * self.actual_frame_hz * 4096)
+        ticks = round(check_pulse_us(pulse_us) * 1e-6 * self.actual_frame_hz * 4096)
         reg = self._LED0_ON_L + 4 * self.channel
         self.bus.write(self.addr, bytes([reg, 0, 0, ticks & 0xFF, ticks >> 8]))
 
@@ -113,7 +107,7 @@ class MavlinkServoPwm:
         self.target = (target_system, target_component)
 
     def set_pulse_us(self, pulse_us: float) -> None:
-        p = round(_check_pulse(pulse_us))
+        p = round(check_pulse_us(pulse_us))
         self.link.send(self.mav.command_long_encode(*self.target, self.MAV_CMD_DO_SET_SERVO, 0, self.servo_n, p,
                                                     0, 0, 0, 0, 0))
 
@@ -126,7 +120,7 @@ class MavlinkServoPwm:
 
 
 def _open_bridge(url: str, key: bytes | None = None) -> PwmOutput:
-    """The device bridge, imported on first use (it imports this module for _check_pulse)."""
+    """The device bridge, imported on first use (only a networked SITL run needs its sockets)."""
     from firmware_py.hal.bridge import open_bridge_pwm
     return open_bridge_pwm(url, key=key)
 

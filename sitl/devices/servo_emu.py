@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import collections
 
-from firmware_py.drivers.servo import ServoCalibration, ServoModel
+from firmware_py.core.servo_model import ServoCalibration, ServoModel
 from firmware_py.hal import Clock
 
 

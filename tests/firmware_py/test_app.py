@@ -25,13 +25,13 @@ import numpy as np
 import pytest
 
 from firmware_py.app import PayloadApp, PayloadConfig
-from firmware_py.cli_util import UserError
+from firmware_py.core.cli import UserError
+from firmware_py.core.samplelog import HEAD_SIZE, SAMPLE_DTYPE, SampleFlags, read_samplelog
 from firmware_py.hal import pwm as pwm_backends
 from firmware_py.hal.backends import unregister_i2c_backend
 from firmware_py.hal.clock import MonotonicClock
 from firmware_py.hal.mavlink_link import MavlinkFramer
-from firmware_py.live_stream import LiveStreamReceiver
-from firmware_py.samplelog import HEAD_SIZE, SAMPLE_DTYPE, SampleFlags, read_samplelog
+from ground.live_receiver import LiveStreamReceiver
 from sitl.devices.i2c_sim import SimI2CBus, register_sim_bus
 from sitl.devices.lidarlite_emu import EmulatedLidarLite
 from sitl.devices.servo_emu import EmulatedServo
@@ -260,7 +260,7 @@ def test_that_a_full_disk_stops_the_payload_telling_the_operator_why_and_keeps_e
     import functools
 
     from firmware_py import app as app_module
-    from firmware_py.samplelog import SampleLogWriter
+    from firmware_py.core.samplelog import SampleLogWriter
 
     class FillingFile:  # takes 40 kB, then ENOSPC (the first failing write takes what fits)
         def __init__(self, f):

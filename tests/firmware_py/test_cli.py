@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 
 from firmware_py.cli import build_parser, config_from_args, hal_urls, main, stop_on_signals
-from firmware_py.cli_util import UserError
+from firmware_py.core.cli import UserError
+from firmware_py.core.samplelog import SampleFlags, read_samplelog
 from firmware_py.hal import pwm as pwm_backends
 from firmware_py.hal.backends import unregister_i2c_backend
 from firmware_py.hal.clock import MonotonicClock
 from firmware_py.hal.mavlink_link import MavlinkFramer
 from firmware_py.hal.signing import SigningConfig
-from firmware_py.live_stream import LiveStreamReceiver
-from firmware_py.samplelog import SampleFlags, read_samplelog
+from ground.live_receiver import LiveStreamReceiver
 from sitl.devices.i2c_sim import SimI2CBus, register_sim_bus
 from sitl.devices.lidarlite_emu import EmulatedLidarLite
 from sitl.devices.servo_emu import EmulatedServo

@@ -8,26 +8,25 @@ import time
 import numpy as np
 import pytest
 
-from firmware_py.hal.signing import signing_timestamp
-from firmware_py.live_stream import (
+from firmware_py.core.keys import signing_timestamp
+from firmware_py.core.samplelog import SAMPLE_DTYPE, new_records
+from firmware_py.core.stream_format import (
     AUTH_HEADER_SIZE,
     FLAG_AUTH,
     HEADER_SIZE,
-    LATE_WINDOW_S,
     MAX_DATAGRAM,
     MAX_RECORDS,
     TAG_SIZE,
     VERSION,
     VERSION_AUTH,
-    LiveStreamReceiver,
-    LiveStreamSender,
     StreamAuthError,
     decode_datagram,
     encode_datagram,
     parse_datagram,
     parse_stream_url,
 )
-from firmware_py.samplelog import SAMPLE_DTYPE, new_records
+from firmware_py.live_stream import LiveStreamSender
+from ground.live_receiver import LATE_WINDOW_S, LiveStreamReceiver
 
 
 def records(n: int, t0: float = 0.0) -> np.ndarray:

@@ -5,16 +5,16 @@ vouch for, never tags a sample with an old pose, and recovers when the fault cle
 import numpy as np
 import pytest
 
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.samplelog import SampleFlags, SampleLogWriter, read_samplelog
+from firmware_py.core.storage import Storage
+from firmware_py.core.waveform import named_waveform
 from firmware_py.drivers.lidarlite import PRESET_FAST_500HZ, LidarLite, LidarLiteConfig, busy_deadline_ns
 from firmware_py.drivers.servo import SweepServo
-from firmware_py.frames import StorageFrame
 from firmware_py.hal.clock import SimClock
 from firmware_py.hal.mavlink_link import ByteStreamLink
 from firmware_py.payload import LoopConfig, PayloadLoop
 from firmware_py.pose_tracker import PoseTracker
-from firmware_py.samplelog import SampleFlags, SampleLogWriter, read_samplelog
-from firmware_py.servo_waveform import named_waveform
-from firmware_py.storage import Storage
 from sitl import stockpile as piles
 from sitl.devices.i2c_sim import SimI2CBus
 from sitl.devices.lidarlite_emu import EmulatedLidarLite

@@ -6,6 +6,7 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from scipy.spatial.transform import Rotation, Slerp
 
+from firmware_py.core.samplelog import SampleFlags
 from firmware_py.pose import (
     PoseBuffer,
     euler_from_quat,
@@ -13,7 +14,6 @@ from firmware_py.pose import (
     set_gps_global_origin_msg,
     slerp,
 )
-from firmware_py.samplelog import SampleFlags
 
 MS = 1_000_000
 T0 = 1_000_000 * MS

@@ -13,11 +13,11 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_py import app as payload_app
 from firmware_py.cli import hal_urls
-from firmware_py.cli_util import UserError
+from firmware_py.core.cli import UserError
+from firmware_py.core.storage import Storage
+from firmware_py.core.stream_format import parse_stream_url
 from firmware_py.hal import backends, bridge, check_i2c_addr, pwm
 from firmware_py.hal import mavlink_link as ml
-from firmware_py.live_stream import parse_stream_url
-from firmware_py.storage import Storage
 from sitl import mavlink_vehicle as mv
 from sitl.devices.bridge_server import parse_bridge_url
 

@@ -8,8 +8,8 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from firmware_py.frames import StorageFrame
-from firmware_py.storage import Storage
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.storage import Storage
 from ground.binning import HeightBinner, survey_from_points
 from ground.pointcloud import SensorErrorModel
 from ground.report import ReportOptions

@@ -5,11 +5,11 @@ import math
 import numpy as np
 import pytest
 
-from firmware_py.frames import StorageFrame
-from firmware_py.header import build_log_header, sensor_spec
-from firmware_py.samplelog import SampleFlags, SampleLog, new_records
-from firmware_py.servo_waveform import Waveform, frequency_for_peak_rate
-from firmware_py.storage import Storage
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.header import build_log_header, sensor_spec
+from firmware_py.core.samplelog import SampleFlags, SampleLog, new_records
+from firmware_py.core.storage import Storage
+from firmware_py.core.waveform import Waveform, frequency_for_peak_rate
 from ground.despike import MAX_GAP_PERIODS, SpikeThreshold, spike_mask
 from ground.pointcloud import cloud_from_samples
 from ground.report import ReportOptions, summarise, survey_from_samples

@@ -17,10 +17,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware_py.cli_util import UserError
-from firmware_py.hal.signing import signing_timestamp
-from firmware_py.live_stream import LiveStreamSender, encode_datagram
-from firmware_py.samplelog import SampleLogWriter, read_samplelog
+from firmware_py.core.cli import UserError
+from firmware_py.core.keys import signing_timestamp
+from firmware_py.core.samplelog import SampleLogWriter, read_samplelog
+from firmware_py.core.stream_format import encode_datagram
+from firmware_py.live_stream import LiveStreamSender
 from ground.cli import main
 from ground.listen import LIVE_SOURCE, ListenConfig, Listener, format_summary, load_header, parse_peer
 from tests.firmware_py.test_live_stream import records

@@ -1,8 +1,8 @@
 import numpy as np
 
-from firmware_py.frames import StorageFrame
-from firmware_py.samplelog import SampleFlags, new_records
-from firmware_py.storage import Storage
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.samplelog import SampleFlags, new_records
+from firmware_py.core.storage import Storage
 from ground.pointcloud import SensorErrorModel, cloud_from_samples, structure_mask
 
 

@@ -6,8 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from firmware_py.frames import StorageFrame
-from firmware_py.storage import Storage
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.storage import Storage
 from ground.report import ReportOptions, make_report
 from sitl.mission import Mission
 from sitl.run import FlyConfig, fly

@@ -12,10 +12,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from firmware_py.cli_util import UserError
-from firmware_py.frames import StorageFrame
-from firmware_py.samplelog import encode_block, new_records
-from firmware_py.storage import Storage
+from firmware_py.core.cli import UserError
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.samplelog import encode_block, new_records
+from firmware_py.core.storage import Storage
 from ground.report import ReportOptions, make_report
 
 STORAGE = Storage(20.0, 10.0, 8.0)

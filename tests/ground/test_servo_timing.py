@@ -4,9 +4,9 @@ flights with a delayed or slow servo, is in tests/sitl/test_faults.py)."""
 import numpy as np
 import pytest
 
-from firmware_py.drivers.servo import ServoCalibration, modelled_sweep
-from firmware_py.samplelog import SAMPLE_DTYPE
-from firmware_py.servo_waveform import Waveform
+from firmware_py.core.samplelog import SAMPLE_DTYPE
+from firmware_py.core.servo_model import ServoCalibration, modelled_sweep
+from firmware_py.core.waveform import Waveform
 from ground.servo_timing import (
     DELAY_RANGE_S,
     GAIN_RANGE,

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from firmware_py.frames import StorageFrame
+from firmware_py.core.frames import StorageFrame
 from sitl.autopilot import mix
 from sitl.flight import fly_mission
 from sitl.jsbsim_plant import PlantConfig

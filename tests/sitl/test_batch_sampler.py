@@ -5,10 +5,11 @@ import math
 import numpy as np
 import pytest
 
-from firmware_py.frames import StorageFrame
-from firmware_py.servo_waveform import named_waveform
-from firmware_py.storage import Storage
-from sitl.batch_sampler import LidarSpec, NoiseSpec, sample_flight
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.sensor import LIDARLITE_V3
+from firmware_py.core.storage import Storage
+from firmware_py.core.waveform import named_waveform
+from sitl.batch_sampler import NoiseSpec, sample_flight
 from sitl.ideal_plant import Trajectory
 from sitl.raycast import World
 
@@ -21,8 +22,9 @@ def hover(n=20_000):
 
 
 def sample(noise=None, seed=0):
-    return sample_flight(hover(), named_waveform("semi-triangular"), World(Storage()), LidarSpec(resolution_m=0.0),
-                         (0.0, 0.0, 0.1), StorageFrame(), noise=noise, rng=np.random.default_rng(seed))
+    return sample_flight(hover(), named_waveform("semi-triangular"), World(Storage()),
+                         LIDARLITE_V3.with_(resolution_m=0.0), (0.0, 0.0, 0.1), StorageFrame(), noise=noise,
+                         rng=np.random.default_rng(seed))
 
 
 def test_that_ideal_sensing_logs_the_true_geometry():

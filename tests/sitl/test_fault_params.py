@@ -12,9 +12,9 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from firmware_py.frames import StorageFrame
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.storage import Storage
 from firmware_py.hal import I2CError
-from firmware_py.storage import Storage
 from sitl.cli import main
 from sitl.fault_params import PARAMS, FaultParams, LiveFaultInjector
 from sitl.faults import FaultSpec

@@ -5,8 +5,8 @@ ground station leaves out (and says so) what a stuck or mis-modelled servo produ
 import numpy as np
 import pytest
 
-from firmware_py.samplelog import SampleFlags, read_samplelog
-from firmware_py.storage import Storage
+from firmware_py.core.samplelog import SampleFlags, read_samplelog
+from firmware_py.core.storage import Storage
 from ground.report import ReportOptions, survey_from_samples
 from ground.surface import grid_volume, volume_error_pct
 from sitl.faults import FaultSpec, wrongly_tagged

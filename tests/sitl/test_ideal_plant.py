@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from firmware_py.frames import StorageFrame
+from firmware_py.core.frames import StorageFrame
 from sitl.ideal_plant import IdealPlant, wrap_pi
 from sitl.mission import Mission
 

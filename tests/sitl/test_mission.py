@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from firmware_py.storage import Storage
+from firmware_py.core.storage import Storage
 from sitl.mission import Mission
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from firmware_py.frames import StorageFrame
+from firmware_py.core.frames import StorageFrame
 from sitl.cli import main
 from sitl.flight import start_pose
 from sitl.jsbsim_plant import PlantConfig

@@ -17,8 +17,8 @@ from hypothesis import strategies as st
 
 os.environ["MAVLINK20"] = "1"  # as the networked SITL's ground station runs (MISSION_ITEM_INT, MAVLink 2)
 
-from firmware_py.frames import StorageFrame
-from firmware_py.storage import Storage
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.storage import Storage
 from sitl.gcs import GcsError, load_plan
 from sitl.mission import TURN_MODES, Mission
 from sitl.mission_plan import plan_rows, read_qgc_wpl, write_qgc_wpl

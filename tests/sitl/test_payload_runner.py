@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from firmware_py.drivers.servo import ServoCalibration
-from firmware_py.samplelog import SampleFlags
-from firmware_py.storage import Storage
+from firmware_py.core.samplelog import SampleFlags
+from firmware_py.core.servo_model import ServoCalibration
+from firmware_py.core.storage import Storage
 from ground.pointcloud import cloud_from_samples
 from ground.report import ReportOptions, survey_from_samples
 from ground.surface import grid_volume

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from firmware_py.storage import Storage
+from firmware_py.core.storage import Storage
 from sitl.raycast import GEOM_BUILDING, GEOM_PILE, World
 from sitl.stockpile import Stockpile, volume_under_mesh
 from tests.sitl.conftest import frustum_mesh

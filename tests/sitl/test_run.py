@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from firmware_py.samplelog import SampleFlags, read_samplelog
+from firmware_py.core.samplelog import SampleFlags, read_samplelog
 from sitl.mission import Mission
 from sitl.run import FlyConfig, fly
 
@@ -38,7 +38,7 @@ def test_that_the_log_samples_at_500_hz_with_the_header_the_ground_needs(run_dir
 
 def test_that_rays_without_echo_read_1_cm_and_are_flagged(tmp_path):
     # A 100 m long hall: beams along the length at the far ends see nothing within 40 m.
-    from firmware_py.storage import Storage
+    from firmware_py.core.storage import Storage
     fly(FlyConfig(mission=Mission(storage=Storage(100, 40, 15), p_traj=0.3)), tmp_path)
     s = read_samplelog(tmp_path / "samples.pslog").samples
     nr = (s["flags"] & SampleFlags.NO_RETURN) != 0

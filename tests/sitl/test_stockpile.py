@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from firmware_py.storage import Storage
+from firmware_py.core.storage import Storage
 from sitl.stockpile import (
     PAPER_PILES,
     PileSpec,

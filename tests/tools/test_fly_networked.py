@@ -3,9 +3,9 @@ scripted ground station as three processes on real sockets, in real time (about 
 
 import numpy as np
 
-from firmware_py.frames import StorageFrame, beam_rays_w
-from firmware_py.samplelog import EXCLUDE_FROM_CLOUD, read_samplelog
-from firmware_py.storage import Storage
+from firmware_py.core.frames import StorageFrame, beam_rays_w
+from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, read_samplelog
+from firmware_py.core.storage import Storage
 from sitl import stockpile as piles
 from sitl.raycast import World
 from tools.fly_networked import fly_networked

@@ -3,9 +3,10 @@ import math
 import numpy as np
 import pytest
 
-from firmware_py.drivers.servo import ServoCalibration, ServoModel, SweepServo, servo_angles
+from firmware_py.core.servo_model import ServoCalibration, ServoModel, servo_angles
+from firmware_py.core.waveform import named_waveform
+from firmware_py.drivers.servo import SweepServo
 from firmware_py.hal.clock import SimClock
-from firmware_py.servo_waveform import named_waveform
 from sitl.devices.servo_emu import EmulatedServo
 
 

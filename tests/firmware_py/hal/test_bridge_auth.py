@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from firmware_py.cli import build_parser, config_from_args, main
+from firmware_py.core.samplelog import read_samplelog
 from firmware_py.drivers.lidarlite import LidarLite
 from firmware_py.hal import I2CError
 from firmware_py.hal import bridge as br
@@ -18,7 +19,6 @@ from firmware_py.hal.backends import open_i2c
 from firmware_py.hal.bridge import STATUS_OK, BridgeConnection, BridgeI2CBus, check_bridge_key
 from firmware_py.hal.clock import MonotonicClock, SimClock
 from firmware_py.hal.pwm import open_pwm
-from firmware_py.samplelog import read_samplelog
 from sitl.devices.bridge_server import DeviceBridgeServer
 from sitl.devices.i2c_sim import SimI2CBus
 from sitl.devices.lidarlite_emu import EmulatedLidarLite

@@ -11,6 +11,7 @@ import time
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from firmware_py.core.keys import SIGNING_EPOCH_UNIX_S, TIMESTAMP_MAX, key_from_passphrase, load_key, signing_timestamp
 from firmware_py.hal.mavlink_link import (
     ByteStreamLink,
     MavlinkFramer,
@@ -20,17 +21,7 @@ from firmware_py.hal.mavlink_link import (
     register_mavlink_backend,
     unregister_mavlink_backend,
 )
-from firmware_py.hal.signing import (
-    NEW_STREAM_MAX_AGE,
-    SIGNING_EPOCH_UNIX_S,
-    TIMESTAMP_MAX,
-    MavlinkSigner,
-    SigningConfig,
-    apply_to_mavlink,
-    key_from_passphrase,
-    load_key,
-    signing_timestamp,
-)
+from firmware_py.hal.signing import NEW_STREAM_MAX_AGE, MavlinkSigner, SigningConfig, apply_to_mavlink
 from sitl.mavlink_vehicle import PipeTransport
 
 KEY = bytes(range(1, 33))

@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from firmware_py.servo_waveform import (
+from firmware_py.core.waveform import (
     N_PHASES,
     Waveform,
     frequency_for_peak_rate,

@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from firmware_py.servo_waveform import named_waveform
-from firmware_py.sweep_check import stuck_sweep_mask
+from firmware_py.core.waveform import named_waveform
+from ground.sweep_check import stuck_sweep_mask
 
 
 def scene(stuck_after_s=None, noise_m=0.0):

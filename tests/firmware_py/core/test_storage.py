@@ -1,6 +1,6 @@
 import pytest
 
-from firmware_py.storage import Storage
+from firmware_py.core.storage import Storage
 
 
 def test_that_storage_parses_lxwxh():

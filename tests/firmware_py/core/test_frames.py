@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from firmware_py.frames import StorageFrame, beam_dir_body, beam_ray_w, beam_rays_w, points_w, rot_body_to_ned
+from firmware_py.core.frames import StorageFrame, beam_dir_body, beam_ray_w, beam_rays_w, points_w, rot_body_to_ned
 
 
 def test_that_body_to_ned_matches_scipy_zyx_euler():

@@ -13,8 +13,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from firmware_py import samplelog as sl
-from firmware_py.samplelog import (
+from firmware_py.core import samplelog as sl
+from firmware_py.core.samplelog import (
     EXCLUDE_FROM_CLOUD,
     HEAD_SIZE,
     MAGIC,

@@ -8,11 +8,12 @@ import math
 import pytest
 
 from firmware_py.app import PayloadConfig
-from firmware_py.frames import StorageFrame
-from firmware_py.header import SENSOR_KEYS, build_log_header, sensor_spec
-from firmware_py.samplelog import SampleLogWriter, read_samplelog
-from firmware_py.servo_waveform import named_waveform
-from firmware_py.storage import Storage
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.header import build_log_header, sensor_spec
+from firmware_py.core.samplelog import SampleLogWriter, read_samplelog
+from firmware_py.core.sensor import LIDARLITE_V3, SENSOR_KEYS
+from firmware_py.core.storage import Storage
+from firmware_py.core.waveform import named_waveform
 
 STANDARD_KEYS = ["software", "created_utc", "source", "sensor", "lever_arm_body_m", "servo", "mission_id",
                  "mission", "storage", "storage_frame"]
@@ -26,11 +27,10 @@ def header(**kw):
     return build_log_header(**{**base, **kw})
 
 
-def test_that_the_sensor_keys_are_the_sitls_lidar_spec_keys():
-    from sitl.batch_sampler import LidarSpec
-    assert tuple(LidarSpec().to_dict()) == SENSOR_KEYS
+def test_that_the_sensor_dict_is_the_lidarlite_v3_spec_in_header_key_order():
+    assert tuple(LIDARLITE_V3.to_dict()) == SENSOR_KEYS
     assert tuple(sensor_spec(500.0)) == SENSOR_KEYS
-    assert sensor_spec(500.0) == {**LidarSpec().to_dict()}  # the datasheet defaults agree too
+    assert sensor_spec(500.0) == LIDARLITE_V3.to_dict()  # the datasheet defaults agree too
 
 
 def test_that_the_header_has_the_standard_keys_in_order_with_the_servo_waveform():

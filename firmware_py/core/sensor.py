@@ -1,0 +1,92 @@
+"""The rangefinder's datasheet, once: what the payload writes into the log header, the SITL emulates
+and the ground station sizes its tolerances from.
+
+`RangefinderSpec.to_dict()` is the header's ``sensor`` mapping (keys `SENSOR_KEYS`, in that order).
+`LIDARLITE_V3` is the Garmin LIDAR-Lite v3 of the paper's Table 1; a different sensor is a different
+instance, never a different set of constants scattered across the programs.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any
+
+SENSOR_KEYS = ("model", "rate_hz", "max_range_m", "resolution_m", "range_sigma_m", "range_sigma_rel",
+               "beam_divergence_rad")
+"""The header's ``sensor`` keys, in order."""
+
+
+@dataclass(frozen=True)
+class RangefinderSpec:
+    """A single-point rangefinder as the survey needs to know it.
+
+    Attributes:
+        model: the sensor's name, for the report.
+        rate_hz: ranges per second the payload takes.
+        max_range_m: farthest range it reports (an echo beyond reads as no return).
+        resolution_m: the range quantum.
+        range_sigma_m: 1-sigma range error at short range ...
+        range_sigma_rel: ... and, as a fraction of the range, beyond (the datasheet's "1 %").
+        beam_divergence_rad: full beam divergence.
+    """
+
+    model: str
+    rate_hz: float
+    max_range_m: float
+    resolution_m: float
+    range_sigma_m: float
+    range_sigma_rel: float
+    beam_divergence_rad: float
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.model, str) or not self.model:
+            raise ValueError(f"sensor model must be a non-empty string, got {self.model!r}")
+        for name in ("rate_hz", "max_range_m"):
+            value = getattr(self, name)
+            if not (_is_number(value) and math.isfinite(value) and value > 0):
+                raise ValueError(f"sensor {name} must be a finite number > 0, got {value!r}")
+        for name in ("resolution_m", "range_sigma_m", "range_sigma_rel", "beam_divergence_rad"):
+            value = getattr(self, name)
+            if not (_is_number(value) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"sensor {name} must be a finite number >= 0, got {value!r}")
+        for f in fields(self):
+            if f.name != "model":
+                object.__setattr__(self, f.name, float(getattr(self, f.name)))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The header's ``sensor`` mapping (keys `SENSOR_KEYS`)."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: Any) -> RangefinderSpec:
+        """Parse a header's ``sensor`` mapping; ValueError naming a missing key or a bad value."""
+        if not isinstance(d, dict):
+            raise ValueError(f"sensor must be a mapping, got {type(d).__name__}")
+        missing = [k for k in SENSOR_KEYS if k not in d]
+        if missing:
+            raise ValueError(f"sensor lacks {', '.join(missing)}")
+        return cls(**{k: d[k] for k in SENSOR_KEYS})
+
+    def with_(self, **changes: Any) -> RangefinderSpec:
+        """A copy with some values changed (validated like a new spec)."""
+        return replace(self, **changes)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+LIDARLITE_V3 = RangefinderSpec(
+    model="Garmin LIDAR-Lite v3",
+    rate_hz=500.0,  # the paper's Table 1 (the fast preset reaches it)
+    max_range_m=40.0,
+    resolution_m=0.01,
+    range_sigma_m=0.025,  # datasheet: +-2.5 cm below 5 m ...
+    range_sigma_rel=0.01,  # ... and ~1 % of the range beyond
+    beam_divergence_rad=0.008,
+)
+"""Garmin LIDAR-Lite v3 (datasheet, and the paper's Table 1)."""
+
+LIDARLITE_V3_NO_RETURN_M = 0.01
+"""What a LIDAR-Lite v3 reads when no echo comes back: 1 cm."""
