@@ -1,7 +1,7 @@
 """The payload program on the companion computer, assembled: what `pilescan-payload` runs.
 
 `PayloadApp` opens the hardware named by URLs (MAVLink link, I2C bus, PWM output: DESIGN section 7),
-builds the same parts the SITL's lockstep runner builds (`sitl.payload_runner.fly_firmware`), on the
+builds the same parts the SITL's lockstep runner builds (`sitl.runners.lockstep_payload.fly_firmware`), on the
 real monotonic clock: pose tracker, LIDAR-Lite driver, sweeping servo, sample log and the 500 Hz
 `PayloadLoop`; then runs the loop until told to stop.
 

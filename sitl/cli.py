@@ -16,10 +16,10 @@ from firmware_py.core.cli import ArgumentParser, UserError, finite_float, run_cl
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.storage import Storage
 from firmware_py.core.waveform import N_PHASES
-from sitl.faults import FaultSpec
-from sitl.mission import TURN_MODES, Mission
-from sitl.mission_plan import write_qgc_wpl
-from sitl.run import PAYLOADS, PLANTS, FlyConfig, fly
+from sitl.faults.injector import FaultSpec
+from sitl.missions.qgc_wpl import write_qgc_wpl
+from sitl.missions.rectangle import TURN_MODES, Mission
+from sitl.runners.fly import PAYLOADS, PLANTS, FlyConfig, fly
 
 
 def build_parser() -> ArgumentParser:
@@ -145,7 +145,7 @@ def _signing(args):
 
 def _serve(args) -> int:
     signing = _signing(args)  # a bad key file fails before anything starts
-    from sitl.serve import ServeOptions, serve
+    from sitl.runners.serve import ServeOptions, serve
     return serve(ServeOptions(mission=_mission(args), url=args.mavlink, speedup=args.speedup,
                               duration_s=args.duration, vehicle=args.vehicle, out=Path(args.out),
                               devices_url=args.devices, stockpile=args.stockpile, signing=signing,

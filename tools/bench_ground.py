@@ -18,10 +18,10 @@ import numpy as np
 
 from firmware_py.core.storage import Storage
 from ground.report import ReportOptions, make_report
-from sitl.mission import Mission
-from sitl.raycast import World
-from sitl.run import FlyConfig, fly
-from sitl.stockpile import paper_pile
+from sitl.missions.rectangle import Mission
+from sitl.runners.fly import FlyConfig, fly
+from sitl.world.raycast import World
+from sitl.world.stockpile import paper_pile
 
 
 def median_time(fn, repeat: int) -> tuple[float, list[float]]:

@@ -23,8 +23,8 @@ from firmware_py.drivers.lidarlite import PRESET_FAST_500HZ, LidarLite, LidarLit
 from firmware_py.drivers.servo import SweepServo
 from firmware_py.hal.clock import SimClock
 from firmware_py.payload import LoopConfig, PayloadLoop
-from sitl.mission import Mission
-from sitl.run import FlyConfig, fly
+from sitl.missions.rectangle import Mission
+from sitl.runners.fly import FlyConfig, fly
 
 
 class InstantLidarBus:

@@ -12,9 +12,9 @@ import time
 from pathlib import Path
 
 from firmware_py.core.frames import StorageFrame
-from sitl.flight import fly_mission
-from sitl.mission import Mission
-from sitl.run import FlyConfig, fly
+from sitl.missions.rectangle import Mission
+from sitl.runners.flight import fly_mission
+from sitl.runners.fly import FlyConfig, fly
 
 
 def main(argv: list[str] | None = None) -> int:

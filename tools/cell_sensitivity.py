@@ -15,8 +15,8 @@ from firmware_py.core.frames import StorageFrame
 from firmware_py.core.samplelog import read_samplelog
 from ground.pointcloud import SensorErrorModel, cloud_from_samples, structure_mask
 from ground.surface import DEFAULT_CELL_M, EMPTY_CELL_POLICIES, Grid, fill_empty, fit_heights, grid_volume
-from sitl.mission import Mission
-from sitl.run import FlyConfig, fly
+from sitl.missions.rectangle import Mission
+from sitl.runners.fly import FlyConfig, fly
 
 CELLS_M = (1.0, 0.5, 0.1**0.5, 0.25, 0.2, 0.1, 0.05)
 

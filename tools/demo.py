@@ -13,8 +13,8 @@ import time
 from pathlib import Path
 
 from ground.report import ReportOptions, make_report
-from sitl.mission import Mission
-from sitl.run import PAYLOADS, FlyConfig, fly
+from sitl.missions.rectangle import Mission
+from sitl.runners.fly import PAYLOADS, FlyConfig, fly
 
 
 def summary_table(rep: dict, fly_s: float, ground_s: float, flight: dict | None = None) -> str:

@@ -28,13 +28,13 @@ import numpy as np
 from firmware_py.core.frames import StorageFrame
 from ground.report import ReportOptions, survey_from_samples
 from ground.surface import EMPTY_CELL_POLICIES, fill_empty, grid_volume, reconstructed_ratio_pct, volume_error_pct
-from sitl.batch_sampler import NoiseSpec, sample_flight
-from sitl.flight import PAYLOAD_1D_KG, FlownMission, fly_mission
-from sitl.ideal_plant import IdealPlant
-from sitl.mission import TURN_MODES, Mission
-from sitl.raycast import World
-from sitl.run import PLANTS, FlyConfig, log_header
-from sitl.stockpile import paper_pile
+from sitl.missions.rectangle import TURN_MODES, Mission
+from sitl.runners.flight import PAYLOAD_1D_KG, FlownMission, fly_mission
+from sitl.runners.fly import PLANTS, FlyConfig, log_header
+from sitl.sensing.batch_sampler import NoiseSpec, sample_flight
+from sitl.vehicle.ideal_plant import IdealPlant
+from sitl.world.raycast import World
+from sitl.world.stockpile import paper_pile
 from tools.sweep import Case, cached
 
 SWEEP_VERSION = "4"
@@ -95,7 +95,7 @@ class Experiment:
         """The sensor's mass (Sec. 4.5: 40 g, 370 g, 830 g)."""
         if self.sensor == "1d":
             return PAYLOAD_1D_KG
-        from sitl.scanners import HOKUYO_UTM_30LX, VELODYNE_PUCK_LITE
+        from sitl.sensing.scanners import HOKUYO_UTM_30LX, VELODYNE_PUCK_LITE
         return (HOKUYO_UTM_30LX if self.sensor == "2d" else VELODYNE_PUCK_LITE).payload_kg
 
     def mission(self, p_traj_pct: float) -> Mission:
@@ -260,7 +260,7 @@ def _scanner_row(e: Experiment, flown: FlownMission, base: FlyConfig, pile) -> d
     """One 2D/3D survey: the scan streamed in chunks into the ground station's fixed-size bins."""
     from ground.binning import HeightBinner, survey_from_points
     from ground.pointcloud import SensorErrorModel
-    from sitl.scanners import HOKUYO_UTM_30LX, VELODYNE_PUCK_LITE, scan_flight
+    from sitl.sensing.scanners import HOKUYO_UTM_30LX, VELODYNE_PUCK_LITE, scan_flight
 
     spec = HOKUYO_UTM_30LX if e.sensor == "2d" else VELODYNE_PUCK_LITE
     storage = base.mission.storage

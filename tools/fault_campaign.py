@@ -26,11 +26,11 @@ from firmware_py.core.cli import ArgumentParser, UserError, finite_float, run_cl
 from firmware_py.core.samplelog import SampleFlags, read_samplelog
 from firmware_py.payload import LoopConfig
 from ground.report import ReportOptions, summarise, survey_from_samples
-from sitl.faults import FaultSpec, wrongly_tagged
-from sitl.mission import Mission
-from sitl.payload_runner import fly_firmware
-from sitl.run import FlyConfig, log_header
-from sitl.stockpile import resolve
+from sitl.faults.injector import FaultSpec, wrongly_tagged
+from sitl.missions.rectangle import Mission
+from sitl.runners.fly import FlyConfig, log_header
+from sitl.runners.lockstep_payload import fly_firmware
+from sitl.world.stockpile import resolve
 
 RECORDS_PER_BLOCK = 500
 

@@ -1,12 +1,12 @@
 """Search generator seeds whose pile volume is close to the paper's Table 1 (run once; result in
-sitl/stockpile.py PAPER_PILES). Usage: python -m tools.find_pile_seeds [--tolerance-pct 1]."""
+sitl/world/stockpile.py PAPER_PILES). Usage: python -m tools.find_pile_seeds [--tolerance-pct 1]."""
 
 from __future__ import annotations
 
 import argparse
 
 from firmware_py.core.storage import Storage
-from sitl.stockpile import PAPER_PILES, PileSpec, generate
+from sitl.world.stockpile import PAPER_PILES, PileSpec, generate
 
 
 def find_seed(zero_edges: bool, target_m3: float, tolerance_pct: float, max_seed: int = 1000) -> tuple[int, float]:

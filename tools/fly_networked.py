@@ -26,9 +26,9 @@ from pathlib import Path
 from firmware_py.core.keys import load_key
 from firmware_py.core.rundir import PLAN_FILE, SAMPLES_FILE
 from ground.report import ReportOptions, make_report
-from sitl.gcs import fly_plan
-from sitl.mission import Mission
-from sitl.run import FlyConfig, fly
+from sitl.mavlink.gcs import fly_plan
+from sitl.missions.rectangle import Mission
+from sitl.runners.fly import FlyConfig, fly
 
 
 def free_port(kind: int) -> int:

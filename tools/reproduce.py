@@ -80,8 +80,8 @@ DISCUSSION = [
     "P_traj; binning removes that. Its R_a of 96 % for the 2D says its scanner missed areas ours does not: a "
     "different mounting or field of view in Webots, which the paper does not describe.",
     "- **Two-step corners do not help our pile 2.** Our second step cuts each corner at 10 % of the width "
-    "(sitl/mission.py); the corners of our pile 2 hold material, and the chamfer moves the vehicle away from "
-    "them. The paper's Fig. 15 gives the shape but not that distance.",
+    "(sitl/missions/rectangle.py); the corners of our pile 2 hold material, and the chamfer moves the vehicle away "
+    "from them. The paper's Fig. 15 gives the shape but not that distance.",
     "- **Energy.** ΔE counts the motors' energy over the survey (take-off and landing excluded), so it follows the "
     "flight time: the slow-yaw cases (+16 % and +194 % against the paper's +22 % and +195 %) and the heavier 2D "
     "and 3D payloads (+27 % and +68 % against +31 % and +64 %) land close to the paper's figures.",

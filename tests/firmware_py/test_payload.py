@@ -15,14 +15,14 @@ from firmware_py.hal.clock import SimClock
 from firmware_py.hal.mavlink_link import ByteStreamLink
 from firmware_py.payload import LoopConfig, PayloadLoop
 from firmware_py.pose_tracker import PoseTracker
-from sitl import stockpile as piles
 from sitl.devices.i2c_sim import SimI2CBus
 from sitl.devices.lidarlite_emu import EmulatedLidarLite
 from sitl.devices.servo_emu import EmulatedServo
-from sitl.kinematic_vehicle import KinematicVehicle
-from sitl.payload_runner import SimWorld
-from sitl.raycast import World
-from sitl.vehicle_api import FlightMode, NavItem, NavKind
+from sitl.runners.lockstep_payload import SimWorld
+from sitl.vehicle.api import FlightMode, NavItem, NavKind
+from sitl.vehicle.kinematic_vehicle import KinematicVehicle
+from sitl.world import stockpile as piles
+from sitl.world.raycast import World
 
 OFFSET_NS = 777_000_000_000  # the companion clock runs ahead of the autopilot's boot clock
 TICK_NS = 2_000_000

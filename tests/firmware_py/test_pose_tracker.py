@@ -18,9 +18,9 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from firmware_py.hal.clock import MonotonicClock, SimClock
 from firmware_py.hal.mavlink_link import ByteStreamLink, PymavlinkLink
 from firmware_py.pose_tracker import PoseTracker, PoseTrackerConfig
-from sitl.kinematic_vehicle import KinematicVehicle, wrap_pi
-from sitl.mavlink_vehicle import MavlinkVehicleServer, UdpTransport
-from sitl.vehicle_api import FlightMode, NavItem, NavKind
+from sitl.mavlink.vehicle_server import MavlinkVehicleServer, UdpTransport
+from sitl.vehicle.api import FlightMode, NavItem, NavKind
+from sitl.vehicle.kinematic_vehicle import KinematicVehicle, wrap_pi
 
 MS = 1_000_000
 S = 1_000_000_000
@@ -79,7 +79,7 @@ class LatencyLeg:
 
 
 class LatencyEnd:
-    """One end of the pipe, with the Transport interface of sitl.mavlink_vehicle (send / recv / close)."""
+    """One end of the pipe, with the Transport interface of sitl.mavlink.vehicle_server (send / recv / close)."""
 
     def __init__(self, tx: LatencyLeg, rx: LatencyLeg) -> None:
         self.tx, self.rx = tx, rx

@@ -14,11 +14,11 @@ from ground.binning import HeightBinner, survey_from_points
 from ground.pointcloud import SensorErrorModel
 from ground.report import ReportOptions
 from ground.surface import grid_volume, volume_error_pct
-from sitl.ideal_plant import IdealPlant
-from sitl.mission import Mission
-from sitl.raycast import World
-from sitl.scanners import HOKUYO_UTM_30LX, VELODYNE_PUCK_LITE, ScannerSpec, scan_flight
-from sitl.stockpile import paper_pile
+from sitl.missions.rectangle import Mission
+from sitl.sensing.scanners import HOKUYO_UTM_30LX, VELODYNE_PUCK_LITE, ScannerSpec, scan_flight
+from sitl.vehicle.ideal_plant import IdealPlant
+from sitl.world.raycast import World
+from sitl.world.stockpile import paper_pile
 
 STORAGE = Storage(60.0, 40.0, 15.0)
 ERR = SensorErrorModel(range_sigma_m=0.03, resolution_m=0.0)

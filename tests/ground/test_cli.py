@@ -5,8 +5,8 @@ import json
 import pytest
 
 from ground.cli import main
-from sitl.mission import Mission
-from sitl.run import FlyConfig, fly
+from sitl.missions.rectangle import Mission
+from sitl.runners.fly import FlyConfig, fly
 
 
 @pytest.fixture(scope="module")

@@ -9,8 +9,8 @@ import pytest
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.storage import Storage
 from ground.report import ReportOptions, make_report
-from sitl.mission import Mission
-from sitl.run import FlyConfig, fly
+from sitl.missions.rectangle import Mission
+from sitl.runners.fly import FlyConfig, fly
 from tests.sitl.conftest import frustum_mesh
 
 REQUIRED_KEYS = {"volume_m3", "true_volume_m3", "volume_error_pct", "coverage_ratio_pct", "n_samples",

@@ -1,5 +1,5 @@
 """Re-estimating a servo's real motion: the re-timing itself and the search (the whole path, on
-flights with a delayed or slow servo, is in tests/sitl/test_faults.py)."""
+flights with a delayed or slow servo, is in tests/sitl/faults/test_injector.py)."""
 
 import numpy as np
 import pytest

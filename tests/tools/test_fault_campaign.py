@@ -1,5 +1,5 @@
 """The fault campaign's bookkeeping: loop rate, the targets' checks, bad inputs (the flights themselves
-are covered fault by fault in tests/sitl/test_faults.py)."""
+are covered fault by fault in tests/sitl/faults/test_injector.py)."""
 
 import math
 

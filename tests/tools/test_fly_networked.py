@@ -6,8 +6,8 @@ import numpy as np
 from firmware_py.core.frames import StorageFrame, beam_rays_w
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, read_samplelog
 from firmware_py.core.storage import Storage
-from sitl import stockpile as piles
-from sitl.raycast import World
+from sitl.world import stockpile as piles
+from sitl.world.raycast import World
 from tools.fly_networked import fly_networked
 
 

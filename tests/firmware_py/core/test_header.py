@@ -45,7 +45,7 @@ def test_that_the_header_has_the_standard_keys_in_order_with_the_servo_waveform(
 
 
 def test_that_the_sitl_log_header_is_built_by_the_same_function_with_its_values():
-    from sitl.run import FlyConfig, log_header
+    from sitl.runners.fly import FlyConfig, log_header
     cfg = FlyConfig()
     h = log_header(cfg, cfg.servo_waveform())
     assert list(h) == STANDARD_KEYS

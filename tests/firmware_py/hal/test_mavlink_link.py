@@ -16,8 +16,8 @@ from firmware_py.hal.mavlink_link import (
     register_mavlink_backend,
     unregister_mavlink_backend,
 )
-from sitl.kinematic_vehicle import KinematicVehicle
-from sitl.mavlink_vehicle import MavlinkVehicleServer, PipeTransport, UdpTransport
+from sitl.mavlink.vehicle_server import MavlinkVehicleServer, PipeTransport, UdpTransport
+from sitl.vehicle.kinematic_vehicle import KinematicVehicle
 
 AP = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
 

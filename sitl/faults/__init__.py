@@ -1,0 +1,1 @@
+"""Fault injection: the schedule of link, device and power faults, and its live MAVLink parameters."""

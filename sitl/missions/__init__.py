@@ -1,0 +1,1 @@
+"""Survey missions: the paper's rectangle and its export as a plan any ground station loads."""

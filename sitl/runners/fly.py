@@ -1,0 +1,198 @@
+"""Fly a mission in the SITL and write a run directory.
+
+Run directory (DESIGN section 4): `samples.pslog` (sample log), `truth.json` (true volume, storage,
+mission, seeds, energy, config), `pile.stl` (the stockpile mesh the LiDAR saw), `telemetry.tlog`
+(the vehicle's MAVLink traffic, JSBSim plant) and `mission.waypoints` (the plan, QGC WPL 110).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.header import build_log_header
+from firmware_py.core.rundir import PILE_FILE, PLAN_FILE, SAMPLES_FILE, TLOG_FILE, TRUTH_FILE
+from firmware_py.core.samplelog import SampleLogWriter
+from firmware_py.core.sensor import LIDARLITE_V3, RangefinderSpec
+from firmware_py.core.version import software_version
+from firmware_py.core.waveform import Waveform, initial_position, named_waveform
+from sitl.faults.injector import FaultSpec
+from sitl.missions.qgc_wpl import write_qgc_wpl
+from sitl.missions.rectangle import Mission
+from sitl.runners.flight import PAYLOAD_1D_KG, fly_mission
+from sitl.sensing.batch_sampler import sample_flight
+from sitl.vehicle.ideal_plant import IdealPlant, Trajectory
+from sitl.world import stockpile as piles
+from sitl.world.raycast import World
+
+PLANTS = ("jsbsim", "ideal")
+PAYLOADS = ("batch", "firmware")
+
+
+@dataclass(frozen=True)
+class FlyConfig:
+    """Everything that defines a SITL survey flight."""
+
+    mission: Mission = field(default_factory=Mission)
+    stockpile: str = "1"
+    waveform: str = "semi-triangular"
+    servo_peak_rate_rad_s: float = 5.0
+    initial_position: int = 0
+    plant: str = "jsbsim"
+    payload: str = "batch"
+    latency_ms: tuple[float, float] = (0.0, 0.0)
+    payload_kg: float = PAYLOAD_1D_KG
+    seed: int = 0
+    lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10)
+    frame: StorageFrame = field(default_factory=StorageFrame)
+    lidar: RangefinderSpec = LIDARLITE_V3
+    faults: FaultSpec | None = None  # fault injection (sitl.faults.injector), firmware payload only
+
+    def __post_init__(self) -> None:
+        if self.plant not in PLANTS:
+            raise ValueError(f"unknown plant {self.plant!r}; available: {', '.join(PLANTS)}")
+        if self.payload not in PAYLOADS:
+            raise ValueError(f"unknown payload {self.payload!r}; available: {', '.join(PAYLOADS)}")
+        if self.faults is not None and self.faults.active and self.payload != "firmware":
+            raise ValueError("fault injection needs the firmware payload (--payload firmware)")
+        if self.payload == "firmware" and self.plant != "jsbsim":
+            raise ValueError("the firmware payload needs the jsbsim plant (it talks MAVLink to the vehicle)")
+        lo, hi = self.latency_ms
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi <= 1000):
+            raise ValueError(f"link latency must satisfy 0 <= min <= max <= 1000 ms, got {self.latency_ms}")
+        initial_position(self.initial_position)  # validates the range
+        if not (math.isfinite(self.payload_kg) and 0.0 <= self.payload_kg <= 2.0):
+            raise ValueError(f"payload mass must be 0-2 kg, got {self.payload_kg}")
+        if len(self.lever_arm_body_m) != 3 or not all(math.isfinite(v) for v in self.lever_arm_body_m):
+            raise ValueError(f"lever arm must be 3 finite numbers, got {self.lever_arm_body_m}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
+        self.servo_waveform()  # validates the name and rate
+
+    def servo_waveform(self) -> Waveform:
+        return named_waveform(self.waveform, self.servo_peak_rate_rad_s, self.initial_position)
+
+
+@dataclass(frozen=True)
+class RunResult:
+    out_dir: Path
+    n_samples: int
+    duration_s: float
+    true_volume_m3: float
+    wall_time_s: float
+    energy_j: float | None = None
+
+
+def log_header(cfg: FlyConfig, wf: Waveform) -> dict:
+    """The sample-log header of a SITL flight: what the ground station needs to place the points."""
+    return build_log_header(source=f"sitl/{cfg.plant}", sensor=cfg.lidar.to_dict(),
+                            lever_arm_body_m=cfg.lever_arm_body_m, waveform_name=cfg.waveform, waveform=wf,
+                            initial_position=cfg.initial_position, storage=cfg.mission.storage, frame=cfg.frame,
+                            mission_id=cfg.mission.mission_id, mission=cfg.mission.to_dict())
+
+
+def check_clearance(mission: Mission, pile: piles.Stockpile) -> None:
+    """Refuse a flight that would hit the stockpile."""
+    top = pile.max_height_m
+    if mission.altitude_m - top < mission.min_clearance_m:
+        raise ValueError(f"altitude {mission.altitude_m:g} m is too low: the stockpile top is at {top:.2f} m "
+                         f"(clearance {mission.min_clearance_m:g} m needed)")
+
+
+def truth_record(pile: piles.Stockpile, stockpile: str, mission: Mission, frame: StorageFrame, *, plant: str,
+                 payload: str, seed: int, faults: FaultSpec | None = None, **flight) -> dict:
+    """truth.json: what the ground station checks a survey against (the world, the mission, the faults,
+    how it was flown); `flight` adds what the flight gave (flight time, energy, samples ...).
+    Written by `fly` and by `serve --devices` (payload "networked")."""
+    return {
+        "true_volume_m3": pile.volume_m3,
+        "stockpile": stockpile,
+        "stockpile_source": pile.source,
+        "pile_seed": piles.PAPER_PILES.get(stockpile, {}).get("seed"),
+        "seed": seed,
+        "storage": mission.storage.to_dict(),
+        "storage_frame": frame.to_dict(),
+        "mission": mission.to_dict(),
+        "mission_id": mission.mission_id,
+        "plant": plant,
+        "payload": payload,
+        "faults": faults.to_dict() if faults is not None and faults.active else None,
+        **flight,
+        "software": software_version(),
+    }
+
+
+def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
+        progress: Callable[[str], None] | None = None) -> RunResult:
+    """Fly cfg with the selected plant and write the run directory."""
+    t0 = time.perf_counter()
+    say = progress or (lambda _msg: None)
+    if not str(out_dir).strip():  # Path("") is the current directory: never write a run there by accident
+        raise ValueError("the run directory (--out) must be a non-empty path")
+    out = Path(out_dir)
+    if (out / SAMPLES_FILE).exists() and not force:
+        raise ValueError(f"{out} already holds a run; choose another --out or pass --force")
+    out.mkdir(parents=True, exist_ok=True)  # fail before any work when --out is unusable
+    storage = cfg.mission.storage
+    pile = piles.resolve(cfg.stockpile, storage)
+    check_clearance(cfg.mission, pile)
+    say(f"stockpile: {pile.source}, true volume {pile.volume_m3:.1f} m^3")
+    say(f"flying {cfg.mission.path_length_m():.0f} m with the {cfg.plant} plant, {cfg.payload} payload")
+    wf = cfg.servo_waveform()
+    log_path = out / SAMPLES_FILE
+    log_path.unlink(missing_ok=True)
+    if cfg.payload == "firmware":
+        from sitl.runners.lockstep_payload import fly_firmware
+        run = fly_firmware(cfg, log_path, log_header(cfg, wf), latency_ms=cfg.latency_ms, tlog_path=out / TLOG_FILE,
+                           seed=cfg.seed, faults=cfg.faults)
+        if run.faults and run.faults.get("power_cut"):
+            say(f"power cut at {cfg.faults.power_cut_at_s:g} s: the log holds the blocks written by then")
+        elif not run.completed:
+            raise ValueError(f"the vehicle did not complete the mission within {run.duration_s:.0f} s")
+        if cfg.faults is not None and cfg.faults.active:
+            say(f"faults injected: {', '.join(cfg.faults.active)}")
+        records, duration_s, energy_j = run.records, run.duration_s, run.energy_j
+    else:
+        world = World(storage, pile, max_range_m=cfg.lidar.max_range_m)
+        traj, duration_s, energy_j = fly_trajectory(cfg, out / TLOG_FILE)
+        records = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame)
+        # The batch path writes a finished flight at once: one fsync at the end is enough.
+        with SampleLogWriter(log_path, log_header(cfg, wf), records_per_block=500, fsync=False) as w:
+            w.append(records)
+    with open(log_path, "rb") as f:
+        os.fsync(f.fileno())
+    pile.mesh.export(out / PILE_FILE)
+    write_qgc_wpl(out / PLAN_FILE, cfg.mission, cfg.frame)
+    truth = truth_record(pile, cfg.stockpile, cfg.mission, cfg.frame, plant=cfg.plant, payload=cfg.payload,
+                         seed=cfg.seed, faults=cfg.faults, flight_time_s=duration_s, energy_j=energy_j,
+                         payload_kg=cfg.payload_kg if cfg.plant == "jsbsim" else None, n_samples=len(records),
+                         servo_initial_position=cfg.initial_position, waveform=cfg.waveform)
+    (out / TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
+    n_ret = int(np.count_nonzero(records["flags"] == 0))
+    say(f"wrote {out}: {len(records)} samples ({n_ret} returns), {duration_s:.0f} s flight"
+        + (f", {energy_j / 1000:.1f} kJ" if energy_j is not None else ""))
+    return RunResult(out, len(records), duration_s, pile.volume_m3, time.perf_counter() - t0, energy_j)
+
+
+def fly_trajectory(cfg: FlyConfig, tlog_path: Path | None = None) -> tuple[Trajectory, float, float | None]:
+    """The flown trajectory at the LiDAR's sample times, the flight time and the energy (None: ideal).
+
+    With tlog_path, the JSBSim vehicle's MAVLink telemetry is logged there (the ideal plant has none).
+    """
+    if cfg.plant == "ideal":
+        plant = IdealPlant(cfg.mission, cfg.frame)
+        return plant.states(plant.sample_times(cfg.lidar.rate_hz)), plant.duration_s, None
+    flown = fly_mission(cfg.mission, cfg.frame, payload_kg=cfg.payload_kg, tlog_path=tlog_path)
+    if not flown.completed:
+        raise ValueError(f"the vehicle did not complete the mission within {flown.duration_s:.0f} s "
+                         f"(reached {len(flown.reached)} of {len(cfg.mission.waypoints_w()) - 1} waypoints)")
+    t = np.arange(int(flown.duration_s * cfg.lidar.rate_hz) + 1) / cfg.lidar.rate_hz
+    return flown.trajectory_at(t), flown.duration_s, flown.energy_j

@@ -1,0 +1,329 @@
+"""Firmware in the loop, lockstep: the unchanged payload code against the simulated world.
+
+One simulated clock (the companion computer's) drives everything. When the payload sleeps on it,
+`World.advance_to` steps the vehicle (JSBSim + autopilot) and its MAVLink server up to that time;
+the server's bytes reach the payload only when the payload's clock has reached the time they were
+sent plus the link latency, so the payload never sees the future. The LIDAR-Lite emulator asks the
+world for the true range at each acquisition: the vehicle's true pose at that instant
+(interpolated between physics steps) and the servo plant's true shaft angle, ray traced.
+
+The companion clock runs at an offset from the autopilot's boot clock (as on a real drone), so the
+payload's time synchronisation has something to do.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from firmware_py.core.frames import StorageFrame, beam_ray_w
+from firmware_py.hal.clock import SimClock
+from sitl.mavlink.vehicle_server import MavlinkVehicleServer
+from sitl.vehicle.api import Vehicle
+from sitl.vehicle.autopilot import wrap_pi
+from sitl.vehicle.jsbsim_vehicle import JsbsimVehicle
+from sitl.world.raycast import World
+
+SendAt = Callable[[int, bytes], None]
+"""One direction of a link: send_at(t_ns, data) puts bytes on the wire at time t_ns."""
+
+WALL_EPOCH_S = 1_790_000_000.0
+"""The companion's wall clock (Unix s) when its simulated monotonic clock reads 0 (late 2026)."""
+
+
+class DelayedPipe:
+    """One direction of a link: bytes become readable `latency` after they were sent (sim time)."""
+
+    def __init__(self, clock_ns, latency_ns=lambda: 0) -> None:
+        self._clock_ns = clock_ns
+        self._latency_ns = latency_ns
+        self._q: collections.deque[tuple[int, bytes]] = collections.deque()
+        self._last_due = 0
+
+    def send_at(self, t_ns: int, data: bytes) -> None:
+        if data:
+            due = max(t_ns + int(self._latency_ns()), self._last_due)  # a serial link keeps order
+            self._last_due = due
+            self._q.append((due, bytes(data)))
+
+    def recv(self) -> bytes:
+        now = self._clock_ns()
+        out = bytearray()
+        while self._q and self._q[0][0] <= now:
+            out += self._q.popleft()[1]
+        return bytes(out)
+
+
+@dataclass(frozen=True)
+class TruePose:
+    pos_ned_m: tuple[float, float, float]
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+
+
+def state_tuple(vehicle) -> tuple[float, ...]:
+    """(n, e, d, vn, ve, vd, roll, pitch, yaw, ...) of any Vehicle, as pose_from_history reads it."""
+    raw = getattr(vehicle, "raw_state", None)
+    if raw is not None:
+        return tuple(raw)
+    s = vehicle.state()
+    return (*s.pos_ned_m, *s.vel_ned_m_s, s.roll_rad, s.pitch_rad, s.yaw_rad)
+
+
+def pose_from_history(hist, ts: float) -> TruePose:
+    """The true pose at vehicle time ts from a time-ordered sequence of (t_s, raw_state) physics
+    steps, linear between the two that bracket it (clamped at the ends)."""
+    i = len(hist) - 1
+    while i > 0 and hist[i - 1][0] > ts:
+        i -= 1
+    (t0, s0), (t1, s1) = hist[max(i - 1, 0)], hist[i]
+    w = 0.0 if t1 <= t0 else min(1.0, max(0.0, (ts - t0) / (t1 - t0)))
+    lerp = lambda a, b: a + (b - a) * w  # noqa: E731
+    pos = (lerp(s0[0], s1[0]), lerp(s0[1], s1[1]), lerp(s0[2], s1[2]))
+    yaw = s0[8] + wrap_pi(s1[8] - s0[8]) * w
+    return TruePose(pos, lerp(s0[6], s1[6]), lerp(s0[7], s1[7]), wrap_pi(yaw))
+
+
+def beam_range_m(world: World, frame: StorageFrame, lever_arm_body_m, pose: TruePose, servo_rad: float) -> float | None:
+    """What the LiDAR sees from a true pose at a true servo angle (None: no return within range)."""
+    o, d = beam_ray_w(pose.pos_ned_m, pose.roll_rad, pose.pitch_rad, pose.yaw_rad, servo_rad, lever_arm_body_m,
+                      frame)
+    r = world.cast_one(o, d)
+    return None if not math.isfinite(r) else r
+
+
+class SimWorld:
+    """Vehicle + MAVLink server + building, advanced in lockstep with the payload's clock."""
+
+    def __init__(self, vehicle: Vehicle, world: World, frame: StorageFrame, clock: SimClock,
+                 boot_offset_ns: int, lever_arm_body_m, latency_ns=lambda: 0, tlog_path=None, signing=None) -> None:
+        self.vehicle, self.world, self.frame, self.clock = vehicle, world, frame, clock
+        self.boot_offset_ns = boot_offset_ns  # companion time = vehicle time + offset
+        self.lever = np.asarray(lever_arm_body_m, dtype=float)
+        self._down = DelayedPipe(clock.now_ns, latency_ns)
+        self.server = MavlinkVehicleServer(vehicle, _ServerSide(self), tlog_path=tlog_path, signing=signing)
+        self._up = DelayedPipe(self._vehicle_now_companion_ns, latency_ns)
+        self._down_send_at, self._up_send_at = self._down.send_at, self._up.send_at
+        self._hist: collections.deque[tuple[float, tuple[float, ...]]] = collections.deque(maxlen=64)
+        self._hist.append((vehicle.state().t_s, state_tuple(vehicle)))
+        self.history: list[tuple[float, tuple[float, ...]]] = [self._hist[-1]]  # the whole true flight
+        self.servo_angle_at = None  # set by the runner: t_ns -> true shaft angle
+        clock.set_advance(self.advance_to)
+
+    # -- the payload's end of the MAVLink link ---------------------------------------------------
+    def wrap_links(self, wrap: Callable[[str, SendAt], SendAt]) -> None:
+        """Put something between each end of the MAVLink link and its pipe (fault injection, tests):
+        `wrap(direction, send_at)` returns the send_at to use instead; direction is "down" (autopilot
+        to payload) or "up". Wrappers stack: a later one wraps the earlier."""
+        self._down_send_at = wrap("down", self._down_send_at)
+        self._up_send_at = wrap("up", self._up_send_at)
+
+    def payload_send(self, data: bytes) -> None:
+        self._up_send_at(self.clock.now_ns(), data)
+
+    def payload_recv(self) -> bytes:
+        return self._down.recv()
+
+    def _vehicle_now_companion_ns(self) -> int:
+        return round(self.vehicle.state().t_s * 1e9) + self.boot_offset_ns
+
+    # -- time ------------------------------------------------------------------------------------
+    def vehicle_time_ns(self, companion_ns: int) -> int:
+        return companion_ns - self.boot_offset_ns
+
+    def advance_to(self, t_ns: int) -> int:
+        """Step the vehicle until its clock has passed companion time t_ns; return the companion
+        time up to which it is now stepped (the clock's horizon: no call needed before it)."""
+        target_s = self.vehicle_time_ns(t_ns) * 1e-9
+        while self._hist[-1][0] < target_s:
+            self.vehicle.step()
+            self.server.update()
+            self._hist.append((self.vehicle.state().t_s, state_tuple(self.vehicle)))
+            self.history.append(self._hist[-1])
+        return math.floor(self._hist[-1][0] * 1e9) + self.boot_offset_ns
+
+    def pose_at(self, t_ns: int) -> TruePose:
+        """The vehicle's true pose at companion time t_ns (linear between physics steps)."""
+        if t_ns > self.clock.now_ns():  # the clock has stepped the world up to its own time already
+            self.advance_to(t_ns)
+        return pose_from_history(self._hist, self.vehicle_time_ns(t_ns) * 1e-9)
+
+    def true_range_m(self, t_ns: int) -> float | None:
+        """What the LiDAR sees at companion time t_ns: true pose, true servo angle, ray traced."""
+        gamma = self.servo_angle_at(t_ns) if self.servo_angle_at else 0.0
+        return beam_range_m(self.world, self.frame, self.lever, self.pose_at(t_ns), gamma)
+
+
+class _ServerSide:
+    """The server's transport: what it sends goes down the delayed pipe; it reads what is due."""
+
+    def __init__(self, world: SimWorld) -> None:
+        self._world = world
+
+    def send(self, data: bytes) -> None:
+        self._world._down_send_at(self._world._vehicle_now_companion_ns(), data)
+
+    def recv(self) -> bytes:
+        return self._world._up.recv()
+
+    def close(self) -> None:
+        pass
+
+
+class _PowerCut(Exception):
+    """Raised from the loop's hook: the payload loses power mid-flight."""
+
+
+@dataclass(frozen=True)
+class FirmwareRun:
+    """What a firmware-in-the-loop flight produced."""
+
+    records: np.ndarray
+    duration_s: float
+    energy_j: float
+    completed: bool
+    loop: object  # LoopStats
+    lidar_counters: dict
+    pose_status: dict
+    true_t_s: np.ndarray  # the vehicle's true flight, companion seconds
+    true_states: np.ndarray  # (N, 12) as JsbsimVehicle.raw_state
+    faults: dict | None = None  # what the fault injector did (counters), when faults were injected
+
+
+def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = (0.0, 0.0),
+                 boot_offset_s: float = 1234.5, tlog_path=None, seed: int = 0, faults=None,
+                 signing_key: bytes | None = None) -> FirmwareRun:
+    """Fly `cfg` (a sitl.runners.fly.FlyConfig) with the unchanged payload firmware in the loop.
+
+    The vehicle settles on W0, the payload starts, waits for its time sync to converge, the
+    survey flies; the payload logs every sample to log_path until the vehicle is back on W0.
+    `faults` (a sitl.faults.injector.FaultSpec) injects link, sensor, servo, autopilot, clock and power
+    faults; a power cut ends the run there, leaving the log as the cut leaves it. With
+    `signing_key` both ends sign (MAVLink 2) and refuse what is not, each stamping with its own
+    simulated wall clock (the companion's can jump: the clock_jump fault).
+    """
+    from firmware_py.core.samplelog import SampleLogWriter, read_samplelog
+    from firmware_py.core.servo_model import ServoCalibration
+    from firmware_py.drivers.lidarlite import PRESET_FAST_500HZ, LidarLite, LidarLiteConfig, busy_deadline_ns
+    from firmware_py.drivers.servo import SweepServo
+    from firmware_py.hal.mavlink_link import ByteStreamLink
+    from firmware_py.payload import LoopConfig, PayloadLoop
+    from firmware_py.pose_tracker import PoseTracker
+    from sitl.devices.i2c_sim import SimI2CBus
+    from sitl.devices.lidarlite_emu import EmulatedLidarLite
+    from sitl.devices.servo_emu import EmulatedServo
+    from sitl.faults.injector import FaultInjector
+    from sitl.runners.flight import SETTLE_S, mission_nav_items, start_pose
+    from sitl.vehicle.api import FlightMode
+    from sitl.vehicle.jsbsim_plant import PlantConfig
+    from sitl.vehicle.jsbsim_vehicle import VehicleConfig
+    from sitl.world import stockpile as piles
+
+    m = cfg.mission
+    start, yaw0 = start_pose(m, cfg.frame)
+    vcfg = VehicleConfig(plant=PlantConfig(payload_kg=cfg.payload_kg, start_ned_m=start, start_yaw_rad=yaw0,
+                                           airborne=True),
+                         speed_m_s=m.speed_m_s, yaw_rate_max_rad_s=m.yaw_rate_max_rad_s, altitude_m=m.altitude_m)
+    vehicle = JsbsimVehicle(vcfg, armed=True, mode=FlightMode.GUIDED)
+    pile = piles.resolve(cfg.stockpile, m.storage)
+    world = World(m.storage, pile, max_range_m=cfg.lidar.max_range_m)
+    rng = np.random.default_rng(seed)
+    lo, hi = latency_ms
+    latency = (lambda: 0) if hi <= 0 else (lambda: int(rng.uniform(lo, hi) * 1e6))
+    clock = SimClock(start_ns=round(boot_offset_s * 1e9))
+    inj = FaultInjector(faults) if faults is not None and faults.active else None  # none: the plain path
+    true_wall_s = lambda: WALL_EPOCH_S + clock.now_ns() * 1e-9  # noqa: E731
+    companion_wall_s = inj.wall_clock(true_wall_s) if inj is not None else true_wall_s
+    server_signer = payload_signer = None
+    if signing_key is not None:
+        from firmware_py.hal.signing import MavlinkSigner, SigningConfig
+        server_signer = MavlinkSigner(SigningConfig(signing_key), clock=true_wall_s)
+        payload_signer = MavlinkSigner(SigningConfig(signing_key), clock=companion_wall_s)
+    sim = SimWorld(vehicle, world, cfg.frame, clock, boot_offset_ns=round(boot_offset_s * 1e9),
+                   lever_arm_body_m=cfg.lever_arm_body_m, latency_ns=latency, tlog_path=tlog_path,
+                   signing=server_signer)
+    links = {}
+    if inj is not None:
+        def wrap(direction: str, send_at: SendAt) -> SendAt:
+            links[direction] = inj.link(send_at)
+            return links[direction].send_at
+        sim.wrap_links(wrap)
+        inj.reboot = sim.server.reboot
+    wf = cfg.servo_waveform()
+    cal = ServoCalibration()
+    t0_ns = clock.now_ns()
+    plant = EmulatedServo(clock, cal, angle0_rad=float(wf.angle(0.0)))
+    sim.servo_angle_at = plant.angle_at
+    bus = SimI2CBus(clock)
+    part = EmulatedLidarLite(clock, inj.range_at(sim.true_range_m) if inj else sim.true_range_m)
+    bus.attach(0x62, part)
+    if inj is not None:
+        inj.attach(bus, part, plant)
+    lidar = LidarLite(bus, clock, LidarLiteConfig(
+        preset=PRESET_FAST_500HZ, busy_timeout_ns=busy_deadline_ns(PRESET_FAST_500HZ, cfg.lidar.rate_hz)))
+    link = ByteStreamLink(sim.payload_send, sim.payload_recv, signing=payload_signer)
+    tracker = PoseTracker(link, clock)
+    tracker.start()
+    servo = SweepServo(plant, wf, cal)
+    # Let the vehicle settle and the payload's time sync converge before the survey starts.
+    settle_end = t0_ns + round(SETTLE_S * 1e9)
+    while clock.now_ns() < settle_end:
+        clock.sleep_until_ns(clock.now_ns() + 10_000_000)
+        servo.update((clock.now_ns() - t0_ns) * 1e-9)
+        tracker.pump()
+    vehicle.load_mission(mission_nav_items(m, cfg.frame))
+    vehicle.start_mission()
+    if inj is not None:
+        inj.start_survey(clock.now_ns())
+    e0, ts0 = vehicle.plant.energy_j, vehicle.state().t_s
+    log_path = str(log_path)
+    # What the payload app writes too: the servo's calibration and when its sweep started, so the
+    # ground station can re-simulate a servo that does not move as modelled (ground.servo_timing).
+    header = {**header, "servo_calibration": asdict(cal),
+              "servo_drive": {"t0_s": t0_ns * 1e-9, "frame_s": servo.frame_s}}
+    log = SampleLogWriter(log_path, header, records_per_block=500, fsync=False, overwrite=True,
+                          opener=inj.opener(clock.now_ns) if inj is not None and faults.disk_full_at_s is not None
+                          else open)
+    loop = PayloadLoop(lidar, servo, tracker, clock, log, LoopConfig(rate_hz=cfg.lidar.rate_hz), t0_ns=t0_ns)
+    timeout_s = 3 * (m.path_length_m() / m.speed_m_s + 2 * math.pi / m.yaw_rate_max_rad_s) + 60
+
+    def should_stop() -> bool:
+        if inj is not None:
+            now = clock.now_ns()
+            inj.tick(now)
+            if inj.power_cut_due(now):
+                raise _PowerCut
+        return vehicle.mode != FlightMode.AUTO
+
+    cut = disk_full = False
+    try:
+        stats = loop.run(duration_s=SETTLE_S + timeout_s, should_stop=should_stop)
+        log.close()
+    except _PowerCut:
+        log.abandon()  # what was written stays; the buffered block is lost, as on the drone
+        stats, cut = loop.stats, True
+    except OSError as exc:  # the disk filled: pilescan-payload stops with this error (exit 1)
+        if inj is None or faults.disk_full_at_s is None:
+            raise
+        log.abandon()
+        stats, disk_full = loop.stats, str(exc)
+    sim.server.close()
+    status = tracker.status() if hasattr(tracker, "status") else {}
+    true_t = np.array([t for t, _ in sim.history]) + boot_offset_s
+    true_s = np.array([st for _, st in sim.history])
+    return FirmwareRun(read_samplelog(log_path).samples, vehicle.state().t_s - ts0, vehicle.plant.energy_j - e0,
+                       not (cut or disk_full) and vehicle.mode != FlightMode.AUTO and vehicle.current_item() == -1,
+                       stats,
+                       dict(lidar.counters), status, true_t, true_s,
+                       None if inj is None else
+                       {"link_down": links["down"].counters, "link_up": links["up"].counters, **inj.counters,
+                        "i2c_nacks": bus.counters["nack"], "power_cut": cut, "disk_full": disk_full, "loop": stats,
+                        "pending_at_stop": loop.pending if (cut or disk_full) else 0,
+                        "signing": {"payload": dict(payload_signer.stats), "autopilot": dict(server_signer.stats)}
+                        if signing_key is not None else None,
+                        "autopilot_reboots": sim.server.stats.get("reboots", 0)})

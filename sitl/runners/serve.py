@@ -1,0 +1,170 @@
+"""`pilescan-sitl serve`: the simulated vehicle as a networked MAVLink autopilot, paced to the wall clock.
+
+The vehicle waits on the floor below W0 of the survey (the plan's home), disarmed. The plan is
+written next to the telemetry log so a ground station can load it; the local NED origin (the
+storage frame's corner) is the EKF origin both use for global positions.
+
+With `signing` (`--signing-key FILE`) the autopilot signs everything it sends and refuses unsigned,
+forged and replayed frames; a UDP client is only sent to once it has sent a signed frame
+(MAVProxy: `signing setup PASSPHRASE`, or `signing key FILE` with the same key, before connecting;
+pymavlink: `conn.setup_signing(key)`). The same key authenticates the emulated device bridge
+(--devices): a payload must prove it holds the key before it may touch the LiDAR or the servo.
+
+Faults (`--fault NAME=VALUE`, `--seed`; `sitl.devices.networked.NetworkedFaults`): the FaultSpec faults of
+`pilescan-sitl fly` that make sense here, on the MAVLink link, the autopilot and the emulated devices,
+timed from the start of the mission (the vehicle first entering AUTO). The `SIM_PS_*` parameters
+(`sitl.faults.params`) change the injection while it runs, from any ground station.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import sys
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.rundir import PILE_FILE, PLAN_FILE, TLOG_FILE, TRUTH_FILE
+from firmware_py.hal.signing import SigningConfig
+from sitl.devices.bridge_server import parse_bridge_url
+from sitl.devices.networked import NetworkedDevices, NetworkedFaults, check_networked_faults
+from sitl.faults.injector import PAIRS, FaultSpec
+from sitl.mavlink.vehicle_server import MavlinkVehicleServer, make_transport, run_realtime
+from sitl.missions.qgc_wpl import DEFAULT_ORIGIN, write_qgc_wpl
+from sitl.missions.rectangle import Mission
+from sitl.runners.flight import start_pose
+from sitl.runners.fly import FlyConfig, check_clearance, truth_record
+from sitl.vehicle.jsbsim_plant import PlantConfig
+from sitl.vehicle.jsbsim_vehicle import JsbsimVehicle, VehicleConfig
+from sitl.vehicle.kinematic_vehicle import KinematicVehicle
+from sitl.world import stockpile as piles
+from sitl.world.raycast import World
+
+VEHICLES = ("jsbsim", "kinematic")
+
+
+def make_vehicle(kind: str, mission: Mission, frame: StorageFrame):
+    (n, e, _), yaw = start_pose(mission, frame)  # on the floor below W0, facing along the closing leg
+    if kind == "kinematic":
+        return KinematicVehicle(speed_m_s=mission.speed_m_s, yaw_rate_max_rad_s=mission.yaw_rate_max_rad_s,
+                                altitude_m=mission.altitude_m, home_ned_m=(n, e, 0.0))
+    return JsbsimVehicle(VehicleConfig(plant=PlantConfig(start_ned_m=(n, e, 0.0), start_yaw_rad=yaw),
+                                       speed_m_s=mission.speed_m_s,
+                                       yaw_rate_max_rad_s=mission.yaw_rate_max_rad_s, altitude_m=mission.altitude_m))
+
+
+@dataclass(frozen=True)
+class ServeOptions:
+    """What `pilescan-sitl serve` runs; checked at construction, before anything is opened or written."""
+
+    mission: Mission
+    url: str = "udp:127.0.0.1:14550"
+    speedup: float = 1.0
+    duration_s: float | None = None
+    vehicle: str = "jsbsim"
+    out: Path = Path("runs/serve")
+    devices_url: str | None = None
+    stockpile: str = "1"
+    signing: SigningConfig | None = None
+    faults: FaultSpec = field(default_factory=FaultSpec)
+    """The --fault faults (timed ones count from the mission start); its seed seeds every fault draw,
+    the SIM_PS_* parameters' too."""
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.speedup) and 0 < self.speedup <= 1000):
+            raise ValueError(f"--speedup must be in (0, 1000], got {self.speedup:g}")
+        if self.duration_s is not None and not self.duration_s > 0:
+            raise ValueError(f"--duration must be > 0 s, got {self.duration_s:g}")
+        if self.devices_url is not None and self.speedup != 1.0:
+            raise ValueError("--devices needs --speedup 1: the payload on the other end runs on the wall clock")
+        if self.vehicle not in VEHICLES:
+            raise ValueError(f"unknown vehicle {self.vehicle!r}; available: {', '.join(VEHICLES)}")
+        seed = self.faults.seed
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+        check_networked_faults(self.faults, devices=self.devices_url is not None)
+
+    def fly_config(self) -> FlyConfig:
+        """The lockstep SITL's settings for this mission: its frame, lever arm and LiDAR are served too."""
+        return FlyConfig(mission=self.mission, stockpile=self.stockpile)
+
+
+def serve(opts: ServeOptions) -> int:
+    """Serve until opts.duration_s of simulated time has run, or SIGINT / SIGTERM; returns the exit code."""
+    world = None
+    if opts.devices_url is not None:
+        parse_bridge_url(opts.devices_url)  # a bad URL fails before any work
+        pile = piles.resolve(opts.stockpile, opts.mission.storage)
+        check_clearance(opts.mission, pile)
+        world = World(opts.mission.storage, pile, max_range_m=opts.fly_config().lidar.max_range_m)
+    transport = make_transport(opts.url)  # a bad --mavlink fails before anything is written
+    try:
+        return _serve(opts, world, transport)
+    finally:
+        transport.close()
+
+
+def _serve(opts: ServeOptions, world: World | None, transport) -> int:
+    cfg = opts.fly_config()
+    mission, frame, out, kind = opts.mission, cfg.frame, opts.out, opts.vehicle
+    pile = world.pile if world is not None else None
+    out.mkdir(parents=True, exist_ok=True)
+    plan = write_qgc_wpl(out / PLAN_FILE, mission, frame)
+    if world is not None:
+        pile.mesh.export(out / PILE_FILE)
+        truth = truth_record(pile, opts.stockpile, mission, frame, plant=kind, payload="networked",
+                             seed=opts.faults.seed, faults=opts.faults)
+        (out / TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
+    vehicle = make_vehicle(kind, mission, frame)
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    lat0, lon0, alt0 = DEFAULT_ORIGIN
+    devices = None
+    try:
+        if world is not None:
+            devices = NetworkedDevices(vehicle, world, opts.devices_url, frame=frame,
+                                       lever_arm_body_m=cfg.lever_arm_body_m,
+                                       key=opts.signing.key if opts.signing is not None else None)
+        faults = NetworkedFaults(opts.faults, vehicle, transport, devices)
+        if devices is not None:
+            devices.start()
+        signed = injected = ""
+        if opts.signing is not None:
+            signed = "; MAVLink signing on" + (" (unsigned frames accepted)" if opts.signing.allow_unsigned else "")
+        if opts.faults.active:
+            timed = any(n in PAIRS or n.endswith("_at_s") for n in opts.faults.active)
+            injected = (f"; faults {', '.join(opts.faults.active)} (seed {opts.faults.seed}"
+                        + ("; times count from the mission start)" if timed else ")"))
+        print(f"pilescan-sitl: serving a {kind} quadcopter on {opts.url} ({opts.speedup:g}x real time); plan: {plan}"
+              + (f"; LiDAR and servo on {devices.url} (pile {opts.stockpile}, {pile.volume_m3:.1f} m^3)"
+                 if devices else "")
+              + signed + injected, file=sys.stderr, flush=True)
+        with MavlinkVehicleServer(vehicle, faults.transport, tlog_path=out / TLOG_FILE, home_lat_deg=lat0,
+                                  home_lon_deg=lon0, home_alt_m=alt0, signing=opts.signing,
+                                  extra_params=faults.params) as server:
+            faults.bind(server)
+
+            def on_step() -> None:
+                if devices is not None:
+                    devices.record()
+                faults.step()
+            sim_s = run_realtime(server, vehicle, speedup=opts.speedup, duration_s=opts.duration_s, stop_event=stop,
+                                 on_step=on_step)
+    finally:
+        if devices is not None:
+            devices.close()
+        transport.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    refused = ""
+    if opts.signing is not None:
+        st = server.stats
+        refused = (f"; refused {st['rx_unsigned']} unsigned, {st['rx_bad_signature']} badly signed and "
+                   f"{st['rx_replayed']} replayed frames")
+    summary = faults.summary()
+    print(f"pilescan-sitl: stopped after {sim_s:.1f} simulated seconds; telemetry in {out / TLOG_FILE}{refused}"
+          + (f"; faults: {summary}" if summary else ""), file=sys.stderr)
+    return 0

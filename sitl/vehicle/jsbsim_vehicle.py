@@ -1,0 +1,244 @@
+"""The flight-dynamics vehicle: JSBSim F450 plant + our autopilot + modes and mission sequencing.
+
+Implements `sitl.vehicle.api.Vehicle`, so the MAVLink server and the lockstep runner can drive it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from sitl.vehicle.api import CommandRejected, FlightMode, NavItem, NavKind, VehicleState
+from sitl.vehicle.autopilot import Autopilot, Gains, Target, wrap_pi
+from sitl.vehicle.jsbsim_plant import GEAR_HEIGHT_M, JsbsimPlant, PlantConfig
+
+PARAM_LIMITS = {
+    "PS_SPEED_MS": (0.05, 15.0),
+    "PS_YAW_RATE_DPS": (0.1, 360.0),
+    "PS_ALT_M": (0.5, 100.0),
+    "PS_WP_RADIUS_M": (0.05, 10.0),
+    "PS_CLIMB_MS": (0.1, 5.0),
+}
+LANDED_HEIGHT_M = GEAR_HEIGHT_M + 0.03
+TAKEOFF_TOLERANCE_M = 0.2
+
+
+@dataclass
+class VehicleConfig:
+    plant: PlantConfig = field(default_factory=PlantConfig)
+    gains: Gains = field(default_factory=Gains)
+    speed_m_s: float = 1.0
+    yaw_rate_max_rad_s: float = math.radians(30)
+    altitude_m: float = 12.0
+    wp_radius_m: float = 0.25
+    climb_rate_m_s: float = 1.0
+
+
+class JsbsimVehicle:
+    """A quadcopter you can arm, take off, send on a mission and land, in simulated time."""
+
+    def __init__(self, cfg: VehicleConfig | None = None, armed: bool = False,
+                 mode: FlightMode = FlightMode.STABILIZE) -> None:
+        self.cfg = cfg or VehicleConfig()
+        self.plant = JsbsimPlant(self.cfg.plant)
+        self.dt_s = self.cfg.plant.dt_s
+        self.params: dict[str, float] = {
+            "PS_SPEED_MS": self.cfg.speed_m_s,
+            "PS_YAW_RATE_DPS": math.degrees(self.cfg.yaw_rate_max_rad_s),
+            "PS_ALT_M": self.cfg.altitude_m,
+            "PS_WP_RADIUS_M": self.cfg.wp_radius_m,
+            "PS_CLIMB_MS": self.cfg.climb_rate_m_s,
+        }
+        self.ap = Autopilot(self.cfg.gains, self.cfg.yaw_rate_max_rad_s)
+        self.armed = armed
+        self.mode = mode
+        self.mission: list[NavItem] = []
+        self._item = -1
+        self._reached: list[int] = []
+        self._texts: list[str] = []
+        self._s = self.plant.read()
+        n, e, d = self._s[:3]
+        self._hold = Target(n, e, d, yaw_rad=self._s[8])
+        self._climb_to: float | None = None
+        self._landing = False
+
+    # ----------------------------------------------------------------- protocol: state and stepping
+    def state(self) -> VehicleState:
+        n, e, d, vn, ve, vd, roll, pitch, yaw, p, q, r = self._s
+        return VehicleState(self.plant.t_s, (n, e, d), (vn, ve, vd), roll, pitch, wrap_pi(yaw), p, q, r,
+                            self.armed, self.mode, self.landed, self.plant.energy_j,
+                            16.8 - 1.5e-5 * self.plant.energy_j)
+
+    @property
+    def raw_state(self) -> tuple[float, ...]:
+        """(n, e, d, vn, ve, vd, roll, pitch, yaw, p, q, r) as the plant last reported it."""
+        return self._s
+
+    @property
+    def landed(self) -> bool:
+        return -self._s[2] < LANDED_HEIGHT_M and abs(self._s[5]) < 0.2
+
+    def step(self) -> None:
+        if self.armed:
+            target = self._target()
+            self.plant.set_escs(*self.ap.update(self.dt_s, self._s, target))
+        else:
+            self.plant.set_escs(0.0, 0.0, 0.0, 0.0)
+            self.ap.reset()
+        self.plant.step()
+        self._s = self.plant.read()
+
+    # ----------------------------------------------------------------- guidance
+    def _target(self) -> Target:
+        if self._landing:
+            return self._land_target()
+        if self._climb_to is not None:
+            return self._climb_target(self._climb_to)
+        if self.mode == FlightMode.AUTO and 0 <= self._item < len(self.mission):
+            return self._mission_target()
+        return self._hold
+
+    def _ramp(self, d_goal: float) -> float:
+        """A target height that moves at the climb rate, so climbs and descents are steady."""
+        d = self._s[2]
+        step = self.params["PS_CLIMB_MS"] * 1.0
+        return d + max(-step, min(step, d_goal - d))
+
+    def _climb_target(self, d_goal: float) -> Target:
+        t = Target(self._hold.north_m, self._hold.east_m, self._ramp(d_goal), yaw_rad=self._hold.yaw_rad)
+        if abs(self._s[2] - d_goal) < TAKEOFF_TOLERANCE_M:
+            self._climb_to = None
+            self._hold = Target(self._hold.north_m, self._hold.east_m, d_goal, yaw_rad=self._hold.yaw_rad)
+            self._advance_if_item(NavKind.TAKEOFF)
+        return t
+
+    def _land_target(self) -> Target:
+        t = Target(self._hold.north_m, self._hold.east_m, self._s[2] + self.params["PS_CLIMB_MS"] * 0.5,
+                   yaw_rad=self._hold.yaw_rad)
+        if self.landed:
+            self._landing = False
+            self.armed = False  # before advancing: a mission that ends landed stays in its mode
+            self._texts.append("landed and disarmed")
+            self._advance_if_item(NavKind.LAND)
+        return t
+
+    def _mission_target(self) -> Target:
+        item = self.mission[self._item]
+        n, e, d = self._s[:3]
+        if item.kind == NavKind.TAKEOFF:
+            self._hold = Target(n, e, item.down_m, yaw_rad=self._s[8])
+            self._climb_to = item.down_m
+            return self._climb_target(item.down_m)
+        if item.kind == NavKind.LAND:
+            self._hold = Target(n, e, d, yaw_rad=self._s[8])
+            self._landing = True
+            return self._land_target()
+        dist = math.dist((n, e, d), (item.north_m, item.east_m, item.down_m))
+        if dist < self.params["PS_WP_RADIUS_M"]:
+            self._reach()
+            if self.mode == FlightMode.AUTO and 0 <= self._item < len(self.mission):
+                return self._mission_target()
+            return self._hold
+        return Target(item.north_m, item.east_m, item.down_m, speed_m_s=self.params["PS_SPEED_MS"])
+
+    def _advance_if_item(self, kind: NavKind) -> None:
+        if self.mode == FlightMode.AUTO and 0 <= self._item < len(self.mission) \
+                and self.mission[self._item].kind == kind:
+            self._reach()
+
+    def _reach(self) -> None:
+        self._reached.append(self._item)
+        self._item += 1
+        if self._item >= len(self.mission):
+            self._item = -1
+            n, e, d = self._s[:3]
+            self._hold = Target(n, e, d, yaw_rad=self._s[8])
+            if self.armed and not self._landing:
+                self.mode = FlightMode.LOITER
+            self._texts.append("mission complete")
+
+    # ----------------------------------------------------------------- protocol: commands
+    def arm(self) -> None:
+        if self.armed:
+            raise CommandRejected("already armed")
+        if not self.landed:
+            raise CommandRejected("cannot arm: not on the ground")
+        self.armed = True
+        n, e, d = self._s[:3]
+        self._hold = Target(n, e, d, yaw_rad=self._s[8])
+        if self.mode == FlightMode.AUTO and self.mission:
+            self.start_mission()
+
+    def disarm(self, force: bool = False) -> None:
+        if not self.armed:
+            return
+        if not self.landed and not force:
+            raise CommandRejected("cannot disarm in flight (use force)")
+        self.armed = False
+
+    def set_mode(self, mode: FlightMode) -> None:
+        mode = FlightMode(mode)
+        if mode == FlightMode.AUTO:
+            if not self.mission:
+                raise CommandRejected("AUTO needs a mission")
+            self.mode = mode
+            if self.armed:
+                self._item = 0 if self._item < 0 else self._item
+            return
+        if mode == FlightMode.LAND:
+            self.mode = mode
+            n, e, d = self._s[:3]
+            self._hold = Target(n, e, d, yaw_rad=self._s[8])
+            self._landing = self.armed and not self.landed
+            return
+        if mode not in (FlightMode.GUIDED, FlightMode.LOITER, FlightMode.STABILIZE):
+            raise CommandRejected(f"mode {mode.name} is not supported")
+        self.mode = mode
+        n, e, d = self._s[:3]
+        self._hold = Target(n, e, d, yaw_rad=self._s[8])
+
+    def takeoff(self, altitude_m: float) -> None:
+        if not (math.isfinite(altitude_m) and 0.5 <= altitude_m <= 100):
+            raise ValueError(f"take-off altitude must be 0.5-100 m, got {altitude_m}")
+        if not self.armed or not self.landed:
+            raise CommandRejected("take-off needs the vehicle armed and on the ground")
+        if self.mode != FlightMode.GUIDED:
+            raise CommandRejected("take-off needs GUIDED mode")
+        n, e, _ = self._s[:3]
+        self._hold = Target(n, e, -altitude_m, yaw_rad=self._s[8])
+        self._climb_to = -altitude_m
+
+    def load_mission(self, items: list[NavItem]) -> None:
+        if self.mode == FlightMode.AUTO and self._item >= 0 and self.armed:
+            raise CommandRejected("cannot replace the mission while flying it")
+        self.mission = list(items)
+        self._item = -1
+
+    def start_mission(self) -> None:
+        if not self.mission:
+            raise CommandRejected("no mission loaded")
+        if not self.armed:
+            raise CommandRejected("arm first")
+        self.mode = FlightMode.AUTO
+        self._item = 0
+
+    def set_param(self, name: str, value: float) -> None:
+        if name not in PARAM_LIMITS:
+            raise KeyError(name)
+        lo, hi = PARAM_LIMITS[name]
+        if not (math.isfinite(value) and lo <= value <= hi):
+            raise ValueError(f"{name} must be {lo:g}-{hi:g}, got {value}")
+        self.params[name] = float(value)
+        if name == "PS_YAW_RATE_DPS":
+            self.ap.yaw_rate_max_rad_s = math.radians(value)
+
+    def pop_reached(self) -> list[int]:
+        out, self._reached = self._reached, []
+        return out
+
+    def current_item(self) -> int:
+        return self._item
+
+    def pop_status_text(self) -> list[str]:
+        out, self._texts = self._texts, []
+        return out

@@ -1,0 +1,1 @@
+"""The world the LiDAR sees: the storage building and its stockpile, ray traced."""

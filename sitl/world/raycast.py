@@ -1,0 +1,111 @@
+"""The simulated world: storage box (floor, walls, roof) plus a stockpile, ray traced with Embree.
+
+Embree (through `embreex`) intersects in float32; over a building of tens of metres that is a few
+micrometres, far below the LiDAR's 1 cm resolution (the tests check analytic hits to < 1 mm).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from embreex import rtcore_scene as rtcs
+from embreex.mesh_construction import TriangleMesh
+
+from firmware_py.core.sensor import LIDARLITE_V3
+from firmware_py.core.storage import Storage
+from sitl.world.stockpile import Stockpile
+
+"""Garmin LIDAR-Lite v3 range (Table 1)."""
+
+GEOM_BUILDING, GEOM_PILE = 0, 1
+
+
+def building_triangles(storage: Storage) -> np.ndarray:
+    """The 12 triangles (12, 3, 3) of the inside of the box: floor, four walls, roof."""
+    lx, wy, hz = storage.length_m, storage.width_m, storage.height_m
+    c = np.array([[x, y, z] for z in (0.0, hz) for y in (0.0, wy) for x in (0.0, lx)])
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    tris = [(q[0], q[1], q[2]) for q in quads] + [(q[0], q[2], q[3]) for q in quads]
+    return c[np.array(tris)]
+
+
+@dataclass
+class Hits:
+    """Result of a batch of rays: range (NaN = no return), surface id and hit points in W."""
+
+    range_m: np.ndarray
+    geom_id: np.ndarray
+    points_w: np.ndarray
+
+
+class World:
+    """Storage + stockpile, queried with rays in the storage frame W."""
+
+    def __init__(self, storage: Storage, pile: Stockpile | None = None,
+                 max_range_m: float = LIDARLITE_V3.max_range_m) -> None:
+        if not (np.isfinite(max_range_m) and max_range_m > 0):
+            raise ValueError(f"max range must be > 0 m, got {max_range_m}")
+        self.storage = storage
+        self.pile = pile
+        self.max_range_m = float(max_range_m)
+        self._scene = rtcs.EmbreeScene()
+        # Geometry ids follow insertion order: building first (GEOM_BUILDING), then the pile.
+        TriangleMesh(self._scene, building_triangles(storage).astype(np.float32))
+        self._pile_top_m = -math.inf
+        if pile is not None and len(pile.mesh.faces):
+            TriangleMesh(self._scene, np.ascontiguousarray(pile.mesh.triangles, dtype=np.float32))
+            self._pile_top_m = float(pile.mesh.bounds[1, 2])
+
+    def buried(self, points_w: np.ndarray) -> np.ndarray:
+        """Which points (N, 3) lie inside the stockpile: below its surface seen from the roof.
+
+        A sensor there sees nothing (its window is in the material). It happens in the SITL, never
+        in flight: the simulated vehicle stands on the floor, and a take-off spot the pile covers
+        puts the LiDAR under the pile's surface, whose rays would otherwise reach the floor
+        beneath it and give the ground station contradictory points.
+        """
+        p = np.asarray(points_w, dtype=float).reshape(-1, 3)
+        out = np.zeros(len(p), dtype=bool)
+        low = np.flatnonzero(p[:, 2] < self._pile_top_m)  # only these can be inside; in flight: none
+        if len(low):
+            top = np.column_stack([p[low, :2], np.full(len(low), self.storage.height_m - 1e-3)])
+            res = self._scene.run(top.astype(np.float32), np.tile(np.float32([0.0, 0.0, -1.0]), (len(low), 1)),
+                                  output=1)
+            hit_z = top[:, 2] - res["tfar"].astype(np.float64)
+            out[low] = (res["geomID"] == GEOM_PILE) & (res["primID"] >= 0) & (hit_z > p[low, 2])
+        return out
+
+    def cast(self, origins_w: np.ndarray, dirs_w: np.ndarray, max_range_m: float | None = None) -> Hits:
+        """Cast rays (N, 3) from origins along unit directions; ranges beyond max are NaN."""
+        o64 = np.asarray(origins_w, dtype=float).reshape(-1, 3)
+        d64 = np.asarray(dirs_w, dtype=float).reshape(-1, 3)
+        if o64.shape != d64.shape:
+            raise ValueError(f"origins {o64.shape} and directions {d64.shape} differ")
+        limit = self.max_range_m if max_range_m is None else float(max_range_m)
+        if len(o64) == 0:
+            return Hits(np.empty(0), np.empty(0, dtype=np.int32), np.empty((0, 3)))
+        unit = d64 / np.linalg.norm(d64, axis=1)[:, None]
+        res = self._scene.run(np.ascontiguousarray(o64, dtype=np.float32),
+                              np.ascontiguousarray(unit, dtype=np.float32), output=1)
+        r = res["tfar"].astype(np.float64)
+        ok = (res["primID"] >= 0) & (r <= limit) & ~self.buried(o64)
+        r = np.where(ok, r, np.nan)
+        geom = np.where(ok, res["geomID"], -1).astype(np.int32)
+        pts = o64 + unit * r[:, None]
+        return Hits(r, geom, pts)
+
+    def cast_one(self, origin_w, dir_w) -> float:
+        """Range of one ray, m (NaN when there is no return within the max range).
+
+        The emulated LiDAR's path, one ray per sample: straight to Embree with no batch bookkeeping.
+        """
+        if origin_w[2] < self._pile_top_m and self.buried(origin_w)[0]:
+            return math.nan
+        d = np.asarray(dir_w, dtype=float)
+        o32 = np.asarray(origin_w, dtype=np.float32).reshape(1, 3)
+        d32 = (d / math.sqrt(float(d @ d))).astype(np.float32).reshape(1, 3)
+        res = self._scene.run(o32, d32, output=1)
+        r = float(res["tfar"][0])
+        return r if res["primID"][0] >= 0 and r <= self.max_range_m else math.nan

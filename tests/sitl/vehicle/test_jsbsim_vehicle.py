@@ -1,0 +1,72 @@
+"""Modes and commands of the flight-dynamics vehicle."""
+
+import math
+
+import pytest
+
+from sitl.vehicle.api import CommandRejected, FlightMode, NavItem, NavKind
+from sitl.vehicle.jsbsim_vehicle import JsbsimVehicle
+
+
+def run(v, seconds):
+    for _ in range(int(seconds / v.dt_s)):
+        v.step()
+
+
+def test_that_jsbsim_loads_quietly(capfd):
+    JsbsimVehicle()
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""
+
+
+def test_that_a_full_flight_takes_off_flies_its_mission_and_lands():
+    v = JsbsimVehicle()
+    assert v.state().landed and not v.state().armed
+    v.load_mission([NavItem(NavKind.TAKEOFF, 0, 0, -3), NavItem(NavKind.WAYPOINT, 4, 0, -3),
+                    NavItem(NavKind.WAYPOINT, 4, 3, -3), NavItem(NavKind.LAND, 4, 3, 0)])
+    v.arm()
+    v.start_mission()
+    reached = []
+    for _ in range(90):
+        run(v, 1.0)
+        reached += v.pop_reached()
+        if not v.state().armed:
+            break
+    assert reached == [0, 1, 2, 3]
+    s = v.state()
+    assert s.landed and not s.armed
+    assert math.hypot(s.pos_ned_m[0] - 4, s.pos_ned_m[1] - 3) < 0.5
+    assert "landed and disarmed" in v.pop_status_text()
+
+
+def test_that_guided_takeoff_climbs_to_the_asked_height():
+    v = JsbsimVehicle()
+    v.arm()
+    v.set_mode(FlightMode.GUIDED)
+    v.takeoff(4.0)
+    run(v, 15.0)
+    assert -v.state().pos_ned_m[2] == pytest.approx(4.0, abs=0.2)
+    with pytest.raises(CommandRejected):
+        v.arm()
+    with pytest.raises(CommandRejected):
+        v.disarm()
+    v.disarm(force=True)
+    assert not v.state().armed
+
+
+def test_that_commands_in_the_wrong_state_are_rejected():
+    v = JsbsimVehicle()
+    with pytest.raises(CommandRejected):
+        v.set_mode(FlightMode.AUTO)  # no mission
+    with pytest.raises(CommandRejected):
+        v.takeoff(5.0)  # disarmed
+    with pytest.raises(CommandRejected):
+        v.start_mission()
+    with pytest.raises(ValueError):
+        v.takeoff(math.nan)
+    with pytest.raises(KeyError):
+        v.set_param("NOPE", 1.0)
+    with pytest.raises(ValueError):
+        v.set_param("PS_SPEED_MS", -1.0)
+    v.set_param("PS_YAW_RATE_DPS", 6.0)
+    assert v.ap.yaw_rate_max_rad_s == pytest.approx(math.radians(6))
