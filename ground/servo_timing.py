@@ -32,6 +32,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from firmware_py.core.header import ServoDrive, waveform_from_dict
 from firmware_py.core.servo_model import ServoCalibration, modelled_sweep
 from firmware_py.core.waveform import Waveform
 
@@ -108,16 +109,12 @@ class Resimulated:
     def from_header(cls, header: dict) -> Resimulated | None:
         """From the header's servo, servo_calibration and servo_drive; None if any is missing or bad."""
         try:
-            sv, drive = header["servo"], header["servo_drive"]
-            wf = Waveform(float(sv["shape_c"]), float(sv["frequency_hz"]), float(sv["amplitude_rad"]),
-                          float(sv["phase_rad"]), int(sv["direction"]))
+            wf = waveform_from_dict(header["servo"])
+            drive = ServoDrive.from_dict(header["servo_drive"])
             cal = ServoCalibration(**{k: float(v) for k, v in header["servo_calibration"].items()})
-            t0, frame = float(drive["t0_s"]), float(drive["frame_s"])
         except (KeyError, TypeError, ValueError, AttributeError):
             return None
-        if not (np.isfinite(t0) and np.isfinite(frame) and 0 < frame <= 1.0):
-            return None
-        return cls(wf, cal, t0, frame)
+        return cls(wf, cal, drive.t0_s, drive.frame_s)
 
     def angles(self, t_s: np.ndarray, delay_s: float = 0.0, gain: float = 1.0) -> np.ndarray:
         cal = replace(self.cal, slew_rad_s=self.cal.slew_rad_s * gain)

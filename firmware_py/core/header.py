@@ -1,7 +1,8 @@
 """The sample-log header: what the ground station needs to turn a log into points and a volume.
 
-One pure function builds it for every writer (the SITL's runs and the payload program on the drone),
-so the keys cannot drift apart and the payload never imports `sitl`. The ground station reads:
+`LogHeader` is the header, typed, with `to_dict()` / `from_dict()`; one pure function
+(`build_log_header`) builds it for every writer (the SITL's runs and the payload program on the
+drone), so the keys cannot drift apart and the payload never imports `sitl`. The ground station reads:
 
 - ``sensor``: a `firmware_py.core.sensor.RangefinderSpec` as a dict: the range error model
   (``range_sigma_m``, ``range_sigma_rel``, ``resolution_m``) that sizes its wall/roof tolerances, plus
@@ -18,10 +19,12 @@ from __future__ import annotations
 import datetime as dt
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from firmware_py.core.frames import StorageFrame
-from firmware_py.core.sensor import LIDARLITE_V3
+from firmware_py.core.sensor import LIDARLITE_V3, RangefinderSpec
+from firmware_py.core.servo_model import ServoCalibration
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import Waveform
@@ -43,16 +46,213 @@ def sensor_spec(rate_hz: float, **overrides: Any) -> dict[str, Any]:
 
 def servo_header(waveform_name: str, wf: Waveform, initial_position: int) -> dict[str, Any]:
     """The header's ``servo`` dict: the eq. (1) waveform the payload drove."""
-    return {"waveform": waveform_name, "shape_c": wf.shape_c, "frequency_hz": wf.frequency_hz,
-            "amplitude_rad": wf.amplitude_rad, "phase_rad": wf.phase_rad, "direction": wf.direction,
-            "initial_position": initial_position}
+    return ServoSweep.of(waveform_name, wf, initial_position).to_dict()
+
+
+def waveform_from_dict(d: Any) -> Waveform:
+    """The eq. (1) waveform in a header's ``servo`` (only the keys the waveform needs, so a reader that
+    wants the sweep alone accepts a partial header); ValueError naming a missing or bad key."""
+    d = _mapping(d, "servo")
+    try:
+        return Waveform(_number(d, "shape_c", "servo"), _number(d, "frequency_hz", "servo"),
+                        _number(d, "amplitude_rad", "servo"), _number(d, "phase_rad", "servo"),
+                        _integer(d, "direction", "servo"))
+    except KeyError as exc:
+        raise ValueError(f"log header servo lacks {exc}") from None
+
+
+@dataclass(frozen=True)
+class ServoSweep:
+    """The header's ``servo``: the eq. (1) waveform the payload drove, and which of Fig. 9's 20 starts."""
+
+    waveform: str
+    shape_c: float
+    frequency_hz: float
+    amplitude_rad: float
+    phase_rad: float
+    direction: int
+    initial_position: int
+
+    def __post_init__(self) -> None:
+        self.eq1()  # the waveform's own checks, with their messages
+        if not isinstance(self.waveform, str) or not self.waveform:
+            raise ValueError(f"servo waveform name must be a non-empty string, got {self.waveform!r}")
+        if isinstance(self.initial_position, bool) or not isinstance(self.initial_position, int):
+            raise ValueError(f"servo initial_position must be an integer, got {self.initial_position!r}")
+
+    @classmethod
+    def of(cls, waveform_name: str, wf: Waveform, initial_position: int) -> ServoSweep:
+        return cls(waveform_name, wf.shape_c, wf.frequency_hz, wf.amplitude_rad, wf.phase_rad, wf.direction,
+                   initial_position)
+
+    def eq1(self) -> Waveform:
+        """The waveform itself."""
+        return Waveform(self.shape_c, self.frequency_hz, self.amplitude_rad, self.phase_rad, self.direction)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: Any) -> ServoSweep:
+        """Parse a header's ``servo``; ValueError naming a missing key or a bad value."""
+        wf = waveform_from_dict(d)
+        try:
+            return cls.of(str(d["waveform"]), wf, _integer(d, "initial_position", "servo"))
+        except KeyError as exc:
+            raise ValueError(f"log header servo lacks {exc}") from None
+
+
+@dataclass(frozen=True)
+class ServoDrive:
+    """The header's ``servo_drive``: when the sweep started on the samples' clock, and the PWM frame.
+
+    With the servo calibration it lets the ground station re-simulate the servo the payload drove.
+    """
+
+    t0_s: float
+    frame_s: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.t0_s) and math.isfinite(self.frame_s) and 0 < self.frame_s <= 1.0):
+            raise ValueError(f"servo drive needs a finite start and a PWM frame in (0, 1] s, got {self}")
+
+    def to_dict(self) -> dict[str, float]:
+        return {"t0_s": self.t0_s, "frame_s": self.frame_s}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> ServoDrive:
+        d = _mapping(d, "servo_drive")
+        return cls(_number(d, "t0_s", "servo_drive"), _number(d, "frame_s", "servo_drive"))
+
+
+STANDARD_KEYS = ("software", "created_utc", "source", "sensor", "lever_arm_body_m", "servo", "mission_id",
+                 "mission", "storage", "storage_frame")
+"""The keys every header has, in the order they are written."""
+OPTIONAL_KEYS = ("servo_calibration", "servo_drive")
+"""Keys a header may have, typed: written after the standard ones, before any extra keys."""
+
+
+@dataclass(frozen=True)
+class LogHeader:
+    """A sample-log header, typed (the module docstring says what each part is for).
+
+    `to_dict()` is what the log stores (key order fixed, so two writers given the same inputs write
+    the same bytes); `from_dict()` parses one back, naming the first bad key. Keys this class does not
+    know travel in `extra` untouched (a newer writer's additions survive an older reader's round trip).
+    """
+
+    source: str
+    sensor: RangefinderSpec
+    lever_arm_body_m: tuple[float, float, float]
+    servo: ServoSweep
+    storage: Storage
+    storage_frame: StorageFrame
+    mission_id: str | None = None
+    mission: Mapping[str, Any] | None = None
+    software: str = field(default_factory=software_version)
+    created_utc: str = field(default_factory=utc_now_iso)
+    servo_calibration: ServoCalibration | None = None
+    servo_drive: ServoDrive | None = None
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        lever = self.lever_arm_body_m
+        if not (isinstance(lever, Sequence) and len(lever) == 3
+                and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in lever)):
+            raise ValueError(f"lever arm must be 3 finite numbers, got {lever!r}")
+        object.__setattr__(self, "lever_arm_body_m", tuple(float(v) for v in lever))
+        if not isinstance(self.source, str) or not self.source:
+            raise ValueError(f"log header source must be a non-empty string, got {self.source!r}")
+        clash = set(self.extra) & {*STANDARD_KEYS, *OPTIONAL_KEYS}
+        if clash:
+            raise ValueError(f"extra header key {sorted(clash)[0]!r} would replace a standard one")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The header as the sample log stores it."""
+        d: dict[str, Any] = {
+            "software": self.software,
+            "created_utc": self.created_utc,
+            "source": self.source,
+            "sensor": self.sensor.to_dict(),
+            "lever_arm_body_m": list(self.lever_arm_body_m),
+            "servo": self.servo.to_dict(),
+            "mission_id": self.mission_id,
+            "mission": dict(self.mission) if self.mission is not None else None,
+            "storage": self.storage.to_dict(),
+            "storage_frame": self.storage_frame.to_dict(),
+        }
+        if self.servo_calibration is not None:
+            d["servo_calibration"] = asdict(self.servo_calibration)
+        if self.servo_drive is not None:
+            d["servo_drive"] = self.servo_drive.to_dict()
+        d.update(self.extra)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Any) -> LogHeader:
+        """Parse a stored header; ValueError naming the missing or malformed key."""
+        d = _mapping(d, "log header")
+        missing = [k for k in STANDARD_KEYS if k not in d]
+        if missing:
+            raise ValueError(f"log header lacks {', '.join(missing)}")
+        try:
+            storage = Storage.from_dict(_mapping(d["storage"], "storage"))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"log header storage is malformed: {exc}") from None
+        try:
+            frame = StorageFrame.from_dict(_mapping(d["storage_frame"], "storage_frame"))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"log header storage_frame is malformed: {exc}") from None
+        cal = None
+        if d.get("servo_calibration") is not None:
+            c = _mapping(d["servo_calibration"], "servo_calibration")
+            try:
+                cal = ServoCalibration(**{k: float(v) for k, v in c.items()})
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"log header servo_calibration is malformed: {exc}") from None
+        mission = d["mission"]
+        if mission is not None and not isinstance(mission, dict):
+            raise ValueError("log header mission must be a JSON object or null")
+        mission_id = d["mission_id"]
+        if mission_id is not None and not isinstance(mission_id, str):
+            raise ValueError(f"log header mission_id must be a string or null, got {mission_id!r}")
+        for key in ("software", "created_utc"):
+            if not isinstance(d[key], str):
+                raise ValueError(f"log header {key} must be a string, got {d[key]!r}")
+        return cls(
+            source=d["source"], sensor=RangefinderSpec.from_dict(d["sensor"]),
+            lever_arm_body_m=d["lever_arm_body_m"], servo=ServoSweep.from_dict(d["servo"]), storage=storage,
+            storage_frame=frame, mission_id=mission_id, mission=mission, software=d["software"],
+            created_utc=d["created_utc"], servo_calibration=cal,
+            servo_drive=ServoDrive.from_dict(d["servo_drive"]) if d.get("servo_drive") is not None else None,
+            extra={k: v for k, v in d.items() if k not in STANDARD_KEYS and k not in OPTIONAL_KEYS})
+
+
+def _mapping(d: Any, where: str) -> dict[str, Any]:
+    if not isinstance(d, dict):
+        raise ValueError(f"log header {where} must be a JSON object, got {type(d).__name__}")
+    return d
+
+
+def _number(d: dict[str, Any], key: str, where: str) -> float:
+    v = d[key]
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise ValueError(f"log header {where}.{key} must be a finite number, got {v!r}")
+    return float(v)
+
+
+def _integer(d: dict[str, Any], key: str, where: str) -> int:
+    v = d[key]
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise ValueError(f"log header {where}.{key} must be an integer, got {v!r}")
+    return v
 
 
 def build_log_header(*, source: str, sensor: Mapping[str, Any], lever_arm_body_m: Sequence[float],
                      waveform_name: str, waveform: Waveform, initial_position: int, storage: Storage,
                      frame: StorageFrame, mission_id: str | None = None, mission: Mapping[str, Any] | None = None,
                      created_utc: str | None = None, extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """The sample-log header dict (module docstring), ready for `SampleLogWriter`.
+    """The sample-log header dict (module docstring), ready for `SampleLogWriter`: a `LogHeader`'s `to_dict()`.
 
     Args:
         source: who wrote the log, e.g. "sitl/jsbsim" or "payload".
@@ -62,28 +262,24 @@ def build_log_header(*, source: str, sensor: Mapping[str, Any], lever_arm_body_m
         storage, frame: the building and its placement in local NED.
         mission_id, mission: what was flown, when known (None otherwise).
         created_utc: creation time; None = now (`utc_now_iso`).
-        extra: further keys appended after the standard ones (they may not replace one).
+        extra: further keys appended after the standard ones (they may not replace one);
+            ``servo_calibration`` and ``servo_drive`` among them are checked as their types.
 
     Raises:
-        ValueError: a lever arm that is not 3 finite numbers, or an extra key clashing with a standard one.
+        ValueError: a lever arm that is not 3 finite numbers, a bad sensor value (named), or an extra
+            key clashing with a standard one.
     """
-    lever = list(lever_arm_body_m)
-    if len(lever) != 3 or not all(isinstance(v, int | float) and math.isfinite(v) for v in lever):
-        raise ValueError(f"lever arm must be 3 finite numbers, got {lever_arm_body_m!r}")
-    header: dict[str, Any] = {
-        "software": software_version(),
-        "created_utc": created_utc if created_utc is not None else utc_now_iso(),
-        "source": source,
-        "sensor": dict(sensor),
-        "lever_arm_body_m": lever,
-        "servo": servo_header(waveform_name, waveform, initial_position),
-        "mission_id": mission_id,
-        "mission": dict(mission) if mission is not None else None,
-        "storage": storage.to_dict(),
-        "storage_frame": frame.to_dict(),
-    }
-    for key, value in (extra or {}).items():
-        if key in header:
-            raise ValueError(f"extra header key {key!r} would replace a standard one")
-        header[key] = value
-    return header
+    more = dict(extra or {})
+    clash = [k for k in more if k in STANDARD_KEYS]
+    if clash:
+        raise ValueError(f"extra header key {clash[0]!r} would replace a standard one")
+    cal = more.pop("servo_calibration", None)
+    drive = more.pop("servo_drive", None)
+    return LogHeader(
+        source=source, sensor=RangefinderSpec.from_dict(dict(sensor)), lever_arm_body_m=lever_arm_body_m,
+        servo=ServoSweep.of(waveform_name, waveform, initial_position), storage=storage, storage_frame=frame,
+        mission_id=mission_id, mission=mission,
+        created_utc=created_utc if created_utc is not None else utc_now_iso(),
+        servo_calibration=ServoCalibration(**cal) if isinstance(cal, Mapping) else cal,
+        servo_drive=ServoDrive.from_dict(dict(drive)) if isinstance(drive, Mapping) else drive,
+        extra=more).to_dict()

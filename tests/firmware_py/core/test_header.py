@@ -9,7 +9,7 @@ import pytest
 
 from firmware_py.app import PayloadConfig
 from firmware_py.core.frames import StorageFrame
-from firmware_py.core.header import build_log_header, sensor_spec
+from firmware_py.core.header import LogHeader, ServoDrive, build_log_header, sensor_spec
 from firmware_py.core.samplelog import SampleLogWriter, read_samplelog
 from firmware_py.core.sensor import LIDARLITE_V3, SENSOR_KEYS
 from firmware_py.core.storage import Storage
@@ -94,3 +94,37 @@ def test_that_a_bad_sensor_value_is_refused_by_name(kw, name):
 def test_that_created_utc_defaults_to_now_in_iso_utc():
     h = header(created_utc=None)
     assert h["created_utc"].endswith("+00:00") and len(h["created_utc"]) == 25
+
+
+def test_that_a_header_round_trips_through_its_typed_form():
+    d = header(extra={"servo_calibration": {"center_us": 1490.0, "us_per_rad": 320.0, "min_us": 1000.0,
+                                            "max_us": 2000.0, "slew_rad_s": 5.0, "lag_s": 0.02},
+                      "servo_drive": {"t0_s": 1.5, "frame_s": 0.02}, "payload": {"i2c": "i2c:1"}})
+    typed = LogHeader.from_dict(json.loads(json.dumps(d)))
+    assert typed.servo_calibration is not None and typed.servo_calibration.center_us == 1490.0
+    assert typed.servo_drive == ServoDrive(1.5, 0.02) and typed.servo.eq1() == named_waveform("sinusoidal", 4.0, 3)
+    assert typed.extra == {"payload": {"i2c": "i2c:1"}}
+    assert typed.to_dict() == d and list(typed.to_dict()) == list(d)
+
+
+def test_that_the_payload_programs_header_parses_as_a_typed_header():
+    typed = LogHeader.from_dict(PayloadConfig().log_header(sweep_t0_s=0.25))
+    assert typed.source == "payload" and typed.sensor.model == LIDARLITE_V3.model
+    assert typed.servo_drive is not None and typed.servo_drive.t0_s == 0.25
+
+
+@pytest.mark.parametrize(("edit", "named"), [
+    (lambda h: h.pop("storage"), "storage"),
+    (lambda h: h["sensor"].pop("rate_hz"), "rate_hz"),
+    (lambda h: h["servo"].update(direction=2), "direction"),
+    (lambda h: h["servo"].update(shape_c="x"), "shape_c"),
+    (lambda h: h["storage_frame"].update(heading_rad=None), "storage_frame"),
+    (lambda h: h.update(lever_arm_body_m=[0, 0]), "lever arm"),
+    (lambda h: h.update(mission_id=5), "mission_id"),
+    (lambda h: h.update(servo_drive={"t0_s": 0.0, "frame_s": -1.0}), "servo drive"),
+])
+def test_that_a_malformed_header_is_refused_naming_what_is_wrong(edit, named):
+    h = json.loads(json.dumps(header()))
+    edit(h)
+    with pytest.raises(ValueError, match=named):
+        LogHeader.from_dict(h)
