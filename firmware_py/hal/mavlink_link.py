@@ -277,7 +277,7 @@ class _FramedLink:
 class ByteStreamLink(_FramedLink):
     """A MavlinkLink over two byte callables: `send_bytes(frame)` and `recv_bytes() -> bytes` (b"" if none).
 
-    For in-memory pipes, e.g. `ByteStreamLink(end.send, end.recv)` on a `sitl.mavlink.vehicle_server.PipeTransport`
+    For in-memory pipes, e.g. `ByteStreamLink(end.send, end.recv)` on a `sitl.mavlink.transport.PipeTransport`
     end; the SITL lockstep runner and the tests use it, so they run the same parser as the real links.
     """
 

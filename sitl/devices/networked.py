@@ -34,7 +34,8 @@ from sitl.devices.lidarlite_emu import ADDRESS, EmulatedLidarLite
 from sitl.devices.servo_emu import EmulatedServo
 from sitl.faults.injector import FaultInjector, FaultSpec
 from sitl.faults.params import FaultParams, LiveFaultInjector
-from sitl.mavlink.vehicle_server import MavlinkVehicleServer, Transport
+from sitl.mavlink.server import MavlinkVehicleServer
+from sitl.mavlink.transport import Transport
 from sitl.runners.lockstep_payload import TruePose, beam_range_m, pose_from_history, state_tuple
 from sitl.vehicle.api import FlightMode, Vehicle
 from sitl.world.raycast import World

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from firmware_py.core.frames import StorageFrame
-from sitl.mavlink.vehicle_server import ned_to_global
+from sitl.mavlink.geodesy import ned_to_global
 from sitl.missions.rectangle import Mission
 
 MAV_FRAME_GLOBAL, MAV_FRAME_MISSION, MAV_FRAME_GLOBAL_RELATIVE_ALT = 0, 2, 3

@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from firmware_py.core.frames import StorageFrame
-from sitl.mavlink.vehicle_server import MavlinkVehicleServer, PipeTransport
+from sitl.mavlink.server import MavlinkVehicleServer
+from sitl.mavlink.transport import PipeTransport
 from sitl.missions.rectangle import Mission
 from sitl.vehicle.api import FlightMode, NavItem, NavKind
 from sitl.vehicle.ideal_plant import Trajectory, wrap_pi

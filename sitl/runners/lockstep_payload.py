@@ -22,7 +22,7 @@ import numpy as np
 
 from firmware_py.core.frames import StorageFrame, beam_ray_w
 from firmware_py.hal.clock import SimClock
-from sitl.mavlink.vehicle_server import MavlinkVehicleServer
+from sitl.mavlink.server import MavlinkVehicleServer
 from sitl.vehicle.api import Vehicle
 from sitl.vehicle.autopilot import wrap_pi
 from sitl.vehicle.jsbsim_vehicle import JsbsimVehicle

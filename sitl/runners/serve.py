@@ -32,7 +32,8 @@ from firmware_py.hal.signing import SigningConfig
 from sitl.devices.bridge_server import parse_bridge_url
 from sitl.devices.networked import NetworkedDevices, NetworkedFaults, check_networked_faults
 from sitl.faults.injector import PAIRS, FaultSpec
-from sitl.mavlink.vehicle_server import MavlinkVehicleServer, make_transport, run_realtime
+from sitl.mavlink.server import MavlinkVehicleServer, run_realtime
+from sitl.mavlink.transport import make_transport
 from sitl.missions.qgc_wpl import DEFAULT_ORIGIN, write_qgc_wpl
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import start_pose

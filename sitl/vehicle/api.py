@@ -1,6 +1,6 @@
 """What a simulated vehicle offers to the layers around it (MAVLink server, lockstep runner, tests).
 
-The MAVLink vehicle (`sitl/mavlink/vehicle_server.py`) speaks to any object with this interface: the
+The MAVLink vehicle (`sitl/mavlink/server.py`) speaks to any object with this interface: the
 flight-dynamics vehicle (`sitl/vehicle/jsbsim_vehicle.py`) or the kinematic one (`sitl/vehicle/kinematic_vehicle.py`).
 All positions are local NED, metres; angles radians; time is simulated seconds since boot.
 """

@@ -35,7 +35,8 @@ from ground.live_receiver import LiveStreamReceiver
 from sitl.devices.i2c_sim import SimI2CBus, register_sim_bus
 from sitl.devices.lidarlite_emu import EmulatedLidarLite
 from sitl.devices.servo_emu import EmulatedServo
-from sitl.mavlink.vehicle_server import MavlinkVehicleServer, UdpTransport, run_realtime
+from sitl.mavlink.server import MavlinkVehicleServer, run_realtime
+from sitl.mavlink.transport import UdpTransport
 from sitl.vehicle.kinematic_vehicle import KinematicVehicle
 
 RANGE_M = 5.0

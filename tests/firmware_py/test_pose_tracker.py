@@ -18,7 +18,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from firmware_py.hal.clock import MonotonicClock, SimClock
 from firmware_py.hal.mavlink_link import ByteStreamLink, PymavlinkLink
 from firmware_py.pose_tracker import PoseTracker, PoseTrackerConfig
-from sitl.mavlink.vehicle_server import MavlinkVehicleServer, UdpTransport
+from sitl.mavlink.server import MavlinkVehicleServer
+from sitl.mavlink.transport import UdpTransport
 from sitl.vehicle.api import FlightMode, NavItem, NavKind
 from sitl.vehicle.kinematic_vehicle import KinematicVehicle, wrap_pi
 
@@ -79,7 +80,7 @@ class LatencyLeg:
 
 
 class LatencyEnd:
-    """One end of the pipe, with the Transport interface of sitl.mavlink.vehicle_server (send / recv / close)."""
+    """One end of the pipe, with the Transport interface of sitl.mavlink.transport (send / recv / close)."""
 
     def __init__(self, tx: LatencyLeg, rx: LatencyLeg) -> None:
         self.tx, self.rx = tx, rx

@@ -19,7 +19,7 @@ from firmware_py.core.stream_format import parse_stream_url
 from firmware_py.hal import backends, bridge, check_i2c_addr, pwm
 from firmware_py.hal import mavlink_link as ml
 from sitl.devices.bridge_server import parse_bridge_url
-from sitl.mavlink import vehicle_server as mv
+from sitl.mavlink import transport as mv
 
 FUZZ = settings(max_examples=600, deadline=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])

@@ -19,7 +19,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from firmware_py.hal.clock import SimClock
 from firmware_py.hal.mavlink_link import ByteStreamLink, MavlinkFramer
 from firmware_py.pose_tracker import PoseTracker
-from sitl.mavlink.vehicle_server import MavlinkVehicleServer, PipeTransport
+from sitl.mavlink.server import MavlinkVehicleServer
+from sitl.mavlink.transport import PipeTransport
 from sitl.vehicle.kinematic_vehicle import KinematicVehicle
 
 FUZZ = settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])

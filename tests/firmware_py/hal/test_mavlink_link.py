@@ -16,7 +16,8 @@ from firmware_py.hal.mavlink_link import (
     register_mavlink_backend,
     unregister_mavlink_backend,
 )
-from sitl.mavlink.vehicle_server import MavlinkVehicleServer, PipeTransport, UdpTransport
+from sitl.mavlink.server import MavlinkVehicleServer
+from sitl.mavlink.transport import PipeTransport, UdpTransport
 from sitl.vehicle.kinematic_vehicle import KinematicVehicle
 
 AP = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)

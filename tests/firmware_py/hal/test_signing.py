@@ -22,7 +22,7 @@ from firmware_py.hal.mavlink_link import (
     unregister_mavlink_backend,
 )
 from firmware_py.hal.signing import NEW_STREAM_MAX_AGE, MavlinkSigner, SigningConfig, apply_to_mavlink
-from sitl.mavlink.vehicle_server import PipeTransport
+from sitl.mavlink.transport import PipeTransport
 
 KEY = bytes(range(1, 33))
 OTHER_KEY = bytes(range(2, 34))

@@ -19,13 +19,14 @@ from sitl.cli import main
 from sitl.devices.networked import FaultyTransport, NetworkedDevices, NetworkedFaults
 from sitl.faults.injector import FaultSpec
 from sitl.faults.params import PARAMS, FaultParams, LiveFaultInjector
-from sitl.mavlink.vehicle_server import MavlinkVehicleServer, PipeTransport, UdpTransport, run_realtime
+from sitl.mavlink.server import MavlinkVehicleServer, run_realtime
+from sitl.mavlink.transport import PipeTransport, UdpTransport
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import truth_record
 from sitl.vehicle.api import FlightMode
 from sitl.world.raycast import World
 from sitl.world.stockpile import resolve
-from tests.sitl.mavlink.test_vehicle_server import GCS_COMP, GCS_SYS, Gcs, survey_mission
+from tests.sitl.mavlink.lockstep_gcs import GCS_COMP, GCS_SYS, Gcs, survey_mission
 
 LINK_AND_AUTOPILOT = ["SIM_PS_DUP", "SIM_PS_JIT_MS", "SIM_PS_LAT_MS", "SIM_PS_LOSS", "SIM_PS_OUTAGE", "SIM_PS_REBOOT",
                       "SIM_PS_REORDER"]
@@ -287,7 +288,8 @@ def test_that_a_pymavlink_client_lists_sets_and_feels_the_sim_params_over_udp():
     faults.bind(server)
     stop = threading.Event()
     thread = threading.Thread(target=run_realtime, args=(server, vehicle), daemon=True,
-                              kwargs={"speedup": 10.0, "duration_s": 600.0, "stop_event": stop, "on_step": faults.step})
+                              kwargs={"speedup": 1.0, "duration_s": 600.0, "stop_event": stop, "on_step": faults.step})
+    # At 1x the stream rates (per wall-clock second under run_realtime) are per simulated second too.
     thread.start()
     gcs_udp = UdpClient(raw.local_address[1])
     try:

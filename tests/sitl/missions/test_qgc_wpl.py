@@ -8,14 +8,14 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_py.core.frames import StorageFrame
 from sitl.cli import main
-from sitl.mavlink.vehicle_server import global_to_ned
+from sitl.mavlink.geodesy import global_to_ned
 from sitl.missions.qgc_wpl import DEFAULT_ORIGIN, read_qgc_wpl, write_qgc_wpl
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import start_pose
 from sitl.vehicle.api import FlightMode
 from sitl.vehicle.jsbsim_plant import PlantConfig
 from sitl.vehicle.jsbsim_vehicle import JsbsimVehicle, VehicleConfig
-from tests.sitl.mavlink.test_vehicle_server import Gcs
+from tests.sitl.mavlink.lockstep_gcs import Gcs
 
 FRAME = StorageFrame((4.0, -6.0, 0.0), math.radians(70))
 

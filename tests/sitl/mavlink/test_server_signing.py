@@ -15,7 +15,8 @@ from firmware_py.hal.clock import SimClock
 from firmware_py.hal.mavlink_link import ByteStreamLink, heartbeat_msg
 from firmware_py.hal.signing import SigningConfig
 from firmware_py.pose_tracker import PoseTracker
-from sitl.mavlink.vehicle_server import MavlinkVehicleServer, PipeTransport, UdpTransport
+from sitl.mavlink.server import MavlinkVehicleServer
+from sitl.mavlink.transport import PipeTransport, UdpTransport
 from sitl.vehicle.api import FlightMode, NavItem, NavKind
 from sitl.vehicle.kinematic_vehicle import KinematicVehicle
 

@@ -1,0 +1,327 @@
+"""MAVLink 2 autopilot peer for any simulated `Vehicle`: what a GCS or the payload talks to in SITL.
+
+`MavlinkVehicleServer` makes a `sitl.vehicle.api.Vehicle` look like an ArduCopter on a link:
+heartbeat and telemetry streams (`streams`), commands with COMMAND_ACK (`commands`), the mission
+and parameter micro-services (`missions`, `params`), TIMESYNC, STATUSTEXT, and a .tlog of
+everything both ways. It has no thread and no clock of its own; in lockstep everything is timed by
+the vehicle's simulated clock, so a run is deterministic and as fast as the CPU allows.
+
+Lockstep use (tests, the in-process runner)::
+
+    server_end, client_end = PipeTransport.pair()
+    server = MavlinkVehicleServer(vehicle, server_end, tlog_path="flight.tlog")
+    while flying:
+        vehicle.step()
+        server.update()              # every step, or every few (streams cannot beat that rate)
+        client_parser.parse_buffer(client_end.recv())
+
+Networked use (`pilescan-sitl serve`): `run_realtime(server, vehicle, speedup=1.0)` steps the
+vehicle and paces it against the wall clock, with the server on `UdpTransport("udp:0.0.0.0:14550")`
+so `mavproxy.py --master=udp:127.0.0.1:14550` (or QGC, or the payload) connects as to ArduPilot SITL.
+While it runs, the link's own timing (stream rates, the mission-upload timeout) follows the wall
+clock (`time_link_by`): a ground station reads at its own pace, whatever the speed-up.
+
+Choices, where MAVLink or ArduPilot leave room (the micro-services' modules list theirs):
+
+- Parsing is our own framer around pymavlink's decoder: a frame that fails its CRC costs one byte,
+  not the whole frame length, so a corrupt length byte cannot swallow the valid frames after it.
+  Frames of message ids outside the ardupilotmega dialect cannot be checked and are skipped the
+  same way.
+- Telemetry log timestamps are TLOG_EPOCH_US + simulated time, so two lockstep runs give identical
+  logs (unless signing is on: signatures carry wall-clock timestamps).
+- Signing (`signing=SigningConfig(...)`, `pilescan-sitl serve --signing-key FILE`): as the payload's
+  links (`firmware_py.hal.mavlink_link`): everything sent is signed; unsigned, forged and replayed
+  frames are refused (never handled, never logged) and counted in stats (`rx_unsigned`,
+  `rx_bad_signature`, `rx_replayed`; `rx_signed`, `rx_unsigned_accepted`). On a listening
+  `UdpTransport` a client only becomes a destination once one of its datagrams held an
+  authenticated frame, so a client without the key hears nothing (and cannot aim our telemetry
+  at a spoofed address).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import struct
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, BinaryIO
+
+os.environ["MAVLINK20"] = "1"  # for mavutil users in this process; the v20 dialect below is MAVLink 2 anyway
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from firmware_py.hal.mavlink_link import MavlinkFramer
+from firmware_py.hal.signing import MavlinkSigner, SigningConfig
+from sitl.mavlink import streams as tm
+from sitl.mavlink.commands import Commands
+from sitl.mavlink.geodesy import Home
+from sitl.mavlink.missions import MissionItem, Missions
+from sitl.mavlink.params import ParamProvider, Params
+from sitl.mavlink.streams import TLOG_EPOCH_US, StreamSchedule
+from sitl.mavlink.transport import Transport
+from sitl.vehicle.api import Vehicle, VehicleState
+
+STATUSTEXT_LEN = 50
+
+
+class MavlinkVehicleServer:
+    """Serves a Vehicle over MAVLink 2 as an ArduCopter-like autopilot; call update() after vehicle steps."""
+
+    def __init__(self, vehicle: Vehicle, transport: Transport, tlog_path: str | os.PathLike[str] | None = None,
+                 sysid: int = 1, compid: int = 1, home_lat_deg: float = 53.4668, home_lon_deg: float = -2.2339,
+                 home_alt_m: float = 50.0, signing: SigningConfig | MavlinkSigner | None = None,
+                 extra_params: ParamProvider | None = None) -> None:
+        self.home = Home(home_lat_deg, home_lon_deg, home_alt_m)
+        self.vehicle = vehicle
+        self.transport = transport
+        self.sysid, self.compid = sysid, compid
+        self._mav = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
+        if signing is not None and not isinstance(signing, MavlinkSigner):
+            signing = MavlinkSigner(signing)
+        self.signer: MavlinkSigner | None = signing
+        if self.signer is not None:
+            self.signer.attach(self._mav)  # the encoder signs; the framer's own decoder does not check
+            self._framer = MavlinkFramer(mavlink.MAVLink(None), signer=self.signer)
+        else:
+            self._framer = MavlinkFramer(self._mav)  # the payload's framer: one parser for both ends
+        self._tlog: BinaryIO | None = Path(tlog_path).open("wb") if tlog_path is not None else None
+        self.stats: dict[str, Any] = {
+            "rx_messages": 0, "rx_bad_bytes": 0, "rx_parse_errors": 0, "rx_not_for_us": 0,
+            "tx_messages": 0, "handler_errors": 0, "rx_by_type": Counter(), "tx_by_type": Counter(),
+            "rx_signed": 0, "rx_unsigned": 0, "rx_bad_signature": 0, "rx_replayed": 0, "rx_unsigned_accepted": 0,
+        }
+        self._now_s = 0.0
+        self._boot_epoch_s = 0.0  # vehicle time at which the autopilot last booted (time_boot_ms 0)
+        self._silent_until_s = -math.inf  # rebooting until then: deaf and mute
+        self._state: VehicleState | None = None
+        self._link_clock: Callable[[], float] | None = None  # None: the link runs on simulated time
+        self._statustext_id = 0
+        self.streams = StreamSchedule()
+        self.missions = Missions(vehicle, self.home, self._mav, self._send, self._statustext, self._link_now)
+        self.params = Params(vehicle, extra_params, self._mav, self._send, self._statustext)
+        self.commands = Commands(vehicle, self.streams, self._mav, self._send, self._statustext,
+                                 self._build_stream_message, self._home_position, self._link_now)
+        self._handlers: dict[str, Callable[[Any], None]] = {
+            "HEARTBEAT": self._ignore, "REQUEST_DATA_STREAM": self._ignore, "MISSION_ACK": self._ignore,
+            "TIMESYNC": self._on_timesync,
+            **self.commands.handlers, **self.params.handlers, **self.missions.handlers,
+        }
+        self._builders: dict[int, Callable[[VehicleState], Any | None]] = {
+            mavlink.MAVLINK_MSG_ID_HEARTBEAT: lambda s: tm.heartbeat(self._mav, s),
+            mavlink.MAVLINK_MSG_ID_SYS_STATUS: lambda s: tm.sys_status(self._mav, s, self._framer.bad_frames),
+            mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: lambda s: tm.system_time(self._mav, s, self._boot_ms),
+            mavlink.MAVLINK_MSG_ID_ATTITUDE: lambda s: tm.attitude(self._mav, s, self._boot_ms),
+            mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: lambda s: tm.local_position(self._mav, s, self._boot_ms),
+            mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
+                lambda s: tm.global_position(self._mav, s, self._boot_ms, self.home),
+            mavlink.MAVLINK_MSG_ID_VFR_HUD: lambda s: tm.vfr_hud(self._mav, s, self.home),
+            mavlink.MAVLINK_MSG_ID_MISSION_CURRENT: lambda _s: self.missions.mission_current(),
+            mavlink.MAVLINK_MSG_ID_HOME_POSITION: lambda _s: self._home_position(),
+        }
+
+    @property
+    def extra_params(self) -> ParamProvider | None:
+        """Listed, read and set with the vehicle's parameters."""
+        return self.params.extra
+
+    # ----- main loop ------------------------------------------------------------------------------
+
+    def update(self) -> None:
+        """Handle everything received, report vehicle events, send the streams now due."""
+        self._state = self.vehicle.state()
+        self._now_s = self._state.t_s
+        if self._now_s < self._silent_until_s:
+            self.transport.recv()  # a rebooting autopilot hears nothing
+            return
+        if self.signer is not None and hasattr(self.transport, "recv_datagrams"):
+            self._receive_authenticated_datagrams()
+        else:
+            data = self.transport.recv()
+            if data:
+                for msg in self._framer.feed(data):
+                    self._handle(msg)
+                self._update_rx_stats()
+        self.missions.report_vehicle_events()
+        for text in self.vehicle.pop_status_text():
+            self._statustext(mavlink.MAV_SEVERITY_INFO, text)
+        self.missions.service_upload_timeout()
+        for msg_id in self.streams.due(self._link_now()):
+            msg = self._build_stream_message(msg_id)
+            if msg is not None:
+                self._send(msg)
+
+    def time_link_by(self, clock: Callable[[], float] | None) -> None:
+        """Time the link (stream rates, the mission-upload timeout) by clock; None: simulated time again.
+
+        `run_realtime` passes the wall clock, so the rates a ground station asked for are per second
+        of its own time: at a speed-up of 25, simulated-time rates would send it 25 times as much
+        as it asked for, more than it can read. Every stream is due again at once on the new clock.
+        """
+        self._link_clock = clock
+        self.streams.restart(self._link_now())
+        self.missions.restart_timer()
+
+    def _link_now(self) -> float:
+        return self._now_s if self._link_clock is None else self._link_clock()
+
+    def reboot(self, silent_s: float = 3.0) -> None:
+        """The flight controller restarts (a SITL fault, like ArduPilot's reboot under SIM_*): silent for
+        silent_s, then time_boot_ms counts again from 0 and the message rates set with
+        SET_MESSAGE_INTERVAL are back to their defaults. The simulated vehicle keeps flying and keeps
+        its mission (a real one in the air would not): this is the companion's view of a reboot.
+        """
+        if not (math.isfinite(silent_s) and silent_s >= 0):
+            raise ValueError(f"reboot silence must be >= 0 s, got {silent_s!r}")
+        self._now_s = self.vehicle.state().t_s
+        self._silent_until_s = self._boot_epoch_s = self._now_s + silent_s
+        self.missions.cancel_upload()
+        # Streams restart when the silence ends: at boot on simulated time; on the wall clock, muted until then.
+        self.streams.reset(self._boot_epoch_s if self._link_clock is None else self._link_clock())
+        self.stats["reboots"] = self.stats.get("reboots", 0) + 1
+
+    def _receive_authenticated_datagrams(self) -> None:
+        """Signed UDP: only a sender whose datagram held an authenticated frame becomes a client."""
+        got = self.transport.recv_datagrams()
+        for data, addr in got:
+            msgs = self._framer.feed(data)
+            if msgs:
+                self.transport.add_peer(addr)
+            for msg in msgs:
+                self._handle(msg)
+        if got:
+            self._update_rx_stats()
+
+    def _update_rx_stats(self) -> None:
+        self.stats["rx_bad_bytes"] = self._framer.bad_bytes
+        self.stats["rx_parse_errors"] = self._framer.bad_frames
+        if self.signer is not None:
+            for key in ("signed", "unsigned", "bad_signature", "replayed", "unsigned_accepted"):
+                self.stats[f"rx_{key}"] = self.signer.stats[key]
+
+    @property
+    def signing_active(self) -> bool:
+        return self.signer is not None
+
+    def close(self) -> None:
+        """Close the telemetry log (the transport belongs to the caller)."""
+        if self._tlog is not None:
+            self._tlog.close()
+            self._tlog = None
+
+    def __enter__(self) -> MavlinkVehicleServer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def mission_items(self) -> list[MissionItem]:
+        """The stored mission, home (seq 0) included, as it would be downloaded."""
+        return self.missions.items
+
+    # ----- receive side ---------------------------------------------------------------------------
+
+    def _handle(self, msg: Any) -> None:
+        self.stats["rx_messages"] += 1
+        self.stats["rx_by_type"][msg.get_type()] += 1
+        self._log(msg.get_msgbuf())
+        handler = self._handlers.get(msg.get_type())
+        if handler is None:
+            return
+        if not self._for_us(msg):
+            self.stats["rx_not_for_us"] += 1
+            return
+        try:
+            handler(msg)
+        except Exception as exc:  # never let one message take the link down
+            self.stats["handler_errors"] += 1
+            self._statustext(mavlink.MAV_SEVERITY_WARNING, f"error handling {msg.get_type()}: {exc}")
+
+    def _for_us(self, msg: Any) -> bool:
+        ts = getattr(msg, "target_system", 0)
+        tc = getattr(msg, "target_component", 0)
+        return ts in (0, self.sysid) and tc in (0, self.compid)
+
+    def _ignore(self, msg: Any) -> None:
+        """Messages we accept and need not act on (heartbeats, legacy stream requests, mission acks)."""
+
+    def _on_timesync(self, msg: Any) -> None:
+        if msg.tc1 == 0:  # a request: answer with our clock, echoing theirs (as ArduPilot does)
+            self._send(self._mav.timesync_encode(round((self._now_s - self._boot_epoch_s) * 1e9), msg.ts1))
+
+    # ----- send side ------------------------------------------------------------------------------
+
+    def _build_stream_message(self, msg_id: int) -> Any | None:
+        return self._builders[msg_id](self._state or self.vehicle.state())
+
+    def _home_position(self) -> Any:
+        return tm.home_position(self._mav, self.home, self._now_s)
+
+    @property
+    def _boot_ms(self) -> int:
+        return round((self._now_s - self._boot_epoch_s) * 1000) & 0xFFFFFFFF
+
+    def _statustext(self, severity: int, text: str) -> None:
+        """STATUSTEXT, in 50-character chunks sharing an id when longer (MAVLink 2 chunking)."""
+        raw = text.encode("ascii", "replace")
+        if len(raw) <= STATUSTEXT_LEN:
+            self._send(self._mav.statustext_encode(severity, raw))
+            return
+        self._statustext_id = self._statustext_id % 65535 + 1
+        for k in range(0, len(raw), STATUSTEXT_LEN):
+            chunk = raw[k:k + STATUSTEXT_LEN]
+            self._send(self._mav.statustext_encode(severity, chunk, self._statustext_id, k // STATUSTEXT_LEN))
+
+    def _send(self, msg: Any) -> None:
+        buf = self.signer.pack(msg, self._mav) if self.signer is not None else msg.pack(self._mav)
+        self._mav.seq = (self._mav.seq + 1) % 256
+        self.transport.send(buf)
+        self._log(buf)
+        self.stats["tx_messages"] += 1
+        self.stats["tx_by_type"][msg.get_type()] += 1
+
+    def _log(self, frame: bytes | bytearray) -> None:
+        if self._tlog is not None:
+            self._tlog.write(struct.pack(">Q", TLOG_EPOCH_US + round(self._now_s * 1e6)) + bytes(frame))
+
+
+# ----- networked mode -----------------------------------------------------------------------------
+
+def run_realtime(server: MavlinkVehicleServer, vehicle: Vehicle, speedup: float = 1.0,
+                 duration_s: float | None = None, stop_event: threading.Event | None = None, *,
+                 clock: Callable[[], float] = time.monotonic,
+                 sleep: Callable[[float], None] = time.sleep,
+                 on_step: Callable[[], None] | None = None) -> float:
+    """Step the vehicle and serve MAVLink, paced so simulated time runs `speedup` times the wall clock.
+
+    Runs until duration_s of simulated time has passed or stop_event is set; returns the simulated
+    seconds run. If the CPU cannot keep up it runs flat out (no catch-up skipping). `on_step` runs
+    after every physics step (the networked SITL records the true pose for its emulated LiDAR).
+    While it runs, the server's link is timed by `clock` (see `MavlinkVehicleServer.time_link_by`).
+    """
+    if not (math.isfinite(speedup) and speedup > 0):
+        raise ValueError(f"speedup must be > 0, got {speedup}")
+    t0_sim = vehicle.state().t_s
+    t0_wall = clock()
+    server.time_link_by(clock)
+    try:
+        server.update()
+        t_sim = t0_sim
+        while stop_event is None or not stop_event.is_set():
+            if duration_s is not None and t_sim - t0_sim >= duration_s - 1e-9:
+                break
+            vehicle.step()
+            server.update()
+            if on_step is not None:
+                on_step()
+            t_sim = vehicle.state().t_s
+            delay = t0_wall + (t_sim - t0_sim) / speedup - clock()
+            if delay > 0:
+                sleep(delay)
+    finally:
+        server.time_link_by(None)
+    return t_sim - t0_sim
