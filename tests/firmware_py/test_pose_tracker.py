@@ -18,6 +18,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from firmware_py.hal.clock import MonotonicClock, SimClock
 from firmware_py.hal.mavlink_link import ByteStreamLink, PymavlinkLink
 from firmware_py.pose_tracker import PoseTracker, PoseTrackerConfig
+
+pytest.importorskip("sitl", reason="the firmware against the simulator (sitl/): not in the payload-only install")
 from sitl.mavlink.vehicle_server import MavlinkVehicleServer, UdpTransport
 from sitl.vehicle.api import FlightMode, NavItem, NavKind
 from sitl.vehicle.kinematic_vehicle import KinematicVehicle, wrap_pi
