@@ -45,7 +45,12 @@ def run(cmd: list[str], cwd: Path | None = None, expect_ok: bool = True) -> subp
 
 def build_wheel(work: Path) -> Path:
     out = work / "wheel"
-    run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--quiet", "-w", out, ROOT])
+    leftovers = [p for p in (ROOT / "build", *ROOT.glob("*.egg-info")) if not p.exists()]
+    try:
+        run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--quiet", "-w", out, ROOT])
+    finally:  # setuptools builds in the checkout: leave it as it was
+        for path in leftovers:
+            shutil.rmtree(path, ignore_errors=True)
     (wheel,) = out.glob("pilescan-*.whl")
     return wheel
 
