@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test lint bench pi-check clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -24,6 +24,9 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m tools.bench_ground
+
+pi-check: $(STAMP)  # the Raspberry Pi install: wheel, aarch64 resolution, payload-only venv and its tests
+	$(BIN)/python -m tools.check_pi_install
 
 clean:
 	rm -rf $(VENV) build *.egg-info runs

@@ -21,6 +21,7 @@ from firmware_py.app import (
 from firmware_py.core.cli import ArgumentParser, UserError, finite_float, run_cli, stop_on_signals
 from firmware_py.core.keys import load_key
 from firmware_py.core.storage import Storage
+from firmware_py.core.version import software_version
 from firmware_py.core.waveform import N_PHASES
 from firmware_py.drivers.lidarlite import PRESETS
 from firmware_py.hal.bridge import parse_tcp_url
@@ -44,6 +45,7 @@ def hal_urls(hal: str) -> tuple[str, str]:
 
 def build_parser() -> ArgumentParser:
     ap = ArgumentParser(prog=PROG, description=__doc__)
+    ap.add_argument("--version", action="version", version=software_version())
     hw = ap.add_argument_group("hardware (URLs)")
     hw.add_argument("--mavlink", default=DEFAULT_MAVLINK_URL, metavar="URL",
                     help="link to the autopilot: serial:/dev/ttyAMA0:921600, udp:HOST:PORT (listen), "

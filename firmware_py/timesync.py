@@ -8,7 +8,7 @@ at companion time t3. With equal delays each way the autopilot's T happened at c
     offset_ns = autopilot_ns - companion_ns = (2 tc1 - (ts1 + t3)) / 2        (MAVROS's sign)
     rtt_ns    = t3 - ts1
 
-and companion_ns = autopilot_ns - offset_ns. (DESIGN.md writes (ts1 + now - 2 tc1) / 2, the same
+and companion_ns = autopilot_ns - offset_ns. (Some write (ts1 + now - 2 tc1) / 2, the same
 quantity with the opposite sign, i.e. companion minus autopilot.) A sample's error is half the
 asymmetry of the two delays, so it is bounded by rtt / 2: the filter and its jump test use that.
 

@@ -7,6 +7,7 @@ import sys
 from collections.abc import Sequence
 
 from firmware_py.core.cli import ArgumentParser, UserError, finite_float, run_cli
+from firmware_py.core.version import software_version
 from ground import listen
 from ground.report import ReportOptions, make_report
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
@@ -14,6 +15,7 @@ from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_
 
 def build_parser() -> ArgumentParser:
     ap = ArgumentParser(prog="pilescan-ground", description=__doc__)
+    ap.add_argument("--version", action="version", version=software_version())
     sub = ap.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
     r = sub.add_parser("report", help="volume report from a run directory or a sample log")
     r.add_argument("source", metavar="RUN_DIR_OR_LOG", help="run directory (reads truth.json too) or .pslog")

@@ -15,6 +15,7 @@ from pathlib import Path
 from firmware_py.core.cli import ArgumentParser, UserError, finite_float, run_cli
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.storage import Storage
+from firmware_py.core.version import software_version
 from firmware_py.core.waveform import N_PHASES
 from sitl.faults.injector import FaultSpec
 from sitl.missions.qgc_wpl import write_qgc_wpl
@@ -24,6 +25,7 @@ from sitl.runners.fly import PAYLOADS, PLANTS, FlyConfig, fly
 
 def build_parser() -> ArgumentParser:
     ap = ArgumentParser(prog="pilescan-sitl", description=__doc__)
+    ap.add_argument("--version", action="version", version=software_version())
     sub = ap.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
     f = sub.add_parser("fly", help="fly a survey and write a run directory")
     f.add_argument("--stockpile", required=True, help="1, 2 (the paper's piles) or an STL/OBJ mesh path")

@@ -1,6 +1,6 @@
 """Frames and the beam geometry of eqs. (3)-(6), vectorised.
 
-Frames (DESIGN.md section 2):
+Frames (docs/architecture.md, "Frames"):
 - body B: FRD (x forward, y right, z down);
 - local L: NED, as MAVLink LOCAL_POSITION_NED; attitude is ATTITUDE's ZYX Euler (roll, pitch, yaw);
 - storage W: origin at a floor corner, x along the length, y along the width, z up.

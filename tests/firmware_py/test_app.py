@@ -31,6 +31,9 @@ from firmware_py.hal import pwm as pwm_backends
 from firmware_py.hal.backends import unregister_i2c_backend
 from firmware_py.hal.clock import MonotonicClock
 from firmware_py.hal.mavlink_link import MavlinkFramer
+
+pytest.importorskip("ground", reason="the live stream's receiver: not in the payload-only install")
+pytest.importorskip("sitl", reason="the firmware against the simulator (sitl/): not in the payload-only install")
 from ground.live_receiver import LiveStreamReceiver
 from sitl.devices.i2c_sim import SimI2CBus, register_sim_bus
 from sitl.devices.lidarlite_emu import EmulatedLidarLite

@@ -15,6 +15,8 @@ from firmware_py.hal.clock import SimClock
 from firmware_py.hal.mavlink_link import ByteStreamLink
 from firmware_py.payload import LoopConfig, PayloadLoop
 from firmware_py.pose_tracker import PoseTracker
+
+pytest.importorskip("sitl", reason="the firmware against the simulator (sitl/): not in the payload-only install")
 from sitl.devices.i2c_sim import SimI2CBus
 from sitl.devices.lidarlite_emu import EmulatedLidarLite
 from sitl.devices.servo_emu import EmulatedServo

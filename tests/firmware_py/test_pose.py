@@ -4,7 +4,6 @@ import random
 import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
-from scipy.spatial.transform import Rotation, Slerp
 
 from firmware_py.core.samplelog import SampleFlags
 from firmware_py.pose import (
@@ -30,6 +29,8 @@ def filled(n: int = 10, period_ns: int = 20 * MS, **kw) -> PoseBuffer:
 
 
 def to_scipy(q):
+    from scipy.spatial.transform import Rotation
+
     w, x, y, z = q
     return Rotation.from_quat([x, y, z, w])
 
@@ -37,6 +38,9 @@ def to_scipy(q):
 # ----- quaternion math --------------------------------------------------------------------------------
 
 def test_euler_to_quaternion_and_back_matches_scipy_zyx_for_random_angles():
+    pytest.importorskip("scipy", reason="scipy is the reference here; not in the payload-only install")
+    from scipy.spatial.transform import Rotation
+
     rng = random.Random(3)
     for _ in range(200):
         roll, pitch, yaw = rng.uniform(-3.1, 3.1), rng.uniform(-1.5, 1.5), rng.uniform(-3.1, 3.1)
@@ -47,6 +51,9 @@ def test_euler_to_quaternion_and_back_matches_scipy_zyx_for_random_angles():
 
 
 def test_slerp_matches_scipy_for_seeded_random_rotations():
+    pytest.importorskip("scipy", reason="scipy is the reference here; not in the payload-only install")
+    from scipy.spatial.transform import Rotation, Slerp
+
     rng = np.random.default_rng(11)
     for _ in range(200):
         r = Rotation.random(2, random_state=rng)

@@ -18,6 +18,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from firmware_py.hal.clock import MonotonicClock, SimClock
 from firmware_py.hal.mavlink_link import ByteStreamLink, PymavlinkLink
 from firmware_py.pose_tracker import PoseTracker, PoseTrackerConfig
+
+pytest.importorskip("sitl", reason="the firmware against the simulator (sitl/): not in the payload-only install")
 from sitl.mavlink.server import MavlinkVehicleServer
 from sitl.mavlink.transport import UdpTransport
 from sitl.vehicle.api import FlightMode, NavItem, NavKind

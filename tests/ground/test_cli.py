@@ -4,9 +4,16 @@ import json
 
 import pytest
 
+from firmware_py.core.version import __version__, software_version
 from ground.cli import main
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
+
+
+def test_that_version_prints_the_software_version_and_exits_0(capsys):
+    assert main(["--version"]) == 0
+    out = capsys.readouterr().out
+    assert out.strip() == software_version() and __version__ in out
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,14 @@ import signal
 
 import pytest
 
+from firmware_py.core.version import __version__, software_version
 from sitl.cli import main
+
+
+def test_that_version_prints_the_software_version_and_exits_0(capsys):
+    assert main(["--version"]) == 0
+    out = capsys.readouterr().out
+    assert out.strip() == software_version() and __version__ in out
 
 
 def test_that_fly_writes_a_run_with_the_firmware_in_the_loop_by_default(tmp_path, capsys):

@@ -20,6 +20,8 @@ import pytest
 
 from firmware_py.drivers.lidarlite import PRESET_DEFAULT, LidarLite, LidarLiteConfig, ReadStatus
 from firmware_py.hal.clock import SimClock
+
+pytest.importorskip("sitl", reason="the firmware against the simulator (sitl/): not in the payload-only install")
 from sitl.devices.i2c_sim import SimI2CBus
 from sitl.devices.lidarlite_emu import EmulatedLidarLite
 

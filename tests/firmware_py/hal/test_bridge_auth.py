@@ -19,6 +19,8 @@ from firmware_py.hal.backends import open_i2c
 from firmware_py.hal.bridge import STATUS_OK, BridgeConnection, BridgeI2CBus, check_bridge_key
 from firmware_py.hal.clock import MonotonicClock, SimClock
 from firmware_py.hal.pwm import open_pwm
+
+pytest.importorskip("sitl", reason="the firmware against the simulator (sitl/): not in the payload-only install")
 from sitl.devices.bridge_server import DeviceBridgeServer
 from sitl.devices.i2c_sim import SimI2CBus
 from sitl.devices.lidarlite_emu import EmulatedLidarLite

@@ -22,7 +22,7 @@ from firmware_py.hal.mavlink_link import (
     unregister_mavlink_backend,
 )
 from firmware_py.hal.signing import NEW_STREAM_MAX_AGE, MavlinkSigner, SigningConfig, apply_to_mavlink
-from sitl.mavlink.transport import PipeTransport
+from tests.firmware_py.byte_pipe import BytePipe
 
 KEY = bytes(range(1, 33))
 OTHER_KEY = bytes(range(2, 34))
@@ -306,7 +306,7 @@ def test_apply_to_mavlink_keys_a_plain_pymavlink_parser_that_accepts_our_frames(
 # ----- links --------------------------------------------------------------------------------------
 
 def signed_pair(key_a: bytes = KEY, key_b: bytes = KEY) -> tuple[ByteStreamLink, ByteStreamLink]:
-    a_end, b_end = PipeTransport.pair()
+    a_end, b_end = BytePipe.pair()
     return (ByteStreamLink(a_end.send, a_end.recv, signing=SigningConfig(key_a, link_id=1)),
             ByteStreamLink(b_end.send, b_end.recv, source_system=1, source_component=1,
                            signing=SigningConfig(key_b)))
@@ -336,7 +336,7 @@ def test_links_with_different_keys_hear_nothing_and_count_it_on_both_sides():
 
 
 def test_a_signed_link_refuses_an_unsigned_peer_and_an_unsigned_link_is_unchanged():
-    a_end, b_end = PipeTransport.pair()
+    a_end, b_end = BytePipe.pair()
     plain = ByteStreamLink(a_end.send, a_end.recv)
     signed = ByteStreamLink(b_end.send, b_end.recv, signing=SigningConfig(KEY))
     assert not plain.signing_active
