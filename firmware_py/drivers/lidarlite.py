@@ -60,6 +60,7 @@ import math
 from dataclasses import dataclass
 from enum import IntEnum, IntFlag
 
+from firmware_py.core.sensor import LIDARLITE_V3
 from firmware_py.hal import Clock, I2CBus, I2CError
 
 log = logging.getLogger(__name__)
@@ -88,7 +89,8 @@ T_ACQ_PER_COUNT_NS = 21_000
 T_BIAS_CORRECTION_NS = 200_000
 DEFAULT_REF_COUNT = 5
 DEFAULT_SIG_COUNT = 0x80
-RANGE_AT_DEFAULT_COUNT_M = 40.0
+RANGE_AT_DEFAULT_COUNT_M = LIDARLITE_V3.max_range_m
+"""The datasheet's 40 m (70 % reflective target) at the default count: one number, in core.sensor."""
 RESET_TIME_NS = 22_000_000
 """The manual's re-initialisation time after a reset command."""
 
