@@ -482,11 +482,11 @@ class PayloadApp:
     def snapshot(self, now_ns: int) -> HealthSnapshot:
         """The health counters now (for `HealthMonitor`)."""
         st = self.tracker.status()
-        c = self.lidar.counters
+        c = self.lidar.counters()
         flagged = self.loop.stats.flagged
         return HealthSnapshot(
             t_ns=now_ns, readings=self.loop.stats.ticks, logged=self.sink.records,
-            sensor_errors=c["bus_errors"] + c["timeouts"] + c["config_errors"], pose_ok=bool(st["pose_ok"]),
+            sensor_errors=c.sensor_errors, pose_ok=bool(st["pose_ok"]),
             pose_age_s=st["pose_age_s"], pose_status=str(st["pose_status"]),
             timesync_converged=bool(st["timesync"]["converged"]),
             stale=flagged[SampleFlags.STALE_POSE.name] + flagged[SampleFlags.NO_POSE.name],
@@ -524,8 +524,7 @@ class PayloadApp:
         pose = f"pose age {age:.3f} s" if age is not None else "no pose yet"
         if not st["pose_ok"]:
             pose += f" ({str(st['pose_status'])[:90]})"
-        c = self.lidar.counters
-        errors = c["bus_errors"] + c["timeouts"] + c["config_errors"]
+        errors = self.lidar.counters().sensor_errors
         auth = f"  refused frames {self.auth_rejects()}" if self.signing_active else ""
         self._say(f"{(now - self.loop.t0_ns) / 1e9:7.1f} s  {rate:5.0f} Hz  samples {self.sink.records}  "
                   f"flagged {self.sink.flagged}  sensor errors {errors}  overruns {self.loop.stats.overruns}{auth}  "
@@ -566,7 +565,7 @@ class PayloadApp:
             stop_reason=self._stop_reason or "stopped", out_path=Path(self.cfg.out_path), elapsed_s=elapsed_s,
             readings=loop.stats.ticks if loop else 0, records_logged=self.sink.records if self.sink else 0,
             records_flagged=self.sink.flagged if self.sink else 0, loop=loop.stats if loop else None,
-            lidar_counters=dict(self.lidar.counters) if self.lidar else {},
+            lidar_counters=self.lidar.counters().as_dict() if self.lidar else {},
             stream=dict(self.stream.stats) if self.stream else None,
             health=dict(self.health.sent) if self.health else {}, link=dict(st.get("link", {})),
             pose_status=str(st.get("pose_status", "")), close_errors=tuple(self._close_errors),
