@@ -483,14 +483,13 @@ class PayloadApp:
         """The health counters now (for `HealthMonitor`)."""
         st = self.tracker.status()
         c = self.lidar.counters()
-        flagged = self.loop.stats.flagged
+        stats = self.loop.stats
         return HealthSnapshot(
-            t_ns=now_ns, readings=self.loop.stats.ticks, logged=self.sink.records,
+            t_ns=now_ns, readings=stats.ticks, logged=self.sink.records,
             sensor_errors=c.sensor_errors, pose_ok=bool(st["pose_ok"]),
             pose_age_s=st["pose_age_s"], pose_status=str(st["pose_status"]),
             timesync_converged=bool(st["timesync"]["converged"]),
-            stale=flagged[SampleFlags.STALE_POSE.name] + flagged[SampleFlags.NO_POSE.name],
-            overruns=self.loop.stats.overruns)
+            stale=stats.flagged(SampleFlags.STALE_POSE | SampleFlags.NO_POSE), overruns=stats.overruns)
 
     def _send_health(self, msgs: list[Any]) -> None:
         for msg in msgs:

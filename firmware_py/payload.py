@@ -18,8 +18,8 @@ from __future__ import annotations
 import collections
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Protocol
+from dataclasses import dataclass
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -77,16 +77,39 @@ class LoopConfig:
             raise ValueError(f"max pose age must be > 0 s, got {self.max_pose_age_s}")
 
 
-@dataclass
+COUNTED_FLAGS = tuple(f for f in SampleFlags if f)
+"""The sample flags `LoopStats` counts, in the order of its `flag_counts`."""
+_COUNTED_BITS = tuple(int(f) for f in COUNTED_FLAGS)
+
+
+@dataclass(frozen=True, slots=True)
 class LoopStats:
+    """What the loop has counted since it started: a snapshot (`PayloadLoop.stats`), not a live record.
+
+    Attributes:
+        ticks: readings taken.
+        overruns: ticks missed (the loop fell a whole period behind).
+        busy_ns_total: the loop's own CPU time, when it was given a CPU clock (benchmarks), else 0.
+        flag_counts: samples logged with each of `COUNTED_FLAGS`, in that order.
+    """
+
     ticks: int = 0
     overruns: int = 0
-    flagged: dict[str, int] = field(default_factory=lambda: {f.name: 0 for f in SampleFlags if f.name != "NONE"})
     busy_ns_total: int = 0
+    flag_counts: tuple[int, ...] = (0,) * len(COUNTED_FLAGS)
 
     @property
     def busy_us_per_tick(self) -> float:
         return self.busy_ns_total / max(1, self.ticks) / 1e3
+
+    def flagged(self, flags: SampleFlags) -> int:
+        """Samples logged with each flag in `flags`, summed over those flags."""
+        return sum(n for f, n in zip(COUNTED_FLAGS, self.flag_counts, strict=True) if f & flags)
+
+    def as_dict(self) -> dict[str, Any]:
+        """For logs and JSON: the counts, and the flagged samples by flag name."""
+        return {"ticks": self.ticks, "overruns": self.overruns, "busy_ns_total": self.busy_ns_total,
+                "flagged": {f.name: n for f, n in zip(COUNTED_FLAGS, self.flag_counts, strict=True)}}
 
 
 class PayloadLoop:
@@ -99,10 +122,16 @@ class PayloadLoop:
         self.cfg = cfg or LoopConfig()
         self.period_ns = round(1e9 / self.cfg.rate_hz)
         self.t0_ns = clock.now_ns() if t0_ns is None else t0_ns
-        self.stats = LoopStats()
+        self._ticks = self._overruns = self._busy_ns = 0  # plain ints in the loop; `stats` hands out a snapshot
+        self._flag_counts = [0] * len(COUNTED_FLAGS)
         self._cpu = cpu_clock  # a real CPU-time clock to measure the loop's own cost (benchmarks)
         self._next_ns = self.t0_ns
         self._pending: collections.deque = collections.deque()
+
+    @property
+    def stats(self) -> LoopStats:
+        """What the loop has counted so far (a frozen snapshot)."""
+        return LoopStats(self._ticks, self._overruns, self._busy_ns, tuple(self._flag_counts))
 
     @property
     def pending(self) -> int:
@@ -118,9 +147,9 @@ class PayloadLoop:
         self._pending.append((reading, self.servo.angle_at(t_s), self.servo.waveform.sweep_direction_at(t_s)))
         self.pose.pump()
         self._tag_ready(self.clock.now_ns())
-        self.stats.ticks += 1
+        self._ticks += 1
         if self._cpu:
-            self.stats.busy_ns_total += self._cpu() - cpu0
+            self._busy_ns += self._cpu() - cpu0
 
     def _tag_ready(self, now_ns: int, flush: bool = False) -> None:
         wait_ns = round(self.cfg.max_pose_wait_s * 1e9)
@@ -151,9 +180,10 @@ class PayloadLoop:
             x, y, z = p.pos_ned_m
             pose = (x, y, z, p.roll_rad, p.pitch_rad, p.yaw_rad, p.age_s)
         if flags:
-            for f in SampleFlags:
-                if f & flags:
-                    self.stats.flagged[f.name] += 1
+            counts = self._flag_counts
+            for i, bit in enumerate(_COUNTED_BITS):
+                if bit & flags:
+                    counts[i] += 1
         # Field order of SAMPLE_DTYPE: t_s, range_m, servo_rad, sweep_dir, flags, x, y, z, r, p, y, age.
         return np.array((reading.t_ns * 1e-9, rng_m, servo_rad, sweep, flags, *pose), dtype=SAMPLE_DTYPE)
 
@@ -165,7 +195,7 @@ class PayloadLoop:
             if end_ns is not None and now >= end_ns:
                 break
             if now > self._next_ns + self.period_ns:  # we fell a whole tick behind: count it, resync
-                self.stats.overruns += 1
+                self._overruns += 1
                 self._next_ns = now
             self.clock.sleep_until_ns(self._next_ns)
             self.tick()

@@ -173,6 +173,6 @@ def test_that_samples_are_never_tagged_with_an_old_pose_when_the_position_stream
     # ... and while no position came, none did.
     outage = (t > 2.0 + 0.1) & (t < 4.0)
     assert outage.sum() > 500 and _flag(s[outage], SampleFlags.STALE_POSE | SampleFlags.NO_POSE).all()
-    assert stats.flagged["STALE_POSE"] + stats.flagged["NO_POSE"] >= outage.sum()
+    assert stats.flagged(SampleFlags.STALE_POSE | SampleFlags.NO_POSE) >= outage.sum()
     after = t > 4.3
     assert np.mean(_flag(s[after], SampleFlags.STALE_POSE | SampleFlags.NO_POSE)) < 0.01  # recovered
