@@ -313,7 +313,7 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
         log.abandon()
         stats, disk_full = loop.stats, str(exc)
     sim.server.close()
-    status = tracker.status() if hasattr(tracker, "status") else {}
+    status = tracker.status().as_dict()
     true_t = np.array([t for t, _ in sim.history]) + boot_offset_s
     true_s = np.array([st for _, st in sim.history])
     return FirmwareRun(read_samplelog(log_path).samples, vehicle.state().t_s - ts0, vehicle.plant.energy_j - e0,
