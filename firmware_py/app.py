@@ -270,7 +270,7 @@ class PayloadResult:
     loop: LoopStats | None
     lidar_counters: dict[str, int]
     stream: dict[str, int] | None
-    health: dict[str, int]
+    health: dict[str, Any]
     link: dict[str, Any]
     pose_status: str
     close_errors: tuple[str, ...] = ()
@@ -565,7 +565,7 @@ class PayloadApp:
             records_flagged=self.sink.flagged if self.sink else 0, loop=loop.stats if loop else None,
             lidar_counters=self.lidar.counters().as_dict() if self.lidar else {},
             stream=dict(self.stream.stats) if self.stream else None,
-            health=dict(self.health.sent) if self.health else {}, link=dict(st.link) if st else {},
+            health=self.health.status().as_dict() if self.health else {}, link=dict(st.link) if st else {},
             pose_status=st.pose_status if st else "", close_errors=tuple(self._close_errors),
             signing_active=self.signing_active)
         self._say(f"stopped ({res.stop_reason}) after {elapsed_s:.1f} s: {res.records_logged} samples "
