@@ -458,7 +458,8 @@ def check_mavlink_url(url: str) -> None:
 def open_mavlink(url: str, source_system: int = COMPANION_SYSTEM_ID,
                  source_component: int = COMPANION_COMPONENT_ID, *,
                  signing: SigningConfig | None = None) -> MavlinkLink:
-    """A MavlinkLink from its URL: a registered backend's scheme, else a PymavlinkLink.
+    """A MavlinkLink from its URL: a PymavlinkLink for the built-in schemes, else the registered
+    backend of its scheme (ValueError naming the URL and the known schemes for an unknown one).
 
     With `signing`, a registered backend must take a `signing=` keyword (ValueError otherwise).
     """
