@@ -270,7 +270,7 @@ class PayloadResult:
     loop: LoopStats | None
     lidar_counters: dict[str, int]
     stream: dict[str, int] | None
-    health: dict[str, int]
+    health: dict[str, Any]
     link: dict[str, Any]
     pose_status: str
     close_errors: tuple[str, ...] = ()
@@ -482,15 +482,13 @@ class PayloadApp:
     def snapshot(self, now_ns: int) -> HealthSnapshot:
         """The health counters now (for `HealthMonitor`)."""
         st = self.tracker.status()
-        c = self.lidar.counters
-        flagged = self.loop.stats.flagged
+        c = self.lidar.counters()
+        stats = self.loop.stats
         return HealthSnapshot(
-            t_ns=now_ns, readings=self.loop.stats.ticks, logged=self.sink.records,
-            sensor_errors=c["bus_errors"] + c["timeouts"] + c["config_errors"], pose_ok=bool(st["pose_ok"]),
-            pose_age_s=st["pose_age_s"], pose_status=str(st["pose_status"]),
-            timesync_converged=bool(st["timesync"]["converged"]),
-            stale=flagged[SampleFlags.STALE_POSE.name] + flagged[SampleFlags.NO_POSE.name],
-            overruns=self.loop.stats.overruns)
+            t_ns=now_ns, readings=stats.ticks, logged=self.sink.records,
+            sensor_errors=c.sensor_errors, pose_ok=st.pose_ok, pose_age_s=st.pose_age_s,
+            pose_status=st.pose_status, timesync_converged=st.timesync.converged,
+            stale=stats.flagged(SampleFlags.STALE_POSE | SampleFlags.NO_POSE), overruns=stats.overruns)
 
     def _send_health(self, msgs: list[Any]) -> None:
         for msg in msgs:
@@ -520,12 +518,11 @@ class PayloadApp:
         self._status_prev = (now, n)
         self._next_status_ns = now + round(self.cfg.status_period_s * 1e9)
         st = self.tracker.status()
-        age = st["pose_age_s"]
+        age = st.pose_age_s
         pose = f"pose age {age:.3f} s" if age is not None else "no pose yet"
-        if not st["pose_ok"]:
-            pose += f" ({str(st['pose_status'])[:90]})"
-        c = self.lidar.counters
-        errors = c["bus_errors"] + c["timeouts"] + c["config_errors"]
+        if not st.pose_ok:
+            pose += f" ({st.pose_status[:90]})"
+        errors = self.lidar.counters().sensor_errors
         auth = f"  refused frames {self.auth_rejects()}" if self.signing_active else ""
         self._say(f"{(now - self.loop.t0_ns) / 1e9:7.1f} s  {rate:5.0f} Hz  samples {self.sink.records}  "
                   f"flagged {self.sink.flagged}  sensor errors {errors}  overruns {self.loop.stats.overruns}{auth}  "
@@ -561,15 +558,15 @@ class PayloadApp:
 
     def _result(self, elapsed_s: float) -> PayloadResult:
         loop = self.loop
-        st = self.tracker.status() if self.tracker is not None else {}
+        st = self.tracker.status() if self.tracker is not None else None
         res = PayloadResult(
             stop_reason=self._stop_reason or "stopped", out_path=Path(self.cfg.out_path), elapsed_s=elapsed_s,
             readings=loop.stats.ticks if loop else 0, records_logged=self.sink.records if self.sink else 0,
             records_flagged=self.sink.flagged if self.sink else 0, loop=loop.stats if loop else None,
-            lidar_counters=dict(self.lidar.counters) if self.lidar else {},
+            lidar_counters=self.lidar.counters().as_dict() if self.lidar else {},
             stream=dict(self.stream.stats) if self.stream else None,
-            health=dict(self.health.sent) if self.health else {}, link=dict(st.get("link", {})),
-            pose_status=str(st.get("pose_status", "")), close_errors=tuple(self._close_errors),
+            health=self.health.status().as_dict() if self.health else {}, link=dict(st.link) if st else {},
+            pose_status=st.pose_status if st else "", close_errors=tuple(self._close_errors),
             signing_active=self.signing_active)
         self._say(f"stopped ({res.stop_reason}) after {elapsed_s:.1f} s: {res.records_logged} samples "
                   f"({res.records_flagged} flagged) in {res.out_path}")

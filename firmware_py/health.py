@@ -24,6 +24,7 @@ recoveries and stopping, WARNING for degraded data, ERROR when nothing usable is
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -62,7 +63,39 @@ def statustext_msg(severity: int, text: str) -> Any:
     return mavlink.MAVLink_statustext_message(severity, raw)
 
 
-@dataclass(frozen=True)
+class PoseState(enum.Enum):
+    """Whether the payload has a pose to tag samples with: waiting -> ok -> lost -> ok ..."""
+
+    WAITING = "waiting"
+    OK = "ok"
+    LOST = "lost"
+
+
+class SensorState(enum.Enum):
+    """The LiDAR over the last period: every reading good, some errors, or nothing but errors."""
+
+    OK = "ok"
+    ERRORS = "errors"
+    FAILED = "failed"
+
+
+@dataclass(frozen=True, slots=True)
+class HealthStatus:
+    """What the monitor has concluded and sent so far (`HealthMonitor.status()`): a snapshot."""
+
+    pose_state: PoseState
+    sensor_state: SensorState
+    rate_hz: float
+    values_sent: int
+    texts_sent: int
+
+    def as_dict(self) -> dict[str, Any]:
+        """For logs and JSON (the states by their value)."""
+        return {"pose_state": self.pose_state.value, "sensor_state": self.sensor_state.value,
+                "rate_hz": self.rate_hz, "values_sent": self.values_sent, "texts_sent": self.texts_sent}
+
+
+@dataclass(frozen=True, slots=True)
 class HealthSnapshot:
     """Cumulative payload counters at one instant (all counts since the start).
 
@@ -106,18 +139,22 @@ class HealthMonitor:
         self.period_ns = round(period_s * 1e9)
         self._next_ns = self.t0_ns
         self._prev: HealthSnapshot | None = None
-        self.pose_state = "waiting"  # waiting -> ok -> lost -> ok ...
-        self.sensor_state = "ok"  # ok | errors | failed
+        self.pose_state = PoseState.WAITING
+        self.sensor_state = SensorState.OK
         self._no_pose_warned = False
         self.rate_hz = 0.0
-        self.sent: dict[str, int] = {"values": 0, "texts": 0}
+        self._values_sent = self._texts_sent = 0
+
+    def status(self) -> HealthStatus:
+        """The states, the last reading rate and what was sent so far (a frozen snapshot)."""
+        return HealthStatus(self.pose_state, self.sensor_state, self.rate_hz, self._values_sent, self._texts_sent)
 
     def _boot_ms(self, t_ns: int) -> int:
         return max(0, (t_ns - self.t0_ns) // 1_000_000)
 
     def event(self, severity: int, text: str) -> Any:
         """A STATUSTEXT for something the caller knows (started, stopping)."""
-        self.sent["texts"] += 1
+        self._texts_sent += 1
         return statustext_msg(severity, TEXT_PREFIX + text)
 
     def due(self, now_ns: int) -> bool:
@@ -140,7 +177,7 @@ class HealthMonitor:
         out += [named_value_msg(RATE, self.rate_hz, ms), named_value_msg(LOGGED, snap.logged, ms),
                 named_value_msg(I2C_ERRORS, snap.sensor_errors, ms), named_value_msg(POSE_AGE, age, ms),
                 named_value_msg(STALE, snap.stale, ms), named_value_msg(OVERRUNS, snap.overruns, ms)]
-        self.sent["values"] += len(VALUE_NAMES)
+        self._values_sent += len(VALUE_NAMES)
         return out
 
     def _text(self, severity: int, text: str) -> list[Any]:
@@ -149,17 +186,17 @@ class HealthMonitor:
     def _pose_events(self, snap: HealthSnapshot) -> list[Any]:
         age = "" if snap.pose_age_s is None else f" (age {snap.pose_age_s:.2f} s)"
         if snap.pose_ok:
-            if self.pose_state == "waiting":
-                self.pose_state = "ok"
+            if self.pose_state is PoseState.WAITING:
+                self.pose_state = PoseState.OK
                 return self._text(mavlink.MAV_SEVERITY_INFO, "pose acquired")
-            if self.pose_state == "lost":
-                self.pose_state = "ok"
+            if self.pose_state is PoseState.LOST:
+                self.pose_state = PoseState.OK
                 return self._text(mavlink.MAV_SEVERITY_NOTICE, "pose regained")
             return []
-        if self.pose_state == "ok":
-            self.pose_state = "lost"
+        if self.pose_state is PoseState.OK:
+            self.pose_state = PoseState.LOST
             return self._text(mavlink.MAV_SEVERITY_WARNING, "pose lost" + age)
-        if (self.pose_state == "waiting" and not self._no_pose_warned
+        if (self.pose_state is PoseState.WAITING and not self._no_pose_warned
                 and snap.t_ns - self.t0_ns >= NO_POSE_WARNING_S * 1e9):
             self._no_pose_warned = True
             return self._text(mavlink.MAV_SEVERITY_WARNING, "no pose: " + _why_no_pose(snap))
@@ -168,13 +205,13 @@ class HealthMonitor:
     def _sensor_events(self, readings: int, errors: int) -> list[Any]:
         if readings <= 0:
             return []  # no readings this period (stopping, or a stalled loop): nothing to judge
-        state = "ok" if errors <= 0 else ("failed" if errors >= readings else "errors")
-        if state == self.sensor_state:
+        state = SensorState.OK if errors <= 0 else (SensorState.FAILED if errors >= readings else SensorState.ERRORS)
+        if state is self.sensor_state:
             return []
         self.sensor_state = state
-        if state == "failed":
+        if state is SensorState.FAILED:
             return self._text(mavlink.MAV_SEVERITY_ERROR, f"LiDAR failing: {errors} errors/{readings} reads")
-        if state == "errors":
+        if state is SensorState.ERRORS:
             return self._text(mavlink.MAV_SEVERITY_WARNING, f"LiDAR errors: {errors} of {readings} reads")
         return self._text(mavlink.MAV_SEVERITY_NOTICE, "LiDAR ok again")
 

@@ -37,9 +37,10 @@ NO_POSITION_STATUS = (
 )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class PoseSample:
-    """The vehicle's pose at companion time t_ns (NED position, ZYX Euler attitude).
+    """The vehicle's pose at companion time t_ns (NED position, ZYX Euler attitude): what a pose
+    source hands the payload loop, typed so nothing there is probed with getattr.
 
     Values are NaN when stale or missing (missing implies stale). age_s is the time from t to the
     farther bracketing sample (inf when missing).

@@ -24,7 +24,9 @@ from __future__ import annotations
 
 import math
 from collections import Counter, deque
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from types import MappingProxyType
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -78,6 +80,57 @@ class PoseTrackerConfig:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
         if not (isinstance(self.extrapolate_ns, int) and 0 <= self.extrapolate_ns <= self.max_pose_age_ns):
             raise ValueError(f"extrapolate_ns must be an integer in 0..max_pose_age_ns, got {self.extrapolate_ns!r}")
+
+
+@dataclass(frozen=True, slots=True)
+class TimesyncStatus:
+    """The clock mapping's health (`TimesyncEstimator`), in operator units."""
+
+    converged: bool
+    offset_ns: int | None
+    rtt_ms: float | None
+    rtt_min_ms: float | None
+    jitter_ms: float | None
+    samples: int
+    rejected: int
+    resets: int
+    last_reset_reason: str | None
+
+
+@dataclass(frozen=True, slots=True)
+class PoseTrackerStatus:
+    """The tracker's health at one instant (`PoseTracker.status()`): a snapshot; `as_dict()` for logs/JSON.
+
+    Attributes:
+        pose_ok: time sync converged and the newest pose no older than max_pose_age_ns.
+        pose_age_s: age of the newest pose, None before any.
+        pose_status: one line for the operator (what is missing and why).
+        timesync: the clock mapping.
+        streams: each pose stream's request state ("accepted at 50 Hz", "refused: ...").
+        rates_hz: messages received per second, by type, over the last rate window.
+        autopilot_heartbeat_age_s: since the autopilot's last HEARTBEAT, None before one.
+        link: the link's counters (empty if it keeps none); link_last_error its last error.
+        tracker: what the tracker sent and dropped.
+    """
+
+    pose_ok: bool
+    pose_age_s: float | None
+    pose_status: str
+    timesync: TimesyncStatus
+    streams: Mapping[str, str]
+    rates_hz: Mapping[str, float]
+    autopilot_heartbeat_age_s: float | None
+    link: Mapping[str, int]
+    link_last_error: str | None
+    tracker: Mapping[str, int]
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain dicts all the way down (JSON, the SITL's run record)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out["timesync"] = {f.name: getattr(self.timesync, f.name) for f in fields(self.timesync)}
+        for name in ("streams", "rates_hz", "link", "tracker"):
+            out[name] = dict(out[name])
+        return out
 
 
 @dataclass
@@ -154,35 +207,32 @@ class PoseTracker:
         """The vehicle pose at companion time t_ns (stale / missing flags say when it cannot be used)."""
         return self.buffer.pose_at(t_ns)
 
-    def status(self) -> dict[str, Any]:
+    def status(self) -> PoseTrackerStatus:
         """Health for logs and the operator: pose age, time sync, stream requests, rates, link errors."""
         now = self.clock.now_ns()
         ts = self.timesync
         newest = self.buffer.newest_ns
         pose_age_s = (now - newest) / 1e9 if newest is not None else None
-        link_stats = getattr(self.link, "stats", None)
+        link_stats = getattr(self.link, "stats", None)  # not every MavlinkLink keeps counters
+        last_error = getattr(self.link, "last_error", None)
         hb = self._last_heartbeat_rx_ns
-        return {
-            "pose_ok": bool(ts.converged and pose_age_s is not None
-                            and pose_age_s * 1e9 <= self.config.max_pose_age_ns),
-            "pose_age_s": pose_age_s,
-            "pose_status": self._pose_status(),
-            "timesync": {
-                "converged": ts.converged,
-                "offset_ns": ts.offset_ns,
-                "rtt_ms": ts.last_rtt_ns / 1e6 if ts.last_rtt_ns is not None else None,
-                "rtt_min_ms": ts.rtt_min_ns / 1e6 if ts.rtt_min_ns is not None else None,
-                "jitter_ms": ts.jitter_ns / 1e6 if ts.jitter_ns is not None else None,
-                "samples": ts.stats["samples"], "rejected": ts.stats["rejected"], "resets": ts.stats["resets"],
-                "last_reset_reason": ts.last_reset_reason,
-            },
-            "streams": dict(self._stream_state),
-            "rates_hz": dict(self._rates_hz),
-            "autopilot_heartbeat_age_s": (now - hb) / 1e9 if hb is not None else None,
-            "link": dict(link_stats) if isinstance(link_stats, dict) else {},
-            "link_last_error": getattr(self.link, "last_error", None),
-            "tracker": dict(self.stats),
-        }
+        return PoseTrackerStatus(
+            pose_ok=bool(ts.converged and pose_age_s is not None and pose_age_s * 1e9 <= self.config.max_pose_age_ns),
+            pose_age_s=pose_age_s,
+            pose_status=self._pose_status(),
+            timesync=TimesyncStatus(
+                converged=ts.converged, offset_ns=ts.offset_ns,
+                rtt_ms=ts.last_rtt_ns / 1e6 if ts.last_rtt_ns is not None else None,
+                rtt_min_ms=ts.rtt_min_ns / 1e6 if ts.rtt_min_ns is not None else None,
+                jitter_ms=ts.jitter_ns / 1e6 if ts.jitter_ns is not None else None,
+                samples=ts.stats["samples"], rejected=ts.stats["rejected"], resets=ts.stats["resets"],
+                last_reset_reason=ts.last_reset_reason),
+            streams=MappingProxyType(dict(self._stream_state)),
+            rates_hz=MappingProxyType(dict(self._rates_hz)),
+            autopilot_heartbeat_age_s=(now - hb) / 1e9 if hb is not None else None,
+            link=MappingProxyType(dict(link_stats) if isinstance(link_stats, dict) else {}),
+            link_last_error=None if last_error is None else str(last_error),
+            tracker=MappingProxyType(dict(self.stats)))
 
     @property
     def autopilot_base_mode(self) -> int | None:

@@ -57,9 +57,10 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from enum import IntEnum, IntFlag
 
+from firmware_py.core.sensor import LIDARLITE_V3
 from firmware_py.hal import Clock, I2CBus, I2CError
 
 log = logging.getLogger(__name__)
@@ -88,7 +89,8 @@ T_ACQ_PER_COUNT_NS = 21_000
 T_BIAS_CORRECTION_NS = 200_000
 DEFAULT_REF_COUNT = 5
 DEFAULT_SIG_COUNT = 0x80
-RANGE_AT_DEFAULT_COUNT_M = 40.0
+RANGE_AT_DEFAULT_COUNT_M = LIDARLITE_V3.max_range_m
+"""The datasheet's 40 m (70 % reflective target) at the default count: one number, in core.sensor."""
 RESET_TIME_NS = 22_000_000
 """The manual's re-initialisation time after a reset command."""
 
@@ -340,11 +342,46 @@ MAX_RESET_BACKOFF = 32
 """A stuck part is reset after 20, 40, 80 ... failures, at most 32 x 20 (about 1.3 s at 500 Hz)."""
 
 
-COUNTER_NAMES = ("ok", "no_return", "timeouts", "bus_errors", "resetting", "implausible", "resets", "reconfigs",
-                 "config_errors", "bias")
-"""ok + no_return + timeouts + bus_errors + resetting is the number of readings; implausible is the
-part of bus_errors whose bytes could not be a distance; config_errors counts failed transfers while
-resetting, configuring or reading back; bias counts bias-corrected triggers."""
+@dataclass(frozen=True, slots=True)
+class LidarLiteCounters:
+    """The driver's counts since it was made: a snapshot (`LidarLite.counters()`), never a live dict.
+
+    ok + no_return + timeouts + bus_errors + resetting is the number of readings; implausible is the
+    part of bus_errors whose bytes could not be a distance; config_errors counts failed transfers
+    while resetting, configuring or reading back; bias counts bias-corrected triggers.
+    """
+
+    ok: int = 0
+    no_return: int = 0
+    timeouts: int = 0
+    bus_errors: int = 0
+    resetting: int = 0
+    implausible: int = 0
+    resets: int = 0
+    reconfigs: int = 0
+    config_errors: int = 0
+    bias: int = 0
+
+    @property
+    def readings(self) -> int:
+        """Readings handed out, whatever their status."""
+        return self.ok + self.no_return + self.timeouts + self.bus_errors + self.resetting
+
+    @property
+    def sensor_errors(self) -> int:
+        """Failed transfers and busy timeouts: what the health report calls sensor errors."""
+        return self.bus_errors + self.timeouts + self.config_errors
+
+    def as_dict(self) -> dict[str, int]:
+        """The counts by name (logs, JSON), in field order."""
+        return {name: getattr(self, name) for name in COUNTER_NAMES}
+
+
+COUNTER_NAMES = tuple(f.name for f in fields(LidarLiteCounters))
+"""The counters' names, in order (`LidarLiteCounters`)."""
+
+_STATUS_COUNTER = {ReadStatus.OK: "ok", ReadStatus.NO_RETURN: "no_return", ReadStatus.TIMEOUT: "timeouts",
+                   ReadStatus.BUS_ERROR: "bus_errors", ReadStatus.RESETTING: "resetting"}
 
 
 @dataclass
@@ -370,7 +407,7 @@ class LidarLite:
         self.bus = bus
         self.clock = clock
         self.config = config or LidarLiteConfig()
-        self.counters: dict[str, int] = dict.fromkeys(COUNTER_NAMES, 0)
+        self._counts: dict[str, int] = dict.fromkeys(COUNTER_NAMES, 0)  # mutable here, snapshots out
         self.last_error: I2CError | None = None
         self._preset = self.config.preset
         self._bias_countdown = 0
@@ -385,6 +422,10 @@ class LidarLite:
         self._worst_ns = {b: self._preset.worst_acquisition_ns(bias=b) for b in (False, True)}
         if configure:
             self.configure()
+
+    def counters(self) -> LidarLiteCounters:
+        """What the driver has counted so far (a frozen snapshot: later readings do not change it)."""
+        return LidarLiteCounters(**self._counts)
 
     # -- register access: split transfers only ------------------------------------------------
 
@@ -433,7 +474,7 @@ class LidarLite:
             return False
         if actual == list(self._preset.registers):
             return True
-        self.counters["reconfigs"] += 1
+        self._counts["reconfigs"] += 1
         log.warning("LIDAR-Lite registers %s differ from preset %s: re-applying it",
                     ", ".join(f"0x{r:02x}=0x{v:02x}" for r, v in actual), self._preset.name)
         try:
@@ -450,17 +491,17 @@ class LidarLite:
         """
         if self._pending is not None:
             raise RuntimeError("reset() during a measurement: call measure_finish() first")
-        errors = self.counters["config_errors"]
+        errors = self._counts["config_errors"]
         self._start_reset()  # this one waits: it supersedes an automatic reset under way
         self.clock.sleep_until_ns(self._reloaded_at_ns)
         self._finish_reset()
-        return self.counters["config_errors"] == errors
+        return self._counts["config_errors"] == errors
 
     def _start_reset(self) -> None:
         """The automatic reset, without blocking: the reset command now, the preset once the part
         has reloaded (`measure_start` after reset_wait_ns). Meanwhile readings come back RESETTING at
         the loop's rate, so a payload keeps its tick grid (servo pulses, pose pumping, health)."""
-        self.counters["resets"] += 1
+        self._counts["resets"] += 1
         log.warning("resetting the LIDAR-Lite at 0x%02x", self.config.address)
         try:
             self._write_reg(_REG_ACQ_COMMAND, _CMD_RESET)
@@ -478,7 +519,7 @@ class LidarLite:
             self._config_error("configuring after reset", exc)
 
     def _config_error(self, what: str, exc: I2CError) -> None:
-        self.counters["config_errors"] += 1
+        self._counts["config_errors"] += 1
         self.last_error = exc
         log.warning("LIDAR-Lite %s failed: %s", what, exc)
 
@@ -517,7 +558,7 @@ class LidarLite:
         t_ns = self.clock.now_ns()  # just after the STOP that started the acquisition
         if bias:
             self._bias_countdown = self.config.bias_every - 1
-            self.counters["bias"] += 1
+            self._counts["bias"] += 1
         else:
             self._bias_countdown -= 1
         self._pending = _Pending(t_ns, bias)
@@ -530,7 +571,7 @@ class LidarLite:
             raise RuntimeError("measure_finish() without measure_start()")
         self._pending = None
         if pending.resetting:
-            self.counters["resetting"] += 1
+            self._counts["resetting"] += 1
             return Reading(None, ReadStatus.RESETTING, pending.t_ns, 0)
         if pending.error is not None:
             self.last_error = pending.error
@@ -585,7 +626,7 @@ class LidarLite:
         if cm <= 1 or status & _INVALID_SIGNAL:
             return Reading(None, ReadStatus.NO_RETURN, t_ns, polls), cm
         if cm > cfg.max_range_m * 100.0:
-            self.counters["implausible"] += 1
+            self._counts["implausible"] += 1
             self.last_error = I2CError(f"implausible distance {cm} cm (bytes 0x{hi:02x} 0x{lo:02x}) "
                                        f"from 0x{cfg.address:02x}")
             log.debug("%s", self.last_error)
@@ -598,9 +639,7 @@ class LidarLite:
         return Reading(None, ReadStatus.BUS_ERROR, t_ns, polls)
 
     def _account(self, reading: Reading, raw_cm: int | None) -> None:
-        name = {ReadStatus.OK: "ok", ReadStatus.NO_RETURN: "no_return", ReadStatus.TIMEOUT: "timeouts",
-                ReadStatus.BUS_ERROR: "bus_errors"}[reading.status]
-        self.counters[name] += 1
+        self._counts[_STATUS_COUNTER[reading.status]] += 1
         if reading.status == ReadStatus.OK:
             self._failure_run = self._no_valid_run = 0
             self._reset_after = self.config.reset_after_failures

@@ -7,6 +7,10 @@ Backends, chosen by URL (DESIGN section 7):
     udpout:HOST:PORT             we send there; a HEARTBEAT goes out at once so a listening autopilot
                                  (ArduPilot SITL, `pilescan-sitl serve`) learns our address
     tcp:HOST:PORT                TCP client (ArduPilot SITL's tcp:5760)
+    SCHEME:...                   a backend another layer registered (`register_mavlink_backend`)
+
+The schemes live in `MAVLINK_BACKENDS`, a `firmware_py.hal.registry.BackendRegistry` (the rules every
+URL-selected backend follows); `signing=` is its credential, and a backend that cannot sign is refused.
 
 `PymavlinkLink` uses `mavutil.mavlink_connection` for the transport only; `ByteStreamLink` runs over any
 pair of byte callables (the SITL lockstep's in-process pipes, tests). Both parse with `MavlinkFramer`,
@@ -32,7 +36,6 @@ The companion's 1 Hz HEARTBEAT is the caller's job (`heartbeat_msg()`); the pose
 
 from __future__ import annotations
 
-import inspect
 import re
 from collections.abc import Callable
 from typing import Any
@@ -40,6 +43,7 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_py.hal import MavlinkLink
+from firmware_py.hal.registry import BackendRegistry, Credential
 from firmware_py.hal.signing import MavlinkSigner, SigningConfig
 
 DEFAULT_SERIAL_BAUD = 921_600
@@ -418,47 +422,47 @@ class PymavlinkLink(_FramedLink):
 
 # ----- factory --------------------------------------------------------------------------------------
 
-_REGISTRY: dict[str, Callable[[str], MavlinkLink]] = {}
-_BUILTIN_SCHEMES = ("serial", "udp", "udpin", "udpout", "tcp")
+def _open_pymavlink(url: str, *, signing: SigningConfig | None = None, source_system: int = COMPANION_SYSTEM_ID,
+                    source_component: int = COMPANION_COMPONENT_ID) -> MavlinkLink:
+    return PymavlinkLink(url, source_system, source_component, signing=signing)
 
 
-def register_mavlink_backend(scheme: str, factory: Callable[[str], MavlinkLink]) -> None:
-    """Let another layer (the SITL) provide `SCHEME:...` links without firmware_py importing it."""
-    if not re.fullmatch(r"[a-z][a-z0-9]*", scheme or ""):
-        raise ValueError(f"MAVLink backend scheme must be lowercase letters and digits, got {scheme!r}")
-    if scheme in _BUILTIN_SCHEMES:
-        raise ValueError(f"MAVLink backend scheme {scheme!r} is built in and cannot be replaced")
-    _REGISTRY[scheme] = factory
+MAVLINK_BACKENDS: BackendRegistry[MavlinkLink] = BackendRegistry(
+    "MAVLink link", credential="signing", policy=Credential.REQUIRED,
+    unknown="unsupported MAVLink link scheme {scheme!r} in {url!r}")
+"""Every `open_mavlink` scheme: pymavlink's transports, and what other layers (the SITL) register.
+A link asked to sign that cannot is refused, never opened unsigned."""
+for _scheme in ("serial", "udp", "udpin", "udpout", "tcp"):
+    MAVLINK_BACKENDS.builtin(_scheme, _open_pymavlink, takes_credential=True, check=mavutil_device)
+
+
+def register_mavlink_backend(scheme: str, factory: Callable[..., MavlinkLink]) -> None:
+    """Let another layer (the SITL) provide `SCHEME:...` links without firmware_py importing it; a
+    factory taking a `signing=` keyword can sign."""
+    MAVLINK_BACKENDS.register(scheme, factory)
 
 
 def unregister_mavlink_backend(scheme: str) -> None:
     """Remove a registered backend (tests); unknown schemes are ignored."""
-    _REGISTRY.pop(scheme, None)
+    MAVLINK_BACKENDS.unregister(scheme)
+
+
+def check_mavlink_url(url: str) -> None:
+    """Refuse a malformed or unknown MAVLink URL without opening anything (ValueError naming it); a
+    registered scheme's options are checked when it is opened."""
+    if not isinstance(url, str):
+        raise ValueError(f"MAVLink URL must be a string, got {url!r}")
+    MAVLINK_BACKENDS.check(url)
 
 
 def open_mavlink(url: str, source_system: int = COMPANION_SYSTEM_ID,
                  source_component: int = COMPANION_COMPONENT_ID, *,
                  signing: SigningConfig | None = None) -> MavlinkLink:
-    """A MavlinkLink from its URL: a registered backend's scheme, else a PymavlinkLink.
+    """A MavlinkLink from its URL: a PymavlinkLink for the built-in schemes, else the registered
+    backend of its scheme (ValueError naming the URL and the known schemes for an unknown one).
 
     With `signing`, a registered backend must take a `signing=` keyword (ValueError otherwise).
     """
     if not isinstance(url, str):
         raise ValueError(f"MAVLink URL must be a string, got {url!r}")
-    scheme = url.strip().split(":", 1)[0]
-    factory = _REGISTRY.get(scheme)
-    if factory is not None:
-        if signing is None:
-            return factory(url.strip())
-        if not _takes_keyword(factory, "signing"):
-            raise ValueError(f"MAVLink backend {scheme!r} does not support signing")
-        return factory(url.strip(), signing=signing)
-    return PymavlinkLink(url, source_system, source_component, signing=signing)
-
-
-def _takes_keyword(fn: Callable[..., Any], name: str) -> bool:
-    try:
-        params = inspect.signature(fn).parameters.values()
-    except (TypeError, ValueError):
-        return False
-    return any(p.name == name or p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
+    return MAVLINK_BACKENDS.open(url, signing, source_system=source_system, source_component=source_component)

@@ -8,6 +8,8 @@ output through MAVLink (MAV_CMD_DO_SET_SERVO). Chosen by URL:
                                       device bridge (firmware_py.hal.bridge)
 
 `open_pwm(url, key=...)`: the key authenticates the device bridge; the other outputs ignore it.
+The schemes live in `PWM_BACKENDS`, a `firmware_py.hal.registry.BackendRegistry` (the rules every
+URL-selected backend follows); another layer adds its own with `register_pwm_backend`.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from firmware_py.hal import I2CBus, MavlinkLink, PwmOutput, check_i2c_addr, check_pulse_us
+from firmware_py.hal.registry import BackendRegistry
 
 FRAME_HZ = 50.0
 
@@ -119,77 +122,139 @@ class MavlinkServoPwm:
         self.disable()
 
 
-def _open_bridge(url: str, key: bytes | None = None) -> PwmOutput:
+_FORMS = "pwm:sysfs:CHIP:CH, pwm:pca9685:BUS:ADDR:CH (CH 0-15), pwm:mavlink:N or pwm:tcp:HOST:PORT:CH"
+_SHAPE = re.compile(r"pwm:([a-z][a-z0-9+.-]*)(?::(.*))?", re.ASCII)
+
+
+def _fields(url: str, n: int) -> list[str]:
+    """The n colon-separated fields after `pwm:SCHEME:`, or ValueError saying what was expected."""
+    parts = url.split(":")[2:]
+    if len(parts) != n:
+        raise ValueError(f"expected {_FORMS}")
+    return parts
+
+
+def _digits(text: str) -> bool:
+    return text.isascii() and text.isdigit()
+
+
+def _named(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """A built-in's ValueError, prefixed with the URL it was given (int() messages do not name it)."""
+    def wrapper(url: str, *args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(url, *args, **kwargs)
+        except ValueError as exc:
+            raise ValueError(f"bad PWM output {url!r}: {exc}") from None
+    return wrapper
+
+
+def _sysfs_fields(url: str) -> tuple[int, int]:
+    chip, channel = _fields(url, 2)
+    if not (_digits(chip) and _digits(channel)):
+        raise ValueError(f"expected {_FORMS}")
+    return int(chip), int(channel)
+
+
+@_named
+def _check_sysfs(url: str) -> None:
+    _sysfs_fields(url)
+
+
+@_named
+def _check_pca9685(url: str) -> None:
+    bus, addr, channel = _fields(url, 3)
+    check_i2c_addr(int(addr, 0))
+    if not (_digits(bus) and _digits(channel) and int(channel) < 16):
+        raise ValueError(f"expected {_FORMS}")
+
+
+@_named
+def _check_mavlink(url: str) -> None:
+    (servo_n,) = _fields(url, 1)
+    if not (_digits(servo_n) and 1 <= int(servo_n) <= 32):
+        raise ValueError(f"expected {_FORMS} (N 1-32)")
+
+
+def _check_bridge(url: str) -> None:
+    from firmware_py.hal.bridge import parse_pwm_url
+    try:
+        parse_pwm_url(url)
+    except ValueError as exc:
+        raise ValueError(f"bad PWM output {url!r}: {exc}") from None
+
+
+@_named
+def _open_sysfs(url: str, **_options: Any) -> PwmOutput:
+    return SysfsPwm(*_sysfs_fields(url))
+
+
+@_named
+def _open_pca9685(url: str, *, i2c_opener: Callable[[str], I2CBus] | None = None, **_options: Any) -> PwmOutput:
+    bus_n, addr_s, channel_s = _fields(url, 3)
+    if i2c_opener is None:
+        raise ValueError("a PCA9685 output needs an I2C bus")
+    if not (_digits(bus_n) and _digits(channel_s)):
+        raise ValueError(f"expected {_FORMS}")
+    addr, channel = check_i2c_addr(int(addr_s, 0)), int(channel_s)  # before the bus is opened
+    bus = i2c_opener(f"i2c:{bus_n}")
+    try:
+        return Pca9685Pwm(bus, addr, channel)
+    except BaseException:
+        bus.close()
+        raise
+
+
+@_named
+def _open_mavlink(url: str, *, link: MavlinkLink | None = None, mav: Any = None, **_options: Any) -> PwmOutput:
+    (servo_n,) = _fields(url, 1)
+    if not _digits(servo_n):
+        raise ValueError(f"expected {_FORMS}")
+    if link is None or mav is None:
+        raise ValueError("a MAVLink servo output needs the autopilot link")
+    return MavlinkServoPwm(link, int(servo_n), mav)
+
+
+def _open_bridge(url: str, key: bytes | None = None, **_options: Any) -> PwmOutput:
     """The device bridge, imported on first use (only a networked SITL run needs its sockets)."""
     from firmware_py.hal.bridge import open_bridge_pwm
     return open_bridge_pwm(url, key=key)
 
 
-_REGISTRY: dict[str, Callable[[str], PwmOutput]] = {"tcp": _open_bridge}
+PWM_BACKENDS: BackendRegistry[PwmOutput] = BackendRegistry(
+    "PWM output", prefix="pwm:", credential="key", unknown="bad PWM output {url!r}: unknown scheme {scheme!r}",
+    expected=_FORMS)
+"""Every `open_pwm` scheme (`pwm:SCHEME:...`): the built-in outputs and what other layers register."""
+PWM_BACKENDS.builtin("sysfs", _open_sysfs, check=_check_sysfs)
+PWM_BACKENDS.builtin("pca9685", _open_pca9685, check=_check_pca9685)
+PWM_BACKENDS.builtin("mavlink", _open_mavlink, check=_check_mavlink)
+PWM_BACKENDS.builtin("tcp", _open_bridge, takes_credential=True, check=_check_bridge)
 
 
 def register_pwm_backend(scheme: str, factory: Callable[[str], PwmOutput]) -> None:
-    """Let another layer (the SITL) provide `pwm:SCHEME:...` outputs without firmware_py importing it."""
-    _REGISTRY[scheme] = factory
+    """Let another layer (the SITL) provide `pwm:SCHEME:...` outputs without firmware_py importing it
+    (re-registering replaces; the built-in schemes cannot be replaced)."""
+    PWM_BACKENDS.register(scheme, factory)
+
+
+def unregister_pwm_backend(scheme: str) -> None:
+    """Forget a registered scheme; unknown schemes are ignored."""
+    PWM_BACKENDS.unregister(scheme)
+
+
+def _check_shape(url: object) -> str:
+    if not isinstance(url, str) or not _SHAPE.fullmatch(url.strip()):
+        raise ValueError(f"PWM output must look like pwm:sysfs:0:0, pwm:pca9685:1:0x40:0 or pwm:mavlink:9, got {url!r}")
+    return url.strip()
 
 
 def check_pwm_url(url: str) -> None:
     """Refuse a malformed PWM URL without opening anything (ValueError naming it), so a program can
     check all its options before it touches the hardware. Registered schemes are checked when opened."""
-    m = re.fullmatch(r"pwm:([a-z0-9]+)(?::(.*))?", url.strip()) if isinstance(url, str) else None
-    if not m:
-        raise ValueError(f"PWM output must look like pwm:sysfs:0:0, pwm:pca9685:1:0x40:0 or pwm:mavlink:9, got {url!r}")
-    scheme, parts = m.group(1), (m.group(2) or "").split(":") if m.group(2) else []
-    try:
-        if scheme == "sysfs" and len(parts) == 2 and all(p.isascii() and p.isdigit() for p in parts):
-            return
-        if scheme == "pca9685" and len(parts) == 3 and parts[0].isascii() and parts[0].isdigit():
-            check_i2c_addr(int(parts[1], 0))
-            if parts[2].isascii() and parts[2].isdigit() and int(parts[2]) < 16:
-                return
-        if scheme == "mavlink" and len(parts) == 1 and parts[0].isascii() and parts[0].isdigit():
-            return
-        if scheme == "tcp":
-            from firmware_py.hal.bridge import parse_pwm_url
-            parse_pwm_url(url.strip())
-            return
-    except ValueError as exc:
-        raise ValueError(f"bad PWM output {url!r}: {exc}") from None
-    if scheme in _REGISTRY and scheme not in ("sysfs", "pca9685", "mavlink", "tcp"):
-        return
-    raise ValueError(f"bad PWM output {url!r}: expected pwm:sysfs:CHIP:CH, pwm:pca9685:BUS:ADDR:CH (CH 0-15), "
-                     "pwm:mavlink:N or pwm:tcp:HOST:PORT:CH")
+    PWM_BACKENDS.check(_check_shape(url))
 
 
 def open_pwm(url: str, i2c_opener: Callable[[str], I2CBus] | None = None, link: MavlinkLink | None = None,
              mav: Any = None, *, key: bytes | None = None) -> PwmOutput:
     """A PwmOutput from its URL (see the module docstring); `key` authenticates the device bridge
     (`pwm:tcp:`) and is ignored by the local outputs."""
-    m = re.fullmatch(r"pwm:([a-z0-9]+)(?::(.*))?", url.strip())
-    if not m:
-        raise ValueError(f"PWM output must look like pwm:sysfs:0:0, pwm:pca9685:1:0x40:0 or pwm:mavlink:9, got {url!r}")
-    scheme, rest = m.group(1), m.group(2) or ""
-    parts = rest.split(":") if rest else []
-    try:
-        if scheme == "sysfs" and len(parts) == 2:
-            return SysfsPwm(int(parts[0]), int(parts[1]))
-        if scheme == "pca9685" and len(parts) == 3:
-            if i2c_opener is None:
-                raise ValueError("a PCA9685 output needs an I2C bus")
-            addr, channel = check_i2c_addr(int(parts[1], 0)), int(parts[2])  # before the bus is opened
-            bus = i2c_opener(f"i2c:{parts[0]}")
-            try:
-                return Pca9685Pwm(bus, addr, channel)
-            except BaseException:
-                bus.close()
-                raise
-        if scheme == "mavlink" and len(parts) == 1:
-            if link is None or mav is None:
-                raise ValueError("a MAVLink servo output needs the autopilot link")
-            return MavlinkServoPwm(link, int(parts[0]), mav)
-    except ValueError as exc:
-        raise ValueError(f"bad PWM output {url!r}: {exc}") from None
-    if scheme in _REGISTRY:
-        factory = _REGISTRY[scheme]
-        return _open_bridge(url, key=key) if factory is _open_bridge else factory(url)
-    raise ValueError(f"bad PWM output {url!r}: expected pwm:sysfs:CHIP:CH, pwm:pca9685:BUS:ADDR:CH or pwm:mavlink:N")
+    return PWM_BACKENDS.open(_check_shape(url), key, i2c_opener=i2c_opener, link=link, mav=mav)

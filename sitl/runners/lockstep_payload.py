@@ -313,13 +313,13 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
         log.abandon()
         stats, disk_full = loop.stats, str(exc)
     sim.server.close()
-    status = tracker.status() if hasattr(tracker, "status") else {}
+    status = tracker.status().as_dict()
     true_t = np.array([t for t, _ in sim.history]) + boot_offset_s
     true_s = np.array([st for _, st in sim.history])
     return FirmwareRun(read_samplelog(log_path).samples, vehicle.state().t_s - ts0, vehicle.plant.energy_j - e0,
                        not (cut or disk_full) and vehicle.mode != FlightMode.AUTO and vehicle.current_item() == -1,
                        stats,
-                       dict(lidar.counters), status, true_t, true_s,
+                       lidar.counters().as_dict(), status, true_t, true_s,
                        None if inj is None else
                        {"link_down": links["down"].counters, "link_up": links["up"].counters, **inj.counters,
                         "i2c_nacks": bus.counters["nack"], "power_cut": cut, "disk_full": disk_full, "loop": stats,

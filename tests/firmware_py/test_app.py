@@ -129,7 +129,7 @@ def devices():
     pwm_backends.register_pwm_backend("emu", lambda _url: servo)
     yield bus, lidar, servo
     unregister_i2c_backend("sitl")
-    pwm_backends._REGISTRY.pop("emu", None)
+    pwm_backends.unregister_pwm_backend("emu")
 
 
 @pytest.fixture

@@ -11,6 +11,8 @@ from firmware_py.health import (
     VALUE_NAMES,
     HealthMonitor,
     HealthSnapshot,
+    PoseState,
+    SensorState,
     named_value_msg,
     statustext_msg,
 )
@@ -87,7 +89,7 @@ def test_that_values_go_once_per_period_with_the_sample_rate():
     assert second["PS_RATE"] == pytest.approx(500.0)
     assert (second["PS_I2CERR"], second["PS_STALE"], second["PS_OVERRUN"], second["PS_LOGGED"]) == (2, 7, 1, 500)
     assert second["PS_POSEAGE"] == pytest.approx(0.01)
-    assert mon.sent["values"] == 2 * len(VALUE_NAMES)
+    assert mon.status().values_sent == 2 * len(VALUE_NAMES)
 
 
 def test_that_pose_acquired_lost_and_regained_are_each_said_once():
@@ -139,3 +141,18 @@ def test_that_a_bad_period_is_refused():
     for bad in (0.0, -1.0, float("nan"), 1e6):
         with pytest.raises(ValueError, match="health period"):
             HealthMonitor(T0, period_s=bad)
+
+
+def test_that_the_status_follows_pose_and_sensor_states_as_enums_in_a_frozen_snapshot():
+    mon = HealthMonitor(T0)
+    mon.update(snap(0, pose_ok=False, age=None))
+    start = mon.status()
+    assert (start.pose_state, start.sensor_state) == (PoseState.WAITING, SensorState.OK)
+    mon.update(snap(1, readings=500))
+    mon.update(snap(2, readings=1000, errors=500))
+    now = mon.status()
+    assert (now.pose_state, now.sensor_state) == (PoseState.OK, SensorState.FAILED)
+    assert start.pose_state is PoseState.WAITING  # the earlier snapshot did not change
+    assert now.as_dict()["sensor_state"] == "failed" and now.texts_sent == 2  # pose acquired, LiDAR failing
+    with pytest.raises(AttributeError):
+        now.rate_hz = 0.0

@@ -4,7 +4,9 @@ the server and the tracker each once per step; no threads, no sleeps (except the
 
 from __future__ import annotations
 
+import dataclasses
 import heapq
+import json
 import math
 import random
 import statistics
@@ -246,9 +248,9 @@ def test_pose_tag_timing_error_is_below_1ms_median_with_5_to_30ms_random_link_la
     assert median_abs_ms(turning) <= 1.0
     assert max(e.cross_m for e in evals if e.cross_m is not None) < 1e-6  # interpolation adds nothing across
     status = world.tracker.status()
-    assert status["timesync"]["resets"] == 0
-    assert status["streams"] == {"ATTITUDE": "accepted at 50 Hz", "LOCAL_POSITION_NED": "accepted at 50 Hz"}
-    assert status["rates_hz"]["ATTITUDE"] == pytest.approx(50, abs=3)
+    assert status.timesync.resets == 0
+    assert status.streams == {"ATTITUDE": "accepted at 50 Hz", "LOCAL_POSITION_NED": "accepted at 50 Hz"}
+    assert status.rates_hz["ATTITUDE"] == pytest.approx(50, abs=3)
 
 
 # ----- stream requests ---------------------------------------------------------------------------------
@@ -257,9 +259,9 @@ def test_start_requests_both_streams_at_stream_hz_once_each_when_acked():
     world = World(seed=2, fly=False, stream_hz=25.0)  # the SITL's default is 50 Hz
     world.run(3.0)
     assert world.server.stats["rx_by_type"]["COMMAND_LONG"] == 2
-    rates = world.tracker.status()["rates_hz"]
+    rates = world.tracker.status().rates_hz
     assert rates["ATTITUDE"] == pytest.approx(25, abs=2) and rates["LOCAL_POSITION_NED"] == pytest.approx(25, abs=2)
-    assert world.tracker.status()["streams"]["ATTITUDE"] == "accepted at 25 Hz"
+    assert world.tracker.status().streams["ATTITUDE"] == "accepted at 25 Hz"
 
 
 def test_a_lost_stream_request_is_retried_until_acked():
@@ -276,8 +278,8 @@ def test_a_lost_stream_request_is_retried_until_acked():
     world.tracker.start()
     world.run(5.0)
     assert len(lost) == 3
-    assert world.tracker.status()["streams"]["LOCAL_POSITION_NED"] == "accepted at 50 Hz"
-    assert world.tracker.status()["streams"]["ATTITUDE"] == "accepted at 50 Hz"
+    assert world.tracker.status().streams["LOCAL_POSITION_NED"] == "accepted at 50 Hz"
+    assert world.tracker.status().streams["ATTITUDE"] == "accepted at 50 Hz"
 
 
 def test_stream_requests_give_up_after_the_attempt_limit_and_say_so():
@@ -286,7 +288,7 @@ def test_stream_requests_give_up_after_the_attempt_limit_and_say_so():
     world.tracker.start()
     world.run(8.0)
     limit = PoseTrackerConfig().command_attempts
-    assert world.tracker.status()["streams"]["ATTITUDE"] == f"no COMMAND_ACK after {limit} attempts"
+    assert world.tracker.status().streams["ATTITUDE"] == f"no COMMAND_ACK after {limit} attempts"
     assert world.tracker.stats["tx_commands"] == 2 * limit
     assert world.tracker.pose_at(world.clock.now_ns() - QUERY_LAG_NS).usable  # default-rate streams still serve
 
@@ -312,8 +314,8 @@ def test_when_local_position_stops_samples_come_back_stale_never_with_an_old_pos
     pose_now = world.tracker.pose_at(world.clock.now_ns())
     assert pose_now.stale and pose_now.age_s > 2.5
     status = world.tracker.status()
-    assert not status["pose_ok"] and status["pose_age_s"] > 2.5
-    assert "LOCAL_POSITION_NED" not in status["rates_hz"] and status["rates_hz"]["ATTITUDE"] > 45
+    assert not status.pose_ok and status.pose_age_s > 2.5
+    assert "LOCAL_POSITION_NED" not in status.rates_hz and status.rates_hz["ATTITUDE"] > 45
 
 
 def test_without_local_position_the_status_tells_the_operator_about_the_ekf_origin():
@@ -322,7 +324,7 @@ def test_without_local_position_the_status_tells_the_operator_about_the_ekf_orig
     world.run(3.0)
     pose = world.tracker.pose_at(world.clock.now_ns() - QUERY_LAG_NS)
     assert pose.missing
-    assert "SET_GPS_GLOBAL_ORIGIN" in world.tracker.status()["pose_status"]
+    assert "SET_GPS_GLOBAL_ORIGIN" in world.tracker.status().pose_status
 
 
 def test_before_time_sync_converges_no_pose_is_given_and_the_status_says_why():
@@ -331,7 +333,7 @@ def test_before_time_sync_converges_no_pose_is_given_and_the_status_says_why():
     world.tracker.start()
     world.run(2.0)
     assert world.tracker.pose_at(world.clock.now_ns() - QUERY_LAG_NS).missing
-    assert "waiting for TIMESYNC replies" in world.tracker.status()["pose_status"]
+    assert "waiting for TIMESYNC replies" in world.tracker.status().pose_status
     assert world.tracker.stats["pose_dropped_unsynced"] > 150
 
 
@@ -364,7 +366,7 @@ def test_autopilot_reboot_resets_time_sync_which_reconverges_on_the_new_boot():
     pose = world.tracker.pose_at(world.clock.now_ns() - QUERY_LAG_NS)
     assert pose.usable and pose.pos_ned_m[2] == pytest.approx(0.0) and flying_down_m < -4.0
     assert world.server.stats["rx_by_type"]["COMMAND_LONG"] >= 2 and old_server is not world.server
-    assert world.tracker.status()["rates_hz"]["LOCAL_POSITION_NED"] == pytest.approx(25, abs=2)  # asked for again
+    assert world.tracker.status().rates_hz["LOCAL_POSITION_NED"] == pytest.approx(25, abs=2)  # asked for again
 
 
 @pytest.mark.parametrize("jump_ns", [HOUR_NS, -HOUR_NS])
@@ -495,7 +497,7 @@ def test_command_ack_denied_is_reported_not_retried():
     link.queue(mavlink.MAVLink_command_ack_message(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_DENIED,
                                                    0, 0, 1, 191))
     tracker.pump()
-    assert tracker.status()["streams"]["ATTITUDE"] == "refused: MAV_RESULT_DENIED"
+    assert tracker.status().streams["ATTITUDE"] == "refused: MAV_RESULT_DENIED"
     commands = [m for m in link.sent if m.get_type() == "COMMAND_LONG"]
     assert [int(m.param1) for m in commands] == [ATTITUDE_ID, LOCAL_POSITION_ID]
     assert commands[0].param2 == pytest.approx(20_000)  # us between messages at 50 Hz
@@ -533,7 +535,7 @@ def test_udp_smoke_pose_tracker_on_pymavlink_link_against_the_sitl_autopilot():
                 vehicle.step()
             server.update()
             tracker.pump()
-            streams = tracker.status()["streams"].values()
+            streams = tracker.status().streams.values()
             if tracker.timesync.converged and all(v.startswith("accepted") for v in streams):
                 pose = tracker.pose_at(clock.now_ns() - QUERY_LAG_NS)
                 if pose.usable:
@@ -545,3 +547,17 @@ def test_udp_smoke_pose_tracker_on_pymavlink_link_against_the_sitl_autopilot():
     assert pose is not None and pose.usable
     assert -5.0 <= pose.pos_ned_m[2] <= 0.0  # climbing to 5 m
     assert server.stats["rx_by_type"]["COMMAND_LONG"] >= 2 and server.stats["rx_by_type"]["HEARTBEAT"] >= 1
+
+
+def test_that_the_status_is_a_frozen_snapshot_and_its_dict_is_plain_json():
+    clock = SimClock(start_ns=1_000_000_000)
+    tracker = PoseTracker(ByteStreamLink(lambda _d: None, lambda: b""), clock)
+    tracker.start()
+    status = tracker.status()
+    assert not status.pose_ok and status.pose_age_s is None and not status.timesync.converged
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        status.pose_ok = True
+    with pytest.raises(TypeError):
+        status.streams["ATTITUDE"] = "accepted"  # read-only, so a later status cannot be confused with it
+    d = status.as_dict()
+    assert json.loads(json.dumps(d)) == d and d["timesync"]["samples"] == 0 and d["streams"] == dict(status.streams)

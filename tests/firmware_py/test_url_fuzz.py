@@ -97,10 +97,12 @@ class FakeLink:
 def no_hardware():
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(backends, "SmbusI2CBus", lambda bus: Opened("smbus", bus))
-        mp.setattr(backends, "_BACKENDS", {"tcp": lambda url: Opened("bridge-i2c", *bridge.parse_tcp_url(url))})
+        mp.setattr(backends, "I2C_BACKENDS", backends.I2C_BACKENDS.builtins_only())
+        mp.setattr(bridge, "open_bridge_i2c", lambda url, key=None: Opened("bridge-i2c", *bridge.parse_tcp_url(url)))
         mp.setattr(pwm, "SysfsPwm", lambda chip, ch: Opened("sysfs", chip, ch))
-        mp.setattr(pwm, "_REGISTRY", {"tcp": lambda url: Opened("bridge-pwm", *bridge.parse_pwm_url(url))})
-        mp.setattr(ml, "_REGISTRY", {})
+        mp.setattr(pwm, "PWM_BACKENDS", pwm.PWM_BACKENDS.builtins_only())
+        mp.setattr(bridge, "open_bridge_pwm", lambda url, key=None: Opened("bridge-pwm", *bridge.parse_pwm_url(url)))
+        mp.setattr(ml, "MAVLINK_BACKENDS", ml.MAVLINK_BACKENDS.builtins_only())
         mp.setattr(ml, "PymavlinkLink", lambda url, *_a, **_k: Opened("pymavlink", *ml.mavutil_device(url)))
         if SIM:
             mp.setattr(mv, "UdpTransport", lambda url: Opened("udp", *mv._parse_udp_url(url)))
@@ -154,6 +156,20 @@ def test_that_open_pwm_opens_only_well_formed_urls(no_hardware, url):
 def test_that_open_pwm_without_a_bus_or_link_refuses_those_outputs_cleanly(no_hardware, url):
     out = parsed_or_value_error(pwm.open_pwm, url)
     assert out is None or out.kind in ("sysfs", "bridge-pwm")
+
+
+@FUZZ
+@given(url=urls)
+def test_that_the_hal_url_checks_accept_every_url_that_opens(no_hardware, url):
+    for check, opened in ((backends.check_i2c_url, parsed_or_value_error(backends.open_i2c, url)),
+                          (pwm.check_pwm_url, parsed_or_value_error(pwm.open_pwm, url, i2c_opener=backends.open_i2c,
+                                                                    link=FakeLink(), mav=mavlink.MAVLink(None))),
+                          (ml.check_mavlink_url, parsed_or_value_error(ml.open_mavlink, url))):
+        try:
+            check(url)
+        except ValueError as exc:
+            one_line_value_error(exc)
+            assert opened is None, f"{check.__name__} refused {url!r}, which opens"
 
 
 # ----- the device bridge -------------------------------------------------------------------------------

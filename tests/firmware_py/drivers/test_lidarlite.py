@@ -6,6 +6,7 @@ from importlib.util import find_spec
 import pytest
 
 from firmware_py.drivers.lidarlite import (
+    COUNTER_NAMES,
     PRESET_DEFAULT,
     PRESET_FAST_500HZ,
     PRESETS,
@@ -87,7 +88,7 @@ def test_that_no_echo_is_a_no_return_reading_never_a_sentinel_distance(preset, t
     assert reading.status == ReadStatus.NO_RETURN
     assert reading.range_m is None
     assert not reading.ok
-    assert rig.lidar.counters["no_return"] == 1 and rig.lidar.counters["ok"] == 0
+    assert rig.lidar.counters().no_return == 1 and rig.lidar.counters().ok == 0
 
 
 def test_that_a_reading_is_stamped_at_the_trigger_where_the_range_belongs():
@@ -114,7 +115,7 @@ def test_that_bias_correction_is_requested_once_per_hundred_measurements():
         rig.lidar.read()
     assert rig.writes(b"\x00\x04") == 10
     assert rig.writes(b"\x00\x03") == 990
-    assert rig.part.counters["bias_acquisitions"] == rig.lidar.counters["bias"] == 10
+    assert rig.part.counters["bias_acquisitions"] == rig.lidar.counters().bias == 10
 
 
 def test_that_the_driver_only_makes_split_transfers():
@@ -124,7 +125,7 @@ def test_that_the_driver_only_makes_split_transfers():
     rig.range_m = None
     for _ in range(3):  # a reset and a re-configuration too
         rig.lidar.read()
-    assert rig.lidar.counters["resets"] == 1
+    assert rig.lidar.counters().resets == 1
     ops = [c[0] for c in rig.bus.calls]
     assert "write_read" not in ops
     assert rig.part.counters["combined_transfers"] == 0
@@ -146,7 +147,7 @@ def test_that_a_stuck_busy_part_times_out_within_the_deadline_and_the_next_readi
     one_poll_ns = rig.sim_bus.wire_time_ns(4)
     assert deadline <= rig.clock.now_ns() - reading.t_ns <= deadline + one_poll_ns
     assert reading.polls > 10
-    assert rig.lidar.counters["timeouts"] == 1
+    assert rig.lidar.counters().timeouts == 1
     rig.part.stuck_busy = False
     after = rig.lidar.read()
     assert after.status == ReadStatus.OK and after.range_m == pytest.approx(9.87)
@@ -164,18 +165,18 @@ def test_that_a_nack_burst_gives_counted_bus_errors_then_readings_recover():
     assert statuses[:11] == [ReadStatus.BUS_ERROR] * 11
     assert statuses[11:] == [ReadStatus.OK] * 9
     assert all(r.range_m == pytest.approx(4.56) for r in readings[11:])
-    assert rig.lidar.counters["bus_errors"] == 11 and rig.lidar.counters["ok"] == 9
+    assert rig.lidar.counters().bus_errors == 11 and rig.lidar.counters().ok == 9
     assert isinstance(rig.lidar.last_error, I2CError) and "0x62" in str(rig.lidar.last_error)
-    assert rig.lidar.counters["resets"] == 0  # 11 < 20 consecutive failures
+    assert rig.lidar.counters().resets == 0  # 11 < 20 consecutive failures
 
 
 def test_that_random_nacks_become_bus_errors_and_every_reading_is_accounted_for():
     rig = Rig(3.21, PRESET_FAST_500HZ)
     rig.sim_bus.nack_probability = 0.02
     readings = [rig.lidar.read() for _ in range(300)]
-    c = rig.lidar.counters
-    assert c["ok"] + c["no_return"] + c["timeouts"] + c["bus_errors"] == 300
-    assert c["bus_errors"] == sum(r.status == ReadStatus.BUS_ERROR for r in readings) > 0
+    c = rig.lidar.counters()
+    assert c.ok + c.no_return + c.timeouts + c.bus_errors == c.readings == 300
+    assert c.bus_errors == sum(r.status == ReadStatus.BUS_ERROR for r in readings) > 0
     assert all(r.range_m == pytest.approx(3.21) for r in readings if r.ok)
 
 
@@ -187,21 +188,21 @@ def test_that_a_power_glitch_is_caught_by_register_read_back_and_the_preset_reap
     assert rig.part.regs[SIG_COUNT_VAL] == 0x80  # the part forgot the fast preset
     for _ in range(40):
         rig.lidar.read()
-    assert rig.lidar.counters["reconfigs"] == 1
+    assert rig.lidar.counters().reconfigs == 1
     assert (rig.part.regs[SIG_COUNT_VAL], rig.part.regs[ACQ_CONFIG_REG], rig.part.regs[THRESHOLD_BYPASS]) == (
         PRESET_FAST_500HZ.sig_count_val, PRESET_FAST_500HZ.acq_config, PRESET_FAST_500HZ.threshold_bypass)
     for _ in range(50):
         rig.lidar.read()
-    assert rig.lidar.counters["reconfigs"] == 1  # nothing differs any more
+    assert rig.lidar.counters().reconfigs == 1  # nothing differs any more
 
 
 def test_that_a_run_of_no_returns_resets_the_part_and_reapplies_the_preset():
     rig = Rig(None, PRESET_FAST_500HZ, reset_after_no_valid=10)
     for _ in range(9):
         rig.lidar.read()
-    assert rig.lidar.counters["resets"] == 0
+    assert rig.lidar.counters().resets == 0
     rig.lidar.read()
-    assert rig.lidar.counters["resets"] == rig.part.counters["resets"] == 1
+    assert rig.lidar.counters().resets == rig.part.counters["resets"] == 1
     # The reset does not block the loop: readings on the 500 Hz tick grid come back RESETTING, with
     # no bus traffic, until the part has had its reload time; then the preset goes back on.
     rig.range_m = 2.5
@@ -209,7 +210,7 @@ def test_that_a_run_of_no_returns_resets_the_part_and_reapplies_the_preset():
     transfers = len(rig.bus.calls)
     during = _read_on_ticks(rig, 10)
     assert all(r.status == ReadStatus.RESETTING for r in during) and len(rig.bus.calls) == transfers
-    assert rig.clock.now_ns() - t_reset < 22_000_000 and rig.lidar.counters["resetting"] == 10
+    assert rig.clock.now_ns() - t_reset < 22_000_000 and rig.lidar.counters().resetting == 10
     after = _read_on_ticks(rig, 5)
     assert after[-1].status == ReadStatus.OK and after[-1].range_m == pytest.approx(2.5)
     first_ok = next(r for r in during + after if r.status == ReadStatus.OK)
@@ -228,15 +229,15 @@ def test_that_twenty_zero_centimetre_readings_reset_the_part_as_px4_does():
     rig = Rig(0.004, PRESET_FAST_500HZ)  # reads 0 cm: PX4's known stuck state
     readings = [rig.lidar.read() for _ in range(20)]
     assert all(r.status == ReadStatus.NO_RETURN for r in readings)
-    assert rig.lidar.counters["resets"] == 1
+    assert rig.lidar.counters().resets == 1
 
 
 def test_that_a_sweep_past_far_walls_does_not_reset_the_part():
     rig = Rig(None, PRESET_FAST_500HZ)  # 1 cm no-returns, e.g. 0.6 s of beam beyond range
     for _ in range(300):
         rig.lidar.read()
-    assert rig.lidar.counters["no_return"] == 300
-    assert rig.lidar.counters["resets"] == 0
+    assert rig.lidar.counters().no_return == 300
+    assert rig.lidar.counters().resets == 0
 
 
 def test_that_the_fast_preset_sustains_500_hz_in_simulated_time():
@@ -255,7 +256,7 @@ def test_that_the_fast_preset_sustains_500_hz_in_simulated_time():
     assert all(r.status in (ReadStatus.OK, ReadStatus.NO_RETURN) for r in readings)
     no_echo = [ranges[(r.t_ns // TICK_NS) % len(ranges)] is None for r in readings]
     assert [r.status == ReadStatus.NO_RETURN for r in readings] == no_echo and any(no_echo)
-    assert rig.lidar.counters["bias"] == 10
+    assert rig.lidar.counters().bias == 10
     assert rig.writes(b"\x02") >= 1  # the SIG_COUNT_VAL read-back ran inside the budget too
 
 
@@ -312,7 +313,7 @@ def test_that_distances_map_to_statuses_and_impossible_bytes_are_bus_errors(stat
     reading = lidar.read()
     assert reading.status == expected
     assert reading.range_m == (pytest.approx(range_m) if range_m is not None else None)
-    assert lidar.counters["implausible"] == (1 if distance == b"\xff\xff" else 0)
+    assert lidar.counters().implausible == (1 if distance == b"\xff\xff" else 0)
 
 
 @needs_sim
@@ -405,13 +406,30 @@ def test_that_the_busy_deadline_fits_the_loop_period_without_cutting_off_a_healt
 def test_that_resets_back_off_while_the_part_stays_stuck_and_come_back_after_a_good_reading():
     rig = Rig(9.87, PRESET_FAST_500HZ)
     rig.part.stuck_busy = True
-    while rig.lidar.counters["timeouts"] < 620:
+    while rig.lidar.counters().timeouts < 620:
         _read_on_ticks(rig, 1)
-    assert rig.lidar.counters["resets"] == 5  # after 20, 40, 80, 160 and 320 more failures, not 31 times
-    assert 4 * 11 <= rig.lidar.counters["resetting"] <= 4 * 14  # ~25 ms of 2 ms ticks each: not blocked
+    assert rig.lidar.counters().resets == 5  # after 20, 40, 80, 160 and 320 more failures, not 31 times
+    assert 4 * 11 <= rig.lidar.counters().resetting <= 4 * 14  # ~25 ms of 2 ms ticks each: not blocked
     rig.part.stuck_busy = False
     back = _read_on_ticks(rig, 15)  # the fifth reset reloads first
     assert {r.status for r in back[:-1]} <= {ReadStatus.RESETTING, ReadStatus.OK} and back[-1].status == ReadStatus.OK
     rig.part.stuck_busy = True
     _read_on_ticks(rig, 20)
-    assert rig.lidar.counters["resets"] == 6  # the next fault is met at the base threshold again
+    assert rig.lidar.counters().resets == 6  # the next fault is met at the base threshold again
+
+
+def test_that_the_counters_are_a_snapshot_that_later_readings_do_not_change():
+    rig = Rig(3.21, PRESET_FAST_500HZ)
+    rig.lidar.read()
+    before = rig.lidar.counters()
+    rig.lidar.read()
+    assert before.ok == 1 and rig.lidar.counters().ok == 2
+    with pytest.raises(AttributeError):
+        before.ok = 5
+
+
+def test_that_the_counters_as_a_dict_name_every_counter_in_order():
+    rig = Rig(3.21, PRESET_FAST_500HZ)
+    rig.lidar.read()
+    d = rig.lidar.counters().as_dict()
+    assert tuple(d) == COUNTER_NAMES and d["ok"] == 1 and sum(d.values()) == 1 + d["bias"]

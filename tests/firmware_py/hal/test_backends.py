@@ -35,7 +35,7 @@ def fake_smbus2(monkeypatch):
 
 @pytest.fixture
 def clean_registry(monkeypatch):
-    monkeypatch.setattr(backends, "_BACKENDS", {})
+    monkeypatch.setattr(backends, "I2C_BACKENDS", backends.I2C_BACKENDS.builtins_only())
 
 
 @pytest.mark.parametrize(("url", "expected"), [
@@ -71,7 +71,7 @@ def test_that_a_registered_backend_opens_its_scheme_and_gets_the_whole_url(clean
     assert open_i2c("sitl") is sentinel
     assert open_i2c("sitl:bus0") is sentinel
     assert seen == ["sitl", "sitl:bus0"]
-    assert registered_i2c_schemes() == ["i2c", "sitl"]
+    assert registered_i2c_schemes() == ["i2c", "tcp", "sitl"]
     unregister_i2c_backend("sitl")
     with pytest.raises(ValueError, match="unknown scheme 'sitl'"):
         open_i2c("sitl")
@@ -79,6 +79,7 @@ def test_that_a_registered_backend_opens_its_scheme_and_gets_the_whole_url(clean
 
 @pytest.mark.parametrize(("scheme", "factory", "match"), [
     ("i2c", lambda url: None, "built-in"),
+    ("tcp", lambda url: None, "built-in"),
     ("Sitl", lambda url: None, "scheme"),
     ("", lambda url: None, "scheme"),
     ("si tl", lambda url: None, "scheme"),
@@ -87,7 +88,7 @@ def test_that_a_registered_backend_opens_its_scheme_and_gets_the_whole_url(clean
 def test_that_bad_registrations_are_refused(clean_registry, scheme, factory, match):
     with pytest.raises(ValueError, match=match):
         register_i2c_backend(scheme, factory)
-    assert registered_i2c_schemes() == ["i2c"]
+    assert registered_i2c_schemes() == ["i2c", "tcp"]
 
 
 def test_that_firmware_py_hal_and_driver_never_import_sitl_or_ground():

@@ -103,7 +103,7 @@ def test_that_the_lidar_driver_reads_the_emulated_distance_over_the_bridge(rig):
     readings = [lidar.read() for _ in range(3)]
     assert [r.status for r in readings] == [ReadStatus.OK] * 3
     assert [r.range_m for r in readings] == [7.25] * 3
-    assert rig.part.counters["acquisitions"] == 3 and lidar.counters["bus_errors"] == 0
+    assert rig.part.counters["acquisitions"] == 3 and lidar.counters().bus_errors == 0
     bus.close()
 
 

@@ -236,7 +236,7 @@ def test_that_the_pose_tracker_never_raises_on_whatever_decodes(steps, offset_ns
         n_sent = len(feed.sent)
         tracker.pump()
     status = tracker.status()
-    assert status["link"] == link.stats and status["tracker"]["tx_timesync"] >= 1
+    assert status.link == link.stats and status.tracker["tx_timesync"] >= 1
     assert link.stats["tx_errors"] == 0
     buf = tracker.buffer.stats
     assert buf["positions"] + buf["attitudes"] + buf["rejected_nonfinite"] <= link.stats["rx_messages"]

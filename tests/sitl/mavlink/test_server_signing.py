@@ -62,7 +62,7 @@ def test_with_the_same_key_signed_poses_flow_to_the_pose_tracker():
     rig = LockstepRig(KEY, KEY)
     rig.run(3.0)
     pose = rig.pose()
-    assert pose.usable, rig.tracker.status()["pose_status"]
+    assert pose.usable, rig.tracker.status().pose_status
     assert -5.0 <= pose.pos_ned_m[2] < -0.1  # climbing
     link, server = rig.link.stats, rig.server.stats
     assert link["rx_signed"] == link["rx_messages"] > 100
