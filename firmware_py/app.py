@@ -35,10 +35,10 @@ from __future__ import annotations
 import math
 import os
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, BinaryIO, TextIO
 
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -127,6 +127,11 @@ class PayloadConfig:
         health_period_s: NAMED_VALUE_FLOAT period, s.
         status_period_s: progress line period on stderr, s.
         quiet: no progress or summary lines (warnings and errors still print) [--quiet].
+        wait_for_pose_s: before the first sample, wait up to this long for a trusted pose (time sync
+            converged and a fresh pose from the autopilot), pumping the link, so the log does not open
+            with samples that cannot be posed; 0 = start sampling at once. The lockstep SITL waits.
+        source, mission: the header's provenance and what was flown (the SITL writes its mission
+            plan there; the drone's program does not know it).
     """
 
     out_path: str | os.PathLike[str] = "samples.pslog"
@@ -164,6 +169,9 @@ class PayloadConfig:
     health_period_s: float = 1.0
     status_period_s: float = 5.0
     quiet: bool = False
+    wait_for_pose_s: float = 0.0
+    source: str = "payload"
+    mission: Mapping[str, Any] | None = None
 
     def busy_deadline_ns(self) -> int:
         """The LiDAR's busy deadline at this rate (a stuck part must not stop the loop keeping it)."""
@@ -212,6 +220,10 @@ class PayloadConfig:
         n = self.records_per_block
         if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 100_000:
             raise ValueError(f"records per block must be 1-100000, got {n!r}")
+        if not (_finite(self.wait_for_pose_s) and 0.0 <= self.wait_for_pose_s <= 3600.0):
+            raise ValueError(f"pose wait must be 0-3600 s, got {self.wait_for_pose_s!r}")
+        if not isinstance(self.source, str) or not self.source.strip():
+            raise ValueError(f"log source must be a non-empty string, got {self.source!r}")
         for name in ("health_period_s", "status_period_s"):
             v = getattr(self, name)
             if not (_finite(v) and 0.05 <= v <= 3600.0):
@@ -247,9 +259,9 @@ class PayloadConfig:
         """
         drive = {} if sweep_t0_s is None else {"servo_drive": {"t0_s": float(sweep_t0_s), "frame_s": PWM_FRAME_S}}
         return build_log_header(
-            source="payload", sensor=self.sensor(), lever_arm_body_m=[float(v) for v in self.lever_arm_body_m],
+            source=self.source, sensor=self.sensor(), lever_arm_body_m=[float(v) for v in self.lever_arm_body_m],
             waveform_name=self.waveform, waveform=self.servo_waveform(), initial_position=self.initial_position,
-            storage=self.storage, frame=self.frame, mission_id=self.mission_id,
+            storage=self.storage, frame=self.frame, mission_id=self.mission_id, mission=self.mission,
             extra={"servo_calibration": asdict(self.servo),
                    "payload": {"mavlink": self.mavlink_url, "i2c": self.i2c_url, "pwm": self.pwm_url,
                                "lidar_preset": self.preset, "i2c_address": self.i2c_address,
@@ -311,14 +323,20 @@ class PayloadApp:
             takes ownership and closes them at the end.
         err: where progress, warnings and the summary go (None: nowhere).
         prog: the name prefixed to those lines.
+        open_log: opens the sample log file, `open(path, mode)` by default (the SITL's disk faults and
+            power cut give their own file).
+        on_tick: the host's hook, called with the clock's time at every tick before the stop checks
+            (the SITL's fault schedule and mission); what it raises ends the run like any error.
     """
 
     def __init__(self, cfg: PayloadConfig, *, clock: Clock | None = None, link: MavlinkLink | None = None,
                  bus: I2CBus | None = None, pwm: PwmOutput | None = None, err: TextIO | None = sys.stderr,
-                 prog: str = PROG) -> None:
+                 prog: str = PROG, open_log: Callable[[Path, str], BinaryIO] = open,
+                 on_tick: Callable[[int], None] | None = None) -> None:
         self.cfg = cfg
         self.clock = clock or MonotonicClock()
         self.link, self.bus, self.pwm = link, bus, pwm
+        self._open_log, self._on_tick = open_log, on_tick
         self.err, self.prog = err, prog
         self.lidar: LidarLite | None = None
         self.tracker: PoseTracker | None = None
@@ -419,15 +437,33 @@ class PayloadApp:
                                    max_pose_age_ns=round(cfg.max_pose_age_s * 1e9))
         self._send_origin(self.clock.now_ns())
         self.tracker.start()
+        self._wait_for_pose()
         t0_ns = self.clock.now_ns()  # the sweep's time origin, written in the header before the first sample
         self.log = SampleLogWriter(out, cfg.log_header(sweep_t0_s=t0_ns * 1e-9),
-                                   records_per_block=cfg.records_per_block, fsync=cfg.fsync, overwrite=cfg.force)
+                                   records_per_block=cfg.records_per_block, fsync=cfg.fsync, overwrite=cfg.force,
+                                   opener=self._open_log)
         self.sink = _RecordSink(self.log, self.stream)
         servo = SweepServo(self.pwm, cfg.servo_waveform(), cfg.servo)
         self.loop = PayloadLoop(self.lidar, servo, self.tracker, self.clock, self.sink, cfg.loop_config(), t0_ns=t0_ns)
         self.health = HealthMonitor(self.loop.t0_ns, cfg.health_period_s)
         self._next_status_ns = self.loop.t0_ns + round(cfg.status_period_s * 1e9)
         self._status_prev = (self.loop.t0_ns, 0)
+
+    def _wait_for_pose(self) -> None:
+        """Pump the link until the pose is trusted, the wait runs out or a stop is asked for."""
+        if self.cfg.wait_for_pose_s <= 0:
+            return
+        end_ns = self.clock.now_ns() + round(self.cfg.wait_for_pose_s * 1e9)
+        period_ns = round(1e9 / self.cfg.rate_hz)
+        while self._stop_reason is None and not self.tracker.status()["pose_ok"]:
+            now = self.clock.now_ns()
+            if now >= end_ns:
+                self._warn(f"no trusted pose after {self.cfg.wait_for_pose_s:g} s; sampling anyway")
+                return
+            if self._origin_sent and now >= self._next_origin_ns:
+                self._send_origin(now)
+            self.clock.sleep_until_ns(now + period_ns)
+            self.tracker.pump()
 
     @property
     def bridge_authenticated(self) -> bool:
@@ -463,6 +499,8 @@ class PayloadApp:
         if self._stop_reason is not None:
             return True
         now = self.clock.now_ns()
+        if self._on_tick is not None:
+            self._on_tick(now)
         if self.health.due(now):
             self._send_health(self.health.update(self.snapshot(now)))
             if self.stream is not None:

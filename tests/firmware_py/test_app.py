@@ -255,12 +255,8 @@ def test_that_the_payload_logs_posed_samples_and_reports_health_to_the_autopilot
 
 
 def test_that_a_full_disk_stops_the_payload_telling_the_operator_why_and_keeps_every_whole_block(
-        tmp_path, devices, autopilot, monkeypatch):
+        tmp_path, devices, autopilot):
     import errno
-    import functools
-
-    from firmware_py import app as app_module
-    from firmware_py.core.samplelog import SampleLogWriter
 
     class FillingFile:  # takes 40 kB, then ENOSPC (the first failing write takes what fits)
         def __init__(self, f):
@@ -277,11 +273,9 @@ def test_that_a_full_disk_stops_the_payload_telling_the_operator_why_and_keeps_e
         def __getattr__(self, name):
             return getattr(self.f, name)
 
-    monkeypatch.setattr(app_module, "SampleLogWriter", functools.partial(
-        SampleLogWriter, opener=lambda path, mode: FillingFile(open(path, mode))))
     cfg = payload_config(tmp_path, autopilot.url, duration_s=20.0)
     with pytest.raises(OSError, match="No space"):
-        PayloadApp(cfg, err=None).run()
+        PayloadApp(cfg, err=None, open_log=lambda path, mode: FillingFile(open(path, mode))).run()
     assert autopilot.wait_for(lambda: "pilescan: stopping: error: No space left on device" in autopilot.spy.texts())
     stop = [m for m in autopilot.spy.of_type("STATUSTEXT") if "No space" in str(m.text)]
     assert stop and all(m.severity == 2 for m in stop)  # MAV_SEVERITY_CRITICAL: the operator should land
