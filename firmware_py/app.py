@@ -1,9 +1,11 @@
 """The payload program on the companion computer, assembled: what `pilescan-payload` runs.
 
-`PayloadApp` opens the hardware named by URLs (MAVLink link, I2C bus, PWM output: DESIGN section 7),
-builds the same parts the SITL's lockstep runner builds (`sitl.runners.lockstep_payload.fly_firmware`), on the
-real monotonic clock: pose tracker, LIDAR-Lite driver, sweeping servo, sample log and the 500 Hz
-`PayloadLoop`; then runs the loop until told to stop.
+`PayloadApp` is the one composition root: it opens the hardware named by URLs (MAVLink link, I2C bus,
+PWM output: DESIGN section 7), or takes already-open parts, and builds the pose tracker, LIDAR-Lite
+driver, sweeping servo, sample log and the 500 Hz `PayloadLoop` on the real monotonic clock, or on
+an injected one; then runs the loop until told to stop. The SITL's lockstep runner
+(`sitl.runners.lockstep_payload.fly_firmware`) runs this same app with its simulated clock, link,
+bus and servo injected, plus its `on_tick` hook and log opener (faults, power cut).
 
 Around the loop, through its `should_stop` hook (called every tick, so each check is cheap):
 
@@ -36,7 +38,7 @@ import math
 import os
 import sys
 from collections.abc import Callable, Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, BinaryIO, TextIO
 
@@ -270,6 +272,61 @@ class PayloadConfig:
 
 
 @dataclass(frozen=True)
+class LinkCounters:
+    """The MAVLink link's counters at the end of a run (`MavlinkLink.stats`, by name)."""
+
+    rx_bytes: int = 0
+    rx_messages: int = 0
+    rx_bad_bytes: int = 0
+    rx_bad_frames: int = 0
+    rx_seq_lost: int = 0
+    tx_messages: int = 0
+    tx_errors: int = 0
+    io_errors: int = 0
+    rx_signed: int = 0
+    rx_unsigned: int = 0
+    rx_bad_signature: int = 0
+    rx_replayed: int = 0
+    rx_unsigned_accepted: int = 0
+
+    @classmethod
+    def of(cls, stats: Mapping[str, int]) -> LinkCounters:
+        """From a link's stats; a counter the link does not keep reads 0."""
+        return cls(**{f.name: int(stats.get(f.name, 0)) for f in fields(cls)})
+
+    @property
+    def refused(self) -> int:
+        """Frames refused for want of a valid signature: unsigned, forged or replayed."""
+        return self.rx_unsigned + self.rx_bad_signature + self.rx_replayed
+
+
+@dataclass(frozen=True)
+class StreamCounters:
+    """What the live stream sent (`LiveStreamSender.stats`)."""
+
+    datagrams: int = 0
+    records: int = 0
+    send_errors: int = 0
+    records_dropped: int = 0
+
+    @classmethod
+    def of(cls, stats: Mapping[str, int]) -> StreamCounters:
+        return cls(**{f.name: int(stats.get(f.name, 0)) for f in fields(cls)})
+
+
+@dataclass(frozen=True)
+class HealthSent:
+    """Health messages sent to the autopilot: NAMED_VALUE_FLOATs and STATUSTEXTs."""
+
+    values: int = 0
+    texts: int = 0
+
+    @classmethod
+    def of(cls, sent: Mapping[str, int]) -> HealthSent:
+        return cls(**{f.name: int(sent.get(f.name, 0)) for f in fields(cls)})
+
+
+@dataclass(frozen=True)
 class PayloadResult:
     """How a run ended and what it produced."""
 
@@ -281,9 +338,9 @@ class PayloadResult:
     records_flagged: int
     loop: LoopStats | None
     lidar_counters: dict[str, int]
-    stream: dict[str, int] | None
-    health: dict[str, int]
-    link: dict[str, Any]
+    stream: StreamCounters | None
+    health: HealthSent
+    link: LinkCounters
     pose_status: str
     close_errors: tuple[str, ...] = ()
     signing_active: bool = False
@@ -425,10 +482,10 @@ class PayloadApp:
                               lambda: LidarLite(self.bus, self.clock, lidar_cfg))
         if self.pwm is None:
             self.pwm = _opening("PWM output", cfg.pwm_url, lambda: open_pwm(
-                cfg.pwm_url, i2c_opener=open_i2c, link=self.link, mav=getattr(self.link, "mav", None),
+                cfg.pwm_url, i2c_opener=open_i2c, link=self.link, mav=self.link.mav,
                 key=cfg.device_key))
         if cfg.stream_url is not None:
-            signer = getattr(self.link, "signer", None)
+            signer = self.link.signer
             self.stream = LiveStreamSender(
                 cfg.stream_url, cfg.stream_records_per_datagram, key=cfg.signing.key if cfg.signing else None,
                 stamp_source=signer.now if signer is not None else None)
@@ -473,12 +530,12 @@ class PayloadApp:
     @property
     def signing_active(self) -> bool:
         """Whether the MAVLink link signs and checks (it was opened with a key)."""
-        return bool(getattr(self.link, "signing_active", False))
+        return self.link is not None and self.link.signing_active
 
     def _signing_note(self) -> str:
         if not self.signing_active:
             return ""
-        signer = getattr(self.link, "signer", None)
+        signer = self.link.signer
         cfg = signer.config if signer is not None else self.cfg.signing
         if cfg is None:
             return "; MAVLink signing on"
@@ -490,8 +547,7 @@ class PayloadApp:
 
     def auth_rejects(self) -> int:
         """Frames the link refused: unsigned, forged or replayed (0 without signing)."""
-        stats = getattr(self.link, "stats", {})
-        return sum(int(stats.get(k, 0)) for k in ("rx_unsigned", "rx_bad_signature", "rx_replayed"))
+        return LinkCounters.of(self.link.stats).refused
 
     # ----- every tick (PayloadLoop's should_stop) -------------------------------------------------
 
@@ -605,8 +661,9 @@ class PayloadApp:
             readings=loop.stats.ticks if loop else 0, records_logged=self.sink.records if self.sink else 0,
             records_flagged=self.sink.flagged if self.sink else 0, loop=loop.stats if loop else None,
             lidar_counters=dict(self.lidar.counters) if self.lidar else {},
-            stream=dict(self.stream.stats) if self.stream else None,
-            health=dict(self.health.sent) if self.health else {}, link=dict(st.get("link", {})),
+            stream=StreamCounters.of(self.stream.stats) if self.stream else None,
+            health=HealthSent.of(self.health.sent) if self.health else HealthSent(),
+            link=LinkCounters.of(self.link.stats) if self.link is not None else LinkCounters(),
             pose_status=str(st.get("pose_status", "")), close_errors=tuple(self._close_errors),
             signing_active=self.signing_active)
         self._say(f"stopped ({res.stop_reason}) after {elapsed_s:.1f} s: {res.records_logged} samples "

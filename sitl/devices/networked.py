@@ -35,7 +35,7 @@ from sitl.devices.servo_emu import EmulatedServo
 from sitl.faults.injector import FaultInjector, FaultSpec
 from sitl.faults.params import FaultParams, LiveFaultInjector
 from sitl.mavlink.vehicle_server import MavlinkVehicleServer, Transport
-from sitl.runners.lockstep_payload import TruePose, beam_range_m, pose_from_history, state_tuple
+from sitl.runners.lockstep_payload import TruePose, beam_range_m, plant_state_of, pose_from_history
 from sitl.vehicle.api import FlightMode, Vehicle
 from sitl.world.raycast import World
 
@@ -133,7 +133,7 @@ class NetworkedDevices:
     def record(self) -> None:
         """Keep the vehicle's true state after a physics step."""
         with self.lock:
-            self._hist.append((self.vehicle.state().t_s, state_tuple(self.vehicle)))
+            self._hist.append((self.vehicle.state().t_s, plant_state_of(self.vehicle)))
 
     def pose_at(self, t_ns: int) -> TruePose:
         with self.lock:

@@ -17,7 +17,7 @@ import collections
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import BinaryIO
+from typing import BinaryIO, NamedTuple
 
 import numpy as np
 
@@ -29,7 +29,7 @@ from firmware_py.hal.clock import SimClock
 from firmware_py.hal.pwm import register_pwm_backend
 from firmware_py.payload import LoopStats
 from sitl.mavlink.vehicle_server import MavlinkVehicleServer
-from sitl.vehicle.api import Vehicle
+from sitl.vehicle.api import PLANT_STATE_DTYPE, PlantState, Vehicle
 from sitl.vehicle.autopilot import wrap_pi
 from sitl.vehicle.jsbsim_vehicle import JsbsimVehicle
 from sitl.world.raycast import World
@@ -57,42 +57,46 @@ class DelayedPipe:
             self._q.append((due, bytes(data)))
 
     def recv(self) -> bytes:
+        q = self._q
+        if not q:
+            return b""  # the payload polls every tick; most ticks nothing is due
         now = self._clock_ns()
+        if q[0][0] > now:
+            return b""
         out = bytearray()
-        while self._q and self._q[0][0] <= now:
-            out += self._q.popleft()[1]
+        while q and q[0][0] <= now:
+            out += q.popleft()[1]
         return bytes(out)
 
 
-@dataclass(frozen=True)
-class TruePose:
+class TruePose(NamedTuple):
+    """The vehicle's true pose at one instant (what the LiDAR emulator ray traces from)."""
+
     pos_ned_m: tuple[float, float, float]
     roll_rad: float
     pitch_rad: float
     yaw_rad: float
 
 
-def state_tuple(vehicle) -> tuple[float, ...]:
-    """(n, e, d, vn, ve, vd, roll, pitch, yaw, ...) of any Vehicle, as pose_from_history reads it."""
-    raw = getattr(vehicle, "raw_state", None)
-    if raw is not None:
-        return tuple(raw)
-    s = vehicle.state()
-    return (*s.pos_ned_m, *s.vel_ned_m_s, s.roll_rad, s.pitch_rad, s.yaw_rad)
+def plant_state_of(vehicle: Vehicle) -> PlantState:
+    """The rigid-body state of any Vehicle: the plant's own report when it has one (JSBSim)."""
+    s = getattr(vehicle, "plant_state", None)
+    return s if s is not None else PlantState.of(vehicle.state())
 
 
 def pose_from_history(hist, ts: float) -> TruePose:
-    """The true pose at vehicle time ts from a time-ordered sequence of (t_s, raw_state) physics
+    """The true pose at vehicle time ts from a time-ordered sequence of (t_s, PlantState) physics
     steps, linear between the two that bracket it (clamped at the ends)."""
     i = len(hist) - 1
     while i > 0 and hist[i - 1][0] > ts:
         i -= 1
     (t0, s0), (t1, s1) = hist[max(i - 1, 0)], hist[i]
     w = 0.0 if t1 <= t0 else min(1.0, max(0.0, (ts - t0) / (t1 - t0)))
-    lerp = lambda a, b: a + (b - a) * w  # noqa: E731
-    pos = (lerp(s0[0], s1[0]), lerp(s0[1], s1[1]), lerp(s0[2], s1[2]))
-    yaw = s0[8] + wrap_pi(s1[8] - s0[8]) * w
-    return TruePose(pos, lerp(s0[6], s1[6]), lerp(s0[7], s1[7]), wrap_pi(yaw))
+    pos = (s0.north_m + (s1.north_m - s0.north_m) * w, s0.east_m + (s1.east_m - s0.east_m) * w,
+           s0.down_m + (s1.down_m - s0.down_m) * w)
+    yaw = s0.yaw_rad + wrap_pi(s1.yaw_rad - s0.yaw_rad) * w
+    return TruePose(pos, s0.roll_rad + (s1.roll_rad - s0.roll_rad) * w,
+                    s0.pitch_rad + (s1.pitch_rad - s0.pitch_rad) * w, wrap_pi(yaw))
 
 
 def beam_range_m(world: World, frame: StorageFrame, lever_arm_body_m, pose: TruePose, servo_rad: float) -> float | None:
@@ -115,9 +119,10 @@ class SimWorld:
         self.server = MavlinkVehicleServer(vehicle, _ServerSide(self), tlog_path=tlog_path, signing=signing)
         self._up = DelayedPipe(self._vehicle_now_companion_ns, latency_ns)
         self._down_send_at, self._up_send_at = self._down.send_at, self._up.send_at
-        self._hist: collections.deque[tuple[float, tuple[float, ...]]] = collections.deque(maxlen=64)
-        self._hist.append((vehicle.state().t_s, state_tuple(vehicle)))
-        self.history: list[tuple[float, tuple[float, ...]]] = [self._hist[-1]]  # the whole true flight
+        self._hist: collections.deque[tuple[float, PlantState]] = collections.deque(maxlen=64)
+        self._vehicle_t_s = vehicle.state().t_s  # the vehicle steps only here: its clock, kept
+        self._hist.append((self._vehicle_t_s, plant_state_of(vehicle)))
+        self.history: list[tuple[float, PlantState]] = [self._hist[-1]]  # the whole true flight
         self.servo_angle_at = None  # set by the runner: t_ns -> true shaft angle
         clock.set_advance(self.advance_to)
 
@@ -136,7 +141,7 @@ class SimWorld:
         return self._down.recv()
 
     def _vehicle_now_companion_ns(self) -> int:
-        return round(self.vehicle.state().t_s * 1e9) + self.boot_offset_ns
+        return round(self._vehicle_t_s * 1e9) + self.boot_offset_ns
 
     # -- time ------------------------------------------------------------------------------------
     def vehicle_time_ns(self, companion_ns: int) -> int:
@@ -146,12 +151,14 @@ class SimWorld:
         """Step the vehicle until its clock has passed companion time t_ns; return the companion
         time up to which it is now stepped (the clock's horizon: no call needed before it)."""
         target_s = self.vehicle_time_ns(t_ns) * 1e-9
-        while self._hist[-1][0] < target_s:
-            self.vehicle.step()
+        vehicle, hist = self.vehicle, self._hist
+        while hist[-1][0] < target_s:
+            vehicle.step()
+            self._vehicle_t_s = vehicle.state().t_s
             self.server.update()
-            self._hist.append((self.vehicle.state().t_s, state_tuple(self.vehicle)))
-            self.history.append(self._hist[-1])
-        return math.floor(self._hist[-1][0] * 1e9) + self.boot_offset_ns
+            hist.append((self._vehicle_t_s, plant_state_of(vehicle)))
+            self.history.append(hist[-1])
+        return math.floor(hist[-1][0] * 1e9) + self.boot_offset_ns
 
     def pose_at(self, t_ns: int) -> TruePose:
         """The vehicle's true pose at companion time t_ns (linear between physics steps)."""
@@ -226,7 +233,7 @@ class FirmwareRun:
     lidar_counters: dict
     pose_status: dict
     true_t_s: np.ndarray  # the vehicle's true flight, companion seconds
-    true_states: np.ndarray  # (N, 12) as JsbsimVehicle.raw_state
+    true_states: np.ndarray  # (N,) of PLANT_STATE_DTYPE, at true_t_s
     faults: dict | None = None  # what the fault injector did (counters), when faults were injected
     result: PayloadResult | None = None  # how the payload program ended (None: it lost power)
 
@@ -379,7 +386,7 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     loop, lidar = app.loop, app.lidar
     status = app.tracker.status() if app.tracker is not None else {}
     true_t = np.array([t for t, _ in sim.history]) + boot_offset_s
-    true_s = np.array([st for _, st in sim.history])
+    true_s = np.array([st for _, st in sim.history], dtype=PLANT_STATE_DTYPE)
     completed = (not (cut or disk_full) and survey["flown"] and vehicle.current_item() == -1
                  and result is not None and result.stop_reason == SURVEY_FLOWN)
     return FirmwareRun(read_samplelog(log_path).samples, duration_s, energy_j, completed, loop.stats,
