@@ -356,8 +356,12 @@ class _RecordSink:
 
     def append(self, records: Any) -> None:
         self.log.append(records)  # first: the log is the record, the stream only a preview
-        self.records += int(np.size(records))
-        self.flagged += int(np.count_nonzero(records["flags"]))
+        if records.ndim == 0:  # the loop hands one record at a time, 500 a second
+            self.records += 1
+            self.flagged += 1 if records["flags"] else 0
+        else:
+            self.records += int(records.size)
+            self.flagged += int(np.count_nonzero(records["flags"]))
         if self.stream is not None:
             self.stream.append(records)
 
