@@ -129,13 +129,11 @@ class SimI2CBus:
         self.counters["bytes"] += n_bytes
         self.clock.advance_by_ns(n_bytes * BITS_PER_BYTE * 1_000_000_000 // self.bitrate_hz)
 
-    def _plain(self) -> bool:
-        """No fault can touch a transfer now (open bus, no NACKs configured): the fast path."""
-        return not self._closed and self._nack_probability == 0.0 and self.fault_until_ns < 0
-
     def write(self, addr: int, data: bytes) -> None:
-        # 4 writes a sample at 500 Hz: the common case (attached device, no faults) skips the checks.
-        device = self.devices.get(addr) if type(addr) is int and self._plain() else None
+        # 4 writes a sample at 500 Hz: the common case (an attached device, an open bus, no NACKs
+        # configured) skips the checks of _device.
+        device = self.devices.get(addr) if type(addr) is int and not self._closed \
+            and self._nack_probability == 0.0 and self.fault_until_ns < 0 else None
         if device is None:
             device = self._device("write", addr)
         if type(data) is not bytes:
@@ -149,7 +147,7 @@ class SimI2CBus:
 
     def read(self, addr: int, n: int) -> bytes:
         device = self.devices.get(addr) if type(addr) is int and type(n) is int and 0 < n < _WIRE_TABLE - 1 \
-            and self._plain() else None
+            and not self._closed and self._nack_probability == 0.0 and self.fault_until_ns < 0 else None
         if device is None:
             _check_count(n)
             device = self._device("read", addr, n)

@@ -158,6 +158,7 @@ class EmulatedLidarLite:
         self.last_acquisition: Acquisition | None = None
         self.regs = bytearray(0x80)
         self._durations: dict[tuple[int, int, bool, int, int], int] = {}
+        self._range_limits: dict[int, float] = {}
         self._pending: Acquisition | None = None
         self._reset_done_ns: int | None = None
         self._ptr = 0
@@ -237,7 +238,10 @@ class EmulatedLidarLite:
         acq_config = self.regs[ACQ_CONFIG_REG]
         raw = self.range_at(t0)
         true_r = None if raw is None else float(raw)
-        in_range = not self.model_range_limit or (true_r is not None and true_r <= max_range_m(n_max))
+        limit_m = self._range_limits.get(n_max)
+        if limit_m is None:
+            limit_m = self._range_limits[n_max] = max_range_m(n_max)
+        in_range = not self.model_range_limit or (true_r is not None and true_r <= limit_m)
         if true_r is not None and math.isfinite(true_r) and true_r > 0.0 and in_range:
             counts = math.ceil(SATURATION_COUNTS_PER_M2 * true_r * true_r)
             if not acq_config & 0x08:  # quick termination enabled
@@ -271,7 +275,8 @@ class EmulatedLidarLite:
 
     def on_write(self, data: bytes) -> None:
         """A write transfer: [register address (bit 7 = auto-increment), data...]."""
-        self._advance()
+        if self._pending is not None or self._reset_done_ns is not None:
+            self._advance()
         if not data:
             return  # address-only probe
         self._ptr, self._auto = data[0] & 0x7F, bool(data[0] & AUTO_INCREMENT)
@@ -299,7 +304,8 @@ class EmulatedLidarLite:
 
     def on_read(self, n: int) -> bytes:
         """A read transfer: n bytes from the register pointer."""
-        self._advance()
+        if self._pending is not None or self._reset_done_ns is not None:
+            self._advance()
         if self._garbage_reads > 0.0 and self.rng.random() < self._garbage_reads:
             self.counters["garbage_reads"] += 1
             return bytes(self.rng.integers(0, 256, size=n, dtype=np.uint8).tolist())

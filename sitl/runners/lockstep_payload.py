@@ -114,7 +114,7 @@ class SimWorld:
                  boot_offset_ns: int, lever_arm_body_m, latency_ns=lambda: 0, tlog_path=None, signing=None) -> None:
         self.vehicle, self.world, self.frame, self.clock = vehicle, world, frame, clock
         self.boot_offset_ns = boot_offset_ns  # companion time = vehicle time + offset
-        self.lever = np.asarray(lever_arm_body_m, dtype=float)
+        self.lever = tuple(float(v) for v in lever_arm_body_m)  # plain floats: read at every sample
         self._down = DelayedPipe(clock.now_ns, latency_ns)
         self.server = MavlinkVehicleServer(vehicle, _ServerSide(self), tlog_path=tlog_path, signing=signing)
         self._up = DelayedPipe(self._vehicle_now_companion_ns, latency_ns)
