@@ -1,9 +1,11 @@
 """The payload program on the companion computer, assembled: what `pilescan-payload` runs.
 
-`PayloadApp` opens the hardware named by URLs (MAVLink link, I2C bus, PWM output: DESIGN section 7),
-builds the same parts the SITL's lockstep runner builds (`sitl.runners.lockstep_payload.fly_firmware`), on the
-real monotonic clock: pose tracker, LIDAR-Lite driver, sweeping servo, sample log and the 500 Hz
-`PayloadLoop`; then runs the loop until told to stop.
+`PayloadApp` is the one composition root: it opens the hardware named by URLs (MAVLink link, I2C bus,
+PWM output: DESIGN section 7), or takes already-open parts, and builds the pose tracker, LIDAR-Lite
+driver, sweeping servo, sample log and the 500 Hz `PayloadLoop` on the real monotonic clock, or on
+an injected one; then runs the loop until told to stop. The SITL's lockstep runner
+(`sitl.runners.lockstep_payload.fly_firmware`) runs this same app with its simulated clock, link,
+bus and servo injected, plus its `on_tick` hook and log opener (faults, power cut).
 
 Around the loop, through its `should_stop` hook (called every tick, so each check is cheap):
 
@@ -35,10 +37,10 @@ from __future__ import annotations
 import math
 import os
 import sys
-from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, BinaryIO, TextIO
 
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -68,7 +70,7 @@ from firmware_py.hal.clock import MonotonicClock
 from firmware_py.hal.mavlink_link import mavutil_device, open_mavlink
 from firmware_py.hal.pwm import check_pwm_url, open_pwm
 from firmware_py.hal.signing import SigningConfig
-from firmware_py.health import HealthMonitor, HealthSnapshot
+from firmware_py.health import HealthMonitor, HealthSnapshot, HealthStatus
 from firmware_py.live_stream import LiveStreamSender
 from firmware_py.payload import LoopConfig, LoopStats, PayloadLoop
 from firmware_py.pose import set_gps_global_origin_msg
@@ -127,6 +129,11 @@ class PayloadConfig:
         health_period_s: NAMED_VALUE_FLOAT period, s.
         status_period_s: progress line period on stderr, s.
         quiet: no progress or summary lines (warnings and errors still print) [--quiet].
+        wait_for_pose_s: before the first sample, wait up to this long for a trusted pose (time sync
+            converged and a fresh pose from the autopilot), pumping the link, so the log does not open
+            with samples that cannot be posed; 0 = start sampling at once. The lockstep SITL waits.
+        source, mission: the header's provenance and what was flown (the SITL writes its mission
+            plan there; the drone's program does not know it).
     """
 
     out_path: str | os.PathLike[str] = "samples.pslog"
@@ -164,6 +171,9 @@ class PayloadConfig:
     health_period_s: float = 1.0
     status_period_s: float = 5.0
     quiet: bool = False
+    wait_for_pose_s: float = 0.0
+    source: str = "payload"
+    mission: Mapping[str, Any] | None = None
 
     def busy_deadline_ns(self) -> int:
         """The LiDAR's busy deadline at this rate (a stuck part must not stop the loop keeping it)."""
@@ -212,6 +222,10 @@ class PayloadConfig:
         n = self.records_per_block
         if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 100_000:
             raise ValueError(f"records per block must be 1-100000, got {n!r}")
+        if not (_finite(self.wait_for_pose_s) and 0.0 <= self.wait_for_pose_s <= 3600.0):
+            raise ValueError(f"pose wait must be 0-3600 s, got {self.wait_for_pose_s!r}")
+        if not isinstance(self.source, str) or not self.source.strip():
+            raise ValueError(f"log source must be a non-empty string, got {self.source!r}")
         for name in ("health_period_s", "status_period_s"):
             v = getattr(self, name)
             if not (_finite(v) and 0.05 <= v <= 3600.0):
@@ -247,14 +261,57 @@ class PayloadConfig:
         """
         drive = {} if sweep_t0_s is None else {"servo_drive": {"t0_s": float(sweep_t0_s), "frame_s": PWM_FRAME_S}}
         return build_log_header(
-            source="payload", sensor=self.sensor(), lever_arm_body_m=[float(v) for v in self.lever_arm_body_m],
+            source=self.source, sensor=self.sensor(), lever_arm_body_m=[float(v) for v in self.lever_arm_body_m],
             waveform_name=self.waveform, waveform=self.servo_waveform(), initial_position=self.initial_position,
-            storage=self.storage, frame=self.frame, mission_id=self.mission_id,
+            storage=self.storage, frame=self.frame, mission_id=self.mission_id, mission=self.mission,
             extra={"servo_calibration": asdict(self.servo),
                    "payload": {"mavlink": self.mavlink_url, "i2c": self.i2c_url, "pwm": self.pwm_url,
                                "lidar_preset": self.preset, "i2c_address": self.i2c_address,
                                "rate_hz": self.rate_hz, "records_per_block": self.records_per_block},
                    **drive})
+
+
+@dataclass(frozen=True)
+class LinkCounters:
+    """The MAVLink link's counters at the end of a run (`MavlinkLink.stats`, by name)."""
+
+    rx_bytes: int = 0
+    rx_messages: int = 0
+    rx_bad_bytes: int = 0
+    rx_bad_frames: int = 0
+    rx_seq_lost: int = 0
+    tx_messages: int = 0
+    tx_errors: int = 0
+    io_errors: int = 0
+    rx_signed: int = 0
+    rx_unsigned: int = 0
+    rx_bad_signature: int = 0
+    rx_replayed: int = 0
+    rx_unsigned_accepted: int = 0
+
+    @classmethod
+    def of(cls, stats: Mapping[str, int]) -> LinkCounters:
+        """From a link's stats; a counter the link does not keep reads 0."""
+        return cls(**{f.name: int(stats.get(f.name, 0)) for f in fields(cls)})
+
+    @property
+    def refused(self) -> int:
+        """Frames refused for want of a valid signature: unsigned, forged or replayed."""
+        return self.rx_unsigned + self.rx_bad_signature + self.rx_replayed
+
+
+@dataclass(frozen=True)
+class StreamCounters:
+    """What the live stream sent (`LiveStreamSender.stats`)."""
+
+    datagrams: int = 0
+    records: int = 0
+    send_errors: int = 0
+    records_dropped: int = 0
+
+    @classmethod
+    def of(cls, stats: Mapping[str, int]) -> StreamCounters:
+        return cls(**{f.name: int(stats.get(f.name, 0)) for f in fields(cls)})
 
 
 @dataclass(frozen=True)
@@ -269,9 +326,9 @@ class PayloadResult:
     records_flagged: int
     loop: LoopStats | None
     lidar_counters: dict[str, int]
-    stream: dict[str, int] | None
-    health: dict[str, Any]
-    link: dict[str, Any]
+    stream: StreamCounters | None
+    health: HealthStatus | None
+    link: LinkCounters
     pose_status: str
     close_errors: tuple[str, ...] = ()
     signing_active: bool = False
@@ -287,8 +344,12 @@ class _RecordSink:
 
     def append(self, records: Any) -> None:
         self.log.append(records)  # first: the log is the record, the stream only a preview
-        self.records += int(np.size(records))
-        self.flagged += int(np.count_nonzero(records["flags"]))
+        if records.ndim == 0:  # the loop hands one record at a time, 500 a second
+            self.records += 1
+            self.flagged += 1 if records["flags"] else 0
+        else:
+            self.records += int(records.size)
+            self.flagged += int(np.count_nonzero(records["flags"]))
         if self.stream is not None:
             self.stream.append(records)
 
@@ -311,14 +372,20 @@ class PayloadApp:
             takes ownership and closes them at the end.
         err: where progress, warnings and the summary go (None: nowhere).
         prog: the name prefixed to those lines.
+        open_log: opens the sample log file, `open(path, mode)` by default (the SITL's disk faults and
+            power cut give their own file).
+        on_tick: the host's hook, called with the clock's time at every tick before the stop checks
+            (the SITL's fault schedule and mission); what it raises ends the run like any error.
     """
 
     def __init__(self, cfg: PayloadConfig, *, clock: Clock | None = None, link: MavlinkLink | None = None,
                  bus: I2CBus | None = None, pwm: PwmOutput | None = None, err: TextIO | None = sys.stderr,
-                 prog: str = PROG) -> None:
+                 prog: str = PROG, open_log: Callable[[Path, str], BinaryIO] = open,
+                 on_tick: Callable[[int], None] | None = None) -> None:
         self.cfg = cfg
         self.clock = clock or MonotonicClock()
         self.link, self.bus, self.pwm = link, bus, pwm
+        self._open_log, self._on_tick = open_log, on_tick
         self.err, self.prog = err, prog
         self.lidar: LidarLite | None = None
         self.tracker: PoseTracker | None = None
@@ -407,10 +474,10 @@ class PayloadApp:
                               lambda: LidarLite(self.bus, self.clock, lidar_cfg))
         if self.pwm is None:
             self.pwm = _opening("PWM output", cfg.pwm_url, lambda: open_pwm(
-                cfg.pwm_url, i2c_opener=open_i2c, link=self.link, mav=getattr(self.link, "mav", None),
+                cfg.pwm_url, i2c_opener=open_i2c, link=self.link, mav=self.link.mav,
                 key=cfg.device_key))
         if cfg.stream_url is not None:
-            signer = getattr(self.link, "signer", None)
+            signer = self.link.signer
             self.stream = LiveStreamSender(
                 cfg.stream_url, cfg.stream_records_per_datagram, key=cfg.signing.key if cfg.signing else None,
                 stamp_source=signer.now if signer is not None else None)
@@ -419,15 +486,33 @@ class PayloadApp:
                                    max_pose_age_ns=round(cfg.max_pose_age_s * 1e9))
         self._send_origin(self.clock.now_ns())
         self.tracker.start()
+        self._wait_for_pose()
         t0_ns = self.clock.now_ns()  # the sweep's time origin, written in the header before the first sample
         self.log = SampleLogWriter(out, cfg.log_header(sweep_t0_s=t0_ns * 1e-9),
-                                   records_per_block=cfg.records_per_block, fsync=cfg.fsync, overwrite=cfg.force)
+                                   records_per_block=cfg.records_per_block, fsync=cfg.fsync, overwrite=cfg.force,
+                                   opener=self._open_log)
         self.sink = _RecordSink(self.log, self.stream)
         servo = SweepServo(self.pwm, cfg.servo_waveform(), cfg.servo)
         self.loop = PayloadLoop(self.lidar, servo, self.tracker, self.clock, self.sink, cfg.loop_config(), t0_ns=t0_ns)
         self.health = HealthMonitor(self.loop.t0_ns, cfg.health_period_s)
         self._next_status_ns = self.loop.t0_ns + round(cfg.status_period_s * 1e9)
         self._status_prev = (self.loop.t0_ns, 0)
+
+    def _wait_for_pose(self) -> None:
+        """Pump the link until the pose is trusted, the wait runs out or a stop is asked for."""
+        if self.cfg.wait_for_pose_s <= 0:
+            return
+        end_ns = self.clock.now_ns() + round(self.cfg.wait_for_pose_s * 1e9)
+        period_ns = round(1e9 / self.cfg.rate_hz)
+        while self._stop_reason is None and not self.tracker.status()["pose_ok"]:
+            now = self.clock.now_ns()
+            if now >= end_ns:
+                self._warn(f"no trusted pose after {self.cfg.wait_for_pose_s:g} s; sampling anyway")
+                return
+            if self._origin_sent and now >= self._next_origin_ns:
+                self._send_origin(now)
+            self.clock.sleep_until_ns(now + period_ns)
+            self.tracker.pump()
 
     @property
     def bridge_authenticated(self) -> bool:
@@ -437,12 +522,12 @@ class PayloadApp:
     @property
     def signing_active(self) -> bool:
         """Whether the MAVLink link signs and checks (it was opened with a key)."""
-        return bool(getattr(self.link, "signing_active", False))
+        return self.link is not None and self.link.signing_active
 
     def _signing_note(self) -> str:
         if not self.signing_active:
             return ""
-        signer = getattr(self.link, "signer", None)
+        signer = self.link.signer
         cfg = signer.config if signer is not None else self.cfg.signing
         if cfg is None:
             return "; MAVLink signing on"
@@ -454,8 +539,7 @@ class PayloadApp:
 
     def auth_rejects(self) -> int:
         """Frames the link refused: unsigned, forged or replayed (0 without signing)."""
-        stats = getattr(self.link, "stats", {})
-        return sum(int(stats.get(k, 0)) for k in ("rx_unsigned", "rx_bad_signature", "rx_replayed"))
+        return LinkCounters.of(self.link.stats).refused
 
     # ----- every tick (PayloadLoop's should_stop) -------------------------------------------------
 
@@ -463,6 +547,8 @@ class PayloadApp:
         if self._stop_reason is not None:
             return True
         now = self.clock.now_ns()
+        if self._on_tick is not None:
+            self._on_tick(now)
         if self.health.due(now):
             self._send_health(self.health.update(self.snapshot(now)))
             if self.stream is not None:
@@ -564,8 +650,9 @@ class PayloadApp:
             readings=loop.stats.ticks if loop else 0, records_logged=self.sink.records if self.sink else 0,
             records_flagged=self.sink.flagged if self.sink else 0, loop=loop.stats if loop else None,
             lidar_counters=self.lidar.counters().as_dict() if self.lidar else {},
-            stream=dict(self.stream.stats) if self.stream else None,
-            health=self.health.status().as_dict() if self.health else {}, link=dict(st.link) if st else {},
+            stream=StreamCounters.of(self.stream.stats) if self.stream else None,
+            health=self.health.status() if self.health else None,
+            link=LinkCounters.of(self.link.stats) if self.link is not None else LinkCounters(),
             pose_status=st.pose_status if st else "", close_errors=tuple(self._close_errors),
             signing_active=self.signing_active)
         self._say(f"stopped ({res.stop_reason}) after {elapsed_s:.1f} s: {res.records_logged} samples "

@@ -8,7 +8,11 @@ drivers above never know which they run on.
 from __future__ import annotations
 
 import math
-from typing import Any, Protocol
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any, Protocol
+
+if TYPE_CHECKING:  # only annotated here: the HAL protocols import no implementation
+    from firmware_py.hal.signing import MavlinkSigner
 
 
 class I2CError(OSError):
@@ -76,7 +80,25 @@ class Clock(Protocol):
 
 
 class MavlinkLink(Protocol):
-    """A MAVLink 2 connection to the autopilot (pymavlink message objects in and out)."""
+    """A MAVLink 2 connection to the autopilot (pymavlink message objects in and out).
+
+    Besides send/recv, what the payload program reads of a link (so it never probes with getattr):
+    its encoder `mav` (source ids and sequence; the MAVLink servo output builds its commands with
+    it), its signing state `signer` (None when unsigned) and `signing_active`, and its counters
+    `stats` (rx_/tx_ message, error and, when signed, refused-frame counts by name).
+    """
+
+    mav: Any
+    """The pymavlink `MAVLink` encoder of our end."""
+
+    signer: MavlinkSigner | None
+    """The link's signing state (`firmware_py.hal.signing.MavlinkSigner`), None when unsigned."""
+
+    stats: Mapping[str, int]
+
+    @property
+    def signing_active(self) -> bool:
+        """Whether we sign what we send and check what we receive."""
 
     def send(self, msg: Any) -> None: ...
 

@@ -81,6 +81,8 @@ POWER_CONTROL = 0x65
 AUTO_INCREMENT = 0x80
 _BUSY, _HEALTH, _INVALID_SIGNAL = int(StatusFlag.BUSY), int(StatusFlag.HEALTH), int(StatusFlag.INVALID_SIGNAL)
 
+_BYTE = [bytes((v,)) for v in range(256)]
+
 POWER_ON: dict[int, int] = {
     STATUS: int(StatusFlag.HEALTH), SIG_COUNT_VAL: 0x80, ACQ_CONFIG_REG: 0x08, OUTER_LOOP_COUNT: 0x01,
     REF_COUNT_VAL: 0x05, THRESHOLD_BYPASS: 0x00, I2C_CONFIG: 0x00, MEASURE_DELAY: 0x14, POWER_CONTROL: 0x80,
@@ -155,6 +157,8 @@ class EmulatedLidarLite:
              "garbage_reads", "ignored_writes"), 0)
         self.last_acquisition: Acquisition | None = None
         self.regs = bytearray(0x80)
+        self._durations: dict[tuple[int, int, bool, int, int], int] = {}
+        self._range_limits: dict[int, float] = {}
         self._pending: Acquisition | None = None
         self._reset_done_ns: int | None = None
         self._ptr = 0
@@ -200,6 +204,8 @@ class EmulatedLidarLite:
 
     def _advance(self) -> None:
         """Finish whatever has finished by now (lazily, at each bus access)."""
+        if self._reset_done_ns is None and self._pending is None:
+            return  # idle: nothing can finish
         now = self.clock.now_ns()
         if self._reset_done_ns is not None and now >= self._reset_done_ns:
             self._load_power_on()
@@ -232,7 +238,10 @@ class EmulatedLidarLite:
         acq_config = self.regs[ACQ_CONFIG_REG]
         raw = self.range_at(t0)
         true_r = None if raw is None else float(raw)
-        in_range = not self.model_range_limit or (true_r is not None and true_r <= max_range_m(n_max))
+        limit_m = self._range_limits.get(n_max)
+        if limit_m is None:
+            limit_m = self._range_limits[n_max] = max_range_m(n_max)
+        in_range = not self.model_range_limit or (true_r is not None and true_r <= limit_m)
         if true_r is not None and math.isfinite(true_r) and true_r > 0.0 and in_range:
             counts = math.ceil(SATURATION_COUNTS_PER_M2 * true_r * true_r)
             if not acq_config & 0x08:  # quick termination enabled
@@ -246,8 +255,11 @@ class EmulatedLidarLite:
         else:
             counts, cm = n_max, 1
             status = _HEALTH | _INVALID_SIGNAL
-        duration = acquisition_time_ns(n_max, acq_config, bias=bias, ref_count_val=self.regs[REF_COUNT_VAL],
-                                       signal_counts=counts)
+        key = (n_max, acq_config, bias, self.regs[REF_COUNT_VAL], counts)
+        duration = self._durations.get(key)
+        if duration is None:  # a handful of distinct settings per run: model each once
+            duration = self._durations[key] = acquisition_time_ns(
+                n_max, acq_config, bias=bias, ref_count_val=key[3], signal_counts=counts)
         acq = Acquisition(t0, t0 + duration, true_r, cm, status, counts, bias)
         self._pending = self.last_acquisition = acq
         self.counters["acquisitions"] += 1
@@ -263,12 +275,15 @@ class EmulatedLidarLite:
 
     def on_write(self, data: bytes) -> None:
         """A write transfer: [register address (bit 7 = auto-increment), data...]."""
-        self._advance()
+        if self._pending is not None or self._reset_done_ns is not None:
+            self._advance()
         if not data:
             return  # address-only probe
         self._ptr, self._auto = data[0] & 0x7F, bool(data[0] & AUTO_INCREMENT)
+        if len(data) == 1:
+            return  # the register pointer only: what most transfers are
         values = data[1:]
-        if values and self._reset_done_ns is not None:
+        if self._reset_done_ns is not None:
             self.counters["ignored_writes"] += len(values)  # reloading: the write is lost
             return
         for i, value in enumerate(values):
@@ -289,11 +304,14 @@ class EmulatedLidarLite:
 
     def on_read(self, n: int) -> bytes:
         """A read transfer: n bytes from the register pointer."""
-        self._advance()
+        if self._pending is not None or self._reset_done_ns is not None:
+            self._advance()
         if self._garbage_reads > 0.0 and self.rng.random() < self._garbage_reads:
             self.counters["garbage_reads"] += 1
             return bytes(self.rng.integers(0, 256, size=n, dtype=np.uint8).tolist())
-        return bytes(self._read_reg((self._ptr + i) & 0x7F if self._auto else self._ptr) for i in range(n))
+        if n == 1:
+            return _BYTE[self._read_reg(self._ptr)]
+        return bytes([self._read_reg((self._ptr + i) & 0x7F if self._auto else self._ptr) for i in range(n)])
 
     def _read_reg(self, reg: int) -> int:
         if reg == STATUS:

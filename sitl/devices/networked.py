@@ -36,7 +36,7 @@ from sitl.faults.injector import FaultInjector, FaultSpec
 from sitl.faults.params import FaultParams, LiveFaultInjector
 from sitl.mavlink.server import MavlinkVehicleServer
 from sitl.mavlink.transport import Transport
-from sitl.runners.lockstep_payload import TruePose, beam_range_m, pose_from_history, state_tuple
+from sitl.runners.lockstep_payload import TruePose, beam_range_m, plant_state_of, pose_from_history
 from sitl.vehicle.api import FlightMode, Vehicle
 from sitl.world.raycast import World
 
@@ -134,7 +134,7 @@ class NetworkedDevices:
     def record(self) -> None:
         """Keep the vehicle's true state after a physics step."""
         with self.lock:
-            self._hist.append((self.vehicle.state().t_s, state_tuple(self.vehicle)))
+            self._hist.append((self.vehicle.state().t_s, plant_state_of(self.vehicle)))
 
     def pose_at(self, t_ns: int) -> TruePose:
         with self.lock:

@@ -305,11 +305,11 @@ def wrongly_tagged(records: np.ndarray, true_t_s: np.ndarray, true_states: np.nd
     ok = (records["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0
     r = records[ok]
     t = r["t_s"].astype(float)
-    truth = np.column_stack([np.interp(t, true_t_s, true_states[:, k]) for k in range(3)])
+    truth = np.column_stack([np.interp(t, true_t_s, true_states[k]) for k in ("north_m", "east_m", "down_m")])
     pos_err = np.linalg.norm(np.column_stack([r["x_m"], r["y_m"], r["z_m"]]) - truth, axis=1)
     att_err = np.zeros(len(r))
-    for k, name in ((6, "roll_rad"), (7, "pitch_rad"), (8, "yaw_rad")):
-        true_a = np.interp(t, true_t_s, np.unwrap(true_states[:, k]))
+    for name in ("roll_rad", "pitch_rad", "yaw_rad"):
+        true_a = np.interp(t, true_t_s, np.unwrap(true_states[name]))
         d = (r[name].astype(float) - true_a + np.pi) % (2 * np.pi) - np.pi
         att_err = np.maximum(att_err, np.abs(d))
     bad = np.zeros(len(records), dtype=bool)

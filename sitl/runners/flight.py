@@ -22,7 +22,7 @@ from firmware_py.core.frames import StorageFrame
 from sitl.mavlink.server import MavlinkVehicleServer
 from sitl.mavlink.transport import PipeTransport
 from sitl.missions.rectangle import Mission
-from sitl.vehicle.api import FlightMode, NavItem, NavKind
+from sitl.vehicle.api import PLANT_STATE_DTYPE, FlightMode, NavItem, NavKind
 from sitl.vehicle.ideal_plant import Trajectory, wrap_pi
 from sitl.vehicle.jsbsim_plant import PlantConfig
 from sitl.vehicle.jsbsim_vehicle import JsbsimVehicle, VehicleConfig
@@ -36,7 +36,7 @@ class FlownMission:
     """What the vehicle did: states at each physics step, energy, and whether it finished."""
 
     t_s: np.ndarray
-    states: np.ndarray  # (N, 12): n, e, d, vn, ve, vd, roll, pitch, yaw, p, q, r
+    states: np.ndarray  # (N,) of PLANT_STATE_DTYPE: the PlantState at each physics step
     energy_j: float
     duration_s: float
     completed: bool
@@ -46,9 +46,10 @@ class FlownMission:
         """States interpolated at times t_s (linear in position, unwrapped-linear in the angles)."""
         t = np.clip(t_s, self.t_s[0], self.t_s[-1])
         interp = lambda col: np.interp(t, self.t_s, col)  # noqa: E731
-        pos = np.column_stack([interp(self.states[:, i]) for i in range(3)])
-        roll, pitch = interp(self.states[:, 6]), interp(self.states[:, 7])
-        yaw = wrap_pi(interp(np.unwrap(self.states[:, 8])))
+        s = self.states
+        pos = np.column_stack([interp(s["north_m"]), interp(s["east_m"]), interp(s["down_m"])])
+        roll, pitch = interp(s["roll_rad"]), interp(s["pitch_rad"])
+        yaw = wrap_pi(interp(np.unwrap(s["yaw_rad"])))
         return Trajectory(np.asarray(t_s, dtype=float), pos, roll, pitch, yaw)
 
 
@@ -116,13 +117,13 @@ def _fly(v: JsbsimVehicle, mission: Mission, frame: StorageFrame, dt_s: float, t
         timeout_s = 3 * ideal_s + 60
     n_max = int(timeout_s / dt_s) + 1
     t = np.empty(n_max + 1)
-    states = np.empty((n_max + 1, 12))
-    t[0], states[0] = 0.0, v.raw_state
+    states = np.empty(n_max + 1, dtype=PLANT_STATE_DTYPE)
+    t[0], states[0] = 0.0, v.plant_state
     k = 0
     while k < n_max and v.mode == FlightMode.AUTO:
         v.step()
         tick()
         k += 1
-        t[k], states[k] = v.plant.t_s - t0, v.raw_state
+        t[k], states[k] = v.plant.t_s - t0, v.plant_state
     return FlownMission(t[: k + 1], states[: k + 1], v.plant.energy_j - e0, float(t[k]),
                         v.mode != FlightMode.AUTO and v.current_item() == -1, v.pop_reached())

@@ -16,14 +16,20 @@ from __future__ import annotations
 import collections
 import math
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
+from typing import BinaryIO, NamedTuple
 
 import numpy as np
 
+from firmware_py.app import PayloadApp, PayloadConfig, PayloadResult
 from firmware_py.core.frames import StorageFrame, beam_ray_w
+from firmware_py.core.servo_model import ServoCalibration
+from firmware_py.hal import PwmOutput
 from firmware_py.hal.clock import SimClock
+from firmware_py.hal.pwm import register_pwm_backend
+from firmware_py.payload import LoopStats
 from sitl.mavlink.server import MavlinkVehicleServer
-from sitl.vehicle.api import Vehicle
+from sitl.vehicle.api import PLANT_STATE_DTYPE, PlantState, Vehicle
 from sitl.vehicle.autopilot import wrap_pi
 from sitl.vehicle.jsbsim_vehicle import JsbsimVehicle
 from sitl.world.raycast import World
@@ -51,42 +57,46 @@ class DelayedPipe:
             self._q.append((due, bytes(data)))
 
     def recv(self) -> bytes:
+        q = self._q
+        if not q:
+            return b""  # the payload polls every tick; most ticks nothing is due
         now = self._clock_ns()
+        if q[0][0] > now:
+            return b""
         out = bytearray()
-        while self._q and self._q[0][0] <= now:
-            out += self._q.popleft()[1]
+        while q and q[0][0] <= now:
+            out += q.popleft()[1]
         return bytes(out)
 
 
-@dataclass(frozen=True)
-class TruePose:
+class TruePose(NamedTuple):
+    """The vehicle's true pose at one instant (what the LiDAR emulator ray traces from)."""
+
     pos_ned_m: tuple[float, float, float]
     roll_rad: float
     pitch_rad: float
     yaw_rad: float
 
 
-def state_tuple(vehicle) -> tuple[float, ...]:
-    """(n, e, d, vn, ve, vd, roll, pitch, yaw, ...) of any Vehicle, as pose_from_history reads it."""
-    raw = getattr(vehicle, "raw_state", None)
-    if raw is not None:
-        return tuple(raw)
-    s = vehicle.state()
-    return (*s.pos_ned_m, *s.vel_ned_m_s, s.roll_rad, s.pitch_rad, s.yaw_rad)
+def plant_state_of(vehicle: Vehicle) -> PlantState:
+    """The rigid-body state of any Vehicle: the plant's own report when it has one (JSBSim)."""
+    s = getattr(vehicle, "plant_state", None)
+    return s if s is not None else PlantState.of(vehicle.state())
 
 
 def pose_from_history(hist, ts: float) -> TruePose:
-    """The true pose at vehicle time ts from a time-ordered sequence of (t_s, raw_state) physics
+    """The true pose at vehicle time ts from a time-ordered sequence of (t_s, PlantState) physics
     steps, linear between the two that bracket it (clamped at the ends)."""
     i = len(hist) - 1
     while i > 0 and hist[i - 1][0] > ts:
         i -= 1
     (t0, s0), (t1, s1) = hist[max(i - 1, 0)], hist[i]
     w = 0.0 if t1 <= t0 else min(1.0, max(0.0, (ts - t0) / (t1 - t0)))
-    lerp = lambda a, b: a + (b - a) * w  # noqa: E731
-    pos = (lerp(s0[0], s1[0]), lerp(s0[1], s1[1]), lerp(s0[2], s1[2]))
-    yaw = s0[8] + wrap_pi(s1[8] - s0[8]) * w
-    return TruePose(pos, lerp(s0[6], s1[6]), lerp(s0[7], s1[7]), wrap_pi(yaw))
+    pos = (s0.north_m + (s1.north_m - s0.north_m) * w, s0.east_m + (s1.east_m - s0.east_m) * w,
+           s0.down_m + (s1.down_m - s0.down_m) * w)
+    yaw = s0.yaw_rad + wrap_pi(s1.yaw_rad - s0.yaw_rad) * w
+    return TruePose(pos, s0.roll_rad + (s1.roll_rad - s0.roll_rad) * w,
+                    s0.pitch_rad + (s1.pitch_rad - s0.pitch_rad) * w, wrap_pi(yaw))
 
 
 def beam_range_m(world: World, frame: StorageFrame, lever_arm_body_m, pose: TruePose, servo_rad: float) -> float | None:
@@ -104,14 +114,15 @@ class SimWorld:
                  boot_offset_ns: int, lever_arm_body_m, latency_ns=lambda: 0, tlog_path=None, signing=None) -> None:
         self.vehicle, self.world, self.frame, self.clock = vehicle, world, frame, clock
         self.boot_offset_ns = boot_offset_ns  # companion time = vehicle time + offset
-        self.lever = np.asarray(lever_arm_body_m, dtype=float)
+        self.lever = tuple(float(v) for v in lever_arm_body_m)  # plain floats: read at every sample
         self._down = DelayedPipe(clock.now_ns, latency_ns)
         self.server = MavlinkVehicleServer(vehicle, _ServerSide(self), tlog_path=tlog_path, signing=signing)
         self._up = DelayedPipe(self._vehicle_now_companion_ns, latency_ns)
         self._down_send_at, self._up_send_at = self._down.send_at, self._up.send_at
-        self._hist: collections.deque[tuple[float, tuple[float, ...]]] = collections.deque(maxlen=64)
-        self._hist.append((vehicle.state().t_s, state_tuple(vehicle)))
-        self.history: list[tuple[float, tuple[float, ...]]] = [self._hist[-1]]  # the whole true flight
+        self._hist: collections.deque[tuple[float, PlantState]] = collections.deque(maxlen=64)
+        self._vehicle_t_s = vehicle.state().t_s  # the vehicle steps only here: its clock, kept
+        self._hist.append((self._vehicle_t_s, plant_state_of(vehicle)))
+        self.history: list[tuple[float, PlantState]] = [self._hist[-1]]  # the whole true flight
         self.servo_angle_at = None  # set by the runner: t_ns -> true shaft angle
         clock.set_advance(self.advance_to)
 
@@ -130,7 +141,7 @@ class SimWorld:
         return self._down.recv()
 
     def _vehicle_now_companion_ns(self) -> int:
-        return round(self.vehicle.state().t_s * 1e9) + self.boot_offset_ns
+        return round(self._vehicle_t_s * 1e9) + self.boot_offset_ns
 
     # -- time ------------------------------------------------------------------------------------
     def vehicle_time_ns(self, companion_ns: int) -> int:
@@ -140,12 +151,14 @@ class SimWorld:
         """Step the vehicle until its clock has passed companion time t_ns; return the companion
         time up to which it is now stepped (the clock's horizon: no call needed before it)."""
         target_s = self.vehicle_time_ns(t_ns) * 1e-9
-        while self._hist[-1][0] < target_s:
-            self.vehicle.step()
+        vehicle, hist = self.vehicle, self._hist
+        while hist[-1][0] < target_s:
+            vehicle.step()
+            self._vehicle_t_s = vehicle.state().t_s
             self.server.update()
-            self._hist.append((self.vehicle.state().t_s, state_tuple(self.vehicle)))
-            self.history.append(self._hist[-1])
-        return math.floor(self._hist[-1][0] * 1e9) + self.boot_offset_ns
+            hist.append((self._vehicle_t_s, plant_state_of(vehicle)))
+            self.history.append(hist[-1])
+        return math.floor(hist[-1][0] * 1e9) + self.boot_offset_ns
 
     def pose_at(self, t_ns: int) -> TruePose:
         """The vehicle's true pose at companion time t_ns (linear between physics steps)."""
@@ -175,8 +188,37 @@ class _ServerSide:
         pass
 
 
-class _PowerCut(Exception):
-    """Raised from the loop's hook: the payload loses power mid-flight."""
+class _PowerCut(BaseException):
+    """Raised from the app's tick hook: the payload loses power mid-flight. A BaseException, so no
+    handler in the program mistakes it for an error it can recover from."""
+
+
+class _Power:
+    """The payload computer's supply: once cut, nothing it does reaches the world any more (its log
+    file takes no more bytes, its link sends nothing), whatever its shutdown code still tries."""
+
+    def __init__(self) -> None:
+        self.on = True
+
+    def opener(self, inner: Callable[[str, str], BinaryIO]) -> Callable[[str, str], BinaryIO]:
+        return lambda path, mode: _PoweredFile(inner(path, mode), self)
+
+
+class _PoweredFile:
+    """A file whose writes stop reaching the disk when the power goes (what was written stays)."""
+
+    def __init__(self, f: BinaryIO, power: _Power) -> None:
+        self._f, self._power = f, power
+
+    def write(self, data) -> int:
+        return self._f.write(data) if self._power.on else len(data)
+
+    def flush(self) -> None:
+        if self._power.on:
+            self._f.flush()
+
+    def __getattr__(self, name: str):
+        return getattr(self._f, name)
 
 
 @dataclass(frozen=True)
@@ -187,33 +229,65 @@ class FirmwareRun:
     duration_s: float
     energy_j: float
     completed: bool
-    loop: object  # LoopStats
+    loop: LoopStats
     lidar_counters: dict
     pose_status: dict
     true_t_s: np.ndarray  # the vehicle's true flight, companion seconds
-    true_states: np.ndarray  # (N, 12) as JsbsimVehicle.raw_state
+    true_states: np.ndarray  # (N,) of PLANT_STATE_DTYPE, at true_t_s
     faults: dict | None = None  # what the fault injector did (counters), when faults were injected
+    result: PayloadResult | None = None  # how the payload program ended (None: it lost power)
+
+
+SITL_MAVLINK_URL = "sitl:lockstep"
+SITL_I2C_URL = "sitl:lockstep"
+SITL_PWM_URL = "pwm:sitl"
+"""What the lockstep run's header names as the payload's hardware: the parts are injected, not opened."""
+SITL_EKF_ORIGIN = (53.4668, -2.2339, 50.0)
+"""The EKF origin the payload sends (SET_GPS_GLOBAL_ORIGIN): the simulated autopilot's home."""
+POSE_WAIT_S = 30.0
+SURVEY_FLOWN = "survey flown"
+STOP_MESSAGE_WAIT_S = 0.5
+"""Simulated time after the payload stops for its last messages to cross the link (latency, faults)."""
+
+
+def _not_opened(url: str) -> PwmOutput:
+    raise ValueError(f"{url}: the lockstep SITL injects its servo; nothing to open")
+
+
+register_pwm_backend("sitl", _not_opened)
+
+
+def payload_config(cfg, log_path, header: dict, timeout_s: float) -> PayloadConfig:
+    """The payload program's configuration for a lockstep flight of `cfg` (a FlyConfig), with the
+    SITL's header provenance (source, mission) so the ground station reads the same log header."""
+    return PayloadConfig(
+        out_path=log_path, force=True, mavlink_url=SITL_MAVLINK_URL, i2c_url=SITL_I2C_URL, pwm_url=SITL_PWM_URL,
+        rate_hz=cfg.lidar.rate_hz, waveform=cfg.waveform, servo_peak_rate_rad_s=cfg.servo_peak_rate_rad_s,
+        initial_position=cfg.initial_position, servo=ServoCalibration(), storage=cfg.mission.storage,
+        frame=cfg.frame, lever_arm_body_m=tuple(cfg.lever_arm_body_m), range_sigma_m=cfg.lidar.range_sigma_m,
+        range_sigma_rel=cfg.lidar.range_sigma_rel, duration_s=timeout_s, stop_on_disarm=True,
+        send_origin=SITL_EKF_ORIGIN, mission_id=header.get("mission_id"), fsync=False, quiet=True,
+        wait_for_pose_s=POSE_WAIT_S, source=header.get("source", "sitl"), mission=header.get("mission"))
 
 
 def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = (0.0, 0.0),
                  boot_offset_s: float = 1234.5, tlog_path=None, seed: int = 0, faults=None,
                  signing_key: bytes | None = None) -> FirmwareRun:
-    """Fly `cfg` (a sitl.runners.fly.FlyConfig) with the unchanged payload firmware in the loop.
+    """Fly `cfg` (a sitl.runners.fly.FlyConfig) with the payload program (`PayloadApp`) in the loop.
 
-    The vehicle settles on W0, the payload starts, waits for its time sync to converge, the
-    survey flies; the payload logs every sample to log_path until the vehicle is back on W0.
+    The vehicle settles on W0 with the payload off; the payload program starts on the simulated clock,
+    MAVLink link, I2C bus and servo output, waits for a trusted pose, and the survey starts at its first
+    sample. Back on W0 the operator stops the program (`request_stop`, what its SIGTERM handler calls);
+    it also stops on a disarm (`stop_on_disarm`). Its health NAMED_VALUE_FLOATs and STATUSTEXTs reach
+    the autopilot and its .tlog. `header` gives the log's provenance (source, mission); the program
+    writes the rest.
     `faults` (a sitl.faults.injector.FaultSpec) injects link, sensor, servo, autopilot, clock and power
     faults; a power cut ends the run there, leaving the log as the cut leaves it. With
     `signing_key` both ends sign (MAVLink 2) and refuse what is not, each stamping with its own
     simulated wall clock (the companion's can jump: the clock_jump fault).
     """
-    from firmware_py.core.samplelog import SampleLogWriter, read_samplelog
-    from firmware_py.core.servo_model import ServoCalibration
-    from firmware_py.drivers.lidarlite import PRESET_FAST_500HZ, LidarLite, LidarLiteConfig, busy_deadline_ns
-    from firmware_py.drivers.servo import SweepServo
+    from firmware_py.core.samplelog import read_samplelog
     from firmware_py.hal.mavlink_link import ByteStreamLink
-    from firmware_py.payload import LoopConfig, PayloadLoop
-    from firmware_py.pose_tracker import PoseTracker
     from sitl.devices.i2c_sim import SimI2CBus
     from sitl.devices.lidarlite_emu import EmulatedLidarLite
     from sitl.devices.servo_emu import EmulatedServo
@@ -254,9 +328,11 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
             return links[direction].send_at
         sim.wrap_links(wrap)
         inj.reboot = sim.server.reboot
+    # The vehicle settles on W0 with the payload still off: what the autopilot sends meanwhile is lost.
+    clock.sleep_until_ns(clock.now_ns() + round(SETTLE_S * 1e9))
+    sim.payload_recv()
     wf = cfg.servo_waveform()
     cal = ServoCalibration()
-    t0_ns = clock.now_ns()
     plant = EmulatedServo(clock, cal, angle0_rad=float(wf.angle(0.0)))
     sim.servo_angle_at = plant.angle_at
     bus = SimI2CBus(clock)
@@ -264,66 +340,62 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     bus.attach(0x62, part)
     if inj is not None:
         inj.attach(bus, part, plant)
-    lidar = LidarLite(bus, clock, LidarLiteConfig(
-        preset=PRESET_FAST_500HZ, busy_timeout_ns=busy_deadline_ns(PRESET_FAST_500HZ, cfg.lidar.rate_hz)))
-    link = ByteStreamLink(sim.payload_send, sim.payload_recv, signing=payload_signer)
-    tracker = PoseTracker(link, clock)
-    tracker.start()
-    servo = SweepServo(plant, wf, cal)
-    # Let the vehicle settle and the payload's time sync converge before the survey starts.
-    settle_end = t0_ns + round(SETTLE_S * 1e9)
-    while clock.now_ns() < settle_end:
-        clock.sleep_until_ns(clock.now_ns() + 10_000_000)
-        servo.update((clock.now_ns() - t0_ns) * 1e-9)
-        tracker.pump()
-    vehicle.load_mission(mission_nav_items(m, cfg.frame))
-    vehicle.start_mission()
-    if inj is not None:
-        inj.start_survey(clock.now_ns())
-    e0, ts0 = vehicle.plant.energy_j, vehicle.state().t_s
-    log_path = str(log_path)
-    # What the payload app writes too: the servo's calibration and when its sweep started, so the
-    # ground station can re-simulate a servo that does not move as modelled (ground.servo_timing).
-    header = {**header, "servo_calibration": asdict(cal),
-              "servo_drive": {"t0_s": t0_ns * 1e-9, "frame_s": servo.frame_s}}
-    log = SampleLogWriter(log_path, header, records_per_block=500, fsync=False, overwrite=True,
-                          opener=inj.opener(clock.now_ns) if inj is not None and faults.disk_full_at_s is not None
-                          else open)
-    loop = PayloadLoop(lidar, servo, tracker, clock, log, LoopConfig(rate_hz=cfg.lidar.rate_hz), t0_ns=t0_ns)
+    power = _Power()
+    link = ByteStreamLink(lambda data: sim.payload_send(data) if power.on else None, sim.payload_recv,
+                          signing=payload_signer)
+    disk = inj.opener(clock.now_ns) if inj is not None and faults.disk_full_at_s is not None else open
     timeout_s = 3 * (m.path_length_m() / m.speed_m_s + 2 * math.pi / m.yaw_rate_max_rad_s) + 60
+    pcfg = payload_config(cfg, log_path, header, timeout_s)
+    survey: dict = {"t0_s": None, "e0_j": 0.0, "flown": False}
 
-    def should_stop() -> bool:
+    def on_tick(now: int) -> None:
+        """The SITL's side of every payload tick: the survey's start and end, the fault schedule."""
+        if survey["t0_s"] is None:  # the payload samples: fly the survey
+            vehicle.load_mission(mission_nav_items(m, cfg.frame))
+            vehicle.start_mission()
+            survey["t0_s"], survey["e0_j"] = vehicle.state().t_s, vehicle.plant.energy_j
+            if inj is not None:
+                inj.start_survey(now)
+        elif not survey["flown"] and vehicle.mode != FlightMode.AUTO:
+            survey["flown"] = True  # back on W0: the operator stops the payload (its SIGTERM)
+            app.request_stop(SURVEY_FLOWN)
         if inj is not None:
-            now = clock.now_ns()
             inj.tick(now)
             if inj.power_cut_due(now):
+                power.on = False
                 raise _PowerCut
-        return vehicle.mode != FlightMode.AUTO
 
-    cut = disk_full = False
+    app = PayloadApp(pcfg, clock=clock, link=link, bus=bus, pwm=plant, err=None, open_log=power.opener(disk),
+                     on_tick=on_tick)
+    cut = False
+    disk_full: bool | str = False
+    result = None
     try:
-        stats = loop.run(duration_s=SETTLE_S + timeout_s, should_stop=should_stop)
-        log.close()
+        result = app.run()
     except _PowerCut:
-        log.abandon()  # what was written stays; the buffered block is lost, as on the drone
-        stats, cut = loop.stats, True
+        cut = True
     except OSError as exc:  # the disk filled: pilescan-payload stops with this error (exit 1)
         if inj is None or faults.disk_full_at_s is None:
             raise
-        log.abandon()
-        stats, disk_full = loop.stats, str(exc)
+        disk_full = str(exc)
+    ts0 = survey["t0_s"] if survey["t0_s"] is not None else vehicle.state().t_s
+    duration_s, energy_j = vehicle.state().t_s - ts0, vehicle.plant.energy_j - survey["e0_j"]
+    # What the payload sent last (its stop message) reaches the autopilot and its .tlog.
+    clock.sleep_until_ns(clock.now_ns() + round(STOP_MESSAGE_WAIT_S * 1e9))
     sim.server.close()
-    status = tracker.status().as_dict()
+    loop, lidar = app.loop, app.lidar
+    status = app.tracker.status().as_dict() if app.tracker is not None else {}
     true_t = np.array([t for t, _ in sim.history]) + boot_offset_s
-    true_s = np.array([st for _, st in sim.history])
-    return FirmwareRun(read_samplelog(log_path).samples, vehicle.state().t_s - ts0, vehicle.plant.energy_j - e0,
-                       not (cut or disk_full) and vehicle.mode != FlightMode.AUTO and vehicle.current_item() == -1,
-                       stats,
+    true_s = np.array([st for _, st in sim.history], dtype=PLANT_STATE_DTYPE)
+    completed = (not (cut or disk_full) and survey["flown"] and vehicle.current_item() == -1
+                 and result is not None and result.stop_reason == SURVEY_FLOWN)
+    return FirmwareRun(read_samplelog(log_path).samples, duration_s, energy_j, completed, loop.stats,
                        lidar.counters().as_dict(), status, true_t, true_s,
                        None if inj is None else
                        {"link_down": links["down"].counters, "link_up": links["up"].counters, **inj.counters,
-                        "i2c_nacks": bus.counters["nack"], "power_cut": cut, "disk_full": disk_full, "loop": stats,
-                        "pending_at_stop": loop.pending if (cut or disk_full) else 0,
+                        "i2c_nacks": bus.counters["nack"], "power_cut": cut, "disk_full": disk_full,
+                        "loop": loop.stats, "pending_at_stop": loop.pending if (cut or disk_full) else 0,
                         "signing": {"payload": dict(payload_signer.stats), "autopilot": dict(server_signer.stats)}
                         if signing_key is not None else None,
-                        "autopilot_reboots": sim.server.stats.get("reboots", 0)})
+                        "autopilot_reboots": sim.server.stats.get("reboots", 0)},
+                       result)

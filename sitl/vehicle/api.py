@@ -10,7 +10,9 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass
-from typing import Protocol
+from typing import NamedTuple, Protocol
+
+import numpy as np
 
 
 class NavKind(enum.Enum):
@@ -60,6 +62,37 @@ class VehicleState:
     landed: bool
     energy_j: float
     battery_voltage_v: float
+
+
+class PlantState(NamedTuple):
+    """The rigid body at one physics step, as the plant reports it: local NED, m, m/s, rad, rad/s.
+
+    A NamedTuple, not a dataclass: the lockstep SITL keeps one per physics step and reads them at
+    every LiDAR sample, and it is still a tuple for code that unpacks it.
+    """
+
+    north_m: float
+    east_m: float
+    down_m: float
+    vn_m_s: float
+    ve_m_s: float
+    vd_m_s: float
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    rollspeed_rad_s: float
+    pitchspeed_rad_s: float
+    yawspeed_rad_s: float
+
+    @classmethod
+    def of(cls, s: VehicleState) -> PlantState:
+        """The plant state of any vehicle's `VehicleState`."""
+        return cls(*s.pos_ned_m, *s.vel_ned_m_s, s.roll_rad, s.pitch_rad, s.yaw_rad, s.rollspeed_rad_s,
+                   s.pitchspeed_rad_s, s.yawspeed_rad_s)
+
+
+PLANT_STATE_DTYPE = np.dtype([(name, np.float64) for name in PlantState._fields])
+"""A recorded flight: one `PlantState` per physics step, fields by name (`states["yaw_rad"]`)."""
 
 
 class CommandRejected(Exception):

@@ -27,6 +27,8 @@ from pathlib import Path
 
 import jsbsim
 
+from sitl.vehicle.api import PlantState
+
 FT = 0.3048
 LBS_TO_N = 4.4482216
 HP_TO_W = 745.699872
@@ -179,11 +181,11 @@ class JsbsimPlant:
     def power_w(self) -> float:
         return sum(p.get_double_value() for p in self._power) * HP_TO_W
 
-    def read(self) -> tuple[float, ...]:
-        """(n, e, d, vn, ve, vd, roll, pitch, yaw, p, q, r): NED metres, m/s, rad, rad/s."""
+    def read(self) -> PlantState:
+        """The rigid body's state now (NED metres, m/s, rad, rad/s)."""
         g = self._get
         n = (g["lat"]() - self._lat0) * self._r_north()
         e = (g["lon"]() - self._lon0) * self._r_east()
         d = -g["h"]() * FT  # the CG's height above the floor
-        return (n, e, d, g["vn"]() * FT, g["ve"]() * FT, g["vd"]() * FT, g["phi"](), g["theta"](),
-                g["psi"](), g["p"](), g["q"](), g["r"]())
+        return PlantState(n, e, d, g["vn"]() * FT, g["ve"]() * FT, g["vd"]() * FT, g["phi"](), g["theta"](),
+                          g["psi"](), g["p"](), g["q"](), g["r"]())

@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from sitl.vehicle.api import CommandRejected, FlightMode, NavItem, NavKind, VehicleState
+from sitl.vehicle.api import CommandRejected, FlightMode, NavItem, NavKind, PlantState, VehicleState
 from sitl.vehicle.autopilot import Autopilot, Gains, Target, wrap_pi
 from sitl.vehicle.jsbsim_plant import GEAR_HEIGHT_M, JsbsimPlant, PlantConfig
 
@@ -70,8 +70,8 @@ class JsbsimVehicle:
                             16.8 - 1.5e-5 * self.plant.energy_j)
 
     @property
-    def raw_state(self) -> tuple[float, ...]:
-        """(n, e, d, vn, ve, vd, roll, pitch, yaw, p, q, r) as the plant last reported it."""
+    def plant_state(self) -> PlantState:
+        """The rigid body as the plant last reported it (yaw not wrapped, unlike `state()`)."""
         return self._s
 
     @property

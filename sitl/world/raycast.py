@@ -57,6 +57,9 @@ class World:
         if pile is not None and len(pile.mesh.faces):
             TriangleMesh(self._scene, np.ascontiguousarray(pile.mesh.triangles, dtype=np.float32))
             self._pile_top_m = float(pile.mesh.bounds[1, 2])
+        self._one_d64 = np.empty(3)
+        self._one_o32 = np.empty((1, 3), dtype=np.float32)
+        self._one_d32 = np.empty((1, 3), dtype=np.float32)
 
     def buried(self, points_w: np.ndarray) -> np.ndarray:
         """Which points (N, 3) lie inside the stockpile: below its surface seen from the roof.
@@ -99,13 +102,19 @@ class World:
     def cast_one(self, origin_w, dir_w) -> float:
         """Range of one ray, m (NaN when there is no return within the max range).
 
-        The emulated LiDAR's path, one ray per sample: straight to Embree with no batch bookkeeping.
+        The emulated LiDAR's path, one ray per sample (its acquisition times and servo angle are only
+        known as the payload runs): Embree's distance-only query on preallocated float32 rows, the
+        direction normalised exactly as `cast` does (numpy's dot, whose rounding plain floats do not
+        reproduce), so the float32 ray, and the range, are bit for bit those of `cast`.
         """
         if origin_w[2] < self._pile_top_m and self.buried(origin_w)[0]:
             return math.nan
-        d = np.asarray(dir_w, dtype=float)
-        o32 = np.asarray(origin_w, dtype=np.float32).reshape(1, 3)
-        d32 = (d / math.sqrt(float(d @ d))).astype(np.float32).reshape(1, 3)
-        res = self._scene.run(o32, d32, output=1)
-        r = float(res["tfar"][0])
-        return r if res["primID"][0] >= 0 and r <= self.max_range_m else math.nan
+        d64, o32, d32 = self._one_d64, self._one_o32, self._one_d32
+        d64[0], d64[1], d64[2] = dir_w
+        norm = math.sqrt(float(d64 @ d64))
+        row = o32[0]
+        row[0], row[1], row[2] = origin_w
+        row = d32[0]
+        row[0], row[1], row[2] = d64[0] / norm, d64[1] / norm, d64[2] / norm
+        r = float(self._scene.run(o32, d32, query="DISTANCE")[0])
+        return r if r <= self.max_range_m else math.nan  # a miss reads Embree's initial tfar, 1e37

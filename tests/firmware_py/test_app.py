@@ -259,12 +259,8 @@ def test_that_the_payload_logs_posed_samples_and_reports_health_to_the_autopilot
 
 
 def test_that_a_full_disk_stops_the_payload_telling_the_operator_why_and_keeps_every_whole_block(
-        tmp_path, devices, autopilot, monkeypatch):
+        tmp_path, devices, autopilot):
     import errno
-    import functools
-
-    from firmware_py import app as app_module
-    from firmware_py.core.samplelog import SampleLogWriter
 
     class FillingFile:  # takes 40 kB, then ENOSPC (the first failing write takes what fits)
         def __init__(self, f):
@@ -281,11 +277,9 @@ def test_that_a_full_disk_stops_the_payload_telling_the_operator_why_and_keeps_e
         def __getattr__(self, name):
             return getattr(self.f, name)
 
-    monkeypatch.setattr(app_module, "SampleLogWriter", functools.partial(
-        SampleLogWriter, opener=lambda path, mode: FillingFile(open(path, mode))))
     cfg = payload_config(tmp_path, autopilot.url, duration_s=20.0)
     with pytest.raises(OSError, match="No space"):
-        PayloadApp(cfg, err=None).run()
+        PayloadApp(cfg, err=None, open_log=lambda path, mode: FillingFile(open(path, mode))).run()
     assert autopilot.wait_for(lambda: "pilescan: stopping: error: No space left on device" in autopilot.spy.texts())
     stop = [m for m in autopilot.spy.of_type("STATUSTEXT") if "No space" in str(m.text)]
     assert stop and all(m.severity == 2 for m in stop)  # MAV_SEVERITY_CRITICAL: the operator should land
@@ -483,3 +477,24 @@ def test_that_python_m_firmware_py_cli_runs_on_the_sitl_device_bridge_and_stops_
     assert log.intact and len(log.samples) >= 200
     assert len(log.samples) == emu.counters["acquisitions"]  # every reading taken was logged
     assert servo.pulses > 0 and not servo.enabled  # disabled through the bridge at shutdown
+
+
+def test_that_link_counters_read_a_links_stats_by_name_and_count_refused_frames():
+    from firmware_py.app import LinkCounters
+    c = LinkCounters.of({"rx_messages": 7, "rx_unsigned": 2, "rx_bad_signature": 1, "rx_replayed": 4, "new": 9})
+    assert c.rx_messages == 7 and c.tx_messages == 0 and c.refused == 7
+
+
+def test_that_both_mavlink_links_offer_what_the_app_reads_of_a_link():
+    from firmware_py.app import LinkCounters
+    from firmware_py.hal import MavlinkLink
+    from firmware_py.hal.mavlink_link import ByteStreamLink, open_mavlink
+    wanted = {"mav", "signer", "stats", "signing_active", "send", "recv", "close"}
+    assert wanted <= set(MavlinkLink.__annotations__) | {n for n in vars(MavlinkLink) if not n.startswith("_")}
+    for link in (ByteStreamLink(lambda data: None, lambda: b""), open_mavlink("udpout:127.0.0.1:9")):
+        try:
+            assert all(hasattr(link, name) for name in wanted) and link.signer is None and not link.signing_active
+            assert LinkCounters.of(link.stats).tx_messages == link.stats["tx_messages"]
+        finally:
+            link.close()
+

@@ -1,18 +1,23 @@
 """Firmware in the loop: the unchanged payload code, lockstep, against the batch sample path."""
 
+from dataclasses import asdict
+from pathlib import Path
+
 import numpy as np
 import pytest
+from pymavlink import mavutil
 
-from firmware_py.core.samplelog import SampleFlags
+from firmware_py.core.samplelog import SampleFlags, read_samplelog
 from firmware_py.core.servo_model import ServoCalibration
 from firmware_py.core.storage import Storage
+from firmware_py.hal.mavlink_link import COMPANION_COMPONENT_ID
 from ground.pointcloud import cloud_from_samples
 from ground.report import ReportOptions, survey_from_samples
 from ground.surface import grid_volume
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import FlownMission
 from sitl.runners.fly import FlyConfig, log_header
-from sitl.runners.lockstep_payload import fly_firmware
+from sitl.runners.lockstep_payload import SURVEY_FLOWN, fly_firmware
 from sitl.sensing.batch_sampler import sample_flight
 from sitl.world import stockpile as piles
 from sitl.world.raycast import World
@@ -25,16 +30,17 @@ def small_flight(tmp_path_factory):
     cfg = FlyConfig(mission=Mission(storage=Storage(30, 20, 10), p_traj=0.2, altitude_m=9.0), stockpile="1")
     log = tmp_path_factory.mktemp("fil") / "samples.pslog"
     run = fly_firmware(cfg, log, log_header(cfg, cfg.servo_waveform()), latency_ms=(5, 30),
-                       boot_offset_s=BOOT_OFFSET_S)
+                       boot_offset_s=BOOT_OFFSET_S, tlog_path=log.with_name("telemetry.tlog"))
     flown = FlownMission(run.true_t_s, run.true_states, 0.0, 0.0, True, [])
     world = World(cfg.mission.storage, piles.resolve("1", cfg.mission.storage))
+    sweep_t0_s = read_samplelog(log).header["servo_drive"]["t0_s"]  # the program starts its sweep once synced
     batch = sample_flight(flown.trajectory_at(run.records["t_s"]), cfg.servo_waveform(), world, cfg.lidar,
-                          cfg.lever_arm_body_m, cfg.frame, servo=ServoCalibration(), servo_t0_s=BOOT_OFFSET_S)
-    return cfg, run, batch
+                          cfg.lever_arm_body_m, cfg.frame, servo=ServoCalibration(), servo_t0_s=sweep_t0_s)
+    return cfg, run, batch, log
 
 
 def test_that_the_firmware_flight_completes_at_500_hz_with_every_sample_posed(small_flight):
-    _, run, _ = small_flight
+    _, run, _, _ = small_flight
     assert run.completed
     s = run.records
     assert np.median(np.diff(s["t_s"])) == pytest.approx(0.002, abs=1e-6)
@@ -45,7 +51,7 @@ def test_that_the_firmware_flight_completes_at_500_hz_with_every_sample_posed(sm
 
 
 def test_that_firmware_and_batch_points_agree_to_2_cm_median(small_flight):
-    cfg, run, batch = small_flight
+    cfg, run, batch, _ = small_flight
     ok = (run.records["flags"] == 0) & (batch["flags"] == 0)
     assert ok.mean() > 0.7
     pf = cloud_from_samples(run.records[ok], cfg.lever_arm_body_m, cfg.frame).points_w
@@ -54,7 +60,7 @@ def test_that_firmware_and_batch_points_agree_to_2_cm_median(small_flight):
 
 
 def test_that_firmware_and_batch_volumes_agree_to_0_1_percent(small_flight):
-    cfg, run, batch = small_flight
+    cfg, run, batch, _ = small_flight
     header = log_header(cfg, cfg.servo_waveform())
     lever = np.array(cfg.lever_arm_body_m)
     vols = []
@@ -62,3 +68,38 @@ def test_that_firmware_and_batch_volumes_agree_to_0_1_percent(small_flight):
         sv = survey_from_samples(rec, header, cfg.mission.storage, cfg.frame, lever, ReportOptions(plots=False))
         vols.append(grid_volume(sv.heights, sv.grid))
     assert abs(vols[0] - vols[1]) / vols[1] < 0.001
+
+
+def _companion_messages(tlog: Path) -> list:
+    """What the payload program sent, as the autopilot logged it in its .tlog."""
+    conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
+    out = []
+    while (msg := conn.recv_match(type=["NAMED_VALUE_FLOAT", "STATUSTEXT", "SET_GPS_GLOBAL_ORIGIN"])) is not None:
+        if msg.get_srcComponent() == COMPANION_COMPONENT_ID:
+            out.append(msg)
+    conn.close()
+    return out
+
+
+def test_that_the_programs_health_messages_reach_the_autopilots_tlog(small_flight):
+    _, run, _, log = small_flight
+    msgs = _companion_messages(log.with_name("telemetry.tlog"))
+    values = [m for m in msgs if m.get_type() == "NAMED_VALUE_FLOAT"]
+    texts = [m.text for m in msgs if m.get_type() == "STATUSTEXT"]
+    assert {m.name for m in values} >= {"PS_RATE", "PS_LOGGED", "PS_POSEAGE"}
+    assert len(values) == run.result.health.values  # every one sent arrived (no loss on this link)
+    logged = [m.value for m in values if m.name == "PS_LOGGED"]
+    assert logged == sorted(logged) and logged[-1] > 0.9 * len(run.records) - 500
+    assert texts[0] == "pilescan: started, 500 Hz" and texts[-1] == f"pilescan: stopping: {SURVEY_FLOWN}"
+    assert any(m.get_type() == "SET_GPS_GLOBAL_ORIGIN" for m in msgs)  # the EKF origin went out first
+
+
+def test_that_the_program_stops_when_the_survey_is_flown_and_writes_its_header(small_flight):
+    cfg, run, _, log = small_flight
+    assert run.result.stop_reason == SURVEY_FLOWN and run.result.close_errors == ()
+    header = read_samplelog(log).header
+    expected = log_header(cfg, cfg.servo_waveform())
+    for key in ("source", "mission", "mission_id", "storage", "storage_frame", "servo", "lever_arm_body_m"):
+        assert header[key] == expected[key], key
+    assert header["servo_calibration"] == asdict(ServoCalibration())
+    assert header["servo_drive"]["t0_s"] <= run.records["t_s"][0]

@@ -41,13 +41,13 @@ def test_that_the_baseline_mission_reaches_every_waypoint(baseline):
 
 def test_that_altitude_stays_within_20_cm(baseline):
     _, flown = baseline
-    assert np.all(np.abs(-flown.states[:, 2] - 12.0) < 0.2)
+    assert np.all(np.abs(-flown.states["down_m"] - 12.0) < 0.2)
 
 
 def test_that_straight_legs_are_flown_at_1_m_s(baseline):
     _, flown = baseline
-    speed = np.hypot(flown.states[:, 3], flown.states[:, 4])
-    yaw_rate = np.abs(flown.states[:, 11])
+    speed = np.hypot(flown.states["vn_m_s"], flown.states["ve_m_s"])
+    yaw_rate = np.abs(flown.states["yawspeed_rad_s"])
     cruising = (yaw_rate < math.radians(0.5)) & (speed > 0.5)
     assert cruising.mean() > 0.5
     assert np.median(speed[cruising]) == pytest.approx(1.0, abs=0.05)
@@ -59,7 +59,7 @@ def test_that_the_yaw_rate_limit_is_never_exceeded_by_more_than_10_percent(limit
     mission = Mission(p_traj=0.3, yaw_rate_max_rad_s=math.radians(limit_dps))
     flown = fly_mission(mission, StorageFrame())
     assert flown.completed
-    peak = np.degrees(np.abs(flown.states[:, 11]).max())
+    peak = np.degrees(np.abs(flown.states["yawspeed_rad_s"]).max())
     assert peak <= 1.10 * limit_dps
     assert peak >= 0.8 * limit_dps  # the limit is actually used in the turns
 
@@ -72,7 +72,7 @@ def test_that_corners_are_turned_without_flying_past_the_waypoint(limit_dps):
     flown = fly_mission(mission, StorageFrame())
     assert flown.completed
     wp = mission.waypoints_w()
-    x, y = flown.states[:, 0], -flown.states[:, 1]  # W from NED with the default frame
+    x, y = flown.states["north_m"], -flown.states["east_m"]  # W from NED with the default frame
     margin = 0.5
     assert x.min() > wp[:, 0].min() - margin and x.max() < wp[:, 0].max() + margin
     assert y.min() > wp[:, 1].min() - margin and y.max() < wp[:, 1].max() + margin
