@@ -504,7 +504,7 @@ class PayloadApp:
             return
         end_ns = self.clock.now_ns() + round(self.cfg.wait_for_pose_s * 1e9)
         period_ns = round(1e9 / self.cfg.rate_hz)
-        while self._stop_reason is None and not self.tracker.status()["pose_ok"]:
+        while self._stop_reason is None and not self.tracker.status().pose_ok:
             now = self.clock.now_ns()
             if now >= end_ns:
                 self._warn(f"no trusted pose after {self.cfg.wait_for_pose_s:g} s; sampling anyway")
