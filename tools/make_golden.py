@@ -56,7 +56,7 @@ def write_golden(out: Path) -> dict:
     header = {k: v for k, v in log.header.items() if k not in WRITER_KEYS}
     header["created_utc"] = CREATED_UTC
     samples = log.samples[::KEEP_EVERY]
-    with SampleLogWriter(out / SAMPLES_FILE, header, records_per_block=500, fsync=False) as w:
+    with SampleLogWriter(out / SAMPLES_FILE, header, records_per_block=500, fsync=False, overwrite=True) as w:
         w.append(samples)
     golden_truth = {"true_volume_m3": run.true_volume_m3, "stockpile": truth["stockpile"],
                     "mission_id": truth["mission_id"], "seed": truth["seed"], "plant": truth["plant"],
