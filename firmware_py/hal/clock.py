@@ -53,7 +53,8 @@ class SimClock:
         """Time passing without the payload sleeping (e.g. an I2C transfer on the wire)."""
         t_ns = self._t + int(dt_ns)
         if t_ns <= self._horizon:  # the world is already stepped past it: the common case, kept cheap
-            self._t = max(self._t, t_ns)
+            if t_ns > self._t:  # (not max(): a builtin call ~450k times a flight)
+                self._t = t_ns
         else:
             self.sleep_until_ns(t_ns)
 

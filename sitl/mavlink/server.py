@@ -98,6 +98,8 @@ class MavlinkVehicleServer:
         self._boot_epoch_s = 0.0  # vehicle time at which the autopilot last booted (time_boot_ms 0)
         self._silent_until_s = -math.inf  # rebooting until then: deaf and mute
         self._state: VehicleState | None = None
+        # The vehicle's clock, cheaply when the vehicle offers it (JSBSim), else from its state.
+        self._vehicle_time_s: Callable[[], float] = getattr(vehicle, "time_s", None) or (lambda: vehicle.state().t_s)
         self._link_clock: Callable[[], float] | None = None  # None: the link runs on simulated time
         self._statustext_id = 0
         self.streams = StreamSchedule()
@@ -132,15 +134,21 @@ class MavlinkVehicleServer:
 
     def update(self) -> None:
         """Handle everything received, report vehicle events, send the streams now due."""
-        self._state = self.vehicle.state()
-        self._now_s = self._state.t_s
+        # The state the streams are built from is taken here, before any command is handled, as
+        # before; but only on a step that may need it (something received, or a stream due): most
+        # physics steps (200 Hz against 50 Hz streams) need only the time.
+        self._state = None
+        self._now_s = self._vehicle_time_s()
         if self._now_s < self._silent_until_s:
             self.transport.recv()  # a rebooting autopilot hears nothing
             return
         if self.signer is not None and hasattr(self.transport, "recv_datagrams"):
+            self._state = self.vehicle.state()
             self._receive_authenticated_datagrams()
         else:
             data = self.transport.recv()
+            if data or self.streams.may_be_due(self._link_now()):
+                self._state = self.vehicle.state()
             if data:
                 for msg in self._framer.feed(data):
                     self._handle(msg)

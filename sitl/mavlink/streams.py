@@ -58,6 +58,10 @@ class StreamSchedule:
     def __contains__(self, msg_id: int) -> bool:
         return msg_id in self._streams
 
+    def may_be_due(self, now_s: float) -> bool:
+        """False when `due(now_s)` would certainly return nothing (no stream is due yet)."""
+        return now_s + _EPS_S >= self._next_any_due_s
+
     def due(self, now_s: float) -> list[int]:
         """The message ids due at now_s, in stream order; each is then scheduled one interval on.
 

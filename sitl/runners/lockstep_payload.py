@@ -120,7 +120,14 @@ class SimWorld:
         self._up = DelayedPipe(self._vehicle_now_companion_ns, latency_ns)
         self._down_send_at, self._up_send_at = self._down.send_at, self._up.send_at
         self._hist: collections.deque[tuple[float, PlantState]] = collections.deque(maxlen=64)
-        self._vehicle_t_s = vehicle.state().t_s  # the vehicle steps only here: its clock, kept
+        # The vehicle's clock and rigid-body state are read after every physics step: straight from
+        # the JSBSim plant when there is one (no VehicleState built just for its t_s).
+        self._vehicle_time_s: Callable[[], float] = getattr(vehicle, "time_s", None) or (lambda: vehicle.state().t_s)
+        if isinstance(vehicle, JsbsimVehicle):
+            self._plant_state: Callable[[], PlantState] = lambda: vehicle.plant_state
+        else:
+            self._plant_state = lambda: plant_state_of(vehicle)
+        self._vehicle_t_s = self._vehicle_time_s()  # the vehicle steps only here: its clock, kept
         self._hist.append((self._vehicle_t_s, plant_state_of(vehicle)))
         self.history: list[tuple[float, PlantState]] = [self._hist[-1]]  # the whole true flight
         self.servo_angle_at = None  # set by the runner: t_ns -> true shaft angle
@@ -151,13 +158,17 @@ class SimWorld:
         """Step the vehicle until its clock has passed companion time t_ns; return the companion
         time up to which it is now stepped (the clock's horizon: no call needed before it)."""
         target_s = self.vehicle_time_ns(t_ns) * 1e-9
-        vehicle, hist = self.vehicle, self._hist
+        vehicle, hist, history = self.vehicle, self._hist, self.history
+        if hist[-1][0] >= target_s:
+            return math.floor(hist[-1][0] * 1e9) + self.boot_offset_ns
+        step, update, time_s, plant_state = vehicle.step, self.server.update, self._vehicle_time_s, self._plant_state
         while hist[-1][0] < target_s:
-            vehicle.step()
-            self._vehicle_t_s = vehicle.state().t_s
-            self.server.update()
-            hist.append((self._vehicle_t_s, plant_state_of(vehicle)))
-            self.history.append(hist[-1])
+            step()
+            t_s = self._vehicle_t_s = time_s()
+            update()
+            entry = (t_s, plant_state())
+            hist.append(entry)
+            history.append(entry)
         return math.floor(hist[-1][0] * 1e9) + self.boot_offset_ns
 
     def pose_at(self, t_ns: int) -> TruePose:

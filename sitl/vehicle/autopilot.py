@@ -128,15 +128,27 @@ class Autopilot:
         # --- attitude P -> rate PID
         rate_cmd = (g.att_kp * wrap_pi(roll_cmd - roll), g.att_kp * wrap_pi(pitch_cmd - pitch),
                     yaw_rate_cmd)
-        u = [0.0, 0.0, 0.0]
-        for k, (cmd, meas) in enumerate(zip(rate_cmd, (p, q, r), strict=True)):
-            err = cmd - meas
-            kp, ki = (g.rate_kp, g.rate_ki) if k < 2 else (g.yaw_rate_kp, g.yaw_rate_ki)
-            self._i_rate[k] = clip(self._i_rate[k] + err * dt, -g.rate_i_limit / ki, g.rate_i_limit / ki)
-            deriv = -(meas - self._prev_rate[k]) / dt if k < 2 else 0.0
-            self._prev_rate[k] = meas
-            u[k] = kp * err + ki * self._i_rate[k] + (g.rate_kd * deriv if k < 2 else 0.0)
-        return mix(thrust, *u)
+        # Body-rate PIDs, unrolled (roll and pitch with a derivative on the measurement, yaw without):
+        # the same arithmetic in the same order as a loop over the axes, without its per-step overhead.
+        i_rate, prev = self._i_rate, self._prev_rate
+        kp, ki, kd, lim = g.rate_kp, g.rate_ki, g.rate_kd, g.rate_i_limit / g.rate_ki
+        err = rate_cmd[0] - p
+        i_rate[0] = clip(i_rate[0] + err * dt, -lim, lim)
+        deriv = -(p - prev[0]) / dt
+        prev[0] = p
+        u_roll = kp * err + ki * i_rate[0] + kd * deriv
+        err = rate_cmd[1] - q
+        i_rate[1] = clip(i_rate[1] + err * dt, -lim, lim)
+        deriv = -(q - prev[1]) / dt
+        prev[1] = q
+        u_pitch = kp * err + ki * i_rate[1] + kd * deriv
+        ki = g.yaw_rate_ki
+        lim = g.rate_i_limit / ki
+        err = rate_cmd[2] - r
+        i_rate[2] = clip(i_rate[2] + err * dt, -lim, lim)
+        prev[2] = r
+        u_yaw = g.yaw_rate_kp * err + ki * i_rate[2] + 0.0
+        return mix(thrust, u_roll, u_pitch, u_yaw)
 
 
 def mix(thrust: float, u_roll: float, u_pitch: float, u_yaw: float) -> tuple[float, float, float, float]:

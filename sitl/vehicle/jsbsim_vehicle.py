@@ -69,6 +69,10 @@ class JsbsimVehicle:
                             self.armed, self.mode, self.landed, self.plant.energy_j,
                             16.8 - 1.5e-5 * self.plant.energy_j)
 
+    def time_s(self) -> float:
+        """The vehicle's clock (state().t_s without building a VehicleState: read every physics step)."""
+        return self.plant.t_s
+
     @property
     def plant_state(self) -> PlantState:
         """The rigid body as the plant last reported it (yaw not wrapped, unlike `state()`)."""
