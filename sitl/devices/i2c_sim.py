@@ -64,13 +64,30 @@ class SimI2CBus:
             raise ValueError(f"I2C bitrate must be an integer 1 kHz-5 MHz, got {bitrate_hz!r}")
         self.clock = clock
         self.bitrate_hz = bitrate_hz
+        self._closed = False
+        self._fault_until_ns = -1
+        self._nack_probability = 0.0
         self.nack_probability = nack_probability
-        self.fault_until_ns = -1
         self.rng = rng if rng is not None else np.random.default_rng(0)
         self.devices: dict[int, SimI2CDevice] = {}
         self.counters: dict[str, int] = dict.fromkeys(("write", "read", "write_read", "nack", "bytes"), 0)
-        self._closed = False
         self._wire_ns = [self.wire_time_ns(n) for n in range(_WIRE_TABLE)]
+        self._advance_by_ns = clock.advance_by_ns
+
+    def _update_plain(self) -> None:
+        # True while no transfer can fail (open bus, no NACKs configured, no burst): the 500 Hz fast
+        # path of write/read tests this one flag instead of three conditions per transfer.
+        self._plain = not self._closed and self._nack_probability == 0.0 and self._fault_until_ns < 0
+
+    @property
+    def fault_until_ns(self) -> int:
+        """NACK every transfer until this simulated time (-1: no burst)."""
+        return self._fault_until_ns
+
+    @fault_until_ns.setter
+    def fault_until_ns(self, t_ns: int) -> None:
+        self._fault_until_ns = int(t_ns)
+        self._update_plain()
 
     @property
     def nack_probability(self) -> float:
@@ -81,6 +98,7 @@ class SimI2CBus:
         if not (isinstance(p, int | float) and math.isfinite(p) and 0.0 <= p <= 1.0):
             raise ValueError(f"NACK probability must be in [0, 1], got {p!r}")
         self._nack_probability = float(p)
+        self._update_plain()
 
     def attach(self, addr: int, device: SimI2CDevice) -> None:
         """Put a device at a 7-bit address (ValueError if the address is taken)."""
@@ -107,7 +125,7 @@ class SimI2CBus:
         device = self.devices.get(addr) if type(addr) is int else None  # attached ones were checked at attach()
         if device is None:
             _check_addr(addr)
-        if n is not None and (self._closed or device is None or self.fault_until_ns >= 0
+        if n is not None and (self._closed or device is None or self._fault_until_ns >= 0
                               or self._nack_probability > 0.0):
             op = f"{op} of {n} bytes"  # only for the error messages below
         if self._closed:
@@ -115,7 +133,7 @@ class SimI2CBus:
         reason = None
         if device is None:
             reason = "no device"
-        elif self.clock.now_ns() < self.fault_until_ns:
+        elif self.clock.now_ns() < self._fault_until_ns:
             reason = "fault burst"
         elif self._nack_probability > 0.0 and self.rng.random() < self._nack_probability:
             reason = "random NACK"
@@ -132,8 +150,7 @@ class SimI2CBus:
     def write(self, addr: int, data: bytes) -> None:
         # 4 writes a sample at 500 Hz: the common case (an attached device, an open bus, no NACKs
         # configured) skips the checks of _device.
-        device = self.devices.get(addr) if type(addr) is int and not self._closed \
-            and self._nack_probability == 0.0 and self.fault_until_ns < 0 else None
+        device = self.devices.get(addr) if self._plain and type(addr) is int else None
         if device is None:
             device = self._device("write", addr)
         if type(data) is not bytes:
@@ -142,19 +159,19 @@ class SimI2CBus:
         counters["write"] += 1
         n = 1 + len(data)
         counters["bytes"] += n
-        self.clock.advance_by_ns(self._wire_ns[n] if n < _WIRE_TABLE else self.wire_time_ns(n))
+        self._advance_by_ns(self._wire_ns[n] if n < _WIRE_TABLE else self.wire_time_ns(n))
         device.on_write(data)
 
     def read(self, addr: int, n: int) -> bytes:
-        device = self.devices.get(addr) if type(addr) is int and type(n) is int and 0 < n < _WIRE_TABLE - 1 \
-            and not self._closed and self._nack_probability == 0.0 and self.fault_until_ns < 0 else None
+        device = self.devices.get(addr) if self._plain and type(addr) is int and type(n) is int \
+            and 0 < n < _WIRE_TABLE - 1 else None
         if device is None:
             _check_count(n)
             device = self._device("read", addr, n)
         counters = self.counters
         counters["read"] += 1
         counters["bytes"] += 1 + n
-        self.clock.advance_by_ns(self._wire_ns[1 + n] if 1 + n < _WIRE_TABLE else self.wire_time_ns(1 + n))
+        self._advance_by_ns(self._wire_ns[1 + n] if 1 + n < _WIRE_TABLE else self.wire_time_ns(1 + n))
         data = device.on_read(n)
         return data if type(data) is bytes and len(data) == n else self._checked(data, n, addr)
 
@@ -179,6 +196,7 @@ class SimI2CBus:
 
     def close(self) -> None:
         self._closed = True
+        self._update_plain()
 
     def handle(self) -> SimBusHandle:
         """A separately closable view of this bus (what `open_i2c('sitl')` hands out)."""
