@@ -274,9 +274,12 @@ class LidarLiteConfig:
             (PX4's known stuck state), TIMEOUT or BUS_ERROR (PX4 ll40ls uses 20); doubled after each
             reset that did not help (up to MAX_RESET_BACKOFF times), back to this after a good reading.
         reset_after_no_valid: also reset after this many consecutive readings without a range of
-            any kind, 1 cm no-returns included; None = never. A sweep past far walls gives a few
-            hundred ms of legitimate no-returns, so the default (2 s at 500 Hz) is longer than the
-            sweep period.
+            any kind, 1 cm no-returns included; None = never (the default). A no-return is what a
+            working part answers whenever nothing is in range: a drone standing on the floor before
+            take-off, a lens cover, a sweep past far walls. With 1000 (2 s at 500 Hz) as the old
+            default a fault-free networked flight reset a healthy part five times on the ground,
+            25 ms of readings lost and a warning each time; a part that has really lost its
+            settings is caught by the register read-back instead.
         reset_wait_ns: wait after the reset command before re-applying the preset (manual: ~22 ms).
         readback_every: read the preset registers back every this many readings; None = never.
         max_range_m: a distance above this cannot be real (the part reaches ~40 m): BUS_ERROR.
@@ -288,7 +291,7 @@ class LidarLiteConfig:
     poll_interval_ns: int = 100_000
     busy_timeout_ns: int | None = None
     reset_after_failures: int = 20
-    reset_after_no_valid: int | None = 1000
+    reset_after_no_valid: int | None = None
     reset_wait_ns: int = 25_000_000
     readback_every: int | None = 1000
     max_range_m: float = 60.0
@@ -494,17 +497,18 @@ class LidarLite:
         if self._pending is not None:
             raise RuntimeError("reset() during a measurement: call measure_finish() first")
         errors = self._counts["config_errors"]
-        self._start_reset()  # this one waits: it supersedes an automatic reset under way
+        self._start_reset("asked for")  # this one waits: it supersedes an automatic reset under way
         self.clock.sleep_until_ns(self._reloaded_at_ns)
         self._finish_reset()
         return self._counts["config_errors"] == errors
 
-    def _start_reset(self) -> None:
+    def _start_reset(self, reason: str) -> None:
         """The automatic reset, without blocking: the reset command now, the preset once the part
         has reloaded (`measure_start` after reset_wait_ns). Meanwhile readings come back RESETTING at
-        the loop's rate, so a payload keeps its tick grid (servo pulses, pose pumping, health)."""
+        the loop's rate, so a payload keeps its tick grid (servo pulses, pose pumping, health).
+        `reason` says why, in the operator's warning."""
         self._counts["resets"] += 1
-        log.warning("resetting the LIDAR-Lite at 0x%02x", self.config.address)
+        log.warning("resetting the LIDAR-Lite at 0x%02x: %s", self.config.address, reason)
         try:
             self._write_reg(_REG_ACQ_COMMAND, _CMD_RESET)
         except I2CError as exc:
@@ -653,10 +657,12 @@ class LidarLite:
         else:
             self._failure_run += 1
         cfg = self.config
-        if self._failure_run >= self._reset_after or (
-                cfg.reset_after_no_valid is not None and self._no_valid_run >= cfg.reset_after_no_valid):
+        if self._failure_run >= self._reset_after:
+            reason = (f"{self._failure_run} readings in a row failed (last: "
+                      f"{'0 cm' if zero else reading.status.name})")
             # A reset that did not help is not repeated as often: each costs ~25 ms of no readings,
             # and a part that stays stuck would otherwise spend much of the loop's time resetting.
-            if self._failure_run >= self._reset_after:
-                self._reset_after = min(2 * self._reset_after, MAX_RESET_BACKOFF * cfg.reset_after_failures)
-            self._start_reset()
+            self._reset_after = min(2 * self._reset_after, MAX_RESET_BACKOFF * cfg.reset_after_failures)
+            self._start_reset(reason)
+        elif cfg.reset_after_no_valid is not None and self._no_valid_run >= cfg.reset_after_no_valid:
+            self._start_reset(f"{self._no_valid_run} readings in a row without a range")

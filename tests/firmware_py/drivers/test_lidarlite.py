@@ -232,6 +232,24 @@ def test_that_twenty_zero_centimetre_readings_reset_the_part_as_px4_does():
     assert rig.lidar.counters().resets == 1
 
 
+def test_that_a_reset_warning_says_why(caplog):
+    rig = Rig(0.004, PRESET_FAST_500HZ)
+    with caplog.at_level("WARNING", logger="firmware_py.drivers.lidarlite"):
+        for _ in range(20):
+            rig.lidar.read()
+    assert "resetting the LIDAR-Lite at 0x62: 20 readings in a row failed (last: 0 cm)" in caplog.text
+
+
+def test_that_a_healthy_part_seeing_nothing_for_a_long_time_is_never_reset():
+    # A drone standing on the floor before take-off, or a lens cover: the part answers "no signal",
+    # as a working part does. By default no run of such answers resets it (10 s at 500 Hz here).
+    rig = Rig(None, PRESET_FAST_500HZ)
+    for _ in range(5000):
+        rig.lidar.read()
+    assert rig.lidar.counters().no_return == 5000
+    assert rig.lidar.counters().resets == 0 and rig.part.counters["resets"] == 0
+
+
 def test_that_a_sweep_past_far_walls_does_not_reset_the_part():
     rig = Rig(None, PRESET_FAST_500HZ)  # 1 cm no-returns, e.g. 0.6 s of beam beyond range
     for _ in range(300):
