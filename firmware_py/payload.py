@@ -24,7 +24,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from firmware_py.core.samplelog import SAMPLE_DTYPE, SampleFlags, SampleLogWriter
-from firmware_py.drivers.lidarlite import ReadStatus
+from firmware_py.drivers.reading import ReadStatus
 from firmware_py.drivers.servo import SweepServo
 from firmware_py.hal import Clock
 from firmware_py.pose import PoseSample

@@ -90,3 +90,15 @@ LIDARLITE_V3 = RangefinderSpec(
 
 LIDARLITE_V3_NO_RETURN_M = 0.01
 """What a LIDAR-Lite v3 reads when no echo comes back: 1 cm."""
+
+TFMINI_S = RangefinderSpec(
+    model="Benewake TFmini-S",
+    rate_hz=100.0,  # the factory frame rate (1000/n Hz settable)
+    max_range_m=12.0,  # 90 % reflective board, indoors
+    resolution_m=0.01,
+    range_sigma_m=0.06,  # manual: +-6 cm from 0.1 to 6 m ...
+    range_sigma_rel=0.01,  # ... and +-1 % from 6 to 12 m
+    beam_divergence_rad=0.035,  # 2 deg field of view
+)
+"""Benewake TFmini-S (product manual SJ-PM-TFmini-S), the family's most common member and the
+sensor of the paper's authors' 2025 flight rig (a TFMini on UART)."""

@@ -58,9 +58,10 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, fields
-from enum import IntEnum, IntFlag
+from enum import IntFlag
 
 from firmware_py.core.sensor import LIDARLITE_V3
+from firmware_py.drivers.reading import Reading, ReadStatus  # the loop's types, also importable from here
 from firmware_py.hal import Clock, I2CBus, I2CError
 
 log = logging.getLogger(__name__)
@@ -109,46 +110,6 @@ class StatusFlag(IntFlag):
 
 _BUSY = int(StatusFlag.BUSY)  # plain ints on the 500 Hz path: IntFlag arithmetic is slow
 _INVALID_SIGNAL = int(StatusFlag.INVALID_SIGNAL)
-
-
-class ReadStatus(IntEnum):
-    """What a reading is: a range, or why there is none."""
-
-    OK = 0
-    NO_RETURN = 1  # the part measured and saw no valid echo (reads 1 cm, or 0)
-    TIMEOUT = 2  # busy did not clear before the deadline
-    BUS_ERROR = 3  # an I2C transfer failed, or the bytes read cannot be a distance
-    RESETTING = 4  # the part is reloading after an automatic reset: not triggered, no bus traffic
-
-
-@dataclass(frozen=True)
-class Reading:
-    """One measurement.
-
-    Attributes:
-        range_m: the range in metres (1 cm resolution), None unless status is OK.
-        status: OK, NO_RETURN, TIMEOUT or BUS_ERROR.
-        t_ns: the acquisition-trigger time on the driver's clock (see the module docstring).
-        polls: how many STATUS reads the busy wait took.
-    """
-
-    range_m: float | None
-    status: ReadStatus
-    t_ns: int
-    polls: int
-
-    def __post_init__(self) -> None:
-        if self.status is ReadStatus.OK or self.status == ReadStatus.OK:  # identity first: 500 a second
-            if self.range_m is None or not math.isfinite(self.range_m) or self.range_m < 0.0:
-                raise ValueError(f"an OK reading needs a finite range >= 0 m, got {self.range_m!r}")
-        elif self.range_m is not None:
-            raise ValueError(f"a {self.status.name} reading has no range, got {self.range_m!r}")
-        if self.polls < 0:
-            raise ValueError(f"polls must be >= 0, got {self.polls}")
-
-    @property
-    def ok(self) -> bool:
-        return self.status == ReadStatus.OK
 
 
 def acquisition_time_ns(sig_count_val: int, acq_config: int = 0x08, *, bias: bool = False,
