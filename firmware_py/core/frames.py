@@ -7,6 +7,10 @@ Frames (docs/architecture.md, "Frames"):
 
 The beam at servo angle gamma points along d_B = [0, sin gamma, cos gamma] (gamma = 0 straight
 down, +90 deg to starboard): the sweep plane is perpendicular to forward flight (paper Fig. 1).
+A real mounting is never exactly square (`Boresight`): the LiDAR sits on the servo horn tilted by
+beta out of the sweep plane (the beam then sweeps a cone, leaning forward for beta > 0), and the
+servo's axis is turned by psi about the body z axis (the sweep plane yawed):
+d_B = Rz(psi) [sin beta, cos beta sin gamma, cos beta cos gamma].
 A return at range r is  p_W = R_W<-NED (p_NED + R_NED<-B (r_B + r d_B)) + t_W,  the paper's
 eqs. (3)-(6) with the lever arm made explicit. R_NED<-B = Rz(yaw) Ry(pitch) Rx(roll), the standard
 aerospace ZYX sequence MAVLink uses (the paper's eq. (5) has a typo: the yaw matrix's last row is
@@ -49,10 +53,48 @@ def _rotate(r: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.einsum("ij,...j->...i", r, v)
 
 
-def beam_dir_body(servo_rad) -> np.ndarray:
+@dataclass(frozen=True)
+class Boresight:
+    """How the beam's mounting differs from square (module docstring), in rad.
+
+    Attributes:
+        tilt_rad: beta, the beam's tilt out of the sweep plane (> 0: leaning forward).
+        sweep_yaw_rad: psi, the servo axis turned about body z (> 0: clockwise seen from above).
+    """
+
+    tilt_rad: float = 0.0
+    sweep_yaw_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("tilt_rad", "sweep_yaw_rad"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or abs(v) > math.pi / 4:
+                raise ValueError(f"boresight {name} must be a finite angle within +-45 deg, got {v!r}")
+
+    @property
+    def square(self) -> bool:
+        return self.tilt_rad == 0.0 and self.sweep_yaw_rad == 0.0
+
+    def to_dict(self) -> dict:
+        return {"tilt_rad": self.tilt_rad, "sweep_yaw_rad": self.sweep_yaw_rad}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Boresight:
+        return cls(float(d.get("tilt_rad", 0.0)), float(d.get("sweep_yaw_rad", 0.0)))
+
+
+SQUARE = Boresight()
+
+
+def beam_dir_body(servo_rad, boresight: Boresight = SQUARE) -> np.ndarray:
     """Unit beam direction in B for servo angle(s) gamma; shape (..., 3)."""
     g = np.asarray(servo_rad, dtype=float)
-    return np.stack([np.zeros_like(g), np.sin(g), np.cos(g)], axis=-1)
+    if boresight.square:
+        return np.stack([np.zeros_like(g), np.sin(g), np.cos(g)], axis=-1)
+    cb, sb = math.cos(boresight.tilt_rad), math.sin(boresight.tilt_rad)
+    cpsi, spsi = math.cos(boresight.sweep_yaw_rad), math.sin(boresight.sweep_yaw_rad)
+    y0, z = cb * np.sin(g), cb * np.cos(g)
+    return np.stack([cpsi * sb - spsi * y0, spsi * sb + cpsi * y0, z], axis=-1)
 
 
 @dataclass(frozen=True)
@@ -101,7 +143,7 @@ class StorageFrame:
 
 
 def beam_rays_w(pos_ned_m: np.ndarray, roll_rad, pitch_rad, yaw_rad, servo_rad,
-                lever_arm_body_m, frame: StorageFrame) -> tuple[np.ndarray, np.ndarray]:
+                lever_arm_body_m, frame: StorageFrame, boresight: Boresight = SQUARE) -> tuple[np.ndarray, np.ndarray]:
     """Origins and unit directions, in W, of beams fired from the given poses.
 
     Args:
@@ -109,6 +151,7 @@ def beam_rays_w(pos_ned_m: np.ndarray, roll_rad, pitch_rad, yaw_rad, servo_rad,
         roll_rad, pitch_rad, yaw_rad, servo_rad: (N,) angles.
         lever_arm_body_m: (3,) sensor position relative to the centre of gravity, in B.
         frame: the storage frame.
+        boresight: the beam's mounting (square by default).
     Returns:
         (origins (N, 3), directions (N, 3)) in W.
     """
@@ -116,12 +159,13 @@ def beam_rays_w(pos_ned_m: np.ndarray, roll_rad, pitch_rad, yaw_rad, servo_rad,
     r_wn = frame.rot_w_from_ned
     r_wb = np.einsum("ij,njk->nik", r_wn, r_nb)
     origins = frame.ned_to_w(pos_ned_m) + np.einsum("nij,j->ni", r_wb, np.asarray(lever_arm_body_m, dtype=float))
-    dirs = np.einsum("nij,nj->ni", r_wb, beam_dir_body(servo_rad))
+    dirs = np.einsum("nij,nj->ni", r_wb, beam_dir_body(servo_rad, boresight))
     return origins, dirs
 
 
 def beam_ray_w(pos_ned_m, roll_rad: float, pitch_rad: float, yaw_rad: float, servo_rad: float,
-               lever_arm_body_m, frame: StorageFrame) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+               lever_arm_body_m, frame: StorageFrame,
+               boresight: Boresight = SQUARE) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
     """One beam of `beam_rays_w`, in plain floats: the emulated LiDAR fires one ray per sample, where
     numpy's per-call overhead would cost more than the arithmetic (tests check both agree)."""
     cr, sr = math.cos(roll_rad), math.sin(roll_rad)
@@ -140,15 +184,19 @@ def beam_ray_w(pos_ned_m, roll_rad: float, pitch_rad: float, yaw_rad: float, ser
     on = float(pn) + r00 * lx + r01 * ly + r02 * lz - fn
     oe = float(pe) + r10 * lx + r11 * ly + r12 * lz - fe
     od = float(pd) + r20 * lx + r21 * ly + r22 * lz - fd
-    dn, de, dd = r01 * sg + r02 * cg, r11 * sg + r12 * cg, r21 * sg + r22 * cg
+    if boresight.square:
+        dn, de, dd = r01 * sg + r02 * cg, r11 * sg + r12 * cg, r21 * sg + r22 * cg
+    else:
+        bx, by, bz = (float(v) for v in beam_dir_body(servo_rad, boresight))
+        dn, de, dd = r00 * bx + r01 * by + r02 * bz, r10 * bx + r11 * by + r12 * bz, r20 * bx + r21 * by + r22 * bz
     c, s = math.cos(frame.heading_rad), math.sin(frame.heading_rad)  # rot_w_from_ned, written out
     return ((c * on + s * oe, s * on - c * oe, -od),
             (c * dn + s * de, s * dn - c * de, -dd))
 
 
 def points_w(pos_ned_m, roll_rad, pitch_rad, yaw_rad, servo_rad, range_m, lever_arm_body_m,
-             frame: StorageFrame) -> np.ndarray:
+             frame: StorageFrame, boresight: Boresight = SQUARE) -> np.ndarray:
     """Eqs. (3)-(6): the (N, 3) points in W hit by beams of the given ranges."""
     origins, dirs = beam_rays_w(pos_ned_m, roll_rad, pitch_rad, yaw_rad, servo_rad, lever_arm_body_m,
-                                frame)
+                                frame, boresight)
     return origins + dirs * np.asarray(range_m, dtype=float)[:, None]

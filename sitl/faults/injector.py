@@ -29,6 +29,8 @@ from dataclasses import asdict, dataclass, fields, replace
 
 import numpy as np
 
+from firmware_py.core.frames import Boresight
+
 GLITCH_RANGE_M = 40.0
 """A glitch "maximum range" reading: the LIDAR-Lite's rated range, whatever the beam points at."""
 
@@ -66,6 +68,10 @@ class FaultSpec:
     servo_stuck_at_s: float | None = None
     servo_slow_factor: float = 1.0
     servo_delay_ms: float = 0.0
+    servo_offset_deg: float = 0.0  # the true shaft sits this far from where the calibration puts it
+    servo_scale_pct: float = 0.0  # ... and turns this much more per commanded radian
+    boresight_deg: float = 0.0  # the LiDAR tilted this far out of the sweep plane (leaning forward)
+    sweep_yaw_deg: float = 0.0  # the servo axis turned this far about body z
     power_cut_at_s: float | None = None
     disk_full_at_s: float | None = None
 
@@ -90,6 +96,11 @@ class FaultSpec:
             v = getattr(self, f)
             if v is not None and not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"fault {f} must be a time >= 0 s, got {v!r}")
+        for f, top in (("servo_offset_deg", 20.0), ("servo_scale_pct", 30.0), ("boresight_deg", 20.0),
+                       ("sweep_yaw_deg", 20.0)):
+            v = getattr(self, f)
+            if not (isinstance(v, int | float) and math.isfinite(v) and abs(v) <= top):
+                raise ValueError(f"fault {f} must be within +-{top:g}, got {v!r}")
         if not (math.isfinite(self.servo_slow_factor) and 0.05 <= self.servo_slow_factor <= 1.0):
             raise ValueError(f"fault servo_slow_factor must be in [0.05, 1] (1 = as calibrated), "
                              f"got {self.servo_slow_factor!r}")
@@ -223,6 +234,19 @@ class FaultInjector:
             servo.model.cal = slow
         if self.spec.servo_delay_ms:
             servo.delay_ns = round(self.spec.servo_delay_ms * 1e6)
+        if self.spec.servo_offset_deg or self.spec.servo_scale_pct:
+            # true angle = (1 + s) * calibrated angle + offset: the pulse-to-angle map of the real part
+            scale = 1.0 + self.spec.servo_scale_pct / 100.0
+            cal = servo.cal
+            true = replace(cal, us_per_rad=cal.us_per_rad / scale,
+                           center_us=cal.center_us - math.radians(self.spec.servo_offset_deg) * cal.us_per_rad / scale)
+            servo.cal = true
+            servo.model.cal = true
+
+    @property
+    def boresight(self) -> Boresight:
+        """The beam's true mounting (square unless a boresight fault is set)."""
+        return Boresight(math.radians(self.spec.boresight_deg), math.radians(self.spec.sweep_yaw_deg))
 
     def wall_clock(self, true_wall_s: Callable[[], float]) -> Callable[[], float]:
         """The companion's wall clock (Unix s) as the payload reads it: the true one, plus any jump."""

@@ -22,7 +22,7 @@ from typing import BinaryIO, NamedTuple
 import numpy as np
 
 from firmware_py.app import PayloadApp, PayloadConfig, PayloadResult
-from firmware_py.core.frames import StorageFrame, beam_ray_w
+from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_ray_w
 from firmware_py.core.servo_model import ServoCalibration
 from firmware_py.hal import PwmOutput
 from firmware_py.hal.clock import SimClock
@@ -99,10 +99,11 @@ def pose_from_history(hist, ts: float) -> TruePose:
                     s0.pitch_rad + (s1.pitch_rad - s0.pitch_rad) * w, wrap_pi(yaw))
 
 
-def beam_range_m(world: World, frame: StorageFrame, lever_arm_body_m, pose: TruePose, servo_rad: float) -> float | None:
+def beam_range_m(world: World, frame: StorageFrame, lever_arm_body_m, pose: TruePose, servo_rad: float,
+                 boresight: Boresight = SQUARE) -> float | None:
     """What the LiDAR sees from a true pose at a true servo angle (None: no return within range)."""
     o, d = beam_ray_w(pose.pos_ned_m, pose.roll_rad, pose.pitch_rad, pose.yaw_rad, servo_rad, lever_arm_body_m,
-                      frame)
+                      frame, boresight)
     r = world.cast_one(o, d)
     return None if not math.isfinite(r) else r
 
@@ -131,6 +132,7 @@ class SimWorld:
         self._hist.append((self._vehicle_t_s, plant_state_of(vehicle)))
         self.history: list[tuple[float, PlantState]] = [self._hist[-1]]  # the whole true flight
         self.servo_angle_at = None  # set by the runner: t_ns -> true shaft angle
+        self.boresight = SQUARE  # the beam's true mounting (a fault may tilt it)
         clock.set_advance(self.advance_to)
 
     # -- the payload's end of the MAVLink link ---------------------------------------------------
@@ -180,7 +182,7 @@ class SimWorld:
     def true_range_m(self, t_ns: int) -> float | None:
         """What the LiDAR sees at companion time t_ns: true pose, true servo angle, ray traced."""
         gamma = self.servo_angle_at(t_ns) if self.servo_angle_at else 0.0
-        return beam_range_m(self.world, self.frame, self.lever, self.pose_at(t_ns), gamma)
+        return beam_range_m(self.world, self.frame, self.lever, self.pose_at(t_ns), gamma, self.boresight)
 
 
 class _ServerSide:
@@ -351,6 +353,7 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     bus.attach(0x62, part)
     if inj is not None:
         inj.attach(bus, part, plant)
+        sim.boresight = inj.boresight
     power = _Power()
     link = ByteStreamLink(lambda data: sim.payload_send(data) if power.on else None, sim.payload_recv,
                           signing=payload_signer)

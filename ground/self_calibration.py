@@ -1,0 +1,261 @@
+"""Self-calibration from the building: the servo's zero and scale and the LiDAR's boresight, estimated
+from the planes every survey sees.
+
+A real servo is never where its calibration says, and a LiDAR is never glued on square: the true beam
+is at gamma' = offset + (1 + scale) gamma (gamma the logged, modelled angle) and leans out of the
+sweep plane by the boresight (`firmware_py.core.frames.Boresight`: a tilt out of the plane and a yaw of
+the servo axis). Each of these bends the floor and the walls in the cloud in its own way: an offset
+tilts the floor seen across a sweep, a scale error curls it up or down towards the sweep's ends, a
+tilt shifts the floor under the track and the walls along it, a yaw twists the walls at the sweep's
+ends. The floor (z = 0) and the four walls are known planes (the log header's storage), so the four
+parameters are those that put the structure points back on their planes: robust least squares
+(scipy's soft-L1 loss) over the points near a plane, the window shrinking from what a few degrees of
+misalignment can do down to the sensor's own error (the header's sensor model) as the fit converges.
+Pile points that fall inside a window are outliers to the loss.
+
+How sure: the samples are split into eight interleaved groups of whole sweeps (every eighth sweep),
+each group fitted on its own; the spread of the eight estimates (not the point count, which ignores
+that points along one sweep share their errors) gives each parameter's standard error. A parameter
+is applied only when it is both significant (beyond 3 standard errors) and large enough to matter: it
+moves a structure point at the survey's median range by more than the sensor's range sigma there.
+So a fault-free survey gets no correction, and the report says what was found and why not applied.
+
+Why this does not fight the servo re-timing (`ground.servo_timing`): a late or slow servo shows as a
+disagreement between the two sweep directions, an offset, a scale error and a boresight do not (they
+move both directions alike), so the timing is fixed first and this fit sees the re-timed angles.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from firmware_py.core.frames import Boresight, StorageFrame, points_w
+from firmware_py.core.servo_model import command_angles, servo_angles
+from firmware_py.core.storage import Storage
+from ground.servo_timing import Resimulated
+
+N_GROUPS = 8
+"""Interleaved groups of sweeps for the standard errors."""
+N_SIGNIFICANT = 3.0
+"""A parameter is applied when beyond this many standard errors (and large enough to matter)."""
+MAX_POINTS = 20_000
+"""Points used in the fit (evenly spaced in time); the planes need far fewer."""
+START_WINDOW_RAD = math.radians(5.0)
+"""The first window: what 5 deg of misalignment moves a point at its range."""
+PARAMS = ("servo_offset_rad", "servo_scale", "boresight_tilt_rad", "sweep_yaw_rad")
+
+
+@dataclass(frozen=True)
+class MountEstimate:
+    """What the fit found, and what is applied.
+
+    Attributes:
+        values: the four parameters (PARAMS order), as estimated.
+        std_errors: their standard errors (from the spread over sweep groups).
+        applied: which of them are applied (significant and large enough to matter).
+        points: structure points in the final fit, per plane (floor, x=0, x=L, y=0, y=W).
+        rms_before_m, rms_after_m: robust RMS distance of those points from their planes.
+        reason: one line when nothing could be estimated (too few structure points).
+    """
+
+    values: tuple[float, float, float, float]
+    std_errors: tuple[float, float, float, float]
+    applied: tuple[bool, bool, bool, bool]
+    points: tuple[int, int, int, int, int]
+    rms_before_m: float
+    rms_after_m: float
+    reason: str | None = None
+
+    @property
+    def any_applied(self) -> bool:
+        return any(self.applied)
+
+    def correction(self) -> tuple[float, float, Boresight]:
+        """(offset rad, scale, boresight) to apply: the applied parameters, zero for the rest."""
+        v = [x if a else 0.0 for x, a in zip(self.values, self.applied, strict=True)]
+        return v[0], v[1], Boresight(v[2], v[3])
+
+    def corrected_angles(self, servo_rad: np.ndarray) -> np.ndarray:
+        offset, scale, _ = self.correction()
+        return offset + (1.0 + scale) * np.asarray(servo_rad, dtype=float)
+
+    def as_dict(self) -> dict:
+        deg = (True, False, True, True)
+        out = {}
+        for name, v, e, a, is_angle in zip(PARAMS, self.values, self.std_errors, self.applied, deg, strict=True):
+            key = name.replace("_rad", "_deg") if is_angle else name
+            f = math.degrees if is_angle else (lambda x: x)
+            out[key] = {"estimate": f(v), "std_error": f(e), "applied": a}
+        out.update(points_per_plane=dict(zip(("floor", "x0", "xL", "y0", "yW"), self.points, strict=True)),
+                   rms_before_m=self.rms_before_m, rms_after_m=self.rms_after_m, reason=self.reason)
+        return out
+
+
+def not_estimated(reason: str, points: tuple[int, int, int, int, int] = (0,) * 5) -> MountEstimate:
+    """No estimate, and why (nothing is applied)."""
+    return MountEstimate((0.0,) * 4, (0.0,) * 4, (False,) * 4, points, 0.0, 0.0, reason)
+
+
+def _planes(storage: Storage) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (5, 3) and offsets (5,) of the floor and the four walls: n . p = d."""
+    n = np.array([[0, 0, 1], [1, 0, 0], [1, 0, 0], [0, 1, 0], [0, 1, 0]], dtype=float)
+    d = np.array([0.0, 0.0, storage.length_m, 0.0, storage.width_m])
+    return n, d
+
+
+class ServoAngles:
+    """The shaft angle of a servo whose zero and scale differ from its calibration by (offset, scale).
+
+    With the header's drive (`Resimulated`: waveform, calibration, sweep start) the firmware's own
+    servo model is run again on the pulses it sent, read by the true servo as (1 + scale) times the
+    commanded angle plus the offset, slewing at its rated speed: a servo that turns 5 % more per
+    pulse also hits its slew limit sooner, which a plain scale of the logged angles misses (up to
+    4 deg on the paper's sweep). The logged angle plus the difference true minus nominal is used, so
+    the re-simulation's own small differences from the payload's model cancel (`Resimulated.apply`).
+    Without the drive: offset + (1 + scale) times the logged angle. The offset adds exactly either
+    way (the model's slew and lag act on the error between target and shaft, which a common offset
+    leaves alone), so only a new scale costs a re-simulation.
+    """
+
+    def __init__(self, samples: np.ndarray, resim: Resimulated | None) -> None:
+        self.logged = samples["servo_rad"].astype(float)
+        self.resim = resim
+        self._cache: dict[float, np.ndarray] = {}
+        if resim is not None:
+            self.t = samples["t_s"].astype(float) - resim.t0_s
+            end = float(self.t.max()) if len(self.t) else 0.0
+            self.cmd_t = np.arange(0.0, end + resim.frame_s, resim.frame_s)
+            self.cmd = command_angles(resim.waveform, resim.cal, self.cmd_t, resim.frame_s)
+            self.angle0 = float(resim.waveform.angle(0.0))
+            self.nominal = self._sim(0.0)
+
+    def _sim(self, scale: float) -> np.ndarray:
+        r = self.resim
+        return servo_angles(self.t, self.cmd_t, (1.0 + scale) * self.cmd, r.cal, (1.0 + scale) * self.angle0)
+
+    def __call__(self, offset: float, scale: float) -> np.ndarray:
+        if self.resim is None:
+            return offset + (1.0 + scale) * self.logged
+        got = self._cache.get(scale)
+        if got is None:  # most evaluations (the Jacobian's other columns) reuse a scale
+            if len(self._cache) > 8:
+                self._cache.clear()
+            got = self._cache[scale] = self.logged + self._sim(scale) - self.nominal
+        return got + offset
+
+
+class _Problem:
+    """The samples' geometry, fixed, and the points as a function of the four parameters."""
+
+    def __init__(self, s: np.ndarray, lever, frame: StorageFrame, resim: Resimulated | None) -> None:
+        self.pos = np.stack([s["x_m"], s["y_m"], s["z_m"]], axis=1)
+        self.roll, self.pitch, self.yaw = s["roll_rad"], s["pitch_rad"], s["yaw_rad"]
+        self.gamma, self.range_m = s["servo_rad"].astype(float), s["range_m"].astype(float)
+        self.lever, self.frame = lever, frame
+        self.angles = ServoAngles(s, resim)
+
+    def points(self, q: np.ndarray, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
+        g = self.angles(float(q[0]), float(q[1]))[idx]
+        return points_w(self.pos[idx], self.roll[idx], self.pitch[idx], self.yaw[idx], g, self.range_m[idx],
+                        self.lever, self.frame, Boresight(float(q[2]), float(q[3])))
+
+
+def _assign(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(plane index, signed distance) of each point's nearest plane, index -1 outside its window."""
+    dist = p @ n.T - d  # (N, 5)
+    j = np.argmin(np.abs(dist), axis=1)
+    r = dist[np.arange(len(p)), j]
+    j = np.where(np.abs(r) <= window, j, -1)
+    return j, r
+
+
+def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.ndarray,
+         windows: list[np.ndarray], loss: str = "arctan") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fit the points `idx` over a shrinking window (per-point arrays, m); returns (q, plane index,
+    residual m) of the last round, for the points `idx`.
+
+    Each round takes the points within three windows of their nearest plane and a bounded-influence
+    loss (arctan) of their distance in windows: a point more than about a window off counts for
+    little whatever its distance, so the pile surface near a wall or the floor cannot drag the fit,
+    and shrinking the window walks the fit from the coarse basin into the exact one.
+    """
+    q = q0.copy()
+    for window in windows:
+        w_idx = window[idx]
+        j, _ = _assign(prob.points(q, idx), n, d, (3.0 if loss == "arctan" else 1.0) * w_idx)
+        keep = j >= 0
+        sel = idx[keep]
+        if len(sel) < 50:
+            break
+        nj, dj, wj = n[j[keep]], d[j[keep]], w_idx[keep]
+
+        def resid(qq, sel=sel, nj=nj, dj=dj, wj=wj):
+            return (np.einsum("ij,ij->i", prob.points(qq, sel), nj) - dj) / wj
+
+        q = least_squares(resid, q, loss=loss, f_scale=1.0, x_scale=np.array([0.01, 0.01, 0.01, 0.01]),
+                          diff_step=1e-6, max_nfev=80).x
+    j, r = _assign(prob.points(q, idx), n, d, 3.0 * windows[-1][idx])
+    return q, j, r
+
+
+def _robust_rms(r: np.ndarray) -> float:
+    return float(1.4826 * np.median(np.abs(r))) if len(r) else 0.0
+
+
+def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, storage: Storage,
+                   range_sigma_m: float, range_sigma_rel: float, resim: Resimulated | None = None) -> MountEstimate:
+    """Estimate the servo offset and scale and the boresight from the building (module docstring).
+
+    Args:
+        samples: the survey's usable samples (SAMPLE_DTYPE, flags already filtered), in time order.
+        lever_arm_body_m, frame, storage: the log header's geometry.
+        range_sigma_m, range_sigma_rel: the header's sensor model (1 sigma, short range / relative).
+        resim: how the servo was driven (`Resimulated.from_header`), for the exact servo model; None:
+            the logged angles scaled and offset.
+    """
+    s = samples[np.isfinite(samples["range_m"]) & (samples["range_m"] > 0)]
+    if len(s) < 1000:
+        return not_estimated(f"too few usable samples ({len(s)}) to calibrate from the building")
+    stride = max(1, len(s) // MAX_POINTS)
+    s = s[::stride]
+    prob = _Problem(s, np.asarray(lever_arm_body_m, dtype=float), frame, resim)
+    n, d = _planes(storage)
+    rng_m = prob.range_m
+    sigma = np.maximum(range_sigma_m, range_sigma_rel * rng_m)  # the header's 1-sigma range error
+    idx_all = np.arange(len(s))
+    q0 = np.zeros(4)
+    coarse = [np.maximum(START_WINDOW_RAD * rng_m / 2 ** k, 3.0 * sigma) for k in range(5)]
+    q, j, r = _fit(prob, idx_all, n, d, q0, coarse, loss="soft_l1")
+    # The last window is what the data achieve, not the datasheet: the structure points' robust spread
+    # in sensor sigmas (a simulated or a good sensor beats its datasheet), never under 2 mm.
+    kappa = _robust_rms(r[j >= 0] / np.maximum(sigma[j >= 0], 1e-9))
+    final = np.maximum(kappa * sigma, 0.002)
+    windows = [np.maximum(sigma, final), final]
+    q, j, r = _fit(prob, idx_all, n, d, q, windows)
+    counts = tuple(int(np.count_nonzero(j == k)) for k in range(5))
+    if counts[0] < 200 or sum(counts[1:]) < 200:
+        return not_estimated(f"the building's floor and walls were seen too little to calibrate from "
+                             f"({counts[0]} floor and {sum(counts[1:])} wall points)", counts)
+    # Standard errors: the same fit on every 8th sweep (whole sweeps share their errors).
+    flips = np.concatenate([[0], np.cumsum(np.diff(s["sweep_dir"].astype(np.int64)) != 0)])
+    group = flips % N_GROUPS
+    ests = []
+    for k in range(N_GROUPS):
+        ests.append(_fit(prob, idx_all[group == k], n, d, q, windows[-1:])[0])
+    se = np.std(np.array(ests), axis=0, ddof=1) / math.sqrt(N_GROUPS)
+    # Large enough to matter: the point displacement at the median structure range vs the sensor sigma.
+    on = j >= 0
+    r_med = float(np.median(rng_m[on]))
+    g_med = float(np.median(np.abs(prob.gamma[on])))
+    reach = np.array([r_med, r_med * g_med, r_med, r_med * math.sin(g_med)])
+    noise = max(range_sigma_m, range_sigma_rel * r_med, 0.005)
+    applied = tuple(bool(abs(v) > N_SIGNIFICANT * e and abs(v) * m > noise)
+                    for v, e, m in zip(q, se, reach, strict=True))
+    # The same points, on the same planes, before the correction: what it changed.
+    r0 = np.einsum("ij,ij->i", prob.points(q0, idx_all[on]), n[j[on]]) - d[j[on]]
+    return MountEstimate(tuple(float(v) for v in q), tuple(float(v) for v in se), applied, counts,
+                         _robust_rms(r0), _robust_rms(r[on]))

@@ -1,0 +1,67 @@
+"""Self-calibration from the building: a mis-mounted LiDAR on a mis-calibrated servo, flown in the
+SITL (the firmware in the loop), is found from the floor and walls; a square one is left alone."""
+
+import math
+
+import numpy as np
+import pytest
+
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.samplelog import SAMPLE_DTYPE, read_samplelog
+from firmware_py.core.storage import Storage
+from ground.self_calibration import estimate_mount, not_estimated
+from ground.servo_timing import Resimulated
+from sitl.faults.injector import FaultSpec
+from sitl.missions.rectangle import Mission
+from sitl.runners.fly import FlyConfig, fly
+
+STORAGE = Storage(30, 20, 10)
+
+
+def _estimate(tmp_path, faults):
+    cfg = FlyConfig(mission=Mission(storage=STORAGE, p_traj=0.2, altitude_m=8.0), stockpile="1", faults=faults,
+                    payload="firmware")
+    fly(cfg, tmp_path / "run", force=True)
+    log = read_samplelog(tmp_path / "run" / "samples.pslog")
+    h = log.header
+    s = log.samples[log.samples["flags"] == 0]
+    return estimate_mount(s, h["lever_arm_body_m"], StorageFrame(), STORAGE, h["sensor"]["range_sigma_m"],
+                          h["sensor"]["range_sigma_rel"], Resimulated.from_header(h))
+
+
+@pytest.fixture(scope="module")
+def square(tmp_path_factory):
+    return _estimate(tmp_path_factory.mktemp("square"), None)
+
+
+@pytest.fixture(scope="module")
+def skewed(tmp_path_factory):
+    faults = FaultSpec(servo_offset_deg=3.0, servo_scale_pct=5.0, boresight_deg=2.0)
+    return _estimate(tmp_path_factory.mktemp("skewed"), faults)
+
+
+def test_that_a_square_mount_gets_no_correction(square):
+    assert square.reason is None and not square.any_applied
+    assert sum(square.points) > 1000
+
+
+def test_that_offset_scale_and_tilt_together_are_each_found(skewed):
+    offset, scale, tilt, _ = skewed.values
+    assert math.degrees(offset) == pytest.approx(3.0, abs=0.1)
+    assert scale == pytest.approx(0.05, abs=0.005)
+    assert math.degrees(tilt) == pytest.approx(2.0, abs=0.2)
+    assert skewed.applied[:3] == (True, True, True)
+    assert skewed.rms_after_m < skewed.rms_before_m / 5
+
+
+def test_that_each_estimate_is_within_a_few_of_its_own_standard_errors_or_a_tenth_degree(skewed):
+    truth = (math.radians(3.0), 0.05, math.radians(2.0))
+    for v, e, t in zip(skewed.values[:3], skewed.std_errors[:3], truth, strict=True):
+        assert abs(v - t) <= max(5 * e, math.radians(0.1))
+
+
+def test_that_too_few_samples_say_why_and_apply_nothing():
+    est = estimate_mount(np.zeros(10, dtype=SAMPLE_DTYPE), (0, 0, 0), StorageFrame(),
+                         STORAGE, 0.025, 0.01)
+    assert not est.any_applied and "too few usable samples" in est.reason
+    assert not_estimated("x").correction()[0] == 0.0
