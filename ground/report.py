@@ -38,8 +38,9 @@ from ground.surface import (
 LOW_COVERAGE_PCT = 95.0
 HIGH_EXCLUDED_FRACTION = 0.5
 GRID_BYTES_PER_CELL = 200
-"""Peak memory of the surface pipeline per grid cell, measured: `report --cell 0.01` on a 60 x 40 m floor
-(24 M cells) peaked at 4.7 GB, 196 B a cell (cell centres, Delaunay lookups, fit, fill, counts, figures)."""
+"""Peak memory of the report per grid cell, measured with its figures (cell centres, Delaunay lookups, fit,
+fill, counts, plots): 205 B at 0.05 m and 211 B at 0.03 m cells on the golden log (peak RSS less the 150 MB
+of a 1 m-cell run); `--cell 0.01` (24 M cells) peaked at 4.7 GB, 196 B a cell."""
 DEFAULT_MAX_GRID_MEMORY_BYTES = 2 * 1024**3
 """Default memory allowed for the grid: 2 GiB, 10.7 M cells (60 x 40 m down to 1.5 cm cells)."""
 
@@ -135,13 +136,19 @@ def check_grid_memory(storage: Storage, cell_m: float, max_bytes: int) -> None:
     the smallest cell that fits, instead of running the machine out of memory."""
     if not (math.isfinite(cell_m) and cell_m > 0):
         return  # Grid names a bad cell size itself
-    cells = max(1, round(storage.length_m / cell_m)) * max(1, round(storage.width_m / cell_m))
-    need = cells * GRID_BYTES_PER_CELL
+
+    def cells(c: float) -> int:
+        return max(1, round(storage.length_m / c)) * max(1, round(storage.width_m / c))
+
+    need = cells(cell_m) * GRID_BYTES_PER_CELL
     if need > max_bytes:
-        smallest = math.sqrt(storage.floor_area_m2 * GRID_BYTES_PER_CELL / max_bytes)
-        raise UserError(f"a {storage.length_m:g} x {storage.width_m:g} m floor in {cell_m:g} m cells is {cells:,} "
-                        f"cells, about {need / 1e9:.1f} GB, more than the {max_bytes / 1e9:.1f} GB allowed: use "
-                        f"--cell {math.ceil(smallest * 1000) / 1000:g} or larger (or raise --max-grid-memory-mb)")
+        fits = math.ceil(math.sqrt(storage.floor_area_m2 * GRID_BYTES_PER_CELL / max_bytes) * 1000) / 1000
+        while cells(fits) * GRID_BYTES_PER_CELL > max_bytes:  # rounding to whole cells can add a row
+            fits += 0.001
+        raise UserError(f"a {storage.length_m:g} x {storage.width_m:g} m floor in {cell_m:g} m cells is "
+                        f"{cells(cell_m):,} cells, about {need / 2**20:,.0f} MiB, more than the "
+                        f"{max_bytes / 2**20:,.0f} MiB allowed: use --cell {fits:.3g} or larger (or raise "
+                        "--max-grid-memory-mb)")
 
 
 def _sweep_period_s(header: dict) -> float | None:
@@ -214,7 +221,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
                         f"truncated block(s) skipped ({log.bytes_skipped} bytes)")
     if survey.cloud.n_samples and survey.cloud.n_excluded / survey.cloud.n_samples > HIGH_EXCLUDED_FRACTION:
         warnings.append(f"{survey.cloud.n_excluded} of {survey.cloud.n_samples} samples unusable "
-                        "(no return, stale pose or sensor error)")
+                        "(no return, stale pose, sensor error or implausible)")
     if ra < LOW_COVERAGE_PCT:
         warnings.append(f"only {ra:.1f} % of the floor is reconstructed (R_a); the volume misses the "
                         "uncovered cells" if opts.empty_cells == "leave" else

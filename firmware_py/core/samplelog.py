@@ -355,7 +355,10 @@ class UnsupportedLogFormat(ValueError):
 
 
 def _layout_text(layout: Any) -> str:
-    text = json.dumps(layout) if not isinstance(layout, str) else layout
+    try:
+        text = json.dumps(layout)
+    except (TypeError, ValueError):
+        text = repr(layout)
     return text if len(text) <= 80 else text[:77] + "..."
 
 
