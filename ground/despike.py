@@ -160,6 +160,9 @@ class SpikeThreshold:
         servo = header.get("servo") or {}
         if not isinstance(sensor, dict) or not isinstance(servo, dict):
             return None
+        if not all(_finite(d.get(k)) for d, k in ((sensor, "rate_hz"), (servo, "shape_c"), (servo, "frequency_hz"),
+                                                     (servo, "amplitude_rad"))):
+            return None  # absent, or not a number (a JSON true is not 1 Hz)
         try:
             rate_hz = float(sensor["rate_hz"])
             omega = peak_rate(float(servo["shape_c"]), float(servo["frequency_hz"]), float(servo["amplitude_rad"]))

@@ -134,8 +134,7 @@ def header_geometry(log: SampleLog, path: Path) -> tuple[Storage, StorageFrame, 
 def check_grid_memory(storage: Storage, cell_m: float, max_bytes: int) -> None:
     """Refuse a cell size whose grid would need more than max_bytes (GRID_BYTES_PER_CELL a cell), naming
     the smallest cell that fits, instead of running the machine out of memory."""
-    if not (math.isfinite(cell_m) and cell_m > 0):
-        return  # Grid names a bad cell size itself
+    Grid(storage.length_m, storage.width_m, cell_m)  # its own checks first (cell size range, MAX_CELLS)
 
     def cells(c: float) -> int:
         return max(1, round(storage.length_m / c)) * max(1, round(storage.width_m / c))
@@ -147,15 +146,15 @@ def check_grid_memory(storage: Storage, cell_m: float, max_bytes: int) -> None:
             fits += 0.001
         raise UserError(f"a {storage.length_m:g} x {storage.width_m:g} m floor in {cell_m:g} m cells is "
                         f"{cells(cell_m):,} cells, about {need / 2**20:,.0f} MiB, more than the "
-                        f"{max_bytes / 2**20:,.0f} MiB allowed: use --cell {fits:.3g} or larger (or raise "
-                        "--max-grid-memory-mb)")
+                        f"{max_bytes / 2**20:,.0f} MiB allowed: use a larger cell size, --cell {fits:.3g} or more "
+                        "(or raise --max-grid-memory-mb)")
 
 
 def _sweep_period_s(header: dict) -> float | None:
     """The servo's sweep period from the log header (None: unknown, no stuck-servo check)."""
-    try:
-        f = float((header.get("servo") or {})["frequency_hz"])
-    except (KeyError, TypeError, ValueError):
+    servo = header.get("servo")
+    f = servo.get("frequency_hz") if isinstance(servo, dict) else None
+    if isinstance(f, bool) or not isinstance(f, int | float):
         return None
     return 1.0 / f if np.isfinite(f) and f > 0 else None
 

@@ -142,11 +142,12 @@ def json_object(value: Any, where: str) -> dict[str, Any]:
 
 def json_number(value: Any, where: str, *, minimum: float | None = None, positive: bool = False) -> float:
     """value as a finite float; JSON booleans are refused (True is not 1 m)."""
+    kind = "a positive number" if positive else "a finite number"
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise InputError(f"{where} must be a finite number, got {_json_type(value)} {value!r}")
+        raise InputError(f"{where} must be {kind}, got {_json_type(value)} {value!r}")
     v = float(value)
     if positive and v <= 0:
-        raise InputError(f"{where} must be > 0, got {v:g}")
+        raise InputError(f"{where} must be {kind}, got {v:g}")
     if minimum is not None and v < minimum:
         raise InputError(f"{where} must be >= {minimum:g}, got {v:g}")
     return v

@@ -290,7 +290,7 @@ def load_mesh(path: str | Path, storage: Storage, *, max_triangles: int = MAX_ME
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"stockpile mesh not found: {path}" if not path.exists() else
-                         f"stockpile mesh {path} is not a regular file")
+                         f"stockpile mesh not found: {path} is not a regular file")
     mesh = _read_mesh(path, max_triangles)
     v = mesh.vertices
     tol = 1e-6 * max(storage.length_m, storage.width_m)

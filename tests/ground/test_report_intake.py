@@ -70,7 +70,7 @@ def test_that_a_sparse_multi_gigabyte_log_is_refused_by_its_size(tmp_path, capsy
 
 @pytest.mark.parametrize("truth, why", [
     ("[" * 100_000 + "]" * 100_000, "deeper than"),
-    ('{"true_volume_m3": true}', "must be a finite number, got a boolean"),
+    ('{"true_volume_m3": true}', "must be a positive number, got a boolean"),
     ('{"true_volume_m3": NaN}', "not valid JSON"),
     ("[1]", "must be a JSON object"),
 ])
@@ -155,8 +155,22 @@ def test_that_despiking_without_the_waveform_says_it_did_not_run(golden, tmp_pat
 def test_that_a_grid_too_fine_for_the_memory_bound_is_refused_naming_a_cell_that_fits(golden, tmp_path, capsys):
     log = write_log(tmp_path / "c.pslog", *golden)
     err = one_line_error(capsys, ["report", str(log), "--out", str(tmp_path / "o"), "--cell", "0.01"])
-    assert "24,000,000 cells" in err and "--cell 0.015 or larger" in err
-    with pytest.raises(UserError, match=r"--cell 0\.\d+ or larger") as info:
+    assert "24,000,000 cells" in err and "--cell 0.015 or more" in err
+    with pytest.raises(UserError, match=r"--cell 0\.\d+ or more") as info:
         report(log, tmp_path, cell_m=0.25, max_grid_memory_bytes=2_000_000)
     suggested = float(str(info.value).split("--cell ")[1].split()[0])
     check_grid_memory(Storage(), suggested, 2_000_000)  # the size it names does fit
+
+
+def test_that_a_bin_grid_beyond_the_memory_bound_is_refused_before_allocating():
+    from ground.binning import HeightBinner
+    from ground.pointcloud import SensorErrorModel
+    with pytest.raises(ValueError, match="more than the 1 MiB allowed"):
+        HeightBinner(Storage(), SensorErrorModel(), bin_m=0.05, max_memory_bytes=2**20)
+
+
+def test_that_a_json_true_is_not_a_sample_rate_for_despiking(golden):
+    from ground.despike import SpikeThreshold, why_no_threshold
+    h = copy.deepcopy(golden[0])
+    h["sensor"]["rate_hz"] = True
+    assert SpikeThreshold.from_header(h) is None and "sensor.rate_hz" in why_no_threshold(h)

@@ -87,7 +87,7 @@ def test_that_a_json_boolean_or_non_number_is_not_a_number(value) -> None:
 
 def test_that_numbers_pass_and_positivity_is_checked() -> None:
     assert json_number(3, "x") == 3.0 and isinstance(json_number(3, "x"), float)
-    with pytest.raises(InputError, match="must be > 0"):
+    with pytest.raises(InputError, match="must be a positive number, got 0"):
         json_number(0, "x", positive=True)
     with pytest.raises(InputError, match="JSON object"):
         json_object([1], "x")
