@@ -81,10 +81,10 @@ def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
     src = Path(source)
     if src.is_dir():
         log = src / SAMPLES_FILE
-        if not log.is_file():
+        if not log.exists():
             raise UserError(f"{src} is a directory without a {SAMPLES_FILE} sample log")
-        truth = src / TRUTH_FILE
-        return log, truth if truth.is_file() else None
+        truth = src / TRUTH_FILE  # present but not a regular file (a FIFO, a directory): refused when read
+        return log, truth if truth.exists() else None
     if not src.exists():
         raise UserError(f"no such run directory or sample log: {src}")
     return src, None

@@ -174,3 +174,23 @@ def test_that_a_json_true_is_not_a_sample_rate_for_despiking(golden):
     h = copy.deepcopy(golden[0])
     h["sensor"]["rate_hz"] = True
     assert SpikeThreshold.from_header(h) is None and "sensor.rate_hz" in why_no_threshold(h)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+@pytest.mark.parametrize("name", ["truth.json", "samples.pslog"])
+def test_that_a_fifo_in_a_run_directory_is_refused_not_skipped_or_waited_on(golden, tmp_path, capsys, name):
+    run = tmp_path / "run"
+    run.mkdir()
+    os.mkfifo(run / name)
+    if name != "samples.pslog":
+        write_log(run / "samples.pslog", *golden)
+    err = one_line_error(capsys, ["report", str(run), "--out", str(tmp_path / "o"), "--no-plots"])
+    assert "FIFO" in err and name in err
+
+
+def test_that_a_directory_named_truth_json_is_refused(golden, tmp_path, capsys):
+    run = tmp_path / "run"
+    (run / "truth.json").mkdir(parents=True)
+    write_log(run / "samples.pslog", *golden)
+    err = one_line_error(capsys, ["report", str(run), "--out", str(tmp_path / "o"), "--no-plots"])
+    assert "truth.json is a directory" in err
