@@ -16,7 +16,7 @@ import numpy as np
 
 from firmware_py.core.storage import Storage
 from ground.pointcloud import N_SIGMA, Cloud, SensorErrorModel, structure_mask
-from ground.report import ReportOptions, Survey
+from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, Survey, check_grid_memory
 from ground.surface import Grid, clip_to_building, fill_empty, fit_heights
 
 DEFAULT_BIN_M = 0.1
@@ -25,6 +25,9 @@ bin's mean point lies on a plane through its points, and a pile's curvature over
 sub-millimetre), while a 3D LiDAR's tens of millions of points shrink to <= 240k bins over a
 60 x 40 m floor: a Delaunay triangulation the surface fit handles in seconds."""
 
+
+BIN_BYTES = 4 * 8 + 3 * 8
+"""Memory per floor bin: the four accumulators, plus the bincount temporaries of one `add`."""
 
 N_SIGMA_MANY = 6.0
 """Wall/roof tolerance in expected errors. The 1D's 3 sigma lets 0.27 % of structure points through;
@@ -42,7 +45,7 @@ class HeightBinner:
     """
 
     def __init__(self, storage: Storage, error_model: SensorErrorModel, bin_m: float = DEFAULT_BIN_M,
-                 n_sigma: float = N_SIGMA_MANY) -> None:
+                 n_sigma: float = N_SIGMA_MANY, max_memory_bytes: int = DEFAULT_MAX_GRID_MEMORY_BYTES) -> None:
         if not (math.isfinite(bin_m) and 0.01 <= bin_m <= min(storage.length_m, storage.width_m)):
             raise ValueError(f"bin size must be between 0.01 m and the building's width, got {bin_m}")
         if not (math.isfinite(n_sigma) and n_sigma > 0):
@@ -57,6 +60,10 @@ class HeightBinner:
         self.bin_m = float(bin_m)
         self.shape = (max(1, round(storage.length_m / bin_m)), max(1, round(storage.width_m / bin_m)))
         n = self.shape[0] * self.shape[1]
+        if n * BIN_BYTES > max_memory_bytes:  # a fine bin over a big floor: refuse, not MemoryError later
+            raise ValueError(f"{n:,} bins of {bin_m:g} m over a {storage.length_m:g} x {storage.width_m:g} m floor "
+                             f"need {n * BIN_BYTES / 2**20:,.0f} MiB, more than the {max_memory_bytes / 2**20:,.0f} "
+                             "MiB allowed: use a larger bin size")
         self.sum_x = np.zeros(n)
         self.sum_y = np.zeros(n)
         self.sum_z = np.zeros(n)
@@ -118,6 +125,7 @@ def survey_from_points(binner: HeightBinner, storage: Storage, opts: ReportOptio
     many beams each, so their directions and ranges are NaN; n_samples counts the points streamed
     in. path_w (optional) is the flown path for plots. `counts` are raw points per volume cell.
     """
+    check_grid_memory(storage, opts.cell_m, opts.max_grid_memory_bytes)
     pile = binner.points()
     grid = Grid(storage.length_m, storage.width_m, opts.cell_m)
     fit, n_clipped = clip_to_building(fit_heights(pile, grid, opts.surface_fit), storage.height_m)

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from firmware_py.core.cli import ArgumentParser, UserError, finite_float, run_cli
 from firmware_py.core.version import software_version
 from ground import listen
-from ground.report import ReportOptions, make_report
+from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, make_report
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
 
 
@@ -37,6 +37,9 @@ def build_parser() -> ArgumentParser:
     r.add_argument("--no-servo-retiming", action="store_true",
                    help="when the two sweep directions disagree, only warn (default: re-estimate the servo's dead "
                         "time and speed from the sweeps and use them if they agree; see ground/servo_timing.py)")
+    r.add_argument("--max-grid-memory-mb", type=finite_float, default=DEFAULT_MAX_GRID_MEMORY_BYTES / 2**20,
+                   metavar="MB", help="refuse a --cell whose grid would need more memory than this (default "
+                                      f"{DEFAULT_MAX_GRID_MEMORY_BYTES // 2**20} MiB)")
     r.add_argument("--quiet", action="store_true", help="print nothing but errors")
     ls = sub.add_parser("listen", help="receive the payload's live sample stream (pilescan-payload --stream) "
                                        "into a sample log, with a status line and a summary")
@@ -80,9 +83,12 @@ def format_summary(rep: dict) -> str:
 def _report(args) -> int:
     if args.truth_volume is not None and args.truth_volume <= 0:
         raise UserError(f"--truth-volume must be > 0 m^3, got {args.truth_volume:g}")
+    if args.max_grid_memory_mb <= 0:
+        raise UserError(f"--max-grid-memory-mb must be > 0, got {args.max_grid_memory_mb:g}")
     opts = ReportOptions(cell_m=args.cell, empty_cells=args.empty_cells, plots=not args.no_plots,
                          truth_volume_m3=args.truth_volume, despike=not args.no_despike,
-                         surface_fit=args.surface_fit, servo_retiming=not args.no_servo_retiming)
+                         surface_fit=args.surface_fit, servo_retiming=not args.no_servo_retiming,
+                         max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20))
     rep = make_report(args.source, args.out, opts)
     if not args.quiet:
         print(format_summary(rep))

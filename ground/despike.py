@@ -160,6 +160,9 @@ class SpikeThreshold:
         servo = header.get("servo") or {}
         if not isinstance(sensor, dict) or not isinstance(servo, dict):
             return None
+        if not all(_finite(d.get(k)) for d, k in ((sensor, "rate_hz"), (servo, "shape_c"), (servo, "frequency_hz"),
+                                                     (servo, "amplitude_rad"))):
+            return None  # absent, or not a number (a JSON true is not 1 Hz)
         try:
             rate_hz = float(sensor["rate_hz"])
             omega = peak_rate(float(servo["shape_c"]), float(servo["frequency_hz"]), float(servo["amplitude_rad"]))
@@ -170,6 +173,28 @@ class SpikeThreshold:
                        max_turn_rad=math.radians(max_turn_deg), max_incidence_rad=math.radians(max_incidence_deg))
         except (KeyError, TypeError, ValueError, ZeroDivisionError, OverflowError):
             return None
+
+
+def why_no_threshold(header: dict) -> str | None:
+    """Why `SpikeThreshold.from_header` gives None for this header (one line naming what is missing or
+    bad), or None when it gives a threshold: a report must not say despiking ran when it could not."""
+    if SpikeThreshold.from_header(header) is not None:
+        return None
+    sensor = header.get("sensor")
+    servo = header.get("servo")
+    bad = [f"sensor.{k}" for k in ("rate_hz",) if not (isinstance(sensor, dict) and _positive(sensor.get(k)))]
+    bad += [f"servo.{k}" for k in ("shape_c", "frequency_hz", "amplitude_rad")
+            if not (isinstance(servo, dict) and _finite(servo.get(k)))]
+    what = ", ".join(bad) if bad else "a usable sample rate and servo waveform"
+    return f"the log header lacks {what}, so the beam's step between samples is unknown"
+
+
+def _finite(v: object) -> bool:
+    return not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v)
+
+
+def _positive(v: object) -> bool:
+    return _finite(v) and v > 0  # type: ignore[operator]
 
 
 def spike_mask(t_s: np.ndarray, range_m: np.ndarray, usable: np.ndarray, threshold: SpikeThreshold,

@@ -13,11 +13,13 @@ import numpy as np
 from firmware_py.core.cli import UserError
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.rundir import SAMPLES_FILE, TRUTH_FILE
+from firmware_py.core.safe_read import InputError, json_number, json_object, load_json
 from firmware_py.core.samplelog import SampleLog, read_samplelog
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
-from ground.despike import SpikeThreshold
+from ground.despike import SpikeThreshold, why_no_threshold
+from ground.plausibility import PlausibilityLimits, implausible, without_implausible
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask
 from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
 from ground.surface import (
@@ -35,6 +37,12 @@ from ground.surface import (
 
 LOW_COVERAGE_PCT = 95.0
 HIGH_EXCLUDED_FRACTION = 0.5
+GRID_BYTES_PER_CELL = 200
+"""Peak memory of the report per grid cell, measured with its figures (cell centres, Delaunay lookups, fit,
+fill, counts, plots): 205 B at 0.05 m and 211 B at 0.03 m cells on the golden log (peak RSS less the 150 MB
+of a 1 m-cell run); `--cell 0.01` (24 M cells) peaked at 4.7 GB, 196 B a cell."""
+DEFAULT_MAX_GRID_MEMORY_BYTES = 2 * 1024**3
+"""Default memory allowed for the grid: 2 GiB, 10.7 M cells (60 x 40 m down to 1.5 cm cells)."""
 
 
 @dataclass(frozen=True)
@@ -46,6 +54,7 @@ class ReportOptions:
     surface_fit: str = DEFAULT_SURFACE_FIT  # ground.surface.SURFACE_FITS ("cubic" is the paper's)
     servo_retiming: bool = True  # re-estimate the servo's timing when the sweeps disagree (ground.servo_timing)
     despike: bool = True  # leave out isolated one-/two-sample range spikes (ground.despike; threshold from the header)
+    max_grid_memory_bytes: int = DEFAULT_MAX_GRID_MEMORY_BYTES  # refuse a --cell whose grid would need more
 
 
 @dataclass(frozen=True)
@@ -63,6 +72,8 @@ class Survey:
     sweep_disagreement_m: float | None = None  # ground.consistency: rising vs falling sweeps
     servo_timing: ServoTiming | None = None  # the re-estimated servo motion, when its model was wrong
     servo_retimed: bool = False  # the angles above are the re-estimated ones
+    implausible: dict[str, int] | None = None  # ground.plausibility: samples left out per broken limit
+    despike_unavailable: str | None = None  # why despiking asked for could not run (ground.despike.why_no_threshold)
 
 
 def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
@@ -70,27 +81,26 @@ def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
     src = Path(source)
     if src.is_dir():
         log = src / SAMPLES_FILE
-        if not log.is_file():
+        if not log.exists():
             raise UserError(f"{src} is a directory without a {SAMPLES_FILE} sample log")
-        truth = src / TRUTH_FILE
-        return log, truth if truth.is_file() else None
+        truth = src / TRUTH_FILE  # present but not a regular file (a FIFO, a directory): refused when read
+        return log, truth if truth.exists() else None
     if not src.exists():
         raise UserError(f"no such run directory or sample log: {src}")
     return src, None
 
 
 def read_truth_volume(truth_path: Path | None) -> float | None:
+    """true_volume_m3 of a run's truth.json (bounded, strict read: `firmware_py.core.safe_read`)."""
     if truth_path is None:
         return None
     try:
-        v = json.loads(truth_path.read_text()).get("true_volume_m3")
-    except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
-        raise UserError(f"{truth_path} is not valid JSON") from None
-    if v is None:
-        return None
-    if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-        raise UserError(f"{truth_path}: true_volume_m3 must be a positive number, got {v!r}")
-    return float(v)
+        v = json_object(load_json(truth_path, "truth file"), f"truth file {truth_path}").get("true_volume_m3")
+        if v is None:
+            return None
+        return json_number(v, f"{truth_path}: true_volume_m3", positive=True)
+    except InputError as exc:
+        raise UserError(str(exc)) from None
 
 
 def header_geometry(log: SampleLog, path: Path) -> tuple[Storage, StorageFrame, np.ndarray]:
@@ -98,11 +108,16 @@ def header_geometry(log: SampleLog, path: Path) -> tuple[Storage, StorageFrame, 
     if log.header is None:
         raise UserError(f"{path}: the log header is missing or corrupt, so the storage and sensor "
                         "geometry are unknown")
+    log.require_supported_format(str(path))
     h = log.header
     try:
         storage = Storage.from_dict(h["storage"])
         frame = StorageFrame.from_dict(h["storage_frame"])
-        lever = np.asarray(h.get("lever_arm_body_m", [0.0, 0.0, 0.0]), dtype=float)
+        lever_raw = h.get("lever_arm_body_m", [0.0, 0.0, 0.0])
+        if not isinstance(lever_raw, list) or any(isinstance(v, bool) or not isinstance(v, int | float)
+                                                   for v in lever_raw):
+            raise ValueError(f"lever_arm_body_m must be a list of numbers, got {lever_raw!r}"[:200])
+        lever = np.asarray(lever_raw, dtype=float)
     except KeyError as exc:
         raise UserError(f"{path}: log header lacks a usable {exc}") from None
     except (TypeError, ValueError) as exc:
@@ -116,11 +131,30 @@ def header_geometry(log: SampleLog, path: Path) -> tuple[Storage, StorageFrame, 
     return storage, frame, lever
 
 
+def check_grid_memory(storage: Storage, cell_m: float, max_bytes: int) -> None:
+    """Refuse a cell size whose grid would need more than max_bytes (GRID_BYTES_PER_CELL a cell), naming
+    the smallest cell that fits, instead of running the machine out of memory."""
+    Grid(storage.length_m, storage.width_m, cell_m)  # its own checks first (cell size range, MAX_CELLS)
+
+    def cells(c: float) -> int:
+        return max(1, round(storage.length_m / c)) * max(1, round(storage.width_m / c))
+
+    need = cells(cell_m) * GRID_BYTES_PER_CELL
+    if need > max_bytes:
+        fits = math.ceil(math.sqrt(storage.floor_area_m2 * GRID_BYTES_PER_CELL / max_bytes) * 1000) / 1000
+        while cells(fits) * GRID_BYTES_PER_CELL > max_bytes:  # rounding to whole cells can add a row
+            fits += 0.001
+        raise UserError(f"a {storage.length_m:g} x {storage.width_m:g} m floor in {cell_m:g} m cells is "
+                        f"{cells(cell_m):,} cells, about {need / 2**20:,.0f} MiB, more than the "
+                        f"{max_bytes / 2**20:,.0f} MiB allowed: use a larger cell size, --cell {fits:.3g} or more "
+                        "(or raise --max-grid-memory-mb)")
+
+
 def _sweep_period_s(header: dict) -> float | None:
     """The servo's sweep period from the log header (None: unknown, no stuck-servo check)."""
-    try:
-        f = float((header.get("servo") or {})["frequency_hz"])
-    except (KeyError, TypeError, ValueError):
+    servo = header.get("servo")
+    f = servo.get("frequency_hz") if isinstance(servo, dict) else None
+    if isinstance(f, bool) or not isinstance(f, int | float):
         return None
     return 1.0 / f if np.isfinite(f) and f > 0 else None
 
@@ -133,9 +167,14 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     real motion is re-estimated from the sweeps; if that brings them into agreement the survey is
     computed with the re-estimated angles (and says so), else it stays marked untrustworthy.
     """
+    check_grid_memory(storage, opts.cell_m, opts.max_grid_memory_bytes)
     err = SensorErrorModel.from_header(header)
     spikes = SpikeThreshold.from_header(header) if opts.despike else None
-    survey = _survey(samples, header, storage, frame, lever, opts, err, spikes)
+    found = implausible(samples, PlausibilityLimits.from_header(header, storage), frame)
+    samples = without_implausible(samples, found)
+    checked = {"implausible": found.counts(),
+               "despike_unavailable": why_no_threshold(header) if opts.despike and spikes is None else None}
+    survey = replace(_survey(samples, header, storage, frame, lever, opts, err, spikes), **checked)
     before = survey.sweep_disagreement_m
     if not (opts.servo_retiming and before is not None and before > MAX_SWEEP_DISAGREEMENT_M):
         return survey
@@ -153,7 +192,7 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
         return replace(survey, servo_timing=timing)
     fixed = _survey(motion.apply(samples, timing.delay_s, timing.gain), header, storage, frame, lever, opts, err,
                     spikes)
-    return replace(fixed, servo_timing=timing, servo_retimed=True)
+    return replace(fixed, servo_timing=timing, servo_retimed=True, **checked)
 
 
 def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame, lever: np.ndarray,
@@ -181,11 +220,18 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
                         f"truncated block(s) skipped ({log.bytes_skipped} bytes)")
     if survey.cloud.n_samples and survey.cloud.n_excluded / survey.cloud.n_samples > HIGH_EXCLUDED_FRACTION:
         warnings.append(f"{survey.cloud.n_excluded} of {survey.cloud.n_samples} samples unusable "
-                        "(no return, stale pose or sensor error)")
+                        "(no return, stale pose, sensor error or implausible)")
     if ra < LOW_COVERAGE_PCT:
         warnings.append(f"only {ra:.1f} % of the floor is reconstructed (R_a); the volume misses the "
                         "uncovered cells" if opts.empty_cells == "leave" else
                         f"only {ra:.1f} % of the floor is reconstructed (R_a); the rest is extrapolated")
+    n_implausible = sum((survey.implausible or {}).values())
+    if n_implausible:
+        parts = ", ".join(f"{n} {what.replace('_', ' ')}" for what, n in survey.implausible.items() if n)
+        warnings.append(f"{n_implausible} samples left out as implausible for the logged sensor, sweep and building "
+                        f"({parts} beyond the header's limits): damaged or forged records")
+    if survey.despike_unavailable:
+        warnings.append(f"despiking did not run: {survey.despike_unavailable}")
     if len(survey.pile_points_w) < 3:
         warnings.append("fewer than 3 points on the stockpile: no surface could be fitted")
     if survey.cloud.n_servo_suspect:
@@ -228,7 +274,10 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "n_cells_clipped": survey.n_cells_clipped,
         "n_samples_servo_suspect": survey.cloud.n_servo_suspect,
         "n_samples_spikes": survey.cloud.n_spikes,
-        "despike": opts.despike,
+        "despike": opts.despike and survey.despike_unavailable is None,
+        "despike_unavailable": survey.despike_unavailable,
+        "n_samples_implausible": n_implausible,
+        "implausible": survey.implausible,
         "sweep_disagreement_m": survey.sweep_disagreement_m,
         "servo_timing": None if st is None else {
             "applied": survey.servo_retimed, "model": st.model, "delay_s": st.delay_s, "gain": st.gain,

@@ -207,7 +207,7 @@ class LogHeader:
         if d.get("servo_calibration") is not None:
             c = _mapping(d["servo_calibration"], "servo_calibration")
             try:
-                cal = ServoCalibration(**{k: float(v) for k, v in c.items()})
+                cal = ServoCalibration(**{k: _number(c, k, "servo_calibration") for k in c})
             except (TypeError, ValueError) as exc:
                 raise ValueError(f"log header servo_calibration is malformed: {exc}") from None
         mission = d["mission"]

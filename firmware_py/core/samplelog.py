@@ -52,6 +52,20 @@ framed block, or the declared end of a counted corrupt candidate.
 ``blocks_corrupt`` is therefore a lower bound on the number of blocks lost to
 damage; a length field damaged in the *final* block is indistinguishable from a
 power cut and reads as truncated.
+
+Format checks
+-------------
+The reader recovers what it can from any bytes; whether the records mean what this
+version's SAMPLE_DTYPE says is a separate question, answered by
+``SampleLog.format_problem`` from the header's ``format``, ``format_version`` and
+``record_dtype`` (``require_supported_format`` raises it as `UnsupportedLogFormat`).
+A header that states another format name, a version this reader does not know
+(FORMAT_VERSION and below) or another record layout is refused by every program
+that turns records into numbers: reading version 99's bytes as version 1's would
+give numbers that look fine and mean nothing. A header without these keys (a
+hand-built log) is read as the current layout. A path is read with a size limit
+(``max_bytes``, default MAX_LOG_BYTES) and only when it is a regular file
+(`firmware_py.core.safe_read`).
 """
 
 from __future__ import annotations
@@ -69,12 +83,19 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
+from firmware_py.core.safe_read import InputError, read_bounded
+
 MAGIC = b"PSLB"
 KIND_HEADER = b"H"
 KIND_SAMPLES = b"S"
 MAX_PAYLOAD = 16 * 1024 * 1024
 FORMAT_NAME = "pilescan-samplelog"
 FORMAT_VERSION = 1
+SUPPORTED_VERSIONS = (1,)
+"""Format versions this reader understands."""
+MAX_LOG_BYTES = 4 * 1024**3
+"""Largest sample log read from a path: 4 GiB is 73 M records, 40 hours at the LIDAR-Lite's 500 Hz (a
+multirotor flies under one hour per battery); the reader holds the file and its records in memory once each."""
 
 _HEAD = struct.Struct("<4scII")  # magic, kind, payload length, crc32
 HEAD_SIZE = _HEAD.size  # 13
@@ -313,9 +334,55 @@ class SampleLog:
     blocks_unknown: int = 0
 
     @property
+    def format_problem(self) -> str | None:
+        """Why the records cannot be read as this version's SAMPLE_DTYPE (None: they can, or no header)."""
+        return header_format_problem(self.header)
+
+    def require_supported_format(self, where: str) -> None:
+        """Raise UnsupportedLogFormat (one line, naming `where`) when `format_problem` is set."""
+        problem = self.format_problem
+        if problem is not None:
+            raise UnsupportedLogFormat(f"{where}: {problem}")
+
+    @property
     def intact(self) -> bool:
         """True when nothing was lost (unknown block kinds are forward-compatible, not damage)."""
         return self.blocks_corrupt == 0 and self.blocks_truncated == 0
+
+
+class UnsupportedLogFormat(ValueError):
+    """The log states a format, version or record layout this reader does not support."""
+
+
+def _layout_text(layout: Any) -> str:
+    try:
+        text = json.dumps(layout)
+    except (TypeError, ValueError):
+        text = repr(layout)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def header_format_problem(header: Any) -> str | None:
+    """One line saying what the header's format keys state and what this reader supports, or None.
+
+    Absent keys are taken as this version's (a hand-built header); present ones must match.
+    """
+    if not isinstance(header, dict):
+        return None
+    name = header.get("format", FORMAT_NAME)
+    if name != FORMAT_NAME:
+        return f"the log is of format {_layout_text(name)}, this reader supports {FORMAT_NAME!r}"
+    version = header.get("format_version", FORMAT_VERSION)
+    if isinstance(version, bool) or not isinstance(version, int) or version not in SUPPORTED_VERSIONS:
+        supported = ", ".join(str(v) for v in SUPPORTED_VERSIONS)
+        return (f"the log is {FORMAT_NAME} version {_layout_text(version)}, this reader supports version "
+                f"{supported} (a newer pilescan wrote it?)")
+    if "record_dtype" in header:
+        want = [list(pair) for pair in SAMPLE_DTYPE.descr]
+        if header["record_dtype"] != want:
+            return (f"the log's records have layout {_layout_text(header['record_dtype'])}, this reader "
+                    f"supports {_layout_text(want)}")
+    return None
 
 
 _FRAMED, _FAILED, _PAST_EOF = 0, 1, 2
@@ -435,24 +502,30 @@ class _Scanner:
                          self.skipped, self.unknown)
 
 
-def _read_source(source: Any) -> bytes:
-    """All bytes of a path, bytes-like object or binary file object."""
+def _read_source(source: Any, max_bytes: int) -> bytes:
+    """All bytes of a path (a regular file of at most max_bytes), bytes-like object or binary file object
+    (at most max_bytes read from it)."""
     if isinstance(source, bytes):
         return source
     if isinstance(source, bytearray | memoryview):
         return bytes(source)
     if isinstance(source, str | os.PathLike):
-        return Path(source).read_bytes()
+        return read_bounded(Path(source), max_bytes, "sample log")
     read = getattr(source, "read", None)
     if read is None or isinstance(source, io.TextIOBase):
         kind = type(source).__name__
         raise TypeError(f"source must be a path, bytes-like or binary file object, got {kind}")
-    data = read()
+    data = read(max_bytes + 1)
     if not isinstance(data, bytes | bytearray | memoryview):
         raise TypeError(f"file object returned {type(data).__name__}, open it in binary mode")
+    if len(data) > max_bytes:
+        raise InputError(f"sample log stream is more than the {max_bytes:,} byte limit")
     return bytes(data)
 
 
-def read_samplelog(source: str | os.PathLike[str] | bytes | bytearray | memoryview | BinaryIO) -> SampleLog:
-    """Recover everything recoverable; never raises on content (only OSError for unreadable paths)."""
-    return _Scanner(_read_source(source)).run()
+def read_samplelog(source: str | os.PathLike[str] | bytes | bytearray | memoryview | BinaryIO, *,
+                   max_bytes: int = MAX_LOG_BYTES) -> SampleLog:
+    """Recover everything recoverable; never raises on content (OSError for unreadable paths, InputError
+    for a path that is not a regular file or a source larger than max_bytes). Whether the records are of
+    this version's layout is `SampleLog.format_problem`'s question."""
+    return _Scanner(_read_source(source, max_bytes)).run()

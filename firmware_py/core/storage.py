@@ -22,7 +22,9 @@ class Storage:
     def __post_init__(self) -> None:
         for name in ("length_m", "width_m", "height_m"):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.5 <= v <= 10_000):
+            # bool is an int to Python, but a JSON `true` is not 1 m: refuse it by type
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                    and 0.5 <= v <= 10_000):
                 raise ValueError(f"storage {name.removesuffix('_m')} must be 0.5-10000 m, got {v}")
 
     @property
@@ -34,7 +36,17 @@ class Storage:
 
     @classmethod
     def from_dict(cls, d: dict) -> Storage:
-        return cls(float(d["length_m"]), float(d["width_m"]), float(d["height_m"]))
+        """From a header's ``storage`` object; KeyError for a missing key, ValueError naming a value that
+        is not a number (no coercion: a JSON boolean or string is not a dimension)."""
+        if not isinstance(d, dict):
+            raise ValueError(f"storage must be a JSON object, got {type(d).__name__}")
+        vals = []
+        for name in ("length_m", "width_m", "height_m"):
+            v = d[name]
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ValueError(f"storage {name} must be a number, got {v!r}")
+            vals.append(float(v))
+        return cls(*vals)
 
     @classmethod
     def parse(cls, text: str) -> Storage:

@@ -6,6 +6,7 @@ exactly from the mesh the ray tracer sees, so the "truth" and the "world" can ne
 
 from __future__ import annotations
 
+import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,6 +15,7 @@ import numpy as np
 import trimesh
 from scipy.interpolate import RegularGridInterpolator
 
+from firmware_py.core.safe_read import read_bounded
 from firmware_py.core.storage import Storage
 
 # Seeds for the paper's two piles in the default 60 x 40 m building, chosen once (tools/find_pile_seeds.py
@@ -143,25 +145,154 @@ def _is_height_field(mesh: trimesh.Trimesh) -> bool:
     return bool(np.all(area_z >= -1e-9 * max(1.0, np.abs(area_z).max())))
 
 
-def load_mesh(path: str | Path, storage: Storage) -> Stockpile:
-    """Load an STL/OBJ/PLY pile (z up, metres, storage frame) and check it fits the building.
+MAX_MESH_TRIANGLES = 2_000_000
+"""Most triangles a stockpile mesh may have: 26 times the paper piles' 77k (0.25 m vertex spacing over
+60 x 40 m), a 60 x 40 m pile at 5 cm spacing (1.9M), which is finer than the LiDAR's beam sees (8 mrad: a
+4 cm spot at 5 m). trimesh needs ~200 bytes a triangle to load and process one, 0.4 GB here."""
+BINARY_STL_HEAD_BYTES = 84
+"""A binary STL: 80-byte header, uint32 triangle count, then 50 bytes per triangle."""
+BINARY_STL_TRIANGLE_BYTES = 50
+TEXT_MESH_BYTES_PER_TRIANGLE = 512
+"""Upper bound of a text mesh's bytes per triangle (ASCII STL at full float precision is ~300; OBJ, PLY
+and OFF share vertices and need less): bounds the file size before it is read."""
+FLOOR_TOLERANCE_M = 0.01
+"""A closed body whose lowest point is higher than this above the floor floats: the LIDAR-Lite's range
+resolution, so a gap a survey could never see is not a reason to refuse."""
 
-    A closed mesh is taken as the material body; an open mesh must be an upward height field
-    (a surface over the floor), whose volume is the volume under it. Anything else is refused
-    with a message, because its "volume under the surface" would be ambiguous.
+
+def max_mesh_bytes(suffix: str, max_triangles: int) -> int:
+    """The largest file of this type that can hold max_triangles (checked before it is read)."""
+    if suffix == ".stl":
+        return max(BINARY_STL_HEAD_BYTES + BINARY_STL_TRIANGLE_BYTES * max_triangles,
+                   TEXT_MESH_BYTES_PER_TRIANGLE * max_triangles)
+    return TEXT_MESH_BYTES_PER_TRIANGLE * max_triangles + 1024
+
+
+def _checked_stl(data: bytes, path: Path) -> None:
+    """A binary STL must be exactly as long as its triangle count says; anything else must be ASCII STL.
+
+    trimesh guesses otherwise (and a failed guess ends in an import error of a text-encoding detector),
+    and a file with trailing or missing bytes is damaged: its triangles cannot be vouched for.
+    """
+    if len(data) >= BINARY_STL_HEAD_BYTES:
+        n = int.from_bytes(data[80:84], "little")
+        want = BINARY_STL_HEAD_BYTES + BINARY_STL_TRIANGLE_BYTES * n
+        if len(data) == want:
+            return
+    else:
+        n, want = 0, 0
+    if data[:5].lower() == b"solid":
+        try:
+            data.decode("ascii")
+            return
+        except UnicodeDecodeError as exc:
+            raise ValueError(f"stockpile mesh {path} starts like an ASCII STL but has a non-ASCII byte at "
+                             f"{exc.start}, and is not a binary STL either (it declares {n:,} triangles = "
+                             f"{want:,} bytes, the file has {len(data):,})") from None
+    if n and len(data) > want:
+        raise ValueError(f"stockpile mesh {path} is a binary STL declaring {n:,} triangles ({want:,} bytes) "
+                         f"followed by {len(data) - want:,} trailing bytes: damaged or two files in one; "
+                         "cut it to its declared length if the triangles are complete")
+    raise ValueError(f"stockpile mesh {path} is neither an ASCII STL nor a complete binary STL (it declares "
+                     f"{n:,} triangles = {want:,} bytes, the file has {len(data):,})")
+
+
+def _read_mesh(path: Path, max_triangles: int) -> trimesh.Trimesh:
+    """The file's triangles, unprocessed: bounded read, format checked, no NaN merged away."""
+    suffix = path.suffix.lower()
+    data = read_bounded(path, max_mesh_bytes(suffix, max_triangles), "stockpile mesh")
+    if suffix == ".stl":
+        _checked_stl(data, path)
+    elif suffix in {".obj", ".off"}:
+        try:
+            data.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ValueError(f"stockpile mesh {path} is not UTF-8 text (byte {exc.start})") from None
+    try:
+        mesh = trimesh.load(io.BytesIO(data), file_type=suffix[1:], force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for bad files
+        raise ValueError(f"cannot read stockpile mesh {path}: {type(exc).__name__}: {exc}") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ValueError(f"stockpile mesh {path} has no triangles")
+    if len(mesh.faces) > max_triangles:
+        raise ValueError(f"stockpile mesh {path} has {len(mesh.faces):,} triangles, more than the "
+                         f"{max_triangles:,} allowed")
+    used = mesh.vertices[np.unique(mesh.faces)]
+    bad = ~np.isfinite(used)
+    if bad.any():
+        what = "NaN" if np.isnan(used).any() else "infinite"
+        raise ValueError(f"stockpile mesh {path} has {int(bad.any(axis=1).sum())} vertices with {what} "
+                         "coordinates")
+    return trimesh.Trimesh(mesh.vertices, mesh.faces, process=True)
+
+
+def _edges_cross(a: trimesh.Trimesh, b: trimesh.Trimesh) -> bool:
+    """True when an edge of a passes through a face of b (strictly inside the edge)."""
+    seg = a.vertices[a.edges_unique]
+    d = seg[:, 1] - seg[:, 0]
+    length = np.linalg.norm(d, axis=1)
+    keep = length > 0
+    if not keep.any():
+        return False
+    origins, dirs, length = seg[keep, 0], d[keep] / length[keep, None], length[keep]
+    loc, ray, _ = b.ray.intersects_location(origins, dirs, multiple_hits=False)
+    if len(ray) == 0:
+        return False
+    t = np.einsum("ij,ij->i", loc - origins[ray], dirs[ray])
+    eps = 1e-6 * max(1.0, float(np.ptp(b.bounds)))
+    return bool(np.any((t > eps) & (t < length[ray] - eps)))
+
+
+def _overlap(a: trimesh.Trimesh, b: trimesh.Trimesh) -> bool:
+    """Do two closed, outward-facing bodies share material: surfaces crossing, or one inside the other."""
+    if np.any(a.bounds[1] <= b.bounds[0]) or np.any(b.bounds[1] <= a.bounds[0]):
+        return False
+    if _edges_cross(a, b) or _edges_cross(b, a):
+        return True
+    return bool(b.contains(a.vertices).all() or a.contains(b.vertices).all())
+
+
+def _closed_volume(mesh: trimesh.Trimesh, path: Path, floor_tolerance_m: float) -> float:
+    """Volume of a closed mesh whose bodies each rest on the floor and share no material.
+
+    Summing overlapping shells would count their shared material twice, and a body floating above the
+    floor is not material a survey could measure from above (the space below it would be seen as pile).
+    """
+    if mesh.volume < 0:  # inside out throughout
+        mesh.invert()
+    bodies = [m for m in mesh.split(only_watertight=False) if m.volume > 0]  # negative: a cavity's shell
+    for i, body in enumerate(bodies, 1):
+        lo = float(body.bounds[0, 2])
+        if lo > floor_tolerance_m:
+            raise ValueError(f"stockpile mesh {path}: closed body {i} of {len(bodies)} ({body.volume:.1f} m^3) "
+                             f"floats {lo:.2f} m above the floor; a stockpile rests on the floor")
+    for i, a in enumerate(bodies, 1):
+        for j in range(i, len(bodies)):
+            b = bodies[j]
+            if _overlap(a, b):
+                raise ValueError(
+                    f"stockpile mesh {path}: closed bodies {i} ({a.volume:.1f} m^3) and {j + 1} ({b.volume:.1f} m^3) "
+                    f"overlap, so their sum ({a.volume + b.volume:.1f} m^3) counts shared material twice; merge "
+                    "them into one closed surface (a boolean union)")
+    return float(mesh.volume)
+
+
+def load_mesh(path: str | Path, storage: Storage, *, max_triangles: int = MAX_MESH_TRIANGLES,
+              floor_tolerance_m: float = FLOOR_TOLERANCE_M) -> Stockpile:
+    """Load an STL/OBJ/PLY pile (z up, metres, storage frame) and check it is what it claims.
+
+    A closed mesh is taken as the material body: each of its bodies must rest on the floor and no two
+    may overlap. An open mesh must be an upward height field (a surface over the floor), whose volume
+    is the volume under it. Anything else is refused with a message, because its "volume under the
+    surface" would be ambiguous. The file is read bounded (a size limit from max_triangles, before
+    reading; only regular files), and NaN or infinite vertices are named.
     """
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"stockpile mesh not found: {path}")
-    try:
-        mesh = trimesh.load(path, force="mesh", process=True)
-    except Exception as exc:  # trimesh raises many types for bad files
-        raise ValueError(f"cannot read stockpile mesh {path}: {exc}") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise ValueError(f"stockpile mesh {path} has no triangles")
+        raise ValueError(f"stockpile mesh not found: {path}" if not path.exists() else
+                         f"stockpile mesh not found: {path} is not a regular file")
+    mesh = _read_mesh(path, max_triangles)
     v = mesh.vertices
-    if not np.all(np.isfinite(v)):
-        raise ValueError(f"stockpile mesh {path} has non-finite vertices")
     tol = 1e-6 * max(storage.length_m, storage.width_m)
     lo, hi = v.min(axis=0), v.max(axis=0)
     if (lo[0] < -tol or lo[1] < -tol or hi[0] > storage.length_m + tol or hi[1] > storage.width_m + tol
@@ -171,7 +302,7 @@ def load_mesh(path: str | Path, storage: Storage) -> Stockpile:
             f"z {lo[2]:.2f}..{hi[2]:.2f} m: it must lie inside the {storage} building, on the floor "
             "(storage frame W: metres, z up)")
     if mesh.is_watertight:
-        volume = abs(float(mesh.volume))
+        volume = _closed_volume(mesh, path, floor_tolerance_m)
     else:
         if not _is_height_field(mesh):
             mesh.faces = mesh.faces[:, ::-1]

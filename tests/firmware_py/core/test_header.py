@@ -132,3 +132,13 @@ def test_that_a_malformed_header_is_refused_naming_what_is_wrong(edit, named):
     edit(h)
     with pytest.raises(ValueError, match=named):
         LogHeader.from_dict(h)
+
+
+def test_that_a_servo_calibration_value_given_as_a_json_boolean_is_refused():
+    from firmware_py.core.header import LogHeader
+    from firmware_py.core.samplelog import read_samplelog
+    from tests.test_golden import GOLDEN
+    h = dict(read_samplelog(GOLDEN / "samples.pslog").header)
+    h["servo_calibration"] = {**h["servo_calibration"], "lag_s": True}
+    with pytest.raises(ValueError, match=r"servo_calibration\.lag_s must be a finite number"):
+        LogHeader.from_dict({k: v for k, v in h.items() if k not in ("format", "format_version", "record_dtype")})

@@ -1,0 +1,121 @@
+"""Records no working payload could have written: flagged, left out, counted.
+
+A sample log's numbers are only as good as the bytes on the SD card. A servo angle of 1e20 rad, a
+range of 300 m from a 40 m sensor or a vehicle 2 km outside the building are not measurements; turned
+into points they land anywhere (1e20 rad gave 13,653 m^3 with only a coverage warning). The limits
+come from the log header, i.e. from what the payload itself says it drove and carried:
+
+- servo: |gamma| <= amplitude_rad (the eq. (1) waveform in ``servo``) + SERVO_MARGIN_RAD. The logged
+  angle is the firmware's model of the sweep it commanded, which never leaves +-amplitude; the margin
+  absorbs a model that lags or rounds, not a fault.
+- range (samples not flagged NO_RETURN): r <= max_range_m + N_SIGMA sigma_r(max_range_m) + resolution_m
+  (``sensor``): the sensor reports nothing farther.
+- pose: the vehicle position, in the storage frame, within POSE_MARGIN_M + N_SIGMA position sigmas
+  (``pose.position_sigma_m``) of the building box (``storage``): the survey flies inside a closed
+  building.
+
+Only samples the cloud would otherwise use are judged (a NO_RETURN sample's range means nothing).
+The report counts each cause and warns; the samples' range (and the offending field) become NaN, so
+every later stage treats them as unusable without knowing why.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
+from firmware_py.core.storage import Storage
+
+SERVO_MARGIN_RAD = 0.1
+"""Allowance beyond the sweep amplitude (5.7 deg: far above a servo model's rounding, far below a fault's angle)."""
+POSE_MARGIN_M = 1.0
+"""Allowance beyond the building's walls, floor and roof for the vehicle position, on top of its stated sigma."""
+N_SIGMA = 3.0
+"""Stated 1-sigma errors allowed beyond a limit."""
+
+
+@dataclass(frozen=True)
+class PlausibilityLimits:
+    """What a log's header allows; None for a limit the header cannot state."""
+
+    max_abs_servo_rad: float | None
+    max_range_m: float | None
+    pose_lo_w_m: tuple[float, float, float]
+    pose_hi_w_m: tuple[float, float, float]
+
+    @classmethod
+    def from_header(cls, header: dict, storage: Storage, *, servo_margin_rad: float = SERVO_MARGIN_RAD,
+                    pose_margin_m: float = POSE_MARGIN_M, n_sigma: float = N_SIGMA) -> PlausibilityLimits:
+        servo = header.get("servo") if isinstance(header.get("servo"), dict) else {}
+        sensor = header.get("sensor") if isinstance(header.get("sensor"), dict) else {}
+        pose = header.get("pose") if isinstance(header.get("pose"), dict) else {}
+        amp = _number(servo.get("amplitude_rad"))
+        max_servo = amp + servo_margin_rad if amp is not None and amp > 0 else None
+        rmax = _number(sensor.get("max_range_m"))
+        max_range = None
+        if rmax is not None and rmax > 0:
+            sigma = max(_number(sensor.get("range_sigma_m")) or 0.0,
+                        (_number(sensor.get("range_sigma_rel")) or 0.0) * rmax)
+            max_range = rmax + n_sigma * sigma + (_number(sensor.get("resolution_m")) or 0.0)
+        m = pose_margin_m + n_sigma * max(0.0, _number(pose.get("position_sigma_m")) or 0.0)
+        hi = (storage.length_m + m, storage.width_m + m, storage.height_m + m)
+        return cls(max_servo, max_range, (-m, -m, -m), hi)
+
+
+def _number(v: object) -> float | None:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        return None
+    return float(v)
+
+
+@dataclass(frozen=True)
+class Implausible:
+    """Per-sample masks of the records beyond each limit (among those the cloud would use)."""
+
+    servo: np.ndarray
+    range: np.ndarray
+    pose: np.ndarray
+
+    @property
+    def any(self) -> np.ndarray:
+        return self.servo | self.range | self.pose
+
+    def counts(self) -> dict[str, int]:
+        return {"servo_angle": int(self.servo.sum()), "range": int(self.range.sum()), "pose": int(self.pose.sum())}
+
+
+def implausible(samples: np.ndarray, limits: PlausibilityLimits, frame: StorageFrame) -> Implausible:
+    """Which records break which limit (module docstring). Non-finite fields are not judged here: the
+    cloud already leaves them out."""
+    n = len(samples)
+    candidate = (samples["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0
+    gamma = samples["servo_rad"].astype(float)
+    rng = samples["range_m"].astype(float)
+    with np.errstate(invalid="ignore", over="ignore"):
+        servo = (candidate & np.isfinite(gamma) & (np.abs(gamma) > limits.max_abs_servo_rad)
+                 if limits.max_abs_servo_rad is not None else np.zeros(n, bool))
+        far = (candidate & np.isfinite(rng) & (rng > limits.max_range_m)
+               if limits.max_range_m is not None else np.zeros(n, bool))
+        pos = np.column_stack([samples["x_m"], samples["y_m"], samples["z_m"]]).astype(float)
+        finite = np.isfinite(pos).all(axis=1)
+        out = np.zeros(n, bool)
+        if finite.any():
+            w = frame.ned_to_w(pos[finite])
+            out[finite] = np.any((w < np.asarray(limits.pose_lo_w_m)) | (w > np.asarray(limits.pose_hi_w_m)), axis=1)
+    return Implausible(servo, far, out & candidate)
+
+
+def without_implausible(samples: np.ndarray, found: Implausible) -> np.ndarray:
+    """A copy in which the implausible records are unusable (NaN range, and NaN in the offending field)."""
+    if not found.any.any():
+        return samples
+    out = samples.copy()
+    out["range_m"][found.any] = np.nan
+    out["servo_rad"][found.servo] = np.nan
+    for k in ("x_m", "y_m", "z_m"):
+        out[k][found.pose] = np.nan
+    return out
