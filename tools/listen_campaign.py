@@ -90,18 +90,21 @@ class Case:
     kind: Kind
     ports: int
     signed: bool
+    rate_hz: float | None = None
+    """The flood's rate, if not the campaign's (a sparse flood: one datagram a second)."""
 
     @property
     def name(self) -> str:
         if self.kind is Kind.NONE:
             return f"no flood, {'signed' if self.signed else 'unsigned'}"
-        return f"{self.kind.value}, {self.ports} port{'s' if self.ports > 1 else ''}, " \
+        rate = "" if self.rate_hz is None else f", {self.rate_hz:g}/s"
+        return f"{self.kind.value}, {self.ports} port{'s' if self.ports > 1 else ''}{rate}, " \
                f"{'signed' if self.signed else 'unsigned'}"
 
 
 @dataclass(frozen=True)
 class Settings:
-    seconds: float = 2.0
+    seconds: float = 1.5
     rate_hz: float = 4000.0
     """Flood datagrams per second (all source ports together)."""
     max_log_mb: float = 4.0
@@ -109,10 +112,13 @@ class Settings:
 
 
 def cases(ports: tuple[int, ...] = (1, 10)) -> list[Case]:
+    """Each flood from 1 and 10 ports, signed and unsigned, beside no flood; and one truncated header a
+    second (sparse: the case that stalled a shared stream buffer, where a dense flood fills it quickly)."""
     out = []
     for signed in (False, True):
         out.append(Case(Kind.NONE, 0, signed))
         out += [Case(k, p, signed) for k in FLOODS for p in ports]
+        out.append(Case(Kind.TRUNCATED, 1, signed, rate_hz=1.0))
     return out
 
 
@@ -194,7 +200,7 @@ def _flood_process(target: tuple[str, int], pool: list[bytes], ports: int, rate_
     k = 0
     burst_s = 0.005
     while (now := time.monotonic()) < t0 + seconds:
-        due = int((now - t0) * rate_hz)
+        due = int((now - t0) * rate_hz) + 1  # the first at once
         while sent < due:
             data = pool[k % len(pool)]
             try:
@@ -229,12 +235,14 @@ def _drain(s: socket.socket) -> int:
 class Flood:
     """The flood in its own process (another core than the target's), started and joined by the case."""
 
-    def __init__(self, target: tuple[str, int], pool: list[bytes], ports: int, st: Settings) -> None:
+    def __init__(self, target: tuple[str, int], pool: list[bytes], ports: int, st: Settings,
+                 rate_hz: float | None = None) -> None:
         ctx = mp.get_context("fork")  # before any thread of the case starts
         self.go = ctx.Event()
         self.results = ctx.Queue()
+        rate = st.rate_hz if rate_hz is None else rate_hz
         self.proc = ctx.Process(target=_flood_process, daemon=True,
-                                args=(target, pool, max(1, ports), st.rate_hz, st.seconds, self.go, self.results))
+                                args=(target, pool, max(1, ports), rate, st.seconds, self.go, self.results))
         self.proc.start()
 
     def start(self) -> None:
@@ -333,7 +341,7 @@ def run_link_case(case: Case, st: Settings) -> dict[str, Any]:
     link = PymavlinkLink("udp:127.0.0.1:0", signing=SigningConfig(KEY) if case.signed else None)
     try:
         addr = link.local_address
-        flood = Flood(addr, mavlink_flood(case.kind, case.signed, rng), case.ports, st) \
+        flood = Flood(addr, mavlink_flood(case.kind, case.signed, rng), case.ports, st, case.rate_hz) \
             if case.kind is not Kind.NONE else None
         ap = AutopilotPeer(addr, KEY if case.signed else None)
         ap.start()
@@ -432,7 +440,7 @@ def run_listen_case(case: Case, st: Settings, workdir: Path) -> dict[str, Any]:
             key_file.write_text(KEY.hex() + "\n")
             key_file.chmod(0o600)
         cmd += ["--signing-key", str(key_file)]
-    flood = Flood(("127.0.0.1", port), stream_flood(case.kind, case.signed, rng), case.ports, st) \
+    flood = Flood(("127.0.0.1", port), stream_flood(case.kind, case.signed, rng), case.ports, st, case.rate_hz) \
         if case.kind is not Kind.NONE else None
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(Path(__file__).resolve().parents[1]),
                                                                        os.environ.get("PYTHONPATH")]))}
