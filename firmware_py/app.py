@@ -611,16 +611,17 @@ class PayloadApp:
         if not st.pose_ok:
             pose += f" ({st.pose_status[:90]})"
         auth = f"  refused frames {self.auth_rejects()}" if self.signing_active else ""
-        self._say(f"{(now - self.loop.t0_ns) / 1e9:7.1f} s  {rate:5.0f} Hz  {self._samples_text()}  "
+        self._say(f"{(now - self.loop.t0_ns) / 1e9:7.1f} s  {rate:5.0f} Hz  samples {self.sink.records} "
+                  f"{self._samples_detail()}  "
                   f"overruns {self.loop.stats.overruns}{auth}  {pose}")
 
-    def _samples_text(self) -> str:
+    def _samples_detail(self) -> str:
         """What the log holds, counted from the samples' own flags (`firmware_py.core.flag_tally`):
-        "samples 6000 (usable 5712; flagged: no return 120, sensor error 168)"."""
+        "(usable 5712; flagged: no return 120, sensor error 168)"."""
         n, flagged = self.sink.records, self.sink.flagged
         counts = dict(zip(COUNTED_FLAGS, self.loop.stats.flag_counts, strict=True))
         detail = f"; flagged: {describe_flag_counts(counts)}" if flagged else ""
-        return f"samples {n} (usable {n - flagged}{detail})"
+        return f"(usable {n - flagged}{detail})"
 
     # ----- shutdown -------------------------------------------------------------------------------
 
@@ -663,8 +664,9 @@ class PayloadApp:
             link=LinkCounters.of(self.link.stats) if self.link is not None else LinkCounters(),
             pose_status=st.pose_status if st else "", close_errors=tuple(self._close_errors),
             signing_active=self.signing_active)
-        text = self._samples_text() if self.sink is not None and loop is not None else "samples 0"
-        self._say(f"stopped ({res.stop_reason}) after {elapsed_s:.1f} s: {text} in {res.out_path}")
+        detail = f" {self._samples_detail()}" if self.sink is not None and loop is not None else ""
+        self._say(f"stopped ({res.stop_reason}) after {elapsed_s:.1f} s: {res.records_logged} samples{detail} "
+                  f"in {res.out_path}")
         return res
 
     # ----- output ---------------------------------------------------------------------------------

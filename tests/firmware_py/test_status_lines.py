@@ -67,4 +67,4 @@ def test_that_the_stop_line_counts_the_sensor_error_samples_the_log_holds_resets
     assert in_log > 0 and res.lidar_counters["bus_errors"] + res.lidar_counters["timeouts"] == 0  # the case
     line = [ln for ln in err.getvalue().splitlines() if "stopped (test over)" in ln][-1]
     assert f"sensor error {in_log}" in line and f"no return {no_return}" in line
-    assert re.search(rf"samples {len(flags)} \(usable {int(np.count_nonzero(flags == 0))};", line)
+    assert re.search(rf": {len(flags)} samples \(usable {int(np.count_nonzero(flags == 0))};", line)
