@@ -237,6 +237,7 @@ class Listener:
         self.tally = FlagTally()
         self.records_unlogged = 0
         self._log_full = False
+        self._log_bytes = 0
         self._stop_reason: str | None = None
         self._t0: float | None = None
         self._status_prev: tuple[float, int] | None = None
@@ -336,7 +337,10 @@ class Listener:
 
     def _records_that_fit(self, n: int) -> int:
         """How many of n more records the log can take and stay within the cap once written."""
-        on_disk = self.cfg.out_path.stat().st_size
+        try:
+            on_disk = self._log_bytes = self.cfg.out_path.stat().st_size
+        except OSError:  # renamed or removed under us: the writer's file lives on; the last size known
+            on_disk = self._log_bytes
         pending, per_block, size = self.log.records_pending, self.cfg.records_per_block, SAMPLE_DTYPE.itemsize
 
         def bytes_after(k: int) -> int:

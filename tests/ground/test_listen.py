@@ -318,3 +318,11 @@ def test_that_a_bad_log_size_cap_is_one_line_and_exit_2(tmp_path, capsys, value)
     err = capsys.readouterr().err
     assert rc == 2 and "--max-log-mb" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.pslog").exists()
+
+
+def test_that_a_live_log_removed_under_the_listener_is_no_traceback(tmp_path):
+    with listening(tmp_path) as ls:
+        (tmp_path / "live.pslog").unlink()
+        send(url_of(ls), records(30))
+        pump_until(ls, lambda st: st["records"] >= 30)
+        assert ls.records == 30
