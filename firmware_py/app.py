@@ -46,6 +46,7 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_py.core.cli import UserError
+from firmware_py.core.flag_tally import describe_flag_counts
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.header import build_log_header, sensor_spec
 from firmware_py.core.samplelog import SampleFlags, SampleLogWriter
@@ -72,7 +73,7 @@ from firmware_py.hal.pwm import check_pwm_url, open_pwm
 from firmware_py.hal.signing import SigningConfig
 from firmware_py.health import HealthMonitor, HealthSnapshot, HealthStatus
 from firmware_py.live_stream import LiveStreamSender
-from firmware_py.payload import LoopConfig, LoopStats, PayloadLoop
+from firmware_py.payload import COUNTED_FLAGS, LoopConfig, LoopStats, PayloadLoop
 from firmware_py.pose import set_gps_global_origin_msg
 from firmware_py.pose_tracker import PoseTracker, PoseTrackerConfig
 
@@ -574,7 +575,8 @@ class PayloadApp:
             t_ns=now_ns, readings=stats.ticks, logged=self.sink.records,
             sensor_errors=c.sensor_errors, pose_ok=st.pose_ok, pose_age_s=st.pose_age_s,
             pose_status=st.pose_status, timesync_converged=st.timesync.converged,
-            stale=stats.flagged(SampleFlags.STALE_POSE | SampleFlags.NO_POSE), overruns=stats.overruns)
+            stale=stats.flagged(SampleFlags.STALE_POSE | SampleFlags.NO_POSE), overruns=stats.overruns,
+            sensor_error_samples=stats.flagged(SampleFlags.SENSOR_ERROR))
 
     def _send_health(self, msgs: list[Any]) -> None:
         for msg in msgs:
@@ -608,11 +610,18 @@ class PayloadApp:
         pose = f"pose age {age:.3f} s" if age is not None else "no pose yet"
         if not st.pose_ok:
             pose += f" ({st.pose_status[:90]})"
-        errors = self.lidar.counters().sensor_errors
         auth = f"  refused frames {self.auth_rejects()}" if self.signing_active else ""
-        self._say(f"{(now - self.loop.t0_ns) / 1e9:7.1f} s  {rate:5.0f} Hz  samples {self.sink.records}  "
-                  f"flagged {self.sink.flagged}  sensor errors {errors}  overruns {self.loop.stats.overruns}{auth}  "
-                  f"{pose}")
+        self._say(f"{(now - self.loop.t0_ns) / 1e9:7.1f} s  {rate:5.0f} Hz  samples {self.sink.records} "
+                  f"{self._samples_detail()}  "
+                  f"overruns {self.loop.stats.overruns}{auth}  {pose}")
+
+    def _samples_detail(self) -> str:
+        """What the log holds, counted from the samples' own flags (`firmware_py.core.flag_tally`):
+        "(usable 5712; flagged: no return 120, sensor error 168)"."""
+        n, flagged = self.sink.records, self.sink.flagged
+        counts = dict(zip(COUNTED_FLAGS, self.loop.stats.flag_counts, strict=True))
+        detail = f"; flagged: {describe_flag_counts(counts)}" if flagged else ""
+        return f"(usable {n - flagged}{detail})"
 
     # ----- shutdown -------------------------------------------------------------------------------
 
@@ -655,8 +664,9 @@ class PayloadApp:
             link=LinkCounters.of(self.link.stats) if self.link is not None else LinkCounters(),
             pose_status=st.pose_status if st else "", close_errors=tuple(self._close_errors),
             signing_active=self.signing_active)
-        self._say(f"stopped ({res.stop_reason}) after {elapsed_s:.1f} s: {res.records_logged} samples "
-                  f"({res.records_flagged} flagged) in {res.out_path}")
+        detail = f" {self._samples_detail()}" if self.sink is not None and loop is not None else ""
+        self._say(f"stopped ({res.stop_reason}) after {elapsed_s:.1f} s: {res.records_logged} samples{detail} "
+                  f"in {res.out_path}")
         return res
 
     # ----- output ---------------------------------------------------------------------------------

@@ -11,6 +11,9 @@ MAVLink inspector):
     PS_RATE     LiDAR readings per second over the last period, Hz
     PS_LOGGED   records in the sample log (written or buffered)
     PS_I2CERR   cumulative sensor failures: bus errors + busy timeouts + failed configuration transfers
+    PS_SENSERR  cumulative samples logged SENSOR_ERROR (what the log holds: failed readings AND the
+                readings taken while the part reloads after an automatic reset, which are no failed
+                transfer and so not in PS_I2CERR)
     PS_POSEAGE  age of the newest pose, s (-1: no pose received yet)
     PS_STALE    cumulative samples flagged STALE_POSE or NO_POSE
     PS_OVERRUN  cumulative loop ticks missed (the loop fell a whole period behind)
@@ -18,7 +21,8 @@ MAVLink inspector):
 STATUSTEXT (at most 50 characters, prefixed "pilescan: "): started and stopping (the caller's
 `event`), pose acquired / lost / regained, a pose still missing 10 s after start (with the reason:
 no time sync, no local position (EKF origin?)), LiDAR errors appearing, the LiDAR failing every
-reading, and its recovery. Severities follow ArduPilot's use: INFO for routine, NOTICE for
+reading, and its recovery (judged on the larger of the two error counts over the period, so a part
+stuck resetting is not reported "ok"). Severities follow ArduPilot's use: INFO for routine, NOTICE for
 recoveries and stopping, WARNING for degraded data, ERROR when nothing usable is coming.
 """
 
@@ -37,9 +41,9 @@ TEXT_MAX = 50
 """STATUSTEXT.text is char[50] (longer texts would need chunking; ours never are)."""
 TEXT_PREFIX = "pilescan: "
 
-RATE, LOGGED, I2C_ERRORS, POSE_AGE, STALE, OVERRUNS = (
-    "PS_RATE", "PS_LOGGED", "PS_I2CERR", "PS_POSEAGE", "PS_STALE", "PS_OVERRUN")
-VALUE_NAMES = (RATE, LOGGED, I2C_ERRORS, POSE_AGE, STALE, OVERRUNS)
+RATE, LOGGED, I2C_ERRORS, SENSOR_ERROR_SAMPLES, POSE_AGE, STALE, OVERRUNS = (
+    "PS_RATE", "PS_LOGGED", "PS_I2CERR", "PS_SENSERR", "PS_POSEAGE", "PS_STALE", "PS_OVERRUN")
+VALUE_NAMES = (RATE, LOGGED, I2C_ERRORS, SENSOR_ERROR_SAMPLES, POSE_AGE, STALE, OVERRUNS)
 
 NO_POSE_WARNING_S = 10.0
 """A pose still missing this long after the start is reported once, with the reason."""
@@ -110,6 +114,7 @@ class HealthSnapshot:
         timesync_converged: the tracker's clock mapping is trusted.
         stale: samples flagged STALE_POSE or NO_POSE.
         overruns: loop ticks missed.
+        sensor_error_samples: samples logged SENSOR_ERROR (includes readings during a reset).
     """
 
     t_ns: int
@@ -122,6 +127,7 @@ class HealthSnapshot:
     timesync_converged: bool = False
     stale: int = 0
     overruns: int = 0
+    sensor_error_samples: int = 0
 
 
 class HealthMonitor:
@@ -171,12 +177,15 @@ class HealthMonitor:
         out = self._pose_events(snap)
         if prev is not None and snap.t_ns > prev.t_ns:
             self.rate_hz = (snap.readings - prev.readings) * 1e9 / (snap.t_ns - prev.t_ns)
-            out += self._sensor_events(snap.readings - prev.readings, snap.sensor_errors - prev.sensor_errors)
+            errors = max(snap.sensor_errors - prev.sensor_errors, snap.sensor_error_samples - prev.sensor_error_samples)
+            out += self._sensor_events(snap.readings - prev.readings, errors)
         ms = self._boot_ms(snap.t_ns)
         age = -1.0 if snap.pose_age_s is None or not math.isfinite(snap.pose_age_s) else snap.pose_age_s
         out += [named_value_msg(RATE, self.rate_hz, ms), named_value_msg(LOGGED, snap.logged, ms),
-                named_value_msg(I2C_ERRORS, snap.sensor_errors, ms), named_value_msg(POSE_AGE, age, ms),
-                named_value_msg(STALE, snap.stale, ms), named_value_msg(OVERRUNS, snap.overruns, ms)]
+                named_value_msg(I2C_ERRORS, snap.sensor_errors, ms),
+                named_value_msg(SENSOR_ERROR_SAMPLES, snap.sensor_error_samples, ms),
+                named_value_msg(POSE_AGE, age, ms), named_value_msg(STALE, snap.stale, ms),
+                named_value_msg(OVERRUNS, snap.overruns, ms)]
         self._values_sent += len(VALUE_NAMES)
         return out
 

@@ -61,6 +61,9 @@ def build_parser() -> ArgumentParser:
                          "`report` refuses)")
     ls.add_argument("--duration", type=finite_float, default=None, metavar="S",
                     help="stop after S seconds (default: until Ctrl-C / SIGTERM)")
+    ls.add_argument("--max-log-mb", type=finite_float, default=None, metavar="MIB",
+                    help=f"size cap of --out in MiB (default {listen.DEFAULT_MAX_LOG_MIB}); past it, records are "
+                         "counted, not written, and one line says so")
     ls.add_argument("--quiet", action="store_true", help="print nothing but errors")
     return ap
 

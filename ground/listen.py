@@ -23,6 +23,18 @@ lever arm, servo: what the report needs to turn records into a volume). So:
 - without it, a minimal header: ``software``, ``created_utc``, ``source: "live-stream"`` and
   ``live_stream``. `read_samplelog` reads the records; `pilescan-ground report` refuses the log in
   one line (the header lacks the storage geometry) rather than guess a building.
+
+Under a flood. Loss is counted per sender, within what a sender can plausibly have sent
+(`ground.live_receiver`): forged sequence numbers show as resyncs, not as billions of lost
+datagrams. The live log has a size cap (`max_log_bytes`, `--max-log-mb`, default
+`DEFAULT_MAX_LOG_MIB`: more than an hour at the payload's highest rate, 2000 Hz, and five at its
+usual 500 Hz, longer than any battery lasts): records that would take the file past it are not
+written (the last block written is whole: the log stays readable), one line says so once, and
+receiving and counting go on (`records_unlogged`).
+
+What the records are. The status line and the summary count samples by what their flags say
+(`firmware_py.core.flag_tally`): usable, no return (nothing within the sensor's reach: normal
+over open floor), faulty (sensor error, stale or missing pose, servo in doubt).
 """
 
 from __future__ import annotations
@@ -40,9 +52,10 @@ from typing import Any, TextIO
 import numpy as np
 
 from firmware_py.core.cli import UserError, stop_on_signals
+from firmware_py.core.flag_tally import FlagTally
 from firmware_py.core.header import software_version, utc_now_iso
 from firmware_py.core.keys import load_key
-from firmware_py.core.samplelog import FORMAT_NAME, MAGIC, SAMPLE_DTYPE, SampleLogWriter, read_samplelog
+from firmware_py.core.samplelog import FORMAT_NAME, HEAD_SIZE, MAGIC, SAMPLE_DTYPE, SampleLogWriter, read_samplelog
 from firmware_py.core.stream_format import parse_stream_url
 from ground.live_receiver import LiveStreamReceiver, PeerSpec
 
@@ -57,6 +70,9 @@ GEOMETRY_KEYS = ("storage", "storage_frame", "lever_arm_body_m", "sensor")
 _RESERVED = ("format", "format_version", "record_dtype")
 _MAX_WAIT_S = 0.25
 """Longest wait for a datagram, so a stop request (signal) is seen promptly."""
+MIB = 1 << 20
+DEFAULT_MAX_LOG_MIB = 512
+"""Default live-log size cap: 2000 Hz x 59 B is 425 MB an hour, 500 Hz 106 MB (module docstring)."""
 
 
 def parse_peer(text: str) -> PeerSpec:
@@ -131,6 +147,7 @@ class ListenConfig:
         records_per_block: records per fsync'd log block.
         fsync: fsync each block (off only for tests).
         quiet: no status lines or warnings [--quiet].
+        max_log_bytes: the live log's size cap [--max-log-mb] (module docstring).
     """
 
     url: str
@@ -145,9 +162,12 @@ class ListenConfig:
     records_per_block: int = 500
     fsync: bool = True
     quiet: bool = False
+    max_log_bytes: int = DEFAULT_MAX_LOG_MIB * MIB
 
     def __post_init__(self) -> None:
         parse_stream_url(self.url, allow_port_zero=True)
+        if isinstance(self.max_log_bytes, bool) or not isinstance(self.max_log_bytes, int) or self.max_log_bytes <= 0:
+            raise ValueError(f"log size cap must be a positive number of bytes, got {self.max_log_bytes!r}")
         if self.duration_s is not None and not (math.isfinite(self.duration_s) and self.duration_s > 0):
             raise ValueError(f"--duration must be > 0 s, got {self.duration_s!r}")
         if not (math.isfinite(self.status_period_s) and self.status_period_s > 0):
@@ -180,6 +200,11 @@ class ListenResult:
     header_from: str | None
     last_refusal: str | None
     warnings: tuple[str, ...] = ()
+    samples_text: str = ""
+    """The records by what their flags say (`FlagTally.describe`)."""
+    records_unlogged: int = 0
+    """Records received after the log reached its size cap (counted, not written)."""
+    log_cap_bytes: int | None = None
 
     @property
     def refused(self) -> dict[str, int]:
@@ -209,6 +234,10 @@ class Listener:
         self.log: SampleLogWriter | None = None
         self.records = 0
         self.flagged = 0
+        self.tally = FlagTally()
+        self.records_unlogged = 0
+        self._log_full = False
+        self._log_bytes = 0
         self._stop_reason: str | None = None
         self._t0: float | None = None
         self._status_prev: tuple[float, int] | None = None
@@ -279,14 +308,52 @@ class Listener:
         recs = self.rx.poll()
         if len(recs):
             if self.log is not None:
-                self.log.append(recs)
+                self._log_within_cap(recs)
             self.records += len(recs)
             self.flagged += int(np.count_nonzero(recs["flags"]))
+            self.tally.add(recs["flags"])
         if self.rx.stats["unverified"] and not self._warned_unverified:
             self._warned_unverified = True
             self._warn("the stream is authenticated but this listener has no key (--signing-key): "
                        "its tags are not checked")
         return len(recs)
+
+    def _log_within_cap(self, recs: np.ndarray) -> None:
+        """Append what fits under the size cap; the rest is counted. The writer writes whole blocks
+        (header, length, CRC, records), so the file never holds half a record."""
+        if self._log_full:
+            self.records_unlogged += len(recs)
+            return
+        fits = self._records_that_fit(len(recs))
+        if fits:
+            self.log.append(recs[:fits])
+        if fits < len(recs):
+            self._log_full = True
+            self.records_unlogged += len(recs) - fits
+            self.log.flush()
+            self._warn(f"the live log reached its size cap of {self.cfg.max_log_bytes / MIB:g} MiB after "
+                       f"{self.log.records_written} records: later records are counted, not written "
+                       f"(--max-log-mb raises the cap)")
+
+    def _records_that_fit(self, n: int) -> int:
+        """How many of n more records the log can take and stay within the cap once written."""
+        try:
+            on_disk = self._log_bytes = self.cfg.out_path.stat().st_size
+        except OSError:  # renamed or removed under us: the writer's file lives on; the last size known
+            on_disk = self._log_bytes
+        pending, per_block, size = self.log.records_pending, self.cfg.records_per_block, SAMPLE_DTYPE.itemsize
+
+        def bytes_after(k: int) -> int:
+            m = pending + k
+            return on_disk + m * size + -(-m // per_block) * HEAD_SIZE
+
+        if bytes_after(n) <= self.cfg.max_log_bytes:
+            return n
+        lo, hi = 0, n  # bytes_after grows with k: the largest k that fits
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            lo, hi = (mid, hi) if bytes_after(mid) <= self.cfg.max_log_bytes else (lo, mid - 1)
+        return lo
 
     def run(self) -> ListenResult:
         """Receive until `request_stop` or the duration; close; the result. The log is closed (its
@@ -339,7 +406,9 @@ class Listener:
             elapsed_s=0.0 if self._t0 is None else self.clock() - self._t0, records=self.records,
             flagged=self.flagged, stats=stats, authenticated=self.cfg.key is not None,
             out_path=self.cfg.out_path, header_from=self.cfg.header_from,
-            last_refusal=self.rx.last_error if self.rx is not None else None, warnings=tuple(warnings))
+            last_refusal=self.rx.last_error if self.rx is not None else None, warnings=tuple(warnings),
+            samples_text=self.tally.describe(), records_unlogged=self.records_unlogged,
+            log_cap_bytes=self.cfg.max_log_bytes if self.cfg.out_path is not None else None)
 
     def status_line(self, now: float) -> str:
         """The one-line status: elapsed, records and rate since the last line, datagrams, losses, refusals."""
@@ -348,8 +417,10 @@ class Listener:
         self._status_prev = (now, self.records)
         st = self.rx.stats
         refused = {k: st[k] for k in REFUSAL_REASONS if st[k]}
-        return (f"{now - self._t0:6.1f} s  records {self.records} ({rate:.0f}/s)  datagrams {st['datagrams']}  "
-                f"lost {st['lost']}  late {st['late']}  refused {_refused_text(refused)}")
+        full = "  LOG FULL" if self._log_full else ""
+        return (f"{now - self._t0:6.1f} s  records {self.records} ({rate:.0f}/s; {self.tally.describe()})  "
+                f"datagrams {st['datagrams']}  lost {st['lost']}  late {st['late']}  resyncs {st['resyncs']}  "
+                f"refused {_refused_text(refused)}{full}")
 
     def _status(self, now: float) -> None:
         line = self.status_line(now)
@@ -395,11 +466,18 @@ def format_summary(res: ListenResult) -> str:
     log = (f"{res.out_path}" + (f" (header from {res.header_from})" if res.header_from
                                 else " (minimal header: no storage geometry)")
            if res.out_path is not None else "none (no --out)")
+    if res.records_unlogged:
+        log += (f"; size cap {res.log_cap_bytes / MIB:g} MiB reached: {res.records_unlogged} records "
+                f"received but not written")
+    senders = st.get("senders", 0)
     lines = [
         f"listened      {res.elapsed_s:.1f} s on {res.url}" + (" (authenticated)" if res.authenticated else ""),
-        f"records       {res.records} ({res.flagged} flagged) in {st.get('datagrams', 0)} datagrams, {rate:.1f}/s",
+        f"records       {res.records} in {st.get('datagrams', 0)} datagrams, {rate:.1f}/s"
+        + (f": {res.samples_text}" if res.samples_text else ""),
         f"lost          {st.get('lost', 0)} datagrams (late {st.get('late', 0)}, "
-        f"sender restarts {st.get('restarts', 0)})",
+        f"sender restarts {st.get('restarts', 0)}"
+        + (f", implausible sequence jumps {st['resyncs']} (not counted as lost)" if st.get("resyncs") else "")
+        + (f"; from {senders} senders" if senders > 1 else "") + ")",
         f"refused       {_refused_text(res.refused)}",
     ]
     if res.refused and res.last_refusal:
@@ -419,9 +497,15 @@ def config_from_args(args: Any) -> ListenConfig:
     if args.out is not None and not args.out.strip():
         raise UserError("--out must be a non-empty path")
     header = load_header(args.header) if args.header is not None else None
+    cap_mib = getattr(args, "max_log_mb", None)
+    if cap_mib is None:
+        cap_mib = DEFAULT_MAX_LOG_MIB
+    if not (isinstance(cap_mib, int | float) and math.isfinite(cap_mib) and cap_mib * MIB >= 1):
+        raise UserError(f"--max-log-mb must be a positive size in MiB, got {cap_mib!r}")
     return ListenConfig(url=args.stream.strip(), key=key, allowed_peers=peers,
                         out_path=Path(args.out) if args.out is not None else None, force=args.force,
-                        header=header, header_from=args.header, duration_s=args.duration, quiet=args.quiet)
+                        header=header, header_from=args.header, duration_s=args.duration, quiet=args.quiet,
+                        max_log_bytes=int(cap_mib * MIB))
 
 
 def listen(cfg: ListenConfig, *, err: TextIO | None = sys.stderr) -> ListenResult:

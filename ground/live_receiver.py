@@ -10,11 +10,22 @@ sender starts its sequence at 0 again but its stamps keep rising (its clock must
 receiver without a key takes both versions, without checking tags (`unverified` counts the
 version 2 datagrams it could not check). `allowed_peers=[(host, port) or host, ...]` (names are
 resolved once, at start) drops datagrams from any other address (`rejected_peer`), key or not.
+
+Loss is counted PER SENDER (source address and, for version 2, sender id), and only as far as it is
+plausible: a sender cannot have sent more datagrams than `max_rate_hz` (default: the payload's
+highest loop rate, 2000 Hz, one record per datagram: no payload sends faster) allows over its
+lifetime here, plus `LOSS_GRACE_S` of them for datagrams read in a burst. A forward sequence jump
+beyond that budget is not a loss but a resync (`resyncs`; forged numbers, or a sender we missed
+restarting): the tracking restarts at the new number. So forged sequence numbers cannot drive
+`lost` to absurd values (one sender's jumps used to add up to 80,989,069,990,385 "lost" datagrams),
+and another sender's numbers never make the payload's own stream look lossy. At most `MAX_SENDERS`
+senders are tracked (the least recently heard is forgotten, `senders_evicted`).
 """
 
 from __future__ import annotations
 
 import ipaddress
+import math
 import socket
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -37,6 +48,13 @@ LATE_WINDOW_S = 2.0
 """An authenticated datagram may arrive this much (by stamp) behind the newest one and still be used."""
 NEW_SENDER_MAX_AGE_S = 60.0
 _MAX_RECENT_STAMPS = 4096
+DEFAULT_MAX_RATE_HZ = 2000.0
+"""The most datagrams a second a payload can send: its highest loop rate (2000 Hz), one record each."""
+LOSS_GRACE_S = 1.0
+"""Datagrams read together (a socket buffer drained at once) arrive closer than they were sent; a
+second's worth of the rate is allowed on top of a sender's lifetime budget."""
+MAX_SENDERS = 64
+"""Senders whose sequence numbers are tracked at once (bounded memory under a flood of sources)."""
 
 
 PeerSpec = str | tuple[str, int]
@@ -82,6 +100,16 @@ def _resolve_peers(peers: Iterable[PeerSpec]) -> tuple[set[tuple[str, int]], set
     return exact, hosts
 
 
+def _peer_key(peer: object) -> object:
+    """A hashable sender address (None when the datagram came without one: `feed` by hand)."""
+    if peer is None:
+        return None
+    try:
+        return (str(peer[0]), int(peer[1]))
+    except (TypeError, ValueError, IndexError):
+        return repr(peer)
+
+
 class _ReplayWindow:
     """Stamps accepted from one sender: a stamp is fresh if unseen and within the window of the newest."""
 
@@ -106,6 +134,21 @@ class _ReplayWindow:
         return True
 
 
+class _SeqTrack:
+    """One sender's sequence numbers: the next expected, and the loss budget's bookkeeping."""
+
+    __slots__ = ("expected", "first_t", "lost", "seen")
+
+    def __init__(self, seq: int, t: float) -> None:
+        self.expected = (seq + 1) & 0xFFFFFFFF
+        self.first_t = t
+        self.seen = 1
+        self.lost = 0
+
+
+SenderKey = tuple[object, int | None]
+
+
 class LiveStreamReceiver:
     """The ground end: parses datagrams into records, counts gaps and malformed datagrams.
 
@@ -118,16 +161,27 @@ class LiveStreamReceiver:
             set, `feed` without a peer refuses the datagram.
         new_sender_max_age_s: how far a sender's first stamp may lag our clock (None: no limit).
         clock: the wall clock (Unix seconds) for that check.
+        max_rate_hz: the most datagrams a second a sender can send (the loss budget, module docstring).
+        monotonic: the clock datagram arrivals are timed with (seconds).
 
-    stats: datagrams, records, malformed, lost, late, restarts (sequence numbers, as before), and
-    datagrams refused: rejected_peer, unauthenticated, bad_tag, replayed; unverified counts
-    authenticated datagrams a receiver without a key used unchecked.
+    stats: datagrams, records, malformed; per-sender sequence accounting summed over senders: lost,
+    late, restarts, resyncs (implausible jumps, not counted as lost); senders (tracked now),
+    senders_evicted; datagrams refused: rejected_peer, unauthenticated, bad_tag, replayed;
+    unverified counts authenticated datagrams a receiver without a key used unchecked.
     """
 
     def __init__(self, url: str | None = None, *, key: bytes | None = None,
                  allowed_peers: Iterable[PeerSpec] | None = None,
                  new_sender_max_age_s: float | None = NEW_SENDER_MAX_AGE_S,
-                 clock: Callable[[], float] = time.time) -> None:
+                 clock: Callable[[], float] = time.time, max_rate_hz: float = DEFAULT_MAX_RATE_HZ,
+                 monotonic: Callable[[], float] = time.monotonic) -> None:
+        if isinstance(max_rate_hz, bool) or not isinstance(max_rate_hz, int | float) \
+                or not (math.isfinite(max_rate_hz) and max_rate_hz > 0):
+            raise ValueError(f"max datagram rate must be > 0 Hz, got {max_rate_hz!r}")
+        self._max_rate_hz = float(max_rate_hz)
+        self._monotonic = monotonic
+        self._tracks: dict[SenderKey, _SeqTrack] = {}
+        self._last_track: _SeqTrack | None = None
         self._tag_key = tag_key_for(key)
         self._allowed = _resolve_peers(allowed_peers) if allowed_peers is not None else None
         if new_sender_max_age_s is not None and not new_sender_max_age_s >= 0:
@@ -149,11 +203,20 @@ class LiveStreamReceiver:
                 raise
             sock.setblocking(False)
             self._sock = sock
-        self.expected_seq: int | None = None
         self.stats: dict[str, int] = {"datagrams": 0, "records": 0, "malformed": 0, "lost": 0, "late": 0,
-                                      "restarts": 0, "rejected_peer": 0, "unauthenticated": 0, "bad_tag": 0,
+                                      "restarts": 0, "resyncs": 0, "senders": 0, "senders_evicted": 0,
+                                      "rejected_peer": 0, "unauthenticated": 0, "bad_tag": 0,
                                       "replayed": 0, "unverified": 0}
         self.last_error: str | None = None
+
+    @property
+    def expected_seq(self) -> int | None:
+        """The sequence number expected next from the sender heard last (None before any datagram)."""
+        return None if self._last_track is None else self._last_track.expected
+
+    def sender_losses(self) -> dict[SenderKey, tuple[int, int]]:
+        """(datagrams taken, datagrams lost) per tracked sender (address, sender id or None)."""
+        return {k: (t.seen, t.lost) for k, t in self._tracks.items()}
 
     @property
     def authenticated(self) -> bool:
@@ -187,7 +250,7 @@ class LiveStreamReceiver:
                 return self._refuse("replayed", f"replayed or stale datagram (sender {d.sender_id}, seq {d.seq})")
         elif d.version == VERSION_AUTH:
             self.stats["unverified"] += 1
-        self._track(d.seq)
+        self._track((_peer_key(peer), d.sender_id), d.seq)
         self.stats["datagrams"] += 1
         self.stats["records"] += len(d.records)
         return d.records
@@ -239,11 +302,28 @@ class LiveStreamReceiver:
         self._newest_stamp = max(self._newest_stamp, stamp)
         return True
 
-    def _track(self, seq: int) -> None:
-        exp = self.expected_seq
-        if exp is not None and seq == 0 and exp != 0:
-            self.stats["restarts"] += 1  # a new sender starts at 0 (a wrap takes years at 25 datagrams/s)
-        elif exp is not None:
+    def _track(self, sender: SenderKey, seq: int) -> None:
+        """Sequence accounting for one sender (module docstring)."""
+        now = self._monotonic()
+        tracks = self._tracks
+        track = tracks.pop(sender, None)
+        if track is None:
+            if len(tracks) >= MAX_SENDERS:
+                del tracks[next(iter(tracks))]  # the least recently heard
+                self.stats["senders_evicted"] += 1
+            track = _SeqTrack(seq, now)
+        else:
+            self._advance(track, seq, now)
+        tracks[sender] = track  # (re)inserted last: the dict's order is least to most recently heard
+        self._last_track = track
+        self.stats["senders"] = len(tracks)
+
+    def _advance(self, track: _SeqTrack, seq: int, now: float) -> None:
+        exp = track.expected
+        track.seen += 1
+        if seq == 0 and exp != 0:
+            self.stats["restarts"] += 1  # a sender starts at 0 (a wrap takes years at 25 datagrams/s)
+        else:
             ahead = (seq - exp) & 0xFFFFFFFF
             if ahead >= 1 << 31:  # behind the expected number
                 behind = (1 << 32) - ahead
@@ -251,9 +331,14 @@ class LiveStreamReceiver:
                     self.stats["late"] += 1  # reordered or duplicated: its records are still used
                     return
                 self.stats["restarts"] += 1
-            else:
-                self.stats["lost"] += ahead
-        self.expected_seq = (seq + 1) & 0xFFFFFFFF
+            elif ahead:
+                budget = self._max_rate_hz * (now - track.first_t + LOSS_GRACE_S)
+                if track.seen + track.lost + ahead <= budget:
+                    track.lost += ahead
+                    self.stats["lost"] += ahead
+                else:
+                    self.stats["resyncs"] += 1  # more than the sender could have sent: not a loss
+        track.expected = (seq + 1) & 0xFFFFFFFF
 
     def close(self) -> None:
         if self._sock is not None:

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from firmware_py.core.cli import UserError
+from firmware_py.core.flag_tally import FlagTally
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.rundir import SAMPLES_FILE, TRUTH_FILE
 from firmware_py.core.safe_read import InputError, json_number, json_object, load_json
@@ -219,8 +220,10 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         warnings.append(f"sample log damaged: {log.blocks_corrupt} corrupt and {log.blocks_truncated} "
                         f"truncated block(s) skipped ({log.bytes_skipped} bytes)")
     if survey.cloud.n_samples and survey.cloud.n_excluded / survey.cloud.n_samples > HIGH_EXCLUDED_FRACTION:
+        tally = FlagTally()
+        tally.add(log.samples["flags"])
         warnings.append(f"{survey.cloud.n_excluded} of {survey.cloud.n_samples} samples unusable "
-                        "(no return, stale pose, sensor error or implausible)")
+                        f"(by their flags: {tally.describe()}; implausible records are counted apart)")
     if ra < LOW_COVERAGE_PCT:
         warnings.append(f"only {ra:.1f} % of the floor is reconstructed (R_a); the volume misses the "
                         "uncovered cells" if opts.empty_cells == "leave" else

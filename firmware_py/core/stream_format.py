@@ -31,9 +31,10 @@ Version 2, authenticated (a sender with `key=`, e.g. `pilescan-payload --signing
 
 20 records per datagram (1196 bytes unkeyed, 1220 keyed; under a 1400-byte path MTU with room for
 tunnels), i.e. 25 datagrams/s at 500 Hz. `LiveStreamReceiver` checks magic, version, length and CRC
-(a bad datagram is counted and dropped, never raised), counts lost datagrams from sequence gaps,
-late/duplicate ones that arrive behind the sequence, and sender restarts (back to 0, or a jump
-far backwards).
+(a bad datagram is counted and dropped, never raised) and, per sender, counts lost datagrams from
+sequence gaps (only as many as the sender could have sent: a larger jump is a resync, so forged
+numbers cannot inflate the loss), late/duplicate ones that arrive behind the sequence, and sender
+restarts (back to 0, or a jump far backwards).
 
 `encode_datagram` / `parse_datagram` are the whole contract; the sender (`firmware_py.live_stream`)
 and the receiver (`ground.live_receiver`) add batching, counters, replay and peer checks.

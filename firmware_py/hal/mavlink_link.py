@@ -27,16 +27,36 @@ unsigned ones let in by `allow_unsigned`). Authentication is checked after the C
 fails its CRC still costs one byte of resync; a refused frame has passed its CRC, so its length is
 as trustworthy as an accepted frame's and it is skipped whole, like one (its payload, which a
 sender without the key chose, is never scanned for frames, and it is not counted as line noise).
-On a listening UDP link (udp:HOST:PORT) a sender is only kept as a destination if its datagram
-held an authenticated frame, so unauthenticated senders cannot make us send to them. Without a
-key everything is as before: signed frames from others are delivered without a check.
+Without a key, signed frames from others are delivered without a check.
+
+UDP links (udp:/udpin:/udpout:) parse each datagram on its own (`MavlinkFramer.feed_datagram`): a
+datagram is whole frames or nothing, so bytes never carry over from one datagram (or one sender)
+to the next. A truncated frame, a header claiming more bytes than arrived, garbage, a bad CRC: the
+datagram's rest is dropped and counted (`rx_truncated`, `rx_bad_bytes`, `rx_bad_frames`), and the
+next datagram is parsed from its first byte. (The old design fed every datagram from every sender
+into one stream buffer: one 10-byte datagram whose header claimed 255 bytes held back every later
+frame until 267 more bytes had come.) Sequence gaps are counted per (sender address, system,
+component), in a table of at most `MAX_SEQ_STREAMS` entries (the least recently heard one goes).
+
+Peers. A listening link (udp:HOST:PORT) answers only senders it has ADMITTED, and admits a sender
+only when one of its datagrams held a valid frame (CRC-checked, of a known message, and with a key,
+correctly signed and fresh): random bytes, truncated headers and bad CRCs never make us send to
+their source (no reflector). At most `max_peers` are kept (default `DEFAULT_MAX_PEERS`); a peer
+with no valid frame for `peer_timeout_s` (default 5 s: five missed 1 Hz heartbeats, MAVLink's
+usual link-lost rule) may be replaced by a new one, and while every place is held by a live peer,
+new senders are refused (`rx_peers_refused`): a live autopilot is never pushed out. A sending link
+(udpout:HOST:PORT) takes datagrams only from HOST:PORT; others are dropped and counted
+(`rx_foreign`).
 
 The companion's 1 Hz HEARTBEAT is the caller's job (`heartbeat_msg()`); the pose tracker sends it.
 """
 
 from __future__ import annotations
 
+import math
 import re
+import socket
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -58,6 +78,18 @@ _MAX_READS_PER_RECV = 256
 """Reads per recv() call; bounds the time one call can take on a flooded link."""
 
 _READ_CHUNK = 4096
+
+_UDP_MAX_DATAGRAM = 65_535
+"""The largest UDP payload: a datagram is read whole (a short read would cut its frames)."""
+
+MAX_SEQ_STREAMS = 64
+"""Sequence-gap state kept for at most this many (sender, system, component) streams."""
+
+DEFAULT_MAX_PEERS = 4
+"""Peers a listening UDP link answers: the autopilot, or a router, and a few spare places."""
+
+DEFAULT_PEER_TIMEOUT_S = 5.0
+"""A peer silent (no valid frame) this long may give its place to a new one: 5 missed 1 Hz heartbeats."""
 
 
 def heartbeat_msg() -> Any:
@@ -88,10 +120,31 @@ class MavlinkFramer:
             raise ValueError("MavlinkFramer checks signatures with its signer: give it a decoder without a key")
         self.signer = signer
         self._buf = bytearray()
-        self._last_seq: dict[tuple[int, int], int] = {}
+        self._last_seq: dict[tuple[Any, int, int], int] = {}
+        self._sender: Any = None
         self.bad_bytes = 0
         self.bad_frames = 0
+        self.truncated = 0
         self.seq_lost = 0
+
+    def feed_datagram(self, data: bytes | bytearray, sender: Any = None) -> list[Any]:
+        """Every valid frame in ONE datagram, in order; nothing is kept for the next datagram.
+
+        Bytes that do not form a whole frame (garbage, a bad CRC) are skipped as in a stream; a
+        frame cut short by the datagram's end is dropped and counted in `truncated` (its bytes in
+        bad_bytes). `sender` (e.g. the source address) keeps sequence gaps apart per sender."""
+        if self._buf:
+            raise ValueError("feed_datagram on a framer holding stream bytes: use one framer per mode")
+        self._sender = sender
+        try:
+            out = self.feed(data)
+        finally:
+            if self._buf:
+                self.truncated += 1
+                self.bad_bytes += len(self._buf)
+                self._buf.clear()
+            self._sender = None
+        return out
 
     def feed(self, data: bytes | bytearray) -> list[Any]:
         """Append bytes; return every complete valid message now in the buffer, in order."""
@@ -133,16 +186,30 @@ class MavlinkFramer:
         return min(hits) if hits else len(self._buf)
 
     def _frame_length(self, i: int) -> int | None:
-        """Whole frame length from the header at i; None if incomplete, 0 if the header is impossible."""
+        """Whole frame length from the header at i; None if incomplete, 0 if the header is impossible.
+
+        Impossible: unknown incompatibility flags, a message id outside the dialect, or a payload
+        longer than that message's. Checked on the header alone, so such a header costs one byte at
+        once instead of holding the bytes behind it until its claimed length has arrived."""
         buf = self._buf
-        if len(buf) - i < 3:
-            return None
+        n = len(buf) - i
         if buf[i] == self._MAGIC_V1:
-            return 6 + buf[i + 1] + 2
-        flags = buf[i + 2]
-        if flags & ~mavlink.MAVLINK_IFLAG_SIGNED:
+            if n < 6:
+                return None
+            length, msg_id, total = buf[i + 1], buf[i + 5], 6 + buf[i + 1] + 2
+        else:
+            if n < 10:
+                return None
+            flags = buf[i + 2]
+            if flags & ~mavlink.MAVLINK_IFLAG_SIGNED:
+                return 0
+            length = buf[i + 1]
+            msg_id = buf[i + 7] | buf[i + 8] << 8 | buf[i + 9] << 16
+            total = 10 + length + 2 + (mavlink.MAVLINK_SIGNATURE_BLOCK_LEN if flags else 0)
+        cls = mavlink.mavlink_map.get(msg_id)
+        if cls is None or length > cls.unpacker.size:
             return 0
-        return 10 + buf[i + 1] + 2 + (mavlink.MAVLINK_SIGNATURE_BLOCK_LEN if flags else 0)
+        return total
 
     def _decode(self, frame: bytearray) -> Any | None:
         try:
@@ -154,14 +221,19 @@ class MavlinkFramer:
         return msg
 
     def _count_seq(self, msg: Any) -> None:
-        """Sequence gaps per sender: frames lost on the wire (a jump over half the range is a reorder)."""
-        key = (msg.get_srcSystem(), msg.get_srcComponent())
+        """Sequence gaps per sender: frames lost on the wire (a jump over half the range is a reorder).
+
+        Keyed by (sender, system, component), at most MAX_SEQ_STREAMS of them (least recently heard
+        dropped), so another sender's frames cannot make one stream's numbers jump."""
+        key = (self._sender, msg.get_srcSystem(), msg.get_srcComponent())
         seq = msg.get_seq()
-        last = self._last_seq.get(key)
+        last = self._last_seq.pop(key, None)
         if last is not None:
             gap = (seq - last - 1) % 256
             if gap < 128:
                 self.seq_lost += gap
+        elif len(self._last_seq) >= MAX_SEQ_STREAMS:
+            del self._last_seq[next(iter(self._last_seq))]
         self._last_seq[key] = seq
 
 
@@ -194,9 +266,12 @@ class _FramedLink:
         self._framer = MavlinkFramer(mavlink.MAVLink(None), signer=self.signer)
         self.stats: dict[str, int] = {
             "rx_bytes": 0, "rx_messages": 0, "rx_bad_bytes": 0, "rx_bad_frames": 0, "rx_seq_lost": 0,
+            "rx_datagrams": 0, "rx_truncated": 0, "rx_foreign": 0, "rx_peers_refused": 0,
             "tx_messages": 0, "tx_errors": 0, "io_errors": 0,
             **{name: 0 for name, _ in _SIGNING_STATS},
         }
+        self._datagrams = False
+        """Parse each chunk on its own (UDP: a datagram is whole frames or nothing), else as a stream."""
         self.last_error: str | None = None
         self.closed = False
 
@@ -228,13 +303,16 @@ class _FramedLink:
         out: list[Any] = []
         got = False
         try:
-            for chunk, new_peer in self._read_chunks():
+            for chunk, sender in self._read_chunks():
                 got = True
                 self.stats["rx_bytes"] += len(chunk)
-                msgs = self._framer.feed(chunk)
+                if self._datagrams:
+                    self.stats["rx_datagrams"] += 1
+                    msgs = self._framer.feed_datagram(chunk, sender)
+                    self._heard(sender, msgs)
+                else:
+                    msgs = self._framer.feed(chunk)
                 out.extend(msgs)
-                if new_peer is not None and self.signer is not None and not msgs:
-                    self._forget_peer(new_peer)  # nothing authenticated from it: do not answer it
         except OSError as exc:
             self._io_error(exc)
         if not got:
@@ -243,6 +321,7 @@ class _FramedLink:
         self.stats["rx_messages"] += len(out)
         self.stats["rx_bad_bytes"] = f.bad_bytes
         self.stats["rx_bad_frames"] = f.bad_frames
+        self.stats["rx_truncated"] = f.truncated
         self.stats["rx_seq_lost"] = f.seq_lost
         if self.signer is not None:
             for name, key in _SIGNING_STATS:
@@ -265,11 +344,11 @@ class _FramedLink:
         self.last_error = f"{type(exc).__name__}: {exc}"
 
     def _read_chunks(self) -> list[tuple[bytes, Any]]:
-        """Chunks read now, each with the sender it made us learn (a UDP client), or None."""
+        """Chunks read now, each with its sender (a UDP datagram's source address) or None."""
         raise NotImplementedError
 
-    def _forget_peer(self, peer: Any) -> None:
-        """Stop sending to a sender learnt from a chunk that held nothing authenticated."""
+    def _heard(self, sender: Any, msgs: list[Any]) -> None:
+        """A datagram from sender held msgs (valid, authenticated with a key); admit peers here."""
 
     def _write(self, data: bytes) -> bool:
         raise NotImplementedError
@@ -356,16 +435,29 @@ class PymavlinkLink(_FramedLink):
 
     mavutil provides the transport (sockets, pyserial, its serial baud-rate workaround); parsing is
     MavlinkFramer's, so stats mean the same on every link. `connect` replaces mavutil for tests.
-    `signing`: sign and check (module docstring).
+    `signing`: sign and check (module docstring). On UDP, datagrams are read from the socket with
+    their source address and parsed one by one; `max_peers` / `peer_timeout_s` bound whom a
+    listening link answers (module docstring).
     """
 
     def __init__(self, url: str, source_system: int = COMPANION_SYSTEM_ID,
                  source_component: int = COMPANION_COMPONENT_ID, *,
                  connect: Callable[..., Any] | None = None,
-                 signing: SigningConfig | MavlinkSigner | None = None) -> None:
+                 signing: SigningConfig | MavlinkSigner | None = None,
+                 max_peers: int = DEFAULT_MAX_PEERS, peer_timeout_s: float = DEFAULT_PEER_TIMEOUT_S,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(source_system, source_component, signing)
+        if isinstance(max_peers, bool) or not isinstance(max_peers, int) or not 1 <= max_peers <= 256:
+            raise ValueError(f"max_peers must be an integer 1-256, got {max_peers!r}")
+        if not (isinstance(peer_timeout_s, int | float) and math.isfinite(peer_timeout_s) and peer_timeout_s > 0):
+            raise ValueError(f"peer timeout must be > 0 s, got {peer_timeout_s!r}")
         self.url = url
         device, baud = mavutil_device(url)
+        self._max_peers, self._peer_timeout_s, self._clock = max_peers, float(peer_timeout_s), clock
+        self._peers: dict[Any, float] = {}  # admitted sender -> when its last valid frame came
+        self._server = device.startswith("udpin:")
+        self._datagrams = self._server or device.startswith("udpout:")
+        self._only_from = _resolved(device[len("udpout:"):]) if device.startswith("udpout:") else None
         if connect is None:
             from pymavlink import mavutil  # late: a heavy import only real links need
             connect = mavutil.mavlink_connection
@@ -373,6 +465,9 @@ class PymavlinkLink(_FramedLink):
         if baud:
             kwargs["baud"] = baud
         self._conn = connect(device, **kwargs)
+        if self._server:
+            self._conn.timeout = 0  # mavutil must not prune our peers: we do (see _heard)
+            self._sync_clients()
         if device.startswith("udpout:"):
             self.send(heartbeat_msg())  # a udp-listening autopilot replies to whoever spoke last
 
@@ -383,12 +478,15 @@ class PymavlinkLink(_FramedLink):
         getsockname = getattr(sock, "getsockname", None)
         return getsockname() if getsockname is not None else None
 
+    @property
+    def peers(self) -> list[Any]:
+        """The senders a listening UDP link answers (admitted on a valid frame), oldest first."""
+        return list(self._peers)
+
     def _read_chunks(self) -> list[tuple[bytes, Any]]:
+        if self._datagrams:
+            return self._read_datagrams()
         chunks = []
-        # mavutil's listening UDP socket answers every address it has heard (its `clients`); with a
-        # key, a datagram's sender is only kept there if the datagram held an authenticated frame
-        clients = getattr(self._conn, "clients", None) if self.signer is not None else None
-        known = set(clients) if isinstance(clients, set) else None
         for _ in range(_MAX_READS_PER_RECV):
             try:
                 data = self._conn.recv(_READ_CHUNK)
@@ -397,20 +495,65 @@ class PymavlinkLink(_FramedLink):
                 break
             if not data:  # mavutil returns "" (a str) when a socket has nothing
                 break
-            new_peer = None
-            if known is not None:
-                added = clients - known
-                if added:
-                    new_peer = added.pop()
-                    known.add(new_peer)
-            chunks.append((bytes(data), new_peer))
+            chunks.append((bytes(data), None))
         return chunks
 
-    def _forget_peer(self, peer: Any) -> None:
-        self._conn.clients.discard(peer)
+    def _read_datagrams(self) -> list[tuple[bytes, Any]]:
+        """Whole datagrams with their source, straight from mavutil's socket (its recv() would add
+        every source to the addresses it answers); a connection without a socket (tests) hands out
+        one datagram per recv(), source unknown."""
+        sock = getattr(self._conn, "port", None)
+        recvfrom = getattr(sock, "recvfrom", None)
+        chunks = []
+        for _ in range(_MAX_READS_PER_RECV):
+            try:
+                if recvfrom is not None:
+                    data, sender = recvfrom(_UDP_MAX_DATAGRAM)
+                else:
+                    data, sender = self._conn.recv(_UDP_MAX_DATAGRAM), None
+            except (BlockingIOError, InterruptedError):
+                break
+            except ConnectionRefusedError:
+                continue  # an earlier datagram found no listener (ICMP): not this read's failure
+            except OSError as exc:  # keep what was read
+                self._io_error(exc)
+                break
+            if not data:
+                if recvfrom is None:
+                    break
+                continue  # an empty datagram
+            if sender is not None and self._only_from is not None and not _same_address(sender, self._only_from):
+                self.stats["rx_foreign"] += 1
+                continue
+            chunks.append((bytes(data), sender))
+        return chunks
+
+    def _heard(self, sender: Any, msgs: list[Any]) -> None:
+        if not self._server or sender is None or not msgs:
+            return  # only a valid (with a key: authenticated) frame admits a peer
+        now = self._clock()
+        if sender in self._peers:
+            self._peers[sender] = now
+            return
+        if len(self._peers) >= self._max_peers:
+            stalest = min(self._peers, key=self._peers.__getitem__)
+            if now - self._peers[stalest] < self._peer_timeout_s:
+                self.stats["rx_peers_refused"] += 1  # every place held by a live peer: it stays
+                return
+            del self._peers[stalest]
+        self._peers[sender] = now
+        self._sync_clients()
+
+    def _sync_clients(self) -> None:
+        """mavutil's listening socket writes to its `clients`: make them exactly our peers."""
+        clients = getattr(self._conn, "clients", None)
+        if isinstance(clients, set):
+            clients.clear()
+            clients.update(self._peers)
         alive = getattr(self._conn, "clients_last_alive", None)
         if isinstance(alive, dict):
-            alive.pop(peer, None)
+            alive.clear()
+            alive.update(dict.fromkeys(self._peers, time.time()))
 
     def _write(self, data: bytes) -> bool:
         result = self._conn.write(data)
@@ -418,6 +561,24 @@ class PymavlinkLink(_FramedLink):
 
     def _close(self) -> None:
         self._conn.close()
+
+
+def _resolved(host_port: str) -> tuple[str, int] | None:
+    """(IP, port) a udpout link sends to; None if the name does not resolve (then nothing is filtered:
+    mavutil reports the failure when it sends)."""
+    host, _, port = host_port.rpartition(":")
+    try:
+        infos = socket.getaddrinfo(host, int(port), socket.AF_INET, socket.SOCK_DGRAM)
+    except (OSError, UnicodeError, ValueError):
+        return None
+    return infos[0][4][:2] if infos else None
+
+
+def _same_address(a: Any, b: tuple[str, int]) -> bool:
+    try:
+        return a[1] == b[1] and a[0] == b[0]
+    except (TypeError, IndexError):
+        return False
 
 
 # ----- factory --------------------------------------------------------------------------------------

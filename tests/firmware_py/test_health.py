@@ -156,3 +156,13 @@ def test_that_the_status_follows_pose_and_sensor_states_as_enums_in_a_frozen_sna
     assert now.as_dict()["sensor_state"] == "failed" and now.texts_sent == 2  # pose acquired, LiDAR failing
     with pytest.raises(AttributeError):
         now.rate_hz = 0.0
+
+
+def test_that_sensor_error_samples_are_sent_and_a_part_stuck_resetting_is_not_called_ok():
+    """Readings during an automatic reset are logged SENSOR_ERROR but are no failed transfer: the
+    health values carry both counts, and the LiDAR state follows the larger."""
+    mon = HealthMonitor(T0)
+    mon.update(snap(0.0))
+    msgs = mon.update(snap(1.0, readings=500, errors=0, sensor_error_samples=500))
+    assert values(msgs)["PS_SENSERR"] == 500 and values(msgs)["PS_I2CERR"] == 0
+    assert texts(msgs) == [(mavlink.MAV_SEVERITY_ERROR, "pilescan: LiDAR failing: 500 errors/500 reads")]

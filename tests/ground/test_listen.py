@@ -233,3 +233,96 @@ def test_that_a_timed_listen_with_nothing_arriving_ends_with_a_warning(tmp_path,
     cap = capsys.readouterr()
     assert rc == 0 and "stopped       duration reached" in cap.out
     assert "WARNING: no datagrams accepted" in cap.out and "log           none (no --out)" in cap.out
+
+
+# ----- hostile senders: forged sequence numbers, floods, what the records are ---------------------------
+
+def test_that_forged_sequence_numbers_from_another_sender_are_resyncs_not_losses(tmp_path):
+    """A forger's jumps of a billion datagrams (the old count reached 80,989,069,990,385) cannot make the
+    payload's stream look lossy: loss is counted per sender, within what a sender could have sent."""
+    with listening(tmp_path) as ls, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as forger:
+        url = url_of(ls)
+        payload = LiveStreamSender(url, records_per_datagram=10)
+        for k in range(4):
+            payload.append(records(10, t0=float(k)))
+            forger.sendto(encode_datagram(k * 1_000_000_000, records(1, t0=900.0)), ls.local_address)
+        payload.close()
+        pump_until(ls, lambda st: st["datagrams"] >= 8)
+        res = ls.result()
+    assert res.stats["datagrams"] == 8 and res.stats["lost"] == 0
+    assert res.stats["resyncs"] == 3 and res.stats["senders"] == 2
+    assert "implausible sequence jumps 3 (not counted as lost); from 2 senders" in format_summary(res)
+
+
+def test_that_a_plausible_gap_is_still_counted_as_lost_for_its_sender():
+    from ground.live_receiver import LiveStreamReceiver
+    rx = LiveStreamReceiver()
+    for seq in (0, 1, 5, 6):  # 2, 3 and 4 lost
+        rx.feed(encode_datagram(seq, records(1)), ("10.0.0.2", 5000))
+    for seq in (0, 1, 2):  # another sender, from 0: neither a restart nor late
+        rx.feed(encode_datagram(seq, records(1)), ("10.0.0.3", 5000))
+    assert (rx.stats["lost"], rx.stats["restarts"], rx.stats["late"], rx.stats["resyncs"]) == (3, 0, 0, 0)
+    assert rx.sender_losses() == {(("10.0.0.2", 5000), None): (4, 3), (("10.0.0.3", 5000), None): (3, 0)}
+
+
+def test_that_the_sender_table_is_bounded_under_a_flood_of_source_ports():
+    from ground.live_receiver import MAX_SENDERS, LiveStreamReceiver
+    rx = LiveStreamReceiver()
+    for port in range(1, 3 * MAX_SENDERS + 1):
+        rx.feed(encode_datagram(port * 7, records(1)), ("127.0.0.1", port))
+    assert rx.stats["senders"] == MAX_SENDERS and rx.stats["senders_evicted"] == 2 * MAX_SENDERS
+    assert len(rx.sender_losses()) == MAX_SENDERS
+
+
+def test_that_the_log_stops_at_its_size_cap_whole_and_says_so_once(tmp_path):
+    per_block = 20
+    err = io.StringIO()
+    cfg = ListenConfig(url="udp:127.0.0.1:0", out_path=tmp_path / "live.pslog", fsync=False,
+                       records_per_block=per_block, max_log_bytes=4096)
+    ls = Listener(cfg, err=err)
+    ls.open()
+    try:
+        url = url_of(ls)
+        for k in range(10):
+            send(url, records(20, t0=float(k)))
+            pump_until(ls, lambda st, k=k: st["records"] >= 20 * (k + 1))
+            ls.log.flush()  # as each status period does: short blocks too
+    finally:
+        ls.close()
+    res = ls.result()
+    size = (tmp_path / "live.pslog").stat().st_size
+    log = read_samplelog(tmp_path / "live.pslog")
+    assert size <= 4096 and log.intact and 0 < len(log.samples) < 200
+    assert res.records == 200 and res.records_unlogged == 200 - len(log.samples)
+    assert err.getvalue().count("size cap of") == 1 and "--max-log-mb" in err.getvalue()
+    assert f"{res.records_unlogged} records received but not written" in format_summary(res)
+
+
+def test_that_the_summary_says_no_returns_are_no_returns_not_faults(tmp_path):
+    sent = records(40)
+    sent["flags"] = 1  # NO_RETURN: nothing in range, all of them
+    with listening(tmp_path) as ls:
+        send(url_of(ls), sent)
+        pump_until(ls, lambda st: st["records"] >= 40)
+        res = ls.result()
+        line = ls.status_line(ls.clock())
+    assert "records       40 in 2 datagrams" in format_summary(res)
+    assert ": usable 0, no return 40, faulty 0" in format_summary(res)
+    assert "usable 0, no return 40, faulty 0" in line and "flagged" not in format_summary(res)
+
+
+@pytest.mark.parametrize("value", ["0", "-5", "nan"])
+def test_that_a_bad_log_size_cap_is_one_line_and_exit_2(tmp_path, capsys, value):
+    rc = main(["listen", "--stream", "udp:127.0.0.1:14600", "--out", str(tmp_path / "x.pslog"),
+               "--max-log-mb", value])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--max-log-mb" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x.pslog").exists()
+
+
+def test_that_a_live_log_removed_under_the_listener_is_no_traceback(tmp_path):
+    with listening(tmp_path) as ls:
+        (tmp_path / "live.pslog").unlink()
+        send(url_of(ls), records(30))
+        pump_until(ls, lambda st: st["records"] >= 30)
+        assert ls.records == 30

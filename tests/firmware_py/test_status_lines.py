@@ -1,0 +1,70 @@
+"""The payload's status lines count what its sample log holds: samples by flag, from the samples' own
+flags (a line that counted the LiDAR driver's failed transfers said "sensor errors 0" beside a log of
+SENSOR_ERROR samples: readings taken while the part reloads after an automatic reset)."""
+
+from __future__ import annotations
+
+import io
+import re
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from firmware_py.app import PayloadApp, PayloadConfig
+from firmware_py.core.samplelog import SampleFlags, read_samplelog
+from firmware_py.hal import pwm as pwm_backends
+from firmware_py.hal.backends import unregister_i2c_backend
+from firmware_py.hal.clock import MonotonicClock
+
+pytest.importorskip("sitl", reason="the firmware against the simulator (sitl/): not in the payload-only install")
+from sitl.devices.i2c_sim import SimI2CBus, register_sim_bus
+from sitl.devices.lidarlite_emu import EmulatedLidarLite
+from sitl.devices.servo_emu import EmulatedServo
+
+
+class WallSimClock(MonotonicClock):
+    def advance_by_ns(self, dt_ns: int) -> None:
+        pass
+
+
+@pytest.fixture
+def nothing_in_range():
+    """A LIDAR-Lite that never sees a target (open floor beyond its reach), and the servo."""
+    clock = WallSimClock()
+    bus = SimI2CBus(clock)
+    bus.attach(0x62, EmulatedLidarLite(clock, lambda _t_ns: None))
+    register_sim_bus(bus, "nothing")
+    pwm_backends.register_pwm_backend("emustatus", lambda _url: EmulatedServo(clock))
+    yield
+    unregister_i2c_backend("nothing")
+    pwm_backends.unregister_pwm_backend("emustatus")
+
+
+def test_that_the_stop_line_counts_the_sensor_error_samples_the_log_holds_resets_included(tmp_path,
+                                                                                          nothing_in_range):
+    cfg = PayloadConfig(out_path=tmp_path / "samples.pslog", mavlink_url="udpout:127.0.0.1:9", i2c_url="nothing",
+                        pwm_url="pwm:emustatus", fsync=False, records_per_block=100, quiet=False)
+    err = io.StringIO()
+    app = PayloadApp(cfg, err=err)
+
+    def stop_after_a_reset():  # the driver resets a part that saw nothing for 1000 readings
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline:
+            lidar = app.lidar
+            if lidar is not None and lidar.counters().resetting > 0:
+                break
+            time.sleep(0.02)
+        time.sleep(0.3)
+        app.request_stop("test over")
+
+    threading.Thread(target=stop_after_a_reset, daemon=True).start()
+    res = app.run()
+    flags = read_samplelog(cfg.out_path).samples["flags"]
+    in_log = int(np.count_nonzero(flags & SampleFlags.SENSOR_ERROR))
+    no_return = int(np.count_nonzero(flags & SampleFlags.NO_RETURN))
+    assert in_log > 0 and res.lidar_counters["bus_errors"] + res.lidar_counters["timeouts"] == 0  # the case
+    line = [ln for ln in err.getvalue().splitlines() if "stopped (test over)" in ln][-1]
+    assert f"sensor error {in_log}" in line and f"no return {no_return}" in line
+    assert re.search(rf": {len(flags)} samples \(usable {int(np.count_nonzero(flags == 0))};", line)
