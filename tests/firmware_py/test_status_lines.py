@@ -30,26 +30,27 @@ class WallSimClock(MonotonicClock):
 
 
 @pytest.fixture
-def nothing_in_range():
-    """A LIDAR-Lite that never sees a target (open floor beyond its reach), and the servo."""
+def stuck_at_zero():
+    """A LIDAR-Lite stuck reading 0 cm (PX4's known state: the driver resets it every 20 readings),
+    and the servo."""
     clock = WallSimClock()
     bus = SimI2CBus(clock)
-    bus.attach(0x62, EmulatedLidarLite(clock, lambda _t_ns: None))
-    register_sim_bus(bus, "nothing")
+    bus.attach(0x62, EmulatedLidarLite(clock, lambda _t_ns: 0.004))
+    register_sim_bus(bus, "stuck")
     pwm_backends.register_pwm_backend("emustatus", lambda _url: EmulatedServo(clock))
     yield
-    unregister_i2c_backend("nothing")
+    unregister_i2c_backend("stuck")
     pwm_backends.unregister_pwm_backend("emustatus")
 
 
 def test_that_the_stop_line_counts_the_sensor_error_samples_the_log_holds_resets_included(tmp_path,
-                                                                                          nothing_in_range):
-    cfg = PayloadConfig(out_path=tmp_path / "samples.pslog", mavlink_url="udpout:127.0.0.1:9", i2c_url="nothing",
+                                                                                          stuck_at_zero):
+    cfg = PayloadConfig(out_path=tmp_path / "samples.pslog", mavlink_url="udpout:127.0.0.1:9", i2c_url="stuck",
                         pwm_url="pwm:emustatus", fsync=False, records_per_block=100, quiet=False)
     err = io.StringIO()
     app = PayloadApp(cfg, err=err)
 
-    def stop_after_a_reset():  # the driver resets a part that saw nothing for 1000 readings
+    def stop_after_a_reset():  # the driver resets a part stuck at 0 cm after 20 readings
         deadline = time.monotonic() + 60.0
         while time.monotonic() < deadline:
             lidar = app.lidar
