@@ -1,9 +1,11 @@
-"""Every bad input to pilescan-ground: one line, exit code 2, no traceback."""
+"""pilescan-ground: every bad input is one line, its kind's exit code (`ExitCode`), no traceback; --force, -v/-q,
+exit 5 when there is no volume to give."""
 
 import json
 
 import pytest
 
+from firmware_py.core.cli import ExitCode
 from firmware_py.core.version import __version__, software_version
 from ground.cli import main
 from sitl.missions.rectangle import Mission
@@ -23,10 +25,10 @@ def run_dir(tmp_path_factory):
     return out
 
 
-def _one_line_error(capsys, argv, match):
+def _one_line_error(capsys, argv, match, expected=ExitCode.USAGE):
     code = main(argv)
     err = capsys.readouterr().err
-    assert code == 2
+    assert code == expected, err
     assert err.count("\n") == 1 and "Traceback" not in err
     assert match in err
     return err
@@ -52,13 +54,13 @@ def test_that_the_ground_options_reach_the_report(run_dir, tmp_path, capsys):
 
 def test_that_bad_inputs_fail_cleanly(run_dir, tmp_path, capsys):
     out = str(tmp_path / "r")
-    _one_line_error(capsys, ["report", str(tmp_path / "missing"), "--out", out], "no such run")
+    _one_line_error(capsys, ["report", str(tmp_path / "missing"), "--out", out], "no such run", ExitCode.INPUT)
     empty = tmp_path / "empty"
     empty.mkdir()
-    _one_line_error(capsys, ["report", str(empty), "--out", out], "without a samples.pslog")
+    _one_line_error(capsys, ["report", str(empty), "--out", out], "without a samples.pslog", ExitCode.INPUT)
     garbage = tmp_path / "garbage.pslog"
     garbage.write_bytes(b"\x00not a log" * 100)
-    _one_line_error(capsys, ["report", str(garbage), "--out", out], "header is missing or corrupt")
+    _one_line_error(capsys, ["report", str(garbage), "--out", out], "header is missing or corrupt", ExitCode.INPUT)
     _one_line_error(capsys, ["report", str(run_dir), "--out", out, "--truth-volume", "nan"], "finite")
     _one_line_error(capsys, ["report", str(run_dir), "--out", out, "--truth-volume", "-5"], "must be > 0")
     _one_line_error(capsys, ["report", str(run_dir), "--out", out, "--cell", "0"], "cell size")
@@ -71,6 +73,7 @@ def test_that_a_bad_truth_file_is_reported(run_dir, tmp_path, capsys):
     bad.mkdir()
     (bad / "samples.pslog").write_bytes((run_dir / "samples.pslog").read_bytes())
     (bad / "truth.json").write_text("{not json")
-    _one_line_error(capsys, ["report", str(bad), "--out", str(tmp_path / "r")], "not valid JSON")
+    _one_line_error(capsys, ["report", str(bad), "--out", str(tmp_path / "r")], "not valid JSON", ExitCode.INPUT)
     (bad / "truth.json").write_text(json.dumps({"true_volume_m3": "lots"}))
-    _one_line_error(capsys, ["report", str(bad), "--out", str(tmp_path / "r")], "positive number")
+    _one_line_error(capsys, ["report", str(bad), "--out", str(tmp_path / "r")], "positive number", ExitCode.INPUT)
+    assert not (tmp_path / "r").exists()  # inputs are read before the output is touched
