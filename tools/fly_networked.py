@@ -85,7 +85,7 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
     t0 = time.perf_counter()
     sitl = subprocess.Popen([sys.executable, "-m", "sitl.cli", "serve", "--mavlink", f"udp:127.0.0.1:{mav_port}",
                              "--devices", f"tcp:127.0.0.1:{dev_port}", "--stockpile", stockpile, "--storage", storage,
-                             *mission_args, "--out", str(out), *keyed], stderr=subprocess.PIPE, text=True)
+                             *mission_args, "--out", str(out), "--force", *keyed], stderr=subprocess.PIPE, text=True)
     payload = None
     try:
         wait_tcp(dev_port, sitl, 30.0)
@@ -109,7 +109,7 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
             _stop(payload)
         _stop(sitl)
     wall = time.perf_counter() - t0
-    rep = make_report(out, out / "report", ReportOptions(plots=False))
+    rep = make_report(out, out / "report", ReportOptions(plots=False), force=True)
     return NetworkedRun(out, rep, wall, code)
 
 
@@ -142,7 +142,8 @@ def main(argv: list[str] | None = None) -> int:
                                         altitude_m=args.altitude, speed_m_s=args.speed),
                         stockpile=args.stockpile, payload="firmware", initial_position=args.phase)
         fly(cfg, args.out / "lockstep", force=True)
-        lock = make_report(args.out / "lockstep", args.out / "lockstep" / "report", ReportOptions(plots=False))
+        lock = make_report(args.out / "lockstep", args.out / "lockstep" / "report", ReportOptions(plots=False),
+                           force=True)
         diff = 100.0 * (v_net - lock["volume_m3"]) / lock["volume_m3"]
         print(f"lockstep:  {lock['volume_m3']:,.1f} m^3, Ve {lock['volume_error_pct']:.3f} %, "
               f"{lock['n_samples']:,} samples")

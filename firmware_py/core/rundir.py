@@ -6,7 +6,7 @@ mission plan. A report directory is what the ground station made of one.
 
 `OutputFolder` is how `fly`, `serve --out` and `report` write theirs, so runs never mix:
 - **locked while written**: an exclusive `fcntl.flock` on `.pilescan.lock` inside the folder; a second
-  writer is refused at once (exit 4) and told which process holds it. The kernel drops the lock when
+  writer is refused (exit 4) and told which process holds it. The kernel drops the lock when
   its holder dies, so a killed writer never leaves the folder locked.
 - **refused when it holds another result** (any of its file names, or a killed writer's leftovers),
   unless `force`; `force` removes the old files, the marker first, before anything new is written.
@@ -22,8 +22,10 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import os
 import shutil
+import time
 from collections.abc import Iterable
 from pathlib import Path
 from types import TracebackType
@@ -113,6 +115,47 @@ def present(folder: Path, names: Iterable[str]) -> list[str]:
     return found
 
 
+_PROBE_PATIENCE_S = 0.5
+"""How long a lock attempt retries before calling the folder busy: a writer holds the lock for the whole
+run (seconds to hours), while `check_free`'s probe holds it for microseconds, so two probes, or a probe
+and a writer, that collide must not refuse each other."""
+
+
+def _flock_or_busy(fd: int) -> bool:
+    """Take an exclusive flock on fd; False if another holder keeps it past _PROBE_PATIENCE_S."""
+    deadline = time.monotonic() + _PROBE_PATIENCE_S
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return True
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.01)
+
+
+def _busy_message(folder: Path) -> str:
+    pid = holder_pid(folder / LOCK_FILE)
+    return (f"{folder} is being written by another process" + (f" (pid {pid})" if pid is not None else "")
+            + "; wait for it to finish or choose another --out")
+
+
+def _refuse_if_locked(folder: Path) -> None:
+    """RunFailure when another process holds folder's lock (a probe: takes and drops it if free)."""
+    try:
+        fd = os.open(folder / LOCK_FILE, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
+    except OSError:  # no lock file: nobody is writing (or we cannot tell; the real lock will)
+        return
+    try:
+        free = _flock_or_busy(fd)
+    except OSError:
+        return
+    finally:
+        os.close(fd)  # closing drops the probe's lock
+    if not free:
+        raise RunFailure(_busy_message(folder))
+
+
 def check_free(path: str | Path, names: Iterable[str], *, force: bool, what: str = "run") -> Path:
     """Refuse early (before any work) an --out that holds another result; returns the folder as a Path.
 
@@ -121,6 +164,8 @@ def check_free(path: str | Path, names: Iterable[str], *, force: bool, what: str
     if not str(path).strip():  # Path("") is the current directory: never write there by accident
         raise UserError(f"the {what} directory (--out) must be a non-empty path")
     folder = Path(path)
+    if folder.is_dir():
+        _refuse_if_locked(folder)
     if not force and folder.is_dir():
         found = present(folder, names)
         if found:
@@ -171,7 +216,6 @@ class OutputFolder:
 
     def _lock(self) -> None:
         lock_path = self.path / LOCK_FILE
-        import fcntl  # POSIX only; imported here so the names above stay importable everywhere
         for _ in range(_LOCK_ATTEMPTS):
             self._created += _make_dirs(self.path)
             try:
@@ -179,16 +223,13 @@ class OutputFolder:
             except FileNotFoundError:  # the folder was removed by a writer that failed just now
                 continue
             try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                os.close(fd)
-                pid = holder_pid(lock_path)
-                raise RunFailure(f"{self.path} is being written by another process"
-                                 + (f" (pid {pid})" if pid is not None else "")
-                                 + "; wait for it to finish or choose another --out") from None
+                free = _flock_or_busy(fd)
             except BaseException:
                 os.close(fd)
                 raise
+            if not free:
+                os.close(fd)
+                raise RunFailure(_busy_message(self.path))
             try:
                 same = os.stat(lock_path).st_ino == os.fstat(fd).st_ino
             except FileNotFoundError:

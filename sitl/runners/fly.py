@@ -158,6 +158,7 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
     check_clearance(cfg.mission, pile)
     wf = cfg.servo_waveform()
     with OutputFolder(out, RUN_FILES, TRUTH_FILE, force=force) as folder:
+        log.debug("%s locked; files are written in %s and put in place when the flight ends", out, folder.staging)
         say(f"stockpile: {pile.source}, true volume {pile.volume_m3:.1f} m^3")
         say(f"flying {cfg.mission.path_length_m():.0f} m with the {cfg.plant} plant, {cfg.payload} payload")
         log_path, tlog_path = folder.staged(SAMPLES_FILE), folder.staged(TLOG_FILE)
