@@ -48,10 +48,10 @@ def test_that_a_user_error_raised_from_an_os_error_is_a_runtime_failure():
 
 
 def test_that_errors_while_reading_an_input_become_input_errors_naming_it():
-    with pytest.raises(InputError, match="^--stockpile: no triangles$"):
+    with pytest.raises(InputError, match=r"^--stockpile: no triangles$"):
         with reading_input("--stockpile"):
             raise ValueError("no triangles")
-    with pytest.raises(InputError, match="^stockpile mesh x.stl not found$"):
+    with pytest.raises(InputError, match=r"^stockpile mesh x\.stl not found$"):
         with reading_input("--stockpile"):
             raise ValueError("stockpile mesh x.stl not found")  # already names it: no prefix
     with pytest.raises(InputError):

@@ -41,7 +41,7 @@ def test_that_a_second_writer_is_refused_while_the_first_holds_the_folder(tmp_pa
 def test_that_a_folder_holding_a_run_is_refused_without_force_and_left_alone(tmp_path):
     with folder(tmp_path / "run") as f:
         write_run(f, "old")
-    with pytest.raises(UserError, match="already holds a run .*--force") as exc:
+    with pytest.raises(UserError, match=r"already holds a run .*--force") as exc:
         with folder(tmp_path / "run"):
             pass
     assert exit_code_of(exc.value) == ExitCode.USAGE
@@ -84,7 +84,7 @@ def test_that_a_failed_writer_leaves_no_file_and_removes_the_folders_it_created(
             f.staged(rundir.PLAN_FILE).write_text("plan")
             f.publish(rundir.PLAN_FILE)
             f.staged(rundir.SAMPLES_FILE).write_text("half")
-            1 / 0
+            raise ZeroDivisionError
     assert list(tmp_path.iterdir()) == []
 
 
@@ -92,7 +92,7 @@ def test_that_a_failed_writer_leaves_an_existing_folder_and_its_other_files(tmp_
     (tmp_path / "notes.txt").write_text("mine")
     with pytest.raises(ZeroDivisionError):
         with folder(tmp_path):
-            1 / 0
+            raise ZeroDivisionError
     assert [p.name for p in tmp_path.iterdir()] == ["notes.txt"]
 
 

@@ -44,7 +44,7 @@ def wait_for(proc: subprocess.Popen, what: str, condition) -> None:
     end = time.monotonic() + WAIT_S
     while not condition():
         if proc.poll() is not None:
-            out, err = proc.communicate()
+            _out, err = proc.communicate()
             pytest.fail(f"the writer ended (exit {proc.returncode}) before {what}: {err}")
         if time.monotonic() > end:
             proc.kill()
