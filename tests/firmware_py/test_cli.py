@@ -285,3 +285,10 @@ def test_that_a_signed_payload_flies_on_a_signed_autopilot_and_streams_authentic
     assert st["rx_signed"] == st["rx_messages"] > 0 and st["rx_unsigned"] == st["rx_bad_signature"] == 0
     texts = [m.text for m in MavlinkFramer().feed(tlog.read_bytes()) if m.get_type() == "STATUSTEXT"]
     assert "pilescan: started, 200 Hz, link signed" in texts
+
+
+def test_that_q_and_v_reach_the_payload_and_exclude_each_other(capsys, tmp_path):
+    assert parse("-q").quiet and not parse().quiet
+    assert build_parser().parse_args(["--out", "x.pslog", "-v"]).verbose
+    err = run_bad(capsys, "--out", str(tmp_path / "x.pslog"), "--mavlink", NOBODY, "-q", "-v")
+    assert "exclude each other" in err and not (tmp_path / "x.pslog").exists()

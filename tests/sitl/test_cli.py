@@ -124,3 +124,38 @@ def test_that_serve_with_a_signing_key_says_so_and_reports_what_it_refused(tmp_p
     assert code == 0, err
     assert "MAVLink signing on" in err and "refused 0 unsigned, 0 badly signed and 0 replayed frames" in err
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == handlers  # restored
+
+
+# ----- plan --force -----------------------------------------------------------------------------------
+
+def test_that_plan_refuses_to_overwrite_without_force_and_replaces_with_it(tmp_path, capsys):
+    out = tmp_path / "p.waypoints"
+    assert main(["plan", "--p-traj", "20", "--out", str(out)]) == 0
+    assert f"plan written to {out}" in capsys.readouterr().out
+    first = out.read_text()
+    code = main(["plan", "--p-traj", "30", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == USAGE and err.count("\n") == 1 and "--force" in err
+    assert out.read_text() == first
+    assert main(["plan", "--p-traj", "30", "--out", str(out), "--force", "-q"]) == 0
+    assert capsys.readouterr() == ("", "")
+    assert out.read_text() != first
+    assert [p.name for p in tmp_path.iterdir()] == ["p.waypoints"]  # no temporary left beside it
+
+
+# ----- -v / -q -------------------------------------------------------------------------------------------
+
+IDEAL = ["fly", "--stockpile", "1", "--p-traj", "25", "--plant", "ideal"]
+
+
+def test_that_fly_reports_progress_by_default_debug_with_v_and_nothing_with_q(tmp_path, capsys):
+    assert main([*IDEAL, "--out", str(tmp_path / "a")]) == 0
+    cap = capsys.readouterr()
+    assert cap.out.startswith(f"run written to {tmp_path / 'a'}")
+    assert "pilescan-sitl: stockpile: paper pile 1" in cap.err and "debug" not in cap.err
+    assert main([*IDEAL, "--out", str(tmp_path / "b"), "-v"]) == 0
+    assert "pilescan-sitl: debug: sitl.runners.fly: " in capsys.readouterr().err
+    assert main(["-q", *IDEAL, "--out", str(tmp_path / "c")]) == 0
+    assert capsys.readouterr() == ("", "")
+    assert main([*IDEAL, "--out", str(tmp_path / "d"), "-q", "-v"]) == USAGE
+    assert not (tmp_path / "d").exists()
