@@ -174,26 +174,33 @@ class _ProgFormatter(logging.Formatter):
         return f"{self.prog}: debug: {record.name}: {msg}"
 
 
-def configure_logging(prog: str, *, verbose: bool = False, quiet: bool = False) -> int:
-    """Route the standard library's logging to stderr in the programs' form; returns the level set.
+def configure_logging(prog: str, *, verbose: bool = False, quiet: bool = False) -> Callable[[], None]:
+    """Route the standard library's logging to stderr in the programs' form; returns the undo.
 
-    Called once per program run (by `run_cli`); calling it again replaces the handler it installed,
-    so tests that run several `main()`s do not stack handlers. -q: warnings and errors only; -v: debug.
+    Called once per program run (by `run_cli`, which undoes it when the program returns, so `main()`
+    called from tests or tools leaves logging as it found it). -q: warnings and errors only; -v: debug.
+    Only our packages' loggers follow -v/-q; other libraries' stay at warnings.
     """
     if verbose and quiet:
         raise UserError("-v/--verbose and -q/--quiet exclude each other")
     level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
     root = logging.getLogger()
-    for h in list(root.handlers):
-        if isinstance(h, _StderrHandler):
-            root.removeHandler(h)
+    ours = [logging.getLogger(p) for p in OUR_PACKAGES]
+    before = (root.level, [lg.level for lg in ours])
     handler = _StderrHandler()
     handler.setFormatter(_ProgFormatter(prog))
     root.addHandler(handler)
-    root.setLevel(logging.WARNING)  # other libraries' chatter (matplotlib, trimesh): warnings only
-    for package in OUR_PACKAGES:
-        logging.getLogger(package).setLevel(level)
-    return level
+    if root.level == logging.NOTSET or root.level > logging.WARNING:
+        root.setLevel(logging.WARNING)  # other libraries' chatter (matplotlib, trimesh): warnings only
+    for lg in ours:
+        lg.setLevel(level)
+
+    def undo() -> None:
+        root.removeHandler(handler)
+        root.setLevel(before[0])
+        for lg, lv in zip(ours, before[1], strict=True):
+            lg.setLevel(lv)
+    return undo
 
 
 def run_cli(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
@@ -208,9 +215,10 @@ def run_cli(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help, or a bad option already reported in one line
         return exc.code if isinstance(exc.code, int) else ExitCode.USAGE
+    undo = None
     try:
-        configure_logging(prog, verbose=bool(getattr(args, "verbose", False)),
-                          quiet=bool(getattr(args, "quiet", False)))
+        undo = configure_logging(prog, verbose=bool(getattr(args, "verbose", False)),
+                                 quiet=bool(getattr(args, "quiet", False)))
         return int(body(args))
     except (UserError, ValueError, OSError) as exc:  # OSError: missing file, disk full, permission...
         print(f"{prog}: error: {one_line(exc)}", file=sys.stderr)
@@ -218,6 +226,9 @@ def run_cli(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return int(ExitCode.INTERRUPTED)
+    finally:
+        if undo is not None:
+            undo()
 
 
 @contextlib.contextmanager

@@ -100,9 +100,11 @@ def test_that_other_libraries_info_stays_quiet(capsys):
     assert capsys.readouterr().err == ""
 
 
-def test_that_configuring_twice_does_not_print_twice(capsys):
+def test_that_a_program_run_leaves_logging_as_it_found_it(capsys):
+    root, sitl = logging.getLogger(), logging.getLogger("sitl")
+    before = (list(root.handlers), root.level, sitl.level)
     prog = _program(_chatty)
+    prog(["go", "-v"])
     prog(["go"])
-    capsys.readouterr()
-    prog(["go"])
-    assert capsys.readouterr().err.count("progress") == 1
+    assert capsys.readouterr().err.count("progress") == 2  # one handler per run, not stacked
+    assert (list(root.handlers), root.level, sitl.level) == before
