@@ -185,7 +185,7 @@ CASES = [
     ("ground", [*LISTEN, "--stream", "udp::14599"], "udp:HOST:PORT"),
     ("ground", [*LISTEN, "--stream", "udp:127.0.0.1:0"], "port"),
     ("ground", [*LISTEN, "--stream", "udp:127.0.0.1:70000"], "port"),
-    ("ground", [*LISTEN, "--stream", "udp:192.0.2.1:14599"], "cannot listen"),  # not an address of ours
+    ("ground", [*LISTEN, "--stream", "udp:192.0.2.1:14599"], "cannot listen", RUNTIME),  # not an address of ours
     ("ground", [*LISTEN, *LSTREAM, "--duration", "0"], "> 0"),
     ("ground", [*LISTEN, *LSTREAM, "--duration", "nan"], "finite"),
     ("ground", [*LISTEN, *LSTREAM, "--signing-key", "{d}/missing.key"], "does not exist", INPUT),
@@ -306,7 +306,7 @@ def test_that_listen_refuses_a_port_in_use_before_creating_its_log(tmp_path, cap
         port = taken.getsockname()[1]
         code, _, err = run(capsys, "ground", [*LISTEN, "--stream", f"udp:127.0.0.1:{port}",
                                               "--out", str(tmp_path / "x.pslog")])
-    check_one_line_error("ground", code, err)
+    check_one_line_error("ground", code, err, RUNTIME)
     assert "in use" in err and not (tmp_path / "x.pslog").exists()
 
 

@@ -39,7 +39,7 @@ EXIT_USAGE = ExitCode.USAGE  # the name older code and tests use
 class UserError(Exception):
     """A problem the user must fix, printed as one line; by default with the command line (exit 2).
 
-    Subclasses say which other kind of failure it is. Raising one `from` an OSError says "the
+    Subclasses say which other kind of failure it is. Raising one while handling an OSError says "the
     system refused" (a device, a port, a disk): a runtime failure (exit 4), see `exit_code_of`.
     """
 
@@ -73,11 +73,14 @@ def exit_code_of(exc: BaseException) -> ExitCode:
     """The exit code a user-facing failure maps to (UserError subclasses carry theirs).
 
     ValueError is what the configuration dataclasses raise for a bad option value: usage. A bare
-    OSError is the system refusing a write, a socket or a device: runtime. A UserError raised from an
-    OSError describes such a refusal in the user's terms: runtime too.
+    OSError is the system refusing a write, a socket or a device: runtime. A plain UserError raised
+    from, or while handling, an OSError describes such a refusal in the user's terms ("cannot listen
+    on ...: Address already in use"): runtime too. Input files are read inside `reading_input`,
+    whose InputError keeps its 3.
     """
     if isinstance(exc, UserError):
-        if type(exc) is UserError and isinstance(exc.__cause__, OSError):
+        during = exc.__cause__ if exc.__cause__ is not None else exc.__context__
+        if type(exc) is UserError and isinstance(during, OSError):
             return ExitCode.RUNTIME
         return exc.exit_code
     if isinstance(exc, OSError):

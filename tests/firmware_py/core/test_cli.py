@@ -45,6 +45,13 @@ def test_that_a_user_error_raised_from_an_os_error_is_a_runtime_failure():
             raise UserError("cannot open I2C bus tcp:127.0.0.1:9: Connection refused") from cause
     except UserError as exc:
         assert exit_code_of(exc) == ExitCode.RUNTIME
+    try:
+        try:
+            raise OSError(98, "Address already in use")
+        except OSError as exc:
+            raise UserError(f"cannot listen on udp:127.0.0.1:14600: {exc.strerror}") from None
+    except UserError as exc:
+        assert exit_code_of(exc) == ExitCode.RUNTIME
 
 
 def test_that_errors_while_reading_an_input_become_input_errors_naming_it():
