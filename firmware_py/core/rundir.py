@@ -111,8 +111,21 @@ def present(folder: Path, names: Iterable[str]) -> list[str]:
     """The result files (and a killed writer's staging folder) already in folder."""
     found = [n for n in names if (folder / n).exists() or (folder / n).is_symlink()]
     if (folder / STAGING_DIR).exists():
-        found.append(f"{STAGING_DIR}/ (an unfinished write)")
+        found.append(f"{STAGING_DIR}/")
     return found
+
+
+def _taken(folder: Path, found: list[str], what: str) -> UserError:
+    """The refusal of an --out that holds another result (or what a killed writer left)."""
+    files = [f for f in found if f != f"{STAGING_DIR}/"]
+    unfinished = f"{STAGING_DIR}/, left by a writer that was stopped"
+    if not files:
+        held = f"holds an unfinished {what} ({unfinished})"
+    else:
+        held = f"already holds a {what} ({', '.join(files)})"
+        if len(files) < len(found):
+            held += f" and an unfinished one ({unfinished})"
+    return UserError(f"{folder} {held}; choose another --out or pass --force")
 
 
 _PROBE_PATIENCE_S = 0.5
@@ -169,8 +182,7 @@ def check_free(path: str | Path, names: Iterable[str], *, force: bool, what: str
     if not force and folder.is_dir():
         found = present(folder, names)
         if found:
-            raise UserError(f"{folder} already holds a {what} ({', '.join(found)}); choose another --out "
-                            "or pass --force")
+            raise _taken(folder, found, what)
     return folder
 
 
@@ -204,8 +216,7 @@ class OutputFolder:
             self._lock()
             found = present(self.path, self.names)
             if found and not self.force:
-                raise UserError(f"{self.path} already holds a {self.what} ({', '.join(found)}); choose another "
-                                "--out or pass --force")
+                raise _taken(self.path, found, self.what)
             if found:
                 self._clear()
             self.staging.mkdir()
