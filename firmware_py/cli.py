@@ -18,7 +18,15 @@ from firmware_py.app import (
     PayloadApp,
     PayloadConfig,
 )
-from firmware_py.core.cli import ArgumentParser, UserError, finite_float, run_cli, stop_on_signals
+from firmware_py.core.cli import (
+    ArgumentParser,
+    UserError,
+    add_verbosity,
+    finite_float,
+    reading_input,
+    run_cli,
+    stop_on_signals,
+)
 from firmware_py.core.keys import load_key
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
@@ -63,7 +71,7 @@ def build_parser() -> ArgumentParser:
     out.add_argument("--stream", default=None, metavar="URL",
                      help="also stream samples live to the ground station: udp:HOST:PORT")
     out.add_argument("--mission-id", default=None, metavar="ID", help="mission id written to the log header")
-    out.add_argument("--quiet", action="store_true", help="no progress lines (warnings and errors still print)")
+    add_verbosity(out, quiet_help="no progress lines (warnings and errors still print)")
     sv = ap.add_argument_group("sensor and servo")
     sv.add_argument("--preset", default=DEFAULT_PRESET, metavar="NAME",
                     help=f"LIDAR-Lite preset: {', '.join(PRESETS)} (default {DEFAULT_PRESET})")
@@ -105,7 +113,9 @@ def signing_from_args(args) -> SigningConfig | None:
         if args.allow_unsigned:
             raise UserError("--allow-unsigned needs --signing-key")
         return None
-    return SigningConfig(load_key(args.signing_key), allow_unsigned=args.allow_unsigned)
+    with reading_input():
+        key = load_key(args.signing_key)
+    return SigningConfig(key, allow_unsigned=args.allow_unsigned)
 
 
 def uses_device_bridge(i2c_url: str, pwm_url: str) -> bool:

@@ -3,23 +3,30 @@ live sample stream into a sample log (`listen`)."""
 
 from __future__ import annotations
 
+import logging
 import sys
 from collections.abc import Sequence
 
-from firmware_py.core.cli import ArgumentParser, UserError, finite_float, run_cli
+from firmware_py.core.cli import ArgumentParser, UserError, add_verbosity, finite_float, reading_input, run_cli
+from firmware_py.core.keys import load_key
 from firmware_py.core.version import software_version
 from ground import listen
 from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, make_report
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
 
+log = logging.getLogger(__name__)
+
 
 def build_parser() -> ArgumentParser:
     ap = ArgumentParser(prog="pilescan-ground", description=__doc__)
     ap.add_argument("--version", action="version", version=software_version())
+    add_verbosity(ap)
     sub = ap.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
     r = sub.add_parser("report", help="volume report from a run directory or a sample log")
     r.add_argument("source", metavar="RUN_DIR_OR_LOG", help="run directory (reads truth.json too) or .pslog")
     r.add_argument("--out", required=True, help="report directory to write")
+    r.add_argument("--force", action="store_true",
+                   help="replace a report already in --out (its files are removed, report.json first)")
     r.add_argument("--truth-volume", type=finite_float, metavar="M3",
                    help="known true volume, m^3 (overrides truth.json), for Ve (eq. 8)")
     r.add_argument("--cell", type=finite_float, default=DEFAULT_CELL_M, metavar="M",
@@ -40,7 +47,7 @@ def build_parser() -> ArgumentParser:
     r.add_argument("--max-grid-memory-mb", type=finite_float, default=DEFAULT_MAX_GRID_MEMORY_BYTES / 2**20,
                    metavar="MB", help="refuse a --cell whose grid would need more memory than this (default "
                                       f"{DEFAULT_MAX_GRID_MEMORY_BYTES // 2**20} MiB)")
-    r.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    add_verbosity(r, sub=True, quiet_help="no summary: print nothing but warnings and errors")
     ls = sub.add_parser("listen", help="receive the payload's live sample stream (pilescan-payload --stream) "
                                        "into a sample log, with a status line and a summary")
     ls.add_argument("--stream", required=True, metavar="udp:HOST:PORT",
@@ -64,7 +71,7 @@ def build_parser() -> ArgumentParser:
     ls.add_argument("--max-log-mb", type=finite_float, default=None, metavar="MIB",
                     help=f"size cap of --out in MiB (default {listen.DEFAULT_MAX_LOG_MIB}); past it, records are "
                          "counted, not written, and one line says so")
-    ls.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    add_verbosity(ls, sub=True, quiet_help="no status line or summary: print nothing but errors")
     return ap
 
 
@@ -92,14 +99,19 @@ def _report(args) -> int:
                          truth_volume_m3=args.truth_volume, despike=not args.no_despike,
                          surface_fit=args.surface_fit, servo_retiming=not args.no_servo_retiming,
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20))
-    rep = make_report(args.source, args.out, opts)
+    rep = make_report(args.source, args.out, opts, force=args.force)
     if not args.quiet:
         print(format_summary(rep))
-        print(f"report written to {args.out} ({rep['elapsed_s']:.2f} s)", file=sys.stderr)
+    log.info("report written to %s (%.2f s)", args.out, rep["elapsed_s"])
     return 0
 
 
 def _listen(args) -> int:
+    with reading_input():  # the files it names are read (again) by config_from_args: these are input errors
+        if args.signing_key is not None:
+            load_key(args.signing_key)
+        if args.header is not None:
+            listen.load_header(args.header)
     res = listen.listen(listen.config_from_args(args), err=None if args.quiet else sys.stderr)
     if not args.quiet:
         print(listen.format_summary(res), flush=True)

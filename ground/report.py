@@ -10,10 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_py.core.cli import UserError
+from firmware_py.core.cli import NoVolumeError, UserError, reading_input
 from firmware_py.core.flag_tally import FlagTally
 from firmware_py.core.frames import StorageFrame
-from firmware_py.core.rundir import SAMPLES_FILE, TRUTH_FILE
+from firmware_py.core.rundir import SAMPLES_FILE, TRUTH_FILE, OutputFolder, check_free
 from firmware_py.core.safe_read import InputError, json_number, json_object, load_json
 from firmware_py.core.samplelog import SampleLog, read_samplelog
 from firmware_py.core.storage import Storage
@@ -295,30 +295,52 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
     }
 
 
-def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | None = None) -> dict:
-    """Run the pipeline on a run directory or a log and write the report directory."""
+REPORT_FILE = "report.json"
+"""The report's marker: put in place last, so a folder without it holds no finished report."""
+REPORT_FILES = (REPORT_FILE, "report.md", "report.html", "cloud.ply", "cloud_top.png", "height_map.png",
+                "coverage.png")
+"""Every file a report directory may hold (what --force removes)."""
+
+
+def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | None = None, *,
+                force: bool = False) -> dict:
+    """Run the pipeline on a run directory or a log and write the report directory.
+
+    The inputs are read and the volume computed before the output is touched; the files are then
+    written into a staging folder and moved into place, report.json last (`rundir.OutputFolder`), so a
+    report that fails half-way leaves nothing new beside an old one. An --out that already holds a
+    report is refused unless force. Raises NoVolumeError (exit 5) when no surface could be fitted: a
+    report would only say "0 m^3".
+    """
     t0 = time.perf_counter()
     opts = opts or ReportOptions()
     for what, path in (("run directory or sample log", source), ("report directory (--out)", out_dir)):
         if not str(path).strip():  # Path("") is the current directory
             raise UserError(f"the {what} must be a non-empty path")
-    log_path, truth_path = locate_inputs(source)
-    log = read_samplelog(log_path)
-    storage, frame, lever = header_geometry(log, log_path)
-    if len(log.samples) == 0:
-        raise UserError(f"{log_path}: no samples could be read ({log.blocks_corrupt} corrupt block(s))")
-    truth = opts.truth_volume_m3 if opts.truth_volume_m3 is not None else read_truth_volume(truth_path)
+    out = check_free(out_dir, REPORT_FILES, force=force, what="report")  # before the long part
+    with reading_input():
+        log_path, truth_path = locate_inputs(source)
+        log = read_samplelog(log_path)
+        storage, frame, lever = header_geometry(log, log_path)
+        if len(log.samples) == 0:
+            raise UserError(f"{log_path}: no samples could be read ({log.blocks_corrupt} corrupt block(s))")
+        truth = opts.truth_volume_m3 if opts.truth_volume_m3 is not None else read_truth_volume(truth_path)
     survey = survey_from_samples(log.samples, log.header or {}, storage, frame, lever, opts)
     report = summarise(survey, log, opts, truth)
     report["source"] = str(source)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    images = write_outputs(survey, report, out, opts.plots)
-    report["elapsed_s"] = time.perf_counter() - t0
-    (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+    if not np.isfinite(survey.heights_fit).any():
+        c = survey.cloud
+        raise NoVolumeError(f"{log_path}: no volume: no surface could be fitted from {report['n_points_used']} "
+                            f"point(s) on the stockpile ({c.n_samples} samples: {c.n_excluded} unusable, "
+                            f"{report['n_points_removed_walls']} on the walls or roof)")
     from ground.render import write_html, write_markdown
-    write_markdown(report, images, out / "report.md")
-    write_html(report, images, out / "report.html")
+    with OutputFolder(out, REPORT_FILES, REPORT_FILE, force=force, what="report") as folder:
+        images = write_outputs(survey, report, folder.staging, opts.plots)
+        report["elapsed_s"] = time.perf_counter() - t0
+        folder.staged(REPORT_FILE).write_text(json.dumps(report, indent=2) + "\n")
+        write_markdown(report, images, folder.staged("report.md"))
+        write_html(report, images, folder.staged("report.html"))
+        folder.commit()
     return report
 
 

@@ -8,12 +8,21 @@ plan   export the survey as a QGC WPL 110 mission file.
 from __future__ import annotations
 
 import math
-import sys
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
-from firmware_py.core.cli import ArgumentParser, UserError, finite_float, run_cli
+from firmware_py.core.cli import (
+    ArgumentParser,
+    RunFailure,
+    UserError,
+    add_verbosity,
+    finite_float,
+    reading_input,
+    run_cli,
+)
 from firmware_py.core.frames import StorageFrame
+from firmware_py.core.rundir import publish_file
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import N_PHASES
@@ -26,6 +35,7 @@ from sitl.runners.fly import PAYLOADS, PLANTS, FlyConfig, fly
 def build_parser() -> ArgumentParser:
     ap = ArgumentParser(prog="pilescan-sitl", description=__doc__)
     ap.add_argument("--version", action="version", version=software_version())
+    add_verbosity(ap)
     sub = ap.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
     f = sub.add_parser("fly", help="fly a survey and write a run directory")
     f.add_argument("--stockpile", required=True, help="1, 2 (the paper's piles) or an STL/OBJ mesh path")
@@ -54,8 +64,9 @@ def build_parser() -> ArgumentParser:
                         "servo_slow_factor=0.6, power_cut_at_s=T (times from the survey start; seeded by --seed)")
     f.add_argument("--seed", type=int, default=0, help="seed of the run's random draws")
     f.add_argument("--out", required=True, help="run directory to write")
-    f.add_argument("--force", action="store_true", help="overwrite a run already in --out")
-    f.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    f.add_argument("--force", action="store_true",
+                   help="replace a run already in --out (its files are removed, truth.json first, before flying)")
+    add_verbosity(f, sub=True, quiet_help="print nothing but warnings and errors")
 
     sv = sub.add_parser("serve", help="run the vehicle as a MAVLink autopilot on a network link, in real time")
     sv.add_argument("--mavlink", default="udp:127.0.0.1:14550",
@@ -70,7 +81,12 @@ def build_parser() -> ArgumentParser:
                          "`pilescan-payload --hal sitl:HOST:PORT` in another process (needs --speedup 1)")
     sv.add_argument("--stockpile", default="1", help="with --devices: 1, 2 or an STL/OBJ mesh path (default 1)")
     _mission_options(sv, p_traj_required=False)
-    sv.add_argument("--out", default="runs/serve", help="directory for telemetry.tlog and mission.waypoints")
+    sv.add_argument("--out", default="runs/serve",
+                    help="run directory for mission.waypoints (at once), telemetry.tlog and, with --devices, "
+                         "pile.stl and truth.json (when it stops); default runs/serve")
+    sv.add_argument("--force", action="store_true",
+                    help="replace a run already in --out (its files are removed, truth.json first)")
+    add_verbosity(sv, sub=True)
     sv.add_argument("--signing-key", default=None, metavar="FILE",
                     help="MAVLink 2 signing key file (64 hex digits, or a passphrase line: key = its SHA-256, as "
                          "MAVProxy's 'signing setup'; chmod 600): sign everything, refuse unsigned, forged and "
@@ -90,6 +106,8 @@ def build_parser() -> ArgumentParser:
     pl = sub.add_parser("plan", help="export the survey as a QGC WPL 110 mission (.waypoints)")
     _mission_options(pl, p_traj_required=True)
     pl.add_argument("--out", required=True, help="plan file to write (.waypoints)")
+    pl.add_argument("--force", action="store_true", help="replace the plan file if it exists")
+    add_verbosity(pl, sub=True)
     return ap
 
 
@@ -121,8 +139,7 @@ def _fly(args) -> int:
                     payload=args.payload or _default_payload(args.plant), latency_ms=tuple(args.latency_ms),
                     payload_kg=args.payload_mass, seed=args.seed,
                     faults=FaultSpec.parse(args.fault, seed=args.seed) if args.fault else None)
-    progress = None if args.quiet else (lambda msg: print(f"pilescan-sitl: {msg}", file=sys.stderr))
-    res = fly(cfg, args.out, force=args.force, progress=progress)
+    res = fly(cfg, args.out, force=args.force)  # progress: this module's logger (-v/-q)
     if not args.quiet:
         print(f"run written to {res.out_dir} ({res.n_samples} samples, {res.duration_s:.0f} s flight, "
               f"{res.wall_time_s:.2f} s wall)")
@@ -130,8 +147,24 @@ def _fly(args) -> int:
 
 
 def _plan(args) -> int:
-    path = write_qgc_wpl(args.out, _mission(args), StorageFrame())
-    print(f"plan written to {path} (load it with MAVProxy 'wp load', QGroundControl or Mission Planner)")
+    mission = _mission(args)
+    out = Path(args.out)
+    if not args.out.strip() or out.is_dir():
+        raise UserError(f"--out must be a plan file path, not empty or a directory (got {args.out!r})")
+    if out.exists() and not args.force:
+        raise UserError(f"{out} already exists; choose another --out or pass --force")
+    tmp = out.with_name(f".{out.name}.partial-{os.getpid()}")  # beside it: the rename stays on one file system
+    try:
+        write_qgc_wpl(tmp, mission, StorageFrame())
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise RunFailure(f"cannot write {out}: {exc.strerror or exc}") from None
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    path = publish_file(tmp, out, force=args.force)
+    if not args.quiet:
+        print(f"plan written to {path} (load it with MAVProxy 'wp load', QGroundControl or Mission Planner)")
     return 0
 
 
@@ -142,14 +175,16 @@ def _signing(args):
         if args.allow_unsigned:
             raise UserError("--allow-unsigned needs --signing-key")
         return None
-    return SigningConfig(load_key(args.signing_key), allow_unsigned=args.allow_unsigned)
+    with reading_input():
+        key = load_key(args.signing_key)
+    return SigningConfig(key, allow_unsigned=args.allow_unsigned)
 
 
 def _serve(args) -> int:
     signing = _signing(args)  # a bad key file fails before anything starts
     from sitl.runners.serve import ServeOptions, serve
     return serve(ServeOptions(mission=_mission(args), url=args.mavlink, speedup=args.speedup,
-                              duration_s=args.duration, vehicle=args.vehicle, out=Path(args.out),
+                              duration_s=args.duration, vehicle=args.vehicle, out=Path(args.out), force=args.force,
                               devices_url=args.devices, stockpile=args.stockpile, signing=signing,
                               faults=FaultSpec.parse(args.fault, seed=args.seed)))
 

@@ -1,5 +1,6 @@
-"""Every bad input to the three programs (and the reproduction command): exit code 2, exactly one line on
-stderr in the program's own `PROG: error: ...` form, no traceback, nothing started or opened.
+"""Every bad input to the three programs (and the reproduction command): exactly one line on stderr in the
+program's own `PROG: error: ...` form, its kind's exit code (`ExitCode`: 2 a bad command line, 3 a bad input
+file, 4 an output the system refuses), no traceback, nothing started or opened.
 
 The per-program tests (tests/sitl/test_cli.py, tests/ground/test_cli.py, tests/firmware_py/test_cli.py,
 tests/tools/test_reproduce.py) cover the options each was written with; this table covers what they miss,
@@ -19,6 +20,7 @@ from pathlib import Path
 import pytest
 
 from firmware_py import cli as payload_cli
+from firmware_py.core.cli import ExitCode
 from firmware_py.core.samplelog import encode_block
 from ground import cli as ground_cli
 from sitl import cli as sitl_cli
@@ -34,6 +36,7 @@ SERVE = ["serve", "--vehicle", "kinematic", "--duration", "1"]  # if a case ever
 PAY = ["--mavlink", NOBODY, "--i2c", "i2c:/dev/i2c-nonexistent-77"]
 LISTEN = ["listen", "--duration", "1"]  # if a case ever got through, it would end
 LSTREAM = ["--stream", "udp:127.0.0.1:14599"]
+INPUT, RUNTIME = ExitCode.INPUT, ExitCode.RUNTIME  # a case without a code is a usage error (2)
 REP = ["--cache", "cache", "--rows", "rows.csv", "--quiet", "--experiments", "baseline-ideal", "--piles", "1",
        "--positions", "1"]
 
@@ -105,17 +108,17 @@ CASES = [
     ("sitl", [*FLY, "--storage", "60x40x15x3", "--out", "{t}/run"], "LxWxH"),
     ("sitl", [*FLY, "--p-traj", "1e-300", "--out", "{t}/run"], "from a wall"),
     # ... inputs
-    ("sitl", ["fly", "--stockpile", "{d}/empty.stl", "--p-traj", "20", "--out", "{t}/run"], "empty.stl"),
-    ("sitl", ["fly", "--stockpile", "{d}/random.stl", "--p-traj", "20", "--out", "{t}/run"], "random.stl"),
-    ("sitl", ["fly", "--stockpile", "{d}/nofacets.stl", "--p-traj", "20", "--out", "{t}/run"], "no triangles"),
-    ("sitl", ["fly", "--stockpile", "{d}/adir.stl", "--p-traj", "20", "--out", "{t}/run"], "not found"),
-    ("sitl", ["fly", "--stockpile", "{d}/text.obj", "--p-traj", "20", "--out", "{t}/run"], "text.obj"),
-    ("sitl", ["fly", "--stockpile", "{d}/oversize.obj", "--p-traj", "20", "--out", "{t}/run"], "inside"),
+    ("sitl", ["fly", "--stockpile", "{d}/empty.stl", "--p-traj", "20", "--out", "{t}/run"], "empty.stl", INPUT),
+    ("sitl", ["fly", "--stockpile", "{d}/random.stl", "--p-traj", "20", "--out", "{t}/run"], "random.stl", INPUT),
+    ("sitl", ["fly", "--stockpile", "{d}/nofacets.stl", "--p-traj", "20", "--out", "{t}/run"], "no triangles", INPUT),
+    ("sitl", ["fly", "--stockpile", "{d}/adir.stl", "--p-traj", "20", "--out", "{t}/run"], "not found", INPUT),
+    ("sitl", ["fly", "--stockpile", "{d}/text.obj", "--p-traj", "20", "--out", "{t}/run"], "text.obj", INPUT),
+    ("sitl", ["fly", "--stockpile", "{d}/oversize.obj", "--p-traj", "20", "--out", "{t}/run"], "inside", INPUT),
     # ... outputs
     ("sitl", [*FLY, "--out", ""], "non-empty"),
     ("sitl", [*FLY, "--out", "{d}/old-run"], "--force"),
-    ("sitl", ["plan", "--p-traj", "20", "--out", "{d}/blocker/p.waypoints"], "Not a directory"),
-    ("sitl", ["plan", "--p-traj", "20", "--out", "{d}/adir.stl"], "Is a directory"),
+    ("sitl", ["plan", "--p-traj", "20", "--out", "{d}/blocker/p.waypoints"], "Not a directory", RUNTIME),
+    ("sitl", ["plan", "--p-traj", "20", "--out", "{d}/adir.stl"], "a directory"),
     ("sitl", ["plan", "--p-traj", "20", "--out", ""], "directory"),
     ("sitl", ["plan", "--out", "{t}/p.waypoints"], "--p-traj"),
     ("sitl", ["plan", "--p-traj", "nan", "--out", "{t}/p.waypoints"], "finite"),
@@ -135,8 +138,8 @@ CASES = [
     ("sitl", [*SERVE, "--devices", "udp:127.0.0.1:0", "--out", "{t}/s"], "tcp:HOST:PORT"),
     ("sitl", [*SERVE, "--devices", "tcp:127.0.0.1:0", "--speedup", "2", "--out", "{t}/s"], "--speedup 1"),
     ("sitl", [*SERVE, "--devices", "tcp:127.0.0.1:0", "--stockpile", "{d}/random.stl", "--out", "{t}/s"],
-     "random.stl"),
-    ("sitl", [*SERVE, "--mavlink", "udp:127.0.0.1:0", "--out", "{d}/blocker/s"], "Not a directory"),
+     "random.stl", INPUT),
+    ("sitl", [*SERVE, "--mavlink", "udp:127.0.0.1:0", "--out", "{d}/blocker/s"], "Not a directory", RUNTIME),
     ("sitl", [*SERVE, "--p-traj", "70", "--out", "{t}/s"], "P_traj"),
     # ... serve --fault: fly's names, checked, and refused where the payload is another process
     ("sitl", [*SERVE, "--fault", "power_cut_at_s=5", "--out", "{t}/s"], "another process"),
@@ -163,18 +166,18 @@ CASES = [
     ("ground", ["report", "{d}/good.pslog", "--out", "{t}/r", "--cell", "1e9"], "cell size"),
     ("ground", ["report", "{d}/good.pslog", "--out", "{t}/r", "--truth-volume", "inf"], "finite"),
     ("ground", ["report", "{d}/good.pslog", "--out", "{t}/r", "--truth-volume", "0"], "must be > 0"),
-    ("ground", ["report", "{d}/empty.pslog", "--out", "{t}/r"], "header is missing or corrupt"),
-    ("ground", ["report", "{d}/random.pslog", "--out", "{t}/r"], "header is missing or corrupt"),
-    ("ground", ["report", "{d}/blocker", "--out", "{t}/r"], "header is missing or corrupt"),
-    ("ground", ["report", "{d}/adir.pslog", "--out", "{t}/r"], "without a samples.pslog"),
-    ("ground", ["report", "{d}/header-only.pslog", "--out", "{t}/r"], "no samples"),
-    ("ground", ["report", "{d}/list-header.pslog", "--out", "{t}/r"], "header is missing or corrupt"),
-    ("ground", ["report", "{d}/typed-header.pslog", "--out", "{t}/r"], "sensor"),
+    ("ground", ["report", "{d}/empty.pslog", "--out", "{t}/r"], "header is missing or corrupt", INPUT),
+    ("ground", ["report", "{d}/random.pslog", "--out", "{t}/r"], "header is missing or corrupt", INPUT),
+    ("ground", ["report", "{d}/blocker", "--out", "{t}/r"], "header is missing or corrupt", INPUT),
+    ("ground", ["report", "{d}/adir.pslog", "--out", "{t}/r"], "without a samples.pslog", INPUT),
+    ("ground", ["report", "{d}/header-only.pslog", "--out", "{t}/r"], "no samples", INPUT),
+    ("ground", ["report", "{d}/list-header.pslog", "--out", "{t}/r"], "header is missing or corrupt", INPUT),
+    ("ground", ["report", "{d}/typed-header.pslog", "--out", "{t}/r"], "sensor", INPUT),
     ("ground", ["report", "{d}/huge-building.pslog", "--out", "{t}/r"], "larger cell size"),
     ("ground", ["report", "", "--out", "{t}/r"], "non-empty"),
     ("ground", ["report", "{d}/good.pslog", "--out", ""], "non-empty"),
-    ("ground", ["report", "{d}/good.pslog", "--out", "{d}/blocker", "--no-plots"], "File exists"),
-    ("ground", ["report", "{d}/good.pslog", "--out", "{d}/blocker/r", "--no-plots"], "blocker"),
+    ("ground", ["report", "{d}/good.pslog", "--out", "{d}/blocker", "--no-plots"], "File exists", RUNTIME),
+    ("ground", ["report", "{d}/good.pslog", "--out", "{d}/blocker/r", "--no-plots"], "blocker", RUNTIME),
     # ... listen: every bad option fails before the socket is bound or the log is created
     ("ground", ["listen"], "--stream"),
     ("ground", [*LISTEN, *LSTREAM, "--warp"], "unrecognized arguments"),
@@ -182,13 +185,13 @@ CASES = [
     ("ground", [*LISTEN, "--stream", "udp::14599"], "udp:HOST:PORT"),
     ("ground", [*LISTEN, "--stream", "udp:127.0.0.1:0"], "port"),
     ("ground", [*LISTEN, "--stream", "udp:127.0.0.1:70000"], "port"),
-    ("ground", [*LISTEN, "--stream", "udp:192.0.2.1:14599"], "cannot listen"),  # not an address of ours
+    ("ground", [*LISTEN, "--stream", "udp:192.0.2.1:14599"], "cannot listen", RUNTIME),  # not an address of ours
     ("ground", [*LISTEN, *LSTREAM, "--duration", "0"], "> 0"),
     ("ground", [*LISTEN, *LSTREAM, "--duration", "nan"], "finite"),
-    ("ground", [*LISTEN, *LSTREAM, "--signing-key", "{d}/missing.key"], "does not exist"),
-    ("ground", [*LISTEN, *LSTREAM, "--signing-key", "{d}/open.key"], "chmod 600"),
-    ("ground", [*LISTEN, *LSTREAM, "--signing-key", "{d}/short.key"], "hex digits"),
-    ("ground", [*LISTEN, *LSTREAM, "--signing-key", "{d}/adir.pslog"], "directory"),
+    ("ground", [*LISTEN, *LSTREAM, "--signing-key", "{d}/missing.key"], "does not exist", INPUT),
+    ("ground", [*LISTEN, *LSTREAM, "--signing-key", "{d}/open.key"], "chmod 600", INPUT),
+    ("ground", [*LISTEN, *LSTREAM, "--signing-key", "{d}/short.key"], "hex digits", INPUT),
+    ("ground", [*LISTEN, *LSTREAM, "--signing-key", "{d}/adir.pslog"], "directory", INPUT),
     ("ground", [*LISTEN, *LSTREAM, "--allow-peer", "127.0.0.1:0"], "1-65535"),
     ("ground", [*LISTEN, *LSTREAM, "--allow-peer", ""], "allowed peer"),
     ("ground", [*LISTEN, *LSTREAM, "--allow-peer", "[::1"], "allowed peer"),
@@ -197,12 +200,12 @@ CASES = [
     ("ground", [*LISTEN, *LSTREAM, "--out", "{d}/adir.pslog"], "is a directory"),
     ("ground", [*LISTEN, *LSTREAM, "--out", "{d}/blocker/x.pslog"], "does not exist"),
     ("ground", [*LISTEN, *LSTREAM, "--out", "{t}/no/such/dir/x.pslog"], "does not exist"),
-    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/missing.json"], "cannot read"),
-    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/adir.pslog"], "cannot read"),
-    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/random.pslog"], "neither a sample log"),
-    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/list-header.pslog"], "missing or corrupt"),
-    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/list.json"], "JSON object"),
-    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/layout.json"], "another layout"),
+    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/missing.json"], "cannot read", INPUT),
+    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/adir.pslog"], "cannot read", INPUT),
+    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/random.pslog"], "neither a sample log", INPUT),
+    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/list-header.pslog"], "missing or corrupt", INPUT),
+    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/list.json"], "JSON object", INPUT),
+    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/layout.json"], "another layout", INPUT),
     # ----- pilescan-payload
     ("payload", ["--out"], "expected one argument"),
     ("payload", ["--out", "{t}/x.pslog", "--warp"], "unrecognized arguments"),
@@ -248,10 +251,10 @@ CASES = [
     ("reproduce", [*REP, "--config", "{d}/typed.toml"], "name"),
     ("reproduce", [*REP, "--config", "{d}/dup.toml"], "unique"),
     ("reproduce", [*REP, "--config", "{d}/noise-2d.toml"], "noise draws"),
-    ("reproduce", [*REP, "--cache", "{d}/blocker/cache"], "Not a directory"),
-    ("reproduce", [*REP, "--rows", "{d}/blocker/rows.csv"], "blocker"),
+    ("reproduce", [*REP, "--cache", "{d}/blocker/cache"], "Not a directory", RUNTIME),
+    ("reproduce", [*REP, "--rows", "{d}/blocker/rows.csv"], "blocker", RUNTIME),
     ("reproduce", [*REP, "--rows", "{d}/adir.toml"], "is a directory"),
-    ("reproduce", [*REP, "--write", "{d}/blocker/results.md"], "blocker"),
+    ("reproduce", [*REP, "--write", "{d}/blocker/results.md"], "blocker", RUNTIME),
 ]
 
 
@@ -261,21 +264,21 @@ def run(capsys, prog: str, argv: list[str]) -> tuple[int, str, str]:
     return code, cap.out, cap.err
 
 
-def check_one_line_error(prog: str, code, err: str) -> None:
-    assert code == 2, err
+def check_one_line_error(prog: str, code, err: str, expected: ExitCode = ExitCode.USAGE) -> None:
+    assert code == expected, err
     assert err.count("\n") == 1 and err.endswith("\n"), err
     assert "Traceback" not in err
     assert err.startswith(PROGS[prog]) and ": error: " in err, err  # the same form for every program
 
 
-@pytest.mark.parametrize(("prog", "argv", "words"), CASES,
-                         ids=[f"{p}-{i:03d}-{' '.join(a)[:50]}" for i, (p, a, _) in enumerate(CASES)])
-def test_that_a_bad_input_is_one_line_on_stderr_and_exit_code_2(inputs, tmp_path, monkeypatch, capsys, prog, argv,
-                                                                 words):
+@pytest.mark.parametrize(("prog", "argv", "words", "expected"), [(*c, ExitCode.USAGE)[:4] for c in CASES],
+                         ids=[f"{c[0]}-{i:03d}-{' '.join(c[1])[:50]}" for i, c in enumerate(CASES)])
+def test_that_a_bad_input_is_one_line_on_stderr_and_its_kinds_exit_code(inputs, tmp_path, monkeypatch, capsys, prog,
+                                                                         argv, words, expected):
     monkeypatch.chdir(tmp_path)  # a bad case must not write into the repository
     argv = [a.format(d=inputs, t=tmp_path) for a in argv]
     code, out, err = run(capsys, prog, argv)
-    check_one_line_error(prog, code, err)
+    check_one_line_error(prog, code, err, expected)
     assert out == ""
     assert words.lower() in err.lower()
     written = [p for p in tmp_path.rglob("*") if p.is_file() and p.relative_to(tmp_path).parts[0] != "s"]
@@ -303,7 +306,7 @@ def test_that_listen_refuses_a_port_in_use_before_creating_its_log(tmp_path, cap
         port = taken.getsockname()[1]
         code, _, err = run(capsys, "ground", [*LISTEN, "--stream", f"udp:127.0.0.1:{port}",
                                               "--out", str(tmp_path / "x.pslog")])
-    check_one_line_error("ground", code, err)
+    check_one_line_error("ground", code, err, RUNTIME)
     assert "in use" in err and not (tmp_path / "x.pslog").exists()
 
 

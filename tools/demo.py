@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
         out / "run", force=True,
         progress=lambda m: print(f"  sitl: {m}"))
     t1 = time.perf_counter()
-    rep = make_report(out / "run", out / "report", ReportOptions())
+    rep = make_report(out / "run", out / "report", ReportOptions(), force=True)
     t2 = time.perf_counter()
     truth = json.loads((out / "run" / "truth.json").read_text())
     print(summary_table(rep, t1 - t0, t2 - t1, truth))

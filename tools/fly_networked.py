@@ -23,6 +23,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from firmware_py.core.cli import ExitCode, NoVolumeError
 from firmware_py.core.keys import load_key
 from firmware_py.core.rundir import PLAN_FILE, SAMPLES_FILE
 from ground.report import ReportOptions, make_report
@@ -65,9 +66,10 @@ def _stop(proc: subprocess.Popen, timeout_s: float = 10.0) -> int:
 @dataclass(frozen=True)
 class NetworkedRun:
     out: Path
-    report: dict
+    report: dict | None  # None: the flight gave no volume (too short to fit a surface); `no_volume` says why
     wall_s: float
     payload_exit: int
+    no_volume: str | None = None
 
 
 def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Path, phase: int = 0,
@@ -85,7 +87,7 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
     t0 = time.perf_counter()
     sitl = subprocess.Popen([sys.executable, "-m", "sitl.cli", "serve", "--mavlink", f"udp:127.0.0.1:{mav_port}",
                              "--devices", f"tcp:127.0.0.1:{dev_port}", "--stockpile", stockpile, "--storage", storage,
-                             *mission_args, "--out", str(out), *keyed], stderr=subprocess.PIPE, text=True)
+                             *mission_args, "--out", str(out), "--force", *keyed], stderr=subprocess.PIPE, text=True)
     payload = None
     try:
         wait_tcp(dev_port, sitl, 30.0)
@@ -109,7 +111,11 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
             _stop(payload)
         _stop(sitl)
     wall = time.perf_counter() - t0
-    rep = make_report(out, out / "report", ReportOptions(plots=False))
+    try:
+        rep = make_report(out, out / "report", ReportOptions(plots=False), force=True)
+    except NoVolumeError as exc:  # e.g. a flight of a few seconds: every sweep on one line
+        say(f"no report: {exc}")
+        return NetworkedRun(out, None, wall, code, no_volume=str(exc))
     return NetworkedRun(out, rep, wall, code)
 
 
@@ -130,6 +136,9 @@ def main(argv: list[str] | None = None) -> int:
     mission_args = ["--p-traj", f"{args.p_traj:g}", "--altitude", f"{args.altitude:g}", "--speed", f"{args.speed:g}"]
     net = fly_networked(mission_args, args.storage, args.stockpile, args.out / "networked", args.phase,
                         signing_key=args.signing_key)
+    if net.report is None:
+        print(f"networked: {net.no_volume}", file=sys.stderr)
+        return int(ExitCode.NO_VOLUME)
     v_net = net.report["volume_m3"]
     print(f"networked: {v_net:,.1f} m^3, Ve {net.report['volume_error_pct']:.3f} %, "
           f"{net.report['n_samples']:,} samples, {net.wall_s:.0f} s wall, payload exit {net.payload_exit}")
@@ -142,7 +151,8 @@ def main(argv: list[str] | None = None) -> int:
                                         altitude_m=args.altitude, speed_m_s=args.speed),
                         stockpile=args.stockpile, payload="firmware", initial_position=args.phase)
         fly(cfg, args.out / "lockstep", force=True)
-        lock = make_report(args.out / "lockstep", args.out / "lockstep" / "report", ReportOptions(plots=False))
+        lock = make_report(args.out / "lockstep", args.out / "lockstep" / "report", ReportOptions(plots=False),
+                           force=True)
         diff = 100.0 * (v_net - lock["volume_m3"]) / lock["volume_m3"]
         print(f"lockstep:  {lock['volume_m3']:,.1f} m^3, Ve {lock['volume_error_pct']:.3f} %, "
               f"{lock['n_samples']:,} samples")

@@ -8,8 +8,8 @@ mission, seeds, energy, config), `pile.stl` (the stockpile mesh the LiDAR saw), 
 from __future__ import annotations
 
 import json
+import logging
 import math
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -17,9 +17,19 @@ from pathlib import Path
 
 import numpy as np
 
+from firmware_py.core.cli import RunFailure, reading_input
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.header import build_log_header
-from firmware_py.core.rundir import PILE_FILE, PLAN_FILE, SAMPLES_FILE, TLOG_FILE, TRUTH_FILE
+from firmware_py.core.rundir import (
+    PILE_FILE,
+    PLAN_FILE,
+    RUN_FILES,
+    SAMPLES_FILE,
+    TLOG_FILE,
+    TRUTH_FILE,
+    OutputFolder,
+    check_free,
+)
 from firmware_py.core.samplelog import SampleLogWriter
 from firmware_py.core.sensor import LIDARLITE_V3, RangefinderSpec
 from firmware_py.core.version import software_version
@@ -32,6 +42,8 @@ from sitl.sensing.batch_sampler import sample_flight
 from sitl.vehicle.ideal_plant import IdealPlant, Trajectory
 from sitl.world import stockpile as piles
 from sitl.world.raycast import World
+
+log = logging.getLogger(__name__)
 
 PLANTS = ("jsbsim", "ideal")
 PAYLOADS = ("batch", "firmware")
@@ -132,50 +144,50 @@ def truth_record(pile: piles.Stockpile, stockpile: str, mission: Mission, frame:
 
 def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
         progress: Callable[[str], None] | None = None) -> RunResult:
-    """Fly cfg with the selected plant and write the run directory."""
+    """Fly cfg with the selected plant and write the run directory (`firmware_py.core.rundir.OutputFolder`:
+    locked while written, refused when it holds another run unless force, truth.json put in place last).
+
+    Progress goes to `progress`, or to this module's logger (info) when it is None.
+    """
     t0 = time.perf_counter()
-    say = progress or (lambda _msg: None)
-    if not str(out_dir).strip():  # Path("") is the current directory: never write a run there by accident
-        raise ValueError("the run directory (--out) must be a non-empty path")
-    out = Path(out_dir)
-    if (out / SAMPLES_FILE).exists() and not force:
-        raise ValueError(f"{out} already holds a run; choose another --out or pass --force")
-    out.mkdir(parents=True, exist_ok=True)  # fail before any work when --out is unusable
+    say = progress or log.info
+    out = check_free(out_dir, RUN_FILES, force=force)  # refuse a taken --out before any work
     storage = cfg.mission.storage
-    pile = piles.resolve(cfg.stockpile, storage)
+    with reading_input("--stockpile"):
+        pile = piles.resolve(cfg.stockpile, storage)
     check_clearance(cfg.mission, pile)
-    say(f"stockpile: {pile.source}, true volume {pile.volume_m3:.1f} m^3")
-    say(f"flying {cfg.mission.path_length_m():.0f} m with the {cfg.plant} plant, {cfg.payload} payload")
     wf = cfg.servo_waveform()
-    log_path = out / SAMPLES_FILE
-    log_path.unlink(missing_ok=True)
-    if cfg.payload == "firmware":
-        from sitl.runners.lockstep_payload import fly_firmware
-        run = fly_firmware(cfg, log_path, log_header(cfg, wf), latency_ms=cfg.latency_ms, tlog_path=out / TLOG_FILE,
-                           seed=cfg.seed, faults=cfg.faults)
-        if run.faults and run.faults.get("power_cut"):
-            say(f"power cut at {cfg.faults.power_cut_at_s:g} s: the log holds the blocks written by then")
-        elif not run.completed:
-            raise ValueError(f"the vehicle did not complete the mission within {run.duration_s:.0f} s")
-        if cfg.faults is not None and cfg.faults.active:
-            say(f"faults injected: {', '.join(cfg.faults.active)}")
-        records, duration_s, energy_j = run.records, run.duration_s, run.energy_j
-    else:
-        world = World(storage, pile, max_range_m=cfg.lidar.max_range_m)
-        traj, duration_s, energy_j = fly_trajectory(cfg, out / TLOG_FILE)
-        records = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame)
-        # The batch path writes a finished flight at once: one fsync at the end is enough.
-        with SampleLogWriter(log_path, log_header(cfg, wf), records_per_block=500, fsync=False) as w:
-            w.append(records)
-    with open(log_path, "rb") as f:
-        os.fsync(f.fileno())
-    pile.mesh.export(out / PILE_FILE)
-    write_qgc_wpl(out / PLAN_FILE, cfg.mission, cfg.frame)
-    truth = truth_record(pile, cfg.stockpile, cfg.mission, cfg.frame, plant=cfg.plant, payload=cfg.payload,
-                         seed=cfg.seed, faults=cfg.faults, flight_time_s=duration_s, energy_j=energy_j,
-                         payload_kg=cfg.payload_kg if cfg.plant == "jsbsim" else None, n_samples=len(records),
-                         servo_initial_position=cfg.initial_position, waveform=cfg.waveform)
-    (out / TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
+    with OutputFolder(out, RUN_FILES, TRUTH_FILE, force=force) as folder:
+        log.debug("%s locked; files are written in %s and put in place when the flight ends", out, folder.staging)
+        say(f"stockpile: {pile.source}, true volume {pile.volume_m3:.1f} m^3")
+        say(f"flying {cfg.mission.path_length_m():.0f} m with the {cfg.plant} plant, {cfg.payload} payload")
+        log_path, tlog_path = folder.staged(SAMPLES_FILE), folder.staged(TLOG_FILE)
+        if cfg.payload == "firmware":
+            from sitl.runners.lockstep_payload import fly_firmware
+            run = fly_firmware(cfg, log_path, log_header(cfg, wf), latency_ms=cfg.latency_ms, tlog_path=tlog_path,
+                               seed=cfg.seed, faults=cfg.faults)
+            if run.faults and run.faults.get("power_cut"):
+                say(f"power cut at {cfg.faults.power_cut_at_s:g} s: the log holds the blocks written by then")
+            elif not run.completed:
+                raise RunFailure(f"the vehicle did not complete the mission within {run.duration_s:.0f} s")
+            if cfg.faults is not None and cfg.faults.active:
+                say(f"faults injected: {', '.join(cfg.faults.active)}")
+            records, duration_s, energy_j = run.records, run.duration_s, run.energy_j
+        else:
+            world = World(storage, pile, max_range_m=cfg.lidar.max_range_m)
+            traj, duration_s, energy_j = fly_trajectory(cfg, tlog_path)
+            records = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame)
+            # The batch path writes a finished flight at once: the commit's fsync is enough.
+            with SampleLogWriter(log_path, log_header(cfg, wf), records_per_block=500, fsync=False) as w:
+                w.append(records)
+        pile.mesh.export(folder.staged(PILE_FILE))
+        write_qgc_wpl(folder.staged(PLAN_FILE), cfg.mission, cfg.frame)
+        truth = truth_record(pile, cfg.stockpile, cfg.mission, cfg.frame, plant=cfg.plant, payload=cfg.payload,
+                             seed=cfg.seed, faults=cfg.faults, flight_time_s=duration_s, energy_j=energy_j,
+                             payload_kg=cfg.payload_kg if cfg.plant == "jsbsim" else None, n_samples=len(records),
+                             servo_initial_position=cfg.initial_position, waveform=cfg.waveform)
+        folder.staged(TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
+        folder.commit()
     n_ret = int(np.count_nonzero(records["flags"] == 0))
     say(f"wrote {out}: {len(records)} samples ({n_ret} returns), {duration_s:.0f} s flight"
         + (f", {energy_j / 1000:.1f} kJ" if energy_j is not None else ""))
@@ -192,7 +204,7 @@ def fly_trajectory(cfg: FlyConfig, tlog_path: Path | None = None) -> tuple[Traje
         return plant.states(plant.sample_times(cfg.lidar.rate_hz)), plant.duration_s, None
     flown = fly_mission(cfg.mission, cfg.frame, payload_kg=cfg.payload_kg, tlog_path=tlog_path)
     if not flown.completed:
-        raise ValueError(f"the vehicle did not complete the mission within {flown.duration_s:.0f} s "
+        raise RunFailure(f"the vehicle did not complete the mission within {flown.duration_s:.0f} s "
                          f"(reached {len(flown.reached)} of {len(cfg.mission.waypoints_w()) - 1} waypoints)")
     t = np.arange(int(flown.duration_s * cfg.lidar.rate_hz) + 1) / cfg.lidar.rate_hz
     return flown.trajectory_at(t), flown.duration_s, flown.energy_j

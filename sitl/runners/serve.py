@@ -26,8 +26,17 @@ import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from firmware_py.core.cli import reading_input
 from firmware_py.core.frames import StorageFrame
-from firmware_py.core.rundir import PILE_FILE, PLAN_FILE, TLOG_FILE, TRUTH_FILE
+from firmware_py.core.rundir import (
+    PILE_FILE,
+    PLAN_FILE,
+    RUN_FILES,
+    TLOG_FILE,
+    TRUTH_FILE,
+    OutputFolder,
+    check_free,
+)
 from firmware_py.hal.signing import SigningConfig
 from sitl.devices.bridge_server import parse_bridge_url
 from sitl.devices.networked import NetworkedDevices, NetworkedFaults, check_networked_faults
@@ -67,6 +76,7 @@ class ServeOptions:
     duration_s: float | None = None
     vehicle: str = "jsbsim"
     out: Path = Path("runs/serve")
+    force: bool = False  # replace a run already in `out` (its truth.json first)
     devices_url: str | None = None
     stockpile: str = "1"
     signing: SigningConfig | None = None
@@ -96,29 +106,36 @@ class ServeOptions:
 def serve(opts: ServeOptions) -> int:
     """Serve until opts.duration_s of simulated time has run, or SIGINT / SIGTERM; returns the exit code."""
     world = None
+    check_free(opts.out, RUN_FILES, force=opts.force)  # a taken --out fails before any work
     if opts.devices_url is not None:
         parse_bridge_url(opts.devices_url)  # a bad URL fails before any work
-        pile = piles.resolve(opts.stockpile, opts.mission.storage)
+        with reading_input("--stockpile"):
+            pile = piles.resolve(opts.stockpile, opts.mission.storage)
         check_clearance(opts.mission, pile)
         world = World(opts.mission.storage, pile, max_range_m=opts.fly_config().lidar.max_range_m)
     transport = make_transport(opts.url)  # a bad --mavlink fails before anything is written
     try:
-        return _serve(opts, world, transport)
+        # The folder is locked while served; the plan is put in place at once (a ground station loads
+        # it), the telemetry log and the truth when the vehicle stops, the truth last (rundir).
+        with OutputFolder(opts.out, RUN_FILES, TRUTH_FILE, force=opts.force) as folder:
+            code = _serve(opts, world, transport, folder)
+            folder.commit()
+            return code
     finally:
         transport.close()
 
 
-def _serve(opts: ServeOptions, world: World | None, transport) -> int:
+def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFolder) -> int:
     cfg = opts.fly_config()
     mission, frame, out, kind = opts.mission, cfg.frame, opts.out, opts.vehicle
     pile = world.pile if world is not None else None
-    out.mkdir(parents=True, exist_ok=True)
-    plan = write_qgc_wpl(out / PLAN_FILE, mission, frame)
+    write_qgc_wpl(folder.staged(PLAN_FILE), mission, frame)
+    plan = folder.publish(PLAN_FILE)
     if world is not None:
-        pile.mesh.export(out / PILE_FILE)
+        pile.mesh.export(folder.staged(PILE_FILE))
         truth = truth_record(pile, opts.stockpile, mission, frame, plant=kind, payload="networked",
                              seed=opts.faults.seed, faults=opts.faults)
-        (out / TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
+        folder.staged(TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
     vehicle = make_vehicle(kind, mission, frame)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -143,7 +160,7 @@ def _serve(opts: ServeOptions, world: World | None, transport) -> int:
               + (f"; LiDAR and servo on {devices.url} (pile {opts.stockpile}, {pile.volume_m3:.1f} m^3)"
                  if devices else "")
               + signed + injected, file=sys.stderr, flush=True)
-        with MavlinkVehicleServer(vehicle, faults.transport, tlog_path=out / TLOG_FILE, home_lat_deg=lat0,
+        with MavlinkVehicleServer(vehicle, faults.transport, tlog_path=folder.staged(TLOG_FILE), home_lat_deg=lat0,
                                   home_lon_deg=lon0, home_alt_m=alt0, signing=opts.signing,
                                   extra_params=faults.params) as server:
             faults.bind(server)

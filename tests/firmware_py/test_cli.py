@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from firmware_py.cli import build_parser, config_from_args, hal_urls, main, stop_on_signals
-from firmware_py.core.cli import UserError
+from firmware_py.core.cli import ExitCode, UserError
 from firmware_py.core.samplelog import SampleFlags, read_samplelog
 from firmware_py.core.version import __version__, software_version
 from firmware_py.hal import pwm as pwm_backends
@@ -60,10 +60,10 @@ def parse(*argv: str):
     return config_from_args(build_parser().parse_args(["--out", "x.pslog", *argv]))
 
 
-def run_bad(capsys, *argv: str) -> str:
+def run_bad(capsys, *argv: str, code: ExitCode = ExitCode.USAGE) -> str:
     rc = main(list(argv))
     err = capsys.readouterr().err
-    assert rc == 2, err
+    assert rc == code, err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
     return err
 
@@ -151,19 +151,21 @@ def test_that_an_existing_log_is_not_overwritten_without_force(capsys, tmp_path,
 
 def test_that_hardware_that_cannot_be_opened_is_named_in_one_line(capsys, tmp_path):
     out = tmp_path / "x.pslog"
-    err = run_bad(capsys, "--out", str(out), "--mavlink", NOBODY, "--i2c", "i2c:/dev/i2c-nonexistent-77")
+    err = run_bad(capsys, "--out", str(out), "--mavlink", NOBODY, "--i2c", "i2c:/dev/i2c-nonexistent-77",
+                  code=ExitCode.RUNTIME)
     assert "i2c:/dev/i2c-nonexistent-77" in err
     assert not out.exists()
 
 
 def test_that_an_unreachable_device_bridge_is_named_in_one_line(capsys, tmp_path):
-    err = run_bad(capsys, "--out", str(tmp_path / "x.pslog"), "--mavlink", NOBODY, "--hal", "sitl:127.0.0.1:9")
+    err = run_bad(capsys, "--out", str(tmp_path / "x.pslog"), "--mavlink", NOBODY, "--hal", "sitl:127.0.0.1:9",
+                  code=ExitCode.RUNTIME)
     assert "127.0.0.1:9" in err
 
 
 def test_that_a_missing_sysfs_pwm_is_named_in_one_line(capsys, tmp_path, devices):
     err = run_bad(capsys, "--out", str(tmp_path / "x.pslog"), "--mavlink", NOBODY, "--i2c", "sitl",
-                  "--pwm", "pwm:sysfs:97:0")
+                  "--pwm", "pwm:sysfs:97:0", code=ExitCode.RUNTIME)
     assert "pwm:sysfs:97:0" in err
 
 
@@ -216,21 +218,23 @@ def test_that_a_signing_key_reaches_the_config(tmp_path):
     assert parse().signing is None
 
 
-@pytest.mark.parametrize(("argv", "word"), [
-    (["--signing-key", "/nonexistent"], "does not exist"),
-    (["--allow-unsigned"], "--allow-unsigned needs --signing-key"),
+@pytest.mark.parametrize(("argv", "word", "code"), [
+    (["--signing-key", "/nonexistent"], "does not exist", ExitCode.INPUT),
+    (["--allow-unsigned"], "--allow-unsigned needs --signing-key", ExitCode.USAGE),
 ])
-def test_that_a_bad_signing_key_is_one_line_and_exit_2(capsys, tmp_path, argv, word):
+def test_that_a_bad_signing_key_is_one_line_and_exit_3_and_a_key_flag_alone_2(capsys, tmp_path, argv, word, code):
     out = tmp_path / "x.pslog"
-    err = run_bad(capsys, "--out", str(out), "--mavlink", NOBODY, *argv)
+    err = run_bad(capsys, "--out", str(out), "--mavlink", NOBODY, *argv, code=code)
     assert word in err and not out.exists()
 
 
 @pytest.mark.skipif(os.name != "posix", reason="POSIX permission bits")
-def test_that_a_world_readable_or_empty_signing_key_is_one_line_and_exit_2(capsys, tmp_path):
-    err = run_bad(capsys, "--out", str(tmp_path / "x.pslog"), "--signing-key", str(key_file(tmp_path, 0o644)))
+def test_that_a_world_readable_or_empty_signing_key_is_one_line_and_exit_3(capsys, tmp_path):
+    err = run_bad(capsys, "--out", str(tmp_path / "x.pslog"), "--signing-key", str(key_file(tmp_path, 0o644)),
+                  code=ExitCode.INPUT)
     assert "chmod 600" in err
-    err = run_bad(capsys, "--out", str(tmp_path / "x.pslog"), "--signing-key", str(key_file(tmp_path, text="")))
+    err = run_bad(capsys, "--out", str(tmp_path / "x.pslog"), "--signing-key", str(key_file(tmp_path, text="")),
+                  code=ExitCode.INPUT)
     assert "empty" in err
 
 
@@ -281,3 +285,10 @@ def test_that_a_signed_payload_flies_on_a_signed_autopilot_and_streams_authentic
     assert st["rx_signed"] == st["rx_messages"] > 0 and st["rx_unsigned"] == st["rx_bad_signature"] == 0
     texts = [m.text for m in MavlinkFramer().feed(tlog.read_bytes()) if m.get_type() == "STATUSTEXT"]
     assert "pilescan: started, 200 Hz, link signed" in texts
+
+
+def test_that_q_and_v_reach_the_payload_and_exclude_each_other(capsys, tmp_path):
+    assert parse("-q").quiet and not parse().quiet
+    assert build_parser().parse_args(["--out", "x.pslog", "-v"]).verbose
+    err = run_bad(capsys, "--out", str(tmp_path / "x.pslog"), "--mavlink", NOBODY, "-q", "-v")
+    assert "exclude each other" in err and not (tmp_path / "x.pslog").exists()

@@ -1,9 +1,11 @@
-"""Every bad input to pilescan-ground: one line, exit code 2, no traceback."""
+"""pilescan-ground: every bad input is one line, its kind's exit code (`ExitCode`), no traceback; --force, -v/-q,
+exit 5 when there is no volume to give."""
 
 import json
 
 import pytest
 
+from firmware_py.core.cli import ExitCode
 from firmware_py.core.version import __version__, software_version
 from ground.cli import main
 from sitl.missions.rectangle import Mission
@@ -23,10 +25,10 @@ def run_dir(tmp_path_factory):
     return out
 
 
-def _one_line_error(capsys, argv, match):
+def _one_line_error(capsys, argv, match, expected=ExitCode.USAGE):
     code = main(argv)
     err = capsys.readouterr().err
-    assert code == 2
+    assert code == expected, err
     assert err.count("\n") == 1 and "Traceback" not in err
     assert match in err
     return err
@@ -52,13 +54,13 @@ def test_that_the_ground_options_reach_the_report(run_dir, tmp_path, capsys):
 
 def test_that_bad_inputs_fail_cleanly(run_dir, tmp_path, capsys):
     out = str(tmp_path / "r")
-    _one_line_error(capsys, ["report", str(tmp_path / "missing"), "--out", out], "no such run")
+    _one_line_error(capsys, ["report", str(tmp_path / "missing"), "--out", out], "no such run", ExitCode.INPUT)
     empty = tmp_path / "empty"
     empty.mkdir()
-    _one_line_error(capsys, ["report", str(empty), "--out", out], "without a samples.pslog")
+    _one_line_error(capsys, ["report", str(empty), "--out", out], "without a samples.pslog", ExitCode.INPUT)
     garbage = tmp_path / "garbage.pslog"
     garbage.write_bytes(b"\x00not a log" * 100)
-    _one_line_error(capsys, ["report", str(garbage), "--out", out], "header is missing or corrupt")
+    _one_line_error(capsys, ["report", str(garbage), "--out", out], "header is missing or corrupt", ExitCode.INPUT)
     _one_line_error(capsys, ["report", str(run_dir), "--out", out, "--truth-volume", "nan"], "finite")
     _one_line_error(capsys, ["report", str(run_dir), "--out", out, "--truth-volume", "-5"], "must be > 0")
     _one_line_error(capsys, ["report", str(run_dir), "--out", out, "--cell", "0"], "cell size")
@@ -71,6 +73,85 @@ def test_that_a_bad_truth_file_is_reported(run_dir, tmp_path, capsys):
     bad.mkdir()
     (bad / "samples.pslog").write_bytes((run_dir / "samples.pslog").read_bytes())
     (bad / "truth.json").write_text("{not json")
-    _one_line_error(capsys, ["report", str(bad), "--out", str(tmp_path / "r")], "not valid JSON")
+    _one_line_error(capsys, ["report", str(bad), "--out", str(tmp_path / "r")], "not valid JSON", ExitCode.INPUT)
     (bad / "truth.json").write_text(json.dumps({"true_volume_m3": "lots"}))
-    _one_line_error(capsys, ["report", str(bad), "--out", str(tmp_path / "r")], "positive number")
+    _one_line_error(capsys, ["report", str(bad), "--out", str(tmp_path / "r")], "positive number", ExitCode.INPUT)
+    assert not (tmp_path / "r").exists()  # inputs are read before the output is touched
+
+
+# ----- exit 5: no volume -----------------------------------------------------------------------------
+
+def _log_file(path, samples) -> str:
+    from firmware_py.core.samplelog import encode_block
+    from tests.ground.test_report_fuzz import BASE_HEADER
+    path.write_bytes(encode_block(b"H", json.dumps(BASE_HEADER).encode()) + encode_block(b"S", samples.tobytes()))
+    return str(path)
+
+
+def test_that_a_log_without_a_usable_sample_exits_5_and_writes_no_report(tmp_path, capsys):
+    from firmware_py.core.samplelog import SampleFlags
+    from tests.ground.test_report_fuzz import floor_samples
+    s = floor_samples()
+    s["flags"] = SampleFlags.NO_RETURN  # the LiDAR saw nothing: there is no volume to give, not "0.0 m^3"
+    log = _log_file(tmp_path / "blind.pslog", s)
+    code = main(["report", log, "--out", str(tmp_path / "r")])
+    cap = capsys.readouterr()
+    assert code == ExitCode.NO_VOLUME == 5
+    assert cap.out == "" and cap.err.count("\n") == 1
+    assert "no volume" in cap.err and "400 samples: 400 unusable" in cap.err
+    assert not (tmp_path / "r").exists()
+
+
+def test_that_a_log_with_usable_samples_exits_0(tmp_path, capsys):
+    from tests.ground.test_report_fuzz import floor_samples
+    log = _log_file(tmp_path / "floor.pslog", floor_samples())
+    assert main(["report", log, "--out", str(tmp_path / "r"), "--no-plots"]) == 0
+    assert "volume" in capsys.readouterr().out
+
+
+# ----- --force, atomic reports --------------------------------------------------------------------------
+
+def test_that_report_refuses_to_overwrite_a_report_without_force(run_dir, tmp_path, capsys):
+    out = tmp_path / "r"
+    assert main(["report", str(run_dir), "--out", str(out), "--no-plots", "-q"]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    _one_line_error(capsys, ["report", str(run_dir), "--out", str(out), "--no-plots"], "--force")
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_that_report_force_replaces_every_old_file(run_dir, tmp_path, capsys):
+    out = tmp_path / "r"
+    assert main(["report", str(run_dir), "--out", str(out), "-q"]) == 0  # with plots
+    assert (out / "coverage.png").is_file()
+    assert main(["report", str(run_dir), "--out", str(out), "--no-plots", "--cell", "1.0", "-q", "--force"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["cloud.ply", "report.html", "report.json", "report.md"]
+    assert json.loads((out / "report.json").read_text())["cell_size_m"] == 1.0  # no old figure beside it
+
+
+def test_that_a_report_failing_half_way_leaves_no_new_file_beside_old_ones(run_dir, tmp_path, capsys, monkeypatch):
+    import ground.render
+    out = tmp_path / "r"
+    out.mkdir()
+    (out / "notes.txt").write_text("the user's own file")
+
+    def disk_full(*_a, **_k):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(ground.render, "write_html", disk_full)  # after the cloud, figures, json and markdown
+    code = main(["report", str(run_dir), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == ExitCode.RUNTIME and "No space left on device" in err and err.count("\n") == 1
+    assert [p.name for p in out.iterdir()] == ["notes.txt"]
+    code = main(["report", str(run_dir), "--out", str(tmp_path / "fresh")])
+    assert code == ExitCode.RUNTIME and not (tmp_path / "fresh").exists()
+
+
+# ----- -v / -q ------------------------------------------------------------------------------------------
+
+def test_that_quiet_prints_nothing_and_the_default_prints_the_summary_and_where(run_dir, tmp_path, capsys):
+    assert main(["report", str(run_dir), "--out", str(tmp_path / "a"), "--no-plots", "-q"]) == 0
+    assert capsys.readouterr() == ("", "")
+    assert main(["report", str(run_dir), "--out", str(tmp_path / "b"), "--no-plots"]) == 0
+    cap = capsys.readouterr()
+    assert cap.out.startswith("volume ") and cap.err.startswith(f"pilescan-ground: report written to {tmp_path / 'b'}")
+    assert main(["-q", "report", str(run_dir), "--out", str(tmp_path / "c"), "--no-plots"]) == 0
+    assert capsys.readouterr() == ("", "")

@@ -217,13 +217,13 @@ def test_that_the_command_logs_a_signed_stream_until_sigterm(tmp_path, capsys):
     assert log.header["live_stream"]["authenticated"] is True
 
 
-def test_that_a_port_in_use_is_one_line_and_exit_2(tmp_path, capsys):
+def test_that_a_port_in_use_is_one_line_and_exit_4(tmp_path, capsys):
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
         taken.bind(("127.0.0.1", 0))
         port = taken.getsockname()[1]
         rc = main(["listen", "--stream", f"udp:127.0.0.1:{port}", "--out", str(tmp_path / "x.pslog")])
     err = capsys.readouterr().err
-    assert rc == 2 and err.count("\n") == 1 and "Traceback" not in err
+    assert rc == 4 and err.count("\n") == 1 and "Traceback" not in err  # ExitCode.RUNTIME: the system refused
     assert f"cannot listen on udp:127.0.0.1:{port}" in err and "in use" in err
     assert not (tmp_path / "x.pslog").exists()  # nothing written for a port it could not have
 

@@ -79,7 +79,7 @@ def report_or_user_error(workdir: Path, header: dict) -> dict | None:
     log = workdir / "fuzz.pslog"  # written by hand: the writer would refuse NaN, a reader may still meet one
     log.write_bytes(encode_block(b"H", json.dumps(header).encode()) + encode_block(b"S", floor_samples().tobytes()))
     try:
-        rep = make_report(log, workdir / "report", ReportOptions(plots=False))
+        rep = make_report(log, workdir / "report", ReportOptions(plots=False), force=True)
     except UserError as exc:
         assert str(log) in str(exc) and "\n" not in str(exc)
         return None
@@ -109,4 +109,4 @@ def test_that_a_wrongly_typed_header_field_is_named(workdir, edits):
 def make_report_from(workdir: Path, header: dict) -> dict:
     log = workdir / "typed.pslog"
     log.write_bytes(encode_block(b"H", json.dumps(header).encode()) + encode_block(b"S", floor_samples().tobytes()))
-    return make_report(log, workdir / "typed-report", ReportOptions(plots=False))
+    return make_report(log, workdir / "typed-report", ReportOptions(plots=False), force=True)

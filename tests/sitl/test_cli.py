@@ -1,4 +1,4 @@
-"""Every bad input to pilescan-sitl fly: one line, exit code 2, no traceback."""
+"""pilescan-sitl: every bad input is one line, its kind's exit code (`ExitCode`), no traceback; --force, -v/-q."""
 
 import json
 import os
@@ -6,8 +6,11 @@ import signal
 
 import pytest
 
+from firmware_py.core.cli import ExitCode
 from firmware_py.core.version import __version__, software_version
 from sitl.cli import main
+
+USAGE, INPUT, RUNTIME = ExitCode.USAGE, ExitCode.INPUT, ExitCode.RUNTIME
 
 
 def test_that_version_prints_the_software_version_and_exits_0(capsys):
@@ -29,9 +32,6 @@ def test_that_the_ideal_plant_defaults_to_the_batch_sampler(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("extra,match", [
-    (["--stockpile", "7", "--p-traj", "20"], "unknown stockpile"),
-    (["--stockpile", "pile.xyz", "--p-traj", "20"], "unknown stockpile"),
-    (["--stockpile", "missing.stl", "--p-traj", "20"], "not found"),
     (["--stockpile", "1", "--p-traj", "0"], "P_traj"),
     (["--stockpile", "1", "--p-traj", "50"], "P_traj"),
     (["--stockpile", "1", "--p-traj", "75"], "P_traj"),
@@ -48,29 +48,41 @@ def test_that_the_ideal_plant_defaults_to_the_batch_sampler(tmp_path, capsys):
     (["--stockpile", "1"], "--p-traj"),
     (["--stockpile", "1", "--p-traj", "20", "--plant", "ideal", "--payload", "firmware"], "jsbsim plant"),
 ])
-def test_that_bad_inputs_fail_with_one_line(tmp_path, capsys, monkeypatch, extra, match):
+def test_that_bad_options_fail_with_one_line_and_exit_2(tmp_path, capsys, monkeypatch, extra, match):
     monkeypatch.chdir(tmp_path)
     code = main(["fly", *extra, "--out", str(tmp_path / "run")])
     err = capsys.readouterr().err
-    assert code == 2
+    assert code == USAGE
     assert err.count("\n") == 1 and "Traceback" not in err
     assert match in err
+    assert not (tmp_path / "run").exists()
 
 
-def test_that_a_corrupt_mesh_fails_with_one_line(tmp_path, capsys):
+@pytest.mark.parametrize("stockpile,match", [("7", "unknown stockpile"), ("pile.xyz", "unknown stockpile"),
+                                             ("missing.stl", "not found")])
+def test_that_a_stockpile_that_cannot_be_had_is_an_input_error_3(tmp_path, capsys, monkeypatch, stockpile, match):
+    monkeypatch.chdir(tmp_path)
+    code = main(["fly", "--stockpile", stockpile, "--p-traj", "20", "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err
+    assert code == INPUT and err.count("\n") == 1 and match in err
+    assert not (tmp_path / "run").exists()
+
+
+def test_that_a_corrupt_mesh_fails_with_one_line_and_exit_3(tmp_path, capsys):
     bad = tmp_path / "pile.stl"
     bad.write_bytes(b"\x00" * 50)
     code = main(["fly", "--stockpile", str(bad), "--p-traj", "20", "--out", str(tmp_path / "run")])
     err = capsys.readouterr().err
-    assert code == 2 and err.count("\n") == 1 and "pile.stl" in err
+    assert code == INPUT and err.count("\n") == 1 and "pile.stl" in err
+    assert not (tmp_path / "run").exists()  # a failed fly leaves no folder behind
 
 
-def test_that_an_out_path_that_is_a_file_fails_with_one_line(tmp_path, capsys):
+def test_that_an_out_path_under_a_file_fails_with_one_line_and_exit_4(tmp_path, capsys):
     blocker = tmp_path / "blocker"
     blocker.write_text("x")
     code = main(["fly", "--stockpile", "1", "--p-traj", "20", "--out", str(blocker / "run")])
     err = capsys.readouterr().err
-    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err
+    assert code == RUNTIME and err.count("\n") == 1 and "Traceback" not in err
 
 
 # ----- serve: link security --------------------------------------------------------------------------
@@ -82,15 +94,16 @@ def _key_file(tmp_path, mode: int = 0o600):
     return path
 
 
-@pytest.mark.parametrize(("extra", "match"), [
-    (["--signing-key", "/nonexistent/link.key"], "does not exist"),
-    (["--allow-unsigned"], "--allow-unsigned needs --signing-key"),
+@pytest.mark.parametrize(("extra", "match", "expected"), [
+    (["--signing-key", "/nonexistent/link.key"], "does not exist", INPUT),
+    (["--allow-unsigned"], "--allow-unsigned needs --signing-key", USAGE),
 ])
-def test_that_a_bad_signing_key_fails_serve_with_one_line_before_anything_starts(tmp_path, capsys, extra, match):
+def test_that_a_bad_signing_key_fails_serve_with_one_line_before_anything_starts(tmp_path, capsys, extra, match,
+                                                                                  expected):
     out = tmp_path / "serve"
     code = main(["serve", "--vehicle", "kinematic", "--duration", "0.1", "--out", str(out), *extra])
     err = capsys.readouterr().err
-    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err
+    assert code == expected and err.count("\n") == 1 and "Traceback" not in err
     assert match in err and not out.exists()
 
 
@@ -100,7 +113,7 @@ def test_that_a_world_readable_signing_key_is_refused_by_serve(tmp_path, capsys)
     key = _key_file(tmp_path, mode=0o644)
     code = main(["serve", "--vehicle", "kinematic", "--out", str(tmp_path / "serve"), "--signing-key", str(key)])
     err = capsys.readouterr().err
-    assert code == 2 and err.count("\n") == 1 and "chmod 600" in err
+    assert code == INPUT and err.count("\n") == 1 and "chmod 600" in err
 
 
 def test_that_serve_with_a_signing_key_says_so_and_reports_what_it_refused(tmp_path, capsys):
@@ -111,3 +124,38 @@ def test_that_serve_with_a_signing_key_says_so_and_reports_what_it_refused(tmp_p
     assert code == 0, err
     assert "MAVLink signing on" in err and "refused 0 unsigned, 0 badly signed and 0 replayed frames" in err
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == handlers  # restored
+
+
+# ----- plan --force -----------------------------------------------------------------------------------
+
+def test_that_plan_refuses_to_overwrite_without_force_and_replaces_with_it(tmp_path, capsys):
+    out = tmp_path / "p.waypoints"
+    assert main(["plan", "--p-traj", "20", "--out", str(out)]) == 0
+    assert f"plan written to {out}" in capsys.readouterr().out
+    first = out.read_text()
+    code = main(["plan", "--p-traj", "30", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == USAGE and err.count("\n") == 1 and "--force" in err
+    assert out.read_text() == first
+    assert main(["plan", "--p-traj", "30", "--out", str(out), "--force", "-q"]) == 0
+    assert capsys.readouterr() == ("", "")
+    assert out.read_text() != first
+    assert [p.name for p in tmp_path.iterdir()] == ["p.waypoints"]  # no temporary left beside it
+
+
+# ----- -v / -q -------------------------------------------------------------------------------------------
+
+IDEAL = ["fly", "--stockpile", "1", "--p-traj", "25", "--plant", "ideal"]
+
+
+def test_that_fly_reports_progress_by_default_debug_with_v_and_nothing_with_q(tmp_path, capsys):
+    assert main([*IDEAL, "--out", str(tmp_path / "a")]) == 0
+    cap = capsys.readouterr()
+    assert cap.out.startswith(f"run written to {tmp_path / 'a'}")
+    assert "pilescan-sitl: stockpile: paper pile 1" in cap.err and "debug" not in cap.err
+    assert main([*IDEAL, "--out", str(tmp_path / "b"), "-v"]) == 0
+    assert "pilescan-sitl: debug: sitl.runners.fly: " in capsys.readouterr().err
+    assert main(["-q", *IDEAL, "--out", str(tmp_path / "c")]) == 0
+    assert capsys.readouterr() == ("", "")
+    assert main([*IDEAL, "--out", str(tmp_path / "d"), "-q", "-v"]) == USAGE
+    assert not (tmp_path / "d").exists()

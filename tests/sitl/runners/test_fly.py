@@ -3,6 +3,7 @@ import json
 import numpy as np
 import pytest
 
+from firmware_py.core.cli import UserError
 from firmware_py.core.samplelog import SampleFlags, read_samplelog
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
@@ -56,7 +57,7 @@ def test_that_flights_are_deterministic(tmp_path):
 
 
 def test_that_an_existing_run_is_not_overwritten_without_force(run_dir):
-    with pytest.raises(ValueError, match="already holds a run"):
+    with pytest.raises(UserError, match="already holds a run"):
         fly(FlyConfig(mission=Mission(p_traj=0.25)), run_dir)
 
 
