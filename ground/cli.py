@@ -44,6 +44,9 @@ def build_parser() -> ArgumentParser:
     r.add_argument("--no-servo-retiming", action="store_true",
                    help="when the two sweep directions disagree, only warn (default: re-estimate the servo's dead "
                         "time and speed from the sweeps and use them if they agree; see ground/servo_timing.py)")
+    r.add_argument("--no-self-calibration", action="store_true",
+                   help="do not estimate the servo's zero and scale and the LiDAR's boresight from the floor and "
+                        "walls (default: estimate them, apply those that are significant, and say so)")
     r.add_argument("--max-grid-memory-mb", type=finite_float, default=DEFAULT_MAX_GRID_MEMORY_BYTES / 2**20,
                    metavar="MB", help="refuse a --cell whose grid would need more memory than this (default "
                                       f"{DEFAULT_MAX_GRID_MEMORY_BYTES // 2**20} MiB)")
@@ -98,7 +101,8 @@ def _report(args) -> int:
     opts = ReportOptions(cell_m=args.cell, empty_cells=args.empty_cells, plots=not args.no_plots,
                          truth_volume_m3=args.truth_volume, despike=not args.no_despike,
                          surface_fit=args.surface_fit, servo_retiming=not args.no_servo_retiming,
-                         max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20))
+                         max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),
+                         self_calibration=not args.no_self_calibration)
     rep = make_report(args.source, args.out, opts, force=args.force)
     if not args.quiet:
         print(format_summary(rep))

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware_py.core.frames import StorageFrame, beam_rays_w
+from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_rays_w
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
 from firmware_py.core.storage import Storage
 from ground.despike import SpikeThreshold, spike_mask
@@ -78,7 +78,8 @@ class Cloud:
 
 
 def cloud_from_samples(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame,
-                       sweep_period_s: float | None = None, spike_threshold: SpikeThreshold | None = None) -> Cloud:
+                       sweep_period_s: float | None = None, spike_threshold: SpikeThreshold | None = None,
+                       boresight: Boresight = SQUARE) -> Cloud:
     """Eqs. (3)-(6) for every usable sample (flags clear of EXCLUDE_FROM_CLOUD, all fields finite).
 
     With a spike threshold, isolated one- or two-sample range spikes are excluded first
@@ -99,7 +100,7 @@ def cloud_from_samples(samples: np.ndarray, lever_arm_body_m, frame: StorageFram
         suspect = stuck_sweep_mask(samples["t_s"], samples["range_m"], usable, sweep_period_s)
         usable &= ~suspect
     roll, pitch, yaw, gamma, rng = (f[usable] for f in fields)
-    origins, dirs = beam_rays_w(pos[usable], roll, pitch, yaw, gamma, lever_arm_body_m, frame)
+    origins, dirs = beam_rays_w(pos[usable], roll, pitch, yaw, gamma, lever_arm_body_m, frame, boresight)
     path = frame.ned_to_w(pos[np.isfinite(pos).all(axis=1)])
     return Cloud(origins + dirs * rng[:, None], dirs, rng, path, len(samples),
                  int(len(samples) - usable.sum()), n_servo_suspect=int(suspect.sum()),

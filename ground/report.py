@@ -12,16 +12,17 @@ import numpy as np
 
 from firmware_py.core.cli import NoVolumeError, UserError, reading_input
 from firmware_py.core.flag_tally import FlagTally
-from firmware_py.core.frames import StorageFrame
+from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
 from firmware_py.core.rundir import SAMPLES_FILE, TRUTH_FILE, OutputFolder, check_free
 from firmware_py.core.safe_read import InputError, json_number, json_object, load_json
-from firmware_py.core.samplelog import SampleLog, read_samplelog
+from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, SampleLog, read_samplelog
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
 from ground.despike import SpikeThreshold, why_no_threshold
 from ground.plausibility import PlausibilityLimits, implausible, without_implausible
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask
+from ground.self_calibration import MountEstimate, apply_mount, describe, estimate_mount
 from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
 from ground.surface import (
     DEFAULT_CELL_M,
@@ -56,6 +57,7 @@ class ReportOptions:
     servo_retiming: bool = True  # re-estimate the servo's timing when the sweeps disagree (ground.servo_timing)
     despike: bool = True  # leave out isolated one-/two-sample range spikes (ground.despike; threshold from the header)
     max_grid_memory_bytes: int = DEFAULT_MAX_GRID_MEMORY_BYTES  # refuse a --cell whose grid would need more
+    self_calibration: bool = True  # servo zero/scale and boresight from the floor and walls (ground.self_calibration)
 
 
 @dataclass(frozen=True)
@@ -73,6 +75,7 @@ class Survey:
     sweep_disagreement_m: float | None = None  # ground.consistency: rising vs falling sweeps
     servo_timing: ServoTiming | None = None  # the re-estimated servo motion, when its model was wrong
     servo_retimed: bool = False  # the angles above are the re-estimated ones
+    mount: MountEstimate | None = None  # self-calibration from the building (None: not run)
     implausible: dict[str, int] | None = None  # ground.plausibility: samples left out per broken limit
     despike_unavailable: str | None = None  # why despiking asked for could not run (ground.despike.why_no_threshold)
 
@@ -178,7 +181,7 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     survey = replace(_survey(samples, header, storage, frame, lever, opts, err, spikes), **checked)
     before = survey.sweep_disagreement_m
     if not (opts.servo_retiming and before is not None and before > MAX_SWEEP_DISAGREEMENT_M):
-        return survey
+        return _self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes)
 
     def disagreement(s: np.ndarray) -> float | None:  # the survey's cloud, less the stuck-servo check (range-only)
         cloud = cloud_from_samples(s, lever, frame, spike_threshold=spikes)
@@ -191,14 +194,36 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     timing = estimate_servo_timing(samples, disagreement, before, motion, floor_m=floor or 0.0)
     if timing is None or timing.disagreement_after_m > MAX_SWEEP_DISAGREEMENT_M:
         return replace(survey, servo_timing=timing)
-    fixed = _survey(motion.apply(samples, timing.delay_s, timing.gain), header, storage, frame, lever, opts, err,
-                    spikes)
-    return replace(fixed, servo_timing=timing, servo_retimed=True, **checked)
+    retimed = motion.apply(samples, timing.delay_s, timing.gain)
+    fixed = _survey(retimed, header, storage, frame, lever, opts, err, spikes)
+    fixed = replace(fixed, servo_timing=timing, servo_retimed=True, **checked)
+    return _self_calibrated(fixed, retimed, header, storage, frame, lever, opts, err, spikes)
+
+
+def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
+                     lever: np.ndarray, opts: ReportOptions, err: SensorErrorModel,
+                     spikes: SpikeThreshold | None) -> Survey:
+    """The survey again with the mount the building says (ground.self_calibration), when that is
+    significant; else the survey as it was, with what was found. After the servo re-timing: a late or
+    slow servo makes the sweep directions disagree, a mis-mounted one does not."""
+    if not opts.self_calibration:
+        return survey
+    usable = samples[(samples["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
+    resim = Resimulated.from_header(header)
+    est = estimate_mount(usable, lever, frame, storage, err.range_sigma_m, err.range_sigma_rel, resim)
+    if not est.any_applied:
+        return replace(survey, mount=est)
+    corrected, boresight = apply_mount(samples, est, resim)
+    fixed = _survey(corrected, header, storage, frame, lever, opts, err, spikes, boresight)
+    return replace(fixed, servo_timing=survey.servo_timing, servo_retimed=survey.servo_retimed,
+                   implausible=survey.implausible, despike_unavailable=survey.despike_unavailable, mount=est)
 
 
 def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame, lever: np.ndarray,
-            opts: ReportOptions, err: SensorErrorModel, spikes: SpikeThreshold | None) -> Survey:
-    cloud = cloud_from_samples(samples, lever, frame, sweep_period_s=_sweep_period_s(header), spike_threshold=spikes)
+            opts: ReportOptions, err: SensorErrorModel, spikes: SpikeThreshold | None,
+            boresight: Boresight = SQUARE) -> Survey:
+    cloud = cloud_from_samples(samples, lever, frame, sweep_period_s=_sweep_period_s(header), spike_threshold=spikes,
+                               boresight=boresight)
     structure = structure_mask(cloud, storage, err)
     pile = cloud.points_w[~structure]
     grid = Grid(storage.length_m, storage.width_m, opts.cell_m)
@@ -257,6 +282,8 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
                         "the servo's angles are wrong (slower or laggier than its calibration?); do not trust "
                         "this volume" + (f" (re-estimating its timing got them no closer than "
                                          f"{st.disagreement_after_m:.2f} m)" if st is not None else ""))
+    if survey.mount is not None and survey.mount.any_applied:
+        warnings.append(describe(survey.mount))
     if survey.n_cells_clipped:
         warnings.append(f"the fitted surface left the building in {survey.n_cells_clipped} cells (left empty, "
                         "filled by the empty-cell policy): points contradict each other there, e.g. a LiDAR buried "
@@ -285,6 +312,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "servo_timing": None if st is None else {
             "applied": survey.servo_retimed, "model": st.model, "delay_s": st.delay_s, "gain": st.gain,
             "disagreement_before_m": st.disagreement_before_m, "disagreement_after_m": st.disagreement_after_m},
+        "self_calibration": None if survey.mount is None else survey.mount.as_dict(),
         "uncovered_area_m2": float((~np.isfinite(survey.heights_fit)).sum() * g.cell_area_m2),
         "storage": survey.storage.to_dict(),
         "mission_id": (log.header or {}).get("mission_id"),

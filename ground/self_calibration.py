@@ -259,3 +259,26 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     r0 = np.einsum("ij,ij->i", prob.points(q0, idx_all[on]), n[j[on]]) - d[j[on]]
     return MountEstimate(tuple(float(v) for v in q), tuple(float(v) for v in se), applied, counts,
                          _robust_rms(r0), _robust_rms(r[on]))
+
+
+def apply_mount(samples: np.ndarray, est: MountEstimate, resim: Resimulated | None) -> tuple[np.ndarray, Boresight]:
+    """The samples with the servo angles the applied estimate gives, and the beam's boresight.
+    Nothing applied: the samples themselves and a square mount."""
+    offset, scale, boresight = est.correction()
+    if offset == 0.0 and scale == 0.0:
+        return samples, boresight
+    out = samples.copy()
+    out["servo_rad"] = ServoAngles(samples, resim)(offset, scale)
+    return out, boresight
+
+
+def describe(est: MountEstimate) -> str:
+    """One line for the report: what was found and applied (angles in degrees)."""
+    names = ("servo offset", "servo scale", "boresight tilt", "sweep-plane yaw")
+    parts = []
+    for name, v, e, a in zip(names, est.values, est.std_errors, est.applied, strict=True):
+        if a:
+            parts.append(f"{name} {v * 100:+.2f} +- {e * 100:.2f} %" if name == "servo scale"
+                         else f"{name} {math.degrees(v):+.2f} +- {math.degrees(e):.2f} deg")
+    return (f"self-calibration from the building applied: {', '.join(parts)} (structure points off their "
+            f"planes: {est.rms_before_m * 100:.1f} -> {est.rms_after_m * 100:.1f} cm RMS)")

@@ -9,6 +9,7 @@ import pytest
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.samplelog import SAMPLE_DTYPE, read_samplelog
 from firmware_py.core.storage import Storage
+from ground.report import ReportOptions, make_report
 from ground.self_calibration import estimate_mount, not_estimated
 from ground.servo_timing import Resimulated
 from sitl.faults.injector import FaultSpec
@@ -18,11 +19,15 @@ from sitl.runners.fly import FlyConfig, fly
 STORAGE = Storage(30, 20, 10)
 
 
-def _estimate(tmp_path, faults):
+def _fly(tmp_path, faults):
     cfg = FlyConfig(mission=Mission(storage=STORAGE, p_traj=0.2, altitude_m=8.0), stockpile="1", faults=faults,
                     payload="firmware")
     fly(cfg, tmp_path / "run", force=True)
-    log = read_samplelog(tmp_path / "run" / "samples.pslog")
+    return tmp_path / "run"
+
+
+def _estimate(run):
+    log = read_samplelog(run / "samples.pslog")
     h = log.header
     s = log.samples[log.samples["flags"] == 0]
     return estimate_mount(s, h["lever_arm_body_m"], StorageFrame(), STORAGE, h["sensor"]["range_sigma_m"],
@@ -30,14 +35,24 @@ def _estimate(tmp_path, faults):
 
 
 @pytest.fixture(scope="module")
-def square(tmp_path_factory):
-    return _estimate(tmp_path_factory.mktemp("square"), None)
+def square_run(tmp_path_factory):
+    return _fly(tmp_path_factory.mktemp("square"), None)
 
 
 @pytest.fixture(scope="module")
-def skewed(tmp_path_factory):
-    faults = FaultSpec(servo_offset_deg=3.0, servo_scale_pct=5.0, boresight_deg=2.0)
-    return _estimate(tmp_path_factory.mktemp("skewed"), faults)
+def skewed_run(tmp_path_factory):
+    return _fly(tmp_path_factory.mktemp("skewed"), FaultSpec(servo_offset_deg=3.0, servo_scale_pct=5.0,
+                                                            boresight_deg=2.0))
+
+
+@pytest.fixture(scope="module")
+def square(square_run):
+    return _estimate(square_run)
+
+
+@pytest.fixture(scope="module")
+def skewed(skewed_run):
+    return _estimate(skewed_run)
 
 
 def test_that_a_square_mount_gets_no_correction(square):
@@ -65,3 +80,17 @@ def test_that_too_few_samples_say_why_and_apply_nothing():
                          STORAGE, 0.025, 0.01)
     assert not est.any_applied and "too few usable samples" in est.reason
     assert not_estimated("x").correction()[0] == 0.0
+
+
+def test_that_the_report_applies_it_says_so_and_gets_the_volume_back(skewed_run, square_run, tmp_path):
+    clean = make_report(square_run, tmp_path / "clean", ReportOptions(plots=False))
+    fixed = make_report(skewed_run, tmp_path / "fixed", ReportOptions(plots=False))
+    raw = make_report(skewed_run, tmp_path / "raw", ReportOptions(plots=False, self_calibration=False))
+    assert clean["self_calibration"]["servo_offset_deg"]["applied"] is False
+    assert not any("self-calibration" in w for w in clean["warnings"])
+    assert fixed["self_calibration"]["servo_scale"]["applied"] is True
+    assert any(w.startswith("self-calibration from the building applied: servo offset +3.0") for w in fixed["warnings"])
+    assert raw["self_calibration"] is None
+    assert abs(fixed["volume_error_pct"] - clean["volume_error_pct"]) < 0.3
+    assert abs(raw["volume_error_pct"] - clean["volume_error_pct"]) > abs(fixed["volume_error_pct"]
+                                                                           - clean["volume_error_pct"])
