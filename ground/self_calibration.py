@@ -47,6 +47,10 @@ MAX_POINTS = 20_000
 START_WINDOW_RAD = math.radians(5.0)
 """The first window: what 5 deg of misalignment moves a point at its range."""
 PARAMS = ("servo_offset_rad", "servo_scale", "boresight_tilt_rad", "sweep_yaw_rad")
+BOUNDS = (np.array([-math.radians(20.0), -0.3, -math.radians(20.0), -math.radians(20.0)]),
+          np.array([math.radians(20.0), 0.3, math.radians(20.0), math.radians(20.0)]))
+"""What a mounting can plausibly be off by (the SITL's fault limits); an estimate at a bound is a
+failed fit (data the planes cannot explain), never applied."""
 
 
 @dataclass(frozen=True)
@@ -196,8 +200,8 @@ def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.n
         def resid(qq, sel=sel, nj=nj, dj=dj, wj=wj):
             return (np.einsum("ij,ij->i", prob.points(qq, sel), nj) - dj) / wj
 
-        q = least_squares(resid, q, loss=loss, f_scale=1.0, x_scale=np.array([0.01, 0.01, 0.01, 0.01]),
-                          diff_step=1e-6, max_nfev=80).x
+        q = least_squares(resid, np.clip(q, *BOUNDS), loss=loss, f_scale=1.0, bounds=BOUNDS,
+                          x_scale=np.array([0.01, 0.01, 0.01, 0.01]), diff_step=1e-6, max_nfev=80).x
     j, r = _assign(prob.points(q, idx), n, d, 3.0 * windows[-1][idx])
     return q, j, r
 
@@ -240,6 +244,11 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     if counts[0] < 200 or sum(counts[1:]) < 200:
         return not_estimated(f"the building's floor and walls were seen too little to calibrate from "
                              f"({counts[0]} floor and {sum(counts[1:])} wall points)", counts)
+    at_bound = np.isclose(q, BOUNDS[0], rtol=0, atol=1e-6) | np.isclose(q, BOUNDS[1], rtol=0, atol=1e-6)
+    if at_bound.any():
+        return not_estimated("the floor and walls in the cloud fit no plausible mounting (the estimate ran to "
+                             f"its limit on {', '.join(n for n, b in zip(PARAMS, at_bound, strict=True) if b)})",
+                             counts)
     # Standard errors: the same fit on every 8th sweep (whole sweeps share their errors).
     flips = np.concatenate([[0], np.cumsum(np.diff(s["sweep_dir"].astype(np.int64)) != 0)])
     group = flips % N_GROUPS

@@ -38,7 +38,7 @@ def one_line_error(capsys, argv: list[str]) -> str:
 
 
 def report(src: Path, tmp_path: Path, **opts) -> dict:
-    return make_report(src, tmp_path / "out", ReportOptions(plots=False, **opts))
+    return make_report(src, tmp_path / "out", ReportOptions(plots=False, **opts), force=True)  # tests report twice
 
 
 def test_that_a_version_99_log_is_refused_not_read_as_version_1(golden, tmp_path, capsys):
@@ -136,7 +136,8 @@ def test_that_ranges_beyond_the_sensors_reach_and_poses_outside_the_building_are
 def test_that_a_range_at_the_sensors_max_range_is_plausible(golden, tmp_path):
     h, s = golden
     edge = s.copy()
-    edge["range_m"][usable(s)] = h["sensor"]["max_range_m"]
+    at_max = np.flatnonzero(usable(s))[::50]  # a few: the rest still make a surface (else no volume, exit 5)
+    edge["range_m"][at_max] = h["sensor"]["max_range_m"]
     rep = report(write_log(tmp_path / "e.pslog", h, edge), tmp_path)
     assert rep["implausible"]["range"] == 0
 
