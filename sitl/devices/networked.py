@@ -26,7 +26,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from firmware_py.core.frames import StorageFrame
+from firmware_py.core.frames import SQUARE, StorageFrame
 from firmware_py.core.servo_model import ServoCalibration
 from sitl.devices.bridge_server import DeviceBridgeServer, parse_bridge_url
 from sitl.devices.i2c_sim import SimI2CBus
@@ -47,7 +47,8 @@ LINK_FAULTS = frozenset({"link_loss_pct", "link_dup_pct", "link_reorder_pct", "l
                          "link_jitter_ms", "autopilot_reboot"})
 """FaultSpec faults the networked SITL injects on its MAVLink side."""
 DEVICE_FAULTS = frozenset({"i2c_nack_pct", "lidar_stuck_busy", "lidar_power_glitch_at_s", "lidar_garbage_pct",
-                           "lidar_glitch_pct", "servo_stuck_at_s", "servo_slow_factor", "servo_delay_ms"})
+                           "lidar_glitch_pct", "servo_stuck_at_s", "servo_slow_factor", "servo_delay_ms",
+                           "servo_offset_deg", "servo_scale_pct", "boresight_deg", "sweep_yaw_deg"})
 """FaultSpec faults it injects in its emulated devices (so only with them)."""
 NOT_NETWORKED = {
     "power_cut_at_s": "the payload is another process (stop it yourself to cut its power)",
@@ -101,6 +102,7 @@ class NetworkedDevices:
         self.vehicle, self.world = vehicle, world
         self.frame = frame or StorageFrame()
         self.lever = tuple(float(v) for v in lever_arm_body_m)
+        self.boresight = SQUARE  # the beam's true mounting (a boresight fault tilts it)
         self.lock = threading.RLock()
         self._hist: collections.deque[tuple[float, tuple[float, ...]]] = collections.deque(
             maxlen=max(2, round(keep_s / vehicle.dt_s)))
@@ -144,7 +146,8 @@ class NetworkedDevices:
 
     def range_at(self, t_ns: int) -> float | None:
         """What the LiDAR sees at simulated time t_ns: the true pose and shaft angle, ray traced."""
-        return beam_range_m(self.world, self.frame, self.lever, self.pose_at(t_ns), self.servo.angle_at(t_ns))
+        return beam_range_m(self.world, self.frame, self.lever, self.pose_at(t_ns), self.servo.angle_at(t_ns),
+                            self.boresight)
 
     def attach_faults(self, injector: FaultInjector) -> None:
         """Inject injector's device faults here: glitch readings in the ranges, NACKs on the bus, the
@@ -152,6 +155,7 @@ class NetworkedDevices:
         with self.lock:
             self.lidar.range_at = injector.range_at(self.range_at)
             injector.attach(self.bus, self.lidar, self.servo)
+            self.boresight = injector.boresight
 
 
 class FaultyTransport:
