@@ -31,6 +31,7 @@ from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, log_header
 from sitl.runners.lockstep_payload import fly_firmware
 from sitl.world.stockpile import resolve
+from tools.doc_sections import write_section
 
 RECORDS_PER_BLOCK = 500
 
@@ -254,8 +255,8 @@ def _body(args: argparse.Namespace) -> int:
     print(text)
     if args.write:
         checks_text = checks(rows, cfg.lidar.rate_hz)
-        args.write.write_text(
-            "# Reliability: the fault campaign\n\n"
+        write_section(args.write, "fault-campaign",
+            "## The fault campaign\n\n"
             f"Regenerate with `python -m tools.fault_campaign --write {args.write}` "
             f"({time.perf_counter() - t0:.0f} s). "
             f"Pile {args.stockpile}, P_traj {args.p_traj:g} %, the payload firmware in the loop (lockstep), seed "

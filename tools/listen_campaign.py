@@ -53,8 +53,10 @@ from firmware_py.core.stream_format import encode_datagram
 from firmware_py.hal.mavlink_link import PymavlinkLink, heartbeat_msg
 from firmware_py.hal.signing import MavlinkSigner, SigningConfig
 from firmware_py.live_stream import LiveStreamSender
+from tools.doc_sections import markers, write_section
 
-START, END = "<!-- listen-campaign:start -->", "<!-- listen-campaign:end -->"
+SECTION = "listen-campaign"
+START, END = markers(SECTION)
 KEY = bytes(range(101, 133))
 """The legitimate peers' key in the signed cases (the flood never has it)."""
 ATTACKER_KEY = bytes(range(7, 39))
@@ -528,7 +530,6 @@ def section(link_rows: list[dict[str, Any]], listen_rows: list[dict[str, Any]], 
             write_path: str) -> str:
     lat = [r["lat_max_ms"] for r in link_rows if r["lat_max_ms"] is not None]
     parts = [
-        START,
         "## Link campaign: the payload's UDP MAVLink link and `pilescan-ground listen`",
         "",
         f"Regenerate with `python -m tools.listen_campaign --write {write_path}` ({wall_s:.0f} s). Loopback "
@@ -557,20 +558,8 @@ def section(link_rows: list[dict[str, Any]], listen_rows: list[dict[str, Any]], 
         "sequence jumps are resyncs, not losses); *cap lines*: the one-line message at the size cap.",
         "",
         listen_table(listen_rows),
-        END,
     ]
     return "\n".join(p for p in parts if p is not None) + "\n"
-
-
-def write_section(path: Path, text: str) -> None:
-    """Replace this tool's section of the page at path (between the markers), or append it."""
-    old = path.read_text(encoding="utf-8") if path.exists() else ""
-    a, b = old.find(START), old.find(END)
-    if a >= 0 and b > a:
-        new = old[:a] + text.rstrip("\n") + old[b + len(END):]
-    else:
-        new = old.rstrip("\n") + ("\n\n" if old.strip() else "") + text
-    path.write_text(new if new.endswith("\n") else new + "\n", encoding="utf-8")
 
 
 # ----- command line -----------------------------------------------------------------------------------
@@ -616,7 +605,7 @@ def _body(args: argparse.Namespace) -> int:
                    str(args.write) if args.write else "docs/reliability.md")
     print(text)
     if args.write is not None:
-        write_section(args.write, text)
+        write_section(args.write, SECTION, text)
     return 0
 
 

@@ -7,7 +7,8 @@ import os
 
 import pytest
 
-from tools.listen_campaign import END, START, Case, Kind, Settings, main, run_link_case, run_listen_case, write_section
+from tools.doc_sections import write_section
+from tools.listen_campaign import END, SECTION, START, Case, Kind, Settings, main, run_link_case, run_listen_case
 
 SMALL = Settings(seconds=0.5, rate_hz=400.0, max_log_mb=1.0)
 
@@ -37,10 +38,10 @@ def test_that_forged_sequence_numbers_sent_to_listen_are_resyncs_and_the_log_sta
 def test_that_the_section_replaces_its_markers_and_leaves_the_rest_of_the_page(tmp_path):
     page = tmp_path / "reliability.md"
     page.write_text("# Reliability\n\nfault table\n")
-    write_section(page, f"{START}\nfirst\n{END}\n")
+    write_section(page, SECTION, "first\n")
     assert page.read_text() == f"# Reliability\n\nfault table\n\n{START}\nfirst\n{END}\n"
     page.write_text(page.read_text() + "\nafter\n")
-    write_section(page, f"{START}\nsecond\n{END}\n")
+    write_section(page, SECTION, "second\n")
     text = page.read_text()
     assert "first" not in text and f"{START}\nsecond\n{END}" in text and text.endswith("\nafter\n")
     assert text.startswith("# Reliability\n\nfault table\n")
