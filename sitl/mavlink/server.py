@@ -35,8 +35,10 @@ Choices, where MAVLink or ArduPilot leave room (the micro-services' modules list
   reply (COMMAND_ACK, PARAM_VALUE for a read, the mission protocol, TIMESYNC, FTP refusals, a
   STATUSTEXT saying why a request was refused) goes to the sender that asked. STATUSTEXT answers
   are rate-limited per sender (`LinkLimits`), and dropped ones counted (`statustext_dropped`).
-- The .tlog: what a sender makes us log (its frames, our replies to it) is rate-limited per sender,
-  and the whole file is capped (`LinkLimits.tlog_max_bytes`); once full, one warning, no more writes.
+- The .tlog: what a sender makes us log (its frames, our replies to it) is rate-limited per client
+  (senders the full client table refused share one budget), and the whole file is capped
+  (`LinkLimits.tlog_max_bytes`); once full, one warning, no more writes. The STATUSTEXT budget is
+  kept the same way.
 - SYS_STATUS reports the sensors and controllers a flying ArduCopter reports, present, enabled and
   healthy, and the geofence bit healthy (no fence, no breach): MAVProxy says "fence breach" when
   that bit is clear. MAVLink FTP is refused (`sitl.mavlink.ftp`) so ground stations read the
@@ -119,6 +121,7 @@ class LinkLimits:
 
 
 _NO_ASKER = object()
+_STRANGERS = object()
 
 
 class MavlinkVehicleServer:
@@ -150,6 +153,7 @@ class MavlinkVehicleServer:
         self._statustext_budget = KeyedBuckets(limits.statustext)
         self._asker: Any = _NO_ASKER  # the sender of the message being handled
         self._clients: set[Any] = set()  # senders admitted as clients (for the operator's log)
+        self._strangers: set[Any] = set()  # senders of this update's datagrams the full client table refused
         self._last_armed_mode: tuple[bool, int] | None = None
         self.stats: dict[str, Any] = {
             "rx_messages": 0, "rx_bad_bytes": 0, "rx_parse_errors": 0, "rx_not_for_us": 0,
@@ -273,19 +277,35 @@ class MavlinkVehicleServer:
             msgs = self._datagrams.parse(data)
             if not msgs:
                 continue
-            if self.transport.add_peer(addr) is not False and addr not in self._clients:
-                self._clients.add(addr)
-                log.info("client %s connected (system %d, component %d)", _peer_name(addr),
-                         msgs[0].get_srcSystem(), msgs[0].get_srcComponent())
-                hb = self._build_stream_message(mavlink.MAVLINK_MSG_ID_HEARTBEAT)
-                self.send_to(hb, addr)  # a ground station detects the vehicle at once, not within a second
+            if self.transport.add_peer(addr) is False:
+                self._strangers.add(addr)  # answered, but on the budget all strangers share
+            elif addr not in self._clients:
+                self._new_client(addr, msgs[0])
             self._asker = addr
             try:
                 for msg in msgs:
                     self._handle(msg)
             finally:
                 self._asker = _NO_ASKER
+        self._strangers.clear()
         self._update_rx_stats()
+
+    def _new_client(self, addr: Any, first: Any) -> None:
+        """Tell the operator; greet it with a HEARTBEAT (it detects the vehicle at once, not within a second)."""
+        peers = getattr(self.transport, "peers", None)
+        if peers is not None:
+            for gone in self._clients - set(peers):
+                log.info("client %s gone quiet", _peer_name(gone))
+            self._clients &= set(peers)
+        self._clients.add(addr)
+        log.info("client %s connected (system %d, component %d)", _peer_name(addr), first.get_srcSystem(),
+                 first.get_srcComponent())
+        self.send_to(self._build_stream_message(mavlink.MAVLINK_MSG_ID_HEARTBEAT), addr)
+
+    def _budget_key(self, peer: Peer) -> Any:
+        """Whose budget a sender's frames and our replies to it spend: a client's own; one shared by every
+        sender the full client table refused (so a thousand source ports get no more than one)."""
+        return _STRANGERS if peer in self._strangers else peer
 
     def _watch_vehicle(self, s: VehicleState) -> None:
         """Tell the operator when the vehicle arms, disarms or changes mode."""
@@ -416,7 +436,7 @@ class MavlinkVehicleServer:
 
     def say_to(self, peer: Peer, severity: int, text: str) -> None:
         """STATUSTEXT to one sender, within its budget (a flood of bad requests gets a trickle)."""
-        if not self._statustext_budget.take(peer, self._link_now()):
+        if not self._statustext_budget.take(self._budget_key(peer), self._link_now()):
             self.stats["statustext_dropped"] = self._statustext_budget.refused
             return
         for msg in self._statustexts(severity, text):
@@ -439,7 +459,7 @@ class MavlinkVehicleServer:
         """Log a frame a sender caused (its own, or a reply to it), within that sender's budget."""
         if self._tlog is None:
             return
-        if not self._tlog_budget.take(peer, self._link_now()):
+        if not self._tlog_budget.take(self._budget_key(peer), self._link_now()):
             self.stats["tlog_frames_skipped"] = self._tlog_budget.refused
             return
         self._log(frame)

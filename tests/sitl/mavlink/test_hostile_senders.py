@@ -114,9 +114,9 @@ def test_that_the_operator_is_told_about_arming_modes_and_missions(caplog):
 class Udp:
     """A server on a loopback UDP port, stepped by the test, and raw client sockets."""
 
-    def __init__(self) -> None:
+    def __init__(self, max_peers: int = 8) -> None:
         self.vehicle = fast_vehicle()
-        self.transport = UdpTransport("udp:127.0.0.1:0")
+        self.transport = UdpTransport("udp:127.0.0.1:0", max_peers=max_peers)
         self.server = MavlinkVehicleServer(self.vehicle, self.transport)
         self.socks: list[socket.socket] = []
 
@@ -208,5 +208,24 @@ def test_that_replies_to_one_client_never_reach_another():
             "VFR_HUD", "MISSION_CURRENT")]
         assert not_telemetry == ["PARAM_VALUE"]  # only the answer to our own request
         assert [m.param_id for m in ours if m.get_type() == "PARAM_VALUE"] == ["PS_SPEED_MS"]
+    finally:
+        udp.close()
+
+
+def test_that_senders_refused_by_a_full_client_table_share_one_statustext_budget():
+    udp = Udp(max_peers=1)
+    try:
+        gcs, gmav = udp.client(GCS_SYS)
+        udp.send(gcs, gmav, gmav.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0))
+        udp.step_until(lambda: len(udp.transport.peers) == 1, "the ground station is the client")
+        burst = int(LinkLimits().statustext.burst)
+        strangers = [udp.client(60 + k) for k in range(10)]
+        for sock, mav in strangers:
+            for _ in range(burst):
+                udp.send(sock, mav, mav.param_set_encode(1, 1, b"NO_SUCH", 1.0, mavlink.MAV_PARAM_TYPE_REAL32))
+        udp.step_until(lambda: udp.server.stats["rx_by_type"]["PARAM_SET"] == 10 * burst, "every PARAM_SET handled")
+        got = [m for sock, _ in strangers for m in received(sock, [])]
+        assert texts(got) <= burst  # not 10 x burst: ten source ports get no more than one sender
+        assert udp.transport.peers == [gcs.getsockname()] and udp.transport.peers_refused >= 10
     finally:
         udp.close()
