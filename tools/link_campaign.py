@@ -38,6 +38,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -173,6 +174,11 @@ class Server:
     proc: subprocess.Popen
     port: int
     out: Path
+    stderr: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        # Read its stderr as it comes: a full pipe would block the server's logging, and the flood with it.
+        threading.Thread(target=lambda: self.stderr.extend(self.proc.stderr), daemon=True).start()
 
     @property
     def tlog(self) -> Path:
@@ -188,11 +194,15 @@ class Server:
         """Stop it (SIGTERM, as an operator's Ctrl-C); its stderr."""
         self.proc.terminate()
         try:
-            _, err = self.proc.communicate(timeout=10)
+            self.proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
             self.proc.kill()
-            _, err = self.proc.communicate(timeout=5)
-        return err or ""
+            self.proc.wait(timeout=5)
+        deadline = time.monotonic() + 5.0
+        while not self.proc.stderr.closed and time.monotonic() < deadline and not any(
+                "stopped after" in line for line in self.stderr):
+            time.sleep(0.01)  # the reader thread takes the last lines
+        return "".join(self.stderr)
 
 
 def start_server(workdir: Path, key_file: Path | None, server_path: Path) -> Server:

@@ -230,8 +230,9 @@ class FaultyTransport:
         self.flush()
         return self._arrived()
 
-    def add_peer(self, addr: Any) -> None:
-        self.inner.add_peer(addr)
+    def add_peer(self, addr: Any) -> bool:
+        """The inner transport's answer: False when its client table is full."""
+        return self.inner.add_peer(addr) is not False
 
     def close(self) -> None:
         self.inner.close()

@@ -229,3 +229,17 @@ def test_that_senders_refused_by_a_full_client_table_share_one_statustext_budget
         assert udp.transport.peers == [gcs.getsockname()] and udp.transport.peers_refused >= 10
     finally:
         udp.close()
+
+
+def test_that_the_faulted_serve_link_reports_a_full_client_table_too():
+    from sitl.devices.networked import FaultyTransport
+    from sitl.faults.injector import FaultSpec
+    from sitl.faults.params import LiveFaultInjector
+
+    inner = UdpTransport("udp:127.0.0.1:0", max_peers=1)
+    try:
+        faulty = FaultyTransport(inner, LiveFaultInjector(FaultSpec()), lambda: 0)
+        assert faulty.add_peer(("127.0.0.1", 1001)) is True
+        assert faulty.add_peer(("127.0.0.1", 1002)) is False  # the server then answers it as a stranger
+    finally:
+        inner.close()
