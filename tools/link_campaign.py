@@ -21,6 +21,9 @@ unsolicited message. Usage (a full run takes about 3 minutes)::
     python -m tools.link_campaign --only truncated         # some floods only
     python -m tools.link_campaign --server-path /old/checkout   # measure another version of serve
 
+Last, MAVProxy (when installed) connects to a fresh serve: the seconds from "online system 1" to
+"Received N parameters", and whether it printed "fence breach".
+
 `--write` replaces the section between `<!-- link-campaign:start -->` and `<!-- link-campaign:end -->`
 (appended at the end of the file when absent).
 """
@@ -31,8 +34,10 @@ import argparse
 import math
 import multiprocessing as mp
 import os
+import queue
 import random
 import re
+import shutil
 import socket
 import statistics
 import subprocess
@@ -448,6 +453,63 @@ def run_scenario(sc: Scenario, cfg: CampaignConfig, workdir: Path, key: bytes | 
     return res
 
 
+# ----- MAVProxy connecting ----------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class MavproxyConnect:
+    """MAVProxy against a fresh serve: seconds from seeing the vehicle to having every parameter."""
+
+    params_after_online_s: float | None
+    fence_breach: bool
+    error: str = ""
+
+
+def mavproxy_connect(workdir: Path, server_path: Path, timeout_s: float = 30.0) -> MavproxyConnect:
+    """Start serve and MAVProxy (`--master=udpout:`), time "online system 1" -> "Received N parameters"."""
+    exe = shutil.which("mavproxy.py") or str(Path(sys.executable).parent / "mavproxy.py")
+    if not Path(exe).exists():
+        return MavproxyConnect(None, False, "MAVProxy is not installed")
+    server = start_server(workdir, None, server_path)
+    lines: queue.Queue = queue.Queue()
+    mp_proc = subprocess.Popen([exe, f"--master=udpout:127.0.0.1:{server.port}", "--nowait", "--logfile",
+                                str(workdir / "mavproxy.tlog")], cwd=workdir, stdin=subprocess.PIPE,
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    threading.Thread(target=lambda: [lines.put((time.monotonic(), x)) for x in mp_proc.stdout], daemon=True).start()
+    online = params = None
+    fence = False
+    end = time.monotonic() + timeout_s
+    try:
+        while params is None and time.monotonic() < end:
+            try:
+                t, line = lines.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            fence |= "fence breach" in line
+            if online is None and "online system 1" in line:
+                online = t
+            if online is not None and re.search(r"Received \d+ parameters", line):
+                params = t
+    finally:
+        mp_proc.terminate()
+        try:
+            mp_proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:  # MAVProxy's module threads can ignore SIGTERM
+            mp_proc.kill()
+            mp_proc.wait(timeout=5)
+        server.stop()
+    if params is None:
+        return MavproxyConnect(None, fence, f"no parameters within {timeout_s:g} s")
+    return MavproxyConnect(params - online, fence)
+
+
+def mavproxy_line(r: MavproxyConnect) -> str:
+    if r.error:
+        return f"MAVProxy connecting to `serve`: {r.error}."
+    return (f"MAVProxy connecting to `serve` (`--master=udpout:`, no flood): all parameters "
+            f"{r.params_after_online_s:.2f} s after \"online system 1\"; \"fence breach\" "
+            f"{'printed' if r.fence_breach else 'not printed'}.")
+
+
 # ----- the report ------------------------------------------------------------------------------------
 
 HEADER = ("| flood | sent | ATTITUDE/s | reply median / max (s) | lost | upload (s) | tlog +kB | RSS MB | "
@@ -467,7 +529,7 @@ def row(r: Measured) -> str:
             f"{'met' if r.meets_targets else 'MISSED'} |")
 
 
-def render(results: list[Measured], cfg: CampaignConfig, wall_s: float) -> str:
+def render(results: list[Measured], cfg: CampaignConfig, wall_s: float, mavproxy: MavproxyConnect | None = None) -> str:
     met = sum(r.meets_targets for r in results)
     lines = [
         START,
@@ -495,6 +557,7 @@ def render(results: list[Measured], cfg: CampaignConfig, wall_s: float) -> str:
         "",
         f"{met} of {len(results)} rows meet every target. Machine: {os.cpu_count()} CPUs, shared; timings are "
         "wall-clock and vary with the load.",
+        *(["", mavproxy_line(mavproxy)] if mavproxy is not None else []),
         END,
     ]
     return "\n".join(lines) + "\n"
@@ -520,11 +583,18 @@ def make_key_file(workdir: Path) -> tuple[bytes, Path]:
     return key, path
 
 
-def run(selected: list[Scenario], cfg: CampaignConfig, say: Callable[[str], None] = print) -> list[Measured]:
+def run(selected: list[Scenario], cfg: CampaignConfig, say: Callable[[str], None] = print,
+        with_mavproxy: bool = True) -> tuple[list[Measured], MavproxyConnect | None]:
     with tempfile.TemporaryDirectory(prefix="link-campaign-") as tmp:
         workdir = Path(tmp)
         key, key_file = make_key_file(workdir)
-        return [run_scenario(sc, cfg, workdir, key, key_file, say) for sc in selected]
+        results = [run_scenario(sc, cfg, workdir, key, key_file, say) for sc in selected]
+        mavproxy = None
+        if with_mavproxy:
+            (workdir / "mavproxy").mkdir()
+            mavproxy = mavproxy_connect(workdir / "mavproxy", cfg.server_path)
+            say(mavproxy_line(mavproxy))
+        return results, mavproxy
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -534,6 +604,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--flood-s", type=float, default=CampaignConfig.flood_s, help="seconds per flood")
     ap.add_argument("--rate", type=float, default=CampaignConfig.rate_hz, help="flood datagrams per second")
     ap.add_argument("--server-path", type=Path, default=ROOT, help="checkout whose serve to measure")
+    ap.add_argument("--no-mavproxy", action="store_true", help="skip the MAVProxy connect measurement")
     args = ap.parse_args(argv)
     if not (math.isfinite(args.flood_s) and 0 < args.flood_s <= 60):
         ap.error("--flood-s must be in (0, 60]")
@@ -546,8 +617,8 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.monotonic()
     print(HEADER)
     print(RULE)
-    results = run(selected, cfg)
-    section = render(results, cfg, time.monotonic() - t0)
+    results, mavproxy = run(selected, cfg, with_mavproxy=not args.no_mavproxy)
+    section = render(results, cfg, time.monotonic() - t0, mavproxy)
     if args.write is not None:
         write_section(args.write, section)
         print(f"wrote {args.write}")
