@@ -335,8 +335,7 @@ class Missions:
                 self._out.broadcast(self._mav.mission_item_reached_encode(self._nav_seq[index]))
                 self._run_do_items(index + 1)
                 if index == len(self._nav_seq) - 1:
-                    self._mission_complete = True
-                    log.info("mission complete: last item (seq %d) reached", self._nav_seq[index])
+                    self._mission_complete = True  # the vehicle announces it (its STATUSTEXT, in the log too)
         current = self.vehicle.current_item()
         if 0 <= current < len(self._nav_seq) and current != self._last_current:
             if current == 0:
