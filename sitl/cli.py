@@ -102,6 +102,9 @@ def build_parser() -> ArgumentParser:
                          "servo_slow_factor, servo_delay_ms. Times count from the mission start (AUTO); the "
                          "SIM_PS_* parameters change faults while it runs")
     sv.add_argument("--seed", type=int, default=0, help="seed of the fault draws (default 0)")
+    sv.add_argument("--tlog-max-mb", type=finite_float, default=256.0, metavar="MB",
+                    help="cap on telemetry.tlog in megabytes (default 256: about half a day of telemetry); "
+                         "once reached, one warning and nothing more is logged")
 
     pl = sub.add_parser("plan", help="export the survey as a QGC WPL 110 mission (.waypoints)")
     _mission_options(pl, p_traj_required=True)
@@ -182,11 +185,12 @@ def _signing(args):
 
 def _serve(args) -> int:
     signing = _signing(args)  # a bad key file fails before anything starts
-    from sitl.runners.serve import ServeOptions, serve
+    from sitl.runners.serve import ServeOptions, serve, tlog_limits
     return serve(ServeOptions(mission=_mission(args), url=args.mavlink, speedup=args.speedup,
                               duration_s=args.duration, vehicle=args.vehicle, out=Path(args.out), force=args.force,
                               devices_url=args.devices, stockpile=args.stockpile, signing=signing,
-                              faults=FaultSpec.parse(args.fault, seed=args.seed)))
+                              faults=FaultSpec.parse(args.fault, seed=args.seed),
+                              limits=tlog_limits(args.tlog_max_mb)))
 
 
 def _dispatch(args) -> int:

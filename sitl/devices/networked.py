@@ -158,6 +158,9 @@ class NetworkedDevices:
             self.boresight = injector.boresight
 
 
+_EVERYONE = object()
+
+
 class FaultyTransport:
     """A MAVLink Transport with link faults both ways, on simulated time: wraps the server's `inner`.
 
@@ -172,7 +175,7 @@ class FaultyTransport:
 
     def __init__(self, inner: Transport, injector: FaultInjector, now_ns: Callable[[], int]) -> None:
         self.inner, self._now_ns = inner, now_ns
-        self._down_q: collections.deque[tuple[int, bytes]] = collections.deque()
+        self._down_q: collections.deque[tuple[int, tuple[bytes, Any]]] = collections.deque()
         self._up_q: collections.deque[tuple[int, tuple[bytes, Any]]] = collections.deque()
         self.down = injector.link(self._queue(self._down_q))  # autopilot -> clients (as the runner's "down")
         self.up = injector.link(self._queue(self._up_q))
@@ -186,14 +189,23 @@ class FaultyTransport:
         return send_at
 
     def send(self, data: bytes) -> None:
-        self.down.send_at(self._now_ns(), bytes(data))
+        self.down.send_at(self._now_ns(), (bytes(data), _EVERYONE))
+        self.flush()
+
+    def send_to(self, data: bytes, peer: Any) -> None:
+        """A reply to one sender, through the same faulted down link (when the inner transport can address one)."""
+        self.down.send_at(self._now_ns(), (bytes(data), peer if hasattr(self.inner, "send_to") else _EVERYONE))
         self.flush()
 
     def flush(self) -> None:
         """Send the packets now due."""
         now = self._now_ns()
         while self._down_q and self._down_q[0][0] <= now:
-            self.inner.send(self._down_q.popleft()[1])
+            data, peer = self._down_q.popleft()[1]
+            if peer is _EVERYONE:
+                self.inner.send(data)
+            else:
+                self.inner.send_to(data, peer)
 
     def _arrived(self) -> list[tuple[bytes, Any]]:
         """What the inner transport received, through the up link; then what is due now, with its sender."""
@@ -222,8 +234,9 @@ class FaultyTransport:
         self.flush()
         return self._arrived()
 
-    def add_peer(self, addr: Any) -> None:
-        self.inner.add_peer(addr)
+    def add_peer(self, addr: Any) -> bool:
+        """The inner transport's answer: False when its client table is full."""
+        return self.inner.add_peer(addr) is not False
 
     def close(self) -> None:
         self.inner.close()

@@ -2,7 +2,8 @@
 
 A refused command is acked DENIED (UNSUPPORTED when we lack it) and followed by a STATUSTEXT
 saying why, so an operator at MAVProxy sees the reason and not just "failed". COMMAND_ACK for
-SET_MODE carries command = 11 (the message id), as ArduPilot sends it.
+SET_MODE carries command = 11 (the message id), as ArduPilot sends it. The ack, the messages a
+command asks for and the reason for a refusal go to the asker alone.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from sitl.mavlink.outbox import Outbox
 from sitl.mavlink.streams import StreamSchedule
 from sitl.vehicle.api import CommandRejected, FlightMode, Vehicle
 
@@ -45,18 +47,17 @@ def _as_int(value: float, what: str) -> int:
 
 
 class Commands:
-    """Runs commands on the vehicle and on the stream schedule; replies and reasons go out through send / say.
+    """Runs commands on the vehicle and on the stream schedule; replies and reasons go to the asker (`out`).
 
     `build(msg_id)` encodes a streamed message now (REQUEST_MESSAGE); `home_position()` encodes
     HOME_POSITION; `link_now()` is the clock the schedule runs on.
     """
 
-    def __init__(self, vehicle: Vehicle, streams: StreamSchedule, mav: Any, send: Callable[[Any], None],
-                 say: Callable[[int, str], None], build: Callable[[int], Any | None],
-                 home_position: Callable[[], Any], link_now: Callable[[], float]) -> None:
-        self.vehicle, self.streams, self._mav = vehicle, streams, mav
-        self._send, self._say, self._build, self._home_position, self._link_now = (send, say, build, home_position,
-                                                                                   link_now)
+    def __init__(self, vehicle: Vehicle, streams: StreamSchedule, mav: Any, out: Outbox,
+                 build: Callable[[int], Any | None], home_position: Callable[[], Any],
+                 link_now: Callable[[], float]) -> None:
+        self.vehicle, self.streams, self._mav, self._out = vehicle, streams, mav, out
+        self._build, self._home_position, self._link_now = build, home_position, link_now
         self._commands: dict[int, Callable[[Params7], list[Any]]] = {
             mavlink.MAV_CMD_COMPONENT_ARM_DISARM: self._cmd_arm_disarm,
             mavlink.MAV_CMD_NAV_TAKEOFF: self._cmd_takeoff,
@@ -102,11 +103,12 @@ class Commands:
             except (CommandRejected, ValueError, KeyError, OverflowError) as exc:
                 result = mavlink.MAV_RESULT_DENIED
                 reason = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        self._send(self._mav.command_ack_encode(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
+        self._out.reply(self._mav.command_ack_encode(command, result, 0, 0, msg.get_srcSystem(),
+                                                     msg.get_srcComponent()))
         for m in followups:
-            self._send(m)
+            self._out.reply(m)
         if reason is not None:
-            self._say(mavlink.MAV_SEVERITY_WARNING, f"{command_name(command)}: {reason}")
+            self._out.say(mavlink.MAV_SEVERITY_WARNING, f"{command_name(command)}: {reason}")
 
     # ----- the vehicle ----------------------------------------------------------------------------
 

@@ -14,10 +14,14 @@ Choices, where MAVLink or ArduPilot leave room:
   open (the expected item is requested again); an invalid item aborts the upload with its error.
 - An unanswered request is repeated after MISSION_TIMEOUT_S of the link's clock (the server's: the
   wall clock in `run_realtime`), since the ground station answers in its own time, not the vehicle's.
+- The protocol's messages (requests, acks, items, counts) and refusals' reasons go to the client
+  that is uploading or asking, never to the others; a mission that was loaded, the items reached
+  and mission completion are the vehicle's news, for every client (and the operator's log).
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -26,7 +30,10 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sitl.mavlink.geodesy import Home
+from sitl.mavlink.outbox import Outbox, Peer
 from sitl.vehicle.api import CommandRejected, NavItem, NavKind, Vehicle
+
+log = logging.getLogger(__name__)
 
 MAX_MISSION_ITEMS = 1000
 MISSION_TIMEOUT_S = 1.5
@@ -111,6 +118,7 @@ def _decode_mission_item(msg: Any, is_int: bool) -> MissionItem:
 @dataclass
 class _Upload:
     partner: tuple[int, int]
+    peer: Peer  # where the partner's messages come from (the link's name for it)
     count: int
     mission_type: int
     deadline_s: float
@@ -123,15 +131,14 @@ def _src(msg: Any) -> tuple[int, int]:
 
 
 class Missions:
-    """The stored mission and its protocol; replies go out through `send`, operator news through `say`.
+    """The stored mission and its protocol; replies and news go out through `out`.
 
     `link_now` is the clock the upload timeout runs on (the server's link clock).
     """
 
-    def __init__(self, vehicle: Vehicle, home: Home, mav: Any, send: Callable[[Any], None],
-                 say: Callable[[int, str], None], link_now: Callable[[], float]) -> None:
-        self.vehicle, self.home, self._mav = vehicle, home, mav
-        self._send, self._say, self._link_now = send, say, link_now
+    def __init__(self, vehicle: Vehicle, home: Home, mav: Any, out: Outbox, link_now: Callable[[], float]) -> None:
+        self.vehicle, self.home, self._mav, self._out = vehicle, home, mav, out
+        self._link_now = link_now
         self._upload: _Upload | None = None
         self._set_stored_mission([self._home_item()])
         self.handlers: dict[str, Callable[[Any], None]] = {
@@ -169,16 +176,17 @@ class Missions:
             return
         if msg.count > MAX_MISSION_ITEMS:
             self._mission_ack(partner, mavlink.MAV_MISSION_NO_SPACE, mtype)
-            self._say(mavlink.MAV_SEVERITY_WARNING, f"mission of {msg.count} items: at most {MAX_MISSION_ITEMS}")
+            self._out.say(mavlink.MAV_SEVERITY_WARNING, f"mission of {msg.count} items: at most {MAX_MISSION_ITEMS}")
             return
         if msg.count == 0:
             self._accept_mission(partner, [])
             return
-        self._upload = _Upload(partner, msg.count, mtype, self._link_now() + MISSION_TIMEOUT_S)
+        self._upload = _Upload(partner, self._out.asker(), msg.count, mtype, self._link_now() + MISSION_TIMEOUT_S)
         self._request_item(self._upload)
 
     def _request_item(self, up: _Upload) -> None:
-        self._send(self._mav.mission_request_int_encode(up.partner[0], up.partner[1], len(up.items), up.mission_type))
+        self._out.send_to(self._mav.mission_request_int_encode(up.partner[0], up.partner[1], len(up.items),
+                                                               up.mission_type), up.peer)
         up.deadline_s = self._link_now() + MISSION_TIMEOUT_S
 
     def _on_mission_item(self, msg: Any) -> None:
@@ -198,7 +206,7 @@ class Missions:
             code, reason = exc.args
             self._upload = None
             self._mission_ack(up.partner, code, up.mission_type)
-            self._say(mavlink.MAV_SEVERITY_WARNING, f"mission item {msg.seq} rejected: {reason}")
+            self._out.say(mavlink.MAV_SEVERITY_WARNING, f"mission item {msg.seq} rejected: {reason}")
             return
         up.items.append(item)
         up.retries = 0
@@ -216,8 +224,11 @@ class Missions:
         up.retries += 1
         if up.retries > MISSION_MAX_RETRIES:
             self._upload = None
-            self._mission_ack(up.partner, mavlink.MAV_MISSION_OPERATION_CANCELLED, up.mission_type)
-            self._say(mavlink.MAV_SEVERITY_WARNING, f"mission upload timed out at item {len(up.items)}")
+            self._out.send_to(self._mav.mission_ack_encode(up.partner[0], up.partner[1],
+                                                           mavlink.MAV_MISSION_OPERATION_CANCELLED, up.mission_type),
+                              up.peer)
+            self._out.say_to(up.peer, mavlink.MAV_SEVERITY_WARNING, f"mission upload timed out at item {len(up.items)}")
+            log.warning("mission upload timed out at item %d of %d", len(up.items), up.count)
         else:
             self._request_item(up)
 
@@ -229,12 +240,15 @@ class Missions:
             self.vehicle.load_mission(nav)
         except (CommandRejected, ValueError) as exc:
             self._mission_ack(partner, mavlink.MAV_MISSION_DENIED, mavlink.MAV_MISSION_TYPE_MISSION)
-            self._say(mavlink.MAV_SEVERITY_WARNING, f"mission not loaded: {exc}")
+            self._out.say(mavlink.MAV_SEVERITY_WARNING, f"mission not loaded: {exc}")
             return
         self._set_stored_mission(stored, nav_seq, do_items)
         self._mission_ack(partner, mavlink.MAV_MISSION_ACCEPTED, mavlink.MAV_MISSION_TYPE_MISSION)
         if items:
-            self._say(mavlink.MAV_SEVERITY_INFO, f"mission received: {len(items) - 1} items after home")
+            self._out.announce(mavlink.MAV_SEVERITY_INFO, f"mission received: {len(items) - 1} items after home")
+            log.info("mission uploaded: %d items after home", len(items) - 1)
+        else:
+            log.info("mission cleared")
 
     def _plan(self, items: list[MissionItem]) -> tuple[list[NavItem], list[int], list[tuple[int, int, MissionItem]]]:
         """NavItems for the vehicle (home, seq 0, left out), their seqs, and DO items with the nav index
@@ -280,14 +294,15 @@ class Missions:
                            round(self.home.lat_deg * 1e7), round(self.home.lon_deg * 1e7), self.home.alt_m)
 
     def _mission_ack(self, partner: tuple[int, int], result: int, mission_type: int) -> None:
-        self._send(self._mav.mission_ack_encode(partner[0], partner[1], result, mission_type))
+        """To the asker (every ack answers a message being handled)."""
+        self._out.reply(self._mav.mission_ack_encode(partner[0], partner[1], result, mission_type))
 
     # ----- download and clear ---------------------------------------------------------------------
 
     def _on_mission_request_list(self, msg: Any) -> None:
         count = len(self._items) if msg.mission_type == mavlink.MAV_MISSION_TYPE_MISSION else 0
         src = _src(msg)
-        self._send(self._mav.mission_count_encode(src[0], src[1], count, msg.mission_type))
+        self._out.reply(self._mav.mission_count_encode(src[0], src[1], count, msg.mission_type))
 
     def _on_mission_request(self, msg: Any) -> None:
         src = _src(msg)
@@ -298,10 +313,11 @@ class Missions:
         common = (src[0], src[1], it.seq, it.frame, it.command, it.current, it.autocontinue,
                   it.param1, it.param2, it.param3, it.param4)
         if msg.get_type() == "MISSION_REQUEST_INT":
-            self._send(self._mav.mission_item_int_encode(*common, it.x, it.y, it.z, it.mission_type))
+            self._out.reply(self._mav.mission_item_int_encode(*common, it.x, it.y, it.z, it.mission_type))
         else:
             scale = _xy_scale(it.frame)
-            self._send(self._mav.mission_item_encode(*common, it.x / scale, it.y / scale, it.z, it.mission_type))
+            self._out.reply(self._mav.mission_item_encode(*common, it.x / scale, it.y / scale, it.z,
+                                                          it.mission_type))
 
     def _on_mission_clear_all(self, msg: Any) -> None:
         if msg.mission_type in (mavlink.MAV_MISSION_TYPE_MISSION, mavlink.MAV_MISSION_TYPE_ALL):
@@ -316,10 +332,10 @@ class Missions:
         """MISSION_ITEM_REACHED for what the vehicle reached; DO items run as it starts the NAV items after them."""
         for index in self.vehicle.pop_reached():
             if 0 <= index < len(self._nav_seq):
-                self._send(self._mav.mission_item_reached_encode(self._nav_seq[index]))
+                self._out.broadcast(self._mav.mission_item_reached_encode(self._nav_seq[index]))
                 self._run_do_items(index + 1)
                 if index == len(self._nav_seq) - 1:
-                    self._mission_complete = True
+                    self._mission_complete = True  # the vehicle announces it (its STATUSTEXT, in the log too)
         current = self.vehicle.current_item()
         if 0 <= current < len(self._nav_seq) and current != self._last_current:
             if current == 0:
@@ -339,8 +355,8 @@ class Missions:
                 try:
                     self.vehicle.set_param("PS_SPEED_MS", item.param2)
                 except (KeyError, ValueError) as exc:
-                    self._say(mavlink.MAV_SEVERITY_WARNING, f"mission item {seq}: {exc}")
-            self._send(self._mav.mission_item_reached_encode(seq))
+                    self._out.announce(mavlink.MAV_SEVERITY_WARNING, f"mission item {seq}: {exc}")
+            self._out.broadcast(self._mav.mission_item_reached_encode(seq))
 
     def mission_current(self) -> Any | None:
         """The MISSION_CURRENT stream's message; None with no mission (home only), as ArduPilot."""

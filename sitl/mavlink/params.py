@@ -2,6 +2,9 @@
 
 Sorted by name, as ArduPilot lists them, so an index means the same parameter to every client;
 `pilescan-sitl serve` serves its `SIM_PS_*` fault parameters as the extra ones (`sitl.faults.params`).
+Reads are answered to the asker; a parameter that changed is announced to every client (as
+ArduPilot does, so every ground station shows the new value); a refused PARAM_SET (unknown name,
+NaN, out of range) is answered to the asker alone: its read-back and a STATUSTEXT saying why.
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ from typing import Any, Protocol
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from sitl.mavlink.outbox import Outbox
 from sitl.vehicle.api import Vehicle
 
 
@@ -32,12 +36,11 @@ class ParamProvider(Protocol):
 
 
 class Params:
-    """PARAM_REQUEST_LIST / _READ and PARAM_SET, answered with PARAM_VALUE (REAL32) through `send`."""
+    """PARAM_REQUEST_LIST / _READ and PARAM_SET, answered with PARAM_VALUE (REAL32) through `out`."""
 
-    def __init__(self, vehicle: Vehicle, extra: ParamProvider | None, mav: Any, send: Callable[[Any], None],
-                 say: Callable[[int, str], None]) -> None:
+    def __init__(self, vehicle: Vehicle, extra: ParamProvider | None, mav: Any, out: Outbox) -> None:
         self.vehicle, self.extra = vehicle, extra
-        self._mav, self._send, self._say = mav, send, say
+        self._mav, self._out = mav, out
         self.handlers: dict[str, Callable[[Any], None]] = {
             "PARAM_REQUEST_LIST": self._on_param_request_list, "PARAM_REQUEST_READ": self._on_param_request_read,
             "PARAM_SET": self._on_param_set,
@@ -61,10 +64,11 @@ class Params:
             return None
         return self.extra.set(name, value)
 
-    def _send_param(self, name: str, value: float | None = None) -> None:
+    def _send_param(self, name: str, value: float | None = None, to_all: bool = False) -> None:
         names = self.names()
         value = self.value(name) if value is None else value
-        self._send(self._mav.param_value_encode(name.encode("ascii", "replace")[:16], value,
+        send = self._out.broadcast if to_all else self._out.reply
+        send(self._mav.param_value_encode(name.encode("ascii", "replace")[:16], value,
                                                 mavlink.MAV_PARAM_TYPE_REAL32, len(names), names.index(name)))
 
     def _on_param_request_list(self, msg: Any) -> None:
@@ -81,12 +85,13 @@ class Params:
 
     def _on_param_set(self, msg: Any) -> None:
         name = msg.param_id
-        ack = None
         try:
             ack = self.set(name, msg.param_value)
         except KeyError:
-            self._say(mavlink.MAV_SEVERITY_WARNING, f"unknown parameter {name}")
+            self._out.say(mavlink.MAV_SEVERITY_WARNING, f"unknown parameter {name}")
             return
         except ValueError as exc:
-            self._say(mavlink.MAV_SEVERITY_WARNING, f"param {name} not set: {exc}")
-        self._send_param(name, ack)
+            self._out.say(mavlink.MAV_SEVERITY_WARNING, f"param {name} not set: {exc}")
+            self._send_param(name)  # the value kept, to the asker alone
+            return
+        self._send_param(name, ack, to_all=True)

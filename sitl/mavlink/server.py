@@ -23,10 +23,26 @@ clock (`time_link_by`): a ground station reads at its own pace, whatever the spe
 
 Choices, where MAVLink or ArduPilot leave room (the micro-services' modules list theirs):
 
-- Parsing is our own framer around pymavlink's decoder: a frame that fails its CRC costs one byte,
-  not the whole frame length, so a corrupt length byte cannot swallow the valid frames after it.
-  Frames of message ids outside the ardupilotmega dialect cannot be checked and are skipped the
-  same way.
+- Parsing: on a datagram link (`UdpTransport`) each datagram is parsed on its own, whole frames or
+  nothing (`sitl.mavlink.datagrams`): junk, truncated headers and bad CRCs are dropped and counted
+  (stats `rx_datagrams_dropped`, by reason in `rx_drops`) and can never hold back another frame.
+  On a byte stream (the lockstep pipe) our own framer around pymavlink's decoder: a frame that
+  fails its CRC costs one byte, not the whole frame length, so a corrupt length byte cannot swallow
+  the valid frames after it.
+- Peers: a UDP sender becomes a telemetry client only when a datagram of its held a valid frame
+  (an authenticated one when signing); the transport's table is bounded and keeps live clients.
+- Routing (`sitl.mavlink.outbox`): telemetry and the vehicle's own news go to every client; a
+  reply (COMMAND_ACK, PARAM_VALUE for a read, the mission protocol, TIMESYNC, FTP refusals, a
+  STATUSTEXT saying why a request was refused) goes to the sender that asked. STATUSTEXT answers
+  are rate-limited per sender (`LinkLimits`), and dropped ones counted (`statustext_dropped`).
+- The .tlog: what a sender makes us log (its frames, our replies to it) is rate-limited per client
+  (senders the full client table refused share one budget), and the whole file is capped
+  (`LinkLimits.tlog_max_bytes`); once full, one warning, no more writes. The STATUSTEXT budget is
+  kept the same way.
+- SYS_STATUS reports the sensors and controllers a flying ArduCopter reports, present, enabled and
+  healthy, and the geofence bit healthy (no fence, no breach): MAVProxy says "fence breach" when
+  that bit is clear. MAVLink FTP is refused (`sitl.mavlink.ftp`) so ground stations read the
+  parameters with the classic protocol at once.
 - Telemetry log timestamps are TLOG_EPOCH_US + simulated time, so two lockstep runs give identical
   logs (unless signing is on: signatures carry wall-clock timestamps).
 - Signing (`signing=SigningConfig(...)`, `pilescan-sitl serve --signing-key FILE`): as the payload's
@@ -40,6 +56,7 @@ Choices, where MAVLink or ArduPilot leave room (the micro-services' modules list
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import struct
@@ -47,6 +64,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -58,14 +76,52 @@ from firmware_py.hal.mavlink_link import MavlinkFramer
 from firmware_py.hal.signing import MavlinkSigner, SigningConfig
 from sitl.mavlink import streams as tm
 from sitl.mavlink.commands import Commands
+from sitl.mavlink.datagrams import DatagramParser
+from sitl.mavlink.ftp import FtpRefusal
 from sitl.mavlink.geodesy import Home
 from sitl.mavlink.missions import MissionItem, Missions
+from sitl.mavlink.outbox import Peer
 from sitl.mavlink.params import ParamProvider, Params
+from sitl.mavlink.ratelimit import KeyedBuckets, Rate
 from sitl.mavlink.streams import TLOG_EPOCH_US, StreamSchedule
 from sitl.mavlink.transport import Transport
 from sitl.vehicle.api import Vehicle, VehicleState
 
 STATUSTEXT_LEN = 50
+TLOG_RECORD_HEADER_LEN = 8  # the big-endian microsecond timestamp before each frame
+log = logging.getLogger(__name__)
+
+
+STATUSTEXT_RATE = Rate(per_s=5.0, burst=20)
+TLOG_RX_RATE = Rate(per_s=200.0, burst=2000)
+
+
+@dataclass(frozen=True)
+class LinkLimits:
+    """What one sender can cost the others; every limit is far above what a ground station uses.
+
+    statustext: answers to one sender's refused requests. A ground station's operator reads a few
+    a second; MAVProxy re-sends a refused request about once a second, so 5/s with a burst of 20
+    never drops a text an operator could read, and caps a flood's at 5/s.
+    tlog_rx: frames a sender makes us log (its own, and our replies to it). A ground station sends
+    a few tens a second (heartbeat, requests; a mission upload ~2 per item), and our telemetry
+    (logged apart) is ~110/s; 200/s with a burst of 2000 logs every frame of a 1000-item upload.
+    tlog_max_bytes: the whole .tlog; our telemetry alone is ~20 MB an hour, so 256 MB is half a day
+    of flying, and what a flood can add stops there.
+    """
+
+    statustext: Rate = STATUSTEXT_RATE
+    tlog_rx: Rate = TLOG_RX_RATE
+    tlog_max_bytes: int = 256_000_000
+
+    def __post_init__(self) -> None:
+        if isinstance(self.tlog_max_bytes, bool) or not isinstance(self.tlog_max_bytes, int) \
+                or self.tlog_max_bytes < 1:
+            raise ValueError(f"the tlog cap must be a whole number of bytes >= 1, got {self.tlog_max_bytes!r}")
+
+
+_NO_ASKER = object()
+_STRANGERS = object()
 
 
 class MavlinkVehicleServer:
@@ -74,7 +130,7 @@ class MavlinkVehicleServer:
     def __init__(self, vehicle: Vehicle, transport: Transport, tlog_path: str | os.PathLike[str] | None = None,
                  sysid: int = 1, compid: int = 1, home_lat_deg: float = 53.4668, home_lon_deg: float = -2.2339,
                  home_alt_m: float = 50.0, signing: SigningConfig | MavlinkSigner | None = None,
-                 extra_params: ParamProvider | None = None) -> None:
+                 extra_params: ParamProvider | None = None, limits: LinkLimits = LinkLimits()) -> None:
         self.home = Home(home_lat_deg, home_lon_deg, home_alt_m)
         self.vehicle = vehicle
         self.transport = transport
@@ -88,11 +144,23 @@ class MavlinkVehicleServer:
             self._framer = MavlinkFramer(mavlink.MAVLink(None), signer=self.signer)
         else:
             self._framer = MavlinkFramer(self._mav)  # the payload's framer: one parser for both ends
+        self._datagrams = DatagramParser(self.signer)  # for a transport with recv_datagrams (UDP)
+        self.limits = limits
         self._tlog: BinaryIO | None = Path(tlog_path).open("wb") if tlog_path is not None else None
+        self._tlog_path = tlog_path
+        self._tlog_bytes = 0
+        self._tlog_budget = KeyedBuckets(limits.tlog_rx)
+        self._statustext_budget = KeyedBuckets(limits.statustext)
+        self._asker: Any = _NO_ASKER  # the sender of the message being handled
+        self._clients: set[Any] = set()  # senders admitted as clients (for the operator's log)
+        self._strangers: set[Any] = set()  # senders of this update's datagrams the full client table refused
+        self._last_armed_mode: tuple[bool, int] | None = None
         self.stats: dict[str, Any] = {
             "rx_messages": 0, "rx_bad_bytes": 0, "rx_parse_errors": 0, "rx_not_for_us": 0,
             "tx_messages": 0, "handler_errors": 0, "rx_by_type": Counter(), "tx_by_type": Counter(),
             "rx_signed": 0, "rx_unsigned": 0, "rx_bad_signature": 0, "rx_replayed": 0, "rx_unsigned_accepted": 0,
+            "rx_datagrams_dropped": 0, "rx_drops": {}, "statustext_dropped": 0, "tlog_frames_skipped": 0,
+            "tlog_full": False, "peers_refused": 0, "ftp_refused": 0,
         }
         self._now_s = 0.0
         self._boot_epoch_s = 0.0  # vehicle time at which the autopilot last booted (time_boot_ms 0)
@@ -103,18 +171,19 @@ class MavlinkVehicleServer:
         self._link_clock: Callable[[], float] | None = None  # None: the link runs on simulated time
         self._statustext_id = 0
         self.streams = StreamSchedule()
-        self.missions = Missions(vehicle, self.home, self._mav, self._send, self._statustext, self._link_now)
-        self.params = Params(vehicle, extra_params, self._mav, self._send, self._statustext)
-        self.commands = Commands(vehicle, self.streams, self._mav, self._send, self._statustext,
-                                 self._build_stream_message, self._home_position, self._link_now)
+        self.missions = Missions(vehicle, self.home, self._mav, self, self._link_now)
+        self.params = Params(vehicle, extra_params, self._mav, self)
+        self.commands = Commands(vehicle, self.streams, self._mav, self, self._build_stream_message,
+                                 self._home_position, self._link_now)
+        self.ftp = FtpRefusal(self._mav, self)
         self._handlers: dict[str, Callable[[Any], None]] = {
             "HEARTBEAT": self._ignore, "REQUEST_DATA_STREAM": self._ignore, "MISSION_ACK": self._ignore,
             "TIMESYNC": self._on_timesync,
-            **self.commands.handlers, **self.params.handlers, **self.missions.handlers,
+            **self.commands.handlers, **self.params.handlers, **self.missions.handlers, **self.ftp.handlers,
         }
         self._builders: dict[int, Callable[[VehicleState], Any | None]] = {
             mavlink.MAVLINK_MSG_ID_HEARTBEAT: lambda s: tm.heartbeat(self._mav, s),
-            mavlink.MAVLINK_MSG_ID_SYS_STATUS: lambda s: tm.sys_status(self._mav, s, self._framer.bad_frames),
+            mavlink.MAVLINK_MSG_ID_SYS_STATUS: lambda s: tm.sys_status(self._mav, s, self._rx_errors()),
             mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: lambda s: tm.system_time(self._mav, s, self._boot_ms),
             mavlink.MAVLINK_MSG_ID_ATTITUDE: lambda s: tm.attitude(self._mav, s, self._boot_ms),
             mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: lambda s: tm.local_position(self._mav, s, self._boot_ms),
@@ -142,20 +211,30 @@ class MavlinkVehicleServer:
         if self._now_s < self._silent_until_s:
             self.transport.recv()  # a rebooting autopilot hears nothing
             return
-        if self.signer is not None and hasattr(self.transport, "recv_datagrams"):
-            self._state = self.vehicle.state()
-            self._receive_authenticated_datagrams()
+        if hasattr(self.transport, "recv_datagrams"):
+            got = self.transport.recv_datagrams()
+            if got or self.streams.may_be_due(self._link_now()):
+                self._state = self.vehicle.state()
+            if got:
+                self._receive_datagrams(got)
         else:
             data = self.transport.recv()
             if data or self.streams.may_be_due(self._link_now()):
                 self._state = self.vehicle.state()
             if data:
-                for msg in self._framer.feed(data):
-                    self._handle(msg)
+                self._asker = None  # the one client at the other end of the stream
+                try:
+                    for msg in self._framer.feed(data):
+                        self._handle(msg)
+                finally:
+                    self._asker = _NO_ASKER
                 self._update_rx_stats()
+        if self._state is not None:
+            self._watch_vehicle(self._state)
         self.missions.report_vehicle_events()
         for text in self.vehicle.pop_status_text():
-            self._statustext(mavlink.MAV_SEVERITY_INFO, text)
+            log.info("vehicle: %s", text)
+            self.announce(mavlink.MAV_SEVERITY_INFO, text)
         self.missions.service_upload_timeout()
         for msg_id in self.streams.due(self._link_now()):
             msg = self._build_stream_message(msg_id)
@@ -191,21 +270,65 @@ class MavlinkVehicleServer:
         self.streams.reset(self._boot_epoch_s if self._link_clock is None else self._link_clock())
         self.stats["reboots"] = self.stats.get("reboots", 0) + 1
 
-    def _receive_authenticated_datagrams(self) -> None:
-        """Signed UDP: only a sender whose datagram held an authenticated frame becomes a client."""
-        got = self.transport.recv_datagrams()
+    def _receive_datagrams(self, got: list[tuple[bytes, Any]]) -> None:
+        """Each datagram alone; only a sender whose datagram held a valid (authenticated) frame becomes
+        a client, and the replies to each message go back to its sender."""
         for data, addr in got:
-            msgs = self._framer.feed(data)
-            if msgs:
-                self.transport.add_peer(addr)
-            for msg in msgs:
-                self._handle(msg)
-        if got:
-            self._update_rx_stats()
+            msgs = self._datagrams.parse(data)
+            if not msgs:
+                continue
+            if self.transport.add_peer(addr) is False:
+                self._strangers.add(addr)  # answered, but on the budget all strangers share
+            elif addr not in self._clients:
+                self._new_client(addr, msgs[0])
+            self._asker = addr
+            try:
+                for msg in msgs:
+                    self._handle(msg)
+            finally:
+                self._asker = _NO_ASKER
+        self._strangers.clear()
+        self._update_rx_stats()
+
+    def _new_client(self, addr: Any, first: Any) -> None:
+        """Tell the operator; greet it with a HEARTBEAT (it detects the vehicle at once, not within a second)."""
+        peers = getattr(self.transport, "peers", None)
+        if peers is not None:
+            for gone in self._clients - set(peers):
+                log.info("client %s gone quiet", _peer_name(gone))
+            self._clients &= set(peers)
+        self._clients.add(addr)
+        log.info("client %s connected (system %d, component %d)", _peer_name(addr), first.get_srcSystem(),
+                 first.get_srcComponent())
+        self.send_to(self._build_stream_message(mavlink.MAVLINK_MSG_ID_HEARTBEAT), addr)
+
+    def _budget_key(self, peer: Peer) -> Any:
+        """Whose budget a sender's frames and our replies to it spend: a client's own; one shared by every
+        sender the full client table refused (so a thousand source ports get no more than one)."""
+        return _STRANGERS if peer in self._strangers else peer
+
+    def _watch_vehicle(self, s: VehicleState) -> None:
+        """Tell the operator when the vehicle arms, disarms or changes mode."""
+        now = (s.armed, int(s.mode))
+        last, self._last_armed_mode = self._last_armed_mode, now
+        if last is None or last == now:
+            return
+        if now[0] != last[0]:
+            log.info("vehicle %s", "armed" if s.armed else "disarmed")
+        if now[1] != last[1]:
+            log.info("mode %s", getattr(s.mode, "name", s.mode))
+
+    def _rx_errors(self) -> int:
+        """SYS_STATUS errors_comm: frames that failed on the stream, datagrams dropped on UDP."""
+        return self._framer.bad_frames + self._datagrams.dropped
 
     def _update_rx_stats(self) -> None:
         self.stats["rx_bad_bytes"] = self._framer.bad_bytes
         self.stats["rx_parse_errors"] = self._framer.bad_frames
+        self.stats["rx_datagrams_dropped"] = self._datagrams.dropped
+        self.stats["rx_drops"] = {reason.value: n for reason, n in self._datagrams.drops.items()}
+        self.stats["peers_refused"] = getattr(self.transport, "peers_refused", 0)
+        self.stats["ftp_refused"] = self.ftp.refused
         if self.signer is not None:
             for key in ("signed", "unsigned", "bad_signature", "replayed", "unsigned_accepted"):
                 self.stats[f"rx_{key}"] = self.signer.stats[key]
@@ -219,6 +342,8 @@ class MavlinkVehicleServer:
         if self._tlog is not None:
             self._tlog.close()
             self._tlog = None
+        self.stats["statustext_dropped"] = self._statustext_budget.refused
+        self.stats["tlog_frames_skipped"] = self._tlog_budget.refused
 
     def __enter__(self) -> MavlinkVehicleServer:
         return self
@@ -236,7 +361,7 @@ class MavlinkVehicleServer:
     def _handle(self, msg: Any) -> None:
         self.stats["rx_messages"] += 1
         self.stats["rx_by_type"][msg.get_type()] += 1
-        self._log(msg.get_msgbuf())
+        self._log_for(self._asker, msg.get_msgbuf())
         handler = self._handlers.get(msg.get_type())
         if handler is None:
             return
@@ -247,7 +372,7 @@ class MavlinkVehicleServer:
             handler(msg)
         except Exception as exc:  # never let one message take the link down
             self.stats["handler_errors"] += 1
-            self._statustext(mavlink.MAV_SEVERITY_WARNING, f"error handling {msg.get_type()}: {exc}")
+            self.say(mavlink.MAV_SEVERITY_WARNING, f"error handling {msg.get_type()}: {exc}")
 
     def _for_us(self, msg: Any) -> bool:
         ts = getattr(msg, "target_system", 0)
@@ -259,7 +384,7 @@ class MavlinkVehicleServer:
 
     def _on_timesync(self, msg: Any) -> None:
         if msg.tc1 == 0:  # a request: answer with our clock, echoing theirs (as ArduPilot does)
-            self._send(self._mav.timesync_encode(round((self._now_s - self._boot_epoch_s) * 1e9), msg.ts1))
+            self.reply(self._mav.timesync_encode(round((self._now_s - self._boot_epoch_s) * 1e9), msg.ts1))
 
     # ----- send side ------------------------------------------------------------------------------
 
@@ -273,28 +398,91 @@ class MavlinkVehicleServer:
     def _boot_ms(self) -> int:
         return round((self._now_s - self._boot_epoch_s) * 1000) & 0xFFFFFFFF
 
-    def _statustext(self, severity: int, text: str) -> None:
+    def _statustexts(self, severity: int, text: str) -> list[Any]:
         """STATUSTEXT, in 50-character chunks sharing an id when longer (MAVLink 2 chunking)."""
         raw = text.encode("ascii", "replace")
         if len(raw) <= STATUSTEXT_LEN:
-            self._send(self._mav.statustext_encode(severity, raw))
-            return
+            return [self._mav.statustext_encode(severity, raw)]
         self._statustext_id = self._statustext_id % 65535 + 1
-        for k in range(0, len(raw), STATUSTEXT_LEN):
-            chunk = raw[k:k + STATUSTEXT_LEN]
-            self._send(self._mav.statustext_encode(severity, chunk, self._statustext_id, k // STATUSTEXT_LEN))
+        return [self._mav.statustext_encode(severity, raw[k:k + STATUSTEXT_LEN], self._statustext_id,
+                                            k // STATUSTEXT_LEN)
+                for k in range(0, len(raw), STATUSTEXT_LEN)]
 
-    def _send(self, msg: Any) -> None:
-        buf = self.signer.pack(msg, self._mav) if self.signer is not None else msg.pack(self._mav)
-        self._mav.seq = (self._mav.seq + 1) % 256
+    # ----- the Outbox the services send through (sitl.mavlink.outbox) -----------------------------
+
+    def broadcast(self, msg: Any) -> None:
+        """To every client (telemetry, the vehicle's news); always logged (until the tlog is full)."""
+        buf = self._pack(msg)
         self.transport.send(buf)
         self._log(buf)
+
+    def asker(self) -> Peer:
+        return None if self._asker is _NO_ASKER else self._asker
+
+    def reply(self, msg: Any) -> None:
+        self.send_to(msg, self.asker())
+
+    def send_to(self, msg: Any, peer: Peer) -> None:
+        buf = self._pack(msg)
+        send_to = getattr(self.transport, "send_to", None)
+        if send_to is None:
+            self.transport.send(buf)  # a single-client link
+        else:
+            send_to(buf, peer)
+        self._log_for(peer, buf)
+
+    def say(self, severity: int, text: str) -> None:
+        self.say_to(self.asker(), severity, text)
+
+    def say_to(self, peer: Peer, severity: int, text: str) -> None:
+        """STATUSTEXT to one sender, within its budget (a flood of bad requests gets a trickle)."""
+        if not self._statustext_budget.take(self._budget_key(peer), self._link_now()):
+            self.stats["statustext_dropped"] = self._statustext_budget.refused
+            return
+        for msg in self._statustexts(severity, text):
+            self.send_to(msg, peer)
+
+    def announce(self, severity: int, text: str) -> None:
+        for msg in self._statustexts(severity, text):
+            self.broadcast(msg)
+
+    _send = broadcast  # streams and the vehicle's own messages
+
+    def _pack(self, msg: Any) -> bytes:
+        buf = self.signer.pack(msg, self._mav) if self.signer is not None else msg.pack(self._mav)
+        self._mav.seq = (self._mav.seq + 1) % 256
         self.stats["tx_messages"] += 1
         self.stats["tx_by_type"][msg.get_type()] += 1
+        return bytes(buf)
+
+    def _log_for(self, peer: Peer, frame: bytes | bytearray) -> None:
+        """Log a frame a sender caused (its own, or a reply to it), within that sender's budget."""
+        if self._tlog is None:
+            return
+        if not self._tlog_budget.take(self._budget_key(peer), self._link_now()):
+            self.stats["tlog_frames_skipped"] = self._tlog_budget.refused
+            return
+        self._log(frame)
 
     def _log(self, frame: bytes | bytearray) -> None:
-        if self._tlog is not None:
-            self._tlog.write(struct.pack(">Q", TLOG_EPOCH_US + round(self._now_s * 1e6)) + bytes(frame))
+        if self._tlog is None:
+            return
+        record = struct.pack(">Q", TLOG_EPOCH_US + round(self._now_s * 1e6)) + bytes(frame)
+        if self._tlog_bytes + len(record) > self.limits.tlog_max_bytes:
+            self._tlog.close()
+            self._tlog = None
+            self.stats["tlog_full"] = True
+            log.warning("telemetry log %s reached its cap of %d bytes: nothing more is logged (raise it with "
+                        "--tlog-max-mb)", self._tlog_path, self.limits.tlog_max_bytes)
+            return
+        self._tlog.write(record)
+        self._tlog_bytes += len(record)
+
+
+def _peer_name(peer: Peer) -> str:
+    if isinstance(peer, tuple) and len(peer) == 2:
+        return f"{peer[0]}:{peer[1]}"
+    return str(peer)
 
 
 # ----- networked mode -----------------------------------------------------------------------------

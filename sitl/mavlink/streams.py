@@ -136,9 +136,26 @@ def heartbeat(mav: Any, s: VehicleState) -> Any:
                                 base, int(s.mode), status, 3)
 
 
+_S = mavlink
+SENSORS_PRESENT = (_S.MAV_SYS_STATUS_SENSOR_3D_GYRO | _S.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+                   | _S.MAV_SYS_STATUS_SENSOR_3D_MAG | _S.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+                   | _S.MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL | _S.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION
+                   | _S.MAV_SYS_STATUS_SENSOR_YAW_POSITION | _S.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL
+                   | _S.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL | _S.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+                   | _S.MAV_SYS_STATUS_AHRS | _S.MAV_SYS_STATUS_SENSOR_BATTERY)
+"""What a simulated ArduCopter has (SYS_STATUS onboard_control_sensors_present): IMU, compass, baro,
+its controllers, motors, AHRS, battery. No GPS (indoors), no geofence configured."""
+SENSORS_HEALTHY_EXTRA = _S.MAV_SYS_STATUS_GEOFENCE
+"""ArduPilot sets the geofence health bit whenever the fence is not breached, configured or not; a ground
+station (MAVProxy) reads a clear bit as a breach."""
+
+
 def sys_status(mav: Any, s: VehicleState, rx_errors: int) -> Any:
+    """Present and healthy sensors as ArduCopter reports them; motor outputs enabled only when armed."""
     mv = clamp_int(s.battery_voltage_v * 1000, 0, 65535)
-    return mav.sys_status_encode(0, 0, 0, 0, mv, -1, -1, 0, clamp_int(rx_errors, 0, 65535), 0, 0, 0, 0)
+    enabled = SENSORS_PRESENT if s.armed else SENSORS_PRESENT & ~_S.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+    return mav.sys_status_encode(SENSORS_PRESENT, enabled, SENSORS_PRESENT | SENSORS_HEALTHY_EXTRA, 0, mv, -1, -1, 0,
+                                 clamp_int(rx_errors, 0, 65535), 0, 0, 0, 0)
 
 
 def system_time(mav: Any, s: VehicleState, boot_ms: int) -> Any:

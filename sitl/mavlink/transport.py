@@ -14,6 +14,8 @@ from collections import deque
 from collections.abc import Callable
 from typing import Protocol
 
+from sitl.mavlink.datagrams import DatagramParser
+
 
 class Transport(Protocol):
     """A byte link: send whole packets, receive whatever has arrived (b"" when nothing; never blocks)."""
@@ -74,9 +76,15 @@ class UdpTransport:
     """UDP like ArduPilot SITL: "udp:HOST:PORT" listens there and replies to its clients;
     "udpout:HOST:PORT" sends to that fixed address. Port 0 listens on a free port (see local_address).
 
-    A listening transport sends to every client heard within `peer_timeout_s` (at most `max_peers`),
-    like a MAVLink router: a ground station and the companion's payload can share one port
-    (ArduPilot would give each its own SERIALn port; one port is simpler to run by hand).
+    A listening transport sends telemetry (`send`) to every client (at most `max_peers`) and replies
+    (`send_to`) to one, like a MAVLink router: a ground station and the companion's payload can share
+    one port (ArduPilot would give each its own SERIALn port; one port is simpler to run by hand).
+
+    A sender becomes a client only through `add_peer`, which the server calls for a datagram that
+    held a valid frame (an authenticated one when signing), never for random bytes. The table is
+    bounded and never evicts a client that is still talking: when it is full a newcomer is refused
+    (counted in `peers_refused`) until a client has been silent for `peer_timeout_s`, so senders,
+    junk or not, cannot push a live ground station out.
     """
 
     MAX_DATAGRAMS_PER_RECV = 1000
@@ -84,6 +92,10 @@ class UdpTransport:
     def __init__(self, address: str, peer_timeout_s: float = 10.0, max_peers: int = 8,
                  clock: Callable[[], float] = time.monotonic) -> None:
         kind, host, port = _parse_udp_url(address)
+        if not (math.isfinite(peer_timeout_s) and peer_timeout_s > 0):
+            raise ValueError(f"peer timeout must be > 0 s, got {peer_timeout_s!r}")
+        if isinstance(max_peers, bool) or not isinstance(max_peers, int) or max_peers < 1:
+            raise ValueError(f"max_peers must be an integer >= 1, got {max_peers!r}")
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.setblocking(False)
         self._fixed_peer = kind == "udpout"
@@ -94,6 +106,8 @@ class UdpTransport:
         else:
             self._sock.bind((host, port))
         self.dropped_packets = 0
+        self.peers_refused = 0
+        self._parser = DatagramParser()  # only for recv(): the byte-stream view of the datagrams
 
     @property
     def local_address(self) -> tuple[str, int]:
@@ -108,26 +122,51 @@ class UdpTransport:
     def peers(self) -> list[tuple[str, int]]:
         return list(self._peers)
 
+    @property
+    def datagram_drops(self) -> dict[str, int]:
+        """Datagrams recv() dropped (not whole MAVLink frames), by reason."""
+        return {reason.value: n for reason, n in self._parser.drops.items()}
+
+    def _expire(self) -> None:
+        if self._fixed_peer:
+            return
+        oldest = self._clock() - self._peer_timeout_s
+        for addr in [a for a, t in self._peers.items() if t < oldest]:
+            del self._peers[addr]  # a client gone quiet: stop sending to it
+
     def send(self, data: bytes) -> None:
+        """To every client (telemetry, the vehicle's own announcements)."""
+        self._expire()
         if not self._peers:
             self.dropped_packets += 1  # nobody has talked to us yet
             return
-        if not self._fixed_peer:
-            oldest = self._clock() - self._peer_timeout_s
-            for addr in [a for a, t in self._peers.items() if t < oldest]:
-                del self._peers[addr]  # a client gone quiet: stop sending to it
         for addr in self._peers:
-            try:
-                self._sock.sendto(data, addr)
-            except OSError:
-                self.dropped_packets += 1
+            self._sendto(data, addr)
+
+    def send_to(self, data: bytes, addr: tuple[str, int] | None) -> None:
+        """To one sender (a reply), client or not; None (a fixed peer's link) is the usual destination."""
+        if addr is None or self._fixed_peer:
+            self.send(data)
+        else:
+            self._sendto(data, addr)
+
+    def _sendto(self, data: bytes, addr: tuple[str, int]) -> None:
+        try:
+            self._sock.sendto(data, addr)
+        except OSError:
+            self.dropped_packets += 1
 
     def recv(self) -> bytes:
-        """Every datagram received, joined; each sender becomes (or stays) a client."""
-        got = self.recv_datagrams()
-        for _data, addr in got:
-            self.add_peer(addr)
-        return b"".join(data for data, _addr in got)
+        """The datagrams that are whole MAVLink frames, joined; each of their senders becomes a client.
+
+        For byte-stream users; the server reads `recv_datagrams` and checks each itself.
+        """
+        out = []
+        for data, addr in self.recv_datagrams():
+            if self._parser.parse(data):
+                self.add_peer(addr)
+                out.append(data)
+        return b"".join(out)
 
     def recv_datagrams(self) -> list[tuple[bytes, tuple[str, int]]]:
         """Every datagram received, with its sender, WITHOUT learning the senders (see add_peer)."""
@@ -142,13 +181,17 @@ class UdpTransport:
             got.append((data, addr))
         return got
 
-    def add_peer(self, addr: tuple[str, int]) -> None:
-        """Send to addr from now on (a listening transport; refreshes a known client)."""
+    def add_peer(self, addr: tuple[str, int]) -> bool:
+        """Send telemetry to addr from now on; refreshes a known client. False when the table is full."""
         if self._fixed_peer:
-            return
+            return True
+        if addr not in self._peers and len(self._peers) >= self._max_peers:
+            self._expire()
+            if len(self._peers) >= self._max_peers:
+                self.peers_refused += 1
+                return False
         self._peers[addr] = self._clock()
-        if len(self._peers) > self._max_peers:
-            del self._peers[min(self._peers, key=self._peers.__getitem__)]
+        return True
 
     def close(self) -> None:
         self._sock.close()

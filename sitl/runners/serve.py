@@ -18,11 +18,14 @@ timed from the start of the mission (the vehicle first entering AUTO). The `SIM_
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
 import math
 import signal
 import sys
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,7 +44,7 @@ from firmware_py.hal.signing import SigningConfig
 from sitl.devices.bridge_server import parse_bridge_url
 from sitl.devices.networked import NetworkedDevices, NetworkedFaults, check_networked_faults
 from sitl.faults.injector import PAIRS, FaultSpec
-from sitl.mavlink.server import MavlinkVehicleServer, run_realtime
+from sitl.mavlink.server import LinkLimits, MavlinkVehicleServer, run_realtime
 from sitl.mavlink.transport import make_transport
 from sitl.missions.qgc_wpl import DEFAULT_ORIGIN, write_qgc_wpl
 from sitl.missions.rectangle import Mission
@@ -54,6 +57,7 @@ from sitl.world import stockpile as piles
 from sitl.world.raycast import World
 
 VEHICLES = ("jsbsim", "kinematic")
+log = logging.getLogger(__name__)
 
 
 def make_vehicle(kind: str, mission: Mission, frame: StorageFrame):
@@ -83,6 +87,8 @@ class ServeOptions:
     faults: FaultSpec = field(default_factory=FaultSpec)
     """The --fault faults (timed ones count from the mission start); its seed seeds every fault draw,
     the SIM_PS_* parameters' too."""
+    limits: LinkLimits = field(default_factory=LinkLimits)
+    """What one MAVLink sender may cost the others (STATUSTEXT answers, tlog space; --tlog-max-mb)."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speedup) and 0 < self.speedup <= 1000):
@@ -104,7 +110,11 @@ class ServeOptions:
 
 
 def serve(opts: ServeOptions) -> int:
-    """Serve until opts.duration_s of simulated time has run, or SIGINT / SIGTERM; returns the exit code."""
+    """Serve until opts.duration_s of simulated time has run, or SIGINT / SIGTERM; returns the exit code.
+
+    What it does goes to the operator through `logging` (listening, clients, arming, modes, missions,
+    landing): INFO lines of the `sitl` loggers on stderr, prefixed "pilescan-sitl:" (`_operator_log`).
+    """
     world = None
     check_free(opts.out, RUN_FILES, force=opts.force)  # a taken --out fails before any work
     if opts.devices_url is not None:
@@ -117,12 +127,58 @@ def serve(opts: ServeOptions) -> int:
     try:
         # The folder is locked while served; the plan is put in place at once (a ground station loads
         # it), the telemetry log and the truth when the vehicle stops, the truth last (rundir).
-        with OutputFolder(opts.out, RUN_FILES, TRUTH_FILE, force=opts.force) as folder:
+        with _operator_log(), OutputFolder(opts.out, RUN_FILES, TRUTH_FILE, force=opts.force) as folder:
             code = _serve(opts, world, transport, folder)
             folder.commit()
             return code
     finally:
         transport.close()
+
+
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever sys.stderr is when a line is logged (a test's capture, a redirected stream)."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.setStream(sys.stderr)
+        super().emit(record)
+
+
+@contextlib.contextmanager
+def _operator_log() -> Iterator[None]:
+    """The `sitl` loggers' INFO lines on stderr, prefixed "pilescan-sitl:", unless a handler is already
+    set on them (a program that configures logging itself); removed again afterwards."""
+    logger = logging.getLogger("sitl")
+    if logger.handlers:
+        yield
+        return
+    handler = _StderrHandler()
+    handler.setFormatter(logging.Formatter("pilescan-sitl: %(message)s"))
+    level, propagate = logger.level, logger.propagate
+    logger.addHandler(handler)
+    if level == logging.NOTSET:
+        logger.setLevel(logging.INFO)
+    logger.propagate = False
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+        logger.propagate = propagate
+
+
+def _where(transport) -> str:
+    try:
+        host, port = transport.local_address
+    except (AttributeError, OSError, TypeError, ValueError):
+        return "?"
+    return f"{host}:{port}"
+
+
+def tlog_limits(max_mb: float) -> LinkLimits:
+    """LinkLimits with the .tlog capped at max_mb megabytes (10^6 bytes); ValueError unless > 0."""
+    if not (math.isfinite(max_mb) and max_mb > 0):
+        raise ValueError(f"--tlog-max-mb must be > 0, got {max_mb:g}")
+    return LinkLimits(tlog_max_bytes=max(1, round(max_mb * 1e6)))
 
 
 def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFolder) -> int:
@@ -156,13 +212,16 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
             timed = any(n in PAIRS or n.endswith("_at_s") for n in opts.faults.active)
             injected = (f"; faults {', '.join(opts.faults.active)} (seed {opts.faults.seed}"
                         + ("; times count from the mission start)" if timed else ")"))
-        print(f"pilescan-sitl: serving a {kind} quadcopter on {opts.url} ({opts.speedup:g}x real time); plan: {plan}"
-              + (f"; LiDAR and servo on {devices.url} (pile {opts.stockpile}, {pile.volume_m3:.1f} m^3)"
-                 if devices else "")
-              + signed + injected, file=sys.stderr, flush=True)
+        log.info("serving a %s quadcopter on %s (listening at %s; %gx real time); plan: %s%s%s%s", kind, opts.url,
+                 _where(transport), opts.speedup, plan,
+                 (f"; LiDAR and servo on {devices.url} (pile {opts.stockpile}, {pile.volume_m3:.1f} m^3)"
+                  if devices else ""), signed, injected)
+        if devices is None:
+            log.info("no payload: this run records no LiDAR data (for a survey, serve with --devices and run "
+                     "pilescan-payload against it)")
         with MavlinkVehicleServer(vehicle, faults.transport, tlog_path=folder.staged(TLOG_FILE), home_lat_deg=lat0,
                                   home_lon_deg=lon0, home_alt_m=alt0, signing=opts.signing,
-                                  extra_params=faults.params) as server:
+                                  extra_params=faults.params, limits=opts.limits) as server:
             faults.bind(server)
 
             def on_step() -> None:
@@ -177,12 +236,14 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
         transport.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    st = server.stats
     refused = ""
     if opts.signing is not None:
-        st = server.stats
         refused = (f"; refused {st['rx_unsigned']} unsigned, {st['rx_bad_signature']} badly signed and "
                    f"{st['rx_replayed']} replayed frames")
+    dropped = (f"; dropped {st['rx_datagrams_dropped']} malformed datagrams" if st["rx_datagrams_dropped"] else "")
+    muted = f"; {st['statustext_dropped']} STATUSTEXT answers over the rate limit" if st["statustext_dropped"] else ""
     summary = faults.summary()
-    print(f"pilescan-sitl: stopped after {sim_s:.1f} simulated seconds; telemetry in {out / TLOG_FILE}{refused}"
-          + (f"; faults: {summary}" if summary else ""), file=sys.stderr)
+    log.info("stopped after %.1f simulated seconds; telemetry in %s%s%s%s%s", sim_s, out / TLOG_FILE, refused,
+             dropped, muted, f"; faults: {summary}" if summary else "")
     return 0

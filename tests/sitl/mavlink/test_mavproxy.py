@@ -62,6 +62,7 @@ def test_that_mavproxy_flies_the_exported_plan(tmp_path):
     con = Console(mp)
     try:
         assert con.wait_for("online system 1", 30), "MAVProxy never saw the vehicle"
+        assert con.wait_for(" parameters to ", 30), "MAVProxy never got the parameters"  # "Saved N parameters to"
         con.send(f"wp load {out / 'mission.waypoints'}")
         assert con.wait_for("ACCEPTED", 20), "mission upload not accepted"
         con.send("arm throttle")
@@ -69,6 +70,7 @@ def test_that_mavproxy_flies_the_exported_plan(tmp_path):
         con.send("mode auto")
         assert con.wait_for("mission complete", 30), "mission did not complete"
         assert con.wait_for("landed and disarmed", 15)
+        assert not any("fence breach" in line for line in con.seen)  # SYS_STATUS says the fence is fine
     finally:
         for proc in (mp, srv):
             proc.terminate()
@@ -84,3 +86,24 @@ def test_that_mavproxy_flies_the_exported_plan(tmp_path):
         reached.add(m.seq)
     # The plan: 0 home, 1 speed, 2 take-off, 3-6 the loop, 7 land.
     assert reached >= set(range(1, 8))
+    ftp_requests, ftp_naks, param_list = _ftp_and_param_exchange(tmp_path / "mavproxy.tlog")
+    assert ftp_requests >= 1 and ftp_naks == ftp_requests  # every FTP request refused at once...
+    assert param_list  # ...so MAVProxy fell back to the classic parameter protocol
+
+
+def _ftp_and_param_exchange(tlog: Path) -> tuple[int, int, bool]:
+    """FTP requests MAVProxy sent, NAKs the vehicle sent, and whether a PARAM_REQUEST_LIST followed a NAK."""
+    log = mavutil.mavlink_connection(str(tlog))
+    requests = naks = 0
+    param_list = False
+    while (m := log.recv_match()) is not None:
+        kind = m.get_type()
+        if kind == "FILE_TRANSFER_PROTOCOL":
+            opcode = m.payload[3]
+            if m.get_srcSystem() == 1 and opcode == 129:
+                naks += 1
+            elif m.get_srcSystem() != 1 and opcode < 128:
+                requests += 1
+        elif kind == "PARAM_REQUEST_LIST" and naks:
+            param_list = True
+    return requests, naks, param_list

@@ -162,7 +162,7 @@ def test_pymavlink_mavutil_with_setup_signing_talks_to_the_signed_server(signed_
             asked.append(True)
 
     try:
-        got = _serve(server, vehicle, conn, lambda ms: any(m.get_type() == "AUTOPILOT_VERSION" for m in ms),
+        got = _serve(server, vehicle, conn, lambda ms: {"AUTOPILOT_VERSION", "ATTITUDE"} <= {m.get_type() for m in ms},
                      on_message=ask)
     finally:
         conn.close()
