@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import asdict
 
 import pytest
 
@@ -12,6 +13,7 @@ from firmware_py.core.frames import StorageFrame
 from firmware_py.core.header import LogHeader, ServoDrive, build_log_header, sensor_spec
 from firmware_py.core.samplelog import SampleLogWriter, read_samplelog
 from firmware_py.core.sensor import LIDARLITE_V3, SENSOR_KEYS
+from firmware_py.core.servo_model import ServoCalibration
 from firmware_py.core.storage import Storage
 from firmware_py.core.waveform import named_waveform
 
@@ -135,10 +137,8 @@ def test_that_a_malformed_header_is_refused_naming_what_is_wrong(edit, named):
 
 
 def test_that_a_servo_calibration_value_given_as_a_json_boolean_is_refused():
-    from firmware_py.core.header import LogHeader
-    from firmware_py.core.samplelog import read_samplelog
-    from tests.test_golden import GOLDEN
-    h = dict(read_samplelog(GOLDEN / "samples.pslog").header)
-    h["servo_calibration"] = {**h["servo_calibration"], "lag_s": True}
+    # Built here, not read from tests/golden: the payload-only install runs tests/firmware_py alone.
+    h = dict(header())
+    h["servo_calibration"] = {**asdict(ServoCalibration()), "lag_s": True}
     with pytest.raises(ValueError, match=r"servo_calibration\.lag_s must be a finite number"):
         LogHeader.from_dict({k: v for k, v in h.items() if k not in ("format", "format_version", "record_dtype")})
