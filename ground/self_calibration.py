@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from firmware_py.core.frames import Boresight, StorageFrame, points_w
+from firmware_py.core.frames import Boresight, StorageFrame, beam_dir_body, rot_body_to_ned
 from firmware_py.core.servo_model import command_angles, servo_angles
 from firmware_py.core.storage import Storage
 from ground.servo_timing import Resimulated
@@ -47,6 +47,8 @@ MAX_POINTS = 20_000
 START_WINDOW_RAD = math.radians(5.0)
 """The first window: what 5 deg of misalignment moves a point at its range."""
 PARAMS = ("servo_offset_rad", "servo_scale", "boresight_tilt_rad", "sweep_yaw_rad")
+LIN_STEP = 1e-3
+"""Scale step of the servo model's tangent (`ServoAngles.linearize`)."""
 BOUNDS = (np.array([-math.radians(20.0), -0.3, -math.radians(20.0), -math.radians(20.0)]),
           np.array([math.radians(20.0), 0.3, math.radians(20.0), math.radians(20.0)]))
 """What a mounting can plausibly be off by (the SITL's fault limits); an estimate at a bound is a
@@ -59,7 +61,8 @@ class MountEstimate:
 
     Attributes:
         values: the four parameters (PARAMS order), as estimated.
-        std_errors: their standard errors (from the spread over sweep groups).
+        std_errors: their standard errors (from the spread over sweep groups); NaN when nothing was
+            large enough to matter (then they are not computed).
         applied: which of them are applied (significant and large enough to matter).
         points: structure points in the final fit, per plane (floor, x=0, x=L, y=0, y=W).
         rms_before_m, rms_after_m: robust RMS distance of those points from their planes.
@@ -93,7 +96,7 @@ class MountEstimate:
         for name, v, e, a, is_angle in zip(PARAMS, self.values, self.std_errors, self.applied, deg, strict=True):
             key = name.replace("_rad", "_deg") if is_angle else name
             f = math.degrees if is_angle else (lambda x: x)
-            out[key] = {"estimate": f(v), "std_error": f(e), "applied": a}
+            out[key] = {"estimate": f(v), "std_error": None if math.isnan(e) else f(e), "applied": a}
         out.update(points_per_plane=dict(zip(("floor", "x0", "xL", "y0", "yW"), self.points, strict=True)),
                    rms_before_m=self.rms_before_m, rms_after_m=self.rms_after_m, reason=self.reason)
         return out
@@ -141,31 +144,49 @@ class ServoAngles:
         r = self.resim
         return servo_angles(self.t, self.cmd_t, (1.0 + scale) * self.cmd, r.cal, (1.0 + scale) * self.angle0)
 
-    def __call__(self, offset: float, scale: float) -> np.ndarray:
+    def exact(self, scale: float) -> np.ndarray:
+        """The angles for a scale, re-simulated (offset 0)."""
         if self.resim is None:
-            return offset + (1.0 + scale) * self.logged
+            return (1.0 + scale) * self.logged
         got = self._cache.get(scale)
-        if got is None:  # most evaluations (the Jacobian's other columns) reuse a scale
+        if got is None:
             if len(self._cache) > 8:
                 self._cache.clear()
             got = self._cache[scale] = self.logged + self._sim(scale) - self.nominal
-        return got + offset
+        return got
+
+    def linearize(self, scale: float) -> None:
+        """Use the angles' tangent at `scale` until the next call: a fit stage moves the scale by a
+        little, and one re-simulation a stage instead of one per trial scale cuts the cost tenfold
+        (each stage re-linearizes where the last one ended, so the final fit is exact to second order)."""
+        base = self.exact(scale)
+        self._lin = (scale, base, (self.exact(scale + LIN_STEP) - base) / LIN_STEP)
+
+    def __call__(self, offset: float, scale: float) -> np.ndarray:
+        lin = getattr(self, "_lin", None)
+        if self.resim is None or lin is None:
+            return self.exact(scale) + offset
+        s0, base, slope = lin
+        return base + (scale - s0) * slope + offset
 
 
 class _Problem:
     """The samples' geometry, fixed, and the points as a function of the four parameters."""
 
     def __init__(self, s: np.ndarray, lever, frame: StorageFrame, resim: Resimulated | None) -> None:
-        self.pos = np.stack([s["x_m"], s["y_m"], s["z_m"]], axis=1)
-        self.roll, self.pitch, self.yaw = s["roll_rad"], s["pitch_rad"], s["yaw_rad"]
         self.gamma, self.range_m = s["servo_rad"].astype(float), s["range_m"].astype(float)
-        self.lever, self.frame = lever, frame
         self.angles = ServoAngles(s, resim)
+        # What the parameters cannot change, once: each beam's origin and its body-to-W rotation
+        # (eqs. 3-6 as `beam_rays_w` computes them; only the beam's direction in the body varies).
+        r_nb = rot_body_to_ned(s["roll_rad"], s["pitch_rad"], s["yaw_rad"])
+        self.r_wb = np.einsum("ij,njk->nik", frame.rot_w_from_ned, r_nb)
+        pos = np.stack([s["x_m"], s["y_m"], s["z_m"]], axis=1).astype(float)
+        self.origins = frame.ned_to_w(pos) + np.einsum("nij,j->ni", self.r_wb, np.asarray(lever, dtype=float))
 
     def points(self, q: np.ndarray, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
         g = self.angles(float(q[0]), float(q[1]))[idx]
-        return points_w(self.pos[idx], self.roll[idx], self.pitch[idx], self.yaw[idx], g, self.range_m[idx],
-                        self.lever, self.frame, Boresight(float(q[2]), float(q[3])))
+        d_b = beam_dir_body(g, Boresight(float(q[2]), float(q[3])))
+        return self.origins[idx] + np.einsum("nij,nj->ni", self.r_wb[idx], d_b) * self.range_m[idx, None]
 
 
 def _assign(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -189,6 +210,7 @@ def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.n
     """
     q = q0.copy()
     for window in windows:
+        prob.angles.linearize(float(q[1]))
         w_idx = window[idx]
         j, _ = _assign(prob.points(q, idx), n, d, (3.0 if loss == "arctan" else 1.0) * w_idx)
         keep = j >= 0
@@ -249,21 +271,22 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
         return not_estimated("the floor and walls in the cloud fit no plausible mounting (the estimate ran to "
                              f"its limit on {', '.join(n for n, b in zip(PARAMS, at_bound, strict=True) if b)})",
                              counts)
-    # Standard errors: the same fit on every 8th sweep (whole sweeps share their errors).
-    flips = np.concatenate([[0], np.cumsum(np.diff(s["sweep_dir"].astype(np.int64)) != 0)])
-    group = flips % N_GROUPS
-    ests = []
-    for k in range(N_GROUPS):
-        ests.append(_fit(prob, idx_all[group == k], n, d, q, windows[-1:])[0])
-    se = np.std(np.array(ests), axis=0, ddof=1) / math.sqrt(N_GROUPS)
     # Large enough to matter: the point displacement at the median structure range vs the sensor sigma.
     on = j >= 0
     r_med = float(np.median(rng_m[on]))
     g_med = float(np.median(np.abs(prob.gamma[on])))
     reach = np.array([r_med, r_med * g_med, r_med, r_med * math.sin(g_med)])
     noise = max(range_sigma_m, range_sigma_rel * r_med, 0.005)
-    applied = tuple(bool(abs(v) > N_SIGNIFICANT * e and abs(v) * m > noise)
-                    for v, e, m in zip(q, se, reach, strict=True))
+    matters = np.abs(q) * reach > noise
+    # Standard errors: the same fit on every 8th sweep (whole sweeps share their errors); only needed
+    # when something is large enough to matter (a square mount, the usual case, skips them).
+    se = np.full(4, math.nan)
+    if matters.any():
+        flips = np.concatenate([[0], np.cumsum(np.diff(s["sweep_dir"].astype(np.int64)) != 0)])
+        group = flips % N_GROUPS
+        ests = [_fit(prob, idx_all[group == k], n, d, q, windows[-1:])[0] for k in range(N_GROUPS)]
+        se = np.std(np.array(ests), axis=0, ddof=1) / math.sqrt(N_GROUPS)
+    applied = tuple(bool(m and abs(v) > N_SIGNIFICANT * e) for v, e, m in zip(q, se, matters, strict=True))
     # The same points, on the same planes, before the correction: what it changed.
     r0 = np.einsum("ij,ij->i", prob.points(q0, idx_all[on]), n[j[on]]) - d[j[on]]
     return MountEstimate(tuple(float(v) for v in q), tuple(float(v) for v in se), applied, counts,
