@@ -62,7 +62,7 @@ def run_case(case: Case) -> dict:
 
 def _estimate(cal: dict, key: str, pct: bool = False) -> str:
     v = cal.get(key) or {}
-    if "estimate" not in v:
+    if "estimate" not in v or cal.get("reason"):
         return "-"
     scale = 100.0 if pct else 1.0
     se = v.get("std_error")
@@ -72,15 +72,15 @@ def _estimate(cal: dict, key: str, pct: bool = False) -> str:
 
 def table(rows: list[dict]) -> str:
     out = ["| pile | mounting (truth) | Ve uncorrected [%] | Ve corrected [%] | corrected − fault-free [pp] | "
-           "offset [deg] | scale [%] | tilt [deg] | sweep yaw [deg] |",
-           "|---|---|---|---|---|---|---|---|---|"]
+           "offset [deg] | scale [%] | tilt [deg] | sweep yaw [deg] | not estimated because |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
     clean = {r["case"].pile: r["ve_on"] for r in rows if r["case"].fault == "fault-free"}
     for r in rows:
         c, cal = r["case"], r["cal"]
         out.append(f"| {c.pile} | {c.fault} | {r['ve_off']:.2f} | {r['ve_on']:.2f} | "
                    f"{r['ve_on'] - clean[c.pile]:+.2f} | {_estimate(cal, 'servo_offset_deg')} | "
                    f"{_estimate(cal, 'servo_scale', pct=True)} | {_estimate(cal, 'boresight_tilt_deg')} | "
-                   f"{_estimate(cal, 'sweep_yaw_deg')} |")
+                   f"{_estimate(cal, 'sweep_yaw_deg')} | {cal.get('reason') or ''} |")
     return "\n".join(out)
 
 

@@ -17,3 +17,6 @@ def test_that_the_table_bolds_applied_estimates_and_compares_with_the_fault_free
              "applied": ["servo_offset_deg"]}]
     text = table(rows)
     assert "| 1 | servo offset 3 deg | 0.20 | 0.10 | -0.02 | **+3.001 ± 0.002** | +0.010 |" in text
+    hidden = {**cal, "reason": "the building's floor and walls were seen too little"}
+    rows[1] = {**rows[1], "cal": hidden}
+    assert "| - | - | - | - | the building's floor and walls were seen too little |" in table(rows)
