@@ -100,6 +100,19 @@ def heartbeat_msg() -> Any:
 
 # ----- framing ------------------------------------------------------------------------------------
 
+def decode_frame(mav: mavlink.MAVLink, frame: bytes | bytearray) -> Any | None:
+    """One whole frame decoded and CRC-checked by pymavlink; None for anything that is not a message
+    of the dialect (a failed CRC, an unknown id, hostile bytes: pymavlink raises MAVError and struct /
+    Unicode errors on those, or hands back MAVLink_unknown / MAVLink_bad_data)."""
+    try:
+        msg = mav.decode(bytearray(frame))
+    except Exception:
+        return None
+    if isinstance(msg, mavlink.MAVLink_unknown | mavlink.MAVLink_bad_data):
+        return None
+    return msg
+
+
 class MavlinkFramer:
     """Cuts a byte stream into MAVLink 1/2 frames checked by pymavlink; resynchronises one byte at a time.
 
@@ -212,13 +225,7 @@ class MavlinkFramer:
         return total
 
     def _decode(self, frame: bytearray) -> Any | None:
-        try:
-            msg = self._mav.decode(bytearray(frame))
-        except Exception:  # pymavlink raises MAVError, and struct/Unicode errors on hostile input
-            return None
-        if isinstance(msg, mavlink.MAVLink_unknown | mavlink.MAVLink_bad_data):
-            return None
-        return msg
+        return decode_frame(self._mav, frame)
 
     def _count_seq(self, msg: Any) -> None:
         """Sequence gaps per sender: frames lost on the wire (a jump over half the range is a reorder).

@@ -19,6 +19,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from firmware_py.hal.mavlink_link import decode_frame
 from firmware_py.hal.signing import MavlinkSigner
 
 _V1, _V2 = mavlink.PROTOCOL_MARKER_V1, mavlink.PROTOCOL_MARKER_V2
@@ -88,13 +89,7 @@ class DatagramParser:
         return [msg for frame, msg in msgs if self.signer.verify(frame) is None]
 
     def _decode(self, frame: bytes) -> Any | None:
-        try:
-            msg = self._mav.decode(bytearray(frame))
-        except Exception:  # pymavlink raises MAVError, and struct / Unicode errors on hostile input
-            return None
-        if isinstance(msg, mavlink.MAVLink_unknown | mavlink.MAVLink_bad_data):
-            return None
-        return msg
+        return decode_frame(self._mav, frame)
 
     def _drop(self, reason: Drop) -> list[Any]:
         self.drops[reason] += 1
