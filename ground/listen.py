@@ -55,7 +55,16 @@ from firmware_py.core.cli import UserError, stop_on_signals
 from firmware_py.core.flag_tally import FlagTally
 from firmware_py.core.header import software_version, utc_now_iso
 from firmware_py.core.keys import load_key
-from firmware_py.core.samplelog import FORMAT_NAME, HEAD_SIZE, MAGIC, SAMPLE_DTYPE, SampleLogWriter, read_samplelog
+from firmware_py.core.safe_read import InputError, read_bounded
+from firmware_py.core.samplelog import (
+    FORMAT_NAME,
+    HEAD_SIZE,
+    MAGIC,
+    MAX_LOG_BYTES,
+    SAMPLE_DTYPE,
+    SampleLogWriter,
+    read_samplelog,
+)
 from firmware_py.core.stream_format import parse_stream_url
 from ground.live_receiver import LiveStreamReceiver, PeerSpec
 
@@ -106,8 +115,10 @@ def load_header(path: str | Path) -> dict[str, Any]:
             another log format or record layout (one line naming the file).
     """
     where = f"header file {path}"
-    try:
-        data = Path(path).read_bytes()
+    try:  # a regular file, bounded: a FIFO or /dev/zero is refused, not read for ever
+        data = read_bounded(path, MAX_LOG_BYTES, where)
+    except InputError as exc:
+        raise UserError(str(exc)) from None
     except OSError as exc:
         raise UserError(f"cannot read {where}: {exc.strerror or exc}") from None
     if data.startswith(MAGIC):

@@ -16,6 +16,8 @@ from typing import Any
 
 from pymavlink import mavutil, mavwp
 
+from firmware_py.core.safe_read import InputError, read_bounded
+
 COPTER_AUTO = 3
 """ArduCopter's custom mode number for AUTO (what `pilescan-sitl serve` reports too)."""
 
@@ -119,12 +121,17 @@ class ScriptedGcs:
             raise GcsError(f"the vehicle was still armed after {timeout_s:g} s")
 
 
+MAX_PLAN_BYTES = 16 * 1024 * 1024
+"""Largest mission plan read: a full 65,535-item mission in QGC WPL text is under 10 MB."""
+
+
 def load_plan(plan: str | Path, target: tuple[int, int] = (1, 1)) -> list[Any]:
     """The MISSION_ITEM_INT messages of a QGC WPL 110 plan, each checked to fit its wire format (so an upload
     never fails half-way); GcsError naming the file (and the item) for anything else."""
-    try:
-        with open(plan, encoding="utf-8") as f:
-            first = f.readline().strip()
+    try:  # a regular file of a plausible size (65,535 items of ~100 bytes), never a FIFO or a device
+        first = read_bounded(plan, MAX_PLAN_BYTES, f"mission plan {plan}").decode("utf-8").split("\n", 1)[0].strip()
+    except InputError as exc:
+        raise GcsError(str(exc)) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise GcsError(f"cannot read mission plan {plan}: {exc}") from None
     if first != "QGC WPL 110":

@@ -326,3 +326,12 @@ def test_that_a_live_log_removed_under_the_listener_is_no_traceback(tmp_path):
         send(url_of(ls), records(30))
         pump_until(ls, lambda st: st["records"] >= 30)
         assert ls.records == 30
+
+
+@pytest.mark.parametrize("kind", ["fifo", "dir"])
+def test_that_a_header_file_that_is_not_a_regular_file_is_refused_at_once(tmp_path, kind):
+    path = tmp_path / "h"
+    os.mkfifo(path) if kind == "fifo" else path.mkdir()
+    with pytest.raises(UserError, match="not a regular file") as excinfo:
+        load_header(path)  # a FIFO with no writer would block a plain read for ever
+    assert "\n" not in str(excinfo.value)

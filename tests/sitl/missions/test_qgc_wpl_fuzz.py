@@ -148,3 +148,10 @@ def test_that_the_ground_station_refuses_a_plan_it_could_not_send_before_startin
     path.write_text("QGC WPL 110\n0\t1\t0\t16\t0\t0\t0\t0\t53.4\t-2.2\t50\t1\n" + line + "\n")
     with pytest.raises(GcsError, match=words):
         load_plan(path)
+
+
+def test_that_a_plan_that_is_not_a_regular_file_is_refused_at_once(tmp_path):
+    fifo = tmp_path / "plan.waypoints"
+    os.mkfifo(fifo)
+    with pytest.raises(GcsError, match="not a regular file"):
+        load_plan(fifo)  # a FIFO with no writer would block a plain read for ever
