@@ -116,7 +116,7 @@ def load_header(path: str | Path) -> dict[str, Any]:
     """
     where = f"header file {path}"
     try:  # a regular file, bounded: a FIFO or /dev/zero is refused, not read for ever
-        data = read_bounded(path, MAX_LOG_BYTES, where)
+        data = read_bounded(path, MAX_LOG_BYTES, "header file")
     except InputError as exc:
         raise UserError(str(exc)) from None
     except OSError as exc:

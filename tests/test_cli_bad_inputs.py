@@ -201,7 +201,7 @@ CASES = [
     ("ground", [*LISTEN, *LSTREAM, "--out", "{d}/blocker/x.pslog"], "does not exist"),
     ("ground", [*LISTEN, *LSTREAM, "--out", "{t}/no/such/dir/x.pslog"], "does not exist"),
     ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/missing.json"], "cannot read", INPUT),
-    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/adir.pslog"], "cannot read", INPUT),
+    ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/adir.pslog"], "is a directory, not a regular file", INPUT),
     ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/random.pslog"], "neither a sample log", INPUT),
     ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/list-header.pslog"], "missing or corrupt", INPUT),
     ("ground", [*LISTEN, *LSTREAM, "--header", "{d}/list.json"], "JSON object", INPUT),

@@ -129,7 +129,7 @@ def load_plan(plan: str | Path, target: tuple[int, int] = (1, 1)) -> list[Any]:
     """The MISSION_ITEM_INT messages of a QGC WPL 110 plan, each checked to fit its wire format (so an upload
     never fails half-way); GcsError naming the file (and the item) for anything else."""
     try:  # a regular file of a plausible size (65,535 items of ~100 bytes), never a FIFO or a device
-        first = read_bounded(plan, MAX_PLAN_BYTES, f"mission plan {plan}").decode("utf-8").split("\n", 1)[0].strip()
+        first = read_bounded(plan, MAX_PLAN_BYTES, "mission plan").decode("utf-8").split("\n", 1)[0].strip()
     except InputError as exc:
         raise GcsError(str(exc)) from None
     except (OSError, UnicodeDecodeError) as exc:
