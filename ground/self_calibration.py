@@ -93,10 +93,6 @@ class MountEstimate:
         v = [x if a else 0.0 for x, a in zip(self.values, self.applied, strict=True)]
         return v[0], v[1], Boresight(v[2], v[3])
 
-    def corrected_angles(self, servo_rad: np.ndarray) -> np.ndarray:
-        offset, scale, _ = self.correction()
-        return offset + (1.0 + scale) * np.asarray(servo_rad, dtype=float)
-
     def as_dict(self) -> dict:
         deg = (True, False, True, True)
         out = {}

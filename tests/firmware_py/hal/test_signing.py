@@ -23,18 +23,9 @@ from firmware_py.hal.mavlink_link import (
 )
 from firmware_py.hal.signing import NEW_STREAM_MAX_AGE, MavlinkSigner, SigningConfig, apply_to_mavlink
 from tests.firmware_py.byte_pipe import BytePipe
+from tests.firmware_py.core.test_keys import HEX, KEY, key_file, posix_only
 
-KEY = bytes(range(1, 33))
 OTHER_KEY = bytes(range(2, 34))
-HEX = KEY.hex()
-posix_only = pytest.mark.skipif(os.name != "posix", reason="POSIX permission bits")
-
-
-def key_file(tmp_path, text, mode: int = 0o600, name: str = "link.key"):
-    path = tmp_path / name
-    path.write_bytes(text if isinstance(text, bytes) else text.encode())
-    path.chmod(mode)
-    return path
 
 
 class Sender:
