@@ -47,7 +47,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_py.core.cli import UserError
 from firmware_py.core.flag_tally import describe_flag_counts
-from firmware_py.core.frames import StorageFrame
+from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
 from firmware_py.core.header import build_log_header, sensor_spec
 from firmware_py.core.samplelog import SampleFlags, SampleLogWriter
 from firmware_py.core.sensor import LIDARLITE_V3
@@ -87,6 +87,11 @@ ORIGIN_RESEND_S = 5.0
 ORIGIN_ATTEMPTS = 5
 
 
+def _deg(rad: float) -> float:
+    """Degrees as a person wrote them: 1.5, not the 1.5000000000000002 a round trip through radians gives."""
+    return float(f"{math.degrees(rad):.12g}")
+
+
 def _finite(v: Any) -> bool:
     return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
 
@@ -110,6 +115,8 @@ class PayloadConfig:
         servo: pulse-width calibration and dynamics of the servo.
         storage: building L x W x H [--storage]; frame: its placement in local NED.
         lever_arm_body_m: sensor position from the centre of gravity, body FRD, m [--lever-arm].
+        boresight: how the beam's mounting differs from square [--boresight TILT_DEG SWEEP_YAW_DEG]; written
+            to the header, where the ground station places points with it.
         range_sigma_m, range_sigma_rel: the sensor's range error model written to the header (the
             ground station sizes its wall tolerances with it): LIDAR-Lite v3 datasheet by default.
         duration_s: stop after this long; None = until stopped [--duration].
@@ -135,6 +142,9 @@ class PayloadConfig:
             with samples that cannot be posed; 0 = start sampling at once. The lockstep SITL waits.
         source, mission: the header's provenance and what was flown (the SITL writes its mission
             plan there; the drone's program does not know it).
+        config_file: the configuration file the options started from [--config], for the header's
+            ``config`` record; None: none.
+        signing_key_file: the key file's path [--signing-key], recorded there (never the key).
     """
 
     out_path: str | os.PathLike[str] = "samples.pslog"
@@ -152,6 +162,7 @@ class PayloadConfig:
     storage: Storage = field(default_factory=Storage)
     frame: StorageFrame = field(default_factory=StorageFrame)
     lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10)
+    boresight: Boresight = SQUARE
     range_sigma_m: float = LIDARLITE_V3.range_sigma_m
     range_sigma_rel: float = LIDARLITE_V3.range_sigma_rel
     duration_s: float | None = None
@@ -175,6 +186,8 @@ class PayloadConfig:
     wait_for_pose_s: float = 0.0
     source: str = "payload"
     mission: Mapping[str, Any] | None = None
+    config_file: str | None = None
+    signing_key_file: str | None = None
 
     def busy_deadline_ns(self) -> int:
         """The LiDAR's busy deadline at this rate (a stuck part must not stop the loop keeping it)."""
@@ -201,6 +214,8 @@ class PayloadConfig:
         lever = tuple(self.lever_arm_body_m)
         if len(lever) != 3 or not all(_finite(v) for v in lever):
             raise ValueError(f"lever arm must be 3 finite numbers (x y z, m), got {self.lever_arm_body_m!r}")
+        if not isinstance(self.boresight, Boresight):
+            raise ValueError(f"boresight must be a Boresight, got {self.boresight!r}")
         self.sensor()  # the error model
         if self.duration_s is not None and not (_finite(self.duration_s) and self.duration_s > 0):
             raise ValueError(f"duration must be > 0 s, got {self.duration_s!r}")
@@ -265,11 +280,38 @@ class PayloadConfig:
             source=self.source, sensor=self.sensor(), lever_arm_body_m=[float(v) for v in self.lever_arm_body_m],
             waveform_name=self.waveform, waveform=self.servo_waveform(), initial_position=self.initial_position,
             storage=self.storage, frame=self.frame, mission_id=self.mission_id, mission=self.mission,
-            extra={"servo_calibration": asdict(self.servo),
+            extra={"servo_calibration": asdict(self.servo), "boresight": self.boresight.to_dict(),
+                   "config": self.effective_config(),
                    "payload": {"mavlink": self.mavlink_url, "i2c": self.i2c_url, "pwm": self.pwm_url,
                                "lidar_preset": self.preset, "i2c_address": self.i2c_address,
                                "rate_hz": self.rate_hz, "records_per_block": self.records_per_block},
                    **drive})
+
+    def effective_config(self) -> dict[str, Any]:
+        """What this payload runs with, in the configuration file's sections (`firmware_py.core.config_file`),
+        after the command line's flags: the header's ``config`` record, and what `--check` prints. Only
+        what the payload itself uses; ``file`` names the configuration file it started from (None: none)."""
+        cal = self.servo
+        payload: dict[str, Any] = {
+            "rangefinder": "lidarlite-v3", "i2c": self.i2c_url, "pwm": self.pwm_url, "mavlink": self.mavlink_url,
+            "rate_hz": float(self.rate_hz), "log": os.fspath(self.out_path),
+            "lever_arm_m": [float(v) for v in self.lever_arm_body_m],
+            "boresight_deg": [_deg(self.boresight.tilt_rad), _deg(self.boresight.sweep_yaw_rad)],
+            "lidarlite_preset": self.preset}
+        if self.stream_url is not None:
+            payload["stream"] = self.stream_url
+        if self.signing_key_file is not None:
+            payload["signing_key"] = os.fspath(self.signing_key_file)
+        if self.send_origin is not None:
+            payload["ekf_origin"] = [float(v) for v in self.send_origin]
+        payload["stop_on_disarm"] = bool(self.stop_on_disarm)
+        payload["servo"] = {"center_us": cal.center_us, "us_per_rad": cal.us_per_rad, "min_us": cal.min_us,
+                            "max_us": cal.max_us, "slew_rad_s": cal.slew_rad_s, "lag_s": cal.lag_s}
+        payload["sweep"] = {"waveform": self.waveform, "peak_rate_rad_s": float(self.servo_peak_rate_rad_s),
+                            "phase": self.initial_position}
+        site = {**self.storage.to_dict(), "heading_deg": _deg(self.frame.heading_rad)}
+        return {"file": None if self.config_file is None else os.fspath(self.config_file),
+                "site": site, "payload": payload}
 
 
 @dataclass(frozen=True)

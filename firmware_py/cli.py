@@ -1,13 +1,17 @@
 """`pilescan-payload`: the survey payload on the drone's companion computer (LIDAR-Lite on a sweeping servo,
 poses from the autopilot over MAVLink, a crash-safe sample log). Stops on SIGINT/SIGTERM (Ctrl-C), after
 --duration, or with --stop-on-disarm when the autopilot disarms; the log is complete either way.
+--config FILE sets the options from a TOML file (docs/configuration.md); --check validates and prints the
+effective configuration without opening any hardware.
 """
 
 from __future__ import annotations
 
+import argparse
+import math
 import re
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from firmware_py.app import (
     DEFAULT_I2C_URL,
@@ -20,22 +24,104 @@ from firmware_py.app import (
 )
 from firmware_py.core.cli import (
     ArgumentParser,
+    ConfigTables,
     UserError,
+    add_config_option,
     add_verbosity,
     finite_float,
     reading_input,
     run_cli,
     stop_on_signals,
 )
+from firmware_py.core.config_file import to_toml
+from firmware_py.core.frames import Boresight
 from firmware_py.core.keys import load_key
+from firmware_py.core.servo_model import ServoCalibration
 from firmware_py.core.storage import Storage
+from firmware_py.core.stream_format import parse_stream_url
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import N_PHASES
-from firmware_py.drivers.lidarlite import PRESETS
+from firmware_py.drivers.lidarlite import PRESETS, preset_by_name
+from firmware_py.hal.backends import parse_i2c_url
 from firmware_py.hal.bridge import parse_tcp_url
+from firmware_py.hal.mavlink_link import mavutil_device
+from firmware_py.hal.pwm import check_pwm_url
 from firmware_py.hal.signing import SigningConfig
 
 _HAL_RE = re.compile(r"sitl:(?P<host>[^\s:]+):(?P<port>\d{1,5})")
+_MAVLINK_BUILTIN = ("serial", "udp", "udpin", "udpout", "tcp")
+
+CONFIG_OPTIONS: ConfigTables = {None: {
+    "site.dimensions": "--storage",
+    "site.origin": "--origin",
+    "site.heading_deg": "--heading",
+    "payload.rangefinder": "--rangefinder",
+    "payload.i2c": "--i2c",
+    "payload.uart": "--uart",
+    "payload.pwm": "--pwm",
+    "payload.mavlink": "--mavlink",
+    "payload.rate_hz": "--rate",
+    "payload.log": "--out",
+    "payload.lever_arm_m": "--lever-arm",
+    "payload.boresight_deg": "--boresight",
+    "payload.lidarlite_preset": "--preset",
+    "payload.stream": "--stream",
+    "payload.signing_key": "--signing-key",
+    "payload.ekf_origin": "--send-origin",
+    "payload.stop_on_disarm": "--stop-on-disarm",
+    "payload.servo.center_us": "--servo-center-us",
+    "payload.servo.us_per_rad": "--servo-us-per-rad",
+    "payload.servo.min_us": "--servo-min-us",
+    "payload.servo.max_us": "--servo-max-us",
+    "payload.servo.slew_rad_s": "--servo-slew-rad-s",
+    "payload.servo.lag_s": "--servo-lag-s",
+    "payload.sweep.waveform": "--waveform",
+    "payload.sweep.peak_rate_rad_s": "--servo-rate",
+    "payload.sweep.phase": "--phase",
+}}
+"""Configuration key -> the option it sets (`firmware_py.core.cli.apply_config`; docs/configuration.md)."""
+
+SERVO_OPTIONS = (("center_us", "--servo-center-us", "US", "pulse width at gamma = 0 (beam straight down), us"),
+                 ("us_per_rad", "--servo-us-per-rad", "US", "pulse change per radian (negative: a longer pulse "
+                                                           "turns the beam to port), us/rad"),
+                 ("min_us", "--servo-min-us", "US", "shortest pulse the servo accepts, us"),
+                 ("max_us", "--servo-max-us", "US", "longest pulse the servo accepts, us"),
+                 ("slew_rad_s", "--servo-slew-rad-s", "RAD_S", "the servo's top speed, rad/s"),
+                 ("lag_s", "--servo-lag-s", "S", "time constant of the servo's position loop, s"))
+"""The servo calibration's options: `ServoCalibration` field, option, metavar, help."""
+
+
+def _checked(check: Callable[[str], object]) -> Callable[[str], str]:
+    """argparse type: the text itself, once check(text) accepts it (its ValueError is the message)."""
+    def convert(text: str) -> str:
+        try:
+            check(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc).splitlines()[0]) from None
+        return text
+    return convert
+
+
+def _check_i2c(url: str) -> None:
+    if not url.strip():
+        raise ValueError("must be a non-empty URL (leave it out for the default)")
+    if url.split(":", 1)[0] == "i2c":
+        parse_i2c_url(url)
+
+
+def _check_pwm(url: str) -> None:
+    if not url.strip():
+        raise ValueError("must be a non-empty URL (leave it out for the default)")
+    check_pwm_url(url)
+
+
+def _check_mavlink(url: str) -> None:
+    if url.split(":", 1)[0] in _MAVLINK_BUILTIN or ":" not in url:
+        mavutil_device(url)  # registered schemes are checked when opened
+
+
+def _check_preset(name: str) -> None:
+    preset_by_name(name)
 
 
 def hal_urls(hal: str) -> tuple[str, str]:
@@ -55,25 +141,30 @@ def build_parser() -> ArgumentParser:
     ap = ArgumentParser(prog=PROG, description=__doc__)
     ap.add_argument("--version", action="version", version=software_version())
     hw = ap.add_argument_group("hardware (URLs)")
-    hw.add_argument("--mavlink", default=DEFAULT_MAVLINK_URL, metavar="URL",
+    add_config_option(ap)
+    ap.add_argument("--check", action="store_true",
+                    help="validate the options (and --config file), print the effective configuration as TOML and "
+                         "exit, opening no hardware")
+    hw.add_argument("--mavlink", default=DEFAULT_MAVLINK_URL, metavar="URL", type=_checked(_check_mavlink),
                     help="link to the autopilot: serial:/dev/ttyAMA0:921600, udp:HOST:PORT (listen), "
                          f"udpout:HOST:PORT, tcp:HOST:PORT (default {DEFAULT_MAVLINK_URL})")
-    hw.add_argument("--i2c", default=None, metavar="URL",
+    hw.add_argument("--i2c", default=None, metavar="URL", type=_checked(_check_i2c),
                     help=f"the LIDAR-Lite's I2C bus: i2c:1, i2c:/dev/i2c-1, tcp:HOST:PORT (default {DEFAULT_I2C_URL})")
-    hw.add_argument("--pwm", default=None, metavar="URL",
+    hw.add_argument("--pwm", default=None, metavar="URL", type=_checked(_check_pwm),
                     help="the servo's PWM output: pwm:sysfs:CHIP:CH, pwm:pca9685:BUS:ADDR:CH, pwm:mavlink:N, "
                          f"pwm:tcp:HOST:PORT:CH (default {DEFAULT_PWM_URL})")
     hw.add_argument("--hal", default=None, metavar="sitl:HOST:PORT",
                     help="the networked SITL's device bridge: sets --i2c tcp:HOST:PORT and --pwm pwm:tcp:HOST:PORT:0")
     out = ap.add_argument_group("output")
-    out.add_argument("--out", required=True, metavar="PATH", help="sample log to write (.pslog)")
+    out.add_argument("--out", default=None, metavar="PATH",
+                     help="sample log to write (.pslog); required, here or as [payload] log in --config")
     out.add_argument("--force", action="store_true", help="overwrite --out if it exists")
-    out.add_argument("--stream", default=None, metavar="URL",
+    out.add_argument("--stream", default=None, metavar="URL", type=_checked(parse_stream_url),
                      help="also stream samples live to the ground station: udp:HOST:PORT")
     out.add_argument("--mission-id", default=None, metavar="ID", help="mission id written to the log header")
     add_verbosity(out, quiet_help="no progress lines (warnings and errors still print)")
     sv = ap.add_argument_group("sensor and servo")
-    sv.add_argument("--preset", default=DEFAULT_PRESET, metavar="NAME",
+    sv.add_argument("--preset", default=DEFAULT_PRESET, metavar="NAME", type=_checked(_check_preset),
                     help=f"LIDAR-Lite preset: {', '.join(PRESETS)} (default {DEFAULT_PRESET})")
     sv.add_argument("--rate", type=finite_float, default=500.0, metavar="HZ", help="sample rate, Hz (default 500)")
     sv.add_argument("--waveform", choices=("semi-triangular", "sinusoidal"), default="semi-triangular",
@@ -85,6 +176,13 @@ def build_parser() -> ArgumentParser:
                          f"K >= {N_PHASES} sweeps the other way)")
     sv.add_argument("--lever-arm", type=finite_float, nargs=3, default=(0.0, 0.0, 0.10), metavar=("X", "Y", "Z"),
                     help="sensor position from the centre of gravity, body FRD, m (default 0 0 0.10)")
+    sv.add_argument("--boresight", type=finite_float, nargs=2, default=None, metavar=("TILT_DEG", "SWEEP_YAW_DEG"),
+                    help="the beam's mounting off square: tilt out of the sweep plane (> 0 leans forward) and yaw of "
+                         "the servo axis about body z (> 0 clockwise from above), deg, each within +-45 "
+                         "(default 0 0); the ground station places points with it")
+    for name, option, metavar, text in SERVO_OPTIONS:
+        sv.add_argument(option, type=finite_float, default=None, metavar=metavar,
+                        help=f"servo calibration: {text} (default {getattr(ServoCalibration(), name):.6g})")
     sv.add_argument("--storage", default="60x40x15", metavar="LxWxH",
                     help="building inside dimensions in metres, for the log header (default 60x40x15)")
     sec = ap.add_argument_group("link security")
@@ -123,29 +221,60 @@ def uses_device_bridge(i2c_url: str, pwm_url: str) -> bool:
     return i2c_url.strip().startswith("tcp:") or pwm_url.strip().startswith("pwm:tcp:")
 
 
+def servo_from_args(args) -> ServoCalibration:
+    """The built-in calibration with the --servo-* options given (ValueError naming a bad combination)."""
+    given = {name: getattr(args, option[2:].replace("-", "_"), None) for name, option, _, _ in SERVO_OPTIONS}
+    return ServoCalibration(**{k: v for k, v in given.items() if v is not None})
+
+
+def boresight_from_args(args) -> Boresight:
+    if args.boresight is None:
+        return Boresight()
+    tilt, yaw = args.boresight
+    if abs(tilt) > 45.0 or abs(yaw) > 45.0:
+        raise UserError(f"--boresight angles must be within +-45 deg, got {tilt:g} {yaw:g}")
+    return Boresight(math.radians(tilt), math.radians(yaw))
+
+
 def config_from_args(args) -> PayloadConfig:
     """PayloadConfig from parsed options (ValueError / UserError for bad values, one line each)."""
+    if args.out is None:
+        raise UserError("--out is required (the sample log to write; or [payload] log in the --config file)")
     signing = signing_from_args(args)
-    for opt, value in (("--i2c", args.i2c), ("--pwm", args.pwm)):
-        if value is not None and not value.strip():
-            raise UserError(f"{opt} must be a non-empty URL (leave it out for the default)")
+    from_file = getattr(args, "config_keys", {})
+    i2c_flag = args.i2c if "i2c" not in from_file else None
+    pwm_flag = args.pwm if "pwm" not in from_file else None
     i2c, pwm = args.i2c or DEFAULT_I2C_URL, args.pwm or DEFAULT_PWM_URL
-    if args.hal is not None:
-        if args.i2c is not None or args.pwm is not None:
+    if args.hal is not None:  # the command line's --hal overrides the file's buses, as any flag does
+        if i2c_flag is not None or pwm_flag is not None:
             raise UserError("--hal sets --i2c and --pwm: give either --hal or those two")
         i2c, pwm = hal_urls(args.hal)
     device_key = signing.key if signing is not None and uses_device_bridge(i2c, pwm) else None
     return PayloadConfig(
         out_path=args.out, force=args.force, mavlink_url=args.mavlink, i2c_url=i2c, pwm_url=pwm,
         preset=args.preset, rate_hz=args.rate, waveform=args.waveform, servo_peak_rate_rad_s=args.servo_rate,
-        initial_position=args.phase, storage=Storage.parse(args.storage),
-        lever_arm_body_m=tuple(args.lever_arm), duration_s=args.duration, stop_on_disarm=args.stop_on_disarm,
-        stream_url=args.stream, send_origin=tuple(args.send_origin) if args.send_origin is not None else None,
-        mission_id=args.mission_id, quiet=args.quiet, signing=signing, device_key=device_key)
+        initial_position=args.phase, storage=Storage.parse(args.storage), servo=servo_from_args(args),
+        lever_arm_body_m=tuple(args.lever_arm), boresight=boresight_from_args(args), duration_s=args.duration,
+        stop_on_disarm=args.stop_on_disarm, stream_url=args.stream,
+        send_origin=tuple(args.send_origin) if args.send_origin is not None else None,
+        mission_id=args.mission_id, quiet=args.quiet, signing=signing, device_key=device_key,
+        config_file=args.config, signing_key_file=args.signing_key)
+
+
+def check_text(cfg: PayloadConfig) -> str:
+    """What --check prints: the effective configuration as TOML (it reads back as a configuration file)."""
+    eff = cfg.effective_config()
+    source = eff.pop("file")
+    head = (f"# effective configuration of {PROG}: {source} with the command line's flags over it\n" if source
+            else f"# effective configuration of {PROG} (no --config file: flags and built-in defaults)\n")
+    return head + to_toml(eff)
 
 
 def _run(args) -> int:
     cfg = config_from_args(args)
+    if args.check:
+        print(check_text(cfg), end="")
+        return 0
     app = PayloadApp(cfg, err=sys.stderr)
     with stop_on_signals(app.request_stop):
         app.run()
@@ -153,7 +282,7 @@ def _run(args) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return run_cli(build_parser(), argv, _run)
+    return run_cli(build_parser(), argv, _run, config=CONFIG_OPTIONS)
 
 
 if __name__ == "__main__":

@@ -7,7 +7,16 @@ import logging
 import sys
 from collections.abc import Sequence
 
-from firmware_py.core.cli import ArgumentParser, UserError, add_verbosity, finite_float, reading_input, run_cli
+from firmware_py.core.cli import (
+    ArgumentParser,
+    ConfigTables,
+    UserError,
+    add_config_option,
+    add_verbosity,
+    finite_float,
+    reading_input,
+    run_cli,
+)
 from firmware_py.core.keys import load_key
 from firmware_py.core.version import software_version
 from ground import listen
@@ -16,11 +25,19 @@ from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_
 
 log = logging.getLogger(__name__)
 
+CONFIG_OPTIONS: ConfigTables = {
+    "report": {},  # no option: its [site] is checked against the log's building (ReportOptions.site)
+    "listen": {"payload.signing_key": "--signing-key"},
+}
+"""Configuration key -> the option it sets, per subcommand (`firmware_py.core.cli.apply_config`). listen's
+--stream is where the ground listens (udp:0.0.0.0:PORT), not the payload's [payload] stream address."""
+
 
 def build_parser() -> ArgumentParser:
     ap = ArgumentParser(prog="pilescan-ground", description=__doc__)
     ap.add_argument("--version", action="version", version=software_version())
     add_verbosity(ap)
+    add_config_option(ap)
     sub = ap.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
     r = sub.add_parser("report", help="volume report from a run directory or a sample log")
     r.add_argument("source", metavar="RUN_DIR_OR_LOG", help="run directory (reads truth.json too) or .pslog")
@@ -51,6 +68,7 @@ def build_parser() -> ArgumentParser:
                    metavar="MB", help="refuse a --cell whose grid would need more memory than this (default "
                                       f"{DEFAULT_MAX_GRID_MEMORY_BYTES // 2**20} MiB)")
     add_verbosity(r, sub=True, quiet_help="no summary: print nothing but warnings and errors")
+    add_config_option(r, sub=True)
     ls = sub.add_parser("listen", help="receive the payload's live sample stream (pilescan-payload --stream) "
                                        "into a sample log, with a status line and a summary")
     ls.add_argument("--stream", required=True, metavar="udp:HOST:PORT",
@@ -75,6 +93,7 @@ def build_parser() -> ArgumentParser:
                     help=f"size cap of --out in MiB (default {listen.DEFAULT_MAX_LOG_MIB}); past it, records are "
                          "counted, not written, and one line says so")
     add_verbosity(ls, sub=True, quiet_help="no status line or summary: print nothing but errors")
+    add_config_option(ls, sub=True)
     return ap
 
 
@@ -102,7 +121,8 @@ def _report(args) -> int:
                          truth_volume_m3=args.truth_volume, despike=not args.no_despike,
                          surface_fit=args.surface_fit, servo_retiming=not args.no_servo_retiming,
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),
-                         self_calibration=not args.no_self_calibration)
+                         self_calibration=not args.no_self_calibration,
+                         site=args.config_file.site if args.config_file is not None else None)
     rep = make_report(args.source, args.out, opts, force=args.force)
     if not args.quiet:
         print(format_summary(rep))
@@ -127,7 +147,7 @@ def _command(args) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return run_cli(build_parser(), argv, _command)
+    return run_cli(build_parser(), argv, _command, config=CONFIG_OPTIONS)
 
 
 if __name__ == "__main__":

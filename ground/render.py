@@ -231,6 +231,8 @@ class ReportContent:
     images: list[tuple[str, Path]] = field(default_factory=list)
     method: str = METHOD_TEXT
     extra: list[tuple[str, str]] = field(default_factory=list)
+    config: list[tuple[str, str]] = field(default_factory=list)
+    config_file: str | None = None
 
 
 def _warnings(report: Mapping[str, Any]) -> list[str]:
@@ -251,7 +253,7 @@ def _image_caption(name: str) -> str:
 def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportContent:
     """Format the report once, for both Markdown and HTML."""
     summary = [(_SUMMARY_LABELS[k], _SUMMARY_FORMAT[k](report.get(k))) for k in SUMMARY_KEYS]
-    handled = {*SUMMARY_KEYS, "warnings"}
+    handled = {*SUMMARY_KEYS, "warnings", "config"}
     extra_items: dict[str, Any] = {}
     for key, shown in _SUMMARY_SUBKEYS.items():  # e.g. log.bytes_skipped: not in the summary cell
         sub = report.get(key)
@@ -259,7 +261,15 @@ def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportC
             extra_items.update({f"{key}.{k}": v for k, v in sub.items() if k not in shown})
     extra_items.update({k: v for k, v in report.items() if k not in handled})
     extra = [(name, fmt_value(v)) for name, v in flatten(extra_items)]
+    cfg = report.get("config")
+    config_rows, config_file = [], None
+    if isinstance(cfg, Mapping):
+        config_file = None if cfg.get("file") is None else str(cfg.get("file"))
+        config_rows = [(name, fmt_value(v)) for name, v in flatten({k: v for k, v in cfg.items() if k != "file"})]
+    elif cfg is not None:
+        config_rows = [("config", fmt_value(cfg))]
     return ReportContent(
+        config=config_rows, config_file=config_file,
         headline=f"Stockpile volume: {fmt_volume(report.get('volume_m3'))}",
         warnings=_warnings(report),
         summary=summary,
@@ -281,6 +291,13 @@ def _md_table(header: tuple[str, str], rows: list[tuple[str, str]]) -> list[str]
     lines = [f"| {header[0]} | {header[1]} |", "|---|---|"]
     lines += [f"| {_md_text(k)} | {_md_text(v)} |" for k, v in rows]
     return lines
+
+
+def _config_note(content: ReportContent) -> str:
+    """Where the payload's configuration came from (its log header's ``config`` record)."""
+    src = f"the configuration file {content.config_file}" if content.config_file else "no configuration file"
+    return (f"What the payload ran with, from its log header: {src}, with its command-line flags over it "
+            "(keys as in docs/configuration.md).")
 
 
 def _relative_ref(image: Path, out_dir: Path) -> str:
@@ -311,6 +328,9 @@ def render_markdown(content: ReportContent, out_dir: Path) -> str:
             lines += ["", f"### {_md_text(caption)}", "", f"![{alt}]({_relative_ref(path, out_dir)})"]
             if not path.is_file():
                 lines += ["", f"*Image not found: {_md_text(path.name)}*"]
+    if content.config:
+        lines += ["", "## Configuration (as flown)", "", _config_note(content), ""]
+        lines += _md_table(("Key", "Value"), content.config)
     lines += ["", "## Method", "", content.method]
     if content.extra:
         lines += ["", "## All figures", ""]
@@ -408,6 +428,9 @@ def render_html(content: ReportContent) -> str:
                     f'<figure><img alt="{_e(caption)}" src="{uri}">'
                     f"<figcaption>{_e(caption)}</figcaption></figure>"
                 )
+    if content.config:
+        parts += ["<h2>Configuration (as flown)</h2>", f"<p>{_e(_config_note(content))}</p>"]
+        parts += _html_table(("Key", "Value"), content.config)
     parts += ["<h2>Method</h2>", f"<p>{_e(content.method)}</p>"]
     if content.extra:
         parts += ["<h2>All figures</h2>", *_html_table(("Name", "Value"), content.extra)]

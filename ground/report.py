@@ -11,8 +11,10 @@ from pathlib import Path
 import numpy as np
 
 from firmware_py.core.cli import NoVolumeError, UserError, reading_input
+from firmware_py.core.config_file import SiteSection
 from firmware_py.core.flag_tally import FlagTally
-from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
+from firmware_py.core.frames import Boresight, StorageFrame
+from firmware_py.core.header import header_boresight
 from firmware_py.core.rundir import SAMPLES_FILE, TRUTH_FILE, OutputFolder, check_free
 from firmware_py.core.safe_read import InputError, json_number, json_object, load_json
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, SampleLog, read_samplelog
@@ -58,6 +60,7 @@ class ReportOptions:
     despike: bool = True  # leave out isolated one-/two-sample range spikes (ground.despike; threshold from the header)
     max_grid_memory_bytes: int = DEFAULT_MAX_GRID_MEMORY_BYTES  # refuse a --cell whose grid would need more
     self_calibration: bool = True  # servo zero/scale and boresight from the floor and walls (ground.self_calibration)
+    site: SiteSection | None = None  # [site] of a --config file: the log's building is checked against it
 
 
 @dataclass(frozen=True)
@@ -130,6 +133,7 @@ def header_geometry(log: SampleLog, path: Path) -> tuple[Storage, StorageFrame, 
         raise UserError(f"{path}: log header lever_arm_body_m must be 3 finite numbers")
     try:
         SensorErrorModel.from_header(h)
+        header_boresight(h)
     except ValueError as exc:
         raise UserError(f"{path}: {exc}") from None
     return storage, frame, lever
@@ -173,18 +177,19 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     """
     check_grid_memory(storage, opts.cell_m, opts.max_grid_memory_bytes)
     err = SensorErrorModel.from_header(header)
+    mount = header_boresight(header)  # the configured boresight: every cloud below is placed with it
     spikes = SpikeThreshold.from_header(header) if opts.despike else None
     found = implausible(samples, PlausibilityLimits.from_header(header, storage), frame)
     samples = without_implausible(samples, found)
     checked = {"implausible": found.counts(),
                "despike_unavailable": why_no_threshold(header) if opts.despike and spikes is None else None}
-    survey = replace(_survey(samples, header, storage, frame, lever, opts, err, spikes), **checked)
+    survey = replace(_survey(samples, header, storage, frame, lever, opts, err, spikes, mount), **checked)
     before = survey.sweep_disagreement_m
     if not (opts.servo_retiming and before is not None and before > MAX_SWEEP_DISAGREEMENT_M):
-        return _self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes)
+        return _self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes, mount)
 
     def disagreement(s: np.ndarray) -> float | None:  # the survey's cloud, less the stuck-servo check (range-only)
-        cloud = cloud_from_samples(s, lever, frame, spike_threshold=spikes)
+        cloud = cloud_from_samples(s, lever, frame, spike_threshold=spikes, boresight=mount)
         keep = ~structure_mask(cloud, storage, err)
         return sweep_disagreement_m(cloud.points_w[keep], cloud.sweep_dir[keep], survey.grid)[0]
 
@@ -195,14 +200,14 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     if timing is None or timing.disagreement_after_m > MAX_SWEEP_DISAGREEMENT_M:
         return replace(survey, servo_timing=timing)
     retimed = motion.apply(samples, timing.delay_s, timing.gain)
-    fixed = _survey(retimed, header, storage, frame, lever, opts, err, spikes)
+    fixed = _survey(retimed, header, storage, frame, lever, opts, err, spikes, mount)
     fixed = replace(fixed, servo_timing=timing, servo_retimed=True, **checked)
-    return _self_calibrated(fixed, retimed, header, storage, frame, lever, opts, err, spikes)
+    return _self_calibrated(fixed, retimed, header, storage, frame, lever, opts, err, spikes, mount)
 
 
 def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
                      lever: np.ndarray, opts: ReportOptions, err: SensorErrorModel,
-                     spikes: SpikeThreshold | None) -> Survey:
+                     spikes: SpikeThreshold | None, mount: Boresight) -> Survey:
     """The survey again with the mount the building says (ground.self_calibration), when that is
     significant; else the survey as it was, with what was found. After the servo re-timing: a late or
     slow servo makes the sweep directions disagree, a mis-mounted one does not."""
@@ -210,10 +215,10 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
         return survey
     usable = samples[(samples["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
     resim = Resimulated.from_header(header)
-    est = estimate_mount(usable, lever, frame, storage, err.range_sigma_m, err.range_sigma_rel, resim)
+    est = estimate_mount(usable, lever, frame, storage, err.range_sigma_m, err.range_sigma_rel, resim, mount)
     if not est.any_applied:
         return replace(survey, mount=est)
-    corrected, boresight = apply_mount(samples, est, resim)
+    corrected, boresight = apply_mount(samples, est, resim, mount)
     fixed = _survey(corrected, header, storage, frame, lever, opts, err, spikes, boresight)
     return replace(fixed, servo_timing=survey.servo_timing, servo_retimed=survey.servo_retimed,
                    implausible=survey.implausible, despike_unavailable=survey.despike_unavailable, mount=est)
@@ -221,7 +226,7 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
 
 def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame, lever: np.ndarray,
             opts: ReportOptions, err: SensorErrorModel, spikes: SpikeThreshold | None,
-            boresight: Boresight = SQUARE) -> Survey:
+            boresight: Boresight) -> Survey:
     cloud = cloud_from_samples(samples, lever, frame, sweep_period_s=_sweep_period_s(header), spike_threshold=spikes,
                                boresight=boresight)
     structure = structure_mask(cloud, storage, err)
@@ -283,7 +288,8 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
                         "this volume" + (f" (re-estimating its timing got them no closer than "
                                          f"{st.disagreement_after_m:.2f} m)" if st is not None else ""))
     if survey.mount is not None and survey.mount.any_applied:
-        warnings.append(describe(survey.mount))
+        warnings.append(describe(survey.mount, header_boresight(log.header or {})))
+    warnings += site_mismatches(log.header or {}, opts.site)
     if survey.n_cells_clipped:
         warnings.append(f"the fitted surface left the building in {survey.n_cells_clipped} cells (left empty, "
                         "filled by the empty-cell policy): points contradict each other there, e.g. a LiDAR buried "
@@ -316,11 +322,60 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "uncovered_area_m2": float((~np.isfinite(survey.heights_fit)).sum() * g.cell_area_m2),
         "storage": survey.storage.to_dict(),
         "mission_id": (log.header or {}).get("mission_id"),
+        "boresight_deg": _boresight_deg(log.header or {}),
+        "config": (log.header or {}).get("config"),
         "log": {"blocks_ok": log.blocks_ok, "blocks_corrupt": log.blocks_corrupt,
                 "blocks_truncated": log.blocks_truncated, "bytes_skipped": log.bytes_skipped},
         "warnings": warnings,
         "software_version": software_version(),
     }
+
+
+def _boresight_deg(header: dict) -> dict[str, float]:
+    """The configured boresight the points were placed with, in degrees (the report's reader thinks in them)."""
+    b = header_boresight(header)
+    return {"tilt": math.degrees(b.tilt_rad), "sweep_yaw": math.degrees(b.sweep_yaw_rad)}
+
+
+SITE_TOLERANCE_M = 0.01
+"""A building dimension or corner position the configuration and the log disagree on by more than this
+(1 cm: what a tape or a survey gives, and what the files write) is a mismatch."""
+HEADING_TOLERANCE_DEG = 0.01
+
+
+def site_mismatches(header: dict, site: SiteSection | None) -> list[str]:
+    """Where the log's building differs from the [site] of the --config file given to the report: one
+    warning each (the report uses the log's, which is what flew; a mismatch means a wrong file somewhere)."""
+    if site is None:
+        return []
+    out = []
+    dims = site.dimensions()
+    logged = header.get("storage") or {}
+    if dims is not None and isinstance(logged, dict):
+        have = [logged.get(k) for k in ("length_m", "width_m", "height_m")]
+        if all(isinstance(v, int | float) and not isinstance(v, bool) for v in have) and \
+                max(abs(a - b) for a, b in zip(have, dims, strict=True)) > SITE_TOLERANCE_M:
+            out.append(f"the log's building is {' x '.join(f'{v:g}' for v in have)} m but the --config file's [site] "
+                       f"says {' x '.join(f'{v:g}' for v in dims)} m: the report uses the log's (was the payload "
+                       "flown with another configuration?)")
+    frame = header.get("storage_frame") or {}
+    heading = frame.get("heading_rad") if isinstance(frame, dict) else None
+    if site.heading_deg is not None and isinstance(heading, int | float) and not isinstance(heading, bool):
+        diff = (math.degrees(heading) - site.heading_deg + 180.0) % 360.0 - 180.0
+        if abs(diff) > HEADING_TOLERANCE_DEG:
+            out.append(f"the log's building heading is {math.degrees(heading):g} deg but the --config file's [site] "
+                       f"says {site.heading_deg:g} deg: the report uses the log's")
+    logged_site = ((header.get("config") or {}).get("site") or {}) if isinstance(header.get("config"), dict) else {}
+    origin = logged_site.get("origin") if isinstance(logged_site, dict) else None
+    if site.origin is not None and isinstance(origin, list) and len(origin) == 3 \
+            and all(isinstance(v, int | float) and not isinstance(v, bool) for v in origin):
+        north = math.radians(origin[0] - site.origin[0]) * 6_371_000.0
+        east = math.radians(origin[1] - site.origin[1]) * 6_371_000.0 * math.cos(math.radians(site.origin[0]))
+        off = math.hypot(north, east, origin[2] - site.origin[2])
+        if off > SITE_TOLERANCE_M:
+            out.append(f"the log's building corner is {off:.2f} m from the --config file's [site] origin: the report "
+                       "uses the log's")
+    return out
 
 
 REPORT_FILE = "report.json"

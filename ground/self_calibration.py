@@ -20,6 +20,9 @@ is applied only when it is both significant (beyond 3 standard errors) and large
 moves a structure point at the survey's median range by more than the sensor's range sigma there.
 So a fault-free survey gets no correction, and the report says what was found and why not applied.
 
+On top of the configured mounting: the log header's ``boresight`` (the payload's --boresight, square when
+absent) is where the fit starts; the tilt and yaw it estimates, reports and applies are deviations from it.
+
 Why this does not fight the servo re-timing (`ground.servo_timing`): a late or slow servo shows as a
 disagreement between the two sweep directions, an offset, a scale error and a boresight do not (they
 move both directions alike), so the timing is fixed first and this fit sees the re-timed angles.
@@ -33,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from firmware_py.core.frames import Boresight, StorageFrame, beam_dir_body, rot_body_to_ned
+from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_dir_body, rot_body_to_ned
 from firmware_py.core.servo_model import command_angles, servo_angles
 from firmware_py.core.storage import Storage
 from ground.servo_timing import Resimulated
@@ -88,10 +91,11 @@ class MountEstimate:
     def any_applied(self) -> bool:
         return any(self.applied)
 
-    def correction(self) -> tuple[float, float, Boresight]:
-        """(offset rad, scale, boresight) to apply: the applied parameters, zero for the rest."""
+    def correction(self, base: Boresight = SQUARE) -> tuple[float, float, Boresight]:
+        """(offset rad, scale, boresight) to apply: the applied parameters, zero for the rest; the
+        boresight is the configured one (base) plus the applied deviations."""
         v = [x if a else 0.0 for x, a in zip(self.values, self.applied, strict=True)]
-        return v[0], v[1], Boresight(v[2], v[3])
+        return v[0], v[1], mounted(base, v[2], v[3])
 
     def as_dict(self) -> dict:
         deg = (True, False, True, True)
@@ -103,6 +107,16 @@ class MountEstimate:
         out.update(points_per_plane=dict(zip(("floor", "x0", "xL", "y0", "yW"), self.points, strict=True)),
                    rms_before_m=self.rms_before_m, rms_after_m=self.rms_after_m, reason=self.reason)
         return out
+
+
+MAX_MOUNT_RAD = math.pi / 4
+"""`Boresight`'s own limit on each angle."""
+
+
+def mounted(base: Boresight, d_tilt_rad: float, d_yaw_rad: float) -> Boresight:
+    """The configured boresight turned by the deviations (each angle kept within `Boresight`'s limits)."""
+    return Boresight(float(np.clip(base.tilt_rad + d_tilt_rad, -MAX_MOUNT_RAD, MAX_MOUNT_RAD)),
+                     float(np.clip(base.sweep_yaw_rad + d_yaw_rad, -MAX_MOUNT_RAD, MAX_MOUNT_RAD)))
 
 
 def not_estimated(reason: str, points: tuple[int, int, int, int, int] = (0,) * 5) -> MountEstimate:
@@ -176,7 +190,9 @@ class ServoAngles:
 class _Problem:
     """The samples' geometry, fixed, and the points as a function of the four parameters."""
 
-    def __init__(self, s: np.ndarray, lever, frame: StorageFrame, resim: Resimulated | None) -> None:
+    def __init__(self, s: np.ndarray, lever, frame: StorageFrame, resim: Resimulated | None,
+                 base: Boresight = SQUARE) -> None:
+        self.base = base
         self.gamma, self.range_m = s["servo_rad"].astype(float), s["range_m"].astype(float)
         self.angles = ServoAngles(s, resim)
         # What the parameters cannot change, once: each beam's origin and its body-to-W rotation
@@ -188,7 +204,7 @@ class _Problem:
 
     def points(self, q: np.ndarray, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
         g = self.angles(float(q[0]), float(q[1]))[idx]
-        d_b = beam_dir_body(g, Boresight(float(q[2]), float(q[3])))
+        d_b = beam_dir_body(g, mounted(self.base, float(q[2]), float(q[3])))
         return self.origins[idx] + np.einsum("nij,nj->ni", self.r_wb[idx], d_b) * self.range_m[idx, None]
 
 
@@ -236,7 +252,8 @@ def _robust_rms(r: np.ndarray) -> float:
 
 
 def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, storage: Storage,
-                   range_sigma_m: float, range_sigma_rel: float, resim: Resimulated | None = None) -> MountEstimate:
+                   range_sigma_m: float, range_sigma_rel: float, resim: Resimulated | None = None,
+                   boresight: Boresight = SQUARE) -> MountEstimate:
     """Estimate the servo offset and scale and the boresight from the building (module docstring).
 
     Args:
@@ -245,13 +262,14 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
         range_sigma_m, range_sigma_rel: the header's sensor model (1 sigma, short range / relative).
         resim: how the servo was driven (`Resimulated.from_header`), for the exact servo model; None:
             the logged angles scaled and offset.
+        boresight: the configured mounting (the header's); the tilt and yaw estimated are deviations from it.
     """
     s = samples[np.isfinite(samples["range_m"]) & (samples["range_m"] > 0)]
     if len(s) < 1000:
         return not_estimated(f"too few usable samples ({len(s)}) to calibrate from the building")
     stride = max(1, len(s) // MAX_POINTS)
     s = s[::stride]
-    prob = _Problem(s, np.asarray(lever_arm_body_m, dtype=float), frame, resim)
+    prob = _Problem(s, np.asarray(lever_arm_body_m, dtype=float), frame, resim, boresight)
     n, d = _planes(storage)
     rng_m = prob.range_m
     sigma = np.maximum(range_sigma_m, range_sigma_rel * rng_m)  # the header's 1-sigma range error
@@ -307,10 +325,11 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
                          _robust_rms(r0), _robust_rms(r[on]))
 
 
-def apply_mount(samples: np.ndarray, est: MountEstimate, resim: Resimulated | None) -> tuple[np.ndarray, Boresight]:
-    """The samples with the servo angles the applied estimate gives, and the beam's boresight.
-    Nothing applied: the samples themselves and a square mount."""
-    offset, scale, boresight = est.correction()
+def apply_mount(samples: np.ndarray, est: MountEstimate, resim: Resimulated | None,
+                base: Boresight = SQUARE) -> tuple[np.ndarray, Boresight]:
+    """The samples with the servo angles the applied estimate gives, and the beam's boresight (the
+    configured one, base, plus the applied deviations). Nothing applied: the samples themselves and base."""
+    offset, scale, boresight = est.correction(base)
     if offset == 0.0 and scale == 0.0:
         return samples, boresight
     out = samples.copy()
@@ -318,13 +337,17 @@ def apply_mount(samples: np.ndarray, est: MountEstimate, resim: Resimulated | No
     return out, boresight
 
 
-def describe(est: MountEstimate) -> str:
-    """One line for the report: what was found and applied (angles in degrees)."""
+def describe(est: MountEstimate, base: Boresight = SQUARE) -> str:
+    """One line for the report: what was found and applied (angles in degrees; the boresight's as
+    deviations from the configured one, base)."""
     names = ("servo offset", "servo scale", "boresight tilt", "sweep-plane yaw")
     parts = []
     for name, v, e, a in zip(names, est.values, est.std_errors, est.applied, strict=True):
         if a:
             parts.append(f"{name} {v * 100:+.2f} +- {e * 100:.2f} %" if name == "servo scale"
                          else f"{name} {math.degrees(v):+.2f} +- {math.degrees(e):.2f} deg")
-    return (f"self-calibration from the building applied: {', '.join(parts)} (structure points off their "
+    on_top = "" if base.square else (
+        f" on top of the configured boresight ({math.degrees(base.tilt_rad):+.2f} deg tilt, "
+        f"{math.degrees(base.sweep_yaw_rad):+.2f} deg sweep-plane yaw)")
+    return (f"self-calibration from the building applied: {', '.join(parts)}{on_top} (structure points off their "
             f"planes: {est.rms_before_m * 100:.1f} -> {est.rms_after_m * 100:.1f} cm RMS)")

@@ -14,8 +14,10 @@ from pathlib import Path
 
 from firmware_py.core.cli import (
     ArgumentParser,
+    ConfigTables,
     RunFailure,
     UserError,
+    add_config_option,
     add_verbosity,
     finite_float,
     reading_input,
@@ -31,11 +33,39 @@ from sitl.missions.qgc_wpl import write_qgc_wpl
 from sitl.missions.rectangle import TURN_MODES, Mission
 from sitl.runners.fly import PAYLOADS, PLANTS, FlyConfig, fly
 
+_SITE_AND_MISSION = {
+    "site.dimensions": "--storage",
+    "site.origin": "--origin",
+    "site.heading_deg": "--heading",
+    "mission.p_traj_pct": "--p-traj",
+    "mission.altitude_m": "--altitude",
+    "mission.speed_m_s": "--speed",
+    "mission.yaw_rate_max_deg_s": "--yaw-rate-max",
+    "mission.turn": "--turn",
+}
+CONFIG_OPTIONS: ConfigTables = {
+    "fly": {**_SITE_AND_MISSION,
+            "payload.rangefinder": "--rangefinder",
+            "payload.sweep.waveform": "--waveform",
+            "payload.sweep.peak_rate_rad_s": "--servo-rate",
+            "payload.sweep.phase": "--phase",
+            "sitl.sensor_noise": "--sensor-noise"},
+    "serve": {**_SITE_AND_MISSION,
+              "payload.rangefinder": "--rangefinder",
+              "payload.signing_key": "--signing-key",
+              "sitl.sensor_noise": "--sensor-noise"},
+    "plan": dict(_SITE_AND_MISSION),
+}
+"""Configuration key -> the option it sets, per subcommand (`firmware_py.core.cli.apply_config`;
+docs/configuration.md). serve's --mavlink is where the vehicle listens, not the payload's link, so
+[payload] mavlink does not map to it."""
+
 
 def build_parser() -> ArgumentParser:
     ap = ArgumentParser(prog="pilescan-sitl", description=__doc__)
     ap.add_argument("--version", action="version", version=software_version())
     add_verbosity(ap)
+    add_config_option(ap)
     sub = ap.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
     f = sub.add_parser("fly", help="fly a survey and write a run directory")
     f.add_argument("--stockpile", required=True, help="1, 2 (the paper's piles) or an STL/OBJ mesh path")
@@ -67,6 +97,7 @@ def build_parser() -> ArgumentParser:
     f.add_argument("--force", action="store_true",
                    help="replace a run already in --out (its files are removed, truth.json first, before flying)")
     add_verbosity(f, sub=True, quiet_help="print nothing but warnings and errors")
+    add_config_option(f, sub=True)
 
     sv = sub.add_parser("serve", help="run the vehicle as a MAVLink autopilot on a network link, in real time")
     sv.add_argument("--mavlink", default="udp:127.0.0.1:14550",
@@ -87,6 +118,7 @@ def build_parser() -> ArgumentParser:
     sv.add_argument("--force", action="store_true",
                     help="replace a run already in --out (its files are removed, truth.json first)")
     add_verbosity(sv, sub=True)
+    add_config_option(sv, sub=True)
     sv.add_argument("--signing-key", default=None, metavar="FILE",
                     help="MAVLink 2 signing key file (64 hex digits, or a passphrase line: key = its SHA-256, as "
                          "MAVProxy's 'signing setup'; chmod 600): sign everything, refuse unsigned, forged and "
@@ -111,6 +143,7 @@ def build_parser() -> ArgumentParser:
     pl.add_argument("--out", required=True, help="plan file to write (.waypoints)")
     pl.add_argument("--force", action="store_true", help="replace the plan file if it exists")
     add_verbosity(pl, sub=True)
+    add_config_option(pl, sub=True)
     return ap
 
 
@@ -198,7 +231,7 @@ def _dispatch(args) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return run_cli(build_parser(), argv, _dispatch)
+    return run_cli(build_parser(), argv, _dispatch, config=CONFIG_OPTIONS)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,10 @@ import logging
 import math
 import signal
 import sys
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from typing import Any
+
+from firmware_py.core.config_file import ConfigError, key_label, load_config
 
 
 class ExitCode(enum.IntEnum):
@@ -44,6 +47,8 @@ class UserError(Exception):
     """
 
     exit_code: ExitCode = ExitCode.USAGE
+    details: tuple[str, ...] = ()
+    """Further problems, one line each, printed after the message (a configuration file's other bad keys)."""
 
 
 class InputError(UserError):
@@ -206,26 +211,46 @@ def configure_logging(prog: str, *, verbose: bool = False, quiet: bool = False) 
     return undo
 
 
+def _print_error(prog: str, exc: BaseException) -> int:
+    print(f"{prog}: error: {one_line(exc)}", file=sys.stderr)
+    for line in getattr(exc, "details", ()):
+        print(f"{prog}: error: {line}", file=sys.stderr)
+    return int(exit_code_of(exc))
+
+
 def run_cli(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
-            body: Callable[[argparse.Namespace], int]) -> int:
+            body: Callable[[argparse.Namespace], int], config: ConfigTables | None = None) -> int:
     """Parse argv, set up logging (-v/-q) and run body(args), turning user-facing failures into one line
     on stderr and their `ExitCode`.
+
+    With `config` (which configuration key sets which option, per subcommand: `apply_config`), a
+    `--config FILE` in argv is read first and its keys become the options' defaults; the body then
+    finds the file as `args.config_file` (None without one) and which options it set as
+    `args.config_keys` ({dest: key}: those the command line did not override).
 
     Returns the exit code instead of raising SystemExit, so `main(argv)` is callable from tests.
     """
     prog = parser.prog
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        applied = apply_config(parser, argv, config) if config is not None else []
+    except (UserError, ValueError, OSError) as exc:
+        return _print_error(prog, exc)
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help, or a bad option already reported in one line
         return exc.code if isinstance(exc.code, int) else ExitCode.USAGE
+    if config is not None:
+        args.config_keys = {dest: key for dest, key, value in applied if getattr(args, dest, None) is value}
     undo = None
     try:
         undo = configure_logging(prog, verbose=bool(getattr(args, "verbose", False)),
                                  quiet=bool(getattr(args, "quiet", False)))
+        for note in getattr(args, "config_notes", ()):
+            logging.getLogger(__name__).warning("%s", note)
         return int(body(args))
     except (UserError, ValueError, OSError) as exc:  # OSError: missing file, disk full, permission...
-        print(f"{prog}: error: {one_line(exc)}", file=sys.stderr)
-        return int(exit_code_of(exc))
+        return _print_error(prog, exc)
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return int(ExitCode.INTERRUPTED)
@@ -253,3 +278,149 @@ def stop_on_signals(stop: Callable[[str], None],
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
+
+
+# ----- the configuration file (firmware_py.core.config_file) ----------------------------------------
+
+ConfigTables = Mapping[str | None, Mapping[str, str]]
+"""Per (sub)command (None: the program's own parser; else the subcommand's name): configuration key
+("payload.rate_hz") -> the option it sets ("--rate"). A key may name an option the parser does not have
+(yet): the program then says, once, that it does not use it."""
+
+CONFIG_HELP = ("TOML configuration file (docs/configuration.md): the keys it sets become the defaults of the "
+               "options they map to; an option given on the command line still wins")
+
+
+def add_config_option(parser: argparse.ArgumentParser, *, sub: bool = False) -> None:
+    """--config FILE on parser (and on each subcommand's, sub=True, so it may come before or after the
+    subcommand). The file is read before parsing (`run_cli`); the option is here for --help and so the
+    parser accepts it."""
+    parser.add_argument("--config", default=argparse.SUPPRESS if sub else None, metavar="FILE", help=CONFIG_HELP)
+
+
+class _NoExit(Exception):
+    pass
+
+
+class _PreParser(argparse.ArgumentParser):
+    def error(self, message: str):  # type: ignore[override]
+        raise _NoExit(message)
+
+
+def config_path_in(argv: Sequence[str]) -> str | None:
+    """The --config FILE in argv (the last one), None without one; a malformed --config is left for the
+    real parser to report."""
+    pre = _PreParser(add_help=False)
+    pre.add_argument("--config", default=None)
+    try:
+        ns, _ = pre.parse_known_args(list(argv))
+    except _NoExit:
+        return None
+    return ns.config
+
+
+def _subparser(parser: argparse.ArgumentParser, name: str | None) -> argparse.ArgumentParser:
+    if name is None:
+        return parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction) and name in action.choices:
+            return action.choices[name]
+    raise KeyError(f"{parser.prog} has no subcommand {name!r}")
+
+
+def option_action(parser: argparse.ArgumentParser, option: str) -> argparse.Action | None:
+    """The parser's action for an option string ("--rate"), or None."""
+    return parser._option_string_actions.get(option)
+
+
+def _tokens(value: Any, action: argparse.Action) -> list[str]:
+    """A typed configuration value as the words one would type after the option."""
+    if isinstance(value, enum.Enum):
+        value = value.value
+    if isinstance(value, tuple | list):
+        words = [repr(float(v)) if isinstance(v, float) else str(v) for v in value]
+        return words if isinstance(action.nargs, int) or action.nargs in ("+", "*") else [",".join(words)]
+    return [repr(value) if isinstance(value, float) else str(value)]
+
+
+def option_default(action: argparse.Action, value: Any) -> Any:
+    """The value parsing the configuration value's words with the option's own type would give.
+
+    Raises:
+        ValueError: the option's type or choices refuse it (the message says why).
+    """
+    if action.nargs == 0:  # store_true / store_false
+        if not isinstance(value, bool):
+            raise ValueError(f"must be true or false, got {value!r}")
+        return value if action.const is True else not value
+    convert = action.type if callable(action.type) else (lambda text: text)
+    try:
+        words = _tokens(value, action)
+        out = [convert(w) for w in words]
+    except (argparse.ArgumentTypeError, TypeError, ValueError) as exc:
+        raise ValueError(one_line(exc)) from None
+    for v in out:
+        if action.choices is not None and v not in action.choices:
+            raise ValueError(f"must be one of {', '.join(map(str, action.choices))}, got {v!r}")
+    if isinstance(action.nargs, int) or action.nargs in ("+", "*"):
+        if isinstance(action.nargs, int) and len(out) != action.nargs:
+            raise ValueError(f"must be {action.nargs} values, got {len(out)}")
+        return out
+    return out[0]
+
+
+def _key_where(source: str, key: str) -> str:
+    return f"{source}: {key_label(key)}"
+
+
+def apply_config(parser: argparse.ArgumentParser, argv: Sequence[str],
+                 tables: ConfigTables) -> list[tuple[str, str, Any]]:
+    """Read the --config FILE named in argv (if any) and make its keys the defaults of the options they
+    map to (`ConfigTables`), on the program's parser and its subcommands'. An option the file supplies is
+    no longer required. Each (sub)parser also gets `config_file` (the `ConfigFile`, None without one) and
+    `config_notes` (keys it does not use for want of the option) as defaults.
+
+    Returns:
+        (dest, key, default object) of every option set, so `run_cli` can tell which ones the command
+        line left to the file (identity with the default).
+
+    Raises:
+        ConfigError: a bad file (every problem, one line each), or a value an option's type refuses
+            (naming the key): exit 2. InputError: the file cannot be read (exit 3).
+    """
+    path = config_path_in(argv)
+    for sub in tables:
+        _subparser(parser, sub).set_defaults(config_file=None, config_notes=())
+    if path is None:
+        return []
+    try:
+        cfg = load_config(path)
+    except ConfigError:
+        raise
+    except (OSError, ValueError) as exc:  # cannot be read at all: an input error (exit 3)
+        raise InputError(one_line(exc)) from exc
+    applied: list[tuple[str, str, Any]] = []
+    problems: list[str] = []
+    for sub, table in tables.items():
+        p = _subparser(parser, sub)
+        defaults: dict[str, Any] = {}
+        notes = []
+        for key, option in table.items():
+            value = cfg.get(key)
+            if value is None:
+                continue
+            action = option_action(p, option)
+            if action is None:
+                notes.append(f"{_key_where(path, key)}: not used: {p.prog} has no {option} option")
+                continue
+            try:
+                defaults[action.dest] = option_default(action, value)
+            except ValueError as exc:
+                problems.append(f"{_key_where(path, key)}: {exc}")
+                continue
+            action.required = False
+            applied.append((action.dest, key, defaults[action.dest]))
+        p.set_defaults(**defaults, config_file=cfg, config_notes=tuple(notes))
+    if problems:
+        raise ConfigError(sorted(set(problems), key=problems.index))
+    return applied

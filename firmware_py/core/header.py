@@ -9,6 +9,10 @@ drone), so the keys cannot drift apart and the payload never imports `sitl`. The
   the sensor's rate, range and beam;
 - ``lever_arm_body_m``, ``storage``, ``storage_frame``: the geometry of eqs. (3)-(6);
 - ``servo``: the eq. (1) waveform, ``mission_id`` / ``mission``: what was flown (None when unknown);
+- ``boresight`` (optional): the beam's configured mounting (`firmware_py.core.frames.Boresight`, rad);
+  the ground station places points with it (square when absent);
+- ``config`` (optional, the payload's): the effective configuration after flags, in the configuration
+  file's sections (`firmware_py.core.config_file`), plus ``file``: the file it started from;
 - ``software``, ``created_utc``, ``source``: provenance.
 
 Key order is fixed (JSON keeps it), so two writers given the same inputs write the same header.
@@ -22,7 +26,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from firmware_py.core.frames import StorageFrame
+from firmware_py.core.frames import Boresight, StorageFrame
 from firmware_py.core.sensor import LIDARLITE_V3, RangefinderSpec
 from firmware_py.core.servo_model import ServoCalibration
 from firmware_py.core.storage import Storage
@@ -128,7 +132,7 @@ class ServoDrive:
 STANDARD_KEYS = ("software", "created_utc", "source", "sensor", "lever_arm_body_m", "servo", "mission_id",
                  "mission", "storage", "storage_frame")
 """The keys every header has, in the order they are written."""
-OPTIONAL_KEYS = ("servo_calibration", "servo_drive")
+OPTIONAL_KEYS = ("servo_calibration", "servo_drive", "boresight")
 """Keys a header may have, typed: written after the standard ones, before any extra keys."""
 
 
@@ -153,6 +157,7 @@ class LogHeader:
     created_utc: str = field(default_factory=utc_now_iso)
     servo_calibration: ServoCalibration | None = None
     servo_drive: ServoDrive | None = None
+    boresight: Boresight | None = None
     extra: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -185,6 +190,8 @@ class LogHeader:
             d["servo_calibration"] = asdict(self.servo_calibration)
         if self.servo_drive is not None:
             d["servo_drive"] = self.servo_drive.to_dict()
+        if self.boresight is not None:
+            d["boresight"] = self.boresight.to_dict()
         d.update(self.extra)
         return d
 
@@ -225,7 +232,26 @@ class LogHeader:
             storage_frame=frame, mission_id=mission_id, mission=mission, software=d["software"],
             created_utc=d["created_utc"], servo_calibration=cal,
             servo_drive=ServoDrive.from_dict(d["servo_drive"]) if d.get("servo_drive") is not None else None,
+            boresight=boresight_from_dict(d["boresight"]) if d.get("boresight") is not None else None,
             extra={k: v for k, v in d.items() if k not in STANDARD_KEYS and k not in OPTIONAL_KEYS})
+
+
+def boresight_from_dict(d: Any) -> Boresight:
+    """A header's ``boresight``: both angles must be finite numbers within the mounting limits; ValueError
+    naming the key otherwise (a forged or damaged record must not bend every point silently)."""
+    d = _mapping(d, "boresight")
+    try:
+        return Boresight(_number(d, "tilt_rad", "boresight"), _number(d, "sweep_yaw_rad", "boresight"))
+    except KeyError as exc:
+        raise ValueError(f"log header boresight lacks {exc}") from None
+    except ValueError as exc:
+        raise ValueError(f"log header {exc}") from None
+
+
+def header_boresight(header: Mapping[str, Any]) -> Boresight:
+    """The beam's configured mounting a header states: square when it has no ``boresight`` (older logs)."""
+    b = header.get("boresight")
+    return Boresight() if b is None else boresight_from_dict(b)
 
 
 def _mapping(d: Any, where: str) -> dict[str, Any]:
@@ -263,7 +289,7 @@ def build_log_header(*, source: str, sensor: Mapping[str, Any], lever_arm_body_m
         mission_id, mission: what was flown, when known (None otherwise).
         created_utc: creation time; None = now (`utc_now_iso`).
         extra: further keys appended after the standard ones (they may not replace one);
-            ``servo_calibration`` and ``servo_drive`` among them are checked as their types.
+            ``servo_calibration``, ``servo_drive`` and ``boresight`` among them are checked as their types.
 
     Raises:
         ValueError: a lever arm that is not 3 finite numbers, a bad sensor value (named), or an extra
@@ -275,6 +301,7 @@ def build_log_header(*, source: str, sensor: Mapping[str, Any], lever_arm_body_m
         raise ValueError(f"extra header key {clash[0]!r} would replace a standard one")
     cal = more.pop("servo_calibration", None)
     drive = more.pop("servo_drive", None)
+    boresight = more.pop("boresight", None)
     return LogHeader(
         source=source, sensor=RangefinderSpec.from_dict(dict(sensor)), lever_arm_body_m=lever_arm_body_m,
         servo=ServoSweep.of(waveform_name, waveform, initial_position), storage=storage, storage_frame=frame,
@@ -282,4 +309,5 @@ def build_log_header(*, source: str, sensor: Mapping[str, Any], lever_arm_body_m
         created_utc=created_utc if created_utc is not None else utc_now_iso(),
         servo_calibration=ServoCalibration(**cal) if isinstance(cal, Mapping) else cal,
         servo_drive=ServoDrive.from_dict(dict(drive)) if isinstance(drive, Mapping) else drive,
+        boresight=boresight_from_dict(dict(boresight)) if isinstance(boresight, Mapping) else boresight,
         extra=more).to_dict()

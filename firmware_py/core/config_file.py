@@ -1,0 +1,608 @@
+"""One configuration file for a flight: the site, the payload and the mission, in TOML.
+
+Every program takes `--config FILE`; each key the file sets becomes the default of the option it maps to
+(`firmware_py.core.cli.apply_config`), so a flag given on the command line still wins and a key the
+file leaves out keeps the built-in default. docs/configuration.md lists every key.
+
+    [site]            the building: length_m, width_m, height_m, origin = [lat_deg, lon_deg, alt_m]
+                      (its floor corner, the storage frame's origin), heading_deg (its x axis from north)
+    [payload]         rangefinder, i2c, uart, pwm, mavlink, rate_hz, log, lever_arm_m, boresight_deg,
+                      lidarlite_preset, stream, signing_key, ekf_origin, stop_on_disarm
+    [payload.servo]   the servo's calibration (`ServoCalibration`): center_us, us_per_rad, min_us, max_us,
+                      slew_rad_s, lag_s
+    [payload.sweep]   the eq. (1) sweep: waveform, peak_rate_rad_s, phase
+    [mission]         p_traj_pct, altitude_m, speed_m_s, yaw_rate_max_deg_s, turn
+    [sitl]            sensor_noise (the simulator only)
+
+The schema is the section dataclasses below: each field's metadata says its kind, unit, limits and
+meaning, and the parser, the TOML writer and the reference page are all driven by it. Every key is
+optional (None: not set). Limits are what the hardware or the geometry can be, not a tuned case: the
+servo pulses are the hobby-servo range `ServoCalibration` accepts, the rate the payload loop's, the
+angles what a mounting can be off by.
+
+Errors: each unknown key, wrong type or bad value is one line naming the file, the section and the key
+(`config.toml: [payload] rate_hz: must be 1-2000 Hz, got -5`); all of them are reported at once
+(`ConfigError.details`), exit 2 (a configuration file is options written down). A file that cannot
+be read at all (missing, a FIFO, larger than `MAX_CONFIG_BYTES`, not UTF-8) is an input error, exit 3.
+
+Standard library only, like the rest of `firmware_py.core`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import enum
+import json
+import math
+import os
+import re
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from firmware_py.core.safe_read import InputError, read_bounded
+from firmware_py.core.servo_model import ServoCalibration
+from firmware_py.core.stream_format import parse_stream_url
+from firmware_py.core.waveform import N_PHASES
+
+MAX_CONFIG_BYTES = 256 * 1024
+"""Largest configuration file read: the commented example is 6 kB; anything this big is not one."""
+
+
+class Rangefinder(enum.Enum):
+    """The single-point LiDARs the payload drives."""
+
+    LIDARLITE_V3 = "lidarlite-v3"  # Garmin LIDAR-Lite v3 on I2C (the paper's)
+    TFMINI = "tfmini"  # Benewake TFMini family on a UART (the paper authors' real rig)
+
+
+class SweepShape(enum.Enum):
+    """The eq. (1) servo waveforms (C = 0.95 and C = 0)."""
+
+    SEMI_TRIANGULAR = "semi-triangular"
+    SINUSOIDAL = "sinusoidal"
+
+
+class Turn(enum.Enum):
+    """Corner turns of the rectangular survey (Fig. 15; `sitl.missions.rectangle.TURN_MODES`)."""
+
+    ONE_STEP = "one-step"
+    TWO_STEP = "two-step"
+
+
+class SensorNoise(enum.Enum):
+    """The simulator's range-noise models."""
+
+    NONE = "none"
+    DATASHEET = "datasheet"
+    APPENDIX_A = "appendix-a"
+
+
+class Kind(enum.Enum):
+    """What a key holds."""
+
+    NUMBER = "number"
+    INTEGER = "integer"
+    BOOL = "boolean"
+    TEXT = "string"
+    URL = "URL"
+    PATH = "path"
+    VECTOR = "array of numbers"
+    CHOICE = "choice"
+
+
+def _key(kind: Kind, doc: str, *, unit: str = "", lo: float | None = None, hi: float | None = None,
+         open_lo: bool = False, open_hi: bool = False, length: int = 0, names: tuple[str, ...] = (),
+         choices: type[enum.Enum] | None = None, nonzero: bool = False, example: Any = None) -> dict[str, Any]:
+    """One key's schema, a field's metadata (the field's default is None: the key is not set)."""
+    return {
+        "kind": kind, "doc": doc, "unit": unit, "lo": lo, "hi": hi, "open_lo": open_lo, "open_hi": open_hi,
+        "length": length, "names": names, "choices": choices, "nonzero": nonzero, "example": example}
+
+
+@dataclass(frozen=True)
+class SiteSection:
+    """[site]: the building and where it stands."""
+
+    length_m: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "inside length of the building, along its x axis", unit="m", lo=0.5, hi=10_000.0, example=60.0))
+    width_m: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "inside width, along y (90 deg left of x seen from above)", unit="m", lo=0.5, hi=10_000.0,
+        example=40.0))
+    height_m: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "inside height, floor to roof", unit="m", lo=0.5, hi=10_000.0, example=15.0))
+    origin: tuple[float, float, float] | None = field(default=None, metadata=_key(
+        Kind.VECTOR, "the storage frame's origin, the building's floor corner: latitude, longitude (WGS84), altitude "
+        "above mean sea level", unit="deg, deg, m", length=3, names=("lat_deg", "lon_deg", "alt_m"), example=(53.4668,
+        -2.2339, 50.0)))
+    heading_deg: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "direction of the building's x axis (its length), clockwise from north", unit="deg", lo=-360.0,
+        hi=360.0, example=0.0))
+
+    def dimensions(self) -> tuple[float, float, float] | None:
+        """(L, W, H), or None when the file gives none of them."""
+        if self.length_m is None:
+            return None
+        return (self.length_m, self.width_m, self.height_m)  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class ServoSection:
+    """[payload.servo]: the servo's calibration (`firmware_py.core.servo_model.ServoCalibration`)."""
+
+    center_us: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "pulse width that points the beam straight down (gamma = 0)", unit="us", lo=500.0, hi=2500.0,
+        example=1500.0))
+    us_per_rad: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "pulse change per radian of shaft angle; negative when a longer pulse turns the beam to port. A "
+        "hobby servo turns 90-270 deg over 1000 us: 212-637 us/rad", unit="us/rad", lo=-10_000.0, hi=10_000.0,
+        nonzero=True, example=318.3))
+    min_us: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "shortest pulse the servo accepts (the sweep is clamped to it)", unit="us", lo=500.0, hi=2500.0,
+        example=1000.0))
+    max_us: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "longest pulse the servo accepts", unit="us", lo=500.0, hi=2500.0, example=2000.0))
+    slew_rad_s: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "the servo's top speed (datasheet: 0.1 s/60 deg is 10.5 rad/s)", unit="rad/s", lo=0.0, hi=100.0,
+        open_lo=True, example=5.0))
+    lag_s: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "time constant of the servo's position loop", unit="s", lo=0.0, hi=1.0, example=0.02))
+
+    def calibration(self, base: ServoCalibration | None = None) -> ServoCalibration:
+        """base (the built-in calibration by default) with the keys this section sets."""
+        base = base or ServoCalibration()
+        return dataclasses.replace(base, **{f.name: getattr(self, f.name) for f in fields(self)
+                                            if getattr(self, f.name) is not None})
+
+
+@dataclass(frozen=True)
+class SweepSection:
+    """[payload.sweep]: the eq. (1) servo sweep."""
+
+    waveform: SweepShape | None = field(default=None, metadata=_key(
+        Kind.CHOICE, "servo waveform of eq. (1): semi-triangular (C = 0.95) or sinusoidal (C = 0)", choices=SweepShape,
+        example="semi-triangular"))
+    peak_rate_rad_s: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "peak servo rate; sets the sweep frequency (5 rad/s: 0.67 Hz semi-triangular). At most the "
+        "servo's slew_rad_s", unit="rad/s", lo=0.0, hi=100.0, open_lo=True, example=5.0))
+    phase: int | None = field(default=None, metadata=_key(
+        Kind.INTEGER, f"the servo's start position, 0..{2 * N_PHASES - 1} (Fig. 9: {N_PHASES} phases x 2 directions)",
+        lo=0, hi=2 * N_PHASES - 1, example=0))
+
+
+@dataclass(frozen=True)
+class PayloadSection:
+    """[payload]: the sensor head on the drone and its links."""
+
+    rangefinder: Rangefinder | None = field(default=None, metadata=_key(
+        Kind.CHOICE, "the LiDAR: lidarlite-v3 (Garmin, I2C) or tfmini (Benewake TFMini family, UART)",
+        choices=Rangefinder, example="lidarlite-v3"))
+    i2c: str | None = field(default=None, metadata=_key(
+        Kind.URL, "the LIDAR-Lite's I2C bus: i2c:1, i2c:/dev/i2c-1, tcp:HOST:PORT (SITL bridge)", example="i2c:1"))
+    uart: str | None = field(default=None, metadata=_key(
+        Kind.URL, "the TFMini's serial port: serial:/dev/serial0 or serial:/dev/ttyS0:115200", example=
+        "serial:/dev/serial0:115200"))
+    pwm: str | None = field(default=None, metadata=_key(
+        Kind.URL, "the servo's PWM output: pwm:sysfs:CHIP:CH, pwm:pca9685:BUS:ADDR:CH, pwm:mavlink:N, "
+        "pwm:tcp:HOST:PORT:CH (SITL bridge)", example="pwm:sysfs:0:0"))
+    mavlink: str | None = field(default=None, metadata=_key(
+        Kind.URL, "the link to the autopilot: serial:/dev/ttyAMA0:921600, udp:HOST:PORT, udpout:HOST:PORT, "
+        "tcp:HOST:PORT", example="serial:/dev/ttyAMA0:921600"))
+    rate_hz: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "LiDAR sample rate (the payload loop's rate)", unit="Hz", lo=1.0, hi=2000.0, example=500.0))
+    log: str | None = field(default=None, metadata=_key(
+        Kind.PATH, "the sample log to write (.pslog); relative to this file's folder", example="survey.pslog"))
+    lever_arm_m: tuple[float, float, float] | None = field(default=None, metadata=_key(
+        Kind.VECTOR, "the LiDAR's position from the drone's centre of gravity, body frame (forward, right, down); a "
+        "multirotor is at most a few metres across", unit="m", length=3, names=("x", "y", "z"), lo=-5.0, hi=5.0,
+        example=(0.0, 0.0, 0.10)))
+    boresight_deg: tuple[float, float] | None = field(default=None, metadata=_key(
+        Kind.VECTOR, "how the beam's mounting differs from square (`frames.Boresight`): tilt out of the sweep plane (> "
+        "0 leans forward), yaw of the servo axis about body z (> 0 clockwise from above)", unit="deg", length=2, names=(
+        "tilt", "sweep_yaw"), lo=-45.0, hi=45.0, example=(0.0, 0.0)))
+    lidarlite_preset: str | None = field(default=None, metadata=_key(
+        Kind.TEXT, "LIDAR-Lite register preset (firmware_py.drivers.lidarlite)", example="fast-500hz"))
+    stream: str | None = field(default=None, metadata=_key(
+        Kind.URL, "also stream samples live to the ground station: udp:HOST:PORT", example="udp:192.168.1.10:14600"))
+    signing_key: str | None = field(default=None, metadata=_key(
+        Kind.PATH, "MAVLink 2 signing key file (64 hex digits or a passphrase line, chmod 600); relative to this "
+        "file's folder", example="signing.key"))
+    ekf_origin: tuple[float, float, float] | None = field(default=None, metadata=_key(
+        Kind.VECTOR, "sent as SET_GPS_GLOBAL_ORIGIN at start: an indoor EKF needs an origin before it publishes "
+        "LOCAL_POSITION_NED", unit="deg, deg, m", length=3, names=("lat_deg", "lon_deg", "alt_m"), example=(53.4668,
+        -2.2339, 50.0)))
+    stop_on_disarm: bool | None = field(default=None, metadata=_key(
+        Kind.BOOL, "stop logging when the autopilot disarms after having been armed", example=True))
+    servo: ServoSection = field(default_factory=ServoSection, metadata={"table": ServoSection})
+    sweep: SweepSection = field(default_factory=SweepSection, metadata={"table": SweepSection})
+
+
+@dataclass(frozen=True)
+class MissionSection:
+    """[mission]: the rectangular survey flight (paper section 3)."""
+
+    p_traj_pct: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "waypoint offset from the walls, percent of L and W (eqs. 17-18)", unit="%", lo=0.0, hi=50.0,
+        open_lo=True, open_hi=True, example=20.0))
+    altitude_m: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "flight height above the floor (must leave clearance to the roof)", unit="m", lo=0.0, hi=10_000.0,
+        open_lo=True, example=12.0))
+    speed_m_s: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "flight speed along the legs", unit="m/s", lo=0.05, hi=15.0, example=1.0))
+    yaw_rate_max_deg_s: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "largest yaw rate in the turns", unit="deg/s", lo=0.0, hi=360.0, open_lo=True, example=30.0))
+    turn: Turn | None = field(default=None, metadata=_key(
+        Kind.CHOICE, "corner turns (Fig. 15): one-step or two-step", choices=Turn, example="one-step"))
+
+
+@dataclass(frozen=True)
+class SitlSection:
+    """[sitl]: what only the simulator uses."""
+
+    sensor_noise: SensorNoise | None = field(default=None, metadata=_key(
+        Kind.CHOICE, "range-noise model: none, datasheet (per rangefinder) or appendix-a (the paper's)",
+        choices=SensorNoise, example="datasheet"))
+
+
+@dataclass(frozen=True)
+class ConfigFile:
+    """A parsed configuration file (every key None unless the file sets it).
+
+    Attributes:
+        path: the file it was read from (None: built in code).
+    """
+
+    site: SiteSection = field(default_factory=SiteSection, metadata={"table": SiteSection})
+    payload: PayloadSection = field(default_factory=PayloadSection, metadata={"table": PayloadSection})
+    mission: MissionSection = field(default_factory=MissionSection, metadata={"table": MissionSection})
+    sitl: SitlSection = field(default_factory=SitlSection, metadata={"table": SitlSection})
+    path: str | None = field(default=None, metadata={"skip": True})
+
+    def get(self, key: str) -> Any:
+        """The value of a dotted key ("payload.servo.center_us"); None when not set. The one derived key,
+        "site.dimensions", is the building as the programs' --storage takes it ("60.0x40.0x15.0").
+
+        Raises:
+            KeyError: no such key in the schema.
+        """
+        if key == DIMENSIONS_KEY:
+            dims = self.site.dimensions()
+            return None if dims is None else "x".join(repr(float(v)) for v in dims)
+        obj: Any = self
+        for part in key.split("."):
+            if not dataclasses.is_dataclass(obj) or part not in {f.name for f in fields(obj)}:
+                raise KeyError(f"no configuration key {key!r}")
+            obj = getattr(obj, part)
+        return obj
+
+    def to_dict(self) -> dict[str, Any]:
+        """The keys set, nested by section (enums as their names, vectors as lists): JSON and TOML ready."""
+        return _section_dict(self)
+
+
+def _section_dict(obj: Any) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for f in fields(obj):
+        if f.metadata.get("skip"):
+            continue
+        v = getattr(obj, f.name)
+        if "table" in f.metadata:
+            sub = _section_dict(v)
+            if sub:
+                out[f.name] = sub
+        elif v is not None:
+            out[f.name] = v.value if isinstance(v, enum.Enum) else list(v) if isinstance(v, tuple) else v
+    return out
+
+
+SECTIONS = ("site", "payload", "mission", "sitl")
+DIMENSIONS_KEY = "site.dimensions"
+"""The derived key for [site] length_m, width_m and height_m together (`ConfigFile.get`)."""
+
+
+def key_label(key: str) -> str:
+    """How an error line names a dotted key: "[payload.servo] center_us"."""
+    if key == DIMENSIONS_KEY:
+        return "[site] length_m, width_m, height_m"
+    section, _, name = key.rpartition(".")
+    return f"[{section}] {name}"
+
+
+def schema_keys(cls: type = ConfigFile, prefix: str = "") -> list[tuple[str, dataclasses.Field]]:
+    """Every key of the schema, dotted ("payload.servo.center_us"), with its field (for docs and tests)."""
+    out = []
+    for f in fields(cls):
+        if f.metadata.get("skip"):
+            continue
+        name = f"{prefix}{f.name}"
+        if "table" in f.metadata:
+            out += schema_keys(f.metadata["table"], f"{name}.")
+        else:
+            out.append((name, f))
+    return out
+
+
+# ----- errors ----------------------------------------------------------------------------------------
+
+
+class ConfigError(ValueError):
+    """A configuration file with bad content: one line per problem (the first is the message, the
+    others `details`). A ValueError, so the programs' `run_cli` exits 2 (usage) with it; it is not a
+    `firmware_py.core.cli.UserError` only because that module imports this one."""
+
+    def __init__(self, problems: list[str]) -> None:
+        super().__init__(problems[0])
+        self.details = tuple(problems[1:])
+
+
+def _where(section: str, key: str | None = None) -> str:
+    return f"[{section}]" + (f" {key}" if key else "")
+
+
+def _describe(v: Any) -> str:
+    """A TOML value as the user wrote it, short."""
+    kind = {bool: "a boolean", str: "a string", int: "an integer", float: "a number", list: "an array",
+            dict: "a table"}.get(type(v), type(v).__name__)
+    text = json.dumps(v, default=str) if isinstance(v, bool | str | int | float | list) else str(v)
+    if isinstance(v, float) and not math.isfinite(v):
+        text = str(v)
+    if len(text) > 60:
+        text = text[:57] + "..."
+    return f"{kind} {text}" if kind != "a table" else kind
+
+
+def _fmt(v: float) -> str:
+    return f"{v:g}"
+
+
+def _range_text(m: Mapping[str, Any]) -> str:
+    lo, hi, unit = m["lo"], m["hi"], m["unit"]
+    u = f" {unit}" if unit and unit != "%" else unit
+    if lo is not None and hi is not None:
+        if m["open_lo"] or m["open_hi"]:
+            return f"between {_fmt(lo)} and {_fmt(hi)}{u} (exclusive)" if m["open_lo"] and m["open_hi"] \
+                else f"in {'(' if m['open_lo'] else '['}{_fmt(lo)}, {_fmt(hi)}{']' if not m['open_hi'] else ')'}{u}"
+        return f"{_fmt(lo)}-{_fmt(hi)}{u}" if lo >= 0 else f"within {_fmt(lo)}..{_fmt(hi)}{u}"
+    return ""
+
+
+def _in_range(v: float, m: Mapping[str, Any]) -> bool:
+    lo, hi = m["lo"], m["hi"]
+    if lo is not None and (v <= lo if m["open_lo"] else v < lo):
+        return False
+    if hi is not None and (v >= hi if m["open_hi"] else v > hi):
+        return False
+    return not (m["nonzero"] and v == 0)
+
+
+_URL_RE = re.compile(r"[a-z][a-z0-9+.-]*:\S+", re.ASCII)
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
+def _check_value(v: Any, m: Mapping[str, Any], base_dir: Path | None) -> tuple[Any, str | None]:
+    """(typed value, None) or (None, what is wrong)."""
+    kind: Kind = m["kind"]
+    if kind in (Kind.NUMBER, Kind.INTEGER):
+        if kind is Kind.INTEGER and not (isinstance(v, int) and not isinstance(v, bool)):
+            return None, f"must be an integer, got {_describe(v)}"
+        if not _number(v):
+            return None, f"must be a number, got {_describe(v)}"
+        if not math.isfinite(v):
+            return None, f"must be a finite number, got {v}"
+        if not _in_range(v, m):
+            rng = _range_text(m)
+            need = f"must be {rng}" if rng else "must be in range"
+            if m["nonzero"]:
+                need += " and not 0"
+            return None, f"{need}, got {_fmt(v)}"
+        return (v if kind is Kind.INTEGER else float(v)), None
+    if kind is Kind.BOOL:
+        if not isinstance(v, bool):
+            return None, f"must be true or false, got {_describe(v)}"
+        return v, None
+    if kind is Kind.CHOICE:
+        names = [c.value for c in m["choices"]]
+        if not isinstance(v, str):
+            return None, f"must be one of {', '.join(names)} (a string), got {_describe(v)}"
+        try:
+            return m["choices"](v), None
+        except ValueError:
+            return None, f"must be one of {', '.join(names)}, got {json.dumps(v)}"
+    if kind is Kind.VECTOR:
+        n, names = m["length"], m["names"]
+        if not isinstance(v, list) or len(v) != n:
+            return None, f"must be an array of {n} numbers [{', '.join(names)}], got {_describe(v)}"
+        out = []
+        for name, x in zip(names, v, strict=True):
+            if not _number(x) or not math.isfinite(x):
+                return None, f"{name} must be a finite number, got {_describe(x)}"
+            out.append(float(x))
+        problem = _vector_problem(out, m)
+        return (None, problem) if problem else (tuple(out), None)
+    # TEXT, URL, PATH
+    if not isinstance(v, str):
+        return None, f"must be a {kind.value} (a quoted string), got {_describe(v)}"
+    if not v.strip() or any(not c.isprintable() for c in v):
+        return None, f"must be a non-empty {kind.value} of printable characters, got {json.dumps(v)}"
+    if kind is Kind.URL and not _URL_RE.fullmatch(v.strip()):
+        return None, f"must be a URL like SCHEME:..., got {json.dumps(v)}"
+    if kind is Kind.PATH and base_dir is not None:
+        return str(base_dir / os.path.expanduser(v)) if not os.path.isabs(os.path.expanduser(v)) \
+            else os.path.expanduser(v), None
+    return v, None
+
+
+def _vector_problem(v: list[float], m: Mapping[str, Any]) -> str | None:
+    names = m["names"]
+    if names[:2] == ("lat_deg", "lon_deg"):
+        for name, x, lo, hi in (("lat_deg", v[0], -90.0, 90.0), ("lon_deg", v[1], -180.0, 180.0),
+                                ("alt_m", v[2], -1000.0, 100_000.0)):
+            if not lo <= x <= hi:
+                return f"{name} must be within {_fmt(lo)}..{_fmt(hi)}, got {_fmt(x)}"
+        return None
+    for name, x in zip(names, v, strict=True):
+        if not _in_range(x, m):
+            return f"{name} must be {_range_text(m)}, got {_fmt(x)}"
+    return None
+
+
+# ----- parsing ---------------------------------------------------------------------------------------
+
+
+def _suggest(name: str, known: list[str]) -> str:
+    close = difflib.get_close_matches(name, known, n=1)
+    return f"did you mean {close[0]}?" if close else f"known: {', '.join(known)}"
+
+
+def _parse_section(cls: type, table: Any, section: str, base_dir: Path | None,
+                   problems: list[str], prefix: str) -> Any:
+    if not isinstance(table, dict):
+        problems.append(f"{prefix}{_where(section)}: must be a table ([{section}] and keys under it), "
+                        f"got {_describe(table)}")
+        return cls()
+    known = {f.name: f for f in fields(cls)}
+    kwargs: dict[str, Any] = {}
+    for name, value in table.items():
+        f = known.get(name)
+        if f is None:
+            kind = "section" if isinstance(value, dict) else "key"
+            problems.append(f"{prefix}{_where(section, name)}: unknown {kind} ({_suggest(name, list(known))})")
+            continue
+        if "table" in f.metadata:
+            kwargs[name] = _parse_section(f.metadata["table"], value, f"{section}.{name}", base_dir, problems, prefix)
+            continue
+        typed, problem = _check_value(value, f.metadata, base_dir)
+        if problem is not None:
+            problems.append(f"{prefix}{_where(section, name)}: {problem}")
+        else:
+            kwargs[name] = typed
+    return cls(**kwargs)
+
+
+def _cross_checks(cfg: ConfigFile, prefix: str) -> list[str]:
+    """Keys that are fine alone but not together."""
+    problems = []
+    site = cfg.site
+    dims = {"length_m": site.length_m, "width_m": site.width_m, "height_m": site.height_m}
+    given = [k for k, v in dims.items() if v is not None]
+    if given and len(given) < 3:
+        missing = [k for k in dims if dims[k] is None]
+        problems.append(f"{prefix}{_where('site', missing[0])}: missing (a building needs length_m, width_m and "
+                        f"height_m together; the file gives only {', '.join(given)})")
+    servo = cfg.payload.servo
+    if any(getattr(servo, k) is not None for k in ("center_us", "min_us", "max_us")):
+        base = ServoCalibration()
+        lo, mid, hi = (getattr(servo, k) if getattr(servo, k) is not None else getattr(base, k)
+                       for k in ("min_us", "center_us", "max_us"))
+        if not lo < mid < hi:
+            key = next(k for k in ("center_us", "min_us", "max_us") if getattr(servo, k) is not None)
+            problems.append(f"{prefix}{_where('payload.servo', key)}: the pulses must satisfy min_us < center_us < "
+                            f"max_us, got {_fmt(lo)} < {_fmt(mid)} < {_fmt(hi)}")
+    sweep = cfg.payload.sweep
+    if sweep.peak_rate_rad_s is not None and servo.slew_rad_s is not None \
+            and sweep.peak_rate_rad_s > servo.slew_rad_s:
+        problems.append(f"{prefix}{_where('payload.sweep', 'peak_rate_rad_s')}: {_fmt(sweep.peak_rate_rad_s)} rad/s "
+                        f"is faster than the servo can turn ([payload.servo] slew_rad_s = {_fmt(servo.slew_rad_s)})")
+    if cfg.payload.stream is not None:
+        try:
+            parse_stream_url(cfg.payload.stream)
+        except ValueError as exc:
+            problems.append(f"{prefix}{_where('payload', 'stream')}: {exc}")
+    return problems
+
+
+def parse_config(data: Mapping[str, Any], source: str = "config", base_dir: Path | None = None) -> ConfigFile:
+    """A ConfigFile from TOML's tables (or the header's ``config`` record).
+
+    Args:
+        data: the decoded TOML document.
+        source: how the lines name the file (its path).
+        base_dir: relative paths are taken from here (the file's folder); None keeps them as written.
+
+    Raises:
+        ConfigError: one line per unknown key, wrong type or bad value.
+    """
+    prefix = f"{source}: "
+    problems: list[str] = []
+    kwargs: dict[str, Any] = {}
+    for name, table in data.items():
+        if name not in SECTIONS:
+            what = "section" if isinstance(table, dict) else "key outside any section"
+            problems.append(f"{prefix}[{name}]: unknown {what} ({_suggest(name, list(SECTIONS))})")
+            continue
+        cls = {f.name: f.metadata["table"] for f in fields(ConfigFile) if "table" in f.metadata}[name]
+        kwargs[name] = _parse_section(cls, table, name, base_dir, problems, prefix)
+    cfg = ConfigFile(**kwargs, path=source)
+    if not problems:
+        problems = _cross_checks(cfg, prefix)
+    if problems:
+        raise ConfigError(problems)
+    return cfg
+
+
+def load_config(path: str | os.PathLike[str]) -> ConfigFile:
+    """Read and check a configuration file (module docstring).
+
+    Raises:
+        InputError (`safe_read`'s): unreadable: missing, not a regular file (a FIFO would block), too large,
+            not UTF-8 (the programs exit 3: `firmware_py.core.cli.apply_config`).
+        ConfigError: not TOML (the line is named), or bad content (exit 2).
+    """
+    name = os.fspath(path)
+    try:
+        raw = read_bounded(path, MAX_CONFIG_BYTES, "config file")
+    except InputError:
+        raise
+    except OSError as exc:
+        raise InputError(f"cannot read config file {name}: {exc.strerror or exc}") from exc
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"config file {name} is not UTF-8 text (byte {exc.start})") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError([f"{name}: not valid TOML: {str(exc).splitlines()[0]}"]) from None
+    return parse_config(data, name, Path(name).resolve().parent)
+
+
+# ----- writing ---------------------------------------------------------------------------------------
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float):
+        return repr(float(v)) if isinstance(v, float) else str(v)
+    if isinstance(v, str):
+        return json.dumps(v, ensure_ascii=False)  # a JSON string is a TOML basic string
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"no TOML form for {type(v).__name__}")
+
+
+def to_toml(d: Mapping[str, Any]) -> str:
+    """A nested dict of sections (`ConfigFile.to_dict()`) as TOML text that `parse_config` reads back."""
+    lines: list[str] = []
+
+    def table(name: str, body: Mapping[str, Any]) -> None:
+        scalars = {k: v for k, v in body.items() if not isinstance(v, Mapping)}
+        subs = {k: v for k, v in body.items() if isinstance(v, Mapping)}
+        if scalars or not subs:
+            if lines:
+                lines.append("")
+            lines.append(f"[{name}]")
+            lines.extend(f"{k} = {_toml_value(v)}" for k, v in scalars.items())
+        for k, v in subs.items():
+            table(f"{name}.{k}", v)
+
+    for name, body in d.items():
+        if isinstance(body, Mapping):
+            table(name, body)
+    return "\n".join(lines) + "\n"
