@@ -8,6 +8,7 @@ effective configuration without opening any hardware.
 from __future__ import annotations
 
 import argparse
+import datetime as dt
 import math
 import re
 import sys
@@ -157,7 +158,8 @@ def build_parser() -> ArgumentParser:
                     help="the networked SITL's device bridge: sets --i2c tcp:HOST:PORT and --pwm pwm:tcp:HOST:PORT:0")
     out = ap.add_argument_group("output")
     out.add_argument("--out", default=None, metavar="PATH",
-                     help="sample log to write (.pslog); required, here or as [payload] log in --config")
+                     help="sample log to write (.pslog); {utc} in it becomes the start time (20261124T235301Z); "
+                          "required, here or as [payload] log in --config")
     out.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     out.add_argument("--stream", default=None, metavar="URL", type=_checked(parse_stream_url),
                      help="also stream samples live to the ground station: udp:HOST:PORT")
@@ -236,10 +238,22 @@ def boresight_from_args(args) -> Boresight:
     return Boresight(math.radians(tilt), math.radians(yaw))
 
 
+UTC_FIELD = "{utc}"
+"""In --out (or [payload] log), replaced by the start time: one configuration file, a new log each flight."""
+
+
+def expand_log_name(path: str, now: dt.datetime | None = None) -> str:
+    """path with each {utc} replaced by the UTC time as 20261124T235301Z (sorts, and is a valid file name
+    on every system)."""
+    stamp = (now or dt.datetime.now(dt.UTC)).strftime("%Y%m%dT%H%M%SZ")
+    return path.replace(UTC_FIELD, stamp)
+
+
 def config_from_args(args) -> PayloadConfig:
     """PayloadConfig from parsed options (ValueError / UserError for bad values, one line each)."""
     if args.out is None:
         raise UserError("--out is required (the sample log to write; or [payload] log in the --config file)")
+    out = expand_log_name(args.out)
     signing = signing_from_args(args)
     from_file = getattr(args, "config_keys", {})
     i2c_flag = args.i2c if "i2c" not in from_file else None
@@ -251,7 +265,7 @@ def config_from_args(args) -> PayloadConfig:
         i2c, pwm = hal_urls(args.hal)
     device_key = signing.key if signing is not None and uses_device_bridge(i2c, pwm) else None
     return PayloadConfig(
-        out_path=args.out, force=args.force, mavlink_url=args.mavlink, i2c_url=i2c, pwm_url=pwm,
+        out_path=out, force=args.force, mavlink_url=args.mavlink, i2c_url=i2c, pwm_url=pwm,
         preset=args.preset, rate_hz=args.rate, waveform=args.waveform, servo_peak_rate_rad_s=args.servo_rate,
         initial_position=args.phase, storage=Storage.parse(args.storage), servo=servo_from_args(args),
         lever_arm_body_m=tuple(args.lever_arm), boresight=boresight_from_args(args), duration_s=args.duration,

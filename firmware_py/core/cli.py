@@ -211,6 +211,22 @@ def configure_logging(prog: str, *, verbose: bool = False, quiet: bool = False) 
     return undo
 
 
+def config_keys_of(args: argparse.Namespace, applied: list[tuple[str, str, Any]]) -> dict[str, str]:
+    """{dest: configuration key} of the options whose value is still the file's (the command line did not
+    give them): the very object `apply_config` made the default."""
+    return {dest: key for dest, key, value in applied if getattr(args, dest, None) is value}
+
+
+def parse_with_config(parser: argparse.ArgumentParser, argv: Sequence[str],
+                      tables: ConfigTables) -> argparse.Namespace:
+    """What `run_cli` parses: the --config file's defaults applied, then argv (SystemExit on a bad option,
+    ConfigError / InputError on a bad file); for tests and tools that parse without running."""
+    applied = apply_config(parser, argv, tables)
+    args = parser.parse_args(list(argv))
+    args.config_keys = config_keys_of(args, applied)
+    return args
+
+
 def _print_error(prog: str, exc: BaseException) -> int:
     print(f"{prog}: error: {one_line(exc)}", file=sys.stderr)
     for line in getattr(exc, "details", ()):
@@ -241,7 +257,7 @@ def run_cli(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
     except SystemExit as exc:  # --help, or a bad option already reported in one line
         return exc.code if isinstance(exc.code, int) else ExitCode.USAGE
     if config is not None:
-        args.config_keys = {dest: key for dest, key, value in applied if getattr(args, dest, None) is value}
+        args.config_keys = config_keys_of(args, applied)
     undo = None
     try:
         undo = configure_logging(prog, verbose=bool(getattr(args, "verbose", False)),

@@ -2,12 +2,13 @@
 SITL (the firmware in the loop), is found from the floor and walls; a square one is left alone."""
 
 import math
+import shutil
 
 import numpy as np
 import pytest
 
-from firmware_py.core.frames import StorageFrame
-from firmware_py.core.samplelog import SAMPLE_DTYPE, read_samplelog
+from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
+from firmware_py.core.samplelog import SAMPLE_DTYPE, SampleLogWriter, read_samplelog
 from firmware_py.core.storage import Storage
 from ground.report import ReportOptions, make_report
 from ground.self_calibration import estimate_mount, not_estimated
@@ -26,12 +27,24 @@ def _fly(tmp_path, faults):
     return tmp_path / "run"
 
 
-def _estimate(run):
+def _estimate(run, boresight: Boresight = SQUARE):
     log = read_samplelog(run / "samples.pslog")
     h = log.header
     s = log.samples[log.samples["flags"] == 0]
     return estimate_mount(s, h["lever_arm_body_m"], StorageFrame(), STORAGE, h["sensor"]["range_sigma_m"],
-                          h["sensor"]["range_sigma_rel"], Resimulated.from_header(h))
+                          h["sensor"]["range_sigma_rel"], Resimulated.from_header(h), boresight)
+
+
+def _with_boresight(run, out, boresight: Boresight):
+    """The run again, its log header saying the LiDAR was configured with this boresight (--boresight)."""
+    out.mkdir()
+    shutil.copy(run / "truth.json", out / "truth.json")
+    log = read_samplelog(run / "samples.pslog")
+    header = {k: v for k, v in log.header.items() if k not in ("format", "format_version", "record_dtype")}
+    w = SampleLogWriter(out / "samples.pslog", {**header, "boresight": boresight.to_dict()}, fsync=False)
+    w.append(log.samples)
+    w.close()
+    return out
 
 
 @pytest.fixture(scope="module")
@@ -94,3 +107,24 @@ def test_that_the_report_applies_it_says_so_and_gets_the_volume_back(skewed_run,
     assert abs(fixed["volume_error_pct"] - clean["volume_error_pct"]) < 0.3
     assert abs(raw["volume_error_pct"] - clean["volume_error_pct"]) > abs(fixed["volume_error_pct"]
                                                                            - clean["volume_error_pct"])
+
+
+def test_that_the_tilt_estimated_is_the_deviation_from_the_configured_one(skewed_run):
+    """The true tilt is 2 deg: configured as 2 deg, the deviation found is nil; offset and scale unchanged."""
+    on_top = _estimate(skewed_run, Boresight(math.radians(2.0)))
+    offset, scale, tilt, _ = on_top.values
+    assert math.degrees(tilt) == pytest.approx(0.0, abs=0.2)
+    assert math.degrees(offset) == pytest.approx(3.0, abs=0.1) and scale == pytest.approx(0.05, abs=0.005)
+    wrong = _estimate(skewed_run, Boresight(math.radians(-1.0)))  # configured 1 deg the other way: 3 deg to find
+    assert math.degrees(wrong.values[2]) == pytest.approx(3.0, abs=0.2)
+
+
+def test_that_the_report_places_points_with_the_headers_boresight(skewed_run, tmp_path):
+    configured = make_report(_with_boresight(skewed_run, tmp_path / "run", Boresight(math.radians(2.0))),
+                             tmp_path / "rep", ReportOptions(plots=False))
+    plain = make_report(skewed_run, tmp_path / "plain", ReportOptions(plots=False))
+    assert configured["boresight_deg"] == pytest.approx({"tilt": 2.0, "sweep_yaw": 0.0})
+    assert plain["boresight_deg"] == {"tilt": 0.0, "sweep_yaw": 0.0}
+    assert configured["self_calibration"]["boresight_tilt_deg"]["estimate"] == pytest.approx(0.0, abs=0.2)
+    assert plain["self_calibration"]["boresight_tilt_deg"]["estimate"] == pytest.approx(2.0, abs=0.2)
+    assert abs(configured["volume_error_pct"] - plain["volume_error_pct"]) < 0.3

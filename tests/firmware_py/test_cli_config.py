@@ -1,0 +1,171 @@
+"""`pilescan-payload --config FILE`: the file sets the options, a flag still wins, --check prints what would
+run without opening hardware, each bad key is one line naming it (exit 2), and the log header carries
+the effective configuration and the boresight."""
+
+from __future__ import annotations
+
+import datetime as dt
+import math
+import os
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from firmware_py.app import DEFAULT_PWM_URL
+from firmware_py.cli import CONFIG_OPTIONS, build_parser, config_from_args, expand_log_name, main
+from firmware_py.core.cli import ExitCode, parse_with_config
+from firmware_py.core.config_file import parse_config
+from firmware_py.core.frames import Boresight
+from firmware_py.core.header import LogHeader, header_boresight
+from firmware_py.core.servo_model import ServoCalibration
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE = ROOT / "examples" / "raspberry-pi.toml"
+needs_example = pytest.mark.skipif(not EXAMPLE.exists(), reason="the example file is not in this install")
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "config.toml"
+    p.write_text(text)
+    return p
+
+
+def payload_config(*argv: str):
+    return config_from_args(parse_with_config(build_parser(), list(argv), CONFIG_OPTIONS))
+
+
+def errors(text: str) -> list[str]:
+    return [ln for ln in text.splitlines() if ": error: " in ln]
+
+
+@needs_example
+def test_that_check_validates_the_example_and_prints_what_would_run(capsys):
+    assert main(["--config", str(EXAMPLE), "--check"]) == 0
+    out, err = capsys.readouterr()
+    assert errors(err) == []
+    printed = tomllib.loads(out)
+    assert parse_config(printed).to_dict() == printed  # it is a valid configuration file itself
+    assert printed["payload"]["pwm"] == "pwm:pca9685:1:0x40:0"
+    assert printed["payload"]["servo"]["slew_rad_s"] == 10.5
+    assert printed["payload"]["log"].startswith("/home/pi/pilescan/survey-")  # {utc} expanded
+
+
+@needs_example
+def test_that_check_shows_a_flag_over_the_file(capsys):
+    assert main(["--config", str(EXAMPLE), "--check", "--rate", "250", "--servo-center-us", "1490"]) == 0
+    printed = tomllib.loads(capsys.readouterr().out)
+    assert printed["payload"]["rate_hz"] == 250.0 and printed["payload"]["servo"]["center_us"] == 1490.0
+
+
+@pytest.mark.parametrize(("text", "key"), [
+    ("[payload]\nrate_hz = -5\n", "[payload] rate_hz: must be 1-2000 Hz, got -5"),  # out of range
+    ("[payload]\nrat_hz = 500\n", "[payload] rat_hz: unknown key"),  # unknown key
+    ("[payload]\nlever_arm_m = \"0 0 0.1\"\n", "[payload] lever_arm_m: must be an array of 3 numbers"),  # type
+    ("[payload]\npwm = \"pwm:sysfs:zero:0\"\n", "[payload] pwm: "),  # a URL the PWM backends refuse
+    ("[payload]\nmavlink = \"udpout:host\"\n", "[payload] mavlink: expected HOST:PORT in MAVLink URL"),  # bad URL
+    ("[payload.sweep]\nwaveform = \"square\"\n", "[payload.sweep] waveform: must be one of"),  # bad enum
+    ("[site]\nlength_m = 60\nwidth_m = 40\n", "[site] height_m: missing"),  # a section missing a value
+    ("[payload]\nlidarlite_preset = \"turbo\"\n", "[payload] lidarlite_preset: unknown LIDAR-Lite preset"),
+])
+def test_that_a_broken_config_is_one_line_naming_the_key_and_exit_2(tmp_path, capsys, text, key):
+    path = write(tmp_path, text + "[payload]\nlog = \"x.pslog\"\n" if "[payload]" not in text else text)
+    assert main(["--config", str(path), "--check", "--out", str(tmp_path / "x.pslog")]) == ExitCode.USAGE
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith(f"pilescan-payload: error: {path}: {key}"), err
+
+
+def test_that_a_flag_overrides_the_file_and_the_file_the_default(tmp_path):
+    path = write(tmp_path, "[payload]\nrate_hz = 400\nlog = \"a.pslog\"\n[payload.servo]\ncenter_us = 1480\n")
+    assert payload_config("--out", "x.pslog").rate_hz == 500.0
+    from_file = payload_config("--config", str(path))
+    assert from_file.rate_hz == 400.0 and from_file.servo.center_us == 1480.0
+    assert Path(from_file.out_path) == tmp_path / "a.pslog"
+    flags = payload_config("--config", str(path), "--rate", "300", "--out", "b.pslog", "--servo-center-us", "1510")
+    assert (flags.rate_hz, str(flags.out_path), flags.servo.center_us) == (300.0, "b.pslog", 1510.0)
+
+
+def test_that_the_config_may_come_after_other_options_and_the_last_wins(tmp_path):
+    a = write(tmp_path, "[payload]\nrate_hz = 400\n")
+    b = tmp_path / "b.toml"
+    b.write_text("[payload]\nrate_hz = 200\n")
+    assert payload_config("--out", "x", "--config", str(a), "--config", str(b)).rate_hz == 200.0
+
+
+def test_that_hal_on_the_command_line_overrides_the_files_buses(tmp_path):
+    path = write(tmp_path, "[payload]\ni2c = \"i2c:3\"\npwm = \"pwm:sysfs:1:1\"\n")
+    assert payload_config("--config", str(path), "--out", "x").pwm_url == "pwm:sysfs:1:1"
+    cfg = payload_config("--config", str(path), "--out", "x", "--hal", "sitl:127.0.0.1:5760")
+    assert (cfg.i2c_url, cfg.pwm_url) == ("tcp:127.0.0.1:5760", "pwm:tcp:127.0.0.1:5760:0")
+
+
+def test_that_hal_with_bus_flags_is_still_refused(tmp_path, capsys):
+    assert main(["--out", "x", "--hal", "sitl:127.0.0.1:5760", "--i2c", "i2c:1", "--check"]) == ExitCode.USAGE
+    assert "give either --hal or those two" in capsys.readouterr().err
+
+
+def test_that_servo_calibration_flags_set_each_field():
+    cfg = payload_config("--out", "x", "--servo-center-us", "1480", "--servo-us-per-rad", "-600",
+                         "--servo-min-us", "900", "--servo-max-us", "2100", "--servo-slew-rad-s", "9",
+                         "--servo-lag-s", "0.03")
+    assert cfg.servo == ServoCalibration(1480.0, -600.0, 900.0, 2100.0, 9.0, 0.03)
+    assert payload_config("--out", "x").servo == ServoCalibration()
+
+
+@pytest.mark.parametrize("argv", [["--servo-min-us", "1600"], ["--servo-us-per-rad", "0"], ["--servo-lag-s", "-1"],
+                                  ["--boresight", "50", "0"], ["--boresight", "1"]])
+def test_that_a_bad_servo_or_boresight_flag_is_one_line_and_exit_2(capsys, argv):
+    assert main(["--out", "x", "--check", *argv]) == ExitCode.USAGE
+    assert len(capsys.readouterr().err.splitlines()) == 1
+
+
+def test_that_the_boresight_flag_is_in_degrees_and_reaches_the_header():
+    cfg = payload_config("--out", "x", "--boresight", "2", "-1.5")
+    assert cfg.boresight == Boresight(math.radians(2.0), math.radians(-1.5))
+    header = cfg.log_header(sweep_t0_s=0.0)
+    assert header_boresight(header) == cfg.boresight
+    assert LogHeader.from_dict(header).boresight == cfg.boresight
+    assert payload_config("--out", "x").log_header()["boresight"] == {"tilt_rad": 0.0, "sweep_yaw_rad": 0.0}
+
+
+def test_that_the_header_carries_the_effective_configuration(tmp_path):
+    path = write(tmp_path, "[site]\nlength_m = 30\nwidth_m = 20\nheight_m = 10\n"
+                           "[payload]\nrate_hz = 400\nboresight_deg = [1.5, 0]\n[payload.servo]\nlag_s = 0.03\n")
+    cfg = payload_config("--config", str(path), "--out", "x.pslog", "--rate", "250")
+    record = cfg.log_header()["config"]
+    assert record["file"] == str(path)
+    assert record["payload"]["rate_hz"] == 250.0  # the flag, not the file
+    assert record["payload"]["boresight_deg"] == [1.5, 0.0]
+    assert record["payload"]["servo"]["lag_s"] == 0.03 and record["payload"]["pwm"] == DEFAULT_PWM_URL
+    assert record["site"]["length_m"] == 30.0
+    again = parse_config({k: v for k, v in record.items() if k != "file"})  # it reads back as a configuration
+    assert again.payload.rate_hz == 250.0
+    assert payload_config("--out", "x").log_header()["config"]["file"] is None
+
+
+def test_that_a_missing_out_is_one_line(capsys):
+    assert main(["--check"]) == ExitCode.USAGE
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "--out is required" in err
+
+
+def test_that_utc_in_the_log_name_becomes_the_start_time():
+    when = dt.datetime(2026, 11, 24, 23, 53, 1, tzinfo=dt.UTC)
+    assert expand_log_name("/logs/survey-{utc}.pslog", when) == "/logs/survey-20261124T235301Z.pslog"
+    assert expand_log_name("plain.pslog", when) == "plain.pslog"
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs on this system")
+def test_that_a_fifo_config_is_refused_at_once_exit_3(tmp_path, capsys):
+    fifo = tmp_path / "config.toml"
+    os.mkfifo(fifo)
+    assert main(["--config", str(fifo), "--check", "--out", "x"]) == ExitCode.INPUT
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "FIFO" in err
+
+
+def test_that_a_missing_config_is_one_line_exit_3(tmp_path, capsys):
+    assert main(["--config", str(tmp_path / "nope.toml"), "--check", "--out", "x"]) == ExitCode.INPUT
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "No such file" in err
