@@ -235,6 +235,17 @@ class ReportContent:
     config_file: str | None = None
 
 
+def _config_value(v: Any) -> str:
+    """A configuration value as the file writes it (1480, not "1,480": a pulse width is not a count)."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, numbers.Real):
+        return f"{float(v):.12g}" if isinstance(v, float) else str(v)
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_config_value(x) for x in v) + "]"
+    return UNKNOWN if v is None else str(v)
+
+
 def _warnings(report: Mapping[str, Any]) -> list[str]:
     w = report.get("warnings")
     if w is None:
@@ -265,9 +276,9 @@ def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportC
     config_rows, config_file = [], None
     if isinstance(cfg, Mapping):
         config_file = None if cfg.get("file") is None else str(cfg.get("file"))
-        config_rows = [(name, fmt_value(v)) for name, v in flatten({k: v for k, v in cfg.items() if k != "file"})]
+        config_rows = [(name, _config_value(v)) for name, v in flatten({k: v for k, v in cfg.items() if k != "file"})]
     elif cfg is not None:
-        config_rows = [("config", fmt_value(cfg))]
+        config_rows = [("config", _config_value(cfg))]
     return ReportContent(
         config=config_rows, config_file=config_file,
         headline=f"Stockpile volume: {fmt_volume(report.get('volume_m3'))}",
