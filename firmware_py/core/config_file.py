@@ -358,7 +358,7 @@ def _fmt(v: float) -> str:
     return f"{v:g}"
 
 
-def _range_text(m: Mapping[str, Any]) -> str:
+def range_text(m: Mapping[str, Any]) -> str:
     lo, hi, unit = m["lo"], m["hi"], m["unit"]
     u = f" {unit}" if unit and unit != "%" else unit
     if lo is not None and hi is not None:
@@ -396,7 +396,7 @@ def _check_value(v: Any, m: Mapping[str, Any], base_dir: Path | None) -> tuple[A
         if not math.isfinite(v):
             return None, f"must be a finite number, got {v}"
         if not _in_range(v, m):
-            rng = _range_text(m)
+            rng = range_text(m)
             need = f"must be {rng}" if rng else "must be in range"
             if m["nonzero"]:
                 need += " and not 0"
@@ -448,7 +448,7 @@ def _vector_problem(v: list[float], m: Mapping[str, Any]) -> str | None:
         return None
     for name, x in zip(names, v, strict=True):
         if not _in_range(x, m):
-            return f"{name} must be {_range_text(m)}, got {_fmt(x)}"
+            return f"{name} must be {range_text(m)}, got {_fmt(x)}"
     return None
 
 
