@@ -12,6 +12,7 @@ import tempfile
 from pathlib import Path
 
 from firmware_py.core.frames import StorageFrame
+from firmware_py.core.header import header_boresight
 from firmware_py.core.samplelog import read_samplelog
 from ground.pointcloud import SensorErrorModel, cloud_from_samples, structure_mask
 from ground.surface import DEFAULT_CELL_M, EMPTY_CELL_POLICIES, Grid, fill_empty, fit_heights, grid_volume
@@ -27,7 +28,7 @@ def volumes_by_cell(pile: str, p_traj: float, tmp: Path) -> dict[str, dict[float
     fly(cfg, run, force=True)
     log = read_samplelog(run / "samples.pslog")
     cloud = cloud_from_samples(log.samples, log.header["lever_arm_body_m"], StorageFrame.from_dict(
-        log.header["storage_frame"]))
+        log.header["storage_frame"]), boresight=header_boresight(log.header))
     st = cfg.mission.storage
     pts = cloud.points_w[~structure_mask(cloud, st, SensorErrorModel.from_header(log.header))]
     out: dict[str, dict[float, float]] = {pol: {} for pol in EMPTY_CELL_POLICIES}
