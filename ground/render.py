@@ -306,9 +306,9 @@ def _md_table(header: tuple[str, str], rows: list[tuple[str, str]]) -> list[str]
 
 def _config_note(content: ReportContent) -> str:
     """Where the payload's configuration came from (its log header's ``config`` record)."""
-    src = f"the configuration file {content.config_file}" if content.config_file else "no configuration file"
-    return (f"What the payload ran with, from its log header: {src}, with its command-line flags over it "
-            "(keys as in docs/configuration.md).")
+    src = (f"the configuration file {content.config_file} with the command line's flags over it"
+           if content.config_file else "no configuration file: its command line's flags and built-in defaults")
+    return f"What the payload ran with, from its log header: {src} (keys as in docs/configuration.md)."
 
 
 def _relative_ref(image: Path, out_dir: Path) -> str:
