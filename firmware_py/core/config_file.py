@@ -116,8 +116,8 @@ class SiteSection:
         Kind.NUMBER, "inside height, floor to roof", unit="m", lo=0.5, hi=10_000.0, example=15.0))
     origin: tuple[float, float, float] | None = field(default=None, metadata=_key(
         Kind.VECTOR, "the storage frame's origin, the building's floor corner: latitude, longitude (WGS84), altitude "
-        "above mean sea level", unit="deg, deg, m", length=3, names=("lat_deg", "lon_deg", "alt_m"), example=(53.4668,
-        -2.2339, 50.0)))
+        "above mean sea level", unit="deg, deg, m", length=3, names=("lat_deg", "lon_deg", "alt_m"),
+        example=(53.4668, -2.2339, 50.0)))
     heading_deg: float | None = field(default=None, metadata=_key(
         Kind.NUMBER, "direction of the building's x axis (its length), clockwise from north", unit="deg", lo=-360.0,
         hi=360.0, example=0.0))
@@ -279,7 +279,7 @@ class ConfigFile:
         return obj
 
     def to_dict(self) -> dict[str, Any]:
-        """The keys set, nested by section (enums as their names, vectors as lists): JSON and TOML ready."""
+        """The keys set, nested by section (enums as their values, vectors as lists): JSON and TOML ready."""
         return _section_dict(self)
 
 
