@@ -1,4 +1,5 @@
-"""`pilescan-payload`: the survey payload on the drone's companion computer (LIDAR-Lite on a sweeping servo,
+"""`pilescan-payload`: the survey payload on the drone's companion computer (a LIDAR-Lite v3 on I2C or a TFMini
+on a UART, on a sweeping servo,
 poses from the autopilot over MAVLink, a crash-safe sample log). Stops on SIGINT/SIGTERM (Ctrl-C), after
 --duration, or with --stop-on-disarm when the autopilot disarms; the log is complete either way.
 """
@@ -7,6 +8,7 @@ from __future__ import annotations
 
 import re
 import sys
+from argparse import ArgumentTypeError
 from collections.abc import Sequence
 
 from firmware_py.app import (
@@ -14,6 +16,8 @@ from firmware_py.app import (
     DEFAULT_MAVLINK_URL,
     DEFAULT_PRESET,
     DEFAULT_PWM_URL,
+    DEFAULT_RANGEFINDER,
+    DEFAULT_UART_URL,
     PROG,
     PayloadApp,
     PayloadConfig,
@@ -28,6 +32,7 @@ from firmware_py.core.cli import (
     stop_on_signals,
 )
 from firmware_py.core.keys import load_key
+from firmware_py.core.sensor import Rangefinder
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import N_PHASES
@@ -58,13 +63,22 @@ def build_parser() -> ArgumentParser:
     hw.add_argument("--mavlink", default=DEFAULT_MAVLINK_URL, metavar="URL",
                     help="link to the autopilot: serial:/dev/ttyAMA0:921600, udp:HOST:PORT (listen), "
                          f"udpout:HOST:PORT, tcp:HOST:PORT (default {DEFAULT_MAVLINK_URL})")
+    hw.add_argument("--rangefinder", type=_rangefinder, default=DEFAULT_RANGEFINDER,
+                    metavar="|".join(r.value for r in Rangefinder),
+                    help="the rangefinder fitted: lidarlite-v3 (Garmin LIDAR-Lite v3 on --i2c, 500 Hz) or tfmini "
+                         "(Benewake TFMini family on --uart, paced by its frames, 100 Hz from the factory) "
+                         f"(default {DEFAULT_RANGEFINDER.value})")
+    hw.add_argument("--uart", default=None, metavar="URL",
+                    help="with --rangefinder tfmini: its serial port, serial:/dev/PATH[:BAUD] (the Pi's header UART "
+                         f"is /dev/serial0, a USB adapter /dev/ttyUSB0; default {DEFAULT_UART_URL})")
     hw.add_argument("--i2c", default=None, metavar="URL",
                     help=f"the LIDAR-Lite's I2C bus: i2c:1, i2c:/dev/i2c-1, tcp:HOST:PORT (default {DEFAULT_I2C_URL})")
     hw.add_argument("--pwm", default=None, metavar="URL",
                     help="the servo's PWM output: pwm:sysfs:CHIP:CH, pwm:pca9685:BUS:ADDR:CH, pwm:mavlink:N, "
                          f"pwm:tcp:HOST:PORT:CH (default {DEFAULT_PWM_URL})")
     hw.add_argument("--hal", default=None, metavar="sitl:HOST:PORT",
-                    help="the networked SITL's device bridge: sets --i2c tcp:HOST:PORT and --pwm pwm:tcp:HOST:PORT:0")
+                    help="the networked SITL's device bridge: sets --i2c tcp:HOST:PORT and --pwm pwm:tcp:HOST:PORT:0 "
+                         "(with --rangefinder tfmini only the servo: the TFMini is on --uart)")
     out = ap.add_argument_group("output")
     out.add_argument("--out", required=True, metavar="PATH", help="sample log to write (.pslog)")
     out.add_argument("--force", action="store_true", help="overwrite --out if it exists")
@@ -75,7 +89,9 @@ def build_parser() -> ArgumentParser:
     sv = ap.add_argument_group("sensor and servo")
     sv.add_argument("--preset", default=DEFAULT_PRESET, metavar="NAME",
                     help=f"LIDAR-Lite preset: {', '.join(PRESETS)} (default {DEFAULT_PRESET})")
-    sv.add_argument("--rate", type=finite_float, default=500.0, metavar="HZ", help="sample rate, Hz (default 500)")
+    sv.add_argument("--rate", type=finite_float, default=None, metavar="HZ",
+                    help="sample rate, Hz (default: the rangefinder's, 500 LIDAR-Lite, 100 TFMini; a TFMini sends "
+                         "frames at the rate it is set to, and this says which)")
     sv.add_argument("--waveform", choices=("semi-triangular", "sinusoidal"), default="semi-triangular",
                     help="servo waveform (eq. 1; C=0.95 or C=0)")
     sv.add_argument("--servo-rate", type=finite_float, default=5.0, metavar="RAD_S",
@@ -107,6 +123,13 @@ def build_parser() -> ArgumentParser:
     return ap
 
 
+def _rangefinder(text: str) -> Rangefinder:
+    try:
+        return Rangefinder.named(text.strip())
+    except ValueError as exc:
+        raise ArgumentTypeError(str(exc)) from None
+
+
 def signing_from_args(args) -> SigningConfig | None:
     """--signing-key / --allow-unsigned -> SigningConfig (None without a key); one-line errors."""
     if args.signing_key is None:
@@ -126,7 +149,7 @@ def uses_device_bridge(i2c_url: str, pwm_url: str) -> bool:
 def config_from_args(args) -> PayloadConfig:
     """PayloadConfig from parsed options (ValueError / UserError for bad values, one line each)."""
     signing = signing_from_args(args)
-    for opt, value in (("--i2c", args.i2c), ("--pwm", args.pwm)):
+    for opt, value in (("--i2c", args.i2c), ("--pwm", args.pwm), ("--uart", args.uart)):
         if value is not None and not value.strip():
             raise UserError(f"{opt} must be a non-empty URL (leave it out for the default)")
     i2c, pwm = args.i2c or DEFAULT_I2C_URL, args.pwm or DEFAULT_PWM_URL
@@ -134,9 +157,17 @@ def config_from_args(args) -> PayloadConfig:
         if args.i2c is not None or args.pwm is not None:
             raise UserError("--hal sets --i2c and --pwm: give either --hal or those two")
         i2c, pwm = hal_urls(args.hal)
-    device_key = signing.key if signing is not None and uses_device_bridge(i2c, pwm) else None
+    tfmini = args.rangefinder is Rangefinder.TFMINI
+    if args.uart is not None and not tfmini:
+        raise UserError("--uart is the TFMini's serial port: give it with --rangefinder tfmini")
+    if tfmini and args.i2c is not None:
+        raise UserError("--i2c is the LIDAR-Lite's bus: a TFMini is on --uart")
+    if tfmini and args.preset != DEFAULT_PRESET:
+        raise UserError("--preset is the LIDAR-Lite's: a TFMini has none")
+    device_key = signing.key if signing is not None and uses_device_bridge(i2c if not tfmini else "", pwm) else None
     return PayloadConfig(
-        out_path=args.out, force=args.force, mavlink_url=args.mavlink, i2c_url=i2c, pwm_url=pwm,
+        out_path=args.out, force=args.force, mavlink_url=args.mavlink, rangefinder=args.rangefinder,
+        uart_url=args.uart or DEFAULT_UART_URL, i2c_url=i2c, pwm_url=pwm,
         preset=args.preset, rate_hz=args.rate, waveform=args.waveform, servo_peak_rate_rad_s=args.servo_rate,
         initial_position=args.phase, storage=Storage.parse(args.storage),
         lever_arm_body_m=tuple(args.lever_arm), duration_s=args.duration, stop_on_disarm=args.stop_on_disarm,
