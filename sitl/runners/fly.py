@@ -31,7 +31,7 @@ from firmware_py.core.rundir import (
     check_free,
 )
 from firmware_py.core.samplelog import SampleLogWriter
-from firmware_py.core.sensor import LIDARLITE_V3, RangefinderSpec
+from firmware_py.core.sensor import LIDARLITE_V3, Rangefinder, RangefinderSpec
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import Waveform, initial_position, named_waveform
 from sitl.faults.injector import FaultSpec
@@ -47,6 +47,22 @@ log = logging.getLogger(__name__)
 
 PLANTS = ("jsbsim", "ideal")
 PAYLOADS = ("batch", "firmware")
+TFMINI_NOISES = ("none", "datasheet")
+"""The emulated TFMini's range noise (`--tfmini-noise`): none, or its datasheet accuracy as a Gaussian
+(`sitl.devices.tfmini_emu.datasheet_noise`), until the per-rangefinder `--sensor-noise` models land."""
+LIDARLITE_FAULTS = frozenset({"i2c_nack_pct", "lidar_stuck_busy", "lidar_power_glitch_at_s", "lidar_garbage_pct"})
+"""Faults of the LIDAR-Lite's I2C bus and registers: a TFMini has neither."""
+TFMINI_FAULTS = frozenset({"tfmini_bad_frame_pct", "tfmini_garbage_pct", "tfmini_unplug"})
+"""Faults of the TFMini's UART: a LIDAR-Lite has none."""
+
+
+def check_rangefinder_faults(rangefinder: Rangefinder, faults: FaultSpec | None) -> None:
+    """ValueError naming the first fault that acts on a part the flight does not carry."""
+    for name in faults.active if faults is not None else ():
+        if rangefinder is Rangefinder.TFMINI and name in LIDARLITE_FAULTS:
+            raise ValueError(f"fault {name} acts on the LIDAR-Lite; this flight carries a TFMini")
+        if rangefinder is Rangefinder.LIDARLITE_V3 and name in TFMINI_FAULTS:
+            raise ValueError(f"fault {name} acts on the TFMini; fly it with --rangefinder tfmini")
 
 
 @dataclass(frozen=True)
@@ -65,10 +81,24 @@ class FlyConfig:
     seed: int = 0
     lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10)
     frame: StorageFrame = field(default_factory=StorageFrame)
-    lidar: RangefinderSpec = LIDARLITE_V3
+    lidar: RangefinderSpec = LIDARLITE_V3  # the datasheet flown (the rangefinder's, unless set)
     faults: FaultSpec | None = None  # fault injection (sitl.faults.injector), firmware payload only
+    rangefinder: Rangefinder = Rangefinder.LIDARLITE_V3  # which part the payload drives (--rangefinder)
+    tfmini_noise: str = "none"  # the emulated TFMini's range noise (TFMINI_NOISES)
 
     def __post_init__(self) -> None:
+        if not isinstance(self.rangefinder, Rangefinder):
+            raise ValueError(f"rangefinder must be one of {', '.join(r.value for r in Rangefinder)}, "
+                             f"got {self.rangefinder!r}")
+        if self.rangefinder is not Rangefinder.LIDARLITE_V3 and self.lidar == LIDARLITE_V3:
+            object.__setattr__(self, "lidar", self.rangefinder.spec)
+        if self.tfmini_noise not in TFMINI_NOISES:
+            raise ValueError(f"unknown TFMini noise {self.tfmini_noise!r}; available: {', '.join(TFMINI_NOISES)}")
+        if self.tfmini_noise != "none" and self.rangefinder is not Rangefinder.TFMINI:
+            raise ValueError("--tfmini-noise is the emulated TFMini's: fly it with --rangefinder tfmini")
+        if self.tfmini_noise != "none" and self.payload != "firmware":
+            raise ValueError("--tfmini-noise needs the emulated TFMini of the firmware payload (--payload firmware)")
+        check_rangefinder_faults(self.rangefinder, self.faults)
         if self.plant not in PLANTS:
             raise ValueError(f"unknown plant {self.plant!r}; available: {', '.join(PLANTS)}")
         if self.payload not in PAYLOADS:
