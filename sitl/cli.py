@@ -22,8 +22,8 @@ from firmware_py.core.cli import (
     run_cli,
 )
 from firmware_py.core.frames import StorageFrame
-from firmware_py.core.sensor import Rangefinder
 from firmware_py.core.rundir import publish_file
+from firmware_py.core.sensor import Rangefinder
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import N_PHASES

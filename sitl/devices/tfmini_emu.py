@@ -206,7 +206,8 @@ class EmulatedTfminiPort:
 class PtyTfmini:
     """A TFMini on a pseudo-terminal, in real time (module docstring). `path` is the serial port to
     open (`serial:{path}`); `start()` begins streaming, `unplugged` silences it (the sensor's cable),
-    `remove_adapter()` closes the master side (a USB adapter gone), `close()` stops. Args as `EmulatedTfminiPort`, times in the monotonic clock's ns."""
+    `remove_adapter()` closes the master side (a USB adapter gone), `close()` stops. Args as
+    `EmulatedTfminiPort`, times in the monotonic clock's ns."""
 
     def __init__(self, range_at: Callable[[int], float | None], *, model: TfminiModel = TfminiModel.TFMINI_S,
                  baud: int = 115_200, rate_hz: float = 100.0, output_latency_ns: int = 0,

@@ -279,7 +279,8 @@ def payload_config(cfg, log_path, header: dict, timeout_s: float) -> PayloadConf
     SITL's header provenance (source, mission) so the ground station reads the same log header."""
     return PayloadConfig(
         out_path=log_path, force=True, mavlink_url=SITL_MAVLINK_URL, i2c_url=SITL_I2C_URL, pwm_url=SITL_PWM_URL,
-        rangefinder=cfg.rangefinder, uart_url=SITL_UART_URL, rate_hz=cfg.lidar.rate_hz, waveform=cfg.waveform, servo_peak_rate_rad_s=cfg.servo_peak_rate_rad_s,
+        rangefinder=cfg.rangefinder, uart_url=SITL_UART_URL, rate_hz=cfg.lidar.rate_hz, waveform=cfg.waveform,
+        servo_peak_rate_rad_s=cfg.servo_peak_rate_rad_s,
         initial_position=cfg.initial_position, servo=ServoCalibration(), storage=cfg.mission.storage,
         frame=cfg.frame, lever_arm_body_m=tuple(cfg.lever_arm_body_m), range_sigma_m=cfg.lidar.range_sigma_m,
         range_sigma_rel=cfg.lidar.range_sigma_rel, duration_s=timeout_s, stop_on_disarm=True,
