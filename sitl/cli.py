@@ -84,6 +84,7 @@ def build_parser() -> ArgumentParser:
                     help="also serve the emulated LIDAR-Lite (I2C 0x62) and servo (PWM channel 0) there, for "
                          "`pilescan-payload --hal sitl:HOST:PORT` in another process (needs --speedup 1)")
     sv.add_argument("--stockpile", default="1", help="with --devices: 1, 2 or an STL/OBJ mesh path (default 1)")
+    _rangefinder_options(sv)  # with --devices: tfmini also streams on a pseudo-terminal, its path printed
     _mission_options(sv, p_traj_required=False)
     sv.add_argument("--out", default="runs/serve",
                     help="run directory for mission.waypoints (at once), telemetry.tlog and, with --devices, "
@@ -212,7 +213,8 @@ def _serve(args) -> int:
     return serve(ServeOptions(mission=_mission(args), url=args.mavlink, speedup=args.speedup,
                               duration_s=args.duration, vehicle=args.vehicle, out=Path(args.out), force=args.force,
                               devices_url=args.devices, stockpile=args.stockpile, signing=signing,
-                              faults=FaultSpec.parse(args.fault, seed=args.seed),
+                              faults=FaultSpec.parse(args.fault, seed=args.seed), rangefinder=args.rangefinder,
+                              tfmini_noise=args.tfmini_noise,
                               limits=tlog_limits(args.tlog_max_mb)))
 
 

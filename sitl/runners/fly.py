@@ -215,7 +215,9 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
         truth = truth_record(pile, cfg.stockpile, cfg.mission, cfg.frame, plant=cfg.plant, payload=cfg.payload,
                              seed=cfg.seed, faults=cfg.faults, flight_time_s=duration_s, energy_j=energy_j,
                              payload_kg=cfg.payload_kg if cfg.plant == "jsbsim" else None, n_samples=len(records),
-                             servo_initial_position=cfg.initial_position, waveform=cfg.waveform)
+                             servo_initial_position=cfg.initial_position, waveform=cfg.waveform,
+                             **({"rangefinder": cfg.rangefinder.value, "tfmini_noise": cfg.tfmini_noise}
+                                if cfg.rangefinder is Rangefinder.TFMINI else {}))
         folder.staged(TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
         folder.commit()
     n_ret = int(np.count_nonzero(records["flags"] == 0))
