@@ -48,6 +48,7 @@ from sitl.faults.injector import PAIRS, FaultSpec
 from sitl.mavlink.server import LinkLimits, MavlinkVehicleServer, run_realtime
 from sitl.mavlink.transport import make_transport
 from sitl.missions.qgc_wpl import DEFAULT_ORIGIN, write_qgc_wpl
+from sitl.missions.range_check import check_range
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import start_pose
 from sitl.runners.fly import TFMINI_NOISES, FlyConfig, check_clearance, check_rangefinder_faults, truth_record
@@ -137,6 +138,10 @@ def serve(opts: ServeOptions) -> int:
         with reading_input("--stockpile"):
             pile = piles.resolve(opts.stockpile, opts.mission.storage)
         check_clearance(opts.mission, pile)
+        fc = opts.fly_config()
+        out_of_range = check_range(opts.mission, fc.lidar.max_range_m, fc.servo_waveform(), fc.lever_arm_body_m)
+        if out_of_range:
+            log.warning(out_of_range)
         world = World(opts.mission.storage, pile, max_range_m=opts.fly_config().lidar.max_range_m)
     transport = make_transport(opts.url)  # a bad --mavlink fails before anything is written
     try:
