@@ -45,7 +45,7 @@ from typing import Any, BinaryIO, TextIO
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from firmware_py.core.cli import UserError
+from firmware_py.core.cli import RunFailure, UserError
 from firmware_py.core.flag_tally import describe_flag_counts
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.header import build_log_header, sensor_spec
@@ -579,10 +579,10 @@ class PayloadApp:
         seen = _opening("TFMini serial port", cfg.uart_url,
                         lambda: tfmini.check_streaming(round(wait_s * 1e9)))
         if seen is StreamCheck.SILENT:
-            raise UserError(f"no data from the TFMini on {cfg.uart_url} within {wait_s:g} s: check the port, "
+            raise RunFailure(f"no data from the TFMini on {cfg.uart_url} within {wait_s:g} s: check the port, "
                             "its wiring (the TFMini's TX to the Pi's RX, 5 V, ground) and its power")
         if seen is StreamCheck.NO_FRAMES:
-            raise UserError(f"bytes arrive on {cfg.uart_url} but no valid TFMini frame within {wait_s:g} s: "
+            raise RunFailure(f"bytes arrive on {cfg.uart_url} but no valid TFMini frame within {wait_s:g} s: "
                             f"is the part set to {cfg.uart_baud()} baud (the factory rate is {DEFAULT_BAUD})?")
 
     def _sensor_note(self) -> str:
