@@ -1,8 +1,9 @@
 """The payload program on the companion computer, assembled: what `pilescan-payload` runs.
 
 `PayloadApp` is the one composition root: it opens the hardware named by URLs (MAVLink link, I2C bus,
-PWM output: DESIGN section 7), or takes already-open parts, and builds the pose tracker, LIDAR-Lite
-driver, sweeping servo, sample log and the 500 Hz `PayloadLoop` on the real monotonic clock, or on
+PWM output, or the TFMini's serial port: DESIGN section 7), or takes already-open parts, and builds the
+pose tracker, the rangefinder's driver (LIDAR-Lite, or TFMini: `--rangefinder`), sweeping servo, sample
+log and the `PayloadLoop` (500 Hz, or paced by the TFMini's frames) on the real monotonic clock, or on
 an injected one; then runs the loop until told to stop. The SITL's lockstep runner
 (`sitl.runners.lockstep_payload.fly_firmware`) runs this same app with its simulated clock, link,
 bus and servo injected, plus its `on_tick` hook and log opener (faults, power cut).

@@ -1,7 +1,7 @@
-"""`pilescan-payload`: the survey payload on the drone's companion computer (a LIDAR-Lite v3 on I2C or a TFMini
-on a UART, on a sweeping servo,
-poses from the autopilot over MAVLink, a crash-safe sample log). Stops on SIGINT/SIGTERM (Ctrl-C), after
---duration, or with --stop-on-disarm when the autopilot disarms; the log is complete either way.
+"""`pilescan-payload`: the survey payload on the drone's companion computer (a LIDAR-Lite v3 on I2C or a
+TFMini on a UART, on a sweeping servo; poses from the autopilot over MAVLink; a crash-safe sample log).
+Stops on SIGINT/SIGTERM (Ctrl-C), after --duration, or with --stop-on-disarm when the autopilot disarms;
+the log is complete either way.
 """
 
 from __future__ import annotations
