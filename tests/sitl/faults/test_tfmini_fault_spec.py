@@ -41,3 +41,19 @@ def test_that_serve_takes_a_tfmini_only_with_its_devices():
     opts = ServeOptions(mission=Mission(), devices_url="tcp:127.0.0.1:0", rangefinder=Rangefinder.TFMINI,
                         faults=FaultSpec(tfmini_unplug=(5.0, 2.0)))
     assert opts.fly_config().lidar.max_range_m == 12.0  # the world is ray cast to the TFMini's range
+
+
+@pytest.mark.parametrize(("argv", "words"), [
+    (["fly", "--stockpile", "1", "--p-traj", "20", "--rangefinder", "sonar"], "unknown rangefinder"),
+    (["fly", "--stockpile", "1", "--p-traj", "20", "--tfmini-noise", "datasheet"], "--rangefinder tfmini"),
+    (["fly", "--stockpile", "1", "--p-traj", "20", "--rangefinder", "tfmini"], "mostly out of range"),
+    (["fly", "--stockpile", "1", "--p-traj", "20", "--rangefinder", "tfmini", "--storage", "30x20x10", "--altitude",
+      "9", "--fault", "lidar_stuck_busy=5,2"], "acts on the LIDAR-Lite"),
+    (["serve", "--rangefinder", "tfmini", "--duration", "1"], "needs --devices"),
+])
+def test_that_bad_tfmini_sitl_options_are_one_line_and_exit_2(capsys, tmp_path, argv, words):
+    from sitl.cli import main
+    rc = main([*argv, "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err
+    assert rc == 2 and words in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert not (tmp_path / "run" / "truth.json").exists()
