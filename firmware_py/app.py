@@ -1,8 +1,9 @@
 """The payload program on the companion computer, assembled: what `pilescan-payload` runs.
 
 `PayloadApp` is the one composition root: it opens the hardware named by URLs (MAVLink link, I2C bus,
-PWM output: DESIGN section 7), or takes already-open parts, and builds the pose tracker, LIDAR-Lite
-driver, sweeping servo, sample log and the 500 Hz `PayloadLoop` on the real monotonic clock, or on
+PWM output, or the TFMini's serial port: DESIGN section 7), or takes already-open parts, and builds the
+pose tracker, the rangefinder's driver (LIDAR-Lite, or TFMini: `--rangefinder`), sweeping servo, sample
+log and the `PayloadLoop` (500 Hz, or paced by the TFMini's frames) on the real monotonic clock, or on
 an injected one; then runs the loop until told to stop. The SITL's lockstep runner
 (`sitl.runners.lockstep_payload.fly_firmware`) runs this same app with its simulated clock, link,
 bus and servo injected, plus its `on_tick` hook and log opener (faults, power cut).
@@ -45,12 +46,12 @@ from typing import Any, BinaryIO, TextIO
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from firmware_py.core.cli import UserError
+from firmware_py.core.cli import RunFailure, UserError
 from firmware_py.core.flag_tally import describe_flag_counts
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
 from firmware_py.core.header import build_log_header, sensor_spec
 from firmware_py.core.samplelog import SampleFlags, SampleLogWriter
-from firmware_py.core.sensor import LIDARLITE_V3
+from firmware_py.core.sensor import Rangefinder
 from firmware_py.core.servo_model import PWM_FRAME_S, ServoCalibration
 from firmware_py.core.storage import Storage
 from firmware_py.core.stream_format import MAX_RECORDS, parse_stream_url
@@ -64,6 +65,7 @@ from firmware_py.drivers.lidarlite import (
     preset_by_name,
 )
 from firmware_py.drivers.servo import SweepServo
+from firmware_py.drivers.tfmini import StreamCheck, Tfmini, TfminiConfig
 from firmware_py.hal import Clock, I2CBus, MavlinkLink, PwmOutput
 from firmware_py.hal.backends import open_i2c, parse_i2c_url
 from firmware_py.hal.bridge import check_bridge_key
@@ -71,9 +73,10 @@ from firmware_py.hal.clock import MonotonicClock
 from firmware_py.hal.mavlink_link import mavutil_device, open_mavlink
 from firmware_py.hal.pwm import check_pwm_url, open_pwm
 from firmware_py.hal.signing import SigningConfig
-from firmware_py.health import HealthMonitor, HealthSnapshot, HealthStatus
+from firmware_py.hal.uart import DEFAULT_BAUD, SerialPort, check_uart_url, open_uart, parse_uart_url
+from firmware_py.health import HealthMonitor, HealthSnapshot, HealthStatus, SensorState
 from firmware_py.live_stream import LiveStreamSender
-from firmware_py.payload import COUNTED_FLAGS, LoopConfig, LoopStats, PayloadLoop
+from firmware_py.payload import COUNTED_FLAGS, LoopConfig, LoopStats, PayloadLoop, RangeSensor
 from firmware_py.pose import set_gps_global_origin_msg
 from firmware_py.pose_tracker import PoseTracker, PoseTrackerConfig
 
@@ -81,6 +84,9 @@ PROG = "pilescan-payload"
 DEFAULT_MAVLINK_URL = "udpout:127.0.0.1:14550"
 DEFAULT_I2C_URL = "i2c:1"
 DEFAULT_PWM_URL = "pwm:sysfs:0:0"
+DEFAULT_UART_URL = "serial:/dev/serial0:115200"
+"""The Raspberry Pi's header UART (GPIO 14 TX, 15 RX) at the TFMini's factory rate."""
+DEFAULT_RANGEFINDER = Rangefinder.LIDARLITE_V3
 DEFAULT_PRESET = PRESET_FAST_500HZ.name
 _MAVLINK_BUILTIN = ("serial", "udp", "udpin", "udpout", "tcp")
 ORIGIN_RESEND_S = 5.0
@@ -104,12 +110,19 @@ class PayloadConfig:
         out_path: the sample log to write [--out]; never overwritten unless `force` [--force].
         mavlink_url: link to the autopilot [--mavlink]: serial:/dev/ttyAMA0:921600, udp:HOST:PORT,
             udpout:HOST:PORT, tcp:HOST:PORT, or a registered scheme.
+        rangefinder: which rangefinder is fitted [--rangefinder]: the LIDAR-Lite v3 on I2C (`i2c_url`)
+            or a TFMini on a UART (`uart_url`).
         i2c_url: the LIDAR-Lite's bus [--i2c]: i2c:1, i2c:/dev/i2c-1, tcp:HOST:PORT (SITL bridge), ...
+        uart_url: the TFMini's serial port [--uart]: serial:/dev/PATH[:BAUD] (the Pi's header UART is
+            /dev/serial0; the networked SITL's emulated part is a /dev/pts/N).
         pwm_url: the servo's output [--pwm]: pwm:sysfs:CHIP:CH, pwm:pca9685:BUS:ADDR:CH, pwm:mavlink:N,
             pwm:tcp:HOST:PORT:CH (SITL bridge), ...
         preset: LIDAR-Lite register preset name [--preset] (`firmware_py.drivers.lidarlite.PRESETS`).
         i2c_address: the LIDAR-Lite's 7-bit address.
-        rate_hz: payload loop / LiDAR sample rate, Hz [--rate].
+        rate_hz: payload loop / LiDAR sample rate, Hz [--rate]; None: the rangefinder's own (500 Hz
+            LIDAR-Lite, 100 Hz TFMini). A TFMini streams at the rate it is set to: this says which.
+        sensor_start_timeout_s: a TFMini must send a valid frame within this long of opening its port,
+            or the program stops with a line saying what it saw (nothing, or bytes but no frames).
         waveform, servo_peak_rate_rad_s, initial_position: the eq. (1) sweep
             [--waveform, --servo-rate, --phase], as `pilescan-sitl fly`.
         servo: pulse-width calibration and dynamics of the servo.
@@ -118,7 +131,7 @@ class PayloadConfig:
         boresight: how the beam's mounting differs from square [--boresight TILT_DEG SWEEP_YAW_DEG]; written
             to the header, where the ground station places points with it.
         range_sigma_m, range_sigma_rel: the sensor's range error model written to the header (the
-            ground station sizes its wall tolerances with it): LIDAR-Lite v3 datasheet by default.
+            ground station sizes its wall tolerances with it); None: the rangefinder's datasheet.
         duration_s: stop after this long; None = until stopped [--duration].
         stop_on_disarm: stop when the autopilot disarms after having been armed [--stop-on-disarm].
         stream_url: live sample stream to the ground, udp:HOST:PORT; None = off [--stream].
@@ -150,11 +163,14 @@ class PayloadConfig:
     out_path: str | os.PathLike[str] = "samples.pslog"
     force: bool = False
     mavlink_url: str = DEFAULT_MAVLINK_URL
+    rangefinder: Rangefinder = DEFAULT_RANGEFINDER
     i2c_url: str = DEFAULT_I2C_URL
+    uart_url: str = DEFAULT_UART_URL
     pwm_url: str = DEFAULT_PWM_URL
     preset: str = DEFAULT_PRESET
     i2c_address: int = DEFAULT_ADDRESS
-    rate_hz: float = 500.0
+    rate_hz: float | None = None
+    sensor_start_timeout_s: float = 1.0
     waveform: str = "semi-triangular"
     servo_peak_rate_rad_s: float = 5.0
     initial_position: int = 0
@@ -163,8 +179,8 @@ class PayloadConfig:
     frame: StorageFrame = field(default_factory=StorageFrame)
     lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10)
     boresight: Boresight = SQUARE
-    range_sigma_m: float = LIDARLITE_V3.range_sigma_m
-    range_sigma_rel: float = LIDARLITE_V3.range_sigma_rel
+    range_sigma_m: float | None = None
+    range_sigma_rel: float | None = None
     duration_s: float | None = None
     stop_on_disarm: bool = False
     stream_url: str | None = None
@@ -196,10 +212,23 @@ class PayloadConfig:
         return busy_deadline_ns(preset_by_name(self.preset), self.rate_hz)
 
     def __post_init__(self) -> None:
+        if not isinstance(self.rangefinder, Rangefinder):
+            raise ValueError(f"rangefinder must be one of {', '.join(r.value for r in Rangefinder)}, "
+                             f"got {self.rangefinder!r}")
+        spec = self.rangefinder.spec  # unset rate and error model: the fitted rangefinder's datasheet
+        for name, default in (("rate_hz", spec.rate_hz), ("range_sigma_m", spec.range_sigma_m),
+                              ("range_sigma_rel", spec.range_sigma_rel)):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, default)
         if not isinstance(self.out_path, str | os.PathLike) or not str(self.out_path).strip():
             raise ValueError(f"sample log path must be a non-empty path, got {self.out_path!r}")
         self._check_urls()
-        self.busy_deadline_ns()  # the preset exists and can sustain the rate
+        if self.rangefinder is Rangefinder.TFMINI:
+            self.tfmini_config()  # the frame rate fits the baud rate
+            if not (_finite(self.sensor_start_timeout_s) and 0.0 < self.sensor_start_timeout_s <= 60.0):
+                raise ValueError(f"sensor start timeout must be in (0, 60] s, got {self.sensor_start_timeout_s!r}")
+        else:
+            self.busy_deadline_ns()  # the preset exists and can sustain the rate
         if isinstance(self.i2c_address, bool) or not isinstance(self.i2c_address, int) \
                 or not 0x08 <= self.i2c_address <= 0x77:
             raise ValueError(f"I2C address must be a 7-bit address 0x08-0x77, got {self.i2c_address!r}")
@@ -256,18 +285,48 @@ class PayloadConfig:
         if self.i2c_url.split(":", 1)[0] == "i2c":
             parse_i2c_url(self.i2c_url)
         check_pwm_url(self.pwm_url)  # before anything is opened
+        if self.rangefinder is Rangefinder.TFMINI:
+            if not isinstance(self.uart_url, str) or not self.uart_url.strip():
+                raise ValueError(f"serial port URL must be a non-empty string like {DEFAULT_UART_URL}, "
+                                 f"got {self.uart_url!r}")
+            if self.uart_url.split(":", 1)[0] == "serial":
+                check_uart_url(self.uart_url)  # registered schemes are checked when opened
 
     def loop_config(self) -> LoopConfig:
+        if self.rangefinder.streams:
+            return LoopConfig(rate_hz=self.rate_hz, max_pose_age_s=self.max_pose_age_s,
+                              max_pose_wait_s=self.max_pose_wait_s, paced_by_sensor=True)
         return LoopConfig(rate_hz=self.rate_hz, max_pose_age_s=self.max_pose_age_s,
                           max_pose_wait_s=self.max_pose_wait_s)
+
+    def uart_baud(self) -> int:
+        """The baud rate in the serial URL (the factory rate for a port another layer provides)."""
+        return parse_uart_url(self.uart_url)[1] if self.uart_url.split(":", 1)[0] == "serial" else DEFAULT_BAUD
+
+    def tfmini_config(self) -> TfminiConfig:
+        """The TFMini driver's settings: the URL's baud rate, our rate as the part's frame rate."""
+        return TfminiConfig(baud=self.uart_baud(), frame_rate_hz=self.rate_hz)
 
     def servo_waveform(self) -> Waveform:
         return named_waveform(self.waveform, self.servo_peak_rate_rad_s, self.initial_position)
 
     def sensor(self) -> dict[str, Any]:
-        """The header's sensor dict: LIDAR-Lite v3, at our rate, with the preset's modelled range."""
+        """The header's sensor dict: the fitted rangefinder's datasheet at our rate (the LIDAR-Lite with
+        its preset's modelled range), with the configured error model."""
+        if self.rangefinder is Rangefinder.TFMINI:
+            return self.rangefinder.spec.with_(rate_hz=self.rate_hz, range_sigma_m=self.range_sigma_m,
+                                               range_sigma_rel=self.range_sigma_rel).to_dict()
         return sensor_spec(self.rate_hz, max_range_m=preset_by_name(self.preset).max_range_m,
                            range_sigma_m=self.range_sigma_m, range_sigma_rel=self.range_sigma_rel)
+
+    def hardware(self) -> dict[str, Any]:
+        """The header's ``payload``: the hardware the program was told to use."""
+        if self.rangefinder is Rangefinder.TFMINI:
+            return {"mavlink": self.mavlink_url, "rangefinder": self.rangefinder.value, "uart": self.uart_url,
+                    "pwm": self.pwm_url, "rate_hz": self.rate_hz, "records_per_block": self.records_per_block}
+        return {"mavlink": self.mavlink_url, "i2c": self.i2c_url, "pwm": self.pwm_url,
+                "lidar_preset": self.preset, "i2c_address": self.i2c_address,
+                "rate_hz": self.rate_hz, "records_per_block": self.records_per_block}
 
     def log_header(self, sweep_t0_s: float | None = None) -> dict[str, Any]:
         """The sample-log header (`firmware_py.core.header`), with the payload's hardware setup appended.
@@ -281,10 +340,7 @@ class PayloadConfig:
             waveform_name=self.waveform, waveform=self.servo_waveform(), initial_position=self.initial_position,
             storage=self.storage, frame=self.frame, mission_id=self.mission_id, mission=self.mission,
             extra={"servo_calibration": asdict(self.servo), "boresight": self.boresight.to_dict(),
-                   "config": self.effective_config(),
-                   "payload": {"mavlink": self.mavlink_url, "i2c": self.i2c_url, "pwm": self.pwm_url,
-                               "lidar_preset": self.preset, "i2c_address": self.i2c_address,
-                               "rate_hz": self.rate_hz, "records_per_block": self.records_per_block},
+                   "config": self.effective_config(), "payload": self.hardware(),
                    **drive})
 
     def effective_config(self) -> dict[str, Any]:
@@ -292,12 +348,18 @@ class PayloadConfig:
         after the command line's flags: the header's ``config`` record, and what `--check` prints. Only
         what the payload itself uses; ``file`` names the configuration file it started from (None: none)."""
         cal = self.servo
-        payload: dict[str, Any] = {
-            "rangefinder": "lidarlite-v3", "i2c": self.i2c_url, "pwm": self.pwm_url, "mavlink": self.mavlink_url,
+        payload: dict[str, Any] = {"rangefinder": self.rangefinder.value}
+        if self.rangefinder is Rangefinder.TFMINI:
+            payload["uart"] = self.uart_url
+        else:
+            payload["i2c"] = self.i2c_url
+        payload.update({
+            "pwm": self.pwm_url, "mavlink": self.mavlink_url,
             "rate_hz": float(self.rate_hz), "log": os.fspath(self.out_path),
             "lever_arm_m": [float(v) for v in self.lever_arm_body_m],
-            "boresight_deg": [_deg(self.boresight.tilt_rad), _deg(self.boresight.sweep_yaw_rad)],
-            "lidarlite_preset": self.preset}
+            "boresight_deg": [_deg(self.boresight.tilt_rad), _deg(self.boresight.sweep_yaw_rad)]})
+        if self.rangefinder is Rangefinder.LIDARLITE_V3:
+            payload["lidarlite_preset"] = self.preset
         if self.stream_url is not None:
             payload["stream"] = self.stream_url
         if self.signing_key_file is not None:
@@ -411,8 +473,9 @@ class PayloadApp:
     Args:
         cfg: the configuration.
         clock: the payload clock (default: the real monotonic clock).
-        link, bus, pwm: already-open hardware to use instead of opening the configured URLs; the app
-            takes ownership and closes them at the end.
+        link, bus, pwm, uart: already-open hardware to use instead of opening the configured URLs (the
+            I2C bus for a LIDAR-Lite, the serial port for a TFMini); the app takes ownership and closes
+            them at the end.
         err: where progress, warnings and the summary go (None: nowhere).
         prog: the name prefixed to those lines.
         open_log: opens the sample log file, `open(path, mode)` by default (the SITL's disk faults and
@@ -422,15 +485,16 @@ class PayloadApp:
     """
 
     def __init__(self, cfg: PayloadConfig, *, clock: Clock | None = None, link: MavlinkLink | None = None,
-                 bus: I2CBus | None = None, pwm: PwmOutput | None = None, err: TextIO | None = sys.stderr,
+                 bus: I2CBus | None = None, pwm: PwmOutput | None = None, uart: SerialPort | None = None,
+                 err: TextIO | None = sys.stderr,
                  prog: str = PROG, open_log: Callable[[Path, str], BinaryIO] = open,
                  on_tick: Callable[[int], None] | None = None) -> None:
         self.cfg = cfg
         self.clock = clock or MonotonicClock()
-        self.link, self.bus, self.pwm = link, bus, pwm
+        self.link, self.bus, self.pwm, self.uart = link, bus, pwm, uart
         self._open_log, self._on_tick = open_log, on_tick
         self.err, self.prog = err, prog
-        self.lidar: LidarLite | None = None
+        self.lidar: RangeSensor | None = None  # the rangefinder's driver: LidarLite or Tfmini
         self.tracker: PoseTracker | None = None
         self.stream: LiveStreamSender | None = None
         self.log: SampleLogWriter | None = None
@@ -446,6 +510,7 @@ class PayloadApp:
         self._next_origin_ns = 0
         self._close_errors: list[str] = []
         self.health_errors = 0
+        self._failed_since_ns: int | None = None
 
     # ----- control --------------------------------------------------------------------------------
 
@@ -476,8 +541,8 @@ class PayloadApp:
         try:
             self._open()
             if self._stop_reason is None:
-                self._say(f"logging to {self.cfg.out_path} at {self.cfg.rate_hz:g} Hz (preset {self.cfg.preset}); "
-                          f"MAVLink {self.cfg.mavlink_url}, I2C {self.cfg.i2c_url}, PWM {self.cfg.pwm_url}"
+                self._say(f"logging to {self.cfg.out_path} at {self.cfg.rate_hz:g} Hz ({self._sensor_note()}); "
+                          f"MAVLink {self.cfg.mavlink_url}, {self._sensor_port_note()}, PWM {self.cfg.pwm_url}"
                           + (f", stream {self.cfg.stream_url}" if self.cfg.stream_url else "")
                           + self._signing_note()
                           + ("; device bridge authenticated" if self.bridge_authenticated else ""))
@@ -509,12 +574,15 @@ class PayloadApp:
                                  lambda: open_mavlink(cfg.mavlink_url, signing=cfg.signing))
         elif cfg.signing is not None and not self.signing_active:
             self._warn("the MAVLink link given to the payload does not sign; signing applies to links it opens")
-        if self.bus is None:
-            self.bus = _opening("I2C bus", cfg.i2c_url, lambda: open_i2c(cfg.i2c_url, key=cfg.device_key))
-        lidar_cfg = LidarLiteConfig(address=cfg.i2c_address, preset=preset_by_name(cfg.preset),
-                                    busy_timeout_ns=cfg.busy_deadline_ns())
-        self.lidar = _opening(f"LIDAR-Lite at 0x{cfg.i2c_address:02x} on", cfg.i2c_url,
-                              lambda: LidarLite(self.bus, self.clock, lidar_cfg))
+        if cfg.rangefinder is Rangefinder.TFMINI:
+            self._open_tfmini()
+        else:
+            if self.bus is None:
+                self.bus = _opening("I2C bus", cfg.i2c_url, lambda: open_i2c(cfg.i2c_url, key=cfg.device_key))
+            lidar_cfg = LidarLiteConfig(address=cfg.i2c_address, preset=preset_by_name(cfg.preset),
+                                        busy_timeout_ns=cfg.busy_deadline_ns())
+            self.lidar = _opening(f"LIDAR-Lite at 0x{cfg.i2c_address:02x} on", cfg.i2c_url,
+                                  lambda: LidarLite(self.bus, self.clock, lidar_cfg))
         if self.pwm is None:
             self.pwm = _opening("PWM output", cfg.pwm_url, lambda: open_pwm(
                 cfg.pwm_url, i2c_opener=open_i2c, link=self.link, mav=self.link.mav,
@@ -530,16 +598,50 @@ class PayloadApp:
         self._send_origin(self.clock.now_ns())
         self.tracker.start()
         self._wait_for_pose()
+        if isinstance(self.lidar, Tfmini):
+            self.lidar.discard_input()  # frames that waited through the pose wait have lost their times
         t0_ns = self.clock.now_ns()  # the sweep's time origin, written in the header before the first sample
         self.log = SampleLogWriter(out, cfg.log_header(sweep_t0_s=t0_ns * 1e-9),
                                    records_per_block=cfg.records_per_block, fsync=cfg.fsync, overwrite=cfg.force,
                                    opener=self._open_log)
         self.sink = _RecordSink(self.log, self.stream)
-        servo = SweepServo(self.pwm, cfg.servo_waveform(), cfg.servo)
-        self.loop = PayloadLoop(self.lidar, servo, self.tracker, self.clock, self.sink, cfg.loop_config(), t0_ns=t0_ns)
+        loop_cfg = cfg.loop_config()
+        # A loop paced by its sensor ticks a little before or after a PWM frame boundary: half a tick early
+        # still sends that frame's pulse (`SweepServo.early_s`); a loop on its own grid ticks on the boundary.
+        servo = (SweepServo(self.pwm, cfg.servo_waveform(), cfg.servo, early_s=0.5 / cfg.rate_hz)
+                 if loop_cfg.paced_by_sensor else SweepServo(self.pwm, cfg.servo_waveform(), cfg.servo))
+        self.loop = PayloadLoop(self.lidar, servo, self.tracker, self.clock, self.sink, loop_cfg, t0_ns=t0_ns)
         self.health = HealthMonitor(self.loop.t0_ns, cfg.health_period_s)
         self._next_status_ns = self.loop.t0_ns + round(cfg.status_period_s * 1e9)
         self._status_prev = (self.loop.t0_ns, 0)
+
+    def _open_tfmini(self) -> None:
+        """Open the TFMini's serial port and check that it streams frames (one line saying what is wrong
+        if it does not: nothing arrives, or bytes that never form a frame)."""
+        cfg = self.cfg
+        if self.uart is None:
+            self.uart = _opening("TFMini serial port", cfg.uart_url, lambda: open_uart(cfg.uart_url))
+        tfmini = Tfmini(self.uart, self.clock, cfg.tfmini_config())
+        self.lidar = tfmini
+        wait_s = cfg.sensor_start_timeout_s
+        seen = _opening("TFMini serial port", cfg.uart_url,
+                        lambda: tfmini.check_streaming(round(wait_s * 1e9)))
+        if seen is StreamCheck.SILENT:
+            raise RunFailure(f"no data from the TFMini on {cfg.uart_url} within {wait_s:g} s: check the port, "
+                            "its wiring (the TFMini's TX to the Pi's RX, 5 V, ground) and its power")
+        if seen is StreamCheck.NO_FRAMES:
+            raise RunFailure(f"bytes arrive on {cfg.uart_url} but no valid TFMini frame within {wait_s:g} s: "
+                            f"is the part set to {cfg.uart_baud()} baud (the factory rate is {DEFAULT_BAUD})?")
+
+    def _sensor_note(self) -> str:
+        if self.cfg.rangefinder is Rangefinder.TFMINI:
+            return "TFMini, paced by its frames"
+        return f"preset {self.cfg.preset}"
+
+    def _sensor_port_note(self) -> str:
+        if self.cfg.rangefinder is Rangefinder.TFMINI:
+            return f"TFMini {self.cfg.uart_url}"
+        return f"I2C {self.cfg.i2c_url}"
 
     def _wait_for_pose(self) -> None:
         """Pump the link until the pose is trusted, the wait runs out or a stop is asked for."""
@@ -593,7 +695,9 @@ class PayloadApp:
         if self._on_tick is not None:
             self._on_tick(now)
         if self.health.due(now):
+            before = self.health.sensor_state
             self._send_health(self.health.update(self.snapshot(now)))
+            self._sensor_state_line(before, self.health.sensor_state, now)
             if self.stream is not None:
                 self.stream.flush()
         if not self.cfg.quiet and now >= self._next_status_ns:
@@ -619,6 +723,17 @@ class PayloadApp:
             pose_status=st.pose_status, timesync_converged=st.timesync.converged,
             stale=stats.flagged(SampleFlags.STALE_POSE | SampleFlags.NO_POSE), overruns=stats.overruns,
             sensor_error_samples=stats.flagged(SampleFlags.SENSOR_ERROR))
+
+    def _sensor_state_line(self, before: SensorState, after: SensorState, now: int) -> None:
+        """Tell the operator once when the rangefinder stops giving readings (unplugged, dead) and once
+        when it gives them again; the STATUSTEXTs say the same to the ground station."""
+        if after is SensorState.FAILED and before is not SensorState.FAILED:
+            self._failed_since_ns = now
+            self._warn(f"the rangefinder fails every reading ({self._sensor_port_note()}): samples are logged "
+                       "flagged until it answers again")
+        elif before is SensorState.FAILED and after is not SensorState.FAILED and self._failed_since_ns is not None:
+            self._say(f"the rangefinder answers again after {(now - self._failed_since_ns) / 1e9:.1f} s")
+            self._failed_since_ns = None
 
     def _send_health(self, msgs: list[Any]) -> None:
         for msg in msgs:
@@ -684,6 +799,8 @@ class PayloadApp:
             self._step("closing the MAVLink link", self.link.close)
         if self.bus is not None:
             self._step("closing the I2C bus", self.bus.close)
+        if self.uart is not None:
+            self._step("closing the TFMini serial port", self.uart.close)
 
     def _step(self, what: str, action: Callable[[], Any]) -> None:
         try:

@@ -1,8 +1,8 @@
-"""`pilescan-payload`: the survey payload on the drone's companion computer (LIDAR-Lite on a sweeping servo,
-poses from the autopilot over MAVLink, a crash-safe sample log). Stops on SIGINT/SIGTERM (Ctrl-C), after
---duration, or with --stop-on-disarm when the autopilot disarms; the log is complete either way.
---config FILE sets the options from a TOML file (docs/configuration.md); --check validates and prints the
-effective configuration without opening any hardware.
+"""`pilescan-payload`: the survey payload on the drone's companion computer (a LIDAR-Lite v3 on I2C or a
+TFMini on a UART, on a sweeping servo; poses from the autopilot over MAVLink; a crash-safe sample log).
+Stops on SIGINT/SIGTERM (Ctrl-C), after --duration, or with --stop-on-disarm when the autopilot disarms;
+the log is complete either way. --config FILE sets the options from a TOML file (docs/configuration.md);
+--check validates and prints the effective configuration without opening any hardware.
 """
 
 from __future__ import annotations
@@ -19,6 +19,8 @@ from firmware_py.app import (
     DEFAULT_MAVLINK_URL,
     DEFAULT_PRESET,
     DEFAULT_PWM_URL,
+    DEFAULT_RANGEFINDER,
+    DEFAULT_UART_URL,
     PROG,
     PayloadApp,
     PayloadConfig,
@@ -37,6 +39,7 @@ from firmware_py.core.cli import (
 from firmware_py.core.config_file import to_toml
 from firmware_py.core.frames import Boresight
 from firmware_py.core.keys import load_key
+from firmware_py.core.sensor import Rangefinder
 from firmware_py.core.servo_model import ServoCalibration
 from firmware_py.core.storage import Storage
 from firmware_py.core.stream_format import parse_stream_url
@@ -48,6 +51,7 @@ from firmware_py.hal.bridge import parse_tcp_url
 from firmware_py.hal.mavlink_link import mavutil_device
 from firmware_py.hal.pwm import check_pwm_url
 from firmware_py.hal.signing import SigningConfig
+from firmware_py.hal.uart import check_uart_url
 
 _HAL_RE = re.compile(r"sitl:(?P<host>[^\s:]+):(?P<port>\d{1,5})")
 _MAVLINK_BUILTIN = ("serial", "udp", "udpin", "udpout", "tcp")
@@ -103,6 +107,12 @@ def _checked(check: Callable[[str], object]) -> Callable[[str], str]:
     return convert
 
 
+def _check_uart(url: str) -> None:
+    if not url.strip():
+        raise ValueError("must be a non-empty URL (leave it out for the default)")
+    check_uart_url(url)
+
+
 def _check_i2c(url: str) -> None:
     if not url.strip():
         raise ValueError("must be a non-empty URL (leave it out for the default)")
@@ -149,13 +159,22 @@ def build_parser() -> ArgumentParser:
     hw.add_argument("--mavlink", default=DEFAULT_MAVLINK_URL, metavar="URL", type=_checked(_check_mavlink),
                     help="link to the autopilot: serial:/dev/ttyAMA0:921600, udp:HOST:PORT (listen), "
                          f"udpout:HOST:PORT, tcp:HOST:PORT (default {DEFAULT_MAVLINK_URL})")
+    hw.add_argument("--rangefinder", type=_rangefinder, default=DEFAULT_RANGEFINDER,
+                    metavar="|".join(r.value for r in Rangefinder),
+                    help="the rangefinder fitted: lidarlite-v3 (Garmin LIDAR-Lite v3 on --i2c, 500 Hz) or tfmini "
+                         "(Benewake TFMini family on --uart, paced by its frames, 100 Hz from the factory) "
+                         f"(default {DEFAULT_RANGEFINDER.value})")
+    hw.add_argument("--uart", default=None, metavar="URL", type=_checked(_check_uart),
+                    help="with --rangefinder tfmini: its serial port, serial:/dev/PATH[:BAUD] (the Pi's header UART "
+                         f"is /dev/serial0, a USB adapter /dev/ttyUSB0; default {DEFAULT_UART_URL})")
     hw.add_argument("--i2c", default=None, metavar="URL", type=_checked(_check_i2c),
                     help=f"the LIDAR-Lite's I2C bus: i2c:1, i2c:/dev/i2c-1, tcp:HOST:PORT (default {DEFAULT_I2C_URL})")
     hw.add_argument("--pwm", default=None, metavar="URL", type=_checked(_check_pwm),
                     help="the servo's PWM output: pwm:sysfs:CHIP:CH, pwm:pca9685:BUS:ADDR:CH, pwm:mavlink:N, "
                          f"pwm:tcp:HOST:PORT:CH (default {DEFAULT_PWM_URL})")
     hw.add_argument("--hal", default=None, metavar="sitl:HOST:PORT",
-                    help="the networked SITL's device bridge: sets --i2c tcp:HOST:PORT and --pwm pwm:tcp:HOST:PORT:0")
+                    help="the networked SITL's device bridge: sets --i2c tcp:HOST:PORT and --pwm pwm:tcp:HOST:PORT:0 "
+                         "(with --rangefinder tfmini only the servo: the TFMini is on --uart)")
     out = ap.add_argument_group("output")
     out.add_argument("--out", default=None, metavar="PATH",
                      help="sample log to write (.pslog); {utc} in it becomes the start time (20261124T235301Z); "
@@ -168,7 +187,9 @@ def build_parser() -> ArgumentParser:
     sv = ap.add_argument_group("sensor and servo")
     sv.add_argument("--preset", default=DEFAULT_PRESET, metavar="NAME", type=_checked(_check_preset),
                     help=f"LIDAR-Lite preset: {', '.join(PRESETS)} (default {DEFAULT_PRESET})")
-    sv.add_argument("--rate", type=finite_float, default=500.0, metavar="HZ", help="sample rate, Hz (default 500)")
+    sv.add_argument("--rate", type=finite_float, default=None, metavar="HZ",
+                    help="sample rate, Hz (default: the rangefinder's, 500 LIDAR-Lite, 100 TFMini; a TFMini sends "
+                         "frames at the rate it is set to, and this says which)")
     sv.add_argument("--waveform", choices=("semi-triangular", "sinusoidal"), default="semi-triangular",
                     help="servo waveform (eq. 1; C=0.95 or C=0)")
     sv.add_argument("--servo-rate", type=finite_float, default=5.0, metavar="RAD_S",
@@ -205,6 +226,13 @@ def build_parser() -> ArgumentParser:
                     help="send SET_GPS_GLOBAL_ORIGIN (deg, deg, m MSL) at start: an indoor EKF needs an origin "
                          "before it publishes LOCAL_POSITION_NED")
     return ap
+
+
+def _rangefinder(text: str) -> Rangefinder:
+    try:
+        return Rangefinder.named(text.strip())
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def signing_from_args(args) -> SigningConfig | None:
@@ -258,14 +286,26 @@ def config_from_args(args) -> PayloadConfig:
     from_file = getattr(args, "config_keys", {})
     i2c_flag = args.i2c if "i2c" not in from_file else None
     pwm_flag = args.pwm if "pwm" not in from_file else None
+    uart_flag = args.uart if "uart" not in from_file else None
+    preset_flag = args.preset if "lidarlite_preset" not in from_file else DEFAULT_PRESET
     i2c, pwm = args.i2c or DEFAULT_I2C_URL, args.pwm or DEFAULT_PWM_URL
     if args.hal is not None:  # the command line's --hal overrides the file's buses, as any flag does
         if i2c_flag is not None or pwm_flag is not None:
             raise UserError("--hal sets --i2c and --pwm: give either --hal or those two")
         i2c, pwm = hal_urls(args.hal)
-    device_key = signing.key if signing is not None and uses_device_bridge(i2c, pwm) else None
+    # A configuration file may name both sensors' ports (the rig's wiring); a flag for the sensor not fitted is
+    # a mistake worth a line.
+    tfmini = args.rangefinder is Rangefinder.TFMINI
+    if uart_flag is not None and not tfmini:
+        raise UserError("--uart is the TFMini's serial port: give it with --rangefinder tfmini")
+    if tfmini and i2c_flag is not None:
+        raise UserError("--i2c is the LIDAR-Lite's bus: a TFMini is on --uart")
+    if tfmini and preset_flag != DEFAULT_PRESET:
+        raise UserError("--preset is the LIDAR-Lite's: a TFMini has none")
+    device_key = signing.key if signing is not None and uses_device_bridge(i2c if not tfmini else "", pwm) else None
     return PayloadConfig(
-        out_path=out, force=args.force, mavlink_url=args.mavlink, i2c_url=i2c, pwm_url=pwm,
+        out_path=out, force=args.force, mavlink_url=args.mavlink, rangefinder=args.rangefinder,
+        uart_url=args.uart or DEFAULT_UART_URL, i2c_url=i2c, pwm_url=pwm,
         preset=args.preset, rate_hz=args.rate, waveform=args.waveform, servo_peak_rate_rad_s=args.servo_rate,
         initial_position=args.phase, storage=Storage.parse(args.storage), servo=servo_from_args(args),
         lever_arm_body_m=tuple(args.lever_arm), boresight=boresight_from_args(args), duration_s=args.duration,

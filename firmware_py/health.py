@@ -11,6 +11,7 @@ MAVLink inspector):
     PS_RATE     LiDAR readings per second over the last period, Hz
     PS_LOGGED   records in the sample log (written or buffered)
     PS_I2CERR   cumulative sensor failures: bus errors + busy timeouts + failed configuration transfers
+                (a TFMini: frames lost to their checksum + waits that ended without a frame)
     PS_SENSERR  cumulative samples logged SENSOR_ERROR (what the log holds: failed readings AND the
                 readings taken while the part reloads after an automatic reset, which are no failed
                 transfer and so not in PS_I2CERR)

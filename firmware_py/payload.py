@@ -1,4 +1,5 @@
 """The payload loop: range, servo, pose, log — at 500 Hz, on hardware or, unchanged, in the SITL.
+(A streaming rangefinder, the TFMini, sets the pace instead: `LoopConfig.paced_by_sensor`.)
 
 Each tick: take one LiDAR reading (its time is when the acquisition was triggered), advance the
 servo (a new pulse every PWM frame), pump the MAVLink link. A reading waits in a short queue until
@@ -38,7 +39,7 @@ _NO_POSE_VALUES = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 class RangeReading(Protocol):
-    """One range measurement as the loop reads it (the LIDAR-Lite driver's `Reading`)."""
+    """One range measurement as the loop reads it (`firmware_py.drivers.reading.Reading`)."""
 
     @property
     def range_m(self) -> float | None: ...
@@ -50,8 +51,24 @@ class RangeReading(Protocol):
     def t_ns(self) -> int: ...
 
 
+class SensorCounters(Protocol):
+    """What a rangefinder driver has counted (`LidarLiteCounters`, `TfminiCounters`)."""
+
+    @property
+    def sensor_errors(self) -> int:
+        """Readings that failed (the part did not answer, or its bytes were not a reading)."""
+
+    def as_dict(self) -> dict[str, int]: ...
+
+
 class RangeSensor(Protocol):
+    """A rangefinder driver as the loop and the program around it use it: the LIDAR-Lite on I2C, the
+    TFMini on a UART. `read()` returns one reading, never raises for a sensor fault, and waits at most
+    its driver's deadline."""
+
     def read(self) -> RangeReading: ...
+
+    def counters(self) -> SensorCounters: ...
 
 
 class PoseSource(Protocol):
@@ -66,9 +83,23 @@ class PoseSource(Protocol):
 
 @dataclass(frozen=True)
 class LoopConfig:
+    """The loop's pace and pose limits.
+
+    Attributes:
+        rate_hz: ticks per second; with `paced_by_sensor`, the sensor's own rate (for the servo's
+            timing and the counters), not a schedule.
+        paced_by_sensor: the sensor streams at its own rate and `read()` waits for its next reading
+            (the TFMini): the loop does not sleep to a tick grid of its own, so no reading waits in a
+            buffer (where its time stamp would be lost) and a sensor clock a little faster or slower
+            than ours never makes a backlog or a gap. A silent sensor still ends each wait at the
+            driver's deadline, with a failed reading, so the loop keeps going.
+        max_pose_age_s, max_pose_wait_s: a sample's pose limits (module docstring).
+    """
+
     rate_hz: float = 500.0
     max_pose_age_s: float = 0.1
     max_pose_wait_s: float = 0.25
+    paced_by_sensor: bool = False
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.rate_hz) and 1.0 <= self.rate_hz <= 2000.0):
@@ -190,6 +221,14 @@ class PayloadLoop:
     def run(self, duration_s: float | None = None, should_stop: Callable[[], bool] = lambda: False) -> LoopStats:
         """Tick at the configured rate until duration_s has passed or should_stop() says so."""
         end_ns = None if duration_s is None else self.t0_ns + round(duration_s * 1e9)
+        if self.cfg.paced_by_sensor:
+            while not should_stop():
+                if end_ns is not None and self.clock.now_ns() >= end_ns:
+                    break
+                self.tick()  # the sensor's read waits for its next reading
+            self._tag_ready(self.clock.now_ns(), flush=True)
+            self.log.flush()
+            return self.stats
         while not should_stop():
             now = self.clock.now_ns()
             if end_ns is not None and now >= end_ns:

@@ -25,13 +25,14 @@ from firmware_py.core.cli import (
 )
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.rundir import publish_file
+from firmware_py.core.sensor import Rangefinder
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import N_PHASES
 from sitl.faults.injector import FaultSpec
 from sitl.missions.qgc_wpl import write_qgc_wpl
 from sitl.missions.rectangle import TURN_MODES, Mission
-from sitl.runners.fly import PAYLOADS, PLANTS, FlyConfig, fly
+from sitl.runners.fly import PAYLOADS, PLANTS, TFMINI_NOISES, FlyConfig, fly
 
 _SITE_AND_MISSION = {
     "site.dimensions": "--storage",
@@ -83,6 +84,7 @@ def build_parser() -> ArgumentParser:
                    help="firmware: the unchanged payload firmware in the loop over MAVLink and emulated I2C/PWM "
                         "devices (default with --plant jsbsim); batch: the vectorised sampler (fast; the default "
                         "with --plant ideal, which has no autopilot to talk to)")
+    _rangefinder_options(f)
     f.add_argument("--latency-ms", type=finite_float, nargs=2, default=(0.0, 0.0), metavar=("MIN", "MAX"),
                    help="firmware payload only: random MAVLink latency range, ms")
     f.add_argument("--payload-mass", type=finite_float, default=0.040, metavar="KG",
@@ -91,7 +93,9 @@ def build_parser() -> ArgumentParser:
                    help="inject a fault (firmware payload; repeatable): link_loss_pct=10, link_dup_pct=5, "
                         "link_reorder_pct=5, link_outage=START,DUR, i2c_nack_pct=5, lidar_stuck_busy=START,DUR, "
                         "lidar_power_glitch_at_s=T, lidar_garbage_pct=2, lidar_glitch_pct=1, servo_stuck_at_s=T, "
-                        "servo_slow_factor=0.6, power_cut_at_s=T (times from the survey start; seeded by --seed)")
+                        "servo_slow_factor=0.6, power_cut_at_s=T, with --rangefinder tfmini tfmini_bad_frame_pct=2, "
+                        "tfmini_garbage_pct=2, tfmini_unplug=AT,DURATION (DURATION inf: for good) "
+                        "(times from the survey start; seeded by --seed)")
     f.add_argument("--seed", type=int, default=0, help="seed of the run's random draws")
     f.add_argument("--out", required=True, help="run directory to write")
     f.add_argument("--force", action="store_true",
@@ -111,6 +115,7 @@ def build_parser() -> ArgumentParser:
                     help="also serve the emulated LIDAR-Lite (I2C 0x62) and servo (PWM channel 0) there, for "
                          "`pilescan-payload --hal sitl:HOST:PORT` in another process (needs --speedup 1)")
     sv.add_argument("--stockpile", default="1", help="with --devices: 1, 2 or an STL/OBJ mesh path (default 1)")
+    _rangefinder_options(sv)  # with --devices: tfmini also streams on a pseudo-terminal, its path printed
     _mission_options(sv, p_traj_required=False)
     sv.add_argument("--out", default="runs/serve",
                     help="run directory for mission.waypoints (at once), telemetry.tlog and, with --devices, "
@@ -147,6 +152,24 @@ def build_parser() -> ArgumentParser:
     return ap
 
 
+def _rangefinder(text: str) -> Rangefinder:
+    from argparse import ArgumentTypeError
+    try:
+        return Rangefinder.named(text.strip())
+    except ValueError as exc:
+        raise ArgumentTypeError(str(exc)) from None
+
+
+def _rangefinder_options(p: ArgumentParser) -> None:
+    p.add_argument("--rangefinder", type=_rangefinder, default=Rangefinder.LIDARLITE_V3,
+                   metavar="|".join(r.value for r in Rangefinder),
+                   help="the payload's rangefinder: lidarlite-v3 (I2C, 500 Hz, 40 m; default) or tfmini (Benewake "
+                        "TFmini-S on a UART, 100 Hz, 12 m: fly lower, see the README)")
+    p.add_argument("--tfmini-noise", choices=TFMINI_NOISES, default="none",
+                   help="the emulated TFMini's range noise: none (default) or datasheet (Gaussian, sigma the larger "
+                        "of 6 cm and 1 %% of the range)")
+
+
 def _mission_options(p: ArgumentParser, p_traj_required: bool) -> None:
     p.add_argument("--p-traj", type=finite_float, required=p_traj_required, default=None if p_traj_required else 20.0,
                    metavar="PCT", help="waypoint offset from the walls, percent of L and W (eqs. 17-18), 0-50")
@@ -173,7 +196,8 @@ def _fly(args) -> int:
     cfg = FlyConfig(mission=mission, stockpile=args.stockpile, waveform=args.waveform,
                     servo_peak_rate_rad_s=args.servo_rate, initial_position=args.phase, plant=args.plant,
                     payload=args.payload or _default_payload(args.plant), latency_ms=tuple(args.latency_ms),
-                    payload_kg=args.payload_mass, seed=args.seed,
+                    payload_kg=args.payload_mass, seed=args.seed, rangefinder=args.rangefinder,
+                    tfmini_noise=args.tfmini_noise,
                     faults=FaultSpec.parse(args.fault, seed=args.seed) if args.fault else None)
     res = fly(cfg, args.out, force=args.force)  # progress: this module's logger (-v/-q)
     if not args.quiet:
@@ -222,7 +246,8 @@ def _serve(args) -> int:
     return serve(ServeOptions(mission=_mission(args), url=args.mavlink, speedup=args.speedup,
                               duration_s=args.duration, vehicle=args.vehicle, out=Path(args.out), force=args.force,
                               devices_url=args.devices, stockpile=args.stockpile, signing=signing,
-                              faults=FaultSpec.parse(args.fault, seed=args.seed),
+                              faults=FaultSpec.parse(args.fault, seed=args.seed), rangefinder=args.rangefinder,
+                              tfmini_noise=args.tfmini_noise,
                               limits=tlog_limits(args.tlog_max_mb)))
 
 

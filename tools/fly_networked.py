@@ -1,8 +1,10 @@
 """Networked SITL, end to end, as three separate programs talk on a real drone:
 
 1. `pilescan-sitl serve --devices tcp:...`: the autopilot (JSBSim + ours) on MAVLink/UDP, and the
-   emulated LIDAR-Lite and servo behind the TCP device bridge, in real time;
-2. `pilescan-payload --mavlink udpout:... --hal sitl:...`: the unchanged payload firmware, its own process;
+   emulated LIDAR-Lite and servo behind the TCP device bridge, in real time (with `--rangefinder tfmini`
+   an emulated TFMini on a pseudo-terminal too, whose path serve prints);
+2. `pilescan-payload --mavlink udpout:... --hal sitl:...` (a TFMini: `--rangefinder tfmini --uart
+   serial:/dev/pts/N --pwm pwm:tcp:...`): the unchanged payload firmware, its own process;
 3. a scripted ground station (pymavlink): upload the plan, arm, AUTO, wait for the landing.
 
 Then the ground station builds the report from the payload's log. With --compare, the same survey is
@@ -10,15 +12,19 @@ flown in lockstep (`fly --payload firmware`) and the volumes are set side by sid
 default survey takes ~3 minutes of wall time.
 
     python -m tools.fly_networked --stockpile 1 --p-traj 20 --out runs/networked --compare
+    python -m tools.fly_networked --rangefinder tfmini --storage 30x20x10 --altitude 9 --p-traj 25 \
+        --tfmini-noise datasheet --out runs/networked-tfmini --compare
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import socket
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,11 +44,49 @@ def free_port(kind: int) -> int:
         return s.getsockname()[1]
 
 
-def wait_tcp(port: int, proc: subprocess.Popen, timeout_s: float) -> None:
+_PTY_LINE = re.compile(r"TFMini on (/dev/\S+) ")
+
+
+class StderrLines:
+    """A child's stderr read line by line in a thread (so its pipe never fills), kept; `pty` is set,
+    and `pty_seen` signalled, when serve says where its TFMini streams."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        self.lines: list[str] = []
+        self.pty: str | None = None
+        self.pty_seen = threading.Event()
+        self._thread = threading.Thread(target=self._read, args=(proc,), daemon=True)
+        self._thread.start()
+
+    def _read(self, proc: subprocess.Popen) -> None:
+        for line in proc.stderr:
+            self.lines.append(line.rstrip("\n"))
+            m = _PTY_LINE.search(line)
+            if m and self.pty is None:
+                self.pty = m.group(1)
+                self.pty_seen.set()
+
+    def text(self) -> str:
+        self._thread.join(timeout=2.0)
+        return "\n".join(self.lines)
+
+
+def wait_pty(lines: StderrLines, proc: subprocess.Popen, timeout_s: float) -> str:
+    """The TFMini's pseudo-terminal, once serve has printed it."""
+    end = time.monotonic() + timeout_s
+    while not lines.pty_seen.wait(0.2):
+        if proc.poll() is not None:
+            raise RuntimeError(f"the SITL exited early ({proc.returncode}): {lines.text()}")
+        if time.monotonic() > end:
+            raise RuntimeError(f"the SITL did not say where its TFMini streams within {timeout_s:g} s")
+    return lines.pty
+
+
+def wait_tcp(port: int, proc: subprocess.Popen, timeout_s: float, lines: StderrLines | None = None) -> None:
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
         if proc.poll() is not None:
-            err = proc.stderr.read() if proc.stderr else ""
+            err = lines.text() if lines is not None else (proc.stderr.read() if proc.stderr else "")
             raise RuntimeError(f"the SITL exited early ({proc.returncode}): {err}")
         try:
             with socket.create_connection(("127.0.0.1", port), timeout=0.2):
@@ -74,26 +118,39 @@ class NetworkedRun:
 
 def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Path, phase: int = 0,
                   timeout_s: float = 900.0, flight_s: float | None = None, say=print,
-                  signing_key: Path | None = None) -> NetworkedRun:
+                  signing_key: Path | None = None, rangefinder: str = "lidarlite-v3",
+                  serve_args: list[str] | None = None) -> NetworkedRun:
     """Run the three programs for one survey; the run directory gets samples.pslog and a report.
 
     With flight_s, stop the payload (SIGTERM) that long after AUTO instead of waiting for the landing.
     With signing_key (a key file), all three sign their MAVLink and the device bridge asks for the key.
+    rangefinder "tfmini": serve streams an emulated TFMini on a pseudo-terminal and the payload reads it
+    there with pyserial (the servo stays on the device bridge). serve_args go to serve as they are
+    (`--tfmini-noise datasheet`, `--fault ...`).
     """
     out.mkdir(parents=True, exist_ok=True)
     keyed = ["--signing-key", str(signing_key)] if signing_key is not None else []
     key = load_key(signing_key) if signing_key is not None else None
     mav_port, dev_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
     t0 = time.perf_counter()
+    tfmini = rangefinder == "tfmini"
     sitl = subprocess.Popen([sys.executable, "-m", "sitl.cli", "serve", "--mavlink", f"udp:127.0.0.1:{mav_port}",
                              "--devices", f"tcp:127.0.0.1:{dev_port}", "--stockpile", stockpile, "--storage", storage,
-                             *mission_args, "--out", str(out), "--force", *keyed], stderr=subprocess.PIPE, text=True)
+                             *mission_args, "--out", str(out), "--force", *keyed, "--rangefinder", rangefinder,
+                             *(serve_args or [])], stderr=subprocess.PIPE, text=True)
+    lines = StderrLines(sitl)
     payload = None
     try:
-        wait_tcp(dev_port, sitl, 30.0)
+        wait_tcp(dev_port, sitl, 30.0, lines)
         say(f"SITL up: MAVLink udp:127.0.0.1:{mav_port}, devices tcp:127.0.0.1:{dev_port}")
+        if tfmini:
+            pty = wait_pty(lines, sitl, 30.0)
+            say(f"TFMini streaming on {pty}")
+            sensor = ["--rangefinder", "tfmini", "--uart", f"serial:{pty}", "--pwm", f"pwm:tcp:127.0.0.1:{dev_port}:0"]
+        else:
+            sensor = ["--hal", f"sitl:127.0.0.1:{dev_port}"]
         payload = subprocess.Popen([sys.executable, "-m", "firmware_py.cli", "--mavlink",
-                                    f"udpout:127.0.0.1:{mav_port}", "--hal", f"sitl:127.0.0.1:{dev_port}",
+                                    f"udpout:127.0.0.1:{mav_port}", *sensor,
                                     "--out", str(out / SAMPLES_FILE), "--force", "--storage", storage,
                                     "--phase", str(phase), "--stop-on-disarm", "--quiet", *keyed])
         time.sleep(2.0)  # the payload's time sync and pose streams settle before take-off
@@ -132,10 +189,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, help="write the figures here")
     ap.add_argument("--signing-key", type=Path, default=None, metavar="FILE",
                     help="sign MAVLink on every link and authenticate the device bridge with this key file")
+    ap.add_argument("--rangefinder", choices=("lidarlite-v3", "tfmini"), default="lidarlite-v3",
+                    help="tfmini: the payload reads an emulated TFMini over a pseudo-terminal with pyserial")
+    ap.add_argument("--tfmini-noise", choices=("none", "datasheet"), default="none",
+                    help="the emulated TFMini's range noise (both flights)")
     args = ap.parse_args(argv)
     mission_args = ["--p-traj", f"{args.p_traj:g}", "--altitude", f"{args.altitude:g}", "--speed", f"{args.speed:g}"]
     net = fly_networked(mission_args, args.storage, args.stockpile, args.out / "networked", args.phase,
-                        signing_key=args.signing_key)
+                        signing_key=args.signing_key, rangefinder=args.rangefinder,
+                        serve_args=["--tfmini-noise", args.tfmini_noise] if args.rangefinder == "tfmini" else [])
     if net.report is None:
         print(f"networked: {net.no_volume}", file=sys.stderr)
         return int(ExitCode.NO_VOLUME)
@@ -146,10 +208,12 @@ def main(argv: list[str] | None = None) -> int:
                "networked_samples": net.report["n_samples"], "networked_wall_s": net.wall_s,
                "true_volume_m3": net.report["true_volume_m3"]}
     if args.compare:
+        from firmware_py.core.sensor import Rangefinder
         from firmware_py.core.storage import Storage
         cfg = FlyConfig(mission=Mission(storage=Storage.parse(args.storage), p_traj=args.p_traj / 100,
                                         altitude_m=args.altitude, speed_m_s=args.speed),
-                        stockpile=args.stockpile, payload="firmware", initial_position=args.phase)
+                        stockpile=args.stockpile, payload="firmware", initial_position=args.phase,
+                        rangefinder=Rangefinder.named(args.rangefinder), tfmini_noise=args.tfmini_noise)
         fly(cfg, args.out / "lockstep", force=True)
         lock = make_report(args.out / "lockstep", args.out / "lockstep" / "report", ReportOptions(plots=False),
                            force=True)

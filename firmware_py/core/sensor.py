@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, fields, replace
+from enum import Enum
 from typing import Any
 
 SENSOR_KEYS = ("model", "rate_hz", "max_range_m", "resolution_m", "range_sigma_m", "range_sigma_rel",
@@ -102,3 +103,31 @@ TFMINI_S = RangefinderSpec(
 )
 """Benewake TFmini-S (product manual SJ-PM-TFmini-S), the family's most common member and the
 sensor of the paper's authors' 2025 flight rig (a TFMini on UART)."""
+
+
+class Rangefinder(Enum):
+    """The rangefinders the payload drives (`--rangefinder`; the config file's ``[payload] rangefinder``).
+
+    The value is the name the user types; `spec` is the datasheet written into the log header.
+    """
+
+    LIDARLITE_V3 = "lidarlite-v3"
+    TFMINI = "tfmini"
+
+    @property
+    def spec(self) -> RangefinderSpec:
+        return LIDARLITE_V3 if self is Rangefinder.LIDARLITE_V3 else TFMINI_S
+
+    @property
+    def streams(self) -> bool:
+        """Whether the part streams readings at its own rate (the TFMini on its UART) rather than
+        measuring when triggered (the LIDAR-Lite on I2C): a streaming part paces the payload's loop."""
+        return self is Rangefinder.TFMINI
+
+    @classmethod
+    def named(cls, name: str) -> Rangefinder:
+        """The rangefinder called `name` (ValueError listing the known names)."""
+        for r in cls:
+            if r.value == name:
+                return r
+        raise ValueError(f"unknown rangefinder {name!r} (known: {', '.join(r.value for r in cls)})")

@@ -21,10 +21,14 @@ class SweepServo:
     """
 
     def __init__(self, pwm: PwmOutput, waveform: Waveform, cal: ServoCalibration | None = None,
-                 frame_s: float = PWM_FRAME_S) -> None:
+                 frame_s: float = PWM_FRAME_S, early_s: float = 1e-12) -> None:
         self.pwm, self.waveform = pwm, waveform
         self.cal = cal or ServoCalibration()
         self.frame_s = frame_s
+        self.early_s = early_s
+        """How early an update may send the next frame's pulse: a loop whose ticks come at the
+        sensor's pace rather than on a grid (the TFMini's frames) sets half its period, so a tick a
+        little before the frame boundary does not hold the pulse back a whole tick."""
         self.model = ServoModel(self.cal, float(waveform.angle(0.0)))
         self._t_model = 0.0
         self._target = float(waveform.angle(0.0))
@@ -35,7 +39,7 @@ class SweepServo:
 
     def update(self, t_s: float) -> None:
         """Send a new pulse when a PWM frame is due (the servo only sees one per frame anyway)."""
-        if t_s + 1e-12 < self._next_cmd_s:
+        if t_s + self.early_s < self._next_cmd_s:
             return
         self.angle_at(t_s)
         self._target = self.command_angle(t_s)

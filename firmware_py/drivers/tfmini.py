@@ -16,7 +16,9 @@ What a frame means differs by model (`TfminiVariant`):
   model's maximum as out of range. Its manual trusts STRENGTH 20-2000 only.
 Every such case, and any distance outside the model's range, is a NO_RETURN reading: the part is
 working and saw nothing it can vouch for. A frame with a wrong checksum is dropped and counted (the
-parser resynchronises on the next 0x59 0x59), never turned into a range.
+parser resynchronises on the next 0x59 0x59), never turned into a range: its slot in the stream is
+a BUS_ERROR reading (`bad_frames`), so the payload logs one sample per frame the part sent, flagged
+when the frame was lost.
 
 Timing: the part streams; the driver never triggers it. `read()` waits for the next frame with a
 deadline, polling the port every `poll_interval_ns`. Each read from the port is stamped with the
@@ -141,6 +143,9 @@ class FrameParser:
         self.frames = 0
         self.bad_checksums = 0
         self.skipped_bytes = 0
+        self.bad_ends: list[int] = []
+        """Of the last `feed`: the index in its data of the last byte of each frame lost to a bad checksum
+        (one per corruption: failed checks that start inside the previous failed frame are one loss)."""
 
     def feed(self, data: bytes) -> list[tuple[Frame, int]]:
         """Frames completed by `data`, with the index in `data` of each one's last byte."""
@@ -148,6 +153,8 @@ class FrameParser:
         buf = self._buf
         buf += data
         out: list[tuple[Frame, int]] = []
+        bad: list[int] = []
+        last_bad = -FRAME_LEN
         i = 0
         while len(buf) - i >= 2:
             if buf[i] != HEADER or buf[i + 1] != HEADER:
@@ -163,13 +170,24 @@ class FrameParser:
             if frame[8] != checksum(frame):
                 self.bad_checksums += 1
                 self.skipped_bytes += 1
+                end = i + FRAME_LEN - 1 - held
+                if bad and i < last_bad + FRAME_LEN:
+                    bad[-1] = end  # the same corruption, seen from a later header: one frame lost
+                else:
+                    bad.append(end)
+                last_bad = i
                 i += 1  # the header may have been data: look again one byte on
                 continue
             self.frames += 1
             out.append((Frame.from_bytes(frame), i + FRAME_LEN - 1 - held))
             i += FRAME_LEN
         del buf[:i]
+        self.bad_ends = bad
         return out
+
+    def reset(self) -> None:
+        """Forget the bytes held (the port's input was discarded)."""
+        self._buf.clear()
 
 
 @dataclass(frozen=True)
@@ -237,6 +255,7 @@ class TfminiCounters:
     no_return: int = 0
     timeouts: int = 0
     bus_errors: int = 0
+    bad_frames: int = 0
     bad_checksums: int = 0
     skipped_bytes: int = 0
     dropped_backlog: int = 0
@@ -261,9 +280,11 @@ class Tfmini:
         self.config = config or TfminiConfig()
         self.variant = self.config.model.value
         self._parser = FrameParser()
-        self._backlog: collections.deque[tuple[int, Frame]] = collections.deque()
-        self._counts = dict.fromkeys(("ok", "no_return", "timeouts", "bus_errors", "dropped_backlog"), 0)
+        self._backlog: collections.deque[tuple[int, Frame | None]] = collections.deque()
+        self._counts = dict.fromkeys(("ok", "no_return", "timeouts", "bus_errors", "bad_frames", "dropped_backlog"),
+                                     0)
         self.last_error: OSError | None = None
+        self.bytes_read = 0
 
     def counters(self) -> TfminiCounters:
         p = self._parser
@@ -287,6 +308,10 @@ class Tfmini:
                 return Reading(None, ReadStatus.BUS_ERROR, self.clock.now_ns(), polls)
             if self._backlog:
                 t_ns, frame = self._backlog.popleft()
+                if frame is None:  # a frame lost to a bad checksum: its slot is a failed reading
+                    self._counts["bus_errors"] += 1
+                    self._counts["bad_frames"] += 1
+                    return Reading(None, ReadStatus.BUS_ERROR, t_ns, polls)
                 range_m, status = classify(frame, self.variant)
                 self._counts["ok" if status is ReadStatus.OK else "no_return"] += 1
                 return Reading(range_m, status, t_ns, polls)
@@ -300,8 +325,12 @@ class Tfmini:
         data = self.port.read(4096)
         if not data:
             return
+        self.bytes_read += len(data)
         t_read = self.clock.now_ns()
-        found = self._parser.feed(data)
+        parser = self._parser
+        found: list[tuple[Frame | None, int]] = parser.feed(data)
+        if parser.bad_ends:
+            found = sorted(found + [(None, end) for end in parser.bad_ends], key=lambda e: e[1])
         if not found:
             return
         cfg = self.config
@@ -316,5 +345,41 @@ class Tfmini:
                 self._counts["dropped_backlog"] += 1
             self._backlog.append((t_last - first_offset, frame))
 
+    def discard_input(self, max_bytes: int = 1 << 20) -> int:
+        """Throw away what waits in the port and the driver (the bytes of a pause, whose times can no
+        longer be known); returns the bytes discarded. Call it right before the readings start."""
+        dropped = 0
+        while dropped < max_bytes:
+            data = self.port.read(4096)
+            if not data:
+                break
+            dropped += len(data)
+        self._parser.reset()
+        self._backlog.clear()
+        return dropped
+
+    def check_streaming(self, timeout_ns: int) -> StreamCheck:
+        """Wait up to timeout_ns for one good frame (the start-up check): FRAMES when one came; SILENT
+        when no byte did (not wired, not powered, wrong port); NO_FRAMES when bytes came but none formed
+        a frame (most often a baud rate that differs from the part's). A port error raises OSError."""
+        end = self.clock.now_ns() + timeout_ns
+        bytes0, frames0 = self.bytes_read, self._parser.frames
+        while True:
+            self._drain()
+            if self._parser.frames > frames0:
+                return StreamCheck.FRAMES
+            now = self.clock.now_ns()
+            if now >= end:
+                return StreamCheck.NO_FRAMES if self.bytes_read > bytes0 else StreamCheck.SILENT
+            self.clock.sleep_until_ns(min(now + self.config.poll_interval_ns, end))
+
     def close(self) -> None:
         self.port.close()
+
+
+class StreamCheck(Enum):
+    """What the start-up check saw on the port (`Tfmini.check_streaming`)."""
+
+    FRAMES = "frames"
+    SILENT = "silent"
+    NO_FRAMES = "no frames"

@@ -3,6 +3,9 @@
 `pilescan-sitl serve --devices tcp:HOST:PORT` runs this next to the MAVLink autopilot, so an
 unchanged `pilescan-payload --hal sitl:HOST:PORT` in another process (or on another machine) drives
 the servo and ranges the simulated building as it would the real parts on I2C and PWM.
+With `--rangefinder tfmini` an emulated TFMini also streams its frames into a pseudo-terminal
+(`sitl.devices.tfmini_emu.PtyTfmini`): the payload opens it as `--uart serial:/dev/pts/N` and reads
+it with pyserial, the code path of a Raspberry Pi's UART; the servo stays on the bridge.
 
 Time: the devices run on `WallSimClock`, the vehicle's simulated time paced by the wall clock
 exactly as `run_realtime` paces the physics, so the LiDAR ray-casts the true pose at the instant a
@@ -27,11 +30,13 @@ from collections.abc import Callable
 from typing import Any
 
 from firmware_py.core.frames import SQUARE, StorageFrame
+from firmware_py.core.sensor import Rangefinder
 from firmware_py.core.servo_model import ServoCalibration
 from sitl.devices.bridge_server import DeviceBridgeServer, parse_bridge_url
 from sitl.devices.i2c_sim import SimI2CBus
 from sitl.devices.lidarlite_emu import ADDRESS, EmulatedLidarLite
 from sitl.devices.servo_emu import EmulatedServo
+from sitl.devices.tfmini_emu import PtyTfmini, RangeNoise
 from sitl.faults.injector import FaultInjector, FaultSpec
 from sitl.faults.params import FaultParams, LiveFaultInjector
 from sitl.mavlink.server import MavlinkVehicleServer
@@ -48,7 +53,8 @@ LINK_FAULTS = frozenset({"link_loss_pct", "link_dup_pct", "link_reorder_pct", "l
 """FaultSpec faults the networked SITL injects on its MAVLink side."""
 DEVICE_FAULTS = frozenset({"i2c_nack_pct", "lidar_stuck_busy", "lidar_power_glitch_at_s", "lidar_garbage_pct",
                            "lidar_glitch_pct", "servo_stuck_at_s", "servo_slow_factor", "servo_delay_ms",
-                           "servo_offset_deg", "servo_scale_pct", "boresight_deg", "sweep_yaw_deg"})
+                           "servo_offset_deg", "servo_scale_pct", "boresight_deg", "sweep_yaw_deg",
+                           "tfmini_bad_frame_pct", "tfmini_garbage_pct", "tfmini_unplug"})
 """FaultSpec faults it injects in its emulated devices (so only with them)."""
 NOT_NETWORKED = {
     "power_cut_at_s": "the payload is another process (stop it yourself to cut its power)",
@@ -87,6 +93,10 @@ class WallSimClock:
     def advance_by_ns(self, dt_ns: int) -> None:
         """Wire time passes for real on the network; nothing to add."""
 
+    def at_monotonic_ns(self, mono_ns: int) -> int:
+        """The simulated time (ns) at an instant of the monotonic clock (the pty TFMini's frame times)."""
+        return self._t0_sim_ns + round((mono_ns - self._t0_wall_ns) * self.speedup)
+
 
 class NetworkedDevices:
     """The emulated LiDAR (I2C 0x62) and servo (PWM channel 0) of one vehicle, served over TCP.
@@ -97,7 +107,8 @@ class NetworkedDevices:
     def __init__(self, vehicle: Vehicle, world: World, url: str, *, frame: StorageFrame | None = None,
                  lever_arm_body_m=(0.0, 0.0, 0.10), speedup: float = 1.0, keep_s: float = 5.0,
                  servo_cal: ServoCalibration | None = None, range_noise_sigma_m: float = 0.0,
-                 key: bytes | None = None) -> None:
+                 key: bytes | None = None, rangefinder: Rangefinder = Rangefinder.LIDARLITE_V3,
+                 tfmini_noise: RangeNoise | None = None) -> None:
         host, port = parse_bridge_url(url)
         self.vehicle, self.world = vehicle, world
         self.frame = frame or StorageFrame()
@@ -115,6 +126,9 @@ class NetworkedDevices:
         self.counters = {"ahead_of_physics": 0}
         self.bridge = DeviceBridgeServer(self.bus, {SERVO_CHANNEL: self.servo}, host, port, lock=self.lock,
                                          key=key)  # None: open to anyone who can reach the port
+        self.tfmini: PtyTfmini | None = None
+        if rangefinder is Rangefinder.TFMINI:
+            self.tfmini = PtyTfmini(self._tfmini_range_at, rate_hz=rangefinder.spec.rate_hz, range_noise=tfmini_noise)
 
     @property
     def url(self) -> str:
@@ -122,10 +136,25 @@ class NetworkedDevices:
 
     def start(self) -> NetworkedDevices:
         self.bridge.start()
+        if self.tfmini is not None:
+            self.tfmini.start()
         return self
 
     def close(self) -> None:
         self.bridge.close()
+        if self.tfmini is not None:
+            self.tfmini.close()
+
+    @property
+    def tfmini_path(self) -> str | None:
+        """The pseudo-terminal the emulated TFMini streams into (None without one)."""
+        return self.tfmini.path if self.tfmini is not None else None
+
+    def _tfmini_range_at(self, mono_ns: int) -> float | None:
+        """What the TFMini sees at a frame's measurement (its thread's monotonic clock), under the lock the
+        bridge and the physics share (the servo plant and the pose history)."""
+        with self.lock:
+            return self.lidar.range_at(self.clock.at_monotonic_ns(mono_ns))
 
     def __enter__(self) -> NetworkedDevices:
         return self.start()
@@ -155,6 +184,8 @@ class NetworkedDevices:
         with self.lock:
             self.lidar.range_at = injector.range_at(self.range_at)
             injector.attach(self.bus, self.lidar, self.servo)
+            if self.tfmini is not None:
+                injector.attach_tfmini(self.tfmini)
             self.boresight = injector.boresight
 
 
@@ -292,5 +323,9 @@ class NetworkedFaults:
         counters = dict(self.injector.counters)
         if self.devices is not None:
             counters["I2C_NACKs"] = self.devices.bus.counters["nack"]
+            if self.devices.tfmini is not None:
+                src = self.devices.tfmini.source
+                counters["TFMini_bad_frames_sent"] = src.bad_frames_sent
+                counters["TFMini_garbage_bursts"] = src.garbage_bursts
         parts += [f"{k.replace('_', ' ')} {v}" for k, v in counters.items() if v]
         return "; ".join(parts)

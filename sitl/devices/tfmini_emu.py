@@ -8,15 +8,21 @@ Two ports, one frame model:
   are made when the driver reads.
 - `PtyTfmini`: networked. The same frames written by a thread, in real time, into the master side of
   a pseudo-terminal; the payload opens the slave side (`serial:/dev/pts/N`) with pyserial, so the real
-  serial code path runs in the loop. `unplug()` closes the master: the slave then reads as a
-  disconnected adapter does.
+  serial code path runs in the loop.
 
 The frame model (`frame_for`, per `TfminiVariant`): the signal strength falls as 1/r^2 and reaches
 the model's weak threshold at its rated maximum range (the manuals rate range on a 90 % reflective
 board), so a target beyond range, or no target at all, reads as the model's "weak" code (-1 on the
 S/Plus/Luna, 0xFFFF on the TFmini); closer than the minimum range the S/Plus/Luna report -2 with a
-saturated strength of 65535. Optional Gaussian range noise before the 1 cm quantisation, and
-`bad_frames` (a probability that a frame's checksum byte is wrong) for the parser's fault tests.
+saturated strength of 65535. Range noise (`range_noise`, a function of the true range: the hook a
+sensor noise model plugs into; `datasheet_noise` is the manual's +-6 cm / 1 % as a Gaussian) is added
+before the 1 cm quantisation.
+
+Faults: `bad_frames` (a probability that a frame's checksum byte is wrong), `garbage` (a probability
+that a few random bytes follow a frame on the line, as a loose wire or a booting part sends) and
+`unplugged` (the sensor's cable pulled off the UART pins: the line is silent, the frames of that
+time are lost; put back, the part streams again). `PtyTfmini.remove_adapter()` is the other kind of
+unplugging: a USB serial adapter pulled out, whose port then fails on every read.
 """
 
 from __future__ import annotations
@@ -30,8 +36,30 @@ from collections.abc import Callable
 
 import numpy as np
 
-from firmware_py.drivers.tfmini import BITS_PER_BYTE, TfminiModel, TfminiVariant, encode_frame
+from firmware_py.core.sensor import RangefinderSpec
+from firmware_py.drivers.tfmini import BITS_PER_BYTE, FRAME_LEN, TfminiModel, TfminiVariant, encode_frame
 from firmware_py.hal import Clock
+
+RangeNoise = Callable[[float, np.random.Generator], float]
+"""The measured minus the true range (m) for a true range: the emulator's noise hook."""
+
+MAX_GARBAGE_BYTES = 8
+"""The most random bytes the garbage fault puts after one frame."""
+
+
+def gaussian_noise(sigma_m: float) -> RangeNoise:
+    """Range noise of a constant standard deviation."""
+    if not (math.isfinite(sigma_m) and sigma_m >= 0.0):
+        raise ValueError(f"range noise sigma must be finite and >= 0 m, got {sigma_m!r}")
+    return lambda r, rng: float(rng.normal(0.0, sigma_m))
+
+
+def datasheet_noise(spec: RangefinderSpec) -> RangeNoise:
+    """The datasheet's accuracy as a Gaussian: sigma = the larger of range_sigma_m and range_sigma_rel
+    times the range (TFmini-S: +-6 cm to 6 m, 1 % beyond). No bias, no dropouts: a stand-in until the
+    per-rangefinder noise models (`--sensor-noise`) plug into this hook."""
+    s0, rel = spec.range_sigma_m, spec.range_sigma_rel
+    return lambda r, rng: float(rng.normal(0.0, max(s0, rel * r)))
 
 SATURATED_STRENGTH = 0xFFFF
 TEMPERATURE_AUX = (25 + 256) * 8  # 25 deg C in the S/Plus/Luna encoding (T / 8 - 256)
@@ -67,23 +95,29 @@ class _FrameSource:
 
     def __init__(self, range_at: Callable[[int], float | None], model: TfminiModel, baud: int, rate_hz: float,
                  t0_ns: int, output_latency_ns: int, range_noise_sigma_m: float, bad_frames: float,
-                 rng: np.random.Generator | None) -> None:
+                 rng: np.random.Generator | None, range_noise: RangeNoise | None = None,
+                 garbage: float = 0.0) -> None:
         if not callable(range_at):
             raise ValueError(f"range_at must be a callable t_ns -> range in m or None, got {range_at!r}")
-        if not (math.isfinite(range_noise_sigma_m) and range_noise_sigma_m >= 0.0):
-            raise ValueError(f"range noise sigma must be finite and >= 0 m, got {range_noise_sigma_m!r}")
-        if not 0.0 <= bad_frames <= 1.0:
-            raise ValueError(f"bad frame probability must be in [0, 1], got {bad_frames!r}")
+        if range_noise is None and range_noise_sigma_m:
+            range_noise = gaussian_noise(range_noise_sigma_m)
+        if range_noise is not None and not callable(range_noise):
+            raise ValueError(f"range_noise must be a callable (range m, rng) -> error m, got {range_noise!r}")
+        for name, p in (("bad frame", bad_frames), ("garbage", garbage)):
+            if not 0.0 <= p <= 1.0:
+                raise ValueError(f"{name} probability must be in [0, 1], got {p!r}")
         self.range_at, self.variant = range_at, model.value
         self.period_ns = round(1e9 / rate_hz)
         self.byte_ns = round(BITS_PER_BYTE * 1e9 / baud)
         if 9 * self.byte_ns > self.period_ns:
             raise ValueError(f"{rate_hz:g} Hz frames do not fit in {baud} baud")
         self.t0_ns, self.latency_ns = int(t0_ns), int(output_latency_ns)
-        self.noise_sigma_m, self.bad_frames = float(range_noise_sigma_m), float(bad_frames)
+        self.range_noise, self.bad_frames, self.garbage = range_noise, float(bad_frames), float(garbage)
+        self.max_garbage = min(MAX_GARBAGE_BYTES, self.period_ns // self.byte_ns - FRAME_LEN)  # fits the period
         self.rng = rng if rng is not None else np.random.default_rng(0)
         self.frames_sent = 0
         self.bad_frames_sent = 0
+        self.garbage_bursts = 0
 
     def measure_ns(self, k: int) -> int:
         return self.t0_ns + k * self.period_ns
@@ -92,12 +126,20 @@ class _FrameSource:
         return self.measure_ns(k) + self.latency_ns
 
     def frame(self, k: int) -> bytes:
-        noise = float(self.rng.normal(0.0, self.noise_sigma_m)) if self.noise_sigma_m > 0.0 else 0.0
-        data = frame_for(self.variant, self.range_at(self.measure_ns(k)), noise)
+        """Frame k's bytes on the line: the frame, and any garbage after it (before frame k+1)."""
+        true_m = self.range_at(self.measure_ns(k))
+        noise = 0.0
+        if self.range_noise is not None and true_m is not None and math.isfinite(true_m):
+            noise = self.range_noise(true_m, self.rng)
+        data = frame_for(self.variant, true_m, noise)
         self.frames_sent += 1
         if self.bad_frames > 0.0 and self.rng.random() < self.bad_frames:
             self.bad_frames_sent += 1
             data = data[:8] + bytes(((data[8] + 1) & 0xFF,))
+        if self.garbage > 0.0 and self.max_garbage > 0 and self.rng.random() < self.garbage:
+            self.garbage_bursts += 1
+            n = int(self.rng.integers(1, self.max_garbage + 1))
+            data += self.rng.integers(0, 256, size=n, dtype=np.uint8).tobytes()
         return data
 
 
@@ -111,18 +153,21 @@ class EmulatedTfminiPort:
         baud, rate_hz: the part's UART and frame rates.
         t0_ns: when the first frame is measured (default: now).
         output_latency_ns: from the measurement to the frame's first byte.
-        range_noise_sigma_m: Gaussian range noise before the 1 cm quantisation.
+        range_noise_sigma_m: Gaussian range noise before the 1 cm quantisation (when no range_noise).
         bad_frames: probability that a frame's checksum is wrong.
         rng: noise and fault draws (default seeded 0, so runs repeat).
+        range_noise: the range error as a function of the true range (`RangeNoise`).
+        garbage: probability that random bytes follow a frame.
     """
 
     def __init__(self, clock: Clock, range_at: Callable[[int], float | None], *,
                  model: TfminiModel = TfminiModel.TFMINI_S, baud: int = 115_200, rate_hz: float = 100.0,
                  t0_ns: int | None = None, output_latency_ns: int = 0, range_noise_sigma_m: float = 0.0,
-                 bad_frames: float = 0.0, rng: np.random.Generator | None = None) -> None:
+                 bad_frames: float = 0.0, rng: np.random.Generator | None = None,
+                 range_noise: RangeNoise | None = None, garbage: float = 0.0) -> None:
         self.clock = clock
         self.source = _FrameSource(range_at, model, baud, rate_hz, clock.now_ns() if t0_ns is None else t0_ns,
-                                   output_latency_ns, range_noise_sigma_m, bad_frames, rng)
+                                   output_latency_ns, range_noise_sigma_m, bad_frames, rng, range_noise, garbage)
         self._k = 0  # the next frame to put on the wire
         self._pending = b""  # its bytes, made when its first byte was due
         self._sent = 0  # of those, already read
@@ -133,9 +178,12 @@ class EmulatedTfminiPort:
         """Up to n bytes that are on the wire by now (never blocks)."""
         if self.closed:
             raise OSError("read on a closed serial port")
-        if self.unplugged:
-            return b""  # a UART with nothing on its RX line reads as silence
         now, src, out = self.clock.now_ns(), self.source, bytearray()
+        if self.unplugged:  # a UART with nothing on its RX line reads as silence; those frames are lost
+            self._pending, self._sent = b"", 0
+            while src.wire_start_ns(self._k) <= now:
+                self._k += 1
+            return b""
         while len(out) < n:
             if self._sent == len(self._pending):
                 if src.wire_start_ns(self._k) + src.byte_ns > now:
@@ -157,18 +205,21 @@ class EmulatedTfminiPort:
 
 class PtyTfmini:
     """A TFMini on a pseudo-terminal, in real time (module docstring). `path` is the serial port to
-    open (`serial:{path}`); `start()` begins streaming, `unplug()` closes the master side, `close()`
-    stops. Args as `EmulatedTfminiPort`, times in the monotonic clock's ns."""
+    open (`serial:{path}`); `start()` begins streaming, `unplugged` silences it (the sensor's cable),
+    `remove_adapter()` closes the master side (a USB adapter gone), `close()` stops. Args as
+    `EmulatedTfminiPort`, times in the monotonic clock's ns."""
 
     def __init__(self, range_at: Callable[[int], float | None], *, model: TfminiModel = TfminiModel.TFMINI_S,
                  baud: int = 115_200, rate_hz: float = 100.0, output_latency_ns: int = 0,
                  range_noise_sigma_m: float = 0.0, bad_frames: float = 0.0,
-                 rng: np.random.Generator | None = None) -> None:
+                 rng: np.random.Generator | None = None, range_noise: RangeNoise | None = None,
+                 garbage: float = 0.0) -> None:
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)  # no line discipline: bytes pass as sent (0x0a stays 0x0a)
         self.path = os.ttyname(self._slave)
         self.source = _FrameSource(range_at, model, baud, rate_hz, time.monotonic_ns(), output_latency_ns,
-                                   range_noise_sigma_m, bad_frames, rng)
+                                   range_noise_sigma_m, bad_frames, rng, range_noise, garbage)
+        self.unplugged = False  # the sensor's cable off the UART pins: silence, its frames lost
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="pty-tfmini", daemon=True)
         self._lock = threading.Lock()
@@ -186,11 +237,13 @@ class PtyTfmini:
                 wait_s = (src.wire_start_ns(k) - time.monotonic_ns()) / 1e9
                 if wait_s > 0 and self._stop.wait(wait_s):
                     break
-                with self._lock:
-                    if self._master < 0:
-                        break
-                    os.write(self._master, src.frame(k))
-                self.frames_written += 1
+                if not self.unplugged:
+                    data = src.frame(k)  # ray cast outside the lock: inject() never waits on it
+                    with self._lock:
+                        if self._master < 0:
+                            break
+                        os.write(self._master, data)
+                    self.frames_written += 1
                 k += 1
         except OSError:
             pass  # the master was closed under us (unplug): nothing more to send
@@ -201,8 +254,8 @@ class PtyTfmini:
             if self._master >= 0:
                 os.write(self._master, data)
 
-    def unplug(self) -> None:
-        """The sensor's cable pulled: the master side closes, the slave reads as disconnected."""
+    def remove_adapter(self) -> None:
+        """A USB serial adapter pulled out: the master side closes, the slave fails as a vanished port does."""
         with self._lock:
             if self._master >= 0:
                 os.close(self._master)
@@ -212,7 +265,7 @@ class PtyTfmini:
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join(timeout=5)
-        self.unplug()
+        self.remove_adapter()
         if self._slave >= 0:
             os.close(self._slave)
             self._slave = -1

@@ -13,6 +13,8 @@ exactly. `FaultInjector` applies a spec to the lockstep SITL's parts (`sitl.runn
   timestamps, log labels);
 - the LIDAR-Lite: I2C NACK rate, stuck busy for a window, a power glitch (registers back to their
   power-on values), garbage reads, and glitch readings (a spurious maximum range or 1 cm);
+- the TFMini: frames with a bad checksum, garbage bytes on the line, the sensor unplugged from its
+  UART for a window (or for good: a duration of `inf`);
 - the servo: stuck at some instant (the shaft stops; pulses keep going out), slow (the real servo
   slews slower than its calibration says), delayed (a dead time before it answers a pulse);
 - the payload process: a power cut at some instant (the log keeps what was written by then);
@@ -43,7 +45,7 @@ def _window(name: str, w: tuple[float, float] | None) -> None:
 
 
 PAIRS = {"link_outage": "START,DURATION", "lidar_stuck_busy": "START,DURATION",
-         "autopilot_reboot": "AT,SILENT_S", "clock_jump": "AT,JUMP_S"}
+         "autopilot_reboot": "AT,SILENT_S", "clock_jump": "AT,JUMP_S", "tfmini_unplug": "AT,DURATION"}
 """The faults given as two numbers (the CLI's `NAME=A,B`)."""
 
 
@@ -65,6 +67,9 @@ class FaultSpec:
     lidar_power_glitch_at_s: float | None = None
     lidar_garbage_pct: float = 0.0
     lidar_glitch_pct: float = 0.0
+    tfmini_bad_frame_pct: float = 0.0  # frames sent with a wrong checksum
+    tfmini_garbage_pct: float = 0.0  # frames followed by a few random bytes
+    tfmini_unplug: tuple[float, float] | None = None  # (at s, for s; inf: never put back)
     servo_stuck_at_s: float | None = None
     servo_slow_factor: float = 1.0
     servo_delay_ms: float = 0.0
@@ -77,13 +82,16 @@ class FaultSpec:
 
     def __post_init__(self) -> None:
         for f in ("link_loss_pct", "link_dup_pct", "link_reorder_pct", "i2c_nack_pct", "lidar_garbage_pct",
-                  "lidar_glitch_pct"):
+                  "lidar_glitch_pct", "tfmini_bad_frame_pct", "tfmini_garbage_pct"):
             v = getattr(self, f)
             if not (isinstance(v, int | float) and math.isfinite(v) and 0.0 <= v <= 100.0):
                 raise ValueError(f"fault {f} must be a percentage 0-100, got {v!r}")
         _window("link_outage", self.link_outage)
         _window("lidar_stuck_busy", self.lidar_stuck_busy)
         _window("autopilot_reboot", self.autopilot_reboot)  # (at s, silent s)
+        u = self.tfmini_unplug
+        if u is not None and (len(u) != 2 or not math.isfinite(u[0]) or u[0] < 0 or math.isnan(u[1]) or u[1] <= 0):
+            raise ValueError(f"fault tfmini_unplug must be (at s >= 0, duration s > 0 or inf), got {u!r}")
         for f, top in (("link_latency_ms", 10_000.0), ("link_jitter_ms", 10_000.0), ("servo_delay_ms", 1_000.0)):
             v = getattr(self, f)
             if not (isinstance(v, int | float) and math.isfinite(v) and 0.0 <= v <= top):
@@ -133,7 +141,11 @@ class FaultSpec:
         return [f.name for f in fields(self) if f.name != "seed" and getattr(self, f.name) != getattr(default, f.name)]
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """For JSON (truth.json): a window that never ends has the duration None (JSON has no infinity)."""
+        d = asdict(self)
+        if self.tfmini_unplug is not None and math.isinf(self.tfmini_unplug[1]):
+            d["tfmini_unplug"] = (self.tfmini_unplug[0], None)
+        return d
 
 
 class FaultyLink:
@@ -194,8 +206,8 @@ class FaultInjector:
         self.rng = np.random.default_rng(spec.seed)
         self.survey_t0_ns: int | None = None
         self.counters: dict[str, int] = dict.fromkeys(("lidar_glitches", "power_glitches", "servo_stuck",
-                                                       "autopilot_reboots", "clock_jumps"), 0)
-        self._lidar = self._bus = self._servo = None
+                                                       "autopilot_reboots", "clock_jumps", "tfmini_unplugs"), 0)
+        self._lidar = self._bus = self._servo = self._tfmini = None
         self._stuck_done = self._glitch_done = self._servo_done = self._reboot_done = self._jump_done = False
         self.reboot: Callable[[float], None] | None = None  # set by the runner: reboot the autopilot, silent s
         self.wall_offset_s = 0.0  # the companion's wall clock minus the true time (the clock_jump fault)
@@ -243,6 +255,16 @@ class FaultInjector:
             servo.cal = true
             servo.model.cal = true
 
+    def attach_tfmini(self, port) -> None:
+        """The emulated TFMini of the run (`EmulatedTfminiPort` or `PtyTfmini`: its frame source and its
+        `unplugged` switch)."""
+        self._tfmini = port
+        src = port.source
+        if self.spec.tfmini_bad_frame_pct or self.spec.tfmini_garbage_pct:
+            src.rng = np.random.default_rng(self.rng.integers(2**63))
+            src.bad_frames = self.spec.tfmini_bad_frame_pct / 100.0
+            src.garbage = self.spec.tfmini_garbage_pct / 100.0
+
     @property
     def boresight(self) -> Boresight:
         """The beam's true mounting (square unless a boresight fault is set)."""
@@ -266,6 +288,12 @@ class FaultInjector:
         if s.lidar_stuck_busy is not None and self._lidar is not None:
             a, d = s.lidar_stuck_busy
             self._lidar.stuck_busy = a <= t < a + d
+        if s.tfmini_unplug is not None and self._tfmini is not None:
+            a, d = s.tfmini_unplug
+            out = a <= t < a + d
+            if out and not self._tfmini.unplugged:
+                self.counters["tfmini_unplugs"] += 1
+            self._tfmini.unplugged = out
         if s.lidar_power_glitch_at_s is not None and not self._glitch_done and t >= s.lidar_power_glitch_at_s:
             self._lidar.power_glitch()
             self._glitch_done = True

@@ -31,11 +31,12 @@ from firmware_py.core.rundir import (
     check_free,
 )
 from firmware_py.core.samplelog import SampleLogWriter
-from firmware_py.core.sensor import LIDARLITE_V3, RangefinderSpec
+from firmware_py.core.sensor import LIDARLITE_V3, Rangefinder, RangefinderSpec
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import Waveform, initial_position, named_waveform
 from sitl.faults.injector import FaultSpec
 from sitl.missions.qgc_wpl import write_qgc_wpl
+from sitl.missions.range_check import check_range
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import PAYLOAD_1D_KG, fly_mission
 from sitl.sensing.batch_sampler import sample_flight
@@ -47,6 +48,22 @@ log = logging.getLogger(__name__)
 
 PLANTS = ("jsbsim", "ideal")
 PAYLOADS = ("batch", "firmware")
+TFMINI_NOISES = ("none", "datasheet")
+"""The emulated TFMini's range noise (`--tfmini-noise`): none, or its datasheet accuracy as a Gaussian
+(`sitl.devices.tfmini_emu.datasheet_noise`), until the per-rangefinder `--sensor-noise` models land."""
+LIDARLITE_FAULTS = frozenset({"i2c_nack_pct", "lidar_stuck_busy", "lidar_power_glitch_at_s", "lidar_garbage_pct"})
+"""Faults of the LIDAR-Lite's I2C bus and registers: a TFMini has neither."""
+TFMINI_FAULTS = frozenset({"tfmini_bad_frame_pct", "tfmini_garbage_pct", "tfmini_unplug"})
+"""Faults of the TFMini's UART: a LIDAR-Lite has none."""
+
+
+def check_rangefinder_faults(rangefinder: Rangefinder, faults: FaultSpec | None) -> None:
+    """ValueError naming the first fault that acts on a part the flight does not carry."""
+    for name in faults.active if faults is not None else ():
+        if rangefinder is Rangefinder.TFMINI and name in LIDARLITE_FAULTS:
+            raise ValueError(f"fault {name} acts on the LIDAR-Lite; this flight carries a TFMini")
+        if rangefinder is Rangefinder.LIDARLITE_V3 and name in TFMINI_FAULTS:
+            raise ValueError(f"fault {name} acts on the TFMini; fly it with --rangefinder tfmini")
 
 
 @dataclass(frozen=True)
@@ -65,10 +82,24 @@ class FlyConfig:
     seed: int = 0
     lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10)
     frame: StorageFrame = field(default_factory=StorageFrame)
-    lidar: RangefinderSpec = LIDARLITE_V3
+    lidar: RangefinderSpec = LIDARLITE_V3  # the datasheet flown (the rangefinder's, unless set)
     faults: FaultSpec | None = None  # fault injection (sitl.faults.injector), firmware payload only
+    rangefinder: Rangefinder = Rangefinder.LIDARLITE_V3  # which part the payload drives (--rangefinder)
+    tfmini_noise: str = "none"  # the emulated TFMini's range noise (TFMINI_NOISES)
 
     def __post_init__(self) -> None:
+        if not isinstance(self.rangefinder, Rangefinder):
+            raise ValueError(f"rangefinder must be one of {', '.join(r.value for r in Rangefinder)}, "
+                             f"got {self.rangefinder!r}")
+        if self.rangefinder is not Rangefinder.LIDARLITE_V3 and self.lidar == LIDARLITE_V3:
+            object.__setattr__(self, "lidar", self.rangefinder.spec)
+        if self.tfmini_noise not in TFMINI_NOISES:
+            raise ValueError(f"unknown TFMini noise {self.tfmini_noise!r}; available: {', '.join(TFMINI_NOISES)}")
+        if self.tfmini_noise != "none" and self.rangefinder is not Rangefinder.TFMINI:
+            raise ValueError("--tfmini-noise is the emulated TFMini's: fly it with --rangefinder tfmini")
+        if self.tfmini_noise != "none" and self.payload != "firmware":
+            raise ValueError("--tfmini-noise needs the emulated TFMini of the firmware payload (--payload firmware)")
+        check_rangefinder_faults(self.rangefinder, self.faults)
         if self.plant not in PLANTS:
             raise ValueError(f"unknown plant {self.plant!r}; available: {', '.join(PLANTS)}")
         if self.payload not in PAYLOADS:
@@ -157,6 +188,9 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
         pile = piles.resolve(cfg.stockpile, storage)
     check_clearance(cfg.mission, pile)
     wf = cfg.servo_waveform()
+    out_of_range = check_range(cfg.mission, cfg.lidar.max_range_m, wf, cfg.lever_arm_body_m)
+    if out_of_range:
+        log.warning(out_of_range)
     with OutputFolder(out, RUN_FILES, TRUTH_FILE, force=force) as folder:
         log.debug("%s locked; files are written in %s and put in place when the flight ends", out, folder.staging)
         say(f"stockpile: {pile.source}, true volume {pile.volume_m3:.1f} m^3")
@@ -185,7 +219,9 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
         truth = truth_record(pile, cfg.stockpile, cfg.mission, cfg.frame, plant=cfg.plant, payload=cfg.payload,
                              seed=cfg.seed, faults=cfg.faults, flight_time_s=duration_s, energy_j=energy_j,
                              payload_kg=cfg.payload_kg if cfg.plant == "jsbsim" else None, n_samples=len(records),
-                             servo_initial_position=cfg.initial_position, waveform=cfg.waveform)
+                             servo_initial_position=cfg.initial_position, waveform=cfg.waveform,
+                             **({"rangefinder": cfg.rangefinder.value, "tfmini_noise": cfg.tfmini_noise}
+                                if cfg.rangefinder is Rangefinder.TFMINI else {}))
         folder.staged(TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
         folder.commit()
     n_ret = int(np.count_nonzero(records["flags"] == 0))

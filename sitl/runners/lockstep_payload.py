@@ -4,8 +4,10 @@ One simulated clock (the companion computer's) drives everything. When the paylo
 `World.advance_to` steps the vehicle (JSBSim + autopilot) and its MAVLink server up to that time;
 the server's bytes reach the payload only when the payload's clock has reached the time they were
 sent plus the link latency, so the payload never sees the future. The LIDAR-Lite emulator asks the
-world for the true range at each acquisition: the vehicle's true pose at that instant
-(interpolated between physics steps) and the servo plant's true shaft angle, ray traced.
+world for the true range at each acquisition, the TFMini emulator at each frame's measurement: the
+vehicle's true pose at that instant (interpolated between physics steps) and the servo plant's true
+shaft angle, ray traced. The TFMini's frames reach the payload's unchanged driver through an
+in-memory serial port whose bytes appear at their wire times (`sitl.devices.tfmini_emu`).
 
 The companion clock runs at an offset from the autopilot's boot clock (as on a real drone), so the
 payload's time synchronisation has something to do.
@@ -23,6 +25,7 @@ import numpy as np
 
 from firmware_py.app import PayloadApp, PayloadConfig, PayloadResult
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_ray_w
+from firmware_py.core.sensor import Rangefinder
 from firmware_py.core.servo_model import ServoCalibration
 from firmware_py.hal import PwmOutput
 from firmware_py.hal.clock import SimClock
@@ -254,6 +257,7 @@ class FirmwareRun:
 SITL_MAVLINK_URL = "sitl:lockstep"
 SITL_I2C_URL = "sitl:lockstep"
 SITL_PWM_URL = "pwm:sitl"
+SITL_UART_URL = "sitl:lockstep"
 """What the lockstep run's header names as the payload's hardware: the parts are injected, not opened."""
 SITL_EKF_ORIGIN = (53.4668, -2.2339, 50.0)
 """The EKF origin the payload sends (SET_GPS_GLOBAL_ORIGIN): the simulated autopilot's home."""
@@ -275,7 +279,8 @@ def payload_config(cfg, log_path, header: dict, timeout_s: float) -> PayloadConf
     SITL's header provenance (source, mission) so the ground station reads the same log header."""
     return PayloadConfig(
         out_path=log_path, force=True, mavlink_url=SITL_MAVLINK_URL, i2c_url=SITL_I2C_URL, pwm_url=SITL_PWM_URL,
-        rate_hz=cfg.lidar.rate_hz, waveform=cfg.waveform, servo_peak_rate_rad_s=cfg.servo_peak_rate_rad_s,
+        rangefinder=cfg.rangefinder, uart_url=SITL_UART_URL, rate_hz=cfg.lidar.rate_hz, waveform=cfg.waveform,
+        servo_peak_rate_rad_s=cfg.servo_peak_rate_rad_s,
         initial_position=cfg.initial_position, servo=ServoCalibration(), storage=cfg.mission.storage,
         frame=cfg.frame, lever_arm_body_m=tuple(cfg.lever_arm_body_m), range_sigma_m=cfg.lidar.range_sigma_m,
         range_sigma_rel=cfg.lidar.range_sigma_rel, duration_s=timeout_s, stop_on_disarm=True,
@@ -304,6 +309,7 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     from sitl.devices.i2c_sim import SimI2CBus
     from sitl.devices.lidarlite_emu import EmulatedLidarLite
     from sitl.devices.servo_emu import EmulatedServo
+    from sitl.devices.tfmini_emu import EmulatedTfminiPort, datasheet_noise
     from sitl.faults.injector import FaultInjector
     from sitl.runners.flight import SETTLE_S, mission_nav_items, start_pose
     from sitl.vehicle.api import FlightMode
@@ -348,11 +354,21 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     cal = ServoCalibration()
     plant = EmulatedServo(clock, cal, angle0_rad=float(wf.angle(0.0)))
     sim.servo_angle_at = plant.angle_at
-    bus = SimI2CBus(clock)
-    part = EmulatedLidarLite(clock, inj.range_at(sim.true_range_m) if inj else sim.true_range_m)
-    bus.attach(0x62, part)
+    range_at = inj.range_at(sim.true_range_m) if inj else sim.true_range_m
+    bus = uart = None
+    if cfg.rangefinder is Rangefinder.TFMINI:
+        uart = EmulatedTfminiPort(clock, range_at, rate_hz=cfg.lidar.rate_hz,
+                                  range_noise=datasheet_noise(cfg.lidar) if cfg.tfmini_noise == "datasheet" else None,
+                                  rng=np.random.default_rng([seed, 0x7F]))
+        part = None
+    else:
+        bus = SimI2CBus(clock)
+        part = EmulatedLidarLite(clock, range_at)
+        bus.attach(0x62, part)
     if inj is not None:
         inj.attach(bus, part, plant)
+        if uart is not None:
+            inj.attach_tfmini(uart)
         sim.boresight = inj.boresight
     power = _Power()
     link = ByteStreamLink(lambda data: sim.payload_send(data) if power.on else None, sim.payload_recv,
@@ -379,8 +395,8 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
                 power.on = False
                 raise _PowerCut
 
-    app = PayloadApp(pcfg, clock=clock, link=link, bus=bus, pwm=plant, err=None, open_log=power.opener(disk),
-                     on_tick=on_tick)
+    app = PayloadApp(pcfg, clock=clock, link=link, bus=bus, pwm=plant, uart=uart, err=None,
+                     open_log=power.opener(disk), on_tick=on_tick)
     cut = False
     disk_full: bool | str = False
     result = None
@@ -407,7 +423,10 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
                        lidar.counters().as_dict(), status, true_t, true_s,
                        None if inj is None else
                        {"link_down": links["down"].counters, "link_up": links["up"].counters, **inj.counters,
-                        "i2c_nacks": bus.counters["nack"], "power_cut": cut, "disk_full": disk_full,
+                        "i2c_nacks": bus.counters["nack"] if bus is not None else 0,
+                        **({"tfmini_bad_frames_sent": uart.source.bad_frames_sent,
+                            "tfmini_garbage_bursts": uart.source.garbage_bursts} if uart is not None else {}),
+                        "power_cut": cut, "disk_full": disk_full,
                         "loop": loop.stats, "pending_at_stop": loop.pending if (cut or disk_full) else 0,
                         "signing": {"payload": dict(payload_signer.stats), "autopilot": dict(server_signer.stats)}
                         if signing_key is not None else None,

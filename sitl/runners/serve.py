@@ -40,16 +40,18 @@ from firmware_py.core.rundir import (
     OutputFolder,
     check_free,
 )
+from firmware_py.core.sensor import Rangefinder
 from firmware_py.hal.signing import SigningConfig
 from sitl.devices.bridge_server import parse_bridge_url
-from sitl.devices.networked import NetworkedDevices, NetworkedFaults, check_networked_faults
+from sitl.devices.networked import SERVO_CHANNEL, NetworkedDevices, NetworkedFaults, check_networked_faults
 from sitl.faults.injector import PAIRS, FaultSpec
 from sitl.mavlink.server import LinkLimits, MavlinkVehicleServer, run_realtime
 from sitl.mavlink.transport import make_transport
 from sitl.missions.qgc_wpl import DEFAULT_ORIGIN, write_qgc_wpl
+from sitl.missions.range_check import check_range
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import start_pose
-from sitl.runners.fly import FlyConfig, check_clearance, truth_record
+from sitl.runners.fly import TFMINI_NOISES, FlyConfig, check_clearance, check_rangefinder_faults, truth_record
 from sitl.vehicle.jsbsim_plant import PlantConfig
 from sitl.vehicle.jsbsim_vehicle import JsbsimVehicle, VehicleConfig
 from sitl.vehicle.kinematic_vehicle import KinematicVehicle
@@ -89,6 +91,10 @@ class ServeOptions:
     the SIM_PS_* parameters' too."""
     limits: LinkLimits = field(default_factory=LinkLimits)
     """What one MAVLink sender may cost the others (STATUSTEXT answers, tlog space; --tlog-max-mb)."""
+    rangefinder: Rangefinder = Rangefinder.LIDARLITE_V3
+    """With --devices: the TFMini also streams on a pseudo-terminal (the LIDAR-Lite is always on the bridge)."""
+    tfmini_noise: str = "none"
+    """The emulated TFMini's range noise (`sitl.runners.fly.TFMINI_NOISES`)."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speedup) and 0 < self.speedup <= 1000):
@@ -103,10 +109,20 @@ class ServeOptions:
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
             raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
         check_networked_faults(self.faults, devices=self.devices_url is not None)
+        if not isinstance(self.rangefinder, Rangefinder):
+            raise ValueError(f"rangefinder must be one of {', '.join(r.value for r in Rangefinder)}, "
+                             f"got {self.rangefinder!r}")
+        if self.rangefinder is Rangefinder.TFMINI and self.devices_url is None:
+            raise ValueError("--rangefinder tfmini needs --devices (the emulated parts the payload uses)")
+        if self.tfmini_noise not in TFMINI_NOISES:
+            raise ValueError(f"unknown TFMini noise {self.tfmini_noise!r}; available: {', '.join(TFMINI_NOISES)}")
+        if self.tfmini_noise != "none" and self.rangefinder is not Rangefinder.TFMINI:
+            raise ValueError("--tfmini-noise is the emulated TFMini's: serve it with --rangefinder tfmini")
+        check_rangefinder_faults(self.rangefinder, self.faults)
 
     def fly_config(self) -> FlyConfig:
         """The lockstep SITL's settings for this mission: its frame, lever arm and LiDAR are served too."""
-        return FlyConfig(mission=self.mission, stockpile=self.stockpile)
+        return FlyConfig(mission=self.mission, stockpile=self.stockpile, rangefinder=self.rangefinder)
 
 
 def serve(opts: ServeOptions) -> int:
@@ -122,6 +138,10 @@ def serve(opts: ServeOptions) -> int:
         with reading_input("--stockpile"):
             pile = piles.resolve(opts.stockpile, opts.mission.storage)
         check_clearance(opts.mission, pile)
+        fc = opts.fly_config()
+        out_of_range = check_range(opts.mission, fc.lidar.max_range_m, fc.servo_waveform(), fc.lever_arm_body_m)
+        if out_of_range:
+            log.warning(out_of_range)
         world = World(opts.mission.storage, pile, max_range_m=opts.fly_config().lidar.max_range_m)
     transport = make_transport(opts.url)  # a bad --mavlink fails before anything is written
     try:
@@ -189,8 +209,10 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
     plan = folder.publish(PLAN_FILE)
     if world is not None:
         pile.mesh.export(folder.staged(PILE_FILE))
+        tfmini = ({"rangefinder": opts.rangefinder.value, "tfmini_noise": opts.tfmini_noise}
+                  if opts.rangefinder is Rangefinder.TFMINI else {})
         truth = truth_record(pile, opts.stockpile, mission, frame, plant=kind, payload="networked",
-                             seed=opts.faults.seed, faults=opts.faults)
+                             seed=opts.faults.seed, faults=opts.faults, **tfmini)
         folder.staged(TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
     vehicle = make_vehicle(kind, mission, frame)
     stop = threading.Event()
@@ -199,9 +221,13 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
     devices = None
     try:
         if world is not None:
+            from sitl.devices.tfmini_emu import datasheet_noise
             devices = NetworkedDevices(vehicle, world, opts.devices_url, frame=frame,
                                        lever_arm_body_m=cfg.lever_arm_body_m,
-                                       key=opts.signing.key if opts.signing is not None else None)
+                                       key=opts.signing.key if opts.signing is not None else None,
+                                       rangefinder=opts.rangefinder,
+                                       tfmini_noise=datasheet_noise(cfg.lidar) if opts.tfmini_noise == "datasheet"
+                                       else None)
         faults = NetworkedFaults(opts.faults, vehicle, transport, devices)
         if devices is not None:
             devices.start()
@@ -216,6 +242,10 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
                  _where(transport), opts.speedup, plan,
                  (f"; LiDAR and servo on {devices.url} (pile {opts.stockpile}, {pile.volume_m3:.1f} m^3)"
                   if devices else ""), signed, injected)
+        if devices is not None and devices.tfmini_path is not None:
+            log.info("TFMini on %s (%s): pilescan-payload --rangefinder tfmini --uart serial:%s --pwm pwm:%s:%d",
+                     devices.tfmini_path, "datasheet noise" if opts.tfmini_noise == "datasheet" else "no noise",
+                     devices.tfmini_path, devices.url, SERVO_CHANNEL)
         if devices is None:
             log.info("no payload: this run records no LiDAR data (for a survey, serve with --devices and run "
                      "pilescan-payload against it)")

@@ -2,9 +2,10 @@
 scripted ground station as three processes on real sockets, in real time (about 25 s)."""
 
 import numpy as np
+import pytest
 
 from firmware_py.core.frames import StorageFrame, beam_rays_w
-from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, read_samplelog
+from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, SampleFlags, read_samplelog
 from firmware_py.core.storage import Storage
 from sitl.world import stockpile as piles
 from sitl.world.raycast import World
@@ -45,3 +46,35 @@ def test_that_a_signed_networked_flight_works_with_the_key_on_every_link_and_the
     s = read_samplelog(tmp_path / "net" / "samples.pslog").samples
     good = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
     assert len(good) > 500  # signed poses arrived and tagged samples
+
+
+def test_that_the_payload_reads_a_served_tfmini_over_a_pty_and_survives_its_faults(tmp_path):
+    """serve --rangefinder tfmini streams frames into a pseudo-terminal; the payload process reads them with
+    pyserial. Bad frames and a 2 s unplug (from 4 s after AUTO) end as flagged samples; the ranges it
+    keeps match the served world from their logged poses; after the replug it ranges again."""
+    storage = Storage(30, 20, 10)
+    run = fly_networked(["--p-traj", "25", "--altitude", "9", "--speed", "2"], "30x20x10", "1", tmp_path / "net",
+                        flight_s=12.0, say=lambda _m: None, rangefinder="tfmini",
+                        serve_args=["--fault", "tfmini_bad_frame_pct=3", "--fault", "tfmini_unplug=4,2"])
+    assert run.payload_exit == 0
+    log = read_samplelog(tmp_path / "net" / "samples.pslog")
+    assert log.blocks_corrupt == 0 and log.blocks_truncated == 0
+    assert log.header["payload"]["uart"].startswith("serial:/dev/")
+    s = log.samples
+    assert np.median(np.diff(s["t_s"])) == pytest.approx(0.01, abs=2e-4)  # paced by the 100 Hz frames
+    err_flag = (s["flags"] & int(SampleFlags.SENSOR_ERROR)) != 0
+    # The unplugged window: the longest run of flagged samples lasts the 2 s (timeouts every 30 ms).
+    runs = np.split(np.flatnonzero(err_flag), np.flatnonzero(np.diff(np.flatnonzero(err_flag)) > 1) + 1)
+    longest = max(runs, key=len)
+    assert 1.7 <= s["t_s"][longest[-1]] - s["t_s"][longest[0]] <= 3.0  # real time: a busy machine may stretch it
+    assert len(runs) > 5  # and the bad frames, one flagged sample each, scattered
+    after = s[longest[-1] + 1:]
+    assert np.count_nonzero((after["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0) > 200  # ranging again
+    good = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
+    world = World(storage, piles.resolve(str(tmp_path / "net" / "pile.stl"), storage), max_range_m=12.0)
+    o, d = beam_rays_w(np.column_stack([good["x_m"], good["y_m"], good["z_m"]]), good["roll_rad"],
+                       good["pitch_rad"], good["yaw_rad"], good["servo_rad"],
+                       np.array(log.header["lever_arm_body_m"]), StorageFrame())
+    err = good["range_m"] - world.cast(o, d).range_m
+    err = np.abs(err[np.isfinite(err)])
+    assert len(err) > 300 and np.median(err) < 0.01 and np.percentile(err, 90) < 0.05

@@ -68,18 +68,31 @@ def test_that_an_unplugged_lockstep_sensor_times_out():
     assert [lidar.read().status for _ in range(3)] == [ReadStatus.TIMEOUT] * 3
 
 
+def _oks(lidar, n, max_reads=1000):
+    """The first n OK readings (a busy machine may delay the writer past a read's deadline: a TIMEOUT
+    then, which is the driver working, not the test's subject)."""
+    got = []
+    for _ in range(max_reads):
+        r = lidar.read()
+        assert r.status in (ReadStatus.OK, ReadStatus.TIMEOUT)
+        if r.ok:
+            got.append(r)
+            if len(got) == n:
+                return got
+    raise AssertionError(f"only {len(got)} of {n} readings in {max_reads} reads")
+
+
 def test_that_pyserial_reads_the_emulated_part_over_a_pseudo_terminal():
     with PtyTfmini(lambda t: 3.21, model=S) as pty:
         port = open_uart(f"serial:{pty.path}:115200")
         try:
             lidar = Tfmini(port, MonotonicClock(), TfminiConfig(model=S))
-            got = [lidar.read() for _ in range(10)]
+            got = _oks(lidar, 10)
             pty.inject(b"\x00\xff\x59\x13noise\r\n")  # a loose wire between two frames
-            got += [lidar.read() for _ in range(10)]
+            got += _oks(lidar, 10)
         finally:
             port.close()
-    ok = [r for r in got if r.status == ReadStatus.OK]
-    assert len(ok) >= 18 and all(r.range_m == 3.21 for r in ok)
+    assert all(r.range_m == 3.21 for r in got)
     assert lidar.counters().skipped_bytes >= 8  # the noise, skipped
 
 
@@ -88,8 +101,8 @@ def test_that_an_unplugged_pty_sensor_gives_errors_not_a_hang_or_traceback():
     port = open_uart(f"serial:{pty.path}")
     try:
         lidar = Tfmini(port, MonotonicClock(), TfminiConfig(model=S))
-        assert lidar.read().status == ReadStatus.OK
-        pty.unplug()
+        assert _oks(lidar, 1)
+        pty.remove_adapter()
         t0 = time.monotonic()
         statuses = {lidar.read().status for _ in range(5)}
         assert time.monotonic() - t0 < 30  # bounded by the 30 ms deadline per read, generously
