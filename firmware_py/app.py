@@ -48,10 +48,12 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from firmware_py.core.cli import UserError
 from firmware_py.core.flag_tally import describe_flag_counts
 from firmware_py.core.frames import StorageFrame
+from firmware_py.core.geodesy import GeodeticPoint
 from firmware_py.core.header import build_log_header, sensor_spec
 from firmware_py.core.samplelog import SampleFlags, SampleLogWriter
 from firmware_py.core.sensor import LIDARLITE_V3
 from firmware_py.core.servo_model import PWM_FRAME_S, ServoCalibration
+from firmware_py.core.site import Site
 from firmware_py.core.storage import Storage
 from firmware_py.core.stream_format import MAX_RECORDS, parse_stream_url
 from firmware_py.core.waveform import Waveform, named_waveform
@@ -109,6 +111,8 @@ class PayloadConfig:
             [--waveform, --servo-rate, --phase], as `pilescan-sitl fly`.
         servo: pulse-width calibration and dynamics of the servo.
         storage: building L x W x H [--storage]; frame: its placement in local NED.
+        site: where the building stands on Earth [--origin, --heading] (`firmware_py.core.site`), written
+            to the header; None = not known. With send_origin, frame must be the site about it.
         lever_arm_body_m: sensor position from the centre of gravity, body FRD, m [--lever-arm].
         range_sigma_m, range_sigma_rel: the sensor's range error model written to the header (the
             ground station sizes its wall tolerances with it): LIDAR-Lite v3 datasheet by default.
@@ -151,6 +155,7 @@ class PayloadConfig:
     servo: ServoCalibration = field(default_factory=ServoCalibration)
     storage: Storage = field(default_factory=Storage)
     frame: StorageFrame = field(default_factory=StorageFrame)
+    site: Site | None = None
     lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10)
     range_sigma_m: float = LIDARLITE_V3.range_sigma_m
     range_sigma_rel: float = LIDARLITE_V3.range_sigma_rel
@@ -216,6 +221,7 @@ class PayloadConfig:
             if len(tuple(self.send_origin)) != 3:
                 raise ValueError(f"EKF origin must be LAT LON ALT, got {self.send_origin!r}")
             set_gps_global_origin_msg(*self.send_origin)  # range checks
+        self._check_site()
         if self.mission_id is not None and (not isinstance(self.mission_id, str) or not self.mission_id.strip()):
             raise ValueError(f"mission id must be a non-empty string, got {self.mission_id!r}")
         PoseTrackerConfig(target_system=self.target_system, target_component=self.target_component,
@@ -231,6 +237,23 @@ class PayloadConfig:
             v = getattr(self, name)
             if not (_finite(v) and 0.05 <= v <= 3600.0):
                 raise ValueError(f"{name} must be 0.05-3600 s, got {v!r}")
+
+    def _check_site(self) -> None:
+        """The header's frame is the site's, about the EKF origin we send: a log must not carry two
+        placements of the building that disagree."""
+        if self.site is None:
+            return
+        if not isinstance(self.site, Site):
+            raise ValueError(f"site must be a Site, got {self.site!r}")
+        if self.send_origin is None:
+            return
+        want = self.site.frame_about(GeodeticPoint(*self.send_origin))
+        got = self.frame
+        if not (math.isclose(got.heading_rad, want.heading_rad, abs_tol=1e-9)
+                and all(math.isclose(a, b, abs_tol=1e-6) for a, b in zip(got.origin_ned_m, want.origin_ned_m,
+                                                                          strict=True))):
+            raise ValueError(f"storage frame {got.to_dict()} is not the site ({self.site.describe()}) about the "
+                             f"EKF origin sent {tuple(self.send_origin)}: {want.to_dict()}")
 
     def _check_urls(self) -> None:
         for name, url in (("MAVLink", self.mavlink_url), ("I2C bus", self.i2c_url), ("PWM output", self.pwm_url)):
@@ -264,7 +287,7 @@ class PayloadConfig:
         return build_log_header(
             source=self.source, sensor=self.sensor(), lever_arm_body_m=[float(v) for v in self.lever_arm_body_m],
             waveform_name=self.waveform, waveform=self.servo_waveform(), initial_position=self.initial_position,
-            storage=self.storage, frame=self.frame, mission_id=self.mission_id, mission=self.mission,
+            storage=self.storage, frame=self.frame, mission_id=self.mission_id, mission=self.mission, site=self.site,
             extra={"servo_calibration": asdict(self.servo),
                    "payload": {"mavlink": self.mavlink_url, "i2c": self.i2c_url, "pwm": self.pwm_url,
                                "lidar_preset": self.preset, "i2c_address": self.i2c_address,

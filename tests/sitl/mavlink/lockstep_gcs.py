@@ -9,7 +9,7 @@ import os
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sitl.mavlink.geodesy import ned_to_global
+from firmware_py.core.geodesy import ned_to_global
 from sitl.mavlink.server import MavlinkVehicleServer
 from sitl.mavlink.transport import PipeTransport
 from sitl.vehicle.api import FlightMode
