@@ -424,6 +424,7 @@ class PayloadApp:
         self._next_status_ns = 0
         self._status_prev: tuple[int, int] | None = None
         self._origin_sent = 0
+        self.origin_disagreement: str | None = None  # set when the autopilot's EKF origin is not the one sent
         self._next_origin_ns = 0
         self._close_errors: list[str] = []
         self.health_errors = 0
@@ -581,6 +582,8 @@ class PayloadApp:
             self._status_line(now)
         if self._origin_sent and now >= self._next_origin_ns:
             self._send_origin(now)
+        if self.origin_disagreement is None and self.tracker.autopilot_origin_e7 is not None:
+            self._check_origin(self.tracker.autopilot_origin_e7)
         if self.cfg.stop_on_disarm:
             armed = self.tracker.autopilot_armed
             if armed:
@@ -621,6 +624,20 @@ class PayloadApp:
         self.link.send(set_gps_global_origin_msg(*origin, target_system=self.cfg.target_system))
         self._origin_sent += 1
         self._next_origin_ns = now + round(ORIGIN_RESEND_S * 1e9)
+
+    def _check_origin(self, theirs: tuple[int, int, int]) -> None:
+        """The autopilot's EKF origin (GPS_GLOBAL_ORIGIN) against the one we sent: positions about another
+        point put the header's storage frame (the site about the origin sent) in the wrong place."""
+        sent = self.cfg.send_origin
+        if sent is None:
+            return
+        msg = set_gps_global_origin_msg(*sent)
+        if theirs == (msg.latitude, msg.longitude, msg.altitude):
+            return
+        self.origin_disagreement = (f"the autopilot's EKF origin is {theirs[0] / 1e7:.7f}, {theirs[1] / 1e7:.7f}, "
+                                    f"{theirs[2] / 1e3:g} m, not the {sent[0]:.7f}, {sent[1]:.7f}, {sent[2]:g} m sent: "
+                                    "the log header's storage frame does not match its positions")
+        self._warn(self.origin_disagreement)
 
     def _status_line(self, now: int) -> None:
         t_prev, n_prev = self._status_prev

@@ -400,8 +400,8 @@ class MavlinkVehicleServer:
         theirs = (int(msg.latitude), int(msg.longitude), int(msg.altitude))
         if theirs != mine:
             self.stats["origin_refused"] += 1
-            text = (f"EKF origin already set to {mine[0] / 1e7:.7f} {mine[1] / 1e7:.7f} {mine[2] / 1e3:g} m; "
-                    f"refused {theirs[0] / 1e7:.7f} {theirs[1] / 1e7:.7f} {theirs[2] / 1e3:g} m")
+            text = (f"origin refused: {theirs[0] / 1e7:.7f} {theirs[1] / 1e7:.7f} {theirs[2] / 1e3:g} m; EKF "
+                    f"origin is {mine[0] / 1e7:.7f} {mine[1] / 1e7:.7f} {mine[2] / 1e3:g} m")
             if self.stats["origin_refused"] == 1:
                 log.warning("%s", text)
             self.say(mavlink.MAV_SEVERITY_WARNING, text)

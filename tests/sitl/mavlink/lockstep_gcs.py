@@ -43,10 +43,10 @@ class Gcs:
     `pending`; expect() consumes up to the first match (like recv_match), run() takes everything.
     """
 
-    def __init__(self, vehicle=None, tlog_path=None):
+    def __init__(self, vehicle=None, tlog_path=None, **server_kw):
         self.vehicle = vehicle or fast_vehicle()
         server_end, self.end = PipeTransport.pair()
-        self.server = MavlinkVehicleServer(self.vehicle, server_end, tlog_path=tlog_path)
+        self.server = MavlinkVehicleServer(self.vehicle, server_end, tlog_path=tlog_path, **server_kw)
         self.mav = mavlink.MAVLink(None, srcSystem=GCS_SYS, srcComponent=GCS_COMP)
         self.mav.robust_parsing = True
         self.pending: list = []
