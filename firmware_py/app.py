@@ -49,10 +49,12 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from firmware_py.core.cli import RunFailure, UserError
 from firmware_py.core.flag_tally import describe_flag_counts
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
+from firmware_py.core.geodesy import GeodeticPoint
 from firmware_py.core.header import build_log_header, sensor_spec
 from firmware_py.core.samplelog import SampleFlags, SampleLogWriter
 from firmware_py.core.sensor import Rangefinder
 from firmware_py.core.servo_model import PWM_FRAME_S, ServoCalibration
+from firmware_py.core.site import Site
 from firmware_py.core.storage import Storage
 from firmware_py.core.stream_format import MAX_RECORDS, parse_stream_url
 from firmware_py.core.waveform import Waveform, named_waveform
@@ -90,6 +92,9 @@ DEFAULT_RANGEFINDER = Rangefinder.LIDARLITE_V3
 DEFAULT_PRESET = PRESET_FAST_500HZ.name
 _MAVLINK_BUILTIN = ("serial", "udp", "udpin", "udpout", "tcp")
 ORIGIN_RESEND_S = 5.0
+MAX_EKF_ORIGIN_OFFSET_M = 10_000.0
+"""How far the EKF origin sent may be from the site's corner: the local NED frame is a flat-earth tangent
+plane about it, fit for a building's neighbourhood; farther is a mistake (two different places typed)."""
 ORIGIN_ATTEMPTS = 5
 
 
@@ -127,6 +132,8 @@ class PayloadConfig:
             [--waveform, --servo-rate, --phase], as `pilescan-sitl fly`.
         servo: pulse-width calibration and dynamics of the servo.
         storage: building L x W x H [--storage]; frame: its placement in local NED.
+        site: where the building stands on Earth [--origin, --heading] (`firmware_py.core.site`), written
+            to the header; None = not known. With send_origin, frame must be the site about it.
         lever_arm_body_m: sensor position from the centre of gravity, body FRD, m [--lever-arm].
         boresight: how the beam's mounting differs from square [--boresight TILT_DEG SWEEP_YAW_DEG]; written
             to the header, where the ground station places points with it.
@@ -177,6 +184,7 @@ class PayloadConfig:
     servo: ServoCalibration = field(default_factory=ServoCalibration)
     storage: Storage = field(default_factory=Storage)
     frame: StorageFrame = field(default_factory=StorageFrame)
+    site: Site | None = None
     lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10)
     boresight: Boresight = SQUARE
     range_sigma_m: float | None = None
@@ -260,6 +268,7 @@ class PayloadConfig:
             if len(tuple(self.send_origin)) != 3:
                 raise ValueError(f"EKF origin must be LAT LON ALT, got {self.send_origin!r}")
             set_gps_global_origin_msg(*self.send_origin)  # range checks
+        self._check_site()
         if self.mission_id is not None and (not isinstance(self.mission_id, str) or not self.mission_id.strip()):
             raise ValueError(f"mission id must be a non-empty string, got {self.mission_id!r}")
         PoseTrackerConfig(target_system=self.target_system, target_component=self.target_component,
@@ -275,6 +284,28 @@ class PayloadConfig:
             v = getattr(self, name)
             if not (_finite(v) and 0.05 <= v <= 3600.0):
                 raise ValueError(f"{name} must be 0.05-3600 s, got {v!r}")
+
+    def _check_site(self) -> None:
+        """The header's frame is the site's, about the EKF origin we send: a log must not carry two
+        placements of the building that disagree."""
+        if self.site is None:
+            return
+        if not isinstance(self.site, Site):
+            raise ValueError(f"site must be a Site, got {self.site!r}")
+        if self.send_origin is None:
+            return
+        want = self.site.frame_about(GeodeticPoint(*self.send_origin))
+        off_m = math.hypot(want.origin_ned_m[0], want.origin_ned_m[1])
+        if off_m > MAX_EKF_ORIGIN_OFFSET_M:
+            raise ValueError(f"the EKF origin sent {tuple(self.send_origin)} is {off_m / 1000:.0f} km from the site's "
+                             f"corner ({self.site.describe()}): it must be the building's neighbourhood (within "
+                             f"{MAX_EKF_ORIGIN_OFFSET_M / 1000:g} km); leave the EKF origin out to send the corner")
+        got = self.frame
+        if not (math.isclose(got.heading_rad, want.heading_rad, abs_tol=1e-9)
+                and all(math.isclose(a, b, abs_tol=1e-6) for a, b in zip(got.origin_ned_m, want.origin_ned_m,
+                                                                          strict=True))):
+            raise ValueError(f"storage frame {got.to_dict()} is not the site ({self.site.describe()}) about the "
+                             f"EKF origin sent {tuple(self.send_origin)}: {want.to_dict()}")
 
     def _check_urls(self) -> None:
         for name, url in (("MAVLink", self.mavlink_url), ("I2C bus", self.i2c_url), ("PWM output", self.pwm_url)):
@@ -338,7 +369,7 @@ class PayloadConfig:
         return build_log_header(
             source=self.source, sensor=self.sensor(), lever_arm_body_m=[float(v) for v in self.lever_arm_body_m],
             waveform_name=self.waveform, waveform=self.servo_waveform(), initial_position=self.initial_position,
-            storage=self.storage, frame=self.frame, mission_id=self.mission_id, mission=self.mission,
+            storage=self.storage, frame=self.frame, mission_id=self.mission_id, mission=self.mission, site=self.site,
             extra={"servo_calibration": asdict(self.servo), "boresight": self.boresight.to_dict(),
                    "config": self.effective_config(), "payload": self.hardware(),
                    **drive})
@@ -371,7 +402,12 @@ class PayloadConfig:
                             "max_us": cal.max_us, "slew_rad_s": cal.slew_rad_s, "lag_s": cal.lag_s}
         payload["sweep"] = {"waveform": self.waveform, "peak_rate_rad_s": float(self.servo_peak_rate_rad_s),
                             "phase": self.initial_position}
-        site = {**self.storage.to_dict(), "heading_deg": _deg(self.frame.heading_rad)}
+        site: dict[str, Any] = dict(self.storage.to_dict())
+        if self.site is not None:
+            site["origin"] = list(self.site.corner.as_tuple())
+            site["heading_deg"] = self.site.to_dict()["heading_deg"]
+        else:
+            site["heading_deg"] = _deg(self.frame.heading_rad)
         return {"file": None if self.config_file is None else os.fspath(self.config_file),
                 "site": site, "payload": payload}
 
@@ -507,6 +543,7 @@ class PayloadApp:
         self._next_status_ns = 0
         self._status_prev: tuple[int, int] | None = None
         self._origin_sent = 0
+        self.origin_disagreement: str | None = None  # set when the autopilot's EKF origin is not the one sent
         self._next_origin_ns = 0
         self._close_errors: list[str] = []
         self.health_errors = 0
@@ -704,6 +741,8 @@ class PayloadApp:
             self._status_line(now)
         if self._origin_sent and now >= self._next_origin_ns:
             self._send_origin(now)
+        if self.origin_disagreement is None and self.tracker.autopilot_origin_e7 is not None:
+            self._check_origin(self.tracker.autopilot_origin_e7)
         if self.cfg.stop_on_disarm:
             armed = self.tracker.autopilot_armed
             if armed:
@@ -755,6 +794,20 @@ class PayloadApp:
         self.link.send(set_gps_global_origin_msg(*origin, target_system=self.cfg.target_system))
         self._origin_sent += 1
         self._next_origin_ns = now + round(ORIGIN_RESEND_S * 1e9)
+
+    def _check_origin(self, theirs: tuple[int, int, int]) -> None:
+        """The autopilot's EKF origin (GPS_GLOBAL_ORIGIN) against the one we sent: positions about another
+        point put the header's storage frame (the site about the origin sent) in the wrong place."""
+        sent = self.cfg.send_origin
+        if sent is None:
+            return
+        msg = set_gps_global_origin_msg(*sent)
+        if theirs == (msg.latitude, msg.longitude, msg.altitude):
+            return
+        self.origin_disagreement = (f"the autopilot's EKF origin is {theirs[0] / 1e7:.7f}, {theirs[1] / 1e7:.7f}, "
+                                    f"{theirs[2] / 1e3:g} m, not the {sent[0]:.7f}, {sent[1]:.7f}, {sent[2]:g} m sent: "
+                                    "the log header's storage frame does not match its positions")
+        self._warn(self.origin_disagreement)
 
     def _status_line(self, now: int) -> None:
         t_prev, n_prev = self._status_prev

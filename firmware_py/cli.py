@@ -37,10 +37,12 @@ from firmware_py.core.cli import (
     stop_on_signals,
 )
 from firmware_py.core.config_file import to_toml
-from firmware_py.core.frames import Boresight
+from firmware_py.core.frames import Boresight, StorageFrame
+from firmware_py.core.geodesy import GeodeticPoint
 from firmware_py.core.keys import load_key
 from firmware_py.core.sensor import Rangefinder
 from firmware_py.core.servo_model import ServoCalibration
+from firmware_py.core.site import Site, add_site_options
 from firmware_py.core.storage import Storage
 from firmware_py.core.stream_format import parse_stream_url
 from firmware_py.core.version import software_version
@@ -224,7 +226,9 @@ def build_parser() -> ArgumentParser:
                     help="stop when the autopilot's HEARTBEAT shows disarmed after having shown armed")
     st.add_argument("--send-origin", type=finite_float, nargs=3, default=None, metavar=("LAT", "LON", "ALT"),
                     help="send SET_GPS_GLOBAL_ORIGIN (deg, deg, m MSL) at start: an indoor EKF needs an origin "
-                         "before it publishes LOCAL_POSITION_NED")
+                         "before it publishes LOCAL_POSITION_NED (default with --origin: the site's corner)")
+    site = ap.add_argument_group("site (the storage frame in the log header)")
+    add_site_options(site, default=None)
     return ap
 
 
@@ -233,6 +237,23 @@ def _rangefinder(text: str) -> Rangefinder:
         return Rangefinder.named(text.strip())
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def site_from_cli(args) -> tuple[Site | None, StorageFrame, tuple[float, float, float] | None]:
+    """--origin / --heading / --send-origin -> (site, storage frame, EKF origin to send).
+
+    With --origin the site is known: the EKF origin sent is its corner unless --send-origin names another,
+    and the frame is the site about that origin. Without it the corner is taken to be the EKF origin
+    (whatever sets it), turned by --heading; no site is recorded and nothing is sent unless asked.
+    """
+    send = tuple(args.send_origin) if args.send_origin is not None else None
+    heading_rad = math.radians(args.heading) if args.heading is not None else 0.0
+    if args.origin is None:
+        return None, StorageFrame(heading_rad=heading_rad), send
+    site = Site(args.origin, heading_rad)
+    if send is None:
+        send = site.corner.as_tuple()
+    return site, site.frame_about(GeodeticPoint(*send)), send
 
 
 def signing_from_args(args) -> SigningConfig | None:
@@ -303,14 +324,15 @@ def config_from_args(args) -> PayloadConfig:
     if tfmini and preset_flag != DEFAULT_PRESET:
         raise UserError("--preset is the LIDAR-Lite's: a TFMini has none")
     device_key = signing.key if signing is not None and uses_device_bridge(i2c if not tfmini else "", pwm) else None
+    site, frame, send_origin = site_from_cli(args)
     return PayloadConfig(
         out_path=out, force=args.force, mavlink_url=args.mavlink, rangefinder=args.rangefinder,
         uart_url=args.uart or DEFAULT_UART_URL, i2c_url=i2c, pwm_url=pwm,
         preset=args.preset, rate_hz=args.rate, waveform=args.waveform, servo_peak_rate_rad_s=args.servo_rate,
         initial_position=args.phase, storage=Storage.parse(args.storage), servo=servo_from_args(args),
+        site=site, frame=frame,
         lever_arm_body_m=tuple(args.lever_arm), boresight=boresight_from_args(args), duration_s=args.duration,
-        stop_on_disarm=args.stop_on_disarm, stream_url=args.stream,
-        send_origin=tuple(args.send_origin) if args.send_origin is not None else None,
+        stop_on_disarm=args.stop_on_disarm, stream_url=args.stream, send_origin=send_origin,
         mission_id=args.mission_id, quiet=args.quiet, signing=signing, device_key=device_key,
         config_file=args.config, signing_key_file=args.signing_key)
 

@@ -184,6 +184,8 @@ class PoseTracker:
         self._rates_hz: dict[str, float] = {}
         self._last_heartbeat_rx_ns: int | None = None
         self._autopilot_base_mode: int | None = None
+        self.autopilot_origin_e7: tuple[int, int, int] | None = None
+        """The EKF origin the autopilot last reported (GPS_GLOBAL_ORIGIN: 1e-7 deg, 1e-7 deg, mm); None before."""
         self._replies_seen = 0
         self.stats: Counter[str] = Counter()
 
@@ -271,6 +273,8 @@ class PoseTracker:
         elif kind == "HEARTBEAT":
             self._last_heartbeat_rx_ns = now
             self._autopilot_base_mode = int(msg.base_mode)
+        elif kind == "GPS_GLOBAL_ORIGIN":
+            self.autopilot_origin_e7 = (int(msg.latitude), int(msg.longitude), int(msg.altitude))
         elif hasattr(msg, "time_boot_ms"):
             self._check_boot(msg.time_boot_ms, now)
 

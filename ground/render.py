@@ -42,6 +42,7 @@ SUMMARY_KEYS: tuple[str, ...] = (
     "cell_size_m",
     "empty_cell_policy",
     "storage",
+    "site",
     "log",
     "source",
     "software_version",
@@ -60,6 +61,7 @@ _SUMMARY_LABELS: dict[str, str] = {
     "cell_size_m": "Grid cell size",
     "empty_cell_policy": "Empty-cell policy",
     "storage": "Storage L × W × H",
+    "site": "Site (floor corner; x axis heading)",
     "log": "Log blocks",
     "source": "Source",
     "software_version": "Software version",
@@ -168,6 +170,7 @@ def fmt_count(v: Any) -> str:
 
 _SUMMARY_SUBKEYS: dict[str, tuple[str, ...]] = {
     "storage": ("length_m", "width_m", "height_m"),
+    "site": ("lat_deg", "lon_deg", "alt_m", "heading_deg"),
     "log": ("blocks_ok", "blocks_corrupt", "blocks_truncated"),
 }
 """Sub-keys a summary cell shows; any others of the same dict go to "All figures"."""
@@ -178,6 +181,17 @@ def _fmt_storage(v: Any) -> str:
         return fmt_value(v)
     dims = [_fmt_number(v.get(k), ".2f", " m") for k in _SUMMARY_SUBKEYS["storage"]]
     return " × ".join(dims)
+
+
+def _fmt_site(v: Any) -> str:
+    """Where the building stands: its corner (deg, deg, m above sea level) and its x axis' heading."""
+    if _is_missing(v):
+        return UNKNOWN
+    if not isinstance(v, Mapping):
+        return fmt_value(v)
+    return (f"{_fmt_number(v.get('lat_deg'), '.7f', '°')}, {_fmt_number(v.get('lon_deg'), '.7f', '°')}, "
+            f"{_fmt_number(v.get('alt_m'), '.2f', ' m')} MSL; {_fmt_number(v.get('heading_deg'), '.2f', '°')} "
+            "from north")
 
 
 def _fmt_log(v: Any) -> str:
@@ -199,6 +213,7 @@ _SUMMARY_FORMAT = {
     "cell_size_m": lambda v: _fmt_number(v, ".3f", " m"),
     "empty_cell_policy": fmt_value,
     "storage": _fmt_storage,
+    "site": _fmt_site,
     "log": _fmt_log,
     "source": fmt_value,
     "software_version": fmt_value,

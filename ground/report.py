@@ -18,6 +18,7 @@ from firmware_py.core.header import header_boresight
 from firmware_py.core.rundir import SAMPLES_FILE, TRUTH_FILE, OutputFolder, check_free
 from firmware_py.core.safe_read import InputError, json_number, json_object, load_json
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, SampleLog, read_samplelog
+from firmware_py.core.site import Site
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
@@ -139,6 +140,18 @@ def header_geometry(log: SampleLog, path: Path) -> tuple[Storage, StorageFrame, 
     return storage, frame, lever
 
 
+def header_site(header: dict) -> tuple[dict | None, str | None]:
+    """The header's "site" record, checked (None when the log has none), and a warning when it is malformed:
+    where the building stands is shown in the report, never needed for the volume."""
+    raw = header.get("site")
+    if raw is None:
+        return None, None
+    try:
+        return Site.from_dict(raw).to_dict(), None
+    except ValueError as exc:
+        return None, f"log header site is malformed ({exc}): not shown"
+
+
 def check_grid_memory(storage: Storage, cell_m: float, max_bytes: int) -> None:
     """Refuse a cell size whose grid would need more than max_bytes (GRID_BYTES_PER_CELL a cell), naming
     the smallest cell that fits, instead of running the machine out of memory."""
@@ -246,6 +259,9 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
     ra = reconstructed_ratio_pct(survey.heights_fit)
     n_struct = len(survey.cloud.points_w) - len(survey.pile_points_w)
     warnings = []
+    site, why = header_site(log.header or {})
+    if why is not None:
+        warnings.append(why)
     if log.blocks_corrupt or log.blocks_truncated:
         warnings.append(f"sample log damaged: {log.blocks_corrupt} corrupt and {log.blocks_truncated} "
                         f"truncated block(s) skipped ({log.bytes_skipped} bytes)")
@@ -321,6 +337,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "self_calibration": None if survey.mount is None else survey.mount.as_dict(),
         "uncovered_area_m2": float((~np.isfinite(survey.heights_fit)).sum() * g.cell_area_m2),
         "storage": survey.storage.to_dict(),
+        "site": site,
         "mission_id": (log.header or {}).get("mission_id"),
         "boresight_deg": _boresight_deg(log.header or {}),
         "config": (log.header or {}).get("config"),

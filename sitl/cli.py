@@ -23,9 +23,9 @@ from firmware_py.core.cli import (
     reading_input,
     run_cli,
 )
-from firmware_py.core.frames import StorageFrame
 from firmware_py.core.rundir import publish_file
 from firmware_py.core.sensor import Rangefinder
+from firmware_py.core.site import DEFAULT_SITE, Site, add_site_options, site_from_args
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import N_PHASES
@@ -178,6 +178,12 @@ def _mission_options(p: ArgumentParser, p_traj_required: bool) -> None:
     p.add_argument("--speed", type=finite_float, default=1.0, help="flight speed, m/s (default 1.0)")
     p.add_argument("--altitude", type=finite_float, default=12.0, help="flight height, m (default 12)")
     p.add_argument("--yaw-rate-max", type=finite_float, default=30.0, help="max yaw rate, deg/s (default 30)")
+    add_site_options(p, default=DEFAULT_SITE)
+
+
+def _site(args) -> Site:
+    """--origin / --heading: where the building stands; the EKF origin (home) is its floor corner."""
+    return site_from_args(args.origin, args.heading, DEFAULT_SITE)
 
 
 def _mission(args) -> Mission:
@@ -198,7 +204,7 @@ def _fly(args) -> int:
                     payload=args.payload or _default_payload(args.plant), latency_ms=tuple(args.latency_ms),
                     payload_kg=args.payload_mass, seed=args.seed, rangefinder=args.rangefinder,
                     tfmini_noise=args.tfmini_noise,
-                    faults=FaultSpec.parse(args.fault, seed=args.seed) if args.fault else None)
+                    faults=FaultSpec.parse(args.fault, seed=args.seed) if args.fault else None, site=_site(args))
     res = fly(cfg, args.out, force=args.force)  # progress: this module's logger (-v/-q)
     if not args.quiet:
         print(f"run written to {res.out_dir} ({res.n_samples} samples, {res.duration_s:.0f} s flight, "
@@ -215,7 +221,8 @@ def _plan(args) -> int:
         raise UserError(f"{out} already exists; choose another --out or pass --force")
     tmp = out.with_name(f".{out.name}.partial-{os.getpid()}")  # beside it: the rename stays on one file system
     try:
-        write_qgc_wpl(tmp, mission, StorageFrame())
+        site = _site(args)
+        write_qgc_wpl(tmp, mission, site.frame_about(), site.corner.as_tuple())
     except OSError as exc:
         tmp.unlink(missing_ok=True)
         raise RunFailure(f"cannot write {out}: {exc.strerror or exc}") from None
@@ -248,7 +255,7 @@ def _serve(args) -> int:
                               devices_url=args.devices, stockpile=args.stockpile, signing=signing,
                               faults=FaultSpec.parse(args.fault, seed=args.seed), rangefinder=args.rangefinder,
                               tfmini_noise=args.tfmini_noise,
-                              limits=tlog_limits(args.tlog_max_mb)))
+                              limits=tlog_limits(args.tlog_max_mb), site=_site(args)))
 
 
 def _dispatch(args) -> int:

@@ -24,10 +24,6 @@ PROGRAMS = {"pilescan-payload": (payload_cli.build_parser, payload_cli.CONFIG_OP
             "pilescan-ground": (ground_cli.build_parser, ground_cli.CONFIG_OPTIONS)}
 
 PENDING = {
-    "--origin": "branch site adds --origin LAT,LON,ALT (plan/serve/fly/payload)",
-    "--heading": "branch site adds --heading DEG (plan/serve/fly/payload)",
-    "--rangefinder": "branch tfmini adds --rangefinder lidarlite-v3|tfmini (payload, fly, serve)",
-    "--uart": "branch tfmini adds --uart URL (payload)",
     "--sensor-noise": "branch noise adds --sensor-noise none|datasheet|appendix-a (fly, serve)",
 }
 """Options other branches add at the same time; until they are merged the programs say the key is not used."""

@@ -26,7 +26,7 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from firmware_py.core.cli import ExitCode, NoVolumeError
@@ -119,7 +119,7 @@ class NetworkedRun:
 def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Path, phase: int = 0,
                   timeout_s: float = 900.0, flight_s: float | None = None, say=print,
                   signing_key: Path | None = None, rangefinder: str = "lidarlite-v3",
-                  serve_args: list[str] | None = None) -> NetworkedRun:
+                  serve_args: list[str] | None = None, site_args: list[str] | tuple[str, ...] = ()) -> NetworkedRun:
     """Run the three programs for one survey; the run directory gets samples.pslog and a report.
 
     With flight_s, stop the payload (SIGTERM) that long after AUTO instead of waiting for the landing.
@@ -127,6 +127,8 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
     rangefinder "tfmini": serve streams an emulated TFMini on a pseudo-terminal and the payload reads it
     there with pyserial (the servo stays on the device bridge). serve_args go to serve as they are
     (`--tfmini-noise datasheet`, `--fault ...`).
+    site_args (["--origin", "LAT,LON,ALT", "--heading", "DEG"]) go to the SITL and to the payload alike:
+    the served autopilot's EKF origin and the payload's header (and the origin it sends) then agree.
     """
     out.mkdir(parents=True, exist_ok=True)
     keyed = ["--signing-key", str(signing_key)] if signing_key is not None else []
@@ -136,8 +138,8 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
     tfmini = rangefinder == "tfmini"
     sitl = subprocess.Popen([sys.executable, "-m", "sitl.cli", "serve", "--mavlink", f"udp:127.0.0.1:{mav_port}",
                              "--devices", f"tcp:127.0.0.1:{dev_port}", "--stockpile", stockpile, "--storage", storage,
-                             *mission_args, "--out", str(out), "--force", *keyed, "--rangefinder", rangefinder,
-                             *(serve_args or [])], stderr=subprocess.PIPE, text=True)
+                             *mission_args, *site_args, "--out", str(out), "--force", *keyed, "--rangefinder",
+                             rangefinder, *(serve_args or [])], stderr=subprocess.PIPE, text=True)
     lines = StderrLines(sitl)
     payload = None
     try:
@@ -152,7 +154,7 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
         payload = subprocess.Popen([sys.executable, "-m", "firmware_py.cli", "--mavlink",
                                     f"udpout:127.0.0.1:{mav_port}", *sensor,
                                     "--out", str(out / SAMPLES_FILE), "--force", "--storage", storage,
-                                    "--phase", str(phase), "--stop-on-disarm", "--quiet", *keyed])
+                                    "--phase", str(phase), "--stop-on-disarm", "--quiet", *site_args, *keyed])
         time.sleep(2.0)  # the payload's time sync and pose streams settle before take-off
         fly_plan(f"udpout:127.0.0.1:{mav_port}", out / PLAN_FILE, timeout_s, say=lambda m: say(f"  {m}"),
                  fly_s=flight_s, signing_key=key)
@@ -193,10 +195,15 @@ def main(argv: list[str] | None = None) -> int:
                     help="tfmini: the payload reads an emulated TFMini over a pseudo-terminal with pyserial")
     ap.add_argument("--tfmini-noise", choices=("none", "datasheet"), default="none",
                     help="the emulated TFMini's range noise (both flights)")
+    ap.add_argument("--origin", default=None, metavar="LAT,LON,ALT",
+                    help="the site's floor corner (serve and payload --origin; default: the SITL's)")
+    ap.add_argument("--heading", default=None, metavar="DEG", help="the building's heading (serve and payload)")
     args = ap.parse_args(argv)
+    site_args = ([f"--origin={args.origin}"] if args.origin is not None else []) + (
+        [f"--heading={args.heading}"] if args.heading is not None else [])
     mission_args = ["--p-traj", f"{args.p_traj:g}", "--altitude", f"{args.altitude:g}", "--speed", f"{args.speed:g}"]
     net = fly_networked(mission_args, args.storage, args.stockpile, args.out / "networked", args.phase,
-                        signing_key=args.signing_key, rangefinder=args.rangefinder,
+                        signing_key=args.signing_key, rangefinder=args.rangefinder, site_args=site_args,
                         serve_args=["--tfmini-noise", args.tfmini_noise] if args.rangefinder == "tfmini" else [])
     if net.report is None:
         print(f"networked: {net.no_volume}", file=sys.stderr)
@@ -214,6 +221,11 @@ def main(argv: list[str] | None = None) -> int:
                                         altitude_m=args.altitude, speed_m_s=args.speed),
                         stockpile=args.stockpile, payload="firmware", initial_position=args.phase,
                         rangefinder=Rangefinder.named(args.rangefinder), tfmini_noise=args.tfmini_noise)
+        if site_args:
+            from firmware_py.core.site import DEFAULT_SITE, parse_heading_deg, parse_origin, site_from_args
+            cfg = replace(cfg, site=site_from_args(parse_origin(args.origin) if args.origin else None,
+                                                   parse_heading_deg(args.heading) if args.heading else None,
+                                                   DEFAULT_SITE))
         fly(cfg, args.out / "lockstep", force=True)
         lock = make_report(args.out / "lockstep", args.out / "lockstep" / "report", ReportOptions(plots=False),
                            force=True)

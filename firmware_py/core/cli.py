@@ -17,6 +17,7 @@ import contextlib
 import enum
 import logging
 import math
+import re
 import signal
 import sys
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -110,8 +111,21 @@ def reading_input(what: str | None = None) -> Iterator[None]:
         raise InputError(msg) from exc
 
 
+_NEGATIVE_NUMBERS = re.compile(r"^-\d+$|^-\d*\.\d+$|^-\d*\.?\d*(,[-+]?\d*\.?\d*)+$")
+"""argparse's own negative-number pattern, and comma-separated lists of numbers starting with a minus."""
+
+
 class ArgumentParser(argparse.ArgumentParser):
-    """argparse that reports a bad option as one line (no usage dump) and exits with 2."""
+    """argparse that reports a bad option as one line (no usage dump) and exits with 2.
+
+    A value that starts with a minus sign and lists numbers (`--origin -33.9,151.2,30`) is a value, as
+    a plain negative number is: argparse alone would take it for an unknown option.
+    """
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = _NEGATIVE_NUMBERS
+
 
     def error(self, message: str):  # type: ignore[override]
         self.exit(ExitCode.USAGE, f"{self.prog}: error: {message}\n")

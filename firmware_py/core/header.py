@@ -8,6 +8,8 @@ drone), so the keys cannot drift apart and the payload never imports `sitl`. The
   (``range_sigma_m``, ``range_sigma_rel``, ``resolution_m``) that sizes its wall/roof tolerances, plus
   the sensor's rate, range and beam;
 - ``lever_arm_body_m``, ``storage``, ``storage_frame``: the geometry of eqs. (3)-(6);
+- ``site`` (when known): where the building stands on Earth (`firmware_py.core.site.Site`: its floor
+  corner and heading); ``storage_frame`` is that site about the autopilot's EKF origin;
 - ``servo``: the eq. (1) waveform, ``mission_id`` / ``mission``: what was flown (None when unknown);
 - ``boresight`` (optional): the beam's configured mounting (`firmware_py.core.frames.Boresight`, rad);
   the ground station places points with it (square when absent);
@@ -29,6 +31,7 @@ from typing import Any
 from firmware_py.core.frames import Boresight, StorageFrame
 from firmware_py.core.sensor import LIDARLITE_V3, RangefinderSpec
 from firmware_py.core.servo_model import ServoCalibration
+from firmware_py.core.site import Site
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import Waveform
@@ -132,7 +135,7 @@ class ServoDrive:
 STANDARD_KEYS = ("software", "created_utc", "source", "sensor", "lever_arm_body_m", "servo", "mission_id",
                  "mission", "storage", "storage_frame")
 """The keys every header has, in the order they are written."""
-OPTIONAL_KEYS = ("servo_calibration", "servo_drive", "boresight")
+OPTIONAL_KEYS = ("site", "servo_calibration", "servo_drive", "boresight")
 """Keys a header may have, typed: written after the standard ones, before any extra keys."""
 
 
@@ -155,6 +158,7 @@ class LogHeader:
     mission: Mapping[str, Any] | None = None
     software: str = field(default_factory=software_version)
     created_utc: str = field(default_factory=utc_now_iso)
+    site: Site | None = None
     servo_calibration: ServoCalibration | None = None
     servo_drive: ServoDrive | None = None
     boresight: Boresight | None = None
@@ -186,6 +190,8 @@ class LogHeader:
             "storage": self.storage.to_dict(),
             "storage_frame": self.storage_frame.to_dict(),
         }
+        if self.site is not None:
+            d["site"] = self.site.to_dict()
         if self.servo_calibration is not None:
             d["servo_calibration"] = asdict(self.servo_calibration)
         if self.servo_drive is not None:
@@ -210,6 +216,12 @@ class LogHeader:
             frame = StorageFrame.from_dict(_mapping(d["storage_frame"], "storage_frame"))
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"log header storage_frame is malformed: {exc}") from None
+        site = None
+        if d.get("site") is not None:
+            try:
+                site = Site.from_dict(d["site"])
+            except ValueError as exc:
+                raise ValueError(f"log header site is malformed: {exc}") from None
         cal = None
         if d.get("servo_calibration") is not None:
             c = _mapping(d["servo_calibration"], "servo_calibration")
@@ -230,7 +242,7 @@ class LogHeader:
             source=d["source"], sensor=RangefinderSpec.from_dict(d["sensor"]),
             lever_arm_body_m=d["lever_arm_body_m"], servo=ServoSweep.from_dict(d["servo"]), storage=storage,
             storage_frame=frame, mission_id=mission_id, mission=mission, software=d["software"],
-            created_utc=d["created_utc"], servo_calibration=cal,
+            created_utc=d["created_utc"], site=site, servo_calibration=cal,
             servo_drive=ServoDrive.from_dict(d["servo_drive"]) if d.get("servo_drive") is not None else None,
             boresight=boresight_from_dict(d["boresight"]) if d.get("boresight") is not None else None,
             extra={k: v for k, v in d.items() if k not in STANDARD_KEYS and k not in OPTIONAL_KEYS})
@@ -277,7 +289,8 @@ def _integer(d: dict[str, Any], key: str, where: str) -> int:
 def build_log_header(*, source: str, sensor: Mapping[str, Any], lever_arm_body_m: Sequence[float],
                      waveform_name: str, waveform: Waveform, initial_position: int, storage: Storage,
                      frame: StorageFrame, mission_id: str | None = None, mission: Mapping[str, Any] | None = None,
-                     created_utc: str | None = None, extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                     created_utc: str | None = None, site: Site | None = None,
+                     extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """The sample-log header dict (module docstring), ready for `SampleLogWriter`: a `LogHeader`'s `to_dict()`.
 
     Args:
@@ -286,6 +299,7 @@ def build_log_header(*, source: str, sensor: Mapping[str, Any], lever_arm_body_m
         lever_arm_body_m: (3,) sensor position from the centre of gravity in the body frame (FRD), m.
         waveform_name, waveform, initial_position: the servo sweep (`servo_header`).
         storage, frame: the building and its placement in local NED.
+        site: where the building stands on Earth, when known (the ``site`` record).
         mission_id, mission: what was flown, when known (None otherwise).
         created_utc: creation time; None = now (`utc_now_iso`).
         extra: further keys appended after the standard ones (they may not replace one);
@@ -302,11 +316,14 @@ def build_log_header(*, source: str, sensor: Mapping[str, Any], lever_arm_body_m
     cal = more.pop("servo_calibration", None)
     drive = more.pop("servo_drive", None)
     boresight = more.pop("boresight", None)
+    site_extra = more.pop("site", None)
+    if site is None and site_extra is not None:
+        site = Site.from_dict(dict(site_extra)) if isinstance(site_extra, Mapping) else site_extra
     return LogHeader(
         source=source, sensor=RangefinderSpec.from_dict(dict(sensor)), lever_arm_body_m=lever_arm_body_m,
         servo=ServoSweep.of(waveform_name, waveform, initial_position), storage=storage, storage_frame=frame,
         mission_id=mission_id, mission=mission,
-        created_utc=created_utc if created_utc is not None else utc_now_iso(),
+        created_utc=created_utc if created_utc is not None else utc_now_iso(), site=site,
         servo_calibration=ServoCalibration(**cal) if isinstance(cal, Mapping) else cal,
         servo_drive=ServoDrive.from_dict(dict(drive)) if isinstance(drive, Mapping) else drive,
         boresight=boresight_from_dict(dict(boresight)) if isinstance(boresight, Mapping) else boresight,

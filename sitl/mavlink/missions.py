@@ -5,7 +5,7 @@ Choices, where MAVLink or ArduPilot leave room:
 - Mission seq 0 is home, as in ArduPilot: it is stored as sent (and downloaded back unchanged) but
   never flown; vehicle item k is MAVLink seq k + 1 (MISSION_CURRENT, MISSION_ITEM_REACHED). With
   no mission the vehicle reports one item, home, as ArduPilot does.
-- Global coordinates become local NED about home (`sitl.mavlink.geodesy`). Global altitude is
+- Global coordinates become local NED about home (`firmware_py.core.geodesy`). Global altitude is
   above home_alt_m; relative altitude above home. lat = lon = 0 on a NAV item means "where the
   previous item was" (ArduPilot: "here"). NAV_LAND lands on the floor, whatever its altitude.
 - Supported items: NAV_WAYPOINT, NAV_TAKEOFF, NAV_LAND, DO_CHANGE_SPEED. DO_CHANGE_SPEED (param2
@@ -29,7 +29,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sitl.mavlink.geodesy import Home
+from firmware_py.core.geodesy import Home
 from sitl.mavlink.outbox import Outbox, Peer
 from sitl.vehicle.api import CommandRejected, NavItem, NavKind, Vehicle
 

@@ -72,13 +72,14 @@ os.environ["MAVLINK20"] = "1"  # for mavutil users in this process; the v20 dial
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from firmware_py.core.geodesy import Home
+from firmware_py.core.site import DEFAULT_SITE
 from firmware_py.hal.mavlink_link import MavlinkFramer
 from firmware_py.hal.signing import MavlinkSigner, SigningConfig
 from sitl.mavlink import streams as tm
 from sitl.mavlink.commands import Commands
 from sitl.mavlink.datagrams import DatagramParser
 from sitl.mavlink.ftp import FtpRefusal
-from sitl.mavlink.geodesy import Home
 from sitl.mavlink.missions import MissionItem, Missions
 from sitl.mavlink.outbox import Peer
 from sitl.mavlink.params import ParamProvider, Params
@@ -128,10 +129,12 @@ class MavlinkVehicleServer:
     """Serves a Vehicle over MAVLink 2 as an ArduCopter-like autopilot; call update() after vehicle steps."""
 
     def __init__(self, vehicle: Vehicle, transport: Transport, tlog_path: str | os.PathLike[str] | None = None,
-                 sysid: int = 1, compid: int = 1, home_lat_deg: float = 53.4668, home_lon_deg: float = -2.2339,
-                 home_alt_m: float = 50.0, signing: SigningConfig | MavlinkSigner | None = None,
+                 sysid: int = 1, compid: int = 1, home: Home = DEFAULT_SITE.corner,
+                 signing: SigningConfig | MavlinkSigner | None = None,
                  extra_params: ParamProvider | None = None, limits: LinkLimits = LinkLimits()) -> None:
-        self.home = Home(home_lat_deg, home_lon_deg, home_alt_m)
+        if not isinstance(home, Home):
+            raise ValueError(f"home must be a GeodeticPoint, got {home!r}")
+        self.home = home  # also the EKF origin (GPS_GLOBAL_ORIGIN): indoors both are the storage's corner
         self.vehicle = vehicle
         self.transport = transport
         self.sysid, self.compid = sysid, compid
@@ -160,7 +163,7 @@ class MavlinkVehicleServer:
             "tx_messages": 0, "handler_errors": 0, "rx_by_type": Counter(), "tx_by_type": Counter(),
             "rx_signed": 0, "rx_unsigned": 0, "rx_bad_signature": 0, "rx_replayed": 0, "rx_unsigned_accepted": 0,
             "rx_datagrams_dropped": 0, "rx_drops": {}, "statustext_dropped": 0, "tlog_frames_skipped": 0,
-            "tlog_full": False, "peers_refused": 0, "ftp_refused": 0,
+            "tlog_full": False, "peers_refused": 0, "ftp_refused": 0, "origin_refused": 0,
         }
         self._now_s = 0.0
         self._boot_epoch_s = 0.0  # vehicle time at which the autopilot last booted (time_boot_ms 0)
@@ -178,7 +181,7 @@ class MavlinkVehicleServer:
         self.ftp = FtpRefusal(self._mav, self)
         self._handlers: dict[str, Callable[[Any], None]] = {
             "HEARTBEAT": self._ignore, "REQUEST_DATA_STREAM": self._ignore, "MISSION_ACK": self._ignore,
-            "TIMESYNC": self._on_timesync,
+            "TIMESYNC": self._on_timesync, "SET_GPS_GLOBAL_ORIGIN": self._on_set_gps_global_origin,
             **self.commands.handlers, **self.params.handlers, **self.missions.handlers, **self.ftp.handlers,
         }
         self._builders: dict[int, Callable[[VehicleState], Any | None]] = {
@@ -192,6 +195,8 @@ class MavlinkVehicleServer:
             mavlink.MAVLINK_MSG_ID_VFR_HUD: lambda s: tm.vfr_hud(self._mav, s, self.home),
             mavlink.MAVLINK_MSG_ID_MISSION_CURRENT: lambda _s: self.missions.mission_current(),
             mavlink.MAVLINK_MSG_ID_HOME_POSITION: lambda _s: self._home_position(),
+            mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
+                lambda _s: tm.gps_global_origin(self._mav, self.home, self._now_s),
         }
 
     @property
@@ -385,6 +390,22 @@ class MavlinkVehicleServer:
     def _on_timesync(self, msg: Any) -> None:
         if msg.tc1 == 0:  # a request: answer with our clock, echoing theirs (as ArduPilot does)
             self.reply(self._mav.timesync_encode(round((self._now_s - self._boot_epoch_s) * 1e9), msg.ts1))
+
+    def _on_set_gps_global_origin(self, msg: Any) -> None:
+        """The EKF origin is fixed where this vehicle was placed (its home: `serve --origin`), as on an
+        ArduPilot whose origin is already set. The same origin (to MAVLink's own resolution) is
+        confirmed with GPS_GLOBAL_ORIGIN; another is refused, said and counted, and GPS_GLOBAL_ORIGIN
+        tells the sender the one in force: its positions would be about the wrong point otherwise."""
+        mine = tm.origin_ints(self.home)
+        theirs = (int(msg.latitude), int(msg.longitude), int(msg.altitude))
+        if theirs != mine:
+            self.stats["origin_refused"] += 1
+            text = (f"origin refused: {theirs[0] / 1e7:.7f} {theirs[1] / 1e7:.7f} {theirs[2] / 1e3:g} m; EKF "
+                    f"origin is {mine[0] / 1e7:.7f} {mine[1] / 1e7:.7f} {mine[2] / 1e3:g} m")
+            if self.stats["origin_refused"] == 1:
+                log.warning("%s", text)
+            self.say(mavlink.MAV_SEVERITY_WARNING, text)
+        self.reply(tm.gps_global_origin(self._mav, self.home, self._now_s))
 
     # ----- send side ------------------------------------------------------------------------------
 

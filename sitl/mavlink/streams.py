@@ -14,7 +14,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sitl.mavlink.geodesy import Home
+from firmware_py.core.geodesy import Home
 from sitl.vehicle.api import VehicleState
 
 TLOG_EPOCH_US = 1_704_067_200_000_000
@@ -30,6 +30,7 @@ STREAM_DEFAULT_HZ: dict[int, float] = {
     mavlink.MAVLINK_MSG_ID_VFR_HUD: 4.0,
     mavlink.MAVLINK_MSG_ID_MISSION_CURRENT: 1.0,
     mavlink.MAVLINK_MSG_ID_HOME_POSITION: 0.0,
+    mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: 0.0,
 }
 """Telemetry streams and their default rates (0 = off until asked for); SET_MESSAGE_INTERVAL changes them."""
 
@@ -184,6 +185,17 @@ def vfr_hud(mav: Any, s: VehicleState, home: Home) -> Any:
     ground = math.hypot(s.vel_ned_m_s[0], s.vel_ned_m_s[1])
     return mav.vfr_hud_encode(ground, ground, heading_cdeg(s.yaw_rad) // 100, 50 if s.armed else 0,
                               home.alt_m - s.pos_ned_m[2], -s.vel_ned_m_s[2])
+
+
+def gps_global_origin(mav: Any, origin: Home, t_s: float) -> Any:
+    """GPS_GLOBAL_ORIGIN: the EKF origin (the SITL's autopilot has its home there)."""
+    lat, lon, alt = origin_ints(origin)
+    return mav.gps_global_origin_encode(lat, lon, alt, TLOG_EPOCH_US + round(t_s * 1e6))
+
+
+def origin_ints(origin: Home) -> tuple[int, int, int]:
+    """A position as MAVLink carries it: lat, lon in 1e-7 deg, altitude in mm."""
+    return round(origin.lat_deg * 1e7), round(origin.lon_deg * 1e7), round(origin.alt_m * 1000)
 
 
 def home_position(mav: Any, home: Home, t_s: float) -> Any:

@@ -4,7 +4,8 @@ Mission Planner load them, so the same survey can be flown by a real ArduPilot.
 The plan is: home (item 0, ArduPilot's convention), set speed, take off on W0 to the survey
 altitude, the loop's waypoints W1..Wn (Wn = W0), land. Positions are global, converted from the
 local NED frame by the same flat-earth mapping the SITL's MAVLink server uses (about the EKF
-origin: the local NED origin, whose lat/lon the plan takes as arguments). Altitudes are relative
+origin: the local NED origin, whose lat/lon the plan takes as arguments; `pilescan-sitl plan --origin`
+puts it on the site's floor corner, `--heading` turns the building). Altitudes are relative
 to home (MAV_FRAME_GLOBAL_RELATIVE_ALT), which indoors is the floor. The yaw-rate limit is not a
 mission item in ArduPilot: set the parameter ATC_RATE_Y_MAX (deg/s) on the vehicle.
 """
@@ -16,13 +17,14 @@ from pathlib import Path
 import numpy as np
 
 from firmware_py.core.frames import StorageFrame
-from sitl.mavlink.geodesy import ned_to_global
+from firmware_py.core.geodesy import ned_to_global
+from firmware_py.core.site import DEFAULT_SITE
 from sitl.missions.rectangle import Mission
 
 MAV_FRAME_GLOBAL, MAV_FRAME_MISSION, MAV_FRAME_GLOBAL_RELATIVE_ALT = 0, 2, 3
 MAV_CMD_NAV_WAYPOINT, MAV_CMD_NAV_LAND, MAV_CMD_NAV_TAKEOFF, MAV_CMD_DO_CHANGE_SPEED = 16, 21, 22, 178
-DEFAULT_ORIGIN = (53.4668, -2.2339, 50.0)
-"""lat, lon (deg), altitude AMSL (m) of the local NED origin; the SITL server's default too."""
+DEFAULT_ORIGIN = DEFAULT_SITE.corner.as_tuple()
+"""lat, lon (deg), altitude AMSL (m) of the local NED origin when no site is given; the SITL server's too."""
 
 
 def plan_rows(mission: Mission, frame: StorageFrame, origin=DEFAULT_ORIGIN) -> list[list[float]]:

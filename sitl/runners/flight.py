@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from firmware_py.core.frames import StorageFrame
+from firmware_py.core.site import DEFAULT_SITE, GeodeticPoint
 from sitl.mavlink.server import MavlinkVehicleServer
 from sitl.mavlink.transport import PipeTransport
 from sitl.missions.rectangle import Mission
@@ -74,29 +75,31 @@ SETTLE_S = 10.0
 
 def fly_mission(mission: Mission, frame: StorageFrame, payload_kg: float = PAYLOAD_1D_KG,
                 dt_s: float = 1.0 / 200.0, timeout_s: float | None = None,
-                tlog_path: str | Path | None = None) -> FlownMission:
+                tlog_path: str | Path | None = None, origin: GeodeticPoint = DEFAULT_SITE.corner) -> FlownMission:
     """Fly the survey with JSBSim + autopilot as fast as the CPU allows.
 
     With tlog_path, the vehicle also runs its MAVLink server (streams at their default rates, on an
     in-memory link nobody answers yet) and everything it sends goes into that telemetry log.
+    `origin` is the local NED frame's place on Earth: the plant's reference and the server's home.
     """
     start, yaw0 = start_pose(mission, frame)
     cfg = VehicleConfig(plant=PlantConfig(dt_s=dt_s, payload_kg=payload_kg, start_ned_m=start,
-                                          start_yaw_rad=yaw0, airborne=True),
+                                          start_yaw_rad=yaw0, airborne=True, origin=origin),
                         speed_m_s=mission.speed_m_s, yaw_rate_max_rad_s=mission.yaw_rate_max_rad_s,
                         altitude_m=mission.altitude_m)
     v = JsbsimVehicle(cfg, armed=True, mode=FlightMode.GUIDED)
     with contextlib.ExitStack() as stack:
-        tick = _telemetry(stack, v, tlog_path)
+        tick = _telemetry(stack, v, tlog_path, origin)
         return _fly(v, mission, frame, dt_s, timeout_s, tick)
 
 
-def _telemetry(stack: contextlib.ExitStack, v: JsbsimVehicle, tlog_path: str | Path | None) -> Callable[[], None]:
+def _telemetry(stack: contextlib.ExitStack, v: JsbsimVehicle, tlog_path: str | Path | None,
+               origin: GeodeticPoint) -> Callable[[], None]:
     """A per-step hook that serves MAVLink into a tlog, or does nothing."""
     if tlog_path is None:
         return lambda: None
     server_end, client_end = PipeTransport.pair()
-    server = stack.enter_context(MavlinkVehicleServer(v, server_end, tlog_path=tlog_path))
+    server = stack.enter_context(MavlinkVehicleServer(v, server_end, tlog_path=tlog_path, home=origin))
 
     def tick() -> None:
         server.update()

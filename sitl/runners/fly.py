@@ -32,6 +32,7 @@ from firmware_py.core.rundir import (
 )
 from firmware_py.core.samplelog import SampleLogWriter
 from firmware_py.core.sensor import LIDARLITE_V3, Rangefinder, RangefinderSpec
+from firmware_py.core.site import DEFAULT_SITE, GeodeticPoint, Site
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import Waveform, initial_position, named_waveform
 from sitl.faults.injector import FaultSpec
@@ -81,7 +82,11 @@ class FlyConfig:
     payload_kg: float = PAYLOAD_1D_KG
     seed: int = 0
     lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10)
-    frame: StorageFrame = field(default_factory=StorageFrame)
+    site: Site = DEFAULT_SITE
+    """Where the building stands: its floor corner on Earth and the heading of its length (--origin, --heading)."""
+    ekf_origin_at: GeodeticPoint | None = None
+    """The autopilot's EKF origin (its home, the plant's reference, what the payload sends); None: the site's
+    corner, as `pilescan-payload --origin` sends it."""
     lidar: RangefinderSpec = LIDARLITE_V3  # the datasheet flown (the rangefinder's, unless set)
     faults: FaultSpec | None = None  # fault injection (sitl.faults.injector), firmware payload only
     rangefinder: Rangefinder = Rangefinder.LIDARLITE_V3  # which part the payload drives (--rangefinder)
@@ -119,6 +124,20 @@ class FlyConfig:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
         self.servo_waveform()  # validates the name and rate
+        if not isinstance(self.site, Site):
+            raise ValueError(f"site must be a Site, got {self.site!r}")
+        if self.ekf_origin_at is not None and not isinstance(self.ekf_origin_at, GeodeticPoint):
+            raise ValueError(f"EKF origin must be a GeodeticPoint, got {self.ekf_origin_at!r}")
+
+    @property
+    def ekf_origin(self) -> GeodeticPoint:
+        """The local NED frame's origin on Earth: the vehicle's EKF origin and home, the plan's reference."""
+        return self.ekf_origin_at if self.ekf_origin_at is not None else self.site.corner
+
+    @property
+    def frame(self) -> StorageFrame:
+        """The storage frame W in the vehicle's local NED (the site about the EKF origin)."""
+        return self.site.frame_about(self.ekf_origin)
 
     def servo_waveform(self) -> Waveform:
         return named_waveform(self.waveform, self.servo_peak_rate_rad_s, self.initial_position)
@@ -139,7 +158,7 @@ def log_header(cfg: FlyConfig, wf: Waveform) -> dict:
     return build_log_header(source=f"sitl/{cfg.plant}", sensor=cfg.lidar.to_dict(),
                             lever_arm_body_m=cfg.lever_arm_body_m, waveform_name=cfg.waveform, waveform=wf,
                             initial_position=cfg.initial_position, storage=cfg.mission.storage, frame=cfg.frame,
-                            mission_id=cfg.mission.mission_id, mission=cfg.mission.to_dict())
+                            mission_id=cfg.mission.mission_id, mission=cfg.mission.to_dict(), site=cfg.site)
 
 
 def check_clearance(mission: Mission, pile: piles.Stockpile) -> None:
@@ -151,7 +170,8 @@ def check_clearance(mission: Mission, pile: piles.Stockpile) -> None:
 
 
 def truth_record(pile: piles.Stockpile, stockpile: str, mission: Mission, frame: StorageFrame, *, plant: str,
-                 payload: str, seed: int, faults: FaultSpec | None = None, **flight) -> dict:
+                 payload: str, seed: int, faults: FaultSpec | None = None, site: Site | None = None,
+                 ekf_origin: GeodeticPoint | None = None, **flight) -> dict:
     """truth.json: what the ground station checks a survey against (the world, the mission, the faults,
     how it was flown); `flight` adds what the flight gave (flight time, energy, samples ...).
     Written by `fly` and by `serve --devices` (payload "networked")."""
@@ -163,6 +183,9 @@ def truth_record(pile: piles.Stockpile, stockpile: str, mission: Mission, frame:
         "seed": seed,
         "storage": mission.storage.to_dict(),
         "storage_frame": frame.to_dict(),
+        "site": site.to_dict() if site is not None else None,
+        "ekf_origin": dict(zip(("lat_deg", "lon_deg", "alt_m"), ekf_origin.as_tuple(), strict=True))
+        if ekf_origin is not None else None,
         "mission": mission.to_dict(),
         "mission_id": mission.mission_id,
         "plant": plant,
@@ -215,9 +238,10 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
             with SampleLogWriter(log_path, log_header(cfg, wf), records_per_block=500, fsync=False) as w:
                 w.append(records)
         pile.mesh.export(folder.staged(PILE_FILE))
-        write_qgc_wpl(folder.staged(PLAN_FILE), cfg.mission, cfg.frame)
+        write_qgc_wpl(folder.staged(PLAN_FILE), cfg.mission, cfg.frame, cfg.ekf_origin.as_tuple())
         truth = truth_record(pile, cfg.stockpile, cfg.mission, cfg.frame, plant=cfg.plant, payload=cfg.payload,
-                             seed=cfg.seed, faults=cfg.faults, flight_time_s=duration_s, energy_j=energy_j,
+                             seed=cfg.seed, faults=cfg.faults, site=cfg.site, ekf_origin=cfg.ekf_origin,
+                             flight_time_s=duration_s, energy_j=energy_j,
                              payload_kg=cfg.payload_kg if cfg.plant == "jsbsim" else None, n_samples=len(records),
                              servo_initial_position=cfg.initial_position, waveform=cfg.waveform,
                              **({"rangefinder": cfg.rangefinder.value, "tfmini_noise": cfg.tfmini_noise}
@@ -238,7 +262,8 @@ def fly_trajectory(cfg: FlyConfig, tlog_path: Path | None = None) -> tuple[Traje
     if cfg.plant == "ideal":
         plant = IdealPlant(cfg.mission, cfg.frame)
         return plant.states(plant.sample_times(cfg.lidar.rate_hz)), plant.duration_s, None
-    flown = fly_mission(cfg.mission, cfg.frame, payload_kg=cfg.payload_kg, tlog_path=tlog_path)
+    flown = fly_mission(cfg.mission, cfg.frame, payload_kg=cfg.payload_kg, tlog_path=tlog_path,
+                        origin=cfg.ekf_origin)
     if not flown.completed:
         raise RunFailure(f"the vehicle did not complete the mission within {flown.duration_s:.0f} s "
                          f"(reached {len(flown.reached)} of {len(cfg.mission.waypoints_w()) - 1} waypoints)")

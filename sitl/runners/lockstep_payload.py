@@ -25,8 +25,10 @@ import numpy as np
 
 from firmware_py.app import PayloadApp, PayloadConfig, PayloadResult
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_ray_w
+from firmware_py.core.geodesy import GeodeticPoint
 from firmware_py.core.sensor import Rangefinder
 from firmware_py.core.servo_model import ServoCalibration
+from firmware_py.core.site import DEFAULT_SITE
 from firmware_py.hal import PwmOutput
 from firmware_py.hal.clock import SimClock
 from firmware_py.hal.pwm import register_pwm_backend
@@ -115,12 +117,14 @@ class SimWorld:
     """Vehicle + MAVLink server + building, advanced in lockstep with the payload's clock."""
 
     def __init__(self, vehicle: Vehicle, world: World, frame: StorageFrame, clock: SimClock,
-                 boot_offset_ns: int, lever_arm_body_m, latency_ns=lambda: 0, tlog_path=None, signing=None) -> None:
+                 boot_offset_ns: int, lever_arm_body_m, latency_ns=lambda: 0, tlog_path=None, signing=None,
+                 home: GeodeticPoint = DEFAULT_SITE.corner) -> None:
         self.vehicle, self.world, self.frame, self.clock = vehicle, world, frame, clock
         self.boot_offset_ns = boot_offset_ns  # companion time = vehicle time + offset
         self.lever = tuple(float(v) for v in lever_arm_body_m)  # plain floats: read at every sample
         self._down = DelayedPipe(clock.now_ns, latency_ns)
-        self.server = MavlinkVehicleServer(vehicle, _ServerSide(self), tlog_path=tlog_path, signing=signing)
+        self.server = MavlinkVehicleServer(vehicle, _ServerSide(self), tlog_path=tlog_path, signing=signing,
+                                           home=home)
         self._up = DelayedPipe(self._vehicle_now_companion_ns, latency_ns)
         self._down_send_at, self._up_send_at = self._down.send_at, self._up.send_at
         self._hist: collections.deque[tuple[float, PlantState]] = collections.deque(maxlen=64)
@@ -259,8 +263,6 @@ SITL_I2C_URL = "sitl:lockstep"
 SITL_PWM_URL = "pwm:sitl"
 SITL_UART_URL = "sitl:lockstep"
 """What the lockstep run's header names as the payload's hardware: the parts are injected, not opened."""
-SITL_EKF_ORIGIN = (53.4668, -2.2339, 50.0)
-"""The EKF origin the payload sends (SET_GPS_GLOBAL_ORIGIN): the simulated autopilot's home."""
 POSE_WAIT_S = 30.0
 SURVEY_FLOWN = "survey flown"
 STOP_MESSAGE_WAIT_S = 0.5
@@ -276,15 +278,18 @@ register_pwm_backend("sitl", _not_opened)
 
 def payload_config(cfg, log_path, header: dict, timeout_s: float) -> PayloadConfig:
     """The payload program's configuration for a lockstep flight of `cfg` (a FlyConfig), with the
-    SITL's header provenance (source, mission) so the ground station reads the same log header."""
+    SITL's header provenance (source, mission) so the ground station reads the same log header. The
+    payload sends the flight's EKF origin (SET_GPS_GLOBAL_ORIGIN), as `pilescan-payload --origin` does:
+    the simulated autopilot's home, where its plant and its plan are placed too."""
     return PayloadConfig(
         out_path=log_path, force=True, mavlink_url=SITL_MAVLINK_URL, i2c_url=SITL_I2C_URL, pwm_url=SITL_PWM_URL,
         rangefinder=cfg.rangefinder, uart_url=SITL_UART_URL, rate_hz=cfg.lidar.rate_hz, waveform=cfg.waveform,
         servo_peak_rate_rad_s=cfg.servo_peak_rate_rad_s,
         initial_position=cfg.initial_position, servo=ServoCalibration(), storage=cfg.mission.storage,
-        frame=cfg.frame, lever_arm_body_m=tuple(cfg.lever_arm_body_m), range_sigma_m=cfg.lidar.range_sigma_m,
+        frame=cfg.frame, site=cfg.site, lever_arm_body_m=tuple(cfg.lever_arm_body_m),
+        range_sigma_m=cfg.lidar.range_sigma_m,
         range_sigma_rel=cfg.lidar.range_sigma_rel, duration_s=timeout_s, stop_on_disarm=True,
-        send_origin=SITL_EKF_ORIGIN, mission_id=header.get("mission_id"), fsync=False, quiet=True,
+        send_origin=cfg.ekf_origin.as_tuple(), mission_id=header.get("mission_id"), fsync=False, quiet=True,
         wait_for_pose_s=POSE_WAIT_S, source=header.get("source", "sitl"), mission=header.get("mission"))
 
 
@@ -320,7 +325,7 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     m = cfg.mission
     start, yaw0 = start_pose(m, cfg.frame)
     vcfg = VehicleConfig(plant=PlantConfig(payload_kg=cfg.payload_kg, start_ned_m=start, start_yaw_rad=yaw0,
-                                           airborne=True),
+                                           airborne=True, origin=cfg.ekf_origin),
                          speed_m_s=m.speed_m_s, yaw_rate_max_rad_s=m.yaw_rate_max_rad_s, altitude_m=m.altitude_m)
     vehicle = JsbsimVehicle(vcfg, armed=True, mode=FlightMode.GUIDED)
     pile = piles.resolve(cfg.stockpile, m.storage)
@@ -339,7 +344,7 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
         payload_signer = MavlinkSigner(SigningConfig(signing_key), clock=companion_wall_s)
     sim = SimWorld(vehicle, world, cfg.frame, clock, boot_offset_ns=round(boot_offset_s * 1e9),
                    lever_arm_body_m=cfg.lever_arm_body_m, latency_ns=latency, tlog_path=tlog_path,
-                   signing=server_signer)
+                   signing=server_signer, home=cfg.ekf_origin)
     links = {}
     if inj is not None:
         def wrap(direction: str, send_at: SendAt) -> SendAt:

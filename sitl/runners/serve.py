@@ -31,6 +31,7 @@ from pathlib import Path
 
 from firmware_py.core.cli import reading_input
 from firmware_py.core.frames import StorageFrame
+from firmware_py.core.geodesy import GeodeticPoint
 from firmware_py.core.rundir import (
     PILE_FILE,
     PLAN_FILE,
@@ -41,13 +42,14 @@ from firmware_py.core.rundir import (
     check_free,
 )
 from firmware_py.core.sensor import Rangefinder
+from firmware_py.core.site import DEFAULT_SITE, Site
 from firmware_py.hal.signing import SigningConfig
 from sitl.devices.bridge_server import parse_bridge_url
 from sitl.devices.networked import SERVO_CHANNEL, NetworkedDevices, NetworkedFaults, check_networked_faults
 from sitl.faults.injector import PAIRS, FaultSpec
 from sitl.mavlink.server import LinkLimits, MavlinkVehicleServer, run_realtime
 from sitl.mavlink.transport import make_transport
-from sitl.missions.qgc_wpl import DEFAULT_ORIGIN, write_qgc_wpl
+from sitl.missions.qgc_wpl import write_qgc_wpl
 from sitl.missions.range_check import check_range
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import start_pose
@@ -62,12 +64,14 @@ VEHICLES = ("jsbsim", "kinematic")
 log = logging.getLogger(__name__)
 
 
-def make_vehicle(kind: str, mission: Mission, frame: StorageFrame):
-    (n, e, _), yaw = start_pose(mission, frame)  # on the floor below W0, facing along the closing leg
+def make_vehicle(kind: str, mission: Mission, frame: StorageFrame, origin: GeodeticPoint = DEFAULT_SITE.corner):
+    """The served vehicle, on the floor below W0 facing along the closing leg; origin: where on Earth its
+    local NED frame's origin is (the JSBSim plant flies over the ellipsoid there)."""
+    (n, e, _), yaw = start_pose(mission, frame)
     if kind == "kinematic":
         return KinematicVehicle(speed_m_s=mission.speed_m_s, yaw_rate_max_rad_s=mission.yaw_rate_max_rad_s,
                                 altitude_m=mission.altitude_m, home_ned_m=(n, e, 0.0))
-    return JsbsimVehicle(VehicleConfig(plant=PlantConfig(start_ned_m=(n, e, 0.0), start_yaw_rad=yaw),
+    return JsbsimVehicle(VehicleConfig(plant=PlantConfig(start_ned_m=(n, e, 0.0), start_yaw_rad=yaw, origin=origin),
                                        speed_m_s=mission.speed_m_s,
                                        yaw_rate_max_rad_s=mission.yaw_rate_max_rad_s, altitude_m=mission.altitude_m))
 
@@ -95,6 +99,8 @@ class ServeOptions:
     """With --devices: the TFMini also streams on a pseudo-terminal (the LIDAR-Lite is always on the bridge)."""
     tfmini_noise: str = "none"
     """The emulated TFMini's range noise (`sitl.runners.fly.TFMINI_NOISES`)."""
+    site: Site = DEFAULT_SITE
+    """Where the building stands (--origin, --heading): the EKF origin and home are its floor corner."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speedup) and 0 < self.speedup <= 1000):
@@ -119,10 +125,12 @@ class ServeOptions:
         if self.tfmini_noise != "none" and self.rangefinder is not Rangefinder.TFMINI:
             raise ValueError("--tfmini-noise is the emulated TFMini's: serve it with --rangefinder tfmini")
         check_rangefinder_faults(self.rangefinder, self.faults)
+        if not isinstance(self.site, Site):
+            raise ValueError(f"site must be a Site, got {self.site!r}")
 
     def fly_config(self) -> FlyConfig:
         """The lockstep SITL's settings for this mission: its frame, lever arm and LiDAR are served too."""
-        return FlyConfig(mission=self.mission, stockpile=self.stockpile, rangefinder=self.rangefinder)
+        return FlyConfig(mission=self.mission, stockpile=self.stockpile, rangefinder=self.rangefinder, site=self.site)
 
 
 def serve(opts: ServeOptions) -> int:
@@ -205,19 +213,20 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
     cfg = opts.fly_config()
     mission, frame, out, kind = opts.mission, cfg.frame, opts.out, opts.vehicle
     pile = world.pile if world is not None else None
-    write_qgc_wpl(folder.staged(PLAN_FILE), mission, frame)
+    origin = cfg.ekf_origin
+    write_qgc_wpl(folder.staged(PLAN_FILE), mission, frame, origin.as_tuple())
     plan = folder.publish(PLAN_FILE)
     if world is not None:
         pile.mesh.export(folder.staged(PILE_FILE))
         tfmini = ({"rangefinder": opts.rangefinder.value, "tfmini_noise": opts.tfmini_noise}
                   if opts.rangefinder is Rangefinder.TFMINI else {})
         truth = truth_record(pile, opts.stockpile, mission, frame, plant=kind, payload="networked",
-                             seed=opts.faults.seed, faults=opts.faults, **tfmini)
+                             seed=opts.faults.seed, faults=opts.faults, site=cfg.site, ekf_origin=origin,
+                             **tfmini)
         folder.staged(TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
-    vehicle = make_vehicle(kind, mission, frame)
+    vehicle = make_vehicle(kind, mission, frame, origin)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    lat0, lon0, alt0 = DEFAULT_ORIGIN
     devices = None
     try:
         if world is not None:
@@ -238,8 +247,8 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
             timed = any(n in PAIRS or n.endswith("_at_s") for n in opts.faults.active)
             injected = (f"; faults {', '.join(opts.faults.active)} (seed {opts.faults.seed}"
                         + ("; times count from the mission start)" if timed else ")"))
-        log.info("serving a %s quadcopter on %s (listening at %s; %gx real time); plan: %s%s%s%s", kind, opts.url,
-                 _where(transport), opts.speedup, plan,
+        log.info("serving a %s quadcopter on %s (listening at %s; %gx real time); site: %s; plan: %s%s%s%s", kind,
+                 opts.url, _where(transport), opts.speedup, cfg.site.describe(), plan,
                  (f"; LiDAR and servo on {devices.url} (pile {opts.stockpile}, {pile.volume_m3:.1f} m^3)"
                   if devices else ""), signed, injected)
         if devices is not None and devices.tfmini_path is not None:
@@ -249,8 +258,8 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
         if devices is None:
             log.info("no payload: this run records no LiDAR data (for a survey, serve with --devices and run "
                      "pilescan-payload against it)")
-        with MavlinkVehicleServer(vehicle, faults.transport, tlog_path=folder.staged(TLOG_FILE), home_lat_deg=lat0,
-                                  home_lon_deg=lon0, home_alt_m=alt0, signing=opts.signing,
+        with MavlinkVehicleServer(vehicle, faults.transport, tlog_path=folder.staged(TLOG_FILE), home=origin,
+                                  signing=opts.signing,
                                   extra_params=faults.params, limits=opts.limits) as server:
             faults.bind(server)
 

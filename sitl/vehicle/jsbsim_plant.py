@@ -27,6 +27,8 @@ from pathlib import Path
 
 import jsbsim
 
+from firmware_py.core.geodesy import GeodeticPoint
+from firmware_py.core.site import DEFAULT_SITE
 from sitl.vehicle.api import PlantState
 
 FT = 0.3048
@@ -93,6 +95,8 @@ class PlantConfig:
         start_ned_m: initial position (NED, down = -height above the floor).
         start_yaw_rad: initial heading.
         airborne: start hovering at start_ned_m (True) or resting on the floor below it (False).
+        origin: where on Earth the local NED frame's origin is (the autopilot's EKF origin and home):
+            JSBSim flies over the ellipsoid, so it needs a place; the floor is at origin.alt_m.
     """
 
     dt_s: float = 1.0 / 200.0
@@ -100,6 +104,7 @@ class PlantConfig:
     start_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     start_yaw_rad: float = 0.0
     airborne: bool = False
+    origin: GeodeticPoint = DEFAULT_SITE.corner
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.dt_s) and 1e-4 <= self.dt_s <= 0.02):
@@ -108,13 +113,12 @@ class PlantConfig:
             raise ValueError(f"payload mass must be 0-2 kg, got {self.payload_kg}")
         if not all(math.isfinite(v) for v in (*self.start_ned_m, self.start_yaw_rad)):
             raise ValueError("plant start position and heading must be finite")
+        if not isinstance(self.origin, GeodeticPoint):
+            raise ValueError(f"plant origin must be a GeodeticPoint, got {self.origin!r}")
 
 
 class JsbsimPlant:
     """The F450 in JSBSim, with local NED state read-out and motor energy integration."""
-
-    # The reference point of the local frame: JSBSim needs a place on Earth; any will do indoors.
-    LAT0_DEG, LON0_DEG, ELEV_M = 53.4668, -2.2339, 50.0
 
     def __init__(self, cfg: PlantConfig | None = None) -> None:
         self.cfg = cfg or PlantConfig()
@@ -128,9 +132,10 @@ class JsbsimPlant:
         fdm.set_dt(self.cfg.dt_s)
         fdm["inertia/pointmass-weight-lbs[0]"] = self.cfg.payload_kg / 0.45359237
         n0, e0, d0 = self.cfg.start_ned_m
-        fdm["ic/lat-geod-deg"] = self.LAT0_DEG + math.degrees(n0 / self._r_north())
-        fdm["ic/long-gc-deg"] = self.LON0_DEG + math.degrees(e0 / self._r_east())
-        fdm["ic/terrain-elevation-ft"] = self.ELEV_M / FT
+        origin = self.cfg.origin
+        fdm["ic/lat-geod-deg"] = origin.lat_deg + math.degrees(n0 / self._r_north())
+        fdm["ic/long-gc-deg"] = origin.lon_deg + math.degrees(e0 / self._r_east())
+        fdm["ic/terrain-elevation-ft"] = origin.alt_m / FT
         height = max(-d0, GEAR_HEIGHT_M + 0.003) if self.cfg.airborne else GEAR_HEIGHT_M + 0.003
         fdm["ic/h-agl-ft"] = height / FT
         fdm["ic/psi-true-deg"] = math.degrees(self.cfg.start_yaw_rad)
@@ -152,8 +157,8 @@ class JsbsimPlant:
             "phi": "attitude/phi-rad", "theta": "attitude/theta-rad", "psi": "attitude/psi-rad",
             "p": "velocities/p-rad_sec", "q": "velocities/q-rad_sec", "r": "velocities/r-rad_sec",
         }.items()}
-        self._lat0 = math.radians(self.LAT0_DEG)
-        self._lon0 = math.radians(self.LON0_DEG)
+        self._lat0 = math.radians(origin.lat_deg)
+        self._lon0 = math.radians(origin.lon_deg)
         self.t_s = 0.0
         self.energy_j = 0.0
 
@@ -165,7 +170,7 @@ class JsbsimPlant:
         return 6_371_000.0
 
     def _r_east(self) -> float:
-        return 6_371_000.0 * math.cos(math.radians(self.LAT0_DEG))
+        return 6_371_000.0 * math.cos(math.radians(self.cfg.origin.lat_deg))
 
     def set_escs(self, fr: float, al: float, fl: float, ar: float) -> None:
         """Motor commands, 0..1 (the model clips them)."""
@@ -185,7 +190,7 @@ class JsbsimPlant:
         """The rigid body's state now (NED metres, m/s, rad, rad/s)."""
         g = self._get
         n = (g["lat"]() - self._lat0) * self._r_north()
-        e = (g["lon"]() - self._lon0) * self._r_east()
+        e = math.remainder(g["lon"]() - self._lon0, math.tau) * self._r_east()  # across the antimeridian too
         d = -g["h"]() * FT  # the CG's height above the floor
         return PlantState(n, e, d, g["vn"]() * FT, g["ve"]() * FT, g["vd"]() * FT, g["phi"](), g["theta"](),
                           g["psi"](), g["p"](), g["q"](), g["r"]())

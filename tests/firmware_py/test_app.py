@@ -326,6 +326,27 @@ def test_that_the_ekf_origin_is_sent_when_asked(tmp_path, devices, autopilot):
     assert (msg.latitude, msg.longitude, msg.altitude) == (534668000, -22339000, 50000)
 
 
+def test_that_an_autopilot_whose_ekf_origin_is_another_point_is_warned_about(tmp_path, devices, autopilot):
+    """The header's storage frame is the site about the origin sent; positions about another are wrong."""
+    err = io.StringIO()
+    cfg = payload_config(tmp_path, autopilot.url, duration_s=2.0, send_origin=(-33.9, 151.2, 30.0))
+    app = PayloadApp(cfg, err=err)
+    app.run()
+    assert autopilot.server.stats["origin_refused"] >= 1  # the SITL autopilot's origin is the default site's
+    assert app.origin_disagreement is not None and "53.4668000, -2.2339000, 50 m" in app.origin_disagreement
+    assert "warning: the autopilot's EKF origin is 53.4668000" in err.getvalue()
+
+
+def test_that_an_autopilot_confirming_the_origin_sent_raises_no_warning(tmp_path, devices, autopilot):
+    err = io.StringIO()
+    app = PayloadApp(payload_config(tmp_path, autopilot.url, duration_s=2.0, send_origin=(53.4668, -2.2339, 50.0)),
+                     err=err)
+    app.run()
+    assert autopilot.server.stats["rx_by_type"]["SET_GPS_GLOBAL_ORIGIN"] >= 1
+    assert app.tracker.autopilot_origin_e7 == (534668000, -22339000, 50000)
+    assert app.origin_disagreement is None and "EKF origin" not in err.getvalue()
+
+
 def test_that_an_existing_log_is_refused_before_any_hardware_is_opened(tmp_path, devices):
     out = tmp_path / "samples.pslog"
     out.write_bytes(b"precious")

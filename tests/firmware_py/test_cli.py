@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import threading
@@ -13,7 +14,9 @@ import pytest
 
 from firmware_py.cli import build_parser, config_from_args, hal_urls, main, stop_on_signals
 from firmware_py.core.cli import ExitCode, UserError
+from firmware_py.core.frames import StorageFrame
 from firmware_py.core.samplelog import SampleFlags, read_samplelog
+from firmware_py.core.site import Site
 from firmware_py.core.version import __version__, software_version
 from firmware_py.hal import pwm as pwm_backends
 from firmware_py.hal.backends import unregister_i2c_backend
@@ -97,6 +100,28 @@ def test_that_every_option_reaches_the_config():
     assert cfg.lever_arm_body_m == (0.1, -0.05, 0.2) and cfg.duration_s == 60.0 and cfg.stop_on_disarm
     assert cfg.stream_url == "udp:10.0.0.2:14600" and cfg.send_origin == (53.5, -2.2, 40.0)
     assert cfg.quiet and cfg.force and cfg.mission_id == "abc123"
+
+
+def test_that_origin_places_the_site_sends_its_corner_and_turns_the_frame():
+    cfg = parse("--origin=-33.9,151.2,30", "--heading", "30")
+    assert cfg.site == Site.of(-33.9, 151.2, 30.0, 30.0) and cfg.send_origin == (-33.9, 151.2, 30.0)
+    assert cfg.frame == StorageFrame((0.0, 0.0, 0.0), math.radians(30.0))
+    assert cfg.log_header()["site"] == {"lat_deg": -33.9, "lon_deg": 151.2, "alt_m": 30.0, "heading_deg": 30.0}
+
+
+def test_that_with_another_ekf_origin_sent_the_frame_is_the_site_about_that_origin():
+    east_10m = math.degrees(10.0 / (6_378_137.0 * math.cos(math.radians(-33.9))))
+    cfg = parse("--origin=-33.9,151.2,30", "--heading", "30", "--send-origin", "-33.9", str(151.2 - east_10m), "31")
+    assert cfg.send_origin == (-33.9, 151.2 - east_10m, 31.0)
+    assert cfg.frame.origin_ned_m == pytest.approx((0.0, 10.0, 1.0), abs=1e-6)  # the corner: 10 m east, 1 m down
+    assert cfg.frame.heading_rad == pytest.approx(math.radians(30.0))
+
+
+def test_that_heading_alone_turns_the_frame_about_the_autopilots_own_origin_and_sends_nothing():
+    cfg = parse("--heading", "-90")
+    assert cfg.site is None and cfg.send_origin is None and "site" not in cfg.log_header()
+    assert cfg.frame == StorageFrame((0.0, 0.0, 0.0), math.radians(-90.0))
+    assert parse().frame == StorageFrame() and parse().site is None
 
 
 def test_that_hal_sitl_points_i2c_and_pwm_at_the_device_bridge():

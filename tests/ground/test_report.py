@@ -6,7 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from firmware_py.core.frames import StorageFrame
+from firmware_py.core.geodesy import GeodeticPoint
+from firmware_py.core.site import DEFAULT_SITE, Site
 from firmware_py.core.storage import Storage
 from ground.report import ReportOptions, make_report
 from sitl.missions.rectangle import Mission
@@ -36,10 +37,15 @@ def test_that_a_cone_stl_comes_within_2_percent(tmp_path):
 
 
 def test_that_the_result_does_not_depend_on_where_the_building_sits_in_ned(tmp_path):
+    """The second building's corner is 20 m south, 35 m east and 0.4 m below the EKF origin, turned 123 deg."""
     mission = Mission(p_traj=0.1)
+    ekf = DEFAULT_SITE.corner
+    corner = GeodeticPoint(*ekf.to_global(-20.0, 35.0), ekf.alt_m - 0.4)
+    placed = FlyConfig(mission=mission, site=Site(corner, math.radians(123)), ekf_origin_at=ekf)
+    assert placed.frame.origin_ned_m == pytest.approx((-20.0, 35.0, 0.4), abs=1e-6)
     reps = []
-    for i, frame in enumerate([StorageFrame(), StorageFrame((-20.0, 35.0, 0.4), math.radians(123))]):
-        fly(FlyConfig(mission=mission, frame=frame), tmp_path / f"run{i}")
+    for i, cfg in enumerate([FlyConfig(mission=mission), placed]):
+        fly(cfg, tmp_path / f"run{i}")
         reps.append(make_report(tmp_path / f"run{i}", tmp_path / f"rep{i}", ReportOptions(plots=False)))
     assert reps[0]["volume_m3"] == pytest.approx(reps[1]["volume_m3"], rel=1e-4)
     assert reps[1]["volume_error_pct"] < 1.0

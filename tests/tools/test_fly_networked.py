@@ -78,3 +78,41 @@ def test_that_the_payload_reads_a_served_tfmini_over_a_pty_and_survives_its_faul
     err = good["range_m"] - world.cast(o, d).range_m
     err = np.abs(err[np.isfinite(err)])
     assert len(err) > 300 and np.median(err) < 0.01 and np.percentile(err, 90) < 0.05
+
+
+def test_that_a_networked_flight_at_a_turned_site_agrees_on_origin_and_frame(tmp_path):
+    """serve and the payload both given --origin -33.9,151.2,30 --heading 30: the payload's EKF origin is
+    confirmed, not refused, its header carries the site and the turned frame, and the ranges it logged,
+    ray traced from its logged poses through that frame in the served world, are the ranges measured."""
+    from pymavlink import mavutil
+
+    from firmware_py.core.site import Site
+
+    storage = Storage(24, 16, 10)
+    site = Site.of(-33.9, 151.2, 30.0, 30.0)
+    run = fly_networked(["--p-traj", "25", "--altitude", "9", "--speed", "2"], "24x16x10", "1", tmp_path / "net",
+                        flight_s=6.0, say=lambda _m: None,
+                        site_args=["--origin=-33.9,151.2,30", "--heading=30"])
+    assert run.payload_exit == 0
+    log = read_samplelog(tmp_path / "net" / "samples.pslog")
+    assert log.header["site"] == site.to_dict()
+    frame = StorageFrame.from_dict(log.header["storage_frame"])
+    assert frame == site.frame_about()
+    tlog = mavutil.mavlink_connection(str(tmp_path / "net" / "telemetry.tlog"), dialect="ardupilotmega")
+    origins, refusals = [], []
+    while (m := tlog.recv_match(type=["GPS_GLOBAL_ORIGIN", "STATUSTEXT"])) is not None:
+        if m.get_type() == "GPS_GLOBAL_ORIGIN":
+            origins.append((m.latitude, m.longitude, m.altitude))
+        elif "origin" in m.text.lower():
+            refusals.append(m.text)
+    assert origins and set(origins) == {(-339_000_000, 1_512_000_000, 30_000)} and refusals == []
+    s = log.samples
+    good = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
+    assert len(good) > 500
+    world = World(storage, piles.resolve(str(tmp_path / "net" / "pile.stl"), storage))
+    pos = np.column_stack([good["x_m"], good["y_m"], good["z_m"]])
+    o, d = beam_rays_w(pos, good["roll_rad"], good["pitch_rad"], good["yaw_rad"], good["servo_rad"],
+                       np.array(log.header["lever_arm_body_m"]), frame)
+    err = good["range_m"] - world.cast(o, d).range_m
+    err = np.abs(err[np.isfinite(err)])
+    assert np.median(err) < 0.01 and np.percentile(err, 90) < 0.03

@@ -14,6 +14,7 @@ from firmware_py.core.header import LogHeader, ServoDrive, build_log_header, sen
 from firmware_py.core.samplelog import SampleLogWriter, read_samplelog
 from firmware_py.core.sensor import LIDARLITE_V3, SENSOR_KEYS
 from firmware_py.core.servo_model import ServoCalibration
+from firmware_py.core.site import Site
 from firmware_py.core.storage import Storage
 from firmware_py.core.waveform import named_waveform
 
@@ -52,7 +53,8 @@ def test_that_the_sitl_log_header_is_built_by_the_same_function_with_its_values(
 
     cfg = FlyConfig()
     h = log_header(cfg, cfg.servo_waveform())
-    assert list(h) == STANDARD_KEYS
+    assert list(h) == [*STANDARD_KEYS, "site"]  # a simulated flight always knows where its building stands
+    assert h["site"] == cfg.site.to_dict()
     assert h["source"] == "sitl/jsbsim" and h["sensor"] == cfg.lidar.to_dict()
     assert h["mission_id"] == cfg.mission.mission_id and h["mission"] == cfg.mission.to_dict()
     assert h["storage"] == cfg.mission.storage.to_dict() and h["lever_arm_body_m"] == [0.0, 0.0, 0.10]
@@ -142,3 +144,20 @@ def test_that_a_servo_calibration_value_given_as_a_json_boolean_is_refused():
     h["servo_calibration"] = {**asdict(ServoCalibration()), "lag_s": True}
     with pytest.raises(ValueError, match=r"servo_calibration\.lag_s must be a finite number"):
         LogHeader.from_dict({k: v for k, v in h.items() if k not in ("format", "format_version", "record_dtype")})
+
+
+def test_that_the_site_record_round_trips_and_a_malformed_one_is_named():
+    site = Site.of(-33.9, 151.2, 30.0, 30.0)
+    h = PayloadConfig(storage=Storage(), site=site, frame=site.frame_about()).log_header()
+    assert h["site"] == {"lat_deg": -33.9, "lon_deg": 151.2, "alt_m": 30.0, "heading_deg": 30.0}
+    assert LogHeader.from_dict(h).site == site
+    assert LogHeader.from_dict(h).to_dict() == h
+    with pytest.raises(ValueError, match=r"site is malformed.*latitude"):
+        LogHeader.from_dict({**h, "site": {**h["site"], "lat_deg": 91.0}})
+
+
+def test_that_a_payload_frame_that_is_not_its_site_about_the_origin_it_sends_is_refused():
+    site = Site.of(-33.9, 151.2, 30.0, 30.0)
+    PayloadConfig(site=site, frame=site.frame_about(), send_origin=site.corner.as_tuple())  # agrees
+    with pytest.raises(ValueError, match="is not the site"):
+        PayloadConfig(site=site, frame=StorageFrame(), send_origin=site.corner.as_tuple())  # heading 0, not 30

@@ -375,5 +375,6 @@ def test_that_the_truth_record_keeps_fly_keys_in_order():
                        flight_time_s=1.0, energy_j=2.0, payload_kg=0.04, n_samples=3, servo_initial_position=0,
                        waveform="semi-triangular")
     assert list(rec) == ["true_volume_m3", "stockpile", "stockpile_source", "pile_seed", "seed", "storage",
-                         "storage_frame", "mission", "mission_id", "plant", "payload", "faults", "flight_time_s",
-                         "energy_j", "payload_kg", "n_samples", "servo_initial_position", "waveform", "software"]
+                         "storage_frame", "site", "ekf_origin", "mission", "mission_id", "plant", "payload", "faults",
+                         "flight_time_s", "energy_j", "payload_kg", "n_samples", "servo_initial_position", "waveform",
+                         "software"]

@@ -9,7 +9,7 @@ import os
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sitl.mavlink.geodesy import ned_to_global
+from firmware_py.core.geodesy import ned_to_global
 from sitl.mavlink.server import MavlinkVehicleServer
 from sitl.mavlink.transport import PipeTransport
 from sitl.vehicle.api import FlightMode
@@ -43,10 +43,10 @@ class Gcs:
     `pending`; expect() consumes up to the first match (like recv_match), run() takes everything.
     """
 
-    def __init__(self, vehicle=None, tlog_path=None):
+    def __init__(self, vehicle=None, tlog_path=None, **server_kw):
         self.vehicle = vehicle or fast_vehicle()
         server_end, self.end = PipeTransport.pair()
-        self.server = MavlinkVehicleServer(self.vehicle, server_end, tlog_path=tlog_path)
+        self.server = MavlinkVehicleServer(self.vehicle, server_end, tlog_path=tlog_path, **server_kw)
         self.mav = mavlink.MAVLink(None, srcSystem=GCS_SYS, srcComponent=GCS_COMP)
         self.mav.robust_parsing = True
         self.pending: list = []

@@ -8,7 +8,7 @@ import pytest
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sitl.mavlink.geodesy import ned_to_global
+from firmware_py.core.geodesy import ned_to_global
 from sitl.vehicle.api import FlightMode, NavKind
 from tests.sitl.mavlink.lockstep_gcs import (
     HOME_ALT,

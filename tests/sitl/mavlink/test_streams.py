@@ -8,7 +8,7 @@ import pytest
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sitl.mavlink.geodesy import global_to_ned
+from firmware_py.core.geodesy import global_to_ned
 from sitl.mavlink.streams import TLOG_EPOCH_US
 from sitl.vehicle.api import FlightMode
 from tests.sitl.mavlink.lockstep_gcs import (

@@ -7,8 +7,8 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_py.core.frames import StorageFrame
+from firmware_py.core.geodesy import global_to_ned
 from sitl.cli import main
-from sitl.mavlink.geodesy import global_to_ned
 from sitl.missions.qgc_wpl import DEFAULT_ORIGIN, read_qgc_wpl, write_qgc_wpl
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import start_pose
@@ -70,3 +70,67 @@ def test_that_the_jsbsim_vehicle_flies_the_plan_uploaded_over_mavlink(tmp_path):
     assert reached == set(range(1, len(rows)))
     gcs.run(5.0)
     assert vehicle.state().landed and not vehicle.state().armed
+
+
+def _distance_to_rectangle_m(p_xy, x0: float, x1: float, y0: float, y1: float) -> float:
+    """How far a point lies from the rectangle's outline (its four legs)."""
+    x, y = p_xy
+    legs = [(abs(y - yy), max(x0 - x, 0.0, x - x1)) for yy in (y0, y1)] + \
+           [(abs(x - xx), max(y0 - y, 0.0, y - y1)) for xx in (x0, x1)]
+    return min(math.hypot(a, b) for a, b in legs)
+
+
+def test_that_a_plan_placed_at_a_rotated_site_loads_in_mavwp_and_lies_on_the_intended_rectangle(tmp_path):
+    """`plan --origin -33.9,151.2,30 --heading 30`: pymavlink's own loader reads it, and every position in
+    it, taken back into the storage frame about the site's corner, is on the P_traj 20 % rectangle."""
+    from pymavlink import mavwp
+
+    from firmware_py.core.site import Site
+
+    out = tmp_path / "sydney.waypoints"
+    assert main(["plan", "--p-traj", "20", "--origin", "-33.9,151.2,30", "--heading", "30", "--out", str(out),
+                 "-q"]) == 0
+    loader = mavwp.MAVWPLoader()
+    n = loader.load(str(out))
+    items = [loader.wp(i) for i in range(n)]
+    site = Site.of(-33.9, 151.2, 30.0, 30.0)
+    frame = site.frame_about()  # the EKF origin is the corner: the payload sends it so by default
+    positioned = [it for it in items if it.command != mavlink.MAV_CMD_DO_CHANGE_SPEED]
+    assert len(positioned) == n - 1 >= 7
+    home, rest = positioned[0], positioned[1:]
+    m = Mission(p_traj=0.20)
+    wp = m.waypoints_w()
+    (x0, y0), (x1, y1) = wp.min(axis=0), wp.max(axis=0)
+    assert (x0, y0, x1, y1) == pytest.approx((12.0, 8.0, 48.0, 32.0))  # 20 % of 60 x 40 from the walls
+    for it in positioned:
+        north, east = site.corner.to_ned(it.x, it.y)
+        up = it.z - site.corner.alt_m if it.frame == mavlink.MAV_FRAME_GLOBAL else it.z
+        p_w = frame.ned_to_w([north, east, -up])
+        assert _distance_to_rectangle_m(p_w[:2], x0, x1, y0, y1) < 0.1
+    # Home and take-off on W0 (home on the floor), the loop in order at the survey altitude, landing on W0.
+    got_w = np.array([frame.ned_to_w([*site.corner.to_ned(it.x, it.y), 0.0])[:2] for it in rest])
+    assert np.abs(got_w[1:-1] - wp[1:]).max() < 0.1 and np.abs(got_w[[0, -1]] - wp[0]).max() < 0.1
+    assert home.z == pytest.approx(site.corner.alt_m) and all(it.z == m.altitude_m for it in rest[:-1])
+    # The building's x axis really is turned 30 deg east of north: W0 -> W1 is a leg along x.
+    d = frame.w_to_ned(np.array([[wp[1][0], wp[1][1], 0.0]]))[0] - frame.w_to_ned(np.array([[*wp[0], 0.0]]))[0]
+    n1, e1 = site.corner.to_ned(rest[1].x, rest[1].y)
+    n0, e0 = site.corner.to_ned(rest[0].x, rest[0].y)
+    assert math.degrees(math.atan2(e1 - e0, n1 - n0)) % 360 == pytest.approx(
+        math.degrees(math.atan2(d[1], d[0])) % 360, abs=0.01)
+
+
+def test_that_the_default_plan_is_the_one_placed_at_the_default_site(tmp_path):
+    """No --origin / --heading: the plan is what it was before sites existed (the same file)."""
+    assert main(["plan", "--p-traj", "20", "--out", str(tmp_path / "a.waypoints"), "-q"]) == 0
+    assert main(["plan", "--p-traj", "20", "--origin", "53.4668,-2.2339,50", "--heading", "0",
+                 "--out", str(tmp_path / "b.waypoints"), "-q"]) == 0
+    assert (tmp_path / "a.waypoints").read_bytes() == (tmp_path / "b.waypoints").read_bytes()
+    rows = read_qgc_wpl(tmp_path / "a.waypoints")
+    assert (rows[0][8], rows[0][9]) == pytest.approx(
+        frame_w0_global(Mission(p_traj=0.20), StorageFrame(), DEFAULT_ORIGIN), abs=1e-8)
+
+
+def frame_w0_global(m: Mission, frame: StorageFrame, origin) -> tuple[float, float]:
+    from firmware_py.core.geodesy import ned_to_global
+    n, e, _ = frame.w_to_ned([*m.waypoints_w()[0], 0.0])
+    return ned_to_global(n, e, origin[0], origin[1])
