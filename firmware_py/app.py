@@ -135,6 +135,8 @@ class PayloadConfig:
             with samples that cannot be posed; 0 = start sampling at once. The lockstep SITL waits.
         source, mission: the header's provenance and what was flown (the SITL writes its mission
             plan there; the drone's program does not know it).
+        header_extra: further header keys, written after the payload's own (the SITL states there the
+            sensor noise it simulates, ``sensor_noise``); they may not replace a key the payload writes.
     """
 
     out_path: str | os.PathLike[str] = "samples.pslog"
@@ -175,6 +177,7 @@ class PayloadConfig:
     wait_for_pose_s: float = 0.0
     source: str = "payload"
     mission: Mapping[str, Any] | None = None
+    header_extra: Mapping[str, Any] | None = None
 
     def busy_deadline_ns(self) -> int:
         """The LiDAR's busy deadline at this rate (a stuck part must not stop the loop keeping it)."""
@@ -227,6 +230,10 @@ class PayloadConfig:
             raise ValueError(f"pose wait must be 0-3600 s, got {self.wait_for_pose_s!r}")
         if not isinstance(self.source, str) or not self.source.strip():
             raise ValueError(f"log source must be a non-empty string, got {self.source!r}")
+        if self.header_extra is not None:
+            if not isinstance(self.header_extra, Mapping):
+                raise ValueError(f"header extra must be a mapping, got {type(self.header_extra).__name__}")
+            self.log_header()  # a key clashing with the payload's own is refused here, not at the first sample
         for name in ("health_period_s", "status_period_s"):
             v = getattr(self, name)
             if not (_finite(v) and 0.05 <= v <= 3600.0):
@@ -269,7 +276,14 @@ class PayloadConfig:
                    "payload": {"mavlink": self.mavlink_url, "i2c": self.i2c_url, "pwm": self.pwm_url,
                                "lidar_preset": self.preset, "i2c_address": self.i2c_address,
                                "rate_hz": self.rate_hz, "records_per_block": self.records_per_block},
-                   **drive})
+                   **drive, **self._header_extra()})
+
+    def _header_extra(self) -> dict[str, Any]:
+        extra = dict(self.header_extra or {})
+        clash = sorted(set(extra) & {"servo_calibration", "payload", "servo_drive"})
+        if clash:
+            raise ValueError(f"header extra key {clash[0]!r} would replace one the payload writes")
+        return extra
 
 
 @dataclass(frozen=True)

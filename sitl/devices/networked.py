@@ -26,7 +26,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from firmware_py.core.frames import SQUARE, StorageFrame
+from firmware_py.core.frames import Boresight, StorageFrame
 from firmware_py.core.servo_model import ServoCalibration
 from sitl.devices.bridge_server import DeviceBridgeServer, parse_bridge_url
 from sitl.devices.i2c_sim import SimI2CBus
@@ -36,7 +36,8 @@ from sitl.faults.injector import FaultInjector, FaultSpec
 from sitl.faults.params import FaultParams, LiveFaultInjector
 from sitl.mavlink.server import MavlinkVehicleServer
 from sitl.mavlink.transport import Transport
-from sitl.runners.lockstep_payload import TruePose, beam_range_m, plant_state_of, pose_from_history
+from sitl.runners.lockstep_payload import TrueBeam, TruePose, plant_state_of, pose_from_history
+from sitl.sensing.noise import RangeNoise
 from sitl.vehicle.api import FlightMode, Vehicle
 from sitl.world.raycast import World
 
@@ -102,13 +103,14 @@ class NetworkedDevices:
         self.vehicle, self.world = vehicle, world
         self.frame = frame or StorageFrame()
         self.lever = tuple(float(v) for v in lever_arm_body_m)
-        self.boresight = SQUARE  # the beam's true mounting (a boresight fault tilts it)
         self.lock = threading.RLock()
         self._hist: collections.deque[tuple[float, tuple[float, ...]]] = collections.deque(
             maxlen=max(2, round(keep_s / vehicle.dt_s)))
         self.record()
         self.clock = WallSimClock(vehicle.state().t_s, speedup)
         self.servo = EmulatedServo(self.clock, servo_cal)
+        # The true beam: pose, shaft (+ a noise model's servo error), mounting (a boresight fault tilts it).
+        self.beam = TrueBeam(world, self.frame, self.lever, self.pose_at, self.servo.angle_at)
         self.lidar = EmulatedLidarLite(self.clock, self.range_at, range_noise_sigma_m=range_noise_sigma_m)
         self.bus = SimI2CBus(self.clock)
         self.bus.attach(ADDRESS, self.lidar)
@@ -144,10 +146,23 @@ class NetworkedDevices:
                 self.counters["ahead_of_physics"] += 1  # the physics fell behind the wall clock
             return pose_from_history(self._hist, t_ns * 1e-9)
 
+    @property
+    def boresight(self) -> Boresight:
+        """The beam's true mounting (a boresight fault tilts it)."""
+        return self.beam.boresight
+
+    @boresight.setter
+    def boresight(self, b: Boresight) -> None:
+        self.beam.boresight = b
+
     def range_at(self, t_ns: int) -> float | None:
         """What the LiDAR sees at simulated time t_ns: the true pose and shaft angle, ray traced."""
-        return beam_range_m(self.world, self.frame, self.lever, self.pose_at(t_ns), self.servo.angle_at(t_ns),
-                            self.boresight)
+        return self.beam.range_m(t_ns)
+
+    def attach_noise(self, noise: RangeNoise | None) -> None:
+        """The rangefinder's noise model (`sitl.runners.lockstep_payload.attach_sensor_noise` gives it)."""
+        with self.lock:
+            self.lidar.range_noise = noise
 
     def attach_faults(self, injector: FaultInjector) -> None:
         """Inject injector's device faults here: glitch readings in the ranges, NACKs on the bus, the

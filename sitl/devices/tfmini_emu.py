@@ -32,6 +32,7 @@ import numpy as np
 
 from firmware_py.drivers.tfmini import BITS_PER_BYTE, TfminiModel, TfminiVariant, encode_frame
 from firmware_py.hal import Clock
+from sitl.sensing.noise import RangeNoise
 
 SATURATED_STRENGTH = 0xFFFF
 TEMPERATURE_AUX = (25 + 256) * 8  # 25 deg C in the S/Plus/Luna encoding (T / 8 - 256)
@@ -67,7 +68,7 @@ class _FrameSource:
 
     def __init__(self, range_at: Callable[[int], float | None], model: TfminiModel, baud: int, rate_hz: float,
                  t0_ns: int, output_latency_ns: int, range_noise_sigma_m: float, bad_frames: float,
-                 rng: np.random.Generator | None) -> None:
+                 rng: np.random.Generator | None, range_noise: RangeNoise | None = None) -> None:
         if not callable(range_at):
             raise ValueError(f"range_at must be a callable t_ns -> range in m or None, got {range_at!r}")
         if not (math.isfinite(range_noise_sigma_m) and range_noise_sigma_m >= 0.0):
@@ -82,6 +83,7 @@ class _FrameSource:
         self.t0_ns, self.latency_ns = int(t0_ns), int(output_latency_ns)
         self.noise_sigma_m, self.bad_frames = float(range_noise_sigma_m), float(bad_frames)
         self.rng = rng if rng is not None else np.random.default_rng(0)
+        self.range_noise = range_noise
         self.frames_sent = 0
         self.bad_frames_sent = 0
 
@@ -93,7 +95,10 @@ class _FrameSource:
 
     def frame(self, k: int) -> bytes:
         noise = float(self.rng.normal(0.0, self.noise_sigma_m)) if self.noise_sigma_m > 0.0 else 0.0
-        data = frame_for(self.variant, self.range_at(self.measure_ns(k)), noise)
+        r = self.range_at(self.measure_ns(k))
+        if self.range_noise is not None and r is not None and math.isfinite(r) and r > 0.0:
+            r = self.range_noise.measure(r)  # the sensor-noise model (None: no return: a weak frame)
+        data = frame_for(self.variant, r, noise)
         self.frames_sent += 1
         if self.bad_frames > 0.0 and self.rng.random() < self.bad_frames:
             self.bad_frames_sent += 1
@@ -112,6 +117,8 @@ class EmulatedTfminiPort:
         t0_ns: when the first frame is measured (default: now).
         output_latency_ns: from the measurement to the frame's first byte.
         range_noise_sigma_m: Gaussian range noise before the 1 cm quantisation.
+        range_noise: a sensor-noise model (`sitl.sensing.noise.RangeNoiser`, built for TFMINI_S): the
+            reported range, None for a no-return (a weak frame); before the 1 cm quantisation.
         bad_frames: probability that a frame's checksum is wrong.
         rng: noise and fault draws (default seeded 0, so runs repeat).
     """
@@ -119,10 +126,11 @@ class EmulatedTfminiPort:
     def __init__(self, clock: Clock, range_at: Callable[[int], float | None], *,
                  model: TfminiModel = TfminiModel.TFMINI_S, baud: int = 115_200, rate_hz: float = 100.0,
                  t0_ns: int | None = None, output_latency_ns: int = 0, range_noise_sigma_m: float = 0.0,
-                 bad_frames: float = 0.0, rng: np.random.Generator | None = None) -> None:
+                 bad_frames: float = 0.0, rng: np.random.Generator | None = None,
+                 range_noise: RangeNoise | None = None) -> None:
         self.clock = clock
         self.source = _FrameSource(range_at, model, baud, rate_hz, clock.now_ns() if t0_ns is None else t0_ns,
-                                   output_latency_ns, range_noise_sigma_m, bad_frames, rng)
+                                   output_latency_ns, range_noise_sigma_m, bad_frames, rng, range_noise)
         self._k = 0  # the next frame to put on the wire
         self._pending = b""  # its bytes, made when its first byte was due
         self._sent = 0  # of those, already read
@@ -163,12 +171,12 @@ class PtyTfmini:
     def __init__(self, range_at: Callable[[int], float | None], *, model: TfminiModel = TfminiModel.TFMINI_S,
                  baud: int = 115_200, rate_hz: float = 100.0, output_latency_ns: int = 0,
                  range_noise_sigma_m: float = 0.0, bad_frames: float = 0.0,
-                 rng: np.random.Generator | None = None) -> None:
+                 rng: np.random.Generator | None = None, range_noise: RangeNoise | None = None) -> None:
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)  # no line discipline: bytes pass as sent (0x0a stays 0x0a)
         self.path = os.ttyname(self._slave)
         self.source = _FrameSource(range_at, model, baud, rate_hz, time.monotonic_ns(), output_latency_ns,
-                                   range_noise_sigma_m, bad_frames, rng)
+                                   range_noise_sigma_m, bad_frames, rng, range_noise)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="pty-tfmini", daemon=True)
         self._lock = threading.Lock()

@@ -32,6 +32,8 @@ from firmware_py.core.rundir import (
 )
 from firmware_py.core.samplelog import SampleLogWriter
 from firmware_py.core.sensor import LIDARLITE_V3, RangefinderSpec
+from firmware_py.core.sensor_noise import HEADER_KEY as NOISE_HEADER_KEY
+from firmware_py.core.sensor_noise import SensorNoise, SensorNoiseModel
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import Waveform, initial_position, named_waveform
 from sitl.faults.injector import FaultSpec
@@ -67,6 +69,7 @@ class FlyConfig:
     frame: StorageFrame = field(default_factory=StorageFrame)
     lidar: RangefinderSpec = LIDARLITE_V3
     faults: FaultSpec | None = None  # fault injection (sitl.faults.injector), firmware payload only
+    sensor_noise: SensorNoiseModel = SensorNoiseModel.NONE  # firmware_py.core.sensor_noise; seeded by seed
 
     def __post_init__(self) -> None:
         if self.plant not in PLANTS:
@@ -88,6 +91,12 @@ class FlyConfig:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
         self.servo_waveform()  # validates the name and rate
+        object.__setattr__(self, "sensor_noise", SensorNoiseModel(self.sensor_noise))
+        self.noise()  # the rangefinder has a datasheet model
+
+    def noise(self) -> SensorNoise:
+        """The sensor noise this flight carries, with its parameters for this rangefinder."""
+        return SensorNoise.of(self.sensor_noise, self.lidar)
 
     def servo_waveform(self) -> Waveform:
         return named_waveform(self.waveform, self.servo_peak_rate_rad_s, self.initial_position)
@@ -103,12 +112,19 @@ class RunResult:
     energy_j: float | None = None
 
 
+def noise_header(cfg: FlyConfig) -> dict:
+    """The header keys the flight's sensor noise adds: ``sensor_noise`` (none: nothing, the header as before)."""
+    rec = cfg.noise().record()
+    return {} if rec is None else {NOISE_HEADER_KEY: rec}
+
+
 def log_header(cfg: FlyConfig, wf: Waveform) -> dict:
     """The sample-log header of a SITL flight: what the ground station needs to place the points."""
     return build_log_header(source=f"sitl/{cfg.plant}", sensor=cfg.lidar.to_dict(),
                             lever_arm_body_m=cfg.lever_arm_body_m, waveform_name=cfg.waveform, waveform=wf,
                             initial_position=cfg.initial_position, storage=cfg.mission.storage, frame=cfg.frame,
-                            mission_id=cfg.mission.mission_id, mission=cfg.mission.to_dict())
+                            mission_id=cfg.mission.mission_id, mission=cfg.mission.to_dict(),
+                            extra=noise_header(cfg))
 
 
 def check_clearance(mission: Mission, pile: piles.Stockpile) -> None:
@@ -160,7 +176,8 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
     with OutputFolder(out, RUN_FILES, TRUTH_FILE, force=force) as folder:
         log.debug("%s locked; files are written in %s and put in place when the flight ends", out, folder.staging)
         say(f"stockpile: {pile.source}, true volume {pile.volume_m3:.1f} m^3")
-        say(f"flying {cfg.mission.path_length_m():.0f} m with the {cfg.plant} plant, {cfg.payload} payload")
+        say(f"flying {cfg.mission.path_length_m():.0f} m with the {cfg.plant} plant, {cfg.payload} payload"
+            + (f", {cfg.sensor_noise} sensor noise" if cfg.noise().active else ""))
         log_path, tlog_path = folder.staged(SAMPLES_FILE), folder.staged(TLOG_FILE)
         if cfg.payload == "firmware":
             from sitl.runners.lockstep_payload import fly_firmware
@@ -176,7 +193,8 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
         else:
             world = World(storage, pile, max_range_m=cfg.lidar.max_range_m)
             traj, duration_s, energy_j = fly_trajectory(cfg, tlog_path)
-            records = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame)
+            records = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame,
+                                    noise=cfg.noise(), seed=cfg.seed)
             # The batch path writes a finished flight at once: the commit's fsync is enough.
             with SampleLogWriter(log_path, log_header(cfg, wf), records_per_block=500, fsync=False) as w:
                 w.append(records)
@@ -185,7 +203,8 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
         truth = truth_record(pile, cfg.stockpile, cfg.mission, cfg.frame, plant=cfg.plant, payload=cfg.payload,
                              seed=cfg.seed, faults=cfg.faults, flight_time_s=duration_s, energy_j=energy_j,
                              payload_kg=cfg.payload_kg if cfg.plant == "jsbsim" else None, n_samples=len(records),
-                             servo_initial_position=cfg.initial_position, waveform=cfg.waveform)
+                             servo_initial_position=cfg.initial_position, waveform=cfg.waveform,
+                             **noise_header(cfg))
         folder.staged(TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
         folder.commit()
     n_ret = int(np.count_nonzero(records["flags"] == 0))

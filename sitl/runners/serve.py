@@ -40,6 +40,7 @@ from firmware_py.core.rundir import (
     OutputFolder,
     check_free,
 )
+from firmware_py.core.sensor_noise import SensorNoiseModel, noise_summary
 from firmware_py.hal.signing import SigningConfig
 from sitl.devices.bridge_server import parse_bridge_url
 from sitl.devices.networked import NetworkedDevices, NetworkedFaults, check_networked_faults
@@ -49,7 +50,8 @@ from sitl.mavlink.transport import make_transport
 from sitl.missions.qgc_wpl import DEFAULT_ORIGIN, write_qgc_wpl
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import start_pose
-from sitl.runners.fly import FlyConfig, check_clearance, truth_record
+from sitl.runners.fly import FlyConfig, check_clearance, noise_header, truth_record
+from sitl.runners.lockstep_payload import attach_sensor_noise
 from sitl.vehicle.jsbsim_plant import PlantConfig
 from sitl.vehicle.jsbsim_vehicle import JsbsimVehicle, VehicleConfig
 from sitl.vehicle.kinematic_vehicle import KinematicVehicle
@@ -89,6 +91,9 @@ class ServeOptions:
     the SIM_PS_* parameters' too."""
     limits: LinkLimits = field(default_factory=LinkLimits)
     """What one MAVLink sender may cost the others (STATUSTEXT answers, tlog space; --tlog-max-mb)."""
+    sensor_noise: SensorNoiseModel = SensorNoiseModel.NONE
+    """--sensor-noise: the servo error on the emulated LiDAR's beam, the range noise of its datasheet or of
+    Appendix A, the pose error on ATTITUDE and LOCAL_POSITION_NED (seeded by the faults' seed, --seed)."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speedup) and 0 < self.speedup <= 1000):
@@ -103,10 +108,11 @@ class ServeOptions:
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
             raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
         check_networked_faults(self.faults, devices=self.devices_url is not None)
+        object.__setattr__(self, "sensor_noise", SensorNoiseModel(self.sensor_noise))
 
     def fly_config(self) -> FlyConfig:
         """The lockstep SITL's settings for this mission: its frame, lever arm and LiDAR are served too."""
-        return FlyConfig(mission=self.mission, stockpile=self.stockpile)
+        return FlyConfig(mission=self.mission, stockpile=self.stockpile, sensor_noise=self.sensor_noise)
 
 
 def serve(opts: ServeOptions) -> int:
@@ -190,7 +196,7 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
     if world is not None:
         pile.mesh.export(folder.staged(PILE_FILE))
         truth = truth_record(pile, opts.stockpile, mission, frame, plant=kind, payload="networked",
-                             seed=opts.faults.seed, faults=opts.faults)
+                             seed=opts.faults.seed, faults=opts.faults, **noise_header(cfg))
         folder.staged(TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
     vehicle = make_vehicle(kind, mission, frame)
     stop = threading.Event()
@@ -223,6 +229,12 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
                                   home_lon_deg=lon0, home_alt_m=alt0, signing=opts.signing,
                                   extra_params=faults.params, limits=opts.limits) as server:
             faults.bind(server)
+            noise = attach_sensor_noise(cfg.noise(), opts.faults.seed, server,
+                                        devices.beam if devices is not None else None)
+            if devices is not None:
+                devices.attach_noise(noise)
+            if cfg.noise().active:
+                log.info("sensor noise: %s (%s)", cfg.sensor_noise, noise_summary(cfg.noise()))
 
             def on_step() -> None:
                 if devices is not None:
