@@ -148,8 +148,8 @@ def spot_table(spots: list[dict], results: dict[Case, list[dict]]) -> str:
     for s in spots:
         twin = next((r for c, rows in results.items() if (c.pile, c.p_traj_pct, c.model) == (s["pile"], s["p"],
                      s["model"]) for r in rows if r["phase"] == s["phase"]), None)
-        out.append(f"| {s['pile']} | {s['p']} % | {s['model'].value} | {s['phase']} | {s['ve_pct']:.2f} | "
-                   f"{twin['ve_pct']:.2f} |" if twin else "- |")
+        batch = f"{twin['ve_pct']:.2f}" if twin else "-"
+        out.append(f"| {s['pile']} | {s['p']} % | {s['model'].value} | {s['phase']} | {s['ve_pct']:.2f} | {batch} |")
         out[-1] += f" {'yes' if s['self_cal_applied'] else 'no'} | {s['no_return_pct']:.1f} | {s['wall_s']:.0f} |"
     return "\n".join(out)
 
