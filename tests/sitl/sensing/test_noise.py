@@ -45,10 +45,13 @@ def test_that_datasheet_noise_grows_with_the_range_as_the_relative_figure():
     assert datasheet_sigma_m(np.array([1.0, 2.5, 20.0]), LIDARLITE_V3) == pytest.approx([0.025, 0.025, 0.2])
 
 
-def test_that_the_return_model_reproduces_the_tfmini_s_manuals_two_rated_ranges():
-    # 12 m on a 90 % board and 4 m on a 10 % one: the inverse-square law of the return model.
-    assert ReturnModel(0.9, target_reflectance=0.9).effective_range_m(TFMINI_S.max_range_m) == pytest.approx(12.0)
-    assert ReturnModel(0.9, target_reflectance=0.1).effective_range_m(TFMINI_S.max_range_m) == pytest.approx(4.0)
+def test_that_the_return_range_scales_with_the_square_root_of_reflectance_and_incidence():
+    # The inverse-square law of an extended diffuse target: 12 m on the 90 % board, 4 m at 10 %, 6.9 m at the
+    # model's 30 % (the TFMini datasheets rate 10 % at 4-7 m: the law is the pessimistic end).
+    rm = ReturnModel(0.9, target_reflectance=0.1)
+    assert rm.effective_range_m(TFMINI_S.max_range_m) == pytest.approx(4.0)
+    assert ReturnModel(0.9).effective_range_m(TFMINI_S.max_range_m) == pytest.approx(12 * math.sqrt(1 / 3))
+    assert rm.effective_range_m(TFMINI_S.max_range_m, 0.25) == pytest.approx(2.0)
 
 
 def test_that_no_returns_rise_from_zero_to_one_over_the_ramp_before_the_effective_range():
