@@ -133,7 +133,7 @@ def _noise_option(p: ArgumentParser) -> None:
                         "sigma = max(abs, rel x r), bias, quantum, no-returns near its rated range at low reflectance "
                         "and grazing incidence); appendix-a (the paper's: range 2.5 cm, servo 1 deg, attitude "
                         "0.143 deg, position 0.113 m). Recorded in the log header; seeded by --seed "
-                        "(docs/noise.md)")
+                        "(docs/sensor_noise.md)")
 
 
 def _mission_options(p: ArgumentParser, p_traj_required: bool) -> None:
