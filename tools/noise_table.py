@@ -16,6 +16,7 @@ lockstep) and reports it beside its batch twin.
 
 from __future__ import annotations
 
+import json
 import statistics
 import sys
 import tempfile
@@ -165,6 +166,19 @@ def _spot(text: str) -> tuple[str, int, SensorNoiseModel, int]:
                          f"a model of {', '.join(m.value for m in MODELS)} and a phase 0-19, got {text!r}") from None
 
 
+def _fresh_run_note(cache: Path, all_computed: bool, wall_s: float, jobs: int) -> str:
+    """What the last run that computed every case took (recorded by that run in the cache)."""
+    path = cache / "noise-table-fresh-run.json"
+    if all_computed:
+        path.write_text(json.dumps({"wall_s": wall_s, "jobs": jobs, "date": time.strftime("%Y-%m-%d")}))
+    try:
+        f = json.loads(path.read_text())
+        return (f"; the last run that computed all of them took {f['wall_s'] / 60:.1f} min with {f['jobs']} "
+                f"worker(s) ({f['date']})")
+    except (OSError, ValueError, KeyError, TypeError):
+        return ""
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = ArgumentParser(prog="python -m tools.noise_table", description=__doc__.split("\n\n")[0])
     ap.add_argument("--write", type=Path, default=None, help="regenerate this tool's section of this page")
@@ -185,17 +199,20 @@ def main(argv: list[str] | None = None) -> int:
     for p in P_TRAJ_PCT:  # the flights first, once each (the workers then read them from the cache)
         _flight(e, float(p), args.cache)
     cases = [Case(pile, p, m, args.phases) for pile in PILES for p in P_TRAJ_PCT for m in MODELS]
+    n_todo = sum(not (args.cache / f"{c.key()}.json").exists() for c in cases)
     with ProcessPoolExecutor(args.jobs) as pool:
         results = dict(zip(cases, pool.map(run_case, cases, [args.cache] * len(cases)), strict=True))
         print(table(results), flush=True)
         spot_rows = list(pool.map(spot_check, *zip(*spots, strict=True))) if spots else []
     wall = time.perf_counter() - t0
+    fresh_note = _fresh_run_note(args.cache, n_todo == len(cases), wall, args.jobs)
     parts = [
         "## Ve with realistic sensing (`--sensor-noise`)",
         "",
         f"Regenerate with `python -m tools.noise_table --write docs/results.md --jobs {args.jobs}"
-        + "".join(f" --spot {s}" for s in args.spot) + f"` ({wall / 60:.1f} min on this run, flights and cases "
-        "cached in `runs/sweep-cache`). The paper's baseline (Table 1: semi-triangular sweep, 1 m/s, 30 deg/s yaw, "
+        + "".join(f" --spot {s}" for s in args.spot) + f"` ({wall / 60:.1f} min on this run, which computed "
+        f"{n_todo} of the {len(cases)} cases; flights and cases are cached in `{args.cache}`{fresh_note}). "
+        "The paper's baseline (Table 1: semi-triangular sweep, 1 m/s, 30 deg/s yaw, "
         "one-step corners), the JSBSim vehicle, the paper's building; each row is "
         f"{args.phases} servo start positions (Fig. 9) sampled by the batch path with the same noise functions "
         "as `fly` (docs/noise.md says what each model is). Ve (eq. 8, `nearest` empty cells) through the ground "
