@@ -115,9 +115,14 @@ def spot_check(pile: str, p_pct: int, model: SensorNoiseModel, phase: int) -> di
         run = Path(tmp) / "run"
         fly(cfg, run, force=True, progress=lambda _m: None)
         rep = make_report(run, Path(tmp) / "report", ReportOptions(plots=False))
-    cal = rep.get("self_calibration") or {}
+        cal = rep.get("self_calibration") or {}
+        applied = any(isinstance(v, dict) and v.get("applied") for v in cal.values())
+        ve_nocal = rep["volume_error_pct"]
+        if applied:
+            ve_nocal = make_report(run, Path(tmp) / "plain", ReportOptions(plots=False, self_calibration=False)
+                                   )["volume_error_pct"]
     return {"pile": pile, "p": p_pct, "model": model, "phase": phase, "ve_pct": rep["volume_error_pct"],
-            "self_cal_applied": any(isinstance(v, dict) and v.get("applied") for v in cal.values()),
+            "self_cal_applied": applied, "ve_nocal_pct": ve_nocal,
             "spikes": rep["n_samples_spikes"], "wall_s": time.perf_counter() - t0,
             "no_return_pct": 100.0 * rep["n_samples_excluded"] / max(1, rep["n_samples"])}
 
@@ -144,14 +149,17 @@ def table(results: dict[Case, list[dict]]) -> str:
 
 def spot_table(spots: list[dict], results: dict[Case, list[dict]]) -> str:
     out = ["| pile | P_traj | sensor noise | start position | Ve firmware in the loop [%] | Ve batch, same position "
-           "[%] | self-cal. applied (firmware) | no returns + flagged (firmware) [%] | wall time [s] |",
-           "|---|---|---|---|---|---|---|---|---|"]
+           "[%] | self-cal. applied (firmware) | Ve firmware without self-cal. [%] | Ve batch without self-cal. [%] "
+           "| no returns + flagged (firmware) [%] | wall time [s] |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
     for s in spots:
         twin = next((r for c, rows in results.items() if (c.pile, c.p_traj_pct, c.model) == (s["pile"], s["p"],
                      s["model"]) for r in rows if r["phase"] == s["phase"]), None)
         batch = f"{twin['ve_pct']:.2f}" if twin else "-"
-        out.append(f"| {s['pile']} | {s['p']} % | {s['model'].value} | {s['phase']} | {s['ve_pct']:.2f} | {batch} |")
-        out[-1] += f" {'yes' if s['self_cal_applied'] else 'no'} | {s['no_return_pct']:.1f} | {s['wall_s']:.0f} |"
+        batch_plain = f"{twin['ve_nocal_pct']:.2f}" if twin else "-"
+        out.append(f"| {s['pile']} | {s['p']} % | {s['model'].value} | {s['phase']} | {s['ve_pct']:.2f} | {batch} | "
+                   f"{'yes' if s['self_cal_applied'] else 'no'} | {s['ve_nocal_pct']:.2f} | {batch_plain} | "
+                   f"{s['no_return_pct']:.1f} | {s['wall_s']:.0f} |")
     return "\n".join(out)
 
 

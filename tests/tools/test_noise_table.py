@@ -21,5 +21,6 @@ def test_that_the_table_states_mean_sd_max_and_the_false_corrections():
     text = table({case: rows})
     assert "| 1 | 20 % | datasheet | 2.00 ± 1.00 | 3.00 | 1.50 ± 0.50 | 1 of 2 | 95.0 | 5.0 | 0 |" in text
     spot = {"pile": "1", "p": 20, "model": SensorNoiseModel.DATASHEET, "phase": 1, "ve_pct": 2.5,
-            "self_cal_applied": False, "no_return_pct": 6.0, "wall_s": 40.0}
-    assert "| 1 | 20 % | datasheet | 1 | 2.50 | 3.00 | no | 6.0 | 40 |" in spot_table([spot], {case: rows})
+            "self_cal_applied": False, "ve_nocal_pct": 2.5, "no_return_pct": 6.0, "wall_s": 40.0}
+    want = "| 1 | 20 % | datasheet | 1 | 2.50 | 3.00 | no | 2.50 | 2.00 | 6.0 | 40 |"
+    assert want in spot_table([spot], {case: rows})
