@@ -46,6 +46,8 @@ P_TRAJ_PCT = (5, 20, 30)
 MODELS = tuple(SensorNoiseModel)
 TABLE_VERSION = "1"
 """Part of every case's cache key: bump it when what a case computes changes."""
+MODEL_VERSIONS = {SensorNoiseModel.APPENDIX_A: "2"}
+"""Per model, in the key too: 2: the pose errors extrapolated as the payload does (not interpolated)."""
 
 
 @dataclass(frozen=True)
@@ -56,8 +58,11 @@ class Case:
     phases: int = N_POSITIONS
 
     def key(self) -> str:
-        return "noise-table-" + content_key({"v": TABLE_VERSION, "pile": self.pile, "p": self.p_traj_pct,
-                                             "model": self.model.value, "phases": self.phases})
+        key = {"v": TABLE_VERSION, "pile": self.pile, "p": self.p_traj_pct, "model": self.model.value,
+               "phases": self.phases}
+        if self.model in MODEL_VERSIONS:
+            key["model_v"] = MODEL_VERSIONS[self.model]
+        return "noise-table-" + content_key(key)
 
 
 def _config(case: Case, phase: int) -> FlyConfig:
