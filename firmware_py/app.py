@@ -165,6 +165,8 @@ class PayloadConfig:
         config_file: the configuration file the options started from [--config], for the header's
             ``config`` record; None: none.
         signing_key_file: the key file's path [--signing-key], recorded there (never the key).
+        header_extra: further header keys, written after the payload's own (the SITL states there the
+            sensor noise it simulates, ``sensor_noise``); they may not replace a key the payload writes.
     """
 
     out_path: str | os.PathLike[str] = "samples.pslog"
@@ -212,6 +214,7 @@ class PayloadConfig:
     mission: Mapping[str, Any] | None = None
     config_file: str | None = None
     signing_key_file: str | None = None
+    header_extra: Mapping[str, Any] | None = None
 
     def busy_deadline_ns(self) -> int:
         """The LiDAR's busy deadline at this rate (a stuck part must not stop the loop keeping it)."""
@@ -280,6 +283,10 @@ class PayloadConfig:
             raise ValueError(f"pose wait must be 0-3600 s, got {self.wait_for_pose_s!r}")
         if not isinstance(self.source, str) or not self.source.strip():
             raise ValueError(f"log source must be a non-empty string, got {self.source!r}")
+        if self.header_extra is not None:
+            if not isinstance(self.header_extra, Mapping):
+                raise ValueError(f"header extra must be a mapping, got {type(self.header_extra).__name__}")
+            self.log_header()  # a key clashing with the payload's own is refused here, not at the first sample
         for name in ("health_period_s", "status_period_s"):
             v = getattr(self, name)
             if not (_finite(v) and 0.05 <= v <= 3600.0):
@@ -372,7 +379,14 @@ class PayloadConfig:
             storage=self.storage, frame=self.frame, mission_id=self.mission_id, mission=self.mission, site=self.site,
             extra={"servo_calibration": asdict(self.servo), "boresight": self.boresight.to_dict(),
                    "config": self.effective_config(), "payload": self.hardware(),
-                   **drive})
+                   **drive, **self._header_extra()})
+
+    def _header_extra(self) -> dict[str, Any]:
+        extra = dict(self.header_extra or {})
+        clash = sorted(set(extra) & {"servo_calibration", "payload", "servo_drive", "boresight", "config"})
+        if clash:
+            raise ValueError(f"header extra key {clash[0]!r} would replace one the payload writes")
+        return extra
 
     def effective_config(self) -> dict[str, Any]:
         """What this payload runs with, in the configuration file's sections (`firmware_py.core.config_file`),

@@ -84,7 +84,8 @@ class HeightBinner:
         d = np.broadcast_to(np.ones(3), p.shape) if dirs_w is None else np.asarray(dirs_w, dtype=float)
         if d.shape != p.shape:
             raise ValueError(f"{len(p)} points but directions of shape {d.shape}")
-        keep = ~structure_mask(Cloud(p, d, r, np.empty((0, 3)), len(p), 0), self.storage, self._mask_model)
+        keep = ~structure_mask(Cloud(p, d, r, np.empty((0, 3)), len(p), 0), self.storage, self._mask_model,
+                               n_sigma=N_SIGMA)  # the model is already scaled to n_sigma
         keep &= np.isfinite(p).all(axis=1)
         self.n_in += len(p)
         self.n_removed += int(len(p) - keep.sum())

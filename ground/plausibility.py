@@ -11,8 +11,8 @@ come from the log header, i.e. from what the payload itself says it drove and ca
 - range (samples not flagged NO_RETURN): r <= max_range_m + N_SIGMA sigma_r(max_range_m) + resolution_m
   (``sensor``): the sensor reports nothing farther.
 - pose: the vehicle position, in the storage frame, within POSE_MARGIN_M + N_SIGMA position sigmas
-  (``pose.position_sigma_m``) of the building box (``storage``): the survey flies inside a closed
-  building.
+  (``pose.position_sigma_m``, or the ``sensor_noise`` record's if larger) of the building box
+  (``storage``): the survey flies inside a closed building.
 
 Only samples the cloud would otherwise use are judged (a NO_RETURN sample's range means nothing).
 The report counts each cause and warns; the samples' range (and the offending field) become NaN, so
@@ -28,6 +28,7 @@ import numpy as np
 
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
+from firmware_py.core.sensor_noise import stated_position_sigma_m
 from firmware_py.core.storage import Storage
 
 SERVO_MARGIN_RAD = 0.1
@@ -61,7 +62,11 @@ class PlausibilityLimits:
             sigma = max(_number(sensor.get("range_sigma_m")) or 0.0,
                         (_number(sensor.get("range_sigma_rel")) or 0.0) * rmax)
             max_range = rmax + n_sigma * sigma + (_number(sensor.get("resolution_m")) or 0.0)
-        m = pose_margin_m + n_sigma * max(0.0, _number(pose.get("position_sigma_m")) or 0.0)
+        try:
+            noise_sigma = stated_position_sigma_m(header)
+        except ValueError:
+            noise_sigma = 0.0  # a malformed record: the report's intake names it (SensorErrorModel)
+        m = pose_margin_m + n_sigma * max(0.0, _number(pose.get("position_sigma_m")) or 0.0, noise_sigma)
         hi = (storage.length_m + m, storage.width_m + m, storage.height_m + m)
         return cls(max_servo, max_range, (-m, -m, -m), hi)
 

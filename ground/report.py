@@ -18,6 +18,8 @@ from firmware_py.core.header import header_boresight
 from firmware_py.core.rundir import SAMPLES_FILE, TRUTH_FILE, OutputFolder, check_free
 from firmware_py.core.safe_read import InputError, json_number, json_object, load_json
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, SampleLog, read_samplelog
+from firmware_py.core.sensor_noise import HEADER_KEY as NOISE_HEADER_KEY
+from firmware_py.core.sensor_noise import describe_record
 from firmware_py.core.site import Site
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
@@ -253,6 +255,12 @@ def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageF
                   n_clipped, disagreement)
 
 
+def sensor_noise_line(header: dict) -> str:
+    """What the log header says the sensing carried (a simulated survey's ``sensor_noise`` record)."""
+    rec = header.get(NOISE_HEADER_KEY)
+    return "none stated in the log header" if rec is None else describe_record(rec)
+
+
 def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: float | None) -> dict:
     g = survey.grid
     volume = grid_volume(survey.heights, g)
@@ -322,6 +330,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "cell_size_m": g.length_m / g.shape[0],
         "cell_area_m2": g.cell_area_m2,
         "empty_cell_policy": opts.empty_cells,
+        "sensor_noise": sensor_noise_line(log.header or {}),
         "surface_fit": opts.surface_fit,
         "n_cells_clipped": survey.n_cells_clipped,
         "n_samples_servo_suspect": survey.cloud.n_servo_suspect,

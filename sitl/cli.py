@@ -7,6 +7,7 @@ plan   export the survey as a QGC WPL 110 mission file.
 
 from __future__ import annotations
 
+import argparse
 import math
 import os
 from collections.abc import Sequence
@@ -25,6 +26,7 @@ from firmware_py.core.cli import (
 )
 from firmware_py.core.rundir import publish_file
 from firmware_py.core.sensor import Rangefinder
+from firmware_py.core.sensor_noise import SensorNoiseModel
 from firmware_py.core.site import DEFAULT_SITE, Site, add_site_options, site_from_args
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
@@ -32,7 +34,7 @@ from firmware_py.core.waveform import N_PHASES
 from sitl.faults.injector import FaultSpec
 from sitl.missions.qgc_wpl import write_qgc_wpl
 from sitl.missions.rectangle import TURN_MODES, Mission
-from sitl.runners.fly import PAYLOADS, PLANTS, TFMINI_NOISES, FlyConfig, fly
+from sitl.runners.fly import PAYLOADS, PLANTS, FlyConfig, fly
 
 _SITE_AND_MISSION = {
     "site.dimensions": "--storage",
@@ -96,7 +98,8 @@ def build_parser() -> ArgumentParser:
                         "servo_slow_factor=0.6, power_cut_at_s=T, with --rangefinder tfmini tfmini_bad_frame_pct=2, "
                         "tfmini_garbage_pct=2, tfmini_unplug=AT,DURATION (DURATION inf: for good) "
                         "(times from the survey start; seeded by --seed)")
-    f.add_argument("--seed", type=int, default=0, help="seed of the run's random draws")
+    _noise_option(f)
+    f.add_argument("--seed", type=int, default=0, help="seed of the run's random draws (sensor noise included)")
     f.add_argument("--out", required=True, help="run directory to write")
     f.add_argument("--force", action="store_true",
                    help="replace a run already in --out (its files are removed, truth.json first, before flying)")
@@ -138,7 +141,8 @@ def build_parser() -> ArgumentParser:
                          "lidar_power_glitch_at_s, lidar_garbage_pct, lidar_glitch_pct, servo_stuck_at_s, "
                          "servo_slow_factor, servo_delay_ms. Times count from the mission start (AUTO); the "
                          "SIM_PS_* parameters change faults while it runs")
-    sv.add_argument("--seed", type=int, default=0, help="seed of the fault draws (default 0)")
+    _noise_option(sv)
+    sv.add_argument("--seed", type=int, default=0, help="seed of the fault and sensor-noise draws (default 0)")
     sv.add_argument("--tlog-max-mb", type=finite_float, default=256.0, metavar="MB",
                     help="cap on telemetry.tlog in megabytes (default 256: about half a day of telemetry); "
                          "once reached, one warning and nothing more is logged")
@@ -165,9 +169,24 @@ def _rangefinder_options(p: ArgumentParser) -> None:
                    metavar="|".join(r.value for r in Rangefinder),
                    help="the payload's rangefinder: lidarlite-v3 (I2C, 500 Hz, 40 m; default) or tfmini (Benewake "
                         "TFmini-S on a UART, 100 Hz, 12 m: fly lower, see the README)")
-    p.add_argument("--tfmini-noise", choices=TFMINI_NOISES, default="none",
-                   help="the emulated TFMini's range noise: none (default) or datasheet (Gaussian, sigma the larger "
-                        "of 6 cm and 1 %% of the range)")
+
+
+def _sensor_noise(text: str) -> SensorNoiseModel:
+    try:
+        return SensorNoiseModel(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"must be one of {', '.join(m.value for m in SensorNoiseModel)}, got {text!r}") from None
+
+
+def _noise_option(p: ArgumentParser) -> None:
+    p.add_argument("--sensor-noise", type=_sensor_noise, default=SensorNoiseModel.NONE,
+                   metavar="{" + ",".join(m.value for m in SensorNoiseModel) + "}",
+                   help="sensor noise: none (ideal, default); datasheet (the rangefinder's datasheet: range noise "
+                        "sigma = max(abs, rel x r), bias, quantum, no-returns near its rated range at low reflectance "
+                        "and grazing incidence); appendix-a (the paper's: range 2.5 cm, servo 1 deg, attitude "
+                        "0.143 deg, position 0.113 m). Recorded in the log header; seeded by --seed "
+                        "(docs/sensor_noise.md)")
 
 
 def _mission_options(p: ArgumentParser, p_traj_required: bool) -> None:
@@ -203,7 +222,7 @@ def _fly(args) -> int:
                     servo_peak_rate_rad_s=args.servo_rate, initial_position=args.phase, plant=args.plant,
                     payload=args.payload or _default_payload(args.plant), latency_ms=tuple(args.latency_ms),
                     payload_kg=args.payload_mass, seed=args.seed, rangefinder=args.rangefinder,
-                    tfmini_noise=args.tfmini_noise,
+                    sensor_noise=args.sensor_noise,
                     faults=FaultSpec.parse(args.fault, seed=args.seed) if args.fault else None, site=_site(args))
     res = fly(cfg, args.out, force=args.force)  # progress: this module's logger (-v/-q)
     if not args.quiet:
@@ -254,8 +273,7 @@ def _serve(args) -> int:
                               duration_s=args.duration, vehicle=args.vehicle, out=Path(args.out), force=args.force,
                               devices_url=args.devices, stockpile=args.stockpile, signing=signing,
                               faults=FaultSpec.parse(args.fault, seed=args.seed), rangefinder=args.rangefinder,
-                              tfmini_noise=args.tfmini_noise,
-                              limits=tlog_limits(args.tlog_max_mb), site=_site(args)))
+                              limits=tlog_limits(args.tlog_max_mb), site=_site(args), sensor_noise=args.sensor_noise))
 
 
 def _dispatch(args) -> int:

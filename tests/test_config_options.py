@@ -24,7 +24,6 @@ PROGRAMS = {"pilescan-payload": (payload_cli.build_parser, payload_cli.CONFIG_OP
             "pilescan-ground": (ground_cli.build_parser, ground_cli.CONFIG_OPTIONS)}
 
 PENDING = {
-    "--sensor-noise": "branch noise adds --sensor-noise none|datasheet|appendix-a (fly, serve)",
 }
 """Options other branches add at the same time; until they are merged the programs say the key is not used."""
 

@@ -9,6 +9,7 @@ A section not yet on the page is appended; the rest of the page is left as it is
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 
@@ -27,3 +28,12 @@ def write_section(path: Path, name: str, text: str) -> None:
     else:
         new = old.rstrip("\n") + ("\n\n" if old.strip() else "") + body
     path.write_text(new if new.endswith("\n") else new + "\n", encoding="utf-8")
+
+
+def with_sections_of(old: str, new: str) -> str:
+    """new, plus every marked section of old that new lacks (appended in old's order): a tool that
+    rewrites a whole page (tools.reproduce) keeps the sections other tools own on it."""
+    for m in re.finditer(r"<!-- ([A-Za-z0-9_.-]+):start -->.*?<!-- \1:end -->", old, flags=re.S):
+        if markers(m.group(1))[0] not in new:
+            new = new.rstrip("\n") + "\n\n" + m.group(0) + "\n"
+    return new

@@ -26,21 +26,24 @@ from pathlib import Path
 import numpy as np
 
 from firmware_py.core.frames import StorageFrame
+from firmware_py.core.sensor_noise import SensorNoise, SensorNoiseModel
 from ground.report import ReportOptions, survey_from_samples
 from ground.surface import EMPTY_CELL_POLICIES, fill_empty, grid_volume, reconstructed_ratio_pct, volume_error_pct
 from sitl.missions.rectangle import TURN_MODES, Mission
 from sitl.runners.flight import PAYLOAD_1D_KG, FlownMission, fly_mission
 from sitl.runners.fly import PLANTS, FlyConfig, log_header
-from sitl.sensing.batch_sampler import NoiseSpec, sample_flight
+from sitl.sensing.batch_sampler import sample_flight
 from sitl.vehicle.ideal_plant import IdealPlant
 from sitl.world.raycast import World
 from sitl.world.stockpile import paper_pile
 from tools.sweep import Case, cached
 
-SWEEP_VERSION = "4"
+SWEEP_VERSION = "5"
 """Part of every case key: bump it when the simulation or the ground station changes what a case
 computes (the cache cannot see code). 3: runaway surface cells are emptied, not clamped to the floor;
-4: the cubic surface is limited to its triangles' data by default, despiking, servo re-timing."""
+4: the cubic surface is limited to its triangles' data by default, despiking, servo re-timing;
+5: Appendix A's noise through sitl.sensing.noise (servo error on the true beam, pose error per
+pose message, the header's sensor_noise record)."""
 FLIGHT_VERSION = "2"
 """Part of every flight key. 2: the autopilot flies towards the target through corners."""
 P_TRAJ_PCT = (5, 10, 15, 20, 25, 30)
@@ -233,13 +236,10 @@ def run_case(case: Case, cache_dir: str | Path = "runs/sweep-cache") -> list[dic
             cfg = replace(base, initial_position=k)
             wf = cfg.servo_waveform()
             for draw in range(max(1, e.noise_draws)):
-                noise = NoiseSpec() if e.noise_draws else None
-                rng = np.random.default_rng([int(p_pct), int(pile_name), k, draw]) if noise else None
+                noise = SensorNoise.of(SensorNoiseModel.APPENDIX_A, cfg.lidar) if e.noise_draws else None
                 samples = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame, noise=noise,
-                                        rng=rng)
-                header = log_header(cfg, wf)
-                if noise is not None:  # the ground station widens its wall tolerance by the pose noise
-                    header = {**header, "pose": {"position_sigma_m": noise.position_sigma_m}}
+                                        seed=[int(p_pct), int(pile_name), k, draw])
+                header = log_header(replace(cfg, sensor_noise=noise.model) if noise else cfg, wf)
                 sv = survey_from_samples(samples, header, storage, cfg.frame, np.array(cfg.lever_arm_body_m),
                                          ReportOptions(plots=False))
                 rows.append({"position": k, "draw": draw, **_metrics(sv, pile.volume_m3),

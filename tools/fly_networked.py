@@ -13,7 +13,7 @@ default survey takes ~3 minutes of wall time.
 
     python -m tools.fly_networked --stockpile 1 --p-traj 20 --out runs/networked --compare
     python -m tools.fly_networked --rangefinder tfmini --storage 30x20x10 --altitude 9 --p-traj 25 \
-        --tfmini-noise datasheet --out runs/networked-tfmini --compare
+        --sensor-noise datasheet --out runs/networked-tfmini --compare
 """
 
 from __future__ import annotations
@@ -126,7 +126,7 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
     With signing_key (a key file), all three sign their MAVLink and the device bridge asks for the key.
     rangefinder "tfmini": serve streams an emulated TFMini on a pseudo-terminal and the payload reads it
     there with pyserial (the servo stays on the device bridge). serve_args go to serve as they are
-    (`--tfmini-noise datasheet`, `--fault ...`).
+    (`--sensor-noise datasheet`, `--fault ...`).
     site_args (["--origin", "LAT,LON,ALT", "--heading", "DEG"]) go to the SITL and to the payload alike:
     the served autopilot's EKF origin and the payload's header (and the origin it sends) then agree.
     """
@@ -193,8 +193,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="sign MAVLink on every link and authenticate the device bridge with this key file")
     ap.add_argument("--rangefinder", choices=("lidarlite-v3", "tfmini"), default="lidarlite-v3",
                     help="tfmini: the payload reads an emulated TFMini over a pseudo-terminal with pyserial")
-    ap.add_argument("--tfmini-noise", choices=("none", "datasheet"), default="none",
-                    help="the emulated TFMini's range noise (both flights)")
+    ap.add_argument("--sensor-noise", choices=("none", "datasheet", "appendix-a"), default="none",
+                    help="the simulated sensor noise (serve's --sensor-noise; both flights)")
     ap.add_argument("--origin", default=None, metavar="LAT,LON,ALT",
                     help="the site's floor corner (serve and payload --origin; default: the SITL's)")
     ap.add_argument("--heading", default=None, metavar="DEG", help="the building's heading (serve and payload)")
@@ -204,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
     mission_args = ["--p-traj", f"{args.p_traj:g}", "--altitude", f"{args.altitude:g}", "--speed", f"{args.speed:g}"]
     net = fly_networked(mission_args, args.storage, args.stockpile, args.out / "networked", args.phase,
                         signing_key=args.signing_key, rangefinder=args.rangefinder, site_args=site_args,
-                        serve_args=["--tfmini-noise", args.tfmini_noise] if args.rangefinder == "tfmini" else [])
+                        serve_args=["--sensor-noise", args.sensor_noise])
     if net.report is None:
         print(f"networked: {net.no_volume}", file=sys.stderr)
         return int(ExitCode.NO_VOLUME)
@@ -220,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = FlyConfig(mission=Mission(storage=Storage.parse(args.storage), p_traj=args.p_traj / 100,
                                         altitude_m=args.altitude, speed_m_s=args.speed),
                         stockpile=args.stockpile, payload="firmware", initial_position=args.phase,
-                        rangefinder=Rangefinder.named(args.rangefinder), tfmini_noise=args.tfmini_noise)
+                        rangefinder=Rangefinder.named(args.rangefinder), sensor_noise=args.sensor_noise)
         if site_args:
             from firmware_py.core.site import DEFAULT_SITE, parse_heading_deg, parse_origin, site_from_args
             cfg = replace(cfg, site=site_from_args(parse_origin(args.origin) if args.origin else None,

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from firmware_py.core.cli import ArgumentParser, run_cli
+from tools.doc_sections import with_sections_of
 from tools.experiments import (
     ALL_EXPERIMENTS,
     P_TRAJ_PCT,
@@ -353,7 +354,9 @@ def _body(args) -> int:
         timing = (f"{len(rows):,} surveys; this run took {wall / 60:.1f} min of wall time with {n_todo} of "
                   f"{len(cases)} cases computed (the rest from the cache in `{args.cache}`); the cases' own compute "
                   f"time sums to {cpu_s / 60:.1f} min{fresh_note}")
-        args.write.write_text(results_markdown(stats, piles, exps, figs, args.write, timing, cmd))
+        page = results_markdown(stats, piles, exps, figs, args.write, timing, cmd)
+        old_page = args.write.read_text(encoding="utf-8") if args.write.exists() else ""
+        args.write.write_text(with_sections_of(old_page, page))  # other tools' sections stay
         print(f"results in {args.write}, {len(figs)} figures in {fig_dir}")
     return 0
 

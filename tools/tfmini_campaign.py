@@ -5,9 +5,9 @@ docs/tfmini.md.
 
     python -m tools.tfmini_campaign [--phases 0 4 8 12 16] [--networked] [--out runs/tfmini-campaign]
 
-Noise: until the per-rangefinder `--sensor-noise` models land, "datasheet" is the emulated part's
-`--tfmini-noise datasheet` (`sitl.devices.tfmini_emu.datasheet_noise`: Gaussian, sigma the larger of the
-TFmini-S manual's 6 cm and 1 % of the range, no bias, no dropouts).
+Noise: "datasheet" is `--sensor-noise datasheet` for the TFmini-S (docs/sensor_noise.md: the manual's
+6 cm / 1 % range noise, its 1 cm quantum, and no-returns near its rated range at low reflectance and
+grazing incidence).
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ def mission() -> Mission:
 
 def lockstep_ve(pile: str, noise: str, phase: int, out: Path) -> dict:
     cfg = FlyConfig(mission=mission(), stockpile=pile, payload="firmware", initial_position=phase, seed=phase,
-                    rangefinder=Rangefinder.TFMINI, tfmini_noise=noise)
+                    rangefinder=Rangefinder.TFMINI, sensor_noise=noise)
     fly(cfg, out, force=True, progress=lambda _m: None)
     rep = make_report(out, out / "report", ReportOptions(plots=False), force=True)
     return {"ve_pct": rep["volume_error_pct"], "ra_pct": rep["coverage_ratio_pct"], "samples": rep["n_samples"],
@@ -51,7 +51,7 @@ def lockstep_ve(pile: str, noise: str, phase: int, out: Path) -> dict:
 
 def networked_ve(pile: str, out: Path) -> dict:
     run = fly_networked(["--p-traj", f"{P_TRAJ_PCT:g}", "--altitude", f"{ALTITUDE_M:g}"], STORAGE, pile, out,
-                        say=lambda _m: None, rangefinder="tfmini", serve_args=["--tfmini-noise", "datasheet"])
+                        say=lambda _m: None, rangefinder="tfmini", serve_args=["--sensor-noise", "datasheet"])
     if run.report is None:
         return {"ve_pct": None, "no_volume": run.no_volume, "payload_exit": run.payload_exit}
     return {"ve_pct": run.report["volume_error_pct"], "ra_pct": run.report["coverage_ratio_pct"],
@@ -74,8 +74,9 @@ def page(results: dict, phases: list[int]) -> str:
         f"sweep at 5 rad/s; the payload's TFMini driver reads the emulated TFmini-S (100 Hz, 12 m). "
         f"Geometry: {c.describe()} (README, \"Fly lower with a TFMini\").",
         "",
-        "Noise \"datasheet\": the emulated part's Gaussian, sigma the larger of 6 cm and 1 % of the range "
-        "(the TFmini-S manual's accuracy), standing in until the per-rangefinder `--sensor-noise` models land.",
+        "Noise \"datasheet\": `--sensor-noise datasheet` for the TFmini-S (range sigma the larger of 6 cm and 1 % "
+        "of the range, the 1 cm quantum, no-returns near its rated range at low reflectance and grazing "
+        "incidence: docs/sensor_noise.md).",
         "",
         f"Lockstep: servo phases {', '.join(map(str, phases))} (noise seeded by the phase); Ve in % as mean "
         "(min-max). Networked: `pilescan-sitl serve --rangefinder tfmini` + `pilescan-payload --uart "

@@ -48,8 +48,10 @@ import numpy as np
 
 from firmware_py.drivers.lidarlite import RESET_TIME_NS, StatusFlag, acquisition_time_ns, max_range_m
 from firmware_py.hal import Clock
+from sitl.sensing.noise import RangeNoise
 
 ADDRESS = 0x62
+
 
 # The part's register map (manual), kept apart from the driver's on purpose: an independent model
 # catches a driver that writes the wrong register.
@@ -129,6 +131,8 @@ class EmulatedLidarLite:
             SITL ray-casts the true pose and servo angle at that time).
         range_noise_sigma_m: Gaussian range noise before the 1 cm quantisation; 0 = none (the
             paper's Appendix A uses 0.025 m).
+        range_noise: a sensor-noise model (`sitl.sensing.noise.RangeNoiser`): what the part reports for
+            the true range, None for a no-return (datasheet dropouts); applied before the 1 cm quantisation.
         rng: generator for noise and garbage reads (default: seeded 0, so runs repeat).
         unit_id: the 16-bit serial number in UNIT_ID_HIGH/LOW.
         model_range_limit: no return beyond the n^(1/4) range law for the current SIG_COUNT_VAL.
@@ -137,7 +141,7 @@ class EmulatedLidarLite:
 
     def __init__(self, clock: Clock, range_at: Callable[[int], float | None], *, range_noise_sigma_m: float = 0.0,
                  rng: np.random.Generator | None = None, unit_id: int = 0x5A17, model_range_limit: bool = True,
-                 stuck_busy: bool = False, garbage_reads: float = 0.0) -> None:
+                 stuck_busy: bool = False, garbage_reads: float = 0.0, range_noise: RangeNoise | None = None) -> None:
         if not callable(range_at):
             raise ValueError(f"range_at must be a callable t_ns -> range in m or None, got {range_at!r}")
         if not (math.isfinite(range_noise_sigma_m) and range_noise_sigma_m >= 0.0):
@@ -147,6 +151,7 @@ class EmulatedLidarLite:
         self.clock = clock
         self.range_at = range_at
         self.range_noise_sigma_m = float(range_noise_sigma_m)
+        self.range_noise = range_noise
         self.rng = rng if rng is not None else np.random.default_rng(0)
         self.unit_id = unit_id
         self.model_range_limit = model_range_limit
@@ -242,12 +247,15 @@ class EmulatedLidarLite:
         if limit_m is None:
             limit_m = self._range_limits[n_max] = max_range_m(n_max)
         in_range = not self.model_range_limit or (true_r is not None and true_r <= limit_m)
-        if true_r is not None and math.isfinite(true_r) and true_r > 0.0 and in_range:
+        measured_r = true_r
+        if self.range_noise is not None and true_r is not None and math.isfinite(true_r) and true_r > 0.0:
+            measured_r = self.range_noise.measure(true_r)  # None: the noise model's no-return
+        if measured_r is not None and true_r is not None and math.isfinite(true_r) and true_r > 0.0 and in_range:
             counts = math.ceil(SATURATION_COUNTS_PER_M2 * true_r * true_r)
             if not acq_config & 0x08:  # quick termination enabled
                 counts = math.ceil(counts / QUICK_TERMINATION_FACTOR)
             counts = max(1, min(n_max, counts))
-            measured = true_r
+            measured = measured_r
             if self.range_noise_sigma_m > 0.0:
                 measured += float(self.rng.normal(0.0, self.range_noise_sigma_m))
             cm = max(0, min(0xFFFF, math.floor(measured * 100.0 + 0.5)))

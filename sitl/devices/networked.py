@@ -29,19 +29,20 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from firmware_py.core.frames import SQUARE, StorageFrame
+from firmware_py.core.frames import Boresight, StorageFrame
 from firmware_py.core.sensor import Rangefinder
 from firmware_py.core.servo_model import ServoCalibration
 from sitl.devices.bridge_server import DeviceBridgeServer, parse_bridge_url
 from sitl.devices.i2c_sim import SimI2CBus
 from sitl.devices.lidarlite_emu import ADDRESS, EmulatedLidarLite
 from sitl.devices.servo_emu import EmulatedServo
-from sitl.devices.tfmini_emu import PtyTfmini, RangeNoise
+from sitl.devices.tfmini_emu import PtyTfmini
 from sitl.faults.injector import FaultInjector, FaultSpec
 from sitl.faults.params import FaultParams, LiveFaultInjector
 from sitl.mavlink.server import MavlinkVehicleServer
 from sitl.mavlink.transport import Transport
-from sitl.runners.lockstep_payload import TruePose, beam_range_m, plant_state_of, pose_from_history
+from sitl.runners.lockstep_payload import TrueBeam, TruePose, plant_state_of, pose_from_history
+from sitl.sensing.noise import RangeNoise
 from sitl.vehicle.api import FlightMode, Vehicle
 from sitl.world.raycast import World
 
@@ -107,19 +108,19 @@ class NetworkedDevices:
     def __init__(self, vehicle: Vehicle, world: World, url: str, *, frame: StorageFrame | None = None,
                  lever_arm_body_m=(0.0, 0.0, 0.10), speedup: float = 1.0, keep_s: float = 5.0,
                  servo_cal: ServoCalibration | None = None, range_noise_sigma_m: float = 0.0,
-                 key: bytes | None = None, rangefinder: Rangefinder = Rangefinder.LIDARLITE_V3,
-                 tfmini_noise: RangeNoise | None = None) -> None:
+                 key: bytes | None = None, rangefinder: Rangefinder = Rangefinder.LIDARLITE_V3) -> None:
         host, port = parse_bridge_url(url)
         self.vehicle, self.world = vehicle, world
         self.frame = frame or StorageFrame()
         self.lever = tuple(float(v) for v in lever_arm_body_m)
-        self.boresight = SQUARE  # the beam's true mounting (a boresight fault tilts it)
         self.lock = threading.RLock()
         self._hist: collections.deque[tuple[float, tuple[float, ...]]] = collections.deque(
             maxlen=max(2, round(keep_s / vehicle.dt_s)))
         self.record()
         self.clock = WallSimClock(vehicle.state().t_s, speedup)
         self.servo = EmulatedServo(self.clock, servo_cal)
+        # The true beam: pose, shaft (+ a noise model's servo error), mounting (a boresight fault tilts it).
+        self.beam = TrueBeam(world, self.frame, self.lever, self.pose_at, self.servo.angle_at)
         self.lidar = EmulatedLidarLite(self.clock, self.range_at, range_noise_sigma_m=range_noise_sigma_m)
         self.bus = SimI2CBus(self.clock)
         self.bus.attach(ADDRESS, self.lidar)
@@ -128,7 +129,7 @@ class NetworkedDevices:
                                          key=key)  # None: open to anyone who can reach the port
         self.tfmini: PtyTfmini | None = None
         if rangefinder is Rangefinder.TFMINI:
-            self.tfmini = PtyTfmini(self._tfmini_range_at, rate_hz=rangefinder.spec.rate_hz, range_noise=tfmini_noise)
+            self.tfmini = PtyTfmini(self._tfmini_range_at, rate_hz=rangefinder.spec.rate_hz)
 
     @property
     def url(self) -> str:
@@ -173,10 +174,26 @@ class NetworkedDevices:
                 self.counters["ahead_of_physics"] += 1  # the physics fell behind the wall clock
             return pose_from_history(self._hist, t_ns * 1e-9)
 
+    @property
+    def boresight(self) -> Boresight:
+        """The beam's true mounting (a boresight fault tilts it)."""
+        return self.beam.boresight
+
+    @boresight.setter
+    def boresight(self, b: Boresight) -> None:
+        self.beam.boresight = b
+
     def range_at(self, t_ns: int) -> float | None:
         """What the LiDAR sees at simulated time t_ns: the true pose and shaft angle, ray traced."""
-        return beam_range_m(self.world, self.frame, self.lever, self.pose_at(t_ns), self.servo.angle_at(t_ns),
-                            self.boresight)
+        return self.beam.range_m(t_ns)
+
+    def attach_noise(self, noise: RangeNoise | None) -> None:
+        """The rangefinder's noise model (`sitl.runners.lockstep_payload.attach_sensor_noise` gives it): the
+        LIDAR-Lite's on the bridge, and the TFMini's on its pty when there is one."""
+        with self.lock:
+            self.lidar.range_noise = noise
+            if self.tfmini is not None:
+                self.tfmini.source.range_noise = noise
 
     def attach_faults(self, injector: FaultInjector) -> None:
         """Inject injector's device faults here: glitch readings in the ranges, NACKs on the bus, the

@@ -14,9 +14,9 @@ The frame model (`frame_for`, per `TfminiVariant`): the signal strength falls as
 the model's weak threshold at its rated maximum range (the manuals rate range on a 90 % reflective
 board), so a target beyond range, or no target at all, reads as the model's "weak" code (-1 on the
 S/Plus/Luna, 0xFFFF on the TFmini); closer than the minimum range the S/Plus/Luna report -2 with a
-saturated strength of 65535. Range noise (`range_noise`, a function of the true range: the hook a
-sensor noise model plugs into; `datasheet_noise` is the manual's +-6 cm / 1 % as a Gaussian) is added
-before the 1 cm quantisation.
+saturated strength of 65535. Range noise (`range_noise`, a sensor-noise model from
+`sitl.sensing.noise`, `--sensor-noise`: its reported range, or no return; or a plain Gaussian of
+`range_noise_sigma_m`) is added before the 1 cm quantisation.
 
 Faults: `bad_frames` (a probability that a frame's checksum byte is wrong), `garbage` (a probability
 that a few random bytes follow a frame on the line, as a loose wire or a booting part sends) and
@@ -36,30 +36,13 @@ from collections.abc import Callable
 
 import numpy as np
 
-from firmware_py.core.sensor import RangefinderSpec
 from firmware_py.drivers.tfmini import BITS_PER_BYTE, FRAME_LEN, TfminiModel, TfminiVariant, encode_frame
 from firmware_py.hal import Clock
-
-RangeNoise = Callable[[float, np.random.Generator], float]
-"""The measured minus the true range (m) for a true range: the emulator's noise hook."""
+from sitl.sensing.noise import RangeNoise
 
 MAX_GARBAGE_BYTES = 8
 """The most random bytes the garbage fault puts after one frame."""
 
-
-def gaussian_noise(sigma_m: float) -> RangeNoise:
-    """Range noise of a constant standard deviation."""
-    if not (math.isfinite(sigma_m) and sigma_m >= 0.0):
-        raise ValueError(f"range noise sigma must be finite and >= 0 m, got {sigma_m!r}")
-    return lambda r, rng: float(rng.normal(0.0, sigma_m))
-
-
-def datasheet_noise(spec: RangefinderSpec) -> RangeNoise:
-    """The datasheet's accuracy as a Gaussian: sigma = the larger of range_sigma_m and range_sigma_rel
-    times the range (TFmini-S: +-6 cm to 6 m, 1 % beyond). No bias, no dropouts: a stand-in until the
-    per-rangefinder noise models (`--sensor-noise`) plug into this hook."""
-    s0, rel = spec.range_sigma_m, spec.range_sigma_rel
-    return lambda r, rng: float(rng.normal(0.0, max(s0, rel * r)))
 
 SATURATED_STRENGTH = 0xFFFF
 TEMPERATURE_AUX = (25 + 256) * 8  # 25 deg C in the S/Plus/Luna encoding (T / 8 - 256)
@@ -99,10 +82,10 @@ class _FrameSource:
                  garbage: float = 0.0) -> None:
         if not callable(range_at):
             raise ValueError(f"range_at must be a callable t_ns -> range in m or None, got {range_at!r}")
-        if range_noise is None and range_noise_sigma_m:
-            range_noise = gaussian_noise(range_noise_sigma_m)
-        if range_noise is not None and not callable(range_noise):
-            raise ValueError(f"range_noise must be a callable (range m, rng) -> error m, got {range_noise!r}")
+        if not (math.isfinite(range_noise_sigma_m) and range_noise_sigma_m >= 0.0):
+            raise ValueError(f"range noise sigma must be finite and >= 0 m, got {range_noise_sigma_m!r}")
+        if range_noise is not None and not callable(getattr(range_noise, "measure", None)):
+            raise ValueError(f"range_noise must be a sensor-noise model with measure(range_m), got {range_noise!r}")
         for name, p in (("bad frame", bad_frames), ("garbage", garbage)):
             if not 0.0 <= p <= 1.0:
                 raise ValueError(f"{name} probability must be in [0, 1], got {p!r}")
@@ -115,6 +98,7 @@ class _FrameSource:
         self.range_noise, self.bad_frames, self.garbage = range_noise, float(bad_frames), float(garbage)
         self.max_garbage = min(MAX_GARBAGE_BYTES, self.period_ns // self.byte_ns - FRAME_LEN)  # fits the period
         self.rng = rng if rng is not None else np.random.default_rng(0)
+        self.noise_sigma_m = float(range_noise_sigma_m)
         self.frames_sent = 0
         self.bad_frames_sent = 0
         self.garbage_bursts = 0
@@ -127,11 +111,11 @@ class _FrameSource:
 
     def frame(self, k: int) -> bytes:
         """Frame k's bytes on the line: the frame, and any garbage after it (before frame k+1)."""
-        true_m = self.range_at(self.measure_ns(k))
-        noise = 0.0
-        if self.range_noise is not None and true_m is not None and math.isfinite(true_m):
-            noise = self.range_noise(true_m, self.rng)
-        data = frame_for(self.variant, true_m, noise)
+        noise = float(self.rng.normal(0.0, self.noise_sigma_m)) if self.noise_sigma_m > 0.0 else 0.0
+        r = self.range_at(self.measure_ns(k))
+        if self.range_noise is not None and r is not None and math.isfinite(r) and r > 0.0:
+            r = self.range_noise.measure(r)  # the sensor-noise model (None: no return: a weak frame)
+        data = frame_for(self.variant, r, noise)
         self.frames_sent += 1
         if self.bad_frames > 0.0 and self.rng.random() < self.bad_frames:
             self.bad_frames_sent += 1
@@ -153,7 +137,9 @@ class EmulatedTfminiPort:
         baud, rate_hz: the part's UART and frame rates.
         t0_ns: when the first frame is measured (default: now).
         output_latency_ns: from the measurement to the frame's first byte.
-        range_noise_sigma_m: Gaussian range noise before the 1 cm quantisation (when no range_noise).
+        range_noise_sigma_m: Gaussian range noise before the 1 cm quantisation.
+        range_noise: a sensor-noise model (`sitl.sensing.noise.RangeNoiser`, built for TFMINI_S): the
+            reported range, None for a no-return (a weak frame); before the 1 cm quantisation.
         bad_frames: probability that a frame's checksum is wrong.
         rng: noise and fault draws (default seeded 0, so runs repeat).
         range_noise: the range error as a function of the true range (`RangeNoise`).

@@ -64,9 +64,9 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, Protocol
 
 os.environ["MAVLINK20"] = "1"  # for mavutil users in this process; the v20 dialect below is MAVLink 2 anyway
 
@@ -91,6 +91,14 @@ from sitl.vehicle.api import Vehicle, VehicleState
 STATUSTEXT_LEN = 50
 TLOG_RECORD_HEADER_LEN = 8  # the big-endian microsecond timestamp before each frame
 log = logging.getLogger(__name__)
+
+
+class PoseErrors(Protocol):
+    """One message's pose error (`sitl.sensing.noise.PoseNoiser`): attitude rad, position NED m."""
+
+    def attitude(self) -> tuple[float, float, float]: ...
+
+    def position(self) -> tuple[float, float, float]: ...
 
 
 STATUSTEXT_RATE = Rate(per_s=5.0, burst=20)
@@ -188,8 +196,9 @@ class MavlinkVehicleServer:
             mavlink.MAVLINK_MSG_ID_HEARTBEAT: lambda s: tm.heartbeat(self._mav, s),
             mavlink.MAVLINK_MSG_ID_SYS_STATUS: lambda s: tm.sys_status(self._mav, s, self._rx_errors()),
             mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: lambda s: tm.system_time(self._mav, s, self._boot_ms),
-            mavlink.MAVLINK_MSG_ID_ATTITUDE: lambda s: tm.attitude(self._mav, s, self._boot_ms),
-            mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: lambda s: tm.local_position(self._mav, s, self._boot_ms),
+            mavlink.MAVLINK_MSG_ID_ATTITUDE: lambda s: tm.attitude(self._mav, self._estimated(s, True), self._boot_ms),
+            mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
+                lambda s: tm.local_position(self._mav, self._estimated(s, False), self._boot_ms),
             mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
                 lambda s: tm.global_position(self._mav, s, self._boot_ms, self.home),
             mavlink.MAVLINK_MSG_ID_VFR_HUD: lambda s: tm.vfr_hud(self._mav, s, self.home),
@@ -198,6 +207,22 @@ class MavlinkVehicleServer:
             mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
                 lambda _s: tm.gps_global_origin(self._mav, self.home, self._now_s),
         }
+
+    pose_noise: PoseErrors | None = None
+    """The estimator's error on what ATTITUDE and LOCAL_POSITION_NED report (a SITL sensor-noise model):
+    one draw per message; None: the true state, as before."""
+
+    def _estimated(self, s: VehicleState, attitude: bool) -> VehicleState:
+        """The state a message reports: the true one, or with this message's pose error."""
+        noise = self.pose_noise
+        if noise is None:
+            return s
+        if attitude:
+            dr, dp, dy = noise.attitude()
+            return replace(s, roll_rad=s.roll_rad + dr, pitch_rad=s.pitch_rad + dp, yaw_rad=s.yaw_rad + dy)
+        dn, de, dd = noise.position()
+        n, e, d = s.pos_ned_m
+        return replace(s, pos_ned_m=(n + dn, e + de, d + dd))
 
     @property
     def extra_params(self) -> ParamProvider | None:

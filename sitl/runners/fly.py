@@ -32,6 +32,8 @@ from firmware_py.core.rundir import (
 )
 from firmware_py.core.samplelog import SampleLogWriter
 from firmware_py.core.sensor import LIDARLITE_V3, Rangefinder, RangefinderSpec
+from firmware_py.core.sensor_noise import HEADER_KEY as NOISE_HEADER_KEY
+from firmware_py.core.sensor_noise import SensorNoise, SensorNoiseModel
 from firmware_py.core.site import DEFAULT_SITE, GeodeticPoint, Site
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import Waveform, initial_position, named_waveform
@@ -49,9 +51,6 @@ log = logging.getLogger(__name__)
 
 PLANTS = ("jsbsim", "ideal")
 PAYLOADS = ("batch", "firmware")
-TFMINI_NOISES = ("none", "datasheet")
-"""The emulated TFMini's range noise (`--tfmini-noise`): none, or its datasheet accuracy as a Gaussian
-(`sitl.devices.tfmini_emu.datasheet_noise`), until the per-rangefinder `--sensor-noise` models land."""
 LIDARLITE_FAULTS = frozenset({"i2c_nack_pct", "lidar_stuck_busy", "lidar_power_glitch_at_s", "lidar_garbage_pct"})
 """Faults of the LIDAR-Lite's I2C bus and registers: a TFMini has neither."""
 TFMINI_FAULTS = frozenset({"tfmini_bad_frame_pct", "tfmini_garbage_pct", "tfmini_unplug"})
@@ -90,7 +89,7 @@ class FlyConfig:
     lidar: RangefinderSpec = LIDARLITE_V3  # the datasheet flown (the rangefinder's, unless set)
     faults: FaultSpec | None = None  # fault injection (sitl.faults.injector), firmware payload only
     rangefinder: Rangefinder = Rangefinder.LIDARLITE_V3  # which part the payload drives (--rangefinder)
-    tfmini_noise: str = "none"  # the emulated TFMini's range noise (TFMINI_NOISES)
+    sensor_noise: SensorNoiseModel = SensorNoiseModel.NONE  # firmware_py.core.sensor_noise; seeded by seed
 
     def __post_init__(self) -> None:
         if not isinstance(self.rangefinder, Rangefinder):
@@ -98,12 +97,6 @@ class FlyConfig:
                              f"got {self.rangefinder!r}")
         if self.rangefinder is not Rangefinder.LIDARLITE_V3 and self.lidar == LIDARLITE_V3:
             object.__setattr__(self, "lidar", self.rangefinder.spec)
-        if self.tfmini_noise not in TFMINI_NOISES:
-            raise ValueError(f"unknown TFMini noise {self.tfmini_noise!r}; available: {', '.join(TFMINI_NOISES)}")
-        if self.tfmini_noise != "none" and self.rangefinder is not Rangefinder.TFMINI:
-            raise ValueError("--tfmini-noise is the emulated TFMini's: fly it with --rangefinder tfmini")
-        if self.tfmini_noise != "none" and self.payload != "firmware":
-            raise ValueError("--tfmini-noise needs the emulated TFMini of the firmware payload (--payload firmware)")
         check_rangefinder_faults(self.rangefinder, self.faults)
         if self.plant not in PLANTS:
             raise ValueError(f"unknown plant {self.plant!r}; available: {', '.join(PLANTS)}")
@@ -128,6 +121,8 @@ class FlyConfig:
             raise ValueError(f"site must be a Site, got {self.site!r}")
         if self.ekf_origin_at is not None and not isinstance(self.ekf_origin_at, GeodeticPoint):
             raise ValueError(f"EKF origin must be a GeodeticPoint, got {self.ekf_origin_at!r}")
+        object.__setattr__(self, "sensor_noise", SensorNoiseModel(self.sensor_noise))
+        self.noise()  # the rangefinder has a datasheet model
 
     @property
     def ekf_origin(self) -> GeodeticPoint:
@@ -138,6 +133,10 @@ class FlyConfig:
     def frame(self) -> StorageFrame:
         """The storage frame W in the vehicle's local NED (the site about the EKF origin)."""
         return self.site.frame_about(self.ekf_origin)
+
+    def noise(self) -> SensorNoise:
+        """The sensor noise this flight carries, with its parameters for this rangefinder."""
+        return SensorNoise.of(self.sensor_noise, self.lidar)
 
     def servo_waveform(self) -> Waveform:
         return named_waveform(self.waveform, self.servo_peak_rate_rad_s, self.initial_position)
@@ -153,12 +152,19 @@ class RunResult:
     energy_j: float | None = None
 
 
+def noise_header(cfg: FlyConfig) -> dict:
+    """The header keys the flight's sensor noise adds: ``sensor_noise`` (none: nothing, the header as before)."""
+    rec = cfg.noise().record()
+    return {} if rec is None else {NOISE_HEADER_KEY: rec}
+
+
 def log_header(cfg: FlyConfig, wf: Waveform) -> dict:
     """The sample-log header of a SITL flight: what the ground station needs to place the points."""
     return build_log_header(source=f"sitl/{cfg.plant}", sensor=cfg.lidar.to_dict(),
                             lever_arm_body_m=cfg.lever_arm_body_m, waveform_name=cfg.waveform, waveform=wf,
                             initial_position=cfg.initial_position, storage=cfg.mission.storage, frame=cfg.frame,
-                            mission_id=cfg.mission.mission_id, mission=cfg.mission.to_dict(), site=cfg.site)
+                            mission_id=cfg.mission.mission_id, mission=cfg.mission.to_dict(), site=cfg.site,
+                            extra=noise_header(cfg))
 
 
 def check_clearance(mission: Mission, pile: piles.Stockpile) -> None:
@@ -217,7 +223,8 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
     with OutputFolder(out, RUN_FILES, TRUTH_FILE, force=force) as folder:
         log.debug("%s locked; files are written in %s and put in place when the flight ends", out, folder.staging)
         say(f"stockpile: {pile.source}, true volume {pile.volume_m3:.1f} m^3")
-        say(f"flying {cfg.mission.path_length_m():.0f} m with the {cfg.plant} plant, {cfg.payload} payload")
+        say(f"flying {cfg.mission.path_length_m():.0f} m with the {cfg.plant} plant, {cfg.payload} payload"
+            + (f", {cfg.sensor_noise} sensor noise" if cfg.noise().active else ""))
         log_path, tlog_path = folder.staged(SAMPLES_FILE), folder.staged(TLOG_FILE)
         if cfg.payload == "firmware":
             from sitl.runners.lockstep_payload import fly_firmware
@@ -233,7 +240,8 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
         else:
             world = World(storage, pile, max_range_m=cfg.lidar.max_range_m)
             traj, duration_s, energy_j = fly_trajectory(cfg, tlog_path)
-            records = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame)
+            records = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame,
+                                    noise=cfg.noise(), seed=cfg.seed)
             # The batch path writes a finished flight at once: the commit's fsync is enough.
             with SampleLogWriter(log_path, log_header(cfg, wf), records_per_block=500, fsync=False) as w:
                 w.append(records)
@@ -244,8 +252,9 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
                              flight_time_s=duration_s, energy_j=energy_j,
                              payload_kg=cfg.payload_kg if cfg.plant == "jsbsim" else None, n_samples=len(records),
                              servo_initial_position=cfg.initial_position, waveform=cfg.waveform,
-                             **({"rangefinder": cfg.rangefinder.value, "tfmini_noise": cfg.tfmini_noise}
-                                if cfg.rangefinder is Rangefinder.TFMINI else {}))
+                             **({"rangefinder": cfg.rangefinder.value}
+                                if cfg.rangefinder is Rangefinder.TFMINI else {}),
+                             **noise_header(cfg))
         folder.staged(TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
         folder.commit()
     n_ret = int(np.count_nonzero(records["flags"] == 0))

@@ -27,6 +27,8 @@ from firmware_py.app import PayloadApp, PayloadConfig, PayloadResult
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_ray_w
 from firmware_py.core.geodesy import GeodeticPoint
 from firmware_py.core.sensor import Rangefinder
+from firmware_py.core.sensor_noise import HEADER_KEY as NOISE_HEADER_KEY
+from firmware_py.core.sensor_noise import SensorNoise
 from firmware_py.core.servo_model import ServoCalibration
 from firmware_py.core.site import DEFAULT_SITE
 from firmware_py.hal import PwmOutput
@@ -34,6 +36,7 @@ from firmware_py.hal.clock import SimClock
 from firmware_py.hal.pwm import register_pwm_backend
 from firmware_py.payload import LoopStats
 from sitl.mavlink.server import MavlinkVehicleServer
+from sitl.sensing.noise import PoseNoiser, RangeNoiser, ServoNoiser, noise_streams
 from sitl.vehicle.api import PLANT_STATE_DTYPE, PlantState, Vehicle
 from sitl.vehicle.autopilot import wrap_pi
 from sitl.vehicle.jsbsim_vehicle import JsbsimVehicle
@@ -113,6 +116,41 @@ def beam_range_m(world: World, frame: StorageFrame, lever_arm_body_m, pose: True
     return None if not math.isfinite(r) else r
 
 
+def beam_echo(world: World, frame: StorageFrame, lever_arm_body_m, pose: TruePose, servo_rad: float,
+              boresight: Boresight = SQUARE) -> tuple[float | None, float]:
+    """`beam_range_m` and the |cos| of the incidence on what the beam hit (a noise model's no-returns
+    depend on it; 0 when nothing is hit)."""
+    o, d = beam_ray_w(pose.pos_ned_m, pose.roll_rad, pose.pitch_rad, pose.yaw_rad, servo_rad, lever_arm_body_m,
+                      frame, boresight)
+    r, cos_i = world.cast_one_incidence(o, d)
+    return (None, 0.0) if not math.isfinite(r) else (r, cos_i)
+
+
+class TrueBeam:
+    """Where the emulated LiDAR really points and what it sees: the true pose, the servo plant's true
+    shaft plus the sensor-noise model's servo error (`sitl.sensing.noise.ServoNoiser`), ray traced.
+    Keeps the last echo's incidence for the range noise (`RangeNoiser`), asked right after the range."""
+
+    def __init__(self, world: World, frame: StorageFrame, lever_arm_body_m, pose_at: Callable[[int], TruePose],
+                 servo_angle_at: Callable[[int], float] | None) -> None:
+        self.world, self.frame, self.pose_at, self.servo_angle_at = world, frame, pose_at, servo_angle_at
+        self.lever = tuple(float(v) for v in lever_arm_body_m)  # plain floats: read at every sample
+        self.boresight = SQUARE  # the beam's true mounting (a fault may tilt it)
+        self.servo_noise = None  # a ServoNoiser, or None: the shaft exactly
+        self.incidence_needed = False  # a range noise model asks for the incidence
+        self.last_cos_incidence = 1.0
+
+    def range_m(self, t_ns: int) -> float | None:
+        gamma = self.servo_angle_at(t_ns) if self.servo_angle_at else 0.0
+        if self.servo_noise is not None:
+            gamma += self.servo_noise.error()
+        pose = self.pose_at(t_ns)
+        if not self.incidence_needed:
+            return beam_range_m(self.world, self.frame, self.lever, pose, gamma, self.boresight)
+        r, self.last_cos_incidence = beam_echo(self.world, self.frame, self.lever, pose, gamma, self.boresight)
+        return r
+
+
 class SimWorld:
     """Vehicle + MAVLink server + building, advanced in lockstep with the payload's clock."""
 
@@ -138,9 +176,26 @@ class SimWorld:
         self._vehicle_t_s = self._vehicle_time_s()  # the vehicle steps only here: its clock, kept
         self._hist.append((self._vehicle_t_s, plant_state_of(vehicle)))
         self.history: list[tuple[float, PlantState]] = [self._hist[-1]]  # the whole true flight
-        self.servo_angle_at = None  # set by the runner: t_ns -> true shaft angle
-        self.boresight = SQUARE  # the beam's true mounting (a fault may tilt it)
+        self.beam = TrueBeam(world, frame, self.lever, self.pose_at, None)  # the runner sets its servo
         clock.set_advance(self.advance_to)
+
+    @property
+    def servo_angle_at(self) -> Callable[[int], float] | None:
+        """t_ns -> the servo plant's true shaft angle (set by the runner)."""
+        return self.beam.servo_angle_at
+
+    @servo_angle_at.setter
+    def servo_angle_at(self, f: Callable[[int], float] | None) -> None:
+        self.beam.servo_angle_at = f
+
+    @property
+    def boresight(self) -> Boresight:
+        """The beam's true mounting (a fault may tilt it)."""
+        return self.beam.boresight
+
+    @boresight.setter
+    def boresight(self, b: Boresight) -> None:
+        self.beam.boresight = b
 
     # -- the payload's end of the MAVLink link ---------------------------------------------------
     def wrap_links(self, wrap: Callable[[str, SendAt], SendAt]) -> None:
@@ -188,8 +243,7 @@ class SimWorld:
 
     def true_range_m(self, t_ns: int) -> float | None:
         """What the LiDAR sees at companion time t_ns: true pose, true servo angle, ray traced."""
-        gamma = self.servo_angle_at(t_ns) if self.servo_angle_at else 0.0
-        return beam_range_m(self.world, self.frame, self.lever, self.pose_at(t_ns), gamma, self.boresight)
+        return self.beam.range_m(t_ns)
 
 
 class _ServerSide:
@@ -258,6 +312,8 @@ class FirmwareRun:
     result: PayloadResult | None = None  # how the payload program ended (None: it lost power)
 
 
+NOISE_SEED_TAG = 0x5E45
+"""Mixed into the run's seed for the sensor-noise draws: independent of its latency and fault draws."""
 SITL_MAVLINK_URL = "sitl:lockstep"
 SITL_I2C_URL = "sitl:lockstep"
 SITL_PWM_URL = "pwm:sitl"
@@ -290,7 +346,26 @@ def payload_config(cfg, log_path, header: dict, timeout_s: float) -> PayloadConf
         range_sigma_m=cfg.lidar.range_sigma_m,
         range_sigma_rel=cfg.lidar.range_sigma_rel, duration_s=timeout_s, stop_on_disarm=True,
         send_origin=cfg.ekf_origin.as_tuple(), mission_id=header.get("mission_id"), fsync=False, quiet=True,
-        wait_for_pose_s=POSE_WAIT_S, source=header.get("source", "sitl"), mission=header.get("mission"))
+        wait_for_pose_s=POSE_WAIT_S, source=header.get("source", "sitl"), mission=header.get("mission"),
+        header_extra={NOISE_HEADER_KEY: header[NOISE_HEADER_KEY]} if NOISE_HEADER_KEY in header else None)
+
+
+def attach_sensor_noise(noise: SensorNoise, seed: int, server: MavlinkVehicleServer,
+                        beam: TrueBeam | None) -> RangeNoiser | None:
+    """Put a sensor-noise model into a simulated flight (lockstep or networked): the servo error on the
+    true beam, the pose error on what the autopilot reports; returns the range noise for the emulated
+    rangefinder (None: none). Draws come from `noise_streams(seed)`, so a run repeats with its seed."""
+    if not noise.active:
+        return None
+    rngs = noise_streams([seed, NOISE_SEED_TAG])
+    if noise.pose_noisy:
+        server.pose_noise = PoseNoiser(noise, rngs)
+    if beam is None:
+        return None  # no emulated devices: the autopilot's pose error only
+    if noise.servo_sigma_rad > 0:
+        beam.servo_noise = ServoNoiser(noise, rngs)
+    beam.incidence_needed = noise.returns is not None
+    return RangeNoiser(noise, rngs, incidence=lambda: beam.last_cos_incidence)
 
 
 def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = (0.0, 0.0),
@@ -314,7 +389,7 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     from sitl.devices.i2c_sim import SimI2CBus
     from sitl.devices.lidarlite_emu import EmulatedLidarLite
     from sitl.devices.servo_emu import EmulatedServo
-    from sitl.devices.tfmini_emu import EmulatedTfminiPort, datasheet_noise
+    from sitl.devices.tfmini_emu import EmulatedTfminiPort
     from sitl.faults.injector import FaultInjector
     from sitl.runners.flight import SETTLE_S, mission_nav_items, start_pose
     from sitl.vehicle.api import FlightMode
@@ -360,15 +435,15 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     plant = EmulatedServo(clock, cal, angle0_rad=float(wf.angle(0.0)))
     sim.servo_angle_at = plant.angle_at
     range_at = inj.range_at(sim.true_range_m) if inj else sim.true_range_m
+    noisers = attach_sensor_noise(cfg.noise(), seed, sim.server, sim.beam)
     bus = uart = None
     if cfg.rangefinder is Rangefinder.TFMINI:
-        uart = EmulatedTfminiPort(clock, range_at, rate_hz=cfg.lidar.rate_hz,
-                                  range_noise=datasheet_noise(cfg.lidar) if cfg.tfmini_noise == "datasheet" else None,
+        uart = EmulatedTfminiPort(clock, range_at, rate_hz=cfg.lidar.rate_hz, range_noise=noisers,
                                   rng=np.random.default_rng([seed, 0x7F]))
         part = None
     else:
         bus = SimI2CBus(clock)
-        part = EmulatedLidarLite(clock, range_at)
+        part = EmulatedLidarLite(clock, range_at, range_noise=noisers)
         bus.attach(0x62, part)
     if inj is not None:
         inj.attach(bus, part, plant)

@@ -42,6 +42,7 @@ from firmware_py.core.rundir import (
     check_free,
 )
 from firmware_py.core.sensor import Rangefinder
+from firmware_py.core.sensor_noise import SensorNoiseModel, noise_summary
 from firmware_py.core.site import DEFAULT_SITE, Site
 from firmware_py.hal.signing import SigningConfig
 from sitl.devices.bridge_server import parse_bridge_url
@@ -53,7 +54,8 @@ from sitl.missions.qgc_wpl import write_qgc_wpl
 from sitl.missions.range_check import check_range
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import start_pose
-from sitl.runners.fly import TFMINI_NOISES, FlyConfig, check_clearance, check_rangefinder_faults, truth_record
+from sitl.runners.fly import FlyConfig, check_clearance, check_rangefinder_faults, noise_header, truth_record
+from sitl.runners.lockstep_payload import attach_sensor_noise
 from sitl.vehicle.jsbsim_plant import PlantConfig
 from sitl.vehicle.jsbsim_vehicle import JsbsimVehicle, VehicleConfig
 from sitl.vehicle.kinematic_vehicle import KinematicVehicle
@@ -97,10 +99,11 @@ class ServeOptions:
     """What one MAVLink sender may cost the others (STATUSTEXT answers, tlog space; --tlog-max-mb)."""
     rangefinder: Rangefinder = Rangefinder.LIDARLITE_V3
     """With --devices: the TFMini also streams on a pseudo-terminal (the LIDAR-Lite is always on the bridge)."""
-    tfmini_noise: str = "none"
-    """The emulated TFMini's range noise (`sitl.runners.fly.TFMINI_NOISES`)."""
     site: Site = DEFAULT_SITE
     """Where the building stands (--origin, --heading): the EKF origin and home are its floor corner."""
+    sensor_noise: SensorNoiseModel = SensorNoiseModel.NONE
+    """--sensor-noise: the servo error on the emulated LiDAR's beam, the range noise of its datasheet or of
+    Appendix A, the pose error on ATTITUDE and LOCAL_POSITION_NED (seeded by the faults' seed, --seed)."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speedup) and 0 < self.speedup <= 1000):
@@ -120,17 +123,15 @@ class ServeOptions:
                              f"got {self.rangefinder!r}")
         if self.rangefinder is Rangefinder.TFMINI and self.devices_url is None:
             raise ValueError("--rangefinder tfmini needs --devices (the emulated parts the payload uses)")
-        if self.tfmini_noise not in TFMINI_NOISES:
-            raise ValueError(f"unknown TFMini noise {self.tfmini_noise!r}; available: {', '.join(TFMINI_NOISES)}")
-        if self.tfmini_noise != "none" and self.rangefinder is not Rangefinder.TFMINI:
-            raise ValueError("--tfmini-noise is the emulated TFMini's: serve it with --rangefinder tfmini")
         check_rangefinder_faults(self.rangefinder, self.faults)
+        object.__setattr__(self, "sensor_noise", SensorNoiseModel(self.sensor_noise))
         if not isinstance(self.site, Site):
             raise ValueError(f"site must be a Site, got {self.site!r}")
 
     def fly_config(self) -> FlyConfig:
         """The lockstep SITL's settings for this mission: its frame, lever arm and LiDAR are served too."""
-        return FlyConfig(mission=self.mission, stockpile=self.stockpile, rangefinder=self.rangefinder, site=self.site)
+        return FlyConfig(mission=self.mission, stockpile=self.stockpile, rangefinder=self.rangefinder, site=self.site,
+                         sensor_noise=self.sensor_noise)
 
 
 def serve(opts: ServeOptions) -> int:
@@ -218,11 +219,10 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
     plan = folder.publish(PLAN_FILE)
     if world is not None:
         pile.mesh.export(folder.staged(PILE_FILE))
-        tfmini = ({"rangefinder": opts.rangefinder.value, "tfmini_noise": opts.tfmini_noise}
-                  if opts.rangefinder is Rangefinder.TFMINI else {})
+        tfmini = {"rangefinder": opts.rangefinder.value} if opts.rangefinder is Rangefinder.TFMINI else {}
         truth = truth_record(pile, opts.stockpile, mission, frame, plant=kind, payload="networked",
                              seed=opts.faults.seed, faults=opts.faults, site=cfg.site, ekf_origin=origin,
-                             **tfmini)
+                             **tfmini, **noise_header(cfg))
         folder.staged(TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
     vehicle = make_vehicle(kind, mission, frame, origin)
     stop = threading.Event()
@@ -230,13 +230,10 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
     devices = None
     try:
         if world is not None:
-            from sitl.devices.tfmini_emu import datasheet_noise
             devices = NetworkedDevices(vehicle, world, opts.devices_url, frame=frame,
                                        lever_arm_body_m=cfg.lever_arm_body_m,
                                        key=opts.signing.key if opts.signing is not None else None,
-                                       rangefinder=opts.rangefinder,
-                                       tfmini_noise=datasheet_noise(cfg.lidar) if opts.tfmini_noise == "datasheet"
-                                       else None)
+                                       rangefinder=opts.rangefinder)
         faults = NetworkedFaults(opts.faults, vehicle, transport, devices)
         if devices is not None:
             devices.start()
@@ -252,9 +249,8 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
                  (f"; LiDAR and servo on {devices.url} (pile {opts.stockpile}, {pile.volume_m3:.1f} m^3)"
                   if devices else ""), signed, injected)
         if devices is not None and devices.tfmini_path is not None:
-            log.info("TFMini on %s (%s): pilescan-payload --rangefinder tfmini --uart serial:%s --pwm pwm:%s:%d",
-                     devices.tfmini_path, "datasheet noise" if opts.tfmini_noise == "datasheet" else "no noise",
-                     devices.tfmini_path, devices.url, SERVO_CHANNEL)
+            log.info("TFMini on %s: pilescan-payload --rangefinder tfmini --uart serial:%s --pwm pwm:%s:%d",
+                     devices.tfmini_path, devices.tfmini_path, devices.url, SERVO_CHANNEL)
         if devices is None:
             log.info("no payload: this run records no LiDAR data (for a survey, serve with --devices and run "
                      "pilescan-payload against it)")
@@ -262,6 +258,12 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
                                   signing=opts.signing,
                                   extra_params=faults.params, limits=opts.limits) as server:
             faults.bind(server)
+            noise = attach_sensor_noise(cfg.noise(), opts.faults.seed, server,
+                                        devices.beam if devices is not None else None)
+            if devices is not None:
+                devices.attach_noise(noise)
+            if cfg.noise().active:
+                log.info("sensor noise: %s (%s)", cfg.sensor_noise, noise_summary(cfg.noise()))
 
             def on_step() -> None:
                 if devices is not None:

@@ -38,6 +38,7 @@ class Hits:
     range_m: np.ndarray
     geom_id: np.ndarray
     points_w: np.ndarray
+    cos_incidence: np.ndarray | None = None  # |cos| of the angle between the beam and the surface normal
 
 
 class World:
@@ -97,7 +98,16 @@ class World:
         r = np.where(ok, r, np.nan)
         geom = np.where(ok, res["geomID"], -1).astype(np.int32)
         pts = o64 + unit * r[:, None]
-        return Hits(r, geom, pts)
+        return Hits(r, geom, pts, _cos_incidence(res["Ng"], unit))
+
+    def cast_one_incidence(self, origin_w, dir_w) -> tuple[float, float]:
+        """Range (NaN: no return) and |cos| of the incidence of one ray: the emulated LiDAR's path when a
+        noise model needs the incidence (a full intersection query, unlike `cast_one`'s distance only)."""
+        r = self.cast_one(origin_w, dir_w)
+        if not math.isfinite(r):
+            return r, 0.0
+        res = self._scene.run(self._one_o32, self._one_d32, output=1)  # cast_one left the ray in these rows
+        return r, float(_cos_incidence(res["Ng"], self._one_d32.astype(np.float64))[0])
 
     def cast_one(self, origin_w, dir_w) -> float:
         """Range of one ray, m (NaN when there is no return within the max range).
@@ -118,3 +128,12 @@ class World:
         row[0], row[1], row[2] = d64[0] / norm, d64[1] / norm, d64[2] / norm
         r = float(self._scene.run(o32, d32, query="DISTANCE")[0])
         return r if r <= self.max_range_m else math.nan  # a miss reads Embree's initial tfar, 1e37
+
+
+def _cos_incidence(ng: np.ndarray, unit_dirs: np.ndarray) -> np.ndarray:
+    """|cos| of the angle between unit beam directions and (unnormalised) geometric normals; 0 where none."""
+    ng = np.asarray(ng, dtype=np.float64).reshape(-1, 3)
+    norm = np.linalg.norm(ng, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = np.abs(np.einsum("ij,ij->i", ng, unit_dirs)) / norm
+    return np.where(norm > 0, np.clip(c, 0.0, 1.0), 0.0)

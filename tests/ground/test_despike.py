@@ -206,3 +206,29 @@ def test_that_a_clean_survey_loses_nothing():
     s = _floor_survey_samples(spike_at=None)
     c = cloud_from_samples(s, np.zeros(3), StorageFrame(), spike_threshold=THRESHOLD)
     assert c.n_spikes == 0 and c.n_excluded == 0
+
+
+def test_that_datasheet_noise_and_its_no_returns_trigger_neither_despiking_nor_plausibility():
+    from firmware_py.core.sensor import LIDARLITE_V3
+    from firmware_py.core.sensor_noise import SensorNoise
+    from firmware_py.core.waveform import named_waveform
+    from ground.plausibility import PlausibilityLimits, implausible
+    from sitl.sensing.batch_sampler import sample_flight
+    from sitl.vehicle.ideal_plant import Trajectory
+    from sitl.world.raycast import World
+
+    n = 60_000  # two minutes hovering mid-hall at 12 m: the sweep sees the floor and, at its ends, far walls
+    pos = np.tile([20.0, -15.0, -12.0], (n, 1))
+    z = np.zeros(n)
+    traj = Trajectory(np.arange(n) / 500.0, pos, z, z, z + 0.3)
+    wf, storage, frame = named_waveform("semi-triangular"), Storage(), StorageFrame()
+    noise = SensorNoise.of("datasheet", LIDARLITE_V3)
+    s = sample_flight(traj, wf, World(storage), LIDARLITE_V3, (0.0, 0.0, 0.1), frame, noise=noise, seed=11)
+    assert ((s["flags"] & int(SampleFlags.NO_RETURN)) != 0).mean() > 0.1  # the no-returns are there
+    header = build_log_header(source="test", sensor=LIDARLITE_V3.to_dict(), lever_arm_body_m=(0, 0, 0.1),
+                              waveform_name="semi-triangular", waveform=wf, initial_position=0, storage=storage,
+                              frame=frame, extra={"sensor_noise": noise.record()})
+    usable = (s["flags"] & int(SampleFlags.NO_RETURN)) == 0
+    assert spike_mask(s["t_s"], s["range_m"], usable, SpikeThreshold.from_header(header)).sum() == 0
+    assert implausible(s, PlausibilityLimits.from_header(header, storage), frame).counts() == \
+        {"servo_angle": 0, "range": 0, "pose": 0}

@@ -43,3 +43,36 @@ def test_that_wall_and_roof_points_are_recognised_within_their_error():
     c = cloud_from_samples(s, [0, 0, 0], frame)
     assert not structure_mask(c, st, SensorErrorModel(resolution_m=0.01))[0]
     assert structure_mask(c, st, SensorErrorModel(range_sigma_m=0.025))[0]
+
+
+def test_that_the_wall_tolerance_grows_with_the_cloud_so_no_wall_point_escapes_by_chance():
+    from statistics import NormalDist
+
+    import pytest
+
+    from ground.pointcloud import N_SIGMA, Cloud, structure_n_sigma
+    assert structure_n_sigma(1) == N_SIGMA  # a lone point keeps the 3 sigma floor
+    for n in (60_000, 1_000_000):
+        k = structure_n_sigma(n)
+        assert k > N_SIGMA and n * (1 - NormalDist().cdf(k)) == pytest.approx(0.01, rel=1e-6)
+    # 100,000 returns from the wall x = 0, 12 m away head on, with a 20 cm range error: none is kept as pile.
+    rng = np.random.default_rng(0)
+    n = 100_000
+    x = rng.normal(0.0, 0.2, n)
+    p = np.column_stack([x, np.full(n, 20.0), np.full(n, 8.0)])
+    d = np.tile([-1.0, 0.0, 0.0], (n, 1))
+    c = Cloud(p, d, 12.0 - x, np.empty((0, 3)), n, 0)
+    st, err = Storage(60, 40, 15), SensorErrorModel(range_sigma_m=0.2)
+    assert (~structure_mask(c, st, err, n_sigma=N_SIGMA)).sum() > 50  # 3 sigma lets ~135 through ...
+    assert (~structure_mask(c, st, err)).sum() == 0  # ... the survey-sized tolerance none
+
+
+def test_that_the_error_model_takes_the_larger_of_the_spec_and_the_noise_record():
+    from firmware_py.core.sensor import LIDARLITE_V3
+    from firmware_py.core.sensor_noise import SensorNoise
+    rec = SensorNoise.of("appendix-a", LIDARLITE_V3).record()
+    m = SensorErrorModel.from_header({"sensor": LIDARLITE_V3.to_dict(), "sensor_noise": rec})
+    assert (m.range_sigma_m, m.range_sigma_rel, m.position_sigma_m) == (0.025, 0.01, 0.113)
+    m = SensorErrorModel.from_header({"sensor": LIDARLITE_V3.to_dict(), "pose": {"position_sigma_m": 0.3},
+                                      "sensor_noise": rec})
+    assert m.position_sigma_m == 0.3

@@ -82,3 +82,14 @@ def test_that_the_truth_can_be_given_or_absent(tmp_path):
     rep = make_report(log, tmp_path / "b", ReportOptions(plots=False, truth_volume_m3=rep["volume_m3"] * 1.1))
     assert rep["volume_error_pct"] == pytest.approx(100 / 11, rel=1e-9)
     assert np.isfinite(rep["coverage_ratio_pct"])
+
+
+def test_that_the_report_shows_the_sensor_noise_the_log_header_states(tmp_path):
+    small = Mission(storage=Storage(30, 20, 10), altitude_m=9.0, p_traj=0.2)
+    fly(FlyConfig(mission=small, plant="ideal", sensor_noise="appendix-a", seed=1), tmp_path / "noisy")
+    rep = make_report(tmp_path / "noisy", tmp_path / "rep", ReportOptions(plots=False))
+    assert rep["sensor_noise"].startswith("appendix-a: range 2.5 cm, servo angle 1 deg, attitude 0.143 deg")
+    assert "Sensor noise (simulated)" in (tmp_path / "rep" / "report.md").read_text()
+    fly(FlyConfig(mission=small, plant="ideal"), tmp_path / "ideal")
+    rep = make_report(tmp_path / "ideal", tmp_path / "rep2", ReportOptions(plots=False))
+    assert rep["sensor_noise"] == "none stated in the log header"

@@ -47,6 +47,8 @@ def test_that_the_ideal_plant_defaults_to_the_batch_sampler(tmp_path, capsys):
     (["--stockpile", "1", "--p-traj", "20", "--plant", "webots"], "invalid choice"),
     (["--stockpile", "1"], "--p-traj"),
     (["--stockpile", "1", "--p-traj", "20", "--plant", "ideal", "--payload", "firmware"], "jsbsim plant"),
+    (["--stockpile", "1", "--p-traj", "20", "--sensor-noise", "gaussian"], "none, datasheet, appendix-a"),
+    (["--stockpile", "1", "--p-traj", "20", "--sensor-noise", "Datasheet"], "got 'Datasheet'"),
 ])
 def test_that_bad_options_fail_with_one_line_and_exit_2(tmp_path, capsys, monkeypatch, extra, match):
     monkeypatch.chdir(tmp_path)
@@ -159,3 +161,10 @@ def test_that_fly_reports_progress_by_default_debug_with_v_and_nothing_with_q(tm
     assert capsys.readouterr() == ("", "")
     assert main([*IDEAL, "--out", str(tmp_path / "d"), "-q", "-v"]) == USAGE
     assert not (tmp_path / "d").exists()
+
+
+def test_that_serve_refuses_an_unknown_sensor_noise_with_one_line_and_exit_2(tmp_path, capsys):
+    code = main(["serve", "--sensor-noise", "appendix_a", "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err
+    assert code == USAGE and err.count("\n") == 1 and "--sensor-noise" in err and "appendix-a" in err
+    assert not (tmp_path / "run").exists()

@@ -244,3 +244,26 @@ def test_that_bad_construction_arguments_are_value_errors_naming_the_value(kw, m
     args = {"range_at": lambda t: 1.0, **kw}
     with pytest.raises(ValueError, match=match):
         EmulatedLidarLite(SimClock(), **args)
+
+
+def test_that_a_noise_models_range_and_no_return_reach_the_registers():
+    from firmware_py.core.sensor import LIDARLITE_V3
+    from firmware_py.core.sensor_noise import SensorNoise
+    from sitl.sensing.noise import RangeNoiser, noise_streams
+
+    def run(range_m, cos_i, seed=1):
+        noiser = RangeNoiser(SensorNoise.of("datasheet", LIDARLITE_V3), noise_streams(seed), incidence=lambda: cos_i)
+        rig = Rig(range_m, range_noise=noiser)
+        out = []
+        for _ in range(1000):
+            acq = rig.measure()
+            rig.wait_done()
+            out.append((acq.distance_cm, acq.status))
+        return out
+
+    head_on = run(10.0, 1.0)
+    cm = np.array([c for c, _ in head_on]) / 100.0
+    assert all(not s & StatusFlag.INVALID_SIGNAL for _, s in head_on)
+    assert np.std(cm) == pytest.approx(0.1, rel=0.1)  # 1 % of 10 m, quantised to 1 cm
+    assert all(c == 1 and s & StatusFlag.INVALID_SIGNAL for c, s in run(10.0, 0.05))  # grazing: no echo
+    assert run(10.0, 1.0) == head_on  # seeded

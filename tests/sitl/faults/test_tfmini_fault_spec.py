@@ -36,8 +36,6 @@ def test_that_a_fault_of_the_other_rangefinder_is_refused():
 def test_that_serve_takes_a_tfmini_only_with_its_devices():
     with pytest.raises(ValueError, match="needs --devices"):
         ServeOptions(mission=Mission(), rangefinder=Rangefinder.TFMINI)
-    with pytest.raises(ValueError, match="--rangefinder tfmini"):
-        ServeOptions(mission=Mission(), devices_url="tcp:127.0.0.1:0", tfmini_noise="datasheet")
     opts = ServeOptions(mission=Mission(), devices_url="tcp:127.0.0.1:0", rangefinder=Rangefinder.TFMINI,
                         faults=FaultSpec(tfmini_unplug=(5.0, 2.0)))
     assert opts.fly_config().lidar.max_range_m == 12.0  # the world is ray cast to the TFMini's range
@@ -45,7 +43,6 @@ def test_that_serve_takes_a_tfmini_only_with_its_devices():
 
 @pytest.mark.parametrize(("argv", "words"), [
     (["fly", "--stockpile", "1", "--p-traj", "20", "--rangefinder", "sonar"], "unknown rangefinder"),
-    (["fly", "--stockpile", "1", "--p-traj", "20", "--tfmini-noise", "datasheet"], "--rangefinder tfmini"),
     (["fly", "--stockpile", "1", "--p-traj", "20", "--rangefinder", "tfmini"], "mostly out of range"),
     (["fly", "--stockpile", "1", "--p-traj", "20", "--rangefinder", "tfmini", "--storage", "30x20x10", "--altitude",
       "9", "--fault", "lidar_stuck_busy=5,2"], "acts on the LIDAR-Lite"),

@@ -225,3 +225,29 @@ def test_that_a_mavutil_client_flies_a_mission_over_udp():
         conn.close()
         transport.close()
     assert not thread.is_alive()
+
+
+def test_that_a_pose_noise_model_perturbs_what_attitude_and_local_position_report_and_nothing_else():
+    from dataclasses import replace as _replace
+
+    from sitl.mavlink.server import MavlinkVehicleServer as _Server
+
+    class Fixed:
+        def attitude(self):
+            return 0.01, -0.02, 0.03
+
+        def position(self):
+            return 0.1, -0.2, 0.3
+
+    from sitl.vehicle.api import FlightMode, VehicleState
+    s = VehicleState(1.0, (5.0, 6.0, -7.0), (0.0, 0.0, 0.0), 0.1, 0.2, 0.3, 0.0, 0.0, 0.0, True, FlightMode.AUTO,
+                     False, 0.0, 16.0)
+    server = _Server.__new__(_Server)  # the estimator seam alone: no transport needed
+    server.pose_noise = None
+    assert server._estimated(s, True) is s
+    server.pose_noise = Fixed()
+    att, pos = server._estimated(s, True), server._estimated(s, False)
+    assert (att.roll_rad, att.pitch_rad, att.yaw_rad) == pytest.approx((0.11, 0.18, 0.33))
+    assert att.pos_ned_m == s.pos_ned_m
+    assert pos.pos_ned_m == pytest.approx((5.1, 5.8, -6.7)) and pos.roll_rad == s.roll_rad
+    assert _replace(pos, pos_ned_m=s.pos_ned_m) == s

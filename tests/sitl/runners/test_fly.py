@@ -64,3 +64,24 @@ def test_that_an_existing_run_is_not_overwritten_without_force(run_dir):
 def test_that_a_flight_into_the_pile_is_refused(tmp_path):
     with pytest.raises(ValueError, match="stockpile top"):
         fly(FlyConfig(mission=Mission(p_traj=0.25, altitude_m=7.0)), tmp_path)
+
+
+def _log_without_creation_time(path):
+    log = read_samplelog(path)
+    return {k: v for k, v in log.header.items() if k != "created_utc"}, log.samples.tobytes()
+
+
+def test_that_no_sensor_noise_flies_exactly_as_before_and_a_noise_model_is_recorded(tmp_path):
+    from firmware_py.core.sensor_noise import SensorNoise
+    base = dict(mission=Mission(p_traj=0.3), plant="ideal", seed=5)
+    fly(FlyConfig(**base), tmp_path / "default")
+    fly(FlyConfig(**base, sensor_noise="none"), tmp_path / "none")
+    fly(FlyConfig(**base, sensor_noise="datasheet"), tmp_path / "datasheet")
+    default = _log_without_creation_time(tmp_path / "default" / "samples.pslog")
+    assert _log_without_creation_time(tmp_path / "none" / "samples.pslog") == default
+    assert "sensor_noise" not in default[0]
+    assert (tmp_path / "none" / "truth.json").read_text() == (tmp_path / "default" / "truth.json").read_text()
+    header, samples = _log_without_creation_time(tmp_path / "datasheet" / "samples.pslog")
+    want = SensorNoise.of("datasheet", FlyConfig().lidar).record()
+    assert header["sensor_noise"] == want and samples != default[1]
+    assert json.loads((tmp_path / "datasheet" / "truth.json").read_text())["sensor_noise"] == want

@@ -1,4 +1,4 @@
-"""The batch sample path: ideal sensing, and the paper's Appendix A noise on what is logged."""
+"""The batch sample path: ideal sensing, and the sensor-noise models on what is logged."""
 
 import math
 
@@ -7,11 +7,14 @@ import pytest
 
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.sensor import LIDARLITE_V3
+from firmware_py.core.sensor_noise import SensorNoise, SensorNoiseModel
 from firmware_py.core.storage import Storage
 from firmware_py.core.waveform import named_waveform
-from sitl.sensing.batch_sampler import NoiseSpec, sample_flight
+from sitl.sensing.batch_sampler import sample_flight
 from sitl.vehicle.ideal_plant import Trajectory
 from sitl.world.raycast import World
+
+LIDAR = LIDARLITE_V3.with_(resolution_m=0.0)
 
 
 def hover(n=20_000):
@@ -21,10 +24,9 @@ def hover(n=20_000):
     return Trajectory(t, pos, z, z, z + 0.3)
 
 
-def sample(noise=None, seed=0):
-    return sample_flight(hover(), named_waveform("semi-triangular"), World(Storage()),
-                         LIDARLITE_V3.with_(resolution_m=0.0), (0.0, 0.0, 0.1), StorageFrame(), noise=noise,
-                         rng=np.random.default_rng(seed))
+def sample(model=SensorNoiseModel.NONE, seed=0, lidar=LIDAR):
+    return sample_flight(hover(), named_waveform("semi-triangular"), World(Storage()), lidar, (0.0, 0.0, 0.1),
+                         StorageFrame(), noise=SensorNoise.of(model, lidar), seed=seed)
 
 
 def test_that_ideal_sensing_logs_the_true_geometry():
@@ -34,19 +36,32 @@ def test_that_ideal_sensing_logs_the_true_geometry():
     assert np.allclose(rec["servo_rad"], gamma, atol=1e-6)
 
 
-def test_that_appendix_a_noise_has_the_papers_sigmas_and_repeats_with_its_seed():
-    clean, noisy = sample(), sample(NoiseSpec(), seed=3)
-    ok = (clean["flags"] == 0) & (noisy["flags"] == 0)
-    spec = NoiseSpec()
-    for field, sigma in (("range_m", spec.range_sigma_m), ("servo_rad", math.radians(1.0)),
-                         ("roll_rad", math.radians(0.143)), ("yaw_rad", math.radians(0.143)), ("z_m", 0.113)):
-        d = noisy[field][ok].astype(float) - clean[field][ok].astype(float)
-        assert abs(d.mean()) < 0.05 * sigma
-        assert d.std() == pytest.approx(sigma, rel=0.05), field
-    assert np.array_equal(sample(NoiseSpec(), seed=3), noisy)
-    assert not np.array_equal(sample(NoiseSpec(), seed=4), noisy)
+def test_that_no_noise_is_exactly_the_noise_free_path():
+    none = sample()
+    plain = sample_flight(hover(), named_waveform("semi-triangular"), World(Storage()), LIDAR, (0.0, 0.0, 0.1),
+                          StorageFrame())
+    assert none.tobytes() == plain.tobytes()
 
 
-def test_that_negative_noise_is_refused():
-    with pytest.raises(ValueError, match="position_sigma_m"):
-        NoiseSpec(position_sigma_m=-1.0)
+def test_that_appendix_a_noise_puts_the_papers_sigmas_on_the_logged_pose_and_range_and_repeats_with_its_seed():
+    clean, noisy = sample(), sample(SensorNoiseModel.APPENDIX_A, seed=3)
+    # The servo error moves the true beam; the firmware logs its model of the shaft: the logged angle is exact.
+    assert np.array_equal(noisy["servo_rad"], clean["servo_rad"])
+    # Pose: one draw per 50 Hz message, extrapolated from the newest two to each 500 Hz sample, as the
+    # payload's pose buffer does: the logged error's variance is the mean of (1+f)^2 + f^2 over the samples.
+    for field, sigma in (("roll_rad", math.radians(0.143)), ("yaw_rad", math.radians(0.143)), ("z_m", 0.113)):
+        d = noisy[field].astype(float) - clean[field].astype(float)
+        assert abs(d.mean()) < 0.2 * sigma, field
+        assert d.std() == pytest.approx(sigma * 1.57, rel=0.15), field  # 10 samples a period: mean over f = k/10
+    assert np.array_equal(sample(SensorNoiseModel.APPENDIX_A, seed=3), noisy)
+    assert not np.array_equal(sample(SensorNoiseModel.APPENDIX_A, seed=4), noisy)
+
+
+def test_that_datasheet_noise_leaves_the_pose_and_the_servo_exact_and_drops_far_grazing_returns():
+    clean, noisy = sample(), sample(SensorNoiseModel.DATASHEET, seed=1)
+    for field in ("servo_rad", "x_m", "roll_rad", "yaw_rad"):
+        assert np.array_equal(noisy[field], clean[field]), field
+    near = (clean["flags"] == 0) & (np.abs(clean["servo_rad"]) < math.radians(20))  # floor at 12-13 m, head on
+    far = (clean["flags"] == 0) & (np.abs(clean["servo_rad"]) > math.radians(75))  # walls and floor, far, grazing
+    assert (noisy["flags"][near] != 0).mean() < 0.001
+    assert (noisy["flags"][far] != 0).mean() > 0.3

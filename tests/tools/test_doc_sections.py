@@ -1,0 +1,20 @@
+"""Marked page sections: each tool rewrites only its own, and a whole-page writer keeps the others'."""
+
+from tools.doc_sections import with_sections_of, write_section
+
+
+def test_that_a_section_is_replaced_in_place_or_appended(tmp_path):
+    page = tmp_path / "p.md"
+    page.write_text("# Page\n\ntext\n")
+    write_section(page, "a", "first")
+    write_section(page, "a", "second")
+    assert page.read_text() == "# Page\n\ntext\n\n<!-- a:start -->\nsecond\n<!-- a:end -->\n"
+
+
+def test_that_a_whole_page_rewrite_keeps_the_sections_it_does_not_write():
+    old = "# Old\n\n<!-- t:start -->\nT\n<!-- t:end -->\n\n<!-- u:start -->\nU\n<!-- u:end -->\n"
+    new = "# New\n\n<!-- u:start -->\nU2\n<!-- u:end -->\n"
+    got = with_sections_of(old, new)
+    assert got.startswith(new.rstrip("\n")) and "U2" in got and "\nU\n" not in got
+    assert got.endswith("<!-- t:start -->\nT\n<!-- t:end -->\n")
+    assert with_sections_of("", new) == new

@@ -1,0 +1,252 @@
+"""Ve with realistic sensing: piles 1 and 2 at P_traj 5 / 20 / 30 % under each sensor-noise model
+(`--sensor-noise none|datasheet|appendix-a`), over the 20 servo start positions of Fig. 9.
+
+One JSBSim flight per P_traj (cached and shared with `tools.experiments`: the flight depends on the
+mission, not on the pile or the noise), sampled for each pile, model and start position by the batch
+path (`sitl.sensing.batch_sampler`), which draws its errors with the same functions the lockstep
+firmware-in-the-loop's emulators and autopilot use (`sitl.sensing.noise`); the noise is seeded by
+(P_traj, pile, start position, model). Each log goes through the ground report's full pipeline
+(`survey_from_samples`: despiking, servo re-timing, self-calibration); when the self-calibration
+applies a correction the survey is also computed without it, so a false correction shows.
+`--spot PILE,P,MODEL,PHASE` also flies that case with the payload firmware in the loop (`fly`,
+lockstep) and reports it beside its batch twin.
+
+    python -m tools.noise_table --write docs/results.md [--jobs 2] [--spot 1,20,datasheet,0 ...]
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from firmware_py.core.cli import ArgumentParser
+from firmware_py.core.samplelog import SampleFlags
+from firmware_py.core.sensor_noise import SensorNoiseModel
+from ground.report import ReportOptions, make_report, survey_from_samples
+from ground.surface import grid_volume, reconstructed_ratio_pct, volume_error_pct
+from sitl.runners.fly import FlyConfig, fly, log_header
+from sitl.sensing.batch_sampler import sample_flight
+from sitl.world.raycast import World
+from sitl.world.stockpile import paper_pile
+from tools.doc_sections import write_section
+from tools.experiments import ALL_EXPERIMENTS, N_POSITIONS, _flight
+from tools.sweep import cached, content_key
+
+SECTION = "noise-table"
+PILES = ("1", "2")
+P_TRAJ_PCT = (5, 20, 30)
+MODELS = tuple(SensorNoiseModel)
+TABLE_VERSION = "1"
+"""Part of every case's cache key: bump it when what a case computes changes."""
+MODEL_VERSIONS = {SensorNoiseModel.APPENDIX_A: "2"}
+"""Per model, in the key too: 2: the pose errors extrapolated as the payload does (not interpolated)."""
+
+
+@dataclass(frozen=True)
+class Case:
+    pile: str
+    p_traj_pct: int
+    model: SensorNoiseModel
+    phases: int = N_POSITIONS
+
+    def key(self) -> str:
+        key = {"v": TABLE_VERSION, "pile": self.pile, "p": self.p_traj_pct, "model": self.model.value,
+               "phases": self.phases}
+        if self.model in MODEL_VERSIONS:
+            key["model_v"] = MODEL_VERSIONS[self.model]
+        return "noise-table-" + content_key(key)
+
+
+def _config(case: Case, phase: int) -> FlyConfig:
+    e = ALL_EXPERIMENTS["baseline"]
+    return FlyConfig(mission=e.mission(case.p_traj_pct), stockpile=case.pile, initial_position=phase,
+                     sensor_noise=case.model)
+
+
+def survey_row(samples: np.ndarray, cfg: FlyConfig, true_m3: float) -> dict:
+    """Ve and what the ground station did with one log (default pipeline; without self-calibration too
+    when it applied a correction)."""
+    header = log_header(cfg, cfg.servo_waveform())
+    storage, lever = cfg.mission.storage, np.array(cfg.lever_arm_body_m)
+    sv = survey_from_samples(samples, header, storage, cfg.frame, lever, ReportOptions(plots=False))
+    ve = volume_error_pct(grid_volume(sv.heights, sv.grid), true_m3)
+    applied = sv.mount is not None and sv.mount.any_applied
+    ve_nocal = ve
+    if applied:
+        plain = survey_from_samples(samples, header, storage, cfg.frame, lever,
+                                    ReportOptions(plots=False, self_calibration=False))
+        ve_nocal = volume_error_pct(grid_volume(plain.heights, plain.grid), true_m3)
+    return {"ve_pct": ve, "ve_nocal_pct": ve_nocal, "self_cal_applied": applied,
+            "ra_pct": reconstructed_ratio_pct(sv.heights_fit), "spikes": sv.cloud.n_spikes,
+            "no_return_pct": 100.0 * float(np.mean((samples["flags"] & int(SampleFlags.NO_RETURN)) != 0))}
+
+
+def run_case(case: Case, cache_dir: Path) -> list[dict]:
+    """The rows of one case, one per servo start position (cached)."""
+    def compute() -> list[dict]:
+        e = ALL_EXPERIMENTS["baseline"]
+        flown = _flight(e, float(case.p_traj_pct), cache_dir)
+        base = _config(case, 0)
+        pile = paper_pile(case.pile, base.mission.storage)
+        world = World(base.mission.storage, pile, base.lidar.max_range_m)
+        t = np.arange(int(flown.duration_s * base.lidar.rate_hz) + 1) / base.lidar.rate_hz
+        traj = flown.trajectory_at(t)
+        rows = []
+        for k in range(case.phases):
+            cfg = replace(base, initial_position=k)
+            seed = [case.p_traj_pct, int(case.pile), k, MODELS.index(case.model)]
+            s = sample_flight(traj, cfg.servo_waveform(), world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame,
+                              noise=cfg.noise(), seed=seed)
+            rows.append({"phase": k, **survey_row(s, cfg, pile.volume_m3)})
+        return rows
+    return cached(cache_dir, case.key(), compute, kind="json")
+
+
+def spot_check(pile: str, p_pct: int, model: SensorNoiseModel, phase: int) -> dict:
+    """One case flown with the payload firmware in the loop (lockstep `fly`) and reported."""
+    e = ALL_EXPERIMENTS["baseline"]
+    cfg = FlyConfig(mission=e.mission(p_pct), stockpile=pile, initial_position=phase, sensor_noise=model,
+                    payload="firmware", seed=phase)
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        run = Path(tmp) / "run"
+        fly(cfg, run, force=True, progress=lambda _m: None)
+        rep = make_report(run, Path(tmp) / "report", ReportOptions(plots=False))
+        cal = rep.get("self_calibration") or {}
+        applied = any(isinstance(v, dict) and v.get("applied") for v in cal.values())
+        ve_nocal = rep["volume_error_pct"]
+        if applied:
+            ve_nocal = make_report(run, Path(tmp) / "plain", ReportOptions(plots=False, self_calibration=False)
+                                   )["volume_error_pct"]
+    return {"pile": pile, "p": p_pct, "model": model, "phase": phase, "ve_pct": rep["volume_error_pct"],
+            "self_cal_applied": applied, "ve_nocal_pct": ve_nocal,
+            "spikes": rep["n_samples_spikes"], "wall_s": time.perf_counter() - t0,
+            "no_return_pct": 100.0 * rep["n_samples_excluded"] / max(1, rep["n_samples"])}
+
+
+def _stats(values: list[float]) -> str:
+    sd = statistics.pstdev(values) if len(values) > 1 else 0.0
+    return f"{statistics.fmean(values):.2f} ± {sd:.2f}"
+
+
+def table(results: dict[Case, list[dict]]) -> str:
+    out = ["| pile | P_traj | sensor noise | Ve [%] mean ± sd | Ve max [%] | Ve without self-cal. [%] | "
+           "self-cal. applied | R_a [%] | no returns [%] | spikes removed |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
+    for case, rows in results.items():
+        ve = [r["ve_pct"] for r in rows]
+        out.append(f"| {case.pile} | {case.p_traj_pct} % | {case.model.value} | {_stats(ve)} | {max(ve):.2f} | "
+                   f"{_stats([r['ve_nocal_pct'] for r in rows])} | "
+                   f"{sum(r['self_cal_applied'] for r in rows)} of {len(rows)} | "
+                   f"{statistics.fmean(r['ra_pct'] for r in rows):.1f} | "
+                   f"{statistics.fmean(r['no_return_pct'] for r in rows):.1f} | "
+                   f"{statistics.fmean(r['spikes'] for r in rows):.0f} |")
+    return "\n".join(out)
+
+
+def spot_table(spots: list[dict], results: dict[Case, list[dict]]) -> str:
+    out = ["| pile | P_traj | sensor noise | start position | Ve firmware in the loop [%] | Ve batch, same position "
+           "[%] | self-cal. applied (firmware) | Ve firmware without self-cal. [%] | Ve batch without self-cal. [%] "
+           "| no returns + flagged (firmware) [%] | wall time [s] |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for s in spots:
+        twin = next((r for c, rows in results.items() if (c.pile, c.p_traj_pct, c.model) == (s["pile"], s["p"],
+                     s["model"]) for r in rows if r["phase"] == s["phase"]), None)
+        batch = f"{twin['ve_pct']:.2f}" if twin else "-"
+        batch_plain = f"{twin['ve_nocal_pct']:.2f}" if twin else "-"
+        out.append(f"| {s['pile']} | {s['p']} % | {s['model'].value} | {s['phase']} | {s['ve_pct']:.2f} | {batch} | "
+                   f"{'yes' if s['self_cal_applied'] else 'no'} | {s['ve_nocal_pct']:.2f} | {batch_plain} | "
+                   f"{s['no_return_pct']:.1f} | {s['wall_s']:.0f} |")
+    return "\n".join(out)
+
+
+def _spot(text: str) -> tuple[str, int, SensorNoiseModel, int]:
+    try:
+        pile, p, model, phase = text.split(",")
+        if pile not in PILES or int(p) not in P_TRAJ_PCT or not 0 <= int(phase) < N_POSITIONS:
+            raise ValueError
+        return pile, int(p), SensorNoiseModel(model), int(phase)
+    except ValueError:
+        raise ValueError(f"--spot must be PILE,P_TRAJ,MODEL,PHASE with a pile of {PILES}, P_traj of {P_TRAJ_PCT}, "
+                         f"a model of {', '.join(m.value for m in MODELS)} and a phase 0-19, got {text!r}") from None
+
+
+def _fresh_run_note(cache: Path, all_computed: bool, wall_s: float, jobs: int) -> str:
+    """What the last run that computed every case took (recorded by that run in the cache)."""
+    path = cache / "noise-table-fresh-run.json"
+    if all_computed:
+        path.write_text(json.dumps({"wall_s": wall_s, "jobs": jobs, "date": time.strftime("%Y-%m-%d")}))
+    try:
+        f = json.loads(path.read_text())
+        return (f"; the last run that computed all of them took {f['wall_s'] / 60:.1f} min with {f['jobs']} "
+                f"worker(s) ({f['date']})")
+    except (OSError, ValueError, KeyError, TypeError):
+        return ""
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = ArgumentParser(prog="python -m tools.noise_table", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--write", type=Path, default=None, help="regenerate this tool's section of this page")
+    ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
+    ap.add_argument("--phases", type=int, default=N_POSITIONS, help="servo start positions per case (default 20)")
+    ap.add_argument("--cache", type=Path, default=Path("runs/sweep-cache"), help="flight and case cache")
+    ap.add_argument("--spot", action="append", default=[], metavar="PILE,P,MODEL,PHASE",
+                    help="also fly this case with the firmware in the loop (repeatable)")
+    args = ap.parse_args(argv)
+    if args.jobs < 1 or not 1 <= args.phases <= N_POSITIONS:
+        ap.error(f"--jobs must be >= 1 and --phases 1-{N_POSITIONS}")
+    try:
+        spots = [_spot(s) for s in args.spot]
+    except ValueError as exc:
+        ap.error(str(exc))
+    t0 = time.perf_counter()
+    e = ALL_EXPERIMENTS["baseline"]
+    for p in P_TRAJ_PCT:  # the flights first, once each (the workers then read them from the cache)
+        _flight(e, float(p), args.cache)
+    cases = [Case(pile, p, m, args.phases) for pile in PILES for p in P_TRAJ_PCT for m in MODELS]
+    n_todo = sum(not (args.cache / f"{c.key()}.json").exists() for c in cases)
+    with ProcessPoolExecutor(args.jobs) as pool:
+        results = dict(zip(cases, pool.map(run_case, cases, [args.cache] * len(cases)), strict=True))
+        print(table(results), flush=True)
+        spot_rows = list(pool.map(spot_check, *zip(*spots, strict=True))) if spots else []
+    wall = time.perf_counter() - t0
+    fresh_note = _fresh_run_note(args.cache, n_todo == len(cases), wall, args.jobs)
+    parts = [
+        "## Ve with realistic sensing (`--sensor-noise`)",
+        "",
+        f"Regenerate with `python -m tools.noise_table --write docs/results.md --jobs {args.jobs}"
+        + "".join(f" --spot {s}" for s in args.spot) + f"` ({wall / 60:.1f} min on this run, which computed "
+        f"{n_todo} of the {len(cases)} cases; flights and cases are cached in `{args.cache}`{fresh_note}). "
+        "The paper's baseline (Table 1: semi-triangular sweep, 1 m/s, 30 deg/s yaw, "
+        "one-step corners), the JSBSim vehicle, the paper's building; each row is "
+        f"{args.phases} servo start positions (Fig. 9) sampled by the batch path with the same noise functions "
+        "as `fly` (docs/noise.md says what each model is). Ve (eq. 8, `nearest` empty cells) through the ground "
+        "report's default pipeline: mean ± standard deviation and the worst (max) over the start positions. "
+        "\"Ve without self-cal.\" is the same surveys with `--no-self-calibration` where the self-calibration "
+        "applied a correction (elsewhere the same value): every correction on these flights is false, the mount "
+        "is square. \"no returns\": samples flagged NO_RETURN (nothing within the sensor's range, or a "
+        "datasheet no-return).",
+        "",
+        table(results),
+    ]
+    if spot_rows:
+        parts += ["", "Spot checks with the payload firmware in the loop (`pilescan-sitl fly --sensor-noise MODEL "
+                  "--phase K --seed K`, lockstep, then `pilescan-ground report`), beside the batch row of the same "
+                  "start position (the noise draws differ: only the distributions are the same):", "",
+                  spot_table(spot_rows, results)]
+    text = "\n".join(parts)
+    if args.write is not None:
+        write_section(args.write, SECTION, text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
