@@ -202,6 +202,17 @@ class _Problem:
         self.r_wb = np.einsum("ij,njk->nik", frame.rot_w_from_ned, r_nb)
         pos = np.stack([s["x_m"], s["y_m"], s["z_m"]], axis=1).astype(float)
         self.origins = frame.ned_to_w(pos) + np.einsum("nij,j->ni", self.r_wb, np.asarray(lever, dtype=float))
+        self._level = (s, frame)
+
+    def level(self) -> _Problem:
+        """The same beams from a level vehicle (roll and pitch zero, heading kept): the survey's
+        geometry without the vehicle's wobble (`estimate_mount`'s observability)."""
+        s, frame = self._level
+        out = object.__new__(_Problem)
+        out.__dict__.update(self.__dict__)
+        r_nb = rot_body_to_ned(np.zeros(len(s)), np.zeros(len(s)), s["yaw_rad"])
+        out.r_wb = np.einsum("ij,njk->nik", frame.rot_w_from_ned, r_nb)
+        return out
 
     def points(self, q: np.ndarray, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
         g = self.angles(float(q[0]), float(q[1]))[idx]
@@ -403,15 +414,18 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     noise = max(range_sigma_m, range_sigma_rel * r_med, 0.005)
     # Observability: which parameters the structure seen pins down well enough that a deviation that
     # matters would stand N_SIGNIFICANT standard errors out (their covariance from the fit's tangent
-    # and residuals, sweeps as draws). The tangent is taken at a square boresight: a tilt or yaw seen
-    # only at second order (through its cosine, on the floor and the walls beside the track) is seen
-    # in size but neither in sign nor apart from the other. Every parameter that fails is held square
-    # at once (one at a time, the tilt and yaw that were weak together each looked fine alone, and a
-    # yaw took up a tilt's cosine), then the rest is fitted again and checked again.
+    # and residuals, sweeps as draws). The tangent is taken at a square boresight and a level vehicle:
+    # a tilt or yaw seen only at second order (through its cosine, on the floor and the walls beside
+    # the track) is seen in size but neither in sign nor apart from the other, and one seen only
+    # through the vehicle's roll and pitch rests on a few degrees of wobble whose own errors are alike.
+    # Every parameter that fails is held square at once (one at a time, the tilt and yaw that were
+    # weak together each looked fine alone, and a yaw took up a tilt's cosine), then the rest is
+    # fitted again and checked again.
     free = np.ones(4, dtype=bool)
+    level = prob.level()
     while True:
         k_on = idx_all[on]
-        jac = _jacobian(prob, np.array([q[0], q[1], 0.0, 0.0]), k_on, n[j[on]]) / final[on, None]
+        jac = _jacobian(level, np.array([q[0], q[1], 0.0, 0.0]), k_on, n[j[on]]) / final[on, None]
         cov = np.full((4, 4), math.inf)
         cov[np.ix_(free, free)] = _cluster_cov(jac[:, free], r[on] / final[on], sweep[on])
         pinned = np.sqrt(np.maximum(np.diag(cov), 0.0)) * reach * N_SIGNIFICANT
