@@ -376,7 +376,9 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
         resim: how the servo was driven (`Resimulated.from_header`), for the exact servo model; None:
             the logged angles scaled and offset.
     """
-    s = samples[np.isfinite(samples["range_m"]) & (samples["range_m"] > 0)]
+    finite = np.logical_and.reduce([np.isfinite(samples[f]) for f in
+                                    ("range_m", "servo_rad", "x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad")])
+    s = samples[finite & (samples["range_m"] > 0)]
     if len(s) < 1000:
         return not_estimated(f"too few usable samples ({len(s)}) to calibrate from the building")
     stride = max(1, len(s) // MAX_POINTS)
@@ -453,9 +455,12 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     k_on = np.flatnonzero(on)
     same = (np.diff(k_on) == 1) & (j[k_on[1:]] == j[k_on[:-1]])
     noise_m = _robust_rms(np.diff(r[k_on])[same]) / math.sqrt(2.0) if same.any() else math.inf
-    if _robust_rms(r[on]) > MAX_MISFIT * max(noise_m, 0.001):
+    # Nor may they stay farther off than the sensor's own datasheet error: scattered points (no
+    # structure in the cloud at all) have neighbours as far apart as anything, so only this tells.
+    floor_m = min(max(noise_m, 0.001), noise)
+    if _robust_rms(r[on]) > MAX_MISFIT * floor_m:
         return not_estimated(f"the mounting model does not explain the floor and walls seen (their points stay "
-                             f"{_robust_rms(r[on]) * 100:.1f} cm off their planes against {noise_m * 100:.1f} cm of "
+                             f"{_robust_rms(r[on]) * 100:.1f} cm off their planes against {floor_m * 100:.1f} cm of "
                              "noise)", counts)
     matters = free & (np.abs(q) * reach > noise)
     # Standard errors: the same fit on every 8th sweep (whole sweeps share their errors); only needed

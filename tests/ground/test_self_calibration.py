@@ -157,3 +157,17 @@ def test_that_the_walls_facing_the_track_pin_the_boresight_and_those_beside_it_t
     assert facing[2] < beside[2] / 3 and facing[3] < beside[3] / 3  # tilt and yaw: along-track shifts
     assert beside[0] < facing[0] and beside[1] < facing[1]  # offset and scale: the beam's elevation
     assert sets["all"][0] == sum(sets[k][0] for k in PLANE_SETS[:3])
+
+
+def test_that_points_scattered_at_random_are_no_building_and_get_no_correction():
+    rng = np.random.default_rng(1)
+    s = np.zeros(3000, dtype=SAMPLE_DTYPE)
+    s["t_s"] = np.arange(3000) / 500.0
+    s["range_m"] = rng.uniform(0.1, 30.0, 3000)
+    s["servo_rad"] = rng.uniform(-1.5, 1.5, 3000)
+    s["x_m"], s["y_m"], s["z_m"] = rng.uniform(0, 20, 3000), rng.uniform(0, 30, 3000), -8.0
+    s["yaw_rad"] = rng.uniform(-3.0, 3.0, 3000)
+    s["sweep_dir"] = rng.choice([-1, 1], 3000)
+    s["roll_rad"][5] = np.nan  # a non-finite pose is left out, not fitted
+    est = estimate_mount(s, (0, 0, 0.1), StorageFrame(), STORAGE, 0.025, 0.01)
+    assert not est.any_applied and "does not explain the floor and walls" in est.reason
