@@ -4,21 +4,34 @@ from the planes every survey sees.
 A real servo is never where its calibration says, and a LiDAR is never glued on square: the true beam
 is at gamma' = offset + (1 + scale) gamma (gamma the logged, modelled angle) and leans out of the
 sweep plane by the boresight (`firmware_py.core.frames.Boresight`: a tilt out of the plane and a yaw of
-the servo axis). Each of these bends the floor and the walls in the cloud in its own way: an offset
-tilts the floor seen across a sweep, a scale error curls it up or down towards the sweep's ends, a
-tilt shifts the floor under the track and the walls along it, a yaw twists the walls at the sweep's
-ends. The floor (z = 0) and the four walls are known planes (the log header's storage), so the four
-parameters are those that put the structure points back on their planes: robust least squares
-(scipy's soft-L1 loss) over the points near a plane, the window shrinking from what a few degrees of
-misalignment can do down to the sensor's own error (the header's sensor model) as the fit converges.
-Pile points that fall inside a window are outliers to the loss.
+the servo axis). The floor (z = 0) and the four walls are known planes (the log header's storage), so
+the four parameters are those that put the structure points back on their planes.
+
+What each plane constrains (measured per plane set by `plane_set_errors`): a wall beside the track,
+seen at the sweep's end, and the floor pin the offset and the scale through the beam's elevation (a
+wall point moves by its drop below the LiDAR times the angle error, a floor point by its horizontal
+distance); a tilt or a yaw moves a point along the track, which only a plane facing the track sees:
+the walls seen while the vehicle turns at the corners (the floor and the walls beside it see a tilt
+only through the vehicle's roll and pitch, an order of magnitude more weakly). So the floor is not
+needed: where a pile hides it (the paper's pile 2 leaves ~30 floor points) the walls carry the fit.
+
+How: first a vote over the whole plausible range (`_search`, a Hough transform over the servo's
+offset and scale): every point says which offset would put it on each plane at each trial scale, and
+the mount most structure points agree on wins, so the fit starts in the right basin however much of
+the structure the pile hides (a local fit started square was dragged off by pile points near the
+walls). Then robust least squares (arctan loss, bounded influence) over the points near a plane, the
+window shrinking from the sensor's datasheet error to what the data achieve.
+
+Observability, from the data: each parameter's covariance from the fit's tangent and residuals, the
+points of a sweep taken as one draw (a cluster-robust sandwich). A parameter the structure seen does
+not pin well enough that a deviation that matters would stand 3 standard errors out is held square
+(reported as not observable) and the rest fitted again; none observable: nothing is estimated.
 
 How sure: the samples are split into eight interleaved groups of whole sweeps (every eighth sweep),
-each group fitted on its own; the spread of the eight estimates (not the point count, which ignores
-that points along one sweep share their errors) gives each parameter's standard error. A parameter
-is applied only when it is both significant (beyond 3 standard errors) and large enough to matter: it
-moves a structure point at the survey's median range by more than the sensor's range sigma there.
-So a fault-free survey gets no correction, and the report says what was found and why not applied.
+each group fitted on its own; the spread of the eight estimates gives each parameter's standard
+error. A parameter is applied only when it is both significant (beyond 3 standard errors) and large
+enough to matter: it moves a structure point at the survey's median range by more than the sensor's
+range sigma there. So a fault-free survey gets no correction, and the report says what was found.
 
 On top of the configured mounting: the log header's ``boresight`` (the payload's --boresight, square when
 absent) is where the fit starts; the tilt and yaw it estimates, reports and applies are deviations from it.
@@ -43,19 +56,18 @@ from ground.servo_timing import Resimulated
 
 N_GROUPS = 8
 """Interleaved groups of sweeps for the standard errors."""
-MIN_PLANE_POINTS = 200
-"""Fewest floor points, and fewest wall points, to calibrate from: the offset and scale show mostly on
-the floor across a sweep. A floor nearly covered by the pile (the paper's pile 2 leaves ~60 floor
-points) is refused rather than fitted on the walls alone, where pile points beside them biased a
-fault-free survey by -0.4 deg."""
 MAX_MISFIT = 3.0
 """A fit whose structure points stay more than this many noise levels off their planes is not applied."""
 N_SIGNIFICANT = 3.0
 """A parameter is applied when beyond this many standard errors (and large enough to matter)."""
 MAX_POINTS = 20_000
 """Points used in the fit (evenly spaced in time); the planes need far fewer."""
-START_WINDOW_RAD = math.radians(5.0)
-"""The first window: what 5 deg of misalignment moves a point at its range."""
+SEARCH_RESOLUTION_RAD = math.radians(0.1)
+"""The start search's offset bin: fine enough that pile points rarely share a bin with the structure,
+coarse against the angle noise of a structure point (a few mm at metres: hundredths of a degree)."""
+SEARCH_SCALE_NODE = 0.025
+"""Scales at which the search re-runs the servo model, interpolated linearly between: at most 0.23 deg
+off the exact model (95th percentile, paper's sweep), inside the fit's first window."""
 PARAMS = ("servo_offset_rad", "servo_scale", "boresight_tilt_rad", "sweep_yaw_rad")
 LIN_STEP = 1e-3
 """Scale step of the servo model's tangent (`ServoAngles.linearize`)."""
@@ -77,6 +89,8 @@ class MountEstimate:
         points: structure points in the final fit, per plane (floor, x=0, x=L, y=0, y=W).
         rms_before_m, rms_after_m: robust RMS distance of those points from their planes.
         reason: one line when nothing could be estimated (too few structure points).
+        observable: which parameters the structure seen pins down (module docstring); the others are
+            held square (value 0, not applied).
     """
 
     values: tuple[float, float, float, float]
@@ -86,6 +100,7 @@ class MountEstimate:
     rms_before_m: float
     rms_after_m: float
     reason: str | None = None
+    observable: tuple[bool, bool, bool, bool] = (True, True, True, True)
 
     @property
     def any_applied(self) -> bool:
@@ -100,10 +115,12 @@ class MountEstimate:
     def as_dict(self) -> dict:
         deg = (True, False, True, True)
         out = {}
-        for name, v, e, a, is_angle in zip(PARAMS, self.values, self.std_errors, self.applied, deg, strict=True):
+        for name, v, e, a, o, is_angle in zip(PARAMS, self.values, self.std_errors, self.applied, self.observable, deg,
+                                              strict=True):
             key = name.replace("_rad", "_deg") if is_angle else name
             f = math.degrees if is_angle else (lambda x: x)
-            out[key] = {"estimate": f(v), "std_error": None if math.isnan(e) else f(e), "applied": a}
+            out[key] = {"estimate": f(v), "std_error": None if math.isnan(e) else f(e), "applied": a,
+                        "observable": o}
         out.update(points_per_plane=dict(zip(("floor", "x0", "xL", "y0", "yW"), self.points, strict=True)),
                    rms_before_m=self.rms_before_m, rms_after_m=self.rms_after_m, reason=self.reason)
         return out
@@ -201,6 +218,17 @@ class _Problem:
         self.r_wb = np.einsum("ij,njk->nik", frame.rot_w_from_ned, r_nb)
         pos = np.stack([s["x_m"], s["y_m"], s["z_m"]], axis=1).astype(float)
         self.origins = frame.ned_to_w(pos) + np.einsum("nij,j->ni", self.r_wb, np.asarray(lever, dtype=float))
+        self._level = (s, frame)
+
+    def level(self) -> _Problem:
+        """The same beams from a level vehicle (roll and pitch zero, heading kept): the survey's
+        geometry without the vehicle's wobble (`estimate_mount`'s observability)."""
+        s, frame = self._level
+        out = object.__new__(_Problem)
+        out.__dict__.update(self.__dict__)
+        r_nb = rot_body_to_ned(np.zeros(len(s)), np.zeros(len(s)), s["yaw_rad"])
+        out.r_wb = np.einsum("ij,njk->nik", frame.rot_w_from_ned, r_nb)
+        return out
 
     def points(self, q: np.ndarray, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
         g = self.angles(float(q[0]), float(q[1]))[idx]
@@ -218,37 +246,139 @@ def _assign(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: np.ndarray) -> 
 
 
 def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.ndarray,
-         windows: list[np.ndarray], loss: str = "arctan") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+         windows: list[np.ndarray], free: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fit the points `idx` over a shrinking window (per-point arrays, m); returns (q, plane index,
-    residual m) of the last round, for the points `idx`.
+    residual m) of the last round, for the points `idx`. Only the `free` parameters move (all by default).
 
     Each round takes the points within three windows of their nearest plane and a bounded-influence
     loss (arctan) of their distance in windows: a point more than about a window off counts for
     little whatever its distance, so the pile surface near a wall or the floor cannot drag the fit,
-    and shrinking the window walks the fit from the coarse basin into the exact one.
+    and shrinking the window walks the fit from the search's basin into the exact one.
     """
     q = q0.copy()
+    free = np.ones(4, dtype=bool) if free is None else free
+    lo, hi = BOUNDS[0][free], BOUNDS[1][free]
     for window in windows:
         prob.angles.linearize(float(q[1]))
         w_idx = window[idx]
-        j, _ = _assign(prob.points(q, idx), n, d, (3.0 if loss == "arctan" else 1.0) * w_idx)
+        j, _ = _assign(prob.points(q, idx), n, d, 3.0 * w_idx)
         keep = j >= 0
         sel = idx[keep]
-        if len(sel) < 50:
+        if len(sel) < 50 or not free.any():
             break
         nj, dj, wj = n[j[keep]], d[j[keep]], w_idx[keep]
 
-        def resid(qq, sel=sel, nj=nj, dj=dj, wj=wj):
+        def resid(qf, sel=sel, nj=nj, dj=dj, wj=wj, q=q):
+            qq = q.copy()
+            qq[free] = qf
             return (np.einsum("ij,ij->i", prob.points(qq, sel), nj) - dj) / wj
 
-        q = least_squares(resid, np.clip(q, *BOUNDS), loss=loss, f_scale=1.0, bounds=BOUNDS,
-                          x_scale=np.array([0.01, 0.01, 0.01, 0.01]), diff_step=1e-6, max_nfev=80).x
+        q = q.copy()
+        q[free] = least_squares(resid, np.clip(q[free], lo, hi), loss="arctan", f_scale=1.0, bounds=(lo, hi),
+                                x_scale=np.full(int(free.sum()), 0.01), diff_step=1e-6, max_nfev=80).x
     j, r = _assign(prob.points(q, idx), n, d, 3.0 * windows[-1][idx])
     return q, j, r
 
 
+def _implied_shifts(prob: _Problem, n: np.ndarray, d: np.ndarray,
+                    max_shift_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """How far each beam must turn in its sweep plane (square mount) for its range to end on each
+    plane, the turn nearest the logged angle: (shift rad, solvable), both (N, 5).
+
+    With the beam [0, sin g, cos g] in the body, a point's signed distance from plane k is
+    c + r (a sin g + b cos g) (c: the beam origin's distance, a and b: the body's y and z axes
+    along the plane's normal), zero at g = asin(-c / (r hypot(a, b))) - atan2(b, a) or pi minus that.
+    """
+    a = np.einsum("nj,kj->nk", prob.r_wb[:, :, 1], n)
+    b = np.einsum("nj,kj->nk", prob.r_wb[:, :, 2], n)
+    c = prob.origins @ n.T - d
+    x = -c / (prob.range_m[:, None] * np.maximum(np.hypot(a, b), 1e-12))
+    root = np.arcsin(np.clip(x, -1.0, 1.0))
+    phi = np.arctan2(b, a)
+    g = prob.gamma[:, None]
+    s1 = (root - phi - g + math.pi) % (2 * math.pi) - math.pi
+    s2 = (math.pi - root - phi - g + math.pi) % (2 * math.pi) - math.pi
+    shift = np.where(np.abs(s1) <= np.abs(s2), s1, s2)
+    return shift, (np.abs(x) <= 1.0) & (np.abs(shift) <= max_shift_rad)
+
+
+def _search(prob: _Problem, n: np.ndarray, d: np.ndarray) -> tuple[float, float] | None:
+    """The servo (offset, scale) most structure points agree on, the boresight taken square: a vote
+    (a Hough transform) over the whole plausible range, so the fit starts in the right basin wherever
+    the mount is, whatever the pile hides.
+
+    Each point and plane give the beam angle that would put the point on that plane; a point truly
+    on it says offset = that angle minus the servo's angle at the trial scale. For every trial scale
+    the offsets are histogrammed (SEARCH_RESOLUTION_RAD bins, two merged so a peak on a bin edge is
+    whole): the structure points of the true mount pile into one bin, pile points and wrong planes
+    spread. The scale step moves the angles across the sweep by two bins at most, so the true peak
+    is never stepped over. Returns None when no point could lie on any plane.
+    """
+    lo, hi = BOUNDS
+    max_shift = hi[0] + hi[1] * float(np.max(np.abs(prob.gamma))) + SEARCH_RESOLUTION_RAD
+    shift, ok = _implied_shifts(prob, n, d, max_shift)
+    rows, cols = np.nonzero(ok)
+    if len(rows) == 0:
+        return None
+    votes = shift[rows, cols]
+    nodes = np.arange(lo[1], hi[1] + 1e-9, SEARCH_SCALE_NODE)
+    moved = np.stack([prob.angles.exact(float(x))[rows] - prob.gamma[rows] for x in nodes])
+    span = float(np.ptp(prob.gamma))
+    step = 2.0 * SEARCH_RESOLUTION_RAD / max(span, SEARCH_RESOLUTION_RAD)
+    n_bins = math.ceil(2.0 * hi[0] / SEARCH_RESOLUTION_RAD) + 1
+    best = (0, 0.0, 0.0)
+    for scale in np.arange(lo[1], hi[1] + 1e-9, step):
+        k = min(max(int((scale - lo[1]) // SEARCH_SCALE_NODE), 0), len(nodes) - 2)
+        f = (scale - nodes[k]) / SEARCH_SCALE_NODE
+        off = votes - ((1.0 - f) * moved[k] + f * moved[k + 1])
+        off = off[np.abs(off) < hi[0]]
+        h = np.bincount(((off - lo[0]) / SEARCH_RESOLUTION_RAD).astype(np.int64), minlength=n_bins)
+        h2 = h[:-1] + h[1:]
+        j = int(np.argmax(h2))
+        if h2[j] > best[0]:
+            best = (int(h2[j]), float(scale), lo[0] + (j + 1) * SEARCH_RESOLUTION_RAD)
+    return best[2], best[1]
+
+
+def _cluster_cov(jac: np.ndarray, u: np.ndarray, cluster: np.ndarray) -> np.ndarray:
+    """The parameters' covariance as the fit sees them: residuals u in windows and their tangent jac
+    (N, p, per window), the arctan loss's weights (a point a few windows off counts for little, as
+    in the fit), and the points of one sweep taken as one draw (a cluster-robust sandwich): a
+    sweep's points share its errors, so counting them as independent would overstate how well the
+    planes pin the mount. inf on the diagonal for a parameter the points do not move at all."""
+    p = jac.shape[1]
+    z = u * u
+    weight = 1.0 / (1.0 + z * z)  # d arctan(z) / dz: the loss's weight on a squared residual
+    info = (jac * weight[:, None]).T @ jac
+    bread = np.linalg.pinv(info, rcond=1e-12, hermitian=True)
+    _, inv = np.unique(cluster, return_inverse=True)
+    score = np.zeros((inv.max() + 1, p))
+    np.add.at(score, inv, jac * (weight * u)[:, None])
+    cov = bread @ (score.T @ score) @ bread
+    dead = np.diag(info) <= 1e-18 * max(float(np.max(np.diag(info))), 1e-300)
+    cov[dead, dead] = math.inf
+    return cov
+
+
 def _robust_rms(r: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(r))) if len(r) else 0.0
+
+
+def _agreeing(prob: _Problem, q: np.ndarray, n: np.ndarray, d: np.ndarray, window: np.ndarray) -> int:
+    """How many points lie within their window of a plane with the mount q."""
+    prob.angles.linearize(float(q[1]))
+    return int(np.count_nonzero(_assign(prob.points(q), n, d, window)[0] >= 0))
+
+
+def _jacobian(prob: _Problem, q: np.ndarray, idx: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """d(signed plane distance)/d(parameter) of the points idx (N, 4), central differences."""
+    jac = np.empty((len(idx), 4))
+    for k in range(4):
+        dq = np.zeros(4)
+        dq[k] = 1e-5
+        moved = prob.points(q + dq, idx) - prob.points(q - dq, idx)
+        jac[:, k] = np.einsum("ij,ij->i", moved, normals) / 2e-5
+    return jac
 
 
 def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, storage: Storage,
@@ -264,7 +394,9 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
             the logged angles scaled and offset.
         boresight: the configured mounting (the header's); the tilt and yaw estimated are deviations from it.
     """
-    s = samples[np.isfinite(samples["range_m"]) & (samples["range_m"] > 0)]
+    finite = np.logical_and.reduce([np.isfinite(samples[f]) for f in
+                                    ("range_m", "servo_rad", "x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad")])
+    s = samples[finite & (samples["range_m"] > 0)]
     if len(s) < 1000:
         return not_estimated(f"too few usable samples ({len(s)}) to calibrate from the building")
     stride = max(1, len(s) // MAX_POINTS)
@@ -274,20 +406,62 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     rng_m = prob.range_m
     sigma = np.maximum(range_sigma_m, range_sigma_rel * rng_m)  # the header's 1-sigma range error
     idx_all = np.arange(len(s))
+    sweep = np.concatenate([[0], np.cumsum(np.diff(s["sweep_dir"].astype(np.int64)) != 0)])
     q0 = np.zeros(4)
-    coarse = [np.maximum(START_WINDOW_RAD * rng_m / 2 ** k, 3.0 * sigma) for k in range(5)]
-    q, j, r = _fit(prob, idx_all, n, d, q0, coarse, loss="soft_l1")
+    found = _search(prob, n, d)
+    start = q0 if found is None else np.array([found[0], found[1], 0.0, 0.0])
+    # The search's reach (two bins of offset, interpolation) or the sensor's noise, whichever is more.
+    first = np.maximum(sigma, 4.0 * SEARCH_RESOLUTION_RAD * rng_m)
+    q, j, r = _fit(prob, idx_all, n, d, start, [first])
     # The last window is what the data achieve, not the datasheet: the structure points' robust spread
     # in sensor sigmas (a simulated or a good sensor beats its datasheet), never under 2 mm.
     kappa = _robust_rms(r[j >= 0] / np.maximum(sigma[j >= 0], 1e-9))
     final = np.maximum(kappa * sigma, 0.002)
     windows = [np.maximum(sigma, final), final]
     q, j, r = _fit(prob, idx_all, n, d, q, windows)
+    if found is not None and _agreeing(prob, start, n, d, final) > _agreeing(prob, q, n, d, final):
+        # The wide first window let the pile drag the fit off what most structure points agree on
+        # (seen with a coarser search on pile 2): fit again from the search's mount, narrow at once.
+        q, j, r = _fit(prob, idx_all, n, d, start, [final, final])
+    on = j >= 0
+    if np.count_nonzero(on) < 50:
+        return not_estimated("the building's floor and walls were not found in the cloud",
+                             tuple(int(np.count_nonzero(j == k)) for k in range(5)))
+    # Large enough to matter: the point displacement at the median structure range vs the sensor sigma.
+    r_med = float(np.median(rng_m[on]))
+    g_med = float(np.median(np.abs(prob.gamma[on])))
+    reach = np.array([r_med, r_med * g_med, r_med, r_med * math.sin(g_med)])
+    noise = max(range_sigma_m, range_sigma_rel * r_med, 0.005)
+    # Observability: which parameters the structure seen pins down well enough that a deviation that
+    # matters would stand N_SIGNIFICANT standard errors out (their covariance from the fit's tangent
+    # and residuals, sweeps as draws). The tangent is taken at a square boresight and a level vehicle:
+    # a tilt or yaw seen only at second order (through its cosine, on the floor and the walls beside
+    # the track) is seen in size but neither in sign nor apart from the other, and one seen only
+    # through the vehicle's roll and pitch rests on a few degrees of wobble whose own errors are alike.
+    # Every parameter that fails is held square at once (one at a time, the tilt and yaw that were
+    # weak together each looked fine alone, and a yaw took up a tilt's cosine), then the rest is
+    # fitted again and checked again.
+    free = np.ones(4, dtype=bool)
+    level = prob.level()
+    while True:
+        k_on = idx_all[on]
+        jac = _jacobian(level, np.array([q[0], q[1], 0.0, 0.0]), k_on, n[j[on]]) / final[on, None]
+        cov = np.full((4, 4), math.inf)
+        cov[np.ix_(free, free)] = _cluster_cov(jac[:, free], r[on] / final[on], sweep[on])
+        pinned = np.sqrt(np.maximum(np.diag(cov), 0.0)) * reach * N_SIGNIFICANT
+        weak = free & ~(pinned < noise)
+        if not weak.any():
+            break
+        free &= ~weak
+        if not free.any():
+            return not_estimated("the floor and walls seen constrain none of the mounting's parameters well "
+                                 "enough to tell a deviation that matters", tuple(int(np.count_nonzero(j == k))
+                                                                                   for k in range(5)))
+        q = np.where(free, q, 0.0)
+        q, j, r = _fit(prob, idx_all, n, d, q, windows, free)
+        on = j >= 0
     counts = tuple(int(np.count_nonzero(j == k)) for k in range(5))
-    if counts[0] < MIN_PLANE_POINTS or sum(counts[1:]) < MIN_PLANE_POINTS:
-        return not_estimated(f"the building's floor and walls were seen too little to calibrate from "
-                             f"({counts[0]} floor and {sum(counts[1:])} wall points)", counts)
-    at_bound = np.isclose(q, BOUNDS[0], rtol=0, atol=1e-6) | np.isclose(q, BOUNDS[1], rtol=0, atol=1e-6)
+    at_bound = free & (np.isclose(q, BOUNDS[0], rtol=0, atol=1e-6) | np.isclose(q, BOUNDS[1], rtol=0, atol=1e-6))
     if at_bound.any():
         return not_estimated("the floor and walls in the cloud fit no plausible mounting (the estimate ran to "
                              f"its limit on {', '.join(n for n, b in zip(PARAMS, at_bound, strict=True) if b)})",
@@ -295,34 +469,68 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     # Does the mounting model explain the structure? Its residual spread against the data's own noise,
     # read off consecutive samples on the same plane (a mounting error moves neighbours alike, so their
     # difference is the noise): a fit that leaves much more than the noise has explained a pile as a
-    # wall or a floor (seen on the paper's pile 2, whose material hides most of the floor).
-    on = j >= 0
+    # wall or a floor.
     k_on = np.flatnonzero(on)
     same = (np.diff(k_on) == 1) & (j[k_on[1:]] == j[k_on[:-1]])
     noise_m = _robust_rms(np.diff(r[k_on])[same]) / math.sqrt(2.0) if same.any() else math.inf
-    if _robust_rms(r[on]) > MAX_MISFIT * max(noise_m, 0.001):
+    # Nor may they stay farther off than the sensor's own datasheet error: scattered points (no
+    # structure in the cloud at all) have neighbours as far apart as anything, so only this tells.
+    floor_m = min(max(noise_m, 0.001), noise)
+    if _robust_rms(r[on]) > MAX_MISFIT * floor_m:
         return not_estimated(f"the mounting model does not explain the floor and walls seen (their points stay "
-                             f"{_robust_rms(r[on]) * 100:.1f} cm off their planes against {noise_m * 100:.1f} cm of "
-                             "noise): too much of the structure is hidden by the pile", counts)
-    # Large enough to matter: the point displacement at the median structure range vs the sensor sigma.
-    r_med = float(np.median(rng_m[on]))
-    g_med = float(np.median(np.abs(prob.gamma[on])))
-    reach = np.array([r_med, r_med * g_med, r_med, r_med * math.sin(g_med)])
-    noise = max(range_sigma_m, range_sigma_rel * r_med, 0.005)
-    matters = np.abs(q) * reach > noise
+                             f"{_robust_rms(r[on]) * 100:.1f} cm off their planes against {floor_m * 100:.1f} cm of "
+                             "noise)", counts)
+    matters = free & (np.abs(q) * reach > noise)
     # Standard errors: the same fit on every 8th sweep (whole sweeps share their errors); only needed
     # when something is large enough to matter (a square mount, the usual case, skips them).
     se = np.full(4, math.nan)
     if matters.any():
-        flips = np.concatenate([[0], np.cumsum(np.diff(s["sweep_dir"].astype(np.int64)) != 0)])
-        group = flips % N_GROUPS
-        ests = [_fit(prob, idx_all[group == k], n, d, q, windows[-1:])[0] for k in range(N_GROUPS)]
-        se = np.std(np.array(ests), axis=0, ddof=1) / math.sqrt(N_GROUPS)
+        group = sweep % N_GROUPS
+        ests = [_fit(prob, idx_all[group == k], n, d, q, windows[-1:], free)[0] for k in range(N_GROUPS)]
+        se = np.where(free, np.std(np.array(ests), axis=0, ddof=1) / math.sqrt(N_GROUPS), math.nan)
     applied = tuple(bool(m and abs(v) > N_SIGNIFICANT * e) for v, e, m in zip(q, se, matters, strict=True))
     # The same points, on the same planes, before the correction: what it changed.
     r0 = np.einsum("ij,ij->i", prob.points(q0, idx_all[on]), n[j[on]]) - d[j[on]]
     return MountEstimate(tuple(float(v) for v in q), tuple(float(v) for v in se), applied, counts,
-                         _robust_rms(r0), _robust_rms(r[on]))
+                         _robust_rms(r0), _robust_rms(r[on]), observable=tuple(bool(f) for f in free))
+
+
+PLANE_SETS = ("floor", "walls beside the track", "walls facing the track", "all")
+"""The plane sets of `plane_set_errors`: a wall is beside the track while the vehicle heads within
+BESIDE_RAD of it (the straight legs), else it faces the track (the turns at the corners)."""
+BESIDE_RAD = math.radians(5.0)
+
+
+def plane_set_errors(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, storage: Storage,
+                     est: MountEstimate, resim: Resimulated | None = None) -> dict[str, tuple[int, np.ndarray]]:
+    """The observability analysis, for the record: what each set of planes alone pins down.
+
+    At the estimate, the structure points within three fit residuals (never under 2 mm) of a plane,
+    split by PLANE_SETS; for each set, the points and the four parameters' standard errors (rad,
+    fraction) from those points alone (the estimator's cluster-robust sandwich; inf: not constrained).
+    """
+    s = samples[np.isfinite(samples["range_m"]) & (samples["range_m"] > 0)]
+    s = s[::max(1, len(s) // MAX_POINTS)]
+    prob = _Problem(s, np.asarray(lever_arm_body_m, dtype=float), frame, resim)
+    n, d = _planes(storage)
+    q = np.array(est.values, dtype=float)
+    prob.angles.linearize(float(q[1]))
+    window = 3.0 * max(est.rms_after_m, 0.002)
+    j, r = _assign(prob.points(q), n, d, np.full(len(s), window))
+    on = np.flatnonzero(j >= 0)
+    jac = _jacobian(prob, q, on, n[j[on]]) / window
+    u = r[on] / window
+    sweep = np.concatenate([[0], np.cumsum(np.diff(s["sweep_dir"].astype(np.int64)) != 0)])[on]
+    along = np.abs(np.einsum("ij,ij->i", prob.r_wb[on][:, :, 0], n[j[on]]))  # the track's direction on the normal
+    wall = j[on] > 0
+    masks = (j[on] == 0, wall & (along < math.sin(BESIDE_RAD)), wall & (along >= math.sin(BESIDE_RAD)),
+             np.ones(len(on), dtype=bool))
+    out = {}
+    for name, m in zip(PLANE_SETS, masks, strict=True):
+        se = (np.sqrt(np.maximum(np.diag(_cluster_cov(jac[m], u[m], sweep[m])), 0.0)) if m.sum() > 4
+              else np.full(4, math.inf))
+        out[name] = (int(m.sum()), se)
+    return out
 
 
 def apply_mount(samples: np.ndarray, est: MountEstimate, resim: Resimulated | None,
@@ -349,5 +557,7 @@ def describe(est: MountEstimate, base: Boresight = SQUARE) -> str:
     on_top = "" if base.square else (
         f" on top of the configured boresight ({math.degrees(base.tilt_rad):+.2f} deg tilt, "
         f"{math.degrees(base.sweep_yaw_rad):+.2f} deg sweep-plane yaw)")
+    held = [name for name, o in zip(names, est.observable, strict=True) if not o]
     return (f"self-calibration from the building applied: {', '.join(parts)}{on_top} (structure points off their "
-            f"planes: {est.rms_before_m * 100:.1f} -> {est.rms_after_m * 100:.1f} cm RMS)")
+            f"planes: {est.rms_before_m * 100:.1f} -> {est.rms_after_m * 100:.1f} cm RMS)"
+            + (f"; held square, as the structure seen does not constrain it: {', '.join(held)}" if held else ""))

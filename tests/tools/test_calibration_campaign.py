@@ -1,7 +1,12 @@
 """The calibration campaign's parts: its faults are valid SITL faults, its table marks what was applied."""
 
+import math
+
+import numpy as np
+
+from ground.self_calibration import PLANE_SETS
 from sitl.faults.injector import FaultSpec
-from tools.calibration_campaign import FAULTS, Case, table
+from tools.calibration_campaign import FAULTS, Case, plane_set_table, table
 
 
 def test_that_every_campaign_fault_is_a_valid_sitl_fault():
@@ -20,3 +25,25 @@ def test_that_the_table_bolds_applied_estimates_and_compares_with_the_fault_free
     hidden = {**cal, "reason": "the building's floor and walls were seen too little"}
     rows[1] = {**rows[1], "cal": hidden}
     assert "| - | - | - | - | the building's floor and walls were seen too little |" in table(rows)
+
+
+def test_that_a_parameter_held_for_lack_of_observability_says_so_not_zero():
+    cal = {"servo_offset_deg": {"estimate": 3.0, "std_error": 0.01, "applied": True, "observable": True},
+           "sweep_yaw_deg": {"estimate": 0.0, "std_error": None, "applied": False, "observable": False},
+           "points_per_plane": {"floor": 31, "x0": 10, "xL": 10, "y0": 5, "yW": 5}}
+    rows = [{"case": Case("2", "fault-free"), "ve_off": 1.0, "ve_on": 1.0, "cal": cal, "applied": []}]
+    text = table(rows)
+    assert "| held (not observable) | 31 / 30 |" in text
+
+
+def test_that_the_plane_set_table_names_a_parameter_a_set_does_not_see():
+    sets = {name: (0 if name == "floor" else 100, np.array([1e-4, 1e-4, math.inf if name == "floor" else 2e-4, 3e-4]))
+            for name in PLANE_SETS}
+    text = plane_set_table([{"case": Case("2", "all three"), "plane_sets": sets}])
+    assert "| 2 | floor | 0 | 0.0057 | 0.0100 | not seen | 0.0172 |" in text
+    assert text.count("\n") == len(PLANE_SETS) + 1
+
+
+def test_that_every_case_has_its_own_run_folder():
+    cases = [Case(p, f, phase=k, seed=s) for p in "12" for f in FAULTS for k in (0, 1) for s in (0, 1)]
+    assert len({c.name for c in cases}) == len(cases)
