@@ -134,6 +134,8 @@ def structure_mask(cloud: Cloud, storage: Storage, err: SensorErrorModel, n_sigm
     """True for points on a wall or the roof, or outside the building (below the floor included), which
     only noise or a sensor glitch puts there.
 
+    A point within both a wall's and the floor's tolerance is the floor's when it lies fewer tolerances
+    from the floor than from the wall (the floor along the walls is then seen, a wall's foot is not).
     A point's tolerance along a plane normal n is its range error projected on n,
     k sigma_r(r) |d . n| plus half the range resolution, plus k position sigmas; k is n_sigma, or
     `structure_n_sigma` of the cloud's size (so no wall point escapes by chance in a whole survey).
@@ -145,7 +147,13 @@ def structure_mask(cloud: Cloud, storage: Storage, err: SensorErrorModel, n_sigm
     tol_x = along * np.abs(d[:, 0]) + slack
     tol_y = along * np.abs(d[:, 1]) + slack
     tol_z = along * np.abs(d[:, 2]) + slack
-    return ((p[:, 0] <= tol_x) | (p[:, 0] >= storage.length_m - tol_x)
-            | (p[:, 1] <= tol_y) | (p[:, 1] >= storage.width_m - tol_y)
-            | (p[:, 2] >= storage.height_m - tol_z)
+    # Beside a wall, a point within both the wall's and the floor's tolerance goes to the surface it fits
+    # better (its distance in tolerances): the floor along the walls and a pile's toe are seen, a wall's
+    # foot stays wall.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        to_wall = np.minimum.reduce([p[:, 0] / tol_x, (storage.length_m - p[:, 0]) / tol_x,
+                                     p[:, 1] / tol_y, (storage.width_m - p[:, 1]) / tol_y])
+        to_floor = np.abs(p[:, 2]) / tol_z
+    walls = (to_wall <= 1.0) & ~(to_floor < to_wall)
+    return (walls | (p[:, 2] >= storage.height_m - tol_z)
             | (p[:, 2] < -tol_z))  # under the floor: a reading no beam could give (a glitch)

@@ -69,9 +69,10 @@ def test_that_wall_and_roof_points_are_removed_and_the_rest_kept():
     rng = np.random.default_rng(2)
     n = 1000
     u, v, w = rng.uniform(0.0, 1.0, (3, n))
+    z = 0.5 + 14.5 * w  # above the floor's tolerance: a wall's foot reads as floor (test_pointcloud)
     walls = [  # points on each wall and the roof, with the beam that reached them from mid-building
-        np.column_stack([np.zeros(n), 40 * u, 15 * w]), np.column_stack([np.full(n, 60.0), 40 * u, 15 * w]),
-        np.column_stack([60 * u, np.zeros(n), 15 * w]), np.column_stack([60 * u, np.full(n, 40.0), 15 * w]),
+        np.column_stack([np.zeros(n), 40 * u, z]), np.column_stack([np.full(n, 60.0), 40 * u, z]),
+        np.column_stack([60 * u, np.zeros(n), z]), np.column_stack([60 * u, np.full(n, 40.0), z]),
         np.column_stack([60 * u, 40 * v, np.full(n, 15.0)]),
     ]
     structure = np.vstack(walls)

@@ -67,6 +67,18 @@ def test_that_the_wall_tolerance_grows_with_the_cloud_so_no_wall_point_escapes_b
     assert (~structure_mask(c, st, err)).sum() == 0  # ... the survey-sized tolerance none
 
 
+def test_that_a_point_at_a_walls_foot_that_fits_the_floor_is_ground_not_wall():
+    """A return on the floor beside a wall, a beam slanting towards it: within the wall's tolerance, but as
+    much a floor return at height 0, so it is kept (the pile's toe and the floor along the walls are seen);
+    the same beam's point 1 m up the wall is wall."""
+    from ground.pointcloud import Cloud
+    d = np.array([[-0.6, 0.0, -0.8], [-0.6, 0.0, -0.8]])
+    p = np.array([[0.05, 20.0, 0.0], [0.05, 20.0, 1.0]])
+    c = Cloud(p, d, np.array([15.0, 14.0]), np.empty((0, 3)), 2, 0)
+    err = SensorErrorModel(range_sigma_m=0.025, range_sigma_rel=0.01)
+    assert structure_mask(c, Storage(60, 40, 15), err).tolist() == [False, True]
+
+
 def test_that_the_error_model_takes_the_larger_of_the_spec_and_the_noise_record():
     from firmware_py.core.sensor import LIDARLITE_V3
     from firmware_py.core.sensor_noise import SensorNoise
