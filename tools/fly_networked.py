@@ -44,7 +44,7 @@ def free_port(kind: int) -> int:
         return s.getsockname()[1]
 
 
-_PTY_LINE = re.compile(r"TFMini on (/dev/\S+) ")
+_PTY_LINE = re.compile(r"TFMini on (/dev/[^\s:]+)")
 
 
 class StderrLines:
