@@ -61,7 +61,7 @@ def skewed_run(tmp_path_factory):
 def test_that_a_noisy_fault_free_flight_gets_no_correction(biased_run, tmp_path):
     est = _estimate(biased_run)
     assert est.reason is None and not est.any_applied
-    assert est.refused is not None and est.refused.startswith("not applied: it gains its fit from points inside")
+    assert est.refused is not None and est.refused.startswith("not applied: it holds the planes with points inside")
     assert est.as_dict()["refused"] == est.refused
     rep = make_report(biased_run, tmp_path / "rep", ReportOptions(plots=False))
     assert not _applied(rep)
