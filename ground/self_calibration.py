@@ -33,6 +33,13 @@ error. A parameter is applied only when it is both significant (beyond 3 standar
 enough to matter: it moves a structure point at the survey's median range by more than the sensor's
 range sigma there. So a fault-free survey gets no correction, and the report says what was found.
 
+Under sensor noise that is not enough: the pile's points just inside the floor and walls, which the
+noise-widened bands take in from one side only, bias the fit, and a bias is as significant as a real
+error. So a correction is applied only if the data say the planes' own points come back
+(`_misfit_gain`: it brings the points closer to their planes than the noise; `_inside_excess`: it does
+not hold the planes with points from the inside, where a plane's own noise is symmetric); else
+`MountEstimate.refused` says why.
+
 On top of the configured mounting: the log header's ``boresight`` (the payload's --boresight, square when
 absent) is where the fit starts; the tilt and yaw it estimates, reports and applies are deviations from it.
 
