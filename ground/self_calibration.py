@@ -33,6 +33,13 @@ error. A parameter is applied only when it is both significant (beyond 3 standar
 enough to matter: it moves a structure point at the survey's median range by more than the sensor's
 range sigma there. So a fault-free survey gets no correction, and the report says what was found.
 
+Under sensor noise that is not enough: the pile's points just inside the floor and walls, which the
+noise-widened bands take in from one side only, bias the fit, and a bias is as significant as a real
+error. So a correction is applied only if the data say the planes' own points come back
+(`_misfit_gain`: it brings the points closer to their planes than the noise; `_inside_excess`: it does
+not hold the planes with points from the inside, where a plane's own noise is symmetric); else
+`MountEstimate.refused` says why.
+
 On top of the configured mounting: the log header's ``boresight`` (the payload's --boresight, square when
 absent) is where the fit starts; the tilt and yaw it estimates, reports and applies are deviations from it.
 
@@ -91,6 +98,8 @@ class MountEstimate:
         reason: one line when nothing could be estimated (too few structure points).
         observable: which parameters the structure seen pins down (module docstring); the others are
             held square (value 0, not applied).
+        refused: one line when significant parameters were not applied because the correction does not
+            bring the structure closer to its planes by more than the noise (`_misfit_gain`).
     """
 
     values: tuple[float, float, float, float]
@@ -101,6 +110,7 @@ class MountEstimate:
     rms_after_m: float
     reason: str | None = None
     observable: tuple[bool, bool, bool, bool] = (True, True, True, True)
+    refused: str | None = None
 
     @property
     def any_applied(self) -> bool:
@@ -122,7 +132,8 @@ class MountEstimate:
             out[key] = {"estimate": f(v), "std_error": None if math.isnan(e) else f(e), "applied": a,
                         "observable": o}
         out.update(points_per_plane=dict(zip(("floor", "x0", "xL", "y0", "yW"), self.points, strict=True)),
-                   rms_before_m=self.rms_before_m, rms_after_m=self.rms_after_m, reason=self.reason)
+                   rms_before_m=self.rms_before_m, rms_after_m=self.rms_after_m, reason=self.reason,
+                   refused=self.refused)
         return out
 
 
@@ -245,12 +256,18 @@ def _assign(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: np.ndarray) -> 
     return j, r
 
 
+INSIDE_SIGN = np.array([1.0, 1.0, -1.0, 1.0, -1.0])
+"""Per plane (floor, x=0, x=L, y=0, y=W): the sign of n . p - d on the building's inside, where the pile is."""
+BAND = 3.0
+"""A fit round takes the points within this many windows of their nearest plane."""
+
+
 def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.ndarray,
          windows: list[np.ndarray], free: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fit the points `idx` over a shrinking window (per-point arrays, m); returns (q, plane index,
     residual m) of the last round, for the points `idx`. Only the `free` parameters move (all by default).
 
-    Each round takes the points within three windows of their nearest plane and a bounded-influence
+    Each round takes the points within BAND windows of their nearest plane and a bounded-influence
     loss (arctan) of their distance in windows: a point more than about a window off counts for
     little whatever its distance, so the pile surface near a wall or the floor cannot drag the fit,
     and shrinking the window walks the fit from the search's basin into the exact one.
@@ -261,7 +278,7 @@ def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.n
     for window in windows:
         prob.angles.linearize(float(q[1]))
         w_idx = window[idx]
-        j, _ = _assign(prob.points(q, idx), n, d, 3.0 * w_idx)
+        j, _ = _assign(prob.points(q, idx), n, d, BAND * w_idx)
         keep = j >= 0
         sel = idx[keep]
         if len(sel) < 50 or not free.any():
@@ -276,7 +293,7 @@ def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.n
         q = q.copy()
         q[free] = least_squares(resid, np.clip(q[free], lo, hi), loss="arctan", f_scale=1.0, bounds=(lo, hi),
                                 x_scale=np.full(int(free.sum()), 0.01), diff_step=1e-6, max_nfev=80).x
-    j, r = _assign(prob.points(q, idx), n, d, 3.0 * windows[-1][idx])
+    j, r = _assign(prob.points(q, idx), n, d, BAND * windows[-1][idx])
     return q, j, r
 
 
@@ -491,8 +508,71 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     applied = tuple(bool(m and abs(v) > N_SIGNIFICANT * e) for v, e, m in zip(q, se, matters, strict=True))
     # The same points, on the same planes, before the correction: what it changed.
     r0 = np.einsum("ij,ij->i", prob.points(q0, idx_all[on]), n[j[on]]) - d[j[on]]
+    refused = None
+    if any(applied):
+        # Every point's distance from its nearest plane with and without the correction, so the points
+        # either mount puts on the structure count (not only those the fitted one does).
+        prob.angles.linearize(0.0)
+        r_square = _assign(prob.points(q0), n, d, final)[1]
+        j_square = _assign(prob.points(q0), n, d, BAND * final)[0]
+        gain, gain_se = _misfit_gain(r_square / final, r / final, sweep)
+        inside, inside_se = _inside_excess(j, r, sweep)
+        inside_square, _ = _inside_excess(j_square, r_square, sweep)
+        if not gain > N_SIGNIFICANT * gain_se:
+            applied = (False,) * 4
+            refused = ("not applied: it does not bring the floor and walls closer to their planes by more than the "
+                       f"noise (mean squared distance {gain:+.3f} +- {gain_se:.3f} noise sigmas squared)")
+        elif inside > N_SIGNIFICANT * inside_se and inside > inside_square:
+            applied = (False,) * 4
+            refused = ("not applied: it holds the planes with points inside the building (of the points near a "
+                       f"plane, {inside * 100:.1f} +- {inside_se * 100:.1f} % more inside than outside, "
+                       f"{inside_square * 100:.1f} % without it), where a plane's own noise is symmetric and only "
+                       "the pile is inside")
     return MountEstimate(tuple(float(v) for v in q), tuple(float(v) for v in se), applied, counts,
-                         _robust_rms(r0), _robust_rms(r[on]), observable=tuple(bool(f) for f in free))
+                         _robust_rms(r0), _robust_rms(r[on]), observable=tuple(bool(f) for f in free),
+                         refused=refused)
+
+
+def _misfit_gain(before: np.ndarray, after: np.ndarray, sweep: np.ndarray) -> tuple[float, float]:
+    """(gain, its standard error): how much closer a correction brings the points to the building's planes,
+    as the mean drop of their squared distance from the nearest plane in noise units (before, after: each
+    point's distance in final windows, bounded at BAND as in the fit, so a pile point far from any plane
+    counts alike either way), and how much that varies from sweep to sweep (a sweep's points one draw,
+    as in `_cluster_cov`: the noise of the gain, measured from the data).
+
+    Why: under noise the fit can be biased (the pile's points near a wall or the floor are all on its
+    inside, a one-sided contamination of the plane's band, and the band is wider the noisier the data),
+    and a bias is as consistent from sweep group to sweep group as a real error, so the estimate's own
+    significance does not tell them apart. What does: a real mount error has put the structure off its
+    planes and its correction brings it back by the error's size, while a biased fit of a square mount
+    moves the structure's points off their planes to gain a few pile points."""
+    drop = np.minimum(before * before, BAND * BAND) - np.minimum(after * after, BAND * BAND)
+    if len(drop) < 2:
+        return 0.0, math.inf
+    gain = float(np.mean(drop))
+    _, inv = np.unique(sweep, return_inverse=True)
+    per_sweep = np.bincount(inv, weights=drop - gain)
+    return gain, float(math.sqrt(np.sum(per_sweep * per_sweep)) / len(drop))
+
+
+def _inside_excess(j: np.ndarray, r: np.ndarray, sweep: np.ndarray) -> tuple[float, float]:
+    """(excess, its standard error): of the points in a plane's band (j: plane index, -1 outside every
+    band; r: signed distance), the share more inside the building than outside it, and how much that
+    varies from sweep to sweep (a sweep's points one draw).
+
+    Why: a plane's own points scatter symmetrically about it at the true mount (the range noise does),
+    the pile's are all inside. A fit that a pile next to the planes has biased (the false corrections on
+    noisy flights) holds pile points in the bands from the inside and pushes the planes' own out of
+    them: the excess inside stands out. A real correction brings the planes' own points back to both
+    sides."""
+    on = j >= 0
+    if np.count_nonzero(on) < 2:
+        return 0.0, math.inf
+    side = np.sign(INSIDE_SIGN[j[on]] * r[on])
+    excess = float(np.mean(side))
+    _, inv = np.unique(sweep[on], return_inverse=True)
+    per_sweep = np.bincount(inv, weights=side - excess)
+    return excess, float(math.sqrt(np.sum(per_sweep * per_sweep)) / len(side))
 
 
 PLANE_SETS = ("floor", "walls beside the track", "walls facing the track", "all")

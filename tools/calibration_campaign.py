@@ -7,10 +7,13 @@ tilted 2 deg out of the sweep plane, and all three together. Each is reported tw
 the estimates against the truth. For the flight with all three, what each set of planes alone pins
 down (`ground.self_calibration.plane_set_errors`). Then fault-free flights at many servo start
 positions (Fig. 9's phases) and seeds, to count false corrections: every one is a flight on which a
-correction was applied although the mount was square.
+correction was applied although the mount was square. All of it without sensor noise and again with
+the datasheet's (`--sensor-noise datasheet`, seeded by the flight's seed), where the pile's points
+next to the planes once biased the fit into false corrections.
 
     python -m tools.calibration_campaign --write docs/self_calibration.md   [--phases 20] [--jobs 1]
-        [--runs DIR]   (keep the flights there and fly only those missing: a re-run reports again)
+        [--noise none,datasheet] [--runs DIR]   (keep the flights there and fly only those missing: a
+        re-run reports again)
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from pathlib import Path
 from firmware_py.core.cli import ArgumentParser
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.samplelog import read_samplelog
+from firmware_py.core.sensor_noise import SensorNoiseModel
 from firmware_py.core.storage import Storage
 from ground.report import ReportOptions, make_report
 from ground.self_calibration import PLANE_SETS, estimate_mount, plane_set_errors
@@ -56,11 +60,13 @@ class Case:
     phase: int = 0
     p_traj: float = 0.2
     seed: int = 0
+    noise: SensorNoiseModel = SensorNoiseModel.NONE
 
     @property
     def name(self) -> str:
         return (f"pile{self.pile}-{self.fault.replace(' ', '_').replace('%', 'pct')}-k{self.phase}"
-                f"-s{self.seed}-p{round(self.p_traj * 100)}")
+                f"-s{self.seed}-p{round(self.p_traj * 100)}"
+                + ("" if self.noise is SensorNoiseModel.NONE else f"-{self.noise.value}"))
 
 
 def _flown(case: Case, runs: Path) -> Path:
@@ -69,7 +75,7 @@ def _flown(case: Case, runs: Path) -> Path:
     if not (run / "samples.pslog").is_file():
         faults = FaultSpec(**FAULTS[case.fault]) if FAULTS[case.fault] else None
         cfg = FlyConfig(mission=Mission(p_traj=case.p_traj), stockpile=case.pile, payload="firmware",
-                        initial_position=case.phase, faults=faults, seed=case.seed)
+                        initial_position=case.phase, faults=faults, seed=case.seed, sensor_noise=case.noise)
         fly(cfg, run, force=True, progress=lambda _m: None)
     return run
 
@@ -115,25 +121,26 @@ def _estimate(cal: dict, key: str, pct: bool = False) -> str:
 
 
 def table(rows: list[dict]) -> str:
-    out = ["| pile | mounting (truth) | Ve uncorrected [%] | Ve corrected [%] | corrected − fault-free [pp] | "
-           "offset [deg] | scale [%] | tilt [deg] | sweep yaw [deg] | floor / wall points | not estimated because |",
-           "|---|---|---|---|---|---|---|---|---|---|---|"]
-    clean = {r["case"].pile: r["ve_on"] for r in rows if r["case"].fault == "fault-free"}
+    out = ["| pile | sensor noise | mounting (truth) | Ve uncorrected [%] | Ve corrected [%] | "
+           "corrected − fault-free [pp] | offset [deg] | scale [%] | tilt [deg] | sweep yaw [deg] | "
+           "floor / wall points | not estimated or not applied because |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    clean = {(r["case"].pile, r["case"].noise): r["ve_on"] for r in rows if r["case"].fault == "fault-free"}
     for r in rows:
         c, cal = r["case"], r["cal"]
         pts = cal.get("points_per_plane") or {}
         seen = f"{pts.get('floor', 0)} / {sum(v for k, v in pts.items() if k != 'floor')}" if pts else "-"
-        out.append(f"| {c.pile} | {c.fault} | {r['ve_off']:.2f} | {r['ve_on']:.2f} | "
-                   f"{r['ve_on'] - clean[c.pile]:+.2f} | {_estimate(cal, 'servo_offset_deg')} | "
+        out.append(f"| {c.pile} | {c.noise.value} | {c.fault} | {r['ve_off']:.2f} | {r['ve_on']:.2f} | "
+                   f"{r['ve_on'] - clean[(c.pile, c.noise)]:+.2f} | {_estimate(cal, 'servo_offset_deg')} | "
                    f"{_estimate(cal, 'servo_scale', pct=True)} | {_estimate(cal, 'boresight_tilt_deg')} | "
-                   f"{_estimate(cal, 'sweep_yaw_deg')} | {seen} | {cal.get('reason') or ''} |")
+                   f"{_estimate(cal, 'sweep_yaw_deg')} | {seen} | {cal.get('reason') or cal.get('refused') or ''} |")
     return "\n".join(out)
 
 
 def plane_set_table(rows: list[dict]) -> str:
     """Each parameter's standard error from each plane set alone (the flights with all three faults)."""
-    out = ["| pile | planes | points | offset [deg] | scale [%] | tilt [deg] | sweep yaw [deg] |",
-           "|---|---|---|---|---|---|---|"]
+    out = ["| pile | sensor noise | planes | points | offset [deg] | scale [%] | tilt [deg] | sweep yaw [deg] |",
+           "|---|---|---|---|---|---|---|---|"]
 
     def fmt(v: float, f) -> str:
         return "not seen" if not math.isfinite(v) else f"{f(v):.4f}"
@@ -141,7 +148,7 @@ def plane_set_table(rows: list[dict]) -> str:
     for r in rows:
         for name in PLANE_SETS:
             n, se = r["plane_sets"][name]
-            out.append(f"| {r['case'].pile} | {name} | {n} | {fmt(se[0], math.degrees)} | "
+            out.append(f"| {r['case'].pile} | {r['case'].noise.value} | {name} | {n} | {fmt(se[0], math.degrees)} | "
                        f"{fmt(se[1], lambda x: 100 * x)} | {fmt(se[2], math.degrees)} | {fmt(se[3], math.degrees)} |")
     return "\n".join(out)
 
@@ -152,22 +159,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--piles", default="1,2", help="comma-separated piles (default 1,2)")
     ap.add_argument("--phases", type=int, default=20, help="fault-free servo phases per pile (0-20)")
     ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--noise", default="none,datasheet",
+                    help="comma-separated sensor noise models to fly everything with (default none,datasheet)")
     ap.add_argument("--runs", type=Path, default=None, help="keep the flights in this folder and reuse them")
     args = ap.parse_args(argv)
     if not 0 <= args.phases <= 20 or args.jobs < 1:
         ap.error("--phases must be 0-20 and --jobs >= 1")
     piles = [p.strip() for p in args.piles.split(",") if p.strip()]
+    try:
+        noises = [SensorNoiseModel(m.strip()) for m in args.noise.split(",") if m.strip()]
+    except ValueError:
+        ap.error(f"--noise takes {', '.join(m.value for m in SensorNoiseModel)}, got {args.noise!r}")
     t0 = time.perf_counter()
-    faulted = [Case(p, f) for p in piles for f in FAULTS]
+    faulted = [Case(p, f, noise=m) for m in noises for p in piles for f in FAULTS]
     # One fault-free flight per further servo phase (each with its own seed), and more seeds at phase 0.
-    clean = ([Case(p, "fault-free", phase=k, seed=k) for p in piles for k in range(1, args.phases)]
-             + [Case(p, "fault-free", seed=k) for p in piles for k in range(1, EXTRA_SEEDS + 1)])
+    clean = ([Case(p, "fault-free", phase=k, seed=k, noise=m) for m in noises for p in piles
+              for k in range(1, args.phases)]
+             + [Case(p, "fault-free", seed=k, noise=m) for m in noises for p in piles
+                for k in range(1, EXTRA_SEEDS + 1)])
     with ProcessPoolExecutor(args.jobs) as pool:
         rows = list(pool.map(partial(run_case, runs=args.runs), faulted))
         print(table(rows), flush=True)
         checks = list(pool.map(partial(run_case, runs=args.runs), clean))
     checked = checks + [r for r in rows if r["case"].fault == "fault-free"]
-    false = [r for r in checked if r["applied"]]
     worst = max((abs(r["ve_on"] - r["ve_off"]) for r in checked), default=0.0)
     cost = statistics.median(r["cost_s"] for r in checked) if checked else math.nan
     cost_fixed = max((r["cost_s"] for r in rows if r["applied"]), default=math.nan)
@@ -182,8 +196,10 @@ def main(argv: list[str] | None = None) -> int:
         f"({wall:.0f} s with {args.jobs} job(s){'' if args.runs is None else ', flights reused where kept'}). "
         "The paper's building (60 x 40 x 15 m), P_traj 20 %, 12 m, the payload firmware in the "
         "loop (lockstep), servo start position 0; the mounting faults are the SITL's (`--fault "
-        "servo_offset_deg=3`, `servo_scale_pct=5`, `boresight_deg=2`). Each flight is reported with and without "
-        "`--no-self-calibration`. Estimates with their standard errors; **bold**: applied. The floor / wall "
+        "servo_offset_deg=3`, `servo_scale_pct=5`, `boresight_deg=2`), flown with each sensor noise model "
+        f"({', '.join(m.value for m in noises)}: `--sensor-noise`). Each flight is reported with and without "
+        "`--no-self-calibration`; corrected − fault-free is against the fault-free flight with the same noise. "
+        "Estimates with their standard errors; **bold**: applied. The floor / wall "
         "points are the structure points of the final fit (pile 2 hides nearly all of its floor).",
         "",
         table(rows),
@@ -195,7 +211,10 @@ def main(argv: list[str] | None = None) -> int:
         "",
         plane_set_table([r for r in rows if r["plane_sets"] is not None]),
         "",
-        f"False corrections on fault-free flights: **{len(false)} of {len(checked)}** (piles {', '.join(piles)}, "
+        "False corrections on fault-free flights: "
+        + "; ".join(f"{m.value} sensor noise **{sum(r['applied'] != [] for r in checked if r['case'].noise is m)} "
+                    f"of {sum(r['case'].noise is m for r in checked)}**" for m in noises)
+        + f" (piles {', '.join(piles)}, "
         f"servo start positions 0-{max(args.phases - 1, 0)}, seeds {seeds[0]}-{seeds[-1]}); the largest change of Ve "
         f"the calibration made on them: {worst:.3f} pp. Parameters held as not observable on any of these "
         f"flights: {', '.join(held) if held else 'none'}. What self-calibration adds to a report (with minus "

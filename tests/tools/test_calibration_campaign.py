@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 
+from firmware_py.core.sensor_noise import SensorNoiseModel
 from ground.self_calibration import PLANE_SETS
 from sitl.faults.injector import FaultSpec
 from tools.calibration_campaign import FAULTS, Case, plane_set_table, table
@@ -21,7 +22,7 @@ def test_that_the_table_bolds_applied_estimates_and_compares_with_the_fault_free
             {"case": Case("1", "servo offset 3 deg"), "ve_off": 0.20, "ve_on": 0.10, "cal": cal,
              "applied": ["servo_offset_deg"]}]
     text = table(rows)
-    assert "| 1 | servo offset 3 deg | 0.20 | 0.10 | -0.02 | **+3.001 ± 0.002** | +0.010 |" in text
+    assert "| 1 | none | servo offset 3 deg | 0.20 | 0.10 | -0.02 | **+3.001 ± 0.002** | +0.010 |" in text
     hidden = {**cal, "reason": "the building's floor and walls were seen too little"}
     rows[1] = {**rows[1], "cal": hidden}
     assert "| - | - | - | - | the building's floor and walls were seen too little |" in table(rows)
@@ -40,10 +41,25 @@ def test_that_the_plane_set_table_names_a_parameter_a_set_does_not_see():
     sets = {name: (0 if name == "floor" else 100, np.array([1e-4, 1e-4, math.inf if name == "floor" else 2e-4, 3e-4]))
             for name in PLANE_SETS}
     text = plane_set_table([{"case": Case("2", "all three"), "plane_sets": sets}])
-    assert "| 2 | floor | 0 | 0.0057 | 0.0100 | not seen | 0.0172 |" in text
+    assert "| 2 | none | floor | 0 | 0.0057 | 0.0100 | not seen | 0.0172 |" in text
     assert text.count("\n") == len(PLANE_SETS) + 1
 
 
 def test_that_every_case_has_its_own_run_folder():
-    cases = [Case(p, f, phase=k, seed=s) for p in "12" for f in FAULTS for k in (0, 1) for s in (0, 1)]
+    cases = [Case(p, f, phase=k, seed=s, noise=m) for p in "12" for f in FAULTS for k in (0, 1) for s in (0, 1)
+             for m in SensorNoiseModel]
     assert len({c.name for c in cases}) == len(cases)
+    assert Case("1", "fault-free").name == "pile1-fault-free-k0-s0-p20"  # noise-free runs kept before stay valid
+
+
+def test_that_a_noisy_flight_is_compared_with_the_fault_free_flight_of_the_same_noise_and_a_refusal_shows():
+    noisy = SensorNoiseModel.DATASHEET
+    refused = {"servo_offset_deg": {"estimate": 2.1, "std_error": 0.05, "applied": False},
+               "refused": "not applied: it holds the planes with points inside the building"}
+    rows = [{"case": Case("2", "fault-free"), "ve_off": 1.0, "ve_on": 1.0, "cal": {}, "applied": []},
+            {"case": Case("2", "fault-free", noise=noisy), "ve_off": 0.6, "ve_on": 0.6, "cal": refused, "applied": []},
+            {"case": Case("2", "servo offset 3 deg", noise=noisy), "ve_off": 2.9, "ve_on": 0.8, "cal": {},
+             "applied": []}]
+    text = table(rows)
+    assert "| 2 | datasheet | servo offset 3 deg | 2.90 | 0.80 | +0.20 |" in text
+    assert "| not applied: it holds the planes with points inside the building |" in text

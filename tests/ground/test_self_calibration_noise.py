@@ -1,0 +1,82 @@
+"""Self-calibration on noisy flights (`--sensor-noise datasheet`): the noise leaves a square mount alone
+and still lets a wrong one be found. The paper's building and pile 2, whose material covers the floor
+wall to wall: there the pile's points next to the walls biased the fit into false corrections
+(docs/sensor_noise.md); this start position and seed gave one (servo offset +2.1 deg, scale -3.7 %)
+before the correction had to bring the planes' own points back."""
+
+import math
+
+import pytest
+
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.samplelog import read_samplelog
+from firmware_py.core.sensor_noise import SensorNoiseModel
+from firmware_py.core.storage import Storage
+from ground.pointcloud import SensorErrorModel
+from ground.report import ReportOptions, make_report
+from ground.self_calibration import estimate_mount
+from ground.servo_timing import Resimulated
+from sitl.faults.injector import FaultSpec
+from sitl.missions.rectangle import Mission
+from sitl.runners.fly import FlyConfig, fly
+
+SKEW = FaultSpec(servo_offset_deg=3.0, servo_scale_pct=5.0, boresight_deg=2.0)
+
+
+def _fly(path, faults=None, payload="firmware", initial_position=0):
+    cfg = FlyConfig(mission=Mission(p_traj=0.2), stockpile="2", faults=faults, payload=payload,
+                    initial_position=initial_position, sensor_noise=SensorNoiseModel.DATASHEET)
+    fly(cfg, path / "run", force=True, progress=lambda _m: None)
+    return path / "run"
+
+
+def _estimate(run):
+    log = read_samplelog(run / "samples.pslog")
+    h, s = log.header, log.samples[log.samples["flags"] == 0]
+    err = SensorErrorModel.from_header(h)
+    return estimate_mount(s, h["lever_arm_body_m"], StorageFrame(), Storage(**h["storage"]), err.range_sigma_m,
+                          err.range_sigma_rel, Resimulated.from_header(h))
+
+
+def _applied(report: dict) -> bool:
+    return any(isinstance(v, dict) and v.get("applied") for v in report["self_calibration"].values())
+
+
+@pytest.fixture(scope="module")
+def biased_run(tmp_path_factory):
+    """Square, the ideal servo of the batch payload, start position 5: the fit comes out biased."""
+    return _fly(tmp_path_factory.mktemp("noisy-biased"), payload="batch", initial_position=5)
+
+
+@pytest.fixture(scope="module")
+def square_run(tmp_path_factory):
+    return _fly(tmp_path_factory.mktemp("noisy-square"))
+
+
+@pytest.fixture(scope="module")
+def skewed_run(tmp_path_factory):
+    return _fly(tmp_path_factory.mktemp("noisy-skewed"), SKEW)
+
+
+def test_that_a_noisy_fault_free_flight_gets_no_correction(biased_run, tmp_path):
+    est = _estimate(biased_run)
+    assert est.reason is None and not est.any_applied
+    assert est.refused is not None and est.refused.startswith("not applied: it holds the planes with points inside")
+    assert est.as_dict()["refused"] == est.refused
+    rep = make_report(biased_run, tmp_path / "rep", ReportOptions(plots=False))
+    assert not _applied(rep)
+    assert not any("self-calibration from the building applied" in w for w in rep["warnings"])
+
+
+def test_that_a_noisy_faulted_flight_is_still_corrected(skewed_run, square_run, tmp_path):
+    est = _estimate(skewed_run)
+    offset, scale, _, _ = est.values
+    assert est.applied[:2] == (True, True) and est.refused is None
+    assert math.degrees(offset) == pytest.approx(3.0, abs=0.2)
+    assert scale == pytest.approx(0.05, abs=0.005)
+    clean = make_report(square_run, tmp_path / "clean", ReportOptions(plots=False))
+    fixed = make_report(skewed_run, tmp_path / "fixed", ReportOptions(plots=False))
+    raw = make_report(skewed_run, tmp_path / "raw", ReportOptions(plots=False, self_calibration=False))
+    assert not _applied(clean) and _applied(fixed)
+    assert abs(fixed["volume_error_pct"] - clean["volume_error_pct"]) < abs(raw["volume_error_pct"]
+                                                                            - clean["volume_error_pct"]) / 3
