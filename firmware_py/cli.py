@@ -32,6 +32,7 @@ from firmware_py.core.cli import (
     add_config_option,
     add_verbosity,
     finite_float,
+    rangefinder_arg,
     reading_input,
     run_cli,
     stop_on_signals,
@@ -161,7 +162,7 @@ def build_parser() -> ArgumentParser:
     hw.add_argument("--mavlink", default=DEFAULT_MAVLINK_URL, metavar="URL", type=_checked(_check_mavlink),
                     help="link to the autopilot: serial:/dev/ttyAMA0:921600, udp:HOST:PORT (listen), "
                          f"udpout:HOST:PORT, tcp:HOST:PORT (default {DEFAULT_MAVLINK_URL})")
-    hw.add_argument("--rangefinder", type=_rangefinder, default=DEFAULT_RANGEFINDER,
+    hw.add_argument("--rangefinder", type=rangefinder_arg, default=DEFAULT_RANGEFINDER,
                     metavar="|".join(r.value for r in Rangefinder),
                     help="the rangefinder fitted: lidarlite-v3 (Garmin LIDAR-Lite v3 on --i2c, 500 Hz) or tfmini "
                          "(Benewake TFMini family on --uart, paced by its frames, 100 Hz from the factory) "
@@ -230,13 +231,6 @@ def build_parser() -> ArgumentParser:
     site = ap.add_argument_group("site (the storage frame in the log header)")
     add_site_options(site, default=None)
     return ap
-
-
-def _rangefinder(text: str) -> Rangefinder:
-    try:
-        return Rangefinder.named(text.strip())
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def site_from_cli(args) -> tuple[Site | None, StorageFrame, tuple[float, float, float] | None]:

@@ -21,6 +21,7 @@ from firmware_py.core.cli import (
     add_config_option,
     add_verbosity,
     finite_float,
+    rangefinder_arg,
     reading_input,
     run_cli,
 )
@@ -156,16 +157,8 @@ def build_parser() -> ArgumentParser:
     return ap
 
 
-def _rangefinder(text: str) -> Rangefinder:
-    from argparse import ArgumentTypeError
-    try:
-        return Rangefinder.named(text.strip())
-    except ValueError as exc:
-        raise ArgumentTypeError(str(exc)) from None
-
-
 def _rangefinder_options(p: ArgumentParser) -> None:
-    p.add_argument("--rangefinder", type=_rangefinder, default=Rangefinder.LIDARLITE_V3,
+    p.add_argument("--rangefinder", type=rangefinder_arg, default=Rangefinder.LIDARLITE_V3,
                    metavar="|".join(r.value for r in Rangefinder),
                    help="the payload's rangefinder: lidarlite-v3 (I2C, 500 Hz, 40 m; default) or tfmini (Benewake "
                         "TFmini-S on a UART, 100 Hz, 12 m: fly lower, see the README)")

@@ -24,6 +24,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 from firmware_py.core.config_file import ConfigError, key_label, load_config
+from firmware_py.core.sensor import Rangefinder
 
 
 class ExitCode(enum.IntEnum):
@@ -143,6 +144,14 @@ def finite_float(text: str) -> float:
 
 
 # ----- logging ------------------------------------------------------------------------------------
+
+def rangefinder_arg(text: str) -> Rangefinder:
+    """argparse type of --rangefinder (the payload's and the SITL's): the Rangefinder named, or its error."""
+    try:
+        return Rangefinder.named(text.strip())
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
 
 def add_verbosity(parser: argparse.ArgumentParser, *, sub: bool = False,
                   quiet_help: str = "only warnings and errors") -> None:
