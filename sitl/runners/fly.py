@@ -217,7 +217,8 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
         pile = piles.resolve(cfg.stockpile, storage)
     check_clearance(cfg.mission, pile)
     wf = cfg.servo_waveform()
-    out_of_range = check_range(cfg.mission, cfg.lidar.max_range_m, wf, cfg.lever_arm_body_m)
+    out_of_range = check_range(cfg.mission, cfg.lidar.max_range_m, wf, cfg.lever_arm_body_m,
+                               returns=cfg.noise().returns)
     if out_of_range:
         log.warning(out_of_range)
     with OutputFolder(out, RUN_FILES, TRUTH_FILE, force=force) as folder:

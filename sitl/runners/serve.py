@@ -148,7 +148,8 @@ def serve(opts: ServeOptions) -> int:
             pile = piles.resolve(opts.stockpile, opts.mission.storage)
         check_clearance(opts.mission, pile)
         fc = opts.fly_config()
-        out_of_range = check_range(opts.mission, fc.lidar.max_range_m, fc.servo_waveform(), fc.lever_arm_body_m)
+        out_of_range = check_range(opts.mission, fc.lidar.max_range_m, fc.servo_waveform(), fc.lever_arm_body_m,
+                                   returns=fc.noise().returns)
         if out_of_range:
             log.warning(out_of_range)
         world = World(opts.mission.storage, pile, max_range_m=opts.fly_config().lidar.max_range_m)
