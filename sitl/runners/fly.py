@@ -39,7 +39,7 @@ from firmware_py.core.version import software_version
 from firmware_py.core.waveform import Waveform, initial_position, named_waveform
 from sitl.faults.injector import FaultSpec
 from sitl.missions.qgc_wpl import write_qgc_wpl
-from sitl.missions.range_check import check_range
+from sitl.missions.range_check import RangeLimit, check_range
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import PAYLOAD_1D_KG, fly_mission
 from sitl.sensing.batch_sampler import sample_flight
@@ -217,8 +217,8 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
         pile = piles.resolve(cfg.stockpile, storage)
     check_clearance(cfg.mission, pile)
     wf = cfg.servo_waveform()
-    out_of_range = check_range(cfg.mission, cfg.lidar.max_range_m, wf, cfg.lever_arm_body_m,
-                               returns=cfg.noise().returns)
+    out_of_range = check_range(cfg.mission, RangeLimit(cfg.lidar.max_range_m, cfg.noise().returns, cfg.lidar.model),
+                               wf, cfg.lever_arm_body_m)
     if out_of_range:
         log.warning(out_of_range)
     with OutputFolder(out, RUN_FILES, TRUTH_FILE, force=force) as folder:

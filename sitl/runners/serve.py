@@ -51,7 +51,7 @@ from sitl.faults.injector import PAIRS, FaultSpec
 from sitl.mavlink.server import LinkLimits, MavlinkVehicleServer, run_realtime
 from sitl.mavlink.transport import make_transport
 from sitl.missions.qgc_wpl import write_qgc_wpl
-from sitl.missions.range_check import check_range
+from sitl.missions.range_check import RangeLimit, check_range
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import start_pose
 from sitl.runners.fly import FlyConfig, check_clearance, check_rangefinder_faults, noise_header, truth_record
@@ -148,8 +148,8 @@ def serve(opts: ServeOptions) -> int:
             pile = piles.resolve(opts.stockpile, opts.mission.storage)
         check_clearance(opts.mission, pile)
         fc = opts.fly_config()
-        out_of_range = check_range(opts.mission, fc.lidar.max_range_m, fc.servo_waveform(), fc.lever_arm_body_m,
-                                   returns=fc.noise().returns)
+        out_of_range = check_range(opts.mission, RangeLimit(fc.lidar.max_range_m, fc.noise().returns, fc.lidar.model),
+                                   fc.servo_waveform(), fc.lever_arm_body_m)
         if out_of_range:
             log.warning(out_of_range)
         world = World(opts.mission.storage, pile, max_range_m=opts.fly_config().lidar.max_range_m)
