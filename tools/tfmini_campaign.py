@@ -3,6 +3,7 @@ two-lobe test pile, both at half height, lockstep over servo phases and networke
 each with ideal returns and with the datasheet noise. Writes its section of docs/tfmini.md.
 
     python -m tools.tfmini_campaign [--phases 0 2 4 ...] [--networked] [--out runs/tfmini-campaign]
+    python -m tools.tfmini_campaign --piles-only    # just write the two piles (runs/tfmini-campaign/piles)
 
 The mission (`mission()`): the TFmini-S's 12 m is rated on a 90 % reflective board; on the 30 %
 reflective surfaces the datasheet noise assumes, it echoes for certain out to 6.2 m at normal incidence
@@ -108,7 +109,7 @@ def networked(pile: Path, noise: str, out: Path) -> dict:
         return {"ve_pct": None, "no_volume": run.no_volume, "payload_exit": run.payload_exit}
     return {"ve_pct": run.report["volume_error_pct"], "ra_pct": run.report["coverage_ratio_pct"],
             "samples": run.report["n_samples"], "points": run.report["n_points_used"], "wall_s": run.wall_s,
-            "payload_exit": run.payload_exit, "lowest_m": lowest_altitude_m(out)}
+            "payload_exit": run.payload_exit}
 
 
 def lowest_altitude_m(run_dir: Path) -> float:
@@ -197,11 +198,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("runs/tfmini-campaign"))
     ap.add_argument("--doc", type=Path, default=DOC, help="page whose tfmini-campaign section is rewritten")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--piles-only", action="store_true", help="write the half-height piles to OUT/piles and stop")
     args = ap.parse_args(argv)
     if any(not 0 <= k < 20 for k in args.phases):
         ap.error("--phases: each servo phase must be 0..19")
     storage = Storage.parse(STORAGE)
     piles = make_piles(args.out / "piles")
+    if args.piles_only:
+        for name, path in piles.items():
+            print(f"{name}: {path}")
+        return 0
     results: dict = {}
     for name, path in piles.items():
         pile = load_mesh(path, storage)
