@@ -19,7 +19,8 @@ h = R_c(0) / 3^(3/4). A wall d across from the track is reached by the level bea
 when d <= R_c(0).
 
 Two figures, both from the empty building (a pile only brings surfaces nearer, so this is the worst
-case, and no pile is assumed):
+case for range, and no pile is assumed; a pile's flanks may meet the beam more obliquely than the floor
+would, which this does not see):
 - `in_range_pct`: the share of the sweep, sampled in time over one servo period at points along the
   whole path, whose beam meets the floor or a wall within range;
 - `floor_reach_pct`: the share of the floor within the lateral reach of the path (the sweep plane turns
