@@ -85,9 +85,11 @@ class IntervalModel:
         return max(0.0, volume_m3 - below), max(0.0, volume_m3 + above)
 
 
-DEFAULT_INTERVAL_MODEL = IntervalModel(k_unseen=1.0, k_interpolation=1.0, k_noise=1.645, k_sweeps=1.0,
-                                       k_faces=1.0)
-"""Replaced by the calibrated factors (tools/calibrate_interval.py writes them here with their source)."""
+# --- calibrated interval model (tools/calibrate_interval.py --write-model) ---
+DEFAULT_INTERVAL_MODEL = IntervalModel(
+    k_unseen=1, k_interpolation=1, k_noise=1.645, k_sweeps=1, k_faces=1,
+    source='uncalibrated')
+# --- end of calibrated interval model ---
 
 
 # ----- the terms -----------------------------------------------------------------------------------
