@@ -22,6 +22,7 @@ from firmware_py.core.version import software_version
 from ground import listen
 from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, make_report
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
+from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +46,10 @@ def build_parser() -> ArgumentParser:
     r.add_argument("--force", action="store_true",
                    help="replace a report already in --out (its files are removed, report.json first)")
     r.add_argument("--truth-volume", type=finite_float, metavar="M3",
-                   help="known true volume, m^3 (overrides truth.json), for Ve (eq. 8)")
+                   help="known true volume, m^3 (overrides truth.json; 0 for an empty building), for Ve (eq. 8)")
+    r.add_argument("--max-interval-pct", type=finite_float, default=DEFAULT_MAX_INTERVAL_PCT, metavar="PCT",
+                   help="warn when the volume's 90 %% interval is wider than +/-PCT %% of the volume (default "
+                        f"{DEFAULT_MAX_INTERVAL_PCT:g})")
     r.add_argument("--cell", type=finite_float, default=DEFAULT_CELL_M, metavar="M",
                    help=f"grid cell side for eq. (7), m (default {DEFAULT_CELL_M})")
     r.add_argument("--empty-cells", choices=EMPTY_CELL_POLICIES, default=DEFAULT_EMPTY_CELLS,
@@ -101,8 +105,10 @@ def format_summary(rep: dict) -> str:
     def pct(v):
         return "unknown" if v is None else f"{v:.2f} %"
     truth = rep.get("true_volume_m3")
+    iv = rep.get("volume_interval_m3")
     lines = [
         f"volume        {rep['volume_m3']:12.1f} m^3",
+        f"90 % interval {'not estimated' if iv is None else f'{iv[0]:12.1f} - {iv[1]:.1f} m^3'}",
         f"truth         {'unknown' if truth is None else f'{truth:12.1f} m^3'}",
         f"Ve (eq. 8)    {pct(rep.get('volume_error_pct')):>12}",
         f"R_a (eq. 9)   {pct(rep.get('coverage_ratio_pct')):>12}",
@@ -113,15 +119,17 @@ def format_summary(rep: dict) -> str:
 
 
 def _report(args) -> int:
-    if args.truth_volume is not None and args.truth_volume <= 0:
-        raise UserError(f"--truth-volume must be > 0 m^3, got {args.truth_volume:g}")
+    if args.truth_volume is not None and args.truth_volume < 0:
+        raise UserError(f"--truth-volume must be >= 0 m^3 (0: an empty building), got {args.truth_volume:g}")
+    if not args.max_interval_pct > 0:
+        raise UserError(f"--max-interval-pct must be > 0, got {args.max_interval_pct:g}")
     if args.max_grid_memory_mb <= 0:
         raise UserError(f"--max-grid-memory-mb must be > 0, got {args.max_grid_memory_mb:g}")
     opts = ReportOptions(cell_m=args.cell, empty_cells=args.empty_cells, plots=not args.no_plots,
                          truth_volume_m3=args.truth_volume, despike=not args.no_despike,
                          surface_fit=args.surface_fit, servo_retiming=not args.no_servo_retiming,
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),
-                         self_calibration=not args.no_self_calibration,
+                         self_calibration=not args.no_self_calibration, max_interval_pct=args.max_interval_pct,
                          site=args.config_file.site if args.config_file is not None else None)
     rep = make_report(args.source, args.out, opts, force=args.force)
     if not args.quiet:

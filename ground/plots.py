@@ -26,7 +26,7 @@ from matplotlib.collections import LineCollection
 from matplotlib.colors import LogNorm, Normalize
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
-from matplotlib.patches import Rectangle
+from matplotlib.patches import Patch, Rectangle
 
 DPI = 110
 FIGSIZE_IN = (8.0, 5.5)
@@ -241,8 +241,11 @@ def height_map_figure(
     heights: np.ndarray,
     storage_lw_m: tuple[float, float],
     title: str = "Fitted height map",
+    filled: np.ndarray | None = None,
 ) -> Figure:
-    """Top view of the fitted surface heights[ix, iy] (paper Fig. 10b from above); NaN cells white."""
+    """Top view of the surface heights[ix, iy] (paper Fig. 10b from above); NaN cells white. Cells the
+    fitted surface never reached and the empty-cell policy filled (filled[ix, iy]) are hatched and
+    outlined, so the invented part is never mistaken for a measured one."""
     storage = _storage_lw(storage_lw_m)
     xe = np.asarray(x_edges, dtype=float)
     ye = np.asarray(y_edges, dtype=float)
@@ -259,8 +262,19 @@ def height_map_figure(
         cmap = colormaps[HEIGHT_CMAP].with_extremes(bad="white")
         mesh = _grid_mesh(ax, xe, ye, np.ma.masked_invalid(h), cmap=cmap, norm=norm, zorder=2)
         _colorbar(fig, ax, mesh, HEIGHT_LABEL)
-        frac = finite.mean()
-        title = f"{title}\n(surface defined on {100 * frac:.1f} % of {h.size:,} cells)"
+        f = np.zeros(h.shape, bool) if filled is None else np.asarray(filled, dtype=bool) & finite
+        if f.shape != h.shape:
+            raise ValueError(f"filled shape {f.shape} differs from heights shape {h.shape}")
+        measured = finite & ~f
+        if f.any():
+            hatch = np.ma.masked_where(~f, np.ones(h.shape))
+            ax.pcolor(xe, ye, hatch.T, hatch="///", facecolor="none", edgecolor="0.25", linewidth=0.0, zorder=3)
+            ax.add_collection(LineCollection(mask_boundary_segments(xe, ye, f), colors="black", linewidths=0.9,
+                                             zorder=4))
+            ax.legend(handles=[Patch(facecolor="white", edgecolor="0.25", hatch="///",
+                                     label="filled (never seen; empty-cell policy)")], **_LEGEND_BELOW)
+        title = (f"{title}\n(surface fitted on {100 * measured.mean():.1f} % of {h.size:,} cells"
+                 + (f", filled on {100 * f.mean():.1f} %)" if f.any() else ")"))
     ax.set_title(title)
     return fig
 
@@ -272,9 +286,10 @@ def plot_height_map(
     storage_lw_m: tuple[float, float],
     out_png: str | Path,
     title: str = "Fitted height map",
+    filled: np.ndarray | None = None,
 ) -> Path:
     """Write the height-map plot (see `height_map_figure`) and return the PNG path."""
-    return save_png(height_map_figure(x_edges, y_edges, heights, storage_lw_m, title), out_png)
+    return save_png(height_map_figure(x_edges, y_edges, heights, storage_lw_m, title, filled), out_png)
 
 
 # ------------------------------------------------------------------------------------------- coverage

@@ -17,7 +17,7 @@ import numpy as np
 
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_rays_w
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
-from firmware_py.core.sensor_noise import stated_position_sigma_m, stated_range_sigma
+from firmware_py.core.sensor_noise import stated_angle_sigma_rad, stated_position_sigma_m, stated_range_sigma
 from firmware_py.core.storage import Storage
 from ground.despike import SpikeThreshold, spike_mask
 from ground.sweep_check import stuck_sweep_mask
@@ -49,6 +49,7 @@ class SensorErrorModel:
     range_sigma_rel: float = 0.0
     resolution_m: float = 0.01
     position_sigma_m: float = 0.0
+    angle_sigma_rad: float = 0.0  # the beam's pointing error (servo angle and attitude), sensor_noise record
 
     @classmethod
     def from_header(cls, header: dict) -> SensorErrorModel:
@@ -70,7 +71,7 @@ class SensorErrorModel:
         noise_abs, noise_rel = stated_range_sigma(header)
         values[0], values[1] = max(values[0], noise_abs), max(values[1], noise_rel)
         values[3] = max(values[3], stated_position_sigma_m(header))
-        return cls(*values)
+        return cls(*values, angle_sigma_rad=stated_angle_sigma_rad(header))
 
     def range_sigma(self, range_m: np.ndarray) -> np.ndarray:
         return np.maximum(self.range_sigma_m, self.range_sigma_rel * np.asarray(range_m))
@@ -137,16 +138,18 @@ def structure_mask(cloud: Cloud, storage: Storage, err: SensorErrorModel, n_sigm
     A point within both a wall's and the floor's tolerance is the floor's when it lies fewer tolerances
     from the floor than from the wall (the floor along the walls is then seen, a wall's foot is not).
     A point's tolerance along a plane normal n is its range error projected on n,
-    k sigma_r(r) |d . n| plus half the range resolution, plus k position sigmas; k is n_sigma, or
+    k sigma_r(r) |d . n| plus half the range resolution, its pointing error's (k r sigma_angle) reach
+    along n, k r sigma_angle sqrt(1 - (d . n)^2), plus k position sigmas; k is n_sigma, or
     `structure_n_sigma` of the cloud's size (so no wall point escapes by chance in a whole survey).
     """
     p, d = cloud.points_w, cloud.dirs_w
     k = structure_n_sigma(len(cloud.range_m)) if n_sigma is None else n_sigma
     along = k * err.range_sigma(cloud.range_m) + 0.5 * err.resolution_m
+    across = k * err.angle_sigma_rad * cloud.range_m  # a pointing error moves the point across the beam
     slack = k * err.position_sigma_m + 1e-3
-    tol_x = along * np.abs(d[:, 0]) + slack
-    tol_y = along * np.abs(d[:, 1]) + slack
-    tol_z = along * np.abs(d[:, 2]) + slack
+    tol_x = along * np.abs(d[:, 0]) + across * np.sqrt(np.clip(1 - d[:, 0] ** 2, 0, 1)) + slack
+    tol_y = along * np.abs(d[:, 1]) + across * np.sqrt(np.clip(1 - d[:, 1] ** 2, 0, 1)) + slack
+    tol_z = along * np.abs(d[:, 2]) + across * np.sqrt(np.clip(1 - d[:, 2] ** 2, 0, 1)) + slack
     # Beside a wall, a point within both the wall's and the floor's tolerance goes to the surface it fits
     # better (its distance in tolerances): the floor along the walls and a pile's toe are seen, a wall's
     # foot stays wall.

@@ -33,6 +33,7 @@ UNKNOWN = "unknown"
 
 SUMMARY_KEYS: tuple[str, ...] = (
     "volume_m3",
+    "volume_interval_m3",
     "true_volume_m3",
     "volume_error_pct",
     "coverage_ratio_pct",
@@ -53,6 +54,7 @@ SUMMARY_KEYS: tuple[str, ...] = (
 
 _SUMMARY_LABELS: dict[str, str] = {
     "volume_m3": "Stockpile volume",
+    "volume_interval_m3": "90 % interval",
     "true_volume_m3": "True volume (reference)",
     "volume_error_pct": "Volume error Ve (eq. 8)",
     "coverage_ratio_pct": "Area coverage ratio R_a (eq. 9)",
@@ -204,8 +206,17 @@ def _fmt_log(v: Any) -> str:
     return ", ".join(parts)
 
 
+def fmt_interval(v: Any) -> str:
+    """[low, high] m³ as 'low – high m³' (unknown when absent or malformed)."""
+    if not (isinstance(v, list | tuple) and len(v) == 2):
+        return UNKNOWN
+    lo, hi = (fmt_volume(x) for x in v)
+    return UNKNOWN if UNKNOWN in (lo, hi) else f"{lo.removesuffix(' m³')} – {hi}"
+
+
 _SUMMARY_FORMAT = {
     "volume_m3": fmt_volume,
+    "volume_interval_m3": fmt_interval,
     "true_volume_m3": fmt_volume,
     "volume_error_pct": fmt_pct,
     "coverage_ratio_pct": fmt_pct,
@@ -299,7 +310,9 @@ def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportC
         config_rows = [("config", _config_value(cfg))]
     return ReportContent(
         config=config_rows, config_file=config_file,
-        headline=f"Stockpile volume: {fmt_volume(report.get('volume_m3'))}",
+        headline=f"Stockpile volume: {fmt_volume(report.get('volume_m3'))}" + (
+            "" if fmt_interval(report.get("volume_interval_m3")) == UNKNOWN else
+            f" (90 % interval {fmt_interval(report.get('volume_interval_m3'))})"),
         warnings=_warnings(report),
         summary=summary,
         images=[(_image_caption(str(n)), Path(p)) for n, p in (images or {}).items()],

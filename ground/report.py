@@ -19,14 +19,14 @@ from firmware_py.core.rundir import SAMPLES_FILE, TRUTH_FILE, OutputFolder, chec
 from firmware_py.core.safe_read import InputError, json_number, json_object, load_json
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, SampleLog, read_samplelog
 from firmware_py.core.sensor_noise import HEADER_KEY as NOISE_HEADER_KEY
-from firmware_py.core.sensor_noise import describe_record
+from firmware_py.core.sensor_noise import describe_record, stated_angle_sigma_rad
 from firmware_py.core.site import Site
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
 from ground.despike import SpikeThreshold, why_no_threshold
 from ground.plausibility import PlausibilityLimits, implausible, without_implausible
-from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask
+from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask, structure_n_sigma
 from ground.self_calibration import MountEstimate, apply_mount, describe, estimate_mount
 from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
 from ground.surface import (
@@ -41,6 +41,14 @@ from ground.surface import (
     reconstructed_ratio_pct,
     volume_error_pct,
 )
+from ground.uncertainty import (
+    DEFAULT_INTERVAL_MODEL,
+    INTERVAL_LEVEL,
+    SurveyErrors,
+    point_sigma_m,
+    survey_errors,
+)
+from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT, faces_warning, unseen_warning, wide_interval_warning
 
 LOW_COVERAGE_PCT = 95.0
 HIGH_EXCLUDED_FRACTION = 0.5
@@ -64,6 +72,7 @@ class ReportOptions:
     max_grid_memory_bytes: int = DEFAULT_MAX_GRID_MEMORY_BYTES  # refuse a --cell whose grid would need more
     self_calibration: bool = True  # servo zero/scale and boresight from the floor and walls (ground.self_calibration)
     site: SiteSection | None = None  # [site] of a --config file: the log's building is checked against it
+    max_interval_pct: float = DEFAULT_MAX_INTERVAL_PCT  # warn when the 90 % interval is wider than this
 
 
 @dataclass(frozen=True)
@@ -84,6 +93,7 @@ class Survey:
     mount: MountEstimate | None = None  # self-calibration from the building (None: not run)
     implausible: dict[str, int] | None = None  # ground.plausibility: samples left out per broken limit
     despike_unavailable: str | None = None  # why despiking asked for could not run (ground.despike.why_no_threshold)
+    errors: SurveyErrors | None = None  # the volume's error terms (ground.uncertainty); None: not estimated
 
 
 def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
@@ -108,7 +118,7 @@ def read_truth_volume(truth_path: Path | None) -> float | None:
         v = json_object(load_json(truth_path, "truth file"), f"truth file {truth_path}").get("true_volume_m3")
         if v is None:
             return None
-        return json_number(v, f"{truth_path}: true_volume_m3", positive=True)
+        return json_number(v, f"{truth_path}: true_volume_m3 (0 for an empty building)", minimum=0.0)
     except InputError as exc:
         raise UserError(str(exc)) from None
 
@@ -249,10 +259,14 @@ def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageF
     grid = Grid(storage.length_m, storage.width_m, opts.cell_m)
     fit, n_clipped = clip_to_building(fit_heights(pile, grid, opts.surface_fit), storage.height_m)
     disagreement = None
-    if cloud.sweep_dir is not None:
-        disagreement, _ = sweep_disagreement_m(pile, cloud.sweep_dir[~structure], grid)
-    return Survey(cloud, pile, grid, fit, fill_empty(fit, opts.empty_cells), grid.counts(pile), storage,
-                  n_clipped, disagreement)
+    pile_dir = None if cloud.sweep_dir is None else cloud.sweep_dir[~structure]
+    if pile_dir is not None:
+        disagreement, _ = sweep_disagreement_m(pile, pile_dir, grid)
+    heights, counts = fill_empty(fit, opts.empty_cells), grid.counts(pile)
+    sigma = point_sigma_m(cloud.range_m, err.range_sigma(cloud.range_m), err.position_sigma_m,
+                          stated_angle_sigma_rad(header))
+    errors = survey_errors(pile, pile_dir, fit, heights, counts, grid, sigma, structure_n_sigma(len(pile)))
+    return Survey(cloud, pile, grid, fit, heights, counts, storage, n_clipped, disagreement, errors=errors)
 
 
 def sensor_noise_line(header: dict) -> str:
@@ -278,10 +292,21 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         tally.add(log.samples["flags"])
         warnings.append(f"{survey.cloud.n_excluded} of {survey.cloud.n_samples} samples unusable "
                         f"(by their flags: {tally.describe()}; implausible records are counted apart)")
-    if ra < LOW_COVERAGE_PCT:
+    if ra < LOW_COVERAGE_PCT and opts.empty_cells == "leave":
         warnings.append(f"only {ra:.1f} % of the floor is reconstructed (R_a); the volume misses the "
-                        "uncovered cells" if opts.empty_cells == "leave" else
-                        f"only {ra:.1f} % of the floor is reconstructed (R_a); the rest is extrapolated")
+                        "uncovered cells")
+    interval, terms = None, None
+    if survey.errors is not None:
+        terms = survey.errors.terms
+        interval = DEFAULT_INTERVAL_MODEL.interval_m3(volume, terms)
+        warnings += [w for w in (
+            unseen_warning(survey.heights_fit, survey.heights, g, terms, DEFAULT_INTERVAL_MODEL),
+            faces_warning(survey.errors.faces, g, terms, DEFAULT_INTERVAL_MODEL),
+            wide_interval_warning(volume, interval, opts.max_interval_pct)) if w]
+    if volume < 0:
+        warnings.append(f"the surface lies {-volume:,.1f} m³ below the floor on balance: no material above the "
+                        "floor's noise; read the volume as 0" + (f" (90 % interval {interval[0]:,.1f}-"
+                                                                 f"{interval[1]:,.1f} m³)" if interval else ""))
     n_implausible = sum((survey.implausible or {}).values())
     if n_implausible:
         parts = ", ".join(f"{n} {what.replace('_', ' ')}" for what, n in survey.implausible.items() if n)
@@ -321,7 +346,12 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
     return {
         "volume_m3": volume,
         "true_volume_m3": truth_m3,
+        "volume_interval_m3": None if interval is None else list(interval),
+        "interval_level": INTERVAL_LEVEL,
+        "interval_terms_m3": None if terms is None else terms.as_dict(),
         "volume_error_pct": volume_error_pct(volume, truth_m3),
+        "volume_error_m3": None if truth_m3 is None else volume - truth_m3,
+        "truth_in_interval": None if truth_m3 is None or interval is None else interval[0] <= truth_m3 <= interval[1],
         "coverage_ratio_pct": ra,
         "n_samples": survey.cloud.n_samples,
         "n_points_used": len(survey.pile_points_w),
@@ -468,7 +498,8 @@ def write_outputs(survey: Survey, report: dict, out: Path, plots: bool) -> dict[
                                   title=f"Point cloud, top view ({len(survey.pile_points_w)} points)"),
         "height_map": p.plot_height_map(survey.grid.x_edges, survey.grid.y_edges, survey.heights, lw,
                                         out / "height_map.png",
-                                        title=f"Fitted surface: {report['volume_m3']:.1f} m³"),
+                                        title=f"Fitted surface: {report['volume_m3']:.1f} m³",
+                                        filled=~np.isfinite(survey.heights_fit)),
         "coverage": p.plot_coverage(survey.grid.x_edges, survey.grid.y_edges, survey.counts,
                                     np.isfinite(survey.heights_fit), lw, out / "coverage.png",
                                     title=f"Coverage (R_a = {ra:.1f} %)"),

@@ -196,6 +196,12 @@ def stated_position_sigma_m(header: Any) -> float:
     return _stated(header, "position_sigma_m")
 
 
+def stated_angle_sigma_rad(header: Any) -> float:
+    """The beam's pointing sigma the ``sensor_noise`` record states: servo angle and attitude combined
+    (0 without one)."""
+    return math.hypot(_stated(header, "servo_sigma_rad"), _stated(header, "attitude_sigma_rad"))
+
+
 def describe_record(rec: Any) -> str:
     """One line for a report: the ``sensor_noise`` record's model and its parameters ("none" without one)."""
     if rec is None:

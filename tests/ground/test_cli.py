@@ -62,7 +62,7 @@ def test_that_bad_inputs_fail_cleanly(run_dir, tmp_path, capsys):
     garbage.write_bytes(b"\x00not a log" * 100)
     _one_line_error(capsys, ["report", str(garbage), "--out", out], "header is missing or corrupt", ExitCode.INPUT)
     _one_line_error(capsys, ["report", str(run_dir), "--out", out, "--truth-volume", "nan"], "finite")
-    _one_line_error(capsys, ["report", str(run_dir), "--out", out, "--truth-volume", "-5"], "must be > 0")
+    _one_line_error(capsys, ["report", str(run_dir), "--out", out, "--truth-volume", "-5"], "must be >= 0")
     _one_line_error(capsys, ["report", str(run_dir), "--out", out, "--cell", "0"], "cell size")
     _one_line_error(capsys, ["report", str(run_dir), "--out", out, "--empty-cells", "x"], "invalid choice")
     _one_line_error(capsys, ["report", str(run_dir)], "--out")
@@ -75,7 +75,8 @@ def test_that_a_bad_truth_file_is_reported(run_dir, tmp_path, capsys):
     (bad / "truth.json").write_text("{not json")
     _one_line_error(capsys, ["report", str(bad), "--out", str(tmp_path / "r")], "not valid JSON", ExitCode.INPUT)
     (bad / "truth.json").write_text(json.dumps({"true_volume_m3": "lots"}))
-    _one_line_error(capsys, ["report", str(bad), "--out", str(tmp_path / "r")], "positive number", ExitCode.INPUT)
+    _one_line_error(capsys, ["report", str(bad), "--out", str(tmp_path / "r")], "must be a finite number",
+                    ExitCode.INPUT)
     assert not (tmp_path / "r").exists()  # inputs are read before the output is touched
 
 

@@ -70,7 +70,8 @@ def test_that_a_sparse_multi_gigabyte_log_is_refused_by_its_size(tmp_path, capsy
 
 @pytest.mark.parametrize("truth, why", [
     ("[" * 100_000 + "]" * 100_000, "deeper than"),
-    ('{"true_volume_m3": true}', "must be a positive number, got a boolean"),
+    ('{"true_volume_m3": true}', "must be a finite number, got a boolean"),
+    ('{"true_volume_m3": -3}', "must be >= 0"),
     ('{"true_volume_m3": NaN}', "not valid JSON"),
     ("[1]", "must be a JSON object"),
 ])

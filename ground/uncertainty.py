@@ -1,0 +1,280 @@
+"""A 90 % interval on the volume, from what the survey itself shows about its errors.
+
+A grid volume is wrong for five reasons, each measurable in the survey that made it (all in m³,
+each a scale of the error it describes, not yet a probability):
+
+- **unseen**: cells the surface never reached were filled (``surface.fill_empty``); the truth there
+  lies between a lower bound (the floor, 0, unless a caller knows better) and an upper one (the
+  free space the beams crossed above it, ``ground.unseen``, when known). Low side: what the fill
+  put above the lower bound; high side: the room left between the fill and the upper bound
+  (without one, the low side's size).
+- **interpolation**: between sweep tracks the surface is guessed from its neighbours; the error of
+  a smooth guess over a gap grows with the gap squared and the surface's curvature
+  (d^2/2 |laplacian h| per cell, the textbook bound of piecewise-linear interpolation).
+- **noise**: the points' scatter about the fitted surface, averaged over the seen cells (one
+  independent value per cell: the errors of neighbouring points are not independent).
+- **sweeps**: the mean height difference between rising and falling sweeps over the cells both
+  saw, a systematic servo or mounting error the self-calibration left.
+- **faces**: cells whose points lie further apart vertically than their cell's slope and the
+  sensor's noise allow: an overhang or a vertical face, which one height per cell cannot hold;
+  half that excess height over each such cell.
+
+The interval combines them in quadrature with one scale factor each (``IntervalModel``). The
+factors are not tuned by hand: ``tools/calibrate_interval.py`` fits them on the calibration part of
+a large evaluation set of simulated surveys (piles, buildings, altitudes, P_traj, servo phases,
+noise models) as the smallest median width that holds the truth in 90 % of those surveys, and
+reports the coverage on the held-out part (docs/uncertainty.md).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from ground.surface import Grid
+
+INTERVAL_LEVEL = 0.90
+"""The probability the interval is calibrated to hold the true volume."""
+
+
+@dataclass(frozen=True)
+class ErrorTerms:
+    """The survey's error scales in m³ (module docstring)."""
+
+    unseen_low_m3: float = 0.0
+    unseen_high_m3: float = 0.0
+    interpolation_m3: float = 0.0
+    noise_m3: float = 0.0
+    sweeps_m3: float = 0.0
+    faces_m3: float = 0.0
+
+    def as_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class IntervalModel:
+    """One scale factor per error term; 90 % of calibration surveys fall inside k-scaled quadrature sums."""
+
+    k_unseen: float
+    k_interpolation: float
+    k_noise: float
+    k_sweeps: float
+    k_faces: float
+    source: str = "uncalibrated"
+
+    def __post_init__(self) -> None:
+        for name in ("k_unseen", "k_interpolation", "k_noise", "k_sweeps", "k_faces"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"interval model {name} must be a finite number >= 0, got {v!r}")
+
+    def half_widths_m3(self, t: ErrorTerms) -> tuple[float, float]:
+        """(below, above) the volume."""
+        common = ((self.k_interpolation * t.interpolation_m3) ** 2 + (self.k_noise * t.noise_m3) ** 2
+                  + (self.k_sweeps * t.sweeps_m3) ** 2 + (self.k_faces * t.faces_m3) ** 2)
+        return (math.sqrt(common + (self.k_unseen * t.unseen_low_m3) ** 2),
+                math.sqrt(common + (self.k_unseen * t.unseen_high_m3) ** 2))
+
+    def interval_m3(self, volume_m3: float, t: ErrorTerms) -> tuple[float, float]:
+        """The interval, never below 0 (a volume cannot be negative, whatever the noise made of it)."""
+        below, above = self.half_widths_m3(t)
+        return max(0.0, volume_m3 - below), max(0.0, volume_m3 + above)
+
+
+# --- calibrated interval model (tools/calibrate_interval.py --write-model) ---
+DEFAULT_INTERVAL_MODEL = IntervalModel(
+    k_unseen=1, k_interpolation=1, k_noise=1.645, k_sweeps=1, k_faces=1,
+    source='uncalibrated')
+# --- end of calibrated interval model ---
+
+
+# ----- the terms -----------------------------------------------------------------------------------
+
+def cell_index(points_xy: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+    """(ix, iy) of each point's cell, clamped to the grid (a point on the far wall is in the last cell)."""
+    nx, ny = grid.shape
+    ix = np.clip((points_xy[:, 0] / grid.length_m * nx).astype(np.int64), 0, nx - 1)
+    iy = np.clip((points_xy[:, 1] / grid.width_m * ny).astype(np.int64), 0, ny - 1)
+    return ix, iy
+
+
+def unseen_terms_m3(heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
+                    lower_m: np.ndarray | None = None, upper_m: np.ndarray | None = None) -> tuple[float, float]:
+    """(low, high) error scales of the filled cells (module docstring); bounds are per-cell arrays or None."""
+    filled = ~np.isfinite(heights_fit)
+    if not filled.any():
+        return 0.0, 0.0
+    h = np.where(np.isfinite(heights), heights, 0.0)[filled]
+    lo = np.zeros_like(h) if lower_m is None else np.nan_to_num(np.asarray(lower_m, float)[filled], nan=0.0)
+    low = float(np.clip(h - lo, 0.0, None).sum() * grid.cell_area_m2)
+    if upper_m is None:
+        return low, low
+    hi = np.asarray(upper_m, float)[filled]
+    hi = np.where(np.isfinite(hi), hi, h)  # no bound known: the fill's own height
+    return low, float(np.clip(hi - h, 0.0, None).sum() * grid.cell_area_m2)
+
+
+def interpolation_term_m3(heights_fit: np.ndarray, counts: np.ndarray, grid: Grid) -> float:
+    """Sum over surfaced cells without points of d^2/2 |laplacian h| times the cell area (d: distance
+    to the nearest cell holding points)."""
+    seen = np.isfinite(heights_fit)
+    gaps = seen & (counts == 0)
+    if not gaps.any() or not (counts > 0).any():
+        return 0.0
+    c = grid.length_m / grid.shape[0], grid.width_m / grid.shape[1]
+    d_m = ndimage.distance_transform_edt(counts == 0, sampling=c)
+    # Curvature at the scale of the gaps: the one-cell Laplacian of a noisy fit is its noise, not the
+    # bend an interpolant misses over a gap of d, so it is averaged over the gaps' typical size.
+    h = np.where(seen, heights_fit, 0.0)
+    _, (ix, iy) = ndimage.distance_transform_edt(~seen, return_indices=True)
+    h = h[ix, iy]
+    lap = np.zeros_like(h)
+    for axis, step in ((0, c[0]), (1, c[1])):
+        if h.shape[axis] >= 3:
+            second = np.zeros_like(h)
+            inner = [slice(None)] * 2
+            inner[axis] = slice(1, -1)
+            second[tuple(inner)] = np.diff(h, n=2, axis=axis) / step**2
+            lap += second
+    scale_cells = max(1.0, float(np.median(d_m[gaps])) / min(c))
+    lap = np.abs(ndimage.gaussian_filter(lap, scale_cells, mode="nearest"))
+    return float((0.5 * d_m[gaps] ** 2 * np.abs(lap[gaps])).sum() * grid.cell_area_m2)
+
+
+def point_residuals_m(points_w: np.ndarray, heights_fit: np.ndarray, grid: Grid) -> np.ndarray:
+    """Each point's height above the fitted surface, interpolated bilinearly between cell centres at the
+    point (so a slope within a cell is not scatter); NaN where the surface is undefined."""
+    nx, ny = grid.shape
+    fx = np.clip(points_w[:, 0] / grid.length_m * nx - 0.5, 0.0, nx - 1.0)
+    fy = np.clip(points_w[:, 1] / grid.width_m * ny - 0.5, 0.0, ny - 1.0)
+    surface = ndimage.map_coordinates(np.nan_to_num(heights_fit, nan=0.0), [fx, fy], order=1, mode="nearest")
+    defined = ndimage.map_coordinates(np.isfinite(heights_fit).astype(float), [fx, fy], order=1, mode="nearest")
+    return np.where(defined > 0.999, points_w[:, 2] - surface, np.nan)
+
+
+def noise_term_m3(points_w: np.ndarray, heights_fit: np.ndarray, counts: np.ndarray, grid: Grid) -> float:
+    """The points' scatter carried into the volume: every surfaced cell takes its height from the
+    nearest cell holding points, so a cell j of n_j points whose error (sigma / sqrt(n_j)) spreads over
+    an area a_j contributes a_j sigma / sqrt(n_j); independent cells add in quadrature. sigma is the
+    points' robust scatter about the surface (1.4826 MAD of the residuals at their cells)."""
+    seen = np.isfinite(heights_fit)
+    if len(points_w) < 2 or not (counts > 0).any():
+        return 0.0
+    r = point_residuals_m(points_w, heights_fit, grid)
+    r = r[np.isfinite(r)]
+    if len(r) < 2:
+        return 0.0
+    sigma = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    c = grid.length_m / grid.shape[0], grid.width_m / grid.shape[1]
+    _, (ix, iy) = ndimage.distance_transform_edt(counts == 0, sampling=c, return_indices=True)
+    owner = (ix * grid.shape[1] + iy)[seen]
+    area_cells = np.bincount(owner, minlength=counts.size)
+    n = counts.ravel()
+    has = (area_cells > 0) & (n > 0)
+    return sigma * grid.cell_area_m2 * math.sqrt(float((area_cells[has] ** 2 / n[has]).sum()))
+
+
+def sweeps_term_m3(points_w: np.ndarray, sweep_dir: np.ndarray | None, heights_fit: np.ndarray, grid: Grid,
+                   min_points: int = 2) -> float:
+    """Half the mean (rising - falling) height difference over cells both saw, times those cells' area."""
+    if sweep_dir is None or len(points_w) == 0:
+        return 0.0
+    ix, iy = cell_index(points_w, grid)
+    flat = ix * grid.shape[1] + iy
+    n_all = grid.shape[0] * grid.shape[1]
+    means, counts = [], []
+    r = point_residuals_m(points_w, heights_fit, grid)  # heights less the surface: a slope is no difference
+    ok = np.isfinite(r)
+    for direction in (1, -1):
+        m = (np.asarray(sweep_dir) == direction) & ok
+        c = np.bincount(flat[m], minlength=n_all)
+        s = np.bincount(flat[m], weights=r[m], minlength=n_all)
+        counts.append(c)
+        means.append(s / np.maximum(c, 1))
+    both = (counts[0] >= min_points) & (counts[1] >= min_points)
+    if not both.any():
+        return 0.0
+    return 0.5 * abs(float(np.mean(means[0][both] - means[1][both]))) * int(both.sum()) * grid.cell_area_m2
+
+
+@dataclass(frozen=True)
+class FaceCells:
+    """Cells whose points disagree vertically beyond their slope and noise (see `face_cells`)."""
+
+    mask: np.ndarray  # (nx, ny) bool
+    excess_m: np.ndarray  # (nx, ny) vertical spread beyond what the cell's slope and noise allow; 0 elsewhere
+
+    @property
+    def n(self) -> int:
+        return int(self.mask.sum())
+
+
+MAX_SLOPE_DEG = 60.0
+"""The steepest surface a stockpile can hold: loose bulk material stands at its angle of repose, 30-45
+degrees for grains, coal, ores and aggregates; 60 leaves room for cohesive or compacted faces. Points in
+one cell further apart than this slope across the cell (and the noise) are a vertical face or an overhang."""
+
+
+def face_cells(points_w: np.ndarray, grid: Grid, point_sigma_m: float, n_sigma: float,
+               max_slope_deg: float = MAX_SLOPE_DEG) -> FaceCells:
+    """Cells whose points span more height than a max_slope_deg slope across the cell's diagonal plus
+    n_sigma point sigmas each way: a vertical face or an overhang."""
+    nx, ny = grid.shape
+    excess = np.zeros((nx, ny))
+    if len(points_w) < 2:
+        return FaceCells(excess > 0, excess)
+    ix, iy = cell_index(points_w, grid)
+    flat = ix * ny + iy
+    z = points_w[:, 2]
+    zmax = np.full(nx * ny, -np.inf)
+    zmin = np.full(nx * ny, np.inf)
+    np.maximum.at(zmax, flat, z)
+    np.minimum.at(zmin, flat, z)
+    spread = (zmax - zmin).reshape(nx, ny)
+    spread[~np.isfinite(spread)] = 0.0
+    diagonal_m = math.hypot(grid.length_m / nx, grid.width_m / ny)
+    allowed = diagonal_m * math.tan(math.radians(max_slope_deg)) + 2.0 * n_sigma * point_sigma_m
+    excess = np.clip(spread - allowed, 0.0, None)
+    return FaceCells(excess > 0, excess)
+
+
+def faces_term_m3(faces: FaceCells, grid: Grid) -> float:
+    return float(0.5 * faces.excess_m.sum() * grid.cell_area_m2)
+
+
+# ----- one survey ------------------------------------------------------------------------------------
+
+def point_sigma_m(range_m: np.ndarray, range_sigma: np.ndarray, position_sigma_m: float,
+                  angle_sigma_rad: float) -> float:
+    """A typical (median) point's 1-sigma height error: its range error, the vehicle's position error and
+    the pointing error at its range (r sigma_angle: the most a small rotation moves it vertically)."""
+    if len(range_m) == 0:
+        return 0.0
+    r = float(np.median(range_m))
+    return math.sqrt(float(np.median(range_sigma)) ** 2 + position_sigma_m**2 + (r * angle_sigma_rad) ** 2)
+
+
+@dataclass(frozen=True)
+class SurveyErrors:
+    """The error terms of one survey and the cells behind them (for warnings and figures)."""
+
+    terms: ErrorTerms
+    faces: FaceCells
+    point_sigma_m: float
+
+
+def survey_errors(points_w: np.ndarray, sweep_dir: np.ndarray | None, heights_fit: np.ndarray,
+                  heights: np.ndarray, counts: np.ndarray, grid: Grid, point_sigma: float, n_sigma: float,
+                  lower_m: np.ndarray | None = None, upper_m: np.ndarray | None = None) -> SurveyErrors:
+    low, high = unseen_terms_m3(heights_fit, heights, grid, lower_m, upper_m)
+    faces = face_cells(points_w, grid, point_sigma, n_sigma)
+    terms = ErrorTerms(unseen_low_m3=low, unseen_high_m3=high,
+                       interpolation_m3=interpolation_term_m3(heights_fit, counts, grid),
+                       noise_m3=noise_term_m3(points_w, heights_fit, counts, grid),
+                       sweeps_m3=sweeps_term_m3(points_w, sweep_dir, heights_fit, grid),
+                       faces_m3=faces_term_m3(faces, grid))
+    return SurveyErrors(terms, faces, point_sigma)

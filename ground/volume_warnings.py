@@ -1,0 +1,92 @@
+"""Warnings that say what is wrong with a volume, and where, when it matters to the interval.
+
+Each fires from one of the interval's error terms (ground.uncertainty) when that term is what makes
+the interval wide, so a clean survey stays quiet and a corner pile flown too sparsely does not:
+
+- **unseen material**: the fill put material into cells no surface reached, and that is a large
+  part of the interval; named by the regions' extents in the storage frame.
+- **faces**: cells whose points lie metres apart vertically (an overhang or a vertical face), and
+  their share of the interval.
+- **wide interval**: the interval is wider than the surveyor's tolerance (an option), so the survey
+  needs more coverage to be useful.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import ndimage
+
+from ground.surface import Grid
+from ground.uncertainty import ErrorTerms, FaceCells, IntervalModel
+
+DOMINANT_SHARE = 0.5
+"""A term 'dominates' when it holds over half of the interval's variance (its square over the sum)."""
+DEFAULT_MAX_INTERVAL_PCT = 5.0
+"""Default tolerance: a 90 % interval wider than +/-5 % of the volume is too wide to sign without a
+warning (stockpile audits typically accept 1-5 %); `pilescan-ground report --max-interval-pct`."""
+MAX_REGIONS = 3
+
+
+def _share(scaled: float, t: ErrorTerms, model: IntervalModel, high: bool) -> float:
+    below, above = model.half_widths_m3(t)
+    total = (above if high else below) ** 2
+    return scaled**2 / total if total > 0 else 0.0
+
+
+def regions(mask: np.ndarray, weight_m3: np.ndarray, grid: Grid, n: int = MAX_REGIONS) -> list[tuple[float, str]]:
+    """The n heaviest connected regions of mask as (m³, 'x a-b m, y c-d m'), heaviest first."""
+    labels, k = ndimage.label(mask)
+    if k == 0:
+        return []
+    sums = ndimage.sum(weight_m3, labels, index=np.arange(1, k + 1))
+    boxes = ndimage.find_objects(labels)
+    cx, cy = grid.length_m / grid.shape[0], grid.width_m / grid.shape[1]
+    out = []
+    for i in np.argsort(sums)[::-1][:n]:
+        sx, sy = boxes[i]
+        box = f"x {sx.start * cx:.0f}-{sx.stop * cx:.0f} m, y {sy.start * cy:.0f}-{sy.stop * cy:.0f} m"
+        out.append((float(sums[i]), box))
+    return out
+
+
+def unseen_warning(heights_fit: np.ndarray, heights: np.ndarray, grid: Grid, t: ErrorTerms,
+                   model: IntervalModel) -> str | None:
+    """When the filled cells hold material and dominate the interval."""
+    scaled = model.k_unseen * max(t.unseen_low_m3, t.unseen_high_m3)
+    if scaled <= 0 or _share(scaled, t, model, t.unseen_high_m3 > t.unseen_low_m3) < DOMINANT_SHARE:
+        return None
+    filled = ~np.isfinite(heights_fit)
+    weight = np.where(filled & np.isfinite(heights), np.clip(heights, 0, None), 0.0) * grid.cell_area_m2
+    where = regions(filled, weight, grid)
+    area = float(filled.sum() * grid.cell_area_m2)
+    listed = "; ".join(f"{w:,.0f} m³ at {box}" for w, box in where if w >= 0.01 * where[0][0])
+    return (f"{area:,.0f} m² of floor was never seen and the fill put {float(weight.sum()):,.0f} m³ there "
+            f"({listed}): most of the volume's uncertainty is there; fly closer tracks (lower P_traj) or "
+            "over those areas")
+
+
+def faces_warning(faces: FaceCells, grid: Grid, t: ErrorTerms, model: IntervalModel) -> str | None:
+    """When cells hold points far apart vertically and that matters to the interval."""
+    scaled = model.k_faces * t.faces_m3
+    if faces.n == 0 or _share(scaled, t, model, high=False) < DOMINANT_SHARE / 2:
+        return None
+    where = regions(faces.mask, faces.excess_m * grid.cell_area_m2, grid)
+    return (f"{faces.n} cells ({faces.n * grid.cell_area_m2:,.1f} m²) hold points up to "
+            f"{float(faces.excess_m.max()):.1f} m further apart vertically than their slope and the sensor's "
+            f"noise allow, around {'; '.join(box for _, box in where)}: an overhang or vertical face, which one "
+            "height per cell cannot hold (the volume under it is uncertain)")
+
+
+def wide_interval_warning(volume_m3: float, interval_m3: tuple[float, float], max_pct: float) -> str | None:
+    """When the interval's half-width exceeds max_pct of the volume (or the volume is about zero)."""
+    half = 0.5 * (interval_m3[1] - interval_m3[0])
+    if volume_m3 <= 0 or not math.isfinite(half):
+        return None
+    pct = 100.0 * half / volume_m3
+    if pct <= max_pct:
+        return None
+    return (f"the volume's 90 % interval is +/-{pct:.1f} % ({interval_m3[0]:,.0f}-{interval_m3[1]:,.0f} m³), "
+            f"wider than the {max_pct:g} % tolerance: too little coverage for a useful figure; fly a denser "
+            "mission")

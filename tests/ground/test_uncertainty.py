@@ -1,0 +1,177 @@
+"""The volume's error terms and interval (ground.uncertainty) and the warnings built on them."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.storage import Storage
+from ground.report import ReportOptions, summarise, survey_from_samples
+from ground.surface import Grid
+from ground.uncertainty import (
+    DEFAULT_INTERVAL_MODEL,
+    ErrorTerms,
+    IntervalModel,
+    face_cells,
+    interpolation_term_m3,
+    noise_term_m3,
+    sweeps_term_m3,
+    unseen_terms_m3,
+)
+from ground.volume_warnings import faces_warning, unseen_warning, wide_interval_warning
+
+GRID = Grid(20.0, 10.0, 0.5)
+
+
+def _plane_points(n: int, rng: np.random.Generator, sigma: float = 0.0) -> np.ndarray:
+    xy = rng.uniform([0, 0], [GRID.length_m, GRID.width_m], size=(n, 2))
+    return np.column_stack([xy, 1.0 + 0.1 * xy[:, 0] + rng.normal(0, sigma, n) if sigma else 1.0 + 0.1 * xy[:, 0]])
+
+
+def _heights_of(f) -> np.ndarray:
+    cx, cy = GRID.centres()
+    return f(cx, cy)
+
+
+def test_that_the_unseen_term_is_what_the_fill_put_above_the_floor():
+    fit = _heights_of(lambda x, y: np.ones_like(x))
+    fit[:4, :4] = np.nan
+    filled = np.where(np.isfinite(fit), fit, 2.0)
+    low, high = unseen_terms_m3(fit, filled, GRID)
+    assert low == pytest.approx(16 * 2.0 * GRID.cell_area_m2)
+    assert high == low  # no upper bound known: symmetric
+
+
+def test_that_an_upper_bound_from_free_space_sets_the_high_side():
+    fit = _heights_of(lambda x, y: np.ones_like(x))
+    fit[:4, :4] = np.nan
+    filled = np.where(np.isfinite(fit), fit, 2.0)
+    upper = np.full(GRID.shape, np.nan)
+    upper[:4, :4] = 2.5
+    low, high = unseen_terms_m3(fit, filled, GRID, upper_m=upper)
+    assert high == pytest.approx(16 * 0.5 * GRID.cell_area_m2)
+    assert low == pytest.approx(16 * 2.0 * GRID.cell_area_m2)
+
+
+def test_that_interpolating_a_plane_costs_nothing_and_a_curved_surface_grows_with_the_gap():
+    counts = np.zeros(GRID.shape, int)
+    counts[::4, :] = 5  # tracks every 2 m
+    plane = _heights_of(lambda x, y: 1.0 + 0.1 * x)
+    assert interpolation_term_m3(plane, counts, GRID) == pytest.approx(0.0, abs=1e-9)
+    bowl = _heights_of(lambda x, y: 0.02 * (x - 10.0) ** 2)
+    near = interpolation_term_m3(bowl, counts, GRID)
+    sparse = np.zeros(GRID.shape, int)
+    sparse[::8, :] = 5  # tracks every 4 m
+    far = interpolation_term_m3(bowl, sparse, GRID)
+    assert 0 < near < far
+
+
+def test_that_the_noise_term_grows_with_the_points_scatter():
+    rng = np.random.default_rng(1)
+    terms = []
+    for sigma in (0.01, 0.1):
+        p = _plane_points(4000, rng, sigma)
+        fit = _heights_of(lambda x, y: 1.0 + 0.1 * x)
+        terms.append(noise_term_m3(p, fit, GRID.counts(p), GRID))
+    assert terms[1] == pytest.approx(10 * terms[0], rel=0.3)
+
+
+def test_that_rising_and_falling_sweeps_at_different_heights_are_a_sweeps_term():
+    rng = np.random.default_rng(2)
+    p = _plane_points(8000, rng)
+    d = np.where(np.arange(len(p)) % 2 == 0, 1, -1)
+    fit = _heights_of(lambda x, y: 1.0 + 0.1 * x)
+    assert sweeps_term_m3(p, d, fit, GRID) < 0.01  # m³ over 200 m²: a twentieth of a millimetre
+    p[d == 1, 2] += 0.2
+    area = GRID.length_m * GRID.width_m
+    assert sweeps_term_m3(p, d, fit, GRID) == pytest.approx(0.1 * area, rel=0.1)  # cells both sweeps saw
+
+
+def test_that_a_vertical_face_is_flagged_and_a_steep_smooth_slope_is_not():
+    rng = np.random.default_rng(3)
+    xy = rng.uniform([0, 0], [GRID.length_m, GRID.width_m], size=(20_000, 2))
+    slope = np.column_stack([xy, np.tan(math.radians(40)) * xy[:, 0] * 0.3])  # 40 deg x 0.3: ~14 deg ramp
+    assert face_cells(slope, GRID, 0.02, 4.0).n == 0
+    box = np.column_stack([xy, np.where(xy[:, 0] < 10.0, 3.0, 0.0)])
+    wall = np.column_stack([np.full(200, 10.1), rng.uniform(0, 10, 200), rng.uniform(0, 3, 200)])  # the face
+    pts = np.vstack([box, wall])
+    faces = face_cells(pts, GRID, 0.02, 4.0)
+    assert faces.n > 0 and faces.mask[20].any()  # the cell column at x 10-10.5 m
+    assert not faces.mask[:19].any() and not faces.mask[22:].any()
+
+
+def test_that_the_interval_is_never_below_zero_and_widens_with_each_term():
+    m = IntervalModel(k_unseen=1, k_interpolation=1, k_noise=1, k_sweeps=1, k_faces=1)
+    assert m.interval_m3(5.0, ErrorTerms(noise_m3=50.0)) == (0.0, 55.0)
+    base = m.half_widths_m3(ErrorTerms(noise_m3=3.0))
+    wider = m.half_widths_m3(ErrorTerms(noise_m3=3.0, interpolation_m3=4.0))
+    assert wider == (5.0, 5.0) and base == (3.0, 3.0)
+    lo, hi = m.half_widths_m3(ErrorTerms(unseen_low_m3=4.0, unseen_high_m3=0.0))
+    assert lo == 4.0 and hi == 0.0
+
+
+def test_that_an_interval_model_refuses_a_negative_or_infinite_factor():
+    with pytest.raises(ValueError, match="k_noise"):
+        replace(DEFAULT_INTERVAL_MODEL, k_noise=-1.0)
+    with pytest.raises(ValueError, match="k_faces"):
+        replace(DEFAULT_INTERVAL_MODEL, k_faces=math.inf)
+
+
+def test_that_the_unseen_warning_names_where_material_was_invented_and_stays_quiet_when_all_was_seen():
+    fit = _heights_of(lambda x, y: np.ones_like(x))
+    assert unseen_warning(fit, fit, GRID, ErrorTerms(noise_m3=1.0), DEFAULT_INTERVAL_MODEL) is None
+    fit[:6, :6] = np.nan  # a 3 x 3 m corner never seen
+    filled = np.where(np.isfinite(fit), fit, 3.0)
+    low, high = unseen_terms_m3(fit, filled, GRID)
+    w = unseen_warning(fit, filled, GRID, ErrorTerms(unseen_low_m3=low, unseen_high_m3=high, noise_m3=1.0),
+                       DEFAULT_INTERVAL_MODEL)
+    assert w is not None and "x 0-3 m, y 0-3 m" in w and "27 m³" in w
+
+
+def test_that_the_faces_warning_fires_only_when_faces_weigh_in_the_interval():
+    rng = np.random.default_rng(4)
+    xy = rng.uniform([0, 0], [GRID.length_m, GRID.width_m], size=(20_000, 2))
+    box = np.column_stack([xy, np.where(xy[:, 0] < 10.0, 3.0, 0.0)])
+    wall = np.column_stack([np.full(200, 10.1), rng.uniform(0, 10, 200), rng.uniform(0, 3, 200)])
+    faces = face_cells(np.vstack([box, wall]), GRID, 0.02, 4.0)
+    terms = ErrorTerms(faces_m3=float(0.5 * faces.excess_m.sum() * GRID.cell_area_m2), noise_m3=0.5)
+    w = faces_warning(faces, GRID, terms, DEFAULT_INTERVAL_MODEL)
+    assert w is not None and "vertical face" in w and "x 10-" in w
+    assert faces_warning(faces, GRID, replace(terms, noise_m3=1e4), DEFAULT_INTERVAL_MODEL) is None
+
+
+def test_that_a_wide_interval_is_a_warning_and_a_tight_one_is_not():
+    assert wide_interval_warning(1000.0, (990.0, 1010.0), 5.0) is None
+    w = wide_interval_warning(1000.0, (800.0, 1200.0), 5.0)
+    assert w is not None and "+/-20.0 %" in w
+
+
+def test_that_an_empty_building_reports_about_zero_with_an_interval_holding_zero():
+    from firmware_py.core.samplelog import SampleLog
+    from sitl.missions.rectangle import Mission
+    from sitl.runners.fly import FlyConfig, log_header
+    from sitl.sensing.batch_sampler import sample_flight
+    from sitl.vehicle.ideal_plant import IdealPlant
+    from sitl.world.raycast import World
+
+    storage = Storage(30.0, 20.0, 10.0)
+    cfg = FlyConfig(mission=Mission(storage=storage, altitude_m=8.0, p_traj=0.2))
+    plant = IdealPlant(cfg.mission, StorageFrame())
+    t = np.arange(int(plant.duration_s * cfg.lidar.rate_hz) + 1) / cfg.lidar.rate_hz
+    wf = cfg.servo_waveform()
+    samples = sample_flight(plant.states(t), wf, World(storage, None, cfg.lidar.max_range_m), cfg.lidar,
+                            cfg.lever_arm_body_m, cfg.frame, seed=[0])
+    header = log_header(cfg, wf)
+    sv = survey_from_samples(samples, header, storage, cfg.frame, np.array(cfg.lever_arm_body_m),
+                             ReportOptions(plots=False))
+    log = SampleLog(header=header, samples=samples, blocks_ok=1, blocks_corrupt=0, blocks_truncated=0, bytes_skipped=0)
+    rep = summarise(sv, log, ReportOptions(plots=False), 0.0)
+    lo, hi = rep["volume_interval_m3"]
+    assert abs(rep["volume_m3"]) < 0.001 * storage.length_m * storage.width_m * storage.height_m
+    assert lo == 0.0 <= rep["volume_m3"] or rep["volume_m3"] < 0
+    assert hi >= 0.0 and rep["truth_in_interval"] in (True, False)
+    assert rep["volume_error_pct"] is None and rep["volume_error_m3"] == pytest.approx(rep["volume_m3"])

@@ -1,0 +1,42 @@
+"""tools.calibrate_interval: the fit reaches its coverage with the narrowest interval it can find."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ground.uncertainty import ErrorTerms, IntervalModel
+from tools.calibrate_interval import FACTORS, MODEL_BEGIN, MODEL_END, coverage, fit, model_of, write_model
+
+
+def _rows(n: int, seed: int) -> list[dict]:
+    """Runs whose error is the noise term times a standard normal; the other terms are red herrings."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for i in range(n):
+        noise = rng.uniform(5, 50)
+        t = ErrorTerms(interpolation_m3=rng.uniform(0, 100), noise_m3=noise)
+        truth = 1000.0
+        rows.append({"run_id": str(i), "volume_m3": truth + noise * rng.normal(), "true_volume_m3": truth,
+                     "floor_area_m2": 100.0, "split": "calibration", **t.as_dict()})
+    return rows
+
+
+def test_that_the_fitted_interval_covers_90_percent_of_its_runs_and_of_fresh_ones():
+    k, _ = fit(_rows(400, 1), n_candidates=500)
+    model = model_of(k, "test")
+    assert coverage(model, _rows(400, 1))["coverage_pct"] >= 90.0
+    assert 85.0 <= coverage(model, _rows(2000, 2))["coverage_pct"] <= 95.0
+    # the noise term explains the error: its factor is near the normal's 90 % quantile, the others near zero
+    assert 1.3 < model.k_noise < 2.0 and model.k_interpolation < 0.3
+
+
+def test_that_the_fitted_model_is_written_between_its_markers(tmp_path):
+    src = tmp_path / "u.py"
+    src.write_text(f"x = 1\n{MODEL_BEGIN}\nold\n{MODEL_END}\ny = 2\n")
+    model = IntervalModel(**dict.fromkeys(FACTORS, 0.5), source="fitted here")
+    write_model(model, src)
+    text = src.read_text()
+    assert text.startswith("x = 1\n") and text.endswith("y = 2\n") and "old" not in text
+    ns: dict = {"IntervalModel": IntervalModel}
+    exec(text.split(MODEL_BEGIN)[1].split(MODEL_END)[0], ns)
+    assert ns["DEFAULT_INTERVAL_MODEL"] == model
