@@ -41,6 +41,7 @@ from ground.surface import (
     reconstructed_ratio_pct,
     volume_error_pct,
 )
+from ground.unseen import beam_angle_sigma_rad, free_space_ceiling_m
 
 LOW_COVERAGE_PCT = 95.0
 HIGH_EXCLUDED_FRACTION = 0.5
@@ -251,7 +252,9 @@ def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageF
     disagreement = None
     if cloud.sweep_dir is not None:
         disagreement, _ = sweep_disagreement_m(pile, cloud.sweep_dir[~structure], grid)
-    return Survey(cloud, pile, grid, fit, fill_empty(fit, opts.empty_cells), grid.counts(pile), storage,
+    ceiling = None if opts.empty_cells != "bounded" else free_space_ceiling_m(  # what the beams left free above
+        cloud, grid, storage, err, beam_angle_sigma_rad(header), where=~np.isfinite(fit))  # the unseen cells
+    return Survey(cloud, pile, grid, fit, fill_empty(fit, opts.empty_cells, ceiling), grid.counts(pile), storage,
                   n_clipped, disagreement)
 
 
