@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from firmware_py.core.sensor_noise import SensorNoise, SensorNoiseModel
 from firmware_py.core.storage import Storage
 from ground.pointcloud import SensorErrorModel
 from ground.report import ReportOptions, survey_from_samples
@@ -37,13 +38,17 @@ FIXTURE_RESOLUTION_M = 0.25
 """Vertex spacing of the fixture piles' meshes (the paper piles' spacing)."""
 P_TRAJ_PCT = (20, 30)
 PILES = ("corner", "wall-end", "1", "2")
-FILLS = ("nearest", "bounded-harmonic", "bounded-biharmonic")
-"""The fills compared: today's default and the bounded policy with each smoothness (ground.unseen)."""
+FILLS = ("nearest", "bounded-harmonic", "bounded-biharmonic", "floor-only-biharmonic")
+"""The fills compared: today's default, the bounded policy with each smoothness (ground.unseen), and the
+thin plate held by the floor alone (what the free-space ceiling adds)."""
+NOISES = ("none", "appendix-a")
 
 
 def _fill(name: str, heights_fit: np.ndarray, ceiling_m: np.ndarray) -> np.ndarray:
     if name.startswith("bounded-"):
         return bounded_fill(heights_fit, ceiling_m, Smoothness(name.removeprefix("bounded-")))
+    if name.startswith("floor-only-"):
+        return bounded_fill(heights_fit, None, Smoothness(name.removeprefix("floor-only-")))
     return fill_empty(heights_fit, name)
 
 
@@ -91,7 +96,7 @@ def pile_named(name: str, storage: Storage) -> Stockpile:
 
 
 def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path,
-             policies: tuple[str, ...] = FILLS) -> list[dict]:
+             policies: tuple[str, ...] = FILLS, noise_name: str = "none") -> list[dict]:
     """One row per servo phase: Ve for each policy and what the unseen cells held."""
     e = ALL_EXPERIMENTS["baseline"]
     flown = _flight(e, p_pct, cache_dir)
@@ -105,8 +110,10 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
     for k in positions:
         cfg = replace(base, initial_position=k)
         wf = cfg.servo_waveform()
-        samples = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame, seed=[int(p_pct), k])
-        header = log_header(cfg, wf)
+        noise = None if noise_name == "none" else SensorNoise.of(SensorNoiseModel(noise_name), cfg.lidar)
+        samples = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame, noise=noise,
+                                seed=[int(p_pct), k])
+        header = log_header(replace(cfg, sensor_noise=noise.model) if noise else cfg, wf)
         sv = survey_from_samples(samples, header, storage, cfg.frame, np.array(cfg.lever_arm_body_m),
                                  ReportOptions(plots=False, empty_cells="nearest"))
         unseen = ~np.isfinite(sv.heights_fit)
@@ -114,13 +121,16 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
         ceiling = free_space_ceiling_m(sv.cloud, sv.grid, storage, SensorErrorModel.from_header(header),
                                        beam_angle_sigma_rad(header), where=unseen)
         ceiling_s = time.perf_counter() - t0
-        row = {"pile": pile_name, "p_traj_pct": p_pct, "position": k, "true_m3": pile.volume_m3,
+        row = {"pile": pile_name, "p_traj_pct": p_pct, "noise": noise_name, "position": k, "true_m3": pile.volume_m3,
                "unseen_pct": float(unseen.mean() * 100), "ceiling_s": ceiling_s, "n_beams": len(sv.cloud.range_m),
                "beam_crossed_pct": float((ceiling[unseen] < storage.height_m).mean() * 100) if unseen.any() else 0.0}
         for pol in policies:
             v = grid_volume(_fill(pol, sv.heights_fit, ceiling), sv.grid)
             row[f"ve_{pol}_pct"] = volume_error_pct(v, pile.volume_m3)
             row[f"e_{pol}_pct"] = (v - pile.volume_m3) / pile.volume_m3 * 100
+        held = bounded_fill(sv.heights_fit, ceiling, Smoothness.BIHARMONIC)
+        at_ceiling = np.isclose(held[unseen], ceiling[unseen]) & (ceiling[unseen] < storage.height_m)
+        row["held_pct"] = float(at_ceiling.mean() * 100) if unseen.any() else 0.0
         lo, hi = unseen_bounds(sv.heights_fit, np.where(unseen, ceiling, storage.height_m))
         row["v_lo_m3"], row["v_hi_m3"] = grid_volume(lo, sv.grid), grid_volume(hi, sv.grid)
         rows.append(row)
@@ -140,25 +150,27 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
              "smoothest surface that meets the seen edge and stays between the floor and the flight's free-space",
              "ceiling (`ground/unseen.py`). Signed error (mean) shows which way a policy errs; `inside` counts the",
              "phases whose true volume lies within the floor/ceiling bounds of the unseen cells.", ""]
-    head = "| pile | P_traj | phases | unseen % | crossed % | "
+    head = "| pile | P_traj | noise | phases | unseen % | crossed % | held % | "
     head += " | ".join(f"`{p}` Ve mean | sd | max" for p in policies)
     head += " | " + " | ".join(f"`{p}` signed" for p in policies) + " | inside |"
-    lines += [head, "|" + "---|" * (6 + 3 * len(policies) + len(policies))]
-    keys = sorted({(r["pile"], r["p_traj_pct"]) for r in rows}, key=lambda k: (PILES.index(k[0]) if k[0] in PILES
-                                                                               else 99, k[1]))
-    for pile, p in keys:
-        rs = [r for r in rows if r["pile"] == pile and r["p_traj_pct"] == p]
+    lines += [head, "|" + "---|" * (8 + 3 * len(policies) + len(policies))]
+    keys = sorted({(r["pile"], r["p_traj_pct"], r["noise"]) for r in rows},
+                  key=lambda k: (NOISES.index(k[2]), PILES.index(k[0]), k[1]))
+    for pile, p, noise in keys:
+        rs = [r for r in rows if r["pile"] == pile and r["p_traj_pct"] == p and r["noise"] == noise]
         inside = sum(r["v_lo_m3"] <= r["true_m3"] <= r["v_hi_m3"] for r in rs)
-        cells = [pile, f"{p:g} %", str(len(rs)), f"{np.mean([r['unseen_pct'] for r in rs]):.1f}",
-                 f"{np.mean([r['beam_crossed_pct'] for r in rs]):.0f}"]
+        cells = [pile, f"{p:g} %", noise, str(len(rs)), f"{np.mean([r['unseen_pct'] for r in rs]):.1f}",
+                 f"{np.mean([r['beam_crossed_pct'] for r in rs]):.0f}", f"{np.mean([r['held_pct'] for r in rs]):.1f}"]
         cells += [_stats([r[f"ve_{pol}_pct"] for r in rs]) for pol in policies]
         cells += [f"{np.mean([r[f'e_{pol}_pct'] for r in rs]):+.2f}" for pol in policies]
         cells.append(f"{inside}/{len(rs)}")
         lines.append("| " + " | ".join(cells) + " |")
     secs = [r["ceiling_s"] for r in rows]
-    lines += ["", "`unseen %`: floor cells without a fitted surface; `crossed %`: of those, the share any beam passed",
-              "over (the others' ceiling is the roof). `inside`: phases whose true volume lies between the volume with",
-              "every unseen cell at the floor and the volume with every unseen cell at its ceiling.", "",
+    lines += ["", "`unseen %`: floor cells without a fitted surface; `crossed %`: of those, the share any beam",
+              "passed over (the others' ceiling is the roof); `held %`: the share the bounded thin plate holds at its",
+              "ceiling. `floor-only-biharmonic` is the thin plate without the ceiling (only the floor bounds it).",
+              "`inside`: phases whose true volume lies between the volume with every unseen cell at the floor and the",
+              "volume with every unseen cell at its ceiling (the fitted cells as fitted).", "",
               f"Free-space ceiling over the unseen cells: median {np.median(secs) * 1e3:.0f} ms a survey (max "
               f"{max(secs) * 1e3:.0f} ms; {int(np.median([r['n_beams'] for r in rows])):,} beams median).", ""]
     out.write_text("\n".join(lines))
@@ -168,6 +180,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--piles", nargs="+", default=list(PILES))
     ap.add_argument("--p-traj", nargs="+", type=float, default=list(P_TRAJ_PCT))
+    ap.add_argument("--noise", nargs="+", default=list(NOISES), choices=NOISES,
+                    help="sensor noise of the simulated surveys (none, or the paper's Appendix A)")
     ap.add_argument("--positions", type=int, default=N_POSITIONS, help="servo phases (1-20)")
     ap.add_argument("--cache", type=Path, default=Path("runs/sweep-cache"))
     ap.add_argument("--out", type=Path, default=Path("docs/unseen.md"))
@@ -180,12 +194,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"unseen_campaign: --positions must be 1-{N_POSITIONS}", file=sys.stderr)
         return 2
     rows: list[dict] = []
-    for pile in args.piles:
-        for p in args.p_traj:
-            rs = run_case(pile, p, servo_positions(args.positions), args.cache)
-            rows += rs
-            print(f"{pile} P_traj {p:g} %: " + ", ".join(
-                f"{pol} {np.mean([r[f've_{pol}_pct'] for r in rs]):.2f}" for pol in FILLS), flush=True)
+    for noise in args.noise:
+        for pile in args.piles:
+            for p in args.p_traj:
+                rs = run_case(pile, p, servo_positions(args.positions), args.cache, noise_name=noise)
+                rows += rs
+                print(f"{pile} P_traj {p:g} % noise {noise}: " + ", ".join(
+                    f"{pol} {np.mean([r[f've_{pol}_pct'] for r in rs]):.2f}" for pol in FILLS), flush=True)
     command = "python -m tools.unseen_campaign" + (" " + " ".join(argv) if argv else "")
     write_markdown(rows, args.out, FILLS, command)
     print(f"wrote {args.out}")
