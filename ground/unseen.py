@@ -158,27 +158,34 @@ def unseen_bounds(heights_fit: np.ndarray, ceiling_m: np.ndarray) -> tuple[np.nd
     return lower, upper
 
 
-class Smoothness(Enum):
-    """What the fill keeps smooth: HARMONIC its slope (each cell the mean of its neighbours: flattens
-    towards the mean of the edge), BIHARMONIC its curvature (a thin plate free at the walls: continues
-    the edge's slope)."""
+class Extension(Enum):
+    """How the seen surface is carried into the unseen cells: NEAREST copies the nearest seen cell's
+    height (the `nearest` policy's guess, then held within the bounds); HARMONIC keeps the slope small
+    (each cell the mean of its neighbours: flattens towards the mean of the edge); BIHARMONIC keeps the
+    curvature small (a thin plate free at the walls: continues the edge's slope)."""
 
+    NEAREST = "nearest"
     HARMONIC = "harmonic"
     BIHARMONIC = "biharmonic"
 
 
 def bounded_fill(heights: np.ndarray, ceiling_m: np.ndarray | None = None,
-                 smoothness: Smoothness = Smoothness.HARMONIC) -> np.ndarray:
+                 extension: Extension = Extension.HARMONIC) -> np.ndarray:
     """The unseen (non-finite) cells filled with the smoothest surface that meets the seen cells at their
     edge and stays within [0, ceiling] (module docstring); seen cells unchanged. Without a ceiling only
     the floor bounds it."""
-    solve = _harmonic if smoothness is Smoothness.HARMONIC else _biharmonic
     h = np.array(heights, dtype=float)
     empty = ~np.isfinite(h)
     if not empty.any() or empty.all():
         return h
     upper = np.full(h.shape, np.inf) if ceiling_m is None else np.maximum(np.asarray(ceiling_m, dtype=float), 0.0)
+    upper = np.where(np.isnan(upper), np.inf, upper)  # a cell the ceiling was not computed for: unbounded
     lower = np.zeros(h.shape)
+    if extension is Extension.NEAREST:
+        _, (ix, iy) = ndimage.distance_transform_edt(empty, return_indices=True)
+        h[empty] = np.clip(h[ix, iy][empty], lower[empty], upper[empty])
+        return h
+    solve = _harmonic if extension is Extension.HARMONIC else _biharmonic
     fixed = np.zeros(h.shape)  # value of cells held at a bound
     held = np.zeros(h.shape, dtype=bool)
     for _ in range(MAX_ACTIVE_SET_ROUNDS):

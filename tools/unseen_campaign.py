@@ -25,7 +25,7 @@ from firmware_py.core.storage import Storage
 from ground.pointcloud import SensorErrorModel
 from ground.report import ReportOptions, survey_from_samples
 from ground.surface import fill_empty, grid_volume, volume_error_pct
-from ground.unseen import Smoothness, beam_angle_sigma_rad, bounded_fill, free_space_ceiling_m, unseen_bounds
+from ground.unseen import Extension, beam_angle_sigma_rad, bounded_fill, free_space_ceiling_m, unseen_bounds
 from sitl.runners.fly import FlyConfig, log_header
 from sitl.sensing.batch_sampler import sample_flight
 from sitl.world.raycast import World
@@ -38,17 +38,17 @@ FIXTURE_RESOLUTION_M = 0.25
 """Vertex spacing of the fixture piles' meshes (the paper piles' spacing)."""
 P_TRAJ_PCT = (20, 30)
 PILES = ("corner", "wall-end", "1", "2")
-FILLS = ("nearest", "bounded-harmonic", "bounded-biharmonic", "floor-only-biharmonic")
-"""The fills compared: today's default, the bounded policy with each smoothness (ground.unseen), and the
+FILLS = ("nearest", "bounded-nearest", "bounded-harmonic", "bounded-biharmonic", "floor-only-biharmonic")
+"""The fills compared: today's default, the bounded policy with each extension (ground.unseen), and the
 thin plate held by the floor alone (what the free-space ceiling adds)."""
 NOISES = ("none", "appendix-a")
 
 
 def _fill(name: str, heights_fit: np.ndarray, ceiling_m: np.ndarray) -> np.ndarray:
     if name.startswith("bounded-"):
-        return bounded_fill(heights_fit, ceiling_m, Smoothness(name.removeprefix("bounded-")))
+        return bounded_fill(heights_fit, ceiling_m, Extension(name.removeprefix("bounded-")))
     if name.startswith("floor-only-"):
-        return bounded_fill(heights_fit, None, Smoothness(name.removeprefix("floor-only-")))
+        return bounded_fill(heights_fit, None, Extension(name.removeprefix("floor-only-")))
     return fill_empty(heights_fit, name)
 
 
@@ -128,7 +128,7 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
             v = grid_volume(_fill(pol, sv.heights_fit, ceiling), sv.grid)
             row[f"ve_{pol}_pct"] = volume_error_pct(v, pile.volume_m3)
             row[f"e_{pol}_pct"] = (v - pile.volume_m3) / pile.volume_m3 * 100
-        held = bounded_fill(sv.heights_fit, ceiling, Smoothness.BIHARMONIC)
+        held = bounded_fill(sv.heights_fit, ceiling, Extension.BIHARMONIC)
         at_ceiling = np.isclose(held[unseen], ceiling[unseen]) & (ceiling[unseen] < storage.height_m)
         row["held_pct"] = float(at_ceiling.mean() * 100) if unseen.any() else 0.0
         lo, hi = unseen_bounds(sv.heights_fit, np.where(unseen, ceiling, storage.height_m))

@@ -11,7 +11,7 @@ from ground.report import ReportOptions, make_report
 from ground.surface import Grid, fill_empty, grid_volume
 from ground.unseen import (
     MAX_SLOPE,
-    Smoothness,
+    Extension,
     beam_angle_sigma_rad,
     bounded_fill,
     free_space_ceiling_m,
@@ -100,7 +100,8 @@ def test_that_a_stated_pose_and_angle_error_loosen_the_ceiling():
     loose = free_space_ceiling_m(cloud, GRID, STORAGE, SensorErrorModel(position_sigma_m=0.1), math.radians(1.0))
     crossed = tight < STORAGE.height_m
     assert np.all(loose >= tight)
-    assert np.median((loose - tight)[crossed & (loose < STORAGE.height_m)]) > 0.1 * structure_n_sigma(len(cloud.range_m))
+    k = structure_n_sigma(len(cloud.range_m))
+    assert np.median((loose - tight)[crossed & (loose < STORAGE.height_m)]) > 0.1 * k
 
 
 def test_that_computing_only_the_cells_asked_for_gives_the_same_ceiling_there():
@@ -135,20 +136,20 @@ def test_that_a_bare_corner_under_low_beams_stays_near_the_floor_where_nearest_p
     assert np.all((bounded[unseen] >= 0.0) & (bounded[unseen] <= ceiling[unseen] + 1e-12))
 
 
-@pytest.mark.parametrize("smoothness", list(Smoothness))
-def test_that_on_a_fully_covered_pile_the_bounded_policy_changes_nothing(smoothness):
+@pytest.mark.parametrize("extension", list(Extension))
+def test_that_on_a_fully_covered_pile_the_bounded_policy_changes_nothing(extension):
     cx, cy = GRID.centres()
     fit = mound_m(cx, cy)
-    assert np.array_equal(bounded_fill(fit, np.zeros(GRID.shape), smoothness), fit)
+    assert np.array_equal(bounded_fill(fit, np.zeros(GRID.shape), extension), fit)
     assert np.array_equal(fill_empty(fit, "bounded", np.zeros(GRID.shape)), fit)
 
 
-@pytest.mark.parametrize("smoothness", list(Smoothness))
-def test_that_the_bounded_fill_keeps_the_seen_cells_and_stays_within_its_bounds(smoothness):
+@pytest.mark.parametrize("extension", list(Extension))
+def test_that_the_bounded_fill_keeps_the_seen_cells_and_stays_within_its_bounds(extension):
     cx, cy = GRID.centres()
     fit = np.where(cx + cy < 6.0, np.nan, 0.5 * cx)  # a ramp rising away from an unseen corner
     ceiling = np.full(GRID.shape, 1.0)
-    out = bounded_fill(fit, ceiling, smoothness)
+    out = bounded_fill(fit, ceiling, extension)
     seen = np.isfinite(fit)
     assert np.array_equal(out[seen], fit[seen])
     assert np.all((out[~seen] >= 0.0) & (out[~seen] <= 1.0))
@@ -162,14 +163,14 @@ def test_that_the_thin_plate_continues_a_slope_the_harmonic_fill_flattens():
     plane = 6.0 - 0.3 * (cx + cy)
     fit = np.where(cx + cy < 8.0, np.nan, plane)
     unseen = ~np.isfinite(fit)
-    thin = bounded_fill(fit, None, Smoothness.BIHARMONIC)
-    flat = bounded_fill(fit, None, Smoothness.HARMONIC)
+    thin = bounded_fill(fit, None, Extension.BIHARMONIC)
+    flat = bounded_fill(fit, None, Extension.HARMONIC)
     assert np.max(np.abs(thin[unseen] - plane[unseen])) < 0.05
     assert np.max(flat[unseen]) <= np.nanmax(fit[np.isfinite(fit) & (cx + cy < 9.0)]) + 1e-9
 
 
 def test_that_without_a_ceiling_only_the_floor_bounds_the_fill():
-    cx, cy = GRID.centres()
+    cx, _ = GRID.centres()
     fit = np.where(cx < 3.0, np.nan, cx - 3.0)  # a ramp going down into the unseen strip: floor-bound
     out = fill_empty(fit, "bounded")
     assert np.all(out[cx < 3.0] >= 0.0)
@@ -177,7 +178,7 @@ def test_that_without_a_ceiling_only_the_floor_bounds_the_fill():
 
 
 def test_that_the_unseen_bounds_are_floor_and_ceiling_where_unseen_and_the_fit_where_seen():
-    cx, cy = GRID.centres()
+    cx, _ = GRID.centres()
     fit = np.where(cx < 2.0, np.nan, 1.5)
     ceiling = np.full(GRID.shape, 2.5)
     lo, hi = unseen_bounds(fit, ceiling)
