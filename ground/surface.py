@@ -16,7 +16,7 @@ policy:
   would otherwise lose a strip of volume along every wall whose width depends on where the last
   sample happened to land (docs/cell_sensitivity.md shows the grid sensitivity this removes).
 - ``leave`` (the paper's method): no surface there, no volume counted.
-- ``bounded``: the smoothest surface from the seen edge, held between the floor and the flight's
+- ``bounded``: the nearest reconstructed height too, but held between the floor and the flight's
   free-space ceiling (`ground.unseen`: beams that passed over a cell bound its height).
 
 Either way R_a (eq. 9) is computed from the fitted surface before any filling, and the report

@@ -1,13 +1,16 @@
 """The unseen ground: the free-space ceiling the beams give, and the bounded fill held under it."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from firmware_py.core.rundir import SAMPLES_FILE
+from firmware_py.core.samplelog import read_samplelog
 from firmware_py.core.storage import Storage
 from ground.pointcloud import Cloud, SensorErrorModel, structure_n_sigma
-from ground.report import ReportOptions, make_report
+from ground.report import ReportOptions, header_geometry, make_report, survey_from_samples
 from ground.surface import Grid, fill_empty, grid_volume
 from ground.unseen import (
     MAX_SLOPE,
@@ -204,10 +207,19 @@ def test_that_a_cloud_without_beams_bounds_nothing():
     assert np.all(free_space_ceiling_m(empty, GRID, STORAGE, IDEAL) == STORAGE.height_m)
 
 
-def test_that_the_report_runs_the_bounded_policy_end_to_end(tmp_path):
-    golden = "tests/golden"
-    nearest = make_report(golden, tmp_path / "n", ReportOptions(plots=False, empty_cells="nearest"))
-    bounded = make_report(golden, tmp_path / "b", ReportOptions(plots=False, empty_cells="bounded"))
-    assert bounded["empty_cell_policy"] == "bounded"
-    assert bounded["volume_error_pct"] < 1.0
-    assert bounded["volume_m3"] != nearest["volume_m3"]  # the unseen strip along the walls is filled differently
+def test_that_the_report_fills_the_unseen_cells_within_the_floor_and_the_flights_ceiling(tmp_path):
+    """The golden flight (pile 1, JSBSim) through the report with --empty-cells bounded: fitted cells as
+    fitted, the others between the floor and the ceiling its own beams give; the report says the policy."""
+    log = read_samplelog(Path("tests/golden") / SAMPLES_FILE)
+    storage, frame, lever = header_geometry(log, Path("tests/golden"))
+    sv = survey_from_samples(log.samples, log.header, storage, frame, lever,
+                             ReportOptions(plots=False, empty_cells="bounded"))
+    unseen = ~np.isfinite(sv.heights_fit)
+    assert unseen.any()
+    ceiling = free_space_ceiling_m(sv.cloud, sv.grid, storage, SensorErrorModel.from_header(log.header),
+                                   beam_angle_sigma_rad(log.header), where=unseen)
+    assert np.array_equal(sv.heights[~unseen], sv.heights_fit[~unseen])
+    assert np.all((sv.heights[unseen] >= 0.0) & (sv.heights[unseen] <= ceiling[unseen] + 1e-12))
+    rep = make_report("tests/golden", tmp_path / "b", ReportOptions(plots=False, empty_cells="bounded"))
+    assert rep["empty_cell_policy"] == "bounded"
+    assert rep["volume_error_pct"] < 1.0
