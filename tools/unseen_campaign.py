@@ -175,7 +175,9 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
              "`bounded` policy (`ground/unseen.py`) carrying the seen surface into the unseen cells by that extension",
              "(`nearest` copy, `harmonic` membrane, `biharmonic` thin plate) held between the floor and the",
              "free-space ceiling; `floor-only-biharmonic`: the thin plate held by the floor alone (what the ceiling",
-             "adds).", "", "## Ve (eq. 8, %) over the phases: mean | sd | max", ""]
+             "adds). What this decided, and why `bounded` holds the `nearest` copy and is not the default:",
+             "docs/design-notes.md, \"Free-space ceiling and the bounded fill\".", "",
+             "## Ve (eq. 8, %) over the phases: mean | sd | max", ""]
     head = "| pile | P_traj | noise | " + " | ".join(f"`{p}` mean | sd | max" for p in policies) + " |"
     lines += [head, "|" + "---|" * (3 + 3 * len(policies))]
     for (pile, p, noise), rs in _rows_by_case(rows):
