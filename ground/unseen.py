@@ -41,6 +41,8 @@ STEP_CELLS = 0.5
 """Beams are sampled every half cell along their horizontal track, so no crossed cell is skipped."""
 BLOCK_CELLS = 8
 """Side of the blocks a beam is first walked through (coarse steps of half a block)."""
+CHUNK_BEAMS = 20_000
+"""Beams walked at once: bounds the memory of a whole-floor ceiling (a few hundred MB at most)."""
 MAX_ACTIVE_SET_ROUNDS = 20
 """Rounds of the bounded fill's active set (each fixes the cells beyond a bound); it settles in 2-4."""
 
@@ -106,7 +108,6 @@ def free_space_ceiling_m(cloud: Cloud, grid: GridLike, storage: Storage, err: Se
         cell_x, cell_y = (xe[-1] - xe[0]) / nx, (ye[-1] - ye[0]) / ny
         fine = STEP_CELLS * min(cell_x, cell_y)
         per = max(1, round(BLOCK_CELLS / 2 / STEP_CELLS))  # fine steps per coarse step (half a block)
-        coarse = per * fine
         # Blocks holding a wanted cell, grown by one: a coarse step lands within half a block of its fine ones.
         bx, by = -(-nx // BLOCK_CELLS), -(-ny // BLOCK_CELLS)
         blocks = np.zeros((bx * BLOCK_CELLS, by * BLOCK_CELLS), dtype=bool)
@@ -114,38 +115,63 @@ def free_space_ceiling_m(cloud: Cloud, grid: GridLike, storage: Storage, err: Se
         blocks = ndimage.binary_dilation(blocks.reshape(bx, BLOCK_CELLS, by, BLOCK_CELLS).any(axis=(1, 3)),
                                          structure=np.ones((3, 3), dtype=bool))
         reach = free * horiz  # horizontal length of the free part
-        n_coarse = np.floor(reach / coarse).astype(np.int64) + 1
-        ray = np.repeat(np.arange(len(r)), n_coarse)
-        u = (np.arange(len(ray)) - np.repeat(np.cumsum(n_coarse) - n_coarse, n_coarse)) * coarse
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = np.where(horiz[ray] > 0, u / horiz[ray], 0.0)
-        cbx = np.floor((origin[ray, 0] + s * d[ray, 0] - xe[0]) / (cell_x * BLOCK_CELLS)).astype(np.int64)
-        cby = np.floor((origin[ray, 1] + s * d[ray, 1] - ye[0]) / (cell_y * BLOCK_CELLS)).astype(np.int64)
-        near = (cbx >= 0) & (cbx < bx) & (cby >= 0) & (cby < by)
-        near[near] = blocks[cbx[near], cby[near]]
-        ray, u = ray[near], u[near]
-        ray = np.repeat(ray, per)
-        u = (u[:, None] + np.arange(per) * fine).ravel()
-        ok = u <= reach[ray]
-        ray, u = ray[ok], u[ok]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = np.where(horiz[ray] > 0, u / horiz[ray], 0.0)
-        ends = np.arange(len(r))  # each beam's last free point: its lowest for a descending beam
-        ray, s = np.concatenate([ray, ends]), np.concatenate([s, free])
-        x = origin[ray, 0] + s * d[ray, 0]
-        y = origin[ray, 1] + s * d[ray, 1]
-        ix = np.floor((x - xe[0]) / cell_x).astype(np.int64)
-        iy = np.floor((y - ye[0]) / cell_y).astype(np.int64)
-        inside = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
-        inside[inside] = want[ix[inside], iy[inside]]
-        ray, s, x, y, ix, iy = ray[inside], s[inside], x[inside], y[inside], ix[inside], iy[inside]
-        z = origin[ray, 2] + s * d[ray, 2]
-        off_centre = np.hypot(x - (xe[0] + (ix + 0.5) * cell_x), y - (ye[0] + (iy + 0.5) * cell_y))
-        sigma = np.hypot(err.position_sigma_m, s * angle_sigma_rad)  # how far the measured beam may be off
-        np.minimum.at(ceiling, ix * ny + iy, z + k * sigma * (1.0 + MAX_SLOPE) + MAX_SLOPE * off_centre)
+        # Only beams whose track's bounding box holds a wanted block can bound a wanted cell (summed-area table).
+        end = origin + d * free[:, None]
+        nbx, nby = blocks.shape
+        ax = np.clip(np.floor((np.minimum(origin[:, 0], end[:, 0]) - xe[0]) / (cell_x * BLOCK_CELLS)), 0, nbx - 1)
+        bx1 = np.clip(np.floor((np.maximum(origin[:, 0], end[:, 0]) - xe[0]) / (cell_x * BLOCK_CELLS)), 0, nbx - 1)
+        ay = np.clip(np.floor((np.minimum(origin[:, 1], end[:, 1]) - ye[0]) / (cell_y * BLOCK_CELLS)), 0, nby - 1)
+        by1 = np.clip(np.floor((np.maximum(origin[:, 1], end[:, 1]) - ye[0]) / (cell_y * BLOCK_CELLS)), 0, nby - 1)
+        ax, ay, bx1, by1 = ax.astype(np.int64), ay.astype(np.int64), bx1.astype(np.int64) + 1, by1.astype(np.int64) + 1
+        table = np.pad(blocks.astype(np.int64).cumsum(axis=0).cumsum(axis=1), ((1, 0), (1, 0)))
+        crosses = (table[bx1, by1] - table[ax, by1] - table[bx1, ay] + table[ax, ay]) > 0
+        origin, d, free, horiz, reach = origin[crosses], d[crosses], free[crosses], horiz[crosses], reach[crosses]
+        for lo in range(0, len(free), CHUNK_BEAMS):  # bounded memory: ~100 bytes a step of the chunk's beams
+            c = slice(lo, lo + CHUNK_BEAMS)
+            _lower(ceiling, origin[c], d[c], free[c], horiz[c], reach[c], want, blocks, (xe[0], ye[0], cell_x, cell_y),
+                   fine, per, k * (1.0 + MAX_SLOPE), err.position_sigma_m, angle_sigma_rad)
     out = np.clip(ceiling, 0.0, storage.height_m).reshape(nx, ny)
     out[~want] = np.nan
     return out
+
+
+def _lower(ceiling: np.ndarray, origin: np.ndarray, d: np.ndarray, free: np.ndarray, horiz: np.ndarray,
+           reach: np.ndarray, want: np.ndarray, blocks: np.ndarray, geometry: tuple[float, float, float, float],
+           fine: float, per: int, margin_sigmas: float, position_sigma_m: float, angle_sigma_rad: float) -> None:
+    """Lower the flat ceiling (nx * ny) to these beams' bounds (free_space_ceiling_m): coarse steps of
+    `per` fine ones, kept near wanted blocks, refined, plus each beam's last free point."""
+    nx, ny = want.shape
+    x0, y0, cell_x, cell_y = geometry
+    bx, by = blocks.shape
+    coarse = per * fine
+    n_coarse = np.floor(reach / coarse).astype(np.int64) + 1
+    ray = np.repeat(np.arange(len(free)), n_coarse)
+    u = (np.arange(len(ray)) - np.repeat(np.cumsum(n_coarse) - n_coarse, n_coarse)) * coarse
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(horiz[ray] > 0, u / horiz[ray], 0.0)
+    cbx = np.floor((origin[ray, 0] + s * d[ray, 0] - x0) / (cell_x * BLOCK_CELLS)).astype(np.int64)
+    cby = np.floor((origin[ray, 1] + s * d[ray, 1] - y0) / (cell_y * BLOCK_CELLS)).astype(np.int64)
+    near = (cbx >= 0) & (cbx < bx) & (cby >= 0) & (cby < by)
+    near[near] = blocks[cbx[near], cby[near]]
+    ray = np.repeat(ray[near], per)
+    u = (u[near][:, None] + np.arange(per) * fine).ravel()
+    ok = u <= reach[ray]
+    ray, u = ray[ok], u[ok]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(horiz[ray] > 0, u / horiz[ray], 0.0)
+    ends = np.arange(len(free))  # each beam's last free point: its lowest for a descending beam
+    ray, s = np.concatenate([ray, ends]), np.concatenate([s, free])
+    x = origin[ray, 0] + s * d[ray, 0]
+    y = origin[ray, 1] + s * d[ray, 1]
+    ix = np.floor((x - x0) / cell_x).astype(np.int64)
+    iy = np.floor((y - y0) / cell_y).astype(np.int64)
+    inside = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+    inside[inside] = want[ix[inside], iy[inside]]
+    ray, s, x, y, ix, iy = ray[inside], s[inside], x[inside], y[inside], ix[inside], iy[inside]
+    z = origin[ray, 2] + s * d[ray, 2]
+    off_centre = np.hypot(x - (x0 + (ix + 0.5) * cell_x), y - (y0 + (iy + 0.5) * cell_y))
+    sigma = np.hypot(position_sigma_m, s * angle_sigma_rad)  # how far the measured beam may be off
+    np.minimum.at(ceiling, ix * ny + iy, z + margin_sigmas * sigma + MAX_SLOPE * off_centre)
 
 
 def unseen_bounds(heights_fit: np.ndarray, ceiling_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
