@@ -48,6 +48,7 @@ from ground.uncertainty import (
     point_sigma_m,
     survey_errors,
 )
+from ground.unseen import beam_angle_sigma_rad, free_space_ceiling_m
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT, faces_warning, unseen_warning, wide_interval_warning
 
 LOW_COVERAGE_PCT = 95.0
@@ -262,7 +263,9 @@ def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageF
     pile_dir = None if cloud.sweep_dir is None else cloud.sweep_dir[~structure]
     if pile_dir is not None:
         disagreement, _ = sweep_disagreement_m(pile, pile_dir, grid)
-    heights, counts = fill_empty(fit, opts.empty_cells), grid.counts(pile)
+    ceiling = None if opts.empty_cells != "bounded" else free_space_ceiling_m(  # what the beams left free above
+        cloud, grid, storage, err, beam_angle_sigma_rad(header), where=~np.isfinite(fit))  # the unseen cells
+    heights, counts = fill_empty(fit, opts.empty_cells, ceiling), grid.counts(pile)
     sigma = point_sigma_m(cloud.range_m, err.range_sigma(cloud.range_m), err.position_sigma_m,
                           stated_angle_sigma_rad(header))
     errors = survey_errors(pile, pile_dir, fit, heights, counts, grid, sigma, structure_n_sigma(len(pile)))

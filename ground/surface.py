@@ -16,6 +16,8 @@ policy:
   would otherwise lose a strip of volume along every wall whose width depends on where the last
   sample happened to land (docs/cell_sensitivity.md shows the grid sensitivity this removes).
 - ``leave`` (the paper's method): no surface there, no volume counted.
+- ``bounded``: the nearest reconstructed height too, but held between the floor and the flight's
+  free-space ceiling (`ground.unseen`: beams that passed over a cell bound its height).
 
 Either way R_a (eq. 9) is computed from the fitted surface before any filling, and the report
 states the uncovered area, so extrapolation is never hidden.
@@ -34,7 +36,7 @@ from threadpoolctl import threadpool_limits
 
 SURFACE_FITS = ("cubic-limited", "cubic", "linear")
 DEFAULT_SURFACE_FIT = "cubic-limited"
-EMPTY_CELL_POLICIES = ("nearest", "leave")
+EMPTY_CELL_POLICIES = ("nearest", "leave", "bounded")
 DEFAULT_EMPTY_CELLS = "nearest"
 DEFAULT_CELL_M = 0.25
 """Grid cell side; docs/cell_sensitivity.md measures the volume change against 0.05 m cells."""
@@ -130,13 +132,17 @@ def clip_to_building(heights: np.ndarray, height_m: float, tolerance_m: float = 
     return h, int(off.sum())
 
 
-def fill_empty(heights: np.ndarray, policy: str) -> np.ndarray:
-    """Apply the empty-cell policy to a height grid (see module docstring)."""
+def fill_empty(heights: np.ndarray, policy: str, ceiling_m: np.ndarray | None = None) -> np.ndarray:
+    """Apply the empty-cell policy to a height grid (see module docstring); ``bounded`` holds the fill
+    under ceiling_m (`ground.unseen.free_space_ceiling_m`; None: only the floor bounds it)."""
     if policy not in EMPTY_CELL_POLICIES:
         raise ValueError(f"empty-cell policy must be one of {', '.join(EMPTY_CELL_POLICIES)}, got {policy!r}")
     empty = ~np.isfinite(heights)
     if policy == "leave" or not empty.any() or empty.all():
         return heights
+    if policy == "bounded":
+        from ground.unseen import bounded_fill
+        return bounded_fill(heights, ceiling_m)
     _, (ix, iy) = ndimage.distance_transform_edt(empty, return_indices=True)
     return heights[ix, iy]
 
