@@ -54,7 +54,8 @@ def build_parser() -> ArgumentParser:
                    help=f"grid cell side for eq. (7), m (default {DEFAULT_CELL_M})")
     r.add_argument("--empty-cells", choices=EMPTY_CELL_POLICIES, default=DEFAULT_EMPTY_CELLS,
                    help="cells outside the fitted surface: nearest (extend the surface to the walls, "
-                        "default) or leave (no volume there, the paper's method)")
+                        "default), bounded (the nearest height held between the floor and the lowest beam that "
+                        "crossed above the cell: ground/unseen.py) or leave (no volume there, the paper's method)")
     r.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     r.add_argument("--surface-fit", choices=SURFACE_FITS, default=DEFAULT_SURFACE_FIT,
                    help="cubic-limited (default: the cubic, kept within each triangle's data, robust to noise), "
