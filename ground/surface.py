@@ -32,7 +32,9 @@ from scipy.interpolate import CloughTocher2DInterpolator, LinearNDInterpolator
 from scipy.spatial import Delaunay, QhullError
 from threadpoolctl import threadpool_limits
 
-SURFACE_FITS = ("cubic-limited", "cubic", "linear")
+from ground.smoothing import DEFAULT_SMOOTHING, SmoothingOptions, smoothed_nodes
+
+SURFACE_FITS = ("cubic-limited", "cubic", "linear", "local-linear")
 DEFAULT_SURFACE_FIT = "cubic-limited"
 EMPTY_CELL_POLICIES = ("nearest", "leave")
 DEFAULT_EMPTY_CELLS = "nearest"
@@ -86,11 +88,47 @@ class Grid:
         return c.astype(np.int64)
 
 
-def fit_heights(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_SURFACE_FIT) -> np.ndarray:
-    """The surface through the points (module docstring: SURFACE_FITS), sampled at the cell centres;
-    NaN outside the hull."""
+def fit_heights(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_SURFACE_FIT,
+                sigma_m: np.ndarray | None = None, smoothing: SmoothingOptions = DEFAULT_SMOOTHING) -> np.ndarray:
+    """The surface through (or, ``local-linear``, estimated from) the points (module docstring:
+    SURFACE_FITS), sampled at the cell centres; NaN outside the hull. sigma_m: each point's vertical
+    1-sigma error (`ground.smoothing.vertical_sigma_m`), used by ``local-linear`` only."""
+    return fit_heights_with_se(points_w, grid, method, sigma_m, smoothing)[0]
+
+
+def fit_heights_with_se(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_SURFACE_FIT,
+                        sigma_m: np.ndarray | None = None,
+                        smoothing: SmoothingOptions = DEFAULT_SMOOTHING) -> tuple[np.ndarray, np.ndarray]:
+    """`fit_heights` and each cell's standard error of the fitted height from the points' noise alone
+    (the estimator's own variance: not the error of bridging unseen ground), NaN where not estimated:
+    outside the hull, and everywhere for the interpolating fits or without sigma_m (an interpolant has
+    no variance of its own to state). Inside the hull, between the nodes, the nodes' standard errors are
+    interpolated linearly: the nodes' errors are correlated (overlapping windows), so this is the bound
+    for fully correlated errors rather than the smaller independent sum."""
     if method not in SURFACE_FITS:
         raise ValueError(f"surface fit must be one of {', '.join(SURFACE_FITS)}, got {method!r}")
+    nan = np.full(grid.shape, np.nan)
+    if len(points_w) < 3:
+        return nan, nan.copy()
+    if method != "local-linear":
+        return _interpolate(points_w, grid, method), nan
+    nx, ny = grid.shape
+    cell_xy = (grid.length_m / nx, grid.width_m / ny)
+    if sigma_m is None:  # exact points: the cell's centroid, no smoothing and no variance
+        nodes = smoothed_nodes(points_w, np.ones(len(points_w)), grid.shape, cell_xy, SmoothingOptions(max_window_m=0))
+        return _interpolate(nodes.xyz, grid, "cubic-limited"), nan
+    sigma = np.asarray(sigma_m, dtype=float)
+    if sigma.shape != (len(points_w),) or not np.all(np.isfinite(sigma) & (sigma > 0)):
+        raise ValueError("sigma_m must hold one finite sigma > 0 per point")
+    nodes = smoothed_nodes(points_w, sigma, grid.shape, cell_xy, smoothing)
+    heights = _interpolate(nodes.xyz, grid, "cubic-limited")
+    se = _interpolate(np.column_stack([nodes.xyz[:, :2], nodes.se_m]), grid, "linear")
+    se[~np.isfinite(heights)] = np.nan
+    return heights, se
+
+
+def _interpolate(points_w: np.ndarray, grid: Grid, method: str) -> np.ndarray:
+    """The interpolating fits: cubic-limited, cubic, linear."""
     heights = np.full(grid.shape, np.nan)
     if len(points_w) < 3:
         return heights
