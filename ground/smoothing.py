@@ -52,12 +52,16 @@ class SmoothingOptions:
     z_crit: float = DEFAULT_Z_CRIT
     max_window_m: float = DEFAULT_MAX_WINDOW_M
     reject_outliers: bool = True
+    outlier_n_sigma: float | None = None  # None: structure_n_sigma of the cloud's size
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.z_crit) and self.z_crit > 0):
             raise ValueError(f"smoothing z_crit must be > 0, got {self.z_crit!r}")
         if not (math.isfinite(self.max_window_m) and self.max_window_m >= 0):
             raise ValueError(f"smoothing max window must be >= 0 m, got {self.max_window_m!r}")
+        k = self.outlier_n_sigma
+        if k is not None and not (math.isfinite(k) and k > 0):
+            raise ValueError(f"smoothing outlier_n_sigma must be > 0, got {k!r}")
 
 
 DEFAULT_SMOOTHING = SmoothingOptions()
@@ -100,9 +104,6 @@ def window_halfwidths(cell_m: float, max_window_m: float) -> list[int]:
     return out
 
 
-_MOMENTS = ("w", "wx", "wy", "wz", "wxx", "wxy", "wyy", "wxz", "wyz")
-
-
 def cell_index(points_w: np.ndarray, shape: tuple[int, int], cell_m_xy: tuple[float, float]) -> np.ndarray:
     """Each point's flat cell index (points on or past the far walls go to the last cell)."""
     nx, ny = shape
@@ -120,8 +121,8 @@ def binned_moments(points_w: np.ndarray, sigma_m: np.ndarray, flat: np.ndarray, 
     x = points_w[:, 0] - origin_xy[0]
     y = points_w[:, 1] - origin_xy[1]
     z = points_w[:, 2]
-    terms = {"w": w, "wx": w * x, "wy": w * y, "wz": w * z, "wxx": w * x * x, "wxy": w * x * y,
-             "wyy": w * y * y, "wxz": w * x * z, "wyz": w * y * z}
+    terms = {"n": np.ones_like(w), "w": w, "wx": w * x, "wy": w * y, "wz": w * z, "wxx": w * x * x,
+             "wxy": w * x * y, "wyy": w * y * y, "wxz": w * x * z, "wyz": w * y * z, "wzz": w * z * z}
     return {k: np.bincount(flat, weights=v, minlength=nx * ny).reshape(nx, ny) for k, v in terms.items()}
 
 
@@ -129,17 +130,19 @@ def outliers(points_w: np.ndarray, sigma_m: np.ndarray, flat: np.ndarray, m: dic
              origin_xy: tuple[float, float], n_sigma: float) -> np.ndarray:
     """True for points further than n_sigma standard errors from the plane of the 3 x 3 cells around theirs,
     their own cell left out (so a lone point cannot vouch for itself). The standard error is the point's
-    sigma and the plane's, in quadrature. Points whose neighbourhood is empty are kept: nothing contradicts
-    them."""
+    sigma and the plane's, in quadrature, both scaled up by the plane's own misfit (its reduced chi-square,
+    when above 1): where the neighbours themselves do not lie on a plane within their sigmas (a crest, a toe,
+    or noise larger than the header states) nothing is called an outlier on the strength of that plane.
+    Points with fewer than 4 neighbours (no misfit to judge) are kept: nothing contradicts them."""
     ring = {k: box_sum(v, 1) - v for k, v in m.items()}
-    w = ring["w"].ravel()[flat]
     out = np.zeros(len(points_w), dtype=bool)
-    has = w > 0
+    has = ring["n"].ravel()[flat] >= 3.5  # counts are sums of ones: >= 4
     if not has.any():
         return out
     pl = planes({k: v.ravel()[flat[has]] for k, v in ring.items()})
     est, se = pl.at(points_w[has, 0] - origin_xy[0], points_w[has, 1] - origin_xy[1])
-    out[has] = np.abs(points_w[has, 2] - est) > n_sigma * np.sqrt(sigma_m[has] ** 2 + se**2)
+    scale = np.maximum(1.0, pl.chi2_red)
+    out[has] = np.abs(points_w[has, 2] - est) > n_sigma * np.sqrt((sigma_m[has] ** 2 + se**2) * scale)
     return out
 
 
@@ -168,6 +171,7 @@ class Planes:
     inv2: np.ndarray
     p1: np.ndarray
     p2: np.ndarray
+    chi2_red: np.ndarray  # weighted residual sum of squares / (points - 3); inf with 3 points or fewer
 
     def at(self, x: np.ndarray, y: np.ndarray, idx: np.ndarray | slice = slice(None)) -> tuple[np.ndarray, np.ndarray]:
         """Height and standard error (known weights: 1/W + d' S^+ d, d the offset from the centroid) of the
@@ -202,7 +206,12 @@ def planes(s: dict[str, np.ndarray]) -> Planes:
     eps = 1e-9 * np.maximum(lam1, 1e-300)  # relative: below it a direction has no spread (collinear points)
     inv1 = np.where(lam1 > eps, 1.0 / np.maximum(lam1, 1e-300), 0.0)
     inv2 = np.where(lam2 > eps, 1.0 / np.maximum(lam2, 1e-300), 0.0)
-    return Planes(xm, ym, zm, 1.0 / w, ex, ey, inv1, inv2, ex * sxz + ey * syz, -ey * sxz + ex * syz)
+    p1, p2 = ex * sxz + ey * syz, -ey * sxz + ex * syz
+    rss = np.maximum(s["wzz"] - w * zm * zm - inv1 * p1 * p1 - inv2 * p2 * p2, 0.0)
+    dof = s["n"] - 3.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        chi2_red = np.where(dof > 0.5, rss / np.maximum(dof, 1.0), np.inf)
+    return Planes(xm, ym, zm, 1.0 / w, ex, ey, inv1, inv2, p1, p2, chi2_red)
 
 
 def local_linear(m: dict[str, np.ndarray], j: int, at_x: np.ndarray, at_y: np.ndarray,
@@ -248,7 +257,8 @@ def smoothed_nodes(points_w: np.ndarray, sigma_m: np.ndarray, shape: tuple[int, 
     m = binned_moments(points_w, sigma_m, flat, shape, origin)
     n_out = 0
     if opts.reject_outliers:
-        bad = outliers(points_w, sigma_m, flat, m, origin, structure_n_sigma(len(points_w)))
+        k = structure_n_sigma(len(points_w)) if opts.outlier_n_sigma is None else opts.outlier_n_sigma
+        bad = outliers(points_w, sigma_m, flat, m, origin, k)
         n_out = int(bad.sum())
         if n_out:
             keep = ~bad
