@@ -127,22 +127,28 @@ def binned_moments(points_w: np.ndarray, sigma_m: np.ndarray, flat: np.ndarray, 
 
 
 def outliers(points_w: np.ndarray, sigma_m: np.ndarray, flat: np.ndarray, m: dict[str, np.ndarray],
-             origin_xy: tuple[float, float], n_sigma: float) -> np.ndarray:
-    """True for points further than n_sigma standard errors from the plane of the 3 x 3 cells around theirs,
-    their own cell left out (so a lone point cannot vouch for itself). The standard error is the point's
-    sigma and the plane's, in quadrature, both scaled up by the plane's own misfit (its reduced chi-square,
-    when above 1): where the neighbours themselves do not lie on a plane within their sigmas (a crest, a toe,
-    or noise larger than the header states) nothing is called an outlier on the strength of that plane.
-    Points with fewer than 4 neighbours (no misfit to judge) are kept: nothing contradicts them."""
-    ring = {k: box_sum(v, 1) - v for k, v in m.items()}
+             origin_xy: tuple[float, float], n_sigma: float, ring_halfwidths: list[int]) -> np.ndarray:
+    """True for points further than n_sigma standard errors from the plane fitted to their neighbours: the
+    cells of the smallest window (half-widths ring_halfwidths, 3 x 3 cells first) holding at least 4 points
+    besides the point's own cell, which is left out (so a lone point cannot vouch for itself). The standard
+    error is the point's sigma and the plane's, in quadrature, both scaled up by the plane's own misfit (its
+    reduced chi-square, when above 1): where the neighbours themselves do not lie on a plane within their
+    sigmas (a crest, a toe, or noise larger than the header states) nothing is called an outlier on the
+    strength of that plane. Points with fewer than 4 neighbours in the widest window are kept: nothing
+    contradicts them."""
     out = np.zeros(len(points_w), dtype=bool)
-    has = ring["n"].ravel()[flat] >= 3.5  # counts are sums of ones: >= 4
-    if not has.any():
-        return out
-    pl = planes({k: v.ravel()[flat[has]] for k, v in ring.items()})
-    est, se = pl.at(points_w[has, 0] - origin_xy[0], points_w[has, 1] - origin_xy[1])
-    scale = np.maximum(1.0, pl.chi2_red)
-    out[has] = np.abs(points_w[has, 2] - est) > n_sigma * np.sqrt((sigma_m[has] ** 2 + se**2) * scale)
+    todo = np.ones(len(points_w), dtype=bool)
+    for j in ring_halfwidths:
+        ring = {k: box_sum(v, j) - v for k, v in m.items()}
+        has = todo & (ring["n"].ravel()[flat] >= 3.5)  # counts are sums of ones: >= 4
+        if has.any():
+            pl = planes({k: v.ravel()[flat[has]] for k, v in ring.items()})
+            est, se = pl.at(points_w[has, 0] - origin_xy[0], points_w[has, 1] - origin_xy[1])
+            scale = np.maximum(1.0, pl.chi2_red)
+            out[has] = np.abs(points_w[has, 2] - est) > n_sigma * np.sqrt((sigma_m[has] ** 2 + se**2) * scale)
+            todo &= ~has
+        if not todo.any():
+            break
     return out
 
 
@@ -258,7 +264,7 @@ def smoothed_nodes(points_w: np.ndarray, sigma_m: np.ndarray, shape: tuple[int, 
     n_out = 0
     if opts.reject_outliers:
         k = structure_n_sigma(len(points_w)) if opts.outlier_n_sigma is None else opts.outlier_n_sigma
-        bad = outliers(points_w, sigma_m, flat, m, origin, k)
+        bad = outliers(points_w, sigma_m, flat, m, origin, k, [1])
         n_out = int(bad.sum())
         if n_out:
             keep = ~bad

@@ -36,7 +36,7 @@ from tools.experiments import ALL_EXPERIMENTS, N_POSITIONS, P_TRAJ_PCT, PILES, _
 from tools.sweep import cached, content_key
 
 SECTION = "surface-estimators"
-COMPARE_VERSION = "2"
+COMPARE_VERSION = "3"
 """Part of every case's cache key: bump it when an estimator or the pipeline changes what a case computes."""
 MODELS = tuple(SensorNoiseModel)
 ESTIMATORS: dict[str, tuple[str, SmoothingOptions]] = {
