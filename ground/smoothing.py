@@ -8,21 +8,29 @@ and an interpolant reproduces every such error. This module estimates the height
    (`vertical_sigma_m`): range noise along the beam (sigma_r |d_z|), angle noise across it
    (r sigma_angle sqrt(1 - d_z^2): the beam turns about a horizontal axis), position noise, and the
    range quantum (resolution / sqrt 12, so a "noise-free" sensor still has a finite, honest error).
-2. The points are binned in the grid's cells with weights 1/sigma^2 (`binned_moments`), and for each
-   occupied cell a weighted plane is fitted to the points of square windows of growing half-width
-   (0, 1, 2, 4, ... cells) and evaluated at the cell's own data centroid (`local_linear`): the cell
-   alone (its weighted mean: exact on a plane) and ever smoother, lower-variance estimates. Each
-   estimate carries its standard error from the weights (the prediction variance of weighted least
-   squares with known variances).
-3. Per cell the window is chosen by Lepski's rule (`lepski_select`): the widest window whose estimate
+2. The points are binned in the grid's cells with weights 1/sigma^2 (`binned_moments`). A point further
+   from the plane of its neighbours (the 3 x 3 cells around its own, its own cell left out) than its
+   noise allows is left out (`outliers`): on Appendix A surveys these are mostly wall returns that
+   escaped the structure mask (the mask's tolerance has no angle term), metres above the floor near the
+   walls, each of which an interpolant spreads over a whole triangle.
+3. For each occupied cell a weighted plane is fitted to the points of square windows of growing
+   half-width (0, 1, 2, 4, ... cells) and evaluated at the cell's own data centroid (`local_linear`):
+   the cell alone (its weighted mean: exact on a plane) and ever smoother, lower-variance estimates, each
+   with its standard error from the weights (the prediction variance of weighted least squares with
+   known variances).
+4. Per cell the window is chosen by Lepski's rule (`lepski_select`): the widest window whose estimate
    agrees with every narrower one within `z_crit` of the narrower one's standard error. Where the
    points are dense and noisy, wide windows agree within their noise and are taken; where the surface
    bends faster than the noise hides, or the points are exact (sigma tiny), the narrow window wins and
    the data are honoured. No bandwidth is set by hand: the noise, the point spacing and the cell
-   size decide.
+   size decide (`SmoothingOptions.max_window_m` only bounds the search).
 
 The smoothed heights at the cells' data centroids are then the nodes of the ordinary surface
-(`ground.surface`), so sparse swaths are bridged exactly as before.
+(`ground.surface`), so sparse swaths are bridged exactly as before. What the windows cannot do: a local
+plane flattens a curved surface by 1/2 tr(H Sigma_w) (H the surface's Hessian, Sigma_w the window's
+spread), which per cell is within the noise (that is Lepski's test) but has one sign over a whole convex
+pile, so for the *volume* the windows trade variance, which averages out over thousands of cells anyway,
+for a bias that does not (docs/design-notes.md has the measurements).
 """
 
 from __future__ import annotations

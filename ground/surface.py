@@ -7,7 +7,16 @@ With exact points the limit almost never bites; with noisy ones (a 1° servo ang
 far point 0.3-0.5 m) the cubic's gradients, estimated from points that contradict each other,
 carry it metres past its data across the long triangles between sparse tracks, and the limiter
 is what keeps Appendix A's noise from costing several percent of volume (docs/design-notes.md).
-``cubic`` is the paper's unlimited fit, ``linear`` the piecewise-planar one. The surface exists
+``cubic`` is the paper's unlimited fit, ``linear`` the piecewise-planar one.
+
+``local-linear`` estimates instead of interpolating (`ground.smoothing`): every point gets its vertical
+sigma from the sensor model in the log header (range, beam angle, position, quantum), points further from
+their neighbours' plane than their noise allows are left out (wall returns that escaped the structure
+mask: the measured source of about half of Appendix A's volume bias on pile 1), each occupied cell gets a
+weighted local plane over the widest window Lepski's rule accepts, evaluated at the cell's data centroid,
+and the cubic-limited surface is drawn through those nodes. `fit_heights_with_se` also gives each cell's
+standard error from the points' noise. docs/surface_estimators.md compares the fits (tools.estimator_compare)
+and docs/design-notes.md says why the default stays ``cubic-limited``. The surface exists
 only inside the convex hull of the points; what happens to cells outside it is the empty-cell
 policy:
 
@@ -115,7 +124,8 @@ def fit_heights_with_se(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_
     nx, ny = grid.shape
     cell_xy = (grid.length_m / nx, grid.width_m / ny)
     if sigma_m is None:  # exact points: the cell's centroid, no smoothing and no variance
-        nodes = smoothed_nodes(points_w, np.ones(len(points_w)), grid.shape, cell_xy, SmoothingOptions(max_window_m=0))
+        nodes = smoothed_nodes(points_w, np.ones(len(points_w)), grid.shape, cell_xy,
+                               SmoothingOptions(max_window_m=0, reject_outliers=False))
         return _interpolate(nodes.xyz, grid, "cubic-limited"), nan
     sigma = np.asarray(sigma_m, dtype=float)
     if sigma.shape != (len(points_w),) or not np.all(np.isfinite(sigma) & (sigma > 0)):

@@ -32,7 +32,7 @@ from sitl.sensing.batch_sampler import sample_flight
 from sitl.world.raycast import World
 from sitl.world.stockpile import paper_pile
 from tools.doc_sections import write_section
-from tools.experiments import ALL_EXPERIMENTS, N_POSITIONS, P_TRAJ_PCT, PILES, _flight
+from tools.experiments import ALL_EXPERIMENTS, N_POSITIONS, P_TRAJ_PCT, PILES, _flight, servo_positions
 from tools.sweep import cached, content_key
 
 SECTION = "surface-estimators"
@@ -92,7 +92,7 @@ def run_case(case: Case, cache_dir: Path, rows_dir: Path) -> list[dict]:
         t = np.arange(int(flown.duration_s * base.lidar.rate_hz) + 1) / base.lidar.rate_hz
         traj = flown.trajectory_at(t)
         rows = []
-        for k in range(case.phases):
+        for k in servo_positions(case.phases):  # spread over the 20 (all of them by default)
             cfg = replace(base, initial_position=k)
             seed = [case.p_traj_pct, int(case.pile), k, MODELS.index(case.model)]  # tools.noise_table's seeds
             s = sample_flight(traj, cfg.servo_waveform(), world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame,
@@ -179,7 +179,8 @@ def main(argv: list[str] | None = None) -> int:
         f"Regenerate with `python -m tools.estimator_compare --write docs/surface_estimators.md --jobs {args.jobs}` "
         f"({wall / 60:.1f} min on this run, which computed {n_todo} of the {len(cases)} cases; flights cached in "
         f"`{args.cache}`, cases in `{args.rows_cache}`). The paper's baseline flight (JSBSim), piles 1 and 2, "
-        f"{args.phases} servo start positions a row, sampled by the batch path with each sensor-noise model "
+        f"{args.phases} servo start positions a row (spread over the 20 of Fig. 9), sampled by the batch path "
+        "with each sensor-noise model "
         "(docs/noise.md), surveyed by the ground report's pipeline, then fitted by each estimator "
         f"(`--surface-fit`; the default is `{DEFAULT_SURFACE_FIT}`). Ve (eq. 8, `nearest` empty cells): mean ± "
         "standard deviation over the start positions; in brackets the mean of the signed error (volume - truth): "
