@@ -12,6 +12,7 @@ from the log header as the report computes them), and Ve (eq. 8, `nearest` empty
 
 from __future__ import annotations
 
+import json
 import statistics
 import sys
 import time
@@ -146,6 +147,19 @@ def must_show(results: dict[Case, list[dict]]) -> str:
     return "\n".join(out)
 
 
+def _fresh_run_note(rows_dir: Path, all_computed: bool, wall_s: float, jobs: int) -> str:
+    """What the last run that computed every case took (recorded by that run beside the cases)."""
+    path = rows_dir / "estimator-compare-fresh-run.json"
+    if all_computed:
+        path.write_text(json.dumps({"wall_s": wall_s, "jobs": jobs, "date": time.strftime("%Y-%m-%d")}))
+    try:
+        f = json.loads(path.read_text())
+        return (f"; the last run that computed all of them took {f['wall_s'] / 60:.1f} min with {f['jobs']} "
+                f"worker(s) ({f['date']})")
+    except (OSError, ValueError, KeyError, TypeError):
+        return ""
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = ArgumentParser(prog="python -m tools.estimator_compare", description=__doc__.split("\n\n")[0])
     ap.add_argument("--write", type=Path, default=None, help="regenerate this tool's section of this page")
@@ -173,12 +187,14 @@ def main(argv: list[str] | None = None) -> int:
         results = dict(zip(cases, pool.map(run_case, cases, [args.cache] * len(cases),
                                            [args.rows_cache] * len(cases)), strict=True))
     wall = time.perf_counter() - t0
+    fresh = _fresh_run_note(args.rows_cache, n_todo == len(cases), wall, args.jobs)
     text = "\n".join([
         "## Surface estimators with and without sensor noise",
         "",
-        f"Regenerate with `python -m tools.estimator_compare --write docs/surface_estimators.md --jobs {args.jobs}` "
+        f"Regenerate with `python -m tools.estimator_compare --write docs/surface_estimators.md --jobs {args.jobs} "
+        f"--phases {args.phases} --models {','.join(m.value for m in models)}` "
         f"({wall / 60:.1f} min on this run, which computed {n_todo} of the {len(cases)} cases; flights cached in "
-        f"`{args.cache}`, cases in `{args.rows_cache}`). The paper's baseline flight (JSBSim), piles 1 and 2, "
+        f"`{args.cache}`, cases in `{args.rows_cache}`{fresh}). The paper's baseline flight (JSBSim), piles 1 and 2, "
         f"{args.phases} servo start positions a row (spread over the 20 of Fig. 9), sampled by the batch path "
         "with each sensor-noise model "
         "(docs/noise.md), surveyed by the ground report's pipeline, then fitted by each estimator "

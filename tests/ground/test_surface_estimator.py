@@ -1,5 +1,6 @@
 """The local-linear surface estimator (ground.smoothing behind ground.surface's ``local-linear``)."""
 
+import json
 import math
 from pathlib import Path
 
@@ -187,3 +188,17 @@ def test_that_box_sums_and_window_sizes_are_what_they_say():
             assert b[i, k] == pytest.approx(a[max(0, i - j):i + j + 1, max(0, k - j):k + j + 1].sum())
     assert window_halfwidths(0.25, 2.0) == [0, 1, 2, 4, 8]
     assert window_halfwidths(0.25, 0.0) == [0]
+
+
+def test_that_the_report_fits_local_linear_on_request_with_the_headers_sigmas(tmp_path, capsys):
+    from ground.cli import main
+
+    assert main(["report", str(GOLDEN), "--out", str(tmp_path / "ll"), "--no-plots", "--surface-fit", "local-linear",
+                 "--truth-volume", "7206.9"]) == 0
+    rep = json.loads((tmp_path / "ll" / "report.json").read_text())
+    assert rep["surface_fit"] == "local-linear"
+    assert main(["report", str(GOLDEN), "--out", str(tmp_path / "cl"), "--no-plots", "--truth-volume", "7206.9"]) == 0
+    base = json.loads((tmp_path / "cl" / "report.json").read_text())
+    # the golden log is a clean flight: estimating instead of interpolating changes its volume by little
+    assert rep["volume_m3"] == pytest.approx(base["volume_m3"], rel=0.01)
+    capsys.readouterr()
