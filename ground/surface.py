@@ -120,28 +120,30 @@ def fit_heights_with_se(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_
     if len(points_w) < 3:
         return nan, nan.copy()
     if method != "local-linear":
-        return _interpolate(points_w, grid, method), nan
+        return _interpolate(points_w, grid, method)
     nx, ny = grid.shape
     cell_xy = (grid.length_m / nx, grid.width_m / ny)
     if sigma_m is None:  # exact points: the cell's centroid, no smoothing and no variance
         nodes = smoothed_nodes(points_w, np.ones(len(points_w)), grid.shape, cell_xy,
                                SmoothingOptions(max_window_m=0, reject_outliers=False))
-        return _interpolate(nodes.xyz, grid, "cubic-limited"), nan
+        return _interpolate(nodes.xyz, grid, "cubic-limited")
     sigma = np.asarray(sigma_m, dtype=float)
     if sigma.shape != (len(points_w),) or not np.all(np.isfinite(sigma) & (sigma > 0)):
         raise ValueError("sigma_m must hold one finite sigma > 0 per point")
     nodes = smoothed_nodes(points_w, sigma, grid.shape, cell_xy, smoothing)
-    heights = _interpolate(nodes.xyz, grid, "cubic-limited")
-    se = _interpolate(np.column_stack([nodes.xyz[:, :2], nodes.se_m]), grid, "linear")
+    heights, se = _interpolate(nodes.xyz, grid, "cubic-limited", nodes.se_m)
     se[~np.isfinite(heights)] = np.nan
     return heights, se
 
 
-def _interpolate(points_w: np.ndarray, grid: Grid, method: str) -> np.ndarray:
-    """The interpolating fits: cubic-limited, cubic, linear."""
+def _interpolate(points_w: np.ndarray, grid: Grid, method: str,
+                 also_linear: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The interpolating fits (cubic-limited, cubic, linear) at the cell centres, and also_linear (one value
+    per point, or None) interpolated linearly on the same triangulation (NaN without it)."""
     heights = np.full(grid.shape, np.nan)
+    extra = np.full(grid.shape, np.nan)
     if len(points_w) < 3:
-        return heights
+        return heights, extra
     xy = np.ascontiguousarray(points_w[:, :2], dtype=float)
     # One BLAS thread: the triangulation makes tens of thousands of 2x2 LAPACK solves, which a
     # threaded OpenBLAS turns into thread hand-offs; with two processes on two cores they crawl.
@@ -149,19 +151,21 @@ def _interpolate(points_w: np.ndarray, grid: Grid, method: str) -> np.ndarray:
         try:
             tri = Delaunay(xy)
         except (QhullError, ValueError):  # all points collinear or coincident: no surface
-            return heights
+            return heights, extra
         z = np.asarray(points_w[:, 2], dtype=float)
         cx, cy = grid.centres()
+        if also_linear is not None:
+            extra = LinearNDInterpolator(tri, np.asarray(also_linear, dtype=float))(cx, cy)
         if method == "linear":
-            return LinearNDInterpolator(tri, z)(cx, cy)
+            return LinearNDInterpolator(tri, z)(cx, cy), extra
         heights = CloughTocher2DInterpolator(tri, z)(cx, cy)
         if method == "cubic":
-            return heights
+            return heights, extra
         simplex = tri.find_simplex(np.column_stack([cx.ravel(), cy.ravel()])).reshape(cx.shape)
         inside = simplex >= 0
         zv = z[tri.simplices[simplex[inside]]]  # (n, 3) heights of each cell's triangle
         heights[inside] = np.clip(heights[inside], zv.min(axis=1), zv.max(axis=1))
-        return heights
+        return heights, extra
 
 
 def clip_to_building(heights: np.ndarray, height_m: float, tolerance_m: float = 0.5) -> tuple[np.ndarray, int]:

@@ -202,3 +202,10 @@ def test_that_the_report_fits_local_linear_on_request_with_the_headers_sigmas(tm
     # the golden log is a clean flight: estimating instead of interpolating changes its volume by little
     assert rep["volume_m3"] == pytest.approx(base["volume_m3"], rel=0.01)
     capsys.readouterr()
+
+
+def test_that_degenerate_clouds_give_no_surface_and_no_error():
+    line = np.column_stack([np.linspace(0, 10, 20), np.linspace(0, 10, 20), np.ones(20)])
+    for pts in (np.zeros((0, 3)), line, line[:2]):
+        h, s = fit_heights_with_se(pts, G, "local-linear", np.full(len(pts), 0.1))
+        assert np.isnan(h).all() and np.isnan(s).all()
