@@ -59,7 +59,8 @@ def build_parser() -> ArgumentParser:
     r.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     r.add_argument("--surface-fit", choices=SURFACE_FITS, default=DEFAULT_SURFACE_FIT,
                    help="cubic-limited (default: the cubic, kept within each triangle's data, robust to noise), "
-                        "cubic (the paper's MATLAB 'cubicinterp'), or linear")
+                        "cubic (the paper's MATLAB 'cubicinterp'), linear, or local-linear (estimated from the points "
+                        "with their noise from the log header, outliers left out: ground/smoothing.py)")
     r.add_argument("--no-despike", action="store_true",
                    help="keep isolated one- or two-sample range spikes (default: left out, with a threshold "
                         "derived from the log header; see ground/despike.py)")

@@ -29,6 +29,7 @@ from ground.plausibility import PlausibilityLimits, implausible, without_implaus
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask, structure_n_sigma
 from ground.self_calibration import MountEstimate, apply_mount, describe, estimate_mount
 from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
+from ground.smoothing import angle_sigma_rad, vertical_sigma_m
 from ground.surface import (
     DEFAULT_CELL_M,
     DEFAULT_EMPTY_CELLS,
@@ -147,6 +148,7 @@ def header_geometry(log: SampleLog, path: Path) -> tuple[Storage, StorageFrame, 
         raise UserError(f"{path}: log header lever_arm_body_m must be 3 finite numbers")
     try:
         SensorErrorModel.from_header(h)
+        angle_sigma_rad(h)
         header_boresight(h)
     except ValueError as exc:
         raise UserError(f"{path}: {exc}") from None
@@ -258,7 +260,9 @@ def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageF
     structure = structure_mask(cloud, storage, err)
     pile = cloud.points_w[~structure]
     grid = Grid(storage.length_m, storage.width_m, opts.cell_m)
-    fit, n_clipped = clip_to_building(fit_heights(pile, grid, opts.surface_fit), storage.height_m)
+    sigma = vertical_sigma_m(err.range_sigma(cloud.range_m[~structure]), err.resolution_m, err.position_sigma_m,
+                             angle_sigma_rad(header), cloud.range_m[~structure], cloud.dirs_w[~structure])
+    fit, n_clipped = clip_to_building(fit_heights(pile, grid, opts.surface_fit, sigma), storage.height_m)
     disagreement = None
     pile_dir = None if cloud.sweep_dir is None else cloud.sweep_dir[~structure]
     if pile_dir is not None:

@@ -7,7 +7,16 @@ With exact points the limit almost never bites; with noisy ones (a 1° servo ang
 far point 0.3-0.5 m) the cubic's gradients, estimated from points that contradict each other,
 carry it metres past its data across the long triangles between sparse tracks, and the limiter
 is what keeps Appendix A's noise from costing several percent of volume (docs/design-notes.md).
-``cubic`` is the paper's unlimited fit, ``linear`` the piecewise-planar one. The surface exists
+``cubic`` is the paper's unlimited fit, ``linear`` the piecewise-planar one.
+
+``local-linear`` estimates instead of interpolating (`ground.smoothing`): every point gets its vertical
+sigma from the sensor model in the log header (range, beam angle, position, quantum), points further from
+their neighbours' plane than their noise allows are left out (wall returns that escaped the structure
+mask: the measured source of about half of Appendix A's volume bias on pile 1), each occupied cell gets a
+weighted local plane over the widest window Lepski's rule accepts, evaluated at the cell's data centroid,
+and the cubic-limited surface is drawn through those nodes. `fit_heights_with_se` also gives each cell's
+standard error from the points' noise. docs/surface_estimators.md compares the fits (tools.estimator_compare)
+and docs/design-notes.md says why the default stays ``cubic-limited``. The surface exists
 only inside the convex hull of the points; what happens to cells outside it is the empty-cell
 policy:
 
@@ -34,7 +43,9 @@ from scipy.interpolate import CloughTocher2DInterpolator, LinearNDInterpolator
 from scipy.spatial import Delaunay, QhullError
 from threadpoolctl import threadpool_limits
 
-SURFACE_FITS = ("cubic-limited", "cubic", "linear")
+from ground.smoothing import DEFAULT_SMOOTHING, SmoothingOptions, smoothed_nodes
+
+SURFACE_FITS = ("cubic-limited", "cubic", "linear", "local-linear")
 DEFAULT_SURFACE_FIT = "cubic-limited"
 EMPTY_CELL_POLICIES = ("nearest", "leave", "bounded")
 DEFAULT_EMPTY_CELLS = "nearest"
@@ -88,14 +99,53 @@ class Grid:
         return c.astype(np.int64)
 
 
-def fit_heights(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_SURFACE_FIT) -> np.ndarray:
-    """The surface through the points (module docstring: SURFACE_FITS), sampled at the cell centres;
-    NaN outside the hull."""
+def fit_heights(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_SURFACE_FIT,
+                sigma_m: np.ndarray | None = None, smoothing: SmoothingOptions = DEFAULT_SMOOTHING) -> np.ndarray:
+    """The surface through (or, ``local-linear``, estimated from) the points (module docstring:
+    SURFACE_FITS), sampled at the cell centres; NaN outside the hull. sigma_m: each point's vertical
+    1-sigma error (`ground.smoothing.vertical_sigma_m`), used by ``local-linear`` only."""
+    return fit_heights_with_se(points_w, grid, method, sigma_m, smoothing)[0]
+
+
+def fit_heights_with_se(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_SURFACE_FIT,
+                        sigma_m: np.ndarray | None = None,
+                        smoothing: SmoothingOptions = DEFAULT_SMOOTHING) -> tuple[np.ndarray, np.ndarray]:
+    """`fit_heights` and each cell's standard error of the fitted height from the points' noise alone
+    (the estimator's own variance: not the error of bridging unseen ground), NaN where not estimated:
+    outside the hull, and everywhere for the interpolating fits or without sigma_m (an interpolant has
+    no variance of its own to state). Inside the hull, between the nodes, the nodes' standard errors are
+    interpolated linearly: the nodes' errors are correlated (overlapping windows), so this is the bound
+    for fully correlated errors rather than the smaller independent sum."""
     if method not in SURFACE_FITS:
         raise ValueError(f"surface fit must be one of {', '.join(SURFACE_FITS)}, got {method!r}")
-    heights = np.full(grid.shape, np.nan)
+    nan = np.full(grid.shape, np.nan)
     if len(points_w) < 3:
-        return heights
+        return nan, nan.copy()
+    if method != "local-linear":
+        return _interpolate(points_w, grid, method)
+    nx, ny = grid.shape
+    cell_xy = (grid.length_m / nx, grid.width_m / ny)
+    if sigma_m is None:  # exact points: the cell's centroid, no smoothing and no variance
+        nodes = smoothed_nodes(points_w, np.ones(len(points_w)), grid.shape, cell_xy,
+                               SmoothingOptions(max_window_m=0, reject_outliers=False))
+        return _interpolate(nodes.xyz, grid, "cubic-limited")
+    sigma = np.asarray(sigma_m, dtype=float)
+    if sigma.shape != (len(points_w),) or not np.all(np.isfinite(sigma) & (sigma > 0)):
+        raise ValueError("sigma_m must hold one finite sigma > 0 per point")
+    nodes = smoothed_nodes(points_w, sigma, grid.shape, cell_xy, smoothing)
+    heights, se = _interpolate(nodes.xyz, grid, "cubic-limited", nodes.se_m)
+    se[~np.isfinite(heights)] = np.nan
+    return heights, se
+
+
+def _interpolate(points_w: np.ndarray, grid: Grid, method: str,
+                 also_linear: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The interpolating fits (cubic-limited, cubic, linear) at the cell centres, and also_linear (one value
+    per point, or None) interpolated linearly on the same triangulation (NaN without it)."""
+    heights = np.full(grid.shape, np.nan)
+    extra = np.full(grid.shape, np.nan)
+    if len(points_w) < 3:
+        return heights, extra
     xy = np.ascontiguousarray(points_w[:, :2], dtype=float)
     # One BLAS thread: the triangulation makes tens of thousands of 2x2 LAPACK solves, which a
     # threaded OpenBLAS turns into thread hand-offs; with two processes on two cores they crawl.
@@ -103,19 +153,21 @@ def fit_heights(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_SURFACE_
         try:
             tri = Delaunay(xy)
         except (QhullError, ValueError):  # all points collinear or coincident: no surface
-            return heights
+            return heights, extra
         z = np.asarray(points_w[:, 2], dtype=float)
         cx, cy = grid.centres()
+        if also_linear is not None:
+            extra = LinearNDInterpolator(tri, np.asarray(also_linear, dtype=float))(cx, cy)
         if method == "linear":
-            return LinearNDInterpolator(tri, z)(cx, cy)
+            return LinearNDInterpolator(tri, z)(cx, cy), extra
         heights = CloughTocher2DInterpolator(tri, z)(cx, cy)
         if method == "cubic":
-            return heights
+            return heights, extra
         simplex = tri.find_simplex(np.column_stack([cx.ravel(), cy.ravel()])).reshape(cx.shape)
         inside = simplex >= 0
         zv = z[tri.simplices[simplex[inside]]]  # (n, 3) heights of each cell's triangle
         heights[inside] = np.clip(heights[inside], zv.min(axis=1), zv.max(axis=1))
-        return heights
+        return heights, extra
 
 
 def clip_to_building(heights: np.ndarray, height_m: float, tolerance_m: float = 0.5) -> tuple[np.ndarray, int]:

@@ -1,0 +1,291 @@
+"""Estimating the surface from noisy points: per-point vertical error and binned local regression.
+
+A surface through every point is the right estimator only for exact points. With noise (Appendix A:
+2.5 cm of range, 1 deg of servo angle, 0.11 m of position) a point is off the surface by tens of cm,
+and an interpolant reproduces every such error. This module estimates the height instead:
+
+1. Every point's vertical 1-sigma error from the sensor model in the log header
+   (`vertical_sigma_m`): range noise along the beam (sigma_r |d_z|), angle noise across it
+   (r sigma_angle sqrt(1 - d_z^2): the beam turns about a horizontal axis), position noise, and the
+   range quantum (resolution / sqrt 12, so a "noise-free" sensor still has a finite, honest error).
+2. The points are binned in the grid's cells with weights 1/sigma^2 (`binned_moments`). A point further
+   from the plane of its neighbours (the 3 x 3 cells around its own, its own cell left out) than its
+   noise allows is left out (`outliers`): on Appendix A surveys these are mostly wall returns that
+   escaped the structure mask (the mask's tolerance has no angle term), metres above the floor near the
+   walls, each of which an interpolant spreads over a whole triangle.
+3. For each occupied cell a weighted plane is fitted to the points of square windows of growing
+   half-width (0, 1, 2, 4, ... cells) and evaluated at the cell's own data centroid (`local_linear`):
+   the cell alone (its weighted mean: exact on a plane) and ever smoother, lower-variance estimates, each
+   with its standard error from the weights (the prediction variance of weighted least squares with
+   known variances).
+4. Per cell the window is chosen by Lepski's rule (`lepski_select`): the widest window whose estimate
+   agrees with every narrower one within `z_crit` of the narrower one's standard error. Where the
+   points are dense and noisy, wide windows agree within their noise and are taken; where the surface
+   bends faster than the noise hides, or the points are exact (sigma tiny), the narrow window wins and
+   the data are honoured. No bandwidth is set by hand: the noise, the point spacing and the cell
+   size decide (`SmoothingOptions.max_window_m` only bounds the search).
+
+The smoothed heights at the cells' data centroids are then the nodes of the ordinary surface
+(`ground.surface`), so sparse swaths are bridged exactly as before. What the windows cannot do: a local
+plane flattens a curved surface by 1/2 tr(H Sigma_w) (H the surface's Hessian, Sigma_w the window's
+spread), which per cell is within the noise (that is Lepski's test) but has one sign over a whole convex
+pile, so for the *volume* the windows trade variance, which averages out over thousands of cells anyway,
+for a bias that does not (docs/design-notes.md has the measurements).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from firmware_py.core.sensor_noise import HEADER_KEY as NOISE_HEADER_KEY
+from ground.pointcloud import structure_n_sigma
+
+DEFAULT_Z_CRIT = 2.0
+"""Lepski's critical value: a wider window is refused when its estimate differs from a narrower one by more
+than this many of the narrower one's standard errors. 2 is the two-sided 95 % normal quantile (1.96),
+rounded: a wider window is refused only when the difference would be unlikely (5 %) from noise alone."""
+DEFAULT_MAX_WINDOW_M = 2.0
+"""Largest window half-width. It bounds the cost (the windows double: 0, 1, 2, 4, 8 cells of 0.25 m) and the
+distance one point's influence can reach; Lepski's rule picks within it. A fan line of the paper's
+mission is 1-2 m wide at the lowest P_traj, so wider windows would mostly mix in other tracks' data."""
+
+
+@dataclass(frozen=True)
+class SmoothingOptions:
+    """How the local regression chooses its windows (defaults: module constants, their reasons there)."""
+
+    z_crit: float = DEFAULT_Z_CRIT
+    max_window_m: float = DEFAULT_MAX_WINDOW_M
+    reject_outliers: bool = True
+    outlier_n_sigma: float | None = None  # None: structure_n_sigma of the cloud's size
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.z_crit) and self.z_crit > 0):
+            raise ValueError(f"smoothing z_crit must be > 0, got {self.z_crit!r}")
+        if not (math.isfinite(self.max_window_m) and self.max_window_m >= 0):
+            raise ValueError(f"smoothing max window must be >= 0 m, got {self.max_window_m!r}")
+        k = self.outlier_n_sigma
+        if k is not None and not (math.isfinite(k) and k > 0):
+            raise ValueError(f"smoothing outlier_n_sigma must be > 0, got {k!r}")
+
+
+DEFAULT_SMOOTHING = SmoothingOptions()
+
+
+def angle_sigma_rad(header: dict) -> float:
+    """The beam's angle error the header states: servo and attitude sigmas of the ``sensor_noise`` record,
+    combined (independent, so in quadrature); 0 without a record. ValueError when a value is not a number >= 0."""
+    rec = header.get(NOISE_HEADER_KEY) if isinstance(header, dict) else None
+    if rec is None:
+        return 0.0
+    if not isinstance(rec, dict):
+        raise ValueError("log header sensor_noise must be a JSON object")
+    total = 0.0
+    for key in ("servo_sigma_rad", "attitude_sigma_rad"):
+        v = rec.get(key, 0.0)
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
+            raise ValueError(f"log header sensor_noise.{key} must be a finite number >= 0, got {v!r}")
+        total += float(v) ** 2
+    return math.sqrt(total)
+
+
+def vertical_sigma_m(range_sigma_m: np.ndarray | float, resolution_m: float, position_sigma_m: float,
+                     angle_sigma: float, range_m: np.ndarray, dirs_w: np.ndarray) -> np.ndarray:
+    """Each point's vertical 1-sigma error (module docstring, step 1): range noise along the beam, angle
+    noise across it, position noise, and the range quantum."""
+    dz = np.clip(np.abs(np.asarray(dirs_w, dtype=float)[:, 2]), 0.0, 1.0)
+    r = np.asarray(range_m, dtype=float)
+    var = ((np.asarray(range_sigma_m, dtype=float) * dz) ** 2 + (r * angle_sigma) ** 2 * (1.0 - dz**2)
+           + position_sigma_m**2 + resolution_m**2 / 12.0)
+    return np.sqrt(var)
+
+
+def window_halfwidths(cell_m: float, max_window_m: float) -> list[int]:
+    """0, 1, 2, 4, ... cells, up to max_window_m."""
+    out, j = [0], 1
+    while j * cell_m <= max_window_m + 1e-9:
+        out.append(j)
+        j *= 2
+    return out
+
+
+def cell_index(points_w: np.ndarray, shape: tuple[int, int], cell_m_xy: tuple[float, float]) -> np.ndarray:
+    """Each point's flat cell index (points on or past the far walls go to the last cell)."""
+    nx, ny = shape
+    ix = np.clip(np.floor(points_w[:, 0] / cell_m_xy[0]).astype(np.int64), 0, nx - 1)
+    iy = np.clip(np.floor(points_w[:, 1] / cell_m_xy[1]).astype(np.int64), 0, ny - 1)
+    return ix * ny + iy
+
+
+def binned_moments(points_w: np.ndarray, sigma_m: np.ndarray, flat: np.ndarray, shape: tuple[int, int],
+                   origin_xy: tuple[float, float]) -> dict[str, np.ndarray]:
+    """Weighted sums per cell (weights 1/sigma^2) of the points in cells `flat`, coordinates relative to
+    origin_xy (the grid's middle, so the sums stay well conditioned)."""
+    nx, ny = shape
+    w = 1.0 / np.square(sigma_m)
+    x = points_w[:, 0] - origin_xy[0]
+    y = points_w[:, 1] - origin_xy[1]
+    z = points_w[:, 2]
+    terms = {"n": np.ones_like(w), "w": w, "wx": w * x, "wy": w * y, "wz": w * z, "wxx": w * x * x,
+             "wxy": w * x * y, "wyy": w * y * y, "wxz": w * x * z, "wyz": w * y * z, "wzz": w * z * z}
+    return {k: np.bincount(flat, weights=v, minlength=nx * ny).reshape(nx, ny) for k, v in terms.items()}
+
+
+def outliers(points_w: np.ndarray, sigma_m: np.ndarray, flat: np.ndarray, m: dict[str, np.ndarray],
+             origin_xy: tuple[float, float], n_sigma: float, ring_halfwidths: list[int]) -> np.ndarray:
+    """True for points further than n_sigma standard errors from the plane fitted to their neighbours: the
+    cells of the smallest window (half-widths ring_halfwidths, 3 x 3 cells first) holding at least 4 points
+    besides the point's own cell, which is left out (so a lone point cannot vouch for itself). The standard
+    error is the point's sigma and the plane's, in quadrature, both scaled up by the plane's own misfit (its
+    reduced chi-square, when above 1): where the neighbours themselves do not lie on a plane within their
+    sigmas (a crest, a toe, or noise larger than the header states) nothing is called an outlier on the
+    strength of that plane. Points with fewer than 4 neighbours in the widest window are kept: nothing
+    contradicts them."""
+    out = np.zeros(len(points_w), dtype=bool)
+    todo = np.ones(len(points_w), dtype=bool)
+    for j in ring_halfwidths:
+        ring = {k: box_sum(v, j) - v for k, v in m.items()}
+        has = todo & (ring["n"].ravel()[flat] >= 3.5)  # counts are sums of ones: >= 4
+        if has.any():
+            pl = planes({k: v.ravel()[flat[has]] for k, v in ring.items()})
+            est, se = pl.at(points_w[has, 0] - origin_xy[0], points_w[has, 1] - origin_xy[1])
+            scale = np.maximum(1.0, pl.chi2_red)
+            out[has] = np.abs(points_w[has, 2] - est) > n_sigma * np.sqrt((sigma_m[has] ** 2 + se**2) * scale)
+            todo &= ~has
+        if not todo.any():
+            break
+    return out
+
+
+def box_sum(a: np.ndarray, j: int) -> np.ndarray:
+    """Sum over the (2j+1)^2 window around each cell (zero outside the grid), by an integral image."""
+    if j == 0:
+        return a
+    p = np.pad(a, ((j + 1, j), (j + 1, j)))
+    c = p.cumsum(axis=0).cumsum(axis=1)
+    k = 2 * j + 1
+    return c[k:, k:] - c[:-k, k:] - c[k:, :-k] + c[:-k, :-k]
+
+
+@dataclass(frozen=True)
+class Planes:
+    """Weighted planes, one per masked cell: the window's centroid, its mean height, the slope in the
+    eigen-frame of the window's spread (no slope along a direction the points do not span)."""
+
+    xm: np.ndarray
+    ym: np.ndarray
+    zm: np.ndarray
+    inv_w: np.ndarray
+    ex: np.ndarray
+    ey: np.ndarray
+    inv1: np.ndarray
+    inv2: np.ndarray
+    p1: np.ndarray
+    p2: np.ndarray
+    chi2_red: np.ndarray  # weighted residual sum of squares / (points - 3); inf with 3 points or fewer
+
+    def at(self, x: np.ndarray, y: np.ndarray, idx: np.ndarray | slice = slice(None)) -> tuple[np.ndarray, np.ndarray]:
+        """Height and standard error (known weights: 1/W + d' S^+ d, d the offset from the centroid) of the
+        planes idx at (x, y)."""
+        dx, dy = x - self.xm[idx], y - self.ym[idx]
+        ex, ey = self.ex[idx], self.ey[idx]
+        d1, d2 = ex * dx + ey * dy, -ey * dx + ex * dy
+        inv1, inv2 = self.inv1[idx], self.inv2[idx]
+        est = self.zm[idx] + inv1 * self.p1[idx] * d1 + inv2 * self.p2[idx] * d2
+        return est, np.sqrt(self.inv_w[idx] + inv1 * d1 * d1 + inv2 * d2 * d2)
+
+
+def planes(s: dict[str, np.ndarray]) -> Planes:
+    """The weighted least-squares plane of each set of window sums (all arrays of the same shape, w > 0)."""
+    w = s["w"]
+    xm, ym, zm = s["wx"] / w, s["wy"] / w, s["wz"] / w
+    sxx = s["wxx"] - w * xm * xm
+    sxy = s["wxy"] - w * xm * ym
+    syy = s["wyy"] - w * ym * ym
+    sxz = s["wxz"] - w * xm * zm
+    syz = s["wyz"] - w * ym * zm
+    # Pseudo-inverse of the 2x2 scatter matrix through its eigen-decomposition.
+    tr = sxx + syy
+    disc = np.sqrt(np.maximum(0.25 * (sxx - syy) ** 2 + sxy**2, 0.0))
+    lam1, lam2 = 0.5 * tr + disc, np.maximum(0.5 * tr - disc, 0.0)
+    has_xy = np.abs(sxy) > 0
+    ex = np.where(has_xy, sxy, np.where(sxx >= syy, 1.0, 0.0))
+    ey = np.where(has_xy, lam1 - sxx, np.where(sxx >= syy, 0.0, 1.0))
+    norm = np.hypot(ex, ey)
+    norm[norm == 0] = 1.0
+    ex, ey = ex / norm, ey / norm
+    eps = 1e-9 * np.maximum(lam1, 1e-300)  # relative: below it a direction has no spread (collinear points)
+    inv1 = np.where(lam1 > eps, 1.0 / np.maximum(lam1, 1e-300), 0.0)
+    inv2 = np.where(lam2 > eps, 1.0 / np.maximum(lam2, 1e-300), 0.0)
+    p1, p2 = ex * sxz + ey * syz, -ey * sxz + ex * syz
+    rss = np.maximum(s["wzz"] - w * zm * zm - inv1 * p1 * p1 - inv2 * p2 * p2, 0.0)
+    dof = s["n"] - 3.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        chi2_red = np.where(dof > 0.5, rss / np.maximum(dof, 1.0), np.inf)
+    return Planes(xm, ym, zm, 1.0 / w, ex, ey, inv1, inv2, p1, p2, chi2_red)
+
+
+def local_linear(m: dict[str, np.ndarray], j: int, at_x: np.ndarray, at_y: np.ndarray,
+                 mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The weighted plane of the (2j+1)^2 window around each masked cell, evaluated at (at_x, at_y) of that
+    cell, and its standard error."""
+    return planes({k: box_sum(v, j)[mask] for k, v in m.items()}).at(at_x[mask], at_y[mask])
+
+
+def lepski_select(est: np.ndarray, se: np.ndarray, z_crit: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per column (a cell), the estimate of the widest window (rows: narrow to wide) that agrees with every
+    narrower window within z_crit of the narrower one's standard error; its standard error and the level."""
+    n_levels, n = est.shape
+    level = np.zeros(n, dtype=np.int64)
+    alive = np.ones(n, dtype=bool)
+    for k in range(1, n_levels):
+        ok = alive & np.isfinite(est[k])
+        for m in range(k):
+            ok &= np.abs(est[k] - est[m]) <= z_crit * se[m]
+        level[ok] = k
+        alive = ok
+    cols = np.arange(n)
+    return est[level, cols], se[level, cols], level
+
+
+@dataclass(frozen=True)
+class Nodes:
+    """The smoothed surface's nodes: one per occupied cell, at the cell's data centroid."""
+
+    xyz: np.ndarray  # (n, 3)
+    se_m: np.ndarray  # (n,) standard error of each node's height
+    level: np.ndarray  # (n,) window half-width chosen, in cells
+    n_outliers: int = 0  # points left out as outliers
+
+
+def smoothed_nodes(points_w: np.ndarray, sigma_m: np.ndarray, shape: tuple[int, int],
+                   cell_m_xy: tuple[float, float], opts: SmoothingOptions = DEFAULT_SMOOTHING) -> Nodes:
+    """One node per occupied cell: its Lepski-chosen local-linear height at the cell's weighted centroid
+    (module docstring, steps 2-4)."""
+    nx, ny = shape
+    origin = (0.5 * nx * cell_m_xy[0], 0.5 * ny * cell_m_xy[1])
+    flat = cell_index(points_w, shape, cell_m_xy)
+    m = binned_moments(points_w, sigma_m, flat, shape, origin)
+    n_out = 0
+    if opts.reject_outliers:
+        k = structure_n_sigma(len(points_w)) if opts.outlier_n_sigma is None else opts.outlier_n_sigma
+        bad = outliers(points_w, sigma_m, flat, m, origin, k, [1])
+        n_out = int(bad.sum())
+        if n_out:
+            keep = ~bad
+            m = binned_moments(points_w[keep], sigma_m[keep], flat[keep], shape, origin)
+    occupied = m["w"] > 0
+    cx = np.where(occupied, m["wx"] / np.where(occupied, m["w"], 1.0), 0.0)
+    cy = np.where(occupied, m["wy"] / np.where(occupied, m["w"], 1.0), 0.0)
+    levels = window_halfwidths(min(cell_m_xy), opts.max_window_m)
+    ests, ses = [], []
+    for j in levels:
+        e, s = local_linear(m, j, cx, cy, occupied)
+        ests.append(e)
+        ses.append(s)
+    z, se, lev = lepski_select(np.array(ests), np.array(ses), opts.z_crit)
+    xyz = np.column_stack([cx[occupied] + origin[0], cy[occupied] + origin[1], z])
+    return Nodes(xyz, se, np.asarray(levels)[lev], n_out)
