@@ -19,7 +19,7 @@ from firmware_py.core.rundir import SAMPLES_FILE, TRUTH_FILE, OutputFolder, chec
 from firmware_py.core.safe_read import InputError, json_number, json_object, load_json
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, SampleLog, read_samplelog
 from firmware_py.core.sensor_noise import HEADER_KEY as NOISE_HEADER_KEY
-from firmware_py.core.sensor_noise import describe_record, stated_angle_sigma_rad
+from firmware_py.core.sensor_noise import describe_record
 from firmware_py.core.site import Site
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
@@ -29,7 +29,7 @@ from ground.plausibility import PlausibilityLimits, implausible, without_implaus
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask, structure_n_sigma
 from ground.self_calibration import MountEstimate, apply_mount, describe, estimate_mount
 from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
-from ground.smoothing import angle_sigma_rad, vertical_sigma_m
+from ground.smoothing import vertical_sigma_m
 from ground.surface import (
     DEFAULT_CELL_M,
     DEFAULT_EMPTY_CELLS,
@@ -49,7 +49,7 @@ from ground.uncertainty import (
     point_sigma_m,
     survey_errors,
 )
-from ground.unseen import beam_angle_sigma_rad, free_space_ceiling_m
+from ground.unseen import free_space_ceiling_m
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT, faces_warning, unseen_warning, wide_interval_warning
 
 LOW_COVERAGE_PCT = 95.0
@@ -148,7 +148,6 @@ def header_geometry(log: SampleLog, path: Path) -> tuple[Storage, StorageFrame, 
         raise UserError(f"{path}: log header lever_arm_body_m must be 3 finite numbers")
     try:
         SensorErrorModel.from_header(h)
-        angle_sigma_rad(h)
         header_boresight(h)
     except ValueError as exc:
         raise UserError(f"{path}: {exc}") from None
@@ -261,18 +260,17 @@ def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageF
     pile = cloud.points_w[~structure]
     grid = Grid(storage.length_m, storage.width_m, opts.cell_m)
     sigma = vertical_sigma_m(err.range_sigma(cloud.range_m[~structure]), err.resolution_m, err.position_sigma_m,
-                             angle_sigma_rad(header), cloud.range_m[~structure], cloud.dirs_w[~structure])
+                             err.angle_sigma_rad, cloud.range_m[~structure], cloud.dirs_w[~structure])
     fit, n_clipped = clip_to_building(fit_heights(pile, grid, opts.surface_fit, sigma), storage.height_m)
     disagreement = None
     pile_dir = None if cloud.sweep_dir is None else cloud.sweep_dir[~structure]
     if pile_dir is not None:
         disagreement, _ = sweep_disagreement_m(pile, pile_dir, grid)
     ceiling = None if opts.empty_cells != "bounded" else free_space_ceiling_m(  # what the beams left free above
-        cloud, grid, storage, err, beam_angle_sigma_rad(header), where=~np.isfinite(fit))  # the unseen cells
+        cloud, grid, storage, err, err.angle_sigma_rad, where=~np.isfinite(fit))  # the unseen cells
     heights, counts = fill_empty(fit, opts.empty_cells, ceiling), grid.counts(pile)
-    sigma = point_sigma_m(cloud.range_m, err.range_sigma(cloud.range_m), err.position_sigma_m,
-                          stated_angle_sigma_rad(header))
-    errors = survey_errors(pile, pile_dir, fit, heights, counts, grid, sigma, structure_n_sigma(len(pile)))
+    typical = point_sigma_m(cloud.range_m, err.range_sigma(cloud.range_m), err.position_sigma_m, err.angle_sigma_rad)
+    errors = survey_errors(pile, pile_dir, fit, heights, counts, grid, typical, structure_n_sigma(len(pile)))
     return Survey(cloud, pile, grid, fit, heights, counts, storage, n_clipped, disagreement, errors=errors)
 
 

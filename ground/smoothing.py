@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware_py.core.sensor_noise import HEADER_KEY as NOISE_HEADER_KEY
+from firmware_py.core.sensor_noise import stated_angle_sigma_rad
 from ground.pointcloud import structure_n_sigma
 
 DEFAULT_Z_CRIT = 2.0
@@ -78,18 +78,7 @@ DEFAULT_SMOOTHING = SmoothingOptions()
 def angle_sigma_rad(header: dict) -> float:
     """The beam's angle error the header states: servo and attitude sigmas of the ``sensor_noise`` record,
     combined (independent, so in quadrature); 0 without a record. ValueError when a value is not a number >= 0."""
-    rec = header.get(NOISE_HEADER_KEY) if isinstance(header, dict) else None
-    if rec is None:
-        return 0.0
-    if not isinstance(rec, dict):
-        raise ValueError("log header sensor_noise must be a JSON object")
-    total = 0.0
-    for key in ("servo_sigma_rad", "attitude_sigma_rad"):
-        v = rec.get(key, 0.0)
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
-            raise ValueError(f"log header sensor_noise.{key} must be a finite number >= 0, got {v!r}")
-        total += float(v) ** 2
-    return math.sqrt(total)
+    return stated_angle_sigma_rad(header)
 
 
 def vertical_sigma_m(range_sigma_m: np.ndarray | float, resolution_m: float, position_sigma_m: float,

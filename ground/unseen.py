@@ -30,6 +30,7 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse.linalg import spsolve
 
+from firmware_py.core.sensor_noise import stated_angle_sigma_rad
 from firmware_py.core.storage import Storage
 from ground.pointcloud import Cloud, SensorErrorModel, structure_n_sigma
 
@@ -65,16 +66,10 @@ def beam_angle_sigma_rad(header: dict) -> float:
     attitude in quadrature; 0 without a record). The pose and range errors are in SensorErrorModel.
     A value that is not a number >= 0 gives infinity: the beams' paths are then unknown, and the ceiling
     falls back to the roof (bounds nothing) rather than cut material on a guess."""
-    rec = header.get("sensor_noise") if isinstance(header, dict) else None
-    if not isinstance(rec, dict):
-        return 0.0
-    total = 0.0
-    for key in ("servo_sigma_rad", "attitude_sigma_rad"):
-        v = rec.get(key, 0.0)
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
-            return math.inf
-        total += float(v) ** 2
-    return math.sqrt(total)
+    try:
+        return stated_angle_sigma_rad(header)
+    except ValueError:
+        return math.inf
 
 
 def free_space_ceiling_m(cloud: Cloud, grid: GridLike, storage: Storage, err: SensorErrorModel,
