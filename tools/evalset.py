@@ -40,7 +40,7 @@ from sitl.runners.fly import FlyConfig, check_clearance, log_header
 from sitl.sensing.batch_sampler import sample_flight
 from sitl.world.raycast import World
 from sitl.world.shapes import Family, Shape, make_shape
-from tools.sweep import Case, cached, content_key, run_sweep, write_rows_csv
+from tools.sweep import Case, cached, content_key, missing_cases, run_sweep, write_rows_csv
 
 EVALSET_VERSION = "1"
 """Part of every case (and so of its cache key): bump it when what a case computes changes."""
@@ -139,15 +139,16 @@ def instances() -> list[Instance]:
     """Every pile of the set (PLAN). Seeds run on across buildings, so no two piles share (family, seed); the
     piles of a building alternate between its altitudes in PLAN's order, except steep piles, which go as high as
     the higher altitude allows."""
-    out: list[Instance] = []
+    out: list[tuple[int, int, Instance]] = []
     next_seed: Counter[Family] = Counter()
-    for b in BUILDINGS:
+    for j, b in enumerate(BUILDINGS):
         for i, fam in enumerate(PLAN[b.name]):
             seed = next_seed[fam]
             next_seed[fam] += 1
             alt = max(b.altitudes_m) if fam is Family.STEEP else b.altitudes_m[i % len(b.altitudes_m)]
-            out.append(Instance(b.name, fam, seed, alt))
-    return out
+            out.append((i, j, Instance(b.name, fam, seed, alt)))
+    # buildings interleaved (the first pile of each, then the second ...): a set stopped part way is still varied
+    return [inst for _, _, inst in sorted(out, key=lambda t: (t[0], t[1]))]
 
 
 def quick_instances() -> list[Instance]:
@@ -450,6 +451,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--write", type=Path, default=None, help="write the summary page here (docs/evaluation_set.md)")
     ap.add_argument("--noises", default=None, help="comma-separated subset of the noise models (default: all)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    ap.add_argument("--cached-only", action="store_true",
+                    help="compute nothing: rows, CSV and page from the cases already cached")
     args = ap.parse_args(argv)
     if args.jobs < 1:
         ap.error("--jobs must be >= 1")
@@ -463,10 +466,14 @@ def main(argv: list[str] | None = None) -> int:
     else:
         cases = cases_for(instances(), noises=noises)
     cache = args.root / "cases"
-    from tools.sweep import missing_cases
-
-    n_todo = len(missing_cases(cases, cache))
+    missing = missing_cases(cases, cache)
+    n_todo = len(missing)
     t0 = time.perf_counter()
+    if args.cached_only:  # the cases already computed (a set still running, or stopped part way)
+        gone = {c.key for c in missing}
+        cases = [c for c in cases if c.key not in gone]
+        print(f"--cached-only: {len(cases)} cases cached, {n_todo} not yet computed (left out)")
+        n_todo = 0
     fn = functools.partial(run_case, root=args.root, flight_cache=args.flight_cache)
     rows = run_sweep(cases, fn, cache, jobs=args.jobs, progress=not args.no_progress, desc="evalset")
     wall = time.perf_counter() - t0
@@ -476,7 +483,8 @@ def main(argv: list[str] | None = None) -> int:
           f"rows in {args.root / 'rows.csv'}")
     if args.write is not None:
         cmd = ("python -m tools.evalset" + (" --quick" if args.quick else "")
-               + (f" --noises {args.noises}" if args.noises else "") + f" --jobs {args.jobs} --write {args.write}")
+               + (f" --noises {args.noises}" if args.noises else "") + (" --cached-only" if args.cached_only else "")
+               + f" --jobs {args.jobs} --write {args.write}")
         args.write.parent.mkdir(parents=True, exist_ok=True)
         args.write.write_text(document(rows, wall, n_todo, args.jobs, cmd))
     return 0

@@ -103,6 +103,13 @@ def test_that_a_quick_run_stores_runs_and_rows_the_ground_station_reproduces(tmp
         assert run.true_volume_m3 == row["true_volume_m3"] and run.split.value == row["split"]
     text = doc.read_text()
     assert "| corner | 35 % | 1 |" in text and "| empty | 35 % | 1 |" in text
+    # --cached-only computes nothing and gives the same rows
+    assert main(["--quick", "--noises", "none,datasheet", "--root", str(root), "--no-progress", "--cached-only",
+                 "--flight-cache", str(tmp_path / "no-flights")]) == 0
+    assert read_rows_csv(root / "rows.csv") == []  # the datasheet cases are not cached: no case has all its runs
+    assert not (tmp_path / "no-flights").exists()
+    assert main(["--quick", "--noises", "none", "--root", str(root), "--no-progress", "--cached-only"]) == 0
+    assert read_rows_csv(root / "rows.csv") == rows
 
 
 def test_that_an_incomplete_run_is_named(tmp_path):
