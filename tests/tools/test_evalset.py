@@ -14,6 +14,7 @@ from tools.evalset import (
     PILE_CLEARANCE_M,
     Split,
     cases_for,
+    fill_table,
     instance_of,
     instances,
     iter_runs,
@@ -139,3 +140,9 @@ def test_that_the_summary_gives_median_and_max_per_family_p_traj_and_noise():
     assert "| cone | 20 % | 3 | 2.00 / 4.00 |" in text
     assert "| empty | 20 % | 1 | \\|error\\| 3.0 / 3.0 m³ |" in text
     assert NOISES[0].value in text
+
+
+def test_that_the_fill_table_counts_the_runs_whose_error_the_filled_volume_bounds():
+    rows = [{"family": "corner", "ra_pct": ra, "filled_cell_frac": f, "filled_volume_m3": fv, "error_m3": e}
+            for ra, f, fv, e in ((99.0, 0.01, 3.0, -2.0), (97.0, 0.03, 1.0, 5.0), (95.0, 0.05, -4.0, 4.0))]
+    assert "| corner | 3 | 97.0 | 3.0 | 1.0 | 4.0 | 2 of 3 |" in fill_table(rows)
