@@ -229,7 +229,10 @@ def run_case(case: Case, root: Path = DEFAULT_ROOT, flight_cache: Path = DEFAULT
     noises = [SensorNoiseModel(n) for n in case.get("noises").split(",")]
     shape = inst.shape()
     mission = mission_for(inst.building, inst.altitude_m, p)
-    check_clearance(replace(mission, min_clearance_m=PILE_CLEARANCE_M), shape.pile)
+    if mission.altitude_m - shape.pile.max_height_m < PILE_CLEARANCE_M - 1e-9:
+        raise ValueError(f"{shape.name}: its top {shape.pile.max_height_m:.2f} m is less than {PILE_CLEARANCE_M:g} m "
+                         f"under the {mission.altitude_m:g} m flight")
+    check_clearance(mission, shape.pile)
     base = FlyConfig(mission=mission, stockpile=shape.name)
     flown = flight(mission, base.frame, Path(flight_cache))
     if not flown.completed:

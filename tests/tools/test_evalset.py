@@ -146,3 +146,11 @@ def test_that_the_fill_table_counts_the_runs_whose_error_the_filled_volume_bound
     rows = [{"family": "corner", "ra_pct": ra, "filled_cell_frac": f, "filled_volume_m3": fv, "error_m3": e}
             for ra, f, fv, e in ((99.0, 0.01, 3.0, -2.0), (97.0, 0.03, 1.0, 5.0), (95.0, 0.05, -4.0, 4.0))]
     assert "| corner | 3 | 97.0 | 3.0 | 1.0 | 4.0 | 2 of 3 |" in fill_table(rows)
+
+
+def test_that_a_case_at_the_lowest_p_traj_in_the_smallest_building_runs(tmp_path):
+    from tools.evalset import run_case
+    inst = next(i for i in instances() if i.building == "small")
+    (case,) = cases_for([inst], p_traj_pct=(5,), phases=1, noises=(NOISES[0],))
+    rows = run_case(case, root=tmp_path / "evalset", flight_cache=tmp_path / "flights")
+    assert len(rows) == 1 and rows[0]["true_volume_m3"] > 0 and rows[0]["n_points"] > 1000
