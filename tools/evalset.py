@@ -449,9 +449,10 @@ def document(rows: list[dict], wall_s: float, n_computed: int, jobs: int, comman
         "",
         "## Cost",
         "",
-        f"{len(rows)} runs; per run (sampling + today's ground station) median {med:.2f} s, "
-        f"{total_h:.2f} CPU-hours in all on this machine (2 cores shared with other jobs; flights excluded: one "
-        "JSBSim flight takes well under a second of the set's time each).",
+        f"{len(rows)} runs; per run (sampling + today's ground station, wall time in a worker niced on a 2-core "
+        f"machine shared with other jobs) median {med:.2f} s, {total_h:.2f} worker-hours in all (the runs' "
+        "`sample_s` + `survey_s`; flights excluded: a JSBSim flight takes about a second, one per building x "
+        "altitude x P_traj). The stored runs take ~3.5 MB each (`samples.npy`).",
         "",
         "## Today's ground station on the set",
         "",
