@@ -40,7 +40,7 @@ from sitl.runners.fly import FlyConfig, check_clearance, log_header
 from sitl.sensing.batch_sampler import sample_flight
 from sitl.world.raycast import World
 from sitl.world.shapes import Family, Shape, make_shape
-from tools.sweep import Case, cached, content_key, run_sweep, write_rows_csv
+from tools.sweep import Case, cached, content_key, missing_cases, run_sweep, write_rows_csv
 
 EVALSET_VERSION = "1"
 """Part of every case (and so of its cache key): bump it when what a case computes changes."""
@@ -139,15 +139,16 @@ def instances() -> list[Instance]:
     """Every pile of the set (PLAN). Seeds run on across buildings, so no two piles share (family, seed); the
     piles of a building alternate between its altitudes in PLAN's order, except steep piles, which go as high as
     the higher altitude allows."""
-    out: list[Instance] = []
+    out: list[tuple[int, int, Instance]] = []
     next_seed: Counter[Family] = Counter()
-    for b in BUILDINGS:
+    for j, b in enumerate(BUILDINGS):
         for i, fam in enumerate(PLAN[b.name]):
             seed = next_seed[fam]
             next_seed[fam] += 1
             alt = max(b.altitudes_m) if fam is Family.STEEP else b.altitudes_m[i % len(b.altitudes_m)]
-            out.append(Instance(b.name, fam, seed, alt))
-    return out
+            out.append((i, j, Instance(b.name, fam, seed, alt)))
+    # buildings interleaved (the first pile of each, then the second ...): a set stopped part way is still varied
+    return [inst for _, _, inst in sorted(out, key=lambda t: (t[0], t[1]))]
 
 
 def quick_instances() -> list[Instance]:
@@ -228,7 +229,10 @@ def run_case(case: Case, root: Path = DEFAULT_ROOT, flight_cache: Path = DEFAULT
     noises = [SensorNoiseModel(n) for n in case.get("noises").split(",")]
     shape = inst.shape()
     mission = mission_for(inst.building, inst.altitude_m, p)
-    check_clearance(replace(mission, min_clearance_m=PILE_CLEARANCE_M), shape.pile)
+    if mission.altitude_m - shape.pile.max_height_m < PILE_CLEARANCE_M - 1e-9:
+        raise ValueError(f"{shape.name}: its top {shape.pile.max_height_m:.2f} m is less than {PILE_CLEARANCE_M:g} m "
+                         f"under the {mission.altitude_m:g} m flight")
+    check_clearance(mission, shape.pile)
     base = FlyConfig(mission=mission, stockpile=shape.name)
     flown = flight(mission, base.frame, Path(flight_cache))
     if not flown.completed:
@@ -371,6 +375,23 @@ def summary_table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
+def fill_table(rows: list[dict]) -> str:
+    """Per family: coverage (R_a), what the empty-cell fill invented, and how often that bounds the error."""
+    out = ["| family | runs | median R_a [%] | median filled cells [%] | median volume in filled cells [m³] | "
+           "median \\|error\\| [m³] | runs with \\|error\\| <= \\|volume in filled cells\\| |",
+           "|---|---|---|---|---|---|---|"]
+    for fam in [f.value for f in Family]:
+        g = [r for r in rows if r["family"] == fam]
+        if not g:
+            continue
+        bound = sum(abs(r["error_m3"]) <= abs(r["filled_volume_m3"]) for r in g)
+        out.append(f"| {fam} | {len(g)} | {statistics.median(r['ra_pct'] for r in g):.1f} | "
+                   f"{100 * statistics.median(r['filled_cell_frac'] for r in g):.1f} | "
+                   f"{statistics.median(r['filled_volume_m3'] for r in g):.1f} | "
+                   f"{statistics.median(abs(r['error_m3']) for r in g):.1f} | {bound} of {len(g)} |")
+    return "\n".join(out)
+
+
 def split_table(rows: list[dict]) -> str:
     out = ["| split | piles (instances) | runs | families | buildings |", "|---|---|---|---|---|"]
     for s in Split:
@@ -428,15 +449,21 @@ def document(rows: list[dict], wall_s: float, n_computed: int, jobs: int, comman
         "",
         "## Cost",
         "",
-        f"{len(rows)} runs; per run (sampling + today's ground station) median {med:.2f} s, "
-        f"{total_h:.2f} CPU-hours in all on this machine (2 cores shared with other jobs; flights excluded: one "
-        "JSBSim flight takes well under a second of the set's time each).",
+        f"{len(rows)} runs; per run (sampling + today's ground station, wall time in a worker niced on a 2-core "
+        f"machine shared with other jobs) median {med:.2f} s, {total_h:.2f} worker-hours in all (the runs' "
+        "`sample_s` + `survey_s`; flights excluded: a JSBSim flight takes about a second, one per building x "
+        "altitude x P_traj). The stored runs take ~3.5 MB each (`samples.npy`).",
         "",
         "## Today's ground station on the set",
         "",
         "|Ve| = |V - V_true| / V_true (eq. 8); median / max over the runs of each row (piles, phases).",
         "",
         summary_table(rows),
+        "",
+        "What the empty-cell fill (`nearest`) did, per family, over all noise models and P_traj: filled cells are "
+        "those without a fitted surface (NaN in `heights_fit`) that the fill gave a height.",
+        "",
+        fill_table(rows),
         "",
     ])
 
@@ -450,6 +477,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--write", type=Path, default=None, help="write the summary page here (docs/evaluation_set.md)")
     ap.add_argument("--noises", default=None, help="comma-separated subset of the noise models (default: all)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    ap.add_argument("--cached-only", action="store_true",
+                    help="compute nothing: rows, CSV and page from the cases already cached")
     args = ap.parse_args(argv)
     if args.jobs < 1:
         ap.error("--jobs must be >= 1")
@@ -463,10 +492,14 @@ def main(argv: list[str] | None = None) -> int:
     else:
         cases = cases_for(instances(), noises=noises)
     cache = args.root / "cases"
-    from tools.sweep import missing_cases
-
-    n_todo = len(missing_cases(cases, cache))
+    missing = missing_cases(cases, cache)
+    n_todo = len(missing)
     t0 = time.perf_counter()
+    if args.cached_only:  # the cases already computed (a set still running, or stopped part way)
+        gone = {c.key for c in missing}
+        cases = [c for c in cases if c.key not in gone]
+        print(f"--cached-only: {len(cases)} cases cached, {n_todo} not yet computed (left out)")
+        n_todo = 0
     fn = functools.partial(run_case, root=args.root, flight_cache=args.flight_cache)
     rows = run_sweep(cases, fn, cache, jobs=args.jobs, progress=not args.no_progress, desc="evalset")
     wall = time.perf_counter() - t0
@@ -476,7 +509,8 @@ def main(argv: list[str] | None = None) -> int:
           f"rows in {args.root / 'rows.csv'}")
     if args.write is not None:
         cmd = ("python -m tools.evalset" + (" --quick" if args.quick else "")
-               + (f" --noises {args.noises}" if args.noises else "") + f" --jobs {args.jobs} --write {args.write}")
+               + (f" --noises {args.noises}" if args.noises else "") + (" --cached-only" if args.cached_only else "")
+               + f" --jobs {args.jobs} --write {args.write}")
         args.write.parent.mkdir(parents=True, exist_ok=True)
         args.write.write_text(document(rows, wall, n_todo, args.jobs, cmd))
     return 0

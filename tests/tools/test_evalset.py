@@ -14,6 +14,7 @@ from tools.evalset import (
     PILE_CLEARANCE_M,
     Split,
     cases_for,
+    fill_table,
     instance_of,
     instances,
     iter_runs,
@@ -103,6 +104,13 @@ def test_that_a_quick_run_stores_runs_and_rows_the_ground_station_reproduces(tmp
         assert run.true_volume_m3 == row["true_volume_m3"] and run.split.value == row["split"]
     text = doc.read_text()
     assert "| corner | 35 % | 1 |" in text and "| empty | 35 % | 1 |" in text
+    # --cached-only computes nothing and gives the same rows
+    assert main(["--quick", "--noises", "none,datasheet", "--root", str(root), "--no-progress", "--cached-only",
+                 "--flight-cache", str(tmp_path / "no-flights")]) == 0
+    assert read_rows_csv(root / "rows.csv") == []  # the datasheet cases are not cached: no case has all its runs
+    assert not (tmp_path / "no-flights").exists()
+    assert main(["--quick", "--noises", "none", "--root", str(root), "--no-progress", "--cached-only"]) == 0
+    assert read_rows_csv(root / "rows.csv") == rows
 
 
 def test_that_an_incomplete_run_is_named(tmp_path):
@@ -132,3 +140,17 @@ def test_that_the_summary_gives_median_and_max_per_family_p_traj_and_noise():
     assert "| cone | 20 % | 3 | 2.00 / 4.00 |" in text
     assert "| empty | 20 % | 1 | \\|error\\| 3.0 / 3.0 m³ |" in text
     assert NOISES[0].value in text
+
+
+def test_that_the_fill_table_counts_the_runs_whose_error_the_filled_volume_bounds():
+    rows = [{"family": "corner", "ra_pct": ra, "filled_cell_frac": f, "filled_volume_m3": fv, "error_m3": e}
+            for ra, f, fv, e in ((99.0, 0.01, 3.0, -2.0), (97.0, 0.03, 1.0, 5.0), (95.0, 0.05, -4.0, 4.0))]
+    assert "| corner | 3 | 97.0 | 3.0 | 1.0 | 4.0 | 2 of 3 |" in fill_table(rows)
+
+
+def test_that_a_case_at_the_lowest_p_traj_in_the_smallest_building_runs(tmp_path):
+    from tools.evalset import run_case
+    inst = next(i for i in instances() if i.building == "small")
+    (case,) = cases_for([inst], p_traj_pct=(5,), phases=1, noises=(NOISES[0],))
+    rows = run_case(case, root=tmp_path / "evalset", flight_cache=tmp_path / "flights")
+    assert len(rows) == 1 and rows[0]["true_volume_m3"] > 0 and rows[0]["n_points"] > 1000
