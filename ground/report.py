@@ -46,6 +46,7 @@ from ground.uncertainty import (
     DEFAULT_INTERVAL_MODEL,
     INTERVAL_LEVEL,
     SurveyErrors,
+    face_spread_m,
     point_sigma_m,
     survey_errors,
 )
@@ -96,6 +97,7 @@ class Survey:
     implausible: dict[str, int] | None = None  # ground.plausibility: samples left out per broken limit
     despike_unavailable: str | None = None  # why despiking asked for could not run (ground.despike.why_no_threshold)
     errors: SurveyErrors | None = None  # the volume's error terms (ground.uncertainty); None: not estimated
+    face_spread_m: float | None = None  # a cell's points spanning more height hold a face (ground.uncertainty)
 
 
 def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
@@ -218,11 +220,11 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     def disagreement(s: np.ndarray) -> float | None:  # the survey's cloud, less the stuck-servo check (range-only)
         cloud = cloud_from_samples(s, lever, frame, spike_threshold=spikes, boresight=mount)
         keep = ~structure_mask(cloud, storage, err)
-        return sweep_disagreement_m(cloud.points_w[keep], cloud.sweep_dir[keep], survey.grid)[0]
+        return sweep_disagreement_m(cloud.points_w[keep], cloud.sweep_dir[keep], survey.grid, survey.face_spread_m)[0]
 
     motion = Resimulated.from_header(header) or ShiftScale(sweep_center_rad(samples["servo_rad"]))
     halves = np.random.default_rng(0).choice(np.array([-1, 1]), len(survey.pile_points_w))  # seeded: reports replay
-    floor, _ = sweep_disagreement_m(survey.pile_points_w, halves, survey.grid)
+    floor, _ = sweep_disagreement_m(survey.pile_points_w, halves, survey.grid, survey.face_spread_m)
     timing = estimate_servo_timing(samples, disagreement, before, motion, floor_m=floor or 0.0)
     if timing is None or timing.disagreement_after_m > MAX_SWEEP_DISAGREEMENT_M:
         return replace(survey, servo_timing=timing)
@@ -264,14 +266,17 @@ def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageF
     fit, n_clipped = clip_to_building(fit_heights(pile, grid, opts.surface_fit, sigma), storage.height_m)
     disagreement = None
     pile_dir = None if cloud.sweep_dir is None else cloud.sweep_dir[~structure]
+    typical = point_sigma_m(cloud.range_m, err.range_sigma(cloud.range_m), err.position_sigma_m, err.angle_sigma_rad)
+    n_sigma = structure_n_sigma(len(pile))
+    spread = face_spread_m(grid, typical, n_sigma)
     if pile_dir is not None:
-        disagreement, _ = sweep_disagreement_m(pile, pile_dir, grid)
+        disagreement, _ = sweep_disagreement_m(pile, pile_dir, grid, spread)
     ceiling = None if opts.empty_cells != "bounded" else free_space_ceiling_m(  # what the beams left free above
         cloud, grid, storage, err, err.angle_sigma_rad, where=~np.isfinite(fit))  # the unseen cells
     heights, counts = fill_empty(fit, opts.empty_cells, ceiling), grid.counts(pile)
-    typical = point_sigma_m(cloud.range_m, err.range_sigma(cloud.range_m), err.position_sigma_m, err.angle_sigma_rad)
-    errors = survey_errors(pile, pile_dir, fit, heights, counts, grid, typical, structure_n_sigma(len(pile)))
-    return Survey(cloud, pile, grid, fit, heights, counts, storage, n_clipped, disagreement, errors=errors)
+    errors = survey_errors(pile, pile_dir, fit, heights, counts, grid, typical, n_sigma)
+    return Survey(cloud, pile, grid, fit, heights, counts, storage, n_clipped, disagreement, errors=errors,
+                  face_spread_m=spread)
 
 
 def sensor_noise_line(header: dict) -> str:

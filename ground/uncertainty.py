@@ -219,26 +219,35 @@ degrees for grains, coal, ores and aggregates; 60 leaves room for cohesive or co
 one cell further apart than this slope across the cell (and the noise) are a vertical face or an overhang."""
 
 
+def face_spread_m(grid: Grid, point_sigma_m: float, n_sigma: float, max_slope_deg: float = MAX_SLOPE_DEG) -> float:
+    """The most height the points of one cell may span on a pile: the steepest slope across the cell's
+    diagonal plus n_sigma point sigmas each way."""
+    diagonal_m = math.hypot(grid.length_m / grid.shape[0], grid.width_m / grid.shape[1])
+    return diagonal_m * math.tan(math.radians(max_slope_deg)) + 2.0 * n_sigma * point_sigma_m
+
+
+def cell_spread_m(points_w: np.ndarray, grid: Grid) -> np.ndarray:
+    """(nx, ny) max - min height of each cell's points (0 where fewer than one)."""
+    nx, ny = grid.shape
+    if len(points_w) == 0:
+        return np.zeros((nx, ny))
+    ix, iy = cell_index(points_w, grid)
+    flat = ix * ny + iy
+    zmax = np.full(nx * ny, -np.inf)
+    zmin = np.full(nx * ny, np.inf)
+    np.maximum.at(zmax, flat, points_w[:, 2])
+    np.minimum.at(zmin, flat, points_w[:, 2])
+    spread = (zmax - zmin).reshape(nx, ny)
+    spread[~np.isfinite(spread)] = 0.0
+    return spread
+
+
 def face_cells(points_w: np.ndarray, grid: Grid, point_sigma_m: float, n_sigma: float,
                max_slope_deg: float = MAX_SLOPE_DEG) -> FaceCells:
     """Cells whose points span more height than a max_slope_deg slope across the cell's diagonal plus
     n_sigma point sigmas each way: a vertical face or an overhang."""
-    nx, ny = grid.shape
-    excess = np.zeros((nx, ny))
-    if len(points_w) < 2:
-        return FaceCells(excess > 0, excess)
-    ix, iy = cell_index(points_w, grid)
-    flat = ix * ny + iy
-    z = points_w[:, 2]
-    zmax = np.full(nx * ny, -np.inf)
-    zmin = np.full(nx * ny, np.inf)
-    np.maximum.at(zmax, flat, z)
-    np.minimum.at(zmin, flat, z)
-    spread = (zmax - zmin).reshape(nx, ny)
-    spread[~np.isfinite(spread)] = 0.0
-    diagonal_m = math.hypot(grid.length_m / nx, grid.width_m / ny)
-    allowed = diagonal_m * math.tan(math.radians(max_slope_deg)) + 2.0 * n_sigma * point_sigma_m
-    excess = np.clip(spread - allowed, 0.0, None)
+    spread = cell_spread_m(points_w, grid)
+    excess = np.clip(spread - face_spread_m(grid, point_sigma_m, n_sigma, max_slope_deg), 0.0, None)
     return FaceCells(excess > 0, excess)
 
 
