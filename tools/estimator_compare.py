@@ -147,13 +147,16 @@ def must_show(results: dict[Case, list[dict]]) -> str:
     return "\n".join(out)
 
 
-def _fresh_run_note(rows_dir: Path, all_computed: bool, wall_s: float, jobs: int) -> str:
-    """What the last run that computed every case took (recorded by that run beside the cases)."""
+def _fresh_run_note(rows_dir: Path, all_computed: bool, wall_s: float, jobs: int, n_cases: int) -> str:
+    """What the last run that computed every case of a table this size took (recorded by that run)."""
     path = rows_dir / "estimator-compare-fresh-run.json"
     if all_computed:
-        path.write_text(json.dumps({"wall_s": wall_s, "jobs": jobs, "date": time.strftime("%Y-%m-%d")}))
+        path.write_text(json.dumps({"wall_s": wall_s, "jobs": jobs, "date": time.strftime("%Y-%m-%d"),
+                                    "cases": n_cases}))
     try:
         f = json.loads(path.read_text())
+        if f["cases"] != n_cases:
+            return ""
         return (f"; the last run that computed all of them took {f['wall_s'] / 60:.1f} min with {f['jobs']} "
                 f"worker(s) ({f['date']})")
     except (OSError, ValueError, KeyError, TypeError):
@@ -187,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
         results = dict(zip(cases, pool.map(run_case, cases, [args.cache] * len(cases),
                                            [args.rows_cache] * len(cases)), strict=True))
     wall = time.perf_counter() - t0
-    fresh = _fresh_run_note(args.rows_cache, n_todo == len(cases), wall, args.jobs)
+    fresh = _fresh_run_note(args.rows_cache, n_todo == len(cases), wall, args.jobs, len(cases))
     text = "\n".join([
         "## Surface estimators with and without sensor noise",
         "",
