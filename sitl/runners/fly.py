@@ -282,7 +282,9 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
         log.debug("%s locked; files are written in %s and put in place when the flight ends", out, folder.staging)
         say(f"stockpile: {pile.source}, true volume {pile.volume_m3:.1f} m^3")
         say(f"flying {cfg.mission.path_length_m():.0f} m with the {cfg.plant} plant, {cfg.payload} payload"
-            + (f", {cfg.sensor_noise} sensor noise" if cfg.noise().active else ""))
+            + (f", {cfg.sensor_noise} sensor noise" if cfg.noise().active else "")
+            + (f", flying on a {cfg.pose_error.value} pose estimate" if cfg.pose_error is not PoseErrorProfile.NONE
+               else ""))
         log_path, tlog_path = folder.staged(SAMPLES_FILE), folder.staged(TLOG_FILE)
         if cfg.payload == "firmware":
             from sitl.runners.lockstep_payload import fly_firmware

@@ -6,8 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from firmware_py.core.storage import Storage
 from firmware_py.core.frames import StorageFrame
+from firmware_py.core.storage import Storage
 from sitl.sensing.pose_drift import (
     PROFILES,
     DriftParams,
