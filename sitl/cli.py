@@ -36,6 +36,7 @@ from sitl.faults.injector import FaultSpec
 from sitl.missions.qgc_wpl import write_qgc_wpl
 from sitl.missions.rectangle import TURN_MODES, Mission
 from sitl.runners.fly import PAYLOADS, PLANTS, FlyConfig, fly
+from sitl.sensing.pose_drift import PoseErrorProfile
 
 _SITE_AND_MISSION = {
     "site.dimensions": "--storage",
@@ -53,11 +54,13 @@ CONFIG_OPTIONS: ConfigTables = {
             "payload.sweep.waveform": "--waveform",
             "payload.sweep.peak_rate_rad_s": "--servo-rate",
             "payload.sweep.phase": "--phase",
-            "sitl.sensor_noise": "--sensor-noise"},
+            "sitl.sensor_noise": "--sensor-noise",
+            "sitl.pose_error": "--pose-error"},
     "serve": {**_SITE_AND_MISSION,
               "payload.rangefinder": "--rangefinder",
               "payload.signing_key": "--signing-key",
-              "sitl.sensor_noise": "--sensor-noise"},
+              "sitl.sensor_noise": "--sensor-noise",
+              "sitl.pose_error": "--pose-error"},
     "plan": dict(_SITE_AND_MISSION),
 }
 """Configuration key -> the option it sets, per subcommand (`firmware_py.core.cli.apply_config`;
@@ -100,6 +103,7 @@ def build_parser() -> ArgumentParser:
                         "tfmini_garbage_pct=2, tfmini_unplug=AT,DURATION (DURATION inf: for good) "
                         "(times from the survey start; seeded by --seed)")
     _noise_option(f)
+    _pose_error_option(f)
     f.add_argument("--seed", type=int, default=0, help="seed of the run's random draws (sensor noise included)")
     f.add_argument("--out", required=True, help="run directory to write")
     f.add_argument("--force", action="store_true",
@@ -143,6 +147,7 @@ def build_parser() -> ArgumentParser:
                          "servo_slow_factor, servo_delay_ms. Times count from the mission start (AUTO); the "
                          "SIM_PS_* parameters change faults while it runs")
     _noise_option(sv)
+    _pose_error_option(sv)
     sv.add_argument("--seed", type=int, default=0, help="seed of the fault and sensor-noise draws (default 0)")
     sv.add_argument("--tlog-max-mb", type=finite_float, default=256.0, metavar="MB",
                     help="cap on telemetry.tlog in megabytes (default 256: about half a day of telemetry); "
@@ -182,6 +187,25 @@ def _noise_option(p: ArgumentParser) -> None:
                         "(docs/sensor_noise.md)")
 
 
+def _pose_error(text: str) -> PoseErrorProfile:
+    try:
+        return PoseErrorProfile(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"must be one of {', '.join(m.value for m in PoseErrorProfile)}, got {text!r}") from None
+
+
+def _pose_error_option(p: ArgumentParser) -> None:
+    p.add_argument("--pose-error", type=_pose_error, default=PoseErrorProfile.NONE,
+                   metavar="{" + ",".join(m.value for m in PoseErrorProfile) + "}",
+                   help="the indoor pose estimate the autopilot flies on and reports in ATTITUDE and "
+                        "LOCAL_POSITION_NED: none (the truth, default); flow (optical flow + downward rangefinder: "
+                        "drift ~2%% of the distance, heading drift, baro drift, and an altitude that follows the pile "
+                        "below); vio (visual odometry: drift ~1%% of the distance, heading and baro drift). The true "
+                        "trajectory goes into truth.json; the profile into the log header; seeded by --seed "
+                        "(docs/pose_error.md)")
+
+
 def _mission_options(p: ArgumentParser, p_traj_required: bool) -> None:
     p.add_argument("--p-traj", type=finite_float, required=p_traj_required, default=None if p_traj_required else 20.0,
                    metavar="PCT", help="waypoint offset from the walls, percent of L and W (eqs. 17-18), 0-50")
@@ -215,7 +239,7 @@ def _fly(args) -> int:
                     servo_peak_rate_rad_s=args.servo_rate, initial_position=args.phase, plant=args.plant,
                     payload=args.payload or _default_payload(args.plant), latency_ms=tuple(args.latency_ms),
                     payload_kg=args.payload_mass, seed=args.seed, rangefinder=args.rangefinder,
-                    sensor_noise=args.sensor_noise,
+                    sensor_noise=args.sensor_noise, pose_error=args.pose_error,
                     faults=FaultSpec.parse(args.fault, seed=args.seed) if args.fault else None, site=_site(args))
     res = fly(cfg, args.out, force=args.force)  # progress: this module's logger (-v/-q)
     if not args.quiet:
@@ -266,7 +290,8 @@ def _serve(args) -> int:
                               duration_s=args.duration, vehicle=args.vehicle, out=Path(args.out), force=args.force,
                               devices_url=args.devices, stockpile=args.stockpile, signing=signing,
                               faults=FaultSpec.parse(args.fault, seed=args.seed), rangefinder=args.rangefinder,
-                              limits=tlog_limits(args.tlog_max_mb), site=_site(args), sensor_noise=args.sensor_noise))
+                              limits=tlog_limits(args.tlog_max_mb), site=_site(args), sensor_noise=args.sensor_noise,
+                              pose_error=args.pose_error))
 
 
 def _dispatch(args) -> int:

@@ -12,7 +12,7 @@ file leaves out keeps the built-in default. docs/configuration.md lists every ke
                       slew_rad_s, lag_s
     [payload.sweep]   the eq. (1) sweep: waveform, peak_rate_rad_s, phase
     [mission]         p_traj_pct, altitude_m, speed_m_s, yaw_rate_max_deg_s, turn
-    [sitl]            sensor_noise (the simulator only)
+    [sitl]            sensor_noise, pose_error (the simulator only)
 
 The schema is the section dataclasses below: each field's metadata says its kind, unit, limits and
 meaning, and the parser, the TOML writer and the reference page are all driven by it. Every key is
@@ -79,6 +79,14 @@ class SensorNoise(enum.Enum):
     NONE = "none"
     DATASHEET = "datasheet"
     APPENDIX_A = "appendix-a"
+
+
+class PoseError(enum.Enum):
+    """The simulator's indoor pose-estimate profiles (`sitl.sensing.pose_drift.PoseErrorProfile`)."""
+
+    NONE = "none"
+    FLOW = "flow"
+    VIO = "vio"
 
 
 class Kind(enum.Enum):
@@ -245,6 +253,10 @@ class SitlSection:
     sensor_noise: SensorNoise | None = field(default=None, metadata=_key(
         Kind.CHOICE, "range-noise model: none, datasheet (per rangefinder) or appendix-a (the paper's)",
         choices=SensorNoise, example="datasheet"))
+    pose_error: PoseError | None = field(default=None, metadata=_key(
+        Kind.CHOICE, "indoor pose estimate the simulated autopilot flies on and reports: none (the truth), flow "
+        "(optical flow + downward rangefinder) or vio (visual odometry); docs/pose_error.md",
+        choices=PoseError, example="flow"))
 
 
 @dataclass(frozen=True)

@@ -200,7 +200,7 @@ class MavlinkVehicleServer:
             mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
                 lambda s: tm.local_position(self._mav, self._estimated(s, False), self._boot_ms),
             mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
-                lambda s: tm.global_position(self._mav, s, self._boot_ms, self.home),
+                lambda s: tm.global_position(self._mav, self._drifted(s), self._boot_ms, self.home),
             mavlink.MAVLINK_MSG_ID_VFR_HUD: lambda s: tm.vfr_hud(self._mav, s, self.home),
             mavlink.MAVLINK_MSG_ID_MISSION_CURRENT: lambda _s: self.missions.mission_current(),
             mavlink.MAVLINK_MSG_ID_HOME_POSITION: lambda _s: self._home_position(),
@@ -212,8 +212,19 @@ class MavlinkVehicleServer:
     """The estimator's error on what ATTITUDE and LOCAL_POSITION_NED report (a SITL sensor-noise model):
     one draw per message; None: the true state, as before."""
 
+    def _drifted(self, s: VehicleState) -> VehicleState:
+        """The state the vehicle's estimator reports: the true one plus the vehicle's `pose_error` (an indoor
+        EKF's drift, `sitl.sensing.pose_drift`), which its own guidance flies on too; the truth without one."""
+        err = getattr(getattr(self, "vehicle", None), "pose_error", None)  # a bare seam (tests) has no vehicle
+        if err is None or not any(err):
+            return s
+        n, e, d = s.pos_ned_m
+        return replace(s, pos_ned_m=(n + err[0], e + err[1], d + err[2]),
+                       yaw_rad=(s.yaw_rad + err[3] + math.pi) % (2 * math.pi) - math.pi)
+
     def _estimated(self, s: VehicleState, attitude: bool) -> VehicleState:
-        """The state a message reports: the true one, or with this message's pose error."""
+        """The state a message reports: the estimate (`_drifted`), with this message's pose noise if any."""
+        s = self._drifted(s)
         noise = self.pose_noise
         if noise is None:
             return s

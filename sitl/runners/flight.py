@@ -42,6 +42,7 @@ class FlownMission:
     duration_s: float
     completed: bool
     reached: list[int]
+    pose_error: np.ndarray | None = None  # (N, 4) estimate minus truth at each step (None: flown on the truth)
 
     def trajectory_at(self, t_s: np.ndarray) -> Trajectory:
         """States interpolated at times t_s (linear in position, unwrapped-linear in the angles)."""
@@ -52,6 +53,13 @@ class FlownMission:
         roll, pitch = interp(s["roll_rad"]), interp(s["pitch_rad"])
         yaw = wrap_pi(interp(np.unwrap(s["yaw_rad"])))
         return Trajectory(np.asarray(t_s, dtype=float), pos, roll, pitch, yaw)
+
+    def pose_error_at(self, t_s: np.ndarray) -> np.ndarray | None:
+        """The estimator's error (N, 4) [dn, de, dd, dyaw] at times t_s, linear between steps (None: none)."""
+        if self.pose_error is None:
+            return None
+        t = np.clip(t_s, self.t_s[0], self.t_s[-1])
+        return np.column_stack([np.interp(t, self.t_s, self.pose_error[:, j]) for j in range(4)])
 
 
 def mission_nav_items(mission: Mission, frame: StorageFrame) -> list[NavItem]:
@@ -75,12 +83,15 @@ SETTLE_S = 10.0
 
 def fly_mission(mission: Mission, frame: StorageFrame, payload_kg: float = PAYLOAD_1D_KG,
                 dt_s: float = 1.0 / 200.0, timeout_s: float | None = None,
-                tlog_path: str | Path | None = None, origin: GeodeticPoint = DEFAULT_SITE.corner) -> FlownMission:
+                tlog_path: str | Path | None = None, origin: GeodeticPoint = DEFAULT_SITE.corner,
+                drift=None) -> FlownMission:
     """Fly the survey with JSBSim + autopilot as fast as the CPU allows.
 
     With tlog_path, the vehicle also runs its MAVLink server (streams at their default rates, on an
     in-memory link nobody answers yet) and everything it sends goes into that telemetry log.
     `origin` is the local NED frame's place on Earth: the plant's reference and the server's home.
+    With `drift` (`sitl.sensing.pose_drift.PoseDrift`) the autopilot flies on an estimate with that error
+    (what its MAVLink pose reports too); the flight records the error at every step.
     """
     start, yaw0 = start_pose(mission, frame)
     cfg = VehicleConfig(plant=PlantConfig(dt_s=dt_s, payload_kg=payload_kg, start_ned_m=start,
@@ -88,6 +99,8 @@ def fly_mission(mission: Mission, frame: StorageFrame, payload_kg: float = PAYLO
                         speed_m_s=mission.speed_m_s, yaw_rate_max_rad_s=mission.yaw_rate_max_rad_s,
                         altitude_m=mission.altitude_m)
     v = JsbsimVehicle(cfg, armed=True, mode=FlightMode.GUIDED)
+    if drift is not None:
+        v.attach_drift(drift)
     with contextlib.ExitStack() as stack:
         tick = _telemetry(stack, v, tlog_path, origin)
         return _fly(v, mission, frame, dt_s, timeout_s, tick)
@@ -121,12 +134,18 @@ def _fly(v: JsbsimVehicle, mission: Mission, frame: StorageFrame, dt_s: float, t
     n_max = int(timeout_s / dt_s) + 1
     t = np.empty(n_max + 1)
     states = np.empty(n_max + 1, dtype=PLANT_STATE_DTYPE)
+    errors = np.zeros((n_max + 1, 4)) if v.drift is not None else None
     t[0], states[0] = 0.0, v.plant_state
+    if errors is not None:
+        errors[0] = v.pose_error
     k = 0
     while k < n_max and v.mode == FlightMode.AUTO:
         v.step()
         tick()
         k += 1
         t[k], states[k] = v.plant.t_s - t0, v.plant_state
+        if errors is not None:
+            errors[k] = v.pose_error
     return FlownMission(t[: k + 1], states[: k + 1], v.plant.energy_j - e0, float(t[k]),
-                        v.mode != FlightMode.AUTO and v.current_item() == -1, v.pop_reached())
+                        v.mode != FlightMode.AUTO and v.current_item() == -1, v.pop_reached(),
+                        None if errors is None else errors[: k + 1])

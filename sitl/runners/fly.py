@@ -42,7 +42,9 @@ from sitl.missions.qgc_wpl import write_qgc_wpl
 from sitl.missions.range_check import RangeLimit, check_range
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import PAYLOAD_1D_KG, fly_mission
+from sitl.sensing import pose_drift
 from sitl.sensing.batch_sampler import sample_flight
+from sitl.sensing.pose_drift import PoseErrorProfile
 from sitl.vehicle.ideal_plant import IdealPlant, Trajectory
 from sitl.world import stockpile as piles
 from sitl.world.raycast import World
@@ -90,6 +92,7 @@ class FlyConfig:
     faults: FaultSpec | None = None  # fault injection (sitl.faults.injector), firmware payload only
     rangefinder: Rangefinder = Rangefinder.LIDARLITE_V3  # which part the payload drives (--rangefinder)
     sensor_noise: SensorNoiseModel = SensorNoiseModel.NONE  # firmware_py.core.sensor_noise; seeded by seed
+    pose_error: PoseErrorProfile = PoseErrorProfile.NONE  # the indoor estimator flown on (sitl.sensing.pose_drift)
 
     def __post_init__(self) -> None:
         if not isinstance(self.rangefinder, Rangefinder):
@@ -123,6 +126,11 @@ class FlyConfig:
             raise ValueError(f"EKF origin must be a GeodeticPoint, got {self.ekf_origin_at!r}")
         object.__setattr__(self, "sensor_noise", SensorNoiseModel(self.sensor_noise))
         self.noise()  # the rangefinder has a datasheet model
+        try:
+            object.__setattr__(self, "pose_error", PoseErrorProfile(self.pose_error))
+        except ValueError:
+            raise ValueError(f"pose error must be one of {', '.join(p.value for p in PoseErrorProfile)}, "
+                             f"got {self.pose_error!r}") from None
 
     @property
     def ekf_origin(self) -> GeodeticPoint:
@@ -158,21 +166,70 @@ def noise_header(cfg: FlyConfig) -> dict:
     return {} if rec is None else {NOISE_HEADER_KEY: rec}
 
 
+def pose_error_header(cfg: FlyConfig) -> dict:
+    """The header keys the flight's pose-error profile adds: ``pose_error`` (none: nothing)."""
+    rec = pose_drift.record(cfg.pose_error, cfg.seed)
+    return {} if rec is None else {pose_drift.HEADER_KEY: rec}
+
+
 def log_header(cfg: FlyConfig, wf: Waveform) -> dict:
     """The sample-log header of a SITL flight: what the ground station needs to place the points."""
     return build_log_header(source=f"sitl/{cfg.plant}", sensor=cfg.lidar.to_dict(),
                             lever_arm_body_m=cfg.lever_arm_body_m, waveform_name=cfg.waveform, waveform=wf,
                             initial_position=cfg.initial_position, storage=cfg.mission.storage, frame=cfg.frame,
                             mission_id=cfg.mission.mission_id, mission=cfg.mission.to_dict(), site=cfg.site,
-                            extra=noise_header(cfg))
+                            extra={**noise_header(cfg), **pose_error_header(cfg)})
 
 
-def check_clearance(mission: Mission, pile: piles.Stockpile) -> None:
-    """Refuse a flight that would hit the stockpile."""
+def check_clearance(mission: Mission, pile: piles.Stockpile,
+                    pose_error: PoseErrorProfile = PoseErrorProfile.NONE) -> None:
+    """Refuse a flight that would hit the stockpile, or the roof: an autopilot whose altitude follows a
+    downward rangefinder (`flow`) climbs over the pile by the rangefinder's weight times its height."""
     top = pile.max_height_m
     if mission.altitude_m - top < mission.min_clearance_m:
         raise ValueError(f"altitude {mission.altitude_m:g} m is too low: the stockpile top is at {top:.2f} m "
                          f"(clearance {mission.min_clearance_m:g} m needed)")
+    p = pose_drift.profile_params(pose_error)
+    climb = 0.0 if p is None else p.rangefinder_weight * top
+    roof = mission.storage.height_m
+    if climb > 0 and mission.altitude_m + climb > roof - mission.min_clearance_m:
+        raise ValueError(f"altitude {mission.altitude_m:g} m is too high for --pose-error {pose_error.value}: over "
+                         f"the {top:.2f} m pile the vehicle climbs {climb:.2f} m (its rangefinder height), to within "
+                         f"{roof - mission.altitude_m - climb:.2f} m of the {roof:g} m roof "
+                         f"({mission.min_clearance_m:g} m clearance needed)")
+
+
+TRAJECTORY_RATE_HZ = 10.0
+"""Rate of the true trajectory truth.json keeps with a pose-error profile."""
+
+
+def pose_error_truth(cfg: FlyConfig, t_s: np.ndarray, pos_ned_m: np.ndarray, yaw_rad: np.ndarray,
+                     error: np.ndarray, t_start_s: float, t_end_s: float) -> dict:
+    """truth.json's ``pose_error``: the profile and seed, the error's statistics over the survey and the
+    true and estimated trajectories at TRAJECTORY_RATE_HZ (storage frame W, m; yaw as MAVLink's, NED, rad)."""
+    rec = pose_drift.record(cfg.pose_error, cfg.seed)
+    if rec is None:
+        return {}
+    t = np.asarray(t_s, dtype=float)
+    survey = (t >= t_start_s - 1e-9) & (t <= t_end_s + 1e-9)
+    grid = np.arange(t_start_s, t_end_s + 1e-9, 1.0 / TRAJECTORY_RATE_HZ)
+    at = lambda col: np.interp(grid, t, col)  # noqa: E731
+    pos = np.column_stack([at(pos_ned_m[:, j]) for j in range(3)])
+    err = np.column_stack([at(error[:, j]) for j in range(4)])
+    yaw_u = at(np.unwrap(yaw_rad))
+    wrap = lambda a: (a + np.pi) % (2 * np.pi) - np.pi  # noqa: E731
+    true_w, est_w = cfg.frame.ned_to_w(pos), cfg.frame.ned_to_w(pos + err[:, :3])
+    rnd = lambda a: np.round(a, 4).tolist()  # noqa: E731
+    return {pose_drift.HEADER_KEY: {
+        **rec, "stats": pose_drift.error_stats(error[survey]),
+        "trajectory": {"rate_hz": TRAJECTORY_RATE_HZ, "frame": "storage W (m); yaw NED (rad)",
+                       "t_s": rnd(grid), "true_w_m": rnd(true_w), "true_yaw_rad": rnd(wrap(yaw_u)),
+                       "estimated_w_m": rnd(est_w), "estimated_yaw_rad": rnd(wrap(yaw_u + err[:, 3]))}}}
+
+
+def make_pose_drift(cfg: FlyConfig, world: World) -> pose_drift.PoseDrift | None:
+    """The flight's estimator error (None: `none`), its rangefinder looking down into `world`."""
+    return pose_drift.make_drift(cfg.pose_error, cfg.seed, pose_drift.world_ground_below(world, cfg.frame))
 
 
 def truth_record(pile: piles.Stockpile, stockpile: str, mission: Mission, frame: StorageFrame, *, plant: str,
@@ -215,7 +272,7 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
     storage = cfg.mission.storage
     with reading_input("--stockpile"):
         pile = piles.resolve(cfg.stockpile, storage)
-    check_clearance(cfg.mission, pile)
+    check_clearance(cfg.mission, pile, cfg.pose_error)
     wf = cfg.servo_waveform()
     out_of_range = check_range(cfg.mission, RangeLimit(cfg.lidar.max_range_m, cfg.noise().returns, cfg.lidar.model),
                                wf, cfg.lever_arm_body_m)
@@ -225,7 +282,9 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
         log.debug("%s locked; files are written in %s and put in place when the flight ends", out, folder.staging)
         say(f"stockpile: {pile.source}, true volume {pile.volume_m3:.1f} m^3")
         say(f"flying {cfg.mission.path_length_m():.0f} m with the {cfg.plant} plant, {cfg.payload} payload"
-            + (f", {cfg.sensor_noise} sensor noise" if cfg.noise().active else ""))
+            + (f", {cfg.sensor_noise} sensor noise" if cfg.noise().active else "")
+            + (f", flying on a {cfg.pose_error.value} pose estimate" if cfg.pose_error is not PoseErrorProfile.NONE
+               else ""))
         log_path, tlog_path = folder.staged(SAMPLES_FILE), folder.staged(TLOG_FILE)
         if cfg.payload == "firmware":
             from sitl.runners.lockstep_payload import fly_firmware
@@ -238,11 +297,18 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
             if cfg.faults is not None and cfg.faults.active:
                 say(f"faults injected: {', '.join(cfg.faults.active)}")
             records, duration_s, energy_j = run.records, run.duration_s, run.energy_j
+            pose_truth = {}
+            if run.true_pose_error is not None:
+                t_end = float(run.true_t_s[-1])
+                pose_truth = pose_error_truth(cfg, run.true_t_s, _ned(run.true_states), run.true_states["yaw_rad"],
+                                              run.true_pose_error, t_end - duration_s, t_end)
         else:
             world = World(storage, pile, max_range_m=cfg.lidar.max_range_m)
-            traj, duration_s, energy_j = fly_trajectory(cfg, tlog_path)
+            flown = fly_trajectory(cfg, tlog_path, world)
+            traj, duration_s, energy_j = flown.trajectory, flown.duration_s, flown.energy_j
             records = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame,
-                                    noise=cfg.noise(), seed=cfg.seed)
+                                    noise=cfg.noise(), seed=cfg.seed, pose_error=flown.pose_error)
+            pose_truth = {} if flown.truth is None else pose_error_truth(cfg, *flown.truth, 0.0, duration_s)
             # The batch path writes a finished flight at once: the commit's fsync is enough.
             with SampleLogWriter(log_path, log_header(cfg, wf), records_per_block=500, fsync=False) as w:
                 w.append(records)
@@ -255,7 +321,7 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
                              servo_initial_position=cfg.initial_position, waveform=cfg.waveform,
                              **({"rangefinder": cfg.rangefinder.value}
                                 if cfg.rangefinder is Rangefinder.TFMINI else {}),
-                             **noise_header(cfg))
+                             **noise_header(cfg), **pose_truth)
         folder.staged(TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
         folder.commit()
     n_ret = int(np.count_nonzero(records["flags"] == 0))
@@ -264,18 +330,70 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
     return RunResult(out, len(records), duration_s, pile.volume_m3, time.perf_counter() - t0, energy_j)
 
 
-def fly_trajectory(cfg: FlyConfig, tlog_path: Path | None = None) -> tuple[Trajectory, float, float | None]:
+def _ned(states: np.ndarray) -> np.ndarray:
+    return np.column_stack([states["north_m"], states["east_m"], states["down_m"]])
+
+
+@dataclass(frozen=True)
+class FlownTrajectory:
+    """A batch flight: the true trajectory at the LiDAR's sample times, the estimator's error there (None:
+    flown on the truth), and the finer record truth.json keeps (t, NED position, yaw, error; None: none)."""
+
+    trajectory: Trajectory
+    duration_s: float
+    energy_j: float | None
+    pose_error: np.ndarray | None = None
+    truth: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+
+
+IDEAL_ESTIMATE_STEP_S = 0.02
+"""Step of the ideal plant flown on an estimate (the estimator's update rate there: 50 Hz)."""
+
+
+def fly_ideal_on_estimate(plant: IdealPlant, t_s: np.ndarray, drift: pose_drift.PoseDrift,
+                          step_s: float = IDEAL_ESTIMATE_STEP_S) -> tuple[Trajectory, np.ndarray, tuple]:
+    """The ideal plant with an autopilot that flies the plan exactly in its estimate: the true pose is the
+    plan minus the estimator's error (taken one step back: the controller acts on the last estimate).
+    Returns the true trajectory and the error at t_s, and the (t, NED, yaw, error) record on the step grid."""
+    grid = np.arange(0.0, plant.duration_s + step_s, step_s)
+    plan = plant.states(grid)
+    err = np.zeros((len(grid), 4))
+    pos = np.empty((len(grid), 3))
+    e = pose_drift.ZERO
+    for k in range(len(grid)):
+        p = plan.pos_ned_m[k] - np.asarray(e[:3])
+        e = drift.update(float(grid[k]), (p[0], p[1], p[2]))
+        pos[k], err[k] = p, e
+    yaw = plan.yaw_rad - np.r_[0.0, err[:-1, 3]]
+    at = lambda col: np.interp(t_s, grid, col)  # noqa: E731
+    yaw_u = np.unwrap(yaw)
+    ref = plant.states(t_s)
+    traj = Trajectory(np.asarray(t_s, dtype=float), np.column_stack([at(pos[:, j]) for j in range(3)]),
+                      ref.roll_rad, ref.pitch_rad, (at(yaw_u) + np.pi) % (2 * np.pi) - np.pi)
+    return traj, np.column_stack([at(err[:, j]) for j in range(4)]), (grid, pos, yaw, err)
+
+
+def fly_trajectory(cfg: FlyConfig, tlog_path: Path | None = None, world: World | None = None) -> FlownTrajectory:
     """The flown trajectory at the LiDAR's sample times, the flight time and the energy (None: ideal).
 
     With tlog_path, the JSBSim vehicle's MAVLink telemetry is logged there (the ideal plant has none).
+    With a pose-error profile (`cfg.pose_error`) the vehicle flies on its estimate (`world`: what its
+    downward rangefinder sees; None: a bare floor).
     """
+    drift = make_pose_drift(cfg, world) if world is not None else pose_drift.make_drift(cfg.pose_error, cfg.seed)
     if cfg.plant == "ideal":
         plant = IdealPlant(cfg.mission, cfg.frame)
-        return plant.states(plant.sample_times(cfg.lidar.rate_hz)), plant.duration_s, None
+        t = plant.sample_times(cfg.lidar.rate_hz)
+        if drift is None:
+            return FlownTrajectory(plant.states(t), plant.duration_s, None)
+        traj, err, rec = fly_ideal_on_estimate(plant, t, drift)
+        return FlownTrajectory(traj, plant.duration_s, None, err, rec)
     flown = fly_mission(cfg.mission, cfg.frame, payload_kg=cfg.payload_kg, tlog_path=tlog_path,
-                        origin=cfg.ekf_origin)
+                        origin=cfg.ekf_origin, drift=drift)
     if not flown.completed:
         raise RunFailure(f"the vehicle did not complete the mission within {flown.duration_s:.0f} s "
                          f"(reached {len(flown.reached)} of {len(cfg.mission.waypoints_w()) - 1} waypoints)")
     t = np.arange(int(flown.duration_s * cfg.lidar.rate_hz) + 1) / cfg.lidar.rate_hz
-    return flown.trajectory_at(t), flown.duration_s, flown.energy_j
+    truth = None if flown.pose_error is None else (flown.t_s, _ned(flown.states), flown.states["yaw_rad"],
+                                                     flown.pose_error)
+    return FlownTrajectory(flown.trajectory_at(t), flown.duration_s, flown.energy_j, flown.pose_error_at(t), truth)

@@ -37,6 +37,7 @@ from firmware_py.hal.pwm import register_pwm_backend
 from firmware_py.payload import LoopStats
 from sitl.mavlink.server import MavlinkVehicleServer
 from sitl.sensing.noise import PoseNoiser, RangeNoiser, ServoNoiser, noise_streams
+from sitl.sensing.pose_drift import HEADER_KEY as POSE_HEADER_KEY
 from sitl.vehicle.api import PLANT_STATE_DTYPE, PlantState, Vehicle
 from sitl.vehicle.autopilot import wrap_pi
 from sitl.vehicle.jsbsim_vehicle import JsbsimVehicle
@@ -176,8 +177,16 @@ class SimWorld:
         self._vehicle_t_s = self._vehicle_time_s()  # the vehicle steps only here: its clock, kept
         self._hist.append((self._vehicle_t_s, plant_state_of(vehicle)))
         self.history: list[tuple[float, PlantState]] = [self._hist[-1]]  # the whole true flight
+        self.pose_errors: list[tuple[float, float, float, float]] | None = None
+        """The vehicle's estimator error beside each `history` entry, once `record_pose_errors` is called."""
         self.beam = TrueBeam(world, frame, self.lever, self.pose_at, None)  # the runner sets its servo
         clock.set_advance(self.advance_to)
+
+    def record_pose_errors(self) -> None:
+        """Keep the vehicle's `pose_error` (its estimate minus the truth) beside every true state from now
+        on; the history so far gets the current one."""
+        err = tuple(getattr(self.vehicle, "pose_error", (0.0, 0.0, 0.0, 0.0)))
+        self.pose_errors = [err] * len(self.history)
 
     @property
     def servo_angle_at(self) -> Callable[[int], float] | None:
@@ -226,6 +235,7 @@ class SimWorld:
         if hist[-1][0] >= target_s:
             return math.floor(hist[-1][0] * 1e9) + self.boot_offset_ns
         step, update, time_s, plant_state = vehicle.step, self.server.update, self._vehicle_time_s, self._plant_state
+        errors = self.pose_errors
         while hist[-1][0] < target_s:
             step()
             t_s = self._vehicle_t_s = time_s()
@@ -233,6 +243,8 @@ class SimWorld:
             entry = (t_s, plant_state())
             hist.append(entry)
             history.append(entry)
+            if errors is not None:
+                errors.append(vehicle.pose_error)
         return math.floor(hist[-1][0] * 1e9) + self.boot_offset_ns
 
     def pose_at(self, t_ns: int) -> TruePose:
@@ -310,6 +322,7 @@ class FirmwareRun:
     true_states: np.ndarray  # (N,) of PLANT_STATE_DTYPE, at true_t_s
     faults: dict | None = None  # what the fault injector did (counters), when faults were injected
     result: PayloadResult | None = None  # how the payload program ended (None: it lost power)
+    true_pose_error: np.ndarray | None = None  # (N, 4) the estimator's error at true_t_s (None: flown on the truth)
 
 
 NOISE_SEED_TAG = 0x5E45
@@ -347,7 +360,7 @@ def payload_config(cfg, log_path, header: dict, timeout_s: float) -> PayloadConf
         range_sigma_rel=cfg.lidar.range_sigma_rel, duration_s=timeout_s, stop_on_disarm=True,
         send_origin=cfg.ekf_origin.as_tuple(), mission_id=header.get("mission_id"), fsync=False, quiet=True,
         wait_for_pose_s=POSE_WAIT_S, source=header.get("source", "sitl"), mission=header.get("mission"),
-        header_extra={NOISE_HEADER_KEY: header[NOISE_HEADER_KEY]} if NOISE_HEADER_KEY in header else None)
+        header_extra={k: header[k] for k in (NOISE_HEADER_KEY, POSE_HEADER_KEY) if k in header} or None)
 
 
 def attach_sensor_noise(noise: SensorNoise, seed: int, server: MavlinkVehicleServer,
@@ -392,6 +405,7 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     from sitl.devices.tfmini_emu import EmulatedTfminiPort
     from sitl.faults.injector import FaultInjector
     from sitl.runners.flight import SETTLE_S, mission_nav_items, start_pose
+    from sitl.sensing.pose_drift import make_drift, world_ground_below
     from sitl.vehicle.api import FlightMode
     from sitl.vehicle.jsbsim_plant import PlantConfig
     from sitl.vehicle.jsbsim_vehicle import VehicleConfig
@@ -405,6 +419,9 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     vehicle = JsbsimVehicle(vcfg, armed=True, mode=FlightMode.GUIDED)
     pile = piles.resolve(cfg.stockpile, m.storage)
     world = World(m.storage, pile, max_range_m=cfg.lidar.max_range_m)
+    drift = make_drift(cfg.pose_error, seed, world_ground_below(world, cfg.frame))
+    if drift is not None:
+        vehicle.attach_drift(drift)  # the autopilot flies on, and reports, its estimate
     rng = np.random.default_rng(seed)
     lo, hi = latency_ms
     latency = (lambda: 0) if hi <= 0 else (lambda: int(rng.uniform(lo, hi) * 1e6))
@@ -420,6 +437,8 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
     sim = SimWorld(vehicle, world, cfg.frame, clock, boot_offset_ns=round(boot_offset_s * 1e9),
                    lever_arm_body_m=cfg.lever_arm_body_m, latency_ns=latency, tlog_path=tlog_path,
                    signing=server_signer, home=cfg.ekf_origin)
+    if drift is not None:
+        sim.record_pose_errors()
     links = {}
     if inj is not None:
         def wrap(direction: str, send_at: SendAt) -> SendAt:
@@ -511,4 +530,4 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
                         "signing": {"payload": dict(payload_signer.stats), "autopilot": dict(server_signer.stats)}
                         if signing_key is not None else None,
                         "autopilot_reboots": sim.server.stats.get("reboots", 0)},
-                       result)
+                       result, None if sim.pose_errors is None else np.array(sim.pose_errors, dtype=float))

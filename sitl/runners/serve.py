@@ -54,8 +54,16 @@ from sitl.missions.qgc_wpl import write_qgc_wpl
 from sitl.missions.range_check import RangeLimit, check_range
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import start_pose
-from sitl.runners.fly import FlyConfig, check_clearance, check_rangefinder_faults, noise_header, truth_record
+from sitl.runners.fly import (
+    FlyConfig,
+    check_clearance,
+    check_rangefinder_faults,
+    noise_header,
+    pose_error_header,
+    truth_record,
+)
 from sitl.runners.lockstep_payload import attach_sensor_noise
+from sitl.sensing.pose_drift import PoseErrorProfile, make_drift, world_ground_below
 from sitl.vehicle.jsbsim_plant import PlantConfig
 from sitl.vehicle.jsbsim_vehicle import JsbsimVehicle, VehicleConfig
 from sitl.vehicle.kinematic_vehicle import KinematicVehicle
@@ -104,6 +112,8 @@ class ServeOptions:
     sensor_noise: SensorNoiseModel = SensorNoiseModel.NONE
     """--sensor-noise: the servo error on the emulated LiDAR's beam, the range noise of its datasheet or of
     Appendix A, the pose error on ATTITUDE and LOCAL_POSITION_NED (seeded by the faults' seed, --seed)."""
+    pose_error: PoseErrorProfile = PoseErrorProfile.NONE
+    """--pose-error: the indoor estimate the JSBSim vehicle flies on and reports (seeded by --seed)."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speedup) and 0 < self.speedup <= 1000):
@@ -125,13 +135,17 @@ class ServeOptions:
             raise ValueError("--rangefinder tfmini needs --devices (the emulated parts the payload uses)")
         check_rangefinder_faults(self.rangefinder, self.faults)
         object.__setattr__(self, "sensor_noise", SensorNoiseModel(self.sensor_noise))
+        object.__setattr__(self, "pose_error", PoseErrorProfile(self.pose_error))
+        if self.pose_error is not PoseErrorProfile.NONE and self.vehicle != "jsbsim":
+            raise ValueError(f"--pose-error {self.pose_error.value} needs --vehicle jsbsim (the kinematic vehicle has "
+                             "no autopilot to fly on an estimate)")
         if not isinstance(self.site, Site):
             raise ValueError(f"site must be a Site, got {self.site!r}")
 
     def fly_config(self) -> FlyConfig:
         """The lockstep SITL's settings for this mission: its frame, lever arm and LiDAR are served too."""
         return FlyConfig(mission=self.mission, stockpile=self.stockpile, rangefinder=self.rangefinder, site=self.site,
-                         sensor_noise=self.sensor_noise)
+                         sensor_noise=self.sensor_noise, pose_error=self.pose_error, seed=self.faults.seed)
 
 
 def serve(opts: ServeOptions) -> int:
@@ -146,7 +160,7 @@ def serve(opts: ServeOptions) -> int:
         parse_bridge_url(opts.devices_url)  # a bad URL fails before any work
         with reading_input("--stockpile"):
             pile = piles.resolve(opts.stockpile, opts.mission.storage)
-        check_clearance(opts.mission, pile)
+        check_clearance(opts.mission, pile, opts.pose_error)
         fc = opts.fly_config()
         out_of_range = check_range(opts.mission, RangeLimit(fc.lidar.max_range_m, fc.noise().returns, fc.lidar.model),
                                    fc.servo_waveform(), fc.lever_arm_body_m)
@@ -223,9 +237,15 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
         tfmini = {"rangefinder": opts.rangefinder.value} if opts.rangefinder is Rangefinder.TFMINI else {}
         truth = truth_record(pile, opts.stockpile, mission, frame, plant=kind, payload="networked",
                              seed=opts.faults.seed, faults=opts.faults, site=cfg.site, ekf_origin=origin,
-                             **tfmini, **noise_header(cfg))
+                             **tfmini, **noise_header(cfg), **pose_error_header(cfg))
         folder.staged(TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
     vehicle = make_vehicle(kind, mission, frame, origin)
+    drift = make_drift(opts.pose_error, opts.faults.seed,
+                       world_ground_below(world, frame) if world is not None else None)  # no pile: a bare floor
+    if drift is not None:
+        vehicle.attach_drift(drift)
+        log.info("pose error: %s (the autopilot flies on, and reports, a drifting estimate; seed %d)",
+                 opts.pose_error.value, opts.faults.seed)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     devices = None

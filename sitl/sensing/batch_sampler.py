@@ -22,7 +22,7 @@ from sitl.world.raycast import World
 def sample_flight(traj: Trajectory, waveform: Waveform, world: World, lidar: RangefinderSpec,
                   lever_arm_body_m, frame: StorageFrame, servo: ServoCalibration | None = None,
                   servo_t0_s: float = 0.0, noise: SensorNoise | None = None,
-                  seed: int | list[int] = 0) -> np.ndarray:
+                  seed: int | list[int] = 0, pose_error: np.ndarray | None = None) -> np.ndarray:
     """Records (SAMPLE_DTYPE) of a LiDAR on the swept servo along a trajectory.
 
     Ideal sensing: the pose is the true pose (age 0), the range is the true range quantised to
@@ -35,6 +35,9 @@ def sample_flight(traj: Trajectory, waveform: Waveform, world: World, lidar: Ran
     `noise_streams(seed)` (a draw is part of the experiment): the true beam is off the logged servo
     angle by the servo error; the range is what the sensor reports (noise, bias, no returns); the
     logged pose carries the autopilot's pose errors, one draw per pose message, interpolated.
+
+    `pose_error` (N, 4) [dn, de, dd, dyaw] at the sample times: the indoor estimator's error
+    (`sitl.sensing.pose_drift`), added to the logged pose as the autopilot reports it; the beam stays true.
     """
     if servo is None:
         gamma = waveform.angle(traj.t_s)
@@ -60,6 +63,12 @@ def sample_flight(traj: Trajectory, waveform: Waveform, world: World, lidar: Ran
     rec["x_m"], rec["y_m"], rec["z_m"] = traj.pos_ned_m.T
     rec["roll_rad"], rec["pitch_rad"], rec["yaw_rad"] = traj.roll_rad, traj.pitch_rad, traj.yaw_rad
     rec["pose_age_s"] = 0.0
+    if pose_error is not None:
+        err = np.asarray(pose_error, dtype=float).reshape(n, 4)
+        rec["x_m"] += err[:, 0]
+        rec["y_m"] += err[:, 1]
+        rec["z_m"] += err[:, 2]
+        rec["yaw_rad"] = (rec["yaw_rad"] + err[:, 3] + np.pi) % (2 * np.pi) - np.pi
     if rngs is not None and noise.pose_noisy:
         period_s = 1.0 / noise.pose_stream_hz
         att = pose_errors_at(traj.t_s, period_s, noise.attitude_sigma_rad, rngs["attitude"])

@@ -57,8 +57,13 @@ class JsbsimVehicle:
         self._reached: list[int] = []
         self._texts: list[str] = []
         self._s = self.plant.read()
-        n, e, d = self._s[:3]
-        self._hold = Target(n, e, d, yaw_rad=self._s[8])
+        self.drift = None
+        """A `sitl.sensing.pose_drift.PoseDrift`: the estimator's error, which guidance flies on (None: the truth)."""
+        self.pose_error: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+        """The estimate minus the truth now (north, east, down m; yaw rad): what the autopilot reports."""
+        self._e = self._s  # the estimated state guidance flies on (the truth without a drift)
+        n, e, d = self._e[:3]
+        self._hold = Target(n, e, d, yaw_rad=self._e[8])
         self._climb_to: float | None = None
         self._landing = False
 
@@ -85,12 +90,35 @@ class JsbsimVehicle:
     def step(self) -> None:
         if self.armed:
             target = self._target()
-            self.plant.set_escs(*self.ap.update(self.dt_s, self._s, target))
+            self.plant.set_escs(*self.ap.update(self.dt_s, self._e, target))
         else:
             self.plant.set_escs(0.0, 0.0, 0.0, 0.0)
             self.ap.reset()
         self.plant.step()
         self._s = self.plant.read()
+        if self.drift is None:
+            self._e = self._s
+        else:
+            self._estimate()
+
+    def attach_drift(self, drift) -> None:
+        """Fly on an estimate with this error (`sitl.sensing.pose_drift.PoseDrift`) from now on; the physics
+        stays true. The hold point is taken over into the estimate's frame."""
+        self.drift = drift
+        self._estimate()
+        n, e, d = self._e[:3]
+        self._hold = Target(n, e, d, yaw_rad=self._e[8])
+
+    def _estimate(self) -> None:
+        s = self._s
+        err = self.drift.update(self.plant.t_s, (s[0], s[1], s[2]))
+        self.pose_error = (err[0], err[1], err[2], err[3])
+        self._e = PlantState(s[0] + err[0], s[1] + err[1], s[2] + err[2], *s[3:8], s[8] + err[3], *s[9:])
+
+    @property
+    def estimated_state(self) -> PlantState:
+        """What the autopilot believes (the plant state plus `pose_error`)."""
+        return self._e
 
     # ----------------------------------------------------------------- guidance
     def _target(self) -> Target:
@@ -104,20 +132,20 @@ class JsbsimVehicle:
 
     def _ramp(self, d_goal: float) -> float:
         """A target height that moves at the climb rate, so climbs and descents are steady."""
-        d = self._s[2]
+        d = self._e[2]
         step = self.params["PS_CLIMB_MS"] * 1.0
         return d + max(-step, min(step, d_goal - d))
 
     def _climb_target(self, d_goal: float) -> Target:
         t = Target(self._hold.north_m, self._hold.east_m, self._ramp(d_goal), yaw_rad=self._hold.yaw_rad)
-        if abs(self._s[2] - d_goal) < TAKEOFF_TOLERANCE_M:
+        if abs(self._e[2] - d_goal) < TAKEOFF_TOLERANCE_M:
             self._climb_to = None
             self._hold = Target(self._hold.north_m, self._hold.east_m, d_goal, yaw_rad=self._hold.yaw_rad)
             self._advance_if_item(NavKind.TAKEOFF)
         return t
 
     def _land_target(self) -> Target:
-        t = Target(self._hold.north_m, self._hold.east_m, self._s[2] + self.params["PS_CLIMB_MS"] * 0.5,
+        t = Target(self._hold.north_m, self._hold.east_m, self._e[2] + self.params["PS_CLIMB_MS"] * 0.5,
                    yaw_rad=self._hold.yaw_rad)
         if self.landed:
             self._landing = False
@@ -128,13 +156,13 @@ class JsbsimVehicle:
 
     def _mission_target(self) -> Target:
         item = self.mission[self._item]
-        n, e, d = self._s[:3]
+        n, e, d = self._e[:3]
         if item.kind == NavKind.TAKEOFF:
-            self._hold = Target(n, e, item.down_m, yaw_rad=self._s[8])
+            self._hold = Target(n, e, item.down_m, yaw_rad=self._e[8])
             self._climb_to = item.down_m
             return self._climb_target(item.down_m)
         if item.kind == NavKind.LAND:
-            self._hold = Target(n, e, d, yaw_rad=self._s[8])
+            self._hold = Target(n, e, d, yaw_rad=self._e[8])
             self._landing = True
             return self._land_target()
         dist = math.dist((n, e, d), (item.north_m, item.east_m, item.down_m))
@@ -155,8 +183,8 @@ class JsbsimVehicle:
         self._item += 1
         if self._item >= len(self.mission):
             self._item = -1
-            n, e, d = self._s[:3]
-            self._hold = Target(n, e, d, yaw_rad=self._s[8])
+            n, e, d = self._e[:3]
+            self._hold = Target(n, e, d, yaw_rad=self._e[8])
             if self.armed and not self._landing:
                 self.mode = FlightMode.LOITER
             self._texts.append("mission complete")
@@ -168,8 +196,8 @@ class JsbsimVehicle:
         if not self.landed:
             raise CommandRejected("cannot arm: not on the ground")
         self.armed = True
-        n, e, d = self._s[:3]
-        self._hold = Target(n, e, d, yaw_rad=self._s[8])
+        n, e, d = self._e[:3]
+        self._hold = Target(n, e, d, yaw_rad=self._e[8])
         if self.mode == FlightMode.AUTO and self.mission:
             self.start_mission()
 
@@ -191,15 +219,15 @@ class JsbsimVehicle:
             return
         if mode == FlightMode.LAND:
             self.mode = mode
-            n, e, d = self._s[:3]
-            self._hold = Target(n, e, d, yaw_rad=self._s[8])
+            n, e, d = self._e[:3]
+            self._hold = Target(n, e, d, yaw_rad=self._e[8])
             self._landing = self.armed and not self.landed
             return
         if mode not in (FlightMode.GUIDED, FlightMode.LOITER, FlightMode.STABILIZE):
             raise CommandRejected(f"mode {mode.name} is not supported")
         self.mode = mode
-        n, e, d = self._s[:3]
-        self._hold = Target(n, e, d, yaw_rad=self._s[8])
+        n, e, d = self._e[:3]
+        self._hold = Target(n, e, d, yaw_rad=self._e[8])
 
     def takeoff(self, altitude_m: float) -> None:
         if not (math.isfinite(altitude_m) and 0.5 <= altitude_m <= 100):
@@ -208,8 +236,8 @@ class JsbsimVehicle:
             raise CommandRejected("take-off needs the vehicle armed and on the ground")
         if self.mode != FlightMode.GUIDED:
             raise CommandRejected("take-off needs GUIDED mode")
-        n, e, _ = self._s[:3]
-        self._hold = Target(n, e, -altitude_m, yaw_rad=self._s[8])
+        n, e, _ = self._e[:3]
+        self._hold = Target(n, e, -altitude_m, yaw_rad=self._e[8])
         self._climb_to = -altitude_m
 
     def load_mission(self, items: list[NavItem]) -> None:

@@ -49,6 +49,8 @@ def test_that_the_ideal_plant_defaults_to_the_batch_sampler(tmp_path, capsys):
     (["--stockpile", "1", "--p-traj", "20", "--plant", "ideal", "--payload", "firmware"], "jsbsim plant"),
     (["--stockpile", "1", "--p-traj", "20", "--sensor-noise", "gaussian"], "none, datasheet, appendix-a"),
     (["--stockpile", "1", "--p-traj", "20", "--sensor-noise", "Datasheet"], "got 'Datasheet'"),
+    (["--stockpile", "1", "--p-traj", "20", "--pose-error", "bogus"], "none, flow, vio"),
+    (["--stockpile", "1", "--p-traj", "20", "--pose-error", "flow", "--altitude", "14"], "roof"),
 ])
 def test_that_bad_options_fail_with_one_line_and_exit_2(tmp_path, capsys, monkeypatch, extra, match):
     monkeypatch.chdir(tmp_path)

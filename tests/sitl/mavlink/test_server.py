@@ -251,3 +251,23 @@ def test_that_a_pose_noise_model_perturbs_what_attitude_and_local_position_repor
     assert att.pos_ned_m == s.pos_ned_m
     assert pos.pos_ned_m == pytest.approx((5.1, 5.8, -6.7)) and pos.roll_rad == s.roll_rad
     assert _replace(pos, pos_ned_m=s.pos_ned_m) == s
+
+
+def test_that_the_vehicles_pose_error_is_what_attitude_local_and_global_position_report():
+    from sitl.mavlink.server import MavlinkVehicleServer as _Server
+    from sitl.vehicle.api import FlightMode, VehicleState
+
+    class Drifting:
+        pose_error = (0.5, -0.25, 0.75, 0.02)
+
+    s = VehicleState(1.0, (5.0, 6.0, -7.0), (0.0, 0.0, 0.0), 0.1, 0.2, 3.13, 0.0, 0.0, 0.0, True, FlightMode.AUTO,
+                     False, 0.0, 16.0)
+    server = _Server.__new__(_Server)
+    server.pose_noise = None
+    server.vehicle = Drifting()
+    est = server._estimated(s, False)
+    assert est.pos_ned_m == pytest.approx((5.5, 5.75, -6.25))
+    assert est.yaw_rad == pytest.approx(3.15 - 2 * 3.141592653589793)  # wrapped
+    assert (est.roll_rad, est.pitch_rad) == (s.roll_rad, s.pitch_rad)
+    Drifting.pose_error = (0.0, 0.0, 0.0, 0.0)
+    assert server._estimated(s, True) is s  # no error: the very state, as before

@@ -1,0 +1,95 @@
+"""Flights on an indoor estimate (--pose-error): the autopilot flies on it and reports it, the log is tagged
+with it, truth.json keeps the true trajectory, the header says which profile flew."""
+
+import json
+
+import numpy as np
+import pytest
+
+from firmware_py.core.samplelog import read_samplelog
+from firmware_py.core.storage import Storage
+from sitl.missions.rectangle import Mission
+from sitl.runners.fly import FlyConfig, fly
+from sitl.runners.serve import ServeOptions
+from sitl.sensing.pose_drift import PROFILES, PoseErrorProfile
+
+MISSION = Mission(storage=Storage(30, 20, 12), p_traj=0.2, altitude_m=8.5)
+W = PROFILES[PoseErrorProfile.FLOW].rangefinder_weight
+
+
+@pytest.fixture(scope="module", params=[("ideal", "batch"), ("jsbsim", "batch"), ("jsbsim", "firmware")],
+                ids=lambda p: "-".join(p))
+def flow_run(request, tmp_path_factory):
+    plant, payload = request.param
+    out = tmp_path_factory.mktemp(f"flow-{plant}-{payload}")
+    fly(FlyConfig(mission=MISSION, plant=plant, payload=payload, pose_error="flow", seed=3), out)
+    truth = json.loads((out / "truth.json").read_text())
+    return out, truth, read_samplelog(out / "samples.pslog"), payload
+
+
+def test_that_truth_keeps_the_profile_its_seed_the_error_statistics_and_the_true_trajectory(flow_run):
+    _, truth, log, _ = flow_run
+    pe = truth["pose_error"]
+    assert pe["profile"] == "flow" and pe["seed"] == 3
+    assert pe["stats"]["horizontal_rms_m"] > 0.02 and pe["stats"]["heading_rms_deg"] > 0
+    tr = pe["trajectory"]
+    n = len(tr["t_s"])
+    assert n > 10 * 60 and np.allclose(np.diff(tr["t_s"]), 0.1)
+    assert np.shape(tr["true_w_m"]) == (n, 3) and len(tr["true_yaw_rad"]) == n
+    # on the log's clock: the trajectory spans the samples
+    t = log.samples["t_s"]
+    assert tr["t_s"][0] <= t[0] + 1.0 and tr["t_s"][-1] >= t[-1] - 1.0
+
+
+def test_that_the_log_header_says_which_profile_flew(flow_run):
+    _, truth, log, _ = flow_run
+    assert log.header["pose_error"]["profile"] == "flow"
+    assert log.header["pose_error"]["seed"] == 3
+    assert log.header["pose_error"]["params"] == truth["pose_error"]["params"]
+
+
+def test_that_the_logged_pose_is_the_estimate_not_the_truth(flow_run):
+    _, truth, log, payload = flow_run
+    tr = truth["pose_error"]["trajectory"]
+    s = log.samples[(log.samples["t_s"] >= tr["t_s"][0]) & (log.samples["t_s"] <= tr["t_s"][-1])]
+    at = lambda key: np.column_stack([np.interp(s["t_s"], tr["t_s"], np.asarray(tr[key])[:, j])  # noqa: E731
+                                      for j in range(3)])
+    logged = FlyConfig(mission=MISSION).frame.ned_to_w(np.column_stack([s["x_m"], s["y_m"], s["z_m"]]))
+    true, est = at("true_w_m"), at("estimated_w_m")
+    tol = 0.02 if payload == "batch" else 0.1  # the payload interpolates the 50 Hz pose stream
+    off_true = np.abs(logged - true).max(axis=0)
+    assert np.abs(logged - est).max(axis=0)[:2].max() < tol
+    assert off_true[2] > 0.5 and off_true[:2].max() > 0.05  # the error is there, the truth is not what was logged
+
+
+def test_that_the_vehicle_flew_on_the_estimate_so_the_true_path_left_the_plan(flow_run):
+    _, truth, _, _ = flow_run
+    tr = truth["pose_error"]["trajectory"]
+    true_z, est_z = np.asarray(tr["true_w_m"])[:, 2], np.asarray(tr["estimated_w_m"])[:, 2]
+    # The estimate holds the planned height; the truth climbs over the pile (its rangefinder height)
+    assert np.abs(est_z - MISSION.altitude_m).max() < 0.35
+    assert true_z.max() - MISSION.altitude_m > 0.5 * W * 7.0
+    assert true_z.max() < MISSION.storage.height_m - MISSION.min_clearance_m
+
+
+def test_that_no_pose_error_leaves_truth_and_header_as_before(tmp_path):
+    fly(FlyConfig(mission=MISSION, plant="ideal", seed=3), tmp_path)
+    assert "pose_error" not in json.loads((tmp_path / "truth.json").read_text())
+    assert "pose_error" not in read_samplelog(tmp_path / "samples.pslog").header
+
+
+def test_that_a_flow_flight_that_would_climb_into_the_roof_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="roof"):
+        fly(FlyConfig(mission=Mission(storage=Storage(30, 20, 10), p_traj=0.2, altitude_m=8.0), plant="ideal",
+                      pose_error="flow"), tmp_path)
+
+
+def test_that_a_bad_profile_is_one_clear_error():
+    with pytest.raises(ValueError, match="none, flow, vio"):
+        FlyConfig(mission=MISSION, pose_error="bogus")
+
+
+def test_that_serve_needs_the_jsbsim_vehicle_for_a_pose_error():
+    with pytest.raises(ValueError, match="jsbsim"):
+        ServeOptions(mission=MISSION, vehicle="kinematic", pose_error=PoseErrorProfile.VIO)
+    assert ServeOptions(mission=MISSION, pose_error="vio").fly_config().pose_error is PoseErrorProfile.VIO
