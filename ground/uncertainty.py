@@ -50,6 +50,7 @@ class ErrorTerms:
     noise_m3: float = 0.0
     sweeps_m3: float = 0.0
     faces_m3: float = 0.0
+    blur_m3: float = 0.0
 
     def as_dict(self) -> dict[str, float]:
         return asdict(self)
@@ -64,10 +65,11 @@ class IntervalModel:
     k_noise: float
     k_sweeps: float
     k_faces: float
+    k_blur: float = 0.0
     source: str = "uncalibrated"
 
     def __post_init__(self) -> None:
-        for name in ("k_unseen", "k_interpolation", "k_noise", "k_sweeps", "k_faces"):
+        for name in ("k_unseen", "k_interpolation", "k_noise", "k_sweeps", "k_faces", "k_blur"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"interval model {name} must be a finite number >= 0, got {v!r}")
@@ -75,7 +77,8 @@ class IntervalModel:
     def half_widths_m3(self, t: ErrorTerms) -> tuple[float, float]:
         """(below, above) the volume."""
         common = ((self.k_interpolation * t.interpolation_m3) ** 2 + (self.k_noise * t.noise_m3) ** 2
-                  + (self.k_sweeps * t.sweeps_m3) ** 2 + (self.k_faces * t.faces_m3) ** 2)
+                  + (self.k_sweeps * t.sweeps_m3) ** 2 + (self.k_faces * t.faces_m3) ** 2
+                  + (self.k_blur * t.blur_m3) ** 2)
         return (math.sqrt(common + (self.k_unseen * t.unseen_low_m3) ** 2),
                 math.sqrt(common + (self.k_unseen * t.unseen_high_m3) ** 2))
 
@@ -87,8 +90,13 @@ class IntervalModel:
 
 # --- calibrated interval model (tools/calibrate_interval.py --write-model) ---
 DEFAULT_INTERVAL_MODEL = IntervalModel(
-    k_unseen=1, k_interpolation=1, k_noise=1.645, k_sweeps=1, k_faces=1,
-    source='uncalibrated')
+    k_unseen=0.148467,
+    k_interpolation=0.8009,
+    k_noise=0.0017478,
+    k_sweeps=0.00599589,
+    k_faces=5.89793,
+    k_blur=0.430734,
+    source='fitted on 819 calibration runs of the evaluation set (tools/calibrate_interval.py, 2026-11-25)')
 # --- end of calibrated interval model ---
 
 
@@ -156,19 +164,22 @@ def point_residuals_m(points_w: np.ndarray, heights_fit: np.ndarray, grid: Grid)
     return np.where(defined > 0.999, points_w[:, 2] - surface, np.nan)
 
 
-def noise_term_m3(points_w: np.ndarray, heights_fit: np.ndarray, counts: np.ndarray, grid: Grid) -> float:
-    """The points' scatter carried into the volume: every surfaced cell takes its height from the
-    nearest cell holding points, so a cell j of n_j points whose error (sigma / sqrt(n_j)) spreads over
-    an area a_j contributes a_j sigma / sqrt(n_j); independent cells add in quadrature. sigma is the
-    points' robust scatter about the surface (1.4826 MAD of the residuals at their cells)."""
-    seen = np.isfinite(heights_fit)
-    if len(points_w) < 2 or not (counts > 0).any():
+def scatter_sigma_m(points_w: np.ndarray, heights_fit: np.ndarray, grid: Grid) -> float:
+    """The points' robust scatter about the fitted surface (1.4826 MAD of their residuals); 0 with too few."""
+    if len(points_w) < 2:
         return 0.0
     r = point_residuals_m(points_w, heights_fit, grid)
     r = r[np.isfinite(r)]
-    if len(r) < 2:
+    return 1.4826 * float(np.median(np.abs(r - np.median(r)))) if len(r) >= 2 else 0.0
+
+
+def noise_term_m3(sigma: float, heights_fit: np.ndarray, counts: np.ndarray, grid: Grid) -> float:
+    """The points' scatter sigma carried into the volume: every surfaced cell takes its height from the
+    nearest cell holding points, so a cell j of n_j points whose error (sigma / sqrt(n_j)) spreads over
+    an area a_j contributes a_j sigma / sqrt(n_j); independent cells add in quadrature."""
+    seen = np.isfinite(heights_fit)
+    if sigma <= 0 or not (counts > 0).any():
         return 0.0
-    sigma = 1.4826 * float(np.median(np.abs(r - np.median(r))))
     c = grid.length_m / grid.shape[0], grid.width_m / grid.shape[1]
     _, (ix, iy) = ndimage.distance_transform_edt(counts == 0, sampling=c, return_indices=True)
     owner = (ix * grid.shape[1] + iy)[seen]
@@ -176,6 +187,16 @@ def noise_term_m3(points_w: np.ndarray, heights_fit: np.ndarray, counts: np.ndar
     n = counts.ravel()
     has = (area_cells > 0) & (n > 0)
     return sigma * grid.cell_area_m2 * math.sqrt(float((area_cells[has] ** 2 / n[has]).sum()))
+
+
+def blur_term_m3(sigma: float, heights_fit: np.ndarray, grid: Grid) -> float:
+    """The scatter sigma over the pile's footprint (cells more than 2 sigma above the floor): noisy
+    points blur a curved pile, and that error has one sign over the whole pile (points sit high at
+    the toes, low on the crests), so it does not average out as the noise term assumes."""
+    if sigma <= 0:
+        return 0.0
+    material = np.isfinite(heights_fit) & (np.nan_to_num(heights_fit, nan=0.0) > 2.0 * sigma)
+    return sigma * float(material.sum()) * grid.cell_area_m2
 
 
 def sweeps_term_m3(points_w: np.ndarray, sweep_dir: np.ndarray | None, heights_fit: np.ndarray, grid: Grid,
@@ -281,9 +302,11 @@ def survey_errors(points_w: np.ndarray, sweep_dir: np.ndarray | None, heights_fi
                   lower_m: np.ndarray | None = None, upper_m: np.ndarray | None = None) -> SurveyErrors:
     low, high = unseen_terms_m3(heights_fit, heights, grid, lower_m, upper_m)
     faces = face_cells(points_w, grid, point_sigma, n_sigma)
+    scatter = scatter_sigma_m(points_w, heights_fit, grid)
     terms = ErrorTerms(unseen_low_m3=low, unseen_high_m3=high,
                        interpolation_m3=interpolation_term_m3(heights_fit, counts, grid),
-                       noise_m3=noise_term_m3(points_w, heights_fit, counts, grid),
+                       noise_m3=noise_term_m3(scatter, heights_fit, counts, grid),
+                       blur_m3=blur_term_m3(scatter, heights_fit, grid),
                        sweeps_m3=sweeps_term_m3(points_w, sweep_dir, heights_fit, grid),
                        faces_m3=faces_term_m3(faces, grid))
     return SurveyErrors(terms, faces, point_sigma)

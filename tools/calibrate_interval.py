@@ -31,10 +31,11 @@ from ground.uncertainty import INTERVAL_LEVEL, ErrorTerms, IntervalModel
 from tools.doc_sections import write_section
 from tools.sweep import Case, read_rows_csv, run_sweep, write_rows_csv
 
-GROUND_VERSION = "1"
+GROUND_VERSION = "2"
 """Part of every row's cache key: bump when the ground station's volume or terms change."""
 TERMS = [f.name for f in fields(ErrorTerms)]
-FACTORS = ("k_unseen", "k_interpolation", "k_noise", "k_sweeps", "k_faces")
+FACTORS = ("k_unseen", "k_interpolation", "k_noise", "k_sweeps", "k_faces", "k_blur")
+"""The factors, in the order of TERMS after the unseen term's two sides (which share k_unseen)."""
 MODEL_FILE = Path("ground/uncertainty.py")
 MODEL_BEGIN = "# --- calibrated interval model (tools/calibrate_interval.py --write-model) ---"
 MODEL_END = "# --- end of calibrated interval model ---"
@@ -81,7 +82,7 @@ def arrays(rows: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def half_widths(k: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(below, above) per run for factors k (FACTORS order), as IntervalModel.half_widths_m3."""
-    kt = t * np.array([k[0], k[0], k[1], k[2], k[3], k[4]])
+    kt = t * np.concatenate([[k[0]], k])  # unseen low and high share the first factor
     common = (kt[:, 2:] ** 2).sum(axis=1)
     return np.sqrt(common + kt[:, 0] ** 2), np.sqrt(common + kt[:, 1] ** 2)
 
@@ -197,8 +198,8 @@ def document(model: IntervalModel, calib: list[dict], held: list[dict], command:
 def write_model(model: IntervalModel, path: Path = MODEL_FILE) -> None:
     """Replace the calibrated block of ground/uncertainty.py with model (between MODEL_BEGIN and MODEL_END)."""
     src = path.read_text()
-    args = ", ".join(f"{n}={getattr(model, n):.6g}" for n in FACTORS)
-    block = (f"{MODEL_BEGIN}\nDEFAULT_INTERVAL_MODEL = IntervalModel(\n    {args},\n"
+    args = "".join(f"    {n}={getattr(model, n):.6g},\n" for n in FACTORS)
+    block = (f"{MODEL_BEGIN}\nDEFAULT_INTERVAL_MODEL = IntervalModel(\n{args}"
              f"    source={model.source!r})\n{MODEL_END}")
     new, n = re.subn(re.escape(MODEL_BEGIN) + r".*?" + re.escape(MODEL_END), lambda _: block, src, flags=re.S)
     if n != 1:

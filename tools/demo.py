@@ -22,6 +22,8 @@ def summary_table(rep: dict, fly_s: float, ground_s: float, flight: dict | None 
         return "unknown" if v is None else f"{v:{spec}}{unit}"
     rows = [
         ("volume", fmt(rep["volume_m3"], " m³", ",.1f")),
+        ("90 % interval", "unknown" if rep.get("volume_interval_m3") is None else
+         f"{rep['volume_interval_m3'][0]:,.1f} - {rep['volume_interval_m3'][1]:,.1f} m³"),
         ("true volume", fmt(rep["true_volume_m3"], " m³", ",.1f")),
         ("Ve (eq. 8)", fmt(rep["volume_error_pct"], " %")),
         ("R_a (eq. 9)", fmt(rep["coverage_ratio_pct"], " %")),

@@ -16,9 +16,11 @@ from ground.uncertainty import (
     DEFAULT_INTERVAL_MODEL,
     ErrorTerms,
     IntervalModel,
+    blur_term_m3,
     face_cells,
     interpolation_term_m3,
     noise_term_m3,
+    scatter_sigma_m,
     sweeps_term_m3,
     unseen_terms_m3,
 )
@@ -76,8 +78,14 @@ def test_that_the_noise_term_grows_with_the_points_scatter():
     for sigma in (0.01, 0.1):
         p = _plane_points(4000, rng, sigma)
         fit = _heights_of(lambda x, y: 1.0 + 0.1 * x)
-        terms.append(noise_term_m3(p, fit, GRID.counts(p), GRID))
+        terms.append(noise_term_m3(scatter_sigma_m(p, fit, GRID), fit, GRID.counts(p), GRID))
     assert terms[1] == pytest.approx(10 * terms[0], rel=0.3)
+
+
+def test_that_the_blur_term_is_the_scatter_over_the_piles_footprint_only():
+    fit = _heights_of(lambda x, y: np.where(x < 5.0, 2.0, 0.0))  # a 5 x 10 m block on bare floor
+    assert blur_term_m3(0.1, fit, GRID) == pytest.approx(0.1 * 50.0)
+    assert blur_term_m3(0.0, fit, GRID) == 0.0
 
 
 def test_that_rising_and_falling_sweeps_at_different_heights_are_a_sweeps_term():
