@@ -46,7 +46,8 @@ def regions(mask: np.ndarray, weight_m3: np.ndarray, grid: Grid, n: int = MAX_RE
     out = []
     for i in np.argsort(sums)[::-1][:n]:
         sx, sy = boxes[i]
-        box = f"x {sx.start * cx:.0f}-{sx.stop * cx:.0f} m, y {sy.start * cy:.0f}-{sy.stop * cy:.0f} m"
+        box = (f"x {math.floor(sx.start * cx)}-{math.ceil(sx.stop * cx)} m, "
+               f"y {math.floor(sy.start * cy)}-{math.ceil(sy.stop * cy)} m")
         out.append((float(sums[i]), box))
     return out
 
@@ -88,5 +89,5 @@ def wide_interval_warning(volume_m3: float, interval_m3: tuple[float, float], ma
     if pct <= max_pct:
         return None
     return (f"the volume's 90 % interval is +/-{pct:.1f} % ({interval_m3[0]:,.0f}-{interval_m3[1]:,.0f} m³), "
-            f"wider than the {max_pct:g} % tolerance: too little coverage for a useful figure; fly a denser "
-            "mission")
+            f"wider than the {max_pct:g} % tolerance: not known well enough to sign; the other warnings say why "
+            "(unseen floor, faces), else fly a denser mission")

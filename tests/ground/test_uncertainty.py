@@ -27,6 +27,8 @@ from ground.uncertainty import (
 from ground.volume_warnings import faces_warning, unseen_warning, wide_interval_warning
 
 GRID = Grid(20.0, 10.0, 0.5)
+UNIT = IntervalModel(k_unseen=1, k_interpolation=1, k_noise=1, k_sweeps=1, k_faces=1, k_blur=1)
+"""Every factor 1: the warnings' tests do not depend on the calibration."""
 
 
 def _plane_points(n: int, rng: np.random.Generator, sigma: float = 0.0) -> np.ndarray:
@@ -131,12 +133,12 @@ def test_that_an_interval_model_refuses_a_negative_or_infinite_factor():
 
 def test_that_the_unseen_warning_names_where_material_was_invented_and_stays_quiet_when_all_was_seen():
     fit = _heights_of(lambda x, y: np.ones_like(x))
-    assert unseen_warning(fit, fit, GRID, ErrorTerms(noise_m3=1.0), DEFAULT_INTERVAL_MODEL) is None
+    assert unseen_warning(fit, fit, GRID, ErrorTerms(noise_m3=1.0), UNIT) is None
     fit[:6, :6] = np.nan  # a 3 x 3 m corner never seen
     filled = np.where(np.isfinite(fit), fit, 3.0)
     low, high = unseen_terms_m3(fit, filled, GRID)
     w = unseen_warning(fit, filled, GRID, ErrorTerms(unseen_low_m3=low, unseen_high_m3=high, noise_m3=1.0),
-                       DEFAULT_INTERVAL_MODEL)
+                       UNIT)
     assert w is not None and "x 0-3 m, y 0-3 m" in w and "27 m³" in w
 
 
@@ -147,9 +149,9 @@ def test_that_the_faces_warning_fires_only_when_faces_weigh_in_the_interval():
     wall = np.column_stack([np.full(200, 10.1), rng.uniform(0, 10, 200), rng.uniform(0, 3, 200)])
     faces = face_cells(np.vstack([box, wall]), GRID, 0.02, 4.0)
     terms = ErrorTerms(faces_m3=float(0.5 * faces.excess_m.sum() * GRID.cell_area_m2), noise_m3=0.5)
-    w = faces_warning(faces, GRID, terms, DEFAULT_INTERVAL_MODEL)
+    w = faces_warning(faces, GRID, terms, UNIT)
     assert w is not None and "vertical face" in w and "x 10-" in w
-    assert faces_warning(faces, GRID, replace(terms, noise_m3=1e4), DEFAULT_INTERVAL_MODEL) is None
+    assert faces_warning(faces, GRID, replace(terms, noise_m3=1e4), UNIT) is None
 
 
 def test_that_a_wide_interval_is_a_warning_and_a_tight_one_is_not():
