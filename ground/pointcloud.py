@@ -138,18 +138,17 @@ def structure_mask(cloud: Cloud, storage: Storage, err: SensorErrorModel, n_sigm
     A point within both a wall's and the floor's tolerance is the floor's when it lies fewer tolerances
     from the floor than from the wall (the floor along the walls is then seen, a wall's foot is not).
     A point's tolerance along a plane normal n is its range error projected on n,
-    k sigma_r(r) |d . n| plus half the range resolution, its pointing error's (k r sigma_angle) reach
-    along n, k r sigma_angle sqrt(1 - (d . n)^2), plus k position sigmas; k is n_sigma, or
+    k sigma_r(r) |d . n| plus half the range resolution, plus k position sigmas (not the pointing
+    error: docs/design-notes.md says why); k is n_sigma, or
     `structure_n_sigma` of the cloud's size (so no wall point escapes by chance in a whole survey).
     """
     p, d = cloud.points_w, cloud.dirs_w
     k = structure_n_sigma(len(cloud.range_m)) if n_sigma is None else n_sigma
     along = k * err.range_sigma(cloud.range_m) + 0.5 * err.resolution_m
-    across = k * err.angle_sigma_rad * cloud.range_m  # a pointing error moves the point across the beam
     slack = k * err.position_sigma_m + 1e-3
-    tol_x = along * np.abs(d[:, 0]) + across * np.sqrt(np.clip(1 - d[:, 0] ** 2, 0, 1)) + slack
-    tol_y = along * np.abs(d[:, 1]) + across * np.sqrt(np.clip(1 - d[:, 1] ** 2, 0, 1)) + slack
-    tol_z = along * np.abs(d[:, 2]) + across * np.sqrt(np.clip(1 - d[:, 2] ** 2, 0, 1)) + slack
+    tol_x = along * np.abs(d[:, 0]) + slack
+    tol_y = along * np.abs(d[:, 1]) + slack
+    tol_z = along * np.abs(d[:, 2]) + slack
     # Beside a wall, a point within both the wall's and the floor's tolerance goes to the surface it fits
     # better (its distance in tolerances): the floor along the walls and a pile's toe are seen, a wall's
     # foot stays wall.

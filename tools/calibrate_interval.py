@@ -31,7 +31,7 @@ from ground.uncertainty import INTERVAL_LEVEL, ErrorTerms, IntervalModel
 from tools.doc_sections import write_section
 from tools.sweep import Case, read_rows_csv, run_sweep, write_rows_csv
 
-GROUND_VERSION = "2"
+GROUND_VERSION = "3"
 """Part of every row's cache key: bump when the ground station's volume or terms change."""
 TERMS = [f.name for f in fields(ErrorTerms)]
 FACTORS = ("k_unseen", "k_interpolation", "k_noise", "k_sweeps", "k_faces", "k_blur")
