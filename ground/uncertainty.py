@@ -90,12 +90,12 @@ class IntervalModel:
 
 # --- calibrated interval model (tools/calibrate_interval.py --write-model) ---
 DEFAULT_INTERVAL_MODEL = IntervalModel(
-    k_unseen=0.148467,
-    k_interpolation=0.8009,
-    k_noise=0.0017478,
-    k_sweeps=0.00599589,
-    k_faces=5.89793,
-    k_blur=0.430734,
+    k_unseen=0.152693,
+    k_interpolation=0.823698,
+    k_noise=0.00179755,
+    k_sweeps=0.00616657,
+    k_faces=6.06582,
+    k_blur=0.442995,
     source='fitted on 819 calibration runs of the evaluation set (tools/calibrate_interval.py, 2026-11-25)')
 # --- end of calibrated interval model ---
 
