@@ -34,7 +34,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import ndimage
 
-from ground.surface import Grid
+from ground.surface import Grid, fill_empty
 
 INTERVAL_LEVEL = 0.90
 """The probability the interval is calibrated to hold the true volume."""
@@ -112,10 +112,16 @@ def cell_index(points_xy: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarra
 
 def unseen_terms_m3(heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
                     lower_m: np.ndarray | None = None, upper_m: np.ndarray | None = None) -> tuple[float, float]:
-    """(low, high) error scales of the filled cells (module docstring); bounds are per-cell arrays or None."""
+    """(low, high) error scales of the filled cells (module docstring); bounds are per-cell arrays or None.
+
+    Cells left empty (`--empty-cells leave`) hold no volume, so nothing was invented (low 0) but the
+    material the nearest surface suggests there may be missing: that is the high side."""
     filled = ~np.isfinite(heights_fit)
     if not filled.any():
         return 0.0, 0.0
+    if not np.isfinite(heights[filled]).any() and np.isfinite(heights_fit).any():  # left empty
+        nearest = fill_empty(heights_fit, "nearest")[filled]
+        return 0.0, float(np.clip(nearest, 0.0, None).sum() * grid.cell_area_m2)
     h = np.where(np.isfinite(heights), heights, 0.0)[filled]
     lo = np.zeros_like(h) if lower_m is None else np.nan_to_num(np.asarray(lower_m, float)[filled], nan=0.0)
     low = float(np.clip(h - lo, 0.0, None).sum() * grid.cell_area_m2)

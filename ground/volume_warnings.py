@@ -18,7 +18,7 @@ import math
 import numpy as np
 from scipy import ndimage
 
-from ground.surface import Grid
+from ground.surface import Grid, fill_empty
 from ground.uncertainty import ErrorTerms, FaceCells, IntervalModel
 
 DOMINANT_SHARE = 0.5
@@ -59,11 +59,14 @@ def unseen_warning(heights_fit: np.ndarray, heights: np.ndarray, grid: Grid, t: 
     if scaled <= 0 or _share(scaled, t, model, t.unseen_high_m3 > t.unseen_low_m3) < DOMINANT_SHARE:
         return None
     filled = ~np.isfinite(heights_fit)
-    weight = np.where(filled & np.isfinite(heights), np.clip(heights, 0, None), 0.0) * grid.cell_area_m2
+    left_empty = not np.isfinite(heights[filled]).any()  # --empty-cells leave: the material is missing
+    shown = fill_empty(heights_fit, "nearest") if left_empty else heights
+    weight = np.where(filled & np.isfinite(shown), np.clip(shown, 0, None), 0.0) * grid.cell_area_m2
     where = regions(filled, weight, grid)
     area = float(filled.sum() * grid.cell_area_m2)
     listed = "; ".join(f"{w:,.0f} m³ at {box}" for w, box in where if w >= 0.01 * where[0][0])
-    return (f"{area:,.0f} m² of floor was never seen and the fill put {float(weight.sum()):,.0f} m³ there "
+    what = ("it was left out, and the nearest surface suggests" if left_empty else "the fill put")
+    return (f"{area:,.0f} m² of floor was never seen and {what} {float(weight.sum()):,.0f} m³ there "
             f"({listed}): most of the volume's uncertainty is there; fly closer tracks (lower P_traj) or "
             "over those areas")
 

@@ -50,6 +50,12 @@ def test_that_the_unseen_term_is_what_the_fill_put_above_the_floor():
     assert high == low  # no upper bound known: symmetric
 
 
+def test_that_cells_left_empty_count_the_nearest_surface_on_the_high_side_only():
+    fit = _heights_of(lambda x, y: np.ones_like(x))
+    fit[:4, :4] = np.nan
+    assert unseen_terms_m3(fit, fit, GRID) == (0.0, pytest.approx(16 * 1.0 * GRID.cell_area_m2))
+
+
 def test_that_an_upper_bound_from_free_space_sets_the_high_side():
     fit = _heights_of(lambda x, y: np.ones_like(x))
     fit[:4, :4] = np.nan
@@ -140,6 +146,14 @@ def test_that_the_unseen_warning_names_where_material_was_invented_and_stays_qui
     w = unseen_warning(fit, filled, GRID, ErrorTerms(unseen_low_m3=low, unseen_high_m3=high, noise_m3=1.0),
                        UNIT)
     assert w is not None and "x 0-3 m, y 0-3 m" in w and "27 m³" in w
+
+
+def test_that_the_unseen_warning_says_material_is_missing_when_the_cells_were_left_empty():
+    fit = _heights_of(lambda x, y: np.ones_like(x))
+    fit[:6, :6] = np.nan
+    low, high = unseen_terms_m3(fit, fit, GRID)
+    w = unseen_warning(fit, fit, GRID, ErrorTerms(unseen_low_m3=low, unseen_high_m3=high, noise_m3=1.0), UNIT)
+    assert w is not None and "left out" in w and "9 m³" in w
 
 
 def test_that_the_faces_warning_fires_only_when_faces_weigh_in_the_interval():
