@@ -1,6 +1,6 @@
 """A 90 % interval on the volume, from what the survey itself shows about its errors.
 
-A grid volume is wrong for five reasons, each measurable in the survey that made it (all in m³,
+A grid volume is wrong for six reasons, each measurable in the survey that made it (all in m³,
 each a scale of the error it describes, not yet a probability):
 
 - **unseen**: cells the surface never reached were filled (``surface.fill_empty``); the truth there
@@ -13,6 +13,8 @@ each a scale of the error it describes, not yet a probability):
   (d^2/2 |laplacian h| per cell, the textbook bound of piecewise-linear interpolation).
 - **noise**: the points' scatter about the fitted surface, averaged over the seen cells (one
   independent value per cell: the errors of neighbouring points are not independent).
+- **blur**: the same scatter over the pile's footprint: noisy points blur a curved pile (high at the
+  toes, low on the crests), an error of one sign over the pile that does not average out.
 - **sweeps**: the mean height difference between rising and falling sweeps over the cells both
   saw, a systematic servo or mounting error the self-calibration left.
 - **faces**: cells whose points lie further apart vertically than their cell's slope and the
