@@ -12,7 +12,6 @@ from the log header as the report computes them), and Ve (eq. 8, `nearest` empty
 
 from __future__ import annotations
 
-import json
 import statistics
 import sys
 import time
@@ -34,7 +33,7 @@ from sitl.world.raycast import World
 from sitl.world.stockpile import paper_pile
 from tools.doc_sections import write_section
 from tools.experiments import ALL_EXPERIMENTS, N_POSITIONS, P_TRAJ_PCT, PILES, _flight, servo_positions
-from tools.sweep import cached, content_key
+from tools.sweep import cached, content_key, fresh_run_note
 
 SECTION = "surface-estimators"
 COMPARE_VERSION = "3"
@@ -147,22 +146,6 @@ def must_show(results: dict[Case, list[dict]]) -> str:
     return "\n".join(out)
 
 
-def _fresh_run_note(rows_dir: Path, all_computed: bool, wall_s: float, jobs: int, n_cases: int) -> str:
-    """What the last run that computed every case of a table this size took (recorded by that run)."""
-    path = rows_dir / "estimator-compare-fresh-run.json"
-    if all_computed:
-        path.write_text(json.dumps({"wall_s": wall_s, "jobs": jobs, "date": time.strftime("%Y-%m-%d"),
-                                    "cases": n_cases}))
-    try:
-        f = json.loads(path.read_text())
-        if f["cases"] != n_cases:
-            return ""
-        return (f"; the last run that computed all of them took {f['wall_s'] / 60:.1f} min with {f['jobs']} "
-                f"worker(s) ({f['date']})")
-    except (OSError, ValueError, KeyError, TypeError):
-        return ""
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = ArgumentParser(prog="python -m tools.estimator_compare", description=__doc__.split("\n\n")[0])
     ap.add_argument("--write", type=Path, default=None, help="regenerate this tool's section of this page")
@@ -190,7 +173,8 @@ def main(argv: list[str] | None = None) -> int:
         results = dict(zip(cases, pool.map(run_case, cases, [args.cache] * len(cases),
                                            [args.rows_cache] * len(cases)), strict=True))
     wall = time.perf_counter() - t0
-    fresh = _fresh_run_note(args.rows_cache, n_todo == len(cases), wall, args.jobs, len(cases))
+    fresh = fresh_run_note(args.rows_cache / "estimator-compare-fresh-run.json", n_todo == len(cases), wall,
+                           args.jobs, len(cases))
     text = "\n".join([
         "## Surface estimators with and without sensor noise",
         "",

@@ -16,7 +16,6 @@ lockstep) and reports it beside its batch twin.
 
 from __future__ import annotations
 
-import json
 import statistics
 import sys
 import tempfile
@@ -38,7 +37,7 @@ from sitl.world.raycast import World
 from sitl.world.stockpile import paper_pile
 from tools.doc_sections import write_section
 from tools.experiments import ALL_EXPERIMENTS, N_POSITIONS, _flight
-from tools.sweep import cached, content_key
+from tools.sweep import cached, content_key, fresh_run_note
 
 SECTION = "noise-table"
 PILES = ("1", "2")
@@ -182,19 +181,6 @@ def _spot(text: str) -> tuple[str, int, SensorNoiseModel, int]:
                          f"a model of {', '.join(m.value for m in MODELS)} and a phase 0-19, got {text!r}") from None
 
 
-def _fresh_run_note(cache: Path, all_computed: bool, wall_s: float, jobs: int) -> str:
-    """What the last run that computed every case took (recorded by that run in the cache)."""
-    path = cache / "noise-table-fresh-run.json"
-    if all_computed:
-        path.write_text(json.dumps({"wall_s": wall_s, "jobs": jobs, "date": time.strftime("%Y-%m-%d")}))
-    try:
-        f = json.loads(path.read_text())
-        return (f"; the last run that computed all of them took {f['wall_s'] / 60:.1f} min with {f['jobs']} "
-                f"worker(s) ({f['date']})")
-    except (OSError, ValueError, KeyError, TypeError):
-        return ""
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = ArgumentParser(prog="python -m tools.noise_table", description=__doc__.split("\n\n")[0])
     ap.add_argument("--write", type=Path, default=None, help="regenerate this tool's section of this page")
@@ -221,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
         print(table(results), flush=True)
         spot_rows = list(pool.map(spot_check, *zip(*spots, strict=True))) if spots else []
     wall = time.perf_counter() - t0
-    fresh_note = _fresh_run_note(args.cache, n_todo == len(cases), wall, args.jobs)
+    fresh_note = fresh_run_note(args.cache / "noise-table-fresh-run.json", n_todo == len(cases), wall, args.jobs)
     parts = [
         "## Ve with realistic sensing (`--sensor-noise`)",
         "",

@@ -636,3 +636,21 @@ def read_rows_csv(path: Path) -> list[dict]:
 
     with open(path, newline="", encoding="utf-8") as f:
         return [{k: _parse_cell(v) for k, v in r.items()} for r in csv.DictReader(f)]
+
+
+def fresh_run_note(path: Path, all_computed: bool, wall_s: float, jobs: int, n_cases: int | None = None) -> str:
+    """What the last run that computed every case took, for a generated page: this run records itself in
+    path when it computed them all; a record for another number of cases (n_cases given) is not quoted."""
+    if all_computed:
+        record: dict[str, Any] = {"wall_s": wall_s, "jobs": jobs, "date": time.strftime("%Y-%m-%d")}
+        if n_cases is not None:
+            record["cases"] = n_cases
+        path.write_text(json.dumps(record))
+    try:
+        f = json.loads(path.read_text())
+        if n_cases is not None and f["cases"] != n_cases:
+            return ""
+        return (f"; the last run that computed all of them took {f['wall_s'] / 60:.1f} min with {f['jobs']} "
+                f"worker(s) ({f['date']})")
+    except (OSError, ValueError, KeyError, TypeError):
+        return ""
