@@ -40,7 +40,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware_py.core.sensor_noise import stated_angle_sigma_rad
 from ground.pointcloud import structure_n_sigma
 
 DEFAULT_Z_CRIT = 2.0
@@ -73,12 +72,6 @@ class SmoothingOptions:
 
 
 DEFAULT_SMOOTHING = SmoothingOptions()
-
-
-def angle_sigma_rad(header: dict) -> float:
-    """The beam's angle error the header states: servo and attitude sigmas of the ``sensor_noise`` record,
-    combined (independent, so in quadrature); 0 without a record. ValueError when a value is not a number >= 0."""
-    return stated_angle_sigma_rad(header)
 
 
 def vertical_sigma_m(range_sigma_m: np.ndarray | float, resolution_m: float, position_sigma_m: float,

@@ -25,7 +25,7 @@ from firmware_py.core.cli import ArgumentParser
 from firmware_py.core.sensor_noise import SensorNoiseModel
 from ground.pointcloud import SensorErrorModel, structure_mask
 from ground.report import ReportOptions, survey_from_samples
-from ground.smoothing import SmoothingOptions, angle_sigma_rad, vertical_sigma_m
+from ground.smoothing import SmoothingOptions, vertical_sigma_m
 from ground.surface import DEFAULT_SURFACE_FIT, clip_to_building, fill_empty, fit_heights, grid_volume
 from sitl.runners.fly import FlyConfig, log_header
 from sitl.sensing.batch_sampler import sample_flight
@@ -71,7 +71,7 @@ def estimator_ves(samples: np.ndarray, cfg: FlyConfig, true_m3: float) -> dict[s
     err = SensorErrorModel.from_header(header)
     keep = ~structure_mask(sv.cloud, storage, err)
     rng, dirs = sv.cloud.range_m[keep], sv.cloud.dirs_w[keep]
-    sigma = vertical_sigma_m(err.range_sigma(rng), err.resolution_m, err.position_sigma_m, angle_sigma_rad(header),
+    sigma = vertical_sigma_m(err.range_sigma(rng), err.resolution_m, err.position_sigma_m, err.angle_sigma_rad,
                              rng, dirs)
     out = {}
     for name, (method, opts) in ESTIMATORS.items():

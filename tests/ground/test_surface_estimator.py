@@ -9,11 +9,11 @@ import pytest
 
 from firmware_py.core.cli import UserError
 from firmware_py.core.samplelog import read_samplelog
+from firmware_py.core.sensor_noise import stated_angle_sigma_rad
 from ground.report import header_geometry
 from ground.smoothing import (
     DEFAULT_Z_CRIT,
     SmoothingOptions,
-    angle_sigma_rad,
     box_sum,
     cell_index,
     lepski_select,
@@ -155,14 +155,14 @@ def test_that_the_vertical_sigma_combines_range_angle_position_and_quantum():
 
 
 def test_that_the_angle_sigma_is_read_from_the_noise_record_and_bad_values_are_refused():
-    assert angle_sigma_rad({}) == 0.0
+    assert stated_angle_sigma_rad({}) == 0.0
     rec = {"sensor_noise": {"model": "appendix-a", "servo_sigma_rad": 0.03, "attitude_sigma_rad": 0.04}}
-    assert angle_sigma_rad(rec) == pytest.approx(0.05)
+    assert stated_angle_sigma_rad(rec) == pytest.approx(0.05)
     for bad in (-1, "x", True, float("nan")):
         with pytest.raises(ValueError, match="servo_sigma_rad"):
-            angle_sigma_rad({"sensor_noise": {"servo_sigma_rad": bad}})
+            stated_angle_sigma_rad({"sensor_noise": {"servo_sigma_rad": bad}})
     with pytest.raises(ValueError, match="JSON object"):
-        angle_sigma_rad({"sensor_noise": [1]})
+        stated_angle_sigma_rad({"sensor_noise": [1]})
 
 
 def test_that_a_log_whose_noise_record_is_malformed_is_refused_with_one_line():
