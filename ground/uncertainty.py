@@ -36,6 +36,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import ndimage
 
+from ground import smoothing
 from ground.surface import Grid, fill_empty
 
 INTERVAL_LEVEL = 0.90
@@ -107,9 +108,8 @@ DEFAULT_INTERVAL_MODEL = IntervalModel(
 def cell_index(points_xy: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
     """(ix, iy) of each point's cell, clamped to the grid (a point on the far wall is in the last cell)."""
     nx, ny = grid.shape
-    ix = np.clip((points_xy[:, 0] / grid.length_m * nx).astype(np.int64), 0, nx - 1)
-    iy = np.clip((points_xy[:, 1] / grid.width_m * ny).astype(np.int64), 0, ny - 1)
-    return ix, iy
+    flat = smoothing.cell_index(points_xy, grid.shape, (grid.length_m / nx, grid.width_m / ny))
+    return flat // ny, flat % ny
 
 
 def unseen_terms_m3(heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
