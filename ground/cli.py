@@ -20,6 +20,7 @@ from firmware_py.core.cli import (
 from firmware_py.core.keys import load_key
 from firmware_py.core.version import software_version
 from ground import listen
+from ground.base import BaseSpec
 from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, make_report
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
@@ -56,6 +57,10 @@ def build_parser() -> ArgumentParser:
                    help="cells outside the fitted surface: nearest (extend the surface to the walls, "
                         "default), bounded (the nearest height held between the floor and the lowest beam that "
                         "crossed above the cell: ground/unseen.py) or leave (no volume there, the paper's method)")
+    r.add_argument("--base", default="floor", metavar="floor|fitted-floor|RUN_OR_REPORT",
+                   help="the surface the volume is measured from: floor (the plane z = 0, default), fitted-floor (a "
+                        "plane fitted to the floor the LiDAR saw: tilt and offset reported) or an earlier survey's "
+                        "run or report directory (the volume is then the change since it); see ground/base.py")
     r.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     r.add_argument("--surface-fit", choices=SURFACE_FITS, default=DEFAULT_SURFACE_FIT,
                    help="cubic-limited (default: the cubic, kept within each triangle's data, robust to noise), "
@@ -111,6 +116,7 @@ def format_summary(rep: dict) -> str:
     lines = [
         f"volume        {rep['volume_m3']:12.1f} m^3",
         f"90 % interval {'not estimated' if iv is None else f'{iv[0]:12.1f} - {iv[1]:.1f} m^3'}",
+        f"base          {(rep.get('base') or {}).get('description', 'the floor plane z = 0')}",
         f"truth         {'unknown' if truth is None else f'{truth:12.1f} m^3'}",
         f"Ve (eq. 8)    {pct(rep.get('volume_error_pct')):>12}",
         f"R_a (eq. 9)   {pct(rep.get('coverage_ratio_pct')):>12}",
@@ -132,7 +138,8 @@ def _report(args) -> int:
                          surface_fit=args.surface_fit, servo_retiming=not args.no_servo_retiming,
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),
                          self_calibration=not args.no_self_calibration, max_interval_pct=args.max_interval_pct,
-                         site=args.config_file.site if args.config_file is not None else None)
+                         site=args.config_file.site if args.config_file is not None else None,
+                         base=BaseSpec.parse(args.base))
     rep = make_report(args.source, args.out, opts, force=args.force)
     if not args.quiet:
         print(format_summary(rep))

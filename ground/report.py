@@ -23,9 +23,11 @@ from firmware_py.core.sensor_noise import describe_record
 from firmware_py.core.site import Site
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
+from ground.base import FLOOR, FLOOR_BASE, Base, BaseKind, BaseSpec, fitted_floor_base, rebased_terms, survey_base
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
 from ground.despike import SpikeThreshold, why_no_threshold
 from ground.plausibility import PlausibilityLimits, implausible, without_implausible
+from ground.pointcloud import N_SIGMA as FLOOR_N_SIGMA
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask, structure_n_sigma
 from ground.self_calibration import MountEstimate, apply_mount, describe, estimate_mount
 from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
@@ -42,12 +44,15 @@ from ground.surface import (
     reconstructed_ratio_pct,
     volume_error_pct,
 )
+from ground.surface_file import SURFACE_FILE, SavedSurface, load_surface, save_surface
 from ground.uncertainty import (
     DEFAULT_INTERVAL_MODEL,
     INTERVAL_LEVEL,
+    ErrorTerms,
     SurveyErrors,
     face_spread_m,
     point_sigma_m,
+    scatter_sigma_m,
     survey_errors,
 )
 from ground.unseen import free_space_ceiling_m
@@ -76,6 +81,7 @@ class ReportOptions:
     self_calibration: bool = True  # servo zero/scale and boresight from the floor and walls (ground.self_calibration)
     site: SiteSection | None = None  # [site] of a --config file: the log's building is checked against it
     max_interval_pct: float = DEFAULT_MAX_INTERVAL_PCT  # warn when the 90 % interval is wider than this
+    base: BaseSpec = FLOOR  # the surface the volume is measured from (ground.base)
 
 
 @dataclass(frozen=True)
@@ -98,6 +104,8 @@ class Survey:
     despike_unavailable: str | None = None  # why despiking asked for could not run (ground.despike.why_no_threshold)
     errors: SurveyErrors | None = None  # the volume's error terms (ground.uncertainty); None: not estimated
     face_spread_m: float | None = None  # a cell's points spanning more height hold a face (ground.uncertainty)
+    base: Base | None = None  # the surface the volume is measured from (ground.base); None: the floor z = 0
+    own_terms: ErrorTerms | None = None  # the surface's own error terms (ErrorTerms) before a fitted floor rebased them
 
 
 def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
@@ -287,7 +295,8 @@ def sensor_noise_line(header: dict) -> str:
 
 def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: float | None) -> dict:
     g = survey.grid
-    volume = grid_volume(survey.heights, g)
+    base = survey.base or FLOOR_BASE
+    volume = base.volume_m3(survey.heights, g)  # over z = 0: grid_volume(survey.heights, g), as always
     ra = reconstructed_ratio_pct(survey.heights_fit)
     n_struct = len(survey.cloud.points_w) - len(survey.pile_points_w)
     warnings = []
@@ -308,12 +317,13 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
     interval, terms = None, None
     if survey.errors is not None:
         terms = survey.errors.terms
-        interval = DEFAULT_INTERVAL_MODEL.interval_m3(volume, terms)
+        interval = base.interval_m3(volume, terms, DEFAULT_INTERVAL_MODEL)
         warnings += [w for w in (
             unseen_warning(survey.heights_fit, survey.heights, g, terms, DEFAULT_INTERVAL_MODEL),
             faces_warning(survey.errors.faces, g, terms, DEFAULT_INTERVAL_MODEL),
             wide_interval_warning(volume, interval, opts.max_interval_pct)) if w]
-    if volume < 0:
+    warnings += list(base.warnings)
+    if volume < 0 and base.kind is not BaseKind.SURVEY:  # below an earlier survey: material taken away
         warnings.append(f"the surface lies {-volume:,.1f} m³ below the floor on balance: no material above the "
                         "floor's noise; read the volume as 0" + (f" (90 % interval {interval[0]:,.1f}-"
                                                                  f"{interval[1]:,.1f} m³)" if interval else ""))
@@ -358,6 +368,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "true_volume_m3": truth_m3,
         "volume_interval_m3": None if interval is None else list(interval),
         "interval_level": INTERVAL_LEVEL,
+        "base": base.record(survey.heights, g),
         "interval_terms_m3": None if terms is None else terms.as_dict(),
         "volume_error_pct": volume_error_pct(volume, truth_m3),
         "volume_error_m3": None if truth_m3 is None else volume - truth_m3,
@@ -449,6 +460,7 @@ REPORT_FILE = "report.json"
 REPORT_FILES = (REPORT_FILE, "report.md", "report.html", "cloud.ply", "cloud_top.png", "height_map.png",
                 "coverage.png")
 """Every file a report directory may hold (what --force removes)."""
+REPORT_FILES = (*REPORT_FILES, SURFACE_FILE)  # the final height grid, a later survey's base (ground.surface_file)
 
 
 def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | None = None, *,
@@ -467,6 +479,8 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
         if not str(path).strip():  # Path("") is the current directory
             raise UserError(f"the {what} must be a non-empty path")
     out = check_free(out_dir, REPORT_FILES, force=force, what="report")  # before the long part
+    if opts.base.kind is BaseKind.SURVEY:
+        survey_source_kind(Path(opts.base.source))  # a wrong --base is refused before the long part too
     with reading_input():
         log_path, truth_path = locate_inputs(source)
         log = read_samplelog(log_path)
@@ -475,6 +489,8 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
             raise UserError(f"{log_path}: no samples could be read ({log.blocks_corrupt} corrupt block(s))")
         truth = opts.truth_volume_m3 if opts.truth_volume_m3 is not None else read_truth_volume(truth_path)
     survey = survey_from_samples(log.samples, log.header or {}, storage, frame, lever, opts)
+    if np.isfinite(survey.heights_fit).any():
+        survey = with_base(survey, log.header or {}, opts)
     report = summarise(survey, log, opts, truth)
     report["source"] = str(source)
     if not np.isfinite(survey.heights_fit).any():
@@ -485,6 +501,7 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
     from ground.render import write_html, write_markdown
     with OutputFolder(out, REPORT_FILES, REPORT_FILE, force=force, what="report") as folder:
         images = write_outputs(survey, report, folder.staging, opts.plots)
+        save_surface(saved_surface(survey, log.header or {}, opts, str(source)), folder.staged(SURFACE_FILE))
         report["elapsed_s"] = time.perf_counter() - t0
         folder.staged(REPORT_FILE).write_text(json.dumps(report, indent=2) + "\n")
         write_markdown(report, images, folder.staged("report.md"))
@@ -514,3 +531,75 @@ def write_outputs(survey: Survey, report: dict, out: Path, plots: bool) -> dict[
                                     np.isfinite(survey.heights_fit), lw, out / "coverage.png",
                                     title=f"Coverage (R_a = {ra:.1f} %)"),
     }
+
+
+# ----- base surfaces (ground.base) -----------------------------------------------------------------------
+
+def with_base(survey: Survey, header: dict, opts: ReportOptions) -> Survey:
+    """The survey measured from the base opts ask for (ground.base): the base, and the error terms that depend
+    on it (a fitted floor's); the surface's own terms are kept in own_terms for the saved surface."""
+    spec = opts.base
+    if spec.kind is BaseKind.FLOOR:
+        return replace(survey, base=FLOOR_BASE)
+    if spec.kind is BaseKind.FITTED_FLOOR:
+        err = SensorErrorModel.from_header(header)
+        c = survey.cloud
+        keep = ~structure_mask(c, survey.storage, err)
+        sigma = vertical_sigma_m(err.range_sigma(c.range_m[keep]), err.resolution_m, err.position_sigma_m,
+                                 err.angle_sigma_rad, c.range_m[keep], c.dirs_w[keep])
+        base = fitted_floor_base(c.points_w[keep], sigma, survey.heights, survey.grid, FLOOR_N_SIGMA)
+    else:
+        earlier = earlier_surface(spec.source, replace(opts, base=FLOOR, plots=False))
+        base = survey_base(earlier, saved_surface(survey, header, opts, ""), str(spec.source))
+    if survey.errors is None:
+        return replace(survey, base=base)
+    own = survey.errors.terms
+    terms = rebased_terms(own, survey.heights_fit, survey.heights, survey.grid,
+                          scatter_sigma_m(survey.pile_points_w, survey.heights_fit, survey.grid), base)
+    return replace(survey, base=base, errors=replace(survey.errors, terms=terms), own_terms=own)
+
+
+def saved_surface(survey: Survey, header: dict, opts: ReportOptions, source: str) -> SavedSurface:
+    """The survey's final surface (heights above z = 0) with its own uncertainty, whatever base it was measured from."""
+    terms = survey.own_terms or (survey.errors.terms if survey.errors is not None else None)
+    below, above = (0.0, 0.0) if terms is None else DEFAULT_INTERVAL_MODEL.half_widths_m3(terms)
+    st = survey.storage
+    return SavedSurface(np.asarray(survey.heights, dtype=np.float64), st.length_m, st.width_m, st.height_m, opts.cell_m,
+                        grid_volume(survey.heights, survey.grid), below, above,
+                        scatter_sigma_m(survey.pile_points_w, survey.heights_fit, survey.grid),
+                        header_site(header)[0], source, software_version())
+
+
+def survey_source_kind(src: Path) -> str:
+    """"report" or "run" for a directory that holds one (checked before any long computation); UserError else."""
+    if not src.exists():
+        raise UserError(f"no such run or report directory: {src}")
+    if not src.is_dir():
+        raise UserError(f"{src} is not a run or report directory (a directory holding {SAMPLES_FILE} or {REPORT_FILE})")
+    if (src / REPORT_FILE).exists():
+        if not (src / SURFACE_FILE).exists():
+            raise UserError(f"{src} is a report directory without its {SURFACE_FILE} (written by reports since "
+                            f"{software_version()}): report the run again, or give its run directory")
+        return "report"
+    if not (src / SAMPLES_FILE).exists():
+        raise UserError(f"{src} is neither a run directory (no {SAMPLES_FILE}) nor a report directory "
+                        f"(no {REPORT_FILE})")
+    return "run"
+
+
+def earlier_surface(source: str | Path, opts: ReportOptions) -> SavedSurface:
+    """The surface of a report directory (its saved surface.npz) or of a run directory (computed from its log
+    as its report would be, with opts); one-line UserError for anything else."""
+    src = Path(source)
+    if survey_source_kind(src) == "report":
+        return load_surface(src / SURFACE_FILE)
+    with reading_input():
+        log_path, _ = locate_inputs(src)
+        log = read_samplelog(log_path)
+        storage, frame, lever = header_geometry(log, log_path)
+        if len(log.samples) == 0:
+            raise UserError(f"{log_path}: no samples could be read ({log.blocks_corrupt} corrupt block(s))")
+    survey = survey_from_samples(log.samples, log.header or {}, storage, frame, lever, opts)
+    if not np.isfinite(survey.heights_fit).any():
+        raise UserError(f"{log_path}: no surface could be fitted, so it cannot serve as a base or be compared")
+    return saved_surface(survey, log.header or {}, opts, str(src))

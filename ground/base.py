@@ -1,0 +1,339 @@
+"""The base surface a volume is measured from: the floor plane z = 0, a plane fitted to the floor the LiDAR
+saw, or the surface of an earlier survey (`pilescan-ground report --base`).
+
+The volume is the volume between the survey's surface and the base, summed with its sign over every cell
+that has a surface (eq. 7 with H_z less the base): material below the base counts negative. That keeps the
+volume unbiased where the surface only wanders about the base with the sensor's noise (clipping at the
+base would add half the noise everywhere), and it is the net change against an earlier survey. Survey tools
+report cut and fill apart as well, and so does the report's ``base`` record: ``above_m3`` (material above
+the base) and ``below_m3`` (room below it).
+
+**Fitted floor.** The floor is the lowest large flat surface in the building: the plane
+z = a + b x + c y that the most points lie on, within their noise, with (almost) none below it. Points on
+a pile's flat top are rejected by "none below": the floor around the pile lies under that plane. The fit
+is RANSAC over three-point planes no steeper than MAX_FLOOR_TILT_DEG (score: points within n sigma of the
+plane less points more than n sigma below it; n from `ground.pointcloud.structure_n_sigma`, each point's
+vertical sigma from the sensor model in the log header), then a weighted least-squares refit on the
+inliers, re-selected until they stop changing. Nothing is tuned: the band is the sensor's noise, the
+tilt limit is a building fact. The plane's standard errors (scaled by the residuals' reduced chi-square,
+and by the points per cell: neighbouring points share the pose's error, so one cell counts as one
+independent value) give the base's own volume error over the surface's cells, added to the interval in
+quadrature at the interval's level. Pile toes inside the band lie only above the floor and pull a
+least-squares plane up; the median of the residuals is pulled less, so the plane is moved to it, and the
+move itself, over the surface's area, is added as a systematic error (the data cannot say which of the
+two locations is right). Refused: fewer than MIN_FLOOR_POINTS floor points, or floor points
+along a line (the cross-slope is unknown), or a plane steeper than the limit. Warned: a plane more than
+its noise below z = 0 somewhere in the building (the storage frame's z = 0 is its lowest floor corner;
+points below it were dropped as glitches), and floor points that cover little of the building (the plane
+is then extrapolated under the piles).
+
+**Earlier survey.** A report directory's saved surface (`ground.surface_file`) or a run directory's
+(computed as its report would be). It must be of the same building (dimensions, and site when both logs
+state one); a different cell size is resampled bilinearly, with a warning. The earlier survey's own
+uncertainty carries over: the volume between two surfaces is wrong by the new survey's error less the
+old's, so its interval's half-widths are the quadrature sums of the new survey's below with the old's
+above, and the new's above with the old's below (independent errors: a conservative sum when the two
+flights share errors, which then cancel). The interval is not clipped at 0: material may have gone.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from enum import Enum
+from pathlib import Path
+from statistics import NormalDist
+
+import numpy as np
+
+from firmware_py.core.cli import UserError
+from ground.surface import Grid, grid_volume
+from ground.surface_file import SavedSurface, building_mismatch, resampled
+from ground.uncertainty import INTERVAL_LEVEL, ErrorTerms, IntervalModel, blur_term_m3, unseen_terms_m3
+
+MAX_FLOOR_TILT_DEG = 5.0
+"""The steepest plane taken as a building's floor: warehouse floors are laid to falls of 1-2 % (0.6-1.1 deg)
+for drainage, and 5 deg (8.7 %) is already a vehicle ramp's grade; a steeper "floor" is a pile's flank."""
+MIN_FLOOR_POINTS = 30
+"""Fewest floor points a plane (3 parameters) is fitted to: ten per parameter, the usual minimum for a
+regression whose residuals should say something about its fit."""
+RANSAC_SAMPLE = 5_000
+"""Points the RANSAC scores its candidate planes on (a seeded random subset: reports replay); the refit uses all."""
+RANSAC_CONFIDENCE = 0.999
+RANSAC_MAX_TRIALS = 5_000
+MIN_FLOOR_COVER = 0.05
+"""Floor points spread over less than this share of the building's cells: the plane is extrapolated under
+the piles from a corner, and the report says so."""
+Z_INTERVAL = NormalDist().inv_cdf(0.5 + INTERVAL_LEVEL / 2)
+"""A normal error's half-width at the interval's level (1.645 at 90 %)."""
+
+
+class BaseKind(Enum):
+    FLOOR = "floor"
+    FITTED_FLOOR = "fitted-floor"
+    SURVEY = "survey"
+
+
+@dataclass(frozen=True)
+class BaseSpec:
+    """What the user asked for: a kind, and for SURVEY the run or report directory."""
+
+    kind: BaseKind = BaseKind.FLOOR
+    source: Path | None = None
+
+    @classmethod
+    def parse(cls, text: str) -> BaseSpec:
+        """`floor`, `fitted-floor`, or an existing run or report directory (checked when resolved)."""
+        t = str(text).strip()
+        if not t:
+            raise UserError("--base must be floor, fitted-floor or a run or report directory, got an empty value")
+        for kind in (BaseKind.FLOOR, BaseKind.FITTED_FLOOR):
+            if t == kind.value:
+                return cls(kind)
+        return cls(BaseKind.SURVEY, Path(t))
+
+    def __str__(self) -> str:
+        return str(self.source) if self.kind is BaseKind.SURVEY else self.kind.value
+
+
+FLOOR = BaseSpec()
+
+
+@dataclass(frozen=True)
+class PlaneFit:
+    """z = offset_m + slope_x * x + slope_y * y, fitted to n_points floor points."""
+
+    offset_m: float
+    slope_x: float
+    slope_y: float
+    covariance: np.ndarray  # (3, 3) of (offset, slope_x, slope_y), per-cell independence
+    n_points: int
+    n_cells: int
+    rms_residual_m: float
+    inliers: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, dtype=bool))
+    median_shift_m: float = 0.0  # the least-squares plane less the median one: one-sided contamination (toes)
+
+    @property
+    def tilt_deg(self) -> float:
+        return math.degrees(math.atan(math.hypot(self.slope_x, self.slope_y)))
+
+    @property
+    def fall_pct(self) -> float:
+        return 100.0 * math.hypot(self.slope_x, self.slope_y)
+
+    @property
+    def rise_azimuth_deg(self) -> float:
+        """The direction the floor rises in, from the building's x axis towards y."""
+        return math.degrees(math.atan2(self.slope_y, self.slope_x))
+
+    def at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return self.offset_m + self.slope_x * np.asarray(x) + self.slope_y * np.asarray(y)
+
+    def volume_sigma_m3(self, grid: Grid, where: np.ndarray) -> float:
+        """1-sigma error of the plane's volume over the cells `where` (from the parameters' covariance)."""
+        cx, cy = grid.centres()
+        g = grid.cell_area_m2 * np.array([where.sum(), cx[where].sum(), cy[where].sum()], dtype=float)
+        return math.sqrt(max(0.0, float(g @ self.covariance @ g)))
+
+
+def _planes(p: np.ndarray) -> np.ndarray:
+    """(K, 3) coefficients (a, b, c) of z = a + b x + c y through each (K, 3, 3) triple; NaN if degenerate."""
+    a = np.concatenate([np.ones((len(p), 3, 1)), p[:, :, :2]], axis=2)
+    det = np.linalg.det(a)
+    ok = np.abs(det) > 1e-9
+    out = np.full((len(p), 3), np.nan)
+    if ok.any():
+        out[ok] = np.linalg.solve(a[ok], p[ok, :, 2][..., None])[..., 0]
+    return out
+
+
+def _refit(points: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least squares of z on (1, x, y); coefficients and (X^T W X)^-1."""
+    x = np.column_stack([np.ones(len(points)), points[:, 0], points[:, 1]])
+    xtw = x.T * w
+    inv = np.linalg.inv(xtw @ x)
+    return inv @ (xtw @ points[:, 2]), inv
+
+
+def fit_floor_plane(points_w: np.ndarray, sigma_m: np.ndarray, grid: Grid, n_sigma: float,
+                    max_tilt_deg: float = MAX_FLOOR_TILT_DEG, seed: int = 0) -> PlaneFit:
+    """The floor plane (module docstring) of the points (N, 3), each with its vertical 1-sigma error.
+
+    Raises UserError when no plausible floor is found (too few points, points on a line, too steep)."""
+    pts = np.asarray(points_w, dtype=float)
+    sig = np.asarray(sigma_m, dtype=float)
+    if len(pts) < MIN_FLOOR_POINTS:
+        raise UserError(f"--base fitted-floor: only {len(pts)} points on the floor and piles, fewer than the "
+                        f"{MIN_FLOOR_POINTS} a floor plane needs")
+    band = n_sigma * np.maximum(sig, 1e-6)
+    rng = np.random.default_rng(seed)
+    sub = rng.choice(len(pts), min(len(pts), RANSAC_SAMPLE), replace=False)
+    ps, bs = pts[sub], band[sub]
+    # Triples are drawn from the lower half of the points: the floor lies under everything else, so this
+    # only raises the chance of an all-floor triple; every candidate is still scored on all of ps.
+    low = np.flatnonzero(ps[:, 2] <= np.median(ps[:, 2]))
+    max_slope = math.tan(math.radians(max_tilt_deg))
+    best, best_score, trials, done, batch = None, -np.inf, RANSAC_MAX_TRIALS, 0, 200
+    while done < trials:
+        k = min(batch, trials - done)
+        planes = _planes(ps[low[rng.integers(0, len(low), (k, 3))]])
+        planes = planes[np.isfinite(planes).all(axis=1) & (np.hypot(planes[:, 1], planes[:, 2]) <= max_slope)]
+        done += k
+        if not len(planes):
+            continue
+        r = ps[None, :, 2] - (planes[:, :1] + planes[:, 1:2] * ps[None, :, 0] + planes[:, 2:] * ps[None, :, 1])
+        score = (np.abs(r) <= bs).sum(axis=1) - (r < -bs).sum(axis=1)
+        i = int(np.argmax(score))
+        if score[i] > best_score:
+            best, best_score = planes[i], float(score[i])
+            w = max(1e-6, min(1.0, (np.abs(r[i][low]) <= bs[low]).mean()))  # the adaptive RANSAC trial count
+            need = math.log(1 - RANSAC_CONFIDENCE) / math.log(max(1e-12, 1 - w**3)) if w < 1 else 1
+            trials = min(RANSAC_MAX_TRIALS, max(done, math.ceil(need)))
+    if best is None:
+        raise UserError(f"--base fitted-floor: no plane within {max_tilt_deg:g} deg of level fits the points")
+    coef, inliers = best, np.zeros(len(pts), dtype=bool)
+    for _ in range(20):  # refit on the inliers until they stop changing
+        r = pts[:, 2] - (coef[0] + coef[1] * pts[:, 0] + coef[2] * pts[:, 1])
+        now = np.abs(r) <= band
+        if now.sum() < MIN_FLOOR_POINTS:
+            raise UserError(f"--base fitted-floor: only {int(now.sum())} points lie on a floor plane (within "
+                            f"{n_sigma:.1f} sigma), fewer than the {MIN_FLOOR_POINTS} a plane needs: the floor "
+                            "was hardly seen")
+        if np.array_equal(now, inliers):
+            break
+        inliers = now
+        coef, inv = _refit(pts[inliers], 1.0 / np.maximum(sig[inliers], 1e-6) ** 2)
+    fp = pts[inliers]
+    centred = fp[:, :2] - fp[:, :2].mean(axis=0)
+    minor_m = math.sqrt(max(0.0, float(np.linalg.eigvalsh(centred.T @ centred / len(fp))[0])))
+    cell_m = min(grid.length_m / grid.shape[0], grid.width_m / grid.shape[1])
+    if minor_m < cell_m:
+        raise UserError(f"--base fitted-floor: the {len(fp)} floor points lie along a line (spread {minor_m:.2f} m "
+                        "across it), so the floor's cross-slope is unknown")
+    tilt = math.degrees(math.atan(math.hypot(coef[1], coef[2])))
+    if tilt > max_tilt_deg:
+        raise UserError(f"--base fitted-floor: the fitted plane is tilted {tilt:.2f} deg, more than the "
+                        f"{max_tilt_deg:g} deg a floor can be: not a floor")
+    r = fp[:, 2] - (coef[0] + coef[1] * fp[:, 0] + coef[2] * fp[:, 1])
+    w = 1.0 / np.maximum(sig[inliers], 1e-6) ** 2
+    chi2 = float((w * r**2).sum()) / max(1, len(fp) - 3)
+    # Pile toes within the band lie only above the floor: they pull the least-squares plane up, the median
+    # of the residuals less. The plane is moved to the median, and the shift is kept as a systematic error.
+    shift = float(np.median(r))
+    coef = np.array([coef[0] + shift, coef[1], coef[2]])
+    r = r - shift
+    from ground.uncertainty import cell_index
+    ix, iy = cell_index(fp, grid)
+    n_cells = len(np.unique(ix * grid.shape[1] + iy))
+    cov = inv * max(1.0, chi2) * len(fp) / max(1, n_cells)
+    return PlaneFit(float(coef[0]), float(coef[1]), float(coef[2]), cov, len(fp), n_cells,
+                    float(np.sqrt(np.mean(r**2))), inliers, shift)
+
+
+@dataclass(frozen=True)
+class Base:
+    """A resolved base: its heights on the survey's grid (None: z = 0 exactly) and what it adds to the interval."""
+
+    kind: BaseKind
+    description: str
+    heights_m: np.ndarray | None = None
+    extra_below_m3: float = 0.0  # the base's own error, 90 % half-widths added in quadrature
+    extra_above_m3: float = 0.0
+    clip_at_zero: bool = True  # a volume above a floor cannot be negative; a change from a survey can
+    details: dict = field(default_factory=dict)
+    warnings: tuple[str, ...] = ()
+
+    def above(self, heights: np.ndarray) -> np.ndarray:
+        """The surface's height above the base per cell (NaN where either has none)."""
+        return heights if self.heights_m is None else heights - self.heights_m
+
+    def volume_m3(self, heights: np.ndarray, grid: Grid) -> float:
+        """Eq. (7) over the base: the signed sum (module docstring)."""
+        return grid_volume(self.above(heights), grid)
+
+    def interval_m3(self, volume_m3: float, terms: ErrorTerms, model: IntervalModel) -> tuple[float, float]:
+        if self.kind is BaseKind.FLOOR:
+            return model.interval_m3(volume_m3, terms)
+        below, above = model.half_widths_m3(terms)
+        below, above = math.hypot(below, self.extra_below_m3), math.hypot(above, self.extra_above_m3)
+        lo, hi = volume_m3 - below, volume_m3 + above
+        return (max(0.0, lo), max(0.0, hi)) if self.clip_at_zero else (lo, hi)
+
+    def record(self, heights: np.ndarray, grid: Grid) -> dict:
+        """report.json's ``base``: which base, its details, material above it and room below it."""
+        d = self.above(heights)
+        return {"kind": self.kind.value, "description": self.description, **self.details,
+                "above_m3": float(np.nansum(np.clip(d, 0.0, None)) * grid.cell_area_m2),
+                "below_m3": float(np.nansum(np.clip(-d, 0.0, None)) * grid.cell_area_m2),
+                "interval_extra_m3": [self.extra_below_m3, self.extra_above_m3]}
+
+
+FLOOR_BASE = Base(BaseKind.FLOOR, "the floor plane z = 0")
+
+
+def fitted_floor_base(points_w: np.ndarray, sigma_m: np.ndarray, heights: np.ndarray, grid: Grid,
+                      n_sigma: float, max_tilt_deg: float = MAX_FLOOR_TILT_DEG) -> Base:
+    plane = fit_floor_plane(points_w, sigma_m, grid, n_sigma, max_tilt_deg)
+    cx, cy = grid.centres()
+    b = plane.at(cx, cy)
+    where = np.isfinite(heights)
+    sigma_v = plane.volume_sigma_m3(grid, where)
+    systematic = abs(plane.median_shift_m) * float(where.sum()) * grid.cell_area_m2
+    extra = math.hypot(Z_INTERVAL * sigma_v, systematic)
+    warnings = []
+    noise = Z_INTERVAL * math.sqrt(max(0.0, float(plane.covariance[0, 0])))
+    if float(b.min()) < -max(noise, plane.rms_residual_m):
+        warnings.append(f"the fitted floor lies {-float(b.min()):.2f} m below z = 0 at its lowest: the building's "
+                        "z = 0 should be its lowest floor corner, and floor points below z = 0 were left out as "
+                        "glitches, so the floor there was not seen")
+    cover = plane.n_cells / (grid.shape[0] * grid.shape[1])
+    if cover < MIN_FLOOR_COVER:
+        warnings.append(f"the floor was seen in only {cover * 100:.1f} % of the building's cells: the fitted floor "
+                        "is extrapolated under the piles")
+    cl, cw = grid.length_m / 2, grid.width_m / 2
+    desc = (f"a plane fitted to the floor: tilt {plane.tilt_deg:.2f} deg ({plane.fall_pct:.2f} % rising towards "
+            f"{plane.rise_azimuth_deg:.0f} deg from x), {float(plane.at(cl, cw)):+.3f} m at the building's centre, "
+            f"{plane.n_points} floor points")
+    details = {"tilt_deg": plane.tilt_deg, "fall_pct": plane.fall_pct, "rise_azimuth_deg": plane.rise_azimuth_deg,
+               "offset_at_origin_m": plane.offset_m, "offset_at_centre_m": float(plane.at(cl, cw)),
+               "slope_x": plane.slope_x, "slope_y": plane.slope_y, "n_floor_points": plane.n_points,
+               "n_floor_cells": plane.n_cells, "rms_residual_m": plane.rms_residual_m,
+               "median_shift_m": plane.median_shift_m, "volume_sigma_m3": sigma_v, "systematic_m3": systematic,
+               "max_tilt_deg": max_tilt_deg}
+    return Base(BaseKind.FITTED_FLOOR, desc, b, extra, extra, True, details, tuple(warnings))
+
+
+def survey_base(earlier: SavedSurface, current: SavedSurface, source: str) -> Base:
+    """An earlier survey's surface as the base of the current one (module docstring)."""
+    why = building_mismatch(earlier, current)
+    if why is not None:
+        raise UserError(f"--base {source}: not the same building as this survey: {why}")
+    grid = current.grid
+    heights = resampled(earlier, grid)
+    warnings = []
+    resampled_from = None
+    if heights is not earlier.heights_m:
+        resampled_from = earlier.cell_m
+        warnings.append(f"the base survey's {earlier.cell_m:g} m grid was resampled (bilinear) to this survey's "
+                        f"{current.cell_m:g} m cells")
+    missing = np.isfinite(current.heights_m) & ~np.isfinite(heights)
+    if missing.any():
+        warnings.append(f"the base survey has no surface under {int(missing.sum())} cells "
+                        f"({missing.sum() * grid.cell_area_m2:,.0f} m²) of this one's: no volume counted there")
+    desc = f"the surface of an earlier survey, {source} ({earlier.volume_m3:,.1f} m³ above z = 0)"
+    details = {"source": source, "base_volume_m3": earlier.volume_m3,
+               "base_half_widths_m3": [earlier.below_m3, earlier.above_m3], "resampled_from_cell_m": resampled_from}
+    # The new volume is too small when the old surface was too high: new-below pairs with old-above.
+    return Base(BaseKind.SURVEY, desc, heights, earlier.above_m3, earlier.below_m3, False, details, tuple(warnings))
+
+
+def rebased_terms(terms: ErrorTerms, heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
+                  scatter_sigma_m: float, base: Base) -> ErrorTerms:
+    """The terms that measure material from the floor (the unseen fill's lower bound, the blur's pile
+    footprint) measured from a fitted floor instead; the others do not depend on the base. An earlier
+    survey's base keeps the terms as they are: its own interval is added whole (module docstring)."""
+    if base.kind is not BaseKind.FITTED_FLOOR or base.heights_m is None:
+        return terms
+    low, high = unseen_terms_m3(heights_fit - base.heights_m, heights - base.heights_m, grid)
+    return replace(terms, unseen_low_m3=low, unseen_high_m3=high,
+                   blur_m3=blur_term_m3(scatter_sigma_m, heights_fit - base.heights_m, grid))

@@ -1,0 +1,160 @@
+"""A survey's final height grid on disk (`surface.npz` in a report directory), so that a later survey can
+use it as its base (`--base REPORT_DIR`) and `pilescan-ground compare` can difference two surveys.
+
+The file holds the heights the volume was computed from (after the empty-cell policy; NaN where no
+surface), the grid's geometry, the building it was measured in (dimensions and, when the log had one,
+the site: where the corner stands and the heading of the x axis) and what is needed to carry the survey's
+own uncertainty into a difference: its volume's 90 % half-widths below and above (from its interval
+terms, before the interval is clipped at 0) and the points' scatter about the surface (a cell's height
+noise, for `compare`'s level of detection). Numbers live in arrays; the rest in one JSON string (no
+pickles: `np.load(allow_pickle=False)`). Reading is bounded and checked field by field: a damaged or
+foreign file is one clear error, never a traceback or a silently wrong base.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from firmware_py.core.cli import UserError
+from firmware_py.core.safe_read import InputError, read_bounded
+from ground.surface import MAX_CELLS, Grid
+
+SURFACE_FILE = "surface.npz"
+FORMAT = "pilescan-surface"
+FORMAT_VERSION = 1
+MAX_SURFACE_BYTES = 16 * MAX_CELLS + 1_000_000
+"""Largest surface file read: two float64 grids of the most cells a Grid allows, plus the metadata."""
+BUILDING_TOLERANCE_M = 0.01
+"""Two surveys are of the same building when its dimensions and its corner agree to 1 cm (a tape's)."""
+HEADING_TOLERANCE_DEG = 0.01
+
+
+@dataclass(frozen=True)
+class SavedSurface:
+    """One survey's final surface with what a later survey needs to use it (module docstring)."""
+
+    heights_m: np.ndarray  # (nx, ny) heights above z = 0 at the cell centres, NaN: no surface
+    length_m: float
+    width_m: float
+    height_m: float  # the building's roof height (part of "the same building")
+    cell_m: float
+    volume_m3: float
+    below_m3: float  # the volume's 90 % half-width below (unclipped), 0 when not estimated
+    above_m3: float
+    scatter_sigma_m: float  # the points' robust scatter about the surface (a cell's height noise)
+    site: dict | None = None  # the log header's site record (`firmware_py.core.site.Site.to_dict`)
+    source: str = ""
+    software_version: str = ""
+
+    @property
+    def grid(self) -> Grid:
+        return Grid(self.length_m, self.width_m, self.cell_m)
+
+    def meta(self) -> dict:
+        return {"format": FORMAT, "format_version": FORMAT_VERSION, "length_m": self.length_m,
+                "width_m": self.width_m, "height_m": self.height_m, "cell_m": self.cell_m,
+                "volume_m3": self.volume_m3, "below_m3": self.below_m3, "above_m3": self.above_m3,
+                "scatter_sigma_m": self.scatter_sigma_m, "site": self.site, "source": self.source,
+                "software_version": self.software_version}
+
+
+def save_surface(s: SavedSurface, path: str | Path) -> Path:
+    path = Path(path)
+    with path.open("wb") as f:
+        np.savez_compressed(f, heights_m=np.asarray(s.heights_m, dtype=np.float64),
+                            meta=np.array(json.dumps(s.meta())))
+    return path
+
+
+def _number(meta: dict, key: str, path: Path, minimum: float = 0.0) -> float:
+    v = meta.get(key)
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < minimum:
+        raise UserError(f"{path}: surface file field {key} must be a finite number >= {minimum:g}, got {v!r}"[:300])
+    return float(v)
+
+
+def load_surface(path: str | Path) -> SavedSurface:
+    """Read and check a surface file; UserError (one line) on anything unusable."""
+    path = Path(path)
+    try:
+        data = read_bounded(path, MAX_SURFACE_BYTES, "surface file")
+    except InputError as exc:
+        raise UserError(str(exc)) from None
+    except OSError as exc:
+        raise UserError(f"cannot read surface file {path}: {exc.strerror or exc}") from None
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            if set(z.files) != {"heights_m", "meta"}:
+                raise ValueError(f"it holds {sorted(z.files)}, not heights_m and meta")
+            heights = np.asarray(z["heights_m"])
+            meta = json.loads(str(z["meta"]))
+    except Exception as exc:  # zip, npy and JSON errors come in many types; all mean a damaged or foreign file
+        raise UserError(f"{path} is not a pilescan surface file ({type(exc).__name__}: {exc})"[:300]) from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        fmt = meta.get("format") if isinstance(meta, dict) else meta
+        raise UserError(f"{path} is not a pilescan surface file (format {fmt!r})"[:300])
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise UserError(f"{path}: surface file version {meta.get('format_version')!r} is not the supported "
+                        f"{FORMAT_VERSION}")
+    length, width, height = (_number(meta, k, path, 1e-3) for k in ("length_m", "width_m", "height_m"))
+    cell = _number(meta, "cell_m", path, 1e-3)
+    try:
+        grid = Grid(length, width, cell)
+    except ValueError as exc:
+        raise UserError(f"{path}: surface file grid is unusable: {exc}") from None
+    if heights.dtype != np.float64 or heights.shape != grid.shape:
+        raise UserError(f"{path}: surface file heights are {heights.dtype} {heights.shape}, not float64 "
+                        f"{grid.shape} as its {length:g} x {width:g} m grid of {cell:g} m cells needs")
+    if np.isinf(heights).any():
+        raise UserError(f"{path}: surface file heights hold infinite values")
+    site = meta.get("site")
+    if site is not None and not isinstance(site, dict):
+        raise UserError(f"{path}: surface file site must be an object or null")
+    return SavedSurface(heights, length, width, height, cell, _number(meta, "volume_m3", path, -math.inf),
+                        _number(meta, "below_m3", path), _number(meta, "above_m3", path),
+                        _number(meta, "scatter_sigma_m", path), site, str(meta.get("source", ""))[:500],
+                        str(meta.get("software_version", ""))[:100])
+
+
+def building_mismatch(a: SavedSurface, b: SavedSurface) -> str | None:
+    """Why two surfaces are not of the same building (dimensions or site differ), or None."""
+    da, db = (a.length_m, a.width_m, a.height_m), (b.length_m, b.width_m, b.height_m)
+    if max(abs(x - y) for x, y in zip(da, db, strict=True)) > BUILDING_TOLERANCE_M:
+        return (f"the buildings differ: {' x '.join(f'{v:g}' for v in da)} m against "
+                f"{' x '.join(f'{v:g}' for v in db)} m")
+    if a.site is not None and b.site is not None:
+        try:
+            lat = math.radians(float(a.site["lat_deg"]))
+            north = math.radians(float(a.site["lat_deg"]) - float(b.site["lat_deg"])) * 6_371_000.0
+            east = math.radians(float(a.site["lon_deg"]) - float(b.site["lon_deg"])) * 6_371_000.0 * math.cos(lat)
+            off = math.hypot(north, east, float(a.site["alt_m"]) - float(b.site["alt_m"]))
+            turn = (float(a.site["heading_deg"]) - float(b.site["heading_deg"]) + 180.0) % 360.0 - 180.0
+        except (KeyError, TypeError, ValueError):
+            return None  # a malformed site was already reported by the report that wrote it
+        if off > BUILDING_TOLERANCE_M:
+            return f"the buildings' corners are {off:.2f} m apart (their sites differ)"
+        if abs(turn) > HEADING_TOLERANCE_DEG:
+            return f"the buildings' x axes are {abs(turn):g} deg apart (their sites differ)"
+    return None
+
+
+def resampled(s: SavedSurface, grid: Grid) -> np.ndarray:
+    """s's heights at grid's cell centres: bilinear between s's cell centres (held at the nearest centre
+    beyond the outer ones); NaN where a neighbour needed has no surface. Same geometry: the heights as they are."""
+    if s.grid.shape == grid.shape and math.isclose(s.cell_m, grid.cell_m) \
+            and math.isclose(s.length_m, grid.length_m) and math.isclose(s.width_m, grid.width_m):
+        return s.heights_m
+    from scipy import ndimage
+    nx, ny = s.heights_m.shape
+    cx, cy = grid.centres()
+    fx = np.clip(cx / s.length_m * nx - 0.5, 0.0, nx - 1.0)
+    fy = np.clip(cy / s.width_m * ny - 0.5, 0.0, ny - 1.0)
+    h = ndimage.map_coordinates(np.nan_to_num(s.heights_m, nan=0.0), [fx, fy], order=1, mode="nearest")
+    ok = ndimage.map_coordinates(np.isfinite(s.heights_m).astype(float), [fx, fy], order=1, mode="nearest")
+    return np.where(ok > 0.999, h, np.nan)
