@@ -1,5 +1,5 @@
-"""`pilescan-ground`: turn a survey's sample log into a volume report (`report`), or receive the payload's
-live sample stream into a sample log (`listen`)."""
+"""`pilescan-ground`: turn a survey's sample log into a volume report (`report`), compare two surveys of one
+building (`compare`), or receive the payload's live sample stream into a sample log (`listen`)."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from firmware_py.core.cli import (
     run_cli,
 )
 from firmware_py.core.keys import load_key
+from firmware_py.core.rundir import check_free
 from firmware_py.core.version import software_version
 from ground import listen
 from ground.base import BaseSpec
@@ -28,7 +29,8 @@ from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
 log = logging.getLogger(__name__)
 
 CONFIG_OPTIONS: ConfigTables = {
-    "report": {},  # no option: its [site] is checked against the log's building (ReportOptions.site)
+    "report": {},
+    "compare": {},  # no option: its [site] is checked against the log's building (ReportOptions.site)
     "listen": {"payload.signing_key": "--signing-key"},
 }
 """Configuration key -> the option it sets, per subcommand (`firmware_py.core.cli.apply_config`). listen's
@@ -80,6 +82,19 @@ def build_parser() -> ArgumentParser:
                                       f"{DEFAULT_MAX_GRID_MEMORY_BYTES // 2**20} MiB)")
     add_verbosity(r, sub=True, quiet_help="no summary: print nothing but warnings and errors")
     add_config_option(r, sub=True)
+    c = sub.add_parser("compare", help="change between two surveys of one building: cut/fill raster and figure, "
+                                       "net, cut and fill volumes with their 90 %% intervals")
+    c.add_argument("old", metavar="OLD", help="the earlier survey: a run directory or a report directory")
+    c.add_argument("new", metavar="NEW", help="the later survey: a run directory or a report directory")
+    c.add_argument("--out", required=True, help="directory to write compare.json, cutfill.png and cutfill.npz to")
+    c.add_argument("--force", action="store_true", help="replace a comparison already in --out")
+    c.add_argument("--cell", type=finite_float, default=DEFAULT_CELL_M, metavar="M",
+                   help="grid cell side, m, for a run directory's surface (a report directory keeps its own; "
+                        f"default {DEFAULT_CELL_M})")
+    c.add_argument("--true-change", type=finite_float, default=None, metavar="M3",
+                   help="the known net change, m^3 (a simulation's), to check the net against")
+    add_verbosity(c, sub=True, quiet_help="print nothing but warnings and errors")
+    add_config_option(c, sub=True)
     ls = sub.add_parser("listen", help="receive the payload's live sample stream (pilescan-payload --stream) "
                                        "into a sample log, with a status line and a summary")
     ls.add_argument("--stream", required=True, metavar="udp:HOST:PORT",
@@ -159,8 +174,29 @@ def _listen(args) -> int:
     return 0
 
 
+def _compare(args) -> int:
+    from pathlib import Path
+
+    from ground import compare
+    from ground.report import earlier_surface, survey_source_kind
+    for what, path in (("OLD", args.old), ("NEW", args.new), ("--out", args.out)):
+        if not str(path).strip():
+            raise UserError(f"{what} must be a non-empty path")
+    for path in (args.old, args.new):
+        survey_source_kind(Path(path))  # both checked before either is computed
+    check_free(args.out, compare.COMPARE_FILES, force=args.force, what="compare")
+    opts = ReportOptions(cell_m=args.cell, plots=False)
+    old, new = earlier_surface(args.old, opts), earlier_surface(args.new, opts)
+    change = compare.compare_surfaces(old, new)
+    rec = compare.change_record(change, old, new, str(args.old), str(args.new), None, args.true_change)
+    compare.write_compare(change, rec, args.out, force=args.force)
+    if not args.quiet:
+        print(compare.format_change(rec))
+    return 0
+
+
 def _command(args) -> int:
-    return {"report": _report, "listen": _listen}[args.command](args)
+    return {"report": _report, "listen": _listen, "compare": _compare}[args.command](args)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
