@@ -155,6 +155,15 @@ def _refit(points: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return inv @ (xtw @ points[:, 2]), inv
 
 
+def _check_spread(points: np.ndarray, cell_m: float, what: str) -> None:
+    """UserError when the points lie along a line (less than a cell across it): no cross-slope to fit."""
+    centred = points[:, :2] - points[:, :2].mean(axis=0)
+    minor_m = math.sqrt(max(0.0, float(np.linalg.eigvalsh(centred.T @ centred / len(points))[0])))
+    if minor_m < cell_m:
+        raise UserError(f"--base fitted-floor: the {len(points)} {what} lie along a line (spread {minor_m:.2f} m "
+                        "across it), so the floor's cross-slope is unknown")
+
+
 def fit_floor_plane(points_w: np.ndarray, sigma_m: np.ndarray, grid: Grid, n_sigma: float,
                     max_tilt_deg: float = MAX_FLOOR_TILT_DEG, seed: int = 0) -> PlaneFit:
     """The floor plane (module docstring) of the points (N, 3), each with its vertical 1-sigma error.
@@ -165,6 +174,8 @@ def fit_floor_plane(points_w: np.ndarray, sigma_m: np.ndarray, grid: Grid, n_sig
     if len(pts) < MIN_FLOOR_POINTS:
         raise UserError(f"--base fitted-floor: only {len(pts)} points on the floor and piles, fewer than the "
                         f"{MIN_FLOOR_POINTS} a floor plane needs")
+    cell_m = min(grid.length_m / grid.shape[0], grid.width_m / grid.shape[1])
+    _check_spread(pts, cell_m, "points")
     band = n_sigma * np.maximum(sig, 1e-6)
     rng = np.random.default_rng(seed)
     sub = rng.choice(len(pts), min(len(pts), RANSAC_SAMPLE), replace=False)
@@ -204,12 +215,7 @@ def fit_floor_plane(points_w: np.ndarray, sigma_m: np.ndarray, grid: Grid, n_sig
         inliers = now
         coef, inv = _refit(pts[inliers], 1.0 / np.maximum(sig[inliers], 1e-6) ** 2)
     fp = pts[inliers]
-    centred = fp[:, :2] - fp[:, :2].mean(axis=0)
-    minor_m = math.sqrt(max(0.0, float(np.linalg.eigvalsh(centred.T @ centred / len(fp))[0])))
-    cell_m = min(grid.length_m / grid.shape[0], grid.width_m / grid.shape[1])
-    if minor_m < cell_m:
-        raise UserError(f"--base fitted-floor: the {len(fp)} floor points lie along a line (spread {minor_m:.2f} m "
-                        "across it), so the floor's cross-slope is unknown")
+    _check_spread(fp, cell_m, "floor points")
     tilt = math.degrees(math.atan(math.hypot(coef[1], coef[2])))
     if tilt > max_tilt_deg:
         raise UserError(f"--base fitted-floor: the fitted plane is tilted {tilt:.2f} deg, more than the "

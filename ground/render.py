@@ -34,6 +34,7 @@ UNKNOWN = "unknown"
 SUMMARY_KEYS: tuple[str, ...] = (
     "volume_m3",
     "volume_interval_m3",
+    "base",
     "true_volume_m3",
     "volume_error_pct",
     "coverage_ratio_pct",
@@ -55,6 +56,7 @@ SUMMARY_KEYS: tuple[str, ...] = (
 _SUMMARY_LABELS: dict[str, str] = {
     "volume_m3": "Stockpile volume",
     "volume_interval_m3": "90 % interval",
+    "base": "Measured from (base)",
     "true_volume_m3": "True volume (reference)",
     "volume_error_pct": "Volume error Ve (eq. 8)",
     "coverage_ratio_pct": "Area coverage ratio R_a (eq. 9)",
@@ -217,6 +219,7 @@ def fmt_interval(v: Any) -> str:
 _SUMMARY_FORMAT = {
     "volume_m3": fmt_volume,
     "volume_interval_m3": fmt_interval,
+    "base": lambda v: fmt_value(v.get("description")) if isinstance(v, Mapping) else fmt_value(v),
     "true_volume_m3": fmt_volume,
     "volume_error_pct": fmt_pct,
     "coverage_ratio_pct": fmt_pct,

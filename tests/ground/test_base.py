@@ -1,0 +1,174 @@
+"""Base surfaces (ground.base, ground.surface_file): the floor plane fit, an earlier survey's surface as a
+base, and the report's volume over each."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from firmware_py.core.cli import UserError
+from ground.base import (
+    FLOOR_BASE,
+    MIN_FLOOR_POINTS,
+    BaseKind,
+    BaseSpec,
+    fit_floor_plane,
+    fitted_floor_base,
+    survey_base,
+)
+from ground.surface import Grid, grid_volume
+from ground.surface_file import SavedSurface, load_surface, resampled, save_surface
+from ground.uncertainty import DEFAULT_INTERVAL_MODEL, ErrorTerms
+
+GRID = Grid(30.0, 20.0, 0.5)
+SIGMA_M = 0.02
+
+
+def floor_and_pile(slope_x: float, slope_y: float, offset_m: float = 0.0, n_floor: int = 6000, n_pile: int = 6000,
+                   seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Noisy points on a tilted floor, and a flat-topped pile (3 m up) plus its flanks over a third of it."""
+    rng = np.random.default_rng(seed)
+    x, y = rng.uniform(0, 30, n_floor), rng.uniform(0, 20, n_floor)
+    floor = np.column_stack([x, y, offset_m + slope_x * x + slope_y * y + rng.normal(0, SIGMA_M, n_floor)])
+    px, py = rng.uniform(8, 22, n_pile), rng.uniform(5, 15, n_pile)
+    edge = np.minimum.reduce([px - 8, 22 - px, py - 5, 15 - py])  # metres in from the pile's edge
+    pz = offset_m + slope_x * px + slope_y * py + np.minimum(3.0, 1.5 * edge) + rng.normal(0, SIGMA_M, n_pile)
+    pts = np.concatenate([floor[~((floor[:, 0] > 8) & (floor[:, 0] < 22) & (floor[:, 1] > 5) & (floor[:, 1] < 15))],
+                          np.column_stack([px, py, pz])])
+    return pts, np.full(len(pts), SIGMA_M)
+
+
+def test_that_the_floor_fit_recovers_a_known_tilt_and_offset_beside_a_flat_topped_pile():
+    pts, sig = floor_and_pile(0.015, -0.008, 0.3)
+    plane = fit_floor_plane(pts, sig, GRID, 3.0)
+    assert plane.slope_x == pytest.approx(0.015, abs=3e-4)
+    assert plane.slope_y == pytest.approx(-0.008, abs=3e-4)
+    assert plane.offset_m == pytest.approx(0.3, abs=0.005)
+    assert plane.tilt_deg == pytest.approx(math.degrees(math.atan(math.hypot(0.015, 0.008))), abs=0.02)
+    assert plane.n_points < len(pts) - 4000  # the pile's top and flanks are not floor
+
+
+def test_that_a_level_floor_gives_a_plane_at_zero_and_the_same_volume_as_the_floor_base():
+    pts, sig = floor_and_pile(0.0, 0.0)
+    heights = np.full(GRID.shape, 1.0)
+    base = fitted_floor_base(pts, sig, heights, GRID, 3.0)
+    assert base.kind is BaseKind.FITTED_FLOOR
+    assert abs(base.details["offset_at_centre_m"]) < 0.005
+    assert base.volume_m3(heights, GRID) == pytest.approx(grid_volume(heights, GRID), abs=0.005 * 600)
+
+
+def test_that_the_floor_fit_refuses_too_few_points():
+    pts, sig = floor_and_pile(0.0, 0.0, n_floor=20, n_pile=0)
+    with pytest.raises(UserError, match="fewer than the"):
+        fit_floor_plane(pts[: MIN_FLOOR_POINTS - 1], sig[: MIN_FLOOR_POINTS - 1], GRID, 3.0)
+
+
+def test_that_the_floor_fit_refuses_points_along_a_line():
+    rng = np.random.default_rng(1)
+    x = rng.uniform(0, 30, 500)
+    pts = np.column_stack([x, np.full(500, 10.0), rng.normal(0, SIGMA_M, 500)])
+    with pytest.raises(UserError, match="along a line"):
+        fit_floor_plane(pts, np.full(500, SIGMA_M), GRID, 3.0)
+
+
+def test_that_a_floor_steeper_than_the_limit_is_not_taken_as_a_floor():
+    pts, sig = floor_and_pile(0.2, 0.0, n_pile=0)  # 11 degrees: a ramp or a flank, not a floor
+    with pytest.raises(UserError, match="plane"):
+        fit_floor_plane(pts, sig, GRID, 3.0)
+
+
+def test_that_the_floor_base_is_the_volume_as_before_bit_for_bit():
+    h = np.random.default_rng(2).normal(1.0, 0.5, GRID.shape)
+    h[0, :3] = np.nan
+    assert FLOOR_BASE.volume_m3(h, GRID) == grid_volume(h, GRID)
+    t = ErrorTerms(interpolation_m3=10.0, unseen_low_m3=3.0)
+    v = grid_volume(h, GRID)
+    assert FLOOR_BASE.interval_m3(v, t, DEFAULT_INTERVAL_MODEL) == DEFAULT_INTERVAL_MODEL.interval_m3(v, t)
+
+
+def test_that_base_specs_parse_the_two_names_and_take_anything_else_as_a_directory(tmp_path):
+    assert BaseSpec.parse("floor").kind is BaseKind.FLOOR
+    assert BaseSpec.parse("fitted-floor").kind is BaseKind.FITTED_FLOOR
+    spec = BaseSpec.parse(str(tmp_path))
+    assert spec.kind is BaseKind.SURVEY and spec.source == tmp_path
+    with pytest.raises(UserError):
+        BaseSpec.parse("  ")
+
+
+def saved(heights: np.ndarray, grid: Grid = GRID, below: float = 5.0, above: float = 7.0, **kw) -> SavedSurface:
+    return SavedSurface(heights, grid.length_m, grid.width_m, 10.0, grid.cell_m, grid_volume(heights, grid),
+                        below, above, 0.02, **kw)
+
+
+def test_that_a_saved_surface_reads_back_as_it_was_written(tmp_path):
+    h = np.random.default_rng(3).uniform(0, 4, GRID.shape)
+    h[3, 4] = np.nan
+    s = saved(h, site={"lat_deg": 53.0, "lon_deg": -2.0, "alt_m": 50.0, "heading_deg": 10.0}, source="run")
+    back = load_surface(save_surface(s, tmp_path / "surface.npz"))
+    assert np.array_equal(back.heights_m, h, equal_nan=True)
+    assert back.meta() == s.meta()
+
+
+@pytest.mark.parametrize("damage, match", [
+    (lambda p: p.write_bytes(b"not a zip"), "not a pilescan surface file"),
+    (lambda p: p.write_bytes(p.read_bytes()[:100]), "not a pilescan surface file"),
+])
+def test_that_a_damaged_surface_file_is_one_clear_error(tmp_path, damage, match):
+    p = save_surface(saved(np.ones(GRID.shape)), tmp_path / "surface.npz")
+    damage(p)
+    with pytest.raises(UserError, match=match):
+        load_surface(p)
+
+
+def test_that_a_surface_file_whose_heights_do_not_fit_its_grid_is_refused(tmp_path):
+    s = saved(np.ones((3, 3)))
+    with pytest.raises(UserError, match="not float64"):
+        load_surface(save_surface(s, tmp_path / "surface.npz"))
+
+
+def test_that_an_earlier_survey_base_gives_the_change_and_carries_its_uncertainty():
+    old = saved(np.full(GRID.shape, 1.0), below=30.0, above=40.0)
+    new = saved(np.full(GRID.shape, 1.5))
+    base = survey_base(old, new, "old")
+    assert base.volume_m3(new.heights_m, GRID) == pytest.approx(0.5 * 600)
+    t = ErrorTerms(interpolation_m3=10.0)
+    below, above = DEFAULT_INTERVAL_MODEL.half_widths_m3(t)
+    lo, hi = base.interval_m3(300.0, t, DEFAULT_INTERVAL_MODEL)
+    assert lo == pytest.approx(300.0 - math.hypot(below, 40.0)) and hi == pytest.approx(300.0 + math.hypot(above, 30.0))
+    lo, _ = base.interval_m3(-300.0, t, DEFAULT_INTERVAL_MODEL)
+    assert lo < -300.0  # a change may be negative: not clipped at 0
+
+
+def test_that_an_earlier_survey_of_another_building_is_refused_and_another_cell_size_resampled():
+    new = saved(np.full(GRID.shape, 1.0))
+    other = Grid(31.0, 20.0, 0.5)
+    with pytest.raises(UserError, match=r"not the same building.*31 x 20 x 10 m"):
+        survey_base(saved(np.ones(other.shape), other), new, "old")
+    coarse = Grid(30.0, 20.0, 1.0)
+    cx, _ = coarse.centres()
+    base = survey_base(saved(0.1 * cx, coarse), new, "old")
+    assert any("resampled" in w for w in base.warnings)
+    fx, _ = GRID.centres()
+    inner = (fx > 0.5) & (fx < 29.5)
+    assert np.allclose(base.heights_m[inner], 0.1 * fx[inner])  # bilinear is exact on a plane
+    assert np.array_equal(resampled(new, GRID), new.heights_m)
+
+
+def test_that_a_report_reads_back_its_own_surface_and_uses_it_as_a_base(tmp_path):
+    from ground.report import ReportOptions, make_report
+    from sitl.missions.rectangle import Mission
+    from sitl.runners.fly import FlyConfig, fly
+    run = fly(FlyConfig(mission=Mission(p_traj=0.2)), tmp_path / "run", force=True).out_dir
+    first = make_report(run, tmp_path / "r1", ReportOptions(plots=False))
+    assert first["base"]["kind"] == "floor"
+    s = load_surface(tmp_path / "r1" / "surface.npz")
+    assert s.volume_m3 == pytest.approx(first["volume_m3"])
+    again = make_report(run, tmp_path / "r2", ReportOptions(plots=False, base=BaseSpec.parse(str(tmp_path / "r1"))))
+    assert again["base"]["kind"] == "survey"
+    assert again["volume_m3"] == pytest.approx(0.0, abs=1e-6)  # the same survey over itself: no change
+    lo, hi = again["volume_interval_m3"]
+    assert lo < 0 < hi
+    rep = json.loads((tmp_path / "r2" / "report.json").read_text())
+    assert "earlier survey" in rep["base"]["description"]
+    assert "earlier survey" in (tmp_path / "r2" / "report.html").read_text()
