@@ -29,11 +29,10 @@ is then extrapolated under the piles).
 
 **Earlier survey.** A report directory's saved surface (`ground.surface_file`) or a run directory's
 (computed as its report would be). It must be of the same building (dimensions, and site when both logs
-state one); a different cell size is resampled bilinearly, with a warning. The earlier survey's own
-uncertainty carries over: the volume between two surfaces is wrong by the new survey's error less the
-old's, so its interval's half-widths are the quadrature sums of the new survey's below with the old's
-above, and the new's above with the old's below (independent errors: a conservative sum when the two
-flights share errors, which then cancel). The interval is not clipped at 0: material may have gone.
+state one); a different cell size is resampled bilinearly, with a warning. The volume over it is the net
+change since that survey, and its interval is exactly `pilescan-ground compare`'s for the net
+(`ground.compare`: both surveys' own half-widths over the cells that changed, each cell's noise and any
+offset between the flights over those that did not), not clipped at 0: material may have gone.
 """
 
 from __future__ import annotations
@@ -42,14 +41,14 @@ import math
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from pathlib import Path
-from statistics import NormalDist
 
 import numpy as np
 
 from firmware_py.core.cli import UserError
+from ground.compare import Z_INTERVAL, compare_surfaces
 from ground.surface import Grid, grid_volume
 from ground.surface_file import SavedSurface, building_mismatch, resampled
-from ground.uncertainty import INTERVAL_LEVEL, ErrorTerms, IntervalModel, blur_term_m3, unseen_terms_m3
+from ground.uncertainty import ErrorTerms, IntervalModel, blur_term_m3, unseen_terms_m3
 
 MAX_FLOOR_TILT_DEG = 5.0
 """The steepest plane taken as a building's floor: warehouse floors are laid to falls of 1-2 % (0.6-1.1 deg)
@@ -64,8 +63,6 @@ RANSAC_MAX_TRIALS = 5_000
 MIN_FLOOR_COVER = 0.05
 """Floor points spread over less than this share of the building's cells: the plane is extrapolated under
 the piles from a corner, and the report says so."""
-Z_INTERVAL = NormalDist().inv_cdf(0.5 + INTERVAL_LEVEL / 2)
-"""A normal error's half-width at the interval's level (1.645 at 90 %)."""
 
 
 class BaseKind(Enum):
@@ -260,6 +257,8 @@ class Base:
     def interval_m3(self, volume_m3: float, terms: ErrorTerms, model: IntervalModel) -> tuple[float, float]:
         if self.kind is BaseKind.FLOOR:
             return model.interval_m3(volume_m3, terms)
+        if self.kind is BaseKind.SURVEY:  # both surveys' errors, as `compare` combines them (extra_*: the sides)
+            return volume_m3 - self.extra_below_m3, volume_m3 + self.extra_above_m3
         below, above = model.half_widths_m3(terms)
         below, above = math.hypot(below, self.extra_below_m3), math.hypot(above, self.extra_above_m3)
         lo, hi = volume_m3 - below, volume_m3 + above
@@ -329,8 +328,11 @@ def survey_base(earlier: SavedSurface, current: SavedSurface, source: str) -> Ba
     desc = f"the surface of an earlier survey, {source} ({earlier.volume_m3:,.1f} m³ above z = 0)"
     details = {"source": source, "base_volume_m3": earlier.volume_m3,
                "base_half_widths_m3": [earlier.below_m3, earlier.above_m3], "resampled_from_cell_m": resampled_from}
-    # The new volume is too small when the old surface was too high: new-below pairs with old-above.
-    return Base(BaseKind.SURVEY, desc, heights, earlier.above_m3, earlier.below_m3, False, details, tuple(warnings))
+    change = compare_surfaces(earlier, current)  # the same change, and interval, as `pilescan-ground compare`
+    lo, hi = change.net_interval_m3
+    details["level_of_detection_m"] = change.lod_m
+    return Base(BaseKind.SURVEY, desc, heights, change.net_m3 - lo, hi - change.net_m3, False, details,
+                tuple(warnings))
 
 
 def rebased_terms(terms: ErrorTerms, heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,

@@ -21,7 +21,7 @@ from firmware_py.core.keys import load_key
 from firmware_py.core.rundir import check_free
 from firmware_py.core.version import software_version
 from ground import listen
-from ground.base import BaseSpec
+from ground.base import BaseKind, BaseSpec
 from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, make_report
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
@@ -49,7 +49,8 @@ def build_parser() -> ArgumentParser:
     r.add_argument("--force", action="store_true",
                    help="replace a report already in --out (its files are removed, report.json first)")
     r.add_argument("--truth-volume", type=finite_float, metavar="M3",
-                   help="known true volume, m^3 (overrides truth.json; 0 for an empty building), for Ve (eq. 8)")
+                   help="known true volume, m^3 (overrides truth.json; 0 for an empty building; with --base "
+                        "RUN_OR_REPORT the true change, which may be < 0), for Ve (eq. 8)")
     r.add_argument("--max-interval-pct", type=finite_float, default=DEFAULT_MAX_INTERVAL_PCT, metavar="PCT",
                    help="warn when the volume's 90 %% interval is wider than +/-PCT %% of the volume (default "
                         f"{DEFAULT_MAX_INTERVAL_PCT:g})")
@@ -142,8 +143,10 @@ def format_summary(rep: dict) -> str:
 
 
 def _report(args) -> int:
-    if args.truth_volume is not None and args.truth_volume < 0:
-        raise UserError(f"--truth-volume must be >= 0 m^3 (0: an empty building), got {args.truth_volume:g}")
+    base = BaseSpec.parse(args.base)
+    if args.truth_volume is not None and args.truth_volume < 0 and base.kind is not BaseKind.SURVEY:
+        raise UserError(f"--truth-volume must be >= 0 m^3 (0: an empty building; < 0 only for a change since an "
+                        f"earlier survey, --base RUN_OR_REPORT), got {args.truth_volume:g}")
     if not args.max_interval_pct > 0:
         raise UserError(f"--max-interval-pct must be > 0, got {args.max_interval_pct:g}")
     if args.max_grid_memory_mb <= 0:
@@ -154,7 +157,7 @@ def _report(args) -> int:
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),
                          self_calibration=not args.no_self_calibration, max_interval_pct=args.max_interval_pct,
                          site=args.config_file.site if args.config_file is not None else None,
-                         base=BaseSpec.parse(args.base))
+                         base=base)
     rep = make_report(args.source, args.out, opts, force=args.force)
     if not args.quiet:
         print(format_summary(rep))

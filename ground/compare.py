@@ -36,13 +36,13 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from statistics import NormalDist
 
 import numpy as np
 
 from firmware_py.core.cli import UserError
 from firmware_py.core.rundir import OutputFolder, check_free
 from firmware_py.core.version import software_version
-from ground.base import Z_INTERVAL
 from ground.surface import Grid
 from ground.surface_file import SavedSurface, building_mismatch, resampled
 from ground.uncertainty import INTERVAL_LEVEL
@@ -50,6 +50,9 @@ from ground.uncertainty import INTERVAL_LEVEL
 COMPARE_FILE = "compare.json"
 COMPARE_FILES = (COMPARE_FILE, "cutfill.png", "cutfill.npz")
 """Every file a compare directory holds (compare.json last: its marker)."""
+
+Z_INTERVAL = NormalDist().inv_cdf(0.5 + INTERVAL_LEVEL / 2)
+"""A normal error's half-width at the interval's level (1.645 at 90 %)."""
 
 PerPile = Callable[[SavedSurface, SavedSurface, "Change"], list[dict]]
 """The per-pile hook: (old, new, change) -> one record per pile matched in both surveys."""

@@ -487,7 +487,8 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
         storage, frame, lever = header_geometry(log, log_path)
         if len(log.samples) == 0:
             raise UserError(f"{log_path}: no samples could be read ({log.blocks_corrupt} corrupt block(s))")
-        truth = opts.truth_volume_m3 if opts.truth_volume_m3 is not None else read_truth_volume(truth_path)
+        truth = opts.truth_volume_m3 if opts.truth_volume_m3 is not None else (
+            None if opts.base.kind is BaseKind.SURVEY else read_truth_volume(truth_path))  # not a change
     survey = survey_from_samples(log.samples, log.header or {}, storage, frame, lever, opts)
     if np.isfinite(survey.heights_fit).any():
         survey = with_base(survey, log.header or {}, opts)

@@ -17,6 +17,7 @@ from ground.base import (
     fitted_floor_base,
     survey_base,
 )
+from ground.compare import compare_surfaces
 from ground.surface import Grid, grid_volume
 from ground.surface_file import SavedSurface, load_surface, resampled, save_surface
 from ground.uncertainty import DEFAULT_INTERVAL_MODEL, ErrorTerms
@@ -133,9 +134,10 @@ def test_that_an_earlier_survey_base_gives_the_change_and_carries_its_uncertaint
     base = survey_base(old, new, "old")
     assert base.volume_m3(new.heights_m, GRID) == pytest.approx(0.5 * 600)
     t = ErrorTerms(interpolation_m3=10.0)
-    below, above = DEFAULT_INTERVAL_MODEL.half_widths_m3(t)
     lo, hi = base.interval_m3(300.0, t, DEFAULT_INTERVAL_MODEL)
-    assert lo == pytest.approx(300.0 - math.hypot(below, 40.0)) and hi == pytest.approx(300.0 + math.hypot(above, 30.0))
+    # Every cell changed: the new survey's below with the old's above, its above with the old's below.
+    assert lo == pytest.approx(300.0 - math.hypot(5.0, 40.0)) and hi == pytest.approx(300.0 + math.hypot(7.0, 30.0))
+    assert (lo, hi) == pytest.approx(compare_surfaces(old, new).net_interval_m3)  # as `compare` says
     lo, _ = base.interval_m3(-300.0, t, DEFAULT_INTERVAL_MODEL)
     assert lo < -300.0  # a change may be negative: not clipped at 0
 
