@@ -174,3 +174,8 @@ def test_that_a_report_reads_back_its_own_surface_and_uses_it_as_a_base(tmp_path
     rep = json.loads((tmp_path / "r2" / "report.json").read_text())
     assert "earlier survey" in rep["base"]["description"]
     assert "earlier survey" in (tmp_path / "r2" / "report.html").read_text()
+    fitted = make_report(run, tmp_path / "r3", ReportOptions(plots=False, base=BaseSpec.parse("fitted-floor")))
+    b = fitted["base"]
+    assert b["kind"] == "fitted-floor" and b["tilt_deg"] < 5.0 and b["n_floor_points"] >= MIN_FLOOR_POINTS
+    assert fitted["volume_m3"] == pytest.approx(b["above_m3"] - b["below_m3"])
+    assert "a plane fitted to the floor" in (tmp_path / "r3" / "report.md").read_text()
