@@ -282,7 +282,8 @@ def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageF
     ceiling = None if opts.empty_cells != "bounded" else free_space_ceiling_m(  # what the beams left free above
         cloud, grid, storage, err, err.angle_sigma_rad, where=~np.isfinite(fit))  # the unseen cells
     heights, counts = fill_empty(fit, opts.empty_cells, ceiling), grid.counts(pile)
-    errors = survey_errors(pile, pile_dir, fit, heights, counts, grid, typical, n_sigma)
+    errors = survey_errors(pile, pile_dir, fit, heights, counts, grid, typical, n_sigma,
+                           upper_m=storage.height_m if ceiling is None else ceiling)
     return Survey(cloud, pile, grid, fit, heights, counts, storage, n_clipped, disagreement, errors=errors,
                   face_spread_m=spread)
 
@@ -556,7 +557,8 @@ def with_base(survey: Survey, header: dict, opts: ReportOptions) -> Survey:
         return replace(survey, base=base)
     own = survey.errors.terms
     terms = rebased_terms(own, survey.heights_fit, survey.heights, survey.grid,
-                          scatter_sigma_m(survey.pile_points_w, survey.heights_fit, survey.grid), base)
+                          scatter_sigma_m(survey.pile_points_w, survey.heights_fit, survey.grid), base,
+                          survey.storage.height_m)
     return replace(survey, base=base, errors=replace(survey.errors, terms=terms), own_terms=own)
 
 

@@ -3,11 +3,14 @@
 A grid volume is wrong for six reasons, each measurable in the survey that made it (all in m³,
 each a scale of the error it describes, not yet a probability):
 
-- **unseen**: cells the surface never reached were filled (``surface.fill_empty``); the truth there
-  lies between a lower bound (the floor, 0, unless a caller knows better) and an upper one (the
-  free space the beams crossed above it, ``ground.unseen``, when known). Low side: what the fill
-  put above the lower bound; high side: the room left between the fill and the upper bound
-  (without one, the low side's size).
+- **unseen**: cells the surface never reached were filled (``surface.fill_empty``). Nothing was
+  measured there, but the seen surface at the region's edge says how fast the ground was changing
+  where the measurements stopped: a cell at distance d from the nearest seen cell may lie about
+  |grad h| d above or below what the fill copied (first order, as the interpolation term is second
+  order between tracks; a flat edge gives no reason to expect a step, a flank gives a big one). The
+  truth also lies between a lower bound (the floor, 0, unless a caller knows better) and an upper one
+  (the roof, or the free space the beams crossed above it, ``ground.unseen``, when known). Low side:
+  sum of min(|grad h| d, fill - lower bound); high side: sum of min(|grad h| d, upper bound - fill).
 - **interpolation**: between sweep tracks the surface is guessed from its neighbours; the error of
   a smooth guess over a gap grows with the gap squared and the surface's curvature
   (d^2/2 |laplacian h| per cell, the textbook bound of piecewise-linear interpolation).
@@ -112,9 +115,43 @@ def cell_index(points_xy: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarra
     return flat // ny, flat % ny
 
 
+def edge_slope(heights_fit: np.ndarray, grid: Grid) -> np.ndarray:
+    """|grad h| of the fitted surface in each surfaced cell (NaN elsewhere), from the differences to the
+    surfaced neighbours only: at the surface's edge that is the one-sided slope where the measurements
+    stopped, not a slope half-flattened by the fill beside it."""
+    nx, ny = heights_fit.shape
+    steps = (grid.length_m / nx, grid.width_m / ny)
+    grads = []
+    for axis, step in enumerate(steps):
+        d = np.diff(heights_fit, axis=axis) / step  # NaN where either cell is unsurfaced
+        pad_lo = [(0, 0), (0, 0)]
+        pad_hi = [(0, 0), (0, 0)]
+        pad_lo[axis], pad_hi[axis] = (1, 0), (0, 1)
+        both = np.stack([np.pad(d, pad_lo, constant_values=np.nan), np.pad(d, pad_hi, constant_values=np.nan)])
+        n = np.isfinite(both).sum(axis=0)
+        grads.append(np.where(n > 0, np.nansum(both, axis=0) / np.maximum(n, 1), 0.0))
+    g = np.hypot(*grads)
+    return np.where(np.isfinite(heights_fit), g, np.nan)
+
+
+def unseen_reach_m(heights_fit: np.ndarray, grid: Grid) -> np.ndarray:
+    """Per cell outside the surface, |grad h| at the nearest surfaced cell times the distance to it: how far
+    the ground there may be from the fill's copy (module docstring); 0 in surfaced cells."""
+    seen = np.isfinite(heights_fit)
+    out = np.zeros(heights_fit.shape)
+    if seen.all() or not seen.any():
+        return out
+    nx, ny = heights_fit.shape
+    dist, (ix, iy) = ndimage.distance_transform_edt(~seen, sampling=(grid.length_m / nx, grid.width_m / ny),
+                                                    return_indices=True)
+    out[~seen] = (edge_slope(heights_fit, grid)[ix, iy] * dist)[~seen]
+    return out
+
+
 def unseen_terms_m3(heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
-                    lower_m: np.ndarray | None = None, upper_m: np.ndarray | None = None) -> tuple[float, float]:
-    """(low, high) error scales of the filled cells (module docstring); bounds are per-cell arrays or None.
+                    lower_m: np.ndarray | None = None, upper_m: np.ndarray | float | None = None) -> tuple[float, float]:
+    """(low, high) error scales of the filled cells (module docstring); bounds are per-cell arrays, a
+    number (the roof) or None (unbounded).
 
     Cells left empty (`--empty-cells leave`) hold no volume, so nothing was invented (low 0) but the
     material the nearest surface suggests there may be missing: that is the high side."""
@@ -124,14 +161,16 @@ def unseen_terms_m3(heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
     if not np.isfinite(heights[filled]).any() and np.isfinite(heights_fit).any():  # left empty
         nearest = fill_empty(heights_fit, "nearest")[filled]
         return 0.0, float(np.clip(nearest, 0.0, None).sum() * grid.cell_area_m2)
+    reach = unseen_reach_m(heights_fit, grid)[filled]
     h = np.where(np.isfinite(heights), heights, 0.0)[filled]
     lo = np.zeros_like(h) if lower_m is None else np.nan_to_num(np.asarray(lower_m, float)[filled], nan=0.0)
-    low = float(np.clip(h - lo, 0.0, None).sum() * grid.cell_area_m2)
+    low = float(np.minimum(reach, np.clip(h - lo, 0.0, None)).sum() * grid.cell_area_m2)
     if upper_m is None:
-        return low, low
-    hi = np.asarray(upper_m, float)[filled]
-    hi = np.where(np.isfinite(hi), hi, h)  # no bound known: the fill's own height
-    return low, float(np.clip(hi - h, 0.0, None).sum() * grid.cell_area_m2)
+        hi = np.full_like(h, np.inf)
+    else:
+        hi = np.broadcast_to(np.asarray(upper_m, float), heights.shape)[filled]
+        hi = np.where(np.isnan(hi), np.inf, hi)  # no bound known in that cell
+    return low, float(np.minimum(reach, np.clip(hi - h, 0.0, None)).sum() * grid.cell_area_m2)
 
 
 def interpolation_term_m3(heights_fit: np.ndarray, counts: np.ndarray, grid: Grid) -> float:
@@ -307,7 +346,9 @@ class SurveyErrors:
 
 def survey_errors(points_w: np.ndarray, sweep_dir: np.ndarray | None, heights_fit: np.ndarray,
                   heights: np.ndarray, counts: np.ndarray, grid: Grid, point_sigma: float, n_sigma: float,
-                  lower_m: np.ndarray | None = None, upper_m: np.ndarray | None = None) -> SurveyErrors:
+                  lower_m: np.ndarray | None = None, upper_m: np.ndarray | float | None = None) -> SurveyErrors:
+    """Every term of one survey; upper_m bounds the unseen cells from above (the roof, or the free-space
+    ceiling where it was computed)."""
     low, high = unseen_terms_m3(heights_fit, heights, grid, lower_m, upper_m)
     faces = face_cells(points_w, grid, point_sigma, n_sigma)
     scatter = scatter_sigma_m(points_w, heights_fit, grid)

@@ -11,7 +11,7 @@ import pytest
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.storage import Storage
 from ground.report import ReportOptions, summarise, survey_from_samples
-from ground.surface import Grid
+from ground.surface import Grid, fill_empty
 from ground.uncertainty import (
     DEFAULT_INTERVAL_MODEL,
     ErrorTerms,
@@ -41,13 +41,35 @@ def _heights_of(f) -> np.ndarray:
     return f(cx, cy)
 
 
-def test_that_the_unseen_term_is_what_the_fill_put_above_the_floor():
+def test_that_an_unseen_corner_beside_a_flat_edge_costs_nothing():
     fit = _heights_of(lambda x, y: np.ones_like(x))
     fit[:4, :4] = np.nan
-    filled = np.where(np.isfinite(fit), fit, 2.0)
+    filled = np.where(np.isfinite(fit), fit, 1.0)
+    assert unseen_terms_m3(fit, filled, GRID) == (0.0, 0.0)  # the ground was not changing where sight stopped
+
+
+def test_that_the_unseen_term_grows_with_the_edge_slope_and_the_distance_from_the_edge():
+    slope = 0.5
+    fit = _heights_of(lambda x, y: 2.0 + slope * x)
+    fit[:2, :] = np.nan  # two columns along x = 0 unseen: 0.5 m and 1.0 m from the first seen column
+    filled = fill_empty(fit, "nearest")
     low, high = unseen_terms_m3(fit, filled, GRID)
-    assert low == pytest.approx(16 * 2.0 * GRID.cell_area_m2)
-    assert high == low  # no upper bound known: symmetric
+    ny = GRID.shape[1]
+    expected = ny * slope * (0.5 + 1.0) * GRID.cell_area_m2
+    assert low == pytest.approx(expected) and high == pytest.approx(expected)
+    assert unseen_terms_m3(2 * fit - 2.0, 2 * filled - 2.0, GRID)[0] == pytest.approx(2 * expected)
+
+
+def test_that_the_floor_and_an_upper_bound_cap_the_unseen_term():
+    fit = _heights_of(lambda x, y: 2.0 * x - 2.0)  # a steep flank, 0.5 m up at the first seen column (x = 1.25 m)
+    fit[:2, :] = np.nan
+    filled = fill_empty(fit, "nearest")  # 0.5 m copied into the unseen columns, 0.5 m and 1.0 m from the edge
+    ny = GRID.shape[1]
+    low, high = unseen_terms_m3(fit, filled, GRID)
+    assert low == pytest.approx(ny * 2 * 0.5 * GRID.cell_area_m2)  # the truth cannot be below the floor
+    assert high == pytest.approx(ny * 2.0 * (0.5 + 1.0) * GRID.cell_area_m2)
+    # a roof 1.5 m above the fill leaves the nearer column its slope's 1.0 m and the farther 1.5 m of its 2.0 m
+    assert unseen_terms_m3(fit, filled, GRID, upper_m=2.0)[1] == pytest.approx(ny * 2.5 * GRID.cell_area_m2)
 
 
 def test_that_cells_left_empty_count_the_nearest_surface_on_the_high_side_only():
@@ -56,15 +78,16 @@ def test_that_cells_left_empty_count_the_nearest_surface_on_the_high_side_only()
     assert unseen_terms_m3(fit, fit, GRID) == (0.0, pytest.approx(16 * 1.0 * GRID.cell_area_m2))
 
 
-def test_that_an_upper_bound_from_free_space_sets_the_high_side():
-    fit = _heights_of(lambda x, y: np.ones_like(x))
-    fit[:4, :4] = np.nan
-    filled = np.where(np.isfinite(fit), fit, 2.0)
+def test_that_an_upper_bound_from_free_space_caps_the_high_side_where_it_is_known():
+    fit = _heights_of(lambda x, y: 1.0 + 2.0 * x)
+    fit[:4, :] = np.nan
+    filled = fill_empty(fit, "nearest")
     upper = np.full(GRID.shape, np.nan)
-    upper[:4, :4] = 2.5
+    upper[:4, :] = filled[:4, :] + 0.5
+    unbounded = unseen_terms_m3(fit, filled, GRID)
     low, high = unseen_terms_m3(fit, filled, GRID, upper_m=upper)
-    assert high == pytest.approx(16 * 0.5 * GRID.cell_area_m2)
-    assert low == pytest.approx(16 * 2.0 * GRID.cell_area_m2)
+    assert high == pytest.approx(4 * GRID.shape[1] * 0.5 * GRID.cell_area_m2) and high < unbounded[1]
+    assert low == pytest.approx(unbounded[0])
 
 
 def test_that_interpolating_a_plane_costs_nothing_and_a_curved_surface_grows_with_the_gap():
@@ -140,6 +163,7 @@ def test_that_an_interval_model_refuses_a_negative_or_infinite_factor():
 def test_that_the_unseen_warning_names_where_material_was_invented_and_stays_quiet_when_all_was_seen():
     fit = _heights_of(lambda x, y: np.ones_like(x))
     assert unseen_warning(fit, fit, GRID, ErrorTerms(noise_m3=1.0), UNIT) is None
+    fit = _heights_of(lambda x, y: 4.0 - 0.5 * np.hypot(x, y))  # a pile rising into the corner
     fit[:6, :6] = np.nan  # a 3 x 3 m corner never seen
     filled = np.where(np.isfinite(fit), fit, 3.0)
     low, high = unseen_terms_m3(fit, filled, GRID)

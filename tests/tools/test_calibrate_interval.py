@@ -30,6 +30,20 @@ def test_that_the_fitted_interval_covers_90_percent_of_its_runs_and_of_fresh_one
     assert 1.3 < model.k_noise < 2.0 and model.k_interpolation < 0.3
 
 
+def test_that_the_interval_holds_within_each_noise_model_not_only_on_average():
+    # two sensors: one whose errors the noise term explains at twice the scale of the other's
+    calm, rough = _rows(300, 3), _rows(100, 4)
+    for r in calm:
+        r["noise"] = "calm"
+    for r in rough:
+        r["noise"] = "rough"
+        r["volume_m3"] = r["true_volume_m3"] + 2.0 * (r["volume_m3"] - r["true_volume_m3"])
+    pooled = model_of(fit(calm + rough, n_candidates=300, stratum=None)[0], "pooled")
+    per_model = model_of(fit(calm + rough, n_candidates=300)[0], "per model")
+    assert coverage(pooled, rough)["coverage_pct"] < 85.0  # the majority hides the rough sensor
+    assert coverage(per_model, rough)["coverage_pct"] >= 90.0 and coverage(per_model, calm)["coverage_pct"] >= 90.0
+
+
 def test_that_the_fitted_model_is_written_between_its_markers(tmp_path):
     src = tmp_path / "u.py"
     src.write_text(f"x = 1\n{MODEL_BEGIN}\nold\n{MODEL_END}\ny = 2\n")
