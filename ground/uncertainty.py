@@ -134,11 +134,12 @@ def unseen_terms_m3(heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
     return low, float(np.clip(hi - h, 0.0, None).sum() * grid.cell_area_m2)
 
 
-def interpolation_term_m3(heights_fit: np.ndarray, counts: np.ndarray, grid: Grid) -> float:
+def interpolation_term_m3(heights_fit: np.ndarray, counts: np.ndarray, grid: Grid,
+                          mask: np.ndarray | None = None) -> float:
     """Sum over surfaced cells without points of d^2/2 |laplacian h| times the cell area (d: distance
-    to the nearest cell holding points)."""
+    to the nearest cell holding points); over the cells of mask only when given (one pile's)."""
     seen = np.isfinite(heights_fit)
-    gaps = seen & (counts == 0)
+    gaps = seen & (counts == 0) & (True if mask is None else mask)
     if not gaps.any() or not (counts > 0).any():
         return 0.0
     c = grid.length_m / grid.shape[0], grid.width_m / grid.shape[1]
@@ -181,7 +182,8 @@ def scatter_sigma_m(points_w: np.ndarray, heights_fit: np.ndarray, grid: Grid) -
     return 1.4826 * float(np.median(np.abs(r - np.median(r)))) if len(r) >= 2 else 0.0
 
 
-def noise_term_m3(sigma: float, heights_fit: np.ndarray, counts: np.ndarray, grid: Grid) -> float:
+def noise_term_m3(sigma: float, heights_fit: np.ndarray, counts: np.ndarray, grid: Grid,
+                  mask: np.ndarray | None = None) -> float:
     """The points' scatter sigma carried into the volume: every surfaced cell takes its height from the
     nearest cell holding points, so a cell j of n_j points whose error (sigma / sqrt(n_j)) spreads over
     an area a_j contributes a_j sigma / sqrt(n_j); independent cells add in quadrature."""
@@ -190,25 +192,26 @@ def noise_term_m3(sigma: float, heights_fit: np.ndarray, counts: np.ndarray, gri
         return 0.0
     c = grid.length_m / grid.shape[0], grid.width_m / grid.shape[1]
     _, (ix, iy) = ndimage.distance_transform_edt(counts == 0, sampling=c, return_indices=True)
-    owner = (ix * grid.shape[1] + iy)[seen]
+    owner = (ix * grid.shape[1] + iy)[seen & (True if mask is None else mask)]
     area_cells = np.bincount(owner, minlength=counts.size)
     n = counts.ravel()
     has = (area_cells > 0) & (n > 0)
     return sigma * grid.cell_area_m2 * math.sqrt(float((area_cells[has] ** 2 / n[has]).sum()))
 
 
-def blur_term_m3(sigma: float, heights_fit: np.ndarray, grid: Grid) -> float:
+def blur_term_m3(sigma: float, heights_fit: np.ndarray, grid: Grid, mask: np.ndarray | None = None) -> float:
     """The scatter sigma over the pile's footprint (cells more than 2 sigma above the floor): noisy
     points blur a curved pile, and that error has one sign over the whole pile (points sit high at
     the toes, low on the crests), so it does not average out as the noise term assumes."""
     if sigma <= 0:
         return 0.0
-    material = np.isfinite(heights_fit) & (np.nan_to_num(heights_fit, nan=0.0) > 2.0 * sigma)
+    material = np.isfinite(heights_fit) & (np.nan_to_num(heights_fit, nan=0.0) > 2.0 * sigma) \
+        & (True if mask is None else mask)
     return sigma * float(material.sum()) * grid.cell_area_m2
 
 
 def sweeps_term_m3(points_w: np.ndarray, sweep_dir: np.ndarray | None, heights_fit: np.ndarray, grid: Grid,
-                   min_points: int = 2) -> float:
+                   min_points: int = 2, mask: np.ndarray | None = None) -> float:
     """Half the mean (rising - falling) height difference over cells both saw, times those cells' area."""
     if sweep_dir is None or len(points_w) == 0:
         return 0.0
@@ -224,7 +227,7 @@ def sweeps_term_m3(points_w: np.ndarray, sweep_dir: np.ndarray | None, heights_f
         s = np.bincount(flat[m], weights=r[m], minlength=n_all)
         counts.append(c)
         means.append(s / np.maximum(c, 1))
-    both = (counts[0] >= min_points) & (counts[1] >= min_points)
+    both = (counts[0] >= min_points) & (counts[1] >= min_points) & (True if mask is None else mask.ravel())
     if not both.any():
         return 0.0
     return 0.5 * abs(float(np.mean(means[0][both] - means[1][both]))) * int(both.sum()) * grid.cell_area_m2
@@ -280,8 +283,8 @@ def face_cells(points_w: np.ndarray, grid: Grid, point_sigma_m: float, n_sigma: 
     return FaceCells(excess > 0, excess)
 
 
-def faces_term_m3(faces: FaceCells, grid: Grid) -> float:
-    return float(0.5 * faces.excess_m.sum() * grid.cell_area_m2)
+def faces_term_m3(faces: FaceCells, grid: Grid, mask: np.ndarray | None = None) -> float:
+    return float(0.5 * faces.excess_m[True if mask is None else mask].sum() * grid.cell_area_m2)
 
 
 # ----- one survey ------------------------------------------------------------------------------------
@@ -307,14 +310,31 @@ class SurveyErrors:
 
 def survey_errors(points_w: np.ndarray, sweep_dir: np.ndarray | None, heights_fit: np.ndarray,
                   heights: np.ndarray, counts: np.ndarray, grid: Grid, point_sigma: float, n_sigma: float,
-                  lower_m: np.ndarray | None = None, upper_m: np.ndarray | None = None) -> SurveyErrors:
-    low, high = unseen_terms_m3(heights_fit, heights, grid, lower_m, upper_m)
+                  lower_m: np.ndarray | None = None, upper_m: np.ndarray | None = None,
+                  mask: np.ndarray | None = None) -> SurveyErrors:
+    """The terms over the whole floor, or over the cells of mask (one pile's: ground.piles); the points'
+    scatter is the survey's either way."""
+    low, high = unseen_terms_m3(*_unseen_inputs(heights_fit, heights, mask), grid, lower_m, upper_m)
     faces = face_cells(points_w, grid, point_sigma, n_sigma)
     scatter = scatter_sigma_m(points_w, heights_fit, grid)
     terms = ErrorTerms(unseen_low_m3=low, unseen_high_m3=high,
-                       interpolation_m3=interpolation_term_m3(heights_fit, counts, grid),
-                       noise_m3=noise_term_m3(scatter, heights_fit, counts, grid),
-                       blur_m3=blur_term_m3(scatter, heights_fit, grid),
-                       sweeps_m3=sweeps_term_m3(points_w, sweep_dir, heights_fit, grid),
-                       faces_m3=faces_term_m3(faces, grid))
+                       interpolation_m3=interpolation_term_m3(heights_fit, counts, grid, mask),
+                       noise_m3=noise_term_m3(scatter, heights_fit, counts, grid, mask),
+                       blur_m3=blur_term_m3(scatter, heights_fit, grid, mask),
+                       sweeps_m3=sweeps_term_m3(points_w, sweep_dir, heights_fit, grid, mask=mask),
+                       faces_m3=faces_term_m3(faces, grid, mask))
     return SurveyErrors(terms, faces, point_sigma)
+
+
+def _unseen_inputs(heights_fit: np.ndarray, heights: np.ndarray,
+                   mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """heights_fit and heights for `unseen_terms_m3` over the cells of mask only: an unseen cell outside it
+    is given its nearest surface as if seen, so it is not counted (and a left-empty cell inside still
+    finds its nearest surface)."""
+    if mask is None:
+        return heights_fit, heights
+    outside = ~mask & ~np.isfinite(heights_fit)
+    if not outside.any() or not np.isfinite(heights_fit).any():
+        return heights_fit, heights
+    near = fill_empty(heights_fit, "nearest")
+    return np.where(outside, near, heights_fit), np.where(outside, near, heights)
