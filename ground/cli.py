@@ -156,14 +156,20 @@ def _report(args) -> int:
     if args.max_grid_memory_mb <= 0:
         raise UserError(f"--max-grid-memory-mb must be > 0, got {args.max_grid_memory_mb:g}")
     cfg = args.config_file
-    try:
-        piles = PileOptions(entries=cfg.piles if cfg is not None else (), density_kg_m3=args.density,
-                            min_area_m2=args.min_pile_area, volume_unit=VolumeUnit(args.volume_units),
-                            mass_unit=MassUnit(args.mass_units))
-        if args.timezone is not None:
+    for option, field_name, value in (("--density", "density_kg_m3", args.density),
+                                      ("--min-pile-area", "min_area_m2", args.min_pile_area)):
+        try:
+            PileOptions(**{field_name: value})
+        except ValueError as exc:
+            raise UserError(f"{option}: {exc}") from None
+    piles = PileOptions(entries=cfg.piles if cfg is not None else (), density_kg_m3=args.density,
+                        min_area_m2=args.min_pile_area, volume_unit=VolumeUnit(args.volume_units),
+                        mass_unit=MassUnit(args.mass_units))
+    if args.timezone is not None:
+        try:
             check_timezone(args.timezone)
-    except ValueError as exc:
-        raise UserError(f"--density, --min-pile-area or --timezone: {exc}") from None
+        except ValueError as exc:
+            raise UserError(f"--timezone: {exc}") from None
     info = SurveyInfo(site_name=args.site_name, timezone=args.timezone, operator=args.operator,
                       aircraft=args.aircraft)
     opts = ReportOptions(cell_m=args.cell, empty_cells=args.empty_cells, plots=not args.no_plots,
