@@ -22,6 +22,8 @@ from firmware_py.core.rundir import check_free
 from firmware_py.core.version import software_version
 from ground import listen
 from ground.base import BaseKind, BaseSpec
+from ground.metadata import SurveyInfo, check_timezone, metadata_rows
+from ground.piles import DEFAULT_MIN_PILE_AREA_M2, MassUnit, PileOptions, VolumeUnit, pile_rows
 from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, make_report
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
@@ -29,7 +31,9 @@ from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
 log = logging.getLogger(__name__)
 
 CONFIG_OPTIONS: ConfigTables = {
-    "report": {},
+    "report": {"site.name": "--site-name", "site.timezone": "--timezone", "survey.operator": "--operator",
+               "survey.aircraft": "--aircraft"},  # and its [site] is checked against the log's building,
+    # its [[piles]] name the piles (ReportOptions.site, .piles: read from the file, no option)
     "compare": {},  # no option: its [site] is checked against the log's building (ReportOptions.site)
     "listen": {"payload.signing_key": "--signing-key"},
 }
@@ -65,6 +69,21 @@ def build_parser() -> ArgumentParser:
                         "plane fitted to the floor the LiDAR saw: tilt and offset reported) or an earlier survey's "
                         "run or report directory (the volume is then the change since it); see ground/base.py")
     r.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    r.add_argument("--density", type=finite_float, default=None, metavar="KG_M3",
+                   help="bulk density of every pile's material, kg/m^3, for its mass ([[piles]] density_kg_m3 in "
+                        "the --config file wins for its pile)")
+    r.add_argument("--volume-units", choices=[u.value for u in VolumeUnit], default=VolumeUnit.M3.value,
+                   help="units the report shows volumes in (default m3; report.json keeps m^3 too)")
+    r.add_argument("--mass-units", choices=[u.value for u in MassUnit], default=MassUnit.TONNE.value,
+                   help="units the report shows masses in: t (tonnes, default) or short-ton (2,000 lb)")
+    r.add_argument("--min-pile-area", type=finite_float, default=DEFAULT_MIN_PILE_AREA_M2, metavar="M2",
+                   help="smallest footprint counted as a pile, m^2 (default "
+                        f"{DEFAULT_MIN_PILE_AREA_M2:g}; smaller regions above the threshold are specks)")
+    r.add_argument("--site-name", default=None, metavar="NAME", help="the site or building's name, for the report")
+    r.add_argument("--timezone", default=None, metavar="IANA",
+                   help="the site's time zone (e.g. Europe/London): the report shows local time beside UTC")
+    r.add_argument("--operator", default=None, metavar="NAME", help="who flew the survey, for the report")
+    r.add_argument("--aircraft", default=None, metavar="NAME", help="the aircraft flown, for the report")
     r.add_argument("--surface-fit", choices=SURFACE_FITS, default=DEFAULT_SURFACE_FIT,
                    help="cubic-limited (default: the cubic, kept within each triangle's data, robust to noise), "
                         "cubic (the paper's MATLAB 'cubicinterp'), linear, or local-linear (estimated from the points "
@@ -133,11 +152,20 @@ def format_summary(rep: dict) -> str:
         f"volume        {rep['volume_m3']:12.1f} m^3",
         f"90 % interval {'not estimated' if iv is None else f'{iv[0]:12.1f} - {iv[1]:.1f} m^3'}",
         f"base          {(rep.get('base') or {}).get('description', 'the floor plane z = 0')}",
-        f"truth         {'unknown' if truth is None else f'{truth:12.1f} m^3'}",
-        f"Ve (eq. 8)    {pct(rep.get('volume_error_pct')):>12}",
+    ]
+    lines += [f"verdict       {rep['verdict']}"] if rep.get("verdict") else []
+    if truth is not None:  # a reference volume: a simulated survey or --truth-volume
+        lines += [f"truth         {truth:12.1f} m^3", f"Ve (eq. 8)    {pct(rep.get('volume_error_pct')):>12}"]
+    lines += [
         f"R_a (eq. 9)   {pct(rep.get('coverage_ratio_pct')):>12}",
         f"points used   {rep['n_points_used']:12d} of {rep['n_samples']} samples",
     ]
+    lines += [f"{label:<20} {value}" for label, value in metadata_rows(rep.get("metadata"))]
+    head, rows = pile_rows(rep.get("piles"))
+    if rows:
+        widths = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
+        lines += ["piles:"] + ["  " + "  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip()
+                               for r in [head, *rows]]
     lines += [f"WARNING: {w}" for w in rep.get("warnings", [])]
     return "\n".join(lines)
 
@@ -151,13 +179,30 @@ def _report(args) -> int:
         raise UserError(f"--max-interval-pct must be > 0, got {args.max_interval_pct:g}")
     if args.max_grid_memory_mb <= 0:
         raise UserError(f"--max-grid-memory-mb must be > 0, got {args.max_grid_memory_mb:g}")
+    cfg = args.config_file
+    for option, field_name, value in (("--density", "density_kg_m3", args.density),
+                                      ("--min-pile-area", "min_area_m2", args.min_pile_area)):
+        try:
+            PileOptions(**{field_name: value})
+        except ValueError as exc:
+            raise UserError(f"{option}: {exc}") from None
+    piles = PileOptions(entries=cfg.piles if cfg is not None else (), density_kg_m3=args.density,
+                        min_area_m2=args.min_pile_area, volume_unit=VolumeUnit(args.volume_units),
+                        mass_unit=MassUnit(args.mass_units))
+    if args.timezone is not None:
+        try:
+            check_timezone(args.timezone)
+        except ValueError as exc:
+            raise UserError(f"--timezone: {exc}") from None
+    info = SurveyInfo(site_name=args.site_name, timezone=args.timezone, operator=args.operator,
+                      aircraft=args.aircraft)
     opts = ReportOptions(cell_m=args.cell, empty_cells=args.empty_cells, plots=not args.no_plots,
                          truth_volume_m3=args.truth_volume, despike=not args.no_despike,
                          surface_fit=args.surface_fit, servo_retiming=not args.no_servo_retiming,
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),
                          self_calibration=not args.no_self_calibration, max_interval_pct=args.max_interval_pct,
                          site=args.config_file.site if args.config_file is not None else None,
-                         base=base)
+                         base=base, piles=piles, info=info)
     rep = make_report(args.source, args.out, opts, force=args.force)
     if not args.quiet:
         print(format_summary(rep))

@@ -53,6 +53,9 @@ SUMMARY_KEYS: tuple[str, ...] = (
 )
 """Headline keys, in table order; every other top-level key (except warnings) goes to "All figures"."""
 
+REFERENCE_KEYS = ("true_volume_m3", "volume_error_pct")
+"""Rows that exist only with a reference volume (a simulated survey, --truth-volume): dropped without one."""
+
 _SUMMARY_LABELS: dict[str, str] = {
     "volume_m3": "Stockpile volume",
     "volume_interval_m3": "90 % interval",
@@ -265,6 +268,10 @@ class ReportContent:
     extra: list[tuple[str, str]] = field(default_factory=list)
     config: list[tuple[str, str]] = field(default_factory=list)
     config_file: str | None = None
+    verdict: str | None = None
+    metadata: list[tuple[str, str]] = field(default_factory=list)  # ground.metadata.metadata_rows
+    piles: tuple[list[str], list[list[str]]] = ([], [])  # ground.piles.pile_rows: header, rows
+    piles_method: str | None = None
 
 
 def _config_value(v: Any) -> str:
@@ -295,8 +302,14 @@ def _image_caption(name: str) -> str:
 
 def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportContent:
     """Format the report once, for both Markdown and HTML."""
-    summary = [(_SUMMARY_LABELS[k], _SUMMARY_FORMAT[k](report.get(k))) for k in SUMMARY_KEYS]
-    handled = {*SUMMARY_KEYS, "warnings", "config"}
+    from ground.metadata import metadata_rows
+    from ground.piles import pile_rows
+    no_reference = report.get("true_volume_m3") is None  # a real survey: no "True volume: unknown" rows
+    summary = [(_SUMMARY_LABELS[k], _SUMMARY_FORMAT[k](report.get(k))) for k in SUMMARY_KEYS
+               if not (no_reference and k in REFERENCE_KEYS)]
+    handled = {*SUMMARY_KEYS, "warnings", "config", "metadata", "piles", "verdict"}
+    if no_reference:
+        handled |= {"volume_error_m3", "volume_error_pct", "truth_in_interval"}
     extra_items: dict[str, Any] = {}
     for key, shown in _SUMMARY_SUBKEYS.items():  # e.g. log.bytes_skipped: not in the summary cell
         sub = report.get(key)
@@ -311,7 +324,11 @@ def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportC
         config_rows = [(name, _config_value(v)) for name, v in flatten({k: v for k, v in cfg.items() if k != "file"})]
     elif cfg is not None:
         config_rows = [("config", _config_value(cfg))]
+    piles = report.get("piles")
     return ReportContent(
+        verdict=None if report.get("verdict") is None else str(report.get("verdict")),
+        metadata=metadata_rows(report.get("metadata")), piles=pile_rows(piles),
+        piles_method=str(piles.get("method")) if isinstance(piles, Mapping) and piles.get("method") else None,
         config=config_rows, config_file=config_file,
         headline=f"Stockpile volume: {fmt_volume(report.get('volume_m3'))}" + (
             "" if fmt_interval(report.get("volume_interval_m3")) == UNKNOWN else
@@ -357,6 +374,10 @@ def _relative_ref(image: Path, out_dir: Path) -> str:
 def render_markdown(content: ReportContent, out_dir: Path) -> str:
     """The report.md text; image links are relative to `out_dir`."""
     lines = [f"# {REPORT_TITLE}", "", f"**{_md_text(content.headline)}**", ""]
+    if content.verdict:
+        lines += [f"Verdict: {_md_text(content.verdict)}", ""]
+    if content.metadata:
+        lines += ["## Survey", "", *_md_table(("Item", "Value"), content.metadata), ""]
     lines += ["## Warnings", ""]
     if content.warnings:
         n = len(content.warnings)
@@ -366,6 +387,11 @@ def render_markdown(content: ReportContent, out_dir: Path) -> str:
         lines += ["No warnings."]
     lines += ["", "## Summary", ""]
     lines += _md_table(("Quantity", "Value"), content.summary)
+    head, rows = content.piles
+    if rows:
+        lines += ["", "## Piles", "", f"Found as {_md_text(content.piles_method or 'connected regions')}.", ""]
+        lines += ["| " + " | ".join(_md_text(h) for h in head) + " |", "|" + "---|" * len(head)]
+        lines += ["| " + " | ".join(_md_text(c) for c in r) + " |" for r in rows]
     if content.images:
         lines += ["", "## Figures"]
         for caption, path in content.images:
@@ -449,6 +475,10 @@ def render_html(content: ReportContent) -> str:
         f"<h1>{_e(REPORT_TITLE)}</h1>",
         f'<p class="headline">{_e(content.headline)}</p>',
     ]
+    if content.verdict:
+        parts.append(f'<p class="verdict"><strong>Verdict:</strong> {_e(content.verdict)}</p>')
+    if content.metadata:
+        parts += ["<h2>Survey</h2>", *_html_table(("Item", "Value"), content.metadata)]
     if content.warnings:
         n = len(content.warnings)
         parts += [
@@ -462,6 +492,12 @@ def render_html(content: ReportContent) -> str:
     else:
         parts += ["<h2>Warnings</h2>", '<p class="ok">No warnings.</p>']
     parts += ["<h2>Summary</h2>", *_html_table(("Quantity", "Value"), content.summary)]
+    head, rows = content.piles
+    if rows:
+        parts += ["<h2>Piles</h2>", f"<p>Found as {_e(content.piles_method or 'connected regions')}.</p>",
+                  '<table class="piles">', "<tr>" + "".join(f"<th>{_e(h)}</th>" for h in head) + "</tr>"]
+        parts += ["<tr>" + "".join(f'<td class="num">{_e(c)}</td>' for c in r) + "</tr>" for r in rows]
+        parts.append("</table>")
     if content.images:
         parts.append("<h2>Figures</h2>")
         for caption, path in content.images:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, replace
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +26,10 @@ from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
 from ground.base import FLOOR, FLOOR_BASE, Base, BaseKind, BaseSpec, fitted_floor_base, rebased_terms, survey_base
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
+from ground.deliverable import add_deliverable
 from ground.despike import SpikeThreshold, why_no_threshold
+from ground.metadata import SurveyInfo
+from ground.piles import PILES_CSV, PileOptions, write_piles_csv
 from ground.plausibility import PlausibilityLimits, implausible, without_implausible
 from ground.pointcloud import N_SIGMA as FLOOR_N_SIGMA
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask, structure_n_sigma
@@ -82,6 +86,8 @@ class ReportOptions:
     site: SiteSection | None = None  # [site] of a --config file: the log's building is checked against it
     max_interval_pct: float = DEFAULT_MAX_INTERVAL_PCT  # warn when the 90 % interval is wider than this
     base: BaseSpec = FLOOR  # the surface the volume is measured from (ground.base)
+    piles: PileOptions = field(default_factory=PileOptions)  # names, densities, units (ground.piles)
+    info: SurveyInfo = field(default_factory=SurveyInfo)  # site name, time zone, operator, aircraft (ground.metadata)
 
 
 @dataclass(frozen=True)
@@ -106,6 +112,7 @@ class Survey:
     face_spread_m: float | None = None  # a cell's points spanning more height hold a face (ground.uncertainty)
     base: Base | None = None  # the surface the volume is measured from (ground.base); None: the floor z = 0
     own_terms: ErrorTerms | None = None  # the surface's own error terms (ErrorTerms) before a fitted floor rebased them
+    errors_in: Callable[[np.ndarray], SurveyErrors] | None = None  # the error terms over a cell mask (one pile's)
 
 
 def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
@@ -282,10 +289,13 @@ def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageF
     ceiling = None if opts.empty_cells != "bounded" else free_space_ceiling_m(  # what the beams left free above
         cloud, grid, storage, err, err.angle_sigma_rad, where=~np.isfinite(fit))  # the unseen cells
     heights, counts = fill_empty(fit, opts.empty_cells, ceiling), grid.counts(pile)
-    errors = survey_errors(pile, pile_dir, fit, heights, counts, grid, typical, n_sigma,
-                           upper_m=storage.height_m if ceiling is None else ceiling)
-    return Survey(cloud, pile, grid, fit, heights, counts, storage, n_clipped, disagreement, errors=errors,
-                  face_spread_m=spread)
+    roof_or_ceiling = storage.height_m if ceiling is None else ceiling
+
+    def errors_in(mask: np.ndarray | None = None) -> SurveyErrors:  # the whole floor, or one pile's cells
+        return survey_errors(pile, pile_dir, fit, heights, counts, grid, typical, n_sigma, upper_m=roof_or_ceiling,
+                             mask=mask)
+    return Survey(cloud, pile, grid, fit, heights, counts, storage, n_clipped, disagreement, errors=errors_in(),
+                  face_spread_m=spread, errors_in=errors_in)
 
 
 def sensor_noise_line(header: dict) -> str:
@@ -459,7 +469,7 @@ def site_mismatches(header: dict, site: SiteSection | None) -> list[str]:
 REPORT_FILE = "report.json"
 """The report's marker: put in place last, so a folder without it holds no finished report."""
 REPORT_FILES = (REPORT_FILE, "report.md", "report.html", "cloud.ply", "cloud_top.png", "height_map.png",
-                "coverage.png")
+                "coverage.png", PILES_CSV)
 """Every file a report directory may hold (what --force removes)."""
 REPORT_FILES = (*REPORT_FILES, SURFACE_FILE)  # the final height grid, a later survey's base (ground.surface_file)
 
@@ -495,6 +505,9 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
         survey = with_base(survey, log.header or {}, opts)
     report = summarise(survey, log, opts, truth)
     report["source"] = str(source)
+    add_deliverable(report, header=log.header or {}, log_path=log_path, t_s=log.samples["t_s"], info=opts.info,
+                    piles=opts.piles, heights_fit=survey.heights_fit, heights=survey.heights, grid=survey.grid,
+                    errors=survey.errors, errors_in=survey.errors_in)
     if not np.isfinite(survey.heights_fit).any():
         c = survey.cloud
         raise NoVolumeError(f"{log_path}: no volume: no surface could be fitted from {report['n_points_used']} "
@@ -504,6 +517,7 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
     with OutputFolder(out, REPORT_FILES, REPORT_FILE, force=force, what="report") as folder:
         images = write_outputs(survey, report, folder.staging, opts.plots)
         save_surface(saved_surface(survey, log.header or {}, opts, str(source)), folder.staged(SURFACE_FILE))
+        write_piles_csv(report["piles"], folder.staged(PILES_CSV))
         report["elapsed_s"] = time.perf_counter() - t0
         folder.staged(REPORT_FILE).write_text(json.dumps(report, indent=2) + "\n")
         write_markdown(report, images, folder.staged("report.md"))

@@ -149,35 +149,39 @@ def unseen_reach_m(heights_fit: np.ndarray, grid: Grid) -> np.ndarray:
 
 
 def unseen_terms_m3(heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
-                    lower_m: np.ndarray | None = None, upper_m: np.ndarray | float | None = None) -> tuple[float, float]:
+                    lower_m: np.ndarray | None = None, upper_m: np.ndarray | float | None = None,
+                    mask: np.ndarray | None = None) -> tuple[float, float]:
     """(low, high) error scales of the filled cells (module docstring); bounds are per-cell arrays, a
-    number (the roof) or None (unbounded).
+    number (the roof) or None (unbounded). With mask, only its cells count (one pile's: the terms are
+    per-cell sums, so the piles' add up to the whole).
 
     Cells left empty (`--empty-cells leave`) hold no volume, so nothing was invented (low 0) but the
     material the nearest surface suggests there may be missing: that is the high side."""
     filled = ~np.isfinite(heights_fit)
-    if not filled.any():
+    counted = filled if mask is None else filled & np.asarray(mask, dtype=bool)
+    if not counted.any():
         return 0.0, 0.0
     if not np.isfinite(heights[filled]).any() and np.isfinite(heights_fit).any():  # left empty
-        nearest = fill_empty(heights_fit, "nearest")[filled]
+        nearest = fill_empty(heights_fit, "nearest")[counted]
         return 0.0, float(np.clip(nearest, 0.0, None).sum() * grid.cell_area_m2)
-    reach = unseen_reach_m(heights_fit, grid)[filled]
-    h = np.where(np.isfinite(heights), heights, 0.0)[filled]
-    lo = np.zeros_like(h) if lower_m is None else np.nan_to_num(np.asarray(lower_m, float)[filled], nan=0.0)
+    reach = unseen_reach_m(heights_fit, grid)[counted]
+    h = np.where(np.isfinite(heights), heights, 0.0)[counted]
+    lo = np.zeros_like(h) if lower_m is None else np.nan_to_num(np.asarray(lower_m, float)[counted], nan=0.0)
     low = float(np.minimum(reach, np.clip(h - lo, 0.0, None)).sum() * grid.cell_area_m2)
     if upper_m is None:
         hi = np.full_like(h, np.inf)
     else:
-        hi = np.broadcast_to(np.asarray(upper_m, float), heights.shape)[filled]
+        hi = np.broadcast_to(np.asarray(upper_m, float), heights.shape)[counted]
         hi = np.where(np.isnan(hi), np.inf, hi)  # no bound known in that cell
     return low, float(np.minimum(reach, np.clip(hi - h, 0.0, None)).sum() * grid.cell_area_m2)
 
 
-def interpolation_term_m3(heights_fit: np.ndarray, counts: np.ndarray, grid: Grid) -> float:
+def interpolation_term_m3(heights_fit: np.ndarray, counts: np.ndarray, grid: Grid,
+                          mask: np.ndarray | None = None) -> float:
     """Sum over surfaced cells without points of d^2/2 |laplacian h| times the cell area (d: distance
-    to the nearest cell holding points)."""
+    to the nearest cell holding points); over the cells of mask only when given (one pile's)."""
     seen = np.isfinite(heights_fit)
-    gaps = seen & (counts == 0)
+    gaps = seen & (counts == 0) & (True if mask is None else mask)
     if not gaps.any() or not (counts > 0).any():
         return 0.0
     c = grid.length_m / grid.shape[0], grid.width_m / grid.shape[1]
@@ -220,7 +224,8 @@ def scatter_sigma_m(points_w: np.ndarray, heights_fit: np.ndarray, grid: Grid) -
     return 1.4826 * float(np.median(np.abs(r - np.median(r)))) if len(r) >= 2 else 0.0
 
 
-def noise_term_m3(sigma: float, heights_fit: np.ndarray, counts: np.ndarray, grid: Grid) -> float:
+def noise_term_m3(sigma: float, heights_fit: np.ndarray, counts: np.ndarray, grid: Grid,
+                  mask: np.ndarray | None = None) -> float:
     """The points' scatter sigma carried into the volume: every surfaced cell takes its height from the
     nearest cell holding points, so a cell j of n_j points whose error (sigma / sqrt(n_j)) spreads over
     an area a_j contributes a_j sigma / sqrt(n_j); independent cells add in quadrature."""
@@ -229,25 +234,26 @@ def noise_term_m3(sigma: float, heights_fit: np.ndarray, counts: np.ndarray, gri
         return 0.0
     c = grid.length_m / grid.shape[0], grid.width_m / grid.shape[1]
     _, (ix, iy) = ndimage.distance_transform_edt(counts == 0, sampling=c, return_indices=True)
-    owner = (ix * grid.shape[1] + iy)[seen]
+    owner = (ix * grid.shape[1] + iy)[seen & (True if mask is None else mask)]
     area_cells = np.bincount(owner, minlength=counts.size)
     n = counts.ravel()
     has = (area_cells > 0) & (n > 0)
     return sigma * grid.cell_area_m2 * math.sqrt(float((area_cells[has] ** 2 / n[has]).sum()))
 
 
-def blur_term_m3(sigma: float, heights_fit: np.ndarray, grid: Grid) -> float:
+def blur_term_m3(sigma: float, heights_fit: np.ndarray, grid: Grid, mask: np.ndarray | None = None) -> float:
     """The scatter sigma over the pile's footprint (cells more than 2 sigma above the floor): noisy
     points blur a curved pile, and that error has one sign over the whole pile (points sit high at
     the toes, low on the crests), so it does not average out as the noise term assumes."""
     if sigma <= 0:
         return 0.0
-    material = np.isfinite(heights_fit) & (np.nan_to_num(heights_fit, nan=0.0) > 2.0 * sigma)
+    material = np.isfinite(heights_fit) & (np.nan_to_num(heights_fit, nan=0.0) > 2.0 * sigma) \
+        & (True if mask is None else mask)
     return sigma * float(material.sum()) * grid.cell_area_m2
 
 
 def sweeps_term_m3(points_w: np.ndarray, sweep_dir: np.ndarray | None, heights_fit: np.ndarray, grid: Grid,
-                   min_points: int = 2) -> float:
+                   min_points: int = 2, mask: np.ndarray | None = None) -> float:
     """Half the mean (rising - falling) height difference over cells both saw, times those cells' area."""
     if sweep_dir is None or len(points_w) == 0:
         return 0.0
@@ -263,7 +269,7 @@ def sweeps_term_m3(points_w: np.ndarray, sweep_dir: np.ndarray | None, heights_f
         s = np.bincount(flat[m], weights=r[m], minlength=n_all)
         counts.append(c)
         means.append(s / np.maximum(c, 1))
-    both = (counts[0] >= min_points) & (counts[1] >= min_points)
+    both = (counts[0] >= min_points) & (counts[1] >= min_points) & (True if mask is None else mask.ravel())
     if not both.any():
         return 0.0
     return 0.5 * abs(float(np.mean(means[0][both] - means[1][both]))) * int(both.sum()) * grid.cell_area_m2
@@ -319,8 +325,8 @@ def face_cells(points_w: np.ndarray, grid: Grid, point_sigma_m: float, n_sigma: 
     return FaceCells(excess > 0, excess)
 
 
-def faces_term_m3(faces: FaceCells, grid: Grid) -> float:
-    return float(0.5 * faces.excess_m.sum() * grid.cell_area_m2)
+def faces_term_m3(faces: FaceCells, grid: Grid, mask: np.ndarray | None = None) -> float:
+    return float(0.5 * faces.excess_m[True if mask is None else mask].sum() * grid.cell_area_m2)
 
 
 # ----- one survey ------------------------------------------------------------------------------------
@@ -346,16 +352,18 @@ class SurveyErrors:
 
 def survey_errors(points_w: np.ndarray, sweep_dir: np.ndarray | None, heights_fit: np.ndarray,
                   heights: np.ndarray, counts: np.ndarray, grid: Grid, point_sigma: float, n_sigma: float,
-                  lower_m: np.ndarray | None = None, upper_m: np.ndarray | float | None = None) -> SurveyErrors:
-    """Every term of one survey; upper_m bounds the unseen cells from above (the roof, or the free-space
-    ceiling where it was computed)."""
-    low, high = unseen_terms_m3(heights_fit, heights, grid, lower_m, upper_m)
+                  lower_m: np.ndarray | None = None, upper_m: np.ndarray | float | None = None,
+                  mask: np.ndarray | None = None) -> SurveyErrors:
+    """The terms over the whole floor, or over the cells of mask (one pile's: ground.piles); the points'
+    scatter is the survey's either way. upper_m bounds the unseen cells from above (the roof, or the
+    free-space ceiling where it was computed)."""
+    low, high = unseen_terms_m3(heights_fit, heights, grid, lower_m, upper_m, mask)
     faces = face_cells(points_w, grid, point_sigma, n_sigma)
     scatter = scatter_sigma_m(points_w, heights_fit, grid)
     terms = ErrorTerms(unseen_low_m3=low, unseen_high_m3=high,
-                       interpolation_m3=interpolation_term_m3(heights_fit, counts, grid),
-                       noise_m3=noise_term_m3(scatter, heights_fit, counts, grid),
-                       blur_m3=blur_term_m3(scatter, heights_fit, grid),
-                       sweeps_m3=sweeps_term_m3(points_w, sweep_dir, heights_fit, grid),
-                       faces_m3=faces_term_m3(faces, grid))
+                       interpolation_m3=interpolation_term_m3(heights_fit, counts, grid, mask),
+                       noise_m3=noise_term_m3(scatter, heights_fit, counts, grid, mask),
+                       blur_m3=blur_term_m3(scatter, heights_fit, grid, mask),
+                       sweeps_m3=sweeps_term_m3(points_w, sweep_dir, heights_fit, grid, mask=mask),
+                       faces_m3=faces_term_m3(faces, grid, mask))
     return SurveyErrors(terms, faces, point_sigma)

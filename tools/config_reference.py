@@ -16,7 +16,14 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from firmware_py import cli as payload_cli  # noqa: E402
-from firmware_py.core.config_file import DIMENSIONS_KEY, SECTIONS, Kind, range_text, schema_keys  # noqa: E402
+from firmware_py.core.config_file import (  # noqa: E402
+    ARRAYS,
+    DIMENSIONS_KEY,
+    SECTIONS,
+    Kind,
+    range_text,
+    schema_keys,
+)
 from ground import cli as ground_cli  # noqa: E402
 from sitl import cli as sitl_cli  # noqa: E402
 from tools.doc_sections import markers, write_section  # noqa: E402
@@ -39,8 +46,10 @@ def _uses(key: str) -> str:
         for option, subs in by_option.items():
             where = f"{prog} {'/'.join(s for s in subs if s)}".strip()
             out.append(f"{where} `{option}`")
-    if key.startswith("site."):
+    if key.startswith("site.") and key not in ("site.name", "site.timezone"):
         out.append("pilescan-ground report (checked against the log)")
+    if key.startswith("piles."):
+        out.append("pilescan-ground report (names the pile holding the point; its mass)")
     return "; ".join(out) or "-"
 
 
@@ -78,7 +87,8 @@ def render() -> str:
                 continue
             m = f.metadata
             table, _, name = key.rpartition(".")
-            lines.append(f"| `[{table}]` `{name}` | {m['kind'].value} | {m['unit'] or '-'} | {_limits(m)} | "
+            heading = f"[[{table}]]" if table in ARRAYS else f"[{table}]"
+            lines.append(f"| `{heading}` `{name}` | {m['kind'].value} | {m['unit'] or '-'} | {_limits(m)} | "
                          f"`{_example(m['example'])}` | {m['doc']} | {_uses(key)} |")
     return "\n".join(lines)
 

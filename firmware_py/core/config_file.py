@@ -5,7 +5,8 @@ Every program takes `--config FILE`; each key the file sets becomes the default 
 file leaves out keeps the built-in default. docs/configuration.md lists every key.
 
     [site]            the building: length_m, width_m, height_m, origin = [lat_deg, lon_deg, alt_m]
-                      (its floor corner, the storage frame's origin), heading_deg (its x axis from north)
+                      (its floor corner, the storage frame's origin), heading_deg (its x axis from north),
+                      name, timezone (IANA, for the report's local time)
     [payload]         rangefinder, i2c, uart, pwm, mavlink, rate_hz, log, lever_arm_m, boresight_deg,
                       lidarlite_preset, stream, signing_key, ekf_origin, stop_on_disarm
     [payload.servo]   the servo's calibration (`ServoCalibration`): center_us, us_per_rad, min_us, max_us,
@@ -13,6 +14,9 @@ file leaves out keeps the built-in default. docs/configuration.md lists every ke
     [payload.sweep]   the eq. (1) sweep: waveform, peak_rate_rad_s, phase
     [mission]         p_traj_pct, altitude_m, speed_m_s, yaw_rate_max_deg_s, turn
     [sitl]            sensor_noise, pose_error (the simulator only)
+    [survey]          operator, aircraft: who flew it with what (the report's metadata)
+    [[piles]]         one table per named pile (the report): name, x_m, y_m (a point inside it, storage frame),
+                      density_kg_m3, material
 
 The schema is the section dataclasses below: each field's metadata says its kind, unit, limits and
 meaning, and the parser, the TOML writer and the reference page are all driven by it. Every key is
@@ -38,6 +42,7 @@ import math
 import os
 import re
 import tomllib
+import zoneinfo
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -100,6 +105,7 @@ class Kind(enum.Enum):
     PATH = "path"
     VECTOR = "array of numbers"
     CHOICE = "choice"
+    TIMEZONE = "IANA time zone"
 
 
 def _key(kind: Kind, doc: str, *, unit: str = "", lo: float | None = None, hi: float | None = None,
@@ -129,6 +135,11 @@ class SiteSection:
     heading_deg: float | None = field(default=None, metadata=_key(
         Kind.NUMBER, "direction of the building's x axis (its length), clockwise from north", unit="deg", lo=-360.0,
         hi=360.0, example=0.0))
+    name: str | None = field(default=None, metadata=_key(
+        Kind.TEXT, "the site or building's name, as the report's reader knows it", example="North bay, Ashby depot"))
+    timezone: str | None = field(default=None, metadata=_key(
+        Kind.TIMEZONE, "the site's time zone (IANA name): the report shows the survey's local time beside UTC",
+        example="Europe/London"))
 
     def dimensions(self) -> tuple[float, float, float] | None:
         """(L, W, H), or None when the file gives none of them."""
@@ -260,6 +271,38 @@ class SitlSection:
 
 
 @dataclass(frozen=True)
+class SurveySection:
+    """[survey]: who flew the survey and with what (shown in the report, never used in the computation)."""
+
+    operator: str | None = field(default=None, metadata=_key(
+        Kind.TEXT, "the pilot or surveyor responsible for the survey", example="J. Smith"))
+    aircraft: str | None = field(default=None, metadata=_key(
+        Kind.TEXT, "the aircraft (make, model, serial or registration)", example="F450 #3"))
+
+
+MAX_DENSITY_KG_M3 = 22_600.0
+"""Osmium, the densest element: no bulk material is denser."""
+
+
+@dataclass(frozen=True)
+class PileEntry:
+    """[[piles]]: one pile the report names, found by a point inside it; its material's bulk density."""
+
+    name: str | None = field(default=None, metadata=_key(
+        Kind.TEXT, "the pile's name in the report (required; unique)", example="sand"))
+    x_m: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "a point inside the pile, storage frame x (required)", unit="m", lo=0.0, hi=10_000.0,
+        example=12.0))
+    y_m: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "the same point's y (required)", unit="m", lo=0.0, hi=10_000.0, example=8.0))
+    density_kg_m3: float | None = field(default=None, metadata=_key(
+        Kind.NUMBER, "the material's bulk density, for the pile's mass (else the report's --density)", unit="kg/m³",
+        lo=0.0, hi=MAX_DENSITY_KG_M3, open_lo=True, example=1600.0))
+    material: str | None = field(default=None, metadata=_key(
+        Kind.TEXT, "what the pile is", example="washed sand"))
+
+
+@dataclass(frozen=True)
 class ConfigFile:
     """A parsed configuration file (every key None unless the file sets it).
 
@@ -271,6 +314,8 @@ class ConfigFile:
     payload: PayloadSection = field(default_factory=PayloadSection, metadata={"table": PayloadSection})
     mission: MissionSection = field(default_factory=MissionSection, metadata={"table": MissionSection})
     sitl: SitlSection = field(default_factory=SitlSection, metadata={"table": SitlSection})
+    survey: SurveySection = field(default_factory=SurveySection, metadata={"table": SurveySection})
+    piles: tuple[PileEntry, ...] = field(default=(), metadata={"array": PileEntry})
     path: str | None = field(default=None, metadata={"skip": True})
 
     def get(self, key: str) -> Any:
@@ -305,12 +350,17 @@ def _section_dict(obj: Any) -> dict[str, Any]:
             sub = _section_dict(v)
             if sub:
                 out[f.name] = sub
+        elif "array" in f.metadata:
+            if v:
+                out[f.name] = [_section_dict(e) for e in v]
         elif v is not None:
             out[f.name] = v.value if isinstance(v, enum.Enum) else list(v) if isinstance(v, tuple) else v
     return out
 
 
-SECTIONS = ("site", "payload", "mission", "sitl")
+SECTIONS = ("site", "payload", "mission", "sitl", "survey", "piles")
+ARRAYS = ("piles",)
+"""Sections written as arrays of tables ([[piles]]), one table per item."""
 DIMENSIONS_KEY = "site.dimensions"
 """The derived key for [site] length_m, width_m and height_m together (`ConfigFile.get`)."""
 
@@ -320,7 +370,7 @@ def key_label(key: str) -> str:
     if key == DIMENSIONS_KEY:
         return "[site] length_m, width_m, height_m"
     section, _, name = key.rpartition(".")
-    return f"[{section}] {name}"
+    return f"[[{section}]] {name}" if section in ARRAYS else f"[{section}] {name}"
 
 
 def schema_keys(cls: type = ConfigFile, prefix: str = "") -> list[tuple[str, dataclasses.Field]]:
@@ -330,8 +380,8 @@ def schema_keys(cls: type = ConfigFile, prefix: str = "") -> list[tuple[str, dat
         if f.metadata.get("skip"):
             continue
         name = f"{prefix}{f.name}"
-        if "table" in f.metadata:
-            out += schema_keys(f.metadata["table"], f"{name}.")
+        if "table" in f.metadata or "array" in f.metadata:
+            out += schema_keys(f.metadata.get("table") or f.metadata["array"], f"{name}.")
         else:
             out.append((name, f))
     return out
@@ -418,6 +468,15 @@ def _check_value(v: Any, m: Mapping[str, Any], base_dir: Path | None) -> tuple[A
         if not isinstance(v, bool):
             return None, f"must be true or false, got {_describe(v)}"
         return v, None
+    if kind is Kind.TIMEZONE:
+        if not isinstance(v, str) or not v.strip():
+            return None, f"must be an IANA time zone name like \"Europe/London\" (a string), got {_describe(v)}"
+        try:
+            zoneinfo.ZoneInfo(v)
+        except (zoneinfo.ZoneInfoNotFoundError, ValueError):
+            return None, ("is not a time zone this computer knows (an IANA name like \"Europe/London\"), "
+                          f"got {json.dumps(v)}")
+        return v, None
     if kind is Kind.CHOICE:
         names = [c.value for c in m["choices"]]
         if not isinstance(v, str):
@@ -497,6 +556,44 @@ def _parse_section(cls: type, table: Any, section: str, base_dir: Path | None,
     return cls(**kwargs)
 
 
+def _parse_array(cls: type, items: Any, section: str, base_dir: Path | None, problems: list[str],
+                 prefix: str) -> tuple[Any, ...]:
+    """An array of tables ([[piles]]): each checked as a section; its lines say which item (#1 is the first)."""
+    if not isinstance(items, list) or not all(isinstance(t, dict) for t in items):
+        problems.append(f"{prefix}[[{section}]]: must be an array of tables (one [[{section}]] heading per item), "
+                        f"got {_describe(items)}")
+        return ()
+    out = []
+    for i, table in enumerate(items, start=1):
+        mine: list[str] = []
+        out.append(_parse_section(cls, table, section, base_dir, mine, ""))
+        problems += [f"{prefix}[[{section}]] #{i}{line.removeprefix(f'[{section}]')}" for line in mine]
+    return tuple(out)
+
+
+def _pile_checks(cfg: ConfigFile, prefix: str) -> list[str]:
+    """Each [[piles]] item needs its name and point; names are unique; the point lies in the building."""
+    problems: list[str] = []
+    seen: dict[str, int] = {}
+    dims = cfg.site.dimensions()
+    for i, p in enumerate(cfg.piles, start=1):
+        where = f"{prefix}[[piles]] #{i}"
+        missing = [k for k in ("name", "x_m", "y_m") if getattr(p, k) is None]
+        if missing:
+            problems.append(f"{where} {missing[0]}: missing (each pile needs a name and a point inside it, x_m "
+                            "and y_m)")
+            continue
+        if p.name in seen:
+            problems.append(f"{where} name: {json.dumps(p.name)} is already pile #{seen[p.name]}'s name")
+        seen.setdefault(p.name, i)  # type: ignore[arg-type]
+        if dims is not None:
+            for k, limit in (("x_m", dims[0]), ("y_m", dims[1])):
+                if getattr(p, k) > limit:
+                    problems.append(f"{where} {k}: {_fmt(getattr(p, k))} m is outside the {_fmt(limit)} m "
+                                    "building ([site])")
+    return problems
+
+
 def _cross_checks(cfg: ConfigFile, prefix: str) -> list[str]:
     """Keys that are fine alone but not together."""
     problems = []
@@ -526,7 +623,7 @@ def _cross_checks(cfg: ConfigFile, prefix: str) -> list[str]:
             parse_stream_url(cfg.payload.stream)
         except ValueError as exc:
             problems.append(f"{prefix}{_where('payload', 'stream')}: {exc}")
-    return problems
+    return problems + _pile_checks(cfg, prefix)
 
 
 def parse_config(data: Mapping[str, Any], source: str = "config", base_dir: Path | None = None) -> ConfigFile:
@@ -547,6 +644,10 @@ def parse_config(data: Mapping[str, Any], source: str = "config", base_dir: Path
         if name not in SECTIONS:
             what = "section" if isinstance(table, dict) else "key outside any section"
             problems.append(f"{prefix}[{name}]: unknown {what} ({_suggest(name, list(SECTIONS))})")
+            continue
+        if name in ARRAYS:
+            cls = {f.name: f.metadata["array"] for f in fields(ConfigFile) if "array" in f.metadata}[name]
+            kwargs[name] = _parse_array(cls, table, name, base_dir, problems, prefix)
             continue
         cls = {f.name: f.metadata["table"] for f in fields(ConfigFile) if "table" in f.metadata}[name]
         kwargs[name] = _parse_section(cls, table, name, base_dir, problems, prefix)
@@ -617,4 +718,10 @@ def to_toml(d: Mapping[str, Any]) -> str:
     for name, body in d.items():
         if isinstance(body, Mapping):
             table(name, body)
+        elif isinstance(body, list | tuple):  # an array of tables
+            for item in body:
+                if lines:
+                    lines.append("")
+                lines.append(f"[[{name}]]")
+                lines.extend(f"{k} = {_toml_value(v)}" for k, v in item.items())
     return "\n".join(lines) + "\n"

@@ -125,8 +125,8 @@ def test_that_report_force_replaces_every_old_file(run_dir, tmp_path, capsys):
     assert main(["report", str(run_dir), "--out", str(out), "-q"]) == 0  # with plots
     assert (out / "coverage.png").is_file()
     assert main(["report", str(run_dir), "--out", str(out), "--no-plots", "--cell", "1.0", "-q", "--force"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["cloud.ply", "report.html", "report.json", "report.md",
-                                                     "surface.npz"]
+    assert sorted(p.name for p in out.iterdir()) == ["cloud.ply", "piles.csv", "report.html", "report.json",
+                                                     "report.md", "surface.npz"]
     assert json.loads((out / "report.json").read_text())["cell_size_m"] == 1.0  # no old figure beside it
 
 

@@ -113,8 +113,21 @@ def test_markdown_missing_values_and_no_warnings(tmp_path):
     md = render.write_markdown({"volume_m3": None, "warnings": []}, {}, tmp_path / "r.md").read_text()
     assert "No warnings." in md
     assert "| Stockpile volume | unknown |" in md
-    assert md.count("unknown") >= len(render.SUMMARY_KEYS)
+    assert md.count("unknown") >= len(render.SUMMARY_KEYS) - len(render.REFERENCE_KEYS)
     assert "## All figures" not in md and "## Figures" not in md
+
+
+def test_that_without_a_reference_volume_there_are_no_truth_or_ve_rows(tmp_path):
+    rep = {"volume_m3": 12.0, "true_volume_m3": None, "volume_error_pct": None, "volume_error_m3": None,
+           "truth_in_interval": None, "warnings": []}
+    for text in (render.write_markdown(rep, {}, tmp_path / "r.md").read_text(),
+                 render.write_html(rep, {}, tmp_path / "r.html").read_text()):
+        assert "True volume (reference)" not in text and "Volume error Ve" not in text and "volume_error" not in text
+        assert "truth_in_interval" not in text
+    with_truth = render.write_markdown({**rep, "true_volume_m3": 10.0, "volume_error_pct": 20.0}, {},
+                                       tmp_path / "t.md").read_text()
+    assert "| True volume (reference) | 10.0 m³ |" in with_truth
+    assert "| Volume error Ve (eq. 8) | 20.00 % |" in with_truth
 
 
 def test_markdown_escapes_table_breaking_text(tmp_path):

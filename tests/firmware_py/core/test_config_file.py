@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from firmware_py.core.config_file import (
+    ARRAYS,
     MAX_CONFIG_BYTES,
     ConfigError,
     ConfigFile,
@@ -69,7 +70,8 @@ def test_that_every_keys_documented_example_is_valid():
         *sections, name = key.split(".")
         table = data
         for s in sections:
-            table = table.setdefault(s, {})
+            table = table.setdefault(s, [{}] if s in ARRAYS else {})
+            table = table[0] if isinstance(table, list) else table
         ex = f.metadata["example"]
         table[name] = list(ex) if isinstance(ex, tuple) else ex
     cfg = parse_config(data, "examples")

@@ -1,0 +1,47 @@
+"""What a customer signs, added to the report: who/where/when (ground.metadata), the verdict line and the
+piles (ground.piles). Kept apart from ground.report so the volume pipeline stays what it was."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ground.metadata import SurveyInfo, limiting_terms, survey_metadata, verdict
+from ground.piles import PileOptions, pile_table
+from ground.surface import Grid
+from ground.uncertainty import DEFAULT_INTERVAL_MODEL, ErrorTerms, SurveyErrors
+from ground.volume_warnings import regions
+
+
+def add_deliverable(report: dict[str, Any], *, header: dict, log_path: Path, t_s: np.ndarray | None,
+                    info: SurveyInfo, piles: PileOptions, heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
+                    errors: SurveyErrors | None,
+                    errors_in: Callable[[np.ndarray], SurveyErrors] | None) -> None:
+    """report["metadata"], report["piles"], report["verdict"] (and their warnings), in place."""
+    meta, warnings = survey_metadata(header, info, log_path, t_s)
+    report["metadata"] = meta
+    sigma = errors.point_sigma_m if errors is not None else 0.0
+    table = pile_table(heights, grid, sigma, piles, errors_in)
+    report["piles"] = table
+    report["warnings"] = [*report.get("warnings", []), *warnings, *table["warnings"]]
+    report["volume_unit"] = piles.volume_unit.value
+    report["mass_unit"] = piles.mass_unit.value
+    report["verdict"] = _verdict(report, heights_fit, heights, grid, piles)
+
+
+def _verdict(report: dict[str, Any], heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
+             piles: PileOptions) -> str:
+    terms = report.get("interval_terms_m3")
+    limits = [] if terms is None else limiting_terms(ErrorTerms(**terms), DEFAULT_INTERVAL_MODEL)
+    where = None
+    if "unseen" in limits:
+        filled = ~np.isfinite(heights_fit)
+        weight = np.where(filled & np.isfinite(heights), np.clip(heights, 0, None), 0.0) * grid.cell_area_m2
+        found = regions(filled, weight, grid, n=1)
+        where = found[0][1] if found else None
+    vu = piles.volume_unit
+    return verdict(report["volume_m3"], report.get("volume_interval_m3"), limits, where,
+                   len(report.get("warnings", [])), vu.symbol, vu.m3_per_unit)

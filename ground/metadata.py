@@ -1,0 +1,186 @@
+"""Who, where, when: the survey's metadata for the report, and the one-line verdict a reader signs.
+
+From the log header: when the log was started (``created_utc``, the payload's clock in UTC), how long the
+samples span, the sensor, the software that flew, the mission and where the building stands. From the
+configuration (the report's --config file or flags first, else the one the payload logged in its
+``config`` record): the site's name and time zone, the operator and the aircraft. Local time needs the
+site's time zone ([site] timezone, an IANA name): without it the report says "UTC only" rather than
+guess from the longitude. The SHA-256 of the log file ties the report to the bytes it was made from.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import math
+import zoneinfo
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ground.uncertainty import ErrorTerms, IntervalModel
+
+HASH_CHUNK_BYTES = 1 << 20
+
+
+@dataclass(frozen=True)
+class SurveyInfo:
+    """What the user tells the report about the survey (--site-name, --timezone, --operator, --aircraft or
+    their configuration keys); None: take the logged configuration's, else unknown."""
+
+    site_name: str | None = None
+    timezone: str | None = None
+    operator: str | None = None
+    aircraft: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.timezone is not None:
+            check_timezone(self.timezone)
+
+
+def check_timezone(name: str) -> zoneinfo.ZoneInfo:
+    """The IANA zone, or ValueError in one line."""
+    try:
+        return zoneinfo.ZoneInfo(name)
+    except (zoneinfo.ZoneInfoNotFoundError, ValueError, TypeError):
+        raise ValueError(f"{name!r} is not a time zone this computer knows (an IANA name like "
+                         "\"Europe/London\")") from None
+
+
+def sha256_of(path: Path) -> str:
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        while chunk := f.read(HASH_CHUNK_BYTES):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _text(v: Any) -> str | None:
+    return v.strip() if isinstance(v, str) and v.strip() and v.isprintable() else None
+
+
+def _logged(header: Mapping[str, Any], section: str, key: str) -> str | None:
+    cfg = header.get("config")
+    sec = cfg.get(section) if isinstance(cfg, Mapping) else None
+    return _text(sec.get(key)) if isinstance(sec, Mapping) else None
+
+
+def survey_metadata(header: Mapping[str, Any], info: SurveyInfo, log_path: Path,
+                    t_s: np.ndarray | None = None) -> tuple[dict[str, Any], list[str]]:
+    """The report's ``metadata`` record and any warnings (a malformed time or time zone in the log)."""
+    warnings: list[str] = []
+    start = None
+    raw = header.get("created_utc")
+    if raw is not None:
+        try:
+            start = dt.datetime.fromisoformat(str(raw))
+            if start.tzinfo is None:
+                raise ValueError("no UTC offset")
+            start = start.astimezone(dt.UTC)
+        except ValueError:
+            warnings.append(f"the log header's created_utc {str(raw)[:40]!r} is not an ISO 8601 time: survey time "
+                            "unknown")
+            start = None
+    duration = None
+    if t_s is not None and len(t_s) >= 2:
+        span = float(np.nanmax(t_s) - np.nanmin(t_s))
+        duration = span if math.isfinite(span) and span >= 0 else None
+    tz_name = info.timezone or _logged(header, "site", "timezone")
+    zone = None
+    if tz_name is not None:
+        try:
+            zone = check_timezone(tz_name)
+        except ValueError as exc:
+            warnings.append(f"the logged configuration's [site] timezone: {exc}: UTC only")
+            tz_name = None
+    local = None if start is None or zone is None else start.astimezone(zone)
+    sensor = header.get("sensor")
+    meta = {
+        "survey_start_utc": None if start is None else start.isoformat(timespec="seconds"),
+        "survey_start_local": None if local is None else local.isoformat(timespec="seconds"),
+        "timezone": tz_name,
+        "local_time": "UTC only (no [site] timezone)" if tz_name is None else tz_name,
+        "survey_duration_s": duration,
+        "site_name": info.site_name or _logged(header, "site", "name"),
+        "operator": info.operator or _logged(header, "survey", "operator"),
+        "aircraft": info.aircraft or _logged(header, "survey", "aircraft"),
+        "sensor": _text(sensor.get("model")) if isinstance(sensor, Mapping) else None,
+        "flight_software": _text(header.get("software")),
+        "log_source": _text(header.get("source")),
+        "mission_id": _text(header.get("mission_id")),
+        "log_file": log_path.name,
+        "log_sha256": sha256_of(log_path),
+    }
+    return meta, warnings
+
+
+_METADATA_LABELS = (
+    ("site_name", "Site"), ("survey_start_utc", "Survey start (UTC)"), ("survey_start_local", "Survey start (local)"),
+    ("survey_duration_s", "Logged for"), ("operator", "Operator"), ("aircraft", "Aircraft"), ("sensor", "Sensor"),
+    ("flight_software", "Flight software"), ("mission_id", "Mission"), ("log_file", "Log file"),
+    ("log_sha256", "Log SHA-256"),
+)
+
+
+def metadata_rows(meta: Mapping[str, Any] | None) -> list[tuple[str, str]]:
+    """(label, value) rows for the console, Markdown and HTML; unknown values say "not stated"."""
+    if not isinstance(meta, Mapping):
+        return []
+    rows = []
+    for key, label in _METADATA_LABELS:
+        v = meta.get(key)
+        if key == "survey_start_local":
+            v = v if v is not None else meta.get("local_time") or "UTC only"
+        elif key == "survey_duration_s":
+            v = None if not isinstance(v, int | float) else f"{v / 60:.1f} min"
+        rows.append((label, "not stated" if v is None else str(v)))
+    return rows
+
+
+_LIMITS = {
+    "unseen": "floor the survey never saw",
+    "interpolation": "gaps between the sweep tracks",
+    "noise": "the sensor's noise",
+    "blur": "the sensor's noise blurring the pile's shape",
+    "sweeps": "the two sweep directions disagreeing (servo or mounting)",
+    "faces": "vertical faces or overhangs",
+}
+MIN_SHARE = 0.25
+"""A term 'limits' the volume when it holds at least a quarter of the interval's variance."""
+
+
+def limiting_terms(terms: ErrorTerms, model: IntervalModel) -> list[str]:
+    """The error terms that hold most of the interval, largest first, in plain words."""
+    scaled = {"unseen": model.k_unseen * max(terms.unseen_low_m3, terms.unseen_high_m3),
+              "interpolation": model.k_interpolation * terms.interpolation_m3, "noise": model.k_noise * terms.noise_m3,
+              "blur": model.k_blur * terms.blur_m3, "sweeps": model.k_sweeps * terms.sweeps_m3,
+              "faces": model.k_faces * terms.faces_m3}
+    total = sum(v * v for v in scaled.values())
+    if total <= 0:
+        return []
+    return [k for k, v in sorted(scaled.items(), key=lambda kv: -kv[1]) if v * v / total >= MIN_SHARE]
+
+
+def verdict(volume: float, interval: tuple[float, float] | list[float] | None, limits: list[str],
+            where_unseen: str | None, n_warnings: int, unit: str = "m³", per_m3: float = 1.0) -> str:
+    """One sentence: the volume, its 90 % interval and what limits it (in the display unit)."""
+    v = volume / per_m3
+    head = f"{v:,.0f} {unit}" if abs(v) >= 100 else f"{v:,.1f} {unit}"
+    if interval is None:
+        return head + " (no interval: the survey's errors could not be estimated)"
+    lo, hi = (x / per_m3 for x in interval)
+    fmt = ",.0f" if abs(v) >= 100 else ",.1f"
+    words = []
+    for k in limits:
+        w = _LIMITS[k]
+        if k == "unseen" and where_unseen:
+            w += f" near {where_unseen}"
+        words.append(w)
+    out = f"{head} (90 % interval {lo:{fmt}}–{hi:{fmt}} {unit})"
+    out += f"; limited by: {'; '.join(words)}" if words else ""
+    if n_warnings:
+        out += f"; {n_warnings} warning{'s' if n_warnings != 1 else ''} to read"
+    return out
