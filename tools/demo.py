@@ -2,6 +2,7 @@
 
 Pile 1 of the paper at P_traj = 20 %, the baseline mission of Table 1, JSBSim plant, with the
 unchanged payload firmware in the loop (MAVLink pose tagging, emulated LIDAR-Lite and servo).
+`--write-readme README.md` puts the printed summary into the README (its demo-summary section).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from pathlib import Path
 from ground.report import ReportOptions, make_report
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import PAYLOADS, FlyConfig, fly
+from tools.doc_sections import write_section
 
 
 def summary_table(rep: dict, fly_s: float, ground_s: float, flight: dict | None = None) -> str:
@@ -45,6 +47,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--p-traj", type=float, default=20.0, help="percent")
     ap.add_argument("--payload", choices=PAYLOADS, default="firmware",
                     help="firmware in the loop (default) or the fast vectorised batch sampler")
+    ap.add_argument("--write-readme", type=Path, default=None, metavar="README.md",
+                    help="also (re)write the summary block of this page (its demo-summary section)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     print(f"pilescan demo: stockpile {args.stockpile}, P_traj {args.p_traj:g} %, 60x40x15 m building, JSBSim F450 "
@@ -57,7 +61,10 @@ def main(argv: list[str] | None = None) -> int:
     rep = make_report(out / "run", out / "report", ReportOptions(), force=True)
     t2 = time.perf_counter()
     truth = json.loads((out / "run" / "truth.json").read_text())
-    print(summary_table(rep, t1 - t0, t2 - t1, truth))
+    table = summary_table(rep, t1 - t0, t2 - t1, truth)
+    print(table)
+    if args.write_readme:
+        write_section(args.write_readme, "demo-summary", f"```\n{table}\n```")
     print(f"report: {(out / 'report' / 'report.html').resolve()}")
     return 0
 
