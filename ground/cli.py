@@ -20,6 +20,8 @@ from firmware_py.core.cli import (
 from firmware_py.core.keys import load_key
 from firmware_py.core.version import software_version
 from ground import listen
+from ground.exports.formats import ALL as EXPORT_ALL
+from ground.exports.formats import ExportFormat, parse_formats
 from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, make_report
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
@@ -57,6 +59,10 @@ def build_parser() -> ArgumentParser:
                         "default), bounded (the nearest height held between the floor and the lowest beam that "
                         "crossed above the cell: ground/unseen.py) or leave (no volume there, the paper's method)")
     r.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    r.add_argument("--export", default=None, metavar="FORMATS",
+                   help=f"also write standard exports, a comma list of {', '.join(f.value for f in ExportFormat)} "
+                        f"or {EXPORT_ALL} (default: none): LAS 1.4 points, GeoTIFF surface, PLY surface mesh, GeoJSON "
+                        "contours, georeferenced too when the log header has a site (docs/exports.md)")
     r.add_argument("--surface-fit", choices=SURFACE_FITS, default=DEFAULT_SURFACE_FIT,
                    help="cubic-limited (default: the cubic, kept within each triangle's data, robust to noise), "
                         "cubic (the paper's MATLAB 'cubicinterp'), linear, or local-linear (estimated from the points "
@@ -116,6 +122,8 @@ def format_summary(rep: dict) -> str:
         f"R_a (eq. 9)   {pct(rep.get('coverage_ratio_pct')):>12}",
         f"points used   {rep['n_points_used']:12d} of {rep['n_samples']} samples",
     ]
+    if rep.get("exports"):
+        lines.append(f"exports       {', '.join(rep['exports'])}")
     lines += [f"WARNING: {w}" for w in rep.get("warnings", [])]
     return "\n".join(lines)
 
@@ -127,12 +135,13 @@ def _report(args) -> int:
         raise UserError(f"--max-interval-pct must be > 0, got {args.max_interval_pct:g}")
     if args.max_grid_memory_mb <= 0:
         raise UserError(f"--max-grid-memory-mb must be > 0, got {args.max_grid_memory_mb:g}")
+    exports = parse_formats(args.export)
     opts = ReportOptions(cell_m=args.cell, empty_cells=args.empty_cells, plots=not args.no_plots,
                          truth_volume_m3=args.truth_volume, despike=not args.no_despike,
                          surface_fit=args.surface_fit, servo_retiming=not args.no_servo_retiming,
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),
                          self_calibration=not args.no_self_calibration, max_interval_pct=args.max_interval_pct,
-                         site=args.config_file.site if args.config_file is not None else None)
+                         site=args.config_file.site if args.config_file is not None else None, exports=exports)
     rep = make_report(args.source, args.out, opts, force=args.force)
     if not args.quiet:
         print(format_summary(rep))

@@ -25,6 +25,7 @@ from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
 from ground.despike import SpikeThreshold, why_no_threshold
+from ground.exports.formats import EXPORT_FILES, ExportFormat, check_libraries
 from ground.plausibility import PlausibilityLimits, implausible, without_implausible
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask, structure_n_sigma
 from ground.self_calibration import MountEstimate, apply_mount, describe, estimate_mount
@@ -76,6 +77,7 @@ class ReportOptions:
     self_calibration: bool = True  # servo zero/scale and boresight from the floor and walls (ground.self_calibration)
     site: SiteSection | None = None  # [site] of a --config file: the log's building is checked against it
     max_interval_pct: float = DEFAULT_MAX_INTERVAL_PCT  # warn when the 90 % interval is wider than this
+    exports: tuple[ExportFormat, ...] = ()  # standard exports to write beside the report (ground.exports)
 
 
 @dataclass(frozen=True)
@@ -447,7 +449,7 @@ def site_mismatches(header: dict, site: SiteSection | None) -> list[str]:
 REPORT_FILE = "report.json"
 """The report's marker: put in place last, so a folder without it holds no finished report."""
 REPORT_FILES = (REPORT_FILE, "report.md", "report.html", "cloud.ply", "cloud_top.png", "height_map.png",
-                "coverage.png")
+                "coverage.png", *EXPORT_FILES)
 """Every file a report directory may hold (what --force removes)."""
 
 
@@ -474,6 +476,7 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
         if len(log.samples) == 0:
             raise UserError(f"{log_path}: no samples could be read ({log.blocks_corrupt} corrupt block(s))")
         truth = opts.truth_volume_m3 if opts.truth_volume_m3 is not None else read_truth_volume(truth_path)
+    check_libraries(opts.exports, georeferenced=(log.header or {}).get("site") is not None)
     survey = survey_from_samples(log.samples, log.header or {}, storage, frame, lever, opts)
     report = summarise(survey, log, opts, truth)
     report["source"] = str(source)
@@ -485,6 +488,10 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
     from ground.render import write_html, write_markdown
     with OutputFolder(out, REPORT_FILES, REPORT_FILE, force=force, what="report") as folder:
         images = write_outputs(survey, report, folder.staging, opts.plots)
+        from ground.exports.write import write_exports
+        written = write_exports(survey, log.header or {}, opts.exports, folder.staging)
+        report["exports"] = list(written.files)
+        report["warnings"] += written.warnings
         report["elapsed_s"] = time.perf_counter() - t0
         folder.staged(REPORT_FILE).write_text(json.dumps(report, indent=2) + "\n")
         write_markdown(report, images, folder.staged("report.md"))
