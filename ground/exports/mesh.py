@@ -5,7 +5,8 @@ Each cell the report defines a height for becomes a fan of four triangles: one v
 the cell's own height (the fitted surface there), one at each corner at the mean of the defined cells
 sharing that corner. The solid is closed: vertical walls down to z = 0 along the edges of the defined region
 and a floor at z = 0 under it, so it is watertight (every edge in two faces, consistent winding) and its
-volume is meaningful.
+volume is meaningful. Where two defined cells touch only at a corner, the second gets its own copy of that
+corner (same place and height), so no edge is shared by four faces.
 
 Its volume is the report's grid volume exactly, by construction, not to a tolerance of the method: a fan
 cell's volume is area x (centre/3 + 2/3 x mean of its corners), and summed over the cells each corner gives
@@ -56,22 +57,33 @@ def surface_solid(heights: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarr
         corner_z = total / count  # (nx + 1, ny + 1)
     cx, cy = np.meshgrid(xe, ye, indexing="ij")
     n_corners = (nx + 1) * (ny + 1)
+    # A corner two cells touch only diagonally would carry four wall faces on its vertical edge (not a
+    # manifold): the second cell gets its own copy of that corner, same place, same height.
+    padded = np.pad(defined, 1)
+    sw, se, nw, ne = padded[:-1, :-1], padded[1:, :-1], padded[:-1, 1:], padded[1:, 1:]
+    pinch_a, pinch_b = sw & ne & ~se & ~nw, se & nw & ~sw & ~ne  # (nx + 1, ny + 1)
+    pinch = (pinch_a | pinch_b).ravel()
+    copy_of = np.full(n_corners, -1, dtype=np.int64)
+    copy_of[pinch] = n_corners + np.arange(int(pinch.sum()))
     top = np.column_stack([cx.ravel(), cy.ravel(), np.nan_to_num(corner_z).ravel()])
-    floor = np.column_stack([cx.ravel(), cy.ravel(), np.zeros(n_corners)])
+    top = np.vstack([top, top[pinch]])
+    floor = np.column_stack([top[:, :2], np.zeros(len(top))])
     ii, jj = np.nonzero(defined)
     centres = np.column_stack([0.5 * (xe[ii] + xe[ii + 1]), 0.5 * (ye[jj] + ye[jj + 1]), h[ii, jj]])
 
-    def corner(i: np.ndarray, j: np.ndarray) -> np.ndarray:
-        return i * (ny + 1) + j
+    def corner(i: np.ndarray, j: np.ndarray, copy: np.ndarray | None = None) -> np.ndarray:
+        k = i * (ny + 1) + j
+        return k if copy is None else np.where(copy[i, j], copy_of[k], k)
 
-    c00, c10, c11, c01 = corner(ii, jj), corner(ii + 1, jj), corner(ii + 1, jj + 1), corner(ii, jj + 1)
-    m = 2 * n_corners + np.arange(len(ii))
-    f = n_corners  # floor vertex = corner index + f
+    # the cell north-east of an a-pinch and north-west of a b-pinch takes the copy
+    c00, c10 = corner(ii, jj, pinch_a), corner(ii + 1, jj, pinch_b)
+    c11, c01 = corner(ii + 1, jj + 1), corner(ii, jj + 1)
+    f = len(top)  # floor vertex = top corner vertex + f
+    m = 2 * f + np.arange(len(ii))
     faces = [np.column_stack(t) for t in (
         (m, c00, c10), (m, c10, c11), (m, c11, c01), (m, c01, c00),  # top fan, counter-clockwise from above
         (c00 + f, c11 + f, c10 + f), (c00 + f, c01 + f, c11 + f))]  # floor, clockwise from above
     # Walls: each cell edge (a -> b, counter-clockwise around the cell) whose other side is undefined.
-    padded = np.pad(defined, 1)
     for (a, b), (di, dj) in (((c00, c10), (0, -1)), ((c10, c11), (1, 0)), ((c11, c01), (0, 1)),
                              ((c01, c00), (-1, 0))):
         edge = ~padded[ii + 1 + di, jj + 1 + dj]

@@ -50,7 +50,7 @@ def georeferenced_transform(grid: Grid, georef: Georef):
     L, W = grid.length_m, grid.width_m
     e, n, _ = georef.w_to_utm(np.array([[0.0, W, 0.0], [L, W, 0.0], [0.0, 0.0, 0.0], [L, 0.0, 0.0]]))
     t = Affine((e[1] - e[0]) / nx, (e[2] - e[0]) / ny, e[0], (n[1] - n[0]) / nx, (n[2] - n[0]) / ny, n[0])
-    e4, n4 = t * (nx, ny)
+    e4, n4 = t @ (nx, ny)
     return t, float(np.hypot(e4 - e[3], n4 - n[3]))
 
 
