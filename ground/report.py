@@ -507,6 +507,7 @@ def write_outputs(survey: Survey, report: dict, out: Path, plots: bool) -> dict[
     if not plots:
         return {}
     from ground import plots as p
+    from ground.exports.contours import contour_lines
     lw = (survey.storage.length_m, survey.storage.width_m)
     path = survey.cloud.path_w[:: max(1, len(survey.cloud.path_w) // 5000)]
     ra = report["coverage_ratio_pct"]
@@ -516,7 +517,8 @@ def write_outputs(survey: Survey, report: dict, out: Path, plots: bool) -> dict[
         "height_map": p.plot_height_map(survey.grid.x_edges, survey.grid.y_edges, survey.heights, lw,
                                         out / "height_map.png",
                                         title=f"Fitted surface: {report['volume_m3']:.1f} m³",
-                                        filled=~np.isfinite(survey.heights_fit)),
+                                        filled=~np.isfinite(survey.heights_fit),
+                                        contours=contour_lines(survey.heights, survey.grid)),
         "coverage": p.plot_coverage(survey.grid.x_edges, survey.grid.y_edges, survey.counts,
                                     np.isfinite(survey.heights_fit), lw, out / "coverage.png",
                                     title=f"Coverage (R_a = {ra:.1f} %)"),

@@ -133,8 +133,8 @@ def write_contours(heights: np.ndarray, grid: Grid, out_dir: Path, names: tuple[
 
 def draw_contours(ax, contours: list[Contour], *, color: str = "black", linewidth: float = 0.6,
                   labels: bool = True, zorder: float = 5) -> None:
-    """Draw the lines on a matplotlib axes in W metres, each level labelled once (at the middle of its longest
-    line) with its height."""
+    """Draw the lines on a matplotlib axes in W metres, each level labelled once with its height, at the point
+    of its lines farthest from the labels already placed."""
     from matplotlib.collections import LineCollection
 
     if not contours:
@@ -146,8 +146,15 @@ def draw_contours(ax, contours: list[Contour], *, color: str = "black", linewidt
     step = contours[1].level_m - contours[0].level_m if len(contours) > 1 else contours[0].level_m
     decimals = max(0, -math.floor(math.log10(step) + 1e-9)) + (1 if round(step / 10.0**math.floor(
         math.log10(step) + 1e-9), 6) == 2.5 else 0)
-    for c in contours:
-        line = max(c.lines, key=len)
-        x, y = line[len(line) // 2]
+    placed: list[np.ndarray] = []
+    for c in contours:  # each label where it is farthest from those already placed (greedy): no pile-ups
+        cand = np.vstack(c.lines)
+        if placed:
+            gap = np.min(np.linalg.norm(cand[:, None, :] - np.array(placed)[None, :, :], axis=2), axis=1)
+            x, y = cand[int(np.argmax(gap))]
+        else:
+            longest = max(c.lines, key=len)
+            x, y = longest[len(longest) // 2]
+        placed.append(np.array([x, y]))
         ax.text(x, y, f"{c.level_m:.{decimals}f}", fontsize="x-small", color=color, ha="center", va="center",
                 zorder=zorder + 0.1, bbox={"boxstyle": "round,pad=0.1", "fc": "white", "ec": "none", "alpha": 0.7})

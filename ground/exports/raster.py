@@ -35,7 +35,7 @@ def raster_rows(heights: np.ndarray) -> np.ndarray:
 
 def local_transform(grid: Grid):
     """The affine pixel -> W metres: x = col * cx, y = width - row * cy."""
-    from affine import Affine
+    from rasterio.transform import Affine
 
     nx, ny = grid.shape
     return Affine(grid.length_m / nx, 0.0, 0.0, 0.0, -grid.width_m / ny, grid.width_m)
@@ -44,13 +44,13 @@ def local_transform(grid: Grid):
 def georeferenced_transform(grid: Grid, georef: Georef):
     """The affine pixel -> UTM metres through three of the building's corners, and its error (m) at the
     fourth: (transform, residual_m)."""
-    from affine import Affine
+    from rasterio.transform import Affine
 
     nx, ny = grid.shape
     L, W = grid.length_m, grid.width_m
     e, n, _ = georef.w_to_utm(np.array([[0.0, W, 0.0], [L, W, 0.0], [0.0, 0.0, 0.0], [L, 0.0, 0.0]]))
     t = Affine((e[1] - e[0]) / nx, (e[2] - e[0]) / ny, e[0], (n[1] - n[0]) / nx, (n[2] - n[0]) / ny, n[0])
-    e4, n4 = t @ (nx, ny)
+    e4, n4 = t.a * nx + t.b * ny + t.c, t.d * nx + t.e * ny + t.f  # the fourth corner, (L, 0)
     return t, float(np.hypot(e4 - e[3], n4 - n[3]))
 
 
