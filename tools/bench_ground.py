@@ -1,5 +1,6 @@
-"""Benchmarks (medians; never asserted in tests): ground report with and without plots on a
-~100k-sample run, batch ray casting, SITL flight. Usage: python -m tools.bench_ground [--write docs/benchmarks.md]
+"""Benchmarks (medians; never asserted in tests): ground report with and without plots, and with plots and every
+export (`--export all`), on a ~100k-sample run, batch ray casting, SITL flight.
+Usage: python -m tools.bench_ground [--write docs/benchmarks.md]
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from firmware_py.core.storage import Storage
+from ground.exports.formats import ExportFormat
 from ground.report import ReportOptions, make_report
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
@@ -62,6 +64,9 @@ def main(argv: list[str] | None = None) -> int:
         rows.append((f"ground report, no plots ({n:,} samples)", no_plots, "target <= 1 s"))
         plots, _ = median_time(lambda: make_report(run, Path(tmp) / "r2", ReportOptions(), force=True), args.repeat)
         rows.append((f"ground report, with plots ({n:,} samples)", plots, "target <= 3 s"))
+        every = ReportOptions(exports=tuple(ExportFormat))
+        exports, _ = median_time(lambda: make_report(run, Path(tmp) / "r4", every, force=True), args.repeat)
+        rows.append((f"ground report, with plots and every export, georeferenced ({n:,} samples)", exports, ""))
         cli = [sys.executable, "-m", "ground.cli", "report", str(run), "--out", str(Path(tmp) / "r3"), "--quiet",
                "--force"]
         cold, _ = median_time(lambda: subprocess.run(cli, check=True), 3)
