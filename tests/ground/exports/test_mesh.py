@@ -64,3 +64,16 @@ def test_that_any_pattern_of_defined_cells_gives_a_closed_solid_of_the_grid_volu
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     assert mesh.is_watertight and mesh.is_winding_consistent
     assert mesh.volume == pytest.approx(grid_volume(h, grid), rel=VOLUME_RTOL, abs=1e-9)
+
+
+def test_that_a_mesh_too_big_for_the_memory_allowed_is_refused_before_the_survey(flown, tmp_path):
+    from firmware_py.core.cli import UserError
+    from ground.exports.formats import ExportFormat
+    from ground.report import ReportOptions, make_report
+
+    opts = ReportOptions(plots=False, cell_m=0.05, max_grid_memory_bytes=50 * 2**20, exports=(ExportFormat.MESH,))
+    with pytest.raises(UserError, match=r"--export mesh of 240,000 cells would need about 160 MiB") as exc:
+        make_report(flown.run, tmp_path / "rep", opts)
+    assert "\n" not in str(exc.value) and not (tmp_path / "rep" / "report.json").exists()
+    # without the mesh the same grid fits: the refusal is the mesh's
+    make_report(flown.run, tmp_path / "rep", ReportOptions(plots=False, cell_m=0.05, max_grid_memory_bytes=50 * 2**20))
