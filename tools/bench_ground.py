@@ -52,6 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--write", type=Path, help="also write the table to this Markdown file")
     args = ap.parse_args(argv)
     rows = []
+    load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         run = Path(tmp) / "run"
         cfg = FlyConfig(mission=Mission(p_traj=0.05), stockpile="1")
@@ -73,7 +74,9 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(("`pilescan-ground report` as a fresh process, with plots (incl. imports)", cold, ""))
     rate = bench_rays(1_000_000, args.repeat)
     lines = [f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; "
-             f"medians of {args.repeat} runs (3 for the fresh process).", "",
+             f"medians of {args.repeat} runs (3 for the fresh process); load average (1 min) {load_before:.1f} "
+             f"before, {os.getloadavg()[0]:.1f} after (above the core count, other work shared the machine and "
+             "every row is slower by about that ratio).", "",
              "| benchmark | median | note |", "|---|---|---|"]
     lines += [f"| {name} | {t:.3f} s | {note} |" for name, t, note in rows]
     lines.append(f"| batch ray casting, 1 M rays (Embree) | {rate / 1e6:.2f} M rays/s | target >= 1 M rays/s |")
