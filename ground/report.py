@@ -25,8 +25,8 @@ from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
 from ground.despike import SpikeThreshold, why_no_threshold
-from ground.exports.formats import EXPORT_FILES, ExportFormat, check_libraries
-from ground.exports.mesh import check_mesh_memory
+from ground.exports.formats import EXPORT_FILES, ExportFormat
+from ground.exports.write import check_exports, write_exports
 from ground.plausibility import PlausibilityLimits, implausible, without_implausible
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask, structure_n_sigma
 from ground.self_calibration import MountEstimate, apply_mount, describe, estimate_mount
@@ -477,13 +477,7 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
         if len(log.samples) == 0:
             raise UserError(f"{log_path}: no samples could be read ({log.blocks_corrupt} corrupt block(s))")
         truth = opts.truth_volume_m3 if opts.truth_volume_m3 is not None else read_truth_volume(truth_path)
-    check_libraries(opts.exports, georeferenced=(log.header or {}).get("site") is not None)
-    if ExportFormat.MESH in opts.exports:
-        try:
-            cells = math.prod(Grid(storage.length_m, storage.width_m, opts.cell_m).shape)
-        except ValueError:  # a cell size the survey refuses, in its own words
-            cells = 0
-        check_mesh_memory(cells, opts.max_grid_memory_bytes)
+    check_exports(opts.exports, log.header or {}, storage, opts.cell_m, opts.max_grid_memory_bytes)
     survey = survey_from_samples(log.samples, log.header or {}, storage, frame, lever, opts)
     report = summarise(survey, log, opts, truth)
     report["source"] = str(source)
@@ -495,7 +489,6 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
     from ground.render import write_html, write_markdown
     with OutputFolder(out, REPORT_FILES, REPORT_FILE, force=force, what="report") as folder:
         images = write_outputs(survey, report, folder.staging, opts.plots)
-        from ground.exports.write import write_exports
         written = write_exports(survey, log.header or {}, opts.exports, folder.staging)
         report["exports"] = list(written.files)
         report["warnings"] += written.warnings

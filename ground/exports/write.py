@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from ground.exports.formats import FILES, ExportFormat
+from firmware_py.core.storage import Storage
+from ground.exports.formats import FILES, ExportFormat, check_libraries
 from ground.exports.georef import Georef
+from ground.exports.mesh import check_mesh_memory
 from ground.pointcloud import SensorErrorModel
+from ground.surface import Grid
 
 
 @dataclass(frozen=True)
@@ -16,6 +20,19 @@ class Written:
 
     files: tuple[str, ...]
     warnings: tuple[str, ...] = ()
+
+
+def check_exports(formats: tuple[ExportFormat, ...], header: dict, storage: Storage, cell_m: float,
+                  max_grid_memory_bytes: int) -> None:
+    """What can be refused before the survey is computed, in one line each: a missing library, a mesh too big
+    for the memory allowed."""
+    check_libraries(formats, georeferenced=header.get("site") is not None)
+    if ExportFormat.MESH in formats:
+        try:
+            cells = math.prod(Grid(storage.length_m, storage.width_m, cell_m).shape)
+        except ValueError:  # a cell size the survey refuses, in its own words
+            cells = 0
+        check_mesh_memory(cells, max_grid_memory_bytes)
 
 
 def write_exports(survey, header: dict, formats: tuple[ExportFormat, ...], out_dir: Path) -> Written:
