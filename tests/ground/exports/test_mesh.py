@@ -63,7 +63,9 @@ def test_that_any_pattern_of_defined_cells_gives_a_closed_solid_of_the_grid_volu
         return
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     assert mesh.is_watertight and mesh.is_winding_consistent
-    assert mesh.volume == pytest.approx(grid_volume(h, grid), rel=VOLUME_RTOL, abs=1e-9)
+    with np.errstate(invalid="ignore", divide="ignore"):  # trimesh's centre of mass of a zero-volume solid
+        volume = mesh.volume
+    assert volume == pytest.approx(grid_volume(h, grid), rel=VOLUME_RTOL, abs=1e-9)
 
 
 def test_that_a_mesh_too_big_for_the_memory_allowed_is_refused_before_the_survey(flown, tmp_path):
