@@ -17,9 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
+from firmware_py.core.rundir import SAMPLES_FILE
+from firmware_py.core.samplelog import read_samplelog
 from firmware_py.core.storage import Storage
 from ground.exports.formats import ExportFormat
-from ground.report import ReportOptions, make_report
+from ground.exports.write import write_exports
+from ground.report import ReportOptions, header_geometry, make_report, survey_from_samples
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
 from sitl.world.raycast import World
@@ -46,6 +49,13 @@ def bench_rays(n: int, repeat: int) -> float:
     return n / med
 
 
+def _survey(run: Path):
+    """The survey of a run directory as the report computes it (default options), and its log header."""
+    log = read_samplelog(run / SAMPLES_FILE)
+    storage, frame, lever = header_geometry(log, run)
+    return survey_from_samples(log.samples, log.header, storage, frame, lever, ReportOptions()), log.header
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeat", type=int, default=7)
@@ -68,6 +78,10 @@ def main(argv: list[str] | None = None) -> int:
         every = ReportOptions(exports=tuple(ExportFormat))
         exports, _ = median_time(lambda: make_report(run, Path(tmp) / "r4", every, force=True), args.repeat)
         rows.append((f"ground report, with plots and every export, georeferenced ({n:,} samples)", exports, ""))
+        survey, header = _survey(run)
+        alone, _ = median_time(lambda: write_exports(survey, header, tuple(ExportFormat), Path(tmp) / "x"), args.repeat)
+        rows.append((f"of which the exports alone (`write_exports`, every format, {len(survey.cloud.points_w):,} "
+                     f"points, {survey.grid.shape[0] * survey.grid.shape[1]:,} cells)", alone, ""))
         cli = [sys.executable, "-m", "ground.cli", "report", str(run), "--out", str(Path(tmp) / "r3"), "--quiet",
                "--force"]
         cold, _ = median_time(lambda: subprocess.run(cli, check=True), 3)
