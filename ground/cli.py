@@ -22,6 +22,8 @@ from firmware_py.core.rundir import check_free
 from firmware_py.core.version import software_version
 from ground import listen
 from ground.base import BaseKind, BaseSpec
+from ground.exports.formats import ALL as EXPORT_ALL
+from ground.exports.formats import ExportFormat, parse_formats
 from ground.metadata import SurveyInfo, check_timezone, metadata_rows
 from ground.piles import DEFAULT_MIN_PILE_AREA_M2, MassUnit, PileOptions, VolumeUnit, pile_rows
 from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, make_report
@@ -84,6 +86,10 @@ def build_parser() -> ArgumentParser:
                    help="the site's time zone (e.g. Europe/London): the report shows local time beside UTC")
     r.add_argument("--operator", default=None, metavar="NAME", help="who flew the survey, for the report")
     r.add_argument("--aircraft", default=None, metavar="NAME", help="the aircraft flown, for the report")
+    r.add_argument("--export", default=None, metavar="FORMATS",
+                   help=f"also write standard exports, a comma list of {', '.join(f.value for f in ExportFormat)} "
+                        f"or {EXPORT_ALL} (default: none): LAS 1.4 points, GeoTIFF surface, PLY surface mesh, GeoJSON "
+                        "contours, georeferenced too when the log header has a site (docs/exports.md)")
     r.add_argument("--surface-fit", choices=SURFACE_FITS, default=DEFAULT_SURFACE_FIT,
                    help="cubic-limited (default: the cubic, kept within each triangle's data, robust to noise), "
                         "cubic (the paper's MATLAB 'cubicinterp'), linear, or local-linear (estimated from the points "
@@ -166,6 +172,8 @@ def format_summary(rep: dict) -> str:
         widths = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
         lines += ["piles:"] + ["  " + "  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip()
                                for r in [head, *rows]]
+    if rep.get("exports"):
+        lines.append(f"exports       {', '.join(rep['exports'])}")
     lines += [f"WARNING: {w}" for w in rep.get("warnings", [])]
     return "\n".join(lines)
 
@@ -196,13 +204,14 @@ def _report(args) -> int:
             raise UserError(f"--timezone: {exc}") from None
     info = SurveyInfo(site_name=args.site_name, timezone=args.timezone, operator=args.operator,
                       aircraft=args.aircraft)
+    exports = parse_formats(args.export)
     opts = ReportOptions(cell_m=args.cell, empty_cells=args.empty_cells, plots=not args.no_plots,
                          truth_volume_m3=args.truth_volume, despike=not args.no_despike,
                          surface_fit=args.surface_fit, servo_retiming=not args.no_servo_retiming,
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),
                          self_calibration=not args.no_self_calibration, max_interval_pct=args.max_interval_pct,
                          site=args.config_file.site if args.config_file is not None else None,
-                         base=base, piles=piles, info=info)
+                         base=base, piles=piles, info=info, exports=exports)
     rep = make_report(args.source, args.out, opts, force=args.force)
     if not args.quiet:
         print(format_summary(rep))

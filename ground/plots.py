@@ -28,6 +28,8 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
 
+from ground.exports.contours import Contour, draw_contours
+
 DPI = 110
 FIGSIZE_IN = (8.0, 5.5)
 HEIGHT_CMAP = "viridis"
@@ -242,10 +244,12 @@ def height_map_figure(
     storage_lw_m: tuple[float, float],
     title: str = "Fitted height map",
     filled: np.ndarray | None = None,
+    contours: list[Contour] | None = None,
 ) -> Figure:
     """Top view of the surface heights[ix, iy] (paper Fig. 10b from above); NaN cells white. Cells the
     fitted surface never reached and the empty-cell policy filled (filled[ix, iy]) are hatched and
-    outlined, so the invented part is never mistaken for a measured one."""
+    outlined, so the invented part is never mistaken for a measured one. Contour lines
+    (`ground.exports.contours`), when given, are drawn and labelled with their heights."""
     storage = _storage_lw(storage_lw_m)
     xe = np.asarray(x_edges, dtype=float)
     ye = np.asarray(y_edges, dtype=float)
@@ -273,8 +277,12 @@ def height_map_figure(
                                              zorder=4))
             ax.legend(handles=[Patch(facecolor="white", edgecolor="0.25", hatch="///",
                                      label="filled (never seen; empty-cell policy)")], **_LEGEND_BELOW)
+        if contours:
+            draw_contours(ax, contours)
+        step = contours[1].level_m - contours[0].level_m if contours and len(contours) > 1 else None
         title = (f"{title}\n(surface fitted on {100 * measured.mean():.1f} % of {h.size:,} cells"
-                 + (f", filled on {100 * f.mean():.1f} %)" if f.any() else ")"))
+                 + (f", filled on {100 * f.mean():.1f} %" if f.any() else "")
+                 + (f"; contours every {step:g} m)" if step else ")"))
     ax.set_title(title)
     return fig
 
@@ -287,9 +295,10 @@ def plot_height_map(
     out_png: str | Path,
     title: str = "Fitted height map",
     filled: np.ndarray | None = None,
+    contours: list[Contour] | None = None,
 ) -> Path:
     """Write the height-map plot (see `height_map_figure`) and return the PNG path."""
-    return save_png(height_map_figure(x_edges, y_edges, heights, storage_lw_m, title, filled), out_png)
+    return save_png(height_map_figure(x_edges, y_edges, heights, storage_lw_m, title, filled, contours), out_png)
 
 
 # ------------------------------------------------------------------------------------------- coverage

@@ -99,6 +99,9 @@ class Cloud:
     n_servo_suspect: int = 0  # of n_excluded: in sweep periods whose ranges show a stuck servo
     n_spikes: int = 0  # of n_excluded: isolated one- or two-sample range spikes (ground.despike)
     sweep_dir: np.ndarray | None = None  # (N,) +1 / -1 per point: which way the servo was sweeping
+    t_s: np.ndarray | None = None  # (N,) each point's sample time on the log's clock (the LAS export's time)
+    servo_rad: np.ndarray | None = None  # (N,) the servo angle each point was placed with (re-estimated ones too)
+    flags: np.ndarray | None = None  # (N,) each point's sample flags (none of EXCLUDE_FROM_CLOUD)
 
 
 def cloud_from_samples(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame,
@@ -128,7 +131,18 @@ def cloud_from_samples(samples: np.ndarray, lever_arm_body_m, frame: StorageFram
     path = frame.ned_to_w(pos[np.isfinite(pos).all(axis=1)])
     return Cloud(origins + dirs * rng[:, None], dirs, rng, path, len(samples),
                  int(len(samples) - usable.sum()), n_servo_suspect=int(suspect.sum()),
-                 n_spikes=int(spikes.sum()), sweep_dir=samples["sweep_dir"][usable])
+                 n_spikes=int(spikes.sum()), sweep_dir=samples["sweep_dir"][usable], t_s=samples["t_s"][usable],
+                 servo_rad=gamma, flags=samples["flags"][usable])
+
+
+def plane_tolerances_m(cloud: Cloud, err: SensorErrorModel, n_sigma: float | None = None) -> np.ndarray:
+    """(N, 3) each point's tolerance along the x, y and z axes (the normals of the walls, floor and roof):
+    see `structure_mask`, which takes a point within it of a plane as on that plane."""
+    d = cloud.dirs_w
+    k = structure_n_sigma(len(cloud.range_m)) if n_sigma is None else n_sigma
+    along = k * err.range_sigma(cloud.range_m) + 0.5 * err.resolution_m
+    slack = k * err.position_sigma_m + 1e-3
+    return along[:, None] * np.abs(d) + slack
 
 
 def structure_mask(cloud: Cloud, storage: Storage, err: SensorErrorModel, n_sigma: float | None = None) -> np.ndarray:
@@ -142,13 +156,8 @@ def structure_mask(cloud: Cloud, storage: Storage, err: SensorErrorModel, n_sigm
     error: docs/design-notes.md says why); k is n_sigma, or
     `structure_n_sigma` of the cloud's size (so no wall point escapes by chance in a whole survey).
     """
-    p, d = cloud.points_w, cloud.dirs_w
-    k = structure_n_sigma(len(cloud.range_m)) if n_sigma is None else n_sigma
-    along = k * err.range_sigma(cloud.range_m) + 0.5 * err.resolution_m
-    slack = k * err.position_sigma_m + 1e-3
-    tol_x = along * np.abs(d[:, 0]) + slack
-    tol_y = along * np.abs(d[:, 1]) + slack
-    tol_z = along * np.abs(d[:, 2]) + slack
+    p = cloud.points_w
+    tol_x, tol_y, tol_z = plane_tolerances_m(cloud, err, n_sigma).T
     # Beside a wall, a point within both the wall's and the floor's tolerance goes to the surface it fits
     # better (its distance in tolerances): the floor along the walls and a pile's toe are seen, a wall's
     # foot stays wall.

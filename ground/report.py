@@ -28,6 +28,8 @@ from ground.base import FLOOR, FLOOR_BASE, Base, BaseKind, BaseSpec, fitted_floo
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
 from ground.deliverable import add_deliverable
 from ground.despike import SpikeThreshold, why_no_threshold
+from ground.exports.formats import EXPORT_FILES, ExportFormat
+from ground.exports.write import check_exports, write_exports
 from ground.metadata import SurveyInfo
 from ground.piles import PILES_CSV, PileOptions, write_piles_csv
 from ground.plausibility import PlausibilityLimits, implausible, without_implausible
@@ -88,6 +90,7 @@ class ReportOptions:
     base: BaseSpec = FLOOR  # the surface the volume is measured from (ground.base)
     piles: PileOptions = field(default_factory=PileOptions)  # names, densities, units (ground.piles)
     info: SurveyInfo = field(default_factory=SurveyInfo)  # site name, time zone, operator, aircraft (ground.metadata)
+    exports: tuple[ExportFormat, ...] = ()  # standard exports to write beside the report (ground.exports)
 
 
 @dataclass(frozen=True)
@@ -469,7 +472,7 @@ def site_mismatches(header: dict, site: SiteSection | None) -> list[str]:
 REPORT_FILE = "report.json"
 """The report's marker: put in place last, so a folder without it holds no finished report."""
 REPORT_FILES = (REPORT_FILE, "report.md", "report.html", "cloud.ply", "cloud_top.png", "height_map.png",
-                "coverage.png", PILES_CSV)
+                "coverage.png", PILES_CSV, *EXPORT_FILES)
 """Every file a report directory may hold (what --force removes)."""
 REPORT_FILES = (*REPORT_FILES, SURFACE_FILE)  # the final height grid, a later survey's base (ground.surface_file)
 
@@ -500,6 +503,7 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
             raise UserError(f"{log_path}: no samples could be read ({log.blocks_corrupt} corrupt block(s))")
         truth = opts.truth_volume_m3 if opts.truth_volume_m3 is not None else (
             None if opts.base.kind is BaseKind.SURVEY else read_truth_volume(truth_path))  # not a change
+    check_exports(opts.exports, log.header or {}, storage, opts.cell_m, opts.max_grid_memory_bytes)
     survey = survey_from_samples(log.samples, log.header or {}, storage, frame, lever, opts)
     if np.isfinite(survey.heights_fit).any():
         survey = with_base(survey, log.header or {}, opts)
@@ -518,6 +522,9 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
         images = write_outputs(survey, report, folder.staging, opts.plots)
         save_surface(saved_surface(survey, log.header or {}, opts, str(source)), folder.staged(SURFACE_FILE))
         write_piles_csv(report["piles"], folder.staged(PILES_CSV))
+        written = write_exports(survey, log.header or {}, opts.exports, folder.staging)
+        report["exports"] = list(written.files)
+        report["warnings"] += written.warnings
         report["elapsed_s"] = time.perf_counter() - t0
         folder.staged(REPORT_FILE).write_text(json.dumps(report, indent=2) + "\n")
         write_markdown(report, images, folder.staged("report.md"))
@@ -533,6 +540,7 @@ def write_outputs(survey: Survey, report: dict, out: Path, plots: bool) -> dict[
     if not plots:
         return {}
     from ground import plots as p
+    from ground.exports.contours import contour_lines
     lw = (survey.storage.length_m, survey.storage.width_m)
     path = survey.cloud.path_w[:: max(1, len(survey.cloud.path_w) // 5000)]
     ra = report["coverage_ratio_pct"]
@@ -542,7 +550,8 @@ def write_outputs(survey: Survey, report: dict, out: Path, plots: bool) -> dict[
         "height_map": p.plot_height_map(survey.grid.x_edges, survey.grid.y_edges, survey.heights, lw,
                                         out / "height_map.png",
                                         title=f"Fitted surface: {report['volume_m3']:.1f} m³",
-                                        filled=~np.isfinite(survey.heights_fit)),
+                                        filled=~np.isfinite(survey.heights_fit),
+                                        contours=contour_lines(survey.heights, survey.grid)),
         "coverage": p.plot_coverage(survey.grid.x_edges, survey.grid.y_edges, survey.counts,
                                     np.isfinite(survey.heights_fit), lw, out / "coverage.png",
                                     title=f"Coverage (R_a = {ra:.1f} %)"),

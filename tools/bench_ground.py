@@ -1,5 +1,6 @@
-"""Benchmarks (medians; never asserted in tests): ground report with and without plots on a
-~100k-sample run, batch ray casting, SITL flight. Usage: python -m tools.bench_ground [--write docs/benchmarks.md]
+"""Benchmarks (medians; never asserted in tests): ground report with and without plots, and with plots and every
+export (`--export all`), on a ~100k-sample run, batch ray casting, SITL flight.
+Usage: python -m tools.bench_ground [--write docs/benchmarks.md]
 """
 
 from __future__ import annotations
@@ -16,8 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
+from firmware_py.core.rundir import SAMPLES_FILE
+from firmware_py.core.samplelog import read_samplelog
 from firmware_py.core.storage import Storage
-from ground.report import ReportOptions, make_report
+from ground.exports.formats import ExportFormat
+from ground.exports.write import write_exports
+from ground.report import ReportOptions, header_geometry, make_report, survey_from_samples
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
 from sitl.world.raycast import World
@@ -44,12 +49,20 @@ def bench_rays(n: int, repeat: int) -> float:
     return n / med
 
 
+def _survey(run: Path):
+    """The survey of a run directory as the report computes it (default options), and its log header."""
+    log = read_samplelog(run / SAMPLES_FILE)
+    storage, frame, lever = header_geometry(log, run)
+    return survey_from_samples(log.samples, log.header, storage, frame, lever, ReportOptions()), log.header
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--write", type=Path, help="also write the table to this Markdown file")
     args = ap.parse_args(argv)
     rows = []
+    load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         run = Path(tmp) / "run"
         cfg = FlyConfig(mission=Mission(p_traj=0.05), stockpile="1")
@@ -62,13 +75,22 @@ def main(argv: list[str] | None = None) -> int:
         rows.append((f"ground report, no plots ({n:,} samples)", no_plots, "target <= 1 s"))
         plots, _ = median_time(lambda: make_report(run, Path(tmp) / "r2", ReportOptions(), force=True), args.repeat)
         rows.append((f"ground report, with plots ({n:,} samples)", plots, "target <= 3 s"))
+        every = ReportOptions(exports=tuple(ExportFormat))
+        exports, _ = median_time(lambda: make_report(run, Path(tmp) / "r4", every, force=True), args.repeat)
+        rows.append((f"ground report, with plots and every export, georeferenced ({n:,} samples)", exports, ""))
+        survey, header = _survey(run)
+        alone, _ = median_time(lambda: write_exports(survey, header, tuple(ExportFormat), Path(tmp) / "x"), args.repeat)
+        rows.append((f"of which the exports alone (`write_exports`, every format, {len(survey.cloud.points_w):,} "
+                     f"points, {survey.grid.shape[0] * survey.grid.shape[1]:,} cells)", alone, ""))
         cli = [sys.executable, "-m", "ground.cli", "report", str(run), "--out", str(Path(tmp) / "r3"), "--quiet",
                "--force"]
         cold, _ = median_time(lambda: subprocess.run(cli, check=True), 3)
         rows.append(("`pilescan-ground report` as a fresh process, with plots (incl. imports)", cold, ""))
     rate = bench_rays(1_000_000, args.repeat)
     lines = [f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; "
-             f"medians of {args.repeat} runs (3 for the fresh process).", "",
+             f"medians of {args.repeat} runs (3 for the fresh process); load average (1 min) {load_before:.1f} "
+             f"before, {os.getloadavg()[0]:.1f} after (above the core count, other work shared the machine and "
+             "every row is slower by about that ratio).", "",
              "| benchmark | median | note |", "|---|---|---|"]
     lines += [f"| {name} | {t:.3f} s | {note} |" for name, t, note in rows]
     lines.append(f"| batch ray casting, 1 M rays (Embree) | {rate / 1e6:.2f} M rays/s | target >= 1 M rays/s |")
