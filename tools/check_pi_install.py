@@ -18,6 +18,7 @@ Exit code 0 when all of it holds; the last line is the pytest summary.
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import shutil
 import subprocess
@@ -37,10 +38,16 @@ class CheckFailed(RuntimeError):
 def run(cmd: list[str], cwd: Path | None = None, expect_ok: bool = True) -> subprocess.CompletedProcess:
     """Run a step, echoing it; a failed step stops the check with its output."""
     print("$", " ".join(str(c) for c in cmd), flush=True)
-    done = subprocess.run([str(c) for c in cmd], cwd=cwd, capture_output=True, text=True)
+    done = subprocess.run([str(c) for c in cmd], cwd=cwd, capture_output=True, text=True, env=clean_env())
     if expect_ok and done.returncode != 0:
         raise CheckFailed(f"{cmd[0]} failed ({done.returncode}):\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
     return done
+
+
+def clean_env() -> dict[str, str]:
+    """This environment without PYTHONPATH/PYTHONHOME: with them, the payload venv would import the checkout
+    (whose sitl/ and ground/ the check then deletes) instead of what it installed."""
+    return {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
 
 
 def build_wheel(work: Path) -> Path:
@@ -72,6 +79,8 @@ def payload_venv(wheel: Path, work: Path) -> Path:
             raise CheckFailed(f"{module} imports in the payload-only venv: a simulator dependency leaked into [hw]")
     site = Path(run([py, "-c", "import firmware_py, os; print(os.path.dirname(firmware_py.__path__[0]))"],
                     cwd=work).stdout.strip())
+    if not site.resolve().is_relative_to(venv.resolve()):
+        raise CheckFailed(f"the payload venv imports firmware_py from {site}, outside {venv}: refusing to delete there")
     for package in ("sitl", "ground"):
         shutil.rmtree(site / package)
         if run([py, "-c", f"import {package}"], cwd=work, expect_ok=False).returncode == 0:
