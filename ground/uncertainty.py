@@ -96,12 +96,12 @@ class IntervalModel:
 
 # --- calibrated interval model (tools/calibrate_interval.py --write-model) ---
 DEFAULT_INTERVAL_MODEL = IntervalModel(
-    k_unseen=0.152693,
-    k_interpolation=0.823698,
-    k_noise=0.00179755,
-    k_sweeps=0.00616657,
-    k_faces=6.06582,
-    k_blur=0.442995,
+    k_unseen=2.03616,
+    k_interpolation=0.526668,
+    k_noise=0.0228026,
+    k_sweeps=0.512233,
+    k_faces=4.98751,
+    k_blur=0.786172,
     source='fitted on 819 calibration runs of the evaluation set (tools/calibrate_interval.py, 2026-11-25)')
 # --- end of calibrated interval model ---
 

@@ -3,9 +3,9 @@
 Every stored run of the evaluation set (tools/evalset.py) goes through today's ground station; its
 volume, true volume and error terms (ground.uncertainty.ErrorTerms) become a row. The factors
 k (one per term) are fitted on the **calibration** runs only: for a candidate direction k, the
-smallest common scale s that puts the truth inside the interval of 90 % of those runs, within each
-sensor-noise model (STRATUM), is the largest of the models' quantiles (each run needs s_i = |error| /
-its half-width on the error's side); among candidates the one with
+smallest common scale s that puts the truth inside the interval of 90 % of those runs (or of each
+stratum's, `--stratum`: then the largest of their quantiles) is a quantile of what each run needs (s_i =
+|error| / its half-width on the error's side); among candidates the one with
 the smallest median relative half-width wins. The **held-out** runs (other seeds, a whole building and
 a whole pile family the fit never saw) then give the coverage and widths this module reports, broken
 down by P_traj and noise model, in docs/uncertainty.md. With --write-model the fitted factors replace
@@ -42,9 +42,11 @@ MODEL_BEGIN = "# --- calibrated interval model (tools/calibrate_interval.py --wr
 MODEL_END = "# --- end of calibrated interval model ---"
 N_CANDIDATES = 4000
 SEED = 14
-STRATUM = "noise"
-"""The interval must hold within each sensor-noise model, not on average over them: a surveyor flies one
-sensor, and an interval that covers 97 % of Appendix-A surveys and 80 % of datasheet ones holds for nobody."""
+STRATUM: str | None = None
+"""By default the 90 % is over all calibration runs. `--stratum noise` makes it hold within each sensor-noise
+model instead (a surveyor flies one sensor); measured on the evaluation set that narrowed the median but
+let P_traj 5 % fall to 78 % held-out, while the pooled fit stayed at 87-95 % in every noise model and P_traj
+(docs/uncertainty.md, design notes)."""
 
 
 def run_row(case: Case, root: str = "runs/evalset") -> list[dict]:
@@ -224,6 +226,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--from-rows", type=Path, default=None, help="read rows from this CSV instead of running")
     ap.add_argument("--write", type=Path, default=None, help="the Markdown page to (re)write the tables in")
     ap.add_argument("--write-model", action="store_true", help="write the fitted factors into ground/uncertainty.py")
+    ap.add_argument("--stratum", default=STRATUM, metavar="COLUMN",
+                    help="hold the 90 %% within each value of this row column (e.g. noise) instead of over all runs")
     args = ap.parse_args(argv)
     rows = read_rows_csv(args.from_rows) if args.from_rows else rows_for(args.root, args.jobs, args.cache)
     if args.rows:
@@ -233,7 +237,9 @@ def main(argv: list[str] | None = None) -> int:
     if not calib or not held:
         raise SystemExit(f"calibrate_interval: need both parts, got {len(calib)} calibration and {len(held)} "
                          "held-out runs")
-    k, _ = fit(calib)
+    if args.stratum is not None and any(args.stratum not in r for r in calib):
+        raise SystemExit(f"calibrate_interval: --stratum {args.stratum}: not a column of the rows")
+    k, _ = fit(calib, stratum=args.stratum)
     model = model_of(k, f"fitted on {len(calib)} calibration runs of the evaluation set "
                         f"(tools/calibrate_interval.py, {time.strftime('%Y-%m-%d')})")
     command = "python -m tools.calibrate_interval " + " ".join(argv if argv is not None else sys.argv[1:])

@@ -39,7 +39,7 @@ def test_that_the_interval_holds_within_each_noise_model_not_only_on_average():
         r["noise"] = "rough"
         r["volume_m3"] = r["true_volume_m3"] + 2.0 * (r["volume_m3"] - r["true_volume_m3"])
     pooled = model_of(fit(calm + rough, n_candidates=300, stratum=None)[0], "pooled")
-    per_model = model_of(fit(calm + rough, n_candidates=300)[0], "per model")
+    per_model = model_of(fit(calm + rough, n_candidates=300, stratum="noise")[0], "per model")
     assert coverage(pooled, rough)["coverage_pct"] < 85.0  # the majority hides the rough sensor
     assert coverage(per_model, rough)["coverage_pct"] >= 90.0 and coverage(per_model, calm)["coverage_pct"] >= 90.0
 
