@@ -333,7 +333,8 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         terms = survey.errors.terms
         interval = base.interval_m3(volume, terms, DEFAULT_INTERVAL_MODEL)
         warnings += [w for w in (
-            unseen_warning(survey.heights_fit, survey.heights, g, terms, DEFAULT_INTERVAL_MODEL),
+            unseen_warning(survey.heights_fit, survey.heights, g, terms, DEFAULT_INTERVAL_MODEL, volume,
+                           opts.max_interval_pct),
             faces_warning(survey.errors.faces, g, terms, DEFAULT_INTERVAL_MODEL),
             wide_interval_warning(volume, interval, opts.max_interval_pct)) if w]
     warnings += list(base.warnings)

@@ -53,10 +53,15 @@ def regions(mask: np.ndarray, weight_m3: np.ndarray, grid: Grid, n: int = MAX_RE
 
 
 def unseen_warning(heights_fit: np.ndarray, heights: np.ndarray, grid: Grid, t: ErrorTerms,
-                   model: IntervalModel) -> str | None:
-    """When the filled cells hold material and dominate the interval."""
+                   model: IntervalModel, volume_m3: float | None = None,
+                   max_pct: float = DEFAULT_MAX_INTERVAL_PCT) -> str | None:
+    """When the filled cells hold material, dominate the interval, and (given the volume) widen it by more
+    than half the tolerance max_pct: a survey whose whole interval is a fraction of a percent need not
+    hear that most of that fraction is unseen floor."""
     scaled = model.k_unseen * max(t.unseen_low_m3, t.unseen_high_m3)
     if scaled <= 0 or _share(scaled, t, model, t.unseen_high_m3 > t.unseen_low_m3) < DOMINANT_SHARE:
+        return None
+    if volume_m3 is not None and volume_m3 > 0 and scaled < 0.5 * max_pct / 100.0 * volume_m3:
         return None
     filled = ~np.isfinite(heights_fit)
     left_empty = not np.isfinite(heights[filled]).any()  # --empty-cells leave: the material is missing

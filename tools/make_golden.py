@@ -6,8 +6,9 @@
 The log is a cut-down real run: pile 1 at P_traj 20 % flown by `sitl.runners.fly.fly` with the payload
 firmware in the loop on the JSBSim plant (seed 0), keeping every `KEEP_EVERY`-th sample so the file stays
 a few hundred KB while still covering the whole building. Its header is the run's, with `created_utc`
-fixed so that regenerating writes the same bytes. `truth.json` holds the true volume (for Ve), and
-`report_figures.json` the `report.json` values `tests/test_golden.py` compares against.
+and the configuration's log path (a temporary directory) fixed so that regenerating writes the same
+bytes. `truth.json` holds the true volume (for Ve), and `report_figures.json` the `report.json` values
+`tests/test_golden.py` compares against.
 
 A change of the log format, the SITL or the report shows up as a diff of these files: review it, then
 commit the regenerated files with the change that caused it.
@@ -55,6 +56,9 @@ def write_golden(out: Path) -> dict:
         truth = json.loads((Path(tmp) / TRUTH_FILE).read_text())
     header = {k: v for k, v in log.header.items() if k not in WRITER_KEYS}
     header["created_utc"] = CREATED_UTC
+    payload_cfg = (header.get("config") or {}).get("payload")
+    if isinstance(payload_cfg, dict) and "log" in payload_cfg:  # the temporary run's path: not the golden's
+        payload_cfg["log"] = SAMPLES_FILE
     samples = log.samples[::KEEP_EVERY]
     with SampleLogWriter(out / SAMPLES_FILE, header, records_per_block=500, fsync=False, overwrite=True) as w:
         w.append(samples)

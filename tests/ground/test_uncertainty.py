@@ -172,6 +172,16 @@ def test_that_the_unseen_warning_names_where_material_was_invented_and_stays_qui
     assert w is not None and "x 0-3 m, y 0-3 m" in w and "27 m³" in w
 
 
+def test_that_the_unseen_warning_stays_quiet_when_the_unseen_floor_widens_the_interval_by_little():
+    fit = _heights_of(lambda x, y: 4.0 - 0.5 * np.hypot(x, y))
+    fit[:6, :6] = np.nan
+    filled = np.where(np.isfinite(fit), fit, 3.0)
+    low, high = unseen_terms_m3(fit, filled, GRID)
+    t = ErrorTerms(unseen_low_m3=low, unseen_high_m3=high, noise_m3=1.0)
+    assert unseen_warning(fit, filled, GRID, t, UNIT, volume_m3=100 * high, max_pct=5.0) is None  # ±1 %: no need
+    assert unseen_warning(fit, filled, GRID, t, UNIT, volume_m3=10 * high, max_pct=5.0) is not None
+
+
 def test_that_the_unseen_warning_says_material_is_missing_when_the_cells_were_left_empty():
     fit = _heights_of(lambda x, y: np.ones_like(x))
     fit[:6, :6] = np.nan

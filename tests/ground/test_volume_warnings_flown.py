@@ -40,7 +40,9 @@ def _interval_warnings(rep: dict) -> list[str]:
 
 
 def test_that_a_corner_pile_flown_sparsely_warns_of_material_in_the_unseen_corner():
-    rep = _report("corner", 0.30)
+    # at P_traj 30 % the ideal plant's corner turn still sees most of this small pile's corner (interval
+    # about ±2 %, no warning needed); at 40 % the unseen corner holds most of a ±3 % interval
+    rep = _report("corner", 0.40)
     unseen = [w for w in rep["warnings"] if "never seen" in w]
     assert len(unseen) == 1 and "x 0-" in unseen[0] and "y 0-" in unseen[0]  # the pile's corner, at the origin
     lo, hi = rep["volume_interval_m3"]
