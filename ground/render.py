@@ -382,7 +382,7 @@ def _md_table(header: tuple[str, str], rows: list[tuple[str, str]]) -> list[str]
     return lines
 
 
-def _config_note(content: ReportContent) -> str:
+def config_note(content: ReportContent) -> str:
     """Where the payload's configuration came from (its log header's ``config`` record)."""
     src = (f"the configuration file {content.config_file} with the command line's flags over it"
            if content.config_file else "no configuration file: its command line's flags and built-in defaults")
@@ -435,7 +435,7 @@ def render_markdown(content: ReportContent, out_dir: Path) -> str:
     if content.images:
         lines += ["", "## Figures", *_md_figures(content.images, out_dir, "###")]
     if content.config:
-        lines += ["", "## Configuration (as flown)", "", _config_note(content), ""]
+        lines += ["", "## Configuration (as flown)", "", config_note(content), ""]
         lines += _md_table(("Key", "Value"), content.config)
     lines += ["", "## Method", "", content.method]
     if content.extra:
@@ -563,7 +563,7 @@ def render_html(content: ReportContent) -> str:
     if content.images:
         parts += ["<h3>Figures</h3>", *_html_figures(content.images)]
     if content.config:
-        parts += ["<h3>Configuration (as flown)</h3>", f"<p>{_e(_config_note(content))}</p>"]
+        parts += ["<h3>Configuration (as flown)</h3>", f"<p>{_e(config_note(content))}</p>"]
         parts += _html_table(("Key", "Value"), content.config)
     parts += ["<h3>Method</h3>", f"<p>{_e(content.method)}</p>"]
     if content.extra:

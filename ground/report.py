@@ -515,6 +515,7 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
                             f"point(s) on the stockpile ({c.n_samples} samples: {c.n_excluded} unusable, "
                             f"{report['n_points_removed_walls']} on the walls or roof)")
     from ground.render import write_html, write_markdown
+    from ground.report_pdf import write_pdf
     with OutputFolder(out, REPORT_FILES, REPORT_FILE, force=force, what="report") as folder:
         images = write_outputs(survey, report, folder.staging, opts.plots)
         save_surface(saved_surface(survey, log.header or {}, opts, str(source)), folder.staged(SURFACE_FILE))
@@ -523,6 +524,7 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
         folder.staged(REPORT_FILE).write_text(json.dumps(report, indent=2) + "\n")
         write_markdown(report, images, folder.staged("report.md"))
         write_html(report, images, folder.staged("report.html"))
+        write_pdf(report, images, folder.staged("report.pdf"))
         folder.commit()
     return report
 
