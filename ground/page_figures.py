@@ -31,6 +31,7 @@ from ground.plots import (
     DPI,
     HEIGHT_CMAP,
     HEIGHT_LABEL,
+    _check_grid,
     _colorbar,
     _decorate,
     _finite_xy,
@@ -147,6 +148,7 @@ def site_map_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
     if h.size == 0 or not finite.any():
         _no_data(ax)
     else:
+        _check_grid(xe, ye, h, "heights")
         lo, hi = float(h[finite].min()), float(h[finite].max())
         norm = Normalize(vmin=lo, vmax=hi) if hi > lo else Normalize(vmin=lo - 0.5, vmax=hi + 0.5)
         cmap = colormaps[HEIGHT_CMAP].with_extremes(bad="white")
@@ -164,8 +166,9 @@ def site_map_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
         v = p.get("volume_m3")
         if not (isinstance(cxy, Sequence) and len(cxy) == 2):
             continue
-        text = str(p.get("label", "?")) + ("" if not isinstance(v, int | float) else
-                                           f"\n{v / m3_per_unit:,.0f} {volume_unit}")
+        shown = v / m3_per_unit if isinstance(v, int | float) else None
+        text = str(p.get("label", "?")) + ("" if shown is None else
+                                           f"\n{shown:,.{0 if abs(shown) >= 100 else 1}f} {volume_unit}")
         ax.text(float(cxy[0]), float(cxy[1]), text, ha="center", va="center", fontsize=9, fontweight="bold",
                 path_effects=_HALO, zorder=11)
     path = _finite_xy(path_w, 2)
@@ -211,6 +214,7 @@ def surface_3d_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndar
         ax.text2D(0.5, 0.5, "no data", transform=ax.transAxes, ha="center", va="center", fontsize=16, color="0.35")
         ax.set_title(title)
         return fig
+    _check_grid(xe, ye, h, "heights")
     coarse, sx, sy = _block_max(h, MAX_3D_CELLS_PER_SIDE)
     xc = _cell_centres(xe)[::sx][: coarse.shape[0]]
     yc = _cell_centres(ye)[::sy][: coarse.shape[1]]
@@ -302,6 +306,7 @@ def sections_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
             _no_data(ax)
         fig.suptitle(title)
         return fig
+    _check_grid(xe, ye, h, "heights")
     b = np.zeros_like(h) if base_heights is None else np.asarray(base_heights, float)
     if b.shape != h.shape:
         raise ValueError(f"base_heights shape {b.shape} differs from heights shape {h.shape}")

@@ -138,3 +138,9 @@ def test_that_the_sections_without_piles_pass_through_the_highest_cell_and_witho
     assert (x0, y0, what) == (pytest.approx(30.0, abs=0.25), pytest.approx(5.0, abs=0.25), "the highest cell")
     fig = pf.sections_figure(GRID.x_edges, GRID.y_edges, np.full(h.shape, np.nan), LW)
     assert all(any(t.get_text() == "no data" for t in ax.texts) for ax in fig.axes)
+
+
+@pytest.mark.parametrize("draw", [pf.site_map_figure, pf.surface_3d_figure, pf.sections_figure])
+def test_that_a_grid_that_does_not_match_its_edges_is_refused_in_one_line(draw):
+    with pytest.raises(ValueError, match="needs x_edges"):
+        draw(GRID.x_edges, GRID.y_edges, np.ones((3, 3)), LW)
