@@ -47,7 +47,7 @@ VIEW_FIGSIZE_IN = (8.0, 5.5)
 SECTIONS_FIGSIZE_IN = (8.0, 6.5)
 TARGET_CONTOURS = 8
 """About this many contour lines over the height range, at a 1-2-5 step (0.5 m, 1 m, 2 m ...)."""
-MAX_3D_CELLS_PER_SIDE = 120
+MAX_3D_CELLS_PER_SIDE = 80
 MAX_SECTION_POINTS = 4000
 MIN_SECTION_POINTS = 100
 """A section's band of points widens from one cell (doubling, up to MAX_BAND_FRACTION of the building's

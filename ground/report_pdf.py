@@ -13,6 +13,7 @@ machine made it is worse than one plain layout everywhere. docs/design-notes.md 
 
 from __future__ import annotations
 
+import logging
 import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -203,12 +204,31 @@ def compose(content: ReportContent) -> list[Figure]:
     return p.pages
 
 
+def pdf_fonts(pages: Sequence[Figure]) -> dict[str, Any]:
+    """The PDF's fonts: the standard Helvetica when every character is in its encoding (cp1252: nothing to
+    embed, half the PDF's cost), else DejaVu Sans embedded as TrueType (any script, searchable)."""
+    try:
+        for fig in pages:
+            for t in fig.texts:
+                t.get_text().encode("cp1252")
+    except UnicodeEncodeError:
+        return {"pdf.fonttype": 42, "pdf.use14corefonts": False}
+    return {"pdf.use14corefonts": True, "font.family": "sans-serif", "font.sans-serif": ["Helvetica"]}
+
+
 def write_pdf(report: Mapping[str, Any], images: ImageMap | None, out_path: str | Path) -> Path:
     """Write report.pdf (A4, searchable text) with the content of report.html, and return its path."""
     out = Path(out_path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    pages = compose(build_content(report, images))
-    with matplotlib.rc_context({"pdf.fonttype": 42}), PdfPages(out, metadata={"Title": REPORT_TITLE}) as pdf:
-        for fig in pages:
-            pdf.savefig(fig)
+    content = build_content(report, images)
+    pages = compose(content)
+    fm_log = logging.getLogger("matplotlib.font_manager")
+    level = fm_log.level
+    fm_log.setLevel(logging.ERROR)  # "Failed to find font weight normal for Helvetica, now using medium": the same
+    try:
+        with matplotlib.rc_context(pdf_fonts(pages)), PdfPages(out, metadata={"Title": REPORT_TITLE}) as pdf:
+            for fig in pages:
+                pdf.savefig(fig)
+    finally:
+        fm_log.setLevel(level)
     return out

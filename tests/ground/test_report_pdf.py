@@ -99,3 +99,14 @@ def test_that_the_report_command_writes_a_pdf_of_the_report(tmp_path):
     assert rep["verdict"] in " ".join(pages[0].split())
     drawn = [re.findall(r"/(\w+)\s+Do\b", p.get_contents().get_data().decode("latin-1")) for p in r.pages]
     assert sum(len(d) for d in drawn) == len({n for d in drawn for n in d}) == 6  # each figure once
+
+
+def test_that_text_beyond_the_standard_fonts_is_embedded_and_still_reads_back(tmp_path):
+    """Helvetica (nothing embedded) covers cp1252 only; a Cyrillic site name needs the embedded TrueType."""
+    latin = {"volume_m3": 1.0, "metadata": {"site_name": "Zürich Süd – bay 3"}}
+    cyrillic = {"volume_m3": 1.0, "metadata": {"site_name": "Склад 3"}}
+    assert report_pdf.pdf_fonts(report_pdf.compose(build_content(latin, None)))["pdf.use14corefonts"]
+    assert not report_pdf.pdf_fonts(report_pdf.compose(build_content(cyrillic, None)))["pdf.use14corefonts"]
+    for rep in (latin, cyrillic):
+        _, pages = read(report_pdf.write_pdf(rep, None, tmp_path / "r.pdf"))
+        assert rep["metadata"]["site_name"] in pages[0]
