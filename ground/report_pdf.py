@@ -3,8 +3,8 @@
 Built from the same `ReportContent` as report.md and report.html, in the same order, so the three cannot
 disagree on a number: the title block, the volume and verdict, the piles, the map, 3D view and sections,
 the warnings, then the engineer's details. The figures are the PNGs the report already wrote, placed
-unresampled (no second rendering: the PDF costs little more than copying them). Text is embedded as
-TrueType (pdf.fonttype 42) so it can be searched, copied and read back (tests use pypdf).
+unresampled (no second rendering). Text is real text, searchable and read back in tests with pypdf
+(`pdf_fonts`: the standard Helvetica when it can hold every character, else embedded TrueType).
 
 Why not headless Chromium's --print-to-pdf: the report command must run where no browser is installed
 (a site laptop, the Raspberry Pi's image), and a deliverable that looks different depending on which
