@@ -46,7 +46,9 @@ _MAX_OVERHANG_FRAC = 0.5
 wild return does not shrink the storage to a dot."""
 
 _LEGEND_BELOW = {"loc": "upper right", "bbox_to_anchor": (1.0, -0.07), "fontsize": "small", "frameon": False}
-"""Legends go under the axes, right of the x label: inside they would hide a corner of the data."""
+"""Legends of the engineer's grids go under the axes, right of the x label: inside they would hide data."""
+_LEGEND_INSIDE = {"loc": "upper right", "fontsize": "small", "framealpha": 0.85}
+"""The flight path's legend sits inside the axes, over the wall margin, where a reader looks for it."""
 
 # --------------------------------------------------------------------------------------------- helpers
 
@@ -175,7 +177,7 @@ def cloud_top_figure(
     ax.set_title(title)
     if path.shape[0] > 0:
         ax.plot(path[:, 0], path[:, 1], color="black", linewidth=0.9, zorder=6, label="flight path")
-        ax.legend(**_LEGEND_BELOW)
+        ax.legend(**_LEGEND_INSIDE)
 
     if pts.shape[0] == 0:
         _no_data(ax)

@@ -83,7 +83,26 @@ _IMAGE_CAPTIONS: dict[str, str] = {
     "cloud_top": _CLOUD_CAPTION,
     "height_map": "Fitted height map (white: no surface)",
     "coverage": "Coverage: points per cell (white: no points), fitted-surface boundary outlined",
+    "site_map": "Site map: heights above the floor with contour lines, each pile's name and volume at its "
+                "centroid, the building's outline, a scale bar and the flight path",
+    "surface_3d": "3D view of the surface (heights exaggerated as stated)",
+    "sections": "Cross-sections through the largest pile's peak: the surface, the base and the LiDAR points "
+                "near each line",
 }
+PAGE_IMAGES = ("site_map", "surface_3d", "sections")
+"""The customer's figures, shown under the pile table; every other image goes to the engineer's details."""
+
+IMAGE_CHECK_SCRIPT = """
+window.addEventListener("load", function () {
+  var imgs = document.images, ok = 0;
+  for (var i = 0; i < imgs.length; i++) { if (imgs[i].complete && imgs[i].naturalWidth > 0) { ok++; } }
+  document.documentElement.setAttribute("data-images-total", String(imgs.length));
+  document.documentElement.setAttribute("data-images-loaded", String(ok));
+});
+"""
+"""The page's only script (inline, fetches nothing): once loaded, it records on <html> how many images
+decoded, so a headless browser's --dump-dom shows whether every figure displayed (tests/ground/
+test_report_browser.py)."""
 
 METHOD_TEXT = (
     "Each LiDAR range sample is turned into a point in the storage frame from the drone position "
@@ -105,6 +124,9 @@ _IMAGE_MIME: dict[str, str] = {
     ".gif": "image/gif",
     ".svg": "image/svg+xml",
 }
+
+ENGINEER_NOTE = ("Engineer's details: the survey's processing figures, the configuration the payload flew with "
+                 "and how the volume was computed.")
 
 _MAX_INLINE_LIST = 12
 """Longer lists/arrays are summarised by length in "All figures" instead of printed."""
@@ -272,6 +294,7 @@ class ReportContent:
     metadata: list[tuple[str, str]] = field(default_factory=list)  # ground.metadata.metadata_rows
     piles: tuple[list[str], list[list[str]]] = ([], [])  # ground.piles.pile_rows: header, rows
     piles_method: str | None = None
+    page_images: list[tuple[str, Path]] = field(default_factory=list)  # PAGE_IMAGES, under the pile table
 
 
 def _config_value(v: Any) -> str:
@@ -325,9 +348,12 @@ def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportC
     elif cfg is not None:
         config_rows = [("config", _config_value(cfg))]
     piles = report.get("piles")
+    metadata = metadata_rows(report.get("metadata"))
+    if metadata and report.get("software_version") is not None:
+        metadata.append(("Report software", str(report["software_version"])))
     return ReportContent(
         verdict=None if report.get("verdict") is None else str(report.get("verdict")),
-        metadata=metadata_rows(report.get("metadata")), piles=pile_rows(piles),
+        metadata=metadata, piles=pile_rows(piles),
         piles_method=str(piles.get("method")) if isinstance(piles, Mapping) and piles.get("method") else None,
         config=config_rows, config_file=config_file,
         headline=f"Stockpile volume: {fmt_volume(report.get('volume_m3'))}" + (
@@ -335,7 +361,8 @@ def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportC
             f" (90 % interval {fmt_interval(report.get('volume_interval_m3'))})"),
         warnings=_warnings(report),
         summary=summary,
-        images=[(_image_caption(str(n)), Path(p)) for n, p in (images or {}).items()],
+        images=[(_image_caption(str(n)), Path(p)) for n, p in (images or {}).items() if n not in PAGE_IMAGES],
+        page_images=[(_image_caption(n), Path(images[n])) for n in PAGE_IMAGES if n in (images or {})],
         extra=extra,
     )
 
@@ -355,7 +382,7 @@ def _md_table(header: tuple[str, str], rows: list[tuple[str, str]]) -> list[str]
     return lines
 
 
-def _config_note(content: ReportContent) -> str:
+def config_note(content: ReportContent) -> str:
     """Where the payload's configuration came from (its log header's ``config`` record)."""
     src = (f"the configuration file {content.config_file} with the command line's flags over it"
            if content.config_file else "no configuration file: its command line's flags and built-in defaults")
@@ -371,13 +398,31 @@ def _relative_ref(image: Path, out_dir: Path) -> str:
     return quote(Path(rel).as_posix())
 
 
+def _md_figures(images: list[tuple[str, Path]], out_dir: Path, level: str) -> list[str]:
+    lines = []
+    for caption, path in images:
+        alt = _md_text(caption).replace("[", "\\[").replace("]", "\\]")
+        lines += ["", f"{level} {_md_text(caption)}", "", f"![{alt}]({_relative_ref(path, out_dir)})"]
+        if not path.is_file():
+            lines += ["", f"*Image not found: {_md_text(path.name)}*"]
+    return lines
+
+
 def render_markdown(content: ReportContent, out_dir: Path) -> str:
-    """The report.md text; image links are relative to `out_dir`."""
-    lines = [f"# {REPORT_TITLE}", "", f"**{_md_text(content.headline)}**", ""]
+    """The report.md text, in the page's order (`render_html`); image links are relative to `out_dir`."""
+    lines = [f"# {REPORT_TITLE}", ""]
+    if content.metadata:
+        lines += [*_md_table(("Survey", ""), content.metadata), ""]
+    lines += [f"**{_md_text(content.headline)}**", ""]
     if content.verdict:
         lines += [f"Verdict: {_md_text(content.verdict)}", ""]
-    if content.metadata:
-        lines += ["## Survey", "", *_md_table(("Item", "Value"), content.metadata), ""]
+    head, rows = content.piles
+    if rows:
+        lines += ["## Piles", "", f"Found as {_md_text(content.piles_method or 'connected regions')}.", ""]
+        lines += ["| " + " | ".join(_md_text(h) for h in head) + " |", "|" + "---|" * len(head)]
+        lines += ["| " + " | ".join(_md_text(c) for c in r) + " |" for r in rows] + [""]
+    if content.page_images:
+        lines += ["## Map, 3D view and cross-sections", *_md_figures(content.page_images, out_dir, "###"), ""]
     lines += ["## Warnings", ""]
     if content.warnings:
         n = len(content.warnings)
@@ -385,22 +430,12 @@ def render_markdown(content: ReportContent, out_dir: Path) -> str:
         lines += [f"> - {_md_text(w)}" for w in content.warnings]
     else:
         lines += ["No warnings."]
-    lines += ["", "## Summary", ""]
+    lines += ["", "---", "", f"*{ENGINEER_NOTE}*", "", "## Summary", ""]
     lines += _md_table(("Quantity", "Value"), content.summary)
-    head, rows = content.piles
-    if rows:
-        lines += ["", "## Piles", "", f"Found as {_md_text(content.piles_method or 'connected regions')}.", ""]
-        lines += ["| " + " | ".join(_md_text(h) for h in head) + " |", "|" + "---|" * len(head)]
-        lines += ["| " + " | ".join(_md_text(c) for c in r) + " |" for r in rows]
     if content.images:
-        lines += ["", "## Figures"]
-        for caption, path in content.images:
-            alt = _md_text(caption).replace("[", "\\[").replace("]", "\\]")
-            lines += ["", f"### {_md_text(caption)}", "", f"![{alt}]({_relative_ref(path, out_dir)})"]
-            if not path.is_file():
-                lines += ["", f"*Image not found: {_md_text(path.name)}*"]
+        lines += ["", "## Figures", *_md_figures(content.images, out_dir, "###")]
     if content.config:
-        lines += ["", "## Configuration (as flown)", "", _config_note(content), ""]
+        lines += ["", "## Configuration (as flown)", "", config_note(content), ""]
         lines += _md_table(("Key", "Value"), content.config)
     lines += ["", "## Method", "", content.method]
     if content.extra:
@@ -436,6 +471,12 @@ figure { margin: 1rem 0; }
 figure img { max-width: 100%; height: auto; border: 1px solid #ddd; }
 figcaption { font-size: .9rem; color: #555; }
 .missing { color: #a00; font-style: italic; }
+.title-block h1 { margin-bottom: .4rem; }
+table.meta th { background: none; border: none; padding: .1rem .8rem .1rem 0; font-weight: 600; }
+table.meta td { border: none; padding: .1rem 0; overflow-wrap: anywhere; }
+.verdict { font-size: 1.1rem; }
+.engineer { margin-top: 2.5rem; border-top: 2px solid #444; }
+@media print { figure, table, .warnings { break-inside: avoid; } body { max-width: none; margin: 0; } }
 """
 
 
@@ -460,8 +501,22 @@ def _data_uri(path: Path) -> str | None:
     return f"data:{mime};base64,{base64.b64encode(data).decode('ascii')}"
 
 
+def _html_figures(images: list[tuple[str, Path]]) -> list[str]:
+    parts = []
+    for caption, path in images:
+        uri = _data_uri(path)
+        if uri is None:
+            parts.append(f'<p class="missing">Image not found: {_e(caption)} ({_e(path.name)})</p>')
+        else:
+            parts.append(f'<figure><img alt="{_e(caption)}" src="{uri}">'
+                         f"<figcaption>{_e(caption)}</figcaption></figure>")
+    return parts
+
+
 def render_html(content: ReportContent) -> str:
-    """The self-contained report.html text (inline CSS, inlined images, nothing fetched)."""
+    """The self-contained report.html text (inline CSS, inlined images, nothing fetched), in the order a
+    customer reads: who/where/when, the volume and verdict, the piles, the map, 3D view and sections, the
+    warnings; then the engineer's details."""
     parts = [
         "<!DOCTYPE html>",
         '<html lang="en">',
@@ -472,13 +527,25 @@ def render_html(content: ReportContent) -> str:
         f"<style>{_CSS}</style>",
         "</head>",
         "<body>",
+        '<header class="title-block">',
         f"<h1>{_e(REPORT_TITLE)}</h1>",
-        f'<p class="headline">{_e(content.headline)}</p>',
     ]
-    if content.verdict:
-        parts.append(f'<p class="verdict"><strong>Verdict:</strong> {_e(content.verdict)}</p>')
     if content.metadata:
-        parts += ["<h2>Survey</h2>", *_html_table(("Item", "Value"), content.metadata)]
+        parts += ['<table class="meta">']
+        parts += [f"<tr><th>{_e(k)}</th><td>{_e(v)}</td></tr>" for k, v in content.metadata]
+        parts.append("</table>")
+    parts.append("</header>")
+    parts.append(f'<p class="headline" id="volume">{_e(content.headline)}</p>')
+    if content.verdict:
+        parts.append(f'<p class="verdict" id="verdict"><strong>Verdict:</strong> {_e(content.verdict)}</p>')
+    head, rows = content.piles
+    if rows:
+        parts += ["<h2>Piles</h2>", f"<p>Found as {_e(content.piles_method or 'connected regions')}.</p>",
+                  '<table class="piles" id="piles">', "<tr>" + "".join(f"<th>{_e(h)}</th>" for h in head) + "</tr>"]
+        parts += ["<tr>" + "".join(f'<td class="num">{_e(c)}</td>' for c in r) + "</tr>" for r in rows]
+        parts.append("</table>")
+    if content.page_images:
+        parts += ["<h2>Map, 3D view and cross-sections</h2>", *_html_figures(content.page_images)]
     if content.warnings:
         n = len(content.warnings)
         parts += [
@@ -491,31 +558,17 @@ def render_html(content: ReportContent) -> str:
         ]
     else:
         parts += ["<h2>Warnings</h2>", '<p class="ok">No warnings.</p>']
-    parts += ["<h2>Summary</h2>", *_html_table(("Quantity", "Value"), content.summary)]
-    head, rows = content.piles
-    if rows:
-        parts += ["<h2>Piles</h2>", f"<p>Found as {_e(content.piles_method or 'connected regions')}.</p>",
-                  '<table class="piles">', "<tr>" + "".join(f"<th>{_e(h)}</th>" for h in head) + "</tr>"]
-        parts += ["<tr>" + "".join(f'<td class="num">{_e(c)}</td>' for c in r) + "</tr>" for r in rows]
-        parts.append("</table>")
+    parts += ['<section class="engineer">', "<h2>Engineer's details</h2>", f"<p>{_e(ENGINEER_NOTE)}</p>",
+              "<h3>Summary</h3>", *_html_table(("Quantity", "Value"), content.summary)]
     if content.images:
-        parts.append("<h2>Figures</h2>")
-        for caption, path in content.images:
-            uri = _data_uri(path)
-            if uri is None:
-                parts.append(f'<p class="missing">Image not found: {_e(caption)} ({_e(path.name)})</p>')
-            else:
-                parts.append(
-                    f'<figure><img alt="{_e(caption)}" src="{uri}">'
-                    f"<figcaption>{_e(caption)}</figcaption></figure>"
-                )
+        parts += ["<h3>Figures</h3>", *_html_figures(content.images)]
     if content.config:
-        parts += ["<h2>Configuration (as flown)</h2>", f"<p>{_e(_config_note(content))}</p>"]
+        parts += ["<h3>Configuration (as flown)</h3>", f"<p>{_e(config_note(content))}</p>"]
         parts += _html_table(("Key", "Value"), content.config)
-    parts += ["<h2>Method</h2>", f"<p>{_e(content.method)}</p>"]
+    parts += ["<h3>Method</h3>", f"<p>{_e(content.method)}</p>"]
     if content.extra:
-        parts += ["<h2>All figures</h2>", *_html_table(("Name", "Value"), content.extra)]
-    parts += ["</body>", "</html>"]
+        parts += ["<h3>All figures</h3>", *_html_table(("Name", "Value"), content.extra)]
+    parts += ["</section>", f"<script>{IMAGE_CHECK_SCRIPT}</script>", "</body>", "</html>"]
     return "\n".join(parts) + "\n"
 
 

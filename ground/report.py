@@ -476,6 +476,7 @@ REPORT_FILES = (REPORT_FILE, "report.md", "report.html", "cloud.ply", "cloud_top
                 "coverage.png", PILES_CSV, *EXPORT_FILES)
 """Every file a report directory may hold (what --force removes)."""
 REPORT_FILES = (*REPORT_FILES, SURFACE_FILE)  # the final height grid, a later survey's base (ground.surface_file)
+REPORT_FILES = (*REPORT_FILES, "report.pdf", "site_map.png", "surface_3d.png", "sections.png")  # the customer's page
 
 
 def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | None = None, *,
@@ -519,6 +520,7 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
                             f"point(s) on the stockpile ({c.n_samples} samples: {c.n_excluded} unusable, "
                             f"{report['n_points_removed_walls']} on the walls or roof)")
     from ground.render import write_html, write_markdown
+    from ground.report_pdf import write_pdf
     with OutputFolder(out, REPORT_FILES, REPORT_FILE, force=force, what="report") as folder:
         images = write_outputs(survey, report, folder.staging, opts.plots)
         save_surface(saved_surface(survey, log.header or {}, opts, str(source)), folder.staged(SURFACE_FILE))
@@ -530,6 +532,7 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
         folder.staged(REPORT_FILE).write_text(json.dumps(report, indent=2) + "\n")
         write_markdown(report, images, folder.staged("report.md"))
         write_html(report, images, folder.staged("report.html"))
+        write_pdf(report, images, folder.staged("report.pdf"))
         folder.commit()
     return report
 
@@ -556,6 +559,25 @@ def write_outputs(survey: Survey, report: dict, out: Path, plots: bool) -> dict[
         "coverage": p.plot_coverage(survey.grid.x_edges, survey.grid.y_edges, survey.counts,
                                     np.isfinite(survey.heights_fit), lw, out / "coverage.png",
                                     title=f"Coverage (R_a = {ra:.1f} %)"),
+        **page_figures(survey, report, out, path),
+    }
+
+
+def page_figures(survey: Survey, report: dict, out: Path, path_w: np.ndarray) -> dict[str, Path]:
+    """The customer's figures (ground.page_figures): the labelled map, the 3D view and the cross-sections."""
+    from ground import page_figures as f
+    from ground.piles import VolumeUnit
+    g, lw = survey.grid, (survey.storage.length_m, survey.storage.width_m)
+    site = report.get("site") or {}
+    heading = site.get("heading_deg") if isinstance(site, dict) else None
+    vu = VolumeUnit(report.get("volume_unit", VolumeUnit.M3.value))
+    base = survey.base.heights_m if survey.base is not None else None
+    return {
+        f.SITE_MAP: f.plot_site_map(out / f"{f.SITE_MAP}.png", g.x_edges, g.y_edges, survey.heights, lw,
+                                    report.get("piles"), heading, path_w, vu.symbol, vu.m3_per_unit),
+        f.SURFACE_3D: f.plot_surface_3d(out / f"{f.SURFACE_3D}.png", g.x_edges, g.y_edges, survey.heights, lw),
+        f.SECTIONS: f.plot_sections(out / f"{f.SECTIONS}.png", g.x_edges, g.y_edges, survey.heights, lw,
+                                    survey.pile_points_w, base, report.get("piles")),
     }
 
 

@@ -126,7 +126,7 @@ def test_that_report_force_replaces_every_old_file(run_dir, tmp_path, capsys):
     assert (out / "coverage.png").is_file()
     assert main(["report", str(run_dir), "--out", str(out), "--no-plots", "--cell", "1.0", "-q", "--force"]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["cloud.ply", "piles.csv", "report.html", "report.json",
-                                                     "report.md", "surface.npz"]
+                                                     "report.md", "report.pdf", "surface.npz"]
     assert json.loads((out / "report.json").read_text())["cell_size_m"] == 1.0  # no old figure beside it
 
 

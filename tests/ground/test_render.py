@@ -143,7 +143,9 @@ def test_html_is_self_contained_and_escaped(tmp_path, images):
     page = out.read_text(encoding="utf-8")
     assert page.startswith("<!DOCTYPE html>")
     assert "http://" not in page and "https://" not in page
-    assert "<link" not in page and "<script" not in page and "@import" not in page
+    assert "<link" not in page and "@import" not in page
+    assert re.findall(r"<script[^>]*>", page) == ["<script>"]  # one inline script (the image check), no src
+    assert "fetch(" not in page and "XMLHttpRequest" not in page
     srcs = re.findall(r'src="([^"]*)"', page)
     assert len(srcs) == 3
     assert all(s.startswith("data:image/png;base64,") for s in srcs)

@@ -1,0 +1,146 @@
+"""The customer's figures: a labelled map (contours, pile names at centroids, scale bar, north arrow, the
+flight path's legend inside the axes), a 3D view with its exaggeration stated and its cost bounded, and
+cross-sections through the largest pile's peak with the points near each line."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from matplotlib.contour import ContourSet
+from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+from ground import page_figures as pf
+from ground.piles import PileOptions, pile_table
+from ground.surface import Grid
+
+GRID = Grid(40.0, 20.0, 0.25)
+LW = (GRID.length_m, GRID.width_m)
+
+
+def cone(cx: float, cy: float, r: float, h: float) -> np.ndarray:
+    xc = 0.5 * (GRID.x_edges[:-1] + GRID.x_edges[1:])
+    yc = 0.5 * (GRID.y_edges[:-1] + GRID.y_edges[1:])
+    x, y = np.meshgrid(xc, yc, indexing="ij")
+    return np.clip(h * (1 - np.hypot(x - cx, y - cy) / r), 0, None)
+
+
+def two_piles() -> tuple[np.ndarray, dict]:
+    """A small cone at x = 10 and a large one at x = 28: the large one is the sections' pile."""
+    h = np.maximum(cone(10.0, 10.0, 5.0, 3.0), cone(28.0, 9.0, 8.0, 6.0))
+    return h, pile_table(h, GRID, 0.03, PileOptions(), None)
+
+
+def test_that_contours_step_1_2_5_from_above_the_floor_to_the_peak():
+    assert pf.nice_step(7.3, 8) == 1.0 and pf.nice_step(0.9, 8) == 0.2 and pf.nice_step(40, 8) == 5.0
+    levels = pf.contour_levels(np.array([[-0.04, 0.02], [3.1, 7.3]]))
+    assert levels == pytest.approx([1, 2, 3, 4, 5, 6, 7])  # none at the floor's noise
+    assert pf.contour_levels(np.full((3, 3), 2.0)).size == 0
+    assert pf.contour_levels(np.full((3, 3), np.nan)).size == 0
+
+
+def test_that_heights_are_exaggerated_by_a_1_2_5_factor_only_when_the_pile_is_flat():
+    assert pf.vertical_exaggeration(15.0, (60.0, 40.0)) == 1.0  # 15 m on 60 m: already a quarter
+    assert pf.vertical_exaggeration(7.0, (60.0, 40.0)) == 2.0  # wants 2.1
+    assert pf.vertical_exaggeration(1.0, (60.0, 40.0)) == 10.0  # wants 15
+    assert pf.vertical_exaggeration(0.0, (60.0, 40.0)) == 1.0
+
+
+@pytest.mark.parametrize("heading, north", [(0, (1, 0)), (90, (0, 1)), (180, (-1, 0)), (-90, (0, -1))])
+def test_that_north_in_the_frame_follows_the_x_axis_heading(heading, north):
+    """x at `heading` clockwise from north, y 90 deg to its left: at 90 deg, x points east and y north."""
+    assert pf.north_in_frame(heading) == pytest.approx(north, abs=1e-12)
+
+
+def test_that_the_map_names_each_pile_at_its_centroid_with_contours_scale_bar_north_and_path_legend_inside():
+    h, piles = two_piles()
+    path = np.column_stack([np.linspace(2, 38, 50), np.full(50, 10.0)])
+    fig = pf.site_map_figure(GRID.x_edges, GRID.y_edges, h, LW, piles, heading_deg=30.0, path_w=path)
+    ax = fig.axes[0]
+    labels = {t.get_text().split("\n")[0]: t.get_position() for t in ax.texts}
+    for p in piles["piles"]:
+        assert labels[p["label"]] == pytest.approx(tuple(p["centroid_xy_m"]))
+    assert any(f"{piles['piles'][0]['volume_m3']:,.0f} m³" in t.get_text() for t in ax.texts)
+    cs = [c for c in ax.collections if isinstance(c, ContourSet)]
+    assert len(cs) == 1 and list(cs[0].levels) == pytest.approx([1, 2, 3, 4, 5])
+    assert any(isinstance(a, AnchoredSizeBar) for a in ax.artists)
+    assert "30° from north" in ax.get_title()
+    compass = [t for a in ax.child_axes for t in a.texts if t.get_text() == "N"]
+    assert len(compass) == 1
+    n = compass[0].get_position()
+    assert math.degrees(math.atan2(n[1], n[0])) == pytest.approx(30.0)
+    fig.canvas.draw()
+    leg, frame = ax.get_legend().get_window_extent(), ax.get_window_extent()
+    assert frame.x0 <= leg.x0 and leg.x1 <= frame.x1 and frame.y0 <= leg.y0 and leg.y1 <= frame.y1
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["flight path"]
+
+
+def test_that_the_map_draws_no_compass_without_a_heading_and_says_so_without_data():
+    h, piles = two_piles()
+    fig = pf.site_map_figure(GRID.x_edges, GRID.y_edges, h, LW, piles)
+    assert not [t for a in fig.axes[0].child_axes for t in a.texts if t.get_text() == "N"]  # no compass
+    empty = pf.site_map_figure(GRID.x_edges, GRID.y_edges, np.full(h.shape, np.nan), LW)
+    assert any(t.get_text() == "no data" for t in empty.axes[0].texts)
+
+
+def test_that_the_3d_view_states_its_exaggeration_and_draws_a_bounded_number_of_quads(monkeypatch):
+    monkeypatch.setattr(pf, "MAX_3D_CELLS_PER_SIDE", 20)
+    h = 0.3 * two_piles()[0]  # 160 x 80 cells, 1.8 m high on a 40 m floor: wants x5.6
+    fig = pf.surface_3d_figure(GRID.x_edges, GRID.y_edges, h, LW)
+    ax = fig.axes[0]
+    assert "vertical exaggeration ×5" in ax.get_title()
+    quads = ax.collections[0]
+    assert len(quads.get_paths()) <= 20 * 20
+    assert ax.get_zlim()[1] == pytest.approx(h.max())  # the block maximum keeps the peak
+
+
+def test_that_coarsening_keeps_each_blocks_highest_cell():
+    h = np.zeros((5, 4))
+    h[4, 3] = 9.0
+    h[0, 0] = np.nan
+    out, sx, sy = pf._block_max(h, 2)
+    assert (sx, sy) == (3, 2) and out.shape == (2, 2)
+    assert out[1, 1] == 9.0 and out[0, 0] == 0.0  # a block with one NaN still has a height
+
+
+def test_that_the_sections_cross_at_the_largest_piles_peak_with_surface_base_and_nearby_points():
+    h, piles = two_piles()
+    big = max(piles["piles"], key=lambda p: p["volume_m3"])
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(0, 40, 20000), rng.uniform(0, 20, 20000), rng.uniform(0, 1, 20000)])
+    base = np.full(h.shape, 0.2)
+    fig = pf.sections_figure(GRID.x_edges, GRID.y_edges, h, LW, pts, base, piles, band_m=0.5)
+    ax_x, ax_y = fig.axes
+    x0, y0 = big["peak_xy_m"]
+    assert f"y = {y0:.1f} m" in ax_x.get_title() and f"x = {x0:.1f} m" in ax_y.get_title()
+    surf_x, base_x = ax_x.get_lines()[:2]
+    iy = int(y0 / GRID.cell_m)
+    assert surf_x.get_ydata() == pytest.approx(h[:, iy]) and base_x.get_ydata() == pytest.approx(0.2)
+    assert max(surf_x.get_ydata()) == pytest.approx(big["peak_height_m"])
+    shown = ax_x.collections[-1].get_offsets()  # (x, z) of the points within 0.5 m of y = y0
+    near = pts[np.abs(pts[:, 1] - y0) <= 0.5]
+    assert len(shown) == len(near) and set(np.round(shown[:, 0], 9)) == set(np.round(near[:, 0], 9))
+    assert "exaggeration" in fig._suptitle.get_text()
+
+
+def test_that_the_sections_band_widens_for_a_sparse_survey_but_stays_bounded():
+    pts = np.array([[5.0, 5.0, 1.0]] * 3)
+    assert pf.section_band_m(pts, 20.0, 10.0, 0.25, 20.0) == pytest.approx(1.0)  # 5 % of 20 m, then stops
+    rng = np.random.default_rng(1)
+    dense = np.column_stack([rng.uniform(0, 40, 40000), rng.uniform(0, 20, 40000), np.zeros(40000)])  # ~1000 a line
+    assert pf.section_band_m(dense, 20.0, 10.0, 0.25, 20.0) == pytest.approx(0.25)
+
+
+def test_that_the_sections_without_piles_pass_through_the_highest_cell_and_without_data_say_so():
+    h = cone(30.0, 5.0, 3.0, 2.0)
+    x0, y0, what = pf.section_centre(None, h, GRID.x_edges, GRID.y_edges)
+    assert (x0, y0, what) == (pytest.approx(30.0, abs=0.25), pytest.approx(5.0, abs=0.25), "the highest cell")
+    fig = pf.sections_figure(GRID.x_edges, GRID.y_edges, np.full(h.shape, np.nan), LW)
+    assert all(any(t.get_text() == "no data" for t in ax.texts) for ax in fig.axes)
+
+
+@pytest.mark.parametrize("draw", [pf.site_map_figure, pf.surface_3d_figure, pf.sections_figure])
+def test_that_a_grid_that_does_not_match_its_edges_is_refused_in_one_line(draw):
+    with pytest.raises(ValueError, match="needs x_edges"):
+        draw(GRID.x_edges, GRID.y_edges, np.ones((3, 3)), LW)

@@ -1,0 +1,112 @@
+"""report.pdf: the page's content on A4 pages, read back with pypdf (a reader nobody here wrote): its page
+count, its numbers and names, tables that break across pages without losing a row, a missing image said."""
+
+from __future__ import annotations
+
+import re
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+from pypdf import PdfReader
+
+from ground import report_pdf
+from ground.piles import PileOptions, pile_table
+from ground.render import build_content
+from ground.report import ReportOptions, make_report
+from ground.surface import Grid
+
+A4_PT = (595.3, 841.9)
+
+
+def a_report() -> dict:
+    g = Grid(20.0, 10.0, 0.25)
+    xc = 0.5 * (g.x_edges[:-1] + g.x_edges[1:])
+    x, y = np.meshgrid(xc, 0.5 * (g.y_edges[:-1] + g.y_edges[1:]), indexing="ij")
+    h = np.clip(3 - np.hypot(x - 6, y - 5), 0, None) + np.clip(2 - np.hypot(x - 15, y - 5), 0, None)
+    return {"volume_m3": 12345.678, "volume_interval_m3": [12000.0, 12700.5], "true_volume_m3": None,
+            "verdict": "12,346 m³ (90 % interval 12,000–12,701 m³); limited by: the sensor's noise",
+            "metadata": {"site_name": "North shed", "log_sha256": "ab" * 32, "operator": "J. Smith"},
+            "piles": pile_table(h, g, 0.03, PileOptions(density_kg_m3=1600.0), None),
+            "warnings": ["only 80.0 % of the floor is reconstructed"], "software_version": "pilescan 0.1.0"}
+
+
+@pytest.fixture
+def images(tmp_path):
+    rng = np.random.default_rng(0)
+    out = {}
+    for name in ("site_map", "surface_3d", "sections", "cloud", "height_map", "coverage"):
+        mpimg.imsave(tmp_path / f"{name}.png", rng.random((300, 440)))
+        out[name] = tmp_path / f"{name}.png"
+    return out
+
+
+def read(path) -> tuple[PdfReader, list[str]]:
+    r = PdfReader(path)
+    return r, [p.extract_text() for p in r.pages]
+
+
+def test_that_the_pdf_holds_the_volume_verdict_metadata_and_piles_on_numbered_a4_pages(tmp_path, images):
+    rep = a_report()
+    out = report_pdf.write_pdf(rep, images, tmp_path / "report.pdf")
+    r, pages = read(out)
+    n = len(r.pages)
+    assert n == len(report_pdf.compose(build_content(rep, images)))
+    assert n >= 3  # the title page, the figures, the engineer's details
+    for i, page in enumerate(r.pages):
+        assert (float(page.mediabox.width), float(page.mediabox.height)) == pytest.approx(A4_PT, abs=1)
+        assert f"page {i + 1} of {n}" in pages[i]
+    first = pages[0]
+    assert "Stockpile volume: 12,345.7 m³ (90 % interval 12,000.0 – 12,700.5 m³)" in first
+    assert "North shed" in first and "J. Smith" in first and "ab" * 32 in first
+    assert "limited by: the sensor's noise" in first
+    for p in rep["piles"]["piles"]:
+        assert p["label"] in first and f"{p['volume_m3']:,.1f}" in first
+    text = "\n".join(pages)
+    assert text.index("Piles") < text.index("Map, 3D view and cross-sections") < text.index("Warnings (1)") \
+        < text.index("Engineer's details")
+    assert "only 80.0 % of the floor is reconstructed" in text
+    assert "True volume" not in text and "Ve (eq. 8)" not in text  # no reference: no rows for it
+
+
+def test_that_a_long_table_breaks_across_pages_without_losing_a_row(tmp_path):
+    rep = {"volume_m3": 1.0, **{f"key_{i:03d}": i for i in range(400)}}
+    r, pages = read(report_pdf.write_pdf(rep, None, tmp_path / "r.pdf"))
+    text = "\n".join(pages)
+    assert len(r.pages) >= 3
+    assert all(f"key_{i:03d}" in text for i in range(400))
+
+
+def test_that_a_missing_image_is_said_in_the_pdf(tmp_path):
+    _, pages = read(report_pdf.write_pdf({"volume_m3": 1.0}, {"site_map": tmp_path / "gone.png"},
+                                         tmp_path / "r.pdf"))
+    assert "Image not found" in "\n".join(pages) and "gone.png" in "\n".join(pages)
+
+
+def test_that_wrapping_keeps_every_word_and_fits_the_width():
+    text = "word " * 200 + "a" * 300
+    lines = report_pdf.wrap(text, 3.0, 10.0)
+    chars = int(3.0 * 72 / (10.0 * report_pdf.CHAR_WIDTH_EM))
+    assert all(len(line) <= chars for line in lines)
+    assert "".join(lines).replace(" ", "") == text.replace(" ", "")
+
+
+def test_that_the_report_command_writes_a_pdf_of_the_report(tmp_path):
+    rep = make_report("tests/golden", tmp_path / "rep", ReportOptions())
+    r, pages = read(tmp_path / "rep" / "report.pdf")
+    assert len(r.pages) >= 4  # the title page and its figures, the engineer's details and figures
+    assert f"Stockpile volume: {rep['volume_m3']:,.1f} m³" in pages[0]
+    assert rep["verdict"] in " ".join(pages[0].split())
+    drawn = [re.findall(r"/(\w+)\s+Do\b", p.get_contents().get_data().decode("latin-1")) for p in r.pages]
+    assert sum(len(d) for d in drawn) == len({n for d in drawn for n in d}) == 6  # each figure once
+
+
+def test_that_text_beyond_the_standard_fonts_is_embedded_and_still_reads_back(tmp_path):
+    """Helvetica (nothing embedded) covers cp1252 only; a Cyrillic site name needs the embedded TrueType."""
+    latin = {"volume_m3": 1.0, "metadata": {"site_name": "Zürich Süd – bay 3"}}
+    cyrillic = {"volume_m3": 1.0, "metadata": {"site_name": "Склад 3"}}
+    assert report_pdf.pdf_fonts(report_pdf.compose(build_content(latin, None)))["pdf.use14corefonts"]
+    assert not report_pdf.pdf_fonts(report_pdf.compose(build_content(cyrillic, None)))["pdf.use14corefonts"]
+    for rep in (latin, cyrillic):
+        _, pages = read(report_pdf.write_pdf(rep, None, tmp_path / "r.pdf"))
+        assert rep["metadata"]["site_name"] in pages[0]
