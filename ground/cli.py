@@ -25,6 +25,7 @@ from ground.base import BaseKind, BaseSpec
 from ground.exports.formats import ALL as EXPORT_ALL
 from ground.exports.formats import ExportFormat, parse_formats
 from ground.metadata import SurveyInfo, check_timezone, metadata_rows
+from ground.pile_change import format_pile_changes, pile_changes
 from ground.piles import DEFAULT_MIN_PILE_AREA_M2, MassUnit, PileOptions, VolumeUnit, pile_rows
 from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, make_report
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
@@ -245,10 +246,11 @@ def _compare(args) -> int:
     opts = ReportOptions(cell_m=args.cell, plots=False)
     old, new = earlier_surface(args.old, opts), earlier_surface(args.new, opts)
     change = compare.compare_surfaces(old, new)
-    rec = compare.change_record(change, old, new, str(args.old), str(args.new), None, args.true_change)
+    per_pile = pile_changes(old, new, change)
+    rec = compare.change_record(change, old, new, str(args.old), str(args.new), per_pile, args.true_change)
     compare.write_compare(change, rec, args.out, force=args.force)
     if not args.quiet:
-        print(compare.format_change(rec))
+        print("\n".join([compare.format_change(rec), *format_pile_changes(per_pile)]))
     return 0
 
 

@@ -24,16 +24,14 @@ change detection; below it, a cell's change cannot be told from noise, and summi
 count noise as both cut and fill. Their intervals take the surveys' half-widths in proportion to the square
 root of their share of the changed cells, the low side clipped at 0.
 
-**Per pile.** Change per pile needs the piles segmented in both surveys (ground/piles.py, not part of this
-module): `compare_surfaces` takes an optional `per_pile` callable that gets both surfaces and the change
-and returns one record per matched pile; compare.json's ``per_pile`` holds its result (null without one).
+**Per pile.** Change per pile needs the piles segmented in both surveys: `ground.pile_change` does that
+from the two surfaces and this module's Change; compare.json's ``per_pile`` holds its records.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from statistics import NormalDist
@@ -53,10 +51,6 @@ COMPARE_FILES = (COMPARE_FILE, "cutfill.png", "cutfill.npz")
 
 Z_INTERVAL = NormalDist().inv_cdf(0.5 + INTERVAL_LEVEL / 2)
 """A normal error's half-width at the interval's level (1.645 at 90 %)."""
-
-PerPile = Callable[[SavedSurface, SavedSurface, "Change"], list[dict]]
-"""The per-pile hook: (old, new, change) -> one record per pile matched in both surveys."""
-
 
 @dataclass(frozen=True)
 class Change:
