@@ -70,6 +70,13 @@ def build_parser() -> ArgumentParser:
     r.add_argument("--no-self-calibration", action="store_true",
                    help="do not estimate the servo's zero and scale and the LiDAR's boresight from the floor and "
                         "walls (default: estimate them, apply those that are significant, and say so)")
+    pc = r.add_mutually_exclusive_group()
+    pc.add_argument("--pose-correction", dest="pose_correction", action="store_true", default=False,
+                    help="correct the logged trajectory from the floor and walls: a smooth horizontal correction, "
+                         "applied when significant, stated in the report (ground/pose_correction.py; experimental, "
+                         "off by default: measured, it does not yet improve the volume, docs/pose_error.md)")
+    pc.add_argument("--no-pose-correction", dest="pose_correction", action="store_false",
+                    help="do not correct the trajectory (the default)")
     r.add_argument("--max-grid-memory-mb", type=finite_float, default=DEFAULT_MAX_GRID_MEMORY_BYTES / 2**20,
                    metavar="MB", help="refuse a --cell whose grid would need more memory than this (default "
                                       f"{DEFAULT_MAX_GRID_MEMORY_BYTES // 2**20} MiB)")
@@ -131,7 +138,8 @@ def _report(args) -> int:
                          truth_volume_m3=args.truth_volume, despike=not args.no_despike,
                          surface_fit=args.surface_fit, servo_retiming=not args.no_servo_retiming,
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),
-                         self_calibration=not args.no_self_calibration, max_interval_pct=args.max_interval_pct,
+                         self_calibration=not args.no_self_calibration, pose_correction=args.pose_correction,
+                         max_interval_pct=args.max_interval_pct,
                          site=args.config_file.site if args.config_file is not None else None)
     rep = make_report(args.source, args.out, opts, force=args.force)
     if not args.quiet:

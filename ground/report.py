@@ -27,6 +27,9 @@ from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
 from ground.despike import SpikeThreshold, why_no_threshold
 from ground.plausibility import PlausibilityLimits, implausible, without_implausible
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask, structure_n_sigma
+from ground.pose_correction import PoseCorrection, apply_pose_correction, estimate_pose_correction
+from ground.pose_correction import describe as describe_pose
+from ground.pose_correction import unconstrained_warning as pose_unconstrained_warning
 from ground.self_calibration import MountEstimate, apply_mount, describe, estimate_mount
 from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
 from ground.smoothing import vertical_sigma_m
@@ -76,6 +79,8 @@ class ReportOptions:
     self_calibration: bool = True  # servo zero/scale and boresight from the floor and walls (ground.self_calibration)
     site: SiteSection | None = None  # [site] of a --config file: the log's building is checked against it
     max_interval_pct: float = DEFAULT_MAX_INTERVAL_PCT  # warn when the 90 % interval is wider than this
+    pose_correction: bool = False  # correct the trajectory from the floor and walls (ground.pose_correction; opt-in:
+    # measured, it does not yet improve Ve, docs/pose_error.md)
 
 
 @dataclass(frozen=True)
@@ -98,6 +103,7 @@ class Survey:
     despike_unavailable: str | None = None  # why despiking asked for could not run (ground.despike.why_no_threshold)
     errors: SurveyErrors | None = None  # the volume's error terms (ground.uncertainty); None: not estimated
     face_spread_m: float | None = None  # a cell's points spanning more height hold a face (ground.uncertainty)
+    pose: PoseCorrection | None = None  # the trajectory's correction from the building (None: not run)
 
 
 def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
@@ -210,7 +216,12 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     spikes = SpikeThreshold.from_header(header) if opts.despike else None
     found = implausible(samples, PlausibilityLimits.from_header(header, storage), frame)
     samples = without_implausible(samples, found)
-    checked = {"implausible": found.counts(),
+    pose = None
+    if opts.pose_correction:  # first, with the configured mount: the self-calibration then sees corrected poses
+        pose = estimate_pose_correction(samples, lever, frame, storage, err.resolution_m, err.range_sigma_m,
+                                        err.range_sigma_rel, err.angle_sigma_rad, _sweep_period_s(header), mount)
+        samples = apply_pose_correction(samples, pose, frame)
+    checked = {"implausible": found.counts(), "pose": pose,
                "despike_unavailable": why_no_threshold(header) if opts.despike and spikes is None else None}
     survey = replace(_survey(samples, header, storage, frame, lever, opts, err, spikes, mount), **checked)
     before = survey.sweep_disagreement_m
@@ -250,7 +261,8 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
     corrected, boresight = apply_mount(samples, est, resim, mount)
     fixed = _survey(corrected, header, storage, frame, lever, opts, err, spikes, boresight)
     return replace(fixed, servo_timing=survey.servo_timing, servo_retimed=survey.servo_retimed,
-                   implausible=survey.implausible, despike_unavailable=survey.despike_unavailable, mount=est)
+                   implausible=survey.implausible, despike_unavailable=survey.despike_unavailable, mount=est,
+                   pose=survey.pose)
 
 
 def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame, lever: np.ndarray,
@@ -348,6 +360,8 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
                                          f"{st.disagreement_after_m:.2f} m)" if st is not None else ""))
     if survey.mount is not None and survey.mount.any_applied:
         warnings.append(describe(survey.mount, header_boresight(log.header or {})))
+    if survey.pose is not None and survey.pose.applied:
+        warnings += [w for w in (describe_pose(survey.pose), pose_unconstrained_warning(survey.pose)) if w]
     warnings += site_mismatches(log.header or {}, opts.site)
     if survey.n_cells_clipped:
         warnings.append(f"the fitted surface left the building in {survey.n_cells_clipped} cells (left empty, "
@@ -384,6 +398,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
             "applied": survey.servo_retimed, "model": st.model, "delay_s": st.delay_s, "gain": st.gain,
             "disagreement_before_m": st.disagreement_before_m, "disagreement_after_m": st.disagreement_after_m},
         "self_calibration": None if survey.mount is None else survey.mount.as_dict(),
+        "pose_correction": None if survey.pose is None else survey.pose.as_dict(),
         "uncovered_area_m2": float((~np.isfinite(survey.heights_fit)).sum() * g.cell_area_m2),
         "storage": survey.storage.to_dict(),
         "site": site,
