@@ -47,6 +47,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 from scipy import sparse
 from scipy.optimize import least_squares
+from scipy.sparse.linalg import spsolve
 
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_rays_w
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
@@ -99,17 +100,19 @@ class PoseCorrectionOptions:
     """Fewer structure points than this: no correction (a warning)."""
     knot_spacing_s: float | None = None
     """None: KNOT_SWEEPS sweep periods."""
-    vertical: bool = False
-    """Estimate the height too. Off by default: measured, where a pile hides the floor its flat parts pass
-    for the floor and the height correction made the error-free flight's Ve 6-8 % (docs/pose_error.md)."""
-    heading: bool = False
+    vertical: bool = True
+    """Estimate the height too (from the floor where it is seen and, with `crossings`, from the pile)."""
+    crossings: bool = True
+    """With `vertical`: the height also from the pile seen at different times (the same surface must come
+    out at the same height), not only from the floor, which a pile hides along most of a track."""
+    heading: bool = True
     """Estimate the heading too. Off by default: the walls beside the track do not see it, and measured
     it came out worse than the uncorrected estimate (docs/pose_error.md)."""
 
     def __post_init__(self) -> None:
         for f in fields(self):
             v = getattr(self, f.name)
-            if (v is None and f.name == "knot_spacing_s") or f.name in ("vertical", "heading"):
+            if (v is None and f.name == "knot_spacing_s") or f.name in ("vertical", "heading", "crossings"):
                 continue
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v <= 0:
                 raise ValueError(f"pose correction option {f.name} must be a finite number > 0, got {v!r}")
@@ -176,6 +179,7 @@ class PoseCorrection:
 
     def as_dict(self) -> dict:
         return {"applied": self.applied, "reason": self.reason, "knot_spacing_s": _spacing(self.knot_t_s),
+                "knot_t_s": [float(v) for v in self.knot_t_s], "knot_values": self.values.tolist(),
                 "n_knots": len(self.knot_t_s), **self.size(), "unconstrained_s": self.unconstrained_s(),
                 "points_per_plane": dict(zip(PLANE_NAMES, self.points, strict=True)),
                 "rms_before_m": self.rms_before_m, "rms_after_m": self.rms_after_m, "noise_m": self.noise_m,
@@ -340,13 +344,14 @@ def _peaks(h: np.ndarray) -> list[int]:
 
 
 def _vote(b: Beams, k: np.ndarray, n: np.ndarray, d: np.ndarray, n_knots: int, reach_m: float,
-          bin_m: float) -> np.ndarray:
-    """A start (K, 4). Per knot interval and plane, the peaks of the distances to the plane of the points
-    whose stretch of sweep runs along it (a plane's own points pile up at one offset); the plane is the
-    outermost peak beyond which lie no more points of any kind than stray returns: nothing is below the
-    floor or behind a wall but noise, while a flat pile top, which may hold more points than the floor
-    beside it, has the pile's flanks below it. Averaged to the knots, interpolated where no plane was
-    found; heading 0."""
+          bin_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """A start (K, 4), and which planes were found in each knot interval (K - 1, 5).
+
+    Per knot interval and plane, the peaks of the distances to the plane of the points whose stretch of
+    sweep runs along it (a plane's own points pile up at one offset); the plane is the outermost peak
+    beyond which lie no more points of any kind than stray returns: nothing is below the floor or behind
+    a wall but noise, while a flat pile top, which may hold more points than the floor beside it, has the
+    pile's flanks below it. Averaged to the knots, interpolated where no plane was found; heading 0."""
     p = b.vehicle_w + b.to_point_w
     dist_all = p @ n.T - d
     dist = dist_all if b.parallel is None else np.where(b.parallel, dist_all, math.inf)
@@ -354,6 +359,7 @@ def _vote(b: Beams, k: np.ndarray, n: np.ndarray, d: np.ndarray, n_knots: int, r
     bins = np.arange(-reach_m, reach_m + bin_m, bin_m)
     comp_of_plane = (2, 0, 0, 1, 1)
     est = np.full((n_knots - 1, 3), np.nan)
+    found = np.zeros((n_knots - 1, 5), dtype=bool)
     for i in range(n_knots - 1):
         here = k == i
         sums, cnt = np.zeros(3), np.zeros(3)
@@ -372,6 +378,7 @@ def _vote(b: Beams, k: np.ndarray, n: np.ndarray, d: np.ndarray, n_knots: int, r
                     c = comp_of_plane[j]
                     sums[c] -= off * INSIDE_SIGN[j] * len(sel)  # the correction moves them back
                     cnt[c] += len(sel)
+                    found[i, j] = True
                     break
         est[i] = np.where(cnt > 0, sums / np.maximum(cnt, 1), np.nan)
     mids = np.arange(n_knots - 1) + 0.5
@@ -380,7 +387,7 @@ def _vote(b: Beams, k: np.ndarray, n: np.ndarray, d: np.ndarray, n_knots: int, r
         ok = np.isfinite(est[:, c])
         if ok.any():
             out[:, c] = np.interp(np.arange(n_knots), mids[ok], est[ok, c])
-    return out
+    return out, found
 
 
 def _jacobian(b: Beams, vr: np.ndarray, k: np.ndarray, f: np.ndarray, nj: np.ndarray, s: np.ndarray,
@@ -396,7 +403,9 @@ def _jacobian(b: Beams, vr: np.ndarray, k: np.ndarray, f: np.ndarray, nj: np.nda
 
 
 def _prior_matrix(n_knots: int, step_sigma: np.ndarray, abs_sigma: np.ndarray) -> sparse.csr_matrix:
-    """Rows of the prior: knot-to-knot changes in step sigmas, then each knot's value in absolute sigmas."""
+    """Rows of the prior: knot-to-knot changes in step sigmas, then each knot's value in absolute sigmas
+    ((4,) or per knot (K, 4))."""
+    abs_sigma = np.broadcast_to(abs_sigma, (n_knots, 4))
     n_par = 4 * n_knots
     rows, cols, data = [], [], []
     r = 0
@@ -410,13 +419,14 @@ def _prior_matrix(n_knots: int, step_sigma: np.ndarray, abs_sigma: np.ndarray) -
         for c in range(4):
             rows.append(r)
             cols.append(4 * i + c)
-            data.append(1.0 / abs_sigma[c])
+            data.append(1.0 / abs_sigma[i, c])
             r += 1
     return sparse.csr_matrix((data, (rows, cols)), shape=(r, n_par))
 
 
 def _fit_round(b: Beams, k: np.ndarray, f: np.ndarray, n: np.ndarray, d: np.ndarray, x0: np.ndarray,
-               window: float, prior: sparse.csr_matrix, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+               window: float, prior: sparse.csr_matrix, j: np.ndarray,
+               bound: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One robust least-squares round over the points assigned to planes (j >= 0), in windows. The
     assignment is the start's and stays: re-assigning after each round let the floor climb a pile's
     flat top step by step where the floor itself was hidden."""
@@ -438,8 +448,9 @@ def _fit_round(b: Beams, k: np.ndarray, f: np.ndarray, n: np.ndarray, d: np.ndar
         _, vr = corrected_points(bs, v, ks, fs)
         return sparse.vstack([_jacobian(bs, vr, ks, fs, nj, s, 4 * n_knots), prior], format="csr")
 
-    sol = least_squares(resid, x0.ravel(), jac=jac, loss="soft_l1", f_scale=1.0, tr_solver="lsmr",
-                        x_scale="jac", max_nfev=50)
+    hi = np.full(x0.size, np.inf) if bound is None else bound.ravel()
+    sol = least_squares(resid, np.clip(x0.ravel(), -hi * 0.999, hi * 0.999), jac=jac, loss="soft_l1", f_scale=1.0,
+                        tr_solver="lsmr", x_scale="jac", max_nfev=50, bounds=(-hi, hi))
     return sol.x.reshape(n_knots, 4), j
 
 
@@ -497,22 +508,68 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     speed = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)) / max(t1 - t0, 1e-9))
     step = prior_sigmas(spacing, speed, opts)
     absolute = np.array([opts.max_position_error_m] * 3 + [opts.max_heading_error_rad])
-    held = np.array([False, False, not opts.vertical, not opts.heading])
+    held = np.array([False, False, not opts.vertical or opts.crossings, not opts.heading])
     absolute = np.where(held, absolute * HELD, absolute)  # a held component stays at zero
+    # The heading's absolute prior grows from the log's start as the gyro's drift does (one knot step at the
+    # start): a gyro-integrated heading cannot be degrees off after a minute, and a few systematic
+    # millimetres on the walls would otherwise buy a heading the drift model does not allow.
+    elapsed = knots - knots[0]
+    absolute = np.tile(absolute, (len(knots), 1))
+    absolute[:, 3] = np.minimum(absolute[:, 3], step[3] + opts.heading_bias_rad_s * elapsed
+                                + opts.heading_walk_rad_per_sqrt_s * np.sqrt(elapsed))
+    if held[3]:
+        absolute[:, 3] = opts.max_heading_error_rad * HELD
     prior = _prior_matrix(len(knots), step, absolute)
-    x = _vote(b, k, n, d, len(knots), opts.max_position_error_m, sensor_m)
+    # Nor may the data push a component beyond N_SIGNIFICANT of its prior (a few pile points taken for a
+    # wall bought six degrees of heading in one stretch): a drift that large is not this model's.
+    bound = np.where(held[None, :], 1e-12, opts.n_significant * absolute)
+    bound[:, :3] = np.where(held[None, :3], 1e-12, np.inf)
+    x, found = _vote(b, k, n, d, len(knots), opts.max_position_error_m, sensor_m)
+    z_vote = x[:, 2].copy()
     x[:, held] = 0.0
-    # windows: from what the vote leaves (its bin, the drift within a knot interval) down to the noise
-    window = sensor_m
+    # Only the planes the vote found in a knot interval hold it: where the floor is hidden (under a pile),
+    # a flat part of the pile near where the floor would be must not pass for it.
+    b = replace(b, parallel=b.parallel & found[k])
     final = 3.0 * noise
-    j_fit, _ = _assign(corrected_points(b, x, k, f)[0], n, d, BAND * window, b.parallel)
-    for _ in range(12):
-        x, _ = _fit_round(b, k, f, n, d, x, window, prior, j_fit)
-        if window <= final:
-            break
-        _, r = _assign(corrected_points(b, x, k, f)[0], n, d, BAND * window, b.parallel)
-        on = j_fit >= 0
-        window = max(final, min(window / 2.0, BAND * _robust_rms(r[on]) if on.any() else window / 2.0))
+    j_fit, _ = _assign(corrected_points(b, x, k, f)[0], n, d, BAND * sensor_m, b.parallel)
+
+    def plane_fit(x: np.ndarray, prior: sparse.csr_matrix, bound: np.ndarray) -> np.ndarray:
+        # windows: from what the vote leaves (its bin) down to the data's noise
+        window = sensor_m
+        for _ in range(12):
+            x, _ = _fit_round(b, k, f, n, d, x, window, prior, j_fit, bound)
+            if window <= final:
+                break
+            _, r = _assign(corrected_points(b, x, k, f)[0], n, d, BAND * window, b.parallel)
+            on = j_fit >= 0
+            window = max(final, min(window / 2.0, BAND * _robust_rms(r[on]) if on.any() else window / 2.0))
+        return x
+
+    # First without the heading, then with it, which is kept only when it brings the floor and walls closer
+    # by more than fitting its knots to noise would: the walls beside a track do not see it, and on an
+    # error-free flight a few systematic millimetres bought a tenth of a degree.
+    no_heading = absolute.copy()
+    no_heading[:, 3] = opts.max_heading_error_rad * HELD
+    bound_nh = bound.copy()
+    bound_nh[:, 3] = 1e-12
+    x = plane_fit(x, _prior_matrix(len(knots), step, no_heading), bound_nh)
+    heading_gain = 0.0
+    if not held[3]:
+        x_h = plane_fit(x, prior, bound)
+        sel0 = j_fit >= 0
+        jj0 = np.maximum(j_fit, 0)
+        cap0 = (BAND * sensor_m / noise) ** 2
+
+        def chi2(v: np.ndarray) -> float:
+            q = corrected_points(b, v, k, f)[0]
+            r = (np.einsum("ij,ij->i", q, n[jj0]) - d[jj0])[sel0] / noise
+            return float(np.sum(np.minimum(r * r, cap0)))
+        heading_gain = chi2(x) - chi2(x_h)
+        if heading_gain > len(knots) + opts.n_significant * math.sqrt(2.0 * len(knots)):
+            x = x_h
+        else:
+            held = held.copy()
+            held[3] = True
     p1, vr = corrected_points(b, x, k, f)
     r1 = np.einsum("ij,ij->i", p1, n[np.maximum(j_fit, 0)]) - d[np.maximum(j_fit, 0)]
     j1 = np.where(np.abs(r1) <= BAND * final, j_fit, -1)
@@ -521,31 +578,201 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     if on.sum() < opts.min_structure_points:
         return not_applied(f"too few points on the floor and walls ({int(on.sum())}) to correct the pose",
                            points=counts)
+    z_info = None
+    if opts.vertical and opts.crossings:
+        cell_m = speed * (period or spacing / KNOT_SWEEPS)
+        # the floor: points along it, in intervals where the vote found it, near the height it found
+        z_at = np.interp(b.t_s, knots, z_vote)
+        floor = b.parallel[:, 0] & (np.abs(p1[:, 2] + z_at) <= BAND * sensor_m)
+        wall = (j1 >= 1) | (j_fit >= 1)
+        z = None
+        for _ in range(SLOPE_ROUNDS):  # the cells' slopes from the heights corrected so far (module docstring)
+            z, z_info = vertical_from_crossings(p1, b.t_s, knots, wall, floor, storage, cell_m, step[2], noise,
+                                                opts.max_position_error_m, opts.n_significant, z)
+            if z is None:
+                break
+        if z is not None:
+            x[:, 2] = z
+            p1, vr = corrected_points(b, x, k, f)
     # Which knot components the data set (their information beats the prior's): the rest is interpolated.
     sel = np.flatnonzero(on)
     jac = _jacobian(b.take(sel), vr[sel], k[sel], f[sel], n[j1[sel]], np.full(len(sel), noise), 4 * len(knots))
     info = np.asarray(jac.multiply(jac).sum(axis=0)).ravel().reshape(len(knots), 4)
-    constrained = (info * (step ** 2)[None, :] >= 1.0) & ~held[None, :]
+    if z_info is not None:
+        info[:, 2] = z_info
+    estimated = np.array([True, True, opts.vertical, not held[3]])
+    constrained = (info * (step ** 2)[None, :] >= 1.0) & estimated[None, :]
     # The same points on the same planes before and after, in noise sigmas: the chi-square gain against
     # what fitting the constrained parameters to noise would give.
-    # The points counted are those on a plane (the start's window) before the correction or after it:
-    # counting only those after would reward a correction that pulls a pile onto the floor.
+    # The points counted are those on a plane (the start's window) before the correction: counting those
+    # after it would reward a correction that pulls a pile onto the floor.
     j_before, _ = _assign(p0, n, d, BAND * sensor_m, b.parallel)
-    both = (j_before >= 0) | on
-    jj = np.where(on, j1, j_before)[both]
+    both = j_before >= 0
+    jj = j_before[both]
     r_before = np.einsum("ij,ij->i", p0[both], n[jj]) - d[jj]
     r_after = np.einsum("ij,ij->i", p1[both], n[jj]) - d[jj]
     cap = (BAND * sensor_m / noise) ** 2
     gain = float(np.sum(np.minimum((r_before / noise) ** 2, cap) - np.minimum((r_after / noise) ** 2, cap)))
     n_free = int(constrained.sum())
     needed = n_free + opts.n_significant * math.sqrt(2.0 * max(n_free, 1))
-    common = dict(points=counts, rms_before_m=_robust_rms(r_before[on[both]]), rms_after_m=_robust_rms(r1[on]),
+    common = dict(points=counts, rms_before_m=_robust_rms(r_before), rms_after_m=_robust_rms(r1[on]),
                   noise_m=noise, gain=gain, gain_needed=needed)
     if not gain > needed:
         return not_applied("not applied: it does not bring the floor and walls closer to their planes by more than "
                            f"fitting {n_free} parameters to noise would (chi-square gain {gain:.0f}, needed "
                            f"{needed:.0f})", knots, **common)
     return PoseCorrection(knots, x, constrained, True, None, **common)
+
+
+SLOPE_ROUNDS = 3
+"""Rounds of the height solution, each with the cells' slopes from the previous one's corrected heights (a
+slope fitted to uncorrected heights takes up the difference between two passes over a cell)."""
+MIN_CELL_POINTS = 3
+"""A cell's points in one knot interval give one height when there are at least this many."""
+
+
+def _group_median(key: np.ndarray, z: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per distinct key: the key, the median and robust spread of z, the mean of t, the count."""
+    order = np.lexsort((z, key))
+    key, z, t = key[order], z[order], t[order]
+    uniq, start, count = np.unique(key, return_index=True, return_counts=True)
+    med = np.array([np.median(z[a:a + c]) for a, c in zip(start, count, strict=True)])
+    mad = np.array([1.4826 * np.median(np.abs(z[a:a + c] - m)) for a, c, m in zip(start, count, med, strict=True)])
+    tm = np.add.reduceat(t, start) / count
+    return uniq, med, mad, tm, count
+
+
+def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, floor: np.ndarray,
+                            storage: Storage, cell_m: float, step_z_m: float, noise_m: float, max_error_m: float,
+                            n_significant: float = 3.0,
+                            start: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The height correction at the knots (K,) from the floor and from the pile seen at different times.
+
+    Each knot interval's points in a cell (cell_m: what the vehicle flies in a sweep period, so a cell holds
+    both sweep directions' points) give one height, z + c(t); the surface's height there, m, is one unknown
+    per cell, the same whenever it is seen; a cell whose points the vote took for the floor (`floor`) has
+    m = 0. Solved with the knots' random-walk prior, robustly (Huber: a cell on a slope, whose height
+    depends on where in it the points fell, scatters and counts little; a flat part of the pile the vote
+    took for the floor is outvoted by the other times that saw it). Returns (None, None) when there is
+    nothing to solve or the result is not significant; else the correction and the data's information on
+    each knot (1 / m^2)."""
+    n_knots = len(knots)
+    k, _ = _basis(t, knots)
+    inside = (~wall & (p[:, 0] > 0) & (p[:, 0] < storage.length_m) & (p[:, 1] > 0) & (p[:, 1] < storage.width_m)
+              & (p[:, 2] > -max_error_m) & (p[:, 2] < storage.height_m))
+    nx = max(1, math.ceil(storage.length_m / cell_m))
+    ny = max(1, math.ceil(storage.width_m / cell_m))
+    cid = (np.clip((p[:, 0] / cell_m).astype(np.int64), 0, nx - 1) * ny
+           + np.clip((p[:, 1] / cell_m).astype(np.int64), 0, ny - 1))
+    # Each cell's slope, from all its points (every time together): the height a knot interval gives is at
+    # the cell's centre, so two passes that hit a sloped cell in different places still agree.
+    seen_z = p[:, 2] if start is None else p[:, 2] + np.interp(t, knots, start)  # slopes from the corrected
+    z_flat = p[:, 2] - _cell_slopes(np.column_stack([p[:, :2], seen_z]), cid, nx * ny, cell_m, ny, inside)
+    key, med, mad, tm, cnt = _group_median((k * (nx * ny) + cid)[inside], z_flat[inside], t[inside])
+    fkey, _, _, _, fcnt = _group_median((k * (nx * ny) + cid)[inside & floor], z_flat[inside & floor],
+                                        t[inside & floor])
+    is_floor = np.zeros(len(key), dtype=bool)
+    pos = np.searchsorted(key, fkey)
+    is_floor[pos[fcnt * 2 >= cnt[pos]]] = True  # most of the interval's points in the cell are floor
+    keep = cnt >= MIN_CELL_POINTS
+    key, med, mad, tm, cnt, is_floor = key[keep], med[keep], mad[keep], tm[keep], cnt[keep], is_floor[keep]
+    cell = key % (nx * ny)
+    _, inv, times_seen = np.unique(cell, return_inverse=True, return_counts=True)
+    floor_cells = np.zeros(times_seen.shape, dtype=bool)
+    floor_cells[inv[is_floor]] = True
+    use = (times_seen[inv] >= 2) | floor_cells[inv]  # seen once and not floor: says nothing about c
+    key, med, mad, tm, cnt, inv = key[use], med[use], mad[use], tm[use], cnt[use], inv[use]
+    if len(key) == 0 or not floor_cells.any():
+        return None, None
+    uniq_cells, cell_idx = np.unique(inv, return_inverse=True)
+    n_cells = len(uniq_cells)
+    fc = np.flatnonzero(floor_cells[uniq_cells])
+    rows_s = 1.25 * np.maximum(mad, noise_m) / np.sqrt(cnt)  # the sd of a median
+    n_par = n_knots + n_cells
+    kk, ff = _basis(tm, knots)
+    m_obs, m_floor = len(med), len(fc)
+    rows = np.concatenate([np.repeat(np.arange(m_obs), 3), m_obs + np.arange(m_floor)])
+    cols = np.concatenate([np.column_stack([kk, kk + 1, n_knots + cell_idx]).ravel(), n_knots + fc])
+    data = np.concatenate([np.column_stack([(1 - ff) / rows_s, ff / rows_s, -1.0 / rows_s]).ravel(),
+                           np.full(m_floor, 1.0 / noise_m)])
+    a_obs = sparse.csr_matrix((data, (rows, cols)), shape=(m_obs + m_floor, n_par))
+    b_obs = np.concatenate([-med / rows_s, np.zeros(m_floor)])
+    # the prior: knot-to-knot steps, a weak pull to zero (the knots) and to the floor (the cells)
+    pr, pc_, pd = [], [], []
+    for i in range(n_knots - 1):
+        pr += [i, i]
+        pc_ += [i, i + 1]
+        pd += [-1.0 / step_z_m, 1.0 / step_z_m]
+    r = n_knots - 1
+    for i in range(n_par):
+        pr.append(r + i)
+        pc_.append(i)
+        pd.append(1.0 / (max_error_m if i < n_knots else storage.height_m))
+    a_pr = sparse.csr_matrix((pd, (pr, pc_)), shape=(r + n_par, n_par))
+    a = sparse.vstack([a_obs, a_pr], format="csr")
+    rhs = np.concatenate([b_obs, np.zeros(r + n_par)])
+    x = _irls_huber(a, rhs)
+    info = np.asarray(a_obs[:, :n_knots].multiply(a_obs[:, :n_knots]).sum(axis=0)).ravel()
+    # Significance: the heights' misfit with the correction and without it (the cells' heights fitted
+    # alone), in the residuals' own spread (a cell on a slope scatters more than its points say), against
+    # what fitting the knots to noise would explain.
+    r_full = a_obs @ x - b_obs
+    a_cells = sparse.vstack([a_obs[:, n_knots:], a_pr[r + n_knots:, n_knots:]], format="csr")
+    x_cells = _irls_huber(a_cells, np.concatenate([b_obs, np.zeros(n_cells)]))
+    r_none = a_obs[:, n_knots:] @ x_cells - b_obs
+    spread = max(1.0, _robust_rms(r_full))
+    gain = 2.0 * float(np.sum(_huber(r_none / spread)) - np.sum(_huber(r_full / spread)))
+    if not gain > n_knots + n_significant * math.sqrt(2.0 * n_knots):
+        return None, None
+    return x[:n_knots], info / spread ** 2
+
+
+def _cell_slopes(p: np.ndarray, cid: np.ndarray, n_cells: int, cell_m: float, ny: int,
+                 use: np.ndarray) -> np.ndarray:
+    """Per point, its cell's least-squares plane's height above the cell's centre at the point (0 where the
+    cell's points do not span both directions)."""
+    cx = (cid // ny + 0.5) * cell_m
+    cy = (cid % ny + 0.5) * cell_m
+    dx, dy, z = p[:, 0] - cx, p[:, 1] - cy, p[:, 2]
+    w = use.astype(float)
+
+    def s(v: np.ndarray) -> np.ndarray:
+        return np.bincount(cid, weights=v * w, minlength=n_cells)
+    n, sx, sy, sz = s(np.ones(len(p))), s(dx), s(dy), s(z)
+    sxx, sxy, syy, sxz, syz = s(dx * dx), s(dx * dy), s(dy * dy), s(dx * z), s(dy * z)
+    safe = np.maximum(n, 1.0)
+    # centred moments
+    cxx, cxy, cyy = sxx - sx * sx / safe, sxy - sx * sy / safe, syy - sy * sy / safe
+    cxz, cyz = sxz - sx * sz / safe, syz - sy * sz / safe
+    det = cxx * cyy - cxy * cxy
+    ok = (n >= 6) & (det > 1e-3 * np.maximum(cxx * cyy, 1e-12))
+    gx = np.where(ok, (cyy * cxz - cxy * cyz) / np.where(ok, det, 1.0), 0.0)
+    gy = np.where(ok, (cxx * cyz - cxy * cxz) / np.where(ok, det, 1.0), 0.0)
+    return gx[cid] * dx + gy[cid] * dy
+
+
+def _huber(u: np.ndarray) -> np.ndarray:
+    a = np.abs(u)
+    return np.where(a <= 1.0, 0.5 * a * a, a - 0.5)
+
+
+IRLS_ROUNDS = 20
+
+
+def _irls_huber(a: sparse.csr_matrix, rhs: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """argmin sum huber(a x - rhs) for a linear, sparse problem: iteratively re-weighted normal equations
+    (a direct sparse solve each round; the trust-region solver crawled on this one)."""
+    w = np.ones(a.shape[0])
+    x = np.zeros(a.shape[1])
+    for _ in range(IRLS_ROUNDS):
+        aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
+        x_new = spsolve((aw.T @ aw).tocsc(), aw.T @ (np.sqrt(w) * rhs))
+        r = np.abs(a @ x_new - rhs)
+        w = np.where(r <= scale, 1.0, scale / np.maximum(r, 1e-300))
+        if np.max(np.abs(x_new - x)) < 1e-6:
+            return x_new
+        x = x_new
+    return x
 
 
 def apply_pose_correction(samples: np.ndarray, corr: PoseCorrection, frame: StorageFrame) -> np.ndarray:
