@@ -575,9 +575,9 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     j1 = np.where(np.abs(r1) <= BAND * final, j_fit, -1)
     on = j1 >= 0
     counts = tuple(int(np.count_nonzero(j1 == i)) for i in range(5))
-    if on.sum() < opts.min_structure_points:
-        return not_applied(f"too few points on the floor and walls ({int(on.sum())}) to correct the pose",
-                           points=counts)
+    if np.count_nonzero(j_fit >= 0) < opts.min_structure_points:  # the start's: the floor's height comes later
+        return not_applied(f"too few points on the floor and walls ({int(np.count_nonzero(j_fit >= 0))}) to correct "
+                           "the pose", points=counts)
     z_info = None
     if opts.vertical and opts.crossings:
         cell_m = speed * (period or spacing / KNOT_SWEEPS)
@@ -604,11 +604,12 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     constrained = (info * (step ** 2)[None, :] >= 1.0) & estimated[None, :]
     # The same points on the same planes before and after, in noise sigmas: the chi-square gain against
     # what fitting the constrained parameters to noise would give.
-    # The points counted are those on a plane (the start's window) before the correction: counting those
-    # after it would reward a correction that pulls a pile onto the floor.
+    # The points counted are those on a plane before the correction (the start's window) or after it, of
+    # those whose stretch of sweep runs along the plane where the vote found it (so a pile pulled onto the
+    # floor does not count as a gain).
     j_before, _ = _assign(p0, n, d, BAND * sensor_m, b.parallel)
-    both = j_before >= 0
-    jj = j_before[both]
+    both = (j_before >= 0) | on
+    jj = np.where(j_before >= 0, j_before, j1)[both]
     r_before = np.einsum("ij,ij->i", p0[both], n[jj]) - d[jj]
     r_after = np.einsum("ij,ij->i", p1[both], n[jj]) - d[jj]
     cap = (BAND * sensor_m / noise) ** 2
