@@ -215,12 +215,7 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     spikes = SpikeThreshold.from_header(header) if opts.despike else None
     found = implausible(samples, PlausibilityLimits.from_header(header, storage), frame)
     samples = without_implausible(samples, found)
-    pose = None
-    if opts.pose_correction:  # first, with the configured mount: the self-calibration then sees corrected poses
-        pose = estimate_pose_correction(samples, lever, frame, storage, err.resolution_m, err.range_sigma_m,
-                                        err.range_sigma_rel, err.angle_sigma_rad, _sweep_period_s(header), mount)
-        samples = apply_pose_correction(samples, pose, frame)
-    checked = {"implausible": found.counts(), "pose": pose,
+    checked = {"implausible": found.counts(),
                "despike_unavailable": why_no_threshold(header) if opts.despike and spikes is None else None}
     survey = replace(_survey(samples, header, storage, frame, lever, opts, err, spikes, mount), **checked)
     before = survey.sweep_disagreement_m
@@ -248,20 +243,28 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
                      lever: np.ndarray, opts: ReportOptions, err: SensorErrorModel,
                      spikes: SpikeThreshold | None, mount: Boresight) -> Survey:
     """The survey again with the mount the building says (ground.self_calibration), when that is
-    significant; else the survey as it was, with what was found. After the servo re-timing: a late or
-    slow servo makes the sweep directions disagree, a mis-mounted one does not."""
-    if not opts.self_calibration:
-        return survey
-    usable = samples[(samples["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
-    resim = Resimulated.from_header(header)
-    est = estimate_mount(usable, lever, frame, storage, err.range_sigma_m, err.range_sigma_rel, resim, mount)
-    if not est.any_applied:
-        return replace(survey, mount=est)
-    corrected, boresight = apply_mount(samples, est, resim, mount)
+    significant, and then with the trajectory's correction from the building (ground.pose_correction);
+    else the survey as it was, with what was found. After the servo re-timing: a late or slow servo
+    makes the sweep directions disagree, a mis-mounted one does not. The mount before the pose: a
+    constant mount error is partly a constant shift of the structure, which the pose's knots took up
+    when they came first (measured: docs/pose_error.md)."""
+    est, pose, corrected, boresight = None, None, samples, mount
+    if opts.self_calibration:
+        usable = samples[(samples["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
+        resim = Resimulated.from_header(header)
+        est = estimate_mount(usable, lever, frame, storage, err.range_sigma_m, err.range_sigma_rel, resim, mount)
+        if est.any_applied:
+            corrected, boresight = apply_mount(samples, est, resim, mount)
+    if opts.pose_correction:  # after the mount: pose first let the knots' shifts take up a mount error
+        pose = estimate_pose_correction(corrected, lever, frame, storage, err.resolution_m, err.range_sigma_m,
+                                        err.range_sigma_rel, err.angle_sigma_rad, _sweep_period_s(header), boresight)
+        corrected = apply_pose_correction(corrected, pose, frame)
+    if corrected is samples:
+        return replace(survey, mount=est, pose=pose)
     fixed = _survey(corrected, header, storage, frame, lever, opts, err, spikes, boresight)
     return replace(fixed, servo_timing=survey.servo_timing, servo_retimed=survey.servo_retimed,
                    implausible=survey.implausible, despike_unavailable=survey.despike_unavailable, mount=est,
-                   pose=survey.pose)
+                   pose=pose)
 
 
 def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame, lever: np.ndarray,
