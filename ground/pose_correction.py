@@ -54,6 +54,10 @@ from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
 from firmware_py.core.storage import Storage
 
 PLANE_NAMES = ("floor", "x0", "xL", "y0", "yW")
+MAX_MISFIT = 3.0
+"""A correction that leaves the structure points more than this many noise levels off their planes is not
+applied: the drift model does not explain them (as `ground.self_calibration.MAX_MISFIT`; measured, a pose-only
+error leaves 1.1-1.5, a servo 3 deg off with a 2 deg tilt ~6)."""
 BAND = 3.0
 """A fit round takes the points within this many windows of their nearest plane."""
 HELD = 1e-9
@@ -619,6 +623,11 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     needed = n_free + opts.n_significant * math.sqrt(2.0 * max(n_free, 1))
     common = dict(points=counts, rms_before_m=_robust_rms(r_before), rms_after_m=_robust_rms(r1[on]),
                   noise_m=noise, gain=gain, gain_needed=needed)
+    if common["rms_after_m"] > MAX_MISFIT * noise:
+        return not_applied(f"not applied: the floor and walls stay {common['rms_after_m'] * 100:.1f} cm off their "
+                           f"planes "
+                           f"after it, against {noise * 100:.1f} cm of noise: a drifting pose does not explain them "
+                           "(a mounting error the self-calibration did not fit?)", knots, **common)
     if not gain > needed:
         return not_applied("not applied: it does not bring the floor and walls closer to their planes by more than "
                            f"fitting {n_free} parameters to noise would (chi-square gain {gain:.0f}, needed "
