@@ -19,23 +19,26 @@ between two turns: the walls ahead and behind are out of the sweep plane; the he
 beside the track does not see), that component is interpolated between the stretches that do, as a
 drift is continuous, and the report says over which time it was not constrained by data.
 
-How: (1) a vote per knot interval (the mode of the points' distance to each plane: the plane's own points
-pile up at one offset, a pile's toe spreads) gives a start that pile points near the floor or a wall do
-not drag; (2) robust least squares (soft-L1, scipy's trust-region solver with a sparse Jacobian: each
-point moves with its two knots only) over the points near a plane, the window shrinking from what the
-start leaves to the data's own noise.
+How: (1) a vote per knot interval (only points whose stretch of sweep runs along a plane vote for it;
+the plane is the outermost peak of their distances with nothing but stray points beyond it: a pile's flat
+top, which may out-number a floor it hides, has the pile's flanks below it) gives a start and says where
+each plane is seen; (2) robust least squares for the horizontal position (soft-L1, scipy's trust-region
+solver with a sparse Jacobian: each point moves with its two knots only) over the points the vote put on
+a plane, the window shrinking to the data's own noise; (3) the height from the floor and from the pile
+seen at different times (`vertical_from_crossings`: over a pile the floor is hidden, and that is where a
+rangefinder-aided estimator's height is wrong); (4) optionally the heading, kept only when significant
+(off by default: measured, it did more harm than good, docs/pose_error.md).
 
-No harm: a correction is applied only when it brings the structure closer to its planes by more than
-fitting the same number of parameters to noise would (a chi-square test on the structure points in
-the data's own noise sigmas). An error-free flight leaves the points on their planes: nothing to gain,
-nothing applied.
+No harm: applied only when it brings the structure closer to its planes by more than fitting the same
+number of parameters to noise would (a chi-square test in the data's own noise), the height only when
+the crossings' misfit drops by more than noise fitting explains, and never when the structure stays more
+than MAX_MISFIT noise levels off its planes afterwards (a drift does not explain that; a mount fault does).
 
-Why this does not fight the mount's self-calibration (`ground.self_calibration`): the correction is
-solved first, with the configured mount (the header's boresight, the logged servo angles), then the
-mount is self-calibrated from the corrected samples. A mount error is constant and moves each sweep's
-points by an amount that depends on the servo angle (a tilt of the sweep), which a per-knot
-translation and heading cannot mimic across the sweep; a drift varies in time, which a constant mount
-cannot mimic. The rest of what one could absorb of the other is measured (docs/pose_error.md).
+With the mount's self-calibration (`ground.self_calibration`; item 3 of issue 15): the report calibrates
+the mount first, from the logged poses, and corrects the pose after, with the calibrated mount. The
+other order let the knots' shifts take up part of a constant mount error and the self-calibration then
+found nothing (measured: docs/pose_error.md). A drift and a mount fault together are not solved: that
+needs a joint estimate.
 """
 
 from __future__ import annotations
