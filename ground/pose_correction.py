@@ -98,6 +98,11 @@ class PoseCorrectionOptions:
     heading_walk_rad_per_sqrt_s: float = math.radians(0.05)
     max_position_error_m: float = 5.0
     """The largest position error looked for (the vote's reach, the knots' absolute prior)."""
+    max_vertical_error_m: float = 2.0
+    """The largest altitude-reference error believed: the flow profile's worst, a rangefinder weighted 0.25
+    over the paper's 7.3 m pile (1.8 m). A height correction beyond it means a flat pile top was taken for
+    the floor (measured on the paper's pile 2, which hides the floor: 1.4 m RMS of wrong height) and is
+    not applied."""
     max_heading_error_rad: float = math.radians(5.0)
     n_significant: float = 3.0
     """The correction is applied when its gain beats noise fitting by this many standard deviations."""
@@ -154,6 +159,8 @@ class PoseCorrection:
     noise_m: float = 0.0
     gain: float = 0.0
     gain_needed: float = 0.0
+    notes: tuple[str, ...] = ()
+    """What was left out and why (e.g. the height, when the floor seen is not consistent)."""
 
     def at(self, t_s: np.ndarray) -> np.ndarray:
         """(N, 4) the correction at times t_s (linear between knots, held beyond the ends)."""
@@ -191,7 +198,7 @@ class PoseCorrection:
                 "n_knots": len(self.knot_t_s), **self.size(), "unconstrained_s": self.unconstrained_s(),
                 "points_per_plane": dict(zip(PLANE_NAMES, self.points, strict=True)),
                 "rms_before_m": self.rms_before_m, "rms_after_m": self.rms_after_m, "noise_m": self.noise_m,
-                "gain": self.gain, "gain_needed": self.gain_needed}
+                "gain": self.gain, "gain_needed": self.gain_needed, "notes": list(self.notes)}
 
 
 def _rms(x: np.ndarray) -> float:
@@ -587,6 +594,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         return not_applied(f"too few points on the floor and walls ({int(np.count_nonzero(j_fit >= 0))}) to correct "
                            "the pose", points=counts)
     z_info = None
+    notes: list[str] = []
     if opts.vertical and opts.crossings:
         cell_m = speed * (period or spacing / KNOT_SWEEPS)
         # the floor: points along it, in intervals where the vote found it, near the height it found
@@ -599,6 +607,19 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                                                 opts.max_position_error_m, opts.n_significant, z)
             if z is None:
                 break
+        if z is not None and np.abs(z).max() > opts.max_vertical_error_m:
+            notes.append(f"the height was not corrected: the floor seen would put the altitude reference "
+                         f"{np.abs(z).max():.2f} m off, more than the {opts.max_vertical_error_m:g} m an indoor "
+                         "estimator's is (a flat pile top taken for the floor?)")
+            z, z_info = None, None
+        if z is not None and len(z) > 1 and np.abs(np.diff(z)).max() > opts.n_significant * step[2]:
+            # The height jumps more between two knots than any indoor estimator's does: what the vote took
+            # for the floor somewhere is a flat part of a pile (the paper's pile 2 hides the floor almost
+            # everywhere and has a flat top). Then the height is not corrected at all, and the report says so.
+            notes.append(f"the height was not corrected: the floor seen is not consistent (the correction would "
+                         f"jump {np.abs(np.diff(z)).max():.2f} m between knots {spacing:.1f} s apart; a flat pile "
+                         "top taken for the floor?)")
+            z, z_info = None, None
         if z is not None:
             x[:, 2] = z
             p1, vr = corrected_points(b, x, k, f)
@@ -608,7 +629,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     info = np.asarray(jac.multiply(jac).sum(axis=0)).ravel().reshape(len(knots), 4)
     if z_info is not None:
         info[:, 2] = z_info
-    estimated = np.array([True, True, opts.vertical, not held[3]])
+    estimated = np.array([True, True, opts.vertical and (z_info is not None or not opts.crossings), not held[3]])
     constrained = (info * (step ** 2)[None, :] >= 1.0) & estimated[None, :]
     # The same points on the same planes before and after, in noise sigmas: the chi-square gain against
     # what fitting the constrained parameters to noise would give.
@@ -624,8 +645,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     gain = float(np.sum(np.minimum((r_before / noise) ** 2, cap) - np.minimum((r_after / noise) ** 2, cap)))
     n_free = int(constrained.sum())
     needed = n_free + opts.n_significant * math.sqrt(2.0 * max(n_free, 1))
-    common = dict(points=counts, rms_before_m=_robust_rms(r_before), rms_after_m=_robust_rms(r1[on]),
-                  noise_m=noise, gain=gain, gain_needed=needed)
+    common = dict(notes=tuple(notes), points=counts, rms_before_m=_robust_rms(r_before),
+                  rms_after_m=_robust_rms(r1[on]), noise_m=noise, gain=gain, gain_needed=needed)
     if common["rms_after_m"] > MAX_MISFIT * noise:
         return not_applied(f"not applied: the floor and walls stay {common['rms_after_m'] * 100:.1f} cm off their "
                            f"planes "
@@ -812,7 +833,7 @@ def describe(corr: PoseCorrection) -> str:
             f"({s['vertical_max_m']:.2f} max), heading "
             f"{s['heading_rms_deg']:.2f} deg RMS ({s['heading_max_deg']:.2f} max) over time; the floor and walls "
             f"now {corr.rms_after_m * 100:.1f} cm off their planes (were {corr.rms_before_m * 100:.1f} cm)")
-    return line
+    return "; ".join([line, *corr.notes])
 
 
 def unconstrained_warning(corr: PoseCorrection) -> str | None:
