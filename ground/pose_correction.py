@@ -652,6 +652,11 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                            f"planes "
                            f"after it, against {noise * 100:.1f} cm of noise: a drifting pose does not explain them "
                            "(a mounting error the self-calibration did not fit?)", knots, **common)
+    if not common["rms_before_m"] ** 2 - common["rms_after_m"] ** 2 > noise ** 2:
+        return not_applied("not applied: too small to matter (the floor and walls "
+                           f"{common['rms_before_m'] * 100:.2f} cm off their planes before it, "
+                           f"{common['rms_after_m'] * 100:.2f} cm after, against "
+                           f"{noise * 100:.2f} cm of noise)", knots, **common)
     if not gain > needed:
         return not_applied("not applied: it does not bring the floor and walls closer to their planes by more than "
                            f"fitting {n_free} parameters to noise would (chi-square gain {gain:.0f}, needed "
