@@ -199,11 +199,11 @@ def test_that_options_out_of_range_are_refused():
         PoseCorrectionOptions(horizontal_drift_rel=float("nan"))
 
 
-def test_that_the_report_applies_the_correction_unless_told_not_to(drifted):
+def test_that_the_report_applies_the_correction_when_asked_to(drifted):
     from ground.report import ReportOptions, survey_from_samples
     samples, _, _ = drifted
     header = {"sensor": {"resolution_m": RESOLUTION, "max_range_m": MAX_RANGE}, "servo": {"frequency_hz": 1 / PERIOD_S}}
-    on = survey_from_samples(samples, header, STORAGE, FRAME, LEVER, ReportOptions(plots=False))
+    on = survey_from_samples(samples, header, STORAGE, FRAME, LEVER, ReportOptions(plots=False, pose_correction=True))
     off = survey_from_samples(samples, header, STORAGE, FRAME, LEVER, ReportOptions(plots=False, pose_correction=False))
     assert on.pose is not None and on.pose.applied
     assert off.pose is None
@@ -211,8 +211,9 @@ def test_that_the_report_applies_the_correction_unless_told_not_to(drifted):
     assert abs(np.median(on.cloud.points_w[:, 2][np.abs(on.cloud.points_w[:, 2]) < 0.3])) < RESOLUTION
 
 
-def test_that_the_command_line_turns_the_correction_off():
+def test_that_the_command_line_turns_the_correction_on_and_off():
     from ground.cli import build_parser
     parse = build_parser().parse_args
-    assert parse(["report", "RUN", "--out", "REP"]).pose_correction is True
+    assert parse(["report", "RUN", "--out", "REP"]).pose_correction is False
+    assert parse(["report", "RUN", "--out", "REP", "--pose-correction"]).pose_correction is True
     assert parse(["report", "RUN", "--out", "REP", "--no-pose-correction"]).pose_correction is False
