@@ -104,6 +104,14 @@ def build_parser() -> ArgumentParser:
     r.add_argument("--no-self-calibration", action="store_true",
                    help="do not estimate the servo's zero and scale and the LiDAR's boresight from the floor and "
                         "walls (default: estimate them, apply those that are significant, and say so)")
+    pc = r.add_mutually_exclusive_group()
+    pc.add_argument("--pose-correction", dest="pose_correction", action="store_true", default=False,
+                    help="correct the logged trajectory from the building: the horizontal position from the walls, "
+                         "the height from the floor and the pile seen at different times, applied when significant "
+                         "and said in the report (ground/pose_correction.py). Off by default: where a pile hides the "
+                         "floor (the paper's pile 2) a flat pile top can pass for it; see docs/pose_error.md")
+    pc.add_argument("--no-pose-correction", dest="pose_correction", action="store_false",
+                    help="do not correct the trajectory (the default)")
     r.add_argument("--max-grid-memory-mb", type=finite_float, default=DEFAULT_MAX_GRID_MEMORY_BYTES / 2**20,
                    metavar="MB", help="refuse a --cell whose grid would need more memory than this (default "
                                       f"{DEFAULT_MAX_GRID_MEMORY_BYTES // 2**20} MiB)")
@@ -210,7 +218,8 @@ def _report(args) -> int:
                          truth_volume_m3=args.truth_volume, despike=not args.no_despike,
                          surface_fit=args.surface_fit, servo_retiming=not args.no_servo_retiming,
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),
-                         self_calibration=not args.no_self_calibration, max_interval_pct=args.max_interval_pct,
+                         self_calibration=not args.no_self_calibration, pose_correction=args.pose_correction,
+                         max_interval_pct=args.max_interval_pct,
                          site=args.config_file.site if args.config_file is not None else None,
                          base=base, piles=piles, info=info, exports=exports)
     rep = make_report(args.source, args.out, opts, force=args.force)

@@ -35,6 +35,9 @@ from ground.piles import PILES_CSV, PileOptions, write_piles_csv
 from ground.plausibility import PlausibilityLimits, implausible, without_implausible
 from ground.pointcloud import N_SIGMA as FLOOR_N_SIGMA
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask, structure_n_sigma
+from ground.pose_correction import PoseCorrection, apply_pose_correction, estimate_pose_correction
+from ground.pose_correction import describe as describe_pose
+from ground.pose_correction import unconstrained_warning as pose_unconstrained_warning
 from ground.self_calibration import MountEstimate, apply_mount, describe, estimate_mount
 from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
 from ground.smoothing import vertical_sigma_m
@@ -91,6 +94,8 @@ class ReportOptions:
     piles: PileOptions = field(default_factory=PileOptions)  # names, densities, units (ground.piles)
     info: SurveyInfo = field(default_factory=SurveyInfo)  # site name, time zone, operator, aircraft (ground.metadata)
     exports: tuple[ExportFormat, ...] = ()  # standard exports to write beside the report (ground.exports)
+    pose_correction: bool = False  # correct the trajectory from the building (ground.pose_correction); opt-in:
+    # on the paper's pile 2 its height correction took a flat pile top for the floor (docs/pose_error.md)
 
 
 @dataclass(frozen=True)
@@ -116,6 +121,7 @@ class Survey:
     base: Base | None = None  # the surface the volume is measured from (ground.base); None: the floor z = 0
     own_terms: ErrorTerms | None = None  # the surface's own error terms (ErrorTerms) before a fitted floor rebased them
     errors_in: Callable[[np.ndarray], SurveyErrors] | None = None  # the error terms over a cell mask (one pile's)
+    pose: PoseCorrection | None = None  # the trajectory's correction from the building (None: not run)
 
 
 def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
@@ -256,19 +262,28 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
                      lever: np.ndarray, opts: ReportOptions, err: SensorErrorModel,
                      spikes: SpikeThreshold | None, mount: Boresight) -> Survey:
     """The survey again with the mount the building says (ground.self_calibration), when that is
-    significant; else the survey as it was, with what was found. After the servo re-timing: a late or
-    slow servo makes the sweep directions disagree, a mis-mounted one does not."""
-    if not opts.self_calibration:
-        return survey
-    usable = samples[(samples["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
-    resim = Resimulated.from_header(header)
-    est = estimate_mount(usable, lever, frame, storage, err.range_sigma_m, err.range_sigma_rel, resim, mount)
-    if not est.any_applied:
-        return replace(survey, mount=est)
-    corrected, boresight = apply_mount(samples, est, resim, mount)
+    significant, and then with the trajectory's correction from the building (ground.pose_correction);
+    else the survey as it was, with what was found. After the servo re-timing: a late or slow servo
+    makes the sweep directions disagree, a mis-mounted one does not. The mount before the pose: a
+    constant mount error is partly a constant shift of the structure, which the pose's knots took up
+    when they came first (measured: docs/pose_error.md)."""
+    est, pose, corrected, boresight = None, None, samples, mount
+    if opts.self_calibration:
+        usable = samples[(samples["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
+        resim = Resimulated.from_header(header)
+        est = estimate_mount(usable, lever, frame, storage, err.range_sigma_m, err.range_sigma_rel, resim, mount)
+        if est.any_applied:
+            corrected, boresight = apply_mount(samples, est, resim, mount)
+    if opts.pose_correction:  # after the mount: pose first let the knots' shifts take up a mount error
+        pose = estimate_pose_correction(corrected, lever, frame, storage, err.resolution_m, err.range_sigma_m,
+                                        err.range_sigma_rel, err.angle_sigma_rad, _sweep_period_s(header), boresight)
+        corrected = apply_pose_correction(corrected, pose, frame)
+    if corrected is samples:
+        return replace(survey, mount=est, pose=pose)
     fixed = _survey(corrected, header, storage, frame, lever, opts, err, spikes, boresight)
     return replace(fixed, servo_timing=survey.servo_timing, servo_retimed=survey.servo_retimed,
-                   implausible=survey.implausible, despike_unavailable=survey.despike_unavailable, mount=est)
+                   implausible=survey.implausible, despike_unavailable=survey.despike_unavailable, mount=est,
+                   pose=pose)
 
 
 def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame, lever: np.ndarray,
@@ -373,6 +388,8 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
                                          f"{st.disagreement_after_m:.2f} m)" if st is not None else ""))
     if survey.mount is not None and survey.mount.any_applied:
         warnings.append(describe(survey.mount, header_boresight(log.header or {})))
+    if survey.pose is not None and survey.pose.applied:
+        warnings += [w for w in (describe_pose(survey.pose), pose_unconstrained_warning(survey.pose)) if w]
     warnings += site_mismatches(log.header or {}, opts.site)
     if survey.n_cells_clipped:
         warnings.append(f"the fitted surface left the building in {survey.n_cells_clipped} cells (left empty, "
@@ -410,6 +427,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
             "applied": survey.servo_retimed, "model": st.model, "delay_s": st.delay_s, "gain": st.gain,
             "disagreement_before_m": st.disagreement_before_m, "disagreement_after_m": st.disagreement_after_m},
         "self_calibration": None if survey.mount is None else survey.mount.as_dict(),
+        "pose_correction": None if survey.pose is None else survey.pose.as_dict(),
         "uncovered_area_m2": float((~np.isfinite(survey.heights_fit)).sum() * g.cell_area_m2),
         "storage": survey.storage.to_dict(),
         "site": site,

@@ -82,6 +82,15 @@ def main(argv: list[str] | None = None) -> int:
         alone, _ = median_time(lambda: write_exports(survey, header, tuple(ExportFormat), Path(tmp) / "x"), args.repeat)
         rows.append((f"of which the exports alone (`write_exports`, every format, {len(survey.cloud.points_w):,} "
                      f"points, {survey.grid.shape[0] * survey.grid.shape[1]:,} cells)", alone, ""))
+        with_pose = ReportOptions(plots=False, pose_correction=True)
+        on, _ = median_time(lambda: make_report(run, Path(tmp) / "r6", with_pose, force=True), args.repeat)
+        rows.append((f"ground report, no plots, --pose-correction ({n:,} samples)", on, ""))
+        vio_run = Path(tmp) / "vio"
+        vio = fly(FlyConfig(mission=Mission(p_traj=0.05), stockpile="1", pose_error="vio"), vio_run, force=True)
+        corrected, _ = median_time(
+            lambda: make_report(vio_run, Path(tmp) / "r7", with_pose, force=True), args.repeat)
+        rows.append((f"ground report, no plots, `--pose-error vio` flight, pose corrected ({vio.n_samples:,} samples)",
+                     corrected, ""))
         cli = [sys.executable, "-m", "ground.cli", "report", str(run), "--out", str(Path(tmp) / "r3"), "--quiet",
                "--force"]
         cold, _ = median_time(lambda: subprocess.run(cli, check=True), 3)

@@ -1,0 +1,856 @@
+"""Pose correction from the building: a smooth correction of the logged trajectory that puts the floor
+and the walls back on their planes.
+
+Indoors the autopilot's pose drifts (docs/pose_error.md): decimetres to metres of position, tenths of a
+degree of heading, an altitude reference that moves. Every sample is placed from that pose, so the
+building's own surfaces, known exactly from the log header's storage record (floor z = 0, walls x = 0,
+x = L, y = 0, y = W), come out displaced. The correction c(t) = (dx, dy, dz, dtheta)(t) in the storage
+frame W is added to the logged pose: a point is p' = c_W(t) + dp(t) + Rz(dtheta(t)) v, v the beam's
+vector (lever arm + range along the beam) from the logged vehicle position c_W, rotated about the
+vertical through the vehicle (a heading error turns the whole sweep about the vehicle).
+
+The correction is piecewise linear in time (knots every `knot_spacing_s`: two sweep periods, the
+shortest stretch in which the beam has crossed the floor and the walls beside the track in both
+directions twice; shorter knots would fit one sweep's noise, longer ones would smooth the ~1 s
+altitude steps a downward rangefinder makes over a pile). Between knots a random-walk prior (each
+knot's change ~ the largest drift an indoor estimator makes in that time, `PoseCorrectionOptions`)
+ties the knots together: where the structure does not constrain a component (the along-track position
+between two turns: the walls ahead and behind are out of the sweep plane; the heading, which a wall
+beside the track does not see), that component is interpolated between the stretches that do, as a
+drift is continuous, and the report says over which time it was not constrained by data.
+
+How: (1) a vote per knot interval (only points whose stretch of sweep runs along a plane vote for it;
+the plane is the outermost peak of their distances with nothing but stray points beyond it: a pile's flat
+top, which may out-number a floor it hides, has the pile's flanks below it) gives a start and says where
+each plane is seen; (2) robust least squares for the horizontal position (soft-L1, scipy's trust-region
+solver with a sparse Jacobian: each point moves with its two knots only) over the points the vote put on
+a plane, the window shrinking to the data's own noise; (3) the height from the floor and from the pile
+seen at different times (`vertical_from_crossings`: over a pile the floor is hidden, and that is where a
+rangefinder-aided estimator's height is wrong); (4) optionally the heading, kept only when significant
+(off by default: measured, it did more harm than good, docs/pose_error.md).
+
+No harm: applied only when it brings the structure closer to its planes by more than fitting the same
+number of parameters to noise would (a chi-square test in the data's own noise), the height only when
+the crossings' misfit drops by more than noise fitting explains, and never when the structure stays more
+than MAX_MISFIT noise levels off its planes afterwards (a drift does not explain that; a mount fault does).
+
+With the mount's self-calibration (`ground.self_calibration`; item 3 of issue 15): the report calibrates
+the mount first, from the logged poses, and corrects the pose after, with the calibrated mount. The
+other order let the knots' shifts take up part of a constant mount error and the self-calibration then
+found nothing (measured: docs/pose_error.md). A drift and a mount fault together are not solved: that
+needs a joint estimate.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+from scipy import sparse
+from scipy.optimize import least_squares
+from scipy.sparse.linalg import spsolve
+
+from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_rays_w
+from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
+from firmware_py.core.storage import Storage
+
+PLANE_NAMES = ("floor", "x0", "xL", "y0", "yW")
+MAX_MISFIT = 3.0
+"""A correction that leaves the structure points more than this many noise levels off their planes is not
+applied: the drift model does not explain them (as `ground.self_calibration.MAX_MISFIT`; measured, a pose-only
+error leaves 1.1-1.5, a servo 3 deg off with a 2 deg tilt ~6)."""
+BAND = 3.0
+"""A fit round takes the points within this many windows of their nearest plane."""
+HELD = 1e-9
+"""A held component's absolute prior, as a fraction of the free one: it stays at zero."""
+KNOT_SWEEPS = 2.0
+"""Knot spacing in sweep periods (module docstring)."""
+
+
+class Component(enum.Enum):
+    """The corrected components, in the storage frame W (heading: about W's z axis, up)."""
+
+    X = 0
+    Y = 1
+    Z = 2
+    HEADING = 3
+
+
+@dataclass(frozen=True)
+class PoseCorrectionOptions:
+    """The largest drift an indoor estimator makes (the prior) and the fit's limits. Defaults: the upper
+    end of the indoor estimators docs/pose_error.md describes (flow 2 %, VIO 1 % of the distance flown;
+    0.01 deg/s of gyro bias; a downward rangefinder that follows a pile's slope)."""
+
+    horizontal_drift_rel: float = 0.03
+    """Horizontal drift per metre flown (the brief's 1-3 %), for the knots' random-walk prior."""
+    hover_walk_m_per_sqrt_s: float = 0.02
+    """Horizontal random walk in time (twice the flow profile's)."""
+    vertical_slope: float = 0.2
+    """Altitude-reference change per metre flown: a downward rangefinder weighted like the flow profile's
+    (0.25) over a pile's 35 deg angle of repose (tan 35 deg = 0.7)."""
+    vertical_walk_m_per_sqrt_s: float = 0.05
+    """Barometer walk (indoor pressure changes)."""
+    heading_bias_rad_s: float = math.radians(0.03)
+    """Gyro-bias residual (3x the flow profile's)."""
+    heading_walk_rad_per_sqrt_s: float = math.radians(0.05)
+    max_position_error_m: float = 5.0
+    """The largest position error looked for (the vote's reach, the knots' absolute prior)."""
+    max_vertical_error_m: float = 2.0
+    """The largest altitude-reference error believed: the flow profile's worst, a rangefinder weighted 0.25
+    over the paper's 7.3 m pile (1.8 m). A height correction beyond it means a flat pile top was taken for
+    the floor (measured on the paper's pile 2, which hides the floor: 1.4 m RMS of wrong height) and is
+    not applied."""
+    max_heading_error_rad: float = math.radians(5.0)
+    n_significant: float = 3.0
+    """The correction is applied when its gain beats noise fitting by this many standard deviations."""
+    max_points: int = 40_000
+    """Samples used in the fit (evenly spaced in time)."""
+    min_structure_points: int = 200
+    """Fewer structure points than this: no correction (a warning)."""
+    knot_spacing_s: float | None = None
+    """None: KNOT_SWEEPS sweep periods."""
+    vertical: bool = True
+    """Estimate the height too (from the floor where it is seen and, with `crossings`, from the pile)."""
+    crossings: bool = True
+    """With `vertical`: the height also from the pile seen at different times (the same surface must come
+    out at the same height), not only from the floor, which a pile hides along most of a track."""
+    heading: bool = False
+    """Estimate the heading too (kept only when significant). Off by default: the walls beside a track do not
+    see it, and measured on seven SITL flights it made Ve worse on five (it took up a few systematic
+    millimetres on the walls as degrees: docs/pose_error.md)."""
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if (v is None and f.name == "knot_spacing_s") or f.name in ("vertical", "heading", "crossings"):
+                continue
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v <= 0:
+                raise ValueError(f"pose correction option {f.name} must be a finite number > 0, got {v!r}")
+
+
+@dataclass(frozen=True)
+class PoseCorrection:
+    """What the fit found, and whether it is applied.
+
+    Attributes:
+        knot_t_s: (K,) knot times (the sample log's clock).
+        values: (K, 4) the correction at the knots, added to the logged pose: dx, dy, dz in W (m),
+            dtheta about W's z (rad; the NED yaw changes by -dtheta).
+        constrained: (K, 4) whether the structure's points, not the prior, set each value.
+        applied: the samples are re-projected with it.
+        reason: one line when nothing was applied (too few points, not significant).
+        points: structure points per plane in the final fit (PLANE_NAMES order).
+        rms_before_m, rms_after_m: robust RMS distance of those points from their planes.
+        noise_m: the data's own noise along a plane normal (consecutive samples on one plane).
+        gain, gain_needed: the chi-square gain of the fit and what noise fitting would explain.
+    """
+
+    knot_t_s: np.ndarray
+    values: np.ndarray
+    constrained: np.ndarray
+    applied: bool
+    reason: str | None = None
+    points: tuple[int, ...] = (0,) * 5
+    rms_before_m: float = 0.0
+    rms_after_m: float = 0.0
+    noise_m: float = 0.0
+    gain: float = 0.0
+    gain_needed: float = 0.0
+    notes: tuple[str, ...] = ()
+    """What was left out and why (e.g. the height, when the floor seen is not consistent)."""
+
+    def at(self, t_s: np.ndarray) -> np.ndarray:
+        """(N, 4) the correction at times t_s (linear between knots, held beyond the ends)."""
+        t = np.asarray(t_s, dtype=float)
+        if len(self.knot_t_s) == 0:
+            return np.zeros((len(t), 4))
+        return np.column_stack([np.interp(t, self.knot_t_s, self.values[:, c]) for c in range(4)])
+
+    def size(self) -> dict[str, float]:
+        """RMS and max over time of the horizontal, vertical and heading correction (at the knots)."""
+        v = self.values if len(self.values) else np.zeros((1, 4))
+        h = np.hypot(v[:, 0], v[:, 1])
+        return {"horizontal_rms_m": _rms(h), "horizontal_max_m": float(h.max()),
+                "vertical_rms_m": _rms(v[:, 2]), "vertical_max_m": float(np.abs(v[:, 2]).max()),
+                "heading_rms_deg": math.degrees(_rms(v[:, 3])),
+                "heading_max_deg": math.degrees(float(np.abs(v[:, 3]).max()))}
+
+    def unconstrained_s(self) -> dict[str, float]:
+        """Per component, the time (s) over which the data did not constrain it (knot intervals whose
+        both ends are unconstrained)."""
+        if len(self.knot_t_s) < 2:
+            return {c.name.lower(): 0.0 for c in Component}
+        dt = np.diff(self.knot_t_s)
+        out = {}
+        for c in Component:
+            if not np.abs(self.values[:, c.value]).max(initial=0.0) > 1e-9:
+                continue  # held at zero (not estimated)
+            free = ~self.constrained[:, c.value]
+            out[c.name.lower()] = float(dt[free[:-1] & free[1:]].sum())
+        return out
+
+    def as_dict(self) -> dict:
+        return {"applied": self.applied, "reason": self.reason, "knot_spacing_s": _spacing(self.knot_t_s),
+                "knot_t_s": [float(v) for v in self.knot_t_s], "knot_values": self.values.tolist(),
+                "n_knots": len(self.knot_t_s), **self.size(), "unconstrained_s": self.unconstrained_s(),
+                "points_per_plane": dict(zip(PLANE_NAMES, self.points, strict=True)),
+                "rms_before_m": self.rms_before_m, "rms_after_m": self.rms_after_m, "noise_m": self.noise_m,
+                "gain": self.gain, "gain_needed": self.gain_needed, "notes": list(self.notes)}
+
+
+def _rms(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(x)))) if len(x) else 0.0
+
+
+def _robust_rms(r: np.ndarray) -> float:
+    return float(1.4826 * np.median(np.abs(r))) if len(r) else 0.0
+
+
+def _spacing(knots: np.ndarray) -> float:
+    return float(np.median(np.diff(knots))) if len(knots) > 1 else 0.0
+
+
+def not_applied(reason: str, knots: np.ndarray | None = None, **kw) -> PoseCorrection:
+    """No correction, and why."""
+    k = np.zeros(0) if knots is None else knots
+    return PoseCorrection(k, np.zeros((len(k), 4)), np.zeros((len(k), 4), dtype=bool), False, reason, **kw)
+
+
+def planes(storage: Storage) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (5, 3) and offsets (5,) of the floor and the four walls: n . p = d."""
+    n = np.array([[0, 0, 1], [1, 0, 0], [1, 0, 0], [0, 1, 0], [0, 1, 0]], dtype=float)
+    return n, np.array([0.0, 0.0, storage.length_m, 0.0, storage.width_m])
+
+
+def sweep_period_from_samples(t_s: np.ndarray, sweep_dir: np.ndarray) -> float | None:
+    """The servo's period from the logged sweep direction (twice the median time between reversals)."""
+    flips = np.flatnonzero(np.diff(np.asarray(sweep_dir, dtype=np.int64)) != 0)
+    if len(flips) < 3:
+        return None
+    half = float(np.median(np.diff(np.asarray(t_s, dtype=float)[flips])))
+    return 2.0 * half if half > 0 else None
+
+
+def knot_times(t0_s: float, t1_s: float, spacing_s: float) -> np.ndarray:
+    """Evenly spaced knots covering [t0, t1] (at least two)."""
+    n = max(1, math.ceil((t1_s - t0_s) / spacing_s - 1e-9))
+    return t0_s + np.arange(n + 1) * ((t1_s - t0_s) / n if t1_s > t0_s else spacing_s)
+
+
+def prior_sigmas(spacing_s: float, speed_m_s: float, opts: PoseCorrectionOptions) -> np.ndarray:
+    """(4,) the random-walk prior's sigma of one knot-to-knot change per component."""
+    dist = speed_m_s * spacing_s
+    root = math.sqrt(spacing_s)
+    h = opts.horizontal_drift_rel * dist + opts.hover_walk_m_per_sqrt_s * root
+    z = opts.vertical_slope * dist + opts.vertical_walk_m_per_sqrt_s * root
+    psi = opts.heading_bias_rad_s * spacing_s + opts.heading_walk_rad_per_sqrt_s * root
+    return np.array([h, h, z, psi])
+
+
+@dataclass(frozen=True)
+class Beams:
+    """The usable samples' geometry: time, the vehicle's position in W and the vector to the hit point."""
+
+    t_s: np.ndarray
+    vehicle_w: np.ndarray
+    to_point_w: np.ndarray
+    parallel: np.ndarray | None = None
+    """(N, 5) whether each point's stretch of sweep runs along each plane (`along_planes`)."""
+
+    def take(self, idx) -> Beams:
+        return Beams(self.t_s[idx], self.vehicle_w[idx], self.to_point_w[idx],
+                     None if self.parallel is None else self.parallel[idx])
+
+
+def beams(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame,
+          boresight: Boresight = SQUARE) -> tuple[Beams, np.ndarray]:
+    """Eqs. (3)-(6) split at the vehicle, for the usable samples: its position and the vector from it to
+    each hit point; and their sweep directions."""
+    names = ("x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad", "servo_rad", "range_m", "t_s")
+    ok = np.logical_and.reduce([np.isfinite(samples[f]) for f in names])
+    ok &= ((samples["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0) & (samples["range_m"] > 0)
+    s = samples[ok]
+    pos = np.column_stack([s["x_m"], s["y_m"], s["z_m"]]).astype(float)
+    origins, dirs = beam_rays_w(pos, s["roll_rad"], s["pitch_rad"], s["yaw_rad"], s["servo_rad"], lever_arm_body_m,
+                                frame, boresight)
+    c = frame.ned_to_w(pos)
+    return (Beams(s["t_s"].astype(float), c, origins - c + dirs * s["range_m"].astype(float)[:, None]),
+            s["sweep_dir"].astype(np.int64))
+
+
+CHORD_HALF = 16
+"""A point's stretch of sweep: the chord from the sample CHORD_HALF before it to CHORD_HALF after it."""
+
+
+def along_planes(b: Beams, sigma_m: np.ndarray, angle_sigma_rad: float, sweep_dir: np.ndarray,
+                 n: np.ndarray, sample_dt_s: float) -> np.ndarray:
+    """(N, 5) True where the point's stretch of sweep runs along plane j: the chord between its neighbours
+    has no component along j's normal beyond 3 noise sigmas of both ends (and the attitude's pointing
+    error). A translation or a small turn of the pose keeps a plane's stretches flat, a pile's slope
+    never is: so a pile's toe cannot pass for the floor, nor its flank for a wall it does not touch."""
+    p = b.vehicle_w + b.to_point_w
+    m = len(p)
+    h = CHORD_HALF
+    out = np.zeros((m, len(n)), dtype=bool)
+    if m <= 2 * h:
+        return out
+    i = np.arange(h, m - h)
+    same = (sweep_dir[i - h] == sweep_dir[i + h]) & (b.t_s[i + h] - b.t_s[i - h] <= (2 * h + 1.5) * sample_dt_s)
+    chord = p[i + h] - p[i - h]
+    length = np.linalg.norm(chord, axis=1)
+    tol = 3.0 * np.hypot(sigma_m[i - h], sigma_m[i + h]) + 3.0 * angle_sigma_rad * length
+    out[i] = (np.abs(chord @ n.T) <= tol[:, None]) & same[:, None] & (length > tol)[:, None]
+    return out
+
+
+def corrected_points(b: Beams, values: np.ndarray, k: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The points with the correction `values` (K, 4) interpolated at knot index k and fraction f; and the
+    rotated beam vectors."""
+    a = values[k] * (1.0 - f)[:, None] + values[k + 1] * f[:, None]
+    cs, sn = np.cos(a[:, 3]), np.sin(a[:, 3])
+    v = b.to_point_w
+    vr = np.column_stack([cs * v[:, 0] - sn * v[:, 1], sn * v[:, 0] + cs * v[:, 1], v[:, 2]])
+    return b.vehicle_w + a[:, :3] + vr, vr
+
+
+def _basis(t: np.ndarray, knots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    k = np.clip(np.searchsorted(knots, t, side="right") - 1, 0, len(knots) - 2)
+    f = np.clip((t - knots[k]) / (knots[k + 1] - knots[k]), 0.0, 1.0)
+    return k, f
+
+
+def _assign(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: float,
+            parallel: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(plane index, signed distance) of each point's nearest plane (among those its stretch of sweep runs
+    along, when given); index -1 beyond the window or along none."""
+    dist = p @ n.T - d
+    if parallel is not None:
+        dist = np.where(parallel, dist, math.inf)
+    j = np.argmin(np.abs(dist), axis=1)
+    r = dist[np.arange(len(p)), j]
+    return np.where(np.abs(r) <= window, j, -1), r
+
+
+INSIDE_SIGN = np.array([1.0, 1.0, -1.0, 1.0, -1.0])
+"""Per plane (PLANE_NAMES order): the sign of n . p - d on the building's inside, where the pile is."""
+MIN_VOTES = 10
+"""A plane's peak needs this many points in a knot interval (fewer: a few stray returns)."""
+STRAY_FRACTION = 0.01
+"""Points beyond a plane a knot interval may hold by chance (glitches, multipath): 1 % of its points."""
+PEAK_FRACTION = 0.1
+"""A peak of the vote counts when it holds at least this fraction of the highest bin's points."""
+
+
+def _peaks(h: np.ndarray) -> list[int]:
+    """The histogram's local maxima that hold at least MIN_VOTES points and PEAK_FRACTION of the highest
+    (smoothed over three bins)."""
+    sm = np.convolve(h, np.ones(3), mode="same")
+    need = max(MIN_VOTES, PEAK_FRACTION * float(sm.max()))
+    out = []
+    for m in range(len(sm)):
+        left = sm[m - 1] if m > 0 else -1.0
+        right = sm[m + 1] if m + 1 < len(sm) else -1.0
+        if sm[m] >= need and sm[m] >= left and sm[m] > right:
+            out.append(int(np.argmax(h[max(m - 1, 0):m + 2]) + max(m - 1, 0)))
+    return out
+
+
+def _vote(b: Beams, k: np.ndarray, n: np.ndarray, d: np.ndarray, n_knots: int, reach_m: float,
+          bin_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """A start (K, 4), and which planes were found in each knot interval (K - 1, 5).
+
+    Per knot interval and plane, the peaks of the distances to the plane of the points whose stretch of
+    sweep runs along it (a plane's own points pile up at one offset); the plane is the outermost peak
+    beyond which lie no more points of any kind than stray returns: nothing is below the floor or behind
+    a wall but noise, while a flat pile top, which may hold more points than the floor beside it, has the
+    pile's flanks below it. Averaged to the knots, interpolated where no plane was found; heading 0."""
+    p = b.vehicle_w + b.to_point_w
+    dist_all = p @ n.T - d
+    dist = dist_all if b.parallel is None else np.where(b.parallel, dist_all, math.inf)
+    nearest = np.argmin(np.abs(dist), axis=1)
+    bins = np.arange(-reach_m, reach_m + bin_m, bin_m)
+    comp_of_plane = (2, 0, 0, 1, 1)
+    est = np.full((n_knots - 1, 3), np.nan)
+    found = np.zeros((n_knots - 1, 5), dtype=bool)
+    for i in range(n_knots - 1):
+        here = k == i
+        sums, cnt = np.zeros(3), np.zeros(3)
+        for j in range(5):
+            r = dist[here & (nearest == j), j] * INSIDE_SIGN[j]  # > 0: inside the building
+            r = r[np.abs(r) <= reach_m]
+            if len(r) < MIN_VOTES:
+                continue
+            inside_all = np.sort(dist_all[here, j] * INSIDE_SIGN[j])
+            stray = max(MIN_VOTES, STRAY_FRACTION * len(inside_all))
+            h, _ = np.histogram(r, bins)
+            for m in _peaks(h):
+                sel = r[(r >= bins[m] - bin_m) & (r <= bins[m + 1] + bin_m)]
+                off = float(np.median(sel))
+                if np.searchsorted(inside_all, off - 2.0 * bin_m) <= stray:
+                    c = comp_of_plane[j]
+                    sums[c] -= off * INSIDE_SIGN[j] * len(sel)  # the correction moves them back
+                    cnt[c] += len(sel)
+                    found[i, j] = True
+                    break
+        est[i] = np.where(cnt > 0, sums / np.maximum(cnt, 1), np.nan)
+    mids = np.arange(n_knots - 1) + 0.5
+    out = np.zeros((n_knots, 4))
+    for c in range(3):
+        ok = np.isfinite(est[:, c])
+        if ok.any():
+            out[:, c] = np.interp(np.arange(n_knots), mids[ok], est[ok, c])
+    return out, found
+
+
+def _jacobian(b: Beams, vr: np.ndarray, k: np.ndarray, f: np.ndarray, nj: np.ndarray, s: np.ndarray,
+              n_par: int) -> sparse.csr_matrix:
+    """d(residual)/d(knot values) of the points: each point moves with its two knots only."""
+    m = len(k)
+    g = (nj[:, 0] * -vr[:, 1] + nj[:, 1] * vr[:, 0]) / s  # heading: d(Rz v)/dtheta = (-v_y, v_x, 0)
+    per = np.column_stack([nj[:, 0] / s, nj[:, 1] / s, nj[:, 2] / s, g])  # (m, 4)
+    rows = np.repeat(np.arange(m), 8)
+    cols = np.concatenate([4 * k[:, None] + np.arange(4), 4 * (k + 1)[:, None] + np.arange(4)], axis=1).ravel()
+    data = np.concatenate([per * (1.0 - f)[:, None], per * f[:, None]], axis=1).ravel()
+    return sparse.csr_matrix((data, (rows, cols)), shape=(m, n_par))
+
+
+def _prior_matrix(n_knots: int, step_sigma: np.ndarray, abs_sigma: np.ndarray) -> sparse.csr_matrix:
+    """Rows of the prior: knot-to-knot changes in step sigmas, then each knot's value in absolute sigmas
+    ((4,) or per knot (K, 4))."""
+    abs_sigma = np.broadcast_to(abs_sigma, (n_knots, 4))
+    n_par = 4 * n_knots
+    rows, cols, data = [], [], []
+    r = 0
+    for i in range(n_knots - 1):
+        for c in range(4):
+            rows += [r, r]
+            cols += [4 * i + c, 4 * (i + 1) + c]
+            data += [-1.0 / step_sigma[c], 1.0 / step_sigma[c]]
+            r += 1
+    for i in range(n_knots):
+        for c in range(4):
+            rows.append(r)
+            cols.append(4 * i + c)
+            data.append(1.0 / abs_sigma[i, c])
+            r += 1
+    return sparse.csr_matrix((data, (rows, cols)), shape=(r, n_par))
+
+
+def _fit_round(b: Beams, k: np.ndarray, f: np.ndarray, n: np.ndarray, d: np.ndarray, x0: np.ndarray,
+               window: float, prior: sparse.csr_matrix, j: np.ndarray,
+               bound: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """One robust least-squares round over the points assigned to planes (j >= 0), in windows. The
+    assignment is the start's and stays: re-assigning after each round let the floor climb a pile's
+    flat top step by step where the floor itself was hidden."""
+    n_knots = len(x0)
+    sel = np.flatnonzero(j >= 0)
+    if len(sel) < 10:
+        return x0, j
+    bs = b.take(sel)
+    ks, fs, nj, dj = k[sel], f[sel], n[j[sel]], d[j[sel]]
+    s = np.full(len(sel), window)
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        v = x.reshape(n_knots, 4)
+        q, _ = corrected_points(bs, v, ks, fs)
+        return np.concatenate([(np.einsum("ij,ij->i", q, nj) - dj) / s, prior @ x])
+
+    def jac(x: np.ndarray) -> sparse.csr_matrix:
+        v = x.reshape(n_knots, 4)
+        _, vr = corrected_points(bs, v, ks, fs)
+        return sparse.vstack([_jacobian(bs, vr, ks, fs, nj, s, 4 * n_knots), prior], format="csr")
+
+    hi = np.full(x0.size, np.inf) if bound is None else bound.ravel()
+    sol = least_squares(resid, np.clip(x0.ravel(), -hi * 0.999, hi * 0.999), jac=jac, loss="soft_l1", f_scale=1.0,
+                        tr_solver="lsmr", x_scale="jac", max_nfev=50, bounds=(-hi, hi))
+    return sol.x.reshape(n_knots, 4), j
+
+
+def _noise_m(j: np.ndarray, r: np.ndarray, floor_m: float) -> float:
+    """The structure's noise along its normals: consecutive samples on one plane (a pose error moves
+    neighbours alike, so their difference is the noise), never under floor_m."""
+    on = np.flatnonzero(j >= 0)
+    same = (np.diff(on) == 1) & (j[on[1:]] == j[on[:-1]])
+    if not same.any():
+        return floor_m
+    return max(_robust_rms(np.diff(r[on])[same]) / math.sqrt(2.0), floor_m)
+
+
+def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, storage: Storage,
+                             resolution_m: float, range_sigma_m: float = 0.0, range_sigma_rel: float = 0.0,
+                             angle_sigma_rad: float = 0.0, sweep_period_s: float | None = None,
+                             boresight: Boresight = SQUARE,
+                             opts: PoseCorrectionOptions | None = None) -> PoseCorrection:
+    """Estimate the trajectory's correction from the floor and walls (module docstring).
+
+    Args:
+        samples: the survey's samples (SAMPLE_DTYPE), in time order; unusable ones are left out here.
+        lever_arm_body_m, frame, storage, boresight: the log header's geometry.
+        resolution_m, range_sigma_m, range_sigma_rel: the header's sensor model (the vote's bin, the
+            noise floor).
+        sweep_period_s: the servo's period (the header's); None: from the logged sweep directions.
+    """
+    opts = opts or PoseCorrectionOptions()
+    b, sweep_dir = beams(samples, lever_arm_body_m, frame, boresight)
+    if len(b.t_s) < opts.min_structure_points:
+        return not_applied(f"too few usable samples ({len(b.t_s)}) to correct the pose from the building")
+    period = sweep_period_s or sweep_period_from_samples(samples["t_s"], samples["sweep_dir"])
+    spacing = opts.knot_spacing_s or (KNOT_SWEEPS * period if period else None)
+    if spacing is None or not spacing > 0:
+        return not_applied("the sweep period is unknown (no servo frequency in the header, too few sweeps): no knot "
+                           "spacing for the pose correction")
+    n, d = planes(storage)
+    rng = np.linalg.norm(b.to_point_w, axis=1)
+    floor_m = max(resolution_m / math.sqrt(12.0), 1e-3)
+    sigma = np.maximum(np.maximum(range_sigma_m, range_sigma_rel * rng), floor_m)
+    dt = float(np.median(np.diff(b.t_s))) if len(b.t_s) > 1 else 0.0
+    b = replace(b, parallel=along_planes(b, sigma, angle_sigma_rad, sweep_dir, n, dt))
+    stride = max(1, len(b.t_s) // opts.max_points)
+    b = b.take(slice(None, None, stride))
+    t0, t1 = float(b.t_s.min()), float(b.t_s.max())
+    knots = knot_times(t0, t1, spacing)
+    k, f = _basis(b.t_s, knots)
+    # what the data alone give: the sensor's error at the median range (the vote's bin), the data's noise
+    rng_med = float(np.median(np.linalg.norm(b.to_point_w, axis=1)))
+    sensor_m = max(range_sigma_m, range_sigma_rel * rng_med, resolution_m)
+    p0 = b.vehicle_w + b.to_point_w
+    j0, r0 = _assign(p0, n, d, opts.max_position_error_m, b.parallel)
+    noise = _noise_m(np.where(np.abs(r0) <= sensor_m, j0, -1), r0, floor_m)
+    path = b.vehicle_w[np.argsort(b.t_s)]
+    speed = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)) / max(t1 - t0, 1e-9))
+    step = prior_sigmas(spacing, speed, opts)
+    absolute = np.array([opts.max_position_error_m] * 3 + [opts.max_heading_error_rad])
+    held = np.array([False, False, not opts.vertical or opts.crossings, not opts.heading])
+    absolute = np.where(held, absolute * HELD, absolute)  # a held component stays at zero
+    # The heading's absolute prior grows from the log's start as the gyro's drift does (one knot step at the
+    # start): a gyro-integrated heading cannot be degrees off after a minute, and a few systematic
+    # millimetres on the walls would otherwise buy a heading the drift model does not allow.
+    elapsed = knots - knots[0]
+    absolute = np.tile(absolute, (len(knots), 1))
+    absolute[:, 3] = np.minimum(absolute[:, 3], step[3] + opts.heading_bias_rad_s * elapsed
+                                + opts.heading_walk_rad_per_sqrt_s * np.sqrt(elapsed))
+    if held[3]:
+        absolute[:, 3] = opts.max_heading_error_rad * HELD
+    prior = _prior_matrix(len(knots), step, absolute)
+    # Nor may the data push a component beyond N_SIGNIFICANT of its prior (a few pile points taken for a
+    # wall bought six degrees of heading in one stretch): a drift that large is not this model's.
+    bound = np.where(held[None, :], 1e-12, opts.n_significant * absolute)
+    bound[:, :3] = np.where(held[None, :3], 1e-12, np.inf)
+    x, found = _vote(b, k, n, d, len(knots), opts.max_position_error_m, sensor_m)
+    z_vote = x[:, 2].copy()
+    x[:, held] = 0.0
+    # Only the planes the vote found in a knot interval hold it: where the floor is hidden (under a pile),
+    # a flat part of the pile near where the floor would be must not pass for it.
+    b = replace(b, parallel=b.parallel & found[k])
+    final = 3.0 * noise
+    j_fit, _ = _assign(corrected_points(b, x, k, f)[0], n, d, BAND * sensor_m, b.parallel)
+
+    def plane_fit(x: np.ndarray, prior: sparse.csr_matrix, bound: np.ndarray) -> np.ndarray:
+        # windows: from what the vote leaves (its bin) down to the data's noise
+        window = sensor_m
+        for _ in range(12):
+            x, _ = _fit_round(b, k, f, n, d, x, window, prior, j_fit, bound)
+            if window <= final:
+                break
+            _, r = _assign(corrected_points(b, x, k, f)[0], n, d, BAND * window, b.parallel)
+            on = j_fit >= 0
+            window = max(final, min(window / 2.0, BAND * _robust_rms(r[on]) if on.any() else window / 2.0))
+        return x
+
+    # First without the heading, then with it, which is kept only when it brings the floor and walls closer
+    # by more than fitting its knots to noise would: the walls beside a track do not see it, and on an
+    # error-free flight a few systematic millimetres bought a tenth of a degree.
+    no_heading = absolute.copy()
+    no_heading[:, 3] = opts.max_heading_error_rad * HELD
+    bound_nh = bound.copy()
+    bound_nh[:, 3] = 1e-12
+    x = plane_fit(x, _prior_matrix(len(knots), step, no_heading), bound_nh)
+    heading_gain = 0.0
+    if not held[3]:
+        x_h = plane_fit(x, prior, bound)
+        sel0 = j_fit >= 0
+        jj0 = np.maximum(j_fit, 0)
+        cap0 = (BAND * sensor_m / noise) ** 2
+
+        def chi2(v: np.ndarray) -> float:
+            q = corrected_points(b, v, k, f)[0]
+            r = (np.einsum("ij,ij->i", q, n[jj0]) - d[jj0])[sel0] / noise
+            return float(np.sum(np.minimum(r * r, cap0)))
+        heading_gain = chi2(x) - chi2(x_h)
+        if heading_gain > len(knots) + opts.n_significant * math.sqrt(2.0 * len(knots)):
+            x = x_h
+        else:
+            held = held.copy()
+            held[3] = True
+    p1, vr = corrected_points(b, x, k, f)
+    r1 = np.einsum("ij,ij->i", p1, n[np.maximum(j_fit, 0)]) - d[np.maximum(j_fit, 0)]
+    j1 = np.where(np.abs(r1) <= BAND * final, j_fit, -1)
+    on = j1 >= 0
+    counts = tuple(int(np.count_nonzero(j1 == i)) for i in range(5))
+    if np.count_nonzero(j_fit >= 0) < opts.min_structure_points:  # the start's: the floor's height comes later
+        return not_applied(f"too few points on the floor and walls ({int(np.count_nonzero(j_fit >= 0))}) to correct "
+                           "the pose", points=counts)
+    z_info = None
+    notes: list[str] = []
+    if opts.vertical and opts.crossings:
+        cell_m = speed * (period or spacing / KNOT_SWEEPS)
+        # the floor: points along it, in intervals where the vote found it, near the height it found
+        z_at = np.interp(b.t_s, knots, z_vote)
+        floor = b.parallel[:, 0] & (np.abs(p1[:, 2] + z_at) <= BAND * sensor_m)
+        wall = (j1 >= 1) | (j_fit >= 1)
+        z = None
+        for _ in range(SLOPE_ROUNDS):  # the cells' slopes from the heights corrected so far (module docstring)
+            z, z_info = vertical_from_crossings(p1, b.t_s, knots, wall, floor, storage, cell_m, step[2], noise,
+                                                opts.max_position_error_m, opts.n_significant, z)
+            if z is None:
+                break
+        if z is not None and np.abs(z).max() > opts.max_vertical_error_m:
+            notes.append(f"the height was not corrected: the floor seen would put the altitude reference "
+                         f"{np.abs(z).max():.2f} m off, more than the {opts.max_vertical_error_m:g} m an indoor "
+                         "estimator's is (a flat pile top taken for the floor?)")
+            z, z_info = None, None
+        if z is not None and len(z) > 1 and np.abs(np.diff(z)).max() > opts.n_significant * step[2]:
+            # The height jumps more between two knots than any indoor estimator's does: what the vote took
+            # for the floor somewhere is a flat part of a pile (the paper's pile 2 hides the floor almost
+            # everywhere and has a flat top). Then the height is not corrected at all, and the report says so.
+            notes.append(f"the height was not corrected: the floor seen is not consistent (the correction would "
+                         f"jump {np.abs(np.diff(z)).max():.2f} m between knots {spacing:.1f} s apart; a flat pile "
+                         "top taken for the floor?)")
+            z, z_info = None, None
+        if z is not None:
+            x[:, 2] = z
+            p1, vr = corrected_points(b, x, k, f)
+    # Which knot components the data set (their information beats the prior's): the rest is interpolated.
+    sel = np.flatnonzero(on)
+    jac = _jacobian(b.take(sel), vr[sel], k[sel], f[sel], n[j1[sel]], np.full(len(sel), noise), 4 * len(knots))
+    info = np.asarray(jac.multiply(jac).sum(axis=0)).ravel().reshape(len(knots), 4)
+    if z_info is not None:
+        info[:, 2] = z_info
+    estimated = np.array([True, True, opts.vertical and (z_info is not None or not opts.crossings), not held[3]])
+    constrained = (info * (step ** 2)[None, :] >= 1.0) & estimated[None, :]
+    # The same points on the same planes before and after, in noise sigmas: the chi-square gain against
+    # what fitting the constrained parameters to noise would give.
+    # The points counted are those on a plane before the correction (the start's window) or after it, of
+    # those whose stretch of sweep runs along the plane where the vote found it (so a pile pulled onto the
+    # floor does not count as a gain).
+    j_before, _ = _assign(p0, n, d, BAND * sensor_m, b.parallel)
+    both = (j_before >= 0) | on
+    jj = np.where(j_before >= 0, j_before, j1)[both]
+    r_before = np.einsum("ij,ij->i", p0[both], n[jj]) - d[jj]
+    r_after = np.einsum("ij,ij->i", p1[both], n[jj]) - d[jj]
+    cap = (BAND * sensor_m / noise) ** 2
+    gain = float(np.sum(np.minimum((r_before / noise) ** 2, cap) - np.minimum((r_after / noise) ** 2, cap)))
+    n_free = int(constrained.sum())
+    needed = n_free + opts.n_significant * math.sqrt(2.0 * max(n_free, 1))
+    common = dict(notes=tuple(notes), points=counts, rms_before_m=_robust_rms(r_before),
+                  rms_after_m=_robust_rms(r1[on]), noise_m=noise, gain=gain, gain_needed=needed)
+    if common["rms_after_m"] > MAX_MISFIT * noise:
+        return not_applied(f"not applied: the floor and walls stay {common['rms_after_m'] * 100:.1f} cm off their "
+                           f"planes "
+                           f"after it, against {noise * 100:.1f} cm of noise: a drifting pose does not explain them "
+                           "(a mounting error the self-calibration did not fit?)", knots, **common)
+    if not common["rms_before_m"] ** 2 - common["rms_after_m"] ** 2 > noise ** 2:
+        return not_applied("not applied: too small to matter (the floor and walls "
+                           f"{common['rms_before_m'] * 100:.2f} cm off their planes before it, "
+                           f"{common['rms_after_m'] * 100:.2f} cm after, against "
+                           f"{noise * 100:.2f} cm of noise)", knots, **common)
+    if not gain > needed:
+        return not_applied("not applied: it does not bring the floor and walls closer to their planes by more than "
+                           f"fitting {n_free} parameters to noise would (chi-square gain {gain:.0f}, needed "
+                           f"{needed:.0f})", knots, **common)
+    return PoseCorrection(knots, x, constrained, True, None, **common)
+
+
+SLOPE_ROUNDS = 3
+"""Rounds of the height solution, each with the cells' slopes from the previous one's corrected heights (a
+slope fitted to uncorrected heights takes up the difference between two passes over a cell)."""
+MIN_CELL_POINTS = 3
+"""A cell's points in one knot interval give one height when there are at least this many."""
+
+
+def _group_median(key: np.ndarray, z: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per distinct key: the key, the median and robust spread of z, the mean of t, the count."""
+    order = np.lexsort((z, key))
+    key, z, t = key[order], z[order], t[order]
+    uniq, start, count = np.unique(key, return_index=True, return_counts=True)
+    med = np.array([np.median(z[a:a + c]) for a, c in zip(start, count, strict=True)])
+    mad = np.array([1.4826 * np.median(np.abs(z[a:a + c] - m)) for a, c, m in zip(start, count, med, strict=True)])
+    tm = np.add.reduceat(t, start) / count
+    return uniq, med, mad, tm, count
+
+
+def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, floor: np.ndarray,
+                            storage: Storage, cell_m: float, step_z_m: float, noise_m: float, max_error_m: float,
+                            n_significant: float = 3.0,
+                            start: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The height correction at the knots (K,) from the floor and from the pile seen at different times.
+
+    Each knot interval's points in a cell (cell_m: what the vehicle flies in a sweep period, so a cell holds
+    both sweep directions' points) give one height, z + c(t); the surface's height there, m, is one unknown
+    per cell, the same whenever it is seen; a cell whose points the vote took for the floor (`floor`) has
+    m = 0. Solved with the knots' random-walk prior, robustly (Huber: a cell on a slope, whose height
+    depends on where in it the points fell, scatters and counts little; a flat part of the pile the vote
+    took for the floor is outvoted by the other times that saw it). Returns (None, None) when there is
+    nothing to solve or the result is not significant; else the correction and the data's information on
+    each knot (1 / m^2)."""
+    n_knots = len(knots)
+    k, _ = _basis(t, knots)
+    inside = (~wall & (p[:, 0] > 0) & (p[:, 0] < storage.length_m) & (p[:, 1] > 0) & (p[:, 1] < storage.width_m)
+              & (p[:, 2] > -max_error_m) & (p[:, 2] < storage.height_m))
+    nx = max(1, math.ceil(storage.length_m / cell_m))
+    ny = max(1, math.ceil(storage.width_m / cell_m))
+    cid = (np.clip((p[:, 0] / cell_m).astype(np.int64), 0, nx - 1) * ny
+           + np.clip((p[:, 1] / cell_m).astype(np.int64), 0, ny - 1))
+    # Each cell's slope, from all its points (every time together): the height a knot interval gives is at
+    # the cell's centre, so two passes that hit a sloped cell in different places still agree.
+    seen_z = p[:, 2] if start is None else p[:, 2] + np.interp(t, knots, start)  # slopes from the corrected
+    z_flat = p[:, 2] - _cell_slopes(np.column_stack([p[:, :2], seen_z]), cid, nx * ny, cell_m, ny, inside)
+    key, med, mad, tm, cnt = _group_median((k * (nx * ny) + cid)[inside], z_flat[inside], t[inside])
+    fkey, _, _, _, fcnt = _group_median((k * (nx * ny) + cid)[inside & floor], z_flat[inside & floor],
+                                        t[inside & floor])
+    is_floor = np.zeros(len(key), dtype=bool)
+    pos = np.searchsorted(key, fkey)
+    is_floor[pos[fcnt * 2 >= cnt[pos]]] = True  # most of the interval's points in the cell are floor
+    keep = cnt >= MIN_CELL_POINTS
+    key, med, mad, tm, cnt, is_floor = key[keep], med[keep], mad[keep], tm[keep], cnt[keep], is_floor[keep]
+    cell = key % (nx * ny)
+    _, inv, times_seen = np.unique(cell, return_inverse=True, return_counts=True)
+    floor_cells = np.zeros(times_seen.shape, dtype=bool)
+    floor_cells[inv[is_floor]] = True
+    use = (times_seen[inv] >= 2) | floor_cells[inv]  # seen once and not floor: says nothing about c
+    key, med, mad, tm, cnt, inv = key[use], med[use], mad[use], tm[use], cnt[use], inv[use]
+    if len(key) == 0 or not floor_cells.any():
+        return None, None
+    uniq_cells, cell_idx = np.unique(inv, return_inverse=True)
+    n_cells = len(uniq_cells)
+    fc = np.flatnonzero(floor_cells[uniq_cells])
+    rows_s = 1.25 * np.maximum(mad, noise_m) / np.sqrt(cnt)  # the sd of a median
+    n_par = n_knots + n_cells
+    kk, ff = _basis(tm, knots)
+    m_obs, m_floor = len(med), len(fc)
+    rows = np.concatenate([np.repeat(np.arange(m_obs), 3), m_obs + np.arange(m_floor)])
+    cols = np.concatenate([np.column_stack([kk, kk + 1, n_knots + cell_idx]).ravel(), n_knots + fc])
+    data = np.concatenate([np.column_stack([(1 - ff) / rows_s, ff / rows_s, -1.0 / rows_s]).ravel(),
+                           np.full(m_floor, 1.0 / noise_m)])
+    a_obs = sparse.csr_matrix((data, (rows, cols)), shape=(m_obs + m_floor, n_par))
+    b_obs = np.concatenate([-med / rows_s, np.zeros(m_floor)])
+    # the prior: knot-to-knot steps, a weak pull to zero (the knots) and to the floor (the cells)
+    pr, pc_, pd = [], [], []
+    for i in range(n_knots - 1):
+        pr += [i, i]
+        pc_ += [i, i + 1]
+        pd += [-1.0 / step_z_m, 1.0 / step_z_m]
+    r = n_knots - 1
+    for i in range(n_par):
+        pr.append(r + i)
+        pc_.append(i)
+        pd.append(1.0 / (max_error_m if i < n_knots else storage.height_m))
+    a_pr = sparse.csr_matrix((pd, (pr, pc_)), shape=(r + n_par, n_par))
+    a = sparse.vstack([a_obs, a_pr], format="csr")
+    rhs = np.concatenate([b_obs, np.zeros(r + n_par)])
+    x = _irls_huber(a, rhs)
+    info = np.asarray(a_obs[:, :n_knots].multiply(a_obs[:, :n_knots]).sum(axis=0)).ravel()
+    # Significance: the heights' misfit with the correction and without it (the cells' heights fitted
+    # alone), in the residuals' own spread (a cell on a slope scatters more than its points say), against
+    # what fitting the knots to noise would explain.
+    r_full = a_obs @ x - b_obs
+    a_cells = sparse.vstack([a_obs[:, n_knots:], a_pr[r + n_knots:, n_knots:]], format="csr")
+    x_cells = _irls_huber(a_cells, np.concatenate([b_obs, np.zeros(n_cells)]))
+    r_none = a_obs[:, n_knots:] @ x_cells - b_obs
+    spread = max(1.0, _robust_rms(r_full))
+    gain = 2.0 * float(np.sum(_huber(r_none / spread)) - np.sum(_huber(r_full / spread)))
+    if not gain > n_knots + n_significant * math.sqrt(2.0 * n_knots):
+        return None, None
+    return x[:n_knots], info / spread ** 2
+
+
+def _cell_slopes(p: np.ndarray, cid: np.ndarray, n_cells: int, cell_m: float, ny: int,
+                 use: np.ndarray) -> np.ndarray:
+    """Per point, its cell's least-squares plane's height above the cell's centre at the point (0 where the
+    cell's points do not span both directions)."""
+    cx = (cid // ny + 0.5) * cell_m
+    cy = (cid % ny + 0.5) * cell_m
+    dx, dy, z = p[:, 0] - cx, p[:, 1] - cy, p[:, 2]
+    w = use.astype(float)
+
+    def s(v: np.ndarray) -> np.ndarray:
+        return np.bincount(cid, weights=v * w, minlength=n_cells)
+    n, sx, sy, sz = s(np.ones(len(p))), s(dx), s(dy), s(z)
+    sxx, sxy, syy, sxz, syz = s(dx * dx), s(dx * dy), s(dy * dy), s(dx * z), s(dy * z)
+    safe = np.maximum(n, 1.0)
+    # centred moments
+    cxx, cxy, cyy = sxx - sx * sx / safe, sxy - sx * sy / safe, syy - sy * sy / safe
+    cxz, cyz = sxz - sx * sz / safe, syz - sy * sz / safe
+    det = cxx * cyy - cxy * cxy
+    ok = (n >= 6) & (det > 1e-3 * np.maximum(cxx * cyy, 1e-12))
+    gx = np.where(ok, (cyy * cxz - cxy * cyz) / np.where(ok, det, 1.0), 0.0)
+    gy = np.where(ok, (cxx * cyz - cxy * cxz) / np.where(ok, det, 1.0), 0.0)
+    return gx[cid] * dx + gy[cid] * dy
+
+
+def _huber(u: np.ndarray) -> np.ndarray:
+    a = np.abs(u)
+    return np.where(a <= 1.0, 0.5 * a * a, a - 0.5)
+
+
+IRLS_ROUNDS = 20
+
+
+def _irls_huber(a: sparse.csr_matrix, rhs: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """argmin sum huber(a x - rhs) for a linear, sparse problem: iteratively re-weighted normal equations
+    (a direct sparse solve each round; the trust-region solver crawled on this one)."""
+    w = np.ones(a.shape[0])
+    x = np.zeros(a.shape[1])
+    for _ in range(IRLS_ROUNDS):
+        aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
+        x_new = spsolve((aw.T @ aw).tocsc(), aw.T @ (np.sqrt(w) * rhs))
+        r = np.abs(a @ x_new - rhs)
+        w = np.where(r <= scale, 1.0, scale / np.maximum(r, 1e-300))
+        if np.max(np.abs(x_new - x)) < 1e-6:
+            return x_new
+        x = x_new
+    return x
+
+
+def apply_pose_correction(samples: np.ndarray, corr: PoseCorrection, frame: StorageFrame) -> np.ndarray:
+    """A copy of the samples with the pose re-stated: position += the correction (W to NED), yaw -= dtheta
+    (a turn about W's up axis is one about NED's down axis the other way)."""
+    if not corr.applied:
+        return samples
+    out = samples.copy()
+    c = corr.at(samples["t_s"].astype(float))
+    d_ned = c[:, :3] @ frame.rot_w_from_ned  # R is symmetric: W -> NED of a vector
+    for i, name in enumerate(("x_m", "y_m", "z_m")):
+        out[name] = samples[name] + d_ned[:, i]
+    out["yaw_rad"] = np.angle(np.exp(1j * (samples["yaw_rad"].astype(float) - c[:, 3])))
+    return out
+
+
+def describe(corr: PoseCorrection) -> str:
+    """One line for the report: the correction applied, its size over time, and where the data did not
+    constrain it."""
+    s = corr.size()
+    line = (f"pose corrected from the building: horizontal {s['horizontal_rms_m']:.2f} m RMS "
+            f"({s['horizontal_max_m']:.2f} max), vertical {s['vertical_rms_m']:.2f} m RMS "
+            f"({s['vertical_max_m']:.2f} max), heading "
+            f"{s['heading_rms_deg']:.2f} deg RMS ({s['heading_max_deg']:.2f} max) over time; the floor and walls "
+            f"now {corr.rms_after_m * 100:.1f} cm off their planes (were {corr.rms_before_m * 100:.1f} cm)")
+    return "; ".join([line, *corr.notes])
+
+
+def unconstrained_warning(corr: PoseCorrection) -> str | None:
+    """A warning naming the components the structure did not constrain over part of the flight (they were
+    interpolated between the stretches that did), or None."""
+    if not corr.applied or len(corr.knot_t_s) < 2:
+        return None
+    total = float(corr.knot_t_s[-1] - corr.knot_t_s[0])
+    names = {"x": "x (along the length)", "y": "y (along the width)", "z": "height", "heading": "heading"}
+    parts = [f"{names[c]} over {s:.0f} s" for c, s in corr.unconstrained_s().items() if s > 0]
+    if not parts:
+        return None
+    return (f"the pose correction is not constrained by the floor and walls for {', '.join(parts)} of the "
+            f"{total:.0f} s flown: there it is interpolated between the stretches that are (no wall in the sweep "
+            "plane); trajectory errors there are only as small as the drift is smooth")

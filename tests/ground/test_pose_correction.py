@@ -1,0 +1,219 @@
+"""ground.pose_correction: a drift injected into the logged pose of a flight through a box building is
+recovered from the floor and walls (and the pile seen at different times); an error-free log is left
+alone; a stretch the structure does not see is flagged, not invented; bad inputs fall back safely."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from firmware_py.core.frames import StorageFrame, beam_rays_w
+from firmware_py.core.samplelog import SampleFlags, new_records
+from firmware_py.core.storage import Storage
+from ground.pose_correction import (
+    Component,
+    PoseCorrectionOptions,
+    apply_pose_correction,
+    estimate_pose_correction,
+    unconstrained_warning,
+)
+
+STORAGE = Storage(60.0, 40.0, 15.0)
+FRAME = StorageFrame()  # W = (north, -east, -down)
+LEVER = np.array([0.0, 0.0, 0.1])
+RATE_HZ = 500.0
+PERIOD_S = 1.5  # servo sweep period
+SPEED = 2.0
+ALT = 12.0
+MAX_RANGE = 25.0
+PILE = (np.array([22.0, 14.0, 0.0]), np.array([38.0, 26.0, 3.0]))  # a flat-topped block "pile", W
+RESOLUTION = 0.01
+
+
+def _track(t: np.ndarray, corners: list[tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (W, x y) and W-frame course along a closed polyline flown at SPEED."""
+    pts = np.array(corners + corners[:1], dtype=float)
+    seg = np.diff(pts, axis=0)
+    length = np.linalg.norm(seg, axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(length)])
+    s = np.clip(t * SPEED, 0, cum[-1] - 1e-9)
+    i = np.searchsorted(cum, s, side="right") - 1
+    f = (s - cum[i]) / length[i]
+    xy = pts[i] + seg[i] * f[:, None]
+    return xy, np.arctan2(seg[i, 1], seg[i, 0])
+
+
+def _cast(o: np.ndarray, d: np.ndarray, storage: Storage) -> np.ndarray:
+    """Range from o along d to the box building's inside faces or the block pile (nan beyond MAX_RANGE)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        hi = np.array([storage.length_m, storage.width_m, storage.height_m])
+        t_in = np.where(d > 0, (hi - o) / d, np.where(d < 0, -o / d, np.inf)).min(axis=1)
+        lo_t = (PILE[0] - o) / d
+        hi_t = (PILE[1] - o) / d
+        t1, t2 = np.minimum(lo_t, hi_t).max(axis=1), np.maximum(lo_t, hi_t).min(axis=1)
+        t_pile = np.where((t2 >= t1) & (t1 > 0), t1, np.inf)
+    r = np.minimum(t_in, t_pile)
+    return np.where(r <= MAX_RANGE, r, np.nan)
+
+
+def flight(error_w: np.ndarray | None = None, corners=None, duration_s: float | None = None,
+           noise_m: float = 0.0, seed: int = 0, storage: Storage = STORAGE) -> tuple[np.ndarray, np.ndarray]:
+    """A sample log of a loop at ALT through the box building: the ranges from the true pose, the logged
+    pose = truth + error (error_w(t) -> (N, 4): dx, dy, dz in W, dyaw NED)."""
+    corners = corners or [(12.0, 8.0), (48.0, 8.0), (48.0, 32.0), (12.0, 32.0)]
+    perimeter = sum(math.dist(a, b) for a, b in zip(corners, corners[1:] + corners[:1], strict=True))
+    duration_s = duration_s or perimeter / SPEED
+    t = np.arange(0.0, duration_s, 1.0 / RATE_HZ)
+    xy, course = _track(t, corners)
+    true_w = np.column_stack([xy, np.full(len(t), ALT)])
+    yaw = FRAME.yaw_from_w_heading(course)
+    phase = (t / PERIOD_S) % 1.0
+    servo = (math.pi / 2) * np.where(phase < 0.5, 4 * phase - 1, 3 - 4 * phase)
+    sweep_dir = np.where(phase < 0.5, 1, -1).astype(np.int8)
+    pos_ned = FRAME.w_to_ned(true_w)
+    o, d = beam_rays_w(pos_ned, np.zeros(len(t)), np.zeros(len(t)), yaw, servo, LEVER, FRAME)
+    rng = _cast(o, d, storage)
+    if noise_m:
+        rng = rng + np.random.default_rng(seed).normal(0.0, noise_m, len(t))
+    rng = np.round(rng / RESOLUTION) * RESOLUTION
+    err = np.zeros((len(t), 4)) if error_w is None else error_w(t)
+    logged = FRAME.w_to_ned(true_w + err[:, :3])
+    s = new_records(len(t))
+    s["t_s"], s["servo_rad"], s["sweep_dir"] = t, servo, sweep_dir
+    s["x_m"], s["y_m"], s["z_m"] = logged[:, 0], logged[:, 1], logged[:, 2]
+    s["yaw_rad"] = yaw + err[:, 3]
+    s["range_m"] = np.nan_to_num(rng, nan=0.0)
+    s["flags"] = np.where(np.isfinite(rng), 0, int(SampleFlags.NO_RETURN))
+    return s, err
+
+
+def estimate(samples, noise_m: float = 0.0, **opts):
+    return estimate_pose_correction(samples, LEVER, FRAME, STORAGE, RESOLUTION, noise_m, 0.0, 0.0, PERIOD_S,
+                                    opts=PoseCorrectionOptions(**opts))
+
+
+def drift(walk_m_per_sqrt_s: float, heading_rate_rad_s: float, seed: int, rate_m_s: float = 0.0):
+    """A position random walk (per axis, linear between 0.1 s draws) on a steady drift of rate_m_s per axis
+    (an estimator's velocity bias) and a linear heading drift."""
+    def err(t: np.ndarray) -> np.ndarray:
+        grid = np.arange(0.0, t[-1] + 0.2, 0.1)
+        steps = np.random.default_rng(seed).normal(0.0, walk_m_per_sqrt_s * math.sqrt(0.1), (len(grid), 3))
+        walk = np.cumsum(steps, axis=0) - steps[0]
+        out = np.zeros((len(t), 4))
+        for c in range(3):
+            out[:, c] = np.interp(t, grid, walk[:, c]) + rate_m_s * (1, -1, 0.5)[c] * t
+        out[:, 3] = heading_rate_rad_s * t
+        return out
+    return err
+
+
+WALK = 0.01  # m/sqrt(s): the flow profile's hover walk (sitl.sensing.pose_drift)
+RATE = 0.005  # m/s: ~0.35 m over the 72 s flight (1/2 % of the distance flown a second, x; the others alike)
+HEADING_RATE = math.radians(0.005)  # the vio profile's gyro bias
+
+
+@pytest.fixture(scope="module")
+def drifted():
+    samples, err = flight(drift(WALK, HEADING_RATE, seed=4, rate_m_s=RATE))
+    return samples, err, estimate(samples)
+
+
+def test_that_an_injected_drift_is_recovered_where_the_structure_sees_it(drifted):
+    samples, err, corr = drifted
+    assert corr.applied, corr.reason
+    truth = -np.column_stack([np.interp(corr.knot_t_s, samples["t_s"], err[:, c]) for c in range(3)])
+    # Within a knot interval the walk moves by WALK sqrt(spacing); the piecewise-linear correction cannot
+    # follow that, and the ranges' 1 cm rounding adds its own: 3 sigma of both.
+    spacing = float(np.median(np.diff(corr.knot_t_s)))
+    tol = 3.0 * (WALK * math.sqrt(spacing) + RESOLUTION / math.sqrt(12.0))
+    for comp in (Component.X, Component.Y, Component.Z):
+        seen = corr.constrained[:, comp.value]
+        assert seen.sum() >= 3, comp
+        miss = np.abs(corr.values[seen, comp.value] - truth[seen, comp.value])
+        assert np.median(miss) < tol, (comp, np.median(miss), tol)
+
+
+def test_that_the_corrected_trajectory_is_closer_to_the_truth_than_the_logged_one(drifted):
+    samples, err, corr = drifted
+    fixed = apply_pose_correction(samples, corr, FRAME)
+    logged = FRAME.ned_to_w(np.column_stack([samples["x_m"], samples["y_m"], samples["z_m"]]))
+    corrected = FRAME.ned_to_w(np.column_stack([fixed["x_m"], fixed["y_m"], fixed["z_m"]]))
+    true_w = logged - err[:, :3]
+    before = np.sqrt(np.mean(np.sum((logged - true_w) ** 2, axis=1)))
+    after = np.sqrt(np.mean(np.sum((corrected - true_w) ** 2, axis=1)))
+    assert after < 0.5 * before, (before, after)
+
+
+def test_that_an_error_free_log_is_left_as_it_is():
+    samples, _ = flight()
+    corr = estimate(samples)
+    fixed = apply_pose_correction(samples, corr, FRAME)
+    if corr.applied:  # significant by chance: then it must be negligible against the ranges' rounding
+        assert np.abs(corr.values[:, :3]).max() < RESOLUTION
+        assert np.abs(corr.values[:, 3]).max() * MAX_RANGE < RESOLUTION
+    else:
+        assert fixed is samples
+
+
+def test_that_a_stretch_the_walls_do_not_see_is_flagged_not_invented():
+    # The same loop in a building so wide that the third leg (y = 30 m) has no wall within the LiDAR's
+    # range on either side: across that leg (y) nothing is seen, so the correction there is flagged and
+    # only carried over from where it was seen, not made up.
+    wide = Storage(60.0, 60.0, 15.0)
+    samples, _ = flight(drift(WALK, 0.0, seed=7, rate_m_s=RATE), storage=wide)
+    corr = estimate_pose_correction(samples, LEVER, FRAME, wide, RESOLUTION, 0.0, 0.0, 0.0, PERIOD_S)
+    assert corr.applied, corr.reason
+    t_mid = (36.0 + 24.0 + 18.0) / SPEED  # the middle of the third leg
+    mid = np.abs(corr.knot_t_s - t_mid) < 3.0
+    assert not corr.constrained[mid, Component.Y.value].any()
+    assert corr.unconstrained_s()["y"] > 0
+    assert "y (along the width)" in unconstrained_warning(corr)
+    # not invented: within the range of the values the constrained knots around it were given
+    seen = corr.constrained[:, Component.Y.value]
+    ys = corr.values[:, Component.Y.value]
+    lo, hi = ys[seen].min(), ys[seen].max()
+    assert (ys[mid] >= lo - 1e-6).all() and (ys[mid] <= hi + 1e-6).all()
+
+
+def test_that_too_few_samples_give_no_correction_and_say_why():
+    samples, _ = flight()
+    few = samples[:50]
+    corr = estimate(few)
+    assert not corr.applied and "too few" in corr.reason
+    assert apply_pose_correction(few, corr, FRAME) is few
+
+
+def test_that_a_log_without_returns_gives_no_correction():
+    samples, _ = flight()
+    samples["flags"] = int(SampleFlags.NO_RETURN)
+    corr = estimate(samples)
+    assert not corr.applied and corr.reason
+
+
+def test_that_options_out_of_range_are_refused():
+    with pytest.raises(ValueError, match="max_points"):
+        PoseCorrectionOptions(max_points=0)
+    with pytest.raises(ValueError, match="horizontal_drift_rel"):
+        PoseCorrectionOptions(horizontal_drift_rel=float("nan"))
+
+
+def test_that_the_report_applies_the_correction_when_asked_to(drifted):
+    from ground.report import ReportOptions, survey_from_samples
+    samples, _, _ = drifted
+    header = {"sensor": {"resolution_m": RESOLUTION, "max_range_m": MAX_RANGE}, "servo": {"frequency_hz": 1 / PERIOD_S}}
+    on = survey_from_samples(samples, header, STORAGE, FRAME, LEVER, ReportOptions(plots=False, pose_correction=True))
+    off = survey_from_samples(samples, header, STORAGE, FRAME, LEVER, ReportOptions(plots=False, pose_correction=False))
+    assert on.pose is not None and on.pose.applied
+    assert off.pose is None
+    # the floor under the corrected cloud is back at z = 0; uncorrected it is where the drift put it
+    assert abs(np.median(on.cloud.points_w[:, 2][np.abs(on.cloud.points_w[:, 2]) < 0.3])) < RESOLUTION
+
+
+def test_that_the_command_line_turns_the_correction_on_and_off():
+    from ground.cli import build_parser
+    parse = build_parser().parse_args
+    assert parse(["report", "RUN", "--out", "REP"]).pose_correction is False
+    assert parse(["report", "RUN", "--out", "REP", "--pose-correction"]).pose_correction is True
+    assert parse(["report", "RUN", "--out", "REP", "--no-pose-correction"]).pose_correction is False

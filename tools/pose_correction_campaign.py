@@ -1,0 +1,131 @@
+"""What the ground station's pose correction (`--pose-correction`, ground/pose_correction.py) does: per profile,
+pile and P_traj, one `pilescan-sitl fly` per seed, its report without and with the correction, and the trajectory
+error against the truth (truth.json's true and estimated trajectories, the correction interpolated at their
+times). Writes the table into docs/pose_error.md.
+
+    python -m tools.pose_correction_campaign --write docs/pose_error.md [--seeds 0 1] [--keep DIR]
+        [--piles 1 2] [--p-traj 5 20] [--rows FILE ...]
+
+--rows: JSON-lines files of rows already computed (the first one gets the new rows appended): a campaign can be
+resumed, or split over processes (each with its --piles) and tabulated by a last call that reads all files.
+
+Both programs run as a user runs them (their command lines, in subprocesses).
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from firmware_py.core.cli import ArgumentParser
+from tools.doc_sections import write_section
+
+SECTION = "pose-correction-table"
+PROFILES = ("none", "vio", "flow")
+PILES = ("1", "2")
+P_TRAJ_PCT = (5, 20)
+
+
+def trajectory_rms_m(truth: dict, correction: dict | None) -> tuple[float, float]:
+    """3-D position RMS of the estimate against the truth, before and after the correction (its knots from
+    report.json, linear between)."""
+    tr = (truth.get("pose_error") or {}).get("trajectory")
+    if not tr:
+        return 0.0, 0.0
+    t, true_w, est_w = np.array(tr["t_s"]), np.array(tr["true_w_m"]), np.array(tr["estimated_w_m"])
+    before = float(np.sqrt(np.mean(np.sum((est_w - true_w) ** 2, axis=1))))
+    if not correction or not correction.get("applied"):
+        return before, before
+    knots = np.array(correction["knot_t_s"])
+    vals = np.array(correction["knot_values"])
+    corr = np.column_stack([np.interp(t, knots, vals[:, c]) for c in range(3)])
+    return before, float(np.sqrt(np.mean(np.sum((est_w + corr - true_w) ** 2, axis=1))))
+
+
+def one(profile: str, pile: str, p_traj: int, seed: int, work: Path) -> dict:
+    run = work / f"{profile}-{pile}-{p_traj}-{seed}"
+    py = sys.executable
+    subprocess.run([py, "-m", "sitl.cli", "fly", "--stockpile", pile, "--p-traj", str(p_traj), "--pose-error",
+                    profile, "--seed", str(seed), "--out", str(run), "--force", "--quiet"], check=True)
+    reps = {}
+    for flag in ("--no-pose-correction", "--pose-correction"):
+        rep = work / f"{run.name}{flag}"
+        subprocess.run([py, "-m", "ground.cli", "report", str(run), "--out", str(rep), "--no-plots", "--force",
+                        "--quiet", flag], check=True, stdout=subprocess.DEVNULL)
+        reps[flag] = json.loads((rep / "report.json").read_text())
+    truth = json.loads((run / "truth.json").read_text())
+    pc = reps["--pose-correction"].get("pose_correction") or {}
+    before, after = trajectory_rms_m(truth, pc)
+    return {"profile": profile, "pile": pile, "p_traj": p_traj, "seed": seed,
+            "ve_off": reps["--no-pose-correction"]["volume_error_pct"],
+            "ve_on": reps["--pose-correction"]["volume_error_pct"], "applied": bool(pc.get("applied")),
+            "traj_before_m": before, "traj_after_m": after}
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| pile | P_traj | profile | seeds | Ve, no pose error (%) | Ve uncorrected (%) | Ve corrected (%) | "
+             "applied | trajectory RMS before (m) | after (m) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for pile in PILES:
+        for p in P_TRAJ_PCT:
+            ref = [r for r in rows if r["pile"] == pile and r["p_traj"] == p and r["profile"] == "none"]
+            ve_ref = statistics.fmean(r["ve_off"] for r in ref) if ref else float("nan")
+            for prof in PROFILES:
+                rs = [r for r in rows if r["pile"] == pile and r["p_traj"] == p and r["profile"] == prof]
+                if not rs:
+                    continue
+                m = {k: statistics.fmean(r[k] for r in rs) for k in ("ve_off", "ve_on", "traj_before_m",
+                                                                       "traj_after_m")}
+                lines.append(f"| {pile} | {p} % | {prof} | {len(rs)} | {ve_ref:.2f} | {m['ve_off']:.2f} | "
+                             f"{m['ve_on']:.2f} | {sum(r['applied'] for r in rs)}/{len(rs)} | "
+                             f"{m['traj_before_m']:.2f} | {m['traj_after_m']:.2f} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = ArgumentParser(prog="python -m tools.pose_correction_campaign", description=__doc__)
+    ap.add_argument("--write", type=Path, default=None, help="page whose pose-correction-table section to rewrite")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    ap.add_argument("--keep", type=Path, default=None, help="keep the runs and reports in this folder")
+    ap.add_argument("--piles", nargs="+", default=list(PILES), choices=PILES)
+    ap.add_argument("--p-traj", type=int, nargs="+", default=list(P_TRAJ_PCT))
+    ap.add_argument("--rows", type=Path, nargs="+", default=None, help="JSON-lines files of rows (see above)")
+    args = ap.parse_args(argv)
+    rows: list[dict] = []
+    for f in args.rows or []:
+        if f.is_file():
+            rows += [json.loads(line) for line in f.read_text().splitlines() if line.strip()]
+    done = {(r["profile"], r["pile"], r["p_traj"], r["seed"]) for r in rows}
+    with tempfile.TemporaryDirectory() as tmp:
+        work = args.keep or Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        for pile in args.piles:
+            for p in args.p_traj:
+                for prof in PROFILES:
+                    for seed in args.seeds:
+                        if (prof, pile, p, seed) in done:
+                            continue
+                        rows.append(one(prof, pile, p, seed, work))
+                        print(json.dumps(rows[-1]), flush=True)
+                        if args.rows:
+                            with args.rows[0].open("a") as out:
+                                out.write(json.dumps(rows[-1]) + "\n")
+    seeds = " ".join(map(str, sorted({r["seed"] for r in rows})))
+    text = (f"Mean over seeds {seeds} per row; the paper's building (60 x 40 x 15 m, 12 m, "
+            "1 m/s), payload firmware in the loop, no sensor noise; Ve (eq. 8) from `pilescan-ground report` with "
+            "`--no-pose-correction` (uncorrected) and `--pose-correction` (corrected); trajectory RMS: 3-D position "
+            "of the estimate against the truth. Regenerated by `python -m tools.pose_correction_campaign --write "
+            "docs/pose_error.md`.\n\n" + table(rows))
+    if args.write is not None:
+        write_section(args.write, SECTION, text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
