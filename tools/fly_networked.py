@@ -12,6 +12,7 @@ flown in lockstep (`fly --payload firmware`) and the volumes are set side by sid
 default survey takes ~3 minutes of wall time.
 
     python -m tools.fly_networked --stockpile 1 --p-traj 20 --out runs/networked --compare
+    python -m tools.fly_networked --pose-error flow --seed 0 --out runs/networked-flow
     python -m tools.fly_networked --rangefinder tfmini --storage 30x20x10 --altitude 9 --p-traj 25 \
         --sensor-noise datasheet --out runs/networked-tfmini --compare
 """
@@ -195,6 +196,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="tfmini: the payload reads an emulated TFMini over a pseudo-terminal with pyserial")
     ap.add_argument("--sensor-noise", choices=("none", "datasheet", "appendix-a"), default="none",
                     help="the simulated sensor noise (serve's --sensor-noise; both flights)")
+    ap.add_argument("--pose-error", choices=("none", "flow", "vio"), default="none",
+                    help="the autopilot's indoor pose estimate (serve's --pose-error; both flights); the report is "
+                         "then made twice, without and with --pose-correction")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the noise and pose-error draws (both flights)")
     ap.add_argument("--origin", default=None, metavar="LAT,LON,ALT",
                     help="the site's floor corner (serve and payload --origin; default: the SITL's)")
     ap.add_argument("--heading", default=None, metavar="DEG", help="the building's heading (serve and payload)")
@@ -204,7 +209,8 @@ def main(argv: list[str] | None = None) -> int:
     mission_args = ["--p-traj", f"{args.p_traj:g}", "--altitude", f"{args.altitude:g}", "--speed", f"{args.speed:g}"]
     net = fly_networked(mission_args, args.storage, args.stockpile, args.out / "networked", args.phase,
                         signing_key=args.signing_key, rangefinder=args.rangefinder, site_args=site_args,
-                        serve_args=["--sensor-noise", args.sensor_noise])
+                        serve_args=["--sensor-noise", args.sensor_noise, "--pose-error", args.pose_error,
+                                    "--seed", str(args.seed)])
     if net.report is None:
         print(f"networked: {net.no_volume}", file=sys.stderr)
         return int(ExitCode.NO_VOLUME)
@@ -214,13 +220,23 @@ def main(argv: list[str] | None = None) -> int:
     figures = {"networked_volume_m3": v_net, "networked_ve_pct": net.report["volume_error_pct"],
                "networked_samples": net.report["n_samples"], "networked_wall_s": net.wall_s,
                "true_volume_m3": net.report["true_volume_m3"]}
+    if args.pose_error != "none":
+        fixed = make_report(args.out / "networked", args.out / "networked" / "report-pose-corrected",
+                            ReportOptions(plots=False, pose_correction=True), force=True)
+        pc = fixed.get("pose_correction") or {}
+        print(f"networked, --pose-correction: {fixed['volume_m3']:,.1f} m^3, Ve {fixed['volume_error_pct']:.3f} % "
+              f"(correction {'applied' if pc.get('applied') else 'not applied'})")
+        figures.update(networked_corrected_volume_m3=fixed["volume_m3"],
+                       networked_corrected_ve_pct=fixed["volume_error_pct"], pose_correction=pc)
     if args.compare:
         from firmware_py.core.sensor import Rangefinder
         from firmware_py.core.storage import Storage
+        from sitl.sensing.pose_drift import PoseErrorProfile
         cfg = FlyConfig(mission=Mission(storage=Storage.parse(args.storage), p_traj=args.p_traj / 100,
                                         altitude_m=args.altitude, speed_m_s=args.speed),
                         stockpile=args.stockpile, payload="firmware", initial_position=args.phase,
-                        rangefinder=Rangefinder.named(args.rangefinder), sensor_noise=args.sensor_noise)
+                        rangefinder=Rangefinder.named(args.rangefinder), sensor_noise=args.sensor_noise,
+                        pose_error=PoseErrorProfile(args.pose_error), seed=args.seed)
         if site_args:
             from firmware_py.core.site import DEFAULT_SITE, parse_heading_deg, parse_origin, site_from_args
             cfg = replace(cfg, site=site_from_args(parse_origin(args.origin) if args.origin else None,
