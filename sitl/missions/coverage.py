@@ -70,6 +70,20 @@ class EnergyModel:
         return self.power_w * path_m / speed_m_s + self.turn_j_per_rad * turned_rad
 
 
+def loop_turned_rad(waypoints_w: np.ndarray) -> float:
+    """The yaw a closed loop turns: at every waypoint, the first from the closing leg (as the ideal plant flies)."""
+    d = np.diff(np.asarray(waypoints_w, dtype=float), axis=0)
+    course = np.arctan2(d[:, 1], d[:, 0])
+    turns = (np.diff(np.r_[course[-1], course]) + np.pi) % (2 * np.pi) - np.pi
+    return float(np.abs(turns).sum())
+
+
+def mission_energy_j(mission, model: EnergyModel | None = None) -> float:
+    """The energy model's figure for any loop mission (a rectangle or a `LoopMission`)."""
+    return (model or EnergyModel()).energy_j(mission.path_length_m(), mission.speed_m_s,
+                                             loop_turned_rad(mission.waypoints_w()))
+
+
 @dataclass(frozen=True)
 class LoopMission:
     """A closed loop of waypoints flown like `rectangle.Mission` (the same attributes the plants, the plan
@@ -111,11 +125,7 @@ class LoopMission:
         return float(np.linalg.norm(np.diff(self.waypoints_w(), axis=0), axis=1).sum())
 
     def turned_rad(self) -> float:
-        """The yaw turned over the loop: at every waypoint, the first from the closing leg (the ideal plant's)."""
-        d = np.diff(self.waypoints_w(), axis=0)
-        course = np.arctan2(d[:, 1], d[:, 0])
-        turns = (np.diff(np.r_[course[-1], course]) + np.pi) % (2 * np.pi) - np.pi
-        return float(np.abs(turns).sum())
+        return loop_turned_rad(self.waypoints_w())
 
     def to_dict(self) -> dict:
         return {"kind": "coverage", "storage": self.storage.to_dict(), "waypoints": [list(p) for p in self.waypoints],
