@@ -124,3 +124,16 @@ def test_that_fly_coverage_needs_a_target(tmp_path, capsys):
     assert main(["fly", "--stockpile", "1", "--mission", "coverage", "--plant", "ideal",
                  "--out", str(tmp_path / "r")]) != 0
     assert "needs --coverage" in capsys.readouterr().err
+
+
+def test_that_fly_flies_the_coverage_plan_and_records_it(tmp_path):
+    import json
+    out = tmp_path / "run"
+    assert main(["fly", "--stockpile", "1", "--mission", "coverage", "--coverage", "95", "--plant", "ideal",
+                 "--out", str(out), "--quiet"]) == 0
+    truth = json.loads((out / "truth.json").read_text())
+    assert truth["mission"]["kind"] == "coverage"
+    assert truth["mission"]["plan"]["predicted_ra_pct"] >= 95
+    wp = np.asarray(truth["mission"]["waypoints"])
+    nav = [r for r in read_qgc_wpl(out / "mission.waypoints") if int(r[3]) == mavlink.MAV_CMD_NAV_WAYPOINT][1:]
+    assert len(nav) == len(wp) - 1
