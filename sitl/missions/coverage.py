@@ -95,7 +95,7 @@ class LoopMission:
     altitude_m: float = 12.0
     yaw_rate_max_rad_s: float = math.radians(30.0)
     min_clearance_m: float = 0.5
-    plan: dict = field(default_factory=dict)  # what the planner chose and predicted (kept in the header)
+    plan: dict = field(default_factory=dict, hash=False)  # what the planner chose and predicted (in the header)
 
     def __post_init__(self) -> None:
         s = self.storage
@@ -153,6 +153,10 @@ class LoopPlan:
         s, e, n, w = self.offsets_m
         c = np.array([[w, s], [storage.length_m - e, s], [storage.length_m - e, storage.width_m - n],
                       [w, storage.width_m - n]])
+        legs = np.linalg.norm(np.diff(np.vstack([c, c[:1]]), axis=0), axis=1)
+        if legs.min() <= 0 or 2 * self.corner_cut_m >= legs.min():
+            raise ValueError(f"offsets {self.offsets_m} and corner cut {self.corner_cut_m:g} m leave no loop in the "
+                             f"{storage} building")
         if self.corner_cut_m <= 0:
             return np.vstack([c, c[:1]])
         pts = []
@@ -277,6 +281,9 @@ def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 
                   yaw_rate_max_rad_s: float = math.radians(30.0), min_clearance_m: float = 0.5) -> PlannedLoop:
     """The least-energy loop of the family whose predicted coverage reaches the target (module docstring);
     ValueError (one line) when none does."""
+    if not (math.isfinite(altitude_m) and min_clearance_m < altitude_m <= storage.height_m - min_clearance_m):
+        raise ValueError(f"altitude {altitude_m:g} m does not fit the {storage} building "
+                         f"(needs {min_clearance_m:g} m clearance to floor and roof)")
     h = altitude_m - float(target.lever_arm_body_m[2])
     reach = target.limit.floor_reach_m(h)
     if reach <= 0:

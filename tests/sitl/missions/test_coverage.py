@@ -113,6 +113,8 @@ def test_that_plan_writes_a_coverage_plan(tmp_path, capsys):
     (["plan"], "needs --p-traj"),
     (["plan", "--coverage", "99", "--rangefinder", "tfmini"], "lawnmower"),
     (["plan", "--coverage", "120"], "target coverage must be in (0, 100]"),
+    (["plan", "--coverage", "99", "--altitude", "20"], "altitude 20 m does not fit"),
+    (["fly", "--stockpile", "1", "--coverage", "99"], "add --mission coverage"),
 ])
 def test_that_plan_refuses_with_one_line(tmp_path, capsys, argv, message):
     assert main([*argv, "--out", str(tmp_path / "x.waypoints")]) != 0
