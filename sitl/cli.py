@@ -31,13 +31,15 @@ from firmware_py.core.sensor_noise import SensorNoiseModel
 from firmware_py.core.site import DEFAULT_SITE, Site, add_site_options, site_from_args
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
-from firmware_py.core.waveform import N_PHASES
+from firmware_py.core.waveform import N_PHASES, Waveform, named_waveform
 from sitl.faults.injector import FaultSpec
+from sitl.missions.coverage import DEFAULT_SEEN_RADIUS_M, WALLS
 from sitl.missions.qgc_wpl import write_qgc_wpl
 from sitl.missions.rectangle import TURN_MODES, Mission
 from sitl.runners.fly import PAYLOADS, PLANTS, FlyConfig, fly
 from sitl.sensing.pose_drift import PoseErrorProfile
 
+MISSION_KINDS = ("rectangle", "coverage")
 _SITE_AND_MISSION = {
     "site.dimensions": "--storage",
     "site.origin": "--origin",
@@ -77,10 +79,8 @@ def build_parser() -> ArgumentParser:
     f = sub.add_parser("fly", help="fly a survey and write a run directory")
     f.add_argument("--stockpile", required=True, help="1, 2 (the paper's piles) or an STL/OBJ mesh path")
     _mission_options(f, p_traj_required=True)
-    f.add_argument("--waveform", choices=("semi-triangular", "sinusoidal"), default="semi-triangular",
-                   help="servo waveform (eq. 1; C=0.95 or C=0)")
-    f.add_argument("--servo-rate", type=finite_float, default=5.0,
-                   help="peak servo rate, rad/s (sets f; default 5 -> 0.67 Hz semi-triangular)")
+    _sweep_options(f)
+    _coverage_options(f, fly=True)
     f.add_argument("--phase", type=int, default=0, metavar="K",
                    help=f"servo initial position 0..{2 * N_PHASES - 1} (Fig. 9: {N_PHASES} phases x 2 "
                         f"directions; K >= {N_PHASES} sweeps the other way)")
@@ -155,11 +155,35 @@ def build_parser() -> ArgumentParser:
 
     pl = sub.add_parser("plan", help="export the survey as a QGC WPL 110 mission (.waypoints)")
     _mission_options(pl, p_traj_required=True)
+    _coverage_options(pl, fly=False)
+    _sweep_options(pl)
+    _rangefinder_options(pl)
+    _noise_option(pl)
     pl.add_argument("--out", required=True, help="plan file to write (.waypoints)")
     pl.add_argument("--force", action="store_true", help="replace the plan file if it exists")
     add_verbosity(pl, sub=True)
     add_config_option(pl, sub=True)
     return ap
+
+
+def _sweep_options(p: ArgumentParser) -> None:
+    p.add_argument("--waveform", choices=("semi-triangular", "sinusoidal"), default="semi-triangular",
+                   help="servo waveform (eq. 1; C=0.95 or C=0)")
+    p.add_argument("--servo-rate", type=finite_float, default=5.0,
+                   help="peak servo rate, rad/s (sets f; default 5 -> 0.67 Hz semi-triangular)")
+
+
+def _coverage_options(p: ArgumentParser, fly: bool) -> None:
+    if fly:
+        p.add_argument("--mission", choices=MISSION_KINDS, default="rectangle",
+                       help="rectangle: the paper's (--p-traj, --turn); coverage: the least-energy loop the coverage "
+                            "planner finds for --coverage (docs/coverage.md)")
+    p.add_argument("--coverage", type=finite_float, default=None, metavar="PCT",
+                   help="plan for this predicted floor coverage R_a, percent (the coverage planner: per-wall offsets, "
+                        "corner cuts, speed up to 2 m/s; --p-traj, --turn and --speed are then not used)")
+    p.add_argument("--seen-radius", type=finite_float, default=DEFAULT_SEEN_RADIUS_M, metavar="M",
+                   help="with --coverage: a floor cell counts as seen when a return lies this near (default "
+                        f"{DEFAULT_SEEN_RADIUS_M:g} m)")
 
 
 def _rangefinder_options(p: ArgumentParser) -> None:
@@ -207,8 +231,9 @@ def _pose_error_option(p: ArgumentParser) -> None:
 
 
 def _mission_options(p: ArgumentParser, p_traj_required: bool) -> None:
-    p.add_argument("--p-traj", type=finite_float, required=p_traj_required, default=None if p_traj_required else 20.0,
-                   metavar="PCT", help="waypoint offset from the walls, percent of L and W (eqs. 17-18), 0-50")
+    p.add_argument("--p-traj", type=finite_float, default=None if p_traj_required else 20.0,
+                   metavar="PCT", help="waypoint offset from the walls, percent of L and W (eqs. 17-18), 0-50"
+                   + (" (the rectangle mission needs it)" if p_traj_required else ""))
     p.add_argument("--storage", default="60x40x15", help="building LxWxH in metres (default 60x40x15)")
     p.add_argument("--turn", choices=TURN_MODES, default="one-step", help="corner turns (Fig. 15)")
     p.add_argument("--speed", type=finite_float, default=1.0, help="flight speed, m/s (default 1.0)")
@@ -222,10 +247,41 @@ def _site(args) -> Site:
     return site_from_args(args.origin, args.heading, DEFAULT_SITE)
 
 
-def _mission(args) -> Mission:
+def _mission(args, waveform: Waveform | None = None):
+    """The rectangle, or with --coverage (fly: --mission coverage) the coverage planner's loop."""
+    coverage = getattr(args, "coverage", None)
+    if getattr(args, "mission", None) == "coverage" or (args.command == "plan" and coverage is not None):
+        return _coverage_mission(args, waveform)
+    if coverage is not None:
+        raise UserError("--coverage plans a coverage mission: add --mission coverage")
+    if args.p_traj is None:
+        raise UserError("the rectangle mission needs --p-traj PCT (or plan one with --mission coverage --coverage PCT)")
     return Mission(storage=Storage.parse(args.storage), p_traj=args.p_traj / 100.0, turn=args.turn,
                    speed_m_s=args.speed, altitude_m=args.altitude,
                    yaw_rate_max_rad_s=math.radians(args.yaw_rate_max))
+
+
+def _coverage_mission(args, waveform: Waveform | None):
+    from sitl.missions.coverage import CoverageTarget, plan_coverage
+    from sitl.missions.range_check import planning_limit
+    if args.coverage is None:
+        raise UserError("--mission coverage needs --coverage PCT (the predicted floor coverage to reach)")
+    wf = waveform or named_waveform(args.waveform, args.servo_rate, 0)
+    spec = args.rangefinder.spec
+    try:
+        target = CoverageTarget(args.coverage, wf, planning_limit(spec, args.sensor_noise), spec.rate_hz,
+                                seen_radius_m=args.seen_radius)
+        planned = plan_coverage(Storage.parse(args.storage), target, altitude_m=args.altitude,
+                                yaw_rate_max_rad_s=math.radians(args.yaw_rate_max))
+    except ValueError as exc:
+        raise UserError(f"coverage plan: {exc}") from None
+    if not args.quiet:
+        p = planned.plan
+        print(f"coverage plan: predicted R_a {planned.coverage.predicted_ra_pct:.2f} %, offsets "
+              + ", ".join(f"{w.split()[0]} {o:.1f} m" for w, o in zip(WALLS, p.offsets_m, strict=True))
+              + f", corner cut {p.corner_cut_m:g} m, {p.speed_m_s:g} m/s, {planned.mission.path_length_m():.0f} m, "
+              f"predicted energy {planned.energy_j / 1000:.1f} kJ ({planned.n_evaluated} plans evaluated)")
+    return planned.mission
 
 
 def _default_payload(plant: str) -> str:
@@ -234,7 +290,8 @@ def _default_payload(plant: str) -> str:
 
 
 def _fly(args) -> int:
-    mission = _mission(args)
+    mission = _mission(args, named_waveform(args.waveform, args.servo_rate, args.phase)
+                       if args.mission == "coverage" else None)
     cfg = FlyConfig(mission=mission, stockpile=args.stockpile, waveform=args.waveform,
                     servo_peak_rate_rad_s=args.servo_rate, initial_position=args.phase, plant=args.plant,
                     payload=args.payload or _default_payload(args.plant), latency_ms=tuple(args.latency_ms),

@@ -1,0 +1,349 @@
+"""Coverage: which floor a survey's sweeps reach, and the least-energy loop that reaches a target share of it.
+
+The model (pure functions). The vehicle flies the loop as the ideal plant does (legs at speed, turns in place
+at the yaw-rate limit, `sitl.vehicle.ideal_plant`), the servo sweeps its waveform (eqs. 1-2) at the
+rangefinder's sample rate, and each beam is cast at the floor of the empty building: it counts when it meets
+the floor inside the walls (a beam whose floor point lies beyond a wall met the wall first) within the
+certain-echo reach at its incidence (`range_check.RangeLimit`). A floor cell is *covered* when it lies both
+inside the convex hull of the floor hits (where the report's surface exists: its R_a, eq. 9, is the share of
+cells the triangulation of the points covers) and within `seen_radius_m` of a hit (so a hull spanned by a few
+far-apart fan lines is not counted as seen). Predicted R_a = covered cells / floor cells. A pile only brings
+surfaces nearer and shadows floor behind it, so the flat floor is the model's case; an earlier survey's
+surface is not used yet.
+
+The plan family (`LoopPlan`): a closed loop around the building with one offset per wall (four, not the
+paper's single P_traj), optionally with every corner cut by a short 45-degree leg. That leg's sweep plane
+is square to the building's diagonal, so its fans point into the corner the plain turn leaves between two or
+three fan lines. Speed is searched too. Extra interior legs (a lawnmower) are not in this increment: with a
+rangefinder whose floor reach does not span half the building the planner refuses the target instead.
+
+The energy (`EnergyModel`): the JSBSim F450 draws a near-constant power at survey speeds (the reproduction's
+energy follows flight time to within 1 %: docs/results.md), so E = P L / v + e_turn sum|turn| with P and
+e_turn fitted from two JSBSim flights of the rectangle (docs/coverage.md gives the fit and checks it).
+
+The planner (`plan_coverage`): for each speed and corner mode, start from the loop nearest the walls and
+move one wall's leg inwards at a time, taking the move that saves the most energy while the predicted
+coverage stays at the target, until no move does; the cheapest of these plans wins. It refuses (ValueError,
+one line) a target no plan in the family reaches.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import ConvexHull, QhullError
+
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.storage import Storage
+from firmware_py.core.waveform import Waveform
+from sitl.missions.range_check import RangeLimit
+
+COVERAGE_CELL_M = 0.25
+"""The floor cell: the ground report's default grid (ground.surface.DEFAULT_CELL_M), so R_a compares cell for cell."""
+DEFAULT_SEEN_RADIUS_M = 1.0
+"""A cell counts as seen when a floor hit lies this near (an option): the paper's baseline sweep (5 rad/s,
+0.67 Hz, two fans a period) flown at 1 m/s puts fans 0.75 m apart, so its legs are seen between fans; a
+flight fast enough to open gaps over twice this is not."""
+WALLS = ("south (y = 0)", "east (x = L)", "north (y = W)", "west (x = 0)")
+OFFSET_STEPS = tuple(round(0.05 * k, 2) for k in range(1, 9))
+"""Each wall's offset as a share of the building's size across it: 5 % (the paper's nearest) to 40 %."""
+SPEEDS_M_S = (0.5, 1.0, 1.5, 2.0)
+"""The speeds searched (the paper flew 0.5, 1 and 2 m/s)."""
+
+
+@dataclass(frozen=True)
+class EnergyModel:
+    """Survey energy of a loop: hover-dominated power over the legs plus a cost per radian turned.
+
+    Fitted (docs/coverage.md) from the JSBSim F450 flights of the rectangle at P_traj 5 and 20 %, 1 m/s,
+    30 deg/s, 40 g payload: 27,218.9 J in 187.3 s and 18,623.4 J in 128.2 s."""
+
+    power_w: float = 143.26
+    turn_j_per_rad: float = 228.0
+
+    def energy_j(self, path_m: float, speed_m_s: float, turned_rad: float) -> float:
+        return self.power_w * path_m / speed_m_s + self.turn_j_per_rad * turned_rad
+
+
+def loop_turned_rad(waypoints_w: np.ndarray) -> float:
+    """The yaw a closed loop turns: at every waypoint, the first from the closing leg (as the ideal plant flies)."""
+    d = np.diff(np.asarray(waypoints_w, dtype=float), axis=0)
+    course = np.arctan2(d[:, 1], d[:, 0])
+    turns = (np.diff(np.r_[course[-1], course]) + np.pi) % (2 * np.pi) - np.pi
+    return float(np.abs(turns).sum())
+
+
+def mission_energy_j(mission, model: EnergyModel | None = None) -> float:
+    """The energy model's figure for any loop mission (a rectangle or a `LoopMission`)."""
+    return (model or EnergyModel()).energy_j(mission.path_length_m(), mission.speed_m_s,
+                                             loop_turned_rad(mission.waypoints_w()))
+
+
+@dataclass(frozen=True)
+class LoopMission:
+    """A closed loop of waypoints flown like `rectangle.Mission` (the same attributes the plants, the plan
+    export and the flight runners read): the coverage planner's mission."""
+
+    storage: Storage = field(default_factory=Storage)
+    waypoints: tuple[tuple[float, float], ...] = ()
+    speed_m_s: float = 1.0
+    altitude_m: float = 12.0
+    yaw_rate_max_rad_s: float = math.radians(30.0)
+    min_clearance_m: float = 0.5
+    plan: dict = field(default_factory=dict, hash=False)  # what the planner chose and predicted (in the header)
+
+    def __post_init__(self) -> None:
+        s = self.storage
+        wp = np.asarray(self.waypoints, dtype=float)
+        if wp.ndim != 2 or wp.shape[1] != 2 or len(wp) < 4 or not np.all(np.isfinite(wp)):
+            raise ValueError("a loop needs at least 3 finite waypoints (x, y) and the first again at the end")
+        if not np.allclose(wp[0], wp[-1]):
+            raise ValueError("the loop must end where it starts (first waypoint == last)")
+        c = self.min_clearance_m
+        if wp[:, 0].min() < c or wp[:, 0].max() > s.length_m - c or wp[:, 1].min() < c \
+                or wp[:, 1].max() > s.width_m - c:
+            raise ValueError(f"a waypoint lies within {c:g} m of a wall of the {s} building")
+        if np.any(np.linalg.norm(np.diff(wp, axis=0), axis=1) < 1e-6):
+            raise ValueError("two consecutive waypoints coincide")
+        if not (math.isfinite(self.speed_m_s) and 0.05 <= self.speed_m_s <= 15.0):
+            raise ValueError(f"speed must be 0.05-15 m/s, got {self.speed_m_s}")
+        if not (math.isfinite(self.yaw_rate_max_rad_s) and 0.0 < self.yaw_rate_max_rad_s <= 2 * math.pi):
+            raise ValueError(f"max yaw rate must be in (0, 360] deg/s, got {math.degrees(self.yaw_rate_max_rad_s):g}")
+        if not (math.isfinite(self.altitude_m) and c < self.altitude_m <= s.height_m - c):
+            raise ValueError(f"altitude {self.altitude_m:g} m does not fit the {s} building "
+                             f"(needs {c:g} m clearance to floor and roof)")
+
+    def waypoints_w(self) -> np.ndarray:
+        return np.asarray(self.waypoints, dtype=float)
+
+    def path_length_m(self) -> float:
+        return float(np.linalg.norm(np.diff(self.waypoints_w(), axis=0), axis=1).sum())
+
+    def turned_rad(self) -> float:
+        return loop_turned_rad(self.waypoints_w())
+
+    def to_dict(self) -> dict:
+        return {"kind": "coverage", "storage": self.storage.to_dict(), "waypoints": [list(p) for p in self.waypoints],
+                "speed_m_s": self.speed_m_s, "altitude_m": self.altitude_m,
+                "yaw_rate_max_rad_s": self.yaw_rate_max_rad_s, "min_clearance_m": self.min_clearance_m,
+                "plan": self.plan}
+
+    @property
+    def mission_id(self) -> str:
+        blob = json.dumps(self.to_dict(), sort_keys=True).encode()
+        return hashlib.sha256(blob).hexdigest()[:12]
+
+
+@dataclass(frozen=True)
+class LoopPlan:
+    """A member of the plan family: offsets from the walls (m; south, east, north, west: `WALLS`), the corner
+    cut (m; 0: plain 90-degree turns) and the speed."""
+
+    offsets_m: tuple[float, float, float, float]
+    corner_cut_m: float = 0.0
+    speed_m_s: float = 1.0
+
+    def waypoints_w(self, storage: Storage) -> np.ndarray:
+        """The loop counter-clockwise from the south-west corner, first == last."""
+        s, e, n, w = self.offsets_m
+        c = np.array([[w, s], [storage.length_m - e, s], [storage.length_m - e, storage.width_m - n],
+                      [w, storage.width_m - n]])
+        legs = np.linalg.norm(np.diff(np.vstack([c, c[:1]]), axis=0), axis=1)
+        if legs.min() <= 0 or 2 * self.corner_cut_m >= legs.min():
+            raise ValueError(f"offsets {self.offsets_m} and corner cut {self.corner_cut_m:g} m leave no loop in the "
+                             f"{storage} building")
+        if self.corner_cut_m <= 0:
+            return np.vstack([c, c[:1]])
+        pts = []
+        for i in range(4):
+            u_in = c[i] - c[i - 1]
+            u_out = c[(i + 1) % 4] - c[i]
+            pts += [c[i] - self.corner_cut_m * u_in / np.linalg.norm(u_in),
+                    c[i] + self.corner_cut_m * u_out / np.linalg.norm(u_out)]
+        return np.vstack([pts, pts[:1]])
+
+    def mission(self, storage: Storage, altitude_m: float, yaw_rate_max_rad_s: float, min_clearance_m: float = 0.5,
+                plan: dict | None = None) -> LoopMission:
+        wp = self.waypoints_w(storage)
+        return LoopMission(storage, tuple((float(x), float(y)) for x, y in wp), self.speed_m_s, altitude_m,
+                           yaw_rate_max_rad_s, min_clearance_m, dict(plan or {}))
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """What the model predicts for a loop (module docstring)."""
+
+    predicted_ra_pct: float  # covered cells / floor cells
+    hull_pct: float  # inside the floor hits' convex hull (the report's surface extent)
+    seen_pct: float  # within the seen radius of a hit
+    n_hits: int
+    covered: np.ndarray  # (nx, ny) bool
+
+
+def floor_hits_w(mission, waveform: Waveform, limit: RangeLimit, rate_hz: float,
+                 lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10)) -> np.ndarray:
+    """(N, 2) floor points (W) of the beams that meet the empty building's floor within reach."""
+    from sitl.vehicle.ideal_plant import IdealPlant
+    frame = StorageFrame()
+    plant = IdealPlant(mission, frame)
+    t = plant.sample_times(rate_hz)
+    traj = plant.states(t)
+    # The ideal plant flies level: the body's forward and right axes are the heading's, so the beam
+    # d_B = [0, sin g, cos g] (frames.beam_dir_body, square mounting) and the lever arm turn by the yaw alone.
+    # With the identity frame, W = (north, -east, up).
+    psi, g = traj.yaw_rad, np.asarray(waveform.angle(t), dtype=float)
+    fwd = np.column_stack([np.cos(psi), -np.sin(psi)])
+    right = np.column_stack([-np.sin(psi), -np.cos(psi)])
+    lx, ly, lz = (float(v) for v in lever_arm_body_m)
+    pos = traj.pos_ned_m
+    o = np.column_stack([pos[:, 0], -pos[:, 1]]) + lx * fwd + ly * right
+    o = np.column_stack([o, -pos[:, 2] - lz])
+    d = np.column_stack([np.sin(g)[:, None] * right, -np.cos(g)])
+    down = d[:, 2] < -1e-9
+    o, d = o[down], d[down]
+    r = -o[:, 2] / d[:, 2]
+    p = o[:, :2] + r[:, None] * d[:, :2]
+    s = mission.storage
+    inside = (p[:, 0] >= 0) & (p[:, 0] <= s.length_m) & (p[:, 1] >= 0) & (p[:, 1] <= s.width_m)
+    reach = r <= limit.reach_m(-d[:, 2]) * (1 + 1e-9)
+    return p[inside & reach]
+
+
+def coverage_of_hits(hits_w: np.ndarray, storage: Storage, seen_radius_m: float = DEFAULT_SEEN_RADIUS_M,
+                     cell_m: float = COVERAGE_CELL_M) -> Coverage:
+    """The floor cells the hits cover (module docstring)."""
+    nx, ny = max(1, round(storage.length_m / cell_m)), max(1, round(storage.width_m / cell_m))
+    cx = (np.arange(nx) + 0.5) * storage.length_m / nx
+    cy = (np.arange(ny) + 0.5) * storage.width_m / ny
+    if len(hits_w) < 3:
+        z = np.zeros((nx, ny), dtype=bool)
+        return Coverage(0.0, 0.0, 0.0, len(hits_w), z)
+    ix = np.clip((hits_w[:, 0] / storage.length_m * nx).astype(int), 0, nx - 1)
+    iy = np.clip((hits_w[:, 1] / storage.width_m * ny).astype(int), 0, ny - 1)
+    hit = np.zeros((nx, ny), dtype=bool)
+    hit[ix, iy] = True
+    seen = ndimage.distance_transform_edt(~hit) * cell_m <= seen_radius_m
+    gx, gy = np.meshgrid(cx, cy, indexing="ij")
+    try:
+        eq = ConvexHull(hits_w).equations  # a x + b y + c <= 0 inside every facet
+        inside = np.all(eq[:, 0, None, None] * gx + eq[:, 1, None, None] * gy + eq[:, 2, None, None] <= 1e-9, axis=0)
+    except QhullError:  # all hits on a line: no surface
+        inside = np.zeros((nx, ny), dtype=bool)
+    covered = inside & seen
+    return Coverage(100.0 * covered.mean(), 100.0 * inside.mean(), 100.0 * seen.mean(), len(hits_w), covered)
+
+
+def predict_coverage(mission, waveform: Waveform, limit: RangeLimit, rate_hz: float,
+                     lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10),
+                     seen_radius_m: float = DEFAULT_SEEN_RADIUS_M) -> Coverage:
+    """The model's predicted coverage of a mission (a `rectangle.Mission` or a `LoopMission`)."""
+    return coverage_of_hits(floor_hits_w(mission, waveform, limit, rate_hz, lever_arm_body_m), mission.storage,
+                            seen_radius_m)
+
+
+@dataclass(frozen=True)
+class CoverageTarget:
+    """What the planner must reach and with what: the target predicted R_a and the payload's sweep."""
+
+    coverage_pct: float
+    waveform: Waveform
+    limit: RangeLimit
+    rate_hz: float
+    lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10)
+    seen_radius_m: float = DEFAULT_SEEN_RADIUS_M
+    speeds_m_s: tuple[float, ...] = SPEEDS_M_S
+    energy: EnergyModel = field(default_factory=EnergyModel)
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.coverage_pct) and 0 < self.coverage_pct <= 100):
+            raise ValueError(f"target coverage must be in (0, 100] %, got {self.coverage_pct:g}")
+        if not (math.isfinite(self.seen_radius_m) and self.seen_radius_m > 0):
+            raise ValueError(f"seen radius must be > 0 m, got {self.seen_radius_m:g}")
+
+
+@dataclass(frozen=True)
+class PlannedLoop:
+    """The planner's choice: the plan, its mission, its predicted coverage and energy, how many plans it tried."""
+
+    plan: LoopPlan
+    mission: LoopMission
+    coverage: Coverage
+    energy_j: float
+    n_evaluated: int
+
+
+def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 12.0,
+                  yaw_rate_max_rad_s: float = math.radians(30.0), min_clearance_m: float = 0.5) -> PlannedLoop:
+    """The least-energy loop of the family whose predicted coverage reaches the target (module docstring);
+    ValueError (one line) when none does."""
+    if not (math.isfinite(altitude_m) and min_clearance_m < altitude_m <= storage.height_m - min_clearance_m):
+        raise ValueError(f"altitude {altitude_m:g} m does not fit the {storage} building "
+                         f"(needs {min_clearance_m:g} m clearance to floor and roof)")
+    h = altitude_m - float(target.lever_arm_body_m[2])
+    reach = target.limit.floor_reach_m(h)
+    if reach <= 0:
+        raise ValueError(f"the rangefinder reaches no floor from {h:.1f} m above it "
+                         f"(planning range {target.limit.describe()}): fly lower")
+    if 2 * reach < min(storage.length_m, storage.width_m) * (1 - 2 * OFFSET_STEPS[0]):
+        raise ValueError(f"the floor reach ({reach:.1f} m either side of the track) does not span half of the "
+                         f"{storage} building: a loop cannot cover it and interior legs (a lawnmower) are not "
+                         "planned yet; fly lower or survey a narrower bay")
+    sizes = (storage.width_m, storage.length_m, storage.width_m, storage.length_m)  # across each wall
+    cache: dict[LoopPlan, tuple[Coverage, float] | None] = {}
+
+    def evaluate(plan: LoopPlan) -> tuple[Coverage, float] | None:
+        if plan not in cache:
+            try:
+                m = plan.mission(storage, altitude_m, yaw_rate_max_rad_s, min_clearance_m)
+            except ValueError:
+                cache[plan] = None
+                return None
+            cov = predict_coverage(m, target.waveform, target.limit, target.rate_hz, target.lever_arm_body_m,
+                                   target.seen_radius_m)
+            cache[plan] = cov, target.energy.energy_j(m.path_length_m(), plan.speed_m_s, m.turned_rad())
+        return cache[plan]
+
+    def plan_of(steps: tuple[int, ...], cut_m: float, speed: float) -> LoopPlan:
+        return LoopPlan(tuple(OFFSET_STEPS[k] * sizes[i] for i, k in enumerate(steps)), cut_m, speed)
+
+    best: tuple[float, LoopPlan, Coverage] | None = None
+    best_reached = 0.0
+    cut = max(min_clearance_m, 0.05 * min(storage.length_m, storage.width_m))
+    for speed in target.speeds_m_s:
+        for cut_m in (0.0, cut):
+            steps = (0, 0, 0, 0)
+            got = evaluate(plan_of(steps, cut_m, speed))
+            if got is None:
+                continue
+            best_reached = max(best_reached, got[0].predicted_ra_pct)
+            if got[0].predicted_ra_pct < target.coverage_pct:
+                continue
+            while True:  # move one wall's leg inwards: the cheapest move that keeps the target
+                moves = []
+                for i in range(4):
+                    if steps[i] + 1 >= len(OFFSET_STEPS):
+                        continue
+                    nxt = (*steps[:i], steps[i] + 1, *steps[i + 1:])
+                    r = evaluate(plan_of(nxt, cut_m, speed))
+                    if r is not None and r[0].predicted_ra_pct >= target.coverage_pct:
+                        moves.append((r[1], nxt))
+                if not moves:
+                    break
+                steps = min(moves)[1]
+            cov, e = evaluate(plan_of(steps, cut_m, speed))
+            if best is None or e < best[0]:
+                best = (e, plan_of(steps, cut_m, speed), cov)
+    if best is None:
+        raise ValueError(f"no loop reaches {target.coverage_pct:g} % predicted coverage (best {best_reached:.1f} %, "
+                         f"legs 5 % from every wall); lower --coverage, sweep slower, or fly lower")
+    e, plan, cov = best
+    record = {"coverage_target_pct": target.coverage_pct, "predicted_ra_pct": round(cov.predicted_ra_pct, 3),
+              "predicted_energy_j": round(e, 1), "offsets_m": [round(v, 3) for v in plan.offsets_m],
+              "walls": list(WALLS), "corner_cut_m": plan.corner_cut_m, "seen_radius_m": target.seen_radius_m}
+    mission = plan.mission(storage, altitude_m, yaw_rate_max_rad_s, min_clearance_m, record)
+    return PlannedLoop(plan, mission, cov, e, len(cache))
