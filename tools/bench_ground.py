@@ -96,10 +96,12 @@ def main(argv: list[str] | None = None) -> int:
         cold, _ = median_time(lambda: subprocess.run(cli, check=True), 3)
         rows.append(("`pilescan-ground report` as a fresh process, with plots (incl. imports)", cold, ""))
     rate = bench_rays(1_000_000, args.repeat)
-    lines = [f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; "
+    load_after, cores = os.getloadavg()[0], os.cpu_count() or 1
+    busy = (" (above the core count: other work shared the machine and every row is slower by about that ratio)"
+            if max(load_before, load_after) > cores else "")
+    lines = [f"Machine: {platform.machine()}, {cores} cores, Python {platform.python_version()}; "
              f"medians of {args.repeat} runs (3 for the fresh process); load average (1 min) {load_before:.1f} "
-             f"before, {os.getloadavg()[0]:.1f} after (above the core count, other work shared the machine and "
-             "every row is slower by about that ratio).", "",
+             f"before, {load_after:.1f} after{busy}.", "",
              "| benchmark | median | note |", "|---|---|---|"]
     lines += [f"| {name} | {t:.3f} s | {note} |" for name, t, note in rows]
     lines.append(f"| batch ray casting, 1 M rays (Embree) | {rate / 1e6:.2f} M rays/s | target >= 1 M rays/s |")
