@@ -159,30 +159,37 @@ def build_parser() -> ArgumentParser:
 
 
 def format_summary(rep: dict) -> str:
+    """The console summary: one label column for every row; volumes in the report's display unit (with m³
+    beside them when that is another unit)."""
     def pct(v):
         return "unknown" if v is None else f"{v:.2f} %"
+    try:
+        unit = VolumeUnit(rep.get("volume_unit", VolumeUnit.M3.value))
+    except ValueError:
+        unit = VolumeUnit.M3
+
+    def vol(*v_m3: float) -> str:
+        shown = " - ".join(f"{unit.of_m3(v):,.1f}" for v in v_m3) + f" {unit.symbol}"
+        return shown if unit is VolumeUnit.M3 else shown + " (" + " - ".join(f"{v:,.1f}" for v in v_m3) + " m³)"
     truth = rep.get("true_volume_m3")
     iv = rep.get("volume_interval_m3")
-    lines = [
-        f"volume        {rep['volume_m3']:12.1f} m^3",
-        f"90 % interval {'not estimated' if iv is None else f'{iv[0]:12.1f} - {iv[1]:.1f} m^3'}",
-        f"base          {(rep.get('base') or {}).get('description', 'the floor plane z = 0')}",
-    ]
-    lines += [f"verdict       {rep['verdict']}"] if rep.get("verdict") else []
+    rows = [("volume", vol(rep["volume_m3"])),
+            ("90 % interval", "not estimated" if iv is None else vol(iv[0], iv[1])),
+            ("base", (rep.get("base") or {}).get("description", "the floor plane z = 0"))]
+    rows += [("verdict", rep["verdict"])] if rep.get("verdict") else []
     if truth is not None:  # a reference volume: a simulated survey or --truth-volume
-        lines += [f"truth         {truth:12.1f} m^3", f"Ve (eq. 8)    {pct(rep.get('volume_error_pct')):>12}"]
-    lines += [
-        f"R_a (eq. 9)   {pct(rep.get('coverage_ratio_pct')):>12}",
-        f"points used   {rep['n_points_used']:12d} of {rep['n_samples']} samples",
-    ]
-    lines += [f"{label:<20} {value}" for label, value in metadata_rows(rep.get("metadata"))]
-    head, rows = pile_rows(rep.get("piles"))
-    if rows:
-        widths = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
+        rows += [("truth", vol(truth)), ("Ve (eq. 8)", pct(rep.get("volume_error_pct")))]
+    rows += [("R_a (eq. 9)", pct(rep.get("coverage_ratio_pct"))),
+             ("points used", f"{rep['n_points_used']:,} of {rep['n_samples']:,} samples")]
+    rows += list(metadata_rows(rep.get("metadata")))
+    rows += [("exports", ", ".join(rep["exports"]))] if rep.get("exports") else []
+    width = max(len(label) for label, _ in rows)
+    lines = [f"{label:<{width}}  {value}" for label, value in rows]
+    head, piles = pile_rows(rep.get("piles"))
+    if piles:
+        widths = [max(len(r[i]) for r in [head, *piles]) for i in range(len(head))]
         lines += ["piles:"] + ["  " + "  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip()
-                               for r in [head, *rows]]
-    if rep.get("exports"):
-        lines.append(f"exports       {', '.join(rep['exports'])}")
+                               for r in [head, *piles]]
     lines += [f"WARNING: {w}" for w in rep.get("warnings", [])]
     return "\n".join(lines)
 

@@ -40,6 +40,17 @@ def test_that_the_report_command_prints_the_summary(run_dir, tmp_path, capsys):
     assert "Ve (eq. 8)" in out and "R_a (eq. 9)" in out
 
 
+def test_that_the_summary_shows_volumes_in_the_chosen_unit_with_cubic_metres_beside(run_dir, tmp_path, capsys):
+    assert main(["report", str(run_dir), "--out", str(tmp_path / "r"), "--no-plots", "--volume-units", "yd3"]) == 0
+    rows = {line.split("  ")[0]: line for line in capsys.readouterr().out.splitlines()}
+    rep = json.loads((tmp_path / "r" / "report.json").read_text())
+    assert f"{rep['volume_m3'] / 0.9144**3:,.1f} yd³ ({rep['volume_m3']:,.1f} m³)" in rows["volume"]
+    assert "yd³ (" in rows["90 % interval"] and " m³)" in rows["90 % interval"]
+    columns = {len(line) - len(line[len(label):].lstrip()) for label, line in rows.items()
+               if label in ("volume", "base", "R_a (eq. 9)", "Log SHA-256")}
+    assert len(columns) == 1  # every value starts in one column
+
+
 def test_that_the_ground_options_reach_the_report(run_dir, tmp_path, capsys):
     assert main(["report", str(run_dir), "--out", str(tmp_path / "r"), "--no-plots", "--surface-fit", "linear",
                  "--no-despike", "--no-servo-retiming"]) == 0
