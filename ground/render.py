@@ -233,6 +233,24 @@ def _fmt_log(v: Any) -> str:
     return ", ".join(parts)
 
 
+def headline(report: Mapping[str, Any]) -> str:
+    """'Stockpile volume: V (90 % interval a – b)' in the report's display unit, with m³ beside another unit."""
+    from ground.piles import VolumeUnit
+    v, iv = report.get("volume_m3"), report.get("volume_interval_m3")
+    text = f"Stockpile volume: {fmt_volume(v)}" + (
+        "" if fmt_interval(iv) == UNKNOWN else f" (90 % interval {fmt_interval(iv)})")
+    try:
+        unit = VolumeUnit(report.get("volume_unit", VolumeUnit.M3.value))
+    except ValueError:
+        return text
+    if unit is VolumeUnit.M3 or fmt_volume(v) == UNKNOWN:
+        return text
+    shown = f"Stockpile volume: {unit.of_m3(float(v)):,.1f} {unit.symbol}"
+    if fmt_interval(iv) != UNKNOWN:
+        shown += f" (90 % interval {unit.of_m3(float(iv[0])):,.1f} – {unit.of_m3(float(iv[1])):,.1f} {unit.symbol})"
+    return f"{shown}; {text.removeprefix('Stockpile volume: ')}"
+
+
 def fmt_interval(v: Any) -> str:
     """[low, high] m³ as 'low – high m³' (unknown when absent or malformed)."""
     if not (isinstance(v, list | tuple) and len(v) == 2):
@@ -356,9 +374,7 @@ def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportC
         metadata=metadata, piles=pile_rows(piles),
         piles_method=str(piles.get("method")) if isinstance(piles, Mapping) and piles.get("method") else None,
         config=config_rows, config_file=config_file,
-        headline=f"Stockpile volume: {fmt_volume(report.get('volume_m3'))}" + (
-            "" if fmt_interval(report.get("volume_interval_m3")) == UNKNOWN else
-            f" (90 % interval {fmt_interval(report.get('volume_interval_m3'))})"),
+        headline=headline(report),
         warnings=_warnings(report),
         summary=summary,
         images=[(_image_caption(str(n)), Path(p)) for n, p in (images or {}).items() if n not in PAGE_IMAGES],

@@ -219,3 +219,11 @@ def test_ply_empty_cloud_is_valid(tmp_path, with_color):
 def test_ply_rejects_wrong_shape(tmp_path):
     with pytest.raises(ValueError, match=r"\(N, 3\)"):
         render.write_ply(np.zeros((4, 2)), tmp_path / "bad.ply")
+
+
+def test_that_the_headline_gives_the_volume_in_the_chosen_unit_and_in_cubic_metres():
+    from ground.render import headline
+    rep = {"volume_m3": 764.555, "volume_interval_m3": [700.0, 800.0], "volume_unit": "yd3"}
+    text = headline(rep)
+    assert text.startswith("Stockpile volume: 1,000.0 yd³") and "764.6 m³" in text and "yd³)" in text
+    assert headline({**rep, "volume_unit": "m3"}) == "Stockpile volume: 764.6 m³ (90 % interval 700.0 – 800.0 m³)"
