@@ -5,7 +5,8 @@ threshold from the surfaces' noise, connected, with a minimum area), the thresho
 surveys' so that a pile is the same kind of thing in both. Piles are matched by the cells they share:
 the pairs with the most common cells first, each pile used once. A matched pair's change is NEW - OLD
 summed over the union of its two footprints (material taken off a flank counts even where the new pile no
-longer reaches); a pile in one survey only is reported as new or gone, with its whole volume as the change.
+longer reaches); a pile in one survey only is reported as new or gone, with its whole volume as the change,
+when that change is outside its own interval of zero (else it may be the fills' noise: a speck by a wall).
 
 The interval of a pile's change is the survey-wide net interval's half-widths scaled by the square root of
 the pile's share of the compared cells: the errors are sums over cells, and the share that lies under one
@@ -72,9 +73,16 @@ def pile_changes(old: SavedSurface, new: SavedSurface, change: Change,
                 "footprint_m2": float(region.sum() * a)}
 
     out = [record(i, j) for i, j in matched]
-    out += [record(None, j) for j in range(1, int(ln.max()) + 1) if j not in used_new]
-    out += [record(i, None) for i in range(1, int(lo.max()) + 1) if i not in used_old]
-    return out
+    unmatched = [record(None, j) for j in range(1, int(ln.max()) + 1) if j not in used_new]
+    unmatched += [record(i, None) for i in range(1, int(lo.max()) + 1) if i not in used_old]
+    return out + [r for r in unmatched if _significant(r)]
+
+
+def _significant(r: dict) -> bool:
+    """A pile in one survey only whose whole volume lies within its own interval of zero could be the two
+    fills' noise (a speck along a wall): not reported as a pile brought in or taken away."""
+    lo, hi = r["change_interval_m3"]
+    return not lo <= 0.0 <= hi
 
 
 def format_pile_changes(records: list[dict] | None) -> list[str]:
