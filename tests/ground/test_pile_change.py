@@ -11,8 +11,8 @@ from ground.surface_file import SavedSurface
 GRID = Grid(40.0, 20.0, 0.5)
 
 
-def _saved(h: np.ndarray) -> SavedSurface:
-    return SavedSurface(h, GRID.length_m, GRID.width_m, 10.0, GRID.cell_m, grid_volume(h, GRID), 20.0, 20.0, 0.02)
+def _saved(h: np.ndarray, sigma_m: float = 0.02) -> SavedSurface:
+    return SavedSurface(h, GRID.length_m, GRID.width_m, 10.0, GRID.cell_m, grid_volume(h, GRID), 20.0, 20.0, sigma_m)
 
 
 def _cone(x0: float, y0: float, r: float, top: float) -> np.ndarray:
@@ -55,7 +55,12 @@ def test_that_an_empty_building_twice_has_no_piles_to_compare():
 
 def test_that_a_speck_within_its_own_interval_of_zero_is_not_reported_as_a_new_pile():
     a = _cone(10, 10, 6, 4)
-    speck = a.copy()
-    speck[70:72, 30:32] = 0.3  # four cells, 0.3 m³: what two flights' fills can differ by along a wall
-    recs = pile_changes(_saved(a), _saved(speck), compare_surfaces(_saved(a), _saved(speck)))
+    later = a + 0.02  # a second flight 2 cm high everywhere (under its 5 cm noise): the change is that uncertain
+    later[70:72, 30:32] = 0.17  # and four cells just over the pile threshold along a wall: 0.17 m³
+    old, new = _saved(a, 0.05), _saved(later, 0.05)
+    recs = pile_changes(old, new, compare_surfaces(old, new))
     assert [r["status"] for r in recs] == ["matched"]
+    brought = later.copy()
+    brought[60:72, 24:36] = 1.0  # a real 36 m³ heap there is reported
+    assert "new" in [r["status"] for r in pile_changes(old, _saved(brought, 0.05),
+                                                       compare_surfaces(old, _saved(brought, 0.05)))]
