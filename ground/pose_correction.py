@@ -771,7 +771,10 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
     gain = 2.0 * float(np.sum(_huber(r_none / spread)) - np.sum(_huber(r_full / spread)))
     if significant_only and not gain > n_knots + n_significant * math.sqrt(2.0 * n_knots):
         return None, None
-    return x[:n_knots], info / spread ** 2
+    z = x[:n_knots]
+    if m_floor == 0:  # no floor: the level is not observed (the cells' weak pull to 0 would set it): keep the
+        z = z - np.mean(z)  # logged reference's on average
+    return z, info / spread ** 2
 
 
 def screen_floor(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, floor: np.ndarray,
@@ -825,7 +828,12 @@ def screen_floor(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarr
                                             "alone")
     i0 = int(dense[0])
     level = float(np.median(fmed[i0:upto[i0]]))
-    walls_z = np.sort(zc[wall])
+    # everything seen at a wall (its face or the floor or pile against it), the horizontal correction applied:
+    # nothing there is below the floor
+    band = BAND * max(sensor_m, noise_m)
+    at_wall = ((p[:, 0] < band) | (p[:, 0] > storage.length_m - band) | (p[:, 1] < band)
+               | (p[:, 1] > storage.width_m - band))
+    walls_z = np.sort(zc[at_wall])
     stray = int(max(MIN_VOTES, STRAY_FRACTION * len(walls_z)))
     wall_low = float(walls_z[stray]) if len(walls_z) > stray else math.inf
     if level > wall_low + tol:
