@@ -26,7 +26,9 @@ each plane is seen; (2) robust least squares for the horizontal position (soft-L
 solver with a sparse Jacobian: each point moves with its two knots only) over the points the vote put on
 a plane, the window shrinking to the data's own noise; (3) the height from the floor and from the pile
 seen at different times (`vertical_from_crossings`: over a pile the floor is hidden, and that is where a
-rangefinder-aided estimator's height is wrong); (4) optionally the heading, kept only when significant
+rangefinder-aided estimator's height is wrong), the vote's floor screened first across the flight
+(`screen_floor`: a flat pile top the vote took for the floor lies above the floor's level once the crossings
+align the flight); (4) optionally the heading, kept only when significant
 (off by default: measured, it did more harm than good, docs/pose_error.md).
 
 No harm: applied only when it brings the structure closer to its planes by more than fitting the same
