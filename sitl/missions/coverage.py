@@ -258,6 +258,9 @@ class CoverageTarget:
     seen_radius_m: float = DEFAULT_SEEN_RADIUS_M
     speeds_m_s: tuple[float, ...] = SPEEDS_M_S
     energy: EnergyModel = field(default_factory=EnergyModel)
+    also_waveforms: tuple[Waveform, ...] = ()
+    """Other servo start positions the plan must reach the target at too: the plan's predicted coverage is
+    the worst over `waveform` and these (a plan flown whatever position the servo starts in)."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.coverage_pct) and 0 < self.coverage_pct <= 100):
@@ -275,6 +278,20 @@ class PlannedLoop:
     coverage: Coverage
     energy_j: float
     n_evaluated: int
+
+
+def worst_coverage(mission, target: CoverageTarget) -> Coverage:
+    """The predicted coverage at the target's worst servo start position (`waveform`, then `also_waveforms`);
+    stops at the first position below the target (the plan fails it whatever the others give)."""
+    worst = None
+    for wf in (target.waveform, *target.also_waveforms):
+        cov = predict_coverage(mission, wf, target.limit, target.rate_hz, target.lever_arm_body_m,
+                               target.seen_radius_m)
+        if worst is None or cov.predicted_ra_pct < worst.predicted_ra_pct:
+            worst = cov
+        if worst.predicted_ra_pct < target.coverage_pct:
+            break
+    return worst
 
 
 def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 12.0,
@@ -303,8 +320,7 @@ def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 
             except ValueError:
                 cache[plan] = None
                 return None
-            cov = predict_coverage(m, target.waveform, target.limit, target.rate_hz, target.lever_arm_body_m,
-                                   target.seen_radius_m)
+            cov = worst_coverage(m, target)
             cache[plan] = cov, target.energy.energy_j(m.path_length_m(), plan.speed_m_s, m.turned_rad())
         return cache[plan]
 
@@ -344,6 +360,7 @@ def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 
     e, plan, cov = best
     record = {"coverage_target_pct": target.coverage_pct, "predicted_ra_pct": round(cov.predicted_ra_pct, 3),
               "predicted_energy_j": round(e, 1), "offsets_m": [round(v, 3) for v in plan.offsets_m],
-              "walls": list(WALLS), "corner_cut_m": plan.corner_cut_m, "seen_radius_m": target.seen_radius_m}
+              "walls": list(WALLS), "corner_cut_m": plan.corner_cut_m, "seen_radius_m": target.seen_radius_m,
+              "servo_start_positions": 1 + len(target.also_waveforms)}
     mission = plan.mission(storage, altitude_m, yaw_rate_max_rad_s, min_clearance_m, record)
     return PlannedLoop(plan, mission, cov, e, len(cache))
