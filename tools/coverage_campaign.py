@@ -152,7 +152,7 @@ def spread_page(rows: list[Row], args) -> str:
            "model's predicted R_a is for the plan at each flown position; coverage-PCT-all is planned for the "
            "worst of all 20 start positions (`--all-phases`); rect-P is the paper's rectangle at P_traj P %.", "",
            "| pile | mission | phases | predicted R_a min [%] | R_a mean [%] | R_a min [%] | Ve mean [%] | Ve sd [%] "
-           "| Ve max [%] (phase) |", "|---|---|---|---|---|---|---|---|---|"]
+           "| Ve max [%] (phase) | model energy [kJ] |", "|---|---|---|---|---|---|---|---|---|---|"]
     for pile in args.piles:
         for kind in dict.fromkeys(r.mission for r in rows):
             rs = [r for r in rows if r.pile == pile and r.mission == kind]
@@ -163,7 +163,7 @@ def spread_page(rows: list[Row], args) -> str:
             out.append(f"| {pile} | {kind} | {len(rs)} | {min(r.predicted_ra_pct for r in rs):.2f} | "
                        f"{statistics.fmean(r.ra_pct for r in rs):.2f} | {min(r.ra_pct for r in rs):.2f} | "
                        f"{statistics.fmean(ve):.3f} | {statistics.pstdev(ve):.3f} | {worst.ve_pct:.3f} "
-                       f"({worst.phase}) |")
+                       f"({worst.phase}) | {rs[0].model_energy_j / 1000:.2f} |")
     return "\n".join(out)
 
 

@@ -17,7 +17,7 @@ def test_that_the_spread_table_gives_mean_sd_max_of_ve_and_min_of_ra_per_pile_an
     args = argparse.Namespace(plan_phase=0, plan_all_phases=False, piles=["1"], phases=[0, 1, 2],
                               coverage=[99.8], spread_rect=[20])
     table = camp.spread_page(rows, args)
-    assert "| 1 | coverage-99.8 | 3 | 99.88 | 99.10 | 99.00 | 0.200 | 0.082 | 0.300 (1) |" in table
+    assert "| 1 | coverage-99.8 | 3 | 99.88 | 99.10 | 99.00 | 0.200 | 0.082 | 0.300 (1) | 13.00 |" in table
     assert "| 1 | rect-20 | 1 |" in table
     assert "flown at all 3 start positions" in table
 
