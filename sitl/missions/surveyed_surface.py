@@ -6,8 +6,11 @@ height grid the beams stop at the first surface they meet instead. The file is t
 (written by `ground.surface_file`, format `pilescan-surface` version 1: a float64 `heights_m` grid and a JSON
 `meta`); the simulator must not import the ground station, so this is a small reader of its own, bounded and
 checked like every file a user names (`firmware_py.core.safe_read`): a damaged, foreign or other building's
-file is one line, never a traceback. Cells the survey left without a surface (NaN) count as floor: nothing
-known stands there.
+file is one line, never a traceback. The report's heights are after its empty-cell policy: the cells it could
+not see hold a fill, not a measurement (pile 2: the fill carries the flanks' heights over the floor strip at
+the walls' foot they hide). So the cells outside the convex hull of the report's own points (`cloud.ply`, the
+pile points the surface was fitted to: the report's R_a, eq. 9) count as floor, as do NaN cells: nothing
+measured stands there, and a floor is what a later flight must still see.
 """
 
 from __future__ import annotations
@@ -24,6 +27,9 @@ from firmware_py.core.safe_read import InputError, read_bounded
 from firmware_py.core.storage import Storage
 
 SURFACE_FILE = "surface.npz"
+CLOUD_FILE = "cloud.ply"
+MAX_CLOUD_BYTES = 1_000_000_000
+"""Largest cloud read: a day's survey at 500 Hz is about 40 M points of 16 bytes (ground.report's PLY)."""
 FORMAT = "pilescan-surface"
 FORMAT_VERSION = 1
 MAX_CELLS = 25_000_000
@@ -96,7 +102,32 @@ def load_height_field(report_dir: str | Path, storage: Storage) -> HeightField:
     if np.isinf(heights).any():
         raise ValueError(f"{path}: surface heights hold infinite values")
     h = np.clip(np.nan_to_num(heights, nan=0.0), 0.0, height)  # no surface: floor; nothing above the roof
+    cloud = path.parent / CLOUD_FILE
+    if cloud.exists():
+        h = np.where(measured_cells(cloud, length, width, h.shape), h, 0.0)
     return HeightField(h, length, width, str(path))
+
+
+def measured_cells(cloud_path: Path, length_m: float, width_m: float, shape: tuple[int, int]) -> np.ndarray:
+    """(nx, ny) True where a cell centre lies inside the convex hull of the report's pile points (where its
+    surface was fitted, not filled); ValueError (one line) for an unusable cloud."""
+    import trimesh
+    from scipy.spatial import ConvexHull, QhullError
+    try:
+        data = read_bounded(cloud_path, MAX_CLOUD_BYTES, "point cloud")
+        pts = np.asarray(trimesh.load(io.BytesIO(data), file_type="ply").vertices, dtype=float)[:, :2]
+    except InputError as exc:
+        raise ValueError(str(exc)) from None
+    except Exception as exc:  # trimesh raises many types for a damaged PLY
+        raise ValueError(f"{cloud_path} is not a readable point cloud ({type(exc).__name__}: {exc})"[:300]) from None
+    nx, ny = shape
+    gx, gy = np.meshgrid((np.arange(nx) + 0.5) * length_m / nx, (np.arange(ny) + 0.5) * width_m / ny, indexing="ij")
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    try:
+        eq = ConvexHull(pts).equations
+    except (QhullError, ValueError):  # fewer than three points, or all on a line: nothing was measured
+        return np.zeros(shape, dtype=bool)
+    return np.all(eq[:, 0, None, None] * gx + eq[:, 1, None, None] * gy + eq[:, 2, None, None] <= 1e-9, axis=0)
 
 
 def first_hits_w(o_w: np.ndarray, d_w: np.ndarray, field_: HeightField, step_m: float) -> tuple[np.ndarray, np.ndarray]:
