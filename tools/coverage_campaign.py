@@ -98,11 +98,12 @@ def fly_and_report(mission, stockpile: str, phase: int, out: Path, plant: str = 
     return (json.loads((out / "truth.json").read_text()), json.loads((out / "report" / "report.json").read_text()))
 
 
-def run_case(pile: str, kind: str, phase: int, out: Path, mission=None) -> Row:
-    """One flight and its report; `mission` (default: planned for this phase) lets one plan fly at every phase."""
+def run_case(pile: str, kind: str, phase: int, out: Path, mission=None, surface=None) -> Row:
+    """One flight and its report; `mission` (default: planned for this phase) lets one plan fly at every phase;
+    the prediction is on `surface` (an earlier survey's) when given."""
     m = mission if mission is not None else mission_for(kind, phase)
     wf = named_waveform("semi-triangular", 5.0, phase)
-    pred = predict_coverage(m, wf, planning_limit(LIDARLITE_V3), LIDARLITE_V3.rate_hz)
+    pred = predict_coverage(m, wf, planning_limit(LIDARLITE_V3), LIDARLITE_V3.rate_hz, surface=surface)
     truth, rep = fly_and_report(m, pile_arg(pile, out), phase, out / f"{pile}-{kind}-k{phase}")
     return Row(pile, kind, phase, pred.predicted_ra_pct, pred.hull_pct, rep["coverage_ratio_pct"],
                rep["volume_error_pct"], truth["flight_time_s"], mission_energy_j(m), m.path_length_m())
@@ -152,8 +153,8 @@ def spread_page(rows: list[Row], args) -> str:
            "each target planned once, for servo start position "
            f"{args.plan_phase}, and that one plan flown at all {len(args.phases)} start positions (ideal plant, batch "
            "payload, ideal sensing, `pilescan-ground report` defaults). Ve is |V - V_true| / V_true (eq. 8); the "
-           "model's predicted R_a is for the plan at each flown position; coverage-PCT-all is planned for the "
-           "worst of all 20 start positions (`--all-phases`), coverage-PCT-surface on the earlier survey's surface "
+           "model's predicted R_a is for the plan at each flown position (on the --surface when given); "
+           "coverage-PCT-all is planned for the worst of all 20 start positions (`--all-phases`), coverage-PCT-surface on the earlier survey's surface "
            "(`--surface`); rect-P is the paper's rectangle at P_traj P %.", "",
            "| pile | mission | phases | predicted R_a min [%] | R_a mean [%] | R_a min [%] | Ve mean [%] | Ve sd [%] "
            "| Ve max [%] (phase) | model energy [kJ] |", "|---|---|---|---|---|---|---|---|---|---|"]
@@ -182,7 +183,7 @@ def run_spread(args) -> int:
         m = mission_for(kind, args.plan_phase, surface)
         for pile in args.piles:
             for k in args.phases:
-                rows.append(run_case(pile, kind, k, args.out / "spread", mission=m))
+                rows.append(run_case(pile, kind, k, args.out / "spread", mission=m, surface=surface))
                 r = rows[-1]
                 print(f"{pile} {kind} (plan k{args.plan_phase}) k{k}: predicted {r.predicted_ra_pct:.2f} "
                       f"R_a {r.ra_pct:.2f} Ve {r.ve_pct:.3f}", file=sys.stderr)
