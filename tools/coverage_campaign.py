@@ -154,8 +154,9 @@ def spread_page(rows: list[Row], args) -> str:
            f"{args.plan_phase}, and that one plan flown at all {len(args.phases)} start positions (ideal plant, batch "
            "payload, ideal sensing, `pilescan-ground report` defaults). Ve is |V - V_true| / V_true (eq. 8); the "
            "model's predicted R_a is for the plan at each flown position (on the --surface when given); "
-           "coverage-PCT-all is planned for the worst of all 20 start positions (`--all-phases`), coverage-PCT-surface on the earlier survey's surface "
-           "(`--surface`); rect-P is the paper's rectangle at P_traj P %.", "",
+           "coverage-PCT-all is planned for the worst of all 20 start positions (`--all-phases`), "
+           "coverage-PCT-surface on the earlier survey's surface (`--surface`); "
+           "rect-P is the paper's rectangle at P_traj P %.", "",
            "| pile | mission | phases | predicted R_a min [%] | R_a mean [%] | R_a min [%] | Ve mean [%] | Ve sd [%] "
            "| Ve max [%] (phase) | model energy [kJ] |", "|---|---|---|---|---|---|---|---|---|---|"]
     for pile in args.piles:
