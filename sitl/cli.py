@@ -191,7 +191,7 @@ def _coverage_options(p: ArgumentParser, fly: bool) -> None:
     p.add_argument("--all-phases", action="store_true",
                    help=f"with --coverage: plan for the worst of all {2 * N_PHASES} servo start positions, not only "
                         + ("--phase" if fly else "position 0")
-                        + " (a plan that holds whatever position the servo starts in; about 20 times the planning "
+                        + " (a plan that holds whatever position the servo starts in; up to 20 times the planning "
                           "time)")
 
 
