@@ -263,6 +263,9 @@ def _mission(args, waveform: Waveform | None = None):
         return _coverage_mission(args, waveform)
     if coverage is not None:
         raise UserError("--coverage plans a coverage mission: add --mission coverage")
+    if getattr(args, "surface", None) or getattr(args, "all_phases", False):
+        raise UserError("--surface and --all-phases shape a coverage plan: add --coverage PCT"
+                        + (" and --mission coverage" if args.command == "fly" else ""))
     if args.p_traj is None:
         raise UserError("the rectangle mission needs --p-traj PCT (or plan one with --mission coverage --coverage PCT)")
     return Mission(storage=Storage.parse(args.storage), p_traj=args.p_traj / 100.0, turn=args.turn,

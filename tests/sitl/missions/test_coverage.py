@@ -157,6 +157,8 @@ def test_that_plan_all_phases_plans_for_every_servo_start_position(tmp_path, cap
     (["plan", "--coverage", "120"], "target coverage must be in (0, 100]"),
     (["plan", "--coverage", "99", "--altitude", "20"], "altitude 20 m does not fit"),
     (["fly", "--stockpile", "1", "--coverage", "99"], "add --mission coverage"),
+    (["plan", "--p-traj", "20", "--all-phases"], "shape a coverage plan: add --coverage PCT"),
+    (["fly", "--stockpile", "1", "--p-traj", "20", "--surface", "r"], "add --coverage PCT and --mission coverage"),
 ])
 def test_that_plan_refuses_with_one_line(tmp_path, capsys, argv, message):
     assert main([*argv, "--out", str(tmp_path / "x.waypoints")]) != 0
