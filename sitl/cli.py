@@ -184,6 +184,15 @@ def _coverage_options(p: ArgumentParser, fly: bool) -> None:
     p.add_argument("--seen-radius", type=finite_float, default=DEFAULT_SEEN_RADIUS_M, metavar="M",
                    help="with --coverage: a floor cell counts as seen when a return lies this near (default "
                         f"{DEFAULT_SEEN_RADIUS_M:g} m)")
+    p.add_argument("--surface", default=None, metavar="REPORT_DIR",
+                   help="with --coverage: plan on an earlier survey's surface (the report directory's surface.npz "
+                        "and cloud.ply): beams stop at the piles it measured, and the floor it did not see must "
+                        "still be seen (default: the empty floor)")
+    p.add_argument("--all-phases", action="store_true",
+                   help=f"with --coverage: plan for the worst of all {2 * N_PHASES} servo start positions, not only "
+                        + ("--phase" if fly else "position 0")
+                        + " (a plan that holds whatever position the servo starts in; up to 20 times the planning "
+                          "time)")
 
 
 def _rangefinder_options(p: ArgumentParser) -> None:
@@ -254,6 +263,9 @@ def _mission(args, waveform: Waveform | None = None):
         return _coverage_mission(args, waveform)
     if coverage is not None:
         raise UserError("--coverage plans a coverage mission: add --mission coverage")
+    if getattr(args, "surface", None) or getattr(args, "all_phases", False):
+        raise UserError("--surface and --all-phases shape a coverage plan: add --coverage PCT"
+                        + (" and --mission coverage" if args.command == "fly" else ""))
     if args.p_traj is None:
         raise UserError("the rectangle mission needs --p-traj PCT (or plan one with --mission coverage --coverage PCT)")
     return Mission(storage=Storage.parse(args.storage), p_traj=args.p_traj / 100.0, turn=args.turn,
@@ -264,20 +276,27 @@ def _mission(args, waveform: Waveform | None = None):
 def _coverage_mission(args, waveform: Waveform | None):
     from sitl.missions.coverage import CoverageTarget, plan_coverage
     from sitl.missions.range_check import planning_limit
+    from sitl.missions.surveyed_surface import load_height_field
     if args.coverage is None:
         raise UserError("--mission coverage needs --coverage PCT (the predicted floor coverage to reach)")
     wf = waveform or named_waveform(args.waveform, args.servo_rate, 0)
     spec = args.rangefinder.spec
     try:
+        storage = Storage.parse(args.storage)
+        surface = load_height_field(args.surface, storage) if args.surface else None
+        also = tuple(w for k in range(2 * N_PHASES)
+                     if (w := named_waveform(args.waveform, args.servo_rate, k)) != wf) if args.all_phases else ()
         target = CoverageTarget(args.coverage, wf, planning_limit(spec, args.sensor_noise), spec.rate_hz,
-                                seen_radius_m=args.seen_radius)
-        planned = plan_coverage(Storage.parse(args.storage), target, altitude_m=args.altitude,
+                                seen_radius_m=args.seen_radius, also_waveforms=also, surface=surface)
+        planned = plan_coverage(storage, target, altitude_m=args.altitude,
                                 yaw_rate_max_rad_s=math.radians(args.yaw_rate_max))
     except ValueError as exc:
         raise UserError(f"coverage plan: {exc}") from None
     if not args.quiet:
         p = planned.plan
-        print(f"coverage plan: predicted R_a {planned.coverage.predicted_ra_pct:.2f} %, offsets "
+        print(f"coverage plan: predicted R_a {planned.coverage.predicted_ra_pct:.2f} %"
+              + (f" (worst of {1 + len(also)} servo start positions)" if also else "")
+              + (" on the surface of " + str(args.surface) if surface is not None else "") + ", offsets "
               + ", ".join(f"{w.split()[0]} {o:.1f} m" for w, o in zip(WALLS, p.offsets_m, strict=True))
               + f", corner cut {p.corner_cut_m:g} m, {p.speed_m_s:g} m/s, {planned.mission.path_length_m():.0f} m, "
               f"predicted energy {planned.energy_j / 1000:.1f} kJ ({planned.n_evaluated} plans evaluated)")

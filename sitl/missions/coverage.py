@@ -8,8 +8,8 @@ certain-echo reach at its incidence (`range_check.RangeLimit`). A floor cell is 
 inside the convex hull of the floor hits (where the report's surface exists: its R_a, eq. 9, is the share of
 cells the triangulation of the points covers) and within `seen_radius_m` of a hit (so a hull spanned by a few
 far-apart fan lines is not counted as seen). Predicted R_a = covered cells / floor cells. A pile only brings
-surfaces nearer and shadows floor behind it, so the flat floor is the model's case; an earlier survey's
-surface is not used yet.
+surfaces nearer and shadows floor behind it, so the flat floor is the model's default case; with an earlier
+survey's surface (`CoverageTarget.surface`, `surveyed_surface`) the beams stop at the first surface they meet.
 
 The plan family (`LoopPlan`): a closed loop around the building with one offset per wall (four, not the
 paper's single P_traj), optionally with every corner cut by a short 45-degree leg. That leg's sweep plane
@@ -42,6 +42,7 @@ from firmware_py.core.frames import StorageFrame
 from firmware_py.core.storage import Storage
 from firmware_py.core.waveform import Waveform
 from sitl.missions.range_check import RangeLimit
+from sitl.missions.surveyed_surface import HeightField, first_hits_w
 
 COVERAGE_CELL_M = 0.25
 """The floor cell: the ground report's default grid (ground.surface.DEFAULT_CELL_M), so R_a compares cell for cell."""
@@ -186,8 +187,10 @@ class Coverage:
 
 
 def floor_hits_w(mission, waveform: Waveform, limit: RangeLimit, rate_hz: float,
-                 lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10)) -> np.ndarray:
-    """(N, 2) floor points (W) of the beams that meet the empty building's floor within reach."""
+                 lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10),
+                 surface: HeightField | None = None) -> np.ndarray:
+    """(N, 2) floor positions (W) of the beams that meet the empty building's floor within reach, or with an
+    earlier survey's `surface` the first surface each beam meets (a pile's flank hides the floor behind it)."""
     from sitl.vehicle.ideal_plant import IdealPlant
     frame = StorageFrame()
     plant = IdealPlant(mission, frame)
@@ -206,6 +209,11 @@ def floor_hits_w(mission, waveform: Waveform, limit: RangeLimit, rate_hz: float,
     d = np.column_stack([np.sin(g)[:, None] * right, -np.cos(g)])
     down = d[:, 2] < -1e-9
     o, d = o[down], d[down]
+    if surface is not None:
+        hits, r = first_hits_w(o, d, surface, 0.5 * COVERAGE_CELL_M)
+        ok = np.isfinite(r)
+        ok[ok] = r[ok] <= limit.reach_m(-d[ok, 2]) * (1 + 1e-9)
+        return hits[ok, :2]
     r = -o[:, 2] / d[:, 2]
     p = o[:, :2] + r[:, None] * d[:, :2]
     s = mission.storage
@@ -240,10 +248,10 @@ def coverage_of_hits(hits_w: np.ndarray, storage: Storage, seen_radius_m: float 
 
 def predict_coverage(mission, waveform: Waveform, limit: RangeLimit, rate_hz: float,
                      lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10),
-                     seen_radius_m: float = DEFAULT_SEEN_RADIUS_M) -> Coverage:
+                     seen_radius_m: float = DEFAULT_SEEN_RADIUS_M, surface: HeightField | None = None) -> Coverage:
     """The model's predicted coverage of a mission (a `rectangle.Mission` or a `LoopMission`)."""
-    return coverage_of_hits(floor_hits_w(mission, waveform, limit, rate_hz, lever_arm_body_m), mission.storage,
-                            seen_radius_m)
+    return coverage_of_hits(floor_hits_w(mission, waveform, limit, rate_hz, lever_arm_body_m, surface),
+                            mission.storage, seen_radius_m)
 
 
 @dataclass(frozen=True)
@@ -258,6 +266,11 @@ class CoverageTarget:
     seen_radius_m: float = DEFAULT_SEEN_RADIUS_M
     speeds_m_s: tuple[float, ...] = SPEEDS_M_S
     energy: EnergyModel = field(default_factory=EnergyModel)
+    also_waveforms: tuple[Waveform, ...] = ()
+    """Other servo start positions the plan must reach the target at too: the plan's predicted coverage is
+    the worst over `waveform` and these (a plan flown whatever position the servo starts in)."""
+    surface: HeightField | None = field(default=None, hash=False, compare=False)
+    """An earlier survey's surface to cast the beams at (`surveyed_surface`); None: the empty floor."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.coverage_pct) and 0 < self.coverage_pct <= 100):
@@ -275,6 +288,20 @@ class PlannedLoop:
     coverage: Coverage
     energy_j: float
     n_evaluated: int
+
+
+def worst_coverage(mission, target: CoverageTarget) -> Coverage:
+    """The predicted coverage at the target's worst servo start position (`waveform`, then `also_waveforms`);
+    stops at the first position below the target (the plan fails it whatever the others give)."""
+    worst = None
+    for wf in (target.waveform, *target.also_waveforms):
+        cov = predict_coverage(mission, wf, target.limit, target.rate_hz, target.lever_arm_body_m,
+                               target.seen_radius_m, target.surface)
+        if worst is None or cov.predicted_ra_pct < worst.predicted_ra_pct:
+            worst = cov
+        if worst.predicted_ra_pct < target.coverage_pct:
+            break
+    return worst
 
 
 def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 12.0,
@@ -303,8 +330,7 @@ def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 
             except ValueError:
                 cache[plan] = None
                 return None
-            cov = predict_coverage(m, target.waveform, target.limit, target.rate_hz, target.lever_arm_body_m,
-                                   target.seen_radius_m)
+            cov = worst_coverage(m, target)
             cache[plan] = cov, target.energy.energy_j(m.path_length_m(), plan.speed_m_s, m.turned_rad())
         return cache[plan]
 
@@ -344,6 +370,8 @@ def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 
     e, plan, cov = best
     record = {"coverage_target_pct": target.coverage_pct, "predicted_ra_pct": round(cov.predicted_ra_pct, 3),
               "predicted_energy_j": round(e, 1), "offsets_m": [round(v, 3) for v in plan.offsets_m],
-              "walls": list(WALLS), "corner_cut_m": plan.corner_cut_m, "seen_radius_m": target.seen_radius_m}
+              "walls": list(WALLS), "corner_cut_m": plan.corner_cut_m, "seen_radius_m": target.seen_radius_m,
+              "servo_start_positions": 1 + len(target.also_waveforms),
+              "surface": target.surface.source if target.surface is not None else None}
     mission = plan.mission(storage, altitude_m, yaw_rate_max_rad_s, min_clearance_m, record)
     return PlannedLoop(plan, mission, cov, e, len(cache))

@@ -20,6 +20,7 @@ from sitl.missions.coverage import (
     mission_energy_j,
     plan_coverage,
     predict_coverage,
+    worst_coverage,
 )
 from sitl.missions.qgc_wpl import DEFAULT_ORIGIN, read_qgc_wpl, write_qgc_wpl
 from sitl.missions.range_check import RangeLimit
@@ -66,6 +67,26 @@ def test_that_the_planner_reaches_its_target_on_the_model_for_less_energy_than_t
     assert planned.mission.plan["predicted_ra_pct"] == pytest.approx(again.predicted_ra_pct, abs=1e-3)
 
 
+def test_that_a_plan_for_several_servo_start_positions_reaches_the_target_at_each():
+    others = tuple(named_waveform("semi-triangular", 5.0, k) for k in (4, 13))
+    target = CoverageTarget(97.0, WF, LIDAR, LIDARLITE_V3.rate_hz, speeds_m_s=(2.0,), also_waveforms=others)
+    planned = plan_coverage(SMALL, target, altitude_m=6.0)
+    each = [predict_coverage(planned.mission, wf, LIDAR, LIDARLITE_V3.rate_hz).predicted_ra_pct
+            for wf in (WF, *others)]
+    assert min(each) >= 97.0
+    assert planned.coverage.predicted_ra_pct == pytest.approx(min(each))
+    assert planned.mission.plan["servo_start_positions"] == 3
+
+
+def test_that_the_worst_coverage_is_the_lowest_start_position_s():
+    m = Mission(SMALL, p_traj=0.3, altitude_m=6.0)
+    wfs = [named_waveform("semi-triangular", 5.0, k) for k in (0, 3, 7, 12)]
+    each = [predict_coverage(m, wf, LIDAR, LIDARLITE_V3.rate_hz).predicted_ra_pct for wf in wfs]
+    target = CoverageTarget(1.0, wfs[0], LIDAR, LIDARLITE_V3.rate_hz, also_waveforms=tuple(wfs[1:]))
+    assert len(set(each)) > 1  # the start position matters at this offset
+    assert worst_coverage(m, target).predicted_ra_pct == pytest.approx(min(each))
+
+
 def test_that_the_planner_refuses_when_the_rangefinder_cannot_reach_the_floor():
     target = CoverageTarget(99.0, WF, RangeLimit(5.0), LIDARLITE_V3.rate_hz)
     with pytest.raises(ValueError, match=r"reaches no floor from 7\.9 m") as e:
@@ -109,12 +130,35 @@ def test_that_plan_writes_a_coverage_plan(tmp_path, capsys):
     assert len(read_qgc_wpl(out)) >= 8
 
 
+def test_that_plan_all_phases_plans_for_every_servo_start_position(tmp_path, capsys, monkeypatch):
+    import dataclasses
+
+    import sitl.missions.coverage as coverage
+    seen = []
+
+    def quick(storage, target, **kw):  # the real planner on two of the positions and one speed: the full search is slow
+        seen.append(target)
+        return plan_coverage(storage, dataclasses.replace(target, also_waveforms=target.also_waveforms[:1],
+                                                          speeds_m_s=(2.0,)), **kw)
+
+    monkeypatch.setattr(coverage, "plan_coverage", quick)
+    out = tmp_path / "cov.waypoints"
+    assert main(["plan", "--coverage", "95", "--all-phases", "--storage", "30x20x10", "--altitude", "6",
+                 "--out", str(out)]) == 0
+    assert "worst of 20 servo start positions" in capsys.readouterr().out
+    wfs = {seen[0].waveform, *seen[0].also_waveforms}
+    assert wfs == {named_waveform("semi-triangular", 5.0, k) for k in range(20)} and len(wfs) == 20
+    assert len(read_qgc_wpl(out)) >= 8
+
+
 @pytest.mark.parametrize("argv, message", [
     (["plan"], "needs --p-traj"),
     (["plan", "--coverage", "99", "--rangefinder", "tfmini"], "lawnmower"),
     (["plan", "--coverage", "120"], "target coverage must be in (0, 100]"),
     (["plan", "--coverage", "99", "--altitude", "20"], "altitude 20 m does not fit"),
     (["fly", "--stockpile", "1", "--coverage", "99"], "add --mission coverage"),
+    (["plan", "--p-traj", "20", "--all-phases"], "shape a coverage plan: add --coverage PCT"),
+    (["fly", "--stockpile", "1", "--p-traj", "20", "--surface", "r"], "add --coverage PCT and --mission coverage"),
 ])
 def test_that_plan_refuses_with_one_line(tmp_path, capsys, argv, message):
     assert main([*argv, "--out", str(tmp_path / "x.waypoints")]) != 0

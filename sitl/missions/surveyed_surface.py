@@ -1,0 +1,157 @@
+"""An earlier survey's surface for the coverage planner (`plan --coverage PCT --surface REPORT_DIR`).
+
+The coverage model casts beams at the empty floor, so it cannot see the floor a pile's flank hides (pile 2:
+material against every wall shadows the wall's foot from legs a few metres inside). With an earlier survey's
+height grid the beams stop at the first surface they meet instead. The file is the report's `surface.npz`
+(written by `ground.surface_file`, format `pilescan-surface` version 1: a float64 `heights_m` grid and a JSON
+`meta`); the simulator must not import the ground station, so this is a small reader of its own, bounded and
+checked like every file a user names (`firmware_py.core.safe_read`): a damaged, foreign or other building's
+file is one line, never a traceback. The report's heights are after its empty-cell policy: the cells it could
+not see hold a fill, not a measurement (pile 2: the fill carries the flanks' heights over the floor strip at
+the walls' foot they hide). So the cells outside the convex hull of the report's own points (`cloud.ply`, the
+pile points the surface was fitted to: the report's R_a, eq. 9) count as floor, as do NaN cells: nothing
+measured stands there, and a floor is what a later flight must still see.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from firmware_py.core.safe_read import InputError, read_bounded
+from firmware_py.core.storage import Storage
+
+SURFACE_FILE = "surface.npz"
+CLOUD_FILE = "cloud.ply"
+MAX_CLOUD_BYTES = 1_000_000_000
+"""Largest cloud read: a day's survey at 500 Hz is about 40 M points of 16 bytes (ground.report's PLY)."""
+FORMAT = "pilescan-surface"
+FORMAT_VERSION = 1
+MAX_CELLS = 25_000_000
+MAX_SURFACE_BYTES = 16 * MAX_CELLS + 1_000_000
+"""The ground's own bounds (ground.surface.MAX_CELLS, ground.surface_file.MAX_SURFACE_BYTES)."""
+BUILDING_TOLERANCE_M = 0.01
+"""The survey must be of the planned building: its dimensions agree to 1 cm (ground.surface_file's test)."""
+
+
+@dataclass(frozen=True)
+class HeightField:
+    """Surface heights above the floor on a regular grid over [0, L] x [0, W] (cell centres)."""
+
+    heights_m: np.ndarray = field(hash=False, compare=False)  # (nx, ny), finite, >= 0
+    length_m: float
+    width_m: float
+    source: str = ""
+
+    @property
+    def max_height_m(self) -> float:
+        return float(self.heights_m.max()) if self.heights_m.size else 0.0
+
+    def height_at(self, x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
+        """The height of the cell holding each point (points outside are clamped to the border cells)."""
+        nx, ny = self.heights_m.shape
+        ix = np.clip((x_m * (nx / self.length_m)).astype(int), 0, nx - 1)
+        iy = np.clip((y_m * (ny / self.width_m)).astype(int), 0, ny - 1)
+        return self.heights_m[ix, iy]
+
+
+def _number(meta: dict, key: str, path: Path) -> float:
+    v = meta.get(key)
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v <= 0:
+        raise ValueError(f"{path}: surface file field {key} must be a finite number > 0, got {v!r}"[:300])
+    return float(v)
+
+
+def load_height_field(report_dir: str | Path, storage: Storage) -> HeightField:
+    """The surface of the report in report_dir (or a surface.npz named directly), checked against the building
+    being planned; ValueError (one line) when it is unusable."""
+    path = Path(report_dir)
+    if path.is_dir():
+        path = path / SURFACE_FILE
+    try:
+        data = read_bounded(path, MAX_SURFACE_BYTES, "surface file")
+    except InputError as exc:
+        raise ValueError(str(exc)) from None
+    except OSError as exc:
+        raise ValueError(f"cannot read surface file {path}: {exc.strerror or exc}") from None
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            if set(z.files) != {"heights_m", "meta"}:
+                raise ValueError(f"it holds {sorted(z.files)}, not heights_m and meta")
+            heights = np.asarray(z["heights_m"])
+            meta = json.loads(str(z["meta"]))
+    except Exception as exc:  # zip, npy and JSON errors come in many types: all mean a damaged or foreign file
+        raise ValueError(f"{path} is not a pilescan surface file ({type(exc).__name__}: {exc})"[:300]) from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:
+        got = (meta.get("format"), meta.get("format_version")) if isinstance(meta, dict) else meta
+        raise ValueError(f"{path} is not a pilescan surface file of version {FORMAT_VERSION} (got {got!r})"[:300])
+    length, width, height, cell = (_number(meta, k, path) for k in ("length_m", "width_m", "height_m", "cell_m"))
+    if max(abs(length - storage.length_m), abs(width - storage.width_m), abs(height - storage.height_m)) \
+            > BUILDING_TOLERANCE_M:
+        raise ValueError(f"{path} is a survey of a {length:g} x {width:g} x {height:g} m building, not the "
+                         f"{storage} one being planned")
+    shape = (max(1, round(length / cell)), max(1, round(width / cell)))
+    if heights.dtype != np.float64 or heights.shape != shape or shape[0] * shape[1] > MAX_CELLS:
+        raise ValueError(f"{path}: surface heights are {heights.dtype} {heights.shape}, not float64 {shape} as its "
+                         f"{length:g} x {width:g} m grid of {cell:g} m cells needs")
+    if np.isinf(heights).any():
+        raise ValueError(f"{path}: surface heights hold infinite values")
+    h = np.clip(np.nan_to_num(heights, nan=0.0), 0.0, height)  # no surface: floor; nothing above the roof
+    cloud = path.parent / CLOUD_FILE
+    if cloud.exists():
+        h = np.where(measured_cells(cloud, length, width, h.shape), h, 0.0)
+    return HeightField(h, length, width, str(path))
+
+
+def measured_cells(cloud_path: Path, length_m: float, width_m: float, shape: tuple[int, int]) -> np.ndarray:
+    """(nx, ny) True where a cell centre lies inside the convex hull of the report's pile points (where its
+    surface was fitted, not filled); ValueError (one line) for an unusable cloud."""
+    import trimesh
+    from scipy.spatial import ConvexHull, QhullError
+    try:
+        data = read_bounded(cloud_path, MAX_CLOUD_BYTES, "point cloud")
+        pts = np.asarray(trimesh.load(io.BytesIO(data), file_type="ply").vertices, dtype=float)[:, :2]
+    except InputError as exc:
+        raise ValueError(str(exc)) from None
+    except Exception as exc:  # trimesh raises many types for a damaged PLY
+        raise ValueError(f"{cloud_path} is not a readable point cloud ({type(exc).__name__}: {exc})"[:300]) from None
+    nx, ny = shape
+    gx, gy = np.meshgrid((np.arange(nx) + 0.5) * length_m / nx, (np.arange(ny) + 0.5) * width_m / ny, indexing="ij")
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    try:
+        eq = ConvexHull(pts).equations
+    except (QhullError, ValueError):  # fewer than three points, or all on a line: nothing was measured
+        return np.zeros(shape, dtype=bool)
+    return np.all(eq[:, 0, None, None] * gx + eq[:, 1, None, None] * gy + eq[:, 2, None, None] <= 1e-9, axis=0)
+
+
+def first_hits_w(o_w: np.ndarray, d_w: np.ndarray, field_: HeightField, step_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where each downward beam (origin o, unit direction d, both (N, 3) in W) first meets the surface, by
+    marching in steps of step_m from where the beam comes below the highest surface; (hits (N, 3), range (N,)),
+    NaN for a beam that leaves the building's floor before meeting anything (it met a wall)."""
+    n = len(o_w)
+    hits = np.full((n, 3), np.nan)
+    rng = np.full(n, np.nan)
+    if n == 0:
+        return hits, rng
+    down = -d_w[:, 2]
+    r0 = np.maximum(0.0, (o_w[:, 2] - field_.max_height_m) / down)
+    r_floor = o_w[:, 2] / down
+    todo = np.arange(n)
+    k = 0
+    while len(todo):
+        r = np.minimum(r0[todo] + k * step_m, r_floor[todo])
+        p = o_w[todo] + r[:, None] * d_w[todo]
+        outside = (p[:, 0] < 0) | (p[:, 0] > field_.length_m) | (p[:, 1] < 0) | (p[:, 1] > field_.width_m)
+        met = ~outside & (p[:, 2] <= field_.height_at(p[:, 0], p[:, 1]) + 1e-9)
+        hits[todo[met]] = p[met]
+        rng[todo[met]] = r[met]
+        done = met | outside | (r >= r_floor[todo])
+        todo = todo[~done]
+        k += 1
+    return hits, rng
