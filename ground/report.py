@@ -23,6 +23,7 @@ from firmware_py.core.sensor_noise import HEADER_KEY as NOISE_HEADER_KEY
 from firmware_py.core.sensor_noise import describe_record
 from firmware_py.core.site import Site
 from firmware_py.core.storage import Storage
+from firmware_py.core.surface_file import SURFACE_FILE
 from firmware_py.core.version import software_version
 from ground.base import FLOOR, FLOOR_BASE, Base, BaseKind, BaseSpec, fitted_floor_base, rebased_terms, survey_base
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
@@ -53,7 +54,7 @@ from ground.surface import (
     reconstructed_ratio_pct,
     volume_error_pct,
 )
-from ground.surface_file import SURFACE_FILE, SavedSurface, load_surface, save_surface
+from ground.surface_file import SavedSurface, load_surface, save_surface
 from ground.uncertainty import (
     DEFAULT_INTERVAL_MODEL,
     INTERVAL_LEVEL,

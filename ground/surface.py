@@ -43,6 +43,7 @@ from scipy.interpolate import CloughTocher2DInterpolator, LinearNDInterpolator
 from scipy.spatial import Delaunay, QhullError
 from threadpoolctl import threadpool_limits
 
+from firmware_py.core.surface_file import MAX_GRID_CELLS
 from ground.smoothing import DEFAULT_SMOOTHING, SmoothingOptions, smoothed_nodes
 
 SURFACE_FITS = ("cubic-limited", "cubic", "linear", "local-linear")
@@ -51,7 +52,7 @@ EMPTY_CELL_POLICIES = ("nearest", "leave", "bounded")
 DEFAULT_EMPTY_CELLS = "nearest"
 DEFAULT_CELL_M = 0.25
 """Grid cell side; docs/cell_sensitivity.md measures the volume change against 0.05 m cells."""
-MAX_CELLS = 25_000_000
+MAX_CELLS = MAX_GRID_CELLS
 """Largest grid (a few hundred MB per array): 60 x 40 m in 0.01 m cells fits, a 10 km building in 0.25 m does not."""
 
 

@@ -7,13 +7,14 @@ the site: where the corner stands and the heading of the x axis) and what is nee
 own uncertainty into a difference: its volume's 90 % half-widths below and above (from its interval
 terms, before the interval is clipped at 0) and the points' scatter about the surface (a cell's height
 noise, for `compare`'s level of detection). Numbers live in arrays; the rest in one JSON string (no
-pickles: `np.load(allow_pickle=False)`). Reading is bounded and checked field by field: a damaged or
-foreign file is one clear error, never a traceback or a silently wrong base.
+pickles: `np.load(allow_pickle=False)`). The name, format, version and the bounded raw read are the
+shared contract in `firmware_py.core.surface_file` (the coverage planner reads the file too); this module
+checks every field it uses: a damaged or foreign file is one clear error, never a traceback or a silently
+wrong base.
 """
 
 from __future__ import annotations
 
-import io
 import json
 import math
 from dataclasses import dataclass
@@ -22,14 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from firmware_py.core.cli import UserError
-from firmware_py.core.safe_read import InputError, read_bounded
-from ground.surface import MAX_CELLS, Grid
+from firmware_py.core.surface_file import FORMAT, FORMAT_VERSION, read_surface_file
+from ground.surface import Grid
 
-SURFACE_FILE = "surface.npz"
-FORMAT = "pilescan-surface"
-FORMAT_VERSION = 1
-MAX_SURFACE_BYTES = 16 * MAX_CELLS + 1_000_000
-"""Largest surface file read: two float64 grids of the most cells a Grid allows, plus the metadata."""
 BUILDING_TOLERANCE_M = 0.01
 """Two surveys are of the same building when its dimensions and its corner agree to 1 cm (a tape's)."""
 HEADING_TOLERANCE_DEG = 0.01
@@ -83,25 +79,9 @@ def load_surface(path: str | Path) -> SavedSurface:
     """Read and check a surface file; UserError (one line) on anything unusable."""
     path = Path(path)
     try:
-        data = read_bounded(path, MAX_SURFACE_BYTES, "surface file")
-    except InputError as exc:
+        heights, meta = read_surface_file(path)
+    except ValueError as exc:
         raise UserError(str(exc)) from None
-    except OSError as exc:
-        raise UserError(f"cannot read surface file {path}: {exc.strerror or exc}") from None
-    try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as z:
-            if set(z.files) != {"heights_m", "meta"}:
-                raise ValueError(f"it holds {sorted(z.files)}, not heights_m and meta")
-            heights = np.asarray(z["heights_m"])
-            meta = json.loads(str(z["meta"]))
-    except Exception as exc:  # zip, npy and JSON errors come in many types; all mean a damaged or foreign file
-        raise UserError(f"{path} is not a pilescan surface file ({type(exc).__name__}: {exc})"[:300]) from None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        fmt = meta.get("format") if isinstance(meta, dict) else meta
-        raise UserError(f"{path} is not a pilescan surface file (format {fmt!r})"[:300])
-    if meta.get("format_version") != FORMAT_VERSION:
-        raise UserError(f"{path}: surface file version {meta.get('format_version')!r} is not the supported "
-                        f"{FORMAT_VERSION}")
     length, width, height = (_number(meta, k, path, 1e-3) for k in ("length_m", "width_m", "height_m"))
     cell = _number(meta, "cell_m", path, 1e-3)
     try:

@@ -3,20 +3,19 @@
 The coverage model casts beams at the empty floor, so it cannot see the floor a pile's flank hides (pile 2:
 material against every wall shadows the wall's foot from legs a few metres inside). With an earlier survey's
 height grid the beams stop at the first surface they meet instead. The file is the report's `surface.npz`
-(written by `ground.surface_file`, format `pilescan-surface` version 1: a float64 `heights_m` grid and a JSON
-`meta`); the simulator must not import the ground station, so this is a small reader of its own, bounded and
-checked like every file a user names (`firmware_py.core.safe_read`): a damaged, foreign or other building's
-file is one line, never a traceback. The report's heights are after its empty-cell policy: the cells it could
-not see hold a fill, not a measurement (pile 2: the fill carries the flanks' heights over the floor strip at
-the walls' foot they hide). So the cells outside the convex hull of the report's own points (`cloud.ply`, the
-pile points the surface was fitted to: the report's R_a, eq. 9) count as floor, as do NaN cells: nothing
-measured stands there, and a floor is what a later flight must still see.
+(written by `ground.surface_file`); the simulator must not import the ground station, so it reads the file
+through the shared contract (`firmware_py.core.surface_file`: bounded, format and version checked) and checks
+the fields it uses here: a damaged, foreign or other building's file is one line, never a traceback. The
+report's heights are after its empty-cell policy: the cells it could not see hold a fill, not a measurement
+(pile 2: the fill carries the flanks' heights over the floor strip at the walls' foot they hide). So the
+cells outside the convex hull of the report's own points (`cloud.ply`, the pile points the surface was
+fitted to: the report's R_a, eq. 9) count as floor, as do NaN cells: nothing measured stands there, and a
+floor is what a later flight must still see.
 """
 
 from __future__ import annotations
 
 import io
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,16 +24,11 @@ import numpy as np
 
 from firmware_py.core.safe_read import InputError, read_bounded
 from firmware_py.core.storage import Storage
+from firmware_py.core.surface_file import MAX_GRID_CELLS, SURFACE_FILE, read_surface_file
 
-SURFACE_FILE = "surface.npz"
 CLOUD_FILE = "cloud.ply"
 MAX_CLOUD_BYTES = 1_000_000_000
 """Largest cloud read: a day's survey at 500 Hz is about 40 M points of 16 bytes (ground.report's PLY)."""
-FORMAT = "pilescan-surface"
-FORMAT_VERSION = 1
-MAX_CELLS = 25_000_000
-MAX_SURFACE_BYTES = 16 * MAX_CELLS + 1_000_000
-"""The ground's own bounds (ground.surface.MAX_CELLS, ground.surface_file.MAX_SURFACE_BYTES)."""
 BUILDING_TOLERANCE_M = 0.01
 """The survey must be of the planned building: its dimensions agree to 1 cm (ground.surface_file's test)."""
 
@@ -73,30 +67,14 @@ def load_height_field(report_dir: str | Path, storage: Storage) -> HeightField:
     path = Path(report_dir)
     if path.is_dir():
         path = path / SURFACE_FILE
-    try:
-        data = read_bounded(path, MAX_SURFACE_BYTES, "surface file")
-    except InputError as exc:
-        raise ValueError(str(exc)) from None
-    except OSError as exc:
-        raise ValueError(f"cannot read surface file {path}: {exc.strerror or exc}") from None
-    try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as z:
-            if set(z.files) != {"heights_m", "meta"}:
-                raise ValueError(f"it holds {sorted(z.files)}, not heights_m and meta")
-            heights = np.asarray(z["heights_m"])
-            meta = json.loads(str(z["meta"]))
-    except Exception as exc:  # zip, npy and JSON errors come in many types: all mean a damaged or foreign file
-        raise ValueError(f"{path} is not a pilescan surface file ({type(exc).__name__}: {exc})"[:300]) from None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:
-        got = (meta.get("format"), meta.get("format_version")) if isinstance(meta, dict) else meta
-        raise ValueError(f"{path} is not a pilescan surface file of version {FORMAT_VERSION} (got {got!r})"[:300])
+    heights, meta = read_surface_file(path)
     length, width, height, cell = (_number(meta, k, path) for k in ("length_m", "width_m", "height_m", "cell_m"))
     if max(abs(length - storage.length_m), abs(width - storage.width_m), abs(height - storage.height_m)) \
             > BUILDING_TOLERANCE_M:
         raise ValueError(f"{path} is a survey of a {length:g} x {width:g} x {height:g} m building, not the "
                          f"{storage} one being planned")
     shape = (max(1, round(length / cell)), max(1, round(width / cell)))
-    if heights.dtype != np.float64 or heights.shape != shape or shape[0] * shape[1] > MAX_CELLS:
+    if heights.dtype != np.float64 or heights.shape != shape or shape[0] * shape[1] > MAX_GRID_CELLS:
         raise ValueError(f"{path}: surface heights are {heights.dtype} {heights.shape}, not float64 {shape} as its "
                          f"{length:g} x {width:g} m grid of {cell:g} m cells needs")
     if np.isinf(heights).any():
