@@ -30,11 +30,10 @@ from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 from ground.plots import (
     DPI,
     HEIGHT_CMAP,
-    HEIGHT_LABEL,
     _check_grid,
-    _colorbar,
     _decorate,
     _finite_xy,
+    _height_mesh,
     _no_data,
     _storage_lw,
     save_png,
@@ -149,12 +148,7 @@ def site_map_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
         _no_data(ax)
     else:
         _check_grid(xe, ye, h, "heights")
-        lo, hi = float(h[finite].min()), float(h[finite].max())
-        norm = Normalize(vmin=lo, vmax=hi) if hi > lo else Normalize(vmin=lo - 0.5, vmax=hi + 0.5)
-        cmap = colormaps[HEIGHT_CMAP].with_extremes(bad="white")
-        mesh = ax.pcolormesh(xe, ye, np.ma.masked_invalid(h).T, shading="flat", rasterized=True, cmap=cmap,
-                             norm=norm, zorder=2)
-        _colorbar(fig, ax, mesh, HEIGHT_LABEL)
+        _height_mesh(fig, ax, xe, ye, h, finite)
         levels = contour_levels(h)
         if levels.size:
             cs = ax.contour(_cell_centres(xe), _cell_centres(ye), np.ma.masked_invalid(h).T, levels=levels,

@@ -129,6 +129,18 @@ def _grid_mesh(ax: Axes, x_edges: np.ndarray, y_edges: np.ndarray, grid_xy: np.n
     return ax.pcolormesh(x_edges, y_edges, grid_xy.T, shading="flat", rasterized=True, **kwargs)
 
 
+def _height_mesh(fig: Figure, ax: Axes, x_edges: np.ndarray, y_edges: np.ndarray, h: np.ndarray,
+                 finite: np.ndarray):
+    """The surface heights h[ix, iy] coloured over their own range (NaN white) with the height colour bar:
+    one look for every height map of a report."""
+    lo, hi = float(h[finite].min()), float(h[finite].max())
+    norm = Normalize(vmin=lo, vmax=hi) if hi > lo else Normalize(vmin=lo - 0.5, vmax=hi + 0.5)
+    cmap = colormaps[HEIGHT_CMAP].with_extremes(bad="white")
+    mesh = _grid_mesh(ax, x_edges, y_edges, np.ma.masked_invalid(h), cmap=cmap, norm=norm, zorder=2)
+    _colorbar(fig, ax, mesh, HEIGHT_LABEL)
+    return mesh
+
+
 def _grid_corners(x_edges: np.ndarray, y_edges: np.ndarray) -> np.ndarray:
     """(K, 2) extreme corners of a grid, so a grid larger than the building stays in view."""
     if x_edges.size == 0 or y_edges.size == 0:
@@ -263,11 +275,7 @@ def height_map_figure(
         _no_data(ax)
     else:
         _check_grid(xe, ye, h, "heights")
-        lo, hi = float(h[finite].min()), float(h[finite].max())
-        norm = Normalize(vmin=lo, vmax=hi) if hi > lo else Normalize(vmin=lo - 0.5, vmax=hi + 0.5)
-        cmap = colormaps[HEIGHT_CMAP].with_extremes(bad="white")
-        mesh = _grid_mesh(ax, xe, ye, np.ma.masked_invalid(h), cmap=cmap, norm=norm, zorder=2)
-        _colorbar(fig, ax, mesh, HEIGHT_LABEL)
+        _height_mesh(fig, ax, xe, ye, h, finite)
         f = np.zeros(h.shape, bool) if filled is None else np.asarray(filled, dtype=bool) & finite
         if f.shape != h.shape:
             raise ValueError(f"filled shape {f.shape} differs from heights shape {h.shape}")

@@ -152,6 +152,29 @@ def read_truth_volume(truth_path: Path | None) -> float | None:
         raise UserError(str(exc)) from None
 
 
+@dataclass(frozen=True)
+class LogInput:
+    """A survey's log, where it and its truth.json are, and the geometry its header states."""
+
+    log: SampleLog
+    log_path: Path
+    truth_path: Path | None
+    storage: Storage
+    frame: StorageFrame
+    lever_arm_body_m: np.ndarray
+
+
+def read_log_input(source: str | Path) -> LogInput:
+    """The log of a run directory or sample log with its header's geometry; one-line UserError for a log
+    without samples. Call within `reading_input()`, which turns the readers' own errors into one line."""
+    log_path, truth_path = locate_inputs(source)
+    log = read_samplelog(log_path)
+    storage, frame, lever = header_geometry(log, log_path)
+    if len(log.samples) == 0:
+        raise UserError(f"{log_path}: no samples could be read ({log.blocks_corrupt} corrupt block(s))")
+    return LogInput(log, log_path, truth_path, storage, frame, lever)
+
+
 def header_geometry(log: SampleLog, path: Path) -> tuple[Storage, StorageFrame, np.ndarray]:
     """Storage, frame and lever arm from the log header, with one clear error when unusable."""
     if log.header is None:
@@ -517,13 +540,10 @@ def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | N
     if opts.base.kind is BaseKind.SURVEY:
         survey_source_kind(Path(opts.base.source))  # a wrong --base is refused before the long part too
     with reading_input():
-        log_path, truth_path = locate_inputs(source)
-        log = read_samplelog(log_path)
-        storage, frame, lever = header_geometry(log, log_path)
-        if len(log.samples) == 0:
-            raise UserError(f"{log_path}: no samples could be read ({log.blocks_corrupt} corrupt block(s))")
+        inp = read_log_input(source)
+        log, log_path, storage, frame, lever = inp.log, inp.log_path, inp.storage, inp.frame, inp.lever_arm_body_m
         truth = opts.truth_volume_m3 if opts.truth_volume_m3 is not None else (
-            None if opts.base.kind is BaseKind.SURVEY else read_truth_volume(truth_path))  # not a change
+            None if opts.base.kind is BaseKind.SURVEY else read_truth_volume(inp.truth_path))  # not a change
     check_exports(opts.exports, log.header or {}, storage, opts.cell_m, opts.max_grid_memory_bytes)
     survey = survey_from_samples(log.samples, log.header or {}, storage, frame, lever, opts)
     if np.isfinite(survey.heights_fit).any():
@@ -662,12 +682,9 @@ def earlier_surface(source: str | Path, opts: ReportOptions) -> SavedSurface:
     if survey_source_kind(src) == "report":
         return load_surface(src / SURFACE_FILE)
     with reading_input():
-        log_path, _ = locate_inputs(src)
-        log = read_samplelog(log_path)
-        storage, frame, lever = header_geometry(log, log_path)
-        if len(log.samples) == 0:
-            raise UserError(f"{log_path}: no samples could be read ({log.blocks_corrupt} corrupt block(s))")
-    survey = survey_from_samples(log.samples, log.header or {}, storage, frame, lever, opts)
+        inp = read_log_input(src)
+    header = inp.log.header or {}
+    survey = survey_from_samples(inp.log.samples, header, inp.storage, inp.frame, inp.lever_arm_body_m, opts)
     if not np.isfinite(survey.heights_fit).any():
-        raise UserError(f"{log_path}: no surface could be fitted, so it cannot serve as a base or be compared")
-    return saved_surface(survey, log.header or {}, opts, str(src))
+        raise UserError(f"{inp.log_path}: no surface could be fitted, so it cannot serve as a base or be compared")
+    return saved_surface(survey, header, opts, str(src))
