@@ -299,8 +299,8 @@ function draw(s) {
   let seen = 0, unseen = 0, zmax = 0;
   if (s.map) {
     const m = s.map, c = m.cell_m, dx = s.storage.length_m / m.nx, dy = s.storage.width_m / m.ny;
-    for (const z of m.z_m) if (z != null && z > zmax) zmax = z;
-    zmax = Math.max(zmax, 1);
+    const zs = m.z_m.filter((z) => z != null).sort((a, b) => a - b);
+    zmax = Math.max(1, zs.length ? zs[Math.floor(0.98 * (zs.length - 1))] : 0);  // a few stray cells do not set it
     const unseenFill = hatch(ctx);
     for (let i = 0; i < m.nx; i++) for (let j = 0; j < m.ny; j++) {
       const z = m.z_m[i * m.ny + j];

@@ -38,7 +38,7 @@ import numpy as np
 from firmware_py.core.cli import NoVolumeError, UserError
 from firmware_py.core.frames import Boresight, StorageFrame
 from firmware_py.core.header import header_boresight
-from firmware_py.core.samplelog import SampleLog
+from firmware_py.core.samplelog import SampleFlags, SampleLog
 from firmware_py.core.storage import Storage
 from ground.binning import HeightBinner
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples
@@ -67,6 +67,8 @@ SNAPSHOT_CACHE_S = 0.5
 """A snapshot is rebuilt at most this often, however many browsers poll."""
 RATE_WINDOW_S = 3.0
 """The record rate is taken over this much of the recent past."""
+UNVOUCHED_POSE = SampleFlags.NO_POSE | SampleFlags.STALE_POSE
+"""Records with these flags are left off the track (their position is zero or old)."""
 LIVE_REPORT_OPTIONS = ReportOptions(plots=False, self_calibration=False, servo_retiming=False)
 """The report's computation for the running volume, less its two slow estimates (docs/design-notes.md)."""
 
@@ -243,7 +245,9 @@ class LiveState:
         recs = np.concatenate(parts)
         geo = self.geometry
         pos_ned = np.column_stack([recs["x_m"], recs["y_m"], recs["z_m"]]).astype(float)
-        finite = np.isfinite(pos_ned).all(axis=1) & np.isfinite(recs["t_s"])
+        # The track: poses the payload vouched for (a record without a fresh pose carries none worth drawing).
+        finite = (np.isfinite(pos_ned).all(axis=1) & np.isfinite(recs["t_s"])
+                  & ((recs["flags"] & int(UNVOUCHED_POSE)) == 0))
         if geo is None:
             cloud = None
             pos = pos_ned[finite] * np.array([1.0, 1.0, -1.0])  # north, east, up
@@ -299,6 +303,9 @@ class LiveState:
         try:
             survey = survey_from_samples(samples, geo.header, geo.storage, geo.frame,
                                          np.asarray(geo.lever_arm_body_m), self.opts.report)
+            if not np.isfinite(survey.heights_fit).any():  # where the report says "no volume"
+                raise NoVolumeError(f"no surface could be fitted from {len(survey.pile_points_w)} point(s) on the "
+                                    f"stockpile so far ({n} records)")
             rep = summarise(survey, SampleLog(geo.header, samples, 0, 0, 0, 0), self.opts.report, None)
         except (NoVolumeError, UserError, ValueError) as exc:  # too few points for a surface, so far
             took = self._clock() - t0

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import base64
 import contextlib
+import fcntl
 import json
 import os
 import re
@@ -61,6 +62,13 @@ READ_PAGE_JS = """(() => {
 """What the page shows, read from its DOM (the ids and data-* attributes its script fills)."""
 
 
+def _renumbered(fd: int, lowest: int = 10) -> int:
+    """fd moved to a descriptor >= lowest (the old one closed)."""
+    high = fcntl.fcntl(fd, fcntl.F_DUPFD, lowest)
+    os.close(fd)
+    return high
+
+
 class Chromium:
     """Headless Chromium driven over the DevTools protocol on a pipe (fd 3 in, fd 4 out, NUL-terminated JSON).
 
@@ -75,12 +83,17 @@ class Chromium:
         self._profile = tempfile.TemporaryDirectory(prefix="pilescan-chromium-")
         to_child_r, self._to_child = os.pipe()
         self._from_child, from_child_w = os.pipe()
+        # The child's ends renumbered 10 and up, so that putting them at 3 and 4 cannot overwrite one another.
+        to_child_r, from_child_w = _renumbered(to_child_r), _renumbered(from_child_w)
         args = [*FLAGS, f"--user-data-dir={self._profile.name}", f"--window-size={window_px[0]},{window_px[1]}",
                 "--remote-debugging-pipe", "about:blank"]
-        # The protocol wants fds 3 and 4 exactly: the shell puts the pipes there and execs the browser.
-        script = f'exec "$0" "$@" 3<&{to_child_r} 4>&{from_child_w} {to_child_r}<&- {from_child_w}>&-'
-        self._proc = subprocess.Popen(["/bin/sh", "-c", script, exe, *args], pass_fds=(to_child_r, from_child_w),
-                                      stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        # The protocol wants fds 3 and 4 exactly: a small Python launcher puts the pipes there and execs the
+        # browser (a POSIX shell's redirections take single-digit descriptors only).
+        launch = ("import os, sys; a, b = int(sys.argv[1]), int(sys.argv[2]); os.dup2(a, 3); os.dup2(b, 4); "
+                  "os.close(a); os.close(b); os.execv(sys.argv[3], sys.argv[3:])")
+        self._proc = subprocess.Popen([sys.executable, "-c", launch, str(to_child_r), str(from_child_w), exe, *args],
+                                      pass_fds=(to_child_r, from_child_w), stdin=subprocess.DEVNULL,
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         os.close(to_child_r)
         os.close(from_child_w)
         self._buf = b""
