@@ -3,8 +3,9 @@
 Two paths and nothing else: ``/`` (the page: HTML with its CSS and script inline, so a browser with no
 network beyond this server shows it whole) and ``/state.json`` (`ground.live_state.LiveState.snapshot`);
 any other path is 404, any method but GET and HEAD 501. The page polls the JSON once a second and draws
-the building, the coverage map (cells with points, by height), the cells still unseen, the vehicle's
-track and position; beside it the running volume with its 90 % interval and age, R_a, the receiver's
+the building, the coverage map (cells with points by their height, paler where the fitted surface
+spans the gaps between them), the cells still unseen (no surface there yet: what R_a misses), the
+vehicle's track and position; beside it the running volume with its 90 % interval and age, R_a, the receiver's
 counters and the time since the last records ("no data for N s" once the stream stops).
 
 The server is the standard library's `ThreadingHTTPServer` on a daemon thread: a browser that goes
@@ -207,13 +208,16 @@ PAGE = r"""<!doctype html>
       <dt>Lost</dt><dd id="lost">&ndash;</dd>
       <dt>Refused</dt><dd id="refused">&ndash;</dd>
       <dt>Last records</dt><dd id="last">&ndash;</dd>
-      <dt>Floor seen</dt><dd id="seen">&ndash;</dd>
+      <dt>Cells with points</dt><dd id="points">&ndash;</dd>
+      <dt>Unseen</dt><dd id="unseen">&ndash;</dd>
     </dl>
     <div id="legend">
       <canvas id="bar" width="256" height="14"></canvas>
       <div class="ends"><span id="zlo">0 m</span><span>height of the points</span><span id="zhi">&ndash;</span></div>
-      <p class="note"><span class="key" style="background:#d9d9d9"></span> unseen: no point in the cell yet
-        &nbsp; <span class="key" style="background:#e8590c"></span> track</p>
+      <p class="note"><span class="key" style="background:#21918c"></span> points &nbsp;
+        <span class="key" style="background:#21918c;opacity:0.35"></span> surface between them &nbsp;
+        <span class="key" style="background:#d9d9d9"></span> unseen &nbsp;
+        <span class="key" style="background:#e8590c"></span> track</p>
     </div>
     <p class="note" id="note"></p>
   </aside>
@@ -225,10 +229,10 @@ const VIRIDIS = [[68,1,84],[72,40,120],[62,74,137],[49,104,142],[38,130,142],[31
                  [109,205,89],[180,222,44],[253,231,37]];
 let polls = 0, lastAnswer = null;
 
-function colour(t) {
+function colour(t, pale = 0) {  // viridis at t in [0, 1]; pale: mixed that much with white
   t = Math.min(1, Math.max(0, t)) * (VIRIDIS.length - 1);
   const i = Math.min(VIRIDIS.length - 2, Math.floor(t)), f = t - i, a = VIRIDIS[i], b = VIRIDIS[i + 1];
-  return `rgb(${a.map((v, k) => Math.round(v + f * (b[k] - v))).join(",")})`;
+  return `rgb(${a.map((v, k) => Math.round((v + f * (b[k] - v)) * (1 - pale) + 255 * pale)).join(",")})`;
 }
 const fmt = (v, d = 1) => v.toLocaleString("en-US", {minimumFractionDigits: d, maximumFractionDigits: d});
 const ago = (s) => s < 90 ? `${fmt(s, 0)} s` : `${fmt(s / 60, 1)} min`;
@@ -263,7 +267,9 @@ function show(s) {
   $("volume-age").dataset.records = v.age_s == null ? 0 : v.records;
   $("volume-age").textContent = v.age_s == null ? "\u2013" :
     `${fmt(v.records, 0)} records, ${ago(v.age_s)} ago` + (v.capped ? " (record cap reached)" : "");
-  $("seen").textContent = s.map ? `${fmt(s.map.seen_pct)} % of ${fmt(s.map.nx * s.map.ny, 0)} cells` : "\u2013";
+  $("points").textContent = s.map ? `${fmt(s.map.points_pct)} % of ${fmt(s.map.nx * s.map.ny, 0)} cells` : "\u2013";
+  $("unseen").textContent = s.map ? `${fmt(s.map.unseen_pct)} %` + (s.map.surface_z_m ? "" : " (no surface yet)")
+                                  : "\u2013";
   const notes = [];
   if (s.geometry_problem) notes.push(s.geometry_problem + ": counters and track only (north up, NED).");
   if (v.state === "not-yet" && v.why) notes.push("Volume: " + v.why);
@@ -296,16 +302,17 @@ function draw(s) {
   const P = s.storage ? (p) => [X(p[0]), Y(p[1])] : (p) => [X(p[1]), Y(p[0])];
   const ctx = cv.getContext("2d");
   ctx.fillStyle = "#fff"; ctx.fillRect(0, 0, W, H);
-  let seen = 0, unseen = 0, zmax = 0;
+  let points = 0, between = 0, unseen = 0, zmax = 0;
   if (s.map) {
     const m = s.map, c = m.cell_m, dx = s.storage.length_m / m.nx, dy = s.storage.width_m / m.ny;
     const zs = m.z_m.filter((z) => z != null).sort((a, b) => a - b);
     zmax = Math.max(1, zs.length ? zs[Math.floor(0.98 * (zs.length - 1))] : 0);  // a few stray cells do not set it
-    const unseenFill = hatch(ctx);
+    const unseenFill = hatch(ctx), surf = m.surface_z_m;
     for (let i = 0; i < m.nx; i++) for (let j = 0; j < m.ny; j++) {
-      const z = m.z_m[i * m.ny + j];
-      ctx.fillStyle = z == null ? unseenFill : colour(z / zmax);
-      if (z == null) unseen++; else seen++;
+      const k = i * m.ny + j, z = m.z_m[k], zs = surf ? surf[k] : null;
+      if (z != null) { ctx.fillStyle = colour(z / zmax); points++; }
+      else if (zs != null) { ctx.fillStyle = colour(zs / zmax, 0.65); between++; }
+      else { ctx.fillStyle = unseenFill; unseen++; }
       ctx.fillRect(X(i * dx), Y((j + 1) * dy), dx * scale + 0.6, dy * scale + 0.6);
     }
     ctx.strokeStyle = "#111"; ctx.lineWidth = 2; ctx.strokeRect(X(0), Y(s.storage.width_m),
@@ -331,7 +338,7 @@ function draw(s) {
     }
   }
   $("zhi").textContent = s.map ? `${fmt(zmax, 1)} m` : "\u2013";
-  cv.dataset.cellsSeen = seen; cv.dataset.cellsUnseen = unseen; cv.dataset.trackPoints = s.track.length;
+  cv.dataset.cellsPoints = points; cv.dataset.cellsBetween = between; cv.dataset.cellsUnseen = unseen; cv.dataset.trackPoints = s.track.length;
   cv.dataset.draws = Number(cv.dataset.draws) + 1;
 }
 

@@ -43,6 +43,7 @@ from firmware_py.core.storage import Storage
 from ground.binning import HeightBinner
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples
 from ground.report import ReportOptions, header_geometry, summarise, survey_from_samples
+from ground.surface import Grid
 
 ACCUMULATE_PERIOD_S = 0.25
 """How often the accumulator takes the records handed over (the page polls once a second)."""
@@ -137,6 +138,7 @@ class VolumeResult:
     computed_at: float | None = None  # monotonic
     compute_s: float | None = None
     why: str | None = None
+    surface_z: tuple[float | None, ...] | None = None  # per map cell: the fitted surface's height; None: unseen
 
 
 Counters = Callable[[], dict[str, Any]]
@@ -312,15 +314,32 @@ class LiveState:
             self._volume = VolumeResult(VolumeState.NOT_YET, records=n, computed_at=t0 + took, compute_s=took,
                                         why=str(exc))
         else:
+            surface = self._surface_on_map(survey.heights_fit, survey.grid)
             took = self._clock() - t0
             iv = rep["volume_interval_m3"]
             self._volume = VolumeResult(VolumeState.OK, volume_m3=float(rep["volume_m3"]),
                                         interval_m3=None if iv is None else (float(iv[0]), float(iv[1])),
                                         coverage_ratio_pct=float(rep["coverage_ratio_pct"]),
                                         n_points_used=int(rep["n_points_used"]), records=n,
-                                        computed_at=t0 + took, compute_s=took)
+                                        computed_at=t0 + took, compute_s=took, surface_z=surface)
         self._volume_done_records = n
         return took
+
+    def _surface_on_map(self, heights_fit: np.ndarray, grid: Grid) -> tuple[float | None, ...]:
+        """The fitted surface on the map's cells: the mean height of the report cells centred in each, None
+        where most of them are unreconstructed (the cells R_a misses: unseen so far)."""
+        nx, ny = self._binner.shape
+        xc, yc = grid.centres()
+        ix = np.clip((xc * (nx / grid.length_m)).astype(np.int64), 0, nx - 1)
+        iy = np.clip((yc * (ny / grid.width_m)).astype(np.int64), 0, ny - 1)
+        flat = (ix * ny + iy).ravel()
+        h = heights_fit.ravel()
+        ok = np.isfinite(h)
+        total = np.bincount(flat, minlength=nx * ny)
+        known = np.bincount(flat[ok], minlength=nx * ny)
+        z_sum = np.bincount(flat[ok], weights=h[ok], minlength=nx * ny)
+        seen = (known > 0) & (2 * known >= total)
+        return tuple(round(float(z_sum[k] / known[k]), 2) if seen[k] else None for k in range(nx * ny))
 
     # ----- the page's side ----------------------------------------------------------------------------
 
@@ -369,9 +388,13 @@ class LiveState:
             seen = count > 0
             z = np.full(count.shape, np.nan)
             z[seen] = sum_z[seen] / count[seen]
+            surface = vol.surface_z
+            unseen = ~seen if surface is None else np.array([v is None for v in surface]) & ~seen
             state["map"] = {"nx": nx, "ny": ny, "cell_m": self._binner.bin_m,
                             "z_m": [None if not s else round(float(v), 2) for s, v in zip(seen, z, strict=True)],
-                            "seen_pct": 100.0 * float(seen.mean()), "n_points": n_points}
+                            "surface_z_m": None if surface is None else list(surface),
+                            "points_pct": 100.0 * float(seen.mean()), "unseen_pct": 100.0 * float(unseen.mean()),
+                            "n_points": n_points}
         return state
 
     def snapshot_json(self) -> bytes:

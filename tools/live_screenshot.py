@@ -54,7 +54,8 @@ READ_PAGE_JS = """(() => {
             : [Number(iv.dataset.lo), Number(iv.dataset.hi)],
           ra_text: d("ra").textContent, volume_records: Number(d("volume-age").dataset.records || 0),
           draws: Number(cv.dataset.draws || 0),
-          cells_seen: Number(cv.dataset.cellsSeen || 0), cells_unseen: Number(cv.dataset.cellsUnseen || 0),
+          cells_points: Number(cv.dataset.cellsPoints || 0), cells_between: Number(cv.dataset.cellsBetween || 0),
+          cells_unseen: Number(cv.dataset.cellsUnseen || 0),
           track_points: Number(cv.dataset.trackPoints || 0),
           canvas: (() => { const r = cv.getBoundingClientRect();
                            return [r.left, r.top, r.width, r.height].map(Math.round); })()};
@@ -181,7 +182,8 @@ class PageView:
     ra_text: str
     volume_records: int
     draws: int
-    cells_seen: int
+    cells_points: int
+    cells_between: int
     cells_unseen: int
     track_points: int
     canvas: list[int]
@@ -328,7 +330,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"live_screenshot: error: {exc}", file=sys.stderr)
         return 1
     print(f"{args.out}: {view.records_text} records, {view.volume_text} ({view.interval_text}), "
-          f"R_a {view.ra_text}, {view.cells_seen} cells seen, {view.cells_unseen} unseen")
+          f"R_a {view.ra_text}, map cells: {view.cells_points} with points, {view.cells_between} between, "
+          f"{view.cells_unseen} unseen")
     return 0
 
 

@@ -59,11 +59,12 @@ def test_that_a_downward_return_lands_in_its_cell_at_its_height():
     the point is at W z = 6 - 0.1 - 5.4 = 0.5 m, in the cell over (10, 6), and nowhere else."""
     live = state()
     live.offer(hover(50, 10.0, -6.0, 6.0, 5.4))
-    assert live.snapshot()["map"]["seen_pct"] == 0.0  # handed over, not yet taken: the receiver did no work
+    assert live.snapshot()["map"]["points_pct"] == 0.0  # handed over, not yet taken: the receiver did no work
     assert live.accumulate() == 50
     snap = live.snapshot()
     assert cell(snap, 10.0, 6.0) == pytest.approx(0.5, abs=0.005)
     assert sum(z is not None for z in snap["map"]["z_m"]) == 1
+    assert snap["map"]["unseen_pct"] == pytest.approx(100.0 - snap["map"]["points_pct"])  # no surface yet
     assert snap["position"] == pytest.approx([10.0, 6.0, 6.0])
     assert snap["frame"] == "storage" and snap["track"][0] == pytest.approx([10.0, 6.0])
 
@@ -74,7 +75,7 @@ def test_that_flagged_records_place_no_point_and_unvouched_poses_draw_no_track()
     live.offer(hover(20, 0.0, 0.0, 0.0, 5.4, flags=int(SampleFlags.NO_POSE)))  # a zero pose: not a place
     live.accumulate()
     snap = live.snapshot()
-    assert snap["map"]["seen_pct"] == 0.0 and snap["map"]["n_points"] == 0
+    assert snap["map"]["points_pct"] == 0.0 and snap["map"]["n_points"] == 0
     assert snap["track"] == [[10.0, 6.0]] and snap["position"] == pytest.approx([10.0, 6.0, 6.0])
 
 
@@ -103,7 +104,7 @@ def test_that_the_map_built_batch_by_batch_is_the_map_of_the_whole_log():
     parts.accumulate()
     a, b = whole.snapshot()["map"], parts.snapshot()["map"]
     assert a["n_points"] == b["n_points"] > 1000
-    assert a["z_m"] == b["z_m"] and 10.0 < a["seen_pct"] < 100.0
+    assert a["z_m"] == b["z_m"] and 10.0 < a["points_pct"] < 100.0
 
 
 def test_that_the_running_volume_is_the_reports_volume_and_interval_on_the_same_records():
@@ -124,6 +125,10 @@ def test_that_the_running_volume_is_the_reports_volume_and_interval_on_the_same_
     lo, hi = v["interval_m3"]
     assert lo < v["volume_m3"] < hi
     assert v["age_s"] == 0.0 and v["compute_s"] >= 0.0
+    # The unseen cells are now those without a surface: about what R_a misses, far fewer than cells without points.
+    m = live.snapshot()["map"]
+    assert m["unseen_pct"] == pytest.approx(100.0 - figures["coverage_ratio_pct"], abs=3.0)
+    assert m["unseen_pct"] < 100.0 - m["points_pct"] - 30.0
 
 
 def test_that_too_few_records_give_a_reason_not_a_volume():
