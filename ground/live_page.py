@@ -338,7 +338,8 @@ function draw(s) {
     }
   }
   $("zhi").textContent = s.map ? `${fmt(zmax, 1)} m` : "\u2013";
-  cv.dataset.cellsPoints = points; cv.dataset.cellsBetween = between; cv.dataset.cellsUnseen = unseen; cv.dataset.trackPoints = s.track.length;
+  cv.dataset.cellsPoints = points; cv.dataset.cellsBetween = between; cv.dataset.cellsUnseen = unseen;
+  cv.dataset.trackPoints = s.track.length;
   cv.dataset.draws = Number(cv.dataset.draws) + 1;
 }
 

@@ -96,8 +96,8 @@ def test_that_close_releases_the_port():
         socket.create_connection(addr, timeout=2).close()
 
 
-@pytest.mark.parametrize(("text", "want"), [("127.0.0.1:8080", ("127.0.0.1", 8080)), (" localhost:0 ", ("localhost", 0)),
-                                            ("[::1]:8081", ("::1", 8081))])
+@pytest.mark.parametrize(("text", "want"), [("127.0.0.1:8080", ("127.0.0.1", 8080)),
+                                            (" localhost:0 ", ("localhost", 0)), ("[::1]:8081", ("::1", 8081))])
 def test_that_web_addresses_parse(text, want):
     assert parse_web_address(text) == want
 
@@ -118,7 +118,7 @@ def test_that_a_port_in_use_is_a_user_error():
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen()
-        with pytest.raises(UserError, match="cannot serve the live page on 127.0.0.1:.*in use") as exc:
+        with pytest.raises(UserError, match=r"cannot serve the live page on 127\.0\.0\.1:.*in use") as exc:
             LivePageServer("127.0.0.1", busy.getsockname()[1], lambda: b"{}")
     assert "\n" not in str(exc.value)
 

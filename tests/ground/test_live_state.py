@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from firmware_py.core.samplelog import SampleFlags, new_records, read_samplelog
+from ground.listen import load_header
 from ground.live_state import (
     STALE_AFTER_S,
     LiveGeometry,
@@ -18,7 +19,6 @@ from ground.live_state import (
     VolumeState,
     map_cell_m,
 )
-from ground.listen import load_header
 from tests.ground.test_report_fuzz import BASE_HEADER
 
 GOLDEN = Path(__file__).resolve().parents[1] / "golden"
