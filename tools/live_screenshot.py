@@ -234,6 +234,7 @@ class Listen:
              "--web", "127.0.0.1:0", "--header", str(header), "--out", str(out), "--force"],
             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self.lines: list[str] = []
+        self._stopped: tuple[int, str] | None = None
         self._url: str | None = None
         self._seen = threading.Event()
         self._thread = threading.Thread(target=self._read, daemon=True)
@@ -256,7 +257,9 @@ class Listen:
         self._seen.set()  # ended without the line
 
     def stop(self, timeout_s: float = 30.0) -> tuple[int, str]:
-        """SIGTERM (listen's clean stop), its exit code and summary (stdout)."""
+        """SIGTERM (listen's clean stop), its exit code and summary (stdout); again: the same."""
+        if self._stopped is not None:
+            return self._stopped
         if self.proc.poll() is None:
             self.proc.terminate()
         try:
@@ -265,7 +268,8 @@ class Listen:
             self.proc.kill()
             out, _ = self.proc.communicate()
         self._thread.join(timeout=2.0)
-        return self.proc.returncode, out or ""
+        self._stopped = (self.proc.returncode, out or "")
+        return self._stopped
 
 
 @contextlib.contextmanager
