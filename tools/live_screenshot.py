@@ -107,7 +107,10 @@ class Chromium:
         msg = {"id": self._next_id, "method": method, "params": params or {}}
         if session is not None:
             msg["sessionId"] = session
-        os.write(self._to_child, json.dumps(msg).encode() + b"\0")
+        try:
+            os.write(self._to_child, json.dumps(msg).encode() + b"\0")
+        except BrokenPipeError:
+            raise BrowserError(f"Chromium has exited ({self._proc.poll()}) before {method}") from None
         deadline = time.monotonic() + timeout_s
         while True:
             while b"\0" in self._buf:
