@@ -273,6 +273,7 @@ function show(s) {
   const notes = [];
   if (s.geometry_problem) notes.push(s.geometry_problem + ": counters and track only (north up, NED).");
   if (v.state === "not-yet" && v.why) notes.push("Volume: " + v.why);
+  if (s.worker_error) notes.push("The page's computation met an error and went on: " + s.worker_error + ".");
   notes.push("The volume is the report's computation on the records received so far, without self-calibration"
              + " and servo re-timing; the drone's own log stays the record.");
   $("note").textContent = notes.join(" ");

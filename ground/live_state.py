@@ -41,6 +41,7 @@ from firmware_py.core.header import header_boresight
 from firmware_py.core.samplelog import SampleFlags, SampleLog
 from firmware_py.core.storage import Storage
 from ground.binning import HeightBinner
+from ground.plausibility import PlausibilityLimits, implausible, without_implausible
 from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples
 from ground.report import ReportOptions, header_geometry, summarise, survey_from_samples
 from ground.surface import Grid
@@ -169,7 +170,9 @@ class LiveState:
         self._last_records_at: float | None = None
         self._lock = threading.Lock()  # the accumulator's data vs the snapshot's copies (never the receiver)
         self._binner: HeightBinner | None = None
+        self._limits: PlausibilityLimits | None = None
         if geometry is not None:
+            self._limits = PlausibilityLimits.from_header(geometry.header, geometry.storage)
             self._binner = HeightBinner(geometry.storage, SensorErrorModel.from_header(geometry.header),
                                         bin_m=map_cell_m(geometry.storage))
         self._track: list[tuple[float, float]] = []
@@ -190,6 +193,7 @@ class LiveState:
         self._cache_lock = threading.Lock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
+        self.worker_error: str | None = None  # the last error a worker survived (shown on the page)
 
     # ----- the receiver's side ------------------------------------------------------------------------
 
@@ -220,7 +224,7 @@ class LiveState:
 
     def _accumulate_loop(self) -> None:
         while not self._stop.wait(ACCUMULATE_PERIOD_S):
-            self.accumulate()
+            self._survive(self.accumulate)
 
     def _volume_loop(self) -> None:
         wait = self.opts.volume_period_s
@@ -228,8 +232,18 @@ class LiveState:
             if self._volume_records == self._volume_done_records:
                 wait = ACCUMULATE_PERIOD_S  # nothing new: look again soon
                 continue
-            took = self.compute_volume()
-            wait = max(self.opts.volume_period_s, VOLUME_DUTY * took)
+            took = self._survive(self.compute_volume)
+            wait = max(self.opts.volume_period_s, VOLUME_DUTY * (took or 0.0))
+
+    def _survive(self, step: Callable[[], Any]) -> Any:
+        """One step of a worker: an error it meets (a forged datagram's records, a bug) is kept for the page
+        and the worker goes on; the receiver is never concerned, nothing is printed over the status line."""
+        try:
+            with np.errstate(all="ignore"):  # NaN and overflow in records are the checks' business, not stderr's
+                return step()
+        except Exception as exc:  # a worker thread must outlive one bad batch (docs/design-notes.md)
+            self.worker_error = f"{type(exc).__name__}: {exc}"[:300]
+            return None
 
     def accumulate(self) -> int:
         """Take every batch handed over so far into the map, the track and the volume's records; how many."""
@@ -246,6 +260,8 @@ class LiveState:
             return 0
         recs = np.concatenate(parts)
         geo = self.geometry
+        if geo is not None:  # records no sensor, sweep or building could give (the report's own limits) go
+            recs = without_implausible(recs, implausible(recs, self._limits, geo.frame))
         pos_ned = np.column_stack([recs["x_m"], recs["y_m"], recs["z_m"]]).astype(float)
         # The track: poses the payload vouched for (a record without a fresh pose carries none worth drawing).
         finite = (np.isfinite(pos_ned).all(axis=1) & np.isfinite(recs["t_s"])
@@ -256,7 +272,10 @@ class LiveState:
             course = recs["yaw_rad"][finite].astype(float)  # clockwise from north
         else:
             cloud = cloud_from_samples(recs, np.asarray(geo.lever_arm_body_m), geo.frame, boresight=geo.boresight)
-            pos = geo.frame.ned_to_w(pos_ned[finite])
+            w = geo.frame.ned_to_w(pos_ned[finite])
+            inside = np.all((w >= self._limits.pose_lo_w_m) & (w <= self._limits.pose_hi_w_m), axis=1)
+            finite[np.flatnonzero(finite)[~inside]] = False  # the track too: only poses within the limits
+            pos = w[inside]
             course = geo.frame.heading_rad - recs["yaw_rad"][finite].astype(float)  # W: anticlockwise from x
         with self._lock:
             if cloud is not None:
@@ -367,6 +386,7 @@ class LiveState:
             "elapsed_s": now - self._t0,
             "frame": "storage" if geo is not None else "ned",
             "geometry_problem": self.geometry_problem,
+            "worker_error": self.worker_error,
             "counters": {**counters, "rate_hz": rate},
             "since_last_records_s": since,
             "stale": since is not None and since > STALE_AFTER_S,

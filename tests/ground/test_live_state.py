@@ -212,3 +212,40 @@ def test_that_the_snapshot_is_strict_json_and_the_map_cell_suits_the_building():
     assert map_cell_m(Storage(60, 40, 15)) == pytest.approx(0.5)
     assert map_cell_m(Storage(24, 16, 10)) == pytest.approx(0.25)
     assert map_cell_m(Storage(400, 100, 20)) == pytest.approx(3.35)
+
+
+def test_that_random_records_leave_the_map_and_track_in_the_building_and_warn_of_nothing():
+    """Records of random bytes (a forged, unauthenticated stream), half of them "no return": nothing lands
+    outside the building, no numpy warning is raised (it would print over listen's status line), the snapshot
+    stays strict JSON."""
+    import warnings
+
+    from firmware_py.core.samplelog import SAMPLE_DTYPE
+    rng = np.random.default_rng(1)
+    live = state()
+    for _ in range(10):
+        r = np.frombuffer(rng.integers(0, 256, SAMPLE_DTYPE.itemsize * 500, dtype=np.uint8).tobytes(),
+                          dtype=SAMPLE_DTYPE).copy()
+        r["flags"] = np.where(np.arange(len(r)) % 2, int(SampleFlags.NO_RETURN), 0)  # no return: still a pose
+        live.offer(r)
+    live.offer(hover(5, 10.0, -6.0, 6.0, 5.4))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a warning would end the step: the worker keeps it as its error
+        live._survive(live.accumulate)
+        live._survive(live.compute_volume)
+    assert live.worker_error is None
+    snap = json.loads(live.snapshot_json())
+    lo, hi = live._limits.pose_lo_w_m, live._limits.pose_hi_w_m
+    assert snap["track"] and all(lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] for x, y in snap["track"])
+    assert snap["position"] == pytest.approx([10.0, 6.0, 6.0])
+    assert cell(snap, 10.0, 6.0) == pytest.approx(0.5, abs=0.005)
+
+
+def test_that_a_worker_survives_an_error_and_the_page_is_told():
+    live = state()
+    live.offer(np.zeros(3, dtype=[("x", "f8")]))  # not records at all: the step fails
+    assert live._survive(live.accumulate) is None
+    assert live.worker_error.startswith(("ValueError", "KeyError")) and live.snapshot()["worker_error"]
+    live.offer(hover(5, 10.0, -6.0, 6.0, 5.4))
+    live._survive(live.accumulate)
+    assert cell(live.snapshot(), 10.0, 6.0) == pytest.approx(0.5, abs=0.005)  # and goes on
