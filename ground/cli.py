@@ -153,6 +153,10 @@ def build_parser() -> ArgumentParser:
     ls.add_argument("--max-log-mb", type=finite_float, default=None, metavar="MIB",
                     help=f"size cap of --out in MiB (default {listen.DEFAULT_MAX_LOG_MIB}); past it, records are "
                          "counted, not written, and one line says so")
+    ls.add_argument("--web", default=None, metavar="HOST:PORT",
+                    help="also serve a live page there (coverage map, track, running volume with its interval, "
+                         "unseen cells, these counters; updated once a second; needs --header for the building). "
+                         "It has no login: bind it to 127.0.0.1 unless the network is yours (docs/live.md)")
     add_verbosity(ls, sub=True, quiet_help="no status line or summary: print nothing but errors")
     add_config_option(ls, sub=True)
     return ap
