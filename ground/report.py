@@ -655,7 +655,7 @@ def saved_surface(survey: Survey, header: dict, opts: ReportOptions, source: str
     return SavedSurface(np.asarray(survey.heights, dtype=np.float64), st.length_m, st.width_m, st.height_m, opts.cell_m,
                         grid_volume(survey.heights, survey.grid), below, above,
                         scatter_sigma_m(survey.pile_points_w, survey.heights_fit, survey.grid),
-                        header_site(header)[0], source, software_version())
+                        header_site(header)[0], source, software_version(), np.isfinite(survey.heights_fit))
 
 
 def survey_source_kind(src: Path) -> str:
