@@ -689,11 +689,11 @@ def make_report(source: str | Path | Sequence[str | Path], out_dir: str | Path, 
         survey_source_kind(Path(opts.base.source))  # a wrong --base is refused before the long part too
     with reading_input():
         inputs = [read_log_input(s) for s in sources]
-        if len(inputs) > 1 and (why := survey_mismatch(inputs)) is not None:
-            raise UserError(f"cannot merge: {why}")
-        truth = opts.truth_volume_m3 if opts.truth_volume_m3 is not None else (
-            None if opts.base.kind is BaseKind.SURVEY else  # not a change
-            merged_truth([read_truth_volume(i.truth_path) for i in inputs], inputs))
+        truths = [None if opts.truth_volume_m3 is not None or opts.base.kind is BaseKind.SURVEY  # not a change
+                  else read_truth_volume(i.truth_path) for i in inputs]
+    if len(inputs) > 1 and (why := survey_mismatch(inputs)) is not None:
+        raise UserError(f"cannot merge: {why}")
+    truth = opts.truth_volume_m3 if opts.truth_volume_m3 is not None else merged_truth(truths, inputs)
     inp = inputs[0]
     header, log_path, storage = inp.log.header or {}, inp.log_path, inp.storage
     check_exports(opts.exports, header, storage, opts.cell_m, opts.max_grid_memory_bytes)

@@ -2,8 +2,9 @@
 
 What the report could not see: the cells of its surface file that were filled by its empty-cell policy, not
 fitted to points (`surface.npz` version 2's `fitted` mask; for a version 1 file, the cells outside the convex
-hull of its `cloud.ply`: `surveyed_surface.load_height_field`). Unseen cells within two seen radii of each
-other are one region (one leg can see them together).
+hull of its `cloud.ply`: `surveyed_surface.load_height_field`). Unseen cells nearest the same wall and within
+two seen radii of each other are one region (one leg can see them together; a band round a pile is one region
+per wall, not one ring no straight leg can follow).
 
 The mission: one straight leg per region, flown along x or along y (the sweep plane is square to the track, so
 the fans lie across it and reach the region's cells), over the region's extent along the track plus the seen
@@ -94,8 +95,9 @@ def load_gaps(report_dir: str | Path, storage: Storage, site: Site | None = None
         raise ValueError(f"no such report directory: {d}")
     try:
         json_object(load_json(d / REPORT_FILE, "report file"), f"report file {d / REPORT_FILE}")
-    except InputError as exc:
-        raise ValueError(f"{d} holds no finished report ({exc})"[:300]) from None
+    except (InputError, OSError) as exc:  # missing (a report that failed half-way), unreadable, not JSON
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise ValueError(f"{d} holds no finished report ({REPORT_FILE}: {why})"[:300]) from None
     surface = load_height_field(d, storage)
     if surface.measured is None:
         raise ValueError(f"{d}: its surface file does not say which cells were seen (version 1) and it has no "
@@ -107,11 +109,24 @@ def load_gaps(report_dir: str | Path, storage: Storage, site: Site | None = None
     if not unseen.any():
         raise ValueError(f"{d}: the report saw the whole floor (no unseen cells): there are no gaps to re-fly")
     cell = surface.length_m / unseen.shape[0]
-    join = ndimage.binary_dilation(unseen, iterations=max(1, math.ceil(seen_radius_m / cell)))
-    labels, k = ndimage.label(join)
-    regions = [unseen & (labels == i) for i in range(1, k + 1)]
+    regions = []
+    for side in _wall_sides(unseen.shape, surface.length_m, surface.width_m):
+        cells = unseen & side
+        join = ndimage.binary_dilation(cells, iterations=max(1, math.ceil(seen_radius_m / cell))) & side
+        labels, k = ndimage.label(join)
+        regions += [cells & (labels == i) for i in range(1, k + 1)]
     regions.sort(key=lambda m: -int(m.sum()))
     return Gaps(surface, unseen, tuple(r for r in regions if r.any()), surface.source)
+
+
+def _wall_sides(shape: tuple[int, int], length_m: float, width_m: float) -> list[np.ndarray]:
+    """The floor's cells by their nearest wall (south, east, north, west): a band of unseen floor along several
+    walls (a ring round a pile) is one region per wall, each seen by a leg along its wall."""
+    nx, ny = shape
+    x = (np.arange(nx)[:, None] + 0.5) * length_m / nx + np.zeros((1, ny))
+    y = (np.arange(ny)[None, :] + 0.5) * width_m / ny + np.zeros((nx, 1))
+    nearest = np.argmin(np.stack([y, length_m - x, width_m - y, x]), axis=0)
+    return [nearest == k for k in range(4)]
 
 
 @dataclass(frozen=True)
