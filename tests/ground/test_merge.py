@@ -100,3 +100,12 @@ def test_that_a_missing_second_run_is_refused_before_anything_is_written(two_fli
     err = _refused(["report", str(two_flights[0]), str(tmp_path / "nowhere"), "--out", str(tmp_path / "m")], capsys,
                    code=3)
     assert "nowhere" in err and not (tmp_path / "m").exists()
+
+
+def test_that_the_reports_surface_file_marks_the_cells_it_fitted(two_flights, tmp_path):
+    from ground.surface_file import load_surface
+    rep = make_report(two_flights[0], tmp_path / "a", ReportOptions(plots=False))
+    saved = load_surface(tmp_path / "a" / "surface.npz")
+    assert saved.fitted is not None and saved.fitted.shape == saved.heights_m.shape
+    assert 100.0 * saved.fitted.mean() == pytest.approx(rep["coverage_ratio_pct"])
+    assert 0 < saved.fitted.sum() < saved.fitted.size  # the wide loop left floor unseen: filled, not fitted
