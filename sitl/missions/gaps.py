@@ -14,10 +14,12 @@ plants, the autopilot and the QGC export fly like any loop; one leg alone is flo
 
 The check: the coverage model (`coverage.floor_hits_w` on the report's surface, the unseen cells as floor that
 must be reached; `coverage.coverage_of_hits` with the report's measured extent widening the hull, as the merged
-cloud's triangulation will) predicts which gap cells the tour covers. Per region and speed either the shortest
-candidate leg whose prediction reaches the target on that region (else the best) or the best-covering one is
-taken, each tour is checked as a whole, and of these tours the least-energy one (`coverage.EnergyModel`) that
-reaches the target on all gap cells wins. A target none reaches is refused with the best prediction.
+cloud's triangulation will) predicts which gap cells each candidate leg covers, flown alone at the fastest speed
+searched (its fans farthest apart: what it covers at least). Per speed, legs are
+taken greedily, the most newly covered gap cells per joule (`coverage.EnergyModel`, a turn at each end) first,
+until together they cover the target share; their tour is then checked as a whole (more legs are added while it
+falls short), and the least-energy tour over the speeds wins. A target none reaches is refused with the best
+prediction.
 """
 
 from __future__ import annotations
@@ -234,31 +236,47 @@ def plan_fill_gaps(storage: Storage, gaps: Gaps, target: CoverageTarget, altitud
     """The least-energy tour of legs over the gaps (of a report of this building: `load_gaps`) whose predicted
     coverage of the gap cells reaches target.coverage_pct (module docstring); ValueError (one line) when none
     does."""
-    candidates = [candidate_legs(r, storage, target.seen_radius_m, min_clearance_m) for r in gaps.regions]
+    legs = list(dict.fromkeys(leg for r in gaps.regions
+                              for leg in candidate_legs(r, storage, target.seen_radius_m, min_clearance_m)))
+    need = target.coverage_pct / 100.0 * gaps.unseen.sum()
     n_eval = 0
     best, best_reached = None, 0.0
+
+    def tour(chosen: list[Leg], speed: float) -> None:
+        nonlocal best, best_reached, n_eval
+        m = _mission(tour_waypoints(chosen), storage, speed, altitude_m, yaw_rate_max_rad_s, min_clearance_m)
+        cov = predict_gap_coverage(m, gaps, target)
+        n_eval += 1
+        e = target.energy.energy_j(m.path_length_m(), speed, m.turned_rad())
+        best_reached = max(best_reached, cov.gap_pct)
+        if cov.gap_pct >= target.coverage_pct and (best is None or e < best[0]):
+            best = (e, m, cov)
+
+    covers = []  # each candidate flown alone at the fastest speed (its fans farthest apart: the least it covers)
+    for leg in legs:
+        m = _mission(tour_waypoints([leg]), storage, max(target.speeds_m_s), altitude_m, yaw_rate_max_rad_s,
+                     min_clearance_m)
+        covers.append(predict_gap_coverage(m, gaps, target).covered)
+        n_eval += 1
     for speed in target.speeds_m_s:
-        cheapest, best_each = [], []
-        for region, legs in zip(gaps.regions, candidates, strict=True):
-            scored = []
-            for leg in legs:
-                m = _mission(tour_waypoints([leg]), storage, speed, altitude_m, yaw_rate_max_rad_s, min_clearance_m)
-                cov = predict_gap_coverage(m, gaps, target)
-                n_eval += 1
-                share = 100.0 * (cov.covered & region).sum() / region.sum()
-                scored.append((share, leg.length_m, leg))
-            short = [sc for sc in scored if sc[0] >= target.coverage_pct]  # those reaching the target: the shortest
-            cheapest.append(min(short, key=lambda sc: sc[1])[2] if short else max(scored, key=lambda sc: sc[0])[2])
-            best_each.append(min(scored, key=lambda s: (-s[0], s[1]))[2])
-        for chosen in dict.fromkeys((tuple(cheapest), tuple(best_each))):
-            m = _mission(tour_waypoints(list(chosen)), storage, speed, altitude_m, yaw_rate_max_rad_s,
-                         min_clearance_m)
-            cov = predict_gap_coverage(m, gaps, target)
-            n_eval += 1
-            e = target.energy.energy_j(m.path_length_m(), speed, m.turned_rad())
-            best_reached = max(best_reached, cov.gap_pct)
-            if cov.gap_pct >= target.coverage_pct and (best is None or e < best[0]):
-                best = (e, m, cov)
+        cost = [target.energy.energy_j(leg.length_m, speed, math.pi) for leg in legs]
+        chosen: list[Leg] = []
+        got = np.zeros_like(gaps.unseen)
+        todo = set(range(len(legs)))
+        while todo:  # greedy cover: the most newly covered gap cells per joule, until the target share
+            gain = {i: int((covers[i] & ~got).sum()) / cost[i] for i in todo}
+            i = max(sorted(todo), key=lambda k: gain[k])
+            if gain[i] <= 0:
+                break
+            todo.discard(i)
+            chosen.append(legs[i])
+            got |= covers[i]
+            if got.sum() >= need:
+                tour(chosen, speed)
+                if best is not None and best[1].speed_m_s == speed:
+                    break
+        if chosen and (best is None or best[1].speed_m_s != speed):
+            tour(chosen, speed)  # short of the target: its figure for the refusal
     if best is None:
         raise ValueError(f"no re-flight reaches {target.coverage_pct:g} % of the {int(gaps.unseen.sum())} unseen cells "
                          f"(best {best_reached:.1f} %): lower --gap-coverage, or fly lower")
