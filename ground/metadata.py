@@ -136,6 +136,10 @@ def metadata_rows(meta: Mapping[str, Any] | None) -> list[tuple[str, str]]:
         v = meta.get(key)
         if v is None and key in _ONLY_WHEN_STATED:
             continue
+        if key == "flights_merged" and isinstance(meta.get("flights"), list):  # each flight's log, start, time
+            v = f"{v}: " + "; ".join(
+                f"{f.get('log')} ({f.get('created_utc') or 'start not stated'}, {f.get('duration_s', 0) / 60:.1f} min)"
+                for f in meta["flights"] if isinstance(f, Mapping))
         if key == "survey_start_local":
             v = v if v is not None else meta.get("local_time") or "UTC only"
         elif key == "survey_duration_s":

@@ -332,6 +332,7 @@ def merged_metadata(report: dict, flights: Sequence[Flight]) -> None:
     meta["log_sha256"] = ", ".join(r["log_sha256"] for r in recs)
     meta["mission_id"] = ", ".join(str(r["mission_id"]) for r in recs)
     meta["flights_merged"] = len(recs)
+    meta["flights"] = [{k: r[k] for k in ("log", "log_sha256", "created_utc", "duration_s")} for r in recs]
 
 
 def check_grid_memory(storage: Storage, cell_m: float, max_bytes: int) -> None:

@@ -61,6 +61,8 @@ def test_that_the_merged_report_sees_more_than_either_flight_and_names_both_logs
     assert rm["metadata"]["flights_merged"] == 2
     assert rm["metadata"]["survey_duration_s"] == pytest.approx(sum(f["duration_s"] for f in rm["flights"]))
     assert alone["flights"] is None and "flights_merged" not in alone["metadata"]
+    md = (tmp_path / "m" / "report.md").read_text()
+    assert f"| Flights merged | 2: {a / 'samples.pslog'} (" in md and f"; {b / 'samples.pslog'} (" in md
 
 
 def _refused(argv, capsys, code: int = 2) -> str:
