@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import ConvexHull, QhullError
 
 from firmware_py.core.safe_read import InputError, json_object, load_json
 from firmware_py.core.site import Site, site_difference
@@ -73,9 +74,8 @@ class Gaps:
         cx, cy = self.surface.length_m / nx, self.surface.width_m / ny
         pts = np.column_stack([(ix + 0.5) * cx, (iy + 0.5) * cy])
         try:
-            from scipy.spatial import ConvexHull
             return pts[ConvexHull(pts).vertices]
-        except Exception:  # fewer than three cells, or on a line: they are their own outline
+        except (QhullError, ValueError):  # fewer than three cells, or on a line: they are their own outline
             return pts
 
 
@@ -242,7 +242,8 @@ def plan_fill_gaps(storage: Storage, gaps: Gaps, target: CoverageTarget, altitud
     n_eval = 0
     best, best_reached = None, 0.0
 
-    def tour(chosen: list[Leg], speed: float) -> None:
+    def tour(chosen: list[Leg], speed: float) -> bool:
+        """Check the tour of these legs whole; True when it reaches the target."""
         nonlocal best, best_reached, n_eval
         m = _mission(tour_waypoints(chosen), storage, speed, altitude_m, yaw_rate_max_rad_s, min_clearance_m)
         cov = predict_gap_coverage(m, gaps, target)
@@ -251,6 +252,7 @@ def plan_fill_gaps(storage: Storage, gaps: Gaps, target: CoverageTarget, altitud
         best_reached = max(best_reached, cov.gap_pct)
         if cov.gap_pct >= target.coverage_pct and (best is None or e < best[0]):
             best = (e, m, cov)
+        return cov.gap_pct >= target.coverage_pct
 
     covers = []  # each candidate flown alone at the fastest speed (its fans farthest apart: the least it covers)
     for leg in legs:
@@ -263,7 +265,8 @@ def plan_fill_gaps(storage: Storage, gaps: Gaps, target: CoverageTarget, altitud
         chosen: list[Leg] = []
         got = np.zeros_like(gaps.unseen)
         todo = set(range(len(legs)))
-        while todo:  # greedy cover: the most newly covered gap cells per joule, until the target share
+        reached = False
+        while todo and not reached:  # greedy cover: the most newly covered gap cells per joule, until the target share
             gain = {i: int((covers[i] & ~got).sum()) / cost[i] for i in todo}
             i = max(sorted(todo), key=lambda k: gain[k])
             if gain[i] <= 0:
@@ -272,11 +275,9 @@ def plan_fill_gaps(storage: Storage, gaps: Gaps, target: CoverageTarget, altitud
             chosen.append(legs[i])
             got |= covers[i]
             if got.sum() >= need:
-                tour(chosen, speed)
-                if best is not None and best[1].speed_m_s == speed:
-                    break
-        if chosen and (best is None or best[1].speed_m_s != speed):
-            tour(chosen, speed)  # short of the target: its figure for the refusal
+                reached = tour(chosen, speed)
+        if chosen and not reached and got.sum() < need:
+            tour(chosen, speed)  # the legs fall short of the target: the tour's figure for the refusal
     if best is None:
         raise ValueError(f"no re-flight reaches {target.coverage_pct:g} % of the {int(gaps.unseen.sum())} unseen cells "
                          f"(best {best_reached:.1f} %): lower --gap-coverage, or fly lower")
