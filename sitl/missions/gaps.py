@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -174,11 +175,10 @@ def candidate_legs(region: np.ndarray, storage: Storage, margin_m: float, cleara
     return legs
 
 
-def tour_waypoints(legs: list[Leg]) -> tuple[tuple[float, float], ...]:
-    """The legs in one closed tour: the first as given, then always the nearest end of a leg not yet flown
-    (flown from there); one leg alone is flown out and back."""
-    todo = list(legs[1:])
-    order = [legs[0]]
+def _nearest_end_tour(first: Leg, others: list[Leg]) -> tuple[tuple[float, float], ...]:
+    """From first, always on to the nearest end of a leg not yet flown (flown from there), and back."""
+    todo = list(others)
+    order = [first]
     while todo:
         here = order[-1].end
         i, rev = min(((i, r) for i in range(len(todo)) for r in (False, True)),
@@ -193,6 +193,14 @@ def tour_waypoints(legs: list[Leg]) -> tuple[tuple[float, float], ...]:
     if len(pts) > 1 and math.dist(pts[-1], pts[0]) <= 1e-6:
         pts.pop()
     return (*pts, pts[0])
+
+
+def tour_waypoints(legs: list[Leg]) -> tuple[tuple[float, float], ...]:
+    """The legs in one closed tour, as short as the nearest-end rule makes it from any leg, either way round;
+    one leg alone is flown out and back."""
+    tours = [_nearest_end_tour(leg.reversed() if rev else leg, legs[:i] + legs[i + 1:])
+             for i, leg in enumerate(legs) for rev in (False, True)]
+    return min(tours, key=lambda wp: sum(math.dist(a, b) for a, b in pairwise(wp)))
 
 
 @dataclass(frozen=True)
