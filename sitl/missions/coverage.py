@@ -88,7 +88,8 @@ def mission_energy_j(mission, model: EnergyModel | None = None) -> float:
 @dataclass(frozen=True)
 class LoopMission:
     """A closed loop of waypoints flown like `rectangle.Mission` (the same attributes the plants, the plan
-    export and the flight runners read): the coverage planner's mission."""
+    export and the flight runners read): the coverage planner's and the gap re-flight's mission (`gaps`; two
+    distinct waypoints: out and back)."""
 
     storage: Storage = field(default_factory=Storage)
     waypoints: tuple[tuple[float, float], ...] = ()

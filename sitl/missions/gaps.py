@@ -6,11 +6,12 @@ hull of its `cloud.ply`: `surveyed_surface.load_height_field`). Unseen cells nea
 two seen radii of each other are one region (one leg can see them together; a band round a pile is one region
 per wall, not one ring no straight leg can follow).
 
-The mission: one straight leg per region, flown along x or along y (the sweep plane is square to the track, so
-the fans lie across it and reach the region's cells), over the region's extent along the track plus the seen
-radius at each end, on one of five tracks across it (its edges, its centre line and the quarter lines, kept the
-family's 5 % from the walls). The legs are joined in a closed tour (nearest end next) as a `LoopMission`, which the
-plants, the autopilot and the QGC export fly like any loop; one leg alone is flown out and back.
+The mission: straight legs, each region proposing legs along x and along y (the sweep plane is square to the
+track, so the fans lie across it and reach the region's cells) over its extent along the track plus the seen
+radius at each end, on five tracks across it (its edges, its centre line and the quarter lines, kept the family's
+5 % from the walls). The chosen legs are joined in a closed tour (nearest end next, from the start that makes it
+shortest) as a `LoopMission`, which the plants, the autopilot and the QGC export fly like any loop; one leg alone
+is flown out and back.
 
 The check: the coverage model (`coverage.floor_hits_w` on the report's surface, the unseen cells as floor that
 must be reached; `coverage.coverage_of_hits` with the report's measured extent widening the hull, as the merged
