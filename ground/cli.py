@@ -51,7 +51,10 @@ def build_parser() -> ArgumentParser:
     add_config_option(ap)
     sub = ap.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
     r = sub.add_parser("report", help="volume report from a run directory or a sample log")
-    r.add_argument("source", metavar="RUN_DIR_OR_LOG", help="run directory (reads truth.json too) or .pslog")
+    r.add_argument("source", metavar="RUN_DIR_OR_LOG", nargs="+",
+                   help="run directory (reads truth.json too) or .pslog; several: the flights of one survey (the "
+                        "same building, site and sensor; e.g. a first flight and its `pilescan-sitl plan --fill-gaps` "
+                        "re-flight), each log corrected on its own, their clouds merged into one report")
     r.add_argument("--out", required=True, help="report directory to write")
     r.add_argument("--force", action="store_true",
                    help="replace a report already in --out (its files are removed, report.json first)")
