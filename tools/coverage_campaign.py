@@ -43,7 +43,7 @@ from firmware_py.core.waveform import N_PHASES, named_waveform
 from ground import cli as ground_cli
 from ground.report import ReportOptions, survey_from_samples
 from ground.surface import grid_volume, reconstructed_ratio_pct, volume_error_pct
-from sitl.missions.coverage import CoverageTarget, mission_energy_j, plan_coverage, predict_coverage
+from sitl.missions.coverage import CoverageTarget, WallBand, mission_energy_j, plan_coverage, predict_coverage
 from sitl.missions.range_check import planning_limit
 from sitl.missions.rectangle import Mission
 from sitl.missions.surveyed_surface import load_height_field
@@ -108,7 +108,8 @@ def mission_for(kind: str, phase: int, surface=None):
     also = tuple(named_waveform("semi-triangular", 5.0, k) for k in range(2 * N_PHASES) if k != phase) \
         if "all" in flags else ()
     target = CoverageTarget(float(pct), wf, planning_limit(LIDARLITE_V3), LIDARLITE_V3.rate_hz, also_waveforms=also,
-                            surface=surface if "surface" in flags else None)
+                            surface=surface if "surface" in flags else None,
+                            walls=None if "bare" in flags else WallBand.of(LIDARLITE_V3))
     return plan_coverage(STORAGE, target).mission
 
 
