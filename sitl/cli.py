@@ -282,8 +282,8 @@ def _mission(args, waveform: Waveform | None = None):
         return _coverage_mission(args, waveform)
     if coverage is not None:
         raise UserError("--coverage plans a coverage mission: add --mission coverage")
-    if getattr(args, "surface", None) or getattr(args, "all_phases", False):
-        raise UserError("--surface and --all-phases shape a coverage plan: add --coverage PCT"
+    if getattr(args, "surface", None) or getattr(args, "all_phases", False) or getattr(args, "bare_walls", False):
+        raise UserError("--surface, --all-phases and --bare-walls shape a coverage plan: add --coverage PCT"
                         + (" and --mission coverage" if args.command == "fly" else ""))
     if args.p_traj is None:
         raise UserError("the rectangle mission needs --p-traj PCT (or plan one with --mission coverage --coverage PCT)")
@@ -330,9 +330,9 @@ def _fill_gaps_mission(args, waveform: Waveform | None):
     from sitl.missions.range_check import planning_limit
     if args.fill_gaps is None:
         raise UserError("--mission fill-gaps needs --fill-gaps REPORT_DIR (the report whose unseen floor to re-fly)")
-    if args.coverage is not None or args.surface or args.all_phases:
+    if args.coverage is not None or args.surface or args.all_phases or args.bare_walls:
         raise UserError("--fill-gaps plans on its report's own surface for its own target (--gap-coverage): "
-                        "--coverage, --surface and --all-phases are not used with it")
+                        "--coverage, --surface, --all-phases and --bare-walls are not used with it")
     wf = waveform or named_waveform(args.waveform, args.servo_rate, 0)
     spec = args.rangefinder.spec
     try:

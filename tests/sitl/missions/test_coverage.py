@@ -161,6 +161,7 @@ def test_that_plan_all_phases_plans_for_every_servo_start_position(tmp_path, cap
     (["plan", "--coverage", "99", "--altitude", "20"], "altitude 20 m does not fit"),
     (["fly", "--stockpile", "1", "--coverage", "99"], "add --mission coverage"),
     (["plan", "--p-traj", "20", "--all-phases"], "shape a coverage plan: add --coverage PCT"),
+    (["plan", "--p-traj", "20", "--bare-walls"], "shape a coverage plan: add --coverage PCT"),
     (["fly", "--stockpile", "1", "--p-traj", "20", "--surface", "r"], "add --coverage PCT and --mission coverage"),
 ])
 def test_that_plan_refuses_with_one_line(tmp_path, capsys, argv, message):
@@ -264,3 +265,20 @@ def test_that_the_planner_flies_nearer_the_walls_than_5_percent_when_they_may_ca
 
 def test_that_the_near_wall_steps_lie_below_the_familys_nearest():
     assert max(NEAR_WALL_STEPS) < 0.05 and min(NEAR_WALL_STEPS) > 0
+
+
+@pytest.mark.parametrize("flag, walls", [([], True), (["--bare-walls"], False)])
+def test_that_plan_assumes_material_on_the_walls_unless_told_they_are_bare(flag, walls, tmp_path, monkeypatch):
+    import dataclasses
+
+    import sitl.missions.coverage as coverage
+    seen = []
+
+    def quick(storage, target, **kw):  # one speed: the full search is slow
+        seen.append(target)
+        return plan_coverage(storage, dataclasses.replace(target, speeds_m_s=(2.0,)), **kw)
+
+    monkeypatch.setattr(coverage, "plan_coverage", quick)
+    assert main(["plan", "--coverage", "95", "--storage", "30x20x10", "--altitude", "6", *flag,
+                 "--out", str(tmp_path / "c.waypoints")]) == 0
+    assert (seen[0].walls == WallBand.of(LIDARLITE_V3)) if walls else seen[0].walls is None
