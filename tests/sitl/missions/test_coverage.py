@@ -282,3 +282,18 @@ def test_that_plan_assumes_material_on_the_walls_unless_told_they_are_bare(flag,
     assert main(["plan", "--coverage", "95", "--storage", "30x20x10", "--altitude", "6", *flag,
                  "--out", str(tmp_path / "c.waypoints")]) == 0
     assert (seen[0].walls == WallBand.of(LIDARLITE_V3)) if walls else seen[0].walls is None
+
+
+def test_that_on_a_surveyed_surface_the_band_drops_material_at_a_wall_and_keeps_bare_floor():
+    from sitl.missions.surveyed_surface import HeightField
+    s = Storage()
+    heights = np.zeros((240, 160))
+    heights[-8:, :] = 2.0  # a 2 m bank against the east wall (x = L); the west wall's foot is bare floor
+    surface = HeightField(heights, s.length_m, s.width_m)
+    m = LoopPlan((2.0, 4.0, 2.0, 4.0), 0.0, 2.0).mission(s, 12.0, YAW_30)
+    band = WallBand.of(LIDARLITE_V3)
+    rate = LIDARLITE_V3.rate_hz
+    bare = floor_hits_w(m, WF, LIDAR, rate, surface=surface)
+    kept = floor_hits_w(m, WF, LIDAR, rate, surface=surface, walls=band)
+    assert (kept[:, 0] > s.length_m - 0.1).sum() < (bare[:, 0] > s.length_m - 0.1).sum() / 2  # the bank's edge
+    assert (kept[:, 0] < 0.1).sum() == (bare[:, 0] < 0.1).sum() > 0  # the floor at the bare wall stays
