@@ -100,7 +100,8 @@ def kinds(coverages: list[float]) -> list[str]:
 
 def mission_for(kind: str, phase: int, surface=None):
     """The rectangle at P_traj (kind 'rect-5' ...) or the coverage plan ('coverage-99') for this servo phase
-    ('coverage-99-all': for the worst of all servo start positions)."""
+    ('coverage-99-all': for the worst of all servo start positions; '-surface': on the given surface; '-bare':
+    with the floor counted up to the walls, `--bare-walls`)."""
     if kind.startswith("rect-"):
         return Mission(STORAGE, p_traj=int(kind[5:]) / 100)
     wf = named_waveform("semi-triangular", 5.0, phase)
