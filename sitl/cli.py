@@ -190,6 +190,10 @@ def _coverage_options(p: ArgumentParser, fly: bool) -> None:
                    help="with --coverage: plan on an earlier survey's surface (the report directory's surface.npz "
                         "and cloud.ply): beams stop at the piles it measured, and the floor it did not see must "
                         "still be seen (default: the empty floor)")
+    p.add_argument("--bare-walls", action="store_true",
+                   help="with --coverage: count the floor up to every wall (default: plan for material leaning on "
+                        "any wall, whose points within the report's wall band are taken for the wall: legs near "
+                        "enough to see every wall's foot steeply)")
     p.add_argument("--fill-gaps", default=None, metavar="REPORT_DIR",
                    help="plan a short re-flight over the floor this report could not see (its unseen cells: legs whose "
                         "fans the coverage model predicts to cover them, least energy)" + (
@@ -278,8 +282,8 @@ def _mission(args, waveform: Waveform | None = None):
         return _coverage_mission(args, waveform)
     if coverage is not None:
         raise UserError("--coverage plans a coverage mission: add --mission coverage")
-    if getattr(args, "surface", None) or getattr(args, "all_phases", False):
-        raise UserError("--surface and --all-phases shape a coverage plan: add --coverage PCT"
+    if getattr(args, "surface", None) or getattr(args, "all_phases", False) or getattr(args, "bare_walls", False):
+        raise UserError("--surface, --all-phases and --bare-walls shape a coverage plan: add --coverage PCT"
                         + (" and --mission coverage" if args.command == "fly" else ""))
     if args.p_traj is None:
         raise UserError("the rectangle mission needs --p-traj PCT (or plan one with --mission coverage --coverage PCT)")
@@ -289,7 +293,7 @@ def _mission(args, waveform: Waveform | None = None):
 
 
 def _coverage_mission(args, waveform: Waveform | None):
-    from sitl.missions.coverage import CoverageTarget, plan_coverage
+    from sitl.missions.coverage import CoverageTarget, WallBand, mission_time_s, plan_coverage
     from sitl.missions.range_check import planning_limit
     from sitl.missions.surveyed_surface import load_height_field
     if args.coverage is None:
@@ -302,7 +306,8 @@ def _coverage_mission(args, waveform: Waveform | None):
         also = tuple(w for k in range(2 * N_PHASES)
                      if (w := named_waveform(args.waveform, args.servo_rate, k)) != wf) if args.all_phases else ()
         target = CoverageTarget(args.coverage, wf, planning_limit(spec, args.sensor_noise), spec.rate_hz,
-                                seen_radius_m=args.seen_radius, also_waveforms=also, surface=surface)
+                                seen_radius_m=args.seen_radius, also_waveforms=also, surface=surface,
+                                walls=None if args.bare_walls else WallBand.of(spec))
         planned = plan_coverage(storage, target, altitude_m=args.altitude,
                                 yaw_rate_max_rad_s=math.radians(args.yaw_rate_max))
     except ValueError as exc:
@@ -314,19 +319,20 @@ def _coverage_mission(args, waveform: Waveform | None):
               + (" on the surface of " + str(args.surface) if surface is not None else "") + ", offsets "
               + ", ".join(f"{w.split()[0]} {o:.1f} m" for w, o in zip(WALLS, p.offsets_m, strict=True))
               + f", corner cut {p.corner_cut_m:g} m, {p.speed_m_s:g} m/s, {planned.mission.path_length_m():.0f} m, "
-              f"predicted energy {planned.energy_j / 1000:.1f} kJ ({planned.n_evaluated} plans evaluated)")
+              f"about {mission_time_s(planned.mission, target.energy) / 60:.1f} min, predicted energy "
+              f"{planned.energy_j / 1000:.1f} kJ ({planned.n_evaluated} plans evaluated)")
     return planned.mission
 
 
 def _fill_gaps_mission(args, waveform: Waveform | None):
-    from sitl.missions.coverage import CoverageTarget
+    from sitl.missions.coverage import CoverageTarget, mission_time_s
     from sitl.missions.gaps import load_gaps, plan_fill_gaps
     from sitl.missions.range_check import planning_limit
     if args.fill_gaps is None:
         raise UserError("--mission fill-gaps needs --fill-gaps REPORT_DIR (the report whose unseen floor to re-fly)")
-    if args.coverage is not None or args.surface or args.all_phases:
+    if args.coverage is not None or args.surface or args.all_phases or args.bare_walls:
         raise UserError("--fill-gaps plans on its report's own surface for its own target (--gap-coverage): "
-                        "--coverage, --surface and --all-phases are not used with it")
+                        "--coverage, --surface, --all-phases and --bare-walls are not used with it")
     wf = waveform or named_waveform(args.waveform, args.servo_rate, 0)
     spec = args.rangefinder.spec
     try:
@@ -340,7 +346,7 @@ def _fill_gaps_mission(args, waveform: Waveform | None):
         raise UserError(f"fill-gaps plan: {exc}") from None
     if not args.quiet:
         m, rec = planned.mission, planned.mission.plan
-        minutes = (m.path_length_m() / m.speed_m_s + m.turned_rad() / m.yaw_rate_max_rad_s) / 60
+        minutes = mission_time_s(m, target.energy) / 60
         print(f"fill-gaps plan: {rec['gap_cells']} unseen cells ({rec['gap_area_m2']:.1f} m²) in {planned.n_regions} "
               f"region(s) of {args.fill_gaps}; predicted to cover {planned.coverage.gap_pct:.1f} % of them (merged R_a "
               f"{planned.coverage.merged_ra_pct:.2f} %), {m.path_length_m():.0f} m at {m.speed_m_s:g} m/s, about "

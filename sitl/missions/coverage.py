@@ -33,12 +33,14 @@ import hashlib
 import json
 import math
 from dataclasses import dataclass, field
+from statistics import NormalDist
 
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError
 
 from firmware_py.core.frames import StorageFrame
+from firmware_py.core.sensor import RangefinderSpec
 from firmware_py.core.storage import Storage
 from firmware_py.core.waveform import Waveform
 from sitl.missions.range_check import RangeLimit
@@ -53,36 +55,78 @@ flight fast enough to open gaps over twice this is not."""
 WALLS = ("south (y = 0)", "east (x = L)", "north (y = W)", "west (x = 0)")
 OFFSET_STEPS = tuple(round(0.05 * k, 2) for k in range(1, 9))
 """Each wall's offset as a share of the building's size across it: 5 % (the paper's nearest) to 40 %."""
+NEAR_WALL_STEPS = (0.0125, 0.025, 0.0375)
+"""Offsets nearer than the paper's 5 %, each searched where it keeps the clearance plus the vehicle's
+overshoot at the plan's speed (`EnergyModel.overshoot_m`) from the wall: legs near a wall see its foot with
+beams steep enough for the report's wall band (`WallBand`)."""
 SPEEDS_M_S = (0.5, 1.0, 1.5, 2.0)
 """The speeds searched (the paper flew 0.5, 1 and 2 m/s)."""
 
 
 @dataclass(frozen=True)
 class EnergyModel:
-    """Survey energy of a loop: hover-dominated power over the legs plus a cost per radian turned.
+    """Flight time and energy of a mission of straight legs on the JSBSim F450 (`tools.energy_fit` fits it).
 
-    Fitted (docs/coverage.md) from the JSBSim F450 flights of the rectangle at P_traj 5 and 20 %, 1 m/s,
-    30 deg/s, 40 g payload: 27,218.9 J in 187.3 s and 18,623.4 J in 128.2 s."""
+    The vehicle draws a near-constant power (E = P T), so the model is one of flight time:
+    T = a L / v + b sum min(|dpsi|, 90 deg) / omega + b' sum max(|dpsi| - 90 deg, 0) / omega
+        + c v sum min(|dpsi| / 90 deg, 1) + d n.
+    The legs at speed (a ~ 1); the turns at the yaw-rate limit, the vehicle moving off along the new leg
+    through the last 90 degrees of a turn (b < 1: eq. 15 scales the speed by cos of the heading error);
+    braking and accelerating again at every waypoint, in proportion to the speed and to how much of it the
+    turn takes away (a 90-degree turn stops the vehicle); a settling time d per waypoint. Fitted on loops,
+    lawnmower and sawtooth tours and out-and-back legs at 0.5-2 m/s and 30 deg/s, checked on flights not in
+    the fit (docs/coverage.md); at yaw rates far below 30 deg/s the turn terms do not hold (at 1 deg/s the
+    autopilot creeps towards the next waypoint while it turns: 35 % more than the model)."""
 
-    power_w: float = 143.26
-    turn_j_per_rad: float = 228.0
+    power_w: float = 145.38
+    leg_factor: float = 0.972
+    turn_factor: float = 0.565
+    reverse_factor: float = 0.717
+    stop_s_per_m_s: float = 0.585
+    waypoint_s: float = 0.929
+    brake_m_s2: float = 3.13
+    """What the vehicle overshoots a 90-degree corner by, v^2 / (2 brake): the least braking the fit's
+    flights showed (`tools.energy_fit`); the planner keeps that much more than the clearance from a wall."""
 
-    def energy_j(self, path_m: float, speed_m_s: float, turned_rad: float) -> float:
-        return self.power_w * path_m / speed_m_s + self.turn_j_per_rad * turned_rad
+    def flight_time_s(self, path_m: float, speed_m_s: float, turns_rad, yaw_rate_rad_s: float) -> float:
+        """turns_rad: the heading change at every waypoint flown (the closing one included)."""
+        t = np.abs(np.asarray(turns_rad, dtype=float))
+        stops = np.minimum(t / (np.pi / 2), 1.0).sum()
+        return float(self.leg_factor * path_m / speed_m_s
+                     + self.turn_factor * np.minimum(t, np.pi / 2).sum() / yaw_rate_rad_s
+                     + self.reverse_factor * np.maximum(t - np.pi / 2, 0.0).sum() / yaw_rate_rad_s
+                     + self.stop_s_per_m_s * speed_m_s * stops + self.waypoint_s * len(t))
+
+    def energy_j(self, path_m: float, speed_m_s: float, turns_rad, yaw_rate_rad_s: float) -> float:
+        return self.power_w * self.flight_time_s(path_m, speed_m_s, turns_rad, yaw_rate_rad_s)
+
+    def overshoot_m(self, speed_m_s: float) -> float:
+        """How far past a square corner's waypoint the vehicle runs before it stops."""
+        return speed_m_s ** 2 / (2 * self.brake_m_s2)
+
+
+def loop_turns_rad(waypoints_w: np.ndarray) -> np.ndarray:
+    """The heading change at every waypoint of a closed loop, the first from the closing leg (as flown)."""
+    d = np.diff(np.asarray(waypoints_w, dtype=float), axis=0)
+    course = np.arctan2(d[:, 1], d[:, 0])
+    return np.abs((np.diff(np.r_[course[-1], course]) + np.pi) % (2 * np.pi) - np.pi)
 
 
 def loop_turned_rad(waypoints_w: np.ndarray) -> float:
     """The yaw a closed loop turns: at every waypoint, the first from the closing leg (as the ideal plant flies)."""
-    d = np.diff(np.asarray(waypoints_w, dtype=float), axis=0)
-    course = np.arctan2(d[:, 1], d[:, 0])
-    turns = (np.diff(np.r_[course[-1], course]) + np.pi) % (2 * np.pi) - np.pi
-    return float(np.abs(turns).sum())
+    return float(loop_turns_rad(waypoints_w).sum())
 
 
 def mission_energy_j(mission, model: EnergyModel | None = None) -> float:
     """The energy model's figure for any loop mission (a rectangle or a `LoopMission`)."""
     return (model or EnergyModel()).energy_j(mission.path_length_m(), mission.speed_m_s,
-                                             loop_turned_rad(mission.waypoints_w()))
+                                             loop_turns_rad(mission.waypoints_w()), mission.yaw_rate_max_rad_s)
+
+
+def mission_time_s(mission, model: EnergyModel | None = None) -> float:
+    """The energy model's flight time for any loop mission."""
+    return (model or EnergyModel()).flight_time_s(mission.path_length_m(), mission.speed_m_s,
+                                                  loop_turns_rad(mission.waypoints_w()), mission.yaw_rate_max_rad_s)
 
 
 @dataclass(frozen=True)
@@ -187,11 +231,64 @@ class Coverage:
     covered: np.ndarray  # (nx, ny) bool
 
 
+@dataclass(frozen=True)
+class WallBand:
+    """The band along each wall in which the ground station takes a point for the wall
+    (`ground.pointcloud.structure_mask`, `plane_tolerances_m`): k sigma_r(r) |d . n| + half the range
+    resolution + k position sigmas + 1 mm, k from the survey's size (`structure_n_sigma`). A floor point in it
+    is kept (it lies nearer the floor than the wall); material leaning on a wall is not, so where a pile meets
+    a wall the report's surface ends the band's width short of it, and its R_a loses the cells between. The
+    band widens with the beam's slant towards the wall: a leg far from a wall loses its row of cells.
+
+    The planner cannot know where material will lean on the walls, so it plans for it at every wall (the
+    floor hits in the band do not count, `floor_hits_w`); on an earlier survey's surface the rule is the
+    report's own (the band's hits count where they lie nearer the floor than the wall)."""
+
+    range_sigma_m: float
+    range_sigma_rel: float
+    resolution_m: float
+    position_sigma_m: float = 0.0
+
+    @classmethod
+    def of(cls, spec: RangefinderSpec, position_sigma_m: float = 0.0) -> WallBand:
+        """The band the report will use for this rangefinder (its log header states the spec's sigmas)."""
+        return cls(spec.range_sigma_m, spec.range_sigma_rel, spec.resolution_m, position_sigma_m)
+
+    def tolerances_m(self, range_m: np.ndarray, dirs_w: np.ndarray, n_points: int) -> np.ndarray:
+        """(N, 3) each point's tolerance along x, y and z (ground.pointcloud.plane_tolerances_m)."""
+        k = structure_n_sigma(n_points)
+        along = k * np.maximum(self.range_sigma_m, self.range_sigma_rel * np.asarray(range_m)) \
+            + 0.5 * self.resolution_m
+        return along[:, None] * np.abs(dirs_w) + (k * self.position_sigma_m + 1e-3)
+
+
+def structure_n_sigma(n_points: int, escapes: float = 0.01) -> float:
+    """ground.pointcloud.structure_n_sigma (the simulator does not import the ground station): the smallest
+    k >= 3 at which n_points normal errors leave on average at most `escapes` points beyond k sigma."""
+    if n_points <= 0:
+        return 3.0
+    return max(3.0, -NormalDist().inv_cdf(min(0.5, escapes / n_points)))
+
+
+def in_wall_band(points_w: np.ndarray, tol_m: np.ndarray, storage: Storage, material_everywhere: bool) -> np.ndarray:
+    """True for points the report would take for a wall: within their tolerance of one and, unless
+    material_everywhere (the planner's assumption on a bare floor), not nearer the floor (structure_mask)."""
+    p = np.asarray(points_w, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        to_wall = np.minimum.reduce([p[:, 0] / tol_m[:, 0], (storage.length_m - p[:, 0]) / tol_m[:, 0],
+                                     p[:, 1] / tol_m[:, 1], (storage.width_m - p[:, 1]) / tol_m[:, 1]])
+        if material_everywhere:
+            return to_wall <= 1.0
+        to_floor = np.abs(p[:, 2]) / tol_m[:, 2]
+    return (to_wall <= 1.0) & ~(to_floor < to_wall)
+
+
 def floor_hits_w(mission, waveform: Waveform, limit: RangeLimit, rate_hz: float,
                  lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10),
-                 surface: HeightField | None = None) -> np.ndarray:
+                 surface: HeightField | None = None, walls: WallBand | None = None) -> np.ndarray:
     """(N, 2) floor positions (W) of the beams that meet the empty building's floor within reach, or with an
-    earlier survey's `surface` the first surface each beam meets (a pile's flank hides the floor behind it)."""
+    earlier survey's `surface` the first surface each beam meets (a pile's flank hides the floor behind it).
+    With `walls`, the hits the report would take for a wall are left out (`WallBand`)."""
     from sitl.vehicle.ideal_plant import IdealPlant
     frame = StorageFrame()
     plant = IdealPlant(mission, frame)
@@ -210,17 +307,23 @@ def floor_hits_w(mission, waveform: Waveform, limit: RangeLimit, rate_hz: float,
     d = np.column_stack([np.sin(g)[:, None] * right, -np.cos(g)])
     down = d[:, 2] < -1e-9
     o, d = o[down], d[down]
+    n_samples = len(t)
     if surface is not None:
         hits, r = first_hits_w(o, d, surface, 0.5 * COVERAGE_CELL_M)
         ok = np.isfinite(r)
         ok[ok] = r[ok] <= limit.reach_m(-d[ok, 2]) * (1 + 1e-9)
+        if walls is not None:
+            ok[ok] = ~in_wall_band(hits[ok], walls.tolerances_m(r[ok], d[ok], n_samples), mission.storage, False)
         return hits[ok, :2]
     r = -o[:, 2] / d[:, 2]
     p = o[:, :2] + r[:, None] * d[:, :2]
     s = mission.storage
-    inside = (p[:, 0] >= 0) & (p[:, 0] <= s.length_m) & (p[:, 1] >= 0) & (p[:, 1] <= s.width_m)
-    reach = r <= limit.reach_m(-d[:, 2]) * (1 + 1e-9)
-    return p[inside & reach]
+    ok = (p[:, 0] >= 0) & (p[:, 0] <= s.length_m) & (p[:, 1] >= 0) & (p[:, 1] <= s.width_m)
+    ok &= r <= limit.reach_m(-d[:, 2]) * (1 + 1e-9)
+    if walls is not None:
+        ok[ok] = ~in_wall_band(np.column_stack([p[ok], np.zeros(int(ok.sum()))]),
+                               walls.tolerances_m(r[ok], d[ok], n_samples), s, True)
+    return p[ok]
 
 
 def coverage_of_hits(hits_w: np.ndarray, storage: Storage, seen_radius_m: float = DEFAULT_SEEN_RADIUS_M,
@@ -252,9 +355,11 @@ def coverage_of_hits(hits_w: np.ndarray, storage: Storage, seen_radius_m: float 
 
 def predict_coverage(mission, waveform: Waveform, limit: RangeLimit, rate_hz: float,
                      lever_arm_body_m: tuple[float, float, float] = (0.0, 0.0, 0.10),
-                     seen_radius_m: float = DEFAULT_SEEN_RADIUS_M, surface: HeightField | None = None) -> Coverage:
-    """The model's predicted coverage of a mission (a `rectangle.Mission` or a `LoopMission`)."""
-    return coverage_of_hits(floor_hits_w(mission, waveform, limit, rate_hz, lever_arm_body_m, surface),
+                     seen_radius_m: float = DEFAULT_SEEN_RADIUS_M, surface: HeightField | None = None,
+                     walls: WallBand | None = None) -> Coverage:
+    """The model's predicted coverage of a mission (a `rectangle.Mission` or a `LoopMission`); with `walls`,
+    for material that may lean on any wall (`WallBand`)."""
+    return coverage_of_hits(floor_hits_w(mission, waveform, limit, rate_hz, lever_arm_body_m, surface, walls),
                             mission.storage, seen_radius_m)
 
 
@@ -275,6 +380,9 @@ class CoverageTarget:
     the worst over `waveform` and these (a plan flown whatever position the servo starts in)."""
     surface: HeightField | None = field(default=None, hash=False, compare=False)
     """An earlier survey's surface to cast the beams at (`surveyed_surface`); None: the empty floor."""
+    walls: WallBand | None = None
+    """The report's wall band (`WallBand.of(spec)`): plan for material leaning on the walls; None: count the
+    floor up to the walls (bare walls' foot, the first increment's model)."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.coverage_pct) and 0 < self.coverage_pct <= 100):
@@ -300,7 +408,7 @@ def worst_coverage(mission, target: CoverageTarget) -> Coverage:
     worst = None
     for wf in (target.waveform, *target.also_waveforms):
         cov = predict_coverage(mission, wf, target.limit, target.rate_hz, target.lever_arm_body_m,
-                               target.seen_radius_m, target.surface)
+                               target.seen_radius_m, target.surface, target.walls)
         if worst is None or cov.predicted_ra_pct < worst.predicted_ra_pct:
             worst = cov
         if worst.predicted_ra_pct < target.coverage_pct:
@@ -335,11 +443,19 @@ def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 
                 cache[plan] = None
                 return None
             cov = worst_coverage(m, target)
-            cache[plan] = cov, target.energy.energy_j(m.path_length_m(), plan.speed_m_s, m.turned_rad())
+            cache[plan] = cov, mission_energy_j(m, target.energy)
         return cache[plan]
 
+    def ladder(size_m: float, speed: float) -> tuple[float, ...]:
+        """A wall's offsets (m), nearest first: the near-wall steps the vehicle can fly, then the family's."""
+        near = min_clearance_m + target.energy.overshoot_m(speed)
+        return (tuple(f * size_m for f in NEAR_WALL_STEPS if f * size_m >= near)
+                + tuple(f * size_m for f in OFFSET_STEPS))
+
+    ladders = {v: [ladder(z, v) for z in sizes] for v in target.speeds_m_s}
+
     def plan_of(steps: tuple[int, ...], cut_m: float, speed: float) -> LoopPlan:
-        return LoopPlan(tuple(OFFSET_STEPS[k] * sizes[i] for i, k in enumerate(steps)), cut_m, speed)
+        return LoopPlan(tuple(ladders[speed][i][k] for i, k in enumerate(steps)), cut_m, speed)
 
     best: tuple[float, LoopPlan, Coverage] | None = None
     best_reached = 0.0
@@ -356,7 +472,7 @@ def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 
             while True:  # move one wall's leg inwards: the cheapest move that keeps the target
                 moves = []
                 for i in range(4):
-                    if steps[i] + 1 >= len(OFFSET_STEPS):
+                    if steps[i] + 1 >= len(ladders[speed][i]):
                         continue
                     nxt = (*steps[:i], steps[i] + 1, *steps[i + 1:])
                     r = evaluate(plan_of(nxt, cut_m, speed))
@@ -370,12 +486,14 @@ def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 
                 best = (e, plan_of(steps, cut_m, speed), cov)
     if best is None:
         raise ValueError(f"no loop reaches {target.coverage_pct:g} % predicted coverage (best {best_reached:.1f} %, "
-                         f"legs 5 % from every wall); lower --coverage, sweep slower, or fly lower")
+                         "legs as near every wall as the vehicle may fly); lower --coverage, sweep slower, or fly "
+                         "lower")
     e, plan, cov = best
-    record = {"coverage_target_pct": target.coverage_pct, "predicted_ra_pct": round(cov.predicted_ra_pct, 3),
+    record = {"coverage_target_pct": target.coverage_pct, "predicted_ra_pct": round(float(cov.predicted_ra_pct), 3),
               "predicted_energy_j": round(e, 1), "offsets_m": [round(v, 3) for v in plan.offsets_m],
               "walls": list(WALLS), "corner_cut_m": plan.corner_cut_m, "seen_radius_m": target.seen_radius_m,
               "servo_start_positions": 1 + len(target.also_waveforms),
-              "surface": target.surface.source if target.surface is not None else None}
+              "surface": target.surface.source if target.surface is not None else None,
+              "material_at_walls": target.walls is not None}
     mission = plan.mission(storage, altitude_m, yaw_rate_max_rad_s, min_clearance_m, record)
     return PlannedLoop(plan, mission, cov, e, len(cache))

@@ -43,6 +43,7 @@ from sitl.missions.coverage import (
     LoopMission,
     coverage_of_hits,
     floor_hits_w,
+    mission_energy_j,
 )
 from sitl.missions.surveyed_surface import HeightField, load_height_field
 
@@ -257,7 +258,7 @@ def plan_fill_gaps(storage: Storage, gaps: Gaps, target: CoverageTarget, altitud
         m = _mission(tour_waypoints(chosen), storage, speed, altitude_m, yaw_rate_max_rad_s, min_clearance_m)
         cov = predict_gap_coverage(m, gaps, target)
         n_eval += 1
-        e = target.energy.energy_j(m.path_length_m(), speed, m.turned_rad())
+        e = mission_energy_j(m, target.energy)
         best_reached = max(best_reached, cov.gap_pct)
         if cov.gap_pct >= target.coverage_pct and (best is None or e < best[0]):
             best = (e, m, cov)
@@ -270,7 +271,8 @@ def plan_fill_gaps(storage: Storage, gaps: Gaps, target: CoverageTarget, altitud
         covers.append(predict_gap_coverage(m, gaps, target).covered)
         n_eval += 1
     for speed in target.speeds_m_s:
-        cost = [target.energy.energy_j(leg.length_m, speed, math.pi) for leg in legs]
+        cost = [target.energy.energy_j(leg.length_m, speed, (math.pi / 2, math.pi / 2), yaw_rate_max_rad_s)
+                for leg in legs]  # a square turn at each end
         chosen: list[Leg] = []
         got = np.zeros_like(gaps.unseen)
         todo = set(range(len(legs)))

@@ -13,9 +13,12 @@ from firmware_py.core.storage import Storage
 from firmware_py.core.waveform import named_waveform
 from sitl.cli import main
 from sitl.missions.coverage import (
+    NEAR_WALL_STEPS,
     CoverageTarget,
+    EnergyModel,
     LoopMission,
     LoopPlan,
+    WallBand,
     floor_hits_w,
     mission_energy_j,
     plan_coverage,
@@ -158,6 +161,7 @@ def test_that_plan_all_phases_plans_for_every_servo_start_position(tmp_path, cap
     (["plan", "--coverage", "99", "--altitude", "20"], "altitude 20 m does not fit"),
     (["fly", "--stockpile", "1", "--coverage", "99"], "add --mission coverage"),
     (["plan", "--p-traj", "20", "--all-phases"], "shape a coverage plan: add --coverage PCT"),
+    (["plan", "--p-traj", "20", "--bare-walls"], "shape a coverage plan: add --coverage PCT"),
     (["fly", "--stockpile", "1", "--p-traj", "20", "--surface", "r"], "add --coverage PCT and --mission coverage"),
 ])
 def test_that_plan_refuses_with_one_line(tmp_path, capsys, argv, message):
@@ -183,3 +187,113 @@ def test_that_fly_flies_the_coverage_plan_and_records_it(tmp_path):
     wp = np.asarray(truth["mission"]["waypoints"])
     nav = [r for r in read_qgc_wpl(out / "mission.waypoints") if int(r[3]) == mavlink.MAV_CMD_NAV_WAYPOINT][1:]
     assert len(nav) == len(wp) - 1
+
+
+# ----- the energy model with the autopilot's stops, and material leaning on the walls (issue 17 item 1) -----
+
+YAW_30 = math.radians(30)
+
+
+def test_that_each_waypoint_costs_a_stop_that_grows_with_the_speed():
+    e = EnergyModel()
+    square, cut = [math.pi / 2] * 4, [math.pi / 4] * 8  # the same heading change in all, stops at more waypoints
+    for v in (0.5, 2.0):
+        assert e.energy_j(100.0, v, square, YAW_30) > e.energy_j(100.0, v, [0.0] * 4 + square[:0], YAW_30)
+    extra = [e.energy_j(100.0, v, [math.pi / 2] * 8, YAW_30) - e.energy_j(100.0, v, square, YAW_30)
+             for v in (0.5, 2.0)]
+    assert extra[1] > extra[0] > 0  # braking from 2 m/s costs more than from 0.5 m/s
+    assert e.energy_j(100.0, 2.0, cut, YAW_30) != e.energy_j(100.0, 2.0, square, YAW_30)
+
+
+def test_that_a_slower_yaw_rate_costs_more_energy_for_the_same_loop():
+    m30 = Mission(p_traj=0.2)
+    m6 = Mission(p_traj=0.2, yaw_rate_max_rad_s=math.radians(6))
+    assert mission_energy_j(m6) > mission_energy_j(m30) + 4 * 0.5 * EnergyModel().power_w  # >= 2 s a corner more
+
+
+def test_that_the_overshoot_grows_with_the_square_of_the_speed():
+    e = EnergyModel()
+    assert e.overshoot_m(2.0) == pytest.approx(4 * e.overshoot_m(1.0))
+    assert 0.3 < e.overshoot_m(2.0) < 1.5  # what the JSBSim F450 ran past its corners (tools.energy_fit)
+
+
+def test_that_the_wall_band_is_the_ground_stations():
+    from ground.pointcloud import Cloud, SensorErrorModel, plane_tolerances_m, structure_n_sigma
+    from sitl.missions import coverage
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(50, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    r = rng.uniform(1.0, 30.0, 50)
+    cloud = Cloud(points_w=np.zeros((50, 3)), dirs_w=d, range_m=r, path_w=np.zeros((1, 3)), n_samples=50,
+                  n_excluded=0)
+    err = SensorErrorModel(LIDARLITE_V3.range_sigma_m, LIDARLITE_V3.range_sigma_rel, LIDARLITE_V3.resolution_m, 0.02)
+    band = WallBand.of(LIDARLITE_V3, position_sigma_m=0.02)
+    assert np.allclose(band.tolerances_m(r, d, 50), plane_tolerances_m(cloud, err))
+    for n in (0, 10, 40_000, 10**7):
+        assert coverage.structure_n_sigma(n) == pytest.approx(structure_n_sigma(n))
+
+
+def test_that_material_at_the_walls_costs_a_far_leg_its_row_of_cells_and_a_near_leg_nothing():
+    band = WallBand.of(LIDARLITE_V3)
+    rate = LIDARLITE_V3.rate_hz
+    far = LoopPlan((2.0, 6.0, 2.0, 6.0), 0.0, 2.0).mission(Storage(), 12.0, YAW_30)  # east and west legs 6 m off
+    near = LoopPlan((1.5, 1.5, 1.5, 1.5), 0.0, 2.0).mission(Storage(), 12.0, YAW_30)
+    far_bare, far_walls = (predict_coverage(far, WF, LIDAR, rate, walls=w) for w in (None, band))
+    near_bare, near_walls = (predict_coverage(near, WF, LIDAR, rate, walls=w) for w in (None, band))
+    assert near_bare.predicted_ra_pct - near_walls.predicted_ra_pct < 0.05
+    lost = far_walls.covered != far_bare.covered
+    nx, ny = lost.shape
+    ix, iy = lost.nonzero()
+    to_wall = np.minimum.reduce([ix, nx - 1 - ix, iy, ny - 1 - iy])
+    assert (lost[0].sum() + lost[-1].sum()) >= 0.9 * 2 * ny  # (nearly) the whole outer row along east and west
+    assert (to_wall <= 1).mean() > 0.9  # the walls' foot, and a little more where the hull cuts the corners
+    assert to_wall.max() * 0.25 <= 1.0
+
+
+def test_that_the_planner_flies_nearer_the_walls_than_5_percent_when_they_may_carry_material():
+    s = Storage()
+    bare = CoverageTarget(99.8, WF, LIDAR, LIDARLITE_V3.rate_hz, speeds_m_s=(2.0,))
+    walls = CoverageTarget(99.8, WF, LIDAR, LIDARLITE_V3.rate_hz, speeds_m_s=(2.0,), walls=WallBand.of(LIDARLITE_V3))
+    planned = plan_coverage(s, walls)
+    sizes = (s.width_m, s.length_m, s.width_m, s.length_m)
+    assert all(o <= 0.05 * z + 1e-9 for o, z in zip(planned.plan.offsets_m, sizes, strict=True))
+    assert any(o < 0.05 * z - 1e-9 for o, z in zip(planned.plan.offsets_m, sizes, strict=True))
+    assert min(planned.plan.offsets_m) >= 0.5 + EnergyModel().overshoot_m(2.0)  # clearance plus the overshoot
+    assert planned.mission.plan["material_at_walls"] is True
+    assert plan_coverage(s, bare).plan.offsets_m != planned.plan.offsets_m
+
+
+def test_that_the_near_wall_steps_lie_below_the_familys_nearest():
+    assert max(NEAR_WALL_STEPS) < 0.05 and min(NEAR_WALL_STEPS) > 0
+
+
+@pytest.mark.parametrize("flag, walls", [([], True), (["--bare-walls"], False)])
+def test_that_plan_assumes_material_on_the_walls_unless_told_they_are_bare(flag, walls, tmp_path, monkeypatch):
+    import dataclasses
+
+    import sitl.missions.coverage as coverage
+    seen = []
+
+    def quick(storage, target, **kw):  # one speed: the full search is slow
+        seen.append(target)
+        return plan_coverage(storage, dataclasses.replace(target, speeds_m_s=(2.0,)), **kw)
+
+    monkeypatch.setattr(coverage, "plan_coverage", quick)
+    assert main(["plan", "--coverage", "95", "--storage", "30x20x10", "--altitude", "6", *flag,
+                 "--out", str(tmp_path / "c.waypoints")]) == 0
+    assert (seen[0].walls == WallBand.of(LIDARLITE_V3)) if walls else seen[0].walls is None
+
+
+def test_that_on_a_surveyed_surface_the_band_drops_material_at_a_wall_and_keeps_bare_floor():
+    from sitl.missions.surveyed_surface import HeightField
+    s = Storage()
+    heights = np.zeros((240, 160))
+    heights[-8:, :] = 2.0  # a 2 m bank against the east wall (x = L); the west wall's foot is bare floor
+    surface = HeightField(heights, s.length_m, s.width_m)
+    m = LoopPlan((2.0, 4.0, 2.0, 4.0), 0.0, 2.0).mission(s, 12.0, YAW_30)
+    band = WallBand.of(LIDARLITE_V3)
+    rate = LIDARLITE_V3.rate_hz
+    bare = floor_hits_w(m, WF, LIDAR, rate, surface=surface)
+    kept = floor_hits_w(m, WF, LIDAR, rate, surface=surface, walls=band)
+    assert (kept[:, 0] > s.length_m - 0.1).sum() < (bare[:, 0] > s.length_m - 0.1).sum() / 2  # the bank's edge
+    assert (kept[:, 0] < 0.1).sum() == (bare[:, 0] < 0.1).sum() > 0  # the floor at the bare wall stays

@@ -127,7 +127,7 @@ def test_that_plan_fill_gaps_writes_a_plan_and_says_what_it_covers(tmp_path, cap
 @pytest.mark.parametrize("fitted, extra, message", [
     (np.ones((60, 40), dtype=bool), [], "no gaps to re-fly"),
     (_corner_gap(), ["--storage", "31x20x10"], "not the 31x20x10 m one being planned"),
-    (_corner_gap(), ["--coverage", "99"], "--coverage, --surface and --all-phases are not used with it"),
+    (_corner_gap(), ["--coverage", "99"], "--coverage, --surface, --all-phases and --bare-walls are not used with it"),
     (_corner_gap(), ["--gap-coverage", "100.5"], "target coverage must be in (0, 100] %"),
 ])
 def test_that_plan_fill_gaps_refuses_in_one_line(tmp_path, capsys, fitted, extra, message):
