@@ -22,10 +22,11 @@ import numpy as np
 
 from firmware_py.core.sensor_noise import SensorNoise, SensorNoiseModel
 from firmware_py.core.storage import Storage
-from ground.pointcloud import SensorErrorModel
+from ground.pointcloud import SensorErrorModel, structure_mask
 from ground.report import ReportOptions, survey_from_samples
 from ground.surface import DEFAULT_CELL_M, Grid, fill_empty, grid_volume, volume_error_pct
 from ground.unseen import Extension, beam_angle_sigma_rad, bounded_fill, free_space_ceiling_m, unseen_bounds
+from ground.wall_contact import WallContacts, contact_fill, wall_contacts
 from sitl.runners.fly import FlyConfig, log_header
 from sitl.sensing.batch_sampler import sample_flight
 from sitl.world.raycast import World
@@ -38,13 +39,18 @@ FIXTURE_RESOLUTION_M = 0.25
 """Vertex spacing of the fixture piles' meshes (the paper piles' spacing)."""
 P_TRAJ_PCT = (20, 30)
 PILES = ("corner", "wall-end", "1", "2")
-FILLS = ("nearest", "bounded-nearest", "bounded-harmonic", "bounded-biharmonic", "floor-only-biharmonic")
-"""The fills compared: today's default, the bounded policy with each extension (ground.unseen), and the
-thin plate held by the floor alone (what the free-space ceiling adds)."""
+FILLS = ("nearest", "contact-nearest", "contact-harmonic", "contact-biharmonic", "bounded-nearest",
+         "bounded-harmonic", "bounded-biharmonic", "floor-only-biharmonic")
+"""The fills compared: today's default, the surface carried to the wall contacts (ground.wall_contact), the
+bounded policy with each extension (ground.unseen), and the thin plate held by the floor alone (what the
+free-space ceiling adds)."""
 NOISES = ("none", "appendix-a")
 
 
-def _fill(name: str, heights_fit: np.ndarray, ceiling_m: np.ndarray) -> np.ndarray:
+def _fill(name: str, heights_fit: np.ndarray, ceiling_m: np.ndarray, contacts: WallContacts, grid: Grid) -> np.ndarray:
+    if name.startswith("contact-"):
+        return contact_fill(heights_fit, contacts, grid.x_edges, grid.y_edges, ceiling_m,
+                            Extension(name.removeprefix("contact-")))
     if name.startswith("bounded-"):
         return bounded_fill(heights_fit, ceiling_m, Extension(name.removeprefix("bounded-")))
     if name.startswith("floor-only-"):
@@ -133,11 +139,14 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
         ceiling = free_space_ceiling_m(sv.cloud, sv.grid, storage, SensorErrorModel.from_header(header),
                                        beam_angle_sigma_rad(header), where=unseen)
         ceiling_s = time.perf_counter() - t0
+        err = SensorErrorModel.from_header(header)
+        contacts = wall_contacts(sv.cloud, structure_mask(sv.cloud, storage, err), storage, err)
         row = {"pile": pile_name, "p_traj_pct": p_pct, "noise": noise_name, "position": k, "true_m3": pile.volume_m3,
                "unseen_pct": float(unseen.mean() * 100), "ceiling_s": ceiling_s, "n_beams": len(sv.cloud.range_m),
+               "n_contacts": len(contacts),
                "beam_crossed_pct": float((ceiling[unseen] < storage.height_m).mean() * 100) if unseen.any() else 0.0}
         for pol in policies:
-            filled = _fill(pol, sv.heights_fit, ceiling)
+            filled = _fill(pol, sv.heights_fit, ceiling, contacts, sv.grid)
             row[f"u_{pol}_pct"] = float((filled[unseen] - truth[unseen]).sum() * sv.grid.cell_area_m2
                                         / pile.volume_m3 * 100)
             v = grid_volume(filled, sv.grid)
@@ -175,8 +184,11 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
              "`bounded` policy (`ground/unseen.py`) carrying the seen surface into the unseen cells by that extension",
              "(`nearest` copy, `harmonic` membrane, `biharmonic` thin plate) held between the floor and the",
              "free-space ceiling; `floor-only-biharmonic`: the thin plate held by the floor alone (what the ceiling",
-             "adds). What this decided, and why `bounded` holds the `nearest` copy and is not the default:",
-             "docs/design-notes.md, \"Free-space ceiling and the bounded fill\".", "",
+             "adds); `contact-<extension>`: the same bounded fill with the wall contacts (`ground/wall_contact.py`:",
+             "where a sweep's lowest wall hit sits above its next beam's hit on material or floor, the material's",
+             "height at the wall) pinned in their unseen wall cells first, so `contact-nearest` against",
+             "`bounded-nearest` is what the wall evidence adds. What this decided: docs/design-notes.md, \"Free-space",
+             "ceiling and the bounded fill\" and \"Wall-contact evidence for the unseen fill (issue 14 item 4)\".", "",
              "## Ve (eq. 8, %) over the phases: mean | sd | max", ""]
     head = "| pile | P_traj | noise | " + " | ".join(f"`{p}` mean | sd | max" for p in policies) + " |"
     lines += [head, "|" + "---|" * (3 + 3 * len(policies))]
@@ -187,9 +199,9 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
               "Fill error in the unseen cells alone, sum of (fill - true height) x cell area, in % of the true volume",
               "(mean of |error| over the phases, then the mean signed error): the part of Ve the fill decides, apart",
               "from the fitted surface's own error.", ""]
-    head = ("| pile | P_traj | noise | unseen % | crossed % | held % | "
+    head = ("| pile | P_traj | noise | unseen % | crossed % | held % | contacts | "
             + " | ".join(f"`{p}` abs | signed" for p in policies) + " | inside |")
-    lines += [head, "|" + "---|" * (7 + 2 * len(policies))]
+    lines += [head, "|" + "---|" * (8 + 2 * len(policies))]
     for (pile, p, noise), rs in _rows_by_case(rows):
         inside = sum(r["v_lo_m3"] <= r["true_m3"] <= r["v_hi_m3"] for r in rs)
         cells = [pile, f"{p:g} %", noise, f"{np.mean([r['unseen_pct'] for r in rs]):.1f}",
@@ -197,11 +209,13 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
         cells += [f"{np.mean(np.abs([r[f'u_{pol}_pct'] for r in rs])):.2f} | "
                   f"{np.mean([r[f'u_{pol}_pct'] for r in rs]):+.2f}" for pol in policies]
         cells.append(f"{inside}/{len(rs)}")
+        cells.insert(6, f"{np.mean([r['n_contacts'] for r in rs]):.0f}")
         lines.append("| " + " | ".join(cells) + " |")
     secs = [r["ceiling_s"] for r in rows]
     lines += ["", "`unseen %`: floor cells without a fitted surface (outside the points' hull, or emptied",
               "where the fit left the building); `crossed %`: of those, the share any beam passed over (the",
-              "others' ceiling is the roof); `held %`: the share the bounded thin plate holds at its ceiling.",
+              "others' ceiling is the roof); `held %`: the share the bounded thin plate holds at its ceiling;",
+              "`contacts`: wall contacts a survey found (mean; most are the bare floor meeting a wall).",
               "`inside`: phases whose true volume lies between the volume with every unseen cell at the floor",
               "and with every unseen cell at its ceiling (the fitted cells as fitted, so the fit's own error",
               "can put it outside).", "",

@@ -1,0 +1,154 @@
+"""Where the material meets the walls: evidence from the sweeps that reached a wall, for the unseen fill.
+
+The walls are known planes, and a sweep that reaches a wall says where the wall is visible. Take two
+consecutive beams of one sweep, one on a wall at height z_w and the next one short of it, on material
+or the floor. The wall beam passed over everything on its way, so the material at the wall there is no
+higher than z_w. The other beam was stopped before the wall; had it gone on, it would have met the
+wall at z' below z_w. For material leaning on the wall (rising, or level, towards it) the surface
+between that hit and the wall stays above the beam, so the material meets the wall no lower than z'.
+The contact line lies in [z', z_w]: the *wall contact*. A beam stopped by the floor beside the wall
+gives z' below the floor: the wall is seen down to (near) its foot, no material there.
+
+These are the surface's only evidence at the wall's foot and in the corners, exactly where a fill
+that copies the nearest seen cell has none (docs/design-notes.md, "Wall-contact evidence for the
+unseen fill"). `contact_fill` carries the seen surface to the walls through them.
+
+Tolerances come from the log header's sensor model (`SensorErrorModel`): each end of the interval is
+widened by k vertical sigmas (range along the beam, pointing across it, position, range quantum), k =
+`structure_n_sigma` of the cloud's size, as the wall tolerance is. A contact needs the material seen by
+two consecutive beams, so a single wall return that escaped the structure mask (noise) makes none.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from firmware_py.core.storage import Storage
+from ground.pointcloud import Cloud, SensorErrorModel, plane_tolerances_m, structure_n_sigma
+from ground.smoothing import vertical_sigma_m
+from ground.unseen import Extension, bounded_fill
+
+MAX_GAP_SAMPLES = 1.5
+"""Two usable samples are sweep neighbours when their times differ by at most this many sample periods
+(the median spacing): a dropped sample between them breaks the pair (the beams are no longer adjacent)."""
+
+
+@dataclass(frozen=True)
+class WallContacts:
+    """Where material (or the bare floor) meets a wall, one row per sweep transition wall -> material.
+
+    Attributes:
+        xy_m: (n, 2) the contact's place on the wall's foot line (on the wall plane).
+        height_m: (n,) the estimate: the middle of [material hit's height, wall hit's height], or the floor
+            (0) where the beam short of the wall hit the floor (the floor runs to the wall: a bare foot).
+        low_m, high_m: (n,) the material's height at the wall there lies in [low, high] (noise included).
+        wall: (n,) which wall: 0 x = 0, 1 x = length, 2 y = 0, 3 y = width.
+    """
+
+    xy_m: np.ndarray
+    height_m: np.ndarray
+    low_m: np.ndarray
+    high_m: np.ndarray
+    wall: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.low_m)
+
+
+def _walls(storage: Storage) -> tuple[tuple[int, float], ...]:
+    """(normal axis, plane position) of walls 0-3."""
+    return ((0, 0.0), (0, storage.length_m), (1, 0.0), (1, storage.width_m))
+
+
+def wall_index(points_w: np.ndarray, tol_xyz: np.ndarray, storage: Storage) -> np.ndarray:
+    """Each point's wall (0-3, `WallContacts.wall`): the wall it lies fewest tolerances from, -1 when it is
+    further than its tolerance from every wall."""
+    dist = np.column_stack([np.abs(points_w[:, axis] - pos) / tol_xyz[:, axis] for axis, pos in _walls(storage)])
+    best = np.argmin(dist, axis=1)
+    return np.where(dist[np.arange(len(best)), best] <= 1.0, best, -1)
+
+
+def wall_contacts(cloud: Cloud, structure: np.ndarray, storage: Storage, err: SensorErrorModel,
+                  n_sigma: float | None = None) -> WallContacts:
+    """The wall contacts of a cloud (module docstring). structure: `pointcloud.structure_mask` of the cloud
+    (True for wall and roof points); the cloud's points are in sample order with their times and sweep
+    directions. No times or sweep directions: no contacts (the beams' order is unknown)."""
+    empty = WallContacts(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64))
+    n = len(cloud.range_m)
+    if n < 3 or cloud.t_s is None or cloud.sweep_dir is None:
+        return empty
+    p, d, r = cloud.points_w, cloud.dirs_w, np.asarray(cloud.range_m, dtype=float)
+    t, sweep = np.asarray(cloud.t_s, dtype=float), np.asarray(cloud.sweep_dir)
+    structure = np.asarray(structure, dtype=bool)
+    k = structure_n_sigma(n) if n_sigma is None else n_sigma
+    wall = wall_index(p, plane_tolerances_m(cloud, err, k), storage)
+    on_wall = structure & (wall >= 0) & (p[:, 2] > 0.0) & (p[:, 2] < storage.height_m)
+    dt = np.diff(t)
+    step = float(np.median(dt[dt > 0])) if (dt > 0).any() else 0.0
+    # adjacent[i]: samples i and i + 1 are neighbours in one sweep
+    adjacent = (dt > 0) & (dt <= MAX_GAP_SAMPLES * step) & (sweep[1:] == sweep[:-1])
+    ground = ~structure
+    pairs = []
+    for sign in (1, -1):  # the material after the wall hit (sign 1) or before it (sign -1) in time
+        w = np.arange(n)
+        m, m2 = w + sign, w + 2 * sign
+        ok = (m2 >= 0) & (m2 < n)
+        w, m, m2 = w[ok], m[ok], m2[ok]
+        link = adjacent[np.minimum(w, m)] & adjacent[np.minimum(m, m2)]
+        keep = on_wall[w] & ground[m] & ground[m2] & link  # material seen by two beams in a row
+        pairs.append((w[keep], m[keep]))
+    w = np.concatenate([pairs[0][0], pairs[1][0]])
+    m = np.concatenate([pairs[0][1], pairs[1][1]])
+    if not len(w):
+        return empty
+    axis = np.array([a for a, _ in _walls(storage)])[wall[w]]
+    pos = np.array([c for _, c in _walls(storage)])[wall[w]]
+    rows = np.arange(len(w))
+    origin = p[m] - d[m] * r[m, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (pos - origin[rows, axis]) / d[m][rows, axis]  # along beam m to the wall plane
+    reach = np.isfinite(s) & (s > r[m])  # the wall lies beyond the material hit
+    z_cross = origin[:, 2] + s * d[m, 2]  # where beam m would have met the wall
+    along = 1 - axis  # the wall's along-coordinate is the other horizontal axis
+    along_w = p[w][rows, along]
+    along_m = origin[rows, along] + s * d[m][rows, along]
+    below = reach & (z_cross < p[w, 2])
+    sig_w = vertical_sigma_m(err.range_sigma(r[w]), err.resolution_m, err.position_sigma_m, err.angle_sigma_rad,
+                             r[w], d[w])
+    sig_m = vertical_sigma_m(err.range_sigma(r[m]), err.resolution_m, err.position_sigma_m, err.angle_sigma_rad,
+                             np.where(reach, s, r[m]), d[m])
+    high = np.clip(p[w, 2] + k * sig_w, 0.0, storage.height_m)
+    low = np.minimum(np.clip(z_cross - k * sig_m, 0.0, None), high)
+    floor = np.abs(p[m, 2]) <= k * sig_m  # the beam short of the wall hit the floor
+    estimate = np.where(floor, 0.0, 0.5 * (np.clip(p[m, 2], 0.0, p[w, 2]) + p[w, 2]))
+    a = 0.5 * (along_w + along_m)
+    xy = np.where((axis == 0)[:, None], np.column_stack([pos, a]), np.column_stack([a, pos]))
+    keep = below
+    return WallContacts(xy[keep], np.clip(estimate[keep], low[keep], high[keep]), low[keep], high[keep],
+                        wall[w][keep].astype(np.int64))
+
+
+def pin_contacts(heights: np.ndarray, contacts: WallContacts, x_edges: np.ndarray, y_edges: np.ndarray) -> np.ndarray:
+    """The height grid with each unseen (non-finite) cell that holds wall contacts set to their mean estimate:
+    known ground for the fill to carry the surface to. Seen cells are unchanged (the fit there stands)."""
+    h = np.array(heights, dtype=float)
+    if not len(contacts):
+        return h
+    nx, ny = h.shape
+    ix = np.clip(np.searchsorted(x_edges, contacts.xy_m[:, 0], side="right") - 1, 0, nx - 1)
+    iy = np.clip(np.searchsorted(y_edges, contacts.xy_m[:, 1], side="right") - 1, 0, ny - 1)
+    total, count = np.zeros(h.shape), np.zeros(h.shape)
+    np.add.at(total, (ix, iy), contacts.height_m)
+    np.add.at(count, (ix, iy), 1.0)
+    pin = ~np.isfinite(h) & (count > 0)
+    h[pin] = total[pin] / count[pin]
+    return h
+
+
+def contact_fill(heights: np.ndarray, contacts: WallContacts, x_edges: np.ndarray, y_edges: np.ndarray,
+                 ceiling_m: np.ndarray | None = None, extension: Extension = Extension.BIHARMONIC) -> np.ndarray:
+    """The unseen cells filled by the extension (`ground.unseen.bounded_fill`) from the seen cells and the
+    wall contacts pinned in their cells (`pin_contacts`), held between the floor and ceiling_m."""
+    return bounded_fill(pin_contacts(heights, contacts, x_edges, y_edges), ceiling_m, extension)
