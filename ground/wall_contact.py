@@ -6,17 +6,21 @@ or the floor. The wall beam passed over everything on its way, so the material a
 higher than z_w. The other beam was stopped before the wall; had it gone on, it would have met the
 wall at z' below z_w. For material leaning on the wall (rising, or level, towards it) the surface
 between that hit and the wall stays above the beam, so the material meets the wall no lower than z'.
-The contact line lies in [z', z_w]: the *wall contact*. A beam stopped by the floor beside the wall
-gives z' below the floor: the wall is seen down to (near) its foot, no material there.
+The contact line lies in [z', z_w]: the *wall contact*, estimated by z_w (the lowest wall hit marks
+it). A beam stopped by the floor beside the wall gives z' below the floor: the wall is seen down to
+(near) its foot, no material there (estimate 0).
 
 These are the surface's only evidence at the wall's foot and in the corners, exactly where a fill
 that copies the nearest seen cell has none (docs/design-notes.md, "Wall-contact evidence for the
-unseen fill"). `contact_fill` carries the seen surface to the walls through them.
+unseen fill"). `contact_fill` pins them in their unseen wall cells and carries the seen surface to the
+walls through them (the `wall-contact` empty-cell policy).
 
 Tolerances come from the log header's sensor model (`SensorErrorModel`): each end of the interval is
 widened by k vertical sigmas (range along the beam, pointing across it, position, range quantum), k =
-`structure_n_sigma` of the cloud's size, as the wall tolerance is. A contact needs the material seen by
-two consecutive beams, so a single wall return that escaped the structure mask (noise) makes none.
+`structure_n_sigma` of the cloud's size, as the wall tolerance is; the top also by the wall tolerance
+times MAX_SLOPE, since the lowest "wall" hit may be material that close to the wall. A contact needs
+the material seen by two consecutive beams, so a single wall return that escaped the structure mask
+(noise) makes none.
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ import numpy as np
 from firmware_py.core.storage import Storage
 from ground.pointcloud import Cloud, SensorErrorModel, plane_tolerances_m, structure_n_sigma
 from ground.smoothing import vertical_sigma_m
-from ground.unseen import Extension, bounded_fill
+from ground.unseen import MAX_SLOPE, Extension, bounded_fill
 
 MAX_GAP_SAMPLES = 1.5
 """Two usable samples are sweep neighbours when their times differ by at most this many sample periods
@@ -41,8 +45,8 @@ class WallContacts:
 
     Attributes:
         xy_m: (n, 2) the contact's place on the wall's foot line (on the wall plane).
-        height_m: (n,) the estimate: the middle of [material hit's height, wall hit's height], or the floor
-            (0) where the beam short of the wall hit the floor (the floor runs to the wall: a bare foot).
+        height_m: (n,) the estimate: the lowest wall hit's height, or the floor (0) where the beam short of
+            the wall hit the floor (the floor runs to the wall: a bare foot).
         low_m, high_m: (n,) the material's height at the wall there lies in [low, high] (noise included).
         wall: (n,) which wall: 0 x = 0, 1 x = length, 2 y = 0, 3 y = width.
     """
@@ -119,10 +123,13 @@ def wall_contacts(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
                              r[w], d[w])
     sig_m = vertical_sigma_m(err.range_sigma(r[m]), err.resolution_m, err.position_sigma_m, err.angle_sigma_rad,
                              np.where(reach, s, r[m]), d[m])
-    high = np.clip(p[w, 2] + k * sig_w, 0.0, storage.height_m)
+    # The lowest "wall" hit may be material within its wall tolerance of the wall (the mask cannot tell them
+    # apart): the material at the wall is then up to MAX_SLOPE times that tolerance higher.
+    slack = MAX_SLOPE * plane_tolerances_m(cloud, err, k)[w][rows, axis]
+    high = np.clip(p[w, 2] + k * sig_w + slack, 0.0, storage.height_m)
     low = np.minimum(np.clip(z_cross - k * sig_m, 0.0, None), high)
     floor = np.abs(p[m, 2]) <= k * sig_m  # the beam short of the wall hit the floor
-    estimate = np.where(floor, 0.0, 0.5 * (np.clip(p[m, 2], 0.0, p[w, 2]) + p[w, 2]))
+    estimate = np.where(floor, 0.0, p[w, 2])
     a = 0.5 * (along_w + along_m)
     xy = np.where((axis == 0)[:, None], np.column_stack([pos, a]), np.column_stack([a, pos]))
     keep = below
@@ -152,3 +159,4 @@ def contact_fill(heights: np.ndarray, contacts: WallContacts, x_edges: np.ndarra
     """The unseen cells filled by the extension (`ground.unseen.bounded_fill`) from the seen cells and the
     wall contacts pinned in their cells (`pin_contacts`), held between the floor and ceiling_m."""
     return bounded_fill(pin_contacts(heights, contacts, x_edges, y_edges), ceiling_m, extension)
+

@@ -26,7 +26,7 @@ from ground.pointcloud import SensorErrorModel, structure_mask
 from ground.report import ReportOptions, survey_from_samples
 from ground.surface import DEFAULT_CELL_M, Grid, fill_empty, grid_volume, volume_error_pct
 from ground.unseen import Extension, beam_angle_sigma_rad, bounded_fill, free_space_ceiling_m, unseen_bounds
-from ground.wall_contact import WallContacts, contact_fill, wall_contacts
+from ground.wall_contact import WallContacts, contact_fill, pin_contacts, wall_contacts
 from sitl.runners.fly import FlyConfig, log_header
 from sitl.sensing.batch_sampler import sample_flight
 from sitl.world.raycast import World
@@ -152,6 +152,12 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
             v = grid_volume(filled, sv.grid)
             row[f"ve_{pol}_pct"] = volume_error_pct(v, pile.volume_m3)
             row[f"e_{pol}_pct"] = (v - pile.volume_m3) / pile.volume_m3 * 100
+        pinned = pin_contacts(sv.heights_fit, contacts, sv.grid.x_edges, sv.grid.y_edges)
+        at = unseen & np.isfinite(pinned)  # unseen cells holding a wall contact: the estimate against nearest's copy
+        near = fill_empty(sv.heights_fit, "nearest")
+        row["pinned_pct"] = float(at.sum() / max(1, unseen.sum()) * 100)
+        row["pin_err_m"] = float(np.abs(pinned[at] - truth[at]).mean()) if at.any() else math.nan
+        row["pin_nearest_err_m"] = float(np.abs(near[at] - truth[at]).mean()) if at.any() else math.nan
         held = bounded_fill(sv.heights_fit, ceiling, Extension.BIHARMONIC)
         at_ceiling = np.isclose(held[unseen], ceiling[unseen]) & (ceiling[unseen] < storage.height_m)
         row["held_pct"] = float(at_ceiling.mean() * 100) if unseen.any() else 0.0
@@ -199,9 +205,9 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
               "Fill error in the unseen cells alone, sum of (fill - true height) x cell area, in % of the true volume",
               "(mean of |error| over the phases, then the mean signed error): the part of Ve the fill decides, apart",
               "from the fitted surface's own error.", ""]
-    head = ("| pile | P_traj | noise | unseen % | crossed % | held % | contacts | "
+    head = ("| pile | P_traj | noise | unseen % | crossed % | held % | contacts | pinned % | pin / nearest m | "
             + " | ".join(f"`{p}` abs | signed" for p in policies) + " | inside |")
-    lines += [head, "|" + "---|" * (8 + 2 * len(policies))]
+    lines += [head, "|" + "---|" * (10 + 2 * len(policies))]
     for (pile, p, noise), rs in _rows_by_case(rows):
         inside = sum(r["v_lo_m3"] <= r["true_m3"] <= r["v_hi_m3"] for r in rs)
         cells = [pile, f"{p:g} %", noise, f"{np.mean([r['unseen_pct'] for r in rs]):.1f}",
@@ -209,13 +215,18 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
         cells += [f"{np.mean(np.abs([r[f'u_{pol}_pct'] for r in rs])):.2f} | "
                   f"{np.mean([r[f'u_{pol}_pct'] for r in rs]):+.2f}" for pol in policies]
         cells.append(f"{inside}/{len(rs)}")
-        cells.insert(6, f"{np.mean([r['n_contacts'] for r in rs]):.0f}")
+        pin_err = [r["pin_err_m"] for r in rs if math.isfinite(r["pin_err_m"])]
+        pin_near = [r["pin_nearest_err_m"] for r in rs if math.isfinite(r["pin_nearest_err_m"])]
+        cells[6:6] = [f"{np.mean([r['n_contacts'] for r in rs]):.0f}", f"{np.mean([r['pinned_pct'] for r in rs]):.1f}",
+                      f"{np.mean(pin_err):.2f} / {np.mean(pin_near):.2f}" if pin_err else "-"]
         lines.append("| " + " | ".join(cells) + " |")
     secs = [r["ceiling_s"] for r in rows]
     lines += ["", "`unseen %`: floor cells without a fitted surface (outside the points' hull, or emptied",
               "where the fit left the building); `crossed %`: of those, the share any beam passed over (the",
               "others' ceiling is the roof); `held %`: the share the bounded thin plate holds at its ceiling;",
-              "`contacts`: wall contacts a survey found (mean; most are the bare floor meeting a wall).",
+              "`contacts`: wall contacts a survey found (mean; most are the bare floor meeting a wall); `pinned %`:",
+              "the share of the unseen cells holding one; `pin / nearest m`: in those cells, the mean |height - true",
+              "height| of the contacts' estimate and of `nearest`'s copy (the evidence where it exists).",
               "`inside`: phases whose true volume lies between the volume with every unseen cell at the floor",
               "and with every unseen cell at its ceiling (the fitted cells as fitted, so the fit's own error",
               "can put it outside).", "",
