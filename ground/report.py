@@ -67,6 +67,7 @@ from ground.uncertainty import (
 )
 from ground.unseen import free_space_ceiling_m
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT, faces_warning, unseen_warning, wide_interval_warning
+from ground.wall_contact import contact_heights_m, wall_contacts
 
 LOW_COVERAGE_PCT = 95.0
 HIGH_EXCLUDED_FRACTION = 0.5
@@ -328,9 +329,12 @@ def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageF
     spread = face_spread_m(grid, typical, n_sigma)
     if pile_dir is not None:
         disagreement, _ = sweep_disagreement_m(pile, pile_dir, grid, spread)
-    ceiling = None if opts.empty_cells != "bounded" else free_space_ceiling_m(  # what the beams left free above
+    bounded = opts.empty_cells in ("bounded", "wall-contact")
+    ceiling = None if not bounded else free_space_ceiling_m(  # what the beams left free above
         cloud, grid, storage, err, err.angle_sigma_rad, where=~np.isfinite(fit))  # the unseen cells
-    heights, counts = fill_empty(fit, opts.empty_cells, ceiling), grid.counts(pile)
+    wall = None if opts.empty_cells != "wall-contact" else contact_heights_m(  # the material's height at the walls
+        wall_contacts(cloud, structure, storage, err), grid.x_edges, grid.y_edges)
+    heights, counts = fill_empty(fit, opts.empty_cells, ceiling, wall), grid.counts(pile)
     roof_or_ceiling = storage.height_m if ceiling is None else ceiling
 
     def errors_in(mask: np.ndarray | None = None) -> SurveyErrors:  # the whole floor, or one pile's cells

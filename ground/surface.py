@@ -27,6 +27,9 @@ policy:
 - ``leave`` (the paper's method): no surface there, no volume counted.
 - ``bounded``: the nearest reconstructed height too, but held between the floor and the flight's
   free-space ceiling (`ground.unseen`: beams that passed over a cell bound its height).
+- ``wall-contact``: ``bounded``, with the wall contacts first set in the unseen cells at the walls
+  (`ground.wall_contact`: where a sweep's lowest wall hit sits above material, the material's height at
+  the wall), so the copy carries them instead of the edge where the walls were seen.
 
 Either way R_a (eq. 9) is computed from the fitted surface before any filling, and the report
 states the uncovered area, so extrapolation is never hidden.
@@ -48,7 +51,7 @@ from ground.smoothing import DEFAULT_SMOOTHING, SmoothingOptions, smoothed_nodes
 
 SURFACE_FITS = ("cubic-limited", "cubic", "linear", "local-linear")
 DEFAULT_SURFACE_FIT = "cubic-limited"
-EMPTY_CELL_POLICIES = ("nearest", "leave", "bounded")
+EMPTY_CELL_POLICIES = ("nearest", "leave", "bounded", "wall-contact")
 DEFAULT_EMPTY_CELLS = "nearest"
 DEFAULT_CELL_M = 0.25
 """Grid cell side; docs/cell_sensitivity.md measures the volume change against 0.05 m cells."""
@@ -185,16 +188,21 @@ def clip_to_building(heights: np.ndarray, height_m: float, tolerance_m: float = 
     return h, int(off.sum())
 
 
-def fill_empty(heights: np.ndarray, policy: str, ceiling_m: np.ndarray | None = None) -> np.ndarray:
-    """Apply the empty-cell policy to a height grid (see module docstring); ``bounded`` holds the fill
-    under ceiling_m (`ground.unseen.free_space_ceiling_m`; None: only the floor bounds it)."""
+def fill_empty(heights: np.ndarray, policy: str, ceiling_m: np.ndarray | None = None,
+               wall_m: np.ndarray | None = None) -> np.ndarray:
+    """Apply the empty-cell policy to a height grid (see module docstring); ``bounded`` and ``wall-contact``
+    hold the fill under ceiling_m (`ground.unseen.free_space_ceiling_m`; None: only the floor bounds it);
+    ``wall-contact`` first sets the empty cells where wall_m is finite to it (`ground.wall_contact.
+    contact_heights_m`; None: no contacts, ``bounded``)."""
     if policy not in EMPTY_CELL_POLICIES:
         raise ValueError(f"empty-cell policy must be one of {', '.join(EMPTY_CELL_POLICIES)}, got {policy!r}")
     empty = ~np.isfinite(heights)
     if policy == "leave" or not empty.any() or empty.all():
         return heights
-    if policy == "bounded":
+    if policy in ("bounded", "wall-contact"):
         from ground.unseen import bounded_fill
+        if policy == "wall-contact" and wall_m is not None:
+            heights = np.where(empty & np.isfinite(wall_m), wall_m, heights)
         return bounded_fill(heights, ceiling_m)
     _, (ix, iy) = ndimage.distance_transform_edt(empty, return_indices=True)
     return heights[ix, iy]

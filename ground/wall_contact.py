@@ -137,20 +137,26 @@ def wall_contacts(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
                         wall[w][keep].astype(np.int64))
 
 
+def contact_heights_m(contacts: WallContacts, x_edges: np.ndarray, y_edges: np.ndarray) -> np.ndarray:
+    """Per grid cell (edges x_edges, y_edges), the mean estimate of the wall contacts in it; NaN elsewhere."""
+    nx, ny = len(x_edges) - 1, len(y_edges) - 1
+    total, count = np.zeros((nx, ny)), np.zeros((nx, ny))
+    if len(contacts):
+        ix = np.clip(np.searchsorted(x_edges, contacts.xy_m[:, 0], side="right") - 1, 0, nx - 1)
+        iy = np.clip(np.searchsorted(y_edges, contacts.xy_m[:, 1], side="right") - 1, 0, ny - 1)
+        np.add.at(total, (ix, iy), contacts.height_m)
+        np.add.at(count, (ix, iy), 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / count, np.nan)
+
+
 def pin_contacts(heights: np.ndarray, contacts: WallContacts, x_edges: np.ndarray, y_edges: np.ndarray) -> np.ndarray:
     """The height grid with each unseen (non-finite) cell that holds wall contacts set to their mean estimate:
     known ground for the fill to carry the surface to. Seen cells are unchanged (the fit there stands)."""
     h = np.array(heights, dtype=float)
-    if not len(contacts):
-        return h
-    nx, ny = h.shape
-    ix = np.clip(np.searchsorted(x_edges, contacts.xy_m[:, 0], side="right") - 1, 0, nx - 1)
-    iy = np.clip(np.searchsorted(y_edges, contacts.xy_m[:, 1], side="right") - 1, 0, ny - 1)
-    total, count = np.zeros(h.shape), np.zeros(h.shape)
-    np.add.at(total, (ix, iy), contacts.height_m)
-    np.add.at(count, (ix, iy), 1.0)
-    pin = ~np.isfinite(h) & (count > 0)
-    h[pin] = total[pin] / count[pin]
+    wall = contact_heights_m(contacts, x_edges, y_edges)
+    pin = ~np.isfinite(h) & np.isfinite(wall)
+    h[pin] = wall[pin]
     return h
 
 
