@@ -166,3 +166,11 @@ def contact_fill(heights: np.ndarray, contacts: WallContacts, x_edges: np.ndarra
     wall contacts pinned in their cells (`pin_contacts`), held between the floor and ceiling_m."""
     return bounded_fill(pin_contacts(heights, contacts, x_edges, y_edges), ceiling_m, extension)
 
+
+
+def contact_nodes(contacts: WallContacts) -> tuple[np.ndarray, np.ndarray]:
+    """The contacts as surface nodes: (n, 3) points at the walls' feet at their estimated heights, and each
+    one's 1-sigma height error (its interval's width as a uniform spread, for a fit that weights its points)."""
+    points = np.column_stack([contacts.xy_m, contacts.height_m])
+    sigma = np.maximum((contacts.high_m - contacts.low_m) / np.sqrt(12.0), 1e-3)
+    return points, sigma

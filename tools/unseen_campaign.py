@@ -24,9 +24,17 @@ from firmware_py.core.sensor_noise import SensorNoise, SensorNoiseModel
 from firmware_py.core.storage import Storage
 from ground.pointcloud import SensorErrorModel, structure_mask
 from ground.report import ReportOptions, survey_from_samples
-from ground.surface import DEFAULT_CELL_M, Grid, fill_empty, grid_volume, volume_error_pct
+from ground.surface import (
+    DEFAULT_CELL_M,
+    Grid,
+    clip_to_building,
+    fill_empty,
+    fit_heights,
+    grid_volume,
+    volume_error_pct,
+)
 from ground.unseen import Extension, beam_angle_sigma_rad, bounded_fill, free_space_ceiling_m, unseen_bounds
-from ground.wall_contact import WallContacts, contact_fill, pin_contacts, wall_contacts
+from ground.wall_contact import WallContacts, contact_fill, contact_nodes, pin_contacts, wall_contacts
 from sitl.runners.fly import FlyConfig, log_header
 from sitl.sensing.batch_sampler import sample_flight
 from sitl.world.raycast import World
@@ -39,18 +47,23 @@ FIXTURE_RESOLUTION_M = 0.25
 """Vertex spacing of the fixture piles' meshes (the paper piles' spacing)."""
 P_TRAJ_PCT = (20, 30)
 PILES = ("corner", "wall-end", "1", "2")
-FILLS = ("nearest", "contact-nearest", "contact-harmonic", "contact-biharmonic", "bounded-nearest",
-         "bounded-harmonic", "bounded-biharmonic", "floor-only-biharmonic")
-"""The fills compared: today's default, the surface carried to the wall contacts (ground.wall_contact), the
-bounded policy with each extension (ground.unseen), and the thin plate held by the floor alone (what the
-free-space ceiling adds)."""
+FILLS = ("nearest", "nodes-nearest", "nodes-bounded", "pinned-bounded", "bounded-nearest", "bounded-harmonic",
+         "bounded-biharmonic", "floor-only-biharmonic")
+"""The fills compared: today's default; the wall contacts (ground.wall_contact) as nodes of the surface,
+then `nearest` or `bounded`, or pinned in the unseen wall cells before `bounded`; the bounded policy with
+each extension (ground.unseen), and the thin plate held by the floor alone (what the free-space ceiling
+adds)."""
 NOISES = ("none", "appendix-a")
 
 
-def _fill(name: str, heights_fit: np.ndarray, ceiling_m: np.ndarray, contacts: WallContacts, grid: Grid) -> np.ndarray:
-    if name.startswith("contact-"):
-        return contact_fill(heights_fit, contacts, grid.x_edges, grid.y_edges, ceiling_m,
-                            Extension(name.removeprefix("contact-")))
+def _fill(name: str, heights_fit: np.ndarray, ceiling_m: np.ndarray, contacts: WallContacts, grid: Grid,
+          nodes_fit: np.ndarray) -> np.ndarray:
+    if name == "nodes-nearest":
+        return fill_empty(nodes_fit, "nearest")
+    if name == "nodes-bounded":
+        return bounded_fill(nodes_fit, ceiling_m)
+    if name == "pinned-bounded":
+        return contact_fill(heights_fit, contacts, grid.x_edges, grid.y_edges, ceiling_m, Extension.NEAREST)
     if name.startswith("bounded-"):
         return bounded_fill(heights_fit, ceiling_m, Extension(name.removeprefix("bounded-")))
     if name.startswith("floor-only-"):
@@ -141,12 +154,16 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
         ceiling_s = time.perf_counter() - t0
         err = SensorErrorModel.from_header(header)
         contacts = wall_contacts(sv.cloud, structure_mask(sv.cloud, storage, err), storage, err)
+        nodes_fit, _ = clip_to_building(fit_heights(np.concatenate([sv.pile_points_w, contact_nodes(contacts)[0]]),
+                                                    sv.grid), storage.height_m)
+        # the ceiling over the node fit's unseen cells too (a subset of the survey's, where it was computed)
+        ceiling = np.where(np.isfinite(ceiling), ceiling, np.where(np.isfinite(nodes_fit), np.nan, storage.height_m))
         row = {"pile": pile_name, "p_traj_pct": p_pct, "noise": noise_name, "position": k, "true_m3": pile.volume_m3,
                "unseen_pct": float(unseen.mean() * 100), "ceiling_s": ceiling_s, "n_beams": len(sv.cloud.range_m),
                "n_contacts": len(contacts),
                "beam_crossed_pct": float((ceiling[unseen] < storage.height_m).mean() * 100) if unseen.any() else 0.0}
         for pol in policies:
-            filled = _fill(pol, sv.heights_fit, ceiling, contacts, sv.grid)
+            filled = _fill(pol, sv.heights_fit, ceiling, contacts, sv.grid, nodes_fit)
             row[f"u_{pol}_pct"] = float((filled[unseen] - truth[unseen]).sum() * sv.grid.cell_area_m2
                                         / pile.volume_m3 * 100)
             v = grid_volume(filled, sv.grid)
@@ -190,10 +207,12 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
              "`bounded` policy (`ground/unseen.py`) carrying the seen surface into the unseen cells by that extension",
              "(`nearest` copy, `harmonic` membrane, `biharmonic` thin plate) held between the floor and the",
              "free-space ceiling; `floor-only-biharmonic`: the thin plate held by the floor alone (what the ceiling",
-             "adds); `contact-<extension>`: the same bounded fill with the wall contacts (`ground/wall_contact.py`:",
-             "where a sweep's lowest wall hit sits above its next beam's hit on material or floor, the material's",
-             "height at the wall) pinned in their unseen wall cells first, so `contact-nearest` against",
-             "`bounded-nearest` is what the wall evidence adds. What this decided: docs/design-notes.md, \"Free-space",
+             "adds). The wall contacts (`ground/wall_contact.py`: where a sweep's lowest wall hit sits above its",
+             "next beam's hit on material or floor, the material's height at the wall): `nodes-nearest` and",
+             "`nodes-bounded` fit the surface through the pile points and the contacts (nodes at the walls' feet),",
+             "then fill what is still unseen by `nearest` or `bounded`; `pinned-bounded` keeps the fit and sets the",
+             "contacts in their unseen wall cells before `bounded` (against `bounded-nearest`: what the contacts add",
+             "as a fill alone). What this decided: docs/design-notes.md, \"Free-space",
              "ceiling and the bounded fill\" and \"Wall-contact evidence for the unseen fill (issue 14 item 4)\".", "",
              "## Ve (eq. 8, %) over the phases: mean | sd | max", ""]
     head = "| pile | P_traj | noise | " + " | ".join(f"`{p}` mean | sd | max" for p in policies) + " |"
