@@ -67,7 +67,7 @@ from ground.uncertainty import (
 )
 from ground.unseen import free_space_ceiling_m
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT, faces_warning, unseen_warning, wide_interval_warning
-from ground.wall_contact import contact_heights_m, wall_contacts
+from ground.wall_contact import CONTACT_REST, contact_nodes, wall_contacts
 
 LOW_COVERAGE_PCT = 95.0
 HIGH_EXCLUDED_FRACTION = 0.5
@@ -329,12 +329,15 @@ def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageF
     spread = face_spread_m(grid, typical, n_sigma)
     if pile_dir is not None:
         disagreement, _ = sweep_disagreement_m(pile, pile_dir, grid, spread)
-    bounded = opts.empty_cells in ("bounded", "wall-contact")
+    contact_fit = None  # the surface through the points and the wall contacts (--empty-cells wall-contact)
+    if opts.empty_cells == "wall-contact":
+        nodes, node_sigma = contact_nodes(wall_contacts(cloud, structure, storage, err))
+        contact_fit, _ = clip_to_building(fit_heights(np.concatenate([pile, nodes]), grid, opts.surface_fit,
+                                                      np.concatenate([sigma, node_sigma])), storage.height_m)
+    bounded = opts.empty_cells == "bounded" or (opts.empty_cells == "wall-contact" and CONTACT_REST == "bounded")
     ceiling = None if not bounded else free_space_ceiling_m(  # what the beams left free above
         cloud, grid, storage, err, err.angle_sigma_rad, where=~np.isfinite(fit))  # the unseen cells
-    wall = None if opts.empty_cells != "wall-contact" else contact_heights_m(  # the material's height at the walls
-        wall_contacts(cloud, structure, storage, err), grid.x_edges, grid.y_edges)
-    heights, counts = fill_empty(fit, opts.empty_cells, ceiling, wall), grid.counts(pile)
+    heights, counts = fill_empty(fit, opts.empty_cells, ceiling, contact_fit), grid.counts(pile)
     roof_or_ceiling = storage.height_m if ceiling is None else ceiling
 
     def errors_in(mask: np.ndarray | None = None) -> SurveyErrors:  # the whole floor, or one pile's cells

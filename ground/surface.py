@@ -27,9 +27,11 @@ policy:
 - ``leave`` (the paper's method): no surface there, no volume counted.
 - ``bounded``: the nearest reconstructed height too, but held between the floor and the flight's
   free-space ceiling (`ground.unseen`: beams that passed over a cell bound its height).
-- ``wall-contact``: ``bounded``, with the wall contacts first set in the unseen cells at the walls
+- ``wall-contact``: the surface fitted again with the wall contacts as nodes at the walls' feet
   (`ground.wall_contact`: where a sweep's lowest wall hit sits above material, the material's height at
-  the wall), so the copy carries them instead of the edge where the walls were seen.
+  the wall), so it reaches the walls where the sweeps saw them; what is still empty then as
+  ``CONTACT_REST`` (`ground.wall_contact`). R_a and the interval's unseen term stay those of the points'
+  own fit: the contacts are bounds-backed estimates, not measured pile points.
 
 Either way R_a (eq. 9) is computed from the fitted surface before any filling, and the report
 states the uncovered area, so extrapolation is never hidden.
@@ -189,20 +191,20 @@ def clip_to_building(heights: np.ndarray, height_m: float, tolerance_m: float = 
 
 
 def fill_empty(heights: np.ndarray, policy: str, ceiling_m: np.ndarray | None = None,
-               wall_m: np.ndarray | None = None) -> np.ndarray:
-    """Apply the empty-cell policy to a height grid (see module docstring); ``bounded`` and ``wall-contact``
-    hold the fill under ceiling_m (`ground.unseen.free_space_ceiling_m`; None: only the floor bounds it);
-    ``wall-contact`` first sets the empty cells where wall_m is finite to it (`ground.wall_contact.
-    contact_heights_m`; None: no contacts, ``bounded``)."""
+               contact_fit_m: np.ndarray | None = None) -> np.ndarray:
+    """Apply the empty-cell policy to a height grid (see module docstring); ``bounded`` holds the fill
+    under ceiling_m (`ground.unseen.free_space_ceiling_m`; None: only the floor bounds it). ``wall-contact``
+    fills contact_fit_m, the fit through the points and the wall contacts (None: no contacts, heights)."""
     if policy not in EMPTY_CELL_POLICIES:
         raise ValueError(f"empty-cell policy must be one of {', '.join(EMPTY_CELL_POLICIES)}, got {policy!r}")
     empty = ~np.isfinite(heights)
     if policy == "leave" or not empty.any() or empty.all():
         return heights
-    if policy in ("bounded", "wall-contact"):
+    if policy == "wall-contact":
+        from ground.wall_contact import CONTACT_REST
+        return fill_empty(heights if contact_fit_m is None else contact_fit_m, CONTACT_REST, ceiling_m)
+    if policy == "bounded":
         from ground.unseen import bounded_fill
-        if policy == "wall-contact" and wall_m is not None:
-            heights = np.where(empty & np.isfinite(wall_m), wall_m, heights)
         return bounded_fill(heights, ceiling_m)
     _, (ix, iy) = ndimage.distance_transform_edt(empty, return_indices=True)
     return heights[ix, iy]

@@ -12,8 +12,9 @@ it). A beam stopped by the floor beside the wall gives z' below the floor: the w
 
 These are the surface's only evidence at the wall's foot and in the corners, exactly where a fill
 that copies the nearest seen cell has none (docs/design-notes.md, "Wall-contact evidence for the
-unseen fill"). `contact_fill` pins them in their unseen wall cells and carries the seen surface to the
-walls through them (the `wall-contact` empty-cell policy).
+unseen fill"). The `wall-contact` empty-cell policy fits the surface through them as nodes at the walls'
+feet (`contact_nodes`); `contact_fill` (pinned in the unseen wall cells instead) is what docs/unseen.md
+compared it with.
 
 Tolerances come from the log header's sensor model (`SensorErrorModel`): each end of the interval is
 widened by k vertical sigmas (range along the beam, pointing across it, position, range quantum), k =
@@ -34,6 +35,9 @@ from ground.pointcloud import Cloud, SensorErrorModel, plane_tolerances_m, struc
 from ground.smoothing import vertical_sigma_m
 from ground.unseen import MAX_SLOPE, Extension, bounded_fill
 
+CONTACT_REST = "nearest"
+"""The empty-cell policy for what the surface through the contacts still leaves empty (docs/unseen.md:
+`nodes-nearest` against `nodes-bounded`)."""
 MAX_GAP_SAMPLES = 1.5
 """Two usable samples are sweep neighbours when their times differ by at most this many sample periods
 (the median spacing): a dropped sample between them breaks the pair (the beams are no longer adjacent)."""
