@@ -38,6 +38,12 @@ from ground.unseen import MAX_SLOPE, Extension, bounded_fill
 CONTACT_REST = "nearest"
 """The empty-cell policy for what the surface through the contacts still leaves empty (docs/unseen.md:
 `nodes-nearest` against `nodes-bounded`)."""
+WALL_LIKE_SIGMAS = 2.0
+"""For the estimate only (not the bounds): a "wall" hit further inside the wall plane than this many of its
+own sigmas along the normal is taken as material close to the wall (one-sided, 2 % of true wall hits), and
+the contact is looked for further up the sweep, at its first hit that lies on the plane."""
+MAX_WALK = 64
+"""Most hits walked up a sweep from the lowest wall hit looking for the first one on the plane."""
 MAX_GAP_SAMPLES = 1.5
 """Two usable samples are sweep neighbours when their times differ by at most this many sample periods
 (the median spacing): a dropped sample between them breaks the pair (the beams are no longer adjacent)."""
@@ -106,9 +112,8 @@ def wall_contacts(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
         w, m, m2 = w[ok], m[ok], m2[ok]
         link = adjacent[np.minimum(w, m)] & adjacent[np.minimum(m, m2)]
         keep = on_wall[w] & ground[m] & ground[m2] & link  # material seen by two beams in a row
-        pairs.append((w[keep], m[keep]))
-    w = np.concatenate([pairs[0][0], pairs[1][0]])
-    m = np.concatenate([pairs[0][1], pairs[1][1]])
+        pairs.append((w[keep], m[keep], np.full(int(keep.sum()), sign)))
+    w, m, sign = (np.concatenate([a[i] for a in pairs]) for i in range(3))
     if not len(w):
         return empty
     axis = np.array([a for a, _ in _walls(storage)])[wall[w]]
@@ -123,6 +128,7 @@ def wall_contacts(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
     along_w = p[w][rows, along]
     along_m = origin[rows, along] + s * d[m][rows, along]
     below = reach & (z_cross < p[w, 2])
+    w_est = _first_on_plane(p, d, r, err, w, sign, wall, on_wall, adjacent, axis, pos)
     sig_w = vertical_sigma_m(err.range_sigma(r[w]), err.resolution_m, err.position_sigma_m, err.angle_sigma_rad,
                              r[w], d[w])
     sig_m = vertical_sigma_m(err.range_sigma(r[m]), err.resolution_m, err.position_sigma_m, err.angle_sigma_rad,
@@ -130,15 +136,42 @@ def wall_contacts(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
     # The lowest "wall" hit may be material within its wall tolerance of the wall (the mask cannot tell them
     # apart): the material at the wall is then up to MAX_SLOPE times that tolerance higher.
     slack = MAX_SLOPE * plane_tolerances_m(cloud, err, k)[w][rows, axis]
-    high = np.clip(p[w, 2] + k * sig_w + slack, 0.0, storage.height_m)
+    high = np.clip(np.maximum(p[w, 2], p[w_est, 2]) + k * sig_w + slack, 0.0, storage.height_m)
     low = np.minimum(np.clip(z_cross - k * sig_m, 0.0, None), high)
     floor = np.abs(p[m, 2]) <= k * sig_m  # the beam short of the wall hit the floor
-    estimate = np.where(floor, 0.0, p[w, 2])
+    estimate = np.where(floor, 0.0, p[w_est, 2])
     a = 0.5 * (along_w + along_m)
     xy = np.where((axis == 0)[:, None], np.column_stack([pos, a]), np.column_stack([a, pos]))
     keep = below
     return WallContacts(xy[keep], np.clip(estimate[keep], low[keep], high[keep]), low[keep], high[keep],
                         wall[w][keep].astype(np.int64))
+
+
+def _first_on_plane(p: np.ndarray, d: np.ndarray, r: np.ndarray, err: SensorErrorModel, w: np.ndarray,
+                    sign: np.ndarray, wall: np.ndarray, on_wall: np.ndarray, adjacent: np.ndarray,
+                    axis: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """Per contact, the first hit up its sweep from the lowest wall hit w (away from the material, which
+    lies at w + sign) that lies on the wall plane within WALL_LIKE_SIGMAS of its own error along the
+    normal; the last hit of the wall run when none does within MAX_WALK."""
+    n = len(r)
+    rows = np.arange(len(w))
+    q = w.copy()
+    active = np.ones(len(w), dtype=bool)
+    for _ in range(MAX_WALK):
+        dn = np.abs(d[q][rows, axis])
+        sigma = np.sqrt((err.range_sigma(r[q]) * dn) ** 2 + (r[q] * err.angle_sigma_rad) ** 2 * (1.0 - dn**2)
+                        + err.position_sigma_m**2 + err.resolution_m**2 / 12.0)
+        inside = np.abs(p[q][rows, axis] - pos)
+        active &= inside > WALL_LIKE_SIGMAS * sigma  # q still looks like material close to the wall
+        nxt = q - sign
+        ok = (nxt >= 0) & (nxt < n)
+        nxt = np.clip(nxt, 0, n - 1)
+        link = adjacent[np.clip(np.minimum(q, nxt), 0, n - 2)] & ok
+        active &= link & on_wall[nxt] & (wall[nxt] == wall[w])
+        if not active.any():
+            break
+        q = np.where(active, nxt, q)
+    return q
 
 
 def contact_heights_m(contacts: WallContacts, x_edges: np.ndarray, y_edges: np.ndarray) -> np.ndarray:
