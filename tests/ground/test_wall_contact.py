@@ -10,7 +10,7 @@ from firmware_py.core.storage import Storage
 from ground.pointcloud import Cloud, SensorErrorModel, structure_mask
 from ground.report import ReportOptions, survey_from_samples
 from ground.surface import grid_volume
-from ground.wall_contact import WallContacts, pin_contacts, wall_contacts
+from ground.wall_contact import WALL_LIKE_SIGMAS, WallContacts, pin_contacts, wall_contacts
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, log_header
 from sitl.sensing.batch_sampler import sample_flight
@@ -162,3 +162,20 @@ def test_that_the_wall_contact_fill_of_a_flown_corner_pile_beats_nearest():
     assert 0.0 < missing_wall < 0.5 * missing_near  # measured: 0.27 against 0.80 % of the volume
     v = shape.pile.volume_m3
     assert abs(grid_volume(wall.heights, wall.grid) - v) < abs(grid_volume(near.heights, near.grid) - v)
+
+
+def test_that_a_wide_wall_tolerance_does_not_pull_the_contact_down():
+    """A sensor model stating 2 % of range puts the wedge's last half metre within the wall's tolerance
+    (structure); the estimate walks up the sweep to the first hit on the wall plane, within its own two
+    sigmas along the normal (times the wedge's slope) of the contact."""
+    wide = SensorErrorModel(range_sigma_rel=0.02, resolution_m=0.01)
+    cloud = swept_cloud(wedge_m(3.0))
+    structure = structure_mask(cloud, STORAGE, wide)
+    taken = structure & (cloud.points_w[:, 0] > 0.3) & (cloud.points_w[:, 2] < STORAGE.height_m - 1)
+    assert taken.any()  # the mask took wedge points 0.3 m or more from the wall for wall
+    c = wall_contacts(cloud, structure, STORAGE, wide)
+    assert len(c) == 5
+    assert np.all((c.low_m <= 3.0) & (3.0 <= c.high_m))
+    sigma_n = 0.02 * np.hypot(8.0, 3.0) * np.sin(np.arctan2(8.0, 3.0))  # range sigma along the wall normal
+    assert np.all(np.abs(c.height_m - 3.0) <= beam_gap_at_wall_m() + WALL_LIKE_SIGMAS * sigma_n * SLOPE)
+    assert cloud.points_w[taken, 2].min() < 3.0 - 0.3 * SLOPE  # the lowest "wall" hit alone is further off
