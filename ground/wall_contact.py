@@ -187,6 +187,21 @@ def contact_heights_m(contacts: WallContacts, x_edges: np.ndarray, y_edges: np.n
         return np.where(count > 0, total / count, np.nan)
 
 
+def contact_ceiling_m(contacts: WallContacts, x_edges: np.ndarray, y_edges: np.ndarray) -> np.ndarray:
+    """Per grid cell holding contacts, an upper bound on the ground at its centre: the lowest contact top
+    (`high_m`) raised by MAX_SLOPE times the distance from the contact to the centre (the ground may rise
+    that steeply inwards); NaN where no contact bounds the cell. For the interval's unseen term."""
+    nx, ny = len(x_edges) - 1, len(y_edges) - 1
+    out = np.full(nx * ny, np.inf)
+    if len(contacts):
+        ix = np.clip(np.searchsorted(x_edges, contacts.xy_m[:, 0], side="right") - 1, 0, nx - 1)
+        iy = np.clip(np.searchsorted(y_edges, contacts.xy_m[:, 1], side="right") - 1, 0, ny - 1)
+        cx, cy = 0.5 * (x_edges[ix] + x_edges[ix + 1]), 0.5 * (y_edges[iy] + y_edges[iy + 1])
+        top = contacts.high_m + MAX_SLOPE * np.hypot(contacts.xy_m[:, 0] - cx, contacts.xy_m[:, 1] - cy)
+        np.minimum.at(out, ix * ny + iy, top)
+    return np.where(np.isfinite(out), out, np.nan).reshape(nx, ny)
+
+
 def pin_contacts(heights: np.ndarray, contacts: WallContacts, x_edges: np.ndarray, y_edges: np.ndarray) -> np.ndarray:
     """The height grid with each unseen (non-finite) cell that holds wall contacts set to their mean estimate:
     known ground for the fill to carry the surface to. Seen cells are unchanged (the fit there stands)."""

@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 
 from firmware_py.core.frames import StorageFrame
+from firmware_py.core.samplelog import SampleLog
 from firmware_py.core.storage import Storage
 from ground.pointcloud import Cloud, SensorErrorModel, structure_mask
-from ground.report import ReportOptions, survey_from_samples
+from ground.report import ReportOptions, summarise, survey_from_samples
 from ground.surface import grid_volume
-from ground.wall_contact import WALL_LIKE_SIGMAS, WallContacts, pin_contacts, wall_contacts
+from ground.wall_contact import WALL_LIKE_SIGMAS, WallContacts, contact_ceiling_m, pin_contacts, wall_contacts
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, log_header
 from sitl.sensing.batch_sampler import sample_flight
@@ -162,6 +163,9 @@ def test_that_the_wall_contact_fill_of_a_flown_corner_pile_beats_nearest():
     assert 0.0 < missing_wall < 0.5 * missing_near  # measured: 0.27 against 0.80 % of the volume
     v = shape.pile.volume_m3
     assert abs(grid_volume(wall.heights, wall.grid) - v) < abs(grid_volume(near.heights, near.grid) - v)
+    log = SampleLog(header=header, samples=samples, blocks_ok=1, blocks_corrupt=0, blocks_truncated=0, bytes_skipped=0)
+    lo, hi = summarise(wall, log, ReportOptions(plots=False, empty_cells="wall-contact"), v)["volume_interval_m3"]
+    assert lo <= v <= hi  # the interval, its unseen term bounded by the contacts' tops too, still holds the truth
 
 
 def test_that_a_wide_wall_tolerance_does_not_pull_the_contact_down():
@@ -179,3 +183,16 @@ def test_that_a_wide_wall_tolerance_does_not_pull_the_contact_down():
     sigma_n = 0.02 * np.hypot(8.0, 3.0) * np.sin(np.arctan2(8.0, 3.0))  # range sigma along the wall normal
     assert np.all(np.abs(c.height_m - 3.0) <= beam_gap_at_wall_m() + WALL_LIKE_SIGMAS * sigma_n * SLOPE)
     assert cloud.points_w[taken, 2].min() < 3.0 - 0.3 * SLOPE  # the lowest "wall" hit alone is further off
+
+
+@pytest.mark.parametrize("sigma", [0.0, 0.02])
+def test_that_the_contacts_bound_the_ground_of_their_cells_from_above(sigma):
+    err = NOISY if sigma else IDEAL
+    c = contacts_of(swept_cloud(wedge_m(3.0), range_sigma_m=sigma, seed=2), err)
+    xe, ye = np.linspace(0, STORAGE.length_m, 81), np.linspace(0, STORAGE.width_m, 49)
+    top = contact_ceiling_m(c, xe, ye)
+    bounded = np.isfinite(top)
+    assert bounded.sum() == 5 and np.all(np.nonzero(bounded)[0] == 0)  # the wall cells holding a contact
+    cx = 0.5 * (xe[1:] + xe[:-1])
+    assert np.all(top[bounded] >= wedge_m(3.0)(cx[0], 0.0))
+    assert np.all(top[bounded] < 3.0 + 1.5)  # and a bound worth having (the roof is 8 m)
