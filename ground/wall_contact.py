@@ -8,7 +8,10 @@ wall at z' below z_w. For material leaning on the wall (rising, or level, toward
 between that hit and the wall stays above the beam, so the material meets the wall no lower than z'.
 The contact line lies in [z', z_w]: the *wall contact*, estimated by z_w (the lowest wall hit marks
 it). A beam stopped by the floor beside the wall gives z' below the floor: the wall is seen down to
-(near) its foot, no material there (estimate 0).
+(near) its foot, no material there (estimate 0). Material leaning on the wall rises or is level towards
+it, so its last hit short of the wall is no higher than the wall seen above it: a last hit above that
+(a pile's crest metres from the wall, the wall seen low behind it, as on the paper's pile 1) marks no
+contact, since the ground falls away unseen between them.
 
 These are the surface's only evidence at the wall's foot and in the corners, exactly where a fill
 that copies the nearest seen cell has none (docs/design-notes.md, "Wall-contact evidence for the
@@ -140,9 +143,16 @@ def wall_contacts(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
     low = np.minimum(np.clip(z_cross - k * sig_m, 0.0, None), high)
     floor = np.abs(p[m, 2]) <= k * sig_m  # the beam short of the wall hit the floor
     estimate = np.where(floor, 0.0, p[w_est, 2])
+    # Material leaning on the wall rises (or is level) towards it, so its last hit short of the wall is no
+    # higher than the wall seen above it. A last hit above that (a pile's crest metres from the wall, the
+    # wall seen low behind it: the ground falls away unseen) marks no contact.
+    last = np.where(w_est == w, m, w_est + sign)  # the material's last hit before the wall
+    sig_last = vertical_sigma_m(err.range_sigma(r[last]), err.resolution_m, err.position_sigma_m,
+                                err.angle_sigma_rad, r[last], d[last])
+    leaning = p[last, 2] <= p[w_est, 2] + k * (sig_last + sig_w)
     a = 0.5 * (along_w + along_m)
     xy = np.where((axis == 0)[:, None], np.column_stack([pos, a]), np.column_stack([a, pos]))
-    keep = below
+    keep = below & leaning
     return WallContacts(xy[keep], np.clip(estimate[keep], low[keep], high[keep]), low[keep], high[keep],
                         wall[w][keep].astype(np.int64))
 

@@ -196,3 +196,16 @@ def test_that_the_contacts_bound_the_ground_of_their_cells_from_above(sigma):
     cx = 0.5 * (xe[1:] + xe[:-1])
     assert np.all(top[bounded] >= wedge_m(3.0)(cx[0], 0.0))
     assert np.all(top[bounded] < 3.0 + 1.5)  # and a bound worth having (the roof is 8 m)
+
+
+def test_that_a_crest_short_of_the_wall_seen_low_behind_it_makes_no_contact():
+    """Material whose last hit (its crest, 1.2 m) lies above the wall seen behind it falls away unseen
+    towards the wall (here to the floor 0.8 m short of it): no contact up the wall, only bare feet."""
+    def crest(x, y):
+        return np.clip(1.2 - 1.5 * np.abs(x - 1.6), 0.0, None)
+
+    cloud = swept_cloud(crest, sensor_x=10.0, sensor_z=6.0, step_deg=0.25)
+    wall_seen_low = (np.abs(cloud.points_w[:, 0]) < 1e-6) & (cloud.points_w[:, 2] < 1.0)
+    assert wall_seen_low.any()  # the wall is seen below the crest's height, behind it
+    c = contacts_of(cloud, IDEAL)
+    assert np.all(c.height_m == 0.0)
