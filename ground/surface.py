@@ -27,11 +27,12 @@ policy:
 - ``leave`` (the paper's method): no surface there, no volume counted.
 - ``bounded``: the nearest reconstructed height too, but held between the floor and the flight's
   free-space ceiling (`ground.unseen`: beams that passed over a cell bound its height).
-- ``wall-contact``: the surface fitted again with the wall contacts as nodes at the walls' feet
+- ``wall-contact``: the empty cells take the surface fitted through the points and the wall contacts
   (`ground.wall_contact`: where a sweep's lowest wall hit sits above material, the material's height at
-  the wall), so it reaches the walls where the sweeps saw them; what is still empty then as
-  ``CONTACT_REST`` (`ground.wall_contact`). R_a and the interval's unseen term stay those of the points'
-  own fit: the contacts are bounds-backed estimates, not measured pile points.
+  the wall), nodes at the walls' feet, so it reaches the walls where the sweeps saw them; what that
+  leaves empty as ``CONTACT_REST`` (`ground.wall_contact`). The fitted cells keep the points' own fit,
+  and R_a and the interval's unseen term are the points' own: the contacts are bounded estimates, not
+  measured pile points.
 
 Either way R_a (eq. 9) is computed from the fitted surface before any filling, and the report
 states the uncovered area, so extrapolation is never hidden.
@@ -194,7 +195,8 @@ def fill_empty(heights: np.ndarray, policy: str, ceiling_m: np.ndarray | None = 
                contact_fit_m: np.ndarray | None = None) -> np.ndarray:
     """Apply the empty-cell policy to a height grid (see module docstring); ``bounded`` holds the fill
     under ceiling_m (`ground.unseen.free_space_ceiling_m`; None: only the floor bounds it). ``wall-contact``
-    fills contact_fit_m, the fit through the points and the wall contacts (None: no contacts, heights)."""
+    takes the empty cells from contact_fit_m, the fit through the points and the wall contacts (None: no
+    contacts), then fills what is still empty by CONTACT_REST."""
     if policy not in EMPTY_CELL_POLICIES:
         raise ValueError(f"empty-cell policy must be one of {', '.join(EMPTY_CELL_POLICIES)}, got {policy!r}")
     empty = ~np.isfinite(heights)
@@ -202,7 +204,8 @@ def fill_empty(heights: np.ndarray, policy: str, ceiling_m: np.ndarray | None = 
         return heights
     if policy == "wall-contact":
         from ground.wall_contact import CONTACT_REST
-        return fill_empty(heights if contact_fit_m is None else contact_fit_m, CONTACT_REST, ceiling_m)
+        extended = heights if contact_fit_m is None else np.where(empty, contact_fit_m, heights)
+        return fill_empty(extended, CONTACT_REST, ceiling_m)
     if policy == "bounded":
         from ground.unseen import bounded_fill
         return bounded_fill(heights, ceiling_m)

@@ -47,21 +47,21 @@ FIXTURE_RESOLUTION_M = 0.25
 """Vertex spacing of the fixture piles' meshes (the paper piles' spacing)."""
 P_TRAJ_PCT = (20, 30)
 PILES = ("corner", "wall-end", "1", "2")
-FILLS = ("nearest", "nodes-nearest", "nodes-bounded", "pinned-bounded", "bounded-nearest", "bounded-harmonic",
+FILLS = ("nearest", "wall-contact", "nodes-everywhere", "pinned-bounded", "bounded-nearest", "bounded-harmonic",
          "bounded-biharmonic", "floor-only-biharmonic")
-"""The fills compared: today's default; the wall contacts (ground.wall_contact) as nodes of the surface,
-then `nearest` or `bounded`, or pinned in the unseen wall cells before `bounded`; the bounded policy with
-each extension (ground.unseen), and the thin plate held by the floor alone (what the free-space ceiling
-adds)."""
+"""The fills compared: today's default; `--empty-cells wall-contact` (ground.wall_contact: the unseen cells
+from the surface through the points and the wall contacts); that surface in every cell; the contacts pinned
+in the unseen wall cells before `bounded`; the bounded policy with each extension (ground.unseen), and the
+thin plate held by the floor alone (what the free-space ceiling adds)."""
 NOISES = ("none", "appendix-a")
 
 
 def _fill(name: str, heights_fit: np.ndarray, ceiling_m: np.ndarray, contacts: WallContacts, grid: Grid,
           nodes_fit: np.ndarray) -> np.ndarray:
-    if name == "nodes-nearest":
+    if name == "wall-contact":
+        return fill_empty(heights_fit, "wall-contact", ceiling_m, nodes_fit)
+    if name == "nodes-everywhere":
         return fill_empty(nodes_fit, "nearest")
-    if name == "nodes-bounded":
-        return bounded_fill(nodes_fit, ceiling_m)
     if name == "pinned-bounded":
         return contact_fill(heights_fit, contacts, grid.x_edges, grid.y_edges, ceiling_m, Extension.NEAREST)
     if name.startswith("bounded-"):
@@ -208,11 +208,12 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
              "(`nearest` copy, `harmonic` membrane, `biharmonic` thin plate) held between the floor and the",
              "free-space ceiling; `floor-only-biharmonic`: the thin plate held by the floor alone (what the ceiling",
              "adds). The wall contacts (`ground/wall_contact.py`: where a sweep's lowest wall hit sits above its",
-             "next beam's hit on material or floor, the material's height at the wall): `nodes-nearest` and",
-             "`nodes-bounded` fit the surface through the pile points and the contacts (nodes at the walls' feet),",
-             "then fill what is still unseen by `nearest` or `bounded`; `pinned-bounded` keeps the fit and sets the",
-             "contacts in their unseen wall cells before `bounded` (against `bounded-nearest`: what the contacts add",
-             "as a fill alone). What this decided: docs/design-notes.md, \"Free-space",
+             "next beam's hit on material or floor, the material's height at the wall): `wall-contact` (the",
+             "`--empty-cells wall-contact` policy) fills the unseen cells from the surface fitted through the pile",
+             "points and the contacts (nodes at the walls' feet), the rest by `nearest`; `nodes-everywhere` uses",
+             "that surface in the fitted cells too; `pinned-bounded` keeps the fit and sets the contacts in their",
+             "unseen wall cells before `bounded` (against `bounded-nearest`: what the contacts add as a fill alone).",
+             "What this decided: docs/design-notes.md, \"Free-space",
              "ceiling and the bounded fill\" and \"Wall-contact evidence for the unseen fill (issue 14 item 4)\".", "",
              "## Ve (eq. 8, %) over the phases: mean | sd | max", ""]
     head = "| pile | P_traj | noise | " + " | ".join(f"`{p}` mean | sd | max" for p in policies) + " |"
