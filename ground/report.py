@@ -331,7 +331,7 @@ def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageF
         disagreement, _ = sweep_disagreement_m(pile, pile_dir, grid, spread)
     contact_fit = contact_top = None  # the surface through the points and the wall contacts, and their tops
     if opts.empty_cells == "wall-contact":
-        contacts = wall_contacts(cloud, structure, storage, err)
+        contacts = wall_contacts(cloud, structure, storage, err, grid.cell_m)
         nodes, node_sigma = contact_nodes(contacts)
         contact_top = contact_ceiling_m(contacts, grid.x_edges, grid.y_edges)
         contact_fit, _ = clip_to_building(fit_heights(np.concatenate([pile, nodes]), grid, opts.surface_fit,

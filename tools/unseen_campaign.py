@@ -49,10 +49,10 @@ P_TRAJ_PCT = (20, 30)
 PILES = ("corner", "wall-end", "1", "2")
 FILLS = ("nearest", "wall-contact", "nodes-everywhere", "pinned-bounded", "bounded-nearest", "bounded-harmonic",
          "bounded-biharmonic", "floor-only-biharmonic")
-"""The fills compared: today's default; `--empty-cells wall-contact` (ground.wall_contact: the unseen cells
-from the surface through the points and the wall contacts); that surface in every cell; the contacts pinned
-in the unseen wall cells before `bounded`; the bounded policy with each extension (ground.unseen), and the
-thin plate held by the floor alone (what the free-space ceiling adds)."""
+"""The fills compared: `nearest` (the default before issue 14 item 4); `--empty-cells wall-contact` (the default
+now; ground.wall_contact: the unseen cells from the surface through the points and the wall contacts); that
+surface in every cell; the contacts pinned in the unseen wall cells before `bounded`; the bounded policy with
+each extension (ground.unseen), and the thin plate held by the floor alone (what the free-space ceiling adds)."""
 NOISES = ("none", "appendix-a")
 CELL_ERROR_FILLS = ("nearest", "wall-contact")
 """The fills whose mean per-cell error in the unseen cells the second table states."""
@@ -155,7 +155,7 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
                                        beam_angle_sigma_rad(header), where=unseen)
         ceiling_s = time.perf_counter() - t0
         err = SensorErrorModel.from_header(header)
-        contacts = wall_contacts(sv.cloud, structure_mask(sv.cloud, storage, err), storage, err)
+        contacts = wall_contacts(sv.cloud, structure_mask(sv.cloud, storage, err), storage, err, sv.grid.cell_m)
         nodes_fit, _ = clip_to_building(fit_heights(np.concatenate([sv.pile_points_w, contact_nodes(contacts)[0]]),
                                                     sv.grid), storage.height_m)
         # the ceiling over the node fit's unseen cells too (a subset of the survey's, where it was computed)
@@ -206,18 +206,18 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
              "flanks); `wall-end`, a 7 m ridge along the end wall x = 0 whose ends stop short of both corners (bare",
              "corners, flanks facing them); the paper's piles 1 and 2. Each row: the 20 servo phases (Fig. 9) through",
              "`survey_from_samples`, every fill applied to the same fitted surface and the same free-space ceiling.",
-             "", "Fills: `nearest` (today's default: the nearest fitted cell's height); `bounded-<extension>`: the",
+             "", "Fills: `wall-contact` (the default, `--empty-cells wall-contact`: the unseen cells from the surface",
+             "fitted through the pile points and the wall contacts, nodes at the walls' feet, the rest by the nearest",
+             "height; a wall contact, `ground/wall_contact.py`: where a sweep's lowest wall hit sits above its next",
+             "beam's hit on material or floor, the material's height at the wall); `nearest` (the nearest fitted",
+             "cell's height, the default until this campaign); `nodes-everywhere`: the surface through the contacts",
+             "in the fitted cells too; `pinned-bounded`: the fit kept, the contacts set in their unseen wall cells",
+             "before `bounded` (against `bounded-nearest`: what they add as a fill alone); `bounded-<extension>`: the",
              "`bounded` policy (`ground/unseen.py`) carrying the seen surface into the unseen cells by that extension",
              "(`nearest` copy, `harmonic` membrane, `biharmonic` thin plate) held between the floor and the",
              "free-space ceiling; `floor-only-biharmonic`: the thin plate held by the floor alone (what the ceiling",
-             "adds). The wall contacts (`ground/wall_contact.py`: where a sweep's lowest wall hit sits above its",
-             "next beam's hit on material or floor, the material's height at the wall): `wall-contact` (the",
-             "`--empty-cells wall-contact` policy) fills the unseen cells from the surface fitted through the pile",
-             "points and the contacts (nodes at the walls' feet), the rest by `nearest`; `nodes-everywhere` uses",
-             "that surface in the fitted cells too; `pinned-bounded` keeps the fit and sets the contacts in their",
-             "unseen wall cells before `bounded` (against `bounded-nearest`: what the contacts add as a fill alone).",
-             "What this decided: docs/design-notes.md, \"Free-space",
-             "ceiling and the bounded fill\" and \"Wall-contact evidence for the unseen fill (issue 14 item 4)\".", "",
+             "adds). What this decided: docs/design-notes.md, \"Free-space ceiling and the bounded fill\" and",
+             "\"Wall-contact evidence for the unseen fill (issue 14 item 4)\".", "",
              "## Ve (eq. 8, %) over the phases: mean | sd | max", ""]
     head = "| pile | P_traj | noise | " + " | ".join(f"`{p}` mean | sd | max" for p in policies) + " |"
     lines += [head, "|" + "---|" * (3 + 3 * len(policies))]

@@ -25,6 +25,7 @@ IDEAL = SensorErrorModel(resolution_m=0.01)
 NOISY = SensorErrorModel(range_sigma_m=0.02, resolution_m=0.01)
 SLOPE = np.tan(np.radians(35.0))
 RATE_HZ = 500.0
+CELL_M = 0.25
 
 
 def wedge_m(top_m: float):
@@ -58,7 +59,7 @@ def swept_cloud(height_fn, sensor_x=8.0, sensor_z=6.0, ys=(3.0, 4.5, 6.0, 7.5, 9
 
 
 def contacts_of(cloud: Cloud, err: SensorErrorModel) -> WallContacts:
-    return wall_contacts(cloud, structure_mask(cloud, STORAGE, err), STORAGE, err)
+    return wall_contacts(cloud, structure_mask(cloud, STORAGE, err), STORAGE, err, CELL_M)
 
 
 def beam_gap_at_wall_m(sensor_x=8.0, sensor_z=6.0, z=3.0, step_deg=0.5) -> float:
@@ -178,7 +179,7 @@ def test_that_a_wide_wall_tolerance_does_not_pull_the_contact_down():
     structure = structure_mask(cloud, STORAGE, wide)
     taken = structure & (cloud.points_w[:, 0] > 0.3) & (cloud.points_w[:, 2] < STORAGE.height_m - 1)
     assert taken.any()  # the mask took wedge points 0.3 m or more from the wall for wall
-    c = wall_contacts(cloud, structure, STORAGE, wide)
+    c = wall_contacts(cloud, structure, STORAGE, wide, CELL_M)
     assert len(c) == 5
     assert np.all((c.low_m <= 3.0) & (3.0 <= c.high_m))
     sigma_n = 0.02 * np.hypot(8.0, 3.0) * np.sin(np.arctan2(8.0, 3.0))  # range sigma along the wall normal
