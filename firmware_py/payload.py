@@ -226,8 +226,7 @@ class PayloadLoop:
                 if end_ns is not None and self.clock.now_ns() >= end_ns:
                     break
                 self.tick()  # the sensor's read waits for its next reading
-            self._tag_ready(self.clock.now_ns(), flush=True)
-            self.log.flush()
+            self._drain()
             return self.stats
         while not should_stop():
             now = self.clock.now_ns()
@@ -239,6 +238,19 @@ class PayloadLoop:
             self.clock.sleep_until_ns(self._next_ns)
             self.tick()
             self._next_ns += self.period_ns
+        self._drain()
+        return self.stats
+
+    def _drain(self) -> None:
+        """At the end: no more readings, but the link pumped on a tick grid until the poses after the last
+        ones have come (one stream period and the link's latency; at most `max_pose_wait_s`), so a stop
+        loses no sample to a missing pose. What still has none is logged flagged, and the log flushed."""
+        now = self.clock.now_ns()
+        deadline, t = now + round(self.cfg.max_pose_wait_s * 1e9), now
+        while self._pending and t < deadline:
+            t += self.period_ns
+            self.clock.sleep_until_ns(t)
+            self.pose.pump()
+            self._tag_ready(self.clock.now_ns())
         self._tag_ready(self.clock.now_ns(), flush=True)
         self.log.flush()
-        return self.stats

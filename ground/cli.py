@@ -51,7 +51,10 @@ def build_parser() -> ArgumentParser:
     add_config_option(ap)
     sub = ap.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
     r = sub.add_parser("report", help="volume report from a run directory or a sample log")
-    r.add_argument("source", metavar="RUN_DIR_OR_LOG", help="run directory (reads truth.json too) or .pslog")
+    r.add_argument("source", metavar="RUN_DIR_OR_LOG", nargs="+",
+                   help="run directory (reads truth.json too) or .pslog; several: the flights of one survey (the "
+                        "same building, site and sensor; e.g. a first flight and its `pilescan-sitl plan --fill-gaps` "
+                        "re-flight), each log corrected on its own, their clouds merged into one report")
     r.add_argument("--out", required=True, help="report directory to write")
     r.add_argument("--force", action="store_true",
                    help="replace a report already in --out (its files are removed, report.json first)")
@@ -155,6 +158,10 @@ def build_parser() -> ArgumentParser:
     ls.add_argument("--max-log-mb", type=finite_float, default=None, metavar="MIB",
                     help=f"size cap of --out in MiB (default {listen.DEFAULT_MAX_LOG_MIB}); past it, records are "
                          "counted, not written, and one line says so")
+    ls.add_argument("--web", default=None, metavar="HOST:PORT",
+                    help="also serve a live page there (coverage map, track, running volume with its interval, "
+                         "unseen cells, these counters; updated once a second; needs --header for the building). "
+                         "It has no login: bind it to 127.0.0.1 unless the network is yours (docs/live.md)")
     add_verbosity(ls, sub=True, quiet_help="no status line or summary: print nothing but errors")
     add_config_option(ls, sub=True)
     return ap

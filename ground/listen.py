@@ -35,6 +35,11 @@ receiving and counting go on (`records_unlogged`).
 What the records are. The status line and the summary count samples by what their flags say
 (`firmware_py.core.flag_tally`): usable, no return (nothing within the sensor's reach: normal
 over open floor), faulty (sensor error, stale or missing pose, servo in doubt).
+
+The live page. With `web` (`--web HOST:PORT`) a page on that address shows the survey as it is flown,
+updated once a second: coverage map, track, running volume with its interval, unseen cells, these
+counters (`ground.live_page`, `ground.live_state`, docs/live.md). The receiver only hands each batch of
+records over to the page's threads; it never waits for them.
 """
 
 from __future__ import annotations
@@ -66,7 +71,9 @@ from firmware_py.core.samplelog import (
     read_samplelog,
 )
 from firmware_py.core.stream_format import parse_stream_url
+from ground.live_page import LivePageServer, parse_web_address
 from ground.live_receiver import LiveStreamReceiver, PeerSpec
+from ground.live_state import LiveGeometry, LiveState
 
 PROG = "pilescan-ground listen"
 STATUS_PERIOD_S = 1.0
@@ -159,6 +166,7 @@ class ListenConfig:
         fsync: fsync each block (off only for tests).
         quiet: no status lines or warnings [--quiet].
         max_log_bytes: the live log's size cap [--max-log-mb] (module docstring).
+        web: (host, port) to serve the live page on [--web HOST:PORT]; None: no page.
     """
 
     url: str
@@ -174,6 +182,7 @@ class ListenConfig:
     fsync: bool = True
     quiet: bool = False
     max_log_bytes: int = DEFAULT_MAX_LOG_MIB * MIB
+    web: tuple[str, int] | None = None
 
     def __post_init__(self) -> None:
         parse_stream_url(self.url, allow_port_zero=True)
@@ -216,6 +225,8 @@ class ListenResult:
     records_unlogged: int = 0
     """Records received after the log reached its size cap (counted, not written)."""
     log_cap_bytes: int | None = None
+    web_url: str | None = None
+    """Where the live page was served (None: no --web)."""
 
     @property
     def refused(self) -> dict[str, int]:
@@ -256,6 +267,8 @@ class Listener:
         self._warnings: list[str] = []
         self._warned_unverified = False
         self._bound_url: str | None = None
+        self.live: LiveState | None = None
+        self.page: LivePageServer | None = None
 
     # ----- control -------------------------------------------------------------------------------
 
@@ -288,6 +301,13 @@ class Listener:
             self.rx = LiveStreamReceiver(cfg.url, key=cfg.key, allowed_peers=cfg.allowed_peers)
         except OSError as exc:  # address in use, not an address of this machine, name does not resolve
             raise UserError(f"cannot listen on {cfg.url}: {exc.strerror or exc}") from None
+        if cfg.web is not None:
+            try:
+                self._open_page()
+            except BaseException:
+                self.rx.close()
+                self.rx = None
+                raise
         if out is not None:
             try:
                 self.log = SampleLogWriter(out, cfg.log_header(), records_per_block=cfg.records_per_block,
@@ -295,6 +315,7 @@ class Listener:
             except BaseException as exc:
                 self.rx.close()
                 self.rx = None
+                self._close_page()
                 if isinstance(exc, OSError):
                     raise UserError(f"cannot write {out}: {exc.strerror or exc}") from None
                 raise
@@ -307,6 +328,38 @@ class Listener:
         self._bound_url = f"udp:[{host}]:{port}" if ":" in host else f"udp:{host}:{port}"
         self._t0 = self.clock()
         self._status_prev = (self._t0, 0)
+        if self.page is not None:
+            self.live.start()
+            if not self.cfg.quiet:
+                self._print(f"{PROG}: live page on {self.page.url}")
+
+    def _open_page(self) -> None:
+        """The live page's state and server (module docstring); UserError when its address cannot be bound."""
+        cfg = self.cfg
+        geometry, problem = None, None
+        if cfg.header is None:
+            problem = "no --header: the building and the sensor's placement are unknown"
+        else:
+            try:
+                geometry = LiveGeometry.from_header(cfg.header, f"header from {cfg.header_from}")
+            except UserError as exc:
+                problem = str(exc)
+        self.live = LiveState(geometry, self.counters, geometry_problem=problem)
+        self.page = LivePageServer(*cfg.web, self.live.snapshot_json)
+
+    def _close_page(self) -> None:
+        if self.page is not None:
+            self.page.close()
+        if self.live is not None:
+            self.live.close()
+
+    def counters(self) -> dict[str, Any]:
+        """What the status line counts, for the live page (read from the page's threads: reads only)."""
+        st = self.rx.stats if self.rx is not None else {}
+        return {"records": self.records, "datagrams": st.get("datagrams", 0), "lost": st.get("lost", 0),
+                "late": st.get("late", 0), "resyncs": st.get("resyncs", 0),
+                "refused": sum(st.get(k, 0) for k in REFUSAL_REASONS), "samples": self.tally.describe(),
+                "records_unlogged": self.records_unlogged}
 
     def pump(self, timeout_s: float = 0.0) -> int:
         """Wait up to timeout_s for datagrams, take every one that has arrived, log their records;
@@ -323,6 +376,8 @@ class Listener:
             self.records += len(recs)
             self.flagged += int(np.count_nonzero(recs["flags"]))
             self.tally.add(recs["flags"])
+            if self.live is not None:
+                self.live.offer(recs)  # an append: the page's threads do the rest
         if self.rx.stats["unverified"] and not self._warned_unverified:
             self._warned_unverified = True
             self._warn("the stream is authenticated but this listener has no key (--signing-key): "
@@ -398,6 +453,7 @@ class Listener:
         finally:
             if self.rx is not None:
                 self.rx.close()
+            self._close_page()
             if self._live_line:
                 self._print("")
                 self._live_line = False
@@ -419,7 +475,8 @@ class Listener:
             out_path=self.cfg.out_path, header_from=self.cfg.header_from,
             last_refusal=self.rx.last_error if self.rx is not None else None, warnings=tuple(warnings),
             samples_text=self.tally.describe(), records_unlogged=self.records_unlogged,
-            log_cap_bytes=self.cfg.max_log_bytes if self.cfg.out_path is not None else None)
+            log_cap_bytes=self.cfg.max_log_bytes if self.cfg.out_path is not None else None,
+            web_url=self.page.url if self.page is not None else None)
 
     def status_line(self, now: float) -> str:
         """The one-line status: elapsed, records and rate since the last line, datagrams, losses, refusals."""
@@ -493,7 +550,9 @@ def format_summary(res: ListenResult) -> str:
     ]
     if res.refused and res.last_refusal:
         lines.append(f"last refusal  {res.last_refusal}")
-    lines += [f"log           {log}", f"stopped       {res.stop_reason}"]
+    lines += [f"log           {log}"]
+    lines += [f"live page     {res.web_url}"] if res.web_url else []
+    lines += [f"stopped       {res.stop_reason}"]
     lines += [f"WARNING: {w}" for w in res.warnings]
     return "\n".join(lines)
 
@@ -513,7 +572,9 @@ def config_from_args(args: Any) -> ListenConfig:
         cap_mib = DEFAULT_MAX_LOG_MIB
     if not (isinstance(cap_mib, int | float) and math.isfinite(cap_mib) and cap_mib * MIB >= 1):
         raise UserError(f"--max-log-mb must be a positive size in MiB, got {cap_mib!r}")
-    return ListenConfig(url=args.stream.strip(), key=key, allowed_peers=peers,
+    web = getattr(args, "web", None)
+    web = parse_web_address(web) if web is not None else None
+    return ListenConfig(url=args.stream.strip(), key=key, allowed_peers=peers, web=web,
                         out_path=Path(args.out) if args.out is not None else None, force=args.force,
                         header=header, header_from=args.header, duration_s=args.duration, quiet=args.quiet,
                         max_log_bytes=int(cap_mib * MIB))

@@ -121,8 +121,10 @@ _METADATA_LABELS = (
     ("site_name", "Site"), ("survey_start_utc", "Survey start (UTC)"), ("survey_start_local", "Survey start (local)"),
     ("survey_duration_s", "Logged for"), ("operator", "Operator"), ("aircraft", "Aircraft"), ("sensor", "Sensor"),
     ("flight_software", "Flight software"), ("mission_id", "Mission"), ("log_file", "Log file"),
-    ("log_sha256", "Log SHA-256"),
+    ("log_sha256", "Log SHA-256"), ("flights_merged", "Flights merged"),
 )
+_ONLY_WHEN_STATED = ("flights_merged",)
+"""Rows shown only when the record has them (a merged survey's), not as "not stated"."""
 
 
 def metadata_rows(meta: Mapping[str, Any] | None) -> list[tuple[str, str]]:
@@ -132,6 +134,12 @@ def metadata_rows(meta: Mapping[str, Any] | None) -> list[tuple[str, str]]:
     rows = []
     for key, label in _METADATA_LABELS:
         v = meta.get(key)
+        if v is None and key in _ONLY_WHEN_STATED:
+            continue
+        if key == "flights_merged" and isinstance(meta.get("flights"), list):  # each flight's log, start, time
+            v = f"{v}: " + "; ".join(
+                f"{f.get('log')} ({f.get('created_utc') or 'start not stated'}, {f.get('duration_s', 0) / 60:.1f} min)"
+                for f in meta["flights"] if isinstance(f, Mapping))
         if key == "survey_start_local":
             v = v if v is not None else meta.get("local_time") or "UTC only"
         elif key == "survey_duration_s":

@@ -10,6 +10,7 @@ before that, from the time-ordered samples (`ground.despike`), with a threshold 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from statistics import NormalDist
 
@@ -133,6 +134,21 @@ def cloud_from_samples(samples: np.ndarray, lever_arm_body_m, frame: StorageFram
                  int(len(samples) - usable.sum()), n_servo_suspect=int(suspect.sum()),
                  n_spikes=int(spikes.sum()), sweep_dir=samples["sweep_dir"][usable], t_s=samples["t_s"][usable],
                  servo_rad=gamma, flags=samples["flags"][usable])
+
+
+def merge_clouds(clouds: Sequence[Cloud]) -> Cloud:
+    """Several flights' clouds of one survey as one (`pilescan-ground report RUN1 RUN2 ...`): their points,
+    beams and paths in order, their counts summed. Each was placed, despiked and checked for a stuck servo on
+    its own log (those are per flight); a per-point field one of them lacks is dropped for all."""
+    if not clouds:
+        raise ValueError("no cloud to merge")
+
+    def cat(name: str) -> np.ndarray | None:
+        parts = [getattr(c, name) for c in clouds]
+        return None if any(p is None for p in parts) else np.concatenate(parts)
+    return Cloud(cat("points_w"), cat("dirs_w"), cat("range_m"), cat("path_w"), sum(c.n_samples for c in clouds),
+                 sum(c.n_excluded for c in clouds), sum(c.n_servo_suspect for c in clouds),
+                 sum(c.n_spikes for c in clouds), cat("sweep_dir"), cat("t_s"), cat("servo_rad"), cat("flags"))
 
 
 def plane_tolerances_m(cloud: Cloud, err: SensorErrorModel, n_sigma: float | None = None) -> np.ndarray:

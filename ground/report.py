@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -21,7 +21,7 @@ from firmware_py.core.safe_read import InputError, json_number, json_object, loa
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, SampleLog, read_samplelog
 from firmware_py.core.sensor_noise import HEADER_KEY as NOISE_HEADER_KEY
 from firmware_py.core.sensor_noise import describe_record
-from firmware_py.core.site import Site
+from firmware_py.core.site import Site, site_difference
 from firmware_py.core.storage import Storage
 from firmware_py.core.surface_file import SURFACE_FILE
 from firmware_py.core.version import software_version
@@ -31,11 +31,18 @@ from ground.deliverable import add_deliverable
 from ground.despike import SpikeThreshold, why_no_threshold
 from ground.exports.formats import EXPORT_FILES, ExportFormat
 from ground.exports.write import check_exports, write_exports
-from ground.metadata import SurveyInfo
+from ground.metadata import SurveyInfo, sha256_of
 from ground.piles import PILES_CSV, PileOptions, write_piles_csv
 from ground.plausibility import PlausibilityLimits, implausible, without_implausible
 from ground.pointcloud import N_SIGMA as FLOOR_N_SIGMA
-from ground.pointcloud import Cloud, SensorErrorModel, cloud_from_samples, structure_mask, structure_n_sigma
+from ground.pointcloud import (
+    Cloud,
+    SensorErrorModel,
+    cloud_from_samples,
+    merge_clouds,
+    structure_mask,
+    structure_n_sigma,
+)
 from ground.pose_correction import PoseCorrection, apply_pose_correction, estimate_pose_correction
 from ground.pose_correction import describe as describe_pose
 from ground.pose_correction import unconstrained_warning as pose_unconstrained_warning
@@ -217,6 +224,118 @@ def header_site(header: dict) -> tuple[dict | None, str | None]:
         return None, f"log header site is malformed ({exc}): not shown"
 
 
+# ----- several flights of one survey (`pilescan-ground report RUN1 RUN2 ... --out DIR`) -------------------
+
+TRUTH_TOLERANCE_REL = 1e-9
+"""Runs of one survey carry one true volume (the simulator writes the same pile's): they agree to rounding."""
+
+
+@dataclass(frozen=True)
+class Flight:
+    """One flight of a merged survey: its log and its own survey (the per-log steps applied to it alone)."""
+
+    inp: LogInput
+    survey: Survey
+
+
+def survey_mismatch(inputs: Sequence[LogInput]) -> str | None:
+    """Why these logs are not flights of one survey (another building, site, storage frame or sensor, or one
+    log twice), or None."""
+    first = inputs[0]
+    h0 = first.log.header or {}
+    seen = {sha256_of(first.log_path): first.log_path}
+    for inp in inputs[1:]:
+        h = inp.log.header or {}
+        where = f"{first.log_path} and {inp.log_path}"
+        digest = sha256_of(inp.log_path)
+        if digest in seen:
+            return f"{seen[digest]} and {inp.log_path} are the same log: each flight's log once"
+        seen[digest] = inp.log_path
+        a, b = first.storage, inp.storage
+        if max(abs(a.length_m - b.length_m), abs(a.width_m - b.width_m), abs(a.height_m - b.height_m)) \
+                > SITE_TOLERANCE_M:
+            return f"{where} are surveys of different buildings ({a} and {b})"
+        s0, s1 = header_site(h0)[0], header_site(h)[0]
+        if s0 is not None and s1 is not None:
+            why = site_difference(Site.from_dict(s0), Site.from_dict(s1))
+            if why is not None:
+                return f"{where} are surveys of different buildings: {why}"
+        else:  # no site to tie them: their storage frames must be one
+            f0, f1 = first.frame, inp.frame
+            turn = (math.degrees(f0.heading_rad - f1.heading_rad) + 180.0) % 360.0 - 180.0
+            if np.max(np.abs(np.subtract(f0.origin_ned_m, f1.origin_ned_m))) > SITE_TOLERANCE_M \
+                    or abs(turn) > HEADING_TOLERANCE_DEG:
+                return f"{where} have different storage frames (and no site record to relate them)"
+        m0, m1 = ((x.get("sensor") or {}).get("model") if isinstance(x.get("sensor"), dict) else None
+                  for x in (h0, h))
+        if m0 != m1:
+            return f"{where} were flown with different sensors ({m0} and {m1})"
+    return None
+
+
+def merged_truth(truths: Sequence[float | None], inputs: Sequence[LogInput]) -> float | None:
+    """The one true volume the runs state (bare logs state none); UserError when two differ."""
+    stated = [(t, i.log_path) for t, i in zip(truths, inputs, strict=True) if t is not None]
+    for t, where in stated[1:]:
+        if abs(t - stated[0][0]) > TRUTH_TOLERANCE_REL * max(1.0, abs(t), abs(stated[0][0])):
+            raise UserError(f"the runs' true volumes differ ({stated[0][0]:,.3f} m³ for {stated[0][1]}, {t:,.3f} m³ "
+                            f"for {where}): not flights over one pile")
+    return stated[0][0] if stated else None
+
+
+def merged_survey(flights: Sequence[Flight], opts: ReportOptions) -> Survey:
+    """One survey of several flights: each flight's cloud as its own log made it (despiked, sweep-checked,
+    re-timed, self-calibrated, pose-corrected), merged and surfaced by `survey_of_cloud` like one log's."""
+    inp = flights[0].inp
+    err = SensorErrorModel.from_header(inp.log.header or {})
+    merged = survey_of_cloud(merge_clouds([f.survey.cloud for f in flights]), inp.storage, opts, err)
+    counts = [f.survey.implausible for f in flights if f.survey.implausible is not None]
+    implausible = None if not counts else {k: sum(c.get(k, 0) for c in counts) for k in dict.fromkeys(
+        k for c in counts for k in c)}
+    return replace(merged, implausible=implausible,
+                   despike_unavailable=next((f.survey.despike_unavailable for f in flights
+                                             if f.survey.despike_unavailable), None))
+
+
+def merged_log(inputs: Sequence[LogInput]) -> SampleLog:
+    """The flights' logs as one: the first's header (the building, frame and sensor they share), every
+    sample, the damage summed."""
+    logs = [i.log for i in inputs]
+    return SampleLog(logs[0].header, np.concatenate([lg.samples for lg in logs]),
+                     sum(lg.blocks_ok for lg in logs), sum(lg.blocks_corrupt for lg in logs),
+                     sum(lg.blocks_truncated for lg in logs), sum(lg.bytes_skipped for lg in logs),
+                     sum(lg.blocks_unknown for lg in logs))
+
+
+def flight_record(f: Flight) -> dict:
+    """What report.json says of one merged flight: which log (its SHA-256), when, and what it alone saw."""
+    t = f.inp.log.samples["t_s"]
+    h = f.inp.log.header or {}
+    st = f.survey.servo_timing
+    return {"log": str(f.inp.log_path), "log_sha256": sha256_of(f.inp.log_path),
+            "created_utc": h.get("created_utc") if isinstance(h.get("created_utc"), str) else None,
+            "t_first_s": float(np.nanmin(t)), "t_last_s": float(np.nanmax(t)),
+            "duration_s": float(np.nanmax(t) - np.nanmin(t)), "mission_id": h.get("mission_id"),
+            "n_samples": f.survey.cloud.n_samples, "n_points_used": len(f.survey.pile_points_w),
+            "coverage_ratio_pct_alone": reconstructed_ratio_pct(f.survey.heights_fit),
+            "servo_retimed": f.survey.servo_retimed and st is not None,
+            "self_calibration_applied": f.survey.mount is not None and f.survey.mount.any_applied,
+            "pose_correction_applied": f.survey.pose is not None and f.survey.pose.applied}
+
+
+def merged_metadata(report: dict, flights: Sequence[Flight]) -> None:
+    """report["metadata"] of a merged survey, in place: the first flight's start, the flights' summed logged
+    time, every log's file and SHA-256 (and the flights' list: `flight_record`)."""
+    meta = report["metadata"]
+    recs = report["flights"]
+    meta["survey_duration_s"] = sum(r["duration_s"] for r in recs)
+    meta["log_file"] = ", ".join(str(f.inp.log_path) for f in flights)
+    meta["log_sha256"] = ", ".join(r["log_sha256"] for r in recs)
+    meta["mission_id"] = ", ".join(str(r["mission_id"]) for r in recs)
+    meta["flights_merged"] = len(recs)
+    meta["flights"] = [{k: r[k] for k in ("log", "log_sha256", "created_utc", "duration_s")} for r in recs]
+
+
 def check_grid_memory(storage: Storage, cell_m: float, max_bytes: int) -> None:
     """Refuse a cell size whose grid would need more than max_bytes (GRID_BYTES_PER_CELL a cell), naming
     the smallest cell that fits, instead of running the machine out of memory."""
@@ -316,6 +435,12 @@ def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageF
             boresight: Boresight) -> Survey:
     cloud = cloud_from_samples(samples, lever, frame, sweep_period_s=_sweep_period_s(header), spike_threshold=spikes,
                                boresight=boresight)
+    return survey_of_cloud(cloud, storage, opts, err)
+
+
+def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: SensorErrorModel) -> Survey:
+    """The surface, volume terms and sweep check of a placed cloud: one log's, or several flights' merged
+    (`merged_survey`), so a merged survey is computed by the same code as a single one."""
     structure = structure_mask(cloud, storage, err)
     pile = cloud.points_w[~structure]
     grid = Grid(storage.length_m, storage.width_m, opts.cell_m)
@@ -357,14 +482,11 @@ def sensor_noise_line(header: dict) -> str:
     return "none stated in the log header" if rec is None else describe_record(rec)
 
 
-def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: float | None) -> dict:
-    g = survey.grid
-    base = survey.base or FLOOR_BASE
-    volume = base.volume_m3(survey.heights, g)  # over z = 0: grid_volume(survey.heights, g), as always
-    ra = reconstructed_ratio_pct(survey.heights_fit)
-    n_struct = len(survey.cloud.points_w) - len(survey.pile_points_w)
+def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[str]:
+    """What one log's own checks found (damage, unusable and implausible samples, spikes, a stuck or mistimed
+    servo, the mount, the pose, the site): per flight, whether the flight is reported alone or merged."""
     warnings = []
-    site, why = header_site(log.header or {})
+    why = header_site(log.header or {})[1]
     if why is not None:
         warnings.append(why)
     if log.blocks_corrupt or log.blocks_truncated:
@@ -375,23 +497,6 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         tally.add(log.samples["flags"])
         warnings.append(f"{survey.cloud.n_excluded} of {survey.cloud.n_samples} samples unusable "
                         f"(by their flags: {tally.describe()}; implausible records are counted apart)")
-    if ra < LOW_COVERAGE_PCT and opts.empty_cells == "leave":
-        warnings.append(f"only {ra:.1f} % of the floor is reconstructed (R_a); the volume misses the "
-                        "uncovered cells")
-    interval, terms = None, None
-    if survey.errors is not None:
-        terms = survey.errors.terms
-        interval = base.interval_m3(volume, terms, DEFAULT_INTERVAL_MODEL)
-        warnings += [w for w in (
-            unseen_warning(survey.heights_fit, survey.heights, g, terms, DEFAULT_INTERVAL_MODEL, volume,
-                           opts.max_interval_pct),
-            faces_warning(survey.errors.faces, g, terms, DEFAULT_INTERVAL_MODEL),
-            wide_interval_warning(volume, interval, opts.max_interval_pct)) if w]
-    warnings += list(base.warnings)
-    if volume < 0 and base.kind is not BaseKind.SURVEY:  # below an earlier survey: material taken away
-        warnings.append(f"the surface lies {-volume:,.1f} m³ below the floor on balance: no material above the "
-                        "floor's noise; read the volume as 0" + (f" (90 % interval {interval[0]:,.1f}-"
-                                                                 f"{interval[1]:,.1f} m³)" if interval else ""))
     n_implausible = sum((survey.implausible or {}).values())
     if n_implausible:
         parts = ", ".join(f"{n} {what.replace('_', ' ')}" for what, n in survey.implausible.items() if n)
@@ -399,8 +504,6 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
                         f"({parts} beyond the header's limits): damaged or forged records")
     if survey.despike_unavailable:
         warnings.append(f"despiking did not run: {survey.despike_unavailable}")
-    if len(survey.pile_points_w) < 3:
-        warnings.append("fewer than 3 points on the stockpile: no surface could be fitted")
     if survey.cloud.n_servo_suspect:
         warnings.append(f"{survey.cloud.n_servo_suspect} samples left out: in those sweep periods the ranges did not "
                         "move like a swept beam's (servo stuck or slow?)")
@@ -426,6 +529,45 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
     if survey.pose is not None and survey.pose.applied:
         warnings += [w for w in (describe_pose(survey.pose), pose_unconstrained_warning(survey.pose)) if w]
     warnings += site_mismatches(log.header or {}, opts.site)
+    return warnings
+
+
+def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: float | None,
+              flights: Sequence[Flight] | None = None) -> dict:
+    """report.json's figures and warnings. With flights (a merged survey: `merged_survey`, `log` their merged
+    log), each flight's own checks are its warnings, named by its log, and the report lists the flights."""
+    g = survey.grid
+    base = survey.base or FLOOR_BASE
+    volume = base.volume_m3(survey.heights, g)  # over z = 0: grid_volume(survey.heights, g), as always
+    ra = reconstructed_ratio_pct(survey.heights_fit)
+    n_struct = len(survey.cloud.points_w) - len(survey.pile_points_w)
+    site, _ = header_site(log.header or {})
+    if flights is None:
+        warnings = log_warnings(survey, log, opts)
+    else:
+        warnings = [f"flight {k} ({f.inp.log_path}): {w}" for k, f in enumerate(flights, 1)
+                    for w in log_warnings(f.survey, f.inp.log, opts)]
+    if ra < LOW_COVERAGE_PCT and opts.empty_cells == "leave":
+        warnings.append(f"only {ra:.1f} % of the floor is reconstructed (R_a); the volume misses the "
+                        "uncovered cells")
+    interval, terms = None, None
+    if survey.errors is not None:
+        terms = survey.errors.terms
+        interval = base.interval_m3(volume, terms, DEFAULT_INTERVAL_MODEL)
+        warnings += [w for w in (
+            unseen_warning(survey.heights_fit, survey.heights, g, terms, DEFAULT_INTERVAL_MODEL, volume,
+                           opts.max_interval_pct),
+            faces_warning(survey.errors.faces, g, terms, DEFAULT_INTERVAL_MODEL),
+            wide_interval_warning(volume, interval, opts.max_interval_pct)) if w]
+    warnings += list(base.warnings)
+    if volume < 0 and base.kind is not BaseKind.SURVEY:  # below an earlier survey: material taken away
+        warnings.append(f"the surface lies {-volume:,.1f} m³ below the floor on balance: no material above the "
+                        "floor's noise; read the volume as 0" + (f" (90 % interval {interval[0]:,.1f}-"
+                                                                 f"{interval[1]:,.1f} m³)" if interval else ""))
+    n_implausible = sum((survey.implausible or {}).values())
+    if len(survey.pile_points_w) < 3:
+        warnings.append("fewer than 3 points on the stockpile: no surface could be fitted")
+    st = survey.servo_timing
     if survey.n_cells_clipped:
         warnings.append(f"the fitted surface left the building in {survey.n_cells_clipped} cells (left empty, "
                         "filled by the empty-cell policy): points contradict each other there, e.g. a LiDAR buried "
@@ -472,6 +614,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "log": {"blocks_ok": log.blocks_ok, "blocks_corrupt": log.blocks_corrupt,
                 "blocks_truncated": log.blocks_truncated, "bytes_skipped": log.bytes_skipped},
         "warnings": warnings,
+        "flights": None if flights is None else [flight_record(f) for f in flights],
         "software_version": software_version(),
     }
 
@@ -532,50 +675,66 @@ REPORT_FILES = (*REPORT_FILES, SURFACE_FILE)  # the final height grid, a later s
 REPORT_FILES = (*REPORT_FILES, "report.pdf", "site_map.png", "surface_3d.png", "sections.png")  # the customer's page
 
 
-def make_report(source: str | Path, out_dir: str | Path, opts: ReportOptions | None = None, *,
+def make_report(source: str | Path | Sequence[str | Path], out_dir: str | Path, opts: ReportOptions | None = None, *,
                 force: bool = False) -> dict:
-    """Run the pipeline on a run directory or a log and write the report directory.
+    """Run the pipeline on a run directory or a log (or several flights' of one survey, merged) and write the
+    report directory.
 
     The inputs are read and the volume computed before the output is touched; the files are then
     written into a staging folder and moved into place, report.json last (`rundir.OutputFolder`), so a
     report that fails half-way leaves nothing new beside an old one. An --out that already holds a
     report is refused unless force. Raises NoVolumeError (exit 5) when no surface could be fitted: a
-    report would only say "0 m^3".
+    report would only say "0 m^3". Several sources must be flights of one survey (`survey_mismatch`):
+    each log's own steps run on it alone (`survey_from_samples`), their clouds are merged
+    (`merged_survey`), and the report lists the flights.
     """
     t0 = time.perf_counter()
     opts = opts or ReportOptions()
-    for what, path in (("run directory or sample log", source), ("report directory (--out)", out_dir)):
+    sources = [source] if isinstance(source, str | Path) else list(source)
+    if not sources:
+        raise UserError("no run directory or sample log given")
+    for what, path in [*(("run directory or sample log", s) for s in sources), ("report directory (--out)", out_dir)]:
         if not str(path).strip():  # Path("") is the current directory
             raise UserError(f"the {what} must be a non-empty path")
     out = check_free(out_dir, REPORT_FILES, force=force, what="report")  # before the long part
     if opts.base.kind is BaseKind.SURVEY:
         survey_source_kind(Path(opts.base.source))  # a wrong --base is refused before the long part too
     with reading_input():
-        inp = read_log_input(source)
-        log, log_path, storage, frame, lever = inp.log, inp.log_path, inp.storage, inp.frame, inp.lever_arm_body_m
-        truth = opts.truth_volume_m3 if opts.truth_volume_m3 is not None else (
-            None if opts.base.kind is BaseKind.SURVEY else read_truth_volume(inp.truth_path))  # not a change
-    check_exports(opts.exports, log.header or {}, storage, opts.cell_m, opts.max_grid_memory_bytes)
-    survey = survey_from_samples(log.samples, log.header or {}, storage, frame, lever, opts)
+        inputs = [read_log_input(s) for s in sources]
+        truths = [None if opts.truth_volume_m3 is not None or opts.base.kind is BaseKind.SURVEY  # not a change
+                  else read_truth_volume(i.truth_path) for i in inputs]
+    if len(inputs) > 1 and (why := survey_mismatch(inputs)) is not None:
+        raise UserError(f"cannot merge: {why}")
+    truth = opts.truth_volume_m3 if opts.truth_volume_m3 is not None else merged_truth(truths, inputs)
+    inp = inputs[0]
+    header, log_path, storage = inp.log.header or {}, inp.log_path, inp.storage
+    check_exports(opts.exports, header, storage, opts.cell_m, opts.max_grid_memory_bytes)
+    flights = [Flight(i, survey_from_samples(i.log.samples, i.log.header or {}, i.storage, i.frame,
+                                             i.lever_arm_body_m, opts)) for i in inputs]
+    merged = len(flights) > 1
+    survey = merged_survey(flights, opts) if merged else flights[0].survey
+    log = merged_log(inputs) if merged else inp.log
     if np.isfinite(survey.heights_fit).any():
-        survey = with_base(survey, log.header or {}, opts)
-    report = summarise(survey, log, opts, truth)
-    report["source"] = str(source)
-    add_deliverable(report, header=log.header or {}, log_path=log_path, t_s=log.samples["t_s"], info=opts.info,
+        survey = with_base(survey, header, opts)
+    report = summarise(survey, log, opts, truth, flights if merged else None)
+    report["source"] = " + ".join(map(str, sources))
+    add_deliverable(report, header=header, log_path=log_path, t_s=log.samples["t_s"], info=opts.info,
                     piles=opts.piles, heights_fit=survey.heights_fit, heights=survey.heights, grid=survey.grid,
                     errors=survey.errors, errors_in=survey.errors_in)
+    if merged:
+        merged_metadata(report, flights)
     if not np.isfinite(survey.heights_fit).any():
         c = survey.cloud
-        raise NoVolumeError(f"{log_path}: no volume: no surface could be fitted from {report['n_points_used']} "
-                            f"point(s) on the stockpile ({c.n_samples} samples: {c.n_excluded} unusable, "
-                            f"{report['n_points_removed_walls']} on the walls or roof)")
+        raise NoVolumeError(f"{report['source']}: no volume: no surface could be fitted from "
+                            f"{report['n_points_used']} point(s) on the stockpile ({c.n_samples} samples: "
+                            f"{c.n_excluded} unusable, {report['n_points_removed_walls']} on the walls or roof)")
     from ground.render import write_html, write_markdown
     from ground.report_pdf import write_pdf
     with OutputFolder(out, REPORT_FILES, REPORT_FILE, force=force, what="report") as folder:
         images = write_outputs(survey, report, folder.staging, opts.plots)
-        save_surface(saved_surface(survey, log.header or {}, opts, str(source)), folder.staged(SURFACE_FILE))
+        save_surface(saved_surface(survey, header, opts, report["source"]), folder.staged(SURFACE_FILE))
         write_piles_csv(report["piles"], folder.staged(PILES_CSV))
-        written = write_exports(survey, log.header or {}, opts.exports, folder.staging)
+        written = write_exports(survey, header, opts.exports, folder.staging)
         report["exports"] = list(written.files)
         report["warnings"] += written.warnings
         report["elapsed_s"] = time.perf_counter() - t0
@@ -666,7 +825,7 @@ def saved_surface(survey: Survey, header: dict, opts: ReportOptions, source: str
     return SavedSurface(np.asarray(survey.heights, dtype=np.float64), st.length_m, st.width_m, st.height_m, opts.cell_m,
                         grid_volume(survey.heights, survey.grid), below, above,
                         scatter_sigma_m(survey.pile_points_w, survey.heights_fit, survey.grid),
-                        header_site(header)[0], source, software_version())
+                        header_site(header)[0], source, software_version(), np.isfinite(survey.heights_fit))
 
 
 def survey_source_kind(src: Path) -> str:

@@ -8,7 +8,9 @@ own uncertainty into a difference: its volume's 90 % half-widths below and above
 terms, before the interval is clipped at 0) and the points' scatter about the surface (a cell's height
 noise, for `compare`'s level of detection). Numbers live in arrays; the rest in one JSON string (no
 pickles: `np.load(allow_pickle=False)`). The name, format, version and the bounded raw read are the
-shared contract in `firmware_py.core.surface_file` (the coverage planner reads the file too); this module
+shared contract in `firmware_py.core.surface_file` (the coverage planner reads the file too); since version 2
+it also holds the mask of the cells fitted to the points (the rest are the empty-cell policy's fill: what the
+survey could not see, `plan --fill-gaps`), and a version 1 file still reads (mask unknown). This module
 checks every field it uses: a damaged or foreign file is one clear error, never a traceback or a silently
 wrong base.
 """
@@ -26,6 +28,8 @@ from firmware_py.core.cli import UserError
 from firmware_py.core.surface_file import FORMAT, FORMAT_VERSION, read_surface_file
 from ground.surface import Grid
 
+FIRST_VERSION = 1
+"""The version without the fitted mask: what a surface whose fitted cells are unknown is written as."""
 BUILDING_TOLERANCE_M = 0.01
 """Two surveys are of the same building when its dimensions and its corner agree to 1 cm (a tape's)."""
 HEADING_TOLERANCE_DEG = 0.01
@@ -47,13 +51,15 @@ class SavedSurface:
     site: dict | None = None  # the log header's site record (`firmware_py.core.site.Site.to_dict`)
     source: str = ""
     software_version: str = ""
+    fitted: np.ndarray | None = None  # (nx, ny) bool: heights fitted to points, not filled; None: unknown (version 1)
 
     @property
     def grid(self) -> Grid:
         return Grid(self.length_m, self.width_m, self.cell_m)
 
     def meta(self) -> dict:
-        return {"format": FORMAT, "format_version": FORMAT_VERSION, "length_m": self.length_m,
+        return {"format": FORMAT, "format_version": FIRST_VERSION if self.fitted is None else FORMAT_VERSION,
+                "length_m": self.length_m,
                 "width_m": self.width_m, "height_m": self.height_m, "cell_m": self.cell_m,
                 "volume_m3": self.volume_m3, "below_m3": self.below_m3, "above_m3": self.above_m3,
                 "scatter_sigma_m": self.scatter_sigma_m, "site": self.site, "source": self.source,
@@ -62,9 +68,11 @@ class SavedSurface:
 
 def save_surface(s: SavedSurface, path: str | Path) -> Path:
     path = Path(path)
+    arrays = {"heights_m": np.asarray(s.heights_m, dtype=np.float64), "meta": np.array(json.dumps(s.meta()))}
+    if s.fitted is not None:
+        arrays["fitted"] = np.asarray(s.fitted, dtype=bool)
     with path.open("wb") as f:
-        np.savez_compressed(f, heights_m=np.asarray(s.heights_m, dtype=np.float64),
-                            meta=np.array(json.dumps(s.meta())))
+        np.savez_compressed(f, **arrays)
     return path
 
 
@@ -79,9 +87,10 @@ def load_surface(path: str | Path) -> SavedSurface:
     """Read and check a surface file; UserError (one line) on anything unusable."""
     path = Path(path)
     try:
-        heights, meta = read_surface_file(path)
+        raw = read_surface_file(path)
     except ValueError as exc:
         raise UserError(str(exc)) from None
+    heights, meta = raw.heights_m, raw.meta
     length, width, height = (_number(meta, k, path, 1e-3) for k in ("length_m", "width_m", "height_m"))
     cell = _number(meta, "cell_m", path, 1e-3)
     try:
@@ -99,7 +108,7 @@ def load_surface(path: str | Path) -> SavedSurface:
     return SavedSurface(heights, length, width, height, cell, _number(meta, "volume_m3", path, -math.inf),
                         _number(meta, "below_m3", path), _number(meta, "above_m3", path),
                         _number(meta, "scatter_sigma_m", path), site, str(meta.get("source", ""))[:500],
-                        str(meta.get("software_version", ""))[:100])
+                        str(meta.get("software_version", ""))[:100], raw.fitted)
 
 
 def building_mismatch(a: SavedSurface, b: SavedSurface) -> str | None:

@@ -34,12 +34,13 @@ from firmware_py.core.version import software_version
 from firmware_py.core.waveform import N_PHASES, Waveform, named_waveform
 from sitl.faults.injector import FaultSpec
 from sitl.missions.coverage import DEFAULT_SEEN_RADIUS_M, WALLS
+from sitl.missions.gaps import DEFAULT_GAP_TARGET_PCT
 from sitl.missions.qgc_wpl import write_qgc_wpl
 from sitl.missions.rectangle import TURN_MODES, Mission
 from sitl.runners.fly import PAYLOADS, PLANTS, FlyConfig, fly
 from sitl.sensing.pose_drift import PoseErrorProfile
 
-MISSION_KINDS = ("rectangle", "coverage")
+MISSION_KINDS = ("rectangle", "coverage", "fill-gaps")
 _SITE_AND_MISSION = {
     "site.dimensions": "--storage",
     "site.origin": "--origin",
@@ -177,7 +178,8 @@ def _coverage_options(p: ArgumentParser, fly: bool) -> None:
     if fly:
         p.add_argument("--mission", choices=MISSION_KINDS, default="rectangle",
                        help="rectangle: the paper's (--p-traj, --turn); coverage: the least-energy loop the coverage "
-                            "planner finds for --coverage (docs/coverage.md)")
+                            "planner finds for --coverage (docs/coverage.md); fill-gaps: a short re-flight over what "
+                            "the report --fill-gaps could not see")
     p.add_argument("--coverage", type=finite_float, default=None, metavar="PCT",
                    help="plan for this predicted floor coverage R_a, percent (the coverage planner: per-wall offsets, "
                         "corner cuts, speed up to 2 m/s; --p-traj, --turn and --speed are then not used)")
@@ -188,6 +190,14 @@ def _coverage_options(p: ArgumentParser, fly: bool) -> None:
                    help="with --coverage: plan on an earlier survey's surface (the report directory's surface.npz "
                         "and cloud.ply): beams stop at the piles it measured, and the floor it did not see must "
                         "still be seen (default: the empty floor)")
+    p.add_argument("--fill-gaps", default=None, metavar="REPORT_DIR",
+                   help="plan a short re-flight over the floor this report could not see (its unseen cells: legs whose "
+                        "fans the coverage model predicts to cover them, least energy)" + (
+                            " (with --mission fill-gaps)" if fly else "") + "; merge the two logs with "
+                        "`pilescan-ground report RUN1 RUN2 --out DIR`")
+    p.add_argument("--gap-coverage", type=finite_float, default=DEFAULT_GAP_TARGET_PCT, metavar="PCT",
+                   help="with --fill-gaps: the share of the unseen cells the re-flight must be predicted to cover "
+                        f"(default {DEFAULT_GAP_TARGET_PCT:g} %%)")
     p.add_argument("--all-phases", action="store_true",
                    help=f"with --coverage: plan for the worst of all {2 * N_PHASES} servo start positions, not only "
                         + ("--phase" if fly else "position 0")
@@ -259,6 +269,11 @@ def _site(args) -> Site:
 def _mission(args, waveform: Waveform | None = None):
     """The rectangle, or with --coverage (fly: --mission coverage) the coverage planner's loop."""
     coverage = getattr(args, "coverage", None)
+    fill_gaps = getattr(args, "fill_gaps", None)
+    if getattr(args, "mission", None) == "fill-gaps" or (args.command == "plan" and fill_gaps is not None):
+        return _fill_gaps_mission(args, waveform)
+    if fill_gaps is not None:
+        raise UserError("--fill-gaps plans a gap re-flight: add --mission fill-gaps")
     if getattr(args, "mission", None) == "coverage" or (args.command == "plan" and coverage is not None):
         return _coverage_mission(args, waveform)
     if coverage is not None:
@@ -303,6 +318,37 @@ def _coverage_mission(args, waveform: Waveform | None):
     return planned.mission
 
 
+def _fill_gaps_mission(args, waveform: Waveform | None):
+    from sitl.missions.coverage import CoverageTarget
+    from sitl.missions.gaps import load_gaps, plan_fill_gaps
+    from sitl.missions.range_check import planning_limit
+    if args.fill_gaps is None:
+        raise UserError("--mission fill-gaps needs --fill-gaps REPORT_DIR (the report whose unseen floor to re-fly)")
+    if args.coverage is not None or args.surface or args.all_phases:
+        raise UserError("--fill-gaps plans on its report's own surface for its own target (--gap-coverage): "
+                        "--coverage, --surface and --all-phases are not used with it")
+    wf = waveform or named_waveform(args.waveform, args.servo_rate, 0)
+    spec = args.rangefinder.spec
+    try:
+        storage = Storage.parse(args.storage)
+        gaps = load_gaps(args.fill_gaps, storage, _site(args), args.seen_radius)
+        target = CoverageTarget(args.gap_coverage, wf, planning_limit(spec, args.sensor_noise), spec.rate_hz,
+                                seen_radius_m=args.seen_radius)
+        planned = plan_fill_gaps(storage, gaps, target, altitude_m=args.altitude,
+                                 yaw_rate_max_rad_s=math.radians(args.yaw_rate_max))
+    except ValueError as exc:
+        raise UserError(f"fill-gaps plan: {exc}") from None
+    if not args.quiet:
+        m, rec = planned.mission, planned.mission.plan
+        minutes = (m.path_length_m() / m.speed_m_s + m.turned_rad() / m.yaw_rate_max_rad_s) / 60
+        print(f"fill-gaps plan: {rec['gap_cells']} unseen cells ({rec['gap_area_m2']:.1f} m²) in {planned.n_regions} "
+              f"region(s) of {args.fill_gaps}; predicted to cover {planned.coverage.gap_pct:.1f} % of them (merged R_a "
+              f"{planned.coverage.merged_ra_pct:.2f} %), {m.path_length_m():.0f} m at {m.speed_m_s:g} m/s, about "
+              f"{minutes:.1f} min, predicted energy {planned.energy_j / 1000:.1f} kJ ({planned.n_evaluated} missions "
+              "evaluated)")
+    return planned.mission
+
+
 def _default_payload(plant: str) -> str:
     """The firmware in the loop needs an autopilot to talk to; the ideal plant has none."""
     return "firmware" if plant == "jsbsim" else "batch"
@@ -310,7 +356,7 @@ def _default_payload(plant: str) -> str:
 
 def _fly(args) -> int:
     mission = _mission(args, named_waveform(args.waveform, args.servo_rate, args.phase)
-                       if args.mission == "coverage" else None)
+                       if args.mission in ("coverage", "fill-gaps") else None)
     cfg = FlyConfig(mission=mission, stockpile=args.stockpile, waveform=args.waveform,
                     servo_peak_rate_rad_s=args.servo_rate, initial_position=args.phase, plant=args.plant,
                     payload=args.payload or _default_payload(args.plant), latency_ms=tuple(args.latency_ms),

@@ -197,6 +197,9 @@ CASES = [
     ("ground", [*LISTEN, *LSTREAM, "--allow-peer", ""], "allowed peer"),
     ("ground", [*LISTEN, *LSTREAM, "--allow-peer", "[::1"], "allowed peer"),
     ("ground", [*LISTEN, *LSTREAM, "--out", ""], "non-empty"),
+    ("ground", [*LISTEN, *LSTREAM, "--web", "8080"], "--web must look like HOST:PORT"),
+    ("ground", [*LISTEN, *LSTREAM, "--web", "127.0.0.1:70000"], "port must be 0-65535"),
+    ("ground", [*LISTEN, *LSTREAM, "--web", "192.0.2.1:8080"], "cannot serve the live page", RUNTIME),  # not ours
     ("ground", [*LISTEN, *LSTREAM, "--out", "{d}/old.pslog"], "--force"),
     ("ground", [*LISTEN, *LSTREAM, "--out", "{d}/adir.pslog"], "is a directory"),
     ("ground", [*LISTEN, *LSTREAM, "--out", "{d}/blocker/x.pslog"], "does not exist"),

@@ -36,8 +36,9 @@ from tools.experiments import ALL_EXPERIMENTS, N_POSITIONS, P_TRAJ_PCT, PILES, _
 from tools.sweep import cached, content_key, fresh_run_note
 
 SECTION = "surface-estimators"
-COMPARE_VERSION = "3"
-"""Part of every case's cache key: bump it when an estimator or the pipeline changes what a case computes."""
+COMPARE_VERSION = "4"
+"""Part of every case's cache key: bump it when an estimator or the pipeline changes what a case computes.
+4: Appendix A's pose errors interpolated between messages, as the payload now tags samples."""
 MODELS = tuple(SensorNoiseModel)
 ESTIMATORS: dict[str, tuple[str, SmoothingOptions]] = {
     "cubic-limited": ("cubic-limited", SmoothingOptions()),

@@ -42,8 +42,9 @@ from sitl.world.raycast import World
 from sitl.world.shapes import Family, Shape, make_shape
 from tools.sweep import Case, cached, content_key, missing_cases, run_sweep, write_rows_csv
 
-EVALSET_VERSION = "1"
-"""Part of every case (and so of its cache key): bump it when what a case computes changes."""
+EVALSET_VERSION = "2"
+"""Part of every case (and so of its cache key): bump it when what a case computes changes. 2: Appendix A's
+pose errors interpolated between messages, as the payload now tags samples."""
 FLIGHT_VERSION = "1"
 """Part of every flight key (tools.experiments' flights key on P_traj only: they are all the paper's building)."""
 P_TRAJ_PCT = (5, 10, 15, 20, 25, 30, 35)

@@ -111,7 +111,7 @@ def _stop(proc: subprocess.Popen, timeout_s: float = 10.0) -> int:
 @dataclass(frozen=True)
 class NetworkedRun:
     out: Path
-    report: dict | None  # None: the flight gave no volume (too short to fit a surface); `no_volume` says why
+    report: dict | None  # None: not asked for (report=False), or the flight gave no volume (`no_volume` says why)
     wall_s: float
     payload_exit: int
     no_volume: str | None = None
@@ -120,7 +120,8 @@ class NetworkedRun:
 def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Path, phase: int = 0,
                   timeout_s: float = 900.0, flight_s: float | None = None, say=print,
                   signing_key: Path | None = None, rangefinder: str = "lidarlite-v3",
-                  serve_args: list[str] | None = None, site_args: list[str] | tuple[str, ...] = ()) -> NetworkedRun:
+                  serve_args: list[str] | None = None, site_args: list[str] | tuple[str, ...] = (),
+                  payload_args: list[str] | tuple[str, ...] = (), report: bool = True) -> NetworkedRun:
     """Run the three programs for one survey; the run directory gets samples.pslog and a report.
 
     With flight_s, stop the payload (SIGTERM) that long after AUTO instead of waiting for the landing.
@@ -130,6 +131,7 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
     (`--sensor-noise datasheet`, `--fault ...`).
     site_args (["--origin", "LAT,LON,ALT", "--heading", "DEG"]) go to the SITL and to the payload alike:
     the served autopilot's EKF origin and the payload's header (and the origin it sends) then agree.
+    payload_args go to the payload as they are (`--stream udp:HOST:PORT`); report=False skips the report.
     """
     out.mkdir(parents=True, exist_ok=True)
     keyed = ["--signing-key", str(signing_key)] if signing_key is not None else []
@@ -155,7 +157,8 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
         payload = subprocess.Popen([sys.executable, "-m", "firmware_py.cli", "--mavlink",
                                     f"udpout:127.0.0.1:{mav_port}", *sensor,
                                     "--out", str(out / SAMPLES_FILE), "--force", "--storage", storage,
-                                    "--phase", str(phase), "--stop-on-disarm", "--quiet", *site_args, *keyed])
+                                    "--phase", str(phase), "--stop-on-disarm", "--quiet", *site_args, *keyed,
+                                    *payload_args])
         time.sleep(2.0)  # the payload's time sync and pose streams settle before take-off
         fly_plan(f"udpout:127.0.0.1:{mav_port}", out / PLAN_FILE, timeout_s, say=lambda m: say(f"  {m}"),
                  fly_s=flight_s, signing_key=key)
@@ -171,6 +174,8 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
             _stop(payload)
         _stop(sitl)
     wall = time.perf_counter() - t0
+    if not report:
+        return NetworkedRun(out, None, wall, code)
     try:
         rep = make_report(out, out / "report", ReportOptions(plots=False), force=True)
     except NoVolumeError as exc:  # e.g. a flight of a few seconds: every sweep on one line

@@ -92,6 +92,24 @@ class Site:
         return cls.of(*vals)
 
 
+SAME_SITE_TOLERANCE_M = 0.01
+"""Two records place the same building when their corners agree to 1 cm (a tape's, what the files write)..."""
+SAME_SITE_HEADING_DEG = 0.01
+"""... and their x axes to 0.01 deg."""
+
+
+def site_difference(a: Site, b: Site) -> str | None:
+    """Why two sites are not the same building's place (corners or x axes apart), or None: the one test the
+    ground station's merge and the gap planner both apply."""
+    off = math.hypot(*a.corner.ned_from(b.corner))
+    turn = (a.heading_deg - b.heading_deg + 180.0) % 360.0 - 180.0
+    if off > SAME_SITE_TOLERANCE_M:
+        return f"the buildings' corners are {off:.2f} m apart"
+    if abs(turn) > SAME_SITE_HEADING_DEG:
+        return f"the buildings' x axes are {abs(turn):g} deg apart"
+    return None
+
+
 def check_heading_deg(heading_deg: float) -> float:
     """The heading, if finite and within +-HEADING_LIMIT_DEG; ValueError otherwise."""
     if isinstance(heading_deg, bool) or not isinstance(heading_deg, int | float) or not math.isfinite(heading_deg):

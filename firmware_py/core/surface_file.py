@@ -1,16 +1,19 @@
-"""The surface file's contract (`surface.npz` in a report directory): its name, format, version and bounds,
+"""The surface file's contract (`surface.npz` in a report directory): its name, format, versions and bounds,
 and the checked raw read every program shares.
 
 The ground station writes it (`ground.surface_file`: a later survey's base, `compare`) and the coverage
-planner reads it (`sitl.missions.surveyed_surface`); neither imports the other, so what they both must
-agree on lives here. The file holds a float64 `heights_m` grid and one JSON string `meta` (no pickles);
-what each reader needs of `meta` it checks itself.
+planner reads it (`sitl.missions.surveyed_surface`, `sitl.missions.gaps`); neither imports the other, so what
+they both must agree on lives here. The file holds a float64 `heights_m` grid and one JSON string `meta` (no
+pickles); what each reader needs of `meta` it checks itself. Version 2 adds `fitted`, a bool grid of the cells
+whose height was fitted to the survey's points (the rest were filled by the empty-cell policy: what the survey
+could not see, which a gap re-flight must see); version 1 files are still read (`fitted` then unknown).
 """
 
 from __future__ import annotations
 
 import io
 import json
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -19,17 +22,31 @@ from firmware_py.core.safe_read import InputError, read_bounded
 
 SURFACE_FILE = "surface.npz"
 FORMAT = "pilescan-surface"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""Written by this version: heights, the fitted cells' mask and the metadata."""
+READ_VERSIONS = (1, 2)
+"""Version 1 (before the fitted mask) is still read."""
+_ARRAYS = {1: {"heights_m", "meta"}, 2: {"heights_m", "fitted", "meta"}}
 MAX_GRID_CELLS = 25_000_000
 """The most cells a height grid may have (a header may claim a big building with fine cells: refuse, not
 MemoryError); the ground's Grid enforces it too."""
-MAX_SURFACE_BYTES = 16 * MAX_GRID_CELLS + 1_000_000
-"""Largest surface file read: two float64 grids of the most cells a grid allows, plus the metadata."""
+MAX_SURFACE_BYTES = 17 * MAX_GRID_CELLS + 1_000_000
+"""Largest surface file read: two float64 grids and a bool grid of the most cells a grid allows, plus the
+metadata."""
 
 
-def read_surface_file(path: str | Path) -> tuple[np.ndarray, dict]:
-    """(heights, meta) of a surface file of this format and version, read bounded; ValueError (one line) for
-    a file that cannot be read, is damaged or foreign, or is of another version."""
+@dataclass(frozen=True)
+class RawSurface:
+    """A surface file's arrays and metadata as read, before any reader's own field checks."""
+
+    heights_m: np.ndarray = field(compare=False)
+    meta: dict = field(compare=False)
+    fitted: np.ndarray | None = field(default=None, compare=False)  # (nx, ny) bool; None: a version 1 file
+
+
+def read_surface_file(path: str | Path) -> RawSurface:
+    """The arrays and metadata of a surface file of this format (version 1 or 2), read bounded; ValueError
+    (one line) for a file that cannot be read, is damaged or foreign, or is of another version."""
     path = Path(path)
     try:
         data = read_bounded(path, MAX_SURFACE_BYTES, "surface file")
@@ -39,16 +56,24 @@ def read_surface_file(path: str | Path) -> tuple[np.ndarray, dict]:
         raise ValueError(f"cannot read surface file {path}: {exc.strerror or exc}") from None
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
-            if set(z.files) != {"heights_m", "meta"}:
-                raise ValueError(f"it holds {sorted(z.files)}, not heights_m and meta")
+            if set(z.files) not in _ARRAYS.values():
+                raise ValueError(f"it holds {sorted(z.files)}, not heights_m, meta (and fitted)")
             heights = np.asarray(z["heights_m"])
+            fitted = np.asarray(z["fitted"]) if "fitted" in z.files else None
             meta = json.loads(str(z["meta"]))
     except Exception as exc:  # zip, npy and JSON errors come in many types; all mean a damaged or foreign file
         raise ValueError(f"{path} is not a pilescan surface file ({type(exc).__name__}: {exc})"[:300]) from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         fmt = meta.get("format") if isinstance(meta, dict) else meta
         raise ValueError(f"{path} is not a pilescan surface file (format {fmt!r})"[:300])
-    if meta.get("format_version") != FORMAT_VERSION:
-        raise ValueError(f"{path}: surface file version {meta.get('format_version')!r} is not the supported "
-                         f"{FORMAT_VERSION}"[:300])
-    return heights, meta
+    version = meta.get("format_version")
+    if isinstance(version, bool) or version not in READ_VERSIONS:
+        raise ValueError(f"{path}: surface file version {version!r} is not one of the supported "
+                         f"{', '.join(map(str, READ_VERSIONS))}"[:300])
+    if (fitted is not None) != (version >= 2):
+        raise ValueError(f"{path}: a version {version} surface file " + ("lacks its fitted cells' mask"
+                                                                          if fitted is None else "holds a fitted mask"))
+    if fitted is not None and (fitted.dtype != np.bool_ or fitted.shape != heights.shape):
+        raise ValueError(f"{path}: surface file fitted mask is {fitted.dtype} {fitted.shape}, not bool "
+                         f"{heights.shape} like its heights")
+    return RawSurface(heights, meta, fitted)

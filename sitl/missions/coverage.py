@@ -88,7 +88,8 @@ def mission_energy_j(mission, model: EnergyModel | None = None) -> float:
 @dataclass(frozen=True)
 class LoopMission:
     """A closed loop of waypoints flown like `rectangle.Mission` (the same attributes the plants, the plan
-    export and the flight runners read): the coverage planner's mission."""
+    export and the flight runners read): the coverage planner's and the gap re-flight's mission (`gaps`; two
+    distinct waypoints: out and back)."""
 
     storage: Storage = field(default_factory=Storage)
     waypoints: tuple[tuple[float, float], ...] = ()
@@ -101,8 +102,8 @@ class LoopMission:
     def __post_init__(self) -> None:
         s = self.storage
         wp = np.asarray(self.waypoints, dtype=float)
-        if wp.ndim != 2 or wp.shape[1] != 2 or len(wp) < 4 or not np.all(np.isfinite(wp)):
-            raise ValueError("a loop needs at least 3 finite waypoints (x, y) and the first again at the end")
+        if wp.ndim != 2 or wp.shape[1] != 2 or len(wp) < 3 or not np.all(np.isfinite(wp)):
+            raise ValueError("a loop needs at least 2 finite waypoints (x, y) and the first again at the end")
         if not np.allclose(wp[0], wp[-1]):
             raise ValueError("the loop must end where it starts (first waypoint == last)")
         c = self.min_clearance_m
@@ -223,12 +224,15 @@ def floor_hits_w(mission, waveform: Waveform, limit: RangeLimit, rate_hz: float,
 
 
 def coverage_of_hits(hits_w: np.ndarray, storage: Storage, seen_radius_m: float = DEFAULT_SEEN_RADIUS_M,
-                     cell_m: float = COVERAGE_CELL_M) -> Coverage:
-    """The floor cells the hits cover (module docstring)."""
+                     cell_m: float = COVERAGE_CELL_M, hull_points_w: np.ndarray | None = None) -> Coverage:
+    """The floor cells the hits cover (module docstring). hull_points_w (M, 2), optional: points an earlier
+    flight measured, merged with these hits into one cloud: they widen the hull (the merged report's surface)
+    but are not new sightings (the seen radius counts the hits only)."""
     nx, ny = max(1, round(storage.length_m / cell_m)), max(1, round(storage.width_m / cell_m))
     cx = (np.arange(nx) + 0.5) * storage.length_m / nx
     cy = (np.arange(ny) + 0.5) * storage.width_m / ny
-    if len(hits_w) < 3:
+    extra = np.empty((0, 2)) if hull_points_w is None else np.asarray(hull_points_w, dtype=float).reshape(-1, 2)
+    if len(hits_w) == 0 or len(hits_w) + len(extra) < 3:
         z = np.zeros((nx, ny), dtype=bool)
         return Coverage(0.0, 0.0, 0.0, len(hits_w), z)
     ix = np.clip((hits_w[:, 0] / storage.length_m * nx).astype(int), 0, nx - 1)
@@ -238,7 +242,7 @@ def coverage_of_hits(hits_w: np.ndarray, storage: Storage, seen_radius_m: float 
     seen = ndimage.distance_transform_edt(~hit) * cell_m <= seen_radius_m
     gx, gy = np.meshgrid(cx, cy, indexing="ij")
     try:
-        eq = ConvexHull(hits_w).equations  # a x + b y + c <= 0 inside every facet
+        eq = ConvexHull(np.vstack([hits_w, extra])).equations  # a x + b y + c <= 0 inside every facet
         inside = np.all(eq[:, 0, None, None] * gx + eq[:, 1, None, None] * gy + eq[:, 2, None, None] <= 1e-9, axis=0)
     except QhullError:  # all hits on a line: no surface
         inside = np.zeros((nx, ny), dtype=bool)

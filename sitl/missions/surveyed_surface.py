@@ -8,9 +8,10 @@ through the shared contract (`firmware_py.core.surface_file`: bounded, format an
 the fields it uses here: a damaged, foreign or other building's file is one line, never a traceback. The
 report's heights are after its empty-cell policy: the cells it could not see hold a fill, not a measurement
 (pile 2: the fill carries the flanks' heights over the floor strip at the walls' foot they hide). So the
-cells outside the convex hull of the report's own points (`cloud.ply`, the pile points the surface was
-fitted to: the report's R_a, eq. 9) count as floor, as do NaN cells: nothing measured stands there, and a
-floor is what a later flight must still see.
+cells the report did not fit count as floor, as do NaN cells: nothing measured stands there, and a floor is
+what a later flight must still see. Which cells were fitted the file says since its version 2 (`fitted`); for
+a version 1 file they are the cells inside the convex hull of the report's own points (`cloud.ply`, the pile
+points the surface was fitted to: the report's R_a, eq. 9).
 """
 
 from __future__ import annotations
@@ -41,6 +42,9 @@ class HeightField:
     length_m: float
     width_m: float
     source: str = ""
+    measured: np.ndarray | None = field(default=None, hash=False, compare=False)
+    """(nx, ny) bool: the cells the survey fitted to its points (the rest it could not see); None: unknown."""
+    site: dict | None = field(default=None, hash=False, compare=False)  # the surface file's site record, if any
 
     @property
     def max_height_m(self) -> float:
@@ -67,7 +71,8 @@ def load_height_field(report_dir: str | Path, storage: Storage) -> HeightField:
     path = Path(report_dir)
     if path.is_dir():
         path = path / SURFACE_FILE
-    heights, meta = read_surface_file(path)
+    raw = read_surface_file(path)
+    heights, meta = raw.heights_m, raw.meta
     length, width, height, cell = (_number(meta, k, path) for k in ("length_m", "width_m", "height_m", "cell_m"))
     if max(abs(length - storage.length_m), abs(width - storage.width_m), abs(height - storage.height_m)) \
             > BUILDING_TOLERANCE_M:
@@ -81,9 +86,12 @@ def load_height_field(report_dir: str | Path, storage: Storage) -> HeightField:
         raise ValueError(f"{path}: surface heights hold infinite values")
     h = np.clip(np.nan_to_num(heights, nan=0.0), 0.0, height)  # no surface: floor; nothing above the roof
     cloud = path.parent / CLOUD_FILE
-    if cloud.exists():
-        h = np.where(measured_cells(cloud, length, width, h.shape), h, 0.0)
-    return HeightField(h, length, width, str(path))
+    measured = raw.fitted & np.isfinite(heights) if raw.fitted is not None else \
+        measured_cells(cloud, length, width, h.shape) if cloud.exists() else None
+    if measured is not None:
+        h = np.where(measured, h, 0.0)
+    site = meta.get("site")
+    return HeightField(h, length, width, str(path), measured, site if isinstance(site, dict) else None)
 
 
 def measured_cells(cloud_path: Path, length_m: float, width_m: float, shape: tuple[int, int]) -> np.ndarray:

@@ -7,8 +7,8 @@ on one sample or one message at a time (`RangeNoiser`, `PoseNoiser`), so both pa
 - Servo: `angle_errors`, added to the TRUE beam (the shaft wobbles about where the firmware's model
   puts it; the firmware logs its model).
 - Pose: `pose_errors`, one draw per autopilot pose message; `pose_errors_at` carries them to the
-  sample times as the payload's pose buffer does (the newest two, extrapolated), so the batch path
-  logs what the payload would.
+  sample times as the payload's pose buffer does (the two messages on either side, interpolated), so
+  the batch path logs what the payload would.
 
 Every function takes its own `numpy.random.Generator`; `noise_streams(seed)` gives independent ones
 per error source, so turning one source on does not change another's draws.
@@ -89,20 +89,20 @@ def pose_errors(n: int, sigma: float, rng: np.random.Generator) -> np.ndarray:
 
 def pose_errors_at(t_s: np.ndarray, period_s: float, sigma: float, rng: np.random.Generator) -> np.ndarray:
     """(len(t_s), 3) pose errors at the sample times, as the payload logs them: one `pose_errors` draw per
-    message at k period_s, and at each sample the newest two messages extrapolated to it, as the
-    payload's pose buffer does (`firmware_py.pose`: it tags a sample at once, and the newest pose is
-    older than the sample). e(t) = (1 + f) e_k - f e_(k-1), f = t / period - k in [0, 1): white message
-    noise comes out amplified, 8/3 of sigma^2 on average (sd 1.63 sigma)."""
+    message at k period_s, and at each sample the two messages on either side interpolated to it, as the
+    payload's pose buffer does (`firmware_py.pose`: a sample waits for the pose after it).
+    e(t) = (1 - f) e_k + f e_(k+1), f = t / period - k in [0, 1): white message noise comes out smoothed,
+    2/3 of sigma^2 on average (sd 0.82 sigma), never more than sigma."""
     t = np.asarray(t_s, dtype=float)
     if sigma <= 0 or len(t) == 0:
         return np.zeros((len(t), 3))
     k0 = math.floor(float(t.min()) / period_s) - 1
-    n = math.floor(float(t.max()) / period_s) - k0 + 1
+    n = math.floor(float(t.max()) / period_s) - k0 + 2
     knots = pose_errors(n, sigma, rng)
     u = t / period_s - k0 + 1e-9  # a sample stamped with a message (to rounding) has that message
-    i = np.clip(np.floor(u).astype(int), 1, n - 1)
+    i = np.clip(np.floor(u).astype(int), 0, n - 2)
     f = np.clip(u - i, 0.0, 1.0)[:, None]
-    return knots[i] * (1.0 + f) - knots[i - 1] * f
+    return knots[i] * (1.0 - f) + knots[i + 1] * f
 
 
 class RangeNoise(Protocol):

@@ -178,3 +178,11 @@ def test_that_samples_are_never_tagged_with_an_old_pose_when_the_position_stream
     assert stats.flagged(SampleFlags.STALE_POSE | SampleFlags.NO_POSE) >= outage.sum()
     after = t > 4.3
     assert np.mean(_flag(s[after], SampleFlags.STALE_POSE | SampleFlags.NO_POSE)) < 0.01  # recovered
+
+
+def test_that_a_stop_waits_for_the_poses_of_the_last_readings_instead_of_flagging_them(rig):
+    stats, s, _ = rig.run(2.0, [])
+    assert stats.ticks >= 0.95 * 2.0 * 500 and len(s) == stats.ticks  # every reading logged ...
+    assert not _flag(s, SampleFlags.STALE_POSE | SampleFlags.NO_POSE).any()  # ... the last ones with a pose too
+    err = np.linalg.norm(np.column_stack([s["x_m"], s["y_m"], s["z_m"]]) - rig.true_position(s["t_s"]), axis=1)
+    assert err.max() < 0.05

@@ -253,6 +253,16 @@ def test_pose_tag_timing_error_is_below_1ms_median_with_5_to_30ms_random_link_la
     assert status.rates_hz["ATTITUDE"] == pytest.approx(50, abs=3)
 
 
+def test_that_a_pose_is_never_extrapolated_past_the_newest_message_so_a_sample_waits_for_the_next():
+    world = World(seed=1)
+    world.run_until(lambda: world.tracker.timesync.converged, max_seconds=5.0)
+    world.run(1.0)
+    newest = world.tracker.buffer.newest_ns
+    assert world.tracker.pose_at(newest - 1_000_000).usable  # between two messages: interpolated
+    later = world.tracker.pose_at(newest + 1_000_000)  # past the newest: extrapolating would amplify its noise
+    assert not later.usable and later.stale and not later.missing
+
+
 # ----- stream requests ---------------------------------------------------------------------------------
 
 def test_start_requests_both_streams_at_stream_hz_once_each_when_acked():

@@ -20,7 +20,11 @@ def test_that_the_payload_process_ranges_the_served_world_with_correct_pose_tags
     log = read_samplelog(tmp_path / "net" / "samples.pslog")
     assert log.blocks_corrupt == 0 and log.blocks_truncated == 0
     s = log.samples
-    assert len(s) > 0.8 * 500 * 12  # ~500 Hz from well before take-off to the stop
+    # 500 Hz on the loop's tick grid, from well before take-off to the stop. Not a count of samples: a starved
+    # machine (the suite's workers and three processes on 2 cores) drops whole ticks, which the loop counts
+    # as overruns, without stretching the grid; a count measured the machine, and failed at load 6.5.
+    assert np.median(np.diff(s["t_s"])) == pytest.approx(0.002, abs=2e-4)
+    assert s["t_s"][-1] - s["t_s"][0] > 12.0
     good = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
     assert len(good) > 0.5 * len(s)
     assert np.ptp(good["servo_rad"]) > np.radians(120)  # the servo swept

@@ -124,11 +124,11 @@ def test_that_appendix_a_pose_noise_reaches_the_log_through_the_autopilots_messa
     posed = (run.records["flags"] & int(SampleFlags.NO_POSE | SampleFlags.STALE_POSE)) == 0
     s = run.records[posed]
     truth = FlownMission(run.true_t_s, run.true_states, 0.0, 0.0, True, []).trajectory_at(s["t_s"])
-    # One error per 50 Hz message; the payload tags each sample at once, extrapolating the newest two poses
-    # (firmware_py.pose), which amplifies white message noise: 1.63 sigma on average with the newest message
-    # on time (the batch path's model, sitl.sensing.noise.pose_errors_at), more when it is late (up to
-    # 2.6 sigma at the 25 ms limit). Wide bounds around the batch path's figure.
-    ratio = math.sqrt(8 / 3)
+    # One error per 50 Hz message; the payload waits for the pose after each sample and interpolates
+    # (firmware_py.pose), which smooths white message noise: sqrt(2/3) = 0.82 sigma on average (the batch
+    # path's model, sitl.sensing.noise.pose_errors_at), never more than sigma. Extrapolating the newest two,
+    # as the payload once did, gave 1.6-2.6 sigma. Wide bounds around the batch path's figure.
+    ratio = math.sqrt(2 / 3)
     d_pos = np.column_stack([s["x_m"], s["y_m"], s["z_m"]]) - truth.pos_ned_m
     assert abs(d_pos.mean()) < 0.02
     assert d_pos.std() == pytest.approx(ratio * 0.113, rel=0.2)

@@ -95,15 +95,18 @@ def test_that_servo_angle_errors_have_the_stated_sigma():
     assert e.std() == pytest.approx(math.radians(1.0), rel=0.03) and abs(e.mean()) < 5 * math.radians(1.0) / N ** 0.5
 
 
-def test_that_pose_errors_are_one_draw_per_message_extrapolated_from_the_newest_two_as_the_payload_does():
+def test_that_pose_errors_are_one_draw_per_message_interpolated_between_two_as_the_payload_does():
     t = np.arange(0, 400.0, 0.002)  # 500 Hz for 400 s: 20,000 messages at 50 Hz
     e = pose_errors_at(t, 0.02, 0.113, np.random.default_rng(0))
     at_messages = e[::10]  # samples that fall on a message carry its full draw
     assert at_messages.std() == pytest.approx(0.113, rel=0.03)
     f = np.arange(10) / 10  # ten samples per message period
-    assert e.std() == pytest.approx(0.113 * math.sqrt(np.mean((1 + f) ** 2 + f ** 2)), rel=0.03)
-    late = e[9::10]  # 18 ms after a message: 1.9 e_k - 0.9 e_(k-1)
-    assert late.std() == pytest.approx(0.113 * math.hypot(1.9, 0.9), rel=0.03)
+    assert e.std() == pytest.approx(0.113 * math.sqrt(np.mean((1 - f) ** 2 + f ** 2)), rel=0.03)
+    mid = e[5::10]  # half-way between two messages: (e_k + e_(k+1)) / 2
+    assert mid.std() == pytest.approx(0.113 * math.sqrt(0.5), rel=0.03)
+    assert np.abs(e).max() <= np.abs(at_messages).max() + 1e-12  # an interpolation never exceeds its knots
+    late = e[9::10]  # 18 ms after a message: 0.1 e_k + 0.9 e_(k+1), the same draw as the next message's
+    assert np.corrcoef(late[:-1, 0], at_messages[1:, 0])[0, 1] > 0.99
 
 
 def test_that_each_error_source_has_its_own_stream_so_one_does_not_shift_another():

@@ -1,0 +1,113 @@
+"""Several flights of one survey merged into one report (`pilescan-ground report RUN1 RUN2 --out DIR`)."""
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from firmware_py.core.storage import Storage
+from ground.cli import main
+from ground.report import ReportOptions, make_report
+from sitl.missions.rectangle import Mission
+from sitl.runners.fly import FlyConfig, fly
+
+SMALL = Storage(30, 20, 10)
+
+
+def _fly(tmp_path, name: str, p_traj: float, phase: int = 0, storage: Storage = SMALL):
+    out = tmp_path / name
+    fly(FlyConfig(mission=Mission(storage=storage, altitude_m=9.0, p_traj=p_traj), plant="ideal", payload="batch",
+                  initial_position=phase), out, progress=lambda _m: None)
+    return out
+
+
+@pytest.fixture(scope="module")
+def two_flights(tmp_path_factory):
+    d = tmp_path_factory.mktemp("merge")
+    return _fly(d, "wide", 0.35), _fly(d, "near", 0.1, phase=7)
+
+
+def _points(report_dir) -> np.ndarray:
+    p = np.asarray(trimesh.load(report_dir / "cloud.ply").vertices, dtype=float)
+    return p[np.lexsort(p.T[::-1])]
+
+
+def test_that_merging_two_logs_gives_the_union_of_their_clouds(two_flights, tmp_path):
+    a, b = two_flights
+    ra = make_report(a, tmp_path / "a", ReportOptions(plots=False))
+    rb = make_report(b, tmp_path / "b", ReportOptions(plots=False))
+    rm = make_report([a, b], tmp_path / "m", ReportOptions(plots=False))
+    assert rm["n_samples"] == ra["n_samples"] + rb["n_samples"]
+    assert rm["n_samples_excluded"] == ra["n_samples_excluded"] + rb["n_samples_excluded"]
+    def placed(r: dict) -> int:  # every usable sample's point, on the pile or on the building
+        return r["n_points_used"] + r["n_points_removed_walls"]
+    assert placed(rm) == placed(ra) + placed(rb)
+    union = np.vstack([_points(tmp_path / "a"), _points(tmp_path / "b")])
+    assert np.array_equal(_points(tmp_path / "m"), union[np.lexsort(union.T[::-1])])
+
+
+def test_that_the_merged_report_sees_more_than_either_flight_and_names_both_logs(two_flights, tmp_path):
+    a, b = two_flights
+    alone = make_report(a, tmp_path / "a", ReportOptions(plots=False))
+    rm = make_report([a, b], tmp_path / "m", ReportOptions(plots=False))
+    assert rm["coverage_ratio_pct"] > alone["coverage_ratio_pct"]
+    assert rm["true_volume_m3"] == alone["true_volume_m3"]
+    assert [f["log_sha256"] for f in rm["flights"]] == [
+        hashlib.sha256((d / "samples.pslog").read_bytes()).hexdigest() for d in (a, b)]
+    assert rm["flights"][0]["coverage_ratio_pct_alone"] == pytest.approx(alone["coverage_ratio_pct"])
+    assert all(f["duration_s"] > 0 for f in rm["flights"])
+    assert rm["metadata"]["flights_merged"] == 2
+    assert rm["metadata"]["survey_duration_s"] == pytest.approx(sum(f["duration_s"] for f in rm["flights"]))
+    assert alone["flights"] is None and "flights_merged" not in alone["metadata"]
+    md = (tmp_path / "m" / "report.md").read_text()
+    assert f"| Flights merged | 2: {a / 'samples.pslog'} (" in md and f"; {b / 'samples.pslog'} (" in md
+
+
+def _refused(argv, capsys, code: int = 2) -> str:
+    assert main(argv) == code
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err
+    return err
+
+
+def test_that_logs_of_different_buildings_are_refused_in_one_line(two_flights, tmp_path, capsys):
+    other = _fly(tmp_path, "other", 0.2, storage=Storage(32, 20, 10))
+    err = _refused(["report", str(two_flights[0]), str(other), "--out", str(tmp_path / "m"), "--no-plots"], capsys)
+    assert "cannot merge" in err and "different buildings" in err
+    assert not (tmp_path / "m" / "report.json").exists()
+
+
+def test_that_runs_whose_true_volumes_differ_are_refused(two_flights, tmp_path, capsys):
+    a, b = two_flights
+    c = tmp_path / "c"
+    c.mkdir()
+    (c / "samples.pslog").write_bytes((b / "samples.pslog").read_bytes())
+    truth = json.loads((b / "truth.json").read_text())
+    truth["true_volume_m3"] *= 1.01
+    (c / "truth.json").write_text(json.dumps(truth))
+    err = _refused(["report", str(a), str(c), "--out", str(tmp_path / "m"), "--no-plots"], capsys)
+    assert "true volumes differ" in err
+
+
+def test_that_one_log_given_twice_is_refused(two_flights, tmp_path, capsys):
+    a, _ = two_flights
+    err = _refused(["report", str(a), str(a / "samples.pslog"), "--out", str(tmp_path / "m"), "--no-plots"], capsys)
+    assert "are the same log" in err
+
+
+def test_that_a_missing_second_run_is_refused_before_anything_is_written(two_flights, tmp_path, capsys):
+    # exit 3: an input that cannot be read (firmware_py.core.cli.reading_input), as for one run
+    err = _refused(["report", str(two_flights[0]), str(tmp_path / "nowhere"), "--out", str(tmp_path / "m")], capsys,
+                   code=3)
+    assert "nowhere" in err and not (tmp_path / "m").exists()
+
+
+def test_that_the_reports_surface_file_marks_the_cells_it_fitted(two_flights, tmp_path):
+    from ground.surface_file import load_surface
+    rep = make_report(two_flights[0], tmp_path / "a", ReportOptions(plots=False))
+    saved = load_surface(tmp_path / "a" / "surface.npz")
+    assert saved.fitted is not None and saved.fitted.shape == saved.heights_m.shape
+    assert 100.0 * saved.fitted.mean() == pytest.approx(rep["coverage_ratio_pct"])
+    assert 0 < saved.fitted.sum() < saved.fitted.size  # the wide loop left floor unseen: filled, not fitted
