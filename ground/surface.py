@@ -56,8 +56,8 @@ SURFACE_FITS = ("cubic-limited", "cubic", "linear", "local-linear")
 DEFAULT_SURFACE_FIT = "cubic-limited"
 EMPTY_CELL_POLICIES = ("nearest", "leave", "bounded", "wall-contact")
 DEFAULT_EMPTY_CELLS = "wall-contact"
-"""docs/unseen.md: mean Ve better than `nearest` in 13 of its 16 rows, equal in one, never worse on the paper's
-piles 1 and 2 (docs/design-notes.md, "Wall-contact evidence for the unseen fill")."""
+"""docs/unseen.md: mean Ve better than `nearest` in 13 of its 16 rows, equal in one; the two worse are by
+cancellation (docs/design-notes.md, "Wall-contact evidence for the unseen fill")."""
 DEFAULT_CELL_M = 0.25
 """Grid cell side; docs/cell_sensitivity.md measures the volume change against 0.05 m cells."""
 MAX_CELLS = MAX_GRID_CELLS
