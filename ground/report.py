@@ -74,6 +74,7 @@ from ground.uncertainty import (
 )
 from ground.unseen import free_space_ceiling_m
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT, faces_warning, unseen_warning, wide_interval_warning
+from ground.wall_contact import CONTACT_REST, contact_ceiling_m, contact_nodes, wall_contacts
 
 LOW_COVERAGE_PCT = 95.0
 HIGH_EXCLUDED_FRACTION = 0.5
@@ -453,10 +454,20 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
     spread = face_spread_m(grid, typical, n_sigma)
     if pile_dir is not None:
         disagreement, _ = sweep_disagreement_m(pile, pile_dir, grid, spread)
-    ceiling = None if opts.empty_cells != "bounded" else free_space_ceiling_m(  # what the beams left free above
+    contact_fit = contact_top = None  # the surface through the points and the wall contacts, and their tops
+    if opts.empty_cells == "wall-contact":
+        contacts = wall_contacts(cloud, structure, storage, err, grid.cell_m)
+        nodes, node_sigma = contact_nodes(contacts)
+        contact_top = contact_ceiling_m(contacts, grid.x_edges, grid.y_edges)
+        contact_fit, _ = clip_to_building(fit_heights(np.concatenate([pile, nodes]), grid, opts.surface_fit,
+                                                      np.concatenate([sigma, node_sigma])), storage.height_m)
+    bounded = opts.empty_cells == "bounded" or (opts.empty_cells == "wall-contact" and CONTACT_REST == "bounded")
+    ceiling = None if not bounded else free_space_ceiling_m(  # what the beams left free above
         cloud, grid, storage, err, err.angle_sigma_rad, where=~np.isfinite(fit))  # the unseen cells
-    heights, counts = fill_empty(fit, opts.empty_cells, ceiling), grid.counts(pile)
+    heights, counts = fill_empty(fit, opts.empty_cells, ceiling, contact_fit), grid.counts(pile)
     roof_or_ceiling = storage.height_m if ceiling is None else ceiling
+    if contact_top is not None:  # the contacts bound the unseen cells at the walls too
+        roof_or_ceiling = np.fmin(np.broadcast_to(roof_or_ceiling, grid.shape), contact_top)
 
     def errors_in(mask: np.ndarray | None = None) -> SurveyErrors:  # the whole floor, or one pile's cells
         return survey_errors(pile, pile_dir, fit, heights, counts, grid, typical, n_sigma, upper_m=roof_or_ceiling,

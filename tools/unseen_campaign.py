@@ -22,10 +22,19 @@ import numpy as np
 
 from firmware_py.core.sensor_noise import SensorNoise, SensorNoiseModel
 from firmware_py.core.storage import Storage
-from ground.pointcloud import SensorErrorModel
+from ground.pointcloud import SensorErrorModel, structure_mask
 from ground.report import ReportOptions, survey_from_samples
-from ground.surface import DEFAULT_CELL_M, Grid, fill_empty, grid_volume, volume_error_pct
+from ground.surface import (
+    DEFAULT_CELL_M,
+    Grid,
+    clip_to_building,
+    fill_empty,
+    fit_heights,
+    grid_volume,
+    volume_error_pct,
+)
 from ground.unseen import Extension, beam_angle_sigma_rad, bounded_fill, free_space_ceiling_m, unseen_bounds
+from ground.wall_contact import WallContacts, contact_fill, contact_nodes, pin_contacts, wall_contacts
 from sitl.runners.fly import FlyConfig, log_header
 from sitl.sensing.batch_sampler import sample_flight
 from sitl.world.raycast import World
@@ -38,13 +47,25 @@ FIXTURE_RESOLUTION_M = 0.25
 """Vertex spacing of the fixture piles' meshes (the paper piles' spacing)."""
 P_TRAJ_PCT = (20, 30)
 PILES = ("corner", "wall-end", "1", "2")
-FILLS = ("nearest", "bounded-nearest", "bounded-harmonic", "bounded-biharmonic", "floor-only-biharmonic")
-"""The fills compared: today's default, the bounded policy with each extension (ground.unseen), and the
-thin plate held by the floor alone (what the free-space ceiling adds)."""
+FILLS = ("nearest", "wall-contact", "nodes-everywhere", "pinned-bounded", "bounded-nearest", "bounded-harmonic",
+         "bounded-biharmonic", "floor-only-biharmonic")
+"""The fills compared: `nearest` (the default before issue 14 item 4); `--empty-cells wall-contact` (the default
+now; ground.wall_contact: the unseen cells from the surface through the points and the wall contacts); that
+surface in every cell; the contacts pinned in the unseen wall cells before `bounded`; the bounded policy with
+each extension (ground.unseen), and the thin plate held by the floor alone (what the free-space ceiling adds)."""
 NOISES = ("none", "appendix-a")
+CELL_ERROR_FILLS = ("nearest", "wall-contact")
+"""The fills whose mean per-cell error in the unseen cells the second table states."""
 
 
-def _fill(name: str, heights_fit: np.ndarray, ceiling_m: np.ndarray) -> np.ndarray:
+def _fill(name: str, heights_fit: np.ndarray, ceiling_m: np.ndarray, contacts: WallContacts, grid: Grid,
+          nodes_fit: np.ndarray) -> np.ndarray:
+    if name == "wall-contact":
+        return fill_empty(heights_fit, "wall-contact", ceiling_m, nodes_fit)
+    if name == "nodes-everywhere":
+        return fill_empty(nodes_fit, "nearest")
+    if name == "pinned-bounded":
+        return contact_fill(heights_fit, contacts, grid.x_edges, grid.y_edges, ceiling_m, Extension.NEAREST)
     if name.startswith("bounded-"):
         return bounded_fill(heights_fit, ceiling_m, Extension(name.removeprefix("bounded-")))
     if name.startswith("floor-only-"):
@@ -133,16 +154,30 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
         ceiling = free_space_ceiling_m(sv.cloud, sv.grid, storage, SensorErrorModel.from_header(header),
                                        beam_angle_sigma_rad(header), where=unseen)
         ceiling_s = time.perf_counter() - t0
+        err = SensorErrorModel.from_header(header)
+        contacts = wall_contacts(sv.cloud, structure_mask(sv.cloud, storage, err), storage, err, sv.grid.cell_m)
+        nodes_fit, _ = clip_to_building(fit_heights(np.concatenate([sv.pile_points_w, contact_nodes(contacts)[0]]),
+                                                    sv.grid), storage.height_m)
+        # the ceiling over the node fit's unseen cells too (a subset of the survey's, where it was computed)
+        ceiling = np.where(np.isfinite(ceiling), ceiling, np.where(np.isfinite(nodes_fit), np.nan, storage.height_m))
         row = {"pile": pile_name, "p_traj_pct": p_pct, "noise": noise_name, "position": k, "true_m3": pile.volume_m3,
                "unseen_pct": float(unseen.mean() * 100), "ceiling_s": ceiling_s, "n_beams": len(sv.cloud.range_m),
+               "n_contacts": len(contacts),
                "beam_crossed_pct": float((ceiling[unseen] < storage.height_m).mean() * 100) if unseen.any() else 0.0}
         for pol in policies:
-            filled = _fill(pol, sv.heights_fit, ceiling)
+            filled = _fill(pol, sv.heights_fit, ceiling, contacts, sv.grid, nodes_fit)
             row[f"u_{pol}_pct"] = float((filled[unseen] - truth[unseen]).sum() * sv.grid.cell_area_m2
                                         / pile.volume_m3 * 100)
+            row[f"mae_{pol}_m"] = float(np.abs(filled[unseen] - truth[unseen]).mean()) if unseen.any() else 0.0
             v = grid_volume(filled, sv.grid)
             row[f"ve_{pol}_pct"] = volume_error_pct(v, pile.volume_m3)
             row[f"e_{pol}_pct"] = (v - pile.volume_m3) / pile.volume_m3 * 100
+        pinned = pin_contacts(sv.heights_fit, contacts, sv.grid.x_edges, sv.grid.y_edges)
+        at = unseen & np.isfinite(pinned)  # unseen cells holding a wall contact: the estimate against nearest's copy
+        near = fill_empty(sv.heights_fit, "nearest")
+        row["pinned_pct"] = float(at.sum() / max(1, unseen.sum()) * 100)
+        row["pin_err_m"] = float(np.abs(pinned[at] - truth[at]).mean()) if at.any() else math.nan
+        row["pin_nearest_err_m"] = float(np.abs(near[at] - truth[at]).mean()) if at.any() else math.nan
         held = bounded_fill(sv.heights_fit, ceiling, Extension.BIHARMONIC)
         at_ceiling = np.isclose(held[unseen], ceiling[unseen]) & (ceiling[unseen] < storage.height_m)
         row["held_pct"] = float(at_ceiling.mean() * 100) if unseen.any() else 0.0
@@ -171,12 +206,18 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
              "flanks); `wall-end`, a 7 m ridge along the end wall x = 0 whose ends stop short of both corners (bare",
              "corners, flanks facing them); the paper's piles 1 and 2. Each row: the 20 servo phases (Fig. 9) through",
              "`survey_from_samples`, every fill applied to the same fitted surface and the same free-space ceiling.",
-             "", "Fills: `nearest` (today's default: the nearest fitted cell's height); `bounded-<extension>`: the",
+             "", "Fills: `wall-contact` (the default, `--empty-cells wall-contact`: the unseen cells from the surface",
+             "fitted through the pile points and the wall contacts, nodes at the walls' feet, the rest by the nearest",
+             "height; a wall contact, `ground/wall_contact.py`: where a sweep's lowest wall hit sits above its next",
+             "beam's hit on material or floor, the material's height at the wall); `nearest` (the nearest fitted",
+             "cell's height, the default until this campaign); `nodes-everywhere`: the surface through the contacts",
+             "in the fitted cells too; `pinned-bounded`: the fit kept, the contacts set in their unseen wall cells",
+             "before `bounded` (against `bounded-nearest`: what they add as a fill alone); `bounded-<extension>`: the",
              "`bounded` policy (`ground/unseen.py`) carrying the seen surface into the unseen cells by that extension",
              "(`nearest` copy, `harmonic` membrane, `biharmonic` thin plate) held between the floor and the",
              "free-space ceiling; `floor-only-biharmonic`: the thin plate held by the floor alone (what the ceiling",
-             "adds). What this decided, and why `bounded` holds the `nearest` copy and is not the default:",
-             "docs/design-notes.md, \"Free-space ceiling and the bounded fill\".", "",
+             "adds). What this decided: docs/design-notes.md, \"Free-space ceiling and the bounded fill\" and",
+             "\"Wall-contact evidence for the unseen fill (issue 14 item 4)\".", "",
              "## Ve (eq. 8, %) over the phases: mean | sd | max", ""]
     head = "| pile | P_traj | noise | " + " | ".join(f"`{p}` mean | sd | max" for p in policies) + " |"
     lines += [head, "|" + "---|" * (3 + 3 * len(policies))]
@@ -187,9 +228,10 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
               "Fill error in the unseen cells alone, sum of (fill - true height) x cell area, in % of the true volume",
               "(mean of |error| over the phases, then the mean signed error): the part of Ve the fill decides, apart",
               "from the fitted surface's own error.", ""]
-    head = ("| pile | P_traj | noise | unseen % | crossed % | held % | "
+    head = ("| pile | P_traj | noise | unseen % | crossed % | held % | contacts | pinned % | pin / nearest m | "
+            + f"cell error m ({' / '.join(CELL_ERROR_FILLS)}) | "
             + " | ".join(f"`{p}` abs | signed" for p in policies) + " | inside |")
-    lines += [head, "|" + "---|" * (7 + 2 * len(policies))]
+    lines += [head, "|" + "---|" * (11 + 2 * len(policies))]
     for (pile, p, noise), rs in _rows_by_case(rows):
         inside = sum(r["v_lo_m3"] <= r["true_m3"] <= r["v_hi_m3"] for r in rs)
         cells = [pile, f"{p:g} %", noise, f"{np.mean([r['unseen_pct'] for r in rs]):.1f}",
@@ -197,11 +239,21 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
         cells += [f"{np.mean(np.abs([r[f'u_{pol}_pct'] for r in rs])):.2f} | "
                   f"{np.mean([r[f'u_{pol}_pct'] for r in rs]):+.2f}" for pol in policies]
         cells.append(f"{inside}/{len(rs)}")
+        pin_err = [r["pin_err_m"] for r in rs if math.isfinite(r["pin_err_m"])]
+        pin_near = [r["pin_nearest_err_m"] for r in rs if math.isfinite(r["pin_nearest_err_m"])]
+        cells[6:6] = [f"{np.mean([r['n_contacts'] for r in rs]):.0f}", f"{np.mean([r['pinned_pct'] for r in rs]):.1f}",
+                      f"{np.mean(pin_err):.2f} / {np.mean(pin_near):.2f}" if pin_err else "-",
+                      " / ".join(f"{np.mean([r[f'mae_{pol}_m'] for r in rs]):.2f}" for pol in CELL_ERROR_FILLS)]
         lines.append("| " + " | ".join(cells) + " |")
     secs = [r["ceiling_s"] for r in rows]
     lines += ["", "`unseen %`: floor cells without a fitted surface (outside the points' hull, or emptied",
               "where the fit left the building); `crossed %`: of those, the share any beam passed over (the",
-              "others' ceiling is the roof); `held %`: the share the bounded thin plate holds at its ceiling.",
+              "others' ceiling is the roof); `held %`: the share the bounded thin plate holds at its ceiling;",
+              "`contacts`: wall contacts a survey found (mean; most are the bare floor meeting a wall); `pinned %`:",
+              "the share of the unseen cells holding one; `pin / nearest m`: in those cells, the mean |height - true",
+              "height| of the contacts' estimate and of `nearest`'s copy (the evidence where it exists); `cell",
+              "error m`: the mean |fill - true height| over all the unseen cells (a fill can be right per cell and",
+              "still lose in the sum, where its errors no longer cancel).",
               "`inside`: phases whose true volume lies between the volume with every unseen cell at the floor",
               "and with every unseen cell at its ceiling (the fitted cells as fitted, so the fit's own error",
               "can put it outside).", "",
