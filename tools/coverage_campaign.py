@@ -294,6 +294,15 @@ def survey_of_flight(flown: FlownMission, mission, stockpile: str, phase: int) -
     return reconstructed_ratio_pct(sv.heights_fit), volume_error_pct(grid_volume(sv.heights, sv.grid), pile.volume_m3)
 
 
+def _groups(rows: list[Survey1], piles, names):
+    """(pile, mission, its rows) for each pile and mission that has rows, in the order given."""
+    for pile in piles:
+        for name in names:
+            rs = [r for r in rows if r.pile == pile and r.mission == name]
+            if rs:
+                yield pile, name, rs
+
+
 def compare_page(rows: list[Survey1], args) -> str:
     """The issue's Must-show table, and the coverage plan's spread over the servo start positions."""
     names = list(dict.fromkeys(r.mission for r in rows))
@@ -311,34 +320,26 @@ def compare_page(rows: list[Survey1], args) -> str:
            "| pile | mission | R_a [%] (min) | Ve [%] (max) | flight [s] | energy [kJ] | model energy [kJ] | "
            "path [m] | targets |", "|---|---|---|---|---|---|---|---|---|"]
     e20 = next((r.energy_j for r in rows if r.mission == "rect-20"), None)
-    for pile in args.piles:
-        for name in names:
-            rs = [r for r in rows if r.pile == pile and r.mission == name]
-            if not rs:
-                continue
-            ra = [r.ra_pct for r in rs]
-            ve = [r.ve_pct for r in rs]
-            met = [min(ra) >= 99.0, max(ve) <= 0.3, e20 is None or rs[0].energy_j <= e20 * (1 + 1e-9)]
-            tags = "met" if all(met) else "missed: " + ", ".join(
-                w for w, ok in zip(("R_a", "Ve", "energy"), met, strict=True) if not ok)
-            out.append(f"| {pile} | {name} | {statistics.fmean(ra):.2f} ({min(ra):.2f}) | "
-                       f"{statistics.fmean(ve):.3f} ({max(ve):.3f}) | {rs[0].flight_s:.1f} | "
-                       f"{rs[0].energy_j / 1000:.2f} | {rs[0].model_energy_j / 1000:.2f} | {rs[0].path_m:.0f} | "
-                       f"{tags} |")
+    for pile, name, rs in _groups(rows, args.piles, names):
+        ra = [r.ra_pct for r in rs]
+        ve = [r.ve_pct for r in rs]
+        met = [min(ra) >= 99.0, max(ve) <= 0.3, e20 is None or rs[0].energy_j <= e20 * (1 + 1e-9)]
+        tags = "met" if all(met) else "missed: " + ", ".join(
+            w for w, ok in zip(("R_a", "Ve", "energy"), met, strict=True) if not ok)
+        out.append(f"| {pile} | {name} | {statistics.fmean(ra):.2f} ({min(ra):.2f}) | "
+                   f"{statistics.fmean(ve):.3f} ({max(ve):.3f}) | {rs[0].flight_s:.1f} | "
+                   f"{rs[0].energy_j / 1000:.2f} | {rs[0].model_energy_j / 1000:.2f} | {rs[0].path_m:.0f} | "
+                   f"{tags} |")
     cov = [nm for nm in names if nm.startswith("coverage-")]
     if cov and n > 1:
         out += ["", f"Ve over the {n} servo start positions (target: max <= 0.5 %), JSBSim flights as above:", "",
                 "| pile | mission | Ve mean [%] | Ve sd [%] | Ve max [%] (position) | R_a min [%] |",
                 "|---|---|---|---|---|---|"]
-        for pile in args.piles:
-            for name in names:
-                rs = [r for r in rows if r.pile == pile and r.mission == name]
-                if not rs:
-                    continue
-                ve = [r.ve_pct for r in rs]
-                worst = max(rs, key=lambda r: r.ve_pct)
-                out.append(f"| {pile} | {name} | {statistics.fmean(ve):.3f} | {statistics.pstdev(ve):.3f} | "
-                           f"{worst.ve_pct:.3f} ({worst.phase}) | {min(r.ra_pct for r in rs):.2f} |")
+        for pile, name, rs in _groups(rows, args.piles, names):
+            ve = [r.ve_pct for r in rs]
+            worst = max(rs, key=lambda r: r.ve_pct)
+            out.append(f"| {pile} | {name} | {statistics.fmean(ve):.3f} | {statistics.pstdev(ve):.3f} | "
+                       f"{worst.ve_pct:.3f} ({worst.phase}) | {min(r.ra_pct for r in rs):.2f} |")
     return "\n".join(out)
 
 
