@@ -109,7 +109,8 @@ def test_that_the_map_built_batch_by_batch_is_the_map_of_the_whole_log():
 
 def test_that_the_running_volume_is_the_reports_volume_and_interval_on_the_same_records():
     """The golden log: the report (with its self-calibration and servo re-timing, which change nothing on it)
-    said 7,267.0 m³; the live page's computation on the same records, streamed in batches, says the same."""
+    said what tests/golden/report_figures.json holds; the live page's computation on the same records, streamed
+    in batches, says the same."""
     samples = read_samplelog(GOLDEN / "samples.pslog").samples
     figures = json.loads((GOLDEN / "report_figures.json").read_text())
     live = state(load_header(GOLDEN / "samples.pslog"))
