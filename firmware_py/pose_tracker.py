@@ -64,8 +64,9 @@ class PoseTrackerConfig:
     """0: a pose is only ever interpolated between two real samples (the payload waits for them).
     Extrapolating the newest two amplifies the estimate's message-to-message noise: white noise of
     sigma comes out at 1.6 sigma on average and 2.2 sigma one period ahead, beyond what the log
-    header states, and the ground station's wall tolerance is sized from the header (measured:
-    Appendix A's pile 1 at P_traj 5 % read +0.38 % with extrapolation, docs/design-notes.md)."""
+    header states, and the ground station's wall tolerance is sized from the header (measured over
+    20 start positions: Appendix A's pile 1 at P_traj 5 % read Ve 0.36 % with extrapolation, 0.10 %
+    interpolated; docs/design-notes.md)."""
     rate_window_ns: int = 1_000_000_000
 
     def __post_init__(self) -> None:
