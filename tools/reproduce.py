@@ -224,8 +224,9 @@ def results_markdown(stats_by_policy: dict, piles, experiments: list[Experiment]
     lines = ["# Paper reproduction: results", "",
              f"Regenerate with `{command}` ({timing}).", "",
              "Ve is eq. (8), R_a eq. (9), ΔE eq. (19) (against the baseline at P_traj 5 %), averaged over the 20 servo "
-             "initial positions of Fig. 9 (mean ± standard deviation). `nearest` is our default empty-cell policy "
-             "(the surface is extended to the walls), `leave` the paper's (no volume outside the fitted surface).", "",
+             "initial positions of Fig. 9 (mean ± standard deviation). `nearest` extends the surface to the walls from "
+             "the nearest fitted cell (the default until the wall-contact fill, docs/unseen.md, replaced it), `leave` "
+             "is the paper's (no volume outside the fitted surface).", "",
              "## Table 2", "",
              "| configuration | pile | Ve nearest [%] | Ve leave [%] | Ve paper [%] | R_a [%] | R_a paper [%] "
              "| ΔE_BL [%] | ΔE_BL paper [%] |",

@@ -1,0 +1,22 @@
+"""tools.experiments: the per-survey metrics every sweep tabulates."""
+
+import pytest
+
+
+def test_that_the_default_policys_ve_is_the_surveys_own_fill_not_a_refill_of_the_fitted_cells():
+    """`wall-contact` fills from the cloud's wall contacts, which a refill of the fitted heights cannot see: its
+    column must be the survey's heights (it had silently repeated `nearest`'s figure)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from ground.surface import DEFAULT_EMPTY_CELLS, Grid
+    from tools.experiments import _metrics
+
+    grid = Grid(4.0, 4.0, 1.0)
+    fit = np.full((4, 4), 1.0)
+    fit[0, :] = np.nan  # a row the points did not reach
+    own = np.where(np.isfinite(fit), fit, 3.0)  # the survey's own fill put 3 m there (its wall contacts)
+    m = _metrics(SimpleNamespace(heights_fit=fit, heights=own, grid=grid, n_cells_clipped=0), true_m3=24.0)
+    assert m[f"ve_{DEFAULT_EMPTY_CELLS}_pct"] == pytest.approx(0.0, abs=1e-12)  # 12 cells of 1 m + 4 of 3 m
+    assert m["ve_nearest_pct"] == pytest.approx(100.0 * 8.0 / 24.0)  # nearest copies 1 m into the row: 16 m³
