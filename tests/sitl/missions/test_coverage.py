@@ -238,10 +238,10 @@ def test_that_material_at_the_walls_costs_a_far_leg_its_row_of_cells_and_a_near_
     rate = LIDARLITE_V3.rate_hz
     far = LoopPlan((2.0, 6.0, 2.0, 6.0), 0.0, 2.0).mission(Storage(), 12.0, YAW_30)  # east and west legs 6 m off
     near = LoopPlan((1.5, 1.5, 1.5, 1.5), 0.0, 2.0).mission(Storage(), 12.0, YAW_30)
-    far_bare, far_walls = (predict_coverage(far, WF, LIDAR, rate, walls=w) for w in (None, band))
-    near_bare, near_walls = (predict_coverage(near, WF, LIDAR, rate, walls=w) for w in (None, band))
-    assert near_bare.predicted_ra_pct - near_walls.predicted_ra_pct < 0.05
-    lost = far_walls.covered != far_bare.covered
+    far_bare, far_banded = (predict_coverage(far, WF, LIDAR, rate, walls=w) for w in (None, band))
+    near_bare, near_banded = (predict_coverage(near, WF, LIDAR, rate, walls=w) for w in (None, band))
+    assert near_bare.predicted_ra_pct - near_banded.predicted_ra_pct < 0.05
+    lost = far_banded.covered != far_bare.covered
     nx, ny = lost.shape
     ix, iy = lost.nonzero()
     to_wall = np.minimum.reduce([ix, nx - 1 - ix, iy, ny - 1 - iy])
