@@ -25,6 +25,9 @@ from ground.sweep_check import stuck_sweep_mask
 
 N_SIGMA = 3.0
 """Points within at least N_SIGMA expected errors of a wall or roof plane are taken as structure."""
+MAX_ERROR_M = 1000.0
+"""A header's 1-sigma range or position error, or range quantum, beyond this is no sensor's (a damaged or
+forged header: its square would pass float range in the error terms)."""
 ESCAPES_PER_SURVEY = 0.01
 """Structure points a survey may expect to keep by chance (`structure_n_sigma`)."""
 
@@ -61,11 +64,13 @@ class SensorErrorModel:
         if not isinstance(s, dict) or not isinstance(pose, dict):
             raise ValueError("log header sensor and pose must be JSON objects")
         values = []
-        for where, d, name, default in (("sensor", s, "range_sigma_m", 0.0), ("sensor", s, "range_sigma_rel", 0.0),
-                                        ("sensor", s, "resolution_m", 0.01), ("pose", pose, "position_sigma_m", 0.0)):
+        for where, d, name, default, most in (("sensor", s, "range_sigma_m", 0.0, MAX_ERROR_M),
+                                              ("sensor", s, "range_sigma_rel", 0.0, 1.0),
+                                              ("sensor", s, "resolution_m", 0.01, MAX_ERROR_M),
+                                              ("pose", pose, "position_sigma_m", 0.0, MAX_ERROR_M)):
             v = d.get(name, default)
-            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
-                raise ValueError(f"log header {where}.{name} must be a finite number >= 0, got {v!r}")
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or not 0 <= v <= most:
+                raise ValueError(f"log header {where}.{name} must be a number in [0, {most:g}], got {v!r}")
             values.append(float(v))
         # A simulated survey's noise record (firmware_py.core.sensor_noise) may state more than the spec:
         # Appendix A's pose noise, say. The tolerance takes the larger of the two.

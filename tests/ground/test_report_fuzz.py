@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from firmware_py.core.cli import UserError
@@ -90,6 +90,9 @@ def report_or_user_error(workdir: Path, header: dict) -> dict | None:
 
 @settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(edits=field_edits)
+@example(edits={"sensor.resolution_m": 1.3407807929942597e+154})  # found by a CI run: their squares overflowed
+@example(edits={"sensor.range_sigma_m": 1.3407807929942597e+154})
+@example(edits={"pose.position_sigma_m": 1e200})
 def test_that_any_header_content_gives_a_report_or_one_user_error(workdir, edits):
     report_or_user_error(workdir, edited(edits))
 
