@@ -180,6 +180,7 @@ def test_that_fly_flies_the_coverage_plan_and_records_it(tmp_path):
     import json
     out = tmp_path / "run"
     assert main(["fly", "--stockpile", "1", "--mission", "coverage", "--coverage", "95", "--plant", "ideal",
+                 "--storage", "30x20x10", "--altitude", "9",  # a small building: the planning is the cost
                  "--out", str(out), "--quiet"]) == 0
     truth = json.loads((out / "truth.json").read_text())
     assert truth["mission"]["kind"] == "coverage"
