@@ -55,6 +55,9 @@ from ground.smoothing import DEFAULT_SMOOTHING, SmoothingOptions, smoothed_nodes
 SURFACE_FITS = ("cubic-limited", "cubic", "linear", "local-linear")
 DEFAULT_SURFACE_FIT = "cubic-limited"
 EMPTY_CELL_POLICIES = ("nearest", "leave", "bounded", "wall-contact")
+GRID_ONLY_POLICIES = tuple(p for p in EMPTY_CELL_POLICIES if p != "wall-contact")
+"""The policies `fill_empty` can apply from a height grid alone: `wall-contact` needs the cloud's wall contacts
+(without them it gives `nearest`'s figure under its own name)."""
 DEFAULT_EMPTY_CELLS = "wall-contact"
 """docs/unseen.md: mean Ve better than `nearest` in 13 of its 16 rows, equal in one; the two worse are by
 cancellation (docs/design-notes.md, "Wall-contact evidence for the unseen fill")."""

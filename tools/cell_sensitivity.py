@@ -15,16 +15,12 @@ from firmware_py.core.frames import StorageFrame
 from firmware_py.core.header import header_boresight
 from firmware_py.core.samplelog import read_samplelog
 from ground.pointcloud import SensorErrorModel, cloud_from_samples, structure_mask
-from ground.surface import DEFAULT_CELL_M, EMPTY_CELL_POLICIES, Grid, fill_empty, fit_heights, grid_volume
+from ground.surface import DEFAULT_CELL_M, GRID_ONLY_POLICIES, Grid, fill_empty, fit_heights, grid_volume
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
 
 CELLS_M = (1.0, 0.5, 0.1**0.5, 0.25, 0.2, 0.1, 0.05)
 
-
-POLICIES = tuple(p for p in EMPTY_CELL_POLICIES if p != "wall-contact")
-"""The policies a height grid alone can apply: `wall-contact` needs the cloud's wall contacts (a refill of the
-fitted grid would give `nearest`'s figure under its name)."""
 
 
 def volumes_by_cell(pile: str, p_traj: float, tmp: Path) -> dict[str, dict[float, float]]:
@@ -36,11 +32,11 @@ def volumes_by_cell(pile: str, p_traj: float, tmp: Path) -> dict[str, dict[float
         log.header["storage_frame"]), boresight=header_boresight(log.header))
     st = cfg.mission.storage
     pts = cloud.points_w[~structure_mask(cloud, st, SensorErrorModel.from_header(log.header))]
-    out: dict[str, dict[float, float]] = {pol: {} for pol in POLICIES}
+    out: dict[str, dict[float, float]] = {pol: {} for pol in GRID_ONLY_POLICIES}
     for c in CELLS_M:
         g = Grid(st.length_m, st.width_m, c)
         fit = fit_heights(pts, g)
-        for pol in POLICIES:
+        for pol in GRID_ONLY_POLICIES:
             out[pol][c] = grid_volume(fill_empty(fit, pol), g)
     return out
 
@@ -51,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     header = "| empty cells | pile | P_traj | " + " | ".join(f"{c:.3g} m" for c in CELLS_M) + " |"
     lines = [header, "|---|---|---|" + "---|" * len(CELLS_M)]
-    worst = {pol: 0.0 for pol in POLICIES}
+    worst = {pol: 0.0 for pol in GRID_ONLY_POLICIES}
     with tempfile.TemporaryDirectory() as tmp:
         for pile in ("1", "2"):
             for p in (0.05, 0.20, 0.30):
@@ -66,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     table = "\n".join([*lines[:2], table])
     text = (f"Volume change against the finest grid (0.05 m cells), per cell side, ideal plant, servo position 0. "
             f"Default cell: {DEFAULT_CELL_M} m; largest change there: "
-            + ", ".join(f"{worst[p]:.3f} % with `{p}`" for p in POLICIES)
+            + ", ".join(f"{worst[p]:.3f} % with `{p}`" for p in GRID_ONLY_POLICIES)
             + ". The paper's G_xy = 0.1 m^2 is the 0.316 m column. With `leave`, the strip between the "
             "last samples and a wall is counted or not depending on where cell centres fall, so the volume of "
             "a pile that leans on the walls (pile 2) jitters with the grid; `nearest` removes that.\n\n" + table)
