@@ -53,12 +53,14 @@ from ground.surface import (
     DEFAULT_CELL_M,
     DEFAULT_EMPTY_CELLS,
     DEFAULT_SURFACE_FIT,
+    INTERPOLATING_FITS,
     Grid,
     clip_to_building,
     fill_empty,
     fit_heights,
     grid_volume,
     reconstructed_ratio_pct,
+    shaping_points,
     volume_error_pct,
 )
 from ground.surface_file import SavedSurface, load_surface, save_surface
@@ -459,8 +461,12 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
         contacts = wall_contacts(cloud, structure, storage, err, grid.cell_m)
         nodes, node_sigma = contact_nodes(contacts)
         contact_top = contact_ceiling_m(contacts, grid.x_edges, grid.y_edges)
-        contact_fit, _ = clip_to_building(fit_heights(np.concatenate([pile, nodes]), grid, opts.surface_fit,
-                                                      np.concatenate([sigma, node_sigma])), storage.height_m)
+        unseen = ~np.isfinite(fit)
+        if unseen.any() and len(nodes):  # only the unseen cells take it: fit it from the points that shape it there
+            p_all, s_all = np.concatenate([pile, nodes]), np.concatenate([sigma, node_sigma])
+            near = shaping_points(p_all[:, :2], unseen, grid) if opts.surface_fit in INTERPOLATING_FITS else slice(None)
+            contact_fit, _ = clip_to_building(fit_heights(p_all[near], grid, opts.surface_fit, s_all[near]),
+                                              storage.height_m)
     bounded = opts.empty_cells == "bounded" or (opts.empty_cells == "wall-contact" and CONTACT_REST == "bounded")
     ceiling = None if not bounded else free_space_ceiling_m(  # what the beams left free above
         cloud, grid, storage, err, err.angle_sigma_rad, where=~np.isfinite(fit))  # the unseen cells

@@ -55,6 +55,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
+from threadpoolctl import threadpool_limits
 
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_dir_body, rot_body_to_ned
 from firmware_py.core.servo_model import command_angles, servo_angles
@@ -246,6 +247,19 @@ class _Problem:
         d_b = beam_dir_body(g, mounted(self.base, float(q[2]), float(q[3])))
         return self.origins[idx] + np.einsum("nij,nj->ni", self.r_wb[idx], d_b) * self.range_m[idx, None]
 
+    def plane_distances(self, idx: np.ndarray, n: np.ndarray, d: np.ndarray):
+        """The signed distances of the points `idx` from their planes (normals n, offsets d, one per point) as a
+        function of the parameters: n . p - d = (n . origin - d) + range (R_wb^T n) . beam_body. The parts the
+        parameters cannot change are taken once, so a fit's many trial evaluations (its finite-difference
+        Jacobian) cost a dot product per point instead of a rotation."""
+        c = np.einsum("ij,ij->i", self.origins[idx], n) - d
+        m = np.einsum("nij,ni->nj", self.r_wb[idx], n) * self.range_m[idx, None]
+
+        def at(q: np.ndarray) -> np.ndarray:
+            g = self.angles(float(q[0]), float(q[1]))[idx]
+            return c + np.einsum("ij,ij->i", m, beam_dir_body(g, mounted(self.base, float(q[2]), float(q[3]))))
+        return at
+
 
 def _assign(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(plane index, signed distance) of each point's nearest plane, index -1 outside its window."""
@@ -283,16 +297,20 @@ def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.n
         sel = idx[keep]
         if len(sel) < 50 or not free.any():
             break
-        nj, dj, wj = n[j[keep]], d[j[keep]], w_idx[keep]
+        distance = prob.plane_distances(sel, n[j[keep]], d[j[keep]])
+        wj = w_idx[keep]
 
-        def resid(qf, sel=sel, nj=nj, dj=dj, wj=wj, q=q):
+        def resid(qf, distance=distance, wj=wj, q=q):
             qq = q.copy()
             qq[free] = qf
-            return (np.einsum("ij,ij->i", prob.points(qq, sel), nj) - dj) / wj
+            return distance(qq) / wj
 
         q = q.copy()
-        q[free] = least_squares(resid, np.clip(q[free], lo, hi), loss="arctan", f_scale=1.0, bounds=(lo, hi),
-                                x_scale=np.full(int(free.sum()), 0.01), diff_step=1e-6, max_nfev=80).x
+        # One BLAS thread: the solver's products with a tall, four-column Jacobian are too small to share, and a
+        # threaded OpenBLAS on a busy two-core machine spent more time handing them off than computing them.
+        with threadpool_limits(limits=1, user_api="blas"):
+            q[free] = least_squares(resid, np.clip(q[free], lo, hi), loss="arctan", f_scale=1.0, bounds=(lo, hi),
+                                    x_scale=np.full(int(free.sum()), 0.01), diff_step=1e-6, max_nfev=80).x
     j, r = _assign(prob.points(q, idx), n, d, BAND * windows[-1][idx])
     return q, j, r
 

@@ -53,6 +53,8 @@ from firmware_py.core.surface_file import MAX_GRID_CELLS
 from ground.smoothing import DEFAULT_SMOOTHING, SmoothingOptions, smoothed_nodes
 
 SURFACE_FITS = ("cubic-limited", "cubic", "linear", "local-linear")
+INTERPOLATING_FITS = ("cubic-limited", "cubic", "linear")
+"""The fits through the points themselves, on their Delaunay triangulation (`shaping_points` applies to them)."""
 DEFAULT_SURFACE_FIT = "cubic-limited"
 EMPTY_CELL_POLICIES = ("nearest", "leave", "bounded", "wall-contact")
 GRID_ONLY_POLICIES = tuple(p for p in EMPTY_CELL_POLICIES if p != "wall-contact")
@@ -216,6 +218,35 @@ def fill_empty(heights: np.ndarray, policy: str, ceiling_m: np.ndarray | None = 
         return bounded_fill(heights, ceiling_m)
     _, (ix, iy) = ndimage.distance_transform_edt(empty, return_indices=True)
     return heights[ix, iy]
+
+
+REACH_GAPS = 4.0
+"""`shaping_points`' reach in widest gaps (see there)."""
+
+
+def shaping_points(points_xy: np.ndarray, wanted: np.ndarray, grid: Grid) -> np.ndarray:
+    """Which points shape a Delaunay-based fit (cubic, cubic-limited, linear) in the wanted cells: those within
+    REACH_GAPS widest gaps of a wanted cell. A fit needed only in a few cells (the wall-contact fit, in the
+    unseen ones) is then a triangulation of these points rather than of the whole cloud, and equal to the whole
+    cloud's fit there (tested).
+
+    Why four gaps: with g the widest distance from any cell to a cell holding points (plus a cell's diagonal),
+    no circle empty of points is wider than about g, so the triangle holding a wanted cell's centre has its
+    corners within 2g of it; a Clough-Tocher corner's gradient is estimated from its neighbours, within another
+    2g. Where the points are sparse (a wide unseen corner) g is large and the reach takes the whole cloud."""
+    wanted = np.asarray(wanted, dtype=bool)
+    if not wanted.any() or len(points_xy) == 0:
+        return np.zeros(len(points_xy), dtype=bool)
+    holds = grid.counts(points_xy) > 0
+    if not holds.any():
+        return np.ones(len(points_xy), dtype=bool)
+    nx, ny = grid.shape
+    cell_xy = (grid.length_m / nx, grid.width_m / ny)
+    gap_m = float(ndimage.distance_transform_edt(~holds, sampling=cell_xy).max()) + math.hypot(*cell_xy)
+    to_wanted_m = ndimage.distance_transform_edt(~wanted, sampling=cell_xy)
+    ix = np.clip(np.floor(points_xy[:, 0] / cell_xy[0]).astype(np.int64), 0, nx - 1)
+    iy = np.clip(np.floor(points_xy[:, 1] / cell_xy[1]).astype(np.int64), 0, ny - 1)
+    return to_wanted_m[ix, iy] <= REACH_GAPS * gap_m
 
 
 def grid_volume(heights: np.ndarray, grid: Grid) -> float:

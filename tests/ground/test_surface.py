@@ -8,6 +8,7 @@ from ground.surface import (
     fit_heights,
     grid_volume,
     reconstructed_ratio_pct,
+    shaping_points,
     volume_error_pct,
 )
 
@@ -105,3 +106,46 @@ def test_that_the_limited_cubic_keeps_the_cubic_on_a_smooth_dome_and_tames_noise
 def test_that_an_unknown_fit_is_refused():
     with pytest.raises(ValueError, match="surface fit"):
         fit_heights(np.zeros((5, 3)), Grid(10, 10, 1.0), "spline")
+
+
+def swaths(gap_x_m: float, gap_y_m: float, line_spacing_m: float = 1.5) -> np.ndarray:
+    """Sweep-like points over a 30 x 20 m floor: lines across y every line_spacing_m of x, a point every
+    5 cm, on a smooth mound, with no points in the corner [0, gap_x_m) x [0, gap_y_m) (unseen). Jittered by
+    a millimetre (as flown points are): a lattice's co-circular points have no unique triangulation."""
+    x, y = np.meshgrid(np.append(np.arange(0.0, 30.0, line_spacing_m), 30.0), np.linspace(0.0, 20.0, 401),
+                       indexing="ij")
+    jitter = np.random.default_rng(1).uniform(-1e-3, 1e-3, (2, *x.shape))
+    x, y = np.clip(x + jitter[0], 0.0, 30.0), np.clip(y + jitter[1], 0.0, 20.0)
+    keep = ~((x < gap_x_m) & (y < gap_y_m))
+    x, y = x[keep], y[keep]
+    z = 3.0 * np.exp(-((x - 12.0) ** 2 + (y - 8.0) ** 2) / 40.0) + 0.3 * np.sin(y)
+    return np.column_stack([x, y, z])
+
+
+@pytest.mark.parametrize("method", ["cubic-limited", "cubic", "linear"])
+@pytest.mark.parametrize("gap_m", [(3.0, 2.0), (12.0, 9.0)])
+def test_that_the_fit_from_the_shaping_points_equals_the_whole_clouds_in_the_wanted_cells(method, gap_m):
+    """The wall-contact fit is needed only in the unseen cells: triangulating only the points near them
+    must give the same surface there as triangulating the whole cloud (to the interpolator's own tolerance)."""
+    pts = swaths(*gap_m)
+    g = Grid(30, 20, 0.25)
+    full = fit_heights(pts, g, method)
+    nodes = np.array([[0.0, y, 1.0] for y in np.arange(0.01, 20.0, 0.53)]
+                     + [[x, 0.0, 0.5] for x in np.arange(0.02, 30.0, 0.47)])  # wall contacts, off the lattice
+    with_nodes = np.vstack([pts, nodes])
+    wanted = ~np.isfinite(full)
+    near = shaping_points(with_nodes[:, :2], wanted, g)
+    assert 0 < near.sum() < len(with_nodes)  # a real subset: the far side of the building is left out
+    whole, part = fit_heights(with_nodes, g, method), fit_heights(with_nodes[near], g, method)
+    assert np.isfinite(whole[wanted]).all()
+    np.testing.assert_allclose(part[wanted], whole[wanted], atol=1e-4)
+
+
+def test_that_sparse_points_make_every_point_shape_the_fit():
+    """Where the sweep lines are half the building apart, the reach from the middle takes the whole cloud."""
+    pts = swaths(0.0, 0.0, line_spacing_m=15.0)
+    g = Grid(30, 20, 0.25)
+    wanted = np.zeros(g.shape, dtype=bool)
+    wanted[58:62, 38:42] = True
+    assert shaping_points(pts[:, :2], wanted, g).all()
+    assert not shaping_points(pts[:, :2], np.zeros(g.shape, dtype=bool), g).any()

@@ -136,11 +136,9 @@ def test_that_pinned_contacts_fill_only_unseen_cells():
 FLOWN = Storage(30.0, 20.0, 10.0)
 
 
-def test_that_the_wall_contact_fill_of_a_flown_corner_pile_beats_nearest():
-    """A corner pile (seed 0, top 6 m) flown at 8 m, P_traj 40 %, by the ideal plant: the surface through
-    the wall contacts puts more of the unseen corner's material back than the nearest copy, and the volume
-    is closer (one servo phase; over four phases at P_traj 30 and 40 %: Ve 1.84 -> 1.57 % mean, all eight
-    closer)."""
+@pytest.fixture(scope="module")
+def corner_flight():
+    """A corner pile (seed 0, top 6 m) flown at 8 m, P_traj 40 %, by the ideal plant, one servo phase."""
     shape = make_shape("corner", FLOWN, 6.0, 0)
     cfg = replace(FlyConfig(mission=Mission(storage=FLOWN, altitude_m=8.0, p_traj=0.40)), initial_position=5)
     plant = IdealPlant(cfg.mission, StorageFrame())
@@ -148,7 +146,14 @@ def test_that_the_wall_contact_fill_of_a_flown_corner_pile_beats_nearest():
     wf = cfg.servo_waveform()
     world = World(FLOWN, shape.pile, cfg.lidar.max_range_m)
     samples = sample_flight(plant.states(t), wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame, seed=[0])
-    header = log_header(cfg, wf)
+    return shape, cfg, world, samples, log_header(cfg, wf)
+
+
+def test_that_the_wall_contact_fill_of_a_flown_corner_pile_beats_nearest(corner_flight):
+    """The surface through the wall contacts puts more of the unseen corner's material back than the
+    nearest copy, and the volume is closer (one servo phase; over four phases at P_traj 30 and 40 %:
+    Ve 1.84 -> 1.57 % mean, all eight closer)."""
+    shape, cfg, world, samples, header = corner_flight
     lever = np.array(cfg.lever_arm_body_m)
     near, wall = (survey_from_samples(samples, header, FLOWN, cfg.frame, lever,
                                       ReportOptions(plots=False, empty_cells=p)) for p in ("nearest", "wall-contact"))
@@ -168,6 +173,22 @@ def test_that_the_wall_contact_fill_of_a_flown_corner_pile_beats_nearest():
     log = SampleLog(header=header, samples=samples, blocks_ok=1, blocks_corrupt=0, blocks_truncated=0, bytes_skipped=0)
     lo, hi = summarise(wall, log, ReportOptions(plots=False, empty_cells="wall-contact"), v)["volume_interval_m3"]
     assert lo <= v <= hi  # the interval, its unseen term bounded by the contacts' tops too, still holds the truth
+
+
+def test_that_the_wall_contact_fit_from_the_points_near_the_unseen_cells_is_the_whole_clouds(corner_flight,
+                                                                                             monkeypatch):
+    """The report fits the surface through the contacts from the points near the unseen cells only (its
+    speed): the filled heights are those of the fit through every point."""
+    import ground.report
+
+    _, cfg, _, samples, header = corner_flight
+    lever = np.array(cfg.lever_arm_body_m)
+    opts = ReportOptions(plots=False, empty_cells="wall-contact")
+    part = survey_from_samples(samples, header, FLOWN, cfg.frame, lever, opts)
+    monkeypatch.setattr(ground.report, "shaping_points", lambda xy, wanted, grid: np.ones(len(xy), dtype=bool))
+    whole = survey_from_samples(samples, header, FLOWN, cfg.frame, lever, opts)
+    assert (~np.isfinite(whole.heights_fit)).sum() > 100  # a real unseen corner
+    np.testing.assert_allclose(part.heights, whole.heights, atol=1e-4)
 
 
 def test_that_a_wide_wall_tolerance_does_not_pull_the_contact_down():
