@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from firmware_py.core.cli import ArgumentParser, run_cli
+from ground.surface import DEFAULT_EMPTY_CELLS
 from tools.doc_sections import with_sections_of
 from tools.experiments import (
     ALL_EXPERIMENTS,
@@ -219,38 +220,40 @@ def _fmt(v, spec=".2f", unit=""):
 
 def results_markdown(stats_by_policy: dict, piles, experiments: list[Experiment], figures: list[Path],
                      md_path: Path, timing: str, command: str) -> str:
-    near, leave = stats_by_policy["nearest"], stats_by_policy["leave"]
-    t_near, t_leave = table2(near, piles), table2(leave, piles)
+    main, near, leave = (stats_by_policy[p] for p in (DEFAULT_EMPTY_CELLS, "nearest", "leave"))
+    t_main, t_near, t_leave = table2(main, piles), table2(near, piles), table2(leave, piles)
     lines = ["# Paper reproduction: results", "",
              f"Regenerate with `{command}` ({timing}).", "",
              "Ve is eq. (8), R_a eq. (9), ΔE eq. (19) (against the baseline at P_traj 5 %), averaged over the 20 servo "
-             "initial positions of Fig. 9 (mean ± standard deviation). `nearest` extends the surface to the walls from "
-             "the nearest fitted cell (the default until the wall-contact fill, docs/unseen.md, replaced it), `leave` "
-             "is the paper's (no volume outside the fitted surface).", "",
+             "initial positions of Fig. 9 (mean ± standard deviation). The unseen cells (no fitted surface) are filled "
+             f"by the report's default, `{DEFAULT_EMPTY_CELLS}` (the surface through the points and the wall contacts, "
+             "docs/unseen.md); `nearest` copies the nearest fitted cell (the default before it), `leave` is the "
+             "paper's (no volume outside the fitted surface). Trends and figures use the default.", "",
              "## Table 2", "",
-             "| configuration | pile | Ve nearest [%] | Ve leave [%] | Ve paper [%] | R_a [%] | R_a paper [%] "
-             "| ΔE_BL [%] | ΔE_BL paper [%] |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             f"| configuration | pile | Ve {DEFAULT_EMPTY_CELLS} [%] | Ve nearest [%] | Ve leave [%] | Ve paper [%] "
+             "| R_a [%] | R_a paper [%] | ΔE_BL [%] | ΔE_BL paper [%] |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for exp, label in TABLE2_LABELS.items():
         for pile in piles:
-            if exp not in t_near or pile not in t_near[exp]:
+            if exp not in t_main or pile not in t_main[exp]:
                 continue
-            ve_n, ra, de = t_near[exp][pile]
-            ve_l = t_leave[exp][pile][0]
+            ve, ra, de = t_main[exp][pile]
+            ve_n, ve_l = t_near[exp][pile][0], t_leave[exp][pile][0]
             pv, pra, pde = PAPER_TABLE2[exp][pile]
-            lines.append(f"| {label} | {pile} | {ve_n:.2f} | {ve_l:.2f} | {pv} | {ra:.1f} | {pra} | "
+            lines.append(f"| {label} | {pile} | {ve:.2f} | {ve_n:.2f} | {ve_l:.2f} | {pv} | {ra:.1f} | {pra} | "
                          f"{_fmt(de, '+.0f')} | {pde} |")
     lines += ["", "## The paper's findings, checked", ""]
-    for claim, ok, evidence in trends(near, piles):
-        lines.append(f"- {'holds' if ok else '**does not hold**'}: {claim}. {evidence} (nearest).")
+    for claim, ok, evidence in trends(main, piles):
+        lines.append(f"- {'holds' if ok else '**does not hold**'}: {claim}. {evidence} ({DEFAULT_EMPTY_CELLS}).")
     lines += ["", "## Where and why we differ from the paper", "", *DISCUSSION, "", "## Every configuration", "",
-              "| experiment | figure | pile | P_traj | Ve nearest [%] | Ve leave [%] | R_a [%] | flight [s] | ΔE [%] "
-              "| points |", "|---|---|---|---|---|---|---|---|---|---|"]
+              f"| experiment | figure | pile | P_traj | Ve {DEFAULT_EMPTY_CELLS} [%] | Ve nearest [%] | Ve leave [%] "
+              "| R_a [%] | flight [s] | ΔE [%] | points |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for e in experiments:
         for pile in piles:
-            for p in sorted(p for (x, pl, p) in near if x == e.name and pl == pile):
-                a, b = near[(e.name, pile, p)], leave[(e.name, pile, p)]
+            for p in sorted(p for (x, pl, p) in main if x == e.name and pl == pile):
+                a, n, b = main[(e.name, pile, p)], near[(e.name, pile, p)], leave[(e.name, pile, p)]
                 lines.append(f"| {e.name} | {e.figure} | {pile} | {p:g} % | {a['ve']:.2f} ± {a['ve_sd']:.2f} | "
+                             f"{n['ve']:.2f} ± {n['ve_sd']:.2f} | "
                              f"{b['ve']:.2f} ± {b['ve_sd']:.2f} | {a['ra']:.2f} ± {a['ra_sd']:.2f} | "
                              f"{a['flight_s']:.0f} | {_fmt(a['de'], '+.1f')} | {a['n_points']:,.0f} |")
     if figures:
@@ -325,11 +328,11 @@ def _body(args) -> int:
     wall = time.perf_counter() - t0
     args.rows.parent.mkdir(parents=True, exist_ok=True)
     write_rows_csv(rows, args.rows)
-    stats = {pol: aggregate(rows, pol) for pol in ("nearest", "leave")}
+    stats = {pol: aggregate(rows, pol) for pol in (DEFAULT_EMPTY_CELLS, "nearest", "leave")}
     piles = [p for p in args.piles]
-    for claim, ok, evidence in trends(stats["nearest"], piles):
+    for claim, ok, evidence in trends(stats[DEFAULT_EMPTY_CELLS], piles):
         print(f"{'holds' if ok else 'DOES NOT HOLD'}: {claim}: {evidence}")
-    for exp, per_pile in table2(stats["nearest"], piles).items():
+    for exp, per_pile in table2(stats[DEFAULT_EMPTY_CELLS], piles).items():
         for pile, (ve, ra, de) in per_pile.items():
             pv, pra, pde = PAPER_TABLE2[exp][pile]
             print(f"Table 2 {exp:9s} pile {pile}: Ve {ve:.2f} % (paper {pv}), R_a {ra:.1f} % (paper {pra}), "
@@ -337,7 +340,7 @@ def _body(args) -> int:
     print(f"{len(rows):,} surveys in {wall:.0f} s; rows in {args.rows}")
     if args.write is not None:
         fig_dir = args.figures or args.write.parent / "figures"
-        figs = plot_figures(stats["nearest"], piles, fig_dir)
+        figs = plot_figures(stats[DEFAULT_EMPTY_CELLS], piles, fig_dir)
         cmd = "python -m tools.reproduce " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("reproduce.py") \
             else "python -m tools.reproduce --write " + str(args.write)
         args.write.parent.mkdir(parents=True, exist_ok=True)
