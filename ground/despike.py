@@ -27,7 +27,7 @@ spike's own range is meaningless; span: the time between the two samples compare
 
     T(r) = k sqrt(2) sigma_r(r) + q + r (cos(psi/2) / cos(psi/2 + delta) - 1)
     A(r) = k sqrt(2) sigma_r(r) + q + r (cos(a_max) / cos(a_max + delta_ab) - 1)
-    delta = omega * span,   omega = omega_servo + omega_body
+    delta = omega * span + k sqrt(2) sigma_a,   omega = omega_servo + omega_body
 
 - Noise: sigma_r(r) = max(range_sigma_m, range_sigma_rel * r) from ``sensor``; the difference of two
   samples has sqrt(2) sigma_r. Pure Gaussian noise makes a sample differ from both neighbours by
@@ -40,6 +40,16 @@ spike's own range is meaningless; span: the time between the two samples compare
 - Beam step: the beam turns at most omega: the servo's peak rate (from the eq. (1) waveform in
   ``servo``: 5 rad/s in Table 1) plus BODY_RATE_ALLOWANCE_RAD_S for the vehicle's own rotation;
   delta = 0.012 rad between consecutive samples at ``sensor.rate_hz`` = 500 Hz.
+- Pointing noise: sigma_a is each sample's own beam-angle error the header's ``sensor_noise`` record states
+  (servo and attitude, `stated_angle_sigma_rad`; 0 without one). Two samples' true beams then differ by the
+  nominal step plus an error of sqrt(2) sigma_a; on a slanted surface that moves the range far more than the
+  range noise does. And the extremum argument below no longer holds: with each beam jittered, the true
+  angles of three consecutive samples can come out of order, so the middle one stands out from both
+  neighbours on a single plane. T is then A's bound (a plane seen at up to a_max), over the step with its
+  pointing errors. Without this the test took Appendix A's 1 deg per-sample servo noise for spikes on
+  slopes (about 880 of 60,000 samples of pile 1 at P_traj 20 %, none a fault, mean signed Ve -0.66 % over 8
+  servo positions against -0.33 % without despiking; with the pointing term but T's 45 deg geometry still
+  ~270, -0.42 %). Such a header's T is wide (a gross fault only), which is what its pointing noise allows.
 - Geometry of T: a sample can stand out from both neighbours in the same sense only at a range
   extremum, where the surface turns through the beam direction. The chords a-m and m-b then have
   incidences of opposite sign that add up to the angle between the chords, which is at most the
@@ -71,6 +81,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from firmware_py.core.sensor_noise import stated_angle_sigma_rad
 from firmware_py.core.waveform import peak_rate
 
 N_SIGMA = 4.0
@@ -102,6 +113,9 @@ class SpikeThreshold:
         sample_period_s: 1 / f_s.
         beam_rate_rad_s: omega, the fastest the beam turns (servo peak rate + body allowance).
         range_sigma_m, range_sigma_rel, resolution_m: the sensor's error model (header ``sensor``).
+        angle_sigma_rad: each sample's own pointing error (the header's ``sensor_noise`` servo and attitude
+            sigmas, `stated_angle_sigma_rad`): two samples' beams then differ by up to k sqrt(2) of it more than
+            the servo's nominal step.
         n_sigma: k.
         max_turn_rad: psi_max (T).
         max_incidence_rad: a_max (A).
@@ -112,6 +126,7 @@ class SpikeThreshold:
     range_sigma_m: float = 0.0
     range_sigma_rel: float = 0.0
     resolution_m: float = 0.0
+    angle_sigma_rad: float = 0.0
     n_sigma: float = N_SIGMA
     max_turn_rad: float = math.radians(MAX_TURN_DEG)
     max_incidence_rad: float = math.radians(MAX_INCIDENCE_DEG)
@@ -121,7 +136,7 @@ class SpikeThreshold:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"spike threshold {name} must be finite and > 0, got {v!r}")
-        for name in ("range_sigma_m", "range_sigma_rel", "resolution_m", "n_sigma"):
+        for name in ("range_sigma_m", "range_sigma_rel", "resolution_m", "angle_sigma_rad", "n_sigma"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"spike threshold {name} must be finite and >= 0, got {v!r}")
@@ -132,8 +147,10 @@ class SpikeThreshold:
                              f"{math.degrees(self.max_incidence_rad)}")
 
     def step_rad(self, span_s: np.ndarray | float | None = None) -> np.ndarray:
-        """delta: the most the beam turns in span_s (default one sample period)."""
-        return self.beam_rate_rad_s * np.asarray(self.sample_period_s if span_s is None else span_s, dtype=float)
+        """delta: the most the beam turns in span_s (default one sample period), its two ends' pointing errors
+        included."""
+        nominal = self.beam_rate_rad_s * np.asarray(self.sample_period_s if span_s is None else span_s, dtype=float)
+        return nominal + self.n_sigma * math.sqrt(2.0) * self.angle_sigma_rad
 
     def _noise(self, r: np.ndarray) -> np.ndarray:
         sigma = np.maximum(self.range_sigma_m, self.range_sigma_rel * r)
@@ -143,7 +160,8 @@ class SpikeThreshold:
         """T: the most a sample at range r can stand out from a neighbour span_s away (default one sample
         period) on a continuous surface at a range extremum."""
         r = np.abs(np.asarray(range_m, dtype=float))
-        return self._noise(r) + r * _growth(self.max_turn_rad / 2, self.step_rad(span_s))
+        incidence = self.max_turn_rad / 2 if self.angle_sigma_rad == 0 else self.max_incidence_rad
+        return self._noise(r) + r * _growth(incidence, self.step_rad(span_s))
 
     def agree(self, range_m: np.ndarray | float, span_s: np.ndarray | float | None = None) -> np.ndarray:
         """A: the most two samples span_s apart at range r differ on one surface seen at up to a_max."""
@@ -169,7 +187,7 @@ class SpikeThreshold:
             noise = [float(sensor.get(k) or 0.0) for k in ("range_sigma_m", "range_sigma_rel", "resolution_m")]
             if not (math.isfinite(omega) and omega > 0):
                 return None
-            return cls(1.0 / rate_hz, omega + body_rate_rad_s, *noise, n_sigma=n_sigma,
+            return cls(1.0 / rate_hz, omega + body_rate_rad_s, *noise, stated_angle_sigma_rad(header), n_sigma=n_sigma,
                        max_turn_rad=math.radians(max_turn_deg), max_incidence_rad=math.radians(max_incidence_deg))
         except (KeyError, TypeError, ValueError, ZeroDivisionError, OverflowError):
             return None

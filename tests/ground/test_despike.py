@@ -32,13 +32,14 @@ CREST_X, CREST_Z, WALL_X = 12.0, 6.0, 30.0
 SLOPE = math.tan(math.radians(40))
 
 
-def _sweep_ranges(seconds: float = 40.0, noise_sigma: bool = True, seed: int = 0):
+def _sweep_ranges(seconds: float = 40.0, noise_sigma: bool = True, seed: int = 0, pointing_sigma_rad: float = 0.0):
     """Times, ranges and usability of a beam swept by the Table 1 servo from 12 m across a 2D section
     (floor; a pile at its 40 deg angle of repose, crest 6 m high at x = 12; a wall at x = 30), the
     vehicle flying along it at 1 m/s. Noise at the header's sigma (2.5 cm, 1 % of range), 1 cm
-    quantisation; hits beyond 40 m are no return (not usable)."""
+    quantisation; hits beyond 40 m are no return (not usable). pointing_sigma_rad: each sample's beam
+    off its commanded angle by a white error (Appendix A's servo noise)."""
     t = np.arange(int(seconds * RATE_HZ)) / RATE_HZ
-    gamma = WAVEFORM.angle(t)
+    gamma = WAVEFORM.angle(t) + np.random.default_rng(seed + 100).normal(size=len(t)) * pointing_sigma_rad
     x0, dx, dz = t * 1.0, np.sin(gamma), -np.cos(gamma)
     with np.errstate(divide="ignore", invalid="ignore"):
         # the ray (x0 + s dx, 12 + s dz) against each piece of the section, kept where the hit lies on it
@@ -119,6 +120,22 @@ def test_that_injected_single_spikes_and_pairs_are_removed_and_nothing_else():
     # without the pair test the pairs stay
     assert np.array_equal(spike_mask(t, r, usable, THRESHOLD, pairs=False), found & ~np.isin(np.arange(len(r)),
                                                                                             np.r_[pairs, pairs + 1]))
+
+
+def test_that_a_stated_per_sample_pointing_error_is_not_taken_for_spikes():
+    """Appendix A's 1 deg white servo error puts three consecutive beams out of order, so on a slope the
+    middle one stands out from both neighbours: a header that states it widens T to what a plane at up to
+    a_max allows; gross faults are still removed."""
+    sigma = math.radians(1.0)
+    t, r, usable = _sweep_ranges(seed=4, pointing_sigma_rad=sigma)
+    stated = SpikeThreshold.from_header({**_header(), "sensor_noise": {"model": "appendix-a", "servo_sigma_rad": sigma,
+                                                                       "attitude_sigma_rad": 0.0}})
+    assert stated.angle_sigma_rad == pytest.approx(sigma)
+    assert spike_mask(t, r, usable, THRESHOLD).sum() > 50  # unstated, the jitter passes for spikes
+    assert not spike_mask(t, r, usable, stated).any()
+    below = np.flatnonzero(usable & (np.abs(WAVEFORM.angle(t)) < 0.05))[5::400][:10]  # the floor straight below
+    r[below] = 59.0
+    assert np.array_equal(np.flatnonzero(spike_mask(t, r, usable, stated)), below)
 
 
 def test_that_steps_that_persist_are_kept():
