@@ -30,7 +30,7 @@ from firmware_py.core.cli import ArgumentParser
 from firmware_py.core.samplelog import SampleFlags
 from firmware_py.core.sensor_noise import SensorNoiseModel
 from ground.report import ReportOptions, make_report, survey_from_samples
-from ground.surface import grid_volume, reconstructed_ratio_pct, volume_error_pct
+from ground.surface import DEFAULT_EMPTY_CELLS, grid_volume, reconstructed_ratio_pct, volume_error_pct
 from sitl.runners.fly import FlyConfig, fly, log_header
 from sitl.sensing.batch_sampler import sample_flight
 from sitl.world.raycast import World
@@ -219,7 +219,8 @@ def main(argv: list[str] | None = None) -> int:
         "The paper's baseline (Table 1: semi-triangular sweep, 1 m/s, 30 deg/s yaw, "
         "one-step corners), the JSBSim vehicle, the paper's building; each row is "
         f"{args.phases} servo start positions (Fig. 9) sampled by the batch path with the same noise functions "
-        "as `fly` (docs/noise.md says what each model is). Ve (eq. 8, `nearest` empty cells) through the ground "
+        "as `fly` (docs/noise.md says what each model is). Ve (eq. 8, the report's default "
+        f"`{DEFAULT_EMPTY_CELLS}` empty cells) through the ground "
         "report's default pipeline: mean ± standard deviation and the worst (max) over the start positions. "
         "\"Ve without self-cal.\" is the same surveys with `--no-self-calibration` where the self-calibration "
         "applied a correction (elsewhere the same value): every correction on these flights is false, the mount "
