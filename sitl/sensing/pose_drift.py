@@ -41,6 +41,7 @@ SEED_TAG = 0x9053
 """Mixed into the run's seed for the pose-error draws: independent of the sensor noise and faults."""
 KNOT_S = 0.1
 """Time grid of the random draws (10 Hz: the random walks are linear between knots)."""
+_SQRT_KNOT_S = math.sqrt(KNOT_S)
 
 
 class PoseErrorProfile(enum.Enum):
@@ -151,8 +152,14 @@ class PoseDrift:
         self.yaw_bias_rad_s = float(self.rng.normal(0.0, params.yaw_bias_sigma_rad_s))
         b0 = self.rng.normal(0.0, params.drift_rel / math.sqrt(2.0), 2)
         self.ground_below = ground_below
-        self._knots: list[np.ndarray] = []  # per knot: [hover n, hover e, yaw walk, baro walk, b n, b e]
+        self._knots: list[tuple[float, ...]] = []  # per knot: (hover n, hover e, yaw walk, baro walk, b n, b e)
         self._b0 = b0
+        # A knot's step, as scalars (the walks' sd per sqrt(s); b's exact Gauss-Markov factors: the same
+        # operations, in the same order, as `gauss_markov_step` on arrays, so the same values to the bit).
+        self._walk_sd = (params.hover_rw_m_per_sqrt_s, params.hover_rw_m_per_sqrt_s, params.yaw_rw_rad_per_sqrt_s,
+                         params.baro_rw_m_per_sqrt_s)
+        self._b_a = math.exp(-KNOT_S / params.drift_tau_s)
+        self._b_w = params.drift_rel / math.sqrt(2.0) * math.sqrt(1.0 - self._b_a * self._b_a)
         self._k_first = 0  # the knot index of self._knots[0]
         self._t0: float | None = None
         self._t_last = 0.0
@@ -161,33 +168,31 @@ class PoseDrift:
         self._ground_lp = 0.0
         self.error = ZERO
 
-    def _knot(self, k: int) -> np.ndarray:
+    def _knot(self, k: int) -> tuple[float, ...]:
         """Knot k's values (drawn, in order, when first needed; only the newest few are kept: time does not
         go back, so a long served flight does not grow this)."""
-        p = self.p
         while self._k_first + len(self._knots) <= k:
             if not self._knots:
-                self._knots.append(np.array([0.0, 0.0, 0.0, 0.0, *self._b0]))
+                self._knots.append((0.0, 0.0, 0.0, 0.0, float(self._b0[0]), float(self._b0[1])))
                 continue
-            z = self.rng.normal(0.0, 1.0, 6)
+            z = self.rng.normal(0.0, 1.0, 6).tolist()
             prev = self._knots[-1]
-            sq = math.sqrt(KNOT_S)
-            walk = prev[:4] + z[:4] * sq * np.array([p.hover_rw_m_per_sqrt_s, p.hover_rw_m_per_sqrt_s,
-                                                     p.yaw_rw_rad_per_sqrt_s, p.baro_rw_m_per_sqrt_s])
-            b = gauss_markov_step(prev[4:], KNOT_S, p.drift_tau_s, p.drift_rel / math.sqrt(2.0), z[4:])
-            self._knots.append(np.concatenate([walk, b]))
+            sq, sd, a, w = _SQRT_KNOT_S, self._walk_sd, self._b_a, self._b_w
+            self._knots.append((prev[0] + z[0] * sq * sd[0], prev[1] + z[1] * sq * sd[1],
+                                prev[2] + z[2] * sq * sd[2], prev[3] + z[3] * sq * sd[3],
+                                a * prev[4] + w * z[4], a * prev[5] + w * z[5]))
             if len(self._knots) > 4:
                 del self._knots[0]
                 self._k_first += 1
         return self._knots[k - self._k_first]
 
-    def _walks(self, tau_s: float) -> np.ndarray:
+    def _walks(self, tau_s: float) -> tuple[float, ...]:
         """The knot processes at tau_s since the start, linear between knots."""
         u = max(tau_s, 0.0) / KNOT_S
         k = math.floor(u)
         f = u - k
         a, b = self._knot(k), self._knot(k + 1)
-        return a + (b - a) * f
+        return tuple(x + (y - x) * f for x, y in zip(a, b, strict=True))
 
     def update(self, t_s: float, pos_ned_m: tuple[float, float, float]) -> PoseError:
         """The error at t_s, the vehicle truly at pos_ned_m (call along the flight, t_s not decreasing)."""

@@ -79,6 +79,12 @@ def hidden_floor_runs(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
+def skewed_report(skewed_run, tmp_path_factory):
+    """The skewed flight's report with the default options (two tests read it: one report, not two)."""
+    return make_report(skewed_run, tmp_path_factory.mktemp("skewed-report") / "rep", ReportOptions(plots=False))
+
+
+@pytest.fixture(scope="module")
 def square(square_run):
     return _estimate(square_run)
 
@@ -115,9 +121,9 @@ def test_that_too_few_samples_say_why_and_apply_nothing():
     assert not_estimated("x").correction()[0] == 0.0
 
 
-def test_that_the_report_applies_it_says_so_and_gets_the_volume_back(skewed_run, square_run, tmp_path):
+def test_that_the_report_applies_it_says_so_and_gets_the_volume_back(skewed_run, skewed_report, square_run, tmp_path):
     clean = make_report(square_run, tmp_path / "clean", ReportOptions(plots=False))
-    fixed = make_report(skewed_run, tmp_path / "fixed", ReportOptions(plots=False))
+    fixed = skewed_report
     raw = make_report(skewed_run, tmp_path / "raw", ReportOptions(plots=False, self_calibration=False))
     assert clean["self_calibration"]["servo_offset_deg"]["applied"] is False
     assert not any("self-calibration" in w for w in clean["warnings"])
@@ -139,10 +145,10 @@ def test_that_the_tilt_estimated_is_the_deviation_from_the_configured_one(skewed
     assert math.degrees(wrong.values[2]) == pytest.approx(3.0, abs=0.2)
 
 
-def test_that_the_report_places_points_with_the_headers_boresight(skewed_run, tmp_path):
+def test_that_the_report_places_points_with_the_headers_boresight(skewed_run, skewed_report, tmp_path):
     configured = make_report(_with_boresight(skewed_run, tmp_path / "run", Boresight(math.radians(2.0))),
                              tmp_path / "rep", ReportOptions(plots=False))
-    plain = make_report(skewed_run, tmp_path / "plain", ReportOptions(plots=False))
+    plain = skewed_report
     assert configured["boresight_deg"] == pytest.approx({"tilt": 2.0, "sweep_yaw": 0.0})
     assert plain["boresight_deg"] == {"tilt": 0.0, "sweep_yaw": 0.0}
     assert configured["self_calibration"]["boresight_tilt_deg"]["estimate"] == pytest.approx(0.0, abs=0.2)

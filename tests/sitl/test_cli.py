@@ -20,7 +20,9 @@ def test_that_version_prints_the_software_version_and_exits_0(capsys):
 
 
 def test_that_fly_writes_a_run_with_the_firmware_in_the_loop_by_default(tmp_path, capsys):
-    assert main(["fly", "--stockpile", "1", "--p-traj", "25", "--out", str(tmp_path), "--quiet"]) == 0
+    # the small building: the default payload, not the size, is what is tested
+    assert main(["fly", "--stockpile", "1", "--p-traj", "25", "--storage", "30x20x10", "--altitude", "9",
+                 "--out", str(tmp_path), "--quiet"]) == 0
     assert (tmp_path / "samples.pslog").is_file()
     assert json.loads((tmp_path / "truth.json").read_text())["payload"] == "firmware"
 

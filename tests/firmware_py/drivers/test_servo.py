@@ -106,3 +106,32 @@ def test_that_the_batch_model_matches_stepping_through_slew_limited_steps_in_any
         stepped[i] = m.angle_rad
     assert np.allclose(batch, stepped, atol=1e-9)
     assert np.all(batch[t < 0.1] == 0.3)
+
+
+class _Pulses:
+    def set_pulse_us(self, pulse_us: float) -> None:
+        pass
+
+
+def test_that_an_angle_asked_after_a_later_pulse_is_the_angle_then_not_the_angle_now():
+    """A paced loop that ran late updates the servo (a pulse at `now`) before it reads a frame of its
+    backlog, measured up to tens of ms earlier: that reading must get the shaft's angle at its own time
+    (the networked TFMini flight under load logged the later angle on 7 % of its samples)."""
+    wf = named_waveform("semi-triangular")
+    late = SweepServo(_Pulses(), wf)
+    rng = np.random.default_rng(3)
+    worst, moved = 0.0, 0.0
+    for k in range(1, 400):  # 8 s of ticks every 20 ms; each reading 0-60 ms older than its tick
+        t_tick = k * 0.02
+        t_read = max(0.0, t_tick - rng.uniform(0.0, 0.06))
+        late.update(t_tick)
+        got = late.angle_at(t_read)
+        ref = SweepServo(_Pulses(), wf)  # the same pulses, the angle asked before the later pulse
+        for j in range(1, k + 1):
+            if j * 0.02 <= t_read:
+                ref.update(j * 0.02)
+        want = ref.angle_at(t_read)
+        worst = max(worst, abs(got - want))
+        moved = max(moved, abs(late.angle_at(t_tick) - want))
+    assert worst < 1e-9
+    assert moved > math.radians(5)  # the angle now differs: the case can tell them apart

@@ -19,13 +19,17 @@ CFG = FlyConfig(mission=Mission(storage=Storage(30, 20, 10), p_traj=0.2, altitud
                 payload="firmware")
 
 
-def fly(tmp_path, signing_key=None, **faults):
+def fly(tmp_path, signing_key=None, survey=True, **faults):
+    """The flight with these faults: its run, samples, and (unless survey=False: a test of the log and its tags
+    alone) the ground station's survey and volume error."""
     wf = CFG.servo_waveform()
     header = log_header(CFG, wf)
     run = fly_firmware(CFG, tmp_path / "s.pslog", header, faults=FaultSpec(seed=3, **faults), seed=3,
                        signing_key=signing_key)
     log = read_samplelog(tmp_path / "s.pslog")
     s, header = log.samples, log.header  # the runner adds the servo calibration and the sweep's start
+    if not survey:
+        return run, s, None, None
     sv = survey_from_samples(s, header, CFG.mission.storage, CFG.frame, np.array(CFG.lever_arm_body_m),
                              ReportOptions(plots=False))
     ve = volume_error_pct(grid_volume(sv.heights, sv.grid), resolve("1", CFG.mission.storage).volume_m3)
@@ -53,7 +57,7 @@ def test_that_30_percent_packet_loss_tags_nothing_wrongly_and_keeps_the_volume(t
 
 
 def test_that_a_link_outage_flags_its_samples_and_recovers(tmp_path):
-    run, s, _sv, _ve = fly(tmp_path, link_outage=(10.0, 3.0))
+    run, s, _sv, _ve = fly(tmp_path, survey=False, link_outage=(10.0, 3.0))
     stale = (s["flags"] & int(SampleFlags.STALE_POSE | SampleFlags.NO_POSE)) != 0
     assert stale.sum() > 500  # the outage's samples (500 Hz, 3 s, minus what was already in flight)
     assert not wrongly_tagged(s, run.true_t_s, run.true_states).any()
@@ -87,7 +91,7 @@ def test_that_a_slow_servo_is_detected_and_its_motion_re_estimated(tmp_path, cle
 
 
 def test_that_a_power_cut_loses_at_most_the_unfinished_block(tmp_path):
-    run, s, _sv, _ve = fly(tmp_path, power_cut_at_s=12.3)
+    run, s, _sv, _ve = fly(tmp_path, survey=False, power_cut_at_s=12.3)
     assert not run.completed and run.faults["power_cut"]
     assert len(s) % 500 == 0 and len(s) > 0
     assert 0 <= run.loop.ticks - len(s) < 500 + 200  # the block being filled, plus readings awaiting poses
@@ -144,7 +148,7 @@ def test_that_the_emulated_servo_acts_on_a_pulse_only_after_its_delay():
 
 
 def test_that_a_full_disk_stops_the_log_at_its_last_whole_block(tmp_path):
-    run, s, _sv, _ve = fly(tmp_path, disk_full_at_s=12.3)
+    run, s, _sv, _ve = fly(tmp_path, survey=False, disk_full_at_s=12.3)
     assert not run.completed and "No space" in run.faults["disk_full"]
     log = read_samplelog(tmp_path / "s.pslog")
     assert log.blocks_truncated == 1 and log.blocks_corrupt == 0  # the block the disk took half of

@@ -29,6 +29,9 @@ from sitl.runners.fly import FlyConfig, fly
 
 ROOT = Path(__file__).resolve().parents[3]
 LONG_FLY = ["fly", "--stockpile", "1", "--p-traj", "5", "-q"]  # the firmware in the loop: several seconds of work
+WHOLE_FLY = ["fly", "--stockpile", "1", "--p-traj", "25", "--storage", "30x20x10", "--altitude", "9", "-q"]
+"""The firmware in the loop in the small building: seconds of work still (the lock is seen and held), and a
+flight the test waits to the end of."""
 QUICK_FLY = ["fly", "--stockpile", "1", "--p-traj", "25", "--plant", "ideal", "-q"]
 WAIT_S = 120.0  # only a bound on a hung child: every wait below ends on an event
 
@@ -54,7 +57,7 @@ def wait_for(proc: subprocess.Popen, what: str, condition) -> None:
 
 def test_that_a_second_fly_into_a_folder_being_written_is_refused_and_the_first_is_whole(tmp_path, capsys):
     run = tmp_path / "run"
-    first = start([*LONG_FLY, "--out", str(run)])
+    first = start([*WHOLE_FLY, "--out", str(run)])
     try:
         wait_for(first, "the lock", lambda: holder_pid(run / LOCK_FILE) == first.pid)
         first.send_signal(signal.SIGSTOP)  # held still: it keeps the lock while the second tries
@@ -73,7 +76,7 @@ def test_that_a_second_fly_into_a_folder_being_written_is_refused_and_the_first_
     truth = json.loads((run / TRUTH_FILE).read_text())
     log = read_samplelog(run / SAMPLES_FILE)
     assert log.intact and truth["n_samples"] == len(log.samples)  # one run's truth beside that run's log
-    assert truth["plant"] == "jsbsim" and truth["mission"]["p_traj"] == 0.05
+    assert truth["plant"] == "jsbsim" and truth["mission"]["p_traj"] == 0.25  # the first flight's, not the second's
     assert not (run / LOCK_FILE).exists() and not (run / STAGING_DIR).exists()
 
 
