@@ -96,13 +96,13 @@ class IntervalModel:
 
 # --- calibrated interval model (tools/calibrate_interval.py --write-model) ---
 DEFAULT_INTERVAL_MODEL = IntervalModel(
-    k_unseen=2.03616,
-    k_interpolation=0.526668,
-    k_noise=0.0228026,
-    k_sweeps=0.512233,
-    k_faces=4.98751,
-    k_blur=0.786172,
-    source='fitted on 819 calibration runs of the evaluation set (tools/calibrate_interval.py, 2026-11-25)')
+    k_unseen=1.602,
+    k_interpolation=0.66515,
+    k_noise=0.648205,
+    k_sweeps=0.841857,
+    k_faces=3.11473,
+    k_blur=0.395427,
+    source='fitted on 819 calibration runs of the evaluation set (tools/calibrate_interval.py, 2026-11-28)')
 # --- end of calibrated interval model ---
 
 
