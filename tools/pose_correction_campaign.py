@@ -4,10 +4,13 @@ error against the truth (truth.json's true and estimated trajectories, the corre
 times). Writes the table into docs/pose_error.md.
 
     python -m tools.pose_correction_campaign --write docs/pose_error.md [--seeds 0 1] [--keep DIR]
-        [--piles 1 2] [--p-traj 5 20] [--rows FILE ...]
+        [--piles 1 2] [--p-traj 5 20] [--rows FILE ...] [--reuse]
 
 --rows: JSON-lines files of rows already computed (the first one gets the new rows appended): a campaign can be
 resumed, or split over processes (each with its --piles) and tabulated by a last call that reads all files.
+
+--reuse (with --keep): a flight already in the folder is not flown again, only reported again with the correction
+(the uncorrected report is kept too when it is there): the same flights before and after a change of the ground code.
 
 Both programs run as a user runs them (their command lines, in subprocesses).
 """
@@ -48,14 +51,19 @@ def trajectory_rms_m(truth: dict, correction: dict | None) -> tuple[float, float
     return before, float(np.sqrt(np.mean(np.sum((est_w + corr - true_w) ** 2, axis=1))))
 
 
-def one(profile: str, pile: str, p_traj: int, seed: int, work: Path) -> dict:
+def one(profile: str, pile: str, p_traj: int, seed: int, work: Path, reuse: bool = False) -> dict:
     run = work / f"{profile}-{pile}-{p_traj}-{seed}"
     py = sys.executable
-    subprocess.run([py, "-m", "sitl.cli", "fly", "--stockpile", pile, "--p-traj", str(p_traj), "--pose-error",
-                    profile, "--seed", str(seed), "--out", str(run), "--force", "--quiet"], check=True)
+    flown = reuse and (run / "truth.json").is_file()
+    if not flown:
+        subprocess.run([py, "-m", "sitl.cli", "fly", "--stockpile", pile, "--p-traj", str(p_traj), "--pose-error",
+                        profile, "--seed", str(seed), "--out", str(run), "--force", "--quiet"], check=True)
     reps = {}
     for flag in ("--no-pose-correction", "--pose-correction"):
         rep = work / f"{run.name}{flag}"
+        if flown and flag == "--no-pose-correction" and (rep / "report.json").is_file():
+            reps[flag] = json.loads((rep / "report.json").read_text())
+            continue
         subprocess.run([py, "-m", "ground.cli", "report", str(run), "--out", str(rep), "--no-plots", "--force",
                         "--quiet", flag], check=True, stdout=subprocess.DEVNULL)
         reps[flag] = json.loads((rep / "report.json").read_text())
@@ -95,7 +103,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--piles", nargs="+", default=list(PILES), choices=PILES)
     ap.add_argument("--p-traj", type=int, nargs="+", default=list(P_TRAJ_PCT))
     ap.add_argument("--rows", type=Path, nargs="+", default=None, help="JSON-lines files of rows (see above)")
+    ap.add_argument("--reuse", action="store_true", help="with --keep: report the flights already there again, "
+                    "without flying them again (see above)")
     args = ap.parse_args(argv)
+    if args.reuse and args.keep is None:
+        ap.error("--reuse needs --keep (the folder of the flights)")
     rows: list[dict] = []
     for f in args.rows or []:
         if f.is_file():
@@ -110,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
                     for seed in args.seeds:
                         if (prof, pile, p, seed) in done:
                             continue
-                        rows.append(one(prof, pile, p, seed, work))
+                        rows.append(one(prof, pile, p, seed, work, args.reuse))
                         print(json.dumps(rows[-1]), flush=True)
                         if args.rows:
                             with args.rows[0].open("a") as out:
