@@ -1022,14 +1022,11 @@ def register_from_crossings(b: Beams, x: np.ndarray, x_wall: np.ndarray, knots: 
         # cell across a step): not linear in a shift, it is left out
         # nor is a cell whose points in one interval scatter about its plane beyond the sensor's noise: a step
         # (a block's edge, a wall's foot) is not a plane either
-        # (the cell's points at all times about its plane too: a cell across a step fits a moderate slope
-        # to the two levels, each interval's points flat on one of them)
-        limit = BAND * max(sensor_m, noise_m)
-        ckey, _, cmad, _, _ = _group_median(cid[inside], z_flat[inside], b.t_s[inside])
-        cell_spread = np.full(nx * ny, np.inf)
-        cell_spread[ckey] = cmad
+        # and a cell on the building's edge holds a wall's foot, a step, whatever the wall's points assigned
+        cx_i, cy_i = (key % (nx * ny)) // ny, (key % (nx * ny)) % ny
+        edge = (cx_i == 0) | (cx_i == nx - 1) | (cy_i == 0) | (cy_i == ny - 1)
         keep = ((cnt >= MIN_CELL_POINTS) & (np.hypot(gx, gy)[key % (nx * ny)] <= MAX_PILE_SLOPE)
-                & (mad <= limit) & (cell_spread[key % (nx * ny)] <= limit))
+                & (mad <= BAND * max(sensor_m, noise_m)) & ~edge)
         key, med, mad, tm, cnt, vx, vy, is_floor = (a[keep] for a in (key, med, mad, tm, cnt, vx, vy, is_floor))
         cell = key % (nx * ny)
         _, inv, times_seen = np.unique(cell, return_inverse=True, return_counts=True)
