@@ -28,8 +28,13 @@ a plane, the window shrinking to the data's own noise; (3) the height from the f
 seen at different times (`vertical_from_crossings`: over a pile the floor is hidden, and that is where a
 rangefinder-aided estimator's height is wrong), the vote's floor screened first across the flight
 (`screen_floor`: a flat pile top the vote took for the floor lies above the floor's level once the crossings
-align the flight); (4) optionally the heading, kept only when significant
-(off by default: measured, it did more harm than good, docs/pose_error.md).
+align the flight); (4) optionally the heading from the walls, kept only when significant
+(off by default: measured, it did more harm than good, docs/pose_error.md); (5) the position and the
+heading registered on the pile seen at different times (`register_from_crossings`: on a slope a shift of a
+stretch's points moves their height, so a sloped cell seen twice observes the along-track position the
+walls leave to interpolation, and the heading, which moves a point by its lateral distance times it), with
+a drift-smoothness prior (`bend_sigmas`), kept only when significant and when it leaves the walls on their
+planes.
 
 No harm: applied only when it brings the structure closer to its planes by more than fitting the same
 number of parameters to noise would (a chi-square test in the data's own noise), the height only when
