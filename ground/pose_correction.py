@@ -654,7 +654,15 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     if z_info is not None:
         info[:, 2] = z_info
     cross_info = None
-    if opts.vertical and opts.crossings and opts.crossings_horizontal:
+    # The walls decide whether anything is applied (below), and the registration is anchored on them: when the
+    # correction so far is too small to matter to them, the registration is not tried (it cost ~6 s on an
+    # error-free 94k-sample log, which it never changed: docs/design-notes.md, 2026-11-28).
+    j_pre, _ = _assign(p0, n, d, BAND * sensor_m, b.parallel)
+    pre = (j_pre >= 0) | on
+    jj_pre = np.where(j_pre >= 0, j_pre, j1)[pre]
+    matters = (_robust_rms(np.einsum("ij,ij->i", p0[pre], n[jj_pre]) - d[jj_pre]) ** 2
+               - _robust_rms(r1[on]) ** 2 > noise ** 2)
+    if opts.vertical and opts.crossings and opts.crossings_horizontal and matters:
         x_reg, cross_info, cross_notes = _registered(b, x, knots, k, f, wall, floor, storage, cell_m, step, noise,
                                                      sensor_m, info, sel, z_info is not None, held[3], opts)
         if cross_info is not None:
