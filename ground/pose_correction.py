@@ -28,8 +28,13 @@ a plane, the window shrinking to the data's own noise; (3) the height from the f
 seen at different times (`vertical_from_crossings`: over a pile the floor is hidden, and that is where a
 rangefinder-aided estimator's height is wrong), the vote's floor screened first across the flight
 (`screen_floor`: a flat pile top the vote took for the floor lies above the floor's level once the crossings
-align the flight); (4) optionally the heading, kept only when significant
-(off by default: measured, it did more harm than good, docs/pose_error.md).
+align the flight); (4) optionally the heading from the walls, kept only when significant
+(off by default: measured, it did more harm than good, docs/pose_error.md); (5) the position and the
+heading registered on the pile seen at different times (`register_from_crossings`: on a slope a shift of a
+stretch's points moves their height, so a sloped cell seen twice observes the along-track position the
+walls leave to interpolation, and the heading, which moves a point by its lateral distance times it), with
+a drift-smoothness prior (`bend_sigmas`), kept only when significant and when it leaves the walls on their
+planes.
 
 No harm: applied only when it brings the structure closer to its planes by more than fitting the same
 number of parameters to noise would (a chi-square test in the data's own noise), the height only when
@@ -98,6 +103,9 @@ class PoseCorrectionOptions:
     heading_bias_rad_s: float = math.radians(0.03)
     """Gyro-bias residual (3x the flow profile's)."""
     heading_walk_rad_per_sqrt_s: float = math.radians(0.05)
+    drift_correlation_s: float = 30.0
+    """The shortest correlation time believed of a velocity sensor's drift (half the SITL's Gauss-Markov 60 s):
+    how smooth the position error is between turns (`bend_sigmas`)."""
     max_position_error_m: float = 5.0
     """The largest position error looked for (the vote's reach, the knots' absolute prior)."""
     max_vertical_error_m: float = 2.0
@@ -119,6 +127,12 @@ class PoseCorrectionOptions:
     crossings: bool = True
     """With `vertical`: the height also from the pile seen at different times (the same surface must come
     out at the same height), not only from the floor, which a pile hides along most of a track."""
+    crossings_horizontal: bool = True
+    """With `crossings`: the position too from the pile seen at different times (a shift moves a sloped surface's
+    height), which observes the along-track position between turns that the walls leave to interpolation."""
+    crossings_heading: bool = True
+    """With `crossings_horizontal`: the heading too (a heading error moves the points along the track by their
+    lateral distance times it), kept only when significant."""
     heading: bool = False
     """Estimate the heading too (kept only when significant). Off by default: the walls beside a track do not
     see it, and measured on seven SITL flights it made Ve worse on five (it took up a few systematic
@@ -127,7 +141,9 @@ class PoseCorrectionOptions:
     def __post_init__(self) -> None:
         for f in fields(self):
             v = getattr(self, f.name)
-            if (v is None and f.name == "knot_spacing_s") or f.name in ("vertical", "heading", "crossings"):
+            if (v is None and f.name == "knot_spacing_s") or f.name in ("vertical", "heading", "crossings",
+                                                                                "crossings_horizontal",
+                                                                                "crossings_heading"):
                 continue
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v <= 0:
                 raise ValueError(f"pose correction option {f.name} must be a finite number > 0, got {v!r}")
@@ -637,6 +653,44 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     info = np.asarray(jac.multiply(jac).sum(axis=0)).ravel().reshape(len(knots), 4)
     if z_info is not None:
         info[:, 2] = z_info
+    cross_info = None
+    # The walls decide whether anything is applied (below), and the registration is anchored on them: when the
+    # correction so far is too small to matter to them, the registration is not tried (it cost ~6 s on an
+    # error-free 94k-sample log, which it never changed: docs/design-notes.md, 2026-11-28).
+    j_pre, _ = _assign(p0, n, d, BAND * sensor_m, b.parallel)
+    pre = (j_pre >= 0) | on
+    jj_pre = np.where(j_pre >= 0, j_pre, j1)[pre]
+    matters = (_robust_rms(np.einsum("ij,ij->i", p0[pre], n[jj_pre]) - d[jj_pre]) ** 2
+               - _robust_rms(r1[on]) ** 2 > noise ** 2)
+    if opts.vertical and opts.crossings and opts.crossings_horizontal and matters:
+        x_reg, cross_info, cross_notes = _registered(b, x, knots, k, f, wall, floor, storage, cell_m, step, noise,
+                                                     sensor_m, info, sel, z_info is not None, held[3], opts)
+        if cross_info is not None:
+            # No harm to the walls: a registration that leaves them beyond MAX_MISFIT noise levels off their
+            # planes where the correction without it did not is dropped (measured: a `flow` flight with 2.5 m of
+            # drift, the floor and walls 1.0 cm off against 0.3 cm of noise; the whole correction was refused)
+            def misfit(v: np.ndarray) -> float:
+                q = corrected_points(b, v, k, f)[0]
+                r = np.einsum("ij,ij->i", q, n[np.maximum(j_fit, 0)]) - d[np.maximum(j_fit, 0)]
+                return _robust_rms(r[(j_fit >= 0) & (np.abs(r) <= BAND * final)])
+            if misfit(x_reg) > MAX_MISFIT * noise >= misfit(x):
+                notes.append(f"the position from the pile seen at different times was not used: it left the floor "
+                             f"and walls {misfit(x_reg) * 100:.1f} cm off their planes, against {noise * 100:.1f} cm "
+                             "of noise")
+                cross_info, cross_notes = None, []
+            else:
+                x = x_reg
+        notes += cross_notes
+        if cross_info is not None:
+            info[:, :2] += cross_info[:, :2]
+            if np.abs(x[:, 3]).max() > 0:
+                info[:, 3] += cross_info[:, 3]
+                held = held.copy()
+                held[3] = False
+            p1, vr = corrected_points(b, x, k, f)
+            r1 = np.einsum("ij,ij->i", p1, n[np.maximum(j_fit, 0)]) - d[np.maximum(j_fit, 0)]
+            j1 = np.where(np.abs(r1) <= BAND * final, j_fit, -1)
+            on = j1 >= 0
     estimated = np.array([True, True, opts.vertical and (z_info is not None or not opts.crossings), not held[3]])
     constrained = (info * (step ** 2)[None, :] >= 1.0) & estimated[None, :]
     # The same points on the same planes before and after, in noise sigmas: the chi-square gain against
@@ -672,6 +726,86 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     return PoseCorrection(knots, x, constrained, True, None, **common)
 
 
+def bend_sigmas(b: Beams, knots: np.ndarray, k: np.ndarray, opts: PoseCorrectionOptions) -> np.ndarray:
+    """(K, 4) the drift's second difference at each knot, one sigma (inf: none; z: none, a rangefinder's
+    height steps over a pile). A velocity error that changes slowly (`drift_correlation_s`) makes a smooth
+    position error: between knots dt apart its second difference is dt x the velocity error's change, from
+    the error's own change (drift_rel x speed x sqrt(2 dt / tau)) and from the turns (the error is a fraction
+    of the velocity, so it turns with it: drift_rel x |the logged velocity's change|), plus the hover walk's
+    sqrt(2 dt); the heading's is its walk's."""
+    n_knots = len(knots)
+    out = np.full((n_knots, 4), np.inf)
+    if n_knots < 3:
+        return out
+    dt = np.diff(knots)
+    vel = np.zeros((n_knots - 1, 2))
+    for c in range(2):
+        pos = np.bincount(k, weights=b.vehicle_w[:, c], minlength=n_knots - 1)
+        cnt = np.bincount(k, minlength=n_knots - 1)
+        mean_t = np.bincount(k, weights=b.t_s, minlength=n_knots - 1) / np.maximum(cnt, 1)
+        mean_p = pos / np.maximum(cnt, 1)
+        vel[:, c] = np.gradient(mean_p, mean_t) if (cnt > 0).all() else 0.0
+    speed = np.linalg.norm(vel, axis=1)
+    h = 0.5 * (dt[:-1] + dt[1:])
+    dv = np.linalg.norm(np.diff(vel, axis=0), axis=1)
+    v_mid = 0.5 * (speed[:-1] + speed[1:])
+    sig = (h * opts.horizontal_drift_rel * (dv + v_mid * np.sqrt(2.0 * h / opts.drift_correlation_s))
+           + opts.hover_walk_m_per_sqrt_s * np.sqrt(2.0 * h))
+    out[1:-1, 0] = out[1:-1, 1] = sig
+    out[1:-1, 3] = opts.heading_walk_rad_per_sqrt_s * np.sqrt(2.0 * h)
+    return out
+
+
+def _registered(b: Beams, x: np.ndarray, knots: np.ndarray, k: np.ndarray, f: np.ndarray, wall: np.ndarray,
+                floor: np.ndarray, storage: Storage, cell_m: float, step: np.ndarray, noise: float, sensor_m: float,
+                wall_info_total: np.ndarray, on: np.ndarray, z_free: bool, heading_held: bool,
+                opts: PoseCorrectionOptions) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
+    """The position (and, with `opts.crossings_heading`, the heading) registered on the pile seen at different
+    times (`register_from_crossings`), each kept only when its gain beats fitting its knots to noise.
+
+    The walls' fit anchors each knot where they see it, with one point's information per knot (the walls'
+    points within a knot interval share its systematic part: millimetres on the walls bought degrees of
+    heading when each point counted, docs/pose_error.md): their information (wall_info_total, from the
+    points `on`) divided by the points' weight on the knot."""
+    n_knots = len(knots)
+    kk, ff = k[on], f[on]
+    weight = (np.bincount(kk, weights=(1 - ff) ** 2, minlength=n_knots)
+              + np.bincount(kk + 1, weights=ff ** 2, minlength=n_knots))
+    wall_info = wall_info_total / np.maximum(weight, 1.0)[:, None]
+    elapsed = knots - knots[0]
+    abs_sigma = np.tile([opts.max_position_error_m] * 3 + [opts.max_heading_error_rad], (n_knots, 1))
+    abs_sigma[:, 3] = np.minimum(abs_sigma[:, 3], step[3] + opts.heading_bias_rad_s * elapsed
+                                 + opts.heading_walk_rad_per_sqrt_s * np.sqrt(elapsed))
+    bend = bend_sigmas(b, knots, k, opts)
+    z_c = (Component.Z.value,) if z_free else ()
+    xy = (Component.X.value, Component.Y.value)
+    notes: list[str] = []
+
+    def needed(n_extra: int) -> float:
+        return n_extra + opts.n_significant * math.sqrt(2.0 * max(n_extra, 1))
+    x_xy, info, gain, n_extra = register_from_crossings(b, x, x, knots, k, f, wall, floor, storage, cell_m, step,
+                                                        noise, sensor_m, wall_info, abs_sigma, z_c + xy, z_c,
+                                                        opts.max_position_error_m, bend)
+    if not (n_extra > 0 and gain > needed(n_extra)):
+        return x, None, notes
+    x_out, info_out = x_xy, info
+    if opts.crossings_heading and heading_held:
+        x_h, info_h, gain_h, n_h = register_from_crossings(b, x_xy, x, knots, k, f, wall, floor, storage, cell_m,
+                                                           step, noise, sensor_m, wall_info, abs_sigma,
+                                                           z_c + xy + (Component.HEADING.value,), z_c + xy,
+                                                           opts.max_position_error_m, bend)
+        if n_h > 0 and gain_h > needed(n_h):
+            x_out, info_out = x_h, info_h
+            notes.append(f"the heading from the pile seen at different times ({math.degrees(_rms(x_h[:, 3])):.2f} deg "
+                         "RMS)")
+    return x_out, info_out, notes
+
+
+MIN_PILE_SLOPE = 0.05
+"""The gentlest surface slope a shift is registered on (3 deg): steeper than a floor's fall (drainage: up to 2 %) with
+margin; below it a centimetre of height error (a drifting height within a pass, a range quantum) is a metre of shift."""
+MAX_PILE_SLOPE = 1.0
+"""The steepest surface slope registered on (tan 45 deg: above any granular material's angle of repose, ~30-40 deg)."""
 SLOPE_ROUNDS = 3
 """Rounds of the height solution, each with the cells' slopes from the previous one's corrected heights (a
 slope fitted to uncorrected heights takes up the difference between two passes over a cell)."""
@@ -858,10 +992,187 @@ def screen_floor(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarr
     return kept, z_rel - level, note
 
 
+def _cells(p: np.ndarray, storage: Storage, cell_m: float) -> tuple[int, int, np.ndarray]:
+    nx = max(1, math.ceil(storage.length_m / cell_m))
+    ny = max(1, math.ceil(storage.width_m / cell_m))
+    cid = (np.clip((p[:, 0] / cell_m).astype(np.int64), 0, nx - 1) * ny
+           + np.clip((p[:, 1] / cell_m).astype(np.int64), 0, ny - 1))
+    return nx, ny, cid
+
+
+def register_from_crossings(b: Beams, x: np.ndarray, x_wall: np.ndarray, knots: np.ndarray, k: np.ndarray,
+                            f: np.ndarray, wall: np.ndarray, floor: np.ndarray, storage: Storage, cell_m: float,
+                            step: np.ndarray, noise_m: float, sensor_m: float, wall_info: np.ndarray,
+                            abs_sigma: np.ndarray,
+                            comps: tuple[int, ...], fixed: tuple[int, ...], max_error_m: float,
+                            bend: np.ndarray | None = None, n_sigma: float = 3.0,
+                            rounds: int = 3) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """The pile seen at different times registered in position (and heading) too, not only in height.
+
+    Each knot interval's points in a cell give one height at the cell's centre (`vertical_from_crossings`);
+    on a slope a horizontal shift s of that interval's points changes it by g . s (g: the cell's gradient,
+    fitted from all its points), and a heading change dpsi by g . J v dpsi (v: the interval's mean beam vector
+    there, horizontal; J: a quarter turn): a heading error turns the sweep about the vehicle, moving a point
+    at lateral distance D by D dpsi along the track, which the walls beside the track do not see and the
+    pile's slope along the track does. So the along-track position between turns, which the walls leave to
+    interpolation, is observed wherever a cell on a slope is seen twice. Linearised about x (K, 4), solved
+    for the components `comps` (Component values) with the cells' heights, robustly (Huber, IRLS), with the
+    knots' random-walk prior (step (4,)), the walls' information on each knot (wall_info (K, 4): the wall fit
+    x_wall is kept where the walls see it) and an absolute prior (abs_sigma (K, 4)); `rounds` re-fits of the
+    cells' gradients with the correction so far.
+
+    Returns the correction (K, 4), the crossings' information on each knot (K, 4; 1/m^2, 1/rad^2), the
+    Huber gain of the components `comps` not in `fixed` over holding them at x's values (in the residuals'
+    own spread: a chi-square-like gain) and the number of knot values the crossings constrain among them."""
+    n_knots = len(knots)
+    comps = tuple(comps)
+    nc = len(comps)
+    x = x.copy()
+    x_start = x.copy()
+    info = np.zeros((n_knots, 4))
+    gain, n_extra = 0.0, 0
+    for rnd in range(rounds):
+        p, vr = corrected_points(b, x, k, f)
+        inside = (~wall & (p[:, 0] > 0) & (p[:, 0] < storage.length_m) & (p[:, 1] > 0)
+                  & (p[:, 1] < storage.width_m) & (p[:, 2] > -max_error_m) & (p[:, 2] < storage.height_m))
+        nx, ny, cid = _cells(p, storage, cell_m)
+        flat, gx, gy = _significant_gradients(p, cid, nx * ny, cell_m, ny, inside, n_sigma)
+        z_flat = p[:, 2] - flat
+        key_all = k * (nx * ny) + cid
+        key, med, mad, tm, cnt = _group_median(key_all[inside], z_flat[inside], b.t_s[inside])
+        gi = np.searchsorted(key, key_all[inside])
+        vx = np.bincount(gi, weights=vr[inside, 0], minlength=len(key)) / cnt
+        vy = np.bincount(gi, weights=vr[inside, 1], minlength=len(key)) / cnt
+        fl = np.bincount(gi, weights=floor[inside].astype(float), minlength=len(key))
+        is_floor = fl * 2 >= cnt
+        # a surface steeper than a granular pile's angle of repose is a wall or a pile's toe against one (a
+        # cell across a step): not linear in a shift, it is left out
+        # nor is a cell whose points in one interval scatter about its plane beyond the sensor's noise: a step
+        # (a block's edge, a wall's foot) is not a plane either
+        # and a cell on the building's edge holds a wall's foot, a step, whatever the wall's points assigned
+        cx_i, cy_i = (key % (nx * ny)) // ny, (key % (nx * ny)) % ny
+        edge = (cx_i == 0) | (cx_i == nx - 1) | (cy_i == 0) | (cy_i == ny - 1)
+        keep = ((cnt >= MIN_CELL_POINTS) & (np.hypot(gx, gy)[key % (nx * ny)] <= MAX_PILE_SLOPE)
+                & (mad <= BAND * max(sensor_m, noise_m)) & ~edge)
+        key, med, mad, tm, cnt, vx, vy, is_floor = (a[keep] for a in (key, med, mad, tm, cnt, vx, vy, is_floor))
+        cell = key % (nx * ny)
+        _, inv, times_seen = np.unique(cell, return_inverse=True, return_counts=True)
+        floor_cells = np.zeros(times_seen.shape, dtype=bool)
+        floor_cells[inv[is_floor]] = True
+        use = (times_seen[inv] >= 2) | floor_cells[inv]
+        key, med, mad, tm, cnt, vx, vy, cell, inv = (a[use] for a in (key, med, mad, tm, cnt, vx, vy, cell, inv))
+        if len(key) == 0:
+            return x_start, info, 0.0, 0
+        uniq_cells, cell_idx = np.unique(inv, return_inverse=True)
+        n_cells = len(uniq_cells)
+        fc = np.flatnonzero(floor_cells[uniq_cells])
+        g_x, g_y = gx[cell], gy[cell]
+        # d(height at the cell's centre)/d(component): z 1, x -gx, y -gy, heading -g . J v
+        coef = {Component.Z.value: np.ones(len(key)), Component.X.value: -g_x, Component.Y.value: -g_y,
+                Component.HEADING.value: -(g_x * -vy + g_y * vx)}
+        rows_s = 1.25 * np.maximum(mad, noise_m) / np.sqrt(cnt)
+        kk, ff = _basis(tm, knots)
+        m_obs, m_floor = len(med), len(fc)
+        n_par = nc * n_knots + n_cells
+        r_i, c_i, d_i = [], [], []
+        obs = np.arange(m_obs)
+        for ci, c in enumerate(comps):
+            r_i += [obs, obs]
+            c_i += [ci * n_knots + kk, ci * n_knots + kk + 1]
+            d_i += [coef[c] * (1 - ff) / rows_s, coef[c] * ff / rows_s]
+        r_i += [obs, m_obs + np.arange(m_floor)]
+        c_i += [nc * n_knots + cell_idx, nc * n_knots + fc]
+        d_i += [-1.0 / rows_s, np.full(m_floor, 1.0 / noise_m)]
+        a_obs = sparse.csr_matrix((np.concatenate(d_i), (np.concatenate(r_i), np.concatenate(c_i))),
+                                  shape=(m_obs + m_floor, n_par))
+        # the cells' heights relative to the current points: delta solves a_obs delta = b_obs
+        b_obs = np.concatenate([-med / rows_s, np.zeros(m_floor)])
+        # priors on the totals x + delta: steps, the walls' fit where they see it, absolute
+        pr, pc, pd, pb = [], [], [], []
+        r = 0
+        for ci, c in enumerate(comps):
+            for i in range(n_knots - 1):
+                pr += [r, r]
+                pc += [ci * n_knots + i, ci * n_knots + i + 1]
+                pd += [-1.0 / step[c], 1.0 / step[c]]
+                pb.append(-(x[i + 1, c] - x[i, c]) / step[c])
+                r += 1
+            if bend is not None and np.isfinite(bend[:, c]).any():
+                for i in range(1, n_knots - 1):
+                    if not np.isfinite(bend[i, c]):
+                        continue
+                    pr += [r, r, r]
+                    pc += [ci * n_knots + i - 1, ci * n_knots + i, ci * n_knots + i + 1]
+                    pd += [1.0 / bend[i, c], -2.0 / bend[i, c], 1.0 / bend[i, c]]
+                    pb.append(-(x[i - 1, c] - 2.0 * x[i, c] + x[i + 1, c]) / bend[i, c])
+                    r += 1
+            for i in range(n_knots):
+                w = math.sqrt(wall_info[i, c]) if c != Component.Z.value else 0.0
+                if w > 0:
+                    pr.append(r)
+                    pc.append(ci * n_knots + i)
+                    pd.append(w)
+                    pb.append(-w * (x[i, c] - x_wall[i, c]))
+                    r += 1
+                pr.append(r)
+                pc.append(ci * n_knots + i)
+                pd.append(1.0 / abs_sigma[i, c])
+                pb.append(-x[i, c] / abs_sigma[i, c])
+                r += 1
+        for i in range(n_cells):
+            pr.append(r)
+            pc.append(nc * n_knots + i)
+            pd.append(1.0 / storage.height_m)
+            pb.append(0.0)
+            r += 1
+        a_pr = sparse.csr_matrix((pd, (pr, pc)), shape=(r, n_par))
+        # The heights scatter about the model by more than their points' spread says (a cell's plane is an
+        # approximation, the footprints differ between passes): the rows in their residuals' own spread, so
+        # the data weigh against the prior as much as they are worth.
+        a = sparse.vstack([a_obs, a_pr], format="csr")
+        rhs = np.concatenate([b_obs, np.asarray(pb)])
+        sol = _irls_huber(a, rhs)
+        spread = max(1.0, _robust_rms(a_obs @ sol - b_obs))
+        if spread > 1.0:
+            a_obs, b_obs = a_obs / spread, b_obs / spread
+            a = sparse.vstack([a_obs, a_pr], format="csr")
+            rhs = np.concatenate([b_obs, np.asarray(pb)])
+            sol = _irls_huber(a, rhs)
+        delta = sol[:nc * n_knots].reshape(nc, n_knots).T
+        a_k = a_obs[:, :nc * n_knots]
+        col_info = np.asarray(a_k.multiply(a_k).sum(axis=0)).ravel().reshape(nc, n_knots).T
+        if rnd == rounds - 1:
+            # the gain of the components not fixed: the same rows with them held at x_start's values
+            spread = 1.0  # the rows are in their own spread already
+            free = [ci for ci, c in enumerate(comps) if c not in fixed]
+            if free:
+                held_cols = np.concatenate([np.arange(ci * n_knots, (ci + 1) * n_knots) for ci in free])
+                rest = np.setdiff1d(np.arange(n_par), held_cols)
+                held_val = np.concatenate([(x_start[:, comps[ci]] - x[:, comps[ci]]) for ci in free])
+                rhs_h = rhs - a[:, held_cols] @ held_val
+                sol_h = _irls_huber(a[:, rest], rhs_h)
+                r_held = a_obs[:, rest] @ sol_h - (b_obs - a_obs[:, held_cols] @ held_val)
+                r_full = a_obs @ sol - b_obs
+                gain = 2.0 * float(np.sum(_huber(r_held / spread)) - np.sum(_huber(r_full / spread)))
+                n_extra = int(sum(np.count_nonzero(col_info[:, ci] * step[comps[ci]] ** 2 / spread ** 2 >= 1.0)
+                                  for ci in free))
+            for ci, c in enumerate(comps):
+                info[:, c] = col_info[:, ci] / spread ** 2
+        for ci, c in enumerate(comps):
+            x[:, c] += delta[:, ci]
+    return x, info, gain, n_extra
+
+
 def _cell_slopes(p: np.ndarray, cid: np.ndarray, n_cells: int, cell_m: float, ny: int,
                  use: np.ndarray) -> np.ndarray:
     """Per point, its cell's least-squares plane's height above the cell's centre at the point (0 where the
     cell's points do not span both directions)."""
+    return _cell_gradients(p, cid, n_cells, cell_m, ny, use)[0]
+
+
+def _cell_gradients(p: np.ndarray, cid: np.ndarray, n_cells: int, cell_m: float, ny: int,
+                    use: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`_cell_slopes`, and each cell's gradient (gx, gy) (n_cells,) each (0 where not fitted)."""
     cx = (cid // ny + 0.5) * cell_m
     cy = (cid % ny + 0.5) * cell_m
     dx, dy, z = p[:, 0] - cx, p[:, 1] - cy, p[:, 2]
@@ -879,7 +1190,32 @@ def _cell_slopes(p: np.ndarray, cid: np.ndarray, n_cells: int, cell_m: float, ny
     ok = (n >= 6) & (det > 1e-3 * np.maximum(cxx * cyy, 1e-12))
     gx = np.where(ok, (cyy * cxz - cxy * cyz) / np.where(ok, det, 1.0), 0.0)
     gy = np.where(ok, (cxx * cyz - cxy * cxz) / np.where(ok, det, 1.0), 0.0)
-    return gx[cid] * dx + gy[cid] * dy
+    return gx[cid] * dx + gy[cid] * dy, gx, gy
+
+
+def _significant_gradients(p: np.ndarray, cid: np.ndarray, n_cells: int, cell_m: float, ny: int, use: np.ndarray,
+                           n_sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`_cell_gradients`, with the gradient set to 0 where the plane does not explain more than n_sigma^2 (per
+    degree of freedom) of its points' scatter: a flat cell's fitted slope is its noise's, and a shift would be
+    bought from it."""
+    flat, gx, gy = _cell_gradients(p, cid, n_cells, cell_m, ny, use)
+    w = use.astype(float)
+    cx = (cid // ny + 0.5) * cell_m
+    cy = (cid % ny + 0.5) * cell_m
+    dx, dy = p[:, 0] - cx, p[:, 1] - cy
+    n = np.bincount(cid, weights=w, minlength=n_cells)
+    res = p[:, 2] - flat
+    mean_res = np.bincount(cid, weights=res * w, minlength=n_cells) / np.maximum(n, 1.0)
+    ssr = np.bincount(cid, weights=(res - mean_res[cid]) ** 2 * w, minlength=n_cells)
+    s2 = ssr / np.maximum(n - 3.0, 1.0)
+    mx = np.bincount(cid, weights=dx * w, minlength=n_cells) / np.maximum(n, 1.0)
+    my = np.bincount(cid, weights=dy * w, minlength=n_cells) / np.maximum(n, 1.0)
+    ex, ey = dx - mx[cid], dy - my[cid]
+    # the part of the scatter the slope explains: sum (g . (p - mean))^2
+    explained = np.bincount(cid, weights=(gx[cid] * ex + gy[cid] * ey) ** 2 * w, minlength=n_cells)
+    sig = (explained > 2.0 * n_sigma ** 2 * np.maximum(s2, 1e-12)) & (np.hypot(gx, gy) >= MIN_PILE_SLOPE)
+    gx, gy = np.where(sig, gx, 0.0), np.where(sig, gy, 0.0)
+    return gx[cid] * dx + gy[cid] * dy, gx, gy
 
 
 def _huber(u: np.ndarray) -> np.ndarray:
