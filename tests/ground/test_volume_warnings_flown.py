@@ -19,9 +19,9 @@ from sitl.world.shapes import make_shape
 STORAGE = Storage(30.0, 20.0, 10.0)
 
 
-def _report(family: str, p_traj: float) -> dict:
-    """A survey of the family's seed-0 pile (top <= 6 m) flown at 8 m by the ideal plant, summarised."""
-    shape = make_shape(family, STORAGE, 6.0, 0)
+def _report(family: str, p_traj: float, seed: int = 0) -> dict:
+    """A survey of the family's pile of that seed (top <= 6 m) flown at 8 m by the ideal plant, summarised."""
+    shape = make_shape(family, STORAGE, 6.0, seed)
     cfg = FlyConfig(mission=Mission(storage=STORAGE, altitude_m=8.0, p_traj=p_traj))
     plant = IdealPlant(cfg.mission, StorageFrame())
     t = np.arange(int(plant.duration_s * cfg.lidar.rate_hz) + 1) / cfg.lidar.rate_hz
@@ -40,9 +40,11 @@ def _interval_warnings(rep: dict) -> list[str]:
 
 
 def test_that_a_corner_pile_flown_sparsely_warns_of_material_in_the_unseen_corner():
-    # at P_traj 30 % the ideal plant's corner turn still sees most of this small pile's corner (interval
-    # about ±2 %, no warning needed); at 40 % the unseen corner holds most of a ±3 % interval
-    rep = _report("corner", 0.40)
+    # seed 3 at P_traj 30 %: 22 m² of its corner unseen, the unseen term about twice the interpolation term in
+    # a ±6 % interval. (Seed 0 at 40 %, this test's case before the interval's 2026-11-28 recalibration, now has
+    # the two terms about equal in a ±3 % interval: no single cause holds most of it, and the warning says so by
+    # staying quiet.)
+    rep = _report("corner", 0.30, seed=3)
     unseen = [w for w in rep["warnings"] if "never seen" in w]
     assert len(unseen) == 1 and "x 0-" in unseen[0] and "y 0-" in unseen[0]  # the pile's corner, at the origin
     lo, hi = rep["volume_interval_m3"]
