@@ -51,6 +51,7 @@ move both directions alike), so the timing is fixed first and this fit sees the 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -247,7 +248,7 @@ class _Problem:
         d_b = beam_dir_body(g, mounted(self.base, float(q[2]), float(q[3])))
         return self.origins[idx] + np.einsum("nij,nj->ni", self.r_wb[idx], d_b) * self.range_m[idx, None]
 
-    def plane_distances(self, idx: np.ndarray, n: np.ndarray, d: np.ndarray):
+    def plane_distances(self, idx: np.ndarray, n: np.ndarray, d: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
         """The signed distances of the points `idx` from their planes (normals n, offsets d, one per point) as a
         function of the parameters: n . p - d = (n . origin - d) + range (R_wb^T n) . beam_body. The parts the
         parameters cannot change are taken once, so a fit's many trial evaluations (its finite-difference
