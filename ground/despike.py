@@ -203,6 +203,11 @@ def why_no_threshold(header: dict) -> str | None:
     bad = [f"sensor.{k}" for k in ("rate_hz",) if not (isinstance(sensor, dict) and _positive(sensor.get(k)))]
     bad += [f"servo.{k}" for k in ("shape_c", "frequency_hz", "amplitude_rad")
             if not (isinstance(servo, dict) and _finite(servo.get(k)))]
+    if not bad:
+        try:
+            stated_angle_sigma_rad(header)
+        except ValueError as e:
+            return f"{e}, so the beams' pointing error between samples is unknown"
     what = ", ".join(bad) if bad else "a usable sample rate and servo waveform"
     return f"the log header lacks {what}, so the beam's step between samples is unknown"
 

@@ -10,7 +10,7 @@ from firmware_py.core.header import build_log_header, sensor_spec
 from firmware_py.core.samplelog import SampleFlags, SampleLog, new_records
 from firmware_py.core.storage import Storage
 from firmware_py.core.waveform import Waveform, frequency_for_peak_rate
-from ground.despike import MAX_GAP_PERIODS, SpikeThreshold, spike_mask
+from ground.despike import MAX_GAP_PERIODS, SpikeThreshold, spike_mask, why_no_threshold
 from ground.pointcloud import cloud_from_samples
 from ground.report import ReportOptions, summarise, survey_from_samples
 
@@ -181,6 +181,9 @@ def test_that_an_unusable_header_turns_despiking_off():
     assert SpikeThreshold.from_header({**h, "sensor": {**h["sensor"], "rate_hz": 0}}) is None
     assert SpikeThreshold.from_header({**h, "servo": {**h["servo"], "frequency_hz": "fast"}}) is None
     assert SpikeThreshold.from_header({}) is None
+    bad_noise = {**h, "sensor_noise": {"model": "appendix-a", "servo_sigma_rad": -1.0}}
+    assert SpikeThreshold.from_header(bad_noise) is None
+    assert "sensor_noise.servo_sigma_rad" in why_no_threshold(bad_noise)
     with pytest.raises(ValueError, match="sample_period_s"):
         SpikeThreshold(0.0, 6.0)
 
