@@ -22,17 +22,22 @@ import statistics
 import subprocess
 import sys
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from firmware_py.core.cli import ArgumentParser
+from firmware_py.core.storage import Storage
+from sitl.world.shapes import make_shape
 from tools.doc_sections import write_section
 
 SECTION = "pose-correction-table"
 PROFILES = ("none", "vio", "flow")
 PILES = ("1", "2")
 P_TRAJ_PCT = (5, 20)
+PILE_CLEARANCE_M = 2.0
+"""An own pile's top under the flight altitude (as the evaluation set's, tools/evalset.py)."""
 VE_TARGET_PP = 0.3
 """Issue 15's target: the corrected Ve within this of the error-free flight's (per seed, counted in the table)."""
 TRAJ_TARGET_M = 0.10
@@ -55,13 +60,45 @@ def trajectory_rms_m(truth: dict, correction: dict | None) -> tuple[float, float
     return before, float(np.sqrt(np.mean(np.sum((est_w + corr - true_w) ** 2, axis=1))))
 
 
-def one(profile: str, pile: str, p_traj: int, seed: int, work: Path, reuse: bool = False) -> dict:
-    run = work / f"{profile}-{pile}-{p_traj}-{seed}"
+@dataclass(frozen=True)
+class Building:
+    """Where the campaign flies: the paper's building by default, or one of the user's (`--storage`)."""
+
+    storage: str | None = None  # LxWxH (m); None: the paper's 60x40x15
+    altitude_m: float | None = None  # None: fly's default (12 m)
+
+    def fly_args(self) -> list[str]:
+        return ((["--storage", self.storage] if self.storage else [])
+                + (["--altitude", f"{self.altitude_m:g}"] if self.altitude_m is not None else []))
+
+    def describe(self) -> str:
+        if self.storage is None:
+            return "the paper's building (60 x 40 x 15 m, 12 m, 1 m/s)"
+        alt = "fly's default altitude" if self.altitude_m is None else f"{self.altitude_m:g} m"
+        return f"a {self.storage.replace('x', ' x ')} m building ({alt}, 1 m/s)"
+
+
+def own_pile(spec: str, building: Building, work: Path) -> tuple[str, str]:
+    """An own pile FAMILY:SEED (`sitl.world.shapes`), its top PILE_CLEARANCE_M under the flight: (label, STL path)."""
+    family, _, seed = spec.partition(":")
+    storage = Storage.parse(building.storage) if building.storage else Storage(60.0, 40.0, 15.0)
+    altitude = building.altitude_m if building.altitude_m is not None else 12.0
+    shape = make_shape(family, storage, altitude - PILE_CLEARANCE_M, int(seed or 0))
+    path = work / f"pile-{family}-{seed or 0}.stl"
+    shape.pile.mesh.export(path)
+    return f"{family}:{seed or 0}", str(path)
+
+
+def one(profile: str, pile: str, p_traj: int, seed: int, work: Path, reuse: bool = False,
+        building: Building = Building(), stockpile: str | None = None) -> dict:
+    """One flight (`stockpile`: the --stockpile argument, default the pile's name) and its two reports."""
+    run = work / f"{profile}-{pile.replace(':', '-')}-{p_traj}-{seed}"
     py = sys.executable
     flown = reuse and (run / "truth.json").is_file()
     if not flown:
-        subprocess.run([py, "-m", "sitl.cli", "fly", "--stockpile", pile, "--p-traj", str(p_traj), "--pose-error",
-                        profile, "--seed", str(seed), "--out", str(run), "--force", "--quiet"], check=True)
+        subprocess.run([py, "-m", "sitl.cli", "fly", "--stockpile", stockpile or pile, "--p-traj", str(p_traj),
+                        *building.fly_args(), "--pose-error", profile, "--seed", str(seed), "--out", str(run),
+                        "--force", "--quiet"], check=True)
     reps = {}
     for flag in ("--no-pose-correction", "--pose-correction"):
         rep = work / f"{run.name}{flag}"
@@ -84,8 +121,8 @@ def table(rows: list[dict]) -> str:
     lines = ["| pile | P_traj | profile | seeds | Ve, no pose error (%) | Ve uncorrected (%) | Ve corrected (%) | "
              f"applied | trajectory RMS before (m) | after (m) | Ve within {VE_TARGET_PP} pp | RMS after <= "
              f"{TRAJ_TARGET_M * 100:.0f} cm |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for pile in PILES:
-        for p in P_TRAJ_PCT:
+    for pile in dict.fromkeys(r["pile"] for r in rows):
+        for p in sorted({r["p_traj"] for r in rows}):
             ref = [r for r in rows if r["pile"] == pile and r["p_traj"] == p and r["profile"] == "none"]
             ve_ref = statistics.fmean(r["ve_off"] for r in ref) if ref else float("nan")
             ref_seed = {r["seed"]: r["ve_off"] for r in ref}
@@ -115,7 +152,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rows", type=Path, nargs="+", default=None, help="JSON-lines files of rows (see above)")
     ap.add_argument("--reuse", action="store_true", help="with --keep: report the flights already there again, "
                     "without flying them again (see above)")
+    ap.add_argument("--storage", default=None, metavar="LxWxH", help="fly this building instead of the paper's")
+    ap.add_argument("--altitude", type=float, default=None, help="flight altitude (m; fly's default without)")
+    ap.add_argument("--own-piles", nargs="+", default=None, metavar="FAMILY:SEED",
+                    help="fly these generated piles (sitl.world.shapes, their top 2 m under the flight) "
+                    "instead of the paper's (e.g. cone:1 ridge:2)")
+    ap.add_argument("--section", default=SECTION, help=f"the page's section to rewrite (default {SECTION})")
     args = ap.parse_args(argv)
+    building = Building(args.storage, args.altitude)
     if args.reuse and args.keep is None:
         ap.error("--reuse needs --keep (the folder of the flights)")
     rows: list[dict] = []
@@ -126,26 +170,29 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         work = args.keep or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
-        for pile in args.piles:
+        piles = ([own_pile(spec, building, work) for spec in args.own_piles] if args.own_piles
+                 else [(pile, pile) for pile in args.piles])
+        for pile, stockpile in piles:
             for p in args.p_traj:
                 for prof in PROFILES:
                     for seed in args.seeds:
                         if (prof, pile, p, seed) in done:
                             continue
-                        rows.append(one(prof, pile, p, seed, work, args.reuse))
+                        rows.append(one(prof, pile, p, seed, work, args.reuse, building, stockpile))
                         print(json.dumps(rows[-1]), flush=True)
                         if args.rows:
                             with args.rows[0].open("a") as out:
                                 out.write(json.dumps(rows[-1]) + "\n")
     seeds = " ".join(map(str, sorted({r["seed"] for r in rows})))
-    text = (f"Mean over seeds {seeds} per row; the paper's building (60 x 40 x 15 m, 12 m, "
-            "1 m/s), payload firmware in the loop, no sensor noise; Ve (eq. 8) from `pilescan-ground report` with "
+    text = (f"Mean over seeds {seeds} per row; {building.describe()}, payload firmware in the loop, no sensor "
+            "noise; Ve (eq. 8) from `pilescan-ground report` with "
             "`--no-pose-correction` (uncorrected) and `--pose-correction` (corrected); trajectory RMS: 3-D position "
             "of the estimate against the truth; the last two columns count the seeds meeting issue 15's targets "
             "(Ve within 0.3 pp of the error-free flight's, trajectory RMS after <= 10 cm). Regenerated by "
-            "`python -m tools.pose_correction_campaign --write docs/pose_error.md`.\n\n" + table(rows))
+            f"`python -m tools.pose_correction_campaign {' '.join(sys.argv[1:] if argv is None else argv)}`."
+            "\n\n" + table(rows))
     if args.write is not None:
-        write_section(args.write, SECTION, text)
+        write_section(args.write, args.section, text)
     print(text)
     return 0
 
