@@ -565,6 +565,14 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     b = replace(b, parallel=b.parallel & found[k])
     final = 3.0 * noise
     j_fit, _ = _assign(corrected_points(b, x, k, f)[0], n, d, BAND * sensor_m, b.parallel)
+    jf = np.maximum(j_fit, 0)
+
+    def on_fit_planes(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The points placed with correction v, their beam vectors, their signed distances from the planes the
+        start gave them, and each one's plane where within BAND final windows of it (-1: none)."""
+        p, beam = corrected_points(b, v, k, f)
+        r = np.einsum("ij,ij->i", p, n[jf]) - d[jf]
+        return p, beam, r, np.where(np.abs(r) <= BAND * final, j_fit, -1)
 
     def plane_fit(x: np.ndarray, prior: sparse.csr_matrix, bound: np.ndarray) -> np.ndarray:
         # windows: from what the vote leaves (its bin) down to the data's noise
@@ -603,9 +611,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         else:
             held = held.copy()
             held[3] = True
-    p1, vr = corrected_points(b, x, k, f)
-    r1 = np.einsum("ij,ij->i", p1, n[np.maximum(j_fit, 0)]) - d[np.maximum(j_fit, 0)]
-    j1 = np.where(np.abs(r1) <= BAND * final, j_fit, -1)
+    p1, vr, r1, j1 = on_fit_planes(x)
     on = j1 >= 0
     counts = tuple(int(np.count_nonzero(j1 == i)) for i in range(5))
     if np.count_nonzero(j_fit >= 0) < opts.min_structure_points:  # the start's: the floor's height comes later
@@ -670,9 +676,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
             # planes where the correction without it did not is dropped (measured: a `flow` flight with 2.5 m of
             # drift, the floor and walls 1.0 cm off against 0.3 cm of noise; the whole correction was refused)
             def misfit(v: np.ndarray) -> float:
-                q = corrected_points(b, v, k, f)[0]
-                r = np.einsum("ij,ij->i", q, n[np.maximum(j_fit, 0)]) - d[np.maximum(j_fit, 0)]
-                return _robust_rms(r[(j_fit >= 0) & (np.abs(r) <= BAND * final)])
+                _, _, r, j = on_fit_planes(v)
+                return _robust_rms(r[j >= 0])
             if misfit(x_reg) > MAX_MISFIT * noise >= misfit(x):
                 notes.append(f"the position from the pile seen at different times was not used: it left the floor "
                              f"and walls {misfit(x_reg) * 100:.1f} cm off their planes, against {noise * 100:.1f} cm "
@@ -687,9 +692,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                 info[:, 3] += cross_info[:, 3]
                 held = held.copy()
                 held[3] = False
-            p1, vr = corrected_points(b, x, k, f)
-            r1 = np.einsum("ij,ij->i", p1, n[np.maximum(j_fit, 0)]) - d[np.maximum(j_fit, 0)]
-            j1 = np.where(np.abs(r1) <= BAND * final, j_fit, -1)
+            p1, vr, r1, j1 = on_fit_planes(x)
             on = j1 >= 0
     estimated = np.array([True, True, opts.vertical and (z_info is not None or not opts.crossings), not held[3]])
     constrained = (info * (step ** 2)[None, :] >= 1.0) & estimated[None, :]
