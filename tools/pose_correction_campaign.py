@@ -29,6 +29,7 @@ import numpy as np
 
 from firmware_py.core.cli import ArgumentParser
 from firmware_py.core.storage import Storage
+from sitl.missions.rectangle import Mission
 from sitl.world.shapes import make_shape
 from tools.doc_sections import write_section
 
@@ -81,8 +82,8 @@ class Building:
 def own_pile(spec: str, building: Building, work: Path) -> tuple[str, str]:
     """An own pile FAMILY:SEED (`sitl.world.shapes`), its top PILE_CLEARANCE_M under the flight: (label, STL path)."""
     family, _, seed = spec.partition(":")
-    storage = Storage.parse(building.storage) if building.storage else Storage(60.0, 40.0, 15.0)
-    altitude = building.altitude_m if building.altitude_m is not None else 12.0
+    storage = Storage.parse(building.storage) if building.storage else Storage()  # the paper's
+    altitude = building.altitude_m if building.altitude_m is not None else Mission().altitude_m  # fly's default
     shape = make_shape(family, storage, altitude - PILE_CLEARANCE_M, int(seed or 0))
     path = work / f"pile-{family}-{seed or 0}.stl"
     shape.pile.mesh.export(path)
