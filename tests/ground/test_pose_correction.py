@@ -13,10 +13,16 @@ from firmware_py.core.frames import StorageFrame, beam_rays_w
 from firmware_py.core.samplelog import SampleFlags, new_records
 from firmware_py.core.storage import Storage
 from ground.pose_correction import (
+    PLANE_NAMES,
     Component,
     PoseCorrectionOptions,
+    along_planes,
     apply_pose_correction,
+    beams,
     estimate_pose_correction,
+    is_drift,
+    planes,
+    prior_sigmas,
     unconstrained_warning,
 )
 
@@ -293,3 +299,44 @@ def test_that_the_along_track_position_and_heading_come_from_the_heap_seen_twice
     # the heading: its error's RMS at least halved (the corrected NED yaw is the logged one less dtheta)
     heading_after = np.sqrt(np.mean((e[:, 3] - new.at(samples["t_s"])[:, 3]) ** 2))
     assert heading_after < 0.5 * np.sqrt(np.mean(e[:, 3] ** 2)), math.degrees(heading_after)
+
+
+def test_that_a_wall_parallel_to_the_sweep_plane_is_not_taken_from_the_sweep():
+    # The loop ends flying towards the side wall y = 0 and hovers 4.5 m short of it (a landing at home): each
+    # sweep then lies in a plane parallel to that wall, so its chords have nothing along the wall's normal
+    # whatever they cross. Those stretches must not count as running along the wall (the vote took the hover's
+    # floor and end-wall points for the side wall and moved the trajectory 4.5 m, on a flown VIO log). The first
+    # leg, along that wall, does cross it: there its points still run along it.
+    corners = [(12.0, 4.5), (48.0, 4.5), (48.0, 32.0), (12.0, 32.0)]
+    perimeter = sum(math.dist(a, b) for a, b in zip(corners, corners[1:] + corners[:1], strict=True))
+    samples, _ = flight(corners=corners, duration_s=perimeter / SPEED + 10.0)
+    b, sweep_dir = beams(samples, LEVER, FRAME)
+    n, _ = planes(STORAGE)
+    along = along_planes(b, np.full(len(b.t_s), RESOLUTION), 0.0, sweep_dir, n, 1.0 / RATE_HZ)
+    y0, y_w = PLANE_NAMES.index("y0"), PLANE_NAMES.index("yW")
+    hover = b.t_s > perimeter / SPEED + 1.0
+    assert not along[hover][:, [y0, y_w]].any()
+    assert along[hover][:, PLANE_NAMES.index("floor")].any()  # the floor it does cross
+    first_leg = (b.t_s > 2.0) & (b.t_s < 36.0 / SPEED - 2.0)
+    on_y0 = np.abs(b.vehicle_w[:, 1] + b.to_point_w[:, 1]) < 0.05
+    assert along[first_leg & on_y0, y0].mean() > 0.5
+
+
+def test_that_a_registration_whose_steps_the_drift_model_does_not_allow_is_no_drift():
+    step = prior_sigmas(3.0, 1.0, PoseCorrectionOptions())
+    xy = (Component.X.value, Component.Y.value)
+    walls = np.zeros((30, 4))
+    smooth = walls.copy()
+    smooth[:, 1] = 0.5 * step[1] * np.arange(30)  # half a sigma a knot: a drift
+    assert is_drift(smooth, walls, step, xy)
+    runaway = smooth.copy()
+    runaway[27:, 1] += 25 * step[1]  # the end runs away along the track (as measured on a flown ridge)
+    assert not is_drift(runaway, walls, step, xy)
+    assert is_drift(runaway, runaway, step, xy)  # no worse than the walls' fit: not the registration's doing
+    rough = walls.copy()
+    rough[::2, 0] = 2 * step[0]  # a walls' fit with two-sigma steps of its own noise at every knot
+    assert is_drift(rough + smooth, rough, step, xy)  # a drift on top of it is allowed
+    assert not is_drift(rough + runaway, rough, step, xy)
+    few = smooth.copy()
+    few[10, 0] += 4 * step[0]  # one knot off by four sigmas among 58 steps: still a drift at the 99 % level
+    assert is_drift(few, walls, step, xy)
