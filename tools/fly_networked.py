@@ -30,13 +30,16 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import numpy as np
+
 from firmware_py.core.cli import ExitCode, NoVolumeError
 from firmware_py.core.keys import load_key
-from firmware_py.core.rundir import PLAN_FILE, SAMPLES_FILE
-from ground.report import ReportOptions, make_report
+from firmware_py.core.rundir import PLAN_FILE, SAMPLES_FILE, TRUTH_FILE
+from ground.report import ReportOptions, header_geometry, make_report, read_log_input
 from sitl.mavlink.gcs import fly_plan
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
+from tools.pose_correction_campaign import clock_offset_s, on_log_clock, trajectory_rms_m
 
 
 def free_port(kind: int) -> int:
@@ -184,6 +187,24 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
     return NetworkedRun(out, rep, wall, code)
 
 
+def trajectory_rms(run: Path, correction: dict) -> tuple[float, float, float, float] | None:
+    """The networked flight's trajectory RMS before and after the correction (`serve` keeps the truth on the
+    simulator's clock: put on the payload log's by the estimated trajectory, `clock_offset_s`), the offset and
+    how far apart the two estimates stay there (m); None without a trajectory in truth.json."""
+    truth = json.loads((run / TRUTH_FILE).read_text())
+    traj = (truth.get("pose_error") or {}).get("trajectory")
+    if not traj:
+        return None
+    inp = read_log_input(run)
+    _, frame, _ = header_geometry(inp.log, inp.log_path)
+    s = inp.log.samples
+    logged_w = frame.ned_to_w(np.column_stack([s["x_m"], s["y_m"], s["z_m"]]).astype(float))
+    ok = np.isfinite(logged_w).all(axis=1) & np.isfinite(s["t_s"])
+    offset_s, fit_m = clock_offset_s(traj, s["t_s"][ok], logged_w[ok])
+    before, after = trajectory_rms_m(on_log_clock(truth, offset_s), correction)
+    return before, after, offset_s, fit_m
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--stockpile", default="1")
@@ -233,6 +254,12 @@ def main(argv: list[str] | None = None) -> int:
               f"(correction {'applied' if pc.get('applied') else 'not applied'})")
         figures.update(networked_corrected_volume_m3=fixed["volume_m3"],
                        networked_corrected_ve_pct=fixed["volume_error_pct"], pose_correction=pc)
+        rms = trajectory_rms(args.out / "networked", pc)
+        if rms is not None:
+            before, after, offset_s, fit_m = rms
+            print(f"networked trajectory RMS against the truth: {before:.3f} m logged, {after:.3f} m corrected "
+                  f"(truth put on the log's clock: offset {offset_s:.3f} s, estimates {fit_m * 100:.1f} cm apart)")
+            figures.update(networked_trajectory_rms_before_m=before, networked_trajectory_rms_after_m=after)
     if args.compare:
         from firmware_py.core.sensor import Rangefinder
         from firmware_py.core.storage import Storage

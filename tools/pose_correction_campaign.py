@@ -18,6 +18,7 @@ Both programs run as a user runs them (their command lines, in subprocesses).
 from __future__ import annotations
 
 import json
+import math
 import statistics
 import subprocess
 import sys
@@ -51,6 +52,9 @@ def trajectory_rms_m(truth: dict, correction: dict | None) -> tuple[float, float
     tr = (truth.get("pose_error") or {}).get("trajectory")
     if not tr:
         return 0.0, 0.0
+    if tr.get("clock", "log") != "log":
+        raise ValueError(f"the trajectory is on the {tr['clock']} clock, not the log's: align it first "
+                         "(clock_offset_s, on_log_clock)")
     t, true_w, est_w = np.array(tr["t_s"]), np.array(tr["true_w_m"]), np.array(tr["estimated_w_m"])
     before = float(np.sqrt(np.mean(np.sum((est_w - true_w) ** 2, axis=1))))
     if not correction or not correction.get("applied"):
@@ -60,6 +64,43 @@ def trajectory_rms_m(truth: dict, correction: dict | None) -> tuple[float, float
     corr = np.column_stack([np.interp(t, knots, vals[:, c]) for c in range(3)])
     return before, float(np.sqrt(np.mean(np.sum((est_w + corr - true_w) ** 2, axis=1))))
 
+
+
+def clock_offset_s(traj: dict, log_t_s: np.ndarray, logged_w_m: np.ndarray, step_s: float = 0.1) -> tuple[float, float]:
+    """The offset that puts truth.json's trajectory (on the simulator's clock, `serve`'s) on a payload log's clock:
+    the shift that best lays its estimated trajectory over the poses the payload logged (both are the estimate the
+    autopilot sent), a coarse search in step_s then a fine one; and the median distance left there (m), which
+    says whether the two are the same flight. Returns (offset, distance): log time = trajectory time - offset."""
+    t = np.asarray(traj["t_s"], dtype=float)
+    est = np.asarray(traj["estimated_w_m"], dtype=float)
+    lt, lw = np.asarray(log_t_s, dtype=float), np.asarray(logged_w_m, dtype=float)
+    if len(t) < 2 or len(lt) < 2:
+        raise ValueError("the trajectory and the log need two poses each to be aligned")
+    pick = np.linspace(0, len(lt) - 1, min(len(lt), 2000)).astype(int)
+    lt, lw = lt[pick], lw[pick]
+
+    def misfit(off: float) -> float:
+        at = lt + off
+        inside = (at >= t[0]) & (at <= t[-1])
+        if inside.sum() < 0.5 * len(lt):  # most of the log must lie within the trajectory
+            return math.inf
+        e = np.column_stack([np.interp(at[inside], t, est[:, c]) for c in range(3)])
+        return float(np.median(np.linalg.norm(e - lw[inside], axis=1)))
+    coarse = np.arange(t[0] - lt[-1], t[-1] - lt[0] + step_s, step_s)
+    best = min(coarse, key=misfit)
+    fine = np.arange(best - step_s, best + step_s, step_s / 50.0)
+    best = float(min(fine, key=misfit))
+    return best, misfit(best)
+
+
+def on_log_clock(truth: dict, offset_s: float) -> dict:
+    """truth.json with its trajectory's times moved to the log's clock (`clock_offset_s`)."""
+    pe = dict(truth["pose_error"])
+    tr = dict(pe["trajectory"])
+    tr["t_s"] = (np.asarray(tr["t_s"], dtype=float) - offset_s).tolist()
+    tr["clock"] = "log"
+    pe["trajectory"] = tr
+    return {**truth, "pose_error": pe}
 
 @dataclass(frozen=True)
 class Building:

@@ -29,6 +29,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from firmware_py.core.cli import reading_input
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.geodesy import GeodeticPoint
@@ -60,9 +62,11 @@ from sitl.runners.fly import (
     check_rangefinder_faults,
     noise_header,
     pose_error_header,
+    pose_error_truth,
     truth_record,
 )
 from sitl.runners.lockstep_payload import attach_sensor_noise
+from sitl.sensing.pose_drift import HEADER_KEY as POSE_ERROR_KEY
 from sitl.sensing.pose_drift import PoseErrorProfile, make_drift, world_ground_below
 from sitl.vehicle.jsbsim_plant import PlantConfig
 from sitl.vehicle.jsbsim_vehicle import JsbsimVehicle, VehicleConfig
@@ -85,6 +89,10 @@ def make_vehicle(kind: str, mission: Mission, frame: StorageFrame, origin: Geode
                                        speed_m_s=mission.speed_m_s,
                                        yaw_rate_max_rad_s=mission.yaw_rate_max_rad_s, altitude_m=mission.altitude_m))
 
+
+SIMULATOR_CLOCK = "simulator"
+"""truth.json's trajectory ``clock`` from `serve`: the simulator's seconds, not the payload log's (a networked
+payload stamps its samples with its own monotonic clock; `tools.fly_networked` aligns the two)."""
 
 @dataclass(frozen=True)
 class ServeOptions:
@@ -246,6 +254,9 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
         vehicle.attach_drift(drift)
         log.info("pose error: %s (the autopilot flies on, and reports, a drifting estimate; seed %d)",
                  opts.pose_error.value, opts.faults.seed)
+    # The true and estimated trajectories for truth.json (as `fly` keeps them), on the simulator's clock: the
+    # payload's log runs on its own, which `tools.fly_networked` aligns by the estimated trajectory.
+    track: list[tuple[float, ...]] | None = [] if drift is not None and world is not None else None
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     devices = None
@@ -289,6 +300,9 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
             def on_step() -> None:
                 if devices is not None:
                     devices.record()
+                if track is not None:
+                    now = vehicle.state()
+                    track.append((now.t_s, *now.pos_ned_m, now.yaw_rad, *vehicle.pose_error))
                 faults.step()
             sim_s = run_realtime(server, vehicle, speedup=opts.speedup, duration_s=opts.duration_s, stop_event=stop,
                                  on_step=on_step)
@@ -298,6 +312,12 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
         transport.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    if track:
+        a = np.array(track)
+        traj = pose_error_truth(cfg, a[:, 0], a[:, 1:4], a[:, 4], a[:, 5:9], float(a[0, 0]), float(a[-1, 0]))
+        traj[POSE_ERROR_KEY]["trajectory"]["clock"] = SIMULATOR_CLOCK
+        truth.update(traj)
+        folder.staged(TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
     st = server.stats
     refused = ""
     if opts.signing is not None:

@@ -2,9 +2,18 @@
 
 from pathlib import Path
 
+import numpy as np
+import pytest
 import trimesh
 
-from tools.pose_correction_campaign import Building, own_pile, table
+from tools.pose_correction_campaign import (
+    Building,
+    clock_offset_s,
+    on_log_clock,
+    own_pile,
+    table,
+    trajectory_rms_m,
+)
 
 
 def test_that_the_paper_building_adds_no_fly_arguments_and_an_own_building_adds_its_size_and_altitude():
@@ -30,3 +39,35 @@ def test_that_the_table_has_a_row_per_pile_and_profile_and_counts_seeds_against_
     vio = next(line for line in text.splitlines() if "| vio |" in line)
     assert vio.startswith("| ridge:2 | 5 % | vio | 2 |")
     assert vio.endswith("| 2/2 | 1/2 |")  # 0.3 vs 0.1 and 0.6 vs 0.5: both within 0.3 pp; one RMS <= 10 cm
+
+
+def _served(offset_s: float) -> tuple[dict, np.ndarray, np.ndarray]:
+    """A truth.json on the simulator's clock (10 Hz, a loop with a drifting estimate) and a payload log of the
+    same estimate on a clock offset_s behind, sampled at 500 Hz with centimetre noise."""
+    t = np.arange(0.0, 120.0, 0.1)
+    true_w = np.column_stack([10 + 8 * np.cos(t / 10), 10 + 5 * np.sin(t / 7), 12 + 0.1 * np.sin(t)])
+    est_w = true_w + np.column_stack([0.003 * t, -0.002 * t, 0.05 * np.sin(t / 20)])
+    truth = {"pose_error": {"trajectory": {"t_s": t.tolist(), "true_w_m": true_w.tolist(),
+                                           "estimated_w_m": est_w.tolist(), "clock": "simulator"}}}
+    log_t = np.arange(5.0, 110.0, 0.002) - offset_s
+    logged = np.column_stack([np.interp(log_t + offset_s, t, est_w[:, c]) for c in range(3)])
+    logged += np.random.default_rng(0).normal(0.0, 0.01, logged.shape)
+    return truth, log_t, logged
+
+
+def test_that_a_served_trajectory_is_put_on_the_payload_logs_clock_by_the_estimate_both_carry():
+    truth, log_t, logged = _served(offset_s=37.25)
+    offset, apart_m = clock_offset_s(truth["pose_error"]["trajectory"], log_t, logged)
+    assert offset == pytest.approx(37.25, abs=0.01)
+    assert apart_m < 0.02
+    moved = on_log_clock(truth, offset)
+    before, _ = trajectory_rms_m(moved, None)
+    t = np.asarray(truth["pose_error"]["trajectory"]["t_s"])
+    expected = np.sqrt(np.mean(np.sum(np.column_stack([0.003 * t, -0.002 * t, 0.05 * np.sin(t / 20)]) ** 2, axis=1)))
+    assert before == pytest.approx(expected, rel=1e-6)
+
+
+def test_that_a_trajectory_on_the_simulators_clock_is_not_compared_with_a_log_unaligned():
+    truth, _, _ = _served(offset_s=0.0)
+    with pytest.raises(ValueError, match="align it first"):
+        trajectory_rms_m(truth, None)

@@ -10,7 +10,7 @@ from firmware_py.core.samplelog import read_samplelog
 from firmware_py.core.storage import Storage
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
-from sitl.runners.serve import ServeOptions
+from sitl.runners.serve import SIMULATOR_CLOCK, ServeOptions, serve
 from sitl.sensing.pose_drift import PROFILES, PoseErrorProfile
 
 MISSION = Mission(storage=Storage(30, 20, 12), p_traj=0.2, altitude_m=8.5)
@@ -93,3 +93,19 @@ def test_that_serve_needs_the_jsbsim_vehicle_for_a_pose_error():
     with pytest.raises(ValueError, match="jsbsim"):
         ServeOptions(mission=MISSION, vehicle="kinematic", pose_error=PoseErrorProfile.VIO)
     assert ServeOptions(mission=MISSION, pose_error="vio").fly_config().pose_error is PoseErrorProfile.VIO
+
+
+def test_that_serve_keeps_the_true_and_estimated_trajectories_on_the_simulators_clock(tmp_path):
+    # A short served run (nobody flies it: the vehicle waits on the ground while its estimate walks): truth.json
+    # holds the trajectories as fly's does, stamped as the simulator's clock, which the payload's log is not on.
+    out = tmp_path / "served"
+    code = serve(ServeOptions(mission=MISSION, url="udp:127.0.0.1:0", duration_s=3.0, out=out,
+                              devices_url="tcp:127.0.0.1:0", pose_error="vio"))
+    assert code == 0
+    traj = json.loads((out / "truth.json").read_text())["pose_error"]["trajectory"]
+    assert traj["clock"] == SIMULATOR_CLOCK
+    t = np.asarray(traj["t_s"])
+    assert len(t) >= 25 and 0.0 <= t[0] and t[-1] <= 3.0 + 0.1 and np.all(np.diff(t) > 0)
+    true_w, est_w = np.asarray(traj["true_w_m"]), np.asarray(traj["estimated_w_m"])
+    assert true_w.shape == est_w.shape == (len(t), 3)
+    assert np.abs(est_w - true_w).max() > 0.0  # the estimate walks from the start
