@@ -254,7 +254,11 @@ def main(argv: list[str] | None = None) -> int:
               f"(correction {'applied' if pc.get('applied') else 'not applied'})")
         figures.update(networked_corrected_volume_m3=fixed["volume_m3"],
                        networked_corrected_ve_pct=fixed["volume_error_pct"], pose_correction=pc)
-        rms = trajectory_rms(args.out / "networked", pc)
+        try:
+            rms = trajectory_rms(args.out / "networked", pc)
+        except ValueError as exc:  # a truth.json and a log that are not one flight: say so, keep the volumes
+            print(f"networked trajectory RMS not measured: {exc}", file=sys.stderr)
+            rms = None
         if rms is not None:
             before, after, offset_s, fit_m = rms
             print(f"networked trajectory RMS against the truth: {before:.3f} m logged, {after:.3f} m corrected "

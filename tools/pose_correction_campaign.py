@@ -65,7 +65,6 @@ def trajectory_rms_m(truth: dict, correction: dict | None) -> tuple[float, float
     return before, float(np.sqrt(np.mean(np.sum((est_w + corr - true_w) ** 2, axis=1))))
 
 
-
 def clock_offset_s(traj: dict, log_t_s: np.ndarray, logged_w_m: np.ndarray, step_s: float = 0.1) -> tuple[float, float]:
     """The offset that puts truth.json's trajectory (on the simulator's clock, `serve`'s) on a payload log's clock:
     the shift that best lays its estimated trajectory over the poses the payload logged (both are the estimate the
@@ -88,6 +87,8 @@ def clock_offset_s(traj: dict, log_t_s: np.ndarray, logged_w_m: np.ndarray, step
         return float(np.median(np.linalg.norm(e - lw[inside], axis=1)))
     coarse = np.arange(t[0] - lt[-1], t[-1] - lt[0] + step_s, step_s)
     best = min(coarse, key=misfit)
+    if not math.isfinite(misfit(best)):
+        raise ValueError("the trajectory and the log do not overlap in time at any offset: not the same flight")
     fine = np.arange(best - step_s, best + step_s, step_s / 50.0)
     best = float(min(fine, key=misfit))
     return best, misfit(best)
@@ -101,6 +102,7 @@ def on_log_clock(truth: dict, offset_s: float) -> dict:
     tr["clock"] = "log"
     pe["trajectory"] = tr
     return {**truth, "pose_error": pe}
+
 
 @dataclass(frozen=True)
 class Building:

@@ -94,6 +94,7 @@ SIMULATOR_CLOCK = "simulator"
 """truth.json's trajectory ``clock`` from `serve`: the simulator's seconds, not the payload log's (a networked
 payload stamps its samples with its own monotonic clock; `tools.fly_networked` aligns the two)."""
 
+
 @dataclass(frozen=True)
 class ServeOptions:
     """What `pilescan-sitl serve` runs; checked at construction, before anything is opened or written."""

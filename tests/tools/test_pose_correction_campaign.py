@@ -67,6 +67,13 @@ def test_that_a_served_trajectory_is_put_on_the_payload_logs_clock_by_the_estima
     assert before == pytest.approx(expected, rel=1e-6)
 
 
+def test_that_a_log_the_trajectory_cannot_cover_is_refused_not_aligned():
+    truth, _, _ = _served(offset_s=0.0)  # 120 s of trajectory
+    log_t = np.arange(0.0, 400.0, 0.01)  # a log over three times as long: no offset puts half of it inside
+    with pytest.raises(ValueError, match="do not overlap"):
+        clock_offset_s(truth["pose_error"]["trajectory"], log_t, np.zeros((len(log_t), 3)))
+
+
 def test_that_a_trajectory_on_the_simulators_clock_is_not_compared_with_a_log_unaligned():
     truth, _, _ = _served(offset_s=0.0)
     with pytest.raises(ValueError, match="align it first"):
