@@ -70,6 +70,11 @@ def estimator_ves(samples: np.ndarray, cfg: FlyConfig, true_m3: float) -> dict[s
     header = log_header(cfg, cfg.servo_waveform())
     storage, lever = cfg.mission.storage, np.array(cfg.lever_arm_body_m)
     sv = survey_from_samples(samples, header, storage, cfg.frame, lever, ReportOptions(plots=False))
+    return survey_estimator_ves(sv, header, storage, true_m3)
+
+
+def survey_estimator_ves(sv, header: dict, storage, true_m3: float) -> dict[str, float]:
+    """Signed volume error [%] of every estimator on one survey's pile points (its fit, then `nearest` fill)."""
     err = SensorErrorModel.from_header(header)
     keep = ~structure_mask(sv.cloud, storage, err)
     rng, dirs = sv.cloud.range_m[keep], sv.cloud.dirs_w[keep]
