@@ -66,6 +66,9 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--jobs must be >= 1")
     t0 = time.perf_counter()
     if args.from_rows is not None:
+        if not args.from_rows.is_file():
+            print(f"no rows file at {args.from_rows}", file=sys.stderr)
+            return 2
         rows = read_rows_csv(args.from_rows)
     else:
         if not (args.root / "runs").is_dir():

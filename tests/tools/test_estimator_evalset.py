@@ -28,6 +28,11 @@ def test_that_a_missing_evaluation_set_is_one_clear_line(tmp_path, capsys):
     assert "no evaluation set" in capsys.readouterr().err
 
 
+def test_that_a_missing_rows_file_is_one_clear_line(tmp_path, capsys):
+    assert main(["--from-rows", str(tmp_path / "none.csv")]) == 2
+    assert "no rows file" in capsys.readouterr().err
+
+
 def test_that_a_bad_job_count_is_refused():
     with pytest.raises(SystemExit):
         main(["--jobs", "0"])
