@@ -9,6 +9,7 @@ what a change of the default estimator must be measured on (docs/design-notes.md
 
 from __future__ import annotations
 
+import json
 import statistics
 import sys
 import time
@@ -18,6 +19,7 @@ from pathlib import Path
 from firmware_py.core.cli import ArgumentParser
 from tools.doc_sections import write_section
 from tools.estimator_compare import ESTIMATORS, survey_estimator_ves
+from tools.evalset import load_run, run_dirs, survey_of
 from tools.sweep import read_rows_csv, write_rows_csv
 
 SECTION = "estimator-evalset"
@@ -27,8 +29,6 @@ NOISES = ("none", "datasheet", "appendix-a")
 def run_row(path: str) -> dict | None:
     """One stored run: its parameters and every estimator's signed Ve [%]; None for an empty building (no
     volume to be relative to)."""
-    from tools.evalset import load_run, survey_of
-
     run = load_run(path)
     if not run.true_volume_m3 > 0:
         return None
@@ -74,13 +74,11 @@ def main(argv: list[str] | None = None) -> int:
         if not (args.root / "runs").is_dir():
             print(f"no evaluation set at {args.root} (python -m tools.evalset makes one)", file=sys.stderr)
             return 2
-        runs = sorted(p for p in (args.root / "runs").iterdir() if p.is_dir())
         chosen = []
-        for p in runs:
-            noise = next((n for n in NOISES if p.name.endswith("-" + n)), None)
-            pt = next((int(x[1:]) for x in p.name.split("-") if x.startswith("p") and x[1:].isdigit()), None)
-            if noise in args.noise and (args.p_traj is None or pt in args.p_traj):
-                chosen.append(str(p))
+        for d in run_dirs(args.root):  # chosen by what each run's truth.json says it is
+            t = json.loads((d / "truth.json").read_text())
+            if t.get("noise") in args.noise and (args.p_traj is None or t.get("p_traj_pct") in args.p_traj):
+                chosen.append(str(d))
         if not chosen:
             print(f"no stored runs match under {args.root}", file=sys.stderr)
             return 2
