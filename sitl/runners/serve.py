@@ -57,6 +57,7 @@ from sitl.missions.range_check import RangeLimit, check_range
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import start_pose
 from sitl.runners.fly import (
+    TRAJECTORY_RATE_HZ,
     FlyConfig,
     check_clearance,
     check_rangefinder_faults,
@@ -301,7 +302,8 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
             def on_step() -> None:
                 if devices is not None:
                     devices.record()
-                if track is not None:
+                # twice truth.json's rate (not every physics step): a served session may run for hours
+                if track is not None and (not track or vehicle.time_s() - track[-1][0] >= 0.5 / TRAJECTORY_RATE_HZ):
                     now = vehicle.state()
                     track.append((now.t_s, *now.pos_ned_m, now.yaw_rad, *vehicle.pose_error))
                 faults.step()
