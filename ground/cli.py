@@ -97,9 +97,9 @@ def build_parser() -> ArgumentParser:
                         f"or {EXPORT_ALL} (default: none): LAS 1.4 points, GeoTIFF surface, PLY surface mesh, GeoJSON "
                         "contours, georeferenced too when the log header has a site (docs/exports.md)")
     r.add_argument("--surface-fit", choices=SURFACE_FITS, default=DEFAULT_SURFACE_FIT,
-                   help="cubic-limited (default: the cubic, kept within each triangle's data, robust to noise), "
-                        "cubic (the paper's MATLAB 'cubicinterp'), linear, or local-linear (estimated from the points "
-                        "with their noise from the log header, outliers left out: ground/smoothing.py)")
+                   help="local-linear (default: estimated from the points with their noise from the log header, "
+                        "outliers left out: ground/smoothing.py), cubic-limited (the cubic through every point, kept "
+                        "within each triangle's data), cubic (the paper's MATLAB 'cubicinterp') or linear")
     r.add_argument("--no-despike", action="store_true",
                    help="keep isolated one- or two-sample range spikes (default: left out, with a threshold "
                         "derived from the log header; see ground/despike.py)")

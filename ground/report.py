@@ -440,14 +440,21 @@ def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageF
     return survey_of_cloud(cloud, storage, opts, err)
 
 
+def pile_sigma_m(cloud: Cloud, structure: np.ndarray, err: SensorErrorModel) -> np.ndarray:
+    """The vertical 1-sigma error of each pile point (the cloud's points outside `structure`), from the sensor
+    model in the log header (`ground.smoothing.vertical_sigma_m`): what the default surface fit weighs them by."""
+    rng, dirs = cloud.range_m[~structure], cloud.dirs_w[~structure]
+    return vertical_sigma_m(err.range_sigma(rng), err.resolution_m, err.position_sigma_m, err.angle_sigma_rad,
+                            rng, dirs)
+
+
 def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: SensorErrorModel) -> Survey:
     """The surface, volume terms and sweep check of a placed cloud: one log's, or several flights' merged
     (`merged_survey`), so a merged survey is computed by the same code as a single one."""
     structure = structure_mask(cloud, storage, err)
     pile = cloud.points_w[~structure]
     grid = Grid(storage.length_m, storage.width_m, opts.cell_m)
-    sigma = vertical_sigma_m(err.range_sigma(cloud.range_m[~structure]), err.resolution_m, err.position_sigma_m,
-                             err.angle_sigma_rad, cloud.range_m[~structure], cloud.dirs_w[~structure])
+    sigma = pile_sigma_m(cloud, structure, err)
     fit, n_clipped = clip_to_building(fit_heights(pile, grid, opts.surface_fit, sigma), storage.height_m)
     disagreement = None
     pile_dir = None if cloud.sweep_dir is None else cloud.sweep_dir[~structure]

@@ -241,12 +241,16 @@ class Nodes:
     se_m: np.ndarray  # (n,) standard error of each node's height
     level: np.ndarray  # (n,) window half-width chosen, in cells
     n_outliers: int = 0  # points left out as outliers
+    at_z: np.ndarray | None = None  # at the positions asked for (`smoothed_nodes` at_xy): the chosen plane's height,
+    at_se: np.ndarray | None = None  # and its standard error; NaN where the position's cell has no node
 
 
 def smoothed_nodes(points_w: np.ndarray, sigma_m: np.ndarray, shape: tuple[int, int],
-                   cell_m_xy: tuple[float, float], opts: SmoothingOptions = DEFAULT_SMOOTHING) -> Nodes:
+                   cell_m_xy: tuple[float, float], opts: SmoothingOptions = DEFAULT_SMOOTHING,
+                   at_xy: np.ndarray | None = None) -> Nodes:
     """One node per occupied cell: its Lepski-chosen local-linear height at the cell's weighted centroid
-    (module docstring, steps 2-4)."""
+    (module docstring, steps 2-4); with at_xy (k, 2), also the chosen plane of each position's cell evaluated
+    at that position (`Nodes.at_z`)."""
     nx, ny = shape
     origin = (0.5 * nx * cell_m_xy[0], 0.5 * ny * cell_m_xy[1])
     flat = cell_index(points_w, shape, cell_m_xy)
@@ -270,4 +274,16 @@ def smoothed_nodes(points_w: np.ndarray, sigma_m: np.ndarray, shape: tuple[int, 
         ses.append(s)
     z, se, lev = lepski_select(np.array(ests), np.array(ses), opts.z_crit)
     xyz = np.column_stack([cx[occupied] + origin[0], cy[occupied] + origin[1], z])
-    return Nodes(xyz, se, np.asarray(levels)[lev], n_out)
+    at_z = at_se = None
+    if at_xy is not None:
+        at_xy = np.asarray(at_xy, dtype=float).reshape(-1, 2)
+        at_flat = cell_index(at_xy, shape, cell_m_xy)
+        chosen = np.full(nx * ny, -1, dtype=np.int64)
+        chosen[np.flatnonzero(occupied.ravel())] = lev
+        at_z, at_se = np.full(len(at_xy), np.nan), np.full(len(at_xy), np.nan)
+        for k, j in enumerate(levels):
+            these = chosen[at_flat] == k
+            if these.any():
+                pl = planes({key: box_sum(v, j).ravel()[at_flat[these]] for key, v in m.items()})
+                at_z[these], at_se[these] = pl.at(at_xy[these, 0] - origin[0], at_xy[these, 1] - origin[1])
+    return Nodes(xyz, se, np.asarray(levels)[lev], n_out, at_z, at_se)

@@ -15,7 +15,16 @@ from firmware_py.core.frames import StorageFrame
 from firmware_py.core.header import header_boresight
 from firmware_py.core.samplelog import read_samplelog
 from ground.pointcloud import SensorErrorModel, cloud_from_samples, structure_mask
-from ground.surface import DEFAULT_CELL_M, GRID_ONLY_POLICIES, Grid, fill_empty, fit_heights, grid_volume
+from ground.report import pile_sigma_m
+from ground.surface import (
+    DEFAULT_CELL_M,
+    DEFAULT_SURFACE_FIT,
+    GRID_ONLY_POLICIES,
+    Grid,
+    fill_empty,
+    fit_heights,
+    grid_volume,
+)
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
 
@@ -31,11 +40,13 @@ def volumes_by_cell(pile: str, p_traj: float, tmp: Path) -> dict[str, dict[float
     cloud = cloud_from_samples(log.samples, log.header["lever_arm_body_m"], StorageFrame.from_dict(
         log.header["storage_frame"]), boresight=header_boresight(log.header))
     st = cfg.mission.storage
-    pts = cloud.points_w[~structure_mask(cloud, st, SensorErrorModel.from_header(log.header))]
+    err = SensorErrorModel.from_header(log.header)
+    structure = structure_mask(cloud, st, err)
+    pts, sigma = cloud.points_w[~structure], pile_sigma_m(cloud, structure, err)  # the report's default fit
     out: dict[str, dict[float, float]] = {pol: {} for pol in GRID_ONLY_POLICIES}
     for c in CELLS_M:
         g = Grid(st.length_m, st.width_m, c)
-        fit = fit_heights(pts, g)
+        fit = fit_heights(pts, g, DEFAULT_SURFACE_FIT, sigma)
         for pol in GRID_ONLY_POLICIES:
             out[pol][c] = grid_volume(fill_empty(fit, pol), g)
     return out

@@ -24,8 +24,8 @@ import numpy as np
 from firmware_py.core.cli import ArgumentParser
 from firmware_py.core.sensor_noise import SensorNoiseModel
 from ground.pointcloud import SensorErrorModel, structure_mask
-from ground.report import ReportOptions, survey_from_samples
-from ground.smoothing import SmoothingOptions, vertical_sigma_m
+from ground.report import ReportOptions, pile_sigma_m, survey_from_samples
+from ground.smoothing import SmoothingOptions
 from ground.surface import DEFAULT_SURFACE_FIT, clip_to_building, fill_empty, fit_heights, grid_volume
 from sitl.runners.fly import FlyConfig, log_header
 from sitl.sensing.batch_sampler import sample_flight
@@ -76,10 +76,7 @@ def estimator_ves(samples: np.ndarray, cfg: FlyConfig, true_m3: float) -> dict[s
 def survey_estimator_ves(sv, header: dict, storage, true_m3: float) -> dict[str, float]:
     """Signed volume error [%] of every estimator on one survey's pile points (its fit, then `nearest` fill)."""
     err = SensorErrorModel.from_header(header)
-    keep = ~structure_mask(sv.cloud, storage, err)
-    rng, dirs = sv.cloud.range_m[keep], sv.cloud.dirs_w[keep]
-    sigma = vertical_sigma_m(err.range_sigma(rng), err.resolution_m, err.position_sigma_m, err.angle_sigma_rad,
-                             rng, dirs)
+    sigma = pile_sigma_m(sv.cloud, structure_mask(sv.cloud, storage, err), err)
     out = {}
     for name, (method, opts) in ESTIMATORS.items():
         fit, _ = clip_to_building(fit_heights(sv.pile_points_w, sv.grid, method, sigma, opts), storage.height_m)

@@ -23,9 +23,10 @@ import numpy as np
 from firmware_py.core.sensor_noise import SensorNoise, SensorNoiseModel
 from firmware_py.core.storage import Storage
 from ground.pointcloud import SensorErrorModel, structure_mask
-from ground.report import ReportOptions, survey_from_samples
+from ground.report import ReportOptions, pile_sigma_m, survey_from_samples
 from ground.surface import (
     DEFAULT_CELL_M,
+    DEFAULT_SURFACE_FIT,
     Grid,
     clip_to_building,
     fill_empty,
@@ -155,9 +156,13 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
                                        beam_angle_sigma_rad(header), where=unseen)
         ceiling_s = time.perf_counter() - t0
         err = SensorErrorModel.from_header(header)
-        contacts = wall_contacts(sv.cloud, structure_mask(sv.cloud, storage, err), storage, err, sv.grid.cell_m)
-        nodes_fit, _ = clip_to_building(fit_heights(np.concatenate([sv.pile_points_w, contact_nodes(contacts)[0]]),
-                                                    sv.grid), storage.height_m)
+        structure = structure_mask(sv.cloud, storage, err)
+        contacts = wall_contacts(sv.cloud, structure, storage, err, sv.grid.cell_m)
+        nodes, node_sigma = contact_nodes(contacts)  # the report's contact fit (ground.report.survey_of_cloud)
+        nodes_fit, _ = clip_to_building(fit_heights(np.concatenate([sv.pile_points_w, nodes]), sv.grid,
+                                                    DEFAULT_SURFACE_FIT,
+                                                    np.concatenate([pile_sigma_m(sv.cloud, structure, err),
+                                                                    node_sigma])), storage.height_m)
         # the ceiling over the node fit's unseen cells too (a subset of the survey's, where it was computed)
         ceiling = np.where(np.isfinite(ceiling), ceiling, np.where(np.isfinite(nodes_fit), np.nan, storage.height_m))
         row = {"pile": pile_name, "p_traj_pct": p_pct, "noise": noise_name, "position": k, "true_m3": pile.volume_m3,

@@ -57,7 +57,7 @@ def test_that_the_ground_options_reach_the_report(run_dir, tmp_path, capsys):
     rep = json.loads((tmp_path / "r" / "report.json").read_text())
     assert rep["surface_fit"] == "linear" and rep["despike"] is False
     assert main(["report", str(run_dir), "--out", str(tmp_path / "d"), "--no-plots"]) == 0
-    assert json.loads((tmp_path / "d" / "report.json").read_text())["surface_fit"] == "cubic-limited"
+    assert json.loads((tmp_path / "d" / "report.json").read_text())["surface_fit"] == "local-linear"
     capsys.readouterr()
     _one_line_error(capsys, ["report", str(run_dir), "--out", str(tmp_path / "x"), "--surface-fit", "spline"],
                     "--surface-fit")
