@@ -60,6 +60,7 @@ class SmoothingOptions:
     max_window_m: float = DEFAULT_MAX_WINDOW_M
     reject_outliers: bool = True
     outlier_n_sigma: float | None = None  # None: structure_n_sigma of the cloud's size
+    noise_from_data: bool = True  # the windows' standard errors scaled down to the scatter the data show
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.z_crit) and self.z_crit > 0):
@@ -217,6 +218,25 @@ def local_linear(m: dict[str, np.ndarray], j: int, at_x: np.ndarray, at_y: np.nd
     return planes({k: box_sum(v, j)[mask] for k, v in m.items()}).at(at_x[mask], at_y[mask])
 
 
+MIN_DOF_FOR_SCALE = 5
+"""A 3 x 3 window's plane counts towards the data's noise scale with at least this many degrees of freedom."""
+
+
+def data_noise_scale(m: dict[str, np.ndarray]) -> float:
+    """The factor (<= 1) by which the points scatter less than their header sigmas say: the square root of
+    the median reduced chi-square of the 3 x 3-cell planes, capped at 1. The header states what the sensor
+    may do; where the data show less (a simulated sensor without noise, a calm surface at short range), the
+    windows' standard errors shrink with it, so Lepski's test refuses a window whose flattening the data
+    would show, instead of accepting it against noise that is not there. Never above 1: a plane's misfit
+    also holds the surface's own bend, so the chi-square over-states the noise, and where it is above 1 the
+    header's sigma is kept (the outlier test scales by the local misfit itself)."""
+    ok = (m["n"] > 0) & (box_sum(m["n"], 1) >= 3 + MIN_DOF_FOR_SCALE)
+    if not ok.any():
+        return 1.0
+    chi2 = planes({k: box_sum(v, 1)[ok] for k, v in m.items()}).chi2_red
+    return float(min(1.0, math.sqrt(float(np.median(chi2)))))
+
+
 def lepski_select(est: np.ndarray, se: np.ndarray, z_crit: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per column (a cell), the estimate of the widest window (rows: narrow to wide) that agrees with every
     narrower window within z_crit of the narrower one's standard error; its standard error and the level."""
@@ -272,7 +292,8 @@ def smoothed_nodes(points_w: np.ndarray, sigma_m: np.ndarray, shape: tuple[int, 
         e, s = local_linear(m, j, cx, cy, occupied)
         ests.append(e)
         ses.append(s)
-    z, se, lev = lepski_select(np.array(ests), np.array(ses), opts.z_crit)
+    noise_scale = data_noise_scale(m) if opts.noise_from_data else 1.0
+    z, se, lev = lepski_select(np.array(ests), noise_scale * np.array(ses), opts.z_crit)
     xyz = np.column_stack([cx[occupied] + origin[0], cy[occupied] + origin[1], z])
     at_z = at_se = None
     if at_xy is not None:

@@ -32,10 +32,11 @@ from ground.uncertainty import INTERVAL_LEVEL, ErrorTerms, IntervalModel
 from tools.doc_sections import write_section
 from tools.sweep import Case, read_rows_csv, run_sweep, write_rows_csv
 
-GROUND_VERSION = "7"
+GROUND_VERSION = "8"
 """Part of every row's cache key: bump when the ground station's volume or terms change. 5: the wall-contact
 fill is the default (docs/interval-rows.csv holds rows of version 4); 6: the despiking allows the header's
-per-sample pointing error; 7: the default surface fit is `local-linear`."""
+per-sample pointing error; 7: the default surface fit is `local-linear`; 8: its windows'
+standard errors scaled to the data's own scatter."""
 TERMS = [f.name for f in fields(ErrorTerms)]
 FACTORS = ("k_unseen", "k_interpolation", "k_noise", "k_sweeps", "k_faces", "k_blur")
 """The factors, in the order of TERMS after the unseen term's two sides (which share k_unseen)."""

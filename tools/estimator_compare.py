@@ -36,10 +36,11 @@ from tools.experiments import ALL_EXPERIMENTS, N_POSITIONS, P_TRAJ_PCT, PILES, _
 from tools.sweep import cached, content_key, fresh_run_note
 
 SECTION = "surface-estimators"
-COMPARE_VERSION = "6"
+COMPARE_VERSION = "7"
 """Part of every case's cache key: bump it when an estimator or the pipeline changes what a case computes.
 4: Appendix A's pose errors interpolated between messages, as the payload now tags samples; 5: the wall-contact
-fill is the default; 6: the despiking allows the header's per-sample pointing error."""
+fill is the default; 6: the despiking allows the header's per-sample pointing error; 7: local-linear's nodes at
+the points' hull corners and its windows' standard errors scaled to the data's own scatter."""
 MODELS = tuple(SensorNoiseModel)
 ESTIMATORS: dict[str, tuple[str, SmoothingOptions]] = {
     "cubic-limited": ("cubic-limited", SmoothingOptions()),

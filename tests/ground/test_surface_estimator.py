@@ -14,8 +14,10 @@ from ground.report import header_geometry
 from ground.smoothing import (
     DEFAULT_Z_CRIT,
     SmoothingOptions,
+    binned_moments,
     box_sum,
     cell_index,
+    data_noise_scale,
     lepski_select,
     smoothed_nodes,
     vertical_sigma_m,
@@ -102,12 +104,46 @@ def test_that_the_smoothing_grows_with_the_stated_noise_and_vanishes_without_it(
     xy = swaths(rng)
     pts = np.column_stack([xy, cone(xy) + rng.normal(0, 0.05, len(xy))])
 
-    def mean_window(sigma):
-        return smoothed_nodes(pts, np.full(len(pts), sigma), G.shape, (0.25, 0.25)).level.mean()
+    def mean_window(sigma, opts=SmoothingOptions()):
+        return smoothed_nodes(pts, np.full(len(pts), sigma), G.shape, (0.25, 0.25), opts).level.mean()
 
     tiny, stated, larger = mean_window(1e-6), mean_window(0.05), mean_window(0.5)
     assert tiny == 0.0  # exact points: each cell's own data, no window
-    assert 0 < stated < larger
+    assert 0 < stated == larger  # a sigma stated above the data's scatter is held to what the data show ...
+    believed = SmoothingOptions(noise_from_data=False)
+    assert stated < mean_window(0.5, believed)  # ... and taken at its word without that check
+
+
+def _moments(pts, sigma):
+    flat = cell_index(pts, G.shape, (0.25, 0.25))
+    return binned_moments(pts, np.full(len(pts), sigma), flat, G.shape, (10.0, 5.0))
+
+
+def test_that_the_noise_scale_is_what_the_data_show_below_the_header_and_never_above_it():
+    rng = np.random.default_rng(6)
+    xy = swaths(rng, n_lines=10)
+    noisy = np.column_stack([xy, plane(xy) + rng.normal(0, 0.05, len(xy))])
+    assert data_noise_scale(_moments(noisy, 0.5)) == pytest.approx(0.1, rel=0.1)  # stated 10x the scatter
+    assert data_noise_scale(_moments(noisy, 0.05)) == pytest.approx(1.0, abs=0.1)  # stated right
+    assert data_noise_scale(_moments(noisy, 0.005)) == 1.0  # stated too small: the header's sigma is kept
+    assert data_noise_scale(_moments(noisy[:5], 0.5)) == 1.0  # too few points to tell
+
+
+def test_that_exact_points_of_a_dome_are_not_flattened_by_noise_the_header_states_but_they_lack():
+    """A noise-free survey whose header states the sensor's datasheet noise: windows accepted against that
+    noise would flatten a convex pile by one sign everywhere (1/2 tr(H Sigma_w)); scaled to the data's own
+    scatter, the narrow windows win and the volume stays the interpolant's."""
+    rng = np.random.default_rng(7)
+    xy = swaths(rng, n_lines=12, per_line=4000)
+    pts = np.column_stack([xy, cone(xy)])
+    truth_m3 = grid_volume(cell_truth(cone), G)
+    sigma = np.full(len(pts), 0.05)
+
+    def err_m3(opts):
+        return grid_volume(fit_heights(pts, G, "local-linear", sigma, opts), G) - truth_m3
+
+    stated, from_data = err_m3(SmoothingOptions(noise_from_data=False)), err_m3(SmoothingOptions())
+    assert stated < 0 and abs(from_data) < 0.25 * abs(stated)
 
 
 def test_that_a_cells_points_centroid_lies_on_a_plane_so_binning_alone_adds_no_bias():
@@ -209,3 +245,28 @@ def test_that_degenerate_clouds_give_no_surface_and_no_error():
     for pts in (np.zeros((0, 3)), line, line[:2]):
         h, s = fit_heights_with_se(pts, G, "local-linear", np.full(len(pts), 0.1))
         assert np.isnan(h).all() and np.isnan(s).all()
+
+
+@pytest.mark.parametrize("sigma_m", [None, RES_SIGMA])
+def test_that_the_estimated_surface_covers_the_points_hull_as_the_interpolant_does(sigma_m):
+    """Nodes at the cells' data centroids alone would stop up to half a cell inside the points' hull; the
+    hull's corners carry nodes too, so the estimated surface is defined on the interpolant's cells."""
+    rng = np.random.default_rng(4)
+    xy = np.column_stack([rng.uniform(0.3, 19.7, 4000), rng.uniform(0.3, 9.7, 4000)])
+    pts = np.column_stack([xy, plane(xy)])
+    sigma = None if sigma_m is None else np.full(len(pts), sigma_m)
+    through = fit_heights(pts, G, "cubic-limited")
+    est = fit_heights(pts, G, "local-linear", sigma)
+    assert np.array_equal(np.isfinite(est), np.isfinite(through))
+    assert np.nanmax(np.abs(est - cell_truth(plane))) < 1e-6  # the corners' planes are exact on a plane too
+
+
+def test_that_a_hull_corner_whose_cell_has_no_node_adds_none():
+    rng = np.random.default_rng(5)
+    xy = np.column_stack([rng.uniform(2, 18, 3000), rng.uniform(2, 8, 3000)])
+    pts = np.column_stack([xy, np.zeros(len(xy))])
+    spike = np.array([[19.6, 9.6, 6.0]])  # a lone point far above its neighbours' plane, alone in its cell
+    around = np.array([[19.3, 9.3, 0.0], [19.3, 9.6, 0.0], [19.6, 9.3, 0.0], [19.4, 9.4, 0.0], [19.35, 9.55, 0.0]])
+    all_pts = np.vstack([pts, around, spike])
+    h = fit_heights(all_pts, G, "local-linear", np.full(len(all_pts), RES_SIGMA))
+    assert np.nanmax(h) < 0.01  # the outlier's cell has no node, so its hull corner does not lift the surface
