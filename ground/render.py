@@ -104,18 +104,40 @@ window.addEventListener("load", function () {
 decoded, so a headless browser's --dump-dom shows whether every figure displayed (tests/ground/
 test_report_browser.py)."""
 
-METHOD_TEXT = (
-    "Each LiDAR range sample is turned into a point in the storage frame from the drone position "
-    "and attitude and the servo angle of the swept beam (eqs. 3-6 of Alsayed & Nabawy, Drones 2022, "
-    "6, 386). Returns from the walls and the roof are removed using the known storage dimensions, "
-    "leaving the floor and the stockpile. A piecewise-cubic Clough-Tocher surface is fitted to the "
-    "remaining points over their Delaunay triangulation and evaluated on a regular grid; the volume "
-    "is the sum over grid cells of surface height times cell area (eq. 7). Cells outside the "
-    "triangulation have no surface and are treated by the empty-cell policy above. When a reference "
-    "volume is known, the volume error Ve is the absolute difference between the measured and the "
-    "true volume as a percentage of the true volume (eq. 8). The area coverage ratio R_a is the "
-    "projected area of the fitted surface as a percentage of the storage floor area (eq. 9)."
-)
+_SURFACE_TEXT = {
+    "local-linear": "The surface is estimated from the remaining points: each point is weighted by its measurement "
+                    "noise from the sensor model in the log header, points their neighbours contradict beyond that "
+                    "noise are left out, and each occupied grid cell's height is a local plane fitted over the widest "
+                    "neighbourhood the noise allows; a piecewise-cubic Clough-Tocher surface through those heights, "
+                    "kept within each triangle's data, is evaluated on a regular grid; ",
+    "cubic-limited": "A piecewise-cubic Clough-Tocher surface, kept within each triangle's data, is fitted to the "
+                     "remaining points over their Delaunay triangulation and evaluated on a regular grid; ",
+    "cubic": "A piecewise-cubic Clough-Tocher surface is fitted to the remaining points over their Delaunay "
+             "triangulation and evaluated on a regular grid; ",
+    "linear": "A piecewise-planar surface is fitted to the remaining points over their Delaunay triangulation and "
+              "evaluated on a regular grid; ",
+}
+
+
+def method_text(surface_fit: str | None = None) -> str:
+    """The method paragraph of the report, naming the surface fit the report used (`ground.surface`)."""
+    surface = _SURFACE_TEXT.get(str(surface_fit), "A surface is fitted to the remaining points and evaluated on a "
+                                                  "regular grid; ")  # a report that does not say which
+    return (
+        "Each LiDAR range sample is turned into a point in the storage frame from the drone position "
+        "and attitude and the servo angle of the swept beam (eqs. 3-6 of Alsayed & Nabawy, Drones 2022, "
+        "6, 386). Returns from the walls and the roof are removed using the known storage dimensions, "
+        "leaving the floor and the stockpile. " + surface + "the volume "
+        "is the sum over grid cells of surface height times cell area (eq. 7). Cells outside the "
+        "surface's extent have no surface and are treated by the empty-cell policy above. When a reference "
+        "volume is known, the volume error Ve is the absolute difference between the measured and the "
+        "true volume as a percentage of the true volume (eq. 8). The area coverage ratio R_a is the "
+        "projected area of the fitted surface as a percentage of the storage floor area (eq. 9)."
+    )
+
+
+METHOD_TEXT = method_text()
+"""The method paragraph of a report that does not name its surface fit."""
 
 _IMAGE_MIME: dict[str, str] = {
     ".png": "image/png",
@@ -373,7 +395,7 @@ def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportC
         verdict=None if report.get("verdict") is None else str(report.get("verdict")),
         metadata=metadata, piles=pile_rows(piles),
         piles_method=str(piles.get("method")) if isinstance(piles, Mapping) and piles.get("method") else None,
-        config=config_rows, config_file=config_file,
+        config=config_rows, config_file=config_file, method=method_text(report.get("surface_fit")),
         headline=headline(report),
         warnings=_warnings(report),
         summary=summary,

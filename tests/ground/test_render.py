@@ -27,6 +27,7 @@ def full_report() -> dict:
         "n_points_removed_walls": 2345,
         "cell_size_m": 0.25,
         "empty_cell_policy": "leave",
+        "surface_fit": "cubic-limited",
         "storage": {"length_m": 60.0, "width_m": 30.0, "height_m": 12.0},
         "log": {"blocks_ok": 1200, "blocks_corrupt": 2, "blocks_truncated": 1, "bytes_skipped": 77},
         "source": "runs/demo",
@@ -227,3 +228,12 @@ def test_that_the_headline_gives_the_volume_in_the_chosen_unit_and_in_cubic_metr
     text = headline(rep)
     assert text.startswith("Stockpile volume: 1,000.0 yd³") and "764.6 m³" in text and "yd³)" in text
     assert headline({**rep, "volume_unit": "m3"}) == "Stockpile volume: 764.6 m³ (90 % interval 700.0 – 800.0 m³)"
+
+
+def test_that_the_method_paragraph_names_the_surface_fit_the_report_used():
+    from ground.render import METHOD_TEXT, method_text
+
+    assert "local plane" in method_text("local-linear") and "local plane" not in METHOD_TEXT
+    assert "local plane" not in method_text("cubic-limited") and "Delaunay" in method_text("cubic-limited")
+    assert "piecewise-planar" in method_text("linear")
+    assert method_text("spline") == METHOD_TEXT and "Delaunay" not in METHOD_TEXT  # unnamed: no method claimed
