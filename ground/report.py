@@ -53,14 +53,12 @@ from ground.surface import (
     DEFAULT_CELL_M,
     DEFAULT_EMPTY_CELLS,
     DEFAULT_SURFACE_FIT,
-    INTERPOLATING_FITS,
     Grid,
     clip_to_building,
     fill_empty,
     fit_heights,
     grid_volume,
     reconstructed_ratio_pct,
-    shaping_points,
     volume_error_pct,
 )
 from ground.surface_file import SavedSurface, load_surface, save_surface
@@ -471,8 +469,7 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
         unseen = ~np.isfinite(fit)
         if unseen.any() and len(nodes):  # only the unseen cells take it: fit it from the points that shape it there
             p_all, s_all = np.concatenate([pile, nodes]), np.concatenate([sigma, node_sigma])
-            near = shaping_points(p_all[:, :2], unseen, grid) if opts.surface_fit in INTERPOLATING_FITS else slice(None)
-            contact_fit, _ = clip_to_building(fit_heights(p_all[near], grid, opts.surface_fit, s_all[near]),
+            contact_fit, _ = clip_to_building(fit_heights(p_all, grid, opts.surface_fit, s_all, wanted=unseen),
                                               storage.height_m)
     bounded = opts.empty_cells == "bounded" or (opts.empty_cells == "wall-contact" and CONTACT_REST == "bounded")
     ceiling = None if not bounded else free_space_ceiling_m(  # what the beams left free above

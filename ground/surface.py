@@ -118,16 +118,20 @@ class Grid:
 
 
 def fit_heights(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_SURFACE_FIT,
-                sigma_m: np.ndarray | None = None, smoothing: SmoothingOptions = DEFAULT_SMOOTHING) -> np.ndarray:
+                sigma_m: np.ndarray | None = None, smoothing: SmoothingOptions = DEFAULT_SMOOTHING,
+                wanted: np.ndarray | None = None) -> np.ndarray:
     """The surface through (or, ``local-linear``, estimated from) the points (module docstring:
     SURFACE_FITS), sampled at the cell centres; NaN outside the hull. sigma_m: each point's vertical
-    1-sigma error (`ground.smoothing.vertical_sigma_m`), used by ``local-linear`` only."""
-    return fit_heights_with_se(points_w, grid, method, sigma_m, smoothing)[0]
+    1-sigma error (`ground.smoothing.vertical_sigma_m`), used by ``local-linear`` only. wanted (a cell
+    mask, or None for all): the cells the caller will use; the surface is then drawn through only the nodes
+    that shape it there (`shaping_points`), the same surface in those cells for a fraction of the cost."""
+    return fit_heights_with_se(points_w, grid, method, sigma_m, smoothing, wanted)[0]
 
 
 def fit_heights_with_se(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_SURFACE_FIT,
                         sigma_m: np.ndarray | None = None,
-                        smoothing: SmoothingOptions = DEFAULT_SMOOTHING) -> tuple[np.ndarray, np.ndarray]:
+                        smoothing: SmoothingOptions = DEFAULT_SMOOTHING,
+                        wanted: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """`fit_heights` and each cell's standard error of the fitted height from the points' noise alone
     (the estimator's own variance: not the error of bridging unseen ground), NaN where not estimated:
     outside the hull, and everywhere for the interpolating fits or without sigma_m (an interpolant has
@@ -140,7 +144,8 @@ def fit_heights_with_se(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_
     if len(points_w) < 3:
         return nan, nan.copy()
     if method != "local-linear":
-        return _interpolate(points_w, grid, method)
+        near = slice(None) if wanted is None else shaping_points(points_w[:, :2], wanted, grid)
+        return _interpolate(points_w[near], grid, method)
     nx, ny = grid.shape
     cell_xy = (grid.length_m / nx, grid.width_m / ny)
     exact = sigma_m is None  # exact points: the cell's centroid, no smoothing and no variance
@@ -154,9 +159,13 @@ def fit_heights_with_se(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_
     nodes = smoothed_nodes(points_w, sigma, grid.shape, cell_xy, smoothing, at_xy=corners)
     has = np.isfinite(nodes.at_z)  # a corner whose cell has no node (its points were all outliers) adds nothing
     xyz = np.concatenate([nodes.xyz, np.column_stack([corners[has], nodes.at_z[has]])])
+    node_se = None if exact else np.concatenate([nodes.se_m, nodes.at_se[has]])
+    if wanted is not None:  # the nodes that shape the surface in the wanted cells
+        near = shaping_points(xyz[:, :2], wanted, grid)
+        xyz, node_se = xyz[near], None if node_se is None else node_se[near]
     if exact:
         return _interpolate(xyz, grid, "cubic-limited")
-    heights, se = _interpolate(xyz, grid, "cubic-limited", np.concatenate([nodes.se_m, nodes.at_se[has]]))
+    heights, se = _interpolate(xyz, grid, "cubic-limited", node_se)
     se[~np.isfinite(heights)] = np.nan
     return heights, se
 

@@ -96,12 +96,12 @@ class IntervalModel:
 
 # --- calibrated interval model (tools/calibrate_interval.py --write-model) ---
 DEFAULT_INTERVAL_MODEL = IntervalModel(
-    k_unseen=1.602,
-    k_interpolation=0.66515,
-    k_noise=0.648205,
-    k_sweeps=0.841857,
-    k_faces=3.11473,
-    k_blur=0.395427,
+    k_unseen=1.60569,
+    k_interpolation=1.17776,
+    k_noise=0.406406,
+    k_sweeps=2.13814,
+    k_faces=5.54462,
+    k_blur=0.437927,
     source='fitted on 819 calibration runs of the evaluation set (tools/calibrate_interval.py, 2026-11-28)')
 # --- end of calibrated interval model ---
 

@@ -139,6 +139,25 @@ def test_that_the_fit_from_the_shaping_points_equals_the_whole_clouds_in_the_wan
     whole, part = fit_heights(with_nodes, g, method), fit_heights(with_nodes[near], g, method)
     assert np.isfinite(whole[wanted]).all()
     np.testing.assert_allclose(part[wanted], whole[wanted], atol=1e-4)
+    np.testing.assert_array_equal(fit_heights(with_nodes, g, method, wanted=wanted), part)  # what wanted= does
+
+
+@pytest.mark.parametrize("gap_m", [(3.0, 2.0), (12.0, 9.0)])
+def test_that_the_estimated_fit_asked_for_some_cells_equals_the_whole_fit_there(gap_m):
+    """``local-linear`` with wanted cells: every point is smoothed, then only the nodes near the wanted cells
+    carry the surface; there it is the surface through every node, to a millimetre (the cubic's gradients are
+    estimated over all its nodes and iterated to a tolerance; measured: 0.12 mm at most here, and 1e-7 of the
+    volume on flown surveys)."""
+    pts = swaths(*gap_m)
+    g = Grid(30, 20, 0.25)
+    sigma = np.full(len(pts), 0.02)
+    wanted = ~np.isfinite(fit_heights(pts, g, "local-linear", sigma))
+    nodes = np.array([[0.0, y, 1.0] for y in np.arange(0.01, 20.0, 0.53)])
+    with_nodes, s_all = np.vstack([pts, nodes]), np.concatenate([sigma, np.full(len(nodes), 0.05)])
+    whole = fit_heights(with_nodes, g, "local-linear", s_all)
+    part = fit_heights(with_nodes, g, "local-linear", s_all, wanted=wanted)
+    assert np.isfinite(whole[wanted]).any() and np.isnan(part[~wanted]).any()  # a real subset
+    np.testing.assert_allclose(part[wanted], whole[wanted], atol=1e-3, equal_nan=True)
 
 
 def test_that_sparse_points_make_every_point_shape_the_fit():

@@ -12,6 +12,7 @@ from firmware_py.core.samplelog import read_samplelog
 from firmware_py.core.sensor_noise import stated_angle_sigma_rad
 from ground.report import header_geometry
 from ground.smoothing import (
+    DEFAULT_SMOOTHING,
     DEFAULT_Z_CRIT,
     SmoothingOptions,
     binned_moments,
@@ -104,7 +105,7 @@ def test_that_the_smoothing_grows_with_the_stated_noise_and_vanishes_without_it(
     xy = swaths(rng)
     pts = np.column_stack([xy, cone(xy) + rng.normal(0, 0.05, len(xy))])
 
-    def mean_window(sigma, opts=SmoothingOptions()):
+    def mean_window(sigma, opts=DEFAULT_SMOOTHING):
         return smoothed_nodes(pts, np.full(len(pts), sigma), G.shape, (0.25, 0.25), opts).level.mean()
 
     tiny, stated, larger = mean_window(1e-6), mean_window(0.05), mean_window(0.5)

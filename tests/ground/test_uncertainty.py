@@ -234,6 +234,6 @@ def test_that_an_empty_building_reports_about_zero_with_an_interval_holding_zero
     # the surface is the points' weighted mean, and the quantised floor points' mean here is 0.07 mm off zero
     # (0.03 m3 over 600 m2), more than their independent scatter allows (docs/design-notes.md).
     quantum_m3 = header["sensor"]["resolution_m"] / np.sqrt(12.0) * storage.length_m * storage.width_m
-    assert lo - quantum_m3 <= 0.0 <= hi and rep["volume_m3"] >= 0.0 or rep["volume_m3"] < 0
+    assert (lo - quantum_m3 <= 0.0 <= hi and rep["volume_m3"] >= 0.0) or rep["volume_m3"] < 0
     assert hi >= 0.0 and rep["truth_in_interval"] in (True, False)
     assert rep["volume_error_pct"] is None and rep["volume_error_m3"] == pytest.approx(rep["volume_m3"])

@@ -177,15 +177,15 @@ def test_that_the_wall_contact_fill_of_a_flown_corner_pile_beats_nearest(corner_
 
 def test_that_the_wall_contact_fit_from_the_points_near_the_unseen_cells_is_the_whole_clouds(corner_flight,
                                                                                              monkeypatch):
-    """The report fits the surface through the contacts from the points near the unseen cells only (its
-    speed): the filled heights are those of the fit through every point."""
-    import ground.report
+    """The report fits the surface through the contacts from the nodes near the unseen cells only (its
+    speed): the filled heights are those of the fit through every node."""
+    import ground.surface
 
     _, cfg, _, samples, header = corner_flight
     lever = np.array(cfg.lever_arm_body_m)
     opts = ReportOptions(plots=False, empty_cells="wall-contact")
     part = survey_from_samples(samples, header, FLOWN, cfg.frame, lever, opts)
-    monkeypatch.setattr(ground.report, "shaping_points", lambda xy, wanted, grid: np.ones(len(xy), dtype=bool))
+    monkeypatch.setattr(ground.surface, "shaping_points", lambda xy, wanted, grid: np.ones(len(xy), dtype=bool))
     whole = survey_from_samples(samples, header, FLOWN, cfg.frame, lever, opts)
     assert (~np.isfinite(whole.heights_fit)).sum() > 100  # a real unseen corner
     np.testing.assert_allclose(part.heights, whole.heights, atol=1e-4)
