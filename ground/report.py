@@ -422,7 +422,7 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
         pose = estimate_pose_correction(corrected, lever, frame, storage, err.resolution_m, err.range_sigma_m,
                                         err.range_sigma_rel, err.angle_sigma_rad, _sweep_period_s(header), boresight)
         corrected = apply_pose_correction(corrected, pose, frame)
-    if corrected is samples:
+    if corrected is samples and boresight == mount:  # nothing applied (a boresight alone leaves the samples)
         return replace(survey, mount=est, pose=pose)
     fixed = _survey(corrected, header, storage, frame, lever, opts, err, spikes, boresight)
     return replace(fixed, servo_timing=survey.servo_timing, servo_retimed=survey.servo_retimed,

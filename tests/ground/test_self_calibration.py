@@ -211,3 +211,19 @@ def test_that_points_scattered_at_random_are_no_building_and_get_no_correction()
     s["roll_rad"][5] = np.nan  # a non-finite pose is left out, not fitted
     est = estimate_mount(s, (0, 0, 0.1), StorageFrame(), STORAGE, 0.025, 0.01)
     assert not est.any_applied and "does not explain the floor and walls" in est.reason
+
+
+def test_that_a_boresight_correction_alone_is_applied_to_the_volume(square_run, tmp_path):
+    """A log whose header says the LiDAR leans 2 deg forward, flown square: the building finds the tilt back to
+    square, and the volume is the square flight's. The boresight changes no sample (it enters when the points
+    are placed), so the report must survey again for it alone (it had kept the uncorrected survey while saying
+    the correction was applied)."""
+    declared = _with_boresight(square_run, tmp_path / "declared", Boresight(math.radians(2.0)))
+    clean = make_report(square_run, tmp_path / "clean", ReportOptions(plots=False))
+    fixed = make_report(declared, tmp_path / "fixed", ReportOptions(plots=False))
+    raw = make_report(declared, tmp_path / "raw", ReportOptions(plots=False, self_calibration=False))
+    cal = fixed["self_calibration"]
+    assert cal["boresight_tilt_deg"]["applied"] is True
+    assert not cal["servo_offset_deg"]["applied"] and not cal["servo_scale"]["applied"]
+    assert fixed["volume_m3"] != raw["volume_m3"]
+    assert abs(fixed["volume_m3"] - clean["volume_m3"]) < abs(raw["volume_m3"] - clean["volume_m3"]) / 3
