@@ -306,5 +306,6 @@ def smoothed_nodes(points_w: np.ndarray, sigma_m: np.ndarray, shape: tuple[int, 
             these = chosen[at_flat] == k
             if these.any():
                 pl = planes({key: box_sum(v, j).ravel()[at_flat[these]] for key, v in m.items()})
-                at_z[these], at_se[these] = pl.at(at_xy[these, 0] - origin[0], at_xy[these, 1] - origin[1])
+                z_at, se_at = pl.at(at_xy[these, 0] - origin[0], at_xy[these, 1] - origin[1])
+                at_z[these], at_se[these] = z_at, noise_scale * se_at  # scaled as the nodes' are
     return Nodes(xyz, se, np.asarray(levels)[lev], n_out, at_z, at_se)
