@@ -14,7 +14,7 @@ and an interpolant reproduces every such error. This module estimates the height
    escaped the structure mask (the mask's tolerance has no angle term), metres above the floor near the
    walls, each of which an interpolant spreads over a whole triangle.
 3. For each occupied cell a weighted plane is fitted to the points of square windows of growing
-   half-width (0, 1, 2, 4, ... cells) and evaluated at the cell's own data centroid (`local_linear`):
+   half-width (0, 1, 2, 4, ... cells) and evaluated at the cell's own data centroid (`window_sums`, `planes`):
    the cell alone (its weighted mean: exact on a plane) and ever smoother, lower-variance estimates, each
    with its standard error from the weights (the prediction variance of weighted least squares with
    known variances).
@@ -211,29 +211,30 @@ def planes(s: dict[str, np.ndarray]) -> Planes:
     return Planes(xm, ym, zm, 1.0 / w, ex, ey, inv1, inv2, p1, p2, chi2_red)
 
 
-def local_linear(m: dict[str, np.ndarray], j: int, at_x: np.ndarray, at_y: np.ndarray,
-                 mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The weighted plane of the (2j+1)^2 window around each masked cell, evaluated at (at_x, at_y) of that
-    cell, and its standard error."""
-    return planes({k: box_sum(v, j)[mask] for k, v in m.items()}).at(at_x[mask], at_y[mask])
+def window_sums(m: dict[str, np.ndarray], j: int) -> dict[str, np.ndarray]:
+    """Every moment summed over the (2j+1)^2 window around each cell: `planes` of them is each cell's
+    local-linear plane at that window."""
+    return {k: box_sum(v, j) for k, v in m.items()}
 
 
 MIN_DOF_FOR_SCALE = 5
 """A 3 x 3 window's plane counts towards the data's noise scale with at least this many degrees of freedom."""
 
 
-def data_noise_scale(m: dict[str, np.ndarray]) -> float:
+def data_noise_scale(m: dict[str, np.ndarray], window: dict[str, np.ndarray] | None = None) -> float:
     """The factor (<= 1) by which the points scatter less than their header sigmas say: the square root of
     the median reduced chi-square of the 3 x 3-cell planes, capped at 1. The header states what the sensor
     may do; where the data show less (a simulated sensor without noise, a calm surface at short range), the
     windows' standard errors shrink with it, so Lepski's test refuses a window whose flattening the data
     would show, instead of accepting it against noise that is not there. Never above 1: a plane's misfit
     also holds the surface's own bend, so the chi-square over-states the noise, and where it is above 1 the
-    header's sigma is kept (the outlier test scales by the local misfit itself)."""
-    ok = (m["n"] > 0) & (box_sum(m["n"], 1) >= 3 + MIN_DOF_FOR_SCALE)
+    header's sigma is kept (the outlier test scales by the local misfit itself). window: `window_sums(m, 1)`,
+    when the caller has them already."""
+    window = window_sums(m, 1) if window is None else window
+    ok = (m["n"] > 0) & (window["n"] >= 3 + MIN_DOF_FOR_SCALE)
     if not ok.any():
         return 1.0
-    chi2 = planes({k: box_sum(v, 1)[ok] for k, v in m.items()}).chi2_red
+    chi2 = planes({k: v[ok] for k, v in window.items()}).chi2_red
     return float(min(1.0, math.sqrt(float(np.median(chi2)))))
 
 
@@ -287,25 +288,29 @@ def smoothed_nodes(points_w: np.ndarray, sigma_m: np.ndarray, shape: tuple[int, 
     cx = np.where(occupied, m["wx"] / np.where(occupied, m["w"], 1.0), 0.0)
     cy = np.where(occupied, m["wy"] / np.where(occupied, m["w"], 1.0), 0.0)
     levels = window_halfwidths(min(cell_m_xy), opts.max_window_m)
-    ests, ses = [], []
-    for j in levels:
-        e, s = local_linear(m, j, cx, cy, occupied)
+    at = np.empty((0, 2)) if at_xy is None else np.asarray(at_xy, dtype=float).reshape(-1, 2)
+    at_flat = cell_index(at, shape, cell_m_xy)
+    at_ok = occupied.ravel()[at_flat]  # a position whose cell has no node gets none
+    ests, ses, at_ests, at_ses, window1 = [], [], [], [], None
+    for j in levels:  # each window's sums once, for the nodes, the positions asked for and the noise scale
+        sums = window_sums(m, j)
+        window1 = sums if j == 1 else window1
+        e, s = planes({k: v[occupied] for k, v in sums.items()}).at(cx[occupied], cy[occupied])
         ests.append(e)
         ses.append(s)
-    noise_scale = data_noise_scale(m) if opts.noise_from_data else 1.0
+        e, s = planes({k: v.ravel()[at_flat[at_ok]] for k, v in sums.items()}).at(at[at_ok, 0] - origin[0],
+                                                                                  at[at_ok, 1] - origin[1])
+        at_ests.append(e)
+        at_ses.append(s)
+    noise_scale = data_noise_scale(m, window1) if opts.noise_from_data else 1.0
     z, se, lev = lepski_select(np.array(ests), noise_scale * np.array(ses), opts.z_crit)
     xyz = np.column_stack([cx[occupied] + origin[0], cy[occupied] + origin[1], z])
     at_z = at_se = None
-    if at_xy is not None:
-        at_xy = np.asarray(at_xy, dtype=float).reshape(-1, 2)
-        at_flat = cell_index(at_xy, shape, cell_m_xy)
-        chosen = np.full(nx * ny, -1, dtype=np.int64)
-        chosen[np.flatnonzero(occupied.ravel())] = lev
-        at_z, at_se = np.full(len(at_xy), np.nan), np.full(len(at_xy), np.nan)
-        for k, j in enumerate(levels):
-            these = chosen[at_flat] == k
-            if these.any():
-                pl = planes({key: box_sum(v, j).ravel()[at_flat[these]] for key, v in m.items()})
-                z_at, se_at = pl.at(at_xy[these, 0] - origin[0], at_xy[these, 1] - origin[1])
-                at_z[these], at_se[these] = z_at, noise_scale * se_at  # scaled as the nodes' are
+    if at_xy is not None:  # each position: its cell's chosen window's plane there
+        node_of = np.full(nx * ny, -1, dtype=np.int64)
+        node_of[np.flatnonzero(occupied.ravel())] = np.arange(int(occupied.sum()))
+        chosen, cols = lev[node_of[at_flat[at_ok]]], np.arange(int(at_ok.sum()))
+        at_z, at_se = np.full(len(at), np.nan), np.full(len(at), np.nan)
+        at_z[at_ok] = np.array(at_ests)[chosen, cols]
+        at_se[at_ok] = noise_scale * np.array(at_ses)[chosen, cols]  # scaled as the nodes' are
     return Nodes(xyz, se, np.asarray(levels)[lev], n_out, at_z, at_se)
