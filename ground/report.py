@@ -74,7 +74,7 @@ from ground.uncertainty import (
 )
 from ground.unseen import free_space_ceiling_m
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT, faces_warning, unseen_warning, wide_interval_warning
-from ground.wall_contact import CONTACT_REST, contact_ceiling_m, contact_nodes, wall_contacts
+from ground.wall_contact import CONTACT_REST, WallContacts, contact_ceiling_m, contact_nodes, wall_contacts
 
 LOW_COVERAGE_PCT = 95.0
 HIGH_EXCLUDED_FRACTION = 0.5
@@ -446,6 +446,19 @@ def pile_sigma_m(cloud: Cloud, structure: np.ndarray, err: SensorErrorModel) -> 
                             rng, dirs)
 
 
+def contact_fit_m(pile_w: np.ndarray, pile_sigma: np.ndarray, contacts: WallContacts, grid: Grid, storage: Storage,
+                  surface_fit: str, wanted: np.ndarray | None = None) -> np.ndarray | None:
+    """The `wall-contact` fill's surface: the pile points and the wall contacts (`ground.wall_contact.contact_nodes`,
+    each with its sigma) fitted together by the survey's surface fit, cells that leave the building emptied; in the
+    wanted cells only (`fit_heights`), or all. None without contacts: there is nothing to add to the points' fit."""
+    nodes, node_sigma = contact_nodes(contacts)
+    if not len(nodes):
+        return None
+    both = fit_heights(np.concatenate([pile_w, nodes]), grid, surface_fit, np.concatenate([pile_sigma, node_sigma]),
+                       wanted=wanted)
+    return clip_to_building(both, storage.height_m)[0]
+
+
 def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: SensorErrorModel) -> Survey:
     """The surface, volume terms and sweep check of a placed cloud: one log's, or several flights' merged
     (`merged_survey`), so a merged survey is computed by the same code as a single one."""
@@ -464,13 +477,10 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
     contact_fit = contact_top = None  # the surface through the points and the wall contacts, and their tops
     if opts.empty_cells == "wall-contact":
         contacts = wall_contacts(cloud, structure, storage, err, grid.cell_m)
-        nodes, node_sigma = contact_nodes(contacts)
         contact_top = contact_ceiling_m(contacts, grid.x_edges, grid.y_edges)
         unseen = ~np.isfinite(fit)
-        if unseen.any() and len(nodes):  # only the unseen cells take it: fit it from the points that shape it there
-            p_all, s_all = np.concatenate([pile, nodes]), np.concatenate([sigma, node_sigma])
-            contact_fit, _ = clip_to_building(fit_heights(p_all, grid, opts.surface_fit, s_all, wanted=unseen),
-                                              storage.height_m)
+        if unseen.any():  # only the unseen cells take it: fit it from the nodes that shape it there
+            contact_fit = contact_fit_m(pile, sigma, contacts, grid, storage, opts.surface_fit, wanted=unseen)
     bounded = opts.empty_cells == "bounded" or (opts.empty_cells == "wall-contact" and CONTACT_REST == "bounded")
     ceiling = None if not bounded else free_space_ceiling_m(  # what the beams left free above
         cloud, grid, storage, err, err.angle_sigma_rad, where=~np.isfinite(fit))  # the unseen cells

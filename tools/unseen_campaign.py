@@ -23,19 +23,17 @@ import numpy as np
 from firmware_py.core.sensor_noise import SensorNoise, SensorNoiseModel
 from firmware_py.core.storage import Storage
 from ground.pointcloud import SensorErrorModel, structure_mask
-from ground.report import ReportOptions, pile_sigma_m, survey_from_samples
+from ground.report import ReportOptions, contact_fit_m, pile_sigma_m, survey_from_samples
 from ground.surface import (
     DEFAULT_CELL_M,
     DEFAULT_SURFACE_FIT,
     Grid,
-    clip_to_building,
     fill_empty,
-    fit_heights,
     grid_volume,
     volume_error_pct,
 )
 from ground.unseen import Extension, beam_angle_sigma_rad, bounded_fill, free_space_ceiling_m, unseen_bounds
-from ground.wall_contact import WallContacts, contact_fill, contact_nodes, pin_contacts, wall_contacts
+from ground.wall_contact import WallContacts, contact_fill, pin_contacts, wall_contacts
 from sitl.runners.fly import FlyConfig, log_header
 from sitl.sensing.batch_sampler import sample_flight
 from sitl.world.raycast import World
@@ -158,11 +156,9 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
         err = SensorErrorModel.from_header(header)
         structure = structure_mask(sv.cloud, storage, err)
         contacts = wall_contacts(sv.cloud, structure, storage, err, sv.grid.cell_m)
-        nodes, node_sigma = contact_nodes(contacts)  # the report's contact fit (ground.report.survey_of_cloud)
-        nodes_fit, _ = clip_to_building(fit_heights(np.concatenate([sv.pile_points_w, nodes]), sv.grid,
-                                                    DEFAULT_SURFACE_FIT,
-                                                    np.concatenate([pile_sigma_m(sv.cloud, structure, err),
-                                                                    node_sigma])), storage.height_m)
+        nodes_fit = contact_fit_m(sv.pile_points_w, pile_sigma_m(sv.cloud, structure, err), contacts, sv.grid, storage,
+                                  DEFAULT_SURFACE_FIT)  # the report's contact fit, over every cell
+        nodes_fit = sv.heights_fit if nodes_fit is None else nodes_fit  # no contacts: the points' own fit
         # the ceiling over the node fit's unseen cells too (a subset of the survey's, where it was computed)
         ceiling = np.where(np.isfinite(ceiling), ceiling, np.where(np.isfinite(nodes_fit), np.nan, storage.height_m))
         row = {"pile": pile_name, "p_traj_pct": p_pct, "noise": noise_name, "position": k, "true_m3": pile.volume_m3,
