@@ -1,5 +1,5 @@
 """The networked SITL end to end: `pilescan-sitl serve --devices`, `pilescan-payload --hal sitl:` and a
-scripted ground station as three processes on real sockets, in real time (about 25 s)."""
+scripted ground station as three processes on real sockets, in real time (about 10-15 s each)."""
 
 import numpy as np
 import pytest
@@ -15,7 +15,7 @@ from tools.fly_networked import fly_networked
 def test_that_the_payload_process_ranges_the_served_world_with_correct_pose_tags(tmp_path):
     storage = Storage(24, 16, 10)
     run = fly_networked(["--p-traj", "25", "--altitude", "9", "--speed", "2"], "24x16x10", "1", tmp_path / "net",
-                        flight_s=12.0, say=lambda _m: None)
+                        flight_s=8.0, say=lambda _m: None)
     assert run.payload_exit == 0  # SIGTERM: a clean stop
     log = read_samplelog(tmp_path / "net" / "samples.pslog")
     assert log.blocks_corrupt == 0 and log.blocks_truncated == 0
@@ -24,7 +24,7 @@ def test_that_the_payload_process_ranges_the_served_world_with_correct_pose_tags
     # machine (the suite's workers and three processes on 2 cores) drops whole ticks, which the loop counts
     # as overruns, without stretching the grid; a count measured the machine, and failed at load 6.5.
     assert np.median(np.diff(s["t_s"])) == pytest.approx(0.002, abs=2e-4)
-    assert s["t_s"][-1] - s["t_s"][0] > 12.0
+    assert s["t_s"][-1] - s["t_s"][0] > 8.0
     good = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
     assert len(good) > 0.5 * len(s)
     assert np.ptp(good["servo_rad"]) > np.radians(120)  # the servo swept
@@ -58,7 +58,7 @@ def test_that_the_payload_reads_a_served_tfmini_over_a_pty_and_survives_its_faul
     keeps match the served world from their logged poses; after the replug it ranges again."""
     storage = Storage(30, 20, 10)
     run = fly_networked(["--p-traj", "25", "--altitude", "9", "--speed", "2"], "30x20x10", "1", tmp_path / "net",
-                        flight_s=12.0, say=lambda _m: None, rangefinder="tfmini",
+                        flight_s=9.0, say=lambda _m: None, rangefinder="tfmini",
                         serve_args=["--fault", "tfmini_bad_frame_pct=3", "--fault", "tfmini_unplug=4,2"])
     assert run.payload_exit == 0
     log = read_samplelog(tmp_path / "net" / "samples.pslog")
