@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import io
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -93,30 +94,45 @@ def heightfield_mesh(xs: np.ndarray, ys: np.ndarray, z: np.ndarray) -> trimesh.T
     return trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
 
 
+def surface_height(spec: PileSpec, storage: Storage) -> Callable[[np.ndarray], np.ndarray]:
+    """The paper's pile surface as a function of (n, 2) floor positions: the cubic through the control
+    grid, clipped at the floor. `generate` triangulates it; an evaluation can ask it for exact heights."""
+    xs, ys, h = control_heights(spec, storage)
+    surface = RegularGridInterpolator((xs, ys), h, method="cubic")
+
+    def height(xy: np.ndarray) -> np.ndarray:
+        return np.clip(surface(np.asarray(xy, dtype=float).reshape(-1, 2)), 0.0, None)
+    return height
+
+
 def generate(spec: PileSpec, storage: Storage) -> Stockpile:
     """The paper's pile: random control heights, a cubic surface through them, triangulated.
 
     The cubic is the C2 tensor-product spline through the control grid; where it undershoots
     below the floor (next to zero-height walls) it is clipped to 0, as material cannot.
     """
-    xs, ys, h = control_heights(spec, storage)
-    surface = RegularGridInterpolator((xs, ys), h, method="cubic")
+    height = surface_height(spec, storage)
     mx = max(2, math.ceil(storage.length_m / spec.mesh_resolution_m) + 1)
     my = max(2, math.ceil(storage.width_m / spec.mesh_resolution_m) + 1)
     gx, gy = np.linspace(0.0, storage.length_m, mx), np.linspace(0.0, storage.width_m, my)
     px, py = np.meshgrid(gx, gy, indexing="ij")
-    z = np.clip(surface(np.column_stack([px.ravel(), py.ravel()])).reshape(px.shape), 0.0, None)
+    z = height(np.column_stack([px.ravel(), py.ravel()])).reshape(px.shape)
     mesh = heightfield_mesh(gx, gy, z)
     return Stockpile(mesh, volume_under_mesh(mesh), f"generated(seed={spec.seed}, "
                      f"zero_edges={spec.zero_edges})")
 
 
-def paper_pile(name: str, storage: Storage | None = None) -> Stockpile:
-    """Stockpile "1" or "2" of the paper."""
+def paper_pile_spec(name: str) -> PileSpec:
+    """The generator settings of stockpile "1" or "2" of the paper."""
     if name not in PAPER_PILES:
         raise ValueError(f"unknown stockpile {name!r}: use 1, 2 or a path to an STL/OBJ mesh")
     p = PAPER_PILES[name]
-    pile = generate(PileSpec(seed=p["seed"], zero_edges=p["zero_edges"]), storage or Storage())
+    return PileSpec(seed=p["seed"], zero_edges=p["zero_edges"])
+
+
+def paper_pile(name: str, storage: Storage | None = None) -> Stockpile:
+    """Stockpile "1" or "2" of the paper."""
+    pile = generate(paper_pile_spec(name), storage or Storage())
     return Stockpile(pile.mesh, pile.volume_m3, f"paper pile {name} ({pile.source})")
 
 

@@ -1,0 +1,145 @@
+"""Where a survey's volume error sits: in the cells holding points, in the cells the surface bridges
+between them, or in the cells the empty-cell fill invents. Paper piles 1 and 2 on the paper's baseline
+mission (the noise table's cases, `tools.noise_table`), each against the pile's exact surface.
+
+A volume error summed over the whole floor hides which step made it. Split by cell, it says whether the
+estimator reads the points wrong (occupied cells), the interpolant bridges the gaps between fan lines
+wrong (bridged cells), or the fill invents wrongly (filled cells). The three parts add up to Ve (signed,
+percent of the true volume), apart from the exact surface's own averaging over each cell (the "grid"
+column: the true cell means' volume against the mesh's).
+
+    python -m tools.ve_breakdown --pile 1 --p-traj 30 --models none,appendix-a --phases 0,1,2,3
+"""
+
+from __future__ import annotations
+
+import statistics
+import sys
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from firmware_py.core.cli import ArgumentParser
+from firmware_py.core.sensor_noise import SensorNoiseModel
+from ground.report import ReportOptions, survey_from_samples
+from ground.surface import SURFACE_FITS, Grid
+from sitl.runners.fly import log_header
+from sitl.sensing.batch_sampler import sample_flight
+from sitl.world.raycast import World
+from sitl.world.stockpile import paper_pile, paper_pile_spec, surface_height
+from tools.experiments import ALL_EXPERIMENTS, N_POSITIONS, _flight
+from tools.noise_table import MODELS, P_TRAJ_PCT, PILES, Case, _config
+
+SUBSAMPLES = 5
+"""Exact heights per cell side averaged for a cell's true mean height (25 per 0.25 m cell)."""
+PARTS = ("occupied", "bridged", "filled")
+
+
+@dataclass(frozen=True)
+class Breakdown:
+    """Signed volume errors, percent of the true volume, by the kind of cell that holds them."""
+
+    ve_pct: float
+    occupied_pct: float
+    bridged_pct: float
+    filled_pct: float
+    grid_pct: float  # the true cell means' volume against the true volume: the cells' own averaging
+
+
+def true_cell_means(height, grid: Grid, sub: int = SUBSAMPLES) -> np.ndarray:
+    """(nx, ny) mean exact height of each cell, from sub x sub evenly spread points in it."""
+    nx, ny = grid.shape
+    xe, ye = grid.x_edges, grid.y_edges
+    fx = np.concatenate([np.linspace(xe[i], xe[i + 1], sub + 2)[1:-1] for i in range(nx)])
+    fy = np.concatenate([np.linspace(ye[j], ye[j + 1], sub + 2)[1:-1] for j in range(ny)])
+    px, py = np.meshgrid(fx, fy, indexing="ij")
+    z = height(np.column_stack([px.ravel(), py.ravel()])).reshape(px.shape)
+    return z.reshape(nx, sub, ny, sub).mean(axis=(1, 3))
+
+
+def breakdown(heights: np.ndarray, heights_fit: np.ndarray, occupied: np.ndarray, true_means: np.ndarray,
+              cell_area_m2: float, true_volume_m3: float) -> Breakdown:
+    """Split a survey's error: heights (after the fill), heights_fit (NaN where the fill acted), occupied
+    (cells holding a point of the pile's cloud), the true cell means."""
+    err = (np.asarray(heights, dtype=float) - true_means) * cell_area_m2
+    seen = np.isfinite(heights_fit)
+    pct = 100.0 / true_volume_m3
+    return Breakdown(ve_pct=float(np.nansum(err)) * pct + 100.0 * (true_means.sum() * cell_area_m2 - true_volume_m3)
+                     / true_volume_m3,
+                     occupied_pct=float(err[seen & occupied].sum()) * pct,
+                     bridged_pct=float(err[seen & ~occupied].sum()) * pct,
+                     filled_pct=float(np.nansum(err[~seen])) * pct,
+                     grid_pct=100.0 * (true_means.sum() * cell_area_m2 - true_volume_m3) / true_volume_m3)
+
+
+def occupied_cells(points_w: np.ndarray, grid: Grid) -> np.ndarray:
+    return grid.counts(points_w[:, :2]) > 0
+
+
+def run(pile: str, p_traj_pct: int, model: SensorNoiseModel, phases: list[int], surface_fit: str,
+        cache_dir: Path) -> list[Breakdown]:
+    """One breakdown per servo start position, the noise drawn as the noise table draws it."""
+    e = ALL_EXPERIMENTS["baseline"]
+    flown = _flight(e, float(p_traj_pct), cache_dir)
+    base = _config(Case(pile, p_traj_pct, model), 0)
+    storage = base.mission.storage
+    stockpile = paper_pile(pile, storage)
+    world = World(storage, stockpile, base.lidar.max_range_m)
+    t = np.arange(int(flown.duration_s * base.lidar.rate_hz) + 1) / base.lidar.rate_hz
+    traj = flown.trajectory_at(t)
+    height = surface_height(paper_pile_spec(pile), storage)
+    out, means = [], None
+    for k in phases:
+        cfg = replace(base, initial_position=k)
+        seed = [p_traj_pct, int(pile), k, MODELS.index(model)]
+        s = sample_flight(traj, cfg.servo_waveform(), world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame,
+                          noise=cfg.noise(), seed=seed)
+        sv = survey_from_samples(s, log_header(cfg, cfg.servo_waveform()), storage, cfg.frame,
+                                 np.array(cfg.lever_arm_body_m), ReportOptions(plots=False, surface_fit=surface_fit))
+        means = true_cell_means(height, sv.grid) if means is None else means
+        nx, ny = sv.grid.shape
+        area = (storage.length_m / nx) * (storage.width_m / ny)
+        out.append(breakdown(sv.heights, sv.heights_fit, occupied_cells(sv.pile_points_w, sv.grid), means, area,
+                             stockpile.volume_m3))
+    return out
+
+
+def table(rows: dict[str, list[Breakdown]]) -> str:
+    def ms(v: list[float]) -> str:
+        return f"{statistics.fmean(v):+.2f} ± {statistics.pstdev(v):.2f}" if len(v) > 1 else f"{v[0]:+.2f}"
+    out = ["| case | Ve [%] | occupied cells [%] | bridged cells [%] | filled cells [%] | grid [%] |",
+           "|---|---|---|---|---|---|"]
+    for name, bs in rows.items():
+        out.append(f"| {name} | {ms([b.ve_pct for b in bs])} | {ms([b.occupied_pct for b in bs])} | "
+                   f"{ms([b.bridged_pct for b in bs])} | {ms([b.filled_pct for b in bs])} | {bs[0].grid_pct:+.3f} |")
+    return "\n".join(out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = ArgumentParser(prog="python -m tools.ve_breakdown", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--pile", choices=PILES, default="1")
+    ap.add_argument("--p-traj", type=int, choices=P_TRAJ_PCT, default=30, help="percent")
+    ap.add_argument("--models", default="none,appendix-a", help="comma-separated sensor-noise models")
+    ap.add_argument("--phases", default="0,1,2,3", help=f"comma-separated servo start positions (0-{N_POSITIONS - 1})")
+    ap.add_argument("--surface-fit", choices=SURFACE_FITS, default=ReportOptions().surface_fit)
+    ap.add_argument("--cache", type=Path, default=Path("runs/sweep-cache"), help="flight cache")
+    args = ap.parse_args(argv)
+    try:
+        models = [SensorNoiseModel(m) for m in args.models.split(",")]
+        phases = [int(k) for k in args.phases.split(",")]
+        if not all(0 <= k < N_POSITIONS for k in phases):
+            raise ValueError
+    except ValueError:
+        ap.error(f"--models takes {', '.join(m.value for m in MODELS)}; --phases integers 0-{N_POSITIONS - 1}")
+    rows = {}
+    for model in models:
+        rows[f"pile {args.pile}, P_traj {args.p_traj} %, {model.value}"] = run(
+            args.pile, args.p_traj, model, phases, args.surface_fit, args.cache)
+        print(f"{model.value}: done", file=sys.stderr)
+    print(table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
