@@ -54,8 +54,6 @@ from firmware_py.core.surface_file import MAX_GRID_CELLS
 from ground.smoothing import DEFAULT_SMOOTHING, SmoothingOptions, smoothed_nodes
 
 SURFACE_FITS = ("cubic-limited", "cubic", "linear", "local-linear")
-INTERPOLATING_FITS = ("cubic-limited", "cubic", "linear")
-"""The fits through the points themselves, on their Delaunay triangulation (`shaping_points` applies to them)."""
 DEFAULT_SURFACE_FIT = "local-linear"
 """docs/surface_estimators.md: on 414 runs of the evaluation set the interpolants read 2-9 % low under the
 rangefinder's own datasheet noise (range noise moves a point along its beam, which couples its height error to
@@ -163,9 +161,7 @@ def fit_heights_with_se(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_
     if wanted is not None:  # the nodes that shape the surface in the wanted cells
         near = shaping_points(xyz[:, :2], wanted, grid)
         xyz, node_se = xyz[near], None if node_se is None else node_se[near]
-    if exact:
-        return _interpolate(xyz, grid, "cubic-limited")
-    heights, se = _interpolate(xyz, grid, "cubic-limited", node_se)
+    heights, se = _interpolate(xyz, grid, "cubic-limited", node_se)  # exact: se all NaN
     se[~np.isfinite(heights)] = np.nan
     return heights, se
 

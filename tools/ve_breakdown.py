@@ -65,12 +65,11 @@ def breakdown(heights: np.ndarray, heights_fit: np.ndarray, occupied: np.ndarray
     err = (np.asarray(heights, dtype=float) - true_means) * cell_area_m2
     seen = np.isfinite(heights_fit)
     pct = 100.0 / true_volume_m3
-    return Breakdown(ve_pct=float(np.nansum(err)) * pct + 100.0 * (true_means.sum() * cell_area_m2 - true_volume_m3)
-                     / true_volume_m3,
+    grid_pct = (true_means.sum() * cell_area_m2 - true_volume_m3) * pct
+    return Breakdown(ve_pct=float(np.nansum(err)) * pct + grid_pct,
                      occupied_pct=float(err[seen & occupied].sum()) * pct,
                      bridged_pct=float(err[seen & ~occupied].sum()) * pct,
-                     filled_pct=float(np.nansum(err[~seen])) * pct,
-                     grid_pct=100.0 * (true_means.sum() * cell_area_m2 - true_volume_m3) / true_volume_m3)
+                     filled_pct=float(np.nansum(err[~seen])) * pct, grid_pct=grid_pct)
 
 
 def occupied_cells(points_w: np.ndarray, grid: Grid) -> np.ndarray:
@@ -98,10 +97,8 @@ def run(pile: str, p_traj_pct: int, model: SensorNoiseModel, phases: list[int], 
         sv = survey_from_samples(s, log_header(cfg, cfg.servo_waveform()), storage, cfg.frame,
                                  np.array(cfg.lever_arm_body_m), ReportOptions(plots=False, surface_fit=surface_fit))
         means = true_cell_means(height, sv.grid) if means is None else means
-        nx, ny = sv.grid.shape
-        area = (storage.length_m / nx) * (storage.width_m / ny)
-        out.append(breakdown(sv.heights, sv.heights_fit, occupied_cells(sv.pile_points_w, sv.grid), means, area,
-                             stockpile.volume_m3))
+        out.append(breakdown(sv.heights, sv.heights_fit, occupied_cells(sv.pile_points_w, sv.grid), means,
+                             sv.grid.cell_area_m2, stockpile.volume_m3))
     return out
 
 
