@@ -58,7 +58,7 @@ def test_that_the_payload_reads_a_served_tfmini_over_a_pty_and_survives_its_faul
     keeps match the served world from their logged poses; after the replug it ranges again."""
     storage = Storage(30, 20, 10)
     run = fly_networked(["--p-traj", "25", "--altitude", "9", "--speed", "2"], "30x20x10", "1", tmp_path / "net",
-                        flight_s=9.0, say=lambda _m: None, rangefinder="tfmini",
+                        flight_s=12.0, say=lambda _m: None, rangefinder="tfmini",
                         serve_args=["--fault", "tfmini_bad_frame_pct=3", "--fault", "tfmini_unplug=4,2"])
     assert run.payload_exit == 0
     log = read_samplelog(tmp_path / "net" / "samples.pslog")
