@@ -119,7 +119,8 @@ class LoopStats:
 
     Attributes:
         ticks: readings taken.
-        overruns: ticks missed (the loop fell a whole period behind).
+        overruns: tick slots missed whole (a stall of a period or more). The loop keeps its grid, so
+            ticks + overruns counts the slots that passed and the samples after a stall stay in phase.
         busy_ns_total: the loop's own CPU time, when it was given a CPU clock (benchmarks), else 0.
         flag_counts: samples logged with each of `COUNTED_FLAGS`, in that order.
     """
@@ -232,9 +233,10 @@ class PayloadLoop:
             now = self.clock.now_ns()
             if end_ns is not None and now >= end_ns:
                 break
-            if now > self._next_ns + self.period_ns:  # we fell a whole tick behind: count it, resync
-                self._overruns += 1
-                self._next_ns = now
+            if now > self._next_ns + self.period_ns:  # whole ticks missed: count them, keep the grid
+                missed = (now - self._next_ns) // self.period_ns
+                self._overruns += missed
+                self._next_ns += missed * self.period_ns
             self.clock.sleep_until_ns(self._next_ns)
             self.tick()
             self._next_ns += self.period_ns

@@ -4,9 +4,24 @@ Hypothesis runs derandomized by default: the fuzz tests draw the same examples o
 is a regression, never the luck of the draw (the project's no-flaky-tests rule). The regression examples
 the fuzzers found are kept with `@example`. To explore new inputs, run with HYPOTHESIS_PROFILE=explore
 (random draws, ten times the examples) and keep what it finds as new `@example`s.
+
+Every test process, and every program a test starts, runs one BLAS thread. `make test` runs three workers on
+two cores; a threaded OpenBLAS spins its threads while it waits, so three processes of two spinning threads
+each took the suite from 280 s to 386 s on one machine, and a coverage plan from 9 s to 29 s
+(docs/design-notes.md, "One BLAS thread per test process").
 """
 
 import os
+
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # for the programs the tests start (inherited)
+
+try:
+    from threadpoolctl import threadpool_limits
+except ImportError:  # a payload-only install: no ground station, no threaded BLAS work to limit
+    threadpool_limits = None
+if threadpool_limits is not None:
+    threadpool_limits(limits=1)  # for this process, whose numpy may have loaded its BLAS before this file
 
 try:
     from hypothesis import settings

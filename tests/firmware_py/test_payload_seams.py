@@ -119,3 +119,33 @@ def test_that_a_pose_sample_cannot_be_changed_or_grown():
     with pytest.raises(FrozenInstanceError):
         FRESH.stale = True
     assert not hasattr(FRESH, "__dict__")  # slots: no attribute can be probed into existence
+
+
+class StallingSensor(CannedSensor):
+    """Stamps each reading, then stalls the loop (a starved CPU, a slow bus) on the reads named."""
+
+    def __init__(self, clock, stalls_ns):
+        super().__init__(clock, [])
+        self.stalls_ns, self.n = stalls_ns, 0
+
+    def read(self):
+        reading = Reading(12.5, ReadStatus.OK, self.clock.now_ns(), 1)
+        self.clock.advance_by_ns(self.stalls_ns.get(self.n, 0))
+        self.n += 1
+        return reading
+
+
+def test_that_a_stalled_loop_counts_the_slots_it_missed_and_keeps_its_tick_grid():
+    clock, log = SimClock(), RecordingLog()
+    period_ns = 2_000_000
+    sensor = StallingSensor(clock, {10: 7_300_000, 30: 2_500_000})  # 3.6 and 1.25 periods late
+    loop = PayloadLoop(sensor, SweepServo(NullPwm(), named_waveform("semi-triangular")), CannedPose(FRESH),
+                       clock, log, LoopConfig(rate_hz=500.0))
+    stats = loop.run(duration_s=0.2)
+    slots = 0.2 * 1e9 / period_ns + 1  # from 0 to 0.2 s, both ends
+    assert stats.overruns == 2  # the 22 and 24 ms slots; 2.5 ms late misses no whole slot
+    assert stats.ticks + stats.overruns == slots
+    t_ns = np.array([round(r["t_s"] * 1e9) for r in log.records])
+    off_grid = t_ns % period_ns != 0
+    assert off_grid.sum() == 2  # the one late tick after each stall; every other sample is in phase
+    assert t_ns[-1] == 0.2 * 1e9

@@ -20,10 +20,13 @@ def test_that_the_payload_process_ranges_the_served_world_with_correct_pose_tags
     log = read_samplelog(tmp_path / "net" / "samples.pslog")
     assert log.blocks_corrupt == 0 and log.blocks_truncated == 0
     s = log.samples
-    # 500 Hz on the loop's tick grid, from well before take-off to the stop. Not a count of samples: a starved
-    # machine (the suite's workers and three processes on 2 cores) drops whole ticks, which the loop counts
-    # as overruns, without stretching the grid; a count measured the machine, and failed at load 6.5.
-    assert np.median(np.diff(s["t_s"])) == pytest.approx(0.002, abs=2e-4)
+    # At most one sample per 2 ms slot of the loop's 500 Hz grid, in time order, from well before take-off to
+    # the stop. No lower bound on the rate: a starved machine (the suite's workers and three processes on
+    # 2 cores) misses slots, and both a sample count and the median interval measured the machine (they
+    # failed at load 6.5 and on CI). That the loop keeps its grid when it misses slots is shown in
+    # tests/firmware_py/test_payload_seams.py on a simulated clock.
+    assert np.all(np.diff(s["t_s"]) > 0)
+    assert len(s) <= (s["t_s"][-1] - s["t_s"][0]) / 0.002 + 1
     assert s["t_s"][-1] - s["t_s"][0] > 8.0
     good = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
     assert len(good) > 0.5 * len(s)

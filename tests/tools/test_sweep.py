@@ -232,7 +232,9 @@ def test_that_fail_fast_with_worker_processes_reports_the_one_failure(tmp_path, 
     assert len(toys.calls(call_log)) == done + 1  # whatever ran was cached
 
 
-def test_that_worker_processes_use_one_blas_thread_each(tmp_path):
+def test_that_worker_processes_use_one_blas_thread_each(tmp_path, monkeypatch):
+    for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):  # not the suite's own limit
+        monkeypatch.setenv(name, "2")
     rows = run_sweep(_cases(2, "threads"), toys.threads, tmp_path / "c", jobs=2, progress=False)
     for r in rows:
         assert r["omp"] == "1" and r["openblas"] == "1" and r["max_threads"] == 1

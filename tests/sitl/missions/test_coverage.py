@@ -126,7 +126,23 @@ def test_that_a_coverage_loop_exports_to_qgc_wpl_and_back_to_the_millimetre(tmp_
     assert speed[0][5] == 1.5
 
 
-def test_that_plan_writes_a_coverage_plan(tmp_path, capsys):
+@pytest.fixture
+def one_speed(monkeypatch):
+    """The real planner at one speed for the command-line tests (the search over four is
+    `test_that_the_planner_reaches_its_target_on_the_model_for_less_energy_than_the_near_rectangle`'s): the
+    full search made these two tests the suite's slowest."""
+    import dataclasses
+
+    import sitl.missions.coverage as coverage
+    real = coverage.plan_coverage
+
+    def plan(storage, target, **kw):
+        return real(storage, dataclasses.replace(target, speeds_m_s=(2.0,)), **kw)
+
+    monkeypatch.setattr(coverage, "plan_coverage", plan)
+
+
+def test_that_plan_writes_a_coverage_plan(tmp_path, capsys, one_speed):
     out = tmp_path / "cov.waypoints"
     assert main(["plan", "--coverage", "95", "--storage", "30x20x10", "--altitude", "6", "--out", str(out)]) == 0
     assert "predicted R_a" in capsys.readouterr().out
@@ -176,7 +192,7 @@ def test_that_fly_coverage_needs_a_target(tmp_path, capsys):
     assert "needs --coverage" in capsys.readouterr().err
 
 
-def test_that_fly_flies_the_coverage_plan_and_records_it(tmp_path):
+def test_that_fly_flies_the_coverage_plan_and_records_it(tmp_path, one_speed):
     import json
     out = tmp_path / "run"
     assert main(["fly", "--stockpile", "1", "--mission", "coverage", "--coverage", "95", "--plant", "ideal",
