@@ -32,3 +32,10 @@ if settings is not None:
     settings.register_profile("ci", derandomize=True)
     settings.register_profile("explore", derandomize=False, max_examples=1000)
     settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+
+
+def pytest_collection_modifyitems(config, items):
+    """The modules marked `long` (the most test time: long lockstep flights, flights in real time) first, in
+    their own order, then the rest in theirs. `make test` hands out whole files to three workers in
+    collection order; the longest last left two workers idle while the third finished them."""
+    items.sort(key=lambda item: item.get_closest_marker("long") is None)

@@ -42,6 +42,8 @@ from sitl.mavlink.server import MavlinkVehicleServer, run_realtime
 from sitl.mavlink.transport import UdpTransport
 from sitl.vehicle.kinematic_vehicle import KinematicVehicle
 
+pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
+
 RANGE_M = 5.0
 HOME_NED = (3.0, 4.0, 0.0)
 REPO = Path(__file__).resolve().parents[2]

@@ -27,6 +27,8 @@ from sitl.mavlink.transport import UdpTransport
 from sitl.vehicle.api import FlightMode, NavItem, NavKind
 from sitl.vehicle.kinematic_vehicle import KinematicVehicle, wrap_pi
 
+pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
+
 MS = 1_000_000
 S = 1_000_000_000
 DT_NS = 1 * MS

@@ -11,6 +11,8 @@ from ground.cli import main
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
 
+pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
+
 
 def test_that_version_prints_the_software_version_and_exits_0(capsys):
     assert main(["--version"]) == 0

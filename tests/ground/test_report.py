@@ -14,6 +14,8 @@ from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
 from tests.sitl.conftest import frustum_mesh
 
+pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
+
 REQUIRED_KEYS = {"volume_m3", "true_volume_m3", "volume_error_pct", "coverage_ratio_pct", "n_samples",
                  "n_points_used"}
 

@@ -17,6 +17,8 @@ from sitl.faults.injector import FaultSpec
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
 
+pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
+
 STORAGE = Storage(30, 20, 10)
 
 

@@ -21,6 +21,8 @@ from sitl.faults.injector import FaultSpec
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
 
+pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
+
 SKEW = FaultSpec(servo_offset_deg=3.0, servo_scale_pct=5.0, boresight_deg=2.0)
 
 

@@ -11,6 +11,8 @@ from sitl.world import stockpile as piles
 from sitl.world.raycast import World
 from tools.fly_networked import fly_networked
 
+pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
+
 
 def test_that_the_payload_process_ranges_the_served_world_with_correct_pose_tags(tmp_path):
     storage = Storage(24, 16, 10)

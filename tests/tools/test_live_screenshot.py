@@ -22,8 +22,9 @@ from ground.report import survey_from_samples
 from ground.surface import grid_volume
 from tools.live_screenshot import Chromium, LivePage, find_chromium, live_flight
 
-pytestmark = pytest.mark.skipif(find_chromium() is None,
-                                reason="no Chromium installed (apt-get install chromium; .ci/run installs it)")
+pytestmark = [pytest.mark.skipif(find_chromium() is None,
+                                 reason="no Chromium installed (apt-get install chromium; .ci/run installs it)"),
+              pytest.mark.long]  # scheduled first (tests/conftest.py)
 
 FLIGHT_S = 12.0
 """Seconds flown after AUTO: enough for the sweeps to give a surface (tests/tools/test_fly_networked.py)."""

@@ -6,6 +6,8 @@ from tools.experiments import ALL_EXPERIMENTS, Experiment, cases_for, load_exper
 from tools.reproduce import main
 from tools.sweep import read_rows_csv
 
+pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
+
 
 def test_that_a_tiny_sweep_writes_rows_table_2_and_figures_and_reruns_from_its_cache(tmp_path, capsys):
     args = ["--experiments", "baseline,sinusoidal,2d,baseline-ideal", "--piles", "1", "--p-traj", "25",

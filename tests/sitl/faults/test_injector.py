@@ -15,6 +15,8 @@ from sitl.runners.fly import FlyConfig, log_header
 from sitl.runners.lockstep_payload import fly_firmware
 from sitl.world.stockpile import resolve
 
+pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
+
 # 2 m/s: each flight half as long as at the default 1 m/s, with the same faults to detect.
 CFG = FlyConfig(mission=Mission(storage=Storage(30, 20, 10), p_traj=0.2, altitude_m=9.0, speed_m_s=2.0),
                 stockpile="1", payload="firmware")

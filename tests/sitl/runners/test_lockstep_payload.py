@@ -22,6 +22,8 @@ from sitl.sensing.batch_sampler import sample_flight
 from sitl.world import stockpile as piles
 from sitl.world.raycast import World
 
+pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
+
 BOOT_OFFSET_S = 1234.5
 
 

@@ -25,6 +25,8 @@ from firmware_py.core.site import DEFAULT_SITE, Site
 from ground.report import ReportOptions, header_geometry, make_report, survey_from_samples
 from sitl.cli import main
 
+pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
+
 SYDNEY = Site.of(-33.9, 151.2, 30.0, 30.0)
 RUNS = {"default": [], "sydney": ["--origin", "-33.9,151.2,30", "--heading", "30"]}
 
