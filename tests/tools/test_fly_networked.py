@@ -28,7 +28,7 @@ def test_that_the_payload_process_ranges_the_served_world_with_correct_pose_tags
     # failed at load 6.5 and on CI). That the loop keeps its grid when it misses slots is shown in
     # tests/firmware_py/test_payload_seams.py on a simulated clock.
     assert np.all(np.diff(s["t_s"]) > 0)
-    assert len(s) <= (s["t_s"][-1] - s["t_s"][0]) / 0.002 + 1
+    assert len(s) < (s["t_s"][-1] - s["t_s"][0]) / 0.002 + 2  # + 2: the first may run up to a slot late
     assert s["t_s"][-1] - s["t_s"][0] > 8.0
     good = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
     assert len(good) > 0.5 * len(s)
