@@ -42,9 +42,10 @@ from sitl.world.raycast import World
 from sitl.world.shapes import Family, Shape, make_shape
 from tools.sweep import Case, cached, content_key, missing_cases, run_sweep, write_rows_csv
 
-EVALSET_VERSION = "2"
+EVALSET_VERSION = "3"
 """Part of every case (and so of its cache key): bump it when what a case computes changes. 2: Appendix A's
-pose errors interpolated between messages, as the payload now tags samples."""
+pose errors interpolated between messages, as the payload now tags samples. 3: the ground station's default
+surface fit became `local-linear` (its rows were computed with the limited cubic until regenerated)."""
 FLIGHT_VERSION = "1"
 """Part of every flight key (tools.experiments' flights key on P_traj only: they are all the paper's building)."""
 P_TRAJ_PCT = (5, 10, 15, 20, 25, 30, 35)
@@ -406,6 +407,7 @@ def split_table(rows: list[dict]) -> str:
 
 
 def document(rows: list[dict], wall_s: float, n_computed: int, jobs: int, command: str) -> str:
+    from ground.surface import DEFAULT_EMPTY_CELLS
     cost = [r["sample_s"] + r["survey_s"] for r in rows]
     med = statistics.median(cost) if cost else float("nan")
     total_h = sum(cost) / 3600
@@ -461,8 +463,8 @@ def document(rows: list[dict], wall_s: float, n_computed: int, jobs: int, comman
         "",
         summary_table(rows),
         "",
-        "What the empty-cell fill (`nearest`) did, per family, over all noise models and P_traj: filled cells are "
-        "those without a fitted surface (NaN in `heights_fit`) that the fill gave a height.",
+        f"What the empty-cell fill (`{DEFAULT_EMPTY_CELLS}`, the default) did, per family, over all noise models and "
+        "P_traj: filled cells are those without a fitted surface (NaN in `heights_fit`) that the fill gave a height.",
         "",
         fill_table(rows),
         "",
