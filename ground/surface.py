@@ -59,9 +59,6 @@ DEFAULT_SURFACE_FIT = "local-linear"
 rangefinder's own datasheet noise (range noise moves a point along its beam, which couples its height error to
 its position); the local regression does not (docs/design-notes.md, "The default surface is estimated")."""
 EMPTY_CELL_POLICIES = ("nearest", "leave", "bounded", "wall-contact")
-GRID_ONLY_POLICIES = tuple(p for p in EMPTY_CELL_POLICIES if p != "wall-contact")
-"""The policies `fill_empty` can apply from a height grid alone: `wall-contact` needs the cloud's wall contacts
-(without them it gives `nearest`'s figure under its own name)."""
 DEFAULT_EMPTY_CELLS = "wall-contact"
 """docs/unseen.md: mean Ve better than `nearest` in 13 of its 16 rows, equal in one; the two worse are by
 cancellation (docs/design-notes.md, "Wall-contact evidence for the unseen fill")."""
