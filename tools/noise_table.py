@@ -20,6 +20,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -34,7 +35,7 @@ from ground.surface import DEFAULT_EMPTY_CELLS, grid_volume, reconstructed_ratio
 from sitl.runners.fly import FlyConfig, fly, log_header
 from sitl.sensing.batch_sampler import sample_flight
 from sitl.world.raycast import World
-from sitl.world.stockpile import paper_pile
+from sitl.world.stockpile import Stockpile, paper_pile
 from tools.doc_sections import write_section
 from tools.experiments import ALL_EXPERIMENTS, N_POSITIONS, _flight
 from tools.sweep import cached, content_key, fresh_run_note
@@ -94,24 +95,30 @@ def survey_row(samples: np.ndarray, cfg: FlyConfig, true_m3: float) -> dict:
             "no_return_pct": 100.0 * float(np.mean((samples["flags"] & int(SampleFlags.NO_RETURN)) != 0))}
 
 
+def case_samples(case: Case, phases: Iterable[int],
+                 cache_dir: Path) -> Iterator[tuple[int, FlyConfig, np.ndarray, Stockpile]]:
+    """The case's batch samples at each servo start position in phases: (position, its config, the samples, the
+    pile), the noise seeded by the case and the position (so any tool that samples a case draws this table's
+    noise)."""
+    e = ALL_EXPERIMENTS["baseline"]
+    flown = _flight(e, float(case.p_traj_pct), cache_dir)
+    base = _config(case, 0)
+    pile = paper_pile(case.pile, base.mission.storage)
+    world = World(base.mission.storage, pile, base.lidar.max_range_m)
+    t = np.arange(int(flown.duration_s * base.lidar.rate_hz) + 1) / base.lidar.rate_hz
+    traj = flown.trajectory_at(t)
+    for k in phases:
+        cfg = replace(base, initial_position=k)
+        seed = [case.p_traj_pct, int(case.pile), k, MODELS.index(case.model)]
+        yield k, cfg, sample_flight(traj, cfg.servo_waveform(), world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame,
+                                    noise=cfg.noise(), seed=seed), pile
+
+
 def run_case(case: Case, cache_dir: Path) -> list[dict]:
     """The rows of one case, one per servo start position (cached)."""
     def compute() -> list[dict]:
-        e = ALL_EXPERIMENTS["baseline"]
-        flown = _flight(e, float(case.p_traj_pct), cache_dir)
-        base = _config(case, 0)
-        pile = paper_pile(case.pile, base.mission.storage)
-        world = World(base.mission.storage, pile, base.lidar.max_range_m)
-        t = np.arange(int(flown.duration_s * base.lidar.rate_hz) + 1) / base.lidar.rate_hz
-        traj = flown.trajectory_at(t)
-        rows = []
-        for k in range(case.phases):
-            cfg = replace(base, initial_position=k)
-            seed = [case.p_traj_pct, int(case.pile), k, MODELS.index(case.model)]
-            s = sample_flight(traj, cfg.servo_waveform(), world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame,
-                              noise=cfg.noise(), seed=seed)
-            rows.append({"phase": k, **survey_row(s, cfg, pile.volume_m3)})
-        return rows
+        return [{"phase": k, **survey_row(s, cfg, pile.volume_m3)}
+                for k, cfg, s, pile in case_samples(case, range(case.phases), cache_dir)]
     return cached(cache_dir, case.key(), compute, kind="json")
 
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import statistics
 import sys
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -25,15 +25,12 @@ from firmware_py.core.sensor_noise import SensorNoiseModel
 from ground.report import ReportOptions, survey_from_samples
 from ground.surface import SURFACE_FITS, Grid
 from sitl.runners.fly import log_header
-from sitl.sensing.batch_sampler import sample_flight
-from sitl.world.raycast import World
-from sitl.world.stockpile import paper_pile, paper_pile_spec, surface_height
-from tools.experiments import ALL_EXPERIMENTS, N_POSITIONS, _flight
-from tools.noise_table import MODELS, P_TRAJ_PCT, PILES, Case, _config
+from sitl.world.stockpile import paper_pile_spec, surface_height
+from tools.experiments import N_POSITIONS
+from tools.noise_table import MODELS, P_TRAJ_PCT, PILES, Case, case_samples
 
 SUBSAMPLES = 5
 """Exact heights per cell side averaged for a cell's true mean height (25 per 0.25 m cell)."""
-PARTS = ("occupied", "bridged", "filled")
 
 
 @dataclass(frozen=True)
@@ -78,25 +75,14 @@ def occupied_cells(points_w: np.ndarray, grid: Grid) -> np.ndarray:
 
 def run(pile: str, p_traj_pct: int, model: SensorNoiseModel, phases: list[int], surface_fit: str,
         cache_dir: Path) -> list[Breakdown]:
-    """One breakdown per servo start position, the noise drawn as the noise table draws it."""
-    e = ALL_EXPERIMENTS["baseline"]
-    flown = _flight(e, float(p_traj_pct), cache_dir)
-    base = _config(Case(pile, p_traj_pct, model), 0)
-    storage = base.mission.storage
-    stockpile = paper_pile(pile, storage)
-    world = World(storage, stockpile, base.lidar.max_range_m)
-    t = np.arange(int(flown.duration_s * base.lidar.rate_hz) + 1) / base.lidar.rate_hz
-    traj = flown.trajectory_at(t)
-    height = surface_height(paper_pile_spec(pile), storage)
+    """One breakdown per servo start position, the noise drawn as the noise table draws it (`case_samples`)."""
     out, means = [], None
-    for k in phases:
-        cfg = replace(base, initial_position=k)
-        seed = [p_traj_pct, int(pile), k, MODELS.index(model)]
-        s = sample_flight(traj, cfg.servo_waveform(), world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame,
-                          noise=cfg.noise(), seed=seed)
+    for _, cfg, s, stockpile in case_samples(Case(pile, p_traj_pct, model), phases, cache_dir):
+        storage = cfg.mission.storage
         sv = survey_from_samples(s, log_header(cfg, cfg.servo_waveform()), storage, cfg.frame,
                                  np.array(cfg.lever_arm_body_m), ReportOptions(plots=False, surface_fit=surface_fit))
-        means = true_cell_means(height, sv.grid) if means is None else means
+        if means is None:  # the exact surface's cell means, on the survey's grid
+            means = true_cell_means(surface_height(paper_pile_spec(pile), storage), sv.grid)
         out.append(breakdown(sv.heights, sv.heights_fit, occupied_cells(sv.pile_points_w, sv.grid), means,
                              sv.grid.cell_area_m2, stockpile.volume_m3))
     return out
