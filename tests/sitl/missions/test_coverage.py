@@ -126,22 +126,6 @@ def test_that_a_coverage_loop_exports_to_qgc_wpl_and_back_to_the_millimetre(tmp_
     assert speed[0][5] == 1.5
 
 
-@pytest.fixture
-def one_speed(monkeypatch):
-    """The real planner at one speed for the command-line tests (the search over four is
-    `test_that_the_planner_reaches_its_target_on_the_model_for_less_energy_than_the_near_rectangle`'s): the
-    full search made these two tests the suite's slowest."""
-    import dataclasses
-
-    import sitl.missions.coverage as coverage
-    real = coverage.plan_coverage
-
-    def plan(storage, target, **kw):
-        return real(storage, dataclasses.replace(target, speeds_m_s=(2.0,)), **kw)
-
-    monkeypatch.setattr(coverage, "plan_coverage", plan)
-
-
 def test_that_plan_writes_a_coverage_plan(tmp_path, capsys, one_speed):
     out = tmp_path / "cov.waypoints"
     assert main(["plan", "--coverage", "95", "--storage", "30x20x10", "--altitude", "6", "--out", str(out)]) == 0
@@ -285,17 +269,8 @@ def test_that_the_near_wall_steps_lie_below_the_familys_nearest():
 
 
 @pytest.mark.parametrize("flag, walls", [([], True), (["--bare-walls"], False)])
-def test_that_plan_assumes_material_on_the_walls_unless_told_they_are_bare(flag, walls, tmp_path, monkeypatch):
-    import dataclasses
-
-    import sitl.missions.coverage as coverage
-    seen = []
-
-    def quick(storage, target, **kw):  # one speed: the full search is slow
-        seen.append(target)
-        return plan_coverage(storage, dataclasses.replace(target, speeds_m_s=(2.0,)), **kw)
-
-    monkeypatch.setattr(coverage, "plan_coverage", quick)
+def test_that_plan_assumes_material_on_the_walls_unless_told_they_are_bare(flag, walls, tmp_path, one_speed):
+    seen = one_speed
     assert main(["plan", "--coverage", "95", "--storage", "30x20x10", "--altitude", "6", *flag,
                  "--out", str(tmp_path / "c.waypoints")]) == 0
     assert (seen[0].walls == WallBand.of(LIDARLITE_V3)) if walls else seen[0].walls is None

@@ -103,18 +103,9 @@ def test_that_plan_refuses_a_bad_surface_with_one_line(tmp_path, capsys):
 
 
 
-def test_that_plan_plans_on_a_surface_and_says_so(tmp_path, capsys, monkeypatch):
-    import dataclasses
-
-    import sitl.missions.coverage as coverage
+def test_that_plan_plans_on_a_surface_and_says_so(tmp_path, capsys, one_speed):
     from sitl.missions.qgc_wpl import read_qgc_wpl
-    real, seen = coverage.plan_coverage, []
-
-    def one_speed(storage, target, **kw):  # the real planner at one speed: four are slow on a surface
-        seen.append(target)
-        return real(storage, dataclasses.replace(target, speeds_m_s=(2.0,)), **kw)
-
-    monkeypatch.setattr(coverage, "plan_coverage", one_speed)
+    seen = one_speed  # the real planner at one speed: four are slow on a surface
     d = _report(tmp_path, _block(5.0, 1.0, 3.0))
     out = tmp_path / "p.waypoints"
     assert main(["plan", "--coverage", "90", "--surface", str(d), "--storage", "30x20x10", "--altitude", "6",
