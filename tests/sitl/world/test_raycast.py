@@ -52,10 +52,11 @@ def test_that_cone_hits_match_the_analytic_cone_to_a_millimetre():
     hits = world.cast(o, d)
     ts = np.linspace(0, 20, 2001)
     for i in range(n):
-        f = lambda t, i=i: (o[i, 2] + t * d[i, 2]) - surface((o[i, :2] + t * d[i, :2])[None])[0]  # noqa: E731
-        vals = (o[i, 2] + ts * d[i, 2]) - surface(o[i, :2] + ts[:, None] * d[i, :2])  # f at every t, at once
-        k = np.argmax(vals <= 0)
-        t_exact = brentq(f, ts[k - 1], ts[k], xtol=1e-9)
+        def above(t, i=i):  # the ray's height over the cone at distances t (an array, or one float)
+            t = np.atleast_1d(t)
+            return (o[i, 2] + t * d[i, 2]) - surface(o[i, :2] + t[:, None] * d[i, :2])
+        k = np.argmax(above(ts) <= 0)
+        t_exact = brentq(lambda t, f=above: f(t)[0], ts[k - 1], ts[k], xtol=1e-9)
         assert abs(hits.range_m[i] - t_exact) < MM
     assert np.mean(hits.geom_id == GEOM_PILE) > 0.5
 
