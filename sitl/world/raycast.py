@@ -7,6 +7,7 @@ micrometres, far below the LiDAR's 1 cm resolution (the tests check analytic hit
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,6 +62,10 @@ class World:
         self._one_d64 = np.empty(3)
         self._one_o32 = np.empty((1, 3), dtype=np.float32)
         self._one_d32 = np.empty((1, 3), dtype=np.float32)
+        # The one-ray rows are shared: `serve` casts from two threads (the device bridge's LiDAR and the pose
+        # drift's ray down), and a ray written by one between the other's write and its query returned the
+        # wrong range (docs/design-notes.md, "A world shared by two threads").
+        self._one_lock = threading.Lock()
 
     def buried(self, points_w: np.ndarray) -> np.ndarray:
         """Which points (N, 3) lie inside the stockpile: below its surface seen from the roof.
@@ -103,11 +108,12 @@ class World:
     def cast_one_incidence(self, origin_w, dir_w) -> tuple[float, float]:
         """Range (NaN: no return) and |cos| of the incidence of one ray: the emulated LiDAR's path when a
         noise model needs the incidence (a full intersection query, unlike `cast_one`'s distance only)."""
-        r = self.cast_one(origin_w, dir_w)
-        if not math.isfinite(r):
-            return r, 0.0
-        res = self._scene.run(self._one_o32, self._one_d32, output=1)  # cast_one left the ray in these rows
-        return r, float(_cos_incidence(res["Ng"], self._one_d32.astype(np.float64))[0])
+        with self._one_lock:
+            r = self._cast_one(origin_w, dir_w)
+            if not math.isfinite(r):
+                return r, 0.0
+            res = self._scene.run(self._one_o32, self._one_d32, output=1)  # _cast_one left the ray in these rows
+            return r, float(_cos_incidence(res["Ng"], self._one_d32.astype(np.float64))[0])
 
     def cast_one(self, origin_w, dir_w) -> float:
         """Range of one ray, m (NaN when there is no return within the max range).
@@ -115,8 +121,14 @@ class World:
         The emulated LiDAR's path, one ray per sample (its acquisition times and servo angle are only
         known as the payload runs): Embree's distance-only query on preallocated float32 rows, the
         direction normalised exactly as `cast` does (numpy's dot, whose rounding plain floats do not
-        reproduce), so the float32 ray, and the range, are bit for bit those of `cast`.
+        reproduce), so the float32 ray, and the range, are bit for bit those of `cast`. Thread-safe: the rows
+        are written and queried under one lock.
         """
+        with self._one_lock:
+            return self._cast_one(origin_w, dir_w)
+
+    def _cast_one(self, origin_w, dir_w) -> float:
+        """`cast_one` with the lock held."""
         if origin_w[2] < self._pile_top_m and self.buried(origin_w)[0]:
             return math.nan
         d64, o32, d32 = self._one_d64, self._one_o32, self._one_d32

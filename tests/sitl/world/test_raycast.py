@@ -1,3 +1,6 @@
+import sys
+import threading
+
 import numpy as np
 import pytest
 from scipy.optimize import brentq
@@ -100,3 +103,31 @@ def test_that_a_sensor_inside_the_pile_sees_nothing_and_one_above_it_sees_the_su
     assert np.isnan(world.cast_one(inside[1], sideways[0]))
     assert world.cast_one(outside[0], [0.0, 0.0, -1.0]) == pytest.approx(0.5, abs=MM)
     assert world.cast(outside[1:], sideways, max_range_m=100.0).range_m == pytest.approx([55.0, 15.0], abs=MM)
+
+
+def test_that_two_threads_casting_one_ray_each_get_their_own_ranges():
+    """`serve` casts from two threads: the device bridge's LiDAR and the pose drift's ray straight down. Each
+    must get its own ray's range (the shared one-ray rows once gave the LiDAR the ray down's, as range spikes)."""
+    world = World(Storage(60, 40, 15))
+    rays = {"down": ((30.0, 20.0, 12.0), (0.0, 0.0, -1.0), 12.0),  # the floor
+            "side": ((30.0, 20.0, 12.0), (1.0, 0.0, 0.0), 30.0)}  # the wall x = 60
+    wrong = {name: 0 for name in rays}
+
+    def cast(name: str, incidence: bool) -> None:
+        o, d, want = rays[name]
+        for _ in range(20_000):
+            r = world.cast_one_incidence(o, d)[0] if incidence else world.cast_one(o, d)
+            wrong[name] += abs(r - want) > MM
+
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # hand the GIL over as often as it can go: every interleaving gets its chance
+    try:
+        threads = [threading.Thread(target=cast, args=("down", False)),
+                   threading.Thread(target=cast, args=("side", True))]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        sys.setswitchinterval(old)
+    assert wrong == {"down": 0, "side": 0}
