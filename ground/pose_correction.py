@@ -637,33 +637,47 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         cell_m = speed * (period or spacing / KNOT_SWEEPS)
         # the floor: points along it, in intervals where the vote found it, near the height it found
         z_at = np.interp(b.t_s, knots, z_vote)
-        floor = b.parallel[:, 0] & (np.abs(p1[:, 2] + z_at) <= BAND * sensor_m)
+        voted = b.parallel[:, 0] & (np.abs(p1[:, 2] + z_at) <= BAND * sensor_m)
         wall = (j1 >= 1) | (j_fit >= 1)
-        floor, z_shift, floor_note = screen_floor(p1, b.t_s, knots, wall, floor, storage, cell_m, step[2], noise,
+
+        def height_from(floor: np.ndarray, shift: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None,
+                                                                              str | None]:
+            """The height correction on this floor (shift: the screen's, when it dropped most of the vote's
+            floor), its information, and why it was refused (None: not refused)."""
+            z = z_info = None
+            for _ in range(SLOPE_ROUNDS):  # the cells' slopes from the heights corrected so far (module docstring)
+                z, z_info = vertical_from_crossings(p1, b.t_s, knots, wall, floor, storage, cell_m, step[2], noise,
+                                                    opts.max_position_error_m, opts.n_significant, z)
+                if z is None:
+                    return None, None, None
+            if shift is not None:
+                z = shift  # most of the vote's floor was a flat pile top: the crossings, at the floor's level
+            if np.abs(z).max() > opts.max_vertical_error_m:
+                return None, None, (f"the height was not corrected: the floor seen would put the altitude reference "
+                                    f"{np.abs(z).max():.2f} m off, more than the {opts.max_vertical_error_m:g} m an "
+                                    "indoor estimator's is (a flat pile top taken for the floor?)")
+            if len(z) > 1 and np.abs(np.diff(z)).max() > opts.n_significant * step[2]:
+                # The height jumps more between two knots than any indoor estimator's does: what the vote took
+                # for the floor somewhere is a flat part of a pile (the paper's pile 2 hides the floor almost
+                # everywhere and has a flat top). Then the height is not corrected at all, and the report says so.
+                return None, None, (f"the height was not corrected: the floor seen is not consistent (the correction "
+                                    f"would jump {np.abs(np.diff(z)).max():.2f} m between knots {spacing:.1f} s apart; "
+                                    "a flat pile top taken for the floor?)")
+            return z, z_info, None
+
+        floor, z_shift, floor_note = screen_floor(p1, b.t_s, knots, wall, voted, storage, cell_m, step[2], noise,
                                                   sensor_m, opts.max_position_error_m)
-        if floor_note:
-            notes.append(floor_note)
-        z = None
-        for _ in range(SLOPE_ROUNDS):  # the cells' slopes from the heights corrected so far (module docstring)
-            z, z_info = vertical_from_crossings(p1, b.t_s, knots, wall, floor, storage, cell_m, step[2], noise,
-                                                opts.max_position_error_m, opts.n_significant, z)
-            if z is None:
-                break
-        if z is not None and z_shift is not None:
-            z = z_shift  # most of the vote's floor was a flat pile top: the crossings, at the floor's level
-        if z is not None and np.abs(z).max() > opts.max_vertical_error_m:
-            notes.append(f"the height was not corrected: the floor seen would put the altitude reference "
-                         f"{np.abs(z).max():.2f} m off, more than the {opts.max_vertical_error_m:g} m an indoor "
-                         "estimator's is (a flat pile top taken for the floor?)")
-            z, z_info = None, None
-        if z is not None and len(z) > 1 and np.abs(np.diff(z)).max() > opts.n_significant * step[2]:
-            # The height jumps more between two knots than any indoor estimator's does: what the vote took
-            # for the floor somewhere is a flat part of a pile (the paper's pile 2 hides the floor almost
-            # everywhere and has a flat top). Then the height is not corrected at all, and the report says so.
-            notes.append(f"the height was not corrected: the floor seen is not consistent (the correction would "
-                         f"jump {np.abs(np.diff(z)).max():.2f} m between knots {spacing:.1f} s apart; a flat pile "
-                         "top taken for the floor?)")
-            z, z_info = None, None
+        z, z_info, refused = height_from(floor, z_shift)
+        if refused is not None and z_shift is not None:
+            # The screen's level is the lowest the crossings' frame shows, and a stretch the crossings place a few
+            # decimetres low can set it (measured: a networked `flow` flight over pile 1, which has no flat top).
+            # When what it leaves is refused, the vote's own floor is tried, under the same two checks.
+            z_voted, info_voted, refused_voted = height_from(voted, None)
+            if refused_voted is None:
+                floor_note = (f"{floor_note}, but the height from what was left was refused ({refused}), so the "
+                              "floor as voted was used")
+                floor, z, z_info, refused = voted, z_voted, info_voted, None
+        notes.extend(n for n in (floor_note, refused) if n)
         if z is not None:
             x[:, 2] = z
             p1, vr = corrected_points(b, x, k, f)
