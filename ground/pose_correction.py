@@ -674,10 +674,11 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
             # When what it leaves is refused, the vote's own floor is tried, under the same two checks.
             z_voted, info_voted, refused_voted = height_from(voted, None)
             if refused_voted is None:
-                floor_note = (f"{floor_note}, but the height from what was left was refused ({refused}), so the "
+                why = refused.removeprefix("the height was not corrected: ")
+                floor_note = (f"{floor_note}, but the height from what was left was refused ({why}), so the "
                               "floor as voted was used")
                 floor, z, z_info, refused = voted, z_voted, info_voted, None
-        notes.extend(n for n in (floor_note, refused) if n)
+        notes.extend(note for note in (floor_note, refused) if note)
         if z is not None:
             x[:, 2] = z
             p1, vr = corrected_points(b, x, k, f)
