@@ -81,12 +81,22 @@ def test_that_the_payload_reads_a_served_tfmini_over_a_pty_and_survives_its_faul
     assert np.count_nonzero((after["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0) > 200  # ranging again
     good = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
     world = World(storage, piles.resolve(str(tmp_path / "net" / "pile.stl"), storage), max_range_m=12.0)
-    o, d = beam_rays_w(np.column_stack([good["x_m"], good["y_m"], good["z_m"]]), good["roll_rad"],
-                       good["pitch_rad"], good["yaw_rad"], good["servo_rad"],
-                       np.array(log.header["lever_arm_body_m"]), StorageFrame())
-    err = good["range_m"] - world.cast(o, d).range_m
-    err = np.abs(err[np.isfinite(err)])
-    assert len(err) > 300 and np.median(err) < 0.01 and np.percentile(err, 90) < 0.05
+
+    def range_errors(posed):
+        """|logged range - the served world's range| with each range tagged by the pose of `posed`."""
+        o, d = beam_rays_w(np.column_stack([posed["x_m"], posed["y_m"], posed["z_m"]]), posed["roll_rad"],
+                           posed["pitch_rad"], posed["yaw_rad"], posed["servo_rad"],
+                           np.array(log.header["lever_arm_body_m"]), StorageFrame())
+        err = np.abs(good["range_m"][:len(posed)] - world.cast(o, d).range_m)
+        return err[np.isfinite(err)]
+
+    err = range_errors(good)
+    # A range tagged one frame (10 ms) late puts the tail at decimetres (the beam sweeps the pile fast). The
+    # frames' stamps are real time: on a busy machine some arrive a few ms late, so the tail is held to a
+    # third of that reference, derived from this flight, rather than to a number of centimetres.
+    one_frame_late = range_errors(good[1:])
+    assert len(err) > 300 and np.median(err) < 0.01
+    assert np.percentile(err, 90) < np.percentile(one_frame_late, 90) / 3
 
 
 def test_that_a_networked_flight_at_a_turned_site_agrees_on_origin_and_frame(tmp_path):
