@@ -19,8 +19,11 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/python -m tools.demo
 
+# compileall: the suite starts many Python processes; where PYTHONDONTWRITEBYTECODE is set (CI machines) each
+# one compiled the project's modules again (a fresh clone's suite: 289 s -> 271 s with them compiled once).
 test: $(STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/python -m compileall -q firmware_py ground sitl tools
 	$(BIN)/python -m pytest -n 3 --dist loadfile
 
 lint: $(STAMP)
