@@ -21,10 +21,12 @@ demo: $(STAMP)
 
 # compileall: the suite starts many Python processes; where PYTHONDONTWRITEBYTECODE is set (CI machines) each
 # one compiled the project's modules again (a fresh clone's suite: 289 s -> 271 s with them compiled once).
+# The suite itself runs with bytecode writing on: pytest then keeps its rewritten test modules, which each of
+# the four processes otherwise rewrites at collection (10.5 s -> 4.8 s a process).
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/python -m compileall -q firmware_py ground sitl tools
-	$(BIN)/python -m pytest -n 3 --dist loadfile
+	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -n 3 --dist loadfile
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
