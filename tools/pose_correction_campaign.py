@@ -211,6 +211,11 @@ def main(argv: list[str] | None = None) -> int:
         if f.is_file():
             rows += [json.loads(line) for line in f.read_text().splitlines() if line.strip()]
     done = {(r["profile"], r["pile"], r["p_traj"], r["seed"]) for r in rows}
+    if args.reuse and done:
+        # --reuse says "report the kept flights again"; a row already in --rows is taken as it is, so the two
+        # together report nothing again for it (a regeneration that silently changed nothing: 2026-11-28)
+        print(f"pose_correction_campaign: {len(done)} row(s) read from {', '.join(map(str, args.rows))} are taken as "
+              "they are, not reported again; to report every kept flight again, leave out --rows", file=sys.stderr)
     with tempfile.TemporaryDirectory() as tmp:
         work = args.keep or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)

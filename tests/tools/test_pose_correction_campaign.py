@@ -78,3 +78,21 @@ def test_that_a_trajectory_on_the_simulators_clock_is_not_compared_with_a_log_un
     truth, _, _ = _served(offset_s=0.0)
     with pytest.raises(ValueError, match="align it first"):
         trajectory_rms_m(truth, None)
+
+
+def test_that_rows_already_computed_are_said_to_be_taken_as_they_are_when_flights_are_to_be_reported_again(
+        tmp_path: Path, capsys):
+    """--reuse with a --rows file holding every row asked for reports nothing again: the program says so (and
+    how to report again) instead of regenerating a table that silently did not change."""
+    import json
+
+    from tools.pose_correction_campaign import main
+    rows = tmp_path / "rows.jsonl"
+    rows.write_text("".join(json.dumps({"profile": prof, "pile": "1", "p_traj": 5, "seed": 0, "ve_off": 0.1,
+                                        "ve_on": 0.1, "applied": False, "traj_before_m": 0.0, "traj_after_m": 0.0})
+                            + "\n" for prof in ("none", "vio", "flow")))
+    assert main(["--seeds", "0", "--piles", "1", "--p-traj", "5", "--keep", str(tmp_path / "runs"), "--reuse",
+                 "--rows", str(rows)]) == 0
+    err = capsys.readouterr().err
+    assert "3 row(s) read from" in err and "not reported again" in err and "leave out --rows" in err
+    assert not any((tmp_path / "runs").iterdir())  # nothing flown, nothing reported
