@@ -699,6 +699,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     jj_pre = np.where(j_pre >= 0, j_pre, j1)[pre]
     matters = (_robust_rms(np.einsum("ij,ij->i", p0[pre], n[jj_pre]) - d[jj_pre]) ** 2
                - _robust_rms(r1[on]) ** 2 > noise ** 2)
+
     def misfit(v: np.ndarray) -> float:
         _, _, r, j = on_fit_planes(v)
         return _robust_rms(r[j >= 0])
@@ -713,9 +714,10 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
             # leaves them more than MAX_MISFIT times as far off as the drift fit did (or the noise, if more) is
             # dropped. (Against the noise alone, an ideal sensor's 0.3 cm range quantum, this refused registrations
             # that took two `flow` flights from 1.15 and 0.84 m of trajectory error to 0.09 m: docs/design-notes.md.)
-            if misfit(x_reg) > MAX_MISFIT * max(noise, drift_misfit):
+            reg_misfit = misfit(x_reg)
+            if reg_misfit > MAX_MISFIT * max(noise, drift_misfit):
                 notes.append(f"the position from the pile seen at different times was not used: it left the floor "
-                             f"and walls {misfit(x_reg) * 100:.1f} cm off their planes, against "
+                             f"and walls {reg_misfit * 100:.1f} cm off their planes, against "
                              f"{drift_misfit * 100:.1f} cm without it")
                 cross_info, cross_notes = None, []
             else:

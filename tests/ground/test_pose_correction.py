@@ -246,7 +246,6 @@ def test_that_a_broad_flat_pile_top_is_not_taken_for_the_floor():
     assert any("flat pile top" in note for note in corr.notes), corr.notes
 
 
-
 def test_that_a_screened_floor_whose_height_is_refused_gives_way_to_the_floor_as_voted(drifted, monkeypatch):
     # The floor screen takes the lowest level the crossings' frame shows; a stretch the crossings place a few
     # decimetres low can set it (a networked `flow` flight over pile 1), and then it drops most of the true
@@ -268,6 +267,7 @@ def test_that_a_screened_floor_whose_height_is_refused_gives_way_to_the_floor_as
     tol = 3.0 * (WALK * math.sqrt(spacing) + RESOLUTION / math.sqrt(12.0))
     assert seen.sum() >= 3  # the height is estimated (a refused one is constrained nowhere)
     assert np.median(np.abs(corr.values[seen, Component.Z.value] - truth_z[seen])) < tol
+
 
 CONE = (30.0, 20.0, 6.0, 0.5)  # apex x, y (W), height, slope (27 deg): a broad heap whose flanks a shift moves
 
