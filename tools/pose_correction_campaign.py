@@ -13,6 +13,10 @@ resumed, or split over processes (each with its --piles) and tabulated by a last
 (the uncorrected report is kept too when it is there): the same flights before and after a change of the ground code.
 
 Both programs run as a user runs them (their command lines, in subprocesses).
+
+A flight whose true path reached a wall or the roof crashed (`sitl.world.clearance`): `fly` refuses to write it,
+and a kept flight flown before that check is found from its truth.json. Its row says so (`hit`) and it is left out
+of the means and the targets' counts; the table's "hit a wall" column counts such flights.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ import numpy as np
 from firmware_py.core.cli import ArgumentParser
 from firmware_py.core.storage import Storage
 from sitl.missions.rectangle import Mission
+from sitl.world.clearance import closest_approach, collision, f450_reach_m
 from sitl.world.shapes import make_shape
 from tools.doc_sections import write_section
 
@@ -139,10 +144,21 @@ def one(profile: str, pile: str, p_traj: int, seed: int, work: Path, reuse: bool
     run = work / f"{profile}-{pile.replace(':', '-')}-{p_traj}-{seed}"
     py = sys.executable
     flown = reuse and (run / "truth.json").is_file()
+    row = {"profile": profile, "pile": pile, "p_traj": p_traj, "seed": seed}
     if not flown:
-        subprocess.run([py, "-m", "sitl.cli", "fly", "--stockpile", stockpile or pile, "--p-traj", str(p_traj),
-                        *building.fly_args(), "--pose-error", profile, "--seed", str(seed), "--out", str(run),
-                        "--force", "--quiet"], check=True)
+        cmd = [py, "-m", "sitl.cli", "fly", "--stockpile", stockpile or pile, "--p-traj", str(p_traj),
+               *building.fly_args(), "--pose-error", profile, "--seed", str(seed), "--out", str(run), "--force",
+               "--quiet"]
+        done = subprocess.run(cmd, stderr=subprocess.PIPE, text=True)
+        if done.returncode != 0:
+            if "the vehicle hit" in done.stderr:
+                return {**row, "hit": done.stderr.strip().splitlines()[-1]}
+            sys.stderr.write(done.stderr)
+            raise subprocess.CalledProcessError(done.returncode, cmd)
+    truth = json.loads((run / "truth.json").read_text())
+    crash = kept_flight_crash(truth)
+    if crash is not None:
+        return {**row, "hit": crash}
     reps = {}
     for flag in ("--no-pose-correction", "--pose-correction"):
         rep = work / f"{run.name}{flag}"
@@ -152,27 +168,41 @@ def one(profile: str, pile: str, p_traj: int, seed: int, work: Path, reuse: bool
         subprocess.run([py, "-m", "ground.cli", "report", str(run), "--out", str(rep), "--no-plots", "--force",
                         "--quiet", flag], check=True, stdout=subprocess.DEVNULL)
         reps[flag] = json.loads((rep / "report.json").read_text())
-    truth = json.loads((run / "truth.json").read_text())
     pc = reps["--pose-correction"].get("pose_correction") or {}
     before, after = trajectory_rms_m(truth, pc)
-    return {"profile": profile, "pile": pile, "p_traj": p_traj, "seed": seed,
-            "ve_off": reps["--no-pose-correction"]["volume_error_pct"],
+    return {**row, "ve_off": reps["--no-pose-correction"]["volume_error_pct"],
             "ve_on": reps["--pose-correction"]["volume_error_pct"], "applied": bool(pc.get("applied")),
             "traj_before_m": before, "traj_after_m": after}
+
+
+def kept_flight_crash(truth: dict) -> str | None:
+    """Why a kept flight crashed (None: it kept clear of the walls and roof): truth.json's closest approach, or,
+    for a flight flown before `fly` recorded it, the approach of its true trajectory."""
+    storage = Storage.from_dict(truth["storage"])
+    traj = (truth.get("pose_error") or {}).get("trajectory")
+    if traj is None:
+        return None
+    approach = closest_approach(np.asarray(traj["t_s"]), np.asarray(traj["true_w_m"]), storage)
+    return collision(approach, f450_reach_m())
 
 
 def table(rows: list[dict]) -> str:
     lines = ["| pile | P_traj | profile | seeds | Ve, no pose error (%) | Ve uncorrected (%) | Ve corrected (%) | "
              f"applied | trajectory RMS before (m) | after (m) | Ve within {VE_TARGET_PP} pp | RMS after <= "
-             f"{TRAJ_TARGET_M * 100:.0f} cm |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             f"{TRAJ_TARGET_M * 100:.0f} cm | hit a wall |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for pile in dict.fromkeys(r["pile"] for r in rows):
         for p in sorted({r["p_traj"] for r in rows}):
-            ref = [r for r in rows if r["pile"] == pile and r["p_traj"] == p and r["profile"] == "none"]
+            ref = [r for r in rows if r["pile"] == pile and r["p_traj"] == p and r["profile"] == "none"
+                   and not r.get("hit")]
             ve_ref = statistics.fmean(r["ve_off"] for r in ref) if ref else float("nan")
             ref_seed = {r["seed"]: r["ve_off"] for r in ref}
             for prof in PROFILES:
-                rs = [r for r in rows if r["pile"] == pile and r["p_traj"] == p and r["profile"] == prof]
+                flew = [r for r in rows if r["pile"] == pile and r["p_traj"] == p and r["profile"] == prof]
+                rs = [r for r in flew if not r.get("hit")]  # a crash is no survey
+                hit = f"{len(flew) - len(rs)}/{len(flew)}"
                 if not rs:
+                    if flew:
+                        lines.append(f"| {pile} | {p} % | {prof} | 0 | {ve_ref:.2f} | | | | | | | | {hit} |")
                     continue
                 m = {k: statistics.fmean(r[k] for r in rs) for k in ("ve_off", "ve_on", "traj_before_m",
                                                                        "traj_after_m")}
@@ -182,7 +212,7 @@ def table(rows: list[dict]) -> str:
                 lines.append(f"| {pile} | {p} % | {prof} | {len(rs)} | {ve_ref:.2f} | {m['ve_off']:.2f} | "
                              f"{m['ve_on']:.2f} | {sum(r['applied'] for r in rs)}/{len(rs)} | "
                              f"{m['traj_before_m']:.2f} | {m['traj_after_m']:.2f} | {ve_ok}/{len(rs)} | "
-                             f"{rms_ok}/{len(rs)} |")
+                             f"{rms_ok}/{len(rs)} | {hit} |")
     return "\n".join(lines)
 
 
@@ -236,8 +266,9 @@ def main(argv: list[str] | None = None) -> int:
     text = (f"Mean over seeds {seeds} per row; {building.describe()}, payload firmware in the loop, no sensor "
             "noise; Ve (eq. 8) from `pilescan-ground report` with "
             "`--no-pose-correction` (uncorrected) and `--pose-correction` (corrected); trajectory RMS: 3-D position "
-            "of the estimate against the truth; the last two columns count the seeds meeting issue 15's targets "
-            "(Ve within 0.3 pp of the error-free flight's, trajectory RMS after <= 10 cm). Regenerated by "
+            "of the estimate against the truth; the next two columns count the seeds meeting issue 15's targets "
+            "(Ve within 0.3 pp of the error-free flight's, trajectory RMS after <= 10 cm), the last the flights whose "
+            "true path reached a wall or the roof (a crash: left out of the other columns). Regenerated by "
             f"`python -m tools.pose_correction_campaign {' '.join(sys.argv[1:] if argv is None else argv)}`."
             "\n\n" + table(rows))
     if args.write is not None:

@@ -73,6 +73,7 @@ from sitl.vehicle.jsbsim_plant import PlantConfig
 from sitl.vehicle.jsbsim_vehicle import JsbsimVehicle, VehicleConfig
 from sitl.vehicle.kinematic_vehicle import KinematicVehicle
 from sitl.world import stockpile as piles
+from sitl.world.clearance import closest_approach, collision, f450_reach_m
 from sitl.world.raycast import World
 
 VEHICLES = ("jsbsim", "kinematic")
@@ -320,6 +321,13 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
         traj = pose_error_truth(cfg, a[:, 0], a[:, 1:4], a[:, 4], a[:, 5:9], float(a[0, 0]), float(a[-1, 0]))
         traj[POSE_ERROR_KEY]["trajectory"]["clock"] = SIMULATOR_CLOCK
         truth.update(traj)
+        # A served flight is not stopped at a wall (a real one would be): the approach is kept and a crash said.
+        approach = closest_approach(a[:, 0], cfg.frame.ned_to_w(a[:, 1:4]), cfg.mission.storage)
+        truth["closest_approach"] = approach.to_dict() if approach is not None else None
+        crash = collision(approach, f450_reach_m())
+        if crash is not None:
+            log.warning("%s: a real flight would have ended there (the survey in %s is not one a vehicle could "
+                        "have flown)", crash, out)
         folder.staged(TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
     st = server.stats
     refused = ""

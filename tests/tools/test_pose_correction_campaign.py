@@ -9,6 +9,7 @@ import trimesh
 from tools.pose_correction_campaign import (
     Building,
     clock_offset_s,
+    kept_flight_crash,
     on_log_clock,
     own_pile,
     table,
@@ -38,7 +39,34 @@ def test_that_the_table_has_a_row_per_pile_and_profile_and_counts_seeds_against_
     text = table(rows)
     vio = next(line for line in text.splitlines() if "| vio |" in line)
     assert vio.startswith("| ridge:2 | 5 % | vio | 2 |")
-    assert vio.endswith("| 2/2 | 1/2 |")  # 0.3 vs 0.1 and 0.6 vs 0.5: both within 0.3 pp; one RMS <= 10 cm
+    assert vio.endswith("| 2/2 | 1/2 | 0/2 |")  # 0.3 vs 0.1 and 0.6 vs 0.5: both within 0.3 pp; one RMS <= 10 cm
+
+
+def test_that_a_flight_that_hit_a_wall_is_counted_as_a_crash_and_left_out_of_the_means_and_targets():
+    rows = [{"profile": prof, "pile": "1", "p_traj": 5, "seed": seed, "ve_off": off, "ve_on": on,
+             "applied": prof != "none", "traj_before_m": 0.5, "traj_after_m": after}
+            for prof, seed, off, on, after in [("none", 0, 0.0, 0.0, 0.0), ("none", 1, 0.0, 0.0, 0.0),
+                                               ("flow", 0, 6.0, 0.2, 0.05)]]
+    rows.append({"profile": "flow", "pile": "1", "p_traj": 5, "seed": 1, "hit": "the vehicle hit the wall y = W"})
+    flow = next(line for line in table(rows).splitlines() if "| flow |" in line)
+    assert flow.startswith("| 1 | 5 % | flow | 1 | 0.00 | 6.00 | 0.20 |")  # the crash's numbers are not there
+    assert flow.endswith("| 1/1 | 1/1 | 1/2 |")
+    rows[2] = {**rows[2], "hit": "the vehicle hit the roof"}
+    flow = next(line for line in table(rows).splitlines() if "| flow |" in line)
+    assert flow.startswith("| 1 | 5 % | flow | 0 |") and flow.endswith("| 2/2 |")
+
+
+def test_that_a_kept_flight_whose_true_path_left_the_building_is_found_from_its_truth():
+    t = np.arange(0.0, 10.0, 0.1)
+    path = np.column_stack([30 + 0 * t, 2.0 - 0.25 * t, 12 + 0 * t])  # drifts through the wall y = 0 at 8 s
+    truth = {"storage": {"length_m": 60.0, "width_m": 40.0, "height_m": 15.0},
+             "pose_error": {"trajectory": {"t_s": t.tolist(), "true_w_m": path.tolist()}}}
+    crash = kept_flight_crash(truth)
+    assert crash is not None and "the wall y = 0" in crash and "outside the building" in crash
+    path[:, 1] = 2.0  # two metres off the wall all the way: clear
+    truth["pose_error"]["trajectory"]["true_w_m"] = path.tolist()
+    assert kept_flight_crash(truth) is None
+    assert kept_flight_crash({**truth, "pose_error": None}) is None  # flown on the truth: the plan keeps clear
 
 
 def _served(offset_s: float) -> tuple[dict, np.ndarray, np.ndarray]:

@@ -6,6 +6,7 @@ import json
 import numpy as np
 import pytest
 
+from firmware_py.core.cli import RunFailure
 from firmware_py.core.samplelog import read_samplelog
 from firmware_py.core.storage import Storage
 from sitl.missions.rectangle import Mission
@@ -82,6 +83,18 @@ def test_that_a_flow_flight_that_would_climb_into_the_roof_is_refused(tmp_path):
     with pytest.raises(ValueError, match="roof"):
         fly(FlyConfig(mission=Mission(storage=Storage(30, 20, 10), p_traj=0.2, altitude_m=8.0), plant="ideal",
                       pose_error="flow"), tmp_path)
+
+
+def test_that_a_flight_whose_drift_takes_it_into_a_wall_is_a_crash_and_writes_no_survey(tmp_path):
+    # The paper's building at P_traj 5 %: the legs run 2 m from the long walls, and the `flow` estimate of seed 0
+    # drifts the true vehicle into the wall y = W near the end. A real flight ends there.
+    out = tmp_path / "run"
+    with pytest.raises(RunFailure, match=r"hit the wall y = W .*flow pose estimate"):
+        fly(FlyConfig(mission=Mission(p_traj=0.05), stockpile="1", plant="ideal", pose_error="flow", seed=0), out)
+    assert not (out / "truth.json").exists() and not (out / "samples.pslog").exists()
+    fly(FlyConfig(mission=Mission(p_traj=0.05), stockpile="1", plant="ideal", seed=0), out)  # on the truth: clear
+    approach = json.loads((out / "truth.json").read_text())["closest_approach"]
+    assert approach["surface"].startswith("the wall") and approach["distance_m"] == pytest.approx(2.0, abs=0.01)
 
 
 def test_that_a_bad_profile_is_one_clear_error():
