@@ -200,6 +200,25 @@ def check_clearance(mission: Mission, pile: piles.Stockpile,
                          f"({mission.min_clearance_m:g} m clearance needed)")
 
 
+def drift_warning(mission: Mission, pose_error: PoseErrorProfile) -> str | None:
+    """A warning when the estimate a vehicle flies on can drift further than its legs keep from the walls: the
+    profile's velocity scale and drift errors, as fractions of the distance flown, against the legs' distance
+    from the nearest wall less the vehicle's reach (a flight that reaches a wall fails, `sitl.world.clearance`)."""
+    p = pose_drift.profile_params(pose_error)
+    if p is None:
+        return None
+    s = mission.storage
+    margin = min(mission.p_traj * s.length_m, mission.p_traj * s.width_m)
+    path = mission.path_length_m()
+    drift = (p.scale_sigma_rel + p.drift_rel) * path
+    room = margin - f450_reach_m()
+    if drift <= room:
+        return None
+    return (f"the legs run {margin:.2f} m from the walls, and a {pose_error.value} estimate can drift "
+            f"{(p.scale_sigma_rel + p.drift_rel) * 100:.1f} % of the {path:.0f} m flown ({drift:.1f} m): the vehicle "
+            f"may reach a wall (a larger P_traj keeps it further off)")
+
+
 TRAJECTORY_RATE_HZ = 10.0
 """Rate of the true trajectory truth.json keeps with a pose-error profile."""
 
@@ -274,6 +293,9 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
     with reading_input("--stockpile"):
         pile = piles.resolve(cfg.stockpile, storage)
     check_clearance(cfg.mission, pile, cfg.pose_error)
+    drift = drift_warning(cfg.mission, cfg.pose_error)
+    if drift:
+        log.warning(drift)
     wf = cfg.servo_waveform()
     out_of_range = check_range(cfg.mission, RangeLimit(cfg.lidar.max_range_m, cfg.noise().returns, cfg.lidar.model),
                                wf, cfg.lever_arm_body_m)

@@ -97,6 +97,15 @@ def test_that_a_flight_whose_drift_takes_it_into_a_wall_is_a_crash_and_writes_no
     assert approach["surface"].startswith("the wall") and approach["distance_m"] == pytest.approx(2.0, abs=0.01)
 
 
+def test_that_a_drift_larger_than_the_room_to_the_walls_is_warned_before_the_flight():
+    from sitl.runners.fly import drift_warning
+    near = Mission(p_traj=0.05)  # legs 2 m from the long walls, a ~200 m loop
+    warning = drift_warning(near, PoseErrorProfile.FLOW)
+    assert warning is not None and "2.00 m from the walls" in warning and "P_traj" in warning
+    assert drift_warning(near, PoseErrorProfile.NONE) is None  # flown on the truth: the plan keeps clear
+    assert drift_warning(Mission(p_traj=0.2), PoseErrorProfile.FLOW) is None  # 8 m from the walls
+
+
 def test_that_a_bad_profile_is_one_clear_error():
     with pytest.raises(ValueError, match="none, flow, vio"):
         FlyConfig(mission=MISSION, pose_error="bogus")
