@@ -145,6 +145,9 @@ def one(profile: str, pile: str, p_traj: int, seed: int, work: Path, reuse: bool
     py = sys.executable
     flown = reuse and (run / "truth.json").is_file()
     row = {"profile": profile, "pile": pile, "p_traj": p_traj, "seed": seed}
+    crashed = work / f"{run.name}.crash"  # what `fly` said of a flight that crashed: --reuse does not fly it again
+    if reuse and not flown and crashed.is_file():
+        return {**row, "hit": crashed.read_text().strip()}
     if not flown:
         cmd = [py, "-m", "sitl.cli", "fly", "--stockpile", stockpile or pile, "--p-traj", str(p_traj),
                *building.fly_args(), "--pose-error", profile, "--seed", str(seed), "--out", str(run), "--force",
@@ -152,6 +155,7 @@ def one(profile: str, pile: str, p_traj: int, seed: int, work: Path, reuse: bool
         done = subprocess.run(cmd, stderr=subprocess.PIPE, text=True)
         if done.returncode != 0:
             if "the vehicle hit" in done.stderr:
+                crashed.write_text(done.stderr.strip().splitlines()[-1] + "\n")
                 return {**row, "hit": done.stderr.strip().splitlines()[-1]}
             sys.stderr.write(done.stderr)
             raise subprocess.CalledProcessError(done.returncode, cmd)
