@@ -839,8 +839,8 @@ def _height_again(b: Beams, x: np.ndarray, k: np.ndarray, f: np.ndarray, knots: 
     registration's own height kept: it solves the height with the position, and on a pile with a flat top the
     two trade (measured: a `vio` flight over pile 2 at P_traj 5 %, a +0.26 m block of height over 97 s that
     the crossings' misfit prefers by 0.03 cm, 0.17 m RMS of height error; solved again 0.07 m). Returns the
-    correction, the height's information and a note (None, None, None: the registration's height stands: no
-    floor kept, nothing significant, or refused as the first height would be)."""
+    correction, the height's information and a note; x as it was, None and None when the registration's
+    height stands (no floor kept, nothing significant, or refused as the first height would be)."""
     x_h = x.copy()
     x_h[:, 2] = 0.0
     p, _ = corrected_points(b, x_h, k, f)

@@ -159,6 +159,7 @@ def one(profile: str, pile: str, p_traj: int, seed: int, work: Path, reuse: bool
                 return {**row, "hit": done.stderr.strip().splitlines()[-1]}
             sys.stderr.write(done.stderr)
             raise subprocess.CalledProcessError(done.returncode, cmd)
+        crashed.unlink(missing_ok=True)  # flown again, and whole: an old crash no longer stands for it
     truth = json.loads((run / "truth.json").read_text())
     crash = kept_flight_crash(truth)
     if crash is not None:
