@@ -186,6 +186,8 @@ class PoseCorrection:
     gain_needed: float = 0.0
     notes: tuple[str, ...] = ()
     """What was left out and why (e.g. the height, when the floor seen is not consistent)."""
+    closest_wall: tuple[float, str, float] | None = None
+    """The corrected path's nearest approach to a wall or the roof: (signed distance m, the surface, t_s)."""
 
     def at(self, t_s: np.ndarray) -> np.ndarray:
         """(N, 4) the correction at times t_s (linear between knots, held beyond the ends)."""
@@ -223,7 +225,9 @@ class PoseCorrection:
                 "n_knots": len(self.knot_t_s), **self.size(), "unconstrained_s": self.unconstrained_s(),
                 "points_per_plane": dict(zip(PLANE_NAMES, self.points, strict=True)),
                 "rms_before_m": self.rms_before_m, "rms_after_m": self.rms_after_m, "noise_m": self.noise_m,
-                "gain": self.gain, "gain_needed": self.gain_needed, "notes": list(self.notes)}
+                "gain": self.gain, "gain_needed": self.gain_needed, "notes": list(self.notes),
+                "closest_wall": None if self.closest_wall is None else dict(
+                    zip(("distance_m", "surface", "t_s"), self.closest_wall, strict=True))}
 
 
 def _rms(x: np.ndarray) -> float:
@@ -1395,6 +1399,36 @@ def apply_pose_correction(samples: np.ndarray, corr: PoseCorrection, frame: Stor
         out[name] = samples[name] + d_ned[:, i]
     out["yaw_rad"] = np.angle(np.exp(1j * (samples["yaw_rad"].astype(float) - c[:, 3])))
     return out
+
+
+WALL_WARNING_M = 0.5
+"""A corrected path nearer a wall or the roof than this is warned about: the clearance the SITL's missions keep
+by default (a 450-class quadcopter reaches 0.35 m from its centre with its propellers)."""
+
+
+def with_closest_wall(corr: PoseCorrection, corrected: np.ndarray, frame: StorageFrame,
+                      storage: Storage) -> PoseCorrection:
+    """The correction with its corrected path's nearest approach to the walls and roof (`closest_wall`): the
+    logged estimate keeps the plan's distance from the walls, the corrected path is where the vehicle was."""
+    if not corr.applied or len(corrected) == 0:
+        return corr
+    path = frame.ned_to_w(np.column_stack([corrected["x_m"], corrected["y_m"], corrected["z_m"]]).astype(float))
+    near = storage.nearest_surface(path)
+    if near is None:
+        return corr
+    i, distance, surface = near
+    return replace(corr, closest_wall=(distance, surface, float(corrected["t_s"][i])))
+
+
+def wall_warning(corr: PoseCorrection) -> str | None:
+    """A warning when the corrected path came nearer a wall or the roof than WALL_WARNING_M, or None."""
+    if corr.closest_wall is None or corr.closest_wall[0] >= WALL_WARNING_M:
+        return None
+    distance, surface, t = corr.closest_wall
+    where = f"{-distance:.2f} m beyond {surface}" if distance < 0 else f"to {distance:.2f} m from {surface}"
+    return (f"the corrected flight path came {where} at t = {t:.0f} s: the vehicle flew that close to the building "
+            "on a drifting estimate (its propellers may have touched it); give the next flight more room from the "
+            "walls (a larger P_traj)")
 
 
 def describe(corr: PoseCorrection) -> str:

@@ -43,9 +43,10 @@ from ground.pointcloud import (
     structure_mask,
     structure_n_sigma,
 )
-from ground.pose_correction import PoseCorrection, apply_pose_correction, estimate_pose_correction
+from ground.pose_correction import PoseCorrection, apply_pose_correction, estimate_pose_correction, with_closest_wall
 from ground.pose_correction import describe as describe_pose
 from ground.pose_correction import unconstrained_warning as pose_unconstrained_warning
+from ground.pose_correction import wall_warning as pose_wall_warning
 from ground.self_calibration import MountEstimate, apply_mount, describe, estimate_mount
 from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
 from ground.smoothing import vertical_sigma_m
@@ -422,6 +423,7 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
         pose = estimate_pose_correction(corrected, lever, frame, storage, err.resolution_m, err.range_sigma_m,
                                         err.range_sigma_rel, err.angle_sigma_rad, _sweep_period_s(header), boresight)
         corrected = apply_pose_correction(corrected, pose, frame)
+        pose = with_closest_wall(pose, corrected, frame, storage)
     if corrected is samples and boresight == mount:  # nothing applied (a boresight alone leaves the samples)
         return replace(survey, mount=est, pose=pose)
     fixed = _survey(corrected, header, storage, frame, lever, opts, err, spikes, boresight)
@@ -547,7 +549,8 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
     if survey.mount is not None and survey.mount.any_applied:
         warnings.append(describe(survey.mount, header_boresight(log.header or {})))
     if survey.pose is not None and survey.pose.applied:
-        warnings += [w for w in (describe_pose(survey.pose), pose_unconstrained_warning(survey.pose)) if w]
+        warnings += [w for w in (describe_pose(survey.pose), pose_unconstrained_warning(survey.pose),
+                                 pose_wall_warning(survey.pose)) if w]
     warnings += site_mismatches(log.header or {}, opts.site)
     return warnings
 

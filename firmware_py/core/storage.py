@@ -10,6 +10,11 @@ import math
 import re
 from dataclasses import dataclass
 
+import numpy as np
+
+SURFACE_NAMES = ("the wall x = 0", "the wall x = L", "the wall y = 0", "the wall y = W", "the roof")
+"""`Storage.nearest_surface`'s names, in its order."""
+
 
 @dataclass(frozen=True)
 class Storage:
@@ -30,6 +35,20 @@ class Storage:
     @property
     def floor_area_m2(self) -> float:
         return self.length_m * self.width_m
+
+    def nearest_surface(self, points_w_m) -> tuple[int, float, str] | None:
+        """Of points in W ((N, 3), m), the one nearest a wall or the roof: (its index, its signed distance,
+        negative outside, the surface's name); None when no point is finite. The floor is left out: a vehicle
+        takes off from it and lands on it."""
+        p = np.asarray(points_w_m, dtype=float).reshape(-1, 3)
+        d = np.column_stack([p[:, 0], self.length_m - p[:, 0], p[:, 1], self.width_m - p[:, 1],
+                             self.height_m - p[:, 2]])
+        d[~np.isfinite(p).all(axis=1)] = np.inf
+        if not np.isfinite(d).any():
+            return None
+        i, j = np.unravel_index(int(np.argmin(d)), d.shape)
+        return int(i), float(d[i, j]), SURFACE_NAMES[j]
+
 
     def to_dict(self) -> dict:
         return {"length_m": self.length_m, "width_m": self.width_m, "height_m": self.height_m}

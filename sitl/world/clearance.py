@@ -56,21 +56,14 @@ class Approach:
         return {"distance_m": round(self.distance_m, 4), "surface": self.surface, "t_s": round(self.t_s, 3)}
 
 
-SURFACES = ("the wall x = 0", "the wall x = L", "the wall y = 0", "the wall y = W", "the roof")
-
-
 def closest_approach(t_s: np.ndarray, true_w_m: np.ndarray, storage: Storage) -> Approach | None:
     """The nearest approach of a true trajectory (storage frame W, (N, 3) m) to the walls and the roof (None:
     no finite position)."""
-    p = np.asarray(true_w_m, dtype=float)
-    ok = np.isfinite(p).all(axis=1)
-    if not ok.any():
+    near = storage.nearest_surface(true_w_m)
+    if near is None:
         return None
-    p, t = p[ok], np.asarray(t_s, dtype=float)[ok]
-    d = np.column_stack([p[:, 0], storage.length_m - p[:, 0], p[:, 1], storage.width_m - p[:, 1],
-                         storage.height_m - p[:, 2]])
-    i, j = np.unravel_index(int(np.argmin(d)), d.shape)
-    return Approach(float(d[i, j]), SURFACES[j], float(t[i]))
+    i, distance, surface = near
+    return Approach(distance, surface, float(np.asarray(t_s, dtype=float)[i]))
 
 
 def collision(approach: Approach | None, reach_m: float) -> str | None:

@@ -5,6 +5,7 @@ alone; a stretch the structure does not see is flagged, not invented; bad inputs
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -392,3 +393,31 @@ def test_that_a_height_solved_in_the_frame_before_the_registration_is_solved_aga
     assert info is not None and info.shape == (len(knots),)
     np.testing.assert_allclose(fixed[:, Component.Z.value], 0.0, atol=0.01)
     np.testing.assert_array_equal(fixed[:, [0, 1, 3]], x[:, [0, 1, 3]])
+
+
+def test_that_a_corrected_path_that_came_near_a_wall_is_measured_and_warned_about():
+    # The logged estimate keeps the plan's 2 m from the wall y = 0; the correction moves the path 1.9 m towards it
+    # (a `flow` flight at P_traj 5 %: the true vehicle went there). The report says how near, where and when.
+    from ground.pose_correction import WALL_WARNING_M, PoseCorrection, wall_warning, with_closest_wall
+    t = np.arange(0.0, 100.0, 0.5)
+    s = new_records(len(t))
+    s["t_s"] = t
+    logged_w = np.column_stack([5.0 + 0.5 * t, np.full(len(t), 2.0), np.full(len(t), 12.0)])
+    for name, col in zip(("x_m", "y_m", "z_m"), FRAME.w_to_ned(logged_w).T, strict=True):
+        s[name] = col
+    knots = np.array([0.0, 50.0, 100.0])
+    values = np.zeros((3, 4))
+    values[1:, 1] = [-1.9, -1.9]  # from 50 s on, 1.9 m nearer the wall y = 0
+    corr = PoseCorrection(knots, values, np.ones((3, 4), dtype=bool), True)
+    near = with_closest_wall(corr, apply_pose_correction(s, corr, FRAME), FRAME, STORAGE)
+    distance, surface, t_near = near.closest_wall
+    assert surface == "the wall y = 0" and distance == pytest.approx(0.1, abs=1e-6) and t_near >= 50.0
+    assert near.as_dict()["closest_wall"]["surface"] == "the wall y = 0"
+    warning = wall_warning(near)
+    assert warning is not None and "to 0.10 m from the wall y = 0" in warning
+    values[1:, 1] = [-1.0, -1.0]  # 1 m from the wall: clear of WALL_WARNING_M
+    clear = with_closest_wall(replace(corr, values=values), apply_pose_correction(s, replace(corr, values=values),
+                                                                                  FRAME), FRAME, STORAGE)
+    assert clear.closest_wall[0] > WALL_WARNING_M and wall_warning(clear) is None
+    not_applied = replace(corr, applied=False)
+    assert with_closest_wall(not_applied, s, FRAME, STORAGE).closest_wall is None  # the logged path: the plan's
