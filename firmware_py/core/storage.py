@@ -49,7 +49,6 @@ class Storage:
         i, j = np.unravel_index(int(np.argmin(d)), d.shape)
         return int(i), float(d[i, j]), SURFACE_NAMES[j]
 
-
     def to_dict(self) -> dict:
         return {"length_m": self.length_m, "width_m": self.width_m, "height_m": self.height_m}
 

@@ -4,7 +4,7 @@ The autopilot flies on its estimate (`sitl.sensing.pose_drift`), so an estimate 
 vehicle a metre off the planned path; near a wall that is a collision, which a real flight does not survive
 and the physics here would not stop. `closest_approach` finds the nearest approach to the four walls and the
 roof over the true trajectory; `fly` refuses to write a survey whose vehicle reached a surface
-(`VEHICLE_REACH_M`) and records the approach in truth.json. The floor is left out: the vehicle takes off from
+(within `f450_reach_m`) and records the approach in truth.json. The floor is left out: the vehicle takes off from
 it and lands on it.
 """
 
@@ -21,6 +21,8 @@ import numpy as np
 from firmware_py.core.storage import Storage
 
 INCH_M = 0.0254
+UNIT_M = {"M": 1.0, "IN": INCH_M, "FT": 12 * INCH_M}
+"""JSBSim's length units, in metres."""
 
 
 @cache
@@ -33,11 +35,9 @@ def f450_reach_m() -> float:
     reach = 0.0
     for thruster in ET.parse(root / "aircraft" / "F450" / "Propulsion.xml").getroot().iter("thruster"):
         loc = thruster.find("location")
-        unit = loc.get("unit", "M").upper()
-        scale = {"M": 1.0, "IN": INCH_M, "FT": 12 * INCH_M}[unit]
-        hub = math.hypot(float(loc.findtext("x")), float(loc.findtext("y"))) * scale
+        hub = math.hypot(float(loc.findtext("x")), float(loc.findtext("y"))) * UNIT_M[loc.get("unit", "M").upper()]
         prop = ET.parse(root / "engine" / f"{thruster.get('file')}.xml").getroot().find("diameter")
-        dia = float(prop.text) * {"M": 1.0, "IN": INCH_M, "FT": 12 * INCH_M}[prop.get("unit", "IN").upper()]
+        dia = float(prop.text) * UNIT_M[prop.get("unit", "IN").upper()]
         reach = max(reach, hub + dia / 2.0)
     if not reach > 0:
         raise RuntimeError("the F450 model shipped with jsbsim declares no thruster")
