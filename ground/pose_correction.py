@@ -650,12 +650,10 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                                                                               str | None]:
             """The height correction on this floor (shift: the screen's, when it dropped most of the vote's
             floor), its information, and why it was refused (None: not refused)."""
-            z = z_info = None
-            for _ in range(SLOPE_ROUNDS):  # the cells' slopes from the heights corrected so far (module docstring)
-                z, z_info = vertical_from_crossings(p1, b.t_s, knots, wall, floor, storage, cell_m, step[2], noise,
-                                                    opts.max_position_error_m, opts.n_significant, z)
-                if z is None:
-                    return None, None, None
+            z, z_info = height_rounds(p1, b.t_s, knots, wall, floor, storage, cell_m, step[2], noise,
+                                      opts.max_position_error_m, opts.n_significant)
+            if z is None:
+                return None, None, None
             if shift is not None:
                 z = shift  # most of the vote's floor was a flat pile top: the crossings, at the floor's level
             refused = height_refused(z, knots, step[2], opts.n_significant, opts.max_vertical_error_m)
@@ -851,18 +849,28 @@ def _height_again(b: Beams, x: np.ndarray, k: np.ndarray, f: np.ndarray, knots: 
     kept, _, _, _ = _screen(p, b.t_s, knots, wall, voted, storage, cell_m, step_z_m, noise, sensor_m, max_error_m)
     if not kept.any():
         return x, None, None
-    z = z_info = None
-    for _ in range(SLOPE_ROUNDS):
-        z, z_info = vertical_from_crossings(p, b.t_s, knots, wall, kept, storage, cell_m, step_z_m, noise,
-                                            max_error_m, n_significant, z)
-        if z is None:
-            return x, None, None
-    if height_refused(z, knots, step_z_m, n_significant, max_vertical_error_m) is not None:
+    z, z_info = height_rounds(p, b.t_s, knots, wall, kept, storage, cell_m, step_z_m, noise, max_error_m,
+                              n_significant)
+    if z is None or height_refused(z, knots, step_z_m, n_significant, max_vertical_error_m) is not None:
         return x, None, None
     change = _rms(z - x[:, 2])
     x_h[:, 2] = z
     return x_h, z_info, (f"the height solved again on the floor once the pile seen at different times aligned the "
                          f"flight ({change:.2f} m RMS change)")
+
+
+def height_rounds(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, floor: np.ndarray,
+                  storage: Storage, cell_m: float, step_z_m: float, noise_m: float, max_error_m: float,
+                  n_significant: float) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """`vertical_from_crossings` SLOPE_ROUNDS times, each with the cells' slopes from the heights corrected so
+    far (module docstring); (None, None) when a round finds nothing significant."""
+    z = z_info = None
+    for _ in range(SLOPE_ROUNDS):
+        z, z_info = vertical_from_crossings(p, t, knots, wall, floor, storage, cell_m, step_z_m, noise_m,
+                                            max_error_m, n_significant, z)
+        if z is None:
+            return None, None
+    return z, z_info
 
 
 def height_refused(z: np.ndarray, knots: np.ndarray, step_z_m: float, n_significant: float,

@@ -181,8 +181,9 @@ def one(profile: str, pile: str, p_traj: int, seed: int, work: Path, reuse: bool
 
 
 def kept_flight_crash(truth: dict) -> str | None:
-    """Why a kept flight crashed (None: it kept clear of the walls and roof): truth.json's closest approach, or,
-    for a flight flown before `fly` recorded it, the approach of its true trajectory."""
+    """Why a kept flight crashed (None: it kept clear of the walls and roof), from the true trajectory its
+    truth.json keeps (a flight flown before `fly` checked its approach has no `closest_approach`; one flown
+    after it cannot have crashed, `fly` refuses to write it). A flight on the truth has no trajectory: None."""
     storage = Storage.from_dict(truth["storage"])
     traj = (truth.get("pose_error") or {}).get("trajectory")
     if traj is None:
