@@ -110,13 +110,12 @@ def build_parser() -> ArgumentParser:
                    help="do not estimate the servo's zero and scale and the LiDAR's boresight from the floor and "
                         "walls (default: estimate them, apply those that are significant, and say so)")
     pc = r.add_mutually_exclusive_group()
-    pc.add_argument("--pose-correction", dest="pose_correction", action="store_true", default=False,
-                    help="correct the logged trajectory from the building: the horizontal position from the walls, "
-                         "the height from the floor and the pile seen at different times, applied when significant "
-                         "and said in the report (ground/pose_correction.py). Off by default: where a pile hides the "
-                         "floor (the paper's pile 2) a flat pile top can pass for it; see docs/pose_error.md")
+    pc.add_argument("--pose-correction", dest="pose_correction", action="store_true", default=True,
+                    help="correct the logged trajectory from the building (the default): the horizontal position "
+                         "and heading from the walls, the height from the floor and the pile seen at different times, "
+                         "applied only when significant and said in the report (see docs/pose_error.md)")
     pc.add_argument("--no-pose-correction", dest="pose_correction", action="store_false",
-                    help="do not correct the trajectory (the default)")
+                    help="take the logged trajectory as it is (a pose from motion capture or RTK, or to compare)")
     r.add_argument("--max-grid-memory-mb", type=finite_float, default=DEFAULT_MAX_GRID_MEMORY_BYTES / 2**20,
                    metavar="MB", help="refuse a --cell whose grid would need more memory than this (default "
                                       f"{DEFAULT_MAX_GRID_MEMORY_BYTES // 2**20} MiB)")

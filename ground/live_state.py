@@ -71,8 +71,10 @@ RATE_WINDOW_S = 3.0
 """The record rate is taken over this much of the recent past."""
 UNVOUCHED_POSE = SampleFlags.NO_POSE | SampleFlags.STALE_POSE
 """Records with these flags are left off the track (their position is zero or old)."""
-LIVE_REPORT_OPTIONS = ReportOptions(plots=False, self_calibration=False, servo_retiming=False)
-"""The report's computation for the running volume, less its two slow estimates (docs/design-notes.md)."""
+LIVE_REPORT_OPTIONS = ReportOptions(plots=False, self_calibration=False, servo_retiming=False,
+                                    pose_correction=False)
+"""The report's computation for the running volume, less its slow estimates (the mount, the servo timing, the
+pose correction: seconds each, on a survey not yet finished; the report after the flight makes them)."""
 
 
 class VolumeState(Enum):

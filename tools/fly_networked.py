@@ -125,7 +125,8 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
                   signing_key: Path | None = None, rangefinder: str = "lidarlite-v3",
                   serve_args: list[str] | None = None, site_args: list[str] | tuple[str, ...] = (),
                   payload_args: list[str] | tuple[str, ...] = (), report: bool = True) -> NetworkedRun:
-    """Run the three programs for one survey; the run directory gets samples.pslog and a report.
+    """Run the three programs for one survey; the run directory gets samples.pslog and a report (the log as
+    logged: without the pose correction, which `main` makes as a second report where the pose drifts).
 
     With flight_s, stop the payload (SIGTERM) that long after AUTO instead of waiting for the landing.
     With signing_key (a key file), all three sign their MAVLink and the device bridge asks for the key.
@@ -180,7 +181,7 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
     if not report:
         return NetworkedRun(out, None, wall, code)
     try:
-        rep = make_report(out, out / "report", ReportOptions(plots=False), force=True)
+        rep = make_report(out, out / "report", ReportOptions(plots=False, pose_correction=False), force=True)
     except NoVolumeError as exc:  # e.g. a flight of a few seconds: every sweep on one line
         say(f"no report: {exc}")
         return NetworkedRun(out, None, wall, code, no_volume=str(exc))
@@ -279,8 +280,8 @@ def main(argv: list[str] | None = None) -> int:
                                                    parse_heading_deg(args.heading) if args.heading else None,
                                                    DEFAULT_SITE))
         fly(cfg, args.out / "lockstep", force=True)
-        lock = make_report(args.out / "lockstep", args.out / "lockstep" / "report", ReportOptions(plots=False),
-                           force=True)
+        lock = make_report(args.out / "lockstep", args.out / "lockstep" / "report",
+                           ReportOptions(plots=False, pose_correction=False), force=True)
         diff = 100.0 * (v_net - lock["volume_m3"]) / lock["volume_m3"]
         print(f"lockstep:  {lock['volume_m3']:,.1f} m^3, Ve {lock['volume_error_pct']:.3f} %, "
               f"{lock['n_samples']:,} samples")

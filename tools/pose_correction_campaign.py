@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from firmware_py.core.cli import ArgumentParser
+from firmware_py.core.sensor_noise import SensorNoiseModel
 from firmware_py.core.storage import Storage
 from sitl.missions.rectangle import Mission
 from sitl.world.clearance import closest_approach, collision, f450_reach_m
@@ -139,9 +140,11 @@ def own_pile(spec: str, building: Building, work: Path) -> tuple[str, str]:
 
 
 def one(profile: str, pile: str, p_traj: int, seed: int, work: Path, reuse: bool = False,
-        building: Building = Building(), stockpile: str | None = None) -> dict:
+        building: Building = Building(), stockpile: str | None = None,
+        sensor_noise: SensorNoiseModel = SensorNoiseModel.NONE) -> dict:
     """One flight (`stockpile`: the --stockpile argument, default the pile's name) and its two reports."""
-    run = work / f"{profile}-{pile.replace(':', '-')}-{p_traj}-{seed}"
+    noisy = sensor_noise is not SensorNoiseModel.NONE
+    run = work / (f"{profile}-{pile.replace(':', '-')}-{p_traj}-{seed}" + (f"-{sensor_noise.value}" if noisy else ""))
     py = sys.executable
     flown = reuse and (run / "truth.json").is_file()
     row = {"profile": profile, "pile": pile, "p_traj": p_traj, "seed": seed}
@@ -151,7 +154,7 @@ def one(profile: str, pile: str, p_traj: int, seed: int, work: Path, reuse: bool
     if not flown:
         cmd = [py, "-m", "sitl.cli", "fly", "--stockpile", stockpile or pile, "--p-traj", str(p_traj),
                *building.fly_args(), "--pose-error", profile, "--seed", str(seed), "--out", str(run), "--force",
-               "--quiet"]
+               "--quiet", *(["--sensor-noise", sensor_noise.value] if noisy else [])]
         done = subprocess.run(cmd, stderr=subprocess.PIPE, text=True)
         if done.returncode != 0:
             if "the vehicle hit" in done.stderr:
@@ -237,6 +240,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--own-piles", nargs="+", default=None, metavar="FAMILY:SEED",
                     help="fly these generated piles (sitl.world.shapes, their top 2 m under the flight) "
                     "instead of the paper's (e.g. cone:1 ridge:2)")
+    ap.add_argument("--sensor-noise", type=SensorNoiseModel, default=SensorNoiseModel.NONE,
+                    choices=list(SensorNoiseModel),
+                    help="the flights' sensor noise (fly's --sensor-noise; default none)")
     ap.add_argument("--section", default=SECTION, help=f"the page's section to rewrite (default {SECTION})")
     args = ap.parse_args(argv)
     building = Building(args.storage, args.altitude)
@@ -263,14 +269,17 @@ def main(argv: list[str] | None = None) -> int:
                     for seed in args.seeds:
                         if (prof, pile, p, seed) in done:
                             continue
-                        rows.append(one(prof, pile, p, seed, work, args.reuse, building, stockpile))
+                        rows.append(one(prof, pile, p, seed, work, args.reuse, building, stockpile,
+                                        args.sensor_noise))
                         print(json.dumps(rows[-1]), flush=True)
                         if args.rows:
                             with args.rows[0].open("a") as out:
                                 out.write(json.dumps(rows[-1]) + "\n")
     seeds = " ".join(map(str, sorted({r["seed"] for r in rows})))
-    text = (f"Mean over seeds {seeds} per row; {building.describe()}, payload firmware in the loop, no sensor "
-            "noise; Ve (eq. 8) from `pilescan-ground report` with "
+    noise = ("no sensor noise" if args.sensor_noise is SensorNoiseModel.NONE
+             else f"sensor noise `{args.sensor_noise.value}`")
+    text = (f"Mean over seeds {seeds} per row; {building.describe()}, payload firmware in the loop, {noise}; "
+            "Ve (eq. 8) from `pilescan-ground report` with "
             "`--no-pose-correction` (uncorrected) and `--pose-correction` (corrected); trajectory RMS: 3-D position "
             "of the estimate against the truth; the next two columns count the seeds meeting issue 15's targets "
             "(Ve within 0.3 pp of the error-free flight's, trajectory RMS after <= 10 cm), the last the flights whose "
