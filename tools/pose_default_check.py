@@ -7,11 +7,15 @@ on by default meets every pile, building and sensor: this runs it on a slice of 
 the truth) and counts where it applied itself and what that did to Ve, with the survey's time with and without.
 
     python -m tools.pose_default_check --jobs 2 --write docs/pose_error.md
+
+The runs are kept under --root (runs/pose-default) and reused; each survey pair is cached by the run and a digest
+of the ground station's source, so a change to the correction computes them again.
 """
 
 from __future__ import annotations
 
 import functools
+import hashlib
 import statistics
 import sys
 import time
@@ -40,9 +44,20 @@ SECTION = "pose-correction-default-check"
 DEFAULT_ROOT = Path("runs/pose-default")
 P_TRAJ_PCT = (5, 20, 35)
 CHECK_VERSION = "3"
-"""Part of every check's cache key: bump it when the correction changes (its rows are then computed again).
-2: the pointing and position noise the header states are in the correction's noise floor. 3: the position's
-also in its noise level (the significance and the "too small to matter" test)."""
+"""Part of every check's cache key, with the ground station's own source (`ground_source_key`): bump it when what
+a check computes changes. 2: the pointing and position noise the header states are in the correction's noise
+floor. 3: the position's also in its noise level (the significance and the "too small to matter" test)."""
+
+
+def ground_source_key() -> str:
+    """A digest of the ground station's source: a check cached before the correction (or anything it sits on)
+    changed is computed again, not read back as if it were today's."""
+    import ground
+
+    digest = hashlib.sha256()
+    for path in sorted(Path(ground.__file__).parent.rglob("*.py")):
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
 
 
 def check_run(case: Case, root: Path) -> list[dict]:
@@ -130,7 +145,9 @@ def main(argv: list[str] | None = None) -> int:
     cases = cases_for(instances(), p_traj_pct=tuple(args.p_traj), phases=args.phases)
     run_sweep(cases, functools.partial(run_case, root=args.root, flight_cache=args.flight_cache), args.root / "cases",
               jobs=args.jobs, progress=not args.no_progress, desc="flights")
-    checks = [Case.make("posecheck", run=run_id(instance_of(c), c.get("p_traj_pct"), k, n), version=CHECK_VERSION)
+    source = ground_source_key()
+    checks = [Case.make("posecheck", run=run_id(instance_of(c), c.get("p_traj_pct"), k, n), version=CHECK_VERSION,
+                        ground=source)
               for c in cases for k in phases_of(c) for n in NOISES]
     rows = run_sweep(checks, functools.partial(check_run, root=args.root), args.root / "checks", jobs=args.jobs,
                      progress=not args.no_progress, desc="surveys")

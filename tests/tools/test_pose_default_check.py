@@ -6,7 +6,7 @@ from __future__ import annotations
 import tools.evalset as evalset
 from firmware_py.core.sensor_noise import SensorNoiseModel
 from sitl.world.shapes import Family
-from tools.pose_default_check import CHECK_VERSION, applied_rows, check_run, delta_pp, table
+from tools.pose_default_check import CHECK_VERSION, applied_rows, check_run, delta_pp, ground_source_key, table
 from tools.sweep import Case
 
 
@@ -43,3 +43,17 @@ def test_that_the_table_counts_the_runs_it_applied_itself_to_and_their_largest_c
     listed = applied_rows(rows)
     assert "| bad | 0.00 | 33.00 | why |" in listed
     assert applied_rows(rows[:1]) == "It applied itself to none of them."
+
+
+def test_that_the_checks_cache_key_follows_the_ground_stations_source(tmp_path, monkeypatch):
+    import ground
+    key = ground_source_key()
+    assert key == ground_source_key() and len(key) == 16
+    fake = tmp_path / "ground"
+    fake.mkdir()
+    (fake / "__init__.py").write_text("")
+    (fake / "pose_correction.py").write_text("X = 1\n")
+    monkeypatch.setattr(ground, "__file__", str(fake / "__init__.py"))
+    before = ground_source_key()
+    (fake / "pose_correction.py").write_text("X = 2\n")
+    assert ground_source_key() != before != key
