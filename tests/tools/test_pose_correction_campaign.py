@@ -124,3 +124,23 @@ def test_that_rows_already_computed_are_said_to_be_taken_as_they_are_when_flight
     err = capsys.readouterr().err
     assert "3 row(s) read from" in err and "not reported again" in err and "leave out --rows" in err
     assert not any((tmp_path / "runs").iterdir())  # nothing flown, nothing reported
+
+
+def test_that_a_noisy_campaign_flies_with_the_sensor_noise_into_folders_of_its_own(tmp_path: Path, monkeypatch):
+    import subprocess
+
+    from firmware_py.core.sensor_noise import SensorNoiseModel
+    from tools.pose_correction_campaign import one
+    flown = []
+
+    def crash(cmd, **kwargs):  # every flight "hits a wall": no report is made, and the command is what is asked
+        flown.append(cmd)
+        return subprocess.CompletedProcess(cmd, 4, "", "fly: the vehicle hit the wall x = 0 at 12.0 s\n")
+    monkeypatch.setattr(subprocess, "run", crash)
+    row = one("vio", "1", 20, 3, tmp_path, sensor_noise=SensorNoiseModel.APPENDIX_A)
+    assert row["hit"].startswith("fly: the vehicle hit")
+    cmd = flown[-1]
+    assert cmd[cmd.index("--sensor-noise") + 1] == "appendix-a"
+    assert cmd[cmd.index("--out") + 1] == str(tmp_path / "vio-1-20-3-appendix-a")
+    one("vio", "1", 20, 3, tmp_path)  # no noise: the folder and the command are the noise-free campaign's
+    assert "--sensor-noise" not in flown[-1] and flown[-1][flown[-1].index("--out") + 1] == str(tmp_path / "vio-1-20-3")
