@@ -1418,13 +1418,13 @@ def _weighted_solver(a: sparse.csr_matrix, rhs: np.ndarray):
     (the rest), and no row holds two cells, so the normal equations' cell block is diagonal: the cells are
     eliminated (a Schur complement) and the knots solved densely. Exact, and 3-5x faster than a general sparse
     solve on a flight's ~1,000 unknowns (measured: 5-8 ms a solve, 20 solves a robust fit)."""
+    def general(w: np.ndarray) -> np.ndarray:
+        aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
+        return spsolve((aw.T @ aw).tocsc(), aw.T @ (np.sqrt(w) * rhs))
     lead = _coupled_columns(a)
     m, n = a.shape
     cells = a[:, lead:].tocoo()
-    if lead > n // 2 or len(np.unique(cells.row)) != len(cells.row):  # no such structure: a general solve
-        def general(w: np.ndarray) -> np.ndarray:
-            aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
-            return spsolve((aw.T @ aw).tocsc(), aw.T @ (np.sqrt(w) * rhs))
+    if lead > n // 2:  # no such structure
         return general
     a_k = a[:, :lead].tocsr()
     row, col, val = cells.row, cells.col, cells.data
@@ -1434,9 +1434,8 @@ def _weighted_solver(a: sparse.csr_matrix, rhs: np.ndarray):
         wv = w[row] * val
         d = np.bincount(col, weights=wv * val, minlength=n_c)
         b_c = np.bincount(col, weights=wv * rhs[row], minlength=n_c)
-        if not np.all(d > 0):  # a cell without a row: not this structure after all
-            aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
-            return spsolve((aw.T @ aw).tocsc(), aw.T @ (np.sqrt(w) * rhs))
+        if not np.all(d > 0):  # a cell without a row of weight: not this structure after all
+            return general(w)
         if lead == 0:
             return b_c / d
         g = (a_k.T @ sparse.csr_matrix((wv, (row, col)), shape=(m, n_c))).tocsr()  # knots x cells

@@ -220,9 +220,9 @@ def main(argv: list[str] | None = None) -> int:
         + f" (piles {', '.join(piles)}, "
         f"servo start positions 0-{max(args.phases - 1, 0)}, seeds {seeds[0]}-{seeds[-1]}); the largest change of Ve "
         f"the calibration made on them: {worst:.3f} pp. Parameters held as not observable on any of these "
-        f"flights: {', '.join(held) if held else 'none'}. What self-calibration adds to a report (with minus "
-        f"without, this machine): median {cost:.2f} s on the fault-free flights, at most {cost_fixed:.2f} s where "
-        "a correction was applied (the survey is then computed again).",
+        f"flights: {', '.join(held) if held else 'none'}. What the self-calibration and the pose correction add "
+        f"to a report (the default minus neither, this machine): median {cost:.2f} s on the fault-free flights, at "
+        f"most {cost_fixed:.2f} s where a correction was applied (the survey is then computed again).",
     ])
     print(text.split("\n")[-1])
     if args.write is not None:

@@ -481,3 +481,28 @@ def test_that_a_corrected_path_that_came_near_a_wall_is_measured_and_warned_abou
     assert clear.closest_wall[0] > WALL_WARNING_M and wall_warning(clear) is None
     not_applied = replace(corr, applied=False)
     assert with_closest_wall(not_applied, s, FRAME, STORAGE).closest_wall is None  # the logged path: the plan's
+
+
+def test_that_the_robust_fits_solve_is_the_general_sparse_solution_with_or_without_cells_to_eliminate():
+    from scipy import sparse
+    from scipy.sparse.linalg import spsolve
+
+    from ground.pose_correction import _coupled_columns, _weighted_solver
+    rng = np.random.default_rng(3)
+    n_knots, n_cells, m = 12, 200, 900
+    knot = rng.integers(0, n_knots - 1, m)
+    cell = rng.integers(0, n_cells, m)
+    rows = np.repeat(np.arange(m), 3)
+    cols = np.column_stack([knot, knot + 1, n_knots + cell]).ravel()
+    obs = sparse.csr_matrix((rng.normal(size=3 * m), (rows, cols)), shape=(m, n_knots + n_cells))
+    structured = sparse.vstack([obs, sparse.identity(n_knots + n_cells)], format="csr")  # a prior on every one
+    n = n_knots + n_cells  # a row holding two cells (the last two): no diagonal block left to eliminate
+    tangled = sparse.vstack([structured, sparse.csr_matrix(([1.0, -1.0], ([0, 0], [n - 2, n - 1])), shape=(1, n))],
+                            format="csr")
+    assert _coupled_columns(structured) == n_knots and _coupled_columns(tangled) == n - 1
+    for a in (structured, tangled):
+        rhs = rng.normal(size=a.shape[0])
+        w = rng.uniform(0.1, 1.0, a.shape[0])
+        aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
+        want = spsolve((aw.T @ aw).tocsc(), aw.T @ (np.sqrt(w) * rhs))
+        assert np.allclose(_weighted_solver(a, rhs)(w), want, atol=1e-9)
