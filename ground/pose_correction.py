@@ -1423,9 +1423,9 @@ def _weighted_solver(a: sparse.csr_matrix, rhs: np.ndarray):
         return spsolve((aw.T @ aw).tocsc(), aw.T @ (np.sqrt(w) * rhs))
     lead = _coupled_columns(a)
     m, n = a.shape
-    cells = a[:, lead:].tocoo()
     if lead > n // 2:  # no such structure
         return general
+    cells = a[:, lead:].tocoo()
     a_k = a[:, :lead].tocsr()
     row, col, val = cells.row, cells.col, cells.data
     n_c = n - lead
