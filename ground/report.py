@@ -6,6 +6,7 @@ import json
 import math
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -381,10 +382,17 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     samples = without_implausible(samples, found)
     checked = {"implausible": found.counts(),
                "despike_unavailable": why_no_threshold(header) if opts.despike and spikes is None else None}
-    survey = replace(_survey(samples, header, storage, frame, lever, opts, err, spikes, mount), **checked)
-    before = survey.sweep_disagreement_m
-    if not (opts.servo_retiming and before is not None and before > MAX_SWEEP_DISAGREEMENT_M):
-        return _self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes, mount)
+    # The building's estimates of the mount and the pose need the samples, not the survey: they run beside it, on the
+    # second core (a report 1.2 -> 0.9 s; docs/design-notes.md). Used only when the servo is not re-timed, which
+    # changes the samples they were made from.
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        ahead = pool.submit(_first_estimates, samples, header, storage, frame, lever, opts, err, mount)
+        survey = replace(_survey(samples, header, storage, frame, lever, opts, err, spikes, mount), **checked)
+        before = survey.sweep_disagreement_m
+        retime = opts.servo_retiming and before is not None and before > MAX_SWEEP_DISAGREEMENT_M
+        first = None if retime else ahead.result()
+    if first is not None:
+        return _self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes, mount, first)
 
     def disagreement(s: np.ndarray) -> float | None:  # the survey's cloud, less the stuck-servo check (range-only)
         cloud = cloud_from_samples(s, lever, frame, spike_threshold=spikes, boresight=mount)
@@ -403,33 +411,59 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     return _self_calibrated(fixed, retimed, header, storage, frame, lever, opts, err, spikes, mount)
 
 
+@dataclass(frozen=True)
+class _Estimates:
+    """The mount the building says (None: not asked), the samples and boresight it leaves, and the pose's
+    correction estimated on them (None: not asked; not yet applied)."""
+
+    mount: MountEstimate | None
+    samples: np.ndarray
+    boresight: Boresight
+    pose: PoseCorrection | None
+
+
+def _mount_of(s: np.ndarray, lever: np.ndarray, frame: StorageFrame, storage: Storage, err: SensorErrorModel,
+              resim: Resimulated | None, mount: Boresight) -> MountEstimate:
+    usable = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
+    return estimate_mount(usable, lever, frame, storage, err.range_sigma_m, err.range_sigma_rel, resim, mount)
+
+
+def _pose_of(s: np.ndarray, bs: Boresight, header: dict, lever: np.ndarray, frame: StorageFrame, storage: Storage,
+             err: SensorErrorModel) -> PoseCorrection:
+    return estimate_pose_correction(s, lever, frame, storage, err.resolution_m, err.range_sigma_m,
+                                    err.range_sigma_rel, err.angle_sigma_rad, _sweep_period_s(header), bs,
+                                    position_sigma_m=err.position_sigma_m)
+
+
+def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame, lever: np.ndarray,
+                     opts: ReportOptions, err: SensorErrorModel, mount: Boresight) -> _Estimates:
+    """The mount's self-calibration, then the pose's correction with the mount it leaves. The mount before the
+    pose: a constant mount error is partly a constant shift of the structure, which the pose's knots took up
+    when they came first (measured: docs/pose_error.md)."""
+    est, corrected, boresight, pose = None, samples, mount, None
+    if opts.self_calibration:
+        resim = Resimulated.from_header(header)
+        est = _mount_of(samples, lever, frame, storage, err, resim, mount)
+        if est.any_applied:
+            corrected, boresight = apply_mount(samples, est, resim, mount)
+    if opts.pose_correction:
+        pose = _pose_of(corrected, boresight, header, lever, frame, storage, err)
+    return _Estimates(est, corrected, boresight, pose)
+
+
 def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
                      lever: np.ndarray, opts: ReportOptions, err: SensorErrorModel,
-                     spikes: SpikeThreshold | None, mount: Boresight) -> Survey:
+                     spikes: SpikeThreshold | None, mount: Boresight, first: _Estimates | None = None) -> Survey:
     """The survey again with the mount the building says (ground.self_calibration), when that is
     significant, and then with the trajectory's correction from the building (ground.pose_correction);
     else the survey as it was, with what was found. After the servo re-timing: a late or slow servo
-    makes the sweep directions disagree, a mis-mounted one does not. The mount before the pose: a
-    constant mount error is partly a constant shift of the structure, which the pose's knots took up
-    when they came first (measured: docs/pose_error.md); and an applied mount is checked again on the
-    corrected trajectory, as under noise a drift can pass for one (`MOUNT_POSE_ROUNDS`)."""
-    est, pose, corrected, boresight = None, None, samples, mount
+    makes the sweep directions disagree, a mis-mounted one does not. The first estimates (`_first_estimates`)
+    may come made; an applied mount is checked again on the corrected trajectory, as under noise a drift can
+    pass for one (`MOUNT_POSE_ROUNDS`)."""
+    first = first or _first_estimates(samples, header, storage, frame, lever, opts, err, mount)
+    est, pose, corrected, boresight = first.mount, first.pose, first.samples, first.boresight
     resim = Resimulated.from_header(header)
-
-    def mount_of(s: np.ndarray) -> MountEstimate:
-        usable = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
-        return estimate_mount(usable, lever, frame, storage, err.range_sigma_m, err.range_sigma_rel, resim, mount)
-
-    def pose_of(s: np.ndarray, bs: Boresight) -> PoseCorrection:
-        return estimate_pose_correction(s, lever, frame, storage, err.resolution_m, err.range_sigma_m,
-                                        err.range_sigma_rel, err.angle_sigma_rad, _sweep_period_s(header), bs,
-                                        position_sigma_m=err.position_sigma_m)
-    if opts.self_calibration:
-        est = mount_of(samples)
-        if est.any_applied:
-            corrected, boresight = apply_mount(samples, est, resim, mount)
-    if opts.pose_correction:  # after the mount: pose first let the knots' shifts take up a mount error
-        pose = pose_of(corrected, boresight)
+    if pose is not None:
         # An applied mount is estimated again on the corrected trajectory, until the two agree: under sensor noise
         # a drift can pass for a mounting error (offset and scale buy part of it), and the pose then corrects a
         # cloud the mount bent (a vio flight with the datasheet's noise: -2.0 deg and +5.4 % found on a square
@@ -438,12 +472,12 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
         for _ in range(MOUNT_POSE_ROUNDS):
             if not (pose.applied and est is not None and est.any_applied):
                 break
-            again = mount_of(apply_pose_correction(samples, pose, frame))
+            again = _mount_of(apply_pose_correction(samples, pose, frame), lever, frame, storage, err, resim, mount)
             if not _mount_changed(est, again):
                 break
             est = again
             corrected, boresight = apply_mount(samples, est, resim, mount) if est.any_applied else (samples, mount)
-            pose = pose_of(corrected, boresight)
+            pose = _pose_of(corrected, boresight, header, lever, frame, storage, err)
         corrected = apply_pose_correction(corrected, pose, frame)
         pose = with_closest_wall(pose, corrected, frame, storage)
     if corrected is samples and boresight == mount:  # nothing applied (a boresight alone leaves the samples)

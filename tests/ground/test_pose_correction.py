@@ -240,6 +240,33 @@ def test_that_the_report_applies_the_correction_when_asked_to(drifted):
     assert abs(np.median(on.cloud.points_w[:, 2][np.abs(on.cloud.points_w[:, 2]) < 0.3])) < RESOLUTION
 
 
+def test_that_the_mount_and_pose_are_estimated_once_beside_the_survey_and_used(drifted, monkeypatch):
+    # They need the samples, not the survey: they run in a second thread while the survey is computed (the report's
+    # time is then the longer of the two), and the report uses what that thread found.
+    import threading
+
+    import ground.report as report
+    samples, _, _ = drifted
+    header = {"sensor": {"resolution_m": RESOLUTION, "max_range_m": MAX_RANGE}, "servo": {"frequency_hz": 1 / PERIOD_S}}
+    found: list[tuple[str, object]] = []
+    real_pose, real_mount = report.estimate_pose_correction, report.estimate_mount
+
+    def pose(*args, **kwargs):
+        found.append(("pose", threading.current_thread()))
+        found.append(("result", real_pose(*args, **kwargs)))
+        return found[-1][1]
+
+    def mount(*args, **kwargs):
+        found.append(("mount", threading.current_thread()))
+        return real_mount(*args, **kwargs)
+    monkeypatch.setattr(report, "estimate_pose_correction", pose)
+    monkeypatch.setattr(report, "estimate_mount", mount)
+    sv = report.survey_from_samples(samples, header, STORAGE, FRAME, LEVER, report.ReportOptions(plots=False))
+    assert [what for what, _ in found] == ["mount", "pose", "result"]
+    assert found[0][1] is not threading.main_thread() and found[1][1] is not threading.main_thread()
+    assert sv.pose.applied and np.array_equal(sv.pose.values, found[2][1].values)
+
+
 def test_that_an_applied_mount_is_estimated_again_on_the_corrected_trajectory_and_dropped_if_it_was_the_drift(
         drifted, monkeypatch):
     # Under sensor noise a drift can pass for a servo offset; on the corrected trajectory the mount is then
@@ -506,3 +533,33 @@ def test_that_the_robust_fits_solve_is_the_general_sparse_solution_with_or_witho
         aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
         want = spsolve((aw.T @ aw).tocsc(), aw.T @ (np.sqrt(w) * rhs))
         assert np.allclose(_weighted_solver(a, rhs)(w), want, atol=1e-9)
+
+
+def test_that_the_linear_robust_fit_reaches_the_minimum_the_trust_region_solver_approaches():
+    # The floor and walls' fit with the heading held is linear in the knots: Newton's method on scipy's soft-L1
+    # cost finds its one minimum. It must land where scipy's solver does at tight tolerances, and cost no more.
+    from scipy import sparse
+    from scipy.optimize import least_squares
+
+    from ground.pose_correction import _soft_l1_linear
+    rng = np.random.default_rng(5)
+    m, n = 3000, 40
+    a = sparse.random(m, n, density=0.05, random_state=rng, format="csr") * 5.0
+    a = sparse.vstack([a, sparse.identity(n) * 0.1], format="csr")  # a prior row on every unknown
+    truth = rng.normal(size=n)
+    b = a @ truth + rng.normal(scale=0.5, size=a.shape[0])
+    b[rng.choice(m, 300, replace=False)] += rng.normal(scale=50.0, size=300)  # outliers, far in the loss's tail
+    free = np.ones(n, dtype=bool)
+    free[::7] = False  # held, as the heading is: they stay at the start
+    x0 = np.where(free, 0.0, 0.3)
+
+    def cost(x: np.ndarray) -> float:
+        r = a @ x - b
+        return float(np.sum(np.sqrt(1.0 + r * r) - 1.0))
+    x = _soft_l1_linear(a, a @ x0 - b, x0, free)
+    ref = least_squares(lambda v: a[:, free] @ v + a[:, ~free] @ x0[~free] - b, np.zeros(free.sum()),
+                        jac=lambda v: a[:, free].toarray(), loss="soft_l1", ftol=1e-15, xtol=1e-15, gtol=1e-15)
+    assert np.array_equal(x[~free], x0[~free])
+    assert cost(x) <= cost(np.where(free, np.zeros(n), x0)) and cost(x) < cost(x0)
+    assert np.allclose(x[free], ref.x, atol=1e-6)
+    assert cost(x) <= 2.0 * ref.cost + 1e-9  # scipy's cost is half the sum
