@@ -263,6 +263,24 @@ def sweep_period_from_samples(t_s: np.ndarray, sweep_dir: np.ndarray) -> float |
     return 2.0 * half if half > 0 else None
 
 
+def path_speed_m_s(t_s: np.ndarray, vehicle_w: np.ndarray, window_s: float) -> float:
+    """The vehicle's mean speed along its logged path: the path through the logged positions' means over windows of
+    window_s (a sweep period), not through every sample. A logged position carries its own white noise per pose
+    message (the paper's Appendix A: 0.11 m), and summed sample to sample that noise was the path: 11 m/s
+    "flown" on a 1 m/s survey, which made the crossings' cells 16 m wide and the priors' steps 6 m."""
+    if len(t_s) < 2 or not window_s > 0:
+        return 0.0
+    order = np.argsort(t_s)
+    t, p = t_s[order], vehicle_w[order]
+    w = ((t - t[0]) / window_s).astype(np.int64)
+    _, first, count = np.unique(w, return_index=True, return_counts=True)
+    mean_p = np.add.reduceat(p, first, axis=0) / count[:, None]
+    mean_t = np.add.reduceat(t, first) / count
+    if len(mean_t) < 2:
+        return 0.0
+    return float(np.sum(np.linalg.norm(np.diff(mean_p, axis=0), axis=1)) / max(mean_t[-1] - mean_t[0], 1e-9))
+
+
 def knot_times(t0_s: float, t1_s: float, spacing_s: float) -> np.ndarray:
     """Evenly spaced knots covering [t0, t1] (at least two)."""
     n = max(1, math.ceil((t1_s - t0_s) / spacing_s - 1e-9))
@@ -622,8 +640,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     # message (the header's; Appendix A's 0.11 m) is not in it, yet it scatters the points about their planes
     # and no knot seconds apart can fit it (an error-free flight: 0.32 m of "correction" on 1 of 648 runs).
     noise = math.hypot(_noise_m(np.where(np.abs(r0) <= sensor_m, j0, -1), r0, floor_m), position_sigma_m)
-    path = b.vehicle_w[np.argsort(b.t_s)]
-    speed = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)) / max(t1 - t0, 1e-9))
+    speed = path_speed_m_s(b.t_s, b.vehicle_w, period or spacing / KNOT_SWEEPS)
     step = prior_sigmas(spacing, speed, opts)
     absolute = np.array([opts.max_position_error_m] * 3 + [opts.max_heading_error_rad])
     held = np.array([False, False, not opts.vertical or opts.crossings, not opts.heading])
@@ -1210,12 +1227,27 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
         # gave (measured on pile 1, which has no flat top: the crossings' frame misaligns some true floor by
         # a few decimetres on a `flow` flight; Ve 0.16 % -> 2.0 %); the joint solve's Huber loss outvotes them.
         return floor, None, None, tol
+    # The floor kept is the level's own cluster: a floor is flat, so its heights scatter by their own noise, not by
+    # the crossings' spread on slopes, which under a degree of pointing noise reached 0.7 m and kept a pile's toe
+    # as floor (the joint solve on it then put the level 0.6 m off: Appendix A, `vio`, pile 2)
+    half = floor_half_width(fmed[i0:upto[i0]], level, tol, noise_m, fcnt)
+    kept = floor & np.isin(key, fk[np.abs(fmed - level) <= half])
     note = (f"{dropped} of {int(np.count_nonzero(floor))} floor points dropped: more than {tol:.2f} m above the "
             "floor's level once the crossings align the flight (a flat pile top)")
     # Most of what the vote called floor was a flat top: the remaining floor is too sparse to anchor each
     # interval (measured: the joint solve over it kept a 0.19 m bias on a pile-2 flight); the crossings'
     # own solution, put at the floor's level, is used instead.
     return kept, z_rel - level, note, tol
+
+
+def floor_half_width(lowest_m: np.ndarray, level_m: float, tol_m: float, noise_m: float, counts: np.ndarray) -> float:
+    """How far from the floor's level a floor height (one knot interval's median in a cell) is still floor, once
+    most of the vote's floor was a flat top: BAND times the scatter of the lowest window's heights about the level
+    (a floor is flat, so that is their own noise), never under BAND sd's of a typical height's median, never over
+    tol (the crossings' spread, which on a pile's slopes under pointing noise reaches its toe)."""
+    typical = noise_m / math.sqrt(max(float(np.median(counts)), 1.0)) if len(counts) else noise_m
+    scatter = _robust_rms(np.asarray(lowest_m) - level_m) if len(lowest_m) else 0.0
+    return min(tol_m, BAND * max(scatter, typical))
 
 
 def _cells(p: np.ndarray, storage: Storage, cell_m: float) -> tuple[int, int, np.ndarray]:
@@ -1440,8 +1472,31 @@ def _significant_gradients(p: np.ndarray, cid: np.ndarray, n_cells: int, cell_m:
     # the part of the scatter the slope explains: sum (g . (p - mean))^2
     explained = np.bincount(cid, weights=(gx[cid] * ex + gy[cid] * ey) ** 2 * w, minlength=n_cells)
     sig = (explained > 2.0 * n_sigma ** 2 * np.maximum(s2, 1e-12)) & (np.hypot(gx, gy) >= MIN_PILE_SLOPE)
+    # and only where the slope continues up or down it: one cell across a block's edge, at a 0.93 slope, was a
+    # registration's only sloped cell and moved a synthetic flight's along-track position by a metre, or not,
+    # as a 2 % change of the cell size put the grid's cut across the edge
+    sig &= _slope_continues(sig, gx, gy, n_cells, ny)
     gx, gy = np.where(sig, gx, 0.0), np.where(sig, gy, 0.0)
     return gx[cid] * dx + gy[cid] * dy, gx, gy
+
+
+def _slope_continues(sloped: np.ndarray, gx: np.ndarray, gy: np.ndarray, n_cells: int, ny: int) -> np.ndarray:
+    """Per cell (x-major, ny cells a column): whether its slope continues into a neighbour up or down it (the
+    neighbour the gradient points to, or the one opposite, is sloped too, the same way). A pile's flank spans
+    several cells; a step (a block's edge, a wall's foot) has flat cells on both sides, and the slope fitted
+    across it is wherever the grid happened to cut it."""
+    nx = n_cells // ny
+    ix, iy = np.divmod(np.arange(n_cells), ny)
+    g = np.hypot(gx, gy)
+    sx = np.rint(np.divide(gx, g, out=np.zeros_like(gx), where=g > 0)).astype(np.int64)
+    sy = np.rint(np.divide(gy, g, out=np.zeros_like(gy), where=g > 0)).astype(np.int64)
+    out = np.zeros(n_cells, dtype=bool)
+    for sign in (1, -1):
+        jx, jy = ix + sign * sx, iy + sign * sy
+        inside = (jx >= 0) & (jx < nx) & (jy >= 0) & (jy < ny) & ((sx != 0) | (sy != 0))
+        j = np.where(inside, jx * ny + jy, 0)
+        out |= inside & sloped[j] & (gx * gx[j] + gy * gy[j] > 0)
+    return out
 
 
 def _huber(u: np.ndarray) -> np.ndarray:

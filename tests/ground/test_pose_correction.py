@@ -563,3 +563,54 @@ def test_that_the_linear_robust_fit_reaches_the_minimum_the_trust_region_solver_
     assert cost(x) <= cost(np.where(free, np.zeros(n), x0)) and cost(x) < cost(x0)
     assert np.allclose(x[free], ref.x, atol=1e-6)
     assert cost(x) <= 2.0 * ref.cost + 1e-9  # scipy's cost is half the sum
+
+
+def test_that_the_speed_flown_is_not_the_logged_positions_noise():
+    # A logged position carries white noise per pose message (the paper's Appendix A: 0.11 m at 50 Hz): summed
+    # sample to sample it was the path, 11 m/s "flown" on a 1 m/s survey, and the crossings' cells and the priors'
+    # steps grew with it. The path through the positions' means over a sweep period is the path flown.
+    from ground.pose_correction import path_speed_m_s
+    rng = np.random.default_rng(2)
+    t = np.arange(0.0, 120.0, 1.0 / RATE_HZ)
+    true = np.column_stack([5.0 + 1.0 * t, np.full_like(t, 5.0), np.full_like(t, ALT)])  # 1 m/s along x
+    per_message = np.repeat(rng.normal(scale=0.113, size=(len(t) // 10 + 1, 3)), 10, axis=0)[:len(t)]
+    assert abs(path_speed_m_s(t, true, PERIOD_S) - 1.0) < 1e-9
+    assert abs(path_speed_m_s(t, true + per_message, PERIOD_S) - 1.0) < 0.02
+    naive = np.sum(np.linalg.norm(np.diff(true + per_message, axis=0), axis=1)) / (t[-1] - t[0])
+    assert naive > 5.0  # what summing sample to sample made of it
+    assert path_speed_m_s(t[:1], true[:1], PERIOD_S) == 0.0
+
+
+def test_that_the_floor_kept_under_a_flat_top_is_the_level_s_own_cluster_not_the_pile_s_toe():
+    # Under a degree of pointing noise the crossings' spread on slopes is 0.23 m, and three of it (0.7 m) reached a
+    # pile's toe, which the height's joint solve then held at the floor's level (0.6 m of height error). The floor
+    # is flat: its heights scatter by their own noise, and that sets how far from the level the floor is kept.
+    from ground.pose_correction import BAND, floor_half_width
+    rng = np.random.default_rng(4)
+    floor = rng.normal(0.0, 0.05, 12)
+    toe = np.array([0.60, 0.61])
+    lowest = np.sort(np.concatenate([floor, toe]))
+    half = floor_half_width(lowest, float(np.median(lowest)), 0.70, 0.125, np.full(14, 12))
+    assert np.abs(floor - np.median(lowest)).max() < half < 0.60 - np.median(lowest)
+    # an ideal sensor's floor: the typical median's own noise sets the width, and tol caps it
+    exact = floor_half_width(np.zeros(5), 0.0, 0.05, 0.003, np.full(5, 9))
+    assert exact == pytest.approx(BAND * 0.003 / 3.0)
+    assert floor_half_width(np.array([0.0, 1.0, -1.0]), 0.0, 0.05, 0.003, np.full(3, 9)) == 0.05
+
+
+def test_that_a_slope_is_used_only_where_it_continues_up_or_down_it():
+    # A pile's flank spans several cells; a block's edge caught in one cell has flat cells on both sides, and the
+    # slope fitted across it is wherever the grid cut it (one such cell carried a whole registration by a metre).
+    from ground.pose_correction import _slope_continues
+    nx, ny = 6, 5
+    gx, gy = np.zeros(nx * ny), np.zeros(nx * ny)
+    flank = [1 * ny + 2, 2 * ny + 2, 3 * ny + 2]  # three cells in a row along x, sloping up x
+    gx[flank] = 0.6
+    step = 4 * ny + 4  # one cell sloping up y, its neighbours along y flat
+    gy[step] = 0.9
+    against = 5 * ny + 0  # sloping up x beside a cell sloping down x: not the same slope
+    gx[against], gx[4 * ny + 0] = 0.5, -0.5
+    sloped = np.hypot(gx, gy) > 0
+    keep = _slope_continues(sloped, gx, gy, nx * ny, ny)
+    assert keep[flank].all()
+    assert not keep[step] and not keep[against]
