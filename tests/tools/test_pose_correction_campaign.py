@@ -144,3 +144,14 @@ def test_that_a_noisy_campaign_flies_with_the_sensor_noise_into_folders_of_its_o
     assert cmd[cmd.index("--out") + 1] == str(tmp_path / "vio-1-20-3-appendix-a")
     one("vio", "1", 20, 3, tmp_path)  # no noise: the folder and the command are the noise-free campaign's
     assert "--sensor-noise" not in flown[-1] and flown[-1][flown[-1].index("--out") + 1] == str(tmp_path / "vio-1-20-3")
+
+
+def test_that_the_page_names_the_command_without_this_machine_s_row_files():
+    # A campaign split over processes is tabulated by a last call reading their --rows files; the page must name
+    # a command a reader can run, which those files are not part of.
+    from tools.pose_correction_campaign import regeneration_args
+    argv = ["--seeds", "0", "1", "--keep", "runs/pose", "--rows", "/tmp/a.jsonl", "/tmp/b.jsonl", "--reuse",
+            "--write", "docs/pose_error.md"]
+    assert regeneration_args(argv) == "--seeds 0 1 --keep runs/pose --reuse --write docs/pose_error.md"
+    assert regeneration_args(["--rows", "r.jsonl"]) == ""
+    assert regeneration_args(["--keep", "k"]) == "--keep k"
