@@ -1196,21 +1196,28 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
     again = seen[inv] >= 2
     spread = _robust_rms((gmed - cell_med[inv])[again]) if again.any() else 0.0
     tol = BAND * max(spread, sensor_m, noise_m)
+    # the same with each cell's slope taken out (two passes that hit a sloped cell in different places): the
+    # frame's own misalignment between times, which a flat floor's heights carry too
+    zs = zc - _cell_slopes(np.column_stack([p[:, :2], zc]), cid, nx * ny, cell_m, ny, inside)
+    _, smed, _, _, _ = _group_median(key[inside], zs[inside], t[inside])
+    _, scell_med, _, _, _ = _group_median(inv, smed[many], smed[many])
+    frame_m = _robust_rms((smed[many] - scell_med[inv])[again]) if again.any() else 0.0
     fk, fmed, _, _, fcnt = _group_median(key[floor], zc[floor], t[floor])
     # the lowest level that holds more than stray points (nothing but noise is below the floor); not the
     # highest peak: a broad flat top can out-number the floor seen (measured: 350 against 100 points)
     order = np.argsort(fmed)
     fmed, fcnt, fk = fmed[order], fcnt[order], fk[order]
-    cum = np.concatenate([[0], np.cumsum(fcnt)])
-    stray_f = max(MIN_VOTES, STRAY_FRACTION * cum[-1])
-    upto = np.searchsorted(fmed, fmed + tol, side="right")
-    dense = np.flatnonzero(cum[upto] - cum[:-1] > stray_f)
-    if len(dense) == 0:
+    stray_f = max(MIN_VOTES, STRAY_FRACTION * float(np.sum(fcnt)))
+    if lowest_window(fmed, fcnt, tol, stray_f) is None:
         return np.zeros_like(floor), None, ("no floor seen: too few floor points agree on one level once the "
                                             "crossings align the flight; the height is corrected from the crossings "
                                             "alone"), math.inf
-    i0 = int(dense[0])
-    level = float(np.median(fmed[i0:upto[i0]]))
+    # The level within the floor's own scatter, not the frame's: under a degree of pointing noise the frame's
+    # spread (on slopes) reached 0.7 m, and a window that wide over a pile that hides most of the floor took in
+    # the toe's ramp above the few floor cells seen (its median 0.6-0.9 m up the toe: Appendix A, pile 2).
+    width = level_window(fk % (nx * ny), fmed, fcnt, noise_m, frame_m, tol)
+    i0, i1 = lowest_window(fmed, fcnt, width, stray_f) or lowest_window(fmed, fcnt, tol, stray_f)
+    level = float(np.median(fmed[i0:i1]))
     # everything seen at a wall (its face or the floor or pile against it), the horizontal correction applied:
     # nothing there is below the floor
     band = BAND * max(sensor_m, noise_m)
@@ -1234,7 +1241,7 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
     # The floor kept is the level's own cluster: a floor is flat, so its heights scatter by their own noise, not by
     # the crossings' spread on slopes, which under a degree of pointing noise reached 0.7 m and kept a pile's toe
     # as floor (the joint solve on it then put the level 0.6 m off: Appendix A, `vio`, pile 2)
-    half = floor_half_width(fmed[i0:upto[i0]], level, tol, noise_m, fcnt)
+    half = floor_half_width(fmed[i0:i1], level, tol, noise_m, fcnt)
     kept = floor & np.isin(key, fk[np.abs(fmed - level) <= half])
     note = (f"{dropped} of {int(np.count_nonzero(floor))} floor points dropped: more than {tol:.2f} m above the "
             "floor's level once the crossings align the flight (a flat pile top)")
@@ -1242,6 +1249,33 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
     # interval (measured: the joint solve over it kept a 0.19 m bias on a pile-2 flight); the crossings'
     # own solution, put at the floor's level, is used instead.
     return kept, z_rel - level, note, tol
+
+
+def lowest_window(med_m: np.ndarray, counts: np.ndarray, width_m: float, stray: float) -> tuple[int, int] | None:
+    """The lowest window width_m tall of the sorted heights med_m (counts points each) that holds more than stray
+    points, as the index range [i, j) of its heights (None: none does). Nothing but noise is below the floor."""
+    cum = np.concatenate([[0], np.cumsum(counts)])
+    upto = np.searchsorted(med_m, med_m + width_m, side="right")
+    dense = np.flatnonzero(cum[upto] - cum[:-1] > stray)
+    return (int(dense[0]), int(upto[dense[0]])) if len(dense) else None
+
+
+def level_window(cell: np.ndarray, med_m: np.ndarray, counts: np.ndarray, noise_m: float, frame_m: float,
+                 tol_m: float) -> float:
+    """How tall a window of floor heights (one knot interval's median in a cell each) the floor's level is read in:
+    BAND times the larger of the candidates' own scatter (in the cells seen at more than one time, about each
+    cell's median), a typical height median's noise, and the crossings frame's misalignment between times
+    (frame_m: measured with the cells' slopes taken out); never over tol (the frame's spread over the whole
+    surface, slopes and all: under a degree of pointing error a point on a slope moves up or down by the slope
+    times 0.2 m, which a flat floor's heights do not)."""
+    typical = noise_m / math.sqrt(max(float(np.median(counts)), 1.0)) if len(counts) else noise_m
+    _, inv, seen = np.unique(cell, return_inverse=True, return_counts=True)
+    again = seen[inv] >= 2
+    scatter = 0.0
+    if again.any():
+        _, cell_med, _, _, _ = _group_median(inv, med_m, med_m)
+        scatter = _robust_rms((med_m - cell_med[inv])[again])
+    return min(tol_m, BAND * max(scatter, typical, frame_m))
 
 
 def floor_half_width(lowest_m: np.ndarray, level_m: float, tol_m: float, noise_m: float, counts: np.ndarray) -> float:

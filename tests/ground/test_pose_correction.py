@@ -614,3 +614,33 @@ def test_that_a_slope_is_used_only_where_it_continues_up_or_down_it():
     keep = _slope_continues(sloped, gx, gy, nx * ny, ny)
     assert keep[flank].all()
     assert not keep[step] and not keep[against]
+
+
+def test_that_the_floor_s_level_is_read_within_the_floor_s_own_scatter_not_up_the_toe_s_ramp():
+    # A pile that hides most of the floor, under a degree of pointing noise: a few floor cells seen, and above them
+    # the toe rises with no gap; the crossings' spread on the slopes (tol) is 0.7 m. The level read in a window that
+    # tall took in the ramp (0.6-0.9 m of height error on the paper's pile 2). Each cell is seen twice; its two
+    # heights differ by the floor's own noise, which sets the level's window.
+    from ground.pose_correction import BAND, level_window, lowest_window
+    rng = np.random.default_rng(7)
+    floor_cells, toe_cells = np.arange(8), np.arange(8, 48)
+    truth = np.concatenate([np.zeros(8), np.linspace(0.1, 1.0, 40)])
+    cell = np.concatenate([floor_cells, toe_cells, floor_cells, toe_cells])
+    med = np.tile(truth, 2) + rng.normal(0.0, 0.04, 2 * len(truth))
+    counts = np.full(len(med), 10)
+    order = np.argsort(med)
+    cell, med, counts = cell[order], med[order], counts[order]
+    tol, stray = 0.70, 10.0
+    i0, i1 = lowest_window(med, counts, tol, stray)
+    wide = float(np.median(med[i0:i1]))
+    width = level_window(cell, med, counts, 0.12, 0.0, tol)
+    assert 0.04 * BAND * 0.7 < width < 0.04 * BAND * 1.5
+    j0, j1 = lowest_window(med, counts, width, stray)
+    narrow = float(np.median(med[j0:j1]))
+    assert wide > 0.25  # up the ramp
+    assert abs(narrow) < 0.06, narrow  # the floor's level, within its noise
+    # the frame's spread caps the window; a window nobody fills gives None
+    assert level_window(cell, med * 100.0, counts, 0.12, 0.0, tol) == tol
+    # the frame's misalignment between times widens it (a flat floor's heights carry it)
+    assert level_window(cell, med, counts, 0.12, 0.1, tol) == pytest.approx(BAND * 0.1)
+    assert lowest_window(med, counts, width, 1e6) is None

@@ -39,7 +39,16 @@ def test_that_the_table_has_a_row_per_pile_and_profile_and_counts_seeds_against_
     text = table(rows)
     vio = next(line for line in text.splitlines() if "| vio |" in line)
     assert vio.startswith("| ridge:2 | 5 % | vio | 2 |")
-    assert vio.endswith("| 2/2 | 1/2 | 0/2 |")  # 0.3 vs 0.1 and 0.6 vs 0.5: both within 0.3 pp; one RMS <= 10 cm
+    assert vio.endswith("| 2/2 | 1/2 |  | 0/2 |")  # 0.3 vs 0.1 and 0.6 vs 0.5: both within 0.3 pp; one RMS <= 10 cm
+
+
+def test_that_the_table_counts_the_corrected_reports_whose_interval_holds_the_truth():
+    # the volume's 90 % interval has no term for the pose's own error: the table shows how often it still holds
+    rows = [{"profile": prof, "pile": "1", "p_traj": 20, "seed": seed, "ve_off": 1.0, "ve_on": 0.5, "applied": True,
+             "traj_before_m": 0.5, "traj_after_m": 0.05, "in_interval": inside}
+            for prof, seed, inside in [("none", 0, True), ("vio", 0, True), ("vio", 1, False), ("vio", 2, None)]]
+    vio = next(line for line in table(rows).splitlines() if "| vio |" in line)
+    assert vio.endswith("| 1/2 | 0/3 |")  # a row from before the column (None) is not counted either way
 
 
 def test_that_a_flight_that_hit_a_wall_is_counted_as_a_crash_and_left_out_of_the_means_and_targets():
@@ -50,7 +59,7 @@ def test_that_a_flight_that_hit_a_wall_is_counted_as_a_crash_and_left_out_of_the
     rows.append({"profile": "flow", "pile": "1", "p_traj": 5, "seed": 1, "hit": "the vehicle hit the wall y = W"})
     flow = next(line for line in table(rows).splitlines() if "| flow |" in line)
     assert flow.startswith("| 1 | 5 % | flow | 1 | 0.00 | 6.00 | 0.20 |")  # the crash's numbers are not there
-    assert flow.endswith("| 1/1 | 1/1 | 1/2 |")
+    assert flow.endswith("| 1/1 | 1/1 |  | 1/2 |")
     rows[2] = {**rows[2], "hit": "the vehicle hit the roof"}
     flow = next(line for line in table(rows).splitlines() if "| flow |" in line)
     assert flow.startswith("| 1 | 5 % | flow | 0 |") and flow.endswith("| 2/2 |")
