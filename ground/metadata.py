@@ -155,6 +155,7 @@ _LIMITS = {
     "blur": "the sensor's noise blurring the pile's shape",
     "sweeps": "the two sweep directions disagreeing (servo or mounting)",
     "faces": "vertical faces or overhangs",
+    "pose": "the height of the drifting pose, as corrected from the building",
 }
 MIN_SHARE = 0.25
 """A term 'limits' the volume when it holds at least a quarter of the interval's variance."""
@@ -165,7 +166,7 @@ def limiting_terms(terms: ErrorTerms, model: IntervalModel) -> list[str]:
     scaled = {"unseen": model.k_unseen * max(terms.unseen_low_m3, terms.unseen_high_m3),
               "interpolation": model.k_interpolation * terms.interpolation_m3, "noise": model.k_noise * terms.noise_m3,
               "blur": model.k_blur * terms.blur_m3, "sweeps": model.k_sweeps * terms.sweeps_m3,
-              "faces": model.k_faces * terms.faces_m3}
+              "faces": model.k_faces * terms.faces_m3, "pose": model.k_pose * terms.pose_m3}
     total = sum(v * v for v in scaled.values())
     if total <= 0:
         return []

@@ -189,6 +189,9 @@ class PoseCorrection:
     """What was left out and why (e.g. the height, when the floor seen is not consistent)."""
     closest_wall: tuple[float, str, float] | None = None
     """The corrected path's nearest approach to a wall or the roof: (signed distance m, the surface, t_s)."""
+    height_sigma_m: float | None = None
+    """The formal standard error of the height correction's mean over the survey (`mean_sigma_m`); None when the
+    height was not corrected. The volume's interval carries it (ground.uncertainty, the pose term)."""
 
     def at(self, t_s: np.ndarray) -> np.ndarray:
         """(N, 4) the correction at times t_s (linear between knots, held beyond the ends)."""
@@ -227,7 +230,7 @@ class PoseCorrection:
                 "points_per_plane": dict(zip(PLANE_NAMES, self.points, strict=True)),
                 "rms_before_m": self.rms_before_m, "rms_after_m": self.rms_after_m, "noise_m": self.noise_m,
                 "gain": self.gain, "gain_needed": self.gain_needed, "notes": list(self.notes),
-                "closest_wall": None if self.closest_wall is None else dict(
+                "height_sigma_m": self.height_sigma_m, "closest_wall": None if self.closest_wall is None else dict(
                     zip(("distance_m", "surface", "t_s"), self.closest_wall, strict=True))}
 
 
@@ -724,6 +727,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         return not_applied(f"too few points on the floor and walls ({int(np.count_nonzero(j_fit >= 0))}) to correct "
                            "the pose", points=counts)
     z_info = None
+    z_sigma: list[float] = []  # the standard errors of the height's mean, the last solve's last
     notes: list[str] = []
     if opts.vertical and opts.crossings:
         cell_m = speed * (period or spacing / KNOT_SWEEPS)
@@ -737,7 +741,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
             """The height correction on this floor (shift: the screen's, when it dropped most of the vote's
             floor), its information, and why it was refused (None: not refused)."""
             z, z_info = height_rounds(p1, b.t_s, knots, wall, floor, storage, cell_m, step[2], noise,
-                                      opts.max_position_error_m, opts.n_significant)
+                                      opts.max_position_error_m, opts.n_significant, z_sigma)
             if z is None:
                 return None, None, None
             if shift is not None:
@@ -806,7 +810,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                     # the first height was solved in the frame before the registration (`_height_again`)
                     x, z_again, again_note = _height_again(b, x, k, f, knots, wall, voted, storage, cell_m, step[2],
                                                            noise, sensor_m, opts.max_position_error_m,
-                                                           opts.n_significant, opts.max_vertical_error_m)
+                                                           opts.n_significant, opts.max_vertical_error_m, z_sigma)
                     if again_note:
                         z_info = info[:, 2] = z_again
                         notes.append(again_note)
@@ -851,7 +855,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         return not_applied("not applied: it does not bring the floor and walls closer to their planes by more than "
                            f"fitting {n_free} parameters to noise would (chi-square gain {gain:.0f}, needed "
                            f"{needed:.0f})", knots, **common)
-    return PoseCorrection(knots, x, constrained, True, None, **common)
+    height_sigma = z_sigma[-1] if z_info is not None and z_sigma else None
+    return PoseCorrection(knots, x, constrained, True, None, height_sigma_m=height_sigma, **common)
 
 
 def bend_sigmas(b: Beams, knots: np.ndarray, k: np.ndarray, opts: PoseCorrectionOptions) -> np.ndarray:
@@ -916,8 +921,8 @@ def is_drift(x_new: np.ndarray, x_old: np.ndarray, step: np.ndarray, comps: tupl
 
 def _height_again(b: Beams, x: np.ndarray, k: np.ndarray, f: np.ndarray, knots: np.ndarray, wall: np.ndarray,
                   voted: np.ndarray, storage: Storage, cell_m: float, step_z_m: float, noise: float, sensor_m: float,
-                  max_error_m: float, n_significant: float,
-                  max_vertical_error_m: float) -> tuple[np.ndarray, np.ndarray | None, str | None]:
+                  max_error_m: float, n_significant: float, max_vertical_error_m: float,
+                  sigma_out: list[float] | None = None) -> tuple[np.ndarray, np.ndarray | None, str | None]:
     """The height solved again once the registration has aligned the flight horizontally: the floor screen
     (`_screen`) and the height from the floor and the crossings (`vertical_from_crossings`), as the first
     time, from the logged reference, in the registered frame, with x, y and heading held at the registration's.
@@ -928,17 +933,21 @@ def _height_again(b: Beams, x: np.ndarray, k: np.ndarray, f: np.ndarray, knots: 
     two trade (measured: a `vio` flight over pile 2 at P_traj 5 %, a +0.26 m block of height over 97 s that
     the crossings' misfit prefers by 0.03 cm, 0.17 m RMS of height error; solved again 0.07 m). Returns the
     correction, the height's information and a note; x as it was, None and None when the registration's
-    height stands (no floor kept, nothing significant, or refused as the first height would be)."""
+    height stands (no floor kept, nothing significant, or refused as the first height would be). The height's
+    standard error is appended to sigma_out only when this height is the one returned."""
     x_h = x.copy()
     x_h[:, 2] = 0.0
     p, _ = corrected_points(b, x_h, k, f)
     kept, _, _, _ = _screen(p, b.t_s, knots, wall, voted, storage, cell_m, step_z_m, noise, sensor_m, max_error_m)
     if not kept.any():
         return x, None, None
+    sigma: list[float] = []
     z, z_info = height_rounds(p, b.t_s, knots, wall, kept, storage, cell_m, step_z_m, noise, max_error_m,
-                              n_significant)
+                              n_significant, sigma)
     if z is None or height_refused(z, knots, step_z_m, n_significant, max_vertical_error_m) is not None:
         return x, None, None
+    if sigma_out is not None:
+        sigma_out.extend(sigma[-1:])
     change = _rms(z - x[:, 2])
     x_h[:, 2] = z
     return x_h, z_info, (f"the height solved again on the floor once the pile seen at different times aligned the "
@@ -947,13 +956,16 @@ def _height_again(b: Beams, x: np.ndarray, k: np.ndarray, f: np.ndarray, knots: 
 
 def height_rounds(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, floor: np.ndarray,
                   storage: Storage, cell_m: float, step_z_m: float, noise_m: float, max_error_m: float,
-                  n_significant: float) -> tuple[np.ndarray | None, np.ndarray | None]:
+                  n_significant: float, sigma_out: list[float] | None = None) -> tuple[np.ndarray | None,
+                                                                                     np.ndarray | None]:
     """`vertical_from_crossings` SLOPE_ROUNDS times, each with the cells' slopes from the heights corrected so
-    far (module docstring); (None, None) when a round finds nothing significant."""
+    far (module docstring); (None, None) when a round finds nothing significant. The last round appends its
+    height's standard error to sigma_out (`vertical_from_crossings`)."""
     z = z_info = None
-    for _ in range(SLOPE_ROUNDS):
+    for i in range(SLOPE_ROUNDS):
         z, z_info = vertical_from_crossings(p, t, knots, wall, floor, storage, cell_m, step_z_m, noise_m,
-                                            max_error_m, n_significant, z)
+                                            max_error_m, n_significant, z,
+                                            sigma_out=sigma_out if i == SLOPE_ROUNDS - 1 else None)
         if z is None:
             return None, None
     return z, z_info
@@ -1065,7 +1077,8 @@ def _sorted_group_median(z: np.ndarray, start: np.ndarray, count: np.ndarray) ->
 def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, floor: np.ndarray,
                             storage: Storage, cell_m: float, step_z_m: float, noise_m: float, max_error_m: float,
                             n_significant: float = 3.0, start: np.ndarray | None = None,
-                            significant_only: bool = True) -> tuple[np.ndarray | None, np.ndarray | None]:
+                            significant_only: bool = True,
+                            sigma_out: list[float] | None = None) -> tuple[np.ndarray | None, np.ndarray | None]:
     """The height correction at the knots (K,) from the floor and from the pile seen at different times.
 
     Each knot interval's points in a cell (cell_m: what the vehicle flies in a sweep period, so a cell holds
@@ -1076,7 +1089,9 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
     took for the floor is outvoted by the other times that saw it). Returns (None, None) when there is
     nothing to solve or the result is not significant; else the correction and the data's information on
     each knot (1 / m^2). Without floor cells the solution is relative (its level: the prior's zero);
-    `significant_only=False` returns it whatever its gain (`screen_floor` needs it)."""
+    `significant_only=False` returns it whatever its gain (`screen_floor` needs it). With sigma_out (a list), the
+    standard error of the correction's mean over the samples is appended to it when floor cells set the level
+    (`mean_sigma_m`)."""
     n_knots = len(knots)
     k, _ = _basis(t, knots)
     inside = (~wall & (p[:, 0] > 0) & (p[:, 0] < storage.length_m) & (p[:, 1] > 0) & (p[:, 1] < storage.width_m)
@@ -1145,6 +1160,8 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
     gain = 2.0 * float(np.sum(_huber(r_none / spread)) - np.sum(_huber(r_full / spread)))
     if significant_only and not gain > n_knots + n_significant * math.sqrt(2.0 * n_knots):
         return None, None
+    if sigma_out is not None and m_floor > 0:
+        sigma_out.append(mean_sigma_m(a, x, rhs, _basis(t, knots), n_knots) * spread)
     z = x[:n_knots]
     if m_floor == 0:  # no floor: the level is not observed (the cells' weak pull to 0 would set it): keep the
         z = z - np.mean(z)  # logged reference's on average
@@ -1535,6 +1552,25 @@ def _slope_continues(sloped: np.ndarray, gx: np.ndarray, gy: np.ndarray, n_cells
         j = np.where(inside, jx * ny + jy, 0)
         out |= inside & sloped[j] & (gx * gx[j] + gy * gy[j] > 0)
     return out
+
+
+def mean_sigma_m(a: sparse.csr_matrix, x: np.ndarray, rhs: np.ndarray, basis: tuple[np.ndarray, np.ndarray],
+                 n_knots: int) -> float:
+    """The standard error of the height correction's mean over the samples (basis: their knot and fraction), from
+    the robust fit's normal equations at its solution (`_irls_huber`'s last weights; the rows in units of their
+    sigma): what a height error common to the whole survey, the one that moves the volume, the data leave. Formal:
+    it assumes the cells' heights independent, which a stretch of the flight misplaced on slopes is not, so the
+    interval scales it by a factor calibrated on drifting flights (ground.uncertainty)."""
+    k, f = basis
+    w_k = (np.bincount(k, weights=1.0 - f, minlength=n_knots + 1)
+           + np.bincount(k + 1, weights=f, minlength=n_knots + 1))[:n_knots]
+    e = np.zeros(a.shape[1])
+    e[:n_knots] = w_k / max(float(w_k.sum()), 1e-300)
+    r = np.abs(a @ x - rhs)
+    w = np.where(r <= 1.0, 1.0, 1.0 / np.maximum(r, 1e-300))
+    aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
+    u = spsolve((aw.T @ aw).tocsc(), e)
+    return float(math.sqrt(max(float(e @ u), 0.0)))
 
 
 def _huber(u: np.ndarray) -> np.ndarray:

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from firmware_py.core.cli import NoVolumeError, UserError, reading_input
 from firmware_py.core.config_file import SiteSection
@@ -71,6 +72,7 @@ from ground.uncertainty import (
     SurveyErrors,
     face_spread_m,
     point_sigma_m,
+    pose_term_m3,
     scatter_sigma_m,
     survey_errors,
 )
@@ -373,7 +375,17 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     When the two sweep directions disagree (a servo slower or laggier than its model), the servo's
     real motion is re-estimated from the sweeps; if that brings them into agreement the survey is
     computed with the re-estimated angles (and says so), else it stays marked untrustworthy.
+
+    BLAS runs on one thread throughout: with two of this function's threads calling a multi-threaded OpenBLAS
+    at once, its sums came out in another order now and then, and the same log gave volumes 2 m³ apart
+    (a drifting flight over pile 2, one run in three; docs/design-notes.md).
     """
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _survey_from_samples(samples, header, storage, frame, lever, opts)
+
+
+def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
+                         lever: np.ndarray, opts: ReportOptions) -> Survey:
     check_grid_memory(storage, opts.cell_m, opts.max_grid_memory_bytes)
     err = SensorErrorModel.from_header(header)
     mount = header_boresight(header)  # the configured boresight: every cloud below is placed with it
@@ -482,10 +494,24 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
         pose = with_closest_wall(pose, corrected, frame, storage)
     if corrected is samples and boresight == mount:  # nothing applied (a boresight alone leaves the samples)
         return replace(survey, mount=est, pose=pose)
-    fixed = _survey(corrected, header, storage, frame, lever, opts, err, spikes, boresight)
+    fixed = with_pose_term(_survey(corrected, header, storage, frame, lever, opts, err, spikes, boresight), pose)
     return replace(fixed, servo_timing=survey.servo_timing, servo_retimed=survey.servo_retimed,
                    implausible=survey.implausible, despike_unavailable=survey.despike_unavailable, mount=est,
                    pose=pose)
+
+
+def with_pose_term(survey: Survey, pose: PoseCorrection | None) -> Survey:
+    """The survey's error terms (the whole floor's and a cell mask's) with the pose term: the corrected height's
+    standard error over the surfaced cells (ground.uncertainty); as it was when no height was corrected."""
+    sigma = None if pose is None or not pose.applied else pose.height_sigma_m
+    if not sigma or survey.errors is None:
+        return survey
+
+    def with_term(e: SurveyErrors, mask: np.ndarray | None) -> SurveyErrors:
+        return replace(e, terms=replace(e.terms, pose_m3=pose_term_m3(sigma, survey.heights, survey.grid, mask)))
+    inner = survey.errors_in
+    errors_in = None if inner is None else (lambda mask=None: with_term(inner(mask), mask))
+    return replace(survey, errors=with_term(survey.errors, None), errors_in=errors_in)
 
 
 MOUNT_POSE_ROUNDS = 4

@@ -23,12 +23,17 @@ each a scale of the error it describes, not yet a probability):
 - **faces**: cells whose points lie further apart vertically than their cell's slope and the
   sensor's noise allow: an overhang or a vertical face, which one height per cell cannot hold;
   half that excess height over each such cell.
+- **pose**: when the trajectory's height was corrected from the building (ground.pose_correction),
+  the standard error of that correction's mean over the survey times the surfaced area: a height
+  error common to the survey moves every cell (0 when no height was corrected).
 
 The interval combines them in quadrature with one scale factor each (``IntervalModel``). The
 factors are not tuned by hand: ``tools/calibrate_interval.py`` fits them on the calibration part of
 a large evaluation set of simulated surveys (piles, buildings, altitudes, P_traj, servo phases,
 noise models) as the smallest median width that holds the truth in 90 % of those surveys, and
-reports the coverage on the held-out part (docs/uncertainty.md).
+reports the coverage on the held-out part (docs/uncertainty.md). Those surveys fly the true pose, so
+the pose term's factor is fitted apart, on drifting flights (``tools/calibrate_pose_interval.py``:
+the paper's piles to fit, other piles in another building and noisy flights held out).
 """
 
 from __future__ import annotations
@@ -57,9 +62,16 @@ class ErrorTerms:
     sweeps_m3: float = 0.0
     faces_m3: float = 0.0
     blur_m3: float = 0.0
+    pose_m3: float = 0.0
 
     def as_dict(self) -> dict[str, float]:
         return asdict(self)
+
+
+# --- calibrated pose factor (tools/calibrate_pose_interval.py --write) ---
+POSE_FACTOR = 8.749630364893452
+POSE_FACTOR_SOURCE = 'fitted on 38 drifting flights (tools/calibrate_pose_interval.py, 2026-11-29)'
+# --- end of calibrated pose factor ---
 
 
 @dataclass(frozen=True)
@@ -73,9 +85,11 @@ class IntervalModel:
     k_faces: float
     k_blur: float = 0.0
     source: str = "uncalibrated"
+    k_pose: float = POSE_FACTOR
+    """The pose term's: fitted on drifting flights, apart from the others (module docstring)."""
 
     def __post_init__(self) -> None:
-        for name in ("k_unseen", "k_interpolation", "k_noise", "k_sweeps", "k_faces", "k_blur"):
+        for name in ("k_unseen", "k_interpolation", "k_noise", "k_sweeps", "k_faces", "k_blur", "k_pose"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"interval model {name} must be a finite number >= 0, got {v!r}")
@@ -84,7 +98,7 @@ class IntervalModel:
         """(below, above) the volume."""
         common = ((self.k_interpolation * t.interpolation_m3) ** 2 + (self.k_noise * t.noise_m3) ** 2
                   + (self.k_sweeps * t.sweeps_m3) ** 2 + (self.k_faces * t.faces_m3) ** 2
-                  + (self.k_blur * t.blur_m3) ** 2)
+                  + (self.k_blur * t.blur_m3) ** 2 + (self.k_pose * t.pose_m3) ** 2)
         return (math.sqrt(common + (self.k_unseen * t.unseen_low_m3) ** 2),
                 math.sqrt(common + (self.k_unseen * t.unseen_high_m3) ** 2))
 
@@ -348,6 +362,15 @@ class SurveyErrors:
     terms: ErrorTerms
     faces: FaceCells
     point_sigma_m: float
+
+
+def pose_term_m3(height_sigma_m: float | None, heights: np.ndarray, grid: Grid,
+                 mask: np.ndarray | None = None) -> float:
+    """The pose term: the height correction's standard error over the surfaced cells (of mask), m³."""
+    if not height_sigma_m:
+        return 0.0
+    cells = np.isfinite(heights) if mask is None else np.isfinite(heights) & mask
+    return float(height_sigma_m * np.count_nonzero(cells) * grid.cell_area_m2)
 
 
 def survey_errors(points_w: np.ndarray, sweep_dir: np.ndarray | None, heights_fit: np.ndarray,

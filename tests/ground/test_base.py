@@ -59,6 +59,17 @@ def test_that_a_level_floor_gives_a_plane_at_zero_and_the_same_volume_as_the_flo
     assert base.volume_m3(heights, GRID) == pytest.approx(grid_volume(heights, GRID), abs=0.005 * 600)
 
 
+def test_that_a_fitted_floor_cancels_a_height_error_common_to_the_survey_so_the_pose_term_goes():
+    # the floor is fitted from the survey's own points: a drifting height moves it with the pile
+    from ground.base import rebased_terms
+    pts, sig = floor_and_pile(0.0, 0.0)
+    heights = np.full(GRID.shape, 1.0)
+    base = fitted_floor_base(pts, sig, heights, GRID, 3.0)
+    terms = ErrorTerms(noise_m3=2.0, pose_m3=40.0)
+    assert rebased_terms(terms, heights, heights, GRID, 0.01, base, 15.0).pose_m3 == 0.0
+    assert rebased_terms(terms, heights, heights, GRID, 0.01, FLOOR_BASE, 15.0).pose_m3 == 40.0
+
+
 def test_that_the_floor_fit_refuses_too_few_points():
     pts, sig = floor_and_pile(0.0, 0.0, n_floor=20, n_pile=0)
     with pytest.raises(UserError, match="fewer than the"):

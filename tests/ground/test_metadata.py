@@ -79,6 +79,9 @@ def test_that_the_verdict_names_the_interval_and_what_limits_it():
                     "x 0-9 m, y 0-40 m; 2 warnings to read")
     assert verdict(10.0, None, [], None, 0).endswith("(no interval: the survey's errors could not be estimated)")
     assert verdict(764.555, (764.555, 764.555), [], None, 0, "yd³", 0.9144**3).startswith("1,000 yd³")
+    pose = limiting_terms(ErrorTerms(interpolation_m3=1.0, pose_m3=400.0), DEFAULT_INTERVAL_MODEL)
+    assert pose == ["pose"]  # a corrected height's error that holds the interval is named
+    assert "the height of the drifting pose" in verdict(7210.4, (6800.0, 7600.0), pose, None, 0)
 
 
 # ----- the report, as a user runs it -------------------------------------------------------------------------

@@ -238,6 +238,15 @@ def test_that_the_report_applies_the_correction_when_asked_to(drifted):
     assert off.pose is None
     # the floor under the corrected cloud is back at z = 0; uncorrected it is where the drift put it
     assert abs(np.median(on.cloud.points_w[:, 2][np.abs(on.cloud.points_w[:, 2]) < 0.3])) < RESOLUTION
+    # the volume's interval carries the corrected height's standard error over the surfaced cells (its pose term)
+    surfaced = np.count_nonzero(np.isfinite(on.heights)) * on.grid.cell_area_m2
+    assert on.pose.height_sigma_m is not None and on.pose.height_sigma_m > 0
+    assert on.errors.terms.pose_m3 == pytest.approx(on.pose.height_sigma_m * surfaced)
+    mask = np.zeros(on.grid.shape, dtype=bool)
+    mask[: on.grid.shape[0] // 2] = True  # one pile's cells get the term over their own area
+    assert on.errors_in(mask).terms.pose_m3 == pytest.approx(
+        on.pose.height_sigma_m * np.count_nonzero(np.isfinite(on.heights) & mask) * on.grid.cell_area_m2)
+    assert off.errors.terms.pose_m3 == 0.0
 
 
 def test_that_the_mount_and_pose_are_estimated_once_beside_the_survey_and_used(drifted, monkeypatch):
@@ -644,3 +653,45 @@ def test_that_the_floor_s_level_is_read_within_the_floor_s_own_scatter_not_up_th
     # the frame's misalignment between times widens it (a flat floor's heights carry it)
     assert level_window(cell, med, counts, 0.12, 0.1, tol) == pytest.approx(BAND * 0.1)
     assert lowest_window(med, counts, width, 1e6) is None
+
+
+def test_that_the_height_s_standard_error_is_that_of_the_mean_of_its_rows():
+    # one knot seen by n rows of one sigma each (the rows are in units of their sigma): the mean's standard error is
+    # sigma / sqrt(n); a row the robust fit weighs down counts less
+    from scipy import sparse
+
+    from ground.pose_correction import mean_sigma_m
+    sigma, n = 0.02, 25
+    rng = np.random.default_rng(3)
+    y = rng.uniform(-0.5 * sigma, 0.5 * sigma, n)
+    a = sparse.csr_matrix(np.full((n, 1), 1.0 / sigma))
+    x = np.array([y.mean()])
+    basis = (np.zeros(10, dtype=np.int64), np.zeros(10))
+    assert mean_sigma_m(a, x, y / sigma, basis, 1) == pytest.approx(sigma / math.sqrt(n))
+    y_out = y.copy()
+    y_out[0] = 10.0 * sigma  # an outlier: Huber weight 1 / |r|
+    assert mean_sigma_m(a, x, y_out / sigma, basis, 1) > sigma / math.sqrt(n)
+
+
+def test_that_the_report_runs_blas_on_one_thread_so_the_same_log_gives_the_same_volume(drifted, monkeypatch):
+    # With the survey and the building's estimates in two threads calling a multi-threaded OpenBLAS at once, its
+    # sums came out in another order now and then (a drifting pile-2 flight: volumes 2 m³ apart, one run in three).
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    import ground.report as report
+    samples, _, _ = drifted
+    header = {"sensor": {"resolution_m": RESOLUTION, "max_range_m": MAX_RANGE}, "servo": {"frequency_hz": 1 / PERIOD_S}}
+    seen: list[list[int]] = []
+    real = report._first_estimates
+
+    def spy(*args, **kwargs):
+        seen.append([i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"])
+        return real(*args, **kwargs)
+    monkeypatch.setattr(report, "_first_estimates", spy)
+    with threadpool_limits(limits=2, user_api="blas"):
+        if not any(i["num_threads"] == 2 for i in threadpool_info() if i["user_api"] == "blas"):
+            pytest.skip("this BLAS runs on one thread whatever it is asked")
+        report.survey_from_samples(samples, header, STORAGE, FRAME, LEVER, report.ReportOptions(plots=False))
+        after = [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+    assert seen and seen[0] and all(n == 1 for n in seen[0])
+    assert 2 in after  # and the caller's own setting is given back

@@ -237,3 +237,20 @@ def test_that_an_empty_building_reports_about_zero_with_an_interval_holding_zero
     assert (lo - quantum_m3 <= 0.0 <= hi and rep["volume_m3"] >= 0.0) or rep["volume_m3"] < 0
     assert hi >= 0.0 and rep["truth_in_interval"] in (True, False)
     assert rep["volume_error_pct"] is None and rep["volume_error_m3"] == pytest.approx(rep["volume_m3"])
+
+
+def test_that_the_pose_term_is_the_height_s_standard_error_over_the_surfaced_cells_and_adds_in_quadrature():
+    from ground.uncertainty import pose_term_m3
+    grid = Grid(4.0, 2.0, 1.0)
+    heights = np.ones(grid.shape)
+    heights[0, 0] = np.nan  # not surfaced: not moved by the height
+    assert pose_term_m3(0.05, heights, grid) == pytest.approx(0.05 * 7)
+    mask = np.zeros(grid.shape, dtype=bool)
+    mask[:2] = True
+    assert pose_term_m3(0.05, heights, grid, mask) == pytest.approx(0.05 * 3)
+    assert pose_term_m3(None, heights, grid) == 0.0
+    model = IntervalModel(k_unseen=1, k_interpolation=1, k_noise=1, k_sweeps=1, k_faces=1, k_blur=1, k_pose=2.0)
+    below, above = model.half_widths_m3(ErrorTerms(noise_m3=3.0, pose_m3=2.0))
+    assert below == above == pytest.approx(5.0)  # sqrt(3^2 + (2 x 2)^2)
+    with pytest.raises(ValueError, match="k_pose"):
+        replace(model, k_pose=-1.0)
