@@ -293,12 +293,21 @@ def merged_survey(flights: Sequence[Flight], opts: ReportOptions) -> Survey:
     inp = flights[0].inp
     err = SensorErrorModel.from_header(inp.log.header or {})
     merged = survey_of_cloud(merge_clouds([f.survey.cloud for f in flights]), inp.storage, opts, err)
+    merged = with_pose_term(merged, least_certain_height([f.survey.pose for f in flights]))
     counts = [f.survey.implausible for f in flights if f.survey.implausible is not None]
     implausible = None if not counts else {k: sum(c.get(k, 0) for c in counts) for k in dict.fromkeys(
         k for c in counts for k in c)}
     return replace(merged, implausible=implausible,
                    despike_unavailable=next((f.survey.despike_unavailable for f in flights
                                              if f.survey.despike_unavailable), None))
+
+
+def least_certain_height(poses: Sequence[PoseCorrection | None]) -> PoseCorrection | None:
+    """The flights' corrected pose whose height's standard error is largest (None: no flight's height corrected): a
+    merged survey's pose term. Each flight's height errs on its own, and a merged cell's height is a weighted mean
+    of the flights' points there, whose error's standard deviation is at most the largest flight's (Minkowski)."""
+    corrected = [p for p in poses if p is not None and p.applied and p.height_sigma_m]
+    return max(corrected, key=lambda p: p.height_sigma_m, default=None)
 
 
 def merged_log(inputs: Sequence[LogInput]) -> SampleLog:

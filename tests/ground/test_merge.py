@@ -111,3 +111,15 @@ def test_that_the_reports_surface_file_marks_the_cells_it_fitted(two_flights, tm
     assert saved.fitted is not None and saved.fitted.shape == saved.heights_m.shape
     assert 100.0 * saved.fitted.mean() == pytest.approx(rep["coverage_ratio_pct"])
     assert 0 < saved.fitted.sum() < saved.fitted.size  # the wide loop left floor unseen: filled, not fitted
+
+
+def test_that_a_merged_survey_carries_the_least_certain_corrected_height_of_its_flights():
+    from ground.pose_correction import PoseCorrection
+    from ground.report import least_certain_height
+
+    def pose(sigma, applied=True):
+        return PoseCorrection(np.zeros(2), np.zeros((2, 4)), np.zeros((2, 4), dtype=bool), applied,
+                              height_sigma_m=sigma)
+    a, b = pose(0.01), pose(0.03)
+    assert least_certain_height([a, None, b, pose(0.05, applied=False)]) is b
+    assert least_certain_height([pose(None), None]) is None  # no height corrected: no pose term
