@@ -35,6 +35,7 @@ import numpy as np
 from firmware_py.core.cli import ArgumentParser
 from ground.uncertainty import DEFAULT_INTERVAL_MODEL, INTERVAL_LEVEL, ErrorTerms, IntervalModel
 from tools.doc_sections import write_section
+from tools.pose_correction_campaign import kept_flight_crash
 
 SECTION = "pose-interval-coverage"
 CALIBRATION = (("paper piles", Path("runs/pose")),)
@@ -42,7 +43,7 @@ HELD_OUT = (("own piles, 40 x 25 x 10 m", Path("runs/pose-own")), ("paper piles,
                                                                    Path("runs/pose-noise-ds")),
             ("paper piles, Appendix A noise", Path("runs/pose-noise-aa")))
 MODEL_FILE = Path("ground/uncertainty.py")
-MODEL_BEGIN = "# --- calibrated pose factor (tools/calibrate_pose_interval.py --write) ---"
+MODEL_BEGIN = "# --- calibrated pose factor (tools/calibrate_pose_interval.py --write-model) ---"
 MODEL_END = "# --- end of calibrated pose factor ---"
 REPORT_SUFFIX = "--pose-correction"
 
@@ -59,7 +60,10 @@ def flights(keep: Path, label: str) -> list[dict]:
         truth = keep / run / "truth.json"
         if not truth.is_file():
             continue
-        mission = json.loads(truth.read_text())["mission"]
+        flown = json.loads(truth.read_text())
+        if kept_flight_crash(flown) is not None:  # as the campaign: a crash is no survey
+            continue
+        mission = flown["mission"]
         p_traj = round(100.0 * mission["p_traj"])
         rows.append({"set": label, "run": run, "profile": run.split("-")[0], "p_traj": p_traj,
                      "volume_m3": r["volume_m3"],

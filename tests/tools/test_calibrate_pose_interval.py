@@ -39,13 +39,21 @@ def test_that_the_factor_is_the_90th_percentile_of_what_the_drifting_flights_nee
 def test_that_the_kept_reports_are_read_with_their_p_traj_and_profile(tmp_path: Path):
     run = tmp_path / "flow-2-20-1-appendix-a"
     run.mkdir()
-    (run / "truth.json").write_text(json.dumps({"mission": {"p_traj": 0.2}}))
+    storage = {"length_m": 60.0, "width_m": 40.0, "height_m": 15.0}
+    (run / "truth.json").write_text(json.dumps({"mission": {"p_traj": 0.2}, "storage": storage}))
     rep = tmp_path / "flow-2-20-1-appendix-a--pose-correction"
     rep.mkdir()
     (rep / "report.json").write_text(json.dumps({"volume_m3": 10.0, "true_volume_m3": 11.0,
                                                  "interval_terms_m3": {"noise_m3": 1.0, "pose_m3": 0.5}}))
     (tmp_path / "orphan--pose-correction").mkdir()  # a report whose flight is gone is left out
     (tmp_path / "orphan--pose-correction" / "report.json").write_text(rep.joinpath("report.json").read_text())
+    crashed = tmp_path / "vio-2-20-1-appendix-a"  # its true path went through the roof: no survey, as in the campaign
+    crashed.mkdir()
+    (crashed / "truth.json").write_text(json.dumps({"mission": {"p_traj": 0.2}, "storage": storage, "pose_error": {
+        "trajectory": {"t_s": [0.0, 1.0], "true_w_m": [[30.0, 20.0, 12.0], [30.0, 20.0, 16.0]]}}}))
+    (tmp_path / "vio-2-20-1-appendix-a--pose-correction").mkdir()
+    (tmp_path / "vio-2-20-1-appendix-a--pose-correction" / "report.json").write_text(
+        rep.joinpath("report.json").read_text())
     (r,) = flights(tmp_path, "noisy")
     assert (r["profile"], r["p_traj"], r["set"]) == ("flow", 20, "noisy")
     assert r["terms"].pose_m3 == 0.5
