@@ -77,7 +77,13 @@ from ground.uncertainty import (
     survey_errors,
 )
 from ground.unseen import free_space_ceiling_m
-from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT, faces_warning, unseen_warning, wide_interval_warning
+from ground.volume_warnings import (
+    DEFAULT_MAX_INTERVAL_PCT,
+    faces_warning,
+    pose_warning,
+    unseen_warning,
+    wide_interval_warning,
+)
 from ground.wall_contact import CONTACT_REST, WallContacts, contact_ceiling_m, contact_nodes, wall_contacts
 
 LOW_COVERAGE_PCT = 95.0
@@ -687,6 +693,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
             unseen_warning(survey.heights_fit, survey.heights, g, terms, DEFAULT_INTERVAL_MODEL, volume,
                            opts.max_interval_pct),
             faces_warning(survey.errors.faces, g, terms, DEFAULT_INTERVAL_MODEL),
+            pose_warning(terms, DEFAULT_INTERVAL_MODEL, volume, opts.max_interval_pct),
             wide_interval_warning(volume, interval, opts.max_interval_pct)) if w]
     warnings += list(base.warnings)
     if volume < 0 and base.kind is not BaseKind.SURVEY:  # below an earlier survey: material taken away

@@ -7,6 +7,8 @@ the interval wide, so a clean survey stays quiet and a corner pile flown too spa
   part of the interval; named by the regions' extents in the storage frame.
 - **faces**: cells whose points lie metres apart vertically (an overhang or a vertical face), and
   their share of the interval.
+- **pose**: the height of the drifting pose, as corrected from the building, holds most of a wide
+  interval: the floor seen too seldom to pin the altitude reference.
 - **wide interval**: the interval is wider than the surveyor's tolerance (an option), so the survey
   needs more coverage to be useful.
 """
@@ -88,6 +90,22 @@ def faces_warning(faces: FaceCells, grid: Grid, t: ErrorTerms, model: IntervalMo
             "height per cell cannot hold (the volume under it is uncertain)")
 
 
+def pose_warning(t: ErrorTerms, model: IntervalModel, volume_m3: float | None = None,
+                 max_pct: float = DEFAULT_MAX_INTERVAL_PCT) -> str | None:
+    """When the corrected height's error (the pose term) dominates the interval and (given the volume) widens it
+    by more than half the tolerance max_pct, as `unseen_warning`."""
+    scaled = model.k_pose * t.pose_m3
+    if scaled <= 0 or _share(scaled, t, model, high=False) < DOMINANT_SHARE:
+        return None
+    if volume_m3 is not None and volume_m3 > 0 and scaled < 0.5 * max_pct / 100.0 * volume_m3:
+        return None
+    pct = f" ({100.0 * scaled / volume_m3:.1f} % of the volume)" if volume_m3 else ""
+    return (f"most of the volume's uncertainty is the drifting pose's height: as corrected from the building it "
+            f"can still be off by what moves the volume +/-{scaled:,.0f} m³{pct}; the floor pins the altitude "
+            "reference where the sweeps see it, so legs nearer the walls, a strip of floor left clear, or an "
+            "altitude reference that does not drift over the pile would narrow it")
+
+
 def wide_interval_warning(volume_m3: float, interval_m3: tuple[float, float], max_pct: float) -> str | None:
     """When the interval's half-width exceeds max_pct of the volume (or the volume is about zero)."""
     half = 0.5 * (interval_m3[1] - interval_m3[0])
@@ -98,4 +116,4 @@ def wide_interval_warning(volume_m3: float, interval_m3: tuple[float, float], ma
         return None
     return (f"the volume's 90 % interval is +/-{pct:.1f} % ({interval_m3[0]:,.0f}-{interval_m3[1]:,.0f} m³), "
             f"wider than the {max_pct:g} % tolerance: not known well enough to sign; the other warnings say why "
-            "(unseen floor, faces), else fly a denser mission")
+            "(unseen floor, faces, the pose's height), else fly a denser mission")

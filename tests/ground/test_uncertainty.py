@@ -254,3 +254,14 @@ def test_that_the_pose_term_is_the_height_s_standard_error_over_the_surfaced_cel
     assert below == above == pytest.approx(5.0)  # sqrt(3^2 + (2 x 2)^2)
     with pytest.raises(ValueError, match="k_pose"):
         replace(model, k_pose=-1.0)
+
+
+def test_that_a_corrected_height_that_holds_a_wide_interval_is_warned_about_and_a_small_one_is_not():
+    from ground.volume_warnings import pose_warning
+    model = IntervalModel(k_unseen=1, k_interpolation=1, k_noise=1, k_sweeps=1, k_faces=1, k_blur=1, k_pose=8.0)
+    big = ErrorTerms(interpolation_m3=20.0, pose_m3=40.0)  # 320 m³ of 8,800: 3.6 %, over half the 5 % tolerance
+    w = pose_warning(big, model, 8800.0, 5.0)
+    assert w is not None and "drifting pose's height" in w and "+/-320 m³ (3.6 % of the volume)" in w
+    assert pose_warning(ErrorTerms(interpolation_m3=20.0, pose_m3=2.0), model, 8800.0, 5.0) is None  # 16 m³
+    assert pose_warning(ErrorTerms(interpolation_m3=400.0, pose_m3=40.0), model, 8800.0, 5.0) is None  # not most
+    assert pose_warning(ErrorTerms(interpolation_m3=20.0), model, 8800.0, 5.0) is None  # no height corrected
