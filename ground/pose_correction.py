@@ -1186,8 +1186,9 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
     height on itself. Across the flight it cannot hide: the crossings alone (no floor) put every time's
     points in one frame up to a constant, and in that frame the floor is one level, the lowest flat one,
     and no wall is seen below it (walls stand on the floor). So, in that frame: the candidates' heights per
-    knot interval and cell; the floor's level is their lowest peak (as the vote's outermost peak, bins of
-    the frame's own noise); it must not lie above the walls' lowest points (beyond stray returns); the
+    knot interval and cell; the floor's level is their lowest peak (as the vote's outermost peak), read in a
+    window as tall as a flat floor's heights scatter (`level_window`), not the frame's spread on slopes; it must
+    not lie above the walls' lowest points (beyond stray returns); the
     candidates within BAND noise levels of it are kept, the rest dropped. None kept: the height comes from
     the crossings alone."""
     if not floor.any():
