@@ -855,7 +855,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         return not_applied("not applied: it does not bring the floor and walls closer to their planes by more than "
                            f"fitting {n_free} parameters to noise would (chi-square gain {gain:.0f}, needed "
                            f"{needed:.0f})", knots, **common)
-    height_sigma = z_sigma[-1] if z_info is not None and z_sigma else None
+    # (a solve that failed numerically gives no term rather than a NaN interval)
+    height_sigma = z_sigma[-1] if z_info is not None and z_sigma and math.isfinite(z_sigma[-1]) else None
     return PoseCorrection(knots, x, constrained, True, None, height_sigma_m=height_sigma, **common)
 
 

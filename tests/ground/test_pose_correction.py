@@ -695,3 +695,11 @@ def test_that_the_report_runs_blas_on_one_thread_so_the_same_log_gives_the_same_
         after = [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
     assert seen and seen[0] and all(n == 1 for n in seen[0])
     assert 2 in after  # and the caller's own setting is given back
+
+
+def test_that_a_height_error_the_solve_could_not_compute_gives_no_term_not_a_nan_interval(drifted, monkeypatch):
+    samples, _, corr = drifted
+    assert corr.height_sigma_m is not None and math.isfinite(corr.height_sigma_m)
+    monkeypatch.setattr("ground.pose_correction.mean_sigma_m", lambda *a, **k: float("nan"))
+    again = estimate(samples)
+    assert again.applied and again.height_sigma_m is None
