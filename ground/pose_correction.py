@@ -1210,17 +1210,13 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
     gk, gmed, _, _, gcnt = _group_median(key[inside], zc[inside], t[inside])
     many = gcnt >= MIN_CELL_POINTS
     gcell, gmed = gk[many] % (nx * ny), gmed[many]
-    _, inv, seen = np.unique(gcell, return_inverse=True, return_counts=True)
-    _, cell_med, _, _, _ = _group_median(inv, gmed, gmed)  # per cell (inv: 0 .. cells - 1)
-    again = seen[inv] >= 2
-    spread = _robust_rms((gmed - cell_med[inv])[again]) if again.any() else 0.0
+    spread = between_times_scatter_m(gcell, gmed)
     tol = BAND * max(spread, sensor_m, noise_m)
     # the same with each cell's slope taken out (two passes that hit a sloped cell in different places): the
     # frame's own misalignment between times, which a flat floor's heights carry too
     zs = zc - _cell_slopes(np.column_stack([p[:, :2], zc]), cid, nx * ny, cell_m, ny, inside)
     _, smed, _, _, _ = _group_median(key[inside], zs[inside], t[inside])
-    _, scell_med, _, _, _ = _group_median(inv, smed[many], smed[many])
-    frame_m = _robust_rms((smed[many] - scell_med[inv])[again]) if again.any() else 0.0
+    frame_m = between_times_scatter_m(gcell, smed[many])
     fk, fmed, _, _, fcnt = _group_median(key[floor], zc[floor], t[floor])
     # the lowest level that holds more than stray points (nothing but noise is below the floor); not the
     # highest peak: a broad flat top can out-number the floor seen (measured: 350 against 100 points)
@@ -1288,13 +1284,18 @@ def level_window(cell: np.ndarray, med_m: np.ndarray, counts: np.ndarray, noise_
     surface, slopes and all: under a degree of pointing error a point on a slope moves up or down by the slope
     times 0.2 m, which a flat floor's heights do not)."""
     typical = noise_m / math.sqrt(max(float(np.median(counts)), 1.0)) if len(counts) else noise_m
+    return min(tol_m, BAND * max(between_times_scatter_m(cell, med_m), typical, frame_m))
+
+
+def between_times_scatter_m(cell: np.ndarray, med_m: np.ndarray) -> float:
+    """How far one knot interval's height of a cell (med_m, the cells' ids in cell) is from the cell's median
+    height over the times it was seen: the robust RMS over the cells seen more than once (0: none was)."""
     _, inv, seen = np.unique(cell, return_inverse=True, return_counts=True)
     again = seen[inv] >= 2
-    scatter = 0.0
-    if again.any():
-        _, cell_med, _, _, _ = _group_median(inv, med_m, med_m)
-        scatter = _robust_rms((med_m - cell_med[inv])[again])
-    return min(tol_m, BAND * max(scatter, typical, frame_m))
+    if not again.any():
+        return 0.0
+    _, cell_med, _, _, _ = _group_median(inv, med_m, med_m)  # per cell (inv: 0 .. cells - 1)
+    return _robust_rms((med_m - cell_med[inv])[again])
 
 
 def floor_half_width(lowest_m: np.ndarray, level_m: float, tol_m: float, noise_m: float, counts: np.ndarray) -> float:
