@@ -17,7 +17,6 @@ DEFAULT_INTERVAL_MODEL in ground/uncertainty.py (between its markers), with thei
 from __future__ import annotations
 
 import math
-import re
 import sys
 import time
 from collections import defaultdict
@@ -29,7 +28,7 @@ import numpy as np
 from firmware_py.core.cli import ArgumentParser
 from ground.surface import grid_volume
 from ground.uncertainty import INTERVAL_LEVEL, ErrorTerms, IntervalModel
-from tools.doc_sections import write_section
+from tools.doc_sections import write_block, write_section
 from tools.sweep import Case, read_rows_csv, run_sweep, write_rows_csv
 
 GROUND_VERSION = "8"
@@ -223,14 +222,9 @@ def document(model: IntervalModel, calib: list[dict], held: list[dict], command:
 
 def write_model(model: IntervalModel, path: Path = MODEL_FILE) -> None:
     """Replace the calibrated block of ground/uncertainty.py with model (between MODEL_BEGIN and MODEL_END)."""
-    src = path.read_text()
     args = "".join(f"    {n}={getattr(model, n):.6g},\n" for n in FACTORS)
-    block = (f"{MODEL_BEGIN}\nDEFAULT_INTERVAL_MODEL = IntervalModel(\n{args}"
-             f"    source={model.source!r})\n{MODEL_END}")
-    new, n = re.subn(re.escape(MODEL_BEGIN) + r".*?" + re.escape(MODEL_END), lambda _: block, src, flags=re.S)
-    if n != 1:
-        raise SystemExit(f"calibrate_interval: {path} has no calibrated-model block to replace")
-    path.write_text(new)
+    body = f"DEFAULT_INTERVAL_MODEL = IntervalModel(\n{args}    source={model.source!r})"
+    write_block(path, MODEL_BEGIN, MODEL_END, body, "calibrate_interval")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import json
 import math
-import re
 import statistics
 import sys
 import time
@@ -34,7 +33,7 @@ import numpy as np
 
 from firmware_py.core.cli import ArgumentParser
 from ground.uncertainty import DEFAULT_INTERVAL_MODEL, INTERVAL_LEVEL, ErrorTerms, IntervalModel
-from tools.doc_sections import write_section
+from tools.doc_sections import write_block, write_section
 from tools.pose_correction_campaign import kept_flight_crash
 
 SECTION = "pose-interval-coverage"
@@ -138,13 +137,9 @@ def document(k: float, calib: list[dict], held: list[dict], model: IntervalModel
 
 def write_model(k: float, source: str, path: Path = MODEL_FILE) -> None:
     """Replace the pose factor's block of ground/uncertainty.py (between MODEL_BEGIN and MODEL_END)."""
-    src = path.read_text()
     # every digit: the flight that set the factor is inside by a hair, and a rounded factor put it outside
-    block = f"{MODEL_BEGIN}\nPOSE_FACTOR = {k!r}\nPOSE_FACTOR_SOURCE = {source!r}\n{MODEL_END}"
-    new, n = re.subn(re.escape(MODEL_BEGIN) + r".*?" + re.escape(MODEL_END), lambda _: block, src, flags=re.S)
-    if n != 1:
-        raise SystemExit(f"calibrate_pose_interval: {path} has no pose-factor block to replace")
-    path.write_text(new)
+    write_block(path, MODEL_BEGIN, MODEL_END, f"POSE_FACTOR = {k!r}\nPOSE_FACTOR_SOURCE = {source!r}",
+                "calibrate_pose_interval")
 
 
 def main(argv: list[str] | None = None) -> int:

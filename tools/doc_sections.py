@@ -4,7 +4,8 @@
     ... what the tool wrote ...
     <!-- NAME:end -->
 
-A section not yet on the page is appended; the rest of the page is left as it is.
+A section not yet on the page is appended; the rest of the page is left as it is. Source files a tool writes
+fitted constants into have a marked block of their own (`write_block`), which must already be there.
 """
 
 from __future__ import annotations
@@ -37,3 +38,14 @@ def with_sections_of(old: str, new: str) -> str:
         if markers(m.group(1))[0] not in new:
             new = new.rstrip("\n") + "\n\n" + m.group(0) + "\n"
     return new
+
+
+def write_block(path: Path, begin: str, end: str, body: str, tool: str) -> None:
+    """Replace the text between the lines begin and end of the file at path (both kept) with body: the one block
+    a calibration tool writes its fitted constants into. A file without exactly one such block is refused (the
+    tool would otherwise write its constants nowhere, or twice)."""
+    block = f"{begin}\n{body.strip(chr(10))}\n{end}"
+    new, n = re.subn(re.escape(begin) + r".*?" + re.escape(end), lambda _: block, path.read_text(), flags=re.S)
+    if n != 1:
+        raise SystemExit(f"{tool}: {path} has {n} blocks between {begin!r} and {end!r}, not one: nothing written")
+    path.write_text(new)

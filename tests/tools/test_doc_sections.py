@@ -1,6 +1,8 @@
 """Marked page sections: each tool rewrites only its own, and a whole-page writer keeps the others'."""
 
-from tools.doc_sections import with_sections_of, write_section
+import pytest
+
+from tools.doc_sections import with_sections_of, write_block, write_section
 
 
 def test_that_a_section_is_replaced_in_place_or_appended(tmp_path):
@@ -18,3 +20,15 @@ def test_that_a_whole_page_rewrite_keeps_the_sections_it_does_not_write():
     assert got.startswith(new.rstrip("\n")) and "U2" in got and "\nU\n" not in got
     assert got.endswith("<!-- t:start -->\nT\n<!-- t:end -->\n")
     assert with_sections_of("", new) == new
+
+
+def test_that_a_source_file_s_one_marked_block_is_replaced_and_none_or_two_are_refused(tmp_path):
+    f = tmp_path / "model.py"
+    f.write_text("A = 1\n# begin\nK = 1.0\n# end\nB = 2\n")
+    write_block(f, "# begin", "# end", "K = 2.5\n", "tool")
+    assert f.read_text() == "A = 1\n# begin\nK = 2.5\n# end\nB = 2\n"
+    for text in ("A = 1\n", "# begin\nK = 1\n# end\n# begin\nK = 1\n# end\n"):
+        f.write_text(text)
+        with pytest.raises(SystemExit, match="not one"):
+            write_block(f, "# begin", "# end", "K = 3", "tool")
+        assert f.read_text() == text  # nothing written
