@@ -1094,7 +1094,7 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
     standard error of the correction's mean over the samples is appended to it when floor cells set the level
     (`mean_sigma_m`)."""
     n_knots = len(knots)
-    k, _ = _basis(t, knots)
+    k, f_t = _basis(t, knots)
     inside = (~wall & (p[:, 0] > 0) & (p[:, 0] < storage.length_m) & (p[:, 1] > 0) & (p[:, 1] < storage.width_m)
               & (p[:, 2] > -max_error_m) & (p[:, 2] < storage.height_m))
     nx = max(1, math.ceil(storage.length_m / cell_m))
@@ -1162,7 +1162,7 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
     if significant_only and not gain > n_knots + n_significant * math.sqrt(2.0 * n_knots):
         return None, None
     if sigma_out is not None and m_floor > 0:
-        sigma_out.append(mean_sigma_m(a, x, rhs, _basis(t, knots), n_knots) * spread)
+        sigma_out.append(mean_sigma_m(a, x, rhs, (k, f_t), n_knots) * spread)
     z = x[:n_knots]
     if m_floor == 0:  # no floor: the level is not observed (the cells' weak pull to 0 would set it): keep the
         z = z - np.mean(z)  # logged reference's on average
