@@ -169,10 +169,12 @@ def test_that_an_earlier_survey_of_another_building_is_refused_and_another_cell_
 
 
 def test_that_a_report_reads_back_its_own_surface_and_uses_it_as_a_base(tmp_path):
+    from firmware_py.core.storage import Storage
     from ground.report import ReportOptions, make_report
     from sitl.missions.rectangle import Mission
     from sitl.runners.fly import FlyConfig, fly
-    run = fly(FlyConfig(mission=Mission(p_traj=0.2)), tmp_path / "run", force=True).out_dir
+    small = Mission(storage=Storage(30, 20, 10), altitude_m=9.0, p_traj=0.2)  # three reports: the small building
+    run = fly(FlyConfig(mission=small), tmp_path / "run", force=True).out_dir
     first = make_report(run, tmp_path / "r1", ReportOptions(plots=False))
     assert first["base"]["kind"] == "floor"
     s = load_surface(tmp_path / "r1" / "surface.npz")

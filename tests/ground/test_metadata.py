@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from firmware_py.core.cli import ExitCode
+from firmware_py.core.storage import Storage
 from ground.cli import main
 from ground.metadata import SurveyInfo, limiting_terms, metadata_rows, survey_metadata, verdict
 from ground.uncertainty import DEFAULT_INTERVAL_MODEL, ErrorTerms
@@ -90,14 +91,15 @@ def test_that_the_verdict_names_the_interval_and_what_limits_it():
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("run")
-    fly(FlyConfig(mission=Mission(p_traj=0.2)), out, force=True)  # the paper's pile 1, batch payload
+    # The paper's pile 1 in the small building, batch payload: what is read is the metadata, not the survey.
+    fly(FlyConfig(mission=Mission(storage=Storage(30, 20, 10), altitude_m=9.0, p_traj=0.2)), out, force=True)
     return out
 
 
 def test_that_the_report_carries_metadata_verdict_and_piles(run_dir, tmp_path, capsys):
     cfg = tmp_path / "site.toml"
     cfg.write_text('[site]\nname = "Paper bay"\ntimezone = "Asia/Tokyo"\n[survey]\noperator = "J. Smith"\n'
-                   '[[piles]]\nname = "ore"\nx_m = 30\ny_m = 20\ndensity_kg_m3 = 2500\n'
+                   '[[piles]]\nname = "ore"\nx_m = 15\ny_m = 10\ndensity_kg_m3 = 2500\n'
                    '[[piles]]\nname = "gone"\nx_m = 1\ny_m = 1\n')
     out = tmp_path / "r"
     assert main(["report", str(run_dir), "--out", str(out), "--no-plots", "--config", str(cfg),

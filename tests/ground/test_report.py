@@ -2,6 +2,7 @@
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -18,6 +19,14 @@ pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
 
 REQUIRED_KEYS = {"volume_m3", "true_volume_m3", "volume_error_pct", "coverage_ratio_pct", "n_samples",
                  "n_points_used"}
+
+
+@pytest.fixture(scope="module")
+def paper_run(tmp_path_factory):
+    """Pile 1 in the paper's building at P_traj 10 %, flown once for the tests that only read it."""
+    out = tmp_path_factory.mktemp("paper") / "run"
+    fly(FlyConfig(mission=Mission(p_traj=0.1)), out)
+    return out
 
 
 @pytest.mark.parametrize("pile", ["1", "2"])
@@ -38,17 +47,16 @@ def test_that_a_cone_stl_comes_within_2_percent(tmp_path):
     assert rep["volume_error_pct"] < 2.0
 
 
-def test_that_the_result_does_not_depend_on_where_the_building_sits_in_ned(tmp_path):
+def test_that_the_result_does_not_depend_on_where_the_building_sits_in_ned(tmp_path, paper_run):
     """The second building's corner is 20 m south, 35 m east and 0.4 m below the EKF origin, turned 123 deg."""
     mission = Mission(p_traj=0.1)
     ekf = DEFAULT_SITE.corner
     corner = GeodeticPoint(*ekf.to_global(-20.0, 35.0), ekf.alt_m - 0.4)
     placed = FlyConfig(mission=mission, site=Site(corner, math.radians(123)), ekf_origin_at=ekf)
     assert placed.frame.origin_ned_m == pytest.approx((-20.0, 35.0, 0.4), abs=1e-6)
-    reps = []
-    for i, cfg in enumerate([FlyConfig(mission=mission), placed]):
-        fly(cfg, tmp_path / f"run{i}")
-        reps.append(make_report(tmp_path / f"run{i}", tmp_path / f"rep{i}", ReportOptions(plots=False)))
+    fly(placed, tmp_path / "placed")
+    reps = [make_report(run, tmp_path / f"rep{i}", ReportOptions(plots=False))
+            for i, run in enumerate([paper_run, tmp_path / "placed"])]
     assert reps[0]["volume_m3"] == pytest.approx(reps[1]["volume_m3"], rel=1e-4)
     assert reps[1]["volume_error_pct"] < 1.0
 
@@ -64,8 +72,8 @@ def test_that_a_full_report_writes_every_output(tmp_path):
     assert f"{rep['volume_m3']:,.1f}" in (tmp_path / "rep" / "report.md").read_text()
 
 
-def test_that_a_log_cut_by_a_power_failure_still_reports_with_a_warning(tmp_path):
-    fly(FlyConfig(mission=Mission(p_traj=0.1)), tmp_path / "run")
+def test_that_a_log_cut_by_a_power_failure_still_reports_with_a_warning(tmp_path, paper_run):
+    shutil.copytree(paper_run, tmp_path / "run")  # cut a copy: the flight is shared
     log = tmp_path / "run" / "samples.pslog"
     data = log.read_bytes()
     log.write_bytes(data[: len(data) * 2 // 3 + 17])
@@ -79,9 +87,8 @@ def test_that_a_log_cut_by_a_power_failure_still_reports_with_a_warning(tmp_path
     assert lo < rep["volume_m3"] < hi
 
 
-def test_that_the_truth_can_be_given_or_absent(tmp_path):
-    fly(FlyConfig(mission=Mission(p_traj=0.1)), tmp_path / "run")
-    log = tmp_path / "run" / "samples.pslog"
+def test_that_the_truth_can_be_given_or_absent(tmp_path, paper_run):
+    log = paper_run / "samples.pslog"
     rep = make_report(log, tmp_path / "a", ReportOptions(plots=False))
     assert rep["true_volume_m3"] is None and rep["volume_error_pct"] is None
     rep = make_report(log, tmp_path / "b", ReportOptions(plots=False, truth_volume_m3=rep["volume_m3"] * 1.1))

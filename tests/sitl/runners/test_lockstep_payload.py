@@ -29,7 +29,9 @@ BOOT_OFFSET_S = 1234.5
 
 @pytest.fixture(scope="module")
 def small_flight(tmp_path_factory):
-    cfg = FlyConfig(mission=Mission(storage=Storage(30, 20, 10), p_traj=0.2, altitude_m=9.0), stockpile="1")
+    """At 2 m/s, as the noisy flights below: half the flight of 1 m/s, still some 20,000 samples to compare."""
+    cfg = FlyConfig(mission=Mission(storage=Storage(30, 20, 10), p_traj=0.2, altitude_m=9.0, speed_m_s=2.0),
+                    stockpile="1")
     log = tmp_path_factory.mktemp("fil") / "samples.pslog"
     run = fly_firmware(cfg, log, log_header(cfg, cfg.servo_waveform()), latency_ms=(5, 30),
                        boot_offset_s=BOOT_OFFSET_S, tlog_path=log.with_name("telemetry.tlog"))
