@@ -452,7 +452,8 @@ class _Estimates:
 def _mount_of(s: np.ndarray, lever: np.ndarray, frame: StorageFrame, storage: Storage, err: SensorErrorModel,
               resim: Resimulated | None, mount: Boresight) -> MountEstimate:
     usable = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
-    return estimate_mount(usable, lever, frame, storage, err.range_sigma_m, err.range_sigma_rel, resim, mount)
+    return estimate_mount(usable, lever, frame, storage, err.range_sigma_m, err.range_sigma_rel, resim, mount,
+                          err.angle_sigma_rad)
 
 
 def _pose_of(s: np.ndarray, bs: Boresight, header: dict, lever: np.ndarray, frame: StorageFrame, storage: Storage,

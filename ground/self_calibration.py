@@ -61,6 +61,7 @@ from threadpoolctl import threadpool_limits
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_dir_body, rot_body_to_ned
 from firmware_py.core.servo_model import command_angles, servo_angles
 from firmware_py.core.storage import Storage
+from ground.plane_stretches import along_planes, beams
 from ground.servo_timing import Resimulated
 
 N_GROUPS = 8
@@ -232,6 +233,12 @@ class _Problem:
         pos = np.stack([s["x_m"], s["y_m"], s["z_m"]], axis=1).astype(float)
         self.origins = frame.ned_to_w(pos) + np.einsum("nij,j->ni", self.r_wb, np.asarray(lever, dtype=float))
         self._level = (s, frame)
+        self.along: np.ndarray | None = None
+        """(N, 5) whether each point's stretch of sweep runs along each plane (`along_planes`); None: not known,
+        every point may lie on every plane."""
+
+    def allowed(self, idx: np.ndarray | slice = slice(None)) -> np.ndarray | None:
+        return None if self.along is None else self.along[idx]
 
     def level(self) -> _Problem:
         """The same beams from a level vehicle (roll and pitch zero, heading kept): the survey's
@@ -262,13 +269,34 @@ class _Problem:
         return at
 
 
-def _assign(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(plane index, signed distance) of each point's nearest plane, index -1 outside its window."""
+def _assign(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: np.ndarray,
+            allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(plane index, signed distance) of each point's nearest plane, index -1 outside its window. allowed
+    (N, 5): the planes each point may lie on (`_Problem.along`); None: any."""
     dist = p @ n.T - d  # (N, 5)
+    if allowed is not None:
+        dist = np.where(allowed, dist, np.inf)
     j = np.argmin(np.abs(dist), axis=1)
     r = dist[np.arange(len(p)), j]
     j = np.where(np.abs(r) <= window, j, -1)
     return j, r
+
+
+def _trim_inside(j: np.ndarray, r: np.ndarray, window: np.ndarray) -> np.ndarray:
+    """j with each plane's band holding no more points inside the building than outside it: the inside's
+    farthest (in windows) are dropped. Why: a plane's own points scatter symmetrically about it, and nothing
+    but noise lies outside the building, so the outside's count is what the inside holds of the plane's own;
+    the excess is the pile's, which lies inside and, on a toe, farther than the noise."""
+    out = j.copy()
+    for k, sign in enumerate(INSIDE_SIGN):
+        m = np.flatnonzero(j == k)
+        u = sign * r[m] / window[m]
+        inside = m[u > 0]
+        n_out = len(m) - len(inside)
+        if len(inside) > n_out:
+            far = inside[np.argsort(u[u > 0])[n_out:]]
+            out[far] = -1
+    return out
 
 
 INSIDE_SIGN = np.array([1.0, 1.0, -1.0, 1.0, -1.0])
@@ -293,7 +321,8 @@ def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.n
     for window in windows:
         prob.angles.linearize(float(q[1]))
         w_idx = window[idx]
-        j, _ = _assign(prob.points(q, idx), n, d, BAND * w_idx)
+        j, r_in = _assign(prob.points(q, idx), n, d, BAND * w_idx, prob.allowed(idx))
+        j = _trim_inside(j, r_in, w_idx)
         keep = j >= 0
         sel = idx[keep]
         if len(sel) < 50 or not free.any():
@@ -312,7 +341,7 @@ def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.n
         with threadpool_limits(limits=1, user_api="blas"):
             q[free] = least_squares(resid, np.clip(q[free], lo, hi), loss="arctan", f_scale=1.0, bounds=(lo, hi),
                                     x_scale=np.full(int(free.sum()), 0.01), diff_step=1e-6, max_nfev=80).x
-    j, r = _assign(prob.points(q, idx), n, d, BAND * windows[-1][idx])
+    j, r = _assign(prob.points(q, idx), n, d, BAND * windows[-1][idx], prob.allowed(idx))
     return q, j, r
 
 
@@ -403,7 +432,7 @@ def _robust_rms(r: np.ndarray) -> float:
 def _agreeing(prob: _Problem, q: np.ndarray, n: np.ndarray, d: np.ndarray, window: np.ndarray) -> int:
     """How many points lie within their window of a plane with the mount q."""
     prob.angles.linearize(float(q[1]))
-    return int(np.count_nonzero(_assign(prob.points(q), n, d, window)[0] >= 0))
+    return int(np.count_nonzero(_assign(prob.points(q), n, d, window, prob.allowed())[0] >= 0))
 
 
 def _jacobian(prob: _Problem, q: np.ndarray, idx: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -417,9 +446,24 @@ def _jacobian(prob: _Problem, q: np.ndarray, idx: np.ndarray, normals: np.ndarra
     return jac
 
 
+def _along(s: np.ndarray, lever_arm_body_m, frame: StorageFrame, boresight: Boresight, n: np.ndarray,
+           range_sigma_m: float, range_sigma_rel: float, angle_sigma_rad: float) -> np.ndarray | None:
+    """(N, 5) whether each sample's stretch of sweep runs along each plane (`ground.plane_stretches`), placed
+    with the configured mount. Why: under a degree of pointing noise a plane's window reaches tens of centimetres
+    up a pile's toe, and where a pile hides the floor (the paper's pile 2) most points in the floor's were the
+    toe's; with them in the fit, 10 of 48 square-mounted Appendix A flights got a false servo offset and scale (up
+    to 6 pp of volume). None: the samples' times are not usable (every point may then lie on every plane)."""
+    b, sweep_dir = beams(s, lever_arm_body_m, frame, boresight)
+    if len(b.t_s) != len(s) or len(s) < 2:
+        return None
+    rng_m = np.linalg.norm(b.to_point_w, axis=1)
+    sigma = np.maximum(np.maximum(range_sigma_m, range_sigma_rel * rng_m), 1e-3)
+    return along_planes(b, sigma, angle_sigma_rad, sweep_dir, n, float(np.median(np.diff(b.t_s))))
+
+
 def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, storage: Storage,
                    range_sigma_m: float, range_sigma_rel: float, resim: Resimulated | None = None,
-                   boresight: Boresight = SQUARE) -> MountEstimate:
+                   boresight: Boresight = SQUARE, angle_sigma_rad: float = 0.0) -> MountEstimate:
     """Estimate the servo offset and scale and the boresight from the building (module docstring).
 
     Args:
@@ -429,16 +473,19 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
         resim: how the servo was driven (`Resimulated.from_header`), for the exact servo model; None:
             the logged angles scaled and offset.
         boresight: the configured mounting (the header's); the tilt and yaw estimated are deviations from it.
+        angle_sigma_rad: the header's pointing error (1 sigma), which a stretch of sweep along a plane may bend by.
     """
     finite = np.logical_and.reduce([np.isfinite(samples[f]) for f in
                                     ("range_m", "servo_rad", "x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad")])
     s = samples[finite & (samples["range_m"] > 0)]
     if len(s) < 1000:
         return not_estimated(f"too few usable samples ({len(s)}) to calibrate from the building")
+    n, d = _planes(storage)
+    along = _along(s, lever_arm_body_m, frame, boresight, n, range_sigma_m, range_sigma_rel, angle_sigma_rad)
     stride = max(1, len(s) // MAX_POINTS)
     s = s[::stride]
     prob = _Problem(s, np.asarray(lever_arm_body_m, dtype=float), frame, resim, boresight)
-    n, d = _planes(storage)
+    prob.along = None if along is None else along[::stride]
     rng_m = prob.range_m
     sigma = np.maximum(range_sigma_m, range_sigma_rel * rng_m)  # the header's 1-sigma range error
     idx_all = np.arange(len(s))
@@ -533,8 +580,8 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
         # Every point's distance from its nearest plane with and without the correction, so the points
         # either mount puts on the structure count (not only those the fitted one does).
         prob.angles.linearize(0.0)
-        r_square = _assign(prob.points(q0), n, d, final)[1]
-        j_square = _assign(prob.points(q0), n, d, BAND * final)[0]
+        r_square = _assign(prob.points(q0), n, d, final, prob.allowed())[1]
+        j_square = _assign(prob.points(q0), n, d, BAND * final, prob.allowed())[0]
         gain, gain_se = _misfit_gain(r_square / final, r / final, sweep)
         inside, inside_se = _inside_excess(j, r, sweep)
         inside_square, _ = _inside_excess(j_square, r_square, sweep)

@@ -162,8 +162,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--piles", default="1,2", help="comma-separated piles (default 1,2)")
     ap.add_argument("--phases", type=int, default=20, help="fault-free servo phases per pile (0-20)")
     ap.add_argument("--jobs", type=int, default=1)
-    ap.add_argument("--noise", default="none,datasheet",
-                    help="comma-separated sensor noise models to fly everything with (default none,datasheet)")
+    ap.add_argument("--noise", default="none,datasheet,appendix-a",
+                    help="comma-separated sensor noise models to fly everything with (default all three: Appendix A's "
+                         "degree of pointing noise is where false corrections came from)")
     ap.add_argument("--runs", type=Path, default=None, help="keep the flights in this folder and reuse them")
     args = ap.parse_args(argv)
     if not 0 <= args.phases <= 20 or args.jobs < 1:

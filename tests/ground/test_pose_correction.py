@@ -13,13 +13,12 @@ import pytest
 from firmware_py.core.frames import StorageFrame, beam_rays_w
 from firmware_py.core.samplelog import SampleFlags, new_records
 from firmware_py.core.storage import Storage
+from ground.plane_stretches import along_planes, beams
 from ground.pose_correction import (
     PLANE_NAMES,
     Component,
     PoseCorrectionOptions,
-    along_planes,
     apply_pose_correction,
-    beams,
     estimate_pose_correction,
     is_drift,
     planes,

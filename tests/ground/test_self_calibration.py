@@ -11,7 +11,15 @@ from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
 from firmware_py.core.samplelog import SAMPLE_DTYPE, SampleLogWriter, read_samplelog
 from firmware_py.core.storage import Storage
 from ground.report import ReportOptions, make_report
-from ground.self_calibration import PLANE_SETS, describe, estimate_mount, not_estimated, plane_set_errors
+from ground.self_calibration import (
+    INSIDE_SIGN,
+    PLANE_SETS,
+    _trim_inside,
+    describe,
+    estimate_mount,
+    not_estimated,
+    plane_set_errors,
+)
 from ground.servo_timing import Resimulated
 from sitl.faults.injector import FaultSpec
 from sitl.missions.rectangle import Mission
@@ -213,6 +221,11 @@ def test_that_points_scattered_at_random_are_no_building_and_get_no_correction()
     s["sweep_dir"] = rng.choice([-1, 1], 3000)
     s["roll_rad"][5] = np.nan  # a non-finite pose is left out, not fitted
     est = estimate_mount(s, (0, 0, 0.1), StorageFrame(), STORAGE, 0.025, 0.01)
+    # No stretch of these "sweeps" runs along a plane (ground.plane_stretches), so no point may be the floor's
+    # or a wall's.
+    assert not est.any_applied and est.reason == "the building's floor and walls were not found in the cloud"
+    s["t_s"] = np.nan  # without times there are no stretches to test: then the fit's own misfit says it
+    est = estimate_mount(s, (0, 0, 0.1), StorageFrame(), STORAGE, 0.025, 0.01)
     assert not est.any_applied and "does not explain the floor and walls" in est.reason
 
 
@@ -230,3 +243,12 @@ def test_that_a_boresight_correction_alone_is_applied_to_the_volume(square_run, 
     assert not cal["servo_offset_deg"]["applied"] and not cal["servo_scale"]["applied"]
     assert fixed["volume_m3"] != raw["volume_m3"]
     assert abs(fixed["volume_m3"] - clean["volume_m3"]) < abs(raw["volume_m3"] - clean["volume_m3"]) / 3
+
+
+def test_that_a_plane_s_band_keeps_no_more_points_inside_than_outside_the_farthest_inside_dropped():
+    # The floor's band: two points below it (outside the building), five above; x = 0's: one each side.
+    j = np.array([0, 0, 0, 0, 0, 0, 0, 1, 1, -1])
+    inside = np.where(j >= 0, INSIDE_SIGN[np.maximum(j, 0)], 1.0)
+    r = inside * np.array([-0.01, -0.02, 0.01, 0.30, 0.02, 0.50, 0.04, 0.01, -0.01, 0.9])
+    kept = _trim_inside(j, r, np.full(len(j), 0.05))
+    assert list(kept) == [0, 0, 0, -1, 0, -1, -1, 1, 1, -1]  # the floor keeps its two nearest inside

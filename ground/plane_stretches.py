@@ -1,0 +1,83 @@
+"""The stretches of a sweep that run along the building's planes.
+
+A LiDAR sweep draws a line over whatever it crosses: along the floor or a wall the line is straight in the
+plane, over a pile's toe or flank it climbs. A point whose stretch of sweep (its neighbours in time, either side)
+runs along a plane may be that plane's; a point on a climbing stretch cannot be, however near the plane it
+lies. Both estimates from the building use the test: the pose correction (`ground.pose_correction`) and the
+mount's self-calibration (`ground.self_calibration`), so that a pile's toe within the noise of the floor is
+neither's floor.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_rays_w
+from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
+
+
+@dataclass(frozen=True)
+class Beams:
+    """The usable samples' geometry: time, the vehicle's position in W and the vector to the hit point."""
+
+    t_s: np.ndarray
+    vehicle_w: np.ndarray
+    to_point_w: np.ndarray
+    parallel: np.ndarray | None = None
+    """(N, 5) whether each point's stretch of sweep runs along each plane (`along_planes`)."""
+
+    def take(self, idx) -> Beams:
+        return Beams(self.t_s[idx], self.vehicle_w[idx], self.to_point_w[idx],
+                     None if self.parallel is None else self.parallel[idx])
+
+
+def beams(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame,
+          boresight: Boresight = SQUARE) -> tuple[Beams, np.ndarray]:
+    """Eqs. (3)-(6) split at the vehicle, for the usable samples: its position and the vector from it to
+    each hit point; and their sweep directions."""
+    names = ("x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad", "servo_rad", "range_m", "t_s")
+    ok = np.logical_and.reduce([np.isfinite(samples[f]) for f in names])
+    ok &= ((samples["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0) & (samples["range_m"] > 0)
+    s = samples[ok]
+    pos = np.column_stack([s["x_m"], s["y_m"], s["z_m"]]).astype(float)
+    origins, dirs = beam_rays_w(pos, s["roll_rad"], s["pitch_rad"], s["yaw_rad"], s["servo_rad"], lever_arm_body_m,
+                                frame, boresight)
+    c = frame.ned_to_w(pos)
+    return (Beams(s["t_s"].astype(float), c, origins - c + dirs * s["range_m"].astype(float)[:, None]),
+            s["sweep_dir"].astype(np.int64))
+
+
+CHORD_HALF = 16
+"""A point's stretch of sweep: the chord from the sample CHORD_HALF before it to CHORD_HALF after it."""
+
+
+def along_planes(b: Beams, sigma_m: np.ndarray, angle_sigma_rad: float, sweep_dir: np.ndarray,
+                 n: np.ndarray, sample_dt_s: float) -> np.ndarray:
+    """(N, 5) True where the point's stretch of sweep runs along plane j: the chord between its neighbours
+    has no component along j's normal beyond 3 noise sigmas of both ends (and the attitude's pointing
+    error), where the sweep's plane crosses plane j (below). A translation or a small turn of the pose keeps a
+    plane's stretches flat, a pile's slope never is: so a pile's toe cannot pass for the floor, nor its flank
+    for a wall it does not touch."""
+    p = b.vehicle_w + b.to_point_w
+    m = len(p)
+    h = CHORD_HALF
+    out = np.zeros((m, len(n)), dtype=bool)
+    if m <= 2 * h:
+        return out
+    i = np.arange(h, m - h)
+    same = (sweep_dir[i - h] == sweep_dir[i + h]) & (b.t_s[i + h] - b.t_s[i - h] <= (2 * h + 1.5) * sample_dt_s)
+    chord = p[i + h] - p[i - h]
+    length = np.linalg.norm(chord, axis=1)
+    tol = 3.0 * np.hypot(sigma_m[i - h], sigma_m[i + h]) + 3.0 * angle_sigma_rad * length
+    # The test says something only where the sweep plane crosses plane j: every chord of a sweep lies in
+    # its own plane, so a plane parallel to the sweep's (a wall ahead when flying towards it) passes any
+    # chord. It needs the angle between the two planes above the chord's own resolution, tol / length
+    # (measured: a VIO flight's last leg, 4.7 m from the end wall ahead, took its sweeps' floor and side
+    # wall points for that wall and moved 4.5 m along the track).
+    sweep_n = np.cross(b.to_point_w[i - h], b.to_point_w[i + h])
+    sweep_n /= np.maximum(np.linalg.norm(sweep_n, axis=1), 1e-12)[:, None]
+    crossing = np.sqrt(np.clip(1.0 - (sweep_n @ n.T) ** 2, 0.0, 1.0)) > (tol / np.maximum(length, 1e-12))[:, None]
+    out[i] = (np.abs(chord @ n.T) <= tol[:, None]) & same[:, None] & (length > tol)[:, None] & crossing
+    return out
