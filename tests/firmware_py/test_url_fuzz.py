@@ -27,7 +27,7 @@ if SIM:
     from sitl.mavlink import transport as mv
 needs_sim = pytest.mark.skipif(not SIM, reason="needs the simulator (sitl/), not in the payload-only install")
 
-FUZZ = settings(max_examples=600, deadline=None,
+FUZZ = settings(max_examples=300, deadline=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 
 SCHEMES = ["i2c", "tcp", "udp", "udpin", "udpout", "serial", "pwm", "pwm:tcp", "pwm:sysfs", "pwm:pca9685",

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from tools.experiments import Experiment, load_experiments
 
-FUZZ = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 FIELDS = [f.name for f in fields(Experiment)]
 
 

@@ -326,7 +326,7 @@ _payloads = st.one_of(
 )
 
 
-@settings(max_examples=400, deadline=None)
+@settings(max_examples=200, deadline=None)
 @given(op=_ops, payload=_payloads)
 def test_that_any_request_to_good_devices_gets_a_status_never_an_internal_error(quiet_server, op, payload):
     """ERROR is for a device model that raised; with well-behaved devices every answer is OK, NACK (nobody at

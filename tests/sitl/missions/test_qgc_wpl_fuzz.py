@@ -23,7 +23,7 @@ from sitl.mavlink.gcs import GcsError, load_plan
 from sitl.missions.qgc_wpl import plan_rows, read_qgc_wpl, write_qgc_wpl
 from sitl.missions.rectangle import TURN_MODES, Mission
 
-FUZZ = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 FRAME = StorageFrame((4.0, -6.0, 0.0), math.radians(70))
 
 
