@@ -81,3 +81,13 @@ def along_planes(b: Beams, sigma_m: np.ndarray, angle_sigma_rad: float, sweep_di
     crossing = np.sqrt(np.clip(1.0 - (sweep_n @ n.T) ** 2, 0.0, 1.0)) > (tol / np.maximum(length, 1e-12))[:, None]
     out[i] = (np.abs(chord @ n.T) <= tol[:, None]) & same[:, None] & (length > tol)[:, None] & crossing
     return out
+
+
+def stretches_along(b: Beams, sweep_dir: np.ndarray, n: np.ndarray, range_sigma_m: float, range_sigma_rel: float,
+                    angle_sigma_rad: float, floor_m: float) -> np.ndarray:
+    """`along_planes` with each point's range sigma from the header's sensor model (never under floor_m) and the
+    samples' own period: what both estimates from the building ask."""
+    rng_m = np.linalg.norm(b.to_point_w, axis=1)
+    sigma = np.maximum(np.maximum(range_sigma_m, range_sigma_rel * rng_m), floor_m)
+    dt = float(np.median(np.diff(b.t_s))) if len(b.t_s) > 1 else 0.0
+    return along_planes(b, sigma, angle_sigma_rad, sweep_dir, n, dt)

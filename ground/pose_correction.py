@@ -65,7 +65,7 @@ from scipy.stats import chi2
 
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
 from firmware_py.core.storage import Storage
-from ground.plane_stretches import Beams, along_planes, beams
+from ground.plane_stretches import Beams, beams, stretches_along
 
 PLANE_NAMES = ("floor", "x0", "xL", "y0", "yW")
 MAX_MISFIT = 3.0
@@ -559,11 +559,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         return not_applied("the sweep period is unknown (no servo frequency in the header, too few sweeps): no knot "
                            "spacing for the pose correction")
     n, d = planes(storage)
-    rng = np.linalg.norm(b.to_point_w, axis=1)
     floor_m = max(resolution_m / math.sqrt(12.0), 1e-3)
-    sigma = np.maximum(np.maximum(range_sigma_m, range_sigma_rel * rng), floor_m)
-    dt = float(np.median(np.diff(b.t_s))) if len(b.t_s) > 1 else 0.0
-    b = replace(b, parallel=along_planes(b, sigma, angle_sigma_rad, sweep_dir, n, dt))
+    b = replace(b, parallel=stretches_along(b, sweep_dir, n, range_sigma_m, range_sigma_rel, angle_sigma_rad, floor_m))
     stride = max(1, len(b.t_s) // opts.max_points)
     b = b.take(slice(None, None, stride))
     t0, t1 = float(b.t_s.min()), float(b.t_s.max())

@@ -61,7 +61,7 @@ from threadpoolctl import threadpool_limits
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_dir_body, rot_body_to_ned
 from firmware_py.core.servo_model import command_angles, servo_angles
 from firmware_py.core.storage import Storage
-from ground.plane_stretches import along_planes, beams
+from ground.plane_stretches import beams, stretches_along
 from ground.servo_timing import Resimulated
 
 N_GROUPS = 8
@@ -309,6 +309,8 @@ def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.n
          windows: list[np.ndarray], free: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fit the points `idx` over a shrinking window (per-point arrays, m); returns (q, plane index,
     residual m) of the last round, for the points `idx`. Only the `free` parameters move (all by default).
+    Each round fits the bands trimmed to no more points inside than outside (`_trim_inside`); the plane index
+    returned is the untrimmed assignment, so that the inside-excess guard can still see what a fit holds.
 
     Each round takes the points within BAND windows of their nearest plane and a bounded-influence
     loss (arctan) of their distance in windows: a point more than about a window off counts for
@@ -456,9 +458,7 @@ def _along(s: np.ndarray, lever_arm_body_m, frame: StorageFrame, boresight: Bore
     b, sweep_dir = beams(s, lever_arm_body_m, frame, boresight)
     if len(b.t_s) != len(s) or len(s) < 2:
         return None
-    rng_m = np.linalg.norm(b.to_point_w, axis=1)
-    sigma = np.maximum(np.maximum(range_sigma_m, range_sigma_rel * rng_m), 1e-3)
-    return along_planes(b, sigma, angle_sigma_rad, sweep_dir, n, float(np.median(np.diff(b.t_s))))
+    return stretches_along(b, sweep_dir, n, range_sigma_m, range_sigma_rel, angle_sigma_rad, 1e-3)
 
 
 def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, storage: Storage,
