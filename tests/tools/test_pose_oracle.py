@@ -1,0 +1,96 @@
+"""tools.pose_oracle: a drifting flight re-posed with the truth it keeps, and the split of its volume error."""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.samplelog import SampleLogWriter, new_records, read_samplelog
+from firmware_py.core.storage import Storage
+from tools.pose_oracle import flights, parse_run, repose, table, truth_correction
+
+FRAME = StorageFrame(origin_ned_m=(3.0, -2.0, 0.0), heading_rad=math.radians(30.0))
+STORAGE = Storage(length_m=30.0, width_m=20.0, height_m=10.0)
+
+
+def _trajectory(t: np.ndarray, profile: str = "vio") -> dict:
+    true_w = np.column_stack([5.0 + t, 10.0 + 0.0 * t, 6.0 + 0.0 * t])
+    est_w = true_w + np.column_stack([0.01 * t, -0.02 * t, 0.1 + 0.0 * t])  # drifting, 0.1 m high
+    true_yaw = np.full(len(t), 0.5)
+    return {"profile": profile, "trajectory": {
+        "rate_hz": 10.0, "frame": "W", "t_s": t.tolist(), "true_w_m": true_w.tolist(),
+        "true_yaw_rad": true_yaw.tolist(), "estimated_w_m": est_w.tolist(),
+        "estimated_yaw_rad": (true_yaw + 0.01).tolist()}}
+
+
+def _run(folder: Path, name: str, profile: str = "vio") -> Path:
+    """A run folder whose samples carry the estimate of `_trajectory`, and its truth."""
+    run = folder / name
+    run.mkdir(parents=True)
+    t = np.arange(0.0, 10.0001, 0.1)
+    traj = _trajectory(t, profile)
+    s = new_records(len(t))
+    s["t_s"] = t
+    ned = FRAME.w_to_ned(np.asarray(traj["trajectory"]["estimated_w_m"]))
+    s["x_m"], s["y_m"], s["z_m"] = ned[:, 0], ned[:, 1], ned[:, 2]
+    s["yaw_rad"] = traj["trajectory"]["estimated_yaw_rad"]
+    s["range_m"] = 5.0
+    with SampleLogWriter(run / "samples.pslog", {"storage_frame": FRAME.to_dict()}, fsync=False) as w:
+        w.append(s)
+    (run / "truth.json").write_text(json.dumps({"true_volume_m3": 100.0, "storage": STORAGE.to_dict(),
+                                                "pose_error": traj}))
+    return run
+
+
+def test_that_the_truth_correction_is_the_true_trajectory_less_the_estimate():
+    corr = truth_correction({"pose_error": _trajectory(np.array([0.0, 10.0]))})
+    assert corr is not None and corr.applied
+    np.testing.assert_allclose(corr.values[1], [-0.1, 0.2, -0.1, 0.01], atol=1e-12)
+
+
+def test_that_a_flight_without_a_pose_error_has_no_truth_correction():
+    assert truth_correction({"pose_error": None}) is None
+    assert truth_correction({"pose_error": _trajectory(np.array([0.0, 1.0]), "none")}) is None
+
+
+def test_that_a_re_posed_run_carries_the_true_pose_in_its_samples_and_the_rest_of_the_run_unchanged(tmp_path: Path):
+    run = _run(tmp_path, "vio-1-20-0")
+    (run / "pile.stl").write_text("solid x\nendsolid x\n")
+    assert repose(run, tmp_path / "oracle")
+    log = read_samplelog(tmp_path / "oracle" / "samples.pslog")
+    assert log.intact and log.header["storage_frame"] == FRAME.to_dict()
+    truth = json.loads((run / "truth.json").read_text())["pose_error"]["trajectory"]
+    w = FRAME.ned_to_w(np.column_stack([log.samples["x_m"], log.samples["y_m"], log.samples["z_m"]]))
+    np.testing.assert_allclose(w, truth["true_w_m"], atol=1e-4)  # float32 records
+    np.testing.assert_allclose(log.samples["yaw_rad"], truth["true_yaw_rad"], atol=1e-6)
+    assert (tmp_path / "oracle" / "pile.stl").read_text() == (run / "pile.stl").read_text()
+
+
+def test_that_only_reported_drifting_flights_are_taken_not_error_free_flights_nor_reports(tmp_path: Path):
+    for name in ("vio-1-20-0", "flow-2-5-1", "none-1-20-0", "vio-1-5-0"):
+        _run(tmp_path, name, name.split("-")[0])
+        if name != "vio-1-5-0":  # a flight the campaign did not report (it crashed)
+            (tmp_path / f"{name}--pose-correction").mkdir()
+    assert [p.name for p in flights([tmp_path])] == ["flow-2-5-1", "vio-1-20-0"]
+
+
+def test_that_a_run_name_is_read_with_dashes_in_the_pile_and_the_noise():
+    assert parse_run("flow-cone-1-20-3") == {"profile": "flow", "pile": "cone-1", "p_traj": 20, "seed": 3,
+                                             "noise": "none"}
+    assert parse_run("vio-2-5-0-appendix-a") == {"profile": "vio", "pile": "2", "p_traj": 5, "seed": 0,
+                                                 "noise": "appendix-a"}
+    with pytest.raises(ValueError, match="not a pose campaign"):
+        parse_run("demo")
+
+
+def test_that_the_table_splits_the_error_into_the_path_s_share_and_the_correction_s_residual():
+    rows = [{"run": "vio-2-20-0", "folder": "pose", "profile": "vio", "ve_ref": 1.05, "ve_true_pose": 0.22,
+             "ve_corrected": -0.22},
+            {"run": "vio-2-20-1", "folder": "pose", "profile": "vio", "ve_ref": 1.05, "ve_true_pose": 1.00,
+             "ve_corrected": 1.10}]
+    line = next(row for row in table(rows).splitlines() if row.startswith("| pose |"))
+    # path 0.83 and 0.05 pp; residual 0.44 and 0.10 pp; total 1.27 and 0.05 pp
+    assert line == "| pose | 2 | 20 % | 2 | 0.44 / 0.83 | 1/2 | 0.27 / 0.44 | 1/2 | 0.66 | 1/2 |"

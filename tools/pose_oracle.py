@@ -1,0 +1,182 @@
+"""How close can any pose correction come? The drifting flights of the pose campaigns, their samples re-posed with
+the truth truth.json keeps (the true trajectory at 10 Hz, the estimate's error linear between), reported without a
+pose correction: the volume of the flight the vehicle actually flew, as if its pose had been known.
+
+Issue 15 compares the corrected volume with the error-free flight's. But the autopilot flies on its estimate, so
+a drifting flight flies another path, sees other parts of the pile and leaves other cells to the fill: part of the
+difference is the path's, and no correction of the pose can remove it. This tool splits the two:
+
+- `true pose - error-free`: the path's share (what a perfect correction would still leave);
+- `corrected - true pose`: the correction's own residual.
+
+    python -m tools.pose_oracle --runs runs/pose [runs/pose-own ...] [--jobs 2] [--write docs/pose_error.md]
+
+Each run folder of the campaign (`PROFILE-PILE-PTRAJ-SEED[-NOISE]`, with its `--pose-correction` report beside it)
+gets a sibling `NAME--true-pose` (the re-posed run, its report in `NAME--true-pose/report`). Flights without a
+pose error, or that crashed, are skipped.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import statistics
+import subprocess
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from firmware_py.core.cli import ArgumentParser
+from firmware_py.core.frames import StorageFrame
+from firmware_py.core.samplelog import SampleLogWriter, read_samplelog
+from ground.pose_correction import PoseCorrection, apply_pose_correction
+from tools.doc_sections import write_section
+from tools.pose_correction_campaign import VE_TARGET_PP, kept_flight_crash
+
+SECTION = "pose-oracle-table"
+SUFFIX = "--true-pose"
+
+
+def truth_correction(truth: dict) -> PoseCorrection | None:
+    """The correction that puts the logged estimate on the true trajectory (None: the flight has no pose error)."""
+    tr = (truth.get("pose_error") or {}).get("trajectory")
+    if not tr or truth["pose_error"].get("profile") in (None, "none"):
+        return None
+    if tr.get("clock", "log") != "log":
+        raise ValueError(f"the trajectory is on the {tr['clock']} clock, not the log's")
+    t = np.asarray(tr["t_s"], dtype=float)
+    d_w = np.asarray(tr["true_w_m"], dtype=float) - np.asarray(tr["estimated_w_m"], dtype=float)
+    d_yaw = np.angle(np.exp(1j * (np.asarray(tr["estimated_yaw_rad"], dtype=float)
+                                  - np.asarray(tr["true_yaw_rad"], dtype=float))))
+    values = np.column_stack([d_w, d_yaw])
+    return PoseCorrection(knot_t_s=t, values=values, constrained=np.ones_like(values, dtype=bool), applied=True)
+
+
+def repose(run: Path, out: Path) -> bool:
+    """Write `out`: `run` with its samples' pose replaced by the truth. False when there is nothing to replace."""
+    truth = json.loads((run / "truth.json").read_text())
+    if kept_flight_crash(truth) is not None:
+        return False
+    corr = truth_correction(truth)
+    if corr is None:
+        return False
+    log = read_samplelog(run / "samples.pslog")
+    frame = StorageFrame.from_dict(log.header["storage_frame"])
+    samples = apply_pose_correction(log.samples, corr, frame)
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    for f in run.iterdir():
+        if f.is_file() and f.name != "samples.pslog":
+            shutil.copy2(f, out / f.name)
+    header = {k: v for k, v in log.header.items() if k not in ("format", "format_version", "record_dtype")}
+    with SampleLogWriter(out / "samples.pslog", header, fsync=False) as w:
+        w.append(samples)
+    return True
+
+
+def one(run: str) -> dict | None:
+    """Re-pose one flight and report it; the row with the three volumes (None: not a drifting flight)."""
+    run_p = Path(run)
+    oracle = run_p.parent / f"{run_p.name}{SUFFIX}"
+    rep = oracle / "report"
+    if not (rep / "report.json").is_file():
+        if not repose(run_p, oracle):
+            return None
+        subprocess.run([sys.executable, "-m", "ground.cli", "report", str(oracle), "--out", str(rep), "--no-plots",
+                        "--force", "--quiet", "--no-pose-correction"], check=True, stdout=subprocess.DEVNULL)
+    profile = parse_run(run_p.name)["profile"]
+    ref = run_p.parent / ("none" + run_p.name[len(profile):] + "--no-pose-correction") / "report.json"
+    corrected = run_p.parent / f"{run_p.name}--pose-correction" / "report.json"
+    if not ref.is_file() or not corrected.is_file():
+        return None
+    truth_m3 = json.loads((run_p / "truth.json").read_text())["true_volume_m3"]
+
+    def signed(p: Path) -> float:
+        return 100.0 * (json.loads(p.read_text())["volume_m3"] - truth_m3) / truth_m3
+    return {"run": run_p.name, "folder": run_p.parent.name, "profile": profile,
+            "ve_ref": signed(ref), "ve_true_pose": signed(rep / "report.json"), "ve_corrected": signed(corrected)}
+
+
+def flights(folders: list[Path]) -> list[Path]:
+    """The campaign's drifting flights in these folders (not their reports, not the error-free flights)."""
+    out = []
+    for folder in folders:
+        for d in sorted(folder.iterdir()):
+            if (d.is_dir() and "--" not in d.name and not d.name.startswith("none-") and (d / "truth.json").is_file()
+                    and (d.parent / f"{d.name}--pose-correction").is_dir()):
+                out.append(d)
+    return out
+
+
+NOISE_SUFFIXES = ("-appendix-a", "-datasheet")
+
+
+def parse_run(name: str) -> dict:
+    """The campaign's run name PROFILE-PILE-PTRAJ-SEED[-NOISE] (PILE may hold dashes: `cone-1`) as its parts."""
+    noise = next((n for n in NOISE_SUFFIXES if name.endswith(n)), "")
+    parts = name.removesuffix(noise).split("-")
+    if len(parts) < 4 or not parts[-1].isdigit() or not parts[-2].isdigit():
+        raise ValueError(f"{name!r} is not a pose campaign's run name (PROFILE-PILE-PTRAJ-SEED[-NOISE])")
+    return {"profile": parts[0], "pile": "-".join(parts[1:-2]), "p_traj": int(parts[-2]), "seed": int(parts[-1]),
+            "noise": noise.lstrip("-") or "none"}
+
+
+def table(rows: list[dict]) -> str:
+    """Per campaign folder, pile and P_traj (both profiles together): the path's share, the correction's residual
+    and the two together, in percentage points of the true volume, and how many flights each keeps within the
+    issue's 0.3 pp."""
+    lines = ["| folder | pile | P_traj | flights | path's share: \\|true pose - error-free\\| (pp), mean / max | "
+             "within "
+             f"{VE_TARGET_PP} pp | correction's residual: \\|corrected - true pose\\| (pp), mean / max | within "
+             f"{VE_TARGET_PP} pp | \\|corrected - error-free\\| (pp), mean | within {VE_TARGET_PP} pp |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for folder in dict.fromkeys(r["folder"] for r in rows):
+        mine = [r for r in rows if r["folder"] == folder]
+        for pile, p_traj in dict.fromkeys((parse_run(r["run"])["pile"], parse_run(r["run"])["p_traj"]) for r in mine):
+            rs = [r for r in mine if (parse_run(r["run"])["pile"], parse_run(r["run"])["p_traj"]) == (pile, p_traj)]
+            path = [abs(r["ve_true_pose"] - r["ve_ref"]) for r in rs]
+            resid = [abs(r["ve_corrected"] - r["ve_true_pose"]) for r in rs]
+            total = [abs(r["ve_corrected"] - r["ve_ref"]) for r in rs]
+            lines.append(f"| {folder} | {pile} | {p_traj} % | {len(rs)} | {statistics.fmean(path):.2f} / "
+                         f"{max(path):.2f} | {sum(v <= VE_TARGET_PP for v in path)}/{len(rs)} | "
+                         f"{statistics.fmean(resid):.2f} / {max(resid):.2f} | "
+                         f"{sum(v <= VE_TARGET_PP for v in resid)}/{len(rs)} | {statistics.fmean(total):.2f} | "
+                         f"{sum(v <= VE_TARGET_PP for v in total)}/{len(rs)} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = ArgumentParser(prog="python -m tools.pose_oracle", description=__doc__)
+    ap.add_argument("--runs", type=Path, nargs="+", required=True, help="the pose campaigns' --keep folders")
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--rows", type=Path, default=None, help="write the rows here (JSON lines)")
+    ap.add_argument("--write", type=Path, default=None, help=f"page whose {SECTION} section to rewrite")
+    args = ap.parse_args(argv)
+    missing = [str(f) for f in args.runs if not f.is_dir()]
+    if missing:
+        ap.error(f"no such folder: {', '.join(missing)}")
+    todo = [str(f) for f in flights(args.runs)]
+    rows = []
+    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        for i, row in enumerate(pool.map(one, todo), 1):
+            if row is not None:
+                rows.append(row)
+            print(f"\r{i}/{len(todo)} flights", end="", file=sys.stderr, flush=True)
+    print(file=sys.stderr)
+    if args.rows:
+        args.rows.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    text = ("Signed Ve (%) of three reports of each drifting flight: the error-free flight of the same pile, P_traj "
+            "and seed; the drifting flight re-posed with the true trajectory (no correction); the drifting flight "
+            "corrected. Regenerated by `python -m tools.pose_oracle "
+            + " ".join(sys.argv[1:] if argv is None else argv) + "`.\n\n" + table(rows))
+    if args.write is not None:
+        write_section(args.write, SECTION, text)
+    print(text)
+    return 0 if rows or not todo else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
