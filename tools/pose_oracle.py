@@ -85,8 +85,12 @@ def one(run: str) -> dict | None:
     if not (rep / "report.json").is_file():
         if not repose(run_p, oracle):
             return None
-        subprocess.run([sys.executable, "-m", "ground.cli", "report", str(oracle), "--out", str(rep), "--no-plots",
-                        "--force", "--quiet", "--no-pose-correction"], check=True, stdout=subprocess.DEVNULL)
+        done = subprocess.run([sys.executable, "-m", "ground.cli", "report", str(oracle), "--out", str(rep),
+                               "--no-plots", "--force", "--quiet", "--no-pose-correction"], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.PIPE, text=True)
+        if done.returncode != 0:  # left out of the table, and said why
+            print(f"pose_oracle: {oracle}: the report failed: {done.stderr.strip()}", file=sys.stderr)
+            return None
     profile = parse_run(run_p.name)["profile"]
     ref = run_p.parent / ("none" + run_p.name[len(profile):] + "--no-pose-correction") / "report.json"
     corrected = run_p.parent / f"{run_p.name}--pose-correction" / "report.json"
@@ -164,8 +168,12 @@ def main(argv: list[str] | None = None) -> int:
         for i, row in enumerate(pool.map(one, todo), 1):
             if row is not None:
                 rows.append(row)
-            print(f"\r{i}/{len(todo)} flights", end="", file=sys.stderr, flush=True)
-    print(file=sys.stderr)
+            if sys.stderr.isatty():
+                print(f"\r{i}/{len(todo)} flights", end="", file=sys.stderr, flush=True)
+            elif i % 10 == 0 or i == len(todo):
+                print(f"{i}/{len(todo)} flights", file=sys.stderr, flush=True)
+    if sys.stderr.isatty():
+        print(file=sys.stderr)
     if args.rows:
         args.rows.write_text("".join(json.dumps(r) + "\n" for r in rows))
     text = ("Signed Ve (%) of three reports of each drifting flight: the error-free flight of the same pile, P_traj "
