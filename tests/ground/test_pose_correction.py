@@ -702,3 +702,33 @@ def test_that_a_height_error_the_solve_could_not_compute_gives_no_term_not_a_nan
     monkeypatch.setattr("ground.pose_correction.mean_sigma_m", lambda *a, **k: float("nan"))
     again = estimate(samples)
     assert again.applied and again.height_sigma_m is None
+
+
+def test_that_the_half_sample_mode_finds_a_peak_a_one_sided_tail_lifts_the_median_of():
+    from ground.pose_correction import half_sample_mode
+    rng = np.random.default_rng(3)
+    floor = rng.normal(0.0, 0.1, 600)
+    toe = rng.uniform(0.2, 0.87, 260)  # a pile's toe within the floor candidates' band
+    heights = np.concatenate([floor, toe])
+    assert np.median(heights) > 0.05
+    assert abs(half_sample_mode(heights)) < 0.03
+    assert half_sample_mode(np.array([1.0, 2.0, 2.1])) == pytest.approx(2.05)
+    assert half_sample_mode(np.array([4.0])) == 4.0
+    with pytest.raises(ValueError):
+        half_sample_mode(np.array([]))
+
+
+def test_that_floor_candidates_lose_a_pile_s_toe_and_keep_a_symmetric_floor_whole():
+    from ground.pose_correction import floor_from_below
+    rng = np.random.default_rng(4)
+    n_floor, n_toe = 600, 260
+    knots = np.array([0.0, 100.0])
+    t = np.linspace(0.0, 100.0, n_floor + n_toe)
+    z_true = np.concatenate([rng.normal(0.0, 0.1, n_floor), rng.uniform(0.35, 0.87, n_toe)])
+    p = np.column_stack([np.zeros((len(t), 2)), z_true - 0.05])  # the solved height puts the floor 5 cm low
+    floor = np.ones(len(t), dtype=bool)
+    kept = floor_from_below(p, t, knots, np.full(2, 0.05), floor, 3.0)
+    assert not kept[n_floor:].any()  # the toe, beyond the floor's own scatter above its level
+    assert kept[:n_floor].mean() > 0.98
+    only_floor = np.arange(len(t)) < n_floor
+    assert floor_from_below(p, t, knots, np.full(2, 0.05), only_floor, 3.0) is only_floor  # nothing to drop
