@@ -951,8 +951,11 @@ def floor_from_below(p: np.ndarray, t: np.ndarray, knots: np.ndarray, z: np.ndar
     n_hi, n_lo = int(np.count_nonzero(u > level + half)), int(np.count_nonzero(u < level - half))
     if not n_hi - n_lo > n_significant * math.sqrt(max(n_hi + n_lo, 1)):
         return floor
+    keep = np.abs(u - level) <= half
+    if not keep.any():
+        return floor
     out = floor.copy()
-    out[idx[np.abs(u - level) > half]] = False
+    out[idx[~keep]] = False
     return out
 
 
