@@ -1,5 +1,6 @@
 """tools.pose_correction_campaign: what it flies and how it tabulates (the flights themselves run in the campaign)."""
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -164,3 +165,23 @@ def test_that_the_page_names_the_command_without_this_machine_s_row_files():
     assert regeneration_args(argv) == "--seeds 0 1 --keep runs/pose --reuse --write docs/pose_error.md"
     assert regeneration_args(["--rows", "r.jsonl"]) == ""
     assert regeneration_args(["--keep", "k"]) == "--keep k"
+
+
+def test_that_the_table_compares_signed_volumes_where_the_rows_have_them():
+    # -0.94 % against +1.05 %: unsigned Ve puts them 0.11 pp apart, the volumes are 1.99 pp apart
+    rows = [{"profile": prof, "pile": "2", "p_traj": 20, "seed": 0, "ve_off": off, "ve_on": on, "dv_off_pct": doff,
+             "dv_on_pct": don, "applied": prof != "none", "traj_before_m": 0.5, "traj_after_m": 0.05}
+            for prof, off, on, doff, don in [("none", 1.05, 1.05, 1.05, 1.05), ("vio", 2.0, 0.94, 2.0, -0.94),
+                                             ("flow", 20.0, 1.0, -20.0, 1.0)]]
+    lines = table(rows).splitlines()
+    assert next(line for line in lines if "| vio |" in line).endswith("| 0/1 | 1/1 |  | 0/1 |")
+    assert next(line for line in lines if "| flow |" in line).endswith("| 1/1 | 1/1 |  | 0/1 |")
+    for r in rows:  # rows from before the signed fields: unsigned, as they were
+        del r["dv_off_pct"], r["dv_on_pct"]
+    assert next(line for line in table(rows).splitlines() if "| vio |" in line).endswith("| 1/1 | 1/1 |  | 0/1 |")
+
+
+def test_that_the_signed_error_is_the_volume_less_the_truth():
+    from tools.pose_correction_campaign import signed_error_pct
+    assert signed_error_pct({"volume_m3": 95.0, "true_volume_m3": 100.0}) == pytest.approx(-5.0)
+    assert math.isnan(signed_error_pct({"volume_m3": 3.0, "true_volume_m3": 0.0}))
