@@ -12,8 +12,9 @@ difference is the path's, and no correction of the pose can remove it. This tool
     python -m tools.pose_oracle --runs runs/pose [runs/pose-own ...] [--jobs 2] [--write docs/pose_error.md]
 
 Each run folder of the campaign (`PROFILE-PILE-PTRAJ-SEED[-NOISE]`, with its `--pose-correction` report beside it)
-gets a sibling `NAME--true-pose` (the re-posed run, its report in `NAME--true-pose/report`). Flights without a
-pose error, or that crashed, are skipped.
+gets a sibling `NAME--true-pose` (the re-posed run, its report in `NAME--true-pose/report`), kept and reused on
+the next call (delete it when the flight is flown again). Flights without a pose error, or that crashed, are
+skipped.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from firmware_py.core.frames import StorageFrame
 from firmware_py.core.samplelog import SampleLogWriter, read_samplelog
 from ground.pose_correction import PoseCorrection, apply_pose_correction
 from tools.doc_sections import write_section
-from tools.pose_correction_campaign import VE_TARGET_PP, kept_flight_crash
+from tools.pose_correction_campaign import VE_TARGET_PP, kept_flight_crash, signed_error_pct
 
 SECTION = "pose-oracle-table"
 SUFFIX = "--true-pose"
@@ -63,6 +64,8 @@ def repose(run: Path, out: Path) -> bool:
     if corr is None:
         return False
     log = read_samplelog(run / "samples.pslog")
+    if not isinstance(log.header, dict) or not isinstance(log.header.get("storage_frame"), dict):
+        raise ValueError(f"{run / 'samples.pslog'}: no storage frame in the log header: not a flight to re-pose")
     frame = StorageFrame.from_dict(log.header["storage_frame"])
     samples = apply_pose_correction(log.samples, corr, frame)
     if out.exists():
@@ -96,10 +99,9 @@ def one(run: str) -> dict | None:
     corrected = run_p.parent / f"{run_p.name}--pose-correction" / "report.json"
     if not ref.is_file() or not corrected.is_file():
         return None
-    truth_m3 = json.loads((run_p / "truth.json").read_text())["true_volume_m3"]
 
     def signed(p: Path) -> float:
-        return 100.0 * (json.loads(p.read_text())["volume_m3"] - truth_m3) / truth_m3
+        return signed_error_pct(json.loads(p.read_text()))
     return {"run": run_p.name, "folder": run_p.parent.name, "profile": profile,
             "ve_ref": signed(ref), "ve_true_pose": signed(rep / "report.json"), "ve_corrected": signed(corrected)}
 
