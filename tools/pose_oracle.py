@@ -139,18 +139,19 @@ def table(rows: list[dict]) -> str:
              f"{VE_TARGET_PP} pp | correction's residual: \\|corrected - true pose\\| (pp), mean / max | within "
              f"{VE_TARGET_PP} pp | \\|corrected - error-free\\| (pp), mean | within {VE_TARGET_PP} pp |",
              "|---|---|---|---|---|---|---|---|---|---|"]
-    for folder in dict.fromkeys(r["folder"] for r in rows):
-        mine = [r for r in rows if r["folder"] == folder]
-        for pile, p_traj in dict.fromkeys((parse_run(r["run"])["pile"], parse_run(r["run"])["p_traj"]) for r in mine):
-            rs = [r for r in mine if (parse_run(r["run"])["pile"], parse_run(r["run"])["p_traj"]) == (pile, p_traj)]
-            path = [abs(r["ve_true_pose"] - r["ve_ref"]) for r in rs]
-            resid = [abs(r["ve_corrected"] - r["ve_true_pose"]) for r in rs]
-            total = [abs(r["ve_corrected"] - r["ve_ref"]) for r in rs]
-            lines.append(f"| {folder} | {pile} | {p_traj} % | {len(rs)} | {statistics.fmean(path):.2f} / "
-                         f"{max(path):.2f} | {sum(v <= VE_TARGET_PP for v in path)}/{len(rs)} | "
-                         f"{statistics.fmean(resid):.2f} / {max(resid):.2f} | "
-                         f"{sum(v <= VE_TARGET_PP for v in resid)}/{len(rs)} | {statistics.fmean(total):.2f} | "
-                         f"{sum(v <= VE_TARGET_PP for v in total)}/{len(rs)} |")
+    groups: dict[tuple[str, str, int], list[dict]] = {}  # (folder, pile, P_traj), in the rows' order
+    for r in rows:
+        name = parse_run(r["run"])
+        groups.setdefault((r["folder"], name["pile"], name["p_traj"]), []).append(r)
+    for (folder, pile, p_traj), rs in groups.items():
+        path = [abs(r["ve_true_pose"] - r["ve_ref"]) for r in rs]
+        resid = [abs(r["ve_corrected"] - r["ve_true_pose"]) for r in rs]
+        total = [abs(r["ve_corrected"] - r["ve_ref"]) for r in rs]
+        lines.append(f"| {folder} | {pile} | {p_traj} % | {len(rs)} | {statistics.fmean(path):.2f} / "
+                     f"{max(path):.2f} | {sum(v <= VE_TARGET_PP for v in path)}/{len(rs)} | "
+                     f"{statistics.fmean(resid):.2f} / {max(resid):.2f} | "
+                     f"{sum(v <= VE_TARGET_PP for v in resid)}/{len(rs)} | {statistics.fmean(total):.2f} | "
+                     f"{sum(v <= VE_TARGET_PP for v in total)}/{len(rs)} |")
     return "\n".join(lines)
 
 
