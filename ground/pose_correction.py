@@ -60,6 +60,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 from scipy import linalg, sparse
 from scipy.optimize import least_squares
+from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import spsolve
 from scipy.stats import chi2
 
@@ -192,6 +193,9 @@ class PoseCorrection:
     height_sigma_m: float | None = None
     """The formal standard error of the height correction's mean over the survey (`mean_sigma_m`); None when the
     height was not corrected. The volume's interval carries it (ground.uncertainty, the pose term)."""
+    height_unanchored_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """How long the corrected height was not tied to the floor (`floor_anchored`): (total s, and the longest such
+    stretch's start and end on the log's clock; all 0 when tied throughout or not corrected)."""
 
     def at(self, t_s: np.ndarray) -> np.ndarray:
         """(N, 4) the correction at times t_s (linear between knots, held beyond the ends)."""
@@ -230,7 +234,10 @@ class PoseCorrection:
                 "points_per_plane": dict(zip(PLANE_NAMES, self.points, strict=True)),
                 "rms_before_m": self.rms_before_m, "rms_after_m": self.rms_after_m, "noise_m": self.noise_m,
                 "gain": self.gain, "gain_needed": self.gain_needed, "notes": list(self.notes),
-                "height_sigma_m": self.height_sigma_m, "closest_wall": None if self.closest_wall is None else dict(
+                "height_sigma_m": self.height_sigma_m,
+                "height_unanchored_s": self.height_unanchored_s[0],
+                "height_unanchored_longest_s": [self.height_unanchored_s[1], self.height_unanchored_s[2]],
+                "closest_wall": None if self.closest_wall is None else dict(
                     zip(("distance_m", "surface", "t_s"), self.closest_wall, strict=True))}
 
 
@@ -659,6 +666,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         return not_applied(f"too few points on the floor and walls ({int(np.count_nonzero(j_fit >= 0))}) to correct "
                            "the pose", points=counts)
     z_info = None
+    unanchored = (0.0, 0.0, 0.0)
     z_sigma: list[float] = []  # the standard errors of the height's mean, the last solve's last
     notes: list[str] = []
     if opts.vertical and opts.crossings:
@@ -701,6 +709,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
             x[:, 2] = z
             p1, vr = corrected_points(b, x, k, f)
             floor = floor_from_below(p1, b.t_s, knots, np.zeros(len(knots)), floor, opts.n_significant)
+            unanchored = unanchored_stretches(knots, floor_anchored(p1, b.t_s, knots, wall, floor, storage, cell_m))
     # Which knot components the data set (their information beats the prior's): the rest is interpolated.
     sel = np.flatnonzero(on)
     jac = _jacobian(b.take(sel), vr[sel], k[sel], f[sel], n[j1[sel]], np.full(len(sel), noise), 4 * len(knots))
@@ -741,12 +750,16 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                 x = x_reg
                 if z_info is not None and floor_note is not None:
                     # the first height was solved in the frame before the registration (`_height_again`)
+                    floor_again: list[np.ndarray] = []
                     x, z_again, again_note = _height_again(b, x, k, f, knots, wall, voted, storage, cell_m, step[2],
                                                            noise, sensor_m, opts.max_position_error_m,
-                                                           opts.n_significant, opts.max_vertical_error_m, z_sigma)
+                                                           opts.n_significant, opts.max_vertical_error_m, z_sigma,
+                                                           floor_again)
                     if again_note:
                         z_info = info[:, 2] = z_again
                         notes.append(again_note)
+                        unanchored = unanchored_stretches(knots, floor_anchored(
+                            corrected_points(b, x, k, f)[0], b.t_s, knots, wall, floor_again[-1], storage, cell_m))
         notes += cross_notes
         if cross_info is not None:
             info[:, :2] += cross_info[:, :2]
@@ -790,7 +803,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                            f"{needed:.0f})", knots, **common)
     # (a solve that failed numerically gives no term rather than a NaN interval)
     height_sigma = z_sigma[-1] if z_info is not None and z_sigma and math.isfinite(z_sigma[-1]) else None
-    return PoseCorrection(knots, x, constrained, True, None, height_sigma_m=height_sigma, **common)
+    return PoseCorrection(knots, x, constrained, True, None, height_sigma_m=height_sigma,
+                          height_unanchored_s=unanchored if z_info is not None else (0.0, 0.0, 0.0), **common)
 
 
 def bend_sigmas(b: Beams, knots: np.ndarray, k: np.ndarray, opts: PoseCorrectionOptions) -> np.ndarray:
@@ -856,7 +870,8 @@ def is_drift(x_new: np.ndarray, x_old: np.ndarray, step: np.ndarray, comps: tupl
 def _height_again(b: Beams, x: np.ndarray, k: np.ndarray, f: np.ndarray, knots: np.ndarray, wall: np.ndarray,
                   voted: np.ndarray, storage: Storage, cell_m: float, step_z_m: float, noise: float, sensor_m: float,
                   max_error_m: float, n_significant: float, max_vertical_error_m: float,
-                  sigma_out: list[float] | None = None) -> tuple[np.ndarray, np.ndarray | None, str | None]:
+                  sigma_out: list[float] | None = None,
+                  floor_out: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray | None, str | None]:
     """The height solved again once the registration has aligned the flight horizontally: the floor screen
     (`_screen`) and the height from the floor and the crossings (`vertical_from_crossings`), as the first
     time, from the logged reference, in the registered frame, with x, y and heading held at the registration's.
@@ -868,7 +883,8 @@ def _height_again(b: Beams, x: np.ndarray, k: np.ndarray, f: np.ndarray, knots: 
     the crossings' misfit prefers by 0.03 cm, 0.17 m RMS of height error; solved again 0.07 m). Returns the
     correction, the height's information and a note; x as it was, None and None when the registration's
     height stands (no floor kept, nothing significant, or refused as the first height would be). The height's
-    standard error is appended to sigma_out only when this height is the one returned."""
+    standard error is appended to sigma_out, and the floor it was solved on to floor_out, only when this height is
+    the one returned."""
     x_h = x.copy()
     x_h[:, 2] = 0.0
     p, _ = corrected_points(b, x_h, k, f)
@@ -882,6 +898,8 @@ def _height_again(b: Beams, x: np.ndarray, k: np.ndarray, f: np.ndarray, knots: 
         return x, None, None
     if sigma_out is not None:
         sigma_out.extend(sigma[-1:])
+    if floor_out is not None:
+        floor_out.append(kept)
     change = _rms(z - x[:, 2])
     x_h[:, 2] = z
     return x_h, z_info, (f"the height solved again on the floor once the pile seen at different times aligned the "
@@ -909,6 +927,67 @@ def height_rounds(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndar
         idx = np.flatnonzero(kept)
         z = z - float(np.median(p[idx, 2] + np.interp(t[idx], knots, z)))
     return z, z_info
+
+
+REVISIT_INTERVALS = 3
+"""Knot intervals between two sightings of a cell for them to be two passes over it: a cell is what the vehicle flies
+in a sweep period and a knot interval is two sweep periods, so one pass sees a cell within an interval and the
+next; three apart, the vehicle has left and come back."""
+
+
+def floor_anchored(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, floor: np.ndarray,
+                   storage: Storage, cell_m: float) -> np.ndarray:
+    """(K - 1,) per knot interval, whether its height is tied to the floor: the floor seen in it, or a cell it saw
+    seen again on another pass (`REVISIT_INTERVALS`) in an interval that is tied (and so on). Elsewhere the
+    height rests on a chain, the pile seen from one interval to the next, whose links' errors add up: measured on
+    the paper's pile 2 at P_traj 5 %, decimetres over 100 s even on the true horizontal pose (docs/design-notes.md).
+    The cells and counts are `vertical_from_crossings`' (MIN_CELL_POINTS points in a cell and interval)."""
+    n_int = len(knots) - 1
+    if n_int < 1:
+        return np.zeros(0, dtype=bool)
+    k, _ = _basis(t, knots)
+    nx, ny, cid = _cells(p, storage, cell_m)
+    n_cells = nx * ny
+    inside = (~wall & (p[:, 0] > 0) & (p[:, 0] < storage.length_m) & (p[:, 1] > 0) & (p[:, 1] < storage.width_m)
+              & (p[:, 2] < storage.height_m))
+    key = k * n_cells + cid
+    seen, count = np.unique(key[inside], return_counts=True)
+    seen = seen[count >= MIN_CELL_POINTS]
+    on_floor, floor_count = np.unique(key[inside & floor], return_counts=True)
+    anchor = np.zeros(n_int, dtype=bool)
+    anchor[on_floor[floor_count >= MIN_CELL_POINTS] // n_cells] = True
+    cell, interval = seen % n_cells, seen // n_cells
+    order = np.lexsort((interval, cell))  # by cell, then interval
+    cell, interval = cell[order], interval[order]
+    src, dst = [], []
+    for d in range(1, len(cell)):
+        same = cell[d:] == cell[:-d]
+        if not same.any():
+            break
+        revisit = same & (interval[d:] - interval[:-d] >= REVISIT_INTERVALS)
+        src.append(interval[:-d][revisit])
+        dst.append(interval[d:][revisit])
+    i = np.concatenate(src) if src else np.zeros(0, dtype=np.int64)
+    j = np.concatenate(dst) if dst else np.zeros(0, dtype=np.int64)
+    graph = sparse.coo_matrix((np.ones(len(i)), (i, j)), shape=(n_int, n_int))
+    _, label = connected_components(graph, directed=False)
+    tied = np.zeros(label.max() + 1, dtype=bool)
+    tied[label[anchor]] = True
+    return tied[label]
+
+
+def unanchored_stretches(knots: np.ndarray, tied: np.ndarray) -> tuple[float, float, float]:
+    """(total s not tied to the floor, the longest such stretch's start and end s) from `floor_anchored`'s
+    intervals."""
+    dt = np.diff(knots)
+    free = ~np.asarray(tied, dtype=bool)
+    if not free.any():
+        return 0.0, 0.0, 0.0
+    edges = np.diff(np.concatenate([[0], free.astype(np.int8), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)  # interval ranges [start, end)
+    lengths = knots[ends] - knots[starts]
+    best = int(np.argmax(lengths))
+    return float(dt[free].sum()), float(knots[starts[best]]), float(knots[ends[best]])
 
 
 def half_sample_mode(x: np.ndarray) -> float:
@@ -1685,6 +1764,20 @@ def describe(corr: PoseCorrection) -> str:
             f"{s['heading_rms_deg']:.2f} deg RMS ({s['heading_max_deg']:.2f} max) over time; the floor and walls "
             f"now {corr.rms_after_m * 100:.1f} cm off their planes (were {corr.rms_before_m * 100:.1f} cm)")
     return "; ".join([line, *corr.notes])
+
+
+def unanchored_warning(corr: PoseCorrection) -> str | None:
+    """A warning when the corrected height was not tied to the floor over part of the flight (`floor_anchored`), or
+    None."""
+    total, t0, t1 = corr.height_unanchored_s
+    if not corr.applied or not total > 0 or len(corr.knot_t_s) < 2:
+        return None
+    flown = float(corr.knot_t_s[-1] - corr.knot_t_s[0])
+    return (f"the corrected height is not tied to the floor for {total:.0f} of the {flown:.0f} s flown (the longest "
+            f"stretch {t1 - t0:.0f} s, from t = {t0:.1f} s): there no floor was seen, nor the same pile on another "
+            "pass that saw it, so the height rests on the pile seen from one moment to the next, whose errors add up "
+            "(decimetres over 100 s, measured where a pile hid the floor); the volume's interval may not cover "
+            "that. A flight that sees the floor along the way (legs farther from the walls) ties it")
 
 
 def unconstrained_warning(corr: PoseCorrection) -> str | None:

@@ -47,6 +47,7 @@ from ground.pointcloud import (
 )
 from ground.pose_correction import PoseCorrection, apply_pose_correction, estimate_pose_correction, with_closest_wall
 from ground.pose_correction import describe as describe_pose
+from ground.pose_correction import unanchored_warning as pose_unanchored_warning
 from ground.pose_correction import unconstrained_warning as pose_unconstrained_warning
 from ground.pose_correction import wall_warning as pose_wall_warning
 from ground.self_calibration import N_SIGNIFICANT, MountEstimate, apply_mount, describe, estimate_mount
@@ -663,7 +664,7 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
         warnings.append(describe(survey.mount, header_boresight(log.header or {})))
     if survey.pose is not None and survey.pose.applied:
         warnings += [w for w in (describe_pose(survey.pose), pose_unconstrained_warning(survey.pose),
-                                 pose_wall_warning(survey.pose)) if w]
+                                 pose_unanchored_warning(survey.pose), pose_wall_warning(survey.pose)) if w]
     warnings += site_mismatches(log.header or {}, opts.site)
     return warnings
 

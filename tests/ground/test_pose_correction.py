@@ -732,3 +732,45 @@ def test_that_floor_candidates_lose_a_pile_s_toe_and_keep_a_symmetric_floor_whol
     assert kept[:n_floor].mean() > 0.98
     only_floor = np.arange(len(t)) < n_floor
     assert floor_from_below(p, t, knots, np.full(2, 0.05), only_floor, 3.0) is only_floor  # nothing to drop
+
+
+def _sightings(spec: list[tuple[int, float, float, float]], knots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points and times: per (knot interval, x, y, z), five points in that cell at the interval's middle."""
+    p, t = [], []
+    for interval, x, y, z in spec:
+        for i in range(5):
+            p.append((x + 0.05 * i, y, z))
+            t.append(0.5 * (knots[interval] + knots[interval + 1]))
+    return np.array(p), np.array(t)
+
+
+def test_that_the_height_is_tied_to_the_floor_only_where_the_floor_or_a_pile_seen_on_another_pass_ties_it():
+    # The floor in intervals 0 and 9; a pile cell seen in interval 0 and again in 6 (another pass) ties 6; a pile
+    # cell seen in 2, 3 and 4 (one pass moving on) ties nothing: that is the chain whose errors add up.
+    from ground.pose_correction import floor_anchored, unanchored_stretches
+    knots = np.arange(0.0, 31.0, 3.0)
+    p, t = _sightings([(0, 1.2, 1.2, 0.0), (0, 5.2, 5.2, 3.0), (6, 5.2, 5.2, 3.1), (2, 10.2, 10.2, 2.0),
+                       (3, 10.2, 10.2, 2.0), (4, 10.2, 10.2, 2.1), (9, 30.2, 20.2, 0.0)], knots)
+    floor = p[:, 2] == 0.0
+    tied = floor_anchored(p, t, knots, np.zeros(len(p), dtype=bool), floor, STORAGE, 1.5)
+    np.testing.assert_array_equal(np.flatnonzero(tied), [0, 6, 9])
+    assert unanchored_stretches(knots, tied) == (21.0, 3.0, 18.0)  # 1-5 and 7-8; the longest 3-18 s
+    # the chain on one pass does not tie even when it reaches the floor's interval's neighbour
+    p2, t2 = _sightings([(0, 1.2, 1.2, 0.0), (1, 10.2, 10.2, 2.0), (2, 10.2, 10.2, 2.0)], knots)
+    tied2 = floor_anchored(p2, t2, knots, np.zeros(len(p2), dtype=bool), p2[:, 2] == 0.0, STORAGE, 1.5)
+    np.testing.assert_array_equal(np.flatnonzero(tied2), [0])
+    assert unanchored_stretches(knots, np.ones(len(knots) - 1, dtype=bool)) == (0.0, 0.0, 0.0)
+
+
+def test_that_a_height_not_tied_to_the_floor_is_warned_about_with_its_longest_stretch():
+    from ground.pose_correction import PoseCorrection, unanchored_warning
+    knots = np.arange(0.0, 31.0, 3.0)
+    values = np.zeros((len(knots), 4))
+    tied = PoseCorrection(knots, values, np.ones_like(values, dtype=bool), True)
+    assert unanchored_warning(tied) is None
+    loose = replace(tied, height_unanchored_s=(21.0, 3.0, 18.0))
+    w = unanchored_warning(loose)
+    assert w is not None and "not tied to the floor for 21 of the 30 s" in w and "longest stretch 15 s" in w
+    assert unanchored_warning(replace(loose, applied=False)) is None
+    assert loose.as_dict()["height_unanchored_s"] == 21.0
+    assert loose.as_dict()["height_unanchored_longest_s"] == [3.0, 18.0]
