@@ -978,16 +978,18 @@ def floor_anchored(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.nda
 
 def unanchored_stretches(knots: np.ndarray, tied: np.ndarray) -> tuple[float, float, float]:
     """(total s not tied to the floor, the longest such stretch's start and end s) from `floor_anchored`'s
-    intervals."""
-    dt = np.diff(knots)
-    free = ~np.asarray(tied, dtype=bool)
-    if not free.any():
-        return 0.0, 0.0, 0.0
-    edges = np.diff(np.concatenate([[0], free.astype(np.int8), [0]]))
+    intervals, counting the stretches of REVISIT_INTERVALS intervals or more: a shorter one lies within a pass's
+    reach of tied intervals on both sides (one interval alone has both its knots tied by its neighbours)."""
+    free = np.concatenate([[0], (~np.asarray(tied, dtype=bool)).astype(np.int8), [0]])
+    edges = np.diff(free)
     starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)  # interval ranges [start, end)
+    long_enough = ends - starts >= REVISIT_INTERVALS
+    starts, ends = starts[long_enough], ends[long_enough]
+    if len(starts) == 0:
+        return 0.0, 0.0, 0.0
     lengths = knots[ends] - knots[starts]
     best = int(np.argmax(lengths))
-    return float(dt[free].sum()), float(knots[starts[best]]), float(knots[ends[best]])
+    return float(lengths.sum()), float(knots[starts[best]]), float(knots[ends[best]])
 
 
 def half_sample_mode(x: np.ndarray) -> float:
