@@ -10,6 +10,7 @@ neither's floor.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,7 +55,7 @@ CHORD_HALF = 16
 
 
 def along_planes(b: Beams, sigma_m: np.ndarray, angle_sigma_rad: float, sweep_dir: np.ndarray,
-                 n: np.ndarray, sample_dt_s: float) -> np.ndarray:
+                 n: np.ndarray, sample_dt_s: float, position_sigma_m: float = 0.0) -> np.ndarray:
     """(N, 5) True where the point's stretch of sweep runs along plane j: the chord between its neighbours
     has no component along j's normal beyond 3 noise sigmas of both ends (and the attitude's pointing
     error), where the sweep's plane crosses plane j (below). A translation or a small turn of the pose keeps a
@@ -79,15 +80,25 @@ def along_planes(b: Beams, sigma_m: np.ndarray, angle_sigma_rad: float, sweep_di
     sweep_n = np.cross(b.to_point_w[i - h], b.to_point_w[i + h])
     sweep_n /= np.maximum(np.linalg.norm(sweep_n, axis=1), 1e-12)[:, None]
     crossing = np.sqrt(np.clip(1.0 - (sweep_n @ n.T) ** 2, 0.0, 1.0)) > (tol / np.maximum(length, 1e-12))[:, None]
-    out[i] = (np.abs(chord @ n.T) <= tol[:, None]) & same[:, None] & (length > tol)[:, None] & crossing
+    # And the stretch is straight: a plane cuts the sweep's plane in a line, so the point lies on its chord. A
+    # stretch over a corner (a wall's foot and the floor, an L in the sweep's plane) has its chord along
+    # neither of the two planes it spans, yet along any plane parallel to the L's plane (measured: a `flow` flight
+    # turning for home near a corner took the foot of the wall x = 0 for the wall y = 0 and moved its last leg
+    # 1.3 m along the track). The point's own tolerance adds the pointing error at its range and the position
+    # error drawn per pose message (the point and the chord's ends may be placed from different messages).
+    off = np.linalg.norm(np.cross(p[i] - p[i - h], chord), axis=1) / np.maximum(length, 1e-12)
+    straight = off <= (tol + 3.0 * angle_sigma_rad * np.linalg.norm(b.to_point_w[i], axis=1)
+                       + 3.0 * math.sqrt(2.0) * position_sigma_m)
+    out[i] = ((np.abs(chord @ n.T) <= tol[:, None]) & same[:, None] & (length > tol)[:, None] & crossing
+              & straight[:, None])
     return out
 
 
 def stretches_along(b: Beams, sweep_dir: np.ndarray, n: np.ndarray, range_sigma_m: float, range_sigma_rel: float,
-                    angle_sigma_rad: float, floor_m: float) -> np.ndarray:
+                    angle_sigma_rad: float, floor_m: float, position_sigma_m: float = 0.0) -> np.ndarray:
     """`along_planes` with each point's range sigma from the header's sensor model (never under floor_m) and the
     samples' own period: what both estimates from the building ask."""
     rng_m = np.linalg.norm(b.to_point_w, axis=1)
     sigma = np.maximum(np.maximum(range_sigma_m, range_sigma_rel * rng_m), floor_m)
     dt = float(np.median(np.diff(b.t_s))) if len(b.t_s) > 1 else 0.0
-    return along_planes(b, sigma, angle_sigma_rad, sweep_dir, n, dt)
+    return along_planes(b, sigma, angle_sigma_rad, sweep_dir, n, dt, position_sigma_m)

@@ -454,7 +454,7 @@ def _mount_of(s: np.ndarray, lever: np.ndarray, frame: StorageFrame, storage: St
               resim: Resimulated | None, mount: Boresight) -> MountEstimate:
     usable = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
     return estimate_mount(usable, lever, frame, storage, err.range_sigma_m, err.range_sigma_rel, resim, mount,
-                          err.angle_sigma_rad)
+                          err.angle_sigma_rad, err.position_sigma_m)
 
 
 def _pose_of(s: np.ndarray, bs: Boresight, header: dict, lever: np.ndarray, frame: StorageFrame, storage: Storage,

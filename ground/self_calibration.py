@@ -449,7 +449,8 @@ def _jacobian(prob: _Problem, q: np.ndarray, idx: np.ndarray, normals: np.ndarra
 
 
 def _along(s: np.ndarray, lever_arm_body_m, frame: StorageFrame, boresight: Boresight, n: np.ndarray,
-           range_sigma_m: float, range_sigma_rel: float, angle_sigma_rad: float) -> np.ndarray | None:
+           range_sigma_m: float, range_sigma_rel: float, angle_sigma_rad: float,
+           position_sigma_m: float = 0.0) -> np.ndarray | None:
     """(N, 5) whether each sample's stretch of sweep runs along each plane (`ground.plane_stretches`), placed
     with the configured mount. Why: under a degree of pointing noise a plane's window reaches tens of centimetres
     up a pile's toe, and where a pile hides the floor (the paper's pile 2) most points in the floor's were the
@@ -458,12 +459,13 @@ def _along(s: np.ndarray, lever_arm_body_m, frame: StorageFrame, boresight: Bore
     b, sweep_dir = beams(s, lever_arm_body_m, frame, boresight)
     if len(b.t_s) != len(s) or len(s) < 2:
         return None
-    return stretches_along(b, sweep_dir, n, range_sigma_m, range_sigma_rel, angle_sigma_rad, 1e-3)
+    return stretches_along(b, sweep_dir, n, range_sigma_m, range_sigma_rel, angle_sigma_rad, 1e-3, position_sigma_m)
 
 
 def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, storage: Storage,
                    range_sigma_m: float, range_sigma_rel: float, resim: Resimulated | None = None,
-                   boresight: Boresight = SQUARE, angle_sigma_rad: float = 0.0) -> MountEstimate:
+                   boresight: Boresight = SQUARE, angle_sigma_rad: float = 0.0,
+                   position_sigma_m: float = 0.0) -> MountEstimate:
     """Estimate the servo offset and scale and the boresight from the building (module docstring).
 
     Args:
@@ -474,6 +476,7 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
             the logged angles scaled and offset.
         boresight: the configured mounting (the header's); the tilt and yaw estimated are deviations from it.
         angle_sigma_rad: the header's pointing error (1 sigma), which a stretch of sweep along a plane may bend by.
+        position_sigma_m: the header's position error drawn per pose message (1 sigma), which may bend it too.
     """
     finite = np.logical_and.reduce([np.isfinite(samples[f]) for f in
                                     ("range_m", "servo_rad", "x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad")])
@@ -481,7 +484,8 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     if len(s) < 1000:
         return not_estimated(f"too few usable samples ({len(s)}) to calibrate from the building")
     n, d = _planes(storage)
-    along = _along(s, lever_arm_body_m, frame, boresight, n, range_sigma_m, range_sigma_rel, angle_sigma_rad)
+    along = _along(s, lever_arm_body_m, frame, boresight, n, range_sigma_m, range_sigma_rel, angle_sigma_rad,
+                   position_sigma_m)
     stride = max(1, len(s) // MAX_POINTS)
     s = s[::stride]
     prob = _Problem(s, np.asarray(lever_arm_body_m, dtype=float), frame, resim, boresight)

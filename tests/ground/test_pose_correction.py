@@ -776,3 +776,52 @@ def test_that_a_height_not_tied_to_the_floor_is_warned_about_with_its_longest_st
     assert unanchored_warning(replace(loose, applied=False)) is None
     assert loose.as_dict()["height_unanchored_s"] == 21.0
     assert loose.as_dict()["height_unanchored_longest_s"] == [3.0, 18.0]
+
+
+def test_that_a_stretch_over_a_walls_foot_is_along_no_plane_not_even_one_parallel_to_its_chord():
+    # A sweep that is neither vertical nor square to the walls crosses the foot of the wall x = 0: on the wall its
+    # hits drift to lower y as they go down, on the floor to higher y as they go out. A chord with one end on each
+    # can have nothing along y: it passed for the wall y = 0, which it never touched (a `flow` flight turning for
+    # home near that corner; its last leg moved 1.3 m along the track). The stretch is an L, not a line.
+    from ground.plane_stretches import CHORD_HALF, Beams
+    wall = np.column_stack([np.zeros(200), np.linspace(3.5, 3.3, 200), np.linspace(3.6, 0.0, 200)])
+    floor = np.column_stack([np.linspace(0.0, 3.0, 200), np.linspace(3.3, 3.8, 200), np.zeros(200)])[1:]
+    p = np.vstack([wall, floor])
+    vehicle = np.tile([10.0, 6.5, 7.0], (len(p), 1))  # the sweep turned 15 deg from square to y = 0
+    b = Beams(np.arange(len(p)) / RATE_HZ, vehicle, p - vehicle)
+    n, _ = planes(STORAGE)
+    along = along_planes(b, np.full(len(p), RESOLUTION), 0.0, np.ones(len(p), dtype=np.int64), n, 1.0 / RATE_HZ)
+    # the stretches with the bend well inside them run along nothing (before: along y = 0 and y = W)
+    assert not along[np.abs(np.arange(len(p)) - 199) < CHORD_HALF // 2].any()
+    x0, floor_j = PLANE_NAMES.index("x0"), PLANE_NAMES.index("floor")
+    assert along[CHORD_HALF:199 - CHORD_HALF, x0].all()  # the wall's own stretches run along it
+    assert along[199 + CHORD_HALF:len(p) - CHORD_HALF, floor_j].all()  # and the floor's along the floor
+
+
+def test_that_a_height_refused_before_the_registration_is_solved_again_after_it(monkeypatch):
+    # Before the pile seen twice aligns the flight, its horizontal error shows as height on the slopes, and the
+    # first height solve can jump between two knots beyond what a drift does (a two-knot zigzag on our own ridge:
+    # refused, and no height corrected at all, the volume 32 % off). The registered frame gets its own try.
+    import ground.pose_correction as pc
+    corners = [(4.0, 4.0), (56.0, 4.0), (56.0, 36.0), (4.0, 36.0)]
+
+    def err(t: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(t), 4))
+        out[:, 0] = 0.4 * np.sin(2.0 * math.pi * t / 60.0)
+        out[:, 1] = 0.4 * np.sin(2.0 * math.pi * t / 60.0 + 1.0)
+        out[:, 2] = 0.3 * t / t[-1]  # the barometer's walk
+        out[:, 3] = math.radians(1.0) * t / t[-1]
+        return out
+    samples, _ = flight(err, corners=corners, cast=_cast_cone)
+    real = pc.height_refused
+    calls: list[int] = []
+
+    def first_refused(*args, **kwargs):
+        calls.append(1)
+        return "the height was not corrected: a test's refusal" if len(calls) == 1 else real(*args, **kwargs)
+    monkeypatch.setattr(pc, "height_refused", first_refused)
+    corr = estimate(samples)
+    assert corr.applied, corr.reason
+    assert any("was refused (a test's refusal); the height solved again" in note for note in corr.notes), corr.notes
+    assert not any(note.startswith("the height was not corrected") for note in corr.notes)
+    assert corr.size()["vertical_rms_m"] > 0.05  # the barometer's walk, corrected after all
