@@ -58,7 +58,8 @@ def along_planes(b: Beams, sigma_m: np.ndarray, angle_sigma_rad: float, sweep_di
                  n: np.ndarray, sample_dt_s: float, position_sigma_m: float = 0.0) -> np.ndarray:
     """(N, 5) True where the point's stretch of sweep runs along plane j: the chord between its neighbours
     has no component along j's normal beyond 3 noise sigmas of both ends (and the attitude's pointing
-    error), where the sweep's plane crosses plane j (below). A translation or a small turn of the pose keeps a
+    error), where the sweep's plane crosses plane j, and the stretch is straight (both below; position_sigma_m:
+    the position error drawn per pose message, which may bend it). A translation or a small turn of the pose keeps a
     plane's stretches flat, a pile's slope never is: so a pile's toe cannot pass for the floor, nor its flank
     for a wall it does not touch."""
     p = b.vehicle_w + b.to_point_w
