@@ -1180,10 +1180,7 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
     k, f_t = _basis(t, knots)
     inside = (~wall & (p[:, 0] > 0) & (p[:, 0] < storage.length_m) & (p[:, 1] > 0) & (p[:, 1] < storage.width_m)
               & (p[:, 2] > -max_error_m) & (p[:, 2] < storage.height_m))
-    nx = max(1, math.ceil(storage.length_m / cell_m))
-    ny = max(1, math.ceil(storage.width_m / cell_m))
-    cid = (np.clip((p[:, 0] / cell_m).astype(np.int64), 0, nx - 1) * ny
-           + np.clip((p[:, 1] / cell_m).astype(np.int64), 0, ny - 1))
+    nx, ny, cid = _cells(p, storage, cell_m)
     # Each cell's slope, from all its points (every time together): the height a knot interval gives is at
     # the cell's centre, so two passes that hit a sloped cell in different places still agree.
     seen_z = p[:, 2] if start is None else p[:, 2] + np.interp(t, knots, start)  # slopes from the corrected
@@ -1283,10 +1280,7 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
         return floor, None, None, math.inf
     zc = p[:, 2] + np.interp(t, knots, z_rel)
     k, _ = _basis(t, knots)
-    nx = max(1, math.ceil(storage.length_m / cell_m))
-    ny = max(1, math.ceil(storage.width_m / cell_m))
-    cid = (np.clip((p[:, 0] / cell_m).astype(np.int64), 0, nx - 1) * ny
-           + np.clip((p[:, 1] / cell_m).astype(np.int64), 0, ny - 1))
+    nx, ny, cid = _cells(p, storage, cell_m)
     key = k * (nx * ny) + cid
     # the frame's noise: how far one interval's height of a cell is from the cell's height at other times
     inside = ~wall & (p[:, 2] < storage.height_m)
