@@ -712,7 +712,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
             x[:, 2] = z
             p1, vr = corrected_points(b, x, k, f)
             floor = floor_from_below(p1, b.t_s, knots, np.zeros(len(knots)), floor, opts.n_significant)
-            unanchored = unanchored_stretches(knots, floor_anchored(p1, b.t_s, knots, wall, floor, storage, cell_m))
+            unanchored = unanchored_stretches(knots, floor_anchored(p1, b.t_s, knots, wall, floor, storage, cell_m,
+                                                                    opts.max_position_error_m))
     # Which knot components the data set (their information beats the prior's): the rest is interpolated.
     sel = np.flatnonzero(on)
     jac = _jacobian(b.take(sel), vr[sel], k[sel], f[sel], n[j1[sel]], np.full(len(sel), noise), 4 * len(knots))
@@ -758,13 +759,13 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                     # there, it is tried again in the registered frame: on slopes the horizontal error before it
                     # shows as height (measured: a two-knot zigzag of +0.95 / -0.88 m on our own ridge, refused
                     # as a jump, and the flight's volume 32 % off without any height correction).
-                    floor_again: list[np.ndarray] = []
-                    x, z_again, again_note = _height_again(b, x, k, f, knots, wall, voted, storage, cell_m, step[2],
-                                                           noise, sensor_m, opts.max_position_error_m,
-                                                           opts.n_significant, opts.max_vertical_error_m, z_sigma,
-                                                           floor_again)
+                    x, z_again, again_note, sigma_again, floor_again = _height_again(
+                        b, x, k, f, knots, wall, voted, storage, cell_m, step[2], noise, sensor_m,
+                        opts.max_position_error_m, opts.n_significant, opts.max_vertical_error_m)
                     if again_note:
                         z_info = info[:, 2] = z_again
+                        if sigma_again is not None:
+                            z_sigma.append(sigma_again)
                         if first_refused is not None:
                             notes.remove(first_refused)
                             why = first_refused.removeprefix("the height was not corrected: ")
@@ -772,7 +773,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                                           f"flight was refused ({why}); {again_note}")
                         notes.append(again_note)
                         unanchored = unanchored_stretches(knots, floor_anchored(
-                            corrected_points(b, x, k, f)[0], b.t_s, knots, wall, floor_again[-1], storage, cell_m))
+                            corrected_points(b, x, k, f)[0], b.t_s, knots, wall, floor_again, storage, cell_m,
+                            opts.max_position_error_m))
                     elif first_refused is not None:
                         x[:, 2] = 0.0  # refused again: no height, as before (the registration's own is unchecked)
         notes += cross_notes
@@ -884,9 +886,9 @@ def is_drift(x_new: np.ndarray, x_old: np.ndarray, step: np.ndarray, comps: tupl
 
 def _height_again(b: Beams, x: np.ndarray, k: np.ndarray, f: np.ndarray, knots: np.ndarray, wall: np.ndarray,
                   voted: np.ndarray, storage: Storage, cell_m: float, step_z_m: float, noise: float, sensor_m: float,
-                  max_error_m: float, n_significant: float, max_vertical_error_m: float,
-                  sigma_out: list[float] | None = None,
-                  floor_out: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray | None, str | None]:
+                  max_error_m: float, n_significant: float,
+                  max_vertical_error_m: float) -> tuple[np.ndarray, np.ndarray | None, str | None, float | None,
+                                                        np.ndarray | None]:
     """The height solved again once the registration has aligned the flight horizontally: the floor screen
     (`_screen`) and the height from the floor and the crossings (`vertical_from_crossings`), as the first
     time, from the logged reference, in the registered frame, with x, y and heading held at the registration's.
@@ -896,29 +898,24 @@ def _height_again(b: Beams, x: np.ndarray, k: np.ndarray, f: np.ndarray, knots: 
     registration's own height kept: it solves the height with the position, and on a pile with a flat top the
     two trade (measured: a `vio` flight over pile 2 at P_traj 5 %, a +0.26 m block of height over 97 s that
     the crossings' misfit prefers by 0.03 cm, 0.17 m RMS of height error; solved again 0.07 m). Returns the
-    correction, the height's information and a note; x as it was, None and None when the registration's
-    height stands (no floor kept, nothing significant, or refused as the first height would be). The height's
-    standard error is appended to sigma_out, and the floor it was solved on to floor_out, only when this height is
-    the one returned."""
+    correction, the height's information, a note, the height's standard error (`height_rounds`; None when the solve
+    gave none) and the floor it was solved on; x as it was and None for the rest when the registration's height
+    stands (no floor kept, nothing significant, or refused as the first height would be)."""
     x_h = x.copy()
     x_h[:, 2] = 0.0
     p, _ = corrected_points(b, x_h, k, f)
     kept, _, _, _ = _screen(p, b.t_s, knots, wall, voted, storage, cell_m, step_z_m, noise, sensor_m, max_error_m)
     if not kept.any():
-        return x, None, None
+        return x, None, None, None, None
     sigma: list[float] = []
     z, z_info = height_rounds(p, b.t_s, knots, wall, kept, storage, cell_m, step_z_m, noise, max_error_m,
                               n_significant, sigma)
     if z is None or height_refused(z, knots, step_z_m, n_significant, max_vertical_error_m) is not None:
-        return x, None, None
-    if sigma_out is not None:
-        sigma_out.extend(sigma[-1:])
-    if floor_out is not None:
-        floor_out.append(kept)
+        return x, None, None, None, None
     change = _rms(z - x[:, 2])
     x_h[:, 2] = z
     return x_h, z_info, (f"the height solved again on the floor once the pile seen at different times aligned the "
-                         f"flight ({change:.2f} m RMS change)")
+                         f"flight ({change:.2f} m RMS change)"), (sigma[-1] if sigma else None), kept
 
 
 def height_rounds(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, floor: np.ndarray,
@@ -951,20 +948,20 @@ next; three apart, the vehicle has left and come back."""
 
 
 def floor_anchored(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, floor: np.ndarray,
-                   storage: Storage, cell_m: float) -> np.ndarray:
+                   storage: Storage, cell_m: float, max_error_m: float = math.inf) -> np.ndarray:
     """(K - 1,) per knot interval, whether its height is tied to the floor: the floor seen in it, or a cell it saw
     seen again on another pass (`REVISIT_INTERVALS`) in an interval that is tied (and so on). Elsewhere the
     height rests on a chain, the pile seen from one interval to the next, whose links' errors add up: measured on
     the paper's pile 2 at P_traj 5 %, decimetres over 100 s even on the true horizontal pose (docs/design-notes.md).
-    The cells and counts are `vertical_from_crossings`' (MIN_CELL_POINTS points in a cell and interval)."""
+    The cells, counts and points are `vertical_from_crossings`' (MIN_CELL_POINTS points in a cell and interval,
+    `_in_building`)."""
     n_int = len(knots) - 1
     if n_int < 1:
         return np.zeros(0, dtype=bool)
     k, _ = _basis(t, knots)
     nx, ny, cid = _cells(p, storage, cell_m)
     n_cells = nx * ny
-    inside = (~wall & (p[:, 0] > 0) & (p[:, 0] < storage.length_m) & (p[:, 1] > 0) & (p[:, 1] < storage.width_m)
-              & (p[:, 2] < storage.height_m))
+    inside = _in_building(p, wall, storage, max_error_m)
     key = k * n_cells + cid
     seen, count = np.unique(key[inside], return_counts=True)
     seen = seen[count >= MIN_CELL_POINTS]
@@ -1178,8 +1175,7 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
     (`mean_sigma_m`)."""
     n_knots = len(knots)
     k, f_t = _basis(t, knots)
-    inside = (~wall & (p[:, 0] > 0) & (p[:, 0] < storage.length_m) & (p[:, 1] > 0) & (p[:, 1] < storage.width_m)
-              & (p[:, 2] > -max_error_m) & (p[:, 2] < storage.height_m))
+    inside = _in_building(p, wall, storage, max_error_m)
     nx, ny, cid = _cells(p, storage, cell_m)
     # Each cell's slope, from all its points (every time together): the height a knot interval gives is at
     # the cell's centre, so two passes that hit a sloped cell in different places still agree.
@@ -1384,6 +1380,13 @@ def floor_half_width(lowest_m: np.ndarray, level_m: float, tol_m: float, noise_m
     scatter = _robust_rms(np.asarray(lowest_m) - level_m) if len(lowest_m) else 0.0
     return min(tol_m, BAND * max(scatter, typical))
 
+
+
+def _in_building(p: np.ndarray, wall: np.ndarray, storage: Storage, max_error_m: float) -> np.ndarray:
+    """The points the crossings use: inside the building's walls and under its roof, not a wall's, and no deeper
+    below the floor than the largest position error looked for (max_error_m)."""
+    return (~wall & (p[:, 0] > 0) & (p[:, 0] < storage.length_m) & (p[:, 1] > 0) & (p[:, 1] < storage.width_m)
+            & (p[:, 2] > -max_error_m) & (p[:, 2] < storage.height_m))
 
 def _cells(p: np.ndarray, storage: Storage, cell_m: float) -> tuple[int, int, np.ndarray]:
     nx = max(1, math.ceil(storage.length_m / cell_m))
