@@ -1381,12 +1381,12 @@ def floor_half_width(lowest_m: np.ndarray, level_m: float, tol_m: float, noise_m
     return min(tol_m, BAND * max(scatter, typical))
 
 
-
 def _in_building(p: np.ndarray, wall: np.ndarray, storage: Storage, max_error_m: float) -> np.ndarray:
     """The points the crossings use: inside the building's walls and under its roof, not a wall's, and no deeper
     below the floor than the largest position error looked for (max_error_m)."""
     return (~wall & (p[:, 0] > 0) & (p[:, 0] < storage.length_m) & (p[:, 1] > 0) & (p[:, 1] < storage.width_m)
             & (p[:, 2] > -max_error_m) & (p[:, 2] < storage.height_m))
+
 
 def _cells(p: np.ndarray, storage: Storage, cell_m: float) -> tuple[int, int, np.ndarray]:
     nx = max(1, math.ceil(storage.length_m / cell_m))
