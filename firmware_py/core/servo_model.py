@@ -70,27 +70,29 @@ class ServoModel:
         self.angle_rad = angle_rad
 
     def advance(self, dt_s: float, target_rad: float) -> float:
-        """Move towards target for dt_s and return the angle.
-
-        Exact solution of d(err)/dt = -clip(err / lag, +-slew): rate-limited while the error is
-        above slew * lag, exponential after. Being exact, it gives the same angle however time
-        is chunked, so the firmware's prediction and the SITL's plant agree to rounding.
-        """
-        if dt_s <= 0:
-            return self.angle_rad
-        a, s, tau = self.angle_rad, self.cal.slew_rad_s, self.cal.lag_s
-        err = target_rad - a
-        sign = 1.0 if err >= 0 else -1.0
-        e_sat = s * tau
-        if abs(err) > e_sat:
-            t_lin = (abs(err) - e_sat) / s
-            if dt_s <= t_lin:
-                self.angle_rad = a + sign * s * dt_s
-                return self.angle_rad
-            dt_s -= t_lin
-            err = sign * e_sat
-        self.angle_rad = target_rad - (err * math.exp(-dt_s / tau) if tau > 0 else 0.0)
+        """Move towards target for dt_s and return the angle (`step_angle`)."""
+        self.angle_rad = step_angle(self.angle_rad, dt_s, target_rad, self.cal.slew_rad_s, self.cal.lag_s)
         return self.angle_rad
+
+
+def step_angle(angle_rad: float, dt_s: float, target_rad: float, slew_rad_s: float, lag_s: float) -> float:
+    """The shaft angle dt_s after angle_rad, driven towards target_rad: the exact solution of
+    d(err)/dt = -clip(err / lag, +-slew), rate-limited while the error is above slew * lag, exponential
+    after. Being exact, it gives the same angle however time is chunked, so the firmware's prediction and
+    the SITL's plant agree to rounding. A pure function of plain floats: the batch path steps it once per
+    PWM frame, tens of thousands of times a report."""
+    if dt_s <= 0:
+        return angle_rad
+    err = target_rad - angle_rad
+    e_sat = slew_rad_s * lag_s
+    if err > e_sat or -err > e_sat:
+        sign = 1.0 if err >= 0 else -1.0
+        t_lin = (abs(err) - e_sat) / slew_rad_s
+        if dt_s <= t_lin:
+            return angle_rad + sign * slew_rad_s * dt_s
+        dt_s -= t_lin
+        err = sign * e_sat
+    return target_rad - (err * math.exp(-dt_s / lag_s) if lag_s > 0 else 0.0)
 
 
 def servo_angles(t_s: np.ndarray, cmd_t_s: np.ndarray, cmd_rad: np.ndarray, cal: ServoCalibration,
@@ -107,14 +109,15 @@ def servo_angles(t_s: np.ndarray, cmd_t_s: np.ndarray, cmd_rad: np.ndarray, cal:
     order = np.argsort(np.asarray(cmd_t_s, dtype=float), kind="stable")
     ct = np.asarray(cmd_t_s, dtype=float)[order]
     cr = np.asarray(cmd_rad, dtype=float)[order]
-    start = np.empty(len(ct))  # the angle at each command's instant
-    model = ServoModel(cal, angle0_rad)
-    target = angle0_rad
-    for k in range(len(ct)):
-        if k:
-            model.advance(ct[k] - ct[k - 1], target)
-        start[k] = model.angle_rad
-        target = cr[k]
+    # The angle at each command's instant, stepped in plain floats (this loop is the cost of a re-simulation).
+    steps = np.diff(ct, prepend=ct[0] if len(ct) else 0.0).tolist()
+    targets = [float(angle0_rad), *cr.tolist()][:len(ct)]  # each step drives towards the command before it
+    slew, lag, angle = cal.slew_rad_s, cal.lag_s, float(angle0_rad)
+    at_command = []
+    for dt, target in zip(steps, targets, strict=True):
+        angle = step_angle(angle, dt, target, slew, lag)
+        at_command.append(angle)
+    start = np.array(at_command, dtype=float)
     out = np.full(len(t), float(angle0_rad))
     k = np.searchsorted(ct, t, side="right") - 1
     after = k >= 0
