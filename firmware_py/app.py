@@ -51,6 +51,8 @@ from firmware_py.core.flag_tally import describe_flag_counts
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
 from firmware_py.core.geodesy import GeodeticPoint
 from firmware_py.core.header import build_log_header, sensor_spec
+from firmware_py.core.pose_source import EKF_SOURCE_PARAMS
+from firmware_py.core.pose_source import HEADER_KEY as POSE_SOURCE_KEY
 from firmware_py.core.samplelog import SampleFlags, SampleLogWriter
 from firmware_py.core.sensor import Rangefinder
 from firmware_py.core.servo_model import PWM_FRAME_S, ServoCalibration
@@ -160,6 +162,9 @@ class PayloadConfig:
         wait_for_pose_s: before the first sample, wait up to this long for a trusted pose (time sync
             converged and a fresh pose from the autopilot), pumping the link, so the log does not open
             with samples that cannot be posed; 0 = start sampling at once. The lockstep SITL waits.
+        param_wait_s: before the first sample, wait up to this long for the autopilot's EKF source parameters
+            (`firmware_py.core.pose_source`), which the header keeps so the ground station can say what the pose
+            came from; cut short at 1 s when nothing has come from the autopilot. 0 = do not wait.
         source, mission: the header's provenance and what was flown (the SITL writes its mission
             plan there; the drone's program does not know it).
         config_file: the configuration file the options started from [--config], for the header's
@@ -210,6 +215,7 @@ class PayloadConfig:
     status_period_s: float = 5.0
     quiet: bool = False
     wait_for_pose_s: float = 0.0
+    param_wait_s: float = 3.0
     source: str = "payload"
     mission: Mapping[str, Any] | None = None
     config_file: str | None = None
@@ -281,6 +287,8 @@ class PayloadConfig:
             raise ValueError(f"records per block must be 1-100000, got {n!r}")
         if not (_finite(self.wait_for_pose_s) and 0.0 <= self.wait_for_pose_s <= 3600.0):
             raise ValueError(f"pose wait must be 0-3600 s, got {self.wait_for_pose_s!r}")
+        if not (_finite(self.param_wait_s) and 0.0 <= self.param_wait_s <= 60.0):
+            raise ValueError(f"parameter wait must be 0-60 s, got {self.param_wait_s!r}")
         if not isinstance(self.source, str) or not self.source.strip():
             raise ValueError(f"log source must be a non-empty string, got {self.source!r}")
         if self.header_extra is not None:
@@ -366,13 +374,17 @@ class PayloadConfig:
                 "lidar_preset": self.preset, "i2c_address": self.i2c_address,
                 "rate_hz": self.rate_hz, "records_per_block": self.records_per_block}
 
-    def log_header(self, sweep_t0_s: float | None = None) -> dict[str, Any]:
+    def log_header(self, sweep_t0_s: float | None = None,
+                   autopilot_params: Mapping[str, float] | None = None) -> dict[str, Any]:
         """The sample-log header (`firmware_py.core.header`), with the payload's hardware setup appended.
 
         sweep_t0_s: when the servo sweep starts, on the samples' clock; with the calibration it lets
         the ground station re-simulate the servo (`ground.servo_timing`) if the real one differs.
+        autopilot_params: the autopilot's EKF source parameters as it answered them (`POSE_SOURCE_KEY`).
         """
         drive = {} if sweep_t0_s is None else {"servo_drive": {"t0_s": float(sweep_t0_s), "frame_s": PWM_FRAME_S}}
+        if autopilot_params:
+            drive[POSE_SOURCE_KEY] = dict(autopilot_params)
         return build_log_header(
             source=self.source, sensor=self.sensor(), lever_arm_body_m=[float(v) for v in self.lever_arm_body_m],
             waveform_name=self.waveform, waveform=self.servo_waveform(), initial_position=self.initial_position,
@@ -383,7 +395,8 @@ class PayloadConfig:
 
     def _header_extra(self) -> dict[str, Any]:
         extra = dict(self.header_extra or {})
-        clash = sorted(set(extra) & {"servo_calibration", "payload", "servo_drive", "boresight", "config"})
+        clash = sorted(set(extra) & {"servo_calibration", "payload", "servo_drive", "boresight", "config",
+                                     POSE_SOURCE_KEY})
         if clash:
             raise ValueError(f"header extra key {clash[0]!r} would replace one the payload writes")
         return extra
@@ -648,11 +661,13 @@ class PayloadApp:
                                    max_pose_age_ns=round(cfg.max_pose_age_s * 1e9))
         self._send_origin(self.clock.now_ns())
         self.tracker.start()
+        self.tracker.request_params(EKF_SOURCE_PARAMS)
         self._wait_for_pose()
+        self._wait_for_params()
         if isinstance(self.lidar, Tfmini):
             self.lidar.discard_input()  # frames that waited through the pose wait have lost their times
         t0_ns = self.clock.now_ns()  # the sweep's time origin, written in the header before the first sample
-        self.log = SampleLogWriter(out, cfg.log_header(sweep_t0_s=t0_ns * 1e-9),
+        self.log = SampleLogWriter(out, cfg.log_header(sweep_t0_s=t0_ns * 1e-9, autopilot_params=self.tracker.params),
                                    records_per_block=cfg.records_per_block, fsync=cfg.fsync, overwrite=cfg.force,
                                    opener=self._open_log)
         self.sink = _RecordSink(self.log, self.stream)
@@ -709,6 +724,25 @@ class PayloadApp:
                 self._send_origin(now)
             self.clock.sleep_until_ns(now + period_ns)
             self.tracker.pump()
+
+    def _wait_for_params(self) -> None:
+        """Pump the link until the autopilot has answered the EKF source reads (or they timed out), for at most
+        param_wait_s, and at most 1 s while nothing at all comes from the autopilot."""
+        if self.cfg.param_wait_s <= 0:
+            return
+        start = self.clock.now_ns()
+        end_ns = start + round(self.cfg.param_wait_s * 1e9)
+        silent_end_ns = start + min(round(self.cfg.param_wait_s * 1e9), 1_000_000_000)
+        period_ns = round(1e9 / self.cfg.rate_hz)
+        while self._stop_reason is None and not self.tracker.params_settled:
+            now = self.clock.now_ns()
+            if now >= end_ns or (now >= silent_end_ns and not self.tracker.autopilot_heard):
+                break
+            self.clock.sleep_until_ns(now + period_ns)
+            self.tracker.pump()
+        if not self.tracker.params and self.tracker.autopilot_heard:
+            self._warn("the autopilot did not answer its EKF source parameters (EK3_SRC1_*): the log will not say "
+                       "what the pose came from")
 
     @property
     def bridge_authenticated(self) -> bool:

@@ -191,6 +191,11 @@ class PoseTracker:
         self.autopilot_origin_e7: tuple[int, int, int] | None = None
         """The EKF origin the autopilot last reported (GPS_GLOBAL_ORIGIN: 1e-7 deg, 1e-7 deg, mm); None before."""
         self._replies_seen = 0
+        self._autopilot_heard = False
+        self.params: dict[str, float] = {}
+        """Autopilot parameters asked for with `request_params` and answered (name -> value)."""
+        self._params_wanted: tuple[str, ...] = ()
+        self._params_round = _Command(0, 0, 0)  # attempts and time of the last round of reads
         self.stats: Counter[str] = Counter()
 
     # ----- the payload loop's calls ---------------------------------------------------------------
@@ -200,6 +205,26 @@ class PoseTracker:
         self._started = True
         self._request_streams()
         self._service(self.clock.now_ns())
+
+    def request_params(self, names: tuple[str, ...]) -> None:
+        """Read these autopilot parameters (PARAM_REQUEST_READ by name; the unanswered asked again every
+        command timeout, up to the command attempts): `params` fills as PARAM_VALUEs arrive."""
+        self._params_wanted = tuple(names)
+        self._params_round = _Command(0, 0, 0)
+        self._service_params(self.clock.now_ns())
+
+    @property
+    def autopilot_heard(self) -> bool:
+        """Whether any message from the target autopilot has arrived."""
+        return self._autopilot_heard
+
+    @property
+    def params_settled(self) -> bool:
+        """Every parameter asked for answered, or its reads all sent and timed out."""
+        missing = [n for n in self._params_wanted if n not in self.params]
+        r = self._params_round
+        return not missing or (r.attempts >= self.config.command_attempts
+                                and self.clock.now_ns() - r.sent_ns >= self.config.command_timeout_ns)
 
     def pump(self) -> None:
         """Handle everything received, send what is due (never blocks)."""
@@ -264,6 +289,7 @@ class PoseTracker:
         if not self._from_autopilot(msg):
             self.stats["rx_not_autopilot"] += 1
             return
+        self._autopilot_heard = True
         if kind == "ATTITUDE":
             if self._pose_mappable(msg.time_boot_ms, now):
                 self.buffer.add_attitude(self._to_companion(msg.time_boot_ms), msg.roll, msg.pitch, msg.yaw)
@@ -279,6 +305,10 @@ class PoseTracker:
             self._autopilot_base_mode = int(msg.base_mode)
         elif kind == "GPS_GLOBAL_ORIGIN":
             self.autopilot_origin_e7 = (int(msg.latitude), int(msg.longitude), int(msg.altitude))
+        elif kind == "PARAM_VALUE":
+            name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else ""
+            if name in self._params_wanted and math.isfinite(msg.param_value):
+                self.params[name] = float(msg.param_value)
         elif hasattr(msg, "time_boot_ms"):
             self._check_boot(msg.time_boot_ms, now)
 
@@ -357,6 +387,7 @@ class PoseTracker:
             self.stats["tx_heartbeat"] += 1
         if self._started:
             self._service_commands(now)
+        self._service_params(now)
         self._update_rates(now)
 
     def _service_commands(self, now: int) -> None:
@@ -372,6 +403,19 @@ class PoseTracker:
             self._cmd = None
             return
         self._send_interval(cmd, now)
+
+    def _service_params(self, now: int) -> None:
+        r, cfg = self._params_round, self.config
+        missing = [n for n in self._params_wanted if n not in self.params]
+        if not missing or r.attempts >= cfg.command_attempts or (
+                r.attempts and 0 <= now - r.sent_ns < cfg.command_timeout_ns):
+            return
+        for name in missing:
+            self.link.send(mavlink.MAVLink_param_request_read_message(
+                cfg.target_system, cfg.target_component or 1, name.encode("ascii"), -1))
+        r.attempts += 1
+        r.sent_ns = now
+        self.stats["tx_param_reads"] += len(missing)
 
     def _send_interval(self, cmd: _Command, now: int) -> None:
         cfg = self.config

@@ -20,6 +20,7 @@ import numpy as np
 from firmware_py.core.cli import RunFailure, reading_input
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.header import build_log_header
+from firmware_py.core.pose_source import HEADER_KEY as POSE_SOURCE_KEY
 from firmware_py.core.rundir import (
     PILE_FILE,
     PLAN_FILE,
@@ -174,12 +175,15 @@ def pose_error_header(cfg: FlyConfig) -> dict:
 
 
 def log_header(cfg: FlyConfig, wf: Waveform) -> dict:
-    """The sample-log header of a SITL flight: what the ground station needs to place the points."""
+    """The sample-log header of a SITL flight: what the ground station needs to place the points. The autopilot's
+    EKF source parameters are the ones the simulated autopilot serves for the flight's profile, which the payload
+    reads over MAVLink in a firmware flight (`firmware_py.core.pose_source`)."""
     return build_log_header(source=f"sitl/{cfg.plant}", sensor=cfg.lidar.to_dict(),
                             lever_arm_body_m=cfg.lever_arm_body_m, waveform_name=cfg.waveform, waveform=wf,
                             initial_position=cfg.initial_position, storage=cfg.mission.storage, frame=cfg.frame,
                             mission_id=cfg.mission.mission_id, mission=cfg.mission.to_dict(), site=cfg.site,
-                            extra={**noise_header(cfg), **pose_error_header(cfg)})
+                            extra={**noise_header(cfg), **pose_error_header(cfg),
+                                   POSE_SOURCE_KEY: pose_drift.ekf_source_params(cfg.pose_error)})
 
 
 def check_clearance(mission: Mission, pile: piles.Stockpile,

@@ -98,6 +98,30 @@ PROFILES: dict[PoseErrorProfile, DriftParams] = {
 """The named profiles' parameters (docs/pose_error.md: which are from sources, which assumed)."""
 
 
+EKF_SOURCES: dict[PoseErrorProfile, dict[str, float]] = {
+    # ArduPilot's defaults: GNSS position and velocity, barometer height, compass heading. The truth flown as a
+    # vehicle with a good fix would report it.
+    PoseErrorProfile.NONE: {"AHRS_EKF_TYPE": 3.0, "EK3_SRC1_POSXY": 3.0, "EK3_SRC1_VELXY": 3.0, "EK3_SRC1_POSZ": 1.0,
+                            "EK3_SRC1_YAW": 1.0, "EK3_RNG_USE_HGT": -1.0},
+    # Optical flow: no position source, flow velocity, barometer height with the downward rangefinder taken as the
+    # height source below 70 % of its range (what the profile's rangefinder term stands for).
+    PoseErrorProfile.FLOW: {"AHRS_EKF_TYPE": 3.0, "EK3_SRC1_POSXY": 0.0, "EK3_SRC1_VELXY": 5.0, "EK3_SRC1_POSZ": 1.0,
+                            "EK3_SRC1_YAW": 1.0, "EK3_RNG_USE_HGT": 70.0},
+    # Visual odometry as ExternalNav for position, velocity and heading; barometer height (ArduPilot's advice for
+    # a T265, whose height is the first to go under vibration).
+    PoseErrorProfile.VIO: {"AHRS_EKF_TYPE": 3.0, "EK3_SRC1_POSXY": 6.0, "EK3_SRC1_VELXY": 6.0, "EK3_SRC1_POSZ": 1.0,
+                           "EK3_SRC1_YAW": 6.0, "EK3_RNG_USE_HGT": -1.0},
+}
+"""What the simulated autopilot's EKF3 source parameters say for each profile: served over MAVLink as ArduPilot
+serves its own (read-only here: the profile, not the parameter, decides the error), and read by the payload into
+the log header (`firmware_py.core.pose_source`)."""
+
+
+def ekf_source_params(profile: PoseErrorProfile) -> dict[str, float]:
+    """The EKF3 source parameters the simulated autopilot reports for a profile."""
+    return dict(EKF_SOURCES[PoseErrorProfile(profile)])
+
+
 def profile_params(profile: PoseErrorProfile) -> DriftParams | None:
     """A profile's parameters (None: `none`, no error)."""
     return PROFILES.get(PoseErrorProfile(profile))
@@ -145,8 +169,10 @@ class PoseDrift:
     """
 
     def __init__(self, params: DriftParams, seed: int | list[int],
-                 ground_below: GroundBelow | None = None) -> None:
+                 ground_below: GroundBelow | None = None, ekf_params: dict[str, float] | None = None) -> None:
         self.p = params
+        self.ekf_params = dict(ekf_params or {})
+        """The EKF source parameters of the estimator this error stands for (`EKF_SOURCES`)."""
         self.rng = np.random.default_rng(np.random.SeedSequence(seed))
         self.scale = float(self.rng.normal(0.0, params.scale_sigma_rel))
         self.yaw_bias_rad_s = float(self.rng.normal(0.0, params.yaw_bias_sigma_rad_s))
@@ -223,7 +249,7 @@ class PoseDrift:
 def make_drift(profile: PoseErrorProfile, seed: int, ground_below: GroundBelow | None = None) -> PoseDrift | None:
     """The drift of a profile for a run's seed (None: `none`)."""
     p = profile_params(profile)
-    return None if p is None else PoseDrift(p, [int(seed), SEED_TAG], ground_below)
+    return None if p is None else PoseDrift(p, [int(seed), SEED_TAG], ground_below, ekf_source_params(profile))
 
 
 def pose_error_series(profile: PoseErrorProfile, seed: int, t_s: np.ndarray, pos_ned_m: np.ndarray,

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from sitl.sensing.pose_drift import EKF_SOURCES, PoseErrorProfile, ekf_source_params
 from sitl.vehicle.api import CommandRejected, FlightMode, NavItem, NavKind, PlantState, VehicleState
 from sitl.vehicle.autopilot import Autopilot, Gains, Target, wrap_pi
 from sitl.vehicle.jsbsim_plant import GEAR_HEIGHT_M, JsbsimPlant, PlantConfig
@@ -48,6 +49,7 @@ class JsbsimVehicle:
             "PS_ALT_M": self.cfg.altitude_m,
             "PS_WP_RADIUS_M": self.cfg.wp_radius_m,
             "PS_CLIMB_MS": self.cfg.climb_rate_m_s,
+            **ekf_source_params(PoseErrorProfile.NONE),
         }
         self.ap = Autopilot(self.cfg.gains, self.cfg.yaw_rate_max_rad_s)
         self.armed = armed
@@ -105,6 +107,7 @@ class JsbsimVehicle:
         """Fly on an estimate with this error (`sitl.sensing.pose_drift.PoseDrift`) from now on; the physics
         stays true. The hold point is taken over into the estimate's frame."""
         self.drift = drift
+        self.params.update(drift.ekf_params)
         self._estimate()
         n, e, d = self._e[:3]
         self._hold = Target(n, e, d, yaw_rad=self._e[8])
@@ -255,6 +258,8 @@ class JsbsimVehicle:
         self._item = 0
 
     def set_param(self, name: str, value: float) -> None:
+        if name in EKF_SOURCES[PoseErrorProfile.NONE]:
+            raise ValueError(f"{name} is read-only in the SITL: the pose-error profile (--pose-error) sets it")
         if name not in PARAM_LIMITS:
             raise KeyError(name)
         lo, hi = PARAM_LIMITS[name]

@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+from sitl.sensing.pose_drift import EKF_SOURCES, PoseErrorProfile, ekf_source_params
 from sitl.vehicle.api import CommandRejected, FlightMode, NavItem, NavKind, VehicleState
 from sitl.vehicle.autopilot import wrap_pi
 
@@ -80,6 +81,7 @@ class KinematicVehicle:
         self.set_param("PS_SPEED_MS", speed_m_s)
         self.set_param("PS_YAW_RATE_DPS", math.degrees(yaw_rate_max_rad_s))
         self.set_param("PS_ALT_M", altitude_m)
+        self.params.update(ekf_source_params(PoseErrorProfile.NONE))  # an exact pose: what a good fix reports
 
         self._steps = 0
         self._pos = list(home)
@@ -115,6 +117,8 @@ class KinematicVehicle:
 
     def set_param(self, name: str, value: float) -> None:
         """Set a parameter; KeyError for unknown names, ValueError for NaN or out-of-range values."""
+        if name in EKF_SOURCES[PoseErrorProfile.NONE]:
+            raise ValueError(f"{name} is read-only in the SITL: the vehicle's pose is exact")
         if name not in PARAM_LIMITS:
             raise KeyError(f"unknown parameter {name!r}")
         lo, hi = PARAM_LIMITS[name]

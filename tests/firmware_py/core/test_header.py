@@ -53,7 +53,8 @@ def test_that_the_sitl_log_header_is_built_by_the_same_function_with_its_values(
 
     cfg = FlyConfig()
     h = log_header(cfg, cfg.servo_waveform())
-    assert list(h) == [*STANDARD_KEYS, "site"]  # a simulated flight always knows where its building stands
+    # a simulated flight always knows where its building stands, and what its autopilot's EKF took the pose from
+    assert list(h) == [*STANDARD_KEYS, "site", "autopilot_params"]
     assert h["site"] == cfg.site.to_dict()
     assert h["source"] == "sitl/jsbsim" and h["sensor"] == cfg.lidar.to_dict()
     assert h["mission_id"] == cfg.mission.mission_id and h["mission"] == cfg.mission.to_dict()

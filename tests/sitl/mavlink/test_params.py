@@ -20,8 +20,19 @@ def test_that_param_request_list_sends_every_parameter_as_real32_with_count_and_
     gcs.send(gcs.mav.param_request_list_encode(1, 1))
     values = [m for m in gcs.run(0.1) if m.get_type() == "PARAM_VALUE"]
     assert {m.param_id: m.param_value for m in values} == pytest.approx(gcs.vehicle.params)
-    assert sorted(m.param_index for m in values) == [0, 1, 2]
-    assert {m.param_count for m in values} == {3} and {m.param_type for m in values} == {9}
+    n = len(gcs.vehicle.params)
+    assert sorted(m.param_index for m in values) == list(range(n))
+    assert {m.param_count for m in values} == {n} and {m.param_type for m in values} == {9}
+
+
+def test_that_the_ekf_source_parameters_read_as_ardupilot_s_and_refuse_a_set():
+    gcs = Gcs()
+    gcs.send(gcs.mav.param_request_read_encode(1, 1, b"EK3_SRC1_POSZ", -1))
+    assert (m := gcs.expect("PARAM_VALUE")).param_id == "EK3_SRC1_POSZ" and m.param_value == 1.0  # barometer
+    gcs.send(gcs.mav.param_set_encode(1, 1, b"EK3_SRC1_POSZ", 2.0, mavlink.MAV_PARAM_TYPE_REAL32))
+    msgs = gcs.run(0.1)
+    assert "read-only" in "".join(m.text for m in msgs if m.get_type() == "STATUSTEXT")  # chunked: 50 a message
+    assert [m.param_value for m in msgs if m.get_type() == "PARAM_VALUE"] == [1.0]  # the value kept, read back
 
 
 def test_that_param_request_read_works_by_name_and_by_index():

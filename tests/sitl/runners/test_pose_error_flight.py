@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 
 from firmware_py.core.cli import RunFailure
+from firmware_py.core.pose_source import PoseSource
 from firmware_py.core.samplelog import read_samplelog
 from firmware_py.core.storage import Storage
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
 from sitl.runners.serve import SIMULATOR_CLOCK, ServeOptions, serve
-from sitl.sensing.pose_drift import PROFILES, PoseErrorProfile
+from sitl.sensing.pose_drift import PROFILES, PoseErrorProfile, ekf_source_params
 
 MISSION = Mission(storage=Storage(30, 20, 12), p_traj=0.2, altitude_m=8.5)
 W = PROFILES[PoseErrorProfile.FLOW].rangefinder_weight
@@ -131,3 +132,13 @@ def test_that_serve_keeps_the_true_and_estimated_trajectories_on_the_simulators_
     true_w, est_w = np.asarray(traj["true_w_m"]), np.asarray(traj["estimated_w_m"])
     assert true_w.shape == est_w.shape == (len(t), 3)
     assert np.abs(est_w - true_w).max() > 0.0  # the estimate walks from the start
+
+
+def test_that_the_header_says_what_the_autopilot_s_ekf_took_its_pose_from(flow_run):
+    _, _, log, _ = flow_run
+    # the firmware read them from the simulated autopilot over MAVLink; the batch path writes the same
+    assert log.header["autopilot_params"] == ekf_source_params(PoseErrorProfile.FLOW)
+    source = PoseSource.from_header(log.header)
+    assert source.horizontal_drifts and source.height_from_rangefinder
+    assert source.describe().startswith("position optical flow velocity, integrated; height barometer, the downward "
+                                        "rangefinder below 70 % of its range")

@@ -2,6 +2,7 @@ import math
 
 import pytest
 
+from sitl.sensing.pose_drift import PoseErrorProfile, ekf_source_params
 from sitl.vehicle.api import CommandRejected, FlightMode, NavItem, NavKind, VehicleState
 from sitl.vehicle.kinematic_vehicle import KinematicVehicle, wrap_pi
 
@@ -53,10 +54,13 @@ def test_that_a_home_off_the_floor_is_refused():
         KinematicVehicle(home_ned_m=(0.0, 0.0, -1.0))
 
 
-def test_that_params_are_exactly_speed_yaw_rate_in_degrees_and_altitude():
+def test_that_params_are_exactly_speed_yaw_rate_in_degrees_altitude_and_the_ekf_sources_of_an_exact_pose():
     v = KinematicVehicle(speed_m_s=1.5, yaw_rate_max_rad_s=math.radians(45), altitude_m=9.0)
-    assert v.params == pytest.approx({"PS_SPEED_MS": 1.5, "PS_YAW_RATE_DPS": 45.0, "PS_ALT_M": 9.0})
+    assert v.params == pytest.approx({"PS_SPEED_MS": 1.5, "PS_YAW_RATE_DPS": 45.0, "PS_ALT_M": 9.0,
+                                      **ekf_source_params(PoseErrorProfile.NONE)})
     assert all(type(value) is float for value in v.params.values())
+    with pytest.raises(ValueError, match="read-only"):
+        v.set_param("EK3_SRC1_POSZ", 2.0)
 
 
 def test_that_set_param_refuses_unknown_names_with_key_error():
