@@ -50,6 +50,7 @@ from ground.pose_correction import describe as describe_pose
 from ground.pose_correction import unanchored_warning as pose_unanchored_warning
 from ground.pose_correction import unconstrained_warning as pose_unconstrained_warning
 from ground.pose_correction import wall_warning as pose_wall_warning
+from ground.pose_source_check import autopilot_params, pose_source_line, pose_source_warnings
 from ground.self_calibration import N_SIGNIFICANT, MountEstimate, apply_mount, describe, estimate_mount
 from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
 from ground.smoothing import vertical_sigma_m
@@ -665,6 +666,7 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
     if survey.pose is not None and survey.pose.applied:
         warnings += [w for w in (describe_pose(survey.pose), pose_unconstrained_warning(survey.pose),
                                  pose_unanchored_warning(survey.pose), pose_wall_warning(survey.pose)) if w]
+    warnings += pose_source_warnings(log.header or {}, survey.pose, opts.pose_correction)
     warnings += site_mismatches(log.header or {}, opts.site)
     return warnings
 
@@ -729,6 +731,8 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "cell_area_m2": g.cell_area_m2,
         "empty_cell_policy": opts.empty_cells,
         "sensor_noise": sensor_noise_line(log.header or {}),
+        "pose_source": pose_source_line(log.header or {}),
+        "autopilot_params": autopilot_params(log.header or {}),
         "surface_fit": opts.surface_fit,
         "n_cells_clipped": survey.n_cells_clipped,
         "n_samples_servo_suspect": survey.cloud.n_servo_suspect,

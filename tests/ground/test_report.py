@@ -70,6 +70,11 @@ def test_that_a_full_report_writes_every_output(tmp_path):
     on_disk = json.loads((tmp_path / "rep" / "report.json").read_text())
     assert on_disk["volume_m3"] == pytest.approx(rep["volume_m3"])
     assert f"{rep['volume_m3']:,.1f}" in (tmp_path / "rep" / "report.md").read_text()
+    # what the autopilot's EKF took the pose from, as the log header says: stated, kept, and no warning for GNSS
+    assert rep["pose_source"] == "position GNSS; height barometer (ArduPilot EKF3, source set 1)"
+    assert rep["autopilot_params"]["EK3_SRC1_POSZ"] == 1.0
+    assert "Pose source (autopilot EKF)" in (tmp_path / "rep" / "report.md").read_text()
+    assert not any("autopilot's" in w for w in rep["warnings"])
 
 
 def test_that_a_log_cut_by_a_power_failure_still_reports_with_a_warning(tmp_path, paper_run):

@@ -1,0 +1,68 @@
+"""What the report says about where the autopilot's pose came from, and the warnings that follow from it.
+
+The log header keeps the autopilot's EKF3 source parameters as the payload read them at start
+(`firmware_py.core.pose_source`). Two of those choices can bias a volume in a way the building alone may not
+reveal, so the report names them when nothing corrected them:
+
+- the height from the downward rangefinder (`EK3_SRC1_POSZ` = 2, or `EK3_RNG_USE_HGT` >= 0): over a stockpile
+  it is the height above the pile, so the logged height is lower than the true one by a share of the pile under
+  the vehicle, and the pile is placed that much low. The pose correction takes it out where the sweeps tie the
+  height to the floor; where it did not correct the height, nothing in the interval measures it (a flight over a
+  pile that hides its floor read 29 % low with a +-5 % interval: docs/design-notes.md);
+- a horizontal position integrated from velocity (optical flow, wheel encoders) with the correction switched off.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from firmware_py.core.pose_source import HEADER_KEY, HeightSource, PoseSource
+from ground.pose_correction import PoseCorrection
+
+NOT_STATED = "not stated in the log"
+"""The report's pose source when the log has no record (an older payload, or an autopilot that did not answer)."""
+
+
+def pose_source_line(header: Mapping[str, Any]) -> str:
+    """The report's one line on the pose's source."""
+    source = PoseSource.from_header(header)
+    return NOT_STATED if source is None else source.describe()
+
+
+def autopilot_params(header: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The header's record as it stands (report.json keeps it for whoever reads the parameters themselves)."""
+    record = header.get(HEADER_KEY)
+    return dict(record) if isinstance(record, Mapping) and record else None
+
+
+def _height_corrected(pose: PoseCorrection | None) -> bool:
+    return pose is not None and pose.applied and bool(pose.height_sigma_m)
+
+
+def pose_source_warnings(header: Mapping[str, Any], pose: PoseCorrection | None, correction_on: bool) -> list[str]:
+    """The warnings the autopilot's pose sources call for, given what the pose correction did (None: not run)."""
+    source = PoseSource.from_header(header)
+    if source is None or not source.known:
+        return []
+    out = []
+    if source.height_from_rangefinder and not _height_corrected(pose):
+        how = ("as its height source (EK3_SRC1_POSZ = 2)" if source.height is HeightSource.RANGEFINDER else
+               f"below {source.rangefinder_height_pct:g} % of its range (EK3_RNG_USE_HGT = "
+               f"{source.rangefinder_height_pct:g})")
+        if not correction_on:
+            why = "the pose correction is off (--no-pose-correction)"
+        else:
+            reason = pose.reason if pose is not None and not pose.applied and pose.reason else None
+            reason = reason.removeprefix("not applied: ") if reason else None
+            why = "the building did not correct the height" + (f" ({reason})" if reason else "")
+        out.append(f"the autopilot's height came from its downward rangefinder {how}: over a stockpile that is the "
+                   "height above the pile, not the floor, so the logged height is low by a share of the pile under "
+                   f"the vehicle and the pile is placed that much low; {why}, and the 90 % interval does not "
+                   "include it. Read the volume as possibly low; fly with the barometer as the height source "
+                   "(EK3_SRC1_POSZ = 1, EK3_RNG_USE_HGT = -1) or where the sweeps see the floor")
+    if source.horizontal_drifts and not correction_on:
+        out.append(f"the autopilot's position was {source.describe().split(';')[0].removeprefix('position ')}, "
+                   "which drifts with the distance flown, and the pose correction is off (--no-pose-correction): "
+                   "points may lie decimetres to metres from where they were seen")
+    return out
