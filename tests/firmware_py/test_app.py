@@ -232,6 +232,7 @@ def test_that_the_payload_logs_posed_samples_and_reports_health_to_the_autopilot
     assert res.stop_reason == "test over" and res.close_errors == ()
     log = read_samplelog(cfg.out_path)
     assert log.intact and log.header["source"] == "payload"
+    assert log.header["autopilot_params"]["EK3_SRC1_POSZ"] == 1.0  # read from the autopilot over UDP at start
     s = log.samples
     assert len(s) == res.records_logged == res.readings > 200
     assert emu_lidar.counters["acquisitions"] >= len(s)
@@ -318,6 +319,7 @@ def test_that_the_payload_runs_without_an_autopilot_and_flags_every_sample(tmp_p
     assert res.stop_reason == "duration reached" and len(s) == res.records_logged > 0
     assert np.all(s["flags"] & SampleFlags.NO_POSE) and res.records_flagged == len(s)
     assert "stopped (duration reached)" in err.getvalue()
+    assert "autopilot_params" not in read_samplelog(cfg.out_path).header  # nobody answered: nothing claimed
 
 
 def test_that_the_ekf_origin_is_sent_when_asked(tmp_path, devices, autopilot):

@@ -573,3 +573,31 @@ def test_that_the_status_is_a_frozen_snapshot_and_its_dict_is_plain_json():
         status.streams["ATTITUDE"] = "accepted"  # read-only, so a later status cannot be confused with it
     d = status.as_dict()
     assert json.loads(json.dumps(d)) == d and d["timesync"]["samples"] == 0 and d["streams"] == dict(status.streams)
+
+
+def test_that_parameters_are_read_by_name_from_the_autopilot_alone_and_the_unanswered_asked_again_until_the_limit():
+    link, clock = ScriptedLink(), SimClock(start_ns=10 * S)
+    tracker = PoseTracker(link, clock)
+    tracker.request_params(("EK3_SRC1_POSZ", "EK3_SRC1_POSXY"))
+    reads = lambda: [m.param_id for m in link.sent if m.get_type() == "PARAM_REQUEST_READ"]  # noqa: E731
+    assert reads() == ["EK3_SRC1_POSZ", "EK3_SRC1_POSXY"] and not tracker.params_settled
+    link.queue(mavlink.MAVLink_param_value_message(b"EK3_SRC1_POSZ", 2.0, 9, 2, 0), sysid=255, compid=190)  # a GCS
+    link.queue(mavlink.MAVLink_param_value_message(b"EK3_SRC1_POSXY", 0.0, 9, 2, 1))
+    link.queue(mavlink.MAVLink_param_value_message(b"PS_SPEED_MS", 1.0, 9, 2, 2))  # not asked for: ignored
+    tracker.pump()
+    assert tracker.params == {"EK3_SRC1_POSXY": 0.0} and tracker.autopilot_heard
+    limit, timeout = PoseTrackerConfig().command_attempts, PoseTrackerConfig().command_timeout_ns
+    for _ in range(3 * limit):
+        clock.advance_by_ns(timeout)
+        tracker.pump()
+    assert reads().count("EK3_SRC1_POSZ") == limit and reads().count("EK3_SRC1_POSXY") == 1
+    assert tracker.params_settled and "EK3_SRC1_POSZ" not in tracker.params  # given up on: the header says nothing
+
+
+def test_that_a_parameter_answered_settles_the_read_at_once():
+    link, clock = ScriptedLink(), SimClock(start_ns=10 * S)
+    tracker = PoseTracker(link, clock)
+    tracker.request_params(("AHRS_EKF_TYPE",))
+    link.queue(mavlink.MAVLink_param_value_message(b"AHRS_EKF_TYPE", 3.0, 9, 1, 0))
+    tracker.pump()
+    assert tracker.params_settled and tracker.params == {"AHRS_EKF_TYPE": 3.0}
