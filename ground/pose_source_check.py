@@ -40,13 +40,15 @@ def _height_corrected(pose: PoseCorrection | None) -> bool:
     return pose is not None and pose.applied and bool(pose.height_sigma_m)
 
 
-def pose_source_warnings(header: Mapping[str, Any], pose: PoseCorrection | None, correction_on: bool) -> list[str]:
-    """The warnings the autopilot's pose sources call for, given what the pose correction did (None: not run)."""
+def pose_source_warnings(header: Mapping[str, Any], pose: PoseCorrection | None, correction_on: bool,
+                         rangefinder_applied: bool = False) -> list[str]:
+    """The warnings the autopilot's pose sources call for, given what the pose correction did (None: not run) and
+    whether the rangefinder's share of the height was taken out (`ground.rangefinder_height`)."""
     source = PoseSource.from_header(header)
     if source is None or not source.known:
         return []
     out = []
-    if source.height_from_rangefinder and not _height_corrected(pose):
+    if source.height_from_rangefinder and not _height_corrected(pose) and not rangefinder_applied:
         how = ("as its height source (EK3_SRC1_POSZ = 2)" if source.height is HeightSource.RANGEFINDER else
                f"below {source.rangefinder_height_pct:g} % of its range (EK3_RNG_USE_HGT = "
                f"{source.rangefinder_height_pct:g})")

@@ -18,6 +18,7 @@ from firmware_py.core.config_file import SiteSection
 from firmware_py.core.flag_tally import FlagTally
 from firmware_py.core.frames import Boresight, StorageFrame
 from firmware_py.core.header import header_boresight
+from firmware_py.core.pose_source import PoseSource
 from firmware_py.core.rundir import SAMPLES_FILE, TRUTH_FILE, OutputFolder, check_free
 from firmware_py.core.safe_read import InputError, json_number, json_object, load_json
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, SampleLog, read_samplelog
@@ -45,12 +46,19 @@ from ground.pointcloud import (
     structure_mask,
     structure_n_sigma,
 )
-from ground.pose_correction import PoseCorrection, apply_pose_correction, estimate_pose_correction, with_closest_wall
+from ground.pose_correction import (
+    KNOT_SWEEPS,
+    PoseCorrection,
+    apply_pose_correction,
+    estimate_pose_correction,
+    with_closest_wall,
+)
 from ground.pose_correction import describe as describe_pose
 from ground.pose_correction import unanchored_warning as pose_unanchored_warning
 from ground.pose_correction import unconstrained_warning as pose_unconstrained_warning
 from ground.pose_correction import wall_warning as pose_wall_warning
 from ground.pose_source_check import autopilot_params, pose_source_line, pose_source_warnings
+from ground.rangefinder_height import RangefinderShare, estimate_share
 from ground.self_calibration import N_SIGNIFICANT, MountEstimate, apply_mount, describe, estimate_mount
 from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
 from ground.smoothing import vertical_sigma_m
@@ -143,6 +151,7 @@ class Survey:
     own_terms: ErrorTerms | None = None  # the surface's own error terms (ErrorTerms) before a fitted floor rebased them
     errors_in: Callable[[np.ndarray], SurveyErrors] | None = None  # the error terms over a cell mask (one pile's)
     pose: PoseCorrection | None = None  # the trajectory's correction from the building (None: not run)
+    rangefinder: RangefinderShare | None = None  # the rangefinder's share of the logged height (None: not run)
 
 
 def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
@@ -376,6 +385,19 @@ def check_grid_memory(storage: Storage, cell_m: float, max_bytes: int) -> None:
                         "(or raise --max-grid-memory-mb)")
 
 
+def _rangefinder_share(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame, lever: np.ndarray,
+                       opts: ReportOptions, mount: Boresight) -> tuple[np.ndarray, RangefinderShare | None]:
+    """The samples with the rangefinder's share of their logged height taken out (`ground.rangefinder_height`),
+    when the header says the autopilot's height came from its downward rangefinder and the pose is corrected;
+    else as they are (None: not run). Before everything that places points: the mount, the pose, the survey."""
+    source = PoseSource.from_header(header)
+    period = _sweep_period_s(header)
+    if not opts.pose_correction or source is None or not source.height_from_rangefinder or period is None:
+        return samples, None
+    share, placed = estimate_share(samples, lever, frame, storage, KNOT_SWEEPS * period, mount)
+    return placed, share
+
+
 def _sweep_period_s(header: dict) -> float | None:
     """The servo's sweep period from the log header (None: unknown, no stuck-servo check)."""
     servo = header.get("servo")
@@ -411,6 +433,8 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
     samples = without_implausible(samples, found)
     checked = {"implausible": found.counts(),
                "despike_unavailable": why_no_threshold(header) if opts.despike and spikes is None else None}
+    samples, rangefinder = _rangefinder_share(samples, header, storage, frame, lever, opts, mount)
+    checked["rangefinder"] = rangefinder
     # The building's estimates of the mount and the pose need the samples, not the survey: they run beside it, on the
     # second core (measured alone: survey 0.31 s, estimates 0.57 s, in sequence 0.86 s, side by side 0.61 s;
     # docs/design-notes.md). Used only when the servo is not re-timed, which changes the samples they were made from.
@@ -515,7 +539,7 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
     fixed = with_pose_term(_survey(corrected, header, storage, frame, lever, opts, err, spikes, boresight), pose)
     return replace(fixed, servo_timing=survey.servo_timing, servo_retimed=survey.servo_retimed,
                    implausible=survey.implausible, despike_unavailable=survey.despike_unavailable, mount=est,
-                   pose=pose)
+                   pose=pose, rangefinder=survey.rangefinder)
 
 
 def with_pose_term(survey: Survey, pose: PoseCorrection | None) -> Survey:
@@ -666,7 +690,11 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
     if survey.pose is not None and survey.pose.applied:
         warnings += [w for w in (describe_pose(survey.pose), pose_unconstrained_warning(survey.pose),
                                  pose_unanchored_warning(survey.pose), pose_wall_warning(survey.pose)) if w]
-    warnings += pose_source_warnings(log.header or {}, survey.pose, opts.pose_correction)
+    rf = survey.rangefinder
+    if rf is not None and rf.applied:
+        warnings.append(rf.describe())
+    warnings += pose_source_warnings(log.header or {}, survey.pose, opts.pose_correction,
+                                     rangefinder_applied=rf is not None and rf.applied)
     warnings += site_mismatches(log.header or {}, opts.site)
     return warnings
 
@@ -747,6 +775,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
             "disagreement_before_m": st.disagreement_before_m, "disagreement_after_m": st.disagreement_after_m},
         "self_calibration": None if survey.mount is None else survey.mount.as_dict(),
         "pose_correction": None if survey.pose is None else survey.pose.as_dict(),
+        "rangefinder_height": None if survey.rangefinder is None else survey.rangefinder.as_dict(),
         "uncovered_area_m2": float((~np.isfinite(survey.heights_fit)).sum() * g.cell_area_m2),
         "storage": survey.storage.to_dict(),
         "site": site,

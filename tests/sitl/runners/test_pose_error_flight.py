@@ -142,3 +142,16 @@ def test_that_the_header_says_what_the_autopilot_s_ekf_took_its_pose_from(flow_r
     assert source.horizontal_drifts and source.height_from_rangefinder
     assert source.describe().startswith("position optical flow velocity, integrated; height barometer, the downward "
                                         "rangefinder below 70 % of its range")
+
+
+def test_that_the_report_measures_the_rangefinder_s_share_of_the_height_and_takes_it_out(flow_run, tmp_path):
+    from ground.report import ReportOptions, make_report
+    out, _, _, _ = flow_run
+    on = make_report(out, tmp_path / "on", ReportOptions(plots=False))
+    off = make_report(out, tmp_path / "off", ReportOptions(plots=False, pose_correction=False))
+    rf = on["rangefinder_height"]
+    assert rf["applied"] and abs(rf["share"] - W) < 0.1 and rf["sigma"] < 0.05  # the SITL's weight, from the data
+    assert off["rangefinder_height"] is None  # with the pose correction off, nothing is taken out
+    assert abs(on["volume_error_pct"]) < 0.5 * abs(off["volume_error_pct"])
+    assert any("followed the pile" in w for w in on["warnings"])
+    assert not any("came from its downward rangefinder" in w for w in on["warnings"])  # taken out: no alarm

@@ -1,0 +1,278 @@
+"""The share of the logged height that followed the pile, when the autopilot's height came from a downward rangefinder.
+
+An EKF that takes its height from a downward rangefinder (the header's EKF sources say so:
+`firmware_py.core.pose_source`) logs the height above whatever is below the vehicle. Over a stockpile that is
+the pile's top, so the logged height is low by a share w of the ground's height below the vehicle (w = 1 for the
+rangefinder alone; less where the EKF blends it with the barometer or switches between them), and every point
+of a sweep is placed that much low. The building cannot always take it out: where the pile hides the floor, the
+pose correction has no floor to tie the height to, and measured it as "too small to matter" on a flight 28 % low.
+
+The crossings measure w without any floor: a cell seen at two times, with different ground heights below the
+vehicle, comes out at heights that differ by -w times the difference of those ground heights. So w is the
+least-squares slope of the cells' height differences on the ground-height differences, over every pair of times
+a cell was seen (`estimate_share`), the ground below the vehicle read from the survey's own points (a grid of
+cell medians, a cell without points taking its nearest's), and the crossings from points away from the nadir, so the
+two do not share their noise. The height reference's own slow drift (the barometer's) is fitted beside w, so that a
+drift that happens to follow the pile is not taken for a share of it. Those points are themselves placed low by the
+error, so the ground below is read again from the points re-placed with the share found, until the lift settles. The
+samples' logged heights are then raised by w times the ground below (`apply_share`), before the mount and the pose are
+estimated, which then correct what is left (the barometer's walk, the horizontal drift).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import distance_transform_edt
+from scipy.signal import lfilter
+
+from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
+from firmware_py.core.storage import Storage
+from ground.pointcloud import cloud_from_samples
+
+CELL_M = 1.0
+"""The cell of the crossings and of the ground below: small against a pile (a cell seen twice is one surface), large
+enough that its median is not one beam's noise (0.5 m cells halved the share under Appendix A's pointing noise: the
+ground below's noise dilutes a slope fitted on it)."""
+N_SIGMA = 3.0
+"""The share is applied when it is this many standard errors above zero."""
+MAX_ROUNDS = 12
+"""The ground below converges geometrically, by the share per round (points placed low read the ground low)."""
+SETTLED_M = 0.01
+"""The rounds stop when the lift moves by less than this (m)."""
+DRIFT_KNOT_S = 30.0
+"""The height reference's drift is linear between knots this far apart: the shortest correlation time the pose
+correction believes of a drift (`PoseCorrectionOptions.drift_correlation_s`)."""
+NADIR_M = 2.0 * CELL_M
+"""Points this close to the vehicle's nadir read the ground below and are not crossings."""
+LAGS_S = (0.0, 0.5, 1.0, 2.0, 4.0)
+"""Trial time constants of the EKF's smoothing of the rangefinder height: the crossings' misfit picks one."""
+MIN_POINTS = 3
+"""Points of one interval in a cell for its height (a median)."""
+
+
+@dataclass(frozen=True)
+class RangefinderShare:
+    """What the crossings said of the rangefinder's share of the logged height.
+
+    Attributes:
+        share: w, the logged height's error per metre of ground below the vehicle (taken out with a minus sign).
+        sigma: its standard error (the pairs of one cell taken as one draw).
+        pairs: the pairs of times a cell was seen that measured it.
+        applied: whether the samples were re-placed with it.
+        reason: one line when it was not applied.
+        lift_m: (mean, largest) height it added to the samples, m.
+    """
+
+    share: float
+    sigma: float
+    pairs: int
+    applied: bool
+    reason: str | None = None
+    lift_m: tuple[float, float] = (0.0, 0.0)
+
+    def as_dict(self) -> dict:
+        return {"share": self.share, "sigma": self.sigma, "pairs": self.pairs, "applied": self.applied,
+                "reason": self.reason, "lift_mean_m": self.lift_m[0], "lift_max_m": self.lift_m[1]}
+
+    def describe(self) -> str:
+        return (f"the autopilot's height followed the pile (its downward rangefinder): the crossings measured a "
+                f"share of {self.share:.2f} ± {self.sigma:.2f} of the ground's height below the vehicle in the "
+                f"logged height, and it was taken out before the pose correction (the samples raised by "
+                f"{self.lift_m[0]:.2f} m on average, {self.lift_m[1]:.2f} m at most)")
+
+
+def _vehicle_w(samples: np.ndarray, frame: StorageFrame) -> np.ndarray:
+    return frame.ned_to_w(np.column_stack([samples["x_m"], samples["y_m"], samples["z_m"]]).astype(float))
+
+
+def _ground_grid(points_w: np.ndarray, storage: Storage) -> np.ndarray:
+    """Median height of the points per CELL_M cell (a cell no point fell in: its nearest that holds points)."""
+    nx, ny = math.ceil(storage.length_m / CELL_M), math.ceil(storage.width_m / CELL_M)
+    i = np.clip((points_w[:, 0] / CELL_M).astype(int), 0, nx - 1)
+    j = np.clip((points_w[:, 1] / CELL_M).astype(int), 0, ny - 1)
+    flat = i * ny + j
+    order = np.argsort(flat, kind="stable")
+    keys, start = np.unique(flat[order], return_index=True)
+    z = points_w[order, 2]
+    grid = np.full(nx * ny, np.nan)
+    grid[keys] = [np.median(part) for part in np.split(z, start[1:])]
+    grid = grid.reshape(nx, ny)
+    empty = np.isnan(grid)
+    if empty.all():
+        return np.zeros((nx, ny))
+    if empty.any():  # between two sweep lines: the nearest cell that holds points
+        _, (ii, jj) = distance_transform_edt(empty, return_indices=True)
+        grid = grid[ii, jj]
+    return np.clip(grid, 0.0, storage.height_m)
+
+
+def ground_below_m(samples: np.ndarray, points_w: np.ndarray, frame: StorageFrame, storage: Storage) -> np.ndarray:
+    """The height of the ground below the vehicle at each sample, from the points' cell medians."""
+    grid = _ground_grid(points_w, storage)
+    v = _vehicle_w(samples, frame)
+    i = np.clip((v[:, 0] / CELL_M).astype(int), 0, grid.shape[0] - 1)
+    j = np.clip((v[:, 1] / CELL_M).astype(int), 0, grid.shape[1] - 1)
+    return grid[i, j]
+
+
+def apply_share(samples: np.ndarray, share: float, below_m: np.ndarray, frame: StorageFrame) -> np.ndarray:
+    """The samples with their logged height raised by share times the ground below (NED: down is +z; the frame's
+    z axis is up, so a rise in W is a fall in down)."""
+    out = samples.copy()
+    up_ned = frame.rot_w_from_ned.T @ np.array([0.0, 0.0, 1.0])  # W's up in NED
+    lift = share * below_m
+    out["x_m"] = samples["x_m"] + lift * up_ned[0]
+    out["y_m"] = samples["y_m"] + lift * up_ned[1]
+    out["z_m"] = samples["z_m"] + lift * up_ned[2]
+    return out
+
+
+@dataclass(frozen=True)
+class _Crossings:
+    """The cells seen in two intervals at least one apart: each (cell, interval) group's median height, and the
+    pairs of groups of one cell. The ground below enters per group (`below`), so one grouping serves every trial."""
+
+    group: np.ndarray  # (N,) each point's group
+    count: np.ndarray  # (G,) points per group
+    z: np.ndarray  # (G,) median height
+    a: np.ndarray  # (P,) pairs: first group
+    c: np.ndarray  # (P,) second group
+    cell: np.ndarray  # (P,) the pair's cell
+    t: np.ndarray  # (G,) each group's mean time
+
+    @classmethod
+    def of(cls, points_w: np.ndarray, t_s: np.ndarray, interval_s: float) -> _Crossings:
+        k = ((t_s - t_s.min()) // interval_s).astype(np.int64)
+        cell = (points_w[:, 0] // CELL_M).astype(np.int64) * 100_000 + (points_w[:, 1] // CELL_M).astype(np.int64)
+        keys, group, count = np.unique(cell * 1_000_000 + k, return_inverse=True, return_counts=True)
+        order = np.argsort(group, kind="stable")
+        starts = np.concatenate([[0], np.cumsum(count)[:-1]])
+        z = np.array([np.median(part) for part in np.split(points_w[order, 2], starts[1:])])
+        gcell, gk = keys // 1_000_000, keys % 1_000_000
+        ok = count >= MIN_POINTS
+        a, c = [], []
+        for part in np.split(np.arange(len(keys)), np.flatnonzero(np.diff(gcell)) + 1):
+            part = part[ok[part]]
+            if len(part) < 2:
+                continue
+            i, j = np.triu_indices(len(part), 1)
+            far = np.abs(gk[part][i] - gk[part][j]) >= 2  # another pass, not the next sweep of the same one
+            a.append(part[i][far])
+            c.append(part[j][far])
+        a = np.concatenate(a) if a else np.zeros(0, dtype=np.int64)
+        c = np.concatenate(c) if c else np.zeros(0, dtype=np.int64)
+        t = np.bincount(group, weights=t_s, minlength=len(count)) / count
+        return cls(group, count, z, a, c, gcell[a], t)
+
+    def differences(self, below_at_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per pair: the cell's height difference and the ground-below difference."""
+        b = np.bincount(self.group, weights=below_at_points, minlength=len(self.count)) / self.count
+        return self.z[self.a] - self.z[self.c], b[self.a] - b[self.c]
+
+    def fit(self, below_at_points: np.ndarray) -> tuple[float, float, float]:
+        """(w, its standard error, the misfit) with this ground below: dz = -w db + b(t1) - b(t2) over the pairs,
+        b the height reference's slow drift (the barometer's), linear between knots DRIFT_KNOT_S apart, fitted
+        with w so that a drift that happens to follow the pile is not taken for a share of it."""
+        dz, db = self.differences(below_at_points)
+        if len(dz) == 0:
+            return 0.0, math.inf, 0.0
+        t0, t1 = float(self.t.min()), float(self.t.max())
+        k = max(2, math.ceil((t1 - t0) / DRIFT_KNOT_S) + 1)
+        step = max((t1 - t0) / (k - 1), 1e-9)
+
+        def hat(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            x = (t - t0) / step
+            i = np.clip(np.floor(x).astype(int), 0, k - 2)
+            return i, x - i
+        rows = np.arange(len(dz))
+        design = np.zeros((len(dz), 1 + k))
+        design[:, 0] = -db
+        for g, sign in ((self.a, 1.0), (self.c, -1.0)):
+            i, f = hat(self.t[g])
+            np.add.at(design, (rows, 1 + i), sign * (1.0 - f))
+            np.add.at(design, (rows, 2 + i), sign * f)
+        design = np.delete(design, 1, axis=1)  # the drift is relative: its first knot is 0
+        x = np.linalg.lstsq(design, dz, rcond=None)[0]
+        r = dz - design @ x
+        w = float(x[0])
+        info = np.linalg.pinv(design.T @ design)
+        _, inv = np.unique(self.cell, return_inverse=True)  # a cell's pairs as one draw (their errors are shared)
+        score = np.zeros((inv.max() + 1, design.shape[1]))
+        np.add.at(score, inv, design * r[:, None])
+        cov = info @ (score.T @ score) @ info
+        return w, float(math.sqrt(max(cov[0, 0], 0.0))), float(r @ r)
+
+
+def _fit(dz: np.ndarray, db: np.ndarray, cid: np.ndarray) -> tuple[float, float]:
+    """w = -sum(dz db) / sum(db^2), and its standard error with each cell's pairs as one draw."""
+    den = float(np.sum(db * db))
+    if den <= 0:
+        return 0.0, math.inf
+    w = -float(np.sum(dz * db)) / den
+    r = dz + w * db
+    _, inv = np.unique(cid, return_inverse=True)
+    score = np.bincount(inv, weights=r * db)
+    return w, float(math.sqrt(np.sum(score * score)) / den)
+
+
+def _lowpass(x: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:
+    """A first-order low-pass of x(t) with time constant tau_s (0: x itself), on a 10 Hz grid."""
+    if tau_s <= 0 or len(x) < 2:
+        return x
+    tg = np.arange(t_s[0], t_s[-1] + 0.1, 0.1)
+    a = 1.0 - math.exp(-0.1 / tau_s)
+    y = lfilter([a], [1.0, a - 1.0], np.interp(tg, t_s, x), zi=[(1.0 - a) * x[0]])[0]
+    return np.interp(t_s, tg, y)
+
+
+def estimate_share(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, storage: Storage,
+                   interval_s: float, boresight: Boresight = SQUARE) -> tuple[RangefinderShare, np.ndarray]:
+    """The rangefinder's share of the logged height (module docstring), and the samples re-placed with it (the
+    samples as they were when it is not applied)."""
+    usable = samples
+    base = cloud_from_samples(usable, lever_arm_body_m, frame, boresight=boresight)
+    if len(base.points_w) < 100:
+        return RangefinderShare(0.0, math.inf, 0, False, "too few points to measure it"), samples
+    inside = ((base.points_w[:, 0] > CELL_M) & (base.points_w[:, 0] < storage.length_m - CELL_M)
+              & (base.points_w[:, 1] > CELL_M) & (base.points_w[:, 1] < storage.width_m - CELL_M)
+              & (base.points_w[:, 2] < storage.height_m - 1.0))
+    p0, t0 = base.points_w[inside], base.t_s[inside]
+    t_all = usable["t_s"].astype(float)
+    # The crossings from points away from the vehicle's nadir: the ground below is read from the nadir cells, and a
+    # cell's height and the ground below read from the same points share their noise (on a flat floor, a share of 1).
+    v = _vehicle_w(usable, frame)
+    off_nadir = np.hypot(p0[:, 0] - np.interp(t0, t_all, v[:, 0]), p0[:, 1] - np.interp(t0, t_all, v[:, 1])) \
+        > NADIR_M
+    crossings = _Crossings.of(p0[off_nadir], t0[off_nadir], interval_s)
+    n = len(crossings.a)
+    if n < 10:
+        return RangefinderShare(0.0, math.inf, n, False, "no cell seen again at another ground height"), samples
+    w, sigma, tau = 0.0, math.inf, 0.0
+    placed, lift_p = p0, np.zeros(len(p0))
+    for _ in range(MAX_ROUNDS):
+        below_s = ground_below_m(usable, placed, frame, storage)
+        trials = [(*crossings.fit(np.interp(t0[off_nadir], t_all, _lowpass(below_s, t_all, tau_s))), tau_s)
+                  for tau_s in LAGS_S]
+        w, sigma, _, tau = min(trials, key=lambda r: r[2])  # the EKF's lag: the one the crossings fit best
+        new_lift = w * np.interp(t0, t_all, _lowpass(below_s, t_all, tau))
+        moved = float(np.max(np.abs(new_lift - lift_p)))
+        lift_p = new_lift
+        placed = p0 + np.column_stack([np.zeros(len(p0)), np.zeros(len(p0)), lift_p])
+        if moved < SETTLED_M:  # the ground below read from points re-placed with the lift it gives: a fixed point
+            break
+    dz, db = crossings.differences(np.interp(t0[off_nadir], t_all, _lowpass(below_s, t_all, tau)))
+    spread, noise = float(np.sqrt(np.mean(db * db))), float(1.4826 * np.median(np.abs(dz + w * db)))
+    if not spread > N_SIGMA * noise:  # a ground below as flat as the cells' own noise measures no share
+        return RangefinderShare(w, sigma, n, False, f"the ground below the vehicle varied by {spread:.2f} m, "
+                                f"within the cells' noise ({noise:.2f} m): nothing to measure a share on"), samples
+    if not (w > N_SIGMA * sigma) or w > 1.0 + N_SIGMA * sigma:
+        why = (f"not significant ({w:.2f} ± {sigma:.2f})" if not w > N_SIGMA * sigma
+               else f"a share of {w:.2f} is more than the whole ground below: not a rangefinder height")
+        return RangefinderShare(w, sigma, n, False, why), samples
+    below_s = _lowpass(ground_below_m(usable, placed, frame, storage), t_all, tau)
+    lift = w * below_s
+    return (RangefinderShare(w, sigma, n, True, None, (float(np.mean(lift)), float(np.max(lift)))),
+            apply_share(samples, w, below_s, frame))

@@ -1,0 +1,59 @@
+"""ground.rangefinder_height: a logged height that followed the pile below (a rangefinder height source) is measured
+from the pile seen at different ground heights below the vehicle, without a floor, and taken out; a height that
+did not follow it is left alone."""
+
+import numpy as np
+import pytest
+
+from ground.rangefinder_height import _Crossings, _lowpass, estimate_share
+from tests.ground.test_pose_correction import FRAME, LEVER, PERIOD_S, PILE, STORAGE, _track, flight
+
+OVER_THE_PILE = [(12.0, 17.0), (48.0, 17.0), (48.0, 23.0), (12.0, 23.0)]
+"""A loop whose long legs cross the block pile (x 22-38 m, y 14-26 m, 3 m tall): the ground below steps 0 -> 3 m."""
+
+
+def _below_true(t: np.ndarray) -> np.ndarray:
+    xy, _ = _track(t, OVER_THE_PILE)
+    inside = (xy[:, 0] >= PILE[0][0]) & (xy[:, 0] <= PILE[1][0]) & (xy[:, 1] >= PILE[0][1]) & (xy[:, 1] <= PILE[1][1])
+    return np.where(inside, PILE[1][2], 0.0)
+
+
+def _following(share: float):
+    def err(t: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(t), 4))
+        out[:, 2] = -share * _lowpass(_below_true(t), t, 1.0)  # logged low by a share of the ground below
+        return out
+    return err
+
+
+def test_that_a_height_that_followed_the_pile_is_measured_and_taken_out():
+    samples, err = flight(_following(0.4), corners=OVER_THE_PILE)
+    share, placed = estimate_share(samples, LEVER, FRAME, STORAGE, 2 * PERIOD_S)
+    assert share.applied and share.share == pytest.approx(0.4, abs=0.05) and share.sigma < 0.05
+    logged_up = FRAME.ned_to_w(np.column_stack([samples["x_m"], samples["y_m"], samples["z_m"]]))[:, 2]
+    placed_up = FRAME.ned_to_w(np.column_stack([placed["x_m"], placed["y_m"], placed["z_m"]]))[:, 2]
+    true_up = logged_up - err[:, 2]
+    before, after = np.abs(logged_up - true_up), np.abs(placed_up - true_up)
+    assert after.mean() < 0.25 * before.mean()  # the lift put back most of what the ground below took
+
+
+def test_that_a_height_that_did_not_follow_the_pile_is_left_alone():
+    samples, _ = flight(None, corners=OVER_THE_PILE)
+    share, placed = estimate_share(samples, LEVER, FRAME, STORAGE, 2 * PERIOD_S)
+    assert not share.applied and "not significant" in share.reason and placed is samples
+
+
+def test_that_a_flight_that_never_sees_a_cell_at_two_ground_heights_says_so():
+    samples, _ = flight(None)  # the default loop runs around the pile: the ground below is always the floor
+    share, placed = estimate_share(samples, LEVER, FRAME, STORAGE, 2 * PERIOD_S)
+    assert not share.applied and placed is samples
+
+
+def test_that_the_crossings_fit_is_the_slope_of_the_cells_heights_on_the_ground_below():
+    rng = np.random.default_rng(1)
+    t = np.repeat(np.arange(8.0), 50) * 10.0  # eight passes, 10 s apart, 50 points each in one cell
+    below = np.repeat(rng.uniform(0, 5, 8), 50)
+    z = 2.0 - 0.3 * below + rng.normal(0, 0.01, len(t))
+    points = np.column_stack([np.full(len(t), 5.2), np.full(len(t), 7.7), z])
+    w, sigma, misfit = _Crossings.of(points, t, 3.0).fit(below)
+    assert w == pytest.approx(0.3, abs=0.01) and sigma < 0.01 and misfit < 0.01
