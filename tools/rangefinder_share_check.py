@@ -1,0 +1,116 @@
+"""Kept pose-error flights surveyed again with their autopilot's EKF source record in the header, with and without
+the rangefinder's share of the height taken out (`ground.rangefinder_height`).
+
+The flights of the pose campaigns (`tools.pose_correction_campaign --keep DIR`) were flown before the payload wrote
+the autopilot's EKF sources into the header, so a report of them never runs the step. This puts the record the
+simulated autopilot serves for each flight's profile (`sitl.sensing.pose_drift.EKF_SOURCES`) into the header it
+surveys with (`--record own`), or one profile's record into every flight (`--record flow`: what a header that says
+so wrongly costs), and surveys each flight twice, the record absent and present. Each drifting flight is compared
+with its error-free twin (the `none` flight of the same pile, P_traj and seed, found beside it) as the pose campaign
+does: |Ve - Ve error-free| (signed Ve, pp) and the trajectory's RMS against the truth (the lift included).
+
+Usage: python -m tools.rangefinder_share_check --runs runs/pose runs/pose-own runs/pose-noise-ds runs/pose-noise-aa
+           [--profiles flow] [--record own|flow] [--jobs 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from firmware_py.core.pose_source import HEADER_KEY
+from firmware_py.core.rundir import SAMPLES_FILE, TRUTH_FILE
+from firmware_py.core.samplelog import read_samplelog
+from ground.base import FLOOR_BASE
+from ground.rangefinder_height import estimate_share
+from ground.report import ReportOptions, _sweep_period_s, header_geometry, survey_from_samples
+from sitl.sensing.pose_drift import ekf_source_params
+from tools.pose_correction_campaign import trajectory_rms_m
+
+FLIGHT = re.compile(r"^(none|flow|vio)-(.+)-(\d+)-(\d+)(?:-(appendix-a|datasheet))?$")
+TARGET_PP, TRAJ_TARGET_M = 0.3, 0.10
+
+
+def _survey(run: Path, record: str | None) -> tuple[float, float]:
+    """(signed Ve %, trajectory RMS after, m) of one flight surveyed with the header's record set as asked."""
+    log = read_samplelog(run / SAMPLES_FILE)
+    header = dict(log.header)
+    header.pop(HEADER_KEY, None)
+    if record is not None:
+        header[HEADER_KEY] = ekf_source_params(record)
+    storage, frame, lever = header_geometry(log, run)
+    sv = survey_from_samples(log.samples, header, storage, frame, lever, ReportOptions(plots=False))
+    truth = json.loads((run / TRUTH_FILE).read_text())
+    tv = truth["true_volume_m3"]
+    ve = 100.0 * (FLOOR_BASE.volume_m3(sv.heights, sv.grid) - tv) / tv
+    if sv.rangefinder is not None and sv.rangefinder.applied and truth.get("pose_error"):
+        _, placed = estimate_share(log.samples, lever, frame, storage, 2.0 * _sweep_period_s(header))
+        lift = (frame.ned_to_w(np.column_stack([placed["x_m"], placed["y_m"], placed["z_m"]]))
+                - frame.ned_to_w(np.column_stack([log.samples["x_m"], log.samples["y_m"], log.samples["z_m"]])))[:, 2]
+        tr = dict(truth["pose_error"]["trajectory"])
+        est = np.array(tr["estimated_w_m"], dtype=float)
+        est[:, 2] += np.interp(tr["t_s"], log.samples["t_s"], lift)
+        truth = {**truth, "pose_error": {**truth["pose_error"], "trajectory": {**tr, "estimated_w_m": est.tolist()}}}
+    _, after = trajectory_rms_m(truth, sv.pose.as_dict() if sv.pose is not None else None)
+    return ve, after
+
+
+def _one(args: tuple[str, str, str | None]) -> tuple[str, float, float, float, float]:
+    run, profile, forced = args
+    record = forced or profile
+    off_ve, off_traj = _survey(Path(run), None)
+    on_ve, on_traj = _survey(Path(run), record)
+    return run, off_ve, off_traj, on_ve, on_traj
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", nargs="+", required=True, help="folders of kept flights (pose campaigns' --keep)")
+    ap.add_argument("--profiles", nargs="+", default=["flow"], help="the drifting profiles to survey again")
+    ap.add_argument("--record", default="own", help="own: each flight's profile's record; or a profile's name")
+    ap.add_argument("--jobs", type=int, default=2)
+    args = ap.parse_args(argv)
+    forced = None if args.record == "own" else args.record
+    flights, twins = [], {}
+    for folder in map(Path, args.runs):
+        for run in sorted(p for p in folder.iterdir() if (p / TRUTH_FILE).is_file() and "--" not in p.name):
+            m = FLIGHT.match(run.name)
+            if m is None:
+                continue
+            key = (folder.name, m.group(2), m.group(3), m.group(4), m.group(5))
+            if m.group(1) == "none":
+                twins[key] = run
+            elif m.group(1) in args.profiles:
+                flights.append((key, run, m.group(1)))
+    needed = sorted({twins[k] for k, _, _ in flights if k in twins})
+    with ProcessPoolExecutor(max(1, args.jobs)) as ex:
+        done = {r: row for r, *row in ex.map(_one, [(str(r), p, forced) for _, r, p in flights])}
+        ref = {r: ve for r, ve, _ in ex.map(_twin, [str(r) for r in needed])}
+    print(f"| folder | flights | mean \\|dVe\\| without / with the record (pp) | within {TARGET_PP} pp | "
+          f"trajectory <= {TRAJ_TARGET_M * 100:.0f} cm |")
+    print("|---|---|---|---|---|")
+    for folder in dict.fromkeys(k[0] for k, _, _ in flights):
+        rows = [(done[str(r)], ref[str(twins[k])]) for k, r, _ in flights if k[0] == folder and k in twins]
+        if not rows:
+            continue
+        off = [abs(d[0] - e) for d, e in rows]
+        on = [abs(d[2] - e) for d, e in rows]
+        print(f"| {folder} | {len(rows)} | {np.mean(off):.2f} / {np.mean(on):.2f} | "
+              f"{sum(v <= TARGET_PP for v in off)} / {sum(v <= TARGET_PP for v in on)} | "
+              f"{sum(d[1] <= TRAJ_TARGET_M for d, _ in rows)} / {sum(d[3] <= TRAJ_TARGET_M for d, _ in rows)} |")
+    return 0
+
+
+def _twin(run: str) -> tuple[str, float, float]:
+    ve, traj = _survey(Path(run), None)
+    return run, ve, traj
+
+
+if __name__ == "__main__":
+    sys.exit(main())
