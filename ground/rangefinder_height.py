@@ -246,6 +246,8 @@ def estimate_share(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     v = _vehicle_w(usable, frame)
     off_nadir = np.hypot(p0[:, 0] - np.interp(t0, t_all, v[:, 0]), p0[:, 1] - np.interp(t0, t_all, v[:, 1])) \
         > NADIR_M
+    if np.count_nonzero(off_nadir) < 100:
+        return RangefinderShare(0.0, math.inf, 0, False, "too few points away from the nadir to measure it"), samples
     crossings = _Crossings.of(p0[off_nadir], t0[off_nadir], interval_s)
     n = len(crossings.a)
     if n < 10:

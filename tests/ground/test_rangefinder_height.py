@@ -57,3 +57,10 @@ def test_that_the_crossings_fit_is_the_slope_of_the_cells_heights_on_the_ground_
     points = np.column_stack([np.full(len(t), 5.2), np.full(len(t), 7.7), z])
     w, sigma, misfit = _Crossings.of(points, t, 3.0).fit(below)
     assert w == pytest.approx(0.3, abs=0.01) and sigma < 0.01 and misfit < 0.01
+
+
+def test_that_a_log_with_too_few_points_says_so_and_changes_nothing():
+    samples, _ = flight(None, corners=OVER_THE_PILE)
+    few = samples[:50]
+    share, placed = estimate_share(few, LEVER, FRAME, STORAGE, 2 * PERIOD_S)
+    assert not share.applied and "too few" in share.reason and placed is few
