@@ -146,7 +146,9 @@ def test_that_the_header_says_what_the_autopilot_s_ekf_took_its_pose_from(flow_r
 
 def test_that_the_report_measures_the_rangefinder_s_share_of_the_height_and_takes_it_out(flow_run, tmp_path):
     from ground.report import ReportOptions, make_report
-    out, _, _, _ = flow_run
+    out, _, _, payload = flow_run
+    if payload != "firmware":
+        pytest.skip("the three paths write the same header (above): the firmware's flight, as flown, shows the step")
     on = make_report(out, tmp_path / "on", ReportOptions(plots=False))
     off = make_report(out, tmp_path / "off", ReportOptions(plots=False, pose_correction=False))
     rf = on["rangefinder_height"]
