@@ -17,7 +17,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from firmware_py.core.pose_source import HEADER_KEY, HeightSource, PoseSource
+from firmware_py.core.pose_source import HEADER_KEY, HeightSource, PoseSource, number
 from ground.pose_correction import PoseCorrection
 
 NOT_STATED = "not stated in the log"
@@ -30,10 +30,13 @@ def pose_source_line(header: Mapping[str, Any]) -> str:
     return NOT_STATED if source is None else source.describe()
 
 
-def autopilot_params(header: Mapping[str, Any]) -> dict[str, Any] | None:
-    """The header's record as it stands (report.json keeps it for whoever reads the parameters themselves)."""
+def autopilot_params(header: Mapping[str, Any]) -> dict[str, float | None] | None:
+    """The header's record (report.json keeps it for whoever reads the parameters themselves): a parameter's value
+    as a number, None where the record holds anything else (report.json is strict JSON: no NaN)."""
     record = header.get(HEADER_KEY)
-    return dict(record) if isinstance(record, Mapping) and record else None
+    if not isinstance(record, Mapping) or not record:
+        return None
+    return {str(k): number(v) for k, v in record.items()}
 
 
 def _height_corrected(pose: PoseCorrection | None) -> bool:

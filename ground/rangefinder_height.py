@@ -74,7 +74,8 @@ class RangefinderShare:
     lift_m: tuple[float, float] = (0.0, 0.0)
 
     def as_dict(self) -> dict:
-        return {"share": self.share, "sigma": self.sigma, "pairs": self.pairs, "applied": self.applied,
+        return {"share": self.share, "sigma": self.sigma if math.isfinite(self.sigma) else None,  # strict JSON
+                "pairs": self.pairs, "applied": self.applied,
                 "reason": self.reason, "lift_mean_m": self.lift_m[0], "lift_max_m": self.lift_m[1]}
 
     def describe(self) -> str:

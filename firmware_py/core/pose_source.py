@@ -64,9 +64,21 @@ _DRIFTING = {HorizontalSource.OPTICAL_FLOW, HorizontalSource.WHEEL_ENCODER}
 """Velocity sources: the position is their integral, so its error grows with the distance flown."""
 
 
+def number(value: Any) -> float | None:
+    """A parameter's value as a finite float; None for anything else (a string, a bool, NaN, an integer too large
+    for a float): a header is read, not trusted."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    try:
+        f = float(value)
+    except OverflowError:
+        return None
+    return f if math.isfinite(f) else None
+
+
 def _code(params: Mapping[str, Any], name: str, kind: type[Enum]) -> Enum | None:
-    value = params.get(name)
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+    value = number(params.get(name))
+    if value is None:
         return None
     try:
         return kind(round(value))
@@ -89,12 +101,10 @@ class PoseSource:
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any]) -> PoseSource:
-        ekf = params.get("AHRS_EKF_TYPE")
-        ekf_type = round(ekf) if isinstance(ekf, int | float) and not isinstance(ekf, bool) and math.isfinite(ekf) \
-            else None
-        rng = params.get("EK3_RNG_USE_HGT")
-        rng_pct = float(rng) if isinstance(rng, int | float) and not isinstance(rng, bool) and math.isfinite(rng) \
-            and rng >= 0 else None
+        ekf = number(params.get("AHRS_EKF_TYPE"))
+        ekf_type = round(ekf) if ekf is not None else None
+        rng = number(params.get("EK3_RNG_USE_HGT"))
+        rng_pct = rng if rng is not None and rng >= 0 else None
         return cls(ekf_type, _code(params, "EK3_SRC1_POSXY", HorizontalSource),
                    _code(params, "EK3_SRC1_VELXY", HorizontalSource), _code(params, "EK3_SRC1_POSZ", HeightSource),
                    rng_pct)

@@ -113,3 +113,16 @@ def make_report_from(workdir: Path, header: dict) -> dict:
     log = workdir / "typed.pslog"
     log.write_bytes(encode_block(b"H", json.dumps(header).encode()) + encode_block(b"S", floor_samples().tobytes()))
     return make_report(log, workdir / "typed-report", ReportOptions(plots=False), force=True)
+
+
+@pytest.mark.parametrize("record", [
+    {"AHRS_EKF_TYPE": 3, "EK3_SRC1_POSXY": 0, "EK3_SRC1_VELXY": 5, "EK3_SRC1_POSZ": 2},
+    {"AHRS_EKF_TYPE": 3, "EK3_SRC1_VELXY": 5, "EK3_SRC1_POSZ": 1, "EK3_RNG_USE_HGT": 1e308},
+    {"EK3_SRC1_POSZ": float("nan")}, "rangefinder", [2, 3], {"AHRS_EKF_TYPE": True, "EK3_SRC1_POSZ": "2"},
+    {"AHRS_EKF_TYPE": 10**400, "EK3_SRC1_POSZ": 2, "EK3_RNG_USE_HGT": [1], "x": {"y": 1}}])
+def test_that_any_autopilot_record_gives_a_report_that_states_it_or_not(workdir, record):
+    # With a sweep period the rangefinder's share runs on a rangefinder record: on this tiny log it measures nothing.
+    rep = report_or_user_error(workdir, {**edited({}), "autopilot_params": record, "servo": {"frequency_hz": 0.4}})
+    assert rep is not None and isinstance(rep["pose_source"], str)
+    assert rep["rangefinder_height"] is None or not rep["rangefinder_height"]["applied"]
+    json.loads((workdir / "report" / "report.json").read_text(), parse_constant=pytest.fail)  # strict JSON

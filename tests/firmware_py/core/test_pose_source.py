@@ -34,11 +34,16 @@ def test_that_a_log_without_the_record_has_no_pose_source(header):
     assert PoseSource.from_header(header) is None
 
 
-@pytest.mark.parametrize("bad", [math.nan, math.inf, "3", True, None, 99.0, 2.5e9])
+@pytest.mark.parametrize("bad", [math.nan, math.inf, "3", True, None, 99.0, 2.5e9, 10**400, [2]])
 def test_that_a_value_that_is_no_known_code_is_not_stated_rather_than_guessed(bad):
     s = PoseSource.from_params({**GNSS, "EK3_SRC1_POSZ": bad})
     assert s.height is None and not s.known
     assert s.describe() == "not stated by the autopilot"
+
+
+def test_that_a_huge_integer_anywhere_is_no_number_rather_than_an_overflow():
+    s = PoseSource.from_params({"AHRS_EKF_TYPE": 10**400, "EK3_SRC1_POSZ": 10**400, "EK3_RNG_USE_HGT": 10**400})
+    assert (s.ekf_type, s.height, s.rangefinder_height_pct) == (None, None, None)
 
 
 def test_that_another_ekf_says_its_sources_are_not_read():
