@@ -114,9 +114,17 @@ def ground_below_m(samples: np.ndarray, points_w: np.ndarray, frame: StorageFram
     """The height of the ground below the vehicle at each sample, from the points' cell medians."""
     grid = _ground_grid(points_w, storage)
     v = _vehicle_w(samples, frame)
-    i = np.clip((v[:, 0] / CELL_M).astype(int), 0, grid.shape[0] - 1)
-    j = np.clip((v[:, 1] / CELL_M).astype(int), 0, grid.shape[1] - 1)
-    return grid[i, j]
+    posed = np.isfinite(v[:, 0]) & np.isfinite(v[:, 1])  # a sample logged without a pose: from its neighbours
+    out = np.zeros(len(v))
+    if not posed.any():
+        return out
+    i = np.clip((v[posed, 0] / CELL_M).astype(int), 0, grid.shape[0] - 1)
+    j = np.clip((v[posed, 1] / CELL_M).astype(int), 0, grid.shape[1] - 1)
+    out[posed] = grid[i, j]
+    if not posed.all():
+        t = samples["t_s"].astype(float)
+        out[~posed] = np.interp(t[~posed], t[posed], out[posed])
+    return out
 
 
 def apply_share(samples: np.ndarray, share: float, below_m: np.ndarray, frame: StorageFrame) -> np.ndarray:

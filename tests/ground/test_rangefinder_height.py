@@ -5,6 +5,7 @@ did not follow it is left alone."""
 import numpy as np
 import pytest
 
+from firmware_py.core.samplelog import SampleFlags
 from ground.rangefinder_height import _Crossings, _lowpass, estimate_share
 from tests.ground.test_pose_correction import FRAME, LEVER, PERIOD_S, PILE, STORAGE, _track, flight
 
@@ -64,3 +65,14 @@ def test_that_a_log_with_too_few_points_says_so_and_changes_nothing():
     few = samples[:50]
     share, placed = estimate_share(few, LEVER, FRAME, STORAGE, 2 * PERIOD_S)
     assert not share.applied and "too few" in share.reason and placed is few
+
+
+def test_that_samples_logged_without_a_pose_neither_break_the_share_nor_spread_into_it():
+    samples, _ = flight(_following(0.4), corners=OVER_THE_PILE)
+    gap = slice(len(samples) // 3, len(samples) // 3 + 500)  # a second of samples the payload could not pose
+    samples["x_m"][gap] = samples["y_m"][gap] = samples["z_m"][gap] = np.nan
+    samples["flags"][gap] |= int(SampleFlags.NO_POSE)
+    share, placed = estimate_share(samples, LEVER, FRAME, STORAGE, 2 * PERIOD_S)
+    assert share.applied and share.share == pytest.approx(0.4, abs=0.05)
+    posed = np.isfinite(samples["z_m"])
+    assert np.isfinite(placed["z_m"][posed]).all() and np.isnan(placed["z_m"][~posed]).all()
