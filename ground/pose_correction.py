@@ -1136,7 +1136,7 @@ MIN_CELL_POINTS = 3
 """A cell's points in one knot interval give one height when there are at least this many."""
 
 
-def _group_median(key: np.ndarray, z: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, ...]:
+def group_median(key: np.ndarray, z: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, ...]:
     """Per distinct key: the key, the median and robust spread of z, the mean of t, the count."""
     order = np.lexsort((z, key))
     key, z, t = key[order], z[order], t[order]
@@ -1181,8 +1181,8 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
     # the cell's centre, so two passes that hit a sloped cell in different places still agree.
     seen_z = p[:, 2] if start is None else p[:, 2] + np.interp(t, knots, start)  # slopes from the corrected
     z_flat = p[:, 2] - _cell_slopes(np.column_stack([p[:, :2], seen_z]), cid, nx * ny, cell_m, ny, inside)
-    key, med, mad, tm, cnt = _group_median((k * (nx * ny) + cid)[inside], z_flat[inside], t[inside])
-    fkey, _, _, _, fcnt = _group_median((k * (nx * ny) + cid)[inside & floor], z_flat[inside & floor],
+    key, med, mad, tm, cnt = group_median((k * (nx * ny) + cid)[inside], z_flat[inside], t[inside])
+    fkey, _, _, _, fcnt = group_median((k * (nx * ny) + cid)[inside & floor], z_flat[inside & floor],
                                         t[inside & floor])
     is_floor = np.zeros(len(key), dtype=bool)
     pos = np.searchsorted(key, fkey)
@@ -1280,7 +1280,7 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
     key = k * (nx * ny) + cid
     # the frame's noise: how far one interval's height of a cell is from the cell's height at other times
     inside = ~wall & (p[:, 2] < storage.height_m)
-    gk, gmed, _, _, gcnt = _group_median(key[inside], zc[inside], t[inside])
+    gk, gmed, _, _, gcnt = group_median(key[inside], zc[inside], t[inside])
     many = gcnt >= MIN_CELL_POINTS
     gcell, gmed = gk[many] % (nx * ny), gmed[many]
     spread = between_times_scatter_m(gcell, gmed)
@@ -1288,9 +1288,9 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
     # the same with each cell's slope taken out (two passes that hit a sloped cell in different places): the
     # frame's own misalignment between times, which a flat floor's heights carry too
     zs = zc - _cell_slopes(np.column_stack([p[:, :2], zc]), cid, nx * ny, cell_m, ny, inside)
-    _, smed, _, _, _ = _group_median(key[inside], zs[inside], t[inside])
+    _, smed, _, _, _ = group_median(key[inside], zs[inside], t[inside])
     frame_m = between_times_scatter_m(gcell, smed[many])
-    fk, fmed, _, _, fcnt = _group_median(key[floor], zc[floor], t[floor])
+    fk, fmed, _, _, fcnt = group_median(key[floor], zc[floor], t[floor])
     # the lowest level that holds more than stray points (nothing but noise is below the floor); not the
     # highest peak: a broad flat top can out-number the floor seen (measured: 350 against 100 points)
     order = np.argsort(fmed)
@@ -1367,7 +1367,7 @@ def between_times_scatter_m(cell: np.ndarray, med_m: np.ndarray) -> float:
     again = seen[inv] >= 2
     if not again.any():
         return 0.0
-    _, cell_med, _, _, _ = _group_median(inv, med_m, med_m)  # per cell (inv: 0 .. cells - 1)
+    _, cell_med, _, _, _ = group_median(inv, med_m, med_m)  # per cell (inv: 0 .. cells - 1)
     return _robust_rms((med_m - cell_med[inv])[again])
 
 
@@ -1435,7 +1435,7 @@ def register_from_crossings(b: Beams, x: np.ndarray, x_wall: np.ndarray, knots: 
         flat, gx, gy = _significant_gradients(p, cid, nx * ny, cell_m, ny, inside, n_sigma)
         z_flat = p[:, 2] - flat
         key_all = k * (nx * ny) + cid
-        key, med, mad, tm, cnt = _group_median(key_all[inside], z_flat[inside], b.t_s[inside])
+        key, med, mad, tm, cnt = group_median(key_all[inside], z_flat[inside], b.t_s[inside])
         gi = np.searchsorted(key, key_all[inside])
         vx = np.bincount(gi, weights=vr[inside, 0], minlength=len(key)) / cnt
         vy = np.bincount(gi, weights=vr[inside, 1], minlength=len(key)) / cnt

@@ -67,7 +67,7 @@ def pose_source_warnings(header: Mapping[str, Any], pose: PoseCorrection | None,
                    "include it. Read the volume as possibly low; fly with the barometer as the height source "
                    "(EK3_SRC1_POSZ = 1, EK3_RNG_USE_HGT = -1) or where the sweeps see the floor")
     if source.horizontal_drifts and not correction_on:
-        out.append(f"the autopilot's position was {source.describe().split(';')[0].removeprefix('position ')}, "
+        out.append(f"the autopilot's position was {source.horizontal_words()}, "
                    "which drifts with the distance flown, and the pose correction is off (--no-pose-correction): "
                    "points may lie decimetres to metres from where they were seen")
     return out

@@ -31,6 +31,7 @@ from scipy.signal import lfilter
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
 from firmware_py.core.storage import Storage
 from ground.pointcloud import cloud_from_samples
+from ground.pose_correction import group_median
 
 CELL_M = 1.0
 """The cell of the crossings and of the ground below: small against a pile (a cell seen twice is one surface), large
@@ -94,12 +95,9 @@ def _ground_grid(points_w: np.ndarray, storage: Storage) -> np.ndarray:
     nx, ny = math.ceil(storage.length_m / CELL_M), math.ceil(storage.width_m / CELL_M)
     i = np.clip((points_w[:, 0] / CELL_M).astype(int), 0, nx - 1)
     j = np.clip((points_w[:, 1] / CELL_M).astype(int), 0, ny - 1)
-    flat = i * ny + j
-    order = np.argsort(flat, kind="stable")
-    keys, start = np.unique(flat[order], return_index=True)
-    z = points_w[order, 2]
+    keys, med, _, _, _ = group_median(i * ny + j, points_w[:, 2], points_w[:, 2])
     grid = np.full(nx * ny, np.nan)
-    grid[keys] = [np.median(part) for part in np.split(z, start[1:])]
+    grid[keys] = med
     grid = grid.reshape(nx, ny)
     empty = np.isnan(grid)
     if empty.all():
@@ -110,10 +108,11 @@ def _ground_grid(points_w: np.ndarray, storage: Storage) -> np.ndarray:
     return np.clip(grid, 0.0, storage.height_m)
 
 
-def ground_below_m(samples: np.ndarray, points_w: np.ndarray, frame: StorageFrame, storage: Storage) -> np.ndarray:
-    """The height of the ground below the vehicle at each sample, from the points' cell medians."""
+def ground_below_m(vehicle_w: np.ndarray, t_s: np.ndarray, points_w: np.ndarray, storage: Storage) -> np.ndarray:
+    """The height of the ground below the vehicle (W, one row a sample at t_s) at each sample, from the points' cell
+    medians."""
     grid = _ground_grid(points_w, storage)
-    v = _vehicle_w(samples, frame)
+    v = vehicle_w
     posed = np.isfinite(v[:, 0]) & np.isfinite(v[:, 1])  # a sample logged without a pose: from its neighbours
     out = np.zeros(len(v))
     if not posed.any():
@@ -122,8 +121,7 @@ def ground_below_m(samples: np.ndarray, points_w: np.ndarray, frame: StorageFram
     j = np.clip((v[posed, 1] / CELL_M).astype(int), 0, grid.shape[1] - 1)
     out[posed] = grid[i, j]
     if not posed.all():
-        t = samples["t_s"].astype(float)
-        out[~posed] = np.interp(t[~posed], t[posed], out[posed])
+        out[~posed] = np.interp(t_s[~posed], t_s[posed], out[posed])
     return out
 
 
@@ -156,10 +154,9 @@ class _Crossings:
     def of(cls, points_w: np.ndarray, t_s: np.ndarray, interval_s: float) -> _Crossings:
         k = ((t_s - t_s.min()) // interval_s).astype(np.int64)
         cell = (points_w[:, 0] // CELL_M).astype(np.int64) * 100_000 + (points_w[:, 1] // CELL_M).astype(np.int64)
-        keys, group, count = np.unique(cell * 1_000_000 + k, return_inverse=True, return_counts=True)
-        order = np.argsort(group, kind="stable")
-        starts = np.concatenate([[0], np.cumsum(count)[:-1]])
-        z = np.array([np.median(part) for part in np.split(points_w[order, 2], starts[1:])])
+        key = cell * 1_000_000 + k
+        keys, z, _, t, count = group_median(key, points_w[:, 2], t_s)
+        group = np.searchsorted(keys, key)
         gcell, gk = keys // 1_000_000, keys % 1_000_000
         ok = count >= MIN_POINTS
         a, c = [], []
@@ -173,7 +170,6 @@ class _Crossings:
             c.append(part[j][far])
         a = np.concatenate(a) if a else np.zeros(0, dtype=np.int64)
         c = np.concatenate(c) if c else np.zeros(0, dtype=np.int64)
-        t = np.bincount(group, weights=t_s, minlength=len(count)) / count
         return cls(group, count, z, a, c, gcell[a], t)
 
     def differences(self, below_at_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -215,18 +211,6 @@ class _Crossings:
         return w, float(math.sqrt(max(cov[0, 0], 0.0))), float(r @ r)
 
 
-def _fit(dz: np.ndarray, db: np.ndarray, cid: np.ndarray) -> tuple[float, float]:
-    """w = -sum(dz db) / sum(db^2), and its standard error with each cell's pairs as one draw."""
-    den = float(np.sum(db * db))
-    if den <= 0:
-        return 0.0, math.inf
-    w = -float(np.sum(dz * db)) / den
-    r = dz + w * db
-    _, inv = np.unique(cid, return_inverse=True)
-    score = np.bincount(inv, weights=r * db)
-    return w, float(math.sqrt(np.sum(score * score)) / den)
-
-
 def _lowpass(x: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:
     """A first-order low-pass of x(t) with time constant tau_s (0: x itself), on a 10 Hz grid."""
     if tau_s <= 0 or len(x) < 2:
@@ -241,18 +225,17 @@ def estimate_share(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
                    interval_s: float, boresight: Boresight = SQUARE) -> tuple[RangefinderShare, np.ndarray]:
     """The rangefinder's share of the logged height (module docstring), and the samples re-placed with it (the
     samples as they were when it is not applied)."""
-    usable = samples
-    base = cloud_from_samples(usable, lever_arm_body_m, frame, boresight=boresight)
+    base = cloud_from_samples(samples, lever_arm_body_m, frame, boresight=boresight)
     if len(base.points_w) < 100:
         return RangefinderShare(0.0, math.inf, 0, False, "too few points to measure it"), samples
     inside = ((base.points_w[:, 0] > CELL_M) & (base.points_w[:, 0] < storage.length_m - CELL_M)
               & (base.points_w[:, 1] > CELL_M) & (base.points_w[:, 1] < storage.width_m - CELL_M)
               & (base.points_w[:, 2] < storage.height_m - 1.0))
     p0, t0 = base.points_w[inside], base.t_s[inside]
-    t_all = usable["t_s"].astype(float)
+    t_all = samples["t_s"].astype(float)
     # The crossings from points away from the vehicle's nadir: the ground below is read from the nadir cells, and a
     # cell's height and the ground below read from the same points share their noise (on a flat floor, a share of 1).
-    v = _vehicle_w(usable, frame)
+    v = _vehicle_w(samples, frame)
     off_nadir = np.hypot(p0[:, 0] - np.interp(t0, t_all, v[:, 0]), p0[:, 1] - np.interp(t0, t_all, v[:, 1])) \
         > NADIR_M
     if np.count_nonzero(off_nadir) < 100:
@@ -264,7 +247,7 @@ def estimate_share(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     w, sigma, tau = 0.0, math.inf, 0.0
     placed, lift_p = p0, np.zeros(len(p0))
     for _ in range(MAX_ROUNDS):
-        below_s = ground_below_m(usable, placed, frame, storage)
+        below_s = ground_below_m(v, t_all, placed, storage)
         trials = [(*crossings.fit(np.interp(t0[off_nadir], t_all, _lowpass(below_s, t_all, tau_s))), tau_s)
                   for tau_s in LAGS_S]
         w, sigma, _, tau = min(trials, key=lambda r: r[2])  # the EKF's lag: the one the crossings fit best
@@ -283,7 +266,7 @@ def estimate_share(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
         why = (f"not significant ({w:.2f} ± {sigma:.2f})" if not w > N_SIGMA * sigma
                else f"a share of {w:.2f} is more than the whole ground below: not a rangefinder height")
         return RangefinderShare(w, sigma, n, False, why), samples
-    below_s = _lowpass(ground_below_m(usable, placed, frame, storage), t_all, tau)
+    below_s = _lowpass(ground_below_m(v, t_all, placed, storage), t_all, tau)
     lift = w * below_s
     return (RangefinderShare(w, sigma, n, True, None, (float(np.mean(lift)), float(np.max(lift)))),
             apply_share(samples, w, below_s, frame))

@@ -133,19 +133,23 @@ class PoseSource:
         """The height is, at least at times, the downward rangefinder's: the height above the pile, over a pile."""
         return self.height is HeightSource.RANGEFINDER or self.rangefinder_height_pct is not None
 
+    def horizontal_words(self) -> str:
+        """What fed the horizontal position, in words."""
+        if self.position not in (None, HorizontalSource.NONE):
+            if self.velocity not in (None, HorizontalSource.NONE, self.position):
+                return f"{_WORDS[self.position]} (velocity: {_WORDS[self.velocity]})"
+            return _WORDS[self.position]
+        if self.velocity not in (None, HorizontalSource.NONE):
+            return f"{_WORDS[self.velocity]} velocity, integrated"
+        return "none"
+
     def describe(self) -> str:
         """One line for the report: what fed the position and the height."""
         if not self.known:
             if self.ekf_type not in (None, 3):
                 return f"not stated (AHRS_EKF_TYPE {self.ekf_type}: only EKF3's sources are read)"
             return "not stated by the autopilot"
-        if self.position not in (None, HorizontalSource.NONE):
-            horizontal = _WORDS[self.position]
-            if self.velocity not in (None, HorizontalSource.NONE, self.position):
-                horizontal += f" (velocity: {_WORDS[self.velocity]})"
-        else:
-            horizontal = f"{_WORDS[self.velocity]} velocity, integrated" if self.velocity not in (
-                None, HorizontalSource.NONE) else "none"
+        horizontal = self.horizontal_words()
         height = _WORDS[self.height]
         if self.rangefinder_height_pct is not None and self.height is not HeightSource.RANGEFINDER:
             height += f", the downward rangefinder below {self.rangefinder_height_pct:g} % of its range"
