@@ -195,6 +195,7 @@ class PoseTracker:
         self.params: dict[str, float] = {}
         """Autopilot parameters asked for with `request_params` and answered (name -> value)."""
         self._params_wanted: tuple[str, ...] = ()
+        self._params_missing: set[str] = set()  # asked for, not yet answered: empty, the pump's check is one test
         self._params_round = _Command(0, 0, 0)  # attempts and time of the last round of reads
         self.stats: Counter[str] = Counter()
 
@@ -210,6 +211,7 @@ class PoseTracker:
         """Read these autopilot parameters (PARAM_REQUEST_READ by name; the unanswered asked again every
         command timeout, up to the command attempts): `params` fills as PARAM_VALUEs arrive."""
         self._params_wanted = tuple(names)
+        self._params_missing = {n for n in self._params_wanted if n not in self.params}
         self._params_round = _Command(0, 0, 0)
         self._service_params(self.clock.now_ns())
 
@@ -221,9 +223,8 @@ class PoseTracker:
     @property
     def params_settled(self) -> bool:
         """Every parameter asked for answered, or its reads all sent and timed out."""
-        missing = [n for n in self._params_wanted if n not in self.params]
         r = self._params_round
-        return not missing or (r.attempts >= self.config.command_attempts
+        return not self._params_missing or (r.attempts >= self.config.command_attempts
                                 and self.clock.now_ns() - r.sent_ns >= self.config.command_timeout_ns)
 
     def pump(self) -> None:
@@ -309,6 +310,7 @@ class PoseTracker:
             name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else ""
             if name in self._params_wanted and math.isfinite(msg.param_value):
                 self.params[name] = float(msg.param_value)
+                self._params_missing.discard(name)
         elif hasattr(msg, "time_boot_ms"):
             self._check_boot(msg.time_boot_ms, now)
 
@@ -406,10 +408,10 @@ class PoseTracker:
 
     def _service_params(self, now: int) -> None:
         r, cfg = self._params_round, self.config
-        missing = [n for n in self._params_wanted if n not in self.params]
-        if not missing or r.attempts >= cfg.command_attempts or (
+        if not self._params_missing or r.attempts >= cfg.command_attempts or (
                 r.attempts and 0 <= now - r.sent_ns < cfg.command_timeout_ns):
             return
+        missing = [n for n in self._params_wanted if n in self._params_missing]  # in the order asked
         for name in missing:
             self.link.send(mavlink.MAVLink_param_request_read_message(
                 cfg.target_system, cfg.target_component or 1, name.encode("ascii"), -1))
