@@ -28,6 +28,7 @@ from firmware_py.core.pose_source import HEADER_KEY
 from firmware_py.core.rundir import SAMPLES_FILE, TRUTH_FILE
 from firmware_py.core.samplelog import read_samplelog
 from ground.base import FLOOR_BASE
+from ground.pose_correction import KNOT_SWEEPS
 from ground.rangefinder_height import estimate_share
 from ground.report import ReportOptions, _sweep_period_s, header_geometry, survey_from_samples
 from sitl.sensing.pose_drift import ekf_source_params
@@ -50,7 +51,8 @@ def _survey(run: Path, record: str | None) -> tuple[float, float]:
     tv = truth["true_volume_m3"]
     ve = 100.0 * (FLOOR_BASE.volume_m3(sv.heights, sv.grid) - tv) / tv
     if sv.rangefinder is not None and sv.rangefinder.applied and truth.get("pose_error"):
-        _, placed = estimate_share(log.samples, lever, frame, storage, 2.0 * _sweep_period_s(header))
+        # the report's own step again (its per-sample lift is not kept), with its interval
+        _, placed = estimate_share(log.samples, lever, frame, storage, KNOT_SWEEPS * _sweep_period_s(header))
         lift = (frame.ned_to_w(np.column_stack([placed["x_m"], placed["y_m"], placed["z_m"]]))
                 - frame.ned_to_w(np.column_stack([log.samples["x_m"], log.samples["y_m"], log.samples["z_m"]])))[:, 2]
         tr = dict(truth["pose_error"]["trajectory"])
