@@ -52,6 +52,9 @@ LAGS_S = (0.0, 0.5, 1.0, 2.0, 4.0)
 """Trial time constants of the EKF's smoothing of the rangefinder height: the crossings' misfit picks one."""
 MIN_POINTS = 3
 """Points of one interval in a cell for its height (a median)."""
+STEP_S = 0.1
+"""The time grid of the EKF's lag (`_lowpass`) and of the lift over time in the report: on it the reported lift is
+the lift the samples got, linear between (a lag of 0 s leaves the ground below's steps, which it rounds off)."""
 
 
 @dataclass(frozen=True)
@@ -65,6 +68,9 @@ class RangefinderShare:
         applied: whether the samples were re-placed with it.
         reason: one line when it was not applied.
         lift_m: (mean, largest) height it added to the samples, m.
+        lift_t_s: times (the log's clock) at which the lift is reported, STEP_S apart.
+        lift_at_t_m: the height added to the samples at those times, m (linear between): what a reader needs to
+            put the vehicle's reported trajectory where the survey placed it.
     """
 
     share: float
@@ -73,11 +79,22 @@ class RangefinderShare:
     applied: bool
     reason: str | None = None
     lift_m: tuple[float, float] = (0.0, 0.0)
+    lift_t_s: tuple[float, ...] = ()
+    lift_at_t_m: tuple[float, ...] = ()
+
+    def lift_at(self, t_s: np.ndarray) -> np.ndarray:
+        """The height (m, up) the samples were raised by at times t_s: 0 when not applied."""
+        t = np.asarray(t_s, dtype=float)
+        if not self.applied or not self.lift_t_s:
+            return np.zeros(t.shape)
+        return np.interp(t, self.lift_t_s, self.lift_at_t_m)
 
     def as_dict(self) -> dict:
         return {"share": self.share, "sigma": self.sigma if math.isfinite(self.sigma) else None,  # strict JSON
                 "pairs": self.pairs, "applied": self.applied,
-                "reason": self.reason, "lift_mean_m": self.lift_m[0], "lift_max_m": self.lift_m[1]}
+                "reason": self.reason, "lift_mean_m": self.lift_m[0], "lift_max_m": self.lift_m[1],
+                "lift_t_s": [round(v, 3) for v in self.lift_t_s],
+                "lift_at_t_m": [round(v, 4) for v in self.lift_at_t_m]}
 
     def describe(self) -> str:
         return (f"the autopilot's height followed the pile (its downward rangefinder): the crossings measured a "
@@ -212,11 +229,11 @@ class _Crossings:
 
 
 def _lowpass(x: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:
-    """A first-order low-pass of x(t) with time constant tau_s (0: x itself), on a 10 Hz grid."""
+    """A first-order low-pass of x(t) with time constant tau_s (0: x itself), on the STEP_S grid."""
     if tau_s <= 0 or len(x) < 2:
         return x
-    tg = np.arange(t_s[0], t_s[-1] + 0.1, 0.1)
-    a = 1.0 - math.exp(-0.1 / tau_s)
+    tg = np.arange(t_s[0], t_s[-1] + STEP_S, STEP_S)
+    a = 1.0 - math.exp(-STEP_S / tau_s)
     y = lfilter([a], [1.0, a - 1.0], np.interp(tg, t_s, x), zi=[(1.0 - a) * x[0]])[0]
     return np.interp(t_s, tg, y)
 
@@ -268,5 +285,7 @@ def estimate_share(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
         return RangefinderShare(w, sigma, n, False, why), samples
     below_s = _lowpass(ground_below_m(v, t_all, placed, storage), t_all, tau)
     lift = w * below_s
-    return (RangefinderShare(w, sigma, n, True, None, (float(np.mean(lift)), float(np.max(lift)))),
+    grid_t = np.arange(t_all[0], t_all[-1] + STEP_S, STEP_S)
+    return (RangefinderShare(w, sigma, n, True, None, (float(np.mean(lift)), float(np.max(lift))),
+                             tuple(float(v) for v in grid_t), tuple(float(v) for v in np.interp(grid_t, t_all, lift))),
             apply_share(samples, w, below_s, frame))

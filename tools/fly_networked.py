@@ -188,8 +188,10 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
     return NetworkedRun(out, rep, wall, code)
 
 
-def trajectory_rms(run: Path, correction: dict) -> tuple[float, float, float, float] | None:
-    """The networked flight's trajectory RMS before and after the correction (`serve` keeps the truth on the
+def trajectory_rms(run: Path, correction: dict, rangefinder: dict | None = None
+                   ) -> tuple[float, float, float, float] | None:
+    """The networked flight's trajectory RMS before and after the corrections (the pose correction's record and
+    the rangefinder height's, as report.json has them; `serve` keeps the truth on the
     simulator's clock: put on the payload log's by the estimated trajectory, `clock_offset_s`), the offset and
     how far apart the two estimates stay there (m); None without a trajectory in truth.json."""
     truth = json.loads((run / TRUTH_FILE).read_text())
@@ -202,7 +204,7 @@ def trajectory_rms(run: Path, correction: dict) -> tuple[float, float, float, fl
     logged_w = frame.ned_to_w(np.column_stack([s["x_m"], s["y_m"], s["z_m"]]).astype(float))
     ok = np.isfinite(logged_w).all(axis=1) & np.isfinite(s["t_s"])
     offset_s, fit_m = clock_offset_s(traj, s["t_s"][ok], logged_w[ok])
-    before, after = trajectory_rms_m(on_log_clock(truth, offset_s), correction)
+    before, after = trajectory_rms_m(on_log_clock(truth, offset_s), correction, rangefinder)
     return before, after, offset_s, fit_m
 
 
@@ -256,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
         figures.update(networked_corrected_volume_m3=fixed["volume_m3"],
                        networked_corrected_ve_pct=fixed["volume_error_pct"], pose_correction=pc)
         try:
-            rms = trajectory_rms(args.out / "networked", pc)
+            rms = trajectory_rms(args.out / "networked", pc, fixed.get("rangefinder_height"))
         except ValueError as exc:  # a truth.json and a log that are not one flight: say so, keep the volumes
             print(f"networked trajectory RMS not measured: {exc}", file=sys.stderr)
             rms = None

@@ -52,9 +52,10 @@ TRAJ_TARGET_M = 0.10
 """Issue 15's target: the trajectory's RMS against the truth after the correction."""
 
 
-def trajectory_rms_m(truth: dict, correction: dict | None) -> tuple[float, float]:
-    """3-D position RMS of the estimate against the truth, before and after the correction (its knots from
-    report.json, linear between)."""
+def trajectory_rms_m(truth: dict, correction: dict | None, rangefinder: dict | None = None) -> tuple[float, float]:
+    """3-D position RMS of the estimate against the truth, before and after the report's corrections: the
+    rangefinder's share of the height taken out first (report.json's `rangefinder_height`, its lift over time) and
+    the pose correction on top (its knots, linear between)."""
     tr = (truth.get("pose_error") or {}).get("trajectory")
     if not tr:
         return 0.0, 0.0
@@ -63,12 +64,14 @@ def trajectory_rms_m(truth: dict, correction: dict | None) -> tuple[float, float
                          "(clock_offset_s, on_log_clock)")
     t, true_w, est_w = np.array(tr["t_s"]), np.array(tr["true_w_m"]), np.array(tr["estimated_w_m"])
     before = float(np.sqrt(np.mean(np.sum((est_w - true_w) ** 2, axis=1))))
-    if not correction or not correction.get("applied"):
-        return before, before
-    knots = np.array(correction["knot_t_s"])
-    vals = np.array(correction["knot_values"])
-    corr = np.column_stack([np.interp(t, knots, vals[:, c]) for c in range(3)])
-    return before, float(np.sqrt(np.mean(np.sum((est_w + corr - true_w) ** 2, axis=1))))
+    placed = est_w.copy()
+    if rangefinder and rangefinder.get("applied") and rangefinder.get("lift_t_s"):
+        placed[:, 2] += np.interp(t, rangefinder["lift_t_s"], rangefinder["lift_at_t_m"])
+    if correction and correction.get("applied"):
+        knots = np.array(correction["knot_t_s"])
+        vals = np.array(correction["knot_values"])
+        placed += np.column_stack([np.interp(t, knots, vals[:, c]) for c in range(3)])
+    return before, float(np.sqrt(np.mean(np.sum((placed - true_w) ** 2, axis=1))))
 
 
 def clock_offset_s(traj: dict, log_t_s: np.ndarray, logged_w_m: np.ndarray, step_s: float = 0.1) -> tuple[float, float]:
@@ -177,7 +180,7 @@ def one(profile: str, pile: str, p_traj: int, seed: int, work: Path, reuse: bool
                         "--quiet", flag], check=True, stdout=subprocess.DEVNULL)
         reps[flag] = json.loads((rep / "report.json").read_text())
     pc = reps["--pose-correction"].get("pose_correction") or {}
-    before, after = trajectory_rms_m(truth, pc)
+    before, after = trajectory_rms_m(truth, pc, reps["--pose-correction"].get("rangefinder_height"))
     return {**row, "ve_off": reps["--no-pose-correction"]["volume_error_pct"],
             "ve_on": reps["--pose-correction"]["volume_error_pct"],
             "dv_off_pct": signed_error_pct(reps["--no-pose-correction"]),

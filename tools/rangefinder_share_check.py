@@ -7,7 +7,8 @@ simulated autopilot serves for each flight's profile (`sitl.sensing.pose_drift.E
 surveys with (`--record own`), or one profile's record into every flight (`--record flow`: what a header that says
 so wrongly costs), and surveys each flight twice, the record absent and present. Each drifting flight is compared
 with its error-free twin (the `none` flight of the same pile, P_traj and seed, found beside it) as the pose campaign
-does: |Ve - Ve error-free| (signed Ve, pp) and the trajectory's RMS against the truth (the lift included).
+does: |Ve - Ve error-free| (signed Ve, pp) and the trajectory's RMS against the truth (the lift included:
+the report's lift over time).
 
 Usage: python -m tools.rangefinder_share_check --runs runs/pose runs/pose-own runs/pose-noise-ds runs/pose-noise-aa
            [--profiles flow] [--record own|flow] [--jobs 2]
@@ -28,9 +29,7 @@ from firmware_py.core.pose_source import HEADER_KEY
 from firmware_py.core.rundir import SAMPLES_FILE, TRUTH_FILE
 from firmware_py.core.samplelog import read_samplelog
 from ground.base import FLOOR_BASE
-from ground.pose_correction import KNOT_SWEEPS
-from ground.rangefinder_height import estimate_share
-from ground.report import ReportOptions, _sweep_period_s, header_geometry, survey_from_samples
+from ground.report import ReportOptions, header_geometry, survey_from_samples
 from sitl.sensing.pose_drift import ekf_source_params
 from tools.pose_correction_campaign import trajectory_rms_m
 
@@ -50,16 +49,8 @@ def _survey(run: Path, record: str | None) -> tuple[float, float]:
     truth = json.loads((run / TRUTH_FILE).read_text())
     tv = truth["true_volume_m3"]
     ve = 100.0 * (FLOOR_BASE.volume_m3(sv.heights, sv.grid) - tv) / tv
-    if sv.rangefinder is not None and sv.rangefinder.applied and truth.get("pose_error"):
-        # the report's own step again (its per-sample lift is not kept), with its interval
-        _, placed = estimate_share(log.samples, lever, frame, storage, KNOT_SWEEPS * _sweep_period_s(header))
-        lift = (frame.ned_to_w(np.column_stack([placed["x_m"], placed["y_m"], placed["z_m"]]))
-                - frame.ned_to_w(np.column_stack([log.samples["x_m"], log.samples["y_m"], log.samples["z_m"]])))[:, 2]
-        tr = dict(truth["pose_error"]["trajectory"])
-        est = np.array(tr["estimated_w_m"], dtype=float)
-        est[:, 2] += np.interp(tr["t_s"], log.samples["t_s"], lift)
-        truth = {**truth, "pose_error": {**truth["pose_error"], "trajectory": {**tr, "estimated_w_m": est.tolist()}}}
-    _, after = trajectory_rms_m(truth, sv.pose.as_dict() if sv.pose is not None else None)
+    _, after = trajectory_rms_m(truth, sv.pose.as_dict() if sv.pose is not None else None,
+                                sv.rangefinder.as_dict() if sv.rangefinder is not None else None)
     return ve, after
 
 

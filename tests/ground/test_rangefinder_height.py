@@ -2,6 +2,8 @@
 from the pile seen at different ground heights below the vehicle, without a floor, and taken out; a height that
 did not follow it is left alone."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -27,9 +29,15 @@ def _following(share: float):
     return err
 
 
-def test_that_a_height_that_followed_the_pile_is_measured_and_taken_out():
+@pytest.fixture(scope="module")
+def followed():
     samples, err = flight(_following(0.4), corners=OVER_THE_PILE)
     share, placed = estimate_share(samples, LEVER, FRAME, STORAGE, 2 * PERIOD_S)
+    return samples, err, share, placed
+
+
+def test_that_a_height_that_followed_the_pile_is_measured_and_taken_out(followed):
+    samples, err, share, placed = followed
     assert share.applied and share.share == pytest.approx(0.4, abs=0.05) and share.sigma < 0.05
     logged_up = FRAME.ned_to_w(np.column_stack([samples["x_m"], samples["y_m"], samples["z_m"]]))[:, 2]
     placed_up = FRAME.ned_to_w(np.column_stack([placed["x_m"], placed["y_m"], placed["z_m"]]))[:, 2]
@@ -38,10 +46,24 @@ def test_that_a_height_that_followed_the_pile_is_measured_and_taken_out():
     assert after.mean() < 0.25 * before.mean()  # the lift put back most of what the ground below took
 
 
+def test_that_the_report_says_how_much_it_raised_the_height_over_time(followed):
+    samples, _, share, placed = followed
+    logged_up = FRAME.ned_to_w(np.column_stack([samples["x_m"], samples["y_m"], samples["z_m"]]))[:, 2]
+    placed_up = FRAME.ned_to_w(np.column_stack([placed["x_m"], placed["y_m"], placed["z_m"]]))[:, 2]
+    raised = placed_up - logged_up
+    assert raised.max() > 0.5  # the pile is 3 m tall: a lift worth following
+    off = share.lift_at(samples["t_s"]) - raised  # what a reader re-places a trajectory with
+    assert np.sqrt(np.mean(off ** 2)) < 0.01 and np.abs(off).max() < 0.05
+    record = json.loads(json.dumps(share.as_dict(), allow_nan=False))
+    assert np.interp(samples["t_s"], record["lift_t_s"], record["lift_at_t_m"]) == pytest.approx(
+        share.lift_at(samples["t_s"]), abs=1e-3)
+
+
 def test_that_a_height_that_did_not_follow_the_pile_is_left_alone():
     samples, _ = flight(None, corners=OVER_THE_PILE)
     share, placed = estimate_share(samples, LEVER, FRAME, STORAGE, 2 * PERIOD_S)
     assert not share.applied and "not significant" in share.reason and placed is samples
+    assert not share.lift_at(samples["t_s"]).any() and share.as_dict()["lift_t_s"] == []
 
 
 def test_that_a_flight_that_never_sees_a_cell_at_two_ground_heights_says_so():

@@ -185,3 +185,23 @@ def test_that_the_signed_error_is_the_volume_less_the_truth():
     from tools.pose_correction_campaign import signed_error_pct
     assert signed_error_pct({"volume_m3": 95.0, "true_volume_m3": 100.0}) == pytest.approx(-5.0)
     assert math.isnan(signed_error_pct({"volume_m3": 3.0, "true_volume_m3": 0.0}))
+
+
+def test_that_the_trajectory_after_the_report_is_placed_with_the_rangefinder_lift_and_the_pose_correction():
+    """A flight whose logged height followed the pile is raised by the report before the pose is corrected: the
+    trajectory the report stands for is the estimate, raised, then corrected; a lift left out would count a
+    rangefinder error the report took out as still there."""
+    t = np.arange(0.0, 60.0, 0.1)
+    true_w = np.column_stack([t, np.full(len(t), 5.0), np.full(len(t), 12.0)])
+    lift = np.where((t > 20) & (t < 40), 0.6, 0.0)  # the pile below for 20 s, its share taken out
+    est_w = true_w + np.column_stack([np.full(len(t), 0.2), np.zeros(len(t)), -lift])
+    truth = {"pose_error": {"trajectory": {"t_s": t.tolist(), "true_w_m": true_w.tolist(),
+                                           "estimated_w_m": est_w.tolist()}}}
+    correction = {"applied": True, "knot_t_s": [0.0, 60.0], "knot_values": [[-0.2, 0, 0, 0], [-0.2, 0, 0, 0]]}
+    rangefinder = {"applied": True, "lift_t_s": t.tolist(), "lift_at_t_m": lift.tolist()}
+    before, after = trajectory_rms_m(truth, correction, rangefinder)
+    assert before > 0.3 and after == pytest.approx(0.0, abs=1e-9)
+    _, pose_only = trajectory_rms_m(truth, correction)
+    assert pose_only == pytest.approx(np.sqrt(np.mean(lift ** 2)))
+    _, not_applied = trajectory_rms_m(truth, correction, {**rangefinder, "applied": False})
+    assert not_applied == pytest.approx(pose_only)
