@@ -90,6 +90,9 @@ _IMAGE_CAPTIONS: dict[str, str] = {
     "surface_3d": "3D view of the surface (heights exaggerated as stated)",
     "sections": "Cross-sections through the largest pile's peak: the surface, the base and the LiDAR points "
                 "near each line",
+    "trajectory_correction": "Trajectory correction over time: what the report added to the autopilot's logged "
+                             "position and heading (the height includes the rangefinder's share taken out; shaded: "
+                             "not set by the floor and walls, interpolated)",
 }
 PAGE_IMAGES = ("site_map", "surface_3d", "sections")
 """The customer's figures, shown under the pile table; every other image goes to the engineer's details."""

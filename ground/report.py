@@ -844,6 +844,7 @@ REPORT_FILES = (REPORT_FILE, "report.md", "report.html", "cloud.ply", "cloud_top
 """Every file a report directory may hold (what --force removes)."""
 REPORT_FILES = (*REPORT_FILES, SURFACE_FILE)  # the final height grid, a later survey's base (ground.surface_file)
 REPORT_FILES = (*REPORT_FILES, "report.pdf", "site_map.png", "surface_3d.png", "sections.png")  # the customer's page
+REPORT_FILES = (*REPORT_FILES, "trajectory_correction.png")  # the pose's correction over time (ground.correction_plot)
 
 
 def make_report(source: str | Path | Sequence[str | Path], out_dir: str | Path, opts: ReportOptions | None = None, *,
@@ -940,7 +941,15 @@ def write_outputs(survey: Survey, report: dict, out: Path, plots: bool) -> dict[
                                     np.isfinite(survey.heights_fit), lw, out / "coverage.png",
                                     title=f"Coverage (R_a = {ra:.1f} %)"),
         **page_figures(survey, report, out, path),
+        **correction_figures(survey, out),
     }
+
+
+def correction_figures(survey: Survey, out: Path) -> dict[str, Path]:
+    """The trajectory's correction over time (ground.correction_plot), when the report applied one."""
+    from ground.correction_plot import FIGURE_NAME, correction_series, plot_correction
+    series = correction_series(survey.pose, survey.rangefinder)
+    return {} if series is None else {FIGURE_NAME: plot_correction(series, out / f"{FIGURE_NAME}.png")}
 
 
 def page_figures(survey: Survey, report: dict, out: Path, path_w: np.ndarray) -> dict[str, Path]:

@@ -157,3 +157,9 @@ def test_that_the_report_measures_the_rangefinder_s_share_of_the_height_and_take
     assert abs(on["volume_error_pct"]) < 0.5 * abs(off["volume_error_pct"])
     assert any("followed the pile" in w for w in on["warnings"])
     assert not any("came from its downward rangefinder" in w for w in on["warnings"])  # taken out: no alarm
+    # the lift over time it reports puts the logged trajectory where the survey placed it: nearer the truth
+    from tools.pose_correction_campaign import trajectory_rms_m
+    truth = json.loads((out / "truth.json").read_text())
+    _, with_lift = trajectory_rms_m(truth, on["pose_correction"], rf)
+    _, without_lift = trajectory_rms_m(truth, on["pose_correction"])
+    assert with_lift < without_lift
