@@ -1,11 +1,11 @@
 """Kept pose-error flights surveyed again with their autopilot's EKF source record in the header, with and without
 the rangefinder's share of the height taken out (`ground.rangefinder_height`).
 
-The flights of the pose campaigns (`tools.pose_correction_campaign --keep DIR`) were flown before the payload wrote
-the autopilot's EKF sources into the header, so a report of them never runs the step. This puts the record the
-simulated autopilot serves for each flight's profile (`sitl.sensing.pose_drift.EKF_SOURCES`) into the header it
-surveys with (`--record own`), or one profile's record into every flight (`--record flow`: what a header that says
-so wrongly costs), and surveys each flight twice, the record absent and present. Each drifting flight is compared
+What the step is worth on the flights of the pose campaigns (`tools.pose_correction_campaign --keep DIR`): each
+flight is surveyed twice, its header's record taken out, and put back as the simulated autopilot serves it for the
+flight's profile (`sitl.sensing.pose_drift.EKF_SOURCES`; `--record own`), or one profile's record put into every
+flight (`--record flow`: what a header that says so wrongly costs). Flights flown before the payload wrote the
+record get it the same way. Each drifting flight is compared
 with its error-free twin (the `none` flight of the same pile, P_traj and seed, found beside it) as the pose campaign
 does: |Ve - Ve error-free| (signed Ve, pp) and the trajectory's RMS against the truth (the lift included:
 the report's lift over time).
