@@ -237,3 +237,15 @@ def test_that_the_method_paragraph_names_the_surface_fit_the_report_used():
     assert "local plane" not in method_text("cubic-limited") and "Delaunay" in method_text("cubic-limited")
     assert "piecewise-planar" in method_text("linear")
     assert method_text("spline") == METHOD_TEXT and "Delaunay" not in METHOD_TEXT  # unnamed: no method claimed
+
+
+def test_that_the_trajectory_correction_figure_is_an_engineers_figure_with_a_caption_that_says_what_it_shows(
+        tmp_path, images):
+    from ground.correction_plot import FIGURE_NAME
+    p = tmp_path / f"{FIGURE_NAME}.png"
+    mpimg.imsave(p, np.zeros((8, 12)))
+    page = render.write_html(full_report(), {**images, FIGURE_NAME: p}, tmp_path / "report.html").read_text()
+    caption = "Trajectory correction over time: what the report added to the autopilot&#x27;s logged position"
+    assert caption in page
+    assert FIGURE_NAME not in render.PAGE_IMAGES  # among the processing figures, not the customer's page
+    assert page.index(caption) > page.index(render.ENGINEER_NOTE[:40].replace("'", "&#x27;"))
