@@ -51,7 +51,7 @@ from firmware_py.core.flag_tally import describe_flag_counts
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
 from firmware_py.core.geodesy import GeodeticPoint
 from firmware_py.core.header import build_log_header, sensor_spec
-from firmware_py.core.pose_source import EKF_SOURCE_PARAMS
+from firmware_py.core.pose_source import EKF_SOURCE_PARAMS, PoseSource
 from firmware_py.core.pose_source import HEADER_KEY as POSE_SOURCE_KEY
 from firmware_py.core.samplelog import SampleFlags, SampleLogWriter
 from firmware_py.core.sensor import Rangefinder
@@ -612,7 +612,8 @@ class PayloadApp:
                           + ("; device bridge authenticated" if self.bridge_authenticated else ""))
                 self._send_health([self.health.event(
                     mavlink.MAV_SEVERITY_INFO,
-                    f"started, {self.cfg.rate_hz:g} Hz" + (", link signed" if self.signing_active else ""))])
+                    f"started, {self.cfg.rate_hz:g} Hz" + (", link signed" if self.signing_active else "")),
+                    *self._pose_source_events()])
                 self.loop.run(duration_s=self.cfg.duration_s, should_stop=self._should_stop)
             self.request_stop("duration reached")
         except BaseException as exc:
@@ -724,6 +725,27 @@ class PayloadApp:
                 self._send_origin(now)
             self.clock.sleep_until_ns(now + period_ns)
             self.tracker.pump()
+
+    def _pose_source_events(self) -> list[Any]:
+        """Say what the autopilot's pose comes from (its EKF sources, as read at start), and warn the operator, on the
+        console and as a STATUSTEXT the ground station shows, before the survey is flown, when its height comes
+        from the downward rangefinder: over a stockpile that is the height above the pile, and every point of a
+        sweep is placed low by a share of the pile's height. The ground station measures and takes out that share
+        when the flight crosses the pile at different heights below it, but a barometer height needs no repair."""
+        source = PoseSource.from_params(self.tracker.params) if self.tracker.params else None
+        if source is None or not source.known:
+            return []
+        self._say(f"pose from the autopilot: {source.describe()}")
+        if not source.height_from_rangefinder:
+            return []
+        via = (f"EK3_RNG_USE_HGT = {source.rangefinder_height_pct:g}" if source.rangefinder_height_pct is not None
+               else "EK3_SRC1_POSZ = 2")
+        self._warn(f"the autopilot takes its height from the downward rangefinder ({via}): over a stockpile that is "
+                   "the height above the pile, so the logged height follows the pile and places every point low by "
+                   "a share of the pile's height. The ground station measures and takes out that share when the "
+                   "flight crosses the pile, but for a survey a barometer height is surer (EK3_SRC1_POSZ = 1, "
+                   "EK3_RNG_USE_HGT = -1)")
+        return [self.health.event(mavlink.MAV_SEVERITY_WARNING, "EKF height from rangefinder")]
 
     def _wait_for_params(self) -> None:
         """Pump the link until the autopilot has answered the EKF source reads (or they timed out), for at most

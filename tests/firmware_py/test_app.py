@@ -253,6 +253,7 @@ def test_that_the_payload_logs_posed_samples_and_reports_health_to_the_autopilot
     assert "pilescan: pose acquired" in texts
     assert texts[-1] == "pilescan: stopping: test over"
     assert all(len(t) <= 50 for t in texts)
+    assert "pilescan: EKF height from rangefinder" not in texts  # a barometer height: nothing to warn of
     assert autopilot.server.stats["rx_by_type"]["HEARTBEAT"] >= 1
 
     assert emu_servo.pulses > 50 and not emu_servo.enabled  # swept, then disabled at shutdown
@@ -302,6 +303,31 @@ def test_that_stop_on_disarm_stops_once_the_autopilot_disarms_after_arming(tmp_p
         ap.close()
     assert res.stop_reason == "autopilot disarmed"  # not "duration reached": the disarm stopped it
     assert read_samplelog(cfg.out_path).intact
+
+
+def test_that_the_operator_is_warned_before_the_survey_when_the_autopilot_takes_its_height_from_the_rangefinder(
+        tmp_path, devices):
+    """Over a stockpile a rangefinder height is the height above the pile: the payload says so on its console and to
+    the ground station (STATUSTEXT) at start, from the EKF sources it read, while the parameter can still be set."""
+    from sitl.sensing.pose_drift import PoseErrorProfile, ekf_source_params
+    ap = Autopilot()
+    ap.vehicle.params.update(ekf_source_params(PoseErrorProfile.FLOW))  # optical flow; rangefinder below 70 %
+    err = io.StringIO()
+    try:
+        res = PayloadApp(payload_config(tmp_path, ap.url, duration_s=1.0, quiet=False), err=err).run()
+        assert ap.wait_for(lambda: any("stopping" in t for t in ap.spy.texts()))
+    finally:
+        ap.close()
+    assert res.stop_reason == "duration reached"
+    out = err.getvalue()
+    assert "pose from the autopilot: position optical flow velocity, integrated; height barometer, the downward " \
+           "rangefinder below 70 % of its range" in out
+    assert "warning: the autopilot takes its height from the downward rangefinder (EK3_RNG_USE_HGT = 70)" in out
+    assert "EK3_RNG_USE_HGT = -1" in out  # what to set instead
+    texts = ap.spy.texts()
+    assert "pilescan: EKF height from rangefinder" in texts and all(len(t) <= 50 for t in texts)
+    started = next(i for i, t in enumerate(texts) if t.startswith("pilescan: started"))
+    assert texts[started + 1] == "pilescan: EKF height from rangefinder"  # said with the start, before the survey
 
 
 def test_that_a_disarmed_autopilot_that_never_armed_does_not_stop_the_payload(tmp_path, devices, autopilot):
