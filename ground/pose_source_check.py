@@ -44,9 +44,11 @@ def _height_corrected(pose: PoseCorrection | None) -> bool:
 
 
 def pose_source_warnings(header: Mapping[str, Any], pose: PoseCorrection | None, correction_on: bool,
-                         rangefinder_applied: bool = False) -> list[str]:
-    """The warnings the autopilot's pose sources call for, given what the pose correction did (None: not run) and
-    whether the rangefinder's share of the height was taken out (`ground.rangefinder_height`)."""
+                         rangefinder_applied: bool = False, rangefinder_reason: str | None = None) -> list[str]:
+    """The warnings the autopilot's pose sources call for, given what the pose correction did (None: not run),
+    whether the rangefinder's share of the height was taken out (`ground.rangefinder_height`), and why not when the
+    step ran and did not (rangefinder_reason: the surveyor is told what the report could not do, and what did the
+    work instead)."""
     source = PoseSource.from_header(header)
     if source is None or not source.known:
         return []
@@ -61,11 +63,17 @@ def pose_source_warnings(header: Mapping[str, Any], pose: PoseCorrection | None,
             reason = pose.reason if pose is not None and not pose.applied and pose.reason else None
             reason = reason.removeprefix("not applied: ") if reason else None
             why = "the building did not correct the height" + (f" ({reason})" if reason else "")
+            if rangefinder_reason:
+                why += f", nor could the crossings measure the rangefinder's share to take out: {rangefinder_reason}"
         out.append(f"the autopilot's height came from its downward rangefinder {how}: over a stockpile that is the "
                    "height above the pile, not the floor, so the logged height is low by a share of the pile under "
                    f"the vehicle and the pile is placed that much low; {why}, and the 90 % interval does not "
                    "include it. Read the volume as possibly low; fly with the barometer as the height source "
                    "(EK3_SRC1_POSZ = 1, EK3_RNG_USE_HGT = -1) or where the sweeps see the floor")
+    elif source.height_from_rangefinder and not rangefinder_applied and rangefinder_reason:
+        out.append("the autopilot's EKF took its height from the downward rangefinder, but the crossings did not "
+                   f"measure a share of it to take out: {rangefinder_reason}; the height was corrected from the "
+                   "floor and walls instead")
     if source.horizontal_drifts and not correction_on:
         out.append(f"the autopilot's position was {source.horizontal_words()}, "
                    "which drifts with the distance flown, and the pose correction is off (--no-pose-correction): "

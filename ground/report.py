@@ -694,7 +694,8 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
     if rf is not None and rf.applied:
         warnings.append(rf.describe())
     warnings += pose_source_warnings(log.header or {}, survey.pose, opts.pose_correction,
-                                     rangefinder_applied=rf is not None and rf.applied)
+                                     rangefinder_applied=rf is not None and rf.applied,
+                                     rangefinder_reason=rf.reason if rf is not None and not rf.applied else None)
     warnings += site_mismatches(log.header or {}, opts.site)
     return warnings
 

@@ -40,3 +40,16 @@ def test_that_a_log_without_the_record_says_not_stated_and_warns_of_nothing():
     assert pose_source_line({}) == NOT_STATED and autopilot_params({}) is None
     assert pose_source_warnings({}, None, correction_on=False) == []
     assert pose_source_warnings({HEADER_KEY: {"EK3_SRC1_POSZ": "two"}}, None, correction_on=False) == []
+
+
+def test_that_a_share_the_crossings_could_not_measure_is_said_with_what_corrected_the_height_instead():
+    why = "not significant (0.21 ± 0.07)"
+    [note] = pose_source_warnings({HEADER_KEY: FLOW}, _applied(0.01), correction_on=True, rangefinder_reason=why)
+    assert note.startswith("the autopilot's EKF took its height from the downward rangefinder")
+    assert f"to take out: {why}; the height was corrected from the floor and walls instead" in note
+    [warning] = pose_source_warnings({HEADER_KEY: FLOW}, not_applied("too small to matter"), correction_on=True,
+                                     rangefinder_reason=why)
+    # neither repair: one warning that names both reasons
+    assert "possibly low" in warning and f"the rangefinder's share to take out: {why}, and the 90 %" in warning
+    assert pose_source_warnings({HEADER_KEY: FLOW}, _applied(0.01), correction_on=True, rangefinder_applied=True) == []
+    assert pose_source_warnings({HEADER_KEY: GNSS}, _applied(0.01), correction_on=True, rangefinder_reason=why) == []
