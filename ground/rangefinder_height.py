@@ -299,16 +299,16 @@ def estimate_share(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     placed, lift_p = p0, np.zeros(len(p0))
     for _ in range(MAX_ROUNDS):
         below_s = ground_below_m(v, t_all, placed, storage)
-        trials = [(*crossings.fit(np.interp(t0[off_nadir], t_all, _lowpass(below_s, t_all, tau_s))), tau_s)
-                  for tau_s in LAGS_S]
+        lagged = {tau_s: _lowpass(below_s, t_all, tau_s) for tau_s in LAGS_S}
+        trials = [(*crossings.fit(np.interp(t0[off_nadir], t_all, lagged[tau_s])), tau_s) for tau_s in LAGS_S]
         w, sigma, _, tau = min(trials, key=lambda r: r[2])  # the EKF's lag: the one the crossings fit best
-        new_lift = w * np.interp(t0, t_all, _lowpass(below_s, t_all, tau))
+        new_lift = w * np.interp(t0, t_all, lagged[tau])
         moved = float(np.max(np.abs(new_lift - lift_p)))
         lift_p = new_lift
         placed = p0 + np.column_stack([np.zeros(len(p0)), np.zeros(len(p0)), lift_p])
         if moved < SETTLED_M:  # the ground below read from points re-placed with the lift it gives: a fixed point
             break
-    below_pairs = np.interp(t0[off_nadir], t_all, _lowpass(below_s, t_all, tau))
+    below_pairs = np.interp(t0[off_nadir], t_all, lagged[tau])
     dz, db = crossings.differences(below_pairs)
     sigma = max(sigma, crossings.block_sigma(below_pairs))  # what the flight's stretches share, beside the cells'
     spread, noise = float(np.sqrt(np.mean(db * db))), float(1.4826 * np.median(np.abs(dz + w * db)))
