@@ -738,9 +738,8 @@ class PayloadApp:
         self._say(f"pose from the autopilot: {source.describe()}")
         if not source.height_from_rangefinder:
             return []
-        via = (f"EK3_RNG_USE_HGT = {source.rangefinder_height_pct:g}" if source.rangefinder_height_pct is not None
-               else "EK3_SRC1_POSZ = 2")
-        self._warn(f"the autopilot takes its height from the downward rangefinder ({via}): over a stockpile that is "
+        self._warn(f"the autopilot takes its height from the downward rangefinder "
+                   f"({source.rangefinder_height_setting}): over a stockpile that is "
                    "the height above the pile, so the logged height follows the pile and places every point low by "
                    "a share of the pile's height. The ground station measures and takes out that share when the "
                    "flight crosses the pile, but for a survey a barometer height is surer (EK3_SRC1_POSZ = 1, "

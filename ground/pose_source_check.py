@@ -54,9 +54,8 @@ def pose_source_warnings(header: Mapping[str, Any], pose: PoseCorrection | None,
         return []
     out = []
     if source.height_from_rangefinder and not _height_corrected(pose) and not rangefinder_applied:
-        how = ("as its height source (EK3_SRC1_POSZ = 2)" if source.height is HeightSource.RANGEFINDER else
-               f"below {source.rangefinder_height_pct:g} % of its range (EK3_RNG_USE_HGT = "
-               f"{source.rangefinder_height_pct:g})")
+        how = ("as its height source" if source.height is HeightSource.RANGEFINDER else
+               f"below {source.rangefinder_height_pct:g} % of its range") + f" ({source.rangefinder_height_setting})"
         if not correction_on:
             why = "the pose correction is off (--no-pose-correction)"
         else:

@@ -133,6 +133,16 @@ class PoseSource:
         """The height is, at least at times, the downward rangefinder's: the height above the pile, over a pile."""
         return self.height is HeightSource.RANGEFINDER or self.rangefinder_height_pct is not None
 
+    @property
+    def rangefinder_height_setting(self) -> str | None:
+        """The parameter that makes the rangefinder the height source, as "NAME = value" (None: it is not): the
+        source itself when EK3_SRC1_POSZ says so, else the switch below EK3_RNG_USE_HGT % of its range."""
+        if self.height is HeightSource.RANGEFINDER:
+            return f"EK3_SRC1_POSZ = {HeightSource.RANGEFINDER.value}"
+        if self.rangefinder_height_pct is not None:
+            return f"EK3_RNG_USE_HGT = {self.rangefinder_height_pct:g}"
+        return None
+
     def horizontal_words(self) -> str:
         """What fed the horizontal position, in words."""
         if self.position not in (None, HorizontalSource.NONE):

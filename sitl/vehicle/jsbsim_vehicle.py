@@ -8,7 +8,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from sitl.sensing.pose_drift import EKF_SOURCES, PoseErrorProfile, ekf_source_params
+from firmware_py.core.pose_source import EKF_SOURCE_PARAMS
+from sitl.sensing.pose_drift import PoseErrorProfile, ekf_source_params
 from sitl.vehicle.api import CommandRejected, FlightMode, NavItem, NavKind, PlantState, VehicleState
 from sitl.vehicle.autopilot import Autopilot, Gains, Target, wrap_pi
 from sitl.vehicle.jsbsim_plant import GEAR_HEIGHT_M, JsbsimPlant, PlantConfig
@@ -258,7 +259,7 @@ class JsbsimVehicle:
         self._item = 0
 
     def set_param(self, name: str, value: float) -> None:
-        if name in EKF_SOURCES[PoseErrorProfile.NONE]:
+        if name in EKF_SOURCE_PARAMS:
             raise ValueError(f"{name} is read-only in the SITL: the pose-error profile (--pose-error) sets it")
         if name not in PARAM_LIMITS:
             raise KeyError(name)

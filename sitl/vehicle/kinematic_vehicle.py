@@ -35,7 +35,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from sitl.sensing.pose_drift import EKF_SOURCES, PoseErrorProfile, ekf_source_params
+from firmware_py.core.pose_source import EKF_SOURCE_PARAMS
+from sitl.sensing.pose_drift import PoseErrorProfile, ekf_source_params
 from sitl.vehicle.api import CommandRejected, FlightMode, NavItem, NavKind, VehicleState
 from sitl.vehicle.autopilot import wrap_pi
 
@@ -117,7 +118,7 @@ class KinematicVehicle:
 
     def set_param(self, name: str, value: float) -> None:
         """Set a parameter; KeyError for unknown names, ValueError for NaN or out-of-range values."""
-        if name in EKF_SOURCES[PoseErrorProfile.NONE]:
+        if name in EKF_SOURCE_PARAMS:
             raise ValueError(f"{name} is read-only in the SITL: the vehicle's pose is exact")
         if name not in PARAM_LIMITS:
             raise KeyError(f"unknown parameter {name!r}")

@@ -49,3 +49,11 @@ def test_that_a_huge_integer_anywhere_is_no_number_rather_than_an_overflow():
 def test_that_another_ekf_says_its_sources_are_not_read():
     s = PoseSource.from_params({"AHRS_EKF_TYPE": 2.0})
     assert not s.known and "AHRS_EKF_TYPE 2" in s.describe()
+
+
+def test_that_the_setting_that_makes_the_rangefinder_the_height_source_is_named_the_source_first():
+    assert PoseSource.from_params(GNSS).rangefinder_height_setting is None
+    switched = PoseSource.from_params({**GNSS, "EK3_RNG_USE_HGT": 70.0})
+    assert switched.rangefinder_height_setting == "EK3_RNG_USE_HGT = 70"
+    both = PoseSource.from_params({**GNSS, "EK3_SRC1_POSZ": 2.0, "EK3_RNG_USE_HGT": 70.0})
+    assert both.rangefinder_height_setting == "EK3_SRC1_POSZ = 2"  # the source itself, whatever the switch says
