@@ -31,10 +31,9 @@ from firmware_py.core.samplelog import read_samplelog
 from ground.base import FLOOR_BASE
 from ground.report import ReportOptions, header_geometry, survey_from_samples
 from sitl.sensing.pose_drift import ekf_source_params
-from tools.pose_correction_campaign import trajectory_rms_m
+from tools.pose_correction_campaign import TRAJ_TARGET_M, VE_TARGET_PP, trajectory_rms_m
 
 FLIGHT = re.compile(r"^(none|flow|vio)-(.+)-(\d+)-(\d+)(?:-(appendix-a|datasheet))?$")
-TARGET_PP, TRAJ_TARGET_M = 0.3, 0.10
 
 
 def _survey(run: Path, record: str | None) -> tuple[float, float]:
@@ -85,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     with ProcessPoolExecutor(max(1, args.jobs)) as ex:
         done = {r: row for r, *row in ex.map(_one, [(str(r), p, forced) for _, r, p in flights])}
         ref = {r: ve for r, ve, _ in ex.map(_twin, [str(r) for r in needed])}
-    print(f"| folder | flights | mean \\|dVe\\| without / with the record (pp) | within {TARGET_PP} pp | "
+    print(f"| folder | flights | mean \\|dVe\\| without / with the record (pp) | within {VE_TARGET_PP} pp | "
           f"trajectory <= {TRAJ_TARGET_M * 100:.0f} cm |")
     print("|---|---|---|---|---|")
     for folder in dict.fromkeys(k[0] for k, _, _ in flights):
@@ -95,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
         off = [abs(d[0] - e) for d, e in rows]
         on = [abs(d[2] - e) for d, e in rows]
         print(f"| {folder} | {len(rows)} | {np.mean(off):.2f} / {np.mean(on):.2f} | "
-              f"{sum(v <= TARGET_PP for v in off)} / {sum(v <= TARGET_PP for v in on)} | "
+              f"{sum(v <= VE_TARGET_PP for v in off)} / {sum(v <= VE_TARGET_PP for v in on)} | "
               f"{sum(d[1] <= TRAJ_TARGET_M for d, _ in rows)} / {sum(d[3] <= TRAJ_TARGET_M for d, _ in rows)} |")
     return 0
 
