@@ -18,6 +18,7 @@ from ground.pose_correction import (
     PLANE_NAMES,
     Component,
     PoseCorrectionOptions,
+    ambiguous_walls,
     apply_pose_correction,
     estimate_pose_correction,
     is_drift,
@@ -827,3 +828,25 @@ def test_that_a_height_refused_before_the_registration_is_solved_again_after_it(
     assert any("was refused (a test's refusal); the height solved again" in note for note in corr.notes), corr.notes
     assert not any(note.startswith("the height was not corrected") for note in corr.notes)
     assert corr.size()["vertical_rms_m"] > 0.05  # the barometer's walk, corrected after all
+
+
+def test_that_a_stretch_up_one_wall_in_a_diagonal_sweep_is_ambiguous_and_votes_for_no_wall():
+    # A sweep plane at 30 deg to the walls (the yaw of a turn near the corner x = 0, y = 0) cuts both walls in a
+    # vertical line, so a stretch up the wall x = 0 runs along y = 0 too. With 4 m of drift in x the stretch sits
+    # 4 m behind x = 0 and 3 m inside y = 0: the nearer plane was y = 0, which moved a `flow` flight's last knot
+    # 0.85 m along its track. Within reach of both, the stretch is left out of the vote.
+    from ground.plane_stretches import Beams
+    z = np.linspace(1.0, 11.0, 300)
+    p = np.column_stack([np.full(300, -4.0), 3.0 + 0.01 * (z - 1.0), z])  # the wall x = 0, logged 4 m off
+    vehicle = np.tile([11.9, 8.4, 13.0], (300, 1))
+    b = Beams(np.arange(300) / RATE_HZ, vehicle, p - vehicle)
+    n, d = planes(STORAGE)
+    along = along_planes(b, np.full(300, RESOLUTION), 0.0, np.ones(300, dtype=np.int64), n, 1.0 / RATE_HZ)
+    x0, y0 = PLANE_NAMES.index("x0"), PLANE_NAMES.index("y0")
+    inner = slice(20, 280)
+    assert along[inner, x0].all() and along[inner, y0].all()  # the premise: a vertical line runs along both
+    dist = np.where(along, p @ n.T - d, np.inf)
+    assert ambiguous_walls(dist, 5.0)[inner].all()
+    assert not ambiguous_walls(dist, 3.5)[inner].any()  # only y = 0 within reach: that plane, not a guess
+    floor_only = np.where(np.arange(5) == PLANE_NAMES.index("floor"), 0.1, np.inf)[None, :]
+    assert not ambiguous_walls(np.vstack([floor_only, floor_only]), 5.0).any()
