@@ -368,8 +368,8 @@ def ambiguous_walls(dist: np.ndarray, reach_m: float) -> np.ndarray:
     planes it runs along, inf elsewhere). A sweep plane cuts every wall in a vertical line, so when it crosses two
     of them (a diagonal heading: the yaw of a turn) a stretch up one wall runs along both, and with metres of drift
     the nearer of the two is a guess: measured on a `flow` flight's last corner (4 m of drift in x), the wall x = 0
-    taken for y = 0 moved the last knot 0.85 m along the track. Such a point is left to the fit, which places it
-    after the unambiguous intervals around it have set the drift."""
+    taken for y = 0 moved the last knot 0.85 m along the track. Such a point votes in `_vote`'s second round, for the
+    wall it is nearest once the unambiguous intervals around it have set the drift."""
     near = np.isfinite(dist[:, WALLS]) & (np.abs(dist[:, WALLS]) <= reach_m)
     return near.sum(axis=1) > 1
 
@@ -382,11 +382,50 @@ def _vote(b: Beams, k: np.ndarray, n: np.ndarray, d: np.ndarray, n_knots: int, r
     sweep runs along it (a plane's own points pile up at one offset); the plane is the outermost peak
     beyond which lie no more points of any kind than stray returns: nothing is below the floor or behind
     a wall but noise, while a flat pile top, which may hold more points than the floor beside it, has the
-    pile's flanks below it. Averaged to the knots, interpolated where no plane was found; heading 0."""
+    pile's flanks below it. Averaged to the knots, interpolated where no plane was found; heading 0.
+
+    A point whose stretch runs along two walls within reach (`ambiguous_walls`) votes in a second round only,
+    for the wall it is nearest once the first round's correction (the unambiguous points', interpolated over
+    the intervals) has moved it: the drift of the intervals around it, not its logged position, says which."""
     p = b.vehicle_w + b.to_point_w
     dist_all = p @ n.T - d
     dist = dist_all if b.parallel is None else np.where(b.parallel, dist_all, math.inf)
-    dist = np.where(ambiguous_walls(dist, reach_m)[:, None], math.inf, dist)
+    amb = ambiguous_walls(dist, reach_m)
+    est, found = _tally(np.where(amb[:, None], math.inf, dist), dist_all, k, n_knots, reach_m, bin_m)
+    filled = _fill_intervals(est)
+    if amb.any() and np.isfinite(filled).any():
+        moved = dist[amb] + np.nan_to_num(filled)[k[amb]] @ n.T  # the correction c moves plane j's distance by n_j . c
+        pick = np.argmin(np.abs(moved), axis=1)
+        keep = np.full(dist[amb].shape, math.inf)
+        rows = np.arange(int(amb.sum()))
+        keep[rows, pick] = dist[amb][rows, pick]
+        dist = dist.copy()
+        dist[amb] = keep
+        est, found = _tally(dist, dist_all, k, n_knots, reach_m, bin_m)
+    mids = np.arange(n_knots - 1) + 0.5
+    out = np.zeros((n_knots, 4))
+    for c in range(3):
+        ok = np.isfinite(est[:, c])
+        if ok.any():
+            out[:, c] = np.interp(np.arange(n_knots), mids[ok], est[ok, c])
+    return out, found
+
+
+def _fill_intervals(est: np.ndarray) -> np.ndarray:
+    """est (K - 1, 3) with each component's NaN intervals interpolated from the others (NaN where none has it)."""
+    out = est.copy()
+    at = np.arange(len(est))
+    for c in range(est.shape[1]):
+        ok = np.isfinite(est[:, c])
+        if ok.any():
+            out[:, c] = np.interp(at, at[ok], est[ok, c])
+    return out
+
+
+def _tally(dist: np.ndarray, dist_all: np.ndarray, k: np.ndarray, n_knots: int, reach_m: float,
+           bin_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """`_vote`'s count: per knot interval, the correction (K - 1, 3; NaN where no plane was found) and which planes
+    were found, from the points' distances to the planes they may vote for (dist, inf elsewhere)."""
     nearest = np.argmin(np.abs(dist), axis=1)
     bins = np.arange(-reach_m, reach_m + bin_m, bin_m)
     comp_of_plane = (2, 0, 0, 1, 1)
@@ -413,13 +452,7 @@ def _vote(b: Beams, k: np.ndarray, n: np.ndarray, d: np.ndarray, n_knots: int, r
                     found[i, j] = True
                     break
         est[i] = np.where(cnt > 0, sums / np.maximum(cnt, 1), np.nan)
-    mids = np.arange(n_knots - 1) + 0.5
-    out = np.zeros((n_knots, 4))
-    for c in range(3):
-        ok = np.isfinite(est[:, c])
-        if ok.any():
-            out[:, c] = np.interp(np.arange(n_knots), mids[ok], est[ok, c])
-    return out, found
+    return est, found
 
 
 def _jacobian(b: Beams, vr: np.ndarray, k: np.ndarray, f: np.ndarray, nj: np.ndarray, s: np.ndarray,

@@ -830,11 +830,12 @@ def test_that_a_height_refused_before_the_registration_is_solved_again_after_it(
     assert corr.size()["vertical_rms_m"] > 0.05  # the barometer's walk, corrected after all
 
 
-def test_that_a_stretch_up_one_wall_in_a_diagonal_sweep_is_ambiguous_and_votes_for_no_wall():
+def test_that_a_stretch_up_one_wall_in_a_diagonal_sweep_is_ambiguous_between_the_two_walls_within_reach():
     # A sweep plane at 30 deg to the walls (the yaw of a turn near the corner x = 0, y = 0) cuts both walls in a
     # vertical line, so a stretch up the wall x = 0 runs along y = 0 too. With 4 m of drift in x the stretch sits
     # 4 m behind x = 0 and 3 m inside y = 0: the nearer plane was y = 0, which moved a `flow` flight's last knot
-    # 0.85 m along its track. Within reach of both, the stretch is left out of the vote.
+    # 0.85 m along its track. Within reach of both, the stretch is ambiguous: the vote's first round leaves it
+    # out, and its second gives it to the wall it is nearest once the drift around it is known.
     from ground.plane_stretches import Beams
     z = np.linspace(1.0, 11.0, 300)
     p = np.column_stack([np.full(300, -4.0), 3.0 + 0.01 * (z - 1.0), z])  # the wall x = 0, logged 4 m off
