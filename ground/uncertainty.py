@@ -69,7 +69,7 @@ class ErrorTerms:
 
 
 # --- calibrated pose factor (tools/calibrate_pose_interval.py --write-model) ---
-POSE_FACTOR = 12.23697272648913
+POSE_FACTOR = 8.455090892850665
 POSE_FACTOR_SOURCE = 'fitted on 38 drifting flights (tools/calibrate_pose_interval.py, 2026-11-29)'
 # --- end of calibrated pose factor ---
 
