@@ -851,3 +851,27 @@ def test_that_a_stretch_up_one_wall_in_a_diagonal_sweep_is_ambiguous_between_the
     assert not ambiguous_walls(dist, 3.5)[inner].any()  # only y = 0 within reach: that plane, not a guess
     floor_only = np.where(np.arange(5) == PLANE_NAMES.index("floor"), 0.1, np.inf)[None, :]
     assert not ambiguous_walls(np.vstack([floor_only, floor_only]), 5.0).any()
+
+
+def test_that_the_vote_gives_an_ambiguous_stretch_to_the_wall_the_drift_around_it_points_to():
+    # Four knot intervals; the logged position is 4 m off in x throughout. In the first three a stretch up the wall
+    # x = 0 at y = 20 runs along that wall only; in the last the turn's diagonal sweep puts it at y = 3, along
+    # x = 0 and y = 0, 4 m from the first and 3 m from the second as logged. The nearer as logged (y = 0) would move
+    # the last knot 3 m along y; the drift the first three intervals show moves it onto x = 0.
+    from ground.plane_stretches import Beams
+    from ground.pose_correction import _vote
+    z = np.linspace(1.0, 11.0, 200)
+    ys = (20.0, 20.0, 20.0, 3.0)
+    p = np.vstack([np.column_stack([np.full(200, -4.0), np.full(200, y), z]) for y in ys])
+    k = np.repeat(np.arange(4), 200)
+    x0, y0 = PLANE_NAMES.index("x0"), PLANE_NAMES.index("y0")
+    parallel = np.zeros((len(p), 5), dtype=bool)
+    parallel[:, x0] = True
+    parallel[k == 3, y0] = True
+    vehicle = np.tile([8.0, 6.0, 12.0], (len(p), 1))
+    b = Beams(k.astype(float), vehicle, p - vehicle, parallel)
+    n, d = planes(STORAGE)
+    start, found = _vote(b, k, n, d, 5, 5.0, 0.05)
+    assert found[:, x0].all() and not found[:, y0].any()
+    assert start[:, 0] == pytest.approx(4.0, abs=0.05)
+    assert start[:, 1] == pytest.approx(0.0, abs=1e-9)
