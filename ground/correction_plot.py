@@ -49,11 +49,10 @@ class CorrectionSeries:
 
 
 def _free_stretches(pose: PoseCorrection, component: Component) -> tuple[tuple[float, float], ...]:
-    """Knot intervals whose both ends the structure did not set (as `PoseCorrection.unconstrained_s` counts them)."""
-    k, c = pose.knot_t_s, pose.constrained[:, component.value]
-    if len(k) < 2 or not np.abs(pose.values[:, component.value]).max(initial=0.0) > 1e-9:
-        return ()
-    return tuple((float(k[i]), float(k[i + 1])) for i in np.flatnonzero(~c[:-1] & ~c[1:]))
+    """The (start, end) times of the knot intervals the structure did not set (`PoseCorrection.free_intervals`)."""
+    k = pose.knot_t_s
+    free = pose.free_intervals(component) if len(k) >= 2 else None
+    return () if free is None else tuple((float(k[i]), float(k[i + 1])) for i in np.flatnonzero(free))
 
 
 def correction_series(pose: PoseCorrection | None, rangefinder: RangefinderShare | None) -> CorrectionSeries | None:

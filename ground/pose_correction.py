@@ -213,19 +213,21 @@ class PoseCorrection:
                 "heading_rms_deg": math.degrees(_rms(v[:, 3])),
                 "heading_max_deg": math.degrees(float(np.abs(v[:, 3]).max()))}
 
+    def free_intervals(self, component: Component) -> np.ndarray | None:
+        """(K - 1,) the knot intervals whose both ends the data did not constrain (the prior interpolated the
+        component there); None when the component was held at zero (not estimated)."""
+        if not np.abs(self.values[:, component.value]).max(initial=0.0) > 1e-9:
+            return None
+        free = ~self.constrained[:, component.value]
+        return free[:-1] & free[1:]
+
     def unconstrained_s(self) -> dict[str, float]:
-        """Per component, the time (s) over which the data did not constrain it (knot intervals whose
-        both ends are unconstrained)."""
+        """Per component, the time (s) over which the data did not constrain it (`free_intervals`)."""
         if len(self.knot_t_s) < 2:
             return {c.name.lower(): 0.0 for c in Component}
         dt = np.diff(self.knot_t_s)
-        out = {}
-        for c in Component:
-            if not np.abs(self.values[:, c.value]).max(initial=0.0) > 1e-9:
-                continue  # held at zero (not estimated)
-            free = ~self.constrained[:, c.value]
-            out[c.name.lower()] = float(dt[free[:-1] & free[1:]].sum())
-        return out
+        free = {c: self.free_intervals(c) for c in Component}
+        return {c.name.lower(): float(dt[f].sum()) for c, f in free.items() if f is not None}
 
     def as_dict(self) -> dict:
         return {"applied": self.applied, "reason": self.reason, "knot_spacing_s": _spacing(self.knot_t_s),
@@ -392,7 +394,7 @@ def _vote(b: Beams, k: np.ndarray, n: np.ndarray, d: np.ndarray, n_knots: int, r
     dist = dist_all if b.parallel is None else np.where(b.parallel, dist_all, math.inf)
     amb = ambiguous_walls(dist, reach_m)
     est, found = _tally(np.where(amb[:, None], math.inf, dist), dist_all, k, n_knots, reach_m, bin_m)
-    filled = _fill_intervals(est)
+    filled = _across_intervals(est, np.arange(n_knots - 1) + 0.5)  # each interval's, or its neighbours'
     if amb.any() and np.isfinite(filled).any():
         moved = dist[amb] + np.nan_to_num(filled)[k[amb]] @ n.T  # the correction c moves plane j's distance by n_j . c
         pick = np.argmin(np.abs(moved), axis=1)
@@ -402,23 +404,20 @@ def _vote(b: Beams, k: np.ndarray, n: np.ndarray, d: np.ndarray, n_knots: int, r
         dist = dist.copy()
         dist[amb] = keep
         est, found = _tally(dist, dist_all, k, n_knots, reach_m, bin_m)
-    mids = np.arange(n_knots - 1) + 0.5
     out = np.zeros((n_knots, 4))
-    for c in range(3):
-        ok = np.isfinite(est[:, c])
-        if ok.any():
-            out[:, c] = np.interp(np.arange(n_knots), mids[ok], est[ok, c])
+    out[:, :3] = np.nan_to_num(_across_intervals(est, np.arange(n_knots, dtype=float)))
     return out, found
 
 
-def _fill_intervals(est: np.ndarray) -> np.ndarray:
-    """est (K - 1, 3) with each component's NaN intervals interpolated from the others (NaN where none has it)."""
-    out = est.copy()
-    at = np.arange(len(est))
+def _across_intervals(est: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """est (K - 1, 3), one row per knot interval (placed at its middle, i + 0.5), interpolated per component at
+    positions `at` (knot indices) from the intervals that have it; NaN where no interval has it."""
+    mids = np.arange(len(est)) + 0.5
+    out = np.full((len(at), est.shape[1]), np.nan)
     for c in range(est.shape[1]):
         ok = np.isfinite(est[:, c])
         if ok.any():
-            out[:, c] = np.interp(at, at[ok], est[ok, c])
+            out[:, c] = np.interp(at, mids[ok], est[ok, c])
     return out
 
 
