@@ -11,6 +11,11 @@ difference is the path's, and no correction of the pose can remove it. This tool
 
     python -m tools.pose_oracle --runs runs/pose [runs/pose-own ...] [--jobs 2] [--write docs/pose_error.md]
 
+With `--height`, the second question: how much of the correction's residual is the height's? Each flight's samples
+get the true *height* only (x, y and the heading keep their drift) and are reported *with* the correction, as a
+user reports them; the trajectory's error after it and the volume are set beside the same flight corrected from its
+logged height (sibling `NAME--true-height`, kept and reused like the other).
+
 Each run folder of the campaign (`PROFILE-PILE-PTRAJ-SEED[-NOISE]`, with its `--pose-correction` report beside it)
 gets a sibling `NAME--true-pose` (the re-posed run, its report in `NAME--true-pose/report`), kept and reused on
 the next call (delete it when the flight is flown again). Flights without a pose error, or that crashed, are
@@ -34,10 +39,21 @@ from firmware_py.core.frames import StorageFrame
 from firmware_py.core.samplelog import SampleLogWriter, read_samplelog
 from ground.pose_correction import PoseCorrection, apply_pose_correction
 from tools.doc_sections import write_section
-from tools.pose_correction_campaign import VE_TARGET_PP, kept_flight_crash, signed_error_pct
+from tools.pose_correction_campaign import (
+    TRAJ_TARGET_M,
+    VE_TARGET_PP,
+    kept_flight_crash,
+    signed_error_pct,
+    trajectory_rms_m,
+)
 
 SECTION = "pose-oracle-table"
 SUFFIX = "--true-pose"
+HEIGHT_SECTION = "pose-height-oracle-table"
+HEIGHT_SUFFIX = "--true-height"
+ALL = (0, 1, 2, 3)
+"""The components re-posed by default: x, y, z (W) and the heading (`truth_correction`'s columns)."""
+HEIGHT = (2,)
 
 
 def truth_correction(truth: dict) -> PoseCorrection | None:
@@ -55,14 +71,18 @@ def truth_correction(truth: dict) -> PoseCorrection | None:
     return PoseCorrection(knot_t_s=t, values=values, constrained=np.ones_like(values, dtype=bool), applied=True)
 
 
-def repose(run: Path, out: Path) -> bool:
-    """Write `out`: `run` with its samples' pose replaced by the truth. False when there is nothing to replace."""
+def repose(run: Path, out: Path, components: tuple[int, ...] = ALL) -> bool:
+    """Write `out`: `run` with its samples' pose replaced by the truth, in these components (ALL; HEIGHT: the
+    height only, the rest as logged). False when there is nothing to replace."""
     truth = json.loads((run / "truth.json").read_text())
     if kept_flight_crash(truth) is not None:
         return False
     corr = truth_correction(truth)
     if corr is None:
         return False
+    if tuple(components) != ALL:
+        values = np.where(np.isin(np.arange(4), components)[None, :], corr.values, 0.0)
+        corr = PoseCorrection(corr.knot_t_s, values, corr.constrained, True)
     log = read_samplelog(run / "samples.pslog")
     if not isinstance(log.header, dict) or not isinstance(log.header.get("storage_frame"), dict):
         raise ValueError(f"{run / 'samples.pslog'}: no storage frame in the log header: not a flight to re-pose")
@@ -104,6 +124,46 @@ def one(run: str) -> dict | None:
         return signed_error_pct(json.loads(p.read_text()))
     return {"run": run_p.name, "folder": run_p.parent.name, "profile": profile,
             "ve_ref": signed(ref), "ve_true_pose": signed(rep / "report.json"), "ve_corrected": signed(corrected)}
+
+
+def with_true_height(truth: dict) -> dict:
+    """truth.json of a flight whose samples carry the true height: its estimated trajectory's height is the true
+    one (so the trajectory's error is measured against what the samples carry)."""
+    tr = dict(truth["pose_error"]["trajectory"])
+    est = np.array(tr["estimated_w_m"], dtype=float)
+    est[:, 2] = np.asarray(tr["true_w_m"], dtype=float)[:, 2]
+    tr["estimated_w_m"] = est.tolist()
+    return {**truth, "pose_error": {**truth["pose_error"], "trajectory": tr}}
+
+
+def one_height(run: str) -> dict | None:
+    """Give one flight the true height only, report it with the correction; the row (None: not a drifting flight)."""
+    run_p = Path(run)
+    oracle = run_p.parent / f"{run_p.name}{HEIGHT_SUFFIX}"
+    rep = oracle / "report"
+    if not (rep / "report.json").is_file():
+        if not repose(run_p, oracle, HEIGHT):
+            return None
+        done = subprocess.run([sys.executable, "-m", "ground.cli", "report", str(oracle), "--out", str(rep),
+                               "--no-plots", "--force", "--quiet"], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.PIPE, text=True)
+        if done.returncode != 0:
+            print(f"pose_oracle: {oracle}: the report failed: {done.stderr.strip()}", file=sys.stderr)
+            return None
+    profile = parse_run(run_p.name)["profile"]
+    ref = run_p.parent / ("none" + run_p.name[len(profile):] + "--no-pose-correction") / "report.json"
+    corrected = run_p.parent / f"{run_p.name}--pose-correction" / "report.json"
+    if not ref.is_file() or not corrected.is_file():
+        return None
+    truth = json.loads((run_p / "truth.json").read_text())
+    logged, oracle_rep = json.loads(corrected.read_text()), json.loads((rep / "report.json").read_text())
+
+    def after(t: dict, r: dict) -> float:
+        return trajectory_rms_m(t, r.get("pose_correction"), r.get("rangefinder_height"))[1]
+    return {"run": run_p.name, "folder": run_p.parent.name, "profile": profile,
+            "ve_ref": signed_error_pct(json.loads(ref.read_text())), "ve_corrected": signed_error_pct(logged),
+            "ve_true_height": signed_error_pct(oracle_rep), "traj_corrected_m": after(truth, logged),
+            "traj_true_height_m": after(with_true_height(truth), oracle_rep)}
 
 
 def flights(folders: list[Path]) -> list[Path]:
@@ -155,12 +215,38 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def height_table(rows: list[dict]) -> str:
+    """Per campaign folder, pile and P_traj: the corrected flights from their logged height and from the true one
+    (x, y and heading drifting either way): the trajectory's error after the correction and the volume against
+    the error-free flight's, with the issue's two targets counted."""
+    lines = [f"| folder | pile | P_traj | flights | trajectory after (m), logged / true height | <= "
+             f"{TRAJ_TARGET_M * 100:.0f} cm, logged / true height | \\|Ve - error-free\\| (pp), logged / true "
+             f"height | within {VE_TARGET_PP} pp, logged / true height |",
+             "|---|---|---|---|---|---|---|---|"]
+    groups: dict[tuple[str, str, int], list[dict]] = {}
+    for r in rows:
+        name = parse_run(r["run"])
+        groups.setdefault((r["folder"], name["pile"], name["p_traj"]), []).append(r)
+    for (folder, pile, p_traj), rs in groups.items():
+        tl, tt = ([r[k] for r in rs] for k in ("traj_corrected_m", "traj_true_height_m"))
+        vl, vt = ([abs(r[k] - r["ve_ref"]) for r in rs] for k in ("ve_corrected", "ve_true_height"))
+        lines.append(f"| {folder} | {pile} | {p_traj} % | {len(rs)} | {statistics.fmean(tl):.3f} / "
+                     f"{statistics.fmean(tt):.3f} | {sum(v <= TRAJ_TARGET_M for v in tl)} / "
+                     f"{sum(v <= TRAJ_TARGET_M for v in tt)} | {statistics.fmean(vl):.2f} / "
+                     f"{statistics.fmean(vt):.2f} | "
+                     f"{sum(v <= VE_TARGET_PP for v in vl)} / {sum(v <= VE_TARGET_PP for v in vt)} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = ArgumentParser(prog="python -m tools.pose_oracle", description=__doc__)
     ap.add_argument("--runs", type=Path, nargs="+", required=True, help="the pose campaigns' --keep folders")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--rows", type=Path, default=None, help="write the rows here (JSON lines)")
-    ap.add_argument("--write", type=Path, default=None, help=f"page whose {SECTION} section to rewrite")
+    ap.add_argument("--write", type=Path, default=None,
+                    help=f"page whose {SECTION} section (with --height: {HEIGHT_SECTION}) to rewrite")
+    ap.add_argument("--height", action="store_true",
+                    help="re-pose the height only and report with the correction (module docstring)")
     args = ap.parse_args(argv)
     missing = [str(f) for f in args.runs if not f.is_dir()]
     if missing:
@@ -168,7 +254,7 @@ def main(argv: list[str] | None = None) -> int:
     todo = [str(f) for f in flights(args.runs)]
     rows = []
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        for i, row in enumerate(pool.map(one, todo), 1):
+        for i, row in enumerate(pool.map(one_height if args.height else one, todo), 1):
             if row is not None:
                 rows.append(row)
             if sys.stderr.isatty():
@@ -179,6 +265,16 @@ def main(argv: list[str] | None = None) -> int:
         print(file=sys.stderr)
     if args.rows:
         args.rows.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    command = "`python -m tools.pose_oracle " + " ".join(sys.argv[1:] if argv is None else argv) + "`"
+    if args.height:
+        text = ("Each drifting flight corrected (`pilescan-ground report`, the correction on) from its logged height "
+                "and from the true height (its samples' height re-posed from truth.json; x, y and the heading "
+                "keep their drift): the trajectory's 3-D RMS error after the correction, and |Ve - Ve of the "
+                f"error-free flight|. Regenerated by {command}.\n\n" + height_table(rows))
+        if args.write is not None:
+            write_section(args.write, HEIGHT_SECTION, text)
+        print(text)
+        return 0 if rows or not todo else 1
     text = ("Signed Ve (%) of three reports of each drifting flight: the error-free flight of the same pile, P_traj "
             "and seed; the drifting flight re-posed with the true trajectory (no correction); the drifting flight "
             "corrected. Regenerated by `python -m tools.pose_oracle "

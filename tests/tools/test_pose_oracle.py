@@ -10,7 +10,16 @@ import pytest
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.samplelog import SampleLogWriter, new_records, read_samplelog
 from firmware_py.core.storage import Storage
-from tools.pose_oracle import flights, parse_run, repose, table, truth_correction
+from tools.pose_oracle import (
+    HEIGHT,
+    flights,
+    height_table,
+    parse_run,
+    repose,
+    table,
+    truth_correction,
+    with_true_height,
+)
 
 FRAME = StorageFrame(origin_ned_m=(3.0, -2.0, 0.0), heading_rad=math.radians(30.0))
 STORAGE = Storage(length_m=30.0, width_m=20.0, height_m=10.0)
@@ -94,3 +103,35 @@ def test_that_the_table_splits_the_error_into_the_path_s_share_and_the_correctio
     line = next(row for row in table(rows).splitlines() if row.startswith("| pose |"))
     # path 0.83 and 0.05 pp; residual 0.44 and 0.10 pp; total 1.27 and 0.05 pp
     assert line == "| pose | 2 | 20 % | 2 | 0.44 / 0.83 | 1/2 | 0.27 / 0.44 | 1/2 | 0.66 | 1/2 |"
+
+
+def test_that_a_run_re_posed_in_its_height_only_keeps_the_logged_position_and_heading(tmp_path: Path):
+    run = _run(tmp_path, "flow-1-20-0")
+    assert repose(run, tmp_path / "height", HEIGHT)
+    logged = read_samplelog(run / "samples.pslog").samples
+    log = read_samplelog(tmp_path / "height" / "samples.pslog").samples
+    truth = json.loads((run / "truth.json").read_text())["pose_error"]["trajectory"]
+    w = FRAME.ned_to_w(np.column_stack([log["x_m"], log["y_m"], log["z_m"]]))
+    w_logged = FRAME.ned_to_w(np.column_stack([logged["x_m"], logged["y_m"], logged["z_m"]]))
+    np.testing.assert_allclose(w[:, 2], np.asarray(truth["true_w_m"])[:, 2], atol=1e-4)  # the true height
+    np.testing.assert_allclose(w[:, :2], w_logged[:, :2], atol=1e-4)  # the drift in x and y kept
+    assert np.abs(w[:, :2] - np.asarray(truth["true_w_m"])[:, :2]).max() > 0.1
+    np.testing.assert_allclose(log["yaw_rad"], logged["yaw_rad"], atol=1e-6)  # and in the heading
+
+
+def test_that_the_truth_of_a_flight_with_its_true_height_has_an_estimate_off_in_x_and_y_only():
+    truth = {"pose_error": _trajectory(np.array([0.0, 10.0]))}
+    tr = with_true_height(truth)["pose_error"]["trajectory"]
+    est, true = np.asarray(tr["estimated_w_m"]), np.asarray(tr["true_w_m"])
+    np.testing.assert_allclose(est[:, 2], true[:, 2])
+    np.testing.assert_allclose(est[1, :2] - true[1, :2], [0.1, -0.2])
+    assert truth["pose_error"]["trajectory"]["estimated_w_m"][0][2] == pytest.approx(6.1)  # the input untouched
+
+
+def test_that_the_height_table_sets_the_logged_height_beside_the_true_one():
+    rows = [{"run": "flow-2-5-1", "folder": "pose", "profile": "flow", "ve_ref": 0.0, "ve_corrected": 3.4,
+             "ve_true_height": 0.6, "traj_corrected_m": 0.194, "traj_true_height_m": 0.054},
+            {"run": "vio-2-5-1", "folder": "pose", "profile": "vio", "ve_ref": 0.0, "ve_corrected": -0.2,
+             "ve_true_height": 0.1, "traj_corrected_m": 0.090, "traj_true_height_m": 0.036}]
+    line = next(row for row in height_table(rows).splitlines() if row.startswith("| pose |"))
+    assert line == "| pose | 2 | 5 % | 2 | 0.142 / 0.045 | 1 / 2 | 1.80 / 0.35 | 1 / 1 |"
