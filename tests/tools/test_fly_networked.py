@@ -36,12 +36,22 @@ def test_that_the_payload_process_ranges_the_served_world_with_correct_pose_tags
     assert np.ptp(good["z_m"]) > 3.0  # and the vehicle climbed while we logged
     # Each logged pose and servo angle, ray traced in the served world, gives the range measured.
     world = World(storage, piles.resolve(str(tmp_path / "net" / "pile.stl"), storage))
-    pos = np.column_stack([good["x_m"], good["y_m"], good["z_m"]])
-    o, d = beam_rays_w(pos, good["roll_rad"], good["pitch_rad"], good["yaw_rad"], good["servo_rad"],
-                       np.array(log.header["lever_arm_body_m"]), StorageFrame())
-    err = good["range_m"] - world.cast(o, d).range_m
-    err = np.abs(err[np.isfinite(err)])
-    assert np.median(err) < 0.01 and np.percentile(err, 90) < 0.03
+
+    def range_errors(posed):
+        """|logged range - the served world's range| with each range tagged by the pose and servo of `posed`."""
+        o, d = beam_rays_w(np.column_stack([posed["x_m"], posed["y_m"], posed["z_m"]]), posed["roll_rad"],
+                           posed["pitch_rad"], posed["yaw_rad"], posed["servo_rad"],
+                           np.array(log.header["lever_arm_body_m"]), StorageFrame())
+        err = np.abs(good["range_m"][:len(posed)] - world.cast(o, d).range_m)
+        return err[np.isfinite(err)]
+
+    err = range_errors(good)
+    # The tail against the same ranges tagged one 2 ms slot late (the beam sweeps the pile fast: 7.8 cm at the
+    # 90th percentile on an idle machine, where the tags' own is 1.6 cm): each range is tagged with its own slot
+    # when its tail is nearer none than that, below half of it. The stamps are real time, and a starved machine
+    # (the suite's workers and two campaigns on 2 cores) stretched the tail to 3.0 cm, past a fixed 3 cm.
+    one_slot_late = range_errors(good[1:])
+    assert np.median(err) < 0.01 and np.percentile(err, 90) < np.percentile(one_slot_late, 90) / 2
     assert run.report["volume_m3"] > 0
 
 
