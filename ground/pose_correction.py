@@ -255,7 +255,7 @@ def plane_brought_on(r_before: np.ndarray, r_after: np.ndarray, plane: np.ndarra
     """The first wall (its name) whose points a correction brings onto it: their robust RMS distance comes down
     to within MAX_MISFIT noise levels (as a drift the model explains leaves them), and by more than the noise and
     more than what is left (the correction explains most of the plane's mean square: a drift larger than the
-    plane's own scatter). None when no plane's does. r_before, r_after: the same points' distances before and
+    plane's own scatter). None when no wall's does. r_before, r_after: the same points' distances before and
     after; plane: each one's.
 
     Why a plane of its own, beside all the points together: the floor's points out-number the walls', and the

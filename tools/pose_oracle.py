@@ -100,30 +100,45 @@ def repose(run: Path, out: Path, components: tuple[int, ...] = ALL) -> bool:
     return True
 
 
-def one(run: str) -> dict | None:
-    """Re-pose one flight and report it; the row with the three volumes (None: not a drifting flight)."""
-    run_p = Path(run)
-    oracle = run_p.parent / f"{run_p.name}{SUFFIX}"
-    rep = oracle / "report"
-    if not (rep / "report.json").is_file():
-        if not repose(run_p, oracle):
+def reported(run_p: Path, suffix: str, components: tuple[int, ...], report_args: list[str]) -> dict | None:
+    """The report of `run_p` re-posed in `components`, in its sibling NAME + suffix (made, or reused when it is
+    there); None when there is nothing to re-pose or the report failed (said on stderr)."""
+    oracle = run_p.parent / f"{run_p.name}{suffix}"
+    rep = oracle / "report" / "report.json"
+    if not rep.is_file():
+        if not repose(run_p, oracle, components):
             return None
-        done = subprocess.run([sys.executable, "-m", "ground.cli", "report", str(oracle), "--out", str(rep),
-                               "--no-plots", "--force", "--quiet", "--no-pose-correction"], stdout=subprocess.DEVNULL,
+        done = subprocess.run([sys.executable, "-m", "ground.cli", "report", str(oracle), "--out", str(rep.parent),
+                               "--no-plots", "--force", "--quiet", *report_args], stdout=subprocess.DEVNULL,
                               stderr=subprocess.PIPE, text=True)
         if done.returncode != 0:  # left out of the table, and said why
             print(f"pose_oracle: {oracle}: the report failed: {done.stderr.strip()}", file=sys.stderr)
             return None
+    return json.loads(rep.read_text())
+
+
+def twins(run_p: Path) -> tuple[dict, dict] | None:
+    """The reports of the error-free flight of the same pile, P_traj and seed (uncorrected) and of this flight
+    corrected; None when the campaign did not make both."""
     profile = parse_run(run_p.name)["profile"]
     ref = run_p.parent / ("none" + run_p.name[len(profile):] + "--no-pose-correction") / "report.json"
     corrected = run_p.parent / f"{run_p.name}--pose-correction" / "report.json"
     if not ref.is_file() or not corrected.is_file():
         return None
+    return json.loads(ref.read_text()), json.loads(corrected.read_text())
 
-    def signed(p: Path) -> float:
-        return signed_error_pct(json.loads(p.read_text()))
-    return {"run": run_p.name, "folder": run_p.parent.name, "profile": profile,
-            "ve_ref": signed(ref), "ve_true_pose": signed(rep / "report.json"), "ve_corrected": signed(corrected)}
+
+def one(run: str) -> dict | None:
+    """Re-pose one flight and report it; the row with the three volumes (None: not a drifting flight)."""
+    run_p = Path(run)
+    oracle = reported(run_p, SUFFIX, ALL, ["--no-pose-correction"])
+    pair = twins(run_p)
+    if oracle is None or pair is None:
+        return None
+    ref, corrected = pair
+    return {"run": run_p.name, "folder": run_p.parent.name, "profile": parse_run(run_p.name)["profile"],
+            "ve_ref": signed_error_pct(ref), "ve_true_pose": signed_error_pct(oracle),
+            "ve_corrected": signed_error_pct(corrected)}
 
 
 def with_true_height(truth: dict) -> dict:
@@ -139,31 +154,19 @@ def with_true_height(truth: dict) -> dict:
 def one_height(run: str) -> dict | None:
     """Give one flight the true height only, report it with the correction; the row (None: not a drifting flight)."""
     run_p = Path(run)
-    oracle = run_p.parent / f"{run_p.name}{HEIGHT_SUFFIX}"
-    rep = oracle / "report"
-    if not (rep / "report.json").is_file():
-        if not repose(run_p, oracle, HEIGHT):
-            return None
-        done = subprocess.run([sys.executable, "-m", "ground.cli", "report", str(oracle), "--out", str(rep),
-                               "--no-plots", "--force", "--quiet"], stdout=subprocess.DEVNULL,
-                              stderr=subprocess.PIPE, text=True)
-        if done.returncode != 0:
-            print(f"pose_oracle: {oracle}: the report failed: {done.stderr.strip()}", file=sys.stderr)
-            return None
-    profile = parse_run(run_p.name)["profile"]
-    ref = run_p.parent / ("none" + run_p.name[len(profile):] + "--no-pose-correction") / "report.json"
-    corrected = run_p.parent / f"{run_p.name}--pose-correction" / "report.json"
-    if not ref.is_file() or not corrected.is_file():
+    oracle = reported(run_p, HEIGHT_SUFFIX, HEIGHT, [])
+    pair = twins(run_p)
+    if oracle is None or pair is None:
         return None
+    ref, corrected = pair
     truth = json.loads((run_p / "truth.json").read_text())
-    logged, oracle_rep = json.loads(corrected.read_text()), json.loads((rep / "report.json").read_text())
 
     def after(t: dict, r: dict) -> float:
         return trajectory_rms_m(t, r.get("pose_correction"), r.get("rangefinder_height"))[1]
-    return {"run": run_p.name, "folder": run_p.parent.name, "profile": profile,
-            "ve_ref": signed_error_pct(json.loads(ref.read_text())), "ve_corrected": signed_error_pct(logged),
-            "ve_true_height": signed_error_pct(oracle_rep), "traj_corrected_m": after(truth, logged),
-            "traj_true_height_m": after(with_true_height(truth), oracle_rep)}
+    return {"run": run_p.name, "folder": run_p.parent.name, "profile": parse_run(run_p.name)["profile"],
+            "ve_ref": signed_error_pct(ref), "ve_corrected": signed_error_pct(corrected),
+            "ve_true_height": signed_error_pct(oracle), "traj_corrected_m": after(truth, corrected),
+            "traj_true_height_m": after(with_true_height(truth), oracle)}
 
 
 def flights(folders: list[Path]) -> list[Path]:
@@ -277,8 +280,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0 if rows or not todo else 1
     text = ("Signed Ve (%) of three reports of each drifting flight: the error-free flight of the same pile, P_traj "
             "and seed; the drifting flight re-posed with the true trajectory (no correction); the drifting flight "
-            "corrected. Regenerated by `python -m tools.pose_oracle "
-            + " ".join(sys.argv[1:] if argv is None else argv) + "`.\n\n" + table(rows))
+            f"corrected. Regenerated by {command}.\n\n" + table(rows))
     if args.write is not None:
         write_section(args.write, SECTION, text)
     print(text)
