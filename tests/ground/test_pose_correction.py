@@ -919,12 +919,13 @@ def test_that_a_plane_counts_when_its_points_are_brought_onto_it_not_when_they_s
     toe = np.r_[on_floor, 0.22 + rng.normal(0.0, noise, 100)]
     toe_after = np.r_[on_floor, 0.11 + rng.normal(0.0, noise, 100)]
     assert plane_brought_on(toe, toe_after, np.r_[np.full(900, floor), np.full(100, x0)], noise) is None
-    # a far wall scattering more than the data's noise says, 16 -> 13.5 cm against 5 cm: the correction explains
-    # less of its mean square than is left, so it has not brought the wall onto its plane
+    # a far wall scattering more than the data's noise says, 16 -> 13.5 cm against 6 cm (within MAX_MISFIT noise
+    # levels after, and closer by more than the noise): the correction explains less of its mean square than is
+    # left, so it has not brought the wall onto its plane
     far = np.r_[on_floor, rng.normal(0.0, 0.16, 100)]
     far_after = np.r_[on_floor, 0.135 / 0.16 * far[900:]]
-    assert plane_brought_on(far, far_after, plane, 0.05) is None
-    assert plane_brought_on(far, np.r_[on_floor, 0.07 / 0.16 * far[900:]], plane, 0.05) == "x0"  # most of it: yes
+    assert plane_brought_on(far, far_after, plane, 0.06) is None
+    assert plane_brought_on(far, np.r_[on_floor, 0.07 / 0.16 * far[900:]], plane, 0.06) == "x0"  # most of it: yes
     # the floor's own points do not count: they may be a pile's flat top that a height correction pulled down
     # onto the floor's plane (the height has its own tests, and the floor sees no horizontal drift)
     assert plane_brought_on(before, after, np.r_[np.full(900, x0), np.full(100, floor)], noise) is None
