@@ -279,6 +279,15 @@ def plane_brought_on(r_before: np.ndarray, r_after: np.ndarray, plane: np.ndarra
     return None
 
 
+def matters(r_before: np.ndarray, r_after_fit: np.ndarray, r_after: np.ndarray, plane: np.ndarray,
+            noise_m: float) -> bool:
+    """Whether a correction matters to the floor and walls: all their points together come closer to their planes
+    by more than the noise (robust RMS of r_before against that of r_after_fit, the points on a plane after the
+    fit), or one wall's are brought onto it (`plane_brought_on`, on the same points' r_before and r_after)."""
+    return (_robust_rms(r_before) ** 2 - _robust_rms(r_after_fit) ** 2 > noise_m ** 2
+            or plane_brought_on(r_before, r_after, plane, noise_m) is not None)
+
+
 def _spacing(knots: np.ndarray) -> float:
     return float(np.median(np.diff(knots))) if len(knots) > 1 else 0.0
 
@@ -802,10 +811,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     j_pre, _ = _assign(p0, n, d, BAND * sensor_m, b.parallel)
     pre = (j_pre >= 0) | on
     jj_pre = np.where(j_pre >= 0, j_pre, j1)[pre]
-    r_pre = np.einsum("ij,ij->i", p0[pre], n[jj_pre]) - d[jj_pre]
-    matters = (_robust_rms(r_pre) ** 2 - _robust_rms(r1[on]) ** 2 > noise ** 2
-               or plane_brought_on(r_pre, np.einsum("ij,ij->i", p1[pre], n[jj_pre]) - d[jj_pre], jj_pre,
-                                   noise) is not None)
+    to_matter = matters(np.einsum("ij,ij->i", p0[pre], n[jj_pre]) - d[jj_pre], r1[on],
+                        np.einsum("ij,ij->i", p1[pre], n[jj_pre]) - d[jj_pre], jj_pre, noise)
 
     def misfit(v: np.ndarray) -> float:
         _, _, r, j = on_fit_planes(v)
@@ -813,7 +820,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     # What the drift model, fitted to the floor and walls, leaves on them: the measure of whether a drift
     # explains them at all (MAX_MISFIT was measured on it: a drift leaves 1.1-1.5 noise levels, a mount fault ~6)
     drift_misfit = misfit(x)
-    if opts.vertical and opts.crossings and opts.crossings_horizontal and matters:
+    if opts.vertical and opts.crossings and opts.crossings_horizontal and to_matter:
         # the height joins the registration when it was solved, or refused only in the frame before it
         z_free = z_info is not None or first_refused is not None
         x_reg, cross_info, cross_notes = _registered(b, x, knots, k, f, wall, floor, storage, cell_m, step, noise,
@@ -886,8 +893,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                            f"planes "
                            f"after it, against {noise * 100:.1f} cm of noise: a drifting pose does not explain them "
                            "(a mounting error the self-calibration did not fit?)", knots, **common)
-    if not (common["rms_before_m"] ** 2 - common["rms_after_m"] ** 2 > noise ** 2
-            or plane_brought_on(r_before, r_after, jj, noise) is not None):
+    if not matters(r_before, r1[on], r_after, jj, noise):
         return not_applied("not applied: too small to matter (the floor and walls "
                            f"{common['rms_before_m'] * 100:.2f} cm off their planes before it, "
                            f"{common['rms_after_m'] * 100:.2f} cm after, against "

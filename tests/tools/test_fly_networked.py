@@ -14,6 +14,16 @@ from tools.fly_networked import fly_networked
 pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
 
 
+def range_errors(log, world: World, good: np.ndarray, posed: np.ndarray) -> np.ndarray:
+    """|logged range of `good` - the served world's range| with each range tagged by the pose and servo angle of
+    `posed` (good itself, or good shifted to tag each range with a later sample's pose)."""
+    o, d = beam_rays_w(np.column_stack([posed["x_m"], posed["y_m"], posed["z_m"]]), posed["roll_rad"],
+                       posed["pitch_rad"], posed["yaw_rad"], posed["servo_rad"],
+                       np.array(log.header["lever_arm_body_m"]), StorageFrame())
+    err = np.abs(good["range_m"][:len(posed)] - world.cast(o, d).range_m)
+    return err[np.isfinite(err)]
+
+
 def test_that_the_payload_process_ranges_the_served_world_with_correct_pose_tags(tmp_path):
     storage = Storage(24, 16, 10)
     run = fly_networked(["--p-traj", "25", "--altitude", "9", "--speed", "2"], "24x16x10", "1", tmp_path / "net",
@@ -36,21 +46,12 @@ def test_that_the_payload_process_ranges_the_served_world_with_correct_pose_tags
     assert np.ptp(good["z_m"]) > 3.0  # and the vehicle climbed while we logged
     # Each logged pose and servo angle, ray traced in the served world, gives the range measured.
     world = World(storage, piles.resolve(str(tmp_path / "net" / "pile.stl"), storage))
-
-    def range_errors(posed):
-        """|logged range - the served world's range| with each range tagged by the pose and servo of `posed`."""
-        o, d = beam_rays_w(np.column_stack([posed["x_m"], posed["y_m"], posed["z_m"]]), posed["roll_rad"],
-                           posed["pitch_rad"], posed["yaw_rad"], posed["servo_rad"],
-                           np.array(log.header["lever_arm_body_m"]), StorageFrame())
-        err = np.abs(good["range_m"][:len(posed)] - world.cast(o, d).range_m)
-        return err[np.isfinite(err)]
-
-    err = range_errors(good)
+    err = range_errors(log, world, good, good)
     # The tail against the same ranges tagged one 2 ms slot late (the beam sweeps the pile fast: 7.8 cm at the
     # 90th percentile on an idle machine, where the tags' own is 1.6 cm): each range is tagged with its own slot
     # when its tail is nearer none than that, below half of it. The stamps are real time, and a starved machine
     # (the suite's workers and two campaigns on 2 cores) stretched the tail to 3.0 cm, past a fixed 3 cm.
-    one_slot_late = range_errors(good[1:])
+    one_slot_late = range_errors(log, world, good, good[1:])
     assert np.median(err) < 0.01 and np.percentile(err, 90) < np.percentile(one_slot_late, 90) / 2
     assert run.report["volume_m3"] > 0
 
@@ -91,20 +92,11 @@ def test_that_the_payload_reads_a_served_tfmini_over_a_pty_and_survives_its_faul
     assert np.count_nonzero((after["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0) > 200  # ranging again
     good = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
     world = World(storage, piles.resolve(str(tmp_path / "net" / "pile.stl"), storage), max_range_m=12.0)
-
-    def range_errors(posed):
-        """|logged range - the served world's range| with each range tagged by the pose of `posed`."""
-        o, d = beam_rays_w(np.column_stack([posed["x_m"], posed["y_m"], posed["z_m"]]), posed["roll_rad"],
-                           posed["pitch_rad"], posed["yaw_rad"], posed["servo_rad"],
-                           np.array(log.header["lever_arm_body_m"]), StorageFrame())
-        err = np.abs(good["range_m"][:len(posed)] - world.cast(o, d).range_m)
-        return err[np.isfinite(err)]
-
-    err = range_errors(good)
+    err = range_errors(log, world, good, good)
     # A range tagged one frame (10 ms) late puts the tail at decimetres (the beam sweeps the pile fast). The
     # frames' stamps are real time: on a busy machine some arrive a few ms late, so the tail is held to a
     # third of that reference, derived from this flight, rather than to a number of centimetres.
-    one_frame_late = range_errors(good[1:])
+    one_frame_late = range_errors(log, world, good, good[1:])
     assert len(err) > 300 and np.median(err) < 0.01
     assert np.percentile(err, 90) < np.percentile(one_frame_late, 90) / 3
 
