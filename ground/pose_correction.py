@@ -802,6 +802,11 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     sel = np.flatnonzero(on)
     jac = _jacobian(b.take(sel), vr[sel], k[sel], f[sel], n[j1[sel]], np.full(len(sel), noise), 4 * len(knots))
     info = np.asarray(jac.multiply(jac).sum(axis=0)).ravel().reshape(len(knots), 4)
+    if held[3]:
+        # The walls' fit held the heading at zero: what they would say of it was not used, so it neither anchors the
+        # registration's heading at that zero nor counts as constraining it (measured: it held the heading of our own
+        # building's flights 1-2.5 deg short where only the far side of a pile was seen twice: docs/design-notes.md).
+        info[:, 3] = 0.0
     if z_info is not None:
         info[:, 2] = z_info
     cross_info = None
