@@ -1893,6 +1893,7 @@ def unconstrained_warning(corr: PoseCorrection) -> str | None:
     parts = [f"{names[c]} over {s:.0f} s" for c, s in corr.unconstrained_s().items() if s > 0]
     if not parts:
         return None
-    return (f"the pose correction is not constrained by the floor and walls for {', '.join(parts)} of the "
-            f"{total:.0f} s flown: there it is interpolated between the stretches that are (no wall in the sweep "
-            "plane); trajectory errors there are only as small as the drift is smooth")
+    return (f"the pose correction is not constrained by the building or the pile seen twice for {', '.join(parts)} "
+            f"of the {total:.0f} s flown: there it is interpolated between the stretches that are (no wall across the "
+            "sweep, no sloped pile seen on another pass); trajectory errors there are only as small as the drift is "
+            "smooth")
