@@ -1210,6 +1210,10 @@ def _registered(b: Beams, x: np.ndarray, knots: np.ndarray, k: np.ndarray, f: np
             x_out, info_out = x_h, info_h
             notes.append(f"the heading from the pile seen at different times ({math.degrees(_rms(x_h[:, 3])):.2f} deg "
                          "RMS)")
+        elif reg_h is not None:  # said, so a surveyor knows an indoor heading's drift is still in the volume
+            why = (f"does not show it off: fitting it gains {gain_h:.0f}, where fitting {n_h} knots to noise would "
+                   f"gain up to {needed(n_h):.0f}" if n_h > 0 else "constrains no knot of it")
+            notes.append(f"the heading was left as logged: the pile seen at different times {why}")
     return x_out, info_out, notes
 
 

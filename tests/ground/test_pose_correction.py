@@ -448,6 +448,24 @@ def test_that_the_walls_do_not_hold_the_heading_at_zero_where_only_a_heap_seen_t
     assert left < 0.3 * np.sqrt(np.mean(e[last, 3] ** 2)), math.degrees(left)
 
 
+def test_that_a_heading_the_heap_seen_twice_does_not_show_off_is_said_to_be_left_as_logged():
+    # The heap loop with a drift of the position only: the heading's fit gains no more than noise fitting, so it is
+    # not taken, and the report says the heading is the logged one (an indoor heading drifts; a surveyor should know
+    # that this one was not corrected, not read a silent 0 deg).
+    corners = [(4.0, 4.0), (56.0, 4.0), (56.0, 36.0), (4.0, 36.0)]
+
+    def err(t: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(t), 4))
+        out[:, 0] = 0.4 * np.sin(2.0 * math.pi * t / 60.0)
+        out[:, 1] = 0.4 * np.sin(2.0 * math.pi * t / 60.0 + 1.0)
+        return out
+    samples, _ = flight(err, corners=corners, cast=_cast_cone)
+    corr = estimate(samples)
+    assert corr.applied, corr.reason
+    assert not corr.values[:, Component.HEADING.value].any()
+    assert any(note.startswith("the heading was left as logged") for note in corr.notes), corr.notes
+
+
 def test_that_a_wall_parallel_to_the_sweep_plane_is_not_taken_from_the_sweep():
     # The loop ends flying towards the side wall y = 0 and hovers 4.5 m short of it (a landing at home): each
     # sweep then lies in a plane parallel to that wall, so its chords have nothing along the wall's normal

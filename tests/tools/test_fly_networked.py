@@ -14,12 +14,14 @@ from tools.fly_networked import fly_networked
 pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
 
 
-def range_errors(log, world: World, good: np.ndarray, posed: np.ndarray) -> np.ndarray:
+def range_errors(log, world: World, good: np.ndarray, posed: np.ndarray,
+                 frame: StorageFrame | None = None) -> np.ndarray:
     """|logged range of `good` - the served world's range| with each range tagged by the pose and servo angle of
-    `posed` (good itself, or good shifted to tag each range with a later sample's pose)."""
+    `posed` (good itself, or good shifted to tag each range with a later sample's pose), placed through `frame`
+    (None: the default storage frame)."""
     o, d = beam_rays_w(np.column_stack([posed["x_m"], posed["y_m"], posed["z_m"]]), posed["roll_rad"],
                        posed["pitch_rad"], posed["yaw_rad"], posed["servo_rad"],
-                       np.array(log.header["lever_arm_body_m"]), StorageFrame())
+                       np.array(log.header["lever_arm_body_m"]), frame or StorageFrame())
     err = np.abs(good["range_m"][:len(posed)] - world.cast(o, d).range_m)
     return err[np.isfinite(err)]
 
@@ -131,9 +133,8 @@ def test_that_a_networked_flight_at_a_turned_site_agrees_on_origin_and_frame(tmp
     good = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
     assert len(good) > 500
     world = World(storage, piles.resolve(str(tmp_path / "net" / "pile.stl"), storage))
-    pos = np.column_stack([good["x_m"], good["y_m"], good["z_m"]])
-    o, d = beam_rays_w(pos, good["roll_rad"], good["pitch_rad"], good["yaw_rad"], good["servo_rad"],
-                       np.array(log.header["lever_arm_body_m"]), frame)
-    err = good["range_m"] - world.cast(o, d).range_m
-    err = np.abs(err[np.isfinite(err)])
-    assert np.median(err) < 0.01 and np.percentile(err, 90) < 0.03
+    err = range_errors(log, world, good, good, frame)
+    # The tail held to half that of the same ranges tagged one 2 ms slot late, as in the first test: a fixed 3 cm
+    # measured the machine (3.008 cm with the suite and a second test run on the 2 cores).
+    one_slot_late = range_errors(log, world, good, good[1:], frame)
+    assert np.median(err) < 0.01 and np.percentile(err, 90) < np.percentile(one_slot_late, 90) / 2
