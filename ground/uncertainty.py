@@ -69,8 +69,8 @@ class ErrorTerms:
 
 
 # --- calibrated pose factor (tools/calibrate_pose_interval.py --write-model) ---
-POSE_FACTOR = 8.455090892850665
-POSE_FACTOR_SOURCE = 'fitted on 38 drifting flights (tools/calibrate_pose_interval.py, 2026-11-29)'
+POSE_FACTOR = 6.514036652124275
+POSE_FACTOR_SOURCE = 'fitted on 38 drifting flights (tools/calibrate_pose_interval.py, 2026-11-30)'
 # --- end of calibrated pose factor ---
 
 
