@@ -396,20 +396,30 @@ def _cast_cone(o: np.ndarray, d: np.ndarray, storage: Storage, cone=CONE) -> np.
     return np.where(r <= MAX_RANGE, r, np.nan)
 
 
+HEAP_LOOP = [(4.0, 4.0), (56.0, 4.0), (56.0, 36.0), (4.0, 36.0)]
+"""A loop near the walls around CONE, whose flanks each leg sees."""
+
+
+def _swing(amplitude_m: float, heading_deg: float = 0.0, height_m: float = 0.0):
+    """A logged position that drifts along the track and back (x and y sines of amplitude_m over a minute, a radian
+    apart: a velocity error that changes sign); a NED yaw error and a height error (a barometer's walk) growing
+    linearly to heading_deg and height_m over the flight."""
+    def err(t: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(t), 4))
+        out[:, 0] = amplitude_m * np.sin(2.0 * math.pi * t / 60.0)
+        out[:, 1] = amplitude_m * np.sin(2.0 * math.pi * t / 60.0 + 1.0)
+        out[:, 2] = height_m * t / t[-1]
+        out[:, 3] = math.radians(heading_deg) * t / t[-1]
+        return out
+    return err
+
+
 def test_that_the_along_track_position_and_heading_come_from_the_heap_seen_twice():
     # A loop near the walls around a cone heap whose flanks each leg sees, and which the legs see again near the
     # corners and from across it. The estimate drifts along the track and back (a velocity error of ~2 % that
     # changes sign over a minute: between two turns the walls ahead and behind see nothing of it, so the walls
     # alone only interpolate it) and its heading drifts by a degree. The heap seen twice must recover both.
-    corners = [(4.0, 4.0), (56.0, 4.0), (56.0, 36.0), (4.0, 36.0)]
-
-    def err(t: np.ndarray) -> np.ndarray:
-        out = np.zeros((len(t), 4))
-        out[:, 0] = 0.4 * np.sin(2.0 * math.pi * t / 60.0)
-        out[:, 1] = 0.4 * np.sin(2.0 * math.pi * t / 60.0 + 1.0)
-        out[:, 3] = math.radians(1.0) * t / t[-1]  # NED yaw error
-        return out
-    samples, e = flight(err, corners=corners, cast=_cast_cone)
+    samples, e = flight(_swing(0.4, 1.0), corners=HEAP_LOOP, cast=_cast_cone)
     old = estimate(samples, crossings_horizontal=False)
     new = estimate(samples)
     assert new.applied, new.reason
@@ -433,13 +443,7 @@ def test_that_the_walls_do_not_hold_the_heading_at_zero_where_only_a_heap_seen_t
     # see a heading error, and the walls' fit holds the heading at zero; what they would have said of it must not
     # then pull the heading the heap registers back to that zero (it did: 0.38 of the drift was left on the last
     # leg, 0.25 without that pull).
-    def err(t: np.ndarray) -> np.ndarray:
-        out = np.zeros((len(t), 4))
-        out[:, 0] = 0.3 * np.sin(2.0 * math.pi * t / 60.0)
-        out[:, 1] = 0.3 * np.sin(2.0 * math.pi * t / 60.0 + 1.0)
-        out[:, 3] = math.radians(1.5) * t / t[-1]  # NED yaw error
-        return out
-    samples, e = flight(err, cast=lambda o, d, storage: _cast_cone(o, d, storage, (44.0, 28.0, 6.0, 0.5)))
+    samples, e = flight(_swing(0.3, 1.5), cast=lambda o, d, storage: _cast_cone(o, d, storage, (44.0, 28.0, 6.0, 0.5)))
     corr = estimate(samples)
     assert corr.applied, corr.reason
     t = samples["t_s"]
@@ -452,14 +456,7 @@ def test_that_a_heading_the_heap_seen_twice_does_not_show_off_is_said_to_be_left
     # The heap loop with a drift of the position only: the heading's fit gains no more than noise fitting, so it is
     # not taken, and the report says the heading is the logged one (an indoor heading drifts; a surveyor should know
     # that this one was not corrected, not read a silent 0 deg).
-    corners = [(4.0, 4.0), (56.0, 4.0), (56.0, 36.0), (4.0, 36.0)]
-
-    def err(t: np.ndarray) -> np.ndarray:
-        out = np.zeros((len(t), 4))
-        out[:, 0] = 0.4 * np.sin(2.0 * math.pi * t / 60.0)
-        out[:, 1] = 0.4 * np.sin(2.0 * math.pi * t / 60.0 + 1.0)
-        return out
-    samples, _ = flight(err, corners=corners, cast=_cast_cone)
+    samples, _ = flight(_swing(0.4), corners=HEAP_LOOP, cast=_cast_cone)
     corr = estimate(samples)
     assert corr.applied, corr.reason
     assert not corr.values[:, Component.HEADING.value].any()
@@ -851,16 +848,7 @@ def test_that_a_height_refused_before_the_registration_is_solved_again_after_it(
     # first height solve can jump between two knots beyond what a drift does (a two-knot zigzag on our own ridge:
     # refused, and no height corrected at all, the volume 32 % off). The registered frame gets its own try.
     import ground.pose_correction as pc
-    corners = [(4.0, 4.0), (56.0, 4.0), (56.0, 36.0), (4.0, 36.0)]
-
-    def err(t: np.ndarray) -> np.ndarray:
-        out = np.zeros((len(t), 4))
-        out[:, 0] = 0.4 * np.sin(2.0 * math.pi * t / 60.0)
-        out[:, 1] = 0.4 * np.sin(2.0 * math.pi * t / 60.0 + 1.0)
-        out[:, 2] = 0.3 * t / t[-1]  # the barometer's walk
-        out[:, 3] = math.radians(1.0) * t / t[-1]
-        return out
-    samples, _ = flight(err, corners=corners, cast=_cast_cone)
+    samples, _ = flight(_swing(0.4, 1.0, height_m=0.3), corners=HEAP_LOOP, cast=_cast_cone)
     real = pc.height_refused
     calls: list[int] = []
 
