@@ -66,7 +66,7 @@ from scipy.stats import chi2
 
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
 from firmware_py.core.storage import Storage
-from ground.plane_stretches import Beams, beams, stretches_along
+from ground.plane_stretches import MAX_HEADING_ERROR_RAD, Beams, beams, stretches_along
 
 PLANE_NAMES = ("floor", "x0", "xL", "y0", "yW")
 MAX_MISFIT = 3.0
@@ -122,7 +122,7 @@ class PoseCorrectionOptions:
     over the paper's 7.3 m pile (1.8 m). A height correction beyond it means a flat pile top was taken for
     the floor (measured on the paper's pile 2, which hides the floor: 1.4 m RMS of wrong height) and is
     not applied."""
-    max_heading_error_rad: float = math.radians(5.0)
+    max_heading_error_rad: float = MAX_HEADING_ERROR_RAD
     n_significant: float = 3.0
     """The correction is applied when its gain beats noise fitting by this many standard deviations."""
     max_points: int = 40_000

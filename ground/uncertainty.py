@@ -45,6 +45,7 @@ import numpy as np
 from scipy import ndimage
 
 from ground import smoothing
+from ground.plane_stretches import STEEPEST_PILE_DEG
 from ground.surface import Grid, fill_empty
 
 INTERVAL_LEVEL = 0.90
@@ -301,7 +302,7 @@ class FaceCells:
         return int(self.mask.sum())
 
 
-MAX_SLOPE_DEG = 60.0
+MAX_SLOPE_DEG = STEEPEST_PILE_DEG
 """The steepest surface a stockpile can hold: loose bulk material stands at its angle of repose, 30-45
 degrees for grains, coal, ores and aggregates; 60 leaves room for cohesive or compacted faces. Points in
 one cell further apart than this slope across the cell (and the noise) are a vertical face or an overhang."""
