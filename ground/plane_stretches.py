@@ -113,24 +113,27 @@ MAX_HEADING_ERROR_RAD = math.radians(5.0)
 (`PoseCorrectionOptions.max_heading_error_rad`) and how far beside a wall a stretch of it may be seen."""
 
 
-def sliding_line_fit(p: np.ndarray, h: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For each window of 2h+1 consecutive points (centred on points h .. N-h-1): the line through them by
-    principal components: its centroid (M, 3), its unit direction (M, 3) and the points' RMS distance from it (M,).
-    From running sums, so the whole cloud costs a few array passes."""
+def sliding_line_fit(p: np.ndarray, h: int, at: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For the windows of 2h+1 consecutive points centred on the points at (indices h .. N-h-1): the line through
+    each by principal components: its centroid (M, 3), its unit direction (M, 3) and the points' RMS distance from
+    it (M,). From running sums, so a window costs the same whatever its length."""
     k = 2 * h + 1
-    q = p - p.mean(axis=0)  # centred: the running sums of squares stay well conditioned
+    origin = p.mean(axis=0)
+    q = p - origin  # centred: the running sums of squares stay well conditioned
     c1 = np.cumsum(np.vstack([np.zeros(3), q]), axis=0)
     outer = (q[:, :, None] * q[:, None, :]).reshape(len(q), 9)
     c2 = np.cumsum(np.vstack([np.zeros(9), outer]), axis=0)
-    mean = (c1[k:] - c1[:-k]) / k
-    cov = ((c2[k:] - c2[:-k]) / k).reshape(-1, 3, 3) - mean[:, :, None] * mean[:, None, :]
+    lo, hi = at - h, at + h + 1
+    mean = (c1[hi] - c1[lo]) / k
+    cov = ((c2[hi] - c2[lo]) / k).reshape(-1, 3, 3) - mean[:, :, None] * mean[:, None, :]
     vals, vecs = np.linalg.eigh(cov)  # ascending: the last is the line's direction
     off = np.sqrt(np.maximum(vals[:, 0] + vals[:, 1], 0.0))
-    return mean + p.mean(axis=0), vecs[:, :, 2], off
+    return mean + origin, vecs[:, :, 2], off
 
 
 def wall_stretches(points_w: np.ndarray, t_s: np.ndarray, sweep_dir: np.ndarray, beam_w: np.ndarray,
-                   sigma_m: np.ndarray, length_m: float, width_m: float, sample_dt_s: float) -> np.ndarray:
+                   sigma_m: np.ndarray, length_m: float, width_m: float, sample_dt_s: float,
+                   only: np.ndarray | None = None) -> np.ndarray:
     """True for points whose stretch of sweep (CHORD_HALF samples either side, one sweep direction, unbroken in
     time) is a straight line steeper than any stockpile stands (STEEPEST_PILE_DEG), beside a wall: within the
     reach of a heading error (MAX_HEADING_ERROR_RAD at the beam's horizontal length) plus 3 of its points'
@@ -138,23 +141,30 @@ def wall_stretches(points_w: np.ndarray, t_s: np.ndarray, sweep_dir: np.ndarray,
     heading error, which moves a wall seen at grazing incidence 20 m away by 0.35 m a degree, a pointing error, or
     a wall a few centimetres off the header's plane. beam_w: each point's vector from the vehicle; sigma_m: each
     point's 1-sigma error that straightness is judged by (`ground.pointcloud.beside_walls` leaves the pointing
-    error out of it)."""
+    error out of it); only: the points to judge (None: all), their stretches still taken from every point."""
     h = CHORD_HALF
     m = len(points_w)
     out = np.zeros(m, dtype=bool)
     if m <= 2 * h:
         return out
     i = np.arange(h, m - h)
-    unbroken = (sweep_dir[i - h] == sweep_dir[i + h]) & (t_s[i + h] - t_s[i - h] <= (2 * h + 1.5) * sample_dt_s)
-    centre, u, off = sliding_line_fit(np.asarray(points_w, dtype=float), h)
-    noise = np.sqrt(np.convolve(np.square(sigma_m), np.ones(2 * h + 1) / (2 * h + 1), mode="valid"))
-    own_off = np.linalg.norm(np.cross(points_w[i] - centre, u), axis=1)  # the point itself lies on the line
+    p = np.asarray(points_w, dtype=float)
+    reach = np.hypot(beam_w[i, 0], beam_w[i, 1]) * math.tan(MAX_HEADING_ERROR_RAD) + 3.0 * sigma_m[i]
+    own_to_wall = np.minimum.reduce([p[i, 0], length_m - p[i, 0], p[i, 1], width_m - p[i, 1]])
+    near = ((own_to_wall <= reach) & (sweep_dir[i - h] == sweep_dir[i + h])
+            & (t_s[i + h] - t_s[i - h] <= (2 * h + 1.5) * sample_dt_s))  # beside a wall, in one unbroken stretch
+    if only is not None:
+        near &= only[i]
+    i, reach = i[near], reach[near]
+    if not len(i):
+        return out
+    centre, u, off = sliding_line_fit(p, h, i)
+    noise = np.sqrt(np.convolve(np.square(sigma_m), np.ones(2 * h + 1) / (2 * h + 1), mode="valid")[i - h])
+    own_off = np.linalg.norm(np.cross(p[i] - centre, u), axis=1)  # the point itself lies on the line
     straight = (off <= 3.0 * noise) & (own_off <= 3.0 * sigma_m[i])
     steep = np.abs(u[:, 2]) >= math.sin(math.radians(STEEPEST_PILE_DEG))
-    long_enough = off < 0.5 * np.linalg.norm(points_w[i + h] - points_w[i - h], axis=1)
-    reach = (np.hypot(beam_w[i, 0], beam_w[i, 1]) * math.tan(MAX_HEADING_ERROR_RAD) + 3.0 * sigma_m[i])
-    p, c = points_w[i], centre
-    to_wall = np.minimum.reduce([np.maximum(p[:, 0], c[:, 0]), length_m - np.minimum(p[:, 0], c[:, 0]),
-                                 np.maximum(p[:, 1], c[:, 1]), width_m - np.minimum(p[:, 1], c[:, 1])])
-    out[i] = unbroken & straight & steep & long_enough & (to_wall <= reach)
+    long_enough = off < 0.5 * np.linalg.norm(p[i + h] - p[i - h], axis=1)
+    c = centre  # and the line too lies beside the wall
+    line_to_wall = np.minimum.reduce([c[:, 0], length_m - c[:, 0], c[:, 1], width_m - c[:, 1]])
+    out[i] = straight & steep & long_enough & (line_to_wall <= reach)
     return out

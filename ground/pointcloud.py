@@ -187,23 +187,24 @@ def structure_mask(cloud: Cloud, storage: Storage, err: SensorErrorModel, n_sigm
         to_wall = np.minimum.reduce([p[:, 0] / tol_x, (storage.length_m - p[:, 0]) / tol_x,
                                      p[:, 1] / tol_y, (storage.width_m - p[:, 1]) / tol_y])
         to_floor = np.abs(p[:, 2]) / tol_z
-    walls = ((to_wall <= 1.0) & ~(to_floor < to_wall)) | beside_walls(cloud, storage, err)
+    walls = (to_wall <= 1.0) & ~(to_floor < to_wall)
+    walls |= beside_walls(cloud, storage, err, only=~walls)
     return (walls | (p[:, 2] >= storage.height_m - tol_z)
             | (p[:, 2] < -tol_z))  # under the floor: a reading no beam could give (a glitch)
 
 
-def beside_walls(cloud: Cloud, storage: Storage, err: SensorErrorModel) -> np.ndarray:
+def beside_walls(cloud: Cloud, storage: Storage, err: SensorErrorModel, only: np.ndarray | None = None) -> np.ndarray:
     """The points whose stretch of sweep climbs a wall off its plane (`ground.plane_stretches.wall_stretches`): what
     the tolerance above cannot take without taking the pile points beside a wall too (it holds no pointing or
     heading error: docs/design-notes.md), the stretch's history can. None without the points' times. A stretch is
     straight within its range, position and quantum errors, not its pointing error: a pointing error drawn per
     sample (Appendix A's degree) would let a crooked stretch pass, a wall's foot with the pile top beside it (measured
     on the evaluation set: 1,000 points a survey taken, Ve moved up to 4 pp either way); a wall point it displaces is
-    left to the surface's outlier test (`ground.smoothing`)."""
+    left to the surface's outlier test (`ground.smoothing`). only: the points to judge (None: all)."""
     if cloud.t_s is None or cloud.sweep_dir is None or len(cloud.t_s) < 2:
         return np.zeros(len(cloud.points_w), dtype=bool)
     r = cloud.range_m
     sigma = np.sqrt(np.square(err.range_sigma(r)) + err.position_sigma_m**2 + err.resolution_m**2 / 12.0)
     dt = float(np.median(np.diff(cloud.t_s)))
     return wall_stretches(cloud.points_w, cloud.t_s, cloud.sweep_dir, cloud.dirs_w * r[:, None], sigma,
-                          storage.length_m, storage.width_m, dt)
+                          storage.length_m, storage.width_m, dt, only)
