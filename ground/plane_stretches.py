@@ -54,6 +54,18 @@ CHORD_HALF = 16
 """A point's stretch of sweep: the chord from the sample CHORD_HALF before it to CHORD_HALF after it."""
 
 
+def unbroken(t_s: np.ndarray, sweep_dir: np.ndarray, i: np.ndarray, sample_dt_s: float) -> np.ndarray:
+    """Whether the stretch of sweep around each sample i (CHORD_HALF either side) is one: one sweep direction at
+    both ends, and no sample missing between them (a gap in the log, a turn of the servo)."""
+    h = CHORD_HALF
+    return (sweep_dir[i - h] == sweep_dir[i + h]) & (t_s[i + h] - t_s[i - h] <= (2 * h + 1.5) * sample_dt_s)
+
+
+def to_nearest_wall_m(xy: np.ndarray, length_m: float, width_m: float) -> np.ndarray:
+    """Each position's distance to the nearest of the four walls (negative outside the building)."""
+    return np.minimum.reduce([xy[:, 0], length_m - xy[:, 0], xy[:, 1], width_m - xy[:, 1]])
+
+
 def along_planes(b: Beams, sigma_m: np.ndarray, angle_sigma_rad: float, sweep_dir: np.ndarray,
                  n: np.ndarray, sample_dt_s: float, position_sigma_m: float = 0.0) -> np.ndarray:
     """(N, 5) True where the point's stretch of sweep runs along plane j: the chord between its neighbours
@@ -69,7 +81,7 @@ def along_planes(b: Beams, sigma_m: np.ndarray, angle_sigma_rad: float, sweep_di
     if m <= 2 * h:
         return out
     i = np.arange(h, m - h)
-    same = (sweep_dir[i - h] == sweep_dir[i + h]) & (b.t_s[i + h] - b.t_s[i - h] <= (2 * h + 1.5) * sample_dt_s)
+    same = unbroken(b.t_s, sweep_dir, i, sample_dt_s)
     chord = p[i + h] - p[i - h]
     length = np.linalg.norm(chord, axis=1)
     tol = 3.0 * np.hypot(sigma_m[i - h], sigma_m[i + h]) + 3.0 * angle_sigma_rad * length
@@ -150,9 +162,7 @@ def wall_stretches(points_w: np.ndarray, t_s: np.ndarray, sweep_dir: np.ndarray,
     i = np.arange(h, m - h)
     p = np.asarray(points_w, dtype=float)
     reach = np.hypot(beam_w[i, 0], beam_w[i, 1]) * math.tan(MAX_HEADING_ERROR_RAD) + 3.0 * sigma_m[i]
-    own_to_wall = np.minimum.reduce([p[i, 0], length_m - p[i, 0], p[i, 1], width_m - p[i, 1]])
-    near = ((own_to_wall <= reach) & (sweep_dir[i - h] == sweep_dir[i + h])
-            & (t_s[i + h] - t_s[i - h] <= (2 * h + 1.5) * sample_dt_s))  # beside a wall, in one unbroken stretch
+    near = (to_nearest_wall_m(p[i], length_m, width_m) <= reach) & unbroken(t_s, sweep_dir, i, sample_dt_s)
     if only is not None:
         near &= only[i]
     i, reach = i[near], reach[near]
@@ -164,7 +174,6 @@ def wall_stretches(points_w: np.ndarray, t_s: np.ndarray, sweep_dir: np.ndarray,
     straight = (off <= 3.0 * noise) & (own_off <= 3.0 * sigma_m[i])
     steep = np.abs(u[:, 2]) >= math.sin(math.radians(STEEPEST_PILE_DEG))
     long_enough = off < 0.5 * np.linalg.norm(p[i + h] - p[i - h], axis=1)
-    c = centre  # and the line too lies beside the wall
-    line_to_wall = np.minimum.reduce([c[:, 0], length_m - c[:, 0], c[:, 1], width_m - c[:, 1]])
-    out[i] = straight & steep & long_enough & (line_to_wall <= reach)
+    line_beside = to_nearest_wall_m(centre, length_m, width_m) <= reach  # the line too lies beside the wall
+    out[i] = straight & steep & long_enough & line_beside
     return out

@@ -98,13 +98,13 @@ def test_that_the_error_model_takes_the_larger_of_the_spec_and_the_noise_record(
     assert m.position_sigma_m == 0.3
 
 
-def _stretch(vehicle, points, t0_s=0.0, dt_s=0.002):
+def _stretch(vehicle, points, dt_s=0.002):
     """A cloud of one unbroken stretch of sweep: the points in order, their beams from the vehicle."""
     p = np.asarray(points, dtype=float)
     beam = p - np.asarray(vehicle, dtype=float)
     rng = np.linalg.norm(beam, axis=1)
     return Cloud(p, beam / rng[:, None], rng, np.empty((0, 3)), len(p), 0,
-                 sweep_dir=np.ones(len(p), dtype=np.int8), t_s=t0_s + dt_s * np.arange(len(p)))
+                 sweep_dir=np.ones(len(p), dtype=np.int8), t_s=dt_s * np.arange(len(p)))
 
 
 STORE = Storage(40.0, 25.0, 10.0)
