@@ -58,7 +58,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from threadpoolctl import threadpool_limits
 
-from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_dir_body, rot_body_to_ned
+from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_dir_body, beam_dot_body, rot_body_to_ned
 from firmware_py.core.servo_model import command_angles, servo_angles
 from firmware_py.core.storage import Storage
 from ground.plane_stretches import beams, stretches_along
@@ -210,12 +210,15 @@ class ServoAngles:
         base = self.exact(scale)
         self._lin = (scale, base, (self.exact(scale + LIN_STEP) - base) / LIN_STEP)
 
-    def __call__(self, offset: float, scale: float) -> np.ndarray:
+    def __call__(self, offset: float, scale: float, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """The angles of the samples idx (all by default): a fit over some points computes only theirs."""
         lin = getattr(self, "_lin", None)
-        if self.resim is None or lin is None:
-            return self.exact(scale) + offset
+        if self.resim is None:
+            return (1.0 + scale) * self.logged[idx] + offset
+        if lin is None:
+            return self.exact(scale)[idx] + offset
         s0, base, slope = lin
-        return base + (scale - s0) * slope + offset
+        return base[idx] + (scale - s0) * slope[idx] + offset
 
 
 class _Problem:
@@ -251,7 +254,7 @@ class _Problem:
         return out
 
     def points(self, q: np.ndarray, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
-        g = self.angles(float(q[0]), float(q[1]))[idx]
+        g = self.angles(float(q[0]), float(q[1]), idx)
         d_b = beam_dir_body(g, mounted(self.base, float(q[2]), float(q[3])))
         return self.origins[idx] + np.einsum("nij,nj->ni", self.r_wb[idx], d_b) * self.range_m[idx, None]
 
@@ -261,11 +264,11 @@ class _Problem:
         parameters cannot change are taken once, so a fit's many trial evaluations (its finite-difference
         Jacobian) cost a dot product per point instead of a rotation."""
         c = np.einsum("ij,ij->i", self.origins[idx], n) - d
-        m = np.einsum("nij,ni->nj", self.r_wb[idx], n) * self.range_m[idx, None]
+        m = np.ascontiguousarray((np.einsum("nij,ni->nj", self.r_wb[idx], n) * self.range_m[idx, None]).T)
 
         def at(q: np.ndarray) -> np.ndarray:
-            g = self.angles(float(q[0]), float(q[1]))[idx]
-            return c + np.einsum("ij,ij->i", m, beam_dir_body(g, mounted(self.base, float(q[2]), float(q[3]))))
+            g = self.angles(float(q[0]), float(q[1]), idx)
+            return c + beam_dot_body(m, g, mounted(self.base, float(q[2]), float(q[3])))
         return at
 
 

@@ -97,6 +97,20 @@ def beam_dir_body(servo_rad, boresight: Boresight = SQUARE) -> np.ndarray:
     return np.stack([cpsi * sb - spsi * y0, spsi * sb + cpsi * y0, z], axis=-1)
 
 
+def beam_dot_body(m_xyz: np.ndarray, servo_rad, boresight: Boresight = SQUARE) -> np.ndarray:
+    """m . `beam_dir_body`(servo_rad, boresight) per beam, m_xyz (3, ...) given component first, without forming the
+    directions. Why: a fit of the mount evaluates every point's distance from its plane (m: the plane's normal in the
+    body times the range) hundreds of times; the closed form costs a sine, a cosine and a few products per point
+    instead of a stack and a contraction. Same geometry: the direction's components regrouped."""
+    mx, my, mz = m_xyz
+    g = np.asarray(servo_rad, dtype=float)
+    if boresight.square:
+        return my * np.sin(g) + mz * np.cos(g)
+    cb, sb = math.cos(boresight.tilt_rad), math.sin(boresight.tilt_rad)
+    cpsi, spsi = math.cos(boresight.sweep_yaw_rad), math.sin(boresight.sweep_yaw_rad)
+    return sb * (cpsi * mx + spsi * my) + cb * ((cpsi * my - spsi * mx) * np.sin(g) + mz * np.cos(g))
+
+
 @dataclass(frozen=True)
 class StorageFrame:
     """Placement of the storage frame W in the local NED frame.

@@ -3,7 +3,16 @@ import math
 import numpy as np
 import pytest
 
-from firmware_py.core.frames import StorageFrame, beam_dir_body, beam_ray_w, beam_rays_w, points_w, rot_body_to_ned
+from firmware_py.core.frames import (
+    Boresight,
+    StorageFrame,
+    beam_dir_body,
+    beam_dot_body,
+    beam_ray_w,
+    beam_rays_w,
+    points_w,
+    rot_body_to_ned,
+)
 
 
 def test_that_body_to_ned_matches_scipy_zyx_euler():
@@ -25,6 +34,15 @@ def test_that_yaw_90_points_the_nose_east():
 def test_that_beam_sweeps_down_and_to_starboard():
     assert np.allclose(beam_dir_body(0.0), [0, 0, 1])
     assert np.allclose(beam_dir_body(math.pi / 2), [0, 1, 0])
+
+
+@pytest.mark.parametrize("boresight", [Boresight(), Boresight(0.05, 0.0), Boresight(-0.03, 0.08)])
+def test_that_the_beams_dot_product_is_the_directions(boresight):
+    rng = np.random.default_rng(3)
+    g = rng.uniform(-1.2, 1.2, 200)
+    m = rng.normal(size=(200, 3)) * 15
+    want = np.einsum("ij,ij->i", m, beam_dir_body(g, boresight))
+    assert np.allclose(beam_dot_body(m.T, g, boresight), want, rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("heading", [0.0, 0.7, math.pi / 2, -2.0])
