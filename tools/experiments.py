@@ -45,7 +45,7 @@ from sitl.world.raycast import World
 from sitl.world.stockpile import paper_pile
 from tools.sweep import Case, cached
 
-SWEEP_VERSION = "11"
+SWEEP_VERSION = "12"
 """Part of every case key: bump it when the simulation or the ground station changes what a case
 computes (the cache cannot see code). 3: runaway surface cells are emptied, not clamped to the floor;
 4: the cubic surface is limited to its triangles' data by default, despiking, servo re-timing;
@@ -54,7 +54,8 @@ pose message, the header's sensor_noise record); 6: the pose errors interpolated
 either side of a sample, as the payload now tags (it waits for the pose after the sample); 7: the wall-contact
 fill is the default empty-cell policy; 8: its Ve column is the survey's own fill (it had been `nearest`'s);
 9: the despiking allows the header's per-sample pointing error (Appendix A); 10: the default surface fit is
-`local-linear`; 11: its windows' standard errors scaled to the data's own scatter."""
+`local-linear`; 11: its windows' standard errors scaled to the data's own scatter; 12: the ground station of
+2026-11-30 (the pose correction runs by default; a straight stretch of sweep up a wall is the wall's)."""
 FLIGHT_VERSION = "2"
 """Part of every flight key. 2: the autopilot flies towards the target through corners."""
 P_TRAJ_PCT = (5, 10, 15, 20, 25, 30)
