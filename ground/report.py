@@ -6,7 +6,7 @@ import json
 import math
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -435,21 +435,15 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
                "despike_unavailable": why_no_threshold(header) if opts.despike and spikes is None else None}
     samples, rangefinder = _rangefinder_share(samples, header, storage, frame, lever, opts, mount)
     checked["rangefinder"] = rangefinder
-    # The building's estimates of the mount and the pose need the samples, not the survey: they run beside it (measured
-    # alone: survey 0.31 s, estimates 0.57 s, in sequence 0.86 s, side by side 0.61 s; docs/design-notes.md). The pose
-    # is estimated beside the mount too, on the samples as logged: that is its input whenever the mount is not applied
-    # (almost always); an applied mount has it estimated again on the corrected samples (`_first_estimates`). Used only
-    # when the servo is not re-timed, which changes the samples they were made from.
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        mount_ahead = pool.submit(_mount_of, samples, lever, frame, storage, err, Resimulated.from_header(header),
-                                  mount) if opts.self_calibration else None
-        pose_ahead = pool.submit(_pose_of, samples, mount, header, lever, frame, storage, err) \
-            if opts.pose_correction else None
+    # The building's estimates of the mount and the pose need the samples, not the survey: they run beside it, on the
+    # second core (measured alone: survey 0.31 s, estimates 0.57 s, in sequence 0.86 s, side by side 0.61 s;
+    # docs/design-notes.md). Used only when the servo is not re-timed, which changes the samples they were made from.
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        ahead = pool.submit(_first_estimates, samples, header, storage, frame, lever, opts, err, mount)
         survey = replace(_survey(samples, header, storage, frame, lever, opts, err, spikes, mount), **checked)
         before = survey.sweep_disagreement_m
         retime = opts.servo_retiming and before is not None and before > MAX_SWEEP_DISAGREEMENT_M
-        first = None if retime else _first_estimates(samples, header, storage, frame, lever, opts, err, mount,
-                                                     mount_ahead, pose_ahead)
+        first = None if retime else ahead.result()
     if first is not None:
         return _self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes, mount, first)
 
@@ -496,24 +490,18 @@ def _pose_of(s: np.ndarray, bs: Boresight, header: dict, lever: np.ndarray, fram
 
 
 def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame, lever: np.ndarray,
-                     opts: ReportOptions, err: SensorErrorModel, mount: Boresight,
-                     mount_ahead: Future[MountEstimate] | None = None,
-                     pose_ahead: Future[PoseCorrection] | None = None) -> _Estimates:
+                     opts: ReportOptions, err: SensorErrorModel, mount: Boresight) -> _Estimates:
     """The mount's self-calibration, then the pose's correction with the mount it leaves. The mount before the
     pose: a constant mount error is partly a constant shift of the structure, which the pose's knots took up
-    when they came first (measured: docs/pose_error.md). mount_ahead, pose_ahead: the same estimates started
-    beforehand on the samples and boresight as logged (the pose's is used only when no mount is applied)."""
+    when they came first (measured: docs/pose_error.md)."""
     est, corrected, boresight, pose = None, samples, mount, None
     if opts.self_calibration:
         resim = Resimulated.from_header(header)
-        est = mount_ahead.result() if mount_ahead is not None else _mount_of(samples, lever, frame, storage, err,
-                                                                             resim, mount)
+        est = _mount_of(samples, lever, frame, storage, err, resim, mount)
         if est.any_applied:
             corrected, boresight = apply_mount(samples, est, resim, mount)
     if opts.pose_correction:
-        as_logged = corrected is samples and boresight == mount  # (a boresight alone leaves the samples)
-        pose = pose_ahead.result() if pose_ahead is not None and as_logged else _pose_of(
-            corrected, boresight, header, lever, frame, storage, err)
+        pose = _pose_of(corrected, boresight, header, lever, frame, storage, err)
     return _Estimates(est, corrected, boresight, pose)
 
 
