@@ -70,7 +70,7 @@ class ErrorTerms:
 
 
 # --- calibrated pose factor (tools/calibrate_pose_interval.py --write-model) ---
-POSE_FACTOR = 6.514036652124275
+POSE_FACTOR = 7.13593435311451
 POSE_FACTOR_SOURCE = 'fitted on 38 drifting flights (tools/calibrate_pose_interval.py, 2026-11-30)'
 # --- end of calibrated pose factor ---
 
@@ -111,13 +111,13 @@ class IntervalModel:
 
 # --- calibrated interval model (tools/calibrate_interval.py --write-model) ---
 DEFAULT_INTERVAL_MODEL = IntervalModel(
-    k_unseen=1.60569,
-    k_interpolation=1.17776,
-    k_noise=0.406406,
-    k_sweeps=2.13814,
-    k_faces=5.54462,
-    k_blur=0.437927,
-    source='fitted on 819 calibration runs of the evaluation set (tools/calibrate_interval.py, 2026-11-28)')
+    k_unseen=1.60081,
+    k_interpolation=1.28424,
+    k_noise=0.974866,
+    k_sweeps=0.230812,
+    k_faces=5.6217,
+    k_blur=0.0699898,
+    source='fitted on 819 calibration runs of the evaluation set (tools/calibrate_interval.py, 2026-11-30)')
 # --- end of calibrated interval model ---
 
 

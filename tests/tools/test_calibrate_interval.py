@@ -44,6 +44,26 @@ def test_that_the_interval_holds_within_each_noise_model_not_only_on_average():
     assert coverage(per_model, rough)["coverage_pct"] >= 90.0 and coverage(per_model, calm)["coverage_pct"] >= 90.0
 
 
+def test_that_the_interval_holds_within_each_pile_family_except_those_a_height_map_cannot_hold():
+    # one P_traj; a common family, a rarer one whose errors are twice the scale, and a box whose errors no term sees
+    common, rare, box = _rows(300, 5), _rows(60, 6), _rows(20, 7)
+    for family, rows in (("cone", common), ("wall", rare), ("box", box)):
+        for r in rows:
+            r["family"], r["p_traj_pct"] = family, 20
+    for r in rare:
+        r["volume_m3"] = r["true_volume_m3"] + 2.0 * (r["volume_m3"] - r["true_volume_m3"])
+    for r in box:
+        r["volume_m3"] = r["true_volume_m3"] + 200.0 * (1 if int(r["run_id"]) % 2 else -1)
+    rows = common + rare + box
+    by_ptraj = model_of(fit(rows, n_candidates=300, families=False)[0], "P_traj only")
+    by_family = model_of(fit(rows, n_candidates=300)[0], "and families")
+    assert coverage(by_ptraj, rare)["coverage_pct"] < 85.0  # the common family hides the rare one
+    assert coverage(by_family, rare)["coverage_pct"] >= 90.0 and coverage(by_family, common)["coverage_pct"] >= 90.0
+    # the box is not held to 90 %: that would take an interval of +-200 m3 on every pile
+    assert coverage(by_family, box)["coverage_pct"] < 50.0
+    assert coverage(by_family, common)["median_half_width_pct"] < 10.0
+
+
 def test_that_the_fitted_model_is_written_between_its_markers(tmp_path):
     src = tmp_path / "u.py"
     src.write_text(f"x = 1\n{MODEL_BEGIN}\nold\n{MODEL_END}\ny = 2\n")
