@@ -462,20 +462,26 @@ def _tally(dist: np.ndarray, dist_all: np.ndarray, k: np.ndarray, n_knots: int, 
            bin_m: float) -> tuple[np.ndarray, np.ndarray]:
     """`_vote`'s count: per knot interval, the correction (K - 1, 3; NaN where no plane was found) and which planes
     were found, from the points' distances to the planes they may vote for (dist, inf elsewhere)."""
-    nearest = np.argmin(np.abs(dist), axis=1)
     bins = np.arange(-reach_m, reach_m + bin_m, bin_m)
     comp_of_plane = (2, 0, 0, 1, 1)
     est = np.full((n_knots - 1, 3), np.nan)
     found = np.zeros((n_knots - 1, 5), dtype=bool)
+    # each interval's points as one contiguous slice (a stable sort: the samples come in time order, so it is
+    # usually the identity), not a mask over the whole survey per interval and plane
+    order = np.argsort(k, kind="stable")
+    k, dist, dist_all = k[order], dist[order], dist_all[order]
+    nearest = np.argmin(np.abs(dist), axis=1)
+    bounds = np.searchsorted(k, np.arange(n_knots))
     for i in range(n_knots - 1):
-        here = k == i
+        here = slice(bounds[i], bounds[i + 1])
+        near_i, dist_i, all_i = nearest[here], dist[here], dist_all[here]
         sums, cnt = np.zeros(3), np.zeros(3)
         for j in range(5):
-            r = dist[here & (nearest == j), j] * INSIDE_SIGN[j]  # > 0: inside the building
+            r = dist_i[near_i == j, j] * INSIDE_SIGN[j]  # > 0: inside the building
             r = r[np.abs(r) <= reach_m]
             if len(r) < MIN_VOTES:
                 continue
-            inside_all = np.sort(dist_all[here, j] * INSIDE_SIGN[j])
+            inside_all = np.sort(all_i[:, j] * INSIDE_SIGN[j])
             stray = max(MIN_VOTES, STRAY_FRACTION * len(inside_all))
             h, _ = np.histogram(r, bins)
             for m in _peaks(h):
@@ -1304,16 +1310,12 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
     a_obs = sparse.csr_matrix((data, (rows, cols)), shape=(m_obs + m_floor, n_par))
     b_obs = np.concatenate([-med / rows_s, np.zeros(m_floor)])
     # the prior: knot-to-knot steps, a weak pull to zero (the knots) and to the floor (the cells)
-    pr, pc_, pd = [], [], []
-    for i in range(n_knots - 1):
-        pr += [i, i]
-        pc_ += [i, i + 1]
-        pd += [-1.0 / step_z_m, 1.0 / step_z_m]
     r = n_knots - 1
-    for i in range(n_par):
-        pr.append(r + i)
-        pc_.append(i)
-        pd.append(1.0 / (max_error_m if i < n_knots else storage.height_m))
+    steps = np.arange(r)
+    pr = np.concatenate([np.repeat(steps, 2), r + np.arange(n_par)])
+    pc_ = np.concatenate([np.column_stack([steps, steps + 1]).ravel(), np.arange(n_par)])
+    pd = np.concatenate([np.tile([-1.0 / step_z_m, 1.0 / step_z_m], r),
+                         np.where(np.arange(n_par) < n_knots, 1.0 / max_error_m, 1.0 / storage.height_m)])
     a_pr = sparse.csr_matrix((pd, (pr, pc_)), shape=(r + n_par, n_par))
     a = sparse.vstack([a_obs, a_pr], format="csr")
     rhs = np.concatenate([b_obs, np.zeros(r + n_par)])
