@@ -58,7 +58,15 @@ import numpy as np
 from scipy.optimize import least_squares
 from threadpoolctl import threadpool_limits
 
-from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_dir_body, beam_dot_body, rot_body_to_ned
+from firmware_py.core.frames import (
+    SQUARE,
+    Boresight,
+    StorageFrame,
+    beam_dir_body,
+    beam_dot_body,
+    beam_dot_body_partials,
+    rot_body_to_ned,
+)
 from firmware_py.core.servo_model import command_angles, servo_angles
 from firmware_py.core.storage import Storage
 from ground.plane_stretches import beams, stretches_along
@@ -210,6 +218,14 @@ class ServoAngles:
         base = self.exact(scale)
         self._lin = (scale, base, (self.exact(scale + LIN_STEP) - base) / LIN_STEP)
 
+    def scale_slope(self, idx: np.ndarray | slice = slice(None)) -> np.ndarray | None:
+        """d(angle)/d(scale) of the samples idx as `__call__` computes them: the logged angles without the drive,
+        the tangent's slope once linearized; None for the exact re-simulation (no closed form)."""
+        if self.resim is None:
+            return self.logged[idx]
+        lin = getattr(self, "_lin", None)
+        return None if lin is None else lin[2][idx]
+
     def __call__(self, offset: float, scale: float, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
         """The angles of the samples idx (all by default): a fit over some points computes only theirs."""
         lin = getattr(self, "_lin", None)
@@ -270,6 +286,25 @@ class _Problem:
             g = self.angles(float(q[0]), float(q[1]), idx)
             return c + beam_dot_body(m, g, mounted(self.base, float(q[2]), float(q[3])))
         return at
+
+    def plane_distance_jacobian(self, idx: np.ndarray, n: np.ndarray,
+                                d: np.ndarray) -> Callable[[np.ndarray], np.ndarray] | None:
+        """The Jacobian (len(idx), 4) of `plane_distances` in the parameters (offset, scale, tilt, sweep yaw), in
+        closed form (`beam_dot_body_partials`); None where the angles' scale has none (the exact re-simulation)."""
+        slope = self.angles.scale_slope(idx)
+        if slope is None:
+            return None
+        m = np.ascontiguousarray((np.einsum("nij,ni->nj", self.r_wb[idx], n) * self.range_m[idx, None]).T)
+
+        def jac(q: np.ndarray) -> np.ndarray:
+            g = self.angles(float(q[0]), float(q[1]), idx)
+            bs = mounted(self.base, float(q[2]), float(q[3]))
+            d_servo, d_tilt, d_yaw = beam_dot_body_partials(m, g, bs)
+            # an angle `mounted` holds at its limit does not move with the parameter
+            tilt_free = abs(self.base.tilt_rad + float(q[2])) < MAX_MOUNT_RAD
+            yaw_free = abs(self.base.sweep_yaw_rad + float(q[3])) < MAX_MOUNT_RAD
+            return np.column_stack([d_servo, d_servo * slope, d_tilt * tilt_free, d_yaw * yaw_free])
+        return jac
 
 
 def _assign(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: np.ndarray,
@@ -333,6 +368,7 @@ def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.n
         if len(sel) < 50 or not free.any():
             break
         distance = prob.plane_distances(sel, n[j[keep]], d[j[keep]])
+        jacobian = prob.plane_distance_jacobian(sel, n[j[keep]], d[j[keep]])
         wj = w_idx[keep]
 
         def resid(qf, distance=distance, wj=wj, q=q):
@@ -340,11 +376,17 @@ def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.n
             qq[free] = qf
             return distance(qq) / wj
 
+        def jac(qf, jacobian=jacobian, wj=wj, q=q):
+            qq = q.copy()
+            qq[free] = qf
+            return jacobian(qq)[:, free] / wj[:, None]
+
         q = q.copy()
         # One BLAS thread: the solver's products with a tall, four-column Jacobian are too small to share, and a
         # threaded OpenBLAS on a busy two-core machine spent more time handing them off than computing them.
         with threadpool_limits(limits=1, user_api="blas"):
-            q[free] = least_squares(resid, np.clip(q[free], lo, hi), loss="arctan", f_scale=1.0, bounds=(lo, hi),
+            q[free] = least_squares(resid, np.clip(q[free], lo, hi), jac="2-point" if jacobian is None else jac,
+                                    loss="arctan", f_scale=1.0, bounds=(lo, hi),
                                     x_scale=np.full(int(free.sum()), 0.01), diff_step=1e-6, max_nfev=80).x
     j, r = _assign(prob.points(q, idx), n, d, BAND * windows[-1][idx], prob.allowed(idx))
     return q, j, r

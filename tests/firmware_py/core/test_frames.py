@@ -8,6 +8,7 @@ from firmware_py.core.frames import (
     StorageFrame,
     beam_dir_body,
     beam_dot_body,
+    beam_dot_body_partials,
     beam_ray_w,
     beam_rays_w,
     points_w,
@@ -43,6 +44,22 @@ def test_that_the_beams_dot_product_is_the_directions(boresight):
     m = rng.normal(size=(200, 3)) * 15
     want = np.einsum("ij,ij->i", m, beam_dir_body(g, boresight))
     assert np.allclose(beam_dot_body(m.T, g, boresight), want, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("boresight", [Boresight(), Boresight(0.05, -0.08), Boresight(-0.3, 0.2)])
+def test_that_the_beams_dot_product_has_the_partials_a_central_difference_gives(boresight):
+    rng = np.random.default_rng(4)
+    g = rng.uniform(-1.2, 1.2, 200)
+    m = rng.normal(size=(3, 200)) * 15
+    h = 1e-6
+    d_servo, d_tilt, d_yaw = beam_dot_body_partials(m, g, boresight)
+    tilted = [Boresight(boresight.tilt_rad + s * h, boresight.sweep_yaw_rad) for s in (1, -1)]
+    yawed = [Boresight(boresight.tilt_rad, boresight.sweep_yaw_rad + s * h) for s in (1, -1)]
+    want = [(beam_dot_body(m, g + h, boresight) - beam_dot_body(m, g - h, boresight)) / (2 * h),
+            (beam_dot_body(m, g, tilted[0]) - beam_dot_body(m, g, tilted[1])) / (2 * h),
+            (beam_dot_body(m, g, yawed[0]) - beam_dot_body(m, g, yawed[1])) / (2 * h)]
+    for got, ref in zip((d_servo, d_tilt, d_yaw), want, strict=True):
+        assert np.allclose(got, ref, rtol=0, atol=1e-6)
 
 
 @pytest.mark.parametrize("heading", [0.0, 0.7, math.pi / 2, -2.0])
