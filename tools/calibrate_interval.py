@@ -3,8 +3,9 @@
 Every stored run of the evaluation set (tools/evalset.py) goes through today's ground station; its
 volume, true volume and error terms (ground.uncertainty.ErrorTerms) become a row. The factors
 k (one per term) are fitted on the **calibration** runs only: for a candidate direction k, the
-smallest common scale s that puts the truth inside the interval of 90 % of those runs (or of each
-stratum's, `--stratum`: then the largest of their quantiles) is a quantile of what each run needs (s_i =
+smallest common scale s that puts the truth inside the interval of 90 % of the runs of each stratum
+(each P_traj, `--stratum`, and each pile family a height map can hold, FAMILY_STRATA: the largest of their
+quantiles) is a quantile of what each run needs (s_i =
 |error| / its half-width on the error's side); among candidates the one with
 the smallest median relative half-width wins. The **held-out** runs (other seeds, a whole building and
 a whole pile family the fit never saw) then give the coverage and widths this module reports, broken
