@@ -274,37 +274,29 @@ class _Problem:
         d_b = beam_dir_body(g, mounted(self.base, float(q[2]), float(q[3])))
         return self.origins[idx] + np.einsum("nij,nj->ni", self.r_wb[idx], d_b) * self.range_m[idx, None]
 
-    def plane_distances(self, idx: np.ndarray, n: np.ndarray, d: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    def plane_distances(self, idx: np.ndarray, n: np.ndarray, d: np.ndarray
+                        ) -> tuple[Callable[[np.ndarray], np.ndarray], Callable[[np.ndarray], np.ndarray] | None]:
         """The signed distances of the points `idx` from their planes (normals n, offsets d, one per point) as a
-        function of the parameters: n . p - d = (n . origin - d) + range (R_wb^T n) . beam_body. The parts the
-        parameters cannot change are taken once, so a fit's many trial evaluations (its finite-difference
-        Jacobian) cost a dot product per point instead of a rotation."""
+        function of the parameters: n . p - d = (n . origin - d) + range (R_wb^T n) . beam_body; and their Jacobian
+        (len(idx), 4) in the parameters (offset, scale, tilt, sweep yaw), in closed form (`beam_dot_body_partials`),
+        None where the angles' scale has none (the exact re-simulation). The parts the parameters cannot change are
+        taken once, so a fit's many trial evaluations cost a dot product per point instead of a rotation."""
         c = np.einsum("ij,ij->i", self.origins[idx], n) - d
         m = np.ascontiguousarray((np.einsum("nij,ni->nj", self.r_wb[idx], n) * self.range_m[idx, None]).T)
+        slope = self.angles.scale_slope(idx)
 
         def at(q: np.ndarray) -> np.ndarray:
             g = self.angles(float(q[0]), float(q[1]), idx)
             return c + beam_dot_body(m, g, mounted(self.base, float(q[2]), float(q[3])))
-        return at
-
-    def plane_distance_jacobian(self, idx: np.ndarray, n: np.ndarray,
-                                d: np.ndarray) -> Callable[[np.ndarray], np.ndarray] | None:
-        """The Jacobian (len(idx), 4) of `plane_distances` in the parameters (offset, scale, tilt, sweep yaw), in
-        closed form (`beam_dot_body_partials`); None where the angles' scale has none (the exact re-simulation)."""
-        slope = self.angles.scale_slope(idx)
-        if slope is None:
-            return None
-        m = np.ascontiguousarray((np.einsum("nij,ni->nj", self.r_wb[idx], n) * self.range_m[idx, None]).T)
 
         def jac(q: np.ndarray) -> np.ndarray:
             g = self.angles(float(q[0]), float(q[1]), idx)
-            bs = mounted(self.base, float(q[2]), float(q[3]))
-            d_servo, d_tilt, d_yaw = beam_dot_body_partials(m, g, bs)
+            d_servo, d_tilt, d_yaw = beam_dot_body_partials(m, g, mounted(self.base, float(q[2]), float(q[3])))
             # an angle `mounted` holds at its limit does not move with the parameter
             tilt_free = abs(self.base.tilt_rad + float(q[2])) < MAX_MOUNT_RAD
             yaw_free = abs(self.base.sweep_yaw_rad + float(q[3])) < MAX_MOUNT_RAD
             return np.column_stack([d_servo, d_servo * slope, d_tilt * tilt_free, d_yaw * yaw_free])
-        return jac
+        return at, (None if slope is None else jac)
 
 
 def _assign(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: np.ndarray,
@@ -367,8 +359,7 @@ def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.n
         sel = idx[keep]
         if len(sel) < 50 or not free.any():
             break
-        distance = prob.plane_distances(sel, n[j[keep]], d[j[keep]])
-        jacobian = prob.plane_distance_jacobian(sel, n[j[keep]], d[j[keep]])
+        distance, jacobian = prob.plane_distances(sel, n[j[keep]], d[j[keep]])
         wj = w_idx[keep]
 
         def resid(qf, distance=distance, wj=wj, q=q):
