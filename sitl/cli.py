@@ -8,6 +8,7 @@ plan   export the survey as a QGC WPL 110 mission file.
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import os
 from collections.abc import Sequence
@@ -37,8 +38,10 @@ from sitl.missions.coverage import DEFAULT_SEEN_RADIUS_M, WALLS
 from sitl.missions.gaps import DEFAULT_GAP_TARGET_PCT
 from sitl.missions.qgc_wpl import write_qgc_wpl
 from sitl.missions.rectangle import TURN_MODES, Mission
-from sitl.runners.fly import PAYLOADS, PLANTS, FlyConfig, fly
+from sitl.runners.fly import PAYLOADS, PLANTS, FlyConfig, drift_warning, fly
 from sitl.sensing.pose_drift import PoseErrorProfile
+
+log = logging.getLogger(__name__)
 
 MISSION_KINDS = ("rectangle", "coverage", "fill-gaps")
 _SITE_AND_MISSION = {
@@ -64,7 +67,8 @@ CONFIG_OPTIONS: ConfigTables = {
               "payload.signing_key": "--signing-key",
               "sitl.sensor_noise": "--sensor-noise",
               "sitl.pose_error": "--pose-error"},
-    "plan": dict(_SITE_AND_MISSION),
+    "plan": {**_SITE_AND_MISSION,
+             "sitl.pose_error": "--pose-error"},
 }
 """Configuration key -> the option it sets, per subcommand (`firmware_py.core.cli.apply_config`;
 docs/configuration.md). serve's --mavlink is where the vehicle listens, not the payload's link, so
@@ -160,6 +164,7 @@ def build_parser() -> ArgumentParser:
     _sweep_options(pl)
     _rangefinder_options(pl)
     _noise_option(pl)
+    _pose_error_option(pl, plan=True)
     pl.add_argument("--out", required=True, help="plan file to write (.waypoints)")
     pl.add_argument("--force", action="store_true", help="replace the plan file if it exists")
     add_verbosity(pl, sub=True)
@@ -242,9 +247,16 @@ def _pose_error(text: str) -> PoseErrorProfile:
             f"must be one of {', '.join(m.value for m in PoseErrorProfile)}, got {text!r}") from None
 
 
-def _pose_error_option(p: ArgumentParser) -> None:
-    p.add_argument("--pose-error", type=_pose_error, default=PoseErrorProfile.NONE,
-                   metavar="{" + ",".join(m.value for m in PoseErrorProfile) + "}",
+def _pose_error_option(p: ArgumentParser, plan: bool = False) -> None:
+    metavar = "{" + ",".join(m.value for m in PoseErrorProfile) + "}"
+    if plan:
+        p.add_argument("--pose-error", type=_pose_error, default=PoseErrorProfile.NONE, metavar=metavar,
+                       help="the indoor pose estimate the vehicle will fly the plan on: flow (optical flow + downward "
+                            "rangefinder, drifting ~4%% of the distance with its scale error) or vio (visual "
+                            "odometry, ~1.5%%); warns when it can drift further than the legs keep from the walls "
+                            "(default none: motion capture or RTK, no warning; docs/pose_error.md)")
+        return
+    p.add_argument("--pose-error", type=_pose_error, default=PoseErrorProfile.NONE, metavar=metavar,
                    help="the indoor pose estimate the autopilot flies on and reports in ATTITUDE and "
                         "LOCAL_POSITION_NED: none (the truth, default); flow (optical flow + downward rangefinder: "
                         "drift ~2%% of the distance, heading drift, baro drift, and an altitude that follows the pile "
@@ -378,6 +390,9 @@ def _fly(args) -> int:
 
 def _plan(args) -> int:
     mission = _mission(args)
+    drift = drift_warning(mission, args.pose_error)
+    if drift:
+        log.warning(drift)
     out = Path(args.out)
     if not args.out.strip() or out.is_dir():
         raise UserError(f"--out must be a plan file path, not empty or a directory (got {args.out!r})")

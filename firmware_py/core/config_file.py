@@ -266,7 +266,8 @@ class SitlSection:
         choices=SensorNoise, example="datasheet"))
     pose_error: PoseError | None = field(default=None, metadata=_key(
         Kind.CHOICE, "indoor pose estimate the simulated autopilot flies on and reports: none (the truth), flow "
-        "(optical flow + downward rangefinder) or vio (visual odometry); docs/pose_error.md",
+        "(optical flow + downward rangefinder) or vio (visual odometry); for plan, the estimate a real flight will "
+        "fly on (a warning when it can drift into the walls); docs/pose_error.md",
         choices=PoseError, example="flow"))
 
 

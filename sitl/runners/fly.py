@@ -39,6 +39,7 @@ from firmware_py.core.site import DEFAULT_SITE, GeodeticPoint, Site
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import Waveform, initial_position, named_waveform
 from sitl.faults.injector import FaultSpec
+from sitl.missions.coverage import LoopMission
 from sitl.missions.qgc_wpl import write_qgc_wpl
 from sitl.missions.range_check import RangeLimit, check_range
 from sitl.missions.rectangle import Mission
@@ -204,23 +205,31 @@ def check_clearance(mission: Mission, pile: piles.Stockpile,
                          f"({mission.min_clearance_m:g} m clearance needed)")
 
 
-def drift_warning(mission: Mission, pose_error: PoseErrorProfile) -> str | None:
+def drift_warning(mission: Mission | LoopMission, pose_error: PoseErrorProfile) -> str | None:
     """A warning when the estimate a vehicle flies on can drift further than its legs keep from the walls: the
     profile's velocity scale and drift errors, as fractions of the distance flown, against the legs' distance
-    from the nearest wall less the vehicle's reach (a flight that reaches a wall fails, `sitl.world.clearance`)."""
+    from the nearest wall less the vehicle's reach (a flight that reaches a wall fails, `sitl.world.clearance`).
+    Any mission (the rectangle's or a planned loop): the legs are straight between waypoints, so their nearest
+    approach to a wall is at a waypoint."""
     p = pose_drift.profile_params(pose_error)
     if p is None:
         return None
-    s = mission.storage
-    margin = min(mission.p_traj * s.length_m, mission.p_traj * s.width_m)
+    margin = legs_room_m(mission)
     path = mission.path_length_m()
     drift = (p.scale_sigma_rel + p.drift_rel) * path
     room = margin - f450_reach_m()
     if drift <= room:
         return None
+    remedy = "a larger P_traj keeps" if isinstance(mission, Mission) else "legs further from the walls keep"
     return (f"the legs run {margin:.2f} m from the walls, and a {pose_error.value} estimate can drift "
             f"{(p.scale_sigma_rel + p.drift_rel) * 100:.1f} % of the {path:.0f} m flown ({drift:.1f} m): the vehicle "
-            f"may reach a wall (a larger P_traj keeps it further off)")
+            f"may reach a wall ({remedy} it further off)")
+
+
+def legs_room_m(mission: Mission | LoopMission) -> float:
+    """The legs' nearest approach to a wall (m): the least distance of a waypoint from the four walls."""
+    s, wp = mission.storage, mission.waypoints_w()
+    return float(np.min(np.minimum.reduce([wp[:, 0], s.length_m - wp[:, 0], wp[:, 1], s.width_m - wp[:, 1]])))
 
 
 TRAJECTORY_RATE_HZ = 10.0

@@ -61,6 +61,7 @@ from sitl.runners.fly import (
     FlyConfig,
     check_clearance,
     check_rangefinder_faults,
+    drift_warning,
     noise_header,
     pose_error_header,
     pose_error_truth,
@@ -167,6 +168,9 @@ def serve(opts: ServeOptions) -> int:
     """
     world = None
     check_free(opts.out, RUN_FILES, force=opts.force)  # a taken --out fails before any work
+    drift = drift_warning(opts.mission, opts.pose_error)  # the served vehicle flies on the drifting estimate
+    if drift:
+        log.warning(drift)
     if opts.devices_url is not None:
         parse_bridge_url(opts.devices_url)  # a bad URL fails before any work
         with reading_input("--stockpile"):

@@ -149,6 +149,19 @@ def test_that_plan_refuses_to_overwrite_without_force_and_replaces_with_it(tmp_p
     assert [p.name for p in tmp_path.iterdir()] == ["p.waypoints"]  # no temporary left beside it
 
 
+def test_that_plan_warns_when_the_estimate_it_will_be_flown_on_can_drift_into_a_wall(tmp_path, capsys):
+    """A real flight indoors flies on a drifting estimate: the plan a drone engineer exports is checked as `fly`
+    checks a simulated one, and still written (a warning, not a refusal: the pilot may fly a better estimate)."""
+    near, far = tmp_path / "near.waypoints", tmp_path / "far.waypoints"
+    assert main(["plan", "--p-traj", "5", "--pose-error", "flow", "--out", str(near)]) == 0
+    err = capsys.readouterr().err
+    assert "warning: the legs run 2.00 m from the walls, and a flow estimate can drift" in err and near.exists()
+    assert main(["plan", "--p-traj", "20", "--pose-error", "flow", "--out", str(far)]) == 0
+    assert "warning" not in capsys.readouterr().err  # 8 m of room
+    assert main(["plan", "--p-traj", "5", "--out", str(tmp_path / "truth.waypoints")]) == 0
+    assert "warning" not in capsys.readouterr().err  # no estimate named: motion capture, RTK
+
+
 # ----- -v / -q -------------------------------------------------------------------------------------------
 
 IDEAL = ["fly", "--stockpile", "1", "--p-traj", "25", "--plant", "ideal"]

@@ -163,3 +163,21 @@ def test_that_the_report_measures_the_rangefinder_s_share_of_the_height_and_take
     _, with_lift = trajectory_rms_m(truth, on["pose_correction"], rf)
     _, without_lift = trajectory_rms_m(truth, on["pose_correction"])
     assert with_lift < without_lift
+
+
+def test_that_a_planned_loop_is_warned_of_drift_by_its_own_waypoints():
+    """The coverage planner's loops have no P_traj: their room to the walls is their waypoints' (it raised an
+    AttributeError, a traceback from `fly --mission coverage --pose-error flow`)."""
+    from sitl.missions.coverage import LoopMission
+    from sitl.runners.fly import drift_warning, legs_room_m
+    s = Mission().storage
+    def loop(south_m: float) -> LoopMission:  # 8 m from three walls, south_m from the fourth
+        wp = [(8.0, south_m), (s.length_m - 8.0, south_m), (s.length_m - 8.0, s.width_m - 8.0),
+              (8.0, s.width_m - 8.0), (8.0, south_m)]
+        return LoopMission(storage=s, waypoints=tuple(wp))
+    near = loop(1.5)
+    assert legs_room_m(near) == pytest.approx(1.5)
+    warning = drift_warning(near, PoseErrorProfile.FLOW)
+    assert warning is not None and "1.50 m from the walls" in warning and "legs further from the walls" in warning
+    assert drift_warning(loop(8.0), PoseErrorProfile.VIO) is None  # 8 m of room, a 1.5 % drift of ~150 m
+    assert legs_room_m(Mission(p_traj=0.05)) == pytest.approx(2.0)  # the rectangle: P_traj of the shorter side
