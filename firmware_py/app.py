@@ -80,6 +80,7 @@ from firmware_py.hal.signing import SigningConfig
 from firmware_py.hal.uart import DEFAULT_BAUD, SerialPort, check_uart_url, open_uart, parse_uart_url
 from firmware_py.health import HealthMonitor, HealthSnapshot, HealthStatus, SensorState
 from firmware_py.live_stream import LiveStreamSender
+from firmware_py.log_room import check_destination, room_s, room_warning
 from firmware_py.payload import COUNTED_FLAGS, LoopConfig, LoopStats, PayloadLoop, RangeSensor
 from firmware_py.pose import set_gps_global_origin_msg
 from firmware_py.pose_tracker import PoseTracker, PoseTrackerConfig
@@ -573,6 +574,7 @@ class PayloadApp:
         self.origin_disagreement: str | None = None  # set when the autopilot's EKF origin is not the one sent
         self._next_origin_ns = 0
         self._close_errors: list[str] = []
+        self._log_room_low = False  # the log's file system holds less than the flight (`log_room`)
         self.health_errors = 0
         self._failed_since_ns: int | None = None
 
@@ -613,6 +615,8 @@ class PayloadApp:
                 self._send_health([self.health.event(
                     mavlink.MAV_SEVERITY_INFO,
                     f"started, {self.cfg.rate_hz:g} Hz" + (", link signed" if self.signing_active else "")),
+                    *([self.health.event(mavlink.MAV_SEVERITY_WARNING, "log storage nearly full")]
+                      if self._log_room_low else []),
                     *self._pose_source_events()])
                 self.loop.run(duration_s=self.cfg.duration_s, should_stop=self._should_stop)
             self.request_stop("duration reached")
@@ -630,10 +634,11 @@ class PayloadApp:
     def _open(self) -> None:
         cfg = self.cfg
         out = Path(cfg.out_path)
-        if out.exists() and not cfg.force:
-            raise UserError(f"{out} already exists; choose another --out or pass --force")
-        if not out.parent.is_dir():
-            raise UserError(f"cannot write {out}: directory {out.parent} does not exist")
+        check_destination(out, cfg.force)  # before the hardware and the pose wait: a bad path fails at once
+        low = room_warning(room_s(out, cfg.rate_hz, cfg.records_per_block), cfg.duration_s, cfg.rate_hz)
+        if low:
+            self._warn(low)
+        self._log_room_low = low is not None  # said on the ground station too, with "started"
         if self.link is None:
             self.link = _opening("MAVLink link", cfg.mavlink_url,
                                  lambda: open_mavlink(cfg.mavlink_url, signing=cfg.signing))

@@ -13,6 +13,7 @@ import math
 import re
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 from firmware_py.app import (
     DEFAULT_I2C_URL,
@@ -55,6 +56,7 @@ from firmware_py.hal.mavlink_link import mavutil_device
 from firmware_py.hal.pwm import check_pwm_url
 from firmware_py.hal.signing import SigningConfig
 from firmware_py.hal.uart import check_uart_url
+from firmware_py.log_room import check_destination, describe_room, room_s, room_warning
 
 _HAL_RE = re.compile(r"sitl:(?P<host>[^\s:]+):(?P<port>\d{1,5})")
 _MAVLINK_BUILTIN = ("serial", "udp", "udpin", "udpout", "tcp")
@@ -340,10 +342,30 @@ def check_text(cfg: PayloadConfig) -> str:
     return head + to_toml(eff)
 
 
+def log_notes(cfg: PayloadConfig) -> tuple[str | None, list[str]]:
+    """What --check says of the log, as the payload would open it on this machine: a TOML comment with the room its
+    file system holds, and warnings: why it could not be written, or that the room is less than the flight
+    (warnings, not errors: a configuration checked on another machine than the one it is for names that machine's
+    paths)."""
+    out = Path(cfg.out_path)
+    try:
+        check_destination(out, cfg.force)
+    except UserError as exc:
+        return None, [f"{exc} (on this machine)"]
+    room = room_s(out, cfg.rate_hz, cfg.records_per_block)
+    low = room_warning(room, cfg.duration_s, cfg.rate_hz)
+    note = None if room is None else (f"# the log's file system has room for {describe_room(room)} of samples at "
+                                      f"{cfg.rate_hz:g} Hz\n")
+    return note, [low] if low else []
+
+
 def _run(args) -> int:
     cfg = config_from_args(args)
     if args.check:
-        print(check_text(cfg), end="")
+        note, warnings = log_notes(cfg)
+        print(check_text(cfg) + (note or ""), end="")
+        for w in warnings:
+            print(f"{PROG}: warning: {w}", file=sys.stderr)
         return 0
     app = PayloadApp(cfg, err=sys.stderr)
     with stop_on_signals(app.request_stop):

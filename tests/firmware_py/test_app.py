@@ -330,6 +330,33 @@ def test_that_the_operator_is_warned_before_the_survey_when_the_autopilot_takes_
     assert texts[started + 1] == "pilescan: EKF height from rangefinder"  # said with the start, before the survey
 
 
+def test_that_a_nearly_full_log_card_is_said_at_start_on_the_console_and_the_ground_station(tmp_path, devices,
+                                                                                          monkeypatch):
+    """A payload started flight after flight fills its card with logs; at start it says when the free space holds
+    less than half an hour of samples, before the survey is flown, and flies on (the log stops when it is full)."""
+    from collections import namedtuple
+
+    from firmware_py import log_room
+    ten_minutes = 630 * log_room.log_bytes_per_s(500.0, 100)  # payload_config's 100 records a block
+    monkeypatch.setattr(log_room.shutil, "disk_usage", lambda path: namedtuple("U", "total used free")(
+        10**10, 10**10 - ten_minutes, ten_minutes))
+    ap = Autopilot()
+    err = io.StringIO()
+    try:
+        app = PayloadApp(payload_config(tmp_path, ap.url, duration_s=None, quiet=False), err=err)
+        stop_later(app, 1.5)  # no --duration: it would run on
+        res = app.run()
+        assert ap.wait_for(lambda: any("stopping" in t for t in ap.spy.texts()))
+    finally:
+        ap.close()
+    assert res.stop_reason == "test over"  # a warning, not a refusal: it flew on
+    assert "warning: the log's file system has room for 10 min of samples at 500 Hz, less than half an hour" \
+        in err.getvalue()
+    texts = ap.spy.texts()
+    started = next(i for i, t in enumerate(texts) if t.startswith("pilescan: started"))
+    assert texts[started + 1] == "pilescan: log storage nearly full"
+
+
 def test_that_a_disarmed_autopilot_that_never_armed_does_not_stop_the_payload(tmp_path, devices, autopilot):
     cfg = payload_config(tmp_path, autopilot.url, stop_on_disarm=True, duration_s=1.5)
     res = PayloadApp(cfg, err=None).run()

@@ -169,3 +169,18 @@ def test_that_a_missing_config_is_one_line_exit_3(tmp_path, capsys):
     assert main(["--config", str(tmp_path / "nope.toml"), "--check", "--out", "x"]) == ExitCode.INPUT
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "No such file" in err
+
+
+def test_that_check_says_whether_the_log_could_be_written_here_and_how_long_its_room_lasts(tmp_path, capsys):
+    """--check looks at the log as the payload would open it: a path it could not write (or would not replace) is
+    a warning, as is too little room; a writable one gets its room as a comment, and the output stays TOML."""
+    assert main(["--check", "--out", str(tmp_path / "x.pslog")]) == 0
+    out, err = capsys.readouterr()
+    assert errors(err) == [] and "warning" not in err
+    assert "# the log's file system has room for " in out and " of samples at 500 Hz" in out
+    assert tomllib.loads(out)["payload"]["log"] == str(tmp_path / "x.pslog")
+    (tmp_path / "old.pslog").write_bytes(b"")
+    assert main(["--check", "--out", str(tmp_path / "old.pslog")]) == 0
+    assert "warning: " in (err := capsys.readouterr().err) and "already exists" in err and "(on this machine)" in err
+    assert main(["--check", "--out", str(tmp_path / "missing" / "x.pslog")]) == 0
+    assert "directory " in (err := capsys.readouterr().err) and "does not exist (on this machine)" in err
