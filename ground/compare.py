@@ -41,6 +41,7 @@ import numpy as np
 from firmware_py.core.cli import UserError
 from firmware_py.core.rundir import OutputFolder, check_free
 from firmware_py.core.version import software_version
+from ground.render import signless_zero
 from ground.surface import Grid
 from ground.surface_file import SavedSurface, building_mismatch, resampled
 from ground.uncertainty import INTERVAL_LEVEL
@@ -146,12 +147,17 @@ def change_record(c: Change, old: SavedSurface, new: SavedSurface, old_src: str,
 
 
 def format_change(rec: dict) -> str:
+    def v(x: float, spec: str = ",.1f") -> str:
+        return f"{signless_zero(x, spec):{spec}}"
+
     def iv(k: str) -> str:
         lo, hi = rec[k]
-        return f"(90 % interval {lo:,.1f} to {hi:,.1f} m^3)"
-    lines = [f"net change    {rec['net_m3']:+12,.1f} m^3 {iv('net_interval_m3')}",
-             f"cut           {rec['cut_m3']:12,.1f} m^3 {iv('cut_interval_m3')} over {rec['cut_area_m2']:,.0f} m^2",
-             f"fill          {rec['fill_m3']:12,.1f} m^3 {iv('fill_interval_m3')} over {rec['fill_area_m2']:,.0f} m^2",
+        return f"(90 % interval {v(lo)} to {v(hi)} m^3)"
+    lines = [f"net change    {v(rec['net_m3'], '+12,.1f')} m^3 {iv('net_interval_m3')}",
+             f"cut           {v(rec['cut_m3'], '12,.1f')} m^3 {iv('cut_interval_m3')} "
+             f"over {rec['cut_area_m2']:,.0f} m^2",
+             f"fill          {v(rec['fill_m3'], '12,.1f')} m^3 {iv('fill_interval_m3')} "
+             f"over {rec['fill_area_m2']:,.0f} m^2",
              f"detection     changes under {rec['level_of_detection_m']:.3f} m not counted as cut or fill"]
     if rec.get("true_net_m3") is not None:
         where = "inside" if rec["truth_in_interval"] else "OUTSIDE"

@@ -22,6 +22,7 @@ import numpy as np
 
 from ground.compare import Change
 from ground.piles import DEFAULT_MIN_PILE_AREA_M2, segment, threshold_m
+from ground.render import signless_zero
 from ground.surface_file import SavedSurface, resampled
 
 
@@ -92,6 +93,7 @@ def format_pile_changes(records: list[dict] | None) -> list[str]:
         name = f"{r['old_pile'] or '-'} -> {r['new_pile'] or '-'}"
         lo, hi = r["change_interval_m3"]
         x, y = r["centroid_m"]
-        lines.append(f"pile {name:<10} at ({x:.1f}, {y:.1f}) m  {r['status']:<7} change {r['change_m3']:+10,.1f} m^3 "
+        change, lo, hi = (signless_zero(u, ".1f") for u in (r["change_m3"], lo, hi))
+        lines.append(f"pile {name:<10} at ({x:.1f}, {y:.1f}) m  {r['status']:<7} change {change:+10,.1f} m^3 "
                      f"(90 % interval {lo:,.1f} to {hi:,.1f})")
     return lines

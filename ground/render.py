@@ -199,6 +199,17 @@ def fmt_value(v: Any) -> str:
     return str(v)
 
 
+def signless_zero(v: float, spec: str) -> float:
+    """v, or +0.0 when it shows as zero in the format spec ('.1f', '+12,.1f'): -0.04 m³ shown as '-0.0' reads as a
+    negative volume to a surveyor; the sign of what lies below the last digit shown is noise."""
+    digits = spec.rpartition(".")[2].rstrip("f%")
+    if spec.endswith(("f", "%")) and digits.isdigit():
+        scale = 100.0 if spec.endswith("%") else 1.0
+        if round(v * scale, int(digits)) == 0.0:
+            return 0.0
+    return v
+
+
 def _fmt_number(v: Any, spec: str, unit: str = "") -> str:
     """Format a real number with `spec` and unit; None -> unknown; anything else generically."""
     if _is_missing(v):
@@ -206,7 +217,7 @@ def _fmt_number(v: Any, spec: str, unit: str = "") -> str:
     f = _finite_real(v)
     if f is None:
         return fmt_value(v)
-    return f"{f:{spec}}{unit}"
+    return f"{signless_zero(f, spec):{spec}}{unit}"
 
 
 def fmt_volume(v: Any) -> str:

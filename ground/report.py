@@ -927,6 +927,7 @@ def write_outputs(survey: Survey, report: dict, out: Path, plots: bool) -> dict[
         return {}
     from ground import plots as p
     from ground.exports.contours import contour_lines
+    from ground.render import signless_zero
     lw = (survey.storage.length_m, survey.storage.width_m)
     path = survey.cloud.path_w[:: max(1, len(survey.cloud.path_w) // 5000)]
     ra = report["coverage_ratio_pct"]
@@ -935,7 +936,7 @@ def write_outputs(survey: Survey, report: dict, out: Path, plots: bool) -> dict[
                                   title=f"Point cloud, top view ({len(survey.pile_points_w)} points)"),
         "height_map": p.plot_height_map(survey.grid.x_edges, survey.grid.y_edges, survey.heights, lw,
                                         out / "height_map.png",
-                                        title=f"Fitted surface: {report['volume_m3']:.1f} m³",
+                                        title=f"Fitted surface: {signless_zero(report['volume_m3'], '.1f'):.1f} m³",
                                         filled=~np.isfinite(survey.heights_fit),
                                         contours=contour_lines(survey.heights, survey.grid)),
         "coverage": p.plot_coverage(survey.grid.x_edges, survey.grid.y_edges, survey.counts,

@@ -249,3 +249,26 @@ def test_that_the_trajectory_correction_figure_is_an_engineers_figure_with_a_cap
     assert caption in page
     assert FIGURE_NAME not in render.PAGE_IMAGES  # among the processing figures, not the customer's page
     assert page.index(caption) > page.index(render.ENGINEER_NOTE[:40].replace("'", "&#x27;"))
+
+
+def test_that_a_value_that_rounds_to_zero_is_shown_without_a_minus_sign():
+    """-0.04 m³ shown as '-0.0 m³' reads as a negative volume; the sign below the last digit shown is noise. A
+    value that shows a digit keeps its sign."""
+    from ground.render import fmt_pct, fmt_volume, signless_zero
+    assert fmt_volume(-0.04) == "0.0 m³" and fmt_volume(-0.06) == "-0.1 m³" and fmt_volume(-0.0) == "0.0 m³"
+    assert fmt_pct(-0.004) == "0.00 %" and fmt_pct(-0.006) == "-0.01 %"
+    assert f"{signless_zero(-0.01, '+12,.1f'):+12,.1f}" == "        +0.0"  # the column keeps its width
+    assert signless_zero(-0.001, ".0%") == 0.0 and signless_zero(-0.01, ".0%") == -0.01  # -1 % shows a digit
+    assert signless_zero(-0.4, "d") == -0.4  # not a fixed-point spec: left alone
+
+
+def test_that_comparing_a_survey_with_itself_shows_no_negative_zero():
+    from ground.compare import format_change
+    from ground.pile_change import format_pile_changes
+    rec = {"net_m3": -0.0, "net_interval_m3": [-0.02, 0.02], "cut_m3": -0.0, "cut_interval_m3": [0.0, 0.0],
+           "fill_m3": 0.0, "fill_interval_m3": [0.0, 0.0], "cut_area_m2": 0.0, "fill_area_m2": 0.0,
+           "level_of_detection_m": 0.007, "warnings": []}
+    text = format_change(rec) + "\n" + "\n".join(format_pile_changes(
+        [{"old_pile": "P1", "new_pile": "P1", "change_interval_m3": [-0.03, 0.01], "centroid_m": [1.0, 2.0],
+          "status": "matched", "change_m3": -0.01}]))
+    assert "-0.0" not in text and "net change            +0.0 m^3 (90 % interval 0.0 to 0.0 m^3)" in text
