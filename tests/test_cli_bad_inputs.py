@@ -235,7 +235,7 @@ CASES = [
     ("payload", ["--out", "{t}/x.pslog", *PAY, "--mission-id", " "], "mission id"),
     ("payload", ["--out", "", *PAY], "non-empty"),
     ("payload", ["--out", "{d}/old.pslog", *PAY], "--force"),
-    ("payload", ["--out", "{d}/adir.pslog", *PAY], "already exists"),
+    ("payload", ["--out", "{d}/adir.pslog", *PAY], "is a directory"),
     ("payload", ["--out", "{d}/blocker/x.pslog", *PAY], "does not exist"),
     ("payload", ["--out", "{t}/no/such/dir/x.pslog", *PAY], "does not exist"),
     # ----- python -m tools.reproduce
