@@ -447,18 +447,21 @@ def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 
         return cache[plan]
 
     def ladder(size_m: float, speed: float) -> tuple[float, ...]:
-        """A wall's offsets (m), nearest first: the near-wall steps the vehicle can fly, then the family's."""
+        """A wall's offsets (m), nearest first: the near-wall steps the vehicle can fly, then the family's that keep
+        the clearance (in a small building the family's first steps lie within it: 5 % of 8 m is 0.4 m)."""
         near = min_clearance_m + target.energy.overshoot_m(speed)
         return (tuple(f * size_m for f in NEAR_WALL_STEPS if f * size_m >= near)
-                + tuple(f * size_m for f in OFFSET_STEPS))
+                + tuple(f * size_m for f in OFFSET_STEPS if f * size_m >= min_clearance_m))
 
     ladders = {v: [ladder(z, v) for z in sizes] for v in target.speeds_m_s}
+    if any(not rungs for per_wall in ladders.values() for rungs in per_wall):
+        raise ValueError(f"no loop fits the {storage} building {min_clearance_m:g} m from its walls")
 
     def plan_of(steps: tuple[int, ...], cut_m: float, speed: float) -> LoopPlan:
         return LoopPlan(tuple(ladders[speed][i][k] for i, k in enumerate(steps)), cut_m, speed)
 
     best: tuple[float, LoopPlan, Coverage] | None = None
-    best_reached = 0.0
+    best_reached: float | None = None  # the best predicted coverage of the loops nearest the walls that could be flown
     cut = max(min_clearance_m, 0.05 * min(storage.length_m, storage.width_m))
     for speed in target.speeds_m_s:
         for cut_m in (0.0, cut):
@@ -466,7 +469,7 @@ def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 
             got = evaluate(plan_of(steps, cut_m, speed))
             if got is None:
                 continue
-            best_reached = max(best_reached, got[0].predicted_ra_pct)
+            best_reached = max(best_reached or 0.0, got[0].predicted_ra_pct)
             if got[0].predicted_ra_pct < target.coverage_pct:
                 continue
             while True:  # move one wall's leg inwards: the cheapest move that keeps the target
@@ -484,8 +487,12 @@ def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 
             cov, e = evaluate(plan_of(steps, cut_m, speed))
             if best is None or e < best[0]:
                 best = (e, plan_of(steps, cut_m, speed), cov)
+    if best is None and best_reached is None:
+        raise ValueError(f"no loop fits the {storage} building: every loop nearest its walls was refused (the "
+                         f"clearance {min_clearance_m:g} m, the corner turns)")
     if best is None:
-        raise ValueError(f"no loop reaches {target.coverage_pct:g} % predicted coverage (best {best_reached:.1f} %, "
+        shown = math.floor(best_reached * 100.0) / 100.0  # 99.996 % is not "100.0 %" when 100 % is not reached
+        raise ValueError(f"no loop reaches {target.coverage_pct:g} % predicted coverage (best {shown:.2f} %, "
                          "legs as near every wall as the vehicle may fly); lower --coverage, sweep slower, or fly "
                          "lower")
     e, plan, cov = best
