@@ -11,6 +11,7 @@ import argparse
 import logging
 import math
 import os
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -304,6 +305,26 @@ def _mission(args, waveform: Waveform | None = None):
                    yaw_rate_max_rad_s=math.radians(args.yaw_rate_max))
 
 
+PROGRESS_EVERY_S = 10.0
+"""A long plan (on an earlier survey's surface, for every servo start position: minutes) says how far it got this
+often."""
+
+
+def planning_progress(every_s: float = PROGRESS_EVERY_S, clock=time.monotonic):
+    """progress(loops evaluated, best predicted coverage) for `plan_coverage`: an INFO line every every_s seconds
+    (-q silences it), nothing for a plan that is over sooner."""
+    start = clock()
+    next_at = [start + every_s]
+
+    def say(n: int, best_pct: float) -> None:
+        now = clock()
+        if now >= next_at[0]:
+            next_at[0] = now + every_s
+            log.info("coverage plan: %d loops evaluated in %.0f s, the best predicts %.2f %% so far", n, now - start,
+                     best_pct)
+    return say
+
+
 def _coverage_mission(args, waveform: Waveform | None):
     from sitl.missions.coverage import CoverageTarget, WallBand, mission_time_s, plan_coverage
     from sitl.missions.range_check import planning_limit
@@ -321,7 +342,7 @@ def _coverage_mission(args, waveform: Waveform | None):
                                 seen_radius_m=args.seen_radius, also_waveforms=also, surface=surface,
                                 walls=None if args.bare_walls else WallBand.of(spec))
         planned = plan_coverage(storage, target, altitude_m=args.altitude,
-                                yaw_rate_max_rad_s=math.radians(args.yaw_rate_max))
+                                yaw_rate_max_rad_s=math.radians(args.yaw_rate_max), progress=planning_progress())
     except ValueError as exc:
         raise UserError(f"coverage plan: {exc}") from None
     if not args.quiet:

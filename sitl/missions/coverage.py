@@ -32,6 +32,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from statistics import NormalDist
 
@@ -417,9 +418,12 @@ def worst_coverage(mission, target: CoverageTarget) -> Coverage:
 
 
 def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 12.0,
-                  yaw_rate_max_rad_s: float = math.radians(30.0), min_clearance_m: float = 0.5) -> PlannedLoop:
+                  yaw_rate_max_rad_s: float = math.radians(30.0), min_clearance_m: float = 0.5,
+                  progress: Callable[[int, float], None] | None = None) -> PlannedLoop:
     """The least-energy loop of the family whose predicted coverage reaches the target (module docstring);
-    ValueError (one line) when none does."""
+    ValueError (one line) when none does. progress(loops evaluated, best predicted coverage so far, %) is called
+    after each loop evaluated: on an earlier survey's surface, for every servo start position, a plan takes
+    minutes."""
     if not (math.isfinite(altitude_m) and min_clearance_m < altitude_m <= storage.height_m - min_clearance_m):
         raise ValueError(f"altitude {altitude_m:g} m does not fit the {storage} building "
                          f"(needs {min_clearance_m:g} m clearance to floor and roof)")
@@ -434,6 +438,7 @@ def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 
                          "planned yet; fly lower or survey a narrower bay")
     sizes = (storage.width_m, storage.length_m, storage.width_m, storage.length_m)  # across each wall
     cache: dict[LoopPlan, tuple[Coverage, float] | None] = {}
+    most = [0.0]  # the best predicted coverage of any loop evaluated, for progress
 
     def evaluate(plan: LoopPlan) -> tuple[Coverage, float] | None:
         if plan not in cache:
@@ -444,6 +449,9 @@ def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 
                 return None
             cov = worst_coverage(m, target)
             cache[plan] = cov, mission_energy_j(m, target.energy)
+            most[0] = max(most[0], cov.predicted_ra_pct)
+            if progress is not None:
+                progress(len(cache), most[0])
         return cache[plan]
 
     def ladder(size_m: float, speed: float) -> tuple[float, ...]:

@@ -122,6 +122,26 @@ def test_that_a_target_missed_by_hundredths_is_not_said_to_have_been_reached():
     assert "100.0" not in str(e.value)
 
 
+def test_that_a_long_plan_says_how_far_it_got(caplog):
+    """Planned on an earlier survey's surface for every servo start position, a plan takes minutes (3.5 s a loop,
+    hundreds of loops): the planner reports each loop it evaluated, and the CLI says so every PROGRESS_EVERY_S."""
+    from sitl.cli import planning_progress
+    seen = []
+    target = CoverageTarget(97.0, WF, LIDAR, LIDARLITE_V3.rate_hz, speeds_m_s=(2.0,))
+    planned = plan_coverage(SMALL, target, altitude_m=6.0, progress=lambda n, best: seen.append((n, best)))
+    assert [n for n, _ in seen] == list(range(1, len(seen) + 1)) and len(seen) == planned.n_evaluated
+    assert max(b for _, b in seen) >= planned.coverage.predicted_ra_pct >= 97.0
+    now = [0.0]
+    say = planning_progress(every_s=10.0, clock=lambda: now[0])
+    with caplog.at_level("INFO", logger="sitl.cli"):
+        for n in range(1, 7):
+            now[0] = 4.0 * n  # a loop every 4 s: a line at 12 s, the next 10 s later or after (24 s)
+            say(n, 90.0 + n)
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines == ["coverage plan: 3 loops evaluated in 12 s, the best predicts 93.00 % so far",
+                     "coverage plan: 6 loops evaluated in 24 s, the best predicts 96.00 % so far"]
+
+
 @pytest.mark.parametrize("bad", [dict(waypoints=((1, 1), (5, 1), (5, 5), (1, 5))),  # not closed
                                  dict(waypoints=((0.2, 1), (5, 1), (5, 5), (0.2, 1))),  # too near a wall
                                  dict(waypoints=((1, 1), (1, 1), (5, 5), (1, 1)))])  # repeated waypoint
