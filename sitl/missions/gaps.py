@@ -291,7 +291,7 @@ def plan_fill_gaps(storage: Storage, gaps: Gaps, target: CoverageTarget, altitud
             tour(chosen, speed)  # the legs fall short of the target: the tour's figure for the refusal
     if best is None:
         raise ValueError(f"no re-flight reaches {target.coverage_pct:g} % of the {int(gaps.unseen.sum())} unseen cells "
-                         f"(best {best_reached:.1f} %): lower --gap-coverage, or fly lower")
+                         f"(best {math.floor(best_reached * 10.0) / 10.0:.1f} %): lower --gap-coverage, or fly lower")
     e, m, cov = best
     record = {"kind": "fill-gaps", "report": gaps.source, "gap_target_pct": target.coverage_pct,
               "gap_cells": int(gaps.unseen.sum()), "gap_area_m2": float(gaps.unseen.sum() * gaps.cell_m ** 2),
