@@ -236,10 +236,14 @@ def main(argv: list[str] | None = None) -> int:
     site_args = ([f"--origin={args.origin}"] if args.origin is not None else []) + (
         [f"--heading={args.heading}"] if args.heading is not None else [])
     mission_args = ["--p-traj", f"{args.p_traj:g}", "--altitude", f"{args.altitude:g}", "--speed", f"{args.speed:g}"]
-    net = fly_networked(mission_args, args.storage, args.stockpile, args.out / "networked", args.phase,
-                        signing_key=args.signing_key, rangefinder=args.rangefinder, site_args=site_args,
-                        serve_args=["--sensor-noise", args.sensor_noise, "--pose-error", args.pose_error,
-                                    "--seed", str(args.seed)])
+    try:
+        net = fly_networked(mission_args, args.storage, args.stockpile, args.out / "networked", args.phase,
+                            signing_key=args.signing_key, rangefinder=args.rangefinder, site_args=site_args,
+                            serve_args=["--sensor-noise", args.sensor_noise, "--pose-error", args.pose_error,
+                                        "--seed", str(args.seed)])
+    except RuntimeError as exc:  # a process refused the flight or did not come up: its own words, one line
+        print(f"fly_networked: {exc}", file=sys.stderr)
+        return int(ExitCode.RUNTIME)
     if net.report is None:
         print(f"networked: {net.no_volume}", file=sys.stderr)
         return int(ExitCode.NO_VOLUME)

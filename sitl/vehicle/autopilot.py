@@ -72,6 +72,9 @@ class Target:
     speed_m_s: float = 0.0
     yaw_rad: float | None = None
     """Hold this heading (hover / turn in place); None: face the target (paper's heading law)."""
+    climb_m_s: float = 0.0
+    """How fast the target height itself rises (m/s, up): a climb's moving reference, fed forward so the vehicle
+    climbs with it instead of lagging and winding up the integrator (0: a fixed height, the law of eq. (11))."""
 
 
 class Autopilot:
@@ -97,7 +100,7 @@ class Autopilot:
         # --- altitude, eq. (11), on height error; derivative on the measured climb rate
         e_z = (-t.down_m) - (-d)
         self._i_alt = clip(self._i_alt + e_z * dt, -g.alt_i_limit / g.alt_ki, g.alt_i_limit / g.alt_ki)
-        thrust = g.hover_throttle + g.alt_kp * e_z + g.alt_ki * self._i_alt + g.alt_kd * vd
+        thrust = g.hover_throttle + g.alt_kp * e_z + g.alt_ki * self._i_alt + g.alt_kd * (vd + t.climb_m_s)
         thrust /= max(0.5, math.cos(roll) * math.cos(pitch))
         # --- heading, eqs. (13)-(14)
         dn, de = t.north_m - n, t.east_m - e

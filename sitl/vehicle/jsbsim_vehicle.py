@@ -23,6 +23,9 @@ PARAM_LIMITS = {
 }
 LANDED_HEIGHT_M = GEAR_HEIGHT_M + 0.03
 TAKEOFF_TOLERANCE_M = 0.2
+BRAKE_Z_M_S2 = 1.0
+"""The vertical deceleration a climb's reference height brakes with before its goal: ArduPilot's default for the
+waypoint navigator's vertical acceleration (WPNAV_ACCEL_Z, 100 cm/s/s)."""
 
 
 @dataclass
@@ -68,6 +71,8 @@ class JsbsimVehicle:
         n, e, d = self._e[:3]
         self._hold = Target(n, e, d, yaw_rad=self._e[8])
         self._climb_to: float | None = None
+        self._ref_d: float | None = None  # a climb's moving reference height (down, m); None: not climbing
+        self._ref_climb_m_s = 0.0  # how fast that reference rises (m/s, up)
         self._landing = False
 
     # ----------------------------------------------------------------- protocol: state and stepping
@@ -135,15 +140,26 @@ class JsbsimVehicle:
         return self._hold
 
     def _ramp(self, d_goal: float) -> float:
-        """A target height that moves at the climb rate, so climbs and descents are steady."""
-        d = self._e[2]
-        step = self.params["PS_CLIMB_MS"] * 1.0
-        return d + max(-step, min(step, d_goal - d))
+        """A reference height that moves towards the goal at the climb rate, and slows before it as fast as
+        BRAKE_Z_M_S2 allows (the square-root profile of ArduPilot's position controller), so climbs are steady and
+        stop at the goal. It used to be a carrot a second of climb above the vehicle's own height: the vehicle chased
+        it ever faster (2.3 m/s for 1 m/s asked) and overshot a 9 m take-off by 1.8 m, through a 10 m roof."""
+        if self._ref_d is None:
+            self._ref_d = self._e[2]
+        left = d_goal - self._ref_d
+        speed = min(self.params["PS_CLIMB_MS"], math.sqrt(2.0 * BRAKE_Z_M_S2 * abs(left)))
+        step = speed * self.dt_s
+        moved = max(-step, min(step, left))
+        self._ref_d += moved
+        self._ref_climb_m_s = -moved / self.dt_s  # up
+        return self._ref_d
 
     def _climb_target(self, d_goal: float) -> Target:
-        t = Target(self._hold.north_m, self._hold.east_m, self._ramp(d_goal), yaw_rad=self._hold.yaw_rad)
+        t = Target(self._hold.north_m, self._hold.east_m, self._ramp(d_goal), yaw_rad=self._hold.yaw_rad,
+                   climb_m_s=self._ref_climb_m_s)
         if abs(self._e[2] - d_goal) < TAKEOFF_TOLERANCE_M:
             self._climb_to = None
+            self._ref_d = None
             self._hold = Target(self._hold.north_m, self._hold.east_m, d_goal, yaw_rad=self._hold.yaw_rad)
             self._advance_if_item(NavKind.TAKEOFF)
         return t
@@ -163,7 +179,7 @@ class JsbsimVehicle:
         n, e, d = self._e[:3]
         if item.kind == NavKind.TAKEOFF:
             self._hold = Target(n, e, item.down_m, yaw_rad=self._e[8])
-            self._climb_to = item.down_m
+            self._climb_to, self._ref_d = item.down_m, None
             return self._climb_target(item.down_m)
         if item.kind == NavKind.LAND:
             self._hold = Target(n, e, d, yaw_rad=self._e[8])
@@ -242,7 +258,7 @@ class JsbsimVehicle:
             raise CommandRejected("take-off needs GUIDED mode")
         n, e, _ = self._e[:3]
         self._hold = Target(n, e, -altitude_m, yaw_rad=self._e[8])
-        self._climb_to = -altitude_m
+        self._climb_to, self._ref_d = -altitude_m, None
 
     def load_mission(self, items: list[NavItem]) -> None:
         if self.mode == FlightMode.AUTO and self._item >= 0 and self.armed:

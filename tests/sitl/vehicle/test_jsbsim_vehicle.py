@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import pytest
 
 from sitl.vehicle.api import CommandRejected, FlightMode, NavItem, NavKind
@@ -70,3 +71,22 @@ def test_that_commands_in_the_wrong_state_are_rejected():
         v.set_param("PS_SPEED_MS", -1.0)
     v.set_param("PS_YAW_RATE_DPS", 6.0)
     assert v.ap.yaw_rate_max_rad_s == pytest.approx(math.radians(6))
+
+
+def test_that_a_take_off_climbs_at_the_climb_rate_and_stops_at_its_height():
+    """The climb followed a carrot a second above the vehicle and sped up to 2.3 m/s for 1 m/s asked; a 9 m
+    take-off in a 10 m building went to 10.8 m, through the roof (a served flight, `serve --altitude 9`). Now a
+    reference moves at PS_CLIMB_MS, brakes before the goal, and is fed forward."""
+    v = JsbsimVehicle()
+    v.arm()
+    v.set_mode(FlightMode.GUIDED)
+    v.takeoff(9.0)
+    heights = []
+    for _ in range(round(20.0 / v.dt_s)):
+        v.step()
+        heights.append(-v.state().pos_ned_m[2])
+    h = np.array(heights)
+    assert h.max() < 9.0 + 0.3 and h[-1] == pytest.approx(9.0, abs=0.05)
+    mid = np.flatnonzero((h > 3.0) & (h < 6.0))  # the steady part of the climb
+    rate = (h[mid[-1]] - h[mid[0]]) / ((mid[-1] - mid[0]) * v.dt_s)
+    assert rate == pytest.approx(v.params["PS_CLIMB_MS"], rel=0.15)
