@@ -23,6 +23,8 @@ PARAM_LIMITS = {
 }
 LANDED_HEIGHT_M = GEAR_HEIGHT_M + 0.03
 TAKEOFF_TOLERANCE_M = 0.2
+LAND_CARROT_M = 0.5
+"""A landing descends after a target this far below the vehicle (a slow, steady descent to the ground)."""
 BRAKE_Z_M_S2 = 1.0
 """The vertical deceleration a climb's reference height brakes with before its goal: ArduPilot's default for the
 waypoint navigator's vertical acceleration (WPNAV_ACCEL_Z, 100 cm/s/s)."""
@@ -36,7 +38,8 @@ class VehicleConfig:
     yaw_rate_max_rad_s: float = math.radians(30)
     altitude_m: float = 12.0
     wp_radius_m: float = 0.25
-    climb_rate_m_s: float = 1.0
+    climb_rate_m_s: float = 2.5
+    """Take-off climb rate (PS_CLIMB_MS): ArduPilot's default for auto climbs (WPNAV_SPEED_UP, 250 cm/s)."""
 
 
 class JsbsimVehicle:
@@ -165,7 +168,7 @@ class JsbsimVehicle:
         return t
 
     def _land_target(self) -> Target:
-        t = Target(self._hold.north_m, self._hold.east_m, self._e[2] + self.params["PS_CLIMB_MS"] * 0.5,
+        t = Target(self._hold.north_m, self._hold.east_m, self._e[2] + LAND_CARROT_M,
                    yaw_rad=self._hold.yaw_rad)
         if self.landed:
             self._landing = False

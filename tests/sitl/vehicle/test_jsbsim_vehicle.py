@@ -74,9 +74,9 @@ def test_that_commands_in_the_wrong_state_are_rejected():
 
 
 def test_that_a_take_off_climbs_at_the_climb_rate_and_stops_at_its_height():
-    """The climb followed a carrot a second above the vehicle and sped up to 2.3 m/s for 1 m/s asked; a 9 m
-    take-off in a 10 m building went to 10.8 m, through the roof (a served flight, `serve --altitude 9`). Now a
-    reference moves at PS_CLIMB_MS, brakes before the goal, and is fed forward."""
+    """The climb followed a carrot a second above the vehicle and sped up to 2.3 m/s for the 1 m/s then asked; a
+    9 m take-off in a 10 m building went to 10.8 m, through the roof (a served flight, `serve --altitude 9`). Now a
+    reference moves at PS_CLIMB_MS (ArduPilot's 2.5 m/s), brakes before the goal, and is fed forward."""
     v = JsbsimVehicle()
     v.arm()
     v.set_mode(FlightMode.GUIDED)
@@ -86,7 +86,7 @@ def test_that_a_take_off_climbs_at_the_climb_rate_and_stops_at_its_height():
         v.step()
         heights.append(-v.state().pos_ned_m[2])
     h = np.array(heights)
-    assert h.max() < 9.0 + 0.3 and h[-1] == pytest.approx(9.0, abs=0.05)
+    assert h.max() < 9.0 + 0.4 and h[-1] == pytest.approx(9.0, abs=0.05)  # 0.25 m; it was 1.8 m
     mid = np.flatnonzero((h > 3.0) & (h < 6.0))  # the steady part of the climb
     rate = (h[mid[-1]] - h[mid[0]]) / ((mid[-1] - mid[0]) * v.dt_s)
     assert rate == pytest.approx(v.params["PS_CLIMB_MS"], rel=0.15)
