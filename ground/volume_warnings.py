@@ -114,6 +114,6 @@ def wide_interval_warning(volume_m3: float, interval_m3: tuple[float, float], ma
     pct = 100.0 * half / volume_m3
     if pct <= max_pct:
         return None
-    return (f"the volume's 90 % interval is +/-{pct:.1f} % ({interval_m3[0]:,.0f}-{interval_m3[1]:,.0f} m³), "
+    return (f"the volume's 90 % interval is +/-{pct:.1f} % ({interval_m3[0]:,.1f}-{interval_m3[1]:,.1f} m³), "
             f"wider than the {max_pct:g} % tolerance: not known well enough to sign; the other warnings say why "
             "(unseen floor, faces, the pose's height), else fly a denser mission")

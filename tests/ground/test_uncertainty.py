@@ -205,7 +205,9 @@ def test_that_the_faces_warning_fires_only_when_faces_weigh_in_the_interval():
 def test_that_a_wide_interval_is_a_warning_and_a_tight_one_is_not():
     assert wide_interval_warning(1000.0, (990.0, 1010.0), 5.0) is None
     w = wide_interval_warning(1000.0, (800.0, 1200.0), 5.0)
-    assert w is not None and "+/-20.0 %" in w
+    assert w is not None and "+/-20.0 %" in w and "(800.0-1,200.0 m³)" in w
+    # A small pile's bounds keep their tenths: a 2-litre box read "(0-0 m³)" for an interval of 0.0-0.1 m³.
+    assert "(0.0-0.1 m³)" in wide_interval_warning(0.02, (0.0, 0.1), 5.0)
 
 
 def test_that_an_empty_building_reports_about_zero_with_an_interval_holding_zero_within_the_range_quantum():
