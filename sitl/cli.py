@@ -314,12 +314,13 @@ def planning_progress(every_s: float = PROGRESS_EVERY_S, clock=time.monotonic):
     """progress(loops evaluated, best predicted coverage) for `plan_coverage`: an INFO line every every_s seconds
     (-q silences it), nothing for a plan that is over sooner."""
     start = clock()
-    next_at = [start + every_s]
+    next_at = start + every_s
 
     def say(n: int, best_pct: float) -> None:
+        nonlocal next_at
         now = clock()
-        if now >= next_at[0]:
-            next_at[0] = now + every_s
+        if now >= next_at:
+            next_at = now + every_s
             log.info("coverage plan: %d loops evaluated in %.0f s, the best predicts %.2f %% so far", n, now - start,
                      best_pct)
     return say

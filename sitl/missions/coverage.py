@@ -438,9 +438,10 @@ def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 
                          "planned yet; fly lower or survey a narrower bay")
     sizes = (storage.width_m, storage.length_m, storage.width_m, storage.length_m)  # across each wall
     cache: dict[LoopPlan, tuple[Coverage, float] | None] = {}
-    most = [0.0]  # the best predicted coverage of any loop evaluated, for progress
+    most = 0.0  # the best predicted coverage of any loop evaluated, for progress
 
     def evaluate(plan: LoopPlan) -> tuple[Coverage, float] | None:
+        nonlocal most
         if plan not in cache:
             try:
                 m = plan.mission(storage, altitude_m, yaw_rate_max_rad_s, min_clearance_m)
@@ -449,9 +450,9 @@ def plan_coverage(storage: Storage, target: CoverageTarget, altitude_m: float = 
                 return None
             cov = worst_coverage(m, target)
             cache[plan] = cov, mission_energy_j(m, target.energy)
-            most[0] = max(most[0], cov.predicted_ra_pct)
+            most = max(most, cov.predicted_ra_pct)
             if progress is not None:
-                progress(len(cache), most[0])
+                progress(len(cache), most)
         return cache[plan]
 
     def ladder(size_m: float, speed: float) -> tuple[float, ...]:
