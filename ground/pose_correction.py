@@ -142,6 +142,14 @@ class PoseCorrectionOptions:
     crossings_heading: bool = True
     """With `crossings_horizontal`: the heading too (a heading error moves the points along the track by their
     lateral distance times it), kept only when significant."""
+    open_floor: bool = False
+    """Anchor the height on a floor seen only away from the walls (nothing seen at any wall comes down to it) however
+    far it moves the height. Off, such a floor is used only when it moves the height by no more than the barometer
+    walks over the flight (vertical_walk_m_per_sqrt_s), else the height is corrected from the pile seen at
+    different times alone, at the logged reference's level: the lowest flat part of a pile that hides the floor
+    wall to wall passes for the floor, and was taken for it at 0.7 m (Ve 20-41 %: docs/design-notes.md). The
+    report turns it on when the autopilot's height came from its downward rangefinder, whose error follows the
+    pile: there only a floor can take it out."""
     heading: bool = False
     """Estimate the heading too (kept only when significant). Off by default: the walls beside a track do not
     see it, and measured on seven SITL flights it made Ve worse on five (it took up a few systematic
@@ -152,7 +160,7 @@ class PoseCorrectionOptions:
             v = getattr(self, f.name)
             if (v is None and f.name == "knot_spacing_s") or f.name in ("vertical", "heading", "crossings",
                                                                                 "crossings_horizontal",
-                                                                                "crossings_heading"):
+                                                                                "crossings_heading", "open_floor"):
                 continue
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v <= 0:
                 raise ValueError(f"pose correction option {f.name} must be a finite number > 0, got {v!r}")
@@ -763,6 +771,9 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     notes: list[str] = []
     if opts.vertical and opts.crossings:
         cell_m = speed * (period or spacing / KNOT_SWEEPS)
+        # how far a floor seen only away from the walls may move the height (`_screen`): anywhere when the height
+        # came from the rangefinder, else the barometer's walk over the flight (`PoseCorrectionOptions.open_floor`)
+        open_shift = math.inf if opts.open_floor else opts.vertical_walk_m_per_sqrt_s * math.sqrt(t1 - t0)
         # the floor: points along it, in intervals where the vote found it, near the height it found
         z_at = np.interp(b.t_s, knots, z_vote)
         voted = b.parallel[:, 0] & (np.abs(p1[:, 2] + z_at) <= BAND * sensor_m)
@@ -783,8 +794,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                 return None, None, refused
             return z, z_info, None
 
-        floor, z_shift, floor_note = screen_floor(p1, b.t_s, knots, wall, voted, storage, cell_m, step[2], noise,
-                                                  sensor_m, opts.max_position_error_m)
+        floor, z_shift, floor_note, confirmed = screen_floor(p1, b.t_s, knots, wall, voted, storage, cell_m, step[2],
+                                                             noise, sensor_m, opts.max_position_error_m)
         z, z_info, refused = height_from(floor, z_shift)
         if refused is not None and z_shift is not None:
             # The screen's level is the lowest the crossings' frame shows, and a stretch the crossings place a few
@@ -796,6 +807,16 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                 floor_note = (f"{floor_note}, but the height from what was left was refused ({why}), so the "
                               "floor as voted was used")
                 floor, z, z_info, refused = voted, z_voted, info_voted, None
+        unconfirmed = None if z is None else floor_unconfirmed_note(z, confirmed, open_shift)
+        if unconfirmed is not None:
+            floor, floor_note = np.zeros_like(floor), unconfirmed
+            z, z_info, refused = height_from(floor, None)
+        elif z is not None and not confirmed and floor.any():
+            # used, and said (as a note of its own: a floor note would have the height solved again): the surveyor
+            # reads that the level rests on a floor nothing at a wall confirms
+            notes.append(f"the floor the height was anchored on was seen only away from the walls (the pile covers "
+                         f"their feet): were it a hollow in the pile, the height would be off by up to "
+                         f"{abs(float(np.mean(z))):.2f} m, what anchoring on it moved it")
         notes.extend(note for note in (floor_note, refused) if note)
         first_refused = refused
         if z is not None:
@@ -856,7 +877,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                     # as a jump, and the flight's volume 32 % off without any height correction).
                     x, z_again, again_note, sigma_again, floor_again = _height_again(
                         b, x, k, f, knots, wall, voted, storage, cell_m, step[2], noise, sensor_m,
-                        opts.max_position_error_m, opts.n_significant, opts.max_vertical_error_m)
+                        opts.max_position_error_m, opts.n_significant, opts.max_vertical_error_m, open_shift)
                     if again_note:
                         z_info = info[:, 2] = z_again
                         if sigma_again is not None:
@@ -981,9 +1002,9 @@ def is_drift(x_new: np.ndarray, x_old: np.ndarray, step: np.ndarray, comps: tupl
 
 def _height_again(b: Beams, x: np.ndarray, k: np.ndarray, f: np.ndarray, knots: np.ndarray, wall: np.ndarray,
                   voted: np.ndarray, storage: Storage, cell_m: float, step_z_m: float, noise: float, sensor_m: float,
-                  max_error_m: float, n_significant: float,
-                  max_vertical_error_m: float) -> tuple[np.ndarray, np.ndarray | None, str | None, float | None,
-                                                        np.ndarray | None]:
+                  max_error_m: float, n_significant: float, max_vertical_error_m: float,
+                  open_shift_m: float) -> tuple[np.ndarray, np.ndarray | None, str | None, float | None,
+                                             np.ndarray | None]:
     """The height solved again once the registration has aligned the flight horizontally: the floor screen
     (`_screen`) and the height from the floor and the crossings (`vertical_from_crossings`), as the first
     time, from the logged reference, in the registered frame, with x, y and heading held at the registration's.
@@ -999,13 +1020,15 @@ def _height_again(b: Beams, x: np.ndarray, k: np.ndarray, f: np.ndarray, knots: 
     x_h = x.copy()
     x_h[:, 2] = 0.0
     p, _ = corrected_points(b, x_h, k, f)
-    kept, _, _, _ = _screen(p, b.t_s, knots, wall, voted, storage, cell_m, step_z_m, noise, sensor_m, max_error_m)
+    kept, _, _, _, confirmed = _screen(p, b.t_s, knots, wall, voted, storage, cell_m, step_z_m, noise, sensor_m,
+                                       max_error_m)
     if not kept.any():
         return x, None, None, None, None
     sigma: list[float] = []
     z, z_info = height_rounds(p, b.t_s, knots, wall, kept, storage, cell_m, step_z_m, noise, max_error_m,
                               n_significant, sigma)
-    if z is None or height_refused(z, knots, step_z_m, n_significant, max_vertical_error_m) is not None:
+    if (z is None or height_refused(z, knots, step_z_m, n_significant, max_vertical_error_m) is not None
+            or floor_unconfirmed_note(z, confirmed, open_shift_m) is not None):
         return x, None, None, None, None
     change = _rms(z - x[:, 2])
     x_h[:, 2] = z
@@ -1342,17 +1365,21 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
 
 def screen_floor(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, floor: np.ndarray,
                  storage: Storage, cell_m: float, step_z_m: float, noise_m: float, sensor_m: float,
-                 max_error_m: float) -> tuple[np.ndarray, np.ndarray | None, str | None]:
+                 max_error_m: float) -> tuple[np.ndarray, np.ndarray | None, str | None, bool]:
     """The floor candidates that are the floor: (the mask kept, the height from the crossings at the floor's
-    level when most were dropped, a note when some were); `_screen` with its tolerance."""
-    return _screen(p, t, knots, wall, floor, storage, cell_m, step_z_m, noise_m, sensor_m, max_error_m)[:3]
+    level when most were dropped, a note when some were, whether the walls' feet confirm it); `_screen` without
+    its tolerance."""
+    kept, shift, note, _, confirmed = _screen(p, t, knots, wall, floor, storage, cell_m, step_z_m, noise_m, sensor_m,
+                                              max_error_m)
+    return kept, shift, note, confirmed
 
 
 def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, floor: np.ndarray,
             storage: Storage, cell_m: float, step_z_m: float, noise_m: float, sensor_m: float,
-            max_error_m: float) -> tuple[np.ndarray, np.ndarray | None, str | None, float]:
+            max_error_m: float) -> tuple[np.ndarray, np.ndarray | None, str | None, float, bool]:
     """The floor candidates that are the floor: (the mask kept, ..., a note when some were dropped, the
-    tolerance: how far from the floor's level a candidate is still floor; inf where no level was found).
+    tolerance: how far from the floor's level a candidate is still floor, inf where no level was found; whether
+    what is seen at the walls comes down to the level, `floor_unconfirmed_note`).
 
     A flat pile top can pass the per-interval vote (nothing below it in that interval) and then anchors the
     height on itself. Across the flight it cannot hide: the crossings alone (no floor) put every time's
@@ -1362,13 +1389,19 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
     window as tall as a flat floor's heights scatter (`level_window`), not the frame's spread on slopes; it must
     not lie above the walls' lowest points (beyond stray returns); the
     candidates within BAND noise levels of it are kept, the rest dropped. None kept: the height comes from
-    the crossings alone."""
+    the crossings alone.
+
+    A floor meets the walls it runs to, so where the level is the floor, what is seen at a wall comes down to it
+    unless the pile covers every wall's foot. There the level may still be the floor, seen in a gap between heaps
+    (the paper's pile 2), or the bottom of a hollow in a pile that hides the floor wall to wall: the same shape,
+    one flat at the floor and one curving at 0.7 m, and nothing else in the data tells them apart: the caller
+    decides (`floor_unconfirmed_note`)."""
     if not floor.any():
-        return floor, None, None, math.inf
+        return floor, None, None, math.inf, False
     z_rel, _ = vertical_from_crossings(p, t, knots, wall, np.zeros_like(floor), storage, cell_m, step_z_m, noise_m,
                                        max_error_m, significant_only=False)
     if z_rel is None:
-        return floor, None, None, math.inf
+        return floor, None, None, math.inf, False
     zc = p[:, 2] + np.interp(t, knots, z_rel)
     k, _ = _basis(t, knots)
     nx, ny, cid = _cells(p, storage, cell_m)
@@ -1394,7 +1427,7 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
     if lowest_window(fmed, fcnt, tol, stray_f) is None:
         return np.zeros_like(floor), None, ("no floor seen: too few floor points agree on one level once the "
                                             "crossings align the flight; the height is corrected from the crossings "
-                                            "alone"), math.inf
+                                            "alone"), math.inf, False
     # The level within the floor's own scatter, not the frame's: under a degree of pointing noise the frame's
     # spread (on slopes) reached 0.7 m, and a window that wide over a pile that hides most of the floor took in
     # the toe's ramp above the few floor cells seen (its median 0.6-0.9 m up the toe: Appendix A, pile 2).
@@ -1412,7 +1445,9 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
     if level > wall_low + tol:
         return np.zeros_like(floor), None, (f"no floor seen: what the vote took for it lies {level - wall_low:.2f} m "
                                             "above the walls' lowest points once the crossings align the flight (a "
-                                            "flat pile top); the height is corrected from the crossings alone"), tol
+                                            "flat pile top); the height is corrected from the crossings alone"), \
+            tol, False
+    confirmed = int(np.count_nonzero(np.abs(walls_z - level) <= tol)) >= MIN_VOTES
     good_keys = fk[np.abs(fmed - level) <= tol]
     kept = floor & np.isin(key, good_keys)
     dropped = int(np.count_nonzero(floor & ~kept))
@@ -1420,7 +1455,7 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
         # Most of it is one level: the vote's floor stands as it is. Dropping the few off it cost more than it
         # gave (measured on pile 1, which has no flat top: the crossings' frame misaligns some true floor by
         # a few decimetres on a `flow` flight; Ve 0.16 % -> 2.0 %); the joint solve's Huber loss outvotes them.
-        return floor, None, None, tol
+        return floor, None, None, tol, confirmed
     # The floor kept is the level's own cluster: a floor is flat, so its heights scatter by their own noise, not by
     # the crossings' spread on slopes, which under a degree of pointing noise reached 0.7 m and kept a pile's toe
     # as floor (the joint solve on it then put the level 0.6 m off: Appendix A, `vio`, pile 2)
@@ -1431,7 +1466,21 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
     # Most of what the vote called floor was a flat top: the remaining floor is too sparse to anchor each
     # interval (measured: the joint solve over it kept a 0.19 m bias on a pile-2 flight); the crossings'
     # own solution, put at the floor's level, is used instead.
-    return kept, z_rel - level, note, tol
+    return kept, z_rel - level, note, tol, confirmed
+
+
+def floor_unconfirmed_note(z: np.ndarray, confirmed: bool, open_shift_m: float) -> str | None:
+    """Why a height anchored on a floor the walls' feet do not confirm (`_screen`) is not kept (None: it is): it moves
+    the height (z, the knots', against the crossings alone, whose mean is the logged reference's) by more than
+    open_shift_m on average, the most the logged height is believed to be off. Within it, were the floor a hollow,
+    it could do no more harm than the logged height's own error."""
+    shift = abs(float(np.mean(z)))
+    if confirmed or shift <= open_shift_m:
+        return None
+    return (f"no floor confirmed: what the vote took for it was seen only away from the walls (the pile covers their "
+            f"feet), so it may be a hollow in the pile, and it would move the height by {shift:.2f} m, more than the "
+            f"barometer is believed to drift in the flight ({open_shift_m:.2f} m); the height is corrected from the "
+            "crossings alone, at the logged height's level")
 
 
 def lowest_window(med_m: np.ndarray, counts: np.ndarray, width_m: float, stray: float) -> tuple[int, int] | None:
@@ -1651,6 +1700,13 @@ def register_from_crossings(b: Beams, x: np.ndarray, x_wall: np.ndarray, knots: 
                 info[:, c] = col_info[:, ci] / spread ** 2
         for ci, c in enumerate(comps):
             x[:, c] += delta[:, ci]
+    if m_floor == 0 and Component.Z.value in comps:
+        # No floor cell: the height's level is not observed (one constant added to every knot and cell fits the
+        # same), and the cells' weak pull towards the floor set it: thousands of cells against a few dozen knots put
+        # the pile's mean height into the vehicle's (1.0-2.0 m: pile 2, Ve 44-52 %). It goes back where the height
+        # solved before put it. (At the end, not in each round: the rounds stay as they were, and holding the level
+        # in them changed which registration was kept on a `flow` flight over pile 1, Ve 0.23 -> 7.1 %.)
+        x[:, Component.Z.value] += float(np.mean(x_start[:, Component.Z.value]) - np.mean(x[:, Component.Z.value]))
     return x, info, gain, n_extra
 
 

@@ -49,6 +49,7 @@ from ground.pointcloud import (
 from ground.pose_correction import (
     KNOT_SWEEPS,
     PoseCorrection,
+    PoseCorrectionOptions,
     apply_pose_correction,
     estimate_pose_correction,
     with_closest_wall,
@@ -484,8 +485,12 @@ def _mount_of(s: np.ndarray, lever: np.ndarray, frame: StorageFrame, storage: St
 
 def _pose_of(s: np.ndarray, bs: Boresight, header: dict, lever: np.ndarray, frame: StorageFrame, storage: Storage,
              err: SensorErrorModel) -> PoseCorrection:
+    # a floor seen only away from the walls anchors the height only when the height came from the downward
+    # rangefinder, whose error follows the pile and which nothing else takes out (`PoseCorrectionOptions.open_floor`)
+    source = PoseSource.from_header(header)
+    opts = PoseCorrectionOptions(open_floor=source is not None and source.height_from_rangefinder)
     return estimate_pose_correction(s, lever, frame, storage, err.resolution_m, err.range_sigma_m,
-                                    err.range_sigma_rel, err.angle_sigma_rad, _sweep_period_s(header), bs,
+                                    err.range_sigma_rel, err.angle_sigma_rad, _sweep_period_s(header), bs, opts,
                                     position_sigma_m=err.position_sigma_m)
 
 
