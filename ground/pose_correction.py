@@ -201,6 +201,10 @@ class PoseCorrection:
     height_sigma_m: float | None = None
     """The formal standard error of the height correction's mean over the survey (`mean_sigma_m`); None when the
     height was not corrected. The volume's interval carries it (ground.uncertainty, the pose term)."""
+    open_floor_shift_m: float | None = None
+    """How far on average anchoring the height on a floor seen only away from the walls moved it (`_screen`: nothing
+    seen at a wall came down to it, so it may be a hollow in the pile); None when the floor was confirmed or not used.
+    The report warns with what it moved the volume (`ground.volume_warnings.open_floor_warning`)."""
     height_unanchored_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """How long the corrected height was not tied to the floor (`floor_anchored`): (total s, and the longest such
     stretch's start and end on the log's clock; all 0 when tied throughout or not corrected)."""
@@ -244,7 +248,7 @@ class PoseCorrection:
                 "points_per_plane": dict(zip(PLANE_NAMES, self.points, strict=True)),
                 "rms_before_m": self.rms_before_m, "rms_after_m": self.rms_after_m, "noise_m": self.noise_m,
                 "gain": self.gain, "gain_needed": self.gain_needed, "notes": list(self.notes),
-                "height_sigma_m": self.height_sigma_m,
+                "height_sigma_m": self.height_sigma_m, "open_floor_shift_m": self.open_floor_shift_m,
                 "height_unanchored_s": self.height_unanchored_s[0],
                 "height_unanchored_longest_s": [self.height_unanchored_s[1], self.height_unanchored_s[2]],
                 "closest_wall": None if self.closest_wall is None else dict(
@@ -769,6 +773,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     first_refused: str | None = None  # why the height solved before the registration was refused
     z_sigma: list[float] = []  # the standard errors of the height's mean, the last solve's last
     notes: list[str] = []
+    open_floor_shift: float | None = None  # what a floor the walls' feet do not confirm moved the height, when used
     if opts.vertical and opts.crossings:
         cell_m = speed * (period or spacing / KNOT_SWEEPS)
         # how far a floor seen only away from the walls may move the height (`_screen`): anywhere when the height
@@ -814,9 +819,10 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         elif z is not None and not confirmed and floor.any():
             # used, and said (as a note of its own: a floor note would have the height solved again): the surveyor
             # reads that the level rests on a floor nothing at a wall confirms
+            open_floor_shift = float(np.mean(z))
             notes.append(f"the floor the height was anchored on was seen only away from the walls (the pile covers "
                          f"their feet): were it a hollow in the pile, the height would be off by up to "
-                         f"{abs(float(np.mean(z))):.2f} m, what anchoring on it moved it")
+                         f"{abs(open_floor_shift):.2f} m, what anchoring on it moved it")
         notes.extend(note for note in (floor_note, refused) if note)
         first_refused = refused
         if z is not None:
@@ -937,6 +943,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     # (a solve that failed numerically gives no term rather than a NaN interval)
     height_sigma = z_sigma[-1] if z_info is not None and z_sigma and math.isfinite(z_sigma[-1]) else None
     return PoseCorrection(knots, x, constrained, True, None, height_sigma_m=height_sigma,
+                          open_floor_shift_m=open_floor_shift if z_info is not None else None,
                           height_unanchored_s=unanchored if z_info is not None else (0.0, 0.0, 0.0), **common)
 
 

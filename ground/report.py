@@ -91,6 +91,7 @@ from ground.unseen import free_space_ceiling_m
 from ground.volume_warnings import (
     DEFAULT_MAX_INTERVAL_PCT,
     faces_warning,
+    open_floor_warning,
     pose_warning,
     unseen_warning,
     wide_interval_warning,
@@ -440,7 +441,8 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
     # second core (measured alone: survey 0.31 s, estimates 0.57 s, in sequence 0.86 s, side by side 0.61 s;
     # docs/design-notes.md). Used only when the servo is not re-timed, which changes the samples they were made from.
     with ThreadPoolExecutor(max_workers=1) as pool:
-        ahead = pool.submit(_first_estimates, samples, header, storage, frame, lever, opts, err, mount)
+        ahead = pool.submit(_first_estimates, samples, header, storage, frame, lever, opts, err, mount,
+                            rangefinder is not None and rangefinder.applied)
         survey = replace(_survey(samples, header, storage, frame, lever, opts, err, spikes, mount), **checked)
         before = survey.sweep_disagreement_m
         retime = opts.servo_retiming and before is not None and before > MAX_SWEEP_DISAGREEMENT_M
@@ -484,18 +486,23 @@ def _mount_of(s: np.ndarray, lever: np.ndarray, frame: StorageFrame, storage: St
 
 
 def _pose_of(s: np.ndarray, bs: Boresight, header: dict, lever: np.ndarray, frame: StorageFrame, storage: Storage,
-             err: SensorErrorModel) -> PoseCorrection:
-    # a floor seen only away from the walls anchors the height only when the height came from the downward
-    # rangefinder, whose error follows the pile and which nothing else takes out (`PoseCorrectionOptions.open_floor`)
+             err: SensorErrorModel, share_taken_out: bool) -> PoseCorrection:
+    # A floor seen only away from the walls anchors the height however far it moves it only when the height came from
+    # the downward rangefinder and its share was not taken out (`_rangefinder_share`): that error follows the pile
+    # and nothing else removes it. Taken out, what is left drifts as a barometer's does (`PoseCorrectionOptions.
+    # open_floor`; measured on three `flow` flights over a pile that hides the floor wall to wall: Ve 27.2, 12.0,
+    # 13.3 % anchored on its hollow, 11.1, 12.0, 5.9 % not).
     source = PoseSource.from_header(header)
-    opts = PoseCorrectionOptions(open_floor=source is not None and source.height_from_rangefinder)
+    rangefinder = source is not None and source.height_from_rangefinder
+    opts = PoseCorrectionOptions(open_floor=rangefinder and not share_taken_out)
     return estimate_pose_correction(s, lever, frame, storage, err.resolution_m, err.range_sigma_m,
                                     err.range_sigma_rel, err.angle_sigma_rad, _sweep_period_s(header), bs, opts,
                                     position_sigma_m=err.position_sigma_m)
 
 
 def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame, lever: np.ndarray,
-                     opts: ReportOptions, err: SensorErrorModel, mount: Boresight) -> _Estimates:
+                     opts: ReportOptions, err: SensorErrorModel, mount: Boresight,
+                     share_taken_out: bool = False) -> _Estimates:
     """The mount's self-calibration, then the pose's correction with the mount it leaves. The mount before the
     pose: a constant mount error is partly a constant shift of the structure, which the pose's knots took up
     when they came first (measured: docs/pose_error.md)."""
@@ -506,7 +513,7 @@ def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame:
         if est.any_applied:
             corrected, boresight = apply_mount(samples, est, resim, mount)
     if opts.pose_correction:
-        pose = _pose_of(corrected, boresight, header, lever, frame, storage, err)
+        pose = _pose_of(corrected, boresight, header, lever, frame, storage, err, share_taken_out)
     return _Estimates(est, corrected, boresight, pose)
 
 
@@ -519,7 +526,8 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
     makes the sweep directions disagree, a mis-mounted one does not. The first estimates (`_first_estimates`)
     may come made; an applied mount is checked again on the corrected trajectory, as under noise a drift can
     pass for one (`MOUNT_POSE_ROUNDS`)."""
-    first = first or _first_estimates(samples, header, storage, frame, lever, opts, err, mount)
+    share_taken_out = survey.rangefinder is not None and survey.rangefinder.applied
+    first = first or _first_estimates(samples, header, storage, frame, lever, opts, err, mount, share_taken_out)
     est, pose, corrected, boresight = first.mount, first.pose, first.samples, first.boresight
     resim = Resimulated.from_header(header)
     if pose is not None:
@@ -536,7 +544,7 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
                 break
             est = again
             corrected, boresight = apply_mount(samples, est, resim, mount) if est.any_applied else (samples, mount)
-            pose = _pose_of(corrected, boresight, header, lever, frame, storage, err)
+            pose = _pose_of(corrected, boresight, header, lever, frame, storage, err, share_taken_out)
         corrected = apply_pose_correction(corrected, pose, frame)
         pose = with_closest_wall(pose, corrected, frame, storage)
     if corrected is samples and boresight == mount:  # nothing applied (a boresight alone leaves the samples)
@@ -732,6 +740,8 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
                            opts.max_interval_pct),
             faces_warning(survey.errors.faces, g, terms, DEFAULT_INTERVAL_MODEL),
             pose_warning(terms, DEFAULT_INTERVAL_MODEL, volume, opts.max_interval_pct),
+            open_floor_warning(survey.pose.open_floor_shift_m if survey.pose is not None and survey.pose.applied
+                               else None, survey.heights, g, volume, opts.max_interval_pct),
             wide_interval_warning(volume, interval, opts.max_interval_pct)) if w]
     warnings += list(base.warnings)
     if volume < 0 and base.kind is not BaseKind.SURVEY:  # below an earlier survey: material taken away

@@ -106,6 +106,24 @@ def pose_warning(t: ErrorTerms, model: IntervalModel, volume_m3: float | None = 
             "altitude reference that does not drift over the pile would narrow it")
 
 
+def open_floor_warning(shift_m: float | None, heights: np.ndarray, grid: Grid, volume_m3: float,
+                       max_pct: float = DEFAULT_MAX_INTERVAL_PCT) -> str | None:
+    """When the pose correction anchored the height on a floor seen only away from the walls (shift_m: how far that
+    moved it, `PoseCorrection.open_floor_shift_m`) and that moved the volume by more than half the tolerance: were
+    it a hollow in a pile that hides the floor wall to wall, the volume is off by about that much, which the 90 %
+    interval does not include (nothing in the data tells such a hollow from a floor seen in a gap between heaps)."""
+    if not shift_m:
+        return None
+    moved = shift_m * float(np.count_nonzero(np.isfinite(heights))) * grid.cell_area_m2
+    if volume_m3 > 0 and abs(moved) < 0.5 * max_pct / 100.0 * volume_m3:
+        return None
+    pct = f" ({100.0 * abs(moved) / volume_m3:.1f} % of the volume)" if volume_m3 > 0 else ""
+    return (f"the height was anchored on a floor seen only away from the walls (the pile covers their feet), which "
+            f"moved it {shift_m:+.2f} m and the volume {moved:+,.0f} m³{pct}: were that a hollow in the pile, not "
+            "the floor, the volume is off by about as much, beyond the 90 % interval; a leg that sees a wall's foot "
+            "or a strip of clear floor would confirm the floor")
+
+
 def wide_interval_warning(volume_m3: float, interval_m3: tuple[float, float], max_pct: float) -> str | None:
     """When the interval's half-width exceeds max_pct of the volume (or the volume is about zero)."""
     half = 0.5 * (interval_m3[1] - interval_m3[0])

@@ -1025,6 +1025,7 @@ def test_that_a_hollow_in_a_pile_that_hides_the_floor_wall_to_wall_is_not_taken_
     corr = estimate(samples)
     if corr.applied:
         assert _height_miss_m(corr, samples, err) < BOWL[2] / 3.0, corr.notes
+        assert corr.open_floor_shift_m is None
     assert any("no floor confirmed" in note for note in corr.notes), (corr.reason, corr.notes)
 
 
@@ -1036,17 +1037,23 @@ def test_that_a_hollow_anchors_the_height_when_told_a_floor_seen_in_the_open_is_
     assert corr.applied, corr.reason
     assert _height_miss_m(corr, samples, err) > BOWL[2] / 2.0, corr.notes
     assert not any("no floor confirmed" in note for note in corr.notes), corr.notes
+    # and the report is told what anchoring on it moved (its warning: ground.volume_warnings.open_floor_warning)
+    assert corr.open_floor_shift_m is not None and corr.open_floor_shift_m < -BOWL[2] / 2.0, corr.open_floor_shift_m
+    assert any("seen only away from the walls" in note for note in corr.notes), corr.notes
 
 
-def test_that_the_report_anchors_on_a_floor_seen_in_the_open_only_for_a_rangefinder_s_height(monkeypatch):
+def test_that_the_report_anchors_on_a_floor_seen_in_the_open_only_for_a_rangefinder_s_height_left_in(monkeypatch):
+    # A rangefinder's height follows the pile and only a floor takes it out; once the crossings took its share out
+    # (`ground.rangefinder_height`), what is left drifts as a barometer's does.
     from ground import report
 
     seen = []
     monkeypatch.setattr(report, "estimate_pose_correction", lambda *a, **k: seen.append(a[10]))
     err = report.SensorErrorModel.from_header({})
     baro = {"AHRS_EKF_TYPE": 3, "EK3_SRC1_POSXY": 6, "EK3_SRC1_VELXY": 6, "EK3_SRC1_POSZ": 1, "EK3_RNG_USE_HGT": -1}
-    for params, expected in ((baro, False), ({**baro, "EK3_RNG_USE_HGT": 70}, True),
-                             ({**baro, "EK3_SRC1_POSZ": 2}, True), (None, False)):
+    switch, source = {**baro, "EK3_RNG_USE_HGT": 70}, {**baro, "EK3_SRC1_POSZ": 2}
+    for params, taken_out, expected in ((baro, False, False), (switch, False, True), (source, False, True),
+                                        (switch, True, False), (source, True, False), (None, False, False)):
         header = {} if params is None else {"autopilot_params": params}
-        report._pose_of(new_records(0), None, header, LEVER, FRAME, STORAGE, err)
-        assert seen[-1].open_floor is expected, params
+        report._pose_of(new_records(0), None, header, LEVER, FRAME, STORAGE, err, taken_out)
+        assert seen[-1].open_floor is expected, (params, taken_out)

@@ -267,3 +267,18 @@ def test_that_a_corrected_height_that_holds_a_wide_interval_is_warned_about_and_
     assert pose_warning(ErrorTerms(interpolation_m3=20.0, pose_m3=2.0), model, 8800.0, 5.0) is None  # 16 m³
     assert pose_warning(ErrorTerms(interpolation_m3=400.0, pose_m3=40.0), model, 8800.0, 5.0) is None  # not most
     assert pose_warning(ErrorTerms(interpolation_m3=20.0), model, 8800.0, 5.0) is None  # no height corrected
+
+
+def test_that_a_height_anchored_on_a_floor_the_walls_do_not_confirm_is_warned_about_with_what_it_moved():
+    from ground.surface import Grid
+    from ground.volume_warnings import open_floor_warning
+
+    grid = Grid(24.0, 16.0, 1.0)
+    heights = np.full(grid.shape, 3.0)  # the pile covers the floor wall to wall: 384 m²
+    w = open_floor_warning(-0.26, heights, grid, 1192.0, 5.0)  # a held-out `vio` flight over pile 2
+    assert w is not None and "-0.26 m" in w and "-100 m³" in w and "8.4 % of the volume" in w, w
+    assert "hollow in the pile" in w and "beyond the 90 % interval" in w
+    assert open_floor_warning(-0.01, heights, grid, 1192.0, 5.0) is None  # 3.8 m³: within half the tolerance
+    assert open_floor_warning(None, heights, grid, 1192.0, 5.0) is None  # confirmed, or no floor used
+    heights[:12] = np.nan  # only the surfaced cells move
+    assert "-50 m³" in open_floor_warning(-0.26, heights, grid, 1192.0, 5.0)
