@@ -881,7 +881,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                     # there, it is tried again in the registered frame: on slopes the horizontal error before it
                     # shows as height (measured: a two-knot zigzag of +0.95 / -0.88 m on our own ridge, refused
                     # as a jump, and the flight's volume 32 % off without any height correction).
-                    x, z_again, again_note, sigma_again, floor_again = _height_again(
+                    x, z_again, again_note, sigma_again, floor_again, shift_again = _height_again(
                         b, x, k, f, knots, wall, voted, storage, cell_m, step[2], noise, sensor_m,
                         opts.max_position_error_m, opts.n_significant, opts.max_vertical_error_m, open_shift)
                     if again_note:
@@ -894,6 +894,12 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                             again_note = (f"the height solved before the pile seen at different times aligned the "
                                           f"flight was refused ({why}); {again_note}")
                         notes.append(again_note)
+                        open_floor_shift = shift_again  # this height replaces the first
+                        if shift_again is not None:  # on a floor the walls' feet do not confirm: said, as the first
+                            notes.append(f"the floor the height was solved again on was seen only away from the "
+                                         f"walls (the pile covers their feet): were it a hollow in the pile, the "
+                                         f"height would be off by up to {abs(shift_again):.2f} m, what anchoring on "
+                                         "it moved it")
                         unanchored = unanchored_stretches(knots, floor_anchored(
                             corrected_points(b, x, k, f)[0], b.t_s, knots, wall, floor_again, storage, cell_m,
                             opts.max_position_error_m))
@@ -1011,7 +1017,7 @@ def _height_again(b: Beams, x: np.ndarray, k: np.ndarray, f: np.ndarray, knots: 
                   voted: np.ndarray, storage: Storage, cell_m: float, step_z_m: float, noise: float, sensor_m: float,
                   max_error_m: float, n_significant: float, max_vertical_error_m: float,
                   open_shift_m: float) -> tuple[np.ndarray, np.ndarray | None, str | None, float | None,
-                                             np.ndarray | None]:
+                                             np.ndarray | None, float | None]:
     """The height solved again once the registration has aligned the flight horizontally: the floor screen
     (`_screen`) and the height from the floor and the crossings (`vertical_from_crossings`), as the first
     time, from the logged reference, in the registered frame, with x, y and heading held at the registration's.
@@ -1022,25 +1028,27 @@ def _height_again(b: Beams, x: np.ndarray, k: np.ndarray, f: np.ndarray, knots: 
     two trade (measured: a `vio` flight over pile 2 at P_traj 5 %, a +0.26 m block of height over 97 s that
     the crossings' misfit prefers by 0.03 cm, 0.17 m RMS of height error; solved again 0.07 m). Returns the
     correction, the height's information, a note, the height's standard error (`height_rounds`; None when the solve
-    gave none) and the floor it was solved on; x as it was and None for the rest when the registration's height
-    stands (no floor kept, nothing significant, or refused as the first height would be)."""
+    gave none), the floor it was solved on and, when the walls' feet do not confirm that floor, what anchoring on it
+    moved the height (`floor_unconfirmed_note`; None when confirmed); x as it was and None for the rest when the
+    registration's height stands (no floor kept, nothing significant, or refused as the first height would be)."""
     x_h = x.copy()
     x_h[:, 2] = 0.0
     p, _ = corrected_points(b, x_h, k, f)
     kept, _, _, _, confirmed = _screen(p, b.t_s, knots, wall, voted, storage, cell_m, step_z_m, noise, sensor_m,
                                        max_error_m)
     if not kept.any():
-        return x, None, None, None, None
+        return x, None, None, None, None, None
     sigma: list[float] = []
     z, z_info = height_rounds(p, b.t_s, knots, wall, kept, storage, cell_m, step_z_m, noise, max_error_m,
                               n_significant, sigma)
     if (z is None or height_refused(z, knots, step_z_m, n_significant, max_vertical_error_m) is not None
             or floor_unconfirmed_note(z, confirmed, open_shift_m) is not None):
-        return x, None, None, None, None
+        return x, None, None, None, None, None
     change = _rms(z - x[:, 2])
     x_h[:, 2] = z
     return x_h, z_info, (f"the height solved again on the floor once the pile seen at different times aligned the "
-                         f"flight ({change:.2f} m RMS change)"), (sigma[-1] if sigma else None), kept
+                         f"flight ({change:.2f} m RMS change)"), (sigma[-1] if sigma else None), kept, (
+                             None if confirmed else float(np.mean(z)))
 
 
 def height_rounds(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, floor: np.ndarray,

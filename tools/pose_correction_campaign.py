@@ -16,7 +16,9 @@ Both programs run as a user runs them (their command lines, in subprocesses).
 
 A flight whose true path reached a wall or the roof crashed (`sitl.world.clearance`): `fly` refuses to write it,
 and a kept flight flown before that check is found from its truth.json. Its row says so (`hit`) and it is left out
-of the means and the targets' counts; the table's "hit a wall" column counts such flights.
+of the means and the targets' counts; the table's "hit a wall" column counts such flights. A flight `fly` refuses
+before take-off (an altitude its rangefinder's climb over the pile would take through the roof) is no survey either,
+and is counted beside them as refused.
 """
 
 from __future__ import annotations
@@ -152,8 +154,11 @@ def one(profile: str, pile: str, p_traj: int, seed: int, work: Path, reuse: bool
     flown = reuse and (run / "truth.json").is_file()
     row = {"profile": profile, "pile": pile, "p_traj": p_traj, "seed": seed}
     crashed = work / f"{run.name}.crash"  # what `fly` said of a flight that crashed: --reuse does not fly it again
+    refused = work / f"{run.name}.refused"  # what `fly` said of a flight it would not fly (a rangefinder's climb)
     if reuse and not flown and crashed.is_file():
         return {**row, "hit": crashed.read_text().strip()}
+    if reuse and not flown and refused.is_file():
+        return {**row, "refused": refused.read_text().strip()}
     if not flown:
         cmd = [py, "-m", "sitl.cli", "fly", "--stockpile", stockpile or pile, "--p-traj", str(p_traj),
                *building.fly_args(), "--pose-error", profile, "--seed", str(seed), "--out", str(run), "--force",
@@ -163,6 +168,10 @@ def one(profile: str, pile: str, p_traj: int, seed: int, work: Path, reuse: bool
             if "the vehicle hit" in done.stderr:
                 crashed.write_text(done.stderr.strip().splitlines()[-1] + "\n")
                 return {**row, "hit": done.stderr.strip().splitlines()[-1]}
+            if done.returncode == 2 and "is too high for --pose-error" in done.stderr:
+                # refused before take-off: no survey, as a crash is none, but not a crash
+                refused.write_text(done.stderr.strip().splitlines()[-1] + "\n")
+                return {**row, "refused": done.stderr.strip().splitlines()[-1]}
             sys.stderr.write(done.stderr)
             raise subprocess.CalledProcessError(done.returncode, cmd)
         crashed.unlink(missing_ok=True)  # flown again, and whole: an old crash no longer stands for it
@@ -225,11 +234,14 @@ def table(rows: list[dict]) -> str:
             ref_signed = statistics.fmean(r[off_key] for r in ref) if ref else float("nan")
             ref_seed = {r["seed"]: r[off_key] for r in ref}
             for prof in PROFILES:
-                flew = [r for r in rows if r["pile"] == pile and r["p_traj"] == p and r["profile"] == prof]
+                flew = [r for r in rows if r["pile"] == pile and r["p_traj"] == p and r["profile"] == prof
+                        and not r.get("refused")]
+                n_refused = sum(1 for r in rows if r["pile"] == pile and r["p_traj"] == p and r["profile"] == prof
+                                and r.get("refused"))
                 rs = [r for r in flew if not r.get("hit")]  # a crash is no survey
-                hit = f"{len(flew) - len(rs)}/{len(flew)}"
+                hit = f"{len(flew) - len(rs)}/{len(flew)}" + (f" ({n_refused} refused by `fly`)" if n_refused else "")
                 if not rs:
-                    if flew:
+                    if flew or n_refused:
                         lines.append(f"| {pile} | {p} % | {prof} | 0 | {ve_ref:.2f} | | | | | | | | | {hit} |")
                     continue
                 m = {k: statistics.fmean(r[k] for r in rs) for k in ("ve_off", "ve_on", "traj_before_m",

@@ -525,12 +525,13 @@ def test_that_a_height_solved_in_the_frame_before_the_registration_is_solved_aga
     kind, size_m = off.split()
     stretch = slice(None) if kind == "level" else slice(len(knots) // 4, len(knots) // 2)
     x[stretch, Component.Z.value] = float(size_m)
-    fixed, info, note, sigma, kept = _height_again(b, x, k, f, knots, at_wall, floor, STORAGE, 1.5, 0.6,
+    fixed, info, note, sigma, kept, open_shift = _height_again(b, x, k, f, knots, at_wall, floor, STORAGE, 1.5, 0.6,
                                                    RESOLUTION / math.sqrt(12.0), RESOLUTION, 5.0, 3.0, 2.0, math.inf)
     assert note is not None and "height solved again on the floor" in note, note
     assert info is not None and info.shape == (len(knots),)
     assert sigma is not None and 0.0 < sigma < 0.01  # the level's standard error, from thousands of floor points
     assert kept is not None and kept.sum() > 0.9 * floor.sum()  # the floor it was solved on: the floor
+    assert open_shift is None  # seen up to the walls' feet: a confirmed floor
     np.testing.assert_allclose(fixed[:, Component.Z.value], 0.0, atol=0.01)
     np.testing.assert_array_equal(fixed[:, [0, 1, 3]], x[:, [0, 1, 3]])
 

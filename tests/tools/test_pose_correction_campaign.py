@@ -205,3 +205,12 @@ def test_that_the_trajectory_after_the_report_is_placed_with_the_rangefinder_lif
     assert pose_only == pytest.approx(np.sqrt(np.mean(lift ** 2)))
     _, not_applied = trajectory_rms_m(truth, correction, {**rangefinder, "applied": False})
     assert not_applied == pytest.approx(pose_only)
+
+
+def test_that_a_flight_fly_refused_before_take_off_is_no_survey_and_is_counted_as_refused_not_as_a_crash():
+    rows = [{"profile": "none", "pile": "2", "p_traj": 25, "seed": 0, "ve_off": 0.1, "ve_on": 0.1, "applied": False,
+             "traj_before_m": 0.0, "traj_after_m": 0.0}]
+    why = "pilescan-sitl: error: altitude 9 m is too high for --pose-error flow: over the 7.50 m pile ..."
+    rows += [{"profile": "flow", "pile": "2", "p_traj": 25, "seed": s, "refused": why} for s in (0, 1)]
+    flow = next(line for line in table(rows).splitlines() if "| flow |" in line)
+    assert flow.startswith("| 2 | 25 % | flow | 0 | 0.10 |") and flow.endswith("| 0/0 (2 refused by `fly`) |"), flow
