@@ -949,7 +949,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     # (a solve that failed numerically gives no term rather than a NaN interval)
     height_sigma = z_sigma[-1] if z_info is not None and z_sigma and math.isfinite(z_sigma[-1]) else None
     return PoseCorrection(knots, x, constrained, True, None, height_sigma_m=height_sigma,
-                          open_floor_shift_m=open_floor_shift if z_info is not None else None,
+                          open_floor_shift_m=(open_floor_shift if z_info is not None and open_floor_shift is not None
+                                              and math.isfinite(open_floor_shift) else None),
                           height_unanchored_s=unanchored if z_info is not None else (0.0, 0.0, 0.0), **common)
 
 

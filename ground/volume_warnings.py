@@ -112,7 +112,7 @@ def open_floor_warning(shift_m: float | None, heights: np.ndarray, grid: Grid, v
     moved it, `PoseCorrection.open_floor_shift_m`) and that moved the volume by more than half the tolerance: were
     it a hollow in a pile that hides the floor wall to wall, the volume is off by about that much, which the 90 %
     interval does not include (nothing in the data tells such a hollow from a floor seen in a gap between heaps)."""
-    if not shift_m:
+    if not shift_m or not math.isfinite(shift_m):
         return None
     moved = shift_m * float(np.count_nonzero(np.isfinite(heights))) * grid.cell_area_m2
     if volume_m3 > 0 and abs(moved) < 0.5 * max_pct / 100.0 * volume_m3:
