@@ -147,9 +147,9 @@ class PoseCorrectionOptions:
     far it moves the height. Off, such a floor is used only when it moves the height by no more than the barometer
     walks over the flight (vertical_walk_m_per_sqrt_s), else the height is corrected from the pile seen at
     different times alone, at the logged reference's level: the lowest flat part of a pile that hides the floor
-    wall to wall passes for the floor, and was taken for it at 0.7 m (Ve 20-41 %: docs/design-notes.md). The
-    report turns it on when the autopilot's height came from its downward rangefinder, whose error follows the
-    pile: there only a floor can take it out."""
+    wall to wall passes for the floor, and was taken for it 0.3-0.8 m up (Ve 13-44 %: docs/design-notes.md). The
+    report turns it on when the autopilot's height came from its downward rangefinder and the crossings could not
+    take its share out (`ground.rangefinder_height`): that error follows the pile, and only a floor takes it out."""
     heading: bool = False
     """Estimate the heading too (kept only when significant). Off by default: the walls beside a track do not
     see it, and measured on seven SITL flights it made Ve worse on five (it took up a few systematic

@@ -20,6 +20,7 @@ import math
 import numpy as np
 from scipy import ndimage
 
+from ground.render import signless_zero
 from ground.surface import Grid, fill_empty
 from ground.uncertainty import ErrorTerms, FaceCells, IntervalModel
 
@@ -119,7 +120,8 @@ def open_floor_warning(shift_m: float | None, heights: np.ndarray, grid: Grid, v
         return None
     pct = f" ({100.0 * abs(moved) / volume_m3:.1f} % of the volume)" if volume_m3 > 0 else ""
     return (f"the height was anchored on a floor seen only away from the walls (the pile covers their feet), which "
-            f"moved it {shift_m:+.2f} m and the volume {moved:+,.0f} m³{pct}: were that a hollow in the pile, not "
+            f"moved it {signless_zero(shift_m, '+.2f'):+.2f} m and the volume {signless_zero(moved, '+,.0f'):+,.0f} "
+            f"m³{pct}: were that a hollow in the pile, not "
             "the floor, the volume is off by about as much, beyond the 90 % interval; a leg that sees a wall's foot "
             "or a strip of clear floor would confirm the floor")
 

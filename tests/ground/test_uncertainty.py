@@ -281,5 +281,6 @@ def test_that_a_height_anchored_on_a_floor_the_walls_do_not_confirm_is_warned_ab
     assert open_floor_warning(-0.01, heights, grid, 1192.0, 5.0) is None  # 3.8 m³: within half the tolerance
     assert open_floor_warning(None, heights, grid, 1192.0, 5.0) is None  # confirmed, or no floor used
     assert open_floor_warning(math.nan, heights, grid, 1192.0, 5.0) is None  # a failed solve says nothing
+    assert "-0 m³" not in open_floor_warning(-0.001, heights, grid, 0.0, 5.0)  # nothing to compare: said, unsigned
     heights[:12] = np.nan  # only the surfaced cells move
     assert "-50 m³" in open_floor_warning(-0.26, heights, grid, 1192.0, 5.0)
