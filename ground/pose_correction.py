@@ -820,9 +820,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
             # used, and said (as a note of its own: a floor note would have the height solved again): the surveyor
             # reads that the level rests on a floor nothing at a wall confirms
             open_floor_shift = float(np.mean(z))
-            notes.append(f"the floor the height was anchored on was seen only away from the walls (the pile covers "
-                         f"their feet): were it a hollow in the pile, the height would be off by up to "
-                         f"{abs(open_floor_shift):.2f} m, what anchoring on it moved it")
+            notes.append(open_floor_note("anchored", open_floor_shift))
         notes.extend(note for note in (floor_note, refused) if note)
         first_refused = refused
         if z is not None:
@@ -896,10 +894,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                         notes.append(again_note)
                         open_floor_shift = shift_again  # this height replaces the first
                         if shift_again is not None:  # on a floor the walls' feet do not confirm: said, as the first
-                            notes.append(f"the floor the height was solved again on was seen only away from the "
-                                         f"walls (the pile covers their feet): were it a hollow in the pile, the "
-                                         f"height would be off by up to {abs(shift_again):.2f} m, what anchoring on "
-                                         "it moved it")
+                            notes.append(open_floor_note("solved again", shift_again))
                         unanchored = unanchored_stretches(knots, floor_anchored(
                             corrected_points(b, x, k, f)[0], b.t_s, knots, wall, floor_again, storage, cell_m,
                             opts.max_position_error_m))
@@ -1497,6 +1492,14 @@ def floor_unconfirmed_note(z: np.ndarray, confirmed: bool, open_shift_m: float) 
             f"feet), so it may be a hollow in the pile, and it would move the height by {shift:.2f} m, more than the "
             f"barometer is believed to drift in the flight ({open_shift_m:.2f} m); the height is corrected from the "
             "crossings alone, at the logged height's level")
+
+
+def open_floor_note(how: str, shift_m: float) -> str:
+    """The pose line's note on a height anchored (how: "anchored", "solved again") on a floor the walls' feet do not
+    confirm, which moved it shift_m on average."""
+    return (f"the floor the height was {how} on was seen only away from the walls (the pile covers their feet): were "
+            f"it a hollow in the pile, the height would be off by up to {abs(shift_m):.2f} m, what anchoring on it "
+            "moved it")
 
 
 def lowest_window(med_m: np.ndarray, counts: np.ndarray, width_m: float, stray: float) -> tuple[int, int] | None:

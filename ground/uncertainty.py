@@ -365,13 +365,19 @@ class SurveyErrors:
     point_sigma_m: float
 
 
+def over_surface_m3(height_m: float, heights: np.ndarray, grid: Grid, mask: np.ndarray | None = None) -> float:
+    """What moving the whole surface up by height_m moves the volume by: that height over the surfaced cells (of
+    mask), m³ (signed as height_m)."""
+    cells = np.isfinite(heights) if mask is None else np.isfinite(heights) & mask
+    return float(height_m * np.count_nonzero(cells) * grid.cell_area_m2)
+
+
 def pose_term_m3(height_sigma_m: float | None, heights: np.ndarray, grid: Grid,
                  mask: np.ndarray | None = None) -> float:
     """The pose term: the height correction's standard error over the surfaced cells (of mask), m³."""
     if not height_sigma_m:
         return 0.0
-    cells = np.isfinite(heights) if mask is None else np.isfinite(heights) & mask
-    return float(height_sigma_m * np.count_nonzero(cells) * grid.cell_area_m2)
+    return over_surface_m3(height_sigma_m, heights, grid, mask)
 
 
 def survey_errors(points_w: np.ndarray, sweep_dir: np.ndarray | None, heights_fit: np.ndarray,

@@ -22,7 +22,7 @@ from scipy import ndimage
 
 from ground.render import signless_zero
 from ground.surface import Grid, fill_empty
-from ground.uncertainty import ErrorTerms, FaceCells, IntervalModel
+from ground.uncertainty import ErrorTerms, FaceCells, IntervalModel, over_surface_m3
 
 DOMINANT_SHARE = 0.5
 """A term 'dominates' when it holds over half of the interval's variance (its square over the sum)."""
@@ -115,15 +115,14 @@ def open_floor_warning(shift_m: float | None, heights: np.ndarray, grid: Grid, v
     interval does not include (nothing in the data tells such a hollow from a floor seen in a gap between heaps)."""
     if not shift_m or not math.isfinite(shift_m):
         return None
-    moved = shift_m * float(np.count_nonzero(np.isfinite(heights))) * grid.cell_area_m2
+    moved = over_surface_m3(shift_m, heights, grid)
     if volume_m3 > 0 and abs(moved) < 0.5 * max_pct / 100.0 * volume_m3:
         return None
     pct = f" ({100.0 * abs(moved) / volume_m3:.1f} % of the volume)" if volume_m3 > 0 else ""
     return (f"the height was anchored on a floor seen only away from the walls (the pile covers their feet), which "
             f"moved it {signless_zero(shift_m, '+.2f'):+.2f} m and the volume {signless_zero(moved, '+,.0f'):+,.0f} "
-            f"m³{pct}: were that a hollow in the pile, not "
-            "the floor, the volume is off by about as much, beyond the 90 % interval; a leg that sees a wall's foot "
-            "or a strip of clear floor would confirm the floor")
+            f"m³{pct}: were that a hollow in the pile, not the floor, the volume is off by about as much, beyond the "
+            "90 % interval; a leg that sees a wall's foot or a strip of clear floor would confirm the floor")
 
 
 def wide_interval_warning(volume_m3: float, interval_m3: tuple[float, float], max_pct: float) -> str | None:
