@@ -13,6 +13,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from datetime import date
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,7 @@ from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
 from sitl.world.raycast import World
 from sitl.world.stockpile import paper_pile
+from tools.doc_sections import write_section
 
 
 def median_time(fn, repeat: int) -> tuple[float, list[float]]:
@@ -59,6 +61,8 @@ def _survey(run: Path):
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--readme", type=Path,
+                    help="also write the table into this page's marked section bench-ground (README.md)")
     ap.add_argument("--write", type=Path, help="also write the table to this Markdown file")
     args = ap.parse_args(argv)
     rows = []
@@ -116,6 +120,9 @@ def main(argv: list[str] | None = None) -> int:
         args.write.parent.mkdir(parents=True, exist_ok=True)
         args.write.write_text("# Benchmarks\n\nRegenerate with `python -m tools.bench_ground --write "
                               f"{args.write}`.\n\n{text}\n")
+    if args.readme:
+        write_section(args.readme, "bench-ground", f"`python -m tools.bench_ground` on "
+                      f"{date.today().isoformat()}:\n\n{text}")
     return 0
 
 

@@ -15,6 +15,7 @@ import statistics
 import tempfile
 import time
 from dataclasses import dataclass
+from datetime import date
 from pathlib import Path
 
 from firmware_py.core.samplelog import SampleLogWriter
@@ -25,6 +26,7 @@ from firmware_py.hal.clock import SimClock
 from firmware_py.payload import LoopConfig, PayloadLoop
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
+from tools.doc_sections import write_section
 
 
 class InstantLidarBus:
@@ -93,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--p-traj", type=float, default=20.0)
+    ap.add_argument("--readme", type=Path,
+                    help="also write the table into this page's marked section bench-payload (README.md)")
     ap.add_argument("--write", type=Path)
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
@@ -116,6 +120,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.write:
         args.write.write_text("# Payload benchmarks\n\nRegenerate with `python -m tools.bench_payload --write "
                               f"{args.write}`.\n\n{text}\n")
+    if args.readme:
+        write_section(args.readme, "bench-payload", f"`python -m tools.bench_payload` on "
+                      f"{date.today().isoformat()}:\n\n{text}")
     return 0
 
 

@@ -9,17 +9,21 @@ import argparse
 import statistics
 import tempfile
 import time
+from datetime import date
 from pathlib import Path
 
 from firmware_py.core.frames import StorageFrame
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import fly_mission
 from sitl.runners.fly import FlyConfig, fly
+from tools.doc_sections import write_section
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--readme", type=Path,
+                    help="also write the table into this page's marked section bench-sitl (README.md)")
     ap.add_argument("--write", type=Path)
     args = ap.parse_args(argv)
     mission = Mission(p_traj=0.05)
@@ -48,6 +52,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.write:
         args.write.write_text("# SITL benchmarks\n\nRegenerate with `python -m tools.bench_sitl --write "
                               f"{args.write}`.\n\n{text}\n")
+    if args.readme:
+        write_section(args.readme, "bench-sitl", f"`python -m tools.bench_sitl` on "
+                      f"{date.today().isoformat()}:\n\n{text}")
     return 0
 
 
