@@ -1,6 +1,6 @@
 """Benchmarks (medians; never asserted in tests): ground report with and without plots, and with plots and every
 export (`--export all`), on a ~100k-sample run, batch ray casting, SITL flight.
-Usage: python -m tools.bench_ground [--write docs/benchmarks.md]
+Usage: python -m tools.bench_ground [--write docs/benchmarks.md] [--readme README.md]
 """
 
 from __future__ import annotations

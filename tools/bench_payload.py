@@ -6,6 +6,7 @@
    without any simulator. (The MAVLink pump is measured separately in the lockstep run.)
 2. Whole lockstep mission with the firmware in the loop (`fly --payload firmware`), as a ratio
    to real time. Usage: python -m tools.bench_payload [--repeat 3] [--write docs/benchmarks-payload.md]
+   [--readme README.md]
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """SITL benchmark (medians; never asserted in tests): the baseline P_traj 5 % mission flown lockstep
 by the JSBSim vehicle alone, and the whole `fly` (vehicle + LiDAR samples + run directory).
-Usage: python -m tools.bench_sitl [--repeat 5] [--write docs/benchmarks-sitl.md]
+Usage: python -m tools.bench_sitl [--repeat 5] [--write docs/benchmarks-sitl.md] [--readme README.md]
 """
 
 from __future__ import annotations

@@ -580,7 +580,7 @@ def test_that_the_robust_fits_solve_is_the_general_sparse_solution_with_or_witho
     n = n_knots + n_cells  # a row holding two cells (the last two): no diagonal block left to eliminate
     tangled = sparse.vstack([structured, sparse.csr_matrix(([1.0, -1.0], ([0, 0], [n - 2, n - 1])), shape=(1, n))],
                             format="csr")
-    # rows on two components' knots (as the registration's: x and heading), solved by the sparse products
+    # rows on two components' knots (as the registration's: x and heading)
     other = rng.integers(0, n_knots // 2 - 1, m)
     cols4 = np.column_stack([other, other + 1, n_knots // 2 + other, n_knots // 2 + other + 1, n_knots + cell]).ravel()
     obs4 = sparse.csr_matrix((rng.normal(size=5 * m), (np.repeat(np.arange(m), 5), cols4)), shape=(m, n))
