@@ -1834,9 +1834,9 @@ def _huber(u: np.ndarray) -> np.ndarray:
 IRLS_ROUNDS = 20
 """The robust fits' rounds. On the drifting flights they end here, not at their 1e-6 tolerance: the knots still move
 0.1-0.7 mm a round and lie 0.4-7 mm from the Huber cost's minimum, so the fit is part way from least squares to
-it. Run to that minimum (200 rounds, or Newton's method on the active set) the campaigns read worse, not better
-(paper piles within 0.3 pp 18 -> 16 of 38, one flight 0.2 -> 5.5 pp): the stop is load-bearing, and was measured,
-not chosen (docs/design-notes.md, "The robust fits stop short of their minimum")."""
+it. Run further towards it (200 rounds) or to it (Newton's method on the active set), the campaigns read worse,
+not better (paper piles within 0.3 pp 18 -> 16 of 38, one flight 0.2 -> 5.5 pp): the stop is load-bearing, and was
+measured, not chosen (docs/design-notes.md, "The robust fits stop short of their minimum")."""
 
 
 def _irls_huber(a: sparse.csr_matrix, rhs: np.ndarray, scale: float = 1.0) -> np.ndarray:
