@@ -75,7 +75,6 @@ class JsbsimVehicle:
         self._hold = Target(n, e, d, yaw_rad=self._e[8])
         self._climb_to: float | None = None
         self._ref_d: float | None = None  # a climb's moving reference height (down, m); None: not climbing
-        self._ref_climb_m_s = 0.0  # how fast that reference rises (m/s, up)
         self._landing = False
 
     # ----------------------------------------------------------------- protocol: state and stepping
@@ -142,11 +141,12 @@ class JsbsimVehicle:
             return self._mission_target()
         return self._hold
 
-    def _ramp(self, d_goal: float) -> float:
-        """A reference height that moves towards the goal at the climb rate, and slows before it as fast as
-        BRAKE_Z_M_S2 allows (the square-root profile of ArduPilot's position controller), so climbs are steady and
-        stop at the goal. It used to be a carrot a second of climb above the vehicle's own height: the vehicle chased
-        it ever faster (2.3 m/s for 1 m/s asked) and overshot a 9 m take-off by 1.8 m, through a 10 m roof."""
+    def _ramp(self, d_goal: float) -> tuple[float, float]:
+        """A reference height (down, m) and how fast it rises (m/s): it moves towards the goal at the climb rate and
+        slows before it as fast as BRAKE_Z_M_S2 allows (the square-root profile of ArduPilot's position controller),
+        so climbs are steady and stop at the goal. It used to be a carrot a second of climb above the vehicle's own
+        height: the vehicle chased it ever faster (2.3 m/s for 1 m/s asked) and overshot a 9 m take-off by 1.8 m,
+        through a 10 m roof."""
         if self._ref_d is None:
             self._ref_d = self._e[2]
         left = d_goal - self._ref_d
@@ -154,12 +154,11 @@ class JsbsimVehicle:
         step = speed * self.dt_s
         moved = max(-step, min(step, left))
         self._ref_d += moved
-        self._ref_climb_m_s = -moved / self.dt_s  # up
-        return self._ref_d
+        return self._ref_d, -moved / self.dt_s
 
     def _climb_target(self, d_goal: float) -> Target:
-        t = Target(self._hold.north_m, self._hold.east_m, self._ramp(d_goal), yaw_rad=self._hold.yaw_rad,
-                   climb_m_s=self._ref_climb_m_s)
+        ref_d, climb_m_s = self._ramp(d_goal)
+        t = Target(self._hold.north_m, self._hold.east_m, ref_d, yaw_rad=self._hold.yaw_rad, climb_m_s=climb_m_s)
         if abs(self._e[2] - d_goal) < TAKEOFF_TOLERANCE_M:
             self._climb_to = None
             self._ref_d = None
