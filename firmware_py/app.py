@@ -71,10 +71,10 @@ from firmware_py.drivers.lidarlite import (
 from firmware_py.drivers.servo import SweepServo
 from firmware_py.drivers.tfmini import StreamCheck, Tfmini, TfminiConfig
 from firmware_py.hal import Clock, I2CBus, MavlinkLink, PwmOutput
-from firmware_py.hal.backends import open_i2c, parse_i2c_url
+from firmware_py.hal.backends import check_i2c_url, open_i2c
 from firmware_py.hal.bridge import check_bridge_key
 from firmware_py.hal.clock import MonotonicClock
-from firmware_py.hal.mavlink_link import mavutil_device, open_mavlink
+from firmware_py.hal.mavlink_link import check_mavlink_url, open_mavlink
 from firmware_py.hal.pwm import check_pwm_url, open_pwm
 from firmware_py.hal.signing import SigningConfig
 from firmware_py.hal.uart import DEFAULT_BAUD, SerialPort, check_uart_url, open_uart, parse_uart_url
@@ -93,7 +93,6 @@ DEFAULT_UART_URL = "serial:/dev/serial0:115200"
 """The Raspberry Pi's header UART (GPIO 14 TX, 15 RX) at the TFMini's factory rate."""
 DEFAULT_RANGEFINDER = Rangefinder.LIDARLITE_V3
 DEFAULT_PRESET = PRESET_FAST_500HZ.name
-_MAVLINK_BUILTIN = ("serial", "udp", "udpin", "udpout", "tcp")
 ORIGIN_RESEND_S = 5.0
 MAX_EKF_ORIGIN_OFFSET_M = 10_000.0
 """How far the EKF origin sent may be from the site's corner: the local NED frame is a flat-earth tangent
@@ -327,17 +326,16 @@ class PayloadConfig:
         for name, url in (("MAVLink", self.mavlink_url), ("I2C bus", self.i2c_url), ("PWM output", self.pwm_url)):
             if not isinstance(url, str) or not url.strip():
                 raise ValueError(f"{name} URL must be a non-empty string like SCHEME:..., got {url!r}")
-        if self.mavlink_url.split(":", 1)[0] in _MAVLINK_BUILTIN or ":" not in self.mavlink_url:
-            mavutil_device(self.mavlink_url)  # registered schemes are checked when opened
-        if self.i2c_url.split(":", 1)[0] == "i2c":
-            parse_i2c_url(self.i2c_url)
+        # Each URL against its kind's schemes as this process knows them (built-in, or registered by another layer,
+        # whose own options are checked when opened): an unknown scheme is refused here, not when the flight starts.
+        check_mavlink_url(self.mavlink_url)
+        check_i2c_url(self.i2c_url)
         check_pwm_url(self.pwm_url)  # before anything is opened
         if self.rangefinder is Rangefinder.TFMINI:
             if not isinstance(self.uart_url, str) or not self.uart_url.strip():
                 raise ValueError(f"serial port URL must be a non-empty string like {DEFAULT_UART_URL}, "
                                  f"got {self.uart_url!r}")
-            if self.uart_url.split(":", 1)[0] == "serial":
-                check_uart_url(self.uart_url)  # registered schemes are checked when opened
+            check_uart_url(self.uart_url)
 
     def loop_config(self) -> LoopConfig:
         if self.rangefinder.streams:

@@ -50,16 +50,15 @@ from firmware_py.core.stream_format import parse_stream_url
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import N_PHASES
 from firmware_py.drivers.lidarlite import PRESETS, preset_by_name
-from firmware_py.hal.backends import parse_i2c_url
+from firmware_py.hal.backends import check_i2c_url
 from firmware_py.hal.bridge import parse_tcp_url
-from firmware_py.hal.mavlink_link import mavutil_device
+from firmware_py.hal.mavlink_link import check_mavlink_url
 from firmware_py.hal.pwm import check_pwm_url
 from firmware_py.hal.signing import SigningConfig
 from firmware_py.hal.uart import check_uart_url
 from firmware_py.log_room import check_destination, describe_room, room_s, room_warning
 
 _HAL_RE = re.compile(r"sitl:(?P<host>[^\s:]+):(?P<port>\d{1,5})")
-_MAVLINK_BUILTIN = ("serial", "udp", "udpin", "udpout", "tcp")
 
 CONFIG_OPTIONS: ConfigTables = {None: {
     "site.dimensions": "--storage",
@@ -121,8 +120,7 @@ def _check_uart(url: str) -> None:
 def _check_i2c(url: str) -> None:
     if not url.strip():
         raise ValueError("must be a non-empty URL (leave it out for the default)")
-    if url.split(":", 1)[0] == "i2c":
-        parse_i2c_url(url)
+    check_i2c_url(url)
 
 
 def _check_pwm(url: str) -> None:
@@ -132,8 +130,7 @@ def _check_pwm(url: str) -> None:
 
 
 def _check_mavlink(url: str) -> None:
-    if url.split(":", 1)[0] in _MAVLINK_BUILTIN or ":" not in url:
-        mavutil_device(url)  # registered schemes are checked when opened
+    check_mavlink_url(url)
 
 
 def _check_preset(name: str) -> None:

@@ -597,7 +597,8 @@ def _open_pymavlink(url: str, *, signing: SigningConfig | None = None, source_sy
 
 MAVLINK_BACKENDS: BackendRegistry[MavlinkLink] = BackendRegistry(
     "MAVLink link", credential="signing", policy=Credential.REQUIRED,
-    unknown="unsupported MAVLink link scheme {scheme!r} in {url!r}")
+    unknown="unsupported MAVLink link scheme {scheme!r} in {url!r}",
+    expected="serial:/dev/ttyAMA0:921600, udp:HOST:PORT, udpout:HOST:PORT or tcp:HOST:PORT")
 """Every `open_mavlink` scheme: pymavlink's transports, and what other layers (the SITL) register.
 A link asked to sign that cannot is refused, never opened unsigned."""
 for _scheme in ("serial", "udp", "udpin", "udpout", "tcp"):

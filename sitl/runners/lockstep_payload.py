@@ -32,8 +32,11 @@ from firmware_py.core.sensor_noise import SensorNoise
 from firmware_py.core.servo_model import ServoCalibration
 from firmware_py.core.site import DEFAULT_SITE
 from firmware_py.hal import PwmOutput
+from firmware_py.hal.backends import register_i2c_backend
 from firmware_py.hal.clock import SimClock
+from firmware_py.hal.mavlink_link import register_mavlink_backend
 from firmware_py.hal.pwm import register_pwm_backend
+from firmware_py.hal.uart import register_uart_backend
 from firmware_py.payload import LoopStats
 from sitl.mavlink.server import MavlinkVehicleServer
 from sitl.sensing.noise import PoseNoiser, RangeNoiser, ServoNoiser, noise_streams
@@ -338,11 +341,18 @@ STOP_MESSAGE_WAIT_S = 0.5
 """Simulated time after the payload stops for its last messages to cross the link (latency, faults)."""
 
 
-def _not_opened(url: str) -> PwmOutput:
-    raise ValueError(f"{url}: the lockstep SITL injects its servo; nothing to open")
+def _not_opened(url: str, **_options) -> PwmOutput:
+    raise ValueError(f"{url}: the lockstep SITL injects its parts; nothing to open")
 
 
-register_pwm_backend("sitl", _not_opened)
+def _register_injected_schemes() -> None:
+    """The `sitl` scheme of each part the lockstep flight injects, refusing to open: the payload's configuration
+    checks every URL against the schemes its process knows, and these name injected parts. Registered again
+    before each flight's configuration, as a test may have unregistered a scheme of that name (its own bus)."""
+    register_mavlink_backend("sitl", _not_opened)
+    register_i2c_backend("sitl", _not_opened)
+    register_uart_backend("sitl", _not_opened)
+    register_pwm_backend("sitl", _not_opened)
 
 
 def payload_config(cfg, log_path, header: dict, timeout_s: float) -> PayloadConfig:
@@ -350,6 +360,7 @@ def payload_config(cfg, log_path, header: dict, timeout_s: float) -> PayloadConf
     SITL's header provenance (source, mission) so the ground station reads the same log header. The
     payload sends the flight's EKF origin (SET_GPS_GLOBAL_ORIGIN), as `pilescan-payload --origin` does:
     the simulated autopilot's home, where its plant and its plan are placed too."""
+    _register_injected_schemes()
     return PayloadConfig(
         out_path=log_path, force=True, mavlink_url=SITL_MAVLINK_URL, i2c_url=SITL_I2C_URL, pwm_url=SITL_PWM_URL,
         rangefinder=cfg.rangefinder, uart_url=SITL_UART_URL, rate_hz=cfg.lidar.rate_hz, waveform=cfg.waveform,

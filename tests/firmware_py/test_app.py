@@ -169,6 +169,8 @@ def stop_later(app: PayloadApp, after_s: float) -> threading.Timer:
     ("stream_url", "udp:host:70000", "port"),
     ("send_origin", (91.0, 0.0, 0.0), "latitude"),
     ("mavlink_url", "bogus", "MAVLink"),
+    ("mavlink_url", "mqtt:host:1883", "MAVLink link scheme 'mqtt'"),  # no backend: refused now, not at take-off
+    ("i2c_url", "spi:0", "unknown scheme 'spi'"),
     ("mavlink_url", "udpout:127.0.0.1:0", "port"),
     ("i2c_url", "i2c:abc", "I2C"),
     ("pwm_url", "servo0", "PWM"),
@@ -182,6 +184,13 @@ def test_that_a_bad_config_value_is_refused_in_one_line_naming_it(field, value, 
         PayloadConfig(**{field: value})
     msg = str(err.value)
     assert words.lower() in msg.lower() and "\n" not in msg
+
+
+def test_that_a_scheme_another_layer_registered_is_accepted_and_refused_once_it_is_gone(devices):
+    PayloadConfig(i2c_url="sitl:0", pwm_url="pwm:emu")  # the fixture's emulated bus and servo
+    unregister_i2c_backend("sitl")
+    with pytest.raises(ValueError, match="unknown scheme 'sitl'"):
+        PayloadConfig(i2c_url="sitl:0", pwm_url="pwm:emu")
 
 
 def test_that_the_default_config_is_the_papers_500_hz_survey_on_a_raspberry_pi():

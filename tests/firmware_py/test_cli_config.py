@@ -64,6 +64,10 @@ def test_that_check_shows_a_flag_over_the_file(capsys):
     ("[payload]\nlever_arm_m = \"0 0 0.1\"\n", "[payload] lever_arm_m: must be an array of 3 numbers"),  # type
     ("[payload]\npwm = \"pwm:sysfs:zero:0\"\n", "[payload] pwm: "),  # a URL the PWM backends refuse
     ("[payload]\nmavlink = \"udpout:host\"\n", "[payload] mavlink: expected HOST:PORT in MAVLink URL"),  # bad URL
+    # a scheme no backend of this process serves: refused by --check as the flight would refuse it
+    ("[payload]\nmavlink = \"mqtt:host:1883\"\n", "[payload] mavlink: unsupported MAVLink link scheme 'mqtt'"),
+    ("[payload]\ni2c = \"spi:0\"\n", "[payload] i2c: malformed I2C bus URL 'spi:0': unknown scheme 'spi'"),
+    ("[payload]\ni2c = \"tcp:sim-host\"\n", "[payload] i2c: malformed device bridge URL"),
     ("[payload.sweep]\nwaveform = \"square\"\n", "[payload.sweep] waveform: must be one of"),  # bad enum
     ("[site]\nlength_m = 60\nwidth_m = 40\n", "[site] height_m: missing"),  # a section missing a value
     ("[payload]\nlidarlite_preset = \"turbo\"\n", "[payload] lidarlite_preset: unknown LIDAR-Lite preset"),
