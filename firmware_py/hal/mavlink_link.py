@@ -619,8 +619,9 @@ def unregister_mavlink_backend(scheme: str) -> None:
 def check_mavlink_url(url: str) -> None:
     """Refuse a malformed or unknown MAVLink URL without opening anything (ValueError naming it); a
     registered scheme's options are checked when it is opened."""
-    if not isinstance(url, str):
-        raise ValueError(f"MAVLink URL must be a string, got {url!r}")
+    if not isinstance(url, str) or not url.strip():
+        raise ValueError(f"MAVLink URL must be a non-empty string like serial:/dev/ttyAMA0:921600 or "
+                         f"udp:HOST:PORT, got {url!r}")
     MAVLINK_BACKENDS.check(url)
 
 
