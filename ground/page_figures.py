@@ -25,6 +25,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
+from matplotlib.ticker import MaxNLocator
 from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
 from ground.plots import (
@@ -226,13 +227,31 @@ def surface_3d_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndar
     ax.set_ylim(0, W)
     ax.set_zlim(lo, max(peak, lo + 1e-6))
     ax.set_box_aspect((L, W, max(peak - lo, 1e-3) * ve))
+    ax.set_zticks(height_ticks(lo, peak, (peak - lo) * ve / max(L, W)))
     ax.view_init(elev=30, azim=-60)
+    ax.xaxis.labelpad = 8  # clear of the tick labels under it
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_zlabel("z [m]")
     ax.set_title(f"{title}\nvertical exaggeration ×{ve:g}" + (
         f"; drawn at {sx * (xe[1] - xe[0]):.2g} m cells (highest kept)" if max(sx, sy) > 1 else ""))
     return fig
+
+
+def height_ticks(lo_m: float, peak_m: float, drawn_fraction: float) -> list[float]:
+    """The 3D view's height ticks: as many as the height axis, drawn at drawn_fraction of the longer side, has room
+    for at the horizontal axes' spacing (about X_TICKS_PER_SIDE on a side), at least the floor and one above it, so
+    the labels of a low relief do not print over each other."""
+    n = max(1, min(X_TICKS_PER_SIDE, int(X_TICKS_PER_SIDE * drawn_fraction)))
+    ticks = [float(t) for t in MaxNLocator(nbins=n, steps=[1, 2, 2.5, 5, 10]).tick_values(lo_m, peak_m)
+             if lo_m - 1e-9 <= t <= peak_m + 1e-9]
+    if len(ticks) < 2:
+        ticks = sorted({round(lo_m, 1), float(np.floor(peak_m * 10.0) / 10.0)})
+    return ticks
+
+
+X_TICKS_PER_SIDE = 6
+"""About how many labelled ticks the 3D view's longer horizontal axis carries (matplotlib's default for its size)."""
 
 
 # ------------------------------------------------------------------------------------- cross-sections

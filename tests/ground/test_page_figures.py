@@ -26,6 +26,13 @@ def cone(cx: float, cy: float, r: float, h: float) -> np.ndarray:
     return np.clip(h * (1 - np.hypot(x - cx, y - cy) / r), 0, None)
 
 
+def cone_of(peak_m: float, side_m: float) -> np.ndarray:
+    """A cone peak_m high in the middle of a side_m x side_m / 2 floor on 80 x 40 cells."""
+    g = Grid(side_m, side_m / 2, side_m / 80)
+    x, y = np.meshgrid(0.5 * (g.x_edges[:-1] + g.x_edges[1:]), 0.5 * (g.y_edges[:-1] + g.y_edges[1:]), indexing="ij")
+    return np.clip(peak_m * (1 - np.hypot(x - side_m / 2, y - side_m / 4) / (side_m / 5)), 0, None)
+
+
 def two_piles() -> tuple[np.ndarray, dict]:
     """A small cone at x = 10 and a large one at x = 28: the large one is the sections' pile."""
     h = np.maximum(cone(10.0, 10.0, 5.0, 3.0), cone(28.0, 9.0, 8.0, 6.0))
@@ -93,6 +100,20 @@ def test_that_the_3d_view_states_its_exaggeration_and_draws_a_bounded_number_of_
     quads = ax.collections[0]
     assert len(quads.get_paths()) <= 20 * 20
     assert ax.get_zlim()[1] == pytest.approx(h.max())  # the block maximum keeps the peak
+
+
+@pytest.mark.parametrize(("peak_m", "side_m"), [(8.17, 60.0), (0.5, 40.0), (2.0, 40.0), (30.0, 40.0), (0.04, 20.0)])
+def test_that_the_3d_views_height_labels_are_spaced_like_its_floors(peak_m, side_m):
+    ve = pf.vertical_exaggeration(peak_m, (side_m, side_m / 2))
+    g = Grid(side_m, side_m / 2, side_m / 80)
+    fig = pf.surface_3d_figure(g.x_edges, g.y_edges, cone_of(peak_m, side_m), (side_m, side_m / 2))
+    ax = fig.axes[0]
+    ticks = [t for t in ax.get_zticks() if ax.get_zlim()[0] - 1e-9 <= t <= ax.get_zlim()[1] + 1e-9]
+    assert len(ticks) >= 2 and min(ticks) == pytest.approx(0.0)  # the floor and one height above it
+    # no closer on the drawn axis than the longer floor axis' own labels (about X_TICKS_PER_SIDE of them)
+    spacing_drawn = (ticks[1] - ticks[0]) * ve / side_m
+    assert len(ticks) == 2 or spacing_drawn >= 1.0 / (pf.X_TICKS_PER_SIDE + 1)
+    assert ax.get_xaxis().labelpad >= 8
 
 
 def test_that_coarsening_keeps_each_blocks_highest_cell():
