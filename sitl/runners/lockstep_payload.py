@@ -19,7 +19,7 @@ import collections
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import BinaryIO, NamedTuple
+from typing import BinaryIO, NamedTuple, NoReturn
 
 import numpy as np
 
@@ -31,7 +31,6 @@ from firmware_py.core.sensor_noise import HEADER_KEY as NOISE_HEADER_KEY
 from firmware_py.core.sensor_noise import SensorNoise
 from firmware_py.core.servo_model import ServoCalibration
 from firmware_py.core.site import DEFAULT_SITE
-from firmware_py.hal import PwmOutput
 from firmware_py.hal.backends import register_i2c_backend
 from firmware_py.hal.clock import SimClock
 from firmware_py.hal.mavlink_link import register_mavlink_backend
@@ -341,7 +340,7 @@ STOP_MESSAGE_WAIT_S = 0.5
 """Simulated time after the payload stops for its last messages to cross the link (latency, faults)."""
 
 
-def _not_opened(url: str, **_options) -> PwmOutput:
+def _not_opened(url: str, **_options: object) -> NoReturn:
     raise ValueError(f"{url}: the lockstep SITL injects its parts; nothing to open")
 
 
