@@ -241,7 +241,9 @@ def surface_3d_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndar
 def height_ticks(lo_m: float, peak_m: float, drawn_fraction: float) -> list[float]:
     """The 3D view's height ticks: as many as the height axis, drawn at drawn_fraction of the longer side, has room
     for at the horizontal axes' spacing (about X_TICKS_PER_SIDE on a side), at least the floor and one above it, so
-    the labels of a low relief do not print over each other."""
+    the labels of a low relief do not print over each other; the floor alone for a flat surface (an empty building)."""
+    if not peak_m > lo_m + FLAT_RELIEF_M:
+        return [round(lo_m, 2)]
     n = max(1, min(X_TICKS_PER_SIDE, int(X_TICKS_PER_SIDE * drawn_fraction)))
     ticks = [float(t) for t in MaxNLocator(nbins=n, steps=[1, 2, 2.5, 5, 10]).tick_values(lo_m, peak_m)
              if lo_m - 1e-9 <= t <= peak_m + 1e-9]
@@ -250,6 +252,8 @@ def height_ticks(lo_m: float, peak_m: float, drawn_fraction: float) -> list[floa
     return ticks
 
 
+FLAT_RELIEF_M = 0.01
+"""A relief under this (a centimetre: the rangefinder's quantum) is drawn as flat: one height label."""
 X_TICKS_PER_SIDE = 6
 """About how many labelled ticks the 3D view's longer horizontal axis carries (matplotlib's default for its size)."""
 

@@ -116,6 +116,11 @@ def test_that_the_3d_views_height_labels_are_spaced_like_its_floors(peak_m, side
     assert ax.get_xaxis().labelpad >= 8
 
 
+def test_that_a_flat_surface_gets_one_height_label():
+    fig = pf.surface_3d_figure(GRID.x_edges, GRID.y_edges, np.zeros(GRID.shape), LW)
+    assert list(fig.axes[0].get_zticks()) == [0.0]
+
+
 def test_that_coarsening_keeps_each_blocks_highest_cell():
     h = np.zeros((5, 4))
     h[4, 3] = 9.0
