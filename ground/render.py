@@ -365,6 +365,31 @@ def _config_value(v: Any) -> str:
     return UNKNOWN if v is None else str(v)
 
 
+MIN_WARNING_CLAUSES = 3
+"""A warning of this many clauses or more (joined by "; ", as the pose correction's statement is) is shown as its first
+clause with the others listed under it: a paragraph of a dozen findings is what a reader skips."""
+
+
+def warning_parts(text: str) -> tuple[str, list[str]]:
+    """A warning's headline and its further clauses: split at the "; " outside any parentheses when it has at least
+    MIN_WARNING_CLAUSES of them, else the whole text and none."""
+    clauses, depth, start = [], 0, 0
+    for i, ch in enumerate(text):
+        depth += (ch == "(") - (ch == ")")
+        if depth == 0 and text.startswith("; ", i):
+            clauses.append(text[start:i])
+            start = i + 2
+    clauses.append(text[start:])
+    if len(clauses) < MIN_WARNING_CLAUSES:
+        return text, []
+    return clauses[0], clauses[1:]
+
+
+def _html_warning(text: str) -> str:
+    head, more = warning_parts(text)
+    return f"<li>{_e(head)}" + ("<ul>" + "".join(f"<li>{_e(m)}</li>" for m in more) + "</ul>" if more else "") + "</li>"
+
+
 def _warnings(report: Mapping[str, Any]) -> list[str]:
     w = report.get("warnings")
     if w is None:
@@ -482,7 +507,9 @@ def render_markdown(content: ReportContent, out_dir: Path) -> str:
     if content.warnings:
         n = len(content.warnings)
         lines += [f"> **⚠ {n} warning{'s' if n != 1 else ''}: read before using the volume.**", ">"]
-        lines += [f"> - {_md_text(w)}" for w in content.warnings]
+        for w in content.warnings:
+            head, more = warning_parts(w)
+            lines += [f"> - {_md_text(head)}", *(f">   - {_md_text(m)}" for m in more)]
     else:
         lines += ["No warnings."]
     lines += ["", "---", "", f"*{ENGINEER_NOTE}*", "", "## Summary", ""]
@@ -607,7 +634,7 @@ def render_html(content: ReportContent) -> str:
             '<section class="warnings" role="alert">',
             f"<h2>⚠ Warnings ({n}): read before using the volume</h2>",
             "<ul>",
-            *(f"<li>{_e(w)}</li>" for w in content.warnings),
+            *(_html_warning(w) for w in content.warnings),
             "</ul>",
             "</section>",
         ]

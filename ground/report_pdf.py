@@ -25,7 +25,15 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
-from ground.render import ENGINEER_NOTE, REPORT_TITLE, ImageMap, ReportContent, build_content, config_note
+from ground.render import (
+    ENGINEER_NOTE,
+    REPORT_TITLE,
+    ImageMap,
+    ReportContent,
+    build_content,
+    config_note,
+    warning_parts,
+)
 
 A4_IN = (8.27, 11.69)
 MARGIN_IN = 0.6
@@ -180,8 +188,13 @@ def compose(content: ReportContent) -> list[Figure]:
         for caption, path in content.page_images:
             p.image(path, caption, 4.6)
     p.heading(f"Warnings ({len(content.warnings)})" if content.warnings else "Warnings")
-    for w in content.warnings or ["No warnings."]:
-        p.lines(("• " if content.warnings else "") + w, BODY_PT)
+    for w in content.warnings:
+        head, more = warning_parts(w)
+        p.lines("• " + head, BODY_PT)
+        for m in more:
+            p.lines("– " + m, BODY_PT, x_in=0.25)
+    if not content.warnings:
+        p.lines("No warnings.", BODY_PT)
     p.new_page()
     p.heading("Engineer's details", 14.0)
     p.lines(ENGINEER_NOTE)

@@ -169,6 +169,24 @@ def test_html_escapes_keys_and_values_everywhere(tmp_path):
     assert "Image not found" in page and "src=" not in page
 
 
+LONG_WARNING = ("pose corrected from the building: horizontal 0.14 m RMS (0.20 max; over time); the floor and walls "
+                "now 0.5 cm off their planes; 1252 of 1354 floor points dropped (a flat pile top); the heading from "
+                f"the pile seen twice {XSS}")
+
+
+def test_that_a_warning_of_many_clauses_is_its_headline_with_the_rest_listed_under_it(tmp_path):
+    head, more = render.warning_parts(LONG_WARNING)
+    assert head == "pose corrected from the building: horizontal 0.14 m RMS (0.20 max; over time)"  # not split in ()
+    assert more[0] == "the floor and walls now 0.5 cm off their planes" and len(more) == 3
+    assert render.warning_parts("a short one; with a reason") == ("a short one; with a reason", [])
+    rep = {"warnings": [LONG_WARNING, "sample log damaged: 2 corrupt block(s)"]}
+    page = render.write_html(rep, None, tmp_path / "r.html").read_text()
+    assert f"<li>{head}<ul><li>{more[0]}</li>" in page and "<li>sample log damaged: 2 corrupt block(s)</li>" in page
+    assert XSS not in page and "&lt;script&gt;" in page  # the clauses are escaped as the whole was
+    md = render.write_markdown(rep, None, tmp_path / "r.md").read_text()
+    assert f"> - {head}\n>   - {more[0]}\n" in md and "> - sample log damaged" in md
+
+
 def test_html_without_warnings_or_data(tmp_path):
     page = render.write_html({}, None, tmp_path / "r.html").read_text()
     assert 'class="warnings"' not in page and "No warnings." in page
