@@ -51,8 +51,36 @@ def regions(mask: np.ndarray, weight_m3: np.ndarray, grid: Grid, n: int = MAX_RE
         sx, sy = boxes[i]
         box = (f"x {math.floor(sx.start * cx)}-{math.ceil(sx.stop * cx)} m, "
                f"y {math.floor(sy.start * cy)}-{math.ceil(sy.stop * cy)} m")
-        out.append((float(sums[i]), box))
+        out.append((float(sums[i]), along_walls(labels == i + 1, grid) or box))
     return out
+
+
+WALL_SHARE = 0.25
+"""A region runs along a wall when it holds at least this share of the cells at that wall's foot."""
+
+
+def along_walls(region: np.ndarray, grid: Grid) -> str | None:
+    """A region that spans the building (a strip along several walls, as the fill leaves beside a pile that
+    reaches them) named by those walls and how far from them it reaches: "the walls x = 0 m and y = 40 m (within
+    3 m)", where its bounding box would say only "x 0-60 m, y 0-40 m". None for a region that does not span half
+    the building both ways, runs along no wall, or reaches further in than a quarter of the narrower side."""
+    nx, ny = region.shape
+    xs, ys = np.nonzero(region)
+    if len(xs) == 0 or np.ptp(xs) + 1 < nx / 2 or np.ptp(ys) + 1 < ny / 2:
+        return None
+    cx, cy = grid.length_m / nx, grid.width_m / ny
+    feet = {"x = 0 m": region[0, :].mean(), f"x = {grid.length_m:g} m": region[-1, :].mean(),
+            "y = 0 m": region[:, 0].mean(), f"y = {grid.width_m:g} m": region[:, -1].mean()}
+    walls = [name for name, share in feet.items() if share >= WALL_SHARE]
+    if not walls:
+        return None
+    # each cell's distance in from the nearest wall, the region's 90th percentile of it
+    depth = np.minimum(np.minimum(xs + 1, nx - xs) * cx, np.minimum(ys + 1, ny - ys) * cy)
+    reach_m = float(np.percentile(depth, 90))
+    if reach_m > 0.25 * min(grid.length_m, grid.width_m):
+        return None
+    named = walls[0] if len(walls) == 1 else ", ".join(walls[:-1]) + " and " + walls[-1]
+    return f"the wall{'s' if len(walls) > 1 else ''} {named} (within {math.ceil(reach_m)} m)"
 
 
 def unseen_warning(heights_fit: np.ndarray, heights: np.ndarray, grid: Grid, t: ErrorTerms,

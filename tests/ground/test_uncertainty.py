@@ -24,7 +24,7 @@ from ground.uncertainty import (
     sweeps_term_m3,
     unseen_terms_m3,
 )
-from ground.volume_warnings import faces_warning, unseen_warning, wide_interval_warning
+from ground.volume_warnings import along_walls, faces_warning, unseen_warning, wide_interval_warning
 
 GRID = Grid(20.0, 10.0, 0.5)
 UNIT = IntervalModel(k_unseen=1, k_interpolation=1, k_noise=1, k_sweeps=1, k_faces=1, k_blur=1)
@@ -170,6 +170,23 @@ def test_that_the_unseen_warning_names_where_material_was_invented_and_stays_qui
     w = unseen_warning(fit, filled, GRID, ErrorTerms(unseen_low_m3=low, unseen_high_m3=high, noise_m3=1.0),
                        UNIT)
     assert w is not None and "x 0-3 m, y 0-3 m" in w and "27 m³" in w
+
+
+def test_that_unseen_strips_along_the_walls_are_named_by_the_walls_not_the_whole_building():
+    fit = _heights_of(lambda x, y: 1.0 + 0.1 * x)  # a pile filling the building to its walls
+    fit[:4, :] = np.nan  # 2 m along the wall x = 0 ...
+    fit[:, -3:] = np.nan  # ... and 1.5 m along y = 10, joined at their corner: one region spanning the building
+    filled = np.where(np.isfinite(fit), fit, 1.0)
+    low, high = unseen_terms_m3(fit, filled, GRID)
+    w = unseen_warning(fit, filled, GRID, ErrorTerms(unseen_low_m3=low, unseen_high_m3=high, noise_m3=1.0), UNIT)
+    assert w is not None and "the walls x = 0 m and y = 10 m (within 2 m)" in w and "x 0-20 m" not in w
+    assert along_walls(np.isnan(fit), GRID) == "the walls x = 0 m and y = 10 m (within 2 m)"
+    corner = np.zeros(GRID.shape, dtype=bool)
+    corner[:6, :6] = True
+    assert along_walls(corner, GRID) is None  # a corner is told by its extent, as before
+    middle = np.zeros(GRID.shape, dtype=bool)
+    middle[5:35, 5:15] = True
+    assert along_walls(middle, GRID) is None  # spans the building, at no wall
 
 
 def test_that_the_unseen_warning_stays_quiet_when_the_unseen_floor_widens_the_interval_by_little():
