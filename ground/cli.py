@@ -27,6 +27,7 @@ from ground.exports.formats import ExportFormat, parse_formats
 from ground.metadata import SurveyInfo, check_timezone, metadata_rows
 from ground.pile_change import format_pile_changes, pile_changes
 from ground.piles import DEFAULT_MIN_PILE_AREA_M2, MassUnit, PileOptions, VolumeUnit, pile_rows
+from ground.render import warning_parts
 from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, make_report
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
@@ -198,7 +199,9 @@ def format_summary(rep: dict) -> str:
         widths = [max(len(r[i]) for r in [head, *piles]) for i in range(len(head))]
         lines += ["piles:"] + ["  " + "  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip()
                                for r in [head, *piles]]
-    lines += [f"WARNING: {w}" for w in rep.get("warnings", [])]
+    for w in rep.get("warnings", []):  # a warning of many clauses as the pages show it: its headline, the rest under it
+        head, more = warning_parts(w)
+        lines += [f"WARNING: {head}", *(f"  - {m}" for m in more)]
     return "\n".join(lines)
 
 

@@ -8,7 +8,7 @@ import pytest
 from firmware_py.core.cli import ExitCode
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import __version__, software_version
-from ground.cli import main
+from ground.cli import format_summary, main
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
 
@@ -54,6 +54,16 @@ def test_that_the_summary_shows_volumes_in_the_chosen_unit_with_cubic_metres_bes
     columns = {len(line) - len(line[len(label):].lstrip()) for label, line in rows.items()
                if label in ("volume", "base", "R_a (eq. 9)", "Log SHA-256")}
     assert len(columns) == 1  # every value starts in one column
+
+
+def test_that_the_console_shows_a_warning_of_many_clauses_as_its_headline_with_the_rest_under_it():
+    rep = {"volume_m3": 1.0, "n_points_used": 1, "n_samples": 1,
+           "warnings": ["pose corrected: 0.14 m (0.20 max; over time); the floor 0.5 cm off; the heading 0.26 deg",
+                        "a short one; with its reason"]}
+    lines = format_summary(rep).splitlines()
+    at = lines.index("WARNING: pose corrected: 0.14 m (0.20 max; over time)")
+    assert lines[at + 1:at + 4] == ["  - the floor 0.5 cm off", "  - the heading 0.26 deg",
+                                    "WARNING: a short one; with its reason"]
 
 
 def test_that_the_ground_options_reach_the_report(run_dir, tmp_path, capsys):
