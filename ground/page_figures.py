@@ -289,8 +289,13 @@ def section_band_m(points_w: np.ndarray, x0: float, y0: float, cell_m: float, sh
 
 
 def _profile(ax: Axes, along: np.ndarray, surface: np.ndarray, base: np.ndarray, pts_along: np.ndarray,
-             pts_z: np.ndarray, ve: float, axis: str, where: str) -> None:
-    ax.plot(along, surface, color="tab:blue", linewidth=1.4, label="surface", zorder=3)
+             pts_z: np.ndarray, ve: float, axis: str, where: str, filled: np.ndarray | None = None) -> None:
+    filled = np.zeros(surface.shape, bool) if filled is None else filled
+    ax.plot(along, np.where(filled, np.nan, surface), color="tab:blue", linewidth=1.4, label="surface", zorder=3)
+    if filled.any():  # the fill's stretches, joined to the seen ones at their ends: dashed, as not measured
+        ends = filled | np.convolve(filled.astype(float), np.ones(3), mode="same").astype(bool)
+        ax.plot(along, np.where(ends, surface, np.nan), color="tab:blue", linewidth=1.2, linestyle=(0, (4, 2)),
+                label="surface, filled (never seen)", zorder=3)
     ax.plot(along, base, color="tab:brown", linewidth=1.2, linestyle="--", label="base", zorder=2)
     ax.fill_between(along, base, surface, where=np.isfinite(surface) & (surface > base), color="tab:blue",
                     alpha=0.15, linewidth=0, zorder=1)
@@ -308,10 +313,11 @@ def _profile(ax: Axes, along: np.ndarray, surface: np.ndarray, base: np.ndarray,
 def sections_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarray,
                     storage_lw_m: tuple[float, float], points_w: np.ndarray | None = None,
                     base_heights: np.ndarray | None = None, piles: Mapping[str, Any] | None = None,
-                    band_m: float | None = None, title: str = "Cross-sections") -> Figure:
-    """Two profiles through the largest pile's peak, along x and along y: the fitted surface, the base
-    (z = 0 unless given per cell) and the LiDAR points within `band_m` of the line (default: section_band_m),
-    heights exaggerated as in the 3D view."""
+                    band_m: float | None = None, title: str = "Cross-sections",
+                    filled: np.ndarray | None = None) -> Figure:
+    """Two profiles through the largest pile's peak, along x and along y: the fitted surface (dashed where the
+    empty-cell policy filled cells no surface reached: `filled`), the base (z = 0 unless given per cell) and the
+    LiDAR points within `band_m` of the line (default: section_band_m), heights exaggerated as in the 3D view."""
     storage = _storage_lw(storage_lw_m)
     xe, ye = np.asarray(x_edges, float), np.asarray(y_edges, float)
     h = np.asarray(heights, float)
@@ -333,14 +339,19 @@ def sections_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
     pts = _finite_xy(points_w, 3)
     band = section_band_m(pts, x0, y0, float(min(xe[1] - xe[0], ye[1] - ye[0])), min(storage)) \
         if band_m is None else float(band_m)
+    f = np.zeros(h.shape, bool) if filled is None else np.asarray(filled, bool)
+    if f.shape != h.shape:
+        raise ValueError(f"filled shape {f.shape} differs from heights shape {h.shape}")
     ve = vertical_exaggeration(float(np.nanmax(h)), storage)
-    for ax, axis, along, surf, base, sel, coord, fixed in (
-            (ax_x, "x", _cell_centres(xe), h[:, iy], b[:, iy], np.abs(pts[:, 1] - y0) <= band, 0, f"y = {y0:.1f} m"),
-            (ax_y, "y", _cell_centres(ye), h[ix, :], b[ix, :], np.abs(pts[:, 0] - x0) <= band, 1, f"x = {x0:.1f} m")):
+    for ax, axis, along, surf, base, fill, sel, coord, fixed in (
+            (ax_x, "x", _cell_centres(xe), h[:, iy], b[:, iy], f[:, iy], np.abs(pts[:, 1] - y0) <= band, 0,
+             f"y = {y0:.1f} m"),
+            (ax_y, "y", _cell_centres(ye), h[ix, :], b[ix, :], f[ix, :], np.abs(pts[:, 0] - x0) <= band, 1,
+             f"x = {x0:.1f} m")):
         near = pts[sel]
         near = near[:: max(1, math.ceil(len(near) / MAX_SECTION_POINTS))]
         _profile(ax, along, surf, base, near[:, coord], near[:, 2], ve, axis,
-                 f"along {axis} at {fixed} (through {what}); points within {band:.2g} m")
+                 f"along {axis} at {fixed} (through {what}); points within {band:.2g} m", fill)
     fig.suptitle(f"{title}: vertical exaggeration ×{ve:g}")
     return fig
 

@@ -88,8 +88,8 @@ _IMAGE_CAPTIONS: dict[str, str] = {
     "site_map": "Site map: heights above the floor with contour lines, each pile's name and volume at its "
                 "centroid, the building's outline, a scale bar and the flight path",
     "surface_3d": "3D view of the surface (heights exaggerated as stated)",
-    "sections": "Cross-sections through the largest pile's peak: the surface, the base and the LiDAR points "
-                "near each line",
+    "sections": "Cross-sections through the largest pile's peak: the surface (dashed where it was filled, never "
+                "seen), the base and the LiDAR points near each line",
     "trajectory_correction": "Trajectory correction over time: what the report added to the autopilot's logged "
                              "position and heading (the height includes the rangefinder's share taken out; shaded: "
                              "not set by the floor and walls, interpolated)",

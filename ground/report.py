@@ -983,7 +983,8 @@ def page_figures(survey: Survey, report: dict, out: Path, path_w: np.ndarray) ->
                                     report.get("piles"), heading, path_w, vu.symbol, vu.m3_per_unit),
         f.SURFACE_3D: f.plot_surface_3d(out / f"{f.SURFACE_3D}.png", g.x_edges, g.y_edges, survey.heights, lw),
         f.SECTIONS: f.plot_sections(out / f"{f.SECTIONS}.png", g.x_edges, g.y_edges, survey.heights, lw,
-                                    survey.pile_points_w, base, report.get("piles")),
+                                    survey.pile_points_w, base, report.get("piles"),
+                                    filled=~np.isfinite(survey.heights_fit)),
     }
 
 

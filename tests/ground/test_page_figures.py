@@ -150,6 +150,22 @@ def test_that_the_sections_cross_at_the_largest_piles_peak_with_surface_base_and
     assert "exaggeration" in fig._suptitle.get_text()
 
 
+def test_that_the_sections_draw_the_filled_stretches_dashed_and_the_seen_ones_solid():
+    h, piles = two_piles()
+    filled = np.zeros(h.shape, bool)
+    filled[:20, :] = True  # the first 5 m along x: never seen, filled
+    ax_x = pf.sections_figure(GRID.x_edges, GRID.y_edges, h, LW, None, None, piles, filled=filled).axes[0]
+    lines = {ln.get_label(): ln for ln in ax_x.get_lines()}
+    seen, fill = lines["surface"], lines["surface, filled (never seen)"]
+    assert np.isnan(seen.get_ydata()[:20]).all() and np.isfinite(seen.get_ydata()[20:]).all()
+    assert np.isfinite(fill.get_ydata()[:21]).all() and np.isnan(fill.get_ydata()[21:]).all()  # joined at the end
+    assert fill.get_linestyle() != seen.get_linestyle()
+    plain = pf.sections_figure(GRID.x_edges, GRID.y_edges, h, LW, None, None, piles).axes[0]
+    assert [ln.get_label() for ln in plain.get_lines()] == ["surface", "base"]
+    with pytest.raises(ValueError, match="filled shape"):
+        pf.sections_figure(GRID.x_edges, GRID.y_edges, h, LW, filled=filled[:-1])
+
+
 def test_that_the_sections_band_widens_for_a_sparse_survey_but_stays_bounded():
     pts = np.array([[5.0, 5.0, 1.0]] * 3)
     assert pf.section_band_m(pts, 20.0, 10.0, 0.25, 20.0) == pytest.approx(1.0)  # 5 % of 20 m, then stops
