@@ -22,6 +22,7 @@ import numpy as np
 from matplotlib import colormaps, patheffects
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import LineCollection
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
@@ -37,6 +38,7 @@ from ground.plots import (
     _height_mesh,
     _no_data,
     _storage_lw,
+    mask_boundary_segments,
     save_png,
 )
 
@@ -133,10 +135,11 @@ def _scale_bar(ax: Axes, length_m: float) -> None:
 def site_map_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarray,
                     storage_lw_m: tuple[float, float], piles: Mapping[str, Any] | None = None,
                     heading_deg: float | None = None, path_w: np.ndarray | None = None,
-                    volume_unit: str = "m³", m3_per_unit: float = 1.0, title: str = "Site map") -> Figure:
+                    volume_unit: str = "m³", m3_per_unit: float = 1.0, title: str = "Site map",
+                    filled: np.ndarray | None = None) -> Figure:
     """Height map with contour lines, each pile's name and volume at its centroid, the building's outline,
-    a scale bar, metres on the axes, a north arrow when the heading is known and the flight path (legend
-    inside the axes)."""
+    a scale bar, metres on the axes, a north arrow when the heading is known, the flight path and the outline of
+    the cells the empty-cell policy filled (`filled`: never seen; legend inside the axes)."""
     storage = _storage_lw(storage_lw_m)
     xe, ye = np.asarray(x_edges, float), np.asarray(y_edges, float)
     h = np.asarray(heights, float)
@@ -169,6 +172,14 @@ def site_map_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
     path = _finite_xy(path_w, 2)
     if path.shape[0] > 0:
         ax.plot(path[:, 0], path[:, 1], color="0.15", linewidth=0.5, alpha=0.6, zorder=4, label="flight path")
+    f = np.zeros(h.shape, bool) if filled is None else np.asarray(filled, bool)
+    if f.shape != h.shape:
+        raise ValueError(f"filled shape {f.shape} differs from heights shape {h.shape}")
+    f = f & np.isfinite(h)
+    if f.any():  # outlined, not hatched: the map's colours and contours stay readable under it
+        ax.add_collection(LineCollection(mask_boundary_segments(xe, ye, f), colors="tab:red", linewidths=1.0,
+                                         linestyles=(0, (3, 2)), zorder=5, label="filled: never seen"))
+    if path.shape[0] > 0 or f.any():
         ax.legend(loc="upper right", fontsize="small", framealpha=0.85)
     _scale_bar(ax, storage[0])
     if heading_deg is not None and math.isfinite(heading_deg):

@@ -83,6 +83,22 @@ def test_that_the_map_names_each_pile_at_its_centroid_with_contours_scale_bar_no
     assert [t.get_text() for t in ax.get_legend().get_texts()] == ["flight path"]
 
 
+def test_that_the_map_outlines_the_filled_cells_and_names_them_in_its_legend():
+    h, piles = two_piles()
+    filled = np.zeros(h.shape, bool)
+    filled[:8, :] = True  # a 2 m strip along the wall x = 0, never seen
+    ax = pf.site_map_figure(GRID.x_edges, GRID.y_edges, h, LW, piles, filled=filled).axes[0]
+    outline = [c for c in ax.collections if c.get_label() == "filled: never seen"]
+    assert len(outline) == 1
+    xs = np.concatenate([seg[:, 0] for seg in outline[0].get_segments()])
+    assert xs.max() == pytest.approx(2.0)  # the strip's inner edge (and the walls it runs along)
+    assert "filled: never seen" in [t.get_text() for t in ax.get_legend().get_texts()]
+    plain = pf.site_map_figure(GRID.x_edges, GRID.y_edges, h, LW, piles).axes[0]
+    assert not [c for c in plain.collections if c.get_label() == "filled: never seen"] and plain.get_legend() is None
+    with pytest.raises(ValueError, match="filled shape"):
+        pf.site_map_figure(GRID.x_edges, GRID.y_edges, h, LW, filled=filled[:, :-1])
+
+
 def test_that_the_map_draws_no_compass_without_a_heading_and_says_so_without_data():
     h, piles = two_piles()
     fig = pf.site_map_figure(GRID.x_edges, GRID.y_edges, h, LW, piles)
