@@ -193,7 +193,7 @@ def cutfill_figure(c: Change, rec: dict):
     ax.set_title(f"Cut/fill: net {rec['net_m3']:+,.1f} m³ (cut {rec['cut_m3']:,.1f}, fill {rec['fill_m3']:,.1f})")
     ax.legend(handles=[Patch(color="#2166ac", label=f"cut (removed) {rec['cut_m3']:,.0f} m³"),
                        Patch(color="#b2182b", label=f"fill (added) {rec['fill_m3']:,.0f} m³"),
-                       Patch(color="#d9d9d9", label=f"no change beyond {c.lod_m * 100:.0f} cm"),
+                       Patch(color="#d9d9d9", label=f"no change beyond {c.lod_m * 100:.2g} cm"),
                        Patch(facecolor="white", edgecolor="0.5", label="not in both surveys")],
               loc="upper right", fontsize="small", framealpha=0.85)
     return fig
