@@ -39,7 +39,8 @@ def _share(scaled: float, t: ErrorTerms, model: IntervalModel, high: bool) -> fl
 
 
 def regions(mask: np.ndarray, weight_m3: np.ndarray, grid: Grid, n: int = MAX_REGIONS) -> list[tuple[float, str]]:
-    """The n heaviest connected regions of mask as (m³, 'x a-b m, y c-d m'), heaviest first."""
+    """The n heaviest connected regions of mask as (m³, where), heaviest first: where is 'x a-b m, y c-d m', or, for a
+    strip along the walls spanning the building, those walls (`along_walls`)."""
     labels, k = ndimage.label(mask)
     if k == 0:
         return []
