@@ -149,7 +149,7 @@ def metadata_rows(meta: Mapping[str, Any] | None) -> list[tuple[str, str]]:
 
 
 _LIMITS = {
-    "unseen": "floor the survey never saw",
+    "unseen": "ground the survey never saw",  # ground: beside a pile that reaches the walls it holds material
     "interpolation": "gaps between the sweep tracks",
     "noise": "the sensor's noise",
     "blur": "the sensor's noise blurring the pile's shape",

@@ -76,7 +76,7 @@ def test_that_the_verdict_names_the_interval_and_what_limits_it():
     limits = limiting_terms(t, DEFAULT_INTERVAL_MODEL)
     assert limits == ["unseen"]
     line = verdict(7210.4, (7160.2, 7250.9), limits, "x 0-9 m, y 0-40 m", 2)
-    assert line == ("7,210 m³ (90 % interval 7,160–7,251 m³); limited by: floor the survey never saw near "
+    assert line == ("7,210 m³ (90 % interval 7,160–7,251 m³); limited by: ground the survey never saw near "
                     "x 0-9 m, y 0-40 m; 2 warnings to read")
     assert verdict(10.0, None, [], None, 0).endswith("(no interval: the survey's errors could not be estimated)")
     assert verdict(764.555, (764.555, 764.555), [], None, 0, "yd³", 0.9144**3).startswith("1,000 yd³")
