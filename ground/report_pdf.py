@@ -36,6 +36,8 @@ from ground.render import (
 )
 
 A4_IN = (8.27, 11.69)
+BULLET_HANG_IN = 0.18
+"""How far a list item's text sits right of its mark (and a nested list right of its parent's text), inches."""
 MARGIN_IN = 0.6
 BODY_PT = 8.5
 SMALL_PT = 7.0
@@ -89,6 +91,16 @@ class _Pages:
         for line in wrap(text, width, size) or [""]:
             self._room(size * LINE_FACTOR / PT_PER_IN)
             self._put(MARGIN_IN + x_in, line, size, **kw)
+            self.y_in += size * LINE_FACTOR / PT_PER_IN
+
+    def bullet(self, mark: str, text: str, size: float = BODY_PT, x_in: float = 0.0) -> None:
+        """A list item: `mark` at x_in, the text beside it, its wrapped lines under the text, not under the mark."""
+        hang = BULLET_HANG_IN
+        for i, line in enumerate(wrap(text, self.width_in - x_in - hang, size) or [""]):
+            self._room(size * LINE_FACTOR / PT_PER_IN)
+            if i == 0:
+                self._put(MARGIN_IN + x_in, mark, size)
+            self._put(MARGIN_IN + x_in + hang, line, size)
             self.y_in += size * LINE_FACTOR / PT_PER_IN
 
     def heading(self, text: str, size: float = 12.0) -> None:
@@ -190,9 +202,9 @@ def compose(content: ReportContent) -> list[Figure]:
     p.heading(f"Warnings ({len(content.warnings)})" if content.warnings else "Warnings")
     for w in content.warnings:
         head, more = warning_parts(w)
-        p.lines("• " + head, BODY_PT)
+        p.bullet("•", head)
         for m in more:
-            p.lines("– " + m, BODY_PT, x_in=0.25)
+            p.bullet("–", m, x_in=BULLET_HANG_IN)
     if not content.warnings:
         p.lines("No warnings.", BODY_PT)
     p.new_page()

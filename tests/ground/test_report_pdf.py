@@ -83,6 +83,19 @@ def test_that_a_missing_image_is_said_in_the_pdf(tmp_path):
     assert "Image not found" in "\n".join(pages) and "gone.png" in "\n".join(pages)
 
 
+def test_that_a_warning_of_many_clauses_is_a_bulleted_headline_with_its_clauses_hanging_under_it(tmp_path):
+    warning = "pose corrected: 0.14 m (0.20 max; over time); " + "; ".join(f"clause {i} " + "word " * 30
+                                                                         for i in range(3))
+    pages = report_pdf.compose(build_content({"volume_m3": 1.0, "warnings": [warning]}, None))
+    texts = [t for fig in pages for t in fig.texts]
+    head = next(t for t in texts if t.get_text() == "pose corrected: 0.14 m (0.20 max; over time)")
+    marks = [t for t in texts if t.get_text() == "–"]
+    assert len(marks) == 3  # one mark per clause, however many lines each wraps to
+    lines = [t for t in texts if t.get_text().startswith(("clause", "word"))]
+    assert len(lines) > 3 and len({round(t.get_position()[0], 6) for t in lines}) == 1  # wrapped lines hang level
+    assert lines[0].get_position()[0] > marks[0].get_position()[0] > head.get_position()[0] - 1e-9
+
+
 def test_that_wrapping_keeps_every_word_and_fits_the_width():
     text = "word " * 200 + "a" * 300
     lines = report_pdf.wrap(text, 3.0, 10.0)
