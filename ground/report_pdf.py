@@ -43,6 +43,9 @@ BODY_PT = 8.5
 SMALL_PT = 7.0
 LINE_FACTOR = 1.35
 """Line height as a multiple of the font size."""
+ASCENT_EM = 0.8
+"""Where a line's baseline sits below its top, in its font size (Helvetica's and DejaVu Sans' ascenders reach 0.72-0.76
+em): every line on one grid, whatever glyphs it holds."""
 CHAR_WIDTH_EM = 0.55
 """DejaVu Sans' mean character width (em): how many characters a line of a given width holds."""
 PT_PER_IN = 72.0
@@ -78,8 +81,14 @@ class _Pages:
         if self.y_in + height_in > A4_IN[1] - MARGIN_IN and self.y_in > MARGIN_IN:
             self.new_page()
 
-    def _put(self, x_in: float, text: str, size: float, **kw) -> None:
-        self.fig.text(x_in / A4_IN[0], 1.0 - self.y_in / A4_IN[1], text, fontsize=size, va="top", ha="left", **kw)
+    def _put(self, x_in: float, text: str, size: float, dy_in: float = 0.0, **kw) -> None:
+        """One line of text at x_in, dy_in below the current line's top."""
+        # On a baseline ASCENT_EM below the line's top, not aligned by its top: the top of a line is its tallest
+        # glyph's, and with the standard fonts' metrics an apostrophe reaches 4 pt higher than a letter, which dropped
+        # a line that held one half a line below its neighbours.
+        baseline_in = self.y_in + dy_in + ASCENT_EM * size / PT_PER_IN
+        self.fig.text(x_in / A4_IN[0], 1.0 - baseline_in / A4_IN[1], text, fontsize=size, va="baseline", ha="left",
+                      **kw)
 
     def space(self, height_in: float) -> None:
         self.y_in += height_in
@@ -122,8 +131,9 @@ class _Pages:
                     row(header, True)
             x = MARGIN_IN
             for lines, w in zip(wrapped, widths_in, strict=True):
-                self._put(x, "\n".join(lines), size, fontweight="bold" if bold else "normal",
-                          linespacing=LINE_FACTOR)
+                for i, line in enumerate(lines):  # a line at a time, on the page's line grid
+                    self._put(x, line, size, i * size * LINE_FACTOR / PT_PER_IN,
+                              fontweight="bold" if bold else "normal")
                 x += w
             self.y_in += h + 0.03
         if header is not None:

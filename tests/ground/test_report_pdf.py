@@ -3,6 +3,7 @@ count, its numbers and names, tables that break across pages without losing a ro
 
 from __future__ import annotations
 
+import itertools
 import re
 
 import matplotlib.image as mpimg
@@ -94,6 +95,23 @@ def test_that_a_warning_of_many_clauses_is_a_bulleted_headline_with_its_clauses_
     lines = [t for t in texts if t.get_text().startswith(("clause", "word"))]
     assert len(lines) > 3 and len({round(t.get_position()[0], 6) for t in lines}) == 1  # wrapped lines hang level
     assert lines[0].get_position()[0] > marks[0].get_position()[0] > head.get_position()[0] - 1e-9
+
+
+def test_that_every_line_sits_on_one_grid_whatever_glyphs_it_holds():
+    p = report_pdf._Pages()
+    p.lines("the floor's level")  # an apostrophe reaches higher than any letter in the standard fonts' metrics
+    p.lines("a plain line")
+    p.table(("Quantity", "Value"), [("Pose source", "position " * 24), ("next", "row")], [2.0, 2.0])
+    texts = p.fig.texts
+    assert all(t.get_va() == "baseline" and "\n" not in t.get_text() for t in texts)  # a line at a time
+    step = report_pdf.BODY_PT * report_pdf.LINE_FACTOR / report_pdf.PT_PER_IN / report_pdf.A4_IN[1]
+    y = [t.get_position()[1] for t in texts]
+    assert y[0] - y[1] == pytest.approx(step)
+    value_lines = [t for t in texts if t.get_text().startswith("position")]
+    assert len(value_lines) > 1 and all(a.get_position()[1] - b.get_position()[1] == pytest.approx(step)
+                                        for a, b in itertools.pairwise(value_lines))
+    nxt = next(t for t in texts if t.get_text() == "next")
+    assert nxt.get_position()[1] < value_lines[-1].get_position()[1] - step * 0.99  # the next row below the cell
 
 
 def test_that_wrapping_keeps_every_word_and_fits_the_width():
