@@ -13,7 +13,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from datetime import date
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +27,7 @@ from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
 from sitl.world.raycast import World
 from sitl.world.stockpile import paper_pile
-from tools.doc_sections import write_section
+from tools.doc_sections import write_dated_section
 
 
 def median_time(fn, repeat: int) -> tuple[float, list[float]]:
@@ -121,8 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         args.write.write_text("# Benchmarks\n\nRegenerate with `python -m tools.bench_ground --write "
                               f"{args.write}`.\n\n{text}\n")
     if args.readme:
-        write_section(args.readme, "bench-ground", f"`python -m tools.bench_ground` on "
-                      f"{date.today().isoformat()}:\n\n{text}")
+        write_dated_section(args.readme, "tools.bench_ground", text)
     return 0
 
 

@@ -16,7 +16,6 @@ import statistics
 import tempfile
 import time
 from dataclasses import dataclass
-from datetime import date
 from pathlib import Path
 
 from firmware_py.core.samplelog import SampleLogWriter
@@ -27,7 +26,7 @@ from firmware_py.hal.clock import SimClock
 from firmware_py.payload import LoopConfig, PayloadLoop
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
-from tools.doc_sections import write_section
+from tools.doc_sections import write_dated_section
 
 
 class InstantLidarBus:
@@ -122,8 +121,7 @@ def main(argv: list[str] | None = None) -> int:
         args.write.write_text("# Payload benchmarks\n\nRegenerate with `python -m tools.bench_payload --write "
                               f"{args.write}`.\n\n{text}\n")
     if args.readme:
-        write_section(args.readme, "bench-payload", f"`python -m tools.bench_payload` on "
-                      f"{date.today().isoformat()}:\n\n{text}")
+        write_dated_section(args.readme, "tools.bench_payload", text)
     return 0
 
 

@@ -9,14 +9,13 @@ import argparse
 import statistics
 import tempfile
 import time
-from datetime import date
 from pathlib import Path
 
 from firmware_py.core.frames import StorageFrame
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import fly_mission
 from sitl.runners.fly import FlyConfig, fly
-from tools.doc_sections import write_section
+from tools.doc_sections import write_dated_section
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -53,8 +52,7 @@ def main(argv: list[str] | None = None) -> int:
         args.write.write_text("# SITL benchmarks\n\nRegenerate with `python -m tools.bench_sitl --write "
                               f"{args.write}`.\n\n{text}\n")
     if args.readme:
-        write_section(args.readme, "bench-sitl", f"`python -m tools.bench_sitl` on "
-                      f"{date.today().isoformat()}:\n\n{text}")
+        write_dated_section(args.readme, "tools.bench_sitl", text)
     return 0
 
 

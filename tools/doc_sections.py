@@ -11,6 +11,7 @@ fitted constants into have a marked block of their own (`write_block`), which mu
 from __future__ import annotations
 
 import re
+from datetime import date
 from pathlib import Path
 
 
@@ -29,6 +30,13 @@ def write_section(path: Path, name: str, text: str) -> None:
     else:
         new = old.rstrip("\n") + ("\n\n" if old.strip() else "") + body
     path.write_text(new if new.endswith("\n") else new + "\n", encoding="utf-8")
+
+
+def write_dated_section(path: Path, tool: str, text: str) -> None:
+    """A benchmark tool's table in its own section of the page (named after the tool: `tools.bench_sitl` writes
+    `bench-sitl`), headed by the command and today's date, so the page says when its figures were measured."""
+    write_section(path, tool.rsplit(".", 1)[-1].replace("_", "-"),
+                  f"`python -m {tool}` on {date.today().isoformat()}:\n\n{text}")
 
 
 def with_sections_of(old: str, new: str) -> str:

@@ -1,8 +1,10 @@
 """Marked page sections: each tool rewrites only its own, and a whole-page writer keeps the others'."""
 
+import datetime as dt
+
 import pytest
 
-from tools.doc_sections import with_sections_of, write_block, write_section
+from tools.doc_sections import with_sections_of, write_block, write_dated_section, write_section
 
 
 def test_that_a_section_is_replaced_in_place_or_appended(tmp_path):
@@ -11,6 +13,15 @@ def test_that_a_section_is_replaced_in_place_or_appended(tmp_path):
     write_section(page, "a", "first")
     write_section(page, "a", "second")
     assert page.read_text() == "# Page\n\ntext\n\n<!-- a:start -->\nsecond\n<!-- a:end -->\n"
+
+
+def test_that_a_benchmark_writes_its_table_under_its_command_and_date_in_its_own_section(tmp_path):
+    page = tmp_path / "README.md"
+    page.write_text("intro\n\n<!-- bench-sitl:start -->\nold\n<!-- bench-sitl:end -->\n\nafter\n")
+    write_dated_section(page, "tools.bench_sitl", "| median |")
+    today = dt.date.today().isoformat()
+    assert page.read_text() == (f"intro\n\n<!-- bench-sitl:start -->\n`python -m tools.bench_sitl` on {today}:\n\n"
+                                "| median |\n<!-- bench-sitl:end -->\n\nafter\n")
 
 
 def test_that_a_whole_page_rewrite_keeps_the_sections_it_does_not_write():
