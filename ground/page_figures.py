@@ -32,6 +32,7 @@ from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 from ground.plots import (
     DPI,
     HEIGHT_CMAP,
+    _cell_mask,
     _check_grid,
     _decorate,
     _finite_xy,
@@ -172,10 +173,7 @@ def site_map_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
     path = _finite_xy(path_w, 2)
     if path.shape[0] > 0:
         ax.plot(path[:, 0], path[:, 1], color="0.15", linewidth=0.5, alpha=0.6, zorder=4, label="flight path")
-    f = np.zeros(h.shape, bool) if filled is None else np.asarray(filled, bool)
-    if f.shape != h.shape:
-        raise ValueError(f"filled shape {f.shape} differs from heights shape {h.shape}")
-    f = f & np.isfinite(h)
+    f = _cell_mask(filled, h) & np.isfinite(h)
     if f.any():  # outlined, not hatched: the map's colours and contours stay readable under it
         ax.add_collection(LineCollection(mask_boundary_segments(xe, ye, f), colors="tab:red", linewidths=1.0,
                                          linestyles=(0, (3, 2)), zorder=5, label="filled: never seen"))
@@ -300,8 +298,7 @@ def section_band_m(points_w: np.ndarray, x0: float, y0: float, cell_m: float, sh
 
 
 def _profile(ax: Axes, along: np.ndarray, surface: np.ndarray, base: np.ndarray, pts_along: np.ndarray,
-             pts_z: np.ndarray, ve: float, axis: str, where: str, filled: np.ndarray | None = None) -> None:
-    filled = np.zeros(surface.shape, bool) if filled is None else filled
+             pts_z: np.ndarray, ve: float, axis: str, where: str, filled: np.ndarray) -> None:
     ax.plot(along, np.where(filled, np.nan, surface), color="tab:blue", linewidth=1.4, label="surface", zorder=3)
     if filled.any():  # the fill's stretches, joined to the seen ones at their ends: dashed, as not measured
         ends = filled | np.convolve(filled.astype(float), np.ones(3), mode="same").astype(bool)
@@ -350,9 +347,7 @@ def sections_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
     pts = _finite_xy(points_w, 3)
     band = section_band_m(pts, x0, y0, float(min(xe[1] - xe[0], ye[1] - ye[0])), min(storage)) \
         if band_m is None else float(band_m)
-    f = np.zeros(h.shape, bool) if filled is None else np.asarray(filled, bool)
-    if f.shape != h.shape:
-        raise ValueError(f"filled shape {f.shape} differs from heights shape {h.shape}")
+    f = _cell_mask(filled, h)
     ve = vertical_exaggeration(float(np.nanmax(h)), storage)
     for ax, axis, along, surf, base, fill, sel, coord, fixed in (
             (ax_x, "x", _cell_centres(xe), h[:, iy], b[:, iy], f[:, iy], np.abs(pts[:, 1] - y0) <= band, 0,

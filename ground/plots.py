@@ -113,6 +113,14 @@ def _no_data(ax: Axes, what: str = "no data") -> None:
     )
 
 
+def _cell_mask(mask: np.ndarray | None, heights: np.ndarray, name: str = "filled") -> np.ndarray:
+    """mask as booleans per cell of heights (none set when None); ValueError naming it when its shape differs."""
+    m = np.zeros(heights.shape, bool) if mask is None else np.asarray(mask, dtype=bool)
+    if m.shape != heights.shape:
+        raise ValueError(f"{name} shape {m.shape} differs from heights shape {heights.shape}")
+    return m
+
+
 def _check_grid(x_edges: np.ndarray, y_edges: np.ndarray, grid: np.ndarray, name: str) -> None:
     if grid.ndim != 2:
         raise ValueError(f"{name} must be 2-D (nx, ny), got shape {grid.shape}")
@@ -276,9 +284,7 @@ def height_map_figure(
     else:
         _check_grid(xe, ye, h, "heights")
         _height_mesh(fig, ax, xe, ye, h, finite)
-        f = np.zeros(h.shape, bool) if filled is None else np.asarray(filled, dtype=bool) & finite
-        if f.shape != h.shape:
-            raise ValueError(f"filled shape {f.shape} differs from heights shape {h.shape}")
+        f = _cell_mask(filled, h) & finite
         measured = finite & ~f
         if f.any():
             hatch = np.ma.masked_where(~f, np.ones(h.shape))

@@ -978,14 +978,13 @@ def page_figures(survey: Survey, report: dict, out: Path, path_w: np.ndarray) ->
     heading = site.get("heading_deg") if isinstance(site, dict) else None
     vu = VolumeUnit(report.get("volume_unit", VolumeUnit.M3.value))
     base = survey.base.heights_m if survey.base is not None else None
+    filled = ~np.isfinite(survey.heights_fit)  # what the empty-cell policy put where no surface reached
     return {
         f.SITE_MAP: f.plot_site_map(out / f"{f.SITE_MAP}.png", g.x_edges, g.y_edges, survey.heights, lw,
-                                    report.get("piles"), heading, path_w, vu.symbol, vu.m3_per_unit,
-                                    filled=~np.isfinite(survey.heights_fit)),
+                                    report.get("piles"), heading, path_w, vu.symbol, vu.m3_per_unit, filled=filled),
         f.SURFACE_3D: f.plot_surface_3d(out / f"{f.SURFACE_3D}.png", g.x_edges, g.y_edges, survey.heights, lw),
         f.SECTIONS: f.plot_sections(out / f"{f.SECTIONS}.png", g.x_edges, g.y_edges, survey.heights, lw,
-                                    survey.pile_points_w, base, report.get("piles"),
-                                    filled=~np.isfinite(survey.heights_fit)),
+                                    survey.pile_points_w, base, report.get("piles"), filled=filled),
     }
 
 
