@@ -234,10 +234,9 @@ def table(rows: list[dict]) -> str:
             ref_signed = statistics.fmean(r[off_key] for r in ref) if ref else float("nan")
             ref_seed = {r["seed"]: r[off_key] for r in ref}
             for prof in PROFILES:
-                flew = [r for r in rows if r["pile"] == pile and r["p_traj"] == p and r["profile"] == prof
-                        and not r.get("refused")]
-                n_refused = sum(1 for r in rows if r["pile"] == pile and r["p_traj"] == p and r["profile"] == prof
-                                and r.get("refused"))
+                case = [r for r in rows if r["pile"] == pile and r["p_traj"] == p and r["profile"] == prof]
+                flew = [r for r in case if not r.get("refused")]
+                n_refused = len(case) - len(flew)
                 rs = [r for r in flew if not r.get("hit")]  # a crash is no survey
                 hit = f"{len(flew) - len(rs)}/{len(flew)}" + (f" ({n_refused} refused by `fly`)" if n_refused else "")
                 if not rs:
