@@ -129,10 +129,6 @@ def _check_pwm(url: str) -> None:
     check_pwm_url(url)
 
 
-def _check_mavlink(url: str) -> None:
-    check_mavlink_url(url)
-
-
 def _check_preset(name: str) -> None:
     preset_by_name(name)
 
@@ -158,7 +154,7 @@ def build_parser() -> ArgumentParser:
     ap.add_argument("--check", action="store_true",
                     help="validate the options (and --config file), print the effective configuration as TOML and "
                          "exit, opening no hardware")
-    hw.add_argument("--mavlink", default=DEFAULT_MAVLINK_URL, metavar="URL", type=_checked(_check_mavlink),
+    hw.add_argument("--mavlink", default=DEFAULT_MAVLINK_URL, metavar="URL", type=_checked(check_mavlink_url),
                     help="link to the autopilot: serial:/dev/ttyAMA0:921600, udp:HOST:PORT (listen), "
                          f"udpout:HOST:PORT, tcp:HOST:PORT (default {DEFAULT_MAVLINK_URL})")
     hw.add_argument("--rangefinder", type=rangefinder_arg, default=DEFAULT_RANGEFINDER,
