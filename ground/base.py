@@ -339,7 +339,7 @@ def rebased_terms(terms: ErrorTerms, heights_fit: np.ndarray, heights: np.ndarra
                   scatter_sigma_m: float, base: Base, roof_m: float) -> ErrorTerms:
     """The terms that measure material from the floor (the unseen fill's lower bound, the blur's pile
     footprint) measured from a fitted floor instead; the others do not depend on the base, but for the pose
-    term: a height error common to the survey moves the floor fitted from its own points with the pile, so
+    and level terms: a height error common to the survey moves the floor fitted from its own points with the pile, so
     above that floor it cancels. An earlier survey's base keeps the terms as they are: its own interval is
     added whole (module docstring)."""
     if base.kind is not BaseKind.FITTED_FLOOR or base.heights_m is None:
@@ -347,4 +347,5 @@ def rebased_terms(terms: ErrorTerms, heights_fit: np.ndarray, heights: np.ndarra
     low, high = unseen_terms_m3(heights_fit - base.heights_m, heights - base.heights_m, grid,
                                 upper_m=roof_m - base.heights_m)
     return replace(terms, unseen_low_m3=low, unseen_high_m3=high,
-                   blur_m3=blur_term_m3(scatter_sigma_m, heights_fit - base.heights_m, grid), pose_m3=0.0)
+                   blur_m3=blur_term_m3(scatter_sigma_m, heights_fit - base.heights_m, grid), pose_m3=0.0,
+                   level_m3=0.0)

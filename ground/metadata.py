@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from ground.uncertainty import ErrorTerms, IntervalModel
+from ground.uncertainty import LEVEL_Z, ErrorTerms, IntervalModel
 
 HASH_CHUNK_BYTES = 1 << 20
 
@@ -156,6 +156,7 @@ _LIMITS = {
     "sweeps": "the two sweep directions disagreeing (servo or mounting)",
     "faces": "vertical faces or overhangs",
     "pose": "the height of the drifting pose, as corrected from the building",
+    "level": "the drifting altitude reference, which no floor seen pinned",
 }
 MIN_SHARE = 0.25
 """A term 'limits' the volume when it holds at least a quarter of the interval's variance."""
@@ -166,7 +167,8 @@ def limiting_terms(terms: ErrorTerms, model: IntervalModel) -> list[str]:
     scaled = {"unseen": model.k_unseen * max(terms.unseen_low_m3, terms.unseen_high_m3),
               "interpolation": model.k_interpolation * terms.interpolation_m3, "noise": model.k_noise * terms.noise_m3,
               "blur": model.k_blur * terms.blur_m3, "sweeps": model.k_sweeps * terms.sweeps_m3,
-              "faces": model.k_faces * terms.faces_m3, "pose": model.k_pose * terms.pose_m3}
+              "faces": model.k_faces * terms.faces_m3, "pose": model.k_pose * terms.pose_m3,
+              "level": LEVEL_Z * terms.level_m3}
     total = sum(v * v for v in scaled.values())
     if total <= 0:
         return []

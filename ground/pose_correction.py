@@ -208,6 +208,11 @@ class PoseCorrection:
     height_unanchored_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """How long the corrected height was not tied to the floor (`floor_anchored`): (total s, and the longest such
     stretch's start and end on the log's clock; all 0 when tied throughout or not corrected)."""
+    level_sigma_m: float | None = None
+    """The standard error of the height's level (its mean over the flight) when that level does not rest on a floor
+    the walls' feet confirm: then it is the logged altitude reference's, which the flight's data cannot check, and
+    its error is the barometer's walk averaged over the flight (`level_sigma_m`). None when it rests on a confirmed
+    floor. With open_floor_shift_m it is the other reading's: the level had the open floor not been the floor."""
 
     def at(self, t_s: np.ndarray) -> np.ndarray:
         """(N, 4) the correction at times t_s (linear between knots, held beyond the ends)."""
@@ -249,6 +254,7 @@ class PoseCorrection:
                 "rms_before_m": self.rms_before_m, "rms_after_m": self.rms_after_m, "noise_m": self.noise_m,
                 "gain": self.gain, "gain_needed": self.gain_needed, "notes": list(self.notes),
                 "height_sigma_m": self.height_sigma_m, "open_floor_shift_m": self.open_floor_shift_m,
+                "level_sigma_m": self.level_sigma_m,
                 "height_unanchored_s": self.height_unanchored_s[0],
                 "height_unanchored_longest_s": [self.height_unanchored_s[1], self.height_unanchored_s[2]],
                 "closest_wall": None if self.closest_wall is None else dict(
@@ -774,6 +780,9 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     z_sigma: list[float] = []  # the standard errors of the height's mean, the last solve's last
     notes: list[str] = []
     open_floor_shift: float | None = None  # what a floor the walls' feet do not confirm moved the height, when used
+    # whether the height's level rests on a floor the walls' feet confirm (else on the logged reference): without
+    # the crossings the walls' fit solves the height from the floor plane, when it saw one
+    level_on_floor = opts.vertical and not opts.crossings and counts[0] > 0
     if opts.vertical and opts.crossings:
         cell_m = speed * (period or spacing / KNOT_SWEEPS)
         # how far a floor seen only away from the walls may move the height (`_screen`): anywhere when the height
@@ -821,6 +830,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
             # reads that the level rests on a floor nothing at a wall confirms
             open_floor_shift = float(np.mean(z))
             notes.append(open_floor_note("anchored", open_floor_shift))
+        level_on_floor = z is not None and confirmed and bool(floor.any())
         notes.extend(note for note in (floor_note, refused) if note)
         first_refused = refused
         if z is not None:
@@ -893,6 +903,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                                           f"flight was refused ({why}); {again_note}")
                         notes.append(again_note)
                         open_floor_shift = shift_again  # this height replaces the first
+                        level_on_floor = shift_again is None
                         if shift_again is not None:  # on a floor the walls' feet do not confirm: said, as the first
                             notes.append(open_floor_note("solved again", shift_again))
                         unanchored = unanchored_stretches(knots, floor_anchored(
@@ -900,6 +911,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                             opts.max_position_error_m))
                     elif first_refused is not None:
                         x[:, 2] = 0.0  # refused again: no height, as before (the registration's own is unchecked)
+                        level_on_floor = False
         notes += cross_notes
         if cross_info is not None:
             info[:, :2] += cross_info[:, :2]
@@ -944,9 +956,18 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     # (a solve that failed numerically gives no term rather than a NaN interval)
     height_sigma = z_sigma[-1] if z_info is not None and z_sigma and math.isfinite(z_sigma[-1]) else None
     return PoseCorrection(knots, x, constrained, True, None, height_sigma_m=height_sigma,
+                          level_sigma_m=None if level_on_floor else level_sigma_m(opts.vertical_walk_m_per_sqrt_s,
+                                                                                  t1 - t0),
                           open_floor_shift_m=(open_floor_shift if z_info is not None and open_floor_shift is not None
                                               and math.isfinite(open_floor_shift) else None),
                           height_unanchored_s=unanchored if z_info is not None else (0.0, 0.0, 0.0), **common)
+
+
+def level_sigma_m(walk_m_per_sqrt_s: float, duration_s: float) -> float:
+    """The standard error of a drifting altitude reference's level over a flight of duration_s: the mean over the
+    flight of a random walk (walk_m_per_sqrt_s) that starts at the log's start, whose variance is q^2 T / 3. What the
+    height's level is off by when no floor the flight confirmed sets it (`PoseCorrection.level_sigma_m`)."""
+    return walk_m_per_sqrt_s * math.sqrt(max(duration_s, 0.0) / 3.0)
 
 
 def bend_sigmas(b: Beams, knots: np.ndarray, k: np.ndarray, opts: PoseCorrectionOptions) -> np.ndarray:

@@ -91,6 +91,7 @@ from ground.unseen import free_space_ceiling_m
 from ground.volume_warnings import (
     DEFAULT_MAX_INTERVAL_PCT,
     faces_warning,
+    level_warning,
     open_floor_warning,
     pose_warning,
     unseen_warning,
@@ -312,7 +313,8 @@ def merged_survey(flights: Sequence[Flight], opts: ReportOptions) -> Survey:
     inp = flights[0].inp
     err = SensorErrorModel.from_header(inp.log.header or {})
     merged = survey_of_cloud(merge_clouds([f.survey.cloud for f in flights]), inp.storage, opts, err)
-    merged = with_pose_term(merged, least_certain_height([f.survey.pose for f in flights]))
+    poses = [f.survey.pose for f in flights]
+    merged = with_pose_term(merged, least_certain_height(poses), least_certain_level(poses))
     counts = [f.survey.implausible for f in flights if f.survey.implausible is not None]
     implausible = None if not counts else {k: sum(c.get(k, 0) for c in counts) for k in dict.fromkeys(
         k for c in counts for k in c)}
@@ -327,6 +329,21 @@ def least_certain_height(poses: Sequence[PoseCorrection | None]) -> PoseCorrecti
     of the flights' points there, whose error's standard deviation is at most the largest flight's (Minkowski)."""
     corrected = [p for p in poses if p is not None and p.applied and p.height_sigma_m]
     return max(corrected, key=lambda p: p.height_sigma_m, default=None)
+
+
+def logged_level_sigma_m(pose: PoseCorrection | None) -> float | None:
+    """The standard error of the corrected height's level when it rests on the logged reference (no floor anchors it,
+    `PoseCorrection.level_sigma_m`); None when a floor does, confirmed by the walls' feet or not (a floor seen only
+    away from the walls has its own warning, `ground.volume_warnings.open_floor_warning`), or nothing was applied."""
+    if pose is None or not pose.applied or pose.open_floor_shift_m is not None:
+        return None
+    return pose.level_sigma_m
+
+
+def least_certain_level(poses: Sequence[PoseCorrection | None]) -> PoseCorrection | None:
+    """The flights' corrected pose whose level rests on the logged reference with the largest standard error (None:
+    no flight's does): a merged survey's level term, as `least_certain_height`."""
+    return max((p for p in poses if logged_level_sigma_m(p)), key=logged_level_sigma_m, default=None)
 
 
 def merged_log(inputs: Sequence[LogInput]) -> SampleLog:
@@ -549,21 +566,26 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
         pose = with_closest_wall(pose, corrected, frame, storage)
     if corrected is samples and boresight == mount:  # nothing applied (a boresight alone leaves the samples)
         return replace(survey, mount=est, pose=pose)
-    fixed = with_pose_term(_survey(corrected, header, storage, frame, lever, opts, err, spikes, boresight), pose)
+    fixed = with_pose_term(_survey(corrected, header, storage, frame, lever, opts, err, spikes, boresight), pose, pose)
     return replace(fixed, servo_timing=survey.servo_timing, servo_retimed=survey.servo_retimed,
                    implausible=survey.implausible, despike_unavailable=survey.despike_unavailable, mount=est,
                    pose=pose, rangefinder=survey.rangefinder)
 
 
-def with_pose_term(survey: Survey, pose: PoseCorrection | None) -> Survey:
+def with_pose_term(survey: Survey, pose: PoseCorrection | None, level_pose: PoseCorrection | None) -> Survey:
     """The survey's error terms (the whole floor's and a cell mask's) with the pose term: the corrected height's
-    standard error over the surfaced cells (ground.uncertainty); as it was when no height was corrected."""
-    sigma = None if pose is None or not pose.applied else pose.height_sigma_m
-    if not sigma or survey.errors is None:
+    standard error over the surfaced cells (ground.uncertainty), and the level term when the height's level rests on
+    the logged reference (`logged_level_sigma_m`); as it was when no correction was applied. The level term comes
+    from level_pose (one flight's: its pose; merged flights': `least_certain_level`)."""
+    sigma = pose.height_sigma_m if pose is not None and pose.applied else None
+    level = logged_level_sigma_m(level_pose)
+    if not (sigma or level) or survey.errors is None:
         return survey
 
     def with_term(e: SurveyErrors, mask: np.ndarray | None) -> SurveyErrors:
-        return replace(e, terms=replace(e.terms, pose_m3=pose_term_m3(sigma, survey.heights, survey.grid, mask)))
+        g, h = survey.grid, survey.heights
+        return replace(e, terms=replace(e.terms, pose_m3=pose_term_m3(sigma, h, g, mask),
+                                        level_m3=pose_term_m3(level, h, g, mask)))
     inner = survey.errors_in
     errors_in = None if inner is None else (lambda mask=None: with_term(inner(mask), mask))
     return replace(survey, errors=with_term(survey.errors, None), errors_in=errors_in)
@@ -740,8 +762,11 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
                            opts.max_interval_pct),
             faces_warning(survey.errors.faces, g, terms, DEFAULT_INTERVAL_MODEL),
             pose_warning(terms, DEFAULT_INTERVAL_MODEL, volume, opts.max_interval_pct),
+            level_warning(terms, DEFAULT_INTERVAL_MODEL, volume, opts.max_interval_pct),
             open_floor_warning(survey.pose.open_floor_shift_m if survey.pose is not None and survey.pose.applied
-                               else None, survey.heights, g, volume, opts.max_interval_pct),
+                               else None, survey.heights, g, volume, opts.max_interval_pct,
+                               survey.pose.level_sigma_m if survey.pose is not None else None, terms,
+                               DEFAULT_INTERVAL_MODEL),
             wide_interval_warning(volume, interval, opts.max_interval_pct)) if w]
     warnings += list(base.warnings)
     if volume < 0 and base.kind is not BaseKind.SURVEY:  # below an earlier survey: material taken away

@@ -26,6 +26,13 @@ each a scale of the error it describes, not yet a probability):
 - **pose**: when the trajectory's height was corrected from the building (ground.pose_correction),
   the standard error of that correction's mean over the survey times the surfaced area: a height
   error common to the survey moves every cell (0 when no height was corrected).
+- **level**: when the corrected trajectory's level rests on the logged altitude reference (no floor was
+  seen, none the walls' feet confirm was kept, or the floor's height was refused), nothing in the data
+  checks it: its error is the barometer's walk averaged over the flight
+  (``ground.pose_correction.level_sigma_m``) times the surfaced area. Not fitted: a Gaussian error of a
+  stated sigma, so its 90 % half-width is LEVEL_Z sigmas. (A level anchored on a floor seen only away
+  from the walls has no level term: the report warns with the other reading's volume and interval,
+  ``ground.volume_warnings.open_floor_warning``.)
 
 The interval combines them in quadrature with one scale factor each (``IntervalModel``). The
 factors are not tuned by hand: ``tools/calibrate_interval.py`` fits them on the calibration part of
@@ -64,6 +71,7 @@ class ErrorTerms:
     faces_m3: float = 0.0
     blur_m3: float = 0.0
     pose_m3: float = 0.0
+    level_m3: float = 0.0
 
     def as_dict(self) -> dict[str, float]:
         return asdict(self)
@@ -73,6 +81,11 @@ class ErrorTerms:
 POSE_FACTOR = 7.13593435311451
 POSE_FACTOR_SOURCE = 'fitted on 38 drifting flights (tools/calibrate_pose_interval.py, 2026-11-30)'
 # --- end of calibrated pose factor ---
+
+
+LEVEL_Z = 1.6448536269514722
+"""The standard normal's 95th percentile: a two-sided 90 % interval of a Gaussian error is +/- this many sigmas (the
+level term's factor: its sigma is stated by the drift model, not fitted)."""
 
 
 @dataclass(frozen=True)
@@ -99,7 +112,8 @@ class IntervalModel:
         """(below, above) the volume."""
         common = ((self.k_interpolation * t.interpolation_m3) ** 2 + (self.k_noise * t.noise_m3) ** 2
                   + (self.k_sweeps * t.sweeps_m3) ** 2 + (self.k_faces * t.faces_m3) ** 2
-                  + (self.k_blur * t.blur_m3) ** 2 + (self.k_pose * t.pose_m3) ** 2)
+                  + (self.k_blur * t.blur_m3) ** 2 + (self.k_pose * t.pose_m3) ** 2
+                  + (LEVEL_Z * t.level_m3) ** 2)
         return (math.sqrt(common + (self.k_unseen * t.unseen_low_m3) ** 2),
                 math.sqrt(common + (self.k_unseen * t.unseen_high_m3) ** 2))
 
@@ -374,7 +388,8 @@ def over_surface_m3(height_m: float, heights: np.ndarray, grid: Grid, mask: np.n
 
 def pose_term_m3(height_sigma_m: float | None, heights: np.ndarray, grid: Grid,
                  mask: np.ndarray | None = None) -> float:
-    """The pose term: the height correction's standard error over the surfaced cells (of mask), m³."""
+    """The pose term: the height correction's standard error over the surfaced cells (of mask), m³; also the level
+    term, of the level's standard error (module docstring)."""
     if not height_sigma_m:
         return 0.0
     return over_surface_m3(height_sigma_m, heights, grid, mask)

@@ -9,6 +9,8 @@ the interval wide, so a clean survey stays quiet and a corner pile flown too spa
   their share of the interval.
 - **pose**: the height of the drifting pose, as corrected from the building, holds most of a wide
   interval: the floor seen too seldom to pin the altitude reference.
+- **level**: the height's level rests on the logged altitude reference (no floor the flight confirmed
+  pinned it), and its drift holds most of a wide interval.
 - **wide interval**: the interval is wider than the surveyor's tolerance (an option), so the survey
   needs more coverage to be useful.
 """
@@ -16,13 +18,14 @@ the interval wide, so a clean survey stays quiet and a corner pile flown too spa
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 from scipy import ndimage
 
 from ground.render import signless_zero
 from ground.surface import Grid, fill_empty
-from ground.uncertainty import ErrorTerms, FaceCells, IntervalModel, over_surface_m3
+from ground.uncertainty import LEVEL_Z, ErrorTerms, FaceCells, IntervalModel, over_surface_m3
 
 DOMINANT_SHARE = 0.5
 """A term 'dominates' when it holds over half of the interval's variance (its square over the sum)."""
@@ -136,22 +139,48 @@ def pose_warning(t: ErrorTerms, model: IntervalModel, volume_m3: float | None = 
             "altitude reference that does not drift over the pile would narrow it")
 
 
+def level_warning(t: ErrorTerms, model: IntervalModel, volume_m3: float | None = None,
+                  max_pct: float = DEFAULT_MAX_INTERVAL_PCT) -> str | None:
+    """When the level term (the height's level on the logged altitude reference) dominates the interval and (given
+    the volume) widens it by more than half the tolerance max_pct, as `pose_warning`."""
+    scaled = LEVEL_Z * t.level_m3
+    if scaled <= 0 or _share(scaled, t, model, high=False) < DOMINANT_SHARE:
+        return None
+    if volume_m3 is not None and volume_m3 > 0 and scaled < 0.5 * max_pct / 100.0 * volume_m3:
+        return None
+    pct = f" ({100.0 * scaled / volume_m3:.1f} % of the volume)" if volume_m3 else ""
+    return (f"no floor the walls' feet confirm pinned the height: its level is the autopilot's logged altitude "
+            f"reference, whose drift over the flight moves the volume by up to +/-{scaled:,.0f} m³{pct}, most of "
+            "the interval; a leg that sees a wall's foot or a strip of clear floor would pin it")
+
+
 def open_floor_warning(shift_m: float | None, heights: np.ndarray, grid: Grid, volume_m3: float,
-                       max_pct: float = DEFAULT_MAX_INTERVAL_PCT) -> str | None:
+                       max_pct: float = DEFAULT_MAX_INTERVAL_PCT, level_sigma_m: float | None = None,
+                       terms: ErrorTerms | None = None, model: IntervalModel | None = None) -> str | None:
     """When the pose correction anchored the height on a floor seen only away from the walls (shift_m: how far that
     moved it, `PoseCorrection.open_floor_shift_m`) and that moved the volume by more than half the tolerance: were
-    it a hollow in a pile that hides the floor wall to wall, the volume is off by about that much, which the 90 %
-    interval does not include (nothing in the data tells such a hollow from a floor seen in a gap between heaps)."""
+    it a hollow in a pile that hides the floor wall to wall, the volume is the other reading, less what the anchor
+    moved, which the 90 % interval does not include (nothing in the data tells such a hollow from a floor seen in a
+    gap between heaps). Given the logged level's sigma (`PoseCorrection.level_sigma_m`), the survey's terms and the
+    model, the warning gives the other reading's own interval: the level then rests on the logged reference."""
     if not shift_m or not math.isfinite(shift_m):
         return None
     moved = over_surface_m3(shift_m, heights, grid)
     if volume_m3 > 0 and abs(moved) < 0.5 * max_pct / 100.0 * volume_m3:
         return None
     pct = f" ({100.0 * abs(moved) / volume_m3:.1f} % of the volume)" if volume_m3 > 0 else ""
+    other = volume_m3 - moved
+    if level_sigma_m and terms is not None and model is not None:
+        below, above = model.half_widths_m3(replace(terms, level_m3=over_surface_m3(level_sigma_m, heights, grid)))
+        reading = (f"the volume is about {other:,.0f} m³ instead (90 % interval {max(0.0, other - below):,.0f}-"
+                   f"{other + above:,.0f} m³, the logged altitude reference's drift over the flight included), which "
+                   "this report's 90 % interval does not include")
+    else:
+        reading = "the volume is off by about as much, beyond the 90 % interval"
     return (f"the height was anchored on a floor seen only away from the walls (the pile covers their feet), which "
             f"moved it {signless_zero(shift_m, '+.2f'):+.2f} m and the volume {signless_zero(moved, '+,.0f'):+,.0f} "
-            f"m³{pct}: were that a hollow in the pile, not the floor, the volume is off by about as much, beyond the "
-            "90 % interval; a leg that sees a wall's foot or a strip of clear floor would confirm the floor")
+            f"m³{pct}: were that a hollow in the pile, not the floor, {reading}; a leg that sees a wall's foot or a "
+            "strip of clear floor would confirm the floor")
 
 
 def wide_interval_warning(volume_m3: float, interval_m3: tuple[float, float], max_pct: float) -> str | None:

@@ -123,3 +123,16 @@ def test_that_a_merged_survey_carries_the_least_certain_corrected_height_of_its_
     a, b = pose(0.01), pose(0.03)
     assert least_certain_height([a, None, b, pose(0.05, applied=False)]) is b
     assert least_certain_height([pose(None), None]) is None  # no height corrected: no pose term
+
+
+def test_that_a_merged_survey_carries_the_least_certain_level_that_rests_on_the_logged_reference():
+    from ground.pose_correction import PoseCorrection
+    from ground.report import least_certain_level, logged_level_sigma_m
+
+    def pose(level, shift=None, applied=True):
+        return PoseCorrection(np.zeros(2), np.zeros((2, 4)), np.zeros((2, 4), dtype=bool), applied,
+                              level_sigma_m=level, open_floor_shift_m=shift)
+    a, b, open_floor = pose(0.1), pose(0.2), pose(0.4, shift=-0.3)
+    assert least_certain_level([a, None, b, open_floor, pose(0.5, applied=False)]) is b
+    assert logged_level_sigma_m(open_floor) is None  # anchored on a floor in the open: its own warning instead
+    assert least_certain_level([pose(None), None]) is None  # every level on a confirmed floor: no level term

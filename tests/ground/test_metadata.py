@@ -83,6 +83,10 @@ def test_that_the_verdict_names_the_interval_and_what_limits_it():
     pose = limiting_terms(ErrorTerms(interpolation_m3=1.0, pose_m3=400.0), DEFAULT_INTERVAL_MODEL)
     assert pose == ["pose"]  # a corrected height's error that holds the interval is named
     assert "the height of the drifting pose" in verdict(7210.4, (6800.0, 7600.0), pose, None, 0)
+    level = limiting_terms(ErrorTerms(interpolation_m3=1.0, level_m3=100.0), DEFAULT_INTERVAL_MODEL)
+    assert level == ["level"]  # a level no floor pinned, when it holds the interval, is named
+    assert "the drifting altitude reference, which no floor seen pinned" in verdict(1200.0, (1000.0, 1400.0), level,
+                                                                                     None, 0)
 
 
 # ----- the report, as a user runs it -------------------------------------------------------------------------

@@ -22,6 +22,7 @@ from ground.pose_correction import (
     apply_pose_correction,
     estimate_pose_correction,
     is_drift,
+    level_sigma_m,
     plane_brought_on,
     planes,
     prior_sigmas,
@@ -160,6 +161,20 @@ def trajectory_rms_m(samples: np.ndarray, err: np.ndarray, corr) -> tuple[float,
     true_w = logged - err[:, :3]
     return (float(np.sqrt(np.mean(np.sum((logged - true_w) ** 2, axis=1)))),
             float(np.sqrt(np.mean(np.sum((corrected - true_w) ** 2, axis=1)))))
+
+
+def test_that_a_level_set_by_a_floor_the_walls_confirm_carries_no_level_term(drifted):
+    _samples, _err, corr = drifted
+    assert corr.applied and corr.level_sigma_m is None and corr.open_floor_shift_m is None, corr.notes
+
+
+def test_that_the_level_sigma_is_that_of_a_random_walk_s_mean_over_the_flight():
+    # The mean over T of a walk of q per sqrt(s) from 0 has variance q^2 T / 3: 4,000 walks of 600 steps (seeded).
+    rng = np.random.default_rng(0)
+    q, dt, n = 0.05, 0.1, 600
+    means = np.cumsum(rng.normal(0.0, q * math.sqrt(dt), (4000, n)), axis=1).mean(axis=1)
+    assert float(np.std(means)) == pytest.approx(level_sigma_m(q, n * dt), rel=0.05)
+    assert level_sigma_m(q, 0.0) == 0.0 and level_sigma_m(q, -1.0) == 0.0
 
 
 def test_that_the_corrected_trajectory_is_closer_to_the_truth_than_the_logged_one(drifted):
@@ -1032,6 +1047,10 @@ def test_that_a_hollow_in_a_pile_that_hides_the_floor_wall_to_wall_is_not_taken_
     if corr.applied:
         assert _height_miss_m(corr, samples, err) < BOWL[2] / 3.0, corr.notes
         assert corr.open_floor_shift_m is None
+        # the level is the logged reference's, which nothing checks: its error is the walk's over the flight
+        span = float(np.ptp(samples["t_s"][np.isfinite(samples["range_m"])]))
+        assert corr.level_sigma_m == pytest.approx(level_sigma_m(PoseCorrectionOptions().vertical_walk_m_per_sqrt_s,
+                                                                 span), rel=0.02)
     assert any("no floor confirmed" in note for note in corr.notes), (corr.reason, corr.notes)
 
 
@@ -1045,6 +1064,7 @@ def test_that_a_hollow_anchors_the_height_when_told_a_floor_seen_in_the_open_is_
     assert not any("no floor confirmed" in note for note in corr.notes), corr.notes
     # and the report is told what anchoring on it moved (its warning: ground.volume_warnings.open_floor_warning)
     assert corr.open_floor_shift_m is not None and corr.open_floor_shift_m < -BOWL[2] / 2.0, corr.open_floor_shift_m
+    assert corr.level_sigma_m is not None  # the other reading's, for the warning
     assert any("seen only away from the walls" in note for note in corr.notes), corr.notes
 
 

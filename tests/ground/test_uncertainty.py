@@ -14,6 +14,7 @@ from ground.report import ReportOptions, summarise, survey_from_samples
 from ground.surface import Grid, fill_empty
 from ground.uncertainty import (
     DEFAULT_INTERVAL_MODEL,
+    LEVEL_Z,
     ErrorTerms,
     IntervalModel,
     blur_term_m3,
@@ -24,7 +25,14 @@ from ground.uncertainty import (
     sweeps_term_m3,
     unseen_terms_m3,
 )
-from ground.volume_warnings import along_walls, faces_warning, unseen_warning, wide_interval_warning
+from ground.volume_warnings import (
+    along_walls,
+    faces_warning,
+    level_warning,
+    open_floor_warning,
+    unseen_warning,
+    wide_interval_warning,
+)
 
 GRID = Grid(20.0, 10.0, 0.5)
 UNIT = IntervalModel(k_unseen=1, k_interpolation=1, k_noise=1, k_sweeps=1, k_faces=1, k_blur=1)
@@ -288,7 +296,6 @@ def test_that_a_corrected_height_that_holds_a_wide_interval_is_warned_about_and_
 
 def test_that_a_height_anchored_on_a_floor_the_walls_do_not_confirm_is_warned_about_with_what_it_moved():
     from ground.surface import Grid
-    from ground.volume_warnings import open_floor_warning
 
     grid = Grid(24.0, 16.0, 1.0)
     heights = np.full(grid.shape, 3.0)  # the pile covers the floor wall to wall: 384 m²
@@ -301,3 +308,42 @@ def test_that_a_height_anchored_on_a_floor_the_walls_do_not_confirm_is_warned_ab
     assert "-0 m³" not in open_floor_warning(-0.001, heights, grid, 0.0, 5.0)  # nothing to compare: said, unsigned
     heights[:12] = np.nan  # only the surfaced cells move
     assert "-50 m³" in open_floor_warning(-0.26, heights, grid, 1192.0, 5.0)
+
+
+def test_that_a_level_no_floor_pinned_widens_the_interval_by_its_stated_sigma_not_a_fitted_factor():
+    # The level's sigma is the drift model's (ground.pose_correction.level_sigma_m): a Gaussian error of that sigma
+    # has its 90 % two-sided half-width at the normal's 95th percentile, added in quadrature to the rest.
+    model = IntervalModel(k_unseen=1, k_interpolation=2, k_noise=1, k_sweeps=1, k_faces=1)
+    base = ErrorTerms(interpolation_m3=30.0, unseen_low_m3=10.0, unseen_high_m3=20.0)
+    below, above = model.half_widths_m3(replace(base, level_m3=50.0))
+    assert below == pytest.approx(math.sqrt(60.0**2 + 10.0**2 + (1.6448536 * 50.0) ** 2))
+    assert above == pytest.approx(math.sqrt(60.0**2 + 20.0**2 + (1.6448536 * 50.0) ** 2))
+    assert model.half_widths_m3(base) == pytest.approx((math.hypot(60.0, 10.0), math.hypot(60.0, 20.0)))
+    from scipy.stats import norm
+    assert LEVEL_Z == pytest.approx(norm.ppf(0.95))
+
+
+def test_that_a_level_on_the_logged_reference_is_warned_about_when_it_holds_a_wide_interval():
+    model = IntervalModel(k_unseen=1, k_interpolation=1, k_noise=1, k_sweeps=1, k_faces=1)
+    w = level_warning(ErrorTerms(interpolation_m3=10.0, level_m3=80.0), model, 1200.0, 5.0)  # +/-132 m³: 11 %
+    assert w is not None and "+/-132 m³ (11.0 % of the volume)" in w and "logged altitude reference" in w, w
+    assert "wall's foot or a strip of clear floor" in w
+    assert level_warning(ErrorTerms(interpolation_m3=10.0, level_m3=10.0), model, 1200.0, 5.0) is None  # 16 m³
+    assert level_warning(ErrorTerms(interpolation_m3=200.0, level_m3=80.0), model, 1200.0, 5.0) is None  # not most
+    assert level_warning(ErrorTerms(interpolation_m3=10.0), model, 1200.0, 5.0) is None  # a floor pinned it
+
+
+def test_that_a_height_anchored_on_an_open_floor_is_warned_about_with_the_other_readings_interval():
+    # Were the floor seen only away from the walls a hollow, the level would be the logged reference's: the volume
+    # less what the anchor moved, with the reference's drift in its interval (a held-out `vio` flight over pile 2 in
+    # the 24 x 16 m building: anchored 1,037 m³, true 1,192 m³, this reading 1,143 m³ (1,012-1,274 m³)).
+    grid = Grid(24.0, 16.0, 1.0)
+    heights = np.full(grid.shape, 3.0)  # 384 m² surfaced
+    model = IntervalModel(k_unseen=1, k_interpolation=1, k_noise=1, k_sweeps=1, k_faces=1)
+    terms = ErrorTerms(interpolation_m3=12.0)
+    w = open_floor_warning(-0.28, heights, grid, 1037.0, 5.0, 0.2, terms, model)
+    other, half = 1037.0 + 0.28 * 384.0, math.hypot(12.0, LEVEL_Z * 0.2 * 384.0)
+    assert f"the volume is about {other:,.0f} m³ instead" in w, w
+    assert f"(90 % interval {other - half:,.0f}-{other + half:,.0f} m³" in w, w
+    assert "this report's 90 % interval does not include" in w
+    assert "beyond the 90 % interval" in open_floor_warning(-0.28, heights, grid, 1037.0, 5.0)  # no sigma: as before
