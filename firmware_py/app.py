@@ -78,7 +78,7 @@ from firmware_py.hal.mavlink_link import check_mavlink_url, open_mavlink
 from firmware_py.hal.pwm import check_pwm_url, open_pwm
 from firmware_py.hal.signing import SigningConfig
 from firmware_py.hal.uart import DEFAULT_BAUD, SerialPort, check_uart_url, open_uart, parse_uart_url
-from firmware_py.health import HealthMonitor, HealthSnapshot, HealthStatus, SensorState
+from firmware_py.health import TEXT_PREFIX, HealthMonitor, HealthSnapshot, HealthStatus, SensorState, statustext_msg
 from firmware_py.live_stream import LiveStreamSender
 from firmware_py.log_room import check_destination, room_s, room_warning
 from firmware_py.payload import COUNTED_FLAGS, LoopConfig, LoopStats, PayloadLoop, RangeSensor
@@ -94,6 +94,9 @@ DEFAULT_UART_URL = "serial:/dev/serial0:115200"
 DEFAULT_RANGEFINDER = Rangefinder.LIDARLITE_V3
 DEFAULT_PRESET = PRESET_FAST_500HZ.name
 ORIGIN_RESEND_S = 5.0
+ARM_POLL_HZ = 50.0
+"""How often the payload reads the link while it waits for the autopilot to arm (--start-on-arm): the HEARTBEAT comes
+at 1 Hz, so the start is within a heartbeat of the arming, and the streams are drained as they come."""
 MAX_EKF_ORIGIN_OFFSET_M = 10_000.0
 """How far the EKF origin sent may be from the site's corner: the local NED frame is a flat-earth tangent
 plane about it, fit for a building's neighbourhood; farther is a mistake (two different places typed)."""
@@ -143,6 +146,9 @@ class PayloadConfig:
             ground station sizes its wall tolerances with it); None: the rangefinder's datasheet.
         duration_s: stop after this long; None = until stopped [--duration].
         stop_on_disarm: stop when the autopilot disarms after having been armed [--stop-on-disarm].
+        start_on_arm: open the log and start the sweep only once the autopilot's HEARTBEAT shows armed
+            [--start-on-arm]; stopped before that, the payload writes no log. With stop_on_disarm and a
+            service manager that starts the payload again when it stops, one log per flight.
         stream_url: live sample stream to the ground, udp:HOST:PORT; None = off [--stream].
         stream_records_per_datagram: records batched per datagram.
         signing: MAVLink 2 signing of the autopilot link, and authentication of the live stream with
@@ -198,6 +204,7 @@ class PayloadConfig:
     range_sigma_rel: float | None = None
     duration_s: float | None = None
     stop_on_disarm: bool = False
+    start_on_arm: bool = False
     stream_url: str | None = None
     stream_records_per_datagram: int = 20
     signing: SigningConfig | None = None
@@ -424,6 +431,8 @@ class PayloadConfig:
         if self.send_origin is not None:
             payload["ekf_origin"] = [float(v) for v in self.send_origin]
         payload["stop_on_disarm"] = bool(self.stop_on_disarm)
+        if self.start_on_arm:
+            payload["start_on_arm"] = True
         payload["servo"] = {"center_us": cal.center_us, "us_per_rad": cal.us_per_rad, "min_us": cal.min_us,
                             "max_us": cal.max_us, "slew_rad_s": cal.slew_rad_s, "lag_s": cal.lag_s}
         payload["sweep"] = {"waveform": self.waveform, "peak_rate_rad_s": float(self.servo_peak_rate_rad_s),
@@ -666,6 +675,11 @@ class PayloadApp:
         self._send_origin(self.clock.now_ns())
         self.tracker.start()
         self.tracker.request_params(EKF_SOURCE_PARAMS)
+        if cfg.start_on_arm:
+            self._wait_for_arm()
+            if self._stop_reason is not None:
+                return  # stopped on the ground: no log
+            self.tracker.request_params(EKF_SOURCE_PARAMS)  # those the autopilot, maybe still booting, missed
         self._wait_for_pose()
         self._wait_for_params()
         if isinstance(self.lidar, Tfmini):
@@ -712,6 +726,21 @@ class PayloadApp:
         if self.cfg.rangefinder is Rangefinder.TFMINI:
             return f"TFMini {self.cfg.uart_url}"
         return f"I2C {self.cfg.i2c_url}"
+
+    def _wait_for_arm(self) -> None:
+        """Pump the link (the servo idle, no log open) until the autopilot's HEARTBEAT shows armed or a stop is asked
+        for: a payload started with the companion computer waits through the time on the ground."""
+        self._say("waiting for the autopilot to arm (--start-on-arm): the servo is idle and nothing is logged")
+        self._send_health([statustext_msg(mavlink.MAV_SEVERITY_INFO, TEXT_PREFIX + "waiting for arm")])
+        period_ns = round(1e9 / ARM_POLL_HZ)
+        while self._stop_reason is None and not self.tracker.autopilot_armed:
+            now = self.clock.now_ns()
+            if self._origin_sent and now >= self._next_origin_ns:
+                self._send_origin(now)
+            self.clock.sleep_until_ns(now + period_ns)
+            self.tracker.pump()
+        if self._stop_reason is None:
+            self._say("the autopilot armed: starting")
 
     def _wait_for_pose(self) -> None:
         """Pump the link until the pose is trusted, the wait runs out or a stop is asked for."""
@@ -949,8 +978,12 @@ class PayloadApp:
             pose_status=st.pose_status if st else "", close_errors=tuple(self._close_errors),
             signing_active=self.signing_active)
         detail = f" {self._samples_detail()}" if self.sink is not None and loop is not None else ""
-        self._say(f"stopped ({res.stop_reason}) after {elapsed_s:.1f} s: {res.records_logged} samples{detail} "
-                  f"in {res.out_path}")
+        if self.log is None and self.cfg.start_on_arm:
+            self._say(f"stopped ({res.stop_reason}) after {elapsed_s:.1f} s before the autopilot armed: no log "
+                      "written")
+        else:
+            self._say(f"stopped ({res.stop_reason}) after {elapsed_s:.1f} s: {res.records_logged} samples{detail} "
+                      f"in {res.out_path}")
         return res
 
     # ----- output ---------------------------------------------------------------------------------

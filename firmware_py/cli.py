@@ -78,6 +78,7 @@ CONFIG_OPTIONS: ConfigTables = {None: {
     "payload.signing_key": "--signing-key",
     "payload.ekf_origin": "--send-origin",
     "payload.stop_on_disarm": "--stop-on-disarm",
+    "payload.start_on_arm": "--start-on-arm",
     "payload.servo.center_us": "--servo-center-us",
     "payload.servo.us_per_rad": "--servo-us-per-rad",
     "payload.servo.min_us": "--servo-min-us",
@@ -215,11 +216,15 @@ def build_parser() -> ArgumentParser:
     sec.add_argument("--allow-unsigned", action="store_true",
                      help="with --signing-key: also accept UNSIGNED frames (mixed setups while migrating; "
                           "forged and replayed signed frames are still refused)")
-    st = ap.add_argument_group("stopping and the autopilot")
+    st = ap.add_argument_group("starting, stopping and the autopilot")
     st.add_argument("--duration", type=finite_float, default=None, metavar="S",
                     help="stop after S seconds (default: until Ctrl-C / SIGTERM)")
     st.add_argument("--stop-on-disarm", action="store_true",
                     help="stop when the autopilot's HEARTBEAT shows disarmed after having shown armed")
+    st.add_argument("--start-on-arm", action="store_true",
+                    help="wait, the servo idle and no log open, until the autopilot's HEARTBEAT shows armed, then "
+                         "open the log and sweep; stopped before that, no log is written (with --stop-on-disarm "
+                         "and a service that restarts the payload: one log per flight)")
     st.add_argument("--send-origin", type=finite_float, nargs=3, default=None, metavar=("LAT", "LON", "ALT"),
                     help="send SET_GPS_GLOBAL_ORIGIN (deg, deg, m MSL) at start: an indoor EKF needs an origin "
                          "before it publishes LOCAL_POSITION_NED (default with --origin: the site's corner)")
@@ -321,7 +326,8 @@ def config_from_args(args) -> PayloadConfig:
         initial_position=args.phase, storage=Storage.parse(args.storage), servo=servo_from_args(args),
         site=site, frame=frame,
         lever_arm_body_m=tuple(args.lever_arm), boresight=boresight_from_args(args), duration_s=args.duration,
-        stop_on_disarm=args.stop_on_disarm, stream_url=args.stream, send_origin=send_origin,
+        stop_on_disarm=args.stop_on_disarm, start_on_arm=args.start_on_arm, stream_url=args.stream,
+        send_origin=send_origin,
         mission_id=args.mission_id, quiet=args.quiet, signing=signing, device_key=device_key,
         config_file=args.config, signing_key_file=args.signing_key)
 

@@ -8,7 +8,7 @@ file leaves out keeps the built-in default. docs/configuration.md lists every ke
                       (its floor corner, the storage frame's origin), heading_deg (its x axis from north),
                       name, timezone (IANA, for the report's local time)
     [payload]         rangefinder, i2c, uart, pwm, mavlink, rate_hz, log, lever_arm_m, boresight_deg,
-                      lidarlite_preset, stream, signing_key, ekf_origin, stop_on_disarm
+                      lidarlite_preset, stream, signing_key, ekf_origin, stop_on_disarm, start_on_arm
     [payload.servo]   the servo's calibration (`ServoCalibration`): center_us, us_per_rad, min_us, max_us,
                       slew_rad_s, lag_s
     [payload.sweep]   the eq. (1) sweep: waveform, peak_rate_rad_s, phase
@@ -235,6 +235,9 @@ class PayloadSection:
         -2.2339, 50.0)))
     stop_on_disarm: bool | None = field(default=None, metadata=_key(
         Kind.BOOL, "stop logging when the autopilot disarms after having been armed", example=True))
+    start_on_arm: bool | None = field(default=None, metadata=_key(
+        Kind.BOOL, "open the log and start the sweep only when the autopilot arms (nothing logged on the ground)",
+        example=True))
     servo: ServoSection = field(default_factory=ServoSection, metadata={"table": ServoSection})
     sweep: SweepSection = field(default_factory=SweepSection, metadata={"table": SweepSection})
 

@@ -314,6 +314,47 @@ def test_that_stop_on_disarm_stops_once_the_autopilot_disarms_after_arming(tmp_p
     assert read_samplelog(cfg.out_path).intact
 
 
+def test_that_start_on_arm_logs_from_the_arming_to_the_disarming_and_nothing_on_the_ground(tmp_path, devices):
+    _bus, _lidar, servo = devices
+    ap = Autopilot()  # on the ground, disarmed
+    try:
+        cfg = payload_config(tmp_path, ap.url, start_on_arm=True, stop_on_disarm=True, duration_s=20.0)
+        app = PayloadApp(cfg, err=None)
+        armed_at: list[float] = []
+        before_arm: list[tuple[bool, int]] = []
+
+        def arm():
+            before_arm.append((cfg.out_path.exists(), servo.pulses))
+            armed_at.append(time.monotonic())
+            ap.vehicle.arm()
+        threading.Timer(1.0, ap.spy.actions.put, [arm]).start()
+        threading.Timer(2.5, ap.spy.actions.put, [ap.vehicle.disarm]).start()
+        t0 = time.monotonic()
+        res = app.run()
+        waited_s = armed_at[0] - t0
+    finally:
+        ap.close()
+    assert res.stop_reason == "autopilot disarmed"
+    assert before_arm == [(False, 0)]  # while it waited: no log file, not one pulse to the servo
+    assert "pilescan: waiting for arm" in ap.spy.texts()
+    log = read_samplelog(cfg.out_path)
+    assert log.intact and log.header["config"]["payload"]["start_on_arm"] is True
+    span_s = float(log.samples["t_s"][-1] - log.samples["t_s"][0])
+    assert 0.5 < span_s < res.elapsed_s - waited_s + 0.5  # the flight's samples, none from the wait before it
+
+
+def test_that_a_payload_stopped_before_the_autopilot_arms_writes_no_log(tmp_path, devices, autopilot):
+    cfg = payload_config(tmp_path, autopilot.url, start_on_arm=True, quiet=False)
+    err = io.StringIO()
+    app = PayloadApp(cfg, err=err)
+    stop_later(app, 0.8)
+    res = app.run()
+    assert res.stop_reason == "test over" and res.records_logged == 0
+    assert not cfg.out_path.exists()
+    assert "waiting for the autopilot to arm" in err.getvalue()
+    assert "before the autopilot armed: no log written" in err.getvalue()
+
+
 def test_that_the_operator_is_warned_before_the_survey_when_the_autopilot_takes_its_height_from_the_rangefinder(
         tmp_path, devices):
     """Over a stockpile a rangefinder height is the height above the pile: the payload says so on its console and to

@@ -22,6 +22,7 @@ from firmware_py.core.servo_model import ServoCalibration
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "examples" / "raspberry-pi.toml"
+SERVICE = ROOT / "examples" / "pilescan-payload.service"
 needs_example = pytest.mark.skipif(not EXAMPLE.exists(), reason="the example file is not in this install")
 
 
@@ -188,3 +189,30 @@ def test_that_check_says_whether_the_log_could_be_written_here_and_how_long_its_
     assert "warning: " in (err := capsys.readouterr().err) and "already exists" in err and "(on this machine)" in err
     assert main(["--check", "--out", str(tmp_path / "missing" / "x.pslog")]) == 0
     assert "directory " in (err := capsys.readouterr().err) and "does not exist (on this machine)" in err
+
+
+def test_that_start_on_arm_is_a_flag_and_a_key_and_check_shows_it(tmp_path, capsys):
+    assert payload_config("--out", "x.pslog", "--start-on-arm").start_on_arm
+    assert not payload_config("--out", "x.pslog").start_on_arm
+    path = write(tmp_path, "[payload]\nstart_on_arm = true\n")
+    assert main(["--config", str(path), "--check", "--out", str(tmp_path / "x.pslog")]) == 0
+    assert tomllib.loads(capsys.readouterr().out)["payload"]["start_on_arm"] is True
+
+
+@pytest.mark.skipif(not (EXAMPLE.exists() and SERVICE.exists()), reason="the example files are not in this install")
+def test_that_the_example_service_runs_the_payload_once_a_flight_and_its_command_checks(capsys):
+    import configparser
+    import shlex
+    unit = configparser.ConfigParser(strict=True, interpolation=None)
+    unit.read_string(SERVICE.read_text())
+    svc = unit["Service"]
+    argv = shlex.split(svc["ExecStart"])
+    assert Path(argv[0]).is_absolute() and Path(argv[0]).name == "pilescan-payload"  # systemd wants a full path
+    assert "--start-on-arm" in argv and "--stop-on-disarm" in argv  # a log per flight, nothing on the ground
+    assert svc["Restart"] == "always" and svc["KillSignal"] == "SIGTERM"  # started again after each flight
+    assert unit["Unit"]["StartLimitIntervalSec"] == "0" and unit["Install"]["WantedBy"] == "multi-user.target"
+    args = argv[1:]
+    args[args.index("--config") + 1] = str(EXAMPLE)  # the rig's file, as the README installs it
+    assert main([*args, "--check"]) == 0, capsys.readouterr().err
+    printed = tomllib.loads(capsys.readouterr().out)
+    assert printed["payload"]["start_on_arm"] is True and printed["payload"]["stop_on_disarm"] is True
