@@ -7,8 +7,9 @@ of the corrected height's mean times the surfaced area, and its factor k_pose is
 corrected reports the pose campaigns keep (tools/pose_correction_campaign.py --keep):
 
 - **calibration**: the paper's piles without sensor noise (`runs/pose`);
-- **held out**: other piles in another building (`runs/pose-own`) and the paper's piles with the datasheet's
-  and Appendix A's noise (`runs/pose-noise-ds`, `runs/pose-noise-aa`).
+- **held out**: other piles in another building (`runs/pose-own`), the paper's piles with the datasheet's
+  and Appendix A's noise (`runs/pose-noise-ds`, `runs/pose-noise-aa`), and the paper's pile 2 in a building it
+  covers wall to wall (`runs/pose-hidden`: no floor at any wall).
 
 Each corrected report.json gives the volume, the true volume and the error terms (k-free); the other factors
 stay as calibrated. k_pose is the smallest factor that puts the truth inside the interval of 90 % of the
@@ -40,7 +41,8 @@ SECTION = "pose-interval-coverage"
 CALIBRATION = (("paper piles", Path("runs/pose")),)
 HELD_OUT = (("own piles, 40 x 25 x 10 m", Path("runs/pose-own")), ("paper piles, datasheet noise",
                                                                    Path("runs/pose-noise-ds")),
-            ("paper piles, Appendix A noise", Path("runs/pose-noise-aa")))
+            ("paper piles, Appendix A noise", Path("runs/pose-noise-aa")),
+            ("pile 2 hiding the floor, 24 x 16 x 10 m", Path("runs/pose-hidden")))
 MODEL_FILE = Path("ground/uncertainty.py")
 MODEL_BEGIN = "# --- calibrated pose factor (tools/calibrate_pose_interval.py --write-model) ---"
 MODEL_END = "# --- end of calibrated pose factor ---"
