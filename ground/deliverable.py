@@ -44,4 +44,4 @@ def _verdict(report: dict[str, Any], heights_fit: np.ndarray, heights: np.ndarra
         where = found[0][1] if found else None
     vu = piles.volume_unit
     return verdict(report["volume_m3"], report.get("volume_interval_m3"), limits, where,
-                   len(report.get("warnings", [])), vu.symbol, vu.m3_per_unit)
+                   len(report.get("warnings", [])), vu.symbol, vu.m3_per_unit, report.get("volume_other_reading"))

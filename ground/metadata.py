@@ -176,8 +176,11 @@ def limiting_terms(terms: ErrorTerms, model: IntervalModel) -> list[str]:
 
 
 def verdict(volume: float, interval: tuple[float, float] | list[float] | None, limits: list[str],
-            where_unseen: str | None, n_warnings: int, unit: str = "m³", per_m3: float = 1.0) -> str:
-    """One sentence: the volume, its 90 % interval and what limits it (in the display unit)."""
+            where_unseen: str | None, n_warnings: int, unit: str = "m³", per_m3: float = 1.0,
+            other: dict | None = None) -> str:
+    """One sentence: the volume, its 90 % interval and what limits it (in the display unit), and the survey's other
+    reading when it has one (report.json's `volume_other_reading`: the volume under a condition the data cannot
+    rule out, `ground.volume_warnings.open_floor_reading`)."""
     v = volume / per_m3
     head = f"{v:,.0f} {unit}" if abs(v) >= 100 else f"{v:,.1f} {unit}"
     if interval is None:
@@ -192,6 +195,11 @@ def verdict(volume: float, interval: tuple[float, float] | list[float] | None, l
         words.append(w)
     out = f"{head} (90 % interval {lo:{fmt}}–{hi:{fmt}} {unit})"
     out += f"; limited by: {'; '.join(words)}" if words else ""
+    if other:
+        ov = other["volume_m3"] / per_m3
+        oi = other.get("volume_interval_m3")
+        span = "" if not oi else f" (90 % interval {oi[0] / per_m3:{fmt}}–{oi[1] / per_m3:{fmt}} {unit})"
+        out += f"; or {ov:{fmt}} {unit}{span} if {other['condition']}"
     if n_warnings:
         out += f"; {n_warnings} warning{'s' if n_warnings != 1 else ''} to read"
     return out

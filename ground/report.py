@@ -92,6 +92,7 @@ from ground.volume_warnings import (
     DEFAULT_MAX_INTERVAL_PCT,
     faces_warning,
     level_warning,
+    open_floor_reading,
     open_floor_warning,
     pose_warning,
     unseen_warning,
@@ -753,20 +754,22 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
     if ra < LOW_COVERAGE_PCT and opts.empty_cells == "leave":
         warnings.append(f"only {ra:.1f} % of the floor is reconstructed (R_a); the volume misses the "
                         "uncovered cells")
-    interval, terms = None, None
+    interval, terms, other = None, None, None
     if survey.errors is not None:
         terms = survey.errors.terms
         interval = base.interval_m3(volume, terms, DEFAULT_INTERVAL_MODEL)
+        pose = survey.pose if survey.pose is not None and survey.pose.applied else None
+        open_floor = (None if pose is None else pose.open_floor_shift_m, survey.heights, g, volume,
+                      opts.max_interval_pct, None if pose is None else pose.level_sigma_m, terms,
+                      DEFAULT_INTERVAL_MODEL)
+        other = open_floor_reading(*open_floor)
         warnings += [w for w in (
             unseen_warning(survey.heights_fit, survey.heights, g, terms, DEFAULT_INTERVAL_MODEL, volume,
                            opts.max_interval_pct),
             faces_warning(survey.errors.faces, g, terms, DEFAULT_INTERVAL_MODEL),
             pose_warning(terms, DEFAULT_INTERVAL_MODEL, volume, opts.max_interval_pct),
             level_warning(terms, DEFAULT_INTERVAL_MODEL, volume, opts.max_interval_pct),
-            open_floor_warning(survey.pose.open_floor_shift_m if survey.pose is not None and survey.pose.applied
-                               else None, survey.heights, g, volume, opts.max_interval_pct,
-                               survey.pose.level_sigma_m if survey.pose is not None else None, terms,
-                               DEFAULT_INTERVAL_MODEL),
+            open_floor_warning(*open_floor),
             wide_interval_warning(volume, interval, opts.max_interval_pct)) if w]
     warnings += list(base.warnings)
     if volume < 0 and base.kind is not BaseKind.SURVEY:  # below an earlier survey: material taken away
@@ -786,6 +789,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "true_volume_m3": truth_m3,
         "volume_interval_m3": None if interval is None else list(interval),
         "interval_level": INTERVAL_LEVEL,
+        "volume_other_reading": None if other is None else other.as_dict(),
         "base": base.record(survey.heights, g),
         "interval_terms_m3": None if terms is None else terms.as_dict(),
         "volume_error_pct": volume_error_pct(volume, truth_m3),

@@ -18,7 +18,7 @@ the interval wide, so a clean survey stays quiet and a corner pile flown too spa
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage
@@ -154,27 +154,62 @@ def level_warning(t: ErrorTerms, model: IntervalModel, volume_m3: float | None =
             "the interval; a leg that sees a wall's foot or a strip of clear floor would pin it")
 
 
-def open_floor_warning(shift_m: float | None, heights: np.ndarray, grid: Grid, volume_m3: float,
+OPEN_FLOOR_CONDITION = "the floor seen only away from the walls is a hollow in the pile"
+"""The condition under which a survey anchored on such a floor reads as its other reading (report.json's words)."""
+
+
+@dataclass(frozen=True)
+class OtherReading:
+    """The survey's volume had the floor its height was anchored on been a hollow in the pile (`open_floor_reading`)."""
+
+    moved_m3: float
+    """What anchoring on that floor moved the volume (signed): the other reading is the volume less it."""
+    volume_m3: float
+    interval_m3: tuple[float, float] | None
+    """Its 90 % interval, with the level term of the logged altitude reference; None without the level's sigma."""
+
+    def as_dict(self) -> dict:
+        return {"condition": OPEN_FLOOR_CONDITION, "volume_m3": self.volume_m3,
+                "volume_interval_m3": None if self.interval_m3 is None else list(self.interval_m3)}
+
+
+def open_floor_reading(shift_m: float | None, heights: np.ndarray, grid: Grid, volume_m3: float,
                        max_pct: float = DEFAULT_MAX_INTERVAL_PCT, level_sigma_m: float | None = None,
-                       terms: ErrorTerms | None = None, model: IntervalModel | None = None) -> str | None:
+                       terms: ErrorTerms | None = None, model: IntervalModel | None = None) -> OtherReading | None:
     """When the pose correction anchored the height on a floor seen only away from the walls (shift_m: how far that
-    moved it, `PoseCorrection.open_floor_shift_m`) and that moved the volume by more than half the tolerance: were
-    it a hollow in a pile that hides the floor wall to wall, the volume is the other reading, less what the anchor
-    moved, which the 90 % interval does not include (nothing in the data tells such a hollow from a floor seen in a
-    gap between heaps). Given the logged level's sigma (`PoseCorrection.level_sigma_m`), the survey's terms and the
-    model, the warning gives the other reading's own interval: the level then rests on the logged reference."""
+    moved it, `PoseCorrection.open_floor_shift_m`) and that moved the volume by more than half the tolerance: the
+    other reading, were that floor a hollow in a pile that hides the floor wall to wall (nothing in the data tells
+    such a hollow from a floor seen in a gap between heaps). Given the logged level's sigma
+    (`PoseCorrection.level_sigma_m`), the survey's terms and the model, with its own interval: the level then rests
+    on the logged reference. None otherwise."""
     if not shift_m or not math.isfinite(shift_m):
         return None
     moved = over_surface_m3(shift_m, heights, grid)
     if volume_m3 > 0 and abs(moved) < 0.5 * max_pct / 100.0 * volume_m3:
         return None
-    pct = f" ({100.0 * abs(moved) / volume_m3:.1f} % of the volume)" if volume_m3 > 0 else ""
     other = volume_m3 - moved
+    interval = None
     if level_sigma_m and terms is not None and model is not None:
         below, above = model.half_widths_m3(replace(terms, level_m3=over_surface_m3(level_sigma_m, heights, grid)))
-        reading = (f"the volume is about {other:,.0f} m³ instead (90 % interval {max(0.0, other - below):,.0f}-"
-                   f"{other + above:,.0f} m³, the logged altitude reference's drift over the flight included), which "
-                   "this report's 90 % interval does not include")
+        interval = (max(0.0, other - below), other + above)
+    return OtherReading(moved, other, interval)
+
+
+def open_floor_warning(shift_m: float | None, heights: np.ndarray, grid: Grid, volume_m3: float,
+                       max_pct: float = DEFAULT_MAX_INTERVAL_PCT, level_sigma_m: float | None = None,
+                       terms: ErrorTerms | None = None, model: IntervalModel | None = None) -> str | None:
+    """The warning for `open_floor_reading` (same arguments): what the anchor moved, and the other reading, which the
+    90 % interval does not include."""
+    other = open_floor_reading(shift_m, heights, grid, volume_m3, max_pct, level_sigma_m, terms, model)
+    if other is None:
+        return None
+    moved = other.moved_m3
+    pct = f" ({100.0 * abs(moved) / volume_m3:.1f} % of the volume)" if volume_m3 > 0 else ""
+    if other.interval_m3 is not None:
+        lo, hi = other.interval_m3
+        reading = (f"the volume is about {other.volume_m3:,.0f} m³ instead (90 % interval {lo:,.0f}-{hi:,.0f} m³, the "
+                   "logged altitude reference's drift over the flight included), which this report's 90 % interval "
+                   "does not include")
     else:
         reading = "the volume is off by about as much, beyond the 90 % interval"
     return (f"the height was anchored on a floor seen only away from the walls (the pile covers their feet), which "

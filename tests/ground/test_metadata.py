@@ -83,6 +83,14 @@ def test_that_the_verdict_names_the_interval_and_what_limits_it():
     pose = limiting_terms(ErrorTerms(interpolation_m3=1.0, pose_m3=400.0), DEFAULT_INTERVAL_MODEL)
     assert pose == ["pose"]  # a corrected height's error that holds the interval is named
     assert "the height of the drifting pose" in verdict(7210.4, (6800.0, 7600.0), pose, None, 0)
+    # a survey with another reading the data cannot rule out says it in the same sentence, in the display unit
+    other = {"condition": "the floor seen only away from the walls is a hollow in the pile", "volume_m3": 1143.2,
+             "volume_interval_m3": [1012.4, 1273.9]}
+    line = verdict(1037.4, (1020.6, 1054.2), pose, None, 3, other=other)
+    assert line == ("1,037 m³ (90 % interval 1,021–1,054 m³); limited by: the height of the drifting pose, as "
+                    "corrected from the building; or 1,143 m³ (90 % interval 1,012–1,274 m³) if the floor seen only "
+                    "away from the walls is a hollow in the pile; 3 warnings to read")
+    assert "or 1,495 yd³ (" in verdict(1037.4, (1020.6, 1054.2), [], None, 0, "yd³", 0.9144**3, other)
     level = limiting_terms(ErrorTerms(interpolation_m3=1.0, level_m3=100.0), DEFAULT_INTERVAL_MODEL)
     assert level == ["level"]  # a level no floor pinned, when it holds the interval, is named
     assert "the drifting altitude reference, which no floor seen pinned" in verdict(1200.0, (1000.0, 1400.0), level,

@@ -29,6 +29,7 @@ from ground.volume_warnings import (
     along_walls,
     faces_warning,
     level_warning,
+    open_floor_reading,
     open_floor_warning,
     unseen_warning,
     wide_interval_warning,
@@ -347,3 +348,11 @@ def test_that_a_height_anchored_on_an_open_floor_is_warned_about_with_the_other_
     assert f"(90 % interval {other - half:,.0f}-{other + half:,.0f} m³" in w, w
     assert "this report's 90 % interval does not include" in w
     assert "beyond the 90 % interval" in open_floor_warning(-0.28, heights, grid, 1037.0, 5.0)  # no sigma: as before
+    # the same reading as data, for report.json and the verdict
+    reading = open_floor_reading(-0.28, heights, grid, 1037.0, 5.0, 0.2, terms, model)
+    assert reading.volume_m3 == pytest.approx(other) and reading.interval_m3 == pytest.approx(
+        (other - half, other + half))
+    assert reading.as_dict()["condition"] == "the floor seen only away from the walls is a hollow in the pile"
+    assert open_floor_reading(-0.28, heights, grid, 1037.0, 5.0).interval_m3 is None  # no sigma: no interval
+    assert open_floor_reading(-0.01, heights, grid, 1037.0, 5.0, 0.2, terms, model) is None  # moved too little
+    assert open_floor_reading(None, heights, grid, 1037.0, 5.0, 0.2, terms, model) is None  # a confirmed floor
