@@ -1,7 +1,8 @@
 """`pilescan-payload`: the survey payload on the drone's companion computer (a LIDAR-Lite v3 on I2C or a
 TFMini on a UART, on a sweeping servo; poses from the autopilot over MAVLink; a crash-safe sample log).
-Stops on SIGINT/SIGTERM (Ctrl-C), after --duration, or with --stop-on-disarm when the autopilot disarms;
-the log is complete either way. --config FILE sets the options from a TOML file (docs/configuration.md);
+With --start-on-arm it waits on the ground (servo idle, no log) until the autopilot arms. Stops on
+SIGINT/SIGTERM (Ctrl-C), after --duration, or with --stop-on-disarm when the autopilot disarms; the log is
+complete either way. --config FILE sets the options from a TOML file (docs/configuration.md);
 --check validates and prints the effective configuration without opening any hardware.
 """
 
