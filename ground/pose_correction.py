@@ -212,7 +212,9 @@ class PoseCorrection:
     """The standard error of the height's level (its mean over the flight) when that level does not rest on a floor
     the walls' feet confirm: then it is the logged altitude reference's, which the flight's data cannot check, and
     its error is the barometer's walk averaged over the flight (`level_sigma_m`). None when it rests on a confirmed
-    floor. With open_floor_shift_m it is the other reading's: the level had the open floor not been the floor."""
+    floor, and when the height came from a downward rangefinder whose share was left in (`PoseCorrectionOptions.
+    open_floor`): that error follows the pile, not a walk, and the report warns of it on its own. With
+    open_floor_shift_m it is the other reading's: the level had the open floor not been the floor."""
 
     def at(self, t_s: np.ndarray) -> np.ndarray:
         """(N, 4) the correction at times t_s (linear between knots, held beyond the ends)."""
@@ -956,8 +958,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     # (a solve that failed numerically gives no term rather than a NaN interval)
     height_sigma = z_sigma[-1] if z_info is not None and z_sigma and math.isfinite(z_sigma[-1]) else None
     return PoseCorrection(knots, x, constrained, True, None, height_sigma_m=height_sigma,
-                          level_sigma_m=None if level_on_floor else level_sigma_m(opts.vertical_walk_m_per_sqrt_s,
-                                                                                  t1 - t0),
+                          level_sigma_m=(None if level_on_floor or opts.open_floor
+                                         else level_sigma_m(opts.vertical_walk_m_per_sqrt_s, t1 - t0)),
                           open_floor_shift_m=(open_floor_shift if z_info is not None and open_floor_shift is not None
                                               and math.isfinite(open_floor_shift) else None),
                           height_unanchored_s=unanchored if z_info is not None else (0.0, 0.0, 0.0), **common)
