@@ -27,6 +27,7 @@ from ground.exports.formats import ExportFormat, parse_formats
 from ground.metadata import SurveyInfo, check_timezone, metadata_rows
 from ground.pile_change import format_pile_changes, pile_changes
 from ground.piles import DEFAULT_MIN_PILE_AREA_M2, MassUnit, PileOptions, VolumeUnit, pile_rows
+from ground.pose_correction import PoseCorrectionOptions
 from ground.render import warning_parts
 from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, make_report
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
@@ -117,6 +118,12 @@ def build_parser() -> ArgumentParser:
                          "applied only when significant and said in the report (see docs/pose_error.md)")
     pc.add_argument("--no-pose-correction", dest="pose_correction", action="store_false",
                     help="take the logged trajectory as it is (a pose from motion capture or RTK, or to compare)")
+    r.add_argument("--baro-walk", type=finite_float, default=PoseCorrectionOptions.vertical_walk_m_per_sqrt_s,
+                   metavar="M_PER_SQRT_S",
+                   help="how fast the autopilot's altitude reference is believed to drift, as a random walk "
+                        f"(default {PoseCorrectionOptions.vertical_walk_m_per_sqrt_s:g}: a barometer indoors): how far "
+                        "a floor seen only away from the walls may move the corrected height, and the interval's "
+                        "level term when no floor pins the height (docs/uncertainty.md)")
     r.add_argument("--max-grid-memory-mb", type=finite_float, default=DEFAULT_MAX_GRID_MEMORY_BYTES / 2**20,
                    metavar="MB", help="refuse a --cell whose grid would need more memory than this (default "
                                       f"{DEFAULT_MAX_GRID_MEMORY_BYTES // 2**20} MiB)")
@@ -205,6 +212,16 @@ def format_summary(rep: dict) -> str:
     return "\n".join(lines)
 
 
+MAX_BARO_WALK_M_PER_SQRT_S = 1.0
+"""The largest --baro-walk taken: 7.7 m in a minute, beyond any altitude reference that flies a survey."""
+
+
+def _baro_walk(value: float) -> float:
+    if not 0.0 < value <= MAX_BARO_WALK_M_PER_SQRT_S:
+        raise UserError(f"--baro-walk must be > 0 and at most {MAX_BARO_WALK_M_PER_SQRT_S:g} m/sqrt(s), got {value:g}")
+    return value
+
+
 def _report(args) -> int:
     base = BaseSpec.parse(args.base)
     if args.truth_volume is not None and args.truth_volume < 0 and base.kind is not BaseKind.SURVEY:
@@ -237,6 +254,7 @@ def _report(args) -> int:
                          surface_fit=args.surface_fit, servo_retiming=not args.no_servo_retiming,
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),
                          self_calibration=not args.no_self_calibration, pose_correction=args.pose_correction,
+                         baro_walk_m_per_sqrt_s=_baro_walk(args.baro_walk),
                          max_interval_pct=args.max_interval_pct,
                          site=args.config_file.site if args.config_file is not None else None,
                          base=base, piles=piles, info=info, exports=exports)

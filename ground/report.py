@@ -129,6 +129,8 @@ class ReportOptions:
     exports: tuple[ExportFormat, ...] = ()  # standard exports to write beside the report (ground.exports)
     pose_correction: bool = True  # correct the trajectory from the building (ground.pose_correction): applied only
     # when significant; indoors the logged pose drifts (docs/pose_error.md)
+    baro_walk_m_per_sqrt_s: float = PoseCorrectionOptions.vertical_walk_m_per_sqrt_s  # the altitude reference's
+    # believed drift: how far a floor seen only away from the walls may move the height, and the level term's sigma
 
 
 @dataclass(frozen=True)
@@ -504,7 +506,8 @@ def _mount_of(s: np.ndarray, lever: np.ndarray, frame: StorageFrame, storage: St
 
 
 def _pose_of(s: np.ndarray, bs: Boresight, header: dict, lever: np.ndarray, frame: StorageFrame, storage: Storage,
-             err: SensorErrorModel, share_taken_out: bool) -> PoseCorrection:
+             err: SensorErrorModel, share_taken_out: bool,
+             baro_walk_m_per_sqrt_s: float = PoseCorrectionOptions.vertical_walk_m_per_sqrt_s) -> PoseCorrection:
     # A floor seen only away from the walls anchors the height however far it moves it only when the height came from
     # the downward rangefinder and its share was not taken out (`_rangefinder_share`): that error follows the pile
     # and nothing else removes it. Taken out, what is left drifts as a barometer's does (`PoseCorrectionOptions.
@@ -512,7 +515,8 @@ def _pose_of(s: np.ndarray, bs: Boresight, header: dict, lever: np.ndarray, fram
     # 13.3 % anchored on its hollow, 11.1, 12.0, 5.9 % not).
     source = PoseSource.from_header(header)
     rangefinder = source is not None and source.height_from_rangefinder
-    opts = PoseCorrectionOptions(open_floor=rangefinder and not share_taken_out)
+    opts = PoseCorrectionOptions(open_floor=rangefinder and not share_taken_out,
+                                 vertical_walk_m_per_sqrt_s=baro_walk_m_per_sqrt_s)
     return estimate_pose_correction(s, lever, frame, storage, err.resolution_m, err.range_sigma_m,
                                     err.range_sigma_rel, err.angle_sigma_rad, _sweep_period_s(header), bs, opts,
                                     position_sigma_m=err.position_sigma_m)
@@ -531,7 +535,8 @@ def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame:
         if est.any_applied:
             corrected, boresight = apply_mount(samples, est, resim, mount)
     if opts.pose_correction:
-        pose = _pose_of(corrected, boresight, header, lever, frame, storage, err, share_taken_out)
+        pose = _pose_of(corrected, boresight, header, lever, frame, storage, err, share_taken_out,
+                        opts.baro_walk_m_per_sqrt_s)
     return _Estimates(est, corrected, boresight, pose)
 
 
@@ -562,7 +567,8 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
                 break
             est = again
             corrected, boresight = apply_mount(samples, est, resim, mount) if est.any_applied else (samples, mount)
-            pose = _pose_of(corrected, boresight, header, lever, frame, storage, err, share_taken_out)
+            pose = _pose_of(corrected, boresight, header, lever, frame, storage, err, share_taken_out,
+                            opts.baro_walk_m_per_sqrt_s)
         corrected = apply_pose_correction(corrected, pose, frame)
         pose = with_closest_wall(pose, corrected, frame, storage)
     if corrected is samples and boresight == mount:  # nothing applied (a boresight alone leaves the samples)
@@ -768,7 +774,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
                            opts.max_interval_pct),
             faces_warning(survey.errors.faces, g, terms, DEFAULT_INTERVAL_MODEL),
             pose_warning(terms, DEFAULT_INTERVAL_MODEL, volume, opts.max_interval_pct),
-            level_warning(terms, DEFAULT_INTERVAL_MODEL, volume, opts.max_interval_pct),
+            level_warning(terms, DEFAULT_INTERVAL_MODEL, volume, opts.max_interval_pct, opts.baro_walk_m_per_sqrt_s),
             open_floor_warning(*open_floor),
             wide_interval_warning(volume, interval, opts.max_interval_pct)) if w]
     warnings += list(base.warnings)

@@ -140,18 +140,20 @@ def pose_warning(t: ErrorTerms, model: IntervalModel, volume_m3: float | None = 
 
 
 def level_warning(t: ErrorTerms, model: IntervalModel, volume_m3: float | None = None,
-                  max_pct: float = DEFAULT_MAX_INTERVAL_PCT) -> str | None:
+                  max_pct: float = DEFAULT_MAX_INTERVAL_PCT, walk_m_per_sqrt_s: float | None = None) -> str | None:
     """When the level term (the height's level on the logged altitude reference) dominates the interval and (given
-    the volume) widens it by more than half the tolerance max_pct, as `pose_warning`."""
+    the volume) widens it by more than half the tolerance max_pct, as `pose_warning`; walk_m_per_sqrt_s: the drift
+    believed of the reference, which the warning names (`pilescan-ground report --baro-walk`)."""
     scaled = LEVEL_Z * t.level_m3
     if scaled <= 0 or _share(scaled, t, model, high=False) < DOMINANT_SHARE:
         return None
     if volume_m3 is not None and volume_m3 > 0 and scaled < 0.5 * max_pct / 100.0 * volume_m3:
         return None
     pct = f" ({100.0 * scaled / volume_m3:.1f} % of the volume)" if volume_m3 else ""
+    walk = (f" (a walk of {walk_m_per_sqrt_s:g} m/sqrt(s) believed, --baro-walk)" if walk_m_per_sqrt_s else "")
     return (f"no floor the walls' feet confirm pinned the height: its level is the autopilot's logged altitude "
-            f"reference, whose drift over the flight moves the volume by up to +/-{scaled:,.0f} m³{pct}, most of "
-            "the interval; a leg that sees a wall's foot or a strip of clear floor would pin it")
+            f"reference, whose drift over the flight{walk} moves the volume by up to +/-{scaled:,.0f} m³{pct}, most "
+            "of the interval; a leg that sees a wall's foot or a strip of clear floor would pin it")
 
 
 OPEN_FLOOR_CONDITION = "the floor seen only away from the walls is a hollow in the pile"

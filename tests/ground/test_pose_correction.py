@@ -1070,6 +1070,18 @@ def test_that_a_hollow_anchors_the_height_when_told_a_floor_seen_in_the_open_is_
     assert any("seen only away from the walls" in note for note in corr.notes), corr.notes
 
 
+def test_that_the_report_gives_the_pose_correction_the_altitude_reference_s_believed_walk(monkeypatch):
+    # `pilescan-ground report --baro-walk`: how far an open floor may move the height, and the level term's sigma
+    from ground import report
+
+    seen = []
+    monkeypatch.setattr(report, "estimate_pose_correction", lambda *a, **k: seen.append(a[10]))
+    err = report.SensorErrorModel.from_header({})
+    report._pose_of(new_records(0), None, {}, LEVER, FRAME, STORAGE, err, False, 0.02)
+    assert seen[-1].vertical_walk_m_per_sqrt_s == 0.02
+    assert report.ReportOptions().baro_walk_m_per_sqrt_s == PoseCorrectionOptions().vertical_walk_m_per_sqrt_s
+
+
 def test_that_the_report_anchors_on_a_floor_seen_in_the_open_only_for_a_rangefinder_s_height_left_in(monkeypatch):
     # A rangefinder's height follows the pile and only a floor takes it out; once the crossings took its share out
     # (`ground.rangefinder_height`), what is left drifts as a barometer's does.

@@ -329,6 +329,8 @@ def test_that_a_level_on_the_logged_reference_is_warned_about_when_it_holds_a_wi
     w = level_warning(ErrorTerms(interpolation_m3=10.0, level_m3=80.0), model, 1200.0, 5.0)  # +/-132 m³: 11 %
     assert w is not None and "+/-132 m³ (11.0 % of the volume)" in w and "logged altitude reference" in w, w
     assert "wall's foot or a strip of clear floor" in w
+    named = level_warning(ErrorTerms(interpolation_m3=10.0, level_m3=80.0), model, 1200.0, 5.0, 0.02)
+    assert "(a walk of 0.02 m/sqrt(s) believed, --baro-walk)" in named, named  # the drift it assumed, and the option
     assert level_warning(ErrorTerms(interpolation_m3=10.0, level_m3=10.0), model, 1200.0, 5.0) is None  # 16 m³
     assert level_warning(ErrorTerms(interpolation_m3=200.0, level_m3=80.0), model, 1200.0, 5.0) is None  # not most
     assert level_warning(ErrorTerms(interpolation_m3=10.0), model, 1200.0, 5.0) is None  # a floor pinned it
