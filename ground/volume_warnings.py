@@ -230,4 +230,4 @@ def wide_interval_warning(volume_m3: float, interval_m3: tuple[float, float], ma
         return None
     return (f"the volume's 90 % interval is +/-{pct:.1f} % ({interval_m3[0]:,.1f}-{interval_m3[1]:,.1f} m³), "
             f"wider than the {max_pct:g} % tolerance: not known well enough to sign; the other warnings say why "
-            "(unseen floor, faces, the pose's height), else fly a denser mission")
+            "(unseen floor, faces, the pose's height or its level), else fly a denser mission")
