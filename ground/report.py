@@ -777,6 +777,12 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
             level_warning(terms, DEFAULT_INTERVAL_MODEL, volume, opts.max_interval_pct, opts.baro_walk_m_per_sqrt_s),
             open_floor_warning(*open_floor),
             wide_interval_warning(volume, interval, opts.max_interval_pct)) if w]
+    for k, f in enumerate(flights or (), 1):  # a merged survey: each flight's own anchor on a floor in the open
+        fs = f.survey
+        w = None if fs.pose is None or not fs.pose.applied else open_floor_warning(
+            fs.pose.open_floor_shift_m, fs.heights, fs.grid, grid_volume(fs.heights, fs.grid), opts.max_interval_pct)
+        if w:
+            warnings.append(f"flight {k} ({f.inp.log_path}): {w}")
     warnings += list(base.warnings)
     if volume < 0 and base.kind is not BaseKind.SURVEY:  # below an earlier survey: material taken away
         warnings.append(f"the surface lies {-volume:,.1f} m³ below the floor on balance: no material above the "

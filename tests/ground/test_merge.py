@@ -136,3 +136,21 @@ def test_that_a_merged_survey_carries_the_least_certain_level_that_rests_on_the_
     assert least_certain_level([a, None, b, open_floor, pose(0.5, applied=False)]) is b
     assert logged_level_sigma_m(open_floor) is None  # anchored on a floor in the open: its own warning instead
     assert least_certain_level([pose(None), None]) is None  # every level on a confirmed floor: no level term
+
+
+def test_that_a_merged_report_warns_of_each_flight_s_height_anchored_on_a_floor_in_the_open(two_flights, tmp_path,
+                                                                                           monkeypatch):
+    # A merged survey has no pose of its own: each flight's anchor on a floor seen only away from the walls (which may
+    # be a hollow in the pile) is said with that flight's name, as its other warnings are.
+    from ground import report
+    from ground.pose_correction import PoseCorrection
+
+    def anchored(samples, *_a, **_k):
+        t = samples["t_s"]
+        return PoseCorrection(np.array([t.min(), t.max()]), np.zeros((2, 4)), np.zeros((2, 4), dtype=bool), True,
+                              open_floor_shift_m=-0.5, level_sigma_m=0.2)
+    monkeypatch.setattr(report, "estimate_pose_correction", anchored)
+    rm = make_report(list(two_flights), tmp_path / "m", ReportOptions(plots=False))
+    said = [w for w in rm["warnings"] if "anchored on a floor seen only away from the walls" in w]
+    assert [w.split(" (")[0] for w in said] == ["flight 1", "flight 2"], rm["warnings"]
+    assert all("-0.50 m" in w for w in said)
