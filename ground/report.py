@@ -765,17 +765,18 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         terms = survey.errors.terms
         interval = base.interval_m3(volume, terms, DEFAULT_INTERVAL_MODEL)
         pose = survey.pose if survey.pose is not None and survey.pose.applied else None
-        open_floor = (None if pose is None else pose.open_floor_shift_m, survey.heights, g, volume,
-                      opts.max_interval_pct, None if pose is None else pose.level_sigma_m, terms,
-                      DEFAULT_INTERVAL_MODEL)
-        other = open_floor_reading(*open_floor)
+        open_floor = {"shift_m": None if pose is None else pose.open_floor_shift_m, "heights": survey.heights,
+                      "grid": g, "volume_m3": volume, "max_pct": opts.max_interval_pct,
+                      "level_sigma_m": None if pose is None else pose.level_sigma_m, "terms": terms,
+                      "model": DEFAULT_INTERVAL_MODEL}
+        other = open_floor_reading(**open_floor)
         warnings += [w for w in (
             unseen_warning(survey.heights_fit, survey.heights, g, terms, DEFAULT_INTERVAL_MODEL, volume,
                            opts.max_interval_pct),
             faces_warning(survey.errors.faces, g, terms, DEFAULT_INTERVAL_MODEL),
             pose_warning(terms, DEFAULT_INTERVAL_MODEL, volume, opts.max_interval_pct),
             level_warning(terms, DEFAULT_INTERVAL_MODEL, volume, opts.max_interval_pct, opts.baro_walk_m_per_sqrt_s),
-            open_floor_warning(*open_floor),
+            open_floor_warning(**open_floor),
             wide_interval_warning(volume, interval, opts.max_interval_pct)) if w]
     for k, f in enumerate(flights or (), 1):  # a merged survey: each flight's own anchor on a floor in the open
         fs = f.survey
