@@ -41,6 +41,21 @@ def _share(scaled: float, t: ErrorTerms, model: IntervalModel, high: bool) -> fl
     return scaled**2 / total if total > 0 else 0.0
 
 
+def _within_half_tolerance(m3: float, volume_m3: float | None, max_pct: float) -> bool:
+    """Whether m3 (a term's scaled size, or what an anchor moved) is under half the tolerance max_pct of the volume:
+    then a warning of it would tell a survey that signs what it need not hear (no volume given: never)."""
+    return volume_m3 is not None and volume_m3 > 0 and abs(m3) < 0.5 * max_pct / 100.0 * volume_m3
+
+
+def _holds_wide_interval(scaled: float, t: ErrorTerms, model: IntervalModel, volume_m3: float | None,
+                         max_pct: float, high: bool = False) -> bool:
+    """Whether a term (scaled: its factor times it, m³) holds over half the interval's variance on that side and,
+    given the volume, widens it by more than half the tolerance: when the unseen, pose and level warnings speak."""
+    if scaled <= 0 or _share(scaled, t, model, high) < DOMINANT_SHARE:
+        return False
+    return not _within_half_tolerance(scaled, volume_m3, max_pct)
+
+
 def regions(mask: np.ndarray, weight_m3: np.ndarray, grid: Grid, n: int = MAX_REGIONS) -> list[tuple[float, str]]:
     """The n heaviest connected regions of mask as (m³, where), heaviest first: where is 'x a-b m, y c-d m', or, for a
     strip along the walls spanning the building, those walls (`along_walls`)."""
@@ -94,9 +109,7 @@ def unseen_warning(heights_fit: np.ndarray, heights: np.ndarray, grid: Grid, t: 
     than half the tolerance max_pct: a survey whose whole interval is a fraction of a percent need not
     hear that most of that fraction is unseen floor."""
     scaled = model.k_unseen * max(t.unseen_low_m3, t.unseen_high_m3)
-    if scaled <= 0 or _share(scaled, t, model, t.unseen_high_m3 > t.unseen_low_m3) < DOMINANT_SHARE:
-        return None
-    if volume_m3 is not None and volume_m3 > 0 and scaled < 0.5 * max_pct / 100.0 * volume_m3:
+    if not _holds_wide_interval(scaled, t, model, volume_m3, max_pct, t.unseen_high_m3 > t.unseen_low_m3):
         return None
     filled = ~np.isfinite(heights_fit)
     left_empty = not np.isfinite(heights[filled]).any()  # --empty-cells leave: the material is missing
@@ -128,9 +141,7 @@ def pose_warning(t: ErrorTerms, model: IntervalModel, volume_m3: float | None = 
     """When the corrected height's error (the pose term) dominates the interval and (given the volume) widens it
     by more than half the tolerance max_pct, as `unseen_warning`."""
     scaled = model.k_pose * t.pose_m3
-    if scaled <= 0 or _share(scaled, t, model, high=False) < DOMINANT_SHARE:
-        return None
-    if volume_m3 is not None and volume_m3 > 0 and scaled < 0.5 * max_pct / 100.0 * volume_m3:
+    if not _holds_wide_interval(scaled, t, model, volume_m3, max_pct):
         return None
     pct = f" ({100.0 * scaled / volume_m3:.1f} % of the volume)" if volume_m3 else ""
     return (f"most of the volume's uncertainty is the drifting pose's height: as corrected from the building it "
@@ -145,9 +156,7 @@ def level_warning(t: ErrorTerms, model: IntervalModel, volume_m3: float | None =
     the volume) widens it by more than half the tolerance max_pct, as `pose_warning`; walk_m_per_sqrt_s: the drift
     believed of the reference, which the warning names (`pilescan-ground report --baro-walk`)."""
     scaled = LEVEL_Z * t.level_m3
-    if scaled <= 0 or _share(scaled, t, model, high=False) < DOMINANT_SHARE:
-        return None
-    if volume_m3 is not None and volume_m3 > 0 and scaled < 0.5 * max_pct / 100.0 * volume_m3:
+    if not _holds_wide_interval(scaled, t, model, volume_m3, max_pct):
         return None
     pct = f" ({100.0 * scaled / volume_m3:.1f} % of the volume)" if volume_m3 else ""
     walk = (f" (a walk of {walk_m_per_sqrt_s:g} m/sqrt(s) believed, --baro-walk)" if walk_m_per_sqrt_s else "")
@@ -187,7 +196,7 @@ def open_floor_reading(shift_m: float | None, heights: np.ndarray, grid: Grid, v
     if not shift_m or not math.isfinite(shift_m):
         return None
     moved = over_surface_m3(shift_m, heights, grid)
-    if volume_m3 > 0 and abs(moved) < 0.5 * max_pct / 100.0 * volume_m3:
+    if _within_half_tolerance(moved, volume_m3, max_pct):
         return None
     other = volume_m3 - moved
     interval = None
