@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from ground.uncertainty import LEVEL_Z, ErrorTerms, IntervalModel
+from ground.uncertainty import ErrorTerms, IntervalModel
 
 HASH_CHUNK_BYTES = 1 << 20
 
@@ -168,7 +168,7 @@ def limiting_terms(terms: ErrorTerms, model: IntervalModel) -> list[str]:
               "interpolation": model.k_interpolation * terms.interpolation_m3, "noise": model.k_noise * terms.noise_m3,
               "blur": model.k_blur * terms.blur_m3, "sweeps": model.k_sweeps * terms.sweeps_m3,
               "faces": model.k_faces * terms.faces_m3, "pose": model.k_pose * terms.pose_m3,
-              "level": LEVEL_Z * terms.level_m3}
+              "level": model.k_level * terms.level_m3}
     total = sum(v * v for v in scaled.values())
     if total <= 0:
         return []

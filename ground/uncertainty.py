@@ -101,9 +101,11 @@ class IntervalModel:
     source: str = "uncalibrated"
     k_pose: float = POSE_FACTOR
     """The pose term's: fitted on drifting flights, apart from the others (module docstring)."""
+    k_level: float = LEVEL_Z
+    """The level term's: not fitted, the normal's (its sigma is stated by the drift model: module docstring)."""
 
     def __post_init__(self) -> None:
-        for name in ("k_unseen", "k_interpolation", "k_noise", "k_sweeps", "k_faces", "k_blur", "k_pose"):
+        for name in ("k_unseen", "k_interpolation", "k_noise", "k_sweeps", "k_faces", "k_blur", "k_pose", "k_level"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"interval model {name} must be a finite number >= 0, got {v!r}")
@@ -113,7 +115,7 @@ class IntervalModel:
         common = ((self.k_interpolation * t.interpolation_m3) ** 2 + (self.k_noise * t.noise_m3) ** 2
                   + (self.k_sweeps * t.sweeps_m3) ** 2 + (self.k_faces * t.faces_m3) ** 2
                   + (self.k_blur * t.blur_m3) ** 2 + (self.k_pose * t.pose_m3) ** 2
-                  + (LEVEL_Z * t.level_m3) ** 2)
+                  + (self.k_level * t.level_m3) ** 2)
         return (math.sqrt(common + (self.k_unseen * t.unseen_low_m3) ** 2),
                 math.sqrt(common + (self.k_unseen * t.unseen_high_m3) ** 2))
 

@@ -25,7 +25,7 @@ from scipy import ndimage
 
 from ground.render import signless_zero
 from ground.surface import Grid, fill_empty
-from ground.uncertainty import LEVEL_Z, ErrorTerms, FaceCells, IntervalModel, over_surface_m3
+from ground.uncertainty import ErrorTerms, FaceCells, IntervalModel, over_surface_m3
 
 DOMINANT_SHARE = 0.5
 """A term 'dominates' when it holds over half of the interval's variance (its square over the sum)."""
@@ -155,7 +155,7 @@ def level_warning(t: ErrorTerms, model: IntervalModel, volume_m3: float | None =
     """When the level term (the height's level on the logged altitude reference) dominates the interval and (given
     the volume) widens it by more than half the tolerance max_pct, as `pose_warning`; walk_m_per_sqrt_s: the drift
     believed of the reference, which the warning names (`pilescan-ground report --baro-walk`)."""
-    scaled = LEVEL_Z * t.level_m3
+    scaled = model.k_level * t.level_m3
     if not _holds_wide_interval(scaled, t, model, volume_m3, max_pct):
         return None
     pct = f" ({100.0 * scaled / volume_m3:.1f} % of the volume)" if volume_m3 else ""
