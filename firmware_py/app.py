@@ -732,14 +732,7 @@ class PayloadApp:
         for: a payload started with the companion computer waits through the time on the ground."""
         self._say("waiting for the autopilot to arm (--start-on-arm): the servo is idle and nothing is logged")
         self._send_health([statustext_msg(mavlink.MAV_SEVERITY_INFO, TEXT_PREFIX + "waiting for arm")])
-        period_ns = round(1e9 / ARM_POLL_HZ)
-        while self._stop_reason is None and not self.tracker.autopilot_armed:
-            now = self.clock.now_ns()
-            if self._origin_sent and now >= self._next_origin_ns:
-                self._send_origin(now)
-            self.clock.sleep_until_ns(now + period_ns)
-            self.tracker.pump()
-        if self._stop_reason is None:
+        if self._pump_until(lambda: bool(self.tracker.autopilot_armed), round(1e9 / ARM_POLL_HZ)):
             self._say("the autopilot armed: starting")
 
     def _wait_for_pose(self) -> None:
@@ -747,16 +740,23 @@ class PayloadApp:
         if self.cfg.wait_for_pose_s <= 0:
             return
         end_ns = self.clock.now_ns() + round(self.cfg.wait_for_pose_s * 1e9)
-        period_ns = round(1e9 / self.cfg.rate_hz)
-        while self._stop_reason is None and not self.tracker.status().pose_ok:
+        if not self._pump_until(lambda: self.tracker.status().pose_ok, round(1e9 / self.cfg.rate_hz),
+                                lambda now: now >= end_ns) and self._stop_reason is None:
+            self._warn(f"no trusted pose after {self.cfg.wait_for_pose_s:g} s; sampling anyway")
+
+    def _pump_until(self, done: Callable[[], bool], period_ns: int,
+                    expired: Callable[[int], bool] = lambda _now: False) -> bool:
+        """Pump the link every period_ns, sending the EKF origin again when it is due, until done(); False when a stop
+        is asked for or expired(now) first (the pose and arm waits)."""
+        while self._stop_reason is None and not done():
             now = self.clock.now_ns()
-            if now >= end_ns:
-                self._warn(f"no trusted pose after {self.cfg.wait_for_pose_s:g} s; sampling anyway")
-                return
+            if expired(now):
+                return False
             if self._origin_sent and now >= self._next_origin_ns:
                 self._send_origin(now)
             self.clock.sleep_until_ns(now + period_ns)
             self.tracker.pump()
+        return self._stop_reason is None
 
     def _pose_source_events(self) -> list[Any]:
         """Say what the autopilot's pose comes from (its EKF sources, as read at start), and warn the operator, on the
