@@ -80,10 +80,28 @@ from firmware_py.hal.signing import SigningConfig
 from firmware_py.hal.uart import DEFAULT_BAUD, SerialPort, check_uart_url, open_uart, parse_uart_url
 from firmware_py.health import TEXT_PREFIX, HealthMonitor, HealthSnapshot, HealthStatus, SensorState, statustext_msg
 from firmware_py.live_stream import LiveStreamSender
-from firmware_py.log_room import check_destination, room_s, room_warning
+from firmware_py.log_room import check_destination, describe_room, room_s, room_warning
 from firmware_py.payload import COUNTED_FLAGS, LoopConfig, LoopStats, PayloadLoop, RangeSensor
 from firmware_py.pose import set_gps_global_origin_msg
 from firmware_py.pose_tracker import PoseTracker, PoseTrackerConfig
+from firmware_py.preflight import (
+    MIN_PREFLIGHT_S,
+    PREFLIGHT_SWEEPS,
+    RANGE_FAILURE,
+    Check,
+    MemorySink,
+    NoPose,
+    PreflightResult,
+    autopilot_check,
+    ekf_source_check,
+    log_check,
+    loop_check,
+    opening_check,
+    origin_check,
+    pose_check,
+    rangefinder_check,
+    sweep_check,
+)
 
 PROG = "pilescan-payload"
 DEFAULT_MAVLINK_URL = "udpout:127.0.0.1:14550"
@@ -101,6 +119,11 @@ MAX_EKF_ORIGIN_OFFSET_M = 10_000.0
 """How far the EKF origin sent may be from the site's corner: the local NED frame is a flat-earth tangent
 plane about it, fit for a building's neighbourhood; farther is a mistake (two different places typed)."""
 ORIGIN_ATTEMPTS = 5
+PREFLIGHT_POSE_WAIT_S = 10.0
+"""How long the preflight waits for a trusted pose before it samples: the time sync needs a few TIMESYNC round trips
+and the autopilot's streams a second or two after they are asked for; a pose not there by then is a finding."""
+PREFLIGHT_SILENT_S = 2.0
+"""... cut short when nothing at all has come from the autopilot by then (its HEARTBEAT comes at 1 Hz)."""
 
 
 def _deg(rad: float) -> float:
@@ -636,6 +659,119 @@ class PayloadApp:
             self._shutdown()
         return self._result((self.clock.now_ns() - t_start) / 1e9)
 
+    def preflight(self, duration_s: float | None = None) -> PreflightResult:
+        """Open the hardware as a flight does, run the loop for a few sweep periods into memory (no log is written),
+        and judge what it saw (`firmware_py.preflight`). A part that cannot be opened is a failed check, not an
+        error: the other parts are still checked. The ground station is sent the verdict as a STATUSTEXT.
+
+        duration_s: how long to sample; None: PREFLIGHT_SWEEPS sweep periods, at least MIN_PREFLIGHT_S.
+        """
+        if self._ran:
+            raise RuntimeError("a PayloadApp runs once")
+        self._ran = True
+        cfg = self.cfg
+        if duration_s is None:
+            duration_s = max(MIN_PREFLIGHT_S, PREFLIGHT_SWEEPS / cfg.servo_waveform().frequency_hz)
+        if not (_finite(duration_s) and duration_s > 0):
+            raise ValueError(f"preflight duration must be > 0 s, got {duration_s!r}")
+        checks: list[Check] = [self._log_check()]
+        sink, result = MemorySink(), None
+        try:
+            for name, opener in (("autopilot link", self._open_link), ("rangefinder", self._open_sensor),
+                                 ("servo PWM", self._open_pwm)):
+                try:
+                    opener()
+                except (UserError, ValueError) as exc:
+                    checks.append(opening_check(name, str(exc).splitlines()[0]))
+            if self.link is not None:
+                self._start_tracker()
+                self._say(f"preflight: waiting up to {PREFLIGHT_POSE_WAIT_S:g} s for the pose, then sampling "
+                          f"{duration_s:g} s (no log is written)")
+                start = self.clock.now_ns()
+                end_ns, silent_ns = start + round(PREFLIGHT_POSE_WAIT_S * 1e9), start + round(PREFLIGHT_SILENT_S * 1e9)
+                self._pump_until(lambda: self.tracker.status().pose_ok, round(1e9 / cfg.rate_hz),
+                                 lambda now: now >= end_ns or (now >= silent_ns and not self.tracker.autopilot_heard))
+                self._wait_for_params()
+            if self.lidar is not None and self.pwm is not None:
+                if isinstance(self.lidar, Tfmini):
+                    self.lidar.discard_input()
+                self.loop = self._build_loop(sink, self.tracker or NoPose(), self.clock.now_ns())
+                self.loop.run(duration_s=duration_s, should_stop=self._preflight_tick)
+            elif self.link is not None:
+                end_ns = self.clock.now_ns() + round(duration_s * 1e9)
+                self._pump_until(lambda: False, round(1e9 / cfg.rate_hz), lambda now: now >= end_ns)
+            if self._stop_reason is not None:
+                raise RunFailure(f"the preflight was stopped before it finished ({self._stop_reason})")
+            checks += self._preflight_checks(sink.samples(), duration_s)
+            result = PreflightResult(tuple(checks), duration_s, self.loop.stats.ticks if self.loop else 0)
+            self.request_stop(result.statustext())
+            if self.link is not None:  # as ArduPilot's pre-arm messages: CRITICAL when the flight should not go
+                self._send_health([statustext_msg(
+                    mavlink.MAV_SEVERITY_INFO if result.passed else mavlink.MAV_SEVERITY_CRITICAL,
+                    TEXT_PREFIX + result.statustext())])
+        except BaseException as exc:
+            detail = (getattr(exc, "strerror", None) or str(exc).splitlines()[0]) if str(exc) else ""
+            self.request_stop(f"preflight error: {detail or type(exc).__name__}")
+            raise
+        finally:
+            self._shutdown()
+        return result
+
+    def _preflight_tick(self) -> bool:
+        """The preflight loop's stop check: a stop asked for; the EKF origin sent again until it takes."""
+        if self._stop_reason is not None:
+            return True
+        now = self.clock.now_ns()
+        if self._origin_sent and now >= self._next_origin_ns:
+            self._send_origin(now)
+        if self.origin_disagreement is None and self.tracker is not None \
+                and self.tracker.autopilot_origin_e7 is not None:
+            self._check_origin(self.tracker.autopilot_origin_e7)
+        return False
+
+    def _log_check(self) -> Check:
+        """Whether the flight's log could be written where the configuration puts it, and the card's room."""
+        out = Path(self.cfg.out_path)
+        try:
+            check_destination(out, self.cfg.force)
+        except UserError as exc:
+            return log_check(str(exc), None, None)
+        room = room_s(out, self.cfg.rate_hz, self.cfg.records_per_block)
+        room_line = None if room is None else f"{out}: room for {describe_room(room)} of samples"
+        return log_check(None, room_line, room_warning(room, self.cfg.duration_s, self.cfg.rate_hz))
+
+    def _preflight_checks(self, samples: np.ndarray, duration_s: float) -> list[Check]:
+        cfg = self.cfg
+        checks: list[Check] = []
+        if self.tracker is not None:
+            st = self.tracker.status()
+            checks.append(autopilot_check(self.tracker.autopilot_heard, self.tracker.autopilot_armed,
+                                          cfg.target_system, cfg.mavlink_url))
+            unposed = int(SampleFlags.NO_POSE | SampleFlags.STALE_POSE)
+            posed_share = (float(np.mean((samples["flags"] & unposed) == 0)) if samples.size
+                           else float(st.pose_ok))
+            checks.append(pose_check(posed_share, st.pose_status, st.rates_hz, cfg.pose_stream_hz,
+                                     st.timesync.rtt_ms, cfg.send_origin is not None))
+            source = PoseSource.from_params(self.tracker.params) if self.tracker.params else None
+            known = source is not None and source.known
+            checks.append(ekf_source_check(known, source.describe() if known else None,
+                                           known and source.height_from_rangefinder, self.tracker.autopilot_heard))
+            origin = origin_check(self.origin_disagreement)
+            if origin is not None:
+                checks.append(origin)
+        if self.loop is not None:
+            stats = self.loop.stats
+            ranged = samples[(samples["flags"] & int(RANGE_FAILURE)) == 0]
+            spec = cfg.sensor()
+            checks.append(rangefinder_check(
+                stats.ticks, stats.flagged(SampleFlags.NO_RETURN), stats.flagged(SampleFlags.SENSOR_ERROR),
+                ranged["range_m"], duration_s, cfg.rate_hz, self._sensor_port_note()))
+            if not cfg.loop_config().paced_by_sensor:
+                checks.append(loop_check(stats.ticks, stats.overruns, cfg.rate_hz))
+            checks.append(sweep_check(ranged["servo_rad"], ranged["range_m"], cfg.servo_waveform().amplitude_rad,
+                                      spec["range_sigma_m"], spec["range_sigma_rel"], cfg.pwm_url))
+        return checks
+
     # ----- start-up -------------------------------------------------------------------------------
 
     def _open(self) -> None:
@@ -646,35 +782,15 @@ class PayloadApp:
         if low:
             self._warn(low)
         self._log_room_low = low is not None  # said on the ground station too, with "started"
-        if self.link is None:
-            self.link = _opening("MAVLink link", cfg.mavlink_url,
-                                 lambda: open_mavlink(cfg.mavlink_url, signing=cfg.signing))
-        elif cfg.signing is not None and not self.signing_active:
-            self._warn("the MAVLink link given to the payload does not sign; signing applies to links it opens")
-        if cfg.rangefinder is Rangefinder.TFMINI:
-            self._open_tfmini()
-        else:
-            if self.bus is None:
-                self.bus = _opening("I2C bus", cfg.i2c_url, lambda: open_i2c(cfg.i2c_url, key=cfg.device_key))
-            lidar_cfg = LidarLiteConfig(address=cfg.i2c_address, preset=preset_by_name(cfg.preset),
-                                        busy_timeout_ns=cfg.busy_deadline_ns())
-            self.lidar = _opening(f"LIDAR-Lite at 0x{cfg.i2c_address:02x} on", cfg.i2c_url,
-                                  lambda: LidarLite(self.bus, self.clock, lidar_cfg))
-        if self.pwm is None:
-            self.pwm = _opening("PWM output", cfg.pwm_url, lambda: open_pwm(
-                cfg.pwm_url, i2c_opener=open_i2c, link=self.link, mav=self.link.mav,
-                key=cfg.device_key))
+        self._open_link()
+        self._open_sensor()
+        self._open_pwm()
         if cfg.stream_url is not None:
             signer = self.link.signer
             self.stream = LiveStreamSender(
                 cfg.stream_url, cfg.stream_records_per_datagram, key=cfg.signing.key if cfg.signing else None,
                 stamp_source=signer.now if signer is not None else None)
-        self.tracker = PoseTracker(self.link, self.clock, cfg.target_system, cfg.pose_stream_hz,
-                                   target_component=cfg.target_component,
-                                   max_pose_age_ns=round(cfg.max_pose_age_s * 1e9))
-        self._send_origin(self.clock.now_ns())
-        self.tracker.start()
-        self.tracker.request_params(EKF_SOURCE_PARAMS)
+        self._start_tracker()
         if cfg.start_on_arm:
             self._wait_for_arm()
             if self._stop_reason is not None:
@@ -689,15 +805,56 @@ class PayloadApp:
                                    records_per_block=cfg.records_per_block, fsync=cfg.fsync, overwrite=cfg.force,
                                    opener=self._open_log)
         self.sink = _RecordSink(self.log, self.stream)
+        self.loop = self._build_loop(self.sink, self.tracker, t0_ns)
+        self.health = HealthMonitor(self.loop.t0_ns, cfg.health_period_s)
+        self._next_status_ns = self.loop.t0_ns + round(cfg.status_period_s * 1e9)
+        self._status_prev = (self.loop.t0_ns, 0)
+
+    def _open_link(self) -> None:
+        cfg = self.cfg
+        if self.link is None:
+            self.link = _opening("MAVLink link", cfg.mavlink_url,
+                                 lambda: open_mavlink(cfg.mavlink_url, signing=cfg.signing))
+        elif cfg.signing is not None and not self.signing_active:
+            self._warn("the MAVLink link given to the payload does not sign; signing applies to links it opens")
+
+    def _open_sensor(self) -> None:
+        cfg = self.cfg
+        if cfg.rangefinder is Rangefinder.TFMINI:
+            self._open_tfmini()
+            return
+        if self.bus is None:
+            self.bus = _opening("I2C bus", cfg.i2c_url, lambda: open_i2c(cfg.i2c_url, key=cfg.device_key))
+        lidar_cfg = LidarLiteConfig(address=cfg.i2c_address, preset=preset_by_name(cfg.preset),
+                                    busy_timeout_ns=cfg.busy_deadline_ns())
+        self.lidar = _opening(f"LIDAR-Lite at 0x{cfg.i2c_address:02x} on", cfg.i2c_url,
+                              lambda: LidarLite(self.bus, self.clock, lidar_cfg))
+
+    def _open_pwm(self) -> None:
+        cfg = self.cfg
+        if self.pwm is None:
+            self.pwm = _opening("PWM output", cfg.pwm_url, lambda: open_pwm(
+                cfg.pwm_url, i2c_opener=open_i2c, link=self.link, mav=getattr(self.link, "mav", None),
+                key=cfg.device_key))
+
+    def _start_tracker(self) -> None:
+        """The pose tracker on the open link: streams asked for, the EKF origin sent, the EKF sources read."""
+        cfg = self.cfg
+        self.tracker = PoseTracker(self.link, self.clock, cfg.target_system, cfg.pose_stream_hz,
+                                   target_component=cfg.target_component,
+                                   max_pose_age_ns=round(cfg.max_pose_age_s * 1e9))
+        self._send_origin(self.clock.now_ns())
+        self.tracker.start()
+        self.tracker.request_params(EKF_SOURCE_PARAMS)
+
+    def _build_loop(self, sink: Any, pose: Any, t0_ns: int) -> PayloadLoop:
+        cfg = self.cfg
         loop_cfg = cfg.loop_config()
         # A loop paced by its sensor ticks a little before or after a PWM frame boundary: half a tick early
         # still sends that frame's pulse (`SweepServo.early_s`); a loop on its own grid ticks on the boundary.
         servo = (SweepServo(self.pwm, cfg.servo_waveform(), cfg.servo, early_s=0.5 / cfg.rate_hz)
                  if loop_cfg.paced_by_sensor else SweepServo(self.pwm, cfg.servo_waveform(), cfg.servo))
-        self.loop = PayloadLoop(self.lidar, servo, self.tracker, self.clock, self.sink, loop_cfg, t0_ns=t0_ns)
-        self.health = HealthMonitor(self.loop.t0_ns, cfg.health_period_s)
-        self._next_status_ns = self.loop.t0_ns + round(cfg.status_period_s * 1e9)
-        self._status_prev = (self.loop.t0_ns, 0)
+        return PayloadLoop(self.lidar, servo, pose, self.clock, sink, loop_cfg, t0_ns=t0_ns)
 
     def _open_tfmini(self) -> None:
         """Open the TFMini's serial port and check that it streams frames (one line saying what is wrong

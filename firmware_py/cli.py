@@ -3,7 +3,8 @@ TFMini on a UART, on a sweeping servo; poses from the autopilot over MAVLink; a 
 With --start-on-arm it waits on the ground (servo idle, no log) until the autopilot arms. Stops on
 SIGINT/SIGTERM (Ctrl-C), after --duration, or with --stop-on-disarm when the autopilot disarms; the log is
 complete either way. --config FILE sets the options from a TOML file (docs/configuration.md);
---check validates and prints the effective configuration without opening any hardware.
+--check validates and prints the effective configuration without opening any hardware; --preflight opens it,
+sweeps and samples for a few seconds without writing a log, and prints a checklist (exit 4 when a check fails).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from firmware_py.app import (
 from firmware_py.core.cli import (
     ArgumentParser,
     ConfigTables,
+    ExitCode,
     UserError,
     add_config_option,
     add_verbosity,
@@ -113,6 +115,14 @@ def _checked(check: Callable[[str], object]) -> Callable[[str], str]:
     return convert
 
 
+def _positive_seconds(text: str) -> float:
+    """argparse type: a duration in seconds, > 0 and at most an hour."""
+    v = finite_float(text)
+    if not 0.0 < v <= 3600.0:
+        raise argparse.ArgumentTypeError(f"must be between 0 and 3600 s, got {text!r}")
+    return v
+
+
 def _check_uart(url: str) -> None:
     if not url.strip():
         raise ValueError("must be a non-empty URL (leave it out for the default)")
@@ -156,6 +166,11 @@ def build_parser() -> ArgumentParser:
     ap.add_argument("--check", action="store_true",
                     help="validate the options (and --config file), print the effective configuration as TOML and "
                          "exit, opening no hardware")
+    ap.add_argument("--preflight", nargs="?", type=_positive_seconds, const=0.0, default=None, metavar="S",
+                    help="check the payload on the ground before a flight: open the hardware, sweep and sample for "
+                         "S seconds (default: three sweep periods, at least 5 s) without writing a log, and print a "
+                         "checklist of the autopilot link, pose, EKF sources, rangefinder, loop, servo sweep and "
+                         "log card; exit 4 when a check fails, and the ground station is told (STATUSTEXT)")
     hw.add_argument("--mavlink", default=DEFAULT_MAVLINK_URL, metavar="URL", type=_checked(check_mavlink_url),
                     help="link to the autopilot: serial:/dev/ttyAMA0:921600, udp:HOST:PORT (listen), "
                          f"udpout:HOST:PORT, tcp:HOST:PORT (default {DEFAULT_MAVLINK_URL})")
@@ -361,16 +376,29 @@ def log_notes(cfg: PayloadConfig) -> tuple[str | None, list[str]]:
 
 def _run(args) -> int:
     cfg = config_from_args(args)
+    if args.check and args.preflight is not None:
+        raise UserError("--check opens no hardware and --preflight opens it: give one of them")
     if args.check:
         note, warnings = log_notes(cfg)
         print(check_text(cfg) + (note or ""), end="")
         for w in warnings:
             print(f"{PROG}: warning: {w}", file=sys.stderr)
         return 0
+    if args.preflight is not None:
+        return _preflight(cfg, args.preflight or None)
     app = PayloadApp(cfg, err=sys.stderr)
     with stop_on_signals(app.request_stop):
         app.run()
     return 0
+
+
+def _preflight(cfg: PayloadConfig, duration_s: float | None) -> int:
+    """--preflight: the checklist on standard output; exit 4 when a check failed."""
+    app = PayloadApp(cfg, err=sys.stderr)
+    with stop_on_signals(app.request_stop):
+        result = app.preflight(duration_s)
+    print("\n".join(result.lines()))
+    return ExitCode.OK if result.passed else ExitCode.RUNTIME
 
 
 def main(argv: Sequence[str] | None = None) -> int:
