@@ -1,21 +1,13 @@
-"""`pilescan-payload --preflight`: the parts checked together on the ground, judged line by line (firmware_py.preflight,
-`PayloadApp.preflight`), against the emulated LIDAR-Lite, servo and SITL autopilot over real UDP."""
+"""`pilescan-payload --preflight`'s judgements (firmware_py.preflight), each on its own: what a line says of what the
+preflight saw. The program around them, on emulated parts: tests/firmware_py/test_app_preflight.py."""
 
 from __future__ import annotations
 
-import io
 import math
-import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from firmware_py.app import PayloadApp
-from firmware_py.cli import main
-from firmware_py.core.cli import ExitCode
-from firmware_py.hal import pwm as pwm_backends
-from firmware_py.hal.backends import unregister_i2c_backend
 from firmware_py.preflight import (
     Check,
     PreflightResult,
@@ -24,12 +16,6 @@ from firmware_py.preflight import (
     rangefinder_check,
     sweep_check,
 )
-from sitl.devices.i2c_sim import SimI2CBus, register_sim_bus
-from sitl.devices.lidarlite_emu import EmulatedLidarLite
-from sitl.devices.servo_emu import EmulatedServo
-from tests.firmware_py.test_app import Autopilot, WallSimClock, payload_config
-
-pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
 
 FLOOR_BELOW_M, WALL_BESIDE_M = 0.3, 4.0
 SWEEP = math.pi / 2
@@ -104,104 +90,3 @@ def test_that_a_warning_passes_and_a_failure_does_not_and_the_ground_station_tex
     failed = PreflightResult((ok, warn, fail), 5.0, 2500)
     assert not failed.passed and failed.lines()[-1] == "preflight FAILED: servo sweep"
     assert len("pilescan: " + failed.statustext()) <= 50
-
-
-# ----- the program, on emulated parts -----------------------------------------------------------------------------
-
-@pytest.fixture
-def room_devices():
-    """A LIDAR-Lite whose range follows the emulated servo's true shaft angle in a room; `stuck` holds the beam down."""
-    clock = WallSimClock()
-    bus = SimI2CBus(clock)
-    servo = EmulatedServo(clock)
-    state = {"stuck": False}
-    bus.attach(0x62, EmulatedLidarLite(clock, lambda t_ns: room_range_m(0.0 if state["stuck"]
-                                                                        else servo.angle_at(t_ns))))
-    register_sim_bus(bus, "sitl")
-    pwm_backends.register_pwm_backend("emu", lambda _url: servo)
-    yield servo, state
-    unregister_i2c_backend("sitl")
-    pwm_backends.unregister_pwm_backend("emu")
-
-
-@pytest.fixture
-def autopilot():
-    ap = Autopilot()
-    yield ap
-    ap.close()
-
-
-def test_that_a_sound_payload_passes_every_check_writes_no_log_and_tells_the_ground_station(
-        tmp_path, room_devices, autopilot):
-    servo, _state = room_devices
-    cfg = payload_config(tmp_path, autopilot.url, quiet=False)
-    err = io.StringIO()
-    res = PayloadApp(cfg, err=err).preflight(1.0)
-    verdicts = {c.name: c.verdict for c in res.checks}
-    assert list(verdicts) == ["sample log", "autopilot", "pose", "EKF sources", "rangefinder", "loop", "servo sweep"]
-    assert all(verdicts[name] is Verdict.OK for name in ("sample log", "autopilot", "EKF sources", "servo sweep")), \
-        res.lines()
-    # The rates are the machine's: a loaded test machine may miss ticks or pose messages (a warning), never fail.
-    assert all(v is not Verdict.FAIL for v in verdicts.values()) and res.passed
-    assert "100 % ranged" in res.checks[4].detail and res.readings > 250
-    assert not Path(cfg.out_path).exists()  # a preflight writes no log
-    assert "no log is written" in err.getvalue()
-    assert servo.pulses > 25 and not servo.enabled  # swept, then let go
-    assert autopilot.wait_for(lambda: "pilescan: preflight ok" in autopilot.spy.texts())
-
-
-def test_that_a_servo_that_does_not_move_fails_the_preflight_on_the_console_and_the_ground_station(
-        tmp_path, room_devices, autopilot):
-    _servo, state = room_devices
-    state["stuck"] = True
-    cfg = payload_config(tmp_path, autopilot.url)
-    res = PayloadApp(cfg, err=None).preflight(1.0)
-    assert not res.passed and "servo sweep" in res.named(Verdict.FAIL)
-    assert res.lines()[-1] == "preflight FAILED: servo sweep"
-    assert autopilot.wait_for(lambda: "pilescan: preflight FAIL: servo sweep" in autopilot.spy.texts())
-
-
-def test_that_a_silent_autopilot_and_an_existing_log_fail_while_the_sensor_and_servo_are_still_checked(
-        tmp_path, room_devices):
-    cfg = payload_config(tmp_path, "udpout:127.0.0.1:9")  # nothing answers there
-    Path(cfg.out_path).write_bytes(b"an earlier flight")
-    t0 = time.monotonic()
-    res = PayloadApp(cfg, err=None).preflight(1.0)
-    took_s = time.monotonic() - t0
-    verdicts = {c.name: c.verdict for c in res.checks}
-    assert verdicts["autopilot"] is Verdict.FAIL and verdicts["pose"] is Verdict.FAIL
-    assert verdicts["sample log"] is Verdict.FAIL and "already exists" in res.checks[0].detail
-    assert verdicts["rangefinder"] is Verdict.OK and verdicts["servo sweep"] is Verdict.OK
-    assert took_s < 10.0  # the pose wait is cut short when nothing comes from the autopilot at all
-    assert Path(cfg.out_path).read_bytes() == b"an earlier flight"
-
-
-def test_that_a_part_that_cannot_be_opened_is_a_failed_check_not_a_traceback(tmp_path, autopilot):
-    cfg = payload_config(tmp_path, autopilot.url, i2c_url="i2c:/dev/i2c-97", pwm_url="pwm:sysfs:97:0")
-    res = PayloadApp(cfg, err=None).preflight(1.0)
-    failed = {c.name: c.detail for c in res.checks if c.verdict is Verdict.FAIL}
-    assert set(failed) == {"rangefinder", "servo PWM"}
-    assert "i2c:/dev/i2c-97" in failed["rangefinder"] and "pwm:sysfs:97:0" in failed["servo PWM"]
-    assert {c.name: c.verdict for c in res.checks}["autopilot"] is Verdict.OK
-
-
-def test_that_the_command_prints_the_checklist_and_exits_4_on_a_failure(tmp_path, room_devices, autopilot, capsys):
-    _servo, state = room_devices
-    argv = ["--mavlink", autopilot.url, "--i2c", "sitl", "--pwm", "pwm:emu", "--out", str(tmp_path / "f.pslog"),
-            "--preflight", "1", "-q"]
-    assert main(argv) == ExitCode.OK
-    out = capsys.readouterr().out
-    assert out.splitlines()[0].startswith("preflight: 1.0 s") and out.splitlines()[-1] == "preflight passed"
-    state["stuck"] = True
-    assert main(argv) == ExitCode.RUNTIME
-    assert capsys.readouterr().out.splitlines()[-1] == "preflight FAILED: servo sweep"
-
-
-def test_that_check_and_preflight_together_are_refused(tmp_path, capsys):
-    code = main(["--out", str(tmp_path / "f.pslog"), "--check", "--preflight"])
-    assert code == ExitCode.USAGE and "give one of them" in capsys.readouterr().err
-
-
-def test_that_a_bad_preflight_duration_is_refused_in_one_line(tmp_path, capsys):
-    code = main(["--out", str(tmp_path / "f.pslog"), "--preflight", "-3"])
-    assert code == ExitCode.USAGE and "between 0 and 3600 s" in capsys.readouterr().err
