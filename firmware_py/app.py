@@ -92,6 +92,7 @@ from firmware_py.preflight import (
     MemorySink,
     NoPose,
     PreflightResult,
+    Verdict,
     autopilot_check,
     ekf_source_check,
     log_check,
@@ -662,18 +663,25 @@ class PayloadApp:
     def preflight(self, duration_s: float | None = None) -> PreflightResult:
         """Open the hardware as a flight does, run the loop for a few sweep periods into memory (no log is written),
         and judge what it saw (`firmware_py.preflight`). A part that cannot be opened is a failed check, not an
-        error: the other parts are still checked. The ground station is sent the verdict as a STATUSTEXT.
+        error: the other parts are still checked. The ground station is sent the verdict as a STATUSTEXT. The flight's
+        own start and stop conditions (--start-on-arm, --stop-on-disarm) and the live stream do not apply; --duration
+        is the flight's, which the log card's room is checked against.
 
-        duration_s: how long to sample; None: PREFLIGHT_SWEEPS sweep periods, at least MIN_PREFLIGHT_S.
+        duration_s: how long to sample, at least one sweep period; None: PREFLIGHT_SWEEPS sweep periods, at least
+            MIN_PREFLIGHT_S.
         """
         if self._ran:
             raise RuntimeError("a PayloadApp runs once")
         self._ran = True
         cfg = self.cfg
+        period_s = 1.0 / cfg.servo_waveform().frequency_hz
         if duration_s is None:
-            duration_s = max(MIN_PREFLIGHT_S, PREFLIGHT_SWEEPS / cfg.servo_waveform().frequency_hz)
+            duration_s = max(MIN_PREFLIGHT_S, PREFLIGHT_SWEEPS * period_s)
         if not (_finite(duration_s) and duration_s > 0):
             raise ValueError(f"preflight duration must be > 0 s, got {duration_s!r}")
+        # Less than a sweep period sees only part of the sweep, from wherever the shaft was: the sweep check would
+        # judge a few sectors near one end. The checklist's first line says the time sampled.
+        duration_s = max(duration_s, period_s)
         checks: list[Check] = [self._log_check()]
         sink, result = MemorySink(), None
         try:
@@ -691,7 +699,8 @@ class PayloadApp:
                 end_ns, silent_ns = start + round(PREFLIGHT_POSE_WAIT_S * 1e9), start + round(PREFLIGHT_SILENT_S * 1e9)
                 self._pump_until(lambda: self.tracker.status().pose_ok, round(1e9 / cfg.rate_hz),
                                  lambda now: now >= end_ns or (now >= silent_ns and not self.tracker.autopilot_heard))
-                self._wait_for_params()
+                if self.tracker.autopilot_heard:  # a silent autopilot has no parameters to give
+                    self._wait_for_params()
             if self.lidar is not None and self.pwm is not None:
                 if isinstance(self.lidar, Tfmini):
                     self.lidar.discard_input()
@@ -770,6 +779,9 @@ class PayloadApp:
                 checks.append(loop_check(stats.ticks, stats.overruns, cfg.rate_hz))
             checks.append(sweep_check(ranged["servo_rad"], ranged["range_m"], cfg.servo_waveform().amplitude_rad,
                                       spec["range_sigma_m"], spec["range_sigma_rel"], cfg.pwm_url))
+        elif self.lidar is not None or self.pwm is not None:  # one of the two opened: say what could not be judged
+            missing = "the rangefinder" if self.lidar is None else "the servo's output"
+            checks.append(Check("servo sweep", Verdict.WARN, f"not checked: {missing} could not be opened"))
         return checks
 
     # ----- start-up -------------------------------------------------------------------------------

@@ -168,9 +168,10 @@ def build_parser() -> ArgumentParser:
                          "exit, opening no hardware")
     ap.add_argument("--preflight", nargs="?", type=_positive_seconds, const=0.0, default=None, metavar="S",
                     help="check the payload on the ground before a flight: open the hardware, sweep and sample for "
-                         "S seconds (default: three sweep periods, at least 5 s) without writing a log, and print a "
-                         "checklist of the autopilot link, pose, EKF sources, rangefinder, loop, servo sweep and "
-                         "log card; exit 4 when a check fails, and the ground station is told (STATUSTEXT)")
+                         "S seconds (at least one sweep period; default: three, and at least 5 s) without writing a "
+                         "log, and print a checklist of the autopilot link, pose, EKF sources, rangefinder, loop, "
+                         "servo sweep and log card; exit 4 when a check fails, and the ground station is told "
+                         "(STATUSTEXT)")
     hw.add_argument("--mavlink", default=DEFAULT_MAVLINK_URL, metavar="URL", type=_checked(check_mavlink_url),
                     help="link to the autopilot: serial:/dev/ttyAMA0:921600, udp:HOST:PORT (listen), "
                          f"udpout:HOST:PORT, tcp:HOST:PORT (default {DEFAULT_MAVLINK_URL})")
