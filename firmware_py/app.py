@@ -691,6 +691,8 @@ class PayloadApp:
                     opener()
                 except (UserError, ValueError) as exc:
                     checks.append(opening_check(name, str(exc).splitlines()[0]))
+                    if name == "rangefinder":
+                        self.lidar = None  # a TFMini whose port opened but sends no frames: not sampled
             if self.link is not None:
                 self._start_tracker()
                 self._say(f"preflight: waiting up to {PREFLIGHT_POSE_WAIT_S:g} s for the pose, then sampling "

@@ -219,3 +219,23 @@ def test_that_config_checks_refuse_a_rangefinder_that_is_not_one():
         PayloadConfig(rangefinder="tfmini")
     with pytest.raises(UserError, match="--uart"):
         parse("--uart", "serial:/dev/ttyS0")
+
+
+def test_that_a_preflight_with_a_silent_tfmini_says_so_once_and_checks_the_rest(tmp_path, pwm):
+    from firmware_py.app import PayloadApp, PayloadConfig
+    from firmware_py.core.sensor import Rangefinder
+    from firmware_py.preflight import Verdict
+
+    pty = _Pty(lambda fd, stop: stop.wait(10))  # wired to nothing that sends
+    try:
+        cfg = PayloadConfig(out_path=tmp_path / "x.pslog", mavlink_url=NOBODY, rangefinder=Rangefinder.TFMINI,
+                            uart_url=f"serial:{pty.path}", pwm_url="pwm:fake", quiet=True, fsync=False)
+        res = PayloadApp(cfg, err=None).preflight(0.5)
+    finally:
+        pty.close()
+    names = [c.name for c in res.checks]
+    assert names.count("rangefinder") == 1  # the port opened but sent nothing: one line, not a second "no range"
+    checks = {c.name: c for c in res.checks}
+    assert checks["rangefinder"].verdict is Verdict.FAIL and "no data from the TFMini" in checks["rangefinder"].detail
+    assert checks["servo sweep"].verdict is Verdict.WARN and "not checked" in checks["servo sweep"].detail
+    assert checks["autopilot"].verdict is Verdict.FAIL and not (tmp_path / "x.pslog").exists()
