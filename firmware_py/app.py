@@ -652,9 +652,7 @@ class PayloadApp:
                 self.loop.run(duration_s=self.cfg.duration_s, should_stop=self._should_stop)
             self.request_stop("duration reached")
         except BaseException as exc:
-            # What the operator's ground station shows: say what failed (e.g. "No space left on device").
-            detail = (getattr(exc, "strerror", None) or str(exc).splitlines()[0]) if str(exc) else ""
-            self.request_stop(f"error: {detail or type(exc).__name__}")
+            self.request_stop(f"error: {_failure_detail(exc)}")
             raise
         finally:
             self._shutdown()
@@ -721,8 +719,7 @@ class PayloadApp:
                     mavlink.MAV_SEVERITY_INFO if result.passed else mavlink.MAV_SEVERITY_CRITICAL,
                     TEXT_PREFIX + result.statustext())])
         except BaseException as exc:
-            detail = (getattr(exc, "strerror", None) or str(exc).splitlines()[0]) if str(exc) else ""
-            self.request_stop(f"preflight error: {detail or type(exc).__name__}")
+            self.request_stop(f"preflight error: {_failure_detail(exc)}")
             raise
         finally:
             self._shutdown()
@@ -732,12 +729,7 @@ class PayloadApp:
         """The preflight loop's stop check: a stop asked for; the EKF origin sent again until it takes."""
         if self._stop_reason is not None:
             return True
-        now = self.clock.now_ns()
-        if self._origin_sent and now >= self._next_origin_ns:
-            self._send_origin(now)
-        if self.origin_disagreement is None and self.tracker is not None \
-                and self.tracker.autopilot_origin_e7 is not None:
-            self._check_origin(self.tracker.autopilot_origin_e7)
+        self._tend_origin(self.clock.now_ns())
         return False
 
     def _log_check(self) -> Check:
@@ -1011,10 +1003,7 @@ class PayloadApp:
                 self.stream.flush()
         if not self.cfg.quiet and now >= self._next_status_ns:
             self._status_line(now)
-        if self._origin_sent and now >= self._next_origin_ns:
-            self._send_origin(now)
-        if self.origin_disagreement is None and self.tracker.autopilot_origin_e7 is not None:
-            self._check_origin(self.tracker.autopilot_origin_e7)
+        self._tend_origin(now)
         if self.cfg.stop_on_disarm:
             armed = self.tracker.autopilot_armed
             if armed:
@@ -1054,6 +1043,15 @@ class PayloadApp:
                 self.health_errors += 1
                 if self.health_errors == 1:
                     self._warn(f"health message not sent: {exc}")
+
+    def _tend_origin(self, now: int) -> None:
+        """Every tick (the flight's and the preflight's): the EKF origin sent again until it takes, and the autopilot's
+        origin compared with it once it says one."""
+        if self._origin_sent and now >= self._next_origin_ns:
+            self._send_origin(now)
+        if self.origin_disagreement is None and self.tracker is not None \
+                and self.tracker.autopilot_origin_e7 is not None:
+            self._check_origin(self.tracker.autopilot_origin_e7)
 
     def _send_origin(self, now: int) -> None:
         """SET_GPS_GLOBAL_ORIGIN, again every few seconds until LOCAL_POSITION_NED arrives (a few tries)."""
@@ -1172,6 +1170,13 @@ class PayloadApp:
                 print(f"{self.prog}: {text}", file=self.err, flush=True)
             except (OSError, ValueError):
                 pass  # a closed stderr must not stop the payload
+
+
+def _failure_detail(exc: BaseException) -> str:
+    """What the operator's ground station is told failed (e.g. "No space left on device"): the system's words, else the
+    message's first line, else the exception's type."""
+    detail = (getattr(exc, "strerror", None) or str(exc).splitlines()[0]) if str(exc) else ""
+    return detail or type(exc).__name__
 
 
 def _opening(what: str, url: str, opener: Callable[[], Any]) -> Any:

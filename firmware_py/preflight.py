@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -256,13 +256,6 @@ def opening_check(name: str, error: str) -> Check:
     return Check(name, Verdict.FAIL, error)
 
 
-def sample_arrays(records: Sequence[np.ndarray]) -> np.ndarray:
-    """The records the preflight's loop produced, as one array (empty when none)."""
-    if not records:
-        return np.zeros(0, dtype=SAMPLE_DTYPE)
-    return np.concatenate([np.atleast_1d(r) for r in records])
-
-
 RANGE_FAILURE = SampleFlags.NO_RETURN | SampleFlags.SENSOR_ERROR
 """The flags that leave a sample without a range (the pose flags do not matter to the sensor's checks)."""
 
@@ -280,7 +273,8 @@ class MemorySink:
         pass
 
     def samples(self) -> np.ndarray:
-        return sample_arrays(self.chunks)
+        """The records so far, as one array (empty when none)."""
+        return np.concatenate(self.chunks) if self.chunks else np.zeros(0, dtype=SAMPLE_DTYPE)
 
 
 class NoPose:
