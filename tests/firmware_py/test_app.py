@@ -9,6 +9,7 @@ monotonic clock; nothing asserts on timing, only on what was logged and sent.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import math
 import os
@@ -19,6 +20,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -119,19 +121,28 @@ class Autopilot:
         self.spy.close()
 
 
-@pytest.fixture
-def devices():
-    """LIDAR-Lite on `sitl`, servo on `pwm:emu`, unregistered afterwards."""
+@contextlib.contextmanager
+def emulated_rig(range_at: Callable[[EmulatedServo, int], float | None]):
+    """LIDAR-Lite on `sitl` ranging range_at(servo, t_ns), servo on `pwm:emu`, unregistered afterwards."""
     clock = WallSimClock()
     bus = SimI2CBus(clock)
-    lidar = EmulatedLidarLite(clock, lambda _t_ns: RANGE_M)
+    servo = EmulatedServo(clock)
+    lidar = EmulatedLidarLite(clock, lambda t_ns: range_at(servo, t_ns))
     bus.attach(0x62, lidar)
     register_sim_bus(bus, "sitl")
-    servo = EmulatedServo(clock)
     pwm_backends.register_pwm_backend("emu", lambda _url: servo)
-    yield bus, lidar, servo
-    unregister_i2c_backend("sitl")
-    pwm_backends.unregister_pwm_backend("emu")
+    try:
+        yield bus, lidar, servo
+    finally:
+        unregister_i2c_backend("sitl")
+        pwm_backends.unregister_pwm_backend("emu")
+
+
+@pytest.fixture
+def devices():
+    """The rig at a fixed range, RANGE_M."""
+    with emulated_rig(lambda _servo, _t_ns: RANGE_M) as parts:
+        yield parts
 
 
 @pytest.fixture

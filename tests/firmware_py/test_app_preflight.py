@@ -16,13 +16,8 @@ pytest.importorskip("sitl", reason="the firmware against the simulator (sitl/): 
 from firmware_py.app import PayloadApp
 from firmware_py.cli import main
 from firmware_py.core.cli import ExitCode
-from firmware_py.hal import pwm as pwm_backends
-from firmware_py.hal.backends import unregister_i2c_backend
 from firmware_py.preflight import Verdict
-from sitl.devices.i2c_sim import SimI2CBus, register_sim_bus
-from sitl.devices.lidarlite_emu import EmulatedLidarLite
-from sitl.devices.servo_emu import EmulatedServo
-from tests.firmware_py.test_app import Autopilot, WallSimClock, payload_config
+from tests.firmware_py.test_app import Autopilot, emulated_rig, payload_config
 from tests.firmware_py.test_preflight import room_range_m
 
 pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
@@ -32,18 +27,10 @@ pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
 
 @pytest.fixture
 def room_devices():
-    """A LIDAR-Lite whose range follows the emulated servo's true shaft angle in a room; `stuck` holds the beam down."""
-    clock = WallSimClock()
-    bus = SimI2CBus(clock)
-    servo = EmulatedServo(clock)
+    """The rig with the range following the emulated servo's true shaft in a room; `stuck` holds the beam down."""
     state = {"stuck": False}
-    bus.attach(0x62, EmulatedLidarLite(clock, lambda t_ns: room_range_m(0.0 if state["stuck"]
-                                                                        else servo.angle_at(t_ns))))
-    register_sim_bus(bus, "sitl")
-    pwm_backends.register_pwm_backend("emu", lambda _url: servo)
-    yield servo, state
-    unregister_i2c_backend("sitl")
-    pwm_backends.unregister_pwm_backend("emu")
+    with emulated_rig(lambda servo, t_ns: room_range_m(0.0 if state["stuck"] else servo.angle_at(t_ns))) as parts:
+        yield parts[2], state
 
 
 @pytest.fixture
