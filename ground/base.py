@@ -340,7 +340,8 @@ def rebased_terms(terms: ErrorTerms, heights_fit: np.ndarray, heights: np.ndarra
     """The terms that measure material from the floor (the unseen fill's lower bound, the blur's pile
     footprint) measured from a fitted floor instead; the others do not depend on the base, but for the pose
     and level terms: a height error common to the survey moves the floor fitted from its own points with the pile, so
-    above that floor it cancels. An earlier survey's base keeps the terms as they are: its own interval is
+    above that floor it cancels. Not the untied stretches' term: no floor was seen there, so the floor fitted
+    elsewhere does not move with them. An earlier survey's base keeps the terms as they are: its own interval is
     added whole (module docstring)."""
     if base.kind is not BaseKind.FITTED_FLOOR or base.heights_m is None:
         return terms

@@ -157,6 +157,7 @@ _LIMITS = {
     "faces": "vertical faces or overhangs",
     "pose": "the height of the drifting pose, as corrected from the building",
     "level": "the drifting altitude reference, which no floor seen pinned",
+    "untied": "the drifting altitude reference over stretches of the flight no floor seen tied",
 }
 MIN_SHARE = 0.25
 """A term 'limits' the volume when it holds at least a quarter of the interval's variance."""
@@ -168,7 +169,7 @@ def limiting_terms(terms: ErrorTerms, model: IntervalModel) -> list[str]:
               "interpolation": model.k_interpolation * terms.interpolation_m3, "noise": model.k_noise * terms.noise_m3,
               "blur": model.k_blur * terms.blur_m3, "sweeps": model.k_sweeps * terms.sweeps_m3,
               "faces": model.k_faces * terms.faces_m3, "pose": model.k_pose * terms.pose_m3,
-              "level": model.k_level * terms.level_m3}
+              "level": model.k_level * terms.level_m3, "untied": model.k_untied * terms.untied_m3}
     total = sum(v * v for v in scaled.values())
     if total <= 0:
         return []

@@ -215,6 +215,12 @@ class PoseCorrection:
     floor, and when the height came from a downward rangefinder whose share was left in (`PoseCorrectionOptions.
     open_floor`): that error follows the pile, not a walk, and the report warns of it on its own. With
     open_floor_shift_m it is the other reading's: the level had the open floor not been the floor."""
+    untied_sigma_m: float | None = None
+    """The standard error the stretches of the flight whose height no floor tied (`floor_anchored`) put on the height's
+    mean over the survey: the altitude reference's walk over each such stretch, weighted by its share of the flight
+    (`untied_sigma_m`); 0 when tied throughout, None when the height was not corrected or came from a downward
+    rangefinder whose share was left in. The volume's interval carries it when the level itself rests on a floor
+    (else the level term, `level_sigma_m`, already spans the whole flight)."""
 
     def at(self, t_s: np.ndarray) -> np.ndarray:
         """(N, 4) the correction at times t_s (linear between knots, held beyond the ends)."""
@@ -256,7 +262,7 @@ class PoseCorrection:
                 "rms_before_m": self.rms_before_m, "rms_after_m": self.rms_after_m, "noise_m": self.noise_m,
                 "gain": self.gain, "gain_needed": self.gain_needed, "notes": list(self.notes),
                 "height_sigma_m": self.height_sigma_m, "open_floor_shift_m": self.open_floor_shift_m,
-                "level_sigma_m": self.level_sigma_m,
+                "level_sigma_m": self.level_sigma_m, "untied_sigma_m": self.untied_sigma_m,
                 "height_unanchored_s": self.height_unanchored_s[0],
                 "height_unanchored_longest_s": [self.height_unanchored_s[1], self.height_unanchored_s[2]],
                 "closest_wall": None if self.closest_wall is None else dict(
@@ -778,6 +784,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                            "the pose", points=counts)
     z_info = None
     unanchored = (0.0, 0.0, 0.0)
+    tied: np.ndarray | None = None  # per knot interval, whether the height is tied to the floor (`floor_anchored`)
     first_refused: str | None = None  # why the height solved before the registration was refused
     z_sigma: list[float] = []  # the standard errors of the height's mean, the last solve's last
     notes: list[str] = []
@@ -839,8 +846,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
             x[:, 2] = z
             p1, vr = corrected_points(b, x, k, f)
             floor = floor_from_below(p1, b.t_s, knots, np.zeros(len(knots)), floor, opts.n_significant)
-            unanchored = unanchored_stretches(knots, floor_anchored(p1, b.t_s, knots, wall, floor, storage, cell_m,
-                                                                    opts.max_position_error_m))
+            tied = floor_anchored(p1, b.t_s, knots, wall, floor, storage, cell_m, opts.max_position_error_m)
+            unanchored = unanchored_stretches(knots, tied)
     # Which knot components the data set (their information beats the prior's): the rest is interpolated.
     sel = np.flatnonzero(on)
     jac = _jacobian(b.take(sel), vr[sel], k[sel], f[sel], n[j1[sel]], np.full(len(sel), noise), 4 * len(knots))
@@ -908,9 +915,9 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                         level_on_floor = shift_again is None
                         if shift_again is not None:  # on a floor the walls' feet do not confirm: said, as the first
                             notes.append(open_floor_note("solved again", shift_again))
-                        unanchored = unanchored_stretches(knots, floor_anchored(
-                            corrected_points(b, x, k, f)[0], b.t_s, knots, wall, floor_again, storage, cell_m,
-                            opts.max_position_error_m))
+                        tied = floor_anchored(corrected_points(b, x, k, f)[0], b.t_s, knots, wall, floor_again,
+                                              storage, cell_m, opts.max_position_error_m)
+                        unanchored = unanchored_stretches(knots, tied)
                     elif first_refused is not None:
                         x[:, 2] = 0.0  # refused again: no height, as before (the registration's own is unchecked)
                         level_on_floor = False
@@ -962,7 +969,10 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                                          else level_sigma_m(opts.vertical_walk_m_per_sqrt_s, t1 - t0)),
                           open_floor_shift_m=(open_floor_shift if z_info is not None and open_floor_shift is not None
                                               and math.isfinite(open_floor_shift) else None),
-                          height_unanchored_s=unanchored if z_info is not None else (0.0, 0.0, 0.0), **common)
+                          height_unanchored_s=unanchored if z_info is not None else (0.0, 0.0, 0.0),
+                          untied_sigma_m=(untied_sigma_m(knots, tied, opts.vertical_walk_m_per_sqrt_s)
+                                          if z_info is not None and tied is not None and not opts.open_floor
+                                          else None), **common)
 
 
 def level_sigma_m(walk_m_per_sqrt_s: float, duration_s: float) -> float:
@@ -1140,20 +1150,50 @@ def floor_anchored(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.nda
     return tied[label]
 
 
-def unanchored_stretches(knots: np.ndarray, tied: np.ndarray) -> tuple[float, float, float]:
-    """(total s not tied to the floor, the longest such stretch's start and end s) from `floor_anchored`'s
-    intervals, counting the stretches of REVISIT_INTERVALS intervals or more: a shorter one lies within a pass's
-    reach of tied intervals on both sides (one interval alone has both its knots tied by its neighbours)."""
+def _untied_runs(tied: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The stretches of REVISIT_INTERVALS knot intervals or more not tied to the floor, as interval ranges [start,
+    end): a shorter one lies within a pass's reach of tied intervals on both sides (one interval alone has both its
+    knots tied by its neighbours)."""
     free = np.concatenate([[0], (~np.asarray(tied, dtype=bool)).astype(np.int8), [0]])
     edges = np.diff(free)
-    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)  # interval ranges [start, end)
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
     long_enough = ends - starts >= REVISIT_INTERVALS
-    starts, ends = starts[long_enough], ends[long_enough]
+    return starts[long_enough], ends[long_enough]
+
+
+def unanchored_stretches(knots: np.ndarray, tied: np.ndarray) -> tuple[float, float, float]:
+    """(total s not tied to the floor, the longest such stretch's start and end s) from `floor_anchored`'s
+    intervals, counting the stretches `_untied_runs` counts."""
+    starts, ends = _untied_runs(tied)
     if len(starts) == 0:
         return 0.0, 0.0, 0.0
     lengths = knots[ends] - knots[starts]
     best = int(np.argmax(lengths))
     return float(lengths.sum()), float(knots[starts[best]]), float(knots[ends[best]])
+
+
+def untied_sigma_m(knots: np.ndarray, tied: np.ndarray, walk_m_per_sqrt_s: float) -> float:
+    """The standard error of the height's mean over the flight from its stretches no floor tied (`_untied_runs` of
+    `floor_anchored`'s intervals): there the height rests on the pile seen from one moment to the next, whose links'
+    errors add up (decimetres over 100 s, measured), so the data do not check the altitude reference's own drift. A
+    stretch of T s between two tied moments is the walk pinned at both ends, a Brownian bridge, whose mean over the
+    stretch has variance q^2 T / 12; one open at the flight's start or end is a walk from its tied end, q^2 T / 3 (as
+    `level_sigma_m`). Each is weighted by its share of the flight (the legs sweep the floor at a steady rate, so the
+    share of the surfaced area whose heights it set), and the stretches, apart in time, add in quadrature. 0 when
+    tied throughout."""
+    starts, ends = _untied_runs(tied)
+    knots = np.asarray(knots, dtype=float)
+    flown = float(knots[-1] - knots[0]) if len(knots) >= 2 else 0.0
+    if len(starts) == 0 or not flown > 0:
+        return 0.0
+    n_int = len(knots) - 1
+    total = 0.0
+    for a, e in zip(starts, ends, strict=True):
+        length = float(knots[e] - knots[a])
+        pinned_both = a > 0 and e < n_int
+        variance = walk_m_per_sqrt_s ** 2 * length / (12.0 if pinned_both else 3.0)
+        total += variance * (length / flown) ** 2
+    return math.sqrt(total)
 
 
 def half_sample_mode(x: np.ndarray) -> float:
@@ -1989,8 +2029,9 @@ def unanchored_warning(corr: PoseCorrection) -> str | None:
     return (f"the corrected height is not tied to the floor for {total:.0f} of the {flown:.0f} s flown (the longest "
             f"stretch {t1 - t0:.0f} s, from t = {t0:.1f} s): there no floor was seen, nor the same pile on another "
             "pass that saw it, so the height rests on the pile seen from one moment to the next, whose errors add up "
-            "(decimetres over 100 s, measured where a pile hid the floor); the volume's interval may not cover "
-            "that. A flight that sees the floor along the way (legs farther from the walls) ties it")
+            "(decimetres over 100 s, measured where a pile hid the floor); the volume's interval carries the "
+            "altitude reference's drift over those stretches, which the data could not check. A flight that sees "
+            "the floor along the way (legs farther from the walls) ties it")
 
 
 def unconstrained_warning(corr: PoseCorrection) -> str | None:

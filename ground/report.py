@@ -317,7 +317,8 @@ def merged_survey(flights: Sequence[Flight], opts: ReportOptions) -> Survey:
     err = SensorErrorModel.from_header(inp.log.header or {})
     merged = survey_of_cloud(merge_clouds([f.survey.cloud for f in flights]), inp.storage, opts, err)
     poses = [f.survey.pose for f in flights]
-    merged = with_pose_term(merged, least_certain_height(poses), least_certain_level(poses))
+    merged = with_pose_term(merged, least_certain_height(poses), least_certain_level(poses),
+                            least_certain_untied(poses))
     counts = [f.survey.implausible for f in flights if f.survey.implausible is not None]
     implausible = None if not counts else {k: sum(c.get(k, 0) for c in counts) for k in dict.fromkeys(
         k for c in counts for k in c)}
@@ -347,6 +348,21 @@ def least_certain_level(poses: Sequence[PoseCorrection | None]) -> PoseCorrectio
     """The flights' corrected pose whose level rests on the logged reference with the largest standard error (None:
     no flight's does): a merged survey's level term, as `least_certain_height`."""
     return max((p for p in poses if logged_level_sigma_m(p)), key=logged_level_sigma_m, default=None)
+
+
+def untied_stretches_sigma_m(pose: PoseCorrection | None) -> float | None:
+    """The standard error the stretches no floor tied put on the corrected height's mean (`PoseCorrection.
+    untied_sigma_m`), when the level itself rests on a floor; None when the level term spans the whole flight
+    (`logged_level_sigma_m`), when tied throughout, or nothing was applied."""
+    if pose is None or not pose.applied or logged_level_sigma_m(pose) is not None:
+        return None
+    return pose.untied_sigma_m or None
+
+
+def least_certain_untied(poses: Sequence[PoseCorrection | None]) -> PoseCorrection | None:
+    """The flights' corrected pose whose untied stretches' standard error is largest (None: no flight has one): a
+    merged survey's untied term, as `least_certain_height`."""
+    return max((p for p in poses if untied_stretches_sigma_m(p)), key=untied_stretches_sigma_m, default=None)
 
 
 def merged_log(inputs: Sequence[LogInput]) -> SampleLog:
@@ -579,20 +595,25 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
                    pose=pose, rangefinder=survey.rangefinder)
 
 
-def with_pose_term(survey: Survey, pose: PoseCorrection | None, level_pose: PoseCorrection | None) -> Survey:
+def with_pose_term(survey: Survey, pose: PoseCorrection | None, level_pose: PoseCorrection | None,
+                   untied_pose: PoseCorrection | None = None) -> Survey:
     """The survey's error terms (the whole floor's and a cell mask's) with the pose term: the corrected height's
-    standard error over the surfaced cells (ground.uncertainty), and the level term when the height's level rests on
-    the logged reference (`logged_level_sigma_m`); as it was when no correction was applied. The level term comes
-    from level_pose (one flight's: its pose; merged flights': `least_certain_level`)."""
+    standard error over the surfaced cells (ground.uncertainty), the level term when the height's level rests on
+    the logged reference (`logged_level_sigma_m`), and the untied term when stretches of the flight were not tied
+    to the floor (`untied_stretches_sigma_m`); as it was when no correction was applied. The level term comes from
+    level_pose and the untied one from untied_pose (one flight's: its pose, the default; merged flights':
+    `least_certain_level`, `least_certain_untied`)."""
     sigma = pose.height_sigma_m if pose is not None and pose.applied else None
     level = logged_level_sigma_m(level_pose)
-    if not (sigma or level) or survey.errors is None:
+    untied = untied_stretches_sigma_m(pose if untied_pose is None else untied_pose)
+    if not (sigma or level or untied) or survey.errors is None:
         return survey
 
     def with_term(e: SurveyErrors, mask: np.ndarray | None) -> SurveyErrors:
         g, h = survey.grid, survey.heights
         return replace(e, terms=replace(e.terms, pose_m3=pose_term_m3(sigma, h, g, mask),
-                                        level_m3=pose_term_m3(level, h, g, mask)))
+                                        level_m3=pose_term_m3(level, h, g, mask),
+                                        untied_m3=pose_term_m3(untied, h, g, mask)))
     inner = survey.errors_in
     errors_in = None if inner is None else (lambda mask=None: with_term(inner(mask), mask))
     return replace(survey, errors=with_term(survey.errors, None), errors_in=errors_in)

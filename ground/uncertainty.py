@@ -33,6 +33,11 @@ each a scale of the error it describes, not yet a probability):
   stated sigma, so its 90 % half-width is LEVEL_Z sigmas. (A level anchored on a floor seen only away
   from the walls has no level term: the report warns with the other reading's volume and interval,
   ``ground.volume_warnings.open_floor_warning``.)
+- **untied**: when the level rests on a floor but stretches of the flight saw neither that floor nor the same
+  pile again on a pass that did, the height there rests on the pile seen from one moment to the next, and the data
+  do not check the altitude reference's drift over the stretch: the walk pinned at the tied moments, averaged over
+  each stretch and weighted by its share of the flight (``ground.pose_correction.untied_sigma_m``), times the
+  surfaced area. Not fitted either: LEVEL_Z sigmas.
 
 The interval combines them in quadrature with one scale factor each (``IntervalModel``). The
 factors are not tuned by hand: ``tools/calibrate_interval.py`` fits them on the calibration part of
@@ -72,6 +77,7 @@ class ErrorTerms:
     blur_m3: float = 0.0
     pose_m3: float = 0.0
     level_m3: float = 0.0
+    untied_m3: float = 0.0
 
     def as_dict(self) -> dict[str, float]:
         return asdict(self)
@@ -103,9 +109,12 @@ class IntervalModel:
     """The pose term's: fitted on drifting flights, apart from the others (module docstring)."""
     k_level: float = LEVEL_Z
     """The level term's: not fitted, the normal's (its sigma is stated by the drift model: module docstring)."""
+    k_untied: float = LEVEL_Z
+    """The untied stretches' term's: not fitted, as the level's."""
 
     def __post_init__(self) -> None:
-        for name in ("k_unseen", "k_interpolation", "k_noise", "k_sweeps", "k_faces", "k_blur", "k_pose", "k_level"):
+        for name in ("k_unseen", "k_interpolation", "k_noise", "k_sweeps", "k_faces", "k_blur", "k_pose", "k_level",
+                     "k_untied"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"interval model {name} must be a finite number >= 0, got {v!r}")
@@ -115,7 +124,7 @@ class IntervalModel:
         common = ((self.k_interpolation * t.interpolation_m3) ** 2 + (self.k_noise * t.noise_m3) ** 2
                   + (self.k_sweeps * t.sweeps_m3) ** 2 + (self.k_faces * t.faces_m3) ** 2
                   + (self.k_blur * t.blur_m3) ** 2 + (self.k_pose * t.pose_m3) ** 2
-                  + (self.k_level * t.level_m3) ** 2)
+                  + (self.k_level * t.level_m3) ** 2 + (self.k_untied * t.untied_m3) ** 2)
         return (math.sqrt(common + (self.k_unseen * t.unseen_low_m3) ** 2),
                 math.sqrt(common + (self.k_unseen * t.unseen_high_m3) ** 2))
 

@@ -201,7 +201,9 @@ def open_floor_reading(shift_m: float | None, heights: np.ndarray, grid: Grid, v
     other = volume_m3 - moved
     interval = None
     if level_sigma_m and terms is not None and model is not None:
-        below, above = model.half_widths_m3(replace(terms, level_m3=over_surface_m3(level_sigma_m, heights, grid)))
+        # the level then spans the whole flight, so the untied stretches' own term is in it
+        below, above = model.half_widths_m3(replace(terms, level_m3=over_surface_m3(level_sigma_m, heights, grid),
+                                                    untied_m3=0.0))
         interval = (max(0.0, other - below), other + above)
     return OtherReading(moved, other, interval)
 

@@ -138,6 +138,23 @@ def test_that_a_merged_survey_carries_the_least_certain_level_that_rests_on_the_
     assert least_certain_level([pose(None), None]) is None  # every level on a confirmed floor: no level term
 
 
+def test_that_untied_stretches_count_only_where_the_level_rests_on_a_floor_and_a_merge_takes_the_least_certain():
+    # A level on the logged reference spans the whole flight (the level term), so its untied stretches add nothing.
+    from ground.pose_correction import PoseCorrection
+    from ground.report import least_certain_untied, untied_stretches_sigma_m
+
+    def pose(untied, level=None, shift=None, applied=True):
+        return PoseCorrection(np.zeros(2), np.zeros((2, 4)), np.zeros((2, 4), dtype=bool), applied,
+                              untied_sigma_m=untied, level_sigma_m=level, open_floor_shift_m=shift)
+    on_floor, on_reference, open_floor = pose(0.05), pose(0.09, level=0.2), pose(0.07, level=0.2, shift=-0.3)
+    assert untied_stretches_sigma_m(on_floor) == 0.05
+    assert untied_stretches_sigma_m(on_reference) is None
+    assert untied_stretches_sigma_m(open_floor) == 0.07  # anchored on an open floor: the level rests on it
+    assert untied_stretches_sigma_m(pose(0.0)) is None and untied_stretches_sigma_m(pose(0.05, applied=False)) is None
+    assert least_certain_untied([on_floor, None, on_reference, open_floor, pose(0.5, applied=False)]) is open_floor
+    assert least_certain_untied([pose(0.0), None]) is None
+
+
 def test_that_a_merged_report_warns_of_each_flight_s_height_anchored_on_a_floor_in_the_open(two_flights, tmp_path,
                                                                                            monkeypatch):
     # A merged survey has no pose of its own: each flight's anchor on a floor seen only away from the walls (which may

@@ -830,6 +830,34 @@ def test_that_the_height_is_tied_to_the_floor_only_where_the_floor_or_a_pile_see
     assert unanchored_stretches(knots, np.ones(len(knots) - 1, dtype=bool)) == (0.0, 0.0, 0.0)
 
 
+def test_that_an_untied_stretch_s_sigma_is_the_walk_pinned_at_its_tied_ends_weighted_by_its_share():
+    # Between two tied moments the altitude reference's walk is a Brownian bridge: the mean over a stretch of T s has
+    # variance q^2 T / 12 (4,000 bridges of 300 steps, seeded); at the flight's start or end, open on one side, a
+    # walk from the tied end, q^2 T / 3. Each is weighted by its share of the flight; stretches add in quadrature.
+    from ground.pose_correction import untied_sigma_m
+    rng = np.random.default_rng(0)
+    q, dt, n = 0.05, 0.1, 300
+    walk = np.cumsum(rng.normal(0.0, q * math.sqrt(dt), (4000, n)), axis=1)
+    bridge = walk - walk[:, -1:] * np.arange(1, n + 1) / n
+    knots = np.arange(0.0, 91.0, 3.0)  # 30 intervals, 90 s
+    tied = np.ones(30, dtype=bool)
+    tied[10:20] = False  # 30 s between tied moments
+    share = 30.0 / 90.0
+    assert untied_sigma_m(knots, tied, q) == pytest.approx(float(np.std(bridge.mean(axis=1))) * share, rel=0.05)
+    assert untied_sigma_m(knots, tied, q) == pytest.approx(q * math.sqrt(30.0 / 12.0) * share)
+    open_end = np.ones(30, dtype=bool)
+    open_end[20:] = False  # the last 30 s: nothing after it ties it
+    assert untied_sigma_m(knots, open_end, q) == pytest.approx(q * math.sqrt(30.0 / 3.0) * share)
+    both = tied.copy()
+    both[24:] = False  # and the last 18 s, apart from the first stretch
+    assert untied_sigma_m(knots, both, q) == pytest.approx(math.hypot(q * math.sqrt(30.0 / 12.0) * share,
+                                                                      q * math.sqrt(18.0 / 3.0) * 18.0 / 90.0))
+    short = np.ones(30, dtype=bool)
+    short[10:12] = False  # two intervals: within a pass's reach of tied ones, as `unanchored_stretches` counts
+    assert untied_sigma_m(knots, short, q) == 0.0
+    assert untied_sigma_m(knots, np.ones(30, dtype=bool), q) == 0.0
+
+
 def test_that_a_height_not_tied_to_the_floor_is_warned_about_with_its_longest_stretch():
     from ground.pose_correction import PoseCorrection, unanchored_warning
     knots = np.arange(0.0, 31.0, 3.0)

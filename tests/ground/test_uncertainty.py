@@ -324,6 +324,14 @@ def test_that_a_level_no_floor_pinned_widens_the_interval_by_its_stated_sigma_no
     assert LEVEL_Z == pytest.approx(norm.ppf(0.95))
 
 
+def test_that_untied_stretches_widen_the_interval_by_their_stated_sigma_as_the_level_does():
+    model = IntervalModel(k_unseen=1, k_interpolation=2, k_noise=1, k_sweeps=1, k_faces=1)
+    base = ErrorTerms(interpolation_m3=30.0, unseen_low_m3=10.0)
+    below, _ = model.half_widths_m3(replace(base, untied_m3=50.0))
+    assert below == pytest.approx(math.sqrt(60.0**2 + 10.0**2 + (LEVEL_Z * 50.0) ** 2))
+    assert model.k_untied == LEVEL_Z
+
+
 def test_that_a_level_on_the_logged_reference_is_warned_about_when_it_holds_a_wide_interval():
     model = IntervalModel(k_unseen=1, k_interpolation=1, k_noise=1, k_sweeps=1, k_faces=1)
     w = level_warning(ErrorTerms(interpolation_m3=10.0, level_m3=80.0), model, 1200.0, 5.0)  # +/-132 m³: 11 %
@@ -358,3 +366,7 @@ def test_that_a_height_anchored_on_an_open_floor_is_warned_about_with_the_other_
     assert open_floor_reading(-0.28, heights, grid, 1037.0, 5.0).interval_m3 is None  # no sigma: no interval
     assert open_floor_reading(-0.01, heights, grid, 1037.0, 5.0, 0.2, terms, model) is None  # moved too little
     assert open_floor_reading(None, heights, grid, 1037.0, 5.0, 0.2, terms, model) is None  # a confirmed floor
+    # the other reading's level spans the whole flight, so the anchored reading's untied stretches are in it
+    untied = replace(terms, untied_m3=40.0)
+    assert open_floor_reading(-0.28, heights, grid, 1037.0, 5.0, 0.2, untied, model).interval_m3 == pytest.approx(
+        (other - half, other + half))
