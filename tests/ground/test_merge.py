@@ -155,6 +155,36 @@ def test_that_untied_stretches_count_only_where_the_level_rests_on_a_floor_and_a
     assert least_certain_untied([pose(0.0), None]) is None
 
 
+def test_that_a_report_s_interval_carries_the_untied_stretches_and_a_merge_the_least_certain_flight_s(
+        two_flights, tmp_path, monkeypatch):
+    from ground import report
+    from ground.pose_correction import PoseCorrection
+    sigmas = iter(())
+
+    def corrected(samples, *_a, **_k):
+        t = samples["t_s"]
+        untied, level = next(sigmas)
+        return PoseCorrection(np.array([t.min(), t.max()]), np.zeros((2, 4)), np.zeros((2, 4), dtype=bool), True,
+                              untied_sigma_m=untied, level_sigma_m=level)
+    monkeypatch.setattr(report, "estimate_pose_correction", corrected)
+
+    def terms(flights, *pairs):
+        nonlocal sigmas
+        sigmas = iter(pairs)
+        r = make_report(flights, tmp_path / f"r{len(pairs)}-{pairs[0][0]}-{pairs[0][1]}", ReportOptions(plots=False))
+        return r["interval_terms_m3"], r["volume_interval_m3"]
+    a, b = two_flights
+    one, wide = terms(a, (0.1, None))
+    assert one["untied_m3"] > 0 and one["level_m3"] == 0
+    assert terms(a, (0.2, None))[0]["untied_m3"] == pytest.approx(2 * one["untied_m3"])  # the sigma times the area
+    none, narrow = terms(a, (0.0, None))
+    assert none["untied_m3"] == 0 and narrow[1] - narrow[0] < wide[1] - wide[0]
+    on_reference = terms(a, (0.1, 0.3))[0]  # the level term spans the flight: no untied term beside it
+    assert on_reference["untied_m3"] == 0 and on_reference["level_m3"] > 0
+    merged = terms([a, b], (0.05, None), (0.1, None))[0]["untied_m3"]
+    assert merged == pytest.approx(terms([a, b], (0.1, None), (0.1, None))[0]["untied_m3"])  # the largest flight's
+
+
 def test_that_a_merged_report_warns_of_each_flight_s_height_anchored_on_a_floor_in_the_open(two_flights, tmp_path,
                                                                                            monkeypatch):
     # A merged survey has no pose of its own: each flight's anchor on a floor seen only away from the walls (which may

@@ -95,6 +95,9 @@ def test_that_the_verdict_names_the_interval_and_what_limits_it():
     assert level == ["level"]  # a level no floor pinned, when it holds the interval, is named
     assert "the drifting altitude reference, which no floor seen pinned" in verdict(1200.0, (1000.0, 1400.0), level,
                                                                                      None, 0)
+    untied = limiting_terms(ErrorTerms(interpolation_m3=1.0, untied_m3=100.0), DEFAULT_INTERVAL_MODEL)
+    assert untied == ["untied"]  # and so are the stretches no floor tied
+    assert "over stretches of the flight no floor seen tied" in verdict(1200.0, (1000.0, 1400.0), untied, None, 0)
 
 
 # ----- the report, as a user runs it -------------------------------------------------------------------------
