@@ -102,7 +102,8 @@ def test_that_the_command_prints_the_checklist_and_exits_4_on_a_failure(tmp_path
             "--preflight", "0.5", "-q"]  # less than a sweep period: one is sampled
     assert main(argv) == ExitCode.OK
     out = capsys.readouterr().out
-    assert out.splitlines()[0].startswith("preflight: 1.5 s") and out.splitlines()[-1] == "preflight passed"
+    # "passed", or "passed with N warnings" on a loaded machine: the rates only warn (found with both cores busy)
+    assert out.splitlines()[0].startswith("preflight: 1.5 s") and out.splitlines()[-1].startswith("preflight passed")
     state["stuck"] = True
     assert main(argv) == ExitCode.RUNTIME
     assert capsys.readouterr().out.splitlines()[-1] == "preflight FAILED: servo sweep"
