@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
+from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
@@ -99,6 +100,17 @@ def test_that_the_verdict_names_the_interval_and_what_limits_it():
     assert untied == ["untied"]  # and so are the stretches no floor tied
     assert "over stretches of the flight no floor seen tied" in verdict(1200.0, (1000.0, 1400.0), untied, None, 0)
 
+
+
+def test_that_every_term_a_verdict_can_name_has_its_meaning_and_remedy_in_the_interval_page():
+    # a surveyor reads "limited by: ..." and looks it up: a term added without its row would be a verdict unexplained
+    from ground.metadata import _LIMITS
+    page = (Path(__file__).resolve().parents[2] / "docs" / "uncertainty.md").read_text()
+    rows = [line for line in page.splitlines() if line.startswith("| ")]
+    missing = [words for words in _LIMITS.values() if not any(line.startswith(f"| {words} ") for line in rows)]
+    assert not missing, missing
+    assert set(_LIMITS) == {f.name.removesuffix("_m3").removesuffix("_low").removesuffix("_high")
+                            for f in fields(ErrorTerms)}  # one phrase a term
 
 # ----- the report, as a user runs it -------------------------------------------------------------------------
 
