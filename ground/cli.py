@@ -193,6 +193,7 @@ def format_summary(rep: dict) -> str:
             ("90 % interval", "not estimated" if iv is None else vol(iv[0], iv[1])),
             ("base", (rep.get("base") or {}).get("description", "the floor plane z = 0"))]
     rows += [("verdict", rep["verdict"])] if rep.get("verdict") else []
+    rows += [("to narrow it", "; ".join(rep["to_narrow_interval"]))] if rep.get("to_narrow_interval") else []
     if truth is not None:  # a reference volume: a simulated survey or --truth-volume
         rows += [("truth", vol(truth)), ("Ve (eq. 8)", pct(rep.get("volume_error_pct")))]
     rows += [("R_a (eq. 9)", pct(rep.get("coverage_ratio_pct"))),

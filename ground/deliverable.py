@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from ground.metadata import SurveyInfo, limiting_terms, survey_metadata, verdict
+from ground.metadata import SurveyInfo, limiting_terms, remedies, survey_metadata, verdict
 from ground.piles import PileOptions, pile_table
 from ground.surface import Grid
 from ground.uncertainty import DEFAULT_INTERVAL_MODEL, ErrorTerms, SurveyErrors
@@ -20,7 +20,8 @@ def add_deliverable(report: dict[str, Any], *, header: dict, log_path: Path, t_s
                     info: SurveyInfo, piles: PileOptions, heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
                     errors: SurveyErrors | None,
                     errors_in: Callable[[np.ndarray], SurveyErrors] | None) -> None:
-    """report["metadata"], report["piles"], report["verdict"] (and their warnings), in place."""
+    """report["metadata"], report["piles"], report["verdict"] (and their warnings) and what would narrow the
+    interval (report["to_narrow_interval"]), in place."""
     meta, warnings = survey_metadata(header, info, log_path, t_s)
     report["metadata"] = meta
     sigma = errors.point_sigma_m if errors is not None else 0.0
@@ -29,13 +30,14 @@ def add_deliverable(report: dict[str, Any], *, header: dict, log_path: Path, t_s
     report["warnings"] = [*report.get("warnings", []), *warnings, *table["warnings"]]
     report["volume_unit"] = piles.volume_unit.value
     report["mass_unit"] = piles.mass_unit.value
-    report["verdict"] = _verdict(report, heights_fit, heights, grid, piles)
-
-
-def _verdict(report: dict[str, Any], heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
-             piles: PileOptions) -> str:
     terms = report.get("interval_terms_m3")
     limits = [] if terms is None else limiting_terms(ErrorTerms(**terms), DEFAULT_INTERVAL_MODEL)
+    report["verdict"] = _verdict(report, limits, heights_fit, heights, grid, piles)
+    report["to_narrow_interval"] = remedies(limits)
+
+
+def _verdict(report: dict[str, Any], limits: list[str], heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
+             piles: PileOptions) -> str:
     where = None
     if "unseen" in limits:
         filled = ~np.isfinite(heights_fit)

@@ -159,6 +159,24 @@ _LIMITS = {
     "level": "the drifting altitude reference, which no floor seen pinned",
     "untied": "the drifting altitude reference over stretches of the flight no floor seen tied",
 }
+_REMEDIES = {
+    "unseen": "a re-flight over the ground never seen (pilescan-sitl plan --fill-gaps on this report), or legs "
+              "nearer the walls it lies along",
+    "interpolation": "sweep tracks closer together: a smaller P_traj (more legs), a slower flight or a faster sweep",
+    "noise": "more points a cell (a slower flight or a higher range rate) or a quieter sensor setting",
+    "blur": "a quieter sensor or shorter ranges (a lower flight)",
+    "sweeps": "the servo's calibration and the beam's mounting checked (pilescan-payload --servo-center-us, "
+              "--servo-us-per-rad, --boresight); sweeps that see the floor and the walls let the report calibrate "
+              "them",
+    "faces": "nothing a flight changes: a look at the places the warning names (a face or an undercut that one height "
+             "per cell cannot hold)",
+    "pose": "legs that see the floor or the walls' feet often (nearer the walls, strips of floor left clear), or an "
+            "altitude reference that does not drift over the pile",
+    "level": "a leg that sees a wall's foot or a strip of clear floor",
+    "untied": "legs that see the floor along the way (farther from the walls where the pile covers their feet), or "
+              "passes that cross the pile where it was seen beside the floor",
+}
+"""What narrows each term on the next flight: the report says it under the verdict (`remedies`)."""
 MIN_SHARE = 0.25
 """A term 'limits' the volume when it holds at least a quarter of the interval's variance."""
 
@@ -174,6 +192,12 @@ def limiting_terms(terms: ErrorTerms, model: IntervalModel) -> list[str]:
     if total <= 0:
         return []
     return [k for k, v in sorted(scaled.items(), key=lambda kv: -kv[1]) if v * v / total >= MIN_SHARE]
+
+
+def remedies(limits: list[str]) -> list[str]:
+    """What would narrow the interval on the next flight, one line for each limiting term (`limiting_terms`), in
+    their order."""
+    return [_REMEDIES[k] for k in limits]
 
 
 def verdict(volume: float, interval: tuple[float, float] | list[float] | None, limits: list[str],

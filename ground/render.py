@@ -349,6 +349,7 @@ class ReportContent:
     config: list[tuple[str, str]] = field(default_factory=list)
     config_file: str | None = None
     verdict: str | None = None
+    to_narrow: list[str] = field(default_factory=list)  # ground.metadata.remedies: under the verdict
     metadata: list[tuple[str, str]] = field(default_factory=list)  # ground.metadata.metadata_rows
     piles: tuple[list[str], list[list[str]]] = ([], [])  # ground.piles.pile_rows: header, rows
     piles_method: str | None = None
@@ -413,7 +414,7 @@ def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportC
     no_reference = report.get("true_volume_m3") is None  # a real survey: no "True volume: unknown" rows
     summary = [(_SUMMARY_LABELS[k], _SUMMARY_FORMAT[k](report.get(k))) for k in SUMMARY_KEYS
                if not (no_reference and k in REFERENCE_KEYS)]
-    handled = {*SUMMARY_KEYS, "warnings", "config", "metadata", "piles", "verdict"}
+    handled = {*SUMMARY_KEYS, "warnings", "config", "metadata", "piles", "verdict", "to_narrow_interval"}
     if no_reference:
         handled |= {"volume_error_m3", "volume_error_pct", "truth_in_interval"}
     extra_items: dict[str, Any] = {}
@@ -436,6 +437,7 @@ def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportC
         metadata.append(("Report software", str(report["software_version"])))
     return ReportContent(
         verdict=None if report.get("verdict") is None else str(report.get("verdict")),
+        to_narrow=[str(x) for x in report.get("to_narrow_interval") or []],
         metadata=metadata, piles=pile_rows(piles),
         piles_method=str(piles.get("method")) if isinstance(piles, Mapping) and piles.get("method") else None,
         config=config_rows, config_file=config_file, method=method_text(report.get("surface_fit")),
@@ -497,6 +499,8 @@ def render_markdown(content: ReportContent, out_dir: Path) -> str:
     lines += [f"**{_md_text(content.headline)}**", ""]
     if content.verdict:
         lines += [f"Verdict: {_md_text(content.verdict)}", ""]
+    if content.to_narrow:
+        lines += [f"To narrow the interval: {_md_text('; '.join(content.to_narrow))}", ""]
     head, rows = content.piles
     if rows:
         lines += ["## Piles", "", f"Found as {_md_text(content.piles_method or 'connected regions')}.", ""]
@@ -621,6 +625,9 @@ def render_html(content: ReportContent) -> str:
     parts.append(f'<p class="headline" id="volume">{_e(content.headline)}</p>')
     if content.verdict:
         parts.append(f'<p class="verdict" id="verdict"><strong>Verdict:</strong> {_e(content.verdict)}</p>')
+    if content.to_narrow:
+        parts.append(f'<p class="narrow" id="to-narrow"><strong>To narrow the interval:</strong> '
+                     f'{_e("; ".join(content.to_narrow))}</p>')
     head, rows = content.piles
     if rows:
         parts += ["<h2>Piles</h2>", f"<p>Found as {_e(content.piles_method or 'connected regions')}.</p>",

@@ -199,6 +199,8 @@ def compose(content: ReportContent) -> list[Figure]:
     p.lines(content.headline, 12.0, fontweight="bold")
     if content.verdict:
         p.lines(f"Verdict: {content.verdict}", 10.0)
+    if content.to_narrow:
+        p.lines(f"To narrow the interval: {'; '.join(content.to_narrow)}", SMALL_PT)
     head, rows = content.piles
     if rows:
         p.heading("Piles")

@@ -15,7 +15,7 @@ import pytest
 from firmware_py.core.cli import ExitCode
 from firmware_py.core.storage import Storage
 from ground.cli import main
-from ground.metadata import SurveyInfo, limiting_terms, metadata_rows, survey_metadata, verdict
+from ground.metadata import SurveyInfo, limiting_terms, metadata_rows, remedies, survey_metadata, verdict
 from ground.uncertainty import DEFAULT_INTERVAL_MODEL, ErrorTerms
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
@@ -104,11 +104,14 @@ def test_that_the_verdict_names_the_interval_and_what_limits_it():
 
 def test_that_every_term_a_verdict_can_name_has_its_meaning_and_remedy_in_the_interval_page():
     # a surveyor reads "limited by: ..." and looks it up: a term added without its row would be a verdict unexplained
-    from ground.metadata import _LIMITS
+    from ground.metadata import _LIMITS, _REMEDIES
     page = (Path(__file__).resolve().parents[2] / "docs" / "uncertainty.md").read_text()
-    rows = [line for line in page.splitlines() if line.startswith("| ")]
-    missing = [words for words in _LIMITS.values() if not any(line.startswith(f"| {words} ") for line in rows)]
+    rows = {cells[0].removesuffix(" (near ...)"): cells for cells in (
+        line.strip("| ").split(" | ") for line in page.splitlines() if line.startswith("| "))}
+    missing = [words for words in _LIMITS.values() if words not in rows]
     assert not missing, missing
+    # and the remedy it gives is the one the report prints under the verdict
+    assert all(rows[_LIMITS[k]][-1] == _REMEDIES[k] for k in _LIMITS), [rows[w][-1] for w in _LIMITS.values()]
     assert set(_LIMITS) == {f.name.removesuffix("_m3").removesuffix("_low").removesuffix("_high")
                             for f in fields(ErrorTerms)}  # one phrase a term
 
@@ -150,6 +153,11 @@ def test_that_the_report_carries_metadata_verdict_and_piles(run_dir, tmp_path, c
     assert [r["label"] for r in rows] == [p["label"] for p in piles]
     html = (out / "report.html").read_text()
     assert "Paper bay" in html and "<h2>Piles</h2>" in html and "Verdict:" in html
+    # under the verdict, what would narrow the interval: one line for each term it names, in its order
+    limits = limiting_terms(ErrorTerms(**rep["interval_terms_m3"]), DEFAULT_INTERVAL_MODEL)
+    assert limits and rep["to_narrow_interval"] == remedies(limits)
+    assert "To narrow the interval:" in html and "to narrow it" in printed
+    assert "To narrow the interval:" in (out / "report.md").read_text()
 
 
 def test_that_a_real_survey_shows_no_truth_rows(run_dir, tmp_path):

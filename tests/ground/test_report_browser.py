@@ -45,6 +45,7 @@ def test_that_chromium_shows_the_volume_its_interval_the_piles_and_every_image(r
     lo, hi = rep["volume_interval_m3"]
     assert f"Stockpile volume: {rep['volume_m3']:,.1f} m³ (90 % interval {lo:,.1f} – {hi:,.1f} m³)" in text
     assert f"Verdict: {rep['verdict']}" in text
+    assert rep["to_narrow_interval"] and f"To narrow the interval: {'; '.join(rep['to_narrow_interval'])}" in text
     assert rep["metadata"]["log_sha256"] in text
     piles = re.search(r'<table class="piles" id="piles">(.*?)</table>', page.dom, flags=re.S)
     assert piles is not None

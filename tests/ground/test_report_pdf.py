@@ -128,6 +128,7 @@ def test_that_the_report_command_writes_a_pdf_of_the_report(tmp_path):
     assert len(r.pages) >= 4  # the title page and its figures, the engineer's details and figures
     assert f"Stockpile volume: {rep['volume_m3']:,.1f} m³" in pages[0]
     assert rep["verdict"] in " ".join(pages[0].split())
+    assert rep["to_narrow_interval"] and "; ".join(rep["to_narrow_interval"]) in " ".join(pages[0].split())
     drawn = [re.findall(r"/(\w+)\s+Do\b", p.get_contents().get_data().decode("latin-1")) for p in r.pages]
     assert sum(len(d) for d in drawn) == len({n for d in drawn for n in d}) == 6  # each figure once
 
