@@ -392,15 +392,20 @@ def _html_warning(text: str) -> str:
     return f"<li>{_e(head)}" + ("<ul>" + "".join(f"<li>{_e(m)}</li>" for m in more) + "</ul>" if more else "") + "</li>"
 
 
-def _warnings(report: Mapping[str, Any]) -> list[str]:
-    w = report.get("warnings")
-    if w is None:
+def _texts(value: Any) -> list[str]:
+    """A report.json list of sentences as strings, whatever a hand-edited file holds there (None: none; one string:
+    one sentence, not its characters)."""
+    if value is None:
         return []
-    if isinstance(w, str):
-        return [w]
-    if isinstance(w, Iterable):
-        return [str(x) for x in w]
-    return [str(w)]
+    if isinstance(value, str):
+        return [value]
+    if isinstance(value, Iterable):
+        return [str(x) for x in value]
+    return [str(value)]
+
+
+def _warnings(report: Mapping[str, Any]) -> list[str]:
+    return _texts(report.get("warnings"))
 
 
 def _image_caption(name: str) -> str:
@@ -437,7 +442,7 @@ def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportC
         metadata.append(("Report software", str(report["software_version"])))
     return ReportContent(
         verdict=None if report.get("verdict") is None else str(report.get("verdict")),
-        to_narrow=[str(x) for x in report.get("to_narrow_interval") or []],
+        to_narrow=_texts(report.get("to_narrow_interval")),
         metadata=metadata, piles=pile_rows(piles),
         piles_method=str(piles.get("method")) if isinstance(piles, Mapping) and piles.get("method") else None,
         config=config_rows, config_file=config_file, method=method_text(report.get("surface_fit")),
