@@ -783,7 +783,6 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         return not_applied(f"too few points on the floor and walls ({int(np.count_nonzero(j_fit >= 0))}) to correct "
                            "the pose", points=counts)
     z_info = None
-    unanchored = (0.0, 0.0, 0.0)
     tied: np.ndarray | None = None  # per knot interval, whether the height is tied to the floor (`floor_anchored`)
     first_refused: str | None = None  # why the height solved before the registration was refused
     z_sigma: list[float] = []  # the standard errors of the height's mean, the last solve's last
@@ -847,7 +846,6 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
             p1, vr = corrected_points(b, x, k, f)
             floor = floor_from_below(p1, b.t_s, knots, np.zeros(len(knots)), floor, opts.n_significant)
             tied = floor_anchored(p1, b.t_s, knots, wall, floor, storage, cell_m, opts.max_position_error_m)
-            unanchored = unanchored_stretches(knots, tied)
     # Which knot components the data set (their information beats the prior's): the rest is interpolated.
     sel = np.flatnonzero(on)
     jac = _jacobian(b.take(sel), vr[sel], k[sel], f[sel], n[j1[sel]], np.full(len(sel), noise), 4 * len(knots))
@@ -917,7 +915,6 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                             notes.append(open_floor_note("solved again", shift_again))
                         tied = floor_anchored(corrected_points(b, x, k, f)[0], b.t_s, knots, wall, floor_again,
                                               storage, cell_m, opts.max_position_error_m)
-                        unanchored = unanchored_stretches(knots, tied)
                     elif first_refused is not None:
                         x[:, 2] = 0.0  # refused again: no height, as before (the registration's own is unchecked)
                         level_on_floor = False
@@ -969,7 +966,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                                          else level_sigma_m(opts.vertical_walk_m_per_sqrt_s, t1 - t0)),
                           open_floor_shift_m=(open_floor_shift if z_info is not None and open_floor_shift is not None
                                               and math.isfinite(open_floor_shift) else None),
-                          height_unanchored_s=unanchored if z_info is not None else (0.0, 0.0, 0.0),
+                          height_unanchored_s=(unanchored_stretches(knots, tied)
+                                               if z_info is not None and tied is not None else (0.0, 0.0, 0.0)),
                           untied_sigma_m=(untied_sigma_m(knots, tied, opts.vertical_walk_m_per_sqrt_s)
                                           if z_info is not None and tied is not None and not opts.open_floor
                                           else None), **common)

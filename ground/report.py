@@ -331,8 +331,13 @@ def least_certain_height(poses: Sequence[PoseCorrection | None]) -> PoseCorrecti
     """The flights' corrected pose whose height's standard error is largest (None: no flight's height corrected): a
     merged survey's pose term. Each flight's height errs on its own, and a merged cell's height is a weighted mean
     of the flights' points there, whose error's standard deviation is at most the largest flight's (Minkowski)."""
-    corrected = [p for p in poses if p is not None and p.applied and p.height_sigma_m]
-    return max(corrected, key=lambda p: p.height_sigma_m, default=None)
+    return _least_certain(poses, lambda p: p.height_sigma_m if p is not None and p.applied else None)
+
+
+def _least_certain(poses: Sequence[PoseCorrection | None],
+                   sigma_of: Callable[[PoseCorrection | None], float | None]) -> PoseCorrection | None:
+    """The pose whose sigma (sigma_of: None or 0 when it has none) is largest; None when none has one."""
+    return max((p for p in poses if sigma_of(p)), key=sigma_of, default=None)
 
 
 def logged_level_sigma_m(pose: PoseCorrection | None) -> float | None:
@@ -347,7 +352,7 @@ def logged_level_sigma_m(pose: PoseCorrection | None) -> float | None:
 def least_certain_level(poses: Sequence[PoseCorrection | None]) -> PoseCorrection | None:
     """The flights' corrected pose whose level rests on the logged reference with the largest standard error (None:
     no flight's does): a merged survey's level term, as `least_certain_height`."""
-    return max((p for p in poses if logged_level_sigma_m(p)), key=logged_level_sigma_m, default=None)
+    return _least_certain(poses, logged_level_sigma_m)
 
 
 def untied_stretches_sigma_m(pose: PoseCorrection | None) -> float | None:
@@ -362,7 +367,7 @@ def untied_stretches_sigma_m(pose: PoseCorrection | None) -> float | None:
 def least_certain_untied(poses: Sequence[PoseCorrection | None]) -> PoseCorrection | None:
     """The flights' corrected pose whose untied stretches' standard error is largest (None: no flight has one): a
     merged survey's untied term, as `least_certain_height`."""
-    return max((p for p in poses if untied_stretches_sigma_m(p)), key=untied_stretches_sigma_m, default=None)
+    return _least_certain(poses, untied_stretches_sigma_m)
 
 
 def merged_log(inputs: Sequence[LogInput]) -> SampleLog:
@@ -589,23 +594,24 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
         pose = with_closest_wall(pose, corrected, frame, storage)
     if corrected is samples and boresight == mount:  # nothing applied (a boresight alone leaves the samples)
         return replace(survey, mount=est, pose=pose)
-    fixed = with_pose_term(_survey(corrected, header, storage, frame, lever, opts, err, spikes, boresight), pose, pose)
+    fixed = with_pose_term(_survey(corrected, header, storage, frame, lever, opts, err, spikes, boresight), pose, pose,
+                           pose)
     return replace(fixed, servo_timing=survey.servo_timing, servo_retimed=survey.servo_retimed,
                    implausible=survey.implausible, despike_unavailable=survey.despike_unavailable, mount=est,
                    pose=pose, rangefinder=survey.rangefinder)
 
 
 def with_pose_term(survey: Survey, pose: PoseCorrection | None, level_pose: PoseCorrection | None,
-                   untied_pose: PoseCorrection | None = None) -> Survey:
+                   untied_pose: PoseCorrection | None) -> Survey:
     """The survey's error terms (the whole floor's and a cell mask's) with the pose term: the corrected height's
     standard error over the surfaced cells (ground.uncertainty), the level term when the height's level rests on
     the logged reference (`logged_level_sigma_m`), and the untied term when stretches of the flight were not tied
     to the floor (`untied_stretches_sigma_m`); as it was when no correction was applied. The level term comes from
-    level_pose and the untied one from untied_pose (one flight's: its pose, the default; merged flights':
+    level_pose and the untied one from untied_pose (one flight's: its pose; merged flights':
     `least_certain_level`, `least_certain_untied`)."""
     sigma = pose.height_sigma_m if pose is not None and pose.applied else None
     level = logged_level_sigma_m(level_pose)
-    untied = untied_stretches_sigma_m(pose if untied_pose is None else untied_pose)
+    untied = untied_stretches_sigma_m(untied_pose)
     if not (sigma or level or untied) or survey.errors is None:
         return survey
 
