@@ -215,6 +215,12 @@ class PoseCorrection:
     floor, and when the height came from a downward rangefinder whose share was left in (`PoseCorrectionOptions.
     open_floor`): that error follows the pile, not a walk, and the report warns of it on its own. With
     open_floor_shift_m it is the other reading's: the level had the open floor not been the floor."""
+    unexplained: bool = False
+    """Not applied because the drift model, fitted, left the floor and walls more than MAX_MISFIT noise levels off
+    their planes: something else bends the structure (a mounting error). The report then fits the mount with a drift
+    (`ground.self_calibration.DriftNuisance`) and tries again."""
+    step_sigma: np.ndarray | None = None
+    """(4,) the knots' random-walk prior (`prior_sigmas`: x, y, z in m, heading in rad) when `unexplained`."""
     untied_sigma_m: float | None = None
     """The standard error the stretches of the flight whose height no floor tied (`floor_anchored`) put on the height's
     mean over the survey: the altitude reference's walk over each such stretch, weighted by its share of the flight
@@ -949,7 +955,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         return not_applied(f"not applied: the floor and walls stay {drift_misfit * 100:.1f} cm off their "
                            f"planes "
                            f"after it, against {noise * 100:.1f} cm of noise: a drifting pose does not explain them "
-                           "(a mounting error the self-calibration did not fit?)", knots, **common)
+                           "(a mounting error the self-calibration did not fit?)", knots, unexplained=True,
+                           step_sigma=step, **common)
     if not matters(r_before, r1[on], r_after, jj, noise):
         return not_applied("not applied: too small to matter (the floor and walls "
                            f"{common['rms_before_m'] * 100:.2f} cm off their planes before it, "

@@ -60,7 +60,14 @@ from ground.pose_correction import unconstrained_warning as pose_unconstrained_w
 from ground.pose_correction import wall_warning as pose_wall_warning
 from ground.pose_source_check import autopilot_params, pose_source_line, pose_source_warnings
 from ground.rangefinder_height import RangefinderShare, estimate_share
-from ground.self_calibration import N_SIGNIFICANT, MountEstimate, apply_mount, describe, estimate_mount
+from ground.self_calibration import (
+    N_SIGNIFICANT,
+    DriftNuisance,
+    MountEstimate,
+    apply_mount,
+    describe,
+    estimate_mount,
+)
 from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
 from ground.smoothing import vertical_sigma_m
 from ground.surface import (
@@ -476,6 +483,7 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
     samples = without_implausible(samples, found)
     checked = {"implausible": found.counts(),
                "despike_unavailable": why_no_threshold(header) if opts.despike and spikes is None else None}
+    unlifted = samples
     samples, rangefinder = _rangefinder_share(samples, header, storage, frame, lever, opts, mount)
     checked["rangefinder"] = rangefinder
     # The building's estimates of the mount and the pose need the samples, not the survey: they run beside it, on the
@@ -483,7 +491,7 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
     # docs/design-notes.md). Used only when the servo is not re-timed, which changes the samples they were made from.
     with ThreadPoolExecutor(max_workers=1) as pool:
         ahead = pool.submit(_first_estimates, samples, header, storage, frame, lever, opts, err, mount,
-                            rangefinder is not None and rangefinder.applied)
+                            rangefinder is not None and rangefinder.applied, unlifted)
         survey = replace(_survey(samples, header, storage, frame, lever, opts, err, spikes, mount), **checked)
         before = survey.sweep_disagreement_m
         retime = opts.servo_retiming and before is not None and before > MAX_SWEEP_DISAGREEMENT_M
@@ -511,19 +519,21 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
 @dataclass(frozen=True)
 class _Estimates:
     """The mount the building says (None: not asked), the samples and boresight it leaves, and the pose's
-    correction estimated on them (None: not asked; not yet applied)."""
+    correction estimated on them (None: not asked; not yet applied). joint: the mount was fitted with a drift
+    beside it (`_mount_with_drift`)."""
 
     mount: MountEstimate | None
     samples: np.ndarray
     boresight: Boresight
     pose: PoseCorrection | None
+    joint: bool = False
 
 
 def _mount_of(s: np.ndarray, lever: np.ndarray, frame: StorageFrame, storage: Storage, err: SensorErrorModel,
-              resim: Resimulated | None, mount: Boresight) -> MountEstimate:
+              resim: Resimulated | None, mount: Boresight, drift: DriftNuisance | None = None) -> MountEstimate:
     usable = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
     return estimate_mount(usable, lever, frame, storage, err.range_sigma_m, err.range_sigma_rel, resim, mount,
-                          err.angle_sigma_rad, err.position_sigma_m)
+                          err.angle_sigma_rad, err.position_sigma_m, drift)
 
 
 def _pose_of(s: np.ndarray, bs: Boresight, header: dict, lever: np.ndarray, frame: StorageFrame, storage: Storage,
@@ -545,7 +555,7 @@ def _pose_of(s: np.ndarray, bs: Boresight, header: dict, lever: np.ndarray, fram
 
 def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame, lever: np.ndarray,
                      opts: ReportOptions, err: SensorErrorModel, mount: Boresight,
-                     share_taken_out: bool) -> _Estimates:
+                     share_taken_out: bool, unlifted: np.ndarray | None = None) -> _Estimates:
     """The mount's self-calibration, then the pose's correction with the mount it leaves. The mount before the
     pose: a constant mount error is partly a constant shift of the structure, which the pose's knots took up
     when they came first (measured: docs/pose_error.md)."""
@@ -558,7 +568,40 @@ def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame:
     if opts.pose_correction:
         pose = _pose_of(corrected, boresight, header, lever, frame, storage, err, share_taken_out,
                         opts.baro_walk_m_per_sqrt_s)
+        if opts.self_calibration and pose.unexplained:
+            joint = _mount_with_drift(samples, samples if unlifted is None else unlifted, header, storage, frame, lever,
+                                      opts, err, mount, share_taken_out, pose)
+            if joint is not None:
+                return joint
     return _Estimates(est, corrected, boresight, pose)
+
+
+def _mount_with_drift(samples: np.ndarray, unlifted: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
+                      lever: np.ndarray, opts: ReportOptions, err: SensorErrorModel, mount: Boresight,
+                      share_taken_out: bool, refused: PoseCorrection) -> _Estimates | None:
+    """The mount fitted together with a drift of the trajectory (`DriftNuisance`, on the pose correction's knots and
+    prior), when neither explains the building alone: the mount's fit refused (a drift bends the structure), and the
+    drift's fit left it off its planes (a mount error does). The joint estimate is a proposal, used only when the
+    pose correction on the mount it gives is applied; `_self_calibrated` then estimates the mount again on the
+    corrected trajectory, with every check, as it does for any applied mount. None: no proposal, or not confirmed.
+
+    The mount is fitted on the samples as logged (unlifted): the rangefinder's share taken out of their height
+    (`_rangefinder_share`) was measured on a cloud the mount bent, and its errors follow the pile, which a drift's
+    knots do not (a `flow` flight with a servo 3 deg off: the joint fit left the structure 7 cm off its planes from
+    those samples, 0.7 cm from the logged ones). The pose is then corrected from the samples with the share out."""
+    if refused.step_sigma is None or len(refused.knot_t_s) < 2:
+        return None
+    limits = PoseCorrectionOptions()
+    drift = DriftNuisance(refused.knot_t_s, refused.step_sigma[:3],
+                          np.array([limits.max_position_error_m] * 2 + [limits.max_vertical_error_m]))
+    resim = Resimulated.from_header(header)
+    est = _mount_of(unlifted, lever, frame, storage, err, resim, mount, drift)
+    if not est.any_applied:
+        return None
+    corrected, boresight = apply_mount(samples, est, resim, mount)
+    pose = _pose_of(corrected, boresight, header, lever, frame, storage, err, share_taken_out,
+                    opts.baro_walk_m_per_sqrt_s)
+    return _Estimates(est, corrected, boresight, pose, joint=True) if pose.applied else None
 
 
 def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
@@ -579,8 +622,11 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
         # a drift can pass for a mounting error (offset and scale buy part of it), and the pose then corrects a
         # cloud the mount bent (a vio flight with the datasheet's noise: -2.0 deg and +5.4 % found on a square
         # mount). Only an applied one: on a trajectory the pose left metres off (Appendix A's noise) a mount
-        # estimated again found errors the first had rightly refused (4 of 18 such flights).
-        for _ in range(MOUNT_POSE_ROUNDS):
+        # estimated again found errors the first had rightly refused (4 of 18 such flights). Not a mount fitted
+        # with a drift beside it (`_mount_with_drift`): the drift had no mount to pass for there, and the corrected
+        # trajectory's knots took up part of the tilt, which the mount fitted again then dropped (a `flow` flight:
+        # the tilt not found again, and the pose then refused on the mount left).
+        for _ in range(0 if first.joint else MOUNT_POSE_ROUNDS):
             if not (pose.applied and est is not None and est.any_applied):
                 break
             again = _mount_of(apply_pose_correction(samples, pose, frame), lever, frame, storage, err, resim, mount)

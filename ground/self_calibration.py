@@ -55,7 +55,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import sparse
 from scipy.optimize import least_squares
+from scipy.sparse.linalg import spsolve
 from threadpoolctl import threadpool_limits
 
 from firmware_py.core.frames import (
@@ -383,6 +385,95 @@ def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.n
     return q, j, r
 
 
+@dataclass(frozen=True)
+class DriftNuisance:
+    """A smooth drift of the trajectory's position fitted with the mount, and thrown away: a drifting pose (an indoor
+    estimate) moves every point of a stretch of flight alike, which a fit of the mount alone cannot explain (it
+    refused: the structure stayed decimetres off its planes), while a mount error moves the points of one sweep
+    differently by their angle, which a translation cannot take up. Piecewise linear in time with a random-walk
+    prior between knots, as `ground.pose_correction`'s. (A heading drift as well was measured and not kept: it took
+    up the walls' systematic millimetres, as the pose correction's heading did; docs/design-notes.md.)"""
+
+    knots_s: np.ndarray
+    """Knot times (s, the samples' clock), increasing, at least two."""
+    step_sigma_m: np.ndarray
+    """(3,) the prior's sigma of one knot-to-knot change of x, y, z (m)."""
+    abs_sigma_m: np.ndarray
+    """(3,) the prior's sigma of each knot's value (m): the largest drift believed."""
+
+
+DRIFT_ROUNDS = 15
+"""Gauss-Newton rounds of the mount and the drift together (`_fit_with_drift`), each with the points' planes and
+weights assigned again; they stop earlier once a round moves nothing by a millimetre."""
+
+
+def _fit_with_drift(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q: np.ndarray, sigma: np.ndarray,
+                    final: np.ndarray, t_s: np.ndarray, drift: DriftNuisance
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The mount and the drift (`DriftNuisance`) fitted together by Gauss-Newton rounds on the points near a plane,
+    weighted by the arctan loss as `_fit` is, the window shrinking to what the data achieve. A round whose full step
+    makes the loss worse (a point changed planes, the model bent) takes a shorter one. Leaves `prob`'s beam origins
+    drifted by the fitted drift. Returns (q, plane index, residual, final window) as `estimate_mount`'s own fit
+    does."""
+    knots = np.asarray(drift.knots_s, dtype=float)
+    kk = np.clip(np.searchsorted(knots, t_s, side="right") - 1, 0, len(knots) - 2)
+    ff = np.clip((t_s - knots[kk]) / (knots[kk + 1] - knots[kk]), 0.0, 1.0)
+    n_k = len(knots)
+    origins = prob.origins.copy()
+    delta = np.zeros((n_k, 3))
+    diff = sparse.diags([-np.ones(n_k - 1), np.ones(n_k - 1)], [0, 1], shape=(n_k - 1, n_k))
+    prior = sparse.block_diag([diff.T @ diff / st ** 2 + sparse.eye(n_k) / ab ** 2
+                               for st, ab in zip(drift.step_sigma_m, drift.abs_sigma_m, strict=True)], format="csc")
+    lo, hi = BOUNDS
+    window = np.maximum(sigma, final)
+
+    def place(qq: np.ndarray, dd: np.ndarray) -> np.ndarray:
+        prob.origins = origins + dd[kk] * (1 - ff)[:, None] + dd[kk + 1] * ff[:, None]
+        return prob.points(qq, idx)
+
+    def loss(qq: np.ndarray, dd: np.ndarray, w_idx: np.ndarray) -> float:
+        # the arctan loss over every point (one beyond BAND windows of any plane counts as at BAND) and the prior
+        u = _assign(place(qq, dd), n, d, np.full(len(idx), np.inf), prob.allowed(idx))[1] / w_idx
+        x = dd.T.ravel()
+        return float(np.sum(np.arctan(np.minimum(u * u, BAND ** 2)))) + float(x @ (prior @ x))
+
+    for _ in range(DRIFT_ROUNDS):
+        prob.angles.linearize(float(q[1]))
+        w_idx = window[idx]
+        j, r = _assign(place(q, delta), n, d, BAND * w_idx, prob.allowed(idx))
+        j = _trim_inside(j, r, w_idx)
+        keep = np.flatnonzero(j >= 0)
+        if len(keep) < 50:
+            break
+        u = r[keep] / w_idx[keep]
+        w = 1.0 / (1.0 + u ** 4) / w_idx[keep] ** 2  # the arctan loss's weight, in m^-2
+        k_pt, f_pt, nrm = kk[idx][keep], ff[idx][keep], n[j[keep]]
+        cols = np.stack([c * n_k + k_pt + e for c in range(3) for e in (0, 1)], axis=1)
+        vals = np.stack([nrm[:, c] * (f_pt if e else 1 - f_pt) for c in range(3) for e in (0, 1)], axis=1)
+        a_d = sparse.csr_matrix((vals.ravel(), (np.repeat(np.arange(len(keep)), 6), cols.ravel())),
+                                shape=(len(keep), 3 * n_k))
+        _, jacobian = prob.plane_distances(idx[keep], n[j[keep]], d[j[keep]])
+        a = sparse.hstack([a_d, sparse.csr_matrix(jacobian(q))], format="csr")
+        aw = a.T.multiply(w).tocsr()
+        p_all = sparse.block_diag([prior, sparse.csc_matrix((4, 4))], format="csc")
+        step = spsolve((aw @ a + p_all).tocsc(), -(aw @ r[keep]) - p_all @ np.concatenate([delta.T.ravel(),
+                                                                                           np.zeros(4)]))
+        d_delta, d_q = step[:3 * n_k].reshape(3, n_k).T, step[3 * n_k:]
+        before, scale = loss(q, delta, w_idx), 1.0
+        while scale > 1.0 / 64 and loss(np.clip(q + scale * d_q, lo, hi), delta + scale * d_delta, w_idx) > before:
+            scale /= 2.0
+        q, delta = np.clip(q + scale * d_q, lo, hi), delta + scale * d_delta
+        jj, r_all = _assign(place(q, delta), n, d, BAND * w_idx, prob.allowed(idx))
+        kappa = _robust_rms(r_all[jj >= 0] / np.maximum(sigma[idx][jj >= 0], 1e-9))
+        final = np.maximum(kappa * sigma, 0.002)
+        window = np.maximum(sigma, np.minimum(window, final))
+        if scale * np.abs(d_delta).max() < 1e-3 and np.all(scale * np.abs(d_q) < 1e-5):
+            break
+    place(q, delta)
+    q, j, r = _fit(prob, idx, n, d, q, [np.maximum(sigma, final), final])
+    return q, j, r, final
+
+
 def _implied_shifts(prob: _Problem, n: np.ndarray, d: np.ndarray,
                     max_shift_rad: float) -> tuple[np.ndarray, np.ndarray]:
     """How far each beam must turn in its sweep plane (square mount) for its range to end on each
@@ -501,7 +592,7 @@ def _along(s: np.ndarray, lever_arm_body_m, frame: StorageFrame, boresight: Bore
 def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, storage: Storage,
                    range_sigma_m: float, range_sigma_rel: float, resim: Resimulated | None = None,
                    boresight: Boresight = SQUARE, angle_sigma_rad: float = 0.0,
-                   position_sigma_m: float = 0.0) -> MountEstimate:
+                   position_sigma_m: float = 0.0, drift: DriftNuisance | None = None) -> MountEstimate:
     """Estimate the servo offset and scale and the boresight from the building (module docstring).
 
     Args:
@@ -513,6 +604,11 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
         boresight: the configured mounting (the header's); the tilt and yaw estimated are deviations from it.
         angle_sigma_rad: the header's pointing error (1 sigma), which a stretch of sweep along a plane may bend by.
         position_sigma_m: the header's position error drawn per pose message (1 sigma), which may bend it too.
+        drift: fit the mount jointly with a smooth translation of the trajectory (`DriftNuisance`), for a pose that
+            drifts; None: the logged positions are taken as they are. With a drift the estimate is a proposal: the
+            checks that judge a correction by the structure's own points (`_misfit_gain`, `_inside_excess`, the
+            planes' points' RMS) are made by the caller on the trajectory the pose correction leaves with it
+            (`ground.report`), where a drift no longer bends them.
     """
     finite = np.logical_and.reduce([np.isfinite(samples[f]) for f in
                                     ("range_m", "servo_rad", "x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad")])
@@ -546,6 +642,9 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
         # The wide first window let the pile drag the fit off what most structure points agree on
         # (seen with a coarser search on pile 2): fit again from the search's mount, narrow at once.
         q, j, r = _fit(prob, idx_all, n, d, start, [final, final])
+    if drift is not None:
+        q, j, r, final = _fit_with_drift(prob, idx_all, n, d, q, sigma, final, s["t_s"].astype(float), drift)
+        windows = [np.maximum(sigma, final), final]
     on = j >= 0
     if np.count_nonzero(on) < 50:
         return not_estimated("the building's floor and walls were not found in the cloud",
@@ -616,7 +715,7 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     r0 = np.einsum("ij,ij->i", prob.points(q0, idx_all[on]), n[j[on]]) - d[j[on]]
     rms_square, rms_fitted = _robust_rms(r0), _robust_rms(r[on])
     refused = None
-    if any(applied):
+    if any(applied) and drift is None:
         # Every point's distance from its nearest plane with and without the correction, so the points
         # either mount puts on the structure count (not only those the fitted one does).
         prob.angles.linearize(0.0)

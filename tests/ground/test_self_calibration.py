@@ -10,10 +10,13 @@ import pytest
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
 from firmware_py.core.samplelog import SAMPLE_DTYPE, SampleLogWriter, read_samplelog
 from firmware_py.core.storage import Storage
+from ground import report
+from ground.pose_correction import KNOT_SWEEPS, PoseCorrectionOptions, knot_times, prior_sigmas
 from ground.report import ReportOptions, make_report
 from ground.self_calibration import (
     INSIDE_SIGN,
     PLANE_SETS,
+    DriftNuisance,
     _trim_inside,
     describe,
     estimate_mount,
@@ -30,10 +33,10 @@ pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
 STORAGE = Storage(30, 20, 10)
 
 
-def _fly(tmp_path, faults, pile="1", storage=STORAGE, altitude_m=8.0, speed_m_s=2.0):
+def _fly(tmp_path, faults, pile="1", storage=STORAGE, altitude_m=8.0, speed_m_s=2.0, pose_error="none"):
     """At 2 m/s by default: half the flight of 1 m/s, the same floor and walls in every sweep."""
     cfg = FlyConfig(mission=Mission(storage=storage, p_traj=0.2, altitude_m=altitude_m, speed_m_s=speed_m_s),
-                    stockpile=pile, faults=faults, payload="firmware")
+                    stockpile=pile, faults=faults, payload="firmware", pose_error=pose_error)
     fly(cfg, tmp_path / "run", force=True)
     return tmp_path / "run"
 
@@ -87,6 +90,13 @@ def hidden_floor_runs(tmp_path_factory):
     """The paper's pile 2 in the small building: its material covers the floor wall to wall."""
     return (_fly(tmp_path_factory.mktemp("square2"), None, pile="2"),
             _fly(tmp_path_factory.mktemp("skewed2"), SKEW, pile="2"))
+
+
+@pytest.fixture(scope="module")
+def drifting_runs(tmp_path_factory):
+    """A square and a skewed mount flown on the same drifting indoor estimate (the SITL's `vio` profile)."""
+    return (_fly(tmp_path_factory.mktemp("drift-square"), None, pose_error="vio"),
+            _fly(tmp_path_factory.mktemp("drift-skewed"), SKEW, pose_error="vio"))
 
 
 @pytest.fixture(scope="module")
@@ -252,3 +262,50 @@ def test_that_a_plane_s_band_keeps_no_more_points_inside_than_outside_the_farthe
     r = inside * np.array([-0.01, -0.02, 0.01, 0.30, 0.02, 0.50, 0.04, 0.01, -0.01, 0.9])
     kept = _trim_inside(j, r, np.full(len(j), 0.05))
     assert list(kept) == [0, 0, 0, -1, 0, -1, -1, 1, 1, -1]  # the floor keeps its two nearest inside
+
+
+def _drift_of(s, h) -> DriftNuisance:
+    """The pose correction's knots and prior over the samples' time, as the report gives them."""
+    spacing = KNOT_SWEEPS / h["servo"]["frequency_hz"]
+    opts = PoseCorrectionOptions()
+    return DriftNuisance(knot_times(float(s["t_s"].min()), float(s["t_s"].max()), spacing),
+                         prior_sigmas(spacing, 2.0, opts)[:3],
+                         np.array([opts.max_position_error_m] * 2 + [opts.max_vertical_error_m]))
+
+
+def test_that_a_mount_under_a_drifting_pose_is_found_with_the_drift_fitted_beside_it(drifting_runs):
+    """The drift bends the structure as no mount does, so the mount alone is not found; with a smooth drift of the
+    position fitted beside it (and thrown away) the servo's offset and scale and the tilt come out, and a square mount
+    on the same drift stays square."""
+    square, skewed = drifting_runs
+    s, h = _usable(skewed)
+    args = (s, h["lever_arm_body_m"], StorageFrame(), STORAGE, h["sensor"]["range_sigma_m"],
+            h["sensor"]["range_sigma_rel"], Resimulated.from_header(h))
+    assert not estimate_mount(*args).any_applied
+    joint = estimate_mount(*args, drift=_drift_of(s, h))
+    assert joint.applied[:3] == (True, True, True)
+    assert abs(math.degrees(joint.values[0]) - 3.0) < 0.1
+    assert abs(joint.values[1] - 0.05) < 0.005
+    assert abs(math.degrees(joint.values[2]) - 2.0) < 0.5
+    s, h = _usable(square)
+    assert not estimate_mount(s, *args[1:], drift=_drift_of(s, h)).any_applied
+
+
+def test_that_the_report_corrects_a_mount_fault_and_a_drift_together(drifting_runs, tmp_path, monkeypatch):
+    """A mount fault under a drifting pose: the mount's fit alone refuses (the drift bends the structure), the pose's
+    alone refuses (the mount does), so the report fits the mount with a drift beside it and corrects the pose on
+    that mount; the volume comes out as the square-mounted flight's on the same drift."""
+    square, skewed = drifting_runs
+    clean = make_report(square, tmp_path / "square", ReportOptions(plots=False))
+    fixed = make_report(skewed, tmp_path / "fixed", ReportOptions(plots=False))
+    cal = fixed["self_calibration"]
+    assert all(cal[k]["applied"] for k in ("servo_offset_deg", "servo_scale", "boresight_tilt_deg"))
+    assert abs(cal["servo_offset_deg"]["estimate"] - 3.0) < 0.1
+    assert fixed["pose_correction"]["applied"] is True
+    assert abs(fixed["volume_error_pct"] - clean["volume_error_pct"]) < 0.3
+    monkeypatch.setattr(report, "_mount_with_drift", lambda *a, **k: None)  # as before the joint fit
+    both_refused = make_report(skewed, tmp_path / "refused", ReportOptions(plots=False))
+    assert not any(v["applied"] for k, v in both_refused["self_calibration"].items() if k.endswith(("_deg", "scale")))
+    assert both_refused["pose_correction"]["applied"] is False
+    assert "a drifting pose does not explain them" in both_refused["pose_correction"]["reason"]
+    assert abs(both_refused["volume_error_pct"] - clean["volume_error_pct"]) > 1.0
