@@ -582,8 +582,8 @@ def _mount_with_drift(samples: np.ndarray, unlifted: np.ndarray, header: dict, s
     """The mount fitted together with a drift of the trajectory (`DriftNuisance`, on the pose correction's knots and
     prior), when neither explains the building alone: the mount's fit refused (a drift bends the structure), and the
     drift's fit left it off its planes (a mount error does). The joint estimate is a proposal, used only when the
-    pose correction on the mount it gives is applied; `_self_calibrated` then estimates the mount again on the
-    corrected trajectory, with every check, as it does for any applied mount. None: no proposal, or not confirmed.
+    pose correction on the mount it gives is applied, with every check of its own (the drift model must now explain
+    the floor and walls). None: no proposal, or not confirmed.
 
     The mount is fitted on the samples as logged (unlifted): the rangefinder's share taken out of their height
     (`_rangefinder_share`) was measured on a cloud the mount bent, and its errors follow the pile, which a drift's

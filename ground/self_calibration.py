@@ -455,9 +455,11 @@ def _fit_with_drift(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarra
         _, jacobian = prob.plane_distances(idx[keep], n[j[keep]], d[j[keep]])
         a = sparse.hstack([a_d, sparse.csr_matrix(jacobian(q))], format="csr")
         aw = a.T.multiply(w).tocsr()
-        p_all = sparse.block_diag([prior, sparse.csc_matrix((4, 4))], format="csc")
+        p_all = sparse.block_diag([prior, sparse.diags(1.0 / hi ** 2)], format="csc")  # the mount step damped (bounds)
         step = spsolve((aw @ a + p_all).tocsc(), -(aw @ r[keep]) - p_all @ np.concatenate([delta.T.ravel(),
                                                                                            np.zeros(4)]))
+        if not np.all(np.isfinite(step)):
+            break
         d_delta, d_q = step[:3 * n_k].reshape(3, n_k).T, step[3 * n_k:]
         before, scale = loss(q, delta, w_idx), 1.0
         while scale > 1.0 / 64 and loss(np.clip(q + scale * d_q, lo, hi), delta + scale * d_delta, w_idx) > before:
