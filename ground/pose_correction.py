@@ -389,7 +389,9 @@ def corrected_points(b: Beams, values: np.ndarray, k: np.ndarray, f: np.ndarray)
     return b.vehicle_w + a[:, :3] + vr, vr
 
 
-def _basis(t: np.ndarray, knots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def knot_basis(t: np.ndarray, knots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each time's knot interval k and fraction f in it: a piecewise-linear value at t is v[k] (1 - f) + v[k + 1] f
+    (held beyond the ends)."""
     k = np.clip(np.searchsorted(knots, t, side="right") - 1, 0, len(knots) - 2)
     f = np.clip((t - knots[k]) / (knots[k + 1] - knots[k]), 0.0, 1.0)
     return k, f
@@ -695,7 +697,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     b = b.take(slice(None, None, stride))
     t0, t1 = float(b.t_s.min()), float(b.t_s.max())
     knots = knot_times(t0, t1, spacing)
-    k, f = _basis(b.t_s, knots)
+    k, f = knot_basis(b.t_s, knots)
     # what the data alone give: the sensor's error at the median range (the vote's bin), the data's noise.
     # The pointing and position errors the header states are in it: a degree at 12 m scatters the points by
     # 0.2 m, and with the range's 2.5 cm alone the noise was read from a sliver of that scatter, so a knot fitted
@@ -1125,7 +1127,7 @@ def floor_anchored(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.nda
     n_int = len(knots) - 1
     if n_int < 1:
         return np.zeros(0, dtype=bool)
-    k, _ = _basis(t, knots)
+    k, _ = knot_basis(t, knots)
     nx, ny, cid = _cells(p, storage, cell_m)
     n_cells = nx * ny
     inside = _in_building(p, wall, storage, max_error_m)
@@ -1375,7 +1377,7 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
     standard error of the correction's mean over the samples is appended to it when floor cells set the level
     (`mean_sigma_m`)."""
     n_knots = len(knots)
-    k, f_t = _basis(t, knots)
+    k, f_t = knot_basis(t, knots)
     inside = _in_building(p, wall, storage, max_error_m)
     nx, ny, cid = _cells(p, storage, cell_m)
     # Each cell's slope, from all its points (every time together): the height a knot interval gives is at
@@ -1403,7 +1405,7 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
     fc = np.flatnonzero(floor_cells[uniq_cells])
     rows_s = 1.25 * np.maximum(mad, noise_m) / np.sqrt(cnt)  # the sd of a median
     n_par = n_knots + n_cells
-    kk, ff = _basis(tm, knots)
+    kk, ff = knot_basis(tm, knots)
     m_obs, m_floor = len(med), len(fc)
     rows = np.concatenate([np.repeat(np.arange(m_obs), 3), m_obs + np.arange(m_floor)])
     cols = np.concatenate([np.column_stack([kk, kk + 1, n_knots + cell_idx]).ravel(), n_knots + fc])
@@ -1482,7 +1484,7 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
     if z_rel is None:
         return floor, None, None, math.inf, False
     zc = p[:, 2] + np.interp(t, knots, z_rel)
-    k, _ = _basis(t, knots)
+    k, _ = knot_basis(t, knots)
     nx, ny, cid = _cells(p, storage, cell_m)
     key = k * (nx * ny) + cid
     # the frame's noise: how far one interval's height of a cell is from the cell's height at other times
@@ -1698,7 +1700,7 @@ def register_from_crossings(b: Beams, x: np.ndarray, x_wall: np.ndarray, knots: 
         coef = {Component.Z.value: np.ones(len(key)), Component.X.value: -g_x, Component.Y.value: -g_y,
                 Component.HEADING.value: -(g_x * -vy + g_y * vx)}
         rows_s = 1.25 * np.maximum(mad, noise_m) / np.sqrt(cnt)
-        kk, ff = _basis(tm, knots)
+        kk, ff = knot_basis(tm, knots)
         m_obs, m_floor = len(med), len(fc)
         n_par = nc * n_knots + n_cells
         r_i, c_i, d_i = [], [], []

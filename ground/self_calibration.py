@@ -72,6 +72,7 @@ from firmware_py.core.frames import (
 from firmware_py.core.servo_model import command_angles, servo_angles
 from firmware_py.core.storage import Storage
 from ground.plane_stretches import beams, stretches_along
+from ground.pose_correction import knot_basis
 from ground.servo_timing import Resimulated
 
 N_GROUPS = 8
@@ -416,8 +417,7 @@ def _fit_with_drift(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarra
     drifted by the fitted drift. Returns (q, plane index, residual, final window) as `estimate_mount`'s own fit
     does."""
     knots = np.asarray(drift.knots_s, dtype=float)
-    kk = np.clip(np.searchsorted(knots, t_s, side="right") - 1, 0, len(knots) - 2)
-    ff = np.clip((t_s - knots[kk]) / (knots[kk + 1] - knots[kk]), 0.0, 1.0)
+    kk, ff = knot_basis(t_s, knots)
     n_k = len(knots)
     origins = prob.origins.copy()
     delta = np.zeros((n_k, 3))
@@ -609,8 +609,8 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
         drift: fit the mount jointly with a smooth translation of the trajectory (`DriftNuisance`), for a pose that
             drifts; None: the logged positions are taken as they are. With a drift the estimate is a proposal: the
             checks that judge a correction by the structure's own points (`_misfit_gain`, `_inside_excess`, the
-            planes' points' RMS) are made by the caller on the trajectory the pose correction leaves with it
-            (`ground.report`), where a drift no longer bends them.
+            planes' points' RMS) are not made, since a drift still bends them; the caller keeps the mount only if
+            the pose correction on it is then applied, with its own checks (`ground.report`).
     """
     finite = np.logical_and.reduce([np.isfinite(samples[f]) for f in
                                     ("range_m", "servo_rad", "x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad")])

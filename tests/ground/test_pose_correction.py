@@ -526,11 +526,11 @@ def test_that_a_height_solved_in_the_frame_before_the_registration_is_solved_aga
     # floor"), and the registration's own height trades with the position on a flat-topped pile (a `vio` flight
     # over pile 2: a +0.26 m block over 97 s). Once the pile seen twice has aligned the flight, both are done
     # again from the logged reference, and the position and heading are left as the registration put them.
-    from ground.pose_correction import _basis, _height_again, knot_times
+    from ground.pose_correction import _height_again, knot_basis, knot_times
     samples, _ = flight(None, corners=[(4.0, 4.0), (56.0, 4.0), (56.0, 36.0), (4.0, 36.0)], cast=_cast_cone)
     b, _ = beams(samples, LEVER, FRAME)
     knots = knot_times(float(b.t_s.min()), float(b.t_s.max()), 2 * PERIOD_S)
-    k, f = _basis(b.t_s, knots)
+    k, f = knot_basis(b.t_s, knots)
     p = b.vehicle_w + b.to_point_w
     at_wall = ((p[:, 0] < 0.05) | (p[:, 0] > STORAGE.length_m - 0.05) | (p[:, 1] < 0.05)
                | (p[:, 1] > STORAGE.width_m - 0.05))
