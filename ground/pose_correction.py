@@ -221,6 +221,10 @@ class PoseCorrection:
     (`ground.self_calibration.DriftNuisance`) and tries again."""
     step_sigma: np.ndarray | None = None
     """(4,) the knots' random-walk prior (`prior_sigmas`: x, y, z in m, heading in rad) when `unexplained`."""
+    drift_fit: np.ndarray | None = None
+    """(knots, 4) what the drift model's fit found (to the floor and walls, and the pile seen twice), when
+    `unexplained` (not applied: `values` stay zero). A start for the mount fitted with a drift: bent by the mount, it
+    is still nearer the drift than none is where the structure pins it only loosely."""
     untied_sigma_m: float | None = None
     """The standard error the stretches of the flight whose height no floor tied (`floor_anchored`) put on the height's
     mean over the survey: the altitude reference's walk over each such stretch, weighted by its share of the flight
@@ -958,7 +962,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                            f"planes "
                            f"after it, against {noise * 100:.1f} cm of noise: a drifting pose does not explain them "
                            "(a mounting error the self-calibration did not fit?)", knots, unexplained=True,
-                           step_sigma=step, **common)
+                           step_sigma=step, drift_fit=x.copy(), **common)
     if not matters(r_before, r1[on], r_after, jj, noise):
         return not_applied("not applied: too small to matter (the floor and walls "
                            f"{common['rms_before_m'] * 100:.2f} cm off their planes before it, "

@@ -593,7 +593,8 @@ def _mount_with_drift(samples: np.ndarray, unlifted: np.ndarray, header: dict, s
         return None
     limits = PoseCorrectionOptions()
     drift = DriftNuisance(refused.knot_t_s, refused.step_sigma[:3],
-                          np.array([limits.max_position_error_m] * 2 + [limits.max_vertical_error_m]))
+                          np.array([limits.max_position_error_m] * 2 + [limits.max_vertical_error_m]),
+                          None if refused.drift_fit is None else refused.drift_fit[:, :3])
     resim = Resimulated.from_header(header)
     est = _mount_of(unlifted, lever, frame, storage, err, resim, mount, drift)
     if not est.any_applied:

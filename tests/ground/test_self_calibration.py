@@ -291,11 +291,34 @@ def test_that_a_mount_under_a_drifting_pose_is_found_with_the_drift_fitted_besid
     assert not estimate_mount(s, *args[1:], drift=_drift_of(s, h)).any_applied
 
 
+def test_that_of_two_starts_for_the_drift_the_fit_keeps_the_one_the_structure_agrees_with(drifting_runs):
+    """The joint fit runs from no drift and from the start it is given (the pose correction's own fit) and keeps the
+    fit that puts more points on the floor and walls: a start a metre off everywhere loses to no drift, and the
+    mount still comes out."""
+    _, skewed = drifting_runs
+    s, h = _usable(skewed)
+    drift = _drift_of(s, h)
+    far = DriftNuisance(drift.knots_s, drift.step_sigma_m, drift.abs_sigma_m,
+                        np.tile([1.0, -1.0, 0.5], (len(drift.knots_s), 1)))
+    joint = estimate_mount(s, h["lever_arm_body_m"], StorageFrame(), STORAGE, h["sensor"]["range_sigma_m"],
+                           h["sensor"]["range_sigma_rel"], Resimulated.from_header(h), drift=far)
+    assert joint.applied[:3] == (True, True, True)
+    assert abs(math.degrees(joint.values[0]) - 3.0) < 0.1
+    assert abs(math.degrees(joint.values[2]) - 2.0) < 0.5
+
+
+def test_that_a_drift_start_of_the_wrong_shape_is_refused():
+    with pytest.raises(ValueError, match="start"):
+        DriftNuisance(np.arange(4.0), np.ones(3), np.ones(3), np.zeros((3, 3)))
+
+
 def test_that_the_report_corrects_a_mount_fault_and_a_drift_together(drifting_runs, tmp_path, monkeypatch):
     """A mount fault under a drifting pose: the mount's fit alone refuses (the drift bends the structure), the pose's
-    alone refuses (the mount does), so the report fits the mount with a drift beside it and corrects the pose on
-    that mount; the volume comes out as the square-mounted flight's on the same drift."""
+    alone refuses (the mount does), so the report fits the mount with a drift beside it, started also from the drift
+    the pose's fit found, and corrects the pose on that mount; the volume comes out as the square-mounted flight's on
+    the same drift."""
     square, skewed = drifting_runs
+    real_mount_of = report._mount_of
     clean = make_report(square, tmp_path / "square", ReportOptions(plots=False))
     fixed = make_report(skewed, tmp_path / "fixed", ReportOptions(plots=False))
     cal = fixed["self_calibration"]
@@ -303,6 +326,13 @@ def test_that_the_report_corrects_a_mount_fault_and_a_drift_together(drifting_ru
     assert abs(cal["servo_offset_deg"]["estimate"] - 3.0) < 0.1
     assert fixed["pose_correction"]["applied"] is True
     assert abs(fixed["volume_error_pct"] - clean["volume_error_pct"]) < 0.3
+    starts = []
+    monkeypatch.setattr(report, "_mount_of", lambda *a, **k: starts.append(a[7].start_m if len(a) > 7 and a[7]
+                                                                            else None) or real_mount_of(*a, **k))
+    make_report(skewed, tmp_path / "spied", ReportOptions(plots=False))
+    given = [m for m in starts if m is not None]
+    assert len(given) == 1 and given[0].shape[1] == 3 and np.abs(given[0]).max() > 0.01  # the pose's own drift fit
+    monkeypatch.undo()
     monkeypatch.setattr(report, "_mount_with_drift", lambda *a, **k: None)  # as before the joint fit
     both_refused = make_report(skewed, tmp_path / "refused", ReportOptions(plots=False))
     assert not any(v["applied"] for k, v in both_refused["self_calibration"].items() if k.endswith(("_deg", "scale")))
