@@ -592,6 +592,9 @@ def _mount_with_drift(samples: np.ndarray, unlifted: np.ndarray, header: dict, s
     if refused.step_sigma is None or len(refused.knot_t_s) < 2:
         return None
     limits = PoseCorrectionOptions()
+    # The refused correction's own drift fit is a second start (its height, on a `flow` flight, is on the samples
+    # with the share out, not on the logged ones fitted here: a start only, which the fit keeps or not by the points
+    # it puts on the planes)
     drift = DriftNuisance(refused.knot_t_s, refused.step_sigma[:3],
                           np.array([limits.max_position_error_m] * 2 + [limits.max_vertical_error_m]),
                           None if refused.drift_fit is None else refused.drift_fit[:, :3])
