@@ -49,12 +49,14 @@ def test_that_the_payload_process_ranges_the_served_world_with_correct_pose_tags
     # Each logged pose and servo angle, ray traced in the served world, gives the range measured.
     world = World(storage, piles.resolve(str(tmp_path / "net" / "pile.stl"), storage))
     err = range_errors(log, world, good, good)
-    # The tail against the same ranges tagged one 2 ms slot late (the beam sweeps the pile fast: 7.8 cm at the
-    # 90th percentile on an idle machine, where the tags' own is 1.6 cm): each range is tagged with its own slot
-    # when its tail is nearer none than that, below half of it. The stamps are real time, and a starved machine
-    # (the suite's workers and two campaigns on 2 cores) stretched the tail to 3.0 cm, past a fixed 3 cm.
+    # The median and the tail against the same ranges tagged one 2 ms slot late (the beam sweeps the pile fast: 7.8
+    # cm at the 90th percentile on an idle machine, where the tags' own is 1.6 cm): each range is tagged with its own
+    # slot when it is nearer none than that, below half of it. The stamps are real time, and a starved machine (the
+    # suite's workers and two campaigns on 2 cores) stretched the tail to 3.0 cm, past a fixed 3 cm; a slower machine
+    # (2026-12-01) put the median at 0.7-1.2 cm, past a fixed 1 cm, with one slot late at 2.4-6.1 cm.
     one_slot_late = range_errors(log, world, good, good[1:])
-    assert np.median(err) < 0.01 and np.percentile(err, 90) < np.percentile(one_slot_late, 90) / 2
+    assert np.median(err) < np.median(one_slot_late) / 2
+    assert np.percentile(err, 90) < np.percentile(one_slot_late, 90) / 2
     assert run.report["volume_m3"] > 0
 
 
@@ -136,7 +138,9 @@ def test_that_a_networked_flight_at_a_turned_site_agrees_on_origin_and_frame(tmp
     assert len(good) > 500
     world = World(storage, piles.resolve(str(tmp_path / "net" / "pile.stl"), storage))
     err = range_errors(log, world, good, good, frame)
-    # The tail held to half that of the same ranges tagged one 2 ms slot late, as in the first test: a fixed 3 cm
-    # measured the machine (3.008 cm with the suite and a second test run on the 2 cores).
+    # The median and the tail held to half those of the same ranges tagged one 2 ms slot late, as in the first test:
+    # a fixed 3 cm tail and a fixed 1 cm median measured the machine (3.008 cm with the suite and a second test run on
+    # the 2 cores; a median of 1.17 cm on a slower machine, 2026-12-01, where one slot late gives 2.4-6.1 cm).
     one_slot_late = range_errors(log, world, good, good[1:], frame)
-    assert np.median(err) < 0.01 and np.percentile(err, 90) < np.percentile(one_slot_late, 90) / 2
+    assert np.median(err) < np.median(one_slot_late) / 2
+    assert np.percentile(err, 90) < np.percentile(one_slot_late, 90) / 2
