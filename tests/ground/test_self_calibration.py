@@ -318,21 +318,24 @@ def test_that_the_report_corrects_a_mount_fault_and_a_drift_together(drifting_ru
     the pose's fit found, and corrects the pose on that mount; the volume comes out as the square-mounted flight's on
     the same drift."""
     square, skewed = drifting_runs
-    real_mount_of = report._mount_of
     clean = make_report(square, tmp_path / "square", ReportOptions(plots=False))
+    real_mount_of, starts = report._mount_of, []
+
+    def mount_of(*a, **k):
+        drift = a[7] if len(a) > 7 else k.get("drift")
+        starts.append(None if drift is None else drift.start_m)
+        return real_mount_of(*a, **k)
+
+    monkeypatch.setattr(report, "_mount_of", mount_of)
     fixed = make_report(skewed, tmp_path / "fixed", ReportOptions(plots=False))
+    monkeypatch.undo()
+    given = [m for m in starts if m is not None]
+    assert len(given) == 1 and given[0].shape[1] == 3 and np.abs(given[0]).max() > 0.01  # the pose's own drift fit
     cal = fixed["self_calibration"]
     assert all(cal[k]["applied"] for k in ("servo_offset_deg", "servo_scale", "boresight_tilt_deg"))
     assert abs(cal["servo_offset_deg"]["estimate"] - 3.0) < 0.1
     assert fixed["pose_correction"]["applied"] is True
     assert abs(fixed["volume_error_pct"] - clean["volume_error_pct"]) < 0.3
-    starts = []
-    monkeypatch.setattr(report, "_mount_of", lambda *a, **k: starts.append(a[7].start_m if len(a) > 7 and a[7]
-                                                                            else None) or real_mount_of(*a, **k))
-    make_report(skewed, tmp_path / "spied", ReportOptions(plots=False))
-    given = [m for m in starts if m is not None]
-    assert len(given) == 1 and given[0].shape[1] == 3 and np.abs(given[0]).max() > 0.01  # the pose's own drift fit
-    monkeypatch.undo()
     monkeypatch.setattr(report, "_mount_with_drift", lambda *a, **k: None)  # as before the joint fit
     both_refused = make_report(skewed, tmp_path / "refused", ReportOptions(plots=False))
     assert not any(v["applied"] for k, v in both_refused["self_calibration"].items() if k.endswith(("_deg", "scale")))
