@@ -485,14 +485,15 @@ def _fit_with_drift(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarra
                 break
         return q, delta, final
 
-    starts = [np.zeros((n_k, 3))] + ([] if drift.start_m is None else [np.asarray(drift.start_m, dtype=float)])
+    starts = [np.zeros((n_k, 3))]
+    if drift.start_m is not None and np.all(np.isfinite(drift.start_m)):  # a start is a hint: a broken one is skipped
+        starts.append(np.asarray(drift.start_m, dtype=float))
     fits = [rounds(q.copy(), start.copy(), final) for start in starts]
     common = np.minimum.reduce([f for _, _, f in fits])
     agree = []
     for qq, dd, _ in fits:
         prob.angles.linearize(float(qq[1]))
-        place(qq, dd)
-        agree.append(int(np.count_nonzero(_assign(prob.points(qq, idx), n, d, common[idx], prob.allowed(idx))[0] >= 0)))
+        agree.append(int(np.count_nonzero(_assign(place(qq, dd), n, d, common[idx], prob.allowed(idx))[0] >= 0)))
     q, delta, final = fits[int(np.argmax(agree))]
     place(q, delta)
     q, j, r = _fit(prob, idx, n, d, q, [np.maximum(sigma, final), final])

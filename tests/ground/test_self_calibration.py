@@ -291,15 +291,15 @@ def test_that_a_mount_under_a_drifting_pose_is_found_with_the_drift_fitted_besid
     assert not estimate_mount(s, *args[1:], drift=_drift_of(s, h)).any_applied
 
 
-def test_that_of_two_starts_for_the_drift_the_fit_keeps_the_one_the_structure_agrees_with(drifting_runs):
+@pytest.mark.parametrize("start", [(1.0, -1.0, 0.5), (math.nan,) * 3], ids=["a metre off", "not finite"])
+def test_that_of_two_starts_for_the_drift_the_fit_keeps_the_one_the_structure_agrees_with(drifting_runs, start):
     """The joint fit runs from no drift and from the start it is given (the pose correction's own fit) and keeps the
-    fit that puts more points on the floor and walls: a start a metre off everywhere loses to no drift, and the
-    mount still comes out."""
+    fit that puts more points on the floor and walls: a start a metre off everywhere loses to no drift (from it alone
+    the fit is refused, 0.8 cm off), a start that is not finite is skipped, and the mount still comes out."""
     _, skewed = drifting_runs
     s, h = _usable(skewed)
     drift = _drift_of(s, h)
-    far = DriftNuisance(drift.knots_s, drift.step_sigma_m, drift.abs_sigma_m,
-                        np.tile([1.0, -1.0, 0.5], (len(drift.knots_s), 1)))
+    far = DriftNuisance(drift.knots_s, drift.step_sigma_m, drift.abs_sigma_m, np.tile(start, (len(drift.knots_s), 1)))
     joint = estimate_mount(s, h["lever_arm_body_m"], StorageFrame(), STORAGE, h["sensor"]["range_sigma_m"],
                            h["sensor"]["range_sigma_rel"], Resimulated.from_header(h), drift=far)
     assert joint.applied[:3] == (True, True, True)
