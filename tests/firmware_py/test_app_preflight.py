@@ -80,7 +80,13 @@ def test_that_a_silent_autopilot_and_an_existing_log_fail_while_the_sensor_and_s
     verdicts = {c.name: c.verdict for c in res.checks}
     assert verdicts["autopilot"] is Verdict.FAIL and verdicts["pose"] is Verdict.FAIL
     assert verdicts["sample log"] is Verdict.FAIL and "already exists" in res.checks[0].detail
-    assert verdicts["rangefinder"] is Verdict.OK and verdicts["servo sweep"] is Verdict.OK
+    # Both still checked. Their rates are the machine's: with the suite on two cores kept busy by two more processes
+    # the rangefinder read below 90 % of its rate (a warning, 2026-12-01), so a warning is allowed for that alone
+    # (and the sweep's for too few sectors ranged, its share of the same), never a failure.
+    checks = {c.name: c for c in res.checks}
+    assert verdicts["rangefinder"] is Verdict.OK or "slower than the" in checks["rangefinder"].detail
+    assert verdicts["servo sweep"] is Verdict.OK or "ranges in only" in checks["servo sweep"].detail
+    assert "% ranged" in checks["rangefinder"].detail
     assert took_s < 10.0  # the pose wait is cut short when nothing comes from the autopilot at all
     assert Path(cfg.out_path).read_bytes() == b"an earlier flight"
 
