@@ -435,9 +435,13 @@ def _fit_with_drift(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarra
     prior = sparse.block_diag([diff.T @ diff / st ** 2 + sparse.eye(n_k) / ab ** 2
                                for st, ab in zip(drift.step_sigma_m, drift.abs_sigma_m, strict=True)], format="csc")
     lo, hi = BOUNDS
+    p_all = sparse.block_diag([prior, sparse.diags(1.0 / hi ** 2)], format="csc")  # the mount step damped (bounds)
+
+    def shift(dd: np.ndarray) -> None:
+        prob.origins = origins + dd[kk] * (1 - ff)[:, None] + dd[kk + 1] * ff[:, None]
 
     def place(qq: np.ndarray, dd: np.ndarray) -> np.ndarray:
-        prob.origins = origins + dd[kk] * (1 - ff)[:, None] + dd[kk + 1] * ff[:, None]
+        shift(dd)
         return prob.points(qq, idx)
 
     def loss(qq: np.ndarray, dd: np.ndarray, w_idx: np.ndarray) -> float:
@@ -467,7 +471,6 @@ def _fit_with_drift(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarra
             _, jacobian = prob.plane_distances(idx[keep], n[j[keep]], d[j[keep]])
             a = sparse.hstack([a_d, sparse.csr_matrix(jacobian(q))], format="csr")
             aw = a.T.multiply(w).tocsr()
-            p_all = sparse.block_diag([prior, sparse.diags(1.0 / hi ** 2)], format="csc")  # the mount step damped
             step = spsolve((aw @ a + p_all).tocsc(),
                            -(aw @ r[keep]) - p_all @ np.concatenate([delta.T.ravel(), np.zeros(4)]))
             if not np.all(np.isfinite(step)):
@@ -492,8 +495,8 @@ def _fit_with_drift(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarra
     common = np.minimum.reduce([f for _, _, f in fits])
     agree = []
     for qq, dd, _ in fits:
-        prob.angles.linearize(float(qq[1]))
-        agree.append(int(np.count_nonzero(_assign(place(qq, dd), n, d, common[idx], prob.allowed(idx))[0] >= 0)))
+        shift(dd)
+        agree.append(_agreeing(prob, qq, n, d, common, idx))
     q, delta, final = fits[int(np.argmax(agree))]
     place(q, delta)
     q, j, r = _fit(prob, idx, n, d, q, [np.maximum(sigma, final), final])
@@ -584,10 +587,11 @@ def _robust_rms(r: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(r))) if len(r) else 0.0
 
 
-def _agreeing(prob: _Problem, q: np.ndarray, n: np.ndarray, d: np.ndarray, window: np.ndarray) -> int:
-    """How many points lie within their window of a plane with the mount q."""
+def _agreeing(prob: _Problem, q: np.ndarray, n: np.ndarray, d: np.ndarray, window: np.ndarray,
+              idx: np.ndarray | slice = slice(None)) -> int:
+    """How many points (of idx) lie within their window of a plane with the mount q."""
     prob.angles.linearize(float(q[1]))
-    return int(np.count_nonzero(_assign(prob.points(q), n, d, window, prob.allowed())[0] >= 0))
+    return int(np.count_nonzero(_assign(prob.points(q, idx), n, d, window[idx], prob.allowed(idx))[0] >= 0))
 
 
 def _jacobian(prob: _Problem, q: np.ndarray, idx: np.ndarray, normals: np.ndarray) -> np.ndarray:
