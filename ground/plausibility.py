@@ -17,6 +17,13 @@ come from the log header, i.e. from what the payload itself says it drove and ca
 Only samples the cloud would otherwise use are judged (a NO_RETURN sample's range means nothing).
 The report counts each cause and warns; the samples' range (and the offending field) become NaN, so
 every later stage treats them as unusable without knowing why.
+
+- time (`out_of_time`, every record): the payload stamps its samples from a monotonic clock, so a log's times
+  never step back and pause only for a stall. A time that is not finite, a record or two whose time leaves their
+  neighbours' by more than OUTLIER_S, and every record outside the log's longest stretch that neither steps back
+  nor pauses longer than MAX_GAP_S cannot be placed in the flight: they are removed, not made NaN (every stage
+  that works in time, the servo's re-simulation, the pose's knots, the sweeps, would span the jump: a clock
+  stepped by a day asked for a 25 GiB matrix).
 """
 
 from __future__ import annotations
@@ -37,6 +44,12 @@ POSE_MARGIN_M = 1.0
 """Allowance beyond the building's walls, floor and roof for the vehicle position, on top of its stated sigma."""
 N_SIGMA = 3.0
 """Stated 1-sigma errors allowed beyond a limit."""
+OUTLIER_S = 1.0
+"""How far a record's time may leave the median of its four neighbours' and its own (a 500 Hz log's neighbours are
+milliseconds apart; a stall of the payload moves a whole run of records, which the median follows)."""
+MAX_GAP_S = 900.0
+"""The longest pause between two records of one flight: a small multirotor's battery (15 min). Longer, the records
+on either side are not one flight's."""
 
 
 @dataclass(frozen=True)
@@ -112,6 +125,36 @@ def implausible(samples: np.ndarray, limits: PlausibilityLimits, frame: StorageF
             w = frame.ned_to_w(pos[finite])
             out[finite] = np.any((w < np.asarray(limits.pose_lo_w_m)) | (w > np.asarray(limits.pose_hi_w_m)), axis=1)
     return Implausible(servo, far, out & candidate)
+
+
+def out_of_time(t_s: np.ndarray) -> np.ndarray:
+    """The records whose time cannot be placed in the flight (module docstring: time), a mask."""
+    t = np.asarray(t_s, dtype=float)
+    bad = ~np.isfinite(t)
+    idx = np.flatnonzero(~bad)
+    if len(idx) >= 5:
+        tt = t[idx]
+        med = np.median(np.lib.stride_tricks.sliding_window_view(np.pad(tt, 2, mode="reflect"), 5), axis=1)
+        with np.errstate(over="ignore", invalid="ignore"):
+            bad[idx[~(np.abs(tt - med) <= OUTLIER_S)]] = True
+        idx = np.flatnonzero(~bad)
+    if len(idx) > 1:
+        with np.errstate(over="ignore", invalid="ignore"):
+            step = np.diff(t[idx])
+        cut = np.flatnonzero(~((step >= 0) & (step <= MAX_GAP_S)))
+        if len(cut):
+            starts, ends = np.r_[0, cut + 1], np.r_[cut + 1, len(idx)]
+            k = int(np.argmax(ends - starts))  # the longest stretch; the first of equals
+            keep = np.zeros(len(idx), bool)
+            keep[starts[k]:ends[k]] = True
+            bad[idx[~keep]] = True
+    return bad
+
+
+def in_time(t_s: np.ndarray) -> np.ndarray:
+    """The times of the records `out_of_time` keeps: what a log's first, last and duration are read from."""
+    t = np.asarray(t_s, dtype=float)
+    return t[~out_of_time(t)]
 
 
 def without_implausible(samples: np.ndarray, found: Implausible) -> np.ndarray:

@@ -66,6 +66,7 @@ from scipy.stats import chi2
 
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
 from firmware_py.core.storage import Storage
+from firmware_py.core.waveform import MAX_FREQUENCY_HZ
 from ground.plane_stretches import MAX_HEADING_ERROR_RAD, Beams, beams, stretches_along
 
 PLANE_NAMES = ("floor", "x0", "xL", "y0", "yW")
@@ -346,7 +347,7 @@ def sweep_period_from_samples(t_s: np.ndarray, sweep_dir: np.ndarray) -> float |
     if len(flips) < 3:
         return None
     half = float(np.median(np.diff(np.asarray(t_s, dtype=float)[flips])))
-    return 2.0 * half if half > 0 else None
+    return 2.0 * half if 2.0 * half >= 1.0 / MAX_FREQUENCY_HZ else None  # faster is no sweep a servo can make
 
 
 def path_speed_m_s(t_s: np.ndarray, vehicle_w: np.ndarray, window_s: float) -> float:
@@ -716,6 +717,9 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     # and no knot seconds apart can fit it (an error-free flight: 0.32 m of "correction" on 1 of 648 runs).
     noise = math.hypot(_noise_m(np.where(np.abs(r0) <= sensor_m, j0, -1), r0, floor_m), position_sigma_m)
     speed = path_speed_m_s(b.t_s, b.vehicle_w, period or spacing / KNOT_SWEEPS)
+    if not speed > 0:  # a log of one instant, or one sweep longer than it, or a vehicle that never moved
+        return not_applied(f"the logged path does not move over the sweeps ({t1 - t0:.1f} s of samples): nothing "
+                           "along a path to correct the pose from")
     step = prior_sigmas(spacing, speed, opts)
     absolute = np.array([opts.max_position_error_m] * 3 + [opts.max_heading_error_rad])
     held = np.array([False, False, not opts.vertical or opts.crossings, not opts.heading])

@@ -28,6 +28,7 @@ from firmware_py.core.site import Site, site_difference
 from firmware_py.core.storage import Storage
 from firmware_py.core.surface_file import SURFACE_FILE
 from firmware_py.core.version import software_version
+from firmware_py.core.waveform import MAX_FREQUENCY_HZ
 from ground.base import FLOOR, FLOOR_BASE, Base, BaseKind, BaseSpec, fitted_floor_base, rebased_terms, survey_base
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
 from ground.deliverable import add_deliverable
@@ -36,7 +37,7 @@ from ground.exports.formats import EXPORT_FILES, ExportFormat
 from ground.exports.write import check_exports, write_exports
 from ground.metadata import SurveyInfo, sha256_of
 from ground.piles import PILES_CSV, PileOptions, write_piles_csv
-from ground.plausibility import PlausibilityLimits, implausible, without_implausible
+from ground.plausibility import MAX_GAP_S, PlausibilityLimits, implausible, in_time, out_of_time, without_implausible
 from ground.pointcloud import N_SIGMA as FLOOR_N_SIGMA
 from ground.pointcloud import (
     Cloud,
@@ -389,7 +390,8 @@ def merged_log(inputs: Sequence[LogInput]) -> SampleLog:
 
 def flight_record(f: Flight) -> dict:
     """What report.json says of one merged flight: which log (its SHA-256), when, and what it alone saw."""
-    t = f.inp.log.samples["t_s"]
+    t = in_time(f.inp.log.samples["t_s"])
+    t = t if len(t) else np.full(1, np.nan)  # no record in time: NaN, as a log of no samples
     h = f.inp.log.header or {}
     st = f.survey.servo_timing
     return {"log": str(f.inp.log_path), "log_sha256": sha256_of(f.inp.log_path),
@@ -448,13 +450,20 @@ def _rangefinder_share(samples: np.ndarray, header: dict, storage: Storage, fram
     return placed, share
 
 
+def _drive(header: dict, samples: np.ndarray) -> Resimulated | None:
+    """The servo's drive the header states, if it can be the one behind these samples (`Resimulated.drives`);
+    None: the exact servo model is not used."""
+    resim = Resimulated.from_header(header)
+    return resim if resim is not None and resim.drives(samples["t_s"]) else None
+
+
 def _sweep_period_s(header: dict) -> float | None:
     """The servo's sweep period from the log header (None: unknown, no stuck-servo check)."""
     servo = header.get("servo")
     f = servo.get("frequency_hz") if isinstance(servo, dict) else None
     if isinstance(f, bool) or not isinstance(f, int | float):
         return None
-    return 1.0 / f if np.isfinite(f) and f > 0 else None
+    return 1.0 / f if np.isfinite(f) and 0 < f <= MAX_FREQUENCY_HZ else None  # a faster sweep cannot be commanded
 
 
 def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
@@ -480,8 +489,9 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
     mount = header_boresight(header)  # the configured boresight: every cloud below is placed with it
     spikes = SpikeThreshold.from_header(header) if opts.despike else None
     found = implausible(samples, PlausibilityLimits.from_header(header, storage), frame)
-    samples = without_implausible(samples, found)
-    checked = {"implausible": found.counts(),
+    late = out_of_time(samples["t_s"])
+    samples = without_implausible(samples, found)[~late]
+    checked = {"implausible": {**found.counts(), "time": int(late.sum())},
                "despike_unavailable": why_no_threshold(header) if opts.despike and spikes is None else None}
     unlifted = samples
     samples, rangefinder = _rangefinder_share(samples, header, storage, frame, lever, opts, mount)
@@ -504,7 +514,7 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
         keep = ~structure_mask(cloud, storage, err)
         return sweep_disagreement_m(cloud.points_w[keep], cloud.sweep_dir[keep], survey.grid, survey.face_spread_m)[0]
 
-    motion = Resimulated.from_header(header) or ShiftScale(sweep_center_rad(samples["servo_rad"]))
+    motion = _drive(header, samples) or ShiftScale(sweep_center_rad(samples["servo_rad"]))
     halves = np.random.default_rng(0).choice(np.array([-1, 1]), len(survey.pile_points_w))  # seeded: reports replay
     floor, _ = sweep_disagreement_m(survey.pile_points_w, halves, survey.grid, survey.face_spread_m)
     timing = estimate_servo_timing(samples, disagreement, before, motion, floor_m=floor or 0.0)
@@ -561,7 +571,7 @@ def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame:
     when they came first (measured: docs/pose_error.md)."""
     est, corrected, boresight, pose = None, samples, mount, None
     if opts.self_calibration:
-        resim = Resimulated.from_header(header)
+        resim = _drive(header, samples)
         est = _mount_of(samples, lever, frame, storage, err, resim, mount)
         if est.any_applied:
             corrected, boresight = apply_mount(samples, est, resim, mount)
@@ -598,7 +608,7 @@ def _mount_with_drift(samples: np.ndarray, unlifted: np.ndarray, header: dict, s
     drift = DriftNuisance(refused.knot_t_s, refused.step_sigma[:3],
                           np.array([limits.max_position_error_m] * 2 + [limits.max_vertical_error_m]),
                           None if refused.drift_fit is None else refused.drift_fit[:, :3])
-    resim = Resimulated.from_header(header)
+    resim = _drive(header, unlifted)
     est = _mount_of(unlifted, lever, frame, storage, err, resim, mount, drift)
     if not est.any_applied:
         return None
@@ -620,7 +630,7 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
     share_taken_out = survey.rangefinder is not None and survey.rangefinder.applied
     first = first or _first_estimates(samples, header, storage, frame, lever, opts, err, mount, share_taken_out)
     est, pose, corrected, boresight = first.mount, first.pose, first.samples, first.boresight
-    resim = Resimulated.from_header(header)
+    resim = _drive(header, samples)
     if pose is not None:
         # An applied mount is estimated again on the corrected trajectory, until the two agree: under sensor noise
         # a drift can pass for a mounting error (offset and scale buy part of it), and the pose then corrects a
@@ -777,9 +787,15 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
         tally.add(log.samples["flags"])
         warnings.append(f"{survey.cloud.n_excluded} of {survey.cloud.n_samples} samples unusable "
                         f"(by their flags: {tally.describe()}; implausible records are counted apart)")
-    n_implausible = sum((survey.implausible or {}).values())
+    found = dict(survey.implausible or {})
+    if n_late := found.pop("time", 0):
+        warnings.append(f"{n_late} samples left out because their times do not fit the log's clock (not finite, out "
+                        f"of sequence, or outside its longest stretch without a step back or a pause over "
+                        f"{MAX_GAP_S / 60:.0f} min): the payload's clock is monotonic, so these records are damaged or "
+                        "from another log")
+    n_implausible = sum(found.values())
     if n_implausible:
-        parts = ", ".join(f"{n} {what.replace('_', ' ')}" for what, n in survey.implausible.items() if n)
+        parts = ", ".join(f"{n} {what.replace('_', ' ')}" for what, n in found.items() if n)
         warnings.append(f"{n_implausible} samples left out as implausible for the logged sensor, sweep and building "
                         f"({parts} beyond the header's limits): damaged or forged records")
     if survey.despike_unavailable:
@@ -1025,9 +1041,10 @@ def make_report(source: str | Path | Sequence[str | Path], out_dir: str | Path, 
         survey = with_base(survey, header, opts)
     report = summarise(survey, log, opts, truth, flights if merged else None)
     report["source"] = " + ".join(map(str, sources))
-    add_deliverable(report, header=header, log_path=log_path, t_s=log.samples["t_s"], info=opts.info,
-                    piles=opts.piles, heights_fit=survey.heights_fit, heights=survey.heights, grid=survey.grid,
-                    errors=survey.errors, errors_in=survey.errors_in)
+    t_s = log.samples["t_s"] if merged else in_time(log.samples["t_s"])  # merged: each flight's own, below
+    add_deliverable(report, header=header, log_path=log_path, t_s=t_s, info=opts.info, piles=opts.piles,
+                    heights_fit=survey.heights_fit, heights=survey.heights, grid=survey.grid, errors=survey.errors,
+                    errors_in=survey.errors_in)
     if merged:
         merged_metadata(report, flights)
     if not np.isfinite(survey.heights_fit).any():

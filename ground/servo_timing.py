@@ -35,6 +35,7 @@ import numpy as np
 from firmware_py.core.header import ServoDrive, waveform_from_dict
 from firmware_py.core.servo_model import ServoCalibration, modelled_sweep
 from firmware_py.core.waveform import Waveform
+from ground.plausibility import MAX_GAP_S
 
 DELAY_RANGE_S = (-0.05, 0.15)
 """Dead times searched: a faster-than-modelled servo leads (d < 0); 150 ms is 3 pulse periods at
@@ -115,6 +116,15 @@ class Resimulated:
         except (KeyError, TypeError, ValueError, AttributeError):
             return None
         return cls(wf, cal, drive.t0_s, drive.frame_s)
+
+    def drives(self, t_s: np.ndarray) -> bool:
+        """Whether this drive can be the one behind samples at t_s: it started before the last of them and no
+        longer before the first than a flight's longest pause (`ground.plausibility.MAX_GAP_S`). A re-simulation
+        steps every PWM frame from the drive's start, so a start a clock fault moved by days would step for
+        hours."""
+        t = np.asarray(t_s, dtype=float)
+        t = t[np.isfinite(t)]
+        return len(t) > 0 and float(t.min()) - MAX_GAP_S <= self.t0_s <= float(t.max())
 
     def angles(self, t_s: np.ndarray, delay_s: float = 0.0, gain: float = 1.0) -> np.ndarray:
         cal = replace(self.cal, slew_rad_s=self.cal.slew_rad_s * gain)

@@ -109,6 +109,10 @@ class ServoSweep:
             raise ValueError(f"log header servo lacks {exc}") from None
 
 
+MIN_PWM_FRAME_S = 0.0025
+"""The shortest servo PWM frame: one 2.5 ms pulse, a hobby servo's longest (400 Hz, the fastest digital servos')."""
+
+
 @dataclass(frozen=True)
 class ServoDrive:
     """The header's ``servo_drive``: when the sweep started on the samples' clock, and the PWM frame.
@@ -120,8 +124,9 @@ class ServoDrive:
     frame_s: float
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.t0_s) and math.isfinite(self.frame_s) and 0 < self.frame_s <= 1.0):
-            raise ValueError(f"servo drive needs a finite start and a PWM frame in (0, 1] s, got {self}")
+        if not (math.isfinite(self.t0_s) and math.isfinite(self.frame_s) and MIN_PWM_FRAME_S <= self.frame_s <= 1.0):
+            raise ValueError(f"servo drive needs a finite start and a PWM frame in [{MIN_PWM_FRAME_S:g}, 1] s, "
+                             f"got {self}")
 
     def to_dict(self) -> dict[str, float]:
         return {"t0_s": self.t0_s, "frame_s": self.frame_s}

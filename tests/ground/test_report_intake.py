@@ -14,6 +14,7 @@ from firmware_py.core.cli import UserError
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, encode_block, read_samplelog
 from firmware_py.core.storage import Storage
 from ground.cli import main
+from ground.plausibility import MAX_GAP_S, in_time, out_of_time
 from ground.report import ReportOptions, check_grid_memory, make_report
 
 GOLDEN = Path(__file__).resolve().parents[1] / "golden"
@@ -103,7 +104,49 @@ def usable(s: np.ndarray) -> np.ndarray:
 
 def test_that_a_clean_log_has_no_implausible_records(golden, tmp_path):
     rep = report(write_log(tmp_path / "c.pslog", *golden), tmp_path)
-    assert rep["n_samples_implausible"] == 0 and rep["implausible"] == {"servo_angle": 0, "range": 0, "pose": 0}
+    assert rep["n_samples_implausible"] == 0 and rep["implausible"] == {"servo_angle": 0, "range": 0, "pose": 0,
+                                                                                "time": 0}
+
+
+def test_that_a_record_or_two_out_of_time_are_left_out_and_a_clock_fault_keeps_the_longest_stretch():
+    t = 1000.0 + np.arange(1000) / 500.0
+    assert not out_of_time(t).any()
+    odd = t.copy()
+    odd[[10, 20, 21]] = np.nan, 1e300, 0.0  # not finite; two neighbours far from the rest
+    odd[5] = odd[4]  # the same time twice is not a fault
+    assert np.flatnonzero(out_of_time(odd)).tolist() == [10, 20, 21]
+    for at, by in ((600, 1e7), (600, 86400.0), (700, -30.0)):  # forward a long way, or back at all
+        jump = t.copy()
+        jump[at:] += by
+        later = np.arange(1000) >= at
+        assert np.array_equal(out_of_time(jump), later if at > 500 else ~later)
+    pause = t.copy()
+    pause[500:] += MAX_GAP_S - 1.0  # a long wait on the ground, still one flight
+    assert not out_of_time(pause).any()
+    assert len(in_time(odd)) == 997 and in_time(np.array([np.nan])).size == 0
+
+
+def test_that_a_clock_stepped_by_a_day_reports_the_longest_stretch_with_a_warning(golden, tmp_path):
+    """It asked for a 25 GiB matrix before, and a NaN time stopped the report with "arange: cannot compute
+    length"."""
+    h, s = golden
+    bad = s.copy()
+    half = len(s) // 3
+    bad["t_s"][half:] += 86400.0
+    bad["t_s"][10] = np.nan
+    rep = report(write_log(tmp_path / "b.pslog", h, bad), tmp_path)
+    assert rep["implausible"]["time"] == half
+    assert any("times do not fit the log's clock" in w for w in rep["warnings"])
+    kept = s["t_s"][half:]
+    assert rep["metadata"]["survey_duration_s"] == pytest.approx(kept.max() - kept.min())
+
+
+def test_that_samples_of_one_instant_get_a_report_and_no_pose_correction(golden, tmp_path):
+    h, s = golden
+    still = s.copy()
+    still["t_s"] = s["t_s"][0]  # a division by zero in the pose correction before
+    rep = report(write_log(tmp_path / "b.pslog", h, still), tmp_path)
+    assert rep["volume_m3"] > 0 and "does not move" in rep["pose_correction"]["reason"]
 
 
 def test_that_servo_angles_of_1e20_rad_are_left_out_counted_and_warned(golden, tmp_path):

@@ -101,3 +101,11 @@ def test_that_the_servo_is_re_simulated_from_the_header_and_a_nominal_fit_change
     for broken in ({}, {**HEADER, "servo_drive": {"t0_s": "x", "frame_s": 0.02}},
                    {**HEADER, "servo_calibration": {"slew_rad_s": -1.0}}, {**HEADER, "servo_drive": None}):
         assert Resimulated.from_header(broken) is None
+
+
+def test_that_a_drive_is_used_only_for_samples_it_can_have_driven():
+    """A start a clock fault moved by days would make the re-simulation step every 20 ms frame since then."""
+    m = Resimulated.from_header(HEADER)  # started at t = 50 s
+    t = 50.0 + np.arange(3000) / 500.0
+    assert m.drives(t) and m.drives(t + 800.0)  # a wait on the ground before the first sample
+    assert not m.drives(t - 10.0) and not m.drives(t + 1e7) and not m.drives(np.array([np.nan]))

@@ -131,6 +131,7 @@ def test_that_the_payload_programs_header_parses_as_a_typed_header():
     (lambda h: h.update(lever_arm_body_m=[0, 0]), "lever arm"),
     (lambda h: h.update(mission_id=5), "mission_id"),
     (lambda h: h.update(servo_drive={"t0_s": 0.0, "frame_s": -1.0}), "servo drive"),
+    (lambda h: h.update(servo_drive={"t0_s": 0.0, "frame_s": 1e-9}), "servo drive"),  # no pulse fits in it
 ])
 def test_that_a_malformed_header_is_refused_naming_what_is_wrong(edit, named):
     h = json.loads(json.dumps(header()))
