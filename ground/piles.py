@@ -205,8 +205,11 @@ class Assignment:
     warnings: tuple[str, ...] = ()
 
 
-def assign(labels: np.ndarray, heights: np.ndarray, grid: Grid, entries: Sequence[PileEntry]) -> Assignment:
-    """Match configuration entries to the piles by their points; split a pile two entries share."""
+def assign(labels: np.ndarray, heights: np.ndarray, grid: Grid, entries: Sequence[PileEntry],
+           relief_m: float = 0.0) -> Assignment:
+    """Match configuration entries to the piles by their points; split a pile two entries share. relief_m: how far
+    a part's summit must rise above its pass to another part to be a pile of its own (below it the split is
+    warned: it follows no valley)."""
     n = int(labels.max()) if labels.size else 0
     by_pile: dict[int, list[tuple[PileEntry, tuple[int, int]]]] = {}
     warnings = []
@@ -228,11 +231,33 @@ def assign(labels: np.ndarray, heights: np.ndarray, grid: Grid, entries: Sequenc
             continue
         parts = split_at_valleys(labels == k, heights, [c for _, c in mine])
         for i, (e, _) in enumerate(mine, start=1):
+            if not (parts == i).any():  # its point's cell was another entry's seed
+                first = next(o for o, c in mine if c == mine[i - 1][1])
+                warnings.append(f"configured piles {first.name!r} and {e.name!r} point at the same cell: "
+                                f"{e.name!r} not reported (move its point onto its own pile)")
+                continue
             out[parts == i] = len(named) + 1
             named.append(e)
-        warnings.append(f"one connected pile holds the configured piles {', '.join(repr(e.name) for e, _ in mine)}: "
+        split = [(i, e) for i, (e, _) in enumerate(mine, start=1) if (parts == i).any()]
+        if len(split) < 2:
+            continue
+        warnings.append(f"one connected pile holds the configured piles {', '.join(repr(e.name) for _, e in split)}: "
                         "split between them along the surface's valley")
+        flat = [e.name for i, e in split if not _has_summit(parts, i, heights, relief_m)]
+        if flat:
+            warnings.append(f"the part of configured pile(s) {', '.join(map(repr, flat))} has no summit of its own "
+                            f"(none rises {relief_m:.2f} m above its pass to the next part): the split follows no "
+                            "valley, so check that those points are on separate piles")
     return Assignment(out, tuple(named), tuple(warnings))
+
+
+def _has_summit(parts: np.ndarray, i: int, heights: np.ndarray, relief_m: float) -> bool:
+    """Whether part i's highest cell rises more than relief_m above the highest of its cells beside another part
+    (its pass): a pile of its own, not a flank cut from its neighbour's."""
+    h = np.nan_to_num(np.asarray(heights, float), nan=0.0)
+    mine = parts == i
+    beside = mine & ndimage.binary_dilation((parts > 0) & ~mine, structure=_EIGHT)
+    return not beside.any() or float(h[mine].max()) - float(h[beside].max()) > relief_m
 
 
 def _nearest(labels: np.ndarray, grid: Grid, e: PileEntry) -> str:
@@ -251,7 +276,7 @@ def pile_table(heights: np.ndarray, grid: Grid, point_sigma_m: float, opts: Pile
 
     errors_in: the survey's error terms over a cell mask (None: no intervals)."""
     thr = threshold_m(point_sigma_m)
-    found = assign(segment(heights, grid, thr, opts.min_area_m2), heights, grid, opts.entries)
+    found = assign(segment(heights, grid, thr, opts.min_area_m2), heights, grid, opts.entries, thr)
     ring = toe_ring_m(thr, grid)
     found = Assignment(with_toes(found.labels, grid, ring), found.entries, found.warnings)
     h = np.nan_to_num(np.asarray(heights, float), nan=0.0)

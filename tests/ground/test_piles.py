@@ -84,6 +84,19 @@ def test_that_heaps_grown_together_are_one_pile_unless_the_configuration_names_b
     assert west["volume_m3"] == pytest.approx(grid_volume(np.where(a >= b, z, 0.0)), rel=0.01)
     assert east["volume_m3"] == pytest.approx(grid_volume(np.where(a < b, z, 0.0)), rel=0.01)
     assert any("split between them" in w for w in named["warnings"])
+    assert not any("no summit" in w for w in named["warnings"])  # a real valley
+
+
+def test_that_two_names_on_one_cone_are_warned_and_two_in_one_cell_report_the_first():
+    z = cone(10, 10, 4.0, 6.0)
+    flank = table(z, PileOptions(entries=(PileEntry("top", 10.0, 10.0), PileEntry("flank", 13.0, 10.0))))
+    assert any("'flank' has no summit of its own" in w for w in flank["warnings"])
+    same = table(z, PileOptions(entries=(PileEntry("a", 10.0, 10.0), PileEntry("b", 10.05, 10.05))))
+    # "attempt to get argmax of an empty sequence" before: the second name's cell was the first's seed
+    assert [p["label"] for p in same["piles"]] == ["a"] and same["piles"][0]["volume_m3"] == pytest.approx(
+        grid_volume(z))
+    assert any("'a' and 'b' point at the same cell: 'b' not reported" in w for w in same["warnings"])
+    assert not any("split between them" in w for w in same["warnings"])
 
 
 def test_that_noise_level_specks_are_not_piles():
