@@ -54,6 +54,9 @@ from firmware_py.core.surface_file import MAX_GRID_CELLS
 from ground.smoothing import DEFAULT_SMOOTHING, SmoothingOptions, smoothed_nodes
 
 SURFACE_FITS = ("cubic-limited", "cubic", "linear", "local-linear")
+CLIP_TOLERANCE_M = 0.5
+"""How far a fitted height may leave the building (below its floor, above its roof) before it is no surface
+(`clip_to_building`)."""
 DEFAULT_SURFACE_FIT = "local-linear"
 """docs/surface_estimators.md: on 414 runs of the evaluation set the interpolants read 2-9 % low under the
 rangefinder's own datasheet noise (range noise moves a point along its beam, which couples its height error to
@@ -207,7 +210,8 @@ def _interpolate(points_w: np.ndarray, grid: Grid, method: str,
         return heights, extra
 
 
-def clip_to_building(heights: np.ndarray, height_m: float, tolerance_m: float = 0.5) -> tuple[np.ndarray, int]:
+def clip_to_building(heights: np.ndarray, height_m: float,
+                     tolerance_m: float = CLIP_TOLERANCE_M) -> tuple[np.ndarray, int]:
     """Cells whose fit left the building by more than tolerance_m become empty (NaN), and their count.
 
     A cubic through points that contradict each other (two heights at nearly the same spot)

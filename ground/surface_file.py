@@ -26,7 +26,7 @@ import numpy as np
 
 from firmware_py.core.cli import UserError
 from firmware_py.core.surface_file import FORMAT, FORMAT_VERSION, read_surface_file
-from ground.surface import Grid
+from ground.surface import CLIP_TOLERANCE_M, Grid
 
 FIRST_VERSION = 1
 """The version without the fitted mask: what a surface whose fitted cells are unknown is written as."""
@@ -76,10 +76,12 @@ def save_surface(s: SavedSurface, path: str | Path) -> Path:
     return path
 
 
-def _number(meta: dict, key: str, path: Path, minimum: float = 0.0) -> float:
+def _number(meta: dict, key: str, path: Path, minimum: float = 0.0, maximum: float = math.inf) -> float:
     v = meta.get(key)
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < minimum:
-        raise UserError(f"{path}: surface file field {key} must be a finite number >= {minimum:g}, got {v!r}"[:300])
+    if (isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < minimum
+            or v > maximum):
+        within = f">= {minimum:g}" if maximum == math.inf else f"within {minimum:g} to {maximum:g}"
+        raise UserError(f"{path}: surface file field {key} must be a finite number {within}, got {v!r}"[:300])
     return float(v)
 
 
@@ -102,12 +104,23 @@ def load_surface(path: str | Path) -> SavedSurface:
                         f"{grid.shape} as its {length:g} x {width:g} m grid of {cell:g} m cells needs")
     if np.isinf(heights).any():
         raise UserError(f"{path}: surface file heights hold infinite values")
+    # a report writes only heights inside its building (`ground.surface.clip_to_building`): others are damage, and a
+    # later survey measured against them would carry it (a cell of 1e300 m made a change of -6e301 m^3)
+    lo, hi = -CLIP_TOLERANCE_M, height + CLIP_TOLERANCE_M
+    with np.errstate(invalid="ignore"):
+        out = np.isfinite(heights) & ((heights < lo) | (heights > hi))
+    if out.any():
+        bad = float(heights[out][np.argmax(np.abs(heights[out]))])
+        raise UserError(f"{path}: surface file has {int(out.sum())} heights outside its {height:g} m building "
+                        f"({bad:g} m; a report writes {lo:g} to {hi:g} m): the file is damaged")
     site = meta.get("site")
     if site is not None and not isinstance(site, dict):
         raise UserError(f"{path}: surface file site must be an object or null")
-    return SavedSurface(heights, length, width, height, cell, _number(meta, "volume_m3", path, -math.inf),
-                        _number(meta, "below_m3", path), _number(meta, "above_m3", path),
-                        _number(meta, "scatter_sigma_m", path), site, str(meta.get("source", ""))[:500],
+    most = length * width * hi  # the building's whole volume bounds the volume and its interval
+    volume = _number(meta, "volume_m3", path, -length * width * CLIP_TOLERANCE_M, most)
+    below, above = _number(meta, "below_m3", path, 0.0, most), _number(meta, "above_m3", path, 0.0, most)
+    return SavedSurface(heights, length, width, height, cell, volume, below, above,
+                        _number(meta, "scatter_sigma_m", path, 0.0, height), site, str(meta.get("source", ""))[:500],
                         str(meta.get("software_version", ""))[:100], raw.fitted)
 
 

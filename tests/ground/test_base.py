@@ -139,6 +139,20 @@ def test_that_a_surface_file_whose_heights_do_not_fit_its_grid_is_refused(tmp_pa
         load_surface(save_surface(s, tmp_path / "surface.npz"))
 
 
+@pytest.mark.parametrize(("edit", "match"), [
+    (lambda h, kw: h.__setitem__((5, 5), 1e300), "heights outside its 10 m building"),  # a change of -6e301 m^3
+    (lambda h, kw: h.__setitem__((5, 5), -50.0), "heights outside"),
+    (lambda h, kw: h.fill(50.0), "heights outside"),
+    (lambda h, kw: kw.update(below=1e300), "below_m3 must be a finite number within"),
+])
+def test_that_a_surface_file_with_values_no_report_writes_is_refused(tmp_path, edit, match):
+    h, kw = np.ones(GRID.shape), {}
+    edit(h, kw)
+    with pytest.raises(UserError, match=match):
+        load_surface(save_surface(saved(h, **kw), tmp_path / "surface.npz"))
+    assert load_surface(save_surface(saved(np.full(GRID.shape, 10.4)), tmp_path / "ok.npz"))  # the clip's own
+
+
 def test_that_an_earlier_survey_base_gives_the_change_and_carries_its_uncertainty():
     old = saved(np.full(GRID.shape, 1.0), below=30.0, above=40.0)
     new = saved(np.full(GRID.shape, 1.5))
