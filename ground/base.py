@@ -291,6 +291,17 @@ def fitted_floor_base(points_w: np.ndarray, sigma_m: np.ndarray, heights: np.nda
         warnings.append(f"the fitted floor lies {-float(b.min()):.2f} m below z = 0 at its lowest: the building's "
                         "z = 0 should be its lowest floor corner, and floor points below z = 0 were left out as "
                         "glitches, so the floor there was not seen")
+    # A floor's points scatter about it by their own noise; a plane laid through a pile's flank within the band
+    # spreads them over the whole band. Their mean square in sigmas tells the two apart: about 1 for a floor (a
+    # normal cut at n_sigma), n_sigma^2 / 3 for points spread evenly over the band; the warning sits midway.
+    fp = np.asarray(points_w, dtype=float)[plane.inliers]
+    r = fp[:, 2] - plane.at(fp[:, 0], fp[:, 1])
+    spread = float(np.mean((r / np.maximum(np.asarray(sigma_m, dtype=float)[plane.inliers], 1e-6)) ** 2))
+    if spread > (1.0 + n_sigma**2 / 3.0) / 2.0:
+        warnings.append(f"the points taken for the floor scatter {plane.rms_residual_m:.2f} m (rms) about the fitted "
+                        f"plane, {math.sqrt(spread):.1f} times their noise: they fill its band rather than lie on a "
+                        "floor, so the plane may run through the piles (a floor the material hides); the volume over "
+                        "it may be far off, compare it with --base floor")
     cover = plane.n_cells / (grid.shape[0] * grid.shape[1])
     if cover < MIN_FLOOR_COVER:
         warnings.append(f"the floor was seen in only {cover * 100:.1f} % of the building's cells: the fitted floor "

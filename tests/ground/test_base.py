@@ -59,6 +59,17 @@ def test_that_a_level_floor_gives_a_plane_at_zero_and_the_same_volume_as_the_flo
     assert base.volume_m3(heights, GRID) == pytest.approx(grid_volume(heights, GRID), abs=0.005 * 600)
 
 
+def test_that_a_plane_through_a_pile_that_hides_the_floor_is_warned_and_a_seen_floor_is_not():
+    pts, sig = floor_and_pile(0.0, 0.0)
+    assert not any("fill its band" in w for w in fitted_floor_base(pts, sig, np.ones(GRID.shape), GRID, 3.0).warnings)
+    # material wall to wall, no floor: a broad mound whose gentle crest is the lowest plane the fit can find
+    rng = np.random.default_rng(1)
+    x, y = rng.uniform(0, 30, 12000), rng.uniform(0, 20, 12000)
+    z = 2.0 + 0.02 * x + 0.2 * np.sin(x / 3.0) * np.cos(y / 3.0) + rng.normal(0, SIGMA_M, len(x))
+    base = fitted_floor_base(np.column_stack([x, y, z]), np.full(len(x), SIGMA_M), np.ones(GRID.shape), GRID, 3.0)
+    assert any("fill its band" in w for w in base.warnings)
+
+
 def test_that_a_fitted_floor_cancels_a_height_error_common_to_the_survey_so_the_pose_term_goes():
     # the floor is fitted from the survey's own points: a drifting height moves it with the pile
     from ground.base import rebased_terms
