@@ -150,10 +150,14 @@ def test_that_report_force_replaces_every_old_file(run_dir, tmp_path, capsys):
     out = tmp_path / "r"
     assert main(["report", str(run_dir), "--out", str(out), "-q"]) == 0  # with plots
     assert (out / "coverage.png").is_file()
+    coarse = "coarser than the 0.5 m up to which the grid's own error was measured small"
+    assert not any(coarse in w for w in json.loads((out / "report.json").read_text())["warnings"])
     assert main(["report", str(run_dir), "--out", str(out), "--no-plots", "--cell", "1.0", "-q", "--force"]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["cloud.ply", "piles.csv", "report.html", "report.json",
                                                      "report.md", "report.pdf", "surface.npz"]
-    assert json.loads((out / "report.json").read_text())["cell_size_m"] == 1.0  # no old figure beside it
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["cell_size_m"] == 1.0  # no old figure beside it
+    assert any(coarse in w for w in rep["warnings"])  # its interval leaves the grid's error out
 
 
 def test_that_a_report_failing_half_way_leaves_no_new_file_beside_old_ones(run_dir, tmp_path, capsys, monkeypatch):
