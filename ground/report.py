@@ -63,6 +63,7 @@ from ground.pose_source_check import autopilot_params, pose_source_line, pose_so
 from ground.rangefinder_height import RangefinderShare, estimate_share
 from ground.self_calibration import (
     N_SIGNIFICANT,
+    UNEXPLAINED,
     DriftNuisance,
     MountEstimate,
     apply_mount,
@@ -823,6 +824,12 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
                                          f"{st.disagreement_after_m:.2f} m)" if st is not None else ""))
     if survey.mount is not None and survey.mount.any_applied:
         warnings.append(describe(survey.mount, header_boresight(log.header or {})))
+    elif (survey.mount is not None and (survey.mount.reason or "").startswith(UNEXPLAINED)
+          and not (survey.pose is not None and survey.pose.applied)):
+        warnings.append(f"the building's floor and walls do not sit on their planes, and neither the mount's "
+                        f"self-calibration nor the pose correction explains it ({survey.mount.reason}): check the "
+                        "log header's boresight, lever arm and building frame against the drone; do not trust this "
+                        "volume until they are right")
     if survey.pose is not None and survey.pose.applied:
         warnings += [w for w in (describe_pose(survey.pose), pose_unconstrained_warning(survey.pose),
                                  pose_unanchored_warning(survey.pose), pose_wall_warning(survey.pose)) if w]

@@ -161,6 +161,10 @@ def mounted(base: Boresight, d_tilt_rad: float, d_yaw_rad: float) -> Boresight:
                      float(np.clip(base.sweep_yaw_rad + d_yaw_rad, -MAX_MOUNT_RAD, MAX_MOUNT_RAD)))
 
 
+UNEXPLAINED = "the mounting model does not explain the floor and walls seen"
+"""The start of a refused estimate's reason when the structure stays off its planes whatever the mount."""
+
+
 def not_estimated(reason: str, points: tuple[int, int, int, int, int] = (0,) * 5) -> MountEstimate:
     """No estimate, and why (nothing is applied)."""
     return MountEstimate((0.0,) * 4, (0.0,) * 4, (False,) * 4, points, 0.0, 0.0, reason)
@@ -729,7 +733,7 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     # structure in the cloud at all) have neighbours as far apart as anything, so only this tells.
     floor_m = min(max(noise_m, 0.001), noise)
     if _robust_rms(r[on]) > MAX_MISFIT * floor_m:
-        return not_estimated(f"the mounting model does not explain the floor and walls seen (their points stay "
+        return not_estimated(f"{UNEXPLAINED} (their points stay "
                              f"{_robust_rms(r[on]) * 100:.1f} cm off their planes against {floor_m * 100:.1f} cm of "
                              "noise)", counts)
     matters = free & (np.abs(q) * reach > noise)

@@ -253,6 +253,15 @@ def test_that_a_boresight_correction_alone_is_applied_to_the_volume(square_run, 
     assert not cal["servo_offset_deg"]["applied"] and not cal["servo_scale"]["applied"]
     assert fixed["volume_m3"] != raw["volume_m3"]
     assert abs(fixed["volume_m3"] - clean["volume_m3"]) < abs(raw["volume_m3"] - clean["volume_m3"]) / 3
+    assert not any("nor the pose correction explains it" in w for w in clean["warnings"] + fixed["warnings"])
+
+
+def test_that_a_header_boresight_the_building_refutes_is_warned_when_nothing_explains_it(square_run, tmp_path):
+    unexplained = "neither the mount's self-calibration nor the pose correction explains it"
+    tilted = _with_boresight(square_run, tmp_path / "tilted", Boresight(0.2, 0.0))  # 11.5 deg it was not mounted at
+    rep = make_report(tilted, tmp_path / "rep", ReportOptions(plots=False))
+    assert rep["self_calibration"]["reason"].startswith("the mounting model does not explain")
+    assert any(unexplained in w for w in rep["warnings"])  # before: only in report.json's self_calibration
 
 
 def test_that_a_plane_s_band_keeps_no_more_points_inside_than_outside_the_farthest_inside_dropped():
