@@ -281,6 +281,8 @@ def _listen(args) -> int:
 def _compare(args) -> int:
     from pathlib import Path
 
+    import numpy as np
+
     from ground import compare
     from ground.report import earlier_surface, survey_source_kind
     for what, path in (("OLD", args.old), ("NEW", args.new), ("--out", args.out)):
@@ -291,6 +293,9 @@ def _compare(args) -> int:
     check_free(args.out, compare.COMPARE_FILES, force=args.force, what="compare")
     opts = ReportOptions(cell_m=args.cell, plots=False)
     old, new = earlier_surface(args.old, opts), earlier_surface(args.new, opts)
+    if old.heights_m.shape == new.heights_m.shape and np.array_equal(old.heights_m, new.heights_m, equal_nan=True):
+        raise UserError(f"{args.old} and {args.new} hold the same surface, cell for cell: one survey given twice? "
+                        "(a change between it and itself is 0 with no uncertainty, which says nothing)")
     change = compare.compare_surfaces(old, new)
     per_pile = pile_changes(old, new, change)
     rec = compare.change_record(change, old, new, str(args.old), str(args.new), per_pile, args.true_change)

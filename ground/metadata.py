@@ -39,6 +39,9 @@ class SurveyInfo:
     def __post_init__(self) -> None:
         if self.timezone is not None:
             check_timezone(self.timezone)
+        for name, v in (("site name", self.site_name), ("operator", self.operator), ("aircraft", self.aircraft)):
+            if v is not None and not (isinstance(v, str) and v.isprintable()):  # a terminal escape, a line break
+                raise ValueError(f"the {name} must be printable text on one line, got {v!r}"[:200])
 
 
 def check_timezone(name: str) -> zoneinfo.ZoneInfo:
@@ -58,14 +61,17 @@ def sha256_of(path: Path) -> str:
     return h.hexdigest()
 
 
-def _text(v: Any) -> str | None:
+def printable(v: Any) -> str | None:
+    """A header's text as the report prints it: stripped, one line of printable characters; None for anything else
+    (a terminal escape or a line break in a log must not reach the console, the Markdown or the PDF)."""
     return v.strip() if isinstance(v, str) and v.strip() and v.isprintable() else None
+
 
 
 def _logged(header: Mapping[str, Any], section: str, key: str) -> str | None:
     cfg = header.get("config")
     sec = cfg.get(section) if isinstance(cfg, Mapping) else None
-    return _text(sec.get(key)) if isinstance(sec, Mapping) else None
+    return printable(sec.get(key)) if isinstance(sec, Mapping) else None
 
 
 def survey_metadata(header: Mapping[str, Any], info: SurveyInfo, log_path: Path,
@@ -107,10 +113,10 @@ def survey_metadata(header: Mapping[str, Any], info: SurveyInfo, log_path: Path,
         "site_name": info.site_name or _logged(header, "site", "name"),
         "operator": info.operator or _logged(header, "survey", "operator"),
         "aircraft": info.aircraft or _logged(header, "survey", "aircraft"),
-        "sensor": _text(sensor.get("model")) if isinstance(sensor, Mapping) else None,
-        "flight_software": _text(header.get("software")),
-        "log_source": _text(header.get("source")),
-        "mission_id": _text(header.get("mission_id")),
+        "sensor": printable(sensor.get("model")) if isinstance(sensor, Mapping) else None,
+        "flight_software": printable(header.get("software")),
+        "log_source": printable(header.get("source")),
+        "mission_id": printable(header.get("mission_id")),
         "log_file": log_path.name,
         "log_sha256": sha256_of(log_path),
     }

@@ -35,7 +35,7 @@ from ground.deliverable import add_deliverable
 from ground.despike import SpikeThreshold, why_no_threshold
 from ground.exports.formats import EXPORT_FILES, ExportFormat
 from ground.exports.write import check_exports, write_exports
-from ground.metadata import SurveyInfo, sha256_of
+from ground.metadata import SurveyInfo, printable, sha256_of
 from ground.piles import PILES_CSV, PileOptions, write_piles_csv
 from ground.plausibility import MAX_GAP_S, PlausibilityLimits, implausible, in_time, out_of_time, without_implausible
 from ground.pointcloud import N_SIGMA as FLOOR_N_SIGMA
@@ -399,7 +399,7 @@ def flight_record(f: Flight) -> dict:
     return {"log": str(f.inp.log_path), "log_sha256": sha256_of(f.inp.log_path),
             "created_utc": h.get("created_utc") if isinstance(h.get("created_utc"), str) else None,
             "t_first_s": float(np.nanmin(t)), "t_last_s": float(np.nanmax(t)),
-            "duration_s": float(np.nanmax(t) - np.nanmin(t)), "mission_id": h.get("mission_id"),
+            "duration_s": float(np.nanmax(t) - np.nanmin(t)), "mission_id": printable(h.get("mission_id")),
             "n_samples": f.survey.cloud.n_samples, "n_points_used": len(f.survey.pile_points_w),
             "coverage_ratio_pct_alone": reconstructed_ratio_pct(f.survey.heights_fit),
             "servo_retimed": f.survey.servo_retimed and st is not None,
@@ -943,7 +943,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "uncovered_area_m2": float((~np.isfinite(survey.heights_fit)).sum() * g.cell_area_m2),
         "storage": survey.storage.to_dict(),
         "site": site,
-        "mission_id": (log.header or {}).get("mission_id"),
+        "mission_id": printable((log.header or {}).get("mission_id")),
         "boresight_deg": _boresight_deg(log.header or {}),
         "config": (log.header or {}).get("config"),
         "log": {"blocks_ok": log.blocks_ok, "blocks_corrupt": log.blocks_corrupt,
@@ -1033,6 +1033,10 @@ def make_report(source: str | Path | Sequence[str | Path], out_dir: str | Path, 
         if not str(path).strip():  # Path("") is the current directory
             raise UserError(f"the {what} must be a non-empty path")
     out = check_free(out_dir, REPORT_FILES, force=force, what="report")  # before the long part
+    for src in map(Path, sources):  # a report among the flight's own files would make the run a report directory too
+        folder = src if src.is_dir() else src.parent
+        if folder.exists() and out.exists() and out.resolve() == folder.resolve():
+            raise UserError(f"--out {out} is the folder of the input {src}: write the report to a folder of its own")
     if opts.base.kind is BaseKind.SURVEY:
         survey_source_kind(Path(opts.base.source))  # a wrong --base is refused before the long part too
     with reading_input():

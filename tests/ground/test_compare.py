@@ -2,6 +2,7 @@
 the files written, and the command's bad inputs as one line and exit 2."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -120,6 +121,15 @@ def test_that_compare_refuses_what_is_not_a_run_or_report_in_one_line_with_exit_
         assert code == ExitCode.USAGE, err
         assert err.count("\n") == 1 and "Traceback" not in err and match in err
         assert not (tmp_path / "cmp").exists()
+
+
+def test_that_one_survey_given_twice_is_refused_not_a_change_of_0_with_no_uncertainty(tmp_path, capsys):
+    old, _ = reports(tmp_path)
+    copy = tmp_path / "copy"
+    shutil.copytree(old, copy)
+    assert main(["compare", str(old), str(copy), "--out", str(tmp_path / "cmp")]) == ExitCode.USAGE
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "hold the same surface" in err and not (tmp_path / "cmp").exists()
 
 
 def test_that_a_damaged_surface_file_in_compare_is_one_line(tmp_path, capsys):

@@ -149,6 +149,24 @@ def test_that_samples_of_one_instant_get_a_report_and_no_pose_correction(golden,
     assert rep["volume_m3"] > 0 and "does not move" in rep["pose_correction"]["reason"]
 
 
+def test_that_a_report_into_its_inputs_own_folder_is_refused(golden, tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    write_log(run / "samples.pslog", *golden)
+    for src in (run, run / "samples.pslog"):
+        err = one_line_error(capsys, ["report", str(src), "--out", str(run), "--no-plots", "--force"])
+        assert "is the folder of the input" in err
+    assert sorted(p.name for p in run.iterdir()) == ["samples.pslog"]
+
+
+@pytest.mark.parametrize("option", ["--operator", "--site-name", "--aircraft"])
+def test_that_a_terminal_escape_or_a_line_break_in_the_surveys_names_is_refused(golden, tmp_path, capsys, option):
+    log = write_log(tmp_path / "c.pslog", *golden)
+    for bad in ("bob\x1b[31m", "bob\nalice"):
+        err = one_line_error(capsys, ["report", str(log), "--out", str(tmp_path / "o"), option, bad])
+        assert "printable text on one line" in err
+
+
 def test_that_servo_angles_of_1e20_rad_are_left_out_counted_and_warned(golden, tmp_path):
     h, s = golden
     clean = report(write_log(tmp_path / "c.pslog", h, s), tmp_path)
