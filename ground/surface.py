@@ -50,7 +50,7 @@ from scipy.interpolate import CloughTocher2DInterpolator, LinearNDInterpolator
 from scipy.spatial import ConvexHull, Delaunay, QhullError
 from threadpoolctl import threadpool_limits
 
-from firmware_py.core.surface_file import MAX_GRID_CELLS
+from firmware_py.core.surface_file import MAX_GRID_CELLS, MIN_GRID_CELL_M
 from ground.smoothing import DEFAULT_SMOOTHING, SmoothingOptions, smoothed_nodes
 
 SURFACE_FITS = ("cubic-limited", "cubic", "linear", "local-linear")
@@ -83,8 +83,9 @@ class Grid:
     cell_m: float
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.cell_m) and 0.01 <= self.cell_m <= min(self.length_m, self.width_m)):
-            raise ValueError(f"cell size must be between 0.01 m and the building's width, got {self.cell_m}")
+        if not (math.isfinite(self.cell_m) and MIN_GRID_CELL_M <= self.cell_m <= min(self.length_m, self.width_m)):
+            raise ValueError(f"cell size must be between {MIN_GRID_CELL_M:g} m and the building's width, "
+                             f"got {self.cell_m}")
         nx, ny = self.shape
         if nx * ny > MAX_CELLS:  # a big building (as a log header may claim) with fine cells: refuse, not MemoryError
             raise ValueError(f"a {self.length_m:g} x {self.width_m:g} m floor in {self.cell_m:g} m cells is "

@@ -242,6 +242,11 @@ class PayloadSection:
     sweep: SweepSection = field(default_factory=SweepSection, metadata={"table": SweepSection})
 
 
+MIN_YAW_RATE_DEG_S = 0.5
+"""Slowest yaw rate a mission may turn at: the rectangle's four quarter turns then take 12 min, most of a small
+multirotor's 15 min battery (the paper's slowest is 1 deg/s; 0.001 deg/s asked the simulator for a flight of days)."""
+
+
 @dataclass(frozen=True)
 class MissionSection:
     """[mission]: the rectangular survey flight (paper section 3)."""
@@ -255,7 +260,7 @@ class MissionSection:
     speed_m_s: float | None = field(default=None, metadata=_key(
         Kind.NUMBER, "flight speed along the legs", unit="m/s", lo=0.05, hi=15.0, example=1.0))
     yaw_rate_max_deg_s: float | None = field(default=None, metadata=_key(
-        Kind.NUMBER, "largest yaw rate in the turns", unit="deg/s", lo=0.0, hi=360.0, open_lo=True, example=30.0))
+        Kind.NUMBER, "largest yaw rate in the turns", unit="deg/s", lo=MIN_YAW_RATE_DEG_S, hi=360.0, example=30.0))
     turn: Turn | None = field(default=None, metadata=_key(
         Kind.CHOICE, "corner turns (Fig. 15): one-step or two-step", choices=Turn, example="one-step"))
 

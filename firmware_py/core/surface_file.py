@@ -27,6 +27,8 @@ FORMAT_VERSION = 2
 READ_VERSIONS = (1, 2)
 """Version 1 (before the fitted mask) is still read."""
 _ARRAYS = {1: {"heights_m", "meta"}, 2: {"heights_m", "fitted", "meta"}}
+MIN_GRID_CELL_M = 0.01
+"""Finest grid cell of a surface (a LIDAR-Lite's resolution): finer, a grid's cell count leaves the integers."""
 MAX_GRID_CELLS = 25_000_000
 """The most cells a height grid may have (a header may claim a big building with fine cells: refuse, not
 MemoryError); the ground's Grid enforces it too."""

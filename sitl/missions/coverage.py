@@ -40,6 +40,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError
 
+from firmware_py.core.config_file import MIN_YAW_RATE_DEG_S
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.sensor import RangefinderSpec
 from firmware_py.core.storage import Storage
@@ -159,8 +160,10 @@ class LoopMission:
             raise ValueError("two consecutive waypoints coincide")
         if not (math.isfinite(self.speed_m_s) and 0.05 <= self.speed_m_s <= 15.0):
             raise ValueError(f"speed must be 0.05-15 m/s, got {self.speed_m_s}")
-        if not (math.isfinite(self.yaw_rate_max_rad_s) and 0.0 < self.yaw_rate_max_rad_s <= 2 * math.pi):
-            raise ValueError(f"max yaw rate must be in (0, 360] deg/s, got {math.degrees(self.yaw_rate_max_rad_s):g}")
+        if not (math.isfinite(self.yaw_rate_max_rad_s)
+                and math.radians(MIN_YAW_RATE_DEG_S) <= self.yaw_rate_max_rad_s <= 2 * math.pi):
+            raise ValueError(f"max yaw rate must be in [{MIN_YAW_RATE_DEG_S:g}, 360] deg/s, "
+                             f"got {math.degrees(self.yaw_rate_max_rad_s):g}")
         if not (math.isfinite(self.altitude_m) and c < self.altitude_m <= s.height_m - c):
             raise ValueError(f"altitude {self.altitude_m:g} m does not fit the {s} building "
                              f"(needs {c:g} m clearance to floor and roof)")

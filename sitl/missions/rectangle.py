@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from firmware_py.core.config_file import MIN_YAW_RATE_DEG_S
 from firmware_py.core.storage import Storage
 
 TURN_MODES = ("one-step", "two-step")
@@ -57,8 +58,9 @@ class Mission:
             raise ValueError(f"turn must be one of {', '.join(TURN_MODES)}, got {self.turn!r}")
         if not (math.isfinite(self.speed_m_s) and 0.05 <= self.speed_m_s <= 15.0):
             raise ValueError(f"speed must be 0.05-15 m/s, got {self.speed_m_s}")
-        if not (math.isfinite(self.yaw_rate_max_rad_s) and 0.0 < self.yaw_rate_max_rad_s <= 2 * math.pi):
-            raise ValueError(f"max yaw rate must be in (0, 360] deg/s, got "
+        if not (math.isfinite(self.yaw_rate_max_rad_s)
+                and math.radians(MIN_YAW_RATE_DEG_S) <= self.yaw_rate_max_rad_s <= 2 * math.pi):
+            raise ValueError(f"max yaw rate must be in [{MIN_YAW_RATE_DEG_S:g}, 360] deg/s, got "
                              f"{math.degrees(self.yaw_rate_max_rad_s):g} deg/s")
         if not (math.isfinite(self.min_clearance_m) and self.min_clearance_m >= 0):
             raise ValueError(f"clearance must be >= 0 m, got {self.min_clearance_m}")

@@ -25,7 +25,7 @@ import numpy as np
 
 from firmware_py.core.safe_read import InputError, read_bounded
 from firmware_py.core.storage import Storage
-from firmware_py.core.surface_file import MAX_GRID_CELLS, SURFACE_FILE, read_surface_file
+from firmware_py.core.surface_file import MAX_GRID_CELLS, MIN_GRID_CELL_M, SURFACE_FILE, read_surface_file
 
 CLOUD_FILE = "cloud.ply"
 MAX_CLOUD_BYTES = 1_000_000_000
@@ -58,10 +58,13 @@ class HeightField:
         return self.heights_m[ix, iy]
 
 
-def _number(meta: dict, key: str, path: Path) -> float:
+def _number(meta: dict, key: str, path: Path, least: float | None = None) -> float:
+    """The field, a finite number > 0 (or >= least)."""
     v = meta.get(key)
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v <= 0:
-        raise ValueError(f"{path}: surface file field {key} must be a finite number > 0, got {v!r}"[:300])
+    if (isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v)
+            or not (v > 0 if least is None else v >= least)):
+        bound = "> 0" if least is None else f">= {least:g}"
+        raise ValueError(f"{path}: surface file field {key} must be a finite number {bound}, got {v!r}"[:300])
     return float(v)
 
 
@@ -73,7 +76,8 @@ def load_height_field(report_dir: str | Path, storage: Storage) -> HeightField:
         path = path / SURFACE_FILE
     raw = read_surface_file(path)
     heights, meta = raw.heights_m, raw.meta
-    length, width, height, cell = (_number(meta, k, path) for k in ("length_m", "width_m", "height_m", "cell_m"))
+    length, width, height = (_number(meta, k, path) for k in ("length_m", "width_m", "height_m"))
+    cell = _number(meta, "cell_m", path, MIN_GRID_CELL_M)  # 1e-320 m cells overflowed the grid's shape
     if max(abs(length - storage.length_m), abs(width - storage.width_m), abs(height - storage.height_m)) \
             > BUILDING_TOLERANCE_M:
         raise ValueError(f"{path} is a survey of a {length:g} x {width:g} x {height:g} m building, not the "

@@ -171,6 +171,12 @@ BINARY_STL_TRIANGLE_BYTES = 50
 TEXT_MESH_BYTES_PER_TRIANGLE = 512
 """Upper bound of a text mesh's bytes per triangle (ASCII STL at full float precision is ~300; OBJ, PLY
 and OFF share vertices and need less): bounds the file size before it is read."""
+MAX_MESH_BODIES = 100
+"""Most separate closed bodies a stockpile mesh may have: a building holds tens of piles at most, and every two
+bodies are checked for shared material (100 bodies: 4,950 pairs; 2,000 took 42 s, 20,000 would take hours)."""
+MIN_MESH_VOLUME_M3 = 1e-6
+"""Least volume a stockpile mesh must hold: a cube of the LIDAR-Lite's 1 cm resolution. Less, its triangles are
+flat or doubled (a triangle listed twice is "closed" with volume 0), yet the rays still hit them."""
 FLOOR_TOLERANCE_M = 0.01
 """A closed body whose lowest point is higher than this above the floor floats: the LIDAR-Lite's range
 resolution, so a gap a survey could never see is not a reason to refuse."""
@@ -233,7 +239,11 @@ def _read_mesh(path: Path, max_triangles: int) -> trimesh.Trimesh:
     if len(mesh.faces) > max_triangles:
         raise ValueError(f"stockpile mesh {path} has {len(mesh.faces):,} triangles, more than the "
                          f"{max_triangles:,} allowed")
-    used = mesh.vertices[np.unique(mesh.faces)]
+    faces = np.asarray(mesh.faces)
+    if faces.min() < 0 or faces.max() >= len(mesh.vertices):  # a PLY's indices are not checked by the reader
+        raise ValueError(f"stockpile mesh {path} has faces naming vertices it does not have (indices "
+                         f"{int(faces.min())} to {int(faces.max())} of {len(mesh.vertices)} vertices)")
+    used = mesh.vertices[np.unique(faces)]
     bad = ~np.isfinite(used)
     if bad.any():
         what = "NaN" if np.isnan(used).any() else "infinite"
@@ -307,17 +317,29 @@ def load_mesh(path: str | Path, storage: Storage, *, max_triangles: int = MAX_ME
     if not path.is_file():
         raise ValueError(f"stockpile mesh not found: {path}" if not path.exists() else
                          f"stockpile mesh not found: {path} is not a regular file")
-    mesh = _read_mesh(path, max_triangles)
+    with np.errstate(all="ignore"):  # a degenerate mesh's mass properties divide by its zero volume: refused below
+        return _checked_pile(_read_mesh(path, max_triangles), path, storage, floor_tolerance_m)
+
+
+def _m(v: float) -> str:
+    """A coordinate for a message: centimetres, or three digits when it is far beyond any building."""
+    return f"{v:.2f}" if abs(v) < 1e6 else f"{v:.3g}"
+
+
+def _checked_pile(mesh: trimesh.Trimesh, path: Path, storage: Storage, floor_tolerance_m: float) -> Stockpile:
     v = mesh.vertices
     tol = 1e-6 * max(storage.length_m, storage.width_m)
     lo, hi = v.min(axis=0), v.max(axis=0)
     if (lo[0] < -tol or lo[1] < -tol or hi[0] > storage.length_m + tol or hi[1] > storage.width_m + tol
             or lo[2] < -tol or hi[2] >= storage.height_m):
         raise ValueError(
-            f"stockpile mesh {path} spans x {lo[0]:.2f}..{hi[0]:.2f}, y {lo[1]:.2f}..{hi[1]:.2f}, "
-            f"z {lo[2]:.2f}..{hi[2]:.2f} m: it must lie inside the {storage} building, on the floor "
+            f"stockpile mesh {path} spans x {_m(lo[0])}..{_m(hi[0])}, y {_m(lo[1])}..{_m(hi[1])}, "
+            f"z {_m(lo[2])}..{_m(hi[2])} m: it must lie inside the {storage} building, on the floor "
             "(storage frame W: metres, z up)")
     if mesh.is_watertight:
+        if mesh.body_count > MAX_MESH_BODIES:  # every pair is checked for overlap: the square of the count
+            raise ValueError(f"stockpile mesh {path} is {mesh.body_count:,} separate closed bodies, more than the "
+                             f"{MAX_MESH_BODIES} piles a building holds; merge them into fewer closed surfaces")
         volume = _closed_volume(mesh, path, floor_tolerance_m)
     else:
         if not _is_height_field(mesh):
@@ -326,6 +348,9 @@ def load_mesh(path: str | Path, storage: Storage, *, max_triangles: int = MAX_ME
                 raise ValueError(f"stockpile mesh {path} is neither closed nor a height field over the "
                                  "floor; its volume would be ambiguous")
         volume = volume_under_mesh(mesh)
+    if not volume > MIN_MESH_VOLUME_M3:  # the rays would still hit its triangles: a truth of 0 would be wrong
+        raise ValueError(f"stockpile mesh {path} encloses no volume ({volume:.3g} m^3): its triangles are flat, "
+                         "doubled or degenerate, not the surface of a pile")
     return Stockpile(mesh, volume, f"mesh {path.name}")
 
 

@@ -44,6 +44,7 @@ def test_that_the_ideal_plant_defaults_to_the_batch_sampler(tmp_path, capsys):
     (["--stockpile", "1", "--p-traj", "20", "--altitude", "5"], "stockpile top"),
     (["--stockpile", "1", "--p-traj", "20", "--speed", "-1"], "speed"),
     (["--stockpile", "1", "--p-traj", "20", "--yaw-rate-max", "inf"], "finite"),
+    (["--stockpile", "1", "--p-traj", "20", "--yaw-rate-max", "0.001"], "in [0.5, 360] deg/s"),  # a flight of days
     (["--stockpile", "1", "--p-traj", "20", "--phase", "20"], "0..19"),
     (["--stockpile", "1", "--p-traj", "20", "--turn", "zigzag"], "invalid choice"),
     (["--stockpile", "1", "--p-traj", "20", "--plant", "webots"], "invalid choice"),

@@ -89,6 +89,14 @@ def test_that_an_unusable_surface_is_one_line(tmp_path, make, message):
     assert "\n" not in str(e.value)
 
 
+def test_that_a_surface_file_with_cells_finer_than_a_grid_can_hold_is_one_line(tmp_path):
+    d = tmp_path / "r"
+    d.mkdir()
+    save_surface(SavedSurface(np.zeros((1, 1)), 30.0, 20.0, 10.0, 1e-320, 0.0, 0.0, 0.0, 0.0), d / "surface.npz")
+    with pytest.raises(ValueError, match="cell_m must be a finite number >= 0.01"):  # OverflowError before
+        load_height_field(d, SMALL)
+
+
 def test_that_a_survey_of_another_building_is_refused(tmp_path):
     d = _report(tmp_path, np.zeros((60, 40)))
     with pytest.raises(ValueError, match="not the 60x40x15"):

@@ -10,7 +10,7 @@ import pytest
 import trimesh
 
 from firmware_py.core.storage import Storage
-from sitl.world.stockpile import load_mesh
+from sitl.world.stockpile import MAX_MESH_BODIES, load_mesh
 
 
 def box(centre_xy, size=(10.0, 10.0, 4.0), z0=0.0) -> trimesh.Trimesh:
@@ -110,3 +110,31 @@ def test_that_a_fifo_named_as_a_mesh_is_refused_without_hanging(tmp_path):
 def test_that_shells_a_millimetre_apart_share_no_material_and_are_summed(tmp_path):
     side_by_side = trimesh.util.concatenate([box((20, 20)), box((30.001, 20))])
     assert load_mesh(export(side_by_side, tmp_path / "s.stl"), Storage()).volume_m3 == pytest.approx(800)
+
+
+@pytest.mark.parametrize("index", [5, -1])
+def test_that_a_ply_face_naming_a_vertex_it_does_not_have_is_one_line(tmp_path, index):
+    """The PLY reader does not check its indices: 5 raised IndexError, -1 flew the last vertex."""
+    path = tmp_path / "bad.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                    "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                    f"1 1 0\n2 1 0\n1 2 1\n3 0 1 {index}\n")
+    with pytest.raises(ValueError, match="faces naming vertices it does not have"):
+        load_mesh(path, Storage())
+
+
+@pytest.mark.parametrize("make", [
+    lambda: trimesh.Trimesh([[1, 1, 0], [5, 1, 0], [1, 5, 2]], [[0, 1, 2], [0, 1, 2]], process=False),  # doubled
+    lambda: trimesh.Trimesh([[1, 1, 1], [5, 1, 1], [1, 5, 1]], [[0, 1, 2], [0, 2, 1]], process=False),  # two-sided
+])
+def test_that_a_mesh_enclosing_no_volume_is_refused_not_a_true_volume_of_0(tmp_path, make):
+    with pytest.raises(ValueError, match="encloses no volume"):
+        load_mesh(export(make(), tmp_path / "flat.obj"), Storage())
+
+
+def test_that_a_mesh_of_more_bodies_than_a_building_holds_piles_is_refused_before_the_pairwise_check(tmp_path):
+    cubes = [box((1 + (i % 60) * 0.9, 1 + (i // 60) * 0.9), (0.2, 0.2, 0.2)) for i in range(MAX_MESH_BODIES + 1)]
+    with pytest.raises(ValueError, match=f"{MAX_MESH_BODIES + 1} separate closed bodies"):
+        load_mesh(export(trimesh.util.concatenate(cubes), tmp_path / "many.stl"), Storage())
+    assert load_mesh(export(trimesh.util.concatenate(cubes[:-1]), tmp_path / "ok.stl"), Storage()).volume_m3 \
+        == pytest.approx(MAX_MESH_BODIES * 0.008)
