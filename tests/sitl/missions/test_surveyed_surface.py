@@ -93,7 +93,7 @@ def test_that_a_surface_file_with_cells_finer_than_a_grid_can_hold_is_one_line(t
     d = tmp_path / "r"
     d.mkdir()
     save_surface(SavedSurface(np.zeros((1, 1)), 30.0, 20.0, 10.0, 1e-320, 0.0, 0.0, 0.0, 0.0), d / "surface.npz")
-    with pytest.raises(ValueError, match="cell_m must be a finite number >= 0.01"):  # OverflowError before
+    with pytest.raises(ValueError, match=r"cell_m must be a finite number >= 0\.01"):  # OverflowError before
         load_height_field(d, SMALL)
 
 
