@@ -41,7 +41,7 @@ from firmware_py.core.cli import (
     run_cli,
     stop_on_signals,
 )
-from firmware_py.core.config_file import to_toml
+from firmware_py.core.config_file import ConfigError, parse_config, to_toml
 from firmware_py.core.frames import Boresight, StorageFrame
 from firmware_py.core.geodesy import GeodeticPoint
 from firmware_py.core.keys import load_key
@@ -309,6 +309,10 @@ def expand_log_name(path: str, now: dt.datetime | None = None) -> str:
     return path.replace(UTC_FIELD, stamp)
 
 
+URL_KEYS = ("i2c", "pwm", "uart", "mavlink", "stream")
+"""The effective configuration's part URLs: checked by their registries, not by the file schema's URL form."""
+
+
 def config_from_args(args) -> PayloadConfig:
     """PayloadConfig from parsed options (ValueError / UserError for bad values, one line each)."""
     if args.out is None:
@@ -336,7 +340,7 @@ def config_from_args(args) -> PayloadConfig:
         raise UserError("--preset is the LIDAR-Lite's: a TFMini has none")
     device_key = signing.key if signing is not None and uses_device_bridge(i2c if not tfmini else "", pwm) else None
     site, frame, send_origin = site_from_cli(args)
-    return PayloadConfig(
+    cfg = PayloadConfig(
         out_path=out, force=args.force, mavlink_url=args.mavlink, rangefinder=args.rangefinder,
         uart_url=args.uart or DEFAULT_UART_URL, i2c_url=i2c, pwm_url=pwm,
         preset=args.preset, rate_hz=args.rate, waveform=args.waveform, servo_peak_rate_rad_s=args.servo_rate,
@@ -347,6 +351,18 @@ def config_from_args(args) -> PayloadConfig:
         send_origin=send_origin,
         mission_id=args.mission_id, quiet=args.quiet, signing=signing, device_key=device_key,
         config_file=args.config, signing_key_file=args.signing_key)
+    # The flags' values must be what a configuration file may hold: --check prints this as one, the log's header
+    # carries it, and a flag past the schema's range (a lever arm of 1e9 m) would fly as given.
+    eff = cfg.effective_config()
+    eff.pop("file")
+    for key in URL_KEYS:  # checked above against this process's registries, which may know more schemes (sitl)
+        eff["payload"].pop(key, None)
+    try:
+        parse_config(eff, source="the command line" if args.config is None
+                     else f"{args.config} with the command line's flags")
+    except ConfigError as exc:
+        raise UserError(str(exc)) from None
+    return cfg
 
 
 def check_text(cfg: PayloadConfig) -> str:

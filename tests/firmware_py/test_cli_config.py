@@ -52,6 +52,19 @@ def test_that_check_validates_the_example_and_prints_what_would_run(capsys):
     assert printed["payload"]["log"].startswith("/home/pi/pilescan/survey-")  # {utc} expanded
 
 
+@pytest.mark.parametrize(("flags", "named"), [
+    (["--lever-arm", "1e9", "0", "0"], "[payload] lever_arm_m"),
+    (["--servo-lag-s", "1e9"], "[payload.servo] lag_s"),
+    (["--servo-rate", "100"], "faster than the servo can turn"),
+])
+def test_that_a_flag_a_configuration_file_could_not_hold_is_refused_as_the_file_would_be(capsys, tmp_path, flags,
+                                                                                        named):
+    """--check printed these as a valid configuration, which then failed to read back, and a flight took them."""
+    assert main(["--out", str(tmp_path / "x.pslog"), "--check", *flags]) == ExitCode.USAGE
+    err = capsys.readouterr().err
+    assert len(errors(err)) == 1 and "the command line: " in err and named in err
+
+
 @needs_example
 def test_that_check_shows_a_flag_over_the_file(capsys):
     assert main(["--config", str(EXAMPLE), "--check", "--rate", "250", "--servo-center-us", "1490"]) == 0
