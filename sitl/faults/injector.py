@@ -130,6 +130,8 @@ class FaultSpec:
             pair = PAIRS.get(name)
             if len(nums) != (2 if pair else 1):
                 raise ValueError(f"bad fault {item!r}: {name} takes " + (pair or "one number"))
+            if name in values:  # the last one silently won before: which did the user mean?
+                raise ValueError(f"fault {name} given twice ({item!r} after {name}={values[name]!r}): give it once")
             window = pair is not None
             values[name] = nums if window else nums[0]
         return cls(seed=seed, **values)

@@ -14,6 +14,7 @@ from collections import deque
 from collections.abc import Callable
 from typing import Protocol
 
+from firmware_py.core.cli import UserError
 from sitl.mavlink.datagrams import DatagramParser
 
 
@@ -200,5 +201,8 @@ class UdpTransport:
 def make_transport(url: str) -> Transport:
     """Transport from a URL-like string: udp:HOST:PORT / udpin:HOST:PORT (listen), udpout:HOST:PORT."""
     if url.split(":", 1)[0] in ("udp", "udpin", "udpout"):
-        return UdpTransport(url)
+        try:
+            return UdpTransport(url)
+        except OSError as exc:  # a port in use, a host no resolver knows: say which link
+            raise UserError(f"cannot open the MAVLink link {url}: {exc.strerror or exc}") from exc
     raise ValueError(f"unsupported transport {url!r} (use udp:HOST:PORT or udpout:HOST:PORT)")

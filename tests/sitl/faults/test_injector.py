@@ -170,6 +170,8 @@ def test_that_faults_parse_from_the_command_line_form():
                        ("servo_delay_ms=-1", "ms"), ("link_jitter_ms=nan", "ms")):
         with pytest.raises(ValueError, match=words):
             FaultSpec.parse([bad])
+    with pytest.raises(ValueError, match="fault link_loss_pct given twice"):  # the last one won, silently
+        FaultSpec.parse(["link_loss_pct=10", "link-loss-pct=20"])
 
 
 def test_that_fly_takes_faults_and_records_them_in_the_run(tmp_path, capsys):

@@ -6,6 +6,7 @@ import time
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from firmware_py.core.cli import UserError
 from sitl.mavlink.transport import PipeTransport, UdpTransport, make_transport
 
 
@@ -22,6 +23,17 @@ def test_that_pipe_transports_carry_bytes_both_ways_in_order():
 def test_that_make_transport_refuses_what_it_cannot_open(url):
     with pytest.raises(ValueError):
         make_transport(url)
+
+
+def test_that_a_port_in_use_names_the_link_it_could_not_open():
+    taken = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    taken.bind(("127.0.0.1", 0))
+    try:
+        url = f"udp:127.0.0.1:{taken.getsockname()[1]}"
+        with pytest.raises(UserError, match=f"cannot open the MAVLink link {url}: Address already in use"):
+            make_transport(url)  # a bare "[Errno 98] Address already in use" before
+    finally:
+        taken.close()
 
 
 def test_that_a_full_client_table_keeps_its_live_clients_and_refuses_newcomers_until_one_goes_quiet():
