@@ -149,6 +149,15 @@ def test_that_samples_of_one_instant_get_a_report_and_no_pose_correction(golden,
     assert rep["volume_m3"] > 0 and "does not move" in rep["pose_correction"]["reason"]
 
 
+def test_that_a_header_sweep_faster_than_a_servo_and_a_mission_id_with_an_escape_still_report(golden, tmp_path):
+    h, s = golden
+    fast = copy.deepcopy(h)
+    fast["servo"]["frequency_hz"] = 1e9  # its period made the pose correction ask for 158 GiB of knots
+    fast["mission_id"] = "bay 3\x1b[2J"
+    rep = report(write_log(tmp_path / "f.pslog", fast, s), tmp_path)
+    assert rep["volume_m3"] > 0 and rep["mission_id"] is None  # an escape never reaches the console or the PDF
+
+
 def test_that_a_report_into_its_inputs_own_folder_is_refused(golden, tmp_path, capsys):
     run = tmp_path / "run"
     run.mkdir()
