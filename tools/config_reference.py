@@ -24,6 +24,7 @@ from firmware_py.core.config_file import (  # noqa: E402
     range_text,
     schema_keys,
 )
+from firmware_py.core.geodesy import ALT_MAX_M, ALT_MIN_M  # noqa: E402
 from ground import cli as ground_cli  # noqa: E402
 from sitl import cli as sitl_cli  # noqa: E402
 from tools.doc_sections import markers, write_section  # noqa: E402
@@ -70,7 +71,7 @@ def _limits(m) -> str:
         names = ", ".join(m["names"])
         rng = range_text(m)
         if m["names"][:2] == ("lat_deg", "lon_deg"):
-            rng = "lat -90..90, lon -180..180, alt -1000..100000"
+            rng = f"lat -90..90, lon -180..180, alt {ALT_MIN_M:g}..{ALT_MAX_M:g}"
         return f"[{names}]" + (f"; each {rng}" if rng and not rng.startswith("lat") else f"; {rng}" if rng else "")
     rng = range_text(m)
     if m["nonzero"]:

@@ -48,6 +48,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from firmware_py.core.geodesy import ALT_MAX_M, ALT_MIN_M
 from firmware_py.core.safe_read import InputError, read_bounded
 from firmware_py.core.servo_model import ServoCalibration
 from firmware_py.core.stream_format import parse_stream_url
@@ -522,7 +523,7 @@ def _vector_problem(v: list[float], m: Mapping[str, Any]) -> str | None:
     names = m["names"]
     if names[:2] == ("lat_deg", "lon_deg"):
         for name, x, lo, hi in (("lat_deg", v[0], -90.0, 90.0), ("lon_deg", v[1], -180.0, 180.0),
-                                ("alt_m", v[2], -1000.0, 100_000.0)):
+                                ("alt_m", v[2], ALT_MIN_M, ALT_MAX_M)):
             if not lo <= x <= hi:
                 return f"{name} must be within {_fmt(lo)}..{_fmt(hi)}, got {_fmt(x)}"
         return None

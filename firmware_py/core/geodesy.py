@@ -1,7 +1,11 @@
 """Flat-earth geodesy about a home position: how mission items and GLOBAL_POSITION_INT meet local NED.
 
-Exact to millimetres over a building, wrong over kilometres: a stockpile survey never leaves the
-building, and a flat earth keeps the conversion exactly invertible (a plan round-trips).
+`global_to_ned` / `ned_to_global` are ArduPilot's own convention (a sphere of the equatorial radius: its
+LOCATION_SCALING_FACTOR), which is what both ends of a MAVLink link use to turn a mission item or a global position
+into local NED and back, so a plan round-trips exactly. On the real Earth that sphere is off by up to 0.7 % (north
+to south at the equator): 100 m of building is 99.3 m of it. Where a point's true place on the globe matters (the
+georeferenced exports), `ned_to_wgs84` uses the WGS-84 ellipsoid's radii of curvature at the home: the tangent plane
+there, true to millimetres over a building.
 """
 
 from __future__ import annotations
@@ -23,6 +27,28 @@ def ned_to_global(north_m: float, east_m: float, home_lat_deg: float, home_lon_d
     """Inverse of global_to_ned: lat/lon (deg) of a local north/east point."""
     lat = home_lat_deg + math.degrees(north_m / EARTH_RADIUS_M)
     lon = home_lon_deg + math.degrees(east_m / (EARTH_RADIUS_M * math.cos(math.radians(home_lat_deg))))
+    return lat, wrap_deg(lon)
+
+
+WGS84_A_M = 6_378_137.0
+WGS84_F = 1.0 / 298.257223563
+WGS84_E2 = WGS84_F * (2.0 - WGS84_F)
+
+
+def radii_of_curvature_m(lat_deg: float) -> tuple[float, float]:
+    """The WGS-84 ellipsoid's meridian and prime-vertical radii of curvature (m) at a latitude: a metre north is
+    1 / meridian radians of latitude, a metre east 1 / (prime vertical x cos(latitude)) radians of longitude."""
+    s2 = math.sin(math.radians(lat_deg)) ** 2
+    w = math.sqrt(1.0 - WGS84_E2 * s2)
+    return WGS84_A_M * (1.0 - WGS84_E2) / w**3, WGS84_A_M / w
+
+
+def ned_to_wgs84(north_m: float, east_m: float, home_lat_deg: float, home_lon_deg: float) -> tuple[float, float]:
+    """WGS-84 lat/lon (deg) of a local north/east point, on the ellipsoid's tangent plane at home (module
+    docstring: where the truth matters; a MAVLink link uses `ned_to_global`)."""
+    meridian, prime = radii_of_curvature_m(home_lat_deg)
+    lat = home_lat_deg + math.degrees(north_m / meridian)
+    lon = home_lon_deg + math.degrees(east_m / (prime * math.cos(math.radians(home_lat_deg))))
     return lat, wrap_deg(lon)
 
 

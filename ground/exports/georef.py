@@ -2,12 +2,12 @@
 
 W is tied to the globe by the log header's ``site`` (`firmware_py.core.site`): the corner W's origin sits on
 and the heading of W's x axis. A point of W goes to the corner's local north/east by the storage frame's
-rotation about the corner, then to latitude/longitude by the project's flat-earth mapping
-(`firmware_py.core.geodesy`: the one the plans, the autopilot and the SITL use, exact to millimetres over a
-building), then to UTM by PROJ (through rasterio), which accounts for the grid convergence: at the default
-site the UTM grid is turned 0.6 deg from true north, 0.6 m over a 60 m building, so the raster's affine
-transform cannot simply be the heading. Heights become altitudes above mean sea level: the site's corner
-altitude (m MSL, as the user gave it) plus z.
+rotation about the corner, then to latitude/longitude on the WGS-84 ellipsoid's tangent plane at the corner
+(`firmware_py.core.geodesy.ned_to_wgs84`, true to millimetres over a building; not the autopilot's sphere, which
+MAVLink's conversions share but which is up to 0.7 % off the real Earth), then to UTM by PROJ (through
+rasterio), which accounts for the grid convergence: at the default site the UTM grid is turned 0.6 deg from
+true north, 0.6 m over a 60 m building, so the raster's affine transform cannot simply be the heading. Heights
+become altitudes above mean sea level: the site's corner altitude (m MSL, as the user gave it) plus z.
 
 The projected CRS is the WGS 84 / UTM zone of the site's corner (standard 6-degree zones; the Norway and
 Svalbard exceptions are ignored, which only picks the neighbouring zone, still a valid projection), compound
@@ -21,12 +21,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware_py.core.geodesy import EARTH_RADIUS_M
+from firmware_py.core.geodesy import radii_of_curvature_m
 from firmware_py.core.site import Site
 
 HEADING_AGREEMENT_DEG = 0.01
 """The site's heading and the storage frame's (both in the log header) must agree to this: the points were
 placed with the frame's, the globe is reached with the site's; beyond it the header contradicts itself."""
+UTM_LAT_RANGE_DEG = (-80.0, 84.0)
+"""Where the UTM zones are defined (EPSG's areas of use for WGS 84 / UTM): beyond them a building may reach past a
+pole, and PROJ refused the latitudes (a report with no files at all)."""
 MSL_HEIGHT_EPSG = 5714
 """EPSG's vertical CRS "MSL height": what the site's altitude is given in."""
 
@@ -48,6 +51,10 @@ class Georef:
             site = Site.from_dict(raw)
         except ValueError as exc:
             return None, f"log header site is malformed ({exc}): exports not georeferenced"
+        if not UTM_LAT_RANGE_DEG[0] <= site.corner.lat_deg <= UTM_LAT_RANGE_DEG[1]:
+            lo, hi = UTM_LAT_RANGE_DEG
+            return None, (f"the site's latitude {site.corner.lat_deg:g} deg is outside UTM's {-lo:g} S to {hi:g} N "
+                          "(the poles take polar stereographic grids, not written here): exports not georeferenced")
         frame = header.get("storage_frame") or {}
         heading = frame.get("heading_rad") if isinstance(frame, dict) else None
         if isinstance(heading, int | float) and not isinstance(heading, bool):
@@ -77,13 +84,14 @@ class Georef:
         return ned[:, 0], ned[:, 1]
 
     def w_to_lonlat_alt(self, points_w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Longitude, latitude (deg, WGS-84) and altitude (m MSL) of points in W: `geodesy.ned_to_global`,
+        """Longitude, latitude (deg, WGS-84) and altitude (m MSL) of points in W: `geodesy.ned_to_wgs84`,
         vectorised (tests hold the two together)."""
         p = np.asarray(points_w, dtype=float).reshape(-1, 3)
         north, east = self.w_to_ne(p)
         c = self.site.corner
-        lat = c.lat_deg + np.degrees(north / EARTH_RADIUS_M)
-        lon = c.lon_deg + np.degrees(east / (EARTH_RADIUS_M * math.cos(math.radians(c.lat_deg))))
+        meridian, prime = radii_of_curvature_m(c.lat_deg)
+        lat = c.lat_deg + np.degrees(north / meridian)
+        lon = c.lon_deg + np.degrees(east / (prime * math.cos(math.radians(c.lat_deg))))
         lon = (lon + 180.0) % 360.0 - 180.0 if np.any(np.abs(lon) > 180.0) else lon
         return lon, lat, c.alt_m + p[:, 2]
 

@@ -7,6 +7,7 @@ import pytest
 from rasterio.warp import transform
 
 from firmware_py.core.frames import StorageFrame
+from firmware_py.core.geodesy import ned_to_wgs84
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
 from firmware_py.core.storage import Storage
 from ground.exports.georef import Georef
@@ -84,10 +85,11 @@ def test_that_the_utm_variant_carries_a_wkt_crs_and_the_same_points_on_earth(flo
     assert las_utm.header.global_encoding.wkt
     wkt = next(v for v in las_utm.header.vlrs if isinstance(v, laspy.vlrs.known.WktCoordinateSystemVlr)).string
     assert "UTM zone 56S" in wkt and "MSL height" in wkt
-    # Independently: a few points to NED by the frame, to lat/lon by the core's scalar mapping, to UTM by PROJ.
+    # Independently: a few points to NED by the frame, to lat/lon by the core's scalar mapping (the ellipsoid's),
+    # to UTM by PROJ.
     idx = np.linspace(0, len(c.points_w) - 1, 25).astype(int)
     ned = StorageFrame(heading_rad=SITE.heading_rad).w_to_ned(c.points_w[idx])
-    lat, lon = zip(*(SITE.corner.to_global(n, e) for n, e, _ in ned), strict=True)
+    lat, lon = zip(*(ned_to_wgs84(n, e, SITE.corner.lat_deg, SITE.corner.lon_deg) for n, e, _ in ned), strict=True)
     east, north = transform("EPSG:4326", "EPSG:32756", list(lon), list(lat))
     assert np.asarray(las_utm.x)[idx] == pytest.approx(east, abs=0.002)
     assert np.asarray(las_utm.y)[idx] == pytest.approx(north, abs=0.002)

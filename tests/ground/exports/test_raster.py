@@ -6,15 +6,16 @@ import rasterio
 from rasterio.warp import transform
 
 from firmware_py.core.frames import StorageFrame
+from firmware_py.core.geodesy import ned_to_wgs84
 from ground.exports.raster import raster_rows, write_geotiff
 from ground.surface import Grid
 from tests.ground.exports.conftest import SITE, STORAGE
 
 
 def _utm_of_w(x_m: float, y_m: float) -> tuple[float, float]:
-    """W -> NED about the corner (the frame) -> lat/lon (the core's scalar flat-earth) -> UTM 56S (PROJ)."""
+    """W -> NED about the corner (the frame) -> lat/lon (the core's scalar tangent plane) -> UTM 56S (PROJ)."""
     n, e, _ = StorageFrame(heading_rad=SITE.heading_rad).w_to_ned(np.array([[x_m, y_m, 0.0]]))[0]
-    lat, lon = SITE.corner.to_global(n, e)
+    lat, lon = ned_to_wgs84(n, e, SITE.corner.lat_deg, SITE.corner.lon_deg)
     east, north = transform("EPSG:4326", "EPSG:32756", [lon], [lat])
     return east[0], north[0]
 
