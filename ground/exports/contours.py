@@ -93,6 +93,23 @@ def contour_lines(heights: np.ndarray, grid: Grid, levels: np.ndarray | None = N
     return out
 
 
+def split_at_antimeridian(lon: np.ndarray, lat: np.ndarray, alt: np.ndarray) -> list[list[tuple[float, float, float]]]:
+    """A line's (lon, lat, alt) points cut where they cross longitude +-180, each piece ending on it (RFC 7946
+    3.1.9): drawn whole, a contour of a building on the antimeridian ran once round the globe."""
+    parts = [[(float(lon[0]), float(lat[0]), float(alt[0]))]]
+    for i in range(1, len(lon)):
+        a, b = float(lon[i - 1]), float(lon[i])
+        if abs(b - a) > 180.0:
+            edge = 180.0 if a > 0 else -180.0
+            b_unwrapped = b + 360.0 if a > 0 else b - 360.0
+            f = (edge - a) / (b_unwrapped - a)
+            at_lat = float(lat[i - 1] + f * (lat[i] - lat[i - 1]))
+            parts[-1].append((edge, at_lat, float(alt[i])))
+            parts.append([(-edge, at_lat, float(alt[i]))])
+        parts[-1].append((b, float(lat[i]), float(alt[i])))
+    return parts
+
+
 def contours_geojson(contours: list[Contour], georef: Georef | None = None) -> dict:
     """A GeoJSON FeatureCollection, one LineString per line (module docstring: W, or WGS-84 with georef)."""
     features = []
@@ -104,9 +121,14 @@ def contours_geojson(contours: list[Contour], georef: Georef | None = None) -> d
             else:
                 pts = np.column_stack([line, np.full(len(line), c.level_m)])
                 lon, lat, alt = georef.w_to_lonlat_alt(pts)
-                coords = [[round(float(a), 8), round(float(b), 8), round(float(z), 3)]
-                          for a, b, z in zip(lon, lat, alt, strict=True)]
+                parts = [[[round(float(a), 8), round(float(b), 8), round(float(z), 3)] for a, b, z in part]
+                         for part in split_at_antimeridian(lon, lat, alt)]
                 props["elevation_m"] = round(float(alt[0]), 3)
+                if len(parts) > 1:
+                    features.append({"type": "Feature", "properties": props,
+                                     "geometry": {"type": "MultiLineString", "coordinates": parts}})
+                    continue
+                coords = parts[0]
             features.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": coords},
                              "properties": props})
     doc: dict = {"type": "FeatureCollection", "features": features}

@@ -11,8 +11,10 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from firmware_py.core.geodesy import ned_to_wgs84
+from firmware_py.core.site import Site
 from ground.exports.contours import (
     MAX_LINES,
+    Contour,
     contour_levels,
     contour_lines,
     contours_geojson,
@@ -99,3 +101,18 @@ def test_that_contours_are_drawn_and_labelled_once_per_level():
     assert len(ax.collections) == 1 and len(ax.collections[0].get_segments()) == len(contours)
     assert [t.get_text() for t in ax.texts] == [f"{c.level_m:.1f}" for c in contours]
     fig.canvas.draw()
+
+
+def test_that_a_contour_across_the_antimeridian_is_cut_there_not_drawn_round_the_globe():
+    site = Site.of(-17.0, 179.9998, 10.0, 90.0)  # x east: the 180th meridian 22 m along the building
+    line = np.column_stack([np.linspace(0.0, 60.0, 31), np.full(31, 5.0)])
+    doc = contours_geojson([Contour(1.0, (line,))], Georef(site))
+    geom = doc["features"][0]["geometry"]
+    assert geom["type"] == "MultiLineString" and len(geom["coordinates"]) == 2
+    west, east = (np.array(p) for p in geom["coordinates"])
+    assert west[-1, 0] == 180.0 and east[0, 0] == -180.0 and west[-1, 1] == east[0, 1]  # meets itself on the line
+    for part in (west, east):
+        assert np.all(np.abs(np.diff(part[:, 0])) < 1.0)  # no jump of 360 deg inside a part
+    assert len(west) + len(east) == 31 + 2
+    plain = contours_geojson([Contour(1.0, (line,))], Georef(Site.of(-17.0, 100.0, 10.0, 90.0)))
+    assert plain["features"][0]["geometry"]["type"] == "LineString"
