@@ -111,7 +111,8 @@ def split_at_antimeridian(lon: np.ndarray, lat: np.ndarray, alt: np.ndarray) -> 
 
 
 def contours_geojson(contours: list[Contour], georef: Georef | None = None) -> dict:
-    """A GeoJSON FeatureCollection, one LineString per line (module docstring: W, or WGS-84 with georef)."""
+    """A GeoJSON FeatureCollection, one LineString per line (module docstring: W, or WGS-84 with georef; a line
+    across the 180th meridian is a MultiLineString cut there)."""
     features = []
     for c in contours:
         for line in c.lines:
