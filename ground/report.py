@@ -63,7 +63,6 @@ from ground.pose_source_check import autopilot_params, pose_source_line, pose_so
 from ground.rangefinder_height import RangefinderShare, estimate_share
 from ground.self_calibration import (
     N_SIGNIFICANT,
-    UNEXPLAINED,
     DriftNuisance,
     MountEstimate,
     apply_mount,
@@ -824,7 +823,7 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
                                          f"{st.disagreement_after_m:.2f} m)" if st is not None else ""))
     if survey.mount is not None and survey.mount.any_applied:
         warnings.append(describe(survey.mount, header_boresight(log.header or {})))
-    elif (survey.mount is not None and (survey.mount.reason or "").startswith(UNEXPLAINED)
+    elif (survey.mount is not None and survey.mount.unexplained
           and not (survey.pose is not None and survey.pose.applied)):
         warnings.append(f"the building's floor and walls do not sit on their planes, and neither the mount's "
                         f"self-calibration nor the pose correction explains it ({survey.mount.reason}): check the "

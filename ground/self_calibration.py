@@ -114,6 +114,8 @@ class MountEstimate:
             held square (value 0, not applied).
         refused: one line when significant parameters were not applied because the correction does not
             bring the structure closer to its planes by more than the noise (`_misfit_gain`).
+        unexplained: nothing estimated because the structure stays off its planes whatever the mount (as
+            `PoseCorrection.unexplained` says of the drift).
     """
 
     values: tuple[float, float, float, float]
@@ -125,6 +127,7 @@ class MountEstimate:
     reason: str | None = None
     observable: tuple[bool, bool, bool, bool] = (True, True, True, True)
     refused: str | None = None
+    unexplained: bool = False
 
     @property
     def any_applied(self) -> bool:
@@ -161,13 +164,10 @@ def mounted(base: Boresight, d_tilt_rad: float, d_yaw_rad: float) -> Boresight:
                      float(np.clip(base.sweep_yaw_rad + d_yaw_rad, -MAX_MOUNT_RAD, MAX_MOUNT_RAD)))
 
 
-UNEXPLAINED = "the mounting model does not explain the floor and walls seen"
-"""The start of a refused estimate's reason when the structure stays off its planes whatever the mount."""
-
-
-def not_estimated(reason: str, points: tuple[int, int, int, int, int] = (0,) * 5) -> MountEstimate:
+def not_estimated(reason: str, points: tuple[int, int, int, int, int] = (0,) * 5,
+                  unexplained: bool = False) -> MountEstimate:
     """No estimate, and why (nothing is applied)."""
-    return MountEstimate((0.0,) * 4, (0.0,) * 4, (False,) * 4, points, 0.0, 0.0, reason)
+    return MountEstimate((0.0,) * 4, (0.0,) * 4, (False,) * 4, points, 0.0, 0.0, reason, unexplained=unexplained)
 
 
 def _planes(storage: Storage) -> tuple[np.ndarray, np.ndarray]:
@@ -733,9 +733,9 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     # structure in the cloud at all) have neighbours as far apart as anything, so only this tells.
     floor_m = min(max(noise_m, 0.001), noise)
     if _robust_rms(r[on]) > MAX_MISFIT * floor_m:
-        return not_estimated(f"{UNEXPLAINED} (their points stay "
+        return not_estimated(f"the mounting model does not explain the floor and walls seen (their points stay "
                              f"{_robust_rms(r[on]) * 100:.1f} cm off their planes against {floor_m * 100:.1f} cm of "
-                             "noise)", counts)
+                             "noise)", counts, unexplained=True)
     matters = free & (np.abs(q) * reach > noise)
     # Standard errors: the same fit on every 8th sweep (whole sweeps share their errors); only needed
     # when something is large enough to matter (a square mount, the usual case, skips them).
