@@ -11,8 +11,8 @@ pickles: `np.load(allow_pickle=False)`). The name, format, version and the bound
 shared contract in `firmware_py.core.surface_file` (the coverage planner reads the file too); since version 2
 it also holds the mask of the cells fitted to the points (the rest are the empty-cell policy's fill: what the
 survey could not see, `plan --fill-gaps`), and a version 1 file still reads (mask unknown). This module
-checks every field it uses: a damaged or foreign file is one clear error, never a traceback or a silently
-wrong base.
+checks every field it uses (each number by the shared `meta_number`): a damaged or foreign file is one clear
+error, never a traceback or a silently wrong base.
 """
 
 from __future__ import annotations
@@ -25,7 +25,14 @@ from pathlib import Path
 import numpy as np
 
 from firmware_py.core.cli import UserError
-from firmware_py.core.surface_file import FORMAT, FORMAT_VERSION, read_surface_file
+from firmware_py.core.surface_file import (
+    FORMAT,
+    FORMAT_VERSION,
+    MIN_BUILDING_M,
+    MIN_GRID_CELL_M,
+    meta_number,
+    read_surface_file,
+)
 from ground.surface import CLIP_TOLERANCE_M, Grid
 
 FIRST_VERSION = 1
@@ -76,25 +83,17 @@ def save_surface(s: SavedSurface, path: str | Path) -> Path:
     return path
 
 
-def _number(meta: dict, key: str, path: Path, minimum: float = 0.0, maximum: float = math.inf) -> float:
-    v = meta.get(key)
-    if (isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < minimum
-            or v > maximum):
-        within = f">= {minimum:g}" if maximum == math.inf else f"within {minimum:g} to {maximum:g}"
-        raise UserError(f"{path}: surface file field {key} must be a finite number {within}, got {v!r}"[:300])
-    return float(v)
-
-
 def load_surface(path: str | Path) -> SavedSurface:
     """Read and check a surface file; UserError (one line) on anything unusable."""
     path = Path(path)
     try:
         raw = read_surface_file(path)
+        length, width, height = (meta_number(raw.meta, k, path, minimum=MIN_BUILDING_M)
+                                 for k in ("length_m", "width_m", "height_m"))
+        cell = meta_number(raw.meta, "cell_m", path, minimum=MIN_GRID_CELL_M)
     except ValueError as exc:
         raise UserError(str(exc)) from None
     heights, meta = raw.heights_m, raw.meta
-    length, width, height = (_number(meta, k, path, 1e-3) for k in ("length_m", "width_m", "height_m"))
-    cell = _number(meta, "cell_m", path, 1e-3)
     try:
         grid = Grid(length, width, cell)
     except ValueError as exc:
@@ -117,11 +116,14 @@ def load_surface(path: str | Path) -> SavedSurface:
     if site is not None and not isinstance(site, dict):
         raise UserError(f"{path}: surface file site must be an object or null")
     most = length * width * hi  # the building's whole volume bounds the volume and its interval
-    volume = _number(meta, "volume_m3", path, -length * width * CLIP_TOLERANCE_M, most)
-    below, above = _number(meta, "below_m3", path, 0.0, most), _number(meta, "above_m3", path, 0.0, most)
-    return SavedSurface(heights, length, width, height, cell, volume, below, above,
-                        _number(meta, "scatter_sigma_m", path, 0.0, height), site, str(meta.get("source", ""))[:500],
-                        str(meta.get("software_version", ""))[:100], raw.fitted)
+    try:
+        volume = meta_number(meta, "volume_m3", path, minimum=-length * width * CLIP_TOLERANCE_M, maximum=most)
+        below, above = (meta_number(meta, k, path, maximum=most) for k in ("below_m3", "above_m3"))
+        scatter = meta_number(meta, "scatter_sigma_m", path, maximum=height)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    return SavedSurface(heights, length, width, height, cell, volume, below, above, scatter, site,
+                        str(meta.get("source", ""))[:500], str(meta.get("software_version", ""))[:100], raw.fitted)
 
 
 def building_mismatch(a: SavedSurface, b: SavedSurface) -> str | None:

@@ -4,15 +4,17 @@ and the checked raw read every program shares.
 The ground station writes it (`ground.surface_file`: a later survey's base, `compare`) and the coverage
 planner reads it (`sitl.missions.surveyed_surface`, `sitl.missions.gaps`); neither imports the other, so what
 they both must agree on lives here. The file holds a float64 `heights_m` grid and one JSON string `meta` (no
-pickles); what each reader needs of `meta` it checks itself. Version 2 adds `fitted`, a bool grid of the cells
-whose height was fitted to the survey's points (the rest were filled by the empty-cell policy: what the survey
-could not see, which a gap re-flight must see); version 1 files are still read (`fitted` then unknown).
+pickles); what each reader needs of `meta` it checks itself, each number by `meta_number` (one check and one
+wording for both readers). Version 2 adds `fitted`, a bool grid of the cells whose height was fitted to the
+survey's points (the rest were filled by the empty-cell policy: what the survey could not see, which a gap
+re-flight must see); version 1 files are still read (`fitted` then unknown).
 """
 
 from __future__ import annotations
 
 import io
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,6 +31,8 @@ READ_VERSIONS = (1, 2)
 _ARRAYS = {1: {"heights_m", "meta"}, 2: {"heights_m", "fitted", "meta"}}
 MIN_GRID_CELL_M = 0.01
 """Finest grid cell of a surface (a LIDAR-Lite's resolution): finer, a grid's cell count leaves the integers."""
+MIN_BUILDING_M = 1e-3
+"""Least length, width or height of a surface file's building (a millimetre: no building, but no zero to divide by)."""
 MAX_GRID_CELLS = 25_000_000
 """The most cells a height grid may have (a header may claim a big building with fine cells: refuse, not
 MemoryError); the ground's Grid enforces it too."""
@@ -79,3 +83,19 @@ def read_surface_file(path: str | Path) -> RawSurface:
         raise ValueError(f"{path}: surface file fitted mask is {fitted.dtype} {fitted.shape}, not bool "
                          f"{heights.shape} like its heights")
     return RawSurface(heights, meta, fitted)
+
+
+def meta_number(meta: dict, key: str, path: str | Path, *, minimum: float = 0.0, maximum: float = math.inf) -> float:
+    """meta[key] as a float, a finite number within [minimum, maximum]; ValueError (one line, naming the file and
+    the field) for one missing, not a number (a string, a JSON boolean, null), NaN, infinite or out of bounds."""
+    v = meta.get(key)
+    x = math.nan
+    if isinstance(v, int | float) and not isinstance(v, bool):
+        try:
+            x = float(v)
+        except OverflowError:  # a JSON integer beyond a float's range: no number either
+            pass
+    if not (math.isfinite(x) and minimum <= x <= maximum):
+        within = f">= {minimum:g}" if maximum == math.inf else f"within {minimum:g} to {maximum:g}"
+        raise ValueError(f"{path}: surface file field {key} must be a finite number {within}, got {v!r}"[:300])
+    return x

@@ -5,19 +5,18 @@ material against every wall shadows the wall's foot from legs a few metres insid
 height grid the beams stop at the first surface they meet instead. The file is the report's `surface.npz`
 (written by `ground.surface_file`); the simulator must not import the ground station, so it reads the file
 through the shared contract (`firmware_py.core.surface_file`: bounded, format and version checked) and checks
-the fields it uses here: a damaged, foreign or other building's file is one line, never a traceback. The
-report's heights are after its empty-cell policy: the cells it could not see hold a fill, not a measurement
-(pile 2: the fill carries the flanks' heights over the floor strip at the walls' foot they hide). So the
-cells the report did not fit count as floor, as do NaN cells: nothing measured stands there, and a floor is
-what a later flight must still see. Which cells were fitted the file says since its version 2 (`fitted`); for
-a version 1 file they are the cells inside the convex hull of the report's own points (`cloud.ply`, the pile
-points the surface was fitted to: the report's R_a, eq. 9).
+the fields it uses here (each number by the shared `meta_number`, as the ground does): a damaged, foreign or
+other building's file is one line, never a traceback. The report's heights are after its empty-cell policy: the
+cells it could not see hold a fill, not a measurement (pile 2: the fill carries the flanks' heights over the
+floor strip at the walls' foot they hide). So the cells the report did not fit count as floor, as do NaN cells:
+nothing measured stands there, and a floor is what a later flight must still see. Which cells were fitted the
+file says since its version 2 (`fitted`); for a version 1 file they are the cells inside the convex hull of the
+report's own points (`cloud.ply`, the pile points the surface was fitted to: the report's R_a, eq. 9).
 """
 
 from __future__ import annotations
 
 import io
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,7 +24,14 @@ import numpy as np
 
 from firmware_py.core.safe_read import InputError, read_bounded
 from firmware_py.core.storage import Storage
-from firmware_py.core.surface_file import MAX_GRID_CELLS, MIN_GRID_CELL_M, SURFACE_FILE, read_surface_file
+from firmware_py.core.surface_file import (
+    MAX_GRID_CELLS,
+    MIN_BUILDING_M,
+    MIN_GRID_CELL_M,
+    SURFACE_FILE,
+    meta_number,
+    read_surface_file,
+)
 
 CLOUD_FILE = "cloud.ply"
 MAX_CLOUD_BYTES = 1_000_000_000
@@ -58,16 +64,6 @@ class HeightField:
         return self.heights_m[ix, iy]
 
 
-def _number(meta: dict, key: str, path: Path, least: float | None = None) -> float:
-    """The field, a finite number > 0 (or >= least)."""
-    v = meta.get(key)
-    if (isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v)
-            or not (v > 0 if least is None else v >= least)):
-        bound = "> 0" if least is None else f">= {least:g}"
-        raise ValueError(f"{path}: surface file field {key} must be a finite number {bound}, got {v!r}"[:300])
-    return float(v)
-
-
 def load_height_field(report_dir: str | Path, storage: Storage) -> HeightField:
     """The surface of the report in report_dir (or a surface.npz named directly), checked against the building
     being planned; ValueError (one line) when it is unusable."""
@@ -76,8 +72,9 @@ def load_height_field(report_dir: str | Path, storage: Storage) -> HeightField:
         path = path / SURFACE_FILE
     raw = read_surface_file(path)
     heights, meta = raw.heights_m, raw.meta
-    length, width, height = (_number(meta, k, path) for k in ("length_m", "width_m", "height_m"))
-    cell = _number(meta, "cell_m", path, MIN_GRID_CELL_M)  # 1e-320 m cells overflowed the grid's shape
+    length, width, height = (meta_number(meta, k, path, minimum=MIN_BUILDING_M)
+                             for k in ("length_m", "width_m", "height_m"))
+    cell = meta_number(meta, "cell_m", path, minimum=MIN_GRID_CELL_M)  # 1e-320 m cells overflowed the grid's shape
     if max(abs(length - storage.length_m), abs(width - storage.width_m), abs(height - storage.height_m)) \
             > BUILDING_TOLERANCE_M:
         raise ValueError(f"{path} is a survey of a {length:g} x {width:g} x {height:g} m building, not the "
