@@ -8,24 +8,27 @@ base would add half the noise everywhere), and it is the net change against an e
 report cut and fill apart as well, and so does the report's ``base`` record: ``above_m3`` (material above
 the base) and ``below_m3`` (room below it).
 
-**Fitted floor.** The floor is the lowest large flat surface in the building: the plane
-z = a + b x + c y that the most points lie on, within their noise, with (almost) none below it. Points on
-a pile's flat top are rejected by "none below": the floor around the pile lies under that plane. The fit
-is RANSAC over three-point planes no steeper than MAX_FLOOR_TILT_DEG (score: points within n sigma of the
-plane less points more than n sigma below it; n from `ground.pointcloud.structure_n_sigma`, each point's
-vertical sigma from the sensor model in the log header), then a weighted least-squares refit on the
-inliers, re-selected until they stop changing. Nothing is tuned: the band is the sensor's noise, the
-tilt limit is a building fact. The plane's standard errors (scaled by the residuals' reduced chi-square,
-and by the points per cell: neighbouring points share the pose's error, so one cell counts as one
-independent value) give the base's own volume error over the surface's cells, added to the interval in
-quadrature at the interval's level. Pile toes inside the band lie only above the floor and pull a
-least-squares plane up; the median of the residuals is pulled less, so the plane is moved to it, and the
-move itself, over the surface's area, is added as a systematic error (the data cannot say which of the
-two locations is right). Refused: fewer than MIN_FLOOR_POINTS floor points, or floor points
-along a line (the cross-slope is unknown), or a plane steeper than the limit. Warned: a plane more than
-its noise below z = 0 somewhere in the building (the storage frame's z = 0 is its lowest floor corner;
-points below it were dropped as glitches), and floor points that cover little of the building (the plane
-is then extrapolated under the piles).
+**Fitted floor.** The floor is the lowest large flat surface in the building: the plane z = a + b x + c y that
+the most points lie on, within their noise, with (almost) none below it. Points on a pile's flat top are
+rejected by "none below": the floor around the pile lies under that plane. The fit is RANSAC over three-point
+planes no steeper than MAX_FLOOR_TILT_DEG (score: points within n sigma of the plane less points more than n
+sigma below it; n is `ground.pointcloud.N_SIGMA`, 3, each point's vertical sigma from the sensor model in the
+log header), then a weighted least-squares refit on the points from the deepest that noise alone reaches below
+the plane (`structure_n_sigma` of their number) to n sigma above it, re-selected until they stop changing:
+points under a floor are kept, not dropped as outliers, so the floor seen beyond a pile's long toe pulls back
+a plane the toe tilted up. Nothing is tuned: the band is the sensor's noise, the tilt limit is a building
+fact. The plane's standard errors (scaled by the residuals' reduced chi-square, and by the points per cell:
+neighbouring points share the pose's error, so one cell counts as one independent value) give the base's own
+volume error over the surface's cells, added to the interval in quadrature at the interval's level. Pile toes
+inside the band lie only above the floor and pull a least-squares plane up; the median of the residuals is
+pulled less, so the plane is moved to it, and the move itself, over the surface's area, is added as a
+systematic error (the data cannot say which of the two locations is right). Refused: fewer than
+MIN_FLOOR_POINTS floor points, or floor points along a line (the cross-slope is unknown), or a plane steeper
+than the limit. Warned: more points over n sigma under the plane than its noise puts there (a binomial test at
+BELOW_FLOOR_ALPHA: the plane climbs material lying on the floor, or the floor is not one plane), a plane more
+than its noise below z = 0 somewhere in the building (the storage frame's z = 0 is its lowest floor corner;
+points below it were dropped as glitches), and floor points that cover little of the building (the plane is
+then extrapolated under the piles).
 
 **Earlier survey.** A report directory's saved surface (`ground.surface_file`) or a run directory's
 (computed as its report would be). It must be of the same building (dimensions, and site when both logs
@@ -41,11 +44,14 @@ import math
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from pathlib import Path
+from statistics import NormalDist
 
 import numpy as np
+from scipy.stats import binom
 
 from firmware_py.core.cli import UserError
 from ground.compare import Z_INTERVAL, compare_surfaces
+from ground.pointcloud import structure_n_sigma
 from ground.surface import Grid, grid_volume
 from ground.surface_file import SavedSurface, building_mismatch, resampled
 from ground.uncertainty import ErrorTerms, IntervalModel, blur_term_m3, unseen_terms_m3
@@ -60,6 +66,10 @@ RANSAC_SAMPLE = 5_000
 """Points the RANSAC scores its candidate planes on (a seeded random subset: reports replay); the refit uses all."""
 RANSAC_CONFIDENCE = 0.999
 RANSAC_MAX_TRIALS = 5_000
+BELOW_FLOOR_ALPHA = 0.01
+"""The warning of points under a fitted floor fires when noise alone would put that many there with less than
+this chance: one report in a hundred over a true floor at most, while a plane tilted through pile toes leaves
+hundreds of times its noise's count (measured: docs/design-notes.md, "A fitted floor tilted through toes")."""
 MIN_FLOOR_COVER = 0.05
 """Floor points spread over less than this share of the building's cells: the plane is extrapolated under
 the piles from a corner, and the report says so."""
@@ -200,9 +210,13 @@ def fit_floor_plane(points_w: np.ndarray, sigma_m: np.ndarray, grid: Grid, n_sig
     if best is None:
         raise UserError(f"--base fitted-floor: no plane within {max_tilt_deg:g} deg of level fits the points")
     coef, inliers = best, np.zeros(len(pts), dtype=bool)
+    # The refit keeps points below the band too, down to the deepest that noise alone reaches among these points
+    # (a glitch beyond): a floor has nothing under it, so a plane tilted up through pile toes, which lifts it
+    # off the floor seen elsewhere, is pulled back by that floor instead of dropping it as outliers.
+    deep = structure_n_sigma(len(pts)) * np.maximum(sig, 1e-6)
     for _ in range(20):  # refit on the inliers until they stop changing
         r = pts[:, 2] - (coef[0] + coef[1] * pts[:, 0] + coef[2] * pts[:, 1])
-        now = np.abs(r) <= band
+        now = (r <= band) & (r >= -deep)
         if now.sum() < MIN_FLOOR_POINTS:
             raise UserError(f"--base fitted-floor: only {int(now.sum())} points lie on a floor plane (within "
                             f"{n_sigma:.1f} sigma), fewer than the {MIN_FLOOR_POINTS} a plane needs: the floor "
@@ -231,6 +245,30 @@ def fit_floor_plane(points_w: np.ndarray, sigma_m: np.ndarray, grid: Grid, n_sig
     cov = inv * max(1.0, chi2) * len(fp) / max(1, n_cells)
     return PlaneFit(float(coef[0]), float(coef[1]), float(coef[2]), cov, len(fp), n_cells,
                     float(np.sqrt(np.mean(r**2))), inliers, shift)
+
+
+@dataclass(frozen=True)
+class BelowFloor:
+    """The points more than n sigma below a fitted floor, against what its noise puts there."""
+
+    count: int
+    expected: float  # the normal tail beyond n sigma of the plane's floor points (its inliers)
+    p_value: float  # the chance of at least `count` from noise alone (binomial)
+    median_depth_m: float  # how far below the plane they lie (0 when none)
+
+
+def points_below(points_w: np.ndarray, sigma_m: np.ndarray, plane: PlaneFit, n_sigma: float) -> BelowFloor:
+    """A floor has nothing under it but its own noise's tail; a plane tilted through pile toes leaves the floor
+    seen elsewhere under it, by far more points than that tail (module docstring: the warning it gives)."""
+    pts = np.asarray(points_w, dtype=float)
+    r = (pts[:, 2] - plane.at(pts[:, 0], pts[:, 1])) / np.maximum(np.asarray(sigma_m, dtype=float), 1e-6)
+    deep = r < -n_sigma
+    tail = NormalDist().cdf(-n_sigma)
+    n_floor = int((np.abs(r) <= n_sigma).sum())
+    count = int(deep.sum())
+    p = float(binom.sf(count - 1, n_floor, tail)) if count > 0 else 1.0
+    depth = float(np.median(plane.at(pts[deep, 0], pts[deep, 1]) - pts[deep, 2])) if count else 0.0
+    return BelowFloor(count, tail * n_floor, p, depth)
 
 
 @dataclass(frozen=True)
@@ -302,6 +340,12 @@ def fitted_floor_base(points_w: np.ndarray, sigma_m: np.ndarray, heights: np.nda
                         f"plane, {math.sqrt(spread):.1f} times their noise: they fill its band rather than lie on a "
                         "floor, so the plane may run through the piles (a floor the material hides); the volume over "
                         "it may be far off, compare it with --base floor")
+    under = points_below(points_w, sigma_m, plane, n_sigma)
+    if under.p_value < BELOW_FLOOR_ALPHA:
+        warnings.append(f"{under.count} points lie more than {n_sigma:g} sigma below the fitted floor (median "
+                        f"{under.median_depth_m:.2f} m), where its noise would put {under.expected:.0f}: the plane "
+                        "is tilted up through material lying on the floor (a pile's toes), or the floor is not one "
+                        "plane, so the volume over it may be off; compare it with --base floor")
     cover = plane.n_cells / (grid.shape[0] * grid.shape[1])
     if cover < MIN_FLOOR_COVER:
         warnings.append(f"the floor was seen in only {cover * 100:.1f} % of the building's cells: the fitted floor "
@@ -315,7 +359,8 @@ def fitted_floor_base(points_w: np.ndarray, sigma_m: np.ndarray, heights: np.nda
                "slope_x": plane.slope_x, "slope_y": plane.slope_y, "n_floor_points": plane.n_points,
                "n_floor_cells": plane.n_cells, "rms_residual_m": plane.rms_residual_m,
                "median_shift_m": plane.median_shift_m, "volume_sigma_m3": sigma_v, "systematic_m3": systematic,
-               "max_tilt_deg": max_tilt_deg}
+               "max_tilt_deg": max_tilt_deg, "n_below_floor": under.count,
+               "expected_below_floor": under.expected, "below_floor_p_value": under.p_value}
     return Base(BaseKind.FITTED_FLOOR, desc, b, extra, extra, True, details, tuple(warnings))
 
 

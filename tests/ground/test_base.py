@@ -3,6 +3,7 @@ base, and the report's volume over each."""
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from ground.base import (
     BaseSpec,
     fit_floor_plane,
     fitted_floor_base,
+    points_below,
     survey_base,
 )
 from ground.compare import compare_surfaces
@@ -68,6 +70,58 @@ def test_that_a_plane_through_a_pile_that_hides_the_floor_is_warned_and_a_seen_f
     z = 2.0 + 0.02 * x + 0.2 * np.sin(x / 3.0) * np.cos(y / 3.0) + rng.normal(0, SIGMA_M, len(x))
     base = fitted_floor_base(np.column_stack([x, y, z]), np.full(len(x), SIGMA_M), np.ones(GRID.shape), GRID, 3.0)
     assert any("fill its band" in w for w in base.warnings)
+
+
+def floor_beyond_a_ramp(sigma_m: float = 0.08, n_far: int = 1000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Floor seen at both ends of the building (x < 3 m, x > 25 m) and, between, a thin layer of material rising
+    1.2 cm a metre (a pile's long toe): within the noise of a floor at every point, but 0.26 m thick at its end."""
+    rng = np.random.default_rng(seed)
+    near = np.column_stack([rng.uniform(0, 3, 1500), rng.uniform(0, 20, 1500), rng.normal(0, sigma_m, 1500)])
+    far = np.column_stack([rng.uniform(25, 30, n_far), rng.uniform(0, 20, n_far), rng.normal(0, sigma_m, n_far)])
+    x = rng.uniform(3, 25, 10000)
+    ramp = np.column_stack([x, rng.uniform(0, 20, len(x)), 0.012 * (x - 3) + rng.normal(0, sigma_m, len(x))])
+    pts = np.concatenate([near, far, ramp])
+    return pts, np.full(len(pts), sigma_m)
+
+
+def test_that_points_under_a_plane_are_counted_against_what_its_noise_puts_there():
+    pts, sig = floor_and_pile(0.0, 0.0)
+    level = fit_floor_plane(pts, sig, GRID, 3.0)
+    under = points_below(pts, sig, level, 3.0)
+    assert under.count <= under.expected + 4 * math.sqrt(under.expected) + 1 and under.p_value > 0.01
+    tilted = replace(level, offset_m=-0.05, slope_x=0.005)  # 10 cm above the floor at x = 30 m: 5 of its sigmas
+    worse = points_below(pts, sig, tilted, 3.0)
+    assert worse.count > 100 * max(1.0, worse.expected) and worse.p_value < 1e-12
+    assert 0.06 < worse.median_depth_m < 0.12  # 3 sigma (6 cm) to the plane's 10 cm at the far wall
+
+
+def test_that_a_fitted_floor_tilted_up_a_layer_of_material_is_warned_and_a_floor_beside_a_pile_is_not():
+    pts, sig = floor_beyond_a_ramp()
+    base = fitted_floor_base(pts, sig, np.ones(GRID.shape), GRID, 3.0)
+    assert base.details["tilt_deg"] > 0.2  # the layer holds more points than the floor: the fit climbs it
+    assert any("below the fitted floor" in w for w in base.warnings)
+    assert base.details["n_below_floor"] > 10 * base.details["expected_below_floor"]
+    clean = fitted_floor_base(*floor_and_pile(0.01, 0.0), np.ones(GRID.shape), GRID, 3.0)
+    assert not any("below the fitted floor" in w for w in clean.warnings)
+    assert clean.details["below_floor_p_value"] > 0.01
+
+
+def test_that_the_floor_refit_keeps_the_floor_under_a_tilted_plane_and_so_climbs_less():
+    # the refit's points run from the deepest noise reaches below the plane to its band above: the floor seen
+    # past the layer's end stays in the fit and pulls the plane down, where a symmetric band dropped it
+    pts, sig = floor_beyond_a_ramp()
+    plane = fit_floor_plane(pts, sig, GRID, 3.0)
+    r = pts[:, 2] - plane.at(pts[:, 0], pts[:, 1])
+    assert (plane.inliers & (r < -3.0 * sig)).any()
+    sym = plane.inliers & (np.abs(r) <= 3.0 * sig)
+    from ground.base import _refit
+    for _ in range(20):  # the symmetric refit from the same plane
+        coef, _ = _refit(pts[sym], 1.0 / sig[sym] ** 2)
+        now = np.abs(pts[:, 2] - (coef[0] + coef[1] * pts[:, 0] + coef[2] * pts[:, 1])) <= 3.0 * sig
+        if np.array_equal(now, sym):
+            break
+        sym = now
+    assert plane.slope_x < coef[1] - 0.001
 
 
 def test_that_a_fitted_floor_cancels_a_height_error_common_to_the_survey_so_the_pose_term_goes():
