@@ -24,6 +24,9 @@ from firmware_py.core.config_file import MIN_YAW_RATE_DEG_S
 from firmware_py.core.storage import Storage
 
 TURN_MODES = ("one-step", "two-step")
+MIN_LEG_M = 1.0
+"""The shortest leg a rectangle may have: about twice a small multirotor's span. P_traj near 50 % shrinks the
+loop to a point (49.99999 % flew a loop of 0 m); the paper's P_traj of 5-30 % gives legs of 16 m or more."""
 
 
 @dataclass(frozen=True)
@@ -72,9 +75,13 @@ class Mission:
         if gap < self.min_clearance_m:
             raise ValueError(f"P_traj {self.p_traj * 100:g} % puts the flight {gap:.2f} m from a wall of the "
                              f"{s} building; it needs at least {self.min_clearance_m:g} m")
+        shortest = (1 - 2 * self.p_traj) * min(s.length_m, s.width_m)
+        if shortest < MIN_LEG_M:
+            most = 50.0 * (1 - MIN_LEG_M / min(s.length_m, s.width_m))
+            raise ValueError(f"P_traj {self.p_traj * 100:.7g} % leaves a loop whose shorter legs are {shortest:.2f} m "
+                             f"in the {s} building: at most {most:.1f} % gives legs of {MIN_LEG_M:g} m or more")
         if self.turn == "two-step":
             cut = self.cut_m
-            shortest = (1 - 2 * self.p_traj) * min(s.length_m, s.width_m)
             if not (math.isfinite(cut) and 0 < cut < shortest / 2):
                 raise ValueError(f"two-step cut {cut:g} m must be > 0 and below half the shortest leg "
                                  f"({shortest / 2:.2f} m)")

@@ -33,10 +33,17 @@ def test_that_two_step_corners_cut_10_percent_of_w_before_and_after_each_turn():
     (dict(yaw_rate_max_rad_s=0.0), "yaw"), (dict(storage=Storage(60, 40, 10)), "altitude"),
     (dict(storage=Storage(6, 4, 15), p_traj=0.05), "wall"),
     (dict(storage=Storage(60, 40, 15), p_traj=0.45, turn="two-step"), "cut"),
+    (dict(p_traj=0.4999999), "legs are 0.00 m"), (dict(p_traj=0.49), "at most 48.8 %"),
 ])
 def test_that_missions_that_do_not_fit_are_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
         Mission(**kwargs)
+
+
+def test_that_the_largest_p_traj_the_refusal_names_is_flown():
+    from sitl.missions.rectangle import MIN_LEG_M
+    most = 0.5 * (1 - MIN_LEG_M / 40.0)
+    assert min(np.ptp(Mission(p_traj=most).corners_w(), axis=0)) == pytest.approx(MIN_LEG_M)
 
 
 def test_that_mission_ids_are_stable_and_distinct():
