@@ -221,7 +221,8 @@ def interpolation_term_m3(heights_fit: np.ndarray, counts: np.ndarray, grid: Gri
     """Sum over surfaced cells without points of d^2/2 |laplacian h| times the cell area (d: distance
     to the nearest cell holding points); over the cells of mask only when given (one pile's)."""
     seen = np.isfinite(heights_fit)
-    gaps = seen & (counts == 0) & (True if mask is None else mask)
+    all_gaps = seen & (counts == 0)
+    gaps = all_gaps & (True if mask is None else mask)
     if not gaps.any() or not (counts > 0).any():
         return 0.0
     c = grid.length_m / grid.shape[0], grid.width_m / grid.shape[1]
@@ -239,7 +240,9 @@ def interpolation_term_m3(heights_fit: np.ndarray, counts: np.ndarray, grid: Gri
             inner[axis] = slice(1, -1)
             second[tuple(inner)] = np.diff(h, n=2, axis=axis) / step**2
             lap += second
-    scale_cells = max(1.0, float(np.median(d_m[gaps])) / min(c))
+    # The scale is the whole survey's, whatever the mask: a pile's term is then its share of the survey's (the
+    # piles' terms and the rest's add up to it), where a pile's own gaps' scale made a pile's exceed the whole's.
+    scale_cells = max(1.0, float(np.median(d_m[all_gaps])) / min(c))
     lap = np.abs(ndimage.gaussian_filter(lap, scale_cells, mode="nearest"))
     return float((0.5 * d_m[gaps] ** 2 * np.abs(lap[gaps])).sum() * grid.cell_area_m2)
 

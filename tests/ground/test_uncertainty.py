@@ -112,6 +112,21 @@ def test_that_interpolating_a_plane_costs_nothing_and_a_curved_surface_grows_wit
     assert 0 < near < far
 
 
+def test_that_the_interpolation_terms_of_the_parts_of_a_floor_add_up_to_the_whole():
+    # a pile's term is its share of the survey's: tracks every 2 m on one half, every 6 m on the other (the
+    # halves' own gaps differ in size, which set each part's curvature scale when the part was asked alone)
+    counts = np.zeros(GRID.shape, int)
+    half = GRID.shape[0] // 2
+    counts[:half:4, :] = 5
+    counts[half::12, :] = 5
+    bowl = _heights_of(lambda x, y: 0.02 * (x - 10.0) ** 2 + 0.03 * (y - 7.0) ** 2)
+    left = np.zeros(GRID.shape, bool)
+    left[:half] = True
+    whole = interpolation_term_m3(bowl, counts, GRID)
+    parts = interpolation_term_m3(bowl, counts, GRID, left) + interpolation_term_m3(bowl, counts, GRID, ~left)
+    assert whole > 0 and parts == pytest.approx(whole)
+
+
 def test_that_the_noise_term_grows_with_the_points_scatter():
     rng = np.random.default_rng(1)
     terms = []
