@@ -41,6 +41,7 @@ offset between the flights over those that did not), not clipped at 0: material 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from pathlib import Path
@@ -283,6 +284,22 @@ class Base:
     clip_at_zero: bool = True  # a volume above a floor cannot be negative; a change from a survey can
     details: dict = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
+    extra_over: Callable[[np.ndarray], float] | None = field(default=None, repr=False, compare=False)
+    """The base's own 90 % half-width over a mask of cells (one pile's: ground.piles); None: nothing."""
+
+    @property
+    def piles_over(self) -> str:
+        """What a pile table of this base measures its piles over (ground.piles): the base itself, except an
+        earlier survey's, whose change per pile is `pilescan-ground compare`'s; the piles are then this survey's
+        over the floor."""
+        if self.kind is BaseKind.SURVEY:
+            return ("the floor z = 0: the piles of this survey as they stand (the headline is the change since the "
+                    "earlier survey; `pilescan-ground compare` gives the change per pile)")
+        return "the floor z = 0" if self.kind is BaseKind.FLOOR else "the fitted floor plane"
+
+    def pile_heights(self, heights: np.ndarray) -> np.ndarray:
+        """The heights a pile table segments and sums: above this base, or above z = 0 for an earlier survey's."""
+        return heights if self.kind is BaseKind.SURVEY else self.above(heights)
 
     def above(self, heights: np.ndarray) -> np.ndarray:
         """The surface's height above the base per cell (NaN where either has none)."""
@@ -349,7 +366,8 @@ def fitted_floor_base(points_w: np.ndarray, sigma_m: np.ndarray, heights: np.nda
     cover = plane.n_cells / (grid.shape[0] * grid.shape[1])
     if cover < MIN_FLOOR_COVER:
         warnings.append(f"the floor was seen in only {cover * 100:.1f} % of the building's cells: the fitted floor "
-                        "is extrapolated under the piles")
+                        "is extrapolated under the piles, and their toes may be taken for floor; compare the volume "
+                        "with --base floor, or fly legs that see more of the floor")
     cl, cw = grid.length_m / 2, grid.width_m / 2
     desc = (f"a plane fitted to the floor: tilt {plane.tilt_deg:.2f} deg ({plane.fall_pct:.2f} % rising towards "
             f"{plane.rise_azimuth_deg:.0f} deg from x), {float(plane.at(cl, cw)):+.3f} m at the building's centre, "
@@ -361,7 +379,14 @@ def fitted_floor_base(points_w: np.ndarray, sigma_m: np.ndarray, heights: np.nda
                "median_shift_m": plane.median_shift_m, "volume_sigma_m3": sigma_v, "systematic_m3": systematic,
                "max_tilt_deg": max_tilt_deg, "n_below_floor": under.count,
                "expected_below_floor": under.expected, "below_floor_p_value": under.p_value}
-    return Base(BaseKind.FITTED_FLOOR, desc, b, extra, extra, True, details, tuple(warnings))
+    cells = np.isfinite(heights)
+
+    def extra_over(mask: np.ndarray) -> float:
+        where = cells & mask
+        return math.hypot(Z_INTERVAL * plane.volume_sigma_m3(grid, where),
+                          abs(plane.median_shift_m) * float(where.sum()) * grid.cell_area_m2)
+
+    return Base(BaseKind.FITTED_FLOOR, desc, b, extra, extra, True, details, tuple(warnings), extra_over)
 
 
 def survey_base(earlier: SavedSurface, current: SavedSurface, source: str) -> Base:
@@ -392,17 +417,17 @@ def survey_base(earlier: SavedSurface, current: SavedSurface, source: str) -> Ba
 
 
 def rebased_terms(terms: ErrorTerms, heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
-                  scatter_sigma_m: float, base: Base, roof_m: float) -> ErrorTerms:
+                  scatter_sigma_m: float, base: Base, roof_m: float, mask: np.ndarray | None = None) -> ErrorTerms:
     """The terms that measure material from the floor (the unseen fill's lower bound, the blur's pile
     footprint) measured from a fitted floor instead; the others do not depend on the base, but for the pose
     and level terms: a height error common to the survey moves the floor fitted from its own points with the pile, so
     above that floor it cancels. Not the untied stretches' term: no floor was seen there, so the floor fitted
     elsewhere does not move with them. An earlier survey's base keeps the terms as they are: its own interval is
-    added whole (module docstring)."""
+    added whole (module docstring). mask: the terms over those cells only (one pile's, as `terms` are)."""
     if base.kind is not BaseKind.FITTED_FLOOR or base.heights_m is None:
         return terms
     low, high = unseen_terms_m3(heights_fit - base.heights_m, heights - base.heights_m, grid,
-                                upper_m=roof_m - base.heights_m)
+                                upper_m=roof_m - base.heights_m, mask=mask)
     return replace(terms, unseen_low_m3=low, unseen_high_m3=high,
-                   blur_m3=blur_term_m3(scatter_sigma_m, heights_fit - base.heights_m, grid), pose_m3=0.0,
+                   blur_m3=blur_term_m3(scatter_sigma_m, heights_fit - base.heights_m, grid, mask), pose_m3=0.0,
                    level_m3=0.0)

@@ -26,7 +26,7 @@ from ground.exports.formats import ALL as EXPORT_ALL
 from ground.exports.formats import ExportFormat, parse_formats
 from ground.metadata import SurveyInfo, check_timezone, metadata_rows
 from ground.pile_change import format_pile_changes, pile_changes
-from ground.piles import DEFAULT_MIN_PILE_AREA_M2, MassUnit, PileOptions, VolumeUnit, pile_rows
+from ground.piles import DEFAULT_MIN_PILE_AREA_M2, MassUnit, PileOptions, VolumeUnit, pile_rows, piles_note
 from ground.pose_correction import PoseCorrectionOptions
 from ground.render import warning_parts
 from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, make_report
@@ -185,8 +185,8 @@ def format_summary(rep: dict) -> str:
         unit = VolumeUnit.M3
 
     def vol(*v_m3: float) -> str:
-        shown = " - ".join(f"{unit.of_m3(v):,.1f}" for v in v_m3) + f" {unit.symbol}"
-        return shown if unit is VolumeUnit.M3 else shown + " (" + " - ".join(f"{v:,.1f}" for v in v_m3) + " m³)"
+        shown = " to ".join(f"{unit.of_m3(v):,.1f}" for v in v_m3) + f" {unit.symbol}"  # "-" reads as a minus
+        return shown if unit is VolumeUnit.M3 else shown + " (" + " to ".join(f"{v:,.1f}" for v in v_m3) + " m³)"
     truth = rep.get("true_volume_m3")
     iv = rep.get("volume_interval_m3")
     rows = [("volume", vol(rep["volume_m3"])),
@@ -207,6 +207,8 @@ def format_summary(rep: dict) -> str:
         widths = [max(len(r[i]) for r in [head, *piles]) for i in range(len(head))]
         lines += ["piles:"] + ["  " + "  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip()
                                for r in [head, *piles]]
+        note = piles_note(rep.get("piles"))
+        lines += [f"  {note}"] if note else []
     for w in rep.get("warnings", []):  # a warning of many clauses as the pages show it: its headline, the rest under it
         head, more = warning_parts(w)
         lines += [f"WARNING: {head}", *(f"  - {m}" for m in more)]

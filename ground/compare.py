@@ -152,16 +152,16 @@ def format_change(rec: dict) -> str:
 
     def iv(k: str) -> str:
         lo, hi = rec[k]
-        return f"(90 % interval {v(lo)} to {v(hi)} m^3)"
-    lines = [f"net change    {v(rec['net_m3'], '+12,.1f')} m^3 {iv('net_interval_m3')}",
-             f"cut           {v(rec['cut_m3'], '12,.1f')} m^3 {iv('cut_interval_m3')} "
-             f"over {rec['cut_area_m2']:,.0f} m^2",
-             f"fill          {v(rec['fill_m3'], '12,.1f')} m^3 {iv('fill_interval_m3')} "
-             f"over {rec['fill_area_m2']:,.0f} m^2",
+        return f"(90 % interval {v(lo)} to {v(hi)} m³)"
+    lines = [f"net change    {v(rec['net_m3'], '+12,.1f')} m³ {iv('net_interval_m3')}",
+             f"cut           {v(rec['cut_m3'], '12,.1f')} m³ {iv('cut_interval_m3')} "
+             f"over {rec['cut_area_m2']:,.0f} m²",
+             f"fill          {v(rec['fill_m3'], '12,.1f')} m³ {iv('fill_interval_m3')} "
+             f"over {rec['fill_area_m2']:,.0f} m²",
              f"detection     changes under {rec['level_of_detection_m']:.3f} m not counted as cut or fill"]
     if rec.get("true_net_m3") is not None:
         where = "inside" if rec["truth_in_interval"] else "OUTSIDE"
-        lines.append(f"true net      {rec['true_net_m3']:+12,.1f} m^3 ({where} the interval)")
+        lines.append(f"true net      {rec['true_net_m3']:+12,.1f} m³ ({where} the interval)")
     return "\n".join(lines + [f"WARNING: {w}" for w in rec["warnings"]])
 
 
@@ -191,8 +191,8 @@ def cutfill_figure(c: Change, rec: dict):
     ax.set_xlabel("x (building length) [m]")
     ax.set_ylabel("y (building width) [m]")
     ax.set_title(f"Cut/fill: net {rec['net_m3']:+,.1f} m³ (cut {rec['cut_m3']:,.1f}, fill {rec['fill_m3']:,.1f})")
-    ax.legend(handles=[Patch(color="#2166ac", label=f"cut (removed) {rec['cut_m3']:,.0f} m³"),
-                       Patch(color="#b2182b", label=f"fill (added) {rec['fill_m3']:,.0f} m³"),
+    ax.legend(handles=[Patch(color="#2166ac", label=f"cut (removed) {rec['cut_m3']:,.1f} m³"),
+                       Patch(color="#b2182b", label=f"fill (added) {rec['fill_m3']:,.1f} m³"),
                        Patch(color="#d9d9d9", label=f"no change beyond {c.lod_m * 100:.2g} cm"),
                        Patch(facecolor="white", edgecolor="0.5", label="not in both surveys")],
               loc="upper right", fontsize="small", framealpha=0.85)

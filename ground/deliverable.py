@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from ground.base import FLOOR_BASE, Base, BaseKind
 from ground.metadata import SurveyInfo, limiting_terms, remedies, survey_metadata, verdict
 from ground.piles import PileOptions, pile_table
 from ground.surface import Grid
@@ -19,19 +20,25 @@ from ground.volume_warnings import regions
 def add_deliverable(report: dict[str, Any], *, header: dict, log_path: Path, t_s: np.ndarray | None,
                     info: SurveyInfo, piles: PileOptions, heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
                     errors: SurveyErrors | None,
-                    errors_in: Callable[[np.ndarray], SurveyErrors] | None) -> None:
+                    errors_in: Callable[[np.ndarray], SurveyErrors] | None, base: Base | None = None) -> None:
     """report["metadata"], report["piles"], report["verdict"] (and their warnings) and what would narrow the
-    interval (report["to_narrow_interval"]), in place."""
+    interval (report["to_narrow_interval"]), in place. The piles are measured over the survey's base
+    (`Base.pile_heights`), their intervals with its own error."""
     meta, warnings = survey_metadata(header, info, log_path, t_s)
     report["metadata"] = meta
     sigma = errors.point_sigma_m if errors is not None else 0.0
-    table = pile_table(heights, grid, sigma, piles, errors_in)
+    base = base or FLOOR_BASE
+    table = pile_table(base.pile_heights(heights), grid, sigma, piles, errors_in, over=base.piles_over,
+                       extra_over=None if base.kind is BaseKind.SURVEY else base.extra_over)
     report["piles"] = table
     report["warnings"] = [*report.get("warnings", []), *warnings, *table["warnings"]]
     report["volume_unit"] = piles.volume_unit.value
     report["mass_unit"] = piles.mass_unit.value
     terms = report.get("interval_terms_m3")
-    limits = [] if terms is None else limiting_terms(ErrorTerms(**terms), DEFAULT_INTERVAL_MODEL)
+    own = None if base.kind is BaseKind.FLOOR else (
+        "earlier_survey" if base.kind is BaseKind.SURVEY else "fitted_floor",
+        max(base.extra_below_m3, base.extra_above_m3))
+    limits = [] if terms is None else limiting_terms(ErrorTerms(**terms), DEFAULT_INTERVAL_MODEL, own)
     report["verdict"] = _verdict(report, limits, heights_fit, heights, grid, piles)
     report["to_narrow_interval"] = remedies(limits)
 

@@ -164,6 +164,8 @@ _LIMITS = {
     "pose": "the height of the drifting pose, as corrected from the building",
     "level": "the drifting altitude reference, which no floor seen pinned",
     "untied": "the drifting altitude reference over stretches of the flight no floor seen tied",
+    "fitted_floor": "the fitted floor's own error (its points' noise, and pile toes within its band)",
+    "earlier_survey": "the earlier survey's own interval",
 }
 _REMEDIES = {
     "unseen": "a re-flight over the ground never seen (pilescan-sitl plan --fill-gaps on this report), or legs "
@@ -181,19 +183,25 @@ _REMEDIES = {
     "level": "a leg that sees a wall's foot or a strip of clear floor",
     "untied": "legs that see the floor along the way (farther from the walls where the pile covers their feet), or "
               "passes that cross the pile where it was seen beside the floor",
+    "fitted_floor": "more floor seen (legs nearer the walls, strips of floor left clear), or --base floor where the "
+                    "building's z = 0 is its floor",
+    "earlier_survey": "a narrower earlier survey (its report says what would narrow it)",
 }
 """What narrows each term on the next flight: the report says it under the verdict (`remedies`)."""
 MIN_SHARE = 0.25
 """A term 'limits' the volume when it holds at least a quarter of the interval's variance."""
 
 
-def limiting_terms(terms: ErrorTerms, model: IntervalModel) -> list[str]:
-    """The error terms that hold most of the interval, largest first, in plain words."""
+def limiting_terms(terms: ErrorTerms, model: IntervalModel, base: tuple[str, float] | None = None) -> list[str]:
+    """The error terms that hold most of the interval, largest first (keys of _LIMITS). base: the base's own
+    term and its 90 % half-width, added to the interval in quadrature (ground.base), when it has one."""
     scaled = {"unseen": model.k_unseen * max(terms.unseen_low_m3, terms.unseen_high_m3),
               "interpolation": model.k_interpolation * terms.interpolation_m3, "noise": model.k_noise * terms.noise_m3,
               "blur": model.k_blur * terms.blur_m3, "sweeps": model.k_sweeps * terms.sweeps_m3,
               "faces": model.k_faces * terms.faces_m3, "pose": model.k_pose * terms.pose_m3,
               "level": model.k_level * terms.level_m3, "untied": model.k_untied * terms.untied_m3}
+    if base is not None:
+        scaled[base[0]] = base[1]
     total = sum(v * v for v in scaled.values())
     if total <= 0:
         return []

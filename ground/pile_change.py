@@ -94,6 +94,6 @@ def format_pile_changes(records: list[dict] | None) -> list[str]:
         lo, hi = r["change_interval_m3"]
         x, y = r["centroid_m"]
         change, lo, hi = (signless_zero(u, ".1f") for u in (r["change_m3"], lo, hi))
-        lines.append(f"pile {name:<10} at ({x:.1f}, {y:.1f}) m  {r['status']:<7} change {change:+10,.1f} m^3 "
+        lines.append(f"pile {name:<10} at ({x:.1f}, {y:.1f}) m  {r['status']:<7} change {change:+10,.1f} m³ "
                      f"(90 % interval {lo:,.1f} to {hi:,.1f})")
     return lines

@@ -271,10 +271,13 @@ def _nearest(labels: np.ndarray, grid: Grid, e: PileEntry) -> str:
 
 def pile_table(heights: np.ndarray, grid: Grid, point_sigma_m: float, opts: PileOptions,
                errors_in: Callable[[np.ndarray], SurveyErrors] | None,
-               model: IntervalModel = DEFAULT_INTERVAL_MODEL) -> dict[str, Any]:
+               model: IntervalModel = DEFAULT_INTERVAL_MODEL, *, over: str = "the floor z = 0",
+               extra_over: Callable[[np.ndarray], float] | None = None) -> dict[str, Any]:
     """The report's ``piles`` record: how they were found, each pile, and what lies outside them.
 
-    errors_in: the survey's error terms over a cell mask (None: no intervals)."""
+    heights: above the base the piles are measured over (`over` names it); errors_in: the survey's error terms
+    over a cell mask (None: no intervals); extra_over: the base's own 90 % half-width over a mask (a fitted
+    floor's), added to each pile's interval in quadrature as the survey's interval adds it."""
     thr = threshold_m(point_sigma_m)
     found = assign(segment(heights, grid, thr, opts.min_area_m2), heights, grid, opts.entries, thr)
     ring = toe_ring_m(thr, grid)
@@ -299,7 +302,12 @@ def pile_table(heights: np.ndarray, grid: Grid, point_sigma_m: float, opts: Pile
         if errors_in is not None:
             t = errors_in(mask).terms
             terms = t.as_dict()
-            interval = list(model.interval_m3(v, t))
+            if extra_over is None:
+                interval = list(model.interval_m3(v, t))
+            else:  # as ground.base.Base.interval_m3 widens the survey's interval by the base's own error
+                below, above = model.half_widths_m3(t)
+                e = extra_over(mask)
+                interval = [max(0.0, v - math.hypot(below, e)), v + math.hypot(above, e)]
         density = entry.density_kg_m3 if entry is not None and entry.density_kg_m3 is not None else opts.density_kg_m3
         if density is None and entry is not None and opts.entries:
             warnings.append(f"pile {entry.name!r} has no density ([[piles]] density_kg_m3 or --density): no mass")
@@ -323,8 +331,9 @@ def pile_table(heights: np.ndarray, grid: Grid, point_sigma_m: float, opts: Pile
         rec["display"] = display_values(rec, opts.volume_unit, opts.mass_unit)
         piles.append(rec)
     in_piles = float(sum(p["volume_m3"] for p in piles))
+    total = float(h.sum() * a)
     return {
-        "method": f"connected regions (8-neighbour) of cells more than {thr:.3f} m above the base "
+        "method": f"connected regions (8-neighbour) of cells more than {thr:.3f} m above {over} "
                   f"({THRESHOLD_SIGMAS:g} x the point sigma {point_sigma_m:.3f} m, at least {MIN_THRESHOLD_M:g} m), "
                   f"at least {opts.min_area_m2:g} m² and {MIN_PILE_CELLS} cells, each with its toe: the cells within "
                   f"{ring:.2f} m of it",
@@ -335,8 +344,10 @@ def pile_table(heights: np.ndarray, grid: Grid, point_sigma_m: float, opts: Pile
         "mass_unit": opts.mass_unit.value,
         "n_piles": len(piles),
         "piles": piles,
+        "over": over,
         "volume_in_piles_m3": in_piles,
-        "volume_outside_piles_m3": float(h.sum() * a) - in_piles,
+        "volume_outside_piles_m3": total - in_piles,
+        "volume_all_m3": total,
         "warnings": warnings,
     }
 
@@ -415,3 +426,22 @@ def pile_rows(table: Mapping[str, Any] | None) -> tuple[list[str], list[list[str
                      _num(p.get("density_kg_m3"), ",.0f"), _num(d.get("mass")),
                      "-" if im is None else f"{im[0]:,.1f} – {im[1]:,.1f}"])
     return head, rows
+
+
+def piles_note(table: Mapping[str, Any] | None) -> str | None:
+    """The sentence under the pile table that reconciles it with the survey: what the piles hold, what lies
+    outside them (specks below a pile's size, and the floor's noise, which sums with its sign), the sum, and the
+    base they are measured over."""
+    if not isinstance(table, Mapping) or not table.get("piles"):
+        return None
+    try:
+        vu = VolumeUnit(table["volume_unit"])
+        inside, outside = float(table["volume_in_piles_m3"]), float(table["volume_outside_piles_m3"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    over = table.get("over") or "the floor z = 0"
+    n = len(table["piles"])
+    return (f"The {'pile holds' if n == 1 else f'{n} piles hold'} {vu.of_m3(inside):,.1f} {vu.symbol} and "
+            f"{vu.of_m3(outside):,.1f} {vu.symbol} lies outside {'it' if n == 1 else 'them'} (specks smaller than a "
+            f"pile, and the floor's noise, summed with its sign): {vu.of_m3(inside + outside):,.1f} {vu.symbol} in "
+            f"all over {over}.")

@@ -30,6 +30,7 @@ ImageMap = Mapping[str, str | Path]
 
 REPORT_TITLE = "pilescan volume report"
 UNKNOWN = "unknown"
+NOT_APPLICABLE = "none"
 
 SUMMARY_KEYS: tuple[str, ...] = (
     "volume_m3",
@@ -83,7 +84,7 @@ _CLOUD_CAPTION = "Point cloud, top view (coloured by height, flight path in blac
 _IMAGE_CAPTIONS: dict[str, str] = {
     "cloud": _CLOUD_CAPTION,
     "cloud_top": _CLOUD_CAPTION,
-    "height_map": "Fitted height map (white: no surface)",
+    "height_map": "Fitted height map (hatched: filled, never seen; white: no surface)",
     "coverage": "Coverage: points per cell (white: no points), fitted-surface boundary outlined",
     "site_map": "Site map: heights above the floor with contour lines, each pile's name and volume at its "
                 "centroid, the building's outline, a scale bar, the flight path and, outlined in red, the ground "
@@ -138,7 +139,11 @@ def method_text(surface_fit: str | None = None) -> str:
         "surface's extent have no surface and are treated by the empty-cell policy above. When a reference "
         "volume is known, the volume error Ve is the absolute difference between the measured and the "
         "true volume as a percentage of the true volume (eq. 8). The area coverage ratio R_a is the "
-        "projected area of the fitted surface as a percentage of the storage floor area (eq. 9)."
+        "projected area of the fitted surface as a percentage of the storage floor area (eq. 9). The 90 % "
+        "interval is the range that holds the true volume in 9 surveys of 10: its width adds up, in quadrature, "
+        "what the flight could not settle (ground never seen, gaps between sweep tracks, the sensor's noise, the "
+        "pose's drift, a base's own error), each scaled by a factor calibrated on simulated surveys with known "
+        "volumes; the verdict names the errors that hold most of it."
     )
 
 
@@ -353,6 +358,7 @@ class ReportContent:
     metadata: list[tuple[str, str]] = field(default_factory=list)  # ground.metadata.metadata_rows
     piles: tuple[list[str], list[list[str]]] = ([], [])  # ground.piles.pile_rows: header, rows
     piles_method: str | None = None
+    piles_note: str | None = None  # ground.piles.piles_note: the table reconciled with the survey, under it
     page_images: list[tuple[str, Path]] = field(default_factory=list)  # PAGE_IMAGES, under the pile table
 
 
@@ -415,7 +421,7 @@ def _image_caption(name: str) -> str:
 def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportContent:
     """Format the report once, for both Markdown and HTML."""
     from ground.metadata import metadata_rows
-    from ground.piles import pile_rows
+    from ground.piles import pile_rows, piles_note
     no_reference = report.get("true_volume_m3") is None  # a real survey: no "True volume: unknown" rows
     summary = [(_SUMMARY_LABELS[k], _SUMMARY_FORMAT[k](report.get(k))) for k in SUMMARY_KEYS
                if not (no_reference and k in REFERENCE_KEYS)]
@@ -428,7 +434,8 @@ def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportC
         if isinstance(sub, Mapping):
             extra_items.update({f"{key}.{k}": v for k, v in sub.items() if k not in shown})
     extra_items.update({k: v for k, v in report.items() if k not in handled})
-    extra = [(name, fmt_value(v)) for name, v in flatten(extra_items)]
+    # a null in report.json is a figure this survey has none of (no other reading, no second flight), not one lost
+    extra = [(name, NOT_APPLICABLE if v is None else fmt_value(v)) for name, v in flatten(extra_items)]
     cfg = report.get("config")
     config_rows, config_file = [], None
     if isinstance(cfg, Mapping):
@@ -445,6 +452,7 @@ def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportC
         to_narrow=_texts(report.get("to_narrow_interval")),
         metadata=metadata, piles=pile_rows(piles),
         piles_method=str(piles.get("method")) if isinstance(piles, Mapping) and piles.get("method") else None,
+        piles_note=piles_note(piles),
         config=config_rows, config_file=config_file, method=method_text(report.get("surface_fit")),
         headline=headline(report),
         warnings=_warnings(report),
@@ -511,6 +519,7 @@ def render_markdown(content: ReportContent, out_dir: Path) -> str:
         lines += ["## Piles", "", f"Found as {_md_text(content.piles_method or 'connected regions')}.", ""]
         lines += ["| " + " | ".join(_md_text(h) for h in head) + " |", "|" + "---|" * len(head)]
         lines += ["| " + " | ".join(_md_text(c) for c in r) + " |" for r in rows] + [""]
+        lines += [_md_text(content.piles_note), ""] if content.piles_note else []
     if content.page_images:
         lines += ["## Map, 3D view and cross-sections", *_md_figures(content.page_images, out_dir, "###"), ""]
     lines += ["## Warnings", ""]
@@ -639,6 +648,8 @@ def render_html(content: ReportContent) -> str:
                   '<table class="piles" id="piles">', "<tr>" + "".join(f"<th>{_e(h)}</th>" for h in head) + "</tr>"]
         parts += ["<tr>" + "".join(f'<td class="num">{_e(c)}</td>' for c in r) + "</tr>" for r in rows]
         parts.append("</table>")
+        if content.piles_note:
+            parts.append(f'<p class="piles-note" id="piles-note">{_e(content.piles_note)}</p>')
     if content.page_images:
         parts += ["<h2>Map, 3D view and cross-sections</h2>", *_html_figures(content.page_images)]
     if content.warnings:

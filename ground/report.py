@@ -870,14 +870,17 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
                       "level_sigma_m": None if pose is None else pose.level_sigma_m, "terms": terms,
                       "model": DEFAULT_INTERVAL_MODEL}
         other = open_floor_reading(**open_floor)
-        warnings += [w for w in (
+        why = [w for w in (
             unseen_warning(survey.heights_fit, survey.heights, g, terms, DEFAULT_INTERVAL_MODEL, volume,
                            opts.max_interval_pct),
             faces_warning(survey.errors.faces, g, terms, DEFAULT_INTERVAL_MODEL),
             pose_warning(terms, DEFAULT_INTERVAL_MODEL, volume, opts.max_interval_pct),
             level_warning(terms, DEFAULT_INTERVAL_MODEL, volume, opts.max_interval_pct, opts.baro_walk_m_per_sqrt_s),
-            open_floor_warning(**open_floor),
-            wide_interval_warning(volume, interval, opts.max_interval_pct)) if w]
+            open_floor_warning(**open_floor)) if w]
+        stock = base.details.get("base_volume_m3") if base.kind is BaseKind.SURVEY else None
+        wide = wide_interval_warning(volume, interval, opts.max_interval_pct,
+                                     explained=bool(why) or bool(base.warnings), stock_m3=stock)
+        warnings += why + ([wide] if wide else [])
     for k, f in enumerate(flights or (), 1):  # a merged survey: each flight's own anchor on a floor in the open
         fs = f.survey
         w = None if fs.pose is None or not fs.pose.applied else open_floor_warning(
@@ -1060,7 +1063,7 @@ def make_report(source: str | Path | Sequence[str | Path], out_dir: str | Path, 
     t_s = log.samples["t_s"] if merged else in_time(log.samples["t_s"])  # merged: each flight's own, below
     add_deliverable(report, header=header, log_path=log_path, t_s=t_s, info=opts.info, piles=opts.piles,
                     heights_fit=survey.heights_fit, heights=survey.heights, grid=survey.grid, errors=survey.errors,
-                    errors_in=survey.errors_in)
+                    errors_in=survey.errors_in, base=survey.base)
     if merged:
         merged_metadata(report, flights)
     if not np.isfinite(survey.heights_fit).any():
@@ -1086,6 +1089,17 @@ def make_report(source: str | Path | Sequence[str | Path], out_dir: str | Path, 
     return report
 
 
+def _height_map_title(survey: Survey, volume_m3: float) -> str:
+    """The height map shows heights above z = 0; over another base its volume is not the map's, so it says so."""
+    from ground.render import signless_zero
+    v = f"{signless_zero(volume_m3, '.1f'):.1f} m³"
+    base = survey.base
+    if base is None or base.kind is BaseKind.FLOOR:
+        return f"Fitted surface: {v}"
+    over = "the fitted floor" if base.kind is BaseKind.FITTED_FLOOR else "change since the earlier survey"
+    return f"Fitted surface, heights above z = 0 ({over}: {v})"
+
+
 def write_outputs(survey: Survey, report: dict, out: Path, plots: bool) -> dict[str, Path]:
     """Point cloud and (optionally) the three figures."""
     from ground.render import write_ply
@@ -1094,7 +1108,6 @@ def write_outputs(survey: Survey, report: dict, out: Path, plots: bool) -> dict[
         return {}
     from ground import plots as p
     from ground.exports.contours import contour_lines
-    from ground.render import signless_zero
     lw = (survey.storage.length_m, survey.storage.width_m)
     path = survey.cloud.path_w[:: max(1, len(survey.cloud.path_w) // 5000)]
     ra = report["coverage_ratio_pct"]
@@ -1103,7 +1116,7 @@ def write_outputs(survey: Survey, report: dict, out: Path, plots: bool) -> dict[
                                   title=f"Point cloud, top view ({len(survey.pile_points_w)} points)"),
         "height_map": p.plot_height_map(survey.grid.x_edges, survey.grid.y_edges, survey.heights, lw,
                                         out / "height_map.png",
-                                        title=f"Fitted surface: {signless_zero(report['volume_m3'], '.1f'):.1f} m³",
+                                        title=_height_map_title(survey, report["volume_m3"]),
                                         filled=~np.isfinite(survey.heights_fit),
                                         contours=contour_lines(survey.heights, survey.grid)),
         "coverage": p.plot_coverage(survey.grid.x_edges, survey.grid.y_edges, survey.counts,
@@ -1161,10 +1174,20 @@ def with_base(survey: Survey, header: dict, opts: ReportOptions) -> Survey:
     if survey.errors is None:
         return replace(survey, base=base)
     own = survey.errors.terms
-    terms = rebased_terms(own, survey.heights_fit, survey.heights, survey.grid,
-                          scatter_sigma_m(survey.pile_points_w, survey.heights_fit, survey.grid), base,
-                          survey.storage.height_m)
-    return replace(survey, base=base, errors=replace(survey.errors, terms=terms), own_terms=own)
+    scatter = scatter_sigma_m(survey.pile_points_w, survey.heights_fit, survey.grid)
+
+    def rebased(t: ErrorTerms, mask: np.ndarray | None = None) -> ErrorTerms:
+        return rebased_terms(t, survey.heights_fit, survey.heights, survey.grid, scatter, base,
+                             survey.storage.height_m, mask)
+
+    inner = survey.errors_in
+
+    def errors_in(mask: np.ndarray | None = None) -> SurveyErrors:  # one pile's terms over the same base
+        e = inner(mask)
+        return replace(e, terms=rebased(e.terms, mask))
+
+    return replace(survey, base=base, errors=replace(survey.errors, terms=rebased(own)), own_terms=own,
+                   errors_in=None if inner is None else errors_in)
 
 
 def saved_surface(survey: Survey, header: dict, opts: ReportOptions, source: str) -> SavedSurface:

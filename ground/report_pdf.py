@@ -207,18 +207,21 @@ def compose(content: ReportContent) -> list[Figure]:
         p.lines(f"Found as {content.piles_method or 'connected regions'}.", SMALL_PT)
         p.space(0.05)
         p.table(head, rows, _pile_widths(len(head), p.width_in), SMALL_PT)
+        if content.piles_note:
+            p.lines(content.piles_note, SMALL_PT)
     if content.page_images:
         p.heading("Map, 3D view and cross-sections")
         for caption, path in content.page_images:
             p.image(path, caption, 4.6)
-    p.heading(f"Warnings ({len(content.warnings)})" if content.warnings else "Warnings")
-    for w in content.warnings:
-        head, more = warning_parts(w)
-        p.bullet("•", head)
-        for m in more:
-            p.bullet("–", m, x_in=BULLET_HANG_IN)
-    if not content.warnings:
-        p.lines("No warnings.", BODY_PT)
+    if content.warnings:
+        p.heading(f"Warnings ({len(content.warnings)})")
+        for w in content.warnings:
+            head, more = warning_parts(w)
+            p.bullet("•", head)
+            for m in more:
+                p.bullet("–", m, x_in=BULLET_HANG_IN)
+    else:  # a line, not a heading that a full page pushes onto a page of its own
+        p.lines("Warnings: none.", BODY_PT)
     p.new_page()
     p.heading("Engineer's details", 14.0)
     p.lines(ENGINEER_NOTE)

@@ -231,14 +231,21 @@ def open_floor_warning(shift_m: float | None, heights: np.ndarray, grid: Grid, v
             "strip of clear floor would confirm the floor")
 
 
-def wide_interval_warning(volume_m3: float, interval_m3: tuple[float, float], max_pct: float) -> str | None:
-    """When the interval's half-width exceeds max_pct of the volume (or the volume is about zero)."""
+def wide_interval_warning(volume_m3: float, interval_m3: tuple[float, float], max_pct: float, *,
+                          explained: bool = True, stock_m3: float | None = None) -> str | None:
+    """When the interval's half-width exceeds max_pct of the volume. explained: another warning says why.
+    stock_m3: the volume a change is measured against (an earlier survey's): a change near zero is not a
+    percentage of itself, so its interval is judged against the stock it changed."""
     half = 0.5 * (interval_m3[1] - interval_m3[0])
-    if volume_m3 <= 0 or not math.isfinite(half):
+    ref = volume_m3 if stock_m3 is None else stock_m3
+    if ref <= 0 or not math.isfinite(half):
         return None
-    pct = 100.0 * half / volume_m3
+    pct = 100.0 * half / ref
     if pct <= max_pct:
         return None
-    return (f"the volume's 90 % interval is +/-{pct:.1f} % ({interval_m3[0]:,.1f}-{interval_m3[1]:,.1f} m³), "
-            f"wider than the {max_pct:g} % tolerance: not known well enough to sign; the other warnings say why "
-            "(unseen floor, faces, the pose's height or its level), else fly a denser mission")
+    what = ("the volume's 90 % interval" if stock_m3 is None
+            else f"the change's 90 % interval, against the earlier survey's {stock_m3:,.1f} m³,")
+    why = ("the other warnings say why (unseen floor, faces, the pose's height or its level)" if explained
+           else "the verdict's 'limited by' says which error holds it")
+    return (f"{what} is +/-{pct:.1f} % ({interval_m3[0]:,.1f} to {interval_m3[1]:,.1f} m³), wider than the "
+            f"{max_pct:g} % tolerance: not known well enough to sign; {why}, else fly a denser mission")

@@ -113,7 +113,16 @@ def test_that_every_term_a_verdict_can_name_has_its_meaning_and_remedy_in_the_in
     # and the remedy it gives is the one the report prints under the verdict
     assert all(rows[_LIMITS[k]][-1] == _REMEDIES[k] for k in _LIMITS), [rows[w][-1] for w in _LIMITS.values()]
     assert set(_LIMITS) == {f.name.removesuffix("_m3").removesuffix("_low").removesuffix("_high")
-                            for f in fields(ErrorTerms)}  # one phrase a term
+                            for f in fields(ErrorTerms)} | {"fitted_floor", "earlier_survey"}  # one phrase a term,
+    # and one for each base that brings its own error (ground.base)
+
+
+def test_that_a_base_that_holds_the_interval_is_named_in_the_verdict():
+    terms = ErrorTerms(interpolation_m3=10.0)
+    assert limiting_terms(terms, DEFAULT_INTERVAL_MODEL, ("fitted_floor", 100.0)) == ["fitted_floor"]
+    both = limiting_terms(terms, DEFAULT_INTERVAL_MODEL, ("earlier_survey", 15.0))  # against 1.28 x 10
+    assert both == ["earlier_survey", "interpolation"]
+    assert limiting_terms(terms, DEFAULT_INTERVAL_MODEL, ("fitted_floor", 0.1)) == ["interpolation"]
 
 # ----- the report, as a user runs it -------------------------------------------------------------------------
 

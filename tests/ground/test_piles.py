@@ -265,3 +265,37 @@ def test_that_per_pile_intervals_add_up_to_the_surveys():
     in_quadrature = math.sqrt(sum(p["noise_m3"] ** 2 for p in parts))
     assert 0.9 * whole["noise_m3"] <= in_quadrature <= whole["noise_m3"] * (1 + 1e-9)
     assert sum(p["sweeps_m3"] for p in parts) >= whole["sweeps_m3"] - 1e-12  # |sum| <= sum of |parts|
+
+
+def test_that_piles_over_a_fitted_floor_add_up_to_the_volume_over_it_and_carry_its_error():
+    from ground.base import Base, BaseKind
+    px, _ = centres()
+    floor = 0.02 * px  # a floor rising 2 cm a metre: 0.8 m at the far wall
+    heights = floor + np.maximum(cone(10, 10, 4.0, 6.0), cone(30, 10, 2.0, 3.0))
+    base = Base(BaseKind.FITTED_FLOOR, "a plane", floor, 20.0, 20.0, extra_over=lambda mask: 20.0 * mask.mean())
+    over = pile_table(base.pile_heights(heights), GRID, SIGMA_M, PileOptions(), None, over=base.piles_over)
+    assert over["n_piles"] == 2 and "fitted floor" in over["method"]
+    assert over["volume_in_piles_m3"] + over["volume_outside_piles_m3"] == pytest.approx(base.volume_m3(heights, GRID))
+    assert over["volume_outside_piles_m3"] == pytest.approx(0.0, abs=1e-6)
+    z0 = table(heights)  # over z = 0 the sloped floor itself is a "pile" wall to wall
+    assert z0["volume_in_piles_m3"] > over["volume_in_piles_m3"] + 250  # most of the 320 m³ of sloped slab
+
+    def errors_in(mask=None):
+        return survey_errors(np.zeros((0, 3)), np.zeros(0), heights, heights, np.ones(GRID.shape, int), GRID,
+                             SIGMA_M, 3.0, mask=mask)
+    plain = pile_table(base.pile_heights(heights), GRID, SIGMA_M, PileOptions(), errors_in)
+    widened = pile_table(base.pile_heights(heights), GRID, SIGMA_M, PileOptions(), errors_in,
+                         extra_over=base.extra_over)
+    for p, w in zip(plain["piles"], widened["piles"], strict=True):
+        (lo, hi), (wlo, whi) = p["volume_interval_m3"], w["volume_interval_m3"]
+        assert wlo < lo and whi > hi  # the base's own error, in quadrature
+
+
+def test_that_over_an_earlier_survey_the_piles_are_this_survey_s_over_the_floor_and_say_so():
+    from ground.base import Base, BaseKind
+    heights = cone(10, 10, 4.0, 6.0)
+    earlier = Base(BaseKind.SURVEY, "an earlier survey", 0.9 * heights, 5.0, 5.0, False)
+    assert earlier.pile_heights(heights) is heights
+    assert "compare" in earlier.piles_over and "z = 0" in earlier.piles_over
+    t = pile_table(earlier.pile_heights(heights), GRID, SIGMA_M, PileOptions(), None, over=earlier.piles_over)
+    assert t["piles"][0]["volume_m3"] == pytest.approx(grid_volume(heights), rel=1e-9)

@@ -289,4 +289,4 @@ def test_that_comparing_a_survey_with_itself_shows_no_negative_zero():
     text = format_change(rec) + "\n" + "\n".join(format_pile_changes(
         [{"old_pile": "P1", "new_pile": "P1", "change_interval_m3": [-0.03, 0.01], "centroid_m": [1.0, 2.0],
           "status": "matched", "change_m3": -0.01}]))
-    assert "-0.0" not in text and "net change            +0.0 m^3 (90 % interval 0.0 to 0.0 m^3)" in text
+    assert "-0.0" not in text and "net change            +0.0 m³ (90 % interval 0.0 to 0.0 m³)" in text

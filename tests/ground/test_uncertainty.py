@@ -246,9 +246,19 @@ def test_that_the_faces_warning_fires_only_when_faces_weigh_in_the_interval():
 def test_that_a_wide_interval_is_a_warning_and_a_tight_one_is_not():
     assert wide_interval_warning(1000.0, (990.0, 1010.0), 5.0) is None
     w = wide_interval_warning(1000.0, (800.0, 1200.0), 5.0)
-    assert w is not None and "+/-20.0 %" in w and "(800.0-1,200.0 m³)" in w
+    assert w is not None and "+/-20.0 %" in w and "(800.0 to 1,200.0 m³)" in w and "other warnings say why" in w
     # A small pile's bounds keep their tenths: a 2-litre box read "(0-0 m³)" for an interval of 0.0-0.1 m³.
-    assert "(0.0-0.1 m³)" in wide_interval_warning(0.02, (0.0, 0.1), 5.0)
+    assert "(0.0 to 0.1 m³)" in wide_interval_warning(0.02, (0.0, 0.1), 5.0)
+    # with no other warning, it does not send the reader to them
+    assert "limited by" in wide_interval_warning(1000.0, (800.0, 1200.0), 5.0, explained=False)
+
+
+def test_that_a_change_s_interval_is_judged_against_the_stock_it_changed_not_against_itself():
+    # +2.2 m³ +- 28 m³ since a survey of 7,205 m³: 0.4 % of the stock, not 1,300 % of the change
+    assert wide_interval_warning(2.2, (-26.3, 30.7), 5.0, stock_m3=7204.8) is None
+    w = wide_interval_warning(2.2, (-400.0, 404.0), 5.0, stock_m3=7204.8)
+    assert w is not None and "earlier survey's 7,204.8 m³" in w and "+/-5.6 %" in w
+    assert wide_interval_warning(-30.0, (-60.0, 0.0), 5.0) is None  # a loss alone is no stock to judge by
 
 
 def test_that_an_empty_building_reports_about_zero_with_an_interval_holding_zero_within_the_range_quantum():
