@@ -124,6 +124,19 @@ def _north_arrow(ax: Axes, heading_deg: float) -> None:
     c.text(0.95 * nx, 0.95 * ny, "N", ha="center", va="center", fontsize=10, fontweight="bold")
 
 
+def _label_xy(ax: Axes, x: float, y: float, length_m: float, compass: bool) -> tuple[float, float, str, str]:
+    """Where a pile's label goes: at (x, y), unless that is under the scale bar (lower left) or the compass (upper
+    left), which are drawn over the map; then just above the bar or right of the compass. With its alignment."""
+    (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+    fx, fy = (x - x0) / (x1 - x0), (y - y0) / (y1 - y0)
+    bar_fx = (nice_step(length_m, 5) + 0.06 * length_m) / (x1 - x0)  # the bar, its padding and frame
+    if fx < bar_fx and fy < 0.13:
+        return x, y0 + 0.14 * (y1 - y0), "center", "bottom"
+    if compass and fx < 0.13 and fy > 0.78:
+        return x0 + 0.14 * (x1 - x0), y, "left", "center"
+    return x, y, "center", "center"
+
+
 def _scale_bar(ax: Axes, length_m: float) -> None:
     bar = nice_step(length_m, 5)
     ax.add_artist(AnchoredSizeBar(ax.transData, bar, f"{bar:g} m", "lower left", pad=0.4, borderpad=0.6,
@@ -168,8 +181,9 @@ def site_map_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
         shown = v / m3_per_unit if isinstance(v, int | float) else None
         text = str(p.get("label", "?")) + ("" if shown is None else
                                            f"\n{shown:,.{0 if abs(shown) >= 100 else 1}f} {volume_unit}")
-        ax.text(float(cxy[0]), float(cxy[1]), text, ha="center", va="center", fontsize=9, fontweight="bold",
-                path_effects=_HALO, zorder=11)
+        compass = heading_deg is not None and math.isfinite(heading_deg)
+        lx, ly, ha, va = _label_xy(ax, float(cxy[0]), float(cxy[1]), storage[0], compass)
+        ax.text(lx, ly, text, ha=ha, va=va, fontsize=9, fontweight="bold", path_effects=_HALO, zorder=13)
     path = _finite_xy(path_w, 2)
     if path.shape[0] > 0:
         ax.plot(path[:, 0], path[:, 1], color="0.15", linewidth=0.5, alpha=0.6, zorder=4, label="flight path")

@@ -83,6 +83,22 @@ def test_that_the_map_names_each_pile_at_its_centroid_with_contours_scale_bar_no
     assert [t.get_text() for t in ax.get_legend().get_texts()] == ["flight path"]
 
 
+def test_that_a_pile_label_under_the_scale_bar_or_the_compass_is_moved_clear_of_them():
+    # a 13 m³ heap in the corner at (1.5, 0.8) m was named under the scale bar's box, which is drawn over the map
+    h = np.maximum(cone(1.5, 0.8, 3.0, 1.0), cone(2.0, 18.5, 3.0, 1.0))
+    piles = pile_table(h, GRID, 0.03, PileOptions(), None)
+    fig = pf.site_map_figure(GRID.x_edges, GRID.y_edges, h, LW, piles, heading_deg=0.0)
+    ax = fig.axes[0]
+    fig.canvas.draw()
+    covers = [a.get_window_extent() for a in ax.artists if isinstance(a, AnchoredSizeBar)]
+    covers += [a.get_window_extent() for a in ax.child_axes]  # the compass
+    labels = [t for t in ax.texts if t.get_text().startswith("P")]
+    assert len(labels) == 2
+    for t in labels:
+        box = t.get_window_extent()
+        assert not any(box.overlaps(c) for c in covers), t.get_text()
+
+
 def test_that_the_map_outlines_the_filled_cells_and_names_them_in_its_legend():
     h, piles = two_piles()
     filled = np.zeros(h.shape, bool)
