@@ -131,7 +131,8 @@ def cloud_from_samples(samples: np.ndarray, lever_arm_body_m, frame: StorageFram
         usable &= ~spikes
     suspect = np.zeros(len(samples), dtype=bool)
     if sweep_period_s is not None and len(samples):
-        suspect = stuck_sweep_mask(samples["t_s"], samples["range_m"], usable, sweep_period_s)
+        suspect = stuck_sweep_mask(samples["t_s"], samples["range_m"], usable, sweep_period_s,
+                                   servo_rad=samples["servo_rad"])
         usable &= ~suspect
     roll, pitch, yaw, gamma, rng = (f[usable] for f in fields)
     origins, dirs = beam_rays_w(pos[usable], roll, pitch, yaw, gamma, lever_arm_body_m, frame, boresight)

@@ -7,6 +7,14 @@ median rate of range change over 50 ms steps separates the two by an order of ma
 `MIN_SWEEP_RANGE_RATE_M_S` the servo is stuck (or the beam blocked) and the angles logged for that
 period cannot be vouched for. 50 ms steps keep 1 cm quantisation and 2.5 cm noise (~1 m/s) far
 below the threshold.
+
+Where the ranges are short the test cannot tell: a beam swept over a floor 0.3 m below (the vehicle on the
+ground before take-off, or climbing from it) changes range at well under a metre a second, as a stuck one does.
+So, given the logged servo angles, a period is judged only where a working sweep would change range at least
+twice the threshold: the median over its samples of r |tan gamma| |d gamma / dt|, the rate of a beam swept over
+a level floor under a level vehicle at the logged angles and ranges. At survey ranges that is tens of m/s and
+every period is judged as before; on the ground it is a fraction of one, and the samples are not blamed on the
+servo (they flagged thousands of a networked flight's samples "servo stuck or slow?").
 """
 
 from __future__ import annotations
@@ -20,15 +28,20 @@ MIN_SAMPLES = 20
 
 
 def stuck_sweep_mask(t_s: np.ndarray, range_m: np.ndarray, usable: np.ndarray, period_s: float,
-                     min_rate_m_s: float = MIN_SWEEP_RANGE_RATE_M_S, lag_s: float = LAG_S) -> np.ndarray:
+                     min_rate_m_s: float = MIN_SWEEP_RANGE_RATE_M_S, lag_s: float = LAG_S,
+                     servo_rad: np.ndarray | None = None) -> np.ndarray:
     """True for usable samples in sweep periods whose ranges do not move like a swept beam's.
 
     Periods with fewer than MIN_SAMPLES usable samples, or spanning less than 3/4 of a period, are
-    not judged (False).
+    not judged (False); with the logged servo angles, nor are periods whose ranges are too short for a
+    working sweep to show (module docstring).
     """
     t = np.asarray(t_s, dtype=float)
     r = np.asarray(range_m, dtype=float)
+    g = None if servo_rad is None else np.asarray(servo_rad, dtype=float)
     ok = np.asarray(usable, dtype=bool) & np.isfinite(t) & np.isfinite(r)
+    if g is not None:
+        ok &= np.isfinite(g)
     out = np.zeros(len(t), dtype=bool)
     idx = np.flatnonzero(ok)
     if len(idx) < MIN_SAMPLES or not (np.isfinite(period_s) and period_s > 0):
@@ -39,6 +52,12 @@ def stuck_sweep_mask(t_s: np.ndarray, range_m: np.ndarray, usable: np.ndarray, p
     has = j < len(tu)
     rate = np.full(len(tu), np.nan)
     rate[has] = np.abs(ru[j[has]] - ru[has]) / np.maximum(tu[j[has]] - tu[has], 1e-9)
+    expected = None
+    if g is not None:  # a working sweep's rate at these ranges and angles, over a level floor
+        gu = g[idx]
+        expected = np.full(len(tu), np.nan)
+        turn = np.abs(gu[j[has]] - gu[has]) / np.maximum(tu[j[has]] - tu[has], 1e-9)
+        expected[has] = ru[has] * np.abs(np.tan(np.clip(gu[has], -1.4, 1.4))) * turn
     window = np.floor((tu - tu[0]) / period_s).astype(np.int64)
     for w in np.unique(window):
         sel = window == w
@@ -47,6 +66,11 @@ def stuck_sweep_mask(t_s: np.ndarray, range_m: np.ndarray, usable: np.ndarray, p
         span = tu[sel][-1] - tu[sel][0]
         # Only whole periods are judged: a piece of one can sit in the dwell at a sweep's end, where
         # even a working servo barely moves the beam.
+        if expected is not None:
+            e = expected[sel]
+            e = e[np.isfinite(e)]
+            if len(e) < MIN_SAMPLES or np.median(e) < 2.0 * min_rate_m_s:
+                continue  # too short a range for a sweep to show: not judged
         if span >= 0.75 * period_s and len(vals) >= MIN_SAMPLES and np.median(vals) < min_rate_m_s:
             out[idx[sel]] = True
     return out
