@@ -1,12 +1,13 @@
 """Live sample stream to the ground station over UDP: fire and forget, never in the payload's way.
 
-Live sample stream to the ground station over UDP: fire and forget, never in the payload's way.
-
 The sample log on the drone is the record; this stream is a preview (live coverage on the ground), so
 the sender never blocks and never raises once open: a missing or slow ground station, a full socket
 buffer or an unreachable network only increment counters.
 
 The datagram format is `firmware_py.core.stream_format`; the ground end is `ground.live_receiver`.
+UDP keeps no history: what is sent before the ground station listens is gone. The datagrams are
+numbered from 0 from the sender's start, listened to or not, so a receiver that joins late knows how
+many it never had (`ground.listen`, "joined at datagram N").
 """
 
 from __future__ import annotations

@@ -24,6 +24,14 @@ lever arm, servo: what the report needs to turn records into a volume). So:
   ``live_stream``. `read_samplelog` reads the records; `pilescan-ground report` refuses the log in
   one line (the header lacks the storage geometry) rather than guess a building.
 
+Joining late. UDP keeps no history: what the payload sent before `listen` was up never arrives. The
+payload numbers its datagrams from 0 when it starts, so a stream first heard at datagram N had N
+datagrams sent before: one line says so when it happens ("joined the stream from HOST:PORT at datagram
+15 (about record 300): ..."), the summary's `joined` line repeats it, and `lost` counts them, apart
+from those lost in transit (`JoiningReceiver`, within the same loss budget). Records are counted in
+datagrams of up to the sender's batch size (partial batches, sent once a second, hold fewer), so the
+records before are "up to" N times it. Start `listen` before the payload to have every record.
+
 Under a flood. Loss is counted per sender, within what a sender can plausibly have sent
 (`ground.live_receiver`): forged sequence numbers show as resyncs, not as billions of lost
 datagrams. The live log has a size cap (`max_log_bytes`, `--max-log-mb`, default
@@ -72,7 +80,14 @@ from firmware_py.core.samplelog import (
 )
 from firmware_py.core.stream_format import parse_stream_url
 from ground.live_page import LivePageServer, parse_web_address
-from ground.live_receiver import LiveStreamReceiver, PeerSpec
+from ground.live_receiver import (
+    LOSS_GRACE_S,
+    MAX_SENDERS,
+    RESTART_GAP,
+    LiveStreamReceiver,
+    PeerSpec,
+    SenderKey,
+)
 from ground.live_state import LiveGeometry, LiveState
 
 PROG = "pilescan-ground listen"
@@ -89,6 +104,97 @@ _MAX_WAIT_S = 0.25
 MIB = 1 << 20
 DEFAULT_MAX_LOG_MIB = 512
 """Default live-log size cap: 2000 Hz x 59 B is 425 MB an hour, 500 Hz 106 MB (module docstring)."""
+
+
+JOIN_LINES = 3
+"""Joins said as they happen (one line each); more (a flood of new senders) are only counted."""
+
+
+@dataclass
+class StreamJoin:
+    """Where this listener joined one sender's stream: the sender numbers its datagrams from 0 when it
+    starts, so a first datagram numbered N says N were sent before this listener heard any (started
+    after the payload, or restarted: UDP keeps no history)."""
+
+    sender: SenderKey
+    first_seq: int
+    """The lowest sequence number heard from the sender: the datagrams before it were never received."""
+    first_t: float
+    counted: int = 0
+    """How many of them are counted in `lost` so far (`JoiningReceiver`: no more than it could have sent)."""
+    batch: int = 0
+    """The most records seen in one of its datagrams (its batch size, for the records estimate)."""
+
+    @property
+    def records_max(self) -> int:
+        """At most this many records were in the datagrams sent before (a partial batch, sent when the
+        payload flushes once a second, holds fewer)."""
+        return self.first_seq * self.batch
+
+    @property
+    def where(self) -> str:
+        peer, sender_id = self.sender
+        text = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else "an unknown address"
+        return text + (f" (sender id {sender_id})" if sender_id is not None else "")
+
+
+class JoiningReceiver(LiveStreamReceiver):
+    """`LiveStreamReceiver`, plus the datagrams each sender sent before its first one heard here.
+
+    The receiver counts gaps between the datagrams it hears; a sender's first datagram numbered N means
+    N more, sent before this listener was there to hear them. They are counted in `stats["lost"]` and in
+    `stats["joined"]`, as far as the loss budget allows (the receiver's rule: no more than the highest
+    rate for as long as the sender has been heard, plus `LOSS_GRACE_S`): a first datagram with a forged
+    number adds at most a second's worth, and a real stream joined late is counted in full within a
+    second (or, joined hours in, as it goes on being heard). A datagram that arrives late, behind the
+    first one heard, lowers the count. `joins` holds one `StreamJoin` per sender (bounded as the
+    receiver's table); `new_joins` those not yet said (drained by the listener).
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.stats["joined"] = 0
+        self.joins: dict[SenderKey, StreamJoin] = {}
+        self.new_joins: list[StreamJoin] = []
+        self._heard: StreamJoin | None = None
+
+    def feed(self, data: bytes, peer: tuple[str, int] | None = None) -> np.ndarray:
+        self._heard = None
+        recs = super().feed(data, peer)
+        heard = self._heard
+        if heard is not None and len(recs) > heard.batch:
+            heard.batch = len(recs)
+        return recs
+
+    def _track(self, sender: SenderKey, seq: int) -> None:
+        late = self.stats["late"]
+        super()._track(sender, seq)
+        now = self._monotonic()
+        join = self.joins.pop(sender, None)
+        if join is None:
+            if len(self.joins) >= MAX_SENDERS:
+                del self.joins[next(iter(self.joins))]  # the least recently heard, as the receiver does
+            join = StreamJoin(sender, seq, now)
+            if seq:
+                self.new_joins.append(join)
+        elif self.stats["late"] > late and 0 < join.first_seq - seq < RESTART_GAP:
+            join.first_seq = seq  # an earlier datagram, reordered behind the first one heard: it was received
+            self._recount(join, -max(0, join.counted - seq))
+        self.joins[sender] = join
+        self._heard = join
+        if join.counted < join.first_seq:
+            budget = int(self._max_rate_hz * (now - join.first_t + LOSS_GRACE_S))
+            self._recount(join, max(0, min(join.first_seq, budget) - join.counted))
+
+    def _recount(self, join: StreamJoin, change: int) -> None:
+        join.counted += change
+        self.stats["joined"] += change
+        self.stats["lost"] += change
+
+    def joined(self) -> tuple[StreamJoin, ...]:
+        """The senders heard first at a sequence number above 0 (copies)."""
+        return tuple(StreamJoin(j.sender, j.first_seq, j.first_t, j.counted, j.batch)
+                     for j in self.joins.values() if j.first_seq)
 
 
 def parse_peer(text: str) -> PeerSpec:
@@ -227,6 +333,8 @@ class ListenResult:
     log_cap_bytes: int | None = None
     web_url: str | None = None
     """Where the live page was served (None: no --web)."""
+    joins: tuple[StreamJoin, ...] = ()
+    """Senders first heard past their first datagram (`JoiningReceiver`): what was sent before listen heard it."""
 
     @property
     def refused(self) -> dict[str, int]:
@@ -252,7 +360,7 @@ class Listener:
     def __init__(self, cfg: ListenConfig, *, err: TextIO | None = sys.stderr,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.cfg, self.err, self.clock = cfg, err, clock
-        self.rx: LiveStreamReceiver | None = None
+        self.rx: JoiningReceiver | None = None
         self.log: SampleLogWriter | None = None
         self.records = 0
         self.flagged = 0
@@ -266,6 +374,7 @@ class Listener:
         self._live_line = False
         self._warnings: list[str] = []
         self._warned_unverified = False
+        self._joins_said = 0
         self._bound_url: str | None = None
         self.live: LiveState | None = None
         self.page: LivePageServer | None = None
@@ -298,7 +407,7 @@ class Listener:
             if not out.parent.is_dir():
                 raise UserError(f"cannot write {out}: directory {out.parent} does not exist")
         try:
-            self.rx = LiveStreamReceiver(cfg.url, key=cfg.key, allowed_peers=cfg.allowed_peers)
+            self.rx = JoiningReceiver(cfg.url, key=cfg.key, allowed_peers=cfg.allowed_peers)
         except OSError as exc:  # address in use, not an address of this machine, name does not resolve
             raise UserError(f"cannot listen on {cfg.url}: {exc.strerror or exc}") from None
         if cfg.web is not None:
@@ -378,11 +487,24 @@ class Listener:
             self.tally.add(recs["flags"])
             if self.live is not None:
                 self.live.offer(recs)  # an append: the page's threads do the rest
+        if self.rx.new_joins:
+            self._say_joins()
         if self.rx.stats["unverified"] and not self._warned_unverified:
             self._warned_unverified = True
             self._warn("the stream is authenticated but this listener has no key (--signing-key): "
                        "its tags are not checked")
         return len(recs)
+
+    def _say_joins(self) -> None:
+        """One line for each sender first heard past its first datagram (at most `JOIN_LINES`)."""
+        joins, self.rx.new_joins = self.rx.new_joins, []
+        for j in joins:
+            if self._joins_said < JOIN_LINES:
+                self._note(f"joined the stream from {j.where} at datagram {j.first_seq} (about record "
+                           f"{j.records_max}): the {j.first_seq} datagrams sent before it, up to {j.records_max} "
+                           f"records, were sent before this listener heard them (counted as lost; start listen "
+                           f"before the payload to have them)")
+            self._joins_said += 1
 
     def _log_within_cap(self, recs: np.ndarray) -> None:
         """Append what fits under the size cap; the rest is counted. The writer writes whole blocks
@@ -476,7 +598,8 @@ class Listener:
             last_refusal=self.rx.last_error if self.rx is not None else None, warnings=tuple(warnings),
             samples_text=self.tally.describe(), records_unlogged=self.records_unlogged,
             log_cap_bytes=self.cfg.max_log_bytes if self.cfg.out_path is not None else None,
-            web_url=self.page.url if self.page is not None else None)
+            web_url=self.page.url if self.page is not None else None,
+            joins=self.rx.joined() if self.rx is not None else ())
 
     def status_line(self, now: float) -> str:
         """The one-line status: elapsed, records and rate since the last line, datagrams, losses, refusals."""
@@ -502,11 +625,15 @@ class Listener:
 
     def _warn(self, text: str) -> None:
         self._warnings.append(text)
+        self._note(f"warning: {text}")
+
+    def _note(self, text: str) -> None:
+        """A line of its own (after the status line, if one is being rewritten), unless --quiet."""
         if not self.cfg.quiet:
             if self._live_line:
                 self._print("")
                 self._live_line = False
-            self._print(f"{PROG}: warning: {text}")
+            self._print(f"{PROG}: {text}")
 
     def _print(self, text: str) -> None:
         self._write(text + "\n")
@@ -538,16 +665,19 @@ def format_summary(res: ListenResult) -> str:
         log += (f"; size cap {res.log_cap_bytes / MIB:g} MiB reached: {res.records_unlogged} records "
                 f"received but not written")
     senders = st.get("senders", 0)
+    joined = st.get("joined", 0)
     lines = [
         f"listened      {res.elapsed_s:.1f} s on {res.url}" + (" (authenticated)" if res.authenticated else ""),
         f"records       {res.records} in {st.get('datagrams', 0)} datagrams, {rate:.1f}/s"
         + (f": {res.samples_text}" if res.samples_text else ""),
-        f"lost          {st.get('lost', 0)} datagrams (late {st.get('late', 0)}, "
-        f"sender restarts {st.get('restarts', 0)}"
+        f"lost          {st.get('lost', 0)} datagrams ("
+        + (f"{joined} sent before listen joined, {st.get('lost', 0) - joined} in transit; " if joined else "")
+        + f"late {st.get('late', 0)}, sender restarts {st.get('restarts', 0)}"
         + (f", implausible sequence jumps {st['resyncs']} (not counted as lost)" if st.get("resyncs") else "")
         + (f"; from {senders} senders" if senders > 1 else "") + ")",
-        f"refused       {_refused_text(res.refused)}",
     ]
+    lines += [_joined_text(res)] if res.joins else []
+    lines += [f"refused       {_refused_text(res.refused)}"]
     if res.refused and res.last_refusal:
         lines.append(f"last refusal  {res.last_refusal}")
     lines += [f"log           {log}"]
@@ -555,6 +685,26 @@ def format_summary(res: ListenResult) -> str:
     lines += [f"stopped       {res.stop_reason}"]
     lines += [f"WARNING: {w}" for w in res.warnings]
     return "\n".join(lines)
+
+
+def _joined_text(res: ListenResult) -> str:
+    """The summary's line on the datagrams sent before listen heard a stream (its first sequence number)."""
+    joins = res.joins
+    before = sum(j.first_seq for j in joins)
+    records = sum(j.records_max for j in joins)
+    if len(joins) == 1:
+        j = joins[0]
+        text = (f"joined        at datagram {before} of the stream from {j.where} (about record {records}): "
+                f"{before} earlier datagrams, up to {records} records, not received (sent before listen heard "
+                f"the stream)")
+    else:
+        text = (f"joined        {len(joins)} streams after their start: {before} earlier datagrams, up to "
+                f"{records} records, not received (sent before listen heard them)")
+    uncounted = before - sum(j.counted for j in joins)
+    if uncounted > 0:
+        text += (f"; {uncounted} of them not counted as lost (beyond the loss budget of a sender heard this "
+                 f"briefly: a forged number cannot inflate the loss)")
+    return text
 
 
 def config_from_args(args: Any) -> ListenConfig:

@@ -454,6 +454,7 @@ def _serve(args) -> int:
     return serve(ServeOptions(mission=_mission(args), url=args.mavlink, speedup=args.speedup,
                               duration_s=args.duration, vehicle=args.vehicle, out=Path(args.out), force=args.force,
                               devices_url=args.devices, stockpile=args.stockpile, signing=signing,
+                              signing_key_file=args.signing_key,
                               faults=FaultSpec.parse(args.fault, seed=args.seed), rangefinder=args.rangefinder,
                               limits=tlog_limits(args.tlog_max_mb), site=_site(args), sensor_noise=args.sensor_noise,
                               pose_error=args.pose_error))

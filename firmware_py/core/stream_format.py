@@ -34,7 +34,9 @@ tunnels), i.e. 25 datagrams/s at 500 Hz. `LiveStreamReceiver` checks magic, vers
 (a bad datagram is counted and dropped, never raised) and, per sender, counts lost datagrams from
 sequence gaps (only as many as the sender could have sent: a larger jump is a resync, so forged
 numbers cannot inflate the loss), late/duplicate ones that arrive behind the sequence, and sender
-restarts (back to 0, or a jump far backwards).
+restarts (back to 0, or a jump far backwards). A sender numbers its datagrams from 0 when it starts,
+so a receiver whose first datagram from it is number N knows N were sent before it listened
+(`ground.listen`'s "joined at datagram N"); the records carry no index of their own.
 
 `encode_datagram` / `parse_datagram` are the whole contract; the sender (`firmware_py.live_stream`)
 and the receiver (`ground.live_receiver`) add batching, counters, replay and peer checks.

@@ -23,10 +23,17 @@ that a few random bytes follow a frame on the line, as a loose wire or a booting
 `unplugged` (the sensor's cable pulled off the UART pins: the line is silent, the frames of that
 time are lost; put back, the part streams again). `PtyTfmini.remove_adapter()` is the other kind of
 unplugging: a USB serial adapter pulled out, whose port then fails on every read.
+
+Nobody reading: a real TFMini streams whether or not anyone listens, and a UART whose buffer is full
+loses what comes next. `PtyTfmini` writes the pty's master without blocking: once the kernel's buffer
+is full (about 20 KB, some 20 s of frames, when no payload has the port open or one has exited) the
+bytes that do not fit are dropped and counted (`frames_dropped`, `bytes_dropped`), and stopping never
+waits on a write (a blocking write there hung `serve` on SIGTERM).
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import threading
@@ -40,8 +47,13 @@ from firmware_py.drivers.tfmini import BITS_PER_BYTE, FRAME_LEN, TfminiModel, Tf
 from firmware_py.hal import Clock
 from sitl.sensing.noise import RangeNoise
 
+log = logging.getLogger(__name__)
+
 MAX_GARBAGE_BYTES = 8
 """The most random bytes the garbage fault puts after one frame."""
+
+STOP_TIMEOUT_S = 2.0
+"""The longest `PtyTfmini.close()` waits for its writer (it never blocks: a frame period and a ray cast)."""
 
 
 SATURATED_STRENGTH = 0xFFFF
@@ -193,7 +205,8 @@ class PtyTfmini:
     """A TFMini on a pseudo-terminal, in real time (module docstring). `path` is the serial port to
     open (`serial:{path}`); `start()` begins streaming, `unplugged` silences it (the sensor's cable),
     `remove_adapter()` closes the master side (a USB adapter gone), `close()` stops. Args as
-    `EmulatedTfminiPort`, times in the monotonic clock's ns."""
+    `EmulatedTfminiPort`, times in the monotonic clock's ns. Writes never block: what does not fit in
+    the pty's buffer (nobody reads the port) is lost, counted in `frames_dropped` and `bytes_dropped`."""
 
     def __init__(self, range_at: Callable[[int], float | None], *, model: TfminiModel = TfminiModel.TFMINI_S,
                  baud: int = 115_200, rate_hz: float = 100.0, output_latency_ns: int = 0,
@@ -202,6 +215,7 @@ class PtyTfmini:
                  garbage: float = 0.0) -> None:
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)  # no line discipline: bytes pass as sent (0x0a stays 0x0a)
+        os.set_blocking(self._master, False)  # a full buffer loses bytes, as a UART nobody reads: never waits
         self.path = os.ttyname(self._slave)
         self.source = _FrameSource(range_at, model, baud, rate_hz, time.monotonic_ns(), output_latency_ns,
                                    range_noise_sigma_m, bad_frames, rng, range_noise, garbage)
@@ -209,12 +223,29 @@ class PtyTfmini:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="pty-tfmini", daemon=True)
         self._lock = threading.Lock()
-        self.frames_written = 0
+        self.frames_written = 0  # whole frames into the pty
+        self.frames_dropped = 0  # frames lost, whole or in part, to a full buffer (nobody reading)
+        self.bytes_dropped = 0  # the bytes lost so (frames and injected bytes)
 
     def start(self) -> PtyTfmini:
         self.source.t0_ns = time.monotonic_ns()
         self._thread.start()
         return self
+
+    @property
+    def running(self) -> bool:
+        """Whether its writer thread is still going (false again once close() has returned)."""
+        return self._thread.is_alive()
+
+    def _write(self, data: bytes) -> int:
+        """Put what fits of data on the line now (the caller holds the lock); the rest is lost. Returns the
+        bytes written."""
+        try:
+            n = os.write(self._master, data)
+        except BlockingIOError:  # the buffer is full: nobody reads the slave
+            n = 0
+        self.bytes_dropped += len(data) - n
+        return n
 
     def _run(self) -> None:
         src, k = self.source, 0
@@ -228,29 +259,38 @@ class PtyTfmini:
                     with self._lock:
                         if self._master < 0:
                             break
-                        os.write(self._master, data)
-                    self.frames_written += 1
+                        whole = self._write(data) == len(data)
+                    if whole:
+                        self.frames_written += 1
+                    else:
+                        self.frames_dropped += 1
                 k += 1
         except OSError:
             pass  # the master was closed under us (unplug): nothing more to send
 
     def inject(self, data: bytes) -> None:
-        """Raw bytes on the line between two frames (a loose wire, a part booting)."""
+        """Raw bytes on the line between two frames (a loose wire, a part booting); what does not fit is lost."""
         with self._lock:
             if self._master >= 0:
-                os.write(self._master, data)
+                self._write(data)
 
     def remove_adapter(self) -> None:
         """A USB serial adapter pulled out: the master side closes, the slave fails as a vanished port does."""
-        with self._lock:
+        if not self._lock.acquire(timeout=STOP_TIMEOUT_S):  # never hangs on a writer that cannot go on
+            log.warning("the emulated TFMini's writer is stuck: its pseudo-terminal %s is left open", self.path)
+            return
+        try:
             if self._master >= 0:
                 os.close(self._master)
                 self._master = -1
+        finally:
+            self._lock.release()
 
     def close(self) -> None:
+        """Stop streaming and close the pty, within about STOP_TIMEOUT_S whatever the reader does."""
         self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=5)
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(timeout=STOP_TIMEOUT_S)
         self.remove_adapter()
         if self._slave >= 0:
             os.close(self._slave)

@@ -14,6 +14,10 @@ Faults (`--fault NAME=VALUE`, `--seed`; `sitl.devices.networked.NetworkedFaults`
 `pilescan-sitl fly` that make sense here, on the MAVLink link, the autopilot and the emulated devices,
 timed from the start of the mission (the vehicle first entering AUTO). The `SIM_PS_*` parameters
 (`sitl.faults.params`) change the injection while it runs, from any ground station.
+
+With `--devices` it prints the payload's command line (`payload_command`): every option the payload needs to fly
+this survey against it (the MAVLink and device URLs, the TFMini's pseudo-terminal, the building, the site, the key,
+the sample log in the run directory), runnable as printed.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ import contextlib
 import json
 import logging
 import math
+import shlex
 import signal
 import sys
 import threading
@@ -38,6 +43,7 @@ from firmware_py.core.rundir import (
     PILE_FILE,
     PLAN_FILE,
     RUN_FILES,
+    SAMPLES_FILE,
     TLOG_FILE,
     TRUTH_FILE,
     OutputFolder,
@@ -112,6 +118,8 @@ class ServeOptions:
     devices_url: str | None = None
     stockpile: str = "1"
     signing: SigningConfig | None = None
+    signing_key_file: str | None = None
+    """The --signing-key file `signing` was read from: the payload's command line names it."""
     faults: FaultSpec = field(default_factory=FaultSpec)
     """The --fault faults (timed ones count from the mission start); its seed seeds every fault draw,
     the SIM_PS_* parameters' too."""
@@ -233,6 +241,74 @@ def _where(transport) -> str:
     return f"{host}:{port}"
 
 
+def _address(transport) -> tuple[str, int] | None:
+    try:
+        host, port = transport.local_address
+    except (AttributeError, OSError, TypeError, ValueError):
+        return None
+    return str(host), int(port)
+
+
+def _client_host(host: str) -> str:
+    """Where a client on this machine reaches a host serve listens on: a wildcard is the loopback; an IPv6
+    address in brackets."""
+    host = host.strip("[]")
+    host = {"": "127.0.0.1", "0.0.0.0": "127.0.0.1", "::": "::1"}.get(host, host)
+    return f"[{host}]" if ":" in host else host
+
+
+def _host_port(url: str) -> tuple[str, int]:
+    """'scheme:HOST:PORT' (HOST may be [v6]) -> (host, port), brackets kept."""
+    rest = url.partition(":")[2]
+    host, _, port = rest.rpartition(":")
+    return host, int(port)
+
+
+def _num(v: float) -> str:
+    """A number as short as it reads back exactly ('30', '12.5')."""
+    short = f"{v:g}"
+    return short if float(short) == v else repr(float(v))
+
+
+def payload_command(opts: ServeOptions, *, mavlink_at: tuple[str, int] | None, devices_url: str,
+                    tfmini_path: str | None = None, run_dir: Path | None = None) -> list[str]:
+    """The `pilescan-payload` command line (argv) that surveys with this serve: its MAVLink link (a client of
+    serve's listening UDP port, actually bound at `mavlink_at`; or the fixed peer serve sends to), the devices
+    (`--hal sitl:` for the LIDAR-Lite; the TFMini's `--uart serial:PTY` and the servo's `--pwm` on the bridge),
+    the building (`--storage`), the site when not the default (`--origin`, `--heading`), the key file
+    (`--signing-key`), the sample log in the run directory (`--out`) and `--stop-on-disarm` (one log per flight).
+    The payload has no --altitude: the flight height is the plan's, which the ground station uploads."""
+    scheme = opts.url.partition(":")[0]
+    host, port = _host_port(opts.url)
+    if scheme in ("udp", "udpin"):  # serve listens: the payload is a client of where it listens
+        if mavlink_at is not None:
+            host, port = mavlink_at
+        mavlink = f"udpout:{_client_host(host)}:{port}"
+    else:  # udpout: serve sends to a fixed address, where the payload listens
+        mavlink = f"udp:{host}:{port}"
+    dev_host, dev_port = _host_port(devices_url)
+    dev_host = _client_host(dev_host)
+    bridge = f"tcp:{dev_host}:{dev_port}"
+    argv = ["pilescan-payload", "--mavlink", mavlink]
+    if tfmini_path is not None:
+        argv += ["--rangefinder", "tfmini", "--uart", f"serial:{tfmini_path}", "--pwm",
+                 f"pwm:{bridge}:{SERVO_CHANNEL}"]
+    elif dev_host.startswith("["):  # --hal takes no IPv6 address: both URLs in full
+        argv += ["--i2c", bridge, "--pwm", f"pwm:{bridge}:{SERVO_CHANNEL}"]
+    else:
+        argv += ["--hal", f"sitl:{dev_host}:{dev_port}"]
+    st = opts.mission.storage
+    argv += ["--storage", f"{_num(st.length_m)}x{_num(st.width_m)}x{_num(st.height_m)}"]
+    if opts.site != DEFAULT_SITE:  # the payload's header and the origin it sends agree with the served autopilot's
+        c = opts.site.corner
+        argv += [f"--origin={_num(c.lat_deg)},{_num(c.lon_deg)},{_num(c.alt_m)}",
+                 f"--heading={_num(opts.site.heading_deg)}"]
+    if opts.signing is not None:
+        argv += ["--signing-key", str(opts.signing_key_file) if opts.signing_key_file is not None else "KEY_FILE"]
+    argv += ["--out", str((run_dir if run_dir is not None else opts.out) / SAMPLES_FILE), "--stop-on-disarm"]
+    return argv
+
+
 def tlog_limits(max_mb: float) -> LinkLimits:
     """LinkLimits with the .tlog capped at max_mb megabytes (10^6 bytes); ValueError unless > 0."""
     if not (math.isfinite(max_mb) and max_mb > 0):
@@ -287,10 +363,14 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
                  opts.url, _where(transport), opts.speedup, cfg.site.describe(), plan,
                  (f"; LiDAR and servo on {devices.url} (pile {opts.stockpile}, {pile.volume_m3:.1f} m^3)"
                   if devices else ""), signed, injected)
-        if devices is not None and devices.tfmini_path is not None:
-            log.info("TFMini on %s: pilescan-payload --rangefinder tfmini --uart serial:%s --pwm pwm:%s:%d",
-                     devices.tfmini_path, devices.tfmini_path, devices.url, SERVO_CHANNEL)
-        if devices is None:
+        if devices is not None:
+            command = shlex.join(payload_command(opts, mavlink_at=_address(transport), devices_url=devices.url,
+                                                 tfmini_path=devices.tfmini_path, run_dir=plan.parent))
+            if devices.tfmini_path is not None:
+                log.info("TFMini on %s: run the payload with: %s", devices.tfmini_path, command)
+            else:
+                log.info("run the payload with: %s", command)
+        else:
             log.info("no payload: this run records no LiDAR data (for a survey, serve with --devices and run "
                      "pilescan-payload against it)")
         with MavlinkVehicleServer(vehicle, faults.transport, tlog_path=folder.staged(TLOG_FILE), home=origin,
@@ -341,6 +421,10 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
     dropped = (f"; dropped {st['rx_datagrams_dropped']} malformed datagrams" if st["rx_datagrams_dropped"] else "")
     muted = f"; {st['statustext_dropped']} STATUSTEXT answers over the rate limit" if st["statustext_dropped"] else ""
     summary = faults.summary()
-    log.info("stopped after %.1f simulated seconds; telemetry in %s%s%s%s%s", sim_s, out / TLOG_FILE, refused,
-             dropped, muted, f"; faults: {summary}" if summary else "")
+    unread = ""
+    if devices is not None and devices.tfmini is not None and devices.tfmini.frames_dropped:
+        unread = (f"; {devices.tfmini.frames_dropped} TFMini frames lost unread (nobody read its pseudo-terminal "
+                  "and its buffer was full)")
+    log.info("stopped after %.1f simulated seconds; telemetry in %s%s%s%s%s%s", sim_s, out / TLOG_FILE, refused,
+             dropped, muted, unread, f"; faults: {summary}" if summary else "")
     return 0

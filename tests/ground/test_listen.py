@@ -22,7 +22,16 @@ from firmware_py.core.samplelog import SampleLogWriter, read_samplelog
 from firmware_py.core.stream_format import encode_datagram
 from firmware_py.live_stream import LiveStreamSender
 from ground.cli import main
-from ground.listen import LIVE_SOURCE, ListenConfig, Listener, format_summary, load_header, parse_peer
+from ground.listen import (
+    LIVE_SOURCE,
+    JoiningReceiver,
+    ListenConfig,
+    Listener,
+    format_summary,
+    load_header,
+    parse_peer,
+)
+from ground.live_receiver import DEFAULT_MAX_RATE_HZ, LOSS_GRACE_S
 from tests.firmware_py.test_live_stream import records
 from tests.ground.test_report_fuzz import BASE_HEADER
 
@@ -335,3 +344,87 @@ def test_that_a_header_file_that_is_not_a_regular_file_is_refused_at_once(tmp_pa
     with pytest.raises(UserError, match="not a regular file") as excinfo:
         load_header(path)  # a FIFO with no writer would block a plain read for ever
     assert "\n" not in str(excinfo.value)
+
+
+# ----- joining a stream already under way (listen started after the payload) ----------------------------
+
+def test_that_a_listener_first_hearing_record_300_says_so_and_counts_the_300_before_as_lost(tmp_path):
+    """The networked-SITL report: records 0-299 never arrived and listen said "lost 0". The datagrams are
+    numbered from 0, so the first one heard, number 15 (records 300-319), says 15 were sent before."""
+    with listening(tmp_path) as ls, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as payload:
+        for seq in range(15, 25):
+            payload.sendto(encode_datagram(seq, records(20, t0=seq * 0.04)), ls.local_address)
+        pump_until(ls, lambda st: st["records"] >= 200)
+        status = ls.status_line(ls.clock())
+        res = ls.result()
+        said = ls.err.getvalue()
+    assert res.records == 200 and res.stats["joined"] == 15 and res.stats["lost"] == 15
+    assert "lost 15 " in status
+    assert said.count("joined the stream from 127.0.0.1:") == 1
+    assert "at datagram 15 (about record 300): the 15 datagrams sent before it, up to 300 records" in said
+    summary = format_summary(res)
+    assert "lost          15 datagrams (15 sent before listen joined, 0 in transit; late 0" in summary
+    assert "joined        at datagram 15 of the stream from 127.0.0.1:" in summary
+    assert "15 earlier datagrams, up to 300 records, not received" in summary
+
+
+def test_that_a_listener_started_after_the_payload_counts_what_the_payload_sent_before(tmp_path):
+    """The cause: UDP keeps no history, so a listener started after the payload's first 300 records never
+    gets them; the sender numbers its datagrams from 0 whether or not anyone listens, and listen counts them."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    sent = records(400)
+    tx = LiveStreamSender(f"udp:127.0.0.1:{port}")  # 20 records a datagram, as the payload
+    tx.append(sent[:300])  # nobody listening yet: 15 datagrams into the void, no error
+    cfg = ListenConfig(url=f"udp:127.0.0.1:{port}", out_path=tmp_path / "live.pslog", fsync=False)
+    ls = Listener(cfg, err=io.StringIO())
+    ls.open()
+    try:
+        tx.append(sent[300:])
+        tx.close()
+        pump_until(ls, lambda st: st["records"] >= 100)
+    finally:
+        ls.close()
+    res = ls.result()
+    assert tx.stats["datagrams"] == 20 and tx.stats["send_errors"] == 0
+    assert read_samplelog(tmp_path / "live.pslog").samples.tobytes() == sent[300:].tobytes()
+    assert res.records == 100 and res.stats["lost"] == 15 and res.stats["joined"] == 15
+    assert "up to 300 records, not received" in format_summary(res)
+
+
+def test_that_a_stream_heard_from_its_first_datagram_says_nothing_of_joining(tmp_path):
+    with listening(tmp_path) as ls:
+        send(url_of(ls), records(60))
+        pump_until(ls, lambda st: st["records"] >= 60)
+        res = ls.result()
+        said = ls.err.getvalue()
+    assert res.stats["lost"] == 0 and res.stats["joined"] == 0 and res.joins == ()
+    assert "joined" not in format_summary(res) and "joined" not in said
+
+
+def test_that_a_forged_first_sequence_number_adds_no_more_than_the_loss_budget():
+    now = [100.0]
+    rx = JoiningReceiver(monotonic=lambda: now[0])
+    rx.feed(encode_datagram(4_000_000_000, records(1)), ("10.0.0.9", 4000))
+    assert rx.stats["joined"] == rx.stats["lost"] == int(DEFAULT_MAX_RATE_HZ * LOSS_GRACE_S)
+    assert rx.joined()[0].first_seq == 4_000_000_000
+
+
+def test_that_a_stream_joined_an_hour_in_is_counted_in_full_once_heard_long_enough_to_vouch_for_it():
+    now = [0.0]
+    rx = JoiningReceiver(monotonic=lambda: now[0])
+    first = 25 * 3600  # 20-record datagrams at 500 Hz, an hour in
+    rx.feed(encode_datagram(first, records(20)), ("10.0.0.2", 5000))
+    assert 0 < rx.stats["joined"] < first
+    now[0] = 60.0
+    rx.feed(encode_datagram(first + 1500, records(20)), ("10.0.0.2", 5000))
+    assert rx.stats["joined"] == first and rx.stats["lost"] == first + 1499
+
+
+def test_that_a_datagram_reordered_behind_the_first_one_heard_is_not_counted_as_missed():
+    rx = JoiningReceiver()
+    rx.feed(encode_datagram(16, records(20)), ("10.0.0.2", 5000))
+    rx.feed(encode_datagram(15, records(20)), ("10.0.0.2", 5000))  # late: it was sent first
+    assert rx.stats["joined"] == rx.stats["lost"] == 15 and rx.stats["late"] == 1
+    assert rx.joined()[0].first_seq == 15 and rx.joined()[0].records_max == 300

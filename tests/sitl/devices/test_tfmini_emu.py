@@ -2,6 +2,7 @@
 pseudo-terminal with pyserial, the code path a Raspberry Pi's UART takes."""
 
 import statistics
+import threading
 import time
 
 import pytest
@@ -112,6 +113,49 @@ def test_that_an_unplugged_pty_sensor_gives_errors_not_a_hang_or_traceback():
     finally:
         port.close()
         pty.close()
+
+
+def _wait_until(condition, timeout_s: float, what: str) -> None:
+    end = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < end, f"no {what} within {timeout_s:g} s"
+        time.sleep(0.01)
+
+
+def _bounded(action, timeout_s: float) -> float:
+    """Run action in a thread; fail unless it returns within timeout_s (a blocked write would hang the test);
+    returns the seconds it took."""
+    t0 = time.monotonic()
+    worker = threading.Thread(target=action, daemon=True)
+    worker.start()
+    worker.join(timeout_s)
+    assert not worker.is_alive(), f"{getattr(action, '__name__', action)} still blocked after {timeout_s:g} s"
+    return time.monotonic() - t0
+
+
+def test_that_a_pty_nobody_reads_loses_what_does_not_fit_and_stops_at_once():
+    """A real TFMini streams whether anyone reads or not (serve with no payload yet, or after it exited): the
+    pty's buffer fills and what does not fit is lost, never waited for; so close() (serve's SIGTERM) is prompt,
+    and a payload that opens the port later reads the part again."""
+    pty = PtyTfmini(lambda t: 3.21, model=S)
+    try:
+        def fill():  # 256 KB: more than any pty buffer holds (about 20 KB on Linux)
+            for _ in range(64):
+                pty.inject(bytes(4096))
+        _bounded(fill, 10.0)
+        assert pty.bytes_dropped > 0  # the buffer is full
+        pty.start()
+        _wait_until(lambda: pty.frames_dropped >= 3, 5.0, "frames lost to the full buffer")
+        port = open_uart(f"serial:{pty.path}")
+        try:
+            lidar = Tfmini(port, MonotonicClock(), TfminiConfig(model=S))
+            lidar.discard_input()  # what the payload does before its readings start
+            assert all(r.range_m == 3.21 for r in _oks(lidar, 10))
+        finally:
+            port.close()
+    finally:
+        took = _bounded(pty.close, 5.0)
+    assert not pty.running and took < 2.5  # STOP_TIMEOUT_S is the bound; the writer ends within a frame
 
 
 def test_that_the_serial_url_is_checked_before_anything_is_opened():

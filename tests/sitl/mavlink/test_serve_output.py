@@ -1,4 +1,6 @@
-"""What `pilescan-sitl serve` tells its operator, and its --tlog-max-mb option."""
+"""What `pilescan-sitl serve` tells its operator (the payload's command line too), and its --tlog-max-mb option."""
+
+import pytest
 
 from sitl.cli import main
 
@@ -40,3 +42,67 @@ def test_that_serve_flies_a_sensor_noise_model_says_so_and_records_it_in_the_tru
     while (m := tlog.recv_match(type="ATTITUDE")) is not None:
         rolls.append(m.roll)
     assert rolls and all(r != 0.0 for r in rolls)  # the vehicle stands level; what it reports is noisy
+
+
+def _printed_payload(err: str) -> list[str]:
+    """The payload's command line serve printed, split as a shell would."""
+    import shlex
+
+    (line,) = [line for line in err.splitlines() if "run the payload with: " in line]
+    return shlex.split(line.split("run the payload with: ", 1)[1])
+
+
+def _payload_config(argv: list[str]):
+    """What pilescan-payload makes of argv: its own parser, and the checks it runs before opening anything."""
+    from firmware_py.cli import build_parser, config_from_args
+
+    assert argv[0] == "pilescan-payload"
+    return config_from_args(build_parser().parse_args(argv[1:]))
+
+
+@pytest.mark.parametrize("rangefinder", ["lidarlite-v3", "tfmini"])
+def test_that_the_payload_command_line_serve_prints_runs_as_printed_for_this_survey(tmp_path, capsys, rangefinder):
+    import re
+
+    from firmware_py.core.rundir import SAMPLES_FILE
+    from firmware_py.core.sensor import Rangefinder
+    from firmware_py.core.storage import Storage
+
+    out = tmp_path / "s"
+    code = main(["serve", "--vehicle", "kinematic", "--mavlink", "udp:127.0.0.1:0", "--devices", "tcp:127.0.0.1:0",
+                 "--rangefinder", rangefinder, "--storage", "30x20x10", "--altitude", "9", "--p-traj", "25",
+                 "--duration", "0.3", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    mavlink_port = re.search(r"listening at 127\.0\.0\.1:(\d+)", err).group(1)
+    bridge = re.search(r"LiDAR and servo on (tcp:127\.0\.0\.1:\d+)", err).group(1)
+    cfg = _payload_config(_printed_payload(err))
+    assert cfg.mavlink_url == f"udpout:127.0.0.1:{mavlink_port}"
+    assert cfg.storage == Storage(30.0, 20.0, 10.0)  # not the payload's default building
+    assert cfg.out_path == str(out / SAMPLES_FILE) and cfg.stop_on_disarm
+    assert cfg.pwm_url == f"pwm:{bridge}:0"
+    if rangefinder == "tfmini":
+        pty = re.search(r"TFMini on (/dev/[^\s:]+): ", err).group(1)  # as tools.fly_networked reads it
+        assert cfg.rangefinder is Rangefinder.TFMINI and cfg.uart_url == f"serial:{pty}"
+    else:
+        assert cfg.rangefinder is Rangefinder.LIDARLITE_V3 and cfg.i2c_url == bridge
+    assert cfg.site is None  # the default site: the payload takes the served EKF origin as the corner
+
+
+def test_that_the_printed_payload_command_carries_the_site_and_the_key_file(tmp_path, capsys):
+    import math
+
+    key = tmp_path / "link.key"
+    key.write_text(bytes(range(1, 33)).hex() + "\n")
+    key.chmod(0o600)
+    code = main(["serve", "--vehicle", "kinematic", "--mavlink", "udp:127.0.0.1:0", "--devices", "tcp:127.0.0.1:0",
+                 "--rangefinder", "tfmini", "--storage", "30x20x10", "--altitude", "9", "--p-traj", "25",
+                 "--origin=-33.8688123,151.2093456,12.5", "--heading=-20.25", "--signing-key", str(key),
+                 "--duration", "0.3", "--out", str(tmp_path / "s")])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    cfg = _payload_config(_printed_payload(err))
+    c = cfg.site.corner
+    assert (c.lat_deg, c.lon_deg, c.alt_m) == (-33.8688123, 151.2093456, 12.5)
+    assert cfg.site.heading_rad == math.radians(-20.25)
+    assert cfg.signing is not None and cfg.signing.key == bytes(range(1, 33))

@@ -13,6 +13,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -168,3 +169,30 @@ def test_that_serve_refuses_a_folder_holding_a_run_without_force(tmp_path, capsy
     assert {p.name: p.read_bytes() for p in run.iterdir()} == before
     assert sitl_main([*SERVE, "--duration", "0.1", "--speedup", "10", "--out", str(run), "--force"]) == 0
     assert sorted(p.name for p in run.iterdir()) == ["mission.waypoints", TLOG_FILE]  # no truth of another run
+
+
+def test_that_serve_with_a_tfmini_nobody_reads_stops_on_sigterm_and_finishes_its_folder(tmp_path):
+    """The TFMini streams into a pseudo-terminal whether a payload reads it or not; serve stops on SIGTERM at once
+    (its writer never waits on a full pty: `test_tfmini_emu` fills one) and puts its run in place, truth last."""
+    out = tmp_path / "serve"
+    server = start([*SERVE, "--devices", "tcp:127.0.0.1:0", "--rangefinder", "tfmini", "--storage", "30x20x10",
+                    "--altitude", "9", "--p-traj", "25", "--out", str(out)])
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(server.stderr), daemon=True)  # the pipe never fills
+    reader.start()
+    try:
+        wait_for(server, "the TFMini's pseudo-terminal", lambda: any("TFMini on /dev/" in line for line in lines))
+    finally:
+        t0 = time.monotonic()
+        server.send_signal(signal.SIGTERM)
+        try:
+            server.wait(timeout=WAIT_S)
+        finally:
+            server.kill()
+    took = time.monotonic() - t0
+    reader.join(WAIT_S)
+    assert server.returncode == 0, "".join(lines)
+    assert took < 8.0, f"serve took {took:.1f} s to stop on SIGTERM"
+    assert sorted(p.name for p in out.iterdir()) == sorted(["mission.waypoints", "pile.stl", TLOG_FILE, TRUTH_FILE])
+    assert json.loads((out / TRUTH_FILE).read_text())["rangefinder"] == "tfmini"
+    assert lines[-1].startswith("pilescan-sitl: stopped after ")
