@@ -34,7 +34,7 @@ from firmware_py.core.site import DEFAULT_SITE, Site, add_site_options, site_fro
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import N_PHASES, Waveform, named_waveform
-from sitl.faults.injector import FaultSpec
+from sitl.faults.injector import FaultSpec, fault_syntax
 from sitl.missions.coverage import DEFAULT_SEEN_RADIUS_M, WALLS
 from sitl.missions.gaps import DEFAULT_GAP_TARGET_PCT
 from sitl.missions.qgc_wpl import write_qgc_wpl
@@ -102,12 +102,9 @@ def build_parser() -> ArgumentParser:
     f.add_argument("--payload-mass", type=finite_float, default=0.040, metavar="KG",
                    help="payload mass, kg (0.040: LIDAR-Lite + servo; 0.370 2D LiDAR; 0.830 3D)")
     f.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
-                   help="inject a fault (firmware payload; repeatable): link_loss_pct=10, link_dup_pct=5, "
-                        "link_reorder_pct=5, link_outage=START,DUR, i2c_nack_pct=5, lidar_stuck_busy=START,DUR, "
-                        "lidar_power_glitch_at_s=T, lidar_garbage_pct=2, lidar_glitch_pct=1, servo_stuck_at_s=T, "
-                        "servo_slow_factor=0.6, power_cut_at_s=T, with --rangefinder tfmini tfmini_bad_frame_pct=2, "
-                        "tfmini_garbage_pct=2, tfmini_unplug=AT,DURATION (DURATION inf: for good) "
-                        "(times from the survey start; seeded by --seed)")
+                   help=f"inject a fault (firmware payload; repeatable): {fault_syntax()} (the tfmini_* ones with "
+                        "--rangefinder tfmini; tfmini_unplug's DURATION inf: for good; times from the survey start; "
+                        "seeded by --seed; docs/reliability.md says what each does)")
     _noise_option(f)
     _pose_error_option(f)
     f.add_argument("--seed", type=int, default=0, help="seed of the run's random draws (sensor noise included)")

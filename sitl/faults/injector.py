@@ -49,6 +49,13 @@ PAIRS = {"link_outage": "START,DURATION", "lidar_stuck_busy": "START,DURATION",
 """The faults given as two numbers (the CLI's `NAME=A,B`)."""
 
 
+def fault_syntax(names: list[str] | None = None) -> str:
+    """The --fault forms, `NAME=X` or `NAME=A,B`, of every fault (or of `names`), in FaultSpec's order: the help
+    texts list them from here, so a fault added to FaultSpec is never missing from them."""
+    known = [f.name for f in fields(FaultSpec) if f.name != "seed"]
+    return ", ".join(f"{n}={PAIRS.get(n, 'X')}" for n in known if names is None or n in names)
+
+
 @dataclass(frozen=True)
 class FaultSpec:
     """One run's faults (all off by default). Times are seconds from the start of the survey."""
