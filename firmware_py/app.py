@@ -78,7 +78,7 @@ from firmware_py.hal.mavlink_link import check_mavlink_url, open_mavlink
 from firmware_py.hal.pwm import check_pwm_url, open_pwm
 from firmware_py.hal.signing import SigningConfig
 from firmware_py.hal.uart import DEFAULT_BAUD, SerialPort, check_uart_url, open_uart, parse_uart_url
-from firmware_py.health import TEXT_PREFIX, HealthMonitor, HealthSnapshot, HealthStatus, SensorState, statustext_msg
+from firmware_py.health import TEXT_PREFIX, HealthMonitor, HealthSnapshot, HealthStatus, SensorState, statustext_msgs
 from firmware_py.live_stream import LiveStreamSender
 from firmware_py.log_room import check_destination, describe_room, room_s, room_warning
 from firmware_py.payload import COUNTED_FLAGS, LoopConfig, LoopStats, PayloadLoop, RangeSensor
@@ -587,6 +587,7 @@ class PayloadApp:
         self.cfg = cfg
         self.clock = clock or MonotonicClock()
         self.link, self.bus, self.pwm, self.uart = link, bus, pwm, uart
+        self._link_url: str | None = None  # the URL of the link the app opened (a link given names itself, or not)
         self._open_log, self._on_tick = open_log, on_tick
         self.err, self.prog = err, prog
         self.lidar: RangeSensor | None = None  # the rangefinder's driver: LidarLite or Tfmini
@@ -643,10 +644,10 @@ class PayloadApp:
                           + (f", stream {self.cfg.stream_url}" if self.cfg.stream_url else "")
                           + self._signing_note()
                           + ("; device bridge authenticated" if self.bridge_authenticated else ""))
-                self._send_health([self.health.event(
+                self._send_health([*self.health.event(
                     mavlink.MAV_SEVERITY_INFO,
                     f"started, {self.cfg.rate_hz:g} Hz" + (", link signed" if self.signing_active else "")),
-                    *([self.health.event(mavlink.MAV_SEVERITY_WARNING, "log storage nearly full")]
+                    *(self.health.event(mavlink.MAV_SEVERITY_WARNING, "log storage nearly full")
                       if self._log_room_low else []),
                     *self._pose_source_events()])
                 self.loop.run(duration_s=self.cfg.duration_s, should_stop=self._should_stop)
@@ -715,9 +716,9 @@ class PayloadApp:
             result = PreflightResult(tuple(checks), duration_s, self.loop.stats.ticks if self.loop else 0)
             self.request_stop(result.statustext())
             if self.link is not None:  # as ArduPilot's pre-arm messages: CRITICAL when the flight should not go
-                self._send_health([statustext_msg(
+                self._send_health(statustext_msgs(
                     mavlink.MAV_SEVERITY_INFO if result.passed else mavlink.MAV_SEVERITY_CRITICAL,
-                    TEXT_PREFIX + result.statustext())])
+                    TEXT_PREFIX + result.statustext()))
         except BaseException as exc:
             self.request_stop(f"preflight error: {_failure_detail(exc)}")
             raise
@@ -821,6 +822,7 @@ class PayloadApp:
         if self.link is None:
             self.link = _opening("MAVLink link", cfg.mavlink_url,
                                  lambda: open_mavlink(cfg.mavlink_url, signing=cfg.signing))
+            self._link_url = cfg.mavlink_url
         elif cfg.signing is not None and not self.signing_active:
             self._warn("the MAVLink link given to the payload does not sign; signing applies to links it opens")
 
@@ -848,7 +850,7 @@ class PayloadApp:
         cfg = self.cfg
         self.tracker = PoseTracker(self.link, self.clock, cfg.target_system, cfg.pose_stream_hz,
                                    target_component=cfg.target_component,
-                                   max_pose_age_ns=round(cfg.max_pose_age_s * 1e9))
+                                   max_pose_age_ns=round(cfg.max_pose_age_s * 1e9), link_name=self._link_url)
         self._send_origin(self.clock.now_ns())
         self.tracker.start()
         self.tracker.request_params(EKF_SOURCE_PARAMS)
@@ -894,7 +896,7 @@ class PayloadApp:
         """Pump the link (the servo idle, no log open) until the autopilot's HEARTBEAT shows armed or a stop is asked
         for: a payload started with the companion computer waits through the time on the ground."""
         self._say("waiting for the autopilot to arm (--start-on-arm): the servo is idle and nothing is logged")
-        self._send_health([statustext_msg(mavlink.MAV_SEVERITY_INFO, TEXT_PREFIX + "waiting for arm")])
+        self._send_health(statustext_msgs(mavlink.MAV_SEVERITY_INFO, TEXT_PREFIX + "waiting for arm"))
         if self._pump_until(lambda: bool(self.tracker.autopilot_armed), round(1e9 / ARM_POLL_HZ)):
             self._say("the autopilot armed: starting")
 
@@ -939,7 +941,7 @@ class PayloadApp:
                    "a share of the pile's height. The ground station measures and takes out that share when the "
                    "flight crosses the pile, but for a survey a barometer height is surer (EK3_SRC1_POSZ = 1, "
                    "EK3_RNG_USE_HGT = -1)")
-        return [self.health.event(mavlink.MAV_SEVERITY_WARNING, "EKF height from rangefinder")]
+        return self.health.event(mavlink.MAV_SEVERITY_WARNING, "EKF height from rangefinder")
 
     def _wait_for_params(self) -> None:
         """Pump the link until the autopilot has answered the EKF source reads (or they timed out), for at most
@@ -1021,6 +1023,7 @@ class PayloadApp:
             t_ns=now_ns, readings=stats.ticks, logged=self.sink.records,
             sensor_errors=c.sensor_errors, pose_ok=st.pose_ok, pose_age_s=st.pose_age_s,
             pose_status=st.pose_status, timesync_converged=st.timesync.converged,
+            autopilot_heard=self.tracker.autopilot_heard,
             stale=stats.flagged(SampleFlags.STALE_POSE | SampleFlags.NO_POSE), overruns=stats.overruns,
             sensor_error_samples=stats.flagged(SampleFlags.SENSOR_ERROR))
 
@@ -1088,8 +1091,8 @@ class PayloadApp:
         st = self.tracker.status()
         age = st.pose_age_s
         pose = f"pose age {age:.3f} s" if age is not None else "no pose yet"
-        if not st.pose_ok:
-            pose += f" ({st.pose_status[:90]})"
+        if not st.pose_ok:  # whole: a cut status ended "until they arrive" as "unt)"
+            pose += f" ({st.pose_status})"
         auth = f"  refused frames {self.auth_rejects()}" if self.signing_active else ""
         self._say(f"{(now - self.loop.t0_ns) / 1e9:7.1f} s  {rate:5.0f} Hz  samples {self.sink.records} "
                   f"{self._samples_detail()}  "
@@ -1109,8 +1112,8 @@ class PayloadApp:
         reason = self._stop_reason or "stopped"
         if self.health is not None and self.link is not None:
             self._step("stop message", lambda: self._send_health(
-                [self.health.event(mavlink.MAV_SEVERITY_CRITICAL if reason.startswith("error")
-                                   else mavlink.MAV_SEVERITY_NOTICE, f"stopping: {reason}")]))
+                self.health.event(mavlink.MAV_SEVERITY_CRITICAL if reason.startswith("error")
+                                  else mavlink.MAV_SEVERITY_NOTICE, f"stopping: {reason}")))
         if self.log is not None:
             self._step("closing the sample log", self.log.close)
         if self.pwm is not None:

@@ -12,10 +12,12 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import math
+import os
 import re
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 from firmware_py.app import (
     DEFAULT_I2C_URL,
@@ -41,7 +43,7 @@ from firmware_py.core.cli import (
     run_cli,
     stop_on_signals,
 )
-from firmware_py.core.config_file import ConfigError, parse_config, to_toml
+from firmware_py.core.config_file import SECTIONS, ConfigError, parse_config, to_toml
 from firmware_py.core.frames import Boresight, StorageFrame
 from firmware_py.core.geodesy import GeodeticPoint
 from firmware_py.core.keys import load_key
@@ -365,13 +367,44 @@ def config_from_args(args) -> PayloadConfig:
     return cfg
 
 
-def check_text(cfg: PayloadConfig) -> str:
-    """What --check prints: the effective configuration as TOML (it reads back as a configuration file)."""
+def _merged(file: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """The file's sections and keys with over's put over them, table by table (over's keys first, in its order)."""
+    out = dict(over)
+    for key, value in file.items():
+        if key not in out:
+            out[key] = value
+        elif isinstance(value, Mapping) and isinstance(out[key], Mapping):
+            out[key] = _merged(value, out[key])
+    return out
+
+
+def printed_config(cfg: PayloadConfig, args: argparse.Namespace) -> dict[str, Any]:
+    """The configuration --check prints, as sections: what the payload runs with (the effective configuration,
+    flags over the file over the built-in defaults) over the --config file's own keys, so that the sections and keys
+    the payload does not use ([mission], [sitl], [survey], [[piles]], [site] name, the other rangefinder's port) are
+    kept, and the log path as written, its {utc} not yet the start time: printed, saved and read again, it is the
+    same configuration, and a new log each flight."""
     eff = cfg.effective_config()
-    source = eff.pop("file")
-    head = (f"# effective configuration of {PROG}: {source} with the command line's flags over it\n" if source
+    eff.pop("file")
+    payload = eff["payload"]
+    payload["log"] = os.path.abspath(os.path.expanduser(args.out))  # a file's paths are its folder's, not ours
+    if "signing_key" in payload:
+        payload["signing_key"] = os.path.abspath(os.path.expanduser(payload["signing_key"]))
+    file = getattr(args, "config_file", None)
+    return _merged(file.to_dict() if file is not None else {}, eff)
+
+
+def check_text(cfg: PayloadConfig, args: argparse.Namespace) -> str:
+    """What --check prints: `printed_config` as TOML (it reads back as a configuration file), after comments saying
+    where it came from and what a {utc} in the log path becomes."""
+    printed = printed_config(cfg, args)
+    head = (f"# effective configuration of {PROG}: {args.config} with the command line's flags over it\n"
+            if args.config is not None
             else f"# effective configuration of {PROG} (no --config file: flags and built-in defaults)\n")
-    return head + to_toml(eff)
+    if UTC_FIELD in printed["payload"]["log"]:
+        head += (f"# [payload] log: {UTC_FIELD} becomes the start time of each flight; started now, "
+                 f"{cfg.out_path}\n")
+    return head + to_toml({name: printed[name] for name in SECTIONS if name in printed})
 
 
 def log_notes(cfg: PayloadConfig) -> tuple[str | None, list[str]]:
@@ -397,7 +430,7 @@ def _run(args) -> int:
         raise UserError("--check opens no hardware and --preflight opens it: give one of them")
     if args.check:
         note, warnings = log_notes(cfg)
-        print(check_text(cfg) + (note or ""), end="")
+        print(check_text(cfg, args) + (note or ""), end="")
         for w in warnings:
             print(f"{PROG}: warning: {w}", file=sys.stderr)
         return 0

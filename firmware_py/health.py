@@ -19,9 +19,10 @@ MAVLink inspector):
     PS_STALE    cumulative samples flagged STALE_POSE or NO_POSE
     PS_OVERRUN  cumulative loop ticks missed (the loop fell a whole period behind)
 
-STATUSTEXT (at most 50 characters, prefixed "pilescan: "): started and stopping (the caller's
-`event`), pose acquired / lost / regained, a pose still missing 10 s after start (with the reason:
-no time sync, no local position (EKF origin?)), LiDAR errors appearing, the LiDAR failing every
+STATUSTEXT (prefixed "pilescan: "; a text longer than the message's 50 characters goes in MAVLink 2 chunks,
+`statustext_msgs`): started and stopping (the caller's `event`; a stop's reason can be long), pose acquired /
+lost / regained, a pose still missing 10 s after start (with the reason: no HEARTBEAT from the autopilot, no
+time sync, no local position (EKF origin?)), LiDAR errors appearing, the LiDAR failing every
 reading, and its recovery (judged on the larger of the two error counts over the period, so a part
 stuck resetting is not reported "ok"). Severities follow ArduPilot's use: INFO for routine, NOTICE for
 recoveries and stopping, WARNING for degraded data, ERROR when nothing usable is coming.
@@ -30,6 +31,7 @@ recoveries and stopping, WARNING for degraded data, ERROR when nothing usable is
 from __future__ import annotations
 
 import enum
+import itertools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -39,7 +41,9 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 NAME_MAX = 10
 """NAMED_VALUE_FLOAT.name is char[10]."""
 TEXT_MAX = 50
-"""STATUSTEXT.text is char[50] (longer texts would need chunking; ours never are)."""
+"""STATUSTEXT.text is char[50]: a longer text goes in chunks (`statustext_msgs`)."""
+TEXT_CHUNKS_MAX = 4
+"""The most chunks one text is sent in (up to 199 characters); a longer text is cut at a word, ending '~'."""
 TEXT_PREFIX = "pilescan: "
 
 RATE, LOGGED, I2C_ERRORS, SENSOR_ERROR_SAMPLES, POSE_AGE, STALE, OVERRUNS = (
@@ -58,14 +62,38 @@ def named_value_msg(name: str, value: float, time_boot_ms: int) -> Any:
                                                      float(value))
 
 
-def statustext_msg(severity: int, text: str) -> Any:
-    """STATUSTEXT of at most 50 characters (longer text is cut, ending in '~'); non-ASCII becomes '?'."""
+_chunk_ids = itertools.cycle(range(1, 65536))
+"""The id a chunked text's STATUSTEXTs share (uint16, 0 meaning "not chunked"), one after another."""
+
+
+def _cut_at_word(raw: bytes, limit: int) -> bytes:
+    """raw itself when it fits in limit bytes, else cut after its last whole word that fits, ending '~' (mid-word
+    only when a single word fills more than half the room)."""
+    if len(raw) <= limit:
+        return raw
+    room = raw[:limit - 1]
+    space = room.rfind(b" ")
+    return (room[:space].rstrip() if space > limit // 2 else room) + b"~"
+
+
+def statustext_msgs(severity: int, text: str) -> list[Any]:
+    """The STATUSTEXTs that say text: one message (id 0) when it fits in 50 characters; else MAVLink 2 chunks of 50
+    sharing a non-zero id, chunk_seq 0, 1, ..., the last shorter than 50 (its NUL ends the text: one empty chunk more
+    when the text fills the last), as PX4 sends them. QGroundControl joins them into one message; a ground station
+    that does not shows each chunk. At most TEXT_CHUNKS_MAX chunks: a text longer than those hold is cut at a word,
+    ending '~'. Non-ASCII becomes '?'.
+    """
     if not (isinstance(severity, int) and mavlink.MAV_SEVERITY_EMERGENCY <= severity <= mavlink.MAV_SEVERITY_DEBUG):
         raise ValueError(f"STATUSTEXT severity must be a MAV_SEVERITY 0-7, got {severity!r}")
     raw = str(text).encode("ascii", "replace")
-    if len(raw) > TEXT_MAX:
-        raw = raw[:TEXT_MAX - 1] + b"~"
-    return mavlink.MAVLink_statustext_message(severity, raw)
+    if len(raw) <= TEXT_MAX:
+        return [mavlink.MAVLink_statustext_message(severity, raw)]
+    raw = _cut_at_word(raw, TEXT_MAX * TEXT_CHUNKS_MAX - 1)
+    chunks = [raw[k:k + TEXT_MAX] for k in range(0, len(raw), TEXT_MAX)]
+    if len(chunks[-1]) == TEXT_MAX:
+        chunks.append(b"")
+    text_id = next(_chunk_ids)
+    return [mavlink.MAVLink_statustext_message(severity, chunk, text_id, seq) for seq, chunk in enumerate(chunks)]
 
 
 class PoseState(enum.Enum):
@@ -113,6 +141,7 @@ class HealthSnapshot:
         pose_age_s: age of the newest pose, s; None before any.
         pose_status: the tracker's one-line pose status (used to say why a pose is missing).
         timesync_converged: the tracker's clock mapping is trusted.
+        autopilot_heard: anything at all has come from the autopilot (its HEARTBEAT, at least, once a second).
         stale: samples flagged STALE_POSE or NO_POSE.
         overruns: loop ticks missed.
         sensor_error_samples: samples logged SENSOR_ERROR (includes readings during a reset).
@@ -126,6 +155,7 @@ class HealthSnapshot:
     pose_age_s: float | None
     pose_status: str = ""
     timesync_converged: bool = False
+    autopilot_heard: bool = True
     stale: int = 0
     overruns: int = 0
     sensor_error_samples: int = 0
@@ -159,10 +189,11 @@ class HealthMonitor:
     def _boot_ms(self, t_ns: int) -> int:
         return max(0, (t_ns - self.t0_ns) // 1_000_000)
 
-    def event(self, severity: int, text: str) -> Any:
-        """A STATUSTEXT for something the caller knows (started, stopping)."""
+    def event(self, severity: int, text: str) -> list[Any]:
+        """The STATUSTEXT (or its chunks, when long: a stop's reason) for something the caller knows (started,
+        stopping)."""
         self._texts_sent += 1
-        return statustext_msg(severity, TEXT_PREFIX + text)
+        return statustext_msgs(severity, TEXT_PREFIX + text)
 
     def due(self, now_ns: int) -> bool:
         """Whether `update` would send values now (cheap: the payload asks every tick)."""
@@ -191,7 +222,7 @@ class HealthMonitor:
         return out
 
     def _text(self, severity: int, text: str) -> list[Any]:
-        return [self.event(severity, text)]
+        return self.event(severity, text)
 
     def _pose_events(self, snap: HealthSnapshot) -> list[Any]:
         age = "" if snap.pose_age_s is None else f" (age {snap.pose_age_s:.2f} s)"
@@ -227,6 +258,8 @@ class HealthMonitor:
 
 
 def _why_no_pose(snap: HealthSnapshot) -> str:
+    if not snap.autopilot_heard:  # the cause; the time sync waits on it
+        return "no HEARTBEAT from autopilot"
     if not snap.timesync_converged:
         return "time sync not converged"
     if snap.pose_status.startswith("no LOCAL_POSITION_NED"):

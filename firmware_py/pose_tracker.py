@@ -18,6 +18,8 @@ Choices:
 - Only messages from the target autopilot (system and component) count: a ground station on the same
   network answering our TIMESYNC would otherwise put its own clock into the estimate.
 - TIMESYNC requests from the autopilot (tc1 = 0) are answered with our clock, as MAVROS does.
+- While nothing at all has come from the autopilot, the status says that first, with the link and how long:
+  waiting for TIMESYNC replies is then only the consequence.
 """
 
 from __future__ import annotations
@@ -167,12 +169,15 @@ class PoseTracker:
     def __init__(self, link: MavlinkLink, clock: Clock, target_system: int = 1, stream_hz: float = 50.0,
                  timesync_hz: float = 10.0, *, target_component: int = 1, timesync_fast_hz: float = 10.0,
                  max_pose_age_ns: int = 100_000_000, buffer_capacity: int = 256,
-                 timesync_config: TimesyncConfig | None = None) -> None:
+                 timesync_config: TimesyncConfig | None = None, link_name: str | None = None) -> None:
         self.config = PoseTrackerConfig(
             target_system=target_system, target_component=target_component, stream_hz=stream_hz,
             timesync_hz=timesync_hz, timesync_fast_hz=max(timesync_fast_hz, timesync_hz),
             max_pose_age_ns=max_pose_age_ns, buffer_capacity=buffer_capacity)
         self.link, self.clock = link, clock
+        self.link_name = link_name if link_name is not None else getattr(link, "url", None)
+        """How the operator's lines name the link (its URL); None: they do not name it."""
+        self._listening_since_ns = clock.now_ns()
         self.timesync = TimesyncEstimator(timesync_config)
         self.buffer = PoseBuffer(self.config.buffer_capacity, self.config.max_pose_age_ns, self.config.extrapolate_ns)
         cfg = self.config
@@ -444,6 +449,8 @@ class PoseTracker:
 
     def _pose_status(self) -> str:
         ts = self.timesync
+        if not self._autopilot_heard:  # the actionable fact: nothing at all, not even its 1 Hz HEARTBEAT
+            return self._silence_status()
         if not ts.converged:
             if self._replies_seen == 0:
                 return (f"waiting for TIMESYNC replies from the autopilot (system {self.config.target_system}); "
@@ -451,3 +458,10 @@ class PoseTracker:
             return (f"time sync converging ({ts.samples}/{ts.config.converge_samples} TIMESYNC samples"
                     + (f", last reset: {ts.last_reset_reason}" if ts.last_reset_reason else "") + ")")
         return self.buffer.status()
+
+    def _silence_status(self) -> str:
+        """Nothing heard from the autopilot since the tracker started listening: say so, where, and for how long."""
+        silent_s = max(0.0, (self.clock.now_ns() - self._listening_since_ns) / 1e9)
+        where = f" on {self.link_name}" if self.link_name else ""
+        return (f"no HEARTBEAT from the autopilot (system {self.config.target_system}){where} for {silent_s:.0f} s: "
+                "is it connected, is the link's URL right?")

@@ -432,14 +432,17 @@ def apply_config(parser: argparse.ArgumentParser, argv: Sequence[str],
         _subparser(parser, sub).set_defaults(config_file=None, config_notes=())
     if path is None:
         return []
+    problems: list[str] = []
     try:
         cfg = load_config(path)
-    except ConfigError:
-        raise
+    except ConfigError as exc:
+        if exc.config is None:  # not TOML: no key to check further
+            raise
+        # the file's own problems, and then the options' checks of the keys that passed: one report of all
+        cfg, problems = exc.config, list(exc.problems)
     except (OSError, ValueError) as exc:  # cannot be read at all: an input error (exit 3)
         raise InputError(one_line(exc)) from exc
     applied: list[tuple[str, str, Any]] = []
-    problems: list[str] = []
     for sub, table in tables.items():
         p = _subparser(parser, sub)
         defaults: dict[str, Any] = {}

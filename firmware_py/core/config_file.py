@@ -26,7 +26,9 @@ angles what a mounting can be off by.
 
 Errors: each unknown key, wrong type or bad value is one line naming the file, the section and the key
 (`config.toml: [payload] rate_hz: must be 1-2000 Hz, got -5`); all of them are reported at once
-(`ConfigError.details`), exit 2 (a configuration file is options written down). A file that cannot
+(`ConfigError.details`), the checks across keys (a building's three dimensions, a pile's point) with the keys' own,
+on the keys that passed; `ConfigError.config` holds those, for a program's own checks of them (the URLs). Exit 2
+(a configuration file is options written down). A file that cannot
 be read at all (missing, a FIFO, larger than `MAX_CONFIG_BYTES`, not UTF-8) is an input error, exit 3.
 
 Standard library only, like the rest of `firmware_py.core`.
@@ -143,10 +145,10 @@ class SiteSection:
         example="Europe/London"))
 
     def dimensions(self) -> tuple[float, float, float] | None:
-        """(L, W, H), or None when the file gives none of them."""
-        if self.length_m is None:
+        """(L, W, H), or None unless all three are set (a file that passed its checks gives all or none)."""
+        if self.length_m is None or self.width_m is None or self.height_m is None:
             return None
-        return (self.length_m, self.width_m, self.height_m)  # type: ignore[return-value]
+        return (self.length_m, self.width_m, self.height_m)
 
 
 @dataclass(frozen=True)
@@ -405,9 +407,13 @@ class ConfigError(ValueError):
     others `details`). A ValueError, so the programs' `run_cli` exits 2 (usage) with it; it is not a
     `firmware_py.core.cli.UserError` only because that module imports this one."""
 
-    def __init__(self, problems: list[str]) -> None:
+    def __init__(self, problems: list[str], config: ConfigFile | None = None) -> None:
         super().__init__(problems[0])
         self.details = tuple(problems[1:])
+        self.problems = tuple(problems)
+        self.config = config
+        """The file's keys that passed (a bad key left unset), so a caller can run its own checks on them and
+        report its problems with these in one go; None when the file could not be read as TOML at all."""
 
 
 def _where(section: str, key: str | None = None) -> str:
@@ -542,7 +548,10 @@ def _suggest(name: str, known: list[str]) -> str:
 
 
 def _parse_section(cls: type, table: Any, section: str, base_dir: Path | None,
-                   problems: list[str], prefix: str) -> Any:
+                   problems: list[str], prefix: str, bad: set[str]) -> Any:
+    """The section's typed keys; each problem appended to problems, and each key the file gives but with a bad
+    value or type added to bad (dotted, "payload.servo.min_us"), so the checks across keys can tell a key left
+    out from one refused."""
     if not isinstance(table, dict):
         problems.append(f"{prefix}{_where(section)}: must be a table ([{section}] and keys under it), "
                         f"got {_describe(table)}")
@@ -556,19 +565,22 @@ def _parse_section(cls: type, table: Any, section: str, base_dir: Path | None,
             problems.append(f"{prefix}{_where(section, name)}: unknown {kind} ({_suggest(name, list(known))})")
             continue
         if "table" in f.metadata:
-            kwargs[name] = _parse_section(f.metadata["table"], value, f"{section}.{name}", base_dir, problems, prefix)
+            kwargs[name] = _parse_section(f.metadata["table"], value, f"{section}.{name}", base_dir, problems, prefix,
+                                          bad)
             continue
         typed, problem = _check_value(value, f.metadata, base_dir)
         if problem is not None:
             problems.append(f"{prefix}{_where(section, name)}: {problem}")
+            bad.add(f"{section}.{name}")
         else:
             kwargs[name] = typed
     return cls(**kwargs)
 
 
 def _parse_array(cls: type, items: Any, section: str, base_dir: Path | None, problems: list[str],
-                 prefix: str) -> tuple[Any, ...]:
-    """An array of tables ([[piles]]): each checked as a section; its lines say which item (#1 is the first)."""
+                 prefix: str, bad: set[str]) -> tuple[Any, ...]:
+    """An array of tables ([[piles]]): each checked as a section; its lines say which item (#1 is the first), and
+    its refused keys go to bad as "piles#1.x_m"."""
     if not isinstance(items, list) or not all(isinstance(t, dict) for t in items):
         problems.append(f"{prefix}[[{section}]]: must be an array of tables (one [[{section}]] heading per item), "
                         f"got {_describe(items)}")
@@ -576,22 +588,27 @@ def _parse_array(cls: type, items: Any, section: str, base_dir: Path | None, pro
     out = []
     for i, table in enumerate(items, start=1):
         mine: list[str] = []
-        out.append(_parse_section(cls, table, section, base_dir, mine, ""))
+        mine_bad: set[str] = set()
+        out.append(_parse_section(cls, table, section, base_dir, mine, "", mine_bad))
         problems += [f"{prefix}[[{section}]] #{i}{line.removeprefix(f'[{section}]')}" for line in mine]
+        bad |= {f"{section}#{i}.{key.removeprefix(f'{section}.')}" for key in mine_bad}
     return tuple(out)
 
 
-def _pile_checks(cfg: ConfigFile, prefix: str) -> list[str]:
-    """Each [[piles]] item needs its name and point; names are unique; the point lies in the building."""
+def _pile_checks(cfg: ConfigFile, prefix: str, bad: set[str]) -> list[str]:
+    """Each [[piles]] item needs its name and point; names are unique; the point lies in the building. A key
+    refused already (bad) is neither missing nor checked again."""
     problems: list[str] = []
     seen: dict[str, int] = {}
     dims = cfg.site.dimensions()
     for i, p in enumerate(cfg.piles, start=1):
         where = f"{prefix}[[piles]] #{i}"
-        missing = [k for k in ("name", "x_m", "y_m") if getattr(p, k) is None]
+        refused = {k for k in ("name", "x_m", "y_m") if f"piles#{i}.{k}" in bad}
+        missing = [k for k in ("name", "x_m", "y_m") if getattr(p, k) is None and k not in refused]
         if missing:
             problems.append(f"{where} {missing[0]}: missing (each pile needs a name and a point inside it, x_m "
                             "and y_m)")
+        if missing or refused:
             continue
         if p.name in seen:
             problems.append(f"{where} name: {json.dumps(p.name)} is already pile #{seen[p.name]}'s name")
@@ -604,18 +621,20 @@ def _pile_checks(cfg: ConfigFile, prefix: str) -> list[str]:
     return problems
 
 
-def _cross_checks(cfg: ConfigFile, prefix: str) -> list[str]:
-    """Keys that are fine alone but not together."""
+def _cross_checks(cfg: ConfigFile, prefix: str, bad: set[str]) -> list[str]:
+    """Keys that are fine alone but not together. They run beside the keys' own checks, on the keys that passed:
+    a key refused already (in bad, its line said why) is not called missing, and a check that needs it waits."""
     problems = []
     site = cfg.site
     dims = {"length_m": site.length_m, "width_m": site.width_m, "height_m": site.height_m}
-    given = [k for k, v in dims.items() if v is not None]
+    given = [k for k, v in dims.items() if v is not None or f"site.{k}" in bad]
     if given and len(given) < 3:
-        missing = [k for k in dims if dims[k] is None]
+        missing = [k for k in dims if k not in given]
         problems.append(f"{prefix}{_where('site', missing[0])}: missing (a building needs length_m, width_m and "
                         f"height_m together; the file gives only {', '.join(given)})")
     servo = cfg.payload.servo
-    if any(getattr(servo, k) is not None for k in ("center_us", "min_us", "max_us")):
+    pulses = ("center_us", "min_us", "max_us")
+    if any(getattr(servo, k) is not None for k in pulses) and not any(f"payload.servo.{k}" in bad for k in pulses):
         base = ServoCalibration()
         lo, mid, hi = (getattr(servo, k) if getattr(servo, k) is not None else getattr(base, k)
                        for k in ("min_us", "center_us", "max_us"))
@@ -633,7 +652,7 @@ def _cross_checks(cfg: ConfigFile, prefix: str) -> list[str]:
             parse_stream_url(cfg.payload.stream)
         except ValueError as exc:
             problems.append(f"{prefix}{_where('payload', 'stream')}: {exc}")
-    return problems + _pile_checks(cfg, prefix)
+    return problems + _pile_checks(cfg, prefix, bad)
 
 
 def parse_config(data: Mapping[str, Any], source: str = "config", base_dir: Path | None = None) -> ConfigFile:
@@ -645,10 +664,12 @@ def parse_config(data: Mapping[str, Any], source: str = "config", base_dir: Path
         base_dir: relative paths are taken from here (the file's folder); None keeps them as written.
 
     Raises:
-        ConfigError: one line per unknown key, wrong type or bad value.
+        ConfigError: one line per unknown key, wrong type or bad value, and per keys that do not go together;
+            its `config` the keys that passed.
     """
     prefix = f"{source}: "
     problems: list[str] = []
+    bad: set[str] = set()
     kwargs: dict[str, Any] = {}
     for name, table in data.items():
         if name not in SECTIONS:
@@ -657,15 +678,14 @@ def parse_config(data: Mapping[str, Any], source: str = "config", base_dir: Path
             continue
         if name in ARRAYS:
             cls = {f.name: f.metadata["array"] for f in fields(ConfigFile) if "array" in f.metadata}[name]
-            kwargs[name] = _parse_array(cls, table, name, base_dir, problems, prefix)
+            kwargs[name] = _parse_array(cls, table, name, base_dir, problems, prefix, bad)
             continue
         cls = {f.name: f.metadata["table"] for f in fields(ConfigFile) if "table" in f.metadata}[name]
-        kwargs[name] = _parse_section(cls, table, name, base_dir, problems, prefix)
+        kwargs[name] = _parse_section(cls, table, name, base_dir, problems, prefix, bad)
     cfg = ConfigFile(**kwargs, path=source)
-    if not problems:
-        problems = _cross_checks(cfg, prefix)
+    problems += _cross_checks(cfg, prefix, bad)  # beside the keys' own problems: every one in one report
     if problems:
-        raise ConfigError(problems)
+        raise ConfigError(problems, cfg)
     return cfg
 
 

@@ -40,6 +40,20 @@ def errors(text: str) -> list[str]:
     return [ln for ln in text.splitlines() if ": error: " in ln]
 
 
+def set_keys(sections: dict, prefix: str = "") -> set[tuple[str, object]]:
+    """(dotted key, value) of every key a configuration's sections set ([[piles]] items by number)."""
+    out = set()
+    for name, value in sections.items():
+        if isinstance(value, dict):
+            out |= set_keys(value, f"{prefix}{name}.")
+        elif isinstance(value, list) and value and isinstance(value[0], dict):
+            for i, item in enumerate(value, start=1):
+                out |= set_keys(item, f"{prefix}{name}#{i}.")
+        else:
+            out.add((f"{prefix}{name}", tuple(value) if isinstance(value, list) else value))
+    return out
+
+
 @needs_example
 def test_that_check_validates_the_example_and_prints_what_would_run(capsys):
     assert main(["--config", str(EXAMPLE), "--check"]) == 0
@@ -49,7 +63,72 @@ def test_that_check_validates_the_example_and_prints_what_would_run(capsys):
     assert parse_config(printed).to_dict() == printed  # it is a valid configuration file itself
     assert printed["payload"]["pwm"] == "pwm:pca9685:1:0x40:0"
     assert printed["payload"]["servo"]["slew_rad_s"] == 10.5
-    assert printed["payload"]["log"].startswith("/home/pi/pilescan/survey-")  # {utc} expanded
+    assert printed["payload"]["log"] == "/home/pi/pilescan/survey-{utc}.pslog"  # the template, as the file has it
+    assert printed["mission"]["turn"] == "one-step" and printed["sitl"]["sensor_noise"] == "datasheet"
+
+
+RIG = """\
+[site]
+length_m = 60
+width_m = 40
+height_m = 15
+name = "North bay"
+timezone = "Europe/London"
+
+[payload]
+rangefinder = "lidarlite-v3"
+uart = "serial:/dev/serial0:115200"
+log = "logs/survey-{utc}.pslog"
+rate_hz = 400
+stop_on_disarm = true
+start_on_arm = true
+
+[payload.servo]
+slew_rad_s = 10.5
+
+[mission]
+p_traj_pct = 20
+altitude_m = 12
+turn = "two-step"
+
+[sitl]
+sensor_noise = "datasheet"
+pose_error = "flow"
+
+[survey]
+operator = "J. Smith"
+
+[[piles]]
+name = "sand"
+x_m = 12
+y_m = 8
+density_kg_m3 = 1600
+"""
+
+
+def test_that_the_configuration_check_prints_reads_back_as_the_same_configuration(tmp_path, capsys):
+    """Saved as the rig's file (a service that starts the payload again after each flight), --check's output had the
+    start time in place of {utc} (the second flight's log already existed: refused, again and again) and had lost
+    [mission] and [sitl]."""
+    rig = write(tmp_path, RIG)
+    assert main(["--config", str(rig), "--check"]) == 0
+    first = capsys.readouterr().out
+    saved = tmp_path / "saved.toml"
+    saved.write_text(first)
+    original, again = parse_config(tomllib.loads(RIG), base_dir=tmp_path), parse_config(tomllib.loads(first))
+    assert again.payload.log == str(tmp_path / "logs" / "survey-{utc}.pslog")
+    assert set_keys(original.to_dict()) <= set_keys(again.to_dict())  # every key the file sets, as it sets it
+    assert {"mission", "sitl", "survey", "piles"} <= set(again.to_dict()) and again.site.name == "North bay"
+    assert "# [payload] log: {utc} becomes the start time" in first and "/logs/survey-20" in first  # what it is now
+    assert main(["--config", str(saved), "--check"]) == 0  # printed, saved and printed again: the same
+    second = capsys.readouterr().out
+    assert tomllib.loads(second) == tomllib.loads(first)
+
+
+def test_that_check_prints_a_command_line_log_path_as_a_file_would_take_it(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["--check", "--out", "survey-{utc}.pslog"]) == 0
+    assert tomllib.loads(capsys.readouterr().out)["payload"]["log"] == str(tmp_path / "survey-{utc}.pslog")
 
 
 @pytest.mark.parametrize(("flags", "named"), [
@@ -92,6 +171,41 @@ def test_that_a_broken_config_is_one_line_naming_the_key_and_exit_2(tmp_path, ca
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1, err
     assert err.startswith(f"pilescan-payload: error: {path}: {key}"), err
+
+
+FIVE_PROBLEMS = """\
+[site]
+length_m = 60
+width_m = 40
+
+[payload]
+rate_hz = -5
+rat = 3
+log = "x.pslog"
+{pwm}
+[mission]
+turn = "three-step"
+
+[[piles]]
+name = "sand"
+"""
+
+
+def test_that_every_problem_the_schema_finds_is_reported_in_one_go(tmp_path, capsys):
+    """Keys that are fine alone but not together ([site] height_m missing, a pile without its point) came out only
+    once every other problem had been fixed."""
+    path = write(tmp_path, FIVE_PROBLEMS.format(pwm=""))
+    assert main(["--config", str(path), "--check"]) == ExitCode.USAGE
+    named = [ln.split(f"{path}: ")[1].split(":")[0] for ln in errors(capsys.readouterr().err)]
+    assert named == ["[payload] rate_hz", "[payload] rat", "[mission] turn", "[site] height_m", "[[piles]] #1 x_m"]
+
+
+def test_that_a_url_the_payload_cannot_open_is_reported_with_the_files_other_problems(tmp_path, capsys):
+    path = write(tmp_path, FIVE_PROBLEMS.format(pwm='pwm = "pwm:sysfs:zero:0"\n'))
+    assert main(["--config", str(path), "--check"]) == ExitCode.USAGE
+    named = [ln.split(f"{path}: ")[1].split(":")[0] for ln in errors(capsys.readouterr().err)]
+    assert sorted(named) == sorted(["[payload] rate_hz", "[payload] rat", "[mission] turn", "[site] height_m",
+                                    "[[piles]] #1 x_m", "[payload] pwm"])
 
 
 def test_that_a_flag_overrides_the_file_and_the_file_the_default(tmp_path):

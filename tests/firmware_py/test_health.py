@@ -7,6 +7,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_py.health import (
     NAME_MAX,
+    TEXT_CHUNKS_MAX,
     TEXT_MAX,
     VALUE_NAMES,
     HealthMonitor,
@@ -14,7 +15,7 @@ from firmware_py.health import (
     PoseState,
     SensorState,
     named_value_msg,
-    statustext_msg,
+    statustext_msgs,
 )
 
 S = 1_000_000_000
@@ -54,18 +55,40 @@ def test_that_a_name_mavlink_would_truncate_is_refused(name):
         named_value_msg(name, 1.0, 0)
 
 
-def test_that_statustext_is_cut_to_fifty_characters_and_encodes():
-    back = roundtrip(statustext_msg(mavlink.MAV_SEVERITY_WARNING, "x" * 80))
-    assert back.get_type() == "STATUSTEXT" and len(back.text) == TEXT_MAX and back.text.endswith("~")
-    assert back.severity == mavlink.MAV_SEVERITY_WARNING
-    assert roundtrip(statustext_msg(mavlink.MAV_SEVERITY_INFO, "pose ok é")).text == "pose ok ?"
+def test_that_a_statustext_that_fits_is_one_message_and_encodes():
+    [msg] = statustext_msgs(mavlink.MAV_SEVERITY_WARNING, "x" * TEXT_MAX)
+    back = roundtrip(msg)
+    assert (back.get_type(), back.text, back.id, back.severity) == ("STATUSTEXT", "x" * TEXT_MAX, 0,
+                                                                    mavlink.MAV_SEVERITY_WARNING)
+    assert [roundtrip(m).text for m in statustext_msgs(mavlink.MAV_SEVERITY_INFO, "pose ok é")] == ["pose ok ?"]
     with pytest.raises(ValueError):
-        statustext_msg(9, "bad severity")
+        statustext_msgs(9, "bad severity")
+
+
+@pytest.mark.parametrize("length", [51, 99, 100, 150, 199])
+def test_that_a_long_statustext_goes_in_mavlink2_chunks_that_join_to_the_whole_text(length):
+    """A stop's reason is often longer than STATUSTEXT's 50 characters: cut there, it ended mid-word; in chunks
+    sharing an id (QGroundControl joins them), the last shorter than 50, its NUL ending the text."""
+    text = ("stopping: error: cannot open MAVLink link udpout:127.0.0.1:14999 " * 4)[:length]
+    backs = [roundtrip(m) for m in statustext_msgs(mavlink.MAV_SEVERITY_CRITICAL, text)]
+    assert len({b.id for b in backs}) == 1 and backs[0].id != 0
+    assert [b.chunk_seq for b in backs] == list(range(len(backs))) and len(backs) <= TEXT_CHUNKS_MAX
+    assert all(len(b.text) == TEXT_MAX for b in backs[:-1]) and len(backs[-1].text) < TEXT_MAX
+    assert "".join(b.text for b in backs) == text
+    again = statustext_msgs(mavlink.MAV_SEVERITY_CRITICAL, text)
+    assert again[0].id != backs[0].id  # another text, another id
+
+
+def test_that_a_text_longer_than_the_chunks_hold_is_cut_after_a_whole_word():
+    text = "preflight FAIL: " + ", ".join(["autopilot", "pose", "EKF sources", "rangefinder", "servo sweep"] * 5)
+    joined = "".join(roundtrip(m).text for m in statustext_msgs(mavlink.MAV_SEVERITY_CRITICAL, text))
+    assert len(joined) < TEXT_MAX * TEXT_CHUNKS_MAX and joined.endswith("~")
+    assert text.startswith(joined[:-1]) and text[len(joined) - 1] == " "  # the cut is between two words
 
 
 def test_that_every_message_the_monitor_sends_encodes_and_fits():
     mon = HealthMonitor(T0)
-    msgs = [mon.event(mavlink.MAV_SEVERITY_INFO, "started, 500 Hz with a very long tail of words here")]
+    msgs = mon.event(mavlink.MAV_SEVERITY_INFO, "started, 500 Hz with a very long tail of words here")
     msgs += mon.update(snap(0.0, pose_ok=False, age=None))
     msgs += mon.update(snap(1.0, readings=500, errors=3))
     msgs += mon.update(snap(2.0, readings=1000, errors=503, pose_ok=False, age=0.4))
@@ -75,7 +98,7 @@ def test_that_every_message_the_monitor_sends_encodes_and_fits():
         back = roundtrip(m)
         assert back.get_type() in ("STATUSTEXT", "NAMED_VALUE_FLOAT")
         if back.get_type() == "STATUSTEXT":
-            assert len(back.text) <= TEXT_MAX and back.text.startswith("pilescan: ")
+            assert len(back.text) <= TEXT_MAX and (back.chunk_seq > 0 or back.text.startswith("pilescan: "))
         else:
             assert len(back.name) <= NAME_MAX
 
@@ -103,14 +126,16 @@ def test_that_pose_acquired_lost_and_regained_are_each_said_once():
     assert texts(mon.update(snap(5))) == [(mavlink.MAV_SEVERITY_NOTICE, "pilescan: pose regained")]
 
 
-@pytest.mark.parametrize(("converged", "status", "why"), [
-    (False, "waiting for TIMESYNC replies", "time sync not converged"),
-    (True, "no LOCAL_POSITION_NED from the autopilot yet: ...", "no local position (EKF origin?)"),
-    (True, "no ATTITUDE from the autopilot yet", "no ATTITUDE stream"),
+@pytest.mark.parametrize(("converged", "status", "why", "heard"), [
+    (False, "no HEARTBEAT from the autopilot (system 1) ...", "no HEARTBEAT from autopilot", False),  # the cause first
+    (False, "waiting for TIMESYNC replies", "time sync not converged", True),
+    (True, "no LOCAL_POSITION_NED from the autopilot yet: ...", "no local position (EKF origin?)", True),
+    (True, "no ATTITUDE from the autopilot yet", "no ATTITUDE stream", True),
 ])
-def test_that_a_pose_missing_ten_seconds_after_start_is_reported_once_with_why(converged, status, why):
+def test_that_a_pose_missing_ten_seconds_after_start_is_reported_once_with_why(converged, status, why, heard):
     mon = HealthMonitor(T0)
-    kw = {"pose_ok": False, "age": None, "timesync_converged": converged, "pose_status": status}
+    kw = {"pose_ok": False, "age": None, "timesync_converged": converged, "pose_status": status,
+          "autopilot_heard": heard}
     for t in range(10):
         assert texts(mon.update(snap(t, **kw))) == []
     assert texts(mon.update(snap(10, **kw))) == [(mavlink.MAV_SEVERITY_WARNING, f"pilescan: no pose: {why}")]

@@ -462,6 +462,22 @@ def test_timesync_replies_from_another_system_do_not_touch_the_estimate():
     assert tracker.timesync.offset_ns == 3 * S - (10 * S + 5 * MS)
 
 
+def test_that_an_autopilot_never_heard_is_said_first_naming_the_link_and_for_how_long():
+    """Waiting for TIMESYNC replies is only the consequence: the fact to act on is that nothing answers."""
+    link, clock = ScriptedLink(), SimClock(start_ns=10 * S)
+    tracker = PoseTracker(link, clock, link_name="udpout:127.0.0.1:14999")
+    tracker.start()
+    for _ in range(120):  # 12 s, nothing received
+        clock.advance_by_ns(100 * MS)
+        tracker.pump()
+    assert tracker.status().pose_status == ("no HEARTBEAT from the autopilot (system 1) on udpout:127.0.0.1:14999 "
+                                            "for 12 s: is it connected, is the link's URL right?")
+    link.queue(mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                                 0, 0, mavlink.MAV_STATE_STANDBY, 3))
+    tracker.pump()
+    assert tracker.status().pose_status.startswith("waiting for TIMESYNC replies from the autopilot (system 1)")
+
+
 def test_the_autopilots_timesync_request_is_answered_with_our_clock():
     link, clock = ScriptedLink(), SimClock(start_ns=10 * S)
     tracker = PoseTracker(link, clock)

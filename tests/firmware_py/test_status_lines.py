@@ -69,3 +69,32 @@ def test_that_the_stop_line_counts_the_sensor_error_samples_the_log_holds_resets
     line = [ln for ln in err.getvalue().splitlines() if "stopped (test over)" in ln][-1]
     assert f"sensor error {in_log}" in line and f"no return {no_return}" in line
     assert re.search(rf": {len(flags)} samples \(usable {int(np.count_nonzero(flags == 0))};", line)
+
+
+@pytest.fixture
+def rig_without_an_autopilot():
+    """A LIDAR-Lite ranging 5 m and the servo; nothing answers on the MAVLink URL."""
+    clock = WallSimClock()
+    bus = SimI2CBus(clock)
+    bus.attach(0x62, EmulatedLidarLite(clock, lambda _t_ns: 5.0))
+    register_sim_bus(bus, "alone")
+    pwm_backends.register_pwm_backend("emualone", lambda _url: EmulatedServo(clock))
+    yield
+    unregister_i2c_backend("alone")
+    pwm_backends.unregister_pwm_backend("emualone")
+
+
+def test_that_the_status_line_says_whole_that_the_autopilot_is_not_heard_naming_the_link(tmp_path,
+                                                                                      rig_without_an_autopilot):
+    """A walkthrough with no autopilot read "no pose yet (waiting for TIMESYNC replies from the autopilot (system 1);
+    no pose can be time-tagged unt)": cut mid-word, and silent on the fact to act on, that nothing answers."""
+    url = "udpout:127.0.0.1:9"  # the discard port: nobody answers
+    cfg = PayloadConfig(out_path=tmp_path / "samples.pslog", mavlink_url=url, i2c_url="alone", pwm_url="pwm:emualone",
+                        fsync=False, records_per_block=100, quiet=False, status_period_s=0.2, duration_s=0.7)
+    err = io.StringIO()
+    PayloadApp(cfg, err=err).run()
+    lines = [ln for ln in err.getvalue().splitlines() if "no pose yet" in ln]
+    assert lines, err.getvalue()
+    for line in lines:
+        assert re.search(rf"no pose yet \(no HEARTBEAT from the autopilot \(system 1\) on {re.escape(url)} for \d+ s: "
+                         r"is it connected, is the link's URL right\?\)$", line), line

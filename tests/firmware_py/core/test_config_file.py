@@ -111,6 +111,38 @@ def test_that_every_problem_of_a_file_is_reported_at_once(tmp_path):
     assert [ln.split(": ")[1] for ln in lines] == ["[payload] rate_hz", "[payload] foo", "[mission] speed_m_s"]
 
 
+def test_that_the_checks_across_keys_are_reported_with_the_keys_own_problems(tmp_path):
+    """A [site] height_m missing came out only once every other problem had been fixed."""
+    lines = problems_of("[site]\nlength_m = 60\nwidth_m = 40\n[payload]\nrate_hz = -5\nrat = 3\n"
+                        "[payload.sweep]\npeak_rate_rad_s = 8\n[payload.servo]\nslew_rad_s = 5\n"
+                        "[mission]\nturn = \"three-step\"\n[[piles]]\nname = \"sand\"\nx_m = 3\n", tmp_path)
+    assert [ln.split(": ")[1] for ln in lines] == [
+        "[payload] rate_hz", "[payload] rat", "[mission] turn", "[site] height_m", "[payload.sweep] peak_rate_rad_s",
+        "[[piles]] #1 y_m"]
+
+
+def test_that_a_refused_key_is_not_also_called_missing_nor_checked_against_the_others(tmp_path):
+    lines = problems_of("[site]\nlength_m = 60\nwidth_m = -40\nheight_m = 15\n"
+                        "[payload.servo]\nmin_us = 100\ncenter_us = 1500\n"
+                        "[[piles]]\nname = \"sand\"\nx_m = \"12\"\ny_m = 8\n", tmp_path)
+    assert [ln.split(": ")[1] for ln in lines] == ["[site] width_m", "[payload.servo] min_us", "[[piles]] #1 x_m"]
+    assert "must be 0.5-10000 m, got -40" in lines[0]
+
+
+def test_that_a_refused_file_still_gives_its_good_keys_for_the_programs_own_checks(tmp_path):
+    """The programs check some keys with their own options (a URL's backends): they run on these, in the same
+    report."""
+    with pytest.raises(ConfigError) as exc:
+        load_config(write(tmp_path, "[payload]\nrate_hz = -5\npwm = \"pwm:sysfs:zero:0\"\n[site]\nlength_m = 9\n"))
+    good = exc.value.config
+    assert good.payload.pwm == "pwm:sysfs:zero:0" and good.payload.rate_hz is None and good.site.length_m == 9.0
+    assert good.get("site.dimensions") is None  # not the building: a part of one
+    assert exc.value.problems == (str(exc.value), *exc.value.details) and len(exc.value.problems) == 2  # not pwm
+    with pytest.raises(ConfigError) as exc:
+        load_config(write(tmp_path, "[site\n"))
+    assert exc.value.config is None  # not TOML: no key to check
+
+
 def test_that_a_toml_syntax_error_names_the_line(tmp_path):
     lines = problems_of("[site]\nlength_m = 60\nwidth_m = = 40\n", tmp_path)
     assert len(lines) == 1 and "not valid TOML" in lines[0] and "line 3" in lines[0]
