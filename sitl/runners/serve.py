@@ -84,6 +84,8 @@ from sitl.world.clearance import closest_approach, collision, f450_reach_m
 from sitl.world.raycast import World
 
 VEHICLES = ("jsbsim", "kinematic")
+TAKEOFF_CLEAR_M = 0.05
+"""Material thinner than this under the waiting vehicle is the floor's own roughness, not a pile it sits in."""
 log = logging.getLogger(__name__)
 
 
@@ -190,6 +192,9 @@ def serve(opts: ServeOptions) -> int:
         if out_of_range:
             log.warning(out_of_range)
         world = World(opts.mission.storage, pile, max_range_m=opts.fly_config().lidar.max_range_m)
+        buried = takeoff_under_pile(opts.mission, world)
+        if buried:
+            log.warning(buried)
     transport = make_transport(opts.url)  # a bad --mavlink fails before anything is written
     try:
         # The folder is locked while served; the plan is put in place at once (a ground station loads
@@ -307,6 +312,22 @@ def payload_command(opts: ServeOptions, *, mavlink_at: tuple[str, int] | None, d
         argv += ["--signing-key", str(opts.signing_key_file) if opts.signing_key_file is not None else "KEY_FILE"]
     argv += ["--out", str((run_dir if run_dir is not None else opts.out) / SAMPLES_FILE), "--stop-on-disarm"]
     return argv
+
+
+def takeoff_under_pile(mission: Mission, world: World) -> str | None:
+    """A warning when the floor below the first waypoint, where the served vehicle waits, lies under the pile:
+    the simulator's vehicle then starts inside the material (the plant knows only the floor), and until it has
+    climbed out the payload's samples see the pile from within. A real flight takes off from clear floor."""
+    x, y = (float(v) for v in mission.waypoints_w()[0])
+    top = mission.storage.height_m
+    r = world.cast_one(np.array([x, y, top - 1e-3]), np.array([0.0, 0.0, -1.0]))
+    material_m = top - 1e-3 - r if math.isfinite(r) else 0.0
+    if material_m <= TAKEOFF_CLEAR_M:
+        return None
+    return (f"the vehicle waits on the floor below the first waypoint ({x:.1f}, {y:.1f}) m, where the pile stands "
+            f"{material_m:.2f} m high: in the simulator it starts inside the material, and the payload's samples see "
+            "the pile from within until it has climbed out (a real flight takes off from clear floor; a P_traj whose "
+            "first corner is clear of the pile avoids it)")
 
 
 def tlog_limits(max_mb: float) -> LinkLimits:

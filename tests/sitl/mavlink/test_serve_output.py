@@ -106,3 +106,20 @@ def test_that_the_printed_payload_command_carries_the_site_and_the_key_file(tmp_
     assert (c.lat_deg, c.lon_deg, c.alt_m) == (-33.8688123, 151.2093456, 12.5)
     assert cfg.site.heading_rad == math.radians(-20.25)
     assert cfg.signing is not None and cfg.signing.key == bytes(range(1, 33))
+
+
+def test_that_a_vehicle_waiting_under_the_pile_is_warned_and_one_on_clear_floor_is_not():
+    # the served vehicle waits on the floor below W0; at P_traj 20 % pile 1 stands 4.5 m over that spot, so the
+    # simulator's vehicle sat inside the material and the payload's first samples saw the pile from within
+    from firmware_py.core.storage import Storage
+    from sitl.missions.rectangle import Mission
+    from sitl.runners.serve import takeoff_under_pile
+    from sitl.world.raycast import World
+    from sitl.world.shapes import make_shape
+    from sitl.world.stockpile import paper_pile
+    st = Storage(60, 40, 15)
+    world = World(st, paper_pile("1", st))
+    w = takeoff_under_pile(Mission(storage=st, p_traj=0.2), world)
+    assert w is not None and "(12.0, 8.0) m" in w and "4.4" in w
+    cone = World(st, make_shape("cone", st, 8.0, seed=0).pile)  # a cone in the middle: W0 on bare floor
+    assert takeoff_under_pile(Mission(storage=st, p_traj=0.05), cone) is None
