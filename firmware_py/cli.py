@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import json
 import math
 import os
 import re
@@ -38,6 +39,7 @@ from firmware_py.core.cli import (
     add_config_option,
     add_verbosity,
     finite_float,
+    one_line,
     rangefinder_arg,
     reading_input,
     run_cli,
@@ -168,6 +170,10 @@ def build_parser() -> ArgumentParser:
     ap.add_argument("--check", action="store_true",
                     help="validate the options (and --config file), print the effective configuration as TOML and "
                          "exit, opening no hardware")
+    ap.add_argument("--write-header", type=Path, default=None, metavar="FILE",
+                    help="with --check: also write the sample-log header a flight with this configuration starts its "
+                         "log with, as JSON (pilescan-ground listen --header FILE: the live log then has the building "
+                         "and the sensor's placement)")
     ap.add_argument("--preflight", nargs="?", type=_positive_seconds, const=0.0, default=None, metavar="S",
                     help="check the payload on the ground before a flight: open the hardware, sweep and sample for "
                          "S seconds (at least one sweep period; default: three, and at least 5 s) without writing a "
@@ -407,6 +413,22 @@ def check_text(cfg: PayloadConfig, args: argparse.Namespace) -> str:
     return head + to_toml({name: printed[name] for name in SECTIONS if name in printed})
 
 
+def write_header_json(cfg: PayloadConfig, path: Path) -> Path:
+    """--check --write-header: the header this configuration's log would start with, as a JSON object (what
+    `pilescan-ground listen --header` reads), written whole or not at all. Not the flight's own: no servo drive
+    start and no autopilot parameters, which only a flight knows, and the ground station needs neither to place
+    points."""
+    text = json.dumps(cfg.log_header(), indent=2, default=str) + "\n"
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise UserError(f"--write-header {path}: {one_line(exc)}") from exc
+    return path
+
+
 def log_notes(cfg: PayloadConfig) -> tuple[str | None, list[str]]:
     """What --check says of the log, as the payload would open it on this machine: a TOML comment with the room its
     file system holds, and warnings: why it could not be written, or that the room is less than the flight
@@ -428,9 +450,13 @@ def _run(args) -> int:
     cfg = config_from_args(args)
     if args.check and args.preflight is not None:
         raise UserError("--check opens no hardware and --preflight opens it: give one of them")
+    if args.write_header is not None and not args.check:
+        raise UserError("--write-header goes with --check (it writes what a flight's log would start with)")
     if args.check:
         note, warnings = log_notes(cfg)
         print(check_text(cfg, args) + (note or ""), end="")
+        if args.write_header is not None:
+            write_header_json(cfg, args.write_header)
         for w in warnings:
             print(f"{PROG}: warning: {w}", file=sys.stderr)
         return 0

@@ -343,3 +343,20 @@ def test_that_the_example_service_runs_the_payload_once_a_flight_and_its_command
     assert main([*args, "--check"]) == 0, capsys.readouterr().err
     printed = tomllib.loads(capsys.readouterr().out)
     assert printed["payload"]["start_on_arm"] is True and printed["payload"]["stop_on_disarm"] is True
+
+
+def test_that_check_writes_the_header_a_flight_would_start_its_log_with_for_listen(tmp_path, capsys):
+    # listen needs the building and the sensor's placement before a first flight: the header comes from --check
+    # (tests/ground/test_listen.py reads such a file with listen's own load_header; the payload's tests stay
+    # within what a payload-only install has)
+    import json
+    out = tmp_path / "setup.json"
+    rc = main(["--config", str(EXAMPLE), "--out", str(tmp_path / "f.pslog"), "--check", "--write-header", str(out)])
+    assert rc == 0
+    header = json.loads(out.read_text())
+    assert all(k in header for k in ("storage", "storage_frame", "lever_arm_body_m", "sensor"))
+    assert header["storage"] == {"length_m": 60.0, "width_m": 40.0, "height_m": 15.0}
+    assert header["lever_arm_body_m"] == [0.0, 0.0, 0.1]
+    capsys.readouterr()
+    assert main(["--config", str(EXAMPLE), "--write-header", str(tmp_path / "x.json")]) == ExitCode.USAGE
+    assert "goes with --check" in capsys.readouterr().err and not (tmp_path / "x.json").exists()

@@ -23,6 +23,7 @@ from firmware_py.core.stream_format import encode_datagram
 from firmware_py.live_stream import LiveStreamSender
 from ground.cli import main
 from ground.listen import (
+    GEOMETRY_KEYS,
     LIVE_SOURCE,
     JoiningReceiver,
     ListenConfig,
@@ -428,3 +429,14 @@ def test_that_a_datagram_reordered_behind_the_first_one_heard_is_not_counted_as_
     rx.feed(encode_datagram(15, records(20)), ("10.0.0.2", 5000))  # late: it was sent first
     assert rx.stats["joined"] == rx.stats["lost"] == 15 and rx.stats["late"] == 1
     assert rx.joined()[0].first_seq == 15 and rx.joined()[0].records_max == 300
+
+
+def test_that_the_header_the_payload_s_check_writes_gives_the_live_log_its_geometry(tmp_path):
+    # pilescan-payload --check --write-header: the header a first flight's live log can have before any flight
+    from firmware_py.cli import main as payload_main
+    example = Path(__file__).resolve().parents[2] / "examples" / "raspberry-pi.toml"
+    out = tmp_path / "setup.json"
+    assert payload_main(["--config", str(example), "--out", str(tmp_path / "f.pslog"), "--check",
+                         "--write-header", str(out)]) == 0
+    header = load_header(out)
+    assert not [k for k in GEOMETRY_KEYS if k not in header]
