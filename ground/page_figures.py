@@ -150,7 +150,7 @@ def site_map_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
                     storage_lw_m: tuple[float, float], piles: Mapping[str, Any] | None = None,
                     heading_deg: float | None = None, path_w: np.ndarray | None = None,
                     volume_unit: str = "m³", m3_per_unit: float = 1.0, title: str = "Site map",
-                    filled: np.ndarray | None = None) -> Figure:
+                    filled: np.ndarray | None = None, pile_labels: np.ndarray | None = None) -> Figure:
     """Height map with contour lines, each pile's name and volume at its centroid, the building's outline,
     a scale bar, metres on the axes, a north arrow when the heading is known, the flight path and the outline of
     the cells the empty-cell policy filled (`filled`: never seen; legend inside the axes)."""
@@ -191,7 +191,19 @@ def site_map_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
     if f.any():  # outlined, not hatched: the map's colours and contours stay readable under it
         ax.add_collection(LineCollection(mask_boundary_segments(xe, ye, f), colors="tab:red", linewidths=1.0,
                                          linestyles=(0, (3, 2)), zorder=5, label="filled: never seen"))
-    if path.shape[0] > 0 or f.any():
+    outlined = False
+    if pile_labels is not None:  # each pile's cells as the table sums them, toe included
+        labels = np.asarray(pile_labels)
+        if labels.shape != h.shape:
+            raise ValueError(f"pile_labels shape {labels.shape} differs from heights shape {h.shape}")
+        segs = [mask_boundary_segments(xe, ye, labels == k) for k in range(1, int(labels.max(initial=0)) + 1)]
+        segs = [sg for sg in segs if len(sg)]
+        if segs:
+            ax.add_collection(LineCollection(np.concatenate(segs), colors="white", linewidths=1.0, zorder=6,
+                                             path_effects=[patheffects.withStroke(linewidth=2.4, foreground="0.1")],
+                                             label="pile outline (the cells its volume sums)"))
+            outlined = True
+    if path.shape[0] > 0 or f.any() or outlined:
         ax.legend(loc="upper right", fontsize="small", framealpha=0.85)
     _scale_bar(ax, storage[0])
     if heading_deg is not None and math.isfinite(heading_deg):

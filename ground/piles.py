@@ -269,6 +269,14 @@ def _nearest(labels: np.ndarray, grid: Grid, e: PileEntry) -> str:
     return f" (the nearest pile's edge is {float(d.min()):.1f} m away)"
 
 
+def find_piles(heights: np.ndarray, grid: Grid, point_sigma_m: float, opts: PileOptions) -> Assignment:
+    """The piles on the height grid (module docstring): segmented, named from the configuration, each with its toe.
+    The pile table's cells, and the outlines the site map draws (the same call, the same cells)."""
+    thr = threshold_m(point_sigma_m)
+    found = assign(segment(heights, grid, thr, opts.min_area_m2), heights, grid, opts.entries, thr)
+    return Assignment(with_toes(found.labels, grid, toe_ring_m(thr, grid)), found.entries, found.warnings)
+
+
 def pile_table(heights: np.ndarray, grid: Grid, point_sigma_m: float, opts: PileOptions,
                errors_in: Callable[[np.ndarray], SurveyErrors] | None,
                model: IntervalModel = DEFAULT_INTERVAL_MODEL, *, over: str = "the floor z = 0",
@@ -278,10 +286,8 @@ def pile_table(heights: np.ndarray, grid: Grid, point_sigma_m: float, opts: Pile
     heights: above the base the piles are measured over (`over` names it); errors_in: the survey's error terms
     over a cell mask (None: no intervals); extra_over: the base's own 90 % half-width over a mask (a fitted
     floor's), added to each pile's interval in quadrature as the survey's interval adds it."""
-    thr = threshold_m(point_sigma_m)
-    found = assign(segment(heights, grid, thr, opts.min_area_m2), heights, grid, opts.entries, thr)
-    ring = toe_ring_m(thr, grid)
-    found = Assignment(with_toes(found.labels, grid, ring), found.entries, found.warnings)
+    thr, ring = threshold_m(point_sigma_m), toe_ring_m(threshold_m(point_sigma_m), grid)
+    found = find_piles(heights, grid, point_sigma_m, opts)
     h = np.nan_to_num(np.asarray(heights, float), nan=0.0)
     a = grid.cell_area_m2
     cx, cy = grid.length_m / grid.shape[0], grid.width_m / grid.shape[1]

@@ -87,8 +87,8 @@ _IMAGE_CAPTIONS: dict[str, str] = {
     "height_map": "Fitted height map (hatched: filled, never seen; white: no surface)",
     "coverage": "Coverage: points per cell (white: no points), fitted-surface boundary outlined",
     "site_map": "Site map: heights above the floor with contour lines, each pile's name and volume at its "
-                "centroid, the building's outline, a scale bar, the flight path and, outlined in red, the ground "
-                "the survey never saw (filled)",
+                "centroid and its outline (white: the cells its volume sums, toe included), the building's outline, "
+                "a scale bar, the flight path and, outlined in red, the ground the survey never saw (filled)",
     "surface_3d": "3D view of the surface (heights exaggerated as stated)",
     "sections": "Cross-sections through the largest pile's peak: the surface (dashed where it was filled, never "
                 "seen), the base and the LiDAR points near each line",

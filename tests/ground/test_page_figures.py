@@ -99,6 +99,27 @@ def test_that_a_pile_label_under_the_scale_bar_or_the_compass_is_moved_clear_of_
         assert not any(box.overlaps(c) for c in covers), t.get_text()
 
 
+def test_that_the_map_outlines_each_pile_as_the_table_sums_it():
+    from matplotlib.collections import LineCollection
+
+    from ground.piles import find_piles
+    h, piles = two_piles()
+    labels = find_piles(h, GRID, 0.03, PileOptions()).labels
+    fig = pf.site_map_figure(GRID.x_edges, GRID.y_edges, h, LW, piles, pile_labels=labels)
+    ax = fig.axes[0]
+    outline = [c for c in ax.collections if isinstance(c, LineCollection) and "pile outline" in str(c.get_label())]
+    assert len(outline) == 1
+    segs = np.asarray(outline[0].get_segments())
+    for p in piles["piles"]:  # each pile's outline encloses its centroid, within its extent
+        (x0, x1), (y0, y1) = p["extent_m"]["x"], p["extent_m"]["y"]
+        near = segs[(segs[:, :, 0].min(axis=1) >= x0 - 1e-9) & (segs[:, :, 0].max(axis=1) <= x1 + 1e-9)
+                    & (segs[:, :, 1].min(axis=1) >= y0 - 1e-9) & (segs[:, :, 1].max(axis=1) <= y1 + 1e-9)]
+        assert len(near) > 20
+    assert "pile outline (the cells its volume sums)" in [t.get_text() for t in ax.get_legend().get_texts()]
+    with pytest.raises(ValueError, match="pile_labels shape"):
+        pf.site_map_figure(GRID.x_edges, GRID.y_edges, h, LW, piles, pile_labels=labels[:-1])
+
+
 def test_that_the_map_outlines_the_filled_cells_and_names_them_in_its_legend():
     h, piles = two_piles()
     filled = np.zeros(h.shape, bool)
