@@ -52,6 +52,7 @@ records over to the page's threads; it never waits for them.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import select
@@ -106,6 +107,9 @@ DEFAULT_MAX_LOG_MIB = 512
 """Default live-log size cap: 2000 Hz x 59 B is 425 MB an hour, 500 Hz 106 MB (module docstring)."""
 
 
+CONFIRM_RUN = 10
+"""A sender's first sequence number is taken as datagrams sent before listen joined only once it has sent this many
+in a row, each one more than the last: one forged datagram, or a flood of random numbers, is never counted."""
 JOIN_LINES = 3
 """Joins said as they happen (one line each); more (a flood of new senders) are only counted."""
 
@@ -122,6 +126,11 @@ class StreamJoin:
     first_t: float
     counted: int = 0
     """How many of them are counted in `lost` so far (`JoiningReceiver`: no more than it could have sent)."""
+    last_seq: int = -1
+    run: int = 0
+    """Datagrams in a row, each numbered one more than the last: a payload's stream does that, a flood of forged
+    numbers never does (`CONFIRM_RUN`)."""
+    confirmed: bool = False
     batch: int = 0
     """The most records seen in one of its datagrams (its batch size, for the records estimate)."""
 
@@ -144,9 +153,10 @@ class JoiningReceiver(LiveStreamReceiver):
     The receiver counts gaps between the datagrams it hears; a sender's first datagram numbered N means
     N more, sent before this listener was there to hear them. They are counted in `stats["lost"]` and in
     `stats["joined"]`, as far as the loss budget allows (the receiver's rule: no more than the highest
-    rate for as long as the sender has been heard, plus `LOSS_GRACE_S`): a first datagram with a forged
-    number adds at most a second's worth, and a real stream joined late is counted in full within a
-    second (or, joined hours in, as it goes on being heard). A datagram that arrives late, behind the
+    rate for as long as the sender has been heard, plus `LOSS_GRACE_S`), and only once the sender has sent
+    `CONFIRM_RUN` datagrams in a row, each numbered one more than the last, as a payload does: a forged first
+    number, or a flood of random ones, adds nothing, and a real stream joined late is counted in full within
+    a second of that (or, joined hours in, as it goes on being heard). A datagram that arrives late, behind the
     first one heard, lowers the count. `joins` holds one `StreamJoin` per sender (bounded as the
     receiver's table); `new_joins` those not yet said (drained by the listener).
     """
@@ -175,14 +185,18 @@ class JoiningReceiver(LiveStreamReceiver):
             if len(self.joins) >= MAX_SENDERS:
                 del self.joins[next(iter(self.joins))]  # the least recently heard, as the receiver does
             join = StreamJoin(sender, seq, now)
-            if seq:
-                self.new_joins.append(join)
         elif self.stats["late"] > late and 0 < join.first_seq - seq < RESTART_GAP:
             join.first_seq = seq  # an earlier datagram, reordered behind the first one heard: it was received
             self._recount(join, -max(0, join.counted - seq))
+        join.run = join.run + 1 if seq == join.last_seq + 1 else 0
+        join.last_seq = seq
+        if not join.confirmed and join.run >= CONFIRM_RUN:
+            join.confirmed = True
+            if join.first_seq:
+                self.new_joins.append(join)
         self.joins[sender] = join
         self._heard = join
-        if join.counted < join.first_seq:
+        if join.confirmed and join.counted < join.first_seq:
             budget = int(self._max_rate_hz * (now - join.first_t + LOSS_GRACE_S))
             self._recount(join, max(0, min(join.first_seq, budget) - join.counted))
 
@@ -193,8 +207,7 @@ class JoiningReceiver(LiveStreamReceiver):
 
     def joined(self) -> tuple[StreamJoin, ...]:
         """The senders heard first at a sequence number above 0 (copies)."""
-        return tuple(StreamJoin(j.sender, j.first_seq, j.first_t, j.counted, j.batch)
-                     for j in self.joins.values() if j.first_seq)
+        return tuple(dataclasses.replace(j) for j in self.joins.values() if j.first_seq and j.confirmed)
 
 
 def parse_peer(text: str) -> PeerSpec:

@@ -23,6 +23,7 @@ from firmware_py.core.stream_format import encode_datagram
 from firmware_py.live_stream import LiveStreamSender
 from ground.cli import main
 from ground.listen import (
+    CONFIRM_RUN,
     GEOMETRY_KEYS,
     LIVE_SOURCE,
     JoiningReceiver,
@@ -353,13 +354,13 @@ def test_that_a_listener_first_hearing_record_300_says_so_and_counts_the_300_bef
     """The networked-SITL report: records 0-299 never arrived and listen said "lost 0". The datagrams are
     numbered from 0, so the first one heard, number 15 (records 300-319), says 15 were sent before."""
     with listening(tmp_path) as ls, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as payload:
-        for seq in range(15, 25):
+        for seq in range(15, 15 + CONFIRM_RUN + 6):  # the stream goes on from there, one number at a time
             payload.sendto(encode_datagram(seq, records(20, t0=seq * 0.04)), ls.local_address)
-        pump_until(ls, lambda st: st["records"] >= 200)
+        pump_until(ls, lambda st: st["records"] >= 20 * (CONFIRM_RUN + 6))
         status = ls.status_line(ls.clock())
         res = ls.result()
         said = ls.err.getvalue()
-    assert res.records == 200 and res.stats["joined"] == 15 and res.stats["lost"] == 15
+    assert res.records == 20 * (CONFIRM_RUN + 6) and res.stats["joined"] == 15 and res.stats["lost"] == 15
     assert "lost 15 " in status
     assert said.count("joined the stream from 127.0.0.1:") == 1
     assert "at datagram 15 (about record 300): the 15 datagrams sent before it, up to 300 records" in said
@@ -375,7 +376,7 @@ def test_that_a_listener_started_after_the_payload_counts_what_the_payload_sent_
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
-    sent = records(400)
+    sent = records(300 + 20 * (CONFIRM_RUN + 5))
     tx = LiveStreamSender(f"udp:127.0.0.1:{port}")  # 20 records a datagram, as the payload
     tx.append(sent[:300])  # nobody listening yet: 15 datagrams into the void, no error
     cfg = ListenConfig(url=f"udp:127.0.0.1:{port}", out_path=tmp_path / "live.pslog", fsync=False)
@@ -384,13 +385,13 @@ def test_that_a_listener_started_after_the_payload_counts_what_the_payload_sent_
     try:
         tx.append(sent[300:])
         tx.close()
-        pump_until(ls, lambda st: st["records"] >= 100)
+        pump_until(ls, lambda st: st["records"] >= len(sent) - 300)
     finally:
         ls.close()
     res = ls.result()
-    assert tx.stats["datagrams"] == 20 and tx.stats["send_errors"] == 0
+    assert tx.stats["datagrams"] == len(sent) // 20 and tx.stats["send_errors"] == 0
     assert read_samplelog(tmp_path / "live.pslog").samples.tobytes() == sent[300:].tobytes()
-    assert res.records == 100 and res.stats["lost"] == 15 and res.stats["joined"] == 15
+    assert res.records == len(sent) - 300 and res.stats["lost"] == 15 and res.stats["joined"] == 15
     assert "up to 300 records, not received" in format_summary(res)
 
 
@@ -404,22 +405,29 @@ def test_that_a_stream_heard_from_its_first_datagram_says_nothing_of_joining(tmp
     assert "joined" not in format_summary(res) and "joined" not in said
 
 
-def test_that_a_forged_first_sequence_number_adds_no_more_than_the_loss_budget():
-    now = [100.0]
-    rx = JoiningReceiver(monotonic=lambda: now[0])
+def test_that_a_forged_first_number_or_a_flood_of_random_ones_adds_nothing_and_a_real_run_is_counted():
+    # listen's flood campaign: random numbers from two ports made 5,984 "lost" datagrams of a 249-datagram stream
+    rng = np.random.default_rng(0)
+    rx = JoiningReceiver()
     rx.feed(encode_datagram(4_000_000_000, records(1)), ("10.0.0.9", 4000))
-    assert rx.stats["joined"] == rx.stats["lost"] == int(DEFAULT_MAX_RATE_HZ * LOSS_GRACE_S)
-    assert rx.joined()[0].first_seq == 4_000_000_000
+    for _ in range(500):
+        rx.feed(encode_datagram(int(rng.integers(1 << 32)), records(1)), ("10.0.0.9", 4001))
+    assert rx.stats["joined"] == 0 and rx.joined() == ()
+    for seq in range(40, 40 + CONFIRM_RUN + 1):  # a payload's stream: one number at a time
+        rx.feed(encode_datagram(seq, records(20)), ("10.0.0.2", 5000))
+    assert rx.stats["joined"] == 40 and [j.first_seq for j in rx.joined()] == [40]
 
 
 def test_that_a_stream_joined_an_hour_in_is_counted_in_full_once_heard_long_enough_to_vouch_for_it():
     now = [0.0]
     rx = JoiningReceiver(monotonic=lambda: now[0])
     first = 25 * 3600  # 20-record datagrams at 500 Hz, an hour in
-    rx.feed(encode_datagram(first, records(20)), ("10.0.0.2", 5000))
-    assert 0 < rx.stats["joined"] < first
+    for seq in range(first, first + CONFIRM_RUN + 1):
+        rx.feed(encode_datagram(seq, records(20)), ("10.0.0.2", 5000))
+    assert rx.stats["joined"] == int(DEFAULT_MAX_RATE_HZ * LOSS_GRACE_S) < first  # a second's worth so far
     now[0] = 60.0
-    rx.feed(encode_datagram(first + 1500, records(20)), ("10.0.0.2", 5000))
+    last = first + CONFIRM_RUN + 1500
+    rx.feed(encode_datagram(last, records(20)), ("10.0.0.2", 5000))
     assert rx.stats["joined"] == first and rx.stats["lost"] == first + 1499
 
 
@@ -427,6 +435,8 @@ def test_that_a_datagram_reordered_behind_the_first_one_heard_is_not_counted_as_
     rx = JoiningReceiver()
     rx.feed(encode_datagram(16, records(20)), ("10.0.0.2", 5000))
     rx.feed(encode_datagram(15, records(20)), ("10.0.0.2", 5000))  # late: it was sent first
+    for seq in range(17, 17 + CONFIRM_RUN + 1):
+        rx.feed(encode_datagram(seq, records(20)), ("10.0.0.2", 5000))
     assert rx.stats["joined"] == rx.stats["lost"] == 15 and rx.stats["late"] == 1
     assert rx.joined()[0].first_seq == 15 and rx.joined()[0].records_max == 300
 
