@@ -286,7 +286,8 @@ def pile_table(heights: np.ndarray, grid: Grid, point_sigma_m: float, opts: Pile
     heights: above the base the piles are measured over (`over` names it); errors_in: the survey's error terms
     over a cell mask (None: no intervals); extra_over: the base's own 90 % half-width over a mask (a fitted
     floor's), added to each pile's interval in quadrature as the survey's interval adds it."""
-    thr, ring = threshold_m(point_sigma_m), toe_ring_m(threshold_m(point_sigma_m), grid)
+    thr = threshold_m(point_sigma_m)
+    ring = toe_ring_m(thr, grid)
     found = find_piles(heights, grid, point_sigma_m, opts)
     h = np.nan_to_num(np.asarray(heights, float), nan=0.0)
     a = grid.cell_area_m2

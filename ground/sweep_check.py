@@ -19,10 +19,18 @@ servo (they flagged thousands of a networked flight's samples "servo stuck or sl
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 MIN_SWEEP_RANGE_RATE_M_S = 5.0
 """Median |dr/dt| below this over a sweep period: not sweeping (see the module docstring)."""
+JUDGE_MARGIN = 2.0
+"""A period is judged only where a working sweep's expected rate is at least this many thresholds: so a working
+sweep there clears the threshold with room for the floor model's error (module docstring)."""
+MAX_FLOOR_ANGLE_RAD = math.radians(80.0)
+"""The floor model's largest angle: a beam swept flatter meets a wall or the pile's flank first, not the floor, and
+tan(gamma) would grow without bound."""
 LAG_S = 0.05
 MIN_SAMPLES = 20
 
@@ -57,7 +65,8 @@ def stuck_sweep_mask(t_s: np.ndarray, range_m: np.ndarray, usable: np.ndarray, p
         gu = g[idx]
         expected = np.full(len(tu), np.nan)
         turn = np.abs(gu[j[has]] - gu[has]) / np.maximum(tu[j[has]] - tu[has], 1e-9)
-        expected[has] = ru[has] * np.abs(np.tan(np.clip(gu[has], -1.4, 1.4))) * turn
+        flat = np.clip(gu[has], -MAX_FLOOR_ANGLE_RAD, MAX_FLOOR_ANGLE_RAD)
+        expected[has] = ru[has] * np.abs(np.tan(flat)) * turn
     window = np.floor((tu - tu[0]) / period_s).astype(np.int64)
     for w in np.unique(window):
         sel = window == w
@@ -69,7 +78,7 @@ def stuck_sweep_mask(t_s: np.ndarray, range_m: np.ndarray, usable: np.ndarray, p
         if expected is not None:
             e = expected[sel]
             e = e[np.isfinite(e)]
-            if len(e) < MIN_SAMPLES or np.median(e) < 2.0 * min_rate_m_s:
+            if len(e) < MIN_SAMPLES or np.median(e) < JUDGE_MARGIN * min_rate_m_s:
                 continue  # too short a range for a sweep to show: not judged
         if span >= 0.75 * period_s and len(vals) >= MIN_SAMPLES and np.median(vals) < min_rate_m_s:
             out[idx[sel]] = True
