@@ -197,8 +197,9 @@ class PoseCorrection:
     gain_needed: float = 0.0
     notes: tuple[str, ...] = ()
     """What was left out and why (e.g. the height, when the floor seen is not consistent)."""
-    closest_wall: tuple[float, str, float] | None = None
-    """The corrected path's nearest approach to a wall or the roof: (signed distance m, the surface, t_s)."""
+    closest_wall: tuple[float, str, float, float] | None = None
+    """The corrected path's nearest approach to a wall or the roof: (signed distance m, the surface, t_s on the log's
+    clock, s since the log's first sample: what the report says, as its other times)."""
     height_sigma_m: float | None = None
     """The formal standard error of the height correction's mean over the survey (`mean_sigma_m`); None when the
     height was not corrected. The volume's interval carries it (ground.uncertainty, the pose term)."""
@@ -277,7 +278,7 @@ class PoseCorrection:
                 "height_unanchored_s": self.height_unanchored_s[0],
                 "height_unanchored_longest_s": [self.height_unanchored_s[1], self.height_unanchored_s[2]],
                 "closest_wall": None if self.closest_wall is None else dict(
-                    zip(("distance_m", "surface", "t_s"), self.closest_wall, strict=True))}
+                    zip(("distance_m", "surface", "t_s", "since_start_s"), self.closest_wall, strict=True))}
 
 
 def _rms(x: np.ndarray) -> float:
@@ -2008,18 +2009,19 @@ def with_closest_wall(corr: PoseCorrection, corrected: np.ndarray, frame: Storag
     if near is None:
         return corr
     i, distance, surface = near
-    return replace(corr, closest_wall=(distance, surface, float(corrected["t_s"][i])))
+    t = corrected["t_s"]
+    return replace(corr, closest_wall=(distance, surface, float(t[i]), float(t[i] - np.nanmin(t))))
 
 
 def wall_warning(corr: PoseCorrection) -> str | None:
     """A warning when the corrected path came nearer a wall or the roof than WALL_WARNING_M, or None."""
     if corr.closest_wall is None or corr.closest_wall[0] >= WALL_WARNING_M:
         return None
-    distance, surface, t = corr.closest_wall
+    distance, surface, _, since = corr.closest_wall
     where = f"{-distance:.2f} m beyond {surface}" if distance < 0 else f"to {distance:.2f} m from {surface}"
-    return (f"the corrected flight path came {where} at t = {t:.0f} s: the vehicle flew that close to the building "
-            "on a drifting estimate (its propellers may have touched it); give the next flight more room from the "
-            "walls (a larger P_traj)")
+    return (f"the corrected flight path came {where} {since:.0f} s after the log's start: the vehicle flew that "
+            "close to the building on a drifting estimate (its propellers may have touched it); give the next flight "
+            "more room from the walls (a larger P_traj)")
 
 
 def describe(corr: PoseCorrection) -> str:

@@ -557,20 +557,22 @@ def test_that_a_corrected_path_that_came_near_a_wall_is_measured_and_warned_abou
     from ground.pose_correction import WALL_WARNING_M, PoseCorrection, wall_warning, with_closest_wall
     t = np.arange(0.0, 100.0, 0.5)
     s = new_records(len(t))
-    s["t_s"] = t
+    s["t_s"] = 1300.0 + t  # the payload's monotonic clock: the report counts from the log's start
     logged_w = np.column_stack([5.0 + 0.5 * t, np.full(len(t), 2.0), np.full(len(t), 12.0)])
     for name, col in zip(("x_m", "y_m", "z_m"), FRAME.w_to_ned(logged_w).T, strict=True):
         s[name] = col
-    knots = np.array([0.0, 50.0, 100.0])
+    knots = 1300.0 + np.array([0.0, 50.0, 100.0])
     values = np.zeros((3, 4))
     values[1:, 1] = [-1.9, -1.9]  # from 50 s on, 1.9 m nearer the wall y = 0
     corr = PoseCorrection(knots, values, np.ones((3, 4), dtype=bool), True)
     near = with_closest_wall(corr, apply_pose_correction(s, corr, FRAME), FRAME, STORAGE)
-    distance, surface, t_near = near.closest_wall
-    assert surface == "the wall y = 0" and distance == pytest.approx(0.1, abs=1e-6) and t_near >= 50.0
+    distance, surface, t_near, since = near.closest_wall
+    assert surface == "the wall y = 0" and distance == pytest.approx(0.1, abs=1e-6) and t_near >= 1350.0
+    assert since == pytest.approx(t_near - 1300.0)
     assert near.as_dict()["closest_wall"]["surface"] == "the wall y = 0"
     warning = wall_warning(near)
     assert warning is not None and "to 0.10 m from the wall y = 0" in warning
+    assert f"{since:.0f} s after the log's start" in warning  # not the payload clock's 13xx s
     values[1:, 1] = [-1.0, -1.0]  # 1 m from the wall: clear of WALL_WARNING_M
     clear = with_closest_wall(replace(corr, values=values), apply_pose_correction(s, replace(corr, values=values),
                                                                                   FRAME), FRAME, STORAGE)
