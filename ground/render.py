@@ -105,11 +105,13 @@ window.addEventListener("load", function () {
   for (var i = 0; i < imgs.length; i++) { if (imgs[i].complete && imgs[i].naturalWidth > 0) { ok++; } }
   document.documentElement.setAttribute("data-images-total", String(imgs.length));
   document.documentElement.setAttribute("data-images-loaded", String(ok));
+  document.documentElement.setAttribute("data-page-width", String(document.documentElement.scrollWidth));
+  document.documentElement.setAttribute("data-view-width", String(window.innerWidth));
 });
 """
 """The page's only script (inline, fetches nothing): once loaded, it records on <html> how many images
-decoded, so a headless browser's --dump-dom shows whether every figure displayed (tests/ground/
-test_report_browser.py)."""
+decoded, and how wide the page is against the window, so a headless browser's --dump-dom shows whether every
+figure displayed and whether a phone must scroll the page sideways (tests/ground/test_report_browser.py)."""
 
 _SURFACE_TEXT = {
     "local-linear": "The surface is estimated from the remaining points: each point is weighted by its measurement "
@@ -520,8 +522,6 @@ def render_markdown(content: ReportContent, out_dir: Path) -> str:
         lines += ["| " + " | ".join(_md_text(h) for h in head) + " |", "|" + "---|" * len(head)]
         lines += ["| " + " | ".join(_md_text(c) for c in r) + " |" for r in rows] + [""]
         lines += [_md_text(content.piles_note), ""] if content.piles_note else []
-    if content.page_images:
-        lines += ["## Map, 3D view and cross-sections", *_md_figures(content.page_images, out_dir, "###"), ""]
     lines += ["## Warnings", ""]
     if content.warnings:
         n = len(content.warnings)
@@ -531,6 +531,8 @@ def render_markdown(content: ReportContent, out_dir: Path) -> str:
             lines += [f"> - {_md_text(head)}", *(f">   - {_md_text(m)}" for m in more)]
     else:
         lines += ["No warnings."]
+    if content.page_images:
+        lines += ["", "## Map, 3D view and cross-sections", *_md_figures(content.page_images, out_dir, "###"), ""]
     lines += ["", "---", "", f"*{ENGINEER_NOTE}*", "", "## Summary", ""]
     lines += _md_table(("Quantity", "Value"), content.summary)
     if content.images:
@@ -577,7 +579,17 @@ table.meta th { background: none; border: none; padding: .1rem .8rem .1rem 0; fo
 table.meta td { border: none; padding: .1rem 0; overflow-wrap: anywhere; }
 .verdict { font-size: 1.1rem; }
 .engineer { margin-top: 2.5rem; border-top: 2px solid #444; }
-@media print { figure, table, .warnings { break-inside: avoid; } body { max-width: none; margin: 0; } }
+.wide { overflow-x: auto; max-width: 100%; }
+.wide table { margin-top: 0; }
+td { overflow-wrap: anywhere; }
+@media print {
+  figure, .warnings, tr { break-inside: avoid; }
+  h2, h3 { break-after: avoid; }
+  thead { display: table-header-group; }
+  body { max-width: none; margin: 0; }
+  .wide { overflow: visible; }
+  table.piles { font-size: .8rem; }
+}
 """
 
 
@@ -586,9 +598,11 @@ def _e(s: str) -> str:
 
 
 def _html_table(header: tuple[str, str], rows: list[tuple[str, str]]) -> list[str]:
-    out = ["<table>", f"<tr><th>{_e(header[0])}</th><th>{_e(header[1])}</th></tr>"]
+    """A two-column table in a box of its own width (a phone scrolls the table, not the page); its header row in
+    <thead>, which a printed page repeats."""
+    out = ['<div class="wide"><table>', f"<thead><tr><th>{_e(header[0])}</th><th>{_e(header[1])}</th></tr></thead>"]
     out += [f'<tr><td>{_e(k)}</td><td class="num">{_e(v)}</td></tr>' for k, v in rows]
-    out.append("</table>")
+    out.append("</table></div>")
     return out
 
 
@@ -616,8 +630,8 @@ def _html_figures(images: list[tuple[str, Path]]) -> list[str]:
 
 def render_html(content: ReportContent) -> str:
     """The self-contained report.html text (inline CSS, inlined images, nothing fetched), in the order a
-    customer reads: who/where/when, the volume and verdict, the piles, the map, 3D view and sections, the
-    warnings; then the engineer's details."""
+    customer reads: who/where/when, the volume and verdict, the piles, the warnings, the map, 3D view and
+    sections; then the engineer's details."""
     parts = [
         "<!DOCTYPE html>",
         '<html lang="en">',
@@ -645,25 +659,15 @@ def render_html(content: ReportContent) -> str:
     head, rows = content.piles
     if rows:
         parts += ["<h2>Piles</h2>", f"<p>Found as {_e(content.piles_method or 'connected regions')}.</p>",
-                  '<table class="piles" id="piles">', "<tr>" + "".join(f"<th>{_e(h)}</th>" for h in head) + "</tr>"]
+                  '<div class="wide"><table class="piles" id="piles">',
+                  "<thead><tr>" + "".join(f"<th>{_e(h)}</th>" for h in head) + "</tr></thead>"]
         parts += ["<tr>" + "".join(f'<td class="num">{_e(c)}</td>' for c in r) + "</tr>" for r in rows]
-        parts.append("</table>")
+        parts.append("</table></div>")
         if content.piles_note:
             parts.append(f'<p class="piles-note" id="piles-note">{_e(content.piles_note)}</p>')
+    parts += _html_warnings(content)
     if content.page_images:
         parts += ["<h2>Map, 3D view and cross-sections</h2>", *_html_figures(content.page_images)]
-    if content.warnings:
-        n = len(content.warnings)
-        parts += [
-            '<section class="warnings" role="alert">',
-            f"<h2>⚠ Warnings ({n}): read before using the volume</h2>",
-            "<ul>",
-            *(_html_warning(w) for w in content.warnings),
-            "</ul>",
-            "</section>",
-        ]
-    else:
-        parts += ["<h2>Warnings</h2>", '<p class="ok">No warnings.</p>']
     parts += ['<section class="engineer">', "<h2>Engineer's details</h2>", f"<p>{_e(ENGINEER_NOTE)}</p>",
               "<h3>Summary</h3>", *_html_table(("Quantity", "Value"), content.summary)]
     if content.images:
@@ -676,6 +680,25 @@ def render_html(content: ReportContent) -> str:
         parts += ["<h3>All figures</h3>", *_html_table(("Name", "Value"), content.extra)]
     parts += ["</section>", f"<script>{IMAGE_CHECK_SCRIPT}</script>", "</body>", "</html>"]
     return "\n".join(parts) + "\n"
+
+
+def _html_warnings(content: ReportContent) -> list[str]:
+    """The warnings box, under the volume and the piles and before the figures: what the verdict asks the reader to
+    read comes before what it qualifies."""
+    parts: list[str] = []
+    if content.warnings:
+        n = len(content.warnings)
+        parts += [
+            '<section class="warnings" role="alert">',
+            f"<h2>⚠ Warnings ({n}): read before using the volume</h2>",
+            "<ul>",
+            *(_html_warning(w) for w in content.warnings),
+            "</ul>",
+            "</section>",
+        ]
+    else:
+        parts += ["<h2>Warnings</h2>", '<p class="ok">No warnings.</p>']
+    return parts
 
 
 def write_html(report: Mapping[str, Any], images: ImageMap | None, out_path: str | Path) -> Path:

@@ -21,6 +21,7 @@ from typing import Any
 
 import matplotlib
 import matplotlib.image as mpimg
+import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
@@ -112,8 +113,9 @@ class _Pages:
             self._put(MARGIN_IN + x_in + hang, line, size)
             self.y_in += size * LINE_FACTOR / PT_PER_IN
 
-    def heading(self, text: str, size: float = 12.0) -> None:
-        self._room(4 * size / PT_PER_IN)  # never a heading alone at the foot of a page
+    def heading(self, text: str, size: float = 12.0, keep_in: float = 0.0) -> None:
+        """keep_in: the height of what must follow the heading on its page (a figure's)."""
+        self._room(4 * size / PT_PER_IN + keep_in)  # never a heading alone at the foot of a page
         self.space(0.5 * size / PT_PER_IN)
         self.lines(text, size, fontweight="bold")
         self.space(0.2 * size / PT_PER_IN)
@@ -142,6 +144,23 @@ class _Pages:
         for r in rows:
             row(r, False)
 
+    def _image_size_in(self, img: np.ndarray, max_height_in: float) -> tuple[float, float]:
+        h_px, w_px = img.shape[:2]
+        w_in = self.width_in
+        h_in = w_in * h_px / w_px
+        if h_in > max_height_in:
+            h_in, w_in = max_height_in, max_height_in * w_px / h_px
+        return w_in, h_in
+
+    def image_height_in(self, path: Path, caption: str, max_height_in: float) -> float:
+        """The height `image` takes for this PNG and caption (0 when it cannot be read)."""
+        try:
+            img = mpimg.imread(path)
+        except (OSError, ValueError, SyntaxError):
+            return 0.0
+        cap_in = len(wrap(caption, self.width_in, SMALL_PT)) * SMALL_PT * LINE_FACTOR / PT_PER_IN
+        return self._image_size_in(img, max_height_in)[1] + cap_in + 0.1
+
     def image(self, path: Path, caption: str, max_height_in: float) -> None:
         """The PNG at the page's width (or max_height_in tall), unresampled, with its caption under it."""
         try:
@@ -149,11 +168,7 @@ class _Pages:
         except (OSError, ValueError, SyntaxError):
             self.lines(f"Image not found: {caption} ({path.name})", SMALL_PT, color="#a00000")
             return
-        h_px, w_px = img.shape[:2]
-        w_in = self.width_in
-        h_in = w_in * h_px / w_px
-        if h_in > max_height_in:
-            h_in, w_in = max_height_in, max_height_in * w_px / h_px
+        w_in, h_in = self._image_size_in(img, max_height_in)
         cap_in = len(wrap(caption, self.width_in, SMALL_PT)) * SMALL_PT * LINE_FACTOR / PT_PER_IN
         self._room(h_in + cap_in + 0.1)
         x0 = MARGIN_IN + (self.width_in - w_in) / 2
@@ -209,11 +224,7 @@ def compose(content: ReportContent) -> list[Figure]:
         p.table(head, rows, _pile_widths(len(head), p.width_in), SMALL_PT)
         if content.piles_note:
             p.lines(content.piles_note, SMALL_PT)
-    if content.page_images:
-        p.heading("Map, 3D view and cross-sections")
-        for caption, path in content.page_images:
-            p.image(path, caption, 4.6)
-    if content.warnings:
+    if content.warnings:  # before the figures: the verdict asks the reader to read them first
         p.heading(f"Warnings ({len(content.warnings)})")
         for w in content.warnings:
             head, more = warning_parts(w)
@@ -222,13 +233,19 @@ def compose(content: ReportContent) -> list[Figure]:
                 p.bullet("–", m, x_in=BULLET_HANG_IN)
     else:  # a line, not a heading that a full page pushes onto a page of its own
         p.lines("Warnings: none.", BODY_PT)
+    if content.page_images:
+        first = content.page_images[0]
+        p.heading("Map, 3D view and cross-sections", keep_in=p.image_height_in(first[1], first[0], 4.6))
+        for caption, path in content.page_images:
+            p.image(path, caption, 4.6)
     p.new_page()
     p.heading("Engineer's details", 14.0)
     p.lines(ENGINEER_NOTE)
     p.heading("Summary", 11.0)
     p.table(("Quantity", "Value"), content.summary, [2.6, p.width_in - 2.6])
     if content.images:
-        p.heading("Figures", 11.0)
+        first = content.images[0]
+        p.heading("Figures", 11.0, keep_in=p.image_height_in(first[1], first[0], 4.6))
         for caption, path in content.images:
             p.image(path, caption, 4.6)
     if content.config:

@@ -53,7 +53,7 @@ def test_that_chromium_shows_the_volume_its_interval_the_piles_and_every_image(r
         assert f"<td class=\"num\">{p['label']}</td>" in piles.group(1)
         assert f"{p['volume_m3']:,.1f}" in _text(piles.group(1))
     # The customer's part comes before the warnings and the engineer's details.
-    assert text.index("Piles") < text.index("Map, 3D view and cross-sections") < text.index("Warnings") \
+    assert text.index("Piles") < text.index("Warnings") < text.index("Map, 3D view and cross-sections") \
         < text.index("Engineer's details")
     img = mpimg.imread(shot)
     assert img.shape[:2] == (WINDOW_PX[1], WINDOW_PX[0])
@@ -67,3 +67,13 @@ def test_that_the_pages_image_check_counts_a_broken_image(report_dir, tmp_path):
     (tmp_path / "broken.html").write_text(broken, encoding="utf-8")
     loaded, total = render(tmp_path / "broken.html").images()
     assert (loaded, total) == (5, 6)
+
+
+def test_that_on_a_phone_the_page_is_no_wider_than_the_screen(report_dir, tmp_path):
+    # the 10-column pile table and the figures table made a 390 px screen scroll an 854-908 px page sideways
+    page = render(report_dir / "report.html", window_px=(390, 3000))
+    width = re.search(r'<html[^>]*\bdata-page-width="(\d+)"', page.dom)
+    view = re.search(r'<html[^>]*\bdata-view-width="(\d+)"', page.dom)
+    assert width and view, "the page's script did not record its width"
+    assert int(width.group(1)) <= int(view.group(1))
+    assert '<div class="wide"><table class="piles" id="piles">' in page.dom  # the table scrolls in its own box

@@ -64,7 +64,8 @@ def test_that_the_pdf_holds_the_volume_verdict_metadata_and_piles_on_numbered_a4
     for p in rep["piles"]["piles"]:
         assert p["label"] in first and f"{p['volume_m3']:,.1f}" in first
     text = "\n".join(pages)
-    assert text.index("Piles") < text.index("Map, 3D view and cross-sections") < text.index("Warnings (1)") \
+    # the warnings the verdict counts come before the figures they qualify
+    assert text.index("Piles") < text.index("Warnings (1)") < text.index("Map, 3D view and cross-sections") \
         < text.index("Engineer's details")
     assert "only 80.0 % of the floor is reconstructed" in text
     assert "True volume" not in text and "Ve (eq. 8)" not in text  # no reference: no rows for it
