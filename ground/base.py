@@ -294,7 +294,7 @@ class Base:
         over the floor."""
         if self.kind is BaseKind.SURVEY:
             return ("the floor z = 0: the piles of this survey as they stand (the headline is the change since the "
-                    "earlier survey; `pilescan-ground compare` gives the change per pile)")
+                    "earlier survey; pilescan-ground compare gives the change per pile)")
         return "the floor z = 0" if self.kind is BaseKind.FLOOR else "the fitted floor plane"
 
     def pile_heights(self, heights: np.ndarray) -> np.ndarray:

@@ -203,8 +203,8 @@ def site_map_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
                                              path_effects=[patheffects.withStroke(linewidth=2.4, foreground="0.1")],
                                              label="pile outline (the cells its volume sums)"))
             outlined = True
-    if path.shape[0] > 0 or f.any() or outlined:
-        ax.legend(loc="upper right", fontsize="small", framealpha=0.85)
+    if path.shape[0] > 0 or f.any() or outlined:  # over every line of the map, or they strike through its text
+        ax.legend(loc="upper right", fontsize="small", framealpha=0.85).set_zorder(20)
     _scale_bar(ax, storage[0])
     if heading_deg is not None and math.isfinite(heading_deg):
         _north_arrow(ax, heading_deg)
@@ -341,7 +341,7 @@ def _profile(ax: Axes, along: np.ndarray, surface: np.ndarray, base: np.ndarray,
     ax.set_ylabel("z [m]")
     ax.set_title(where, fontsize="medium")
     ax.grid(True, linewidth=0.4, alpha=0.5)
-    ax.legend(loc="upper right", fontsize="x-small", framealpha=0.85)
+    ax.legend(loc="best", fontsize="x-small", framealpha=0.85)  # where it hides least of the profile
 
 
 def sections_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarray,

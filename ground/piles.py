@@ -340,10 +340,10 @@ def pile_table(heights: np.ndarray, grid: Grid, point_sigma_m: float, opts: Pile
     in_piles = float(sum(p["volume_m3"] for p in piles))
     total = float(h.sum() * a)
     return {
-        "method": f"connected regions (8-neighbour) of cells more than {thr:.3f} m above {over} "
+        "method": f"connected regions (8-neighbour) of cells more than {thr:.3f} m up "
                   f"({THRESHOLD_SIGMAS:g} x the point sigma {point_sigma_m:.3f} m, at least {MIN_THRESHOLD_M:g} m), "
                   f"at least {opts.min_area_m2:g} m² and {MIN_PILE_CELLS} cells, each with its toe: the cells within "
-                  f"{ring:.2f} m of it",
+                  f"{ring:.2f} m of it; measured over {over}",
         "threshold_m": thr,
         "toe_ring_m": ring,
         "min_area_m2": opts.min_area_m2,

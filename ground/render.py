@@ -280,10 +280,14 @@ def _fmt_log(v: Any) -> str:
 
 
 def headline(report: Mapping[str, Any]) -> str:
-    """'Stockpile volume: V (90 % interval a – b)' in the report's display unit, with m³ beside another unit."""
+    """'Stockpile volume: V (90 % interval a – b)' in the report's display unit, with m³ beside another unit; over
+    an earlier survey 'Change since the earlier survey: ...', over a fitted floor '... over the fitted floor: ...'."""
     from ground.piles import VolumeUnit
     v, iv = report.get("volume_m3"), report.get("volume_interval_m3")
-    text = f"Stockpile volume: {fmt_volume(v)}" + (
+    base = report.get("base") if isinstance(report.get("base"), Mapping) else {}
+    label = {"survey": "Change since the earlier survey", "fitted-floor": "Stockpile volume over the fitted floor"
+             }.get(str(base.get("kind")), "Stockpile volume")
+    text = f"{label}: {fmt_volume(v)}" + (
         "" if fmt_interval(iv) == UNKNOWN else f" (90 % interval {fmt_interval(iv)})")
     try:
         unit = VolumeUnit(report.get("volume_unit", VolumeUnit.M3.value))
@@ -291,10 +295,10 @@ def headline(report: Mapping[str, Any]) -> str:
         return text
     if unit is VolumeUnit.M3 or fmt_volume(v) == UNKNOWN:
         return text
-    shown = f"Stockpile volume: {unit.of_m3(float(v)):,.1f} {unit.symbol}"
+    shown = f"{label}: {unit.of_m3(float(v)):,.1f} {unit.symbol}"
     if fmt_interval(iv) != UNKNOWN:
         shown += f" (90 % interval {unit.of_m3(float(iv[0])):,.1f} – {unit.of_m3(float(iv[1])):,.1f} {unit.symbol})"
-    return f"{shown}; {text.removeprefix('Stockpile volume: ')}"
+    return f"{shown}; {text.removeprefix(label + ': ')}"
 
 
 def fmt_interval(v: Any) -> str:

@@ -1092,7 +1092,7 @@ def make_report(source: str | Path | Sequence[str | Path], out_dir: str | Path, 
 def _height_map_title(survey: Survey, volume_m3: float) -> str:
     """The height map shows heights above z = 0; over another base its volume is not the map's, so it says so."""
     from ground.render import signless_zero
-    v = f"{signless_zero(volume_m3, '.1f'):.1f} m³"
+    v = f"{signless_zero(volume_m3, '.1f'):,.1f} m³"
     base = survey.base
     if base is None or base.kind is BaseKind.FLOOR:
         return f"Fitted surface: {v}"

@@ -248,6 +248,17 @@ def test_that_the_headline_gives_the_volume_in_the_chosen_unit_and_in_cubic_metr
     assert headline({**rep, "volume_unit": "m3"}) == "Stockpile volume: 764.6 m³ (90 % interval 700.0 – 800.0 m³)"
 
 
+def test_that_the_headline_says_a_change_over_an_earlier_survey_and_the_base_of_a_fitted_floor():
+    # over an earlier survey the headline's number is the change: "Stockpile volume: 1,473.2 m³" read as the stock
+    from ground.render import headline
+    rep = {"volume_m3": 1473.2, "volume_interval_m3": [1400.0, 1550.0], "volume_unit": "m3"}
+    assert headline({**rep, "base": {"kind": "survey"}}).startswith("Change since the earlier survey: 1,473.2 m³")
+    assert headline({**rep, "base": {"kind": "fitted-floor"}}).startswith("Stockpile volume over the fitted floor:")
+    assert headline({**rep, "base": {"kind": "floor"}}).startswith("Stockpile volume: 1,473.2 m³")
+    yd = headline({**rep, "volume_unit": "yd3", "base": {"kind": "survey"}})
+    assert yd.startswith("Change since the earlier survey: 1,926.9 yd³") and "; 1,473.2 m³" in yd
+
+
 def test_that_the_method_paragraph_names_the_surface_fit_the_report_used():
     from ground.render import METHOD_TEXT, method_text
 
