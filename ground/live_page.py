@@ -189,6 +189,12 @@ PAGE = r"""<!doctype html>
   #legend canvas { width: 100%; height: 14px; display: block; border: 1px solid #999; }
   #legend .ends { display: flex; justify-content: space-between; font-size: 0.85em; color: #444; }
   .key { display: inline-block; width: 0.9em; height: 0.9em; vertical-align: -0.1em; border: 1px solid #888; }
+  @media (max-width: 44em) {  /* a phone: the panel under the map, both the screen's width */
+    header { flex-wrap: wrap; gap: 0.5em 1em; }
+    main { flex-direction: column; align-items: stretch; padding: 0.5em; }
+    #mapbox { min-width: 0; }
+    aside { flex: 0 0 auto; }
+  }
 </style>
 </head>
 <body>

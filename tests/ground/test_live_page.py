@@ -199,3 +199,20 @@ def test_that_a_listener_without_a_header_says_so_on_its_page():
         assert s["volume"]["state"] == "no-geometry"
     finally:
         ls.close()
+
+
+def test_that_on_a_phone_the_live_page_stacks_its_panel_under_the_map(tmp_path):
+    # side by side, the panel was cut off ("Volum", "R_a so") and the page 694 px wide on a 390 px screen
+    import re
+
+    from tools.report_screenshot import find_chromium, render
+    if find_chromium() is None:
+        pytest.skip("no Chromium installed (apt-get install chromium; .ci/run installs it)")
+    probe = ('<script>window.addEventListener("load", function () { var h = document.documentElement;'
+             ' h.setAttribute("data-page-width", String(h.scrollWidth));'
+             ' h.setAttribute("data-view-width", String(window.innerWidth)); });</script></body>')
+    page = tmp_path / "live.html"
+    page.write_text(PAGE.replace("</body>", probe))
+    dom = render(page, window_px=(390, 1200)).dom
+    width, view = (int(re.search(rf'data-{k}-width="(\d+)"', dom).group(1)) for k in ("page", "view"))
+    assert width <= view
