@@ -144,6 +144,11 @@ def threshold_m(point_sigma_m: float) -> float:
 _EIGHT = np.ones((3, 3), dtype=bool)
 
 
+def least_cells(grid: Grid, min_area_m2: float) -> int:
+    """A pile's least size in cells: min_area_m2 of them, and never fewer than MIN_PILE_CELLS."""
+    return max(MIN_PILE_CELLS, math.ceil(min_area_m2 / grid.cell_area_m2 - 1e-9))
+
+
 def segment(heights: np.ndarray, grid: Grid, threshold: float, min_area_m2: float) -> np.ndarray:
     """(nx, ny) int labels: 0 no pile, 1..n the piles in decreasing volume. NaN heights are no material."""
     h = np.nan_to_num(np.asarray(heights, dtype=float), nan=0.0)
@@ -152,7 +157,7 @@ def segment(heights: np.ndarray, grid: Grid, threshold: float, min_area_m2: floa
         return labels
     idx = np.arange(1, n + 1)
     cells = ndimage.sum(np.ones_like(h), labels, idx)
-    least = max(MIN_PILE_CELLS, math.ceil(min_area_m2 / grid.cell_area_m2 - 1e-9))
+    least = least_cells(grid, min_area_m2)
     volume = ndimage.sum(h, labels, idx)
     keep = [int(i) for i in idx[np.argsort(-volume, kind="stable")] if cells[i - 1] >= least]
     out = np.zeros_like(labels)
@@ -206,10 +211,11 @@ class Assignment:
 
 
 def assign(labels: np.ndarray, heights: np.ndarray, grid: Grid, entries: Sequence[PileEntry],
-           relief_m: float = 0.0) -> Assignment:
+           relief_m: float = 0.0, least_n: int = 1) -> Assignment:
     """Match configuration entries to the piles by their points; split a pile two entries share. relief_m: how far
     a part's summit must rise above its pass to another part to be a pile of its own (below it the split is
-    warned: it follows no valley)."""
+    warned: it follows no valley). least_n: a pile's least size in cells (`least_cells`); an entry whose part of a split
+    would be smaller is not a pile of its own (warned, not reported), and its cells go to the other parts."""
     n = int(labels.max()) if labels.size else 0
     by_pile: dict[int, list[tuple[PileEntry, tuple[int, int]]]] = {}
     warnings = []
@@ -230,6 +236,22 @@ def assign(labels: np.ndarray, heights: np.ndarray, grid: Grid, entries: Sequenc
             named.append(mine[0][0] if mine else None)
             continue
         parts = split_at_valleys(labels == k, heights, [c for _, c in mine])
+        while len(mine) > 1:  # a part smaller than a pile (a point on the flank, off its own heap) is no pile
+            sizes = [int((parts == i).sum()) for i in range(1, len(mine) + 1)]
+            small = [i for i, n_cells in enumerate(sizes) if 0 < n_cells < least_n]
+            if not small:
+                break
+            i = min(small, key=lambda j: sizes[j])
+            e = mine[i][0]
+            warnings.append(f"configured pile {e.name!r} would take only {sizes[i] * grid.cell_area_m2:.1f} m² of the "
+                            "pile it shares, less than a pile's least size: not reported (its point is on another "
+                            "pile's flank; move it onto its own heap)")
+            mine = mine[:i] + mine[i + 1:]
+            parts = split_at_valleys(labels == k, heights, [c for _, c in mine])
+        if len(mine) == 1:
+            out[labels == k] = len(named) + 1
+            named.append(mine[0][0])
+            continue
         for i, (e, _) in enumerate(mine, start=1):
             if not (parts == i).any():  # its point's cell was another entry's seed
                 first = next(o for o, c in mine if c == mine[i - 1][1])
@@ -273,7 +295,8 @@ def find_piles(heights: np.ndarray, grid: Grid, point_sigma_m: float, opts: Pile
     """The piles on the height grid (module docstring): segmented, named from the configuration, each with its toe.
     The pile table's cells, and the outlines the site map draws (the same call, the same cells)."""
     thr = threshold_m(point_sigma_m)
-    found = assign(segment(heights, grid, thr, opts.min_area_m2), heights, grid, opts.entries, thr)
+    found = assign(segment(heights, grid, thr, opts.min_area_m2), heights, grid, opts.entries, thr,
+                   least_cells(grid, opts.min_area_m2))
     return Assignment(with_toes(found.labels, grid, toe_ring_m(thr, grid)), found.entries, found.warnings)
 
 

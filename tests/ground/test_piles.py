@@ -99,6 +99,18 @@ def test_that_two_names_on_one_cone_are_warned_and_two_in_one_cell_report_the_fi
     assert not any("split between them" in w for w in same["warnings"])
 
 
+def test_that_a_named_point_whose_part_of_a_split_is_smaller_than_a_pile_is_not_a_pile():
+    # a point near a cone's toe took 0.1 m² of it: listed as a pile of 0.5 yd³ under "at least 1 m² and 4 cells"
+    z = cone(10, 10, 4.0, 6.0)
+    t = table(z, PileOptions(entries=(PileEntry("top", 10.0, 10.0), PileEntry("toe", 15.5, 10.0))))
+    assert [p["label"] for p in t["piles"]] == ["top"]
+    assert t["piles"][0]["volume_m3"] == pytest.approx(grid_volume(z))  # its cells stay with the pile they are on
+    assert any("'toe' would take only 0.1 m²" in w and "not reported" in w for w in t["warnings"])
+    assert not any("split between them" in w for w in t["warnings"])
+    big = table(z, PileOptions(entries=(PileEntry("top", 10.0, 10.0), PileEntry("toe", 13.0, 10.0))))
+    assert [p["label"] for p in big["piles"]] == ["top", "toe"]  # a part of a pile's size is still split off
+
+
 def test_that_noise_level_specks_are_not_piles():
     rng = np.random.default_rng(3)
     floor = rng.normal(0.0, SIGMA_M, GRID.shape)  # 12,800 cells: ~17 pass 3 sigma, alone
