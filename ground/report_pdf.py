@@ -1,8 +1,8 @@
 """report.pdf: the page of report.html as A4 pages, composed with matplotlib (no browser needed).
 
 Built from the same `ReportContent` as report.md and report.html, in the same order, so the three cannot
-disagree on a number: the title block, the volume and verdict, the piles, the map, 3D view and sections,
-the warnings, then the engineer's details. The figures are the PNGs the report already wrote, placed
+disagree on a number: the title block, the volume and verdict, the piles, the warnings, the map, 3D view and
+sections, then the engineer's details. The figures are the PNGs the report already wrote, placed
 unresampled (no second rendering). Text is real text, searchable and read back in tests with pypdf
 (`pdf_fonts`: the standard Helvetica when it can hold every character, else embedded TrueType).
 
