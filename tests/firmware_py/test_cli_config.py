@@ -350,13 +350,16 @@ def test_that_check_writes_the_header_a_flight_would_start_its_log_with_for_list
     # (tests/ground/test_listen.py reads such a file with listen's own load_header; the payload's tests stay
     # within what a payload-only install has)
     import json
+    rig = write(tmp_path, "[site]\nlength_m = 60.0\nwidth_m = 40.0\nheight_m = 15.0\n"
+                          "[payload]\nlever_arm_m = [0.0, 0.0, 0.1]\n")
     out = tmp_path / "setup.json"
-    rc = main(["--config", str(EXAMPLE), "--out", str(tmp_path / "f.pslog"), "--check", "--write-header", str(out)])
+    rc = main(["--config", str(rig), "--out", str(tmp_path / "f.pslog"), "--check", "--write-header", str(out)])
     assert rc == 0
     header = json.loads(out.read_text())
     assert all(k in header for k in ("storage", "storage_frame", "lever_arm_body_m", "sensor"))
     assert header["storage"] == {"length_m": 60.0, "width_m": 40.0, "height_m": 15.0}
     assert header["lever_arm_body_m"] == [0.0, 0.0, 0.1]
     capsys.readouterr()
-    assert main(["--config", str(EXAMPLE), "--write-header", str(tmp_path / "x.json")]) == ExitCode.USAGE
+    assert main(["--config", str(rig), "--out", str(tmp_path / "f.pslog"), "--write-header",
+                 str(tmp_path / "x.json")]) == ExitCode.USAGE
     assert "goes with --check" in capsys.readouterr().err and not (tmp_path / "x.json").exists()
