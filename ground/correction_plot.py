@@ -101,6 +101,9 @@ def correction_figure(series: CorrectionSeries, title: str = "Trajectory correct
     top.set_title(title)
     _shade(bottom, series.free_heading_s)
     bottom.plot(t, series.heading_deg, color="tab:purple", linewidth=1.2)
+    if series.free_heading_s:  # its own key: shaded here means the heading, not the height, was left free
+        bottom.legend(handles=[Patch(color=UNCONSTRAINED_COLOUR, label="heading not set by the walls (interpolated)")],
+                      fontsize="small", loc="best", framealpha=0.85)
     bottom.axhline(0.0, color="0.4", linewidth=0.6)
     bottom.set_ylabel("heading change [deg]")
     bottom.set_xlabel("time [s] (the sample log's clock)")

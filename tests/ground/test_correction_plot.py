@@ -59,6 +59,16 @@ def test_that_the_figure_shows_position_and_heading_the_lift_dashed_and_the_free
     assert len(dashed) == 1 and max(dashed[0].get_ydata()) == pytest.approx(0.5)
     assert len(top.patches) == 1  # the one stretch the floor did not set
     assert "heading" in bottom.get_ylabel() and "[deg]" in bottom.get_ylabel()
+    assert bottom.get_legend() is None  # no heading was left free here: nothing shaded, no key
+
+
+def test_that_a_heading_left_free_is_shaded_with_its_own_key():
+    # the heading panel's shading had no key: only the caption said what it meant
+    pose = _pose()
+    pose.constrained[1:3, 3] = False  # the heading between 10 s and 20 s too
+    fig = correction_figure(correction_series(pose, None))
+    _, bottom = fig.axes
+    assert [t.get_text() for t in bottom.get_legend().get_texts()] == ["heading not set by the walls (interpolated)"]
 
 
 def test_that_a_report_writes_the_figure_only_when_it_corrected_the_trajectory(tmp_path):
