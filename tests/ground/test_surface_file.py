@@ -2,7 +2,6 @@
 checked by the shared `firmware_py.core.surface_file.meta_number`, with the same bounds on the building and the
 cell as the coverage planner's reader (tests/sitl/missions/test_surveyed_surface.py), and refused as one line."""
 
-import json
 
 import numpy as np
 import pytest
@@ -11,6 +10,7 @@ from firmware_py.core.cli import ExitCode, UserError
 from ground.cli import main
 from ground.surface import Grid
 from ground.surface_file import SavedSurface, load_surface, save_surface
+from tests.firmware_py.core.test_surface_file import BUILDING_OR_CELL_CASES, edit_meta
 
 GRID = Grid(30.0, 20.0, 0.5)
 
@@ -19,29 +19,10 @@ def _saved(path):
     return save_surface(SavedSurface(np.ones(GRID.shape), 30.0, 20.0, 10.0, 0.5, 600.0, 5.0, 7.0, 0.02), path)
 
 
-def _edit_meta(path, key, value):
-    """The surface file at path with its metadata field key set to value (removed for None), as damage or a hand
-    edit would leave it."""
-    with np.load(path) as z:
-        arrays = {k: z[k] for k in z.files}
-    meta = json.loads(str(arrays["meta"]))
-    if value is None:
-        del meta[key]
-    else:
-        meta[key] = value
-    np.savez(path, **{**arrays, "meta": np.array(json.dumps(meta))})
-    return path
-
-
 @pytest.mark.parametrize("key, value, message", [
-    # the building and the cell: the same bounds as the planner's reader
-    ("length_m", float("nan"), r"length_m must be a finite number >= 0\.001, got nan"),
-    ("width_m", None, r"width_m must be a finite number >= 0\.001, got None"),  # missing
-    ("height_m", "10", r"height_m must be a finite number >= 0\.001, got '10'"),
-    ("height_m", True, r"height_m must be a finite number >= 0\.001, got True"),
-    ("length_m", 0.0, r"length_m must be a finite number >= 0\.001, got 0\.0"),
-    ("cell_m", 0.005, r"cell_m must be a finite number >= 0\.01, got 0\.005"),  # was the grid's "cell size"
-    ("cell_m", 10 ** 400, r"cell_m must be a finite number >= 0\.01, got 1000"),  # OverflowError before
+    # the building and the cell: the same bounds as the planner's reader (a sub-centimetre cell was the grid's
+    # "cell size" error here)
+    *BUILDING_OR_CELL_CASES,
     # the volume, its interval and the scatter: bounded by the building
     ("volume_m3", float("inf"), r"volume_m3 must be a finite number within -300 to 6300, got inf"),
     ("below_m3", None, r"below_m3 must be a finite number within 0 to 6300, got None"),
@@ -50,7 +31,7 @@ def _edit_meta(path, key, value):
     ("scatter_sigma_m", 11.0, r"scatter_sigma_m must be a finite number within 0 to 10, got 11\.0"),
 ])
 def test_that_a_surface_file_whose_numbers_are_not_usable_is_one_clear_error(tmp_path, key, value, message):
-    p = _edit_meta(_saved(tmp_path / "surface.npz"), key, value)
+    p = edit_meta(_saved(tmp_path / "surface.npz"), key, value)
     with pytest.raises(UserError, match=message) as e:
         load_surface(p)
     assert "\n" not in str(e.value) and str(e.value).startswith(f"{p}: surface file field {key} ")
@@ -67,7 +48,7 @@ def test_that_compare_refuses_a_surface_file_whose_building_is_no_number_with_on
         (tmp_path / name).mkdir()
         _saved(tmp_path / name / "surface.npz")
         (tmp_path / name / "report.json").write_text("{}")
-    _edit_meta(tmp_path / "new" / "surface.npz", "length_m", float("nan"))
+    edit_meta(tmp_path / "new" / "surface.npz", "length_m", float("nan"))
     code = main(["compare", str(tmp_path / "old"), str(tmp_path / "new"), "--out", str(tmp_path / "cmp")])
     err = capsys.readouterr().err
     assert code == ExitCode.USAGE, err

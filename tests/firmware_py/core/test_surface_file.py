@@ -18,6 +18,32 @@ def _write(path, version, fitted=None, shape=(4, 3)):
     return path
 
 
+def edit_meta(path, key, value):
+    """The surface file at path with its metadata field key set to value (removed for None), as damage or a hand
+    edit would leave it (both readers' tests damage files so)."""
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays["meta"]))
+    if value is None:
+        del meta[key]
+    else:
+        meta[key] = value
+    np.savez(path, **{**arrays, "meta": np.array(json.dumps(meta))})
+    return path
+
+
+BUILDING_OR_CELL_CASES = [
+    ("length_m", float("nan"), r"length_m must be a finite number >= 0\.001, got nan"),
+    ("width_m", None, r"width_m must be a finite number >= 0\.001, got None"),  # missing
+    ("height_m", "10", r"height_m must be a finite number >= 0\.001, got '10'"),
+    ("height_m", True, r"height_m must be a finite number >= 0\.001, got True"),
+    ("length_m", 0.0, r"length_m must be a finite number >= 0\.001, got 0\.0"),
+    ("cell_m", 0.005, r"cell_m must be a finite number >= 0\.01, got 0\.005"),
+    ("cell_m", 10 ** 400, r"cell_m must be a finite number >= 0\.01, got 1000"),  # OverflowError before
+]
+"""A building or a cell that is no usable number, and the line both readers refuse it with (the same bounds)."""
+
+
 def test_that_version_2_carries_the_fitted_mask_and_version_1_reads_without_it(tmp_path):
     mask = np.array([[True, False, True]] * 4)
     raw = read_surface_file(_write(tmp_path / "v2.npz", 2, mask))

@@ -1,6 +1,5 @@
 """An earlier survey's surface for the coverage planner: read without the ground station, beams stop at it."""
 
-import json
 import math
 
 import numpy as np
@@ -15,6 +14,7 @@ from sitl.cli import main
 from sitl.missions.coverage import LoopPlan, predict_coverage
 from sitl.missions.range_check import RangeLimit
 from sitl.missions.surveyed_surface import HeightField, first_hits_w, load_height_field
+from tests.firmware_py.core.test_surface_file import BUILDING_OR_CELL_CASES, edit_meta
 
 SMALL = Storage(30.0, 20.0, 10.0)
 WF = named_waveform("semi-triangular", 5.0, 0)
@@ -98,31 +98,10 @@ def test_that_a_surface_file_with_cells_finer_than_a_grid_can_hold_is_one_line(t
         load_height_field(d, SMALL)
 
 
-def _edit_meta(path, key, value):
-    """The surface file at path with its metadata field key set to value (removed for None), as damage or a hand
-    edit would leave it."""
-    with np.load(path) as z:
-        arrays = {k: z[k] for k in z.files}
-    meta = json.loads(str(arrays["meta"]))
-    if value is None:
-        del meta[key]
-    else:
-        meta[key] = value
-    np.savez(path, **{**arrays, "meta": np.array(json.dumps(meta))})
-
-
-@pytest.mark.parametrize("key, value, message", [
-    ("length_m", float("nan"), r"length_m must be a finite number >= 0\.001, got nan"),
-    ("width_m", None, r"width_m must be a finite number >= 0\.001, got None"),  # missing
-    ("height_m", "10", r"height_m must be a finite number >= 0\.001, got '10'"),
-    ("height_m", True, r"height_m must be a finite number >= 0\.001, got True"),
-    ("length_m", 0.0, r"length_m must be a finite number >= 0\.001, got 0\.0"),
-    ("cell_m", 0.005, r"cell_m must be a finite number >= 0\.01, got 0\.005"),
-    ("cell_m", 10 ** 400, r"cell_m must be a finite number >= 0\.01, got 1000"),  # OverflowError before
-])
+@pytest.mark.parametrize("key, value, message", BUILDING_OR_CELL_CASES)
 def test_that_a_surface_file_whose_building_or_cell_is_no_usable_number_is_one_line(tmp_path, key, value, message):
     d = _report(tmp_path, np.zeros((60, 40)))
-    _edit_meta(d / "surface.npz", key, value)
+    edit_meta(d / "surface.npz", key, value)
     with pytest.raises(ValueError, match=message) as e:
         load_height_field(d, SMALL)
     assert "\n" not in str(e.value) and str(e.value).startswith(f"{d / 'surface.npz'}: surface file field {key} ")
@@ -143,7 +122,7 @@ def test_that_plan_refuses_a_bad_surface_with_one_line(tmp_path, capsys):
 
 def test_that_plan_refuses_a_surface_whose_cell_is_no_number_with_one_line(tmp_path, capsys):
     d = _report(tmp_path, np.zeros((60, 40)))
-    _edit_meta(d / "surface.npz", "cell_m", "half a metre")
+    edit_meta(d / "surface.npz", "cell_m", "half a metre")
     assert main(["plan", "--coverage", "95", "--surface", str(d), "--storage", "30x20x10", "--altitude", "6",
                  "--out", str(tmp_path / "p.waypoints")]) != 0
     err = capsys.readouterr().err
