@@ -4,6 +4,7 @@ SENSOR_ERROR samples: readings taken while the part reloads after an automatic r
 
 from __future__ import annotations
 
+import contextlib
 import io
 import re
 import threading
@@ -29,18 +30,27 @@ class WallSimClock(MonotonicClock):
         pass
 
 
+@contextlib.contextmanager
+def emulated_rig(i2c_url: str, pwm_scheme: str, range_m: float):
+    """A LIDAR-Lite ranging range_m on the I2C URL i2c_url and the servo on pwm:<pwm_scheme>, unregistered after."""
+    clock = WallSimClock()
+    bus = SimI2CBus(clock)
+    bus.attach(0x62, EmulatedLidarLite(clock, lambda _t_ns: range_m))
+    register_sim_bus(bus, i2c_url)
+    pwm_backends.register_pwm_backend(pwm_scheme, lambda _url: EmulatedServo(clock))
+    try:
+        yield
+    finally:
+        unregister_i2c_backend(i2c_url)
+        pwm_backends.unregister_pwm_backend(pwm_scheme)
+
+
 @pytest.fixture
 def stuck_at_zero():
     """A LIDAR-Lite stuck reading 0 cm (PX4's known state: the driver resets it every 20 readings),
     and the servo."""
-    clock = WallSimClock()
-    bus = SimI2CBus(clock)
-    bus.attach(0x62, EmulatedLidarLite(clock, lambda _t_ns: 0.004))
-    register_sim_bus(bus, "stuck")
-    pwm_backends.register_pwm_backend("emustatus", lambda _url: EmulatedServo(clock))
-    yield
-    unregister_i2c_backend("stuck")
-    pwm_backends.unregister_pwm_backend("emustatus")
+    with emulated_rig("stuck", "emustatus", 0.004):
+        yield
 
 
 def test_that_the_stop_line_counts_the_sensor_error_samples_the_log_holds_resets_included(tmp_path,
@@ -74,14 +84,8 @@ def test_that_the_stop_line_counts_the_sensor_error_samples_the_log_holds_resets
 @pytest.fixture
 def rig_without_an_autopilot():
     """A LIDAR-Lite ranging 5 m and the servo; nothing answers on the MAVLink URL."""
-    clock = WallSimClock()
-    bus = SimI2CBus(clock)
-    bus.attach(0x62, EmulatedLidarLite(clock, lambda _t_ns: 5.0))
-    register_sim_bus(bus, "alone")
-    pwm_backends.register_pwm_backend("emualone", lambda _url: EmulatedServo(clock))
-    yield
-    unregister_i2c_backend("alone")
-    pwm_backends.unregister_pwm_backend("emualone")
+    with emulated_rig("alone", "emualone", 5.0):
+        yield
 
 
 def test_that_the_status_line_says_whole_that_the_autopilot_is_not_heard_naming_the_link(tmp_path,
