@@ -11,7 +11,7 @@ import numpy as np
 
 from ground.base import FLOOR_BASE, Base, BaseKind
 from ground.metadata import SurveyInfo, limiting_terms, remedies, survey_metadata, verdict
-from ground.piles import PileOptions, pile_table
+from ground.piles import PileOptions, find_piles, pile_table
 from ground.surface import Grid
 from ground.uncertainty import DEFAULT_INTERVAL_MODEL, ErrorTerms, SurveyErrors
 from ground.volume_warnings import regions
@@ -20,16 +20,19 @@ from ground.volume_warnings import regions
 def add_deliverable(report: dict[str, Any], *, header: dict, log_path: Path, t_s: np.ndarray | None,
                     info: SurveyInfo, piles: PileOptions, heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
                     errors: SurveyErrors | None,
-                    errors_in: Callable[[np.ndarray], SurveyErrors] | None, base: Base | None = None) -> None:
+                    errors_in: Callable[[np.ndarray], SurveyErrors] | None, base: Base | None = None) -> np.ndarray:
     """report["metadata"], report["piles"], report["verdict"] (and their warnings) and what would narrow the
     interval (report["to_narrow_interval"]), in place. The piles are measured over the survey's base
-    (`Base.pile_heights`), their intervals with its own error."""
+    (`Base.pile_heights`), their intervals with its own error. Returns the piles' cells (`Assignment.labels`),
+    which the site map outlines."""
     meta, warnings = survey_metadata(header, info, log_path, t_s)
     report["metadata"] = meta
     sigma = errors.point_sigma_m if errors is not None else 0.0
     base = base or FLOOR_BASE
-    table = pile_table(base.pile_heights(heights), grid, sigma, piles, errors_in, over=base.piles_over,
-                       extra_over=None if base.kind is BaseKind.SURVEY else base.extra_over)
+    above = base.pile_heights(heights)
+    found = find_piles(above, grid, sigma, piles)
+    table = pile_table(above, grid, sigma, piles, errors_in, over=base.piles_over,
+                       extra_over=None if base.kind is BaseKind.SURVEY else base.extra_over, found=found)
     report["piles"] = table
     report["warnings"] = [*report.get("warnings", []), *warnings, *table["warnings"]]
     report["volume_unit"] = piles.volume_unit.value
@@ -41,6 +44,7 @@ def add_deliverable(report: dict[str, Any], *, header: dict, log_path: Path, t_s
     limits = [] if terms is None else limiting_terms(ErrorTerms(**terms), DEFAULT_INTERVAL_MODEL, own)
     report["verdict"] = _verdict(report, limits, heights_fit, heights, grid, piles)
     report["to_narrow_interval"] = remedies(limits)
+    return found.labels
 
 
 def _verdict(report: dict[str, Any], limits: list[str], heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,

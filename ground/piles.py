@@ -303,15 +303,17 @@ def find_piles(heights: np.ndarray, grid: Grid, point_sigma_m: float, opts: Pile
 def pile_table(heights: np.ndarray, grid: Grid, point_sigma_m: float, opts: PileOptions,
                errors_in: Callable[[np.ndarray], SurveyErrors] | None,
                model: IntervalModel = DEFAULT_INTERVAL_MODEL, *, over: str = "the floor z = 0",
-               extra_over: Callable[[np.ndarray], float] | None = None) -> dict[str, Any]:
+               extra_over: Callable[[np.ndarray], float] | None = None,
+               found: Assignment | None = None) -> dict[str, Any]:
     """The report's ``piles`` record: how they were found, each pile, and what lies outside them.
 
     heights: above the base the piles are measured over (`over` names it); errors_in: the survey's error terms
     over a cell mask (None: no intervals); extra_over: the base's own 90 % half-width over a mask (a fitted
-    floor's), added to each pile's interval in quadrature as the survey's interval adds it."""
+    floor's), added to each pile's interval in quadrature as the survey's interval adds it. found: the piles
+    `find_piles` found on these heights (None: found here)."""
     thr = threshold_m(point_sigma_m)
     ring = toe_ring_m(thr, grid)
-    found = find_piles(heights, grid, point_sigma_m, opts)
+    found = found if found is not None else find_piles(heights, grid, point_sigma_m, opts)
     h = np.nan_to_num(np.asarray(heights, float), nan=0.0)
     a = grid.cell_area_m2
     cx, cy = grid.length_m / grid.shape[0], grid.width_m / grid.shape[1]

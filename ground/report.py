@@ -1061,9 +1061,9 @@ def make_report(source: str | Path | Sequence[str | Path], out_dir: str | Path, 
     report = summarise(survey, log, opts, truth, flights if merged else None)
     report["source"] = " + ".join(map(str, sources))
     t_s = log.samples["t_s"] if merged else in_time(log.samples["t_s"])  # merged: each flight's own, below
-    add_deliverable(report, header=header, log_path=log_path, t_s=t_s, info=opts.info, piles=opts.piles,
-                    heights_fit=survey.heights_fit, heights=survey.heights, grid=survey.grid, errors=survey.errors,
-                    errors_in=survey.errors_in, base=survey.base)
+    pile_labels = add_deliverable(report, header=header, log_path=log_path, t_s=t_s, info=opts.info,
+                                  piles=opts.piles, heights_fit=survey.heights_fit, heights=survey.heights,
+                                  grid=survey.grid, errors=survey.errors, errors_in=survey.errors_in, base=survey.base)
     if merged:
         merged_metadata(report, flights)
     if not np.isfinite(survey.heights_fit).any():
@@ -1074,7 +1074,7 @@ def make_report(source: str | Path | Sequence[str | Path], out_dir: str | Path, 
     from ground.render import write_html, write_markdown
     from ground.report_pdf import write_pdf
     with OutputFolder(out, REPORT_FILES, REPORT_FILE, force=force, what="report") as folder:
-        images = write_outputs(survey, report, folder.staging, opts.plots, opts.piles)
+        images = write_outputs(survey, report, folder.staging, opts.plots, pile_labels)
         save_surface(saved_surface(survey, header, opts, report["source"]), folder.staged(SURFACE_FILE))
         write_piles_csv(report["piles"], folder.staged(PILES_CSV))
         written = write_exports(survey, header, opts.exports, folder.staging)
@@ -1101,7 +1101,7 @@ def _height_map_title(survey: Survey, volume_m3: float) -> str:
 
 
 def write_outputs(survey: Survey, report: dict, out: Path, plots: bool,
-                  piles: PileOptions | None = None) -> dict[str, Path]:
+                  pile_labels: np.ndarray | None = None) -> dict[str, Path]:
     """Point cloud and (optionally) the three figures."""
     from ground.render import write_ply
     write_ply(survey.pile_points_w, out / "cloud.ply")
@@ -1123,7 +1123,7 @@ def write_outputs(survey: Survey, report: dict, out: Path, plots: bool,
         "coverage": p.plot_coverage(survey.grid.x_edges, survey.grid.y_edges, survey.counts,
                                     np.isfinite(survey.heights_fit), lw, out / "coverage.png",
                                     title=f"Coverage (R_a = {ra:.1f} %)"),
-        **page_figures(survey, report, out, path, piles),
+        **page_figures(survey, report, out, path, pile_labels),
         **correction_figures(survey, out),
     }
 
@@ -1136,25 +1136,21 @@ def correction_figures(survey: Survey, out: Path) -> dict[str, Path]:
 
 
 def page_figures(survey: Survey, report: dict, out: Path, path_w: np.ndarray,
-                 piles: PileOptions | None = None) -> dict[str, Path]:
-    """The customer's figures (ground.page_figures): the labelled map (with the piles' outlines: the cells the pile
-    table sums, found again by the same call), the 3D view and the cross-sections."""
+                 pile_labels: np.ndarray | None = None) -> dict[str, Path]:
+    """The customer's figures (ground.page_figures): the labelled map (with the piles' outlines: pile_labels, the
+    cells the pile table sums), the 3D view and the cross-sections."""
     from ground import page_figures as f
-    from ground.piles import VolumeUnit, find_piles
+    from ground.piles import VolumeUnit
     g, lw = survey.grid, (survey.storage.length_m, survey.storage.width_m)
     site = report.get("site") or {}
     heading = site.get("heading_deg") if isinstance(site, dict) else None
     vu = VolumeUnit(report.get("volume_unit", VolumeUnit.M3.value))
     base = survey.base.heights_m if survey.base is not None else None
     filled = ~np.isfinite(survey.heights_fit)  # what the empty-cell policy put where no surface reached
-    labels = None
-    if piles is not None and survey.errors is not None:
-        labels = find_piles((survey.base or FLOOR_BASE).pile_heights(survey.heights), g, survey.errors.point_sigma_m,
-                            piles).labels
     return {
         f.SITE_MAP: f.plot_site_map(out / f"{f.SITE_MAP}.png", g.x_edges, g.y_edges, survey.heights, lw,
                                     report.get("piles"), heading, path_w, vu.symbol, vu.m3_per_unit, filled=filled,
-                                    pile_labels=labels),
+                                    pile_labels=pile_labels),
         f.SURFACE_3D: f.plot_surface_3d(out / f"{f.SURFACE_3D}.png", g.x_edges, g.y_edges, survey.heights, lw),
         f.SECTIONS: f.plot_sections(out / f"{f.SECTIONS}.png", g.x_edges, g.y_edges, survey.heights, lw,
                                     survey.pile_points_w, base, report.get("piles"), filled=filled),
