@@ -336,9 +336,20 @@ def fitted_floor_base(points_w: np.ndarray, sigma_m: np.ndarray, heights: np.nda
     plane = fit_floor_plane(points_w, sigma_m, grid, n_sigma, max_tilt_deg)
     cx, cy = grid.centres()
     b = plane.at(cx, cy)
-    where = np.isfinite(heights)
-    sigma_v = plane.volume_sigma_m3(grid, where)
-    systematic = abs(plane.median_shift_m) * float(where.sum()) * grid.cell_area_m2
+    surfaced = np.isfinite(heights)
+
+    def errors_over(mask: np.ndarray) -> tuple[float, float]:
+        """The plane's 1-sigma statistical volume error and its systematic (median shift) over the surfaced cells
+        of mask: the whole survey's, or one pile's (`Base.extra_over`)."""
+        where = surfaced & mask
+        return (plane.volume_sigma_m3(grid, where),
+                abs(plane.median_shift_m) * float(where.sum()) * grid.cell_area_m2)
+
+    def extra_over(mask: np.ndarray) -> float:
+        sigma, shift = errors_over(mask)
+        return math.hypot(Z_INTERVAL * sigma, shift)
+
+    sigma_v, systematic = errors_over(surfaced)
     extra = math.hypot(Z_INTERVAL * sigma_v, systematic)
     warnings = []
     noise = Z_INTERVAL * math.sqrt(max(0.0, float(plane.covariance[0, 0])))
@@ -379,13 +390,6 @@ def fitted_floor_base(points_w: np.ndarray, sigma_m: np.ndarray, heights: np.nda
                "median_shift_m": plane.median_shift_m, "volume_sigma_m3": sigma_v, "systematic_m3": systematic,
                "max_tilt_deg": max_tilt_deg, "n_below_floor": under.count,
                "expected_below_floor": under.expected, "below_floor_p_value": under.p_value}
-    cells = np.isfinite(heights)
-
-    def extra_over(mask: np.ndarray) -> float:
-        where = cells & mask
-        return math.hypot(Z_INTERVAL * plane.volume_sigma_m3(grid, where),
-                          abs(plane.median_shift_m) * float(where.sum()) * grid.cell_area_m2)
-
     return Base(BaseKind.FITTED_FLOOR, desc, b, extra, extra, True, details, tuple(warnings), extra_over)
 
 
