@@ -59,7 +59,7 @@ class PipeTransport:
         self._peer = None
 
 
-def _parse_udp_url(url: str) -> tuple[str, str, int]:
+def parse_udp_url(url: str) -> tuple[str, str, int]:
     kind, sep, rest = url.partition(":")
     host, sep2, port_s = rest.rpartition(":")
     if not sep or not sep2 or kind not in ("udp", "udpin", "udpout") or not host:
@@ -92,7 +92,7 @@ class UdpTransport:
 
     def __init__(self, address: str, peer_timeout_s: float = 10.0, max_peers: int = 8,
                  clock: Callable[[], float] = time.monotonic) -> None:
-        kind, host, port = _parse_udp_url(address)
+        kind, host, port = parse_udp_url(address)
         if not (math.isfinite(peer_timeout_s) and peer_timeout_s > 0):
             raise ValueError(f"peer timeout must be > 0 s, got {peer_timeout_s!r}")
         if isinstance(max_peers, bool) or not isinstance(max_peers, int) or max_peers < 1:

@@ -57,7 +57,7 @@ from sitl.devices.bridge_server import parse_bridge_url
 from sitl.devices.networked import SERVO_CHANNEL, NetworkedDevices, NetworkedFaults, check_networked_faults
 from sitl.faults.injector import PAIRS, FaultSpec
 from sitl.mavlink.server import LinkLimits, MavlinkVehicleServer, run_realtime
-from sitl.mavlink.transport import make_transport
+from sitl.mavlink.transport import make_transport, parse_udp_url
 from sitl.missions.qgc_wpl import write_qgc_wpl
 from sitl.missions.range_check import RangeLimit, check_range
 from sitl.missions.rectangle import Mission
@@ -262,13 +262,6 @@ def _client_host(host: str) -> str:
     return f"[{host}]" if ":" in host else host
 
 
-def _host_port(url: str) -> tuple[str, int]:
-    """'scheme:HOST:PORT' (HOST may be [v6]) -> (host, port), brackets kept."""
-    rest = url.partition(":")[2]
-    host, _, port = rest.rpartition(":")
-    return host, int(port)
-
-
 def _num(v: float) -> str:
     """A number as short as it reads back exactly ('30', '12.5')."""
     short = f"{v:g}"
@@ -283,15 +276,14 @@ def payload_command(opts: ServeOptions, *, mavlink_at: tuple[str, int] | None, d
     the building (`--storage`), the site when not the default (`--origin`, `--heading`), the key file
     (`--signing-key`), the sample log in the run directory (`--out`) and `--stop-on-disarm` (one log per flight).
     The payload has no --altitude: the flight height is the plan's, which the ground station uploads."""
-    scheme = opts.url.partition(":")[0]
-    host, port = _host_port(opts.url)
-    if scheme in ("udp", "udpin"):  # serve listens: the payload is a client of where it listens
+    kind, host, port = parse_udp_url(opts.url)
+    if kind == "udpin":  # serve listens (udp:, udpin:): the payload is a client of where it listens
         if mavlink_at is not None:
             host, port = mavlink_at
         mavlink = f"udpout:{_client_host(host)}:{port}"
     else:  # udpout: serve sends to a fixed address, where the payload listens
         mavlink = f"udp:{host}:{port}"
-    dev_host, dev_port = _host_port(devices_url)
+    dev_host, dev_port = parse_bridge_url(devices_url)
     dev_host = _client_host(dev_host)
     bridge = f"tcp:{dev_host}:{dev_port}"
     argv = ["pilescan-payload", "--mavlink", mavlink]

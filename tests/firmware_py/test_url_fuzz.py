@@ -105,7 +105,7 @@ def no_hardware():
         mp.setattr(ml, "MAVLINK_BACKENDS", ml.MAVLINK_BACKENDS.builtins_only())
         mp.setattr(ml, "PymavlinkLink", lambda url, *_a, **_k: Opened("pymavlink", *ml.mavutil_device(url)))
         if SIM:
-            mp.setattr(mv, "UdpTransport", lambda url: Opened("udp", *mv._parse_udp_url(url)))
+            mp.setattr(mv, "UdpTransport", lambda url: Opened("udp", *mv.parse_udp_url(url)))
         yield
 
 
@@ -239,7 +239,7 @@ def test_that_open_mavlink_opens_only_well_formed_urls(no_hardware, url):
 @FUZZ
 @given(url=urls)
 def test_that_the_sitl_autopilot_transport_urls_parse_or_fail_in_one_line(no_hardware, url):
-    got = parsed_or_value_error(mv._parse_udp_url, url)
+    got = parsed_or_value_error(mv.parse_udp_url, url)
     if got is not None:
         kind, host, port = got
         assert kind in ("udpin", "udpout") and host
