@@ -49,6 +49,7 @@ from firmware_py.core.config_file import SECTIONS, ConfigError, parse_config, to
 from firmware_py.core.frames import Boresight, StorageFrame
 from firmware_py.core.geodesy import GeodeticPoint
 from firmware_py.core.keys import load_key
+from firmware_py.core.rundir import publish_file
 from firmware_py.core.sensor import Rangefinder
 from firmware_py.core.servo_model import ServoCalibration
 from firmware_py.core.site import Site, add_site_options
@@ -422,11 +423,10 @@ def write_header_json(cfg: PayloadConfig, path: Path) -> Path:
     tmp = path.with_name(path.name + ".tmp")
     try:
         tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
+        return publish_file(tmp, path, force=True)  # a header is derived: a newer one replaces it
     except OSError as exc:
         tmp.unlink(missing_ok=True)
         raise UserError(f"--write-header {path}: {one_line(exc)}") from exc
-    return path
 
 
 def log_notes(cfg: PayloadConfig) -> tuple[str | None, list[str]]:
