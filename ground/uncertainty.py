@@ -13,7 +13,9 @@ each a scale of the error it describes, not yet a probability):
   sum of min(|grad h| d, fill - lower bound); high side: sum of min(|grad h| d, upper bound - fill).
 - **interpolation**: between sweep tracks the surface is guessed from its neighbours; the error of
   a smooth guess over a gap grows with the gap squared and the surface's curvature
-  (d^2/2 |laplacian h| per cell, the textbook bound of piecewise-linear interpolation).
+  (d^2/2 |laplacian h| per cell, the textbook bound of piecewise-linear interpolation). The curvature is
+  the fitted surface's, and a noisy fit's Laplacian holds its noise, which |.| would turn into bend: the
+  noise's share, measured over the gaps, is taken out (``curvature_noise_m_inv``).
 - **noise**: the points' scatter about the fitted surface, averaged over the seen cells (one
   independent value per cell: the errors of neighbouring points are not independent).
 - **blur**: the same scatter over the pile's footprint: noisy points blur a curved pile (high at the
@@ -50,6 +52,7 @@ the paper's piles to fit, other piles in another building and noisy flights held
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import asdict, dataclass
 
@@ -136,13 +139,13 @@ class IntervalModel:
 
 # --- calibrated interval model (tools/calibrate_interval.py --write-model) ---
 DEFAULT_INTERVAL_MODEL = IntervalModel(
-    k_unseen=1.60081,
-    k_interpolation=1.28424,
-    k_noise=0.974866,
-    k_sweeps=0.230812,
-    k_faces=5.6217,
-    k_blur=0.0699898,
-    source='fitted on 819 calibration runs of the evaluation set (tools/calibrate_interval.py, 2026-11-30)')
+    k_unseen=1.00875,
+    k_interpolation=1.30791,
+    k_noise=0.0471297,
+    k_sweeps=0.101799,
+    k_faces=0.263132,
+    k_blur=0.0307793,
+    source='fitted on 693 calibration runs of the evaluation set (tools/calibrate_interval.py, 2026-12-01)')
 # --- end of calibrated interval model ---
 
 
@@ -217,9 +220,11 @@ def unseen_terms_m3(heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
 
 
 def interpolation_term_m3(heights_fit: np.ndarray, counts: np.ndarray, grid: Grid,
-                          mask: np.ndarray | None = None) -> float:
+                          mask: np.ndarray | None = None, scatter_m: float = 0.0) -> float:
     """Sum over surfaced cells without points of d^2/2 |laplacian h| times the cell area (d: distance
-    to the nearest cell holding points); over the cells of mask only when given (one pile's)."""
+    to the nearest cell holding points); over the cells of mask only when given (one pile's). scatter_m: the
+    points' scatter about the surface (`scatter_sigma_m`), which bounds the share of the curvature taken as
+    noise (`curvature_noise_m_inv`); 0 takes none of it as noise."""
     seen = np.isfinite(heights_fit)
     all_gaps = seen & (counts == 0)
     gaps = all_gaps & (True if mask is None else mask)
@@ -243,8 +248,38 @@ def interpolation_term_m3(heights_fit: np.ndarray, counts: np.ndarray, grid: Gri
     # The scale is the whole survey's, whatever the mask: a pile's term is then its share of the survey's (the
     # piles' terms and the rest's add up to it), where a pile's own gaps' scale made a pile's exceed the whole's.
     scale_cells = max(1.0, float(np.median(d_m[all_gaps])) / min(c))
-    lap = np.abs(ndimage.gaussian_filter(lap, scale_cells, mode="nearest"))
-    return float((0.5 * d_m[gaps] ** 2 * np.abs(lap[gaps])).sum() * grid.cell_area_m2)
+    lap = ndimage.gaussian_filter(lap, scale_cells, mode="nearest")
+    tau = curvature_noise_m_inv(lap[all_gaps], scale_cells, c, scatter_m)
+    bend = np.sqrt(np.maximum(lap[gaps] ** 2 - tau**2, 0.0))
+    return float((0.5 * d_m[gaps] ** 2 * bend).sum() * grid.cell_area_m2)
+
+
+def curvature_noise_m_inv(lap_at_gaps: np.ndarray, scale_cells: float, cell_m: tuple[float, float],
+                          scatter_m: float) -> float:
+    """The noise's share of the smoothed Laplacian at the gaps (1/m, one sigma), which the interpolation term
+    takes out: E[L^2] = bend^2 + tau^2 for a noisy L, so sqrt(L^2 - tau^2) estimates the bend, where |L| alone
+    rectifies noise into curvature (a noisy flat floor bridged between far fan lines read as metres of bend:
+    the term grew 5-20 times from a noise-free flight to the same flight with the datasheet's noise).
+
+    tau is measured in the survey itself: the robust spread (1.4826 x median |L|) over the gaps, most of which
+    lie on floor and planar flanks, where the true Laplacian is zero. It is capped by the largest noise the
+    points' scatter can put into L (scatter_m times the filter's peak gain: no fitted height is noisier than
+    one point), so a quiet survey of a curved surface, whose spread is its curvature, keeps its bend."""
+    if scatter_m <= 0 or not len(lap_at_gaps):
+        return 0.0
+    spread = 1.4826 * float(np.median(np.abs(lap_at_gaps)))
+    return min(spread, scatter_m * laplacian_peak_gain_m2_inv(scale_cells, cell_m))
+
+
+@functools.lru_cache(maxsize=32)
+def laplacian_peak_gain_m2_inv(scale_cells: float, cell_m: tuple[float, float]) -> float:
+    """The largest gain over all wavelengths of the term's filter (the grid's second differences, then a Gaussian
+    of scale_cells cells), 1/m^2: the most a height noise of 1 m, of any spatial pattern, can put into L."""
+    n = max(64, 2 ** math.ceil(math.log2(8 * scale_cells + 8)))
+    wx = 2 * np.pi * np.fft.fftfreq(n)[:, None]
+    wy = 2 * np.pi * np.fft.fftfreq(n)[None, :]
+    second = 4 * np.sin(wx / 2) ** 2 / cell_m[0] ** 2 + 4 * np.sin(wy / 2) ** 2 / cell_m[1] ** 2
+    return float((second * np.exp(-0.5 * scale_cells**2 * (wx**2 + wy**2))).max())
 
 
 def point_residuals_m(points_w: np.ndarray, heights_fit: np.ndarray, grid: Grid) -> np.ndarray:
@@ -420,7 +455,7 @@ def survey_errors(points_w: np.ndarray, sweep_dir: np.ndarray | None, heights_fi
     faces = face_cells(points_w, grid, point_sigma, n_sigma)
     scatter = scatter_sigma_m(points_w, heights_fit, grid)
     terms = ErrorTerms(unseen_low_m3=low, unseen_high_m3=high,
-                       interpolation_m3=interpolation_term_m3(heights_fit, counts, grid, mask),
+                       interpolation_m3=interpolation_term_m3(heights_fit, counts, grid, mask, scatter),
                        noise_m3=noise_term_m3(scatter, heights_fit, counts, grid, mask),
                        blur_m3=blur_term_m3(scatter, heights_fit, grid, mask),
                        sweeps_m3=sweeps_term_m3(points_w, sweep_dir, heights_fit, grid, mask=mask),

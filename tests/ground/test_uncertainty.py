@@ -7,6 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.storage import Storage
@@ -20,12 +21,14 @@ from ground.uncertainty import (
     blur_term_m3,
     face_cells,
     interpolation_term_m3,
+    laplacian_peak_gain_m2_inv,
     noise_term_m3,
     scatter_sigma_m,
     sweeps_term_m3,
     unseen_terms_m3,
 )
 from ground.volume_warnings import (
+    MIN_FACE_CELLS,
     along_walls,
     faces_warning,
     level_warning,
@@ -125,6 +128,46 @@ def test_that_the_interpolation_terms_of_the_parts_of_a_floor_add_up_to_the_whol
     whole = interpolation_term_m3(bowl, counts, GRID)
     parts = interpolation_term_m3(bowl, counts, GRID, left) + interpolation_term_m3(bowl, counts, GRID, ~left)
     assert whole > 0 and parts == pytest.approx(whole)
+
+
+def test_that_noise_in_the_fitted_surface_is_not_counted_as_curvature_between_tracks():
+    # white height noise of 5 cm on a plane and on a bowl, tracks every 2 m: |laplacian| rectifies the noise into
+    # bend; the term takes the noise's share out, measured from the spread over the gaps and capped by the scatter
+    counts = np.zeros(GRID.shape, int)
+    counts[::4, :] = 5
+    noise = np.random.default_rng(0).normal(0.0, 0.05, GRID.shape)
+    plane = _heights_of(lambda x, y: 1.0 + 0.1 * x)
+    assert interpolation_term_m3(plane + noise, counts, GRID, scatter_m=0.05) < 0.6 * interpolation_term_m3(
+        plane + noise, counts, GRID)
+    bowl = _heights_of(lambda x, y: 0.02 * (x - 10.0) ** 2)
+    clean = interpolation_term_m3(bowl, counts, GRID)
+    assert interpolation_term_m3(bowl + noise, counts, GRID) > 1.5 * clean  # the noise read as bend
+    assert interpolation_term_m3(bowl + noise, counts, GRID, scatter_m=0.05) == pytest.approx(clean, rel=0.15)
+
+
+def test_that_a_quiet_survey_of_a_surface_curved_everywhere_keeps_its_bend():
+    # the spread over the gaps is the bowl's own curvature here: the points' scatter caps what is taken as noise
+    counts = np.zeros(GRID.shape, int)
+    counts[::4, :] = 5
+    bowl = _heights_of(lambda x, y: 0.02 * (x - 10.0) ** 2)
+    assert interpolation_term_m3(bowl, counts, GRID, scatter_m=0.001) == pytest.approx(
+        interpolation_term_m3(bowl, counts, GRID), rel=0.01)
+
+
+def test_that_the_laplacian_filter_gain_is_its_largest_response_to_a_height_pattern():
+    # waves of 1 m amplitude over every direction and period on a periodic grid: the filter's response at a crest
+    cell, n = (0.5, 0.25), 64
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    for scale in (1.0, 2.5):
+        best = 0.0
+        for kx in range(0, n // 2, 2):
+            for ky in range(0, n // 2, 2):
+                wave = np.cos(2 * np.pi * (kx * i + ky * j) / n)
+                lap = ((np.roll(wave, 1, 0) - 2 * wave + np.roll(wave, -1, 0)) / cell[0] ** 2
+                       + (np.roll(wave, 1, 1) - 2 * wave + np.roll(wave, -1, 1)) / cell[1] ** 2)
+                best = max(best, float(np.abs(ndimage.gaussian_filter(lap, scale, mode="wrap")).max()))
+        gain = laplacian_peak_gain_m2_inv(scale, cell)
+        assert 0.9 * gain < best <= 1.001 * gain
 
 
 def test_that_the_noise_term_grows_with_the_points_scatter():
@@ -231,16 +274,25 @@ def test_that_the_unseen_warning_says_material_is_missing_when_the_cells_were_le
     assert w is not None and "left out" in w and "9 m³" in w
 
 
-def test_that_the_faces_warning_fires_only_when_faces_weigh_in_the_interval():
+def test_that_the_faces_warning_fires_on_a_face_whatever_its_share_and_on_a_lone_cell_only_when_it_weighs():
     rng = np.random.default_rng(4)
     xy = rng.uniform([0, 0], [GRID.length_m, GRID.width_m], size=(20_000, 2))
     box = np.column_stack([xy, np.where(xy[:, 0] < 10.0, 3.0, 0.0)])
     wall = np.column_stack([np.full(200, 10.1), rng.uniform(0, 10, 200), rng.uniform(0, 3, 200)])
     faces = face_cells(np.vstack([box, wall]), GRID, 0.02, 4.0)
+    assert faces.n >= MIN_FACE_CELLS
     terms = ErrorTerms(faces_m3=float(0.5 * faces.excess_m.sum() * GRID.cell_area_m2), noise_m3=0.5)
     w = faces_warning(faces, GRID, terms, UNIT)
-    assert w is not None and "vertical face" in w and "x 10-" in w
-    assert faces_warning(faces, GRID, replace(terms, noise_m3=1e4), UNIT) is None
+    assert w is not None and "vertical face" in w and "x 10-" in w and "calibrated on surfaces" in w
+    # the interval is not calibrated for faces: a face warns even where its term is a sliver of the interval
+    assert faces_warning(faces, GRID, replace(terms, noise_m3=1e4), UNIT) is not None
+    # a lone cell (a stray return) warns only when it weighs in the interval
+    stray = np.vstack([box, [[15.2, 5.2, 2.5]] * 3])
+    lone = face_cells(stray, GRID, 0.02, 4.0)
+    assert 0 < lone.n < MIN_FACE_CELLS
+    lone_terms = ErrorTerms(faces_m3=float(0.5 * lone.excess_m.sum() * GRID.cell_area_m2), noise_m3=1e4)
+    assert faces_warning(lone, GRID, lone_terms, UNIT) is None
+    assert faces_warning(lone, GRID, replace(lone_terms, noise_m3=0.0), UNIT) is not None
 
 
 def test_that_a_wide_interval_is_a_warning_and_a_tight_one_is_not():

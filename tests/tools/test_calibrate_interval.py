@@ -5,7 +5,16 @@ from __future__ import annotations
 import numpy as np
 
 from ground.uncertainty import ErrorTerms, IntervalModel
-from tools.calibrate_interval import FACTORS, MODEL_BEGIN, MODEL_END, coverage, fit, model_of, write_model
+from tools.calibrate_interval import (
+    FACTORS,
+    MODEL_BEGIN,
+    MODEL_END,
+    coverage,
+    fit,
+    model_of,
+    readme_summary,
+    write_model,
+)
 
 
 def _rows(n: int, seed: int) -> list[dict]:
@@ -74,3 +83,25 @@ def test_that_the_fitted_model_is_written_between_its_markers(tmp_path):
     ns: dict = {"IntervalModel": IntervalModel}
     exec(text.split(MODEL_BEGIN)[1].split(MODEL_END)[0], ns)
     assert ns["DEFAULT_INTERVAL_MODEL"] == model
+
+
+def test_that_the_readme_summary_states_the_held_out_figures_and_the_weakest_group():
+    rows = _rows(200, 8)
+    for i, r in enumerate(rows):
+        r["p_traj_pct"], r["noise"], r["family"] = (5, 35)[i % 2], "none", "cone"
+    model = model_of(fit(rows, n_candidates=200)[0], "test")
+    c = coverage(model, rows)
+    worst, at = min((coverage(model, [r for r in rows if r["p_traj_pct"] == p])["coverage_pct"], p) for p in (5, 35))
+    text = readme_summary(model, rows)
+    assert f"{c['coverage_pct']:.1f} % of 200 surveys" in text and f"±{c['median_half_width_pct']:.2f} %" in text
+    assert f"the lowest: {worst:.1f} % at P_traj {at} %" in text and "on cone piles" in text
+    assert "P_traj 5 %" in text and "at 35 %" in text
+
+
+def test_that_the_piles_a_height_map_cannot_hold_take_no_part_in_the_fit():
+    common, box = _rows(200, 9), _rows(30, 10)
+    for r in box:
+        r["family"] = "box"
+        r["volume_m3"] = r["true_volume_m3"] + 300.0  # an error no term sees
+    alone = fit(common, n_candidates=100)[0]
+    assert np.allclose(fit(common + box, n_candidates=100)[0], alone)
