@@ -87,8 +87,8 @@ class ErrorTerms:
 
 
 # --- calibrated pose factor (tools/calibrate_pose_interval.py --write-model) ---
-POSE_FACTOR = 6.508881860285533
-POSE_FACTOR_SOURCE = 'fitted on 38 drifting flights (tools/calibrate_pose_interval.py, 2026-11-30)'
+POSE_FACTOR = 6.5314306872203085
+POSE_FACTOR_SOURCE = 'fitted on 38 drifting flights (tools/calibrate_pose_interval.py, 2026-12-01)'
 # --- end of calibrated pose factor ---
 
 
