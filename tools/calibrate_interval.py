@@ -77,8 +77,8 @@ FACES_FAMILIES = ("box", "sphere")
 sphere. They take no part in the fit (`fit`): no term measures their error (a box at P_traj 20 % is 19 % high
 with a faces term of 0.4 % of its volume), so in the P_traj strata they set the scale of every interval (they
 were the runs that bound P_traj 20 % and 35 %), and the report warns of every survey with faces like theirs
-instead (`ground.volume_warnings.faces_warning`: face cells over at least a square metre), saying the interval is
-not calibrated for them. Their coverage is still reported (the calibration runs by family)."""
+instead (`ground.volume_warnings.faces_warning`: a face of MIN_FACE_CELLS cells or more), saying the interval
+is not calibrated for them. Their coverage is still reported (the calibration runs by family)."""
 
 
 def run_row(case: Case, root: str = "runs/evalset") -> list[dict]:
