@@ -314,10 +314,8 @@ class Base:
             return model.interval_m3(volume_m3, terms)
         if self.kind is BaseKind.SURVEY:  # both surveys' errors, as `compare` combines them (extra_*: the sides)
             return volume_m3 - self.extra_below_m3, volume_m3 + self.extra_above_m3
-        below, above = model.half_widths_m3(terms)
-        below, above = math.hypot(below, self.extra_below_m3), math.hypot(above, self.extra_above_m3)
-        lo, hi = volume_m3 - below, volume_m3 + above
-        return (max(0.0, lo), max(0.0, hi)) if self.clip_at_zero else (lo, hi)
+        return widened_interval_m3(volume_m3, *model.half_widths_m3(terms), self.extra_below_m3, self.extra_above_m3,
+                                   self.clip_at_zero)
 
     def record(self, heights: np.ndarray, grid: Grid) -> dict:
         """report.json's ``base``: which base, its details, material above it and room below it."""
@@ -350,7 +348,7 @@ def fitted_floor_base(points_w: np.ndarray, sigma_m: np.ndarray, heights: np.nda
         return math.hypot(Z_INTERVAL * sigma, shift)
 
     sigma_v, systematic = errors_over(surfaced)
-    extra = math.hypot(Z_INTERVAL * sigma_v, systematic)
+    extra = extra_over(surfaced)
     warnings = []
     noise = Z_INTERVAL * math.sqrt(max(0.0, float(plane.covariance[0, 0])))
     if float(b.min()) < -max(noise, plane.rms_residual_m):
@@ -391,6 +389,15 @@ def fitted_floor_base(points_w: np.ndarray, sigma_m: np.ndarray, heights: np.nda
                "max_tilt_deg": max_tilt_deg, "n_below_floor": under.count,
                "expected_below_floor": under.expected, "below_floor_p_value": under.p_value}
     return Base(BaseKind.FITTED_FLOOR, desc, b, extra, extra, True, details, tuple(warnings), extra_over)
+
+
+def widened_interval_m3(volume_m3: float, below_m3: float, above_m3: float, extra_below_m3: float,
+                        extra_above_m3: float, clip_at_zero: bool = True) -> tuple[float, float]:
+    """The interval of half-widths (below, above) widened in quadrature by a base's own error on each side: the
+    survey's over a fitted floor (`Base.interval_m3`), and each pile's over it with the base's error over the
+    pile's cells (ground.piles)."""
+    lo, hi = volume_m3 - math.hypot(below_m3, extra_below_m3), volume_m3 + math.hypot(above_m3, extra_above_m3)
+    return (max(0.0, lo), max(0.0, hi)) if clip_at_zero else (lo, hi)
 
 
 def survey_base(earlier: SavedSurface, current: SavedSurface, source: str) -> Base:

@@ -44,6 +44,7 @@ import numpy as np
 from scipy import ndimage
 
 from firmware_py.core.config_file import MAX_DENSITY_KG_M3, PileEntry
+from ground.base import widened_interval_m3
 from ground.surface import Grid
 from ground.uncertainty import DEFAULT_INTERVAL_MODEL, IntervalModel, SurveyErrors
 
@@ -337,9 +338,8 @@ def pile_table(heights: np.ndarray, grid: Grid, point_sigma_m: float, opts: Pile
             if extra_over is None:
                 interval = list(model.interval_m3(v, t))
             else:  # as ground.base.Base.interval_m3 widens the survey's interval by the base's own error
-                below, above = model.half_widths_m3(t)
                 e = extra_over(mask)
-                interval = [max(0.0, v - math.hypot(below, e)), v + math.hypot(above, e)]
+                interval = list(widened_interval_m3(v, *model.half_widths_m3(t), e, e))
         density = entry.density_kg_m3 if entry is not None and entry.density_kg_m3 is not None else opts.density_kg_m3
         if density is None and entry is not None and opts.entries:
             warnings.append(f"pile {entry.name!r} has no density ([[piles]] density_kg_m3 or --density): no mass")
