@@ -24,6 +24,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
+from ground.piles import MIN_PILE_CELLS
 from ground.render import signless_zero
 from ground.surface import Grid, fill_empty
 from ground.uncertainty import ErrorTerms, FaceCells, IntervalModel, over_surface_m3
@@ -34,13 +35,13 @@ DEFAULT_MAX_INTERVAL_PCT = 5.0
 """Default tolerance: a 90 % interval wider than +/-5 % of the volume is too wide to sign without a
 warning (stockpile audits typically accept 1-5 %); `pilescan-ground report --max-interval-pct`."""
 MAX_REGIONS = 3
-MIN_FACE_CELLS = 4
+MIN_FACE_CELLS = MIN_PILE_CELLS
 """Face cells from this many on are a face the interval may not hold, whatever their share of it. The interval is
 calibrated on surfaces one height per cell can hold (tools/calibrate_interval.py FACES_FAMILIES): a box at P_traj
 20 % reads 19 % high with a faces term of 0.4 % of its volume. On the evaluation set every box and undercut sphere
 showed 4 to 375 face cells; of the 1,260 runs of the families but these and the bays, 15 showed any, 1 or 2 lone cells
-(a stray return), none more; 89 of the 126 bay piles, against their walls, showed 4 or more. The same as the least
-cells the report names as a pile (`ground.piles.MIN_PILE_CELLS`)."""
+(a stray return), none more; 89 of the 126 bay piles, against their walls, showed 4 or more. It is the least cells
+the report names as a pile: a face is held to the size of a pile."""
 
 
 def _share(scaled: float, t: ErrorTerms, model: IntervalModel, high: bool) -> float:
