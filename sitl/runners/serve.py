@@ -239,19 +239,17 @@ def _operator_log() -> Iterator[None]:
 
 
 def _where(transport) -> str:
-    try:
-        host, port = transport.local_address
-    except (AttributeError, OSError, TypeError, ValueError):
-        return "?"
-    return f"{host}:{port}"
+    at = _address(transport)
+    return "?" if at is None else f"{at[0]}:{at[1]}"
 
 
 def _address(transport) -> tuple[str, int] | None:
+    """Where the transport is bound (host, port), or None when it cannot say."""
     try:
         host, port = transport.local_address
+        return str(host), int(port)
     except (AttributeError, OSError, TypeError, ValueError):
         return None
-    return str(host), int(port)
 
 
 def _client_host(host: str) -> str:
