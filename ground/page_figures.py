@@ -173,6 +173,7 @@ def site_map_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
                             colors="black", linewidths=0.6, alpha=0.75, zorder=3)
             ax.clabel(cs, levels[:: max(1, len(levels) // 4)], fmt=lambda v: f"{v:g} m", fontsize=7, inline=True)
             title += f"\ncontours every {levels[1] - levels[0] if levels.size > 1 else levels[0]:g} m above the floor"
+    compass = heading_deg is not None and math.isfinite(heading_deg)  # drawn last, over the map
     for p in _pile_records(piles):
         cxy = p.get("centroid_xy_m")
         v = p.get("volume_m3")
@@ -181,7 +182,6 @@ def site_map_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
         shown = v / m3_per_unit if isinstance(v, int | float) else None
         text = str(p.get("label", "?")) + ("" if shown is None else
                                            f"\n{shown:,.{0 if abs(shown) >= 100 else 1}f} {volume_unit}")
-        compass = heading_deg is not None and math.isfinite(heading_deg)
         lx, ly, ha, va = _label_xy(ax, float(cxy[0]), float(cxy[1]), storage[0], compass)
         ax.text(lx, ly, text, ha=ha, va=va, fontsize=9, fontweight="bold", path_effects=_HALO, zorder=13)
     path = _finite_xy(path_w, 2)
@@ -206,7 +206,7 @@ def site_map_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
     if path.shape[0] > 0 or f.any() or outlined:  # over every line of the map, or they strike through its text
         ax.legend(loc="upper right", fontsize="small", framealpha=0.85).set_zorder(20)
     _scale_bar(ax, storage[0])
-    if heading_deg is not None and math.isfinite(heading_deg):
+    if compass:
         _north_arrow(ax, heading_deg)
         title += f"; building's x axis {heading_deg:g}° from north"
     ax.set_title(title)
