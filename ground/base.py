@@ -55,7 +55,7 @@ from ground.compare import Z_INTERVAL, compare_surfaces
 from ground.pointcloud import structure_n_sigma
 from ground.surface import Grid, grid_volume
 from ground.surface_file import SavedSurface, building_mismatch, resampled
-from ground.uncertainty import ErrorTerms, IntervalModel, blur_term_m3, unseen_terms_m3
+from ground.uncertainty import ErrorTerms, IntervalModel, blur_term_m3, unseen_terms_m3, widened_interval_m3
 
 MAX_FLOOR_TILT_DEG = 5.0
 """The steepest plane taken as a building's floor: warehouse floors are laid to falls of 1-2 % (0.6-1.1 deg)
@@ -389,15 +389,6 @@ def fitted_floor_base(points_w: np.ndarray, sigma_m: np.ndarray, heights: np.nda
                "max_tilt_deg": max_tilt_deg, "n_below_floor": under.count,
                "expected_below_floor": under.expected, "below_floor_p_value": under.p_value}
     return Base(BaseKind.FITTED_FLOOR, desc, b, extra, extra, True, details, tuple(warnings), extra_over)
-
-
-def widened_interval_m3(volume_m3: float, below_m3: float, above_m3: float, extra_below_m3: float,
-                        extra_above_m3: float, clip_at_zero: bool = True) -> tuple[float, float]:
-    """The interval of half-widths (below, above) widened in quadrature by a base's own error on each side: the
-    survey's over a fitted floor (`Base.interval_m3`), and each pile's over it with the base's error over the
-    pile's cells (ground.piles)."""
-    lo, hi = volume_m3 - math.hypot(below_m3, extra_below_m3), volume_m3 + math.hypot(above_m3, extra_above_m3)
-    return (max(0.0, lo), max(0.0, hi)) if clip_at_zero else (lo, hi)
 
 
 def survey_base(earlier: SavedSurface, current: SavedSurface, source: str) -> Base:

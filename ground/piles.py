@@ -44,9 +44,8 @@ import numpy as np
 from scipy import ndimage
 
 from firmware_py.core.config_file import MAX_DENSITY_KG_M3, PileEntry
-from ground.base import widened_interval_m3
 from ground.surface import Grid
-from ground.uncertainty import DEFAULT_INTERVAL_MODEL, IntervalModel, SurveyErrors
+from ground.uncertainty import DEFAULT_INTERVAL_MODEL, IntervalModel, SurveyErrors, widened_interval_m3
 
 THRESHOLD_SIGMAS = 3.0
 """Material is a cell this many point sigmas above the base (one floor cell in 740 passes by chance)."""

@@ -137,6 +137,15 @@ class IntervalModel:
         return max(0.0, volume_m3 - below), max(0.0, volume_m3 + above)
 
 
+def widened_interval_m3(volume_m3: float, below_m3: float, above_m3: float, extra_below_m3: float,
+                        extra_above_m3: float, clip_at_zero: bool = True) -> tuple[float, float]:
+    """The interval of half-widths (below, above) widened in quadrature by a base's own error on each side: the
+    survey's over a fitted floor (`ground.base.Base.interval_m3`), and each pile's over it with the base's error
+    over the pile's cells (ground.piles)."""
+    lo, hi = volume_m3 - math.hypot(below_m3, extra_below_m3), volume_m3 + math.hypot(above_m3, extra_above_m3)
+    return (max(0.0, lo), max(0.0, hi)) if clip_at_zero else (lo, hi)
+
+
 # --- calibrated interval model (tools/calibrate_interval.py --write-model) ---
 DEFAULT_INTERVAL_MODEL = IntervalModel(
     k_unseen=1.00875,
