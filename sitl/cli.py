@@ -34,7 +34,7 @@ from firmware_py.core.site import DEFAULT_SITE, Site, add_site_options, site_fro
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import N_PHASES, Waveform, named_waveform
-from sitl.faults.injector import FaultSpec, fault_syntax
+from sitl.faults.injector import MOUNT_FAULTS, FaultSpec, fault_syntax
 from sitl.missions.coverage import DEFAULT_SEEN_RADIUS_M, WALLS
 from sitl.missions.gaps import DEFAULT_GAP_TARGET_PCT
 from sitl.missions.qgc_wpl import write_qgc_wpl
@@ -102,7 +102,8 @@ def build_parser() -> ArgumentParser:
     f.add_argument("--payload-mass", type=finite_float, default=0.040, metavar="KG",
                    help="payload mass, kg (0.040: LIDAR-Lite + servo; 0.370 2D LiDAR; 0.830 3D)")
     f.add_argument("--fault", action="append", default=[], metavar="NAME=VALUE",
-                   help=f"inject a fault (firmware payload; repeatable): {fault_syntax()} (the tfmini_* ones with "
+                   help=f"inject a fault (repeatable): {fault_syntax()} (the firmware payload flies every one, the "
+                        f"batch payload the mounting's: {fault_syntax(sorted(MOUNT_FAULTS))}; the tfmini_* ones with "
                         "--rangefinder tfmini; tfmini_unplug's DURATION inf: for good; times from the survey start; "
                         "seeded by --seed; docs/reliability.md says what each does)")
     _noise_option(f)

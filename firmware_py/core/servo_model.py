@@ -153,9 +153,14 @@ def command_angles(waveform: Waveform, cal: ServoCalibration, t_s: np.ndarray,
 
 
 def modelled_sweep(waveform: Waveform, cal: ServoCalibration, t_s: np.ndarray,
-                   frame_s: float = PWM_FRAME_S) -> np.ndarray:
+                   frame_s: float = PWM_FRAME_S, gain: float = 1.0, offset_rad: float = 0.0) -> np.ndarray:
     """Batch path: the shaft angle at times t_s of a servo driven as SweepServo drives it (a pulse at
-    every frame from t = 0), starting at rest on the waveform's initial angle."""
+    every frame from t = 0), starting at rest on the waveform's initial angle.
+
+    gain, offset_rad: a shaft whose true angle is gain * the calibrated one + offset_rad (a servo off its
+    calibration, as the SITL's mounting faults fly it): the same pulses drive it, so its targets are mapped,
+    and its slew limit acts on the true angle, not on the calibrated one."""
     t = np.asarray(t_s, dtype=float)
     cmd_t = np.arange(0.0, (t.max() if len(t) else 0.0) + frame_s, frame_s)
-    return servo_angles(t, cmd_t, command_angles(waveform, cal, cmd_t, frame_s), cal, float(waveform.angle(0.0)))
+    cmd = command_angles(waveform, cal, cmd_t, frame_s)
+    return servo_angles(t, cmd_t, gain * cmd + offset_rad, cal, gain * float(waveform.angle(0.0)) + offset_rad)

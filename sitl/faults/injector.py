@@ -44,6 +44,10 @@ def _window(name: str, w: tuple[float, float] | None) -> None:
         raise ValueError(f"fault {name} must be (start s >= 0, duration s > 0), got {w!r}")
 
 
+MOUNT_FAULTS = frozenset({"servo_offset_deg", "servo_scale_pct", "boresight_deg", "sweep_yaw_deg"})
+"""Faults of the mounting alone (where the shaft and the beam truly point): geometry, not timing or a device's
+behaviour, so the batch payload flies them too (`sitl.sensing.batch_sampler.sample_flight`)."""
+
 PAIRS = {"link_outage": "START,DURATION", "lidar_stuck_busy": "START,DURATION",
          "autopilot_reboot": "AT,SILENT_S", "clock_jump": "AT,JUMP_S", "tfmini_unplug": "AT,DURATION"}
 """The faults given as two numbers (the CLI's `NAME=A,B`)."""
@@ -119,6 +123,26 @@ class FaultSpec:
         if not (math.isfinite(self.servo_slow_factor) and 0.05 <= self.servo_slow_factor <= 1.0):
             raise ValueError(f"fault servo_slow_factor must be in [0.05, 1] (1 = as calibrated), "
                              f"got {self.servo_slow_factor!r}")
+
+    @property
+    def mount_only(self) -> bool:
+        """Every active fault is one of the mounting's (MOUNT_FAULTS)."""
+        return set(self.active) <= MOUNT_FAULTS
+
+    @property
+    def servo_gain(self) -> float:
+        """The true shaft's radians per radian the calibration says."""
+        return 1.0 + self.servo_scale_pct / 100.0
+
+    @property
+    def servo_offset_rad(self) -> float:
+        """Where the true shaft sits when the calibration says 0."""
+        return math.radians(self.servo_offset_deg)
+
+    @property
+    def boresight(self) -> Boresight:
+        """The beam's true mounting (square unless a boresight fault is set)."""
+        return Boresight(math.radians(self.boresight_deg), math.radians(self.sweep_yaw_deg))
 
     @classmethod
     def parse(cls, items: list[str], seed: int = 0) -> FaultSpec:
@@ -257,10 +281,9 @@ class FaultInjector:
             servo.delay_ns = round(self.spec.servo_delay_ms * 1e6)
         if self.spec.servo_offset_deg or self.spec.servo_scale_pct:
             # true angle = (1 + s) * calibrated angle + offset: the pulse-to-angle map of the real part
-            scale = 1.0 + self.spec.servo_scale_pct / 100.0
-            cal = servo.cal
+            scale, cal = self.spec.servo_gain, servo.cal
             true = replace(cal, us_per_rad=cal.us_per_rad / scale,
-                           center_us=cal.center_us - math.radians(self.spec.servo_offset_deg) * cal.us_per_rad / scale)
+                           center_us=cal.center_us - self.spec.servo_offset_rad * cal.us_per_rad / scale)
             servo.cal = true
             servo.model.cal = true
 
@@ -276,8 +299,8 @@ class FaultInjector:
 
     @property
     def boresight(self) -> Boresight:
-        """The beam's true mounting (square unless a boresight fault is set)."""
-        return Boresight(math.radians(self.spec.boresight_deg), math.radians(self.spec.sweep_yaw_deg))
+        """The beam's true mounting (`FaultSpec.boresight`)."""
+        return self.spec.boresight
 
     def wall_clock(self, true_wall_s: Callable[[], float]) -> Callable[[], float]:
         """The companion's wall clock (Unix s) as the payload reads it: the true one, plus any jump."""

@@ -38,7 +38,7 @@ from firmware_py.core.sensor_noise import SensorNoise, SensorNoiseModel
 from firmware_py.core.site import DEFAULT_SITE, GeodeticPoint, Site
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import Waveform, initial_position, named_waveform
-from sitl.faults.injector import FaultSpec
+from sitl.faults.injector import MOUNT_FAULTS, FaultSpec
 from sitl.missions.coverage import LoopMission
 from sitl.missions.qgc_wpl import write_qgc_wpl
 from sitl.missions.range_check import RangeLimit, check_range
@@ -108,8 +108,10 @@ class FlyConfig:
             raise ValueError(f"unknown plant {self.plant!r}; available: {', '.join(PLANTS)}")
         if self.payload not in PAYLOADS:
             raise ValueError(f"unknown payload {self.payload!r}; available: {', '.join(PAYLOADS)}")
-        if self.faults is not None and self.faults.active and self.payload != "firmware":
-            raise ValueError("fault injection needs the firmware payload (--payload firmware)")
+        if self.faults is not None and not self.faults.mount_only and self.payload != "firmware":
+            timed = [f for f in self.faults.active if f not in MOUNT_FAULTS]
+            raise ValueError(f"fault {', '.join(timed)} needs the firmware payload (--payload firmware); the batch "
+                             f"payload flies only the mounting's faults ({', '.join(sorted(MOUNT_FAULTS))})")
         if self.payload == "firmware" and self.plant != "jsbsim":
             raise ValueError("the firmware payload needs the jsbsim plant (it talks MAVLink to the vehicle)")
         lo, hi = self.latency_ms
@@ -344,8 +346,13 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
             flown = fly_trajectory(cfg, tlog_path, world)
             traj, duration_s, energy_j = flown.trajectory, flown.duration_s, flown.energy_j
             approach = closest_approach(traj.t_s, cfg.frame.ned_to_w(traj.pos_ned_m), storage)
+            mount = cfg.faults or FaultSpec()
             records = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame,
-                                    noise=cfg.noise(), seed=cfg.seed, pose_error=flown.pose_error)
+                                    noise=cfg.noise(), seed=cfg.seed, pose_error=flown.pose_error,
+                                    servo_gain=mount.servo_gain, servo_offset_rad=mount.servo_offset_rad,
+                                    boresight=mount.boresight)
+            if mount.active:
+                say(f"faults injected: {', '.join(mount.active)}")
             pose_truth = {} if flown.truth is None else pose_error_truth(cfg, *flown.truth, 0.0, duration_s)
             # The batch path writes a finished flight at once: the commit's fsync is enough.
             with SampleLogWriter(log_path, log_header(cfg, wf), records_per_block=500, fsync=False) as w:

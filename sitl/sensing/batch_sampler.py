@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from firmware_py.core.frames import StorageFrame, beam_rays_w
+from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_rays_w
 from firmware_py.core.samplelog import SAMPLE_DTYPE, SampleFlags
 from firmware_py.core.sensor import LIDARLITE_V3_NO_RETURN_M, RangefinderSpec
 from firmware_py.core.sensor_noise import SensorNoise
@@ -22,7 +22,9 @@ from sitl.world.raycast import World
 def sample_flight(traj: Trajectory, waveform: Waveform, world: World, lidar: RangefinderSpec,
                   lever_arm_body_m, frame: StorageFrame, servo: ServoCalibration | None = None,
                   servo_t0_s: float = 0.0, noise: SensorNoise | None = None,
-                  seed: int | list[int] = 0, pose_error: np.ndarray | None = None) -> np.ndarray:
+                  seed: int | list[int] = 0, pose_error: np.ndarray | None = None,
+                  servo_gain: float = 1.0, servo_offset_rad: float = 0.0,
+                  boresight: Boresight = SQUARE) -> np.ndarray:
     """Records (SAMPLE_DTYPE) of a LiDAR on the swept servo along a trajectory.
 
     Ideal sensing: the pose is the true pose (age 0), the range is the true range quantised to
@@ -36,18 +38,27 @@ def sample_flight(traj: Trajectory, waveform: Waveform, world: World, lidar: Ran
     angle by the servo error; the range is what the sensor reports (noise, bias, no returns); the
     logged pose carries the autopilot's pose errors, one draw per pose message, interpolated.
 
+    A mount that is not what the log says (the mounting's faults, `sitl.faults.injector.MOUNT_FAULTS`): the
+    true shaft maps the same pulses to servo_gain * the calibrated angle + servo_offset_rad (with a servo
+    model, its slew acting on the true angle, as the firmware's emulated servo does), and the beam leaves at
+    the true boresight; the log keeps the angle the payload believes, as the firmware's does.
+
     `pose_error` (N, 4) [dn, de, dd, dyaw] at the sample times: the indoor estimator's error
     (`sitl.sensing.pose_drift`), added to the logged pose as the autopilot reports it; the beam stays true.
     """
+    mounted = servo_gain != 1.0 or servo_offset_rad != 0.0
     if servo is None:
         gamma = waveform.angle(traj.t_s)
+        beam = servo_gain * gamma + servo_offset_rad if mounted else gamma
     else:
         gamma = modelled_sweep(waveform, servo, traj.t_s - servo_t0_s)
+        beam = (modelled_sweep(waveform, servo, traj.t_s - servo_t0_s, gain=servo_gain, offset_rad=servo_offset_rad)
+                if mounted else gamma)
     n = len(traj.t_s)
     rngs = noise_streams(seed) if noise is not None and noise.active else None
-    beam = gamma if rngs is None else gamma + angle_errors(n, noise.servo_sigma_rad, rngs["servo"])
+    beam = beam if rngs is None else beam + angle_errors(n, noise.servo_sigma_rad, rngs["servo"])
     origins, dirs = beam_rays_w(traj.pos_ned_m, traj.roll_rad, traj.pitch_rad, traj.yaw_rad, beam,
-                                lever_arm_body_m, frame)
+                                lever_arm_body_m, frame, boresight)
     hits = world.cast(origins, dirs, max_range_m=lidar.max_range_m)
     r = hits.range_m
     if rngs is not None:

@@ -31,7 +31,7 @@ SMALL = Mission(storage=Storage(30, 20, 10), p_traj=0.2, altitude_m=8.0, speed_m
 """A quarter of the paper's floor at twice the speed: an eighth of its flight, the same planes in every sweep."""
 
 
-def _fly(path, faults=None, payload="firmware", initial_position=0, mission=PAPER):
+def _fly(path, faults=None, payload="batch", initial_position=0, mission=PAPER):
     cfg = FlyConfig(mission=mission, stockpile="2", faults=faults, payload=payload,
                     initial_position=initial_position, sensor_noise=SensorNoiseModel.DATASHEET)
     fly(cfg, path / "run", force=True, progress=lambda _m: None)
@@ -53,7 +53,7 @@ def _applied(report: dict) -> bool:
 @pytest.fixture(scope="module")
 def biased_run(tmp_path_factory):
     """Square, the ideal servo of the batch payload, start position 5: the fit comes out biased."""
-    return _fly(tmp_path_factory.mktemp("noisy-biased"), payload="batch", initial_position=5)
+    return _fly(tmp_path_factory.mktemp("noisy-biased"), initial_position=5)
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,7 @@ pytestmark = [pytest.mark.skipif(find_chromium() is None,
                                  reason="no Chromium installed (apt-get install chromium; .ci/run installs it)"),
               pytest.mark.long]  # scheduled first (tests/conftest.py)
 
-FLIGHT_S = 12.0
+FLIGHT_S = 8.0
 """Seconds flown after AUTO: enough for the sweeps to give a surface (tests/tools/test_fly_networked.py)."""
 TRACK_RGB = np.array([0xE8, 0x59, 0x0C]) / 255.0
 

@@ -54,7 +54,8 @@ def test_that_mavproxy_flies_the_exported_plan(tmp_path):
     out = tmp_path / "serve"
     # Bounded by itself: 600 simulated seconds at 25x is 24 s of wall time at most.
     srv = subprocess.Popen([sys.executable, "-m", "sitl.cli", "serve", "--mavlink", f"udp:127.0.0.1:{port}",
-                            "--speedup", "25", "--duration", "600", "--p-traj", "30", "--out", str(out)],
+                            "--speedup", "25", "--duration", "600", "--p-traj", "30", "--storage", "30x20x10",
+                            "--altitude", "8", "--out", str(out)],
                            stderr=subprocess.PIPE, text=True)
     mp = subprocess.Popen([MAVPROXY, f"--master=udpout:127.0.0.1:{port}", "--nowait", "--logfile",
                            str(tmp_path / "mavproxy.tlog")], cwd=tmp_path, stdin=subprocess.PIPE,

@@ -14,6 +14,7 @@ from firmware_py.hal.mavlink_link import COMPANION_COMPONENT_ID
 from ground.pointcloud import cloud_from_samples
 from ground.report import ReportOptions, survey_from_samples
 from ground.surface import grid_volume
+from sitl.faults.injector import FaultSpec
 from sitl.missions.rectangle import Mission
 from sitl.runners.flight import FlownMission
 from sitl.runners.fly import FlyConfig, log_header
@@ -27,19 +28,27 @@ pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
 BOOT_OFFSET_S = 1234.5
 
 
+MOUNT = FaultSpec(servo_offset_deg=3.0, servo_scale_pct=5.0, boresight_deg=2.0, sweep_yaw_deg=1.0)
+"""A mount that is not what the log says: the firmware's emulated servo and LiDAR, and the batch sampler, each
+fly it their own way (the self-calibration tests fly it with either)."""
+
+
 @pytest.fixture(scope="module")
 def small_flight(tmp_path_factory):
-    """At 2 m/s, as the noisy flights below: half the flight of 1 m/s, still some 20,000 samples to compare."""
+    """At 2 m/s, as the noisy flights below: half the flight of 1 m/s, still some 20,000 samples to compare. The
+    mount is MOUNT's, in both paths."""
     cfg = FlyConfig(mission=Mission(storage=Storage(30, 20, 10), p_traj=0.2, altitude_m=9.0, speed_m_s=2.0),
-                    stockpile="1")
+                    stockpile="1", payload="firmware", faults=MOUNT)
     log = tmp_path_factory.mktemp("fil") / "samples.pslog"
     run = fly_firmware(cfg, log, log_header(cfg, cfg.servo_waveform()), latency_ms=(5, 30),
-                       boot_offset_s=BOOT_OFFSET_S, tlog_path=log.with_name("telemetry.tlog"))
+                       boot_offset_s=BOOT_OFFSET_S, tlog_path=log.with_name("telemetry.tlog"), faults=MOUNT)
     flown = FlownMission(run.true_t_s, run.true_states, 0.0, 0.0, True, [])
     world = World(cfg.mission.storage, piles.resolve("1", cfg.mission.storage))
     sweep_t0_s = read_samplelog(log).header["servo_drive"]["t0_s"]  # the program starts its sweep once synced
     batch = sample_flight(flown.trajectory_at(run.records["t_s"]), cfg.servo_waveform(), world, cfg.lidar,
-                          cfg.lever_arm_body_m, cfg.frame, servo=ServoCalibration(), servo_t0_s=sweep_t0_s)
+                          cfg.lever_arm_body_m, cfg.frame, servo=ServoCalibration(), servo_t0_s=sweep_t0_s,
+                          servo_gain=MOUNT.servo_gain, servo_offset_rad=MOUNT.servo_offset_rad,
+                          boresight=MOUNT.boresight)
     return cfg, run, batch, log
 
 
@@ -58,18 +67,28 @@ def test_that_firmware_and_batch_points_agree_to_2_cm_median(small_flight):
     cfg, run, batch, _ = small_flight
     ok = (run.records["flags"] == 0) & (batch["flags"] == 0)
     assert ok.mean() > 0.7
+    # Both ranged through the same wrong mount: the batch sampler square gives ranges a mount's worth apart.
+    assert np.median(np.abs(run.records["range_m"][ok] - batch["range_m"][ok])) < 0.02
+    square = sample_flight(FlownMission(run.true_t_s, run.true_states, 0.0, 0.0, True, []).trajectory_at(
+        run.records["t_s"]), cfg.servo_waveform(), World(cfg.mission.storage, piles.resolve("1", cfg.mission.storage)),
+        cfg.lidar, cfg.lever_arm_body_m, cfg.frame, servo=ServoCalibration(),
+        servo_t0_s=read_samplelog(small_flight[3]).header["servo_drive"]["t0_s"])
+    assert np.median(np.abs(run.records["range_m"][ok] - square["range_m"][ok])) > 0.05
     pf = cloud_from_samples(run.records[ok], cfg.lever_arm_body_m, cfg.frame).points_w
     pb = cloud_from_samples(batch[ok], cfg.lever_arm_body_m, cfg.frame).points_w
     assert np.median(np.linalg.norm(pf - pb, axis=1)) < 0.02
 
 
 def test_that_firmware_and_batch_volumes_agree_to_0_1_percent(small_flight):
-    cfg, run, batch, _ = small_flight
-    header = log_header(cfg, cfg.servo_waveform())
+    """With the log's own header (the servo's calibration and the sweep's start, which the self-calibration
+    re-simulates the shaft from), each path's mount is found from the building and the volumes agree."""
+    cfg, run, batch, log = small_flight
+    header = read_samplelog(log).header
     lever = np.array(cfg.lever_arm_body_m)
     vols = []
     for rec in (run.records, batch):
         sv = survey_from_samples(rec, header, cfg.mission.storage, cfg.frame, lever, ReportOptions(plots=False))
+        assert all(sv.mount.applied)
         vols.append(grid_volume(sv.heights, sv.grid))
     assert abs(vols[0] - vols[1]) / vols[1] < 0.001
 
