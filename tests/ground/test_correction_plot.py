@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from ground.correction_plot import FIGURE_NAME, correction_figure, correction_series
+from ground.figure_jobs import draw
 from ground.pose_correction import PoseCorrection
 from ground.rangefinder_height import RangefinderShare
-from ground.report import correction_figures
+from ground.report import correction_figure_jobs
 
 
 def _pose(applied: bool = True) -> PoseCorrection:
@@ -73,6 +74,6 @@ def test_that_a_heading_left_free_is_shaded_with_its_own_key():
 
 def test_that_a_report_writes_the_figure_only_when_it_corrected_the_trajectory(tmp_path):
     drifting = SimpleNamespace(pose=_pose(), rangefinder=None)
-    written = correction_figures(drifting, tmp_path)
+    written = draw(correction_figure_jobs(drifting, tmp_path))
     assert written == {FIGURE_NAME: tmp_path / f"{FIGURE_NAME}.png"} and written[FIGURE_NAME].stat().st_size > 1000
-    assert correction_figures(SimpleNamespace(pose=None, rangefinder=None), tmp_path / "none") == {}
+    assert correction_figure_jobs(SimpleNamespace(pose=None, rangefinder=None), tmp_path / "none") == []

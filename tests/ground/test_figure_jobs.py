@@ -1,0 +1,83 @@
+"""The report's figures on two cores: every figure drawn once, in the jobs' order, the same bytes as drawn in one
+process; what goes wrong in the forked child is raised here or drawn here, never lost."""
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ground import plots
+from ground.figure_jobs import FigureJob, draw, split
+
+PARENT = os.getpid()
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(f"{text} by {'parent' if os.getpid() == PARENT else 'child'}")
+    return path
+
+
+def _fail(_path: Path) -> Path:
+    raise ValueError("no such figure")
+
+
+def _unpicklable(_path: Path) -> Path:
+    class Local(Exception):
+        pass
+    raise Local("a local exception class does not pickle")
+
+
+def _die_in_child(path: Path) -> Path:
+    if os.getpid() != PARENT:
+        os._exit(3)  # a child that dies without a word (a segfault in a drawing library, say)
+    return _write(path, "redrawn")
+
+
+def test_that_the_split_balances_the_cost_and_keeps_each_share_in_order():
+    jobs = [FigureJob(n, _write, cost_s=c) for n, c in [("a", 0.5), ("b", 0.7), ("c", 0.4), ("d", 0.45), ("e", 0.6)]]
+    one, two = split(jobs)
+    assert sorted(j.name for j in one + two) == ["a", "b", "c", "d", "e"]
+    cost = [sum(j.cost_s for j in share) for share in (one, two)]
+    assert abs(cost[0] - cost[1]) <= 0.4  # the lightest job at most
+    for share in (one, two):
+        names = [j.name for j in share]
+        assert names == sorted(names)
+
+
+def test_that_both_processes_draw_and_the_paths_come_back_in_the_jobs_order(tmp_path):
+    jobs = [FigureJob(n, _write, (tmp_path / f"{n}.txt", n), cost_s=1.0) for n in "abcd"]
+    drawn = draw(jobs, parallel=True)
+    assert list(drawn) == list("abcd") and all(drawn[n] == tmp_path / f"{n}.txt" for n in "abcd")
+    by = {n: drawn[n].read_text().split(" by ")[1] for n in "abcd"}
+    assert sorted(by.values()) == ["child", "child", "parent", "parent"]
+
+
+def test_that_a_figure_drawn_in_the_child_is_the_figure_drawn_here(tmp_path):
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(0, 10, (2000, 3))
+
+    def jobs(folder: Path):
+        folder.mkdir()
+        return [FigureJob(f"top{k}", plots.plot_cloud_top, (pts, pts[:50, :2], (10.0, 10.0), folder / f"{k}.png"))
+                for k in range(2)]
+    serial, forked = draw(jobs(tmp_path / "one"), parallel=False), draw(jobs(tmp_path / "two"), parallel=True)
+    for name in serial:
+        assert serial[name].read_bytes() == forked[name].read_bytes()
+
+
+@pytest.mark.parametrize(("fn", "error", "words"), [(_fail, ValueError, "no such figure"),
+                                                    (_unpicklable, RuntimeError, "does not pickle")])
+def test_that_an_error_in_the_child_is_raised_here(tmp_path, fn, error, words):
+    jobs = [FigureJob("bad", fn, (tmp_path / "bad.txt",), cost_s=9.0),  # the costliest: the child's share
+            FigureJob("good", _write, (tmp_path / "good.txt", "good"), cost_s=1.0)]
+    with pytest.raises(error, match=words):
+        draw(jobs, parallel=True)
+    assert (tmp_path / "good.txt").read_text() == "good by parent"  # this process's share was still drawn
+
+
+def test_that_a_child_that_dies_has_its_share_drawn_here(tmp_path):
+    jobs = [FigureJob("dies", _die_in_child, (tmp_path / "dies.txt",), cost_s=9.0),
+            FigureJob("good", _write, (tmp_path / "good.txt", "good"), cost_s=1.0)]
+    drawn = draw(jobs, parallel=True)
+    assert drawn["dies"].read_text() == "redrawn by parent" and drawn["good"].read_text() == "good by parent"
