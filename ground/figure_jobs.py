@@ -4,8 +4,9 @@ A report's figures are independent and CPU-bound (matplotlib holds the GIL while
 help): on the benchmark's 100k-sample survey they were 3.2 s of a 3.4 s report. A child forked from this process
 already has matplotlib and the survey's arrays in memory, so it starts in milliseconds; it draws its share, sends
 back the paths (or the exception it met) through a pipe and leaves with `os._exit`, running nothing of the
-parent's. Whatever goes wrong with the child (no fork on this platform, one core, a child that dies) its share is
-drawn here instead: a slower report, never a missing figure.
+parent's. It is forked only when a core is free for it (`spare_core`). Whatever goes wrong with the child (no
+fork on this platform, a child that dies) its share is drawn here instead: a slower report, never a missing
+figure.
 """
 
 from __future__ import annotations
@@ -42,6 +43,18 @@ def cores_available() -> int:
         return os.cpu_count() or 1
 
 
+def spare_core() -> bool:
+    """A core is free for a second process: on a machine already busy (a test suite, a campaign's workers) a child
+    adds its start-up and its cold caches to the load and the report comes out later, not sooner (measured: 5 %
+    more CPU for the same reports with two test workers on two cores). The 1-minute load average lags, so a
+    burst just started is missed: then the report is as slow as drawn in one process, not slower."""
+    try:
+        load = os.getloadavg()[0]
+    except OSError:  # no load average on this platform: assume the machine is the report's
+        load = 0.0
+    return cores_available() - load >= 1.0
+
+
 def split(jobs: Sequence[FigureJob]) -> tuple[list[FigureJob], list[FigureJob]]:
     """Two shares of about equal cost (longest first, each to the lighter share), in the jobs' own order."""
     shares: tuple[list[FigureJob], list[FigureJob]] = ([], [])
@@ -66,10 +79,10 @@ def _read_all(fd: int) -> bytes:
 
 
 def draw(jobs: Sequence[FigureJob], parallel: bool | None = None) -> dict[str, Path]:
-    """Every job's path by name, in the jobs' order. parallel None: in a forked child too when this process may
-    use two cores and can fork; False: all here."""
+    """Every job's path by name, in the jobs' order. parallel None: in a forked child too when this process can
+    fork and a core is free for it (`spare_core`); False: all here."""
     if parallel is None:
-        parallel = len(jobs) > 1 and cores_available() > 1 and hasattr(os, "fork") and sys.platform != "darwin"
+        parallel = len(jobs) > 1 and hasattr(os, "fork") and sys.platform != "darwin" and spare_core()
     if not parallel or len(jobs) < 2:
         return _serial(jobs)
     theirs, ours = split(jobs)

@@ -81,3 +81,14 @@ def test_that_a_child_that_dies_has_its_share_drawn_here(tmp_path):
             FigureJob("good", _write, (tmp_path / "good.txt", "good"), cost_s=1.0)]
     drawn = draw(jobs, parallel=True)
     assert drawn["dies"].read_text() == "redrawn by parent" and drawn["good"].read_text() == "good by parent"
+
+
+def test_that_a_busy_machine_draws_in_one_process(tmp_path, monkeypatch):
+    """Two test workers on two cores: a child would only add its start-up to the load."""
+    import ground.figure_jobs as fj
+    jobs = [FigureJob(n, _write, (tmp_path / f"{n}.txt", n)) for n in "ab"]
+    monkeypatch.setattr(fj, "cores_available", lambda: 2)
+    monkeypatch.setattr(fj.os, "getloadavg", lambda: (1.5, 1.0, 1.0))
+    assert {p.read_text() for p in draw(jobs).values()} == {"a by parent", "b by parent"}
+    monkeypatch.setattr(fj.os, "getloadavg", lambda: (0.3, 1.0, 1.0))
+    assert {p.read_text().split(" by ")[1] for p in draw(jobs).values()} == {"parent", "child"}
