@@ -4,9 +4,9 @@ A report's figures are independent and CPU-bound (matplotlib holds the GIL while
 help): on the benchmark's 100k-sample survey they were 3.2 s of a 3.4 s report. A child forked from this process
 already has matplotlib and the survey's arrays in memory, so it starts in milliseconds; it draws its share, sends
 back the paths (or the exception it met) through a pipe and leaves with `os._exit`, running nothing of the
-parent's. It is forked only when a core is free for it (`spare_core`). Whatever goes wrong with the child (no
-fork on this platform, a child that dies) its share is drawn here instead: a slower report, never a missing
-figure.
+parent's. It is forked only from a process of one thread, when a core is free for it. Whatever goes wrong
+with the child (no fork on this platform, a child that dies) its share is drawn here instead: a slower report,
+never a missing figure.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from __future__ import annotations
 import os
 import pickle
 import sys
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +42,13 @@ def cores_available() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
         return os.cpu_count() or 1
+
+
+def fork_is_safe() -> bool:
+    """This platform forks, and this process runs one thread: a child forked beside other threads inherits any
+    lock they held at that instant (a stream's, say) and could wait on it for ever. A report made in a server's
+    request thread draws in one process."""
+    return hasattr(os, "fork") and sys.platform != "darwin" and threading.active_count() == 1
 
 
 def spare_core() -> bool:
@@ -80,9 +88,9 @@ def _read_all(fd: int) -> bytes:
 
 def draw(jobs: Sequence[FigureJob], parallel: bool | None = None) -> dict[str, Path]:
     """Every job's path by name, in the jobs' order. parallel None: in a forked child too when this process can
-    fork and a core is free for it (`spare_core`); False: all here."""
+    fork safely (`fork_is_safe`) and a core is free for it (`spare_core`); False: all here."""
     if parallel is None:
-        parallel = len(jobs) > 1 and hasattr(os, "fork") and sys.platform != "darwin" and spare_core()
+        parallel = len(jobs) > 1 and fork_is_safe() and spare_core()
     if not parallel or len(jobs) < 2:
         return _serial(jobs)
     theirs, ours = split(jobs)

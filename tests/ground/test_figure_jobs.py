@@ -87,8 +87,26 @@ def test_that_a_busy_machine_draws_in_one_process(tmp_path, monkeypatch):
     """Two test workers on two cores: a child would only add its start-up to the load."""
     import ground.figure_jobs as fj
     jobs = [FigureJob(n, _write, (tmp_path / f"{n}.txt", n)) for n in "ab"]
+    monkeypatch.setattr(fj, "fork_is_safe", lambda: True)  # a test worker runs threads of its own
     monkeypatch.setattr(fj, "cores_available", lambda: 2)
     monkeypatch.setattr(fj.os, "getloadavg", lambda: (1.5, 1.0, 1.0))
     assert {p.read_text() for p in draw(jobs).values()} == {"a by parent", "b by parent"}
     monkeypatch.setattr(fj.os, "getloadavg", lambda: (0.3, 1.0, 1.0))
     assert {p.read_text().split(" by ")[1] for p in draw(jobs).values()} == {"parent", "child"}
+
+
+def test_that_a_process_running_other_threads_draws_in_one_process(tmp_path, monkeypatch):
+    """A report made in a server's request thread: a child forked there could inherit a lock another thread held."""
+    import threading
+
+    import ground.figure_jobs as fj
+    monkeypatch.setattr(fj, "spare_core", lambda: True)
+    jobs = [FigureJob(n, _write, (tmp_path / f"{n}.txt", n)) for n in "ab"]
+    stop = threading.Event()
+    other = threading.Thread(target=stop.wait)
+    other.start()
+    try:
+        assert {p.read_text() for p in draw(jobs).values()} == {"a by parent", "b by parent"}
+    finally:
+        stop.set()
+        other.join()
