@@ -1,5 +1,6 @@
 """The calibration campaign's parts: its faults are valid SITL faults, its table marks what was applied."""
 
+import json
 import math
 
 import numpy as np
@@ -46,8 +47,8 @@ def test_that_the_plane_set_table_names_a_parameter_a_set_does_not_see():
 
 
 def test_that_every_case_has_its_own_run_folder():
-    cases = [Case(p, f, phase=k, seed=s, noise=m) for p in "12" for f in FAULTS for k in (0, 1) for s in (0, 1)
-             for m in SensorNoiseModel]
+    cases = [Case(p, f, phase=k, seed=s, noise=m, payload=pl) for p in "12" for f in FAULTS for k in (0, 1)
+             for s in (0, 1) for m in SensorNoiseModel for pl in ("firmware", "batch")]
     assert len({c.name for c in cases}) == len(cases)
     assert Case("1", "fault-free").name == "pile1-fault-free-k0-s0-p20"  # noise-free runs kept before stay valid
 
@@ -63,3 +64,14 @@ def test_that_a_noisy_flight_is_compared_with_the_fault_free_flight_of_the_same_
     text = table(rows)
     assert "| 2 | datasheet | servo offset 3 deg | 2.90 | 0.80 | +0.20 |" in text
     assert "| not applied: it holds the planes with points inside the building |" in text
+
+
+def test_that_a_batch_case_flies_its_fault_with_the_batch_payload(tmp_path):
+    """--payload batch: the same mounting fault, flown by the batch sampler (that it ranges as the firmware's emulated
+    devices do, and that the report finds the mount, is tests/sitl/runners/test_lockstep_payload.py's)."""
+    from tools.calibration_campaign import _flown
+    case = Case("1", "servo offset 3 deg", p_traj=0.3, payload="batch")
+    run = _flown(case, tmp_path)
+    assert run == tmp_path / case.name and case.name.endswith("-batch")
+    truth = json.loads((run / "truth.json").read_text())
+    assert truth["payload"] == "batch" and truth["faults"]["servo_offset_deg"] == 3.0
