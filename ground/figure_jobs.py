@@ -54,8 +54,8 @@ def fork_is_safe() -> bool:
 def spare_core() -> bool:
     """A core is free for a second process: on a machine already busy (a test suite, a campaign's workers) a child
     adds its start-up and its cold caches to the load and the report comes out later, not sooner (measured: 5 %
-    more CPU for the same reports with two test workers on two cores). The 1-minute load average lags, so a
-    burst just started is missed: then the report is as slow as drawn in one process, not slower."""
+    more CPU for the same reports with two test workers on two cores). The 1-minute load average lags: work started
+    seconds ago is missed, and the child then costs what it costs on a busy machine."""
     try:
         load = os.getloadavg()[0]
     except OSError:  # no load average on this platform: assume the machine is the report's
@@ -126,7 +126,10 @@ def draw(jobs: Sequence[FigureJob], parallel: bool | None = None) -> dict[str, P
         payload = _read_all(read_fd)
         os.close(read_fd)
         os.waitpid(pid, 0)
-    result = pickle.loads(payload) if payload else None
+    try:
+        result = pickle.loads(payload) if payload else None
+    except Exception:  # the child died half way through its word
+        result = None
     if isinstance(result, BaseException):
         raise result
     if not isinstance(result, dict):  # the child died before it could say: its share is drawn here

@@ -110,3 +110,10 @@ def test_that_a_process_running_other_threads_draws_in_one_process(tmp_path, mon
     finally:
         stop.set()
         other.join()
+
+
+def test_that_a_child_s_word_cut_short_has_its_share_drawn_here(tmp_path, monkeypatch):
+    import ground.figure_jobs as fj
+    monkeypatch.setattr(fj.pickle, "dumps", lambda _obj: b"\x80\x04\x95garbled")  # as if it died mid-write
+    jobs = [FigureJob(n, _write, (tmp_path / f"{n}.txt", n)) for n in "ab"]
+    assert {p.read_text() for p in draw(jobs, parallel=True).values()} == {"a by parent", "b by parent"}
