@@ -35,6 +35,7 @@ import numpy as np
 from firmware_py.core.cli import ExitCode, NoVolumeError
 from firmware_py.core.keys import load_key
 from firmware_py.core.rundir import PLAN_FILE, SAMPLES_FILE, TRUTH_FILE
+from firmware_py.core.samplelog import read_samplelog
 from ground.report import ReportOptions, header_geometry, make_report, read_log_input
 from sitl.mavlink.gcs import fly_plan
 from sitl.missions.rectangle import Mission
@@ -100,6 +101,30 @@ def wait_tcp(port: int, proc: subprocess.Popen, timeout_s: float, lines: StderrL
     raise RuntimeError(f"the SITL's device bridge did not open port {port} within {timeout_s:g} s")
 
 
+def _stamp(path: Path) -> tuple[int, int] | None:
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_ino, st.st_mtime_ns
+
+
+def wait_logging(log: Path, proc: subprocess.Popen, timeout_s: float, before: tuple[int, int] | None = None) -> None:
+    """Until the payload process has logged its first block: it opens its log only once its pose streams arrived,
+    so then it is tagging samples and the flight may start. A fixed wait raced the process's start-up on a loaded
+    machine (its log began after AUTO). before: the log's (inode, mtime) before the process started, so that an
+    older log at that path does not count."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if proc.poll() is not None:
+            raise RuntimeError(f"the payload exited early ({proc.returncode})")
+        stamp = _stamp(log)
+        if stamp is not None and stamp != before and len(read_samplelog(log).samples) > 0:
+            return
+        time.sleep(0.2)
+    raise RuntimeError(f"the payload logged nothing within {timeout_s:g} s")
+
+
 def _stop(proc: subprocess.Popen, timeout_s: float = 10.0) -> int:
     if proc.poll() is None:
         proc.terminate()
@@ -158,12 +183,13 @@ def fly_networked(mission_args: list[str], storage: str, stockpile: str, out: Pa
             sensor = ["--rangefinder", "tfmini", "--uart", f"serial:{pty}", "--pwm", f"pwm:tcp:127.0.0.1:{dev_port}:0"]
         else:
             sensor = ["--hal", f"sitl:127.0.0.1:{dev_port}"]
+        before = _stamp(out / SAMPLES_FILE)
         payload = subprocess.Popen([sys.executable, "-m", "firmware_py.cli", "--mavlink",
                                     f"udpout:127.0.0.1:{mav_port}", *sensor,
                                     "--out", str(out / SAMPLES_FILE), "--force", "--storage", storage,
                                     "--phase", str(phase), "--stop-on-disarm", "--quiet", *site_args, *keyed,
                                     *payload_args])
-        time.sleep(2.0)  # the payload's time sync and pose streams settle before take-off
+        wait_logging(out / SAMPLES_FILE, payload, 120.0, before)  # its time sync and pose streams settle first
         fly_plan(f"udpout:127.0.0.1:{mav_port}", out / PLAN_FILE, timeout_s, say=lambda m: say(f"  {m}"),
                  fly_s=flight_s, signing_key=key)
         if flight_s is None:
