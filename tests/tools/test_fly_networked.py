@@ -144,3 +144,31 @@ def test_that_a_networked_flight_at_a_turned_site_agrees_on_origin_and_frame(tmp
     one_slot_late = range_errors(log, world, good, good[1:], frame)
     assert np.median(err) < np.median(one_slot_late) / 2
     assert np.percentile(err, 90) < np.percentile(one_slot_late, 90) / 2
+
+
+def test_that_the_flight_waits_for_the_payloads_first_block_and_not_for_an_older_log(tmp_path):
+    """A fixed sleep raced the payload's start-up on a loaded machine; the wait is on what the payload wrote."""
+    import subprocess
+    import sys
+
+    from firmware_py.core.samplelog import SAMPLE_DTYPE, SampleLogWriter
+    from tools.fly_networked import _stamp, wait_logging
+
+    log = tmp_path / "samples.pslog"
+    with SampleLogWriter(log, {"note": "an older flight's"}, records_per_block=1, fsync=False) as w:
+        w.append(np.zeros(1, dtype=SAMPLE_DTYPE))
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        with pytest.raises(RuntimeError, match=r"logged nothing within 0\.5 s"):
+            wait_logging(log, proc, 0.5, _stamp(log))  # the older log does not count
+        log.unlink()
+        with SampleLogWriter(log, {"note": "this flight's"}, records_per_block=1, fsync=False) as w:
+            w.append(np.zeros(1, dtype=SAMPLE_DTYPE))
+        wait_logging(log, proc, 5.0, None)  # returns: a block is there
+    finally:
+        proc.kill()
+        proc.wait()
+    done = subprocess.Popen([sys.executable, "-c", "pass"])
+    done.wait()
+    with pytest.raises(RuntimeError, match="payload exited early"):
+        wait_logging(tmp_path / "none.pslog", done, 5.0, None)
