@@ -38,7 +38,7 @@ from ground.self_calibration import PLANE_SETS, estimate_mount, plane_set_errors
 from ground.servo_timing import Resimulated
 from sitl.faults.injector import FaultSpec
 from sitl.missions.rectangle import Mission
-from sitl.runners.fly import FlyConfig, fly
+from sitl.runners.fly import PAYLOADS, FlyConfig, fly
 from tools.doc_sections import write_section
 
 SECTION = "calibration-campaign"
@@ -168,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="comma-separated sensor noise models to fly everything with (default all three: Appendix A's "
                          "degree of pointing noise is where false corrections came from)")
     ap.add_argument("--runs", type=Path, default=None, help="keep the flights in this folder and reuse them")
-    ap.add_argument("--payload", choices=("firmware", "batch"), default="firmware",
+    ap.add_argument("--payload", choices=PAYLOADS, default="firmware",
                     help="firmware (default): the payload in the loop, its pose timing and modelled servo; batch: the "
                          "vectorised sampler (its flight about five times faster, a case 2.6 times: 3.9 s against "
                          "10.2 s), which flies the same mounting faults, with the ideal servo and the true pose")

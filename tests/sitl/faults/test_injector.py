@@ -194,31 +194,17 @@ def test_that_the_batch_payload_flies_the_mountings_faults_and_names_the_ones_it
     import json
 
     from sitl.cli import main
-    assert main(["fly", "--stockpile", "1", "--p-traj", "30", "--storage", "30x20x10", "--altitude", "9",
-                 "--plant", "ideal", "--fault", "boresight_deg=2", "--fault", "servo_offset_deg=3",
-                 "--out", str(tmp_path / "m")]) == 0
+    flight = ["fly", "--stockpile", "1", "--p-traj", "30", "--storage", "30x20x10", "--altitude", "9", "--plant",
+              "ideal"]
+    assert main([*flight, "--fault", "boresight_deg=2", "--fault", "servo_offset_deg=3", "--out",
+                 str(tmp_path / "m")]) == 0
     assert "faults injected: servo_offset_deg, boresight_deg" in capsys.readouterr().err
     truth = json.loads((tmp_path / "m" / "truth.json").read_text())
     assert truth["payload"] == "batch" and truth["faults"]["boresight_deg"] == 2.0
-    square = sample_flight_of(tmp_path / "m")
-    assert np.median(np.abs(square - read_samplelog(tmp_path / "m" / "samples.pslog").samples["range_m"])) > 0.05
+    assert main([*flight, "--out", str(tmp_path / "square"), "-q"]) == 0  # the same flight, mounted square
+    mounted, square = (read_samplelog(tmp_path / run / "samples.pslog").samples["range_m"] for run in ("m", "square"))
+    assert len(mounted) == len(square) and np.median(np.abs(mounted - square)) > 0.05
     assert main(["fly", "--stockpile", "1", "--p-traj", "30", "--plant", "ideal", "--fault", "boresight_deg=2",
                  "--fault", "servo_delay_ms=20", "--out", str(tmp_path / "b")]) == 2
     err = capsys.readouterr().err
     assert "servo_delay_ms needs the firmware payload" in err and "boresight_deg" in err
-
-
-def sample_flight_of(run) -> np.ndarray:
-    """The ranges the run's flight would have logged with a square mount (its trajectory sampled again)."""
-    import json
-
-    from firmware_py.core.storage import Storage
-    from sitl.runners.fly import fly_trajectory
-    from sitl.sensing.batch_sampler import sample_flight
-    from sitl.world.raycast import World
-    truth = json.loads((run / "truth.json").read_text())
-    storage = Storage(**truth["storage"])
-    cfg = FlyConfig(mission=Mission(storage=storage, p_traj=0.3, altitude_m=9.0), stockpile="1", plant="ideal")
-    world = World(storage, resolve("1", storage), max_range_m=cfg.lidar.max_range_m)
-    traj = fly_trajectory(cfg, None, world).trajectory
-    return sample_flight(traj, cfg.servo_waveform(), world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame)["range_m"]

@@ -42,14 +42,19 @@ def small_flight(tmp_path_factory):
     log = tmp_path_factory.mktemp("fil") / "samples.pslog"
     run = fly_firmware(cfg, log, log_header(cfg, cfg.servo_waveform()), latency_ms=(5, 30),
                        boot_offset_s=BOOT_OFFSET_S, tlog_path=log.with_name("telemetry.tlog"), faults=MOUNT)
+    return cfg, run, resampled(cfg, run, log, MOUNT), log
+
+
+def resampled(cfg: FlyConfig, run, log, mount: FaultSpec):
+    """The firmware flight's true trajectory sampled again by the batch path, with the servo model from the sweep's
+    start the program logged, through `mount`."""
     flown = FlownMission(run.true_t_s, run.true_states, 0.0, 0.0, True, [])
     world = World(cfg.mission.storage, piles.resolve("1", cfg.mission.storage))
     sweep_t0_s = read_samplelog(log).header["servo_drive"]["t0_s"]  # the program starts its sweep once synced
-    batch = sample_flight(flown.trajectory_at(run.records["t_s"]), cfg.servo_waveform(), world, cfg.lidar,
-                          cfg.lever_arm_body_m, cfg.frame, servo=ServoCalibration(), servo_t0_s=sweep_t0_s,
-                          servo_gain=MOUNT.servo_gain, servo_offset_rad=MOUNT.servo_offset_rad,
-                          boresight=MOUNT.boresight)
-    return cfg, run, batch, log
+    return sample_flight(flown.trajectory_at(run.records["t_s"]), cfg.servo_waveform(), world, cfg.lidar,
+                         cfg.lever_arm_body_m, cfg.frame, servo=ServoCalibration(), servo_t0_s=sweep_t0_s,
+                         servo_gain=mount.servo_gain, servo_offset_rad=mount.servo_offset_rad,
+                         boresight=mount.boresight)
 
 
 def test_that_the_firmware_flight_completes_at_500_hz_with_every_sample_posed(small_flight):
@@ -64,15 +69,12 @@ def test_that_the_firmware_flight_completes_at_500_hz_with_every_sample_posed(sm
 
 
 def test_that_firmware_and_batch_points_agree_to_2_cm_median(small_flight):
-    cfg, run, batch, _ = small_flight
+    cfg, run, batch, log = small_flight
     ok = (run.records["flags"] == 0) & (batch["flags"] == 0)
     assert ok.mean() > 0.7
     # Both ranged through the same wrong mount: the batch sampler square gives ranges a mount's worth apart.
     assert np.median(np.abs(run.records["range_m"][ok] - batch["range_m"][ok])) < 0.02
-    square = sample_flight(FlownMission(run.true_t_s, run.true_states, 0.0, 0.0, True, []).trajectory_at(
-        run.records["t_s"]), cfg.servo_waveform(), World(cfg.mission.storage, piles.resolve("1", cfg.mission.storage)),
-        cfg.lidar, cfg.lever_arm_body_m, cfg.frame, servo=ServoCalibration(),
-        servo_t0_s=read_samplelog(small_flight[3]).header["servo_drive"]["t0_s"])
+    square = resampled(cfg, run, log, FaultSpec())
     assert np.median(np.abs(run.records["range_m"][ok] - square["range_m"][ok])) > 0.05
     pf = cloud_from_samples(run.records[ok], cfg.lever_arm_body_m, cfg.frame).points_w
     pb = cloud_from_samples(batch[ok], cfg.lever_arm_body_m, cfg.frame).points_w
