@@ -604,6 +604,7 @@ class PayloadApp:
         self._status_prev: tuple[int, int] | None = None
         self._origin_sent = 0
         self.origin_disagreement: str | None = None  # set when the autopilot's EKF origin is not the one sent
+        self._origin_checked: tuple[int, int, int] | None = None  # the autopilot's origin last compared with ours
         self._next_origin_ns = 0
         self._close_errors: list[str] = []
         self._log_room_low = False  # the log's file system holds less than the flight (`log_room`)
@@ -1052,9 +1053,11 @@ class PayloadApp:
         origin compared with it once it says one."""
         if self._origin_sent and now >= self._next_origin_ns:
             self._send_origin(now)
-        if self.origin_disagreement is None and self.tracker is not None \
-                and self.tracker.autopilot_origin_e7 is not None:
-            self._check_origin(self.tracker.autopilot_origin_e7)
+        if self.origin_disagreement is None and self.tracker is not None:
+            theirs = self.tracker.autopilot_origin_e7
+            if theirs is not None and theirs != self._origin_checked:  # once per origin said, not every tick
+                self._origin_checked = theirs
+                self._check_origin(theirs)
 
     def _send_origin(self, now: int) -> None:
         """SET_GPS_GLOBAL_ORIGIN, again every few seconds until LOCAL_POSITION_NED arrives (a few tries)."""

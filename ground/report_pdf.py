@@ -1,30 +1,25 @@
-"""report.pdf: the page of report.html as A4 pages, composed with matplotlib (no browser needed).
+"""report.pdf: the page of report.html as A4 pages, typeset with fpdf2 (no browser needed).
 
 Built from the same `ReportContent` as report.md and report.html, in the same order, so the three cannot
 disagree on a number: the title block, the volume and verdict, the piles, the warnings, the map, 3D view and
 sections, then the engineer's details. The figures are the PNGs the report already wrote, placed
 unresampled (no second rendering). Text is real text, searchable and read back in tests with pypdf
-(`pdf_fonts`: the standard Helvetica when it can hold every character, else embedded TrueType).
+(`pdf_font`: the standard Helvetica when it can hold every character, else DejaVu Sans embedded).
 
-Why not headless Chromium's --print-to-pdf: the report command must run where no browser is installed
-(a site laptop, the Raspberry Pi's image), and a deliverable that looks different depending on which
-machine made it is worse than one plain layout everywhere. docs/design-notes.md has the reasoning.
+`compose` lays the pages out (pure: a list of `Page`s of placed lines and images, in inches from the page's top
+left corner); `write_pdf` draws them. Why not headless Chromium's --print-to-pdf: the report command must run where
+no browser is installed (a site laptop, the Raspberry Pi's image), and a deliverable that looks different depending
+on which machine made it is worse than one plain layout everywhere. docs/design-notes.md has the reasoning.
 """
 
 from __future__ import annotations
 
-import logging
+import enum
 import textwrap
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-
-import matplotlib
-import matplotlib.image as mpimg
-import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.backends.backend_pdf import PdfPages
-from matplotlib.figure import Figure
 
 from ground.render import (
     ENGINEER_NOTE,
@@ -54,18 +49,74 @@ BOLD_WIDTH = 1.1
 """Bold characters are about this much wider than regular ones."""
 CELL_PAD_IN = 0.12
 """Room left between a table's columns."""
+STANDARD_ENCODING = "cp1252"
+"""What the PDF's standard fonts can show (WinAnsiEncoding): text beyond it needs an embedded font."""
+
+
+class Align(enum.Enum):
+    """Where a line's x is: its left end or its centre."""
+    LEFT = "left"
+    CENTER = "center"
+
+
+@dataclass(frozen=True)
+class Line:
+    """One line of text on its baseline, baseline_in below the page's top edge."""
+    x_in: float
+    baseline_in: float
+    text: str
+    size_pt: float
+    bold: bool = False
+    color: str = "#000000"
+    align: Align = Align.LEFT
+
+
+@dataclass(frozen=True)
+class Picture:
+    """A PNG placed with its top left corner at (x_in, top_in), w_in by h_in."""
+    path: Path
+    x_in: float
+    top_in: float
+    w_in: float
+    h_in: float
+
+
+@dataclass
+class Page:
+    """One A4 page's lines and pictures, in the order they were laid out."""
+    lines: list[Line] = field(default_factory=list)
+    pictures: list[Picture] = field(default_factory=list)
+
+
+class PdfFont(enum.Enum):
+    """The font every line is set in: the standard Helvetica (nothing embedded) or DejaVu Sans, embedded."""
+    STANDARD = "helvetica"
+    EMBEDDED = "dejavu"
+
+
+def png_size_px(path: Path) -> tuple[int, int] | None:
+    """An image's (width, height) in pixels, its chunks' checksums verified, or None when it cannot be read (gone,
+    truncated, not an image): the page then says so instead of failing the whole PDF."""
+    from PIL import Image, UnidentifiedImageError
+    try:
+        with Image.open(path) as im:
+            size = im.size
+            im.verify()
+    except (OSError, ValueError, SyntaxError, UnidentifiedImageError):
+        return None
+    return size if size[0] > 0 and size[1] > 0 else None
 
 
 class _Pages:
     """A top-to-bottom flow of text lines, tables and images over A4 pages (figure coordinates in inches)."""
 
     def __init__(self) -> None:
-        self.pages: list[Figure] = []
+        self.pages: list[Page] = []
         self.y_in = 0.0
         self.new_page()
 
     @property
-    def fig(self) -> Figure:
+    def page(self) -> Page:
         return self.pages[-1]
 
     @property
@@ -73,34 +124,32 @@ class _Pages:
         return A4_IN[0] - 2 * MARGIN_IN
 
     def new_page(self) -> None:
-        fig = Figure(figsize=A4_IN)
-        FigureCanvasAgg(fig)
-        self.pages.append(fig)
+        self.pages.append(Page())
         self.y_in = MARGIN_IN
 
     def _room(self, height_in: float) -> None:
         if self.y_in + height_in > A4_IN[1] - MARGIN_IN and self.y_in > MARGIN_IN:
             self.new_page()
 
-    def _put(self, x_in: float, text: str, size: float, dy_in: float = 0.0, **kw) -> None:
+    def _put(self, x_in: float, text: str, size: float, dy_in: float = 0.0, bold: bool = False,
+             color: str = "#000000") -> None:
         """One line of text at x_in, dy_in below the current line's top."""
         # On a baseline ASCENT_EM below the line's top, not aligned by its top: the top of a line is its tallest
         # glyph's, and with the standard fonts' metrics an apostrophe reaches 4 pt higher than a letter, which dropped
         # a line that held one half a line below its neighbours.
         baseline_in = self.y_in + dy_in + ASCENT_EM * size / PT_PER_IN
-        self.fig.text(x_in / A4_IN[0], 1.0 - baseline_in / A4_IN[1], text, fontsize=size, va="baseline", ha="left",
-                      **kw)
+        self.page.lines.append(Line(x_in, baseline_in, text, size, bold, color))
 
     def space(self, height_in: float) -> None:
         self.y_in += height_in
 
     def lines(self, text: str, size: float = BODY_PT, x_in: float = 0.0, width_in: float | None = None,
-              **kw) -> None:
-        """Wrapped text, one matplotlib text per line so a paragraph can break across pages."""
+              bold: bool = False, color: str = "#000000") -> None:
+        """Wrapped text, placed a line at a time so a paragraph can break across pages."""
         width = (self.width_in - x_in) if width_in is None else width_in
         for line in wrap(text, width, size) or [""]:
             self._room(size * LINE_FACTOR / PT_PER_IN)
-            self._put(MARGIN_IN + x_in, line, size, **kw)
+            self._put(MARGIN_IN + x_in, line, size, bold=bold, color=color)
             self.y_in += size * LINE_FACTOR / PT_PER_IN
 
     def bullet(self, mark: str, text: str, size: float = BODY_PT, x_in: float = 0.0) -> None:
@@ -117,7 +166,7 @@ class _Pages:
         """keep_in: the height of what must follow the heading on its page (a figure's)."""
         self._room(4 * size / PT_PER_IN + keep_in)  # never a heading alone at the foot of a page
         self.space(0.5 * size / PT_PER_IN)
-        self.lines(text, size, fontweight="bold")
+        self.lines(text, size, bold=True)
         self.space(0.2 * size / PT_PER_IN)
 
     def table(self, header: Sequence[str] | None, rows: Sequence[Sequence[str]], widths_in: Sequence[float],
@@ -134,8 +183,7 @@ class _Pages:
             x = MARGIN_IN
             for lines, w in zip(wrapped, widths_in, strict=True):
                 for i, line in enumerate(lines):  # a line at a time, on the page's line grid
-                    self._put(x, line, size, i * size * LINE_FACTOR / PT_PER_IN,
-                              fontweight="bold" if bold else "normal")
+                    self._put(x, line, size, i * size * LINE_FACTOR / PT_PER_IN, bold=bold)
                 x += w
             self.y_in += h + 0.03
         if header is not None:
@@ -144,8 +192,8 @@ class _Pages:
         for r in rows:
             row(r, False)
 
-    def _image_size_in(self, img: np.ndarray, max_height_in: float) -> tuple[float, float]:
-        h_px, w_px = img.shape[:2]
+    def _image_size_in(self, size_px: tuple[int, int], max_height_in: float) -> tuple[float, float]:
+        w_px, h_px = size_px
         w_in = self.width_in
         h_in = w_in * h_px / w_px
         if h_in > max_height_in:
@@ -154,36 +202,31 @@ class _Pages:
 
     def image_height_in(self, path: Path, caption: str, max_height_in: float) -> float:
         """The height `image` takes for this PNG and caption (0 when it cannot be read)."""
-        try:
-            img = mpimg.imread(path)
-        except (OSError, ValueError, SyntaxError):
+        size = png_size_px(path)
+        if size is None:
             return 0.0
         cap_in = len(wrap(caption, self.width_in, SMALL_PT)) * SMALL_PT * LINE_FACTOR / PT_PER_IN
-        return self._image_size_in(img, max_height_in)[1] + cap_in + 0.1
+        return self._image_size_in(size, max_height_in)[1] + cap_in + 0.1
 
     def image(self, path: Path, caption: str, max_height_in: float) -> None:
         """The PNG at the page's width (or max_height_in tall), unresampled, with its caption under it."""
-        try:
-            img = mpimg.imread(path)
-        except (OSError, ValueError, SyntaxError):
-            self.lines(f"Image not found: {caption} ({path.name})", SMALL_PT, color="#a00000")
+        size = png_size_px(path)
+        if size is None:
+            self.lines(f"Image not found: {caption} ({Path(path).name})", SMALL_PT, color="#a00000")
             return
-        w_in, h_in = self._image_size_in(img, max_height_in)
+        w_in, h_in = self._image_size_in(size, max_height_in)
         cap_in = len(wrap(caption, self.width_in, SMALL_PT)) * SMALL_PT * LINE_FACTOR / PT_PER_IN
         self._room(h_in + cap_in + 0.1)
-        x0 = MARGIN_IN + (self.width_in - w_in) / 2
-        ax = self.fig.add_axes((x0 / A4_IN[0], 1.0 - (self.y_in + h_in) / A4_IN[1], w_in / A4_IN[0], h_in / A4_IN[1]))
-        ax.imshow(img, interpolation="none")
-        ax.set_axis_off()
+        self.page.pictures.append(Picture(Path(path), MARGIN_IN + (self.width_in - w_in) / 2, self.y_in, w_in, h_in))
         self.y_in += h_in + 0.05
         self.lines(caption, SMALL_PT, color="#555555")
         self.space(0.1)
 
     def number_pages(self) -> None:
         n = len(self.pages)
-        for i, fig in enumerate(self.pages, start=1):
-            fig.text(0.5, MARGIN_IN / 2 / A4_IN[1], f"{REPORT_TITLE} · page {i} of {n}", ha="center",
-                     fontsize=SMALL_PT, color="#555555")
+        for i, page in enumerate(self.pages, start=1):
+            page.lines.append(Line(A4_IN[0] / 2, A4_IN[1] - MARGIN_IN / 2, f"{REPORT_TITLE} · page {i} of {n}",
+                                   SMALL_PT, color="#555555", align=Align.CENTER))
 
 
 def wrap(text: str, width_in: float, size_pt: float) -> list[str]:
@@ -203,15 +246,15 @@ def _pile_widths(n_cols: int, width_in: float) -> list[float]:
     return [0.8, 0.8, *([rest] * (n_cols - 2))]
 
 
-def compose(content: ReportContent) -> list[Figure]:
+def compose(content: ReportContent) -> list[Page]:
     """The report's A4 pages, in the page's order (see `ground.render.render_html`)."""
     p = _Pages()
-    p.lines(REPORT_TITLE, 18.0, fontweight="bold")
+    p.lines(REPORT_TITLE, 18.0, bold=True)
     p.space(0.1)
     if content.metadata:
         p.table(None, content.metadata, [1.6, p.width_in - 1.6])
     p.space(0.1)
-    p.lines(content.headline, 12.0, fontweight="bold")
+    p.lines(content.headline, 12.0, bold=True)
     if content.verdict:
         p.lines(f"Verdict: {content.verdict}", 10.0)
     if content.to_narrow:
@@ -261,31 +304,57 @@ def compose(content: ReportContent) -> list[Figure]:
     return p.pages
 
 
-def pdf_fonts(pages: Sequence[Figure]) -> dict[str, Any]:
-    """The PDF's fonts: the standard Helvetica when every character is in its encoding (cp1252: nothing to
-    embed, half the PDF's cost), else DejaVu Sans embedded as TrueType (any script, searchable)."""
+def pdf_font(pages: Sequence[Page]) -> PdfFont:
+    """The PDF's font: the standard Helvetica when every character is in its encoding (cp1252: nothing to embed, a
+    tenth of the PDF's cost), else DejaVu Sans embedded (any script the font holds, searchable)."""
     try:
-        for fig in pages:
-            for t in fig.texts:
-                t.get_text().encode("cp1252")
+        for page in pages:
+            for line in page.lines:
+                line.text.encode(STANDARD_ENCODING)
     except UnicodeEncodeError:
-        return {"pdf.fonttype": 42, "pdf.use14corefonts": False}
-    return {"pdf.use14corefonts": True, "font.family": "sans-serif", "font.sans-serif": ["Helvetica"]}
+        return PdfFont.EMBEDDED
+    return PdfFont.STANDARD
+
+
+def _dejavu(bold: bool) -> Path:
+    """DejaVu Sans as matplotlib ships it (a dependency of the ground station already: no font to install)."""
+    import matplotlib
+    return Path(matplotlib.get_data_path()) / "fonts" / "ttf" / ("DejaVuSans-Bold.ttf" if bold else "DejaVuSans.ttf")
+
+
+def _rgb(color: str) -> tuple[int, int, int]:
+    return int(color[1:3], 16), int(color[3:5], 16), int(color[5:7], 16)
+
+
+def draw(pages: Sequence[Page], out: Path) -> None:
+    """Draw the laid-out pages into a PDF file with fpdf2 (inches, from the top left corner)."""
+    from fpdf import FPDF
+    pdf = FPDF(unit="in", format="A4")
+    pdf.set_auto_page_break(False)
+    pdf.set_margin(0)
+    pdf.set_title(REPORT_TITLE)
+    pdf.set_creator("pilescan")
+    font = pdf_font(pages)
+    if font is PdfFont.EMBEDDED:
+        pdf.add_font(font.value, "", _dejavu(False))
+        pdf.add_font(font.value, "B", _dejavu(True))
+    else:
+        pdf.core_fonts_encoding = STANDARD_ENCODING
+    for page in pages:
+        pdf.add_page()
+        for pic in page.pictures:
+            pdf.image(str(pic.path), x=pic.x_in, y=pic.top_in, w=pic.w_in, h=pic.h_in)
+        for line in page.lines:
+            pdf.set_font(font.value, "B" if line.bold else "", line.size_pt)
+            pdf.set_text_color(*_rgb(line.color))
+            x = line.x_in if line.align is Align.LEFT else line.x_in - pdf.get_string_width(line.text) / 2
+            pdf.text(x, line.baseline_in, line.text)
+    pdf.output(str(out))
 
 
 def write_pdf(report: Mapping[str, Any], images: ImageMap | None, out_path: str | Path) -> Path:
     """Write report.pdf (A4, searchable text) with the content of report.html, and return its path."""
     out = Path(out_path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    content = build_content(report, images)
-    pages = compose(content)
-    fm_log = logging.getLogger("matplotlib.font_manager")
-    level = fm_log.level
-    fm_log.setLevel(logging.ERROR)  # "Failed to find font weight normal for Helvetica, now using medium": the same
-    try:
-        with matplotlib.rc_context(pdf_fonts(pages)), PdfPages(out, metadata={"Title": REPORT_TITLE}) as pdf:
-            for fig in pages:
-                pdf.savefig(fig)
-    finally:
-        fm_log.setLevel(level)
+    draw(compose(build_content(report, images)), out)
     return out

@@ -89,13 +89,13 @@ def test_that_a_warning_of_many_clauses_is_a_bulleted_headline_with_its_clauses_
     warning = "pose corrected: 0.14 m (0.20 max; over time); " + "; ".join(f"clause {i} " + "word " * 30
                                                                          for i in range(3))
     pages = report_pdf.compose(build_content({"volume_m3": 1.0, "warnings": [warning]}, None))
-    texts = [t for fig in pages for t in fig.texts]
-    head = next(t for t in texts if t.get_text() == "pose corrected: 0.14 m (0.20 max; over time)")
-    marks = [t for t in texts if t.get_text() == "–"]
+    texts = [t for page in pages for t in page.lines]
+    head = next(t for t in texts if t.text == "pose corrected: 0.14 m (0.20 max; over time)")
+    marks = [t for t in texts if t.text == "–"]
     assert len(marks) == 3  # one mark per clause, however many lines each wraps to
-    lines = [t for t in texts if t.get_text().startswith(("clause", "word"))]
-    assert len(lines) > 3 and len({round(t.get_position()[0], 6) for t in lines}) == 1  # wrapped lines hang level
-    assert lines[0].get_position()[0] > marks[0].get_position()[0] > head.get_position()[0] - 1e-9
+    lines = [t for t in texts if t.text.startswith(("clause", "word"))]
+    assert len(lines) > 3 and len({round(t.x_in, 6) for t in lines}) == 1  # wrapped lines hang level
+    assert lines[0].x_in > marks[0].x_in > head.x_in - 1e-9
 
 
 def test_that_every_line_sits_on_one_grid_whatever_glyphs_it_holds():
@@ -103,16 +103,16 @@ def test_that_every_line_sits_on_one_grid_whatever_glyphs_it_holds():
     p.lines("the floor's level")  # an apostrophe reaches higher than any letter in the standard fonts' metrics
     p.lines("a plain line")
     p.table(("Quantity", "Value"), [("Pose source", "position " * 24), ("next", "row")], [2.0, 2.0])
-    texts = p.fig.texts
-    assert all(t.get_va() == "baseline" and "\n" not in t.get_text() for t in texts)  # a line at a time
-    step = report_pdf.BODY_PT * report_pdf.LINE_FACTOR / report_pdf.PT_PER_IN / report_pdf.A4_IN[1]
-    y = [t.get_position()[1] for t in texts]
-    assert y[0] - y[1] == pytest.approx(step)
-    value_lines = [t for t in texts if t.get_text().startswith("position")]
-    assert len(value_lines) > 1 and all(a.get_position()[1] - b.get_position()[1] == pytest.approx(step)
+    texts = p.page.lines
+    assert all("\n" not in t.text for t in texts)  # a line at a time, each on its baseline
+    step = report_pdf.BODY_PT * report_pdf.LINE_FACTOR / report_pdf.PT_PER_IN
+    y = [t.baseline_in for t in texts]  # inches down from the page's top
+    assert y[1] - y[0] == pytest.approx(step)
+    value_lines = [t for t in texts if t.text.startswith("position")]
+    assert len(value_lines) > 1 and all(b.baseline_in - a.baseline_in == pytest.approx(step)
                                         for a, b in itertools.pairwise(value_lines))
-    nxt = next(t for t in texts if t.get_text() == "next")
-    assert nxt.get_position()[1] < value_lines[-1].get_position()[1] - step * 0.99  # the next row below the cell
+    nxt = next(t for t in texts if t.text == "next")
+    assert nxt.baseline_in > value_lines[-1].baseline_in + step * 0.99  # the next row below the cell
 
 
 def test_that_wrapping_keeps_every_word_and_fits_the_width():
@@ -138,8 +138,10 @@ def test_that_text_beyond_the_standard_fonts_is_embedded_and_still_reads_back(tm
     """Helvetica (nothing embedded) covers cp1252 only; a Cyrillic site name needs the embedded TrueType."""
     latin = {"volume_m3": 1.0, "metadata": {"site_name": "Zürich Süd – bay 3"}}
     cyrillic = {"volume_m3": 1.0, "metadata": {"site_name": "Склад 3"}}
-    assert report_pdf.pdf_fonts(report_pdf.compose(build_content(latin, None)))["pdf.use14corefonts"]
-    assert not report_pdf.pdf_fonts(report_pdf.compose(build_content(cyrillic, None)))["pdf.use14corefonts"]
-    for rep in (latin, cyrillic):
-        _, pages = read(report_pdf.write_pdf(rep, None, tmp_path / "r.pdf"))
+    assert report_pdf.pdf_font(report_pdf.compose(build_content(latin, None))) is report_pdf.PdfFont.STANDARD
+    assert report_pdf.pdf_font(report_pdf.compose(build_content(cyrillic, None))) is report_pdf.PdfFont.EMBEDDED
+    for rep, embedded in ((latin, False), (cyrillic, True)):
+        r, pages = read(report_pdf.write_pdf(rep, None, tmp_path / "r.pdf"))
         assert rep["metadata"]["site_name"] in pages[0]
+        fonts = {f["/BaseFont"] for p in r.pages for f in p["/Resources"]["/Font"].values()}
+        assert ("Helvetica" in str(fonts)) is not embedded and ("DejaVu" in str(fonts)) is embedded
