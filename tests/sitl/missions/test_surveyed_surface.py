@@ -66,6 +66,42 @@ def test_that_a_beam_stops_at_the_first_surface_and_a_beam_into_a_wall_meets_not
     assert np.isnan(r[2])  # leaves the floor through the west wall before meeting anything
 
 
+def _marched(o, d, field, step_m):
+    """Every beam marched alone in steps of step_m from where it comes below the highest surface (the definition)."""
+    hits, rng = np.full((len(o), 3), np.nan), np.full(len(o), np.nan)
+    for i in range(len(o)):
+        down = -d[i, 2]
+        r0, r_floor, k = max(0.0, (o[i, 2] - field.max_height_m) / down), o[i, 2] / down, 0
+        while True:
+            r = min(r0 + k * step_m, r_floor)
+            p = o[i] + r * d[i]
+            if not (0 <= p[0] <= field.length_m and 0 <= p[1] <= field.width_m):
+                break
+            if p[2] <= field.height_at(p[:1], p[1:2])[0] + 1e-9:
+                hits[i], rng[i] = p, r
+                break
+            if r >= r_floor:
+                break
+            k += 1
+    return hits, rng
+
+
+def test_that_beams_over_bare_floor_land_where_marching_them_lands_without_being_marched():
+    rng = np.random.default_rng(1)
+    h = np.zeros((120, 80))
+    h[10:40, 20:50] = rng.uniform(0, 5, (30, 30))  # a rough heap
+    h[70:75, :] = 3.0  # a bank wall to wall
+    field = HeightField(h, 30.0, 20.0)
+    n = 3000
+    o = np.column_stack([rng.uniform(-1, 31, n), rng.uniform(-1, 21, n), rng.uniform(5, 9, n)])
+    g, az = rng.uniform(-1.2, 1.2, n), rng.uniform(0, 2 * np.pi, n)
+    d = np.column_stack([np.sin(g) * np.cos(az), np.sin(g) * np.sin(az), -np.cos(g)])
+    hits, r = first_hits_w(o, d, field, 0.125)
+    ref_hits, ref_r = _marched(o, d, field, 0.125)
+    assert np.array_equal(r, ref_r, equal_nan=True) and np.array_equal(hits, ref_hits, equal_nan=True)
+    assert 0.2 * n < np.isfinite(r).sum() < n and np.isnan(r).sum() > 0.1 * n  # floor, heap, bank and walls all met
+
+
 def test_that_material_on_the_surface_shadows_floor_the_empty_floor_model_counts():
     m = LoopPlan((4.0, 6.0, 4.0, 6.0), speed_m_s=2.0).mission(SMALL, 8.0, math.radians(30))
     flat = predict_coverage(m, WF, LIDAR, LIDARLITE_V3.rate_hz)
