@@ -150,11 +150,12 @@ def survey_pile_1(spec: ScannerSpec, seed: int) -> tuple[float, int]:
 
 
 @pytest.mark.parametrize("spec", [
-    HOKUYO_UTM_30LX,
-    # Test-only thinning of the 3D LiDAR: 2 deg azimuth steps, 28,800 points/s instead of 288,000
-    # (the full rate takes ~20 s: run by hand).
+    # Test-only thinning of both: the 2D LiDAR at 1 deg steps, 10,810 points/s instead of 43,240 (Ve 0.06 %
+    # against 0.01 % at the full rate, which takes three times as long), the 3D LiDAR at 2 deg azimuth steps, 28,800
+    # points/s instead of 288,000 (the full rate takes ~20 s: run by hand).
+    dataclasses.replace(HOKUYO_UTM_30LX, step_deg=1.0),
     dataclasses.replace(VELODYNE_PUCK_LITE, step_deg=2.0),
-], ids=["2d", "3d-thinned"])
+], ids=["2d-thinned", "3d-thinned"])
 def test_that_the_comparison_lidars_measure_pile_1_at_p_traj_20_within_3_percent(spec):
     ve, _ = survey_pile_1(spec, seed=11)
     assert ve < 3.0
