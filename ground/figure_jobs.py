@@ -51,16 +51,29 @@ def fork_is_safe() -> bool:
     return hasattr(os, "fork") and sys.platform != "darwin" and threading.active_count() == 1
 
 
+LOADAVG = Path("/proc/loadavg")
+
+
+def others_running() -> float:
+    """How many other tasks want a core now: Linux's count of runnable tasks (`/proc/loadavg`'s fourth field) less
+    this process, or elsewhere the 1-minute load average. Not the load average where the count is there: it lags a
+    minute, so work started seconds ago is missed, and it counts this process itself once it has been busy (a
+    benchmark's or a campaign's reports, one after another, then read their own load as a busy machine)."""
+    try:
+        return max(0.0, float(LOADAVG.read_text().split()[3].split("/")[0]) - 1.0)
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.getloadavg()[0]
+    except OSError:  # no load average on this platform: assume the machine is the report's
+        return 0.0
+
+
 def spare_core() -> bool:
     """A core is free for a second process: on a machine already busy (a test suite, a campaign's workers) a child
     adds its start-up and its cold caches to the load and the report comes out later, not sooner (measured: 5 %
-    more CPU for the same reports with two test workers on two cores). The 1-minute load average lags: work started
-    seconds ago is missed, and the child then costs what it costs on a busy machine."""
-    try:
-        load = os.getloadavg()[0]
-    except OSError:  # no load average on this platform: assume the machine is the report's
-        load = 0.0
-    return cores_available() - load >= 1.0
+    more CPU for the same reports with two test workers on two cores)."""
+    return cores_available() - others_running() >= 1.0
 
 
 def split(jobs: Sequence[FigureJob]) -> tuple[list[FigureJob], list[FigureJob]]:

@@ -89,10 +89,24 @@ def test_that_a_busy_machine_draws_in_one_process(tmp_path, monkeypatch):
     jobs = [FigureJob(n, _write, (tmp_path / f"{n}.txt", n)) for n in "ab"]
     monkeypatch.setattr(fj, "fork_is_safe", lambda: True)  # a test worker runs threads of its own
     monkeypatch.setattr(fj, "cores_available", lambda: 2)
-    monkeypatch.setattr(fj.os, "getloadavg", lambda: (1.5, 1.0, 1.0))
+    loadavg = tmp_path / "loadavg"
+    monkeypatch.setattr(fj, "LOADAVG", loadavg)
+    loadavg.write_text("0.10 0.20 0.30 3/412 12345\n")  # this process and two others runnable
     assert {p.read_text() for p in draw(jobs).values()} == {"a by parent", "b by parent"}
-    monkeypatch.setattr(fj.os, "getloadavg", lambda: (0.3, 1.0, 1.0))
+    loadavg.write_text("1.90 1.80 1.70 1/412 12345\n")  # this process alone, however busy it was a minute ago
     assert {p.read_text().split(" by ")[1] for p in draw(jobs).values()} == {"parent", "child"}
+
+
+def test_that_without_a_runnable_count_the_load_average_says_whether_a_core_is_free(tmp_path, monkeypatch):
+    import ground.figure_jobs as fj
+    monkeypatch.setattr(fj, "cores_available", lambda: 2)
+    monkeypatch.setattr(fj, "LOADAVG", tmp_path / "absent")
+    monkeypatch.setattr(fj.os, "getloadavg", lambda: (1.5, 1.0, 1.0))
+    assert not fj.spare_core()
+    monkeypatch.setattr(fj.os, "getloadavg", lambda: (0.3, 1.0, 1.0))
+    assert fj.spare_core()
+    (tmp_path / "absent").write_text("garbage\n")  # unreadable: the same fallback
+    assert fj.spare_core()
 
 
 def test_that_a_process_running_other_threads_draws_in_one_process(tmp_path, monkeypatch):
