@@ -329,6 +329,7 @@ def _rgb(color: str) -> tuple[int, int, int]:
 def draw(pages: Sequence[Page], out: Path) -> None:
     """Draw the laid-out pages into a PDF file with fpdf2 (inches, from the top left corner)."""
     from fpdf import FPDF
+    from fpdf.errors import FPDFException
     pdf = FPDF(unit="in", format="A4")
     pdf.set_auto_page_break(False)
     pdf.set_margin(0)
@@ -342,9 +343,14 @@ def draw(pages: Sequence[Page], out: Path) -> None:
         pdf.core_fonts_encoding = STANDARD_ENCODING
     for page in pages:
         pdf.add_page()
+        lines = list(page.lines)
         for pic in page.pictures:
-            pdf.image(str(pic.path), x=pic.x_in, y=pic.top_in, w=pic.w_in, h=pic.h_in)
-        for line in page.lines:
+            try:
+                pdf.image(str(pic.path), x=pic.x_in, y=pic.top_in, w=pic.w_in, h=pic.h_in)
+            except (OSError, ValueError, SyntaxError, FPDFException) as exc:  # read, yet not placeable: said, not fatal
+                lines.append(Line(pic.x_in, pic.top_in + SMALL_PT / PT_PER_IN, f"Image could not be placed: "
+                                  f"{pic.path.name} ({type(exc).__name__})", SMALL_PT, color="#a00000"))
+        for line in lines:
             pdf.set_font(font.value, "B" if line.bold else "", line.size_pt)
             pdf.set_text_color(*_rgb(line.color))
             x = line.x_in if line.align is Align.LEFT else line.x_in - pdf.get_string_width(line.text) / 2

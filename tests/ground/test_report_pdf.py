@@ -85,6 +85,23 @@ def test_that_a_missing_image_is_said_in_the_pdf(tmp_path):
     assert "Image not found" in "\n".join(pages) and "gone.png" in "\n".join(pages)
 
 
+def test_that_an_image_the_pdf_writer_cannot_place_is_said_and_the_rest_is_written(tmp_path, images, monkeypatch):
+    import fpdf
+    real = fpdf.FPDF.image
+
+    def image(self, name, *a, **kw):
+        if str(name).endswith("sections.png"):
+            raise fpdf.errors.FPDFException("unsupported PNG")
+        return real(self, name, *a, **kw)
+
+    monkeypatch.setattr(fpdf.FPDF, "image", image)
+    r, pages = read(report_pdf.write_pdf(a_report(), images, tmp_path / "r.pdf"))
+    text = "\n".join(pages)
+    assert "Image could not be placed: sections.png (FPDFException)" in text and "page 1 of" in pages[0]
+    drawn = [re.findall(r"/(\w+)\s+Do\b", p.get_contents().get_data().decode("latin-1")) for p in r.pages]
+    assert sum(len(d) for d in drawn) == len(images) - 1  # every other figure placed
+
+
 def test_that_a_warning_of_many_clauses_is_a_bulleted_headline_with_its_clauses_hanging_under_it(tmp_path):
     warning = "pose corrected: 0.14 m (0.20 max; over time); " + "; ".join(f"clause {i} " + "word " * 30
                                                                          for i in range(3))
