@@ -14,6 +14,7 @@ from ground.base import (
     MIN_FLOOR_POINTS,
     BaseKind,
     BaseSpec,
+    binomial_tail,
     fit_floor_plane,
     fitted_floor_base,
     points_below,
@@ -271,3 +272,11 @@ def test_that_a_report_reads_back_its_own_surface_and_uses_it_as_a_base(tmp_path
     assert b["kind"] == "fitted-floor" and b["tilt_deg"] < 5.0 and b["n_floor_points"] >= MIN_FLOOR_POINTS
     assert fitted["volume_m3"] == pytest.approx(b["above_m3"] - b["below_m3"])
     assert "a plane fitted to the floor" in (tmp_path / "r3" / "report.md").read_text()
+
+
+def test_that_the_binomial_tail_is_scipy_stats_survival_function_without_importing_it():
+    from scipy.stats import binom  # here only: the ground station does not import scipy.stats
+    for k, n, p in [(1, 10, 0.1), (3, 200, 0.00135), (50, 60_000, 0.00135), (7, 7, 0.5), (0, 5, 0.2), (9, 4, 0.3),
+                    (1, 0, 0.2)]:
+        expected = float(binom.sf(k - 1, n, p)) if k > 0 else 1.0
+        assert binomial_tail(k, n, p) == pytest.approx(expected, rel=1e-12, abs=1e-300)

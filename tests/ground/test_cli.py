@@ -187,3 +187,13 @@ def test_that_quiet_prints_nothing_and_the_default_prints_the_summary_and_where(
     assert cap.out.startswith("volume ") and cap.err.startswith(f"pilescan-ground: report written to {tmp_path / 'b'}")
     assert main(["-q", "report", str(run_dir), "--out", str(tmp_path / "c"), "--no-plots"]) == 0
     assert capsys.readouterr() == ("", "")
+
+
+def test_that_the_ground_command_starts_without_scipy_stats_or_signal():
+    """scipy.stats (which scipy.signal imports) took 0.8 s of the command's start-up for two functions scipy.special
+    holds; every `pilescan-ground` call paid it."""
+    import subprocess
+    import sys
+    code = "import sys, ground.cli; print(sorted(m for m in ('scipy.stats', 'scipy.signal') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"

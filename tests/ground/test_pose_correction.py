@@ -20,6 +20,7 @@ from ground.pose_correction import (
     PoseCorrectionOptions,
     ambiguous_walls,
     apply_pose_correction,
+    chi2_quantile,
     estimate_pose_correction,
     is_drift,
     level_sigma_m,
@@ -1127,3 +1128,9 @@ def test_that_the_report_anchors_on_a_floor_seen_in_the_open_only_for_a_rangefin
         header = {} if params is None else {"autopilot_params": params}
         report._pose_of(new_records(0), None, header, LEVER, FRAME, STORAGE, err, taken_out)
         assert seen[-1].open_floor is expected, (params, taken_out)
+
+
+def test_that_the_chi_square_quantile_is_scipy_stats_own():
+    from scipy.stats import chi2  # here only: the ground station does not import scipy.stats
+    for level, dof in [(0.99, 1), (0.99, 60), (0.95, 132), (0.5, 7)]:
+        assert chi2_quantile(level, dof) == float(chi2.ppf(level, dof))
