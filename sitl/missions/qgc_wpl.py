@@ -27,27 +27,34 @@ DEFAULT_ORIGIN = DEFAULT_SITE.corner.as_tuple()
 """lat, lon (deg), altitude AMSL (m) of the local NED origin when no site is given; the SITL server's too."""
 
 
-def plan_rows(mission: Mission, frame: StorageFrame, origin=DEFAULT_ORIGIN) -> list[list[float]]:
-    """Rows of (frame, command, p1..p4, x/lat, y/lon, z/alt) for the survey."""
+def plan_rows(mission: Mission, frame: StorageFrame, origin=DEFAULT_ORIGIN,
+              takeoff_w: tuple[float, float] | None = None) -> list[list[float]]:
+    """Rows of (frame, command, p1..p4, x/lat, y/lon, z/alt) for the survey. Home and the take-off are on W0, or at
+    takeoff_w (W, m: clear floor away from it), and then W0 is the first waypoint."""
     lat0, lon0, alt0 = origin
     wp = mission.waypoints_w()
     ned = frame.w_to_ned(np.column_stack([wp, np.zeros(len(wp))]))
     floor_d = float(ned[0, 2])
     ll = [ned_to_global(float(n), float(e), lat0, lon0) for n, e, _ in ned]
-    rows = [[MAV_FRAME_GLOBAL, MAV_CMD_NAV_WAYPOINT, 0, 0, 0, 0, ll[0][0], ll[0][1], alt0 - floor_d]]
+    home, first = ll[0], 1
+    if takeoff_w is not None:
+        t = frame.w_to_ned([takeoff_w[0], takeoff_w[1], 0.0])
+        home, first = ned_to_global(float(t[0]), float(t[1]), lat0, lon0), 0
+    rows = [[MAV_FRAME_GLOBAL, MAV_CMD_NAV_WAYPOINT, 0, 0, 0, 0, home[0], home[1], alt0 - floor_d]]
     rows.append([MAV_FRAME_MISSION, MAV_CMD_DO_CHANGE_SPEED, 1, mission.speed_m_s, -1, 0, 0, 0, 0])
-    rows.append([MAV_FRAME_GLOBAL_RELATIVE_ALT, MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, ll[0][0], ll[0][1],
+    rows.append([MAV_FRAME_GLOBAL_RELATIVE_ALT, MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, home[0], home[1],
                  mission.altitude_m])
     rows += [[MAV_FRAME_GLOBAL_RELATIVE_ALT, MAV_CMD_NAV_WAYPOINT, 0, 0, 0, 0, la, lo, mission.altitude_m]
-             for la, lo in ll[1:]]
+             for la, lo in ll[first:]]
     rows.append([MAV_FRAME_GLOBAL_RELATIVE_ALT, MAV_CMD_NAV_LAND, 0, 0, 0, 0, ll[-1][0], ll[-1][1], 0.0])
     return rows
 
 
-def write_qgc_wpl(path: str | Path, mission: Mission, frame: StorageFrame, origin=DEFAULT_ORIGIN) -> Path:
-    """Write the survey as a QGC WPL 110 file (tab separated, 12 columns)."""
+def write_qgc_wpl(path: str | Path, mission: Mission, frame: StorageFrame, origin=DEFAULT_ORIGIN,
+                  takeoff_w: tuple[float, float] | None = None) -> Path:
+    """Write the survey as a QGC WPL 110 file (tab separated, 12 columns); takeoff_w: see `plan_rows`."""
     lines = ["QGC WPL 110"]
-    for i, r in enumerate(plan_rows(mission, frame, origin)):
+    for i, r in enumerate(plan_rows(mission, frame, origin, takeoff_w)):
         fr, cmd, *p = r
         cells = [str(i), "1" if i == 0 else "0", str(int(fr)), str(int(cmd))]
         cells += [f"{v:.8f}" for v in p[:4]] + [f"{p[4]:.8f}", f"{p[5]:.8f}", f"{p[6]:.6f}", "1"]

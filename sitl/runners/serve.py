@@ -89,10 +89,13 @@ TAKEOFF_CLEAR_M = 0.05
 log = logging.getLogger(__name__)
 
 
-def make_vehicle(kind: str, mission: Mission, frame: StorageFrame, origin: GeodeticPoint = DEFAULT_SITE.corner):
-    """The served vehicle, on the floor below W0 facing along the closing leg; origin: where on Earth its
-    local NED frame's origin is (the JSBSim plant flies over the ellipsoid there)."""
+def make_vehicle(kind: str, mission: Mission, frame: StorageFrame, origin: GeodeticPoint = DEFAULT_SITE.corner,
+                 takeoff_w: tuple[float, float] | None = None):
+    """The served vehicle, on the floor below W0 (or at takeoff_w, W) facing along the closing leg; origin: where on
+    Earth its local NED frame's origin is (the JSBSim plant flies over the ellipsoid there)."""
     (n, e, _), yaw = start_pose(mission, frame)
+    if takeoff_w is not None:
+        n, e, _ = (float(v) for v in frame.w_to_ned([takeoff_w[0], takeoff_w[1], 0.0]))
     if kind == "kinematic":
         return KinematicVehicle(speed_m_s=mission.speed_m_s, yaw_rate_max_rad_s=mission.yaw_rate_max_rad_s,
                                 altitude_m=mission.altitude_m, home_ned_m=(n, e, 0.0))
@@ -181,6 +184,7 @@ def serve(opts: ServeOptions) -> int:
     drift = drift_warning(opts.mission, opts.pose_error)  # the served vehicle flies on the drifting estimate
     if drift:
         log.warning(drift)
+    spot = None  # where the vehicle waits: below the first waypoint unless material stands there (takeoff_spot)
     if opts.devices_url is not None:
         parse_bridge_url(opts.devices_url)  # a bad URL fails before any work
         with reading_input("--stockpile"):
@@ -192,15 +196,17 @@ def serve(opts: ServeOptions) -> int:
         if out_of_range:
             log.warning(out_of_range)
         world = World(opts.mission.storage, pile, max_range_m=opts.fly_config().lidar.max_range_m)
-        buried = takeoff_under_pile(opts.mission, world)
-        if buried:
+        spot = takeoff_spot(opts.mission, world)
+        if spot is not None:
+            log.info(spot.describe(tuple(float(v) for v in opts.mission.waypoints_w()[0])))
+        elif buried := takeoff_under_pile(opts.mission, world):
             log.warning(buried)
     transport = make_transport(opts.url)  # a bad --mavlink fails before anything is written
     try:
         # The folder is locked while served; the plan is put in place at once (a ground station loads
         # it), the telemetry log and the truth when the vehicle stops, the truth last (rundir).
         with _operator_log(), OutputFolder(opts.out, RUN_FILES, TRUTH_FILE, force=opts.force) as folder:
-            code = _serve(opts, world, transport, folder)
+            code = _serve(opts, world, transport, folder, spot)
             folder.commit()
             return code
     finally:
@@ -304,20 +310,82 @@ def payload_command(opts: ServeOptions, *, mavlink_at: tuple[str, int] | None, d
     return argv
 
 
+TAKEOFF_GRID_M = 0.25
+"""The spacing of the floor points searched for a clear take-off spot."""
+
+
+@dataclass(frozen=True)
+class TakeoffSpot:
+    """Where the served vehicle waits and takes off (W, m), and how much material stands below the first waypoint."""
+
+    xy_w: tuple[float, float]
+    material_at_w0_m: float
+
+    def describe(self, w0: tuple[float, float]) -> str:
+        return (f"the vehicle waits on clear floor at ({self.xy_w[0]:.1f}, {self.xy_w[1]:.1f}) m, the nearest to the "
+                f"first waypoint ({w0[0]:.1f}, {w0[1]:.1f}) m, where the pile stands {self.material_at_w0_m:.2f} m "
+                "high; it takes off there and flies to the first waypoint at the survey's altitude (the plan says so)")
+
+
+def material_m(world: World, xy_w: np.ndarray) -> np.ndarray:
+    """The height of the material (pile) over each floor point (k, 2), by a ray straight down from under the roof."""
+    top = world.storage.height_m - 1e-3
+    o = np.column_stack([xy_w, np.full(len(xy_w), top)])
+    d = np.tile([0.0, 0.0, -1.0], (len(xy_w), 1))
+    r = world.cast(o, d, max_range_m=top + 1.0).range_m
+    return np.where(np.isfinite(r), top - r, 0.0)
+
+
+def footprint_w(xy_w: tuple[float, float], reach_m: float) -> np.ndarray:
+    """The floor points a vehicle standing at xy_w covers, (k, 2): its centre and rings at half and full reach, every
+    5 deg (3 cm apart at the F450's reach)."""
+    a = np.radians(np.arange(0, 360, 5))
+    rings = [np.column_stack([xy_w[0] + r * np.cos(a), xy_w[1] + r * np.sin(a)]) for r in (reach_m / 2, reach_m)]
+    return np.vstack([np.asarray(xy_w, dtype=float)[None, :], *rings])
+
+
+def takeoff_spot(mission: Mission, world: World) -> TakeoffSpot | None:
+    """None when the floor below the first waypoint is clear (the vehicle takes off there, as before); else the clear
+    floor point nearest to it, as an operator would choose: the material under the vehicle's footprint (`footprint_w`,
+    its reach `f450_reach_m`) no higher than TAKEOFF_CLEAR_M, and the reach plus the mission's clearance from every
+    wall. None too when no such point exists (material wall to wall): the caller then warns (`takeoff_under_pile`)."""
+    w0 = np.asarray(mission.waypoints_w()[0], dtype=float)
+    at_w0 = float(material_m(world, w0[None, :])[0])
+    if at_w0 <= TAKEOFF_CLEAR_M:
+        return None
+    from scipy import ndimage
+    s, reach = mission.storage, f450_reach_m()
+    xs = np.arange(TAKEOFF_GRID_M / 2, s.length_m, TAKEOFF_GRID_M)
+    ys = np.arange(TAKEOFF_GRID_M / 2, s.width_m, TAKEOFF_GRID_M)
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    clear = (material_m(world, np.column_stack([gx.ravel(), gy.ravel()])) <= TAKEOFF_CLEAR_M).reshape(gx.shape)
+    # Candidates: grid points whose grid neighbours within the footprint (and half a diagonal more) are clear; each
+    # is then checked on its footprint itself, nearest first.
+    k = math.ceil((reach + TAKEOFF_GRID_M / math.sqrt(2)) / TAKEOFF_GRID_M)
+    disc = np.hypot(*np.mgrid[-k:k + 1, -k:k + 1]) * TAKEOFF_GRID_M <= reach + TAKEOFF_GRID_M / math.sqrt(2)
+    clear = ndimage.binary_erosion(clear, structure=disc, border_value=1)
+    margin = reach + mission.min_clearance_m
+    clear &= (gx >= margin) & (gx <= s.length_m - margin) & (gy >= margin) & (gy <= s.width_m - margin)
+    order = np.argsort(np.where(clear, np.hypot(gx - w0[0], gy - w0[1]), np.inf), axis=None)
+    for i in order[:int(clear.sum())]:
+        xy = (float(gx.flat[i]), float(gy.flat[i]))
+        if (material_m(world, footprint_w(xy, reach)) <= TAKEOFF_CLEAR_M).all():
+            return TakeoffSpot(xy, at_w0)
+    return None
+
+
 def takeoff_under_pile(mission: Mission, world: World) -> str | None:
-    """A warning when the floor below the first waypoint, where the served vehicle waits, lies under the pile:
-    the simulator's vehicle then starts inside the material (the plant knows only the floor), and until it has
-    climbed out the payload's samples see the pile from within. A real flight takes off from clear floor."""
+    """A warning when the floor below the first waypoint, where the served vehicle waits when no clear take-off spot
+    is found (`takeoff_spot`), lies under the pile: the simulator's vehicle then starts inside the material (the plant
+    knows only the floor), and until it has climbed out the payload's samples see the pile from within."""
     x, y = (float(v) for v in mission.waypoints_w()[0])
-    top = mission.storage.height_m
-    r = world.cast_one(np.array([x, y, top - 1e-3]), np.array([0.0, 0.0, -1.0]))
-    material_m = top - 1e-3 - r if math.isfinite(r) else 0.0
-    if material_m <= TAKEOFF_CLEAR_M:
+    material = float(material_m(world, np.array([[x, y]]))[0])
+    if material <= TAKEOFF_CLEAR_M:
         return None
     return (f"the vehicle waits on the floor below the first waypoint ({x:.1f}, {y:.1f}) m, where the pile stands "
-            f"{material_m:.2f} m high: in the simulator it starts inside the material, and the payload's samples see "
-            "the pile from within until it has climbed out (a real flight takes off from clear floor; a P_traj whose "
-            "first corner is clear of the pile avoids it)")
+            f"{material:.2f} m high, and no clear floor was found to take off from: in the simulator it starts inside "
+            "the material, and the payload's samples see the pile from within until it has climbed out (a P_traj "
+            "whose first corner is clear of the pile avoids it)")
 
 
 def tlog_limits(max_mb: float) -> LinkLimits:
@@ -327,12 +395,14 @@ def tlog_limits(max_mb: float) -> LinkLimits:
     return LinkLimits(tlog_max_bytes=max(1, round(max_mb * 1e6)))
 
 
-def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFolder) -> int:
+def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFolder,
+           spot: TakeoffSpot | None = None) -> int:
     cfg = opts.fly_config()
     mission, frame, out, kind = opts.mission, cfg.frame, opts.out, opts.vehicle
     pile = world.pile if world is not None else None
     origin = cfg.ekf_origin
-    write_qgc_wpl(folder.staged(PLAN_FILE), mission, frame, origin.as_tuple())
+    takeoff_w = spot.xy_w if spot is not None else None
+    write_qgc_wpl(folder.staged(PLAN_FILE), mission, frame, origin.as_tuple(), takeoff_w=takeoff_w)
     plan = folder.publish(PLAN_FILE)
     if world is not None:
         pile.mesh.export(folder.staged(PILE_FILE))
@@ -340,8 +410,10 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
         truth = truth_record(pile, opts.stockpile, mission, frame, plant=kind, payload="networked",
                              seed=opts.faults.seed, faults=opts.faults, site=cfg.site, ekf_origin=origin,
                              **tfmini, **noise_header(cfg), **pose_error_header(cfg))
+        if takeoff_w is not None:
+            truth["takeoff_w"] = list(takeoff_w)  # where the vehicle waited: not below the first waypoint
         folder.staged(TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
-    vehicle = make_vehicle(kind, mission, frame, origin)
+    vehicle = make_vehicle(kind, mission, frame, origin, takeoff_w)
     drift = make_drift(opts.pose_error, opts.faults.seed,
                        world_ground_below(world, frame) if world is not None else None)  # no pile: a bare floor
     if drift is not None:

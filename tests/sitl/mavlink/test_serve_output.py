@@ -108,18 +108,39 @@ def test_that_the_printed_payload_command_carries_the_site_and_the_key_file(tmp_
     assert cfg.signing is not None and cfg.signing.key == bytes(range(1, 33))
 
 
-def test_that_a_vehicle_waiting_under_the_pile_is_warned_and_one_on_clear_floor_is_not():
-    # the served vehicle waits on the floor below W0; at P_traj 20 % pile 1 stands 4.5 m over that spot, so the
-    # simulator's vehicle sat inside the material and the payload's first samples saw the pile from within
+def test_that_a_vehicle_whose_first_waypoint_is_over_the_pile_waits_on_the_nearest_clear_floor():
+    """The served vehicle waited on the floor below W0; at P_traj 20 % pile 1 stands 4.5 m over that spot, so the
+    simulator's vehicle sat inside the material and the payload's first samples saw the pile from within. It now
+    waits where an operator would put it: the nearest floor clear all round it, away from the walls."""
+    import numpy as np
+
     from firmware_py.core.storage import Storage
     from sitl.missions.rectangle import Mission
-    from sitl.runners.serve import takeoff_under_pile
+    from sitl.runners.serve import TAKEOFF_CLEAR_M, footprint_w, material_m, takeoff_spot, takeoff_under_pile
+    from sitl.world.clearance import f450_reach_m
     from sitl.world.raycast import World
     from sitl.world.shapes import make_shape
     from sitl.world.stockpile import paper_pile
     st = Storage(60, 40, 15)
-    world = World(st, paper_pile("1", st))
-    w = takeoff_under_pile(Mission(storage=st, p_traj=0.2), world)
-    assert w is not None and "(12.0, 8.0) m" in w and "4.4" in w
+    world, mission = World(st, paper_pile("1", st)), Mission(storage=st, p_traj=0.2)
+    spot = takeoff_spot(mission, world)
+    assert spot is not None and spot.material_at_w0_m == pytest.approx(4.47, abs=0.01)
+    x, y = spot.xy_w
+    reach, margin = f450_reach_m(), f450_reach_m() + mission.min_clearance_m
+    assert margin <= x <= st.length_m - margin and margin <= y <= st.width_m - margin
+    assert (material_m(world, footprint_w((x, y), reach)) <= TAKEOFF_CLEAR_M).all()  # clear all round the vehicle
+    d = np.hypot(x - 12.0, y - 8.0)
+    probe = np.array([[12.0 + r * np.cos(a), 8.0 + r * np.sin(a)] for r in np.arange(0.5, d - 0.5, 0.5)
+                      for a in np.linspace(0, 2 * np.pi, 72, endpoint=False)])
+    inside = (probe[:, 0] > margin) & (probe[:, 0] < st.length_m - margin) & (probe[:, 1] > margin) \
+        & (probe[:, 1] < st.width_m - margin)
+    assert (material_m(world, probe[inside]) > TAKEOFF_CLEAR_M).all()  # nothing clear nearer W0
+    assert "(12.0, 8.0) m" in spot.describe((12.0, 8.0)) and "4.47 m" in spot.describe((12.0, 8.0))
     cone = World(st, make_shape("cone", st, 8.0, seed=0).pile)  # a cone in the middle: W0 on bare floor
+    assert takeoff_spot(Mission(storage=st, p_traj=0.05), cone) is None
     assert takeoff_under_pile(Mission(storage=st, p_traj=0.05), cone) is None
+    small = Storage(20, 14, 10)  # material wall to wall: nowhere clear, so the old warning
+    everywhere = World(small, paper_pile("2", small))
+    wall_to_wall = Mission(storage=small, p_traj=0.2, altitude_m=9.0)
+    assert takeoff_spot(wall_to_wall, everywhere) is None
+    assert "no clear floor was found" in takeoff_under_pile(wall_to_wall, everywhere)

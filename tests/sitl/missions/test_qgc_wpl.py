@@ -134,3 +134,33 @@ def frame_w0_global(m: Mission, frame: StorageFrame, origin) -> tuple[float, flo
     from firmware_py.core.geodesy import ned_to_global
     n, e, _ = frame.w_to_ned([*m.waypoints_w()[0], 0.0])
     return ned_to_global(n, e, origin[0], origin[1])
+
+
+def test_that_a_plan_taking_off_away_from_the_first_waypoint_flies_there_before_the_survey(tmp_path):
+    """`serve` with material below W0 puts the vehicle on clear floor elsewhere (sitl.runners.serve.takeoff_spot):
+    the plan's home and take-off are there, and W0 is the first waypoint, so the survey starts where it should."""
+    m, frame, spot = Mission(p_traj=0.2), StorageFrame(), (24.375, 3.375)
+    rows = read_qgc_wpl(write_qgc_wpl(tmp_path / "p.waypoints", m, frame, takeoff_w=spot))
+    lat0, lon0, _ = DEFAULT_ORIGIN
+    at = [frame.ned_to_w([*global_to_ned(r[8], r[9], lat0, lon0), 0.0])[:2] for r in rows]
+    assert [int(r[3]) for r in rows][:4] == [16, 178, 22, 16]
+    assert np.allclose(at[0], spot, atol=1e-3) and np.allclose(at[2], spot, atol=1e-3)  # home and take-off
+    wp = m.waypoints_w()
+    assert np.allclose(at[3], wp[0], atol=1e-3) and rows[3][10] == m.altitude_m  # then W0, at the survey altitude
+    assert np.allclose(np.array(at[4:-1]), wp[1:], atol=1e-3) and len(rows) == len(wp) + 4
+    n, e, _ = frame.w_to_ned([spot[0], spot[1], 0.0])
+    vehicle = JsbsimVehicle(VehicleConfig(plant=PlantConfig(start_ned_m=(float(n), float(e), 0.0))))
+    gcs = Gcs(vehicle, tlog_path=tmp_path / "t.tlog")
+    items = [mavlink.MAVLink_mission_item_int_message(
+        1, 1, i, int(r[2]), int(r[3]), 0, 1, r[4], r[5], r[6], r[7],
+        round(r[8] * 1e7), round(r[9] * 1e7), r[10], 0) for i, r in enumerate(rows)]
+    assert gcs.upload(items) == mavlink.MAV_MISSION_ACCEPTED
+    assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+    assert gcs.set_mode(FlightMode.AUTO) == mavlink.MAV_RESULT_ACCEPTED
+    assert gcs.expect("MISSION_ITEM_REACHED", within_s=5).seq == 1  # the speed set
+    assert gcs.expect("MISSION_ITEM_REACHED", within_s=30).seq == 2  # climbed out over the spot
+    p = frame.ned_to_w(vehicle.state().pos_ned_m)
+    assert np.hypot(*(p[:2] - np.array(spot))) < 0.5 and p[2] == pytest.approx(m.altitude_m, abs=0.3)
+    assert gcs.expect("MISSION_ITEM_REACHED", within_s=60).seq == 3  # then over W0
+    p = frame.ned_to_w(vehicle.state().pos_ned_m)
+    assert np.hypot(*(p[:2] - wp[0])) < 0.5 and p[2] == pytest.approx(m.altitude_m, abs=0.3)
