@@ -29,23 +29,25 @@ DEFAULT_ORIGIN = DEFAULT_SITE.corner.as_tuple()
 
 def plan_rows(mission: Mission, frame: StorageFrame, origin=DEFAULT_ORIGIN,
               takeoff_w: tuple[float, float] | None = None) -> list[list[float]]:
-    """Rows of (frame, command, p1..p4, x/lat, y/lon, z/alt) for the survey. Home and the take-off are on W0, or at
-    takeoff_w (W, m: clear floor away from it), and then W0 is the first waypoint."""
+    """Rows of (frame, command, p1..p4, x/lat, y/lon, z/alt) for the survey: home and the take-off on W0, or at
+    takeoff_w (W, m: clear floor away from it), then W0 as the first waypoint and the loop. A copter takes off where it
+    stands (ArduPilot ignores the take-off's position): with W0 first, the survey starts at its start wherever the
+    operator put the drone down (reached at once when that is below W0)."""
     lat0, lon0, alt0 = origin
     wp = mission.waypoints_w()
     ned = frame.w_to_ned(np.column_stack([wp, np.zeros(len(wp))]))
     floor_d = float(ned[0, 2])
     ll = [ned_to_global(float(n), float(e), lat0, lon0) for n, e, _ in ned]
-    home, first = ll[0], 1
+    home = ll[0]
     if takeoff_w is not None:
         t = frame.w_to_ned([takeoff_w[0], takeoff_w[1], 0.0])
-        home, first = ned_to_global(float(t[0]), float(t[1]), lat0, lon0), 0
+        home = ned_to_global(float(t[0]), float(t[1]), lat0, lon0)
     rows = [[MAV_FRAME_GLOBAL, MAV_CMD_NAV_WAYPOINT, 0, 0, 0, 0, home[0], home[1], alt0 - floor_d]]
     rows.append([MAV_FRAME_MISSION, MAV_CMD_DO_CHANGE_SPEED, 1, mission.speed_m_s, -1, 0, 0, 0, 0])
     rows.append([MAV_FRAME_GLOBAL_RELATIVE_ALT, MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, home[0], home[1],
                  mission.altitude_m])
     rows += [[MAV_FRAME_GLOBAL_RELATIVE_ALT, MAV_CMD_NAV_WAYPOINT, 0, 0, 0, 0, la, lo, mission.altitude_m]
-             for la, lo in ll[first:]]
+             for la, lo in ll]
     rows.append([MAV_FRAME_GLOBAL_RELATIVE_ALT, MAV_CMD_NAV_LAND, 0, 0, 0, 0, ll[-1][0], ll[-1][1], 0.0])
     return rows
 

@@ -24,8 +24,8 @@ def test_that_the_plan_holds_the_survey_waypoints_to_the_millimetre(tmp_path):
     m = Mission(p_traj=0.15, turn="two-step")
     rows = read_qgc_wpl(write_qgc_wpl(tmp_path / "p.waypoints", m, FRAME))
     nav = [r for r in rows if int(r[3]) == mavlink.MAV_CMD_NAV_WAYPOINT][1:]  # skip home
-    wp = m.waypoints_w()
-    expected = FRAME.w_to_ned(np.column_stack([wp[1:], np.full(len(wp) - 1, m.altitude_m)]))
+    wp = m.waypoints_w()  # W0 first: the copter takes off where it stands, and the survey starts at its start
+    expected = FRAME.w_to_ned(np.column_stack([wp, np.full(len(wp), m.altitude_m)]))
     lat0, lon0, _ = DEFAULT_ORIGIN
     got = np.array([global_to_ned(r[8], r[9], lat0, lon0) for r in nav])
     assert np.allclose(got, expected[:, :2], atol=1e-3)
@@ -107,14 +107,14 @@ def test_that_a_plan_placed_at_a_rotated_site_loads_in_mavwp_and_lies_on_the_int
         up = it.z - site.corner.alt_m if it.frame == mavlink.MAV_FRAME_GLOBAL else it.z
         p_w = frame.ned_to_w([north, east, -up])
         assert _distance_to_rectangle_m(p_w[:2], x0, x1, y0, y1) < 0.1
-    # Home and take-off on W0 (home on the floor), the loop in order at the survey altitude, landing on W0.
+    # Home and take-off on W0 (home on the floor), the loop from W0 in order at the survey altitude, landing on W0.
     got_w = np.array([frame.ned_to_w([*site.corner.to_ned(it.x, it.y), 0.0])[:2] for it in rest])
-    assert np.abs(got_w[1:-1] - wp[1:]).max() < 0.1 and np.abs(got_w[[0, -1]] - wp[0]).max() < 0.1
+    assert np.abs(got_w[1:-1] - wp).max() < 0.1 and np.abs(got_w[[0, -1]] - wp[0]).max() < 0.1
     assert home.z == pytest.approx(site.corner.alt_m) and all(it.z == m.altitude_m for it in rest[:-1])
     # The building's x axis really is turned 30 deg east of north: W0 -> W1 is a leg along x.
     d = frame.w_to_ned(np.array([[wp[1][0], wp[1][1], 0.0]]))[0] - frame.w_to_ned(np.array([[*wp[0], 0.0]]))[0]
-    n1, e1 = site.corner.to_ned(rest[1].x, rest[1].y)
-    n0, e0 = site.corner.to_ned(rest[0].x, rest[0].y)
+    n1, e1 = site.corner.to_ned(rest[2].x, rest[2].y)
+    n0, e0 = site.corner.to_ned(rest[1].x, rest[1].y)
     assert math.degrees(math.atan2(e1 - e0, n1 - n0)) % 360 == pytest.approx(
         math.degrees(math.atan2(d[1], d[0])) % 360, abs=0.01)
 
@@ -148,6 +148,7 @@ def test_that_a_plan_taking_off_away_from_the_first_waypoint_flies_there_before_
     wp = m.waypoints_w()
     assert np.allclose(at[3], wp[0], atol=1e-3) and rows[3][10] == m.altitude_m  # then W0, at the survey altitude
     assert np.allclose(np.array(at[4:-1]), wp[1:], atol=1e-3) and len(rows) == len(wp) + 4
+    assert read_qgc_wpl(write_qgc_wpl(tmp_path / "w0.waypoints", m, frame))[3][8:10] == rows[3][8:10]  # as on W0
     n, e, _ = frame.w_to_ned([spot[0], spot[1], 0.0])
     vehicle = JsbsimVehicle(VehicleConfig(plant=PlantConfig(start_ned_m=(float(n), float(e), 0.0))))
     gcs = Gcs(vehicle, tlog_path=tmp_path / "t.tlog")
