@@ -158,7 +158,7 @@ def test_that_a_coverage_loop_exports_to_qgc_wpl_and_back_to_the_millimetre(tmp_
     lat0, lon0, _ = DEFAULT_ORIGIN
     got = np.array([global_to_ned(r[8], r[9], lat0, lon0) for r in nav])
     wp = m.waypoints_w()
-    expected = frame.w_to_ned(np.column_stack([wp[1:], np.zeros(len(wp) - 1)]))[:, :2]
+    expected = frame.w_to_ned(np.column_stack([wp, np.zeros(len(wp))]))[:, :2]  # W0 first after the take-off
     assert len(wp) == 9  # four corners cut in two, and the first again
     assert np.abs(got - expected).max() < 1e-3
     speed = [r for r in rows if int(r[3]) == mavlink.MAV_CMD_DO_CHANGE_SPEED]
@@ -226,7 +226,7 @@ def test_that_fly_flies_the_coverage_plan_and_records_it(tmp_path, one_speed):
     assert truth["mission"]["plan"]["predicted_ra_pct"] >= 95
     wp = np.asarray(truth["mission"]["waypoints"])
     nav = [r for r in read_qgc_wpl(out / "mission.waypoints") if int(r[3]) == mavlink.MAV_CMD_NAV_WAYPOINT][1:]
-    assert len(nav) == len(wp) - 1
+    assert len(nav) == len(wp)  # W0 first after the take-off, then the loop
 
 
 # ----- the energy model with the autopilot's stops, and material leaning on the walls (issue 17 item 1) -----
