@@ -260,8 +260,8 @@ class BelowFloor:
 
 def binomial_tail(k: int, n: int, p: float) -> float:
     """P(X >= k) for X ~ Binomial(n, p): the regularised incomplete beta I_p(k, n - k + 1), what scipy.stats'
-    binomial survival function computes, from scipy.special (scipy.stats costs 0.8 s to import, most of the
-    report command's start-up)."""
+    binomial survival function computes, from scipy.special (importing scipy.stats added a quarter of a second to
+    every `pilescan-ground` start: 0.99 -> 0.73 s without it)."""
     if k <= 0:
         return 1.0
     if k > n:

@@ -265,7 +265,7 @@ def _lowpass(x: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:
     """A first-order low-pass of x(t) with time constant tau_s (0: x itself), on the STEP_S grid."""
     if tau_s <= 0 or len(x) < 2:
         return x
-    from scipy.signal import lfilter  # here: scipy.signal imports scipy.stats, 0.8 s of every command's start-up
+    from scipy.signal import lfilter  # here: scipy.signal imports scipy.stats, a quarter second of every start-up
     tg = np.arange(t_s[0], t_s[-1] + STEP_S, STEP_S)
     a = 1.0 - math.exp(-STEP_S / tau_s)
     y = lfilter([a], [1.0, a - 1.0], np.interp(tg, t_s, x), zi=[(1.0 - a) * x[0]])[0]

@@ -190,8 +190,8 @@ def test_that_quiet_prints_nothing_and_the_default_prints_the_summary_and_where(
 
 
 def test_that_the_ground_command_starts_without_scipy_stats_or_signal():
-    """scipy.stats (which scipy.signal imports) took 0.8 s of the command's start-up for two functions scipy.special
-    holds; every `pilescan-ground` call paid it."""
+    """scipy.stats (which scipy.signal imports) added a quarter of a second to the command's start-up for two
+    functions scipy.special holds; every `pilescan-ground` call paid it."""
     import subprocess
     import sys
     code = "import sys, ground.cli; print(sorted(m for m in ('scipy.stats', 'scipy.signal') if m in sys.modules))"
