@@ -168,7 +168,7 @@ class PayloadConfig:
             to the header, where the ground station places points with it.
         range_sigma_m, range_sigma_rel: the sensor's range error model written to the header (the
             ground station sizes its wall tolerances with it); None: the rangefinder's datasheet.
-        duration_s: stop after this long; None = until stopped [--duration].
+        duration_s: stop after sampling this long (from the first sample); None = until stopped [--duration].
         stop_on_disarm: stop when the autopilot disarms after having been armed [--stop-on-disarm].
         start_on_arm: open the log and start the sweep only once the autopilot's HEARTBEAT shows armed
             [--start-on-arm]; stopped before that, the payload writes no log. With stop_on_disarm and a

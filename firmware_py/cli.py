@@ -244,7 +244,7 @@ def build_parser() -> ArgumentParser:
                           "forged and replayed signed frames are still refused)")
     st = ap.add_argument_group("starting, stopping and the autopilot")
     st.add_argument("--duration", type=finite_float, default=None, metavar="S",
-                    help="stop after S seconds (default: until Ctrl-C / SIGTERM)")
+                    help="stop after S seconds of sampling (default: until Ctrl-C / SIGTERM)")
     st.add_argument("--stop-on-disarm", action="store_true",
                     help="stop when the autopilot's HEARTBEAT shows disarmed after having shown armed")
     st.add_argument("--start-on-arm", action="store_true",

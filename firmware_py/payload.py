@@ -220,8 +220,16 @@ class PayloadLoop:
         return np.array((reading.t_ns * 1e-9, rng_m, servo_rad, sweep, flags, *pose), dtype=SAMPLE_DTYPE)
 
     def run(self, duration_s: float | None = None, should_stop: Callable[[], bool] = lambda: False) -> LoopStats:
-        """Tick at the configured rate until duration_s has passed or should_stop() says so."""
-        end_ns = None if duration_s is None else self.t0_ns + round(duration_s * 1e9)
+        """Tick at the configured rate until duration_s of sampling has passed or should_stop() says so.
+
+        The duration counts from here, not from t0: between the two the program opened its log and greeted the
+        autopilot, which on a loaded computer (an fsync on a busy card) took longer than a short run's whole
+        duration, and the run logged nothing. For the same reason the grid's ticks before here are skipped, not
+        counted as overruns: no loop ran then to miss them."""
+        start_ns = self.clock.now_ns()
+        end_ns = None if duration_s is None else start_ns + round(duration_s * 1e9)
+        if start_ns > self._next_ns + self.period_ns:  # on the grid from t0 still (the sweep's pulses are)
+            self._next_ns += (start_ns - self._next_ns) // self.period_ns * self.period_ns
         if self.cfg.paced_by_sensor:
             while not should_stop():
                 if end_ns is not None and self.clock.now_ns() >= end_ns:

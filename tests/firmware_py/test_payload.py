@@ -103,7 +103,7 @@ class Rig:
 
         with SampleLogWriter(self.log_path, {"test": True}, fsync=False) as log:
             loop = PayloadLoop(self.lidar, self.servo, self.tracker, self.clock, log, LoopConfig(), t0_ns=self.t0_ns)
-            stats = loop.run(duration_s=(start - self.t0_ns) / 1e9 + seconds, should_stop=hook)
+            stats = loop.run(duration_s=seconds, should_stop=hook)  # the seconds sampled, from here
         s = read_samplelog(self.log_path).samples
         return stats, s, (s["t_s"] - start / 1e9)
 

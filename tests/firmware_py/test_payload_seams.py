@@ -135,6 +135,22 @@ class StallingSensor(CannedSensor):
         return reading
 
 
+def test_that_a_run_started_late_samples_its_whole_duration_on_its_grid_and_misses_no_tick():
+    """Between t0 (the sweep's origin, in the header) and the loop's start the program opens its log and greets the
+    autopilot; on a loaded computer that took longer than a short run, which then logged nothing (`--duration 0.4`
+    with no sample), and the wait counted as missed ticks."""
+    clock, log = SimClock(), RecordingLog()
+    period_ns = 2_000_000
+    loop = PayloadLoop(StallingSensor(clock, {}), SweepServo(NullPwm(), named_waveform("semi-triangular")),
+                       CannedPose(FRESH), clock, log, LoopConfig(rate_hz=500.0))  # t0 = 0
+    clock.advance_by_ns(700_300_000)  # a slow fsync, say
+    stats = loop.run(duration_s=0.2)
+    assert stats.overruns == 0 and abs(stats.ticks - 0.2 * 1e9 / period_ns) <= 2  # 0.2 s of ticks, none missed
+    t_ns = np.array([round(r["t_s"] * 1e9) for r in log.records])
+    assert t_ns[0] == 700_300_000 and (t_ns[1:] % period_ns == 0).all()  # then back on the grid from t0
+    assert t_ns[-1] - t_ns[0] == pytest.approx(0.2e9, abs=period_ns)
+
+
 def test_that_a_stalled_loop_counts_the_slots_it_missed_and_keeps_its_tick_grid():
     clock, log = SimClock(), RecordingLog()
     period_ns = 2_000_000
