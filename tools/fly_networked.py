@@ -35,7 +35,7 @@ import numpy as np
 from firmware_py.core.cli import ExitCode, NoVolumeError
 from firmware_py.core.keys import load_key
 from firmware_py.core.rundir import PLAN_FILE, SAMPLES_FILE, TRUTH_FILE
-from firmware_py.core.samplelog import read_samplelog
+from firmware_py.core.samplelog import SampleFlags, read_samplelog
 from ground.report import ReportOptions, header_geometry, make_report, read_log_input
 from sitl.mavlink.gcs import fly_plan
 from sitl.missions.rectangle import Mission
@@ -110,19 +110,25 @@ def _stamp(path: Path) -> tuple[int, int] | None:
 
 
 def wait_logging(log: Path, proc: subprocess.Popen, timeout_s: float, before: tuple[int, int] | None = None) -> None:
-    """Until the payload process has logged its first block: it opens its log only once its pose streams arrived,
-    so then it is tagging samples and the flight may start. A fixed wait raced the process's start-up on a loaded
-    machine (its log began after AUTO). before: the log's (inode, mtime) before the process started, so that an
-    older log at that path does not count."""
+    """Until the payload process has logged a posed sample: then it is tagging its samples and the flight may start,
+    so its log holds the vehicle on the floor before take-off. A fixed wait raced the process's start-up on a loaded
+    machine (its log began after AUTO); its first block holds about a second of samples without a pose while its time
+    sync converges, which on a loaded machine could outlast an arming. before: the log's (inode, mtime) before the
+    process started, so that an older log at that path does not count."""
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
         if proc.poll() is not None:
             raise RuntimeError(f"the payload exited early ({proc.returncode})")
         stamp = _stamp(log)
-        if stamp is not None and stamp != before and len(read_samplelog(log).samples) > 0:
+        if stamp is not None and stamp != before and _posed(read_samplelog(log).samples).any():
             return
         time.sleep(0.2)
-    raise RuntimeError(f"the payload logged nothing within {timeout_s:g} s")
+    raise RuntimeError(f"the payload logged no posed sample within {timeout_s:g} s")
+
+
+def _posed(samples: np.ndarray) -> np.ndarray:
+    """The samples tagged with a current pose."""
+    return (samples["flags"] & int(SampleFlags.NO_POSE | SampleFlags.STALE_POSE)) == 0
 
 
 def _stop(proc: subprocess.Popen, timeout_s: float = 10.0) -> int:

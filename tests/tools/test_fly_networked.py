@@ -41,7 +41,11 @@ def test_that_the_payload_process_ranges_the_served_world_with_correct_pose_tags
     # tests/firmware_py/test_payload_seams.py on a simulated clock.
     assert np.all(np.diff(s["t_s"]) > 0)
     assert len(s) < (s["t_s"][-1] - s["t_s"][0]) / 0.002 + 2  # + 2: the first may run up to a slot late
-    assert s["t_s"][-1] - s["t_s"][0] > 8.0
+    # Logging from before take-off: the first posed sample on the floor (it climbs below). Not a span of the 8 s
+    # flown: the stamps are real time, and a payload starved of the CPU in the second before its SIGTERM (the suite's
+    # workers, serve and this test on 2 cores) ended its log 7.7 s after its first sample.
+    posed = s[(s["flags"] & int(SampleFlags.NO_POSE | SampleFlags.STALE_POSE)) == 0]
+    assert -posed["z_m"][0] < 0.5
     good = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
     assert len(good) > 0.5 * len(s)
     assert np.ptp(good["servo_rad"]) > np.radians(120)  # the servo swept
@@ -159,12 +163,17 @@ def test_that_the_flight_waits_for_the_payloads_first_block_and_not_for_an_older
         w.append(np.zeros(1, dtype=SAMPLE_DTYPE))
     proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
     try:
-        with pytest.raises(RuntimeError, match=r"logged nothing within 0\.5 s"):
+        with pytest.raises(RuntimeError, match=r"logged no posed sample within 0\.5 s"):
             wait_logging(log, proc, 0.5, _stamp(log))  # the older log does not count
         log.unlink()
+        unposed = np.zeros(3, dtype=SAMPLE_DTYPE)
+        unposed["flags"] = int(SampleFlags.NO_POSE)
         with SampleLogWriter(log, {"note": "this flight's"}, records_per_block=1, fsync=False) as w:
+            w.append(unposed)  # the time sync still converging: no pose yet
+            with pytest.raises(RuntimeError, match=r"logged no posed sample within 0\.5 s"):
+                wait_logging(log, proc, 0.5, None)
             w.append(np.zeros(1, dtype=SAMPLE_DTYPE))
-        wait_logging(log, proc, 5.0, None)  # returns: a block is there
+        wait_logging(log, proc, 5.0, None)  # returns: a posed sample is there
     finally:
         proc.kill()
         proc.wait()
