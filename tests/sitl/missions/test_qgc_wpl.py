@@ -53,19 +53,25 @@ def test_that_bad_plan_files_are_refused_with_the_line(tmp_path):
         read_qgc_wpl(bad)
 
 
-def test_that_the_jsbsim_vehicle_flies_the_plan_uploaded_over_mavlink(tmp_path):
-    m = Mission(p_traj=0.3)
-    frame = StorageFrame()
-    (n, e, _), _ = start_pose(m, frame)
-    vehicle = JsbsimVehicle(VehicleConfig(plant=PlantConfig(start_ned_m=(n, e, 0.0))))
+def _auto(vehicle, rows, tmp_path) -> Gcs:
+    """A ground station on the vehicle that uploads the plan's rows over MAVLink, arms and switches to AUTO."""
     gcs = Gcs(vehicle, tlog_path=tmp_path / "t.tlog")
-    rows = read_qgc_wpl(write_qgc_wpl(tmp_path / "p.waypoints", m, frame))
     items = [mavlink.MAVLink_mission_item_int_message(
         1, 1, i, int(r[2]), int(r[3]), 0, 1, r[4], r[5], r[6], r[7],
         round(r[8] * 1e7), round(r[9] * 1e7), r[10], 0) for i, r in enumerate(rows)]
     assert gcs.upload(items) == mavlink.MAV_MISSION_ACCEPTED
     assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
     assert gcs.set_mode(FlightMode.AUTO) == mavlink.MAV_RESULT_ACCEPTED
+    return gcs
+
+
+def test_that_the_jsbsim_vehicle_flies_the_plan_uploaded_over_mavlink(tmp_path):
+    m = Mission(p_traj=0.3)
+    frame = StorageFrame()
+    (n, e, _), _ = start_pose(m, frame)
+    vehicle = JsbsimVehicle(VehicleConfig(plant=PlantConfig(start_ned_m=(n, e, 0.0))))
+    rows = read_qgc_wpl(write_qgc_wpl(tmp_path / "p.waypoints", m, frame))
+    gcs = _auto(vehicle, rows, tmp_path)
     reached = {gcs.expect("MISSION_ITEM_REACHED", within_s=200).seq for _ in range(len(rows) - 1)}
     assert reached == set(range(1, len(rows)))
     gcs.run(5.0)
@@ -151,13 +157,7 @@ def test_that_a_plan_taking_off_away_from_the_first_waypoint_flies_there_before_
     assert read_qgc_wpl(write_qgc_wpl(tmp_path / "w0.waypoints", m, frame))[3][8:10] == rows[3][8:10]  # as on W0
     n, e, _ = frame.w_to_ned([spot[0], spot[1], 0.0])
     vehicle = JsbsimVehicle(VehicleConfig(plant=PlantConfig(start_ned_m=(float(n), float(e), 0.0))))
-    gcs = Gcs(vehicle, tlog_path=tmp_path / "t.tlog")
-    items = [mavlink.MAVLink_mission_item_int_message(
-        1, 1, i, int(r[2]), int(r[3]), 0, 1, r[4], r[5], r[6], r[7],
-        round(r[8] * 1e7), round(r[9] * 1e7), r[10], 0) for i, r in enumerate(rows)]
-    assert gcs.upload(items) == mavlink.MAV_MISSION_ACCEPTED
-    assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
-    assert gcs.set_mode(FlightMode.AUTO) == mavlink.MAV_RESULT_ACCEPTED
+    gcs = _auto(vehicle, rows, tmp_path)
     assert gcs.expect("MISSION_ITEM_REACHED", within_s=5).seq == 1  # the speed set
     assert gcs.expect("MISSION_ITEM_REACHED", within_s=30).seq == 2  # climbed out over the spot
     p = frame.ned_to_w(vehicle.state().pos_ned_m)
