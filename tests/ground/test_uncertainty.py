@@ -20,6 +20,7 @@ from ground.uncertainty import (
     IntervalModel,
     blur_term_m3,
     face_cells,
+    floor_curvature_noise_m_inv,
     interpolation_term_m3,
     laplacian_peak_gain_m2_inv,
     noise_term_m3,
@@ -139,10 +140,54 @@ def test_that_noise_in_the_fitted_surface_is_not_counted_as_curvature_between_tr
     plane = _heights_of(lambda x, y: 1.0 + 0.1 * x)
     assert interpolation_term_m3(plane + noise, counts, GRID, scatter_m=0.05) < 0.6 * interpolation_term_m3(
         plane + noise, counts, GRID)
-    bowl = _heights_of(lambda x, y: 0.02 * (x - 10.0) ** 2)
+    bowl = _heights_of(lambda x, y: 1.0 + 0.02 * (x - 10.0) ** 2)  # off the floor: the floor's rule is tested below
     clean = interpolation_term_m3(bowl, counts, GRID)
     assert interpolation_term_m3(bowl + noise, counts, GRID) > 1.5 * clean  # the noise read as bend
     assert interpolation_term_m3(bowl + noise, counts, GRID, scatter_m=0.05) == pytest.approx(clean, rel=0.15)
+
+
+WIDE = Grid(40.0, 20.0, 0.25)
+
+
+def _tracks_every(cells: int) -> np.ndarray:
+    counts = np.zeros(WIDE.shape, int)
+    counts[::cells, :] = 5
+    return counts
+
+
+def test_that_noise_bridged_over_the_floor_is_not_counted_as_curvature():
+    # 3 cm of noise on tracks 2 m apart, bridged straight between them, on the floor and lifted 1 m off it: on the
+    # floor, which is flat, the noise's |L| at each distance from the tracks is measured and taken out; off it only
+    # the survey's one spread is
+    counts = _tracks_every(8)
+    tracks = np.flatnonzero(counts[:, 0])
+    at_tracks = np.random.default_rng(1).normal(0.0, 0.03, (len(tracks), WIDE.shape[1]))
+    noise = np.array([np.interp(np.arange(WIDE.shape[0]), tracks, col) for col in at_tracks.T]).T
+    on_floor = interpolation_term_m3(noise, counts, WIDE, scatter_m=0.03)
+    lifted = interpolation_term_m3(1.0 + noise, counts, WIDE, scatter_m=0.03)
+    assert 0 < on_floor < 0.6 * lifted
+
+
+def test_that_a_quiet_survey_of_a_pile_on_the_floor_keeps_its_bend():
+    # a dome on a bare floor, exact heights: the floor's quantile is capped by the points' scatter
+    counts = _tracks_every(12)
+    cx, cy = WIDE.centres()
+    dome = np.clip(3.0 - 0.08 * ((cx - 20.0) ** 2 + (cy - 10.0) ** 2), 0.0, None)
+    assert interpolation_term_m3(dome, counts, WIDE, scatter_m=0.001) == pytest.approx(
+        interpolation_term_m3(dome, counts, WIDE), rel=0.01)
+
+
+def test_that_the_floor_noise_is_the_quantile_of_each_distance_and_carried_to_sparse_distances():
+    d_cells = np.concatenate([np.full(100, 1.0), np.full(100, 3.0), np.full(10, 5.0), np.full(5, 20.0)])
+    lap = np.concatenate([np.linspace(0.0, 1.0, 100), np.linspace(0.0, 2.0, 100), np.full(10, 9.0), np.full(5, 9.0)])
+    floor = np.ones(len(d_cells), bool)
+    floor[:100] = False  # the nearest bin has no floor: nothing measured there
+    tau = floor_curvature_noise_m_inv(lap, d_cells, floor, cap=10.0)
+    assert np.all(tau[:100] == 0.0)
+    assert tau[100:200] == pytest.approx(np.quantile(lap[100:200], 0.95))
+    assert np.all(tau[200:] == tau[150])  # too few floor cells beyond: the nearer bin's
+    assert np.all(floor_curvature_noise_m_inv(lap, d_cells, floor, cap=0.5)[100:] == 0.5)
+    assert np.all(floor_curvature_noise_m_inv(lap, d_cells, floor, cap=0.0) == 0.0)
 
 
 def test_that_a_quiet_survey_of_a_surface_curved_everywhere_keeps_its_bend():
