@@ -18,7 +18,13 @@ import numpy as np
 
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_rays_w
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
-from firmware_py.core.sensor_noise import stated_angle_sigma_rad, stated_position_sigma_m, stated_range_sigma
+from firmware_py.core.sensor_noise import (
+    POSE_STREAM_HZ,
+    stated_angle_sigma_rad,
+    stated_pose_draw,
+    stated_position_sigma_m,
+    stated_range_sigma,
+)
 from firmware_py.core.storage import Storage
 from ground.despike import SpikeThreshold, spike_mask
 from ground.plane_stretches import wall_stretches
@@ -55,6 +61,8 @@ class SensorErrorModel:
     resolution_m: float = 0.01
     position_sigma_m: float = 0.0
     angle_sigma_rad: float = 0.0  # the beam's pointing error (servo angle and attitude), sensor_noise record
+    pose_draw_sigma_m: float = 0.0  # of position_sigma_m, the part one pose message's samples share (sensor_noise)
+    pose_stream_hz: float = POSE_STREAM_HZ  # pose messages a second: the samples between two share their draw
 
     @classmethod
     def from_header(cls, header: dict) -> SensorErrorModel:
@@ -78,7 +86,9 @@ class SensorErrorModel:
         noise_abs, noise_rel = stated_range_sigma(header)
         values[0], values[1] = max(values[0], noise_abs), max(values[1], noise_rel)
         values[3] = max(values[3], stated_position_sigma_m(header))
-        return cls(*values, angle_sigma_rad=stated_angle_sigma_rad(header))
+        draw_m, stream_hz = stated_pose_draw(header)
+        return cls(*values, angle_sigma_rad=stated_angle_sigma_rad(header), pose_draw_sigma_m=draw_m,
+                   pose_stream_hz=stream_hz)
 
     def range_sigma(self, range_m: np.ndarray) -> np.ndarray:
         return np.maximum(self.range_sigma_m, self.range_sigma_rel * np.asarray(range_m))

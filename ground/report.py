@@ -94,6 +94,7 @@ from ground.uncertainty import (
     point_sigma_m,
     pose_term_m3,
     scatter_sigma_m,
+    shared_draws,
     survey_errors,
 )
 from ground.unseen import free_space_ceiling_m
@@ -760,9 +761,12 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
     if contact_top is not None:  # the contacts bound the unseen cells at the walls too
         roof_or_ceiling = np.fmin(np.broadcast_to(roof_or_ceiling, grid.shape), contact_top)
 
+    shared = shared_draws(None if cloud.t_s is None else cloud.t_s[~structure], err.pose_draw_sigma_m,
+                          err.pose_stream_hz)
+
     def errors_in(mask: np.ndarray | None = None) -> SurveyErrors:  # the whole floor, or one pile's cells
         return survey_errors(pile, pile_dir, fit, heights, counts, grid, typical, n_sigma, upper_m=roof_or_ceiling,
-                             mask=mask)
+                             mask=mask, shared=shared)
     return Survey(cloud, pile, grid, fit, heights, counts, storage, n_clipped, disagreement, errors=errors_in(),
                   face_spread_m=spread, errors_in=errors_in)
 

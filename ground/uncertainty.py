@@ -18,7 +18,8 @@ each a scale of the error it describes, not yet a probability):
   noise's share, measured over the gaps, is taken out (``curvature_noise_m_inv``), and at least as much as
   the bridged floor, which is flat, shows at a like distance from the data (``floor_curvature_noise_m_inv``).
 - **noise**: the points' scatter about the fitted surface, averaged over the seen cells (one
-  independent value per cell: the errors of neighbouring points are not independent).
+  independent value per cell: the errors of neighbouring points are not independent), the part a pose message's
+  samples share (a simulated pose draw) added per message instead (``SharedDraws``).
 - **blur**: the same scatter over the pile's footprint: noisy points blur a curved pile (high at the
   toes, low on the crests), an error of one sign over the pile that does not average out.
 - **sweeps**: the mean height difference between rising and falling sweeps over the cells both
@@ -89,7 +90,7 @@ class ErrorTerms:
 
 
 # --- calibrated pose factor (tools/calibrate_pose_interval.py --write-model) ---
-POSE_FACTOR = 6.544734436868561
+POSE_FACTOR = 6.551547446190603
 POSE_FACTOR_SOURCE = 'fitted on 38 drifting flights (tools/calibrate_pose_interval.py, 2026-12-01)'
 # --- end of calibrated pose factor ---
 
@@ -150,12 +151,12 @@ def widened_interval_m3(volume_m3: float, below_m3: float, above_m3: float, extr
 
 # --- calibrated interval model (tools/calibrate_interval.py --write-model) ---
 DEFAULT_INTERVAL_MODEL = IntervalModel(
-    k_unseen=1.07353,
-    k_interpolation=1.39994,
-    k_noise=9.56347,
-    k_sweeps=2.54798,
-    k_faces=3.26125,
-    k_blur=0.141452,
+    k_unseen=0.955359,
+    k_interpolation=1.36497,
+    k_noise=5.18418,
+    k_sweeps=5.01261,
+    k_faces=0.158847,
+    k_blur=0.0934784,
     source='fitted on 693 calibration runs of the evaluation set (tools/calibrate_interval.py, 2026-12-01)')
 # --- end of calibrated interval model ---
 
@@ -369,11 +370,35 @@ def scatter_sigma_m(points_w: np.ndarray, heights_fit: np.ndarray, grid: Grid) -
     return 1.4826 * float(np.median(np.abs(r - np.median(r)))) if len(r) >= 2 else 0.0
 
 
+@dataclass(frozen=True)
+class SharedDraws:
+    """The part of the points' error that the samples between two pose messages share: a simulated pose error is one
+    draw per message (the header's ``sensor_noise`` record: position sigma and message rate), and the payload tags
+    the ten or so samples between two messages from the same two draws, a metre or more of fan line moved as one."""
+
+    sigma_m: float
+    group: np.ndarray  # (n,) each point's pose message interval (its time times the message rate, floored)
+
+
+def shared_draws(t_s: np.ndarray | None, sigma_m: float, stream_hz: float) -> SharedDraws | None:
+    """The points' shared pose draws from their sample times; None without times or without such a draw."""
+    if t_s is None or not (sigma_m > 0 and stream_hz > 0):
+        return None
+    return SharedDraws(float(sigma_m), np.floor(np.asarray(t_s, dtype=float) * stream_hz).astype(np.int64))
+
+
 def noise_term_m3(sigma: float, heights_fit: np.ndarray, counts: np.ndarray, grid: Grid,
-                  mask: np.ndarray | None = None) -> float:
+                  mask: np.ndarray | None = None, points_xy: np.ndarray | None = None,
+                  shared: SharedDraws | None = None) -> float:
     """The points' scatter sigma carried into the volume: every surfaced cell takes its height from the
     nearest cell holding points, so a cell j of n_j points whose error (sigma / sqrt(n_j)) spreads over
-    an area a_j contributes a_j sigma / sqrt(n_j); independent cells add in quadrature."""
+    an area a_j contributes a_j sigma / sqrt(n_j); independent cells add in quadrature.
+
+    With shared draws (and the points, points_xy, in the order of shared.group) the part of sigma they state is not
+    independent from point to point: each point stands for a_j / n_j of the area, and the points of one pose message
+    move together, so that part adds as sigma_shared^2 times the sum over messages of their areas squared; the rest,
+    sigma^2 - sigma_shared^2, as before. Counted as independent, the shared part looked ten times smaller than it
+    is, and the interval's fit made up for it with a noise factor that then over-covered every survey without it."""
     seen = np.isfinite(heights_fit)
     if sigma <= 0 or not (counts > 0).any():
         return 0.0
@@ -383,7 +408,16 @@ def noise_term_m3(sigma: float, heights_fit: np.ndarray, counts: np.ndarray, gri
     area_cells = np.bincount(owner, minlength=counts.size)
     n = counts.ravel()
     has = (area_cells > 0) & (n > 0)
-    return sigma * grid.cell_area_m2 * math.sqrt(float((area_cells[has] ** 2 / n[has]).sum()))
+    independent = float((area_cells[has] ** 2 / n[has]).sum())
+    if shared is None or points_xy is None or not len(points_xy):
+        return sigma * grid.cell_area_m2 * math.sqrt(independent)
+    px, py = cell_index(np.asarray(points_xy, dtype=float), grid)
+    flat = px * grid.shape[1] + py
+    per_point = np.where(n[flat] > 0, area_cells[flat] / np.maximum(n[flat], 1), 0.0)  # area each point stands for
+    _, message = np.unique(shared.group, return_inverse=True)
+    together = float((np.bincount(message, weights=per_point) ** 2).sum())
+    var = max(sigma**2 - shared.sigma_m**2, 0.0) * independent + shared.sigma_m**2 * together
+    return grid.cell_area_m2 * math.sqrt(var)
 
 
 def blur_term_m3(sigma: float, heights_fit: np.ndarray, grid: Grid, mask: np.ndarray | None = None) -> float:
@@ -514,16 +548,16 @@ def pose_term_m3(height_sigma_m: float | None, heights: np.ndarray, grid: Grid,
 def survey_errors(points_w: np.ndarray, sweep_dir: np.ndarray | None, heights_fit: np.ndarray,
                   heights: np.ndarray, counts: np.ndarray, grid: Grid, point_sigma: float, n_sigma: float,
                   lower_m: np.ndarray | None = None, upper_m: np.ndarray | float | None = None,
-                  mask: np.ndarray | None = None) -> SurveyErrors:
+                  mask: np.ndarray | None = None, shared: SharedDraws | None = None) -> SurveyErrors:
     """The terms over the whole floor, or over the cells of mask (one pile's: ground.piles); the points'
     scatter is the survey's either way. upper_m bounds the unseen cells from above (the roof, or the
-    free-space ceiling where it was computed)."""
+    free-space ceiling where it was computed). shared: the points' shared pose draws (`noise_term_m3`)."""
     low, high = unseen_terms_m3(heights_fit, heights, grid, lower_m, upper_m, mask)
     faces = face_cells(points_w, grid, point_sigma, n_sigma)
     scatter = scatter_sigma_m(points_w, heights_fit, grid)
     terms = ErrorTerms(unseen_low_m3=low, unseen_high_m3=high,
                        interpolation_m3=interpolation_term_m3(heights_fit, counts, grid, mask, scatter),
-                       noise_m3=noise_term_m3(scatter, heights_fit, counts, grid, mask),
+                       noise_m3=noise_term_m3(scatter, heights_fit, counts, grid, mask, points_w[:, :2], shared),
                        blur_m3=blur_term_m3(scatter, heights_fit, grid, mask),
                        sweeps_m3=sweeps_term_m3(points_w, sweep_dir, heights_fit, grid, mask=mask),
                        faces_m3=faces_term_m3(faces, grid, mask))

@@ -196,6 +196,12 @@ def stated_position_sigma_m(header: Any) -> float:
     return _stated(header, "position_sigma_m")
 
 
+def stated_pose_draw(header: Any) -> tuple[float, float]:
+    """(sigma m, messages a second) of the record's pose draw: one position error per pose message, shared by the
+    samples the payload tags between two messages ((0, POSE_STREAM_HZ) without a record)."""
+    return _stated(header, "position_sigma_m"), _stated(header, "pose_stream_hz") or POSE_STREAM_HZ
+
+
 def stated_angle_sigma_rad(header: Any) -> float:
     """The beam's pointing sigma the ``sensor_noise`` record states: servo angle and attitude combined
     (0 without one)."""

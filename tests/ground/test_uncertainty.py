@@ -18,6 +18,7 @@ from ground.uncertainty import (
     LEVEL_Z,
     ErrorTerms,
     IntervalModel,
+    SharedDraws,
     blur_term_m3,
     face_cells,
     floor_curvature_noise_m_inv,
@@ -25,6 +26,7 @@ from ground.uncertainty import (
     laplacian_peak_gain_m2_inv,
     noise_term_m3,
     scatter_sigma_m,
+    shared_draws,
     sweeps_term_m3,
     unseen_terms_m3,
 )
@@ -223,6 +225,32 @@ def test_that_the_noise_term_grows_with_the_points_scatter():
         fit = _heights_of(lambda x, y: 1.0 + 0.1 * x)
         terms.append(noise_term_m3(scatter_sigma_m(p, fit, GRID), fit, GRID.counts(p), GRID))
     assert terms[1] == pytest.approx(10 * terms[0], rel=0.3)
+
+
+def test_that_a_pose_draw_shared_by_a_messages_samples_adds_up_per_message():
+    # one point in each of 800 cells (every cell its own area), ten points a pose message: the shared part adds as
+    # ten points' areas squared per message, sqrt(10) times the same sigma counted as independent
+    fit = _heights_of(lambda x, y: np.ones_like(x))
+    cx, cy = GRID.centres()
+    xy = np.column_stack([cx.ravel(), cy.ravel()])
+    counts = GRID.counts(xy)
+    message = np.arange(len(xy)) // 10
+    alone = noise_term_m3(0.1, fit, counts, GRID)
+    assert alone == pytest.approx(0.1 * GRID.cell_area_m2 * math.sqrt(len(xy)))
+    shared = SharedDraws(0.1, message)
+    assert noise_term_m3(0.1, fit, counts, GRID, points_xy=xy, shared=shared) == pytest.approx(math.sqrt(10) * alone)
+    # a shared sigma above the scatter leaves no negative independent part; half of it shared, half the variance each
+    assert noise_term_m3(0.05, fit, counts, GRID, points_xy=xy, shared=shared) == pytest.approx(
+        math.sqrt(10) * alone)
+    half = SharedDraws(0.1 / math.sqrt(2), message)
+    assert noise_term_m3(0.1, fit, counts, GRID, points_xy=xy, shared=half) == pytest.approx(
+        alone * math.sqrt(0.5 + 0.5 * 10))
+
+
+def test_that_the_shared_draws_are_the_pose_message_intervals_of_the_sample_times():
+    draws = shared_draws(np.array([0.001, 0.019, 0.021, 1.0]), 0.113, 50.0)
+    assert draws.sigma_m == 0.113 and draws.group.tolist() == [0, 0, 1, 50]
+    assert shared_draws(None, 0.113, 50.0) is None and shared_draws(np.zeros(3), 0.0, 50.0) is None
 
 
 def test_that_the_blur_term_is_the_scatter_over_the_piles_footprint_only():

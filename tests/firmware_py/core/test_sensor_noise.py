@@ -10,9 +10,11 @@ from firmware_py.core.header import LogHeader, build_log_header
 from firmware_py.core.sensor import LIDARLITE_V3, TFMINI_S, RangefinderSpec
 from firmware_py.core.sensor_noise import (
     HEADER_KEY,
+    POSE_STREAM_HZ,
     SensorNoise,
     SensorNoiseModel,
     describe_record,
+    stated_pose_draw,
     stated_position_sigma_m,
     stated_range_sigma,
 )
@@ -84,3 +86,12 @@ def test_that_a_stated_sigma_that_is_not_a_number_is_refused():
     with pytest.raises(ValueError, match="position_sigma_m"):
         stated_position_sigma_m({HEADER_KEY: {"model": "appendix-a", "position_sigma_m": "big"}})
     assert stated_position_sigma_m({}) == 0.0 and stated_range_sigma({}) == (0.0, 0.0)
+
+
+def test_that_the_pose_draw_is_the_records_position_sigma_at_its_message_rate():
+    record = SensorNoise.of(SensorNoiseModel.APPENDIX_A, LIDARLITE_V3).record()
+    assert stated_pose_draw(header_with(record)) == (0.113, record["pose_stream_hz"])
+    assert stated_pose_draw(header_with(None)) == (0.0, POSE_STREAM_HZ)
+    assert stated_pose_draw({HEADER_KEY: {"model": "appendix-a", "position_sigma_m": 0.1}}) == (0.1, POSE_STREAM_HZ)
+    with pytest.raises(ValueError, match="pose_stream_hz"):
+        stated_pose_draw({HEADER_KEY: {"model": "appendix-a", "pose_stream_hz": -5}})
