@@ -171,7 +171,8 @@ _REMEDIES = {
     "unseen": "a re-flight over the ground never seen (pilescan-sitl plan --fill-gaps on this report), or legs "
               "nearer the walls it lies along",
     "interpolation": "sweep tracks closer together: a smaller P_traj (more legs), a slower flight or a faster sweep",
-    "noise": "more points a cell (a slower flight or a higher range rate) or a quieter sensor setting",
+    "noise": "more points a cell (a slower flight or a higher range rate), a quieter sensor setting, or a steadier "
+             "pose estimate (its error is shared by the samples between two pose messages)",
     "blur": "a quieter sensor or shorter ranges (a lower flight)",
     "sweeps": "the servo's calibration and the beam's mounting checked (pilescan-payload --servo-center-us, "
               "--servo-us-per-rad, --boresight); sweeps that see the floor and the walls let the report calibrate "
