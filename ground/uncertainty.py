@@ -303,9 +303,10 @@ def floor_curvature_noise_m_inv(lap_at_gaps: np.ndarray, d_cells: np.ndarray, on
     fewer than MIN_FLOOR_CELLS floor cells takes the nearer bin's, 0 before any. Capped by cap (the caller's: that
     quantile of the most the points' scatter can put into L, FLOOR_NOISE_Z), so a quiet survey keeps its bend.
 
-    Why: the term's noise sat on the floor far from the fan lines (a building's corners, where the vehicle turns,
-    and the bare floor between heaps): over the evaluation set 70-90 % of a noisy survey's term lay on floor cells
-    whose true bend is 0, and there |L| is as large 3 m from the data as at 0.5 m, where d^2/2 is 36 times smaller.
+    Why: much of the term's noise sat on the floor far from the fan lines (a building's corners, where the vehicle
+    turns, and the bare floor between heaps): over the evaluation set about half of a noisy survey's term lay on floor
+    cells, whose true bend is 0, and on the surveys traced |L| there was as large 3 m from the data as at 0.5 m, where
+    d^2/2 is 36 times smaller.
     One spread for the whole survey (`curvature_noise_m_inv`) is set by the many near cells and leaves that tail."""
     tau = np.zeros(len(lap_at_gaps))
     if cap <= 0:
