@@ -53,7 +53,7 @@ from firmware_py.core.geodesy import GeodeticPoint
 from firmware_py.core.header import build_log_header, sensor_spec
 from firmware_py.core.pose_source import EKF_SOURCE_PARAMS, PoseSource
 from firmware_py.core.pose_source import HEADER_KEY as POSE_SOURCE_KEY
-from firmware_py.core.samplelog import SampleFlags, SampleLogWriter
+from firmware_py.core.samplelog import UNPOSED, SampleFlags, SampleLogWriter
 from firmware_py.core.sensor import Rangefinder
 from firmware_py.core.servo_model import PWM_FRAME_S, ServoCalibration
 from firmware_py.core.site import Site
@@ -752,8 +752,7 @@ class PayloadApp:
             st = self.tracker.status()
             checks.append(autopilot_check(self.tracker.autopilot_heard, self.tracker.autopilot_armed,
                                           cfg.target_system, cfg.mavlink_url))
-            unposed = int(SampleFlags.NO_POSE | SampleFlags.STALE_POSE)
-            posed_share = (float(np.mean((samples["flags"] & unposed) == 0)) if samples.size
+            posed_share = (float(np.mean((samples["flags"] & int(UNPOSED)) == 0)) if samples.size
                            else float(st.pose_ok))
             checks.append(pose_check(posed_share, st.pose_status, st.rates_hz, cfg.pose_stream_hz,
                                      st.timesync.rtt_ms, cfg.send_origin is not None))
@@ -1025,7 +1024,7 @@ class PayloadApp:
             sensor_errors=c.sensor_errors, pose_ok=st.pose_ok, pose_age_s=st.pose_age_s,
             pose_status=st.pose_status, timesync_converged=st.timesync.converged,
             autopilot_heard=self.tracker.autopilot_heard,
-            stale=stats.flagged(SampleFlags.STALE_POSE | SampleFlags.NO_POSE), overruns=stats.overruns,
+            stale=stats.flagged(UNPOSED), overruns=stats.overruns,
             sensor_error_samples=stats.flagged(SampleFlags.SENSOR_ERROR))
 
     def _sensor_state_line(self, before: SensorState, after: SensorState, now: int) -> None:

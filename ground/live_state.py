@@ -38,7 +38,7 @@ import numpy as np
 from firmware_py.core.cli import NoVolumeError, UserError
 from firmware_py.core.frames import Boresight, StorageFrame
 from firmware_py.core.header import header_boresight
-from firmware_py.core.samplelog import SampleFlags, SampleLog
+from firmware_py.core.samplelog import UNPOSED, SampleLog
 from firmware_py.core.storage import Storage
 from ground.binning import HeightBinner
 from ground.plausibility import PlausibilityLimits, implausible, without_implausible
@@ -69,8 +69,6 @@ SNAPSHOT_CACHE_S = 0.5
 """A snapshot is rebuilt at most this often, however many browsers poll."""
 RATE_WINDOW_S = 3.0
 """The record rate is taken over this much of the recent past."""
-UNVOUCHED_POSE = SampleFlags.NO_POSE | SampleFlags.STALE_POSE
-"""Records with these flags are left off the track (their position is zero or old)."""
 LIVE_REPORT_OPTIONS = ReportOptions(plots=False, self_calibration=False, servo_retiming=False,
                                     pose_correction=False)
 """The report's computation for the running volume, less its slow estimates (the mount, the servo timing, the
@@ -267,7 +265,7 @@ class LiveState:
         pos_ned = np.column_stack([recs["x_m"], recs["y_m"], recs["z_m"]]).astype(float)
         # The track: poses the payload vouched for (a record without a fresh pose carries none worth drawing).
         finite = (np.isfinite(pos_ned).all(axis=1) & np.isfinite(recs["t_s"])
-                  & ((recs["flags"] & int(UNVOUCHED_POSE)) == 0))
+                  & ((recs["flags"] & int(UNPOSED)) == 0))
         if geo is None:
             cloud = None
             pos = pos_ned[finite] * np.array([1.0, 1.0, -1.0])  # north, east, up

@@ -35,7 +35,7 @@ import numpy as np
 from firmware_py.core.cli import ExitCode, NoVolumeError
 from firmware_py.core.keys import load_key
 from firmware_py.core.rundir import PLAN_FILE, SAMPLES_FILE, TRUTH_FILE
-from firmware_py.core.samplelog import SampleFlags, read_samplelog
+from firmware_py.core.samplelog import UNPOSED, read_samplelog
 from ground.report import ReportOptions, header_geometry, make_report, read_log_input
 from sitl.mavlink.gcs import fly_plan
 from sitl.missions.rectangle import Mission
@@ -128,7 +128,7 @@ def wait_logging(log: Path, proc: subprocess.Popen, timeout_s: float, before: tu
 
 def _posed(samples: np.ndarray) -> np.ndarray:
     """The samples tagged with a current pose."""
-    return (samples["flags"] & int(SampleFlags.NO_POSE | SampleFlags.STALE_POSE)) == 0
+    return (samples["flags"] & int(UNPOSED)) == 0
 
 
 def _stop(proc: subprocess.Popen, timeout_s: float = 10.0) -> int:

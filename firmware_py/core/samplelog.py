@@ -123,6 +123,9 @@ class SampleFlags(enum.IntFlag):
     SERVO_UNCERTAIN = 16  # servo angle cannot be vouched for (stuck / slow servo)
 
 
+UNPOSED = SampleFlags.STALE_POSE | SampleFlags.NO_POSE
+"""A sample with either flag has no pose to vouch for: its position is zero or old."""
+
 EXCLUDE_FROM_CLOUD = (
     SampleFlags.NO_RETURN
     | SampleFlags.STALE_POSE
