@@ -17,9 +17,10 @@ SMALL = Storage(30, 20, 10)
 
 
 def _fly(tmp_path, name: str, p_traj: float, phase: int = 0, storage: Storage = SMALL):
+    """At 2 m/s: what a merge does with the logs, not their sampling density, is what these tests read."""
     out = tmp_path / name
-    fly(FlyConfig(mission=Mission(storage=storage, altitude_m=9.0, p_traj=p_traj), plant="ideal", payload="batch",
-                  initial_position=phase), out, progress=lambda _m: None)
+    fly(FlyConfig(mission=Mission(storage=storage, altitude_m=9.0, p_traj=p_traj, speed_m_s=2.0), plant="ideal",
+                  payload="batch", initial_position=phase), out, progress=lambda _m: None)
     return out
 
 
@@ -29,29 +30,35 @@ def two_flights(tmp_path_factory):
     return _fly(d, "wide", 0.35), _fly(d, "near", 0.1, phase=7)
 
 
+@pytest.fixture(scope="module")
+def reports(two_flights, tmp_path_factory):
+    """Each flight's report alone and the two merged, with the default options, made once for the tests that only
+    read them: {"a" | "b" | "m": (report directory, report)}."""
+    a, b = two_flights
+    d = tmp_path_factory.mktemp("merge-reports")
+    return {name: (d / name, make_report(src, d / name, ReportOptions(plots=False)))
+            for name, src in (("a", a), ("b", b), ("m", [a, b]))}
+
+
 def _points(report_dir) -> np.ndarray:
     p = np.asarray(trimesh.load(report_dir / "cloud.ply").vertices, dtype=float)
     return p[np.lexsort(p.T[::-1])]
 
 
-def test_that_merging_two_logs_gives_the_union_of_their_clouds(two_flights, tmp_path):
-    a, b = two_flights
-    ra = make_report(a, tmp_path / "a", ReportOptions(plots=False))
-    rb = make_report(b, tmp_path / "b", ReportOptions(plots=False))
-    rm = make_report([a, b], tmp_path / "m", ReportOptions(plots=False))
+def test_that_merging_two_logs_gives_the_union_of_their_clouds(reports):
+    (da, ra), (db, rb), (dm, rm) = reports["a"], reports["b"], reports["m"]
     assert rm["n_samples"] == ra["n_samples"] + rb["n_samples"]
     assert rm["n_samples_excluded"] == ra["n_samples_excluded"] + rb["n_samples_excluded"]
     def placed(r: dict) -> int:  # every usable sample's point, on the pile or on the building
         return r["n_points_used"] + r["n_points_removed_walls"]
     assert placed(rm) == placed(ra) + placed(rb)
-    union = np.vstack([_points(tmp_path / "a"), _points(tmp_path / "b")])
-    assert np.array_equal(_points(tmp_path / "m"), union[np.lexsort(union.T[::-1])])
+    union = np.vstack([_points(da), _points(db)])
+    assert np.array_equal(_points(dm), union[np.lexsort(union.T[::-1])])
 
 
-def test_that_the_merged_report_sees_more_than_either_flight_and_names_both_logs(two_flights, tmp_path):
+def test_that_the_merged_report_sees_more_than_either_flight_and_names_both_logs(two_flights, reports):
     a, b = two_flights
-    alone = make_report(a, tmp_path / "a", ReportOptions(plots=False))
-    rm = make_report([a, b], tmp_path / "m", ReportOptions(plots=False))
+    (_, alone), (dm, rm) = reports["a"], reports["m"]
     assert rm["coverage_ratio_pct"] > alone["coverage_ratio_pct"]
     assert rm["true_volume_m3"] == alone["true_volume_m3"]
     assert [f["log_sha256"] for f in rm["flights"]] == [
@@ -61,7 +68,7 @@ def test_that_the_merged_report_sees_more_than_either_flight_and_names_both_logs
     assert rm["metadata"]["flights_merged"] == 2
     assert rm["metadata"]["survey_duration_s"] == pytest.approx(sum(f["duration_s"] for f in rm["flights"]))
     assert alone["flights"] is None and "flights_merged" not in alone["metadata"]
-    md = (tmp_path / "m" / "report.md").read_text()
+    md = (dm / "report.md").read_text()
     assert f"| Flights merged | 2: {a / 'samples.pslog'} (" in md and f"; {b / 'samples.pslog'} (" in md
 
 
@@ -104,10 +111,10 @@ def test_that_a_missing_second_run_is_refused_before_anything_is_written(two_fli
     assert "nowhere" in err and not (tmp_path / "m").exists()
 
 
-def test_that_the_reports_surface_file_marks_the_cells_it_fitted(two_flights, tmp_path):
+def test_that_the_reports_surface_file_marks_the_cells_it_fitted(reports):
     from ground.surface_file import load_surface
-    rep = make_report(two_flights[0], tmp_path / "a", ReportOptions(plots=False))
-    saved = load_surface(tmp_path / "a" / "surface.npz")
+    da, rep = reports["a"]
+    saved = load_surface(da / "surface.npz")
     assert saved.fitted is not None and saved.fitted.shape == saved.heights_m.shape
     assert 100.0 * saved.fitted.mean() == pytest.approx(rep["coverage_ratio_pct"])
     assert 0 < saved.fitted.sum() < saved.fitted.size  # the wide loop left floor unseen: filled, not fitted

@@ -250,30 +250,11 @@ def test_that_options_out_of_range_are_refused():
         PoseCorrectionOptions(horizontal_drift_rel=float("nan"))
 
 
-def test_that_the_report_applies_the_correction_when_asked_to(drifted):
-    from ground.report import ReportOptions, survey_from_samples
-    samples, _, _ = drifted
-    header = {"sensor": {"resolution_m": RESOLUTION, "max_range_m": MAX_RANGE}, "servo": {"frequency_hz": 1 / PERIOD_S}}
-    on = survey_from_samples(samples, header, STORAGE, FRAME, LEVER, ReportOptions(plots=False, pose_correction=True))
-    off = survey_from_samples(samples, header, STORAGE, FRAME, LEVER, ReportOptions(plots=False, pose_correction=False))
-    assert on.pose is not None and on.pose.applied
-    assert off.pose is None
-    # the floor under the corrected cloud is back at z = 0; uncorrected it is where the drift put it
-    assert abs(np.median(on.cloud.points_w[:, 2][np.abs(on.cloud.points_w[:, 2]) < 0.3])) < RESOLUTION
-    # the volume's interval carries the corrected height's standard error over the surfaced cells (its pose term)
-    surfaced = np.count_nonzero(np.isfinite(on.heights)) * on.grid.cell_area_m2
-    assert on.pose.height_sigma_m is not None and on.pose.height_sigma_m > 0
-    assert on.errors.terms.pose_m3 == pytest.approx(on.pose.height_sigma_m * surfaced)
-    mask = np.zeros(on.grid.shape, dtype=bool)
-    mask[: on.grid.shape[0] // 2] = True  # one pile's cells get the term over their own area
-    assert on.errors_in(mask).terms.pose_m3 == pytest.approx(
-        on.pose.height_sigma_m * np.count_nonzero(np.isfinite(on.heights) & mask) * on.grid.cell_area_m2)
-    assert off.errors.terms.pose_m3 == 0.0
-
-
-def test_that_the_mount_and_pose_are_estimated_once_beside_the_survey_and_used(drifted, monkeypatch):
-    # They need the samples, not the survey: they run in a second thread while the survey is computed (the report's
-    # time is then the longer of the two), and the report uses what that thread found.
+@pytest.fixture(scope="module")
+def spied_survey(drifted):
+    """The drifted flight's survey with the default options (the pose correction on), its mount and pose estimates
+    watched as they pass through: (survey, [(what, thread or result), ...] in the order they ran). Two tests read it:
+    one survey, not two."""
     import threading
 
     import ground.report as report
@@ -290,9 +271,40 @@ def test_that_the_mount_and_pose_are_estimated_once_beside_the_survey_and_used(d
     def mount(*args, **kwargs):
         found.append(("mount", threading.current_thread()))
         return real_mount(*args, **kwargs)
-    monkeypatch.setattr(report, "estimate_pose_correction", pose)
-    monkeypatch.setattr(report, "estimate_mount", mount)
-    sv = report.survey_from_samples(samples, header, STORAGE, FRAME, LEVER, report.ReportOptions(plots=False))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(report, "estimate_pose_correction", pose)
+        mp.setattr(report, "estimate_mount", mount)
+        sv = report.survey_from_samples(samples, header, STORAGE, FRAME, LEVER, report.ReportOptions(plots=False))
+    return sv, found
+
+
+def test_that_the_report_applies_the_correction_when_asked_to(drifted, spied_survey):
+    from ground.report import ReportOptions, survey_from_samples
+    samples, _, _ = drifted
+    header = {"sensor": {"resolution_m": RESOLUTION, "max_range_m": MAX_RANGE}, "servo": {"frequency_hz": 1 / PERIOD_S}}
+    on = spied_survey[0]  # the default options: the correction asked for
+    assert ReportOptions(plots=False).pose_correction is True
+    off = survey_from_samples(samples, header, STORAGE, FRAME, LEVER, ReportOptions(plots=False, pose_correction=False))
+    assert on.pose is not None and on.pose.applied
+    assert off.pose is None
+    # the floor under the corrected cloud is back at z = 0; uncorrected it is where the drift put it
+    assert abs(np.median(on.cloud.points_w[:, 2][np.abs(on.cloud.points_w[:, 2]) < 0.3])) < RESOLUTION
+    # the volume's interval carries the corrected height's standard error over the surfaced cells (its pose term)
+    surfaced = np.count_nonzero(np.isfinite(on.heights)) * on.grid.cell_area_m2
+    assert on.pose.height_sigma_m is not None and on.pose.height_sigma_m > 0
+    assert on.errors.terms.pose_m3 == pytest.approx(on.pose.height_sigma_m * surfaced)
+    mask = np.zeros(on.grid.shape, dtype=bool)
+    mask[: on.grid.shape[0] // 2] = True  # one pile's cells get the term over their own area
+    assert on.errors_in(mask).terms.pose_m3 == pytest.approx(
+        on.pose.height_sigma_m * np.count_nonzero(np.isfinite(on.heights) & mask) * on.grid.cell_area_m2)
+    assert off.errors.terms.pose_m3 == 0.0
+
+
+def test_that_the_mount_and_pose_are_estimated_once_beside_the_survey_and_used(spied_survey):
+    # They need the samples, not the survey: they run in a second thread while the survey is computed (the report's
+    # time is then the longer of the two), and the report uses what that thread found.
+    import threading
+    sv, found = spied_survey
     assert [what for what, _ in found] == ["mount", "pose", "result"]
     assert found[0][1] is not threading.main_thread() and found[1][1] is not threading.main_thread()
     assert sv.pose.applied and np.array_equal(sv.pose.values, found[2][1].values)

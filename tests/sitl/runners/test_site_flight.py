@@ -22,7 +22,9 @@ from firmware_py.core.frames import StorageFrame
 from firmware_py.core.rundir import SAMPLES_FILE, TLOG_FILE, TRUTH_FILE
 from firmware_py.core.samplelog import read_samplelog
 from firmware_py.core.site import DEFAULT_SITE, Site
-from ground.report import ReportOptions, header_geometry, make_report, survey_from_samples
+from firmware_py.core.surface_file import SURFACE_FILE
+from ground.report import ReportOptions, make_report
+from ground.surface_file import load_surface
 from sitl.cli import main
 
 pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
@@ -33,14 +35,15 @@ RUNS = {"default": [], "sydney": ["--origin", "-33.9,151.2,30", "--heading", "30
 
 @pytest.fixture(scope="module")
 def flights(tmp_path_factory):
-    """Both flights and their reports, by name."""
+    """Both flights and their reports (the report's dict and its folder), by name."""
     root = tmp_path_factory.mktemp("sites")
     out = {}
     for name, site_args in RUNS.items():
         run = root / name
         assert main(["fly", "--stockpile", "1", "--p-traj", "20", "--storage", "30x20x10", "--altitude", "9",
                      *site_args, "--out", str(run), "-q"]) == 0
-        out[name] = (run, make_report(run, root / f"{name}-report", ReportOptions(plots=False)))
+        report = root / f"{name}-report"
+        out[name] = (run, make_report(run, report, ReportOptions(plots=False)), report)
     return out
 
 
@@ -52,11 +55,10 @@ def path_w(run) -> np.ndarray:
     return p[np.isfinite(p).all(axis=1)]
 
 
-def surveyed(run):
-    """The ground station's survey of a run (its grid of fitted and filled heights)."""
-    log = read_samplelog(run / SAMPLES_FILE)
-    storage, frame, lever = header_geometry(log, run / SAMPLES_FILE)
-    return survey_from_samples(log.samples, log.header, storage, frame, lever, ReportOptions(plots=False))
+def surveyed(report_dir):
+    """The surface a report measured (its grid of heights, and which cells were fitted to points rather than filled),
+    as the report saved it: the same survey, not computed a second time."""
+    return load_surface(report_dir / SURFACE_FILE)
 
 
 def test_that_the_turned_building_at_another_site_measures_the_same_volume(flights):
@@ -64,9 +66,9 @@ def test_that_the_turned_building_at_another_site_measures_the_same_volume(fligh
     assert flights["default"][1]["true_volume_m3"] == flights["sydney"][1]["true_volume_m3"]
     v_default, v_sydney = (flights[k][1]["volume_m3"] for k in ("default", "sydney"))
     assert abs(v_sydney - v_default) / v_default < 0.001
-    a, b = surveyed(flights["default"][0]), surveyed(flights["sydney"][0])
-    seen = np.isfinite(a.heights_fit) & np.isfinite(b.heights_fit)
-    v_a, v_b = (float(s.heights[seen].sum()) * a.grid.cell_m ** 2 for s in (a, b))
+    a, b = surveyed(flights["default"][2]), surveyed(flights["sydney"][2])
+    seen = a.fitted & b.fitted
+    v_a, v_b = (float(s.heights_m[seen].sum()) * a.grid.cell_m ** 2 for s in (a, b))
     assert abs(v_b - v_a) / v_a < 0.001
 
 
@@ -83,7 +85,7 @@ def test_that_the_mission_is_flown_along_the_turned_building(flights):
 
 
 def test_that_truth_header_and_report_carry_the_site(flights):
-    run, report = flights["sydney"]
+    run, report, _ = flights["sydney"]
     truth = json.loads((run / TRUTH_FILE).read_text())
     assert truth["site"] == SYDNEY.to_dict() and truth["ekf_origin"] == {"lat_deg": -33.9, "lon_deg": 151.2,
                                                                           "alt_m": 30.0}
@@ -98,7 +100,7 @@ def test_that_every_geodetic_message_on_the_link_agrees_with_the_site(flights):
     """The payload's SET_GPS_GLOBAL_ORIGIN is the site's corner, the autopilot confirms it (GPS_GLOBAL_ORIGIN)
     and refuses nothing, and GLOBAL_POSITION_INT, taken back about the corner, is LOCAL_POSITION_NED to
     MAVLink's resolution (1e-7 deg: 1.1 cm; mm in altitude)."""
-    run, _ = flights["sydney"]
+    run, _, _ = flights["sydney"]
     tlog = mavutil.mavlink_connection(str(run / TLOG_FILE), dialect="ardupilotmega")
     corner = (round(-33.9e7), round(151.2e7), 30_000)
     sent, confirmed, refusals, local, pairs = [], [], [], {}, []
