@@ -51,8 +51,8 @@ def test_that_a_sound_payload_passes_every_check_writes_no_log_and_tells_the_gro
     assert all(verdicts[name] is Verdict.OK for name in ("sample log", "autopilot", "EKF sources", "servo sweep")), \
         res.lines()
     # The rates are the machine's: a loaded test machine may miss ticks or pose messages (a warning), never fail.
-    assert all(v is not Verdict.FAIL for v in verdicts.values()) and res.passed
-    assert "100 % ranged" in res.checks[4].detail and res.readings > 250
+    assert all(v is not Verdict.FAIL for v in verdicts.values()) and res.passed, res.lines()
+    assert "100 % ranged" in res.checks[4].detail and res.readings > 250, res.lines()
     assert not Path(cfg.out_path).exists()  # a preflight writes no log
     assert "no log is written" in err.getvalue()
     assert servo.pulses > 25 and not servo.enabled  # swept, then let go
