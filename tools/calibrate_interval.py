@@ -25,6 +25,7 @@ from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import binom
 
 from firmware_py.core.cli import ArgumentParser
 from ground.surface import grid_volume
@@ -193,18 +194,30 @@ def coverage(model: IntervalModel, rows: list[dict]) -> dict:
             widths.append(100.0 * 0.5 * (hi - lo) / r["true_volume_m3"])
     w = np.array(widths) if widths else np.array([math.nan])
     return {"n": len(rows), "coverage_pct": 100.0 * float(np.mean(inside)) if inside else math.nan,
+            "chance_pct": chance_of_so_few_pct(int(np.sum(inside)), len(rows)),
             "median_half_width_pct": float(np.median(w)), "p90_half_width_pct": float(np.quantile(w, 0.9)),
             "median_half_width_cm": float(np.median(heights)) if heights else math.nan}
 
 
+def chance_of_so_few_pct(inside: int, n: int, level: float = INTERVAL_LEVEL) -> float:
+    """The chance, in percent, that n surveys hold at most `inside` truths when the interval holds each with the
+    probability level: a group of 63 surveys at 88.9 % is as likely as not from a 90 % interval (44 %), one at 80 %
+    is not (under 1 %). Why: a coverage below the target in a small group is the draw of its surveys or a defect,
+    and the table should say which it can be."""
+    return 100.0 * float(binom.cdf(inside, n, level)) if n else math.nan
+
+
 # ----- the document ---------------------------------------------------------------------------------------------
+
+CHANCE_HEAD = "chance of so few"
+
 
 def _table(model: IntervalModel, rows: list[dict], key: str) -> list[str]:
     groups: dict = defaultdict(list)
     for r in rows:
         groups[r[key]].append(r)
-    out = [f"| {key} | runs | coverage | median half-width | 90th pct half-width | median half-width over "
-           "the floor |", "|---|---:|---:|---:|---:|---:|"]
+    out = [f"| {key} | runs | coverage | {CHANCE_HEAD} | median half-width | 90th pct half-width | median "
+           "half-width over the floor |", "|---|---:|---:|---:|---:|---:|---:|"]
     for g in sorted(groups, key=lambda v: (isinstance(v, str), v)):
         out.append(_row(str(g), coverage(model, groups[g])))
     return out
@@ -213,7 +226,8 @@ def _table(model: IntervalModel, rows: list[dict], key: str) -> list[str]:
 def _row(name: str, c: dict) -> str:
     def pct(v: float) -> str:  # the empty building has no volume to take a percentage of
         return "n/a" if math.isnan(v) else f"±{v:.2f} %"
-    return (f"| {name} | {c['n']} | {c['coverage_pct']:.1f} % | {pct(c['median_half_width_pct'])} | "
+    return (f"| {name} | {c['n']} | {c['coverage_pct']:.1f} % | {c['chance_pct']:.0f} % | "
+            f"{pct(c['median_half_width_pct'])} | "
             f"{pct(c['p90_half_width_pct'])} | ±{c['median_half_width_cm']:.1f} cm |")
 
 
@@ -226,11 +240,15 @@ def document(model: IntervalModel, calib: list[dict], held: list[dict], command:
         f"of the families a height map can hold, of {cc['n']}; the coverage below counts all): " + ", ".join(
             f"{name} = {getattr(model, name):.4g}" for name in FACTORS) + ".",
         "",
-        f"| part | runs | coverage (target {100 * INTERVAL_LEVEL:.0f} %) | median half-width | "
+        f"| part | runs | coverage (target {100 * INTERVAL_LEVEL:.0f} %) | {CHANCE_HEAD} | median half-width | "
         "90th pct half-width | median half-width over the floor |",
-        "|---|---:|---:|---:|---:|---:|",
+        "|---|---:|---:|---:|---:|---:|---:|",
         _row("calibration", cc),
         _row("**held-out**", hc),
+        "",
+        f"{CHANCE_HEAD}: the chance that a {100 * INTERVAL_LEVEL:.0f} % interval holds no more of the group's truths",
+        "than this one did (binomial): a group below the target with a chance of tens of percent is below it by the",
+        "draw of its few surveys; one with a chance of a few percent or less is not.",
         "",
         "Half-widths are in percent of the true volume (the empty building's runs count in the coverage, not in",
         "these), and as the mean height over the building's floor they amount to (size-independent: a few",
@@ -270,17 +288,19 @@ def readme_summary(model: IntervalModel, held: list[dict]) -> str:
         groups: dict = defaultdict(list)
         for r in held:
             groups[r[key]].append(r)
-        worst[key] = min((coverage(model, g)["coverage_pct"], name) for name, g in groups.items())
+        worst[key] = min((coverage(model, g)["coverage_pct"], name, coverage(model, g)["chance_pct"])
+                         for name, g in groups.items())
     by_p: dict = defaultdict(list)
     for r in held:
         by_p[int(r["p_traj_pct"])].append(r)
     lo_p, hi_p = min(by_p), max(by_p)
     lo_w, hi_w = (coverage(model, by_p[p])["median_half_width_pct"] for p in (lo_p, hi_p))
-    (cp, p), (cn, n), (cf, f) = worst["p_traj_pct"], worst["noise"], worst["family"]
+    (cp, p, _), (cn, n, _), (cf, f, chance) = worst["p_traj_pct"], worst["noise"], worst["family"]
     return (f"On the held-out part of the evaluation set (a building and a pile family the fit never saw) the 90 % "
             f"interval holds the truth in {hc['coverage_pct']:.1f} % of {hc['n']} surveys (target "
             f"{100 * INTERVAL_LEVEL:.0f} %; the lowest: {cp:.1f} % at P_traj {p} %, {cn:.1f} % under noise model "
-            f"{n}, {cf:.1f} % on {f} piles), with a median half-width of "
+            f"{n}, {cf:.1f} % on {f} piles: a {100 * INTERVAL_LEVEL:.0f} % interval holds as few in "
+            f"{chance:.0f} % of draws of so many surveys), with a median half-width of "
             f"±{hc['median_half_width_pct']:.2f} % of the volume: ±{lo_w:.2f} % at P_traj {lo_p} %, ±{hi_w:.2f} % at "
             f"{hi_p} %, where metres of floor beside the walls go unseen (`python -m tools.calibrate_interval`, "
             f"{time.strftime('%Y-%m-%d')}).")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ground.uncertainty import ErrorTerms, IntervalModel
@@ -9,7 +11,9 @@ from tools.calibrate_interval import (
     FACTORS,
     MODEL_BEGIN,
     MODEL_END,
+    chance_of_so_few_pct,
     coverage,
+    document,
     fit,
     model_of,
     readme_summary,
@@ -105,3 +109,19 @@ def test_that_the_piles_a_height_map_cannot_hold_take_no_part_in_the_fit():
         r["volume_m3"] = r["true_volume_m3"] + 300.0  # an error no term sees
     alone = fit(common, n_candidates=100)[0]
     assert np.allclose(fit(common + box, n_candidates=100)[0], alone)
+
+
+def test_that_the_chance_of_so_few_inside_tells_a_small_group_s_draw_from_a_defect():
+    """88.9 % of 63 surveys is as likely as not from a 90 % interval; 80 % of 63, or 88.9 % of 6,300, is not."""
+    assert 40.0 < chance_of_so_few_pct(56, 63) < 50.0
+    assert chance_of_so_few_pct(50, 63) < 1.0
+    assert chance_of_so_few_pct(5600, 6300) < 1.0
+    assert chance_of_so_few_pct(63, 63) == 100.0 and math.isnan(chance_of_so_few_pct(0, 0))
+    rows = _rows(200, 8)
+    for r in rows:
+        r["p_traj_pct"], r["noise"], r["family"], r["building"] = 20, "none", "cone", "paper"
+    c = coverage(model_of(fit(rows, n_candidates=200)[0], "test"), rows)
+    inside = round(c["coverage_pct"] * c["n"] / 100.0)
+    assert c["chance_pct"] == chance_of_so_few_pct(inside, c["n"])
+    text = document(model_of(fit(rows, n_candidates=200)[0], "test"), rows, rows, "cmd")
+    assert f"| {c['chance_pct']:.0f} % |" in text and "chance of so few" in text
