@@ -71,6 +71,7 @@ from firmware_py.core.header import software_version, utc_now_iso
 from firmware_py.core.keys import load_key
 from firmware_py.core.safe_read import InputError, read_bounded
 from firmware_py.core.samplelog import (
+    END_BLOCK_MAX_BYTES,
     FORMAT_NAME,
     HEAD_SIZE,
     MAGIC,
@@ -546,7 +547,7 @@ class Listener:
 
         def bytes_after(k: int) -> int:
             m = pending + k
-            return on_disk + m * size + -(-m // per_block) * HEAD_SIZE
+            return on_disk + m * size + -(-m // per_block) * HEAD_SIZE + END_BLOCK_MAX_BYTES  # and its close
 
         if bytes_after(n) <= self.cfg.max_log_bytes:
             return n

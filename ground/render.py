@@ -248,7 +248,7 @@ def fmt_count(v: Any) -> str:
 _SUMMARY_SUBKEYS: dict[str, tuple[str, ...]] = {
     "storage": ("length_m", "width_m", "height_m"),
     "site": ("lat_deg", "lon_deg", "alt_m", "heading_deg"),
-    "log": ("blocks_ok", "blocks_corrupt", "blocks_truncated"),
+    "log": ("blocks_ok", "blocks_corrupt", "blocks_truncated", "closed_cleanly"),
 }
 """Sub-keys a summary cell shows; any others of the same dict go to "All figures"."""
 
@@ -276,7 +276,9 @@ def _fmt_log(v: Any) -> str:
         return fmt_value(v)
     parts = [f"{fmt_count(v.get(k))} {name}" for k, name in
              (("blocks_ok", "ok"), ("blocks_corrupt", "corrupt"), ("blocks_truncated", "truncated"))]
-    return ", ".join(parts)
+    closed = {True: "; closed by the payload", False: "; not closed: cut short (see the warnings)"}
+    state = v.get("closed_cleanly")
+    return ", ".join(parts) + (closed[state] if isinstance(state, bool) else "")
 
 
 def headline(report: Mapping[str, Any]) -> str:

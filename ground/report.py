@@ -387,7 +387,10 @@ def merged_log(inputs: Sequence[LogInput]) -> SampleLog:
     return SampleLog(logs[0].header, np.concatenate([lg.samples for lg in logs]),
                      sum(lg.blocks_ok for lg in logs), sum(lg.blocks_corrupt for lg in logs),
                      sum(lg.blocks_truncated for lg in logs), sum(lg.bytes_skipped for lg in logs),
-                     sum(lg.blocks_unknown for lg in logs))
+                     sum(lg.blocks_unknown for lg in logs),
+                     # closed as a whole only when no flight's log was cut short (each flight's warning says which)
+                     None if any(lg.closed_cleanly is False for lg in logs) else {"records": sum(len(lg.samples)
+                                                                                                 for lg in logs)})
 
 
 def flight_record(f: Flight) -> dict:
@@ -777,6 +780,17 @@ def sensor_noise_line(header: dict) -> str:
     return "none stated in the log header" if rec is None else describe_record(rec)
 
 
+def cut_short_warning(log: SampleLog) -> str:
+    """A log its writer never closed (no end block): the payload stopped in flight, so the survey covers only the
+    part flown before, and the rest of the floor is filled or missing whatever the blocks' state."""
+    t = in_time(log.samples["t_s"])
+    span = f" ({float(t[-1] - t[0]):,.0f} s of samples)" if len(t) > 1 else ""
+    return ("the sample log was not closed: the payload stopped before it finished the log (a power cut, a crash or a "
+            f"full card), so it holds the flight up to its last whole block{span} and the survey covers only what "
+            "was flown by then: the volume and its interval are of that part, the rest of the floor filled or "
+            "missing")
+
+
 def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[str]:
     """What one log's own checks found (damage, unusable and implausible samples, spikes, a stuck or mistimed
     servo, the mount, the pose, the site): per flight, whether the flight is reported alone or merged."""
@@ -787,6 +801,8 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
     if log.blocks_corrupt or log.blocks_truncated:
         warnings.append(f"sample log damaged: {log.blocks_corrupt} corrupt and {log.blocks_truncated} "
                         f"truncated block(s) skipped ({log.bytes_skipped} bytes)")
+    if log.closed_cleanly is False:
+        warnings.append(cut_short_warning(log))
     if survey.cloud.n_samples and survey.cloud.n_excluded / survey.cloud.n_samples > HIGH_EXCLUDED_FRACTION:
         tally = FlagTally()
         tally.add(log.samples["flags"])
@@ -953,7 +969,8 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "boresight_deg": _boresight_deg(log.header or {}),
         "config": (log.header or {}).get("config"),
         "log": {"blocks_ok": log.blocks_ok, "blocks_corrupt": log.blocks_corrupt,
-                "blocks_truncated": log.blocks_truncated, "bytes_skipped": log.bytes_skipped},
+                "blocks_truncated": log.blocks_truncated, "bytes_skipped": log.bytes_skipped,
+                "closed_cleanly": log.closed_cleanly},
         "warnings": warnings,
         "flights": None if flights is None else [flight_record(f) for f in flights],
         "software_version": software_version(),

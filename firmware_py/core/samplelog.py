@@ -11,7 +11,7 @@ A sequence of framed blocks, nothing else (no file header outside the blocks)::
 
     offset  size  field
     0       4     MAGIC = b"PSLB"
-    4       1     kind: b"H" header, b"S" samples (other kinds: skipped, counted)
+    4       1     kind: b"H" header, b"S" samples, b"E" end (other kinds: skipped, counted)
     5       4     payload length, uint32 little-endian, at most MAX_PAYLOAD (16 MiB)
     9       4     CRC32, uint32 little-endian: zlib.crc32(kind + length bytes + payload)
     13      n     payload
@@ -23,6 +23,11 @@ A sequence of framed blocks, nothing else (no file header outside the blocks)::
 * Sample blocks: payload is the raw little-endian bytes of ``SAMPLE_DTYPE``
   records (packed, itemsize 59). A length that is not a multiple of the
   itemsize makes the block corrupt.
+* The end block: UTF-8 JSON object ``{"records": n}``, written by ``close()`` after the
+  last samples and by nothing else. The writer also puts ``"end_record": true`` in the
+  header: a log whose header says so and that has no end block was not closed (a power
+  cut, a crash, a full card), whatever its blocks' state (``SampleLog.closed_cleanly``).
+  A log of an older writer, without the key, cannot tell (None).
 * Every block is flushed (and fsync'd) as a whole, so after a crash only the
   final block can be incomplete.
 
@@ -88,6 +93,15 @@ from firmware_py.core.safe_read import InputError, read_bounded
 MAGIC = b"PSLB"
 KIND_HEADER = b"H"
 KIND_SAMPLES = b"S"
+KIND_END = b"E"
+END_HEADER_KEY = "end_record"
+"""The header key by which a writer says it closes its log with an end block (module docstring)."""
+
+
+def end_payload(records: int) -> bytes:
+    """The end block's payload for a log of `records` records."""
+    return json.dumps({"records": int(records)}).encode("utf-8")
+
 MAX_PAYLOAD = 16 * 1024 * 1024
 FORMAT_NAME = "pilescan-samplelog"
 FORMAT_VERSION = 1
@@ -99,6 +113,8 @@ multirotor flies under one hour per battery); the reader holds the file and its 
 
 _HEAD = struct.Struct("<4scII")  # magic, kind, payload length, crc32
 HEAD_SIZE = _HEAD.size  # 13
+END_BLOCK_MAX_BYTES = HEAD_SIZE + len(end_payload(2**64))
+"""The most bytes `close()` adds (the end block): what a writer under a size cap keeps free for it."""
 
 SAMPLE_DTYPE = np.dtype([
     ("t_s", "<f8"),         # companion clock time, s
@@ -166,6 +182,7 @@ def _validated_header(header: Any) -> bytes:
         raise ValueError(f"header keys {clash} are reserved for the writer")
     full = {**header, "format": FORMAT_NAME, "format_version": FORMAT_VERSION,
             "record_dtype": [list(pair) for pair in SAMPLE_DTYPE.descr]}
+    full.setdefault(END_HEADER_KEY, True)  # a header copied from a log keeps its place: it says the same
     try:
         text = json.dumps(full, allow_nan=False)
     except (TypeError, ValueError) as exc:
@@ -285,11 +302,13 @@ class SampleLogWriter:
             self._batch.flush()
 
     def close(self) -> None:
-        """Flush and close; safe to call repeatedly."""
+        """Flush, write the end block (the log was closed, not cut short) and close; safe to call repeatedly. A
+        failed flush (a full card) writes no end block: the log then reads as not closed."""
         if self._file is None:
             return
         try:
             self.flush()
+            self._write_block(KIND_END, end_payload(self._written))
         finally:
             self._file.close()
             self._file = None
@@ -335,6 +354,17 @@ class SampleLog:
     blocks_truncated: int
     bytes_skipped: int
     blocks_unknown: int = 0
+    end: dict | None = None
+    """The end block's record (`SampleLogWriter.close`), None when the log has none."""
+
+    @property
+    def closed_cleanly(self) -> bool | None:
+        """Whether the writer closed the log: True with its end block, False without one when the header says the
+        writer writes it (the payload stopped before closing: a power cut, a crash, a full card), None when the
+        header does not say so (an older writer's log, or no header)."""
+        if not isinstance(self.header, dict) or self.header.get(END_HEADER_KEY) is not True:
+            return None
+        return self.end is not None
 
     @property
     def format_problem(self) -> str | None:
@@ -401,6 +431,7 @@ class _Scanner:
         self.header: dict | None = None
         self.chunks: list[memoryview] = []
         self.ok = self.corrupt = self.truncated = self.unknown = self.skipped = 0
+        self.end: dict | None = None
         self._start_region(0)
 
     def _start_region(self, start: int) -> None:
@@ -477,6 +508,12 @@ class _Scanner:
                 self.chunks.append(payload)
         elif kind == KIND_HEADER:
             usable = self._take_header(payload)
+        elif kind == KIND_END:  # not counted with the data blocks: it holds no data, only that the log was closed
+            record = self._json_object(payload)
+            if record is not None:
+                self.end = record
+                return
+            usable = False
         else:
             self.unknown += 1
             return
@@ -486,13 +523,18 @@ class _Scanner:
             self.corrupt += 1
             self.skipped += end - i
 
-    def _take_header(self, payload: memoryview) -> bool:
-        """Decode a header block; only the first valid one is kept."""
+    @staticmethod
+    def _json_object(payload: memoryview) -> dict | None:
         try:
             obj = json.loads(bytes(payload).decode("utf-8"))
         except (ValueError, RecursionError):
-            return False
-        if not isinstance(obj, dict):
+            return None
+        return obj if isinstance(obj, dict) else None
+
+    def _take_header(self, payload: memoryview) -> bool:
+        """Decode a header block; only the first valid one is kept."""
+        obj = self._json_object(payload)
+        if obj is None:
             return False
         if self.header is None:
             self.header = obj
@@ -502,7 +544,7 @@ class _Scanner:
         parts = [np.frombuffer(c, dtype=SAMPLE_DTYPE) for c in self.chunks]
         samples = np.concatenate(parts) if parts else new_records(0)
         return SampleLog(self.header, samples, self.ok, self.corrupt, self.truncated,
-                         self.skipped, self.unknown)
+                         self.skipped, self.unknown, self.end)
 
 
 def _read_source(source: Any, max_bytes: int) -> bytes:

@@ -301,3 +301,11 @@ def test_that_comparing_a_survey_with_itself_shows_no_negative_zero():
         [{"old_pile": "P1", "new_pile": "P1", "change_interval_m3": [-0.03, 0.01], "centroid_m": [1.0, 2.0],
           "status": "matched", "change_m3": -0.01}]))
     assert "-0.0" not in text and "net change            +0.0 m³ (90 % interval 0.0 to 0.0 m³)" in text
+
+
+def test_that_the_log_cell_says_whether_the_payload_closed_the_log_and_nothing_of_a_value_it_cannot_read():
+    base = {"blocks_ok": 9, "blocks_corrupt": 0, "blocks_truncated": 0}
+    assert render._fmt_log({**base, "closed_cleanly": True}).endswith("; closed by the payload")
+    assert "not closed: cut short" in render._fmt_log({**base, "closed_cleanly": False})
+    for unknown in (None, 1, [True], "yes"):  # an older writer's log, or a report.json edited by hand
+        assert render._fmt_log({**base, "closed_cleanly": unknown}) == "9 ok, 0 corrupt, 0 truncated"

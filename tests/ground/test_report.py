@@ -93,13 +93,19 @@ def test_that_a_log_cut_by_a_power_failure_still_reports_with_a_warning(tmp_path
     data = log.read_bytes()
     log.write_bytes(data[: len(data) * 2 // 3 + 17])
     rep = make_report(tmp_path / "run", tmp_path / "rep", ReportOptions(plots=False))
-    assert rep["log"]["blocks_truncated"] == 1
+    assert rep["log"]["blocks_truncated"] == 1 and rep["log"]["closed_cleanly"] is False
     assert any("damaged" in w for w in rep["warnings"])
+    assert sum("the sample log was not closed" in w for w in rep["warnings"]) == 1
     assert rep["n_samples"] < 0.7 * (len(data) / 59)
     unseen = [w for w in rep["warnings"] if "never seen" in w]  # a third of the flight is missing
     assert len(unseen) == 1 and "x 0-27 m" in unseen[0]
     lo, hi = rep["volume_interval_m3"]
     assert lo < rep["volume_m3"] < hi
+
+
+def test_that_a_log_its_payload_closed_says_so_and_is_not_warned_of(paper_report):
+    assert paper_report["log"]["closed_cleanly"] is True
+    assert not any("not closed" in w for w in paper_report["warnings"])
 
 
 def test_that_the_truth_can_be_given_or_absent(tmp_path, paper_run, paper_report):

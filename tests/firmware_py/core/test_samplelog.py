@@ -44,9 +44,15 @@ def make_records(n: int, seed: int = 0) -> np.ndarray:
     return r
 
 
-def write_log(path: Path, records: np.ndarray, records_per_block: int) -> bytes:
-    with SampleLogWriter(path, HEADER, records_per_block=records_per_block, fsync=False) as w:
-        w.append(records)
+def write_log(path: Path, records: np.ndarray, records_per_block: int, end: bool = True) -> bytes:
+    """The log's bytes; end=False: as a power cut after the last block leaves it (no end record)."""
+    w = SampleLogWriter(path, HEADER, records_per_block=records_per_block, fsync=False)
+    w.append(records)
+    if end:
+        w.close()
+    else:
+        w.flush()
+        w.abandon()
     return path.read_bytes()
 
 
@@ -71,7 +77,7 @@ N_BLOCKS, PER_BLOCK = 5, 7
 @pytest.fixture(scope="module")
 def log5(tmp_path_factory: pytest.TempPathFactory) -> tuple[bytes, np.ndarray, list[tuple[int, int]]]:
     records = make_records(N_BLOCKS * PER_BLOCK, seed=5)
-    data = write_log(tmp_path_factory.mktemp("log5") / "five.pslog", records, PER_BLOCK)
+    data = write_log(tmp_path_factory.mktemp("log5") / "five.pslog", records, PER_BLOCK, end=False)
     spans = block_spans(data)
     if len(spans) != N_BLOCKS + 1:
         raise RuntimeError(f"fixture expected {N_BLOCKS + 1} blocks, got {len(spans)}")
@@ -368,7 +374,9 @@ def test_any_json_header_round_trips_through_writer_and_reader(scratch, header: 
         w.append(recs)
     log = read_samplelog(scratch)
     assert log.intact and same_records(log.samples, recs)
-    assert {k: v for k, v in log.header.items() if k not in sl._RESERVED_HEADER_KEYS} == header
+    # the writer's promise of an end record, unless the header made it already (a header copied from a log)
+    assert {k: v for k, v in log.header.items() if k not in sl._RESERVED_HEADER_KEYS} == {sl.END_HEADER_KEY: True,
+                                                                                         **header}
     assert log.header["format"] == sl.FORMAT_NAME
 
 
@@ -496,7 +504,7 @@ def test_fsync_once_per_block_plus_header(tmp_path: Path, monkeypatch: pytest.Mo
         assert len(calls) == 1 + 2
         w.append(make_records(1))
         assert len(calls) == 3
-    assert len(calls) == 4  # close wrote the 3-record partial block
+    assert len(calls) == 5  # close wrote the 3-record partial block and the end record
     calls.clear()
     with SampleLogWriter(tmp_path / "g.pslog", HEADER, records_per_block=4, fsync=False) as w:
         w.append(make_records(10))
@@ -509,7 +517,8 @@ def test_header_json_is_plain_utf8_object(tmp_path: Path) -> None:
         pass
     data = path.read_bytes()
     assert data[:5] == MAGIC + b"H"
-    assert json.loads(data[HEAD_SIZE:].decode("utf-8"))["pilot"] == "Zoë"
+    (length,) = struct.unpack_from("<I", data, 5)
+    assert json.loads(data[HEAD_SIZE:HEAD_SIZE + length].decode("utf-8"))["pilot"] == "Zoë"
 
 
 def test_that_a_100k_record_log_reads_back_whole(tmp_path: Path) -> None:
@@ -551,3 +560,54 @@ def test_that_a_full_disk_stops_the_writer_loudly_and_keeps_every_whole_block(tm
     log = read_samplelog(path)
     assert len(log.samples) == 300 and np.array_equal(log.samples["t_s"], np.arange(300))
     assert log.blocks_corrupt == 0 and log.blocks_truncated == 1  # the block that did not fit
+
+
+def test_that_a_closed_log_ends_with_its_end_record_and_reads_as_closed(tmp_path):
+    path = tmp_path / "closed.pslog"
+    with SampleLogWriter(path, HEADER, records_per_block=4, fsync=False) as w:
+        w.append(make_records(10))
+    log = read_samplelog(path)
+    assert log.closed_cleanly is True and log.end == {"records": 10}
+    assert log.header[sl.END_HEADER_KEY] is True and log.intact
+    assert (log.blocks_ok, log.blocks_unknown) == (1 + 3, 0)  # the end block is no data block
+    assert path.read_bytes().endswith(encode_block(sl.KIND_END, b'{"records": 10}'))
+
+
+def test_that_a_log_never_closed_reads_as_cut_short_and_an_older_writers_as_unknown(tmp_path):
+    path = tmp_path / "cut.pslog"
+    w = SampleLogWriter(path, HEADER, records_per_block=4, fsync=False)
+    w.append(make_records(10))
+    w.abandon()  # a power cut: the whole blocks stay, no end record
+    log = read_samplelog(path)
+    assert log.closed_cleanly is False and log.end is None and log.intact and len(log.samples) == 8
+    older = encode_block(sl.KIND_HEADER, json.dumps(HEADER).encode()) + encode_block(sl.KIND_SAMPLES,
+                                                                                    make_records(3).tobytes())
+    assert read_samplelog(older).closed_cleanly is None  # no promise of an end record in its header
+    bad_end = older + encode_block(sl.KIND_END, b"[1, 2]")
+    assert read_samplelog(bad_end).blocks_corrupt == 1 and read_samplelog(bad_end).end is None
+
+
+def test_that_a_failed_last_flush_leaves_no_end_record(tmp_path):
+    """A full card: the close fails on the buffered records and the log reads as not closed."""
+    class Full(io.BytesIO):
+        def __init__(self):
+            super().__init__()
+            self.full = False
+
+        def write(self, b):
+            if self.full:
+                raise OSError(28, "No space left on device")
+            return super().write(b)
+
+        def close(self):
+            self.saved = self.getvalue()
+            super().close()
+
+    f = Full()
+    w = SampleLogWriter(tmp_path / "x", HEADER, records_per_block=4, fsync=False, opener=lambda p, m: f)
+    w.append(make_records(6))
+    f.full = True
+    with pytest.raises(OSError):
+        w.close()
+    log = read_samplelog(f.saved)
+    assert w.closed and log.closed_cleanly is False and len(log.samples) == 4
