@@ -276,7 +276,7 @@ def _fmt_log(v: Any) -> str:
         return fmt_value(v)
     parts = [f"{fmt_count(v.get(k))} {name}" for k, name in
              (("blocks_ok", "ok"), ("blocks_corrupt", "corrupt"), ("blocks_truncated", "truncated"))]
-    closed = {True: "; closed by the payload", False: "; not closed: cut short (see the warnings)"}
+    closed = {True: "; closed by its writer", False: "; not closed: cut short (see the warnings)"}
     state = v.get("closed_cleanly")
     return ", ".join(parts) + (closed[state] if isinstance(state, bool) else "")
 

@@ -305,7 +305,7 @@ def test_that_comparing_a_survey_with_itself_shows_no_negative_zero():
 
 def test_that_the_log_cell_says_whether_the_payload_closed_the_log_and_nothing_of_a_value_it_cannot_read():
     base = {"blocks_ok": 9, "blocks_corrupt": 0, "blocks_truncated": 0}
-    assert render._fmt_log({**base, "closed_cleanly": True}).endswith("; closed by the payload")
+    assert render._fmt_log({**base, "closed_cleanly": True}).endswith("; closed by its writer")
     assert "not closed: cut short" in render._fmt_log({**base, "closed_cleanly": False})
     for unknown in (None, 1, [True], "yes"):  # an older writer's log, or a report.json edited by hand
         assert render._fmt_log({**base, "closed_cleanly": unknown}) == "9 ok, 0 corrupt, 0 truncated"
