@@ -781,14 +781,14 @@ def sensor_noise_line(header: dict) -> str:
 
 
 def cut_short_warning(log: SampleLog) -> str:
-    """A log its writer never closed (no end block): the payload stopped in flight, so the survey covers only the
-    part flown before, and the rest of the floor is filled or missing whatever the blocks' state."""
+    """A log its writer never closed (no end block): the payload (or `listen`) stopped in flight, so the survey covers
+    only the part flown before, and the rest of the floor is filled or missing whatever the blocks' state."""
     t = in_time(log.samples["t_s"])
     span = f" ({float(t[-1] - t[0]):,.0f} s of samples)" if len(t) > 1 else ""
-    return ("the sample log was not closed: the payload stopped before it finished the log (a power cut, a crash or a "
-            f"full card), so it holds the flight up to its last whole block{span} and the survey covers only what "
-            "was flown by then: the volume and its interval are of that part, the rest of the floor filled or "
-            "missing")
+    return ("the sample log was not closed: its writer (the payload; `listen` for a live log) stopped before it "
+            "finished the log (a power cut, a crash or a full card), so it holds the flight up to its last whole "
+            f"block{span} and the survey covers only what was flown by then: the volume and its interval are of that "
+            "part, the rest of the floor filled or missing")
 
 
 def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[str]:
