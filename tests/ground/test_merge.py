@@ -2,11 +2,13 @@
 
 import hashlib
 import json
+import shutil
 
 import numpy as np
 import pytest
 import trimesh
 
+from firmware_py.core.samplelog import HEAD_SIZE, end_payload, read_samplelog
 from firmware_py.core.storage import Storage
 from ground.cli import main
 from ground.report import ReportOptions, make_report
@@ -208,3 +210,21 @@ def test_that_a_merged_report_warns_of_each_flight_s_height_anchored_on_a_floor_
     said = [w for w in rm["warnings"] if "anchored on a floor seen only away from the walls" in w]
     assert [w.split(" (")[0] for w in said] == ["flight 1", "flight 2"], rm["warnings"]
     assert all("-0.50 m" in w for w in said)
+
+
+def test_that_a_merge_with_one_log_cut_short_warns_of_that_flight_once_and_is_not_closed(two_flights, reports,
+                                                                                          tmp_path):
+    """The near flight's log without its end block (as a power cut after its last whole block leaves it)."""
+    a, b = two_flights
+    cut = tmp_path / "near-cut"
+    shutil.copytree(b, cut)
+    log = cut / "samples.pslog"
+    data = log.read_bytes()
+    n = len(read_samplelog(data).samples)
+    log.write_bytes(data[:len(data) - HEAD_SIZE - len(end_payload(n))])
+    assert read_samplelog(log).closed_cleanly is False and read_samplelog(log).intact
+    rm = reports["m"][1]
+    assert rm["log"]["closed_cleanly"] is True and not any("not closed" in w for w in rm["warnings"])
+    merged = make_report([a, cut], tmp_path / "m", ReportOptions(plots=False))
+    assert merged["log"]["closed_cleanly"] is False
+    assert sum("the sample log was not closed" in w for w in merged["warnings"]) == 1
