@@ -28,7 +28,8 @@ bridge connection: a wrong key, or a key on one side only, fails at start-up in 
 
 Shutdown, whatever stopped the loop (and also after an error): the loop has already tagged and logged
 its pending readings (flagged if their pose never came); a STATUSTEXT says why we stop; the log is
-closed (its last partial block written and fsync'd); the servo PWM is disabled; the stream, the link
+closed (its last partial block and its end record written and fsync'd: the ground station tells it from a log
+cut short); the servo PWM is disabled; the stream, the link
 and the bus are closed. Each step runs even if an earlier one failed, and a failure is reported, not
 hidden.
 """
