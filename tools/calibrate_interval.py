@@ -288,8 +288,8 @@ def readme_summary(model: IntervalModel, held: list[dict]) -> str:
         groups: dict = defaultdict(list)
         for r in held:
             groups[r[key]].append(r)
-        worst[key] = min((coverage(model, g)["coverage_pct"], name, coverage(model, g)["chance_pct"])
-                         for name, g in groups.items())
+        covered = {name: coverage(model, g) for name, g in groups.items()}
+        worst[key] = min((c["coverage_pct"], name, c["chance_pct"]) for name, c in covered.items())
     by_p: dict = defaultdict(list)
     for r in held:
         by_p[int(r["p_traj_pct"])].append(r)

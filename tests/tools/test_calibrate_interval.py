@@ -120,8 +120,9 @@ def test_that_the_chance_of_so_few_inside_tells_a_small_group_s_draw_from_a_defe
     rows = _rows(200, 8)
     for r in rows:
         r["p_traj_pct"], r["noise"], r["family"], r["building"] = 20, "none", "cone", "paper"
-    c = coverage(model_of(fit(rows, n_candidates=200)[0], "test"), rows)
+    model = model_of(fit(rows, n_candidates=200)[0], "test")
+    c = coverage(model, rows)
     inside = round(c["coverage_pct"] * c["n"] / 100.0)
     assert c["chance_pct"] == chance_of_so_few_pct(inside, c["n"])
-    text = document(model_of(fit(rows, n_candidates=200)[0], "test"), rows, rows, "cmd")
+    text = document(model, rows, rows, "cmd")
     assert f"| {c['chance_pct']:.0f} % |" in text and "chance of so few" in text
