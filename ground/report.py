@@ -791,6 +791,30 @@ def cut_short_warning(log: SampleLog) -> str:
             "part, the rest of the floor filled or missing")
 
 
+def unexplained_structure_warning(mount: MountEstimate | None, pose: PoseCorrection | None) -> str | None:
+    """The floor and walls stay off their planes and nothing applied explains it: the mount's self-calibration or the
+    pose correction found them off beyond what it can fit, and neither corrected anything. Either one's finding is
+    enough (a self-calibration that found its parameters unobservable has explained nothing: measured, a header
+    boresight 17 deg wrong read 18.8 % high with no word but a wide interval). None: a correction was applied, or
+    neither found the structure off (None for either: not run)."""
+    if (mount is not None and mount.any_applied) or (pose is not None and pose.applied):
+        return None
+    found = [x for x in (mount, pose) if x is not None and x.unexplained]
+    if not found:
+        return None
+    who = {id(mount): "self-calibration", id(pose): "pose correction"}
+    why = "; ".join(f"{who[id(x)]}: {(x.reason or '').removeprefix('not applied: ')}" for x in found)
+    if mount is not None and pose is not None:
+        tried = "neither the mount's self-calibration nor the pose correction explains it"
+    elif mount is not None:
+        tried = "the mount's self-calibration does not explain it (the pose correction was off)"
+    else:
+        tried = "the pose correction does not explain it (the mount's self-calibration was off)"
+    return (f"the building's floor and walls do not sit on their planes, and {tried} ({why}): check the log header's "
+            "boresight, lever arm and building frame against the drone; do not trust this volume until they are "
+            "right")
+
+
 def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[str]:
     """What one log's own checks found (damage, unusable and implausible samples, spikes, a stuck or mistimed
     servo, the mount, the pose, the site): per flight, whether the flight is reported alone or merged."""
@@ -843,12 +867,10 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
                                          f"{st.disagreement_after_m:.2f} m)" if st is not None else ""))
     if survey.mount is not None and survey.mount.any_applied:
         warnings.append(describe(survey.mount, header_boresight(log.header or {})))
-    elif (survey.mount is not None and survey.mount.unexplained
-          and not (survey.pose is not None and survey.pose.applied)):
-        warnings.append(f"the building's floor and walls do not sit on their planes, and neither the mount's "
-                        f"self-calibration nor the pose correction explains it ({survey.mount.reason}): check the "
-                        "log header's boresight, lever arm and building frame against the drone; do not trust this "
-                        "volume until they are right")
+    else:
+        unexplained = unexplained_structure_warning(survey.mount, survey.pose)
+        if unexplained is not None:
+            warnings.append(unexplained)
     if survey.pose is not None and survey.pose.applied:
         warnings += [w for w in (describe_pose(survey.pose), pose_unconstrained_warning(survey.pose),
                                  pose_unanchored_warning(survey.pose), pose_wall_warning(survey.pose)) if w]

@@ -124,3 +124,29 @@ def test_that_the_report_shows_the_sensor_noise_the_log_header_states(tmp_path, 
     assert rep["sensor_noise"].startswith("appendix-a: range 2.5 cm, servo angle 1 deg, attitude 0.143 deg")
     assert "Sensor noise (simulated)" in (tmp_path / "rep" / "report.md").read_text()
     assert paper_report["sensor_noise"] == "none stated in the log header"  # a flight without sensor noise
+
+
+def test_that_a_structure_off_its_planes_is_warned_when_either_estimator_finds_it_and_neither_corrects_it():
+    from ground.pose_correction import PoseCorrection, not_applied
+    from ground.report import unexplained_structure_warning
+    from ground.self_calibration import MountEstimate, not_estimated
+    unobservable = not_estimated("the floor and walls seen constrain none of the mounting's parameters")
+    off_mount = not_estimated("the mounting model does not explain the floor and walls seen", unexplained=True)
+    off_pose = not_applied("not applied: the floor and walls stay 1.6 cm off their planes", unexplained=True)
+    small = not_applied("not applied: too small to matter")
+    # the pose correction's finding alone is enough: an unobservable mount explained nothing (a header boresight
+    # 17 deg wrong read 18.8 % high, and only the interval's width said anything)
+    w = unexplained_structure_warning(unobservable, off_pose)
+    assert w is not None and "neither the mount's self-calibration nor the pose correction explains it" in w
+    assert "pose correction: the floor and walls stay 1.6 cm off" in w and "not applied:" not in w
+    w = unexplained_structure_warning(off_mount, off_pose)
+    assert "self-calibration: the mounting model does not explain" in w and "pose correction: the floor" in w
+    assert "the pose correction was off" in unexplained_structure_warning(off_mount, None)
+    assert "the mount's self-calibration was off" in unexplained_structure_warning(None, off_pose)
+    # nothing found off, or something applied that explains it: no warning
+    assert unexplained_structure_warning(unobservable, small) is None
+    assert unexplained_structure_warning(None, None) is None
+    corrected = PoseCorrection(np.zeros(2), np.zeros((2, 4)), np.ones((2, 4), dtype=bool), True)
+    assert unexplained_structure_warning(off_mount, corrected) is None
+    calibrated = MountEstimate((0.05, 0.0, 0.0, 0.0), (0.001,) * 4, (True, False, False, False), (0,) * 5, 0.0, 0.0)
+    assert unexplained_structure_warning(calibrated, off_pose) is None
