@@ -79,6 +79,7 @@ from firmware_py.core.samplelog import (
     SAMPLE_DTYPE,
     SampleLogWriter,
     read_samplelog,
+    rewritable_header,
 )
 from firmware_py.core.stream_format import parse_stream_url
 from ground.live_page import LivePageServer, parse_web_address
@@ -100,7 +101,6 @@ REFUSAL_REASONS = ("malformed", "rejected_peer", "unauthenticated", "bad_tag", "
 """`LiveStreamReceiver.stats` keys that count refused datagrams."""
 GEOMETRY_KEYS = ("storage", "storage_frame", "lever_arm_body_m", "sensor")
 """Header keys the report needs; a --header without them is written anyway, with a warning."""
-_RESERVED = ("format", "format_version", "record_dtype")
 _MAX_WAIT_S = 0.25
 """Longest wait for a datagram, so a stop request (signal) is seen promptly."""
 MIB = 1 << 20
@@ -264,7 +264,7 @@ def load_header(path: str | Path) -> dict[str, Any]:
     layout = [list(pair) for pair in SAMPLE_DTYPE.descr]
     if "record_dtype" in header and header["record_dtype"] != layout:
         raise UserError(f"{where} describes records of another layout than this version's")
-    return {k: v for k, v in header.items() if k not in _RESERVED}
+    return rewritable_header(header)
 
 
 @dataclass(frozen=True)

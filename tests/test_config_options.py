@@ -11,7 +11,7 @@ import pytest
 from firmware_py import cli as payload_cli
 from firmware_py.core.cli import ExitCode, _subparser, option_action, parse_with_config
 from firmware_py.core.config_file import DIMENSIONS_KEY, ConfigFile, SiteSection, schema_keys
-from firmware_py.core.samplelog import SampleLogWriter, read_samplelog
+from firmware_py.core.samplelog import SampleLogWriter, read_samplelog, rewritable_header
 from ground import cli as ground_cli
 from ground.report import ReportOptions, make_report, site_mismatches
 from sitl import cli as sitl_cli
@@ -137,7 +137,7 @@ def test_that_a_site_that_differs_from_the_log_is_named():
 
 def _golden_with(tmp_path: Path, **extra) -> Path:
     log = read_samplelog(GOLDEN)
-    header = {k: v for k, v in log.header.items() if k not in ("format", "format_version", "record_dtype")}
+    header = rewritable_header(log.header)
     out = tmp_path / "samples.pslog"
     w = SampleLogWriter(out, {**header, **extra}, fsync=False)
     w.append(log.samples)

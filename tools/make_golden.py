@@ -24,7 +24,7 @@ import tempfile
 from pathlib import Path
 
 from firmware_py.core.rundir import SAMPLES_FILE, TRUTH_FILE
-from firmware_py.core.samplelog import SampleLogWriter, read_samplelog
+from firmware_py.core.samplelog import SampleLogWriter, read_samplelog, rewritable_header
 from firmware_py.core.storage import Storage
 from ground.report import ReportOptions, make_report
 from sitl.missions.rectangle import Mission
@@ -34,7 +34,6 @@ GOLDEN_DIR = Path(__file__).resolve().parent.parent / "tests" / "golden"
 FIGURES_FILE = "report_figures.json"
 KEEP_EVERY = 20
 CREATED_UTC = "2026-01-01T00:00:00+00:00"
-WRITER_KEYS = ("format", "format_version", "record_dtype")  # the writer adds these itself
 FIGURE_KEYS = ("volume_m3", "true_volume_m3", "volume_error_pct", "coverage_ratio_pct", "n_samples",
                "n_points_used", "n_points_removed_walls", "n_samples_excluded", "n_samples_servo_suspect",
                "n_samples_spikes", "n_cells_clipped", "cell_size_m", "uncovered_area_m2", "sweep_disagreement_m",
@@ -54,7 +53,7 @@ def write_golden(out: Path) -> dict:
         run = fly(golden_config(), tmp)
         log = read_samplelog(Path(tmp) / SAMPLES_FILE)
         truth = json.loads((Path(tmp) / TRUTH_FILE).read_text())
-    header = {k: v for k, v in log.header.items() if k not in WRITER_KEYS}
+    header = rewritable_header(log.header)
     header["created_utc"] = CREATED_UTC
     payload_cfg = (header.get("config") or {}).get("payload")
     if isinstance(payload_cfg, dict) and "log" in payload_cfg:  # the temporary run's path: not the golden's

@@ -36,7 +36,7 @@ import numpy as np
 
 from firmware_py.core.cli import ArgumentParser
 from firmware_py.core.frames import StorageFrame
-from firmware_py.core.samplelog import SampleLogWriter, read_samplelog
+from firmware_py.core.samplelog import SampleLogWriter, read_samplelog, rewritable_header
 from ground.pose_correction import PoseCorrection, apply_pose_correction
 from tools.doc_sections import write_section
 from tools.pose_correction_campaign import (
@@ -94,7 +94,7 @@ def repose(run: Path, out: Path, components: tuple[int, ...] = ALL) -> bool:
     for f in run.iterdir():
         if f.is_file() and f.name != "samples.pslog":
             shutil.copy2(f, out / f.name)
-    header = {k: v for k, v in log.header.items() if k not in ("format", "format_version", "record_dtype")}
+    header = rewritable_header(log.header)
     with SampleLogWriter(out / "samples.pslog", header, fsync=False) as w:
         w.append(samples)
     return True

@@ -150,7 +150,14 @@ EXCLUDE_FROM_CLOUD = (
     | SampleFlags.SERVO_UNCERTAIN
 )
 
-_RESERVED_HEADER_KEYS = ("format", "format_version", "record_dtype")
+WRITER_HEADER_KEYS = ("format", "format_version", "record_dtype")
+"""The header keys the writer adds itself and refuses from its caller (`SampleLogWriter`)."""
+
+
+def rewritable_header(header: dict) -> dict:
+    """A log's header without the keys its writer added: what a new writer may be given to write the same survey
+    again (a copy, a merge, a header changed in one field)."""
+    return {k: v for k, v in header.items() if k not in WRITER_HEADER_KEYS}
 
 
 def new_records(n: int) -> np.ndarray:
@@ -177,7 +184,7 @@ def _validated_header(header: Any) -> bytes:
     """Header payload bytes; rejected up front so a bad header never produces a half-written log."""
     if not isinstance(header, dict):
         raise ValueError(f"header must be a dict, got {type(header).__name__}: {header!r}")
-    clash = [k for k in _RESERVED_HEADER_KEYS if k in header]
+    clash = [k for k in WRITER_HEADER_KEYS if k in header]
     if clash:
         raise ValueError(f"header keys {clash} are reserved for the writer")
     full = {**header, "format": FORMAT_NAME, "format_version": FORMAT_VERSION,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
-from firmware_py.core.samplelog import SAMPLE_DTYPE, SampleLogWriter, read_samplelog
+from firmware_py.core.samplelog import SAMPLE_DTYPE, SampleLogWriter, read_samplelog, rewritable_header
 from firmware_py.core.storage import Storage
 from ground import report
 from ground.pose_correction import KNOT_SWEEPS, PoseCorrectionOptions, knot_times, prior_sigmas
@@ -62,7 +62,7 @@ def _with_boresight(run, out, boresight: Boresight):
     out.mkdir()
     shutil.copy(run / "truth.json", out / "truth.json")
     log = read_samplelog(run / "samples.pslog")
-    header = {k: v for k, v in log.header.items() if k not in ("format", "format_version", "record_dtype")}
+    header = rewritable_header(log.header)
     w = SampleLogWriter(out / "samples.pslog", {**header, "boresight": boresight.to_dict()}, fsync=False)
     w.append(log.samples)
     w.close()

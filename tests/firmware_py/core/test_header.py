@@ -11,7 +11,7 @@ import pytest
 from firmware_py.app import PayloadConfig
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.header import LogHeader, ServoDrive, build_log_header, sensor_spec
-from firmware_py.core.samplelog import SampleLogWriter, read_samplelog
+from firmware_py.core.samplelog import SampleLogWriter, read_samplelog, rewritable_header
 from firmware_py.core.sensor import LIDARLITE_V3, SENSOR_KEYS
 from firmware_py.core.servo_model import ServoCalibration
 from firmware_py.core.site import Site
@@ -145,7 +145,7 @@ def test_that_a_servo_calibration_value_given_as_a_json_boolean_is_refused():
     h = dict(header())
     h["servo_calibration"] = {**asdict(ServoCalibration()), "lag_s": True}
     with pytest.raises(ValueError, match=r"servo_calibration\.lag_s must be a finite number"):
-        LogHeader.from_dict({k: v for k, v in h.items() if k not in ("format", "format_version", "record_dtype")})
+        LogHeader.from_dict(rewritable_header(h))
 
 
 def test_that_the_site_record_round_trips_and_a_malformed_one_is_named():

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from firmware_py.core.samplelog import SampleLogWriter, read_samplelog
+from firmware_py.core.samplelog import SampleLogWriter, read_samplelog, rewritable_header
 from firmware_py.core.site import Site
 from firmware_py.core.storage import Storage
 from ground.exports.formats import ExportFormat
@@ -48,7 +48,7 @@ def flown(tmp_path_factory) -> Flown:
 def without_site(flown: Flown, out: Path) -> Path:
     """The flight's log with the site taken out of its header."""
     log = read_samplelog(flown.run / "samples.pslog")
-    header = {k: v for k, v in log.header.items() if k not in ("site", "format", "format_version", "record_dtype")}
+    header = {k: v for k, v in rewritable_header(log.header).items() if k != "site"}
     w = SampleLogWriter(out, header)
     w.append(log.samples)
     w.close()
