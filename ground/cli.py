@@ -3,6 +3,7 @@ building (`compare`), or receive the payload's live sample stream into a sample 
 
 from __future__ import annotations
 
+import argparse
 import logging
 import sys
 from collections.abc import Sequence
@@ -19,6 +20,7 @@ from firmware_py.core.cli import (
 )
 from firmware_py.core.keys import load_key
 from firmware_py.core.rundir import check_free
+from firmware_py.core.storage import Storage
 from firmware_py.core.version import software_version
 from ground import listen
 from ground.base import BaseKind, BaseSpec
@@ -124,6 +126,10 @@ def build_parser() -> ArgumentParser:
                         f"(default {PoseCorrectionOptions.vertical_walk_m_per_sqrt_s:g}: a barometer indoors): how far "
                         "a floor seen only away from the walls may move the corrected height, and the interval's "
                         "level term when no floor pins the height (docs/uncertainty.md)")
+    r.add_argument("--storage", metavar="LxWxH", type=_storage,
+                   help="the building's length, width and height in metres (e.g. 30x20x10) in place of the log "
+                        "header's, when that is wrong: the report warns when its sweeps measure the building other "
+                        "than the header says, and says which it used")
     r.add_argument("--max-grid-memory-mb", type=finite_float, default=DEFAULT_MAX_GRID_MEMORY_BYTES / 2**20,
                    metavar="MB", help="refuse a --cell whose grid would need more memory than this (default "
                                       f"{DEFAULT_MAX_GRID_MEMORY_BYTES // 2**20} MiB)")
@@ -219,6 +225,14 @@ MAX_BARO_WALK_M_PER_SQRT_S = 1.0
 """The largest --baro-walk taken: 7.7 m in a minute, beyond any altitude reference that flies a survey."""
 
 
+def _storage(text: str) -> Storage:
+    """--storage LxWxH (argparse's type: its ValueError is the option's one-line error)."""
+    try:
+        return Storage.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _baro_walk(value: float) -> float:
     if not 0.0 < value <= MAX_BARO_WALK_M_PER_SQRT_S:
         raise UserError(f"--baro-walk must be > 0 and at most {MAX_BARO_WALK_M_PER_SQRT_S:g} m/sqrt(s), got {value:g}")
@@ -257,7 +271,7 @@ def _report(args) -> int:
                          surface_fit=args.surface_fit, servo_retiming=not args.no_servo_retiming,
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),
                          self_calibration=not args.no_self_calibration, pose_correction=args.pose_correction,
-                         baro_walk_m_per_sqrt_s=_baro_walk(args.baro_walk),
+                         baro_walk_m_per_sqrt_s=_baro_walk(args.baro_walk), storage=args.storage,
                          max_interval_pct=args.max_interval_pct,
                          site=args.config_file.site if args.config_file is not None else None,
                          base=base, piles=piles, info=info, exports=exports)

@@ -145,7 +145,7 @@ def sliding_line_fit(p: np.ndarray, h: int, at: np.ndarray) -> tuple[np.ndarray,
 
 def wall_stretches(points_w: np.ndarray, t_s: np.ndarray, sweep_dir: np.ndarray, beam_w: np.ndarray,
                    sigma_m: np.ndarray, length_m: float, width_m: float, sample_dt_s: float,
-                   only: np.ndarray | None = None) -> np.ndarray:
+                   only: np.ndarray | None = None, reach_m: float | None = None) -> np.ndarray:
     """True for points whose stretch of sweep (CHORD_HALF samples either side, one sweep direction, unbroken in
     time) is a straight line steeper than any stockpile stands (STEEPEST_PILE_DEG), beside a wall: within the
     reach of a heading error (MAX_HEADING_ERROR_RAD at the beam's horizontal length) plus 3 of its points'
@@ -153,7 +153,8 @@ def wall_stretches(points_w: np.ndarray, t_s: np.ndarray, sweep_dir: np.ndarray,
     heading error, which moves a wall seen at grazing incidence 20 m away by 0.35 m a degree, a pointing error, or
     a wall a few centimetres off the header's plane. beam_w: each point's vector from the vehicle; sigma_m: each
     point's 1-sigma error that straightness is judged by (`ground.pointcloud.beside_walls` leaves the pointing
-    error out of it); only: the points to judge (None: all), their stretches still taken from every point."""
+    error out of it); only: the points to judge (None: all), their stretches still taken from every point; reach_m:
+    how far beside a wall (None: a heading error's reach, above)."""
     h = CHORD_HALF
     m = len(points_w)
     out = np.zeros(m, dtype=bool)
@@ -161,7 +162,8 @@ def wall_stretches(points_w: np.ndarray, t_s: np.ndarray, sweep_dir: np.ndarray,
         return out
     i = np.arange(h, m - h)
     p = np.asarray(points_w, dtype=float)
-    reach = np.hypot(beam_w[i, 0], beam_w[i, 1]) * math.tan(MAX_HEADING_ERROR_RAD) + 3.0 * sigma_m[i]
+    reach = (np.hypot(beam_w[i, 0], beam_w[i, 1]) * math.tan(MAX_HEADING_ERROR_RAD) + 3.0 * sigma_m[i]
+             if reach_m is None else np.full(len(i), float(reach_m)))
     near = (to_nearest_wall_m(p[i], length_m, width_m) <= reach) & unbroken(t_s, sweep_dir, i, sample_dt_s)
     if only is not None:
         near &= only[i]

@@ -214,8 +214,13 @@ def beside_walls(cloud: Cloud, storage: Storage, err: SensorErrorModel, only: np
     left to the surface's outlier test (`ground.smoothing`). only: the points to judge (None: all)."""
     if cloud.t_s is None or cloud.sweep_dir is None or len(cloud.t_s) < 2:
         return np.zeros(len(cloud.points_w), dtype=bool)
-    r = cloud.range_m
-    sigma = np.sqrt(np.square(err.range_sigma(r)) + err.position_sigma_m**2 + err.resolution_m**2 / 12.0)
     dt = float(np.median(np.diff(cloud.t_s)))
-    return wall_stretches(cloud.points_w, cloud.t_s, cloud.sweep_dir, cloud.dirs_w * r[:, None], sigma,
-                          storage.length_m, storage.width_m, dt, only)
+    return wall_stretches(cloud.points_w, cloud.t_s, cloud.sweep_dir, cloud.dirs_w * cloud.range_m[:, None],
+                          stretch_sigma_m(cloud, err), storage.length_m, storage.width_m, dt, only)
+
+
+def stretch_sigma_m(cloud: Cloud, err: SensorErrorModel) -> np.ndarray:
+    """Each point's 1-sigma error that a stretch of sweep's straightness is judged by: its range, position and range
+    quantum errors, not its pointing error (`beside_walls` says why)."""
+    r = cloud.range_m
+    return np.sqrt(np.square(err.range_sigma(r)) + err.position_sigma_m**2 + err.resolution_m**2 / 12.0)

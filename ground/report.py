@@ -30,6 +30,7 @@ from firmware_py.core.surface_file import SURFACE_FILE
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import MAX_FREQUENCY_HZ
 from ground.base import FLOOR, FLOOR_BASE, Base, BaseKind, BaseSpec, fitted_floor_base, rebased_terms, survey_base
+from ground.building_check import SizeCheck, check_building, size_warning
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
 from ground.deliverable import add_deliverable
 from ground.despike import SpikeThreshold, why_no_threshold
@@ -44,6 +45,7 @@ from ground.pointcloud import (
     SensorErrorModel,
     cloud_from_samples,
     merge_clouds,
+    stretch_sigma_m,
     structure_mask,
     structure_n_sigma,
 )
@@ -141,6 +143,7 @@ class ReportOptions:
     # when significant; indoors the logged pose drifts (docs/pose_error.md)
     baro_walk_m_per_sqrt_s: float = PoseCorrectionOptions.vertical_walk_m_per_sqrt_s  # the altitude reference's
     # believed drift: how far a floor seen only away from the walls may move the height, and the level term's sigma
+    storage: Storage | None = None  # the building in place of the log header's (--storage; None: the header's)
 
 
 @dataclass(frozen=True)
@@ -168,6 +171,7 @@ class Survey:
     errors_in: Callable[[np.ndarray], SurveyErrors] | None = None  # the error terms over a cell mask (one pile's)
     pose: PoseCorrection | None = None  # the trajectory's correction from the building (None: not run)
     rangefinder: RangefinderShare | None = None  # the rangefinder's share of the logged height (None: not run)
+    building: tuple[SizeCheck, SizeCheck] | None = None  # its length and width as the sweeps measured them
 
 
 def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
@@ -407,7 +411,14 @@ def flight_record(f: Flight) -> dict:
             "coverage_ratio_pct_alone": reconstructed_ratio_pct(f.survey.heights_fit),
             "servo_retimed": f.survey.servo_retimed and st is not None,
             "self_calibration_applied": f.survey.mount is not None and f.survey.mount.any_applied,
-            "pose_correction_applied": f.survey.pose is not None and f.survey.pose.applied}
+            "pose_correction_applied": f.survey.pose is not None and f.survey.pose.applied,
+            "building_measured": building_record(f.survey.building)}
+
+
+def building_record(checks: tuple[SizeCheck, SizeCheck] | None) -> dict | None:
+    """report.json's `building_measured`: each dimension the sweeps measured, against the header's (None: not
+    measured, a log without the samples' times)."""
+    return None if checks is None else {c.axis.value: c.as_dict() for c in checks}
 
 
 def merged_metadata(report: dict, flights: Sequence[Flight]) -> None:
@@ -484,7 +495,15 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     (a drifting flight over pile 2, one run in three; docs/design-notes.md).
     """
     with threadpool_limits(limits=1, user_api="blas"):
-        return _survey_from_samples(samples, header, storage, frame, lever, opts)
+        survey = _survey_from_samples(samples, header, storage, frame, lever, opts)
+        return replace(survey, building=building_of(survey.cloud, storage, SensorErrorModel.from_header(header)))
+
+
+def building_of(cloud: Cloud, storage: Storage, err: SensorErrorModel) -> tuple[SizeCheck, SizeCheck] | None:
+    """The building's length and width as the sweeps of the survey's cloud measured them (`ground.building_check`):
+    placed with every correction the survey made, which within one sweep moves both walls alike."""
+    return check_building(cloud.points_w, cloud.t_s, cloud.sweep_dir, cloud.dirs_w * cloud.range_m[:, None],
+                          stretch_sigma_m(cloud, err), storage)
 
 
 def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
@@ -881,7 +900,22 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
                                      rangefinder_applied=rf is not None and rf.applied,
                                      rangefinder_reason=rf.reason if rf is not None and not rf.applied else None)
     warnings += site_mismatches(log.header or {}, opts.site)
+    warnings += [w for w in (storage_warning(log.header or {}, survey.storage),
+                             size_warning(survey.building, survey.storage)) if w]
     return warnings
+
+
+def storage_warning(header: dict, storage: Storage) -> str | None:
+    """When the report's building is not the log header's (--storage): said, since the flight was flown and logged
+    with the other."""
+    try:
+        logged = Storage.from_dict(header.get("storage"))
+    except (KeyError, TypeError, ValueError):
+        return None
+    if logged == storage:
+        return None
+    return (f"the building is taken as {storage.length_m:g} x {storage.width_m:g} x {storage.height_m:g} m "
+            f"(--storage), not the log header's {logged.length_m:g} x {logged.width_m:g} x {logged.height_m:g} m")
 
 
 def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: float | None,
@@ -986,6 +1020,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "rangefinder_height": None if survey.rangefinder is None else survey.rangefinder.as_dict(),
         "uncovered_area_m2": float((~np.isfinite(survey.heights_fit)).sum() * g.cell_area_m2),
         "storage": survey.storage.to_dict(),
+        "building_measured": building_record(survey.building),
         "site": site,
         "mission_id": printable((log.header or {}).get("mission_id")),
         "boresight_deg": _boresight_deg(log.header or {}),
@@ -1088,6 +1123,8 @@ def make_report(source: str | Path | Sequence[str | Path], out_dir: str | Path, 
         inputs = [read_log_input(s) for s in sources]
         truths = [None if opts.truth_volume_m3 is not None or opts.base.kind is BaseKind.SURVEY  # not a change
                   else read_truth_volume(i.truth_path) for i in inputs]
+    if opts.storage is not None:  # the surveyor's building for a header's wrong one (`storage_warning` says so)
+        inputs = [replace(i, storage=opts.storage) for i in inputs]
     if len(inputs) > 1 and (why := survey_mismatch(inputs)) is not None:
         raise UserError(f"cannot merge: {why}")
     truth = opts.truth_volume_m3 if opts.truth_volume_m3 is not None else merged_truth(truths, inputs)

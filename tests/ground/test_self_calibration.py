@@ -57,16 +57,20 @@ def _estimate(run, boresight: Boresight = SQUARE, keep=None, storage=STORAGE):
                           h["sensor"]["range_sigma_rel"], Resimulated.from_header(h), boresight)
 
 
-def _with_boresight(run, out, boresight: Boresight):
-    """The run again, its log header saying the LiDAR was configured with this boresight (--boresight)."""
+def _with_header(run, out, **fields):
+    """The run again, its log header saying these fields otherwise."""
     out.mkdir()
     shutil.copy(run / "truth.json", out / "truth.json")
     log = read_samplelog(run / "samples.pslog")
-    header = rewritable_header(log.header)
-    w = SampleLogWriter(out / "samples.pslog", {**header, "boresight": boresight.to_dict()}, fsync=False)
+    w = SampleLogWriter(out / "samples.pslog", {**rewritable_header(log.header), **fields}, fsync=False)
     w.append(log.samples)
     w.close()
     return out
+
+
+def _with_boresight(run, out, boresight: Boresight):
+    """The run again, its log header saying the LiDAR was configured with this boresight (--boresight)."""
+    return _with_header(run, out, boresight=boresight.to_dict())
 
 
 def _straight_legs(s):
@@ -284,6 +288,26 @@ def test_that_a_header_boresight_the_building_refutes_is_warned_when_nothing_exp
     rep = make_report(tilted, tmp_path / "rep", ReportOptions(plots=False))
     assert rep["self_calibration"]["reason"].startswith(why)
     assert any(unexplained in w for w in rep["warnings"]), rep["warnings"]  # before: only in report.json
+
+
+def test_that_a_header_building_the_sweeps_measure_otherwise_is_warned_and_storage_reports_it_as_measured(
+        square_run, square_report, tmp_path):
+    # A building entered 0.3 m long: the pose correction moved the flight towards a wall that is not there, and the
+    # volume read 1.6 % high with the truth outside its interval, and nothing said but the correction's size.
+    long = _with_header(square_run, tmp_path / "long", storage=Storage(30.3, 20.0, 10.0).to_dict())
+    rep = make_report(long, tmp_path / "rep", ReportOptions(plots=False))
+    assert abs(rep["volume_m3"] - square_report["volume_m3"]) > 0.01 * square_report["volume_m3"]  # the premise
+    length = rep["building_measured"]["length"]
+    assert length["differs"] and abs(length["measured_m"] - 30.0) < 0.01 and length["header_m"] == 30.3
+    assert not rep["building_measured"]["width"]["differs"]
+    assert any("the building is not the size the log header says" in w and "--storage 30.00x20.00x10" in w
+               for w in rep["warnings"]), rep["warnings"]
+    assert not any("not the size the log header says" in w for w in square_report["warnings"])
+    # reported with the building as measured: the square flight's volume, and the report says whose building it is
+    fixed = make_report(long, tmp_path / "fixed", ReportOptions(plots=False, storage=Storage(30.0, 20.0, 10.0)))
+    assert abs(fixed["volume_m3"] - square_report["volume_m3"]) < 0.001 * square_report["volume_m3"]
+    assert any("(--storage), not the log header's 30.3 x 20 x 10 m" in w for w in fixed["warnings"])
+    assert not any("not the size the log header says" in w for w in fixed["warnings"])
 
 
 def test_that_a_plane_s_band_keeps_no_more_points_inside_than_outside_the_farthest_inside_dropped():
