@@ -170,9 +170,12 @@ def check_building(points_w: np.ndarray, t_s: np.ndarray | None, sweep_dir: np.n
             measure_size(points_w, wall, sweep, Axis.WIDTH, storage, band))
 
 
-def size_warning(checks: tuple[SizeCheck, SizeCheck] | None, storage: Storage) -> str | None:
+def size_warning(checks: tuple[SizeCheck, SizeCheck] | None, storage: Storage,
+                 mount_doubtful: bool = False) -> str | None:
     """One warning when the sweeps measure the building other than the header says, with the --storage that would
-    report it as measured; None when they agree or measured nothing."""
+    report it as measured; None when they agree or measured nothing. mount_doubtful: the self-calibration found the
+    floor and walls off their planes whatever the mount, so the sweeps' angles may be what is wrong (measured: a
+    header boresight 14-17 deg wrong measured the width 0.6-1.3 m short), and that is named first."""
     if checks is None:
         return None
     off = [c for c in checks if c.differs]
@@ -184,8 +187,13 @@ def size_warning(checks: tuple[SizeCheck, SizeCheck] | None, storage: Storage) -
     length = dims.get(Axis.LENGTH, storage.length_m)
     width = dims.get(Axis.WIDTH, storage.width_m)
     stretch = max(abs(c.off_m) / c.header_m for c in off) * 100.0
-    return (f"the building is not the size the log header says: {said}. The floor and walls are placed where the "
+    storage_arg = f"--storage {length:.2f}x{width:.2f}x{storage.height_m:g}"
+    head = (f"the building is not the size the log header says: {said}. The floor and walls are placed where the "
             f"header puts them, and a pose correction moves the flight towards them, stretching the survey and the "
-            f"volume by up to about {stretch:.1f} %: if the header's building is wrong, report again with --storage "
-            f"{length:.2f}x{width:.2f}x{storage.height_m:g}; if it is right, the rangefinder's range or the servo's "
-            "angles are off")
+            f"volume by up to about {stretch:.1f} %")
+    if mount_doubtful:
+        return (f"{head}. The self-calibration could not fit the floor and walls with any mount either, so the "
+                "sweeps' angles may be what is wrong: check the log header's boresight and the servo's calibration "
+                f"first; if they are right and the header's building is wrong, report again with {storage_arg}")
+    return (f"{head}: if the header's building is wrong, report again with {storage_arg}; if it is right, the "
+            "rangefinder's range or the servo's angles are off")

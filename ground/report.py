@@ -900,8 +900,9 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
                                      rangefinder_applied=rf is not None and rf.applied,
                                      rangefinder_reason=rf.reason if rf is not None and not rf.applied else None)
     warnings += site_mismatches(log.header or {}, opts.site)
+    doubtful = survey.mount is not None and survey.mount.unexplained and not survey.mount.any_applied
     warnings += [w for w in (storage_warning(log.header or {}, survey.storage),
-                             size_warning(survey.building, survey.storage)) if w]
+                             size_warning(survey.building, survey.storage, mount_doubtful=doubtful)) if w]
     return warnings
 
 

@@ -81,6 +81,9 @@ def test_that_the_sweeps_measure_the_building_whatever_the_pose_and_say_when_the
     w = size_warning(_check(wrong), wrong)
     assert "the walls x = 0 and x = L are 30.00 m apart" in w and "the log header says 30.3 m" in w
     assert "--storage 30.00x20.00x10" in w and "about 1.0 %" in w
+    # where the self-calibration could not fit the structure with any mount, the sweeps' angles are named first
+    doubt = size_warning(_check(wrong), wrong, mount_doubtful=True)
+    assert doubt.index("check the log header's boresight") < doubt.index("--storage 30.00x20.00x10")
 
 
 def test_that_a_size_within_a_tenth_of_a_percent_or_from_too_few_sweeps_is_no_warning():
