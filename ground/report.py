@@ -899,7 +899,7 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
     warnings += pose_source_warnings(log.header or {}, survey.pose, opts.pose_correction,
                                      rangefinder_applied=rf is not None and rf.applied,
                                      rangefinder_reason=rf.reason if rf is not None and not rf.applied else None)
-    warnings += site_mismatches(log.header or {}, opts.site)
+    warnings += site_mismatches(log.header or {}, opts.site, storage_given=opts.storage is not None)
     doubtful = survey.mount is not None and survey.mount.unexplained and not survey.mount.any_applied
     warnings += [w for w in (storage_warning(log.header or {}, survey.storage),
                              size_warning(survey.building, survey.storage, mount_doubtful=doubtful)) if w]
@@ -1047,9 +1047,10 @@ SITE_TOLERANCE_M = 0.01
 HEADING_TOLERANCE_DEG = 0.01
 
 
-def site_mismatches(header: dict, site: SiteSection | None) -> list[str]:
+def site_mismatches(header: dict, site: SiteSection | None, storage_given: bool = False) -> list[str]:
     """Where the log's building differs from the [site] of the --config file given to the report: one
-    warning each (the report uses the log's, which is what flew; a mismatch means a wrong file somewhere)."""
+    warning each (the report uses the log's, which is what flew, or --storage's when storage_given; a mismatch means
+    a wrong file somewhere)."""
     if site is None:
         return []
     out = []
@@ -1060,8 +1061,9 @@ def site_mismatches(header: dict, site: SiteSection | None) -> list[str]:
         if all(isinstance(v, int | float) and not isinstance(v, bool) for v in have) and \
                 max(abs(a - b) for a, b in zip(have, dims, strict=True)) > SITE_TOLERANCE_M:
             out.append(f"the log's building is {' x '.join(f'{v:g}' for v in have)} m but the --config file's [site] "
-                       f"says {' x '.join(f'{v:g}' for v in dims)} m: the report uses the log's (was the payload "
-                       "flown with another configuration?)")
+                       f"says {' x '.join(f'{v:g}' for v in dims)} m: the report uses "
+                       f"{'--storage' if storage_given else 'the log'}'s (was the payload flown with another "
+                       "configuration?)")
     frame = header.get("storage_frame") or {}
     heading = frame.get("heading_rad") if isinstance(frame, dict) else None
     if site.heading_deg is not None and isinstance(heading, int | float) and not isinstance(heading, bool):

@@ -133,6 +133,9 @@ def test_that_a_site_that_differs_from_the_log_is_named():
     assert "60 x 40 x 15 m but the --config file's [site] says 50 x 40 x 15 m" in found[0]
     assert "heading is 0 deg" in found[1] and "30 deg" in found[1]
     assert "11.12 m from the --config file's [site] origin" in found[2]
+    assert "the report uses the log's" in found[0]
+    given = site_mismatches(header, SiteSection(50.0, 40.0, 15.0, None, None), storage_given=True)
+    assert "the report uses --storage's" in given[0]  # the building the report took, not the log's
 
 
 def _golden_with(tmp_path: Path, **extra) -> Path:
