@@ -124,8 +124,7 @@ def measure_size(points_w: np.ndarray, wall: np.ndarray, sweep: np.ndarray, axis
     low = wall & (to_low < to_high) & (np.abs(to_low) < to_other)
     high = wall & (to_high <= to_low) & (np.abs(to_high) < to_other)
     seps = []
-    idx = np.flatnonzero(low | high)
-    idx = idx[np.argsort(sweep[idx], kind="stable")]
+    idx = np.flatnonzero(low | high)  # in time order, so each sweep's are together (`sweep_ids` counts up)
     for one in np.split(idx, np.flatnonzero(np.diff(sweep[idx])) + 1):  # each sweep's points beside these walls
         lo = outermost(p[one[low[one]], c], band_m)
         hi = outermost(-p[one[high[one]], c], band_m)
@@ -166,8 +165,8 @@ def check_building(points_w: np.ndarray, t_s: np.ndarray | None, sweep_dir: np.n
     wall = wall_stretches(p, t_s, sweep_dir, beam_w, sigma_m, storage.length_m, storage.width_m, dt,
                           only=candidate, reach_m=REACH_M)
     band = 3.0 * float(np.median(sigma_m)) + WALL_RELIEF_M
-    return (measure_size(points_w, wall, sweep, Axis.LENGTH, storage, band),
-            measure_size(points_w, wall, sweep, Axis.WIDTH, storage, band))
+    return (measure_size(p, wall, sweep, Axis.LENGTH, storage, band),
+            measure_size(p, wall, sweep, Axis.WIDTH, storage, band))
 
 
 def size_warning(checks: tuple[SizeCheck, SizeCheck] | None, storage: Storage,

@@ -818,11 +818,11 @@ def unexplained_structure_warning(mount: MountEstimate | None, pose: PoseCorrect
     neither found the structure off (None for either: not run)."""
     if (mount is not None and mount.any_applied) or (pose is not None and pose.applied):
         return None
-    found = [x for x in (mount, pose) if x is not None and x.unexplained]
+    found = [(name, x) for name, x in (("self-calibration", mount), ("pose correction", pose))
+             if x is not None and x.unexplained]
     if not found:
         return None
-    who = {id(mount): "self-calibration", id(pose): "pose correction"}
-    why = "; ".join(f"{who[id(x)]}: {(x.reason or '').removeprefix('not applied: ')}" for x in found)
+    why = "; ".join(f"{name}: {(x.reason or '').removeprefix('not applied: ')}" for name, x in found)
     if mount is not None and pose is not None:
         tried = "neither the mount's self-calibration nor the pose correction explains it"
     elif mount is not None:
