@@ -207,19 +207,28 @@ def test_that_a_cloud_without_beams_bounds_nothing():
     assert np.all(free_space_ceiling_m(empty, GRID, STORAGE, IDEAL) == STORAGE.height_m)
 
 
-def test_that_the_report_fills_the_unseen_cells_within_the_floor_and_the_flights_ceiling(tmp_path):
+def test_that_the_report_fills_the_unseen_cells_within_the_floor_and_the_flights_ceiling(tmp_path, monkeypatch):
     """The golden flight (pile 1, JSBSim) through the report with --empty-cells bounded: fitted cells as
-    fitted, the others between the floor and the ceiling its own beams give; the report says the policy."""
+    fitted, the others between the floor and the ceiling its own beams give (the survey the report made, watched
+    as it passed); the report says the policy."""
+    import ground.report
+
     log = read_samplelog(Path("tests/golden") / SAMPLES_FILE)
-    storage, frame, lever = header_geometry(log, Path("tests/golden"))
-    sv = survey_from_samples(log.samples, log.header, storage, frame, lever,
-                             ReportOptions(plots=False, empty_cells="bounded"))
+    storage, _, _ = header_geometry(log, Path("tests/golden"))
+    surveys = []
+
+    def surveyed(*args, **kwargs):
+        surveys.append(survey_from_samples(*args, **kwargs))
+        return surveys[-1]
+    monkeypatch.setattr(ground.report, "survey_from_samples", surveyed)
+    rep = make_report("tests/golden", tmp_path / "b", ReportOptions(plots=False, empty_cells="bounded"))
+    monkeypatch.undo()
+    (sv,) = surveys
     unseen = ~np.isfinite(sv.heights_fit)
     assert unseen.any()
     ceiling = free_space_ceiling_m(sv.cloud, sv.grid, storage, SensorErrorModel.from_header(log.header),
                                    beam_angle_sigma_rad(log.header), where=unseen)
     assert np.array_equal(sv.heights[~unseen], sv.heights_fit[~unseen])
     assert np.all((sv.heights[unseen] >= 0.0) & (sv.heights[unseen] <= ceiling[unseen] + 1e-12))
-    rep = make_report("tests/golden", tmp_path / "b", ReportOptions(plots=False, empty_cells="bounded"))
     assert rep["empty_cell_policy"] == "bounded"
     assert rep["volume_error_pct"] < 1.0

@@ -149,14 +149,24 @@ def corner_flight():
     return shape, cfg, world, samples, log_header(cfg, wf)
 
 
-def test_that_the_wall_contact_fill_of_a_flown_corner_pile_beats_nearest(corner_flight):
+@pytest.fixture(scope="module")
+def wall_contact_survey(corner_flight):
+    """corner_flight surveyed with the unseen cells filled through the wall contacts (two tests read it: one survey,
+    not two)."""
+    _, cfg, _, samples, header = corner_flight
+    return survey_from_samples(samples, header, FLOWN, cfg.frame, np.array(cfg.lever_arm_body_m),
+                               ReportOptions(plots=False, empty_cells="wall-contact"))
+
+
+def test_that_the_wall_contact_fill_of_a_flown_corner_pile_beats_nearest(corner_flight, wall_contact_survey):
     """The surface through the wall contacts puts more of the unseen corner's material back than the
     nearest copy, and the volume is closer (one servo phase; over four phases at P_traj 30 and 40 %:
     Ve 1.84 -> 1.57 % mean, all eight closer)."""
     shape, cfg, world, samples, header = corner_flight
     lever = np.array(cfg.lever_arm_body_m)
-    near, wall = (survey_from_samples(samples, header, FLOWN, cfg.frame, lever,
-                                      ReportOptions(plots=False, empty_cells=p)) for p in ("nearest", "wall-contact"))
+    near = survey_from_samples(samples, header, FLOWN, cfg.frame, lever,
+                               ReportOptions(plots=False, empty_cells="nearest"))
+    wall = wall_contact_survey
     assert np.array_equal(near.heights_fit, wall.heights_fit, equal_nan=True)  # the same fit: only the fill differs
     cx, cy = near.grid.centres()
     top = FLOWN.height_m - 1e-3
@@ -176,6 +186,7 @@ def test_that_the_wall_contact_fill_of_a_flown_corner_pile_beats_nearest(corner_
 
 
 def test_that_the_wall_contact_fit_from_the_points_near_the_unseen_cells_is_the_whole_clouds(corner_flight,
+                                                                                             wall_contact_survey,
                                                                                              monkeypatch):
     """The report fits the surface through the contacts from the nodes near the unseen cells only (its
     speed): the filled heights are those of the fit through every node."""
@@ -184,7 +195,7 @@ def test_that_the_wall_contact_fit_from_the_points_near_the_unseen_cells_is_the_
     _, cfg, _, samples, header = corner_flight
     lever = np.array(cfg.lever_arm_body_m)
     opts = ReportOptions(plots=False, empty_cells="wall-contact")
-    part = survey_from_samples(samples, header, FLOWN, cfg.frame, lever, opts)
+    part = wall_contact_survey  # surveyed as the report does, before the monkeypatch below
     monkeypatch.setattr(ground.surface, "shaping_points", lambda xy, wanted, grid: np.ones(len(xy), dtype=bool))
     whole = survey_from_samples(samples, header, FLOWN, cfg.frame, lever, opts)
     assert (~np.isfinite(whole.heights_fit)).sum() > 100  # a real unseen corner

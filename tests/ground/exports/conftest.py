@@ -1,8 +1,9 @@
 """One small flight shared by the export tests: a 30 x 20 x 10 m building turned 30 deg from north, a
-frustum pile against nothing, the report with every export."""
+frustum pile against nothing, the report with every export, and the survey it wrote them from."""
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -11,8 +12,9 @@ import pytest
 from firmware_py.core.samplelog import SampleLogWriter, read_samplelog, rewritable_header
 from firmware_py.core.site import Site
 from firmware_py.core.storage import Storage
+from ground import report
 from ground.exports.formats import ExportFormat
-from ground.report import ReportOptions, Survey, header_geometry, make_report, survey_from_samples
+from ground.report import ReportOptions, Survey, make_report, survey_from_samples
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
 from tests.sitl.conftest import frustum_mesh
@@ -38,10 +40,18 @@ def flown(tmp_path_factory) -> Flown:
     cfg = FlyConfig(mission=Mission(storage=STORAGE, altitude_m=9.0, p_traj=0.2), stockpile=str(pile), site=SITE)
     fly(cfg, tmp / "run")
     opts = ReportOptions(plots=False, exports=tuple(ExportFormat))
-    rep = make_report(tmp / "run", tmp / "rep", opts)
+    surveys = []
+
+    def surveyed(*args, **kwargs):
+        """The report's own survey, kept as a copy taken before any writer saw it."""
+        survey = survey_from_samples(*args, **kwargs)
+        surveys.append(copy.deepcopy(survey))
+        return survey
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(report, "survey_from_samples", surveyed)
+        rep = make_report(tmp / "run", tmp / "rep", opts)
     log = read_samplelog(tmp / "run" / "samples.pslog")
-    storage, frame, lever = header_geometry(log, tmp / "run")
-    survey = survey_from_samples(log.samples, log.header, storage, frame, lever, opts)
+    (survey,) = surveys  # what the exports were written from (surveying the log again gave the same)
     return Flown(tmp / "run", tmp / "rep", rep, survey, log.header)
 
 
