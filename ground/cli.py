@@ -18,6 +18,7 @@ from firmware_py.core.cli import (
     reading_input,
     run_cli,
 )
+from firmware_py.core.header import MAX_LEVER_ARM_M
 from firmware_py.core.keys import load_key
 from firmware_py.core.rundir import check_free
 from firmware_py.core.storage import Storage
@@ -130,6 +131,10 @@ def build_parser() -> ArgumentParser:
                    help="the building's length, width and height in metres (e.g. 30x20x10) in place of the log "
                         "header's, when that is wrong: the report warns when its sweeps measure the building other "
                         "than the header says, and says which it used")
+    r.add_argument("--lever-arm", type=finite_float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                   help="the LiDAR's position from the autopilot's origin, body frame (forward, right, down), m, in "
+                        "place of the log header's, when that is wrong (as the payload's --lever-arm takes it): the "
+                        "report warns when the floor it sees lies below z = 0, and names the one that would lift it")
     r.add_argument("--max-grid-memory-mb", type=finite_float, default=DEFAULT_MAX_GRID_MEMORY_BYTES / 2**20,
                    metavar="MB", help="refuse a --cell whose grid would need more memory than this (default "
                                       f"{DEFAULT_MAX_GRID_MEMORY_BYTES // 2**20} MiB)")
@@ -233,6 +238,16 @@ def _storage(text: str) -> Storage:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def _lever_arm(xyz: Sequence[float] | None) -> tuple[float, float, float] | None:
+    """--lever-arm X Y Z, held to the payload's own limit (`firmware_py.core.header.MAX_LEVER_ARM_M`)."""
+    if xyz is None:
+        return None
+    if any(abs(v) > MAX_LEVER_ARM_M for v in xyz):
+        raise UserError(f"--lever-arm: each of X Y Z must be within +/-{MAX_LEVER_ARM_M:g} m, got "
+                        f"{' '.join(f'{v:g}' for v in xyz)}")
+    return (float(xyz[0]), float(xyz[1]), float(xyz[2]))
+
+
 def _baro_walk(value: float) -> float:
     if not 0.0 < value <= MAX_BARO_WALK_M_PER_SQRT_S:
         raise UserError(f"--baro-walk must be > 0 and at most {MAX_BARO_WALK_M_PER_SQRT_S:g} m/sqrt(s), got {value:g}")
@@ -272,6 +287,7 @@ def _report(args) -> int:
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),
                          self_calibration=not args.no_self_calibration, pose_correction=args.pose_correction,
                          baro_walk_m_per_sqrt_s=_baro_walk(args.baro_walk), storage=args.storage,
+                         lever_arm_m=_lever_arm(args.lever_arm),
                          max_interval_pct=args.max_interval_pct,
                          site=args.config_file.site if args.config_file is not None else None,
                          base=base, piles=piles, info=info, exports=exports)

@@ -36,6 +36,7 @@ from ground.deliverable import add_deliverable
 from ground.despike import SpikeThreshold, why_no_threshold
 from ground.exports.formats import EXPORT_FILES, ExportFormat
 from ground.exports.write import check_exports, write_exports
+from ground.floor_check import FloorLevel, floor_warning, measure_floor
 from ground.metadata import SurveyInfo, printable, sha256_of
 from ground.piles import PILES_CSV, PileOptions, write_piles_csv
 from ground.plausibility import MAX_GAP_S, PlausibilityLimits, implausible, in_time, out_of_time, without_implausible
@@ -144,6 +145,7 @@ class ReportOptions:
     baro_walk_m_per_sqrt_s: float = PoseCorrectionOptions.vertical_walk_m_per_sqrt_s  # the altitude reference's
     # believed drift: how far a floor seen only away from the walls may move the height, and the level term's sigma
     storage: Storage | None = None  # the building in place of the log header's (--storage; None: the header's)
+    lever_arm_m: tuple[float, float, float] | None = None  # the LiDAR's lever arm for the header's (--lever-arm)
 
 
 @dataclass(frozen=True)
@@ -172,6 +174,8 @@ class Survey:
     pose: PoseCorrection | None = None  # the trajectory's correction from the building (None: not run)
     rangefinder: RangefinderShare | None = None  # the rangefinder's share of the logged height (None: not run)
     building: tuple[SizeCheck, SizeCheck] | None = None  # its length and width as the sweeps measured them
+    structure: np.ndarray | None = None  # the cloud's points taken as wall, roof or glitch (pointcloud.structure_mask)
+    floor: FloorLevel | None = None  # the floor's level as the sweeps saw it (ground.floor_check; None: not seen)
 
 
 def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
@@ -412,7 +416,8 @@ def flight_record(f: Flight) -> dict:
             "servo_retimed": f.survey.servo_retimed and st is not None,
             "self_calibration_applied": f.survey.mount is not None and f.survey.mount.any_applied,
             "pose_correction_applied": f.survey.pose is not None and f.survey.pose.applied,
-            "building_measured": building_record(f.survey.building)}
+            "building_measured": building_record(f.survey.building),
+            "floor_measured": None if f.survey.floor is None else f.survey.floor.as_dict()}
 
 
 def building_record(checks: tuple[SizeCheck, SizeCheck] | None) -> dict | None:
@@ -496,7 +501,15 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     """
     with threadpool_limits(limits=1, user_api="blas"):
         survey = _survey_from_samples(samples, header, storage, frame, lever, opts)
-        return replace(survey, building=building_of(survey.cloud, storage, SensorErrorModel.from_header(header)))
+        err = SensorErrorModel.from_header(header)
+        return replace(survey, building=building_of(survey.cloud, storage, err), floor=floor_of(survey, err))
+
+
+def floor_of(survey: Survey, err: SensorErrorModel) -> FloorLevel | None:
+    """The floor's level as the survey's placed cloud shows it (`ground.floor_check`), after every correction."""
+    if survey.structure is None:
+        return None
+    return measure_floor(survey.cloud, survey.structure, survey.storage, err, survey.grid)
 
 
 def building_of(cloud: Cloud, storage: Storage, err: SensorErrorModel) -> tuple[SizeCheck, SizeCheck] | None:
@@ -790,7 +803,7 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
         return survey_errors(pile, pile_dir, fit, heights, counts, grid, typical, n_sigma, upper_m=roof_or_ceiling,
                              mask=mask, shared=shared)
     return Survey(cloud, pile, grid, fit, heights, counts, storage, n_clipped, disagreement, errors=errors_in(),
-                  face_spread_m=spread, errors_in=errors_in)
+                  face_spread_m=spread, errors_in=errors_in, structure=structure)
 
 
 def sensor_noise_line(header: dict) -> str:
@@ -902,8 +915,45 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
     warnings += site_mismatches(log.header or {}, opts.site, storage_given=opts.storage is not None)
     doubtful = survey.mount is not None and survey.mount.unexplained and not survey.mount.any_applied
     warnings += [w for w in (storage_warning(log.header or {}, survey.storage),
-                             size_warning(survey.building, survey.storage, mount_doubtful=doubtful)) if w]
+                             size_warning(survey.building, survey.storage, mount_doubtful=doubtful),
+                             lever_arm_warning(log.header or {}, opts.lever_arm_m)) if w]
+    if opts.base.kind is BaseKind.FLOOR:  # a fitted floor, or an earlier survey flown alike, takes the height out
+        w = floor_warning(survey.floor, survey.storage, used_lever_arm(log.header or {}, opts), flight_half_m3(survey))
+        if w:
+            warnings.append(w)
     return warnings
+
+
+def used_lever_arm(header: dict, opts: ReportOptions) -> np.ndarray:
+    """The lever arm the report placed the points with: --lever-arm's, else the log header's."""
+    if opts.lever_arm_m is not None:
+        return np.asarray(opts.lever_arm_m, dtype=float)
+    try:
+        return np.asarray(header.get("lever_arm_body_m", [0.0, 0.0, 0.0]), dtype=float).reshape(3)
+    except (TypeError, ValueError):  # header_geometry refused it already; a merged flight's is its first's
+        return np.zeros(3)
+
+
+def flight_half_m3(survey: Survey) -> float | None:
+    """The half-width of the volume's 90 % interval over the floor z = 0 from this survey's own terms (None: none)."""
+    if survey.errors is None:
+        return None
+    lo, hi = FLOOR_BASE.interval_m3(grid_volume(survey.heights, survey.grid), survey.errors.terms,
+                                    DEFAULT_INTERVAL_MODEL)
+    return (hi - lo) / 2.0
+
+
+def lever_arm_warning(header: dict, lever_arm_m: tuple[float, float, float] | None) -> str | None:
+    """When the report's lever arm is not the log header's (--lever-arm): said, since the flight logged the other."""
+    if lever_arm_m is None:
+        return None
+    logged = header.get("lever_arm_body_m")
+    said = (f"the log header's {', '.join(f'{float(v):g}' for v in logged)} m"
+            if isinstance(logged, list) and len(logged) == 3 else "the log header's")
+    if isinstance(logged, list) and np.allclose(np.asarray(logged, dtype=float), lever_arm_m, rtol=0, atol=1e-9):
+        return None
+    return (f"the LiDAR's lever arm is taken as {', '.join(f'{v:g}' for v in lever_arm_m)} m (--lever-arm, body "
+            f"forward, right, down), not {said}")
 
 
 def storage_warning(header: dict, storage: Storage) -> str | None:
@@ -1022,6 +1072,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "uncovered_area_m2": float((~np.isfinite(survey.heights_fit)).sum() * g.cell_area_m2),
         "storage": survey.storage.to_dict(),
         "building_measured": building_record(survey.building),
+        "floor_measured": None if survey.floor is None else survey.floor.as_dict(),
         "site": site,
         "mission_id": printable((log.header or {}).get("mission_id")),
         "boresight_deg": _boresight_deg(log.header or {}),
@@ -1128,6 +1179,8 @@ def make_report(source: str | Path | Sequence[str | Path], out_dir: str | Path, 
                   else read_truth_volume(i.truth_path) for i in inputs]
     if opts.storage is not None:  # the surveyor's building for a header's wrong one (`storage_warning` says so)
         inputs = [replace(i, storage=opts.storage) for i in inputs]
+    if opts.lever_arm_m is not None:  # the surveyor's lever arm for a header's wrong one (`lever_arm_warning`)
+        inputs = [replace(i, lever_arm_body_m=np.asarray(opts.lever_arm_m, dtype=float)) for i in inputs]
     if len(inputs) > 1 and (why := survey_mismatch(inputs)) is not None:
         raise UserError(f"cannot merge: {why}")
     truth = opts.truth_volume_m3 if opts.truth_volume_m3 is not None else merged_truth(truths, inputs)

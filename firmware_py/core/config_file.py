@@ -51,6 +51,7 @@ from pathlib import Path
 from typing import Any
 
 from firmware_py.core.geodesy import ALT_MAX_M, ALT_MIN_M
+from firmware_py.core.header import MAX_LEVER_ARM_M
 from firmware_py.core.safe_read import InputError, read_bounded
 from firmware_py.core.servo_model import ServoCalibration
 from firmware_py.core.stream_format import parse_stream_url
@@ -219,7 +220,8 @@ class PayloadSection:
         Kind.PATH, "the sample log to write (.pslog); relative to this file's folder", example="survey.pslog"))
     lever_arm_m: tuple[float, float, float] | None = field(default=None, metadata=_key(
         Kind.VECTOR, "the LiDAR's position from the drone's centre of gravity, body frame (forward, right, down); a "
-        "multirotor is at most a few metres across", unit="m", length=3, names=("x", "y", "z"), lo=-5.0, hi=5.0,
+        "multirotor is at most a few metres across", unit="m", length=3, names=("x", "y", "z"), lo=-MAX_LEVER_ARM_M,
+        hi=MAX_LEVER_ARM_M,
         example=(0.0, 0.0, 0.10)))
     boresight_deg: tuple[float, float] | None = field(default=None, metadata=_key(
         Kind.VECTOR, "how the beam's mounting differs from square (`frames.Boresight`): tilt out of the sweep plane (> "

@@ -137,6 +137,10 @@ class ServoDrive:
         return cls(_number(d, "t0_s", "servo_drive"), _number(d, "frame_s", "servo_drive"))
 
 
+MAX_LEVER_ARM_M = 5.0
+"""The largest lever arm component taken (m): a multirotor is at most a few metres across, so a larger one is a
+typing error (a centimetre entered as metres), refused rather than flown or reported."""
+
 STANDARD_KEYS = ("software", "created_utc", "source", "sensor", "lever_arm_body_m", "servo", "mission_id",
                  "mission", "storage", "storage_frame")
 """The keys every header has, in the order they are written."""

@@ -1,0 +1,156 @@
+"""The floor's level as the flight saw it: a height off by a constant (the lever arm's z, the altitude reference) is
+measured on the floor, warned of when the floor lies below z = 0 by more than the interval holds, and undone with
+`pilescan-ground report --lever-arm`."""
+
+import shutil
+
+import numpy as np
+import pytest
+
+from firmware_py.core.cli import ExitCode
+from firmware_py.core.samplelog import SampleLogWriter, read_samplelog, rewritable_header
+from firmware_py.core.storage import Storage
+from ground.cli import main
+from ground.floor_check import N_SIGNIFICANT, FloorLevel, floor_warning, measure_floor
+from ground.pointcloud import Cloud, SensorErrorModel
+from ground.report import ReportOptions, lever_arm_warning, make_report
+from ground.surface import Grid
+from sitl.missions.rectangle import Mission
+from sitl.runners.fly import FlyConfig, fly
+
+STORAGE = Storage(30, 20, 10)
+ERR = SensorErrorModel(range_sigma_m=0.02)
+LEVER = np.array([0.0, 0.0, 0.10])
+
+
+def _cloud(points_w: np.ndarray) -> Cloud:
+    """Points seen from 8 m above the floor, straight down the beam."""
+    origin = np.column_stack([points_w[:, :2], np.full(len(points_w), 8.0)])
+    ray = points_w - origin
+    rng = np.linalg.norm(ray, axis=1)
+    return Cloud(points_w, ray / rng[:, None], rng, origin, len(points_w), 0)
+
+
+def _floor_and_toes(level_m: float, seed: int = 0, toes: int = 400) -> np.ndarray:
+    """A floor at level_m seen along the building's long sides, with a pile's toe rising off it on one side only
+    (what tilts a plane fitted within the floor's noise band)."""
+    rng = np.random.default_rng(seed)
+    n = 3000
+    x = rng.uniform(0.5, 29.5, n)
+    y = np.where(rng.random(n) < 0.5, rng.uniform(0.5, 3.0, n), rng.uniform(17.0, 19.5, n))
+    floor = np.column_stack([x, y, level_m + rng.normal(0.0, 0.02, n)])
+    tx = rng.uniform(5.0, 25.0, toes)
+    ty = rng.uniform(3.0, 4.0, toes)
+    toe = np.column_stack([tx, ty, level_m + 0.12 * (ty - 3.0) + rng.normal(0.0, 0.02, toes)])
+    return np.concatenate([floor, toe])
+
+
+def _measured(points_w: np.ndarray) -> FloorLevel | None:
+    return measure_floor(_cloud(points_w), np.zeros(len(points_w), dtype=bool), STORAGE, ERR,
+                         Grid(STORAGE.length_m, STORAGE.width_m, 0.25))
+
+
+@pytest.mark.parametrize("level_m", [0.0, -0.2, 0.15])
+def test_that_the_floor_s_level_is_measured_where_it_lies_whatever_the_toes_on_one_side(level_m):
+    f = _measured(_floor_and_toes(level_m))
+    assert f is not None
+    assert f.level_m == pytest.approx(level_m, abs=3e-3)
+    assert 0 < f.std_error_m < 2e-3 and f.n_points > 2500
+
+
+def test_that_points_under_their_tolerance_are_counted_as_the_floor_not_left_out():
+    f = _measured(_floor_and_toes(-0.6))
+    assert f.level_m == pytest.approx(-0.6, abs=3e-3) and f.n_under_tolerance > 2500
+
+
+def test_that_material_hiding_the_floor_is_never_taken_for_a_floor_below_z0():
+    """The lowest flat ring of a mound cut off above the floor passes for a floor (the sweeps cannot tell material
+    covering the floor from a floor seen high), but it lies above z = 0, where nothing is warned."""
+    rng = np.random.default_rng(1)
+    x, y = rng.uniform(0, 30, 4000), rng.uniform(0, 20, 4000)
+    mound = np.column_stack([x, y, 6.0 - 0.6 * np.hypot(x - 15, y - 10)])  # a 31 deg cone, no flat ground
+    f = _measured(mound[mound[:, 2] > 0.5])
+    assert f is None or f.level_m > 0.5
+    assert floor_warning(f, STORAGE, LEVER, interval_half_m3=None) is None
+    cliff = _measured(mound[mound[:, 2] > 0.5][:, :] * [1, 1, 10])  # as steep as a wall: no plane is a floor
+    assert cliff is None or cliff.level_m > 0.5
+
+
+def test_that_a_floor_below_z0_is_warned_with_the_lever_arm_that_lifts_it():
+    f = FloorLevel(level_m=-0.2, std_error_m=0.001, tilt_deg=0.1, n_points=1200, cover_pct=5.0, n_under_tolerance=0)
+    w = floor_warning(f, STORAGE, LEVER, interval_half_m3=20.0)
+    assert w is not None and "lies 0.20 m below z = 0" in w and "about 120 m³ low" in w
+    assert "--lever-arm 0 0 -0.10" in w and "0.10 m above" in w and "0.10 m below" in w
+    assert "--base fitted-floor" in w
+
+
+def test_that_a_floor_within_its_noise_or_the_interval_or_above_z0_gets_no_warning():
+    low = FloorLevel(-0.05, 0.001, 0.1, 1200, 5.0, 0)
+    assert floor_warning(low, STORAGE, LEVER, interval_half_m3=20.0) is not None  # 30 m³ moved
+    assert floor_warning(low, STORAGE, LEVER, interval_half_m3=31.0) is None  # the interval holds it
+    assert floor_warning(low, STORAGE, LEVER, interval_half_m3=None) is not None  # no interval: its noise alone
+    noisy = FloorLevel(-0.05, 0.05 / N_SIGNIFICANT * 1.01, 0.1, 1200, 5.0, 0)
+    assert floor_warning(noisy, STORAGE, LEVER, interval_half_m3=None) is None
+    # Above z = 0 a floor cannot be told from material covering it: not warned.
+    assert floor_warning(FloorLevel(0.3, 0.001, 0.1, 1200, 5.0, 0), STORAGE, LEVER, 1.0) is None
+    assert floor_warning(None, STORAGE, LEVER, 1.0) is None
+
+
+def test_that_a_lever_arm_given_is_said_only_when_it_is_not_the_header_s():
+    assert lever_arm_warning({"lever_arm_body_m": [0, 0, 0.1]}, (0.0, 0.0, 0.1)) is None
+    assert lever_arm_warning({"lever_arm_body_m": [0, 0, 0.1]}, None) is None
+    w = lever_arm_warning({"lever_arm_body_m": [0, 0, 0.3]}, (0.0, 0.0, 0.1))
+    assert "taken as 0, 0, 0.1 m (--lever-arm" in w and "the log header's 0, 0, 0.3 m" in w
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    """Pile 1 in the 30 x 20 m building: the pile hides most of the floor (5 % of its cells seen)."""
+    out = tmp_path_factory.mktemp("floor") / "run"
+    fly(FlyConfig(mission=Mission(storage=STORAGE, p_traj=0.2, altitude_m=8.0, speed_m_s=2.0), stockpile="1"), out,
+        force=True)
+    return out
+
+
+def _with_lever_arm(run, out, lever):
+    out.mkdir()
+    shutil.copy(run / "truth.json", out / "truth.json")
+    log = read_samplelog(run / "samples.pslog")
+    w = SampleLogWriter(out / "samples.pslog", {**rewritable_header(log.header), "lever_arm_body_m": lever},
+                        fsync=False)
+    w.append(log.samples)
+    w.close()
+    return out
+
+
+def test_that_a_lever_arm_entered_0_2_m_too_low_is_warned_and_its_fix_restores_the_volume(flight, tmp_path):
+    """The header puts the LiDAR 0.30 m below the autopilot where it sits 0.10 m below: every point 0.2 m low, the
+    volume 6.8 % low, and before this check not a word. The floor says so and names the lever arm that fixes it."""
+    wrong = _with_lever_arm(flight, tmp_path / "wrong", [0.0, 0.0, 0.3])
+    clean = make_report(flight, tmp_path / "clean", ReportOptions(plots=False), force=True)
+    assert clean["floor_measured"]["level_m"] == pytest.approx(0.0, abs=0.01)
+    assert not any("the floor the sweeps saw" in w for w in clean["warnings"])
+    bad = make_report(wrong, tmp_path / "bad", ReportOptions(plots=False), force=True)
+    assert bad["floor_measured"]["level_m"] == pytest.approx(-0.2, abs=0.01)
+    assert bad["volume_error_pct"] > 5 and not bad["truth_in_interval"]
+    said = [w for w in bad["warnings"] if "the floor the sweeps saw lies 0.20 m below z = 0" in w]
+    assert len(said) == 1 and "--lever-arm 0 0 0.10" in said[0]
+    assert main(["report", str(wrong), "--out", str(tmp_path / "fixed"), "--no-plots", "-q",
+                 "--lever-arm", "0", "0", "0.10"]) == 0
+    import json
+    fixed = json.loads((tmp_path / "fixed" / "report.json").read_text())
+    assert fixed["volume_m3"] == pytest.approx(clean["volume_m3"], rel=1e-3) and fixed["truth_in_interval"]
+    assert any("(--lever-arm, body forward, right, down), not the log header's 0, 0, 0.3 m" in w
+               for w in fixed["warnings"])
+    assert not any("the floor the sweeps saw" in w for w in fixed["warnings"])
+
+
+@pytest.mark.parametrize(("argv", "words"), [
+    (["--lever-arm", "0", "0"], "--lever-arm"),
+    (["--lever-arm", "0", "0", "nan"], "--lever-arm"),
+    (["--lever-arm", "0", "0", "6"], "within +/-5 m"),
+])
+def test_that_a_bad_lever_arm_is_one_line_of_error(flight, tmp_path, capsys, argv, words):
+    code = main(["report", str(flight), "--out", str(tmp_path / "r"), "--no-plots", *argv])
+    err = capsys.readouterr().err
+    assert code == ExitCode.USAGE and err.count("\n") == 1 and "Traceback" not in err and words in err

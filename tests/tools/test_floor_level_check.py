@@ -1,0 +1,55 @@
+"""The floor-level check over stored evaluation runs: each run's floor measured as logged and with the lever arm's z
+off, the table split by noise model and by the families whose piles may hide the floor."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from firmware_py.core.samplelog import read_samplelog
+from tools.floor_level_check import floor_row, main, summary
+
+GOLDEN = Path(__file__).resolve().parents[1] / "golden"
+
+
+@pytest.fixture(scope="module")
+def stored(tmp_path_factory):
+    """The golden flight stored as an evaluation run (samples.npy, header.json, truth.json)."""
+    root = tmp_path_factory.mktemp("evalset")
+    run = root / "runs" / "golden-cone-0-none"
+    run.mkdir(parents=True)
+    log = read_samplelog(GOLDEN / "samples.pslog")
+    np.save(run / "samples.npy", log.samples)
+    (run / "header.json").write_text(json.dumps(log.header))
+    (run / "truth.json").write_text(json.dumps({"run_id": run.name, "family": "cone", "noise": "none",
+                                                "split": "heldout", "true_volume_m3": 1.0}))
+    return root
+
+
+def test_that_a_run_s_floor_is_measured_at_z0_and_at_the_offset_of_a_lever_arm_entered_off(stored):
+    run = str(stored / "runs" / "golden-cone-0-none")
+    logged = floor_row(run, 0.0)["floor"]
+    low = floor_row(run, 0.1)["floor"]
+    assert logged is not None and abs(logged["level_m"]) < 0.01
+    assert low["level_m"] == pytest.approx(logged["level_m"] - 0.1, abs=0.01)
+
+
+def test_that_the_table_counts_the_floors_below_z0_apart_for_the_hiding_families():
+    rows = [{"run": "a", "family": "cone", "noise": "none", "floor_area_m2": 600.0,
+             "floor": {"level_m": -0.2, "std_error_m": 0.001}},
+            {"run": "b", "family": "cone", "noise": "none", "floor_area_m2": 600.0,
+             "floor": {"level_m": 0.001, "std_error_m": 0.001}},
+            {"run": "c", "family": "irregular", "noise": "none", "floor_area_m2": 600.0, "floor": None}]
+    lines = summary(rows, 0.2)
+    assert "| the rest (2) | none | 0 | -20.00 cm | -9.95 cm | +0.10 cm | 1 |" in lines
+    assert any(line.startswith("| piles that may hide the floor (1) | none | 1 |") for line in lines)
+    assert "moved +20 cm down" in lines[-1]
+
+
+def test_that_the_command_prints_the_table_and_refuses_bad_options(stored, tmp_path, capsys):
+    assert main(["--root", str(stored)]) == 0
+    assert "| the rest (1) | none | 0 |" in capsys.readouterr().out
+    assert main(["--root", str(stored), "--stride", "0"]) == 2
+    assert main(["--root", str(tmp_path)]) == 2
+    assert "no stored runs" in capsys.readouterr().err
