@@ -930,7 +930,7 @@ def used_lever_arm(header: dict, opts: ReportOptions) -> np.ndarray:
         return np.asarray(opts.lever_arm_m, dtype=float)
     try:
         return np.asarray(header.get("lever_arm_body_m", [0.0, 0.0, 0.0]), dtype=float).reshape(3)
-    except (TypeError, ValueError):  # header_geometry refused it already; a merged flight's is its first's
+    except (TypeError, ValueError):  # not reached: header_geometry refuses a malformed one before any survey
         return np.zeros(3)
 
 
