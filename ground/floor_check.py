@@ -35,7 +35,8 @@ from ground.base import fit_floor_plane
 from ground.pointcloud import N_SIGMA, Cloud, SensorErrorModel, plane_tolerances_m
 from ground.smoothing import vertical_sigma_m
 from ground.surface import Grid
-from ground.uncertainty import cell_index
+from ground.uncertainty import cell_index, over_surface_m3
+from ground.volume_warnings import OtherReading
 
 N_SIGNIFICANT = 3.0
 """A floor lies below z = 0 when its level is this many standard errors below it (and the volume it moves matters)."""
@@ -105,16 +106,41 @@ def measure_floor(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
     return FloorLevel(level, se, plane.tilt_deg, len(q), cover, int(under.sum()))
 
 
+def floor_lift_m(floor: FloorLevel | None, storage: Storage, interval_half_m3: float | None) -> float | None:
+    """How far every height must be lifted to put the floor on z = 0, when the floor lies below it by more than its
+    noise and by a volume (level x floor area) more than interval_half_m3 (None: no interval, significance alone);
+    None when it does not."""
+    if floor is None or not floor.below:
+        return None
+    if interval_half_m3 is not None and -floor.level_m * storage.floor_area_m2 <= interval_half_m3:
+        return None
+    return -floor.level_m
+
+
+def floor_other_reading(floor: FloorLevel | None, storage: Storage, heights: np.ndarray, grid: Grid,
+                        volume_m3: float, interval_m3: tuple[float, float] | None) -> OtherReading | None:
+    """The verdict's other reading when the floor lies below z = 0 as `floor_warning` warns: the volume with every
+    surfaced height lifted by as much (what --lever-arm with the warning's figure gives, to the fill's edges), its
+    interval moved alike. None when no lift is warned of."""
+    half = None if interval_m3 is None else (interval_m3[1] - interval_m3[0]) / 2.0
+    lift = floor_lift_m(floor, storage, half)
+    if lift is None:
+        return None
+    moved = over_surface_m3(lift, heights, grid)
+    return OtherReading(-moved, volume_m3 + moved,
+                        None if interval_m3 is None else (interval_m3[0] + moved, interval_m3[1] + moved),
+                        condition=f"every height is {lift:.2f} m low (the floor seen below z = 0: a lever arm's z or "
+                                  "an altitude reference off by that much)")
+
+
 def floor_warning(floor: FloorLevel | None, storage: Storage, lever_arm_body_m: np.ndarray,
                   interval_half_m3: float | None) -> str | None:
     """One warning when the floor lies below z = 0 by more than its noise and by a volume the interval does not hold
     (module docstring), naming the two causes and the --lever-arm that would move every point back up; None else.
     interval_half_m3: the volume's 90 % interval's half-width (None: no interval, then significance alone)."""
-    if floor is None or not floor.below:
+    if floor_lift_m(floor, storage, interval_half_m3) is None:
         return None
     moved = -floor.level_m * storage.floor_area_m2
-    if interval_half_m3 is not None and moved <= interval_half_m3:
-        return None
     lever = np.asarray(lever_arm_body_m, dtype=float)
     z_new = float(lever[2]) + floor.level_m  # a lever arm less far down lifts every point by as much
     arg = f"--lever-arm {lever[0]:g} {lever[1]:g} {z_new:.2f}"

@@ -36,7 +36,7 @@ from ground.deliverable import add_deliverable
 from ground.despike import SpikeThreshold, why_no_threshold
 from ground.exports.formats import EXPORT_FILES, ExportFormat
 from ground.exports.write import check_exports, write_exports
-from ground.floor_check import FloorLevel, floor_warning, measure_floor
+from ground.floor_check import FloorLevel, floor_other_reading, floor_warning, measure_floor
 from ground.metadata import SurveyInfo, printable, sha256_of
 from ground.piles import PILES_CSV, PileOptions, write_piles_csv
 from ground.plausibility import MAX_GAP_S, PlausibilityLimits, implausible, in_time, out_of_time, without_implausible
@@ -997,6 +997,8 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
                       "level_sigma_m": None if pose is None else pose.level_sigma_m, "terms": terms,
                       "model": DEFAULT_INTERVAL_MODEL}
         other = open_floor_reading(**open_floor)
+        if other is None and flights is None and base.kind is BaseKind.FLOOR:  # a floor seen below z = 0
+            other = floor_other_reading(survey.floor, survey.storage, survey.heights, g, volume, interval)
         why = [w for w in (
             unseen_warning(survey.heights_fit, survey.heights, g, terms, DEFAULT_INTERVAL_MODEL, volume,
                            opts.max_interval_pct),

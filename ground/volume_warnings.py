@@ -182,16 +182,21 @@ OPEN_FLOOR_CONDITION = "the floor seen only away from the walls is a hollow in t
 
 @dataclass(frozen=True)
 class OtherReading:
-    """The survey's volume had the floor its height was anchored on been a hollow in the pile (`open_floor_reading`)."""
+    """The survey's volume under a condition the data cannot rule out: had the floor its height was anchored on been a
+    hollow in the pile (`open_floor_reading`), or every height been as low as the floor seen below z = 0
+    (`ground.floor_check.floor_other_reading`)."""
 
     moved_m3: float
     """What anchoring on that floor moved the volume (signed): the other reading is the volume less it."""
     volume_m3: float
     interval_m3: tuple[float, float] | None
     """Its 90 % interval, with the level term of the logged altitude reference; None without the level's sigma."""
+    condition: str = OPEN_FLOOR_CONDITION
+    """What the other reading supposes, as the verdict's "or ... if <condition>" says it (a floor seen low:
+    `ground.floor_check.floor_other_reading`)."""
 
     def as_dict(self) -> dict:
-        return {"condition": OPEN_FLOOR_CONDITION, "volume_m3": self.volume_m3,
+        return {"condition": self.condition, "volume_m3": self.volume_m3,
                 "volume_interval_m3": None if self.interval_m3 is None else list(self.interval_m3)}
 
 

@@ -11,7 +11,7 @@ from firmware_py.core.cli import ExitCode
 from firmware_py.core.samplelog import SampleLogWriter, read_samplelog, rewritable_header
 from firmware_py.core.storage import Storage
 from ground.cli import main
-from ground.floor_check import N_SIGNIFICANT, FloorLevel, floor_warning, measure_floor
+from ground.floor_check import N_SIGNIFICANT, FloorLevel, floor_other_reading, floor_warning, measure_floor
 from ground.pointcloud import Cloud, SensorErrorModel
 from ground.report import ReportOptions, lever_arm_warning, make_report
 from ground.surface import Grid
@@ -96,6 +96,22 @@ def test_that_a_floor_within_its_noise_or_the_interval_or_above_z0_gets_no_warni
     assert floor_warning(None, STORAGE, LEVER, 1.0) is None
 
 
+def test_that_the_other_reading_lifts_every_surfaced_height_by_the_floor_s_depth_and_its_interval_alike():
+    grid = Grid(STORAGE.length_m, STORAGE.width_m, 0.25)
+    heights = np.full(grid.shape, 1.0)
+    heights[:10] = np.nan  # 10 rows of 80 cells unsurfaced: 50 m² of the 600
+    low = FloorLevel(-0.2, 0.001, 0.1, 1200, 5.0, 0)
+    other = floor_other_reading(low, STORAGE, heights, grid, 550.0, (530.0, 570.0))
+    assert other.volume_m3 == pytest.approx(550.0 + 0.2 * 550.0)
+    assert other.interval_m3 == pytest.approx((640.0, 680.0)) and other.moved_m3 == pytest.approx(-110.0)
+    d = other.as_dict()
+    assert d["condition"].startswith("every height is 0.20 m low") and d["volume_interval_m3"] == pytest.approx(
+        [640.0, 680.0])
+    assert floor_other_reading(low, STORAGE, heights, grid, 550.0, (400.0, 700.0)) is None  # the interval holds it
+    assert floor_other_reading(FloorLevel(0.2, 0.001, 0.1, 1200, 5.0, 0), STORAGE, heights, grid, 550.0,
+                               (530.0, 570.0)) is None
+
+
 def test_that_a_lever_arm_given_is_said_only_when_it_is_not_the_header_s():
     assert lever_arm_warning({"lever_arm_body_m": [0, 0, 0.1]}, (0.0, 0.0, 0.1)) is None
     assert lever_arm_warning({"lever_arm_body_m": [0, 0, 0.1]}, None) is None
@@ -135,6 +151,10 @@ def test_that_a_lever_arm_entered_0_2_m_too_low_is_warned_and_its_fix_restores_t
     assert bad["volume_error_pct"] > 5 and not bad["truth_in_interval"]
     said = [w for w in bad["warnings"] if "the floor the sweeps saw lies 0.20 m below z = 0" in w]
     assert len(said) == 1 and "--lever-arm 0 0 0.10" in said[0]
+    other = bad["volume_other_reading"]  # the verdict's "or ... if every height is 0.20 m low"
+    assert other["volume_m3"] == pytest.approx(clean["volume_m3"], rel=0.005)
+    assert "if every height is 0.20 m low" in bad["verdict"]
+    assert clean["volume_other_reading"] is None
     assert main(["report", str(wrong), "--out", str(tmp_path / "fixed"), "--no-plots", "-q",
                  "--lever-arm", "0", "0", "0.10"]) == 0
     import json
