@@ -47,9 +47,15 @@ def test_that_the_table_counts_the_floors_below_z0_apart_for_the_hiding_families
     assert "moved +20 cm down" in lines[-1]
 
 
-def test_that_the_command_prints_the_table_and_refuses_bad_options(stored, tmp_path, capsys):
-    assert main(["--root", str(stored)]) == 0
+def test_that_the_command_prints_the_table_writes_it_into_its_section_and_refuses_bad_options(stored, tmp_path,
+                                                                                               capsys):
+    page = tmp_path / "page.md"
+    page.write_text("before\n<!-- floor-level-dz10:start -->\nold\n<!-- floor-level-dz10:end -->\nafter\n")
+    assert main(["--root", str(stored), "--lever-dz", "0.1", "--write", str(page)]) == 0
     assert "| the rest (1) | none | 0 |" in capsys.readouterr().out
+    text = page.read_text()
+    assert "old" not in text and "`python -m tools.floor_level_check --lever-dz 0.1` (1 run)" in text
+    assert text.startswith("before\n") and text.endswith("after\n") and "| the rest (1) | none | 0 |" in text
     assert main(["--root", str(stored), "--stride", "0"]) == 2
     assert main(["--root", str(tmp_path)]) == 2
     assert "no stored runs" in capsys.readouterr().err
