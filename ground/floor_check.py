@@ -15,9 +15,9 @@ the median height of the points on a level floor there, with a median's standard
 
 Only a floor *below* z = 0 is warned of. The storage frame puts z = 0 on the floor's lowest corner, so nothing
 solid lies below it; a floor seen above z = 0 everywhere cannot be told from material covering the whole floor (a
-flat pile wall to wall, measured on the evaluation set: the lowest flat surface 0.15-4.6 m up), so that is left to
+flat pile wall to wall, measured on the evaluation set: the lowest flat surface up to 4.3 m up), so that is left to
 the surveyor's eye on the height map. Measured on the 1,512 error-free evaluation runs: the floor never lay more
-than 1.0 cm below z = 0 (at most 4.3 of its standard errors; Appendix A's pointing noise makes those errors too
+than 1.0 cm below z = 0 (at most 4.2 of its standard errors; Appendix A's pointing noise makes those errors too
 small). So the warning needs both: the level more than N_SIGNIFICANT standard errors below z = 0, and the volume it
 moves (level x floor area) larger than the volume's own 90 % interval's half-width, which does not hold it.
 """
@@ -44,12 +44,12 @@ N_SIGNIFICANT = 3.0
 
 @dataclass(frozen=True)
 class FloorLevel:
-    """The floor plane the sweeps saw, where they saw it."""
+    """The floor the sweeps saw: its level where they saw it, and the plane that found it."""
 
     level_m: float  # the median height of the floor's points, storage frame z (the floor is z = 0)
     std_error_m: float  # its standard error (one value per cell: a cell's points share the pose's error)
-    tilt_deg: float
-    n_points: int  # points on the plane
+    tilt_deg: float  # the plane's (a floor's fall, or a pile's toe that tilted it)
+    n_points: int  # points within their band of the level floor
     cover_pct: float  # the building's cells that hold a floor point, %
     n_under_tolerance: int  # points more than their tolerance below z = 0: the surface left them out as glitches
 
@@ -144,12 +144,12 @@ def floor_warning(floor: FloorLevel | None, storage: Storage, lever_arm_body_m: 
     lever = np.asarray(lever_arm_body_m, dtype=float)
     z_new = float(lever[2]) + floor.level_m  # a lever arm less far down lifts every point by as much
     arg = f"--lever-arm {lever[0]:g} {lever[1]:g} {z_new:.2f}"
-    dropped = (f"; {floor.n_under_tolerance:,} points lay too far below it to be kept at all"
-               if floor.n_under_tolerance else "")
+    dropped = (f"; {floor.n_under_tolerance:,} lay too far below z = 0 for the surface, which left them out as "
+               "glitches" if floor.n_under_tolerance else "")
     return (f"the floor the sweeps saw lies {-floor.level_m:.2f} m below z = 0 (+/-{floor.std_error_m * 1000:.1f} mm, "
             f"{floor.n_points:,} floor points over {floor.cover_pct:.0f} % of the building{dropped}): every height "
             f"is that much low, and the volume about {moved:,.0f} m³ low, more than its interval allows. A height off "
-            f"by a constant comes from the lever arm's z (the log header puts the LiDAR {_below(float(lever[2]))} the "
+            f"by a constant comes from the lever arm's z (the report placed the LiDAR {_below(float(lever[2]))} the "
             f"autopilot's origin) or from the autopilot's altitude reference: if the LiDAR sits {_below(z_new)} it, "
             f"or the altitude read {-floor.level_m:.2f} m low all flight, report again with {arg} (it lifts every "
             "point by as much); if the building's floor really lies below its z = 0, use --base fitted-floor")
