@@ -209,6 +209,8 @@ def format_summary(rep: dict) -> str:
         rows += [("truth", vol(truth)), ("Ve (eq. 8)", pct(rep.get("volume_error_pct")))]
     rows += [("R_a (eq. 9)", pct(rep.get("coverage_ratio_pct"))),
              ("points used", f"{rep['n_points_used']:,} of {rep['n_samples']:,} samples")]
+    if "floor_measured" in rep and not rep.get("flights"):  # a merged survey's floors are its flights' own
+        rows += [("floor seen at", floor_line(rep["floor_measured"]))]
     rows += list(metadata_rows(rep.get("metadata")))
     rows += [("exports", ", ".join(rep["exports"]))] if rep.get("exports") else []
     width = max(len(label) for label, _ in rows)
@@ -224,6 +226,16 @@ def format_summary(rep: dict) -> str:
         head, more = warning_parts(w)
         lines += [f"WARNING: {head}", *(f"  - {m}" for m in more)]
     return "\n".join(lines)
+
+
+def floor_line(floor: dict | None) -> str:
+    """report.json's `floor_measured` in words: where the lowest flat surface lies against z = 0. Above it by more than
+    a few centimetres the floor is covered by material, or every height is that much high (a lever arm's z entered too
+    short): the report cannot tell the two apart, the surveyor can (`ground.floor_check`)."""
+    if not isinstance(floor, dict) or not isinstance(floor.get("level_m"), int | float):
+        return "not seen (the material hides it)"
+    return (f"{floor['level_m'] * 100:+.1f} cm from z = 0 (+/-{floor.get('std_error_m', 0.0) * 1000:.1f} mm, over "
+            f"{floor.get('cover_pct', 0.0):.0f} % of the building)")
 
 
 MAX_BARO_WALK_M_PER_SQRT_S = 1.0

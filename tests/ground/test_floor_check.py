@@ -10,7 +10,7 @@ import pytest
 from firmware_py.core.cli import ExitCode
 from firmware_py.core.samplelog import SampleLogWriter, read_samplelog, rewritable_header
 from firmware_py.core.storage import Storage
-from ground.cli import main
+from ground.cli import format_summary, main
 from ground.floor_check import N_SIGNIFICANT, FloorLevel, floor_other_reading, floor_warning, measure_floor
 from ground.pointcloud import Cloud, SensorErrorModel
 from ground.report import ReportOptions, lever_arm_warning, make_report
@@ -110,6 +110,14 @@ def test_that_the_other_reading_lifts_every_surfaced_height_by_the_floor_s_depth
     assert floor_other_reading(low, STORAGE, heights, grid, 550.0, (400.0, 700.0)) is None  # the interval holds it
     assert floor_other_reading(FloorLevel(0.2, 0.001, 0.1, 1200, 5.0, 0), STORAGE, heights, grid, 550.0,
                                (530.0, 570.0)) is None
+
+
+def test_that_the_console_says_where_the_floor_was_seen_and_when_it_was_not():
+    rep = {"volume_m3": 1584.6, "volume_interval_m3": [1558.7, 1610.5], "n_points_used": 11000, "n_samples": 21000,
+           "floor_measured": FloorLevel(-0.198, 0.00025, 0.49, 1125, 4.8, 0).as_dict()}
+    assert "floor seen at  -19.8 cm from z = 0 (+/-0.2 mm, over 5 % of the building)" in format_summary(rep)
+    assert "floor seen at  not seen (the material hides it)" in format_summary({**rep, "floor_measured": None})
+    assert "floor seen at" not in format_summary({**rep, "flights": [{}, {}]})  # each flight's own, in report.json
 
 
 def test_that_a_lever_arm_given_is_said_only_when_it_is_not_the_header_s():
