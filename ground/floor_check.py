@@ -33,7 +33,7 @@ from firmware_py.core.cli import UserError
 from firmware_py.core.storage import Storage
 from ground.base import fit_floor_plane
 from ground.pointcloud import N_SIGMA, Cloud, SensorErrorModel, plane_tolerances_m
-from ground.smoothing import vertical_sigma_m
+from ground.smoothing import cloud_vertical_sigma_m
 from ground.surface import Grid
 from ground.uncertainty import cell_index, over_surface_m3
 from ground.volume_warnings import OtherReading
@@ -76,8 +76,7 @@ def measure_floor(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
     keep = (~structure | under) & (p[:, 2] < storage.height_m - tol_z)
     if not keep.any():
         return None
-    sigma = vertical_sigma_m(err.range_sigma(cloud.range_m[keep]), err.resolution_m, err.position_sigma_m,
-                             err.angle_sigma_rad, cloud.range_m[keep], cloud.dirs_w[keep])
+    sigma = cloud_vertical_sigma_m(cloud, err, keep)
     try:
         plane = fit_floor_plane(p[keep], sigma, grid, N_SIGMA)
     except UserError:

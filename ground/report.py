@@ -73,7 +73,7 @@ from ground.self_calibration import (
     estimate_mount,
 )
 from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
-from ground.smoothing import vertical_sigma_m
+from ground.smoothing import cloud_vertical_sigma_m
 from ground.surface import (
     DEFAULT_CELL_M,
     DEFAULT_EMPTY_CELLS,
@@ -176,6 +176,7 @@ class Survey:
     building: tuple[SizeCheck, SizeCheck] | None = None  # its length and width as the sweeps measured them
     structure: np.ndarray | None = None  # the cloud's points taken as wall, roof or glitch (pointcloud.structure_mask)
     floor: FloorLevel | None = None  # the floor's level as the sweeps saw it (ground.floor_check; None: not seen)
+    lever_arm_body_m: np.ndarray | None = None  # the lever arm the points were placed with (header's or --lever-arm's)
 
 
 def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
@@ -502,7 +503,8 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     with threadpool_limits(limits=1, user_api="blas"):
         survey = _survey_from_samples(samples, header, storage, frame, lever, opts)
         err = SensorErrorModel.from_header(header)
-        return replace(survey, building=building_of(survey.cloud, storage, err), floor=floor_of(survey, err))
+        return replace(survey, building=building_of(survey.cloud, storage, err), floor=floor_of(survey, err),
+                       lever_arm_body_m=np.asarray(lever, dtype=float))
 
 
 def floor_of(survey: Survey, err: SensorErrorModel) -> FloorLevel | None:
@@ -748,9 +750,7 @@ def _survey(samples: np.ndarray, header: dict, storage: Storage, frame: StorageF
 def pile_sigma_m(cloud: Cloud, structure: np.ndarray, err: SensorErrorModel) -> np.ndarray:
     """The vertical 1-sigma error of each pile point (the cloud's points outside `structure`), from the sensor
     model in the log header (`ground.smoothing.vertical_sigma_m`): what the default surface fit weighs them by."""
-    rng, dirs = cloud.range_m[~structure], cloud.dirs_w[~structure]
-    return vertical_sigma_m(err.range_sigma(rng), err.resolution_m, err.position_sigma_m, err.angle_sigma_rad,
-                            rng, dirs)
+    return cloud_vertical_sigma_m(cloud, err, ~structure)
 
 
 def contact_fit_m(pile_w: np.ndarray, pile_sigma: np.ndarray, contacts: WallContacts, grid: Grid, storage: Storage,
@@ -917,21 +917,12 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
     warnings += [w for w in (storage_warning(log.header or {}, survey.storage),
                              size_warning(survey.building, survey.storage, mount_doubtful=doubtful),
                              lever_arm_warning(log.header or {}, opts.lever_arm_m)) if w]
-    if opts.base.kind is BaseKind.FLOOR:  # a fitted floor, or an earlier survey flown alike, takes the height out
-        w = floor_warning(survey.floor, survey.storage, used_lever_arm(log.header or {}, opts), flight_half_m3(survey))
+    if opts.base.kind is BaseKind.FLOOR and survey.lever_arm_body_m is not None:  # a fitted floor, or an earlier
+        # survey flown alike, takes the height out
+        w = floor_warning(survey.floor, survey.storage, survey.lever_arm_body_m, flight_half_m3(survey))
         if w:
             warnings.append(w)
     return warnings
-
-
-def used_lever_arm(header: dict, opts: ReportOptions) -> np.ndarray:
-    """The lever arm the report placed the points with: --lever-arm's, else the log header's."""
-    if opts.lever_arm_m is not None:
-        return np.asarray(opts.lever_arm_m, dtype=float)
-    try:
-        return np.asarray(header.get("lever_arm_body_m", [0.0, 0.0, 0.0]), dtype=float).reshape(3)
-    except (TypeError, ValueError):  # not reached: header_geometry refuses a malformed one before any survey
-        return np.zeros(3)
 
 
 def flight_half_m3(survey: Survey) -> float | None:
@@ -1318,10 +1309,9 @@ def with_base(survey: Survey, header: dict, opts: ReportOptions) -> Survey:
     if spec.kind is BaseKind.FITTED_FLOOR:
         err = SensorErrorModel.from_header(header)
         c = survey.cloud
-        keep = ~structure_mask(c, survey.storage, err)
-        sigma = vertical_sigma_m(err.range_sigma(c.range_m[keep]), err.resolution_m, err.position_sigma_m,
-                                 err.angle_sigma_rad, c.range_m[keep], c.dirs_w[keep])
-        base = fitted_floor_base(c.points_w[keep], sigma, survey.heights, survey.grid, FLOOR_N_SIGMA)
+        structure = survey.structure if survey.structure is not None else structure_mask(c, survey.storage, err)
+        base = fitted_floor_base(c.points_w[~structure], pile_sigma_m(c, structure, err), survey.heights, survey.grid,
+                                 FLOOR_N_SIGMA)
     else:
         earlier = earlier_surface(spec.source, replace(opts, base=FLOOR, plots=False))
         base = survey_base(earlier, saved_surface(survey, header, opts, ""), str(spec.source))

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ground.pointcloud import structure_n_sigma
+from ground.pointcloud import Cloud, SensorErrorModel, structure_n_sigma
 
 DEFAULT_Z_CRIT = 2.0
 """Lepski's critical value: a wider window is refused when its estimate differs from a narrower one by more
@@ -84,6 +84,14 @@ def vertical_sigma_m(range_sigma_m: np.ndarray | float, resolution_m: float, pos
     var = ((np.asarray(range_sigma_m, dtype=float) * dz) ** 2 + (r * angle_sigma) ** 2 * (1.0 - dz**2)
            + position_sigma_m**2 + resolution_m**2 / 12.0)
     return np.sqrt(var)
+
+
+def cloud_vertical_sigma_m(cloud: Cloud, err: SensorErrorModel, where: np.ndarray) -> np.ndarray:
+    """`vertical_sigma_m` of the cloud's points `where` (a mask or indices), from the sensor model in the log header:
+    the one spelling of it for the surface fit's pile points, a fitted floor's and the floor check's candidates."""
+    rng, dirs = cloud.range_m[where], cloud.dirs_w[where]
+    return vertical_sigma_m(err.range_sigma(rng), err.resolution_m, err.position_sigma_m, err.angle_sigma_rad, rng,
+                            dirs)
 
 
 def window_halfwidths(cell_m: float, max_window_m: float) -> list[int]:
