@@ -19,6 +19,7 @@ from ground.base import (
     fitted_floor_base,
     points_below,
     survey_base,
+    toe_cells,
 )
 from ground.compare import compare_surfaces
 from ground.surface import Grid, grid_volume
@@ -123,6 +124,25 @@ def test_that_the_floor_refit_keeps_the_floor_under_a_tilted_plane_and_so_climbs
             break
         sym = now
     assert plane.slope_x < coef[1] - 0.001
+
+
+def floor_in_one_corner_and_toes_in_the_others(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A pile hides the floor but for one corner (x < 8, y < 6 m); in the other three a few of its toe's points lie
+    8-20 cm up, inside a floor's band (3 sigmas of 8 cm, the sensor model's; the points themselves carry 5 mm)."""
+    rng = np.random.default_rng(seed)
+    floor = np.column_stack([rng.uniform(0, 8, 1000), rng.uniform(0, 6, 1000), rng.normal(0, 0.005, 1000)])
+    toes = [np.column_stack([rng.uniform(x0, x0 + 2, 30), rng.uniform(y0, y0 + 2, 30), rng.uniform(0.08, 0.2, 30)])
+            for x0, y0 in ((27, 1), (1, 17), (27, 17))]
+    pts = np.concatenate([floor, *toes])
+    return pts, np.full(len(pts), 0.08)
+
+
+def test_that_a_few_toe_cells_in_the_floor_s_band_do_not_tilt_the_fitted_floor():
+    pts, sig = floor_in_one_corner_and_toes_in_the_others()
+    plane = fit_floor_plane(pts, sig, GRID, 3.0)
+    assert abs(float(plane.at(15.0, 10.0))) < 0.01 and plane.tilt_deg < 0.05  # unscreened: +8 cm, 0.4 deg
+    assert not plane.inliers[1000:].any()
+    assert toe_cells(np.arange(1000) % 97, pts[:1000, 2]).size == 0  # the floor's own cells stay
 
 
 def test_that_a_fitted_floor_cancels_a_height_error_common_to_the_survey_so_the_pose_term_goes():
