@@ -181,12 +181,11 @@ def toe_cells(cell: np.ndarray, r_m: np.ndarray) -> np.ndarray:
     others' by the points' noise and the pose's error they share; a cell of toe sits above them all, though each of
     its points lies within its band (a band a few noise levels thick holds a gentle toe over metres). Flagged: a
     median more than `structure_n_sigma` of the number of cells (the deepest noise alone reaches among them) robust
-    standard deviations above the cells' median. The spread is the cells' own, not the sensor model's: a model
-    sized for the worst range of the flight puts the band's edge far beyond what most floor points scatter (8 cm
-    stated, millimetres seen on a simulated flight), and that gap is where a toe hides. Measured
-    on a 30 x 20 m flight whose floor was seen mostly in one corner: a handful of toe points in the other three
-    corners tilted the plane 0.47 deg, +8.6 cm at the building's centre; without their cells it lies within 0.2 cm
-    of the floor."""
+    standard deviations above the cells' median. The spread is the cells' own, not the sensor model's: a model sized
+    for the worst range of the flight puts the band's edge far beyond what most floor points scatter (8 cm stated,
+    millimetres seen on a simulated flight), and that gap is where a toe hides. Measured on a 30 x 20 m flight whose
+    floor was seen mostly in one corner: a handful of toe points in the other three corners tilted the plane 0.47
+    deg, +8.6 cm at the building's centre; without their cells it lies within 0.2 cm of the floor."""
     if len(cell) == 0:
         return cell
     uniq, med, _ = medians_by_key(cell, r_m)
