@@ -11,7 +11,6 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from firmware_py.core.cli import NoVolumeError, UserError, reading_input
 from firmware_py.core.config_file import SiteSection
@@ -30,6 +29,7 @@ from firmware_py.core.surface_file import SURFACE_FILE
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import MAX_FREQUENCY_HZ
 from ground.base import FLOOR, FLOOR_BASE, Base, BaseKind, BaseSpec, fitted_floor_base, rebased_terms, survey_base
+from ground.blas_threads import one_blas_thread
 from ground.building_check import SizeCheck, check_building, size_warning
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
 from ground.deliverable import add_deliverable
@@ -500,7 +500,7 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     at once, its sums came out in another order now and then, and the same log gave volumes 2 m³ apart
     (a drifting flight over pile 2, one run in three; docs/design-notes.md).
     """
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         survey = _survey_from_samples(samples, header, storage, frame, lever, opts)
         err = SensorErrorModel.from_header(header)
         return replace(survey, building=building_of(survey.cloud, storage, err), floor=floor_of(survey, err),

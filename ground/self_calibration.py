@@ -58,7 +58,6 @@ import numpy as np
 from scipy import sparse
 from scipy.optimize import least_squares
 from scipy.sparse.linalg import spsolve
-from threadpoolctl import threadpool_limits
 
 from firmware_py.core.frames import (
     SQUARE,
@@ -67,10 +66,12 @@ from firmware_py.core.frames import (
     beam_dir_body,
     beam_dot_body,
     beam_dot_body_partials,
+    premultiply,
     rot_body_to_ned,
 )
 from firmware_py.core.servo_model import command_angles, servo_angles
 from firmware_py.core.storage import Storage
+from ground.blas_threads import one_blas_thread
 from ground.plane_stretches import beams, stretches_along
 from ground.pose_correction import knot_basis
 from ground.servo_timing import Resimulated
@@ -255,7 +256,7 @@ class _Problem:
         # What the parameters cannot change, once: each beam's origin and its body-to-W rotation
         # (eqs. 3-6 as `beam_rays_w` computes them; only the beam's direction in the body varies).
         r_nb = rot_body_to_ned(s["roll_rad"], s["pitch_rad"], s["yaw_rad"])
-        self.r_wb = np.einsum("ij,njk->nik", frame.rot_w_from_ned, r_nb)
+        self.r_wb = premultiply(frame.rot_w_from_ned, r_nb)
         pos = np.stack([s["x_m"], s["y_m"], s["z_m"]], axis=1).astype(float)
         self.origins = frame.ned_to_w(pos) + np.einsum("nij,j->ni", self.r_wb, np.asarray(lever, dtype=float))
         self._level = (s, frame)
@@ -273,7 +274,7 @@ class _Problem:
         out = object.__new__(_Problem)
         out.__dict__.update(self.__dict__)
         r_nb = rot_body_to_ned(np.zeros(len(s)), np.zeros(len(s)), s["yaw_rad"])
-        out.r_wb = np.einsum("ij,njk->nik", frame.rot_w_from_ned, r_nb)
+        out.r_wb = premultiply(frame.rot_w_from_ned, r_nb)
         return out
 
     def points(self, q: np.ndarray, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
@@ -382,7 +383,7 @@ def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.n
         q = q.copy()
         # One BLAS thread: the solver's products with a tall, four-column Jacobian are too small to share, and a
         # threaded OpenBLAS on a busy two-core machine spent more time handing them off than computing them.
-        with threadpool_limits(limits=1, user_api="blas"):
+        with one_blas_thread():
             q[free] = least_squares(resid, np.clip(q[free], lo, hi), jac="2-point" if jacobian is None else jac,
                                     loss="arctan", f_scale=1.0, bounds=(lo, hi),
                                     x_scale=np.full(int(free.sum()), 0.01), diff_step=1e-6, max_nfev=80).x

@@ -48,9 +48,9 @@ import numpy as np
 from scipy import ndimage
 from scipy.interpolate import CloughTocher2DInterpolator, LinearNDInterpolator
 from scipy.spatial import ConvexHull, Delaunay, QhullError
-from threadpoolctl import threadpool_limits
 
 from firmware_py.core.surface_file import MAX_GRID_CELLS, MIN_GRID_CELL_M
+from ground.blas_threads import one_blas_thread
 from ground.smoothing import DEFAULT_SMOOTHING, SmoothingOptions, smoothed_nodes
 
 SURFACE_FITS = ("cubic-limited", "cubic", "linear", "local-linear")
@@ -193,7 +193,7 @@ def _interpolate(points_w: np.ndarray, grid: Grid, method: str,
     xy = np.ascontiguousarray(points_w[:, :2], dtype=float)
     # One BLAS thread: the triangulation makes tens of thousands of 2x2 LAPACK solves, which a
     # threaded OpenBLAS turns into thread hand-offs; with two processes on two cores they crawl.
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         try:
             tri = Delaunay(xy)
         except (QhullError, ValueError):  # all points collinear or coincident: no surface

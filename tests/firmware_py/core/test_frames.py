@@ -12,6 +12,7 @@ from firmware_py.core.frames import (
     beam_ray_w,
     beam_rays_w,
     points_w,
+    premultiply,
     rot_body_to_ned,
 )
 
@@ -25,6 +26,16 @@ def test_that_body_to_ned_matches_scipy_zyx_euler():
     ours = rot_body_to_ned(rpy[:, 0], rpy[:, 1], rpy[:, 2])
     ref = Rotation.from_euler("ZYX", rpy[:, ::-1]).as_matrix()
     assert np.allclose(ours, ref, atol=1e-12)
+
+
+def test_that_premultiply_is_the_matrix_product_of_each_matrix_of_the_stack():
+    rng = np.random.default_rng(2)
+    r = rng.normal(size=(3, 3))
+    stack = rng.normal(size=(1000, 3, 3))
+    got = premultiply(r, stack)
+    assert got.shape == (1000, 3, 3)
+    assert np.allclose(got, np.stack([r @ m for m in stack]), rtol=0, atol=1e-14)
+    assert premultiply(r, stack[:0]).shape == (0, 3, 3)
 
 
 def test_that_yaw_90_points_the_nose_east():
