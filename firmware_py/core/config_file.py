@@ -220,7 +220,8 @@ class PayloadSection:
         Kind.PATH, "the sample log to write (.pslog); relative to this file's folder", example="survey.pslog"))
     lever_arm_m: tuple[float, float, float] | None = field(default=None, metadata=_key(
         Kind.VECTOR, "the LiDAR's position from the drone's centre of gravity, body frame (forward, right, down); a "
-        "multirotor is at most a few metres across", unit="m", length=3, names=("x", "y", "z"), lo=-MAX_LEVER_ARM_M,
+        "multirotor is at most a few metres across; measure it to a centimetre or two: a height error moves the "
+        "volume by itself times the floor area", unit="m", length=3, names=("x", "y", "z"), lo=-MAX_LEVER_ARM_M,
         hi=MAX_LEVER_ARM_M,
         example=(0.0, 0.0, 0.10)))
     boresight_deg: tuple[float, float] | None = field(default=None, metadata=_key(
