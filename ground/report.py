@@ -847,6 +847,20 @@ def unexplained_structure_warning(mount: MountEstimate | None, pose: PoseCorrect
             "right")
 
 
+def lever_change_warning(mount: MountEstimate | None, lever_m: np.ndarray | None) -> str | None:
+    """The floor and walls say the lever arm is off, not the mount (`MountEstimate.lever_change_m`): which lever arm
+    they fit, for the surveyor to check against the drone and to report again with. None: they do not say so."""
+    if mount is None or mount.lever_change_m is None:
+        return None
+    dx, dy, dz = (100.0 * v for v in mount.lever_change_m)
+    try_m = "" if lever_m is None else " (the lever arm they fit: `--lever-arm " + " ".join(
+        f"{v:.3f}" for v in np.asarray(lever_m, dtype=float) + np.asarray(mount.lever_change_m)) + "`)"
+    return (f"the building's floor and walls sit on their planes with the LiDAR's lever arm moved by {dx:+.1f}, "
+            f"{dy:+.1f}, {dz:+.1f} cm (forward, right, down) as well as with any mount correction, so none was "
+            "applied and the volume is placed with the lever arm as entered: check the lever arm against the drone "
+            f"and report again with the one measured{try_m}")
+
+
 def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[str]:
     """What one log's own checks found (damage, unusable and implausible samples, spikes, a stuck or mistimed
     servo, the mount, the pose, the site): per flight, whether the flight is reported alone or merged."""
@@ -899,6 +913,8 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
                                          f"{st.disagreement_after_m:.2f} m)" if st is not None else ""))
     if survey.mount is not None and survey.mount.any_applied:
         warnings.append(describe(survey.mount, header_boresight(log.header or {})))
+    elif (lever := lever_change_warning(survey.mount, survey.lever_arm_body_m)) is not None:
+        warnings.append(lever)
     else:
         unexplained = unexplained_structure_warning(survey.mount, survey.pose)
         if unexplained is not None:

@@ -17,9 +17,11 @@ from ground.self_calibration import (
     INSIDE_SIGN,
     PLANE_SETS,
     DriftNuisance,
+    MountEstimate,
     _trim_inside,
     describe,
     estimate_mount,
+    lever_alternative,
     not_estimated,
     plane_set_errors,
 )
@@ -322,6 +324,41 @@ def test_that_a_plane_s_band_keeps_no_more_points_inside_than_outside_the_farthe
     r = inside * np.array([-0.01, -0.02, 0.01, 0.30, 0.02, 0.50, 0.04, 0.01, -0.01, 0.9])
     kept = _trim_inside(j, r, np.full(len(j), 0.05))
     assert list(kept) == [0, 0, 0, -1, 0, -1, -1, 1, 1, -1]  # the floor keeps its two nearest inside
+
+
+def test_that_a_lever_arm_entered_off_is_found_as_one_body_fixed_move_whatever_the_heading_and_the_pile():
+    # Beams on legs flown both ways along x and across, each point on one of the floor and four walls; the lever arm
+    # entered 5 cm too far right puts every point 5 cm to the body's right of where it is; a fifth are pile points
+    # near the planes, far off them.
+    from types import SimpleNamespace
+
+    from firmware_py.core.frames import rot_body_to_ned
+    rng = np.random.default_rng(3)
+    n_pts = 4000
+    yaw = rng.choice([0.0, math.pi, math.pi / 2, -math.pi / 2], n_pts)
+    r_wb = rot_body_to_ned(rng.normal(0, 0.03, n_pts), rng.normal(0, 0.03, n_pts), yaw)
+    planes = np.array([[0, 0, 1.0], [1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0]])
+    normals = planes[rng.integers(0, 5, n_pts)]
+    moved = np.array([0.0, 0.05, 0.0])  # the points' error, in the body
+    r_square = np.einsum("nij,j,ni->n", r_wb, moved, normals) + rng.normal(0, 0.005, n_pts)
+    pile = rng.random(n_pts) < 0.2
+    r_square[pile] += rng.uniform(0.05, 0.3, pile.sum())
+    dl, rms = lever_alternative(SimpleNamespace(r_wb=r_wb), np.arange(n_pts), normals, r_square,
+                                np.full(n_pts, 0.015))
+    assert np.allclose(dl, -moved, atol=0.005)  # the lever arm that puts them back: 5 cm to the left
+    assert rms < 0.01  # what is left is the noise (and the pile's few, in a robust spread)
+
+
+def test_that_a_mount_refused_for_a_lever_arm_names_the_lever_arm_to_report_again_with():
+    est = MountEstimate((0.0, 0.01, 0.0, 0.0), (math.nan,) * 4, (False,) * 4, (100, 50, 50, 50, 50), 0.05, 0.05,
+                        refused="not applied: the lever arm moved by ...", lever_change_m=(-0.2, 0.0, 0.01))
+    w = report.lever_change_warning(est, np.array([0.0, 0.0, 0.1]))
+    assert "moved by -20.0, +0.0, +1.0 cm (forward, right, down)" in w and "none was applied" in w
+    assert "`--lever-arm -0.200 0.000 0.110`" in w
+    assert est.as_dict()["lever_change_m"] == [-0.2, 0.0, 0.01]
+    square = MountEstimate((0.0,) * 4, (math.nan,) * 4, (False,) * 4, (100, 50, 50, 50, 50), 0.01, 0.01)
+    assert report.lever_change_warning(square, np.zeros(3)) is None and square.as_dict()["lever_change_m"] is None
+    assert report.lever_change_warning(None, np.zeros(3)) is None
 
 
 def _drift_of(s, h) -> DriftNuisance:
