@@ -786,8 +786,9 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
                 lever_change = tuple(float(v) for v in lever[0])
             refused = (f"not applied: the lever arm moved by {dx:+.1f}, {dy:+.1f}, {dz:+.1f} cm (forward, right, down) "
                        f"puts the floor and walls' own points as close to their planes ({lever[1] * 100:.2f} cm RMS "
-                       f"against {rms_fitted * 100:.2f} cm with the correction): check the LiDAR's lever arm "
-                       "(`pilescan-ground report --lever-arm X Y Z` takes another)")
+                       f"against {rms_fitted * 100:.2f} cm with the correction)"
+                       + (": check the LiDAR's lever arm (`pilescan-ground report --lever-arm X Y Z` takes another)"
+                          if lever_change is not None else ", a change within the sensor's noise"))
         elif not rms_fitted < rms_square:
             # A real mount error puts the structure off its planes by its size, and its correction brings the
             # same points back; a fit that leaves its own plane points as far off as the square mount does
