@@ -329,6 +329,15 @@ def run_dirs(root: str | Path = DEFAULT_ROOT, split: Split | str | None = None) 
     return out
 
 
+def stored_runs_or_say(root: str | Path, stride: int, prog: str) -> list[str]:
+    """Every stride-th complete run under root, as paths; none (and one line on stderr naming prog and how to make
+    them) when there are none: the checks that read the stored set exit 2 then."""
+    dirs = [str(d) for d in run_dirs(root)[::stride]]
+    if not dirs:
+        print(f"{prog}: no stored runs under {root} (python -m tools.evalset makes them)", file=sys.stderr)
+    return dirs
+
+
 def iter_runs(split: Split | str | None = None, root: str | Path = DEFAULT_ROOT) -> Iterator[EvalRun]:
     """Every stored run of the split ("calibration", "heldout", or None / "all"), in a fixed order."""
     for d in run_dirs(root, split):

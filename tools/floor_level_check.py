@@ -25,7 +25,7 @@ from ground.floor_check import N_SIGNIFICANT, measure_floor
 from ground.pointcloud import SensorErrorModel, cloud_from_samples, structure_mask
 from ground.surface import DEFAULT_CELL_M, Grid
 from tools.doc_sections import write_section
-from tools.evalset import DEFAULT_ROOT, load_run, run_dirs
+from tools.evalset import DEFAULT_ROOT, load_run, stored_runs_or_say
 
 HIDING_FAMILIES = ("irregular", "flat")
 """The evaluation set's families whose piles cover the floor wall to wall on some runs: their lowest flat surface is
@@ -79,10 +79,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.stride < 1 or args.jobs < 1 or not np.isfinite(args.lever_dz) or abs(args.lever_dz) > 5.0:
         print("floor_level_check: --stride and --jobs must be >= 1, --lever-dz within +/-5 m", file=sys.stderr)
         return 2
-    dirs = [str(d) for d in run_dirs(args.root)[::args.stride]]
+    dirs = stored_runs_or_say(args.root, args.stride, "floor_level_check")
     if not dirs:
-        print(f"floor_level_check: no stored runs under {args.root} (python -m tools.evalset makes them)",
-              file=sys.stderr)
         return 2
     with ProcessPoolExecutor(args.jobs) as pool:
         rows = list(pool.map(floor_row, dirs, [args.lever_dz] * len(dirs), chunksize=8))
