@@ -12,6 +12,7 @@ which its FCS sums straight into `fcs/cmdEsc*_nd` (its own stability loops are l
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import ctypes
 import functools
@@ -51,10 +52,13 @@ PAYLOAD_POINTMASS = """  <pointmass name="payload">
 def _aircraft_dir() -> str:
     """A copy of the wheel's F450 with a payload point mass added (its mass properties are read-only).
 
-    Made once per process in a temporary directory; the wheel itself is never modified.
+    Made once per process in a temporary directory, removed when the process exits (every `fly` and
+    `serve` would otherwise leave one in the system's temporary folder); the wheel itself is never modified.
     """
     src = Path(jsbsim.get_default_root_dir()) / "aircraft" / "F450"
-    dst = Path(tempfile.mkdtemp(prefix="pilescan-jsbsim-")) / "F450"
+    root = tempfile.mkdtemp(prefix="pilescan-jsbsim-")
+    atexit.register(shutil.rmtree, root, ignore_errors=True)
+    dst = Path(root) / "F450"
     shutil.copytree(src, dst)
     mass = dst / "Mass.xml"
     mass.write_text(mass.read_text().replace("</mass_balance>", PAYLOAD_POINTMASS))

@@ -1,6 +1,9 @@
 """Modes and commands of the flight-dynamics vehicle."""
 
 import math
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -90,3 +93,12 @@ def test_that_a_take_off_climbs_at_the_climb_rate_and_stops_at_its_height():
     mid = np.flatnonzero((h > 3.0) & (h < 6.0))  # the steady part of the climb
     rate = (h[mid[-1]] - h[mid[0]]) / ((mid[-1] - mid[0]) * v.dt_s)
     assert rate == pytest.approx(v.params["PS_CLIMB_MS"], rel=0.15)
+
+
+def test_that_the_aircraft_copy_is_removed_when_the_process_exits():
+    """Every `fly` and `serve` copies the F450 to add the payload's mass: the copy must not outlive it."""
+    code = "from sitl.vehicle.jsbsim_plant import _aircraft_dir; d = _aircraft_dir(); print(d)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=Path(__file__).parents[3]).stdout.strip()
+    assert out and Path(out).name.startswith("pilescan-jsbsim-")
+    assert not Path(out).exists()
