@@ -12,12 +12,12 @@ which its FCS sums straight into `fcs/cmdEsc*_nd` (its own stability loops are l
 
 from __future__ import annotations
 
-import atexit
 import contextlib
 import ctypes
 import functools
 import io
 import math
+import multiprocessing.util
 import os
 import shutil
 import sys
@@ -54,10 +54,13 @@ def _aircraft_dir() -> str:
 
     Made once per process in a temporary directory, removed when the process exits (every `fly` and
     `serve` would otherwise leave one in the system's temporary folder); the wheel itself is never modified.
+    Removed by multiprocessing's exit finalizer, not only atexit: a process pool's workers (the campaigns'
+    `--jobs`) end with os._exit, which skips atexit, and a forked child must not remove its parent's copy,
+    which the finalizer's process check prevents.
     """
     src = Path(jsbsim.get_default_root_dir()) / "aircraft" / "F450"
     root = tempfile.mkdtemp(prefix="pilescan-jsbsim-")
-    atexit.register(shutil.rmtree, root, ignore_errors=True)
+    multiprocessing.util.Finalize(None, shutil.rmtree, args=(root,), kwargs={"ignore_errors": True}, exitpriority=0)
     dst = Path(root) / "F450"
     shutil.copytree(src, dst)
     mass = dst / "Mass.xml"

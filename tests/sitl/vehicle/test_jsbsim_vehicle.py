@@ -96,9 +96,15 @@ def test_that_a_take_off_climbs_at_the_climb_rate_and_stops_at_its_height():
 
 
 def test_that_the_aircraft_copy_is_removed_when_the_process_exits():
-    """Every `fly` and `serve` copies the F450 to add the payload's mass: the copy must not outlive it."""
-    code = "from sitl.vehicle.jsbsim_plant import _aircraft_dir; d = _aircraft_dir(); print(d)"
+    """Every `fly` and `serve` copies the F450 to add the payload's mass: the copy must not outlive the process, nor
+    the copy a process pool's worker made (workers end with os._exit, which skips atexit)."""
+    code = ("from concurrent.futures import ProcessPoolExecutor\n"
+            "from sitl.vehicle.jsbsim_plant import _aircraft_dir\n"
+            "if __name__ == '__main__':\n"
+            "    with ProcessPoolExecutor(1) as pool:  # before the parent's own: a forked worker shares that one\n"
+            "        print(pool.submit(_aircraft_dir).result())\n"
+            "    print(_aircraft_dir())\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         cwd=Path(__file__).parents[3]).stdout.strip()
-    assert out and Path(out).name.startswith("pilescan-jsbsim-")
-    assert not Path(out).exists()
+                         cwd=Path(__file__).parents[3]).stdout.split()
+    assert len(out) == 2 and out[0] != out[1]
+    assert all(Path(d).name.startswith("pilescan-jsbsim-") and not Path(d).exists() for d in out)
