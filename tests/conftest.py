@@ -3,7 +3,7 @@
 Hypothesis runs derandomized by default: the fuzz tests draw the same examples on every run, so a red CI
 is a regression, never the luck of the draw (the project's no-flaky-tests rule). The regression examples
 the fuzzers found are kept with `@example`. To explore new inputs, run with HYPOTHESIS_PROFILE=explore
-(random draws, ten times the examples) and keep what it finds as new `@example`s.
+(random draws, ten times the examples: tests/fuzz_budget.py) and keep what it finds as new `@example`s.
 
 Every test process, and every program a test starts, runs one BLAS thread. `make test` runs three workers on
 two cores; a threaded OpenBLAS spins its threads while it waits, so three processes of two spinning threads
@@ -29,8 +29,10 @@ except ImportError:  # a payload-only install without the test extras: no fuzz t
     settings = None
 
 if settings is not None:
+    from tests.fuzz_budget import EXPLORE_FACTOR  # the tests that state their budget multiply it themselves
+
     settings.register_profile("ci", derandomize=True)
-    settings.register_profile("explore", derandomize=False, max_examples=1000)
+    settings.register_profile("explore", derandomize=False, max_examples=settings().max_examples * EXPLORE_FACTOR)
     settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 

@@ -93,7 +93,8 @@ def run_payload_tests(py: Path, work: Path) -> str:
     tree = work / "run"
     shutil.copytree(ROOT / "tests" / "firmware_py", tree / "tests" / "firmware_py",
                     ignore=shutil.ignore_patterns("__pycache__"))
-    shutil.copy(ROOT / "tests" / "__init__.py", tree / "tests" / "__init__.py")
+    for name in ("__init__.py", "conftest.py", "fuzz_budget.py"):  # the suite's settings: fuzzing derandomized, budgets
+        shutil.copy(ROOT / "tests" / name, tree / "tests" / name)
     where = run([py, "-c", "import firmware_py; print(firmware_py.__file__)"], cwd=tree).stdout.strip()
     if not where.startswith(str(work / "venv")):
         raise CheckFailed(f"firmware_py came from {where}, not the payload-only venv")

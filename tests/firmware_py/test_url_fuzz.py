@@ -9,7 +9,7 @@ from __future__ import annotations
 from importlib.util import find_spec
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, given
 from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -20,6 +20,7 @@ from firmware_py.core.storage import Storage
 from firmware_py.core.stream_format import parse_stream_url
 from firmware_py.hal import backends, bridge, check_i2c_addr, pwm
 from firmware_py.hal import mavlink_link as ml
+from tests.fuzz_budget import budget
 
 SIM = find_spec("sitl") is not None  # False on the payload-only install (Raspberry Pi): those tests skip
 if SIM:
@@ -27,7 +28,7 @@ if SIM:
     from sitl.mavlink import transport as mv
 needs_sim = pytest.mark.skipif(not SIM, reason="needs the simulator (sitl/), not in the payload-only install")
 
-FUZZ = settings(max_examples=300, deadline=None,
+FUZZ = budget(300, deadline=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 
 SCHEMES = ["i2c", "tcp", "udp", "udpin", "udpout", "serial", "pwm", "pwm:tcp", "pwm:sysfs", "pwm:pca9685",

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, example, given, settings
+from hypothesis import HealthCheck, example, given
 from hypothesis import strategies as st
 
 from firmware_py.core.cli import UserError
@@ -17,6 +17,7 @@ from firmware_py.core.frames import StorageFrame
 from firmware_py.core.samplelog import encode_block, new_records
 from firmware_py.core.storage import Storage
 from ground.report import ReportOptions, make_report
+from tests.fuzz_budget import budget
 
 STORAGE = Storage(20.0, 10.0, 8.0)
 BASE_HEADER = {
@@ -88,7 +89,7 @@ def report_or_user_error(workdir: Path, header: dict) -> dict | None:
     return rep
 
 
-@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@budget(100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(edits=field_edits)
 @example(edits={"sensor.resolution_m": 1.3407807929942597e+154})  # found by a CI run: their squares overflowed
 @example(edits={"sensor.range_sigma_m": 1.3407807929942597e+154})

@@ -10,12 +10,13 @@ from dataclasses import fields
 from pathlib import Path
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, given
 from hypothesis import strategies as st
 
+from tests.fuzz_budget import budget
 from tools.experiments import Experiment, load_experiments
 
-FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+FUZZ = budget(150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 FIELDS = [f.name for f in fields(Experiment)]
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, given
 from hypothesis import strategies as st
 
 from firmware_py.core import samplelog as sl
@@ -26,9 +26,10 @@ from firmware_py.core.samplelog import (
     new_records,
     read_samplelog,
 )
+from tests.fuzz_budget import budget
 
 HEADER = {"flight": "2024-05-01T10:00:00Z", "site": "quarry-7", "servo_hz": 2.5}
-FAST = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+FAST = budget(200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 def make_records(n: int, seed: int = 0) -> np.ndarray:

@@ -14,13 +14,14 @@ import math
 from importlib.util import find_spec
 
 import pytest
-from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import HealthCheck, assume, given
 from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_py.hal.clock import SimClock
 from firmware_py.hal.mavlink_link import ByteStreamLink, MavlinkFramer
 from firmware_py.pose_tracker import PoseTracker
+from tests.fuzz_budget import budget
 
 SIM = find_spec("sitl") is not None  # False on the payload-only install (Raspberry Pi): those tests skip
 if SIM:
@@ -29,8 +30,8 @@ if SIM:
     from sitl.vehicle.kinematic_vehicle import KinematicVehicle
 needs_sim = pytest.mark.skipif(not SIM, reason="needs the simulator (sitl/), not in the payload-only install")
 
-FUZZ = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-SLOW_FUZZ = settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+FUZZ = budget(200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+SLOW_FUZZ = budget(100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 FLUSH = bytes(300)
 """More than the longest frame (280 bytes) of non-magic bytes: settles any header the damage left open."""

@@ -3,12 +3,13 @@
 import numpy as np
 import pytest
 import trimesh
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from ground.exports.mesh import VOLUME_RTOL, surface_solid, write_mesh
 from ground.surface import Grid, grid_volume
+from tests.fuzz_budget import budget
 from tests.ground.exports.conftest import STORAGE
 
 
@@ -53,7 +54,7 @@ def test_that_no_defined_cell_is_no_solid(tmp_path):
         write_mesh(np.full(grid.shape, np.nan), grid, tmp_path / "m.ply")
 
 
-@settings(max_examples=60, deadline=None)
+@budget(60, deadline=None)
 @given(arrays(np.float64, (5, 4), elements=st.one_of(st.just(np.nan), st.floats(-0.5, 20.0))))
 def test_that_any_pattern_of_defined_cells_gives_a_closed_solid_of_the_grid_volume(h):
     grid = Grid(2.5, 2.0, 0.5)

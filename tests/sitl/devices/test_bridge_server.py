@@ -5,7 +5,7 @@ import struct
 import threading
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, given
 from hypothesis import strategies as st
 
 from firmware_py.hal import I2CError
@@ -27,6 +27,7 @@ from firmware_py.hal.bridge import (
 from firmware_py.hal.clock import SimClock
 from sitl.devices.bridge_server import DeviceBridgeServer, parse_bridge_url
 from sitl.devices.i2c_sim import SimI2CBus
+from tests.fuzz_budget import budget
 
 REG = 0x40
 BOOM = 0x41
@@ -273,7 +274,7 @@ _frame = st.builds(lambda op, p: HEADER.pack(len(p), op) + p,
 """A well-framed request with a random payload: reaches the op handlers rather than the framing."""
 
 
-@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@budget(30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(st.lists(st.one_of(st.binary(max_size=64), _frame), min_size=1, max_size=4))
 def test_that_random_bytes_never_kill_the_server(shared_server, chunks):
     with connect(shared_server) as s:
@@ -290,7 +291,7 @@ def test_that_random_bytes_never_kill_the_server(shared_server, chunks):
         assert hello(s)[0] == STATUS_OK
 
 
-@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@budget(30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(st.lists(_frame, min_size=1, max_size=8))
 def test_that_pipelined_well_framed_requests_get_one_answer_each_in_order(shared_server, frames):
     with connect(shared_server) as s:
@@ -326,7 +327,7 @@ _payloads = st.one_of(
 )
 
 
-@settings(max_examples=200, deadline=None)
+@budget(200, deadline=None)
 @given(op=_ops, payload=_payloads)
 def test_that_any_request_to_good_devices_gets_a_status_never_an_internal_error(quiet_server, op, payload):
     """ERROR is for a device model that raised; with well-behaved devices every answer is OK, NACK (nobody at

@@ -12,8 +12,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import HealthCheck, assume, given
 from hypothesis import strategies as st
+
+from tests.fuzz_budget import budget
 
 os.environ["MAVLINK20"] = "1"  # as the networked SITL's ground station runs (MISSION_ITEM_INT, MAVLink 2)
 
@@ -23,7 +25,7 @@ from sitl.mavlink.gcs import GcsError, load_plan
 from sitl.missions.qgc_wpl import plan_rows, read_qgc_wpl, write_qgc_wpl
 from sitl.missions.rectangle import TURN_MODES, Mission
 
-FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+FUZZ = budget(150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 FRAME = StorageFrame((4.0, -6.0, 0.0), math.radians(70))
 
 
@@ -114,7 +116,7 @@ def test_that_a_garbled_plan_loads_whole_or_fails_with_one_clean_error(workdir, 
         assert rows is not None and items is not None and len(rows) == len(items)
 
 
-@settings(max_examples=40, deadline=None)
+@budget(40, deadline=None)
 @given(p_traj=st.floats(0.01, 0.49), speed=st.floats(0.05, 15), altitude=st.floats(0.5, 40),
        turn=st.sampled_from(TURN_MODES), dims=st.tuples(st.floats(5, 300), st.floats(5, 300), st.floats(3, 50)),
        origin=st.tuples(st.floats(-89, 89), st.floats(-180, 180), st.floats(-400, 8000)))
