@@ -22,11 +22,14 @@ demo: $(STAMP)
 # compileall: the suite starts many Python processes; where PYTHONDONTWRITEBYTECODE is set (CI machines) each
 # one compiled the project's modules again (a fresh clone's suite: 289 s -> 271 s with them compiled once).
 # The suite itself runs with bytecode writing on: pytest then keeps its rewritten test modules, which each of
-# the four processes otherwise rewrites at collection (10.5 s -> 4.8 s a process).
+# the five processes otherwise rewrites at collection (10.5 s -> 4.8 s a process).
+# Four workers on two cores: the real-time tests (networked flights, MAVProxy, the signal tests, the browser) leave
+# their worker idle for 149 s of the suite, which a fourth worker fills (287-299 s against 310-325 s with three,
+# alternating runs on one machine; docs/design-notes.md, "The suite's time, measured again").
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/python -m compileall -q firmware_py ground sitl tools
-	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -n 3 --dist loadfile --no-loadscope-reorder
+	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -n 4 --dist loadfile --no-loadscope-reorder
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -5,7 +5,7 @@ is a regression, never the luck of the draw (the project's no-flaky-tests rule).
 the fuzzers found are kept with `@example`. To explore new inputs, run with HYPOTHESIS_PROFILE=explore
 (random draws, ten times the examples: tests/fuzz_budget.py) and keep what it finds as new `@example`s.
 
-Every test process, and every program a test starts, runs one BLAS thread. `make test` runs three workers on
+Every test process, and every program a test starts, runs one BLAS thread. `make test` runs four workers on
 two cores; a threaded OpenBLAS spins its threads while it waits, so three processes of two spinning threads
 each took the suite from 280 s to 386 s on one machine, and a coverage plan from 9 s to 29 s
 (docs/design-notes.md, "One BLAS thread per test process").
@@ -38,8 +38,8 @@ if settings is not None:
 
 def pytest_collection_modifyitems(config, items):
     """The modules marked `long` (the most test time: long lockstep flights, flights in real time) first, in
-    their own order, then the rest in theirs. `make test` hands out whole files to three workers in
-    collection order; the longest last left two workers idle while the third finished them. That order holds
+    their own order, then the rest in theirs. `make test` hands out whole files to four workers in
+    collection order; the longest last left the other workers idle while one finished them. That order holds
     only with `--no-loadscope-reorder` (the Makefile's): by default xdist 3.8 hands out the files with the most
     tests first, which put the one-test real-time flights last and left two workers idle for 17 s."""
     items.sort(key=lambda item: item.get_closest_marker("long") is None)
