@@ -25,7 +25,8 @@ demo: $(STAMP)
 # the five processes otherwise rewrites at collection (10.5 s -> 4.8 s a process).
 # Four workers on two cores: the real-time tests (networked flights, MAVProxy, the signal tests, the browser) leave
 # their worker idle for 149 s of the suite, which a fourth worker fills (287-299 s against 310-325 s with three,
-# alternating runs on one machine; docs/design-notes.md, "The suite's time, measured again").
+# alternating runs on one machine; fresh clones 325 s with four, 308-330 s with three: the machine's hour-to-hour
+# noise is as large as the gain; docs/design-notes.md, "The suite's time, measured again").
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/python -m compileall -q firmware_py ground sitl tools
