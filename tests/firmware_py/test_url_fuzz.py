@@ -29,7 +29,7 @@ if SIM:
 needs_sim = pytest.mark.skipif(not SIM, reason="needs the simulator (sitl/), not in the payload-only install")
 
 FUZZ = budget(300, deadline=None,
-                suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+              suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 
 SCHEMES = ["i2c", "tcp", "udp", "udpin", "udpout", "serial", "pwm", "pwm:tcp", "pwm:sysfs", "pwm:pca9685",
            "pwm:mavlink", "pwm:Sysfs", "sitl", "spi", "I2C", "TCP", "", " udp", "udp "]
