@@ -29,11 +29,11 @@ except ImportError:  # a payload-only install without the test extras: no fuzz t
     settings = None
 
 if settings is not None:
-    from tests.fuzz_budget import EXPLORE_FACTOR  # the tests that state their budget multiply it themselves
+    from tests.fuzz_budget import EXPLORE_FACTOR, profile_name  # tests stating a budget multiply it themselves
 
     settings.register_profile("ci", derandomize=True)
     settings.register_profile("explore", derandomize=False, max_examples=settings().max_examples * EXPLORE_FACTOR)
-    settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+    settings.load_profile(profile_name())
 
 
 def pytest_collection_modifyitems(config, items):

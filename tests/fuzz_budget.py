@@ -14,9 +14,14 @@ EXPLORE_FACTOR = 10
 """How many times CI's examples the explore profile draws."""
 
 
+def profile_name() -> str:
+    """The Hypothesis profile this run loads (tests/conftest.py): HYPOTHESIS_PROFILE, "ci" without it."""
+    return os.environ.get("HYPOTHESIS_PROFILE", "ci")
+
+
 def exploring() -> bool:
     """HYPOTHESIS_PROFILE=explore: look for new failing inputs rather than repeat CI's."""
-    return os.environ.get("HYPOTHESIS_PROFILE", "ci") == "explore"
+    return profile_name() == "explore"
 
 
 def budget(max_examples: int, **kwargs) -> settings:
