@@ -11,11 +11,11 @@ pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
 
 def test_that_a_tiny_sweep_writes_rows_table_2_and_figures_and_reruns_from_its_cache(tmp_path, capsys):
     args = ["--experiments", "baseline,sinusoidal,2d,baseline-ideal", "--piles", "1", "--p-traj", "25",
-            "--positions", "2", "--jobs", "1", "--cache", str(tmp_path / "cache"), "--rows", str(tmp_path / "rows.csv"),
+            "--positions", "1", "--jobs", "1", "--cache", str(tmp_path / "cache"), "--rows", str(tmp_path / "rows.csv"),
             "--write", str(tmp_path / "docs" / "results.md"), "--quiet"]
     assert main(args) == 0
     rows = read_rows_csv(tmp_path / "rows.csv")
-    assert len(rows) == 2 + 2 + 1 + 2  # two servo positions each for the 1D runs, one 2D scan
+    assert len(rows) == 4  # one servo position for each 1D run (servo_positions: the grid's test), one 2D scan
     assert {r["group"] for r in rows} == {"baseline", "sinusoidal", "2d", "baseline-ideal"}
     assert all(r["energy_j"] is None for r in rows if r["group"] == "baseline-ideal")
     assert all(0 <= r["ve_nearest_pct"] < 5 and 80 < r["ra_pct"] <= 100 for r in rows)
