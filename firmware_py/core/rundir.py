@@ -80,15 +80,19 @@ def _make_dirs(path: Path) -> list[Path]:
         missing.append(p)
         p = p.parent
     created = []
-    for d in reversed(missing):
-        try:
-            d.mkdir()
-            created.append(d)
-        except FileExistsError:
-            if not d.is_dir():
-                raise
-    if not path.is_dir():  # a file (or a dangling link) where the folder should be: what mkdir would say
-        raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(path))
+    try:
+        for d in reversed(missing):
+            try:
+                d.mkdir()
+                created.append(d)
+            except FileExistsError:
+                if not d.is_dir():
+                    raise
+        if not path.is_dir():  # a file (or a dangling link) where the folder should be: what mkdir would say
+            raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(path))
+    except OSError:  # no litter: the folders made before the one that failed go too
+        _remove_dirs(created)
+        raise
     return created
 
 
@@ -177,6 +181,8 @@ def check_free(path: str | Path, names: Iterable[str], *, force: bool, what: str
     if not str(path).strip():  # Path("") is the current directory: never write there by accident
         raise UserError(f"the {what} directory (--out) must be a non-empty path")
     folder = Path(path)
+    if folder.exists() and not folder.is_dir():
+        raise UserError(f"the {what} directory (--out) {folder} exists and is not a folder")
     if folder.is_dir():
         _refuse_if_locked(folder)
     if not force and folder.is_dir():
@@ -228,7 +234,14 @@ class OutputFolder:
     def _lock(self) -> None:
         lock_path = self.path / LOCK_FILE
         for _ in range(_LOCK_ATTEMPTS):
-            self._created += _make_dirs(self.path)
+            try:
+                self._created += _make_dirs(self.path)
+            except OSError as exc:  # a parent that cannot hold folders (/proc, a file), no permission, disk full
+                if os.path.exists(self.path) and not os.path.isdir(self.path):  # these never raise
+                    raise UserError(f"the {self.what} directory (--out) {self.path} exists and is not a folder") \
+                        from exc
+                raise UserError(f"cannot create the {self.what} directory (--out) {self.path}: "
+                                f"{exc.strerror or exc}") from exc
             try:
                 fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
             except FileNotFoundError:  # the folder was removed by a writer that failed just now

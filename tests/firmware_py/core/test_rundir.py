@@ -133,3 +133,36 @@ def test_that_publish_file_refuses_an_existing_file_without_force_and_replaces_i
     tmp.write_text("new")
     publish_file(tmp, dst, force=True)
     assert dst.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["plan.waypoints"]
+
+
+def test_that_an_out_that_is_a_file_is_refused_before_any_work_and_left_alone(tmp_path):
+    path = tmp_path / "report"
+    path.write_text("precious")
+    with pytest.raises(UserError, match=r"report directory \(--out\) .*report exists and is not a folder"):
+        rundir.check_free(path, RUN_FILES, force=True, what="report")
+    with pytest.raises(UserError, match="exists and is not a folder") as exc:
+        with folder(path, force=True):
+            pass
+    assert exit_code_of(exc.value) == ExitCode.USAGE  # the option names a file: the user's to change
+    assert path.read_text() == "precious"
+
+
+def test_that_an_out_that_cannot_be_created_says_why_in_one_line_and_leaves_no_folder(tmp_path, monkeypatch):
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(UserError, match=r"cannot create the run directory \(--out\) .*file/run: Not a directory"):
+        with folder(tmp_path / "file" / "run"):
+            pass
+    made = []
+    real_mkdir = rundir.Path.mkdir
+
+    def mkdir_twice(self, *a, **kw):  # the second level fails (no space left, say) after the first was made
+        if made:
+            raise OSError(28, "No space left on device")
+        made.append(self)
+        return real_mkdir(self, *a, **kw)
+    monkeypatch.setattr(rundir.Path, "mkdir", mkdir_twice)
+    with pytest.raises(UserError, match="No space left on device") as exc:
+        with folder(tmp_path / "new" / "run"):
+            pass
+    assert exit_code_of(exc.value) == ExitCode.RUNTIME
+    assert made == [tmp_path / "new"] and not (tmp_path / "new").exists()
