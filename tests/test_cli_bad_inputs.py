@@ -180,7 +180,8 @@ CASES = [
     ("ground", ["report", "{d}/huge-building.pslog", "--out", "{t}/r"], "larger cell size"),
     ("ground", ["report", "", "--out", "{t}/r"], "non-empty"),
     ("ground", ["report", "{d}/good.pslog", "--out", ""], "non-empty"),
-    ("ground", ["report", "{d}/good.pslog", "--out", "{d}/blocker", "--no-plots"], "File exists", RUNTIME),
+    ("ground", ["report", "{d}/good.pslog", "--out", "{d}/blocker", "--no-plots"], "exists and is not a folder",
+     RUNTIME),
     ("ground", ["report", "{d}/good.pslog", "--out", "{d}/blocker/r", "--no-plots"], "blocker", RUNTIME),
     # ... listen: every bad option fails before the socket is bound or the log is created
     ("ground", ["listen"], "--stream"),

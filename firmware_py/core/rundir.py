@@ -182,7 +182,7 @@ def check_free(path: str | Path, names: Iterable[str], *, force: bool, what: str
         raise UserError(f"the {what} directory (--out) must be a non-empty path")
     folder = Path(path)
     if folder.exists() and not folder.is_dir():
-        raise UserError(f"the {what} directory (--out) {folder} exists and is not a folder")
+        raise RunFailure(f"the {what} directory (--out) {folder} exists and is not a folder")
     if folder.is_dir():
         _refuse_if_locked(folder)
     if not force and folder.is_dir():
@@ -238,9 +238,9 @@ class OutputFolder:
                 self._created += _make_dirs(self.path)
             except OSError as exc:  # a parent that cannot hold folders (/proc, a file), no permission, disk full
                 if os.path.exists(self.path) and not os.path.isdir(self.path):  # these never raise
-                    raise UserError(f"the {self.what} directory (--out) {self.path} exists and is not a folder") \
+                    raise RunFailure(f"the {self.what} directory (--out) {self.path} exists and is not a folder") \
                         from exc
-                raise UserError(f"cannot create the {self.what} directory (--out) {self.path}: "
+                raise RunFailure(f"cannot create the {self.what} directory (--out) {self.path}: "
                                 f"{exc.strerror or exc}") from exc
             try:
                 fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)

@@ -143,7 +143,7 @@ def test_that_an_out_that_is_a_file_is_refused_before_any_work_and_left_alone(tm
     with pytest.raises(UserError, match="exists and is not a folder") as exc:
         with folder(path, force=True):
             pass
-    assert exit_code_of(exc.value) == ExitCode.USAGE  # the option names a file: the user's to change
+    assert exit_code_of(exc.value) == ExitCode.RUNTIME  # an output that cannot be written, as a full disk
     assert path.read_text() == "precious"
 
 
