@@ -236,10 +236,8 @@ class OutputFolder:
         for _ in range(_LOCK_ATTEMPTS):
             try:
                 self._created += _make_dirs(self.path)
-            except OSError as exc:  # a parent that cannot hold folders (/proc, a file), no permission, disk full
-                if os.path.exists(self.path) and not os.path.isdir(self.path):  # these never raise
-                    raise RunFailure(f"the {self.what} directory (--out) {self.path} exists and is not a folder") \
-                        from exc
+            except OSError as exc:  # a parent that cannot hold folders (/proc, a file), no permission, disk full;
+                # a file at the path itself was refused by check_free in __init__
                 raise RunFailure(f"cannot create the {self.what} directory (--out) {self.path}: "
                                 f"{exc.strerror or exc}") from exc
             try:
