@@ -1,6 +1,6 @@
 """The floor's level as the flight saw it: a height off by a constant (the lever arm's z, the altitude reference) is
-measured on the floor, warned of when the floor lies below z = 0 by more than the interval holds, and undone with
-`pilescan-ground report --lever-arm`."""
+measured on the floor, taken out by the pose correction when the floor lies below z = 0, warned of when it is left
+there by more than the interval holds, and undone with `pilescan-ground report --lever-arm`."""
 
 import shutil
 
@@ -147,14 +147,32 @@ def _with_lever_arm(run, out, lever):
     return out
 
 
+def test_that_a_lever_arm_entered_0_2_m_too_low_is_taken_out_by_the_pose_correction_and_named(flight, tmp_path):
+    """The header puts the LiDAR 0.30 m below the autopilot where it sits 0.10 m below: every point 0.2 m low. The
+    floor then lies below z = 0, where nothing but a height error puts it, so the pose correction's height brings it
+    up (the walls alone had found it too small to matter: the volume 6.8 % low without a word), and says what makes
+    an error so even over a flight."""
+    wrong = _with_lever_arm(flight, tmp_path / "wrong", [0.0, 0.0, 0.3])
+    clean = make_report(flight, tmp_path / "clean", ReportOptions(plots=False), force=True)
+    assert clean["pose_correction"]["applied"] is False
+    fixed = make_report(wrong, tmp_path / "bad", ReportOptions(plots=False), force=True)
+    pose = fixed["pose_correction"]
+    assert pose["applied"] and pose["horizontal_max_m"] == 0.0 and pose["heading_max_deg"] == 0.0
+    assert fixed["volume_m3"] == pytest.approx(clean["volume_m3"], rel=0.005) and fixed["truth_in_interval"]
+    assert fixed["floor_measured"]["level_m"] == pytest.approx(0.0, abs=0.01)
+    said = [n for n in pose["notes"] if "lay 0.20 m below z = 0" in n]
+    assert len(said) == 1 and "check the lever arm against the drone" in said[0]
+    assert not any("the floor the sweeps saw" in w for w in fixed["warnings"])
+
+
 def test_that_a_lever_arm_entered_0_2_m_too_low_is_warned_and_its_fix_restores_the_volume(flight, tmp_path):
-    """The header puts the LiDAR 0.30 m below the autopilot where it sits 0.10 m below: every point 0.2 m low, the
-    volume 6.8 % low, and before this check not a word. The floor says so and names the lever arm that fixes it."""
+    """The same flight with the pose correction off (as where the noise hides the height from it): the floor says the
+    points are 0.2 m low and names the lever arm that fixes it."""
     wrong = _with_lever_arm(flight, tmp_path / "wrong", [0.0, 0.0, 0.3])
     clean = make_report(flight, tmp_path / "clean", ReportOptions(plots=False), force=True)
     assert clean["floor_measured"]["level_m"] == pytest.approx(0.0, abs=0.01)
     assert not any("the floor the sweeps saw" in w for w in clean["warnings"])
-    bad = make_report(wrong, tmp_path / "bad", ReportOptions(plots=False), force=True)
+    bad = make_report(wrong, tmp_path / "bad", ReportOptions(plots=False, pose_correction=False), force=True)
     assert bad["floor_measured"]["level_m"] == pytest.approx(-0.2, abs=0.01)
     assert bad["volume_error_pct"] > 5 and not bad["truth_in_interval"]
     said = [w for w in bad["warnings"] if "the floor the sweeps saw lies 0.20 m below z = 0" in w]
@@ -163,7 +181,7 @@ def test_that_a_lever_arm_entered_0_2_m_too_low_is_warned_and_its_fix_restores_t
     assert other["volume_m3"] == pytest.approx(clean["volume_m3"], rel=0.005)
     assert "if every height is 0.20 m low" in bad["verdict"]
     assert clean["volume_other_reading"] is None
-    assert main(["report", str(wrong), "--out", str(tmp_path / "fixed"), "--no-plots", "-q",
+    assert main(["report", str(wrong), "--out", str(tmp_path / "fixed"), "--no-plots", "-q", "--no-pose-correction",
                  "--lever-arm", "0", "0", "0.10"]) == 0
     import json
     fixed = json.loads((tmp_path / "fixed" / "report.json").read_text())

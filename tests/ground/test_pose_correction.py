@@ -22,6 +22,7 @@ from ground.pose_correction import (
     apply_pose_correction,
     chi2_quantile,
     estimate_pose_correction,
+    floor_brought_up,
     is_drift,
     level_sigma_m,
     plane_brought_on,
@@ -1025,6 +1026,39 @@ def test_that_a_plane_counts_when_its_points_are_brought_onto_it_not_when_they_s
     assert plane_brought_on(after, after, plane, noise) is None
     # too few points on a plane to say
     assert plane_brought_on(before[:905], after[:905], plane[:905], noise) is None
+
+
+def test_that_the_floor_counts_when_a_height_brings_it_up_onto_z0_and_never_when_it_pulls_it_down():
+    rng = np.random.default_rng(0)
+    noise = 0.003
+    low, on = -0.2 + rng.normal(0.0, noise, 500), rng.normal(0.0, 0.013, 500)
+    assert floor_brought_up(low, on, noise)  # 0.2 m below, brought to within 1.3 cm: up onto it
+    # a flat pile top taken for the floor, pulled down onto z = 0: never (nothing lies below the floor, so only a
+    # floor below z = 0 is surely a height error)
+    assert not floor_brought_up(-low, on, noise)
+    assert not floor_brought_up(low, low + 0.1, noise)  # half way: more is left than was explained
+    assert not floor_brought_up(low, low, noise)  # unchanged
+    assert not floor_brought_up(low[:5], on[:5], noise)  # too few points to say
+    # within the noise: a floor 1 cm low under 20 cm of pointing noise is not brought up by anything that matters
+    wide = rng.normal(-0.01, 0.2, 500)
+    assert not floor_brought_up(wide, wide + 0.01, 0.2)
+
+
+@pytest.mark.parametrize("offset_m", [-0.2, 0.2])
+def test_that_a_height_off_by_a_constant_is_corrected_when_the_floor_lies_below_z0_and_only_then(offset_m):
+    """A logged height off by a constant and nothing else (a lever arm's z, an altitude reference's offset): the
+    walls see no height, so only the floor can say it matters. Below z = 0 it is surely a height error and is taken
+    out; above z = 0 it may be material covering the floor, and is left (the report says where the floor was seen)."""
+    samples, _ = flight(lambda t: np.column_stack([np.zeros((len(t), 2)), np.full(len(t), offset_m),
+                                                   np.zeros(len(t))]))
+    corr = estimate(samples)
+    if offset_m < 0:
+        assert corr.applied, corr.reason
+        assert np.abs(corr.values[:, [0, 1, 3]]).max() == 0.0  # the height alone: the walls' fit did not matter
+        assert corr.values[:, 2].mean() == pytest.approx(-offset_m, abs=0.01)
+        assert any("lay 0.20 m below z = 0" in n and "lever arm's z" in n for n in corr.notes)
+    else:
+        assert not corr.applied and "too small to matter" in corr.reason
 
 
 BOWL = (30.0, 20.0, 0.7, 6.0, 0.3)  # centre x, y (W), bottom height, bottom radius, slope: 4.9-7.9 m at the walls
