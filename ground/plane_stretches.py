@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_rays_w
+from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_rays_w, rot_body_to_ned
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
 
 
@@ -34,14 +34,25 @@ class Beams:
                      None if self.parallel is None else self.parallel[idx])
 
 
-def beams(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame,
-          boresight: Boresight = SQUARE) -> tuple[Beams, np.ndarray]:
-    """Eqs. (3)-(6) split at the vehicle, for the usable samples: its position and the vector from it to
-    each hit point; and their sweep directions."""
+def usable(samples: np.ndarray) -> np.ndarray:
+    """(N,) the samples `beams` keeps: every field it reads finite, a range, no flag that excludes it."""
     names = ("x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad", "servo_rad", "range_m", "t_s")
     ok = np.logical_and.reduce([np.isfinite(samples[f]) for f in names])
-    ok &= ((samples["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0) & (samples["range_m"] > 0)
-    s = samples[ok]
+    return ok & ((samples["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0) & (samples["range_m"] > 0)
+
+
+def body_axes_w(samples: np.ndarray, frame: StorageFrame) -> np.ndarray:
+    """(N, 3, 3) the body's forward, right and down axes in W (the columns) for the samples `beams` keeps, in its
+    order: what moves a point when the lever arm, fixed to the body, is off."""
+    s = samples[usable(samples)]
+    return np.einsum("ij,njk->nik", frame.rot_w_from_ned, rot_body_to_ned(s["roll_rad"], s["pitch_rad"], s["yaw_rad"]))
+
+
+def beams(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame,
+          boresight: Boresight = SQUARE) -> tuple[Beams, np.ndarray]:
+    """Eqs. (3)-(6) split at the vehicle, for the usable samples (`usable`): its position and the vector from it to
+    each hit point; and their sweep directions."""
+    s = samples[usable(samples)]
     pos = np.column_stack([s["x_m"], s["y_m"], s["z_m"]]).astype(float)
     origins, dirs = beam_rays_w(pos, s["roll_rad"], s["pitch_rad"], s["yaw_rad"], s["servo_rad"], lever_arm_body_m,
                                 frame, boresight)

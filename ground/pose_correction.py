@@ -67,11 +67,11 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import spsolve
 from scipy.special import gammaincinv
 
-from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
+from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, rot_body_to_ned
 from firmware_py.core.storage import Storage
 from firmware_py.core.waveform import MAX_FREQUENCY_HZ
 from ground.group_stats import sorted_group_median
-from ground.plane_stretches import MAX_HEADING_ERROR_RAD, Beams, beams, stretches_along
+from ground.plane_stretches import MAX_HEADING_ERROR_RAD, Beams, beams, body_axes_w, stretches_along
 
 PLANE_NAMES = ("floor", "x0", "xL", "y0", "yW")
 MAX_MISFIT = 3.0
@@ -231,6 +231,10 @@ class PoseCorrection:
     """(knots, 4) what the drift model's fit found (to the floor and walls, and the pile seen twice), when
     `unexplained` (not applied: `values` stay zero). A start for the mount fitted with a drift: bent by the mount, it
     is still nearer the drift than none is where the structure pins it only loosely."""
+    lever_change_m: tuple[float, float] | None = None
+    """The LiDAR's lever arm moved by this much (body forward, right; m) puts the floor and walls on their planes as
+    well as a drift's correction does (`lever_shift`): a lever arm entered off. Applied in place of the knots (which
+    then stay zero): every sample is placed with it. The report warns with the lever arm they fit."""
     untied_sigma_m: float | None = None
     """The standard error the stretches of the flight whose height no floor tied (`floor_anchored`) put on the height's
     mean over the survey: the altitude reference's walk over each such stretch, weighted by its share of the flight
@@ -279,6 +283,7 @@ class PoseCorrection:
                 "gain": self.gain, "gain_needed": self.gain_needed, "notes": list(self.notes),
                 "height_sigma_m": self.height_sigma_m, "open_floor_shift_m": self.open_floor_shift_m,
                 "level_sigma_m": self.level_sigma_m, "untied_sigma_m": self.untied_sigma_m,
+                "lever_change_m": None if self.lever_change_m is None else list(self.lever_change_m),
                 "height_unanchored_s": self.height_unanchored_s[0],
                 "height_unanchored_longest_s": [self.height_unanchored_s[1], self.height_unanchored_s[2]],
                 "closest_wall": None if self.closest_wall is None else dict(
@@ -725,6 +730,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                                             position_sigma_m))
     stride = max(1, len(b.t_s) // opts.max_points)
     b = b.take(slice(None, None, stride))
+    axes = body_axes_w(samples, frame)[::stride]
     t0, t1 = float(b.t_s.min()), float(b.t_s.max())
     knots = knot_times(t0, t1, spacing)
     k, f = knot_basis(b.t_s, knots)
@@ -1024,6 +1030,24 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         return not_applied("not applied: it does not bring the floor and walls closer to their planes by more than "
                            f"fitting {n_free} parameters to noise would (chi-square gain {gain:.0f}, needed "
                            f"{needed:.0f})", knots, **common)
+    if raised is None:
+        # A lever arm entered off moves every point by one vector fixed to the body, which flips in W with the legs'
+        # direction: the drift's knots follow it leg by leg, and on slopes take it for height (measured: a lever arm's
+        # y 0.2 m off read 68 % high once "corrected", 9.6 % as logged). When two numbers of the lever arm put the
+        # floor and walls on their planes as well as the drift's knots do (no more than the noise further off, in
+        # quadrature: the knots, many more, also fit a few systematic millimetres), the pose is not what drifted.
+        dl, lever_rms = lever_shift(axes[both], n[jj], r_before, final)
+        drift_rms = _robust_rms(r_after)
+        # Then the points are placed with that lever arm, exactly (`apply_pose_correction`), in place of the drift's
+        # knots, which emulate it leg by leg and, through a turn or on a slope, get it wrong.
+        if lever_rms <= math.hypot(drift_rms, noise) and _robust_rms(r_before) ** 2 - lever_rms ** 2 > noise ** 2:
+            note = (f"the floor and walls sit on their planes with the LiDAR's lever arm moved by "
+                    f"{dl[0] * 100:+.1f} cm forward and {dl[1] * 100:+.1f} cm right ({lever_rms * 100:.1f} cm off "
+                    f"them) as well as with a drifting pose ({drift_rms * 100:.1f} cm): a lever arm entered off, not a "
+                    "drift")
+            return PoseCorrection(knots, np.zeros_like(x), np.zeros_like(constrained), True, None,
+                                  lever_change_m=(float(dl[0]), float(dl[1])),
+                                  **{**common, "notes": (*common["notes"], note), "rms_after_m": lever_rms})
     # (a solve that failed numerically gives no term rather than a NaN interval)
     height_sigma = z_sigma[-1] if z_info is not None and z_sigma and math.isfinite(z_sigma[-1]) else None
     return PoseCorrection(knots, x, constrained, True, None, height_sigma_m=height_sigma,
@@ -1036,6 +1060,34 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                           untied_sigma_m=(untied_sigma_m(knots, tied, opts.vertical_walk_m_per_sqrt_s)
                                           if z_info is not None and tied is not None and not opts.open_floor
                                           else None), **common)
+
+
+LEVER_ROUNDS = 10
+"""Reweighting rounds of `lever_shift`'s robust fit (its weights settle in a few)."""
+MAX_LEVER_CHANGE_M = 1.0
+"""`lever_shift`'s prior: a lever arm is measured on a drone of tens of centimetres, so a metre off is a gross error."""
+
+
+def lever_shift(axes_w: np.ndarray, normals: np.ndarray, r: np.ndarray, window_m: float,
+                prior_m: float = MAX_LEVER_CHANGE_M) -> tuple[np.ndarray, float]:
+    """The lever arm's horizontal change (body forward, right; m) that best puts points back on their planes, and the
+    robust RMS distance it leaves. axes_w: (N, 3, 3) each point's body axes in W (`body_axes_w`); normals: (N, 3) its
+    plane's; r: (N,) its signed distance from it. A lever arm moved by dl moves every point of a sample by R_wb dl:
+    one vector fixed to the body, which flips in W with the legs' direction, where a drift does not. A linear fit of two
+    numbers, Cauchy-weighted at window_m (as `ground.self_calibration.lever_alternative` fits all three), with a weak
+    prior (prior_m, one point's weight) that holds a component no plane sees at zero: legs flown along walls that
+    are never seen ahead leave the forward one free."""
+    a = np.einsum("nij,ni->nj", axes_w[:, :, :2], normals)
+    w = np.ones(len(r))
+    dl = np.zeros(2)
+    if len(r) < 3:
+        return dl, _robust_rms(r)
+    ridge = np.eye(2) * (window_m / prior_m)
+    for _ in range(LEVER_ROUNDS):
+        dl = np.linalg.lstsq(np.vstack([a * w[:, None], ridge]), np.r_[-r * w, 0.0, 0.0], rcond=None)[0]
+        u = (r + a @ dl) / window_m
+        w = 1.0 / np.sqrt(1.0 + u * u)
+    return dl, _robust_rms(r + a @ dl)
 
 
 def raised_floor_note(raised_m: float, left_m: float, z_m: np.ndarray) -> str:
@@ -2047,6 +2099,11 @@ def apply_pose_correction(samples: np.ndarray, corr: PoseCorrection, frame: Stor
     out = samples.copy()
     c = corr.at(samples["t_s"].astype(float))
     d_ned = c[:, :3] @ frame.rot_w_from_ned  # R is symmetric: W -> NED of a vector
+    if corr.lever_change_m is not None:
+        # the lever arm moved in the body: every point moves by R_nb dl, as the vehicle's position moved by as much
+        # would move it (the logged path moves with it, by the change: decimetres)
+        dl = np.array([*corr.lever_change_m, 0.0])
+        d_ned = d_ned + rot_body_to_ned(samples["roll_rad"], samples["pitch_rad"], samples["yaw_rad"]) @ dl
     for i, name in enumerate(("x_m", "y_m", "z_m")):
         out[name] = samples[name] + d_ned[:, i]
     out["yaw_rad"] = np.angle(np.exp(1j * (samples["yaw_rad"].astype(float) - c[:, 3])))

@@ -847,18 +847,27 @@ def unexplained_structure_warning(mount: MountEstimate | None, pose: PoseCorrect
             "right")
 
 
-def lever_change_warning(mount: MountEstimate | None, lever_m: np.ndarray | None) -> str | None:
-    """The floor and walls say the lever arm is off, not the mount (`MountEstimate.lever_change_m`): which lever arm
-    they fit, for the surveyor to check against the drone and to report again with. None: they do not say so."""
-    if mount is None or mount.lever_change_m is None:
+def lever_change_warning(mount: MountEstimate | None, lever_m: np.ndarray | None,
+                         pose: PoseCorrection | None = None) -> str | None:
+    """The floor and walls say the lever arm is off, not the mount (`MountEstimate.lever_change_m`) nor a drifting pose
+    (`PoseCorrection.lever_change_m`, forward and right): which lever arm they fit, for the surveyor to check against
+    the drone and to report again with. None: they do not say so."""
+    if mount is not None and mount.lever_change_m is not None:
+        change = np.asarray(mount.lever_change_m, dtype=float)
+        done = ("any mount correction, so none was applied and the volume is placed with the lever arm as entered: "
+                "check the lever arm against the drone and report again with the one measured")
+    elif pose is not None and pose.lever_change_m is not None:
+        change = np.r_[np.asarray(pose.lever_change_m, dtype=float), 0.0]
+        done = ("a drifting pose, so the points are placed with the lever arm they fit instead of a drift's correction "
+                "(which follows it leg by leg, and on slopes and through turns gets it wrong): check the lever arm "
+                "against the drone")
+    else:
         return None
-    dx, dy, dz = (100.0 * v for v in mount.lever_change_m)
+    dx, dy, dz = (round(100.0 * v, 1) + 0.0 for v in change)  # + 0.0: no "-0.0"
     try_m = "" if lever_m is None else " (the lever arm they fit: `--lever-arm " + " ".join(
-        f"{v:.3f}" for v in np.asarray(lever_m, dtype=float) + np.asarray(mount.lever_change_m)) + "`)"
+        f"{v:.3f}" for v in np.round(np.asarray(lever_m, dtype=float) + change, 3) + 0.0) + "`)"
     return (f"the building's floor and walls sit on their planes with the LiDAR's lever arm moved by {dx:+.1f}, "
-            f"{dy:+.1f}, {dz:+.1f} cm (forward, right, down) as well as with any mount correction, so none was "
-            "applied and the volume is placed with the lever arm as entered: check the lever arm against the drone "
-            f"and report again with the one measured{try_m}")
+            f"{dy:+.1f}, {dz:+.1f} cm (forward, right, down) as well as with {done}{try_m}")
 
 
 def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[str]:
@@ -919,7 +928,9 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
         unexplained = unexplained_structure_warning(survey.mount, survey.pose)
         if unexplained is not None:
             warnings.append(unexplained)
-    if survey.pose is not None and survey.pose.applied:
+    if survey.pose is not None and survey.pose.applied and survey.pose.lever_change_m is not None:
+        warnings.append(lever_change_warning(None, survey.lever_arm_body_m, survey.pose))
+    elif survey.pose is not None and survey.pose.applied:
         warnings += [w for w in (describe_pose(survey.pose), pose_unconstrained_warning(survey.pose),
                                  pose_unanchored_warning(survey.pose), pose_wall_warning(survey.pose)) if w]
     rf = survey.rangefinder

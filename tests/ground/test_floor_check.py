@@ -200,3 +200,19 @@ def test_that_a_bad_lever_arm_is_one_line_of_error(flight, tmp_path, capsys, arg
     code = main(["report", str(flight), "--out", str(tmp_path / "r"), "--no-plots", *argv])
     err = capsys.readouterr().err
     assert code == ExitCode.USAGE and err.count("\n") == 1 and "Traceback" not in err and words in err
+
+
+def test_that_a_lever_arm_entered_0_3_m_too_far_forward_is_named_not_corrected_as_a_drift(flight, tmp_path):
+    """The same flight with the LiDAR entered 0.3 m forward of where it sits: every point moves along the legs, the
+    other way on the way back. The drift's knots would follow it leg by leg (Ve +1.4 %); the lever arm moved by one
+    vector fixed to the body explains the walls as well, so the points are placed with it and the lever arm named."""
+    wrong = _with_lever_arm(flight, tmp_path / "wrong", [0.3, 0.0, 0.1])
+    rep = make_report(wrong, tmp_path / "rep", ReportOptions(plots=False), force=True)
+    clean = make_report(flight, tmp_path / "clean", ReportOptions(plots=False), force=True)
+    pose = rep["pose_correction"]
+    assert pose["applied"] and pose["horizontal_max_m"] == 0.0
+    assert pose["lever_change_m"] == pytest.approx([-0.3, 0.0], abs=0.01)
+    assert rep["volume_m3"] == pytest.approx(clean["volume_m3"], rel=1e-3) and rep["truth_in_interval"]
+    said = [w for w in rep["warnings"] if "as well as with a drifting pose, so the points are placed" in w]
+    assert len(said) == 1 and "`--lever-arm 0.000 0.000 0.100`" in said[0]
+    assert not any(w.startswith("pose corrected from the building") for w in rep["warnings"])

@@ -25,6 +25,7 @@ from ground.pose_correction import (
     floor_brought_up,
     is_drift,
     level_sigma_m,
+    lever_shift,
     plane_brought_on,
     planes,
     prior_sigmas,
@@ -1059,6 +1060,45 @@ def test_that_a_height_off_by_a_constant_is_corrected_when_the_floor_lies_below_
         assert any("lay 0.20 m below z = 0" in n and "lever arm's z" in n for n in corr.notes)
     else:
         assert not corr.applied and "too small to matter" in corr.reason
+
+
+def test_that_the_lever_shift_is_the_body_fixed_vector_that_puts_the_points_back():
+    """Points on the walls x = 0 and y = 0 seen on legs flown both ways: a lever arm 0.3 m too far forward and 0.1 m
+    too far right moves each by R_wb dl, which flips with the heading."""
+    rng = np.random.default_rng(0)
+    n_pts = 400
+    heading = rng.choice([0.0, math.pi / 2, math.pi, -math.pi / 2], n_pts)
+    c, s_ = np.cos(heading), np.sin(heading)
+    axes = np.zeros((n_pts, 3, 3))
+    axes[:, 0, 0], axes[:, 1, 0] = c, s_  # forward
+    axes[:, 0, 1], axes[:, 1, 1] = s_, -c  # right (W is z up: right of forward)
+    axes[:, 2, 2] = -1.0  # down
+    normals = np.where(rng.random(n_pts)[:, None] < 0.5, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    off = np.array([0.3, 0.1])
+    r = np.einsum("nij,ni->nj", axes[:, :, :2], normals) @ off + rng.normal(0.0, 0.005, n_pts)
+    r[:20] += 2.0  # a few pile points near a wall
+    dl, left = lever_shift(axes, normals, r, 0.015)
+    assert dl == pytest.approx(-off, abs=0.01) and left < 0.01
+
+
+def test_that_a_lever_arm_entered_off_is_not_taken_for_a_drift_but_named():
+    """A flight whose pose is right but whose log header puts the LiDAR 0.3 m too far right: every point moves across
+    the legs, the other way on the way back, which the drift's knots would follow leg by leg. Two numbers of the
+    lever arm explain the walls as well, so the points are placed with the lever arm they fit, exactly, and the knots
+    stay zero; a drift is still corrected as a drift (the tests above)."""
+    samples, _ = flight()
+    wrong = LEVER + np.array([0.0, 0.3, 0.0])
+    corr = estimate_pose_correction(samples, wrong, FRAME, STORAGE, RESOLUTION, 0.0, 0.0, 0.0, PERIOD_S)
+    assert corr.applied and np.abs(corr.values).max() == 0.0
+    assert any("a lever arm entered off, not a drift" in n for n in corr.notes)
+    assert corr.lever_change_m == pytest.approx((0.0, -0.3), abs=0.01)
+    assert corr.as_dict()["lever_change_m"] == pytest.approx([0.0, -0.3], abs=0.01)
+    # re-placed, every point is where the right lever arm puts it
+    fixed = apply_pose_correction(samples, corr, FRAME)
+    b_fixed, _ = beams(fixed, wrong, FRAME)
+    b_true, _ = beams(samples, LEVER, FRAME)
+    moved = (b_fixed.vehicle_w + b_fixed.to_point_w) - (b_true.vehicle_w + b_true.to_point_w)
+    assert np.abs(moved).max() < 0.01
 
 
 BOWL = (30.0, 20.0, 0.7, 6.0, 0.3)  # centre x, y (W), bottom height, bottom radius, slope: 4.9-7.9 m at the walls

@@ -361,6 +361,16 @@ def test_that_a_mount_refused_for_a_lever_arm_names_the_lever_arm_to_report_agai
     assert report.lever_change_warning(None, np.zeros(3)) is None
 
 
+def test_that_a_pose_correction_that_found_a_lever_arm_names_it_too():
+    from ground.pose_correction import not_applied
+    pose = not_applied("not applied: ... a lever arm entered off, not a drifting pose", lever_change_m=(0.0, -0.3))
+    w = report.lever_change_warning(None, np.array([0.0, 0.3, 0.1]), pose)
+    assert "moved by +0.0, -30.0, +0.0 cm (forward, right, down) as well as with a drifting pose" in w
+    assert "the points are placed with the lever arm they fit" in w
+    assert "`--lever-arm 0.000 0.000 0.100`" in w  # -0.000 printed as 0.000
+    assert report.lever_change_warning(None, np.zeros(3), not_applied("too small to matter")) is None
+
+
 def _drift_of(s, h) -> DriftNuisance:
     """The pose correction's knots and prior over the samples' time, as the report gives them."""
     spacing = KNOT_SWEEPS / h["servo"]["frequency_hz"]
