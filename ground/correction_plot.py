@@ -56,8 +56,10 @@ def _free_stretches(pose: PoseCorrection, component: Component) -> tuple[tuple[f
 
 
 def correction_series(pose: PoseCorrection | None, rangefinder: RangefinderShare | None) -> CorrectionSeries | None:
-    """The report's corrections on a common grid (the lift's, or the knots'), or None when none was applied."""
-    posed = pose is not None and pose.applied and len(pose.knot_t_s) >= 2
+    """The report's corrections on a common grid (the lift's, or the knots'), or None when none was applied (a lever
+    arm placed in place of a drift moves the points, not the trajectory: its knots stay zero, and the report names it
+    in words)."""
+    posed = pose is not None and pose.applied and pose.lever_change_m is None and len(pose.knot_t_s) >= 2
     lifted = rangefinder is not None and rangefinder.applied and len(rangefinder.lift_t_s) >= 2
     if not posed and not lifted:
         return None

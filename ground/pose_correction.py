@@ -44,6 +44,9 @@ walls leaves them more than MAX_MISFIT noise levels off their planes (a drift do
 fault does). The walls see no height, so a height error alone (a lever arm's z, an altitude reference's offset)
 matters to the floor only: the height alone is applied when it brings a floor the walls' feet confirm up onto z = 0
 (`floor_brought_up`: below z = 0 it is surely a height error, while above it may be material covering the floor).
+And a horizontal lever arm entered off moves every point by one vector fixed to the body, which the knots would
+follow leg by leg: where two numbers of the lever arm put the floor and walls on their planes as well as the knots do
+(`lever_shift`), the points are placed with that lever arm instead, and the report names it.
 The registration on the pile seen twice may trade some of the walls' fit for the crossings', up to MAX_MISFIT times
 what the drift fit left; the height is solved again after it (`_height_again`).
 

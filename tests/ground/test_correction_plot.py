@@ -48,6 +48,10 @@ def test_that_each_correction_is_drawn_alone_and_nothing_is_drawn_when_none_was_
     lift_only = correction_series(None, _lift())
     assert lift_only.shift_w_m[:, :2].max() == 0.0 and lift_only.shift_w_m[:, 2].max() == pytest.approx(0.5)
     assert lift_only.free_z_s == ()
+    # a lever arm placed in place of a drift: the trajectory is not what moved, so no figure of it
+    lever = PoseCorrection(np.array([0.0, 10.0]), np.zeros((2, 4)), np.zeros((2, 4), dtype=bool), True,
+                           lever_change_m=(0.3, 0.0))
+    assert correction_series(lever, None) is None
 
 
 def test_that_the_figure_shows_position_and_heading_the_lift_dashed_and_the_free_stretch_shaded():
