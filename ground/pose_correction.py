@@ -74,7 +74,7 @@ from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, rot_body_to
 from firmware_py.core.storage import Storage
 from firmware_py.core.waveform import MAX_FREQUENCY_HZ
 from ground.group_stats import sorted_group_median
-from ground.plane_stretches import MAX_HEADING_ERROR_RAD, Beams, beams, body_axes_w, stretches_along
+from ground.plane_stretches import MAX_HEADING_ERROR_RAD, Beams, beams, body_axes_w, stretches_along, usable
 
 PLANE_NAMES = ("floor", "x0", "xL", "y0", "yW")
 MAX_MISFIT = 3.0
@@ -733,7 +733,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                                             position_sigma_m))
     stride = max(1, len(b.t_s) // opts.max_points)
     b = b.take(slice(None, None, stride))
-    axes = body_axes_w(samples, frame)[::stride]
+    axes = body_axes_w(samples[usable(samples)][::stride], frame)  # the kept samples' only (24 ms on 128k for all)
     t0, t1 = float(b.t_s.min()), float(b.t_s.max())
     knots = knot_times(t0, t1, spacing)
     k, f = knot_basis(b.t_s, knots)
