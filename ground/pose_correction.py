@@ -1071,23 +1071,24 @@ MAX_LEVER_CHANGE_M = 1.0
 """`lever_shift`'s prior: a lever arm is measured on a drone of tens of centimetres, so a metre off is a gross error."""
 
 
-def lever_shift(axes_w: np.ndarray, normals: np.ndarray, r: np.ndarray, window_m: float,
-                prior_m: float = MAX_LEVER_CHANGE_M) -> tuple[np.ndarray, float]:
+def lever_shift(axes_w: np.ndarray, normals: np.ndarray, r: np.ndarray, window_m: float | np.ndarray,
+                prior_m: float | None = MAX_LEVER_CHANGE_M, n_axes: int = 2) -> tuple[np.ndarray, float]:
     """The lever arm's horizontal change (body forward, right; m) that best puts points back on their planes, and the
     robust RMS distance it leaves. axes_w: (N, 3, 3) each point's body axes in W (`body_axes_w`); normals: (N, 3) its
     plane's; r: (N,) its signed distance from it. A lever arm moved by dl moves every point of a sample by R_wb dl:
     one vector fixed to the body, which flips in W with the legs' direction, where a drift does not. A linear fit of two
-    numbers, Cauchy-weighted at window_m (as `ground.self_calibration.lever_alternative` fits all three), with a weak
-    prior (prior_m, one point's weight) that holds a component no plane sees at zero: legs flown along walls that
-    are never seen ahead leave the forward one free."""
-    a = np.einsum("nij,ni->nj", axes_w[:, :, :2], normals)
+    numbers, Cauchy-weighted at window_m (per point, or one for all), with a weak prior (prior_m, one point's weight at
+    a window; None: none) that holds a component no plane sees at zero: legs flown along walls that are never seen
+    ahead leave the forward one free. n_axes = 3 fits the down component too (`ground.self_calibration.
+    lever_alternative`, beside a mount fit)."""
+    a = np.einsum("nij,ni->nj", axes_w[:, :, :n_axes], normals)
     w = np.ones(len(r))
-    dl = np.zeros(2)
-    if len(r) < 3:
+    dl = np.zeros(n_axes)
+    if len(r) < n_axes + 1:
         return dl, _robust_rms(r)
-    ridge = np.eye(2) * (window_m / prior_m)
+    ridge = np.zeros((0, n_axes)) if prior_m is None else np.eye(n_axes) * (float(np.median(window_m)) / prior_m)
     for _ in range(LEVER_ROUNDS):
-        dl = np.linalg.lstsq(np.vstack([a * w[:, None], ridge]), np.r_[-r * w, 0.0, 0.0], rcond=None)[0]
+        dl = np.linalg.lstsq(np.vstack([a * w[:, None], ridge]), np.r_[-r * w, np.zeros(len(ridge))], rcond=None)[0]
         u = (r + a @ dl) / window_m
         w = 1.0 / np.sqrt(1.0 + u * u)
     return dl, _robust_rms(r + a @ dl)

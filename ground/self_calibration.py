@@ -74,7 +74,7 @@ from firmware_py.core.servo_model import command_angles, servo_angles
 from firmware_py.core.storage import Storage
 from ground.blas_threads import one_blas_thread
 from ground.plane_stretches import beams, stretches_along
-from ground.pose_correction import knot_basis
+from ground.pose_correction import knot_basis, lever_shift
 from ground.servo_timing import Resimulated
 
 N_GROUPS = 8
@@ -803,10 +803,6 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
                          lever_change_m=lever_change)
 
 
-LEVER_ROUNDS = 10
-"""Reweighting rounds of `lever_alternative`'s robust fit (its weights settle in a few)."""
-
-
 def lever_alternative(prob: _Problem, idx: np.ndarray, normals: np.ndarray, r_square: np.ndarray,
                       window_m: np.ndarray) -> tuple[np.ndarray, float]:
     """The change of the lever arm (body forward, right, down, m) that best puts the points idx back on their planes
@@ -814,15 +810,8 @@ def lever_alternative(prob: _Problem, idx: np.ndarray, normals: np.ndarray, r_sq
 
     A point's distance from its plane moves by n . R_wb dl for a lever arm moved by dl, so this is a linear fit of
     three numbers, made robust as the mount's is (a Cauchy weight at the fit's window: the pile's points near a plane
-    count for little)."""
-    a = np.einsum("nij,ni->nj", prob.r_wb[idx], normals)
-    w = np.ones(len(idx))
-    dl = np.zeros(3)
-    for _ in range(LEVER_ROUNDS):
-        dl = np.linalg.lstsq(a * w[:, None], -r_square * w, rcond=None)[0]
-        u = (r_square + a @ dl) / window_m
-        w = 1.0 / np.sqrt(1.0 + u * u)
-    return dl, _robust_rms(r_square + a @ dl)
+    count for little): `ground.pose_correction.lever_shift` with the down component and no prior."""
+    return lever_shift(prob.r_wb[idx], normals, r_square, window_m, prior_m=None, n_axes=3)
 
 
 def _misfit_gain(before: np.ndarray, after: np.ndarray, sweep: np.ndarray) -> tuple[float, float]:
