@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_rays_w, rot_body_to_ned
+from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_rays_w, premultiply, rot_body_to_ned
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
 
 
@@ -42,10 +42,10 @@ def usable(samples: np.ndarray) -> np.ndarray:
 
 
 def body_axes_w(samples: np.ndarray, frame: StorageFrame) -> np.ndarray:
-    """(N, 3, 3) the body's forward, right and down axes in W (the columns) for the samples `beams` keeps, in its
-    order: what moves a point when the lever arm, fixed to the body, is off."""
-    s = samples[usable(samples)]
-    return np.einsum("ij,njk->nik", frame.rot_w_from_ned, rot_body_to_ned(s["roll_rad"], s["pitch_rad"], s["yaw_rad"]))
+    """(N, 3, 3) the body's forward, right and down axes in W (the columns) for each of the samples (`usable` ones:
+    `beams`' order when taken as it takes them): what moves a point when the lever arm, fixed to the body, is off."""
+    return premultiply(frame.rot_w_from_ned,
+                       rot_body_to_ned(samples["roll_rad"], samples["pitch_rad"], samples["yaw_rad"]))
 
 
 def beams(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame,

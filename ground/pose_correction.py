@@ -733,7 +733,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                                             position_sigma_m))
     stride = max(1, len(b.t_s) // opts.max_points)
     b = b.take(slice(None, None, stride))
-    axes = body_axes_w(samples[usable(samples)][::stride], frame)  # the kept samples' only (24 ms on 128k for all)
+    axes = body_axes_w(samples[usable(samples)][::stride], frame)  # b's samples, b's order
     t0, t1 = float(b.t_s.min()), float(b.t_s.max())
     knots = knot_times(t0, t1, spacing)
     k, f = knot_basis(b.t_s, knots)
@@ -1012,7 +1012,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     # Then the height alone is applied: what the walls' fit found did not matter to them, and its significance is
     # the floor's (the same chi-square gain, on the floor's points, against fitting the height's knots to noise).
     raised = None
-    if height_floor is not None and not matters(r_before, r1[on], r_after, jj, noise):
+    mattered = matters(r_before, r1[on], r_after, jj, noise)
+    if height_floor is not None and not mattered:
         x_z = np.zeros_like(x)
         x_z[:, 2] = x[:, 2]
         z_before, z_after = p0[height_floor, 2], corrected_points(b, x_z, k, f)[0][height_floor, 2]
@@ -1024,7 +1025,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
             gain = float(np.sum(np.minimum((z_before / noise) ** 2, cap) - np.minimum((z_after / noise) ** 2, cap)))
             common.update(notes=(*common["notes"], raised_floor_note(raised, _robust_rms(z_after), x[:, 2])), gain=gain,
                           gain_needed=needed)
-    if raised is None and not matters(r_before, r1[on], r_after, jj, noise):
+    if raised is None and not mattered:
         return not_applied("not applied: too small to matter (the floor and walls "
                            f"{common['rms_before_m'] * 100:.2f} cm off their planes before it, "
                            f"{common['rms_after_m'] * 100:.2f} cm after, against "
