@@ -74,9 +74,10 @@ def build_parser() -> ArgumentParser:
     r.add_argument("--empty-cells", choices=EMPTY_CELL_POLICIES, default=DEFAULT_EMPTY_CELLS,
                    help="cells outside the fitted surface: wall-contact (default: the surface carried to the "
                         "material's height where the sweeps saw it meet a wall, ground/wall_contact.py, then the "
-                        "nearest height), nearest (extend the surface to the walls with the nearest height), "
-                        "bounded (the nearest height held between the floor and the lowest beam that crossed "
-                        "above the cell: ground/unseen.py) or leave (no volume there, the paper's method)")
+                        "nearest height, held under the free-space ceiling), nearest (extend the surface to the walls "
+                        "with the nearest height), bounded (the nearest height held between the floor and the "
+                        "free-space ceiling: the lowest beam that crossed above the cell, or one near it plus 45 deg "
+                        "of slope, ground/unseen.py) or leave (no volume there, the paper's method)")
     r.add_argument("--base", default="floor", metavar="floor|fitted-floor|RUN_OR_REPORT",
                    help="the surface the volume is measured from: floor (the plane z = 0, default), fitted-floor (a "
                         "plane fitted to the floor the LiDAR saw: tilt and offset reported) or an earlier survey's "

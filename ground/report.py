@@ -111,7 +111,7 @@ from ground.volume_warnings import (
     unseen_warning,
     wide_interval_warning,
 )
-from ground.wall_contact import CONTACT_REST, WallContacts, contact_ceiling_m, contact_nodes, wall_contacts
+from ground.wall_contact import WallContacts, contact_ceiling_m, contact_nodes, wall_contacts
 
 LOW_COVERAGE_PCT = 95.0
 HIGH_EXCLUDED_FRACTION = 0.5
@@ -788,7 +788,7 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
         unseen = ~np.isfinite(fit)
         if unseen.any():  # only the unseen cells take it: fit it from the nodes that shape it there
             contact_fit = contact_fit_m(pile, sigma, contacts, grid, storage, opts.surface_fit, wanted=unseen)
-    bounded = opts.empty_cells == "bounded" or (opts.empty_cells == "wall-contact" and CONTACT_REST == "bounded")
+    bounded = opts.empty_cells in ("bounded", "wall-contact") and not np.isfinite(fit).all()
     ceiling = None if not bounded else free_space_ceiling_m(  # what the beams left free above
         cloud, grid, storage, err, err.angle_sigma_rad, where=~np.isfinite(fit))  # the unseen cells
     heights, counts = fill_empty(fit, opts.empty_cells, ceiling, contact_fit), grid.counts(pile)

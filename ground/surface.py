@@ -31,7 +31,9 @@ policy:
 - ``wall-contact`` (default): the empty cells take the surface fitted through the points and the wall
   contacts (`ground.wall_contact`: where a sweep's lowest wall hit sits above material, the material's height at
   the wall), nodes at the walls' feet, so it reaches the walls where the sweeps saw them; what that
-  leaves empty as ``CONTACT_REST`` (`ground.wall_contact`). The fitted cells keep the points' own fit,
+  leaves empty as ``CONTACT_REST`` (`ground.wall_contact`), all of it held under the free-space ceiling
+  (as ``bounded``: what a beam passed over, carried at the steepest slope the ground may have to the cells
+  around). The fitted cells keep the points' own fit,
   and R_a and the interval's unseen term are the points' own: the contacts are bounded estimates, not
   measured pile points.
 
@@ -243,7 +245,11 @@ def fill_empty(heights: np.ndarray, policy: str, ceiling_m: np.ndarray | None = 
     if policy == "wall-contact":
         from ground.wall_contact import CONTACT_REST
         extended = heights if contact_fit_m is None else np.where(empty, contact_fit_m, heights)
-        return fill_empty(extended, CONTACT_REST, ceiling_m)
+        filled = fill_empty(extended, CONTACT_REST, ceiling_m)
+        if ceiling_m is None:
+            return filled
+        upper = np.where(np.isnan(ceiling_m), np.inf, np.maximum(ceiling_m, 0.0))  # NaN: not computed, unbounded
+        return np.where(empty, np.minimum(filled, upper), filled)
     if policy == "bounded":
         from ground.unseen import bounded_fill
         return bounded_fill(heights, ceiling_m)

@@ -151,13 +151,13 @@ def widened_interval_m3(volume_m3: float, below_m3: float, above_m3: float, extr
 
 # --- calibrated interval model (tools/calibrate_interval.py --write-model) ---
 DEFAULT_INTERVAL_MODEL = IntervalModel(
-    k_unseen=0.955359,
-    k_interpolation=1.36497,
-    k_noise=5.18418,
-    k_sweeps=5.01261,
-    k_faces=0.158847,
-    k_blur=0.0934784,
-    source='fitted on 693 calibration runs of the evaluation set (tools/calibrate_interval.py, 2026-12-01)')
+    k_unseen=0.917522,
+    k_interpolation=1.31091,
+    k_noise=4.97886,
+    k_sweeps=4.81408,
+    k_faces=0.152556,
+    k_blur=0.0897761,
+    source='fitted on 693 calibration runs of the evaluation set (tools/calibrate_interval.py, 2026-12-02)')
 # --- end of calibrated interval model ---
 
 

@@ -18,6 +18,7 @@ from ground.unseen import (
     beam_angle_sigma_rad,
     bounded_fill,
     free_space_ceiling_m,
+    spread_down_slope,
     unseen_bounds,
 )
 from sitl.world.raycast import World
@@ -107,14 +108,47 @@ def test_that_a_stated_pose_and_angle_error_loosen_the_ceiling():
     assert np.median((loose - tight)[crossed & (loose < STORAGE.height_m)]) > 0.1 * k
 
 
-def test_that_computing_only_the_cells_asked_for_gives_the_same_ceiling_there():
+def test_that_computing_only_the_cells_asked_for_gives_the_same_beam_bounds_there_and_no_tighter_spread():
+    """The beams' own bounds in the cells asked for are those of the whole floor; carried at the slope, the cells
+    left out give nothing, so the bound there can only be looser, never below what all the beams say."""
     cloud = scene_cloud(mound_m, [(4.0, 3.0, 6.0), (15.0, 9.0, 6.0)], n_per_origin=2000)
-    full = free_space_ceiling_m(cloud, GRID, STORAGE, IDEAL)
     where = np.zeros(GRID.shape, dtype=bool)
     where[:12, :10] = where[60:, 30:] = True
-    part = free_space_ceiling_m(cloud, GRID, STORAGE, IDEAL, where=where)
+    full = free_space_ceiling_m(cloud, GRID, STORAGE, IDEAL, spread=False)
+    part = free_space_ceiling_m(cloud, GRID, STORAGE, IDEAL, where=where, spread=False)
     assert np.array_equal(part[where], full[where])
     assert np.isnan(part[~where]).all()
+    spread_full = free_space_ceiling_m(cloud, GRID, STORAGE, IDEAL)
+    spread_part = free_space_ceiling_m(cloud, GRID, STORAGE, IDEAL, where=where)
+    assert np.all(spread_part[where] >= spread_full[where])
+    assert np.all(spread_part[where] <= part[where])
+
+
+def test_that_the_spread_carries_a_bound_at_the_slope_and_never_below_the_straight_cone():
+    """One low cell in a roof-high ceiling: every cell is bounded by its height plus MAX_SLOPE times the distance,
+    exactly along the neighbourhood's steps and within 3 % of the distance between them, never less."""
+    roof = np.full(GRID.shape, STORAGE.height_m)
+    roof[40, 24] = 1.0
+    out = spread_down_slope(roof, GRID.cell_m, GRID.cell_m)
+    ix, iy = np.meshgrid(np.arange(GRID.shape[0]), np.arange(GRID.shape[1]), indexing="ij")
+    cone = np.minimum(1.0 + MAX_SLOPE * GRID.cell_m * np.hypot(ix - 40, iy - 24), STORAGE.height_m)
+    assert np.all(out >= cone - 1e-9)
+    assert np.all(out <= 1.0 + 1.03 * (cone - 1.0) + 1e-9)
+    assert out[40, 24 + 8] == pytest.approx(1.0 + 8 * GRID.cell_m)
+    assert out[40 + 6, 24 + 6] == pytest.approx(1.0 + 6 * math.sqrt(2) * GRID.cell_m)
+
+
+def test_that_the_spread_ceiling_stays_above_the_true_surface_between_the_beams():
+    """A few hundred beams only: most cells are crossed by none, and the ceiling carried to them from the crossed
+    ones still lies above the mound (slopes below MAX_SLOPE) and below the roof in most of them."""
+    cloud = scene_cloud(mound_m, [(4.0, 3.0, 6.0), (15.0, 9.0, 6.0)], n_per_origin=30, seed=2)
+    own = free_space_ceiling_m(cloud, GRID, STORAGE, IDEAL, spread=False)
+    ceiling = free_space_ceiling_m(cloud, GRID, STORAGE, IDEAL)
+    cx, cy = GRID.centres()
+    assert (own < STORAGE.height_m).mean() < 0.5  # the beams alone bound under half the cells
+    assert np.all(ceiling >= mound_m(cx, cy) - 1e-9)
+    assert np.all(ceiling <= own)
+    assert (ceiling < STORAGE.height_m).mean() > 0.9
 
 
 def test_that_a_bare_corner_under_low_beams_stays_near_the_floor_where_nearest_paints_material():
