@@ -5,7 +5,10 @@ A cell outside the surface (outside the convex hull of the pile points, or empti
 crossed above it on its way to a hit travelled through free space, so the surface there lies
 below the beam. The lowest beam over a cell is therefore an upper bound on its height (the
 *free-space ceiling*); the floor is the lower bound. Beams that hit a wall high up bound little,
-beams that reached the floor beside a corner bound it to almost nothing.
+beams that reached the floor beside a corner bound it to almost nothing. Ground no steeper than
+MAX_SLOPE rises from a bound at most MAX_SLOPE times the distance, so the ceiling is carried from the
+cells the beams crossed to those between them (`spread_down_slope`): a few diagonal beams low over an
+unseen strip at a wall bound the whole strip, not only their own lines.
 
 The `bounded` empty-cell policy carries the seen surface into the unseen cells (`BOUNDED_EXTENSION`:
 the nearest seen cell's height, as `nearest` does) and holds it between the floor and the ceiling;
