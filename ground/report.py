@@ -788,8 +788,8 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
         unseen = ~np.isfinite(fit)
         if unseen.any():  # only the unseen cells take it: fit it from the nodes that shape it there
             contact_fit = contact_fit_m(pile, sigma, contacts, grid, storage, opts.surface_fit, wanted=unseen)
-    bounded = opts.empty_cells in ("bounded", "wall-contact") and not np.isfinite(fit).all()
-    ceiling = None if not bounded else free_space_ceiling_m(  # what the beams left free above
+    needs_ceiling = opts.empty_cells in ("bounded", "wall-contact") and not np.isfinite(fit).all()
+    ceiling = None if not needs_ceiling else free_space_ceiling_m(  # what the beams left free above
         cloud, grid, storage, err, err.angle_sigma_rad, where=~np.isfinite(fit))  # the unseen cells
     heights, counts = fill_empty(fit, opts.empty_cells, ceiling, contact_fit), grid.counts(pile)
     roof_or_ceiling = storage.height_m if ceiling is None else ceiling

@@ -132,7 +132,8 @@ def free_space_ceiling_m(cloud: Cloud, grid: GridLike, storage: Storage, err: Se
                    fine, per, k * (1.0 + MAX_SLOPE), err.position_sigma_m, angle_sigma_rad)
     out = np.clip(ceiling, 0.0, storage.height_m).reshape(nx, ny)
     if spread and want.any() and (out < storage.height_m).any():
-        out = spread_down_slope(out, (xe[-1] - xe[0]) / nx, (ye[-1] - ye[0]) / ny)
+        out = spread_down_slope(out, (grid.x_edges[-1] - grid.x_edges[0]) / nx,
+                                (grid.y_edges[-1] - grid.y_edges[0]) / ny)
     out[~want] = np.nan
     return out
 

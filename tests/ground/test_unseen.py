@@ -241,10 +241,11 @@ def test_that_a_cloud_without_beams_bounds_nothing():
     assert np.all(free_space_ceiling_m(empty, GRID, STORAGE, IDEAL) == STORAGE.height_m)
 
 
-def test_that_the_report_fills_the_unseen_cells_within_the_floor_and_the_flights_ceiling(tmp_path, monkeypatch):
-    """The golden flight (pile 1, JSBSim) through the report with --empty-cells bounded: fitted cells as
-    fitted, the others between the floor and the ceiling its own beams give (the survey the report made, watched
-    as it passed); the report says the policy."""
+@pytest.mark.parametrize("policy", ["bounded", "wall-contact"])
+def test_that_the_report_fills_the_unseen_cells_within_the_floor_and_the_flights_ceiling(tmp_path, monkeypatch, policy):
+    """The golden flight (pile 1, JSBSim) through the report with --empty-cells bounded and with the default
+    wall-contact: fitted cells as fitted, the others between the floor and the ceiling its own beams give (the
+    survey the report made, watched as it passed); the report says the policy."""
     import ground.report
 
     log = read_samplelog(Path("tests/golden") / SAMPLES_FILE)
@@ -255,7 +256,7 @@ def test_that_the_report_fills_the_unseen_cells_within_the_floor_and_the_flights
         surveys.append(survey_from_samples(*args, **kwargs))
         return surveys[-1]
     monkeypatch.setattr(ground.report, "survey_from_samples", surveyed)
-    rep = make_report("tests/golden", tmp_path / "b", ReportOptions(plots=False, empty_cells="bounded"))
+    rep = make_report("tests/golden", tmp_path / "b", ReportOptions(plots=False, empty_cells=policy))
     monkeypatch.undo()
     (sv,) = surveys
     unseen = ~np.isfinite(sv.heights_fit)
@@ -263,6 +264,25 @@ def test_that_the_report_fills_the_unseen_cells_within_the_floor_and_the_flights
     ceiling = free_space_ceiling_m(sv.cloud, sv.grid, storage, SensorErrorModel.from_header(log.header),
                                    beam_angle_sigma_rad(log.header), where=unseen)
     assert np.array_equal(sv.heights[~unseen], sv.heights_fit[~unseen])
-    assert np.all((sv.heights[unseen] >= 0.0) & (sv.heights[unseen] <= ceiling[unseen] + 1e-12))
-    assert rep["empty_cell_policy"] == "bounded"
+    assert np.all(sv.heights[unseen] <= ceiling[unseen] + 1e-12)
+    if policy == "bounded":  # the default copies a fitted height as fitted, a few mm below the floor included
+        assert np.all(sv.heights[unseen] >= 0.0)
+    assert rep["empty_cell_policy"] == policy
     assert rep["volume_error_pct"] < 1.0
+
+
+def test_that_the_wall_contact_fill_is_held_under_the_ceiling_where_one_was_computed():
+    """A flank copied into an unseen strip: the default fill keeps the seen cells, lowers the copied heights to
+    the ceiling where it is below them, and leaves the cells it has no ceiling for (NaN) as copied."""
+    cx, _ = GRID.centres()
+    fit = np.where(cx < 3.0, np.nan, 2.0)
+    ceiling = np.where(cx < 3.0, 0.5 + 0.5 * cx, np.nan)
+    ceiling[:2, :4] = np.nan  # not computed there
+    out = fill_empty(fit, "wall-contact", ceiling)
+    seen, unseen = np.isfinite(fit), ~np.isfinite(fit)
+    assert np.array_equal(out[seen], fit[seen])
+    bounded = unseen & np.isfinite(ceiling)
+    assert np.allclose(out[bounded], np.minimum(2.0, ceiling[bounded]))
+    assert np.any(out[bounded] < 2.0)
+    assert np.all(out[:2, :4] == 2.0)
+    assert np.array_equal(fill_empty(fit, "wall-contact"), fill_empty(fit, "nearest"))
