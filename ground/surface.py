@@ -236,7 +236,8 @@ def fill_empty(heights: np.ndarray, policy: str, ceiling_m: np.ndarray | None = 
     """Apply the empty-cell policy to a height grid (see module docstring); ``bounded`` holds the fill
     under ceiling_m (`ground.unseen.free_space_ceiling_m`; None: only the floor bounds it). ``wall-contact``
     takes the empty cells from contact_fit_m, the fit through the points and the wall contacts (None: no
-    contacts), then fills what is still empty by CONTACT_REST."""
+    contacts), fills what is still empty by CONTACT_REST, and holds all of it under ceiling_m (None, or a NaN
+    cell: not bounded)."""
     if policy not in EMPTY_CELL_POLICIES:
         raise ValueError(f"empty-cell policy must be one of {', '.join(EMPTY_CELL_POLICIES)}, got {policy!r}")
     empty = ~np.isfinite(heights)
