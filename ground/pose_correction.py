@@ -733,7 +733,6 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                                             position_sigma_m))
     stride = max(1, len(b.t_s) // opts.max_points)
     b = b.take(slice(None, None, stride))
-    axes = body_axes_w(samples[usable(samples)][::stride], frame)  # b's samples, b's order
     t0, t1 = float(b.t_s.min()), float(b.t_s.max())
     knots = knot_times(t0, t1, spacing)
     k, f = knot_basis(b.t_s, knots)
@@ -994,7 +993,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     r_before = np.einsum("ij,ij->i", p0[both], n[jj]) - d[jj]
     r_after = np.einsum("ij,ij->i", p1[both], n[jj]) - d[jj]
     cap = (BAND * sensor_m / noise) ** 2
-    gain = float(np.sum(np.minimum((r_before / noise) ** 2, cap) - np.minimum((r_after / noise) ** 2, cap)))
+    gain = capped_gain(r_before, r_after, noise, cap)
     n_free = int(constrained.sum())
     needed = n_free + opts.n_significant * math.sqrt(2.0 * max(n_free, 1))
     common = dict(notes=tuple(notes), points=counts, rms_before_m=_robust_rms(r_before),
@@ -1022,7 +1021,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
             x, constrained = x_z, constrained & np.array([False, False, True, False])[None, :]
             n_free = int(constrained.sum())
             needed = n_free + opts.n_significant * math.sqrt(2.0 * max(n_free, 1))
-            gain = float(np.sum(np.minimum((z_before / noise) ** 2, cap) - np.minimum((z_after / noise) ** 2, cap)))
+            gain = capped_gain(z_before, z_after, noise, cap)
             common.update(notes=(*common["notes"], raised_floor_note(raised, _robust_rms(z_after), x[:, 2])), gain=gain,
                           gain_needed=needed)
     if raised is None and not mattered:
@@ -1040,7 +1039,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         # y 0.2 m off read 68 % high once "corrected", 9.6 % as logged). When two numbers of the lever arm put the
         # floor and walls on their planes as well as the drift's knots do (no more than the noise further off, in
         # quadrature: the knots, many more, also fit a few systematic millimetres), the pose is not what drifted.
-        dl, lever_rms = lever_shift(axes[both], n[jj], r_before, final)
+        axes = body_axes_w(samples[usable(samples)][::stride][both], frame)  # b's samples, b's order, on a plane
+        dl, lever_rms = lever_shift(axes, n[jj], r_before, final)
         drift_rms = _robust_rms(r_after)
         # Then the points are placed with that lever arm, exactly (`apply_pose_correction`), in place of the drift's
         # knots, which emulate it leg by leg and, through a turn or on a slope, get it wrong.
@@ -1064,6 +1064,12 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                           untied_sigma_m=(untied_sigma_m(knots, tied, opts.vertical_walk_m_per_sqrt_s)
                                           if z_info is not None and tied is not None and not opts.open_floor
                                           else None), **common)
+
+
+def capped_gain(before_m: np.ndarray, after_m: np.ndarray, noise_m: float, cap: float) -> float:
+    """The chi-square a correction gains on points (their distances before and after, in units of the noise, squared),
+    each point's term capped at cap: a point far off its plane (the pile beside it) cannot carry the test."""
+    return float(np.sum(np.minimum((before_m / noise_m) ** 2, cap) - np.minimum((after_m / noise_m) ** 2, cap)))
 
 
 LEVER_ROUNDS = 10

@@ -249,8 +249,8 @@ def fill_empty(heights: np.ndarray, policy: str, ceiling_m: np.ndarray | None = 
         filled = fill_empty(extended, CONTACT_REST, ceiling_m)
         if ceiling_m is None:
             return filled
-        upper = np.where(np.isnan(ceiling_m), np.inf, np.maximum(ceiling_m, 0.0))  # NaN: not computed, unbounded
-        return np.where(empty, np.minimum(filled, upper), filled)
+        from ground.unseen import upper_bound_m
+        return np.where(empty, np.minimum(filled, upper_bound_m(ceiling_m, filled.shape)), filled)
     if policy == "bounded":
         from ground.unseen import bounded_fill
         return bounded_fill(heights, ceiling_m)
