@@ -49,11 +49,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 from scipy.interpolate import CloughTocher2DInterpolator, LinearNDInterpolator
-from scipy.spatial import ConvexHull, Delaunay, QhullError
+from scipy.spatial import ConvexHull, QhullError
 
 from firmware_py.core.surface_file import MAX_GRID_CELLS, MIN_GRID_CELL_M
 from ground.blas_threads import one_blas_thread
 from ground.smoothing import DEFAULT_SMOOTHING, SmoothingOptions, smoothed_nodes
+from ground.triangulation import delaunay
 
 SURFACE_FITS = ("cubic-limited", "cubic", "linear", "local-linear")
 CLIP_TOLERANCE_M = 0.5
@@ -197,7 +198,7 @@ def _interpolate(points_w: np.ndarray, grid: Grid, method: str,
     # threaded OpenBLAS turns into thread hand-offs; with two processes on two cores they crawl.
     with one_blas_thread():
         try:
-            tri = Delaunay(xy)
+            tri = delaunay(xy)
         except (QhullError, ValueError):  # all points collinear or coincident: no surface
             return heights, extra
         z = np.asarray(points_w[:, 2], dtype=float)

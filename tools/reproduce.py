@@ -26,7 +26,7 @@ import numpy as np
 
 from firmware_py.core.cli import ArgumentParser, run_cli
 from ground.surface import DEFAULT_EMPTY_CELLS
-from tools.doc_sections import with_sections_of
+from tools.doc_sections import with_sections_of, write_section
 from tools.experiments import (
     ALL_EXPERIMENTS,
     P_TRAJ_PCT,
@@ -220,6 +220,40 @@ def _fmt(v, spec=".2f", unit=""):
     return "—" if v is None else f"{v:{spec}}{unit}"
 
 
+NOISE_TARGET_PP = 0.2
+"""Issue 14's target: Ve with Appendix A's noise within this many points of the clean Ve, at every P_traj."""
+NOISE_SECTION = "reproduce-noise"
+
+
+def noise_summary(stats: dict, piles: Sequence[str], command: str) -> str | None:
+    """The `noise` experiment against the `baseline` it perturbs, pile by pile and P_traj by P_traj (mean Ve of the
+    default fill over the servo positions and draws): the figures a page quotes, written by the tool that computed
+    them. None when either experiment is missing."""
+    lines, misses, n = [], [], 0
+    for pile in piles:
+        for p in sorted(q for (e, pl, q) in stats if e == "noise" and pl == pile):
+            clean = stats.get(("baseline", pile, p))
+            if clean is None:
+                continue
+            noisy = stats[("noise", pile, p)]
+            diff = noisy["ve"] - clean["ve"]
+            ok = abs(diff) <= NOISE_TARGET_PP
+            n += 1
+            if not ok:
+                misses.append(f"pile {pile} at {p:g} %")
+            lines.append(f"| {pile} | {p:g} % | {clean['ve']:.2f} | {noisy['ve']:.2f} ± {noisy['ve_sd']:.2f} | "
+                         f"{diff:+.2f} | {'yes' if ok else 'no'} |")
+    if not lines:
+        return None
+    verdict = (f"within {NOISE_TARGET_PP} pp of the clean Ve in {n - len(misses)} of {n} rows"
+               + (f"; not for {', '.join(misses)}" if misses else ""))
+    return "\n".join([
+        f"`{command}` on {time.strftime('%Y-%m-%d')}: Appendix A's sensor noise against the same flights without it "
+        f"(mean Ve over the servo positions and draws, the default `{DEFAULT_EMPTY_CELLS}` fill): {verdict}.", "",
+        "| pile | P_traj | Ve clean [%] | Ve with Appendix A noise [%] | difference [pp] | within "
+        f"{NOISE_TARGET_PP} pp |", "|---|---|---|---|---|---|", *lines])
+
+
 def results_markdown(stats_by_policy: dict, piles, experiments: list[Experiment], figures: list[Path],
                      md_path: Path, timing: str, command: str) -> str:
     main, near, leave = (stats_by_policy[p] for p in (DEFAULT_EMPTY_CELLS, "nearest", "leave"))
@@ -284,6 +318,9 @@ def build_parser() -> ArgumentParser:
     ap.add_argument("--rows", type=Path, default=Path("runs/sweep-rows.csv"), help="per-survey rows (CSV)")
     ap.add_argument("--write", type=Path, default=None, help="write the results page here (e.g. docs/results.md)")
     ap.add_argument("--figures", type=Path, default=None, help="figure directory (default: next to --write)")
+    ap.add_argument("--readme", type=Path, default=None, metavar="PAGE",
+                    help=f"also write the noise experiment against the baseline into this page's marked section "
+                         f"{NOISE_SECTION} (README.md), when both were run")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     return ap
 
@@ -306,6 +343,8 @@ def _check_outputs(args) -> None:
     for opt, path in (("--rows", args.rows), ("--write", args.write)):
         if path is not None and path.is_dir():
             raise ValueError(f"{opt} {path} is a directory; give a file path")
+    if args.readme is not None and not args.readme.is_file():
+        raise ValueError(f"--readme {args.readme} is not a file: the summary goes into a marked section of a page")
     dirs = [args.cache, args.rows.parent]
     if args.write is not None:
         dirs += [args.write.parent, args.figures or args.write.parent / "figures"]
@@ -364,6 +403,16 @@ def _body(args) -> int:
         old_page = args.write.read_text(encoding="utf-8") if args.write.exists() else ""
         args.write.write_text(with_sections_of(old_page, page))  # other tools' sections stay
         print(f"results in {args.write}, {len(figs)} figures in {fig_dir}")
+    if args.readme is not None:
+        cmd = "python -m tools.reproduce " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("reproduce.py") \
+            else "python -m tools.reproduce --experiments baseline,noise --readme " + str(args.readme)
+        summary = noise_summary(stats[DEFAULT_EMPTY_CELLS], piles, cmd)
+        if summary is None:
+            print(f"--readme: nothing written to {args.readme} (the summary needs the baseline and noise experiments)",
+                  file=sys.stderr)
+        else:
+            write_section(args.readme, NOISE_SECTION, summary)
+            print(f"noise summary in {args.readme} (section {NOISE_SECTION})")
     return 0
 
 

@@ -75,3 +75,29 @@ def test_that_a_noise_experiment_draws_per_position_and_logs_the_draws(tmp_path)
     rows = read_rows_csv(tmp_path / "rows.csv")
     assert [r["draw"] for r in rows] == [0, 1]
     assert rows[0]["ve_nearest_pct"] != rows[1]["ve_nearest_pct"]  # two different noise draws
+
+
+def test_that_the_noise_summary_goes_into_the_readmes_section_with_each_rows_verdict(tmp_path):
+    cfg = tmp_path / "noise.toml"
+    cfg.write_text('[[experiment]]\nname = "baseline"\n\n[[experiment]]\nname = "noise"\nnoise_draws = 1\n')
+    readme = tmp_path / "README.md"
+    readme.write_text("# A page\n\nIts own text.\n")
+    assert main(["--config", str(cfg), "--piles", "1", "--p-traj", "25", "--positions", "1", "--jobs", "1",
+                 "--cache", str(tmp_path / "cache"), "--rows", str(tmp_path / "rows.csv"), "--quiet",
+                 "--readme", str(readme)]) == 0
+    text = readme.read_text()
+    assert text.startswith("# A page\n\nIts own text.\n")
+    section = text[text.index("<!-- reproduce-noise:start -->"):text.index("<!-- reproduce-noise:end -->")]
+    rows = read_rows_csv(tmp_path / "rows.csv")
+    clean = next(r for r in rows if r["group"] == "baseline")["ve_wall-contact_pct"]
+    noisy = next(r for r in rows if r["group"] == "noise")["ve_wall-contact_pct"]
+    verdict = "yes" if abs(noisy - clean) <= 0.2 else "no"
+    assert f"| 1 | 25 % | {clean:.2f} | {noisy:.2f} ± 0.00 | {noisy - clean:+.2f} | {verdict} |" in section
+    assert ("in 1 of 1 rows" if verdict == "yes" else "not for pile 1 at 25 %") in section
+
+
+def test_that_a_readme_that_is_not_a_page_is_refused_before_the_sweep(tmp_path, capsys):
+    assert main(["--experiments", "baseline", "--readme", str(tmp_path / "missing.md"), "--cache",
+                 str(tmp_path / "c"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--readme" in err and not (tmp_path / "c").exists()
