@@ -37,7 +37,7 @@ from tools.experiments import (
     load_experiments,
     run_case,
 )
-from tools.sweep import missing_cases, run_sweep, write_rows_csv
+from tools.sweep import content_key, missing_cases, run_sweep, write_rows_csv
 
 # Table 2 of the paper: (Ve %, R_a %, ΔE_BL %) per pile.
 PAPER_TABLE2 = {
@@ -386,7 +386,10 @@ def _body(args) -> int:
             else "python -m tools.reproduce --write " + str(args.write)
         args.write.parent.mkdir(parents=True, exist_ok=True)
         cpu_s = sum(float(r.get("case_s") or 0.0) for r in rows)
-        fresh_file = args.cache / "last_fresh_run.json"
+        # per set of experiments: the paper's 120 cases and the noise experiment's 24 are different figures
+        names = "+".join(sorted({e.name for e in exps}))
+        fresh_file = args.cache / ("last_fresh_run.json" if exps == list(PAPER_EXPERIMENTS)
+                                   else f"last_fresh_run-{content_key(names)}.json")
         if n_todo == len(cases):  # every case computed: the figure the issue asks for (<= 10 min)
             fresh_file.write_text(json.dumps({"wall_s": wall, "cases": len(cases), "jobs": args.jobs,
                                               "date": time.strftime("%Y-%m-%d"), "cpus": os.cpu_count()}))
