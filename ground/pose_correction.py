@@ -2064,7 +2064,8 @@ def _weighted_solver(a: sparse.csr_matrix, rhs: np.ndarray):
     eliminated (a Schur complement) and the knots solved densely. Exact, and 3-5x faster than a general sparse
     solve on a flight's ~1,000 unknowns. Which entries meet which is the same every round, only the weights change:
     the products' index pairs are found once here (`_row_pairs`) and each round only sums weighted terms into them
-    (`np.bincount`), 0.2 ms a solve against 1.4 ms through scipy.sparse's products (docs/design-notes.md)."""
+    (`np.bincount`): 0.3-0.4 ms a solve against 1.0-1.1 ms through scipy.sparse's products, on the quiet
+    machine (docs/design-notes.md)."""
     def general(w: np.ndarray) -> np.ndarray:
         aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
         return spsolve((aw.T @ aw).tocsc(), aw.T @ (np.sqrt(w) * rhs))

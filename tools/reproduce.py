@@ -221,7 +221,8 @@ def _fmt(v, spec=".2f", unit=""):
 
 
 NOISE_TARGET_PP = 0.2
-"""Issue 14's target: Ve with Appendix A's noise within this many points of the clean Ve, at every P_traj."""
+"""The target the noise is held to: Ve with Appendix A's noise within this many points of the clean Ve at every
+P_traj (the paper's "minimal change", as a number)."""
 NOISE_SECTION = "reproduce-noise"
 
 
