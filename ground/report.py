@@ -781,16 +781,16 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
     spread = face_spread_m(grid, typical, n_sigma)
     if pile_dir is not None:
         disagreement, _ = sweep_disagreement_m(pile, pile_dir, grid, spread)
+    unseen = ~np.isfinite(fit)
     contact_fit = contact_top = None  # the surface through the points and the wall contacts, and their tops
     if opts.empty_cells == "wall-contact":
         contacts = wall_contacts(cloud, structure, storage, err, grid.cell_m)
         contact_top = contact_ceiling_m(contacts, grid.x_edges, grid.y_edges)
-        unseen = ~np.isfinite(fit)
         if unseen.any():  # only the unseen cells take it: fit it from the nodes that shape it there
             contact_fit = contact_fit_m(pile, sigma, contacts, grid, storage, opts.surface_fit, wanted=unseen)
-    needs_ceiling = opts.empty_cells in ("bounded", "wall-contact") and not np.isfinite(fit).all()
+    needs_ceiling = opts.empty_cells in ("bounded", "wall-contact") and unseen.any()
     ceiling = None if not needs_ceiling else free_space_ceiling_m(  # what the beams left free above
-        cloud, grid, storage, err, err.angle_sigma_rad, where=~np.isfinite(fit))  # the unseen cells
+        cloud, grid, storage, err, err.angle_sigma_rad, where=unseen)  # the unseen cells
     heights, counts = fill_empty(fit, opts.empty_cells, ceiling, contact_fit), grid.counts(pile)
     roof_or_ceiling = storage.height_m if ceiling is None else ceiling
     if contact_top is not None:  # the contacts bound the unseen cells at the walls too

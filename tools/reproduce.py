@@ -372,6 +372,8 @@ def _body(args) -> int:
     write_rows_csv(rows, args.rows)
     stats = {pol: aggregate(rows, pol) for pol in (DEFAULT_EMPTY_CELLS, "nearest", "leave")}
     piles = [p for p in args.piles]
+    # the command as typed, for the pages to quote (None when called from Python, e.g. the tests)
+    ran_as = "python -m tools.reproduce " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("reproduce.py") else None
     for claim, ok, evidence in trends(stats[DEFAULT_EMPTY_CELLS], piles):
         print(f"{'holds' if ok else 'DOES NOT HOLD'}: {claim}: {evidence}")
     for exp, per_pile in table2(stats[DEFAULT_EMPTY_CELLS], piles).items():
@@ -383,8 +385,7 @@ def _body(args) -> int:
     if args.write is not None:
         fig_dir = args.figures or args.write.parent / "figures"
         figs = plot_figures(stats[DEFAULT_EMPTY_CELLS], piles, fig_dir)
-        cmd = "python -m tools.reproduce " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("reproduce.py") \
-            else "python -m tools.reproduce --write " + str(args.write)
+        cmd = ran_as or "python -m tools.reproduce --write " + str(args.write)
         args.write.parent.mkdir(parents=True, exist_ok=True)
         cpu_s = sum(float(r.get("case_s") or 0.0) for r in rows)
         # per set of experiments: the paper's 120 cases and the noise experiment's 24 are different figures
@@ -408,8 +409,7 @@ def _body(args) -> int:
         args.write.write_text(with_sections_of(old_page, page))  # other tools' sections stay
         print(f"results in {args.write}, {len(figs)} figures in {fig_dir}")
     if args.readme is not None:
-        cmd = "python -m tools.reproduce " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("reproduce.py") \
-            else "python -m tools.reproduce --experiments baseline,noise --readme " + str(args.readme)
+        cmd = ran_as or "python -m tools.reproduce --experiments baseline,noise --readme " + str(args.readme)
         summary = noise_summary(stats[DEFAULT_EMPTY_CELLS], piles, cmd)
         if summary is None:
             print(f"--readme: nothing written to {args.readme} (the summary needs the baseline and noise experiments)",
