@@ -134,5 +134,5 @@ def survey_from_points(binner: HeightBinner, storage: Storage, opts: ReportOptio
                                   weights=binner.counts())
     path = np.empty((0, 3)) if path_w is None else np.asarray(path_w, dtype=float).reshape(-1, 3)
     cloud = Cloud(pile, np.full(pile.shape, np.nan), np.full(len(pile), np.nan), path, binner.n_in, 0)
-    return Survey(cloud, pile, grid, fit, fill_empty(fit, opts.empty_cells), counts.astype(np.int64), storage,
-                  n_clipped)
+    heights = fill_empty(fit, opts.empty_cells, cell_xy_m=grid.cell_xy_m)
+    return Survey(cloud, pile, grid, fit, heights, counts.astype(np.int64), storage, n_clipped)

@@ -77,7 +77,9 @@ def build_parser() -> ArgumentParser:
                         "nearest height, held under the free-space ceiling), nearest (extend the surface to the walls "
                         "with the nearest height), bounded (the nearest height held between the floor and the "
                         "free-space ceiling: the lowest beam that crossed above the cell, or one near it plus 45 deg "
-                        "of slope, ground/unseen.py) or leave (no volume there, the paper's method)")
+                        "of slope, ground/unseen.py), carry-down (as wall-contact, but in the unseen cells a beam "
+                        "passed over, where the seen surface falls towards them, its slope is carried on down, to "
+                        "the floor at most, ground/carry_down.py) or leave (no volume there, the paper's method)")
     r.add_argument("--base", default="floor", metavar="floor|fitted-floor|RUN_OR_REPORT",
                    help="the surface the volume is measured from: floor (the plane z = 0, default), fitted-floor (a "
                         "plane fitted to the floor the LiDAR saw: tilt and offset reported) or an earlier survey's "

@@ -75,6 +75,7 @@ from ground.self_calibration import (
 from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
 from ground.smoothing import cloud_vertical_sigma_m
 from ground.surface import (
+    CONTACT_POLICIES,
     DEFAULT_CELL_M,
     DEFAULT_EMPTY_CELLS,
     DEFAULT_SURFACE_FIT,
@@ -100,7 +101,7 @@ from ground.uncertainty import (
     shared_draws,
     survey_errors,
 )
-from ground.unseen import free_space_ceiling_m
+from ground.unseen import free_space_ceilings_m
 from ground.volume_warnings import (
     DEFAULT_MAX_INTERVAL_PCT,
     faces_warning,
@@ -783,15 +784,18 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
         disagreement, _ = sweep_disagreement_m(pile, pile_dir, grid, spread)
     unseen = ~np.isfinite(fit)
     contact_fit = contact_top = None  # the surface through the points and the wall contacts, and their tops
-    if opts.empty_cells == "wall-contact":
+    if opts.empty_cells in CONTACT_POLICIES:
         contacts = wall_contacts(cloud, structure, storage, err, grid.cell_m)
         contact_top = contact_ceiling_m(contacts, grid.x_edges, grid.y_edges)
         if unseen.any():  # only the unseen cells take it: fit it from the nodes that shape it there
             contact_fit = contact_fit_m(pile, sigma, contacts, grid, storage, opts.surface_fit, wanted=unseen)
-    needs_ceiling = opts.empty_cells in ("bounded", "wall-contact") and unseen.any()
-    ceiling = None if not needs_ceiling else free_space_ceiling_m(  # what the beams left free above
-        cloud, grid, storage, err, err.angle_sigma_rad, where=unseen)  # the unseen cells
-    heights, counts = fill_empty(fit, opts.empty_cells, ceiling, contact_fit), grid.counts(pile)
+    needs_ceiling = opts.empty_cells in ("bounded", *CONTACT_POLICIES) and unseen.any()
+    ceiling = shadow = None
+    if needs_ceiling:  # what the beams left free above the unseen cells, and which of them a beam passed over
+        own, ceiling = free_space_ceilings_m(cloud, grid, storage, err, err.angle_sigma_rad, where=unseen)
+        shadow = unseen & (own < storage.height_m)
+    heights = fill_empty(fit, opts.empty_cells, ceiling, contact_fit, grid.cell_xy_m, shadow)
+    counts = grid.counts(pile)
     roof_or_ceiling = storage.height_m if ceiling is None else ceiling
     if contact_top is not None:  # the contacts bound the unseen cells at the walls too
         roof_or_ceiling = np.fmin(np.broadcast_to(roof_or_ceiling, grid.shape), contact_top)

@@ -33,7 +33,10 @@ policy:
   the wall), nodes at the walls' feet, so it reaches the walls where the sweeps saw them; what that
   leaves empty as ``CONTACT_REST`` (`ground.wall_contact`), all of it held under the free-space ceiling
   (as ``bounded``: what a beam passed over, carried at the steepest slope the ground may have to the cells
-  around). The fitted cells keep the points' own fit,
+  around). ``carry-down`` is the same, but in the unseen cells a beam passed over (shadows) where the seen
+  surface falls towards them, that rest is carried on down at its slope, to the floor at most, instead of copied
+  level (`ground.carry_down`).
+  The fitted cells keep the points' own fit,
   and R_a and the interval's unseen term are the points' own: the contacts are bounded estimates, not
   measured pile points.
 
@@ -64,7 +67,9 @@ DEFAULT_SURFACE_FIT = "local-linear"
 """docs/surface_estimators.md: on 414 runs of the evaluation set the interpolants read 2-9 % low under the
 rangefinder's own datasheet noise (range noise moves a point along its beam, which couples its height error to
 its position); the local regression does not (docs/design-notes.md, "The default surface is estimated")."""
-EMPTY_CELL_POLICIES = ("nearest", "leave", "bounded", "wall-contact")
+EMPTY_CELL_POLICIES = ("nearest", "leave", "bounded", "wall-contact", "carry-down")
+CONTACT_POLICIES = ("wall-contact", "carry-down")
+"""The policies that take the unseen cells from the surface through the points and the wall contacts first."""
 DEFAULT_EMPTY_CELLS = "wall-contact"
 """docs/unseen.md: mean Ve better than `nearest` in 13 of its 16 rows, equal in one; the two worse are by
 cancellation (docs/design-notes.md, "Wall-contact evidence for the unseen fill")."""
@@ -105,6 +110,12 @@ class Grid:
     @property
     def y_edges(self) -> np.ndarray:
         return np.linspace(0.0, self.width_m, self.shape[1] + 1)
+
+    @property
+    def cell_xy_m(self) -> tuple[float, float]:
+        """The cells' sides along x and y (the floor's length and width over the cell counts)."""
+        nx, ny = self.shape
+        return self.length_m / nx, self.width_m / ny
 
     @property
     def cell_area_m2(self) -> float:
@@ -233,21 +244,28 @@ def clip_to_building(heights: np.ndarray, height_m: float,
 
 
 def fill_empty(heights: np.ndarray, policy: str, ceiling_m: np.ndarray | None = None,
-               contact_fit_m: np.ndarray | None = None) -> np.ndarray:
+               contact_fit_m: np.ndarray | None = None, cell_xy_m: tuple[float, float] | None = None,
+               shadow: np.ndarray | None = None) -> np.ndarray:
     """Apply the empty-cell policy to a height grid (see module docstring); ``bounded`` holds the fill
     under ceiling_m (`ground.unseen.free_space_ceiling_m`; None: only the floor bounds it). ``wall-contact``
     takes the empty cells from contact_fit_m, the fit through the points and the wall contacts (None: no
     contacts), fills what is still empty by CONTACT_REST, and holds all of it under ceiling_m (None, or a NaN
-    cell: not bounded)."""
+    cell: not bounded). ``carry-down`` does the same with the rest carried down the seen slope in the `shadow`
+    cells (those a beam passed over: `ground.unseen.free_space_ceilings_m`; None: none known, the rest is copied
+    level as ``wall-contact`` does), which needs the grid's cell sides, cell_xy_m (`Grid.cell_xy_m`)."""
     if policy not in EMPTY_CELL_POLICIES:
         raise ValueError(f"empty-cell policy must be one of {', '.join(EMPTY_CELL_POLICIES)}, got {policy!r}")
+    if policy == "carry-down" and cell_xy_m is None:
+        raise ValueError("the carry-down empty-cell policy needs the grid's cell sides (cell_xy_m)")
     empty = ~np.isfinite(heights)
     if policy == "leave" or not empty.any() or empty.all():
         return heights
-    if policy == "wall-contact":
+    if policy in CONTACT_POLICIES:
+        from ground.carry_down import carry_down
         from ground.wall_contact import CONTACT_REST
         extended = heights if contact_fit_m is None else np.where(empty, contact_fit_m, heights)
-        filled = fill_empty(extended, CONTACT_REST, ceiling_m)
+        filled = (carry_down(extended, *cell_xy_m, where=np.zeros(heights.shape, bool) if shadow is None else shadow)
+                  if policy == "carry-down" else fill_empty(extended, CONTACT_REST, ceiling_m))
         if ceiling_m is None:
             return filled
         from ground.unseen import upper_bound_m

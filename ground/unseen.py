@@ -78,12 +78,22 @@ def beam_angle_sigma_rad(header: dict) -> float:
 def free_space_ceiling_m(cloud: Cloud, grid: GridLike, storage: Storage, err: SensorErrorModel,
                          angle_sigma_rad: float = 0.0, n_sigma: float | None = None,
                          where: np.ndarray | None = None, spread: bool = True) -> np.ndarray:
+    """The free-space ceiling (`free_space_ceilings_m`): carried at the slope (spread) or the beams' own bounds."""
+    own, carried = free_space_ceilings_m(cloud, grid, storage, err, angle_sigma_rad, n_sigma, where, spread)
+    return carried if spread else own
+
+
+def free_space_ceilings_m(cloud: Cloud, grid: GridLike, storage: Storage, err: SensorErrorModel,
+                          angle_sigma_rad: float = 0.0, n_sigma: float | None = None,
+                          where: np.ndarray | None = None, spread: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Per cell, the lowest height any beam passed at over it, raised by the beams' error margins and
     by MAX_SLOPE times the distance from the beam to the cell centre: an upper bound on the surface at
     the cell centre, (nx, ny). That bound is then carried from cell to cell at MAX_SLOPE
     (`spread_down_slope`; `spread=False`: the beams' own bounds only), so a cell no beam crossed is bounded by
     the beams near it, and by the roof when none is; cells outside `where` (when given) are not computed (NaN)
-    and carry no bound of their own to the others.
+    and carry no bound of their own to the others. Returns both, from one walk of the beams: (the beams' own
+    bounds, the bounds carried; the same array twice when not spread). A cell whose own bound is under the roof
+    is one a beam passed over (`ground.carry_down`: the shadows behind what the beams hit).
 
     Every usable sample's beam counts, the walls' and roof's included (a wall hit says the air before
     the wall was empty); only the free part of each beam, from the sensor to k range sigmas (and half
@@ -130,12 +140,14 @@ def free_space_ceiling_m(cloud: Cloud, grid: GridLike, storage: Storage, err: Se
             c = slice(lo, lo + CHUNK_BEAMS)
             _lower(ceiling, origin[c], d[c], free[c], horiz[c], reach[c], want, blocks, (xe[0], ye[0], cell_x, cell_y),
                    fine, per, k * (1.0 + MAX_SLOPE), err.position_sigma_m, angle_sigma_rad)
-    out = np.clip(ceiling, 0.0, storage.height_m).reshape(nx, ny)
+    own = np.clip(ceiling, 0.0, storage.height_m).reshape(nx, ny)
+    out = own.copy()
     if spread and want.any() and (out < storage.height_m).any():
         out = spread_down_slope(out, (grid.x_edges[-1] - grid.x_edges[0]) / nx,
                                 (grid.y_edges[-1] - grid.y_edges[0]) / ny)
+    own[~want] = np.nan
     out[~want] = np.nan
-    return out
+    return own, out if spread else own
 
 
 SPREAD_RADIUS_CELLS = 2

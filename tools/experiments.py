@@ -261,13 +261,18 @@ def run_case(case: Case, cache_dir: str | Path = "runs/sweep-cache") -> list[dic
     return [{**r, **common, "case_s": elapsed / len(rows)} for r in rows]
 
 
+SWEPT_POLICIES = tuple(p for p in EMPTY_CELL_POLICIES if p != "carry-down")
+"""The empty-cell policies each case's Ve is given under: `carry-down` needs the beams' shadows, which `fill_empty`
+alone cannot see (it would give `wall-contact`'s figure under its own name)."""
+
+
 def _metrics(sv, true_m3: float) -> dict:
-    """Ve under each empty-cell policy. The survey's own policy (the default) is its heights as the report
-    fills them: `wall-contact` needs the cloud's wall contacts, which `fill_empty` alone cannot see (it
+    """Ve under each empty-cell policy (`SWEPT_POLICIES`). The survey's own policy (the default) is its heights as
+    the report fills them: `wall-contact` needs the cloud's wall contacts, which `fill_empty` alone cannot see (it
     would give `nearest`'s figure under the other's name)."""
     out = {f"ve_{pol}_pct": volume_error_pct(grid_volume(
         sv.heights if pol == DEFAULT_EMPTY_CELLS else fill_empty(sv.heights_fit, pol), sv.grid), true_m3)
-        for pol in EMPTY_CELL_POLICIES}
+        for pol in SWEPT_POLICIES}
     out["ra_pct"] = reconstructed_ratio_pct(sv.heights_fit)
     out["cells_clipped"] = sv.n_cells_clipped
     return out
