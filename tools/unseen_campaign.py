@@ -32,7 +32,7 @@ from ground.surface import (
     grid_volume,
     volume_error_pct,
 )
-from ground.unseen import Extension, beam_angle_sigma_rad, bounded_fill, free_space_ceiling_m, unseen_bounds
+from ground.unseen import Extension, beam_angle_sigma_rad, bounded_fill, free_space_ceilings_m, unseen_bounds
 from ground.wall_contact import WallContacts, contact_fill, pin_contacts, wall_contacts
 from sitl.runners.fly import FlyConfig, log_header
 from sitl.sensing.batch_sampler import sample_flight
@@ -46,10 +46,11 @@ FIXTURE_RESOLUTION_M = 0.25
 """Vertex spacing of the fixture piles' meshes (the paper piles' spacing)."""
 P_TRAJ_PCT = (20, 30)
 PILES = ("corner", "wall-end", "1", "2")
-FILLS = ("nearest", "wall-contact", "nodes-everywhere", "pinned-bounded", "bounded-nearest", "bounded-harmonic",
-         "bounded-biharmonic", "floor-only-biharmonic")
+FILLS = ("nearest", "wall-contact", "carry-down", "nodes-everywhere", "pinned-bounded", "bounded-nearest",
+         "bounded-harmonic", "bounded-biharmonic", "floor-only-biharmonic")
 """The fills compared: `nearest` (the default before issue 14 item 4); `--empty-cells wall-contact` (the default
-now; ground.wall_contact: the unseen cells from the surface through the points and the wall contacts); that
+now; ground.wall_contact: the unseen cells from the surface through the points and the wall contacts); `carry-down`
+(the same, the rest carried down the seen slope in the unseen cells a beam passed over: ground.carry_down); that
 surface in every cell; the contacts pinned in the unseen wall cells before `bounded`; the bounded policy with
 each extension (ground.unseen), and the thin plate held by the floor alone (what the free-space ceiling adds)."""
 NOISES = ("none", "appendix-a")
@@ -58,9 +59,9 @@ CELL_ERROR_FILLS = ("nearest", "wall-contact")
 
 
 def _fill(name: str, heights_fit: np.ndarray, ceiling_m: np.ndarray, contacts: WallContacts, grid: Grid,
-          nodes_fit: np.ndarray) -> np.ndarray:
-    if name == "wall-contact":
-        return fill_empty(heights_fit, "wall-contact", ceiling_m, nodes_fit)
+          nodes_fit: np.ndarray, shadow: np.ndarray) -> np.ndarray:
+    if name in ("wall-contact", "carry-down"):
+        return fill_empty(heights_fit, name, ceiling_m, nodes_fit, grid.cell_xy_m, shadow)
     if name == "nodes-everywhere":
         return fill_empty(nodes_fit, "nearest")
     if name == "pinned-bounded":
@@ -150,8 +151,9 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
                                  ReportOptions(plots=False, empty_cells="nearest"))
         unseen = ~np.isfinite(sv.heights_fit)
         t0 = time.perf_counter()
-        ceiling = free_space_ceiling_m(sv.cloud, sv.grid, storage, SensorErrorModel.from_header(header),
-                                       beam_angle_sigma_rad(header), where=unseen)
+        own, ceiling = free_space_ceilings_m(sv.cloud, sv.grid, storage, SensorErrorModel.from_header(header),
+                                             beam_angle_sigma_rad(header), where=unseen)
+        shadow = unseen & (own < storage.height_m)  # the unseen cells a beam passed over
         ceiling_s = time.perf_counter() - t0
         err = SensorErrorModel.from_header(header)
         structure = structure_mask(sv.cloud, storage, err)
@@ -166,7 +168,7 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
                "n_contacts": len(contacts),
                "beam_crossed_pct": float((ceiling[unseen] < storage.height_m).mean() * 100) if unseen.any() else 0.0}
         for pol in policies:
-            filled = _fill(pol, sv.heights_fit, ceiling, contacts, sv.grid, nodes_fit)
+            filled = _fill(pol, sv.heights_fit, ceiling, contacts, sv.grid, nodes_fit, shadow)
             row[f"u_{pol}_pct"] = float((filled[unseen] - truth[unseen]).sum() * sv.grid.cell_area_m2
                                         / pile.volume_m3 * 100)
             row[f"mae_{pol}_m"] = float(np.abs(filled[unseen] - truth[unseen]).mean()) if unseen.any() else 0.0
@@ -210,7 +212,10 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
              "", "Fills: `wall-contact` (the default, `--empty-cells wall-contact`: the unseen cells from the surface",
              "fitted through the pile points and the wall contacts, nodes at the walls' feet, the rest by the nearest",
              "height; a wall contact, `ground/wall_contact.py`: where a sweep's lowest wall hit sits above its next",
-             "beam's hit on material or floor, the material's height at the wall); `nearest` (the nearest fitted",
+             "beam's hit on material or floor, the material's height at the wall); `carry-down`",
+             "(`--empty-cells carry-down`: the same, but in the unseen cells a beam passed over, where the seen",
+             "surface falls towards them, the rest carried on down at its slope, to the floor at most,",
+             "`ground/carry_down.py`); `nearest` (the nearest fitted",
              "cell's height, the default until this campaign); `nodes-everywhere`: the surface through the contacts",
              "in the fitted cells too; `pinned-bounded`: the fit kept, the contacts set in their unseen wall cells",
              "before `bounded` (against `bounded-nearest`: what they add as a fill alone); `bounded-<extension>`: the",
@@ -218,7 +223,8 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
              "(`nearest` copy, `harmonic` membrane, `biharmonic` thin plate) held between the floor and the",
              "free-space ceiling; `floor-only-biharmonic`: the thin plate held by the floor alone (what the ceiling",
              "adds). What this decided: docs/design-notes.md, \"Free-space ceiling and the bounded fill\" and",
-             "\"Wall-contact evidence for the unseen fill (issue 14 item 4)\".", "",
+             "\"Wall-contact evidence for the unseen fill (issue 14 item 4)\" and \"The unseen fill carried down the",
+             "seen slope in the shadows\".", "",
              "## Ve (eq. 8, %) over the phases: mean | sd | max", ""]
     head = "| pile | P_traj | noise | " + " | ".join(f"`{p}` mean | sd | max" for p in policies) + " |"
     lines += [head, "|" + "---|" * (3 + 3 * len(policies))]
