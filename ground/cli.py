@@ -72,14 +72,14 @@ def build_parser() -> ArgumentParser:
     r.add_argument("--cell", type=finite_float, default=DEFAULT_CELL_M, metavar="M",
                    help=f"grid cell side for eq. (7), m (default {DEFAULT_CELL_M})")
     r.add_argument("--empty-cells", choices=EMPTY_CELL_POLICIES, default=DEFAULT_EMPTY_CELLS,
-                   help="cells outside the fitted surface: wall-contact (default: the surface carried to the "
+                   help="cells outside the fitted surface: carry-down (default: the surface carried to the "
                         "material's height where the sweeps saw it meet a wall, ground/wall_contact.py, then the "
-                        "nearest height, held under the free-space ceiling), nearest (extend the surface to the walls "
-                        "with the nearest height), bounded (the nearest height held between the floor and the "
-                        "free-space ceiling: the lowest beam that crossed above the cell, or one near it plus 45 deg "
-                        "of slope, ground/unseen.py), carry-down (as wall-contact, but in the unseen cells a beam "
-                        "passed over, where the seen surface falls towards them, its slope is carried on down, to "
-                        "the floor at most, ground/carry_down.py) or leave (no volume there, the paper's method)")
+                        "nearest height, held under the free-space ceiling; in the unseen cells a beam passed over, "
+                        "where the seen surface falls towards them, its slope carried on down, to the floor at most, "
+                        "ground/carry_down.py), wall-contact (the same, the rest copied level), nearest (extend the "
+                        "surface to the walls with the nearest height), bounded (the nearest height held between the "
+                        "floor and the free-space ceiling: the lowest beam that crossed above the cell, or one near it "
+                        "plus 45 deg of slope, ground/unseen.py) or leave (no volume there, the paper's method)")
     r.add_argument("--base", default="floor", metavar="floor|fitted-floor|RUN_OR_REPORT",
                    help="the surface the volume is measured from: floor (the plane z = 0, default), fitted-floor (a "
                         "plane fitted to the floor the LiDAR saw: tilt and offset reported) or an earlier survey's "

@@ -266,8 +266,9 @@ def flown_jsbsim(mission, cache_dir: Path) -> FlownMission:
     return flown
 
 
-COMPARE_VERSION = "1"
-"""Bump when the survey of a cached flight changes (the ground station's defaults, the sampler)."""
+COMPARE_VERSION = "2"
+"""Bump when the survey of a cached flight changes (the ground station's defaults, the sampler). 2: the `carry-down`
+fill is the default."""
 
 
 def cached_survey(cache_dir: Path, flown: FlownMission, mission, pile: str, stockpile: str,

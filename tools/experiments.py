@@ -29,6 +29,7 @@ from firmware_py.core.frames import StorageFrame
 from firmware_py.core.sensor_noise import SensorNoise, SensorNoiseModel
 from ground.report import ReportOptions, survey_from_samples
 from ground.surface import (
+    CONTACT_POLICIES,
     DEFAULT_EMPTY_CELLS,
     EMPTY_CELL_POLICIES,
     fill_empty,
@@ -45,7 +46,7 @@ from sitl.world.raycast import World
 from sitl.world.stockpile import paper_pile
 from tools.sweep import Case, cached
 
-SWEEP_VERSION = "13"
+SWEEP_VERSION = "14"
 """Part of every case key: bump it when the simulation or the ground station changes what a case
 computes (the cache cannot see code). 3: runaway surface cells are emptied, not clamped to the floor;
 4: the cubic surface is limited to its triangles' data by default, despiking, servo re-timing;
@@ -56,7 +57,8 @@ fill is the default empty-cell policy; 8: its Ve column is the survey's own fill
 9: the despiking allows the header's per-sample pointing error (Appendix A); 10: the default surface fit is
 `local-linear`; 11: its windows' standard errors scaled to the data's own scatter; 12: the ground station of
 2026-11-30 (the pose correction runs by default; a straight stretch of sweep up a wall is the wall's); 13: the unseen
-fill held under the free-space ceiling carried at the steepest slope (2026-12-02)."""
+fill held under the free-space ceiling carried at the steepest slope (2026-12-02); 14: the `carry-down` fill is the
+default (2026-12-03)."""
 FLIGHT_VERSION = "2"
 """Part of every flight key. 2: the autopilot flies towards the target through corners."""
 P_TRAJ_PCT = (5, 10, 15, 20, 25, 30)
@@ -261,15 +263,15 @@ def run_case(case: Case, cache_dir: str | Path = "runs/sweep-cache") -> list[dic
     return [{**r, **common, "case_s": elapsed / len(rows)} for r in rows]
 
 
-SWEPT_POLICIES = tuple(p for p in EMPTY_CELL_POLICIES if p != "carry-down")
-"""The empty-cell policies each case's Ve is given under: `carry-down` needs the beams' shadows, which `fill_empty`
-alone cannot see (it would give `wall-contact`'s figure under its own name)."""
+SWEPT_POLICIES = (DEFAULT_EMPTY_CELLS, *(p for p in EMPTY_CELL_POLICIES if p not in CONTACT_POLICIES))
+"""The empty-cell policies each case's Ve is given under: the default, as the survey filled it, and those `fill_empty`
+can apply to the fitted heights alone. The other contact policies need the cloud's wall contacts and the beams'
+shadows, which `fill_empty` alone cannot see (each would give another policy's figure under its own name)."""
 
 
 def _metrics(sv, true_m3: float) -> dict:
-    """Ve under each empty-cell policy (`SWEPT_POLICIES`). The survey's own policy (the default) is its heights as
-    the report fills them: `wall-contact` needs the cloud's wall contacts, which `fill_empty` alone cannot see (it
-    would give `nearest`'s figure under the other's name)."""
+    """Ve under each empty-cell policy (`SWEPT_POLICIES`): the default's is the survey's heights as the report
+    filled them, the others' the fitted heights filled again."""
     out = {f"ve_{pol}_pct": volume_error_pct(grid_volume(
         sv.heights if pol == DEFAULT_EMPTY_CELLS else fill_empty(sv.heights_fit, pol), sv.grid), true_m3)
         for pol in SWEPT_POLICIES}

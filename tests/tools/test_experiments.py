@@ -4,8 +4,8 @@ import pytest
 
 
 def test_that_the_default_policys_ve_is_the_surveys_own_fill_not_a_refill_of_the_fitted_cells():
-    """`wall-contact` fills from the cloud's wall contacts, which a refill of the fitted heights cannot see: its
-    column must be the survey's heights (it had silently repeated `nearest`'s figure)."""
+    """The default fills from the cloud's wall contacts and the beams' shadows, which a refill of the fitted heights
+    cannot see: its column must be the survey's heights (it had silently repeated `nearest`'s figure)."""
     from types import SimpleNamespace
 
     import numpy as np
@@ -20,3 +20,13 @@ def test_that_the_default_policys_ve_is_the_surveys_own_fill_not_a_refill_of_the
     m = _metrics(SimpleNamespace(heights_fit=fit, heights=own, grid=grid, n_cells_clipped=0), true_m3=24.0)
     assert m[f"ve_{DEFAULT_EMPTY_CELLS}_pct"] == pytest.approx(0.0, abs=1e-12)  # 12 cells of 1 m + 4 of 3 m
     assert m["ve_nearest_pct"] == pytest.approx(100.0 * 8.0 / 24.0)  # nearest copies 1 m into the row: 16 m³
+
+
+def test_that_no_policy_is_swept_under_a_name_a_refill_of_the_fitted_cells_would_misreport():
+    """The contact policies other than the default would be refilled without their contacts and shadows: left out."""
+    from ground.surface import CONTACT_POLICIES, DEFAULT_EMPTY_CELLS
+    from tools.experiments import SWEPT_POLICIES
+
+    assert SWEPT_POLICIES[0] == DEFAULT_EMPTY_CELLS
+    assert not set(SWEPT_POLICIES[1:]) & set(CONTACT_POLICIES)
+    assert {"nearest", "leave"} <= set(SWEPT_POLICIES)  # Table 2's other columns

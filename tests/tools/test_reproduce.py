@@ -2,6 +2,7 @@
 
 import pytest
 
+from ground.surface import DEFAULT_EMPTY_CELLS
 from tools.experiments import ALL_EXPERIMENTS, Experiment, cases_for, load_experiments, servo_positions
 from tools.reproduce import main
 from tools.sweep import read_rows_csv
@@ -89,8 +90,8 @@ def test_that_the_noise_summary_goes_into_the_readmes_section_with_each_rows_ver
     assert text.startswith("# A page\n\nIts own text.\n")
     section = text[text.index("<!-- reproduce-noise:start -->"):text.index("<!-- reproduce-noise:end -->")]
     rows = read_rows_csv(tmp_path / "rows.csv")
-    clean = next(r for r in rows if r["group"] == "baseline")["ve_wall-contact_pct"]
-    noisy = next(r for r in rows if r["group"] == "noise")["ve_wall-contact_pct"]
+    clean = next(r for r in rows if r["group"] == "baseline")[f"ve_{DEFAULT_EMPTY_CELLS}_pct"]
+    noisy = next(r for r in rows if r["group"] == "noise")[f"ve_{DEFAULT_EMPTY_CELLS}_pct"]
     verdict = "yes" if abs(noisy - clean) <= 0.2 else "no"
     assert f"| 1 | 25 % | {clean:.2f} | {noisy:.2f} ± 0.00 | {noisy - clean:+.2f} | {verdict} |" in section
     assert ("in 1 of 1 rows" if verdict == "yes" else "not for pile 1 at 25 %") in section
