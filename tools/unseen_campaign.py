@@ -49,12 +49,13 @@ PILES = ("corner", "wall-end", "1", "2")
 FILLS = ("nearest", "wall-contact", "carry-down", "nodes-everywhere", "pinned-bounded", "bounded-nearest",
          "bounded-harmonic", "bounded-biharmonic", "floor-only-biharmonic")
 """The fills compared: `nearest` (the default before issue 14 item 4); `--empty-cells wall-contact` (the default
-now; ground.wall_contact: the unseen cells from the surface through the points and the wall contacts); `carry-down`
-(the same, the rest carried down the seen slope in the unseen cells a beam passed over: ground.carry_down); that
+until 2026-12-03; ground.wall_contact: the unseen cells from the surface through the points and the wall contacts);
+`carry-down` (the default now: the same, the rest carried down the seen slope in the unseen cells a beam passed over:
+ground.carry_down); that
 surface in every cell; the contacts pinned in the unseen wall cells before `bounded`; the bounded policy with
 each extension (ground.unseen), and the thin plate held by the floor alone (what the free-space ceiling adds)."""
 NOISES = ("none", "appendix-a")
-CELL_ERROR_FILLS = ("nearest", "wall-contact")
+CELL_ERROR_FILLS = ("nearest", "wall-contact", "carry-down")
 """The fills whose mean per-cell error in the unseen cells the second table states."""
 
 
@@ -209,13 +210,14 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
              "flanks); `wall-end`, a 7 m ridge along the end wall x = 0 whose ends stop short of both corners (bare",
              "corners, flanks facing them); the paper's piles 1 and 2. Each row: the 20 servo phases (Fig. 9) through",
              "`survey_from_samples`, every fill applied to the same fitted surface and the same free-space ceiling.",
-             "", "Fills: `wall-contact` (the default, `--empty-cells wall-contact`: the unseen cells from the surface",
+             "", "Fills: `carry-down` (the default, `--empty-cells carry-down`: the unseen cells from the surface",
              "fitted through the pile points and the wall contacts, nodes at the walls' feet, the rest by the nearest",
-             "height; a wall contact, `ground/wall_contact.py`: where a sweep's lowest wall hit sits above its next",
-             "beam's hit on material or floor, the material's height at the wall); `carry-down`",
-             "(`--empty-cells carry-down`: the same, but in the unseen cells a beam passed over, where the seen",
-             "surface falls towards them, the rest carried on down at its slope, to the floor at most,",
-             "`ground/carry_down.py`); `nearest` (the nearest fitted",
+             "height, but in the unseen cells a beam passed over, where the seen surface falls towards them, carried",
+             "on down at its slope, to the floor at most, `ground/carry_down.py`; a wall contact,",
+             "`ground/wall_contact.py`: where a sweep's lowest wall hit sits above its next beam's hit on material or",
+             "floor, the material's height at the wall); `wall-contact` (`--empty-cells wall-contact`, the default",
+             "until 2026-12-03: the same with the rest copied level everywhere);",
+             "`nearest` (the nearest fitted",
              "cell's height, the default until this campaign); `nodes-everywhere`: the surface through the contacts",
              "in the fitted cells too; `pinned-bounded`: the fit kept, the contacts set in their unseen wall cells",
              "before `bounded` (against `bounded-nearest`: what they add as a fill alone); `bounded-<extension>`: the",
