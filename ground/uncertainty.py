@@ -157,7 +157,7 @@ DEFAULT_INTERVAL_MODEL = IntervalModel(
     k_sweeps=4.81408,
     k_faces=0.152556,
     k_blur=0.0897761,
-    source='fitted on 693 calibration runs of the evaluation set (tools/calibrate_interval.py, 2026-12-02)')
+    source='fitted on 693 calibration runs of the evaluation set (tools/calibrate_interval.py, 2026-12-03)')
 # --- end of calibrated interval model ---
 
 
