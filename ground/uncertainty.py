@@ -7,7 +7,8 @@ each a scale of the error it describes, not yet a probability):
   measured there, but the seen surface at the region's edge says how fast the ground was changing
   where the measurements stopped: a cell at distance d from the nearest seen cell may lie about
   |grad h| d above or below what the fill copied (first order, as the interpolation term is second
-  order between tracks; a flat edge gives no reason to expect a step, a flank gives a big one). The
+  order between tracks; a flat edge gives no reason to expect a step, a flank gives a big one; the edge's slope is
+  the steepest within a metre of the nearest seen cell, since the fit flattens at its very edge). The
   truth also lies between a lower bound (the floor, 0, unless a caller knows better) and an upper one
   (the roof, or the free space the beams crossed above it, ``ground.unseen``, when known). Low side:
   sum of min(|grad h| d, fill - lower bound); high side: sum of min(|grad h| d, upper bound - fill).
@@ -63,6 +64,7 @@ import numpy as np
 from scipy import ndimage
 
 from ground import smoothing
+from ground.carry_down import SLOPE_RADIUS_M
 from ground.plane_stretches import STEEPEST_PILE_DEG
 from ground.surface import Grid, fill_empty
 
@@ -151,12 +153,12 @@ def widened_interval_m3(volume_m3: float, below_m3: float, above_m3: float, extr
 
 # --- calibrated interval model (tools/calibrate_interval.py --write-model) ---
 DEFAULT_INTERVAL_MODEL = IntervalModel(
-    k_unseen=0.917522,
-    k_interpolation=1.31091,
-    k_noise=4.97886,
-    k_sweeps=4.81408,
-    k_faces=0.152556,
-    k_blur=0.0897761,
+    k_unseen=0.672646,
+    k_interpolation=1.30761,
+    k_noise=5.35003,
+    k_sweeps=0.0780106,
+    k_faces=0.67932,
+    k_blur=0.0559812,
     source='fitted on 693 calibration runs of the evaluation set (tools/calibrate_interval.py, 2026-12-03)')
 # --- end of calibrated interval model ---
 
@@ -189,17 +191,26 @@ def edge_slope(heights_fit: np.ndarray, grid: Grid) -> np.ndarray:
     return np.where(np.isfinite(heights_fit), g, np.nan)
 
 
+EDGE_SLOPE_RADIUS_M = SLOPE_RADIUS_M
+"""How far around the nearest surfaced cell the unseen term looks for the slope where sight stopped (`unseen_reach_m`):
+the `carry-down` fill's own window. At the surface's edge the fit is flattened (an estimator's window reaches past
+the last points), so the one cell's slope can read near zero on a flank that climbs on into the unseen corner."""
+
+
 def unseen_reach_m(heights_fit: np.ndarray, grid: Grid) -> np.ndarray:
-    """Per cell outside the surface, |grad h| at the nearest surfaced cell times the distance to it: how far
-    the ground there may be from the fill's copy (module docstring); 0 in surfaced cells."""
+    """Per cell outside the surface, the steepest |grad h| of the surfaced cells within EDGE_SLOPE_RADIUS_M of the
+    nearest surfaced cell, times the distance to it: how far the ground there may be from the fill's copy (module
+    docstring); 0 in surfaced cells."""
     seen = np.isfinite(heights_fit)
     out = np.zeros(heights_fit.shape)
     if seen.all() or not seen.any():
         return out
     nx, ny = heights_fit.shape
-    dist, (ix, iy) = ndimage.distance_transform_edt(~seen, sampling=(grid.length_m / nx, grid.width_m / ny),
-                                                    return_indices=True)
-    out[~seen] = (edge_slope(heights_fit, grid)[ix, iy] * dist)[~seen]
+    step_x, step_y = grid.length_m / nx, grid.width_m / ny
+    dist, (ix, iy) = ndimage.distance_transform_edt(~seen, sampling=(step_x, step_y), return_indices=True)
+    window = tuple(2 * max(0, round(EDGE_SLOPE_RADIUS_M / step)) + 1 for step in (step_x, step_y))
+    slope = ndimage.maximum_filter(np.nan_to_num(edge_slope(heights_fit, grid), nan=0.0), size=window)
+    out[~seen] = (slope[ix, iy] * dist)[~seen]
     return out
 
 

@@ -75,6 +75,24 @@ def test_that_the_unseen_term_grows_with_the_edge_slope_and_the_distance_from_th
     assert unseen_terms_m3(2 * fit - 2.0, 2 * filled - 2.0, GRID)[0] == pytest.approx(2 * expected)
 
 
+def test_that_the_unseen_term_reads_the_edges_steepest_slope_within_a_metre_not_a_flattened_last_cell():
+    """A flank whose fit goes flat in its last seen columns (an estimator's window reaching past the last points)
+    still climbs on into the unseen cells: the reach takes the flank's slope from within EDGE_SLOPE_RADIUS_M of the
+    nearest seen cell, and no slope from farther off."""
+    from ground.uncertainty import EDGE_SLOPE_RADIUS_M, unseen_reach_m
+
+    assert EDGE_SLOPE_RADIUS_M == pytest.approx(1.0)
+    slope = 0.5
+    cx, _ = GRID.centres()  # cells of 0.5 m: columns at x = 0.25, 0.75, ...
+    fit = np.where(cx < 1.5, 2.0, 2.0 + slope * (cx - 1.5))  # flat in x < 1.5 m, the flank beyond
+    fit[:2, :] = np.nan  # unseen: x < 1 m; the nearest seen column (1.25 m) reads half the flank's slope
+    reach = unseen_reach_m(fit, GRID)
+    assert reach[1, 5] == pytest.approx(slope * 0.5) and reach[0, 5] == pytest.approx(slope * 1.0)
+    far = np.where(cx < 3.0, 2.0, 2.0 + slope * (cx - 3.0))  # the flank starts 1.75 m from the nearest seen column
+    far[:2, :] = np.nan
+    assert unseen_reach_m(far, GRID)[:2].max() == pytest.approx(0.0)
+
+
 def test_that_the_floor_and_an_upper_bound_cap_the_unseen_term():
     fit = _heights_of(lambda x, y: 2.0 * x - 2.0)  # a steep flank, 0.5 m up at the first seen column (x = 1.25 m)
     fit[:2, :] = np.nan
