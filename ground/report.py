@@ -101,7 +101,7 @@ from ground.uncertainty import (
     shared_draws,
     survey_errors,
 )
-from ground.unseen import free_space_ceilings_m
+from ground.unseen import free_space_ceilings_m, passed_over
 from ground.volume_warnings import (
     DEFAULT_MAX_INTERVAL_PCT,
     faces_warning,
@@ -793,7 +793,7 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
     ceiling = shadow = None
     if needs_ceiling:  # what the beams left free above the unseen cells, and which of them a beam passed over
         own, ceiling = free_space_ceilings_m(cloud, grid, storage, err, err.angle_sigma_rad, where=unseen)
-        shadow = unseen & (own < storage.height_m)
+        shadow = unseen & passed_over(own, storage.height_m)
     heights = fill_empty(fit, opts.empty_cells, ceiling, contact_fit, grid.cell_xy_m, shadow)
     counts = grid.counts(pile)
     roof_or_ceiling = storage.height_m if ceiling is None else ceiling

@@ -205,10 +205,9 @@ def unseen_reach_m(heights_fit: np.ndarray, grid: Grid) -> np.ndarray:
     out = np.zeros(heights_fit.shape)
     if seen.all() or not seen.any():
         return out
-    nx, ny = heights_fit.shape
-    step_x, step_y = grid.length_m / nx, grid.width_m / ny
-    dist, (ix, iy) = ndimage.distance_transform_edt(~seen, sampling=(step_x, step_y), return_indices=True)
-    window = tuple(2 * max(0, round(EDGE_SLOPE_RADIUS_M / step)) + 1 for step in (step_x, step_y))
+    steps = grid.cell_xy_m
+    dist, (ix, iy) = ndimage.distance_transform_edt(~seen, sampling=steps, return_indices=True)
+    window = tuple(2 * max(0, round(EDGE_SLOPE_RADIUS_M / step)) + 1 for step in steps)
     slope = ndimage.maximum_filter(np.nan_to_num(edge_slope(heights_fit, grid), nan=0.0), size=window)
     out[~seen] = (slope[ix, iy] * dist)[~seen]
     return out

@@ -150,6 +150,13 @@ def free_space_ceilings_m(cloud: Cloud, grid: GridLike, storage: Storage, err: S
     return own, out if spread else own
 
 
+def passed_over(own_m: np.ndarray, roof_m: float) -> np.ndarray:
+    """The cells a beam passed over on its way to a hit beyond: those whose own bound (`free_space_ceilings_m`'s
+    first array) is under the roof; a cell not computed (NaN) is none."""
+    with np.errstate(invalid="ignore"):
+        return np.asarray(own_m) < roof_m
+
+
 SPREAD_RADIUS_CELLS = 2
 """`spread_down_slope` relaxes over the cells within this many of each other (a 5 x 5 neighbourhood): its path
 lengths exceed the straight line by at most ~3 % (a 3 x 3 one's by 8 %), so the bound is barely loosened."""

@@ -25,6 +25,7 @@ from firmware_py.core.storage import Storage
 from ground.pointcloud import SensorErrorModel, structure_mask
 from ground.report import ReportOptions, contact_fit_m, pile_sigma_m, survey_from_samples
 from ground.surface import (
+    CONTACT_POLICIES,
     DEFAULT_CELL_M,
     DEFAULT_SURFACE_FIT,
     Grid,
@@ -32,7 +33,14 @@ from ground.surface import (
     grid_volume,
     volume_error_pct,
 )
-from ground.unseen import Extension, beam_angle_sigma_rad, bounded_fill, free_space_ceilings_m, unseen_bounds
+from ground.unseen import (
+    Extension,
+    beam_angle_sigma_rad,
+    bounded_fill,
+    free_space_ceilings_m,
+    passed_over,
+    unseen_bounds,
+)
 from ground.wall_contact import WallContacts, contact_fill, pin_contacts, wall_contacts
 from sitl.runners.fly import FlyConfig, log_header
 from sitl.sensing.batch_sampler import sample_flight
@@ -61,7 +69,7 @@ CELL_ERROR_FILLS = ("nearest", "wall-contact", "carry-down")
 
 def _fill(name: str, heights_fit: np.ndarray, ceiling_m: np.ndarray, contacts: WallContacts, grid: Grid,
           nodes_fit: np.ndarray, shadow: np.ndarray) -> np.ndarray:
-    if name in ("wall-contact", "carry-down"):
+    if name in CONTACT_POLICIES:
         return fill_empty(heights_fit, name, ceiling_m, nodes_fit, grid.cell_xy_m, shadow)
     if name == "nodes-everywhere":
         return fill_empty(nodes_fit, "nearest")
@@ -152,11 +160,11 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
                                  ReportOptions(plots=False, empty_cells="nearest"))
         unseen = ~np.isfinite(sv.heights_fit)
         t0 = time.perf_counter()
-        own, ceiling = free_space_ceilings_m(sv.cloud, sv.grid, storage, SensorErrorModel.from_header(header),
-                                             beam_angle_sigma_rad(header), where=unseen)
-        shadow = unseen & (own < storage.height_m)  # the unseen cells a beam passed over
-        ceiling_s = time.perf_counter() - t0
         err = SensorErrorModel.from_header(header)
+        own, ceiling = free_space_ceilings_m(sv.cloud, sv.grid, storage, err, beam_angle_sigma_rad(header),
+                                             where=unseen)
+        shadow = unseen & passed_over(own, storage.height_m)
+        ceiling_s = time.perf_counter() - t0
         structure = structure_mask(sv.cloud, storage, err)
         contacts = wall_contacts(sv.cloud, structure, storage, err, sv.grid.cell_m)
         nodes_fit = contact_fit_m(sv.pile_points_w, pile_sigma_m(sv.cloud, structure, err), contacts, sv.grid, storage,
