@@ -159,8 +159,8 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
         sv = survey_from_samples(samples, header, storage, cfg.frame, np.array(cfg.lever_arm_body_m),
                                  ReportOptions(plots=False, empty_cells="nearest"))
         unseen = ~np.isfinite(sv.heights_fit)
-        t0 = time.perf_counter()
         err = SensorErrorModel.from_header(header)
+        t0 = time.perf_counter()
         own, ceiling = free_space_ceilings_m(sv.cloud, sv.grid, storage, err, beam_angle_sigma_rad(header),
                                              where=unseen)
         shadow = unseen & passed_over(own, storage.height_m)

@@ -87,7 +87,8 @@ def test_that_the_unseen_term_reads_the_edges_steepest_slope_within_a_metre_not_
     fit = np.where(cx < 1.5, 2.0, 2.0 + slope * (cx - 1.5))  # flat in x < 1.5 m, the flank beyond
     fit[:2, :] = np.nan  # unseen: x < 1 m; the nearest seen column (1.25 m) reads half the flank's slope
     reach = unseen_reach_m(fit, GRID)
-    assert reach[1, 5] == pytest.approx(slope * 0.5) and reach[0, 5] == pytest.approx(slope * 1.0)
+    assert reach[1, 5] == pytest.approx(slope * 0.5)
+    assert reach[0, 5] == pytest.approx(slope * 1.0)
     far = np.where(cx < 3.0, 2.0, 2.0 + slope * (cx - 3.0))  # the flank starts 1.75 m from the nearest seen column
     far[:2, :] = np.nan
     assert unseen_reach_m(far, GRID)[:2].max() == pytest.approx(0.0)
