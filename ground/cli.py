@@ -76,7 +76,10 @@ def build_parser() -> ArgumentParser:
                         "material's height where the sweeps saw it meet a wall, ground/wall_contact.py, then the "
                         "nearest height, held under the free-space ceiling; in the unseen cells a beam passed over, "
                         "where the seen surface falls towards them, its slope carried on down, to the floor at most, "
-                        "ground/carry_down.py), wall-contact (the same, the rest copied level), nearest (extend the "
+                        "ground/carry_down.py), wall-strip (the same, with the cells along a wall that no point "
+                        "reached left to the fill where the wall contacts contradict the fit across them, "
+                        "ground/wall_strip.py), "
+                        "wall-contact (as carry-down, the rest copied level), nearest (extend the "
                         "surface to the walls with the nearest height), bounded (the nearest height held between the "
                         "floor and the free-space ceiling: the lowest beam that crossed above the cell, or one near it "
                         "plus 45 deg of slope, ground/unseen.py) or leave (no volume there, the paper's method)")

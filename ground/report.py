@@ -80,6 +80,7 @@ from ground.surface import (
     DEFAULT_EMPTY_CELLS,
     DEFAULT_SURFACE_FIT,
     MEASURED_MAX_CELL_M,
+    STRIP_POLICIES,
     Grid,
     clip_to_building,
     fill_empty,
@@ -113,6 +114,7 @@ from ground.volume_warnings import (
     wide_interval_warning,
 )
 from ground.wall_contact import WallContacts, contact_ceiling_m, contact_nodes, wall_contacts
+from ground.wall_strip import contradicted_strip
 
 LOW_COVERAGE_PCT = 95.0
 HIGH_EXCLUDED_FRACTION = 0.5
@@ -782,10 +784,15 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
     spread = face_spread_m(grid, typical, n_sigma)
     if pile_dir is not None:
         disagreement, _ = sweep_disagreement_m(pile, pile_dir, grid, spread)
-    unseen = ~np.isfinite(fit)
     contact_fit = contact_top = None  # the surface through the points and the wall contacts, and their tops
+    counts = grid.counts(pile)
+    contacts = None
     if opts.empty_cells in CONTACT_POLICIES:
         contacts = wall_contacts(cloud, structure, storage, err, grid.cell_m)
+        if opts.empty_cells in STRIP_POLICIES:  # the hull's bridge along a wall the contacts contradict: the fill's
+            fit = np.where(contradicted_strip(fit, counts, contacts, grid, n_sigma * typical), np.nan, fit)
+    unseen = ~np.isfinite(fit)
+    if contacts is not None:
         contact_top = contact_ceiling_m(contacts, grid.x_edges, grid.y_edges)
         if unseen.any():  # only the unseen cells take it: fit it from the nodes that shape it there
             contact_fit = contact_fit_m(pile, sigma, contacts, grid, storage, opts.surface_fit, wanted=unseen)
@@ -795,7 +802,6 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
         own, ceiling = free_space_ceilings_m(cloud, grid, storage, err, err.angle_sigma_rad, where=unseen)
         shadow = unseen & passed_over(own, storage.height_m)
     heights = fill_empty(fit, opts.empty_cells, ceiling, contact_fit, grid.cell_xy_m, shadow)
-    counts = grid.counts(pile)
     roof_or_ceiling = storage.height_m if ceiling is None else ceiling
     if contact_top is not None:  # the contacts bound the unseen cells at the walls too
         roof_or_ceiling = np.fmin(np.broadcast_to(roof_or_ceiling, grid.shape), contact_top)

@@ -35,7 +35,8 @@ policy:
   (as ``bounded``: what a beam passed over, carried at the steepest slope the ground may have to the cells
   around). ``carry-down`` (default) is the same, but in the unseen cells a beam passed over (shadows) where the seen
   surface falls towards them, that rest is carried on down at its slope, to the floor at most, instead of copied
-  level (`ground.carry_down`).
+  level (`ground.carry_down`). ``wall-strip`` is ``carry-down`` with the strip along each wall that no point reached
+  taken as unseen where the wall contacts either side contradict the fit there (the hull's bridge: `ground.wall_strip`).
   The fitted cells keep the points' own fit,
   and R_a and the interval's unseen term are the points' own: the contacts are bounded estimates, not
   measured pile points.
@@ -67,9 +68,14 @@ DEFAULT_SURFACE_FIT = "local-linear"
 """docs/surface_estimators.md: on 414 runs of the evaluation set the interpolants read 2-9 % low under the
 rangefinder's own datasheet noise (range noise moves a point along its beam, which couples its height error to
 its position); the local regression does not (docs/design-notes.md, "The default surface is estimated")."""
-EMPTY_CELL_POLICIES = ("nearest", "leave", "bounded", "wall-contact", "carry-down")
-CONTACT_POLICIES = ("wall-contact", "carry-down")
+EMPTY_CELL_POLICIES = ("nearest", "leave", "bounded", "wall-contact", "carry-down", "wall-strip")
+CONTACT_POLICIES = ("wall-contact", "carry-down", "wall-strip")
 """The policies that take the unseen cells from the surface through the points and the wall contacts first."""
+CARRY_DOWN_POLICIES = ("carry-down", "wall-strip")
+"""The policies that carry the rest down the seen slope in the shadows (`ground.carry_down`). `wall-strip` also
+takes the strip along each wall that no point reached as unseen where the wall contacts contradict the fit there
+(`ground.wall_strip`)."""
+STRIP_POLICIES = ("wall-strip",)
 DEFAULT_EMPTY_CELLS = "carry-down"
 """On the evaluation set's 1,449 pile runs better than `wall-contact` (|Ve| by more than 0.05 pp) on 133, worse on
 23; docs/unseen.md: equal or better on 15 of its 16 rows (docs/design-notes.md, "The unseen fill carried down the
@@ -256,8 +262,8 @@ def fill_empty(heights: np.ndarray, policy: str, ceiling_m: np.ndarray | None = 
     level as ``wall-contact`` does), which needs the grid's cell sides, cell_xy_m (`Grid.cell_xy_m`)."""
     if policy not in EMPTY_CELL_POLICIES:
         raise ValueError(f"empty-cell policy must be one of {', '.join(EMPTY_CELL_POLICIES)}, got {policy!r}")
-    if policy == "carry-down" and cell_xy_m is None:
-        raise ValueError("the carry-down empty-cell policy needs the grid's cell sides (cell_xy_m)")
+    if policy in CARRY_DOWN_POLICIES and cell_xy_m is None:
+        raise ValueError(f"the {policy} empty-cell policy needs the grid's cell sides (cell_xy_m)")
     empty = ~np.isfinite(heights)
     if policy == "leave" or not empty.any() or empty.all():
         return heights
@@ -266,7 +272,7 @@ def fill_empty(heights: np.ndarray, policy: str, ceiling_m: np.ndarray | None = 
         from ground.wall_contact import CONTACT_REST
         extended = heights if contact_fit_m is None else np.where(empty, contact_fit_m, heights)
         filled = (carry_down(extended, *cell_xy_m, where=np.zeros(heights.shape, bool) if shadow is None else shadow)
-                  if policy == "carry-down" else fill_empty(extended, CONTACT_REST, ceiling_m))
+                  if policy in CARRY_DOWN_POLICIES else fill_empty(extended, CONTACT_REST, ceiling_m))
         if ceiling_m is None:
             return filled
         from ground.unseen import upper_bound_m
