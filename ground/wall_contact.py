@@ -62,6 +62,8 @@ class WallContacts:
             the wall hit the floor (the floor runs to the wall: a bare foot).
         low_m, high_m: (n,) the material's height at the wall there lies in [low, high] (noise included).
         wall: (n,) which wall: 0 x = 0, 1 x = length, 2 y = 0, 3 y = width.
+        leans_as_measured: (n,) the material's last hit short of the wall is no higher than the wall hit above it
+            as measured, without the leaning test's noise allowance (None: all are taken to be).
     """
 
     xy_m: np.ndarray
@@ -69,9 +71,21 @@ class WallContacts:
     low_m: np.ndarray
     high_m: np.ndarray
     wall: np.ndarray
+    leans_as_measured: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.low_m)
+
+    def measured_leaning(self) -> WallContacts:
+        """The contacts whose material leans on the wall as measured (`leans_as_measured`). The leaning test's noise
+        allowance lets a pair of beams across a crest metres from the wall pass under a large pointing error (1 deg
+        at 30 m: metres), so these are the contacts to take a fitted cell away on (`ground.wall_strip`); the fill
+        keeps them all, since a missed contact costs it evidence along a whole wall (docs/design-notes.md, "The
+        wall strip")."""
+        if self.leans_as_measured is None:
+            return self
+        k = np.asarray(self.leans_as_measured, dtype=bool)
+        return WallContacts(self.xy_m[k], self.height_m[k], self.low_m[k], self.high_m[k], self.wall[k], k[k])
 
 
 def _walls(storage: Storage) -> tuple[tuple[int, float], ...]:
@@ -153,6 +167,7 @@ def wall_contacts(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
     sig_last = vertical_sigma_m(err.range_sigma(r[last]), err.resolution_m, err.position_sigma_m,
                                 err.angle_sigma_rad, r[last], d[last])
     leaning = p[last, 2] <= p[w_est, 2] + k * (sig_last + sig_w)
+    as_measured = p[last, 2] <= p[w_est, 2]
     # The two beams locate the contact to their spacing at the wall; where that is coarser than both the
     # noise's own width and what a cell can hold, the lowest wall hit is only an upper bound (a 1-in-20
     # sample log of pile 1 put 1-4 m of material at walls where the truth is 0.05 m).
@@ -161,7 +176,7 @@ def wall_contacts(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
     xy = np.where((axis == 0)[:, None], np.column_stack([pos, a]), np.column_stack([a, pos]))
     keep = below & leaning & resolved
     return WallContacts(xy[keep], np.clip(estimate[keep], low[keep], high[keep]), low[keep], high[keep],
-                        wall[w][keep].astype(np.int64))
+                        wall[w][keep].astype(np.int64), as_measured[keep])
 
 
 def _first_on_plane(p: np.ndarray, d: np.ndarray, r: np.ndarray, err: SensorErrorModel, w: np.ndarray,

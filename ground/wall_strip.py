@@ -14,7 +14,10 @@ two contacts allow, at a distance d from each: the ground may rise or fall at mo
 each contact's bounds, and between them it may dip to the lower or rise to the higher: [min(low - S d), max(high +
 S d)] over the two. The contacts' own bounds hold their noise; the fit's noise is the slack the caller gives (its
 points' sigmas). A cell beyond the last contact on its wall has no pair and is left as fitted: one contact says
-nothing about where the material ends (the bay pile's vertical ends).
+nothing about where the material ends (the bay pile's vertical ends). Only contacts whose material leans on the
+wall as measured judge the strip (`WallContacts.measured_leaning`): under Appendix A's pointing error the leaning
+test's allowance lets false contacts through, 4-8 m up a wall behind a crest, and on them the rule took fitted cells
+and filled them metres high (measured: docs/design-notes.md).
 """
 
 from __future__ import annotations
@@ -76,11 +79,13 @@ def contact_band_m(contacts: WallContacts, grid: Grid, where: np.ndarray) -> tup
 def contradicted_strip(fit: np.ndarray, counts: np.ndarray, contacts: WallContacts, grid: Grid,
                        slack_m: float) -> np.ndarray:
     """(nx, ny) True for the strip cells (`strip_cells`) whose fitted height lies more than slack_m outside the
-    band their contacts allow (`contact_band_m`): the hull's bridge, for the fill to decide instead."""
+    band their contacts allow (`contact_band_m`): the hull's bridge, for the fill to decide instead. Only the contacts
+    whose material leans on the wall as measured judge it (`WallContacts.measured_leaning`): a false contact would
+    take a fitted cell and fill it metres high."""
     fit = np.asarray(fit, dtype=float)
     strip = strip_cells(counts, grid) & np.isfinite(fit)
     if not len(contacts) or not strip.any():
         return np.zeros(fit.shape, dtype=bool)
-    low, high = contact_band_m(contacts, grid, strip)
+    low, high = contact_band_m(contacts.measured_leaning(), grid, strip)
     with np.errstate(invalid="ignore"):
         return strip & ((fit < low - slack_m) | (fit > high + slack_m))

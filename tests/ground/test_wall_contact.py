@@ -243,3 +243,25 @@ def test_that_a_crest_short_of_the_wall_seen_low_behind_it_makes_no_contact():
     assert wall_seen_low.any()  # the wall is seen below the crest's height, behind it
     c = contacts_of(cloud, IDEAL)
     assert np.all(c.height_m == 0.0)
+
+
+def test_that_a_crest_a_pointing_error_lets_pass_as_leaning_is_not_leaning_as_measured():
+    """A crest 3 m high, 2.5 m from the wall, seen over by a beam that meets the wall near 2 m: the ground behind it
+    falls to the floor unseen. A sensor model stating a 1 deg pointing error lets the pair pass the leaning test
+    within its noise allowance (a false contact 2 m up the wall, as measured under Appendix A's noise); it is
+    flagged as not leaning as measured, and `measured_leaning` leaves it out."""
+    def crest(x, y):
+        return np.clip(3.0 - 1.5 * np.abs(x - 2.5), 0.0, None)
+
+    pointing = SensorErrorModel(resolution_m=0.01, angle_sigma_rad=np.radians(1.0))
+    cloud = swept_cloud(crest, sensor_x=12.0, sensor_z=7.0, step_deg=0.25)
+    c = wall_contacts(cloud, structure_mask(cloud, STORAGE, pointing), STORAGE, pointing, CELL_M)
+    assert len(c) == 5 and np.all(c.height_m > 1.0)  # the false contacts the allowance lets through (truth: 0)
+    assert not c.leans_as_measured.any()
+    assert len(c.measured_leaning()) == 0
+
+
+def test_that_a_wedge_leans_on_the_wall_as_measured():
+    c = contacts_of(swept_cloud(wedge_m(3.0)), IDEAL)
+    assert len(c) == 5 and c.leans_as_measured.all()
+    assert len(c.measured_leaning()) == 5
