@@ -66,8 +66,16 @@ def test_that_a_servo_that_does_not_move_fails_the_preflight_on_the_console_and_
     cfg = payload_config(tmp_path, autopilot.url)
     res = PayloadApp(cfg, err=None).preflight(1.0)
     assert not res.passed and "servo sweep" in res.named(Verdict.FAIL)
-    assert res.lines()[-1] == "preflight FAILED: servo sweep"
-    assert autopilot.wait_for(lambda: "pilescan: preflight FAIL: servo sweep" in autopilot.spy.texts())
+    # The servo is what this test holds down. The pose's rates are the machine's: on a machine loaded several times
+    # over, the rig's autopilot thread starves and fewer than half the samples get a fresh pose (the pose check then
+    # fails too, rightly: measured once, "preflight FAILED: pose, servo sweep"), so the lines name the servo among
+    # the failures rather than alone.
+    last = res.lines()[-1]
+    assert last.startswith("preflight FAILED: ")
+    assert "servo sweep" in last.removeprefix("preflight FAILED: ").split(", ")
+    assert set(res.named(Verdict.FAIL)) <= {"servo sweep", "pose"}
+    assert autopilot.wait_for(lambda: any(t.startswith("pilescan: preflight FAIL: ") and "servo sweep" in t
+                                          for t in autopilot.spy.texts()))
 
 
 def test_that_a_silent_autopilot_and_an_existing_log_fail_while_the_sensor_and_servo_are_still_checked(
