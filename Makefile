@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: demo test lint bench pi-check clean
+.PHONY: demo test lint bench pages pi-check clean
 
 # uv installs the same packages from the same registry in 13 s where pip takes 46 s; where uv
 # cannot be had (an offline mirror that lacks it, say) pip does the whole install. Byte-compiled, as pip does:
@@ -47,6 +47,9 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m tools.bench_ground
+
+pages: $(STAMP)  # every generated page again, after a change of the volumes (hours; resumable: tools/regenerate.py)
+	$(BIN)/python -m tools.regenerate
 
 pi-check: $(STAMP)  # the Raspberry Pi install: wheel, aarch64 resolution, payload-only venv and its tests
 	$(BIN)/python -m tools.check_pi_install
