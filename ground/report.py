@@ -180,6 +180,8 @@ class Survey:
     structure: np.ndarray | None = None  # the cloud's points taken as wall, roof or glitch (pointcloud.structure_mask)
     floor: FloorLevel | None = None  # the floor's level as the sweeps saw it (ground.floor_check; None: not seen)
     lever_arm_body_m: np.ndarray | None = None  # the lever arm the points were placed with (header's or --lever-arm's)
+    heights_hull: np.ndarray | None = None  # the points' own fit over their hull, before `wall-strip` left the strip
+    # cells its contacts contradict to the fill (ground.wall_strip); None: heights_fit is that fit
 
 
 def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
@@ -786,10 +788,11 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
         disagreement, _ = sweep_disagreement_m(pile, pile_dir, grid, spread)
     contact_fit = contact_top = None  # the surface through the points and the wall contacts, and their tops
     counts = grid.counts(pile)
-    contacts = None
+    contacts = hull_fit = None
     if opts.empty_cells in CONTACT_POLICIES:
         contacts = wall_contacts(cloud, structure, storage, err, grid.cell_m)
         if opts.empty_cells in STRIP_POLICIES:  # the hull's bridge along a wall the contacts contradict: the fill's
+            hull_fit = fit
             fit = np.where(contradicted_strip(fit, counts, contacts, grid, n_sigma * typical), np.nan, fit)
     unseen = ~np.isfinite(fit)
     if contacts is not None:
@@ -813,7 +816,7 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
         return survey_errors(pile, pile_dir, fit, heights, counts, grid, typical, n_sigma, upper_m=roof_or_ceiling,
                              mask=mask, shared=shared)
     return Survey(cloud, pile, grid, fit, heights, counts, storage, n_clipped, disagreement, errors=errors_in(),
-                  face_spread_m=spread, errors_in=errors_in, structure=structure)
+                  face_spread_m=spread, errors_in=errors_in, structure=structure, heights_hull=hull_fit)
 
 
 def sensor_noise_line(header: dict) -> str:

@@ -271,9 +271,11 @@ shadows, which `fill_empty` alone cannot see (each would give another policy's f
 
 def _metrics(sv, true_m3: float) -> dict:
     """Ve under each empty-cell policy (`SWEPT_POLICIES`): the default's is the survey's heights as the report
-    filled them, the others' the fitted heights filled again."""
+    filled them, the others' the points' own fit over their hull filled again (`Survey.heights_hull`: before the
+    `wall-strip` rule left strip cells to its fill, which those policies do not)."""
+    own = sv.heights_fit if sv.heights_hull is None else sv.heights_hull
     out = {f"ve_{pol}_pct": volume_error_pct(grid_volume(
-        sv.heights if pol == DEFAULT_EMPTY_CELLS else fill_empty(sv.heights_fit, pol), sv.grid), true_m3)
+        sv.heights if pol == DEFAULT_EMPTY_CELLS else fill_empty(own, pol), sv.grid), true_m3)
         for pol in SWEPT_POLICIES}
     out["ra_pct"] = reconstructed_ratio_pct(sv.heights_fit)
     out["cells_clipped"] = sv.n_cells_clipped

@@ -162,6 +162,15 @@ def test_that_the_wall_strip_fill_changes_only_strip_cells(bay_flight):
     assert strip_cells(carry.counts, carry.grid)[taken].all()
 
 
+def test_that_the_wall_strip_survey_keeps_the_points_own_fit_over_their_hull(bay_flight):
+    """Other policies compared on the same survey (Table 2's columns) fill the points' own fit, not the one the strip
+    rule emptied."""
+    _, _, surveys = bay_flight
+    carry, strip = surveys["carry-down"], surveys["wall-strip"]
+    assert carry.heights_hull is None
+    assert np.array_equal(strip.heights_hull, carry.heights_fit, equal_nan=True)
+
+
 def true_heights(world: World, grid: Grid) -> np.ndarray:
     """The pile's true height at every cell centre (a beam cast down from under the roof)."""
     cx, cy = grid.centres()
