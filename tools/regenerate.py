@@ -131,7 +131,7 @@ def load_state(path: Path) -> dict:
     except (OSError, ValueError) as exc:
         raise SystemExit(f"regenerate: {path} is not a state this tool wrote ({exc}): remove it or run with --fresh") \
             from None
-    if not isinstance(state, dict):
+    if not isinstance(state, dict) or not all(isinstance(v, dict) for v in state.values()):
         raise SystemExit(f"regenerate: {path} is not a state this tool wrote: remove it or run with --fresh")
     return state
 

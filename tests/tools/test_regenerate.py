@@ -78,8 +78,9 @@ def test_that_the_kept_pose_reports_are_moved_aside_and_the_flights_stay(tmp_pat
     assert (tmp_path / "aside" / "pose__flow-1-20-0--true-height").is_dir()
 
 
-def test_that_a_damaged_state_is_a_clear_error(tmp_path):
-    (tmp_path / "state.json").write_text("{not json")
+@pytest.mark.parametrize("text", ["{not json", "[1, 2]", '{"interval": 3}'])
+def test_that_a_damaged_state_is_a_clear_error(tmp_path, text):
+    (tmp_path / "state.json").write_text(text)
     with pytest.raises(SystemExit, match="not a state this tool wrote"):
         load_state(tmp_path / "state.json")
 
