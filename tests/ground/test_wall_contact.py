@@ -136,17 +136,33 @@ def test_that_pinned_contacts_fill_only_unseen_cells():
 FLOWN = Storage(30.0, 20.0, 10.0)
 
 
-@pytest.fixture(scope="module")
-def corner_flight():
-    """A corner pile (seed 0, top 6 m) flown at 8 m, P_traj 40 %, by the ideal plant, one servo phase."""
-    shape = make_shape("corner", FLOWN, 6.0, 0)
-    cfg = replace(FlyConfig(mission=Mission(storage=FLOWN, altitude_m=8.0, p_traj=0.40)), initial_position=5)
+def ideal_flight(family: str, top_m: float, seed: int, p_traj: float, initial_position: int):
+    """A pile of the family flown at 8 m in FLOWN by the ideal plant, one servo phase: (shape, cfg, world, samples,
+    header)."""
+    shape = make_shape(family, FLOWN, top_m, seed)
+    cfg = replace(FlyConfig(mission=Mission(storage=FLOWN, altitude_m=8.0, p_traj=p_traj)),
+                  initial_position=initial_position)
     plant = IdealPlant(cfg.mission, StorageFrame())
     t = np.arange(int(plant.duration_s * cfg.lidar.rate_hz) + 1) / cfg.lidar.rate_hz
     wf = cfg.servo_waveform()
     world = World(FLOWN, shape.pile, cfg.lidar.max_range_m)
     samples = sample_flight(plant.states(t), wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame, seed=[0])
     return shape, cfg, world, samples, log_header(cfg, wf)
+
+
+def true_heights(world: World, grid) -> np.ndarray:
+    """The pile's true height at every cell centre of grid (a beam cast down from under FLOWN's roof)."""
+    cx, cy = grid.centres()
+    top = FLOWN.height_m - 1e-3
+    r = world.cast(np.column_stack([cx.ravel(), cy.ravel(), np.full(cx.size, top)]),
+                   np.tile([0.0, 0.0, -1.0], (cx.size, 1)), max_range_m=2 * FLOWN.height_m).range_m
+    return np.clip(top - np.nan_to_num(r, nan=top), 0.0, None).reshape(cx.shape)
+
+
+@pytest.fixture(scope="module")
+def corner_flight():
+    """A corner pile (seed 0, top 6 m) flown at 8 m, P_traj 40 %, by the ideal plant, one servo phase."""
+    return ideal_flight("corner", 6.0, 0, 0.40, 5)
 
 
 @pytest.fixture(scope="module")
@@ -168,12 +184,7 @@ def test_that_the_wall_contact_fill_of_a_flown_corner_pile_beats_nearest(corner_
                                ReportOptions(plots=False, empty_cells="nearest"))
     wall = wall_contact_survey
     assert np.array_equal(near.heights_fit, wall.heights_fit, equal_nan=True)  # the same fit: only the fill differs
-    cx, cy = near.grid.centres()
-    top = FLOWN.height_m - 1e-3
-    down = np.tile([0.0, 0.0, -1.0], (cx.size, 1))
-    r = world.cast(np.column_stack([cx.ravel(), cy.ravel(), np.full(cx.size, top)]), down,
-                   max_range_m=2 * FLOWN.height_m).range_m
-    truth = np.clip(top - np.nan_to_num(r, nan=top), 0.0, None).reshape(cx.shape)
+    truth = true_heights(world, near.grid)
     unseen = ~np.isfinite(near.heights_fit)
     missing_near = float((truth - near.heights)[unseen].sum())
     missing_wall = float((truth - wall.heights)[unseen].sum())

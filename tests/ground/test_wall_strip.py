@@ -6,19 +6,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from firmware_py.core.frames import StorageFrame
-from firmware_py.core.storage import Storage
 from ground.report import ReportOptions, survey_from_samples
 from ground.surface import Grid, grid_volume
 from ground.unseen import MAX_SLOPE
 from ground.wall_contact import WallContacts
 from ground.wall_strip import contact_band_m, contradicted_strip, nearest_wall, strip_cells
-from sitl.missions.rectangle import Mission
-from sitl.runners.fly import FlyConfig, log_header
-from sitl.sensing.batch_sampler import sample_flight
-from sitl.vehicle.ideal_plant import IdealPlant
-from sitl.world.raycast import World
-from sitl.world.shapes import make_shape
+from tests.ground.test_wall_contact import FLOWN, ideal_flight, true_heights
 
 GRID = Grid(10.0, 6.0, 0.5)  # 20 x 12 cells
 
@@ -118,21 +111,12 @@ def test_that_no_contacts_contradict_nothing():
     assert not contradicted_strip(fit, counts_from_row(1), none, GRID, slack_m=0.0).any()
 
 
-FLOWN = Storage(30.0, 20.0, 10.0)
-
-
 @pytest.fixture(scope="module")
 def bay_flight():
     """A bay pile (a prism flat on top up to the back wall, seed 1) flown at 8 m, P_traj 20 %, by the ideal plant."""
-    shape = make_shape("bay", FLOWN, 4.0, 1)
-    cfg = replace(FlyConfig(mission=Mission(storage=FLOWN, altitude_m=8.0, p_traj=0.20)), initial_position=6)
-    plant = IdealPlant(cfg.mission, StorageFrame())
-    t = np.arange(int(plant.duration_s * cfg.lidar.rate_hz) + 1) / cfg.lidar.rate_hz
-    wf = cfg.servo_waveform()
-    world = World(FLOWN, shape.pile, cfg.lidar.max_range_m)
-    samples = sample_flight(plant.states(t), wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame, seed=[0])
-    surveys = {pol: survey_from_samples(samples, log_header(cfg, wf), FLOWN, cfg.frame,
-                                        np.array(cfg.lever_arm_body_m), ReportOptions(plots=False, empty_cells=pol))
+    shape, cfg, world, samples, header = ideal_flight("bay", 4.0, 1, 0.20, 6)
+    surveys = {pol: survey_from_samples(samples, header, FLOWN, cfg.frame, np.array(cfg.lever_arm_body_m),
+                                        ReportOptions(plots=False, empty_cells=pol))
                for pol in ("carry-down", "wall-strip")}
     return shape, world, surveys
 
@@ -170,11 +154,3 @@ def test_that_the_wall_strip_survey_keeps_the_points_own_fit_over_their_hull(bay
     assert carry.heights_hull is None
     assert np.array_equal(strip.heights_hull, carry.heights_fit, equal_nan=True)
 
-
-def true_heights(world: World, grid: Grid) -> np.ndarray:
-    """The pile's true height at every cell centre (a beam cast down from under the roof)."""
-    cx, cy = grid.centres()
-    top = FLOWN.height_m - 1e-3
-    r = world.cast(np.column_stack([cx.ravel(), cy.ravel(), np.full(cx.size, top)]),
-                   np.tile([0.0, 0.0, -1.0], (cx.size, 1)), max_range_m=2 * FLOWN.height_m).range_m
-    return np.clip(top - np.nan_to_num(r, nan=top), 0.0, None).reshape(cx.shape)
