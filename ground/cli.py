@@ -72,13 +72,13 @@ def build_parser() -> ArgumentParser:
     r.add_argument("--cell", type=finite_float, default=DEFAULT_CELL_M, metavar="M",
                    help=f"grid cell side for eq. (7), m (default {DEFAULT_CELL_M})")
     r.add_argument("--empty-cells", choices=EMPTY_CELL_POLICIES, default=DEFAULT_EMPTY_CELLS,
-                   help="cells outside the fitted surface: carry-down (default: the surface carried to the "
+                   help="cells outside the fitted surface: wall-strip (default: the surface carried to the "
                         "material's height where the sweeps saw it meet a wall, ground/wall_contact.py, then the "
                         "nearest height, held under the free-space ceiling; in the unseen cells a beam passed over, "
                         "where the seen surface falls towards them, its slope carried on down, to the floor at most, "
-                        "ground/carry_down.py), wall-strip (the same, with the cells along a wall that no point "
-                        "reached left to the fill where the wall contacts contradict the fit across them, "
-                        "ground/wall_strip.py), "
+                        "ground/carry_down.py; the cells along a wall that no point reached left to that fill where "
+                        "the wall contacts contradict the points' fit across them, ground/wall_strip.py), "
+                        "carry-down (the same without the wall strip), "
                         "wall-contact (as carry-down, the rest copied level), nearest (extend the "
                         "surface to the walls with the nearest height), bounded (the nearest height held between the "
                         "floor and the free-space ceiling: the lowest beam that crossed above the cell, or one near it "

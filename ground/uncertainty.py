@@ -153,12 +153,12 @@ def widened_interval_m3(volume_m3: float, below_m3: float, above_m3: float, extr
 
 # --- calibrated interval model (tools/calibrate_interval.py --write-model) ---
 DEFAULT_INTERVAL_MODEL = IntervalModel(
-    k_unseen=0.672646,
-    k_interpolation=1.30761,
-    k_noise=5.35003,
-    k_sweeps=0.0780106,
-    k_faces=0.67932,
-    k_blur=0.0559812,
+    k_unseen=0.685987,
+    k_interpolation=1.62505,
+    k_noise=4.74928,
+    k_sweeps=6.25546,
+    k_faces=1.75061,
+    k_blur=0.11693,
     source='fitted on 693 calibration runs of the evaluation set (tools/calibrate_interval.py, 2026-12-03)')
 # --- end of calibrated interval model ---
 

@@ -266,9 +266,9 @@ def flown_jsbsim(mission, cache_dir: Path) -> FlownMission:
     return flown
 
 
-COMPARE_VERSION = "2"
+COMPARE_VERSION = "3"
 """Bump when the survey of a cached flight changes (the ground station's defaults, the sampler). 2: the `carry-down`
-fill is the default."""
+fill is the default; 3: the `wall-strip` fill is the default."""
 
 
 def cached_survey(cache_dir: Path, flown: FlownMission, mission, pile: str, stockpile: str,

@@ -10,13 +10,15 @@ other, a few hours of work on a 2-core machine, and can be stopped and resumed:
     python -m tools.regenerate --fresh           # forget what was done and run them all
     python -m tools.regenerate --only results noise
 
-The order is the dependencies': the interval's factors are in every report, so it comes first; the pose campaigns
-report their kept flights again (their old reports are moved aside by the `pose-reports-aside` step, since
-`--reuse` keeps an uncorrected report it finds); the pose interval is fitted on the campaigns' corrected reports;
-docs/noise.md, the longest, comes last. A step that fails stops the run (`--keep-going` goes on): a later step may
-read what it should have written. Each step's output goes to its own log in the state folder; the state records
-what is done, so a session cut short resumes where it stopped. The prose around the generated sections (README's
-summaries of the pose campaigns, the design notes) is not a tool's: read it against the new pages by hand.
+The order is the dependencies': the evaluation set's runs first (a fresh checkout has none; its rows and page keep
+their own cache key, so this step only flies and samples what is missing); the interval's factors are in every
+report, so they come next; the pose campaigns report their kept flights again (their old reports are moved aside by
+the `pose-reports-aside` step, since `--reuse` keeps an uncorrected report it finds); the pose interval is fitted on
+the campaigns' corrected reports; docs/noise.md, the longest, comes last. A step that fails stops the run
+(`--keep-going` goes on): a later step may read what it should have written. Each step's output goes to its own log
+in the state folder; the state records what is done, so a session cut short resumes where it stopped. The prose
+around the generated sections (README's summaries of the pose campaigns, the design notes) is not a tool's: read it
+against the new pages by hand.
 """
 
 from __future__ import annotations
@@ -55,6 +57,9 @@ def _step(name: str, command: str, pages: str, about: str = "") -> Step:
 
 
 STEPS: tuple[Step, ...] = (
+    _step("evalset", "tools.evalset --jobs 2 --no-progress", "",
+          "the evaluation set's stored runs, which the interval is fitted on (about 25 min on a fresh checkout, "
+          "seconds when runs/evalset holds them)"),
     _step("interval", "tools.calibrate_interval --jobs 2 --write docs/uncertainty.md --write-model --readme README.md "
           "--rows docs/interval-rows.csv", "docs/uncertainty.md ground/uncertainty.py README.md docs/interval-rows.csv",
           "the interval's factors, fitted on the evaluation set (about 20 min)"),
@@ -66,6 +71,8 @@ STEPS: tuple[Step, ...] = (
           "--spot 1,20,datasheet,0 --spot 2,20,appendix-a,0 --spot 2,20,datasheet,0 --spot 1,30,datasheet,0 "
           "--spot 2,5,appendix-a,0 --spot 1,5,appendix-a,0", "docs/results.md", "the sensor-noise table"),
     _step("unseen", "tools.unseen_campaign", "docs/unseen.md", "the unseen fills on corner and wall-end piles"),
+    _step("cell-sensitivity", "tools.cell_sensitivity --write docs/cell_sensitivity.md", "docs/cell_sensitivity.md",
+          "the volume against the grid's cell, per fill (MEASURED_MAX_CELL_M is read off it)"),
     Step("pose-reports-aside", None, (), "the pose campaigns' kept reports moved aside, to be made again"),
     _step("pose", "tools.pose_correction_campaign --seeds 0 1 2 3 4 5 --piles 1 2 --p-traj 5 20 --keep runs/pose "
           "--reuse --write docs/pose_error.md", "docs/pose_error.md"),

@@ -72,9 +72,10 @@ DISCUSSION = [
     "are generated the same way and match its volumes (7,206.9 and 8,838.4 m³ against 7,193.5 and 8,763.6 m³), not "
     "its shapes. Every wall of our pile 2 carries material, so the paper's `leave` policy (no volume outside the "
     "fitted surface) loses a strip along each wall there; `nearest` extends the surface to the walls, and the "
-    "default `carry-down` carries it to where the sweeps saw the material meet each wall, and down the seen slope "
-    "into the shadows behind the crests (it matters on pile 2, with material along every wall; pile 1 stays clear "
-    "of the walls).",
+    "default `wall-strip` carries it to where the sweeps saw the material meet each wall, and down the seen slope "
+    "into the shadows behind the crests, and takes the strip along a wall that no point reached from the wall "
+    "contacts either side where they contradict the points' fit across it (it matters on pile 2, with material "
+    "along every wall; pile 1 stays clear of the walls).",
     "- **Lower 1D errors than the paper overall.** Our sensing is ideal (no noise; Appendix A's noise is the separate "
     "`noise` experiment), and the JSBSim vehicle holds its altitude within 5 cm and flies the legs at 1.00 m/s, so "
     "what remains is blind spots. The trends the paper reports still show; the absolute values are smaller.",

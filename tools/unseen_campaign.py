@@ -28,6 +28,7 @@ from ground.surface import (
     CONTACT_POLICIES,
     DEFAULT_CELL_M,
     DEFAULT_SURFACE_FIT,
+    STRIP_POLICIES,
     Grid,
     fill_empty,
     grid_volume,
@@ -54,16 +55,18 @@ FIXTURE_RESOLUTION_M = 0.25
 """Vertex spacing of the fixture piles' meshes (the paper piles' spacing)."""
 P_TRAJ_PCT = (20, 30)
 PILES = ("corner", "wall-end", "1", "2")
-FILLS = ("nearest", "wall-contact", "carry-down", "nodes-everywhere", "pinned-bounded", "bounded-nearest",
+FILLS = ("nearest", "wall-contact", "carry-down", "wall-strip", "nodes-everywhere", "pinned-bounded", "bounded-nearest",
          "bounded-harmonic", "bounded-biharmonic", "floor-only-biharmonic")
 """The fills compared: `nearest` (the default before issue 14 item 4); `--empty-cells wall-contact` (the default
 until 2026-12-03; ground.wall_contact: the unseen cells from the surface through the points and the wall contacts);
-`carry-down` (the default now: the same, the rest carried down the seen slope in the unseen cells a beam passed over:
-ground.carry_down); that
+`carry-down` (the default until 2026-12-03: the same, the rest carried down the seen slope in the unseen cells a beam
+passed over: ground.carry_down); `wall-strip` (the default now: `carry-down` with the strip along each wall that no
+point reached left to the fill where the wall contacts contradict the fit there, ground.wall_strip: the report's own
+survey, since it changes which cells are unseen); that
 surface in every cell; the contacts pinned in the unseen wall cells before `bounded`; the bounded policy with
 each extension (ground.unseen), and the thin plate held by the floor alone (what the free-space ceiling adds)."""
 NOISES = ("none", "appendix-a")
-CELL_ERROR_FILLS = ("nearest", "wall-contact", "carry-down")
+CELL_ERROR_FILLS = ("nearest", "wall-contact", "carry-down", "wall-strip")
 """The fills whose mean per-cell error in the unseen cells the second table states."""
 
 
@@ -177,7 +180,11 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
                "n_contacts": len(contacts),
                "beam_crossed_pct": float((ceiling[unseen] < storage.height_m).mean() * 100) if unseen.any() else 0.0}
         for pol in policies:
-            filled = _fill(pol, sv.heights_fit, ceiling, contacts, sv.grid, nodes_fit, shadow)
+            if pol in STRIP_POLICIES:  # it changes which cells the fill takes: the report's own survey
+                filled = survey_from_samples(samples, header, storage, cfg.frame, np.array(cfg.lever_arm_body_m),
+                                             ReportOptions(plots=False, empty_cells=pol)).heights
+            else:
+                filled = _fill(pol, sv.heights_fit, ceiling, contacts, sv.grid, nodes_fit, shadow)
             row[f"u_{pol}_pct"] = float((filled[unseen] - truth[unseen]).sum() * sv.grid.cell_area_m2
                                         / pile.volume_m3 * 100)
             row[f"mae_{pol}_m"] = float(np.abs(filled[unseen] - truth[unseen]).mean()) if unseen.any() else 0.0
@@ -218,7 +225,12 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
              "flanks); `wall-end`, a 7 m ridge along the end wall x = 0 whose ends stop short of both corners (bare",
              "corners, flanks facing them); the paper's piles 1 and 2. Each row: the 20 servo phases (Fig. 9) through",
              "`survey_from_samples`, every fill applied to the same fitted surface and the same free-space ceiling.",
-             "", "Fills: `carry-down` (the default, `--empty-cells carry-down`: the unseen cells from the surface",
+             "", "Fills: `wall-strip` (the default, `--empty-cells wall-strip`: `carry-down` with the strip along",
+             "each wall that no point reached left to the fill where the wall contacts either side contradict the",
+             "fit there, `ground/wall_strip.py`; its column is the report's own survey of the phase, whose unseen",
+             "cells include that strip; the error columns below count every fill over the points' own unseen",
+             "cells); `carry-down` (`--empty-cells carry-down`, the default until 2026-12-03: the unseen cells",
+             "from the surface",
              "fitted through the pile points and the wall contacts, nodes at the walls' feet, the rest by the nearest",
              "height, but in the unseen cells a beam passed over, where the seen surface falls towards them, carried",
              "on down at its slope, to the floor at most, `ground/carry_down.py`; a wall contact,",
@@ -233,8 +245,8 @@ def write_markdown(rows: list[dict], out: Path, policies: tuple[str, ...], comma
              "(`nearest` copy, `harmonic` membrane, `biharmonic` thin plate) held between the floor and the",
              "free-space ceiling; `floor-only-biharmonic`: the thin plate held by the floor alone (what the ceiling",
              "adds). What this decided: docs/design-notes.md, \"Free-space ceiling and the bounded fill\" and",
-             "\"Wall-contact evidence for the unseen fill (issue 14 item 4)\" and \"The unseen fill carried down the",
-             "seen slope in the shadows\".", "",
+             "\"Wall-contact evidence for the unseen fill (issue 14 item 4)\", \"The unseen fill carried down the",
+             "seen slope in the shadows\", \"The wall strip\" and \"`wall-strip` made the default\".", "",
              "## Ve (eq. 8, %) over the phases: mean | sd | max", ""]
     head = "| pile | P_traj | noise | " + " | ".join(f"`{p}` mean | sd | max" for p in policies) + " |"
     lines += [head, "|" + "---|" * (3 + 3 * len(policies))]

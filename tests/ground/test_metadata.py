@@ -120,7 +120,8 @@ def test_that_every_term_a_verdict_can_name_has_its_meaning_and_remedy_in_the_in
 def test_that_a_base_that_holds_the_interval_is_named_in_the_verdict():
     terms = ErrorTerms(interpolation_m3=10.0)
     assert limiting_terms(terms, DEFAULT_INTERVAL_MODEL, ("fitted_floor", 100.0)) == ["fitted_floor"]
-    both = limiting_terms(terms, DEFAULT_INTERVAL_MODEL, ("earlier_survey", 15.0))  # against 1.28 x 10
+    interp = DEFAULT_INTERVAL_MODEL.k_interpolation * 10.0  # the interpolation term as the fitted factor scales it
+    both = limiting_terms(terms, DEFAULT_INTERVAL_MODEL, ("earlier_survey", 1.2 * interp))
     assert both == ["earlier_survey", "interpolation"]
     assert limiting_terms(terms, DEFAULT_INTERVAL_MODEL, ("fitted_floor", 0.1)) == ["interpolation"]
 
