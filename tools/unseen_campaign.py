@@ -159,9 +159,12 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
         samples = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame, noise=noise,
                                 seed=[int(p_pct), k])
         header = log_header(replace(cfg, sensor_noise=noise.model) if noise else cfg, wf)
+        # one survey with the strip rule: its heights are `wall-strip`'s column, its hull fit (the points' own fit
+        # before the rule, as every other policy sees it) the surface the other fills are applied to
         sv = survey_from_samples(samples, header, storage, cfg.frame, np.array(cfg.lever_arm_body_m),
-                                 ReportOptions(plots=False, empty_cells="nearest"))
-        unseen = ~np.isfinite(sv.heights_fit)
+                                 ReportOptions(plots=False, empty_cells=STRIP_POLICIES[0]))
+        fit = sv.heights_hull
+        unseen = ~np.isfinite(fit)
         err = SensorErrorModel.from_header(header)
         t0 = time.perf_counter()
         own, ceiling = free_space_ceilings_m(sv.cloud, sv.grid, storage, err, beam_angle_sigma_rad(header),
@@ -172,7 +175,7 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
         contacts = wall_contacts(sv.cloud, structure, storage, err, sv.grid.cell_m)
         nodes_fit = contact_fit_m(sv.pile_points_w, pile_sigma_m(sv.cloud, structure, err), contacts, sv.grid, storage,
                                   DEFAULT_SURFACE_FIT)  # the report's contact fit, over every cell
-        nodes_fit = sv.heights_fit if nodes_fit is None else nodes_fit  # no contacts: the points' own fit
+        nodes_fit = fit if nodes_fit is None else nodes_fit  # no contacts: the points' own fit
         # the ceiling over the node fit's unseen cells too (a subset of the survey's, where it was computed)
         ceiling = np.where(np.isfinite(ceiling), ceiling, np.where(np.isfinite(nodes_fit), np.nan, storage.height_m))
         row = {"pile": pile_name, "p_traj_pct": p_pct, "noise": noise_name, "position": k, "true_m3": pile.volume_m3,
@@ -180,27 +183,24 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
                "n_contacts": len(contacts),
                "beam_crossed_pct": float((ceiling[unseen] < storage.height_m).mean() * 100) if unseen.any() else 0.0}
         for pol in policies:
-            if pol in STRIP_POLICIES:  # it changes which cells the fill takes: the report's own survey
-                filled = survey_from_samples(samples, header, storage, cfg.frame, np.array(cfg.lever_arm_body_m),
-                                             ReportOptions(plots=False, empty_cells=pol)).heights
-            else:
-                filled = _fill(pol, sv.heights_fit, ceiling, contacts, sv.grid, nodes_fit, shadow)
+            filled = sv.heights if pol in STRIP_POLICIES else _fill(pol, fit, ceiling, contacts, sv.grid, nodes_fit,
+                                                                    shadow)
             row[f"u_{pol}_pct"] = float((filled[unseen] - truth[unseen]).sum() * sv.grid.cell_area_m2
                                         / pile.volume_m3 * 100)
             row[f"mae_{pol}_m"] = float(np.abs(filled[unseen] - truth[unseen]).mean()) if unseen.any() else 0.0
             v = grid_volume(filled, sv.grid)
             row[f"ve_{pol}_pct"] = volume_error_pct(v, pile.volume_m3)
             row[f"e_{pol}_pct"] = (v - pile.volume_m3) / pile.volume_m3 * 100
-        pinned = pin_contacts(sv.heights_fit, contacts, sv.grid.x_edges, sv.grid.y_edges)
+        pinned = pin_contacts(fit, contacts, sv.grid.x_edges, sv.grid.y_edges)
         at = unseen & np.isfinite(pinned)  # unseen cells holding a wall contact: the estimate against nearest's copy
-        near = fill_empty(sv.heights_fit, "nearest")
+        near = fill_empty(fit, "nearest")
         row["pinned_pct"] = float(at.sum() / max(1, unseen.sum()) * 100)
         row["pin_err_m"] = float(np.abs(pinned[at] - truth[at]).mean()) if at.any() else math.nan
         row["pin_nearest_err_m"] = float(np.abs(near[at] - truth[at]).mean()) if at.any() else math.nan
-        held = bounded_fill(sv.heights_fit, ceiling, Extension.BIHARMONIC)
+        held = bounded_fill(fit, ceiling, Extension.BIHARMONIC)
         at_ceiling = np.isclose(held[unseen], ceiling[unseen]) & (ceiling[unseen] < storage.height_m)
         row["held_pct"] = float(at_ceiling.mean() * 100) if unseen.any() else 0.0
-        lo, hi = unseen_bounds(sv.heights_fit, np.where(unseen, ceiling, storage.height_m))
+        lo, hi = unseen_bounds(fit, np.where(unseen, ceiling, storage.height_m))
         row["v_lo_m3"], row["v_hi_m3"] = grid_volume(lo, sv.grid), grid_volume(hi, sv.grid)
         rows.append(row)
     return rows
