@@ -76,6 +76,8 @@ class RangefinderShare:
         lift_t_s: times (the log's clock) at which the lift is reported, STEP_S apart.
         lift_at_t_m: the height added to the samples at those times, m (linear between): what a reader needs to
             put the vehicle's reported trajectory where the survey placed it.
+        source_stated: whether the log header said the height came from the rangefinder (False: it did not say
+            where the height came from, and the share was measured in case it did).
     """
 
     share: float
@@ -86,6 +88,7 @@ class RangefinderShare:
     lift_m: tuple[float, float] = (0.0, 0.0)
     lift_t_s: tuple[float, ...] = ()
     lift_at_t_m: tuple[float, ...] = ()
+    source_stated: bool = True
 
     def lift_at(self, t_s: np.ndarray) -> np.ndarray:
         """The height (m, up) the samples were raised by at times t_s: 0 when not applied."""
@@ -99,10 +102,13 @@ class RangefinderShare:
                 "pairs": self.pairs, "applied": self.applied,
                 "reason": self.reason, "lift_mean_m": self.lift_m[0], "lift_max_m": self.lift_m[1],
                 "lift_t_s": [round(v, 3) for v in self.lift_t_s],
-                "lift_at_t_m": [round(v, 4) for v in self.lift_at_t_m]}
+                "lift_at_t_m": [round(v, 4) for v in self.lift_at_t_m], "source_stated": self.source_stated}
 
     def describe(self) -> str:
-        return (f"the autopilot's height followed the pile (its downward rangefinder): the crossings measured a "
+        said = ("" if self.source_stated else
+                "the log does not say where the autopilot's height came from (no EKF source parameters in its "
+                "header), and ")
+        return (f"{said}the autopilot's height followed the pile (its downward rangefinder): the crossings measured a "
                 f"share of {self.share:.2f} ± {self.sigma:.2f} of the ground's height below the vehicle in the "
                 f"logged height, and it was taken out before the pose correction (the samples raised by "
                 f"{self.lift_m[0]:.2f} m on average, {self.lift_m[1]:.2f} m at most)")

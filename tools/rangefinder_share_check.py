@@ -2,16 +2,17 @@
 the rangefinder's share of the height taken out (`ground.rangefinder_height`).
 
 What the step is worth on the flights of the pose campaigns (`tools.pose_correction_campaign --keep DIR`): each
-flight is surveyed twice, its header's record taken out, and put back as the simulated autopilot serves it for the
-flight's profile (`sitl.sensing.pose_drift.EKF_SOURCES`; `--record own`), or one profile's record put into every
-flight (`--record flow`: what a header that says so wrongly costs). Flights flown before the payload wrote the
-record get it the same way. Each drifting flight is compared
-with its error-free twin (the `none` flight of the same pile, P_traj and seed, found beside it) as the pose campaign
-does: |Ve - Ve error-free| (signed Ve, pp) and the trajectory's RMS against the truth (the lift included:
-the report's lift over time).
+flight is surveyed twice, once with a record that names the barometer as the height source (the step does not run:
+`BARO_RECORD`), and once with the record the simulated autopilot serves for the flight's profile
+(`sitl.sensing.pose_drift.EKF_SOURCES`; `--record own`), or one profile's record put into every flight (`--record
+flow`: what a header that says so wrongly costs), or none (`--record absent`: a log that does not say, where the
+report measures the share all the same). Flights flown before the payload wrote the record get it the same way. Each
+drifting flight is compared with its error-free twin (the `none` flight of the same pile, P_traj and seed, found
+beside it) as the pose campaign does: |Ve - Ve error-free| (signed Ve, pp) and the trajectory's RMS against the truth
+(the lift included: the report's lift over time).
 
 Usage: python -m tools.rangefinder_share_check --runs runs/pose runs/pose-own runs/pose-noise-ds runs/pose-noise-aa
-           [--profiles flow] [--record own|flow] [--jobs 2] [--write docs/pose_error.md [--section NAME]]
+           [--profiles flow] [--record own|absent|flow] [--jobs 2] [--write docs/pose_error.md [--section NAME]]
 """
 
 from __future__ import annotations
@@ -34,15 +35,23 @@ from sitl.sensing.pose_drift import ekf_source_params
 from tools.doc_sections import write_section
 from tools.pose_correction_campaign import TRAJ_TARGET_M, VE_TARGET_PP, trajectory_rms_m
 
+BARO_RECORD = ekf_source_params("vio")
+"""A record whose height source is the barometer: the report then takes no share out (the step off). Taking the
+record out no longer turns the step off: a log that does not say where its height came from has the share measured."""
+BARO, ABSENT = "baro", "absent"
+"""`_survey`'s records besides a profile's: the barometer's (`BARO_RECORD`), or none at all (absent)."""
 FLIGHT = re.compile(r"^(none|flow|vio)-(.+)-(\d+)-(\d+)(?:-(appendix-a|datasheet))?$")
 
 
-def _survey(run: Path, record: str | None) -> tuple[float, float]:
-    """(signed Ve %, trajectory RMS after, m) of one flight surveyed with the header's record set as asked."""
+def _survey(run: Path, record: str) -> tuple[float, float]:
+    """(signed Ve %, trajectory RMS after, m) of one flight surveyed with the header's record set as asked: a
+    profile's, ABSENT (taken out), or BARO (`BARO_RECORD`)."""
     log = read_samplelog(run / SAMPLES_FILE)
     header = dict(log.header)
     header.pop(HEADER_KEY, None)
-    if record is not None:
+    if record == BARO:
+        header[HEADER_KEY] = dict(BARO_RECORD)
+    elif record != ABSENT:
         header[HEADER_KEY] = ekf_source_params(record)
     storage, frame, lever = header_geometry(log, run)
     sv = survey_from_samples(log.samples, header, storage, frame, lever, ReportOptions(plots=False))
@@ -57,7 +66,7 @@ def _survey(run: Path, record: str | None) -> tuple[float, float]:
 def _one(args: tuple[str, str, str | None]) -> tuple[str, float, float, float, float]:
     run, profile, forced = args
     record = forced or profile
-    off_ve, off_traj = _survey(Path(run), None)
+    off_ve, off_traj = _survey(Path(run), BARO)
     on_ve, on_traj = _survey(Path(run), record)
     return run, off_ve, off_traj, on_ve, on_traj
 
@@ -66,7 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", nargs="+", required=True, help="folders of kept flights (pose campaigns' --keep)")
     ap.add_argument("--profiles", nargs="+", default=["flow"], help="the drifting profiles to survey again")
-    ap.add_argument("--record", default="own", help="own: each flight's profile's record; or a profile's name")
+    ap.add_argument("--record", default="own",
+                    help="own: each flight's profile's record; absent: no record; or a profile's name")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--write", type=Path, help="page whose section to rewrite with the table")
     ap.add_argument("--section", default="rangefinder-share-table", help="the page's section (default %(default)s)")
@@ -87,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     with ProcessPoolExecutor(max(1, args.jobs)) as ex:
         done = {r: row for r, *row in ex.map(_one, [(str(r), p, forced) for _, r, p in flights])}
         ref = {r: ve for r, ve, _ in ex.map(_twin, [str(r) for r in needed])}
-    lines = [f"| folder | flights | mean \\|dVe\\| without / with the record (pp) | within {VE_TARGET_PP} pp | "
+    lines = [f"| folder | flights | mean \\|dVe\\| step off / on (pp) | within {VE_TARGET_PP} pp | "
              f"trajectory <= {TRAJ_TARGET_M * 100:.0f} cm |", "|---|---|---|---|---|"]
     for folder in dict.fromkeys(k[0] for k, _, _ in flights):
         rows = [(done[str(r)], ref[str(twins[k])]) for k, r, _ in flights if k[0] == folder and k in twins]
@@ -107,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _twin(run: str) -> tuple[str, float, float]:
-    ve, traj = _survey(Path(run), None)
+    ve, traj = _survey(Path(run), BARO)  # an error-free flight's height never followed the pile
     return run, ve, traj
 
 

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from firmware_py.core.frames import SQUARE
 from firmware_py.core.samplelog import SampleFlags
 from ground.rangefinder_height import _Crossings, _lowpass, estimate_share
 from tests.ground.test_pose_correction import FRAME, LEVER, PERIOD_S, PILE, STORAGE, _track, flight
@@ -126,3 +127,40 @@ def test_that_the_share_s_error_holds_what_a_pass_shares_across_its_cells():
         z_blocks.append(abs(w - 0.3) / crossings.block_sigma(below))
     assert np.median(z_cells) > 3.0  # overconfident: why the block error is there
     assert np.median(z_blocks) < 1.5 and max(z_blocks) < 3.5
+
+
+BARO = {"AHRS_EKF_TYPE": 3, "EK3_SRC1_POSXY": 0, "EK3_SRC1_VELXY": 5, "EK3_SRC1_POSZ": 1, "EK3_RNG_USE_HGT": -1}
+
+
+def _report_share(samples, record):
+    from ground.report import ReportOptions, _rangefinder_share
+
+    header = {"servo": {"frequency_hz": 1.0 / PERIOD_S}}
+    if record is not None:
+        header["autopilot_params"] = record
+    return _rangefinder_share(samples, header, STORAGE, FRAME, LEVER, ReportOptions(plots=False), SQUARE)
+
+
+def test_that_the_report_measures_the_share_when_the_log_does_not_say_where_the_height_came_from(followed):
+    # An older payload, or an autopilot that did not answer: the crossings decide, and the report says the log
+    # did not say (a `flow` flight over a pile that hid its floor read 23-31 % low without this)
+    samples = followed[0]
+    for record in (None, {"EK3_SRC1_VELXY": 5}):  # no record; parameters that name no EKF3 sources
+        placed, share = _report_share(samples, record)
+        assert share.applied and share.share == pytest.approx(0.4, abs=0.05) and not share.source_stated
+        assert placed is not samples and "does not say" in share.describe()
+        assert share.as_dict()["source_stated"] is False
+
+
+def test_that_the_report_trusts_a_record_that_names_the_height_s_source(followed):
+    samples = followed[0]
+    placed, share = _report_share(samples, BARO)  # the barometer: nothing to measure
+    assert share is None and placed is samples
+    placed, share = _report_share(samples, {**BARO, "EK3_SRC1_POSZ": 2})  # the rangefinder, said so
+    assert share.applied and share.source_stated and "does not say" not in share.describe()
+
+
+def test_that_an_unstated_height_that_did_not_follow_the_pile_is_left_alone():
+    samples, _ = flight(None, corners=OVER_THE_PILE)
+    placed, share = _report_share(samples, None)
+    assert not share.applied and placed is samples

@@ -35,13 +35,22 @@ def checked(kept, tmp_path_factory):
     return out.getvalue(), page
 
 
-def test_that_the_flow_flight_is_surveyed_without_and_with_its_record_against_its_twin(kept, checked):
+def test_that_the_flow_flight_is_surveyed_with_the_step_off_and_on_against_its_twin(kept, checked):
     row = [line for line in checked[0].splitlines() if line.startswith(f"| {kept.name} |")]
     assert len(row) == 1
     cells = [c.strip() for c in row[0].strip("|").split("|")]
     assert cells[1] == "1"
-    without, with_record = (float(v) for v in cells[2].split(" / "))
-    assert with_record < without  # the share taken out brings the flight closer to its twin
+    off, on = (float(v) for v in cells[2].split(" / "))
+    assert on < off  # the share taken out brings the flight closer to its twin
+
+
+def test_that_a_flight_without_a_record_has_its_share_measured_all_the_same(kept):
+    from tools.rangefinder_share_check import ABSENT, BARO, _survey
+
+    flow, twin = kept / "flow-1-20-3", kept / "none-1-20-3"
+    reference = _survey(twin, BARO)[0]
+    off, absent, own = (abs(_survey(flow, r)[0] - reference) for r in (BARO, ABSENT, "flow"))
+    assert absent == pytest.approx(own, abs=1e-9) and absent < off
 
 
 def test_that_the_table_is_written_into_its_section_of_a_page(kept, checked):
