@@ -19,15 +19,23 @@ from typing import Any
 
 from firmware_py.core.pose_source import HEADER_KEY, HeightSource, PoseSource, number
 from ground.pose_correction import PoseCorrection
+from ground.rangefinder_height import RangefinderShare
 
 NOT_STATED = "not stated in the log"
 """The report's pose source when the log has no record (an older payload, or an autopilot that did not answer)."""
 
 
-def pose_source_line(header: Mapping[str, Any]) -> str:
-    """The report's one line on the pose's source."""
+def pose_source_line(header: Mapping[str, Any], share: RangefinderShare | None = None) -> str:
+    """The report's one line on the pose's source, and, when the log did not say that the height came from the
+    downward rangefinder but the report measured its share all the same (`RangefinderShare.source_stated`), what it
+    found: a surveyor reading "not stated" should know the height was checked for it."""
     source = PoseSource.from_header(header)
-    return NOT_STATED if source is None else source.describe()
+    line = NOT_STATED if source is None else source.describe()
+    if share is not None and not share.source_stated:
+        found = (f"{share.share:.2f} ± {share.sigma:.2f}, taken out" if share.applied else
+                 f"none taken out ({share.reason})" if share.reason else "none taken out")
+        line += f"; the downward rangefinder's share of the height measured all the same: {found}"
+    return line
 
 
 def autopilot_params(header: Mapping[str, Any]) -> dict[str, float | None] | None:

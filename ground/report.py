@@ -1094,7 +1094,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "cell_area_m2": g.cell_area_m2,
         "empty_cell_policy": opts.empty_cells,
         "sensor_noise": sensor_noise_line(log.header or {}),
-        "pose_source": pose_source_line(log.header or {}),
+        "pose_source": pose_source_line(log.header or {}, survey.rangefinder),
         "autopilot_params": autopilot_params(log.header or {}),
         "surface_fit": opts.surface_fit,
         "n_cells_clipped": survey.n_cells_clipped,

@@ -6,6 +6,7 @@ import numpy as np
 from firmware_py.core.pose_source import HEADER_KEY
 from ground.pose_correction import PoseCorrection, not_applied
 from ground.pose_source_check import NOT_STATED, autopilot_params, pose_source_line, pose_source_warnings
+from ground.rangefinder_height import RangefinderShare
 
 GNSS = {"AHRS_EKF_TYPE": 3.0, "EK3_SRC1_POSXY": 3.0, "EK3_SRC1_VELXY": 3.0, "EK3_SRC1_POSZ": 1.0,
         "EK3_SRC1_YAW": 1.0, "EK3_RNG_USE_HGT": -1.0}
@@ -40,6 +41,16 @@ def test_that_a_log_without_the_record_says_not_stated_and_warns_of_nothing():
     assert pose_source_line({}) == NOT_STATED and autopilot_params({}) is None
     assert pose_source_warnings({}, None, correction_on=False) == []
     assert pose_source_warnings({HEADER_KEY: {"EK3_SRC1_POSZ": "two"}}, None, correction_on=False) == []
+
+
+def test_that_a_log_without_the_record_says_what_the_share_measured_all_the_same_found():
+    found = RangefinderShare(0.25, 0.03, 900, True, source_stated=False)
+    line = pose_source_line({}, found)
+    assert line.startswith(NOT_STATED) and "measured all the same: 0.25 ± 0.03, taken out" in line
+    none = RangefinderShare(0.01, 0.02, 900, False, "not significant (0.01 ± 0.02)", source_stated=False)
+    assert pose_source_line({}, none).endswith("none taken out (not significant (0.01 ± 0.02))")
+    stated = RangefinderShare(0.25, 0.03, 900, True)  # a record that said so: its own line and warning say it
+    assert pose_source_line({HEADER_KEY: FLOW}, stated) == pose_source_line({HEADER_KEY: FLOW})
 
 
 def test_that_a_share_the_crossings_could_not_measure_is_said_with_what_corrected_the_height_instead():
