@@ -515,10 +515,29 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
     (a drifting flight over pile 2, one run in three; docs/design-notes.md).
     """
     with one_blas_thread():
-        survey = _survey_from_samples(samples, header, storage, frame, lever, opts)
+        survey, early = _survey_from_samples(samples, header, storage, frame, lever, opts)
         err = SensorErrorModel.from_header(header)
-        return replace(survey, building=building_of(survey.cloud, storage, err), floor=floor_of(survey, err),
-                       lever_arm_body_m=np.asarray(lever, dtype=float))
+        building, floor = early.checks if early is not None and early.of(survey) else _placed_checks(survey, err)
+        return replace(survey, building=building, floor=floor, lever_arm_body_m=np.asarray(lever, dtype=float))
+
+
+def _placed_checks(survey: Survey, err: SensorErrorModel) -> tuple[tuple[SizeCheck, SizeCheck], FloorLevel | None]:
+    """The building's size and the floor's level as the survey's placed cloud shows them."""
+    return building_of(survey.cloud, survey.storage, err), floor_of(survey, err)
+
+
+@dataclass(frozen=True)
+class _EarlyChecks:
+    """`_placed_checks` made on the first survey while the building's estimates ran beside it (the report waited for
+    those doing nothing: about 0.1 s of a report), good for the final survey when nothing placed its points again
+    (the same cloud and structure: `of`)."""
+
+    cloud: Cloud
+    structure: np.ndarray | None
+    checks: tuple[tuple[SizeCheck, SizeCheck], FloorLevel | None]
+
+    def of(self, survey: Survey) -> bool:
+        return survey.cloud is self.cloud and survey.structure is self.structure
 
 
 def floor_of(survey: Survey, err: SensorErrorModel) -> FloorLevel | None:
@@ -536,7 +555,7 @@ def building_of(cloud: Cloud, storage: Storage, err: SensorErrorModel) -> tuple[
 
 
 def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
-                         lever: np.ndarray, opts: ReportOptions) -> Survey:
+                         lever: np.ndarray, opts: ReportOptions) -> tuple[Survey, _EarlyChecks | None]:
     check_grid_memory(storage, opts.cell_m, opts.max_grid_memory_bytes)
     err = SensorErrorModel.from_header(header)
     mount = header_boresight(header)  # the configured boresight: every cloud below is placed with it
@@ -558,9 +577,10 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
         survey = replace(_survey(samples, header, storage, frame, lever, opts, err, spikes, mount), **checked)
         before = survey.sweep_disagreement_m
         retime = opts.servo_retiming and before is not None and before > MAX_SWEEP_DISAGREEMENT_M
+        early = None if retime else _EarlyChecks(survey.cloud, survey.structure, _placed_checks(survey, err))
         first = None if retime else ahead.result()
     if first is not None:
-        return _self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes, mount, first)
+        return _self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes, mount, first), early
 
     def disagreement(s: np.ndarray) -> float | None:  # the survey's cloud, less the stuck-servo check (range-only)
         cloud = cloud_from_samples(s, lever, frame, spike_threshold=spikes, boresight=mount)
@@ -572,11 +592,11 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
     floor, _ = sweep_disagreement_m(survey.pile_points_w, halves, survey.grid, survey.face_spread_m)
     timing = estimate_servo_timing(samples, disagreement, before, motion, floor_m=floor or 0.0)
     if timing is None or timing.disagreement_after_m > MAX_SWEEP_DISAGREEMENT_M:
-        return replace(survey, servo_timing=timing)
+        return replace(survey, servo_timing=timing), None
     retimed = motion.apply(samples, timing.delay_s, timing.gain)
     fixed = _survey(retimed, header, storage, frame, lever, opts, err, spikes, mount)
     fixed = replace(fixed, servo_timing=timing, servo_retimed=True, **checked)
-    return _self_calibrated(fixed, retimed, header, storage, frame, lever, opts, err, spikes, mount)
+    return _self_calibrated(fixed, retimed, header, storage, frame, lever, opts, err, spikes, mount), None
 
 
 @dataclass(frozen=True)
