@@ -39,7 +39,7 @@ from __future__ import annotations
 import math
 import os
 import sys
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, BinaryIO, TextIO
@@ -685,6 +685,7 @@ class PayloadApp:
         duration_s = max(duration_s, period_s)
         checks: list[Check] = [self._log_check()]
         sink, result = MemorySink(), None
+        pose_ok_ticks: list[bool] = []
         try:
             for name, opener in (("autopilot link", self._open_link), ("rangefinder", self._open_sensor),
                                  ("servo PWM", self._open_pwm)):
@@ -709,12 +710,16 @@ class PayloadApp:
                     self.lidar.discard_input()
                 self.loop = self._build_loop(sink, self.tracker or NoPose(), self.clock.now_ns())
                 self.loop.run(duration_s=duration_s, should_stop=self._preflight_tick)
-            elif self.link is not None:
+            elif self.link is not None:  # no samples to pose: the share of the window's pumps the pose was usable at
                 end_ns = self.clock.now_ns() + round(duration_s * 1e9)
-                self._pump_until(lambda: False, round(1e9 / cfg.rate_hz), lambda now: now >= end_ns)
+
+                def tally_pose() -> bool:
+                    pose_ok_ticks.append(self.tracker.status().pose_ok)
+                    return False
+                self._pump_until(tally_pose, round(1e9 / cfg.rate_hz), lambda now: now >= end_ns)
             if self._stop_reason is not None:
                 raise RunFailure(f"the preflight was stopped before it finished ({self._stop_reason})")
-            checks += self._preflight_checks(sink.samples(), duration_s)
+            checks += self._preflight_checks(sink.samples(), duration_s, pose_ok_ticks)
             result = PreflightResult(tuple(checks), duration_s, self.loop.stats.ticks if self.loop else 0)
             self.request_stop(result.statustext())
             if self.link is not None:  # as ArduPilot's pre-arm messages: CRITICAL when the flight should not go
@@ -746,15 +751,22 @@ class PayloadApp:
         room_line = None if room is None else f"{out}: room for {describe_room(room)} of samples"
         return log_check(None, room_line, room_warning(room, self.cfg.duration_s, self.cfg.rate_hz))
 
-    def _preflight_checks(self, samples: np.ndarray, duration_s: float) -> list[Check]:
+    def _preflight_checks(self, samples: np.ndarray, duration_s: float,
+                          pose_ok_ticks: Sequence[bool] = ()) -> list[Check]:
+        """The checks of what the preflight saw. pose_ok_ticks: without samples (no rangefinder opened), whether the
+        pose was usable at each pump of the sampling window: its share stands for the samples' posed share. (The pose
+        at the window's end alone failed a preflight whose autopilot's stream came a little late at that instant, on
+        a machine kept busy: a snapshot, not a share.)"""
         cfg = self.cfg
         checks: list[Check] = []
         if self.tracker is not None:
             st = self.tracker.status()
             checks.append(autopilot_check(self.tracker.autopilot_heard, self.tracker.autopilot_armed,
                                           cfg.target_system, cfg.mavlink_url))
-            posed_share = (float(np.mean((samples["flags"] & int(UNPOSED)) == 0)) if samples.size
-                           else float(st.pose_ok))
+            if samples.size:
+                posed_share = float(np.mean((samples["flags"] & int(UNPOSED)) == 0))
+            else:
+                posed_share = float(np.mean(pose_ok_ticks)) if len(pose_ok_ticks) else float(st.pose_ok)
             checks.append(pose_check(posed_share, st.pose_status, st.rates_hz, cfg.pose_stream_hz,
                                      st.timesync.rtt_ms, cfg.send_origin is not None))
             source = PoseSource.from_params(self.tracker.params) if self.tracker.params else None

@@ -8,6 +8,7 @@ import io
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 pytest.importorskip("ground", reason="the payload's test rig: not in the payload-only install")
@@ -16,6 +17,7 @@ pytest.importorskip("sitl", reason="the firmware against the simulator (sitl/): 
 from firmware_py.app import PayloadApp
 from firmware_py.cli import main
 from firmware_py.core.cli import ExitCode
+from firmware_py.core.samplelog import SAMPLE_DTYPE
 from firmware_py.preflight import Verdict
 from tests.firmware_py.test_app import Autopilot, emulated_rig, payload_config
 from tests.firmware_py.test_preflight import room_range_m
@@ -131,3 +133,23 @@ def test_that_check_and_preflight_together_are_refused(tmp_path, capsys):
 def test_that_a_bad_preflight_duration_is_refused_in_one_line(tmp_path, capsys):
     code = main(["--out", str(tmp_path / "f.pslog"), "--preflight", "-3"])
     assert code == ExitCode.USAGE and "between 0 and 3600 s" in capsys.readouterr().err
+
+
+def test_that_without_samples_the_pose_is_judged_by_its_share_over_the_window_not_by_its_last_instant(tmp_path):
+    # A preflight whose rangefinder did not open has no samples to pose. It once judged the pose at the window's end
+    # alone, and failed in CI when the autopilot's stream came a little late at that instant on a busy machine.
+    from types import SimpleNamespace
+
+    app = PayloadApp(payload_config(tmp_path, "udpout:127.0.0.1:9", i2c_url="i2c:/dev/i2c-97",
+                                    pwm_url="pwm:sysfs:0:0"), err=None)
+    late_now = SimpleNamespace(pose_ok=False, pose_status="pose stale", rates_hz={"ATTITUDE": 50.0,
+                               "LOCAL_POSITION_NED": 50.0}, timesync=SimpleNamespace(rtt_ms=1.0))
+    app.tracker = SimpleNamespace(status=lambda: late_now, autopilot_heard=True, autopilot_armed=False, params={})
+    app.loop = app.lidar = app.pwm = None
+    none = np.zeros(0, dtype=SAMPLE_DTYPE)
+
+    def pose(ticks):
+        return next(c for c in app._preflight_checks(none, 1.0, ticks) if c.name == "pose")
+    assert pose([True] * 9 + [False]).verdict is not Verdict.FAIL  # usable for 90 % of the window
+    assert pose([False] * 8 + [True] * 2).verdict is Verdict.FAIL
+    assert pose([]).verdict is Verdict.FAIL  # no pump at all: the instant is all there is
