@@ -521,7 +521,11 @@ def survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fra
         return replace(survey, building=building, floor=floor, lever_arm_body_m=np.asarray(lever, dtype=float))
 
 
-def _placed_checks(survey: Survey, err: SensorErrorModel) -> tuple[tuple[SizeCheck, SizeCheck], FloorLevel | None]:
+_Placed = tuple[tuple[SizeCheck, SizeCheck] | None, FloorLevel | None]
+"""The building's size (length, width; None: not measured) and the floor's level (None: not seen)."""
+
+
+def _placed_checks(survey: Survey, err: SensorErrorModel) -> _Placed:
     """The building's size and the floor's level as the survey's placed cloud shows them."""
     return building_of(survey.cloud, survey.storage, err), floor_of(survey, err)
 
@@ -534,7 +538,7 @@ class _EarlyChecks:
 
     cloud: Cloud
     structure: np.ndarray | None
-    checks: tuple[tuple[SizeCheck, SizeCheck], FloorLevel | None]
+    checks: _Placed
 
     def of(self, survey: Survey) -> bool:
         return survey.cloud is self.cloud and survey.structure is self.structure
