@@ -751,8 +751,7 @@ class PayloadApp:
         room_line = None if room is None else f"{out}: room for {describe_room(room)} of samples"
         return log_check(None, room_line, room_warning(room, self.cfg.duration_s, self.cfg.rate_hz))
 
-    def _preflight_checks(self, samples: np.ndarray, duration_s: float,
-                          pose_ok_ticks: Sequence[bool] = ()) -> list[Check]:
+    def _preflight_checks(self, samples: np.ndarray, duration_s: float, pose_ok_ticks: Sequence[bool]) -> list[Check]:
         """The checks of what the preflight saw. pose_ok_ticks: without samples (no rangefinder opened), whether the
         pose was usable at each pump of the sampling window: its share stands for the samples' posed share. (The pose
         at the window's end alone failed a preflight whose autopilot's stream came a little late at that instant, on
