@@ -17,6 +17,7 @@ import numpy as np
 
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_rays_w, premultiply, rot_body_to_ned
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
+from firmware_py.core.storage import Storage
 
 
 @dataclass(frozen=True)
@@ -32,6 +33,13 @@ class Beams:
     def take(self, idx) -> Beams:
         return Beams(self.t_s[idx], self.vehicle_w[idx], self.to_point_w[idx],
                      None if self.parallel is None else self.parallel[idx])
+
+
+def planes(storage: Storage) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (5, 3) and offsets (5,) of the floor and the four walls: n . p = d (the order every (N, 5)
+    array of this module and of both estimates from the building follows: floor, x = 0, x = L, y = 0, y = W)."""
+    n = np.array([[0, 0, 1], [1, 0, 0], [1, 0, 0], [0, 1, 0], [0, 1, 0]], dtype=float)
+    return n, np.array([0.0, 0.0, storage.length_m, 0.0, storage.width_m])
 
 
 def usable(samples: np.ndarray) -> np.ndarray:
@@ -126,6 +134,23 @@ def stretches_along(b: Beams, sweep_dir: np.ndarray, n: np.ndarray, range_sigma_
     sigma = np.maximum(np.maximum(range_sigma_m, range_sigma_rel * rng_m), floor_m)
     dt = float(np.median(np.diff(b.t_s))) if len(b.t_s) > 1 else 0.0
     return along_planes(b, sigma, angle_sigma_rad, sweep_dir, n, dt, position_sigma_m)
+
+
+def stretch_floor_m(resolution_m: float) -> float:
+    """The least range sigma a stretch is judged with: the range's quantisation (a uniform error over one
+    resolution step, step / sqrt(12)), never under a millimetre."""
+    return max(resolution_m / math.sqrt(12.0), 1e-3)
+
+
+def placed_beams(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, boresight: Boresight,
+                 storage: Storage, range_sigma_m: float, range_sigma_rel: float, angle_sigma_rad: float,
+                 floor_m: float, position_sigma_m: float = 0.0) -> tuple[Beams, np.ndarray]:
+    """`beams` with their stretches along the building's planes (`stretches_along`): what the pose correction
+    starts from, and the mount's self-calibration asks too (made once when both run on the same samples)."""
+    b, sweep_dir = beams(samples, lever_arm_body_m, frame, boresight)
+    along = stretches_along(b, sweep_dir, planes(storage)[0], range_sigma_m, range_sigma_rel, angle_sigma_rad,
+                            floor_m, position_sigma_m)
+    return Beams(b.t_s, b.vehicle_w, b.to_point_w, along), sweep_dir
 
 
 STEEPEST_PILE_DEG = 60.0

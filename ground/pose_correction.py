@@ -73,8 +73,17 @@ from scipy.special import gammaincinv
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, rot_body_to_ned
 from firmware_py.core.storage import Storage
 from firmware_py.core.waveform import MAX_FREQUENCY_HZ
-from ground.group_stats import sorted_group_median
-from ground.plane_stretches import MAX_HEADING_ERROR_RAD, Beams, beams, body_axes_w, stretches_along, usable
+from ground.group_stats import sorted_group_median, sorted_groups
+from ground.plane_stretches import (
+    MAX_HEADING_ERROR_RAD,
+    Beams,
+    beams,
+    body_axes_w,
+    planes,
+    stretch_floor_m,
+    stretches_along,
+    usable,
+)
 
 PLANE_NAMES = ("floor", "x0", "xL", "y0", "yW")
 MAX_MISFIT = 3.0
@@ -368,12 +377,6 @@ def not_applied(reason: str, knots: np.ndarray | None = None, **kw) -> PoseCorre
     return PoseCorrection(k, np.zeros((len(k), 4)), np.zeros((len(k), 4), dtype=bool), False, reason, **kw)
 
 
-def planes(storage: Storage) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals (5, 3) and offsets (5,) of the floor and the four walls: n . p = d."""
-    n = np.array([[0, 0, 1], [1, 0, 0], [1, 0, 0], [0, 1, 0], [0, 1, 0]], dtype=float)
-    return n, np.array([0.0, 0.0, storage.length_m, 0.0, storage.width_m])
-
-
 def sweep_period_from_samples(t_s: np.ndarray, sweep_dir: np.ndarray) -> float | None:
     """The servo's period from the logged sweep direction (twice the median time between reversals)."""
     flips = np.flatnonzero(np.diff(np.asarray(sweep_dir, dtype=np.int64)) != 0)
@@ -462,13 +465,10 @@ def _peaks(h: np.ndarray) -> list[int]:
     (smoothed over three bins)."""
     sm = np.convolve(h, np.ones(3), mode="same")
     need = max(MIN_VOTES, PEAK_FRACTION * float(sm.max()))
-    out = []
-    for m in range(len(sm)):
-        left = sm[m - 1] if m > 0 else -1.0
-        right = sm[m + 1] if m + 1 < len(sm) else -1.0
-        if sm[m] >= need and sm[m] >= left and sm[m] > right:
-            out.append(int(np.argmax(h[max(m - 1, 0):m + 2]) + max(m - 1, 0)))
-    return out
+    left = np.concatenate([[-1.0], sm[:-1]])
+    right = np.concatenate([sm[1:], [-1.0]])
+    top = np.flatnonzero((sm >= need) & (sm >= left) & (sm > right))
+    return [int(np.argmax(h[max(m - 1, 0):m + 2]) + max(m - 1, 0)) for m in top]
 
 
 WALLS = np.array([name != "floor" for name in PLANE_NAMES])
@@ -706,7 +706,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                              angle_sigma_rad: float = 0.0, sweep_period_s: float | None = None,
                              boresight: Boresight = SQUARE,
                              opts: PoseCorrectionOptions | None = None,
-                             position_sigma_m: float = 0.0) -> PoseCorrection:
+                             position_sigma_m: float = 0.0,
+                             placed: tuple[Beams, np.ndarray] | None = None) -> PoseCorrection:
     """Estimate the trajectory's correction from the floor and walls (module docstring).
 
     Args:
@@ -717,9 +718,11 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         sweep_period_s: the servo's period (the header's); None: from the logged sweep directions.
         angle_sigma_rad, position_sigma_m: each sample's own pointing and position errors (the header's
             ``sensor_noise``): white, so no drift, but they scatter the points about the planes.
+        placed: `placed_beams` of these samples with these arguments, if the caller has made it (the mount's
+            self-calibration asks the same stretches: made once).
     """
     opts = opts or PoseCorrectionOptions()
-    b, sweep_dir = beams(samples, lever_arm_body_m, frame, boresight)
+    b, sweep_dir = placed or beams(samples, lever_arm_body_m, frame, boresight)
     if len(b.t_s) < opts.min_structure_points:
         return not_applied(f"too few usable samples ({len(b.t_s)}) to correct the pose from the building")
     period = sweep_period_s or sweep_period_from_samples(samples["t_s"], samples["sweep_dir"])
@@ -728,9 +731,10 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         return not_applied("the sweep period is unknown (no servo frequency in the header, too few sweeps): no knot "
                            "spacing for the pose correction")
     n, d = planes(storage)
-    floor_m = max(resolution_m / math.sqrt(12.0), 1e-3)
-    b = replace(b, parallel=stretches_along(b, sweep_dir, n, range_sigma_m, range_sigma_rel, angle_sigma_rad, floor_m,
-                                            position_sigma_m))
+    floor_m = stretch_floor_m(resolution_m)
+    if placed is None:
+        b = replace(b, parallel=stretches_along(b, sweep_dir, n, range_sigma_m, range_sigma_rel, angle_sigma_rad,
+                                                floor_m, position_sigma_m))
     stride = max(1, len(b.t_s) // opts.max_points)
     b = b.take(slice(None, None, stride))
     t0, t1 = float(b.t_s.min()), float(b.t_s.max())
@@ -1481,7 +1485,7 @@ def group_median(key: np.ndarray, z: np.ndarray, t: np.ndarray) -> tuple[np.ndar
     """Per distinct key: the key, the median and robust spread of z, the mean of t, the count."""
     order = np.lexsort((z, key))
     key, z, t = key[order], z[order], t[order]
-    uniq, start, count = np.unique(key, return_index=True, return_counts=True)
+    uniq, start, count = sorted_groups(key)
     med = sorted_group_median(z, start, count)
     group = np.repeat(np.arange(len(uniq)), count)
     dev = np.abs(z - med[group])

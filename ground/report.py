@@ -39,6 +39,7 @@ from ground.exports.write import check_exports, write_exports
 from ground.floor_check import FloorLevel, floor_other_reading, floor_warning, measure_floor
 from ground.metadata import SurveyInfo, printable, sha256_of
 from ground.piles import PILES_CSV, PileOptions, write_piles_csv
+from ground.plane_stretches import Beams, placed_beams, stretch_floor_m
 from ground.plausibility import MAX_GAP_S, PlausibilityLimits, implausible, in_time, out_of_time, without_implausible
 from ground.pointcloud import N_SIGMA as FLOOR_N_SIGMA
 from ground.pointcloud import (
@@ -617,15 +618,32 @@ class _Estimates:
 
 
 def _mount_of(s: np.ndarray, lever: np.ndarray, frame: StorageFrame, storage: Storage, err: SensorErrorModel,
-              resim: Resimulated | None, mount: Boresight, drift: DriftNuisance | None = None) -> MountEstimate:
+              resim: Resimulated | None, mount: Boresight, drift: DriftNuisance | None = None,
+              placed: tuple[Beams, np.ndarray] | None = None) -> MountEstimate:
     usable = s[(s["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
     return estimate_mount(usable, lever, frame, storage, err.range_sigma_m, err.range_sigma_rel, resim, mount,
-                          err.angle_sigma_rad, err.position_sigma_m, drift)
+                          err.angle_sigma_rad, err.position_sigma_m, drift,
+                          None if placed is None else placed[0].parallel)
+
+
+def _shared_beams(s: np.ndarray, lever: np.ndarray, frame: StorageFrame, storage: Storage, err: SensorErrorModel,
+                  mount: Boresight) -> tuple[Beams, np.ndarray] | None:
+    """The samples' beams and their stretches along the planes (`placed_beams`), made once for both the mount's
+    self-calibration and the pose correction when the two would make them alike: the same samples and mount, and a
+    range sigma above both noise floors (the mount's millimetre, the pose's quantisation), so that each point's
+    sigma is the same to both. None: each makes its own. Why: each estimate spent a tenth of its time on them, and
+    the two estimates in sequence are the report's critical path (docs/design-notes.md)."""
+    floor_m = stretch_floor_m(err.resolution_m)
+    if not err.range_sigma_m >= floor_m:
+        return None
+    return placed_beams(s, lever, frame, mount, storage, err.range_sigma_m, err.range_sigma_rel, err.angle_sigma_rad,
+                        floor_m, err.position_sigma_m)
 
 
 def _pose_of(s: np.ndarray, bs: Boresight, header: dict, lever: np.ndarray, frame: StorageFrame, storage: Storage,
              err: SensorErrorModel, share_taken_out: bool,
-             baro_walk_m_per_sqrt_s: float = PoseCorrectionOptions.vertical_walk_m_per_sqrt_s) -> PoseCorrection:
+             baro_walk_m_per_sqrt_s: float = PoseCorrectionOptions.vertical_walk_m_per_sqrt_s,
+             placed: tuple[Beams, np.ndarray] | None = None) -> PoseCorrection:
     # A floor seen only away from the walls anchors the height however far it moves it only when the height came from
     # the downward rangefinder and its share was not taken out (`_rangefinder_share`): that error follows the pile
     # and nothing else removes it. Taken out, what is left drifts as a barometer's does (`PoseCorrectionOptions.
@@ -637,7 +655,7 @@ def _pose_of(s: np.ndarray, bs: Boresight, header: dict, lever: np.ndarray, fram
                                  vertical_walk_m_per_sqrt_s=baro_walk_m_per_sqrt_s)
     return estimate_pose_correction(s, lever, frame, storage, err.resolution_m, err.range_sigma_m,
                                     err.range_sigma_rel, err.angle_sigma_rad, _sweep_period_s(header), bs, opts,
-                                    position_sigma_m=err.position_sigma_m)
+                                    position_sigma_m=err.position_sigma_m, placed=placed)
 
 
 def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame, lever: np.ndarray,
@@ -647,14 +665,16 @@ def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame:
     pose: a constant mount error is partly a constant shift of the structure, which the pose's knots took up
     when they came first (measured: docs/pose_error.md)."""
     est, corrected, boresight, pose = None, samples, mount, None
+    both = opts.self_calibration and opts.pose_correction
+    placed = _shared_beams(samples, lever, frame, storage, err, mount) if both else None
     if opts.self_calibration:
         resim = _drive(header, samples)
-        est = _mount_of(samples, lever, frame, storage, err, resim, mount)
+        est = _mount_of(samples, lever, frame, storage, err, resim, mount, placed=placed)
         if est.any_applied:
             corrected, boresight = apply_mount(samples, est, resim, mount)
     if opts.pose_correction:
         pose = _pose_of(corrected, boresight, header, lever, frame, storage, err, share_taken_out,
-                        opts.baro_walk_m_per_sqrt_s)
+                        opts.baro_walk_m_per_sqrt_s, placed if corrected is samples and boresight == mount else None)
         if opts.self_calibration and pose.unexplained:
             joint = _mount_with_drift(samples, samples if unlifted is None else unlifted, header, storage, frame, lever,
                                       opts, err, mount, share_taken_out, pose)

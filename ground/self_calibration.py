@@ -73,7 +73,7 @@ from firmware_py.core.frames import (
 from firmware_py.core.servo_model import command_angles, servo_angles
 from firmware_py.core.storage import Storage
 from ground.blas_threads import one_blas_thread
-from ground.plane_stretches import beams, stretches_along
+from ground.plane_stretches import beams, planes, stretches_along
 from ground.pose_correction import knot_basis, lever_shift
 from ground.servo_timing import Resimulated
 
@@ -175,13 +175,6 @@ def not_estimated(reason: str, points: tuple[int, int, int, int, int] = (0,) * 5
                   unexplained: bool = False) -> MountEstimate:
     """No estimate, and why (nothing is applied)."""
     return MountEstimate((0.0,) * 4, (0.0,) * 4, (False,) * 4, points, 0.0, 0.0, reason, unexplained=unexplained)
-
-
-def _planes(storage: Storage) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals (5, 3) and offsets (5,) of the floor and the four walls: n . p = d."""
-    n = np.array([[0, 0, 1], [1, 0, 0], [1, 0, 0], [0, 1, 0], [0, 1, 0]], dtype=float)
-    d = np.array([0.0, 0.0, storage.length_m, 0.0, storage.width_m])
-    return n, d
 
 
 class ServoAngles:
@@ -633,7 +626,8 @@ def _along(s: np.ndarray, lever_arm_body_m, frame: StorageFrame, boresight: Bore
 def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, storage: Storage,
                    range_sigma_m: float, range_sigma_rel: float, resim: Resimulated | None = None,
                    boresight: Boresight = SQUARE, angle_sigma_rad: float = 0.0,
-                   position_sigma_m: float = 0.0, drift: DriftNuisance | None = None) -> MountEstimate:
+                   position_sigma_m: float = 0.0, drift: DriftNuisance | None = None,
+                   stretches: np.ndarray | None = None) -> MountEstimate:
     """Estimate the servo offset and scale and the boresight from the building (module docstring).
 
     Args:
@@ -650,15 +644,19 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
             checks that judge a correction by the structure's own points (`_misfit_gain`, `_inside_excess`, the
             planes' points' RMS) are not made, since a drift still bends them; the caller keeps the mount only if
             the pose correction on it is then applied, with its own checks (`ground.report`).
+        stretches: (N, 5) whether each usable sample's stretch of sweep runs along each plane, placed with this
+            boresight and this noise, if the caller has it (the pose correction asks the same: computed once, a
+            tenth of each estimate's time); used only when it covers exactly the samples kept here.
     """
     finite = np.logical_and.reduce([np.isfinite(samples[f]) for f in
                                     ("range_m", "servo_rad", "x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad")])
     s = samples[finite & (samples["range_m"] > 0)]
     if len(s) < 1000:
         return not_estimated(f"too few usable samples ({len(s)}) to calibrate from the building")
-    n, d = _planes(storage)
-    along = _along(s, lever_arm_body_m, frame, boresight, n, range_sigma_m, range_sigma_rel, angle_sigma_rad,
-                   position_sigma_m)
+    n, d = planes(storage)
+    along = (stretches if stretches is not None and len(stretches) == len(s) else
+             _along(s, lever_arm_body_m, frame, boresight, n, range_sigma_m, range_sigma_rel, angle_sigma_rad,
+                    position_sigma_m))
     stride = max(1, len(s) // MAX_POINTS)
     s = s[::stride]
     prob = _Problem(s, np.asarray(lever_arm_body_m, dtype=float), frame, resim, boresight)
@@ -873,7 +871,7 @@ def plane_set_errors(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame,
     s = samples[np.isfinite(samples["range_m"]) & (samples["range_m"] > 0)]
     s = s[::max(1, len(s) // MAX_POINTS)]
     prob = _Problem(s, np.asarray(lever_arm_body_m, dtype=float), frame, resim)
-    n, d = _planes(storage)
+    n, d = planes(storage)
     q = np.array(est.values, dtype=float)
     prob.angles.linearize(float(q[1]))
     window = 3.0 * max(est.rms_after_m, 0.002)

@@ -10,10 +10,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from firmware_py.core.frames import StorageFrame, beam_rays_w
-from firmware_py.core.samplelog import SampleFlags, new_records
+from firmware_py.core.frames import SQUARE, StorageFrame, beam_rays_w
+from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, SampleFlags, new_records
 from firmware_py.core.storage import Storage
-from ground.plane_stretches import along_planes, beams
+from ground.plane_stretches import along_planes, beams, placed_beams, stretch_floor_m
 from ground.pose_correction import (
     PLANE_NAMES,
     Component,
@@ -31,6 +31,7 @@ from ground.pose_correction import (
     prior_sigmas,
     unconstrained_warning,
 )
+from ground.self_calibration import estimate_mount
 
 STORAGE = Storage(60.0, 40.0, 15.0)
 FRAME = StorageFrame()  # W = (north, -east, -down)
@@ -1221,3 +1222,19 @@ def test_that_the_chi_square_quantile_is_scipy_stats_own():
     from scipy.stats import chi2  # here only: the ground station does not import scipy.stats
     for level, dof in [(0.99, 1), (0.99, 60), (0.95, 132), (0.5, 7)]:
         assert chi2_quantile(level, dof) == float(chi2.ppf(level, dof))
+
+
+def test_that_stretches_made_once_for_both_estimates_change_neither(drifted):
+    """The report makes the beams and their stretches along the planes once for the mount's self-calibration and
+    the pose correction (`ground.report._shared_beams`); each estimate must come out as when it makes its own."""
+    samples, _, _ = drifted
+    sigma = 0.025  # above both estimates' noise floors, as the report requires before sharing
+    placed = placed_beams(samples, LEVER, FRAME, SQUARE, STORAGE, sigma, 0.0, 0.0, stretch_floor_m(RESOLUTION))
+    own = estimate_pose_correction(samples, LEVER, FRAME, STORAGE, RESOLUTION, sigma, 0.0, 0.0, PERIOD_S)
+    shared = estimate_pose_correction(samples, LEVER, FRAME, STORAGE, RESOLUTION, sigma, 0.0, 0.0, PERIOD_S,
+                                      placed=placed)
+    assert own.applied and np.array_equal(own.values, shared.values) and own.reason == shared.reason
+    usable_samples = samples[(samples["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0]
+    mount_own = estimate_mount(usable_samples, LEVER, FRAME, STORAGE, sigma, 0.0)
+    mount_shared = estimate_mount(usable_samples, LEVER, FRAME, STORAGE, sigma, 0.0, stretches=placed[0].parallel)
+    assert mount_own.values == mount_shared.values and mount_own.reason == mount_shared.reason

@@ -1,0 +1,49 @@
+"""Medians per group, vectorised (`ground.group_stats`) and the pose vote's peaks (`ground.pose_correction._peaks`)."""
+
+import numpy as np
+
+from ground.group_stats import medians_by_key, sorted_groups
+from ground.pose_correction import MIN_VOTES, PEAK_FRACTION, _peaks
+
+
+def test_that_sorted_groups_are_what_numpys_unique_says_of_sorted_keys():
+    rng = np.random.default_rng(0)
+    for _ in range(500):
+        key = np.sort(rng.integers(0, rng.integers(1, 50), rng.integers(0, 200)))
+        want = np.unique(key, return_index=True, return_counts=True)
+        got = sorted_groups(key)
+        assert all(np.array_equal(w, g) for w, g in zip(want, got, strict=True))
+
+
+def test_that_medians_by_key_are_each_groups_median():
+    rng = np.random.default_rng(1)
+    key = rng.integers(0, 30, 2000)
+    z = rng.normal(size=2000)
+    uniq, med, count = medians_by_key(key, z)
+    assert np.array_equal(uniq, np.unique(key))
+    assert np.allclose(med, [np.median(z[key == k]) for k in uniq])
+    assert np.array_equal(count, [np.count_nonzero(key == k) for k in uniq])
+
+
+def _peaks_by_loop(h: np.ndarray) -> list[int]:
+    """The rule `_peaks` states, bin by bin: a smoothed local maximum (ties to the left) holding enough points,
+    placed on its highest raw bin."""
+    sm = np.convolve(h, np.ones(3), mode="same")
+    need = max(MIN_VOTES, PEAK_FRACTION * float(sm.max()))
+    out = []
+    for m in range(len(sm)):
+        left = sm[m - 1] if m > 0 else -1.0
+        right = sm[m + 1] if m + 1 < len(sm) else -1.0
+        if sm[m] >= need and sm[m] >= left and sm[m] > right:
+            out.append(int(np.argmax(h[max(m - 1, 0):m + 2]) + max(m - 1, 0)))
+    return out
+
+
+def test_that_the_votes_peaks_follow_their_rule_bin_by_bin():
+    rng = np.random.default_rng(2)
+    for _ in range(2000):
+        h = rng.integers(0, rng.integers(1, 40), rng.integers(3, 60))
+        if rng.random() < 0.3:
+            h[:] = rng.integers(0, 30)  # a plateau: ties everywhere
+        assert _peaks(h) == _peaks_by_loop(h)
+    assert _peaks(np.array([0, 0, 30, 0, 0, 12, 0])) == [2, 5]
