@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from firmware_py.core.storage import Storage
-from ground.plane_stretches import CHORD_HALF, STEEPEST_PILE_DEG, wall_stretches
+from ground.plane_stretches import CHORD_HALF, STEEPEST_PILE_DEG, sweep_ids, wall_stretches
 from ground.pose_correction import PoseCorrectionOptions
 
 MIN_WALL_POINTS = 5
@@ -79,18 +79,6 @@ class SizeCheck:
     def as_dict(self) -> dict:
         return {"header_m": self.header_m, "measured_m": self.measured_m, "std_error_m": self.std_error_m,
                 "sweeps": self.n_sweeps, "differs": self.differs}
-
-
-def sweep_ids(t_s: np.ndarray, sweep_dir: np.ndarray, sample_dt_s: float) -> np.ndarray:
-    """A number per point, the same for the points of one sweep: a new one at each turn of the servo and after
-    any gap in time longer than two samples."""
-    t = np.asarray(t_s, dtype=float)
-    d = np.asarray(sweep_dir)
-    if len(t) == 0:
-        return np.zeros(0, dtype=np.int64)
-    new = np.zeros(len(t), dtype=bool)
-    new[1:] = (d[1:] != d[:-1]) | (np.diff(t) > 2.0 * sample_dt_s)
-    return np.cumsum(new)
 
 
 def outermost(x: np.ndarray, band_m: float) -> float | None:

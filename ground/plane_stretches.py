@@ -69,6 +69,18 @@ def beams(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame,
             s["sweep_dir"].astype(np.int64))
 
 
+def sweep_ids(t_s: np.ndarray, sweep_dir: np.ndarray, sample_dt_s: float) -> np.ndarray:
+    """A number per point, the same for the points of one sweep: a new one at each turn of the servo and after
+    any gap in time longer than two samples."""
+    t = np.asarray(t_s, dtype=float)
+    d = np.asarray(sweep_dir)
+    if len(t) == 0:
+        return np.zeros(0, dtype=np.int64)
+    new = np.zeros(len(t), dtype=bool)
+    new[1:] = (d[1:] != d[:-1]) | (np.diff(t) > 2.0 * sample_dt_s)
+    return np.cumsum(new)
+
+
 CHORD_HALF = 16
 """A point's stretch of sweep: the chord from the sample CHORD_HALF before it to CHORD_HALF after it."""
 

@@ -84,6 +84,7 @@ from ground.plane_stretches import (
     stretches_along,
     usable,
 )
+from ground.sweep_heights import SweepHeights
 
 PLANE_NAMES = ("floor", "x0", "xL", "y0", "yW")
 MAX_MISFIT = 3.0
@@ -253,13 +254,20 @@ class PoseCorrection:
     (`untied_sigma_m`); 0 when tied throughout, None when the height was not corrected or came from a downward
     rangefinder whose share was left in. The volume's interval carries it when the level itself rests on a floor
     (else the level term, `level_sigma_m`, already spans the whole flight)."""
+    sweep_heights: SweepHeights | None = None
+    """The height refined sweep by sweep from the floor each sweep saw, on top of the knots (`ground.sweep_heights`);
+    None when not made (not applied, or the height's level rests on no confirmed floor)."""
 
     def at(self, t_s: np.ndarray) -> np.ndarray:
-        """(N, 4) the correction at times t_s (linear between knots, held beyond the ends)."""
+        """(N, 4) the correction at times t_s (linear between knots, held beyond the ends; the sweeps' heights on
+        top)."""
         t = np.asarray(t_s, dtype=float)
         if len(self.knot_t_s) == 0:
             return np.zeros((len(t), 4))
-        return np.column_stack([np.interp(t, self.knot_t_s, self.values[:, c]) for c in range(4)])
+        out = np.column_stack([np.interp(t, self.knot_t_s, self.values[:, c]) for c in range(4)])
+        if self.sweep_heights is not None:
+            out[:, 2] += self.sweep_heights.at(t)
+        return out
 
     def size(self) -> dict[str, float]:
         """RMS and max over time of the horizontal, vertical and heading correction (at the knots)."""
@@ -299,7 +307,8 @@ class PoseCorrection:
                 "height_unanchored_s": self.height_unanchored_s[0],
                 "height_unanchored_longest_s": [self.height_unanchored_s[1], self.height_unanchored_s[2]],
                 "closest_wall": None if self.closest_wall is None else dict(
-                    zip(("distance_m", "surface", "t_s", "since_start_s"), self.closest_wall, strict=True))}
+                    zip(("distance_m", "surface", "t_s", "since_start_s"), self.closest_wall, strict=True)),
+                "sweep_heights": None if self.sweep_heights is None else self.sweep_heights.as_dict()}
 
 
 def _rms(x: np.ndarray) -> float:
@@ -2201,7 +2210,12 @@ def describe(corr: PoseCorrection) -> str:
             f"({s['vertical_max_m']:.2f} max), heading "
             f"{s['heading_rms_deg']:.2f} deg RMS ({s['heading_max_deg']:.2f} max) over time; the floor and walls "
             f"now {corr.rms_after_m * 100:.1f} cm off their planes (were {corr.rms_before_m * 100:.1f} cm)")
-    return "; ".join([line, *corr.notes])
+    sh = corr.sweep_heights
+    sweeps = ([] if sh is None else
+              [f"the height refined sweep by sweep from the floor {sh.sweeps_used} of {sh.sweeps} sweeps saw, by "
+               f"{sh.rms_m() * 100:.1f} cm RMS ({sh.shrink * 100:.0f} % of what they measured kept against their "
+               "scatter)"])
+    return "; ".join([line, *sweeps, *corr.notes])
 
 
 def unanchored_warning(corr: PoseCorrection) -> str | None:

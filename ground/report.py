@@ -91,6 +91,8 @@ from ground.surface import (
     volume_error_pct,
 )
 from ground.surface_file import SavedSurface, load_surface, save_surface
+from ground.sweep_heights import N_SIGMA as SWEEP_N_SIGMA
+from ground.sweep_heights import sweep_heights
 from ground.uncertainty import (
     DEFAULT_INTERVAL_MODEL,
     INTERVAL_LEVEL,
@@ -747,6 +749,8 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
             corrected, boresight = apply_mount(samples, est, resim, mount) if est.any_applied else (samples, mount)
             pose = _pose_of(corrected, boresight, header, lever, frame, storage, err, share_taken_out,
                             opts.baro_walk_m_per_sqrt_s)
+        pose = _with_sweep_heights(pose, apply_pose_correction(corrected, pose, frame), header, lever, frame,
+                                   storage, boresight, err, opts)
         corrected = apply_pose_correction(corrected, pose, frame)
         pose = with_closest_wall(pose, corrected, frame, storage)
     if corrected is samples and boresight == mount:  # nothing applied (a boresight alone leaves the samples)
@@ -756,6 +760,28 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
     return replace(fixed, servo_timing=survey.servo_timing, servo_retimed=survey.servo_retimed,
                    implausible=survey.implausible, despike_unavailable=survey.despike_unavailable, mount=est,
                    pose=pose, rangefinder=survey.rangefinder)
+
+
+def _with_sweep_heights(pose: PoseCorrection, corrected: np.ndarray, header: dict, lever: np.ndarray,
+                        frame: StorageFrame, storage: Storage, boresight: Boresight, err: SensorErrorModel,
+                        opts: ReportOptions) -> PoseCorrection:
+    """The applied correction with the height refined sweep by sweep from the floor (`ground.sweep_heights`), made
+    on the samples it corrected; as it was when the height was not corrected, when its level rests on no floor the
+    walls' feet confirm (a hollow in the pile may be what the sweeps see at z = 0), when a lever arm was placed
+    instead of knots, or when no sweep sees enough floor. The floor's points are first looked for within the reach
+    the correction's own prior gives the height between two knots (the walk's bridge, at most q sqrt(spacing / 4))
+    and the data's noise, N_SIGMA of both."""
+    period = _sweep_period_s(header)
+    if (not pose.applied or pose.height_sigma_m is None or pose.level_sigma_m is not None
+            or pose.open_floor_shift_m is not None or pose.lever_change_m is not None or period is None
+            or len(pose.knot_t_s) < 2):
+        return pose
+    spacing = float(np.median(np.diff(pose.knot_t_s)))
+    reach = SWEEP_N_SIGMA * math.hypot(opts.baro_walk_m_per_sqrt_s * math.sqrt(spacing / 4.0), pose.noise_m)
+    heights = sweep_heights(corrected, lever, frame, storage, boresight, err.range_sigma_m, err.range_sigma_rel,
+                            err.angle_sigma_rad, err.resolution_m, err.position_sigma_m, period / 2.0, reach,
+                            err.pose_draw_sigma_m, err.pose_stream_hz)
+    return pose if heights is None else replace(pose, sweep_heights=heights)
 
 
 def with_pose_term(survey: Survey, pose: PoseCorrection | None, level_pose: PoseCorrection | None,

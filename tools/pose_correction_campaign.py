@@ -57,7 +57,7 @@ TRAJ_TARGET_M = 0.10
 def trajectory_rms_m(truth: dict, correction: dict | None, rangefinder: dict | None = None) -> tuple[float, float]:
     """3-D position RMS of the estimate against the truth, before and after the report's corrections: the
     rangefinder's share of the height taken out first (report.json's `rangefinder_height`, its lift over time) and
-    the pose correction on top (its knots, linear between)."""
+    the pose correction on top (its knots, linear between, and its sweeps' heights)."""
     tr = (truth.get("pose_error") or {}).get("trajectory")
     if not tr:
         return 0.0, 0.0
@@ -73,6 +73,9 @@ def trajectory_rms_m(truth: dict, correction: dict | None, rangefinder: dict | N
         knots = np.array(correction["knot_t_s"])
         vals = np.array(correction["knot_values"])
         placed += np.column_stack([np.interp(t, knots, vals[:, c]) for c in range(3)])
+        sweeps = correction.get("sweep_heights")
+        if sweeps:  # the height refined sweep by sweep from the floor, on top of the knots (ground.sweep_heights)
+            placed[:, 2] += np.interp(t, sweeps["t_s"], sweeps["dz_m"], left=0.0, right=0.0)
     return before, float(np.sqrt(np.mean(np.sum((placed - true_w) ** 2, axis=1))))
 
 

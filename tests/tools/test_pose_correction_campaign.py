@@ -207,6 +207,21 @@ def test_that_the_trajectory_after_the_report_is_placed_with_the_rangefinder_lif
     assert not_applied == pytest.approx(pose_only)
 
 
+def test_that_the_trajectory_after_the_report_counts_the_heights_the_sweeps_refined():
+    """The report adds the sweeps' floor offsets to the knots' height (`ground.sweep_heights`): left out, the
+    trajectory would be judged without a correction the volume was placed with."""
+    t = np.arange(0.0, 30.0, 0.1)
+    true_w = np.column_stack([t, np.full(len(t), 5.0), np.full(len(t), 12.0)])
+    wave = 0.03 * np.sin(2.0 * np.pi * t / 6.0)
+    est_w = true_w + np.column_stack([np.zeros(len(t)), np.zeros(len(t)), wave])
+    truth = {"pose_error": {"trajectory": {"t_s": t.tolist(), "true_w_m": true_w.tolist(),
+                                           "estimated_w_m": est_w.tolist()}}}
+    knots = {"applied": True, "knot_t_s": [0.0, 30.0], "knot_values": [[0, 0, 0, 0], [0, 0, 0, 0]]}
+    _, knots_only = trajectory_rms_m(truth, knots)
+    _, refined = trajectory_rms_m(truth, {**knots, "sweep_heights": {"t_s": t.tolist(), "dz_m": (-wave).tolist()}})
+    assert knots_only == pytest.approx(np.sqrt(np.mean(wave ** 2))) and refined == pytest.approx(0.0, abs=1e-9)
+
+
 def test_that_a_flight_fly_refused_before_take_off_is_no_survey_and_is_counted_as_refused_not_as_a_crash():
     rows = [{"profile": "none", "pile": "2", "p_traj": 25, "seed": 0, "ve_off": 0.1, "ve_on": 0.1, "applied": False,
              "traj_before_m": 0.0, "traj_after_m": 0.0}]
