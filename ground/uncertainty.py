@@ -92,7 +92,7 @@ class ErrorTerms:
 
 
 # --- calibrated pose factor (tools/calibrate_pose_interval.py --write-model) ---
-POSE_FACTOR = 7.524478252569043
+POSE_FACTOR = 6.274721642371337
 POSE_FACTOR_SOURCE = 'fitted on 38 drifting flights (tools/calibrate_pose_interval.py, 2026-12-03)'
 # --- end of calibrated pose factor ---
 
