@@ -160,13 +160,3 @@ def sweep_heights(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, st
     ts, zs = tapered(t, -r, period_s)
     return SweepHeights(ts, zs, len(t), int(sweep.max() - sweep.min() + 1), k)
 
-
-def apply_sweep_heights(samples: np.ndarray, heights: SweepHeights, frame: StorageFrame) -> np.ndarray:
-    """A copy of the samples with the offsets added to their height (W's z, put into NED)."""
-    out = samples.copy()
-    d_w = np.zeros((len(samples), 3))
-    d_w[:, 2] = heights.at(samples["t_s"].astype(float))
-    d_ned = d_w @ frame.rot_w_from_ned  # R is symmetric: W -> NED of a vector (as `apply_pose_correction`)
-    for i, name in enumerate(("x_m", "y_m", "z_m")):
-        out[name] = samples[name] + d_ned[:, i]
-    return out

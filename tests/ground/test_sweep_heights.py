@@ -8,13 +8,8 @@ import math
 import numpy as np
 
 from firmware_py.core.frames import SQUARE
-from ground.sweep_heights import (
-    MIN_FLOOR_POINTS,
-    apply_sweep_heights,
-    shrunk,
-    sweep_heights,
-    tapered,
-)
+from ground.pose_correction import PoseCorrection, apply_pose_correction
+from ground.sweep_heights import MIN_FLOOR_POINTS, shrunk, sweep_heights, tapered
 from tests.ground.test_pose_correction import FRAME, LEVER, NO_PILE, PERIOD_S, RESOLUTION, STORAGE, flight
 
 WAVE_M, WAVE_S = 0.03, 6.0  # a height error knots two sweep periods (3 s) apart cannot follow: two a wave
@@ -39,7 +34,10 @@ def test_that_a_height_wandering_between_the_knots_is_followed_from_the_floor_ea
     left = err[:, 2] + heights.at(t)  # the logged height's error once the sweeps' offsets are added
     inner = (t > 2.0) & (t < t[-1] - 2.0)
     assert np.sqrt(np.mean(left[inner] ** 2)) < 0.35 * np.sqrt(np.mean(err[inner, 2] ** 2))
-    fixed = apply_sweep_heights(samples, heights, FRAME)
+    # placed as the report places them: the correction's `at` adds the sweeps' heights to its knots' (here none)
+    knots = np.array([t[0], t[-1]])
+    corr = PoseCorrection(knots, np.zeros((2, 4)), np.zeros((2, 4), dtype=bool), True, sweep_heights=heights)
+    fixed = apply_pose_correction(samples, corr, FRAME)
     up_w = (FRAME.ned_to_w(np.column_stack([fixed["x_m"], fixed["y_m"], fixed["z_m"]]).astype(float))[:, 2]
             - FRAME.ned_to_w(np.column_stack([samples["x_m"], samples["y_m"], samples["z_m"]]).astype(float))[:, 2])
     assert np.allclose(up_w, heights.at(t))
