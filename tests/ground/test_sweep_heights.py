@@ -43,8 +43,8 @@ def test_that_a_height_wandering_between_the_knots_is_followed_from_the_floor_ea
     assert np.allclose(up_w, heights.at(t))
 
 
-def test_that_ranges_as_noisy_as_the_wave_leave_less_of_it_than_they_add():
-    """Decimetres of range noise: each sweep's offset is mostly its own error, and shrinking keeps little of it."""
+def test_that_decimetres_of_range_noise_over_a_true_height_are_not_taken_for_a_wander():
+    """No height error, 0.2 m of range noise: each sweep's offset is its own error, and shrinking keeps little of it."""
     samples, _ = flight(pile=NO_PILE, duration_s=40.0, noise_m=0.2, seed=3)
     heights = _heights(samples, reach_m=0.6)
     assert heights is None or heights.rms_m() < 0.01
