@@ -749,9 +749,10 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
             corrected, boresight = apply_mount(samples, est, resim, mount) if est.any_applied else (samples, mount)
             pose = _pose_of(corrected, boresight, header, lever, frame, storage, err, share_taken_out,
                             opts.baro_walk_m_per_sqrt_s)
-        pose = _with_sweep_heights(pose, apply_pose_correction(corrected, pose, frame), header, lever, frame,
-                                   storage, boresight, err, opts)
-        corrected = apply_pose_correction(corrected, pose, frame)
+        placed = apply_pose_correction(corrected, pose, frame)
+        pose = _with_sweep_heights(pose, placed, header, lever, frame, storage, boresight, err, opts)
+        # placed again only when the sweeps' heights were added to the correction
+        corrected = placed if pose.sweep_heights is None else apply_pose_correction(corrected, pose, frame)
         pose = with_closest_wall(pose, corrected, frame, storage)
     if corrected is samples and boresight == mount:  # nothing applied (a boresight alone leaves the samples)
         return replace(survey, mount=est, pose=pose)

@@ -22,6 +22,7 @@ import numpy as np
 
 from firmware_py.core.frames import Boresight, StorageFrame
 from firmware_py.core.storage import Storage
+from ground.group_stats import sorted_groups
 from ground.plane_stretches import placed_beams, stretch_floor_m, sweep_ids
 
 MIN_FLOOR_POINTS = 10
@@ -90,13 +91,12 @@ def sweep_offsets(z_m: np.ndarray, t_s: np.ndarray, sweep: np.ndarray, floor: np
     ids, zs, ts = sweep[floor], z_m[floor], t_s[floor]
     order = np.argsort(ids, kind="stable")
     ids, zs, ts = ids[order], zs[order], ts[order]
-    starts = np.flatnonzero(np.concatenate([[True], ids[1:] != ids[:-1]])) if len(ids) else np.zeros(0, int)
-    ends = np.append(starts[1:], len(ids))
+    _, starts, counts = sorted_groups(ids)
     t_out, off, se = [], [], []
-    for a, b in zip(starts, ends, strict=True):
-        n = b - a
+    for a, n in zip(starts, counts, strict=True):
         if n < MIN_FLOOR_POINTS:
             continue
+        b = a + n
         z = zs[a:b]
         messages = len(np.unique(np.floor(ts[a:b] * pose_stream_hz)))
         t_out.append(float(np.median(ts[a:b])))
