@@ -26,6 +26,7 @@ from ground.pose_correction import (
     is_drift,
     level_sigma_m,
     lever_shift,
+    pinned_to_floor,
     plane_brought_on,
     planes,
     prior_sigmas,
@@ -1238,3 +1239,16 @@ def test_that_stretches_made_once_for_both_estimates_change_neither(drifted):
     mount_own = estimate_mount(usable_samples, LEVER, FRAME, STORAGE, sigma, 0.0)
     mount_shared = estimate_mount(usable_samples, LEVER, FRAME, STORAGE, sigma, 0.0, stretches=placed[0].parallel)
     assert mount_own.values == mount_shared.values and mount_own.reason == mount_shared.reason
+
+
+def test_that_a_cell_a_pass_saw_mostly_as_floor_is_held_at_the_floor_only_when_it_is_flat():
+    # three cells of a 4 x 4 grid: 3 flat (a pass saw floor), 7 sloped (a pile's toe: a pass saw the floor's band
+    # in it, the other the flank), 9 flat but never floor
+    cells = np.array([3, 7, 9])
+    inv = np.array([0, 0, 1, 1, 2])
+    is_floor = np.array([True, False, True, False, False])
+    gx, gy = np.zeros(16), np.zeros(16)
+    gx[7], gy[7] = 0.4, -0.3
+    assert pinned_to_floor(cells, inv, is_floor, gx, gy).tolist() == [True, False, False]
+    gx[7] = gy[7] = 0.0  # the same cell flat: held
+    assert pinned_to_floor(cells, inv, is_floor, gx, gy).tolist() == [True, True, False]
