@@ -23,6 +23,7 @@ from sitl.faults.injector import FaultSpec
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
 from tools.doc_sections import write_section
+from tools.pose_correction_campaign import signed_error_pct
 
 MOUNT_FAULTS = {"servo_offset_deg": 3.0, "servo_scale_pct": 5.0, "boresight_deg": 2.0}
 FOUND = (("servo_offset_deg", "deg"), ("servo_scale", ""), ("boresight_tilt_deg", "deg"))
@@ -55,8 +56,8 @@ def row(work: Path, pile: str, p_traj_pct: int, profile: str, seed: int) -> dict
     cal = on.get("self_calibration") or {}
     found = {k: (cal[k]["estimate"], bool(cal[k]["applied"])) for k, _ in FOUND if k in cal}
     return {"pile": pile, "p_traj": p_traj_pct, "profile": profile, "seed": seed,
-            "ve_square": square["volume_error_pct"], "ve_pose_off": off["volume_error_pct"],
-            "ve": on["volume_error_pct"], "found": found,
+            "ve_square": signed_error_pct(square), "ve_pose_off": signed_error_pct(off),
+            "ve": signed_error_pct(on), "found": found,
             "pose_applied": bool((on.get("pose_correction") or {}).get("applied"))}
 
 
