@@ -15,9 +15,11 @@ from ground.pose_correction import KNOT_SWEEPS, PoseCorrectionOptions, knot_time
 from ground.report import ReportOptions, make_report
 from ground.self_calibration import (
     INSIDE_SIGN,
+    N_GROUPS,
     PLANE_SETS,
     DriftNuisance,
     MountEstimate,
+    _DriftFit,
     _trim_inside,
     describe,
     estimate_mount,
@@ -29,8 +31,10 @@ from ground.servo_timing import Resimulated
 from sitl.faults.injector import FaultSpec
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
+from tests.volumes import ve
 
 pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
+
 
 STORAGE = Storage(30, 20, 10)
 
@@ -168,9 +172,8 @@ def test_that_the_report_applies_it_says_so_and_gets_the_volume_back(skewed_run,
     assert fixed["self_calibration"]["servo_scale"]["applied"] is True
     assert any(w.startswith("self-calibration from the building applied: servo offset +3.0") for w in fixed["warnings"])
     assert raw["self_calibration"] is None
-    assert abs(fixed["volume_error_pct"] - clean["volume_error_pct"]) < 0.3
-    assert abs(raw["volume_error_pct"] - clean["volume_error_pct"]) > abs(fixed["volume_error_pct"]
-                                                                           - clean["volume_error_pct"])
+    assert abs(ve(fixed) - ve(clean)) < 0.3
+    assert abs(ve(raw) - ve(clean)) > abs(ve(fixed) - ve(clean))
 
 
 def test_that_the_tilt_estimated_is_the_deviation_from_the_configured_one(skewed_run):
@@ -191,7 +194,7 @@ def test_that_the_report_places_points_with_the_headers_boresight(skewed_run, sk
     assert plain["boresight_deg"] == {"tilt": 0.0, "sweep_yaw": 0.0}
     assert configured["self_calibration"]["boresight_tilt_deg"]["estimate"] == pytest.approx(0.0, abs=0.2)
     assert plain["self_calibration"]["boresight_tilt_deg"]["estimate"] == pytest.approx(2.0, abs=0.2)
-    assert abs(configured["volume_error_pct"] - plain["volume_error_pct"]) < 0.3
+    assert abs(ve(configured) - ve(plain)) < 0.3
 
 
 def test_that_a_floor_hidden_by_the_pile_is_calibrated_from_the_walls_alone(hidden_floor_runs, tmp_path):
@@ -207,9 +210,8 @@ def test_that_a_floor_hidden_by_the_pile_is_calibrated_from_the_walls_alone(hidd
     clean = make_report(square_run, tmp_path / "clean", ReportOptions(plots=False))
     fixed = make_report(skewed_run, tmp_path / "fixed", ReportOptions(plots=False))
     raw = make_report(skewed_run, tmp_path / "raw", ReportOptions(plots=False, self_calibration=False))
-    assert abs(fixed["volume_error_pct"] - clean["volume_error_pct"]) < 0.3
-    assert abs(raw["volume_error_pct"] - clean["volume_error_pct"]) > abs(fixed["volume_error_pct"]
-                                                                           - clean["volume_error_pct"])
+    assert abs(ve(fixed) - ve(clean)) < 0.3
+    assert abs(ve(raw) - ve(clean)) > abs(ve(fixed) - ve(clean))
 
 
 def test_that_without_turns_the_boresight_is_held_square_and_the_servo_still_found(tmp_path):
@@ -414,18 +416,51 @@ def test_that_of_two_starts_for_the_drift_the_fit_keeps_the_one_the_structure_ag
     assert abs(math.degrees(joint.values[2]) - 2.0) < 0.5
 
 
+def test_that_the_mount_and_the_drift_fitted_together_end_where_a_further_fit_hardly_moves_them(drifting_runs,
+                                                                                                monkeypatch):
+    """The joint fit ends on planes held, by reweighted rounds to convergence (`_DriftFit.held`), the planes assigned
+    again where it ended until that moves nothing beyond the noise: one more such fit moves the mount by less than
+    0.01 deg and the drift by less than a centimetre. (The rounds that assign the planes at every step had stopped
+    with the tilt still moving tenths of a degree a round and the drift decimetres, and the mount fitted alone on the
+    drift they left moved the tilt 0.5 deg further.) Its standard errors come from groups of sweeps each fitted with
+    a drift of its own, not with the whole fit's held."""
+    _, skewed = drifting_runs
+    s, h = _usable(skewed)
+    ended, groups = [], []
+    real_held = _DriftFit.held
+
+    def held(self, q, delta, window, sub=None, free=None):
+        out = real_held(self, q, delta, window, sub, free)
+        (ended if sub is None else groups).append((self, out, window, free))
+        return out
+
+    monkeypatch.setattr(_DriftFit, "held", held)
+    joint = estimate_mount(s, h["lever_arm_body_m"], StorageFrame(), STORAGE, h["sensor"]["range_sigma_m"],
+                           h["sensor"]["range_sigma_rel"], Resimulated.from_header(h), drift=_drift_of(s, h))
+    monkeypatch.undo()
+    assert joint.applied[:3] == (True, True, True)
+    fit, (q, delta), window, free = ended[-1]
+    q2, delta2 = fit.held(q, delta, window, free=free)
+    assert math.degrees(np.abs(q2 - q).max()) < 0.01
+    assert np.abs(delta2 - delta).max() < 0.01
+    assert len(groups) == N_GROUPS
+    assert all(np.abs(d - delta).max() > 1e-4 for _, (_, d), _, _ in groups)  # each group's drift its own
+
+
 def test_that_a_drift_start_of_the_wrong_shape_is_refused():
     with pytest.raises(ValueError, match="start"):
         DriftNuisance(np.arange(4.0), np.ones(3), np.ones(3), np.zeros((3, 3)))
 
 
-def test_that_the_report_corrects_a_mount_fault_and_a_drift_together(drifting_runs, tmp_path, monkeypatch):
+def test_that_the_report_corrects_a_mount_fault_and_a_drift_together(drifting_runs, square_report, tmp_path,
+                                                                     monkeypatch):
     """A mount fault under a drifting pose: the mount's fit alone refuses (the drift bends the structure), the pose's
     alone refuses (the mount does), so the report fits the mount with a drift beside it, started also from the drift
-    the pose's fit found, and corrects the pose on that mount; the volume comes out as the square-mounted flight's on
-    the same drift."""
-    square, skewed = drifting_runs
-    clean = make_report(square, tmp_path / "square", ReportOptions(plots=False))
+    the pose's fit found, and corrects the pose on that mount; the volume comes out within 0.3 pp of the error-free
+    flight's (issue 15's measure; signed Ve). Measured: -0.11 % against +0.01 %, and +0.50 % for the square mount on
+    the same drift, the pose correction's own residual; both refused, -2.10 %."""
+    _, skewed = drifting_runs
+    clean = square_report
     real_mount_of, starts = report._mount_of, []
 
     def mount_of(*a, **k):
@@ -442,10 +477,10 @@ def test_that_the_report_corrects_a_mount_fault_and_a_drift_together(drifting_ru
     assert all(cal[k]["applied"] for k in ("servo_offset_deg", "servo_scale", "boresight_tilt_deg"))
     assert abs(cal["servo_offset_deg"]["estimate"] - 3.0) < 0.1
     assert fixed["pose_correction"]["applied"] is True
-    assert abs(fixed["volume_error_pct"] - clean["volume_error_pct"]) < 0.3
+    assert abs(ve(fixed) - ve(clean)) < 0.3
     monkeypatch.setattr(report, "_mount_with_drift", lambda *a, **k: None)  # as before the joint fit
     both_refused = make_report(skewed, tmp_path / "refused", ReportOptions(plots=False))
     assert not any(v["applied"] for k, v in both_refused["self_calibration"].items() if k.endswith(("_deg", "scale")))
     assert both_refused["pose_correction"]["applied"] is False
     assert "a drifting pose does not explain them" in both_refused["pose_correction"]["reason"]
-    assert abs(both_refused["volume_error_pct"] - clean["volume_error_pct"]) > 1.0
+    assert abs(ve(both_refused) - ve(clean)) > 1.0
