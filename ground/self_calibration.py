@@ -121,6 +121,9 @@ class MountEstimate:
         lever_change_m: the change of the lever arm (body forward, right, down) that puts the structure back on its
             planes as well as the correction did, when that is why the correction was not applied
             (`lever_alternative`); None otherwise.
+        with_drift: fitted together with a drift of the trajectory (`DriftNuisance`): a proposal, made where neither
+            the mount nor the pose explained the building alone, and said so in the report (a tilt traded against an
+            along-track drift is less certain than one seen on a steady pose).
     """
 
     values: tuple[float, float, float, float]
@@ -134,6 +137,7 @@ class MountEstimate:
     refused: str | None = None
     unexplained: bool = False
     lever_change_m: tuple[float, float, float] | None = None
+    with_drift: bool = False
 
     @property
     def any_applied(self) -> bool:
@@ -157,7 +161,8 @@ class MountEstimate:
         out.update(points_per_plane=dict(zip(("floor", "x0", "xL", "y0", "yW"), self.points, strict=True)),
                    rms_before_m=self.rms_before_m, rms_after_m=self.rms_after_m, reason=self.reason,
                    refused=self.refused,
-                   lever_change_m=None if self.lever_change_m is None else list(self.lever_change_m))
+                   lever_change_m=None if self.lever_change_m is None else list(self.lever_change_m),
+                   fitted_with_drift=self.with_drift)
         return out
 
 
@@ -908,7 +913,7 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
                        "configured)")
     return MountEstimate(tuple(float(v) for v in q), tuple(float(v) for v in se), applied, counts,
                          rms_square, rms_fitted, observable=tuple(bool(f) for f in free), refused=refused,
-                         lever_change_m=lever_change)
+                         lever_change_m=lever_change, with_drift=drift is not None)
 
 
 def lever_alternative(prob: _Problem, idx: np.ndarray, normals: np.ndarray, r_square: np.ndarray,
@@ -1027,6 +1032,8 @@ def describe(est: MountEstimate, base: Boresight = SQUARE) -> str:
         f" on top of the configured boresight ({math.degrees(base.tilt_rad):+.2f} deg tilt, "
         f"{math.degrees(base.sweep_yaw_rad):+.2f} deg sweep-plane yaw)")
     held = [name for name, o in zip(names, est.observable, strict=True) if not o]
-    return (f"self-calibration from the building applied: {', '.join(parts)}{on_top} (structure points off their "
-            f"planes: {est.rms_before_m * 100:.1f} -> {est.rms_after_m * 100:.1f} cm RMS)"
+    drift = (" fitted together with the pose's drift, as neither the mount nor the drift explained the floor and "
+             "walls alone" if est.with_drift else "")
+    return (f"self-calibration from the building applied: {', '.join(parts)}{on_top}{drift} (structure points off "
+            f"their planes: {est.rms_before_m * 100:.1f} -> {est.rms_after_m * 100:.1f} cm RMS)"
             + (f"; held square, as the structure seen does not constrain it: {', '.join(held)}" if held else ""))

@@ -170,7 +170,9 @@ def test_that_the_report_applies_it_says_so_and_gets_the_volume_back(skewed_run,
     assert clean["self_calibration"]["servo_offset_deg"]["applied"] is False
     assert not any("self-calibration" in w for w in clean["warnings"])
     assert fixed["self_calibration"]["servo_scale"]["applied"] is True
+    assert fixed["self_calibration"]["fitted_with_drift"] is False
     assert any(w.startswith("self-calibration from the building applied: servo offset +3.0") for w in fixed["warnings"])
+    assert not any("fitted together with the pose's drift" in w for w in fixed["warnings"])
     assert raw["self_calibration"] is None
     assert abs(ve(fixed) - ve(clean)) < 0.3
     assert abs(ve(raw) - ve(clean)) > abs(ve(fixed) - ve(clean))
@@ -476,6 +478,9 @@ def test_that_the_report_corrects_a_mount_fault_and_a_drift_together(drifting_ru
     cal = fixed["self_calibration"]
     assert all(cal[k]["applied"] for k in ("servo_offset_deg", "servo_scale", "boresight_tilt_deg"))
     assert abs(cal["servo_offset_deg"]["estimate"] - 3.0) < 0.1
+    assert cal["fitted_with_drift"] is True
+    assert any(w.startswith("self-calibration from the building applied") and "fitted together with the pose's drift"
+               in w for w in fixed["warnings"])
     assert fixed["pose_correction"]["applied"] is True
     assert abs(ve(fixed) - ve(clean)) < 0.3
     monkeypatch.setattr(report, "_mount_with_drift", lambda *a, **k: None)  # as before the joint fit
