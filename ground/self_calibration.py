@@ -433,7 +433,7 @@ HELD_ASSIGNMENTS = 5
 assigned again where it ended; it stops once that moves neither the drift nor the mount (at the structure's median
 range) by more than the points' noise. Points at a window's edge change planes, so it does not settle exactly: on a
 `vio` flight over pile 2, after the first fit 36, 14, 3, 4, 3 mm of drift at a knot the structure pins loosely and
-0.016, 0.002, 0.004 deg of tilt."""
+0.016, 0.002, 0.004 deg of the mount's largest angle."""
 
 
 class _DriftFit:

@@ -384,7 +384,29 @@ def _drift_of(s, h) -> DriftNuisance:
                          np.array([opts.max_position_error_m] * 2 + [opts.max_vertical_error_m]))
 
 
-def test_that_a_mount_under_a_drifting_pose_is_found_with_the_drift_fitted_beside_it(drifting_runs):
+@pytest.fixture(scope="module")
+def joint_fit(drifting_runs):
+    """The skewed mount on the drifting estimate, fitted with the drift beside it: (the estimate, what each joint fit on
+    planes held returned over all the points, what it returned on each group of sweeps), each as (the fit, (mount,
+    drift), window, free)."""
+    _, skewed = drifting_runs
+    s, h = _usable(skewed)
+    ended, groups = [], []
+    real_held = _DriftFit.held
+
+    def held(self, q, delta, window, sub=None, free=None):
+        out = real_held(self, q, delta, window, sub, free)
+        (ended if sub is None else groups).append((self, out, window, free))
+        return out
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(_DriftFit, "held", held)
+        joint = estimate_mount(s, h["lever_arm_body_m"], StorageFrame(), STORAGE, h["sensor"]["range_sigma_m"],
+                               h["sensor"]["range_sigma_rel"], Resimulated.from_header(h), drift=_drift_of(s, h))
+    return joint, ended, groups
+
+
+def test_that_a_mount_under_a_drifting_pose_is_found_with_the_drift_fitted_beside_it(drifting_runs, joint_fit):
     """The drift bends the structure as no mount does, so the mount alone is not found; with a smooth drift of the
     position fitted beside it (and thrown away) the servo's offset and scale and the tilt come out, and a square mount
     on the same drift stays square."""
@@ -393,7 +415,7 @@ def test_that_a_mount_under_a_drifting_pose_is_found_with_the_drift_fitted_besid
     args = (s, h["lever_arm_body_m"], StorageFrame(), STORAGE, h["sensor"]["range_sigma_m"],
             h["sensor"]["range_sigma_rel"], Resimulated.from_header(h))
     assert not estimate_mount(*args).any_applied
-    joint = estimate_mount(*args, drift=_drift_of(s, h))
+    joint = joint_fit[0]
     assert joint.applied[:3] == (True, True, True)
     assert abs(math.degrees(joint.values[0]) - 3.0) < 0.1
     assert abs(joint.values[1] - 0.05) < 0.005
@@ -418,28 +440,14 @@ def test_that_of_two_starts_for_the_drift_the_fit_keeps_the_one_the_structure_ag
     assert abs(math.degrees(joint.values[2]) - 2.0) < 0.5
 
 
-def test_that_the_mount_and_the_drift_fitted_together_end_where_a_further_fit_hardly_moves_them(drifting_runs,
-                                                                                                monkeypatch):
+def test_that_the_mount_and_the_drift_fitted_together_end_where_a_further_fit_hardly_moves_them(joint_fit):
     """The joint fit ends on planes held, by reweighted rounds to convergence (`_DriftFit.held`), the planes assigned
     again where it ended until that moves nothing beyond the noise: one more such fit moves the mount by less than
     0.01 deg and the drift by less than a centimetre. (The rounds that assign the planes at every step had stopped
     with the tilt still moving tenths of a degree a round and the drift decimetres, and the mount fitted alone on the
     drift they left moved the tilt 0.5 deg further.) Its standard errors come from groups of sweeps each fitted with
     a drift of its own, not with the whole fit's held."""
-    _, skewed = drifting_runs
-    s, h = _usable(skewed)
-    ended, groups = [], []
-    real_held = _DriftFit.held
-
-    def held(self, q, delta, window, sub=None, free=None):
-        out = real_held(self, q, delta, window, sub, free)
-        (ended if sub is None else groups).append((self, out, window, free))
-        return out
-
-    monkeypatch.setattr(_DriftFit, "held", held)
-    joint = estimate_mount(s, h["lever_arm_body_m"], StorageFrame(), STORAGE, h["sensor"]["range_sigma_m"],
-                           h["sensor"]["range_sigma_rel"], Resimulated.from_header(h), drift=_drift_of(s, h))
-    monkeypatch.undo()
+    joint, ended, groups = joint_fit
     assert joint.applied[:3] == (True, True, True)
     fit, (q, delta), window, free = ended[-1]
     q2, delta2 = fit.held(q, delta, window, free=free)
