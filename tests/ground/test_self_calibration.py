@@ -35,7 +35,6 @@ from tests.volumes import ve
 
 pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
 
-
 STORAGE = Storage(30, 20, 10)
 
 
