@@ -31,7 +31,7 @@ from ground.servo_timing import Resimulated
 from sitl.faults.injector import FaultSpec
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
-from tests.volumes import ve
+from tools.pose_correction_campaign import signed_error_pct
 
 pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
 
@@ -173,8 +173,8 @@ def test_that_the_report_applies_it_says_so_and_gets_the_volume_back(skewed_run,
     assert any(w.startswith("self-calibration from the building applied: servo offset +3.0") for w in fixed["warnings"])
     assert not any("fitted together with the pose's drift" in w for w in fixed["warnings"])
     assert raw["self_calibration"] is None
-    assert abs(ve(fixed) - ve(clean)) < 0.3
-    assert abs(ve(raw) - ve(clean)) > abs(ve(fixed) - ve(clean))
+    assert abs(signed_error_pct(fixed) - signed_error_pct(clean)) < 0.3
+    assert abs(signed_error_pct(raw) - signed_error_pct(clean)) > abs(signed_error_pct(fixed) - signed_error_pct(clean))
 
 
 def test_that_the_tilt_estimated_is_the_deviation_from_the_configured_one(skewed_run):
@@ -195,7 +195,7 @@ def test_that_the_report_places_points_with_the_headers_boresight(skewed_run, sk
     assert plain["boresight_deg"] == {"tilt": 0.0, "sweep_yaw": 0.0}
     assert configured["self_calibration"]["boresight_tilt_deg"]["estimate"] == pytest.approx(0.0, abs=0.2)
     assert plain["self_calibration"]["boresight_tilt_deg"]["estimate"] == pytest.approx(2.0, abs=0.2)
-    assert abs(ve(configured) - ve(plain)) < 0.3
+    assert abs(signed_error_pct(configured) - signed_error_pct(plain)) < 0.3
 
 
 def test_that_a_floor_hidden_by_the_pile_is_calibrated_from_the_walls_alone(hidden_floor_runs, tmp_path):
@@ -211,8 +211,8 @@ def test_that_a_floor_hidden_by_the_pile_is_calibrated_from_the_walls_alone(hidd
     clean = make_report(square_run, tmp_path / "clean", ReportOptions(plots=False))
     fixed = make_report(skewed_run, tmp_path / "fixed", ReportOptions(plots=False))
     raw = make_report(skewed_run, tmp_path / "raw", ReportOptions(plots=False, self_calibration=False))
-    assert abs(ve(fixed) - ve(clean)) < 0.3
-    assert abs(ve(raw) - ve(clean)) > abs(ve(fixed) - ve(clean))
+    assert abs(signed_error_pct(fixed) - signed_error_pct(clean)) < 0.3
+    assert abs(signed_error_pct(raw) - signed_error_pct(clean)) > abs(signed_error_pct(fixed) - signed_error_pct(clean))
 
 
 def test_that_without_turns_the_boresight_is_held_square_and_the_servo_still_found(tmp_path):
@@ -489,10 +489,10 @@ def test_that_the_report_corrects_a_mount_fault_and_a_drift_together(drifting_ru
     assert any(w.startswith("self-calibration from the building applied") and "fitted together with the pose's drift"
                in w for w in fixed["warnings"])
     assert fixed["pose_correction"]["applied"] is True
-    assert abs(ve(fixed) - ve(clean)) < 0.3
+    assert abs(signed_error_pct(fixed) - signed_error_pct(clean)) < 0.3
     monkeypatch.setattr(report, "_mount_with_drift", lambda *a, **k: None)  # as before the joint fit
     both_refused = make_report(skewed, tmp_path / "refused", ReportOptions(plots=False))
     assert not any(v["applied"] for k, v in both_refused["self_calibration"].items() if k.endswith(("_deg", "scale")))
     assert both_refused["pose_correction"]["applied"] is False
     assert "a drifting pose does not explain them" in both_refused["pose_correction"]["reason"]
-    assert abs(ve(both_refused) - ve(clean)) > 1.0
+    assert abs(signed_error_pct(both_refused) - signed_error_pct(clean)) > 1.0
