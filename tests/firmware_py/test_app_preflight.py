@@ -27,6 +27,12 @@ pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
 
 # ----- the program, on emulated parts -----------------------------------------------------------------------------
 
+def _failed(last_line: str) -> set[str]:
+    """The checks a checklist's last line says failed (none when it passed)."""
+    return set(last_line.removeprefix("preflight FAILED: ").split(", ")) if last_line.startswith("preflight FAILED: ") \
+        else set()
+
+
 @pytest.fixture
 def room_devices():
     """The rig with the range following the emulated servo's true shaft in a room; `stuck` holds the beam down."""
@@ -72,9 +78,7 @@ def test_that_a_servo_that_does_not_move_fails_the_preflight_on_the_console_and_
     # over, the rig's autopilot thread starves and fewer than half the samples get a fresh pose (the pose check then
     # fails too, rightly: measured once, "preflight FAILED: pose, servo sweep"), so the lines name the servo among
     # the failures rather than alone.
-    last = res.lines()[-1]
-    assert last.startswith("preflight FAILED: ")
-    assert "servo sweep" in last.removeprefix("preflight FAILED: ").split(", ")
+    assert "servo sweep" in _failed(res.lines()[-1])
     assert set(res.named(Verdict.FAIL)) <= {"servo sweep", "pose"}
     assert autopilot.wait_for(lambda: any(t.startswith("pilescan: preflight FAIL: ") and "servo sweep" in t
                                           for t in autopilot.spy.texts()))
@@ -110,12 +114,6 @@ def test_that_a_part_that_cannot_be_opened_is_a_failed_check_and_what_it_would_h
     assert checks["servo sweep"].verdict is Verdict.WARN
     assert "the rangefinder could not be opened" in checks["servo sweep"].detail
     assert checks["autopilot"].verdict is Verdict.OK
-
-
-def _failed(last_line: str) -> set[str]:
-    """The checks a checklist's last line says failed (none when it passed)."""
-    return set(last_line.removeprefix("preflight FAILED: ").split(", ")) if last_line.startswith("preflight FAILED: ") \
-        else set()
 
 
 def test_that_the_command_prints_the_checklist_and_exits_4_on_a_failure(tmp_path, room_devices, autopilot, capsys):
