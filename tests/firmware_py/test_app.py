@@ -2,8 +2,8 @@
 
 The rig: an emulated LIDAR-Lite (fixed 5 m range) on a simulated I2C bus registered as `sitl`, an
 emulated servo registered as PWM `pwm:emu`, and the SITL's MAVLink autopilot (a kinematic vehicle)
-served over UDP by `run_realtime` in a background thread, behind a transport that records what the
-payload sends and runs test actions (arm, disarm) in the server's thread. The payload runs on the real
+served over UDP in a process of its own (`tests.firmware_py.autopilot_process`), which records what the
+payload sends and arms or disarms when the test asks. The payload runs on the real
 monotonic clock; nothing asserts on timing, only on what was logged and sent.
 """
 
@@ -13,7 +13,6 @@ import contextlib
 import io
 import math
 import os
-import queue
 import re
 import signal
 import subprocess
@@ -32,7 +31,6 @@ from firmware_py.core.samplelog import HEAD_SIZE, SAMPLE_DTYPE, SampleFlags, rea
 from firmware_py.hal import pwm as pwm_backends
 from firmware_py.hal.backends import unregister_i2c_backend
 from firmware_py.hal.clock import MonotonicClock
-from firmware_py.hal.mavlink_link import MavlinkFramer
 
 pytest.importorskip("ground", reason="the live stream's receiver: not in the payload-only install")
 pytest.importorskip("sitl", reason="the firmware against the simulator (sitl/): not in the payload-only install")
@@ -40,14 +38,11 @@ from ground.live_receiver import LiveStreamReceiver
 from sitl.devices.i2c_sim import SimI2CBus, register_sim_bus
 from sitl.devices.lidarlite_emu import EmulatedLidarLite
 from sitl.devices.servo_emu import EmulatedServo
-from sitl.mavlink.server import MavlinkVehicleServer, run_realtime
-from sitl.mavlink.transport import UdpTransport
-from sitl.vehicle.kinematic_vehicle import KinematicVehicle
+from tests.firmware_py.autopilot_process import HOME_NED, Autopilot
 
 pytestmark = pytest.mark.long  # scheduled first (tests/conftest.py)
 
 RANGE_M = 5.0
-HOME_NED = (3.0, 4.0, 0.0)
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -56,69 +51,6 @@ class WallSimClock(MonotonicClock):
 
     def advance_by_ns(self, dt_ns: int) -> None:
         pass
-
-
-class SpyTransport:
-    """The server's UDP transport, also parsing what the payload sends and running queued test actions
-    in the server's thread (so the vehicle is only ever touched by one thread)."""
-
-    def __init__(self, inner: UdpTransport) -> None:
-        self.inner = inner
-        self.framer = MavlinkFramer()
-        self.received: list = []
-        self.actions: queue.SimpleQueue = queue.SimpleQueue()
-
-    def send(self, data: bytes) -> None:
-        self.inner.send(data)
-
-    def recv(self) -> bytes:
-        while not self.actions.empty():
-            self.actions.get()()
-        data = self.inner.recv()
-        if data:
-            self.received.extend(self.framer.feed(data))
-        return data
-
-    def close(self) -> None:
-        self.inner.close()
-
-    def of_type(self, kind: str) -> list:
-        return [m for m in list(self.received) if m.get_type() == kind]
-
-    def texts(self) -> list[str]:
-        return [m.text for m in self.of_type("STATUSTEXT")]
-
-
-class Autopilot:
-    """The SITL autopilot on UDP in a background thread (real time)."""
-
-    def __init__(self, armed: bool = False) -> None:
-        self.vehicle = KinematicVehicle(dt_s=0.002, home_ned_m=HOME_NED)
-        if armed:
-            self.vehicle.arm()
-        self.spy = SpyTransport(UdpTransport("udp:127.0.0.1:0"))
-        self.server = MavlinkVehicleServer(self.vehicle, self.spy)
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=run_realtime, args=(self.server, self.vehicle),
-                                       kwargs={"stop_event": self.stop}, daemon=True)
-        self.thread.start()
-
-    @property
-    def url(self) -> str:
-        return f"udpout:127.0.0.1:{self.spy.inner.local_address[1]}"
-
-    def wait_for(self, cond, timeout_s: float = 5.0) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if cond():
-                return True
-            time.sleep(0.02)
-        return cond()
-
-    def close(self) -> None:
-        self.stop.set()
-        self.thread.join(timeout=5.0)
-        self.spy.close()
 
 
 @contextlib.contextmanager
@@ -247,7 +179,7 @@ def test_that_the_payload_logs_posed_samples_and_reports_health_to_the_autopilot
         drainer.join(timeout=5.0)
     streamed.append(receiver.poll())
     receiver.close()
-    assert autopilot.wait_for(lambda: any("stopping" in t for t in autopilot.spy.texts()))
+    assert autopilot.wait_for(lambda: any("stopping" in t for t in autopilot.texts()))
 
     assert res.stop_reason == "test over" and res.close_errors == ()
     log = read_samplelog(cfg.out_path)
@@ -266,15 +198,15 @@ def test_that_the_payload_logs_posed_samples_and_reports_health_to_the_autopilot
     assert np.all(np.diff(s["t_s"]) > 0)
     assert np.ptp(good["servo_rad"]) > 0.5  # the servo swept
 
-    names = {m.name for m in autopilot.spy.of_type("NAMED_VALUE_FLOAT")}
+    names = {m.name for m in autopilot.of_type("NAMED_VALUE_FLOAT")}
     assert {"PS_RATE", "PS_I2CERR", "PS_POSEAGE", "PS_STALE", "PS_LOGGED"} <= names
-    texts = autopilot.spy.texts()
+    texts = autopilot.texts()
     assert any(t.startswith("pilescan: started") for t in texts)
     assert "pilescan: pose acquired" in texts
     assert texts[-1] == "pilescan: stopping: test over"
     assert all(len(t) <= 50 for t in texts)
     assert "pilescan: EKF height from rangefinder" not in texts  # a barometer height: nothing to warn of
-    assert autopilot.server.stats["rx_by_type"]["HEARTBEAT"] >= 1
+    assert autopilot.stats()["rx_by_type"]["HEARTBEAT"] >= 1
 
     assert emu_servo.pulses > 50 and not emu_servo.enabled  # swept, then disabled at shutdown
     got = np.concatenate(streamed)
@@ -304,8 +236,8 @@ def test_that_a_full_disk_stops_the_payload_telling_the_operator_why_and_keeps_e
     cfg = payload_config(tmp_path, autopilot.url, duration_s=20.0)
     with pytest.raises(OSError, match="No space"):
         PayloadApp(cfg, err=None, open_log=lambda path, mode: FillingFile(open(path, mode))).run()
-    assert autopilot.wait_for(lambda: "pilescan: stopping: error: No space left on device" in autopilot.spy.texts())
-    stop = [m for m in autopilot.spy.of_type("STATUSTEXT") if "No space" in str(m.text)]
+    assert autopilot.wait_for(lambda: "pilescan: stopping: error: No space left on device" in autopilot.texts())
+    stop = [m for m in autopilot.of_type("STATUSTEXT") if "No space" in str(m.text)]
     assert stop and all(m.severity == 2 for m in stop)  # MAV_SEVERITY_CRITICAL: the operator should land
     log = read_samplelog(cfg.out_path)
     assert log.blocks_corrupt == 0 and log.blocks_truncated == 1 and len(log.samples) % cfg.records_per_block == 0
@@ -317,7 +249,7 @@ def test_that_stop_on_disarm_stops_once_the_autopilot_disarms_after_arming(tmp_p
     try:
         cfg = payload_config(tmp_path, ap.url, stop_on_disarm=True, duration_s=20.0)
         app = PayloadApp(cfg, err=None)
-        threading.Timer(1.5, ap.spy.actions.put, [ap.vehicle.disarm]).start()
+        threading.Timer(1.5, ap.disarm).start()
         res = app.run()
     finally:
         ap.close()
@@ -337,9 +269,9 @@ def test_that_start_on_arm_logs_from_the_arming_to_the_disarming_and_nothing_on_
         def arm():
             before_arm.append((cfg.out_path.exists(), servo.pulses))
             armed_at.append(time.monotonic())
-            ap.vehicle.arm()
-        threading.Timer(1.0, ap.spy.actions.put, [arm]).start()
-        threading.Timer(2.5, ap.spy.actions.put, [ap.vehicle.disarm]).start()
+            ap.arm()
+        threading.Timer(1.0, arm).start()
+        threading.Timer(2.5, ap.disarm).start()
         t0 = time.monotonic()
         res = app.run()
         waited_s = armed_at[0] - t0
@@ -347,7 +279,7 @@ def test_that_start_on_arm_logs_from_the_arming_to_the_disarming_and_nothing_on_
         ap.close()
     assert res.stop_reason == "autopilot disarmed"
     assert before_arm == [(False, 0)]  # while it waited: no log file, not one pulse to the servo
-    assert "pilescan: waiting for arm" in ap.spy.texts()
+    assert "pilescan: waiting for arm" in ap.texts()
     log = read_samplelog(cfg.out_path)
     assert log.intact and log.header["config"]["payload"]["start_on_arm"] is True
     span_s = float(log.samples["t_s"][-1] - log.samples["t_s"][0])
@@ -371,12 +303,11 @@ def test_that_the_operator_is_warned_before_the_survey_when_the_autopilot_takes_
     """Over a stockpile a rangefinder height is the height above the pile: the payload says so on its console and to
     the ground station (STATUSTEXT) at start, from the EKF sources it read, while the parameter can still be set."""
     from sitl.sensing.pose_drift import PoseErrorProfile, ekf_source_params
-    ap = Autopilot()
-    ap.vehicle.params.update(ekf_source_params(PoseErrorProfile.FLOW))  # optical flow; rangefinder below 70 %
+    ap = Autopilot(params=ekf_source_params(PoseErrorProfile.FLOW))  # optical flow; rangefinder below 70 %
     err = io.StringIO()
     try:
         res = PayloadApp(payload_config(tmp_path, ap.url, duration_s=1.0, quiet=False), err=err).run()
-        assert ap.wait_for(lambda: any("stopping" in t for t in ap.spy.texts()))
+        assert ap.wait_for(lambda: any("stopping" in t for t in ap.texts()))
     finally:
         ap.close()
     assert res.stop_reason == "duration reached"
@@ -385,7 +316,7 @@ def test_that_the_operator_is_warned_before_the_survey_when_the_autopilot_takes_
            "rangefinder below 70 % of its range" in out
     assert "warning: the autopilot takes its height from the downward rangefinder (EK3_RNG_USE_HGT = 70)" in out
     assert "EK3_RNG_USE_HGT = -1" in out  # what to set instead
-    texts = ap.spy.texts()
+    texts = ap.texts()
     assert "pilescan: EKF height from rangefinder" in texts and all(len(t) <= 50 for t in texts)
     started = next(i for i, t in enumerate(texts) if t.startswith("pilescan: started"))
     assert texts[started + 1] == "pilescan: EKF height from rangefinder"  # said with the start, before the survey
@@ -407,13 +338,13 @@ def test_that_a_nearly_full_log_card_is_said_at_start_on_the_console_and_the_gro
         app = PayloadApp(payload_config(tmp_path, ap.url, duration_s=None, quiet=False), err=err)
         stop_later(app, 1.5)  # no --duration: it would run on
         res = app.run()
-        assert ap.wait_for(lambda: any("stopping" in t for t in ap.spy.texts()))
+        assert ap.wait_for(lambda: any("stopping" in t for t in ap.texts()))
     finally:
         ap.close()
     assert res.stop_reason == "test over"  # a warning, not a refusal: it flew on
     assert "warning: the log's file system has room for 10 min of samples at 500 Hz, less than half an hour" \
         in err.getvalue()
-    texts = ap.spy.texts()
+    texts = ap.texts()
     started = next(i for i, t in enumerate(texts) if t.startswith("pilescan: started"))
     assert texts[started + 1] == "pilescan: log storage nearly full"
 
@@ -422,7 +353,7 @@ def test_that_a_disarmed_autopilot_that_never_armed_does_not_stop_the_payload(tm
     cfg = payload_config(tmp_path, autopilot.url, stop_on_disarm=True, duration_s=1.5)
     res = PayloadApp(cfg, err=None).run()
     assert res.stop_reason == "duration reached"
-    assert autopilot.vehicle.state().armed is False
+    assert autopilot.armed() is False
 
 
 def test_that_the_payload_runs_without_an_autopilot_and_flags_every_sample(tmp_path, devices):
@@ -439,8 +370,8 @@ def test_that_the_payload_runs_without_an_autopilot_and_flags_every_sample(tmp_p
 def test_that_the_ekf_origin_is_sent_when_asked(tmp_path, devices, autopilot):
     cfg = payload_config(tmp_path, autopilot.url, duration_s=0.5, send_origin=(53.4668, -2.2339, 50.0))
     PayloadApp(cfg, err=None).run()
-    assert autopilot.wait_for(lambda: autopilot.spy.of_type("SET_GPS_GLOBAL_ORIGIN"))
-    msg = autopilot.spy.of_type("SET_GPS_GLOBAL_ORIGIN")[0]
+    assert autopilot.wait_for(lambda: autopilot.of_type("SET_GPS_GLOBAL_ORIGIN"))
+    msg = autopilot.of_type("SET_GPS_GLOBAL_ORIGIN")[0]
     assert (msg.latitude, msg.longitude, msg.altitude) == (534668000, -22339000, 50000)
 
 
@@ -450,7 +381,7 @@ def test_that_an_autopilot_whose_ekf_origin_is_another_point_is_warned_about(tmp
     cfg = payload_config(tmp_path, autopilot.url, duration_s=2.0, send_origin=(-33.9, 151.2, 30.0))
     app = PayloadApp(cfg, err=err)
     app.run()
-    assert autopilot.server.stats["origin_refused"] >= 1  # the SITL autopilot's origin is the default site's
+    assert autopilot.stats()["origin_refused"] >= 1  # the SITL autopilot's origin is the default site's
     assert app.origin_disagreement is not None and "53.4668000, -2.2339000, 50 m" in app.origin_disagreement
     assert "warning: the autopilot's EKF origin is 53.4668000" in err.getvalue()
 
@@ -460,7 +391,7 @@ def test_that_an_autopilot_confirming_the_origin_sent_raises_no_warning(tmp_path
     app = PayloadApp(payload_config(tmp_path, autopilot.url, duration_s=2.0, send_origin=(53.4668, -2.2339, 50.0)),
                      err=err)
     app.run()
-    assert autopilot.server.stats["rx_by_type"]["SET_GPS_GLOBAL_ORIGIN"] >= 1
+    assert autopilot.stats()["rx_by_type"]["SET_GPS_GLOBAL_ORIGIN"] >= 1
     assert app.tracker.autopilot_origin_e7 == (534668000, -22339000, 50000)
     assert app.origin_disagreement is None and "EKF origin" not in err.getvalue()
 
@@ -494,6 +425,7 @@ from firmware_py.hal.pwm import register_pwm_backend
 from sitl.devices.i2c_sim import SimI2CBus, register_sim_bus
 from sitl.devices.lidarlite_emu import EmulatedLidarLite
 from sitl.devices.servo_emu import EmulatedServo
+from tests.firmware_py.autopilot_process import HOME_NED, Autopilot
 
 class WallSimClock(MonotonicClock):
     def advance_by_ns(self, dt_ns):
@@ -549,7 +481,7 @@ def test_that_sigterm_stops_the_payload_cleanly_with_a_complete_log(tmp_path, au
     log = read_samplelog(out)
     assert log.intact and log.blocks_corrupt == 0 and log.blocks_truncated == 0
     assert len(log.samples) == int(summary.group(1)) > BLOCK  # every sample, the last partial block too
-    assert autopilot.wait_for(lambda: "pilescan: stopping: signal SIGTERM" in autopilot.spy.texts())
+    assert autopilot.wait_for(lambda: "pilescan: stopping: signal SIGTERM" in autopilot.texts())
 
 
 def test_that_sigint_stops_the_payload_like_sigterm(tmp_path):

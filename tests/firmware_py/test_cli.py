@@ -5,9 +5,7 @@ from __future__ import annotations
 import math
 import os
 import signal
-import threading
 from importlib.util import find_spec
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,7 +20,6 @@ from firmware_py.hal import pwm as pwm_backends
 from firmware_py.hal.backends import unregister_i2c_backend
 from firmware_py.hal.clock import MonotonicClock
 from firmware_py.hal.mavlink_link import MavlinkFramer
-from firmware_py.hal.signing import SigningConfig
 
 # Both are absent on the payload-only install (Raspberry Pi): the tests that need them skip there.
 SIM = find_spec("sitl") is not None and find_spec("ground") is not None
@@ -31,9 +28,7 @@ if SIM:
     from sitl.devices.i2c_sim import SimI2CBus, register_sim_bus
     from sitl.devices.lidarlite_emu import EmulatedLidarLite
     from sitl.devices.servo_emu import EmulatedServo
-    from sitl.mavlink.server import MavlinkVehicleServer, run_realtime
-    from sitl.mavlink.transport import UdpTransport
-    from sitl.vehicle.kinematic_vehicle import KinematicVehicle
+    from tests.firmware_py.autopilot_process import Autopilot
 needs_sim = pytest.mark.skipif(not SIM, reason="needs the simulator (sitl/), not in the payload-only install")
 
 NOBODY = "udpout:127.0.0.1:9"  # the discard port: no autopilot there
@@ -266,33 +261,10 @@ def test_that_a_world_readable_or_empty_signing_key_is_one_line_and_exit_3(capsy
     assert "empty" in err
 
 
-class SignedAutopilot:
-    """The SITL autopilot with a signing key, on UDP, in real time in a background thread."""
-
-    def __init__(self, key: bytes, tlog: Path) -> None:
-        self.vehicle = KinematicVehicle(dt_s=0.002, home_ned_m=(3.0, 4.0, 0.0))
-        self.transport = UdpTransport("udp:127.0.0.1:0")
-        self.server = MavlinkVehicleServer(self.vehicle, self.transport, tlog_path=tlog, signing=SigningConfig(key))
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=run_realtime, args=(self.server, self.vehicle),
-                                       kwargs={"stop_event": self.stop}, daemon=True)
-        self.thread.start()
-
-    @property
-    def url(self) -> str:
-        return f"udpout:127.0.0.1:{self.transport.local_address[1]}"
-
-    def close(self) -> None:
-        self.stop.set()
-        self.thread.join(timeout=5.0)
-        self.server.close()
-        self.transport.close()
-
-
 @needs_sim
 def test_that_a_signed_payload_flies_on_a_signed_autopilot_and_streams_authenticated(capsys, tmp_path, devices):
     out, tlog = tmp_path / "x.pslog", tmp_path / "autopilot.tlog"
-    ap = SignedAutopilot(KEY, tlog)
+    ap = Autopilot(signing_key=KEY, tlog=tlog)  # signed, in a process of its own
     rx = LiveStreamReceiver("udp:127.0.0.1:0", key=KEY, allowed_peers=["127.0.0.1"])
     try:
         rc = main(["--out", str(out), "--mavlink", ap.url, "--i2c", "sitl", "--pwm", "pwm:emu", "--duration", "2.0",
@@ -309,7 +281,7 @@ def test_that_a_signed_payload_flies_on_a_signed_autopilot_and_streams_authentic
     assert np.count_nonzero(s["flags"] == 0) > 50  # signed poses arrived and placed the samples
     assert len(streamed) == len(s) and streamed.tobytes() == s.tobytes()
     assert rx.stats["bad_tag"] == rx.stats["unauthenticated"] == rx.stats["replayed"] == rx.stats["rejected_peer"] == 0
-    st = ap.server.stats
+    st = ap.stats()
     assert st["rx_signed"] == st["rx_messages"] > 0 and st["rx_unsigned"] == st["rx_bad_signature"] == 0
     texts = [m.text for m in MavlinkFramer().feed(tlog.read_bytes()) if m.get_type() == "STATUSTEXT"]
     assert "pilescan: started, 200 Hz, link signed" in texts
