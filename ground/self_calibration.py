@@ -467,24 +467,35 @@ class _DriftFit:
         x = dd.T.ravel()
         return float(x @ (self.prior @ x))
 
-    def _step(self, keep: np.ndarray, j: np.ndarray, r: np.ndarray, w_m: np.ndarray, q: np.ndarray,
-              delta: np.ndarray, jacobian: Callable[[np.ndarray], np.ndarray], free: np.ndarray
-              ) -> tuple[np.ndarray, np.ndarray]:
-        """One Gauss-Newton step of the arctan loss (its weights at r / w_m) and the prior, for the points `keep`
-        (indices into self.idx) on the planes j; the mount's parameters not `free` do not move."""
+    def _drift_columns(self, keep: np.ndarray, j: np.ndarray) -> sparse.csr_matrix:
+        """(len(keep), 3 n_k) how the points `keep` (indices into self.idx) move off their planes j per metre of the
+        drift at each knot and axis (the drift as `delta.T.ravel()`): n . the drift at the point's time."""
         n_k = self.n_k
-        u = r / w_m
-        w = 1.0 / (1.0 + u ** 4) / w_m ** 2  # the arctan loss's weight, in m^-2
         k_pt, f_pt, nrm = self.kk[self.idx[keep]], self.ff[self.idx[keep]], self.n[j]
         cols = np.stack([c * n_k + k_pt + e for c in range(3) for e in (0, 1)], axis=1)
         vals = np.stack([nrm[:, c] * (f_pt if e else 1 - f_pt) for c in range(3) for e in (0, 1)], axis=1)
-        a_d = sparse.csr_matrix((vals.ravel(), (np.repeat(np.arange(len(keep)), 6), cols.ravel())),
-                                shape=(len(keep), 3 * n_k))
-        a = sparse.hstack([a_d, sparse.csr_matrix(jacobian(q) * free)], format="csr")
-        aw = a.T.multiply(w).tocsr()
+        return sparse.csr_matrix((vals.ravel(), (np.repeat(np.arange(len(keep)), 6), cols.ravel())),
+                                 shape=(len(keep), 3 * n_k))
+
+    def _step(self, keep: np.ndarray, j: np.ndarray, r: np.ndarray, w_m: np.ndarray, q: np.ndarray,
+              delta: np.ndarray, jacobian: Callable[[np.ndarray], np.ndarray], free: np.ndarray,
+              a_d: sparse.csr_matrix | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """One Gauss-Newton step of the arctan loss (its weights at r / w_m) and the prior, for the points `keep`
+        (indices into self.idx) on the planes j; the mount's parameters not `free` do not move. a_d: their drift
+        columns (`_drift_columns`), when already made."""
+        n_k = self.n_k
+        u = r / w_m
+        w = 1.0 / (1.0 + u ** 4) / w_m ** 2  # the arctan loss's weight, in m^-2
+        a_d = self._drift_columns(keep, j) if a_d is None else a_d
+        jac = jacobian(q) * free
+        # the normal equations by blocks: the drift's sparse band, the mount's four dense columns beside it
+        dw = a_d.T.multiply(w).tocsr()
+        jw = jac.T * w
+        normal = sparse.bmat([[dw @ a_d, sparse.csr_matrix(dw @ jac)],
+                              [sparse.csr_matrix((dw @ jac).T), sparse.csr_matrix(jw @ jac)]], format="csc")
         held = sparse.diags(np.r_[np.zeros(3 * n_k), (~free).astype(float)])  # a held parameter's step is 0
-        step = spsolve((aw @ a + self.p_all + held).tocsc(),
-                       -(aw @ r) - self.p_all @ np.concatenate([delta.T.ravel(), np.zeros(4)]))
+        step = spsolve((normal + self.p_all + held).tocsc(),
+                       -np.r_[dw @ r, jw @ r] - self.p_all @ np.concatenate([delta.T.ravel(), np.zeros(4)]))
         return step[:3 * n_k].reshape(3, n_k).T, step[3 * n_k:] * free
 
     def rounds(self, q: np.ndarray, delta: np.ndarray, sigma: np.ndarray, final: np.ndarray
@@ -547,21 +558,24 @@ class _DriftFit:
             return q, delta
         keep = on if sub is None else sub[on]
         jk, wk = j[on], w_idx[on]
+        # With the planes held, the drift moves each point off its plane linearly (its drift columns): both it and
+        # the undrifted distances are made once, not at every trial step.
+        a_d = self._drift_columns(keep, jk)
+        self.shift(np.zeros_like(delta))
+        dist, jacobian = prob.plane_distances(idx[on], n[jk], d[jk])
+        if jacobian is None:
+            self.shift(delta)
+            return q, delta
 
-        def at(qq: np.ndarray, dd: np.ndarray) -> tuple[np.ndarray, Callable[[np.ndarray], np.ndarray] | None]:
-            self.shift(dd)
-            dist, jacobian = prob.plane_distances(idx[on], n[jk], d[jk])
-            return dist(qq), jacobian
+        def at(qq: np.ndarray, dd: np.ndarray) -> np.ndarray:
+            return dist(qq) + a_d @ dd.T.ravel()
 
         def loss(qq: np.ndarray, dd: np.ndarray) -> float:
-            u = at(qq, dd)[0] / wk
+            u = at(qq, dd) / wk
             return float(np.sum(np.arctan(u * u))) + self._prior_loss(dd)
 
         for _ in range(HELD_ROUNDS):
-            r_on, jacobian = at(q, delta)
-            if jacobian is None:
-                break
-            d_delta, d_q = self._step(keep, jk, r_on, wk, q, delta, jacobian, free)
+            d_delta, d_q = self._step(keep, jk, at(q, delta), wk, q, delta, jacobian, free, a_d)
             if not (np.all(np.isfinite(d_delta)) and np.all(np.isfinite(d_q))):
                 break
             before, scale = loss(q, delta), 1.0
@@ -570,6 +584,7 @@ class _DriftFit:
             q, delta = np.clip(q + scale * d_q, lo, hi), delta + scale * d_delta
             if scale * np.abs(d_delta).max() < 1e-4 and np.all(scale * np.abs(d_q) < 1e-6):
                 break
+        self.shift(delta)
         return q, delta
 
 
