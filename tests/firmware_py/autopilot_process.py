@@ -38,8 +38,13 @@ class Autopilot:
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1, env=env)
         self._lock = threading.Lock()
         self._last: dict[str, Any] | None = None  # what the child said as it closed: asked for after close()
-        hello = self._ask({"armed": armed, "params": params or {}, "tlog": None if tlog is None else str(tlog),
-                           "signing_key": None if signing_key is None else signing_key.hex()})
+        try:
+            hello = self._ask({"armed": armed, "params": params or {}, "tlog": None if tlog is None else str(tlog),
+                               "signing_key": None if signing_key is None else signing_key.hex()})
+        except BaseException:  # a child that did not start is not left behind
+            self._proc.kill()
+            self._proc.wait()
+            raise
         self.port = int(hello["port"])
 
     @property
