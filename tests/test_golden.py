@@ -14,7 +14,6 @@ When the change is intended, regenerate and commit the files with it (the diff i
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +26,7 @@ from firmware_py.core.samplelog import FORMAT_NAME, FORMAT_VERSION, SAMPLE_DTYPE
 from firmware_py.core.storage import Storage
 from firmware_py.core.waveform import Waveform
 from ground.report import ReportOptions, make_report
+from tools.make_golden import REL_TOL, figure_differences
 
 GOLDEN = Path(__file__).resolve().parent / "golden"
 FIGURES = json.loads((GOLDEN / "report_figures.json").read_text())
@@ -50,15 +50,9 @@ def standard_header(h: dict) -> dict:
 
 
 def assert_same_figure(key: str, got, want) -> None:
-    """Exact for counts, strings and structure; floats within REL."""
-    if isinstance(want, float) and isinstance(got, int | float):
-        assert math.isclose(got, want, rel_tol=REL, abs_tol=1e-9), f"{key}: {got!r} != golden {want!r}"
-    elif isinstance(want, dict) and isinstance(got, dict):
-        assert list(got) == list(want), f"{key}: keys {list(got)} != golden {list(want)}"
-        for k in want:
-            assert_same_figure(f"{key}.{k}", got[k], want[k])
-    else:
-        assert got == want and type(got) is type(want), f"{key}: {got!r} != golden {want!r}"
+    """Exact for counts, strings and structure; floats within REL (`tools.make_golden.figure_differences`)."""
+    diffs = figure_differences(key, got, want, REL)
+    assert not diffs, diffs
 
 
 def test_that_the_golden_log_is_of_the_current_format_version_and_reads_whole():
@@ -101,9 +95,10 @@ def test_that_the_ground_report_on_the_golden_log_gives_the_golden_figures(tmp_p
 def test_that_the_golden_check_passes_the_last_digits_of_a_float_and_catches_a_changed_figure():
     """`make_golden --check` re-flies the log on the machine it runs on: a float sum's last digits move between
     machines (the pile's volume ...369 on one, ...367 on another), which is no change of the format or the report."""
-    from tools.make_golden import same_figures
+    def same(made: dict) -> bool:
+        return not figure_differences("truth", made, kept, REL_TOL)
     kept = {"true_volume_m3": 7206.878773739369, "warnings": ["a"], "n": 3, "ok": True}
-    assert same_figures(kept, {**kept, "true_volume_m3": 7206.878773739367})
-    assert not same_figures(kept, {**kept, "true_volume_m3": 7206.88})
-    assert not same_figures(kept, {**kept, "warnings": ["b"]}) and not same_figures(kept, {**kept, "n": 4})
-    assert not same_figures(kept, {**kept, "ok": 1}) and not same_figures(kept, {k: kept[k] for k in ("n", "ok")})
+    assert same({**kept, "true_volume_m3": 7206.878773739367})
+    assert not same({**kept, "true_volume_m3": 7206.88})
+    assert not same({**kept, "warnings": ["b"]}) and not same({**kept, "n": 4})
+    assert not same({**kept, "ok": 1}) and not same({k: kept[k] for k in ("n", "ok")})

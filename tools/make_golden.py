@@ -95,10 +95,13 @@ def main(argv: list[str] | None = None) -> int:
         for name in (TRUTH_FILE, FIGURES_FILE):
             try:
                 kept, made = (json.loads((d / name).read_text()) for d in (GOLDEN_DIR, Path(tmp)))
-                if not same_figures(kept, made):
-                    differ.append(name)
             except (OSError, ValueError):
                 missing.append(name)
+                continue
+            for diff in figure_differences(name, made, kept, REL_TOL):
+                print(f"  {diff}")
+                if name not in differ:
+                    differ.append(name)
     for name in differ + missing:
         print(f"differs from the regenerated one: tests/golden/{name}")
     return 1 if differ or missing else 0
@@ -110,19 +113,18 @@ REL_TOL = 1e-9
 is no change of the log format, the SITL or the report."""
 
 
-def same_figures(a: object, b: object) -> bool:
-    """Whether two JSON values are the same, numbers within REL_TOL of each other."""
-    def number(v: object) -> bool:
-        return isinstance(v, float | int) and not isinstance(v, bool)
-    if isinstance(a, bool) or isinstance(b, bool):  # True == 1 in Python: not the same figure
-        return type(a) is type(b) and a == b
-    if number(a) and number(b):
-        return a == b or math.isclose(a, b, rel_tol=REL_TOL, abs_tol=1e-12)
-    if isinstance(a, dict) and isinstance(b, dict):
-        return a.keys() == b.keys() and all(same_figures(a[k], b[k]) for k in a)
-    if isinstance(a, list) and isinstance(b, list):
-        return len(a) == len(b) and all(same_figures(x, y) for x, y in zip(a, b, strict=True))
-    return a == b
+def figure_differences(key: str, got: object, want: object, rel_tol: float) -> list[str]:
+    """Where a figure differs from the golden one (empty: none): exact for counts, strings, lists and structure
+    (dict keys in order, and the type: True is not 1), floats within rel_tol. `tests/test_golden.py` holds the
+    report's figures to the golden ones with the same rules."""
+    if isinstance(want, float) and isinstance(got, int | float):
+        ok = math.isclose(got, want, rel_tol=rel_tol, abs_tol=1e-9)
+        return [] if ok else [f"{key}: {got!r} != golden {want!r}"]
+    if isinstance(want, dict) and isinstance(got, dict):
+        if list(got) != list(want):
+            return [f"{key}: keys {list(got)} != golden {list(want)}"]
+        return [d for k in want for d in figure_differences(f"{key}.{k}", got[k], want[k], rel_tol)]
+    return [] if got == want and type(got) is type(want) else [f"{key}: {got!r} != golden {want!r}"]
 
 
 if __name__ == "__main__":
