@@ -16,6 +16,12 @@ get the true *height* only (x, y and the heading keep their drift) and are repor
 user reports them; the trajectory's error after it and the volume are set beside the same flight corrected from its
 logged height (sibling `NAME--true-height`, kept and reused like the other).
 
+With `--horizontal`, the opposite: the height drifting alone. Each flight's samples get the true horizontal position
+and heading (the logged height, and its drift, kept: a good horizontal estimate over a barometer that walks), and are
+reported with the correction and without it (sibling `NAME--true-horizontal`, its reports in `report` and
+`report-uncorrected`), each set beside the flight on its true pose: the walls see no height, so this is what the
+height's own route of the correction is judged on.
+
 Each run folder of the campaign (`PROFILE-PILE-PTRAJ-SEED[-NOISE]`, with its `--pose-correction` report beside it)
 gets a sibling `NAME--true-pose` (the re-posed run, its report in `NAME--true-pose/report`), kept and reused on
 the next call (delete it when the flight is flown again). Flights without a pose error, or that crashed, are
@@ -54,6 +60,10 @@ HEIGHT_SUFFIX = "--true-height"
 ALL = (0, 1, 2, 3)
 """The components re-posed by default: x, y, z (W) and the heading (`truth_correction`'s columns)."""
 HEIGHT = (2,)
+HORIZONTAL_SUFFIX = "--true-horizontal"
+HORIZONTAL_SECTION = "pose-horizontal-oracle-table"
+HORIZONTAL = (0, 1, 3)
+"""x, y and the heading: the height keeps its drift."""
 
 
 def truth_correction(truth: dict) -> PoseCorrection | None:
@@ -100,13 +110,14 @@ def repose(run: Path, out: Path, components: tuple[int, ...] = ALL) -> bool:
     return True
 
 
-def reported(run_p: Path, suffix: str, components: tuple[int, ...], report_args: list[str]) -> dict | None:
-    """The report of `run_p` re-posed in `components`, in its sibling NAME + suffix (made, or reused when it is
-    there); None when there is nothing to re-pose or the report failed (said on stderr)."""
+def reported(run_p: Path, suffix: str, components: tuple[int, ...], report_args: list[str],
+             report_dir: str = "report") -> dict | None:
+    """The report of `run_p` re-posed in `components`, in its sibling NAME + suffix, folder report_dir (each made,
+    or reused when it is there); None when there is nothing to re-pose or the report failed (said on stderr)."""
     oracle = run_p.parent / f"{run_p.name}{suffix}"
-    rep = oracle / "report" / "report.json"
+    rep = oracle / report_dir / "report.json"
     if not rep.is_file():
-        if not repose(run_p, oracle, components):
+        if not (oracle / "samples.pslog").is_file() and not repose(run_p, oracle, components):
             return None
         done = subprocess.run([sys.executable, "-m", "ground.cli", "report", str(oracle), "--out", str(rep.parent),
                                "--no-plots", "--force", "--quiet", *report_args], stdout=subprocess.DEVNULL,
@@ -141,12 +152,14 @@ def one(run: str) -> dict | None:
             "ve_corrected": signed_error_pct(corrected)}
 
 
-def with_true_height(truth: dict) -> dict:
-    """truth.json of a flight whose samples carry the true height: its estimated trajectory's height is the true
-    one (so the trajectory's error is measured against what the samples carry)."""
+def with_true_height(truth: dict, components: tuple[int, ...] = HEIGHT) -> dict:
+    """truth.json of a flight whose samples carry the true pose in these components (HEIGHT: the height): its
+    estimated trajectory is the true one there (so the trajectory's error is measured against what the samples
+    carry; the heading, 3, is not part of that error)."""
     tr = dict(truth["pose_error"]["trajectory"])
     est = np.array(tr["estimated_w_m"], dtype=float)
-    est[:, 2] = np.asarray(tr["true_w_m"], dtype=float)[:, 2]
+    axes = [c for c in components if c < 3]
+    est[:, axes] = np.asarray(tr["true_w_m"], dtype=float)[:, axes]
     tr["estimated_w_m"] = est.tolist()
     return {**truth, "pose_error": {**truth["pose_error"], "trajectory": tr}}
 
@@ -167,6 +180,24 @@ def one_height(run: str) -> dict | None:
             "ve_ref": signed_error_pct(ref), "ve_corrected": signed_error_pct(corrected),
             "ve_true_height": signed_error_pct(oracle), "traj_corrected_m": after(truth, corrected),
             "traj_true_height_m": after(with_true_height(truth), oracle)}
+
+
+def one_horizontal(run: str) -> dict | None:
+    """Give one flight the true horizontal position and heading, report it with and without the correction; the row
+    with the flight on its true pose beside it (None: not a drifting flight)."""
+    run_p = Path(run)
+    true_pose = reported(run_p, SUFFIX, ALL, ["--no-pose-correction"])
+    corrected = reported(run_p, HORIZONTAL_SUFFIX, HORIZONTAL, [])
+    logged = reported(run_p, HORIZONTAL_SUFFIX, HORIZONTAL, ["--no-pose-correction"], "report-uncorrected")
+    if true_pose is None or corrected is None or logged is None:
+        return None
+    truth = with_true_height(json.loads((run_p / "truth.json").read_text()), HORIZONTAL)
+    before, after = trajectory_rms_m(truth, corrected.get("pose_correction"), corrected.get("rangefinder_height"))
+    return {"run": run_p.name, "folder": run_p.parent.name, "profile": parse_run(run_p.name)["profile"],
+            "ve_true_pose": signed_error_pct(true_pose), "ve_logged": signed_error_pct(logged),
+            "ve_corrected": signed_error_pct(corrected),
+            "applied": bool((corrected.get("pose_correction") or {}).get("applied")),
+            "traj_before_m": before, "traj_after_m": after}
 
 
 def flights(folders: list[Path]) -> list[Path]:
@@ -241,15 +272,43 @@ def height_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def horizontal_table(rows: list[dict]) -> str:
+    """Per campaign folder, pile and P_traj: the flights whose height alone drifts, as logged and corrected, against
+    the same flight on its true pose (the same path flown): how many the correction applied itself to, the volume's
+    distance from the true pose's with the issue's target counted, and the trajectory's error (its height's)."""
+    lines = [rf"| folder | pile | P_traj | flights | corrected | \|Ve - true pose\| (pp), as logged / corrected, "
+             f"mean | within {VE_TARGET_PP} pp, as logged / corrected | trajectory RMS (m), as logged / corrected | "
+             f"<= {TRAJ_TARGET_M * 100:.0f} cm, as logged / corrected |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    groups: dict[tuple[str, str, int], list[dict]] = {}
+    for r in rows:
+        name = parse_run(r["run"])
+        groups.setdefault((r["folder"], name["pile"], name["p_traj"]), []).append(r)
+    for (folder, pile, p_traj), rs in groups.items():
+        vl, vc = ([abs(r[k] - r["ve_true_pose"]) for r in rs] for k in ("ve_logged", "ve_corrected"))
+        tb, ta = ([r[k] for r in rs] for k in ("traj_before_m", "traj_after_m"))
+        lines.append(f"| {folder} | {pile} | {p_traj} % | {len(rs)} | {sum(r['applied'] for r in rs)}/{len(rs)} | "
+                     f"{statistics.fmean(vl):.2f} / {statistics.fmean(vc):.2f} | "
+                     f"{sum(v <= VE_TARGET_PP for v in vl)} / {sum(v <= VE_TARGET_PP for v in vc)} | "
+                     f"{statistics.fmean(tb):.3f} / {statistics.fmean(ta):.3f} | "
+                     f"{sum(v <= TRAJ_TARGET_M for v in tb)} / {sum(v <= TRAJ_TARGET_M for v in ta)} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = ArgumentParser(prog="python -m tools.pose_oracle", description=__doc__)
     ap.add_argument("--runs", type=Path, nargs="+", required=True, help="the pose campaigns' --keep folders")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--rows", type=Path, default=None, help="write the rows here (JSON lines)")
     ap.add_argument("--write", type=Path, default=None,
-                    help=f"page whose {SECTION} section (with --height: {HEIGHT_SECTION}) to rewrite")
-    ap.add_argument("--height", action="store_true",
-                    help="re-pose the height only and report with the correction (module docstring)")
+                    help=f"page whose {SECTION} section (with --height: {HEIGHT_SECTION}; --horizontal: "
+                         f"{HORIZONTAL_SECTION}) to rewrite")
+    mode = ap.add_mutually_exclusive_group()
+    mode.add_argument("--height", action="store_true",
+                      help="re-pose the height only and report with the correction (module docstring)")
+    mode.add_argument("--horizontal", action="store_true",
+                      help="re-pose x, y and the heading only (the height drifting alone) and report with and "
+                           "without the correction (module docstring)")
     args = ap.parse_args(argv)
     missing = [str(f) for f in args.runs if not f.is_dir()]
     if missing:
@@ -257,7 +316,8 @@ def main(argv: list[str] | None = None) -> int:
     todo = [str(f) for f in flights(args.runs)]
     rows = []
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        for i, row in enumerate(pool.map(one_height if args.height else one, todo), 1):
+        job = one_height if args.height else one_horizontal if args.horizontal else one
+        for i, row in enumerate(pool.map(job, todo), 1):
             if row is not None:
                 rows.append(row)
             if sys.stderr.isatty():
@@ -275,6 +335,13 @@ def main(argv: list[str] | None = None) -> int:
             "and from the true height (its samples' height re-posed from truth.json; x, y and the heading keep their "
             "drift): the trajectory's 3-D RMS error after the correction, and |Ve - Ve of the error-free flight|. "
             f"Regenerated by {command}.\n\n" + height_table(rows))
+    elif args.horizontal:
+        section, table_text = HORIZONTAL_SECTION, (
+            "Each drifting flight with its true horizontal position and heading (re-posed from truth.json) and its "
+            "logged height, so the height alone drifts (`vio`: the barometer's walk; `flow`: that and the downward "
+            "rangefinder's share), reported with `--no-pose-correction` (as logged) and as a user reports it "
+            "(corrected), against the same flight on its true pose (the same path flown); trajectory RMS: 3-D "
+            f"position against the truth. Regenerated by {command}.\n\n" + horizontal_table(rows))
     else:
         section, table_text = SECTION, (
             "Signed Ve (%) of three reports of each drifting flight: the error-free flight of the same pile, P_traj "

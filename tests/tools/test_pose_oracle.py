@@ -12,8 +12,10 @@ from firmware_py.core.samplelog import SampleLogWriter, new_records, read_sample
 from firmware_py.core.storage import Storage
 from tools.pose_oracle import (
     HEIGHT,
+    HORIZONTAL,
     flights,
     height_table,
+    horizontal_table,
     parse_run,
     repose,
     table,
@@ -135,3 +137,38 @@ def test_that_the_height_table_sets_the_logged_height_beside_the_true_one():
              "ve_true_height": 0.1, "traj_corrected_m": 0.090, "traj_true_height_m": 0.036}]
     line = next(row for row in height_table(rows).splitlines() if row.startswith("| pose |"))
     assert line == "| pose | 2 | 5 % | 2 | 0.142 / 0.045 | 1 / 2 | 1.80 / 0.35 | 1 / 1 |"
+
+
+def test_that_a_run_re_posed_in_its_horizontal_only_keeps_the_logged_height_and_its_drift(tmp_path: Path):
+    run = _run(tmp_path, "vio-1-20-0")
+    assert repose(run, tmp_path / "horizontal", HORIZONTAL)
+    logged = read_samplelog(run / "samples.pslog").samples
+    log = read_samplelog(tmp_path / "horizontal" / "samples.pslog").samples
+    truth = json.loads((run / "truth.json").read_text())["pose_error"]["trajectory"]
+    w = FRAME.ned_to_w(np.column_stack([log["x_m"], log["y_m"], log["z_m"]]))
+    w_logged = FRAME.ned_to_w(np.column_stack([logged["x_m"], logged["y_m"], logged["z_m"]]))
+    np.testing.assert_allclose(w[:, :2], np.asarray(truth["true_w_m"])[:, :2], atol=1e-4)  # the true x and y
+    np.testing.assert_allclose(log["yaw_rad"], truth["true_yaw_rad"], atol=1e-6)  # and heading
+    np.testing.assert_allclose(w[:, 2], w_logged[:, 2], atol=1e-4)  # the height as logged: 0.1 m high
+    assert np.abs(w[:, 2] - np.asarray(truth["true_w_m"])[:, 2]).min() > 0.09
+    est = np.asarray(with_true_height(json.loads((run / "truth.json").read_text()), HORIZONTAL)
+                     ["pose_error"]["trajectory"]["estimated_w_m"])
+    np.testing.assert_allclose(est[:, :2], np.asarray(truth["true_w_m"])[:, :2])  # its truth: off in z only
+    np.testing.assert_allclose(est[:, 2] - np.asarray(truth["true_w_m"])[:, 2], 0.1, atol=1e-12)
+
+
+def test_that_the_horizontal_table_sets_the_flight_as_logged_and_corrected_beside_its_true_pose():
+    rows = [{"run": "vio-1-20-2", "folder": "pose", "profile": "vio", "ve_true_pose": -0.01, "ve_logged": 3.39,
+             "ve_corrected": 0.20, "applied": True, "traj_before_m": 0.143, "traj_after_m": 0.031},
+            {"run": "flow-1-20-4", "folder": "pose", "profile": "flow", "ve_true_pose": 0.01, "ve_logged": 0.46,
+             "ve_corrected": 0.46, "applied": False, "traj_before_m": 0.091, "traj_after_m": 0.091}]
+    line = next(row for row in horizontal_table(rows).splitlines() if row.startswith("| pose |"))
+    # |logged - true| 3.40 and 0.45 pp; |corrected - true| 0.21 and 0.45 pp
+    assert line == "| pose | 1 | 20 % | 2 | 1/2 | 1.93 / 0.33 | 0 / 1 | 0.117 / 0.061 | 1 / 2 |"
+
+
+def test_that_the_horizontal_and_the_height_questions_are_asked_one_at_a_time(tmp_path: Path, capsys):
+    from tools.pose_oracle import main
+    with pytest.raises(SystemExit):
+        main(["--runs", str(tmp_path), "--height", "--horizontal"])
+    assert "not allowed with" in capsys.readouterr().err
