@@ -44,6 +44,11 @@ walls leaves them more than MAX_MISFIT noise levels off their planes (a drift do
 fault does). The walls see no height, so a height error alone (a lever arm's z, an altitude reference's offset)
 matters to the floor only: the height alone is applied when it brings a floor the walls' feet confirm up onto z = 0
 (`floor_brought_up`: below z = 0 it is surely a height error, while above it may be material covering the floor).
+A height that drifts while the horizontal does not (a good horizontal estimate on a barometer that walks) leaves the
+floor's points off every plane the walls' fit holds, so the floor and walls call it too small to matter; the pile seen
+at different times sees it: the height alone is applied when it brings those sightings together by more than the
+noise and more than is left (`crossings_brought_together`). A height off by a constant moves every sighting alike and
+stays the floor's question.
 And a horizontal lever arm entered off moves every point by one vector fixed to the body, which the knots would
 follow leg by leg: where two numbers of the lever arm put the floor and walls on their planes as well as the knots do
 (`lever_shift`), the points are placed with that lever arm instead, and the report names it.

@@ -21,6 +21,7 @@ from ground.pose_correction import (
     ambiguous_walls,
     apply_pose_correction,
     chi2_quantile,
+    crossings_brought_together,
     crossings_misfit_m,
     estimate_pose_correction,
     floor_brought_up,
@@ -1089,6 +1090,13 @@ def test_that_a_height_that_walks_is_corrected_though_the_floor_and_walls_see_no
     assert np.sqrt(np.mean(truth ** 2)) > 0.1  # a drift worth correcting ...
     assert np.sqrt(np.mean((corr.values[:, 2] - truth) ** 2)) < 0.03  # ... recovered to centimetres
     assert any("the height alone" in n and "seen at different times" in n for n in corr.notes)
+
+
+def test_that_a_height_matters_to_the_pile_seen_at_different_times_when_it_brings_the_sightings_together():
+    assert crossings_brought_together(0.073, 0.010, 0.003)  # a walk of decimetres taken out to a centimetre
+    assert not crossings_brought_together(0.073, 0.060, 0.003)  # more is left than was explained
+    assert not crossings_brought_together(0.004, 0.003, 0.003)  # within the noise
+    assert not crossings_brought_together(0.010, 0.010, 0.003)  # unchanged: a height off by a constant is the floor's
 
 
 def test_that_the_pile_seen_at_different_times_agrees_on_a_true_height_and_not_on_a_walking_one():
