@@ -374,9 +374,9 @@ def floor_brought_up(z_before: np.ndarray, z_after: np.ndarray, noise_m: float) 
 
 def crossings_brought_together(before_m: float, after_m: float, noise_m: float) -> bool:
     """Whether a height correction matters to the pile seen at different times (`crossings_misfit_m` before and after
-    it): the sightings come together by more than the noise and by more than what is left, as `plane_brought_on` asks
-    of a wall's points. A height off by a constant moves every sighting alike and never passes: that is the floor's
-    question (`floor_brought_up`)."""
+    it, and the noise of its sightings): they come together by more than their noise and by more than what is left,
+    as `plane_brought_on` asks of a wall's points. A height off by a constant moves every sighting alike and never
+    passes: that is the floor's question (`floor_brought_up`)."""
     return before_m ** 2 - after_m ** 2 > max(noise_m, after_m) ** 2
 
 
@@ -1058,10 +1058,11 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     # the pile's sightings together (`crossings_brought_together`). Then the height alone is applied.
     crossed = None
     if raised is None and not mattered and z_info is not None and opts.vertical and opts.crossings:
-        before = crossings_misfit_m(p0, b.t_s, knots, np.zeros(len(knots)), wall, storage, cell_m,
-                                    opts.max_position_error_m)
-        after = crossings_misfit_m(p0, b.t_s, knots, x[:, 2], wall, storage, cell_m, opts.max_position_error_m)
-        if crossings_brought_together(before, after, noise):
+        before, rows_noise = crossings_misfit_m(p0, b.t_s, knots, np.zeros(len(knots)), wall, storage, cell_m,
+                                                opts.max_position_error_m, noise)
+        after, _ = crossings_misfit_m(p0, b.t_s, knots, x[:, 2], wall, storage, cell_m, opts.max_position_error_m,
+                                      noise)
+        if crossings_brought_together(before, after, rows_noise):
             crossed = (before, after)
             x_z = np.zeros_like(x)
             x_z[:, 2] = x[:, 2]
@@ -1622,26 +1623,28 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
 
 
 def crossings_misfit_m(p: np.ndarray, t: np.ndarray, knots: np.ndarray, z: np.ndarray, wall: np.ndarray,
-                       storage: Storage, cell_m: float, max_error_m: float) -> float:
+                       storage: Storage, cell_m: float, max_error_m: float, noise_m: float) -> tuple[float, float]:
     """How far the pile seen at different times disagrees with itself with the height correction z (K,) at the
     knots: each knot interval's median height in a cell (its slope taken out, as `vertical_from_crossings` does)
-    against the cell's median over the intervals that saw it, robust RMS over the cells seen at least twice, m."""
+    against the cell's median over the intervals that saw it, robust RMS over the cells seen at least twice, m; and
+    the noise of those medians (a median's sd, 1.25 of its points' spread, at least noise_m, over the root of their
+    count, as `vertical_from_crossings` weighs them): (misfit, noise), (0, 0) when no cell is seen twice."""
     k, _ = knot_basis(t, knots)
     zc = p[:, 2] + np.interp(t, knots, z)
     q = np.column_stack([p[:, :2], zc])
     inside = _in_building(q, wall, storage, max_error_m)
     nx, ny, cid = _cells(q, storage, cell_m)
     z_flat = zc - _cell_slopes(q, cid, nx * ny, cell_m, ny, inside)
-    key, med, _, _, cnt = group_median((k * (nx * ny) + cid)[inside], z_flat[inside], t[inside])
+    key, med, mad, _, cnt = group_median((k * (nx * ny) + cid)[inside], z_flat[inside], t[inside])
     keep = cnt >= MIN_CELL_POINTS
-    cell, med = key[keep] % (nx * ny), med[keep]
+    cell, med, sd = key[keep] % (nx * ny), med[keep], 1.25 * np.maximum(mad[keep], noise_m) / np.sqrt(cnt[keep])
     _, inv, seen = np.unique(cell, return_inverse=True, return_counts=True)
     again = seen[inv] >= 2
     if not again.any():
-        return 0.0
+        return 0.0, 0.0
     _, cmed, _, _, _ = group_median(inv[again], med[again], med[again])
     _, back = np.unique(inv[again], return_inverse=True)
-    return _robust_rms(med[again] - cmed[back])
+    return _robust_rms(med[again] - cmed[back]), float(np.median(sd[again]))
 
 
 def screen_floor(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, floor: np.ndarray,

@@ -1109,12 +1109,13 @@ def test_that_the_pile_seen_at_different_times_agrees_on_a_true_height_and_not_o
         b, _ = beams(s, LEVER, FRAME)
         p = b.vehicle_w + b.to_point_w
         wall = (p[:, 0] < 0.2) | (p[:, 0] > 59.8) | (p[:, 1] < 0.2) | (p[:, 1] > 39.8)
-        return crossings_misfit_m(p, b.t_s, knots, z, wall, STORAGE, 3.0, 5.0)
+        return crossings_misfit_m(p, b.t_s, knots, z, wall, STORAGE, 3.0, 5.0, RESOLUTION / math.sqrt(12.0))
 
-    walking, corrected = misfit(samples, np.zeros(len(knots))), misfit(samples, truth)
-    assert walking > 0.05  # decimetres of walk: the pile's top seen at different heights
+    (walking, noise), (corrected, _) = misfit(samples, np.zeros(len(knots))), misfit(samples, truth)
+    assert walking > 0.05  # decimetres of walk: the pile's top seen at different heights ...
+    assert 0.0 < noise < walking / 5  # ... far beyond the sightings' own noise (medians of their points)
     # the true height at the knots, linear between (what the walk does within 3 s is left) and an error-free flight
-    assert corrected < walking / 4 and misfit(clean, np.zeros(len(knots))) < 0.005
+    assert corrected < walking / 4 and misfit(clean, np.zeros(len(knots)))[0] < 0.005
 
 
 def test_that_the_lever_shift_is_the_body_fixed_vector_that_puts_the_points_back():
