@@ -72,7 +72,7 @@ import numpy as np
 from scipy import linalg, sparse
 from scipy.optimize import least_squares
 from scipy.sparse.csgraph import connected_components
-from scipy.sparse.linalg import spsolve
+from scipy.sparse.linalg import splu, spsolve
 from scipy.special import gammaincinv
 
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, rot_body_to_ned
@@ -1540,7 +1540,8 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
                             storage: Storage, cell_m: float, step_z_m: float, noise_m: float, max_error_m: float,
                             n_significant: float = 3.0, start: np.ndarray | None = None,
                             significant_only: bool = True,
-                            sigma_out: list[float] | None = None) -> tuple[np.ndarray | None, np.ndarray | None]:
+                            sigma_out: list[float] | None = None,
+                            cov_out: list[np.ndarray] | None = None) -> tuple[np.ndarray | None, np.ndarray | None]:
     """The height correction at the knots (K,) from the floor and from the pile seen at different times.
 
     Each knot interval's points in a cell (cell_m: what the vehicle flies in a sweep period, so a cell holds
@@ -1614,6 +1615,8 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
     gain = 2.0 * float(np.sum(_huber(r_none / spread)) - np.sum(_huber(r_full / spread)))
     if significant_only and not gain > n_knots + n_significant * math.sqrt(2.0 * n_knots):
         return None, None
+    if cov_out is not None:
+        cov_out.append(knot_covariance(a, x, rhs, n_knots) * spread ** 2)
     if sigma_out is not None and m_floor > 0:
         sigma_out.append(mean_sigma_m(a, x, rhs, (k, f_t), n_knots) * spread)
     z = x[:n_knots]
@@ -1672,8 +1675,9 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
     knot interval and cell; the floor's level is their lowest peak (as the vote's outermost peak), read in a
     window as tall as a flat floor's heights scatter (`level_window`), not the frame's spread on slopes; it must
     not lie above the walls' lowest points (beyond stray returns); the
-    candidates within BAND noise levels of it are kept, the rest dropped. None kept: the height comes from
-    the crossings alone.
+    candidates within BAND noise levels of it are kept, the rest dropped, each judged within the frame's own
+    uncertainty between its time and the level's (`knot_covariance`: where the crossings tie two stretches of the
+    flight only loosely, the frame's stretches float apart). None kept: the height comes from the crossings alone.
 
     A floor meets the walls it runs to, so where the level is the floor, what is seen at a wall comes down to it
     unless the pile covers every wall's foot. There the level may still be the floor, seen in a gap between heaps
@@ -1682,8 +1686,9 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
     decides (`floor_unconfirmed_note`)."""
     if not floor.any():
         return floor, None, None, math.inf, False
+    cov: list[np.ndarray] = []
     z_rel, _ = vertical_from_crossings(p, t, knots, wall, np.zeros_like(floor), storage, cell_m, step_z_m, noise_m,
-                                       max_error_m, significant_only=False)
+                                       max_error_m, significant_only=False, cov_out=cov)
     if z_rel is None:
         return floor, None, None, math.inf, False
     zc = p[:, 2] + np.interp(t, knots, z_rel)
@@ -1732,7 +1737,17 @@ def _screen(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, f
                                             "flat pile top); the height is corrected from the crossings alone"), \
             tol, False
     confirmed = int(np.count_nonzero(np.abs(walls_z - level) <= tol)) >= MIN_VOTES
-    good_keys = fk[np.abs(fmed - level) <= tol]
+    # A candidate is judged against the level within the frame's own uncertainty between its time and the level's:
+    # where the crossings tie two stretches of the flight loosely (a loop whose long legs see the pile's flanks once),
+    # the frame's halves float apart, and a floor seen in one lies above the other's level (measured: 0.10 m on a
+    # flight's true pose, 0.33 m with a barometer's walk; the far end's floor dropped as a flat pile top).
+    reach = np.full(len(fk), tol)
+    if cov:
+        c = cov[0]
+        lk = fk[i0:i1] // (nx * ny)
+        var = np.diag(c) + float(np.mean(c[np.ix_(lk, lk)])) - 2.0 * np.mean(c[:, lk], axis=1)
+        reach = np.hypot(tol, BAND * np.sqrt(np.maximum(var, 0.0)))[np.minimum(fk // (nx * ny), len(knots) - 1)]
+    good_keys = fk[np.abs(fmed - level) <= reach]
     kept = floor & np.isin(key, good_keys)
     dropped = int(np.count_nonzero(floor & ~kept))
     if not 2 * dropped > np.count_nonzero(floor):
@@ -2113,6 +2128,18 @@ def mean_sigma_m(a: sparse.csr_matrix, x: np.ndarray, rhs: np.ndarray, basis: tu
     aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
     u = spsolve((aw.T @ aw).tocsc(), e)
     return float(math.sqrt(max(float(e @ u), 0.0)))
+
+
+def knot_covariance(a: sparse.csr_matrix, x: np.ndarray, rhs: np.ndarray, n_knots: int) -> np.ndarray:
+    """(K, K) the knots' covariance from the robust fit's normal equations at its solution (as `mean_sigma_m`, the rows
+    in units of their sigma): how loosely the data tie one stretch of the flight's height to another."""
+    r = np.abs(a @ x - rhs)
+    w = np.where(r <= 1.0, 1.0, 1.0 / np.maximum(r, 1e-300))
+    aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
+    e = np.zeros((a.shape[1], n_knots))
+    e[np.arange(n_knots), np.arange(n_knots)] = 1.0
+    u = splu((aw.T @ aw).tocsc()).solve(e)
+    return u[:n_knots]
 
 
 def _huber(u: np.ndarray) -> np.ndarray:

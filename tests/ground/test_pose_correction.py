@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy import sparse
 
 from firmware_py.core.frames import SQUARE, StorageFrame, beam_rays_w
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, SampleFlags, new_records
@@ -26,6 +27,7 @@ from ground.pose_correction import (
     estimate_pose_correction,
     floor_brought_up,
     is_drift,
+    knot_covariance,
     level_sigma_m,
     lever_shift,
     pinned_to_floor,
@@ -1097,6 +1099,23 @@ def test_that_a_height_matters_to_the_pile_seen_at_different_times_when_it_bring
     assert not crossings_brought_together(0.073, 0.060, 0.003)  # more is left than was explained
     assert not crossings_brought_together(0.004, 0.003, 0.003)  # within the noise
     assert not crossings_brought_together(0.010, 0.010, 0.003)  # unchanged: a height off by a constant is the floor's
+
+
+def test_that_the_knots_covariance_says_how_loosely_two_stretches_of_the_flight_are_tied():
+    """Knots 0-1 and 2-3 tied tightly by what they saw (rows in units of their sigma: 1 cm), 1 to 2 only by a prior
+    of 1 m: the covariance lets 2 float against 1 by the prior's metre, 1 against 0 by a centimetre."""
+    rows = [(0, 1, 100.0), (2, 3, 100.0), (1, 2, 1.0)]  # (knot, next knot, 1/sigma) of their difference
+    a = sparse.lil_matrix((len(rows) + 1, 4))
+    for i, (j, k, w) in enumerate(rows):
+        a[i, j], a[i, k] = -w, w
+    a[len(rows), 0] = 100.0  # the level, pinned at knot 0
+    c = knot_covariance(a.tocsr(), np.zeros(4), np.zeros(len(rows) + 1), 4)
+
+    def sd(i: int, j: int) -> float:
+        return math.sqrt(c[i, i] + c[j, j] - 2.0 * c[i, j])
+    assert sd(0, 1) == pytest.approx(0.01, rel=1e-6)
+    assert sd(1, 2) == pytest.approx(1.0, rel=1e-3) and sd(2, 3) == pytest.approx(0.01, rel=1e-6)
+    np.testing.assert_allclose(c, c.T, atol=1e-15)
 
 
 def test_that_the_pile_seen_at_different_times_agrees_on_a_true_height_and_not_on_a_walking_one():
