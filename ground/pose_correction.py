@@ -1616,7 +1616,9 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
     if significant_only and not gain > n_knots + n_significant * math.sqrt(2.0 * n_knots):
         return None, None
     if cov_out is not None:
-        cov_out.append(knot_covariance(a, x, rhs, n_knots) * spread ** 2)
+        cov = knot_covariance(a, x, rhs, n_knots)
+        if cov is not None:
+            cov_out.append(cov * spread ** 2)
     if sigma_out is not None and m_floor > 0:
         sigma_out.append(mean_sigma_m(a, x, rhs, (k, f_t), n_knots) * spread)
     z = x[:n_knots]
@@ -2130,16 +2132,20 @@ def mean_sigma_m(a: sparse.csr_matrix, x: np.ndarray, rhs: np.ndarray, basis: tu
     return float(math.sqrt(max(float(e @ u), 0.0)))
 
 
-def knot_covariance(a: sparse.csr_matrix, x: np.ndarray, rhs: np.ndarray, n_knots: int) -> np.ndarray:
+def knot_covariance(a: sparse.csr_matrix, x: np.ndarray, rhs: np.ndarray, n_knots: int) -> np.ndarray | None:
     """(K, K) the knots' covariance from the robust fit's normal equations at its solution (as `mean_sigma_m`, the rows
-    in units of their sigma): how loosely the data tie one stretch of the flight's height to another."""
+    in units of their sigma): how loosely the data tie one stretch of the flight's height to another. None when the
+    equations are singular or give no finite answer (the caller then judges as if every stretch were tied)."""
     r = np.abs(a @ x - rhs)
     w = np.where(r <= 1.0, 1.0, 1.0 / np.maximum(r, 1e-300))
     aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
     e = np.zeros((a.shape[1], n_knots))
     e[np.arange(n_knots), np.arange(n_knots)] = 1.0
-    u = splu((aw.T @ aw).tocsc()).solve(e)
-    return u[:n_knots]
+    try:
+        u = splu((aw.T @ aw).tocsc()).solve(e)[:n_knots]
+    except RuntimeError:  # "Factor is exactly singular"
+        return None
+    return u if np.all(np.isfinite(u)) else None
 
 
 def _huber(u: np.ndarray) -> np.ndarray:

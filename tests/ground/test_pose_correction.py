@@ -1116,6 +1116,11 @@ def test_that_the_knots_covariance_says_how_loosely_two_stretches_of_the_flight_
     assert sd(0, 1) == pytest.approx(0.01, rel=1e-6)
     assert sd(1, 2) == pytest.approx(1.0, rel=1e-3) and sd(2, 3) == pytest.approx(0.01, rel=1e-6)
     np.testing.assert_allclose(c, c.T, atol=1e-15)
+    # a knot nothing observes and no prior holds: no covariance, rather than an error or a NaN that drops every
+    # floor candidate against it
+    loose = sparse.csr_matrix(a.toarray()[:, :3])
+    assert knot_covariance(sparse.hstack([loose, sparse.csr_matrix((len(rows) + 1, 1))]).tocsr(), np.zeros(4),
+                           np.zeros(len(rows) + 1), 4) is None
 
 
 def test_that_the_pile_seen_at_different_times_agrees_on_a_true_height_and_not_on_a_walking_one():
