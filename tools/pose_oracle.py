@@ -224,6 +224,15 @@ def parse_run(name: str) -> dict:
             "noise": noise.lstrip("-") or "none"}
 
 
+def by_pile(rows: list[dict]) -> dict[tuple[str, str, int], list[dict]]:
+    """The rows per (campaign folder, pile, P_traj), both profiles together, in the rows' order: each table's lines."""
+    groups: dict[tuple[str, str, int], list[dict]] = {}
+    for r in rows:
+        name = parse_run(r["run"])
+        groups.setdefault((r["folder"], name["pile"], name["p_traj"]), []).append(r)
+    return groups
+
+
 def table(rows: list[dict]) -> str:
     """Per campaign folder, pile and P_traj (both profiles together): the path's share, the correction's residual
     and the two together, in percentage points of the true volume, and how many flights each keeps within the
@@ -233,11 +242,7 @@ def table(rows: list[dict]) -> str:
              f"{VE_TARGET_PP} pp | correction's residual: \\|corrected - true pose\\| (pp), mean / max | within "
              f"{VE_TARGET_PP} pp | \\|corrected - error-free\\| (pp), mean | within {VE_TARGET_PP} pp |",
              "|---|---|---|---|---|---|---|---|---|---|"]
-    groups: dict[tuple[str, str, int], list[dict]] = {}  # (folder, pile, P_traj), in the rows' order
-    for r in rows:
-        name = parse_run(r["run"])
-        groups.setdefault((r["folder"], name["pile"], name["p_traj"]), []).append(r)
-    for (folder, pile, p_traj), rs in groups.items():
+    for (folder, pile, p_traj), rs in by_pile(rows).items():
         path = [abs(r["ve_true_pose"] - r["ve_ref"]) for r in rs]
         resid = [abs(r["ve_corrected"] - r["ve_true_pose"]) for r in rs]
         total = [abs(r["ve_corrected"] - r["ve_ref"]) for r in rs]
@@ -257,11 +262,7 @@ def height_table(rows: list[dict]) -> str:
              f"{TRAJ_TARGET_M * 100:.0f} cm, logged / true height | \\|Ve - error-free\\| (pp), logged / true "
              f"height | within {VE_TARGET_PP} pp, logged / true height |",
              "|---|---|---|---|---|---|---|---|"]
-    groups: dict[tuple[str, str, int], list[dict]] = {}
-    for r in rows:
-        name = parse_run(r["run"])
-        groups.setdefault((r["folder"], name["pile"], name["p_traj"]), []).append(r)
-    for (folder, pile, p_traj), rs in groups.items():
+    for (folder, pile, p_traj), rs in by_pile(rows).items():
         tl, tt = ([r[k] for r in rs] for k in ("traj_corrected_m", "traj_true_height_m"))
         vl, vt = ([abs(r[k] - r["ve_ref"]) for r in rs] for k in ("ve_corrected", "ve_true_height"))
         lines.append(f"| {folder} | {pile} | {p_traj} % | {len(rs)} | {statistics.fmean(tl):.3f} / "
@@ -280,11 +281,7 @@ def horizontal_table(rows: list[dict]) -> str:
              f"mean | within {VE_TARGET_PP} pp, as logged / corrected | trajectory RMS (m), as logged / corrected | "
              f"<= {TRAJ_TARGET_M * 100:.0f} cm, as logged / corrected |",
              "|---|---|---|---|---|---|---|---|---|"]
-    groups: dict[tuple[str, str, int], list[dict]] = {}
-    for r in rows:
-        name = parse_run(r["run"])
-        groups.setdefault((r["folder"], name["pile"], name["p_traj"]), []).append(r)
-    for (folder, pile, p_traj), rs in groups.items():
+    for (folder, pile, p_traj), rs in by_pile(rows).items():
         vl, vc = ([abs(r[k] - r["ve_true_pose"]) for r in rs] for k in ("ve_logged", "ve_corrected"))
         tb, ta = ([r[k] for r in rs] for k in ("traj_before_m", "traj_after_m"))
         lines.append(f"| {folder} | {pile} | {p_traj} % | {len(rs)} | {sum(r['applied'] for r in rs)}/{len(rs)} | "

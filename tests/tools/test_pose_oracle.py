@@ -56,6 +56,19 @@ def _run(folder: Path, name: str, profile: str = "vio") -> Path:
     return run
 
 
+def _reposed(folder: Path, name: str, components: tuple[int, ...]):
+    """A run of `_run` re-posed in these components: (the run, the re-posed samples, the logged ones, their positions
+    in W, and the truth's trajectory)."""
+    run = _run(folder, name)
+    assert repose(run, folder / "reposed", components)
+    logged = read_samplelog(run / "samples.pslog").samples
+    log = read_samplelog(folder / "reposed" / "samples.pslog").samples
+    truth = json.loads((run / "truth.json").read_text())["pose_error"]["trajectory"]
+    w = FRAME.ned_to_w(np.column_stack([log["x_m"], log["y_m"], log["z_m"]]))
+    w_logged = FRAME.ned_to_w(np.column_stack([logged["x_m"], logged["y_m"], logged["z_m"]]))
+    return run, log, logged, w, w_logged, truth
+
+
 def test_that_the_truth_correction_is_the_true_trajectory_less_the_estimate():
     corr = truth_correction({"pose_error": _trajectory(np.array([0.0, 10.0]))})
     assert corr is not None and corr.applied
@@ -108,13 +121,7 @@ def test_that_the_table_splits_the_error_into_the_path_s_share_and_the_correctio
 
 
 def test_that_a_run_re_posed_in_its_height_only_keeps_the_logged_position_and_heading(tmp_path: Path):
-    run = _run(tmp_path, "flow-1-20-0")
-    assert repose(run, tmp_path / "height", HEIGHT)
-    logged = read_samplelog(run / "samples.pslog").samples
-    log = read_samplelog(tmp_path / "height" / "samples.pslog").samples
-    truth = json.loads((run / "truth.json").read_text())["pose_error"]["trajectory"]
-    w = FRAME.ned_to_w(np.column_stack([log["x_m"], log["y_m"], log["z_m"]]))
-    w_logged = FRAME.ned_to_w(np.column_stack([logged["x_m"], logged["y_m"], logged["z_m"]]))
+    _, log, logged, w, w_logged, truth = _reposed(tmp_path, "flow-1-20-0", HEIGHT)
     np.testing.assert_allclose(w[:, 2], np.asarray(truth["true_w_m"])[:, 2], atol=1e-4)  # the true height
     np.testing.assert_allclose(w[:, :2], w_logged[:, :2], atol=1e-4)  # the drift in x and y kept
     assert np.abs(w[:, :2] - np.asarray(truth["true_w_m"])[:, :2]).max() > 0.1
@@ -140,13 +147,7 @@ def test_that_the_height_table_sets_the_logged_height_beside_the_true_one():
 
 
 def test_that_a_run_re_posed_in_its_horizontal_only_keeps_the_logged_height_and_its_drift(tmp_path: Path):
-    run = _run(tmp_path, "vio-1-20-0")
-    assert repose(run, tmp_path / "horizontal", HORIZONTAL)
-    logged = read_samplelog(run / "samples.pslog").samples
-    log = read_samplelog(tmp_path / "horizontal" / "samples.pslog").samples
-    truth = json.loads((run / "truth.json").read_text())["pose_error"]["trajectory"]
-    w = FRAME.ned_to_w(np.column_stack([log["x_m"], log["y_m"], log["z_m"]]))
-    w_logged = FRAME.ned_to_w(np.column_stack([logged["x_m"], logged["y_m"], logged["z_m"]]))
+    run, log, _, w, w_logged, truth = _reposed(tmp_path, "vio-1-20-0", HORIZONTAL)
     np.testing.assert_allclose(w[:, :2], np.asarray(truth["true_w_m"])[:, :2], atol=1e-4)  # the true x and y
     np.testing.assert_allclose(log["yaw_rad"], truth["true_yaw_rad"], atol=1e-6)  # and heading
     np.testing.assert_allclose(w[:, 2], w_logged[:, 2], atol=1e-4)  # the height as logged: 0.1 m high
