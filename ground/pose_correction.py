@@ -1536,6 +1536,12 @@ def group_median(key: np.ndarray, z: np.ndarray, t: np.ndarray) -> tuple[np.ndar
     return uniq, med, mad, tm, count
 
 
+def median_sd_m(mad_m: np.ndarray, count: np.ndarray, noise_m: float) -> np.ndarray:
+    """The sd of a median of `count` points whose robust spread is mad_m (at least noise_m): one sighting's noise, as
+    the crossings' solves weigh them and `crossings_misfit_m` judges against."""
+    return 1.25 * np.maximum(mad_m, noise_m) / np.sqrt(count)
+
+
 def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, floor: np.ndarray,
                             storage: Storage, cell_m: float, step_z_m: float, noise_m: float, max_error_m: float,
                             n_significant: float = 3.0, start: np.ndarray | None = None,
@@ -1582,7 +1588,7 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
     uniq_cells, cell_idx = np.unique(inv, return_inverse=True)
     n_cells = len(uniq_cells)
     fc = np.flatnonzero(floor_cells[uniq_cells])
-    rows_s = 1.25 * np.maximum(mad, noise_m) / np.sqrt(cnt)  # the sd of a median
+    rows_s = median_sd_m(mad, cnt, noise_m)
     n_par = n_knots + n_cells
     kk, ff = knot_basis(tm, knots)
     m_obs, m_floor = len(med), len(fc)
@@ -1642,7 +1648,7 @@ def crossings_misfit_m(p: np.ndarray, t: np.ndarray, knots: np.ndarray, z: np.nd
     z_flat = zc - _cell_slopes(q, cid, nx * ny, cell_m, ny, inside)
     key, med, mad, _, cnt = group_median((k * (nx * ny) + cid)[inside], z_flat[inside], t[inside])
     keep = cnt >= MIN_CELL_POINTS
-    cell, med, sd = key[keep] % (nx * ny), med[keep], 1.25 * np.maximum(mad[keep], noise_m) / np.sqrt(cnt[keep])
+    cell, med, sd = key[keep] % (nx * ny), med[keep], median_sd_m(mad[keep], cnt[keep], noise_m)
     _, inv, seen = np.unique(cell, return_inverse=True, return_counts=True)
     again = seen[inv] >= 2
     if not again.any():
@@ -1918,7 +1924,7 @@ def register_from_crossings(b: Beams, x: np.ndarray, x_wall: np.ndarray, knots: 
         # d(height at the cell's centre)/d(component): z 1, x -gx, y -gy, heading -g . J v
         coef = {Component.Z.value: np.ones(len(key)), Component.X.value: -g_x, Component.Y.value: -g_y,
                 Component.HEADING.value: -(g_x * -vy + g_y * vx)}
-        rows_s = 1.25 * np.maximum(mad, noise_m) / np.sqrt(cnt)
+        rows_s = median_sd_m(mad, cnt, noise_m)
         kk, ff = knot_basis(tm, knots)
         m_obs, m_floor = len(med), len(fc)
         n_par = nc * n_knots + n_cells
