@@ -120,10 +120,16 @@ def along_planes(b: Beams, sigma_m: np.ndarray, angle_sigma_rad: float, sweep_di
     # its own plane, so a plane parallel to the sweep's (a wall ahead when flying towards it) passes any
     # chord. It needs the angle between the two planes above the chord's own resolution, tol / length
     # (measured: a VIO flight's last leg, 4.7 m from the end wall ahead, took its sweeps' floor and side
-    # wall points for that wall and moved 4.5 m along the track).
+    # wall points for that wall and moved 4.5 m along the track). A chord at angle a to the planes' line of
+    # crossing has length * sin(angle) * sin(a) along plane j's normal; a pile's chord is at least
+    # 90 - STEEPEST_PILE_DEG off a wall's (vertical) line, so the planes must cross by tol / (length * cos(that
+    # steepest slope)) for such a chord to show. At tol / length a flank of the pile in a sweep a fraction of a
+    # degree from parallel to the wall ahead passed for that wall (measured: a `flow` flight on its true pose,
+    # 5.6 m from the wall at its end, had its last knots moved 2-8 m along the track).
     sweep_n = np.cross(b.to_point_w[i - h], b.to_point_w[i + h])
     sweep_n /= np.maximum(np.linalg.norm(sweep_n, axis=1), 1e-12)[:, None]
-    crossing = np.sqrt(np.clip(1.0 - (sweep_n @ n.T) ** 2, 0.0, 1.0)) > (tol / np.maximum(length, 1e-12))[:, None]
+    resolvable = tol / (np.maximum(length, 1e-12) * math.cos(math.radians(STEEPEST_PILE_DEG)))
+    crossing = np.sqrt(np.clip(1.0 - (sweep_n @ n.T) ** 2, 0.0, 1.0)) > resolvable[:, None]
     # And the stretch is straight: a plane cuts the sweep's plane in a line, so the point lies on its chord. A
     # stretch over a corner (a wall's foot and the floor, an L in the sweep's plane) has its chord along
     # neither of the two planes it spans, yet along any plane parallel to the L's plane (measured: a `flow` flight

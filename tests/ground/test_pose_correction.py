@@ -916,6 +916,35 @@ def test_that_a_stretch_over_a_walls_foot_is_along_no_plane_not_even_one_paralle
     assert along[199 + CHORD_HALF:len(p) - CHORD_HALF, floor_j].all()  # and the floor's along the floor
 
 
+@pytest.mark.parametrize("slope_deg", [45.0, 55.0, 59.0])
+def test_that_a_piles_flank_in_a_sweep_nearly_parallel_to_a_wall_is_not_along_that_wall(slope_deg):
+    # Flying towards the wall y = 0 (a last leg heading home), the sweep plane is within a degree of parallel to
+    # it, and every chord of the sweep has almost nothing along y. A flank of the pile in that plane passed for the
+    # wall when the planes' crossing angle was just above the chord's resolution (tol / length): then a chord
+    # steeper than acos(1 / 1.5) = 48 deg has less than tol along y. The vote moved the last knots 2-8 m along the
+    # track on a flight flown on its true pose. No chord shallower than the steepest pile stands may pass.
+    from ground.plane_stretches import CHORD_HALF, Beams
+    sigma = stretch_floor_m(RESOLUTION)  # an ideal sensor's: the range's quantum
+    s = np.linspace(1.0, 10.0, 300)  # along the sweep plane's horizontal line, m
+    slope = math.radians(slope_deg)
+    length = (s[2 * CHORD_HALF] - s[0]) / math.cos(slope)
+    tol = 3.0 * math.hypot(sigma, sigma)
+    theta = math.asin(min(1.5 * tol / length, 0.99 * tol / (length * math.cos(slope))))  # in the old window
+    h = np.array([math.cos(theta), math.sin(theta), 0.0])
+    vehicle = np.array([20.0, 6.0, 12.0])
+    p = vehicle + s[:, None] * h + np.column_stack([np.zeros((300, 2)), -11.0 + s * math.tan(slope)])
+    b = Beams(np.arange(300) / RATE_HZ, np.tile(vehicle, (300, 1)), p - vehicle)
+    n, _ = planes(STORAGE)
+    along = along_planes(b, np.full(300, sigma), 0.0, np.ones(300, dtype=np.int64), n, 1.0 / RATE_HZ)
+    assert not along[:, PLANE_NAMES.index("y0")].any()
+    assert not along[:, PLANE_NAMES.index("yW")].any()
+    # the wall itself, cut by a sweep at a real angle to it (a turn's diagonal sweep), still runs along it
+    up = np.column_stack([2.0 + 0.5 * np.linspace(0, 1, 300), np.zeros(300), np.linspace(1.0, 5.0, 300)])
+    b_wall = Beams(np.arange(300) / RATE_HZ, np.tile([4.0, 3.0, 12.0], (300, 1)), up - [4.0, 3.0, 12.0])
+    along_wall = along_planes(b_wall, np.full(300, sigma), 0.0, np.ones(300, dtype=np.int64), n, 1.0 / RATE_HZ)
+    assert along_wall[CHORD_HALF:300 - CHORD_HALF, PLANE_NAMES.index("y0")].all()
+
+
 def test_that_a_height_refused_before_the_registration_is_solved_again_after_it(monkeypatch):
     # Before the pile seen twice aligns the flight, its horizontal error shows as height on the slopes, and the
     # first height solve can jump between two knots beyond what a drift does (a two-knot zigzag on our own ridge:
