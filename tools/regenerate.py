@@ -95,6 +95,8 @@ STEPS: tuple[Step, ...] = (
           "--jobs 2 --write docs/pose_error.md", "docs/pose_error.md"),
     _step("pose-oracle-height", "tools.pose_oracle --runs runs/pose runs/pose-own --jobs 2 --height "
           "--write docs/pose_error.md", "docs/pose_error.md"),
+    _step("pose-oracle-horizontal", "tools.pose_oracle --runs runs/pose runs/pose-own runs/pose-noise-ds "
+          "runs/pose-noise-aa --jobs 2 --horizontal --write docs/pose_error.md", "docs/pose_error.md"),
     _step("rangefinder-share", "tools.rangefinder_share_check --runs runs/pose runs/pose-own runs/pose-noise-ds "
           "runs/pose-noise-aa --jobs 2 --write docs/pose_error.md", "docs/pose_error.md"),
     _step("pose-default", "tools.pose_default_check --phases 3 --jobs 2 --write docs/pose_error.md",
