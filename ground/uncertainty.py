@@ -92,7 +92,7 @@ class ErrorTerms:
 
 
 # --- calibrated pose factor (tools/calibrate_pose_interval.py --write-model) ---
-POSE_FACTOR = 6.687710544156057
+POSE_FACTOR = 7.061148943056512
 POSE_FACTOR_SOURCE = 'fitted on 38 drifting flights (tools/calibrate_pose_interval.py, 2026-12-04)'
 # --- end of calibrated pose factor ---
 
