@@ -297,9 +297,9 @@ def test_that_a_header_boresight_the_building_refutes_is_warned_when_nothing_exp
 
 
 def test_that_a_header_boresight_17_deg_off_is_found_and_undone(square_run, square_report, tmp_path):
-    # 17.2 deg of tilt and 5.7 deg of yaw entered that the LiDAR was not mounted at: the sweeps cross the walls
-    # ahead at a slant, and the pile's flanks in them passed for those walls while the planes' crossing angle was
-    # only above the chord's resolution; the self-calibration then called the mount unobservable (Ve 18.8 %, warned).
+    # 17.2 deg of tilt and 5.7 deg of yaw entered that the LiDAR was not mounted at. The self-calibration called the
+    # mount unobservable (Ve 18.8 %, warned) until a stretch along a wall had to be in a sweep crossing the wall by
+    # more than a chord as steep as a pile's would show: measured, it is found and undone now.
     wrong = Boresight(-0.3, 0.1)
     rep = make_report(_with_boresight(square_run, tmp_path / "tilted", wrong), tmp_path / "rep",
                       ReportOptions(plots=False))
