@@ -1542,6 +1542,19 @@ def median_sd_m(mad_m: np.ndarray, count: np.ndarray, noise_m: float) -> np.ndar
     return 1.25 * np.maximum(mad_m, noise_m) / np.sqrt(count)
 
 
+def _flattened(p: np.ndarray, wall: np.ndarray, storage: Storage, cell_m: float, max_error_m: float,
+               slope_z: np.ndarray | None = None) -> tuple[np.ndarray, int, int, np.ndarray, np.ndarray]:
+    """What the crossings compare: the points they use (`_in_building`), the cells (nx, ny, each point's) and each
+    point's height with its cell's slope taken out. The slope is fitted from all the cell's points, every time
+    together (with heights slope_z, default p's own): the height a knot interval gives is then at the cell's
+    centre, so two passes that hit a sloped cell in different places still agree. Returns (inside, nx, ny, cid,
+    z_flat)."""
+    inside = _in_building(p, wall, storage, max_error_m)
+    nx, ny, cid = _cells(p, storage, cell_m)
+    seen = p if slope_z is None else np.column_stack([p[:, :2], slope_z])
+    return inside, nx, ny, cid, p[:, 2] - _cell_slopes(seen, cid, nx * ny, cell_m, ny, inside)
+
+
 def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, floor: np.ndarray,
                             storage: Storage, cell_m: float, step_z_m: float, noise_m: float, max_error_m: float,
                             n_significant: float = 3.0, start: np.ndarray | None = None,
@@ -1563,12 +1576,8 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
     (`mean_sigma_m`)."""
     n_knots = len(knots)
     k, f_t = knot_basis(t, knots)
-    inside = _in_building(p, wall, storage, max_error_m)
-    nx, ny, cid = _cells(p, storage, cell_m)
-    # Each cell's slope, from all its points (every time together): the height a knot interval gives is at
-    # the cell's centre, so two passes that hit a sloped cell in different places still agree.
-    seen_z = p[:, 2] if start is None else p[:, 2] + np.interp(t, knots, start)  # slopes from the corrected
-    z_flat = p[:, 2] - _cell_slopes(np.column_stack([p[:, :2], seen_z]), cid, nx * ny, cell_m, ny, inside)
+    seen_z = None if start is None else p[:, 2] + np.interp(t, knots, start)  # slopes from the corrected
+    inside, nx, ny, cid, z_flat = _flattened(p, wall, storage, cell_m, max_error_m, seen_z)
     key, med, mad, tm, cnt = group_median((k * (nx * ny) + cid)[inside], z_flat[inside], t[inside])
     fkey, _, _, _, fcnt = group_median((k * (nx * ny) + cid)[inside & floor], z_flat[inside & floor],
                                         t[inside & floor])
@@ -1641,11 +1650,8 @@ def crossings_misfit_m(p: np.ndarray, t: np.ndarray, knots: np.ndarray, z: np.nd
     the noise of those medians (a median's sd, 1.25 of its points' spread, at least noise_m, over the root of their
     count, as `vertical_from_crossings` weighs them): (misfit, noise), (0, 0) when no cell is seen twice."""
     k, _ = knot_basis(t, knots)
-    zc = p[:, 2] + np.interp(t, knots, z)
-    q = np.column_stack([p[:, :2], zc])
-    inside = _in_building(q, wall, storage, max_error_m)
-    nx, ny, cid = _cells(q, storage, cell_m)
-    z_flat = zc - _cell_slopes(q, cid, nx * ny, cell_m, ny, inside)
+    q = np.column_stack([p[:, :2], p[:, 2] + np.interp(t, knots, z)])
+    inside, nx, ny, cid, z_flat = _flattened(q, wall, storage, cell_m, max_error_m)
     key, med, mad, _, cnt = group_median((k * (nx * ny) + cid)[inside], z_flat[inside], t[inside])
     keep = cnt >= MIN_CELL_POINTS
     cell, med, sd = key[keep] % (nx * ny), med[keep], median_sd_m(mad[keep], cnt[keep], noise_m)
@@ -1888,8 +1894,7 @@ def register_from_crossings(b: Beams, x: np.ndarray, x_wall: np.ndarray, knots: 
     gain, n_extra = 0.0, 0
     for rnd in range(rounds):
         p, vr = corrected_points(b, x, k, f)
-        inside = (~wall & (p[:, 0] > 0) & (p[:, 0] < storage.length_m) & (p[:, 1] > 0)
-                  & (p[:, 1] < storage.width_m) & (p[:, 2] > -max_error_m) & (p[:, 2] < storage.height_m))
+        inside = _in_building(p, wall, storage, max_error_m)
         nx, ny, cid = _cells(p, storage, cell_m)
         flat, gx, gy = _significant_gradients(p, cid, nx * ny, cell_m, ny, inside, n_sigma)
         z_flat = p[:, 2] - flat
@@ -2119,6 +2124,15 @@ def _slope_continues(sloped: np.ndarray, gx: np.ndarray, gy: np.ndarray, n_cells
     return out
 
 
+def huber_normal(a: sparse.csr_matrix, x: np.ndarray, rhs: np.ndarray) -> sparse.csc_matrix:
+    """The robust fit's normal equations at its solution x: the rows (in units of their sigma) weighed as Huber's loss
+    weighs them there (`_irls_huber`'s last weights), A^T W A, ready to factorise."""
+    r = np.abs(a @ x - rhs)
+    w = np.where(r <= 1.0, 1.0, 1.0 / np.maximum(r, 1e-300))
+    aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
+    return (aw.T @ aw).tocsc()
+
+
 def mean_sigma_m(a: sparse.csr_matrix, x: np.ndarray, rhs: np.ndarray, basis: tuple[np.ndarray, np.ndarray],
                  n_knots: int) -> float:
     """The standard error of the height correction's mean over the samples (basis: their knot and fraction), from
@@ -2131,10 +2145,7 @@ def mean_sigma_m(a: sparse.csr_matrix, x: np.ndarray, rhs: np.ndarray, basis: tu
            + np.bincount(k + 1, weights=f, minlength=n_knots + 1))[:n_knots]
     e = np.zeros(a.shape[1])
     e[:n_knots] = w_k / max(float(w_k.sum()), 1e-300)
-    r = np.abs(a @ x - rhs)
-    w = np.where(r <= 1.0, 1.0, 1.0 / np.maximum(r, 1e-300))
-    aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
-    u = spsolve((aw.T @ aw).tocsc(), e)
+    u = spsolve(huber_normal(a, x, rhs), e)
     return float(math.sqrt(max(float(e @ u), 0.0)))
 
 
@@ -2142,13 +2153,10 @@ def knot_covariance(a: sparse.csr_matrix, x: np.ndarray, rhs: np.ndarray, n_knot
     """(K, K) the knots' covariance from the robust fit's normal equations at its solution (as `mean_sigma_m`, the rows
     in units of their sigma): how loosely the data tie one stretch of the flight's height to another. None when the
     equations are singular or give no finite answer (the caller then judges as if every stretch were tied)."""
-    r = np.abs(a @ x - rhs)
-    w = np.where(r <= 1.0, 1.0, 1.0 / np.maximum(r, 1e-300))
-    aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
     e = np.zeros((a.shape[1], n_knots))
     e[np.arange(n_knots), np.arange(n_knots)] = 1.0
     try:
-        u = splu((aw.T @ aw).tocsc()).solve(e)[:n_knots]
+        u = splu(huber_normal(a, x, rhs)).solve(e)[:n_knots]
     except RuntimeError:  # "Factor is exactly singular"
         return None
     return u if np.all(np.isfinite(u)) else None
