@@ -152,7 +152,7 @@ def one(run: str) -> dict | None:
             "ve_corrected": signed_error_pct(corrected)}
 
 
-def with_true_height(truth: dict, components: tuple[int, ...] = HEIGHT) -> dict:
+def with_true_pose_in(truth: dict, components: tuple[int, ...]) -> dict:
     """truth.json of a flight whose samples carry the true pose in these components (HEIGHT: the height): its
     estimated trajectory is the true one there (so the trajectory's error is measured against what the samples
     carry; the heading, 3, is not part of that error)."""
@@ -179,7 +179,7 @@ def one_height(run: str) -> dict | None:
     return {"run": run_p.name, "folder": run_p.parent.name, "profile": parse_run(run_p.name)["profile"],
             "ve_ref": signed_error_pct(ref), "ve_corrected": signed_error_pct(corrected),
             "ve_true_height": signed_error_pct(oracle), "traj_corrected_m": after(truth, corrected),
-            "traj_true_height_m": after(with_true_height(truth), oracle)}
+            "traj_true_height_m": after(with_true_pose_in(truth, HEIGHT), oracle)}
 
 
 def one_horizontal(run: str) -> dict | None:
@@ -191,7 +191,7 @@ def one_horizontal(run: str) -> dict | None:
     logged = reported(run_p, HORIZONTAL_SUFFIX, HORIZONTAL, ["--no-pose-correction"], "report-uncorrected")
     if true_pose is None or corrected is None or logged is None:
         return None
-    truth = with_true_height(json.loads((run_p / "truth.json").read_text()), HORIZONTAL)
+    truth = with_true_pose_in(json.loads((run_p / "truth.json").read_text()), HORIZONTAL)
     before, after = trajectory_rms_m(truth, corrected.get("pose_correction"), corrected.get("rangefinder_height"))
     return {"run": run_p.name, "folder": run_p.parent.name, "profile": parse_run(run_p.name)["profile"],
             "ve_true_pose": signed_error_pct(true_pose), "ve_logged": signed_error_pct(logged),

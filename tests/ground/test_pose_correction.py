@@ -1162,7 +1162,7 @@ def test_that_the_pile_seen_at_different_times_agrees_on_a_true_height_and_not_o
         b, _ = beams(s, LEVER, FRAME)
         p = b.vehicle_w + b.to_point_w
         wall = (p[:, 0] < 0.2) | (p[:, 0] > 59.8) | (p[:, 1] < 0.2) | (p[:, 1] > 39.8)
-        return crossings_misfit_m(p, b.t_s, knots, z, wall, STORAGE, 3.0, 5.0, RESOLUTION / math.sqrt(12.0))
+        return crossings_misfit_m(p, b.t_s, knots, z, wall, STORAGE, 3.0, 5.0, stretch_floor_m(RESOLUTION))
 
     (walking, noise), (corrected, _) = misfit(samples, np.zeros(len(knots))), misfit(samples, truth)
     assert walking > 0.05  # decimetres of walk: the pile's top seen at different heights ...

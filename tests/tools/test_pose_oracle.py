@@ -20,7 +20,7 @@ from tools.pose_oracle import (
     repose,
     table,
     truth_correction,
-    with_true_height,
+    with_true_pose_in,
 )
 
 FRAME = StorageFrame(origin_ned_m=(3.0, -2.0, 0.0), heading_rad=math.radians(30.0))
@@ -130,7 +130,7 @@ def test_that_a_run_re_posed_in_its_height_only_keeps_the_logged_position_and_he
 
 def test_that_the_truth_of_a_flight_with_its_true_height_has_an_estimate_off_in_x_and_y_only():
     truth = {"pose_error": _trajectory(np.array([0.0, 10.0]))}
-    tr = with_true_height(truth)["pose_error"]["trajectory"]
+    tr = with_true_pose_in(truth, HEIGHT)["pose_error"]["trajectory"]
     est, true = np.asarray(tr["estimated_w_m"]), np.asarray(tr["true_w_m"])
     np.testing.assert_allclose(est[:, 2], true[:, 2])
     np.testing.assert_allclose(est[1, :2] - true[1, :2], [0.1, -0.2])
@@ -152,7 +152,7 @@ def test_that_a_run_re_posed_in_its_horizontal_only_keeps_the_logged_height_and_
     np.testing.assert_allclose(log["yaw_rad"], truth["true_yaw_rad"], atol=1e-6)  # and heading
     np.testing.assert_allclose(w[:, 2], w_logged[:, 2], atol=1e-4)  # the height as logged: 0.1 m high
     assert np.abs(w[:, 2] - np.asarray(truth["true_w_m"])[:, 2]).min() > 0.09
-    est = np.asarray(with_true_height(json.loads((run / "truth.json").read_text()), HORIZONTAL)
+    est = np.asarray(with_true_pose_in(json.loads((run / "truth.json").read_text()), HORIZONTAL)
                      ["pose_error"]["trajectory"]["estimated_w_m"])
     np.testing.assert_allclose(est[:, :2], np.asarray(truth["true_w_m"])[:, :2])  # its truth: off in z only
     np.testing.assert_allclose(est[:, 2] - np.asarray(truth["true_w_m"])[:, 2], 0.1, atol=1e-12)
