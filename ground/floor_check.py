@@ -4,11 +4,12 @@ Every height the report computes is the LiDAR's origin plus its beam: the autopi
 the autopilot to the LiDAR (log header `lever_arm_body_m`), and the range along the beam. An error in the first two
 that stays the same all flight moves every point up or down by the same amount, the floor and the piles alike, and
 the volume by that height times the whole building's floor area (every cell's height is measured from z = 0): a lever
-arm's z entered 0.2 m off read a 30 x 20 m survey 6.8 % low. The pose correction takes such an error out when the
-floor it rests on lay below z = 0 and its height brings the floor up by more than the data's noise
-(`ground.pose_correction.floor_brought_up`); under a range or pointing noise of centimetres to decimetres a few
-centimetres do not pass that, and the walls, vertical, never see a height. What it leaves is this check's: the floor
-a few centimetres low lies within the points' tolerance of z = 0, so the surface keeps it as a slightly sunken floor.
+arm's z entered 0.2 m off read a 30 x 20 m survey 6.8 % low. The pose correction takes such an error out when its
+height brings the floor it rests on up onto z = 0 by more than the floor's sightings scatter (each one knot
+interval's median in a cell: `ground.pose_correction.floor_brought_on`); under a range or pointing noise of
+centimetres to decimetres a few centimetres do not pass that, and the walls, vertical, never see a height. What it
+leaves is this check's: the floor a few centimetres low lies within the points' tolerance of z = 0, so the surface
+keeps it as a slightly sunken floor.
 
 The floor is the lowest large flat surface in the building: `ground.base.fit_floor_plane`'s plane (the most points
 within their noise, none below) through the points that are neither wall nor roof, with the points under z = 0 kept

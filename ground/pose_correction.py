@@ -43,7 +43,8 @@ the crossings' misfit drops by more than noise fitting explains, and never when 
 walls leaves them more than MAX_MISFIT noise levels off their planes (a drift does not explain that; a mount
 fault does). The walls see no height, so a height error alone (a lever arm's z, an altitude reference's offset)
 matters to the floor only: the height alone is applied when it brings a floor the walls' feet confirm up onto z = 0
-(`floor_brought_up`: below z = 0 it is surely a height error, while above it may be material covering the floor).
+(`floor_brought_on`, judged on the floor's sightings: below z = 0 it is surely a height error, while above it may be
+material covering the floor).
 A height that drifts while the horizontal does not (a good horizontal estimate on a barometer that walks) leaves the
 floor's points off every plane the walls' fit holds, so the floor and walls call it too small to matter; the pile seen
 at different times sees it: the height alone is applied when it brings those sightings together by more than the
@@ -352,31 +353,46 @@ def plane_brought_on(r_before: np.ndarray, r_after: np.ndarray, plane: np.ndarra
     return None
 
 
-def floor_brought_up(z_before: np.ndarray, z_after: np.ndarray, noise_m: float) -> bool:
+def floor_brought_on(z_before: np.ndarray, z_after: np.ndarray, key: np.ndarray, noise_m: float) -> bool:
     """Whether a height correction brings the floor it was solved on up onto z = 0 (z_before, z_after: the heights of
-    the floor's points before and after it): they lay below z = 0 and come up, by more than the noise and more than
-    what is left (as `plane_brought_on` asks of a wall), to within MAX_MISFIT noise levels of it or MAX_MISFIT times
-    closer than before (a wall's points have the sensor's noise to reach; the floor's, the height drift model's misfit
-    between knots as well: 1.3 cm against an ideal sensor's 0.3 cm, measured on a `flow` flight).
+    the floor's points before and after it; key: each one's sighting, a knot interval and cell): its sightings (each
+    one's median) lay below z = 0 and come up, by more than their noise and more than what is left (as
+    `plane_brought_on` asks of a wall's points), to within MAX_MISFIT noise levels of it or MAX_MISFIT times closer
+    than before (a wall's points have the sensor's noise to reach; the floor's, the height drift model's misfit between
+    knots as well: 1.3 cm against an ideal sensor's 0.3 cm, measured on a `flow` flight).
+
+    Why sightings and not points: the points of one sweep share its pose, so their count overstates what they know,
+    while their own scatter hides an offset. Under the paper's Appendix A noise (a degree of pointing: 0.12 m a point)
+    a floor 5 cm below z = 0 came up onto it by less than a point's noise, and the volume stayed 2.5 % low; a
+    sighting's noise is its median's (`median_sd_m`), and the same floor's sightings pass (docs/design-notes.md).
 
     Why only up: nothing lies below the floor, so a floor seen below z = 0 is a height error (a lever arm's z entered
     too far down, an altitude reference reading low), while a floor seen above it may be material covering it. A
     correction that pulled such a "floor" down is what kept the floor out of `matters` (a pile's flat top taken for
-    a floor the walls' feet confirmed: -0.69 m on 3 of 220 error-free flights, the volume about 20 % low,
-    docs/design-notes.md); moving points up onto z = 0 cannot be that."""
+    a floor the walls' feet confirmed: -0.69 m on 3 of 220 error-free flights, the volume about 20 % low), and judged on
+    its sightings it still passes for one: an irregular pile's flanks rising from its walls, 0.39 m up on average, the
+    volume 19 % low (one of 648 error-free runs with Appendix A's noise, docs/design-notes.md); moving points up onto
+    z = 0 cannot be that."""
     if len(z_before) < MIN_VOTES:
         return False
-    before, after = _robust_rms(z_before), _robust_rms(z_after)
-    return (float(np.median(z_before)) < 0.0 and float(np.median(z_after - z_before)) > 0.0
-            and after <= max(MAX_MISFIT * noise_m, before / MAX_MISFIT)
-            and before ** 2 - after ** 2 > max(noise_m, after) ** 2)
+    _, g_before, mad, _, count = group_median(key, z_before, z_before)
+    _, g_after, _, _, _ = group_median(key, z_after, z_after)
+    many = count >= MIN_CELL_POINTS
+    if np.count_nonzero(many) < MIN_VOTES:
+        return False
+    g_before, g_after = g_before[many], g_after[many]
+    sd = float(np.median(median_sd_m(mad[many], count[many], noise_m)))
+    before, after = _robust_rms(g_before), _robust_rms(g_after)
+    return (float(np.median(g_before)) < 0.0 and float(np.median(g_after - g_before)) > 0.0
+            and after <= max(MAX_MISFIT * sd, before / MAX_MISFIT)
+            and before ** 2 - after ** 2 > max(sd, after) ** 2)
 
 
 def crossings_brought_together(before_m: float, after_m: float, noise_m: float) -> bool:
     """Whether a height correction matters to the pile seen at different times (`crossings_misfit_m` before and after
     it, and the noise of its sightings): they come together by more than their noise and by more than what is left,
     as `plane_brought_on` asks of a wall's points. A height off by a constant moves every sighting alike and never
-    passes: that is the floor's question (`floor_brought_up`)."""
+    passes: that is the floor's question (`floor_brought_on`)."""
     return before_m ** 2 - after_m ** 2 > max(noise_m, after_m) ** 2
 
 
@@ -1030,7 +1046,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                            f"after it, against {noise * 100:.1f} cm of noise: a drifting pose does not explain them "
                            "(a mounting error the self-calibration did not fit?)", knots, unexplained=True,
                            step_sigma=step, drift_fit=x.copy(), **common)
-    # The floor the height rests on counts when the correction brings it up onto z = 0 (`floor_brought_up`): the
+    # The floor the height rests on counts when the correction brings it up onto z = 0 (`floor_brought_on`): the
     # walls see no height and the fit's points hold no floor it moved, so a height off by a constant (a lever arm's z,
     # an altitude reference's offset) was "too small to matter" to them (measured: a flight whose only error was a
     # lever arm's z 0.2 m too far down, 6.8 % low; docs/design-notes.md).
@@ -1042,14 +1058,15 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         x_z = np.zeros_like(x)
         x_z[:, 2] = x[:, 2]
         z_before, z_after = p0[height_floor, 2], corrected_points(b, x_z, k, f)[0][height_floor, 2]
-        if floor_brought_up(z_before, z_after, noise):
+        _, _, cid = _cells(p0, storage, cell_m)
+        if floor_brought_on(z_before, z_after, (cid * len(knots) + k)[height_floor], noise):
             raised = float(np.median(z_after - z_before))
             x, constrained = x_z, constrained & np.array([False, False, True, False])[None, :]
             n_free = int(constrained.sum())
             needed = n_free + opts.n_significant * math.sqrt(2.0 * max(n_free, 1))
             gain = capped_gain(z_before, z_after, noise, cap)
-            common.update(notes=(*common["notes"], raised_floor_note(raised, _robust_rms(z_after), x[:, 2])), gain=gain,
-                          gain_needed=needed)
+            note = floor_level_note(raised, _robust_rms(z_after), x[:, 2])
+            common.update(notes=(*common["notes"], note), gain=gain, gain_needed=needed)
     # A height that drifts while the horizontal does not (a good horizontal estimate on a barometer that walks) is
     # none of the walls' business, and the walls' fit holds the height, so the floor's points lie off every plane it
     # fits: "too small to matter" to them (measured: 30 of 38 drifting flights re-posed on their true horizontal
@@ -1147,8 +1164,8 @@ def lever_shift(axes_w: np.ndarray, normals: np.ndarray, r: np.ndarray, window_m
     return dl, _robust_rms(r + a @ dl)
 
 
-def raised_floor_note(raised_m: float, left_m: float, z_m: np.ndarray) -> str:
-    """The pose line's note on a correction applied because it brought the floor up onto z = 0 (`floor_brought_up`):
+def floor_level_note(raised_m: float, left_m: float, z_m: np.ndarray) -> str:
+    """The pose line's note on a correction applied because it brought the floor up onto z = 0 (`floor_brought_on`):
     by how much (raised_m, on the floor's points), how far off it they are left (left_m, robust RMS), and, when the
     height correction z_m (the knots') is about the same all flight (its spread under 1/MAX_MISFIT of its mean), the
     two errors that make a constant one."""

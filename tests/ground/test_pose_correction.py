@@ -25,7 +25,7 @@ from ground.pose_correction import (
     crossings_brought_together,
     crossings_misfit_m,
     estimate_pose_correction,
-    floor_brought_up,
+    floor_brought_on,
     is_drift,
     knot_covariance,
     level_sigma_m,
@@ -1064,20 +1064,38 @@ def test_that_a_plane_counts_when_its_points_are_brought_onto_it_not_when_they_s
     assert plane_brought_on(before[:905], after[:905], plane[:905], noise) is None
 
 
+def _floor_sightings(level_m: float, sd_m: float, seed: int, n: int = 50,
+                     each: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """A floor's points at level_m with sd_m of noise a point, n sightings (a knot interval's cell) of `each`."""
+    return np.random.default_rng(seed).normal(level_m, sd_m, n * each), np.repeat(np.arange(n), each)
+
+
 def test_that_the_floor_counts_when_a_height_brings_it_up_onto_z0_and_never_when_it_pulls_it_down():
-    rng = np.random.default_rng(0)
     noise = 0.003
-    low, on = -0.2 + rng.normal(0.0, noise, 500), rng.normal(0.0, 0.013, 500)
-    assert floor_brought_up(low, on, noise)  # 0.2 m below, brought to within 1.3 cm: up onto it
+    low, key = _floor_sightings(-0.2, noise, seed=0)
+    on, _ = _floor_sightings(0.0, 0.013, seed=1)
+    assert floor_brought_on(low, on, key, noise)  # 0.2 m below, brought to within 1.3 cm: up onto it
     # a flat pile top taken for the floor, pulled down onto z = 0: never (nothing lies below the floor, so only a
     # floor below z = 0 is surely a height error)
-    assert not floor_brought_up(-low, on, noise)
-    assert not floor_brought_up(low, low + 0.1, noise)  # half way: more is left than was explained
-    assert not floor_brought_up(low, low, noise)  # unchanged
-    assert not floor_brought_up(low[:5], on[:5], noise)  # too few points to say
+    assert not floor_brought_on(-low, on, key, noise)
+    assert not floor_brought_on(low, low + 0.1, key, noise)  # half way: more is left than was explained
+    assert not floor_brought_on(low, low, key, noise)  # unchanged
+    assert not floor_brought_on(low[:5], on[:5], key[:5], noise)  # too few points to say
+    assert not floor_brought_on(low[:90], on[:90], key[:90], noise)  # ... or too few sightings of them
     # within the noise: a floor 1 cm low under 20 cm of pointing noise is not brought up by anything that matters
-    wide = rng.normal(-0.01, 0.2, 500)
-    assert not floor_brought_up(wide, wide + 0.01, 0.2)
+    wide, _ = _floor_sightings(-0.01, 0.2, seed=2)
+    assert not floor_brought_on(wide, wide + 0.01, key, 0.2)
+
+
+def test_that_the_floor_is_judged_on_its_sightings_so_a_points_noise_does_not_hide_its_offset():
+    """5 cm below z = 0 under 0.12 m of noise a point (a degree of pointing at 7 m): the points' RMS comes down by
+    less than a point's noise (0.13 -> 0.12 m, which a test on the points refused), yet each of 50 sightings of 16
+    points knows the level to 4 cm."""
+    below, key = _floor_sightings(-0.05, 0.12, seed=3, each=16)
+    assert floor_brought_on(below, below + 0.05, key, 0.12)
+    # the same points, their sightings' medians on z = 0 already: nothing to bring
+    on, _ = _floor_sightings(0.0, 0.12, seed=3, each=16)
+    assert not floor_brought_on(on, on + 0.05, key, 0.12)
 
 
 @pytest.mark.parametrize("offset_m", [-0.2, 0.2])
