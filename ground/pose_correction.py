@@ -1058,14 +1058,14 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         x_z = np.zeros_like(x)
         x_z[:, 2] = x[:, 2]
         z_before, z_after = p0[height_floor, 2], corrected_points(b, x_z, k, f)[0][height_floor, 2]
-        _, _, cid = _cells(p0, storage, cell_m)
-        if floor_brought_on(z_before, z_after, (cid * len(knots) + k)[height_floor], noise):
+        _, _, cid = _cells(p0[height_floor], storage, cell_m)
+        if floor_brought_on(z_before, z_after, cid * len(knots) + k[height_floor], noise):
             raised = float(np.median(z_after - z_before))
             x, constrained = x_z, constrained & np.array([False, False, True, False])[None, :]
             n_free = int(constrained.sum())
             needed = n_free + opts.n_significant * math.sqrt(2.0 * max(n_free, 1))
             gain = capped_gain(z_before, z_after, noise, cap)
-            note = floor_level_note(raised, _robust_rms(z_after), x[:, 2])
+            note = raised_floor_note(raised, _robust_rms(z_after), x[:, 2])
             common.update(notes=(*common["notes"], note), gain=gain, gain_needed=needed)
     # A height that drifts while the horizontal does not (a good horizontal estimate on a barometer that walks) is
     # none of the walls' business, and the walls' fit holds the height, so the floor's points lie off every plane it
@@ -1164,7 +1164,7 @@ def lever_shift(axes_w: np.ndarray, normals: np.ndarray, r: np.ndarray, window_m
     return dl, _robust_rms(r + a @ dl)
 
 
-def floor_level_note(raised_m: float, left_m: float, z_m: np.ndarray) -> str:
+def raised_floor_note(raised_m: float, left_m: float, z_m: np.ndarray) -> str:
     """The pose line's note on a correction applied because it brought the floor up onto z = 0 (`floor_brought_on`):
     by how much (raised_m, on the floor's points), how far off it they are left (left_m, robust RMS), and, when the
     height correction z_m (the knots') is about the same all flight (its spread under 1/MAX_MISFIT of its mean), the
