@@ -5,10 +5,11 @@ the autopilot to the LiDAR (log header `lever_arm_body_m`), and the range along 
 that stays the same all flight moves every point up or down by the same amount, the floor and the piles alike, and
 the volume by that height times the whole building's floor area (every cell's height is measured from z = 0): a lever
 arm's z entered 0.2 m off read a 30 x 20 m survey 6.8 % low. The pose correction takes such an error out when its
-height brings the floor it rests on up onto z = 0 by more than the floor's sightings scatter (each one knot
-interval's median in a cell: `ground.pose_correction.floor_brought_on`); under a range or pointing noise of
-centimetres to decimetres a few centimetres do not pass that, and the walls, vertical, never see a height. What it
-leaves is this check's: the floor a few centimetres low lies within the points' tolerance of z = 0, so the surface
+height brings the floor it rests on onto z = 0 by more than the floor's sightings scatter (each one knot interval's
+median in a cell), up from below always, down from above only where the floor is level and within the barometer's
+walk over the flight (`ground.pose_correction.floor_brought_on`); under a range or pointing noise of centimetres to
+decimetres a few centimetres do not pass that, and the walls, vertical, never see a height. What it leaves below
+z = 0 is this check's: the floor a few centimetres low lies within the points' tolerance of z = 0, so the surface
 keeps it as a slightly sunken floor.
 
 The floor is the lowest large flat surface in the building: `ground.base.fit_floor_plane`'s plane (the most points

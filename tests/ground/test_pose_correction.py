@@ -26,6 +26,7 @@ from ground.pose_correction import (
     crossings_misfit_m,
     estimate_pose_correction,
     floor_brought_on,
+    floor_is_level,
     is_drift,
     knot_covariance,
     level_sigma_m,
@@ -1070,14 +1071,20 @@ def _floor_sightings(level_m: float, sd_m: float, seed: int, n: int = 50,
     return np.random.default_rng(seed).normal(level_m, sd_m, n * each), np.repeat(np.arange(n), each)
 
 
-def test_that_the_floor_counts_when_a_height_brings_it_up_onto_z0_and_never_when_it_pulls_it_down():
+def test_that_the_floor_counts_when_a_height_brings_it_up_onto_z0_and_down_only_when_level_and_within_the_drift():
     noise = 0.003
     low, key = _floor_sightings(-0.2, noise, seed=0)
     on, _ = _floor_sightings(0.0, 0.013, seed=1)
-    assert floor_brought_on(low, on, key, noise)  # 0.2 m below, brought to within 1.3 cm: up onto it
-    # a flat pile top taken for the floor, pulled down onto z = 0: never (nothing lies below the floor, so only a
-    # floor below z = 0 is surely a height error)
+    spread = np.random.default_rng(4).uniform(0.0, 6.0, 50)[key]  # each sighting's distance from the nearest wall
+    assert floor_brought_on(low, on, key, noise)  # 0.2 m below, brought to within 1.3 cm: up onto it, always
+    # above z = 0 it may be material covering the floor: down only within the logged reference's drift, and level
     assert not floor_brought_on(-low, on, key, noise)
+    assert not floor_brought_on(-low, on, key, noise, most_down_m=0.5)  # nothing says it is level
+    assert not floor_brought_on(-low, on, key, noise, most_down_m=0.1, wall_distance_m=spread)
+    assert floor_brought_on(-low, on, key, noise, most_down_m=0.5, wall_distance_m=spread)
+    # a pile's flank rising from the walls, 0.2 m up on average: not a floor to take down
+    ramp = 0.2 + 0.1 * (spread - 3.0) + np.random.default_rng(5).normal(0.0, noise, len(key))
+    assert not floor_brought_on(ramp, ramp - 0.2, key, noise, most_down_m=0.5, wall_distance_m=spread)
     assert not floor_brought_on(low, low + 0.1, key, noise)  # half way: more is left than was explained
     assert not floor_brought_on(low, low, key, noise)  # unchanged
     assert not floor_brought_on(low[:5], on[:5], key[:5], noise)  # too few points to say
@@ -1085,6 +1092,21 @@ def test_that_the_floor_counts_when_a_height_brings_it_up_onto_z0_and_never_when
     # within the noise: a floor 1 cm low under 20 cm of pointing noise is not brought up by anything that matters
     wide, _ = _floor_sightings(-0.01, 0.2, seed=2)
     assert not floor_brought_on(wide, wide + 0.01, key, 0.2)
+
+
+@pytest.mark.parametrize("trend_m_per_m", [0.1, -0.1])
+def test_that_a_floor_is_level_when_its_sightings_do_not_trend_with_the_distance_from_the_walls(trend_m_per_m):
+    """A pile's flank rises away from a wall it meets at zero height, or towards one it is heaped against; a floor is
+    level whatever its sightings' noise."""
+    rng = np.random.default_rng(6)
+    distance = rng.uniform(0.0, 6.0, 60)
+    noise = 0.05
+    assert floor_is_level(rng.normal(0.0, noise, 60), distance, noise)
+    assert not floor_is_level(trend_m_per_m * distance + rng.normal(0.0, noise, 60), distance, noise)
+    # a trend as sure but within a few of a point's noise over the distances seen is not a pile's flank (0.1 mm/m on
+    # a noise-free floor, where the drift model's misfit leaves millimetres)
+    assert floor_is_level(1e-4 * distance + rng.normal(0.0, 1e-5, 60), distance, 0.003)
+    assert not floor_is_level(np.zeros(5), distance[:5], noise)  # too few to say
 
 
 def test_that_the_floor_is_judged_on_its_sightings_so_a_points_noise_does_not_hide_its_offset():
@@ -1098,19 +1120,24 @@ def test_that_the_floor_is_judged_on_its_sightings_so_a_points_noise_does_not_hi
     assert not floor_brought_on(on, on + 0.05, key, 0.12)
 
 
-@pytest.mark.parametrize("offset_m", [-0.2, 0.2])
-def test_that_a_height_off_by_a_constant_is_corrected_when_the_floor_lies_below_z0_and_only_then(offset_m):
+@pytest.mark.parametrize(("offset_m", "walk", "corrected"), [(-0.2, None, True), (0.2, None, True),
+                                                             (0.2, 0.005, False)])
+def test_that_a_height_off_by_a_constant_is_corrected_from_the_floor_down_only_within_the_references_drift(
+        offset_m, walk, corrected):
     """A logged height off by a constant and nothing else (a lever arm's z, an altitude reference's offset): the
     walls see no height, so only the floor can say it matters. Below z = 0 it is surely a height error and is taken
-    out; above z = 0 it may be material covering the floor, and is left (the report says where the floor was seen)."""
+    out; above z = 0 it may be material covering the floor, and is taken down only when level and as far as the
+    barometer walks in the flight (0.05 m/sqrt(s) by default: 0.39 m over this loop's 61 s); beyond that (0.005: 4 cm),
+    left."""
     samples, _ = flight(lambda t: np.column_stack([np.zeros((len(t), 2)), np.full(len(t), offset_m),
                                                    np.zeros(len(t))]))
-    corr = estimate(samples)
-    if offset_m < 0:
+    corr = estimate(samples, **({} if walk is None else {"vertical_walk_m_per_sqrt_s": walk}))
+    if corrected:
         assert corr.applied, corr.reason
         assert np.abs(corr.values[:, [0, 1, 3]]).max() == 0.0  # the height alone: the walls' fit did not matter
         assert corr.values[:, 2].mean() == pytest.approx(-offset_m, abs=0.01)
-        assert any("lay 0.20 m below z = 0" in n and "lever arm's z" in n for n in corr.notes)
+        where = "below" if offset_m < 0 else "above"
+        assert any(f"lay 0.20 m {where} z = 0" in n and "lever arm's z" in n for n in corr.notes), corr.notes
     else:
         assert not corr.applied and "too small to matter" in corr.reason
 
@@ -1130,7 +1157,8 @@ def test_that_a_height_that_walks_is_corrected_though_the_floor_and_walls_see_no
     """Only the height drifts (a good horizontal estimate on a barometer that walks, 0.16 m RMS here, the floor above
     z = 0 on average): the walls see nothing, and the walls' fit holds the height, so the floor's points lie off
     every plane it fits and the floor and walls say "too small to matter". The pile seen at different times
-    disagrees with itself by decimetres, and that is what the height corrects: applied, the height alone."""
+    disagrees with itself by decimetres, and the floor, level, lies 0.1 m above z = 0 on average: either says the
+    height matters (the floor's route is asked first, and takes it here), and the height alone is applied."""
     samples, err = flight(_height_walk(0.03, seed=3))
     corr = estimate(samples)
     assert corr.applied, corr.reason
@@ -1138,7 +1166,8 @@ def test_that_a_height_that_walks_is_corrected_though_the_floor_and_walls_see_no
     truth = -np.interp(corr.knot_t_s, samples["t_s"], err[:, 2])
     assert np.sqrt(np.mean(truth ** 2)) > 0.1  # a drift worth correcting ...
     assert np.sqrt(np.mean((corr.values[:, 2] - truth) ** 2)) < 0.03  # ... recovered to centimetres
-    assert any("the height alone" in n and "seen at different times" in n for n in corr.notes)
+    assert any(("the height alone" in n and "seen at different times" in n) or "corrected from the floor" in n
+               for n in corr.notes), corr.notes
 
 
 def test_that_a_height_matters_to_the_pile_seen_at_different_times_when_it_brings_the_sightings_together():
