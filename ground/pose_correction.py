@@ -1213,9 +1213,11 @@ def raised_floor_note(raised_m: float, left_m: float, z_m: np.ndarray, most_down
     if raised_m >= 0.0:
         return (f"the height corrected from the floor, which lay {raised_m:.2f} m below z = 0 where nothing but a "
                 f"height error puts it (its points now {left_m * 100:.1f} cm off it){cause}")
-    return (f"the height corrected from the floor, which lay {-raised_m:.2f} m above z = 0, level and within the "
-            f"{most_down_m:.2f} m the altitude reference may drift in the flight (its points now {left_m * 100:.1f} "
-            f"cm off it); were it material covering the floor, the volume would be low by as much{cause}")
+    within = (f"within the {most_down_m:.2f} m the altitude reference may drift in the flight"
+              if math.isfinite(most_down_m) else "the altitude from the downward rangefinder, which only a floor sets")
+    return (f"the height corrected from the floor, which lay {-raised_m:.2f} m above z = 0, level and {within} (its "
+            f"points now {left_m * 100:.1f} cm off it); were it material covering the floor, the volume would be low "
+            f"by as much{cause}")
 
 
 def level_sigma_m(walk_m_per_sqrt_s: float, duration_s: float) -> float:

@@ -1094,6 +1094,14 @@ def test_that_the_floor_counts_when_a_height_brings_it_up_onto_z0_and_down_only_
     assert not floor_brought_on(wide, wide + 0.01, key, 0.2)
 
 
+def test_that_the_note_on_a_floor_taken_down_says_within_what():
+    from ground.pose_correction import raised_floor_note
+    assert "0.20 m above z = 0, level and within the 0.39 m" in raised_floor_note(-0.2, 0.004, np.full(5, -0.2), 0.39)
+    rangefinder = raised_floor_note(-0.2, 0.004, np.full(5, -0.2), math.inf)
+    assert "downward rangefinder" in rangefinder and "inf" not in rangefinder
+    assert "0.20 m below z = 0" in raised_floor_note(0.2, 0.004, np.full(5, 0.2))
+
+
 @pytest.mark.parametrize("trend_m_per_m", [0.1, -0.1])
 def test_that_a_floor_is_level_when_its_sightings_do_not_trend_with_the_distance_from_the_walls(trend_m_per_m):
     """A pile's flank rises away from a wall it meets at zero height, or towards one it is heaped against; a floor is
