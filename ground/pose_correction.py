@@ -88,6 +88,7 @@ from ground.plane_stretches import (
     planes,
     stretch_floor_m,
     stretches_along,
+    to_nearest_wall_m,
     usable,
 )
 from ground.sweep_heights import SweepHeights
@@ -1092,8 +1093,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         z_before, z_after = p0[height_floor, 2], corrected_points(b, x_z, k, f)[0][height_floor, 2]
         on_floor = p0[height_floor]
         _, _, cid = _cells(on_floor, storage, cell_m)
-        wall_distance = np.minimum.reduce([on_floor[:, 0], storage.length_m - on_floor[:, 0], on_floor[:, 1],
-                                           storage.width_m - on_floor[:, 1]])
+        wall_distance = to_nearest_wall_m(on_floor, storage.length_m, storage.width_m)
         if floor_brought_on(z_before, z_after, cid * len(knots) + k[height_floor], noise, open_shift, wall_distance):
             raised = float(np.median(z_after - z_before))
             x, constrained = x_z, constrained & np.array([False, False, True, False])[None, :]
