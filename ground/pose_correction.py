@@ -74,9 +74,11 @@ from scipy import linalg, sparse
 from scipy.optimize import least_squares
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu, spsolve
+from scipy.spatial import cKDTree
 from scipy.special import gammaincinv
 
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, rot_body_to_ned
+from firmware_py.core.sensor_noise import POSE_STREAM_HZ
 from firmware_py.core.storage import Storage
 from firmware_py.core.waveform import MAX_FREQUENCY_HZ
 from ground.group_stats import sorted_group_median, sorted_groups
@@ -92,6 +94,7 @@ from ground.plane_stretches import (
     usable,
 )
 from ground.sweep_heights import SweepHeights
+from ground.uncertainty import SharedDraws, shared_draws
 
 PLANE_NAMES = ("floor", "x0", "xL", "y0", "yW")
 MAX_MISFIT = 3.0
@@ -377,8 +380,35 @@ def floor_is_level(height_m: np.ndarray, wall_distance_m: np.ndarray, noise_m: f
     return abs(float(theilslopes(height_m, wall_distance_m).slope)) * (hi - lo) <= MAX_MISFIT * noise_m
 
 
+def level_clear(height_m: np.ndarray, shared_sd_m: float, n_significant: float) -> bool:
+    """Whether sightings' median height lies off z = 0 by more than n_significant of its standard error: a median's
+    of their own scatter (1.25 robust sd / sqrt(n)) and the pose draws they share (shared_sd_m), in quadrature.
+
+    Why the shared draws: a pose message's position error moves every point it places alike, so sightings made in
+    the same few messages are off together, and their own scatter does not show it. The paper's pile 2 under Appendix
+    A's noise shows its floor for one second at the start (116 points in 8 messages of 0.11 m): it read 0.12 m above
+    z = 0 on an error-free flight, and taken down onto it the volume read 4.4 pp low (docs/design-notes.md)."""
+    h = np.asarray(height_m, dtype=float)
+    if not len(h):
+        return False
+    level = float(np.median(h))
+    own = 1.25 * _robust_rms(h - level) / math.sqrt(len(h))
+    return abs(level) > n_significant * math.hypot(own, shared_sd_m)
+
+
+def draw_sd_m(draws: SharedDraws | None, points: np.ndarray) -> float:
+    """The standard error the pose draws shared by the points (a mask over draws.group) put on their mean height: one
+    draw of draws.sigma_m per pose message among them, as the volume's interval counts them
+    (`ground.uncertainty.shared_draws`). 0 without such a draw."""
+    if draws is None or not np.any(points):
+        return 0.0
+    return draws.sigma_m / math.sqrt(len(np.unique(draws.group[points])))
+
+
 def floor_brought_on(z_before: np.ndarray, z_after: np.ndarray, key: np.ndarray, noise_m: float,
-                     most_down_m: float = 0.0, wall_distance_m: np.ndarray | None = None) -> bool:
+                     most_down_m: float = 0.0, wall_distance_m: np.ndarray | None = None,
+                     material_distance_m: np.ndarray | None = None, draws: SharedDraws | None = None,
+                     n_significant: float = 3.0) -> bool:
     """Whether a height correction brings the floor it was solved on onto z = 0 (z_before, z_after: the heights of
     the floor's points before and after it; key: each one's sighting, a knot interval and cell): its sightings (each
     one's median) come onto it by more than their noise and more than what is left (as `plane_brought_on` asks of a
@@ -386,7 +416,10 @@ def floor_brought_on(z_before: np.ndarray, z_after: np.ndarray, key: np.ndarray,
     have the sensor's noise to reach; the floor's, the height drift model's misfit between knots as well: 1.3 cm
     against an ideal sensor's 0.3 cm, measured on a `flow` flight). Up from below z = 0 always; down from above it
     only by no more than most_down_m (the most the logged reference is believed off) and only when the floor is
-    level (`floor_is_level`, on the points' wall_distance_m; without them, never down).
+    level (`floor_is_level`, on the points' wall_distance_m; without them, never down) and its sightings farthest from
+    the material beside it (material_distance_m: the nearer half left out) lie above z = 0 as well, as do, with pose
+    draws (draws: the points' messages), its earlier and its later sightings each. Either way the sightings' level must
+    be clear of z = 0 (`level_clear`, with the pose draws they share).
 
     Why sightings and not points: the points of one sweep share its pose, so their count overstates what they know,
     while their own scatter hides an offset. Under the paper's Appendix A noise (a degree of pointing: 0.12 m a point)
@@ -399,26 +432,51 @@ def floor_brought_on(z_before: np.ndarray, z_after: np.ndarray, key: np.ndarray,
     error-free flights, the volume about 20 % low; 0.82 m up on pile 2 under Appendix A's noise) lies beyond what a
     barometer walks in a flight; an irregular pile's flanks rising from its walls, 0.39 m up on average and within
     it, passed every other test (one of 648 error-free runs with Appendix A's noise, Ve +0.1 -> -19 %), but not a
-    level floor's (docs/design-notes.md)."""
+    level floor's (docs/design-notes.md). Why the far half: under a degree of pointing noise a floor patch beside a
+    pile's toe reads high, the toe's hits placed on the floor beside it (pile 1 of the paper at P_traj 30 %, an
+    error-free flight: the floor's sightings 0.16 m up nearest the pile, 0.02 m in the far half; taken down, the
+    volume read 1.3 pp low), while a height offset lifts the far half as much as the near. Why early and late: an
+    offset of the flight's shows all flight long, while a floor seen in one moment reads that moment's errors."""
     if len(z_before) < MIN_VOTES:
         return False
-    _, g_before, mad, _, count = group_median(key, z_before, z_before)
+    when = z_before if draws is None else draws.group.astype(float)
+    uniq, g_before, mad, message, count = group_median(key, z_before, when)
     _, g_after, _, _, _ = group_median(key, z_after, z_after)
     many = count >= MIN_CELL_POINTS
     if np.count_nonzero(many) < MIN_VOTES:
         return False
-    g_before, g_after = g_before[many], g_after[many]
+    g_before, g_after, uniq, message = g_before[many], g_after[many], uniq[many], message[many]
+
+    # the sightings with the correction's changes over the flight applied and not its constant part: a drift of the
+    # height is taken out, the floor's offset from z = 0 left, which its level tests then judge
+    steady = g_after - float(np.median(g_after - g_before))
+
+    def clear(kept: np.ndarray) -> bool:
+        """Whether the sightings kept lie off z = 0 on their own (`level_clear`), above it for a floor taken down."""
+        up = float(np.median(steady[kept])) > 0.0
+        return up == (moved < 0.0) and level_clear(steady[kept], draw_sd_m(draws, np.isin(key, uniq[kept])),
+                                                   n_significant)
     sd = float(np.median(median_sd_m(mad[many], count[many], noise_m)))
     before, after = _robust_rms(g_before), _robust_rms(g_after)
     level, moved = float(np.median(g_before)), float(np.median(g_after - g_before))
     if not (after <= max(MAX_MISFIT * sd, before / MAX_MISFIT) and before ** 2 - after ** 2 > max(sd, after) ** 2):
+        return False
+    if not clear(np.ones(len(g_before), dtype=bool)):
         return False
     if level < 0.0 < moved:
         return True
     if not (moved < 0.0 < level and -moved <= most_down_m and wall_distance_m is not None):
         return False
     _, distance, _, _, _ = group_median(key, wall_distance_m, wall_distance_m)
-    return floor_is_level(g_after, distance[many], noise_m)
+    if not floor_is_level(g_after, distance[many], noise_m):
+        return False
+    late = message > np.median(message)
+    if draws is not None and not all(part.any() and clear(part) for part in (late, ~late)):
+        return False
+    if material_distance_m is None:
+        return True
+    _, near, _, _, _ = group_median(key, material_distance_m, material_distance_m)
+    return clear(near[many] >= np.median(near[many]))
 
 
 def crossings_brought_together(before_m: float, after_m: float, noise_m: float) -> bool:
@@ -778,7 +836,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                              boresight: Boresight = SQUARE,
                              opts: PoseCorrectionOptions | None = None,
                              position_sigma_m: float = 0.0,
-                             placed: tuple[Beams, np.ndarray] | None = None) -> PoseCorrection:
+                             placed: tuple[Beams, np.ndarray] | None = None,
+                             pose_draw_sigma_m: float = 0.0, pose_stream_hz: float = POSE_STREAM_HZ) -> PoseCorrection:
     """Estimate the trajectory's correction from the floor and walls (module docstring).
 
     Args:
@@ -791,6 +850,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
             ``sensor_noise``): white, so no drift, but they scatter the points about the planes.
         placed: `placed_beams` of these samples with these arguments, if the caller has made it (the mount's
             self-calibration asks the same stretches: made once).
+        pose_draw_sigma_m, pose_stream_hz: of position_sigma_m, the part one pose message's samples share, and the
+            messages a second (the header's): what a floor seen in few messages knows of its level (`level_clear`).
     """
     opts = opts or PoseCorrectionOptions()
     b, sweep_dir = placed or beams(samples, lever_arm_body_m, frame, boresight)
@@ -1094,7 +1155,12 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         on_floor = p0[height_floor]
         _, _, cid = _cells(on_floor, storage, cell_m)
         wall_distance = to_nearest_wall_m(on_floor, storage.length_m, storage.width_m)
-        if floor_brought_on(z_before, z_after, cid * len(knots) + k[height_floor], noise, open_shift, wall_distance):
+        material = (_in_building(p0, wall, storage, opts.max_position_error_m) & ~height_floor
+                    & (p0[:, 2] > float(np.median(z_before)) + MAX_MISFIT * noise))
+        material_distance = (cKDTree(p0[material, :2]).query(on_floor[:, :2])[0] if material.any() else None)
+        draws = shared_draws(b.t_s[height_floor], pose_draw_sigma_m, pose_stream_hz)
+        if floor_brought_on(z_before, z_after, cid * len(knots) + k[height_floor], noise, open_shift, wall_distance,
+                            material_distance, draws, opts.n_significant):
             raised = float(np.median(z_after - z_before))
             x, constrained = x_z, constrained & np.array([False, False, True, False])[None, :]
             n_free = int(constrained.sum())

@@ -657,7 +657,8 @@ def _pose_of(s: np.ndarray, bs: Boresight, header: dict, lever: np.ndarray, fram
                                  vertical_walk_m_per_sqrt_s=baro_walk_m_per_sqrt_s)
     return estimate_pose_correction(s, lever, frame, storage, err.resolution_m, err.range_sigma_m,
                                     err.range_sigma_rel, err.angle_sigma_rad, _sweep_period_s(header), bs, opts,
-                                    position_sigma_m=err.position_sigma_m, placed=placed)
+                                    position_sigma_m=err.position_sigma_m, placed=placed,
+                                    pose_draw_sigma_m=err.pose_draw_sigma_m, pose_stream_hz=err.pose_stream_hz)
 
 
 def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame, lever: np.ndarray,

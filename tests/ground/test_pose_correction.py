@@ -24,11 +24,13 @@ from ground.pose_correction import (
     chi2_quantile,
     crossings_brought_together,
     crossings_misfit_m,
+    draw_sd_m,
     estimate_pose_correction,
     floor_brought_on,
     floor_is_level,
     is_drift,
     knot_covariance,
+    level_clear,
     level_sigma_m,
     lever_shift,
     pinned_to_floor,
@@ -1092,6 +1094,74 @@ def test_that_the_floor_counts_when_a_height_brings_it_up_onto_z0_and_down_only_
     # within the noise: a floor 1 cm low under 20 cm of pointing noise is not brought up by anything that matters
     wide, _ = _floor_sightings(-0.01, 0.2, seed=2)
     assert not floor_brought_on(wide, wide + 0.01, key, 0.2)
+
+
+# The 41 sightings of the floor an error-free flight took down onto z = 0 (the paper's pile 1, P_traj 30 %, Appendix A's
+# noise, servo phase 0; the volume then read 1.3 pp low): their heights (m), what the height correction moved each by,
+# and their distances (m) from the material beside the floor and from the nearest wall, nearest the material first.
+TOE_FLOOR_M = [0.56, 0.47, 0.11, 0.14, 0.26, 0.28, 0.22, 0.25, 0.09, 0.15, -0.05, 0.14, 0.24, 0.02, -0.15, 0.13, 0.13,
+               0.36, 0.33, 0.11, 0.02, 0.0, -0.0, -0.0, 0.18, 0.28, 0.01, -0.17, -0.09, 0.03, -0.08, 0.14, 0.13, 0.07,
+               0.05, -0.12, -0.15, 0.06, 0.13, -0.0, -0.06]
+TOE_MOVED_M = [-0.033, -0.07, -0.064, -0.068, -0.111, -0.091, -0.112, -0.065, -0.069, -0.088, -0.087, -0.055, -0.068,
+               -0.051, -0.075, -0.069, -0.091, -0.06, -0.068, -0.087, -0.087, -0.079, -0.061, -0.112, -0.065, -0.104,
+               -0.051, -0.075, -0.112, -0.065, -0.056, -0.114, -0.061, -0.052, -0.079, -0.056, -0.084, -0.056, -0.115,
+               -0.063, -0.079]
+TOE_MATERIAL_M = [0.0, 0.2, 0.3, 0.5, 0.5, 0.6, 0.7, 0.7, 0.7, 0.7, 0.7, 0.7, 0.7, 0.7, 0.7, 0.8, 0.9, 0.9, 0.9, 0.9,
+                  0.9, 0.9, 1.0, 1.0, 1.0, 1.0, 1.1, 1.1, 1.1, 1.1, 1.1, 1.2, 1.2, 1.2, 1.3, 1.4, 1.4, 1.4, 1.5, 1.7,
+                  1.8]
+TOE_WALL_M = [3.3, 2.1, 2.5, 3.0, 2.6, 2.8, 4.6, 3.1, 3.5, 3.5, 2.4, 2.2, 4.1, 3.6, 5.0, 4.9, 1.9, 1.6, 5.0, 4.5, 3.4,
+              5.6, 3.0, 3.3, 2.3, 3.0, 5.0, 4.0, 2.5, 6.0, 3.3, 4.5, 5.1, 6.0, 3.4, 5.7, 3.1, 4.6, 3.3, 4.2, 4.5]
+
+
+def test_that_a_floor_above_z0_is_taken_down_only_when_its_sightings_far_from_the_material_are_up_too():
+    """Under a degree of pointing a floor patch beside a pile's toe reads high nearest the toe (its hits placed on the
+    floor beside it: 0.16 m up in the nearer half of these sightings, 0.02 m in the farther); a height offset lifts
+    the far sightings as much as the near."""
+    each = 8
+    key = np.repeat(np.arange(len(TOE_FLOOR_M)), each)
+    z = np.repeat(TOE_FLOOR_M, each)
+    moved = np.repeat(TOE_MOVED_M, each)
+    common = dict(most_down_m=0.47, wall_distance_m=np.repeat(TOE_WALL_M, each))
+    material = np.repeat(TOE_MATERIAL_M, each)
+    noise = 0.127
+    assert floor_brought_on(z, z + moved, key, noise, **common)  # as it was: taken down
+    assert not floor_brought_on(z, z + moved, key, noise, material_distance_m=material, **common)
+    # the same floor, its near half's toe taken out, lifted 0.2 m as a whole: the far half is up as much, and it comes
+    # down (a lever arm's z 0.2 m too short)
+    lifted = z - np.where(material < np.median(TOE_MATERIAL_M), 0.14, 0.0) + 0.2
+    assert floor_brought_on(lifted, lifted - 0.2, key, noise, material_distance_m=material, **common)
+
+
+def test_that_a_floor_seen_in_one_moment_is_not_taken_down_on_the_pose_draws_it_shares():
+    """A pose message's position error moves the points it places alike: a floor seen within a few messages is off
+    by their draws, which its sightings' own scatter does not show; an offset of the flight shows early and late."""
+    from ground.uncertainty import SharedDraws
+    noise = 0.03
+    rng = np.random.default_rng(8)
+    key = np.repeat(np.arange(20), 10)
+    spread = rng.uniform(0.0, 6.0, 20)[key]
+    z = 0.1 + rng.normal(0.0, noise, len(key))
+    common = dict(most_down_m=0.5, wall_distance_m=spread)
+    one_moment = SharedDraws(0.113, np.repeat(np.arange(4), 50))  # 200 points in 4 messages
+    all_flight = SharedDraws(0.113, np.arange(len(key)) * 37)  # each point its own message, spread over the flight
+    assert floor_brought_on(z, z - 0.1, key, noise, **common)  # without pose draws
+    assert not floor_brought_on(z, z - 0.1, key, noise, draws=one_moment, **common)
+    assert floor_brought_on(z, z - 0.1, key, noise, draws=all_flight, **common)
+    # below z = 0 it is brought up on the same terms: a level clear of the draws
+    assert not floor_brought_on(-z, -z + 0.1, key, noise, draws=one_moment)
+    assert floor_brought_on(-z, -z + 0.1, key, noise, draws=all_flight)
+
+
+def test_that_a_level_is_clear_of_z0_by_its_own_scatter_and_the_pose_draws_it_shares():
+    from ground.uncertainty import SharedDraws
+    h = np.random.default_rng(9).normal(0.1, 0.05, 100)
+    assert level_clear(h, 0.0, 3.0)
+    assert not level_clear(h, 0.04, 3.0)  # 0.1 m against 3 x 0.04 m of shared draws
+    assert not level_clear(np.zeros(0), 0.0, 3.0)
+    draws = SharedDraws(0.12, np.array([0, 0, 1, 1, 2, 3]))
+    assert draw_sd_m(draws, np.ones(6, dtype=bool)) == pytest.approx(0.06)  # four messages
+    assert draw_sd_m(draws, np.array([True, True, False, False, False, False])) == pytest.approx(0.12)
+    assert draw_sd_m(None, np.ones(6, dtype=bool)) == 0.0
 
 
 def test_that_the_note_on_a_floor_taken_down_says_within_what():
