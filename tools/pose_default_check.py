@@ -8,6 +8,10 @@ the truth) and counts where it applied itself and what that did to Ve, with the 
 
     python -m tools.pose_default_check --jobs 2 --write docs/pose_error.md
 
+`--paper-phases N` adds the noise table's flights (`tools.noise_table`: the paper's building and piles 1 and 2 at
+P_traj 5 / 20 / 30 %, the datasheet's and Appendix A's noise, N servo phases each), which are other flights than the
+evaluation set's: two of them were taken down by the floor's route when no evaluation-set run was.
+
 The runs are kept under --root (runs/pose-default) and reused; each survey pair is cached by the run and a digest
 of the ground station's source, so a change to the correction computes them again.
 """
@@ -23,6 +27,7 @@ from collections import defaultdict
 from pathlib import Path
 
 from firmware_py.core.cli import ArgumentParser
+from firmware_py.core.sensor_noise import SensorNoiseModel
 from tools.doc_sections import write_section
 from tools.evalset import (
     DEFAULT_FLIGHT_CACHE,
@@ -82,6 +87,54 @@ def check_run(case: Case, root: Path) -> list[dict]:
              "true_volume_m3": run.true_volume_m3, "survey_off_s": t_off, "survey_on_s": t_on}]
 
 
+PAPER_PILES = ("1", "2")
+PAPER_P_TRAJ_PCT = (5, 20, 30)
+PAPER_NOISES = (SensorNoiseModel.DATASHEET, SensorNoiseModel.APPENDIX_A)
+"""The noise table's error-free flights the check adds with --paper-phases (`tools.noise_table`)."""
+NOISE_TABLE = "noise table"
+"""The rows' set for those flights (the evaluation set's rows carry none)."""
+
+
+def paper_checks(phases: int, source: str) -> list[Case]:
+    """One check per noise-table flight: each pile, P_traj, noisy sensor model and the first `phases` servo phases."""
+    return [Case.make("posecheck-paper", pile=pile, p_traj_pct=p, noise=m.value, phase=k, version=CHECK_VERSION,
+                      ground=source)
+            for pile in PAPER_PILES for p in PAPER_P_TRAJ_PCT for m in PAPER_NOISES for k in range(phases)]
+
+
+def check_paper(case: Case, flight_cache: Path) -> list[dict]:
+    """One noise-table flight (the batch sampler's, as the table draws its noise) surveyed without and with the
+    correction, as `check_run` surveys a stored run."""
+    import numpy as np
+
+    from ground.report import ReportOptions, survey_from_samples
+    from sitl.runners.fly import log_header
+    from tools.noise_table import Case as NoiseCase
+    from tools.noise_table import case_samples
+
+    pile, p, phase = case.get("pile"), case.get("p_traj_pct"), case.get("phase")
+    model = SensorNoiseModel(case.get("noise"))
+    [(_, cfg, samples, stockpile)] = list(case_samples(NoiseCase(pile, p, model), [phase], flight_cache))
+    header = log_header(cfg, cfg.servo_waveform())
+    out = {}
+    for on in (False, True):
+        t0 = time.perf_counter()
+        sv = survey_from_samples(samples, header, cfg.mission.storage, cfg.frame, np.array(cfg.lever_arm_body_m),
+                                 ReportOptions(plots=False, pose_correction=on))
+        out[on] = (sv, time.perf_counter() - t0)
+    (off, t_off), (on, t_on) = out[False], out[True]
+    truth = stockpile.volume_m3
+    m_off, m_on = survey_metrics(off, truth), survey_metrics(on, truth)
+    pose = on.pose
+    return [{"run_id": f"paper-pile{pile}-p{p}-ph{phase}-{model.value}", "family": f"paper pile {pile}",
+             "building": "paper", "set": NOISE_TABLE, "p_traj_pct": p, "noise": model.value,
+             "applied": bool(pose is not None and pose.applied),
+             "reason": "" if pose is None else (pose.reason or "; ".join(pose.notes)),
+             "volume_off_m3": m_off["volume_m3"], "volume_on_m3": m_on["volume_m3"],
+             "ve_off_pct": m_off["ve_pct"], "ve_on_pct": m_on["ve_pct"], "true_volume_m3": truth,
+             "survey_off_s": t_off, "survey_on_s": t_on}]
+
+
 def delta_pp(row: dict) -> float:
     """The correction's change of Ve, in percentage points of the true volume (the empty building: of 1 m^3)."""
     return 100.0 * (row["volume_on_m3"] - row["volume_off_m3"]) / max(row["true_volume_m3"], 1.0)
@@ -116,15 +169,24 @@ def applied_rows(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
-def document(rows: list[dict], cmd: str, wall_s: float, phases: int) -> str:
-    n_fam = len({r["family"] for r in rows})
-    n_b = len({r["building"] for r in rows})
-    return "\n".join([
-        f"{len(rows)} runs of the evaluation set (every pile instance: {n_fam} families in {n_b} buildings; "
+def document(rows: list[dict], cmd: str, wall_s: float, phases: int, paper_phases: int = 0) -> str:
+    evaluation = [r for r in rows if r.get("set") != NOISE_TABLE]
+    paper = [r for r in rows if r.get("set") == NOISE_TABLE]
+    n_fam = len({r["family"] for r in evaluation})
+    n_b = len({r["building"] for r in evaluation})
+    lines = [
+        f"{len(evaluation)} runs of the evaluation set (every pile instance: {n_fam} families in {n_b} buildings; "
         f"{phases} servo phase{'s' if phases > 1 else ''} a flight; the three sensor-noise models), flown on the "
         "true pose, each surveyed without and "
         f"with the correction. Regenerated by `{cmd}` ({wall_s / 60:.1f} min of wall time).", "",
-        table(rows), "", applied_rows(rows)])
+        table(evaluation), "", applied_rows(evaluation)]
+    if paper:
+        flights = f"{len(paper)} flight{'s' if len(paper) != 1 else ''}"
+        lines += ["", f"And {flights} of the noise table (the paper's building, piles 1 and 2 at P_traj "
+                      f"{' / '.join(map(str, PAPER_P_TRAJ_PCT))} %, {paper_phases} servo phases, the noisy sensor "
+                      "models; `tools.noise_table`), flown on the true pose:", "", table(paper), "",
+                  applied_rows(paper)]
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -133,6 +195,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--flight-cache", type=Path, default=DEFAULT_FLIGHT_CACHE, help="JSBSim flight cache")
     ap.add_argument("--p-traj", type=int, nargs="+", default=list(P_TRAJ_PCT), help="P_traj [%%] (default 5 20 35)")
     ap.add_argument("--phases", type=int, default=1, help="servo phases a flight (default 1)")
+    ap.add_argument("--paper-phases", type=int, default=0,
+                    help="also the noise table's flights, this many servo phases each (default 0: none)")
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     ap.add_argument("--write", type=Path, default=None, help=f"page whose {SECTION} section to rewrite")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -141,6 +205,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--jobs must be >= 1")
     if not 1 <= args.phases <= N_SERVO_POSITIONS:
         ap.error(f"--phases must be 1-{N_SERVO_POSITIONS}")
+    if not 0 <= args.paper_phases <= N_SERVO_POSITIONS:
+        ap.error(f"--paper-phases must be 0-{N_SERVO_POSITIONS}")
     t0 = time.perf_counter()
     cases = cases_for(instances(), p_traj_pct=tuple(args.p_traj), phases=args.phases)
     run_sweep(cases, functools.partial(run_case, root=args.root, flight_cache=args.flight_cache), args.root / "cases",
@@ -151,11 +217,16 @@ def main(argv: list[str] | None = None) -> int:
               for c in cases for k in phases_of(c) for n in NOISES]
     rows = run_sweep(checks, functools.partial(check_run, root=args.root), args.root / "checks", jobs=args.jobs,
                      progress=not args.no_progress, desc="surveys")
+    if args.paper_phases:
+        rows += run_sweep(paper_checks(args.paper_phases, source),
+                          functools.partial(check_paper, flight_cache=args.flight_cache), args.root / "checks",
+                          jobs=args.jobs, progress=not args.no_progress, desc="noise-table surveys")
     cmd = "python -m tools.pose_default_check" + (f" --p-traj {' '.join(map(str, args.p_traj))}"
                                                    if tuple(args.p_traj) != P_TRAJ_PCT else "")
-    cmd += (f" --phases {args.phases}" if args.phases != 1 else "") + f" --jobs {args.jobs}"
+    cmd += (f" --phases {args.phases}" if args.phases != 1 else "")
+    cmd += (f" --paper-phases {args.paper_phases}" if args.paper_phases else "") + f" --jobs {args.jobs}"
     cmd += f" --write {args.write}" if args.write else ""
-    text = document(rows, cmd, time.perf_counter() - t0, args.phases)
+    text = document(rows, cmd, time.perf_counter() - t0, args.phases, args.paper_phases)
     print(text)
     if args.write is not None:
         write_section(args.write, SECTION, text)

@@ -3,10 +3,23 @@ the page counts where it did not."""
 
 from __future__ import annotations
 
+import pytest
+
 import tools.evalset as evalset
 from firmware_py.core.sensor_noise import SensorNoiseModel
 from sitl.world.shapes import Family
-from tools.pose_default_check import CHECK_VERSION, applied_rows, check_run, delta_pp, ground_source_key, table
+from tools.pose_default_check import (
+    CHECK_VERSION,
+    NOISE_TABLE,
+    applied_rows,
+    check_paper,
+    check_run,
+    delta_pp,
+    document,
+    ground_source_key,
+    paper_checks,
+    table,
+)
 from tools.sweep import Case
 
 
@@ -57,3 +70,26 @@ def test_that_the_checks_cache_key_follows_the_ground_stations_source(tmp_path, 
     before = ground_source_key()
     (fake / "pose_correction.py").write_text("X = 2\n")
     assert ground_source_key() != before != key
+
+
+@pytest.mark.parametrize(("pile", "p_traj_pct", "phase"), [("1", 30, 0), ("2", 20, 8)])
+def test_that_a_noise_table_flight_whose_floor_read_high_is_not_taken_down(tmp_path, pile, p_traj_pct, phase):
+    # Flown on the true pose with Appendix A's noise, each was taken down by the floor's route until 2026-12-04: pile
+    # 1's floor beside its toe (-1.3 pp of Ve), pile 2's floor seen for one second at the start, high by that second's
+    # pose draws (-4.4 pp).
+    case = Case.make("posecheck-paper", pile=pile, p_traj_pct=p_traj_pct, noise="appendix-a", phase=phase,
+                     version=CHECK_VERSION)
+    row = check_paper(case, tmp_path)[0]
+    assert not row["applied"], row["reason"]
+    assert row["volume_on_m3"] == row["volume_off_m3"]
+    assert row["set"] == NOISE_TABLE and row["run_id"] == f"paper-pile{pile}-p{p_traj_pct}-ph{phase}-appendix-a"
+
+
+def test_that_the_page_gives_the_noise_tables_flights_a_table_of_their_own():
+    assert len(paper_checks(2, "src")) == 2 * 3 * 2 * 2  # piles, P_traj, noisy models, phases
+    paper = {**_row("appendix-a", 30, True, 1000, 987, "paper-x"), "set": NOISE_TABLE}
+    text = document([_row("none", 5, False, 1000, 1000), paper], "cmd", 60.0, 3, paper_phases=20)
+    first, second = text.split("And 1 flight of the noise table")
+    assert "| none | 5 % | 1 | 0 |" in first and "It applied itself to none of them." in first
+    assert "| appendix-a | 30 % | 1 | 1 | 1.300 |" in second and "| paper-x |" in second
+    assert "20 servo phases" in second
