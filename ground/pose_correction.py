@@ -416,10 +416,10 @@ def floor_brought_on(z_before: np.ndarray, z_after: np.ndarray, key: np.ndarray,
     have the sensor's noise to reach; the floor's, the height drift model's misfit between knots as well: 1.3 cm
     against an ideal sensor's 0.3 cm, measured on a `flow` flight). Up from below z = 0 always; down from above it
     only by no more than most_down_m (the most the logged reference is believed off) and only when the floor is
-    level (`floor_is_level`, on the points' wall_distance_m; without them, never down) and its sightings farthest from
-    the material beside it (material_distance_m: the nearer half left out) lie above z = 0 as well, as do, with pose
-    draws (draws: the points' messages), its earlier and its later sightings each. Either way the sightings' level must
-    be clear of z = 0 (`level_clear`, with the pose draws they share).
+    level (`floor_is_level`, on the points' wall_distance_m; without them, never down), its level clear of z = 0
+    (`level_clear`, with the pose draws its points share: draws, their messages), and its sightings farthest from the
+    material beside it (material_distance_m: the nearer half left out) and, with pose draws, its earlier and its later
+    sightings each clear of it as well.
 
     Why sightings and not points: the points of one sweep share its pose, so their count overstates what they know,
     while their own scatter hides an offset. Under the paper's Appendix A noise (a degree of pointing: 0.12 m a point)
@@ -452,20 +452,19 @@ def floor_brought_on(z_before: np.ndarray, z_after: np.ndarray, key: np.ndarray,
     steady = g_after - float(np.median(g_after - g_before))
 
     def clear(kept: np.ndarray) -> bool:
-        """Whether the sightings kept lie off z = 0 on their own (`level_clear`), above it for a floor taken down."""
-        up = float(np.median(steady[kept])) > 0.0
-        return up == (moved < 0.0) and level_clear(steady[kept], draw_sd_m(draws, np.isin(key, uniq[kept])),
-                                                   n_significant)
+        """Whether the sightings kept lie above z = 0 on their own (`level_clear`)."""
+        return float(np.median(steady[kept])) > 0.0 and level_clear(
+            steady[kept], draw_sd_m(draws, np.isin(key, uniq[kept])), n_significant)
     sd = float(np.median(median_sd_m(mad[many], count[many], noise_m)))
     before, after = _robust_rms(g_before), _robust_rms(g_after)
     level, moved = float(np.median(g_before)), float(np.median(g_after - g_before))
     if not (after <= max(MAX_MISFIT * sd, before / MAX_MISFIT) and before ** 2 - after ** 2 > max(sd, after) ** 2):
         return False
-    if not clear(np.ones(len(g_before), dtype=bool)):
-        return False
     if level < 0.0 < moved:
         return True
     if not (moved < 0.0 < level and -moved <= most_down_m and wall_distance_m is not None):
+        return False
+    if not clear(np.ones(len(g_before), dtype=bool)):
         return False
     _, distance, _, _, _ = group_median(key, wall_distance_m, wall_distance_m)
     if not floor_is_level(g_after, distance[many], noise_m):

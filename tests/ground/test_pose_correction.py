@@ -1147,9 +1147,9 @@ def test_that_a_floor_seen_in_one_moment_is_not_taken_down_on_the_pose_draws_it_
     assert floor_brought_on(z, z - 0.1, key, noise, **common)  # without pose draws
     assert not floor_brought_on(z, z - 0.1, key, noise, draws=one_moment, **common)
     assert floor_brought_on(z, z - 0.1, key, noise, draws=all_flight, **common)
-    # below z = 0 it is brought up on the same terms: a level clear of the draws
-    assert not floor_brought_on(-z, -z + 0.1, key, noise, draws=one_moment)
-    assert floor_brought_on(-z, -z + 0.1, key, noise, draws=all_flight)
+    # below z = 0, where nothing but a height error puts a floor, it is brought up as before (asked of the level, the
+    # same test refused four real drifts of 2-3 cm under noise, and no error-free flight was ever taken up)
+    assert floor_brought_on(-z, -z + 0.1, key, noise, draws=one_moment)
 
 
 def test_that_a_level_is_clear_of_z0_by_its_own_scatter_and_the_pose_draws_it_shares():
