@@ -386,7 +386,7 @@ def level_clear(height_m: np.ndarray, shared_sd_m: float, n_significant: float) 
 
     Why the shared draws: a pose message's position error moves every point it places alike, so sightings made in
     the same few messages are off together, and their own scatter does not show it. The paper's pile 2 under Appendix
-    A's noise shows its floor for one second at the start (116 points in 8 messages of 0.11 m): it read 0.12 m above
+    A's noise shows its floor for one second at the start (116 points in 17 messages of 0.11 m): it read 0.12 m above
     z = 0 on an error-free flight, and taken down onto it the volume read 4.4 pp low (docs/design-notes.md)."""
     h = np.asarray(height_m, dtype=float)
     if not len(h):

@@ -99,7 +99,7 @@ STEPS: tuple[Step, ...] = (
           "runs/pose-noise-aa --jobs 2 --horizontal --write docs/pose_error.md", "docs/pose_error.md"),
     _step("rangefinder-share", "tools.rangefinder_share_check --runs runs/pose runs/pose-own runs/pose-noise-ds "
           "runs/pose-noise-aa --jobs 2 --write docs/pose_error.md", "docs/pose_error.md"),
-    _step("pose-default", "tools.pose_default_check --phases 3 --jobs 2 --write docs/pose_error.md",
+    _step("pose-default", "tools.pose_default_check --phases 3 --paper-phases 20 --jobs 2 --write docs/pose_error.md",
           "docs/pose_error.md"),
     _step("lever-arm", "tools.lever_arm_check --jobs 2 --write docs/pose_error.md", "docs/pose_error.md"),
     _step("pose-mount", "tools.pose_mount_check --seeds 0 1 2 --piles 1 2 --p-traj 20 --keep runs/pose-mount "
