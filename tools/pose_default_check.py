@@ -9,8 +9,8 @@ the truth) and counts where it applied itself and what that did to Ve, with the 
     python -m tools.pose_default_check --jobs 2 --write docs/pose_error.md
 
 `--paper-phases N` adds the noise table's flights (`tools.noise_table`: the paper's building and piles 1 and 2 at
-P_traj 5 / 20 / 30 %, the datasheet's and Appendix A's noise, N servo phases each), which are other flights than the
-evaluation set's: two of them were taken down by the floor's route when no evaluation-set run was.
+P_traj 5 / 20 / 30 %, the three sensor-noise models, N servo phases each), which are other flights than the
+evaluation set's: five of them had their floor moved by the floor's route when no evaluation-set run had.
 
 The runs are kept under --root (runs/pose-default) and reused; each survey pair is cached by the run and a digest
 of the ground station's source, so a change to the correction computes them again.
@@ -89,14 +89,14 @@ def check_run(case: Case, root: Path) -> list[dict]:
 
 PAPER_PILES = ("1", "2")
 PAPER_P_TRAJ_PCT = (5, 20, 30)
-PAPER_NOISES = (SensorNoiseModel.DATASHEET, SensorNoiseModel.APPENDIX_A)
+PAPER_NOISES = tuple(SensorNoiseModel)
 """The noise table's error-free flights the check adds with --paper-phases (`tools.noise_table`)."""
 NOISE_TABLE = "noise table"
 """The rows' set for those flights (the evaluation set's rows carry none)."""
 
 
 def paper_checks(phases: int, source: str) -> list[Case]:
-    """One check per noise-table flight: each pile, P_traj, noisy sensor model and the first `phases` servo phases."""
+    """One check per noise-table flight: each pile, P_traj, sensor-noise model and the first `phases` servo phases."""
     return [Case.make("posecheck-paper", pile=pile, p_traj_pct=p, noise=m.value, phase=k, version=CHECK_VERSION,
                       ground=source)
             for pile in PAPER_PILES for p in PAPER_P_TRAJ_PCT for m in PAPER_NOISES for k in range(phases)]
@@ -183,8 +183,8 @@ def document(rows: list[dict], cmd: str, wall_s: float, phases: int, paper_phase
     if paper:
         flights = f"{len(paper)} flight{'s' if len(paper) != 1 else ''}"
         lines += ["", f"And {flights} of the noise table (the paper's building, piles 1 and 2 at P_traj "
-                      f"{' / '.join(map(str, PAPER_P_TRAJ_PCT))} %, {paper_phases} servo phases, the noisy sensor "
-                      "models; `tools.noise_table`), flown on the true pose:", "", table(paper), "",
+                      f"{' / '.join(map(str, PAPER_P_TRAJ_PCT))} %, {paper_phases} servo phases, the three "
+                      "sensor-noise models; `tools.noise_table`), flown on the true pose:", "", table(paper), "",
                   applied_rows(paper)]
     return "\n".join(lines)
 

@@ -1152,6 +1152,16 @@ def test_that_a_floor_seen_in_one_moment_is_not_taken_down_on_the_pose_draws_it_
     assert floor_brought_on(-z, -z + 0.1, key, noise, draws=one_moment)
 
 
+def test_that_a_floor_within_half_the_range_quantum_of_z0_is_not_brought_onto_it():
+    """Ranges rounded to 1 cm: a floor seen by a few sweeps at nearly one range shares its rounding error, 2.8 mm
+    below z = 0 on a noise-free error-free flight of the paper's pile 1, which no count of sightings averages out."""
+    low, key = _floor_sightings(-0.0028, 0.0005, seed=10)
+    on, _ = _floor_sightings(0.0, 0.0005, seed=11)
+    assert floor_brought_on(low, on, key, 0.0005)  # a millimetre-true sensor: 2.8 mm is an offset
+    assert not floor_brought_on(low, on, key, 0.0005, quantum_m=0.01)
+    assert floor_brought_on(low - 0.01, on, key, 0.0005, quantum_m=0.01)  # 1.3 cm below: beyond what rounding does
+
+
 def test_that_a_level_is_clear_of_z0_by_its_own_scatter_and_the_pose_draws_it_shares():
     from ground.uncertainty import SharedDraws
     h = np.random.default_rng(9).normal(0.1, 0.05, 100)
