@@ -24,6 +24,7 @@ import statistics
 import sys
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 
 from firmware_py.core.cli import ArgumentParser
@@ -65,26 +66,33 @@ def ground_source_key() -> str:
     return digest.hexdigest()[:16]
 
 
-def check_run(case: Case, root: Path) -> list[dict]:
-    """One stored run surveyed without and with the correction: did it apply, and what did it do to Ve."""
+def surveyed_without_and_with(survey: Callable, true_m3: float) -> dict:
+    """What the correction did to one flight: survey(opts) called without and with it (its ReportOptions), timed; the
+    row's fields that `table` and `applied_rows` read, but for the flight's own (run_id, family, ...)."""
     from ground.report import ReportOptions
 
-    run = load_run(root / "runs" / case.get("run"))
     out = {}
     for on in (False, True):
         t0 = time.perf_counter()
-        sv = survey_of(run, ReportOptions(plots=False, pose_correction=on))
+        sv = survey(ReportOptions(plots=False, pose_correction=on))
         out[on] = (sv, time.perf_counter() - t0)
     (off, t_off), (on, t_on) = out[False], out[True]
-    m_off, m_on = survey_metrics(off, run.true_volume_m3), survey_metrics(on, run.true_volume_m3)
+    m_off, m_on = survey_metrics(off, true_m3), survey_metrics(on, true_m3)
     pose = on.pose
+    return {"applied": bool(pose is not None and pose.applied),
+            "reason": "" if pose is None else (pose.reason or "; ".join(pose.notes)),
+            "volume_off_m3": m_off["volume_m3"], "volume_on_m3": m_on["volume_m3"],
+            "ve_off_pct": m_off["ve_pct"], "ve_on_pct": m_on["ve_pct"],
+            "true_volume_m3": true_m3, "survey_off_s": t_off, "survey_on_s": t_on}
+
+
+def check_run(case: Case, root: Path) -> list[dict]:
+    """One stored run surveyed without and with the correction: did it apply, and what did it do to Ve."""
+    run = load_run(root / "runs" / case.get("run"))
     tr = run.truth
     return [{"run_id": run.run_id, "family": tr["family"], "building": tr["building"], "p_traj_pct": tr["p_traj_pct"],
-             "noise": tr["noise"], "applied": bool(pose is not None and pose.applied),
-             "reason": "" if pose is None else (pose.reason or "; ".join(pose.notes)),
-             "volume_off_m3": m_off["volume_m3"], "volume_on_m3": m_on["volume_m3"],
-             "ve_off_pct": m_off["ve_pct"], "ve_on_pct": m_on["ve_pct"],
-             "true_volume_m3": run.true_volume_m3, "survey_off_s": t_off, "survey_on_s": t_on}]
+             "noise": tr["noise"],
+             **surveyed_without_and_with(functools.partial(survey_of, run), run.true_volume_m3)}]
 
 
 PAPER_PILES = ("1", "2")
@@ -107,7 +115,7 @@ def check_paper(case: Case, flight_cache: Path) -> list[dict]:
     correction, as `check_run` surveys a stored run."""
     import numpy as np
 
-    from ground.report import ReportOptions, survey_from_samples
+    from ground.report import survey_from_samples
     from sitl.runners.fly import log_header
     from tools.noise_table import Case as NoiseCase
     from tools.noise_table import case_samples
@@ -115,24 +123,11 @@ def check_paper(case: Case, flight_cache: Path) -> list[dict]:
     pile, p, phase = case.get("pile"), case.get("p_traj_pct"), case.get("phase")
     model = SensorNoiseModel(case.get("noise"))
     [(_, cfg, samples, stockpile)] = list(case_samples(NoiseCase(pile, p, model), [phase], flight_cache))
-    header = log_header(cfg, cfg.servo_waveform())
-    out = {}
-    for on in (False, True):
-        t0 = time.perf_counter()
-        sv = survey_from_samples(samples, header, cfg.mission.storage, cfg.frame, np.array(cfg.lever_arm_body_m),
-                                 ReportOptions(plots=False, pose_correction=on))
-        out[on] = (sv, time.perf_counter() - t0)
-    (off, t_off), (on, t_on) = out[False], out[True]
-    truth = stockpile.volume_m3
-    m_off, m_on = survey_metrics(off, truth), survey_metrics(on, truth)
-    pose = on.pose
+    survey = functools.partial(survey_from_samples, samples, log_header(cfg, cfg.servo_waveform()),
+                               cfg.mission.storage, cfg.frame, np.array(cfg.lever_arm_body_m))
     return [{"run_id": f"paper-pile{pile}-p{p}-ph{phase}-{model.value}", "family": f"paper pile {pile}",
              "building": "paper", "set": NOISE_TABLE, "p_traj_pct": p, "noise": model.value,
-             "applied": bool(pose is not None and pose.applied),
-             "reason": "" if pose is None else (pose.reason or "; ".join(pose.notes)),
-             "volume_off_m3": m_off["volume_m3"], "volume_on_m3": m_on["volume_m3"],
-             "ve_off_pct": m_off["ve_pct"], "ve_on_pct": m_on["ve_pct"], "true_volume_m3": truth,
-             "survey_off_s": t_off, "survey_on_s": t_on}]
+             **surveyed_without_and_with(survey, stockpile.volume_m3)}]
 
 
 def delta_pp(row: dict) -> float:
