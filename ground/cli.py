@@ -33,6 +33,7 @@ from ground.piles import DEFAULT_MIN_PILE_AREA_M2, MassUnit, PileOptions, Volume
 from ground.pose_correction import PoseCorrectionOptions
 from ground.render import warning_parts
 from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, make_report
+from ground.smoothing import NodeSlopes
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
 
@@ -111,6 +112,11 @@ def build_parser() -> ArgumentParser:
                    help="local-linear (default: estimated from the points with their noise from the log header, "
                         "outliers left out: ground/smoothing.py), cubic-limited (the cubic through every point, kept "
                         "within each triangle's data), cubic (the paper's MATLAB 'cubicinterp') or linear")
+    r.add_argument("--surface-slopes", choices=[s.value for s in NodeSlopes], default=NodeSlopes.CURVATURE.value,
+                   help="where the local-linear surface's cubic takes its slopes at the nodes: curvature (default: "
+                        "scipy's least-curvature slopes through the node heights) or gp (the same through the heights "
+                        "a Gaussian process fitted to the nodes and their noise predicts: steadier between sparse fan "
+                        "lines under pointing noise, a few seconds more; ground/gp_slopes.py)")
     r.add_argument("--no-despike", action="store_true",
                    help="keep isolated one- or two-sample range spikes (default: left out, with a threshold "
                         "derived from the log header; see ground/despike.py)")
@@ -301,7 +307,8 @@ def _report(args) -> int:
     exports = parse_formats(args.export)
     opts = ReportOptions(cell_m=args.cell, empty_cells=args.empty_cells, plots=not args.no_plots,
                          truth_volume_m3=args.truth_volume, despike=not args.no_despike,
-                         surface_fit=args.surface_fit, servo_retiming=not args.no_servo_retiming,
+                         surface_fit=args.surface_fit, surface_slopes=NodeSlopes(args.surface_slopes),
+                         servo_retiming=not args.no_servo_retiming,
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),
                          self_calibration=not args.no_self_calibration, pose_correction=args.pose_correction,
                          baro_walk_m_per_sqrt_s=_baro_walk(args.baro_walk), storage=args.storage,

@@ -74,7 +74,7 @@ from ground.self_calibration import (
     estimate_mount,
 )
 from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
-from ground.smoothing import cloud_vertical_sigma_m
+from ground.smoothing import DEFAULT_SMOOTHING, NodeSlopes, SmoothingOptions, cloud_vertical_sigma_m
 from ground.surface import (
     CONTACT_POLICIES,
     DEFAULT_CELL_M,
@@ -136,6 +136,7 @@ class ReportOptions:
     plots: bool = True
     truth_volume_m3: float | None = None
     surface_fit: str = DEFAULT_SURFACE_FIT  # ground.surface.SURFACE_FITS ("cubic" is the paper's)
+    surface_slopes: NodeSlopes = NodeSlopes.CURVATURE  # local-linear: where its cubic's slopes come from (gp_slopes)
     servo_retiming: bool = True  # re-estimate the servo's timing when the sweeps disagree (ground.servo_timing)
     despike: bool = True  # leave out isolated one-/two-sample range spikes (ground.despike; threshold from the header)
     max_grid_memory_bytes: int = DEFAULT_MAX_GRID_MEMORY_BYTES  # refuse a --cell whose grid would need more
@@ -840,7 +841,8 @@ def pile_sigma_m(cloud: Cloud, structure: np.ndarray, err: SensorErrorModel) -> 
 
 
 def contact_fit_m(pile_w: np.ndarray, pile_sigma: np.ndarray, contacts: WallContacts, grid: Grid, storage: Storage,
-                  surface_fit: str, wanted: np.ndarray | None = None) -> np.ndarray | None:
+                  surface_fit: str, wanted: np.ndarray | None = None,
+                  smoothing: SmoothingOptions = DEFAULT_SMOOTHING) -> np.ndarray | None:
     """The `wall-contact` fill's surface: the pile points and the wall contacts (`ground.wall_contact.contact_nodes`,
     each with its sigma) fitted together by the survey's surface fit, cells that leave the building emptied; in the
     wanted cells only (`fit_heights`), or all. None without contacts: there is nothing to add to the points' fit."""
@@ -848,7 +850,7 @@ def contact_fit_m(pile_w: np.ndarray, pile_sigma: np.ndarray, contacts: WallCont
     if not len(nodes):
         return None
     both = fit_heights(np.concatenate([pile_w, nodes]), grid, surface_fit, np.concatenate([pile_sigma, node_sigma]),
-                       wanted=wanted)
+                       smoothing, wanted=wanted)
     return clip_to_building(both, storage.height_m)[0]
 
 
@@ -859,7 +861,8 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
     pile = cloud.points_w[~structure]
     grid = Grid(storage.length_m, storage.width_m, opts.cell_m)
     sigma = pile_sigma_m(cloud, structure, err)
-    fit, n_clipped = clip_to_building(fit_heights(pile, grid, opts.surface_fit, sigma), storage.height_m)
+    smoothing = SmoothingOptions(slopes=opts.surface_slopes)
+    fit, n_clipped = clip_to_building(fit_heights(pile, grid, opts.surface_fit, sigma, smoothing), storage.height_m)
     disagreement = None
     pile_dir = None if cloud.sweep_dir is None else cloud.sweep_dir[~structure]
     typical = point_sigma_m(cloud.range_m, err.range_sigma(cloud.range_m), err.position_sigma_m, err.angle_sigma_rad)
@@ -879,7 +882,8 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
     if contacts is not None:
         contact_top = contact_ceiling_m(contacts, grid.x_edges, grid.y_edges)
         if unseen.any():  # only the unseen cells take it: fit it from the nodes that shape it there
-            contact_fit = contact_fit_m(pile, sigma, contacts, grid, storage, opts.surface_fit, wanted=unseen)
+            contact_fit = contact_fit_m(pile, sigma, contacts, grid, storage, opts.surface_fit, wanted=unseen,
+                                        smoothing=smoothing)
     needs_ceiling = opts.empty_cells in ("bounded", *CONTACT_POLICIES) and unseen.any()
     ceiling = shadow = None
     if needs_ceiling:  # what the beams left free above the unseen cells, and which of them a beam passed over
@@ -1169,6 +1173,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "pose_source": pose_source_line(log.header or {}, survey.rangefinder),
         "autopilot_params": autopilot_params(log.header or {}),
         "surface_fit": opts.surface_fit,
+        "surface_slopes": opts.surface_slopes.value,
         "n_cells_clipped": survey.n_cells_clipped,
         "n_samples_servo_suspect": survey.cloud.n_servo_suspect,
         "n_samples_spikes": survey.cloud.n_spikes,

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 
@@ -52,17 +53,32 @@ distance one point's influence can reach; Lepski's rule picks within it. A fan l
 mission is 1-2 m wide at the lowest P_traj, so wider windows would mostly mix in other tracks' data."""
 
 
+class NodeSlopes(StrEnum):
+    """Where the cubic between the nodes takes its slopes at them: scipy's least-curvature estimate through the
+    node heights taken as exact (``curvature``), or a Gaussian process fitted to the nodes and their standard
+    errors (``gp``: `ground.gp_slopes`)."""
+
+    CURVATURE = "curvature"
+    GP = "gp"
+
+
 @dataclass(frozen=True)
 class SmoothingOptions:
-    """How the local regression chooses its windows (defaults: module constants, their reasons there)."""
+    """How the local regression chooses its windows (defaults: module constants, their reasons there), and where
+    the cubic drawn through its nodes takes its slopes."""
 
     z_crit: float = DEFAULT_Z_CRIT
     max_window_m: float = DEFAULT_MAX_WINDOW_M
     reject_outliers: bool = True
     outlier_n_sigma: float | None = None  # None: structure_n_sigma of the cloud's size
     noise_from_data: bool = True  # the windows' standard errors scaled down to the scatter the data show
+    slopes: NodeSlopes = NodeSlopes.CURVATURE
 
     def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "slopes", NodeSlopes(self.slopes))
+        except ValueError:
+            raise ValueError(f"node slopes must be one of {', '.join(NodeSlopes)}, got {self.slopes!r}") from None
         if not (math.isfinite(self.z_crit) and self.z_crit > 0):
             raise ValueError(f"smoothing z_crit must be > 0, got {self.z_crit!r}")
         if not (math.isfinite(self.max_window_m) and self.max_window_m >= 0):

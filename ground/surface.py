@@ -58,7 +58,8 @@ from scipy.spatial import ConvexHull, QhullError
 
 from firmware_py.core.surface_file import MAX_GRID_CELLS, MIN_GRID_CELL_M
 from ground.blas_threads import one_blas_thread
-from ground.smoothing import DEFAULT_SMOOTHING, SmoothingOptions, smoothed_nodes
+from ground.gp_slopes import node_slopes
+from ground.smoothing import DEFAULT_SMOOTHING, NodeSlopes, SmoothingOptions, smoothed_nodes
 from ground.triangulation import delaunay
 
 SURFACE_FITS = ("cubic-limited", "cubic", "linear", "local-linear")
@@ -188,7 +189,7 @@ def fit_heights_with_se(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_
     if wanted is not None:  # the nodes that shape the surface in the wanted cells
         near = shaping_points(xyz[:, :2], wanted, grid)
         xyz, node_se = xyz[near], None if node_se is None else node_se[near]
-    heights, se = _interpolate(xyz, grid, "cubic-limited", node_se)  # exact: se all NaN
+    heights, se = _interpolate(xyz, grid, "cubic-limited", node_se, smoothing.slopes)  # exact: se all NaN
     se[~np.isfinite(heights)] = np.nan
     return heights, se
 
@@ -205,10 +206,12 @@ def hull_corners(points_w: np.ndarray) -> np.ndarray:
         return np.empty((0, 2))
 
 
-def _interpolate(points_w: np.ndarray, grid: Grid, method: str,
-                 also_linear: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def _interpolate(points_w: np.ndarray, grid: Grid, method: str, also_linear: np.ndarray | None = None,
+                 slopes: NodeSlopes = NodeSlopes.CURVATURE) -> tuple[np.ndarray, np.ndarray]:
     """The interpolating fits (cubic-limited, cubic, linear) at the cell centres, and also_linear (one value
-    per point, or None) interpolated linearly on the same triangulation (NaN without it)."""
+    per point, or None) interpolated linearly on the same triangulation (NaN without it). With `NodeSlopes.GP`
+    and also_linear the nodes' standard errors, the cubic takes its slopes at the nodes from `ground.gp_slopes`
+    (scipy's where that cannot fit them)."""
     heights = np.full(grid.shape, np.nan)
     extra = np.full(grid.shape, np.nan)
     if len(points_w) < 3:
@@ -227,7 +230,12 @@ def _interpolate(points_w: np.ndarray, grid: Grid, method: str,
             extra = LinearNDInterpolator(tri, np.asarray(also_linear, dtype=float))(cx, cy)
         if method == "linear":
             return LinearNDInterpolator(tri, z)(cx, cy), extra
-        heights = CloughTocher2DInterpolator(tri, z)(cx, cy)
+        cubic = CloughTocher2DInterpolator(tri, z)
+        if slopes is NodeSlopes.GP and also_linear is not None:
+            g = node_slopes(tri, z, also_linear)
+            if g is not None:  # scipy's interpolator evaluates with the slopes it holds
+                cubic.grad = g[:, None, :]
+        heights = cubic(cx, cy)
         if method == "cubic":
             return heights, extra
         simplex = tri.find_simplex(np.column_stack([cx.ravel(), cy.ravel()])).reshape(cx.shape)

@@ -23,6 +23,7 @@ from firmware_py.core.storage import Storage
 from ground.exports.formats import ExportFormat
 from ground.exports.write import write_exports
 from ground.report import ReportOptions, header_geometry, make_report, survey_from_samples
+from ground.smoothing import NodeSlopes
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
 from sitl.world.raycast import World
@@ -80,6 +81,9 @@ def main(argv: list[str] | None = None) -> int:
         without = ReportOptions(plots=False, pose_correction=False)
         off, _ = median_time(lambda: make_report(run, Path(tmp) / "r0", without, force=True), args.repeat)
         rows.append((f"ground report, no plots, --no-pose-correction ({n:,} samples)", off, "target <= 1 s"))
+        gp = ReportOptions(plots=False, surface_slopes=NodeSlopes.GP)
+        gp_med, _ = median_time(lambda: make_report(run, Path(tmp) / "r6", gp, force=True), args.repeat)
+        rows.append((f"ground report, no plots, --surface-slopes gp ({n:,} samples)", gp_med, ""))
         plots, _ = median_time(lambda: make_report(run, Path(tmp) / "r2", ReportOptions(), force=True), args.repeat)
         rows.append((f"ground report, with plots ({n:,} samples; the default)", plots, "target <= 3 s"))
         plots_off = ReportOptions(pose_correction=False)

@@ -25,7 +25,7 @@ from firmware_py.core.cli import ArgumentParser
 from firmware_py.core.sensor_noise import SensorNoiseModel
 from ground.pointcloud import SensorErrorModel, structure_mask
 from ground.report import ReportOptions, pile_sigma_m, survey_from_samples
-from ground.smoothing import SmoothingOptions
+from ground.smoothing import NodeSlopes, SmoothingOptions
 from ground.surface import DEFAULT_SURFACE_FIT, clip_to_building, fill_empty, fit_heights, grid_volume
 from sitl.runners.fly import FlyConfig, log_header
 from sitl.sensing.batch_sampler import sample_flight
@@ -49,10 +49,12 @@ ESTIMATORS: dict[str, tuple[str, SmoothingOptions]] = {
     "linear": ("linear", SmoothingOptions()),
     "local-linear": ("local-linear", SmoothingOptions()),
     "local-linear, cells only": ("local-linear", SmoothingOptions(max_window_m=0.0)),
+    "local-linear, GP slopes": ("local-linear", SmoothingOptions(slopes=NodeSlopes.GP)),
 }
 """What is compared: the name in the table -> (surface fit, its smoothing options). "cells only" is the
 local-linear estimator without its windows (each cell's robust weighted centroid): what the binning and the
-outlier rejection do alone."""
+outlier rejection do alone; "GP slopes" the local-linear estimator whose cubic takes its slopes through the node
+heights a Gaussian process predicts (`--surface-slopes gp`, ground/gp_slopes.py)."""
 
 
 @dataclass(frozen=True)

@@ -67,6 +67,16 @@ def test_that_the_console_shows_a_warning_of_many_clauses_as_its_headline_with_t
                                     "WARNING: a short one; with its reason"]
 
 
+def test_that_the_surface_slopes_option_reaches_the_report(run_dir, tmp_path, capsys):
+    assert main(["report", str(run_dir), "--out", str(tmp_path / "g"), "--no-plots", "--surface-slopes", "gp"]) == 0
+    assert json.loads((tmp_path / "g" / "report.json").read_text())["surface_slopes"] == "gp"
+    assert main(["report", str(run_dir), "--out", str(tmp_path / "d"), "--no-plots"]) == 0
+    assert json.loads((tmp_path / "d" / "report.json").read_text())["surface_slopes"] == "curvature"
+    capsys.readouterr()
+    _one_line_error(capsys, ["report", str(run_dir), "--out", str(tmp_path / "x"), "--surface-slopes", "spline"],
+                    "--surface-slopes")
+
+
 def test_that_the_ground_options_reach_the_report(run_dir, tmp_path, capsys):
     assert main(["report", str(run_dir), "--out", str(tmp_path / "r"), "--no-plots", "--surface-fit", "linear",
                  "--no-despike", "--no-servo-retiming"]) == 0

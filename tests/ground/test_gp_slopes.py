@@ -1,0 +1,127 @@
+"""The cubic's slopes at its nodes from a Gaussian process (ground.gp_slopes, `SmoothingOptions.slopes`)."""
+
+import numpy as np
+import pytest
+from scipy.interpolate import CloughTocher2DInterpolator
+
+from ground.gp_slopes import MIN_NODES, GpCovariance, fit_covariance, gp_smoothed, node_slopes, octant_neighbours
+from ground.smoothing import NodeSlopes, SmoothingOptions
+from ground.surface import Grid, fit_heights, grid_volume
+from ground.triangulation import delaunay
+
+
+def hill(xy):
+    """A smooth mound 3 m high, 6 m wide, in a 30 x 20 m floor."""
+    return 3.0 * np.exp(-((xy[:, 0] - 15.0) ** 2 + (xy[:, 1] - 10.0) ** 2) / (2 * 3.0**2))
+
+
+def hill_slope(xy):
+    h = hill(xy)
+    return np.column_stack([-h * (xy[:, 0] - 15.0) / 9.0, -h * (xy[:, 1] - 10.0) / 9.0])
+
+
+def fan_lines(spacing_m=3.0, step_m=0.25):
+    """Nodes along lines across a 30 x 20 m floor, `spacing_m` apart and `step_m` along: a sparse flight's swaths."""
+    xs = np.arange(1.0, 29.5, spacing_m)
+    ys = np.arange(0.5, 19.6, step_m)
+    return np.array([(x, y) for x in xs for y in ys])
+
+
+def scipy_slopes(xy, z):
+    return CloughTocher2DInterpolator(delaunay(np.ascontiguousarray(xy)), z).grad[:, 0, :]
+
+
+def slopes(xy, z, se):
+    return node_slopes(delaunay(np.ascontiguousarray(xy)), z, se)
+
+
+def rms(g, xy):
+    return float(np.sqrt(np.mean(np.sum((g - hill_slope(xy)) ** 2, axis=1))))
+
+
+def test_that_the_predicted_heights_of_a_plane_are_the_planes_own_whatever_the_covariance():
+    xy = fan_lines()
+    z = 1.0 + 0.3 * xy[:, 0] - 0.2 * xy[:, 1]
+    for cov in (GpCovariance(1.0, 0.1), GpCovariance(16.0, 5.0)):
+        np.testing.assert_allclose(gp_smoothed(xy, z, np.full(len(z), 1e-4), cov), z, atol=1e-6)
+
+
+def test_that_noise_free_nodes_keep_their_heights_and_scipys_slopes():
+    xy = fan_lines()
+    z = hill(xy)
+    se = np.full(len(z), 0.001)  # a range quantum's error
+    cov = fit_covariance(xy, z, se**2)
+    assert np.max(np.abs(gp_smoothed(xy, z, se**2, cov) - z)) < 3 * 0.001
+    np.testing.assert_allclose(slopes(xy, z, se), scipy_slopes(xy, z), atol=0.01)
+
+
+def test_that_noisy_nodes_get_slopes_nearer_the_truth_than_scipys():
+    xy = fan_lines()
+    rng = np.random.default_rng(3)
+    se = np.full(len(xy), 0.03)
+    z = hill(xy) + rng.normal(0.0, 0.03, len(xy))
+    cov = fit_covariance(xy, z, se**2)
+    assert cov.length_m < 16.0
+    err_gp, err_scipy = rms(slopes(xy, z, se), xy), rms(scipy_slopes(xy, z), xy)
+    assert err_gp < 0.5 * err_scipy, (err_gp, err_scipy)
+
+
+def test_that_the_slopes_are_the_same_for_the_same_nodes():
+    xy = fan_lines()
+    rng = np.random.default_rng(4)
+    z = hill(xy) + rng.normal(0.0, 0.03, len(xy))
+    se = np.full(len(z), 0.03)
+    np.testing.assert_array_equal(slopes(xy, z, se), slopes(xy, z, se))
+
+
+def test_that_each_octant_gives_its_nearest_nodes_and_the_node_itself_is_kept():
+    xy = fan_lines(spacing_m=3.0)
+    at = xy[[100]]
+    idx, valid = octant_neighbours(xy, at, per=2)
+    got = idx[0][valid[0]]
+    assert 100 in got
+    d = xy[got] - at[0]
+    assert np.any(np.abs(d[:, 0]) > 2.0)  # the next line's nodes, though the nearest 17 all lie on its own line
+    assert len(got) <= 8 * 2 + 1
+
+
+def test_that_too_few_nodes_or_errors_that_are_not_numbers_keep_scipys_slopes():
+    xy = fan_lines()
+    z = hill(xy)
+    assert slopes(xy[: MIN_NODES - 1], z[: MIN_NODES - 1], np.full(MIN_NODES - 1, 0.01)) is None
+    bad = np.full(len(z), 0.01)
+    bad[5] = np.nan
+    assert slopes(xy, z, bad) is None
+    bad[5] = -0.01
+    assert slopes(xy, z, bad) is None
+
+
+def test_that_nodes_the_process_cannot_fit_keep_scipys_slopes_and_raise_nothing():
+    xy = np.column_stack([np.arange(200) * 0.25, np.zeros(200)])  # one line: no plane through any neighbourhood
+    xy = np.concatenate([xy, [[10.0, 5.0], [20.0, -5.0]]])  # and two nodes off it, so that it triangulates
+    z = np.sin(xy[:, 0])
+    got = slopes(xy, z, np.zeros(len(z)))  # exact heights, no noise: nothing keeps the systems regular
+    assert got is None or np.all(np.isfinite(got))
+
+
+def test_that_the_slopes_option_is_checked():
+    assert SmoothingOptions(slopes="gp").slopes is NodeSlopes.GP
+    with pytest.raises(ValueError, match="node slopes must be one of curvature, gp"):
+        SmoothingOptions(slopes="kriging")
+
+
+def test_that_with_gp_slopes_the_volume_between_noisy_fan_lines_is_nearer_the_truth():
+    grid = Grid(30, 20, 0.25)
+    cx, cy = grid.centres()
+    true = grid_volume(hill(np.column_stack([cx.ravel(), cy.ravel()])).reshape(cx.shape), grid)
+    errors = {NodeSlopes.GP: [], NodeSlopes.CURVATURE: []}
+    for seed in range(6):  # one draw can favour either: the error's spread over draws is what the slopes change
+        rng = np.random.default_rng(seed)
+        base = fan_lines(spacing_m=4.0, step_m=0.05)
+        pts = base + rng.normal(0.0, 0.02, base.shape)
+        points = np.column_stack([pts, hill(pts) + rng.normal(0.0, 0.05, len(pts))])
+        for slopes_from, out in errors.items():
+            h = fit_heights(points, grid, "local-linear", np.full(len(pts), 0.05), SmoothingOptions(slopes=slopes_from))
+            out.append(grid_volume(np.where(np.isfinite(h), h, 0.0), grid) - true)
+    rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in errors.items()}
+    assert rms[NodeSlopes.GP] < 0.5 * rms[NodeSlopes.CURVATURE], rms
