@@ -1173,7 +1173,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "pose_source": pose_source_line(log.header or {}, survey.rangefinder),
         "autopilot_params": autopilot_params(log.header or {}),
         "surface_fit": opts.surface_fit,
-        "surface_slopes": opts.surface_slopes.value,
+        "surface_slopes": NodeSlopes(opts.surface_slopes).value,
         "n_cells_clipped": survey.n_cells_clipped,
         "n_samples_servo_suspect": survey.cloud.n_servo_suspect,
         "n_samples_spikes": survey.cloud.n_spikes,

@@ -9,6 +9,7 @@ from firmware_py.core.cli import ExitCode
 from firmware_py.core.storage import Storage
 from firmware_py.core.version import __version__, software_version
 from ground.cli import format_summary, main
+from ground.report import ReportOptions, make_report
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
 
@@ -75,6 +76,8 @@ def test_that_the_surface_slopes_option_reaches_the_report(run_dir, tmp_path, ca
     capsys.readouterr()
     _one_line_error(capsys, ["report", str(run_dir), "--out", str(tmp_path / "x"), "--surface-slopes", "spline"],
                     "--surface-slopes")
+    by_name = ReportOptions(plots=False, surface_slopes="gp")  # the library's options take the value's name too
+    assert make_report(run_dir, tmp_path / "s", by_name)["surface_slopes"] == "gp"
 
 
 def test_that_the_ground_options_reach_the_report(run_dir, tmp_path, capsys):
