@@ -287,6 +287,9 @@ def _report(args) -> int:
         raise UserError(f"--max-interval-pct must be > 0, got {args.max_interval_pct:g}")
     if args.max_grid_memory_mb <= 0:
         raise UserError(f"--max-grid-memory-mb must be > 0, got {args.max_grid_memory_mb:g}")
+    if args.surface_slopes != NodeSlopes.CURVATURE.value and args.surface_fit != "local-linear":
+        raise UserError(f"--surface-slopes {args.surface_slopes} applies to the local-linear surface fit only (the "
+                        f"others interpolate the points), got --surface-fit {args.surface_fit}")
     cfg = args.config_file
     for option, field_name, value in (("--density", "density_kg_m3", args.density),
                                       ("--min-pile-area", "min_area_m2", args.min_pile_area)):

@@ -76,6 +76,8 @@ def test_that_the_surface_slopes_option_reaches_the_report(run_dir, tmp_path, ca
     capsys.readouterr()
     _one_line_error(capsys, ["report", str(run_dir), "--out", str(tmp_path / "x"), "--surface-slopes", "spline"],
                     "--surface-slopes")
+    _one_line_error(capsys, ["report", str(run_dir), "--out", str(tmp_path / "y"), "--surface-slopes", "gp",
+                             "--surface-fit", "linear"], "applies to the local-linear surface fit only")
     by_name = ReportOptions(plots=False, surface_slopes="gp")  # the library's options take the value's name too
     assert make_report(run_dir, tmp_path / "s", by_name)["surface_slopes"] == "gp"
 
