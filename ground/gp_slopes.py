@@ -84,23 +84,39 @@ def octant_neighbours(xy: np.ndarray, at: np.ndarray, tree: cKDTree | None = Non
     return np.take_along_axis(idx0, order, axis=1), np.take_along_axis(keep, order, axis=1)
 
 
-def _systems(xy: np.ndarray, var: np.ndarray, at: np.ndarray, idx: np.ndarray, valid: np.ndarray,
-             cov: GpCovariance) -> tuple[np.ndarray, np.ndarray]:
-    """The universal-kriging systems around each point of `at`: (n, k + 3, k + 3) matrices (covariance with the
-    nodes' variances, a plane's drift) and the offsets (n, k, 2) of the nodes from the point (0 in empty slots,
-    which carry a huge variance and no covariance, so they take no weight)."""
-    k = idx.shape[1]
+@dataclass(frozen=True)
+class _Neighbourhoods:
+    """The nodes around each of n points (`octant_neighbours`): their slots, which are filled, their offsets from the
+    point (n, k, 2; 0 in empty slots) and their distances from each other (n, k, k). What the kriging systems need
+    besides the covariance, so a covariance fit makes it once for all the covariances it tries."""
+
+    idx: np.ndarray
+    valid: np.ndarray
+    offsets_m: np.ndarray
+    spacing_m: np.ndarray
+
+
+def _neighbourhoods(xy: np.ndarray, at: np.ndarray, idx: np.ndarray, valid: np.ndarray) -> _Neighbourhoods:
     d = xy[idx] - at[:, None, :]
     d[~valid] = 0.0
+    dist = np.subtract(d[:, :, None, 0], d[:, None, :, 0])
+    np.square(dist, out=dist)
+    dist += np.square(d[:, :, None, 1] - d[:, None, :, 1])
+    np.sqrt(dist, out=dist)
+    return _Neighbourhoods(idx, valid, d, dist)
+
+
+def _systems(nb: _Neighbourhoods, var: np.ndarray, cov: GpCovariance) -> np.ndarray:
+    """The universal-kriging systems of the neighbourhoods: (n, k + 3, k + 3) matrices, the covariance with the
+    nodes' variances and a plane's drift (empty slots carry a huge variance and no covariance, so they take no
+    weight)."""
+    idx, valid, d = nb.idx, nb.valid, nb.offsets_m
+    k = idx.shape[1]
     s2 = cov.amplitude_m**2
-    c = math.sqrt(5.0) / cov.length_m
-    a = np.zeros((len(at), k + 3, k + 3))
+    a = np.zeros((len(idx), k + 3, k + 3))
     cov_block = a[:, :k, :k]
-    np.subtract(d[:, :, None, 0], d[:, None, :, 0], out=cov_block)
-    np.square(cov_block, out=cov_block)
-    cov_block += np.square(d[:, :, None, 1] - d[:, None, :, 1])
-    np.sqrt(cov_block, out=cov_block)
-    cov_block *= c  # u = sqrt(5) r / l; the Matern 5/2 covariance s2 (1 + u + u^2 / 3) exp(-u), in place
+    # u = sqrt(5) r / l; the Matern 5/2 covariance s2 (1 + u + u^2 / 3) exp(-u), in place
+    np.multiply(nb.spacing_m, math.sqrt(5.0) / cov.length_m, out=cov_block)
     e = np.exp(-cov_block)
     poly = 1.0 + cov_block + np.square(cov_block) / 3.0
     np.multiply(poly, e, out=cov_block)
@@ -112,15 +128,15 @@ def _systems(xy: np.ndarray, var: np.ndarray, at: np.ndarray, idx: np.ndarray, v
     a[:, :k, k + 1] = d[..., 0]
     a[:, :k, k + 2] = d[..., 1]
     a[:, k:, :k] = np.transpose(a[:, :k, k:], (0, 2, 1))
-    return a, d
+    return a
 
 
-def restricted_loglik(xy: np.ndarray, z: np.ndarray, var: np.ndarray, idx: np.ndarray, valid: np.ndarray,
-                      cov: GpCovariance) -> float:
-    """Sum over the neighbourhoods (rows of idx) of the restricted log-likelihood of their node heights under the
-    covariance with a plane's drift; -inf where a neighbourhood's covariance is not positive definite."""
-    centre = np.where(valid[..., None], xy[idx], 0.0).sum(axis=1) / np.maximum(valid.sum(axis=1), 1)[:, None]
-    a, _ = _systems(xy, var, centre, idx, valid, cov)
+def restricted_loglik(nb: _Neighbourhoods, z: np.ndarray, var: np.ndarray, cov: GpCovariance) -> float:
+    """Sum over the neighbourhoods (each around its nodes' centre) of the restricted log-likelihood of their node
+    heights under the covariance with a plane's drift; -inf where a neighbourhood's covariance is not positive
+    definite."""
+    idx, valid = nb.idx, nb.valid
+    a = _systems(nb, var, cov)
     k = idx.shape[1]
     c = a[:, :k, :k]
     f = a[:, :k, k:]
@@ -145,19 +161,22 @@ def restricted_loglik(xy: np.ndarray, z: np.ndarray, var: np.ndarray, idx: np.nd
     return float(-0.5 * np.sum(q + logdet + logdet_f))
 
 
-def fit_covariance(xy: np.ndarray, z: np.ndarray, var: np.ndarray, seed: int = 0) -> GpCovariance:
+def fit_covariance(xy: np.ndarray, z: np.ndarray, var: np.ndarray, seed: int = 0,
+                   tree: cKDTree | None = None) -> GpCovariance:
     """The covariance (length, amplitude) that makes the node heights most likely (restricted maximum likelihood)
     over HYPER_NEIGHBOURHOODS sampled neighbourhoods: the grid LENGTHS_M x AMPLITUDES_M, then the half steps around
     its best. The sample is drawn with a fixed seed: the same nodes give the same surface."""
     rng = np.random.default_rng(seed)
     centres = xy[rng.choice(len(z), size=min(HYPER_NEIGHBOURHOODS, len(z)), replace=False)]
-    idx, valid = octant_neighbours(xy, centres, cKDTree(xy))
+    idx, valid = octant_neighbours(xy, centres, tree)
+    centre = np.where(valid[..., None], xy[idx], 0.0).sum(axis=1) / np.maximum(valid.sum(axis=1), 1)[:, None]
+    nb = _neighbourhoods(xy, centre, idx, valid)
     seen: dict[tuple[float, float], float] = {}
 
     def loglik(length: float, amp: float) -> float:
         key = (length, amp)
         if key not in seen:
-            seen[key] = restricted_loglik(xy, z, var, idx, valid, GpCovariance(length, amp))
+            seen[key] = restricted_loglik(nb, z, var, GpCovariance(length, amp))
         return seen[key]
     best = max(((lv, av) for lv in LENGTHS_M for av in AMPLITUDES_M), key=lambda la: loglik(*la))
     step_l = math.sqrt(LENGTHS_M[1] / LENGTHS_M[0])
@@ -167,18 +186,20 @@ def fit_covariance(xy: np.ndarray, z: np.ndarray, var: np.ndarray, seed: int = 0
     return GpCovariance(*best)
 
 
-def gp_smoothed(xy: np.ndarray, z: np.ndarray, var: np.ndarray, cov: GpCovariance) -> np.ndarray:
+def gp_smoothed(xy: np.ndarray, z: np.ndarray, var: np.ndarray, cov: GpCovariance,
+                tree: cKDTree | None = None) -> np.ndarray:
     """(n,) the kriging predictor's height at every node from its octant neighbours (itself among them, with its
     error variance): the node heights with their noise averaged out, and as they are where they have none."""
-    tree = cKDTree(xy)
+    tree = cKDTree(xy) if tree is None else tree
     out = np.zeros(len(z))
     s2, length = cov.amplitude_m**2, cov.length_m
     for lo in range(0, len(z), CHUNK):
         at = xy[lo:lo + CHUNK]
         idx, valid = octant_neighbours(xy, at, tree)
-        a, d = _systems(xy, var, at, idx, valid, cov)
+        nb = _neighbourhoods(xy, at, idx, valid)
+        a = _systems(nb, var, cov)
         k = idx.shape[1]
-        r = np.hypot(d[..., 0], d[..., 1])
+        r = np.hypot(nb.offsets_m[..., 0], nb.offsets_m[..., 1])
         b = np.zeros((len(at), k + 3))
         b[:, :k] = np.where(valid, s2 * matern52(r / length), 0.0)
         b[:, k] = 1.0
@@ -198,7 +219,8 @@ def node_slopes(tri: Delaunay, z: np.ndarray, se_m: np.ndarray) -> np.ndarray | 
         return None
     var = se * se
     try:
-        smoothed = gp_smoothed(xy, z, var, fit_covariance(xy, z, var))
+        tree = cKDTree(xy)  # one tree for the fit's neighbourhoods and the prediction's
+        smoothed = gp_smoothed(xy, z, var, fit_covariance(xy, z, var, tree=tree), tree)
     except np.linalg.LinAlgError:  # a neighbourhood with no plane through it (its nodes on one line)
         return None
     if not np.all(np.isfinite(smoothed)):
