@@ -31,7 +31,7 @@ from ground.metadata import SurveyInfo, check_timezone, metadata_rows
 from ground.pile_change import format_pile_changes, pile_changes
 from ground.piles import DEFAULT_MIN_PILE_AREA_M2, MassUnit, PileOptions, VolumeUnit, pile_rows, piles_note
 from ground.pose_correction import PoseCorrectionOptions
-from ground.render import warning_parts
+from ground.render import fmt_echo, warning_parts
 from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, make_report
 from ground.smoothing import NodeSlopes
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
@@ -221,6 +221,7 @@ def format_summary(rep: dict) -> str:
         rows += [("truth", vol(truth)), ("Ve (eq. 8)", pct(rep.get("volume_error_pct")))]
     rows += [("R_a (eq. 9)", pct(rep.get("coverage_ratio_pct"))),
              ("points used", f"{rep['n_points_used']:,} of {rep['n_samples']:,} samples")]
+    rows += [("echoes", fmt_echo(rep["echo"]))] if rep.get("echo") else []
     if "floor_measured" in rep and not rep.get("flights"):  # a merged survey's floors are its flights' own
         rows += [("floor seen at", floor_line(rep["floor_measured"]))]
     rows += list(metadata_rows(rep.get("metadata")))

@@ -42,6 +42,7 @@ SUMMARY_KEYS: tuple[str, ...] = (
     "n_samples",
     "n_points_used",
     "n_points_removed_walls",
+    "echo",
     "cell_size_m",
     "empty_cell_policy",
     "sensor_noise",
@@ -57,6 +58,8 @@ SUMMARY_KEYS: tuple[str, ...] = (
 
 REFERENCE_KEYS = ("true_volume_m3", "volume_error_pct")
 """Rows that exist only with a reference volume (a simulated survey, --truth-volume): dropped without one."""
+OPTIONAL_KEYS = ("echo",)
+"""Rows dropped when the report has nothing to say (no return model for the sensor, a merged survey)."""
 
 _SUMMARY_LABELS: dict[str, str] = {
     "volume_m3": "Stockpile volume",
@@ -68,6 +71,7 @@ _SUMMARY_LABELS: dict[str, str] = {
     "n_samples": "LiDAR samples",
     "n_points_used": "Points used for the surface",
     "n_points_removed_walls": "Points removed (walls/roof)",
+    "echo": "Echoes",
     "cell_size_m": "Grid cell size",
     "empty_cell_policy": "Empty-cell policy",
     "sensor_noise": "Sensor noise (simulated)",
@@ -308,6 +312,31 @@ def headline(report: Mapping[str, Any]) -> str:
     return f"{shown}; {text.removeprefix(label + ': ')}"
 
 
+def reach_phrase(echo: Mapping[str, Any]) -> str:
+    """What report.json's `echo` says the rangefinder reaches (`ground.echo_reach`): "the LIDAR's reach (about 23 m at
+    normal incidence on 30 % reflective ground, the return model's assumption; less at a slant)", or for a simulated
+    sensor without a return model, its range at any incidence."""
+    reach = math.floor(float(echo["reach_at_normal_incidence_m"]))
+    if echo.get("target_reflectance") is None:
+        return f"the simulated {echo['sensor']}'s range ({reach:d} m at any incidence)"
+    return (f"the {echo['sensor']}'s reach (about {reach:d} m at normal incidence on "
+            f"{100.0 * float(echo['target_reflectance']):.0f} % reflective ground, the return model's assumption; "
+            "less at a slant)")
+
+
+def fmt_echo(v: Any) -> str:
+    """report.json's `echo` (`ground.echo_reach.echo_record`) as one line: how many samples had no echo, and how many
+    of those aimed beyond the rangefinder's reach (unknown when absent or malformed)."""
+    try:
+        aimed, none = int(v["samples_aimed"]), int(v["no_echo"])
+        line = f"{none:,} of {aimed:,} samples without an echo ({100.0 * none / aimed if aimed else 0.0:.1f} %)"
+        if none:
+            line += f"; {int(v['beyond_reach']):,} of them aimed beyond {reach_phrase(v)}"
+        return line
+    except (TypeError, KeyError, ValueError, OverflowError):
+        return UNKNOWN
+
+
 def fmt_interval(v: Any) -> str:
     """[low, high] m³ as 'low – high m³' (unknown when absent or malformed)."""
     if not (isinstance(v, list | tuple) and len(v) == 2):
@@ -326,6 +355,7 @@ _SUMMARY_FORMAT = {
     "n_samples": fmt_count,
     "n_points_used": fmt_count,
     "n_points_removed_walls": fmt_count,
+    "echo": fmt_echo,
     "cell_size_m": lambda v: _fmt_number(v, ".3f", " m"),
     "empty_cell_policy": fmt_value,
     "sensor_noise": fmt_value,
@@ -437,7 +467,7 @@ def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportC
     from ground.piles import pile_rows, piles_note
     no_reference = report.get("true_volume_m3") is None  # a real survey: no "True volume: unknown" rows
     summary = [(_SUMMARY_LABELS[k], _SUMMARY_FORMAT[k](report.get(k))) for k in SUMMARY_KEYS
-               if not (no_reference and k in REFERENCE_KEYS)]
+               if not (no_reference and k in REFERENCE_KEYS) and not (k in OPTIONAL_KEYS and report.get(k) is None)]
     handled = {*SUMMARY_KEYS, "warnings", "config", "metadata", "piles", "verdict", "to_narrow_interval"}
     if no_reference:
         handled |= {"volume_error_m3", "volume_error_pct", "truth_in_interval"}

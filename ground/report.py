@@ -34,6 +34,7 @@ from ground.building_check import SizeCheck, check_building, size_warning
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
 from ground.deliverable import add_deliverable
 from ground.despike import SpikeThreshold, why_no_threshold
+from ground.echo_reach import echo_reach, echo_record, echo_warning
 from ground.exports.formats import EXPORT_FILES, ExportFormat
 from ground.exports.write import check_exports, write_exports
 from ground.floor_check import FloorLevel, floor_other_reading, floor_warning, measure_floor
@@ -1085,6 +1086,35 @@ def storage_warning(header: dict, storage: Storage) -> str | None:
             f"(--storage), not the log header's {logged.length_m:g} x {logged.width_m:g} x {logged.height_m:g} m")
 
 
+def unseen_share_m3(terms: ErrorTerms) -> float:
+    """The unseen term's part of the 90 % interval, m³: its larger side scaled as the interval scales it."""
+    return DEFAULT_INTERVAL_MODEL.k_unseen * max(terms.unseen_low_m3, terms.unseen_high_m3)
+
+
+def echo_of(survey: Survey, log: SampleLog) -> dict | None:
+    """report.json's `echo` for one flight (`ground.echo_reach`): its samples without an echo traced on the poses the
+    survey placed its points with (the correction applied, when it was), with its lever arm and the header's mount;
+    None when the header names no sensor with a known return model or no frame."""
+    header = log.header or {}
+    try:
+        frame = StorageFrame.from_dict(header["storage_frame"])
+        mount = header_boresight(header)
+    except (KeyError, TypeError, ValueError):
+        return None
+    samples = log.samples
+    if survey.pose is not None and survey.pose.applied:
+        samples = apply_pose_correction(samples, survey.pose, frame)
+    lever = survey.lever_arm_body_m if survey.lever_arm_body_m is not None else header.get("lever_arm_body_m")
+    if lever is None:
+        return None
+    reach = echo_reach(samples, header, np.asarray(lever, dtype=float), frame, survey.storage, survey.grid, mount)
+    if reach is None:
+        return None
+    errors_in = survey.errors_in
+    term = None if errors_in is None else (lambda cells: unseen_share_m3(errors_in(cells).terms))
+    return echo_record(reach, survey.heights_fit, survey.heights, survey.grid, term)
+
+
 def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: float | None,
               flights: Sequence[Flight] | None = None) -> dict:
     """report.json's figures and warnings. With flights (a merged survey: `merged_survey`, `log` their merged
@@ -1092,6 +1122,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
     g = survey.grid
     base = survey.base or FLOOR_BASE
     volume = base.volume_m3(survey.heights, g)  # over z = 0: grid_volume(survey.heights, g), as always
+    echo = echo_of(survey, log) if flights is None else None
     ra = reconstructed_ratio_pct(survey.heights_fit)
     n_struct = len(survey.cloud.points_w) - len(survey.pile_points_w)
     site, _ = header_site(log.header or {})
@@ -1121,7 +1152,8 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
             faces_warning(survey.errors.faces, g, terms, DEFAULT_INTERVAL_MODEL),
             pose_warning(terms, DEFAULT_INTERVAL_MODEL, volume, opts.max_interval_pct),
             level_warning(terms, DEFAULT_INTERVAL_MODEL, volume, opts.max_interval_pct, opts.baro_walk_m_per_sqrt_s),
-            open_floor_warning(**open_floor)) if w]
+            open_floor_warning(**open_floor),
+            echo_warning(echo, volume, opts.max_interval_pct)) if w]
         stock = base.details.get("base_volume_m3") if base.kind is BaseKind.SURVEY else None
         wide = wide_interval_warning(volume, interval, opts.max_interval_pct,
                                      explained=bool(why) or bool(base.warnings), stock_m3=stock)
@@ -1166,6 +1198,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "n_points_used": len(survey.pile_points_w),
         "n_points_removed_walls": n_struct,
         "n_samples_excluded": survey.cloud.n_excluded,
+        "echo": echo,
         "cell_size_m": g.length_m / g.shape[0],
         "cell_area_m2": g.cell_area_m2,
         "empty_cell_policy": opts.empty_cells,

@@ -150,3 +150,19 @@ def test_that_a_structure_off_its_planes_is_warned_when_either_estimator_finds_i
     assert unexplained_structure_warning(off_mount, corrected) is None
     calibrated = MountEstimate((0.05, 0.0, 0.0, 0.0), (0.001,) * 4, (True, False, False, False), (0,) * 5, 0.0, 0.0)
     assert unexplained_structure_warning(calibrated, off_pose) is None
+
+
+def test_that_floor_the_rangefinder_could_not_reach_is_said_and_a_flight_that_reached_everything_is_quiet(
+        tmp_path, paper_report):
+    """The LIDAR-Lite v3's datasheet returns at P_traj 30 %: the legs 12 m from the walls see no echo from the floor
+    at their feet (ground.echo_reach), and the fill there holds several percent of the volume."""
+    fly(FlyConfig(mission=Mission(p_traj=0.3), plant="ideal", sensor_noise="datasheet"), tmp_path / "run")
+    rep = make_report(tmp_path / "run", tmp_path / "rep", ReportOptions(plots=False))
+    echo = rep["echo"]
+    assert echo["no_echo"] > 0.1 * echo["samples_aimed"] and echo["beyond_reach"] > 0.9 * echo["no_echo"]
+    warned = [w for w in rep["warnings"] if "beyond the Garmin LIDAR-Lite v3's reach" in w]
+    assert len(warned) == 1 and "the fill put" in warned[0]
+    assert echo["unseen_term_m3"] > 0.025 * rep["volume_m3"]  # over half of a 5 % tolerance
+    quiet = paper_report["echo"]  # an ideal sensor at P_traj 10 %: what it did not echo was beyond the building's floor
+    assert max(quiet["fill_out_of_reach_m3"], quiet["unseen_term_m3"]) < 0.001 * paper_report["volume_m3"]
+    assert not [w for w in paper_report["warnings"] if "echo" in w]

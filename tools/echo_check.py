@@ -1,0 +1,105 @@
+"""The echo diagnosis (`ground.echo_reach`) over the stored evaluation set: how often its warning speaks, and on which
+surveys.
+
+Each run is surveyed as the report surveys it (`ground.report.survey_from_samples`); its samples without an echo are
+traced with its header's geometry, and the warning judged against its volume with the default 5 % tolerance. A
+warning is wanted where the fill put material on floor the rangefinder could not reach and the volume is off for it:
+the table counts, per noise model and P_traj, the runs it warned on, the runs reading more than 2 % high (the fill's
+usual sign where the pile's flank is carried level to a wall) and how many of those it warned on, and the runs it
+warned on whose volume was within 1 % (a warning a surveyor did not need).
+
+Usage: python -m tools.echo_check [--root runs/evalset] [--noise datasheet none] [--stride 1] [--jobs 2]
+           [--write docs/unseen.md]  (the table into the page's section echo-check)
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from firmware_py.core.header import header_boresight
+from ground.echo_reach import echo_reach, echo_record, echo_warning
+from ground.report import ReportOptions, survey_from_samples, unseen_share_m3
+from ground.surface import grid_volume
+from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
+from tools.doc_sections import write_section
+from tools.evalset import DEFAULT_ROOT, load_run, stored_runs_or_say
+
+SECTION = "echo-check"
+HIGH_PCT = 2.0
+"""A run reading more than this high is one the fill may have over-filled (the table's wanted column)."""
+CLOSE_PCT = 1.0
+"""A run within this of the truth did not need a warning about its volume."""
+
+
+def echo_row(run_dir: str) -> dict:
+    """One run's survey volume, echo record and whether the warning spoke."""
+    r = load_run(run_dir)
+    sv = survey_from_samples(r.samples, r.header, r.storage, r.frame, r.lever_arm_body_m, ReportOptions(plots=False))
+    reach = echo_reach(r.samples, r.header, r.lever_arm_body_m, r.frame, r.storage, sv.grid, header_boresight(r.header))
+    term = None if sv.errors_in is None else (lambda cells: unseen_share_m3(sv.errors_in(cells).terms))
+    rec = None if reach is None else echo_record(reach, sv.heights_fit, sv.heights, sv.grid, term)
+    volume = grid_volume(sv.heights, sv.grid)
+    true = r.true_volume_m3
+    return {"run": r.run_id, "noise": r.truth["noise"], "p_traj": int(r.truth["p_traj_pct"]),
+            "family": r.truth["family"], "ve_pct": None if true <= 0 else 100.0 * (volume - true) / true,
+            "echo": rec, "warned": echo_warning(rec, volume, DEFAULT_MAX_INTERVAL_PCT) is not None}
+
+
+def summary(rows: Sequence[dict]) -> list[str]:
+    """The table's lines: per noise model and P_traj."""
+    lines = ["| noise | P_traj | runs | samples without an echo (median) | warned | read > 2 % high | of them warned | "
+             "warned within 1 % |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for noise in sorted({r["noise"] for r in rows}):
+        for p in sorted({r["p_traj"] for r in rows if r["noise"] == noise}):
+            rr = [r for r in rows if r["noise"] == noise and r["p_traj"] == p]
+            share = [r["echo"]["no_echo"] / r["echo"]["samples_aimed"] for r in rr if r["echo"]]
+            high = [r for r in rr if r["ve_pct"] is not None and r["ve_pct"] > HIGH_PCT]
+            close = [r for r in rr if r["warned"] and r["ve_pct"] is not None and abs(r["ve_pct"]) <= CLOSE_PCT]
+            lines.append(f"| {noise} | {p} % | {len(rr)} | {100 * float(np.median(share)) if share else 0:.1f} % | "
+                         f"{sum(r['warned'] for r in rr)} | {len(high)} | {sum(r['warned'] for r in high)} | "
+                         f"{len(close)} |")
+    return lines
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m tools.echo_check", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--root", type=Path, default=DEFAULT_ROOT, help="the evaluation set (tools.evalset)")
+    ap.add_argument("--noise", nargs="+", default=["datasheet", "none"], help="noise models (default datasheet none)")
+    ap.add_argument("--stride", type=int, default=1, help="every Nth run only (a quick look)")
+    ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--write", type=Path, default=None, metavar="PAGE",
+                    help=f"also write the table into this page's section {SECTION}")
+    args = ap.parse_args(argv)
+    if args.stride < 1 or args.jobs < 1:
+        print("echo_check: --stride and --jobs must be >= 1", file=sys.stderr)
+        return 2
+    dirs = [d for d in stored_runs_or_say(args.root, 1, "echo_check") if any(d.endswith(f"-{n}") for n in args.noise)]
+    dirs = dirs[::args.stride]
+    if not dirs:
+        print(f"echo_check: no stored runs with noise {' '.join(args.noise)} under {args.root}", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(args.jobs) as pool:
+        rows = list(pool.map(echo_row, dirs, chunksize=4))
+    table = "\n".join(summary(rows))
+    print(table)
+    if args.write is not None:
+        cmd = "python -m tools.echo_check" + (f" --noise {' '.join(args.noise)}"
+                                              if args.noise != ["datasheet", "none"] else "")
+        cmd += (f" --stride {args.stride}" if args.stride > 1 else "") + f" --jobs {args.jobs} --write {args.write}"
+        runs = f"{len(rows):,} run{'s' if len(rows) != 1 else ''}"
+        write_section(args.write, SECTION, f"Regenerated by `{cmd}` ({runs} of the evaluation set, "
+                                           f"{(time.perf_counter() - t0) / 60:.1f} min):\n\n{table}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
