@@ -45,7 +45,8 @@ class EchoReach:
 
     Attributes:
         sensor: the rangefinder's name, as the header gives it.
-        n_aimed: samples with a pose and a servo angle to trace (faulty readings and unposed samples left out).
+        n_aimed: samples with a pose inside the building and a servo angle to trace (faulty readings and unposed
+            samples left out).
         n_no_echo: of them, flagged NO_RETURN.
         n_beyond_reach: of those, whose beam met the bare building beyond its sure reach at that incidence.
         reach_normal_m: the sure reach at normal incidence on the assumed reflectance (a simulated sensor without a
@@ -132,6 +133,10 @@ def echo_reach(samples: np.ndarray, header: dict, lever_arm_body_m, frame: Stora
     faulty = int(UNPOSED | SampleFlags.SENSOR_ERROR | SampleFlags.SERVO_UNCERTAIN)
     aimed = (np.isfinite(pos).all(axis=1) & np.logical_and.reduce([np.isfinite(a) for a in angles])
              & ((flags & faulty) == 0))
+    # a sample taken outside the building (a damaged record, the vehicle not yet inside) is no survey beam
+    idx = np.flatnonzero(aimed)
+    w = frame.ned_to_w(pos[idx])
+    aimed[idx[~np.all((w >= 0.0) & (w <= [storage.length_m, storage.width_m, storage.height_m]), axis=1)]] = False
     n_aimed = int(aimed.sum())
     if n_aimed == 0:
         return None

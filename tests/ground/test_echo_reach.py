@@ -49,6 +49,8 @@ def test_that_a_beam_within_reach_and_samples_with_an_echo_or_without_a_pose_mar
     unposed = echo_reach(_samples([60.0], SampleFlags.NO_RETURN | SampleFlags.STALE_POSE), HEADER, [0, 0, 0], FRAME,
                          STORAGE, GRID)
     assert unposed is None  # nothing could be traced
+    outside = _samples([60.0], x_m=-5.0)  # 5 m outside the wall x = 0: a damaged record, no survey beam
+    assert echo_reach(outside, HEADER, [0, 0, 0], FRAME, STORAGE, GRID) is None
 
 
 def test_that_a_sensor_without_a_known_return_model_or_a_malformed_header_gives_no_diagnosis():
