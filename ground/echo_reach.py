@@ -95,13 +95,11 @@ def sensor_returns(header: dict) -> tuple[RangefinderSpec, ReturnModel | None] |
 
 
 def sure_reach_m(spec: RangefinderSpec, model: ReturnModel | None, cos_incidence: np.ndarray | float) -> np.ndarray:
-    """How far the rangefinder surely echoes at these incidences: (1 - dropout_ramp_rel) of the return model's
-    effective range (the inverse-square law of `ReturnModel.effective_range_m`), or max_range_m without a model."""
-    c = np.asarray(cos_incidence, dtype=float)
+    """How far the rangefinder surely echoes at these incidences: `ReturnModel.sure_range_m` (the range a mission is
+    planned on), or max_range_m without a model."""
     if model is None:
-        return np.full(c.shape, float(spec.max_range_m))
-    return (1.0 - model.dropout_ramp_rel) * spec.max_range_m * np.sqrt(
-        np.clip(c, 0.0, None) * model.target_reflectance / model.reference_reflectance)
+        return np.full(np.shape(cos_incidence), float(spec.max_range_m))
+    return model.sure_range_m(spec.max_range_m, cos_incidence)
 
 
 def bare_building_hits(origins: np.ndarray, dirs: np.ndarray, storage: Storage) -> tuple[np.ndarray, np.ndarray]:

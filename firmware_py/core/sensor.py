@@ -13,6 +13,8 @@ from dataclasses import asdict, dataclass, fields, replace
 from enum import Enum
 from typing import Any
 
+import numpy as np
+
 SENSOR_KEYS = ("model", "rate_hz", "max_range_m", "resolution_m", "range_sigma_m", "range_sigma_rel",
                "beam_divergence_rad")
 """The header's ``sensor`` keys, in order."""
@@ -171,6 +173,14 @@ class ReturnModel:
         """The farthest echo at this incidence on the assumed target (inverse-square law above)."""
         return max_range_m * math.sqrt(max(0.0, cos_incidence) * self.target_reflectance
                                        / self.reference_reflectance)
+
+    def sure_range_m(self, max_range_m: float, cos_incidence: np.ndarray | float = 1.0) -> np.ndarray:
+        """The farthest certain echo at these incidences: (1 - dropout_ramp_rel) of the effective range, for many
+        incidences at once. What a mission is planned on (`sitl.missions.range_check`) and what a report judges its
+        samples without an echo by (`ground.echo_reach`)."""
+        c = np.clip(np.asarray(cos_incidence, dtype=float), 0.0, 1.0)
+        return (1.0 - self.dropout_ramp_rel) * max_range_m * np.sqrt(c * self.target_reflectance
+                                                                     / self.reference_reflectance)
 
 
 LIDARLITE_V3_RETURNS = ReturnModel(reference_reflectance=0.70)

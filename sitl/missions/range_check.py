@@ -77,12 +77,9 @@ class RangeLimit:
     def reach_m(self, cos_incidence: np.ndarray | float = 1.0) -> np.ndarray:
         """The farthest certain echo at this incidence: the rated range, or (1 - ramp) of the return
         model's effective range on the assumed surfaces."""
-        c = np.clip(np.asarray(cos_incidence, dtype=float), 0.0, 1.0)
         if self.returns is None:
-            return np.full(c.shape, float(self.rated_range_m))
-        r = self.returns
-        return (1.0 - r.dropout_ramp_rel) * self.rated_range_m * np.sqrt(c * r.target_reflectance
-                                                                          / r.reference_reflectance)
+            return np.full(np.shape(cos_incidence), float(self.rated_range_m))
+        return self.returns.sure_range_m(self.rated_range_m, cos_incidence)
 
     @property
     def normal_reach_m(self) -> float:
