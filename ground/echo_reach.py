@@ -204,7 +204,7 @@ def echo_warning(record: dict | None, volume_m3: float | None, max_pct: float) -
     if volume_m3 is None or not volume_m3 > 0 or term < 0.5 * max_pct / 100.0 * volume_m3:
         return None
     return (f"{record['unseen_out_of_reach_m2']:,.0f} m² of the unseen floor was out of the rangefinder's reach: "
-            f"{record['beyond_reach']:,} samples without an echo aimed over it beyond {reach_phrase(record)}; the "
-            f"fill put {float(record['fill_out_of_reach_m3']):,.0f} m³ there ({record['where']}), and the volume's "
-            f"interval allows +/-{term:,.0f} m³ for it; the same legs flown again would not see it, legs nearer it, "
-            "a lower flight or a rangefinder with more reach would")
+            f"samples without an echo ({record['beyond_reach']:,} in the flight) aimed over it beyond "
+            f"{reach_phrase(record)}; the fill put {float(record['fill_out_of_reach_m3']):,.0f} m³ there "
+            f"({record['where']}), and the volume's interval allows +/-{term:,.0f} m³ for it; the same legs flown "
+            "again would not see it, legs nearer it, a lower flight or a rangefinder with more reach would")
