@@ -1,28 +1,16 @@
 """The echo check over stored evaluation runs: each run's echo record and warning, the table by noise and P_traj."""
 
-import json
-from pathlib import Path
-
-import numpy as np
 import pytest
 
-from firmware_py.core.samplelog import read_samplelog
+from tests.tools.golden_run import store_golden_run
 from tools.echo_check import echo_row, main, summary
-
-GOLDEN = Path(__file__).resolve().parents[1] / "golden"
 
 
 @pytest.fixture(scope="module")
 def stored(tmp_path_factory):
     """The golden flight stored as an evaluation run (samples.npy, header.json, truth.json)."""
     root = tmp_path_factory.mktemp("evalset")
-    run = root / "runs" / "golden-cone-0-none"
-    run.mkdir(parents=True)
-    log = read_samplelog(GOLDEN / "samples.pslog")
-    np.save(run / "samples.npy", log.samples)
-    (run / "header.json").write_text(json.dumps(log.header))
-    (run / "truth.json").write_text(json.dumps({"run_id": run.name, "family": "cone", "noise": "none",
-                                                "split": "heldout", "true_volume_m3": 1.0, "p_traj_pct": 20}))
+    store_golden_run(root, true_volume_m3=1.0, p_traj_pct=20)
     return root
 
 

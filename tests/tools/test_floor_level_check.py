@@ -1,29 +1,17 @@
 """The floor-level check over stored evaluation runs: each run's floor measured as logged and with the lever arm's z
 off, the table split by noise model and by the families whose piles may hide the floor."""
 
-import json
-from pathlib import Path
-
-import numpy as np
 import pytest
 
-from firmware_py.core.samplelog import read_samplelog
+from tests.tools.golden_run import store_golden_run
 from tools.floor_level_check import floor_row, main, summary
-
-GOLDEN = Path(__file__).resolve().parents[1] / "golden"
 
 
 @pytest.fixture(scope="module")
 def stored(tmp_path_factory):
     """The golden flight stored as an evaluation run (samples.npy, header.json, truth.json)."""
     root = tmp_path_factory.mktemp("evalset")
-    run = root / "runs" / "golden-cone-0-none"
-    run.mkdir(parents=True)
-    log = read_samplelog(GOLDEN / "samples.pslog")
-    np.save(run / "samples.npy", log.samples)
-    (run / "header.json").write_text(json.dumps(log.header))
-    (run / "truth.json").write_text(json.dumps({"run_id": run.name, "family": "cone", "noise": "none",
-                                                "split": "heldout", "true_volume_m3": 1.0}))
+    store_golden_run(root, true_volume_m3=1.0)
     return root
 
 

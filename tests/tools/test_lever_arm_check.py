@@ -2,30 +2,18 @@
 body axis, the change of volume against the run's own report, the interval's coverage and the new warnings."""
 
 import json
-from pathlib import Path
 
-import numpy as np
 import pytest
 
-from firmware_py.core.samplelog import read_samplelog
+from tests.tools.golden_run import RUN, golden_true_volume_m3, store_golden_run
 from tools.lever_arm_check import lever_rows, main, summary, warning_lines
-
-GOLDEN = Path(__file__).resolve().parents[1] / "golden"
-RUN = "golden-cone-0-none"
 
 
 @pytest.fixture(scope="module")
 def stored(tmp_path_factory):
     """The golden flight stored as an evaluation run (samples.npy, header.json, truth.json)."""
     root = tmp_path_factory.mktemp("evalset")
-    run = root / "runs" / RUN
-    run.mkdir(parents=True)
-    log = read_samplelog(GOLDEN / "samples.pslog")
-    truth = json.loads((GOLDEN / "truth.json").read_text())["true_volume_m3"]
-    np.save(run / "samples.npy", log.samples)
-    (run / "header.json").write_text(json.dumps(log.header))
-    (run / "truth.json").write_text(json.dumps({"run_id": RUN, "family": "cone", "noise": "none",
-                                                "split": "heldout", "true_volume_m3": truth}))
+    store_golden_run(root, true_volume_m3=golden_true_volume_m3())
     return root
 
 
