@@ -196,7 +196,7 @@ MIN_SHARE = 0.25
 def limiting_terms(terms: ErrorTerms, model: IntervalModel, base: tuple[str, float] | None = None) -> list[str]:
     """The error terms that hold most of the interval, largest first (keys of _LIMITS). base: the base's own
     term and its 90 % half-width, added to the interval in quadrature (ground.base), when it has one."""
-    scaled = {"unseen": model.k_unseen * max(terms.unseen_low_m3, terms.unseen_high_m3),
+    scaled = {"unseen": model.unseen_m3(terms),
               "interpolation": model.k_interpolation * terms.interpolation_m3, "noise": model.k_noise * terms.noise_m3,
               "blur": model.k_blur * terms.blur_m3, "sweeps": model.k_sweeps * terms.sweeps_m3,
               "faces": model.k_faces * terms.faces_m3, "pose": model.k_pose * terms.pose_m3,

@@ -1086,11 +1086,6 @@ def storage_warning(header: dict, storage: Storage) -> str | None:
             f"(--storage), not the log header's {logged.length_m:g} x {logged.width_m:g} x {logged.height_m:g} m")
 
 
-def unseen_share_m3(terms: ErrorTerms) -> float:
-    """The unseen term's part of the 90 % interval, m³: its larger side scaled as the interval scales it."""
-    return DEFAULT_INTERVAL_MODEL.k_unseen * max(terms.unseen_low_m3, terms.unseen_high_m3)
-
-
 def echo_of(survey: Survey, log: SampleLog) -> dict | None:
     """report.json's `echo` for one flight (`ground.echo_reach`): its samples without an echo traced on the poses the
     survey placed its points with (the correction applied, when it was), with its lever arm and the header's mount;
@@ -1111,7 +1106,7 @@ def echo_of(survey: Survey, log: SampleLog) -> dict | None:
     if reach is None:
         return None
     errors_in = survey.errors_in
-    term = None if errors_in is None else (lambda cells: unseen_share_m3(errors_in(cells).terms))
+    term = None if errors_in is None else (lambda cells: DEFAULT_INTERVAL_MODEL.unseen_m3(errors_in(cells).terms))
     return echo_record(reach, survey.heights_fit, survey.heights, survey.grid, term)
 
 

@@ -136,6 +136,11 @@ class IntervalModel:
         return (math.sqrt(common + (self.k_unseen * t.unseen_low_m3) ** 2),
                 math.sqrt(common + (self.k_unseen * t.unseen_high_m3) ** 2))
 
+    def unseen_m3(self, t: ErrorTerms) -> float:
+        """The unseen term's part of the interval: its larger side, scaled (what the volume warnings and the verdict
+        weigh it by)."""
+        return self.k_unseen * max(t.unseen_low_m3, t.unseen_high_m3)
+
     def interval_m3(self, volume_m3: float, t: ErrorTerms) -> tuple[float, float]:
         """The interval, never below 0 (a volume cannot be negative, whatever the noise made of it)."""
         below, above = self.half_widths_m3(t)

@@ -117,7 +117,7 @@ def unseen_warning(heights_fit: np.ndarray, heights: np.ndarray, grid: Grid, t: 
     """When the filled cells hold material, dominate the interval, and (given the volume) widen it by more
     than half the tolerance max_pct: a survey whose whole interval is a fraction of a percent need not
     hear that most of that fraction is unseen floor."""
-    scaled = model.k_unseen * max(t.unseen_low_m3, t.unseen_high_m3)
+    scaled = model.unseen_m3(t)
     if not _holds_wide_interval(scaled, t, model, volume_m3, max_pct, t.unseen_high_m3 > t.unseen_low_m3):
         return None
     filled = ~np.isfinite(heights_fit)
