@@ -27,7 +27,7 @@ import numpy as np
 
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_rays_w
 from firmware_py.core.samplelog import UNPOSED, SampleFlags
-from firmware_py.core.sensor import RETURN_MODELS, RangefinderSpec, ReturnModel
+from firmware_py.core.sensor import RETURN_MODELS, RangefinderSpec, ReturnModel, sure_echo_range_m
 from firmware_py.core.storage import Storage
 from ground.render import reach_phrase
 from ground.surface import Grid
@@ -94,14 +94,6 @@ def sensor_returns(header: dict) -> tuple[RangefinderSpec, ReturnModel | None] |
     return None if model is None else (spec, model)
 
 
-def sure_reach_m(spec: RangefinderSpec, model: ReturnModel | None, cos_incidence: np.ndarray | float) -> np.ndarray:
-    """How far the rangefinder surely echoes at these incidences: `ReturnModel.sure_range_m` (the range a mission is
-    planned on), or max_range_m without a model."""
-    if model is None:
-        return np.full(np.shape(cos_incidence), float(spec.max_range_m))
-    return model.sure_range_m(spec.max_range_m, cos_incidence)
-
-
 def bare_building_hits(origins: np.ndarray, dirs: np.ndarray, storage: Storage) -> tuple[np.ndarray, np.ndarray]:
     """Where each beam leaves the bare building's box: its distance along the beam (inf for a beam that meets no plane
     ahead, e.g. fired from outside) and the cosine of its incidence on that plane, (n,) each."""
@@ -139,13 +131,13 @@ def echo_reach(samples: np.ndarray, header: dict, lever_arm_body_m, frame: Stora
     if n_aimed == 0:
         return None
     none = aimed & ((flags & int(SampleFlags.NO_RETURN)) != 0)
-    reach_normal = float(sure_reach_m(spec, model, 1.0))
+    reach_normal = float(sure_echo_range_m(spec.max_range_m, model, 1.0))
     out = np.zeros(grid.shape, dtype=bool)
     n_beyond = 0
     if none.any():
         origins, dirs = beam_rays_w(pos[none], *(a[none] for a in angles), lever_arm_body_m, frame, boresight)
         end, cos_i = bare_building_hits(origins, dirs, storage)
-        sure = sure_reach_m(spec, model, cos_i)
+        sure = sure_echo_range_m(spec.max_range_m, model, cos_i)
         beyond = np.isfinite(end) & (end > sure)
         n_beyond = int(beyond.sum())
         if n_beyond:

@@ -183,6 +183,15 @@ class ReturnModel:
                                                                      / self.reference_reflectance)
 
 
+def sure_echo_range_m(max_range_m: float, returns: ReturnModel | None,
+                      cos_incidence: np.ndarray | float = 1.0) -> np.ndarray:
+    """The farthest certain echo at these incidences: `ReturnModel.sure_range_m`, or without a return model (ideal
+    sensing, the paper's Appendix A) max_range_m at any incidence."""
+    if returns is None:
+        return np.full(np.shape(cos_incidence), float(max_range_m))
+    return returns.sure_range_m(max_range_m, cos_incidence)
+
+
 LIDARLITE_V3_RETURNS = ReturnModel(reference_reflectance=0.70)
 """LIDAR-Lite v3: 40 m "with a 70 % reflective target" (operation manual, specifications)."""
 

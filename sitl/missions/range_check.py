@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware_py.core.sensor import RangefinderSpec, ReturnModel
+from firmware_py.core.sensor import RangefinderSpec, ReturnModel, sure_echo_range_m
 from firmware_py.core.sensor_noise import SensorNoise, SensorNoiseModel
 from firmware_py.core.waveform import Waveform
 from sitl.missions.rectangle import Mission
@@ -77,9 +77,7 @@ class RangeLimit:
     def reach_m(self, cos_incidence: np.ndarray | float = 1.0) -> np.ndarray:
         """The farthest certain echo at this incidence: the rated range, or (1 - ramp) of the return
         model's effective range on the assumed surfaces."""
-        if self.returns is None:
-            return np.full(np.shape(cos_incidence), float(self.rated_range_m))
-        return self.returns.sure_range_m(self.rated_range_m, cos_incidence)
+        return sure_echo_range_m(self.rated_range_m, self.returns, cos_incidence)
 
     @property
     def normal_reach_m(self) -> float:
