@@ -57,8 +57,8 @@ field_edits = st.dictionaries(
     st.one_of(st.just("<delete>"), json_values), max_size=4)
 
 
-def edited(edits: dict) -> dict:
-    h = {k: (dict(v) if isinstance(v, dict) else v) for k, v in BASE_HEADER.items()}
+def edited(edits: dict, base: dict = BASE_HEADER) -> dict:
+    h = {k: (dict(v) if isinstance(v, dict) else v) for k, v in base.items()}
     for path, value in edits.items():
         key, _, sub = path.partition(".")
         target, name = (h, key) if not sub else (h.get(key), sub)
@@ -127,3 +127,52 @@ def test_that_any_autopilot_record_gives_a_report_that_states_it_or_not(workdir,
     assert rep is not None and isinstance(rep["pose_source"], str)
     assert rep["rangefinder_height"] is None or not rep["rangefinder_height"]["applied"]
     json.loads((workdir / "report" / "report.json").read_text(), parse_constant=pytest.fail)  # strict JSON
+
+
+ECHO_HEADER = {**BASE_HEADER,
+               "sensor": {"model": "Garmin LIDAR-Lite v3", "rate_hz": 500.0, "max_range_m": 10.0, "resolution_m": 0.01,
+                          "range_sigma_m": 0.025, "range_sigma_rel": 0.01, "beam_divergence_rad": 0.008},
+               "sensor_noise": {"reference_reflectance": 0.7, "target_reflectance": 0.3, "dropout_ramp_rel": 0.1},
+               "source": "payload"}
+"""A header the echo diagnosis reads (`ground.echo_reach`): a named sensor, a stated return model, a real source; its
+10 m range puts part of this building's floor beyond the sure reach of the samples without an echo."""
+
+echo_edits = st.dictionaries(
+    st.sampled_from(["sensor.model", "sensor.max_range_m", "sensor_noise", "sensor_noise.reference_reflectance",
+                     "sensor_noise.target_reflectance", "sensor_noise.dropout_ramp_rel", "sensor_noise.bias_m",
+                     "source", "boresight", "lever_arm_body_m"]),
+    st.one_of(st.just("<delete>"), json_values), max_size=3)
+
+
+def echo_samples() -> np.ndarray:
+    """The floor readings swept +-1.2 rad, every fifth without an echo."""
+    r = floor_samples()
+    r["servo_rad"] = np.linspace(-1.2, 1.2, len(r))
+    r["flags"][::5] = 1  # NO_RETURN
+    return r
+
+
+def echo_report_or_user_error(workdir: Path, header: dict) -> dict | None:
+    log = workdir / "echo-fuzz.pslog"
+    log.write_bytes(encode_block(b"H", json.dumps(header).encode()) + encode_block(b"S", echo_samples().tobytes()))
+    try:
+        rep = make_report(log, workdir / "echo-report", ReportOptions(plots=False), force=True)
+    except UserError as exc:
+        assert str(log) in str(exc) and "\n" not in str(exc)
+        return None
+    assert math.isfinite(rep["volume_m3"])
+    json.loads((workdir / "echo-report" / "report.json").read_text(), parse_constant=pytest.fail)  # strict JSON
+    return rep
+
+
+def test_that_the_echo_header_gives_an_echo_record_with_floor_out_of_reach(workdir):
+    rep = echo_report_or_user_error(workdir, ECHO_HEADER)
+    assert rep is not None and rep["echo"]["no_echo"] == 80 and rep["echo"]["beyond_reach"] > 0
+
+
+@budget(40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(edits=echo_edits)
+@example(edits={"sensor_noise.target_reflectance": float("nan")})
+@example(edits={"source": None, "sensor_noise": "<delete>"})
+def test_that_any_sensor_or_return_model_statement_gives_a_report_or_one_user_error(workdir, edits):
+    echo_report_or_user_error(workdir, edited(edits, ECHO_HEADER))
