@@ -841,6 +841,15 @@ def pile_sigma_m(cloud: Cloud, structure: np.ndarray, err: SensorErrorModel) -> 
     return cloud_vertical_sigma_m(cloud, err, ~structure)
 
 
+CONTACT_FIT_SLOPES = NodeSlopes.CURVATURE
+"""The `wall-contact` fill's surface takes scipy's least-curvature slopes whatever `--surface-slopes` says: across an
+unseen strip along a wall its cubic spans from the corners' contacts to the points, and the GP's slopes lifted such a
+strip 1-3 m (the paper's pile 2 at P_traj 30 % under the datasheet's noise). Measured over ten servo phases with
+`--surface-slopes gp` (mean |Ve|, the GP's slopes in both fits -> in the points' own fit only): datasheet, piles 1 / 2
+at 30 %, 3.39 / 2.01 -> 3.35 / 1.71 %; Appendix A at 25 and 30 %, pile 1 0.23 / 0.66 -> 0.18 / 0.59 %, pile 2
+0.59 / 0.40 -> 0.65 / 0.51 %; and it saves the second kriging (docs/design-notes.md)."""
+
+
 def contact_fit_m(pile_w: np.ndarray, pile_sigma: np.ndarray, contacts: WallContacts, grid: Grid, storage: Storage,
                   surface_fit: str, wanted: np.ndarray | None = None,
                   smoothing: SmoothingOptions = DEFAULT_SMOOTHING) -> np.ndarray | None:
@@ -884,7 +893,7 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
         contact_top = contact_ceiling_m(contacts, grid.x_edges, grid.y_edges)
         if unseen.any():  # only the unseen cells take it: fit it from the nodes that shape it there
             contact_fit = contact_fit_m(pile, sigma, contacts, grid, storage, opts.surface_fit, wanted=unseen,
-                                        smoothing=smoothing)
+                                        smoothing=replace(smoothing, slopes=CONTACT_FIT_SLOPES))
     needs_ceiling = opts.empty_cells in ("bounded", *CONTACT_POLICIES) and unseen.any()
     ceiling = shadow = None
     if needs_ceiling:  # what the beams left free above the unseen cells, and which of them a beam passed over

@@ -166,3 +166,22 @@ def test_that_floor_the_rangefinder_could_not_reach_is_said_and_a_flight_that_re
     quiet = paper_report["echo"]  # an ideal sensor at P_traj 10 %: what it did not echo was beyond the building's floor
     assert max(quiet["fill_out_of_reach_m3"], quiet["unseen_term_m3"]) < 0.001 * paper_report["volume_m3"]
     assert not [w for w in paper_report["warnings"] if "echo" in w]
+
+
+def test_that_the_wall_contact_fill_keeps_the_curvature_slopes_when_the_surface_takes_the_gp_slopes(
+        tmp_path, paper_run, monkeypatch):
+    """`--surface-slopes gp` is the points' own surface's: the fit through the wall contacts that fills the unseen
+    strips keeps scipy's slopes (ground.report.CONTACT_FIT_SLOPES), which the GP's lifted along a wall."""
+    import ground.report as report
+    from ground.smoothing import NodeSlopes
+
+    asked = []
+    real = report.contact_fit_m
+
+    def spy(*args, smoothing, **kwargs):
+        asked.append(smoothing.slopes)
+        return real(*args, smoothing=smoothing, **kwargs)
+    monkeypatch.setattr(report, "contact_fit_m", spy)
+    rep = make_report(paper_run, tmp_path / "rep", ReportOptions(plots=False, surface_slopes=NodeSlopes.GP))
+    assert rep["surface_slopes"] == "gp"
+    assert asked and set(asked) == {NodeSlopes.CURVATURE}
