@@ -43,8 +43,10 @@ AMPLITUDES_M = tuple(float(v) for v in np.geomspace(0.01, 40.96, 7))
 """Covariance amplitudes (1 sigma) tried, 1 cm to 41 m, a factor 4 apart (then refined by half steps)."""
 MIN_NODES = 2 * (8 * PER_OCTANT + 1)
 """Fewer nodes than this: the slopes stay scipy's (too few for the covariance to be fitted)."""
-CHUNK = 2000
-"""Nodes whose systems are solved at once (bounded memory: ~50 MB)."""
+CHUNK = 250
+"""Nodes whose systems are built and solved at once: a chunk's arrays (about 5 MB each) stay in the processor's
+cache, where 2,000 nodes' (38 MB each) went out to memory between the steps that build them. The same result, a
+quarter faster: on 12,522 nodes 1.37 -> 1.04 s (medians of three; 1,000: 1.23 s, 500: 1.13 s, 125: 1.02 s)."""
 
 
 @dataclass(frozen=True)

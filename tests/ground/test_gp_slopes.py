@@ -125,3 +125,15 @@ def test_that_with_gp_slopes_the_volume_between_noisy_fan_lines_is_nearer_the_tr
             out.append(grid_volume(np.where(np.isfinite(h), h, 0.0), grid) - true)
     rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in errors.items()}
     assert rms[NodeSlopes.GP] < 0.5 * rms[NodeSlopes.CURVATURE], rms
+
+
+def test_that_the_smoothed_heights_do_not_depend_on_how_many_nodes_are_solved_at_once(monkeypatch):
+    import ground.gp_slopes as gp
+
+    xy = fan_lines()
+    z = hill(xy) + np.random.default_rng(3).normal(0.0, 0.05, len(xy))
+    var = np.full(len(xy), 0.05**2)
+    cov = GpCovariance(2.0, 1.0)
+    whole = gp_smoothed(xy, z, var, cov)
+    monkeypatch.setattr(gp, "CHUNK", 37)  # chunks that do not divide the nodes
+    assert np.array_equal(gp_smoothed(xy, z, var, cov), whole)
