@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from firmware_py.core.cli import UserError
 from firmware_py.core.frames import StorageFrame
-from firmware_py.core.samplelog import encode_block, new_records
+from firmware_py.core.samplelog import SampleFlags, encode_block, new_records
 from firmware_py.core.storage import Storage
 from ground.report import ReportOptions, make_report
 from tests.fuzz_budget import budget
@@ -76,16 +76,19 @@ def workdir(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("report-fuzz")
 
 
-def report_or_user_error(workdir: Path, header: dict) -> dict | None:
+def report_or_user_error(workdir: Path, header: dict, samples: np.ndarray | None = None) -> dict | None:
+    """The report of a log of this header and samples (floor_samples by default), or None for one UserError that
+    names the log; report.json strict JSON."""
     log = workdir / "fuzz.pslog"  # written by hand: the writer would refuse NaN, a reader may still meet one
-    log.write_bytes(encode_block(b"H", json.dumps(header).encode()) + encode_block(b"S", floor_samples().tobytes()))
+    samples = floor_samples() if samples is None else samples
+    log.write_bytes(encode_block(b"H", json.dumps(header).encode()) + encode_block(b"S", samples.tobytes()))
     try:
         rep = make_report(log, workdir / "report", ReportOptions(plots=False), force=True)
     except UserError as exc:
         assert str(log) in str(exc) and "\n" not in str(exc)
         return None
-    assert math.isfinite(rep["volume_m3"]) and rep["n_samples"] == 400
-    assert (workdir / "report" / "report.json").is_file()
+    assert math.isfinite(rep["volume_m3"]) and rep["n_samples"] == len(samples)
+    json.loads((workdir / "report" / "report.json").read_text(), parse_constant=pytest.fail)  # strict JSON
     return rep
 
 
@@ -148,25 +151,12 @@ def echo_samples() -> np.ndarray:
     """The floor readings swept +-1.2 rad, every fifth without an echo."""
     r = floor_samples()
     r["servo_rad"] = np.linspace(-1.2, 1.2, len(r))
-    r["flags"][::5] = 1  # NO_RETURN
+    r["flags"][::5] = int(SampleFlags.NO_RETURN)
     return r
 
 
-def echo_report_or_user_error(workdir: Path, header: dict) -> dict | None:
-    log = workdir / "echo-fuzz.pslog"
-    log.write_bytes(encode_block(b"H", json.dumps(header).encode()) + encode_block(b"S", echo_samples().tobytes()))
-    try:
-        rep = make_report(log, workdir / "echo-report", ReportOptions(plots=False), force=True)
-    except UserError as exc:
-        assert str(log) in str(exc) and "\n" not in str(exc)
-        return None
-    assert math.isfinite(rep["volume_m3"])
-    json.loads((workdir / "echo-report" / "report.json").read_text(), parse_constant=pytest.fail)  # strict JSON
-    return rep
-
-
 def test_that_the_echo_header_gives_an_echo_record_with_floor_out_of_reach(workdir):
-    rep = echo_report_or_user_error(workdir, ECHO_HEADER)
+    rep = report_or_user_error(workdir, ECHO_HEADER, echo_samples())
     assert rep is not None and rep["echo"]["no_echo"] == 80 and rep["echo"]["beyond_reach"] > 0
 
 
@@ -175,4 +165,4 @@ def test_that_the_echo_header_gives_an_echo_record_with_floor_out_of_reach(workd
 @example(edits={"sensor_noise.target_reflectance": float("nan")})
 @example(edits={"source": None, "sensor_noise": "<delete>"})
 def test_that_any_sensor_or_return_model_statement_gives_a_report_or_one_user_error(workdir, edits):
-    echo_report_or_user_error(workdir, edited(edits, ECHO_HEADER))
+    report_or_user_error(workdir, edited(edits, ECHO_HEADER), echo_samples())
