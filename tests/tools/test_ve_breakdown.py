@@ -7,7 +7,7 @@ import pytest
 from firmware_py.core.storage import Storage
 from ground.surface import Grid
 from sitl.world.stockpile import paper_pile, paper_pile_spec, surface_height
-from tools.ve_breakdown import breakdown, main, occupied_cells, true_cell_means
+from tools.ve_breakdown import breakdown, main, occupied_cells, true_cell_means, wall_band
 
 
 def test_that_each_part_lands_in_its_own_cells_and_the_parts_add_up_to_ve():
@@ -42,8 +42,25 @@ def test_that_a_cell_holding_a_point_is_occupied():
     assert occ.sum() == 2 and occ[0, 0] and occ[-1, -1]
 
 
+def test_that_the_filled_cells_at_the_walls_are_split_from_the_rest():
+    grid = Grid(10, 8, 1.0)
+    true = np.full(grid.shape, 1.0)
+    heights = true.copy()
+    heights[0, 4] += 2.0  # a filled cell against the wall x = 0
+    heights[5, 4] -= 1.0  # a filled cell 4.5 m from the nearest wall
+    fit = heights.copy()
+    fit[0, 4] = fit[5, 4] = np.nan
+    band = wall_band(grid, 2.0)
+    assert band[0, 4] and band[1, 4] and not band[2, 4] and not band[5, 4]
+    b = breakdown(heights, fit, np.zeros(grid.shape, bool), true, 1.0, true.sum(), band)
+    assert b.filled_pct == pytest.approx(100 * 1.0 / true.sum())
+    assert b.filled_walls_pct == pytest.approx(100 * 2.0 / true.sum())
+    assert breakdown(heights, fit, np.zeros(grid.shape, bool), true, 1.0, true.sum()).filled_walls_pct == 0.0
+
+
 def test_that_bad_options_are_one_line_and_exit_2(capsys):
-    for bad in (["--models", "fog"], ["--phases", "0,25"], ["--phases", "x"]):
+    for bad in (["--models", "fog"], ["--phases", "0,25"], ["--phases", "x"], ["--wall-band-m", "0"],
+                ["--wall-band-m", "nan"], ["--surface-slopes", "spline"]):
         with pytest.raises(SystemExit) as exc:
             main(bad)
         assert exc.value.code == 2
