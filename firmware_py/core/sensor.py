@@ -169,18 +169,19 @@ class ReturnModel:
         if not (_is_number(self.bias_m) and math.isfinite(self.bias_m) and abs(self.bias_m) <= 1.0):
             raise ValueError(f"bias_m must be a finite number within +-1 m, got {self.bias_m!r}")
 
-    def effective_range_m(self, max_range_m: float, cos_incidence: float = 1.0) -> float:
-        """The farthest echo at this incidence on the assumed target (inverse-square law above)."""
-        return max_range_m * math.sqrt(max(0.0, cos_incidence) * self.target_reflectance
-                                       / self.reference_reflectance)
+    def effective_range_m(self, max_range_m: float, cos_incidence: np.ndarray | float = 1.0) -> np.ndarray:
+        """The farthest echo at these incidences on the assumed target (inverse-square law above), for one incidence
+        or many at once: the one statement of the law, which the simulated dropouts (`sitl.sensing.noise`), the
+        mission's range check and the report's echo diagnosis all read."""
+        c = np.maximum(np.asarray(cos_incidence, dtype=float), 0.0)
+        return max_range_m * np.sqrt(c * self.target_reflectance / self.reference_reflectance)
 
     def sure_range_m(self, max_range_m: float, cos_incidence: np.ndarray | float = 1.0) -> np.ndarray:
-        """The farthest certain echo at these incidences: (1 - dropout_ramp_rel) of the effective range, for many
-        incidences at once. What a mission is planned on (`sitl.missions.range_check`) and what a report judges its
-        samples without an echo by (`ground.echo_reach`)."""
+        """The farthest certain echo at these incidences: (1 - dropout_ramp_rel) of the effective range. What a
+        mission is planned on (`sitl.missions.range_check`) and what a report judges its samples without an echo by
+        (`ground.echo_reach`)."""
         c = np.clip(np.asarray(cos_incidence, dtype=float), 0.0, 1.0)
-        return (1.0 - self.dropout_ramp_rel) * max_range_m * np.sqrt(c * self.target_reflectance
-                                                                     / self.reference_reflectance)
+        return (1.0 - self.dropout_ramp_rel) * self.effective_range_m(max_range_m, c)
 
 
 def sure_echo_range_m(max_range_m: float, returns: ReturnModel | None,

@@ -45,7 +45,7 @@ def dropout_probability(range_m: np.ndarray, cos_incidence: np.ndarray, spec: Ra
     (`ReturnModel`: the rated range times sqrt(rho cos i / rho_ref)). Non-finite range: 1."""
     r = np.asarray(range_m, dtype=float)
     c = np.clip(np.asarray(cos_incidence, dtype=float), 0.0, 1.0)
-    r_eff = spec.max_range_m * np.sqrt(c * returns.target_reflectance / returns.reference_reflectance)
+    r_eff = returns.effective_range_m(spec.max_range_m, c)
     with np.errstate(divide="ignore", invalid="ignore"):
         p = (r / np.where(r_eff > 0, r_eff, np.nan) - (1.0 - returns.dropout_ramp_rel)) / returns.dropout_ramp_rel
     return np.where(np.isfinite(p), np.clip(p, 0.0, 1.0), 1.0)
