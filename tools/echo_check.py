@@ -23,11 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_py.core.header import header_boresight
-from ground.echo_reach import echo_reach, echo_record, echo_warning
-from ground.report import ReportOptions, survey_from_samples
+from firmware_py.core.samplelog import SampleLog
+from ground.echo_reach import echo_warning
+from ground.report import ReportOptions, echo_of, survey_from_samples
 from ground.surface import grid_volume
-from ground.uncertainty import DEFAULT_INTERVAL_MODEL
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
 from tools.doc_sections import write_section
 from tools.evalset import DEFAULT_ROOT, load_run, stored_runs_or_say
@@ -43,9 +42,7 @@ def echo_row(run_dir: str) -> dict:
     """One run's survey volume, echo record and whether the warning spoke."""
     r = load_run(run_dir)
     sv = survey_from_samples(r.samples, r.header, r.storage, r.frame, r.lever_arm_body_m, ReportOptions(plots=False))
-    reach = echo_reach(r.samples, r.header, r.lever_arm_body_m, r.frame, r.storage, sv.grid, header_boresight(r.header))
-    term = None if sv.errors_in is None else (lambda cells: DEFAULT_INTERVAL_MODEL.unseen_m3(sv.errors_in(cells).terms))
-    rec = None if reach is None else echo_record(reach, sv.heights_fit, sv.heights, sv.grid, term)
+    rec = echo_of(sv, SampleLog(r.header, r.samples, 1, 0, 0, 0))  # the report's own record of the run
     volume = grid_volume(sv.heights, sv.grid)
     true = r.true_volume_m3
     return {"run": r.run_id, "noise": r.truth["noise"], "p_traj": int(r.truth["p_traj_pct"]),
