@@ -24,11 +24,14 @@ the noise as well but took noise-free slopes from scipy's better interpolant (pi
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.interpolate import CloughTocher2DInterpolator
 from scipy.spatial import Delaunay, cKDTree
+
+from ground.figure_jobs import cores_available
 
 PER_OCTANT = 6
 """Nodes taken from each of the eight directions around a node (48 and the node itself): enough for the local
@@ -47,6 +50,13 @@ CHUNK = 250
 """Nodes whose systems are built and solved at once: a chunk's arrays (about 5 MB each) stay in the processor's
 cache, where 2,000 nodes' (38 MB each) went out to memory between the steps that build them. The same result, a
 quarter faster: on 12,522 nodes 1.37 -> 1.04 s (medians of three; 1,000: 1.23 s, 500: 1.13 s, 125: 1.02 s)."""
+
+
+def _threads() -> int:
+    """Threads the chunks and the covariance's trials run on: the cores this process may use. Each chunk (each trial)
+    is independent and numpy lets go of the interpreter in its array and linear-algebra loops, so they run side by
+    side; every result is written to its own place, so the heights are the same to the bit on any count."""
+    return max(1, cores_available())
 
 
 @dataclass(frozen=True)
@@ -175,16 +185,16 @@ def fit_covariance(xy: np.ndarray, z: np.ndarray, var: np.ndarray, seed: int = 0
     nb = _neighbourhoods(xy, centre, idx, valid)
     seen: dict[tuple[float, float], float] = {}
 
-    def loglik(length: float, amp: float) -> float:
-        key = (length, amp)
-        if key not in seen:
-            seen[key] = restricted_loglik(nb, z, var, GpCovariance(length, amp))
-        return seen[key]
-    best = max(((lv, av) for lv in LENGTHS_M for av in AMPLITUDES_M), key=lambda la: loglik(*la))
+    def most_likely(trials: list[tuple[float, float]]) -> tuple[float, float]:  # the first of the best, in order
+        new = [t for t in dict.fromkeys(trials) if t not in seen]
+        with ThreadPoolExecutor(max_workers=_threads()) as pool:
+            values = list(pool.map(lambda la: restricted_loglik(nb, z, var, GpCovariance(*la)), new))
+        seen.update(zip(new, values, strict=True))
+        return max(trials, key=lambda la: seen[la])
+    best = most_likely([(lv, av) for lv in LENGTHS_M for av in AMPLITUDES_M])
     step_l = math.sqrt(LENGTHS_M[1] / LENGTHS_M[0])
     step_a = math.sqrt(AMPLITUDES_M[1] / AMPLITUDES_M[0])
-    best = max(((best[0] * step_l**i, best[1] * step_a**j) for i in (-1, 0, 1) for j in (-1, 0, 1)),
-               key=lambda la: loglik(*la))
+    best = most_likely([(best[0] * step_l**i, best[1] * step_a**j) for i in (-1, 0, 1) for j in (-1, 0, 1)])
     return GpCovariance(*best)
 
 
@@ -195,7 +205,8 @@ def gp_smoothed(xy: np.ndarray, z: np.ndarray, var: np.ndarray, cov: GpCovarianc
     tree = cKDTree(xy) if tree is None else tree
     out = np.zeros(len(z))
     s2, length = cov.amplitude_m**2, cov.length_m
-    for lo in range(0, len(z), CHUNK):
+
+    def chunk(lo: int) -> None:
         at = xy[lo:lo + CHUNK]
         idx, valid = octant_neighbours(xy, at, tree)
         nb = _neighbourhoods(xy, at, idx, valid)
@@ -207,6 +218,8 @@ def gp_smoothed(xy: np.ndarray, z: np.ndarray, var: np.ndarray, cov: GpCovarianc
         b[:, k] = 1.0
         w = np.linalg.solve(a, b[..., None])[..., 0]
         out[lo:lo + CHUNK] = np.einsum("nk,nk->n", w[:, :k], np.where(valid, z[idx], 0.0))
+    with ThreadPoolExecutor(max_workers=_threads()) as pool:
+        list(pool.map(chunk, range(0, len(z), CHUNK)))  # list(): a chunk's exception is raised here
     return out
 
 

@@ -137,3 +137,19 @@ def test_that_the_smoothed_heights_do_not_depend_on_how_many_nodes_are_solved_at
     whole = gp_smoothed(xy, z, var, cov)
     monkeypatch.setattr(gp, "CHUNK", 37)  # chunks that do not divide the nodes
     assert np.array_equal(gp_smoothed(xy, z, var, cov), whole)
+
+
+def test_that_the_heights_and_the_covariance_are_the_same_on_one_thread_or_several(monkeypatch):
+    import ground.gp_slopes as gp
+
+    xy = fan_lines()
+    z = hill(xy) + np.random.default_rng(4).normal(0.0, 0.05, len(xy))
+    var = np.full(len(xy), 0.05**2)
+    results = {}
+    for threads in (1, 3):
+        monkeypatch.setattr(gp, "_threads", lambda n=threads: n)
+        monkeypatch.setattr(gp, "CHUNK", 37)  # many chunks, finishing in any order
+        cov = fit_covariance(xy, z, var)
+        results[threads] = (cov, gp_smoothed(xy, z, var, cov))
+    assert results[1][0] == results[3][0]
+    assert np.array_equal(results[1][1], results[3][1])
