@@ -58,3 +58,13 @@ def test_that_a_missing_or_empty_evaluation_set_is_one_clear_line(tmp_path, caps
     assert "no stored runs" in capsys.readouterr().err
     assert main(["--from-rows", str(tmp_path / "none.csv")]) == 2
     assert "no rows file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("content", [b"run_id,family\nx,cone\n", b"\xff\xfe\x00binary", b""])
+def test_that_a_rows_file_of_another_tool_or_none_at_all_is_one_clear_line(tmp_path, capsys, content):
+    rows = tmp_path / "rows.csv"
+    rows.write_bytes(content)
+    assert main(["--from-rows", str(rows)]) == 2
+    err = capsys.readouterr().err
+    assert str(rows) in err or "no runs" in err
+    assert "Traceback" not in err
