@@ -9,18 +9,16 @@ what a change of the default estimator must be measured on (docs/design-notes.md
 
 from __future__ import annotations
 
-import json
 import statistics
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from firmware_py.core.cli import ArgumentParser
 from tools.doc_sections import write_section
 from tools.estimator_compare import ESTIMATORS, survey_estimator_ves
-from tools.evalset import load_run, run_dirs, survey_of
-from tools.sweep import read_rows_csv, write_rows_csv
+from tools.evalset import load_run, rows_of_file, rows_of_runs, survey_of
+from tools.sweep import write_rows_csv
 
 SECTION = "estimator-evalset"
 NOISES = ("none", "datasheet", "appendix-a")
@@ -66,31 +64,13 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--jobs must be >= 1")
     t0 = time.perf_counter()
     if args.from_rows is not None:
-        if not args.from_rows.is_file():
-            print(f"no rows file at {args.from_rows}", file=sys.stderr)
-            return 2
-        rows = read_rows_csv(args.from_rows)
+        rows = rows_of_file(args.from_rows)
     else:
-        if not (args.root / "runs").is_dir():
-            print(f"no evaluation set at {args.root} (python -m tools.evalset makes one)", file=sys.stderr)
-            return 2
-        chosen = []
-        for d in run_dirs(args.root):  # chosen by what each run's truth.json says it is
-            t = json.loads((d / "truth.json").read_text())
-            if t.get("noise") in args.noise and (args.p_traj is None or t.get("p_traj_pct") in args.p_traj):
-                chosen.append(str(d))
-        if not chosen:
-            print(f"no stored runs match under {args.root}", file=sys.stderr)
-            return 2
-        with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-            rows = []
-            for i, row in enumerate(pool.map(run_row, chosen, chunksize=4), 1):
-                if row is not None:
-                    rows.append(row)
-                if i % 50 == 0 or i == len(chosen):
-                    print(f"  {i}/{len(chosen)} runs ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
-        if args.rows is not None:
+        rows = rows_of_runs(args.root, run_row, args.noise, args.p_traj, args.jobs)
+        if rows is not None and args.rows is not None:
             write_rows_csv(rows, args.rows)
+    if rows is None:
+        return 2
     minutes = (time.perf_counter() - t0) / 60.0
     cmd = " ".join(["python -m tools.estimator_evalset", *(sys.argv[1:] if argv is None else argv)])
     sheet = [r for r in rows if r["noise"] == "datasheet"]

@@ -15,6 +15,7 @@ summary to `docs/evaluation_set.md`.
 
 from __future__ import annotations
 
+import csv
 import functools
 import json
 import math
@@ -23,7 +24,8 @@ import statistics
 import sys
 import time
 from collections import Counter, defaultdict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from enum import StrEnum
 from pathlib import Path
@@ -40,7 +42,7 @@ from sitl.runners.fly import FlyConfig, check_clearance, log_header
 from sitl.sensing.batch_sampler import sample_flight
 from sitl.world.raycast import World
 from sitl.world.shapes import Family, Shape, make_shape
-from tools.sweep import Case, cached, content_key, missing_cases, run_sweep, write_rows_csv
+from tools.sweep import Case, cached, content_key, missing_cases, read_rows_csv, run_sweep, write_rows_csv
 
 EVALSET_VERSION = "3"
 """Part of every case (and so of its cache key): bump it when what a case computes changes. 2: Appendix A's
@@ -336,6 +338,53 @@ def stored_runs_or_say(root: str | Path, stride: int, prog: str) -> list[str]:
     if not dirs:
         print(f"{prog}: no stored runs under {root} (python -m tools.evalset makes them)", file=sys.stderr)
     return dirs
+
+
+def runs_where(root: str | Path, noises: Sequence[str], p_traj: Sequence[int] | None = None) -> list[str]:
+    """The complete runs under root of these noise models (and P_traj, None: all), as paths: chosen by what each run's
+    truth.json says it is."""
+    out = []
+    for d in run_dirs(root):
+        t = json.loads((d / "truth.json").read_text())
+        if t.get("noise") in noises and (p_traj is None or t.get("p_traj_pct") in p_traj):
+            out.append(str(d))
+    return out
+
+
+def rows_of_runs(root: Path, run_row: Callable[[str], dict | None], noises: Sequence[str],
+                 p_traj: Sequence[int] | None, jobs: int, chunksize: int = 4) -> list[dict] | None:
+    """run_row over the chosen stored runs in `jobs` processes, with a line of progress every 50 runs; its None rows
+    (runs with nothing to compare) left out. None, with one line on stderr, when root holds no evaluation set or none
+    of its runs is chosen: the tools that tabulate such rows exit 2 then."""
+    if not (Path(root) / "runs").is_dir():
+        print(f"no evaluation set at {root} (python -m tools.evalset makes one)", file=sys.stderr)
+        return None
+    chosen = runs_where(root, noises, p_traj)
+    if not chosen:
+        print(f"no stored runs match under {root}", file=sys.stderr)
+        return None
+    t0 = time.perf_counter()
+    rows = []
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        for i, row in enumerate(pool.map(run_row, chosen, chunksize=chunksize), 1):
+            if row is not None:
+                rows.append(row)
+            if i % 50 == 0 or i == len(chosen):
+                print(f"  {i}/{len(chosen)} runs ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+    return rows
+
+
+def rows_of_file(path: Path) -> list[dict] | None:
+    """Rows a tool wrote with --rows (`tools.sweep.read_rows_csv`); None, with one line on stderr naming the file,
+    when it is missing, unreadable or not text."""
+    if not path.is_file():
+        print(f"no rows file at {path}", file=sys.stderr)
+        return None
+    try:
+        return read_rows_csv(path)
+    except (OSError, ValueError, csv.Error) as exc:  # unreadable, or not text
+        print(f"{path}: cannot be read as rows ({type(exc).__name__}: {exc})"[:300], file=sys.stderr)
+        return None
 
 
 def iter_runs(split: Split | str | None = None, root: str | Path = DEFAULT_ROOT) -> Iterator[EvalRun]:

@@ -15,20 +15,17 @@ must be measured on (docs/design-notes.md).
 
 from __future__ import annotations
 
-import csv
-import json
 import statistics
 import sys
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from firmware_py.core.cli import ArgumentParser
 from tools.calibrate_interval import FACES_FAMILIES
 from tools.doc_sections import write_section
-from tools.evalset import load_run, run_dirs, survey_of
-from tools.sweep import read_rows_csv, write_rows_csv
+from tools.evalset import load_run, rows_of_file, rows_of_runs, survey_of
+from tools.sweep import write_rows_csv
 
 SECTION = "slopes-evalset"
 NOISES = ("none", "datasheet", "appendix-a")
@@ -131,15 +128,6 @@ def page_text(rows: Sequence[dict], cmd: str, made: str) -> str:
             + "\n\nAgainst the truth, by sensor-noise model:\n\n" + table(rows, "noise"))
 
 
-def chosen_runs(root: Path, noises: Sequence[str], p_traj: Sequence[int] | None) -> list[str]:
-    out = []
-    for d in run_dirs(root):  # chosen by what each run's truth.json says it is
-        t = json.loads((d / "truth.json").read_text())
-        if t.get("noise") in noises and (p_traj is None or t.get("p_traj_pct") in p_traj):
-            out.append(str(d))
-    return out
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = ArgumentParser(prog="python -m tools.slopes_evalset", description=__doc__.split("\n\n")[0])
     ap.add_argument("--root", type=Path, default=Path("runs/evalset"), help="the evaluation set (tools/evalset.py)")
@@ -153,31 +141,13 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--jobs must be >= 1")
     t0 = time.perf_counter()
     if args.from_rows is not None:
-        if not args.from_rows.is_file():
-            print(f"no rows file at {args.from_rows}", file=sys.stderr)
-            return 2
-        try:
-            rows = read_rows_csv(args.from_rows)
-        except (OSError, ValueError, csv.Error) as exc:  # unreadable, or not text
-            print(f"{args.from_rows}: cannot be read as rows ({type(exc).__name__}: {exc})"[:300], file=sys.stderr)
-            return 2
+        rows = rows_of_file(args.from_rows)
     else:
-        if not (args.root / "runs").is_dir():
-            print(f"no evaluation set at {args.root} (python -m tools.evalset makes one)", file=sys.stderr)
-            return 2
-        chosen = chosen_runs(args.root, NOISES, args.p_traj)
-        if not chosen:
-            print(f"no stored runs match under {args.root}", file=sys.stderr)
-            return 2
-        rows = []
-        with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-            for i, row in enumerate(pool.map(run_row, chosen, chunksize=2), 1):
-                if row is not None:
-                    rows.append(row)
-                if i % 50 == 0 or i == len(chosen):
-                    print(f"  {i}/{len(chosen)} runs ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
-        if args.rows is not None:
+        rows = rows_of_runs(args.root, run_row, NOISES, args.p_traj, args.jobs, chunksize=2)
+        if rows is not None and args.rows is not None:
             write_rows_csv(rows, args.rows)
+    if rows is None:
+        return 2
     if not rows:
         print("no runs with a volume to compare", file=sys.stderr)
         return 2

@@ -36,3 +36,10 @@ def test_that_a_missing_rows_file_is_one_clear_line(tmp_path, capsys):
 def test_that_a_bad_job_count_is_refused():
     with pytest.raises(SystemExit):
         main(["--jobs", "0"])
+
+
+def test_that_a_rows_file_that_is_not_text_is_one_clear_line(tmp_path, capsys):
+    rows = tmp_path / "rows.csv"
+    rows.write_bytes(b"\xff\xfe\x00binary")
+    assert main(["--from-rows", str(rows)]) == 2
+    assert str(rows) in capsys.readouterr().err
