@@ -104,7 +104,11 @@ def vertical_sigma_m(range_sigma_m: np.ndarray | float, resolution_m: float, pos
 
 def cloud_vertical_sigma_m(cloud: Cloud, err: SensorErrorModel, where: np.ndarray) -> np.ndarray:
     """`vertical_sigma_m` of the cloud's points `where` (a mask or indices), from the sensor model in the log header:
-    the one spelling of it for the surface fit's pile points, a fitted floor's and the floor check's candidates."""
+    the one spelling of it for the surface fit's pile points, a fitted floor's and the floor check's candidates.
+    Known and kept for now: the sigma comes from each point's own measured range, so a reading that came back long
+    weighs less than one that came back short, which lifts a weighted mean by about 2 sigma^2 / r. That bias cancels
+    part of the windows' flattening of convex piles, so it is to be removed with it (docs/design-notes.md, "Each
+    point's weight carries its own noise")."""
     rng, dirs = cloud.range_m[where], cloud.dirs_w[where]
     return vertical_sigma_m(err.range_sigma(rng), err.resolution_m, err.position_sigma_m, err.angle_sigma_rad, rng,
                             dirs)
