@@ -4,7 +4,15 @@ import numpy as np
 import pytest
 from scipy.interpolate import CloughTocher2DInterpolator
 
-from ground.gp_slopes import MIN_NODES, GpCovariance, fit_covariance, gp_smoothed, node_slopes, octant_neighbours
+from ground.gp_slopes import (
+    CANDIDATES,
+    MIN_NODES,
+    GpCovariance,
+    fit_covariance,
+    gp_smoothed,
+    node_slopes,
+    octant_neighbours,
+)
 from ground.smoothing import NodeSlopes, SmoothingOptions
 from ground.surface import Grid, fit_heights, grid_volume
 from ground.triangulation import delaunay
@@ -83,6 +91,24 @@ def test_that_each_octant_gives_its_nearest_nodes_and_the_node_itself_is_kept():
     d = xy[got] - at[0]
     assert np.any(np.abs(d[:, 0]) > 2.0)  # the next line's nodes, though the nearest 17 all lie on its own line
     assert len(got) <= 8 * 2 + 1
+
+
+def test_that_each_octant_holds_exactly_its_nearest_candidates():
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(0.0, 20.0, (400, 2))
+    at = np.concatenate([xy[:20], rng.uniform(0.0, 20.0, (20, 2))])  # on a node (kept itself) and between nodes
+    idx, valid = octant_neighbours(xy, at, per=3)
+    for i, p in enumerate(at):
+        d = xy - p
+        r = np.hypot(d[:, 0], d[:, 1])
+        octant = np.floor((np.arctan2(d[:, 1], d[:, 0]) + np.pi) / (np.pi / 4)).astype(int) % 8
+        pool = np.zeros(len(xy), dtype=bool)
+        pool[np.argsort(r, kind="stable")[:CANDIDATES]] = True  # the octants are filled from the nearest candidates
+        want = {int(j) for j in np.flatnonzero(r < 1e-9)}
+        for o in range(8):  # brute force: the three nearest of each direction
+            members = np.flatnonzero((octant == o) & (r >= 1e-9) & pool)
+            want |= {int(j) for j in members[np.argsort(r[members], kind="stable")][:3]}
+        assert set(idx[i][valid[i]].tolist()) == want
 
 
 def test_that_too_few_nodes_or_errors_that_are_not_numbers_keep_scipys_slopes():
