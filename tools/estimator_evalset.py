@@ -12,13 +12,11 @@ from __future__ import annotations
 import statistics
 import sys
 import time
-from pathlib import Path
 
 from firmware_py.core.cli import ArgumentParser
 from tools.doc_sections import write_section
 from tools.estimator_compare import ESTIMATORS, survey_estimator_ves
-from tools.evalset import load_run, rows_of_file, rows_of_runs, survey_of
-from tools.sweep import write_rows_csv
+from tools.evalset import add_rows_options, load_run, rows_of_options, survey_of
 
 SECTION = "estimator-evalset"
 NOISES = ("none", "datasheet", "appendix-a")
@@ -52,23 +50,11 @@ def table(rows: list[dict], by: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = ArgumentParser(prog="python -m tools.estimator_evalset", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--root", type=Path, default=Path("runs/evalset"), help="the evaluation set (tools/evalset.py)")
-    ap.add_argument("--p-traj", type=int, nargs="+", default=None, help="only these P_traj (percent)")
+    add_rows_options(ap)
     ap.add_argument("--noise", nargs="+", default=list(NOISES), choices=NOISES)
-    ap.add_argument("--jobs", type=int, default=1)
-    ap.add_argument("--rows", type=Path, default=None, help="also write the per-run rows (CSV)")
-    ap.add_argument("--from-rows", type=Path, default=None, help="tabulate these rows instead of running")
-    ap.add_argument("--write", type=Path, default=None, help="the Markdown page to (re)write the tables in")
     args = ap.parse_args(argv)
-    if args.jobs < 1:
-        ap.error("--jobs must be >= 1")
     t0 = time.perf_counter()
-    if args.from_rows is not None:
-        rows = rows_of_file(args.from_rows)
-    else:
-        rows = rows_of_runs(args.root, run_row, args.noise, args.p_traj, args.jobs)
-        if rows is not None and args.rows is not None:
-            write_rows_csv(rows, args.rows)
+    rows = rows_of_options(ap, args, run_row, args.noise)
     if rows is None:
         return 2
     minutes = (time.perf_counter() - t0) / 60.0

@@ -387,6 +387,30 @@ def rows_of_file(path: Path) -> list[dict] | None:
         return None
 
 
+def add_rows_options(ap: ArgumentParser) -> None:
+    """The options of a tool that tabulates a row function over the stored runs (`rows_of_options` reads them)."""
+    ap.add_argument("--root", type=Path, default=Path("runs/evalset"), help="the evaluation set (tools/evalset.py)")
+    ap.add_argument("--p-traj", type=int, nargs="+", default=None, help="only these P_traj (percent)")
+    ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--rows", type=Path, default=None, help="also write the per-run rows (CSV)")
+    ap.add_argument("--from-rows", type=Path, default=None, help="tabulate these rows instead of running")
+    ap.add_argument("--write", type=Path, default=None, help="the Markdown page to (re)write the tables in")
+
+
+def rows_of_options(ap: ArgumentParser, args, run_row: Callable[[str], dict | None], noises: Sequence[str],
+                    chunksize: int = 4) -> list[dict] | None:
+    """The rows `add_rows_options` asks for: read back from --from-rows (`rows_of_file`), or run_row over the chosen
+    runs (`rows_of_runs`) and written to --rows; None when there are none to tabulate (one line on stderr)."""
+    if args.jobs < 1:
+        ap.error("--jobs must be >= 1")
+    if args.from_rows is not None:
+        return rows_of_file(args.from_rows)
+    rows = rows_of_runs(args.root, run_row, noises, args.p_traj, args.jobs, chunksize)
+    if rows is not None and args.rows is not None:
+        write_rows_csv(rows, args.rows)
+    return rows
+
+
 def iter_runs(split: Split | str | None = None, root: str | Path = DEFAULT_ROOT) -> Iterator[EvalRun]:
     """Every stored run of the split ("calibration", "heldout", or None / "all"), in a fixed order."""
     for d in run_dirs(root, split):

@@ -19,13 +19,11 @@ import statistics
 import sys
 import time
 from collections.abc import Sequence
-from pathlib import Path
 
 from firmware_py.core.cli import ArgumentParser
 from tools.calibrate_interval import FACES_FAMILIES
 from tools.doc_sections import write_section
-from tools.evalset import load_run, rows_of_file, rows_of_runs, survey_of
-from tools.sweep import write_rows_csv
+from tools.evalset import add_rows_options, load_run, rows_of_options, survey_of
 
 SECTION = "slopes-evalset"
 NOISES = ("none", "datasheet", "appendix-a")
@@ -130,22 +128,10 @@ def page_text(rows: Sequence[dict], cmd: str, made: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = ArgumentParser(prog="python -m tools.slopes_evalset", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--root", type=Path, default=Path("runs/evalset"), help="the evaluation set (tools/evalset.py)")
-    ap.add_argument("--p-traj", type=int, nargs="+", default=None, help="only these P_traj (percent)")
-    ap.add_argument("--jobs", type=int, default=1)
-    ap.add_argument("--rows", type=Path, default=None, help="also write the per-run rows (CSV)")
-    ap.add_argument("--from-rows", type=Path, default=None, help="tabulate these rows instead of running")
-    ap.add_argument("--write", type=Path, default=None, help="the Markdown page to (re)write the tables in")
+    add_rows_options(ap)
     args = ap.parse_args(argv)
-    if args.jobs < 1:
-        ap.error("--jobs must be >= 1")
     t0 = time.perf_counter()
-    if args.from_rows is not None:
-        rows = rows_of_file(args.from_rows)
-    else:
-        rows = rows_of_runs(args.root, run_row, NOISES, args.p_traj, args.jobs, chunksize=2)
-        if rows is not None and args.rows is not None:
-            write_rows_csv(rows, args.rows)
+    rows = rows_of_options(ap, args, run_row, NOISES, chunksize=2)
     if rows is None:
         return 2
     if not rows:
