@@ -117,6 +117,13 @@ def build_parser() -> ArgumentParser:
                         "scipy's least-curvature slopes through the node heights) or gp (the same through the heights "
                         "a Gaussian process fitted to the nodes and their noise predicts: steadier between sparse fan "
                         "lines under pointing noise, a few seconds more; ground/gp_slopes.py)")
+    r.add_argument("--noise-corrections", action="store_true",
+                   help="take off three biases of a surface estimated from noisy points: sigmas from the neighbours' "
+                        "range, windows refitted as quadratics, the wall contacts' floor test by the floor's "
+                        "tolerance (not yet the default; docs/design-notes.md)")
+    r.add_argument("--pointing-bias", action="store_true",
+                   help="move the points back along their beams by what the header's pointing error puts them behind "
+                        "the surface, and fit it again (not yet the default; ground/pointing_bias.py)")
     r.add_argument("--no-despike", action="store_true",
                    help="keep isolated one- or two-sample range spikes (default: left out, with a threshold "
                         "derived from the log header; see ground/despike.py)")
@@ -312,6 +319,7 @@ def _report(args) -> int:
     opts = ReportOptions(cell_m=args.cell, empty_cells=args.empty_cells, plots=not args.no_plots,
                          truth_volume_m3=args.truth_volume, despike=not args.no_despike,
                          surface_fit=args.surface_fit, surface_slopes=NodeSlopes(args.surface_slopes),
+                         noise_corrections=args.noise_corrections, pointing_bias=args.pointing_bias,
                          servo_retiming=not args.no_servo_retiming,
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),
                          self_calibration=not args.no_self_calibration, pose_correction=args.pose_correction,

@@ -30,7 +30,9 @@ The smoothed heights at the cells' data centroids are then the nodes of the ordi
 plane flattens a curved surface by 1/2 tr(H Sigma_w) (H the surface's Hessian, Sigma_w the window's
 spread), which per cell is within the noise (that is Lepski's test) but has one sign over a whole convex
 pile, so for the *volume* the windows trade variance, which averages out over thousands of cells anyway,
-for a bias that does not (docs/design-notes.md has the measurements).
+for a bias that does not (docs/design-notes.md has the measurements). `SmoothingOptions.quadratic` refits each
+chosen window as a local quadratic, which holds the bend (`quadratic_nodes`); it is one of the report's noise
+corrections, not yet the default (`ground.report.ReportOptions.noise_corrections`).
 """
 
 from __future__ import annotations
@@ -73,6 +75,7 @@ class SmoothingOptions:
     outlier_n_sigma: float | None = None  # None: structure_n_sigma of the cloud's size
     noise_from_data: bool = True  # the windows' standard errors scaled down to the scatter the data show
     slopes: NodeSlopes = NodeSlopes.CURVATURE
+    quadratic: bool = False  # each chosen window refitted as a local quadratic (`quadratic_nodes`)
 
     def __post_init__(self) -> None:
         try:
@@ -102,14 +105,38 @@ def vertical_sigma_m(range_sigma_m: np.ndarray | float, resolution_m: float, pos
     return np.sqrt(var)
 
 
-def cloud_vertical_sigma_m(cloud: Cloud, err: SensorErrorModel, where: np.ndarray) -> np.ndarray:
+RANGE_NEIGHBOURS = 4
+"""The samples either side of each point in time whose median range its sigma is taken from (`typical_range_m`):
+eight span a few centimetres of beam travel, so the range they give is the point's own but for its noise (twelve
+either side measured the same: docs/design-notes.md)."""
+
+
+def typical_range_m(range_m: np.ndarray, neighbours: int = RANGE_NEIGHBOURS) -> np.ndarray:
+    """Each sample's range as its neighbours in time give it: the median of the `neighbours` samples either side,
+    the sample itself left out, so that none of its own noise is in it. A median keeps a step (a beam going from
+    the pile to the floor) where it is."""
+    r = np.asarray(range_m, dtype=float)
+    if len(r) < 2 or neighbours < 1:
+        return r
+    # By hand: scipy's median_filter on a 1-D array keeps the centre of a footprint that leaves it out (1.17).
+    padded, n, k = np.pad(r, neighbours, mode="edge"), len(r), 2 * neighbours
+    others = np.stack([padded[j:j + n] for j in range(k + 1) if j != neighbours], axis=1)
+    mid = np.partition(others, [k // 2 - 1, k // 2], axis=1)
+    return 0.5 * (mid[:, k // 2 - 1] + mid[:, k // 2])
+
+
+def cloud_vertical_sigma_m(cloud: Cloud, err: SensorErrorModel, where: np.ndarray,
+                           range_from_neighbours: bool = False) -> np.ndarray:
     """`vertical_sigma_m` of the cloud's points `where` (a mask or indices), from the sensor model in the log header:
     the one spelling of it for the surface fit's pile points, a fitted floor's and the floor check's candidates.
-    Known and kept for now: the sigma comes from each point's own measured range, so a reading that came back long
-    weighs less than one that came back short, which lifts a weighted mean by about 2 sigma^2 / r. That bias cancels
-    part of the windows' flattening of convex piles, so it is to be removed with it (docs/design-notes.md, "Each
-    point's weight carries its own noise")."""
-    rng, dirs = cloud.range_m[where], cloud.dirs_w[where]
+    The sigma grows with the range; by default each point's own. A sigma from the point's own measured range weighs a
+    reading that came back long (its point placed low) less than one that came back short, and lifts every weighted
+    mean by about 2 sigma^2 / r; range_from_neighbours takes the range its neighbours in time give it
+    (`typical_range_m`; the cloud is in sample order) and has none of that (docs/design-notes.md, "Each point's weight
+    carries its own noise"). It is one of the noise corrections (`ground.report.ReportOptions.noise_corrections`),
+    not yet the default: removed alone it moves documented rows the wrong way."""
+    rng = (typical_range_m(cloud.range_m) if range_from_neighbours else cloud.range_m)[where]
+    dirs = cloud.dirs_w[where]
     return vertical_sigma_m(err.range_sigma(rng), err.resolution_m, err.position_sigma_m, err.angle_sigma_rad, rng,
                             dirs)
 
@@ -282,6 +309,70 @@ def lepski_select(est: np.ndarray, se: np.ndarray, z_crit: float) -> tuple[np.nd
     return est[level, cols], se[level, cols], level
 
 
+QUAD_MIN_POINTS = 10
+"""A chosen window is refitted as a quadratic (`quadratic_refit`) only with at least this many points: six unknowns
+and a few degrees of freedom to spare."""
+QUAD_MIN_COND = 1e-6
+"""... and only when its normal equations are this well conditioned (smallest over largest eigenvalue, after scaling
+to unit diagonal): points along one line, a fan line seen by one sweep, do not fix a curvature across it."""
+_POWERS4 = [(a, b) for a in range(5) for b in range(5) if a + b <= 4]
+_POWERS2 = [(a, b) for a in range(3) for b in range(3) if a + b <= 2]
+_PHI = [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)]  # 1, dx, dy, dx^2, dx dy, dy^2
+
+
+def quadratic_moments(points_w: np.ndarray, sigma_m: np.ndarray, flat: np.ndarray, shape: tuple[int, int],
+                      origin_xy: tuple[float, float]) -> dict:
+    """Per cell, the weighted sums a local quadratic needs: w x^a y^b (a + b <= 4), w z x^a y^b (a + b <= 2) and the
+    point count."""
+    nx, ny = shape
+    w = 1.0 / np.square(sigma_m)
+    x, y, z = points_w[:, 0] - origin_xy[0], points_w[:, 1] - origin_xy[1], points_w[:, 2]
+
+    def binned(v: np.ndarray) -> np.ndarray:
+        return np.bincount(flat, weights=v, minlength=nx * ny).reshape(nx, ny)
+    xp = [np.ones_like(x), x, x * x, x**3, x**4]
+    yp = [np.ones_like(y), y, y * y, y**3, y**4]
+    out = {("m", a, b): binned(w * xp[a] * yp[b]) for a, b in _POWERS4}
+    out.update({("z", a, b): binned(w * z * xp[a] * yp[b]) for a, b in _POWERS2})
+    out["n"] = binned(np.ones_like(w))
+    return out
+
+
+def quadratic_refit(q: dict, cells: np.ndarray, j: int, at_xy: np.ndarray,
+                    scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The weighted local quadratic of the (2j+1)^2 window around each of `cells` (flat indices), evaluated at at_xy
+    (k, 2, relative to the moments' origin): (height, standard error, usable) per cell, unusable (NaN) where too few
+    points or ill-conditioned. scale: the data's noise scale (`data_noise_scale`), applied to the standard error as
+    to the planes'."""
+    sums = {k: box_sum(v, j).ravel()[cells] for k, v in q.items()}
+    ux, uy = at_xy[:, 0], at_xy[:, 1]
+    pow_x = [np.ones_like(ux), -ux, ux * ux, -(ux**3), ux**4]
+    pow_y = [np.ones_like(uy), -uy, uy * uy, -(uy**3), uy**4]
+    binom = [[1], [1, 1], [1, 2, 1], [1, 3, 3, 1], [1, 4, 6, 4, 1]]
+
+    def local(a: int, b: int, kind: str) -> np.ndarray:  # sum w (x - ux)^a (y - uy)^b [z]
+        return sum(binom[a][i] * binom[b][k] * pow_x[a - i] * pow_y[b - k] * sums[(kind, i, k)]
+                   for i in range(a + 1) for k in range(b + 1))
+    n = len(cells)
+    mat, rhs = np.empty((n, 6, 6)), np.empty((n, 6))
+    for r, (a1, b1) in enumerate(_PHI):
+        rhs[:, r] = local(a1, b1, "z")
+        for c, (a2, b2) in enumerate(_PHI):
+            mat[:, r, c] = local(a1 + a2, b1 + b2, "m") if c >= r else mat[:, c, r]
+    usable = sums["n"] >= QUAD_MIN_POINTS - 0.5
+    diag = np.sqrt(np.abs(np.einsum("nii->ni", mat)))
+    diag[diag == 0] = 1.0
+    scaled = mat / diag[:, :, None] / diag[:, None, :]
+    ev = np.linalg.eigvalsh(np.where(usable[:, None, None], scaled, np.eye(6)))
+    usable &= ev[:, 0] > QUAD_MIN_COND * ev[:, -1]
+    height, se = np.full(n, np.nan), np.full(n, np.nan)
+    if usable.any():
+        inv = np.linalg.inv(scaled[usable]) / diag[usable][:, :, None] / diag[usable][:, None, :]
+        height[usable] = np.einsum("nj,nj->n", inv[:, 0, :], rhs[usable])
+        se[usable] = scale * np.sqrt(np.maximum(inv[:, 0, 0], 0.0))
+    return height, se, usable
+
+
 @dataclass(frozen=True)
 class Nodes:
     """The smoothed surface's nodes: one per occupied cell, at the cell's data centroid."""
@@ -292,6 +383,24 @@ class Nodes:
     n_outliers: int = 0  # points left out as outliers
     at_z: np.ndarray | None = None  # at the positions asked for (`smoothed_nodes` at_xy): the chosen plane's height,
     at_se: np.ndarray | None = None  # and its standard error; NaN where the position's cell has no node
+
+
+def quadratic_nodes(q: dict, cells: np.ndarray, at_xy: np.ndarray, levels: list[int], lev: np.ndarray,
+                    chosen: tuple[np.ndarray, np.ndarray], windows: tuple[np.ndarray, np.ndarray], noise_scale: float,
+                    z_crit: float) -> tuple[np.ndarray, np.ndarray]:
+    """The nodes' heights and standard errors with each chosen window wider than its cell refitted as a quadratic
+    (`quadratic_refit`), which a curved surface does not flatten, where the quadratic agrees with every narrower
+    window as Lepski's rule asks of the plane (a cone's apex is no quadratic). cells, at_xy: the occupied cells (flat
+    indices) and their nodes (relative to the moments' origin); chosen: the planes' heights and standard errors;
+    windows: every window's (levels x nodes)."""
+    z, se = chosen[0].copy(), chosen[1].copy()
+    all_est, all_se = windows
+    for k in np.unique(lev[lev > 0]):
+        sel = np.flatnonzero(lev == k)
+        height, h_se, ok = quadratic_refit(q, cells[sel], levels[k], at_xy[sel], noise_scale)
+        ok &= np.all(np.abs(height - all_est[:k, sel]) <= z_crit * all_se[:k, sel], axis=0)
+        z[sel[ok]], se[sel[ok]] = height[ok], h_se[ok]
+    return z, se
 
 
 def smoothed_nodes(points_w: np.ndarray, sigma_m: np.ndarray, shape: tuple[int, int],
@@ -311,7 +420,8 @@ def smoothed_nodes(points_w: np.ndarray, sigma_m: np.ndarray, shape: tuple[int, 
         n_out = int(bad.sum())
         if n_out:
             keep = ~bad
-            m = binned_moments(points_w[keep], sigma_m[keep], flat[keep], shape, origin)
+            points_w, sigma_m, flat = points_w[keep], sigma_m[keep], flat[keep]
+            m = binned_moments(points_w, sigma_m, flat, shape, origin)
     occupied = m["w"] > 0
     cx = np.where(occupied, m["wx"] / np.where(occupied, m["w"], 1.0), 0.0)
     cy = np.where(occupied, m["wy"] / np.where(occupied, m["w"], 1.0), 0.0)
@@ -331,7 +441,13 @@ def smoothed_nodes(points_w: np.ndarray, sigma_m: np.ndarray, shape: tuple[int, 
         at_ests.append(e)
         at_ses.append(s)
     noise_scale = data_noise_scale(m, window1) if opts.noise_from_data else 1.0
-    z, se, lev = lepski_select(np.array(ests), noise_scale * np.array(ses), opts.z_crit)
+    all_est, all_se = np.array(ests), noise_scale * np.array(ses)
+    z, se, lev = lepski_select(all_est, all_se, opts.z_crit)
+    if opts.quadratic and (lev > 0).any():
+        cells = np.flatnonzero(occupied.ravel())
+        z, se = quadratic_nodes(quadratic_moments(points_w, sigma_m, flat, shape, origin), cells,
+                                np.column_stack([cx.ravel()[cells], cy.ravel()[cells]]), levels, lev, (z, se),
+                                (all_est, all_se), noise_scale, opts.z_crit)
     xyz = np.column_stack([cx[occupied] + origin[0], cy[occupied] + origin[1], z])
     at_z = at_se = None
     if at_xy is not None:  # each position: its cell's chosen window's plane there

@@ -102,13 +102,13 @@ def wall_index(points_w: np.ndarray, tol_xyz: np.ndarray, storage: Storage) -> n
 
 
 def wall_contacts(cloud: Cloud, structure: np.ndarray, storage: Storage, err: SensorErrorModel,
-                  cell_m: float, n_sigma: float | None = None) -> WallContacts:
+                  cell_m: float, n_sigma: float | None = None, floor_by_plane: bool = False) -> WallContacts:
     """The wall contacts of a cloud (module docstring). structure: `pointcloud.structure_mask` of the cloud
     (True for wall and roof points); the cloud's points are in sample order with their times and sweep
     directions. No times or sweep directions: no contacts (the beams' order is unknown). cell_m: the grid
     the contacts will be used on; a contact the two beams locate more coarsely than the sensor's own error
     and than MAX_SLOPE times a cell (sparse beams: the lowest wall hit metres above the other beam's line)
-    is not made."""
+    is not made. floor_by_plane: the floor test below by the floor's own tolerance (a noise correction)."""
     empty = WallContacts(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64))
     n = len(cloud.range_m)
     if n < 3 or cloud.t_s is None or cloud.sweep_dir is None:
@@ -158,7 +158,13 @@ def wall_contacts(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
     slack = MAX_SLOPE * plane_tolerances_m(cloud, err, k)[w][rows, axis]
     high = np.clip(np.maximum(p[w, 2], p[w_est, 2]) + k * sig_w + slack, 0.0, storage.height_m)
     low = np.minimum(np.clip(z_cross - k * sig_m, 0.0, None), high)
-    floor = np.abs(p[m, 2]) <= k * sig_m  # the beam short of the wall hit the floor
+    # The beam short of the wall hit the floor: by default when that hit lies within k sig_m of it. sig_m is the
+    # error of the beam carried on to the wall, which under a pointing error at range is metres and takes material
+    # metres up for the floor (docs/design-notes.md, "Four biases of the noisy surface"); floor_by_plane (one of
+    # the noise corrections, not yet the default) judges the hit by the floor's own tolerance instead, the one the
+    # structure mask places the floor by.
+    floor_tol = plane_tolerances_m(cloud, err, k)[m, 2] if floor_by_plane else k * sig_m
+    floor = np.abs(p[m, 2]) <= floor_tol
     estimate = np.where(floor, 0.0, p[w_est, 2])
     # Material leaning on the wall rises (or is level) towards it, so its last hit short of the wall is no
     # higher than the wall seen above it. A last hit above that (a pile's crest metres from the wall, the

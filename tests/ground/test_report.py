@@ -126,6 +126,22 @@ def test_that_the_report_shows_the_sensor_noise_the_log_header_states(tmp_path, 
     assert paper_report["sensor_noise"] == "none stated in the log header"  # a flight without sensor noise
 
 
+
+def test_that_the_pointing_bias_lifts_a_survey_under_a_pointing_error_on_request(tmp_path):
+    """Appendix A's degree of pointing error places every point behind the surface (ground.pointing_bias): asked to,
+    the report moves them back and fits again, which can only raise the volume; without a pointing error in the
+    header there is nothing to move."""
+    small = Mission(storage=Storage(30, 20, 10), altitude_m=9.0, p_traj=0.2)
+    fly(FlyConfig(mission=small, plant="ideal", sensor_noise="appendix-a", seed=1), tmp_path / "noisy")
+    plain = make_report(tmp_path / "noisy", tmp_path / "plain", ReportOptions(plots=False))
+    moved = make_report(tmp_path / "noisy", tmp_path / "moved", ReportOptions(plots=False, pointing_bias=True))
+    assert moved["pointing_bias"] is True and plain["pointing_bias"] is False
+    assert moved["volume_m3"] > plain["volume_m3"]
+    fly(FlyConfig(mission=small, plant="ideal", seed=1), tmp_path / "clean")
+    a = make_report(tmp_path / "clean", tmp_path / "a", ReportOptions(plots=False))
+    b = make_report(tmp_path / "clean", tmp_path / "b", ReportOptions(plots=False, pointing_bias=True))
+    assert a["volume_m3"] == b["volume_m3"]
+
 def test_that_a_structure_off_its_planes_is_warned_when_either_estimator_finds_it_and_neither_corrects_it():
     from ground.pose_correction import PoseCorrection, not_applied
     from ground.report import unexplained_structure_warning

@@ -147,6 +147,22 @@ def test_that_exact_points_of_a_dome_are_not_flattened_by_noise_the_header_state
     assert stated < 0 and abs(from_data) < 0.25 * abs(stated)
 
 
+def test_that_the_chosen_windows_refitted_as_quadratics_do_not_flatten_a_noisy_dome():
+    """Noisy points of a cone (5 cm, as the header states): the windows Lepski's rule accepts are wide, and their
+    planes flatten the cone by one sign everywhere; the same windows refitted as quadratics hold its bend."""
+    rng = np.random.default_rng(7)
+    xy = swaths(rng, n_lines=12, per_line=4000)
+    pts = np.column_stack([xy, cone(xy) + rng.normal(0.0, 0.05, len(xy))])
+    truth_m3 = grid_volume(cell_truth(cone), G)
+    sigma = np.full(len(pts), 0.05)
+
+    def err_m3(opts):
+        return grid_volume(fit_heights(pts, G, "local-linear", sigma, opts), G) - truth_m3
+
+    plane, quadratic = err_m3(SmoothingOptions()), err_m3(SmoothingOptions(quadratic=True))
+    assert plane < 0 and abs(quadratic) < 0.1 * abs(plane)
+
+
 def test_that_a_cells_points_centroid_lies_on_a_plane_so_binning_alone_adds_no_bias():
     rng = np.random.default_rng(5)
     xy = swaths(rng)
@@ -238,6 +254,21 @@ def test_that_the_report_fits_local_linear_on_request_with_the_headers_sigmas(tm
     base = json.loads((tmp_path / "cl" / "report.json").read_text())
     # the golden log is a clean flight: estimating instead of interpolating changes its volume by little
     assert rep["volume_m3"] == pytest.approx(base["volume_m3"], rel=0.01)
+    assert base["noise_corrections"] is False
+    capsys.readouterr()
+
+
+def test_that_the_report_takes_off_the_noise_biases_on_request_and_says_so(tmp_path, capsys):
+    from ground.cli import main
+
+    assert main(["report", str(GOLDEN), "--out", str(tmp_path / "nc"), "--no-plots", "--noise-corrections",
+                 "--truth-volume", "7206.9"]) == 0
+    rep = json.loads((tmp_path / "nc" / "report.json").read_text())
+    assert rep["noise_corrections"] is True and rep["pointing_bias"] is False
+    assert main(["report", str(GOLDEN), "--out", str(tmp_path / "d"), "--no-plots", "--truth-volume", "7206.9"]) == 0
+    base = json.loads((tmp_path / "d" / "report.json").read_text())
+    # a clean flight: no pointing error to move the points by, and windows that stay narrow: little to take off
+    assert rep["volume_m3"] == pytest.approx(base["volume_m3"], rel=0.002)
     capsys.readouterr()
 
 
@@ -271,3 +302,25 @@ def test_that_a_hull_corner_whose_cell_has_no_node_adds_none():
     all_pts = np.vstack([pts, around, spike])
     h = fit_heights(all_pts, G, "local-linear", np.full(len(all_pts), RES_SIGMA))
     assert np.nanmax(h) < 0.01  # the outlier's cell has no node, so its hull corner does not lift the surface
+
+
+def test_that_a_points_weight_does_not_carry_its_own_range_noise():
+    """A flat floor seen at 10 m with 5 % range noise: a sigma from each point's own range would weigh the readings
+    that came back long (placed low) less and lift the weighted mean by about 2 sigma^2 / r = 5 cm. Taken from the
+    neighbours' median range, the weighted mean stays on the floor within its own standard error."""
+    from ground.pointcloud import Cloud, SensorErrorModel
+    from ground.smoothing import cloud_vertical_sigma_m
+
+    rng = np.random.default_rng(3)
+    n, r0 = 200_000, 10.0
+    dirs = np.tile([0.0, 0.0, -1.0], (n, 1))
+    r = r0 * (1.0 + 0.05 * rng.standard_normal(n))
+    origins = np.column_stack([rng.uniform(0, 20, n), rng.uniform(0, 10, n), np.full(n, r0)])
+    cloud = Cloud(origins + dirs * r[:, None], dirs, r, origins, n, 0)
+    err = SensorErrorModel(range_sigma_rel=0.05, resolution_m=0.01)
+    w = 1.0 / cloud_vertical_sigma_m(cloud, err, np.ones(n, dtype=bool), range_from_neighbours=True) ** 2
+    own = 1.0 / cloud_vertical_sigma_m(cloud, err, np.ones(n, dtype=bool)) ** 2  # the default, for now
+    mean, mean_own = np.average(cloud.points_w[:, 2], weights=w), np.average(cloud.points_w[:, 2], weights=own)
+    assert mean_own > 0.04  # the bias this removes, as the rule of thumb says
+    assert abs(mean) < 4 * 0.05 * r0 / math.sqrt(n)  # 4 standard errors of the mean: 4.5 mm
+

@@ -276,3 +276,14 @@ def test_that_a_wedge_leans_on_the_wall_as_measured():
     c = contacts_of(swept_cloud(wedge_m(3.0)), IDEAL)
     assert len(c) == 5 and c.leans_as_measured.all()
     assert len(c.measured_leaning()) == 5
+
+
+def test_that_a_pointing_error_does_not_take_material_at_a_far_wall_for_the_floor():
+    """Seen from across the room, a pointing error's sigma at the wall is metres; the beam short of the wall hit the
+    material 1.5 m up, which is no floor hit, so the contact holds the material's height, not 0."""
+    pointing = SensorErrorModel(resolution_m=0.01, angle_sigma_rad=np.radians(2.0))
+    cloud = swept_cloud(wedge_m(1.5), sensor_x=18.0, sensor_z=6.0)
+    c = wall_contacts(cloud, structure_mask(cloud, STORAGE, pointing), STORAGE, pointing, CELL_M, floor_by_plane=True)
+    assert len(c) == 5
+    assert np.all(np.abs(c.height_m - 1.5) <= beam_gap_at_wall_m(sensor_x=18.0, z=1.5))
+    assert np.all(contacts_of(cloud, pointing).height_m == 0.0)  # the default's test, kept until the switch
