@@ -9,7 +9,7 @@ turns it in (across the beam, in the plane the servo sweeps it through), the ran
 and the point is placed at that range along d. Its mean over a zero-mean delta of sigma is r (1 + sigma^2 (t^2 + 1/2)):
 every point lies r sigma^2 (t^2 + 1/2) behind the surface on average, never in front, most where the beam grazes (t
 large). Under Appendix A's one degree at 20 m that is 3 mm square on and 9 mm at 45 degrees, and it reads the surface
-low: the paper's piles 0.1-0.2 % under (measured: docs/design-notes.md, "Four biases of the noisy surface"). Smoothing
+low: the paper's piles 0.1-0.3 % under (measured: docs/design-notes.md, "Four biases of the noisy surface"). Smoothing
 cannot take it off, since every point carries it with one sign; knowing sigma from the log header and the surface's
 normal from a first fit, `along_beam_bias_m` gives it per point, and the points are moved back along their beams by it
 before the surface is fitted again.

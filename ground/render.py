@@ -132,15 +132,24 @@ _SURFACE_TEXT = {
 }
 
 
-def method_text(surface_fit: str | None = None, surface_slopes: str | None = None) -> str:
-    """The method paragraph of the report, naming the surface fit the report used (`ground.surface`), and where its
-    cubic took its slopes when not scipy's (`ground.gp_slopes`)."""
+def method_text(surface_fit: str | None = None, surface_slopes: str | None = None, noise_corrections: bool = False,
+                pointing_bias: bool = False) -> str:
+    """The method paragraph of the report, naming the surface fit the report used (`ground.surface`), where its
+    cubic took its slopes when not scipy's (`ground.gp_slopes`), and the noise corrections asked for
+    (`ground.report.ReportOptions`)."""
     surface = _SURFACE_TEXT.get(str(surface_fit), "A surface is fitted to the remaining points and evaluated on a "
                                                   "regular grid; ")  # a report that does not say which
     if surface_fit == "local-linear" and surface_slopes == "gp":
         surface = surface.replace("through those heights, kept", "through those heights (its slopes there taken "
                                   "through the heights a Gaussian process fitted to them and their noise predicts), "
                                   "kept")
+    if noise_corrections:
+        surface += ("with the noise corrections asked for, each point is weighed by the noise its neighbours' range "
+                    "gives and each smoothing window is refitted as a quadratic where it agrees with the narrower "
+                    "ones; ")
+    if pointing_bias:
+        surface += ("the points were first moved back along their beams by what the stated pointing error puts them "
+                    "behind the surface; ")
     return (
         "Each LiDAR range sample is turned into a point in the storage frame from the drone position "
         "and attitude and the servo angle of the swept beam (eqs. 3-6 of Alsayed & Nabawy, Drones 2022, "
@@ -497,7 +506,8 @@ def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportC
         piles_method=str(piles.get("method")) if isinstance(piles, Mapping) and piles.get("method") else None,
         piles_note=piles_note(piles),
         config=config_rows, config_file=config_file,
-        method=method_text(report.get("surface_fit"), report.get("surface_slopes")),
+        method=method_text(report.get("surface_fit"), report.get("surface_slopes"),
+                           report.get("noise_corrections") is True, report.get("pointing_bias") is True),
         headline=headline(report),
         warnings=_warnings(report),
         summary=summary,

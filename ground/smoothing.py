@@ -107,8 +107,8 @@ def vertical_sigma_m(range_sigma_m: np.ndarray | float, resolution_m: float, pos
 
 RANGE_NEIGHBOURS = 4
 """The samples either side of each point in time whose median range its sigma is taken from (`typical_range_m`):
-eight span a few centimetres of beam travel, so the range they give is the point's own but for its noise (twelve
-either side measured the same: docs/design-notes.md)."""
+eight are a few milliseconds of sweep, over which the range changes little but at a step, which a median keeps (a
+25-sample window measured the same: docs/design-notes.md)."""
 
 
 def typical_range_m(range_m: np.ndarray, neighbours: int = RANGE_NEIGHBOURS) -> np.ndarray:

@@ -264,6 +264,8 @@ def test_that_the_method_paragraph_names_the_surface_fit_the_report_used():
 
     assert "local plane" in method_text("local-linear") and "local plane" not in METHOD_TEXT
     assert "local plane" not in method_text("cubic-limited") and "Delaunay" in method_text("cubic-limited")
+    plain, fixed = method_text("local-linear"), method_text("local-linear", noise_corrections=True, pointing_bias=True)
+    assert "quadratic" not in plain and "quadratic" in fixed and "behind the surface" in fixed
     assert "piecewise-planar" in method_text("linear")
     assert "Gaussian process" in method_text("local-linear", "gp")
     assert "Gaussian process" not in method_text("local-linear", "curvature") + method_text("cubic-limited", "gp")
