@@ -18,6 +18,11 @@ The expansion holds while the beam meets the surface at an angle (alpha, t = cot
 at alpha = 10 sigma (measured by sampling), where t is capped. It is capped at ten degrees whatever sigma is, too:
 the normal comes from the fitted cells, good to a few degrees, and below ten degrees of grazing a few degrees change t
 by tens of percent.
+
+Not yet modelled, so the correction is an option: the expansion assumes the surface goes on whichever way the error
+turns the beam. At grazing incidence near a wall or a pile's foot a beam turned away from the surface meets something
+else, so the hits that remain are the short ones, placed in front of the surface: measured +48 mm on a small
+building's floor at 70-80 degrees from the vertical, where the expansion says -28 mm (docs/design-notes.md).
 """
 
 from __future__ import annotations

@@ -880,7 +880,7 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
     # a wall contact's floor test by the floor's own tolerance. --pointing-bias moves the points back along their
     # beams by what the header's pointing error puts them behind the surface (ground.pointing_bias). Neither is the
     # default yet: every page the volumes move is to be made again with them (tools.regenerate), and the pointing
-    # bias reads the evaluation set's bare floors high under Appendix A's noise, for a reason not yet traced.
+    # bias is wrong in sign at grazing incidence near a wall, where beams turned off the surface hit something else.
     fixes = opts.noise_corrections
     sigma = pile_sigma_m(cloud, structure, err, range_from_neighbours=fixes)
     smoothing = SmoothingOptions(slopes=opts.surface_slopes, quadratic=fixes)
