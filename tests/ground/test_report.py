@@ -129,8 +129,8 @@ def test_that_the_report_shows_the_sensor_noise_the_log_header_states(tmp_path, 
 
 def test_that_the_pointing_bias_lifts_a_survey_under_a_pointing_error_on_request(tmp_path):
     """Appendix A's degree of pointing error places every point behind the surface (ground.pointing_bias): asked to,
-    the report moves them back and fits again, which can only raise the volume; without a pointing error in the
-    header there is nothing to move."""
+    the report moves them back towards the sensor and fits again, which raises the volume; without a pointing error
+    in the header there is nothing to move."""
     small = Mission(storage=Storage(30, 20, 10), altitude_m=9.0, p_traj=0.2)
     fly(FlyConfig(mission=small, plant="ideal", sensor_noise="appendix-a", seed=1), tmp_path / "noisy")
     plain = make_report(tmp_path / "noisy", tmp_path / "plain", ReportOptions(plots=False))

@@ -147,7 +147,7 @@ def test_that_exact_points_of_a_dome_are_not_flattened_by_noise_the_header_state
     assert stated < 0 and abs(from_data) < 0.25 * abs(stated)
 
 
-def test_that_the_chosen_windows_refitted_as_quadratics_do_not_flatten_a_noisy_dome():
+def test_that_the_chosen_windows_refitted_as_quadratics_do_not_flatten_a_noisy_cone():
     """Noisy points of a cone (5 cm, as the header states): the windows Lepski's rule accepts are wide, and their
     planes flatten the cone by one sign everywhere; the same windows refitted as quadratics hold its bend."""
     rng = np.random.default_rng(7)
