@@ -31,6 +31,8 @@ import math
 
 import numpy as np
 
+from ground.smoothing import cell_index
+
 MIN_GRAZING_RAD = math.radians(10.0)
 """The shallowest angle between beam and surface whose t is taken (module docstring: the fitted normal's accuracy)."""
 EXPANSION_SIGMAS = 10.0
@@ -80,7 +82,6 @@ def grid_normals(points_w: np.ndarray, heights: np.ndarray, cell_xy_m: tuple[flo
     cx, cy = cell_xy_m
     gx = np.gradient(h, cx, axis=0) if nx > 1 else np.zeros_like(h)
     gy = np.gradient(h, cy, axis=1) if ny > 1 else np.zeros_like(h)
-    ix = np.clip(np.floor(points_w[:, 0] / cx).astype(np.int64), 0, nx - 1)
-    iy = np.clip(np.floor(points_w[:, 1] / cy).astype(np.int64), 0, ny - 1)
-    n = np.column_stack([-gx[ix, iy], -gy[ix, iy], np.ones(len(ix))])
+    flat = cell_index(points_w, (nx, ny), cell_xy_m)
+    n = np.column_stack([-gx.ravel()[flat], -gy.ravel()[flat], np.ones(len(flat))])
     return n / np.linalg.norm(n, axis=1, keepdims=True)

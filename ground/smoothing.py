@@ -320,11 +320,17 @@ _POWERS2 = [(a, b) for a in range(3) for b in range(3) if a + b <= 2]
 _PHI = [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)]  # 1, dx, dy, dx^2, dx dy, dy^2
 
 
-def quadratic_moments(points_w: np.ndarray, sigma_m: np.ndarray, flat: np.ndarray, shape: tuple[int, int],
+_FROM_PLANE = {("m", 0, 0): "w", ("m", 1, 0): "wx", ("m", 0, 1): "wy", ("m", 2, 0): "wxx", ("m", 1, 1): "wxy",
+               ("m", 0, 2): "wyy", ("z", 0, 0): "wz", ("z", 1, 0): "wxz", ("z", 0, 1): "wyz", "n": "n"}
+"""The quadratic's sums that `binned_moments` already holds for the planes, by their names there."""
+
+
+def quadratic_moments(points_w: np.ndarray, sigma_m: np.ndarray, flat: np.ndarray, plane: dict[str, np.ndarray],
                       origin_xy: tuple[float, float]) -> dict:
     """Per cell, the weighted sums a local quadratic needs: w x^a y^b (a + b <= 4), w z x^a y^b (a + b <= 2) and the
-    point count."""
-    nx, ny = shape
+    point count; those up to the second order are the planes' (`binned_moments` of the same points, `plane`), the
+    rest are binned here."""
+    nx, ny = plane["w"].shape
     w = 1.0 / np.square(sigma_m)
     x, y, z = points_w[:, 0] - origin_xy[0], points_w[:, 1] - origin_xy[1], points_w[:, 2]
 
@@ -332,9 +338,9 @@ def quadratic_moments(points_w: np.ndarray, sigma_m: np.ndarray, flat: np.ndarra
         return np.bincount(flat, weights=v, minlength=nx * ny).reshape(nx, ny)
     xp = [np.ones_like(x), x, x * x, x**3, x**4]
     yp = [np.ones_like(y), y, y * y, y**3, y**4]
-    out = {("m", a, b): binned(w * xp[a] * yp[b]) for a, b in _POWERS4}
-    out.update({("z", a, b): binned(w * z * xp[a] * yp[b]) for a, b in _POWERS2})
-    out["n"] = binned(np.ones_like(w))
+    out = {key: plane[name] for key, name in _FROM_PLANE.items()}
+    out.update({("m", a, b): binned(w * xp[a] * yp[b]) for a, b in _POWERS4 if ("m", a, b) not in out})
+    out.update({("z", a, b): binned(w * z * xp[a] * yp[b]) for a, b in _POWERS2 if ("z", a, b) not in out})
     return out
 
 
@@ -445,7 +451,7 @@ def smoothed_nodes(points_w: np.ndarray, sigma_m: np.ndarray, shape: tuple[int, 
     z, se, lev = lepski_select(all_est, all_se, opts.z_crit)
     if opts.quadratic and (lev > 0).any():
         cells = np.flatnonzero(occupied.ravel())
-        z, se = quadratic_nodes(quadratic_moments(points_w, sigma_m, flat, shape, origin), cells,
+        z, se = quadratic_nodes(quadratic_moments(points_w, sigma_m, flat, m, origin), cells,
                                 np.column_stack([cx.ravel()[cells], cy.ravel()[cells]]), levels, lev, (z, se),
                                 (all_est, all_se), noise_scale, opts.z_crit)
     xyz = np.column_stack([cx[occupied] + origin[0], cy[occupied] + origin[1], z])

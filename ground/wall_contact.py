@@ -117,7 +117,8 @@ def wall_contacts(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
     t, sweep = np.asarray(cloud.t_s, dtype=float), np.asarray(cloud.sweep_dir)
     structure = np.asarray(structure, dtype=bool)
     k = structure_n_sigma(n) if n_sigma is None else n_sigma
-    wall = wall_index(p, plane_tolerances_m(cloud, err, k), storage)
+    tol = plane_tolerances_m(cloud, err, k)  # (N, 3): each point's tolerance along the walls' and floor's normals
+    wall = wall_index(p, tol, storage)
     on_wall = structure & (wall >= 0) & (p[:, 2] > 0.0) & (p[:, 2] < storage.height_m)
     dt = np.diff(t)
     step = float(np.median(dt[dt > 0])) if (dt > 0).any() else 0.0
@@ -155,7 +156,7 @@ def wall_contacts(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
                              np.where(reach, s, r[m]), d[m])
     # The lowest "wall" hit may be material within its wall tolerance of the wall (the mask cannot tell them
     # apart): the material at the wall is then up to MAX_SLOPE times that tolerance higher.
-    slack = MAX_SLOPE * plane_tolerances_m(cloud, err, k)[w][rows, axis]
+    slack = MAX_SLOPE * tol[w][rows, axis]
     high = np.clip(np.maximum(p[w, 2], p[w_est, 2]) + k * sig_w + slack, 0.0, storage.height_m)
     low = np.minimum(np.clip(z_cross - k * sig_m, 0.0, None), high)
     # The beam short of the wall hit the floor: by default when that hit lies within k sig_m of it. sig_m is the
@@ -163,7 +164,7 @@ def wall_contacts(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
     # metres up for the floor (docs/design-notes.md, "Four biases of the noisy surface"); floor_by_plane (one of
     # the noise corrections, not yet the default) judges the hit by the floor's own tolerance instead, the one the
     # structure mask places the floor by.
-    floor_tol = plane_tolerances_m(cloud, err, k)[m, 2] if floor_by_plane else k * sig_m
+    floor_tol = tol[m, 2] if floor_by_plane else k * sig_m
     floor = np.abs(p[m, 2]) <= floor_tol
     estimate = np.where(floor, 0.0, p[w_est, 2])
     # Material leaning on the wall rises (or is level) towards it, so its last hit short of the wall is no

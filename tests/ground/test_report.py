@@ -29,6 +29,17 @@ def paper_run(tmp_path_factory):
     return out
 
 
+SMALL = Mission(storage=Storage(30, 20, 10), altitude_m=9.0, p_traj=0.2)
+
+
+@pytest.fixture(scope="module")
+def small_noisy_run(tmp_path_factory):
+    """A small building flown once under Appendix A's noise, for the tests that only read it."""
+    out = tmp_path_factory.mktemp("small-noisy") / "noisy"
+    fly(FlyConfig(mission=SMALL, plant="ideal", sensor_noise="appendix-a", seed=1), out)
+    return out
+
+
 @pytest.fixture(scope="module")
 def paper_report(paper_run, tmp_path_factory):
     """The report of paper_run's log alone (no truth.json beside it), made once for the tests that only read it."""
@@ -117,27 +128,23 @@ def test_that_the_truth_can_be_given_or_absent(tmp_path, paper_run, paper_report
     assert np.isfinite(rep["coverage_ratio_pct"])
 
 
-def test_that_the_report_shows_the_sensor_noise_the_log_header_states(tmp_path, paper_report):
-    small = Mission(storage=Storage(30, 20, 10), altitude_m=9.0, p_traj=0.2)
-    fly(FlyConfig(mission=small, plant="ideal", sensor_noise="appendix-a", seed=1), tmp_path / "noisy")
-    rep = make_report(tmp_path / "noisy", tmp_path / "rep", ReportOptions(plots=False))
+def test_that_the_report_shows_the_sensor_noise_the_log_header_states(tmp_path, paper_report, small_noisy_run):
+    rep = make_report(small_noisy_run, tmp_path / "rep", ReportOptions(plots=False))
     assert rep["sensor_noise"].startswith("appendix-a: range 2.5 cm, servo angle 1 deg, attitude 0.143 deg")
     assert "Sensor noise (simulated)" in (tmp_path / "rep" / "report.md").read_text()
     assert paper_report["sensor_noise"] == "none stated in the log header"  # a flight without sensor noise
 
 
 
-def test_that_the_pointing_bias_lifts_a_survey_under_a_pointing_error_on_request(tmp_path):
+def test_that_the_pointing_bias_lifts_a_survey_under_a_pointing_error_on_request(tmp_path, small_noisy_run):
     """Appendix A's degree of pointing error places every point behind the surface (ground.pointing_bias): asked to,
     the report moves them back towards the sensor and fits again, which raises the volume; without a pointing error
     in the header there is nothing to move."""
-    small = Mission(storage=Storage(30, 20, 10), altitude_m=9.0, p_traj=0.2)
-    fly(FlyConfig(mission=small, plant="ideal", sensor_noise="appendix-a", seed=1), tmp_path / "noisy")
-    plain = make_report(tmp_path / "noisy", tmp_path / "plain", ReportOptions(plots=False))
-    moved = make_report(tmp_path / "noisy", tmp_path / "moved", ReportOptions(plots=False, pointing_bias=True))
+    plain = make_report(small_noisy_run, tmp_path / "plain", ReportOptions(plots=False))
+    moved = make_report(small_noisy_run, tmp_path / "moved", ReportOptions(plots=False, pointing_bias=True))
     assert moved["pointing_bias"] is True and plain["pointing_bias"] is False
     assert moved["volume_m3"] > plain["volume_m3"]
-    fly(FlyConfig(mission=small, plant="ideal", seed=1), tmp_path / "clean")
+    fly(FlyConfig(mission=SMALL, plant="ideal", seed=1), tmp_path / "clean")
     a = make_report(tmp_path / "clean", tmp_path / "a", ReportOptions(plots=False))
     b = make_report(tmp_path / "clean", tmp_path / "b", ReportOptions(plots=False, pointing_bias=True))
     assert a["volume_m3"] == b["volume_m3"]
