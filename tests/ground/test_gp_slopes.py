@@ -6,7 +6,9 @@ from scipy.interpolate import CloughTocher2DInterpolator
 
 from ground.gp_slopes import (
     CANDIDATES,
+    FIRST_CANDIDATES,
     MIN_NODES,
+    PER_OCTANT,
     GpCovariance,
     fit_covariance,
     gp_smoothed,
@@ -93,22 +95,41 @@ def test_that_each_octant_gives_its_nearest_nodes_and_the_node_itself_is_kept():
     assert len(got) <= 8 * 2 + 1
 
 
+def brute_force_octants(xy, p, per):
+    """The octant neighbours of p by brute force: the node at p, and the `per` nearest of each direction among the
+    CANDIDATES nearest nodes."""
+    d = xy - p
+    r = np.hypot(d[:, 0], d[:, 1])
+    octant = np.floor((np.arctan2(d[:, 1], d[:, 0]) + np.pi) / (np.pi / 4)).astype(int) % 8
+    pool = np.zeros(len(xy), dtype=bool)
+    pool[np.argsort(r, kind="stable")[:CANDIDATES]] = True  # the octants are filled from the nearest candidates
+    want = {int(j) for j in np.flatnonzero(r < 1e-9)}
+    for o in range(8):
+        members = np.flatnonzero((octant == o) & (r >= 1e-9) & pool)
+        want |= {int(j) for j in members[np.argsort(r[members], kind="stable")][:per]}
+    return want
+
+
 def test_that_each_octant_holds_exactly_its_nearest_candidates():
     rng = np.random.default_rng(5)
     xy = rng.uniform(0.0, 20.0, (400, 2))
     at = np.concatenate([xy[:20], rng.uniform(0.0, 20.0, (20, 2))])  # on a node (kept itself) and between nodes
     idx, valid = octant_neighbours(xy, at, per=3)
     for i, p in enumerate(at):
-        d = xy - p
-        r = np.hypot(d[:, 0], d[:, 1])
-        octant = np.floor((np.arctan2(d[:, 1], d[:, 0]) + np.pi) / (np.pi / 4)).astype(int) % 8
-        pool = np.zeros(len(xy), dtype=bool)
-        pool[np.argsort(r, kind="stable")[:CANDIDATES]] = True  # the octants are filled from the nearest candidates
-        want = {int(j) for j in np.flatnonzero(r < 1e-9)}
-        for o in range(8):  # brute force: the three nearest of each direction
-            members = np.flatnonzero((octant == o) & (r >= 1e-9) & pool)
-            want |= {int(j) for j in members[np.argsort(r[members], kind="stable")][:3]}
-        assert set(idx[i][valid[i]].tolist()) == want
+        assert set(idx[i][valid[i]].tolist()) == brute_force_octants(xy, p, 3)
+
+
+def test_that_a_node_whose_octants_its_first_candidates_leave_empty_is_looked_up_among_all_of_them():
+    xy = fan_lines(spacing_m=3.0, step_m=0.05)  # the nearest FIRST_CANDIDATES of a node all lie on its own line,
+    at = xy[(xy[:, 1] > 5.0) & (xy[:, 1] < 15.0)][::50]  # away from its ends, but not its nearest CANDIDATES
+    d = xy[:, None, :] - at[None]
+    first = np.argsort(np.hypot(d[..., 0], d[..., 1]), axis=0, kind="stable")[:FIRST_CANDIDATES]
+    assert np.all(np.abs(xy[first, 0] - at[:, 0]) < 1e-9)  # the first look holds none of the next line's nodes
+    idx, valid = octant_neighbours(xy, at)
+    for i, p in enumerate(at):
+        got = set(idx[i][valid[i]].tolist())
+        assert got == brute_force_octants(xy, p, PER_OCTANT)
+        assert np.any(np.abs(xy[list(got), 0] - p[0]) > 2.0)  # the next lines' nodes are among them
 
 
 def test_that_too_few_nodes_or_errors_that_are_not_numbers_keep_scipys_slopes():
