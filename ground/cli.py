@@ -114,9 +114,11 @@ def build_parser() -> ArgumentParser:
                         "within each triangle's data), cubic (the paper's MATLAB 'cubicinterp') or linear")
     r.add_argument("--surface-slopes", choices=[s.value for s in NodeSlopes], default=NodeSlopes.CURVATURE.value,
                    help="where the local-linear surface's cubic takes its slopes at the nodes: curvature (default: "
-                        "scipy's least-curvature slopes through the node heights) or gp (the same through the heights "
+                        "scipy's least-curvature slopes through the node heights), gp (the same through the heights "
                         "a Gaussian process fitted to the nodes and their noise predicts: steadier between sparse fan "
-                        "lines under pointing noise, a few seconds more; ground/gp_slopes.py)")
+                        "lines under pointing noise, about 0.7 s more; ground/gp_slopes.py) or gp-bridges (the "
+                        "process's heights only where a triangle spans further than the smoothing windows reach, and "
+                        "beside it: the same across the gaps, about 0.2 s more)")
     r.add_argument("--noise-corrections", action="store_true",
                    help="take off three biases of a surface estimated from noisy points: sigmas from the neighbours' "
                         "range, windows refitted as quadratics, the wall contacts' floor test by the floor's "

@@ -235,15 +235,17 @@ def fit_covariance(xy: np.ndarray, z: np.ndarray, var: np.ndarray, seed: int = 0
 
 
 def gp_smoothed(xy: np.ndarray, z: np.ndarray, var: np.ndarray, cov: GpCovariance,
-                tree: cKDTree | None = None) -> np.ndarray:
+                tree: cKDTree | None = None, only: np.ndarray | None = None) -> np.ndarray:
     """(n,) the kriging predictor's height at every node from its octant neighbours (itself among them, with its
-    error variance): the node heights with their noise averaged out, and as they are where they have none."""
+    error variance): the node heights with their noise averaged out, and as they are where they have none. only:
+    the indices of the nodes to predict (the others keep their heights), or None for all."""
     tree = cKDTree(xy) if tree is None else tree
-    out = np.zeros(len(z))
+    rows = np.arange(len(z)) if only is None else np.asarray(only, dtype=np.int64)
+    out = np.array(z, dtype=float)
     s2, length = cov.amplitude_m**2, cov.length_m
 
     def chunk(lo: int) -> None:
-        at = xy[lo:lo + CHUNK]
+        at = xy[rows[lo:lo + CHUNK]]
         idx, valid = octant_neighbours(xy, at, tree)
         nb = _neighbourhoods(xy, at, idx, valid)
         a = _systems(nb, var, cov)
@@ -253,25 +255,47 @@ def gp_smoothed(xy: np.ndarray, z: np.ndarray, var: np.ndarray, cov: GpCovarianc
         b[:, :k] = np.where(valid, s2 * matern52(r / length), 0.0)
         b[:, k] = 1.0
         w = np.linalg.solve(a, b[..., None])[..., 0]
-        out[lo:lo + CHUNK] = np.einsum("nk,nk->n", w[:, :k], np.where(valid, z[idx], 0.0))
+        out[rows[lo:lo + CHUNK]] = np.einsum("nk,nk->n", w[:, :k], np.where(valid, z[idx], 0.0))
     with ThreadPoolExecutor(max_workers=_threads()) as pool:
-        list(pool.map(chunk, range(0, len(z), CHUNK)))  # list(): a chunk's exception is raised here
+        list(pool.map(chunk, range(0, len(rows), CHUNK)))  # list(): a chunk's exception is raised here
     return out
 
 
-def node_slopes(tri: Delaunay, z: np.ndarray, se_m: np.ndarray) -> np.ndarray | None:
+def bridge_nodes(tri: Delaunay, reach_m: float) -> np.ndarray:
+    """The indices of the nodes whose slopes the cubic carries beyond reach_m: the corners of every triangle with an
+    edge longer than reach_m, and the nodes next to them (their heights set those corners' slopes). Elsewhere the
+    cubic spans less than reach_m between nodes."""
+    pts = np.asarray(tri.points, dtype=float)[tri.simplices]  # (m, 3, 2)
+    longest = np.max(np.linalg.norm(pts - np.roll(pts, 1, axis=1), axis=2), axis=1)
+    corner = np.zeros(len(tri.points), dtype=bool)
+    corner[tri.simplices[longest > reach_m].ravel()] = True
+    indptr, indices = tri.vertex_neighbor_vertices
+    n = len(corner)
+    beside = np.zeros(n, dtype=bool)
+    if corner.any():
+        owner = np.repeat(np.arange(n), np.diff(indptr))  # the node each neighbour entry belongs to
+        beside[indices[corner[owner]]] = True
+    return np.flatnonzero(corner | beside)
+
+
+def node_slopes(tri: Delaunay, z: np.ndarray, se_m: np.ndarray, reach_m: float | None = None) -> np.ndarray | None:
     """The slopes (n, 2) at the triangulation's nodes: scipy's least-curvature slopes through the node heights the
     Gaussian process predicts (`gp_smoothed`), or None where the nodes cannot carry a fit (too few, or a height or
-    error that is not a finite number, an error < 0): the caller keeps scipy's slopes through the heights then."""
+    error that is not a finite number, an error < 0): the caller keeps scipy's slopes through the heights then.
+    reach_m: the process predicts only the heights of the `bridge_nodes` beyond it, the others are taken as they are
+    (None when no triangle reaches that far: scipy's slopes)."""
     xy = np.asarray(tri.points, dtype=float)
     z = np.asarray(z, dtype=float)
     se = np.asarray(se_m, dtype=float)
     if len(z) < MIN_NODES or not (np.all(np.isfinite(se)) and np.all(se >= 0) and np.all(np.isfinite(z))):
         return None
+    only = None if reach_m is None else bridge_nodes(tri, reach_m)
+    if only is not None and not len(only):
+        return None
     var = se * se
     try:
         tree = cKDTree(xy)  # one tree for the fit's neighbourhoods and the prediction's
-        smoothed = gp_smoothed(xy, z, var, fit_covariance(xy, z, var, tree=tree), tree)
+        smoothed = gp_smoothed(xy, z, var, fit_covariance(xy, z, var, tree=tree), tree, only)
     except np.linalg.LinAlgError:  # a neighbourhood with no plane through it (its nodes on one line)
         return None
     if not np.all(np.isfinite(smoothed)):

@@ -143,6 +143,10 @@ def method_text(surface_fit: str | None = None, surface_slopes: str | None = Non
         surface = surface.replace("through those heights, kept", "through those heights (its slopes there taken "
                                   "through the heights a Gaussian process fitted to them and their noise predicts), "
                                   "kept")
+    elif surface_fit == "local-linear" and surface_slopes == "gp-bridges":
+        surface = surface.replace("through those heights, kept", "through those heights (where it spans further "
+                                  "than the smoothing reached, its slopes taken through the heights a Gaussian "
+                                  "process fitted to them and their noise predicts), kept")
     if noise_corrections:
         surface += ("with the noise corrections asked for, each point is weighed by the noise its neighbours' range "
                     "gives and each smoothing window is refitted as a quadratic where it agrees with the narrower "

@@ -57,11 +57,15 @@ mission is 1-2 m wide at the lowest P_traj, so wider windows would mostly mix in
 
 class NodeSlopes(StrEnum):
     """Where the cubic between the nodes takes its slopes at them: scipy's least-curvature estimate through the
-    node heights taken as exact (``curvature``), or a Gaussian process fitted to the nodes and their standard
-    errors (``gp``: `ground.gp_slopes`)."""
+    node heights taken as exact (``curvature``), or through the heights a Gaussian process fitted to the nodes and
+    their standard errors predicts (``gp``: `ground.gp_slopes`), or the process's heights only at the nodes of the
+    triangles that span further than the windows reach (`SmoothingOptions.max_window_m`) and their neighbours
+    (``gp-bridges``: `ground.gp_slopes.bridge_nodes`): within the windows' reach the nodes' noise is averaged
+    already and the cubic cannot carry a slope far."""
 
     CURVATURE = "curvature"
     GP = "gp"
+    GP_BRIDGES = "gp-bridges"
 
 
 @dataclass(frozen=True)

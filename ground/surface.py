@@ -189,7 +189,8 @@ def fit_heights_with_se(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_
     if wanted is not None:  # the nodes that shape the surface in the wanted cells
         near = shaping_points(xyz[:, :2], wanted, grid)
         xyz, node_se = xyz[near], None if node_se is None else node_se[near]
-    heights, se = _interpolate(xyz, grid, "cubic-limited", node_se, smoothing.slopes)  # exact: se all NaN
+    heights, se = _interpolate(xyz, grid, "cubic-limited", node_se, smoothing.slopes,
+                               smoothing.max_window_m)  # exact: se all NaN
     se[~np.isfinite(heights)] = np.nan
     return heights, se
 
@@ -207,11 +208,13 @@ def hull_corners(points_w: np.ndarray) -> np.ndarray:
 
 
 def _interpolate(points_w: np.ndarray, grid: Grid, method: str, also_linear: np.ndarray | None = None,
-                 slopes: NodeSlopes = NodeSlopes.CURVATURE) -> tuple[np.ndarray, np.ndarray]:
+                 slopes: NodeSlopes = NodeSlopes.CURVATURE,
+                 reach_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The interpolating fits (cubic-limited, cubic, linear) at the cell centres, and also_linear (one value
     per point, or None) interpolated linearly on the same triangulation (NaN without it). With `NodeSlopes.GP`
     and also_linear the nodes' standard errors, the cubic takes its slopes at the nodes from `ground.gp_slopes`
-    (scipy's where that cannot fit them)."""
+    (scipy's where that cannot fit them); with `NodeSlopes.GP_BRIDGES` from the process at the nodes of the
+    triangles longer than reach_m (`ground.gp_slopes.bridge_nodes`) only."""
     heights = np.full(grid.shape, np.nan)
     extra = np.full(grid.shape, np.nan)
     if len(points_w) < 3:
@@ -231,8 +234,8 @@ def _interpolate(points_w: np.ndarray, grid: Grid, method: str, also_linear: np.
         if method == "linear":
             return LinearNDInterpolator(tri, z)(cx, cy), extra
         cubic = CloughTocher2DInterpolator(tri, z)
-        if slopes is NodeSlopes.GP and also_linear is not None:
-            g = node_slopes(tri, z, also_linear)
+        if slopes in (NodeSlopes.GP, NodeSlopes.GP_BRIDGES) and also_linear is not None:
+            g = node_slopes(tri, z, also_linear, reach_m if slopes is NodeSlopes.GP_BRIDGES else None)
             if g is not None:  # scipy's interpolator evaluates with the slopes it holds
                 cubic.grad = g[:, None, :]
         heights = cubic(cx, cy)

@@ -10,6 +10,7 @@ from ground.gp_slopes import (
     MIN_NODES,
     PER_OCTANT,
     GpCovariance,
+    bridge_nodes,
     fit_covariance,
     gp_smoothed,
     node_slopes,
@@ -130,6 +131,57 @@ def test_that_a_node_whose_octants_its_first_candidates_leave_empty_is_looked_up
         got = set(idx[i][valid[i]].tolist())
         assert got == brute_force_octants(xy, p, PER_OCTANT)
         assert np.any(np.abs(xy[list(got), 0] - p[0]) > 2.0)  # the next lines' nodes are among them
+
+
+def two_blocks(gap_m=5.0, step_m=0.25):
+    """Two dense 5 x 10 m blocks of nodes with a gap_m strip between them, along x."""
+    xs = np.arange(0.0, 5.0 + 1e-9, step_m)
+    ys = np.arange(0.0, 10.0 + 1e-9, step_m)
+    block = np.array([(x, y) for x in xs for y in ys])
+    return np.concatenate([block, block + np.array([5.0 + gap_m, 0.0])])
+
+
+def test_that_the_bridge_nodes_are_the_corners_of_the_triangles_longer_than_the_reach_and_their_neighbours():
+    xy = two_blocks()
+    tri = delaunay(xy)
+    got = set(bridge_nodes(tri, 2.0).tolist())
+    pts = xy[tri.simplices]
+    longest = np.max(np.linalg.norm(pts - np.roll(pts, 1, axis=1), axis=2), axis=1)
+    corners = set(tri.simplices[longest > 2.0].ravel().tolist())
+    indptr, indices = tri.vertex_neighbor_vertices
+    want = corners | {int(j) for v in corners for j in indices[indptr[v]:indptr[v + 1]]}
+    assert got == want
+    x = xy[sorted(got), 0]
+    assert np.all((np.abs(x - 5.0) <= 0.5) | (np.abs(x - 10.0) <= 0.5))  # the blocks' facing edges only
+    assert bridge_nodes(tri, 6.0).size == 0  # no triangle spans further than 6 m
+
+
+def test_that_nodes_whose_triangles_all_stay_within_the_reach_keep_scipys_slopes():
+    xy = two_blocks(gap_m=0.25)  # one dense block: no triangle longer than the windows reach
+    z = hill(xy) + np.random.default_rng(6).normal(0.0, 0.03, len(xy))
+    assert node_slopes(delaunay(xy), z, np.full(len(z), 0.03), reach_m=2.0) is None
+
+
+def test_that_where_every_triangle_bridges_a_gap_the_bridges_slopes_are_the_gps():
+    xy = fan_lines(spacing_m=3.0)  # every triangle spans from one line to the next, 3 m
+    z = hill(xy) + np.random.default_rng(7).normal(0.0, 0.03, len(xy))
+    se = np.full(len(z), 0.03)
+    tri = delaunay(xy)
+    assert len(bridge_nodes(tri, 2.0)) == len(xy)
+    np.testing.assert_array_equal(node_slopes(tri, z, se, reach_m=2.0), node_slopes(tri, z, se))
+
+
+def test_that_the_bridges_slopes_are_nearer_the_truth_than_scipys_across_a_gap():
+    xy = two_blocks(gap_m=4.0)
+    xy = xy + np.array([8.0, 5.0])  # the hill's crest (15, 10) in the gap, x 13-17
+    rng = np.random.default_rng(8)
+    se = np.full(len(xy), 0.03)
+    z = hill(xy) + rng.normal(0.0, 0.03, len(xy))
+    tri = delaunay(xy)
+    edge = bridge_nodes(tri, 2.0)
+    err_bridges = rms(node_slopes(tri, z, se, reach_m=2.0)[edge], xy[edge])
+    err_scipy = rms(scipy_slopes(xy, z)[edge], xy[edge])
+    assert err_bridges < 0.5 * err_scipy, (err_bridges, err_scipy)
 
 
 def test_that_too_few_nodes_or_errors_that_are_not_numbers_keep_scipys_slopes():

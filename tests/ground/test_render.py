@@ -268,6 +268,8 @@ def test_that_the_method_paragraph_names_the_surface_fit_the_report_used():
     assert "quadratic" not in plain and "quadratic" in fixed and "behind the surface" in fixed
     assert "piecewise-planar" in method_text("linear")
     assert "Gaussian process" in method_text("local-linear", "gp")
+    bridges = method_text("local-linear", "gp-bridges")
+    assert "Gaussian process" in bridges and "further than the smoothing reached" in bridges
     assert "Gaussian process" not in method_text("local-linear", "curvature") + method_text("cubic-limited", "gp")
     assert method_text("spline") == METHOD_TEXT and "Delaunay" not in METHOD_TEXT  # unnamed: no method claimed
 
