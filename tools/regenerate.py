@@ -74,8 +74,8 @@ STEPS: tuple[Step, ...] = (
     _step("cell-sensitivity", "tools.cell_sensitivity --write docs/cell_sensitivity.md", "docs/cell_sensitivity.md",
           "the volume against the grid's cell, per fill (MEASURED_MAX_CELL_M is read off it)"),
     _step("slopes", "tools.slopes_evalset --jobs 2 --rows runs/slopes-evalset.csv --write docs/surface_estimators.md",
-          "docs/surface_estimators.md", "the default slopes against the GP's over the evaluation set, each noisy run "
-          "against its noise-free twin"),
+          "docs/surface_estimators.md", "the default slopes against the GP's and the GP's at the bridges over the "
+          "evaluation set, each noisy run against its noise-free twin"),
     Step("pose-reports-aside", None, (), "the pose campaigns' kept reports moved aside, to be made again"),
     _step("pose", "tools.pose_correction_campaign --seeds 0 1 2 3 4 5 --piles 1 2 --p-traj 5 20 --keep runs/pose "
           "--reuse --write docs/pose_error.md", "docs/pose_error.md"),

@@ -1,8 +1,9 @@
 """The surface's slopes weighed on the evaluation set: the report's default (scipy's least-curvature slopes through
 the node heights) against `--surface-slopes gp` (through the heights a Gaussian process freed of their noise,
-`ground.gp_slopes`), each run surveyed twice by the whole report pipeline (fill, wall contacts, strip) and each noisy
-run held against its own noise-free twin (the same pile, flight and servo phase; tools/evalset.py draws the three
-noise models on the same samples' flight).
+`ground.gp_slopes`) and `--surface-slopes gp-bridges` (the process's heights only where the cubic spans further than
+the smoothing windows reach), each run surveyed once with each by the whole report pipeline (fill, wall contacts,
+strip) and each noisy run held against its own noise-free twin (the same pile, flight and servo phase;
+tools/evalset.py draws the three noise models on the same samples' flight).
 
 The twin is the measure issue 14 sets for noise ("Ve with noise within 0.2 pp of the clean Ve"): what the noise did
 to the volume, apart from what the flight's own gaps did to it. `tools.estimator_evalset` compares estimators refitted
@@ -28,8 +29,10 @@ from tools.evalset import add_rows_options, load_run, rows_of_options, survey_of
 SECTION = "slopes-evalset"
 NOISES = ("none", "datasheet", "appendix-a")
 NOISY = ("datasheet", "appendix-a")
-SLOPES = ("curvature", "gp")
-"""The two slopes compared, by their `--surface-slopes` names (ground.smoothing.NodeSlopes)."""
+SLOPES = ("curvature", "gp", "gp-bridges")
+"""The slopes compared, by their `--surface-slopes` names (ground.smoothing.NodeSlopes), the default first."""
+COLUMNS = "default / gp / gp-bridges"
+"""How a table's cells list them."""
 WITHIN_PP = 0.2
 """Issue 14's target for the noise's share: Ve with noise within this of the noise-free Ve (pp)."""
 
@@ -80,15 +83,15 @@ def noise_shares(rows: Sequence[dict]) -> list[dict]:
 
 
 def _cmp(values: Sequence[dict], key: str, fmt: str = "{:.2f}") -> str:
-    a, b = (statistics.fmean(abs(float(v[n])) if key == "abs" else float(v[n]) for v in values) for n in SLOPES)
-    return f"{fmt.format(a)} -> {fmt.format(b)}"
+    means = (statistics.fmean(abs(float(v[n])) if key == "abs" else float(v[n]) for v in values) for n in SLOPES)
+    return " / ".join(fmt.format(m) for m in means)
 
 
 def table(rows: Sequence[dict], by: str) -> str:
-    """Per group of `by`: runs, mean |Ve| and mean signed Ve (default -> gp); the height-map families only (a box's
+    """Per group of `by`: runs, mean |Ve| and mean signed Ve (each of SLOPES); the height-map families only (a box's
     faces and a sphere's undercut are no slope's to get right: tools.calibrate_interval.FACES_FAMILIES)."""
     rows = [r for r in rows if r["family"] not in FACES_FAMILIES]
-    out = [f"| {by} | runs | mean \\|Ve\\| [%], default -> gp | mean signed Ve [%], default -> gp |",
+    out = [f"| {by} | runs | mean \\|Ve\\| [%], {COLUMNS} | mean signed Ve [%], {COLUMNS} |",
            "|---|---|---|---|"]
     for key in sorted({r[by] for r in rows}, key=lambda k: (str(type(k)), k)):
         rs = [r for r in rows if r[by] == key]
@@ -98,15 +101,15 @@ def table(rows: Sequence[dict], by: str) -> str:
 
 def share_table(shares: Sequence[dict], by: str) -> str:
     """Per noise model and group of `by`: the noisy runs' mean and median |Ve - twin's|, and how many are within
-    WITHIN_PP of their twin, default -> gp (height-map families only, as `table`)."""
+    WITHIN_PP of their twin, each of SLOPES (height-map families only, as `table`)."""
     shares = [s for s in shares if s["family"] not in FACES_FAMILIES]
-    out = [f"| noise | {by} | runs | mean \\|Ve - twin's\\| [pp], default -> gp | median | within {WITHIN_PP:g} pp |",
+    out = [f"| noise | {by} | runs | mean \\|Ve - twin's\\| [pp], {COLUMNS} | median | within {WITHIN_PP:g} pp |",
            "|---|---|---|---|---|---|"]
     for noise in NOISY:
         for key in sorted({s[by] for s in shares if s["noise"] == noise}, key=lambda k: (str(type(k)), k)):
             ss = [s for s in shares if s["noise"] == noise and s[by] == key]
-            med = " -> ".join(f"{statistics.median(float(s[n]) for s in ss):.2f}" for n in SLOPES)
-            within = " -> ".join(str(sum(float(s[n]) <= WITHIN_PP for s in ss)) for n in SLOPES)
+            med = " / ".join(f"{statistics.median(float(s[n]) for s in ss):.2f}" for n in SLOPES)
+            within = " / ".join(str(sum(float(s[n]) <= WITHIN_PP for s in ss)) for n in SLOPES)
             out.append(f"| {noise} | {key} | {len(ss)} | {_cmp(ss, 'signed')} | {med} | {within} |")
     return "\n".join(out)
 
@@ -115,12 +118,12 @@ def page_text(rows: Sequence[dict], cmd: str, made: str) -> str:
     """The page's section: how it was made, the noise's share by P_traj and by family, and the error against the
     truth (ValueError, KeyError or TypeError on rows that are not this tool's)."""
     rows = [{**r, "p_traj_pct": int(r["p_traj_pct"])} for r in rows]
-    seconds = " -> ".join(f"{statistics.median(float(r[f'{n}_s']) for r in rows):.2f}" for n in SLOPES)
+    seconds = " / ".join(f"{statistics.median(float(r[f'{n}_s']) for r in rows):.2f}" for n in SLOPES)
     shares = noise_shares(rows)
     return (f"Regenerated by `{cmd}` ({len(rows)} stored runs; {made}). Each run of the evaluation set "
-            "(docs/evaluation_set.md) reported by the whole pipeline twice, with the default slopes and with "
-            "`--surface-slopes gp`; the box and sphere piles left out (faces and undercuts no slope holds). Median "
-            f"seconds a survey as the rows were made, default -> gp: {seconds}.\n\n"
+            "(docs/evaluation_set.md) reported by the whole pipeline three times, with the default slopes, "
+            "`--surface-slopes gp` and `--surface-slopes gp-bridges`; the box and sphere piles left out (faces and "
+            f"undercuts no slope holds). Median seconds a survey as the rows were made, {COLUMNS}: {seconds}.\n\n"
             "What the noise did, each noisy run against its noise-free twin (same pile, flight and servo phase):\n\n"
             + share_table(shares, "p_traj_pct") + "\n\nBy pile family:\n\n" + share_table(shares, "family")
             + "\n\nAgainst the truth, by sensor-noise model:\n\n" + table(rows, "noise"))
