@@ -132,6 +132,14 @@ _SURFACE_TEXT = {
 }
 
 
+_SLOPES_TEXT = {
+    "gp": "its slopes there taken through the heights a Gaussian process fitted to them and their noise predicts",
+    "gp-bridges": "where it spans further than the smoothing reached, its slopes taken through the heights a Gaussian "
+                  "process fitted to them and their noise predicts",
+}
+"""Where the local-linear surface's cubic took its slopes, by `--surface-slopes` value, when not scipy's."""
+
+
 def method_text(surface_fit: str | None = None, surface_slopes: str | None = None, noise_corrections: bool = False,
                 pointing_bias: bool = False) -> str:
     """The method paragraph of the report, naming the surface fit the report used (`ground.surface`), where its
@@ -139,14 +147,9 @@ def method_text(surface_fit: str | None = None, surface_slopes: str | None = Non
     (`ground.report.ReportOptions`)."""
     surface = _SURFACE_TEXT.get(str(surface_fit), "A surface is fitted to the remaining points and evaluated on a "
                                                   "regular grid; ")  # a report that does not say which
-    if surface_fit == "local-linear" and surface_slopes == "gp":
-        surface = surface.replace("through those heights, kept", "through those heights (its slopes there taken "
-                                  "through the heights a Gaussian process fitted to them and their noise predicts), "
-                                  "kept")
-    elif surface_fit == "local-linear" and surface_slopes == "gp-bridges":
-        surface = surface.replace("through those heights, kept", "through those heights (where it spans further "
-                                  "than the smoothing reached, its slopes taken through the heights a Gaussian "
-                                  "process fitted to them and their noise predicts), kept")
+    slopes = _SLOPES_TEXT.get(str(surface_slopes))
+    if surface_fit == "local-linear" and slopes is not None:
+        surface = surface.replace("through those heights, kept", f"through those heights ({slopes}), kept")
     if noise_corrections:
         surface += ("with the noise corrections asked for, each point is weighed by the noise its neighbours' range "
                     "gives and each smoothing window is refitted as a quadratic where it agrees with the narrower "
