@@ -453,17 +453,20 @@ def survey_base(earlier: SavedSurface, current: SavedSurface, source: str) -> Ba
 
 
 def rebased_terms(terms: ErrorTerms, heights_fit: np.ndarray, heights: np.ndarray, grid: Grid,
-                  scatter_sigma_m: float, base: Base, roof_m: float, mask: np.ndarray | None = None) -> ErrorTerms:
+                  scatter_sigma_m: float, base: Base, roof_m: float, mask: np.ndarray | None = None,
+                  edge_m: np.ndarray | None = None) -> ErrorTerms:
     """The terms that measure material from the floor (the unseen fill's lower bound, the blur's pile
     footprint) measured from a fitted floor instead; the others do not depend on the base, but for the pose
     and level terms: a height error common to the survey moves the floor fitted from its own points with the pile, so
     above that floor it cancels. Not the untied stretches' term: no floor was seen there, so the floor fitted
     elsewhere does not move with them. An earlier survey's base keeps the terms as they are: its own interval is
-    added whole (module docstring). mask: the terms over those cells only (one pile's, as `terms` are)."""
+    added whole (module docstring). mask: the terms over those cells only (one pile's, as `terms` are). edge_m: the
+    heights the unseen term takes its slope from (`ground.uncertainty.edge_heights_m`; None: heights_fit)."""
     if base.kind is not BaseKind.FITTED_FLOOR or base.heights_m is None:
         return terms
     low, high = unseen_terms_m3(heights_fit - base.heights_m, heights - base.heights_m, grid,
-                                upper_m=roof_m - base.heights_m, mask=mask)
+                                upper_m=roof_m - base.heights_m, mask=mask,
+                                edge_m=None if edge_m is None else edge_m - base.heights_m)
     return replace(terms, unseen_low_m3=low, unseen_high_m3=high,
                    blur_m3=blur_term_m3(scatter_sigma_m, heights_fit - base.heights_m, grid, mask), pose_m3=0.0,
                    level_m3=0.0)

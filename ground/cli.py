@@ -33,7 +33,7 @@ from ground.piles import DEFAULT_MIN_PILE_AREA_M2, MassUnit, PileOptions, Volume
 from ground.pose_correction import PoseCorrectionOptions
 from ground.render import fmt_echo, warning_parts
 from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, make_report
-from ground.smoothing import NodeSlopes
+from ground.smoothing import DEFAULT_NODE_SLOPES, NodeSlopes
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
 
@@ -112,13 +112,13 @@ def build_parser() -> ArgumentParser:
                    help="local-linear (default: estimated from the points with their noise from the log header, "
                         "outliers left out: ground/smoothing.py), cubic-limited (the cubic through every point, kept "
                         "within each triangle's data), cubic (the paper's MATLAB 'cubicinterp') or linear")
-    r.add_argument("--surface-slopes", choices=[s.value for s in NodeSlopes], default=NodeSlopes.CURVATURE.value,
-                   help="where the local-linear surface's cubic takes its slopes at the nodes: curvature (default: "
-                        "scipy's least-curvature slopes through the node heights), gp (the same through the heights "
-                        "a Gaussian process fitted to the nodes and their noise predicts: steadier between sparse fan "
-                        "lines under pointing noise, about 0.7 s more; ground/gp_slopes.py) or gp-bridges (the "
-                        "process's heights only where a triangle spans further than the smoothing windows reach, and "
-                        "beside it: the same across the gaps, about 0.2 s more)")
+    r.add_argument("--surface-slopes", choices=[s.value for s in NodeSlopes], default=None,
+                   help="where the local-linear surface's cubic takes its slopes at the nodes: gp-bridges (default: "
+                        "through the heights a Gaussian process fitted to the nodes and their noise predicts where a "
+                        "triangle spans further than the smoothing windows reach, and beside it: steadier across the "
+                        "gaps between sparse fan lines under pointing noise; ground/gp_slopes.py), gp (the same at "
+                        "every node, about 0.5 s more) or curvature (scipy's least-curvature slopes through the node "
+                        "heights as they are, about 0.2 s less)")
     r.add_argument("--noise-corrections", action="store_true",
                    help="take off three biases of a surface estimated from noisy points: sigmas from the neighbours' "
                         "range, windows refitted as quadratics, the wall contacts' floor test by the floor's "
@@ -297,7 +297,7 @@ def _report(args) -> int:
         raise UserError(f"--max-interval-pct must be > 0, got {args.max_interval_pct:g}")
     if args.max_grid_memory_mb <= 0:
         raise UserError(f"--max-grid-memory-mb must be > 0, got {args.max_grid_memory_mb:g}")
-    if args.surface_slopes != NodeSlopes.CURVATURE.value and args.surface_fit != "local-linear":
+    if args.surface_slopes is not None and args.surface_fit != "local-linear":
         raise UserError(f"--surface-slopes {args.surface_slopes} applies to the local-linear surface fit only (the "
                         f"others interpolate the points), got --surface-fit {args.surface_fit}")
     cfg = args.config_file
@@ -320,7 +320,8 @@ def _report(args) -> int:
     exports = parse_formats(args.export)
     opts = ReportOptions(cell_m=args.cell, empty_cells=args.empty_cells, plots=not args.no_plots,
                          truth_volume_m3=args.truth_volume, despike=not args.no_despike,
-                         surface_fit=args.surface_fit, surface_slopes=NodeSlopes(args.surface_slopes),
+                         surface_fit=args.surface_fit,
+                         surface_slopes=NodeSlopes(args.surface_slopes or DEFAULT_NODE_SLOPES),
                          noise_corrections=args.noise_corrections, pointing_bias=args.pointing_bias,
                          servo_retiming=not args.no_servo_retiming,
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),

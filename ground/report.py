@@ -76,7 +76,13 @@ from ground.self_calibration import (
     estimate_mount,
 )
 from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
-from ground.smoothing import DEFAULT_SMOOTHING, NodeSlopes, SmoothingOptions, cloud_vertical_sigma_m
+from ground.smoothing import (
+    DEFAULT_NODE_SLOPES,
+    DEFAULT_SMOOTHING,
+    NodeSlopes,
+    SmoothingOptions,
+    cloud_vertical_sigma_m,
+)
 from ground.surface import (
     CONTACT_POLICIES,
     DEFAULT_CELL_M,
@@ -88,6 +94,7 @@ from ground.surface import (
     clip_to_building,
     fill_empty,
     fit_heights,
+    fit_surface,
     grid_volume,
     reconstructed_ratio_pct,
     volume_error_pct,
@@ -138,7 +145,7 @@ class ReportOptions:
     plots: bool = True
     truth_volume_m3: float | None = None
     surface_fit: str = DEFAULT_SURFACE_FIT  # ground.surface.SURFACE_FITS ("cubic" is the paper's)
-    surface_slopes: NodeSlopes = NodeSlopes.CURVATURE  # local-linear: where its cubic's slopes come from (gp_slopes)
+    surface_slopes: NodeSlopes = DEFAULT_NODE_SLOPES  # local-linear: where its cubic's slopes come from (gp_slopes)
     servo_retiming: bool = True  # re-estimate the servo's timing when the sweeps disagree (ground.servo_timing)
     despike: bool = True  # leave out isolated one-/two-sample range spikes (ground.despike; threshold from the header)
     max_grid_memory_bytes: int = DEFAULT_MAX_GRID_MEMORY_BYTES  # refuse a --cell whose grid would need more
@@ -190,6 +197,8 @@ class Survey:
     lever_arm_body_m: np.ndarray | None = None  # the lever arm the points were placed with (header's or --lever-arm's)
     heights_hull: np.ndarray | None = None  # the points' own fit over their hull, before `wall-strip` left the strip
     # cells its contacts contradict to the fill (ground.wall_strip); None: heights_fit is that fit
+    edge_fit: np.ndarray | None = None  # the surfaced cells' heights with scipy's slopes, where the GP's slopes made
+    # heights_fit: the unseen term's slope where sight stopped comes from them (ground.uncertainty.edge_heights_m)
 
 
 def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
@@ -858,13 +867,14 @@ def contact_fit_m(pile_w: np.ndarray, pile_sigma: np.ndarray, contacts: WallCont
                   surface_fit: str, wanted: np.ndarray | None = None,
                   smoothing: SmoothingOptions = DEFAULT_SMOOTHING) -> np.ndarray | None:
     """The `wall-contact` fill's surface: the pile points and the wall contacts (`ground.wall_contact.contact_nodes`,
-    each with its sigma) fitted together by the survey's surface fit, cells that leave the building emptied; in the
-    wanted cells only (`fit_heights`), or all. None without contacts: there is nothing to add to the points' fit."""
+    each with its sigma) fitted together by the survey's surface fit, its slopes CONTACT_FIT_SLOPES whatever
+    smoothing's, cells that leave the building emptied; in the wanted cells only (`fit_heights`), or all. None without
+    contacts: there is nothing to add to the points' fit."""
     nodes, node_sigma = contact_nodes(contacts)
     if not len(nodes):
         return None
     both = fit_heights(np.concatenate([pile_w, nodes]), grid, surface_fit, np.concatenate([pile_sigma, node_sigma]),
-                       smoothing, wanted=wanted)
+                       replace(smoothing, slopes=CONTACT_FIT_SLOPES), wanted=wanted)
     return clip_to_building(both, storage.height_m)[0]
 
 
@@ -884,14 +894,13 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
     fixes = opts.noise_corrections
     sigma = pile_sigma_m(cloud, structure, err, range_from_neighbours=fixes)
     smoothing = SmoothingOptions(slopes=opts.surface_slopes, quadratic=fixes)
-    fit, n_clipped = clip_to_building(fit_heights(pile, grid, opts.surface_fit, sigma, smoothing), storage.height_m)
+    fit, n_clipped, edge = _clipped_fit(pile, grid, opts.surface_fit, sigma, smoothing, storage)
     if opts.pointing_bias and err.angle_sigma_rad > 0:  # a pointing error put every point behind the surface: refit
         bias = along_beam_bias_m(cloud.range_m[~structure], cloud.dirs_w[~structure],
                                  sweep_directions(cloud.dirs_w)[~structure], grid_normals(pile, fit, grid.cell_xy_m),
                                  err.angle_sigma_rad)
         pile = pile - bias[:, None] * cloud.dirs_w[~structure]
-        fit, n_clipped = clip_to_building(fit_heights(pile, grid, opts.surface_fit, sigma, smoothing),
-                                          storage.height_m)
+        fit, n_clipped, edge = _clipped_fit(pile, grid, opts.surface_fit, sigma, smoothing, storage)
     disagreement = None
     pile_dir = None if cloud.sweep_dir is None else cloud.sweep_dir[~structure]
     typical = point_sigma_m(cloud.range_m, err.range_sigma(cloud.range_m), err.position_sigma_m, err.angle_sigma_rad)
@@ -912,7 +921,7 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
         contact_top = contact_ceiling_m(contacts, grid.x_edges, grid.y_edges)
         if unseen.any():  # only the unseen cells take it: fit it from the nodes that shape it there
             contact_fit = contact_fit_m(pile, sigma, contacts, grid, storage, opts.surface_fit, wanted=unseen,
-                                        smoothing=replace(smoothing, slopes=CONTACT_FIT_SLOPES))
+                                        smoothing=smoothing)
     needs_ceiling = opts.empty_cells in ("bounded", *CONTACT_POLICIES) and unseen.any()
     ceiling = shadow = None
     if needs_ceiling:  # what the beams left free above the unseen cells, and which of them a beam passed over
@@ -928,9 +937,19 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
 
     def errors_in(mask: np.ndarray | None = None) -> SurveyErrors:  # the whole floor, or one pile's cells
         return survey_errors(pile, pile_dir, fit, heights, counts, grid, typical, n_sigma, upper_m=roof_or_ceiling,
-                             mask=mask, shared=shared)
+                             mask=mask, shared=shared, edge_m=edge)
     return Survey(cloud, pile, grid, fit, heights, counts, storage, n_clipped, disagreement, errors=errors_in(),
-                  face_spread_m=spread, errors_in=errors_in, structure=structure, heights_hull=hull_fit)
+                  face_spread_m=spread, errors_in=errors_in, structure=structure, heights_hull=hull_fit, edge_fit=edge)
+
+
+def _clipped_fit(pile_w: np.ndarray, grid: Grid, surface_fit: str, sigma: np.ndarray, smoothing: SmoothingOptions,
+                 storage: Storage) -> tuple[np.ndarray, int, np.ndarray | None]:
+    """The points' surface held in the building (`clip_to_building`), the count of cells it emptied, and the same
+    nodes' surface with scipy's slopes when the GP's made it (`ground.surface.SurfaceFit`; None otherwise)."""
+    surf = fit_surface(pile_w, grid, surface_fit, sigma, smoothing)
+    fit, n_clipped = clip_to_building(surf.heights_m, storage.height_m)
+    edge = None if surf.scipy_slopes_m is None else clip_to_building(surf.scipy_slopes_m, storage.height_m)[0]
+    return fit, n_clipped, edge
 
 
 def sensor_noise_line(header: dict) -> str:
@@ -1506,7 +1525,7 @@ def with_base(survey: Survey, header: dict, opts: ReportOptions) -> Survey:
 
     def rebased(t: ErrorTerms, mask: np.ndarray | None = None) -> ErrorTerms:
         return rebased_terms(t, survey.heights_fit, survey.heights, survey.grid, scatter, base,
-                             survey.storage.height_m, mask)
+                             survey.storage.height_m, mask, survey.edge_fit)
 
     inner = survey.errors_in
 

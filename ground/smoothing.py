@@ -68,6 +68,13 @@ class NodeSlopes(StrEnum):
     GP_BRIDGES = "gp-bridges"
 
 
+DEFAULT_NODE_SLOPES = NodeSlopes.GP_BRIDGES
+"""The process's heights at the bridges: against scipy's slopes everywhere, the paper's piles under Appendix A's noise
+within 0.2 pp of their noise-free volume on 10 of 12 rows instead of 7, the evaluation set's mean |Ve| 3.74 -> 3.24 %
+(datasheet noise) and 3.17 -> 2.67 % (Appendix A), the same without noise, for about 0.2 s of a report; the GP at
+every node gains little more for twice that (docs/design-notes.md, "GP slopes at the bridges only")."""
+
+
 @dataclass(frozen=True)
 class SmoothingOptions:
     """How the local regression chooses its windows (defaults: module constants, their reasons there), and where
@@ -78,7 +85,7 @@ class SmoothingOptions:
     reject_outliers: bool = True
     outlier_n_sigma: float | None = None  # None: structure_n_sigma of the cloud's size
     noise_from_data: bool = True  # the windows' standard errors scaled down to the scatter the data show
-    slopes: NodeSlopes = NodeSlopes.CURVATURE
+    slopes: NodeSlopes = DEFAULT_NODE_SLOPES
     quadratic: bool = False  # each chosen window refitted as a local quadratic (`quadratic_nodes`)
 
     def __post_init__(self) -> None:

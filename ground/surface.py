@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy import ndimage
@@ -150,25 +151,50 @@ def fit_heights(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_SURFACE_
     SURFACE_FITS), sampled at the cell centres; NaN outside the hull. sigma_m: each point's vertical
     1-sigma error (`ground.smoothing.vertical_sigma_m`), used by ``local-linear`` only. wanted (a cell
     mask, or None for all): the cells the caller will use; the surface is then drawn through only the nodes
-    that shape it there (`shaping_points`), the same surface in those cells for a fraction of the cost."""
-    return fit_heights_with_se(points_w, grid, method, sigma_m, smoothing, wanted)[0]
+    that shape it there (`shaping_points`), the same surface in those cells for a fraction of the cost: with
+    scipy's slopes only (ValueError for the GP's, whose covariance is fitted over every node)."""
+    return fit_surface(points_w, grid, method, sigma_m, smoothing, wanted).heights_m
+
+
+class SurfaceFit(NamedTuple):
+    """A fitted surface at the cell centres (`fit_surface`)."""
+
+    heights_m: np.ndarray
+    se_m: np.ndarray  # each cell's standard error from the points' noise (NaN: not estimated)
+    scipy_slopes_m: np.ndarray | None  # the same nodes' cubic with scipy's slopes, where the GP's replaced them
+    # (`NodeSlopes.GP`, `NodeSlopes.GP_BRIDGES`); None: heights_m took scipy's slopes itself
 
 
 def fit_heights_with_se(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_SURFACE_FIT,
                         sigma_m: np.ndarray | None = None,
                         smoothing: SmoothingOptions = DEFAULT_SMOOTHING,
                         wanted: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """`fit_surface`'s heights and standard errors."""
+    fit = fit_surface(points_w, grid, method, sigma_m, smoothing, wanted)
+    return fit.heights_m, fit.se_m
+
+
+def fit_surface(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_SURFACE_FIT,
+                sigma_m: np.ndarray | None = None,
+                smoothing: SmoothingOptions = DEFAULT_SMOOTHING,
+                wanted: np.ndarray | None = None) -> SurfaceFit:
     """`fit_heights` and each cell's standard error of the fitted height from the points' noise alone
     (the estimator's own variance: not the error of bridging unseen ground), NaN where not estimated:
     outside the hull, and everywhere for the interpolating fits or without sigma_m (an interpolant has
     no variance of its own to state). Inside the hull, between the nodes, the nodes' standard errors are
     interpolated linearly: the nodes' errors are correlated (overlapping windows), so this is the bound
-    for fully correlated errors rather than the smaller independent sum."""
+    for fully correlated errors rather than the smaller independent sum. With the GP's slopes, also the cubic through
+    the same nodes with scipy's slopes (`SurfaceFit.scipy_slopes_m`): the unseen term takes the slope where sight
+    stopped from it (`ground.uncertainty.unseen_reach_m`)."""
     if method not in SURFACE_FITS:
         raise ValueError(f"surface fit must be one of {', '.join(SURFACE_FITS)}, got {method!r}")
+    if wanted is not None and method == "local-linear" and sigma_m is not None \
+            and smoothing.slopes is not NodeSlopes.CURVATURE:
+        raise ValueError(f"a fit in some cells only (wanted) takes scipy's slopes: the {smoothing.slopes} slopes' "
+                         "process is fitted over every node, so a subset of them would give another surface")
     nan = np.full(grid.shape, np.nan)
     if len(points_w) < 3:
-        return nan, nan.copy()
+        return SurfaceFit(nan, nan.copy(), None)
     if method != "local-linear":
         near = slice(None) if wanted is None else shaping_points(points_w[:, :2], wanted, grid)
         return _interpolate(points_w[near], grid, method)
@@ -189,10 +215,9 @@ def fit_heights_with_se(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_
     if wanted is not None:  # the nodes that shape the surface in the wanted cells
         near = shaping_points(xyz[:, :2], wanted, grid)
         xyz, node_se = xyz[near], None if node_se is None else node_se[near]
-    heights, se = _interpolate(xyz, grid, "cubic-limited", node_se, smoothing.slopes,
-                               smoothing.max_window_m)  # exact: se all NaN
-    se[~np.isfinite(heights)] = np.nan
-    return heights, se
+    fit = _interpolate(xyz, grid, "cubic-limited", node_se, smoothing.slopes, smoothing.max_window_m)
+    fit.se_m[~np.isfinite(fit.heights_m)] = np.nan  # exact: se all NaN
+    return fit
 
 
 def hull_corners(points_w: np.ndarray) -> np.ndarray:
@@ -209,16 +234,17 @@ def hull_corners(points_w: np.ndarray) -> np.ndarray:
 
 def _interpolate(points_w: np.ndarray, grid: Grid, method: str, also_linear: np.ndarray | None = None,
                  slopes: NodeSlopes = NodeSlopes.CURVATURE,
-                 reach_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 reach_m: float | None = None) -> SurfaceFit:
     """The interpolating fits (cubic-limited, cubic, linear) at the cell centres, and also_linear (one value
-    per point, or None) interpolated linearly on the same triangulation (NaN without it). With `NodeSlopes.GP`
-    and also_linear the nodes' standard errors, the cubic takes its slopes at the nodes from `ground.gp_slopes`
-    (scipy's where that cannot fit them); with `NodeSlopes.GP_BRIDGES` from the process at the nodes of the
-    triangles longer than reach_m (`ground.gp_slopes.bridge_nodes`) only."""
+    per point, or None) interpolated linearly on the same triangulation (NaN without it) as the standard errors.
+    With `NodeSlopes.GP` and also_linear the nodes' standard errors, the cubic takes its slopes at the nodes from
+    `ground.gp_slopes` (scipy's where that cannot fit them); with `NodeSlopes.GP_BRIDGES` from the process at the
+    nodes of the triangles longer than reach_m (`ground.gp_slopes.bridge_nodes`) only. The cubic with scipy's
+    slopes is then evaluated too: its triangulation and slopes are made already, so it costs one evaluation."""
     heights = np.full(grid.shape, np.nan)
     extra = np.full(grid.shape, np.nan)
     if len(points_w) < 3:
-        return heights, extra
+        return SurfaceFit(heights, extra, None)
     xy = np.ascontiguousarray(points_w[:, :2], dtype=float)
     # One BLAS thread: the triangulation makes tens of thousands of 2x2 LAPACK solves, which a
     # threaded OpenBLAS turns into thread hand-offs; with two processes on two cores they crawl.
@@ -226,26 +252,34 @@ def _interpolate(points_w: np.ndarray, grid: Grid, method: str, also_linear: np.
         try:
             tri = delaunay(xy)
         except (QhullError, ValueError):  # all points collinear or coincident: no surface
-            return heights, extra
+            return SurfaceFit(heights, extra, None)
         z = np.asarray(points_w[:, 2], dtype=float)
         cx, cy = grid.centres()
         if also_linear is not None:
             extra = LinearNDInterpolator(tri, np.asarray(also_linear, dtype=float))(cx, cy)
         if method == "linear":
-            return LinearNDInterpolator(tri, z)(cx, cy), extra
+            return SurfaceFit(LinearNDInterpolator(tri, z)(cx, cy), extra, None)
         cubic = CloughTocher2DInterpolator(tri, z)
+        scipy_grad = None
         if slopes in (NodeSlopes.GP, NodeSlopes.GP_BRIDGES) and also_linear is not None:
             g = node_slopes(tri, z, also_linear, reach_m if slopes is NodeSlopes.GP_BRIDGES else None)
             if g is not None:  # scipy's interpolator evaluates with the slopes it holds
-                cubic.grad = g[:, None, :]
+                scipy_grad, cubic.grad = cubic.grad, g[:, None, :]
         heights = cubic(cx, cy)
+        plain = None
+        if scipy_grad is not None:
+            cubic.grad = scipy_grad
+            plain = cubic(cx, cy)
         if method == "cubic":
-            return heights, extra
+            return SurfaceFit(heights, extra, plain)
         simplex = tri.find_simplex(np.column_stack([cx.ravel(), cy.ravel()])).reshape(cx.shape)
         inside = simplex >= 0
         zv = z[tri.simplices[simplex[inside]]]  # (n, 3) heights of each cell's triangle
-        heights[inside] = np.clip(heights[inside], zv.min(axis=1), zv.max(axis=1))
-        return heights, extra
+        lo, hi = zv.min(axis=1), zv.max(axis=1)
+        heights[inside] = np.clip(heights[inside], lo, hi)
+        if plain is not None:
+            plain[inside] = np.clip(plain[inside], lo, hi)
+        return SurfaceFit(heights, extra, plain)
 
 
 def clip_to_building(heights: np.ndarray, height_m: float,

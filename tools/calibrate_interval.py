@@ -33,7 +33,7 @@ from ground.uncertainty import INTERVAL_LEVEL, ErrorTerms, IntervalModel
 from tools.doc_sections import write_block, write_section
 from tools.sweep import Case, read_rows_csv, run_sweep, write_rows_csv
 
-GROUND_VERSION = "16"
+GROUND_VERSION = "17"
 """Part of every row's cache key: bump when the ground station's volume or terms change. 5: the wall-contact
 fill is the default (docs/interval-rows.csv holds rows of version 4); 6: the despiking allows the header's
 per-sample pointing error; 7: the default surface fit is `local-linear`; 8: its windows'
@@ -43,7 +43,8 @@ least the noise the bridged floor shows at a like distance from the data (2026-1
 message's shared draw per message (2026-12-01); 13: the wall-contact fill and the unseen term's upper bound held under
 the free-space ceiling carried at the steepest slope (2026-12-02); 14: the `carry-down` fill is the default
 (2026-12-03); 15: the unseen term reads the edge's steepest slope within a metre (2026-12-03); 16: the `wall-strip`
-fill is the default (2026-12-03)."""
+fill is the default (2026-12-03); 17: `--surface-slopes gp-bridges` is the default,
+the unseen term's edge slope from scipy's slopes (2026-12-05)."""
 TERMS = [f.name for f in fields(ErrorTerms) if f.name not in ("pose_m3", "level_m3", "untied_m3")]
 """The terms fitted here: the evaluation set flies the true pose, so its pose and level terms are 0 (the pose
 term's factor is fitted on drifting flights by tools/calibrate_pose_interval.py; the level term's is not fitted:

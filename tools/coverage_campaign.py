@@ -266,9 +266,10 @@ def flown_jsbsim(mission, cache_dir: Path) -> FlownMission:
     return flown
 
 
-COMPARE_VERSION = "3"
+COMPARE_VERSION = "4"
 """Bump when the survey of a cached flight changes (the ground station's defaults, the sampler). 2: the `carry-down`
-fill is the default; 3: the `wall-strip` fill is the default."""
+fill is the default; 3: the `wall-strip` fill is the default; 4: `--surface-slopes gp-bridges` is
+the default."""
 
 
 def cached_survey(cache_dir: Path, flown: FlownMission, mission, pile: str, stockpile: str,

@@ -36,13 +36,14 @@ from tools.experiments import ALL_EXPERIMENTS, N_POSITIONS, P_TRAJ_PCT, PILES, _
 from tools.sweep import cached, content_key, fresh_run_note
 
 SECTION = "surface-estimators"
-COMPARE_VERSION = "10"
+COMPARE_VERSION = "11"
 """Part of every case's cache key: bump it when an estimator or the pipeline changes what a case computes.
 4: Appendix A's pose errors interpolated between messages, as the payload now tags samples; 5: the wall-contact
 fill is the default; 6: the despiking allows the header's per-sample pointing error; 7: local-linear's nodes at
 the points' hull corners and its windows' standard errors scaled to the data's own scatter; 8: recomputed with
 everything since (the contact fit from the points near the unseen cells), so that the page is today's; 9: the
-`carry-down` fill is the default; 10: the `wall-strip` fill is the default."""
+`carry-down` fill is the default; 10: the `wall-strip` fill is the default; 11: `--surface-slopes gp-bridges`
+is the default."""
 MODELS = tuple(SensorNoiseModel)
 ESTIMATORS: dict[str, tuple[str, SmoothingOptions]] = {
     "cubic-limited": ("cubic-limited", SmoothingOptions()),

@@ -46,7 +46,7 @@ from sitl.world.raycast import World
 from sitl.world.stockpile import paper_pile
 from tools.sweep import Case, cached
 
-SWEEP_VERSION = "15"
+SWEEP_VERSION = "16"
 """Part of every case key: bump it when the simulation or the ground station changes what a case
 computes (the cache cannot see code). 3: runaway surface cells are emptied, not clamped to the floor;
 4: the cubic surface is limited to its triangles' data by default, despiking, servo re-timing;
@@ -58,7 +58,8 @@ fill is the default empty-cell policy; 8: its Ve column is the survey's own fill
 `local-linear`; 11: its windows' standard errors scaled to the data's own scatter; 12: the ground station of
 2026-11-30 (the pose correction runs by default; a straight stretch of sweep up a wall is the wall's); 13: the unseen
 fill held under the free-space ceiling carried at the steepest slope (2026-12-02); 14: the `carry-down` fill is the
-default (2026-12-03); 15: the `wall-strip` fill is the default (2026-12-03)."""
+default (2026-12-03); 15: the `wall-strip` fill is the default (2026-12-03); 16: `--surface-slopes gp-bridges`
+is the default (2026-12-05)."""
 FLIGHT_VERSION = "2"
 """Part of every flight key. 2: the autopilot flies towards the target through corners."""
 P_TRAJ_PCT = (5, 10, 15, 20, 25, 30)

@@ -26,7 +26,7 @@ import numpy as np
 from firmware_py.core.cli import ArgumentParser
 from firmware_py.core.sensor_noise import SensorNoiseModel
 from ground.report import ReportOptions, survey_from_samples
-from ground.smoothing import NodeSlopes
+from ground.smoothing import DEFAULT_NODE_SLOPES, NodeSlopes
 from ground.surface import SURFACE_FITS, Grid
 from ground.wall_strip import nearest_wall
 from sitl.runners.fly import log_header
@@ -91,7 +91,7 @@ def occupied_cells(points_w: np.ndarray, grid: Grid) -> np.ndarray:
 
 
 def run(pile: str, p_traj_pct: int, model: SensorNoiseModel, phases: list[int], surface_fit: str,
-        cache_dir: Path, surface_slopes: NodeSlopes = NodeSlopes.CURVATURE,
+        cache_dir: Path, surface_slopes: NodeSlopes = DEFAULT_NODE_SLOPES,
         wall_band_m: float = WALL_BAND_M) -> list[Breakdown]:
     """One breakdown per servo start position, the noise drawn as the noise table draws it (`case_samples`)."""
     out, means, band = [], None, None
@@ -127,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--models", default="none,appendix-a", help="comma-separated sensor-noise models")
     ap.add_argument("--phases", default="0,1,2,3", help=f"comma-separated servo start positions (0-{N_POSITIONS - 1})")
     ap.add_argument("--surface-fit", choices=SURFACE_FITS, default=ReportOptions().surface_fit)
-    ap.add_argument("--surface-slopes", choices=[v.value for v in NodeSlopes], default=NodeSlopes.CURVATURE.value,
+    ap.add_argument("--surface-slopes", choices=[v.value for v in NodeSlopes], default=DEFAULT_NODE_SLOPES.value,
                     help="where the local-linear surface's cubic takes its slopes (as pilescan-ground report's)")
     ap.add_argument("--wall-band-m", type=float, default=WALL_BAND_M,
                     help="the filled cells within this of a wall are split out (m)")

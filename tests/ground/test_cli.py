@@ -72,12 +72,13 @@ def test_that_the_surface_slopes_option_reaches_the_report(run_dir, tmp_path, ca
     assert main(["report", str(run_dir), "--out", str(tmp_path / "g"), "--no-plots", "--surface-slopes", "gp"]) == 0
     assert json.loads((tmp_path / "g" / "report.json").read_text())["surface_slopes"] == "gp"
     assert main(["report", str(run_dir), "--out", str(tmp_path / "d"), "--no-plots"]) == 0
-    assert json.loads((tmp_path / "d" / "report.json").read_text())["surface_slopes"] == "curvature"
+    assert json.loads((tmp_path / "d" / "report.json").read_text())["surface_slopes"] == "gp-bridges"
     capsys.readouterr()
     _one_line_error(capsys, ["report", str(run_dir), "--out", str(tmp_path / "x"), "--surface-slopes", "spline"],
                     "--surface-slopes")
-    _one_line_error(capsys, ["report", str(run_dir), "--out", str(tmp_path / "y"), "--surface-slopes", "gp",
-                             "--surface-fit", "linear"], "applies to the local-linear surface fit only")
+    for slopes in ("gp", "curvature"):  # asked for by name, even the one the other fits' interpolation has
+        _one_line_error(capsys, ["report", str(run_dir), "--out", str(tmp_path / "y"), "--surface-slopes", slopes,
+                                 "--surface-fit", "linear"], "applies to the local-linear surface fit only")
     by_name = ReportOptions(plots=False, surface_slopes="gp")  # the library's options take the value's name too
     assert make_report(run_dir, tmp_path / "s", by_name)["surface_slopes"] == "gp"
 

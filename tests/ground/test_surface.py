@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 
+from ground.smoothing import NodeSlopes, SmoothingOptions
 from ground.surface import (
     Grid,
     clip_to_building,
@@ -147,17 +148,22 @@ def test_that_the_estimated_fit_asked_for_some_cells_equals_the_whole_fit_there(
     """``local-linear`` with wanted cells: every point is smoothed, then only the nodes near the wanted cells
     carry the surface; there it is the surface through every node, to a millimetre (the cubic's gradients are
     estimated over all its nodes and iterated to a tolerance; measured: 0.12 mm at most here, and 1e-7 of the
-    volume on flown surveys)."""
+    volume on flown surveys). With scipy's slopes: the GP's process is fitted over every node, so a subset of the
+    nodes is refused rather than given another surface."""
     pts = swaths(*gap_m)
     g = Grid(30, 20, 0.25)
     sigma = np.full(len(pts), 0.02)
+    scipy_slopes = SmoothingOptions(slopes=NodeSlopes.CURVATURE)
     wanted = ~np.isfinite(fit_heights(pts, g, "local-linear", sigma))
     nodes = np.array([[0.0, y, 1.0] for y in np.arange(0.01, 20.0, 0.53)])
     with_nodes, s_all = np.vstack([pts, nodes]), np.concatenate([sigma, np.full(len(nodes), 0.05)])
-    whole = fit_heights(with_nodes, g, "local-linear", s_all)
-    part = fit_heights(with_nodes, g, "local-linear", s_all, wanted=wanted)
+    whole = fit_heights(with_nodes, g, "local-linear", s_all, scipy_slopes)
+    part = fit_heights(with_nodes, g, "local-linear", s_all, scipy_slopes, wanted=wanted)
     assert np.isfinite(whole[wanted]).any() and np.isnan(part[~wanted]).any()  # a real subset
     np.testing.assert_allclose(part[wanted], whole[wanted], atol=1e-3, equal_nan=True)
+    for slopes in (NodeSlopes.GP, NodeSlopes.GP_BRIDGES):
+        with pytest.raises(ValueError, match="takes scipy's slopes"):
+            fit_heights(with_nodes, g, "local-linear", s_all, SmoothingOptions(slopes=slopes), wanted=wanted)
 
 
 def test_that_sparse_points_make_every_point_shape_the_fit():

@@ -36,11 +36,11 @@ def test_that_the_tables_count_runs_within_the_target_and_leave_out_faces():
                 "gp-bridges": bridges}
     shares = [share("cone", 0.5, 0.1, 0.4), share("cone", 0.1, 0.3, 0.1), share("box", 9.0, 9.0, 9.0)]
     line = next(x for x in share_table(shares, "p_traj_pct").splitlines() if x.startswith("| appendix-a |"))
-    assert line == "| appendix-a | 30 | 2 | 0.30 / 0.20 / 0.25 | 0.30 / 0.20 / 0.25 | 1 / 1 / 1 |"
+    assert line == "| appendix-a | 30 | 2 | 0.25 / 0.30 / 0.20 | 0.25 / 0.30 / 0.20 | 1 / 1 / 1 |"
     rows = [_row("a-none", "none", -1.0, 3.0, 2.0), _row("b-none", "none", 1.0, 1.0, -1.0),
             _row("c-none", "none", 50.0, 50.0, family="sphere")]
     line = next(x for x in table(rows, "noise").splitlines() if x.startswith("| none |"))
-    assert line == "| none | 2 | 1.00 / 2.00 / 1.50 | +0.00 / +2.00 / +0.50 |"
+    assert line == "| none | 2 | 1.50 / 1.00 / 2.00 | +0.50 / +0.00 / +2.00 |"
 
 
 def test_that_rows_read_back_give_the_same_tables(tmp_path, capsys):
@@ -51,7 +51,7 @@ def test_that_rows_read_back_give_the_same_tables(tmp_path, capsys):
     page = tmp_path / "page.md"
     assert main(["--from-rows", str(tmp_path / "rows.csv"), "--write", str(page)]) == 0
     text = page.read_text()
-    assert "| datasheet | 30 | 1 | 2.00 / 0.20 / 0.20 | 2.00 / 0.20 / 0.20 | 0 / 1 / 1 |" in text
+    assert "| datasheet | 30 | 1 | 0.20 / 2.00 / 0.20 | 0.20 / 2.00 / 0.20 | 1 / 0 / 1 |" in text
     assert "<!-- slopes-evalset:start -->" in text
 
 
