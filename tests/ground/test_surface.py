@@ -174,3 +174,21 @@ def test_that_sparse_points_make_every_point_shape_the_fit():
     wanted[58:62, 38:42] = True
     assert shaping_points(pts[:, :2], wanted, g).all()
     assert not shaping_points(pts[:, :2], np.zeros(g.shape, dtype=bool), g).any()
+
+
+def test_that_a_surface_with_the_gps_slopes_brings_the_same_nodes_surface_with_scipys_slopes():
+    """`fit_surface`: with the GP's slopes, scipy_slopes_m is the cubic through the same nodes with scipy's slopes,
+    the `curvature` surface to the bit (the unseen term takes its edge slope from it); with scipy's own, None."""
+    from ground.surface import fit_surface
+
+    rng = np.random.default_rng(3)
+    pts = swaths(12.0, 9.0)
+    pts = pts + np.column_stack([np.zeros((len(pts), 2)), rng.normal(0, 0.05, len(pts))])
+    g = Grid(30, 20, 0.25)
+    sigma = np.full(len(pts), 0.05)
+    plain = fit_surface(pts, g, "local-linear", sigma, SmoothingOptions(slopes=NodeSlopes.CURVATURE))
+    assert plain.scipy_slopes_m is None
+    for slopes in (NodeSlopes.GP, NodeSlopes.GP_BRIDGES):
+        fit = fit_surface(pts, g, "local-linear", sigma, SmoothingOptions(slopes=slopes))
+        np.testing.assert_array_equal(fit.scipy_slopes_m, plain.heights_m)
+        assert np.nanmax(np.abs(fit.heights_m - plain.heights_m)) > 1e-3  # the GP's slopes did change the surface

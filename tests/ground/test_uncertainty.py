@@ -94,6 +94,26 @@ def test_that_the_unseen_term_reads_the_edges_steepest_slope_within_a_metre_not_
     assert unseen_reach_m(far, GRID)[:2].max() == pytest.approx(0.0)
 
 
+def test_that_the_unseen_term_takes_the_edge_slope_from_the_heights_it_is_given_in_the_seen_cells_only():
+    """With the GP's slopes the surface is smoothed at its edge; the unseen term takes the slope where sight stopped
+    from the same nodes' surface with scipy's slopes (edge_m), and its unseen cells from the surface itself."""
+    slope = 0.5
+    steep = _heights_of(lambda x, y: 2.0 + slope * x)
+    flat = np.full(GRID.shape, 2.5)  # the smoothed surface: no slope at the edge
+    for grid in (steep, flat):
+        grid[:2, :] = np.nan
+    filled = fill_empty(flat, "nearest")
+    assert unseen_terms_m3(flat, filled, GRID) == (0.0, 0.0)
+    low, high = unseen_terms_m3(flat, filled, GRID, edge_m=steep)
+    expected = GRID.shape[1] * slope * (0.5 + 1.0) * GRID.cell_area_m2
+    assert low == pytest.approx(expected) and high == pytest.approx(expected)
+    wider = np.where(np.isfinite(steep), steep, 50.0)  # edge_m's own heights in the unseen cells count for nothing
+    assert unseen_terms_m3(flat, filled, GRID, edge_m=wider) == (low, high)
+    holed = steep.copy()
+    holed[2:, :] = np.nan  # no edge heights at all: the surface's own
+    assert unseen_terms_m3(flat, filled, GRID, edge_m=holed) == (0.0, 0.0)
+
+
 def test_that_the_floor_and_an_upper_bound_cap_the_unseen_term():
     fit = _heights_of(lambda x, y: 2.0 * x - 2.0)  # a steep flank, 0.5 m up at the first seen column (x = 1.25 m)
     fit[:2, :] = np.nan
