@@ -49,13 +49,16 @@ ESTIMATORS: dict[str, tuple[str, SmoothingOptions]] = {
     "cubic-limited": ("cubic-limited", SmoothingOptions()),
     "linear": ("linear", SmoothingOptions()),
     "local-linear": ("local-linear", SmoothingOptions()),
+    "local-linear, scipy slopes": ("local-linear", SmoothingOptions(slopes=NodeSlopes.CURVATURE)),
     "local-linear, cells only": ("local-linear", SmoothingOptions(max_window_m=0.0)),
     "local-linear, GP slopes": ("local-linear", SmoothingOptions(slopes=NodeSlopes.GP)),
 }
-"""What is compared: the name in the table -> (surface fit, its smoothing options). "cells only" is the
-local-linear estimator without its windows (each cell's robust weighted centroid): what the binning and the
-outlier rejection do alone; "GP slopes" the local-linear estimator whose cubic takes its slopes through the node
-heights a Gaussian process predicts (`--surface-slopes gp`, ground/gp_slopes.py)."""
+"""What is compared: the name in the table -> (surface fit, its smoothing options). "local-linear" is the default,
+its cubic's slopes through the heights a Gaussian process predicts where it bridges a gap (`--surface-slopes
+gp-bridges`, ground/gp_slopes.py); "scipy slopes" the same estimator with scipy's slopes everywhere (`--surface-slopes
+curvature`, the default until 2026-12-05); "cells only" the local-linear estimator without its windows (each cell's
+robust weighted centroid): what the binning and the outlier rejection do alone; "GP slopes" the process's heights at
+every node (`--surface-slopes gp`)."""
 
 
 @dataclass(frozen=True)
