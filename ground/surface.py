@@ -236,7 +236,7 @@ def _interpolate(points_w: np.ndarray, grid: Grid, method: str, also_linear: np.
                  slopes: NodeSlopes = NodeSlopes.CURVATURE,
                  reach_m: float | None = None) -> SurfaceFit:
     """The interpolating fits (cubic-limited, cubic, linear) at the cell centres, and also_linear (one value
-    per point, or None) interpolated linearly on the same triangulation (NaN without it) as the standard errors.
+    per point, or None) interpolated linearly on the same triangulation as `SurfaceFit.se_m` (NaN without it).
     With `NodeSlopes.GP` and also_linear the nodes' standard errors, the cubic takes its slopes at the nodes from
     `ground.gp_slopes` (scipy's where that cannot fit them); with `NodeSlopes.GP_BRIDGES` from the process at the
     nodes of the triangles longer than reach_m (`ground.gp_slopes.bridge_nodes`) only. The cubic with scipy's
