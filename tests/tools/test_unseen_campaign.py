@@ -29,3 +29,19 @@ def test_that_bad_arguments_are_refused_with_one_line(argv, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("unseen_campaign:") and "\n" not in err
+
+
+def test_that_the_campaign_rewrites_its_own_section_and_keeps_the_rest_of_the_page(tmp_path, monkeypatch):
+    """docs/unseen.md also holds the floor-out-of-reach prose and `tools.echo_check`'s section: a campaign run
+    replaced the whole page once and lost them."""
+    import tools.unseen_campaign as uc
+
+    monkeypatch.setattr(uc, "markdown_text", lambda rows, policies, command: f"tables of {command}")
+    page = tmp_path / "unseen.md"
+    uc.write_markdown([], page, (), "run 1")
+    assert page.read_text().startswith(uc.TITLE) and "tables of run 1" in page.read_text()
+    page.write_text(page.read_text() + "\n## Other\n\nprose\n\n<!-- echo-check:start -->\nx\n<!-- echo-check:end -->\n")
+    uc.write_markdown([], page, (), "run 2")
+    text = page.read_text()
+    assert "tables of run 2" in text and "tables of run 1" not in text
+    assert text.index("tables of run 2") < text.index("## Other") and "<!-- echo-check:start -->\nx" in text
