@@ -71,6 +71,8 @@ STEPS: tuple[Step, ...] = (
           "--spot 1,20,datasheet,0 --spot 2,20,appendix-a,0 --spot 2,20,datasheet,0 --spot 1,30,datasheet,0 "
           "--spot 2,5,appendix-a,0 --spot 1,5,appendix-a,0", "docs/results.md", "the sensor-noise table"),
     _step("unseen", "tools.unseen_campaign", "docs/unseen.md", "the unseen fills on corner and wall-end piles"),
+    _step("echo-check", "tools.echo_check --jobs 2 --write docs/unseen.md", "docs/unseen.md",
+          "how often the floor-out-of-reach warning spoke over the evaluation set (about 8 min)"),
     _step("cell-sensitivity", "tools.cell_sensitivity --write docs/cell_sensitivity.md", "docs/cell_sensitivity.md",
           "the volume against the grid's cell, per fill (MEASURED_MAX_CELL_M is read off it)"),
     _step("slopes", "tools.slopes_evalset --jobs 2 --rows runs/slopes-evalset.csv --write docs/surface_estimators.md",
