@@ -98,17 +98,6 @@ def test_that_the_warning_speaks_when_the_interval_it_holds_matters_and_names_wh
     assert echo_warning(None, 1000.0, 5.0) is None and echo_warning(_record(400.0), 1000.0, 5.0) is None
 
 
-def test_that_the_warning_speaks_when_the_fill_out_of_reach_is_large_though_its_interval_term_is_not():
-    """The fill there was measured by no sample: 6 % of the volume on floor out of reach is worth a word whatever
-    the interval allows for it (the GP's slopes grew that fill and shrank the term on a flown survey)."""
-    rec = {**_record(400.0, lambda cells: 5.0), "fill_out_of_reach_m3": 60.0}
-    w = echo_warning(rec, 1000.0, 5.0)
-    assert w is not None and "the fill put 60 m³ there" in w and "+/-5 m³" in w
-    assert echo_warning({**rec, "fill_out_of_reach_m3": 20.0}, 1000.0, 5.0) is None  # 2 % and 0.5 %: quiet
-    unknown = echo_warning({**rec, "unseen_term_m3": None}, 1000.0, 5.0)  # no interval: the fill alone, said so
-    assert unknown is not None and "interval" not in unknown
-
-
 def test_that_the_line_says_how_many_had_no_echo_and_why():
     rec = _record(1.0)
     assert fmt_echo(rec).startswith("1 of 1 samples without an echo (100.0 %); 1 of them aimed beyond")

@@ -180,13 +180,14 @@ def test_that_floor_the_rangefinder_could_not_reach_is_said_and_a_flight_that_re
     """The LIDAR-Lite v3's datasheet returns at P_traj 30 %: the legs 12 m from the walls see no echo from the floor
     at their feet (ground.echo_reach), and the fill there holds several percent of the volume."""
     fly(FlyConfig(mission=Mission(p_traj=0.3), plant="ideal", sensor_noise="datasheet"), tmp_path / "run")
-    rep = make_report(tmp_path / "run", tmp_path / "rep", ReportOptions(plots=False))
+    four = ReportOptions(plots=False, max_interval_pct=4.0)  # the interval's term for it: 2.2 % of the volume
+    rep = make_report(tmp_path / "run", tmp_path / "rep", four)
     echo = rep["echo"]
     assert echo["no_echo"] > 0.1 * echo["samples_aimed"] and echo["beyond_reach"] > 0.9 * echo["no_echo"]
     warned = [w for w in rep["warnings"] if "beyond the Garmin LIDAR-Lite v3's reach" in w]
     assert len(warned) == 1 and "the fill put" in warned[0]
-    # over half of a 5 % tolerance: the fill there (4.6 % of the volume), the interval's term for it just under
-    assert max(echo["unseen_term_m3"], echo["fill_out_of_reach_m3"]) > 0.025 * rep["volume_m3"]
+    assert echo["unseen_term_m3"] > 0.02 * rep["volume_m3"]  # over half of a 4 % tolerance
+    assert echo["fill_out_of_reach_m3"] > 0.04 * rep["volume_m3"]  # what the fill put there: the volume reads high
     quiet = paper_report["echo"]  # an ideal sensor at P_traj 10 %: what it did not echo was beyond the building's floor
     assert max(quiet["fill_out_of_reach_m3"], quiet["unseen_term_m3"]) < 0.001 * paper_report["volume_m3"]
     assert not [w for w in paper_report["warnings"] if "echo" in w]
