@@ -76,7 +76,7 @@ def test_that_the_surface_slopes_option_reaches_the_report(run_dir, tmp_path, ca
     capsys.readouterr()
     _one_line_error(capsys, ["report", str(run_dir), "--out", str(tmp_path / "x"), "--surface-slopes", "spline"],
                     "--surface-slopes")
-    for slopes in ("gp", "curvature"):  # asked for by name, even the one the other fits' interpolation has
+    for slopes in ("gp", "curvature"):  # given by name, even curvature: the other fits take no slopes at all
         _one_line_error(capsys, ["report", str(run_dir), "--out", str(tmp_path / "y"), "--surface-slopes", slopes,
                                  "--surface-fit", "linear"], "applies to the local-linear surface fit only")
     by_name = ReportOptions(plots=False, surface_slopes="gp")  # the library's options take the value's name too

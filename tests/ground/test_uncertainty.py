@@ -100,8 +100,8 @@ def test_that_the_unseen_term_takes_the_edge_slope_from_the_heights_it_is_given_
     slope = 0.5
     steep = _heights_of(lambda x, y: 2.0 + slope * x)
     flat = np.full(GRID.shape, 2.5)  # the smoothed surface: no slope at the edge
-    for grid in (steep, flat):
-        grid[:2, :] = np.nan
+    for heights in (steep, flat):
+        heights[:2, :] = np.nan
     filled = fill_empty(flat, "nearest")
     assert unseen_terms_m3(flat, filled, GRID) == (0.0, 0.0)
     low, high = unseen_terms_m3(flat, filled, GRID, edge_m=steep)
