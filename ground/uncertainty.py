@@ -224,10 +224,10 @@ def edge_heights_m(heights_fit: np.ndarray, edge_m: np.ndarray | None) -> np.nda
     """The surfaced cells' heights to take the slope where sight stopped from: edge_m's where both surfaced (None:
     heights_fit). With the GP's slopes edge_m is the same nodes' cubic with scipy's slopes
     (`ground.surface.SurfaceFit`): the GP smooths the edge nodes' heights and so flattens the slope the unseen
-    ground may keep on at. Measured with `--surface-slopes gp-bridges` (docs/design-notes.md, "The unseen term's
-    slope with the GP's bridges"): on a flight whose unseen floor lay out of the rangefinder's reach the term fell
-    214 -> 165 m³ while the fill there grew 279 -> 346 m³, and the interval's held-out coverage fell to 94.2 %;
-    with scipy's slopes at the edge 95.2 %."""
+    ground may keep on at. Measured with `--surface-slopes gp-bridges` (docs/design-notes.md, "GP slopes at the
+    bridges only" and "`gp-bridges` the default"): on a flight whose unseen floor lay out of the rangefinder's reach
+    the term fell 214 -> 165 m³ while the fill there grew 279 -> 346 m³, and the interval's held-out coverage fell to
+    94.2 %; with scipy's slopes at the edge 95.2 %."""
     if edge_m is None:
         return heights_fit
     seen = np.isfinite(heights_fit)
