@@ -333,12 +333,34 @@ def _limit_threads_env() -> None:
         os.environ[name] = "1"
 
 
+ORPHAN_CHECK_S = 0.5
+"""How often a worker looks whether the sweep that started it is still there (`_exit_when_orphaned`)."""
+
+
+def _exit_when_orphaned(check_s: float = ORPHAN_CHECK_S) -> None:
+    """Watch, on a daemon thread, for the sweep's process to go away (killed, not stopped by Ctrl-C, which reaches
+    the whole process group) and end this worker then: an orphaned worker computes the case it holds for nobody (the
+    sweep caches its results), on cores the next run needs. Measured: `kill` of a reproduce sweep's parent left its two
+    workers running for 25 minutes (docs/design-notes.md, "Nodes at the building's unseen corners")."""
+    import threading
+
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(check_s)
+        os._exit(1)  # no cleanup to run: the case in flight is lost either way
+
+    threading.Thread(target=watch, name="exit-when-orphaned", daemon=True).start()
+
+
 def _init_worker() -> None:
     """ProcessPoolExecutor initializer (spawn: a fresh interpreter, so the env vars still reach BLAS on import)."""
     _limit_threads_env()
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(1)  # for libraries the parent's __main__ already loaded in this fresh process
+    _exit_when_orphaned()
 
 
 def _run_case(fn: Callable[[Case], Any], case: Case, limit_threads: bool, keep_exc: bool = False) -> _Outcome:

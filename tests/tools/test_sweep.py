@@ -8,6 +8,7 @@ import multiprocessing
 import os
 import subprocess
 import sys
+import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -326,3 +327,43 @@ def test_that_sweep_rows_survive_csv(tmp_path):
     back = read_rows_csv(tmp_path / "rows.csv")
     assert [r["y"] for r in back] == [r["y"] for r in rows]
     assert [r["third"] for r in back[::2]] == [x / 3 for x in range(3)]
+
+
+ORPHAN_PARENT = """
+import multiprocessing, sys, time
+from concurrent.futures import ProcessPoolExecutor
+from tools.sweep import _init_worker
+import os
+if __name__ == "__main__":
+    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker)
+    print(pool.submit(os.getpid).result(), flush=True)
+    pool.submit(time.sleep, 600)
+    time.sleep(600)
+"""
+
+
+def test_that_a_sweep_worker_ends_when_the_sweep_is_killed(tmp_path):
+    """A worker whose sweep was killed outright (SIGKILL: no Ctrl-C to the process group) does not go on computing
+    for nobody: it ends within a few of its checks."""
+    script = tmp_path / "parent.py"
+    script.write_text(ORPHAN_PARENT)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        worker = int(parent.stdout.readline())
+    finally:
+        parent.kill()
+        parent.wait(timeout=30)
+    deadline = time.monotonic() + 60.0  # generous: two busy cores; the worker checks every ORPHAN_CHECK_S
+    while time.monotonic() < deadline and _alive(worker):
+        time.sleep(0.2)
+    assert not _alive(worker)
+
+
+def _alive(pid: int) -> bool:
+    """Whether pid is a running process (a zombie, ended but not yet reaped by its new parent, counts as ended)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
