@@ -6,6 +6,7 @@ import json
 import math
 import multiprocessing
 import os
+import select
 import subprocess
 import sys
 import time
@@ -350,6 +351,8 @@ def test_that_a_sweep_worker_ends_when_the_sweep_is_killed(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, env=env)
     try:
+        ready, _, _ = select.select([parent.stdout], [], [], 60.0)  # never wait on a parent that failed to start
+        assert ready, "the sweep's parent did not report its worker within 60 s"
         worker = int(parent.stdout.readline())
     finally:
         parent.kill()
