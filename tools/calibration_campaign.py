@@ -23,7 +23,6 @@ import statistics
 import sys
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -40,6 +39,7 @@ from sitl.faults.injector import FaultSpec
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import PAYLOADS, FlyConfig, fly
 from tools.doc_sections import write_section
+from tools.workers import worker_pool
 
 SECTION = "calibration-campaign"
 FAULTS: dict[str, dict[str, float]] = {
@@ -188,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
               for k in range(1, args.phases)]
              + [Case(p, "fault-free", seed=k, noise=m, payload=pl) for m in noises for p in piles
                 for k in range(1, EXTRA_SEEDS + 1)])
-    with ProcessPoolExecutor(args.jobs) as pool:
+    with worker_pool(args.jobs) as pool:
         rows = list(pool.map(partial(run_case, runs=args.runs), faulted))
         print(table(rows), flush=True)
         checks = list(pool.map(partial(run_case, runs=args.runs), clean))

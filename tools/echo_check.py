@@ -18,7 +18,6 @@ import argparse
 import sys
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +29,7 @@ from ground.surface import grid_volume
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
 from tools.doc_sections import write_section
 from tools.evalset import DEFAULT_ROOT, load_run, stored_runs_or_say
+from tools.workers import worker_pool
 
 SECTION = "echo-check"
 HIGH_PCT = 2.0
@@ -85,7 +85,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"echo_check: no stored runs with noise {' '.join(args.noise)} under {args.root}", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
-    with ProcessPoolExecutor(args.jobs) as pool:
+    with worker_pool(args.jobs) as pool:
         rows = list(pool.map(echo_row, dirs, chunksize=4))
     table = "\n".join(summary(rows))
     print(table)

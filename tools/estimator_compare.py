@@ -15,7 +15,6 @@ from __future__ import annotations
 import statistics
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -34,6 +33,7 @@ from sitl.world.stockpile import paper_pile
 from tools.doc_sections import write_section
 from tools.experiments import ALL_EXPERIMENTS, N_POSITIONS, P_TRAJ_PCT, PILES, _flight, servo_positions
 from tools.sweep import cached, content_key, fresh_run_note
+from tools.workers import worker_pool
 
 SECTION = "surface-estimators"
 COMPARE_VERSION = "11"
@@ -182,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         _flight(e, float(p), args.cache)
     cases = [Case(pile, p, m, args.phases) for pile in PILES for p in P_TRAJ_PCT for m in models]
     n_todo = sum(not (args.rows_cache / f"{c.key()}.json").exists() for c in cases)
-    with ProcessPoolExecutor(args.jobs) as pool:
+    with worker_pool(args.jobs) as pool:
         results = dict(zip(cases, pool.map(run_case, cases, [args.cache] * len(cases),
                                            [args.rows_cache] * len(cases)), strict=True))
     wall = time.perf_counter() - t0

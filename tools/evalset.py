@@ -25,7 +25,6 @@ import sys
 import time
 from collections import Counter, defaultdict
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from enum import StrEnum
 from pathlib import Path
@@ -43,6 +42,7 @@ from sitl.sensing.batch_sampler import sample_flight
 from sitl.world.raycast import World
 from sitl.world.shapes import Family, Shape, make_shape
 from tools.sweep import Case, cached, content_key, missing_cases, read_rows_csv, run_sweep, write_rows_csv
+from tools.workers import worker_pool
 
 EVALSET_VERSION = "3"
 """Part of every case (and so of its cache key): bump it when what a case computes changes. 2: Appendix A's
@@ -365,7 +365,7 @@ def rows_of_runs(root: Path, run_row: Callable[[str], dict | None], noises: Sequ
         return None
     t0 = time.perf_counter()
     rows = []
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
+    with worker_pool(jobs) as pool:
         for i, row in enumerate(pool.map(run_row, chosen, chunksize=chunksize), 1):
             if row is not None:
                 rows.append(row)

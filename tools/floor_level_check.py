@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +25,7 @@ from ground.pointcloud import SensorErrorModel, cloud_from_samples, structure_ma
 from ground.surface import DEFAULT_CELL_M, Grid
 from tools.doc_sections import write_section
 from tools.evalset import DEFAULT_ROOT, load_run, stored_runs_or_say
+from tools.workers import worker_pool
 
 HIDING_FAMILIES = ("irregular", "flat")
 """The evaluation set's families whose piles cover the floor wall to wall on some runs: their lowest flat surface is
@@ -82,7 +82,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     dirs = stored_runs_or_say(args.root, args.stride, "floor_level_check")
     if not dirs:
         return 2
-    with ProcessPoolExecutor(args.jobs) as pool:
+    with worker_pool(args.jobs) as pool:
         rows = list(pool.map(floor_row, dirs, [args.lever_dz] * len(dirs), chunksize=8))
     table = "\n".join(summary(rows, args.lever_dz))
     print(table)

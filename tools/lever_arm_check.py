@@ -19,7 +19,6 @@ import math
 import re
 import sys
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +26,7 @@ import numpy as np
 from firmware_py.core.samplelog import SampleLog
 from tools.doc_sections import write_section
 from tools.evalset import DEFAULT_ROOT, load_run, stored_runs_or_say
+from tools.workers import worker_pool
 
 AXES = ("x", "y", "z")
 """The body axes, as the log header's lever arm is written: forward, right, down."""
@@ -136,7 +136,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     dirs = stored_runs_or_say(args.root, args.stride, "lever_arm_check")
     if not dirs:
         return 2
-    with ProcessPoolExecutor(args.jobs) as pool:
+    with worker_pool(args.jobs) as pool:
         rows = [row for rs in pool.map(lever_rows, dirs, [offsets] * len(dirs), [axes] * len(dirs)) for row in rs]
     if args.rows is not None:
         args.rows.write_text(json.dumps(rows, indent=0))

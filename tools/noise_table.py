@@ -21,7 +21,6 @@ import sys
 import tempfile
 import time
 from collections.abc import Iterable, Iterator
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -39,6 +38,7 @@ from sitl.world.stockpile import Stockpile, paper_pile
 from tools.doc_sections import write_section
 from tools.experiments import ALL_EXPERIMENTS, N_POSITIONS, _flight
 from tools.sweep import cached, content_key, fresh_run_note
+from tools.workers import worker_pool
 
 SECTION = "noise-table"
 PILES = ("1", "2")
@@ -214,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
         _flight(e, float(p), args.cache)
     cases = [Case(pile, p, m, args.phases) for pile in PILES for p in P_TRAJ_PCT for m in MODELS]
     n_todo = sum(not (args.cache / f"{c.key()}.json").exists() for c in cases)
-    with ProcessPoolExecutor(args.jobs) as pool:
+    with worker_pool(args.jobs) as pool:
         results = dict(zip(cases, pool.map(run_case, cases, [args.cache] * len(cases)), strict=True))
         print(table(results), flush=True)
         spot_rows = list(pool.map(spot_check, *zip(*spots, strict=True))) if spots else []

@@ -35,7 +35,6 @@ import shutil
 import statistics
 import subprocess
 import sys
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +51,7 @@ from tools.pose_correction_campaign import (
     signed_error_pct,
     trajectory_rms_m,
 )
+from tools.workers import worker_pool
 
 SECTION = "pose-oracle-table"
 SUFFIX = "--true-pose"
@@ -312,7 +312,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"no such folder: {', '.join(missing)}")
     todo = [str(f) for f in flights(args.runs)]
     rows = []
-    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+    with worker_pool(args.jobs) as pool:
         job = one_height if args.height else one_horizontal if args.horizontal else one
         for i, row in enumerate(pool.map(job, todo), 1):
             if row is not None:

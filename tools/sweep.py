@@ -35,7 +35,6 @@ import hashlib
 import json
 import logging
 import math
-import multiprocessing
 import os
 import pickle
 import platform
@@ -46,12 +45,14 @@ import time
 import traceback
 import uuid
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from concurrent.futures import CancelledError, ProcessPoolExecutor, as_completed
+from concurrent.futures import CancelledError, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
 from typing import Any, TypeVar
+
+from tools.workers import limit_threads_env, worker_pool
 
 try:  # POSIX only; without it cached() still is correct, it just may compute a key twice
     import fcntl
@@ -72,7 +73,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 T = TypeVar("T")
 
-_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 _MAX_MESSAGES = 5  # failure messages quoted in a SweepError
 _KEY_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
@@ -327,48 +327,12 @@ def _one_line(e: BaseException) -> str:
     return msg if len(msg) <= 300 else msg[:297] + "..."
 
 
-def _limit_threads_env() -> None:
-    """Set before numpy loads in a worker: one BLAS/OpenMP thread per process, since the processes use the cores."""
-    for name in _THREAD_ENV:
-        os.environ[name] = "1"
-
-
-ORPHAN_CHECK_S = 0.5
-"""How often a worker looks whether the sweep that started it is still there (`_exit_when_orphaned`)."""
-
-
-def _exit_when_orphaned(check_s: float = ORPHAN_CHECK_S) -> None:
-    """Watch, on a daemon thread, for the sweep's process to go away (killed, not stopped by Ctrl-C, which reaches
-    the whole process group) and end this worker then: an orphaned worker computes the case it holds for nobody (the
-    sweep caches its results), on cores the next run needs. Measured: `kill` of a reproduce sweep's parent left its two
-    workers running for 25 minutes (docs/design-notes.md, "Nodes at the building's unseen corners")."""
-    import threading
-
-    parent = os.getppid()
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(check_s)
-        os._exit(1)  # no cleanup to run: the case in flight is lost either way
-
-    threading.Thread(target=watch, name="exit-when-orphaned", daemon=True).start()
-
-
-def _init_worker() -> None:
-    """ProcessPoolExecutor initializer (spawn: a fresh interpreter, so the env vars still reach BLAS on import)."""
-    _limit_threads_env()
-    from threadpoolctl import threadpool_limits
-
-    threadpool_limits(1)  # for libraries the parent's __main__ already loaded in this fresh process
-    _exit_when_orphaned()
-
-
 def _run_case(fn: Callable[[Case], Any], case: Case, limit_threads: bool, keep_exc: bool = False) -> _Outcome:
     """Run fn(case) and never raise: a failure is data, so one bad case can't take down a pool or a dask task."""
     t0 = time.perf_counter()
     try:
         if limit_threads:
-            _limit_threads_env()
+            limit_threads_env()
             from threadpoolctl import threadpool_limits
 
             with threadpool_limits(1):  # covers BLAS/OpenMP loaded after the initializer (e.g. by fn's imports)
@@ -475,8 +439,7 @@ def _run_local(todo: list[Case], fn: Callable[..., Any], book: _Book, jobs: int,
             if not book.record(case, _run_case(fn, case, limit_threads=False, keep_exc=True)) and fail_fast:
                 return
         return
-    ctx = multiprocessing.get_context("spawn")
-    pool = ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx, initializer=_init_worker)
+    pool = worker_pool(min(jobs, len(todo)), start_method="spawn")
     try:
         futures = {pool.submit(_run_case, fn, case, True): case for case in todo}
         stop = False

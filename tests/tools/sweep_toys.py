@@ -33,6 +33,15 @@ def calls(log_dir: Path) -> list[str]:
     return [line.split()[0] for line in p.read_text().splitlines()] if p.exists() else []
 
 
+def alive(pid: int) -> bool:
+    """Whether pid is a running process (a zombie, ended but not yet reaped by its new parent, counts as ended)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
 def square(case: Case) -> list[dict]:
     """Two rows with numpy values and a NaN, to exercise the JSON conversions."""
     _note(case.key)
@@ -55,6 +64,13 @@ def threads(case: Case) -> list[dict]:
     np.dot(np.ones((4, 4)), np.ones((4, 4)))  # make sure numpy's BLAS is loaded
     return [{"omp": os.environ.get("OMP_NUM_THREADS"), "openblas": os.environ.get("OPENBLAS_NUM_THREADS"),
              "max_threads": max([p["num_threads"] for p in threadpool_info()] or [1])}]
+
+
+def waits(case: Case) -> list[dict]:
+    """Notes its call, then holds its worker for ten minutes: a case still in flight when its sweep is killed."""
+    _note(case.key)
+    time.sleep(600)
+    return [{"x": case.get("x")}]
 
 
 def contradicts(case: Case) -> list[dict]:

@@ -6,7 +6,6 @@ import json
 import math
 import multiprocessing
 import os
-import select
 import subprocess
 import sys
 import time
@@ -330,43 +329,25 @@ def test_that_sweep_rows_survive_csv(tmp_path):
     assert [r["third"] for r in back[::2]] == [x / 3 for x in range(3)]
 
 
-ORPHAN_PARENT = """
-import multiprocessing, sys, time
-from concurrent.futures import ProcessPoolExecutor
-from tools.sweep import _init_worker
-import os
-if __name__ == "__main__":
-    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker)
-    print(pool.submit(os.getpid).result(), flush=True)
-    pool.submit(time.sleep, 600)
-    time.sleep(600)
-"""
-
-
-def test_that_a_sweep_worker_ends_when_the_sweep_is_killed(tmp_path):
-    """A worker whose sweep was killed outright (SIGKILL: no Ctrl-C to the process group) does not go on computing
-    for nobody: it ends within a few of its checks."""
-    script = tmp_path / "parent.py"
-    script.write_text(ORPHAN_PARENT)
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
-    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, env=env)
+def test_that_a_sweep_s_workers_end_when_the_sweep_is_killed(tmp_path, call_log):
+    """A sweep killed outright (SIGKILL: no Ctrl-C to the process group) leaves no worker computing for nobody."""
+    script = ("import sys; from pathlib import Path; from tools.sweep import Case, run_sweep; "
+              "from tests.tools import sweep_toys as t; "
+              "run_sweep([Case.make('toy', x=i) for i in range(2)], t.waits, Path(sys.argv[1]), jobs=2, "
+              "progress=False)")
+    parent = subprocess.Popen([sys.executable, "-c", script, str(tmp_path / "c")], cwd=REPO, env=os.environ.copy(),
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        ready, _, _ = select.select([parent.stdout], [], [], 60.0)  # never wait on a parent that failed to start
-        assert ready, "the sweep's parent did not report its worker within 60 s"
-        worker = int(parent.stdout.readline())
+        deadline = time.monotonic() + 120.0  # two spawned interpreters importing numpy on two busy cores
+        while time.monotonic() < deadline and len(toys.calls(call_log)) < 2 and parent.poll() is None:
+            time.sleep(0.2)
+        log = call_log / "calls.log"
+        pids = [int(line.split()[1]) for line in log.read_text().splitlines()] if log.exists() else []
+        assert len(pids) == 2, "the sweep's two workers did not both start their case"
     finally:
         parent.kill()
         parent.wait(timeout=30)
-    deadline = time.monotonic() + 60.0  # generous: two busy cores; the worker checks every ORPHAN_CHECK_S
-    while time.monotonic() < deadline and _alive(worker):
+    deadline = time.monotonic() + 60.0  # generous: the workers look every ORPHAN_CHECK_S
+    while time.monotonic() < deadline and any(toys.alive(p) for p in pids):
         time.sleep(0.2)
-    assert not _alive(worker)
-
-
-def _alive(pid: int) -> bool:
-    """Whether pid is a running process (a zombie, ended but not yet reaped by its new parent, counts as ended)."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except FileNotFoundError:
-        return False
+    assert not any(toys.alive(p) for p in pids)

@@ -1,0 +1,68 @@
+"""Worker processes for the tools' process pools: one BLAS thread each, and gone when the tool that started them is.
+
+A tool that spreads its cases over a process pool has as many processes as cores; a BLAS that also starts a thread
+per core in each of them oversubscribes the cores. And a tool killed outright (SIGKILL, or `kill` of its process
+alone: no Ctrl-C to the process group) leaves its workers computing for nobody on the cores the next run needs:
+measured, a killed `tools.reproduce` left its two workers running for 25 minutes (docs/design-notes.md, "A tool's
+workers end with it"). Every pool in `tools/` is made here so both hold everywhere.
+
+Usage:
+    with worker_pool(args.jobs) as pool:
+        rows = list(pool.map(one_row, cases))
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import threading
+import time
+from concurrent.futures import ProcessPoolExecutor
+
+__all__ = ["ORPHAN_CHECK_S", "init_worker", "limit_threads_env", "worker_pool"]
+
+THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+ORPHAN_CHECK_S = 0.5
+"""How often a worker looks whether the process that started it is still there (`exit_when_orphaned`)."""
+
+
+def limit_threads_env() -> None:
+    """Set before numpy loads in a worker: one BLAS/OpenMP thread per process, since the processes use the cores."""
+    for name in THREAD_ENV:
+        os.environ[name] = "1"
+
+
+def exit_when_orphaned(check_s: float = ORPHAN_CHECK_S) -> None:
+    """Watch, on a daemon thread, for this worker's parent to go away and end the worker then (no cleanup to run: the
+    case in flight is lost either way, and the tools that cache keep what finished)."""
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(check_s)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-when-orphaned", daemon=True).start()
+
+
+def init_worker() -> None:
+    """A pool's initializer: one BLAS thread, and an end with the parent.
+
+    The env vars reach a BLAS a spawned worker has yet to load; `threadpool_limits` covers one already loaded (a
+    forked worker's, inherited from the parent, or one the parent's __main__ imported in a spawned one)."""
+    limit_threads_env()
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)
+    exit_when_orphaned()
+
+
+def worker_pool(jobs: int, *, start_method: str | None = None) -> ProcessPoolExecutor:
+    """A process pool of max(1, jobs) workers made by `init_worker`.
+
+    start_method None keeps the platform's default (fork on Linux with Python 3.11: the workers start in
+    milliseconds and share the parent's loaded modules); `tools.sweep` asks for "spawn", a fresh interpreter per
+    worker, whose BLAS reads the one-thread env vars as it loads (docs/design-notes.md, "Threads")."""
+    ctx = multiprocessing.get_context(start_method)
+    return ProcessPoolExecutor(max_workers=max(1, jobs), mp_context=ctx, initializer=init_worker)
