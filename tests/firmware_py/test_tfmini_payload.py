@@ -161,7 +161,9 @@ def test_that_the_payload_logs_a_streaming_tfmini_one_sample_per_frame(tmp_path,
     assert np.all(s["range_m"][(s["flags"] & int(SampleFlags.SENSOR_ERROR)) == 0] == pytest.approx(5.23))
     assert log.header["sensor"] == TFMINI_S.to_dict()
     assert log.header["payload"]["uart"] == f"serial:{pty.path}" and "i2c" not in log.header["payload"]
-    assert res.lidar_counters["frames"] >= len(s)
+    # every sample that is not a sensor error came from a frame (a busy machine may starve the port's writer, and
+    # a tick without a frame is a timeout: a sample flagged, not a frame)
+    assert res.lidar_counters["frames"] >= np.count_nonzero((s["flags"] & int(SampleFlags.SENSOR_ERROR)) == 0)
 
 
 class _Sensor:
