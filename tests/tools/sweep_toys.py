@@ -42,6 +42,22 @@ def alive(pid: int) -> bool:
         return False
 
 
+def ended_within(pids: list[int], timeout_s: float) -> bool:
+    """Whether every process in pids has ended within timeout_s (polled every 0.2 s)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and any(alive(p) for p in pids):
+        time.sleep(0.2)
+    return not any(alive(p) for p in pids)
+
+
+def blas_threads() -> int:
+    """The most threads any BLAS/OpenMP library loaded in this process runs."""
+    from threadpoolctl import threadpool_info
+
+    np.dot(np.ones((4, 4)), np.ones((4, 4)))  # make sure numpy's BLAS is loaded
+    return max([p["num_threads"] for p in threadpool_info()] or [1])
+
+
 def square(case: Case) -> list[dict]:
     """Two rows with numpy values and a NaN, to exercise the JSON conversions."""
     _note(case.key)
@@ -59,11 +75,8 @@ def square(case: Case) -> list[dict]:
 
 def threads(case: Case) -> list[dict]:
     """What a worker sees of the BLAS/OpenMP thread limits."""
-    from threadpoolctl import threadpool_info
-
-    np.dot(np.ones((4, 4)), np.ones((4, 4)))  # make sure numpy's BLAS is loaded
     return [{"omp": os.environ.get("OMP_NUM_THREADS"), "openblas": os.environ.get("OPENBLAS_NUM_THREADS"),
-             "max_threads": max([p["num_threads"] for p in threadpool_info()] or [1])}]
+             "max_threads": blas_threads()}]
 
 
 def waits(case: Case) -> list[dict]:

@@ -347,7 +347,4 @@ def test_that_a_sweep_s_workers_end_when_the_sweep_is_killed(tmp_path, call_log)
     finally:
         parent.kill()
         parent.wait(timeout=30)
-    deadline = time.monotonic() + 60.0  # generous: the workers look every ORPHAN_CHECK_S
-    while time.monotonic() < deadline and any(toys.alive(p) for p in pids):
-        time.sleep(0.2)
-    assert not any(toys.alive(p) for p in pids)
+    assert toys.ended_within(pids, 60.0)  # generous: the workers look every ORPHAN_CHECK_S

@@ -7,12 +7,11 @@ import os
 import select
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
-from tests.tools.sweep_toys import alive
+from tests.tools.sweep_toys import blas_threads, ended_within
 from tools.workers import worker_pool
 
 REPO = Path(__file__).resolve().parents[2]
@@ -26,14 +25,6 @@ if __name__ == "__main__":
     pool.submit(time.sleep, 600)
     time.sleep(600)
 """
-
-
-def _blas_threads() -> int:
-    import numpy as np
-    from threadpoolctl import threadpool_info
-
-    np.dot(np.ones((4, 4)), np.ones((4, 4)))  # make sure numpy's BLAS is loaded
-    return max([p["num_threads"] for p in threadpool_info()] or [1])
 
 
 @pytest.mark.parametrize("start_method", [None, "spawn"])
@@ -52,10 +43,7 @@ def test_that_a_worker_ends_when_the_tool_that_started_it_is_killed(tmp_path, st
     finally:
         parent.kill()
         parent.wait(timeout=30)
-    deadline = time.monotonic() + 60.0  # generous: two busy cores; the worker checks every ORPHAN_CHECK_S
-    while time.monotonic() < deadline and alive(worker):
-        time.sleep(0.2)
-    assert not alive(worker)
+    assert ended_within([worker], 60.0)  # generous: two busy cores; the worker checks every ORPHAN_CHECK_S
 
 
 def test_that_a_forked_worker_runs_one_blas_thread():
@@ -64,7 +52,7 @@ def test_that_a_forked_worker_runs_one_blas_thread():
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(2), worker_pool(1) as pool:
-        assert pool.submit(_blas_threads).result(timeout=60) == 1
+        assert pool.submit(blas_threads).result(timeout=60) == 1
 
 
 def test_that_every_process_pool_in_tools_is_made_by_worker_pool():
