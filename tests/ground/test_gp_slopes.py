@@ -10,11 +10,14 @@ from ground.gp_slopes import (
     MIN_NODES,
     PER_OCTANT,
     GpCovariance,
+    _neighbourhoods,
     bridge_nodes,
     fit_covariance,
     gp_smoothed,
+    matern52,
     node_slopes,
     octant_neighbours,
+    restricted_loglik,
 )
 from ground.smoothing import NodeSlopes, SmoothingOptions
 from ground.surface import Grid, fit_heights, grid_volume
@@ -253,3 +256,63 @@ def test_that_the_heights_and_the_covariance_are_the_same_on_one_thread_or_sever
         results[threads] = (cov, gp_smoothed(xy, z, var, cov))
     assert results[1][0] == results[3][0]
     assert np.array_equal(results[1][1], results[3][1])
+
+
+def textbook_loglik(xy, z, var, at, idx, valid, cov):
+    """The restricted log-likelihood of each neighbourhood's filled slots, written out: the covariance, a plane's
+    drift through the slots' offsets, the generalised least-squares plane, and the two determinants."""
+    total = 0.0
+    for p, slots in zip(at, [i[v] for i, v in zip(idx, valid, strict=True)], strict=True):
+        d = xy[slots] - p
+        r = np.hypot(d[:, None, 0] - d[None, :, 0], d[:, None, 1] - d[None, :, 1])
+        s2 = cov.amplitude_m**2
+        c = s2 * matern52(r / cov.length_m) + np.diag(var[slots] + 1e-10 * s2)
+        f = np.column_stack([np.ones(len(slots)), d])
+        ci = np.linalg.inv(c)
+        beta = np.linalg.solve(f.T @ ci @ f, f.T @ ci @ z[slots])
+        res = z[slots] - f @ beta
+        total += -0.5 * (res @ ci @ res + np.linalg.slogdet(c)[1] + np.linalg.slogdet(f.T @ ci @ f)[1])
+    return total
+
+
+def test_that_the_restricted_likelihood_is_the_textbook_formula_summed_over_the_neighbourhoods():
+    xy = fan_lines()
+    rng = np.random.default_rng(5)
+    var = rng.uniform(0.01, 0.05, len(xy)) ** 2
+    z = hill(xy) + rng.normal(0.0, np.sqrt(var))
+    at = np.array([[15.2, 10.1], [4.0, 3.0], [0.2, 0.1], [28.9, 19.8]])  # inside, and corners that leave octants empty
+    idx, valid = octant_neighbours(xy, at)
+    assert not valid.all()
+    nb = _neighbourhoods(xy, at, idx, valid)
+    # The empty slots stay in the function's systems with a variance of 1e6: their pull on the plane is a part in
+    # a million (3e-5 of 146 here), which is what the tolerance allows.
+    for cov in (GpCovariance(3.0, 0.5), GpCovariance(0.5, 0.02), GpCovariance(32.0, 10.0)):
+        assert restricted_loglik(nb, z, var, cov) == pytest.approx(textbook_loglik(xy, z, var, at, idx, valid, cov),
+                                                                   rel=1e-6)
+
+
+def test_that_a_covariance_that_is_not_positive_definite_or_nodes_on_one_line_are_no_candidate():
+    xy = fan_lines()
+    z = hill(xy)
+    at = xy[[100, 300]]
+    nb = _neighbourhoods(xy, at, *octant_neighbours(xy, at))
+    assert restricted_loglik(nb, z, np.full(len(z), -1.0), GpCovariance(3.0, 0.5)) == -np.inf  # negative variances
+    line = np.column_stack([np.linspace(0.0, 10.0, 80), np.zeros(80)])
+    at = line[[40]]
+    nb = _neighbourhoods(line, at, *octant_neighbours(line, at))
+    assert restricted_loglik(nb, line[:, 0], np.full(80, 1e-4), GpCovariance(3.0, 0.5)) == -np.inf  # no plane
+
+
+def test_that_a_systems_array_reused_from_another_covariance_gives_the_same_likelihood():
+    xy = fan_lines()
+    z = hill(xy) + np.random.default_rng(6).normal(0.0, 0.03, len(xy))
+    var = np.full(len(z), 0.03**2)
+    at = np.array([[15.2, 10.1], [0.2, 0.1]])
+    nb = _neighbourhoods(xy, at, *octant_neighbours(xy, at))
+    k = nb.idx.shape[1]
+    cov = GpCovariance(3.0, 0.5)
+    alone = restricted_loglik(nb, z, var, cov)
+    scratch = np.full((len(at), k + 3, k + 3), np.nan)  # what no element of the systems may keep
+    assert restricted_loglik(nb, z, var, cov, scratch=scratch) == alone
+    restricted_loglik(nb, z, var, GpCovariance(32.0, 10.0), scratch=scratch)
+    assert restricted_loglik(nb, z, var, cov, scratch=scratch) == alone
