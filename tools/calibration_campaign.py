@@ -39,7 +39,7 @@ from sitl.faults.injector import FaultSpec
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import PAYLOADS, FlyConfig, fly
 from tools.doc_sections import write_section
-from tools.workers import worker_pool
+from tools.workers import progress_map, worker_pool
 
 SECTION = "calibration-campaign"
 FAULTS: dict[str, dict[str, float]] = {
@@ -189,9 +189,9 @@ def main(argv: list[str] | None = None) -> int:
              + [Case(p, "fault-free", seed=k, noise=m, payload=pl) for m in noises for p in piles
                 for k in range(1, EXTRA_SEEDS + 1)])
     with worker_pool(args.jobs) as pool:
-        rows = list(pool.map(partial(run_case, runs=args.runs), faulted))
+        rows = progress_map(pool, partial(run_case, runs=args.runs), faulted, desc="calibration_campaign")
         print(table(rows), flush=True)
-        checks = list(pool.map(partial(run_case, runs=args.runs), clean))
+        checks = progress_map(pool, partial(run_case, runs=args.runs), clean, desc="calibration_campaign checks")
     checked = checks + [r for r in rows if r["case"].fault == "fault-free"]
     worst = max((abs(r["ve_on"] - r["ve_off"]) for r in checked), default=0.0)
     cost = statistics.median(r["cost_s"] for r in checked) if checked else math.nan

@@ -29,7 +29,7 @@ from ground.surface import grid_volume
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
 from tools.doc_sections import write_section
 from tools.evalset import DEFAULT_ROOT, load_run, stored_runs_or_say
-from tools.workers import worker_pool
+from tools.workers import progress_map, worker_pool
 
 SECTION = "echo-check"
 HIGH_PCT = 2.0
@@ -86,7 +86,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     t0 = time.perf_counter()
     with worker_pool(args.jobs) as pool:
-        rows = list(pool.map(echo_row, dirs, chunksize=4))
+        rows = progress_map(pool, echo_row, dirs, desc="echo_check", unit="run", chunksize=4)
     table = "\n".join(summary(rows))
     print(table)
     if args.write is not None:

@@ -33,7 +33,7 @@ from sitl.world.stockpile import paper_pile
 from tools.doc_sections import write_section
 from tools.experiments import ALL_EXPERIMENTS, N_POSITIONS, P_TRAJ_PCT, PILES, _flight, servo_positions
 from tools.sweep import cached, content_key, fresh_run_note
-from tools.workers import worker_pool
+from tools.workers import progress_map, worker_pool
 
 SECTION = "surface-estimators"
 COMPARE_VERSION = "11"
@@ -183,8 +183,8 @@ def main(argv: list[str] | None = None) -> int:
     cases = [Case(pile, p, m, args.phases) for pile in PILES for p in P_TRAJ_PCT for m in models]
     n_todo = sum(not (args.rows_cache / f"{c.key()}.json").exists() for c in cases)
     with worker_pool(args.jobs) as pool:
-        results = dict(zip(cases, pool.map(run_case, cases, [args.cache] * len(cases),
-                                           [args.rows_cache] * len(cases)), strict=True))
+        results = dict(zip(cases, progress_map(pool, run_case, cases, [args.cache] * len(cases),
+                                               [args.rows_cache] * len(cases), desc="estimator_compare"), strict=True))
     wall = time.perf_counter() - t0
     fresh = fresh_run_note(args.rows_cache / "estimator-compare-fresh-run.json", n_todo == len(cases), wall,
                            args.jobs, len(cases))

@@ -25,7 +25,7 @@ from ground.pointcloud import SensorErrorModel, cloud_from_samples, structure_ma
 from ground.surface import DEFAULT_CELL_M, Grid
 from tools.doc_sections import write_section
 from tools.evalset import DEFAULT_ROOT, load_run, stored_runs_or_say
-from tools.workers import worker_pool
+from tools.workers import progress_map, worker_pool
 
 HIDING_FAMILIES = ("irregular", "flat")
 """The evaluation set's families whose piles cover the floor wall to wall on some runs: their lowest flat surface is
@@ -83,7 +83,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not dirs:
         return 2
     with worker_pool(args.jobs) as pool:
-        rows = list(pool.map(floor_row, dirs, [args.lever_dz] * len(dirs), chunksize=8))
+        rows = progress_map(pool, floor_row, dirs, [args.lever_dz] * len(dirs), desc="floor_level_check",
+                            unit="run", chunksize=8)
     table = "\n".join(summary(rows, args.lever_dz))
     print(table)
     if args.write is not None:

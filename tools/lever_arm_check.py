@@ -26,7 +26,7 @@ import numpy as np
 from firmware_py.core.samplelog import SampleLog
 from tools.doc_sections import write_section
 from tools.evalset import DEFAULT_ROOT, load_run, stored_runs_or_say
-from tools.workers import worker_pool
+from tools.workers import progress_map, worker_pool
 
 AXES = ("x", "y", "z")
 """The body axes, as the log header's lever arm is written: forward, right, down."""
@@ -137,7 +137,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not dirs:
         return 2
     with worker_pool(args.jobs) as pool:
-        rows = [row for rs in pool.map(lever_rows, dirs, [offsets] * len(dirs), [axes] * len(dirs)) for row in rs]
+        done = progress_map(pool, lever_rows, dirs, [offsets] * len(dirs), [axes] * len(dirs), desc="lever_arm_check",
+                            unit="run")
+    rows = [row for rs in done for row in rs]
     if args.rows is not None:
         args.rows.write_text(json.dumps(rows, indent=0))
     table = "\n".join([*summary(rows), "", "New warnings, by their first words:", *warning_lines(rows)])

@@ -38,7 +38,7 @@ from sitl.world.stockpile import Stockpile, paper_pile
 from tools.doc_sections import write_section
 from tools.experiments import ALL_EXPERIMENTS, N_POSITIONS, _flight
 from tools.sweep import cached, content_key, fresh_run_note
-from tools.workers import worker_pool
+from tools.workers import progress_map, worker_pool
 
 SECTION = "noise-table"
 PILES = ("1", "2")
@@ -215,9 +215,11 @@ def main(argv: list[str] | None = None) -> int:
     cases = [Case(pile, p, m, args.phases) for pile in PILES for p in P_TRAJ_PCT for m in MODELS]
     n_todo = sum(not (args.cache / f"{c.key()}.json").exists() for c in cases)
     with worker_pool(args.jobs) as pool:
-        results = dict(zip(cases, pool.map(run_case, cases, [args.cache] * len(cases)), strict=True))
+        results = dict(zip(cases, progress_map(pool, run_case, cases, [args.cache] * len(cases), desc="noise_table"),
+                           strict=True))
         print(table(results), flush=True)
-        spot_rows = list(pool.map(spot_check, *zip(*spots, strict=True))) if spots else []
+        spot_rows = (progress_map(pool, spot_check, *zip(*spots, strict=True), desc="noise_table spots") if spots
+                     else [])
     wall = time.perf_counter() - t0
     fresh_note = fresh_run_note(args.cache / "noise-table-fresh-run.json", n_todo == len(cases), wall, args.jobs)
     parts = [

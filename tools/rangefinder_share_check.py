@@ -33,7 +33,7 @@ from ground.report import ReportOptions, header_geometry, survey_from_samples
 from sitl.sensing.pose_drift import ekf_source_params
 from tools.doc_sections import write_section
 from tools.pose_correction_campaign import TRAJ_TARGET_M, VE_TARGET_PP, trajectory_rms_m
-from tools.workers import worker_pool
+from tools.workers import progress_map, worker_pool
 
 BARO_RECORD = ekf_source_params("vio")
 """A record whose height source is the barometer: the report then takes no share out (the step off). Taking the
@@ -95,8 +95,10 @@ def main(argv: list[str] | None = None) -> int:
                 flights.append((key, run, m.group(1)))
     needed = sorted({twins[k] for k, _, _ in flights if k in twins})
     with worker_pool(args.jobs) as ex:
-        done = {r: row for r, *row in ex.map(_one, [(str(r), p, forced) for _, r, p in flights])}
-        ref = {r: ve for r, ve, _ in ex.map(_twin, [str(r) for r in needed])}
+        done = {r: row for r, *row in progress_map(ex, _one, [(str(r), p, forced) for _, r, p in flights],
+                                                    desc="rangefinder_share_check", unit="flight")}
+        ref = {r: ve for r, ve, _ in progress_map(ex, _twin, [str(r) for r in needed],
+                                                  desc="rangefinder_share_check twins", unit="flight")}
     lines = [f"| folder | flights | mean \\|dVe\\| step off / on (pp) | within {VE_TARGET_PP} pp | "
              f"trajectory <= {TRAJ_TARGET_M * 100:.0f} cm |", "|---|---|---|---|---|"]
     for folder in dict.fromkeys(k[0] for k, _, _ in flights):

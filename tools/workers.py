@@ -8,7 +8,10 @@ workers end with it"). Every pool in `tools/` is made here so both hold everywhe
 
 Usage:
     with worker_pool(args.jobs) as pool:
-        rows = list(pool.map(one_row, cases))
+        rows = progress_map(pool, one_row, cases, desc="lever_arm_check", unit="run")
+
+`progress_map` is `pool.map` with a progress bar on a terminal (tqdm's, as `tools.sweep` draws): a check that
+reports a thousand stored runs works for ten or twenty minutes, and without it said nothing until its table.
 """
 
 from __future__ import annotations
@@ -17,9 +20,11 @@ import multiprocessing
 import os
 import threading
 import time
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Callable, Iterable
+from concurrent.futures import Executor, ProcessPoolExecutor
+from typing import IO, Any
 
-__all__ = ["ORPHAN_CHECK_S", "init_worker", "limit_threads_env", "worker_pool"]
+__all__ = ["ORPHAN_CHECK_S", "init_worker", "limit_threads_env", "progress_map", "worker_pool"]
 
 THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -66,3 +71,21 @@ def worker_pool(jobs: int, *, start_method: str | None = None) -> ProcessPoolExe
     worker, whose BLAS reads the one-thread env vars as it loads (docs/design-notes.md, "Threads")."""
     ctx = multiprocessing.get_context(start_method)
     return ProcessPoolExecutor(max_workers=max(1, jobs), mp_context=ctx, initializer=init_worker)
+
+
+def progress_map(pool: Executor, fn: Callable[..., Any], *iterables: Iterable, desc: str, unit: str = "case",
+                 chunksize: int = 1, show: bool | None = None, file: IO[str] | None = None) -> list:
+    """`pool.map(fn, *iterables)` as a list, in order, with a progress bar of the items done (tqdm's: the count, the
+    rate and the time left). show None draws it only when the output is a terminal (a log file or a pipe gets no
+    bar, as from `tools.sweep`), True always, False never; file: where to (stderr by default)."""
+    from tqdm.auto import tqdm
+
+    args = [list(it) for it in iterables]
+    total = len(args[0]) if args else 0
+    with tqdm(total=total, desc=desc, unit=unit, disable=None if show is None else not show, file=file,
+              dynamic_ncols=True) as bar:
+        out = []
+        for result in pool.map(fn, *args, chunksize=chunksize):
+            out.append(result)
+            bar.update(1)
+    return out

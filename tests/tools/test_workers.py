@@ -1,24 +1,29 @@
-"""The tools' worker processes: one BLAS thread each, and gone when the tool that started them is."""
+"""The tools' worker processes: one BLAS thread each, gone when the tool that started them is, and their progress
+shown on a terminal."""
 
 from __future__ import annotations
 
 import ast
+import io
 import os
 import select
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
 
 from tests.tools.sweep_toys import blas_threads, ended_within
-from tools.workers import worker_pool
+from tools.workers import progress_map, worker_pool
 
 REPO = Path(__file__).resolve().parents[2]
 
 ORPHAN_PARENT = """
 import os, sys, time
-from tools.workers import worker_pool
+from concurrent.futures import ThreadPoolExecutor
+
+from tools.workers import progress_map, worker_pool
 if __name__ == "__main__":
     pool = worker_pool(1, start_method=sys.argv[1] if len(sys.argv) > 1 else None)
     print(pool.submit(os.getpid).result(), flush=True)
@@ -66,3 +71,29 @@ def test_that_every_process_pool_in_tools_is_made_by_worker_pool():
                     getattr(node, "id", None), getattr(node, "attr", None)):
                 offenders.append(f"{path.name}:{node.lineno}")
     assert offenders == []
+
+
+class Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_that_progress_map_returns_the_maps_results_in_order_and_counts_them_on_a_terminal():
+    out = Terminal()
+    with ThreadPoolExecutor(3) as pool:
+        got = progress_map(pool, pow, [2, 3, 4, 5], [3, 2, 1, 0], desc="check", unit="run", file=out)
+    assert got == [8, 9, 4, 1]
+    assert "check" in out.getvalue() and "4/4" in out.getvalue() and "run" in out.getvalue()
+
+
+def test_that_progress_map_draws_nothing_into_a_log_or_pipe_unless_asked():
+    log, asked = io.StringIO(), io.StringIO()
+    with ThreadPoolExecutor(2) as pool:
+        assert progress_map(pool, abs, [-1, 2], desc="check", file=log) == [1, 2]
+        assert progress_map(pool, abs, [-1, 2], desc="check", file=asked, show=True) == [1, 2]
+    assert log.getvalue() == "" and "2/2" in asked.getvalue()
+
+
+def test_that_a_worker_s_exception_reaches_the_tool_through_progress_map():
+    with ThreadPoolExecutor(2) as pool, pytest.raises(ZeroDivisionError):
+        progress_map(pool, lambda x: 1 / x, [1, 0, 2], desc="check", show=False)
