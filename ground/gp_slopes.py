@@ -23,8 +23,10 @@ the noise as well but took noise-free slopes from scipy's better interpolant (pi
 
 from __future__ import annotations
 
+import hashlib
 import math
 import threading
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -52,6 +54,8 @@ AMPLITUDES_M = tuple(float(v) for v in np.geomspace(0.01, 40.96, 7))
 """Covariance amplitudes (1 sigma) tried, 1 cm to 41 m, a factor 4 apart (then refined by half steps)."""
 MIN_NODES = 2 * (8 * PER_OCTANT + 1)
 """Fewer nodes than this: the slopes stay scipy's (too few for the covariance to be fitted)."""
+REMEMBERED_FITS = 16
+"""Covariance fits `fitted_covariance` keeps, by their nodes' content (a few bytes each)."""
 CHUNK = 250
 """Nodes whose systems are built and solved at once: a chunk's arrays (about 5 MB each) stay in the processor's
 cache, where 2,000 nodes' (38 MB each) went out to memory between the steps that build them. The same result, a
@@ -259,6 +263,36 @@ def fit_covariance(xy: np.ndarray, z: np.ndarray, var: np.ndarray, seed: int = 0
     return GpCovariance(*best)
 
 
+_fits: OrderedDict[bytes, GpCovariance] = OrderedDict()
+_fits_lock = threading.Lock()
+
+
+def fitted_covariance(xy: np.ndarray, z: np.ndarray, var: np.ndarray, tree: cKDTree | None = None) -> GpCovariance:
+    """`fit_covariance` of these nodes, fitted once: the last REMEMBERED_FITS fits are kept by a digest of the nodes'
+    positions, heights and variances, and the same nodes get the same covariance without the fit. The fit is a
+    function of those alone (a fixed seed; the same to the bit on any thread count), so what is remembered is what
+    would be computed. Why: the fit costs the same whatever the survey's size (0.1-0.2 s), and a process that reports
+    one flight several ways surveys the same nodes again (a check with and without a correction that was not applied,
+    options that do not touch the surface): measured over the ground and tools tests, 151 of 313 fits repeated one
+    already made in the same process (docs/design-notes.md, "The covariance fit remembered by its nodes")."""
+    arrays = [np.ascontiguousarray(a, dtype=float) for a in (xy, z, var)]
+    digest = hashlib.blake2b(digest_size=20)
+    for a in arrays:
+        digest.update(repr(a.shape).encode())
+        digest.update(a.tobytes())
+    key = digest.digest()
+    with _fits_lock:
+        if key in _fits:
+            _fits.move_to_end(key)
+            return _fits[key]
+    cov = fit_covariance(*arrays, tree=tree)
+    with _fits_lock:
+        _fits[key] = cov
+        while len(_fits) > REMEMBERED_FITS:
+            _fits.popitem(last=False)
+    return cov
+
+
 def gp_smoothed(xy: np.ndarray, z: np.ndarray, var: np.ndarray, cov: GpCovariance,
                 tree: cKDTree | None = None, only: np.ndarray | None = None) -> np.ndarray:
     """(n,) the kriging predictor's height at every node from its octant neighbours (itself among them, with its
@@ -320,7 +354,7 @@ def node_slopes(tri: Delaunay, z: np.ndarray, se_m: np.ndarray, reach_m: float |
     var = se * se
     try:
         tree = cKDTree(xy)  # one tree for the fit's neighbourhoods and the prediction's
-        smoothed = gp_smoothed(xy, z, var, fit_covariance(xy, z, var, tree=tree), tree, only)
+        smoothed = gp_smoothed(xy, z, var, fitted_covariance(xy, z, var, tree), tree, only)
     except np.linalg.LinAlgError:  # a neighbourhood with no plane through it (its nodes on one line)
         return None
     if not np.all(np.isfinite(smoothed)):

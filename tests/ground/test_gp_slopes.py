@@ -1,5 +1,7 @@
 """The cubic's slopes at its nodes from a Gaussian process (ground.gp_slopes, `SmoothingOptions.slopes`)."""
 
+from collections import OrderedDict
+
 import numpy as np
 import pytest
 from scipy.interpolate import CloughTocher2DInterpolator
@@ -316,3 +318,45 @@ def test_that_a_systems_array_reused_from_another_covariance_gives_the_same_like
     assert restricted_loglik(nb, z, var, cov, scratch=scratch) == alone
     restricted_loglik(nb, z, var, GpCovariance(32.0, 10.0), scratch=scratch)
     assert restricted_loglik(nb, z, var, cov, scratch=scratch) == alone
+
+
+@pytest.fixture
+def counted_fits(monkeypatch):
+    """The fits `fitted_covariance` makes, counted, with nothing remembered from other tests."""
+    import ground.gp_slopes as gp
+
+    calls = []
+    real = gp.fit_covariance
+    monkeypatch.setattr(gp, "fit_covariance", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(gp, "_fits", OrderedDict())
+    return gp, calls, real
+
+
+def noisy_hill(seed):
+    xy = fan_lines()
+    return xy, hill(xy) + np.random.default_rng(seed).normal(0.0, 0.03, len(xy)), np.full(len(xy), 0.03**2)
+
+
+def test_that_the_same_nodes_get_the_remembered_covariance_without_a_second_fit(counted_fits):
+    gp, calls, real = counted_fits
+    xy, z, var = noisy_hill(7)
+    first = gp.fitted_covariance(xy, z, var)
+    assert first == real(xy, z, var)
+    assert gp.fitted_covariance(xy.copy(), z.copy(), var.copy()) == first and len(calls) == 1
+    nudged = z.copy()
+    nudged[7] = np.nextafter(nudged[7], np.inf)  # one height one bit apart: other nodes, fitted again
+    gp.fitted_covariance(xy, nudged, var)
+    gp.fitted_covariance(xy, z, var * 2.0)
+    assert len(calls) == 3
+
+
+def test_that_only_the_last_fits_are_remembered(counted_fits, monkeypatch):
+    gp, calls, _ = counted_fits
+    monkeypatch.setattr(gp, "REMEMBERED_FITS", 2)
+    sets = [noisy_hill(seed) for seed in (8, 9, 10)]
+    for nodes in sets:
+        gp.fitted_covariance(*nodes)
+    gp.fitted_covariance(*sets[2])  # still remembered
+    assert len(calls) == 3
+    gp.fitted_covariance(*sets[0])  # the oldest was let go
+    assert len(calls) == 4 and len(gp._fits) == 2
