@@ -273,8 +273,9 @@ def fitted_covariance(xy: np.ndarray, z: np.ndarray, var: np.ndarray, tree: cKDT
     function of those alone (a fixed seed; the same to the bit on any thread count), so what is remembered is what
     would be computed. Why: the fit costs the same whatever the survey's size (0.1-0.2 s), and a process that reports
     one flight several ways surveys the same nodes again (a check with and without a correction that was not applied,
-    options that do not touch the surface): measured over the ground and tools tests, 151 of 313 fits repeated one
-    already made in the same process (docs/design-notes.md, "The covariance fit remembered by its nodes")."""
+    options that do not touch the surface): over the ground station's, tools' and SITL's tests, 151 of 313 fits
+    repeated one already made in the same process (docs/design-notes.md, "The covariance fit remembered by its
+    nodes")."""
     arrays = [np.ascontiguousarray(a, dtype=float) for a in (xy, z, var)]
     digest = hashlib.blake2b(digest_size=20)
     for a in arrays:
