@@ -81,7 +81,7 @@ def progress_map(pool: Executor, fn: Callable[..., Any], *iterables: Iterable, d
     from tqdm.auto import tqdm
 
     args = [list(it) for it in iterables]
-    total = len(args[0]) if args else 0
+    total = min((len(a) for a in args), default=0)  # map stops at the shortest
     with tqdm(total=total, desc=desc, unit=unit, disable=None if show is None else not show, file=file,
               dynamic_ncols=True) as bar:
         out = []

@@ -21,9 +21,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 ORPHAN_PARENT = """
 import os, sys, time
-from concurrent.futures import ThreadPoolExecutor
-
-from tools.workers import progress_map, worker_pool
+from tools.workers import worker_pool
 if __name__ == "__main__":
     pool = worker_pool(1, start_method=sys.argv[1] if len(sys.argv) > 1 else None)
     print(pool.submit(os.getpid).result(), flush=True)
