@@ -294,6 +294,14 @@ def fitted_covariance(xy: np.ndarray, z: np.ndarray, var: np.ndarray, tree: cKDT
     return cov
 
 
+def forget_fits() -> None:
+    """Forget every remembered fit. A benchmark that reports one flight again and again times a fresh report only
+    when it forgets them before each run: remembered, the fit is a dictionary look-up (0.72 s against 0.93 s for the
+    benchmark's default report), which no surveyor reporting a new flight gets."""
+    with _fits_lock:
+        _fits.clear()
+
+
 def gp_smoothed(xy: np.ndarray, z: np.ndarray, var: np.ndarray, cov: GpCovariance,
                 tree: cKDTree | None = None, only: np.ndarray | None = None) -> np.ndarray:
     """(n,) the kriging predictor's height at every node from its octant neighbours (itself among them, with its

@@ -22,6 +22,7 @@ from firmware_py.core.samplelog import read_samplelog
 from firmware_py.core.storage import Storage
 from ground.exports.formats import ExportFormat
 from ground.exports.write import write_exports
+from ground.gp_slopes import forget_fits
 from ground.report import ReportOptions, header_geometry, make_report, survey_from_samples
 from ground.smoothing import NodeSlopes
 from sitl.missions.rectangle import Mission
@@ -31,9 +32,12 @@ from sitl.world.stockpile import paper_pile
 from tools.doc_sections import write_dated_section
 
 
-def median_time(fn, repeat: int) -> tuple[float, list[float]]:
+def median_time(fn, repeat: int, before=None) -> tuple[float, list[float]]:
+    """The median of `repeat` timed calls of fn; `before` (not timed) runs before each."""
     times = []
     for _ in range(repeat):
+        if before is not None:
+            before()
         t0 = time.perf_counter()
         fn()
         times.append(time.perf_counter() - t0)
@@ -74,26 +78,32 @@ def main(argv: list[str] | None = None) -> int:
         n = fly(cfg, run, force=True).n_samples
         rows.append((f"SITL fly, ideal plant, P_traj 5 % ({n:,} samples, {n / 500:.0f} s flight)", fly_med, ""))
         make_report(run, Path(tmp) / "warm", ReportOptions(plots=False), force=True)  # imports and caches warm
-        no_plots, _ = median_time(
-            lambda: make_report(run, Path(tmp) / "r1", ReportOptions(plots=False), force=True), args.repeat)
+
+        def report_time(source: Path, name: str, opts: ReportOptions) -> float:
+            """A fresh report's median: the remembered covariance fits forgotten before each run, as a new flight
+            has none."""
+            return median_time(lambda: make_report(source, Path(tmp) / name, opts, force=True), args.repeat,
+                               before=forget_fits)[0]
+
+        no_plots = report_time(run, "r1", ReportOptions(plots=False))
         rows.append((f"ground report, no plots ({n:,} samples; the default: the pose correction runs, and is not "
                      "applied)", no_plots, "target <= 1 s"))
         without = ReportOptions(plots=False, pose_correction=False)
-        off, _ = median_time(lambda: make_report(run, Path(tmp) / "r0", without, force=True), args.repeat)
+        off = report_time(run, "r0", without)
         rows.append((f"ground report, no plots, --no-pose-correction ({n:,} samples)", off, "target <= 1 s"))
         gp = ReportOptions(plots=False, surface_slopes=NodeSlopes.GP)
-        gp_med, _ = median_time(lambda: make_report(run, Path(tmp) / "r6", gp, force=True), args.repeat)
+        gp_med = report_time(run, "r6", gp)
         rows.append((f"ground report, no plots, --surface-slopes gp ({n:,} samples)", gp_med, ""))
         scipy_slopes = ReportOptions(plots=False, surface_slopes=NodeSlopes.CURVATURE)
-        sc_med, _ = median_time(lambda: make_report(run, Path(tmp) / "r8", scipy_slopes, force=True), args.repeat)
+        sc_med = report_time(run, "r8", scipy_slopes)
         rows.append((f"ground report, no plots, --surface-slopes curvature ({n:,} samples)", sc_med, ""))
-        plots, _ = median_time(lambda: make_report(run, Path(tmp) / "r2", ReportOptions(), force=True), args.repeat)
+        plots = report_time(run, "r2", ReportOptions())
         rows.append((f"ground report, with plots ({n:,} samples; the default)", plots, "target <= 3 s"))
         plots_off = ReportOptions(pose_correction=False)
-        p_off, _ = median_time(lambda: make_report(run, Path(tmp) / "r5", plots_off, force=True), args.repeat)
+        p_off = report_time(run, "r5", plots_off)
         rows.append((f"ground report, with plots, --no-pose-correction ({n:,} samples)", p_off, "target <= 3 s"))
         every = ReportOptions(exports=tuple(ExportFormat))
-        exports, _ = median_time(lambda: make_report(run, Path(tmp) / "r4", every, force=True), args.repeat)
+        exports = report_time(run, "r4", every)
         rows.append((f"ground report, with plots and every export, georeferenced ({n:,} samples)", exports, ""))
         survey, header = _survey(run)
         alone, _ = median_time(lambda: write_exports(survey, header, tuple(ExportFormat), Path(tmp) / "x"), args.repeat)
@@ -102,8 +112,7 @@ def main(argv: list[str] | None = None) -> int:
         with_pose = ReportOptions(plots=False)
         vio_run = Path(tmp) / "vio"
         vio = fly(FlyConfig(mission=Mission(p_traj=0.05), stockpile="1", pose_error="vio"), vio_run, force=True)
-        corrected, _ = median_time(
-            lambda: make_report(vio_run, Path(tmp) / "r7", with_pose, force=True), args.repeat)
+        corrected = report_time(vio_run, "r7", with_pose)
         rows.append((f"ground report, no plots, `--pose-error vio` flight, pose corrected ({vio.n_samples:,} samples)",
                      corrected, ""))
         cli = [sys.executable, "-m", "ground.cli", "report", str(run), "--out", str(Path(tmp) / "r3"), "--quiet",

@@ -360,3 +360,13 @@ def test_that_only_the_last_fits_are_remembered(counted_fits, monkeypatch):
     assert len(calls) == 3
     gp.fitted_covariance(*sets[0])  # the oldest was let go
     assert len(calls) == 4 and len(gp._fits) == 2
+
+
+def test_that_forgotten_fits_are_fitted_again(counted_fits):
+    """What a benchmark calls before each report it times, so that it times the fit a new flight pays for."""
+    gp, calls, _ = counted_fits
+    nodes = noisy_hill(11)
+    gp.fitted_covariance(*nodes)
+    gp.forget_fits()
+    gp.fitted_covariance(*nodes)
+    assert len(calls) == 2
