@@ -73,7 +73,6 @@ import numpy as np
 from scipy import linalg, sparse
 from scipy.optimize import least_squares
 from scipy.sparse.csgraph import connected_components
-from scipy.sparse.linalg import splu, spsolve
 from scipy.spatial import cKDTree
 from scipy.special import gammaincinv
 
@@ -82,6 +81,7 @@ from firmware_py.core.sensor_noise import POSE_STREAM_HZ
 from firmware_py.core.storage import Storage
 from firmware_py.core.waveform import MAX_FREQUENCY_HZ
 from ground.group_stats import sorted_group_median, sorted_groups
+from ground.huber_lsq import huber_loss, irls_huber, knot_covariance, mean_sigma_m
 from ground.plane_stretches import (
     MAX_HEADING_ERROR_RAD,
     Beams,
@@ -1749,17 +1749,17 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
     a_pr = sparse.csr_matrix((pd, (pr, pc_)), shape=(r + n_par, n_par))
     a = sparse.vstack([a_obs, a_pr], format="csr")
     rhs = np.concatenate([b_obs, np.zeros(r + n_par)])
-    x = _irls_huber(a, rhs)
+    x = irls_huber(a, rhs)
     info = np.asarray(a_obs[:, :n_knots].multiply(a_obs[:, :n_knots]).sum(axis=0)).ravel()
     # Significance: the heights' misfit with the correction and without it (the cells' heights fitted
     # alone), in the residuals' own spread (a cell on a slope scatters more than its points say), against
     # what fitting the knots to noise would explain.
     r_full = a_obs @ x - b_obs
     a_cells = sparse.vstack([a_obs[:, n_knots:], a_pr[r + n_knots:, n_knots:]], format="csr")
-    x_cells = _irls_huber(a_cells, np.concatenate([b_obs, np.zeros(n_cells)]))
+    x_cells = irls_huber(a_cells, np.concatenate([b_obs, np.zeros(n_cells)]))
     r_none = a_obs[:, n_knots:] @ x_cells - b_obs
     spread = max(1.0, _robust_rms(r_full))
-    gain = 2.0 * float(np.sum(_huber(r_none / spread)) - np.sum(_huber(r_full / spread)))
+    gain = 2.0 * float(np.sum(huber_loss(r_none / spread)) - np.sum(huber_loss(r_full / spread)))
     if significant_only and not gain > n_knots + n_significant * math.sqrt(2.0 * n_knots):
         return None, None
     if cov_out is not None:
@@ -2122,13 +2122,13 @@ def register_from_crossings(b: Beams, x: np.ndarray, x_wall: np.ndarray, knots: 
         # the data weigh against the prior as much as they are worth.
         a = sparse.vstack([a_obs, a_pr], format="csr")
         rhs = np.concatenate([b_obs, np.asarray(pb)])
-        sol = _irls_huber(a, rhs)
+        sol = irls_huber(a, rhs)
         spread = max(1.0, _robust_rms(a_obs @ sol - b_obs))
         if spread > 1.0:
             a_obs, b_obs = a_obs / spread, b_obs / spread
             a = sparse.vstack([a_obs, a_pr], format="csr")
             rhs = np.concatenate([b_obs, np.asarray(pb)])
-            sol = _irls_huber(a, rhs)
+            sol = irls_huber(a, rhs)
         delta = sol[:nc * n_knots].reshape(nc, n_knots).T
         a_k = a_obs[:, :nc * n_knots]
         col_info = np.asarray(a_k.multiply(a_k).sum(axis=0)).ravel().reshape(nc, n_knots).T
@@ -2141,10 +2141,10 @@ def register_from_crossings(b: Beams, x: np.ndarray, x_wall: np.ndarray, knots: 
                 rest = np.setdiff1d(np.arange(n_par), held_cols)
                 held_val = np.concatenate([(x_start[:, comps[ci]] - x[:, comps[ci]]) for ci in free])
                 rhs_h = rhs - a[:, held_cols] @ held_val
-                sol_h = _irls_huber(a[:, rest], rhs_h)
+                sol_h = irls_huber(a[:, rest], rhs_h)
                 r_held = a_obs[:, rest] @ sol_h - (b_obs - a_obs[:, held_cols] @ held_val)
                 r_full = a_obs @ sol - b_obs
-                gain = 2.0 * float(np.sum(_huber(r_held / spread)) - np.sum(_huber(r_full / spread)))
+                gain = 2.0 * float(np.sum(huber_loss(r_held / spread)) - np.sum(huber_loss(r_full / spread)))
                 n_extra = int(sum(np.count_nonzero(col_info[:, ci] * step[comps[ci]] ** 2 / spread ** 2 >= 1.0)
                                   for ci in free))
             for ci, c in enumerate(comps):
@@ -2254,154 +2254,6 @@ def _slope_continues(sloped: np.ndarray, gx: np.ndarray, gy: np.ndarray, n_cells
         j = np.where(inside, jx * ny + jy, 0)
         out |= inside & sloped[j] & (gx * gx[j] + gy * gy[j] > 0)
     return out
-
-
-def huber_normal(a: sparse.csr_matrix, x: np.ndarray, rhs: np.ndarray) -> sparse.csc_matrix:
-    """The robust fit's normal equations at its solution x: the rows (in units of their sigma) weighed as Huber's loss
-    weighs them there (`_irls_huber`'s last weights), A^T W A, ready to factorise."""
-    r = np.abs(a @ x - rhs)
-    w = np.where(r <= 1.0, 1.0, 1.0 / np.maximum(r, 1e-300))
-    aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
-    return (aw.T @ aw).tocsc()
-
-
-def mean_sigma_m(a: sparse.csr_matrix, x: np.ndarray, rhs: np.ndarray, basis: tuple[np.ndarray, np.ndarray],
-                 n_knots: int) -> float:
-    """The standard error of the height correction's mean over the samples (basis: their knot and fraction), from
-    the robust fit's normal equations at its solution (`_irls_huber`'s last weights; the rows in units of their
-    sigma): what a height error common to the whole survey, the one that moves the volume, the data leave. Formal:
-    it assumes the cells' heights independent, which a stretch of the flight misplaced on slopes is not, so the
-    interval scales it by a factor calibrated on drifting flights (ground.uncertainty)."""
-    k, f = basis
-    w_k = (np.bincount(k, weights=1.0 - f, minlength=n_knots + 1)
-           + np.bincount(k + 1, weights=f, minlength=n_knots + 1))[:n_knots]
-    e = np.zeros(a.shape[1])
-    e[:n_knots] = w_k / max(float(w_k.sum()), 1e-300)
-    u = spsolve(huber_normal(a, x, rhs), e)
-    return float(math.sqrt(max(float(e @ u), 0.0)))
-
-
-def knot_covariance(a: sparse.csr_matrix, x: np.ndarray, rhs: np.ndarray, n_knots: int) -> np.ndarray | None:
-    """(K, K) the knots' covariance from the robust fit's normal equations at its solution (as `mean_sigma_m`, the rows
-    in units of their sigma): how loosely the data tie one stretch of the flight's height to another. None when the
-    equations are singular or give no finite answer (the caller then judges as if every stretch were tied)."""
-    e = np.zeros((a.shape[1], n_knots))
-    e[np.arange(n_knots), np.arange(n_knots)] = 1.0
-    try:
-        u = splu(huber_normal(a, x, rhs)).solve(e)[:n_knots]
-    except RuntimeError:  # "Factor is exactly singular"
-        return None
-    return u if np.all(np.isfinite(u)) else None
-
-
-def _huber(u: np.ndarray) -> np.ndarray:
-    a = np.abs(u)
-    return np.where(a <= 1.0, 0.5 * a * a, a - 0.5)
-
-
-IRLS_ROUNDS = 20
-"""The robust fits' rounds. On the drifting flights they end here, not at their 1e-6 tolerance: the knots still move
-0.1-0.7 mm a round and lie 0.4-7 mm from the Huber cost's minimum, so the fit is part way from least squares to
-it. Run further towards it (200 rounds) or to it (Newton's method on the active set), the campaigns read worse,
-not better (paper piles within 0.3 pp 18 -> 16 of 38, one flight 0.2 -> 5.5 pp): the stop is load-bearing, and was
-measured, not chosen (docs/design-notes.md, "The robust fits stop short of their minimum")."""
-
-
-def _irls_huber(a: sparse.csr_matrix, rhs: np.ndarray, scale: float = 1.0) -> np.ndarray:
-    """argmin sum huber(a x - rhs) for a linear, sparse problem, approached by iteratively re-weighted normal
-    equations from least squares (a direct solve each round; the trust-region solver crawled on this one), for at
-    most IRLS_ROUNDS rounds (which on drifting flights end before the minimum: see there)."""
-    w = np.ones(a.shape[0])
-    x = np.zeros(a.shape[1])
-    solve = _weighted_solver(a.tocsr(), rhs)
-    for _ in range(IRLS_ROUNDS):
-        x_new = solve(w)
-        r = np.abs(a @ x_new - rhs)
-        w = np.where(r <= scale, 1.0, scale / np.maximum(r, 1e-300))
-        if np.max(np.abs(x_new - x)) < 1e-6:
-            return x_new
-        x = x_new
-    return x
-
-
-def _weighted_solver(a: sparse.csr_matrix, rhs: np.ndarray):
-    """w -> argmin sum w (a x - rhs)^2. The problems here are knots (the leading columns) and cells' heights
-    (the rest), and no row holds two cells, so the normal equations' cell block is diagonal: the cells are
-    eliminated (a Schur complement) and the knots solved densely. Exact, and 3-5x faster than a general sparse
-    solve on a flight's ~1,000 unknowns. Which entries meet which is the same every round, only the weights change:
-    the products' index pairs are found once here (`_row_pairs`) and each round only sums weighted terms into them
-    (`np.bincount`): 0.3-0.4 ms a solve against 1.0-1.1 ms through scipy.sparse's products, on the quiet
-    machine (docs/design-notes.md)."""
-    def general(w: np.ndarray) -> np.ndarray:
-        aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
-        return spsolve((aw.T @ aw).tocsc(), aw.T @ (np.sqrt(w) * rhs))
-    lead = _coupled_columns(a)
-    n = a.shape[1]
-    if lead > n // 2:  # no such structure
-        return general
-    canonical = sparse.csr_matrix(a, copy=True)
-    canonical.sum_duplicates()
-    cells, knots = canonical[:, lead:].tocoo(), canonical[:, :lead].tocoo()
-    row, col, val = cells.row, cells.col, cells.data
-    kr, kk, kv = knots.row, knots.col, knots.data
-    n_c = n - lead
-
-    def cells_alone(w: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:  # the cell block's diagonal and rhs
-        wv = w[row] * val
-        d = np.bincount(col, weights=wv * val, minlength=n_c)
-        # a cell without a row of weight: not this structure after all (None)
-        return (d, np.bincount(col, weights=wv * rhs[row], minlength=n_c)) if np.all(d > 0) else None
-
-    if lead == 0:
-        def diagonal(w: np.ndarray) -> np.ndarray:
-            found = cells_alone(w)
-            return general(w) if found is None else found[1] / found[0]
-        return diagonal
-    i, j = _row_pairs(kr, kr)  # the knots' own block: a_k' W a_k
-    kk_flat, kk_coef, kk_row = kk[i] * lead + kk[j], kv[i] * kv[j], kr[i]
-    i, e = _row_pairs(kr, row)  # g = a_k' W a_c: the knots x cells block, on its nonzero pattern
-    g_flat, g_of = np.unique(kk[i] * n_c + col[e], return_inverse=True)
-    gk, gc = np.divmod(g_flat, n_c)
-    g_coef, g_row = kv[i] * val[e], kr[i]
-    p, q = _row_pairs(gc, gc)  # g D^-1 g': the pairs of g's entries on one cell
-    gg_flat = gk[p] * lead + gk[q]
-
-    def schur(w: np.ndarray) -> np.ndarray:
-        found = cells_alone(w)
-        if found is None:
-            return general(w)
-        d, b_c = found
-        g = np.bincount(g_of, weights=g_coef * w[g_row], minlength=len(g_flat))
-        s = (np.bincount(kk_flat, weights=kk_coef * w[kk_row], minlength=lead * lead)
-             - np.bincount(gg_flat, weights=g[p] * g[q] / d[gc[p]], minlength=lead * lead)).reshape(lead, lead)
-        r = (np.bincount(kk, weights=kv * (w * rhs)[kr], minlength=lead)
-             - np.bincount(gk, weights=g * (b_c / d)[gc], minlength=lead))
-        try:
-            x_k = linalg.solve(s, r, assume_a="pos")
-        except linalg.LinAlgError:  # not positive definite to working precision
-            x_k = linalg.lstsq(s, r)[0]
-        return np.concatenate([x_k, (b_c - np.bincount(gc, weights=g * x_k[gk], minlength=n_c)) / d])
-    return schur
-
-
-def _row_pairs(rows_1: np.ndarray, rows_2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Every pair (i, j) of an entry i of one list and j of another that share a row (rows_1[i] == rows_2[j]):
-    the terms of a product of two sparse matrices' columns, found once and summed each round."""
-    order = np.argsort(rows_2, kind="stable")
-    sorted_2 = rows_2[order]
-    start = np.searchsorted(sorted_2, rows_1, "left")
-    count = np.searchsorted(sorted_2, rows_1, "right") - start
-    i = np.repeat(np.arange(len(rows_1)), count)
-    within = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
-    return i, order[np.repeat(start, count) + within]
-
-
-def _coupled_columns(a: sparse.csr_matrix) -> int:
-    """How many leading columns of a share rows with other columns: after them each column (a cell's height)
-    meets only the leading ones (the knots), so the normal equations' trailing block is diagonal."""
-    coo = (a.T @ a).tocoo()
-    off = coo.row != coo.col
-    return int(np.minimum(coo.row, coo.col)[off].max()) + 1 if off.any() else 0
 
 
 def apply_pose_correction(samples: np.ndarray, corr: PoseCorrection, frame: StorageFrame) -> np.ndarray:

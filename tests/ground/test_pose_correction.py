@@ -29,7 +29,6 @@ from ground.pose_correction import (
     floor_brought_on,
     floor_is_level,
     is_drift,
-    knot_covariance,
     level_clear,
     level_sigma_m,
     lever_shift,
@@ -605,40 +604,9 @@ def test_that_a_corrected_path_that_came_near_a_wall_is_measured_and_warned_abou
     assert with_closest_wall(not_applied, s, FRAME, STORAGE).closest_wall is None  # the logged path: the plan's
 
 
-def test_that_the_robust_fits_solve_is_the_general_sparse_solution_with_or_without_cells_to_eliminate():
-    from scipy import sparse
-    from scipy.sparse.linalg import spsolve
-
-    from ground.pose_correction import _coupled_columns, _weighted_solver
-    rng = np.random.default_rng(3)
-    n_knots, n_cells, m = 12, 200, 900
-    knot = rng.integers(0, n_knots - 1, m)
-    cell = rng.integers(0, n_cells, m)
-    rows = np.repeat(np.arange(m), 3)
-    cols = np.column_stack([knot, knot + 1, n_knots + cell]).ravel()
-    obs = sparse.csr_matrix((rng.normal(size=3 * m), (rows, cols)), shape=(m, n_knots + n_cells))
-    structured = sparse.vstack([obs, sparse.identity(n_knots + n_cells)], format="csr")  # a prior on every one
-    n = n_knots + n_cells  # a row holding two cells (the last two): no diagonal block left to eliminate
-    tangled = sparse.vstack([structured, sparse.csr_matrix(([1.0, -1.0], ([0, 0], [n - 2, n - 1])), shape=(1, n))],
-                            format="csr")
-    # rows on two components' knots (as the registration's: x and heading)
-    other = rng.integers(0, n_knots // 2 - 1, m)
-    cols4 = np.column_stack([other, other + 1, n_knots // 2 + other, n_knots // 2 + other + 1, n_knots + cell]).ravel()
-    obs4 = sparse.csr_matrix((rng.normal(size=5 * m), (np.repeat(np.arange(m), 5), cols4)), shape=(m, n))
-    several = sparse.vstack([obs4, sparse.identity(n)], format="csr")
-    assert _coupled_columns(structured) == n_knots and _coupled_columns(tangled) == n - 1
-    for a in (structured, tangled, several):
-        rhs = rng.normal(size=a.shape[0])
-        w = rng.uniform(0.1, 1.0, a.shape[0])
-        aw = a.multiply(np.sqrt(w)[:, None]).tocsr()
-        want = spsolve((aw.T @ aw).tocsc(), aw.T @ (np.sqrt(w) * rhs))
-        assert np.allclose(_weighted_solver(a, rhs)(w), want, atol=1e-9)
-
-
 def test_that_the_linear_robust_fit_reaches_the_minimum_the_trust_region_solver_approaches():
     # The floor and walls' fit with the heading held is linear in the knots: Newton's method on scipy's soft-L1
     # cost finds its one minimum. It must land where scipy's solver does at tight tolerances, and cost no more.
-    from scipy import sparse
     from scipy.optimize import least_squares
 
     from ground.pose_correction import _soft_l1_linear
@@ -744,24 +712,6 @@ def test_that_the_floor_s_level_is_read_within_the_floor_s_own_scatter_not_up_th
     # the frame's misalignment between times widens it (a flat floor's heights carry it)
     assert level_window(cell, med, counts, 0.12, 0.1, tol) == pytest.approx(BAND * 0.1)
     assert lowest_window(med, counts, width, 1e6) is None
-
-
-def test_that_the_height_s_standard_error_is_that_of_the_mean_of_its_rows():
-    # one knot seen by n rows of one sigma each (the rows are in units of their sigma): the mean's standard error is
-    # sigma / sqrt(n); a row the robust fit weighs down counts less
-    from scipy import sparse
-
-    from ground.pose_correction import mean_sigma_m
-    sigma, n = 0.02, 25
-    rng = np.random.default_rng(3)
-    y = rng.uniform(-0.5 * sigma, 0.5 * sigma, n)
-    a = sparse.csr_matrix(np.full((n, 1), 1.0 / sigma))
-    x = np.array([y.mean()])
-    basis = (np.zeros(10, dtype=np.int64), np.zeros(10))
-    assert mean_sigma_m(a, x, y / sigma, basis, 1) == pytest.approx(sigma / math.sqrt(n))
-    y_out = y.copy()
-    y_out[0] = 10.0 * sigma  # an outlier: Huber weight 1 / |r|
-    assert mean_sigma_m(a, x, y_out / sigma, basis, 1) > sigma / math.sqrt(n)
 
 
 def test_that_the_report_runs_blas_on_one_thread_and_gives_the_caller_its_own_setting_back(drifted, monkeypatch):
@@ -1269,28 +1219,6 @@ def test_that_a_height_matters_to_the_pile_seen_at_different_times_when_it_bring
     assert not crossings_brought_together(0.073, 0.060, 0.003)  # more is left than was explained
     assert not crossings_brought_together(0.004, 0.003, 0.003)  # within the noise
     assert not crossings_brought_together(0.010, 0.010, 0.003)  # unchanged: a height off by a constant is the floor's
-
-
-def test_that_the_knots_covariance_says_how_loosely_two_stretches_of_the_flight_are_tied():
-    """Knots 0-1 and 2-3 tied tightly by what they saw (rows in units of their sigma: 1 cm), 1 to 2 only by a prior
-    of 1 m: the covariance lets 2 float against 1 by the prior's metre, 1 against 0 by a centimetre."""
-    rows = [(0, 1, 100.0), (2, 3, 100.0), (1, 2, 1.0)]  # (knot, next knot, 1/sigma) of their difference
-    a = sparse.lil_matrix((len(rows) + 1, 4))
-    for i, (j, k, w) in enumerate(rows):
-        a[i, j], a[i, k] = -w, w
-    a[len(rows), 0] = 100.0  # the level, pinned at knot 0
-    c = knot_covariance(a.tocsr(), np.zeros(4), np.zeros(len(rows) + 1), 4)
-
-    def sd(i: int, j: int) -> float:
-        return math.sqrt(c[i, i] + c[j, j] - 2.0 * c[i, j])
-    assert sd(0, 1) == pytest.approx(0.01, rel=1e-6)
-    assert sd(1, 2) == pytest.approx(1.0, rel=1e-3) and sd(2, 3) == pytest.approx(0.01, rel=1e-6)
-    np.testing.assert_allclose(c, c.T, atol=1e-15)
-    # a knot nothing observes and no prior holds: no covariance, rather than an error or a NaN that drops every
-    # floor candidate against it
-    loose = sparse.csr_matrix(a.toarray()[:, :3])
-    assert knot_covariance(sparse.hstack([loose, sparse.csr_matrix((len(rows) + 1, 1))]).tocsr(), np.zeros(4),
-                           np.zeros(len(rows) + 1), 4) is None
 
 
 def test_that_the_pile_seen_at_different_times_agrees_on_a_true_height_and_not_on_a_walking_one():
