@@ -33,13 +33,11 @@ from firmware_py.core.surface_file import (
     meta_number,
     read_surface_file,
 )
+from ground.site_check import HEADING_TOLERANCE_DEG, SITE_TOLERANCE_M
 from ground.surface import CLIP_TOLERANCE_M, Grid
 
 FIRST_VERSION = 1
 """The version without the fitted mask: what a surface whose fitted cells are unknown is written as."""
-BUILDING_TOLERANCE_M = 0.01
-"""Two surveys are of the same building when its dimensions and its corner agree to 1 cm (a tape's)."""
-HEADING_TOLERANCE_DEG = 0.01
 
 
 @dataclass(frozen=True)
@@ -129,7 +127,7 @@ def load_surface(path: str | Path) -> SavedSurface:
 def building_mismatch(a: SavedSurface, b: SavedSurface) -> str | None:
     """Why two surfaces are not of the same building (dimensions or site differ), or None."""
     da, db = (a.length_m, a.width_m, a.height_m), (b.length_m, b.width_m, b.height_m)
-    if max(abs(x - y) for x, y in zip(da, db, strict=True)) > BUILDING_TOLERANCE_M:
+    if max(abs(x - y) for x, y in zip(da, db, strict=True)) > SITE_TOLERANCE_M:
         return (f"the buildings differ: {' x '.join(f'{v:g}' for v in da)} m against "
                 f"{' x '.join(f'{v:g}' for v in db)} m")
     if a.site is not None and b.site is not None:
@@ -141,7 +139,7 @@ def building_mismatch(a: SavedSurface, b: SavedSurface) -> str | None:
             turn = (float(a.site["heading_deg"]) - float(b.site["heading_deg"]) + 180.0) % 360.0 - 180.0
         except (KeyError, TypeError, ValueError):
             return None  # a malformed site was already reported by the report that wrote it
-        if off > BUILDING_TOLERANCE_M:
+        if off > SITE_TOLERANCE_M:
             return f"the buildings' corners are {off:.2f} m apart (their sites differ)"
         if abs(turn) > HEADING_TOLERANCE_DEG:
             return f"the buildings' x axes are {abs(turn):g} deg apart (their sites differ)"

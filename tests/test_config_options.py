@@ -13,7 +13,8 @@ from firmware_py.core.cli import ExitCode, _subparser, option_action, parse_with
 from firmware_py.core.config_file import DIMENSIONS_KEY, ConfigFile, SiteSection, schema_keys
 from firmware_py.core.samplelog import SampleLogWriter, read_samplelog, rewritable_header
 from ground import cli as ground_cli
-from ground.report import ReportOptions, make_report, site_mismatches
+from ground.report import ReportOptions, make_report
+from ground.site_check import site_mismatches
 from sitl import cli as sitl_cli
 
 ROOT = Path(__file__).resolve().parents[1]
