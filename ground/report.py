@@ -14,15 +14,12 @@ import numpy as np
 
 from firmware_py.core.cli import NoVolumeError, UserError, reading_input
 from firmware_py.core.config_file import SiteSection
-from firmware_py.core.flag_tally import FlagTally
 from firmware_py.core.frames import Boresight, StorageFrame
 from firmware_py.core.header import header_boresight
 from firmware_py.core.pose_source import PoseSource
 from firmware_py.core.rundir import SAMPLES_FILE, TRUTH_FILE, OutputFolder, check_free
 from firmware_py.core.safe_read import InputError, json_number, json_object, load_json
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, SampleLog, read_samplelog
-from firmware_py.core.sensor_noise import HEADER_KEY as NOISE_HEADER_KEY
-from firmware_py.core.sensor_noise import describe_record
 from firmware_py.core.site import Site, site_difference
 from firmware_py.core.storage import Storage
 from firmware_py.core.surface_file import SURFACE_FILE
@@ -30,18 +27,19 @@ from firmware_py.core.version import software_version
 from firmware_py.core.waveform import MAX_FREQUENCY_HZ
 from ground.base import FLOOR, FLOOR_BASE, Base, BaseKind, BaseSpec, fitted_floor_base, rebased_terms, survey_base
 from ground.blas_threads import one_blas_thread
-from ground.building_check import SizeCheck, check_building, size_warning
+from ground.building_check import SizeCheck, check_building
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
 from ground.deliverable import add_deliverable
 from ground.despike import SpikeThreshold, why_no_threshold
 from ground.echo_reach import echo_reach, echo_record, echo_warning
 from ground.exports.formats import EXPORT_FILES, ExportFormat
 from ground.exports.write import check_exports, write_exports
-from ground.floor_check import FloorLevel, floor_other_reading, floor_warning, measure_floor
+from ground.floor_check import FloorLevel, floor_other_reading, measure_floor
+from ground.log_warnings import log_warnings, sensor_noise_line
 from ground.metadata import SurveyInfo, printable, sha256_of
 from ground.piles import PILES_CSV, PileOptions, write_piles_csv
 from ground.plane_stretches import Beams, placed_beams, stretch_floor_m
-from ground.plausibility import MAX_GAP_S, PlausibilityLimits, implausible, in_time, out_of_time, without_implausible
+from ground.plausibility import PlausibilityLimits, implausible, in_time, out_of_time, without_implausible
 from ground.pointcloud import N_SIGMA as FLOOR_N_SIGMA
 from ground.pointcloud import (
     Cloud,
@@ -61,22 +59,17 @@ from ground.pose_correction import (
     estimate_pose_correction,
     with_closest_wall,
 )
-from ground.pose_correction import describe as describe_pose
-from ground.pose_correction import unanchored_warning as pose_unanchored_warning
-from ground.pose_correction import unconstrained_warning as pose_unconstrained_warning
-from ground.pose_correction import wall_warning as pose_wall_warning
-from ground.pose_source_check import autopilot_params, pose_source_line, pose_source_warnings
+from ground.pose_source_check import autopilot_params, pose_source_line
 from ground.rangefinder_height import RangefinderShare, estimate_share
 from ground.self_calibration import (
     N_SIGNIFICANT,
     DriftNuisance,
     MountEstimate,
     apply_mount,
-    describe,
     estimate_mount,
 )
 from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
-from ground.site_check import HEADING_TOLERANCE_DEG, SITE_TOLERANCE_M, header_site, site_mismatches
+from ground.site_check import HEADING_TOLERANCE_DEG, SITE_TOLERANCE_M, header_site
 from ground.smoothing import (
     DEFAULT_NODE_SLOPES,
     DEFAULT_SMOOTHING,
@@ -130,7 +123,6 @@ from ground.wall_contact import WallContacts, contact_ceiling_m, contact_nodes, 
 from ground.wall_strip import contradicted_strip
 
 LOW_COVERAGE_PCT = 95.0
-HIGH_EXCLUDED_FRACTION = 0.5
 GRID_BYTES_PER_CELL = 200
 """Peak memory of the report per grid cell, measured with its figures (cell centres, Delaunay lookups, fit,
 fill, counts, plots): 205 B at 0.05 m and 211 B at 0.03 m cells on the golden log (peak RSS less the 150 MB
@@ -939,187 +931,6 @@ def _clipped_fit(pile_w: np.ndarray, grid: Grid, surface_fit: str, sigma: np.nda
     fit, n_clipped = clip_to_building(surf.heights_m, storage.height_m)
     edge = None if surf.scipy_slopes_m is None else clip_to_building(surf.scipy_slopes_m, storage.height_m)[0]
     return fit, n_clipped, edge
-
-
-def sensor_noise_line(header: dict) -> str:
-    """What the log header says the sensing carried (a simulated survey's ``sensor_noise`` record)."""
-    rec = header.get(NOISE_HEADER_KEY)
-    return "none stated in the log header" if rec is None else describe_record(rec)
-
-
-def cut_short_warning(log: SampleLog) -> str:
-    """A log its writer never closed (no end block): the payload (or `listen`) stopped in flight, so the survey covers
-    only the part flown before, and the rest of the floor is filled or missing whatever the blocks' state."""
-    t = in_time(log.samples["t_s"])
-    span = f" ({float(t[-1] - t[0]):,.0f} s of samples)" if len(t) > 1 else ""
-    return ("the sample log was not closed: its writer (the payload; `listen` for a live log) stopped before it "
-            "finished the log (a power cut, a crash or a full card), so it holds the flight up to its last whole "
-            f"block{span} and the survey covers only what was flown by then: the volume and its interval are of that "
-            "part, the rest of the floor filled or missing")
-
-
-def unexplained_structure_warning(mount: MountEstimate | None, pose: PoseCorrection | None) -> str | None:
-    """The floor and walls stay off their planes and nothing applied explains it: the mount's self-calibration or the
-    pose correction found them off beyond what it can fit, and neither corrected anything. Either one's finding is
-    enough (a self-calibration that found its parameters unobservable has explained nothing: measured, a header
-    boresight 17 deg wrong read 18.8 % high with no word but a wide interval). None: a correction was applied, or
-    neither found the structure off (None for either: not run)."""
-    if (mount is not None and mount.any_applied) or (pose is not None and pose.applied):
-        return None
-    found = [(name, x) for name, x in (("self-calibration", mount), ("pose correction", pose))
-             if x is not None and x.unexplained]
-    if not found:
-        return None
-    why = "; ".join(f"{name}: {(x.reason or '').removeprefix('not applied: ')}" for name, x in found)
-    if mount is not None and pose is not None:
-        tried = "neither the mount's self-calibration nor the pose correction explains it"
-    elif mount is not None:
-        tried = "the mount's self-calibration does not explain it (the pose correction was off)"
-    else:
-        tried = "the pose correction does not explain it (the mount's self-calibration was off)"
-    return (f"the building's floor and walls do not sit on their planes, and {tried} ({why}): check the log header's "
-            "boresight, lever arm and building frame against the drone; do not trust this volume until they are "
-            "right")
-
-
-def lever_change_warning(mount: MountEstimate | None, lever_m: np.ndarray | None,
-                         pose: PoseCorrection | None = None) -> str | None:
-    """The floor and walls say the lever arm is off, not the mount (`MountEstimate.lever_change_m`) nor a drifting pose
-    (`PoseCorrection.lever_change_m`, forward and right): which lever arm they fit, for the surveyor to check against
-    the drone and to report again with. None: they do not say so."""
-    if mount is not None and mount.lever_change_m is not None:
-        change = np.asarray(mount.lever_change_m, dtype=float)
-        done = ("any mount correction, so none was applied and the volume is placed with the lever arm as entered: "
-                "check the lever arm against the drone and report again with the one measured")
-    elif pose is not None and pose.lever_change_m is not None:
-        change = np.r_[np.asarray(pose.lever_change_m, dtype=float), 0.0]
-        done = ("a drifting pose, so the points are placed with the lever arm they fit instead of a drift's correction "
-                "(which follows it leg by leg, and on slopes and through turns gets it wrong): check the lever arm "
-                "against the drone")
-    else:
-        return None
-    dx, dy, dz = (round(100.0 * v, 1) + 0.0 for v in change)  # + 0.0: no "-0.0"
-    try_m = "" if lever_m is None else " (the lever arm they fit: `--lever-arm " + " ".join(
-        f"{v:.3f}" for v in np.round(np.asarray(lever_m, dtype=float) + change, 3) + 0.0) + "`)"
-    return (f"the building's floor and walls sit on their planes with the LiDAR's lever arm moved by {dx:+.1f}, "
-            f"{dy:+.1f}, {dz:+.1f} cm (forward, right, down) as well as with {done}{try_m}")
-
-
-def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[str]:
-    """What one log's own checks found (damage, unusable and implausible samples, spikes, a stuck or mistimed
-    servo, the mount, the pose, the site): per flight, whether the flight is reported alone or merged."""
-    warnings = []
-    why = header_site(log.header or {})[1]
-    if why is not None:
-        warnings.append(why)
-    if log.blocks_corrupt or log.blocks_truncated:
-        warnings.append(f"sample log damaged: {log.blocks_corrupt} corrupt and {log.blocks_truncated} "
-                        f"truncated block(s) skipped ({log.bytes_skipped} bytes)")
-    if log.closed_cleanly is False:
-        warnings.append(cut_short_warning(log))
-    if survey.cloud.n_samples and survey.cloud.n_excluded / survey.cloud.n_samples > HIGH_EXCLUDED_FRACTION:
-        tally = FlagTally()
-        tally.add(log.samples["flags"])
-        warnings.append(f"{survey.cloud.n_excluded} of {survey.cloud.n_samples} samples unusable "
-                        f"(by their flags: {tally.describe()}; implausible records are counted apart)")
-    found = dict(survey.implausible or {})
-    if n_late := found.pop("time", 0):
-        warnings.append(f"{n_late} samples left out because their times do not fit the log's clock (not finite, out "
-                        f"of sequence, or outside its longest stretch without a step back or a pause over "
-                        f"{MAX_GAP_S / 60:.0f} min): the payload's clock is monotonic, so these records are damaged or "
-                        "from another log")
-    n_implausible = sum(found.values())
-    if n_implausible:
-        parts = ", ".join(f"{n} {what.replace('_', ' ')}" for what, n in found.items() if n)
-        warnings.append(f"{n_implausible} samples left out as implausible for the logged sensor, sweep and building "
-                        f"({parts} beyond the header's limits): damaged or forged records")
-    if survey.despike_unavailable:
-        warnings.append(f"despiking did not run: {survey.despike_unavailable}")
-    if survey.cloud.n_servo_suspect:
-        warnings.append(f"{survey.cloud.n_servo_suspect} samples left out: in those sweep periods the ranges did not "
-                        "move like a swept beam's (servo stuck or slow?)")
-    st = survey.servo_timing
-    if survey.servo_retimed and st is not None:
-        how = (f"it answers pulses {st.delay_s * 1e3:.0f} ms late and slews at {st.gain * 100:.0f} % of its "
-               "calibrated rate" if st.model == Resimulated.name else
-               f"its shaft trails the firmware's model by {st.delay_s * 1e3:.0f} ms and swings {st.gain * 100:.0f} % "
-               "as far")
-        warnings.append(f"the servo's angles were re-estimated from the sweeps ({st.model}): {how} (the two sweep "
-                        f"directions disagreed by {st.disagreement_before_m:.2f} m, now "
-                        f"{st.disagreement_after_m:.2f} m); recalibrate the servo before the next flight")
-    if survey.cloud.n_spikes:
-        warnings.append(f"{survey.cloud.n_spikes} isolated range spikes left out: samples that disagreed with both "
-                        "time-neighbours while those agreed (garbage or glitch readings)")
-    if survey.sweep_disagreement_m is not None and survey.sweep_disagreement_m > MAX_SWEEP_DISAGREEMENT_M:
-        warnings.append(f"the two sweep directions disagree by {survey.sweep_disagreement_m:.2f} m (median per cell): "
-                        "the servo's angles are wrong (slower or laggier than its calibration?); do not trust "
-                        "this volume" + (f" (re-estimating its timing got them no closer than "
-                                         f"{st.disagreement_after_m:.2f} m)" if st is not None else ""))
-    if survey.mount is not None and survey.mount.any_applied:
-        warnings.append(describe(survey.mount, header_boresight(log.header or {})))
-    elif (lever := lever_change_warning(survey.mount, survey.lever_arm_body_m)) is not None:
-        warnings.append(lever)
-    else:
-        unexplained = unexplained_structure_warning(survey.mount, survey.pose)
-        if unexplained is not None:
-            warnings.append(unexplained)
-    if survey.pose is not None and survey.pose.applied and survey.pose.lever_change_m is not None:
-        warnings.append(lever_change_warning(None, survey.lever_arm_body_m, survey.pose))
-    elif survey.pose is not None and survey.pose.applied:
-        warnings += [w for w in (describe_pose(survey.pose), pose_unconstrained_warning(survey.pose),
-                                 pose_unanchored_warning(survey.pose), pose_wall_warning(survey.pose)) if w]
-    rf = survey.rangefinder
-    if rf is not None and rf.applied:
-        warnings.append(rf.describe())
-    warnings += pose_source_warnings(log.header or {}, survey.pose, opts.pose_correction,
-                                     rangefinder_applied=rf is not None and rf.applied,
-                                     rangefinder_reason=rf.reason if rf is not None and not rf.applied else None)
-    warnings += site_mismatches(log.header or {}, opts.site, storage_given=opts.storage is not None)
-    doubtful = survey.mount is not None and survey.mount.unexplained and not survey.mount.any_applied
-    warnings += [w for w in (storage_warning(log.header or {}, survey.storage),
-                             size_warning(survey.building, survey.storage, mount_doubtful=doubtful),
-                             lever_arm_warning(log.header or {}, opts.lever_arm_m)) if w]
-    if opts.base.kind is BaseKind.FLOOR and survey.lever_arm_body_m is not None:  # a fitted floor, or an earlier
-        # survey flown alike, takes the height out
-        w = floor_warning(survey.floor, survey.storage, survey.lever_arm_body_m, flight_half_m3(survey))
-        if w:
-            warnings.append(w)
-    return warnings
-
-
-def flight_half_m3(survey: Survey) -> float | None:
-    """The half-width of the volume's 90 % interval over the floor z = 0 from this survey's own terms (None: none)."""
-    if survey.errors is None:
-        return None
-    lo, hi = FLOOR_BASE.interval_m3(grid_volume(survey.heights, survey.grid), survey.errors.terms,
-                                    DEFAULT_INTERVAL_MODEL)
-    return (hi - lo) / 2.0
-
-
-def lever_arm_warning(header: dict, lever_arm_m: tuple[float, float, float] | None) -> str | None:
-    """When the report's lever arm is not the log header's (--lever-arm): said, since the flight logged the other."""
-    if lever_arm_m is None:
-        return None
-    logged = header.get("lever_arm_body_m")
-    said = (f"the log header's {', '.join(f'{float(v):g}' for v in logged)} m"
-            if isinstance(logged, list) and len(logged) == 3 else "the log header's")
-    if isinstance(logged, list) and np.allclose(np.asarray(logged, dtype=float), lever_arm_m, rtol=0, atol=1e-9):
-        return None
-    return (f"the LiDAR's lever arm is taken as {', '.join(f'{v:g}' for v in lever_arm_m)} m (--lever-arm, body "
-            f"forward, right, down), not {said}")
-
-
-def storage_warning(header: dict, storage: Storage) -> str | None:
-    """When the report's building is not the log header's (--storage): said, since the flight was flown and logged
-    with the other."""
-    try:
-        logged = Storage.from_dict(header.get("storage"))
-    except (KeyError, TypeError, ValueError):
-        return None
-    if logged == storage:
-        return None
-    return (f"the building is taken as {storage.length_m:g} x {storage.width_m:g} x {storage.height_m:g} m "
-            f"(--storage), not the log header's {logged.length_m:g} x {logged.width_m:g} x {logged.height_m:g} m")
 
 
 def echo_of(survey: Survey, log: SampleLog) -> dict | None:

@@ -13,8 +13,9 @@ from firmware_py.core.samplelog import SampleLogWriter, read_samplelog, rewritab
 from firmware_py.core.storage import Storage
 from ground.cli import format_summary, main
 from ground.floor_check import N_SIGNIFICANT, FloorLevel, floor_other_reading, floor_warning, measure_floor
+from ground.log_warnings import lever_arm_warning
 from ground.pointcloud import Cloud, SensorErrorModel
-from ground.report import ReportOptions, lever_arm_warning, make_report
+from ground.report import ReportOptions, make_report
 from ground.surface import Grid
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly

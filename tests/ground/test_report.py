@@ -150,8 +150,8 @@ def test_that_the_pointing_bias_lifts_a_survey_under_a_pointing_error_on_request
     assert a["volume_m3"] == b["volume_m3"]
 
 def test_that_a_structure_off_its_planes_is_warned_when_either_estimator_finds_it_and_neither_corrects_it():
+    from ground.log_warnings import unexplained_structure_warning
     from ground.pose_correction import PoseCorrection, not_applied
-    from ground.report import unexplained_structure_warning
     from ground.self_calibration import MountEstimate, not_estimated
     unobservable = not_estimated("the floor and walls seen constrain none of the mounting's parameters")
     off_mount = not_estimated("the mounting model does not explain the floor and walls seen", unexplained=True)

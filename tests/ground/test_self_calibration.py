@@ -10,7 +10,7 @@ import pytest
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
 from firmware_py.core.samplelog import SAMPLE_DTYPE, SampleLogWriter, read_samplelog, rewritable_header
 from firmware_py.core.storage import Storage
-from ground import report
+from ground import log_warnings, report
 from ground.pose_correction import KNOT_SWEEPS, PoseCorrectionOptions, knot_times, prior_sigmas
 from ground.report import ReportOptions, make_report
 from ground.self_calibration import (
@@ -370,23 +370,23 @@ def test_that_a_lever_arm_entered_off_is_found_as_one_body_fixed_move_whatever_t
 def test_that_a_mount_refused_for_a_lever_arm_names_the_lever_arm_to_report_again_with():
     est = MountEstimate((0.0, 0.01, 0.0, 0.0), (math.nan,) * 4, (False,) * 4, (100, 50, 50, 50, 50), 0.05, 0.05,
                         refused="not applied: the lever arm moved by ...", lever_change_m=(-0.2, 0.0, 0.01))
-    w = report.lever_change_warning(est, np.array([0.0, 0.0, 0.1]))
+    w = log_warnings.lever_change_warning(est, np.array([0.0, 0.0, 0.1]))
     assert "moved by -20.0, +0.0, +1.0 cm (forward, right, down)" in w and "none was applied" in w
     assert "`--lever-arm -0.200 0.000 0.110`" in w
     assert est.as_dict()["lever_change_m"] == [-0.2, 0.0, 0.01]
     square = MountEstimate((0.0,) * 4, (math.nan,) * 4, (False,) * 4, (100, 50, 50, 50, 50), 0.01, 0.01)
-    assert report.lever_change_warning(square, np.zeros(3)) is None and square.as_dict()["lever_change_m"] is None
-    assert report.lever_change_warning(None, np.zeros(3)) is None
+    assert log_warnings.lever_change_warning(square, np.zeros(3)) is None and square.as_dict()["lever_change_m"] is None
+    assert log_warnings.lever_change_warning(None, np.zeros(3)) is None
 
 
 def test_that_a_pose_correction_that_found_a_lever_arm_names_it_too():
     from ground.pose_correction import not_applied
     pose = not_applied("not applied: ... a lever arm entered off, not a drifting pose", lever_change_m=(0.0, -0.3))
-    w = report.lever_change_warning(None, np.array([0.0, 0.3, 0.1]), pose)
+    w = log_warnings.lever_change_warning(None, np.array([0.0, 0.3, 0.1]), pose)
     assert "moved by +0.0, -30.0, +0.0 cm (forward, right, down) as well as with a drifting pose" in w
     assert "the points are placed with the lever arm they fit" in w
     assert "`--lever-arm 0.000 0.000 0.100`" in w  # -0.000 printed as 0.000
-    assert report.lever_change_warning(None, np.zeros(3), not_applied("too small to matter")) is None
+    assert log_warnings.lever_change_warning(None, np.zeros(3), not_applied("too small to matter")) is None
 
 
 def _drift_of(s, h) -> DriftNuisance:
