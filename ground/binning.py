@@ -16,8 +16,9 @@ import numpy as np
 
 from firmware_py.core.storage import Storage
 from ground.pointcloud import N_SIGMA, Cloud, SensorErrorModel, structure_mask
-from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, Survey, check_grid_memory
+from ground.report import check_grid_memory
 from ground.surface import Grid, clip_to_building, fill_empty, fit_heights
+from ground.survey import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, Survey
 
 DEFAULT_BIN_M = 0.1
 """Floor bin side. Far finer than the 0.25 m volume grid, so the fitted surface keeps its shape (a

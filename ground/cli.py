@@ -32,9 +32,10 @@ from ground.pile_change import format_pile_changes, pile_changes
 from ground.piles import DEFAULT_MIN_PILE_AREA_M2, MassUnit, PileOptions, VolumeUnit, pile_rows, piles_note
 from ground.pose_correction import PoseCorrectionOptions
 from ground.render import fmt_echo, warning_parts
-from ground.report import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, make_report
+from ground.report import make_report
 from ground.smoothing import DEFAULT_NODE_SLOPES, NodeSlopes
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
+from ground.survey import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
 
 log = logging.getLogger(__name__)

@@ -5,8 +5,6 @@ asked of each flight alone, whether it is reported alone or merged with others."
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from firmware_py.core.flag_tally import FlagTally
@@ -30,10 +28,8 @@ from ground.self_calibration import MountEstimate, describe
 from ground.servo_timing import Resimulated
 from ground.site_check import header_site, site_mismatches
 from ground.surface import grid_volume
+from ground.survey import ReportOptions, Survey
 from ground.uncertainty import DEFAULT_INTERVAL_MODEL
-
-if TYPE_CHECKING:  # the report's own types: it imports this module
-    from ground.report import ReportOptions, Survey
 
 HIGH_EXCLUDED_FRACTION = 0.5
 """Above this share of a log's samples flagged unusable by the payload, the report says how many and why."""

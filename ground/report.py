@@ -7,13 +7,12 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from firmware_py.core.cli import NoVolumeError, UserError, reading_input
-from firmware_py.core.config_file import SiteSection
 from firmware_py.core.frames import Boresight, StorageFrame
 from firmware_py.core.header import header_boresight
 from firmware_py.core.pose_source import PoseSource
@@ -25,19 +24,19 @@ from firmware_py.core.storage import Storage
 from firmware_py.core.surface_file import SURFACE_FILE
 from firmware_py.core.version import software_version
 from firmware_py.core.waveform import MAX_FREQUENCY_HZ
-from ground.base import FLOOR, FLOOR_BASE, Base, BaseKind, BaseSpec, fitted_floor_base, rebased_terms, survey_base
+from ground.base import FLOOR, FLOOR_BASE, BaseKind, fitted_floor_base, rebased_terms, survey_base
 from ground.blas_threads import one_blas_thread
 from ground.building_check import SizeCheck, check_building
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
 from ground.deliverable import add_deliverable
 from ground.despike import SpikeThreshold, why_no_threshold
 from ground.echo_reach import echo_reach, echo_record, echo_warning
-from ground.exports.formats import EXPORT_FILES, ExportFormat
+from ground.exports.formats import EXPORT_FILES
 from ground.exports.write import check_exports, write_exports
 from ground.floor_check import FloorLevel, floor_other_reading, measure_floor
 from ground.log_warnings import log_warnings, sensor_noise_line
-from ground.metadata import SurveyInfo, printable, sha256_of
-from ground.piles import PILES_CSV, PileOptions, write_piles_csv
+from ground.metadata import printable, sha256_of
+from ground.piles import PILES_CSV, write_piles_csv
 from ground.plane_stretches import Beams, placed_beams, stretch_floor_m
 from ground.plausibility import PlausibilityLimits, implausible, in_time, out_of_time, without_implausible
 from ground.pointcloud import N_SIGMA as FLOOR_N_SIGMA
@@ -68,10 +67,9 @@ from ground.self_calibration import (
     apply_mount,
     estimate_mount,
 )
-from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
+from ground.servo_timing import Resimulated, ShiftScale, estimate_servo_timing, sweep_center_rad
 from ground.site_check import HEADING_TOLERANCE_DEG, SITE_TOLERANCE_M, header_site
 from ground.smoothing import (
-    DEFAULT_NODE_SLOPES,
     DEFAULT_SMOOTHING,
     NodeSlopes,
     SmoothingOptions,
@@ -80,8 +78,6 @@ from ground.smoothing import (
 from ground.surface import (
     CONTACT_POLICIES,
     DEFAULT_CELL_M,
-    DEFAULT_EMPTY_CELLS,
-    DEFAULT_SURFACE_FIT,
     MEASURED_MAX_CELL_M,
     STRIP_POLICIES,
     Grid,
@@ -94,6 +90,7 @@ from ground.surface import (
     volume_error_pct,
 )
 from ground.surface_file import SavedSurface, load_surface, save_surface
+from ground.survey import ReportOptions, Survey
 from ground.sweep_heights import N_SIGMA as SWEEP_N_SIGMA
 from ground.sweep_heights import sweep_heights
 from ground.uncertainty import (
@@ -110,7 +107,6 @@ from ground.uncertainty import (
 )
 from ground.unseen import free_space_ceilings_m, passed_over
 from ground.volume_warnings import (
-    DEFAULT_MAX_INTERVAL_PCT,
     faces_warning,
     level_warning,
     open_floor_reading,
@@ -127,73 +123,6 @@ GRID_BYTES_PER_CELL = 200
 """Peak memory of the report per grid cell, measured with its figures (cell centres, Delaunay lookups, fit,
 fill, counts, plots): 205 B at 0.05 m and 211 B at 0.03 m cells on the golden log (peak RSS less the 150 MB
 of a 1 m-cell run); `--cell 0.01` (24 M cells) peaked at 4.7 GB, 196 B a cell."""
-DEFAULT_MAX_GRID_MEMORY_BYTES = 2 * 1024**3
-"""Default memory allowed for the grid: 2 GiB, 10.7 M cells (60 x 40 m down to 1.5 cm cells)."""
-
-
-@dataclass(frozen=True)
-class ReportOptions:
-    cell_m: float = DEFAULT_CELL_M
-    empty_cells: str = DEFAULT_EMPTY_CELLS
-    plots: bool = True
-    truth_volume_m3: float | None = None
-    surface_fit: str = DEFAULT_SURFACE_FIT  # ground.surface.SURFACE_FITS ("cubic" is the paper's)
-    surface_slopes: NodeSlopes = DEFAULT_NODE_SLOPES  # local-linear: where its cubic's slopes come from (gp_slopes)
-    servo_retiming: bool = True  # re-estimate the servo's timing when the sweeps disagree (ground.servo_timing)
-    despike: bool = True  # leave out isolated one-/two-sample range spikes (ground.despike; threshold from the header)
-    max_grid_memory_bytes: int = DEFAULT_MAX_GRID_MEMORY_BYTES  # refuse a --cell whose grid would need more
-    self_calibration: bool = True  # servo zero/scale and boresight from the floor and walls (ground.self_calibration)
-    site: SiteSection | None = None  # [site] of a --config file: the log's building is checked against it
-    max_interval_pct: float = DEFAULT_MAX_INTERVAL_PCT  # warn when the 90 % interval is wider than this
-    base: BaseSpec = FLOOR  # the surface the volume is measured from (ground.base)
-    piles: PileOptions = field(default_factory=PileOptions)  # names, densities, units (ground.piles)
-    info: SurveyInfo = field(default_factory=SurveyInfo)  # site name, time zone, operator, aircraft (ground.metadata)
-    exports: tuple[ExportFormat, ...] = ()  # standard exports to write beside the report (ground.exports)
-    pose_correction: bool = True  # correct the trajectory from the building (ground.pose_correction): applied only
-    # when significant; indoors the logged pose drifts (docs/pose_error.md)
-    baro_walk_m_per_sqrt_s: float = PoseCorrectionOptions.vertical_walk_m_per_sqrt_s  # the altitude reference's
-    # believed drift: how far a floor seen only away from the walls may move the height, and the level term's sigma
-    storage: Storage | None = None  # the building in place of the log header's (--storage; None: the header's)
-    lever_arm_m: tuple[float, float, float] | None = None  # the LiDAR's lever arm for the header's (--lever-arm)
-    noise_corrections: bool = False  # the noisy surface's three bias corrections (survey_of_cloud); not yet default
-    pointing_bias: bool = False  # points moved back along their beams by the pointing error's bias (pointing_bias)
-
-
-@dataclass(frozen=True)
-class Survey:
-    """Everything computed from one log, for the report writers and for tests."""
-
-    cloud: Cloud
-    pile_points_w: np.ndarray
-    grid: Grid
-    heights_fit: np.ndarray
-    heights: np.ndarray
-    counts: np.ndarray
-    storage: Storage
-    n_cells_clipped: int = 0  # cells whose fit left the building (see surface.clip_to_building)
-    sweep_disagreement_m: float | None = None  # ground.consistency: rising vs falling sweeps
-    servo_timing: ServoTiming | None = None  # the re-estimated servo motion, when its model was wrong
-    servo_retimed: bool = False  # the angles above are the re-estimated ones
-    mount: MountEstimate | None = None  # self-calibration from the building (None: not run)
-    implausible: dict[str, int] | None = None  # ground.plausibility: samples left out per broken limit
-    despike_unavailable: str | None = None  # why despiking asked for could not run (ground.despike.why_no_threshold)
-    errors: SurveyErrors | None = None  # the volume's error terms (ground.uncertainty); None: not estimated
-    face_spread_m: float | None = None  # a cell's points spanning more height hold a face (ground.uncertainty)
-    base: Base | None = None  # the surface the volume is measured from (ground.base); None: the floor z = 0
-    own_terms: ErrorTerms | None = None  # the surface's own error terms (ErrorTerms) before a fitted floor rebased them
-    errors_in: Callable[[np.ndarray], SurveyErrors] | None = None  # the error terms over a cell mask (one pile's)
-    pose: PoseCorrection | None = None  # the trajectory's correction from the building (None: not run)
-    rangefinder: RangefinderShare | None = None  # the rangefinder's share of the logged height (None: not run)
-    building: tuple[SizeCheck, SizeCheck] | None = None  # its length and width as the sweeps measured them
-    structure: np.ndarray | None = None  # the cloud's points taken as wall, roof or glitch (pointcloud.structure_mask)
-    floor: FloorLevel | None = None  # the floor's level as the sweeps saw it (ground.floor_check; None: not seen)
-    lever_arm_body_m: np.ndarray | None = None  # the lever arm the points were placed with (header's or --lever-arm's)
-    heights_hull: np.ndarray | None = None  # the points' own fit over their hull, before `wall-strip` left the strip
-    # cells its contacts contradict to the fill (ground.wall_strip); None: heights_fit is that fit
-    edge_fit: np.ndarray | None = None  # the surfaced cells' heights with scipy's slopes, where the GP's slopes made
-    # heights_fit: the unseen term's slope where sight stopped comes from them (ground.uncertainty.edge_heights_m)
-
-
 def locate_inputs(source: str | Path) -> tuple[Path, Path | None]:
     """A run directory (log + truth.json) or a bare sample log."""
     src = Path(source)
