@@ -11,7 +11,7 @@ from ground.correction_plot import FIGURE_NAME, correction_figure, correction_se
 from ground.figure_jobs import draw
 from ground.pose_correction import PoseCorrection
 from ground.rangefinder_height import RangefinderShare
-from ground.report import correction_figure_jobs
+from ground.report_figures import correction_figure_jobs
 
 
 def _pose(applied: bool = True) -> PoseCorrection:
