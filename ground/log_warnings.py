@@ -19,11 +19,11 @@ from ground.consistency import MAX_SWEEP_DISAGREEMENT_M
 from ground.floor_check import floor_warning
 from ground.plausibility import MAX_GAP_S, in_time
 from ground.pose_correction import PoseCorrection
-from ground.pose_correction import describe as describe_pose
-from ground.pose_correction import unanchored_warning as pose_unanchored_warning
-from ground.pose_correction import unconstrained_warning as pose_unconstrained_warning
-from ground.pose_correction import wall_warning as pose_wall_warning
 from ground.pose_source_check import pose_source_warnings
+from ground.pose_warnings import describe as describe_pose
+from ground.pose_warnings import unanchored_warning as pose_unanchored_warning
+from ground.pose_warnings import unconstrained_warning as pose_unconstrained_warning
+from ground.pose_warnings import wall_warning as pose_wall_warning
 from ground.self_calibration import MountEstimate, describe
 from ground.servo_timing import Resimulated
 from ground.site_check import header_site, site_mismatches

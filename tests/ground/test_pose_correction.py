@@ -36,8 +36,8 @@ from ground.pose_correction import (
     plane_brought_on,
     planes,
     prior_sigmas,
-    unconstrained_warning,
 )
+from ground.pose_warnings import unconstrained_warning
 from ground.self_calibration import estimate_mount
 
 STORAGE = Storage(60.0, 40.0, 15.0)
@@ -577,7 +577,8 @@ def test_that_a_height_solved_in_the_frame_before_the_registration_is_solved_aga
 def test_that_a_corrected_path_that_came_near_a_wall_is_measured_and_warned_about():
     # The logged estimate keeps the plan's 2 m from the wall y = 0; the correction moves the path 1.9 m towards it
     # (a `flow` flight at P_traj 5 %: the true vehicle went there). The report says how near, where and when.
-    from ground.pose_correction import WALL_WARNING_M, PoseCorrection, wall_warning, with_closest_wall
+    from ground.pose_correction import PoseCorrection, with_closest_wall
+    from ground.pose_warnings import WALL_WARNING_M, wall_warning
     t = np.arange(0.0, 100.0, 0.5)
     s = new_records(len(t))
     s["t_s"] = 1300.0 + t  # the payload's monotonic clock: the report counts from the log's start
@@ -836,7 +837,8 @@ def test_that_an_untied_stretch_s_sigma_is_the_walk_pinned_at_its_tied_ends_weig
 
 
 def test_that_a_height_not_tied_to_the_floor_is_warned_about_with_its_longest_stretch():
-    from ground.pose_correction import PoseCorrection, unanchored_warning
+    from ground.pose_correction import PoseCorrection
+    from ground.pose_warnings import unanchored_warning
     knots = np.arange(0.0, 31.0, 3.0)
     values = np.zeros((len(knots), 4))
     tied = PoseCorrection(knots, values, np.ones_like(values, dtype=bool), True)
