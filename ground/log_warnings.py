@@ -1,7 +1,8 @@
 """The warnings one flight's log earns (`pilescan-ground report`): damage, unusable and implausible samples, spikes, a
 stuck or mistimed servo, the mount, the pose and its sources, the site, a building, lever arm or floor that the
 surveyor's options or the sweeps contradict. Each is one sentence saying what is wrong and what to do; they are
-asked of each flight alone, whether it is reported alone or merged with others."""
+asked of each flight alone, whether it is reported alone or merged with others. And the line naming the sensor
+noise the header states (`sensor_noise_line`), which the report shows beside them."""
 
 from __future__ import annotations
 

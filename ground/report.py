@@ -1,4 +1,5 @@
-"""The ground pipeline end to end: sample log -> cloud -> surface -> volume -> report files."""
+"""The ground pipeline end to end: sample log -> cloud -> surface -> volume -> report files. Its two records are in
+`ground.survey`, a log's warnings in `ground.log_warnings`, the figures' jobs in `ground.report_figures`."""
 
 from __future__ import annotations
 

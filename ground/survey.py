@@ -33,6 +33,9 @@ DEFAULT_MAX_GRID_MEMORY_BYTES = 2 * 1024**3
 
 @dataclass(frozen=True)
 class ReportOptions:
+    """What the surveyor asked of a report (`pilescan-ground report`'s options and `--config`'s keys); the defaults
+    are the report's own."""
+
     cell_m: float = DEFAULT_CELL_M
     empty_cells: str = DEFAULT_EMPTY_CELLS
     plots: bool = True
