@@ -26,3 +26,22 @@ def medians_by_key(key: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarr
     order = np.lexsort((z, key))
     uniq, start, count = sorted_groups(key[order])
     return uniq, sorted_group_median(z[order], start, count), count
+
+
+def group_median(key: np.ndarray, z: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per distinct key: the key, the median and robust spread of z, the mean of t, the count."""
+    order = np.lexsort((z, key))
+    key, z, t = key[order], z[order], t[order]
+    uniq, start, count = sorted_groups(key)
+    med = sorted_group_median(z, start, count)
+    group = np.repeat(np.arange(len(uniq)), count)
+    dev = np.abs(z - med[group])
+    mad = 1.4826 * sorted_group_median(dev[np.lexsort((dev, group))], start, count)
+    tm = np.add.reduceat(t, start) / count
+    return uniq, med, mad, tm, count
+
+
+def median_sd_m(mad_m: np.ndarray, count: np.ndarray, noise_m: float) -> np.ndarray:
+    """The sd of a median of `count` points whose robust spread is mad_m (at least noise_m): one sighting's noise, as
+    the pose correction's crossings weigh them and judge them (`ground.pose_correction`)."""
+    return 1.25 * np.maximum(mad_m, noise_m) / np.sqrt(count)

@@ -80,7 +80,7 @@ from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, rot_body_to
 from firmware_py.core.sensor_noise import POSE_STREAM_HZ
 from firmware_py.core.storage import Storage
 from firmware_py.core.waveform import MAX_FREQUENCY_HZ
-from ground.group_stats import sorted_group_median, sorted_groups
+from ground.group_stats import group_median, median_sd_m
 from ground.huber_lsq import huber_loss, irls_huber, knot_covariance, mean_sigma_m
 from ground.plane_stretches import (
     MAX_HEADING_ERROR_RAD,
@@ -1653,25 +1653,6 @@ SLOPE_ROUNDS = 3
 slope fitted to uncorrected heights takes up the difference between two passes over a cell)."""
 MIN_CELL_POINTS = 3
 """A cell's points in one knot interval give one height when there are at least this many."""
-
-
-def group_median(key: np.ndarray, z: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Per distinct key: the key, the median and robust spread of z, the mean of t, the count."""
-    order = np.lexsort((z, key))
-    key, z, t = key[order], z[order], t[order]
-    uniq, start, count = sorted_groups(key)
-    med = sorted_group_median(z, start, count)
-    group = np.repeat(np.arange(len(uniq)), count)
-    dev = np.abs(z - med[group])
-    mad = 1.4826 * sorted_group_median(dev[np.lexsort((dev, group))], start, count)
-    tm = np.add.reduceat(t, start) / count
-    return uniq, med, mad, tm, count
-
-
-def median_sd_m(mad_m: np.ndarray, count: np.ndarray, noise_m: float) -> np.ndarray:
-    """The sd of a median of `count` points whose robust spread is mad_m (at least noise_m): one sighting's noise, as
-    the crossings' solves weigh them and `crossings_misfit_m` judges against."""
-    return 1.25 * np.maximum(mad_m, noise_m) / np.sqrt(count)
 
 
 def _flattened(p: np.ndarray, wall: np.ndarray, storage: Storage, cell_m: float, max_error_m: float,

@@ -29,8 +29,8 @@ from scipy.ndimage import distance_transform_edt
 
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
 from firmware_py.core.storage import Storage
+from ground.group_stats import group_median
 from ground.pointcloud import cloud_from_samples
-from ground.pose_correction import group_median
 
 CELL_M = 1.0
 """The cell of the crossings and of the ground below: small against a pile (a cell seen twice is one surface), large

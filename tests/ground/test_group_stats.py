@@ -1,8 +1,9 @@
-"""Medians per group, vectorised (`ground.group_stats`) and the pose vote's peaks (`ground.pose_correction._peaks`)."""
+"""Medians and spreads per group, vectorised (`ground.group_stats`), and the pose vote's peaks
+(`ground.pose_correction._peaks`)."""
 
 import numpy as np
 
-from ground.group_stats import medians_by_key, sorted_groups
+from ground.group_stats import group_median, median_sd_m, medians_by_key, sorted_groups
 from ground.pose_correction import MIN_VOTES, PEAK_FRACTION, _peaks
 
 
@@ -23,6 +24,24 @@ def test_that_medians_by_key_are_each_groups_median():
     assert np.array_equal(uniq, np.unique(key))
     assert np.allclose(med, [np.median(z[key == k]) for k in uniq])
     assert np.array_equal(count, [np.count_nonzero(key == k) for k in uniq])
+
+
+def test_that_group_median_gives_each_groups_median_robust_spread_mean_time_and_count():
+    rng = np.random.default_rng(2)
+    key = rng.integers(0, 25, 1500)
+    z, t = rng.normal(size=1500), rng.uniform(0.0, 100.0, 1500)
+    uniq, med, mad, tm, count = group_median(key, z, t)
+    assert np.array_equal(uniq, np.unique(key))
+    for k, m, s, mean_t, n in zip(uniq, med, mad, tm, count, strict=True):
+        zk = z[key == k]
+        assert m == np.median(zk) and n == len(zk)
+        assert np.isclose(s, 1.4826 * np.median(np.abs(zk - np.median(zk))))
+        assert np.isclose(mean_t, t[key == k].mean())
+
+
+def test_that_a_medians_sd_shrinks_with_its_count_and_is_never_below_the_noise():
+    sd = median_sd_m(np.array([0.01, 0.0, 0.04]), np.array([4, 4, 16]), noise_m=0.02)
+    assert np.allclose(sd, [1.25 * 0.02 / 2, 1.25 * 0.02 / 2, 1.25 * 0.04 / 4])
 
 
 def _peaks_by_loop(h: np.ndarray) -> list[int]:
