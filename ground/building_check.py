@@ -25,7 +25,7 @@ import numpy as np
 
 from firmware_py.core.storage import Storage
 from ground.plane_stretches import CHORD_HALF, STEEPEST_PILE_DEG, sweep_ids, wall_stretches
-from ground.pose_correction import PoseCorrectionOptions
+from ground.pose_knots import PoseCorrectionOptions
 
 MIN_WALL_POINTS = 5
 """A sweep measures the distance between two walls when it holds at least this many wall-stretch points on each."""

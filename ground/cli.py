@@ -30,7 +30,7 @@ from ground.exports.formats import ExportFormat, parse_formats
 from ground.metadata import SurveyInfo, check_timezone, metadata_rows
 from ground.pile_change import format_pile_changes, pile_changes
 from ground.piles import DEFAULT_MIN_PILE_AREA_M2, MassUnit, PileOptions, VolumeUnit, pile_rows, piles_note
-from ground.pose_correction import PoseCorrectionOptions
+from ground.pose_knots import PoseCorrectionOptions
 from ground.render import fmt_echo, warning_parts
 from ground.report import make_report
 from ground.smoothing import DEFAULT_NODE_SLOPES, NodeSlopes

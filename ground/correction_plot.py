@@ -20,7 +20,8 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
 from ground.plots import DPI, FIGSIZE_IN, save_png
-from ground.pose_correction import Component, PoseCorrection
+from ground.pose_correction import PoseCorrection
+from ground.pose_knots import Component
 from ground.rangefinder_height import RangefinderShare
 
 FIGURE_NAME = "trajectory_correction"

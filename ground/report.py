@@ -52,13 +52,12 @@ from ground.pointcloud import (
 )
 from ground.pointing_bias import along_beam_bias_m, grid_normals, sweep_directions
 from ground.pose_correction import (
-    KNOT_SWEEPS,
     PoseCorrection,
-    PoseCorrectionOptions,
     apply_pose_correction,
     estimate_pose_correction,
     with_closest_wall,
 )
+from ground.pose_knots import KNOT_SWEEPS, PoseCorrectionOptions
 from ground.pose_source_check import autopilot_params, pose_source_line
 from ground.rangefinder_height import RangefinderShare, estimate_share
 from ground.report_figures import write_outputs

@@ -74,7 +74,8 @@ from firmware_py.core.servo_model import command_angles, servo_angles
 from firmware_py.core.storage import Storage
 from ground.blas_threads import one_blas_thread
 from ground.plane_stretches import beams, planes, stretches_along
-from ground.pose_correction import knot_basis, lever_shift
+from ground.pose_correction import lever_shift
+from ground.pose_knots import knot_basis
 from ground.servo_timing import Resimulated
 
 N_GROUPS = 8

@@ -18,7 +18,8 @@ from ground.floor_check import FloorLevel
 from ground.metadata import SurveyInfo
 from ground.piles import PileOptions
 from ground.pointcloud import Cloud
-from ground.pose_correction import PoseCorrection, PoseCorrectionOptions
+from ground.pose_correction import PoseCorrection
+from ground.pose_knots import PoseCorrectionOptions
 from ground.rangefinder_height import RangefinderShare
 from ground.self_calibration import MountEstimate
 from ground.servo_timing import ServoTiming
