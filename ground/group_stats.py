@@ -45,3 +45,14 @@ def median_sd_m(mad_m: np.ndarray, count: np.ndarray, noise_m: float) -> np.ndar
     """The sd of a median of `count` points whose robust spread is mad_m (at least noise_m): one sighting's noise, as
     the pose correction's crossings weigh them and judge them (`ground.pose_correction`)."""
     return 1.25 * np.maximum(mad_m, noise_m) / np.sqrt(count)
+
+
+def rms(x: np.ndarray) -> float:
+    """The root mean square (0 of nothing)."""
+    return float(np.sqrt(np.mean(np.square(x)))) if len(x) else 0.0
+
+
+def robust_rms(r: np.ndarray) -> float:
+    """The RMS a normal scatter would have, from the median absolute value (1.4826 MAD about zero): what gross
+    outliers among residuals leave alone (0 of nothing)."""
+    return float(1.4826 * np.median(np.abs(r))) if len(r) else 0.0

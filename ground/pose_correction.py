@@ -73,12 +73,11 @@ from scipy import linalg, sparse
 from scipy.optimize import least_squares
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
-from scipy.special import gammaincinv
 
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, rot_body_to_ned
 from firmware_py.core.sensor_noise import POSE_STREAM_HZ
 from firmware_py.core.storage import Storage
-from ground.group_stats import group_median, median_sd_m
+from ground.group_stats import group_median, median_sd_m, rms, robust_rms
 from ground.huber_lsq import huber_loss, irls_huber, knot_covariance, mean_sigma_m
 from ground.plane_stretches import (
     Beams,
@@ -90,12 +89,20 @@ from ground.plane_stretches import (
     to_nearest_wall_m,
     usable,
 )
+from ground.pose_decisions import (
+    capped_gain,
+    crossings_brought_together,
+    floor_brought_on,
+    is_drift,
+    matters,
+)
 from ground.pose_knots import (
     BAND,
-    DRIFT_LEVEL,
     HELD,
     KNOT_SWEEPS,
     MAX_MISFIT,
+    MIN_CELL_POINTS,
+    MIN_VOTES,
     PLANE_NAMES,
     Component,
     PoseCorrectionOptions,
@@ -107,7 +114,7 @@ from ground.pose_knots import (
     sweep_period_from_samples,
 )
 from ground.sweep_heights import SweepHeights
-from ground.uncertainty import SharedDraws, shared_draws
+from ground.uncertainty import shared_draws
 
 
 @dataclass(frozen=True)
@@ -199,9 +206,9 @@ class PoseCorrection:
         """RMS and max over time of the horizontal, vertical and heading correction (at the knots)."""
         v = self.values if len(self.values) else np.zeros((1, 4))
         h = np.hypot(v[:, 0], v[:, 1])
-        return {"horizontal_rms_m": _rms(h), "horizontal_max_m": float(h.max()),
-                "vertical_rms_m": _rms(v[:, 2]), "vertical_max_m": float(np.abs(v[:, 2]).max()),
-                "heading_rms_deg": math.degrees(_rms(v[:, 3])),
+        return {"horizontal_rms_m": rms(h), "horizontal_max_m": float(h.max()),
+                "vertical_rms_m": rms(v[:, 2]), "vertical_max_m": float(np.abs(v[:, 2]).max()),
+                "heading_rms_deg": math.degrees(rms(v[:, 3])),
                 "heading_max_deg": math.degrees(float(np.abs(v[:, 3]).max()))}
 
     def free_intervals(self, component: Component) -> np.ndarray | None:
@@ -237,187 +244,6 @@ class PoseCorrection:
                 "sweep_heights": None if self.sweep_heights is None else self.sweep_heights.as_dict()}
 
 
-def _rms(x: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.square(x)))) if len(x) else 0.0
-
-
-def _robust_rms(r: np.ndarray) -> float:
-    return float(1.4826 * np.median(np.abs(r))) if len(r) else 0.0
-
-
-def plane_brought_on(r_before: np.ndarray, r_after: np.ndarray, plane: np.ndarray, noise_m: float) -> str | None:
-    """The first wall (its name) whose points a correction brings onto it: their robust RMS distance comes down
-    to within MAX_MISFIT noise levels (as a drift the model explains leaves them), and by more than the noise and
-    more than what is left (the correction explains most of the plane's mean square: a drift larger than the
-    plane's own scatter). None when no wall's does. r_before, r_after: the same points' distances before and
-    after; plane: each one's.
-
-    Why a plane of its own, beside all the points together: the floor's points out-number the walls', and the
-    floor does not see a horizontal drift (a loop whose logged position drifts 0.5 m along x alone left all the
-    points' robust RMS 0.39 -> 0.36 cm against 0.29 cm of noise). Why "onto": a plane whose points are off it
-    either way has not been brought onto it by the correction (a pile's toe on the floor's plane, 21.8 -> 10.6 cm
-    against 1.3 cm of noise, on an error-free flight). Why "more than what is left": the data's noise comes from
-    neighbouring samples, and a wall seen far off scatters more than it says (error-free flights with the
-    datasheet's noise: a wall's points 24.2 -> 22.9 cm against 7.8 cm of noise, another's 16.4 -> 13.5 cm against
-    5.3 cm, each moved 4-9 cm by a correction fitted to that scatter). Why the walls only: the floor's points may
-    be a pile's flat top, which a height correction pulls down onto the floor's plane (error-free flights over an
-    irregular pile with Appendix A's noise: 570 points 109 -> 14 cm, the height moved 0.9 m, Ve -2.3 -> -44.8 %);
-    the height has its own tests, and the floor sees no horizontal drift, the blind spot this closes."""
-    for j, name in enumerate(PLANE_NAMES):
-        m = plane == j
-        if name == "floor" or np.count_nonzero(m) < MIN_VOTES:
-            continue
-        before, after = _robust_rms(r_before[m]), _robust_rms(r_after[m])
-        if after <= MAX_MISFIT * noise_m and before ** 2 - after ** 2 > max(noise_m, after) ** 2:
-            return name
-    return None
-
-
-FLOOR_TREND_P = 0.01
-"""A floor taken down onto z = 0 must be level: its sightings' heights may not trend with their distance from the
-walls at this significance (Kendall's tau, two-sided) by more than MAX_MISFIT noise levels (`floor_is_level`)."""
-
-
-def floor_is_level(height_m: np.ndarray, wall_distance_m: np.ndarray, noise_m: float) -> bool:
-    """Whether a floor's sightings (their heights and distances from the nearest wall) show no trend with the
-    distance from the walls: none significant (Kendall's tau at FLOOR_TREND_P), or one that moves them by no more
-    than MAX_MISFIT of a point's noise (noise_m) over the distances seen (Theil-Sen's slope over their 5th-95th
-    percentiles). A floor is level, while a pile's flank that the vote took for floor rises away from the walls it
-    meets at zero height (an irregular pile under Appendix A's noise: tau +0.32 to +0.49, p 1e-7 to 3e-4; 1.25 m over
-    the distances seen against 0.37 m), or towards a wall it is heaped against. Real floors under the same noise:
-    |tau| <= 0.17, p >= 0.011; without noise a floor's sightings show a trend of 0.1 mm/m that is significant and
-    immaterial (0.1 cm over 15 m against 0.9 cm)."""
-    if len(height_m) < MIN_VOTES:
-        return False
-    from scipy.stats import kendalltau, theilslopes  # here: scipy.stats costs every command a quarter second to load
-    if not kendalltau(wall_distance_m, height_m).pvalue < FLOOR_TREND_P:
-        return True
-    lo, hi = np.percentile(wall_distance_m, [5.0, 95.0])
-    return abs(float(theilslopes(height_m, wall_distance_m).slope)) * (hi - lo) <= MAX_MISFIT * noise_m
-
-
-def level_clear(height_m: np.ndarray, shared_sd_m: float, n_significant: float) -> bool:
-    """Whether sightings' median height lies off z = 0 by more than n_significant of its standard error: a median's
-    of their own scatter (1.25 robust sd / sqrt(n)) and the pose draws they share (shared_sd_m), in quadrature.
-
-    Why the shared draws: a pose message's position error moves every point it places alike, so sightings made in
-    the same few messages are off together, and their own scatter does not show it. The paper's pile 2 under Appendix
-    A's noise shows its floor for one second at the start (116 points in 17 messages of 0.11 m): it read 0.12 m above
-    z = 0 on an error-free flight, and taken down onto it the volume read 4.4 pp low (docs/design-notes.md)."""
-    h = np.asarray(height_m, dtype=float)
-    if not len(h):
-        return False
-    level = float(np.median(h))
-    own = 1.25 * _robust_rms(h - level) / math.sqrt(len(h))
-    return abs(level) > n_significant * math.hypot(own, shared_sd_m)
-
-
-def draw_sd_m(draws: SharedDraws | None, points: np.ndarray) -> float:
-    """The standard error the pose draws shared by the points (a mask over draws.group) put on their mean height: one
-    draw of draws.sigma_m per pose message among them, as the volume's interval counts them
-    (`ground.uncertainty.shared_draws`). 0 without such a draw."""
-    if draws is None or not np.any(points):
-        return 0.0
-    return draws.sigma_m / math.sqrt(len(np.unique(draws.group[points])))
-
-
-def floor_brought_on(z_before: np.ndarray, z_after: np.ndarray, key: np.ndarray, noise_m: float,
-                     most_down_m: float = 0.0, wall_distance_m: np.ndarray | None = None,
-                     material_distance_m: np.ndarray | None = None, draws: SharedDraws | None = None,
-                     n_significant: float = 3.0, quantum_m: float = 0.0) -> bool:
-    """Whether a height correction brings the floor it was solved on onto z = 0 (z_before, z_after: the heights of
-    the floor's points before and after it; key: each one's sighting, a knot interval and cell): its sightings (each
-    one's median) come onto it by more than their noise and more than what is left (as `plane_brought_on` asks of a
-    wall's points), to within MAX_MISFIT noise levels of it or MAX_MISFIT times closer than before (a wall's points
-    have the sensor's noise to reach; the floor's, the height drift model's misfit between knots as well: 1.3 cm
-    against an ideal sensor's 0.3 cm, measured on a `flow` flight). Up from below z = 0 always; down from above it
-    only by no more than most_down_m (the most the logged reference is believed off) and only when the floor is
-    level (`floor_is_level`, on the points' wall_distance_m; without them, never down), its level clear of z = 0
-    (`level_clear`, with the pose draws its points share: draws, their messages), and its sightings farthest from the
-    material beside it (material_distance_m: the nearer half left out) and, with pose draws, its earlier and its later
-    sightings each clear of it as well. Either way the floor must lie more than half the range's quantum (quantum_m)
-    off z = 0.
-
-    Why sightings and not points: the points of one sweep share its pose, so their count overstates what they know,
-    while their own scatter hides an offset. Under the paper's Appendix A noise (a degree of pointing: 0.12 m a point)
-    a floor 5 cm below z = 0 came up onto it by less than a point's noise, and the volume stayed 2.5 % low; a
-    sighting's noise is its median's (`median_sd_m`), and the same floor's sightings pass (docs/design-notes.md).
-
-    Why up always, down only so far and only when level: nothing lies below the floor, so a floor seen below z = 0 is
-    a height error (a lever arm's z entered too far down, an altitude reference reading low), while a floor seen above
-    it may be material covering it. A pile's flat top taken for a floor the walls' feet confirmed (-0.69 m on 3 of 220
-    error-free flights, the volume about 20 % low; 0.82 m up on pile 2 under Appendix A's noise) lies beyond what a
-    barometer walks in a flight; an irregular pile's flanks rising from its walls, 0.39 m up on average and within
-    it, passed every other test (one of 648 error-free runs with Appendix A's noise, Ve +0.1 -> -19 %), but not a
-    level floor's (docs/design-notes.md). Why the far half: under a degree of pointing noise a floor patch beside a
-    pile's toe reads high, the toe's hits placed on the floor beside it (pile 1 of the paper at P_traj 30 %, an
-    error-free flight: the floor's sightings 0.16 m up nearest the pile, 0.02 m in the far half; taken down, the
-    volume read 1.3 pp low), while a height offset lifts the far half as much as the near. Why early and late: an
-    offset of the flight's shows all flight long, while a floor seen in one moment reads that moment's errors. Why
-    half the quantum: the ranges are rounded to it, and a floor seen by a few sweeps at nearly one range shares its
-    rounding error, which no count of sightings averages out (the paper's pile 1 at P_traj 20 % without noise: a floor
-    2.8 mm below z = 0 under a 1 cm quantum, brought up on 3 of 20 servo phases, the volume 0.02-0.10 pp further
-    from the truth)."""
-    if len(z_before) < MIN_VOTES:
-        return False
-    when = z_before if draws is None else draws.group.astype(float)
-    uniq, g_before, mad, message, count = group_median(key, z_before, when)
-    _, g_after, _, _, _ = group_median(key, z_after, z_after)
-    many = count >= MIN_CELL_POINTS
-    if np.count_nonzero(many) < MIN_VOTES:
-        return False
-    g_before, g_after, uniq, message = g_before[many], g_after[many], uniq[many], message[many]
-
-    # the sightings with the correction's changes over the flight applied and not its constant part: a drift of the
-    # height is taken out, the floor's offset from z = 0 left, which its level tests then judge
-    steady = g_after - float(np.median(g_after - g_before))
-
-    def clear(kept: np.ndarray) -> bool:
-        """Whether the sightings kept lie above z = 0 on their own (`level_clear`)."""
-        return float(np.median(steady[kept])) > 0.0 and level_clear(
-            steady[kept], draw_sd_m(draws, np.isin(key, uniq[kept])), n_significant)
-    sd = float(np.median(median_sd_m(mad[many], count[many], noise_m)))
-    before, after = _robust_rms(g_before), _robust_rms(g_after)
-    level, moved = float(np.median(g_before)), float(np.median(g_after - g_before))
-    if not (after <= max(MAX_MISFIT * sd, before / MAX_MISFIT) and before ** 2 - after ** 2 > max(sd, after) ** 2):
-        return False
-    if abs(level) <= quantum_m / 2.0:
-        return False
-    if level < 0.0 < moved:
-        return True
-    if not (moved < 0.0 < level and -moved <= most_down_m and wall_distance_m is not None):
-        return False
-    if not clear(np.ones(len(g_before), dtype=bool)):
-        return False
-    _, distance, _, _, _ = group_median(key, wall_distance_m, wall_distance_m)
-    if not floor_is_level(g_after, distance[many], noise_m):
-        return False
-    late = message > np.median(message)
-    if draws is not None and not all(part.any() and clear(part) for part in (late, ~late)):
-        return False
-    if material_distance_m is None:
-        return True
-    _, near, _, _, _ = group_median(key, material_distance_m, material_distance_m)
-    return clear(near[many] >= np.median(near[many]))
-
-
-def crossings_brought_together(before_m: float, after_m: float, noise_m: float) -> bool:
-    """Whether a height correction matters to the pile seen at different times (`crossings_misfit_m` before and after
-    it, and the noise of its sightings): they come together by more than their noise and by more than what is left,
-    as `plane_brought_on` asks of a wall's points. A height off by a constant moves every sighting alike and never
-    passes: that is the floor's question (`floor_brought_on`)."""
-    return before_m ** 2 - after_m ** 2 > max(noise_m, after_m) ** 2
-
-
-def matters(r_before: np.ndarray, r_after_fit: np.ndarray, r_after: np.ndarray, plane: np.ndarray,
-            noise_m: float) -> bool:
-    """Whether a correction matters to the floor and walls: all their points together come closer to their planes
-    by more than the noise (robust RMS of r_before against that of r_after_fit, the points on a plane after the
-    fit), or one wall's are brought onto it (`plane_brought_on`, on the same points' r_before and r_after)."""
-    return (_robust_rms(r_before) ** 2 - _robust_rms(r_after_fit) ** 2 > noise_m ** 2
-            or plane_brought_on(r_before, r_after, plane, noise_m) is not None)
-
-
 def _spacing(knots: np.ndarray) -> float:
     return float(np.median(np.diff(knots))) if len(knots) > 1 else 0.0
 
@@ -442,8 +268,6 @@ def _assign(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: float,
 
 INSIDE_SIGN = np.array([1.0, 1.0, -1.0, 1.0, -1.0])
 """Per plane (PLANE_NAMES order): the sign of n . p - d on the building's inside, where the pile is."""
-MIN_VOTES = 10
-"""A plane's peak needs this many points in a knot interval (fewer: a few stray returns)."""
 STRAY_FRACTION = 0.01
 """Points beyond a plane a knot interval may hold by chance (glitches, multipath): 1 % of its points."""
 PEAK_FRACTION = 0.1
@@ -688,7 +512,7 @@ def _noise_m(j: np.ndarray, r: np.ndarray, floor_m: float) -> float:
     same = (np.diff(on) == 1) & (j[on[1:]] == j[on[:-1]])
     if not same.any():
         return floor_m
-    return max(_robust_rms(np.diff(r[on])[same]) / math.sqrt(2.0), floor_m)
+    return max(robust_rms(np.diff(r[on])[same]) / math.sqrt(2.0), floor_m)
 
 
 def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, storage: Storage,
@@ -794,7 +618,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                 break
             _, r = _assign(corrected_points(b, x, k, f)[0], n, d, BAND * window, b.parallel)
             on = j_fit >= 0
-            window = max(final, min(window / 2.0, BAND * _robust_rms(r[on]) if on.any() else window / 2.0))
+            window = max(final, min(window / 2.0, BAND * robust_rms(r[on]) if on.any() else window / 2.0))
         return x
 
     # First without the heading, then with it, which is kept only when it brings the floor and walls closer
@@ -917,7 +741,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
 
     def misfit(v: np.ndarray) -> float:
         _, _, r, j = on_fit_planes(v)
-        return _robust_rms(r[j >= 0])
+        return robust_rms(r[j >= 0])
     # What the drift model, fitted to the floor and walls, leaves on them: the measure of whether a drift
     # explains them at all (MAX_MISFIT was measured on it: a drift leaves 1.1-1.5 noise levels, a mount fault ~6)
     drift_misfit = misfit(x)
@@ -993,8 +817,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     gain = capped_gain(r_before, r_after, noise, cap)
     n_free = int(constrained.sum())
     needed = n_free + opts.n_significant * math.sqrt(2.0 * max(n_free, 1))
-    common = dict(notes=tuple(notes), points=counts, rms_before_m=_robust_rms(r_before),
-                  rms_after_m=_robust_rms(r1[on]), noise_m=noise, gain=gain, gain_needed=needed)
+    common = dict(notes=tuple(notes), points=counts, rms_before_m=robust_rms(r_before),
+                  rms_after_m=robust_rms(r1[on]), noise_m=noise, gain=gain, gain_needed=needed)
     if drift_misfit > MAX_MISFIT * noise:
         return not_applied(f"not applied: the floor and walls stay {drift_misfit * 100:.1f} cm off their "
                            f"planes "
@@ -1027,7 +851,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
             n_free = int(constrained.sum())
             needed = n_free + opts.n_significant * math.sqrt(2.0 * max(n_free, 1))
             gain = capped_gain(z_before, z_after, noise, cap)
-            note = raised_floor_note(raised, _robust_rms(z_after), x[:, 2], open_shift)
+            note = raised_floor_note(raised, robust_rms(z_after), x[:, 2], open_shift)
             common.update(notes=(*common["notes"], note), gain=gain, gain_needed=needed)
     # A height that drifts while the horizontal does not (a good horizontal estimate on a barometer that walks) is
     # none of the walls' business, and the walls' fit holds the height, so the floor's points lie off every plane it
@@ -1066,10 +890,10 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         # quadrature: the knots, many more, also fit a few systematic millimetres), the pose is not what drifted.
         axes = body_axes_w(samples[usable(samples)][::stride][both], frame)  # b's samples, b's order, on a plane
         dl, lever_rms = lever_shift(axes, n[jj], r_before, final)
-        drift_rms = _robust_rms(r_after)
+        drift_rms = robust_rms(r_after)
         # Then the points are placed with that lever arm, exactly (`apply_pose_correction`), in place of the drift's
         # knots, which emulate it leg by leg and, through a turn or on a slope, get it wrong.
-        if lever_rms <= math.hypot(drift_rms, noise) and _robust_rms(r_before) ** 2 - lever_rms ** 2 > noise ** 2:
+        if lever_rms <= math.hypot(drift_rms, noise) and robust_rms(r_before) ** 2 - lever_rms ** 2 > noise ** 2:
             note = (f"the floor and walls sit on their planes with the LiDAR's lever arm moved by "
                     f"{dl[0] * 100:+.1f} cm forward and {dl[1] * 100:+.1f} cm right ({lever_rms * 100:.1f} cm off "
                     f"them) as well as with a drifting pose ({drift_rms * 100:.1f} cm): a lever arm entered off, not a "
@@ -1089,12 +913,6 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                           untied_sigma_m=(untied_sigma_m(knots, tied, opts.vertical_walk_m_per_sqrt_s)
                                           if z_info is not None and tied is not None and not opts.open_floor
                                           else None), **common)
-
-
-def capped_gain(before_m: np.ndarray, after_m: np.ndarray, noise_m: float, cap: float) -> float:
-    """The chi-square a correction gains on points (their distances before and after, in units of the noise, squared),
-    each point's term capped at cap: a point far off its plane (the pile beside it) cannot carry the test."""
-    return float(np.sum(np.minimum((before_m / noise_m) ** 2, cap) - np.minimum((after_m / noise_m) ** 2, cap)))
 
 
 LEVER_ROUNDS = 10
@@ -1117,13 +935,13 @@ def lever_shift(axes_w: np.ndarray, normals: np.ndarray, r: np.ndarray, window_m
     w = np.ones(len(r))
     dl = np.zeros(n_axes)
     if len(r) < n_axes + 1:
-        return dl, _robust_rms(r)
+        return dl, robust_rms(r)
     ridge = np.zeros((0, n_axes)) if prior_m is None else np.eye(n_axes) * (float(np.median(window_m)) / prior_m)
     for _ in range(LEVER_ROUNDS):
         dl = np.linalg.lstsq(np.vstack([a * w[:, None], ridge]), np.r_[-r * w, np.zeros(len(ridge))], rcond=None)[0]
         u = (r + a @ dl) / window_m
         w = 1.0 / np.sqrt(1.0 + u * u)
-    return dl, _robust_rms(r + a @ dl)
+    return dl, robust_rms(r + a @ dl)
 
 
 def raised_floor_note(raised_m: float, left_m: float, z_m: np.ndarray, most_down_m: float = math.inf) -> str:
@@ -1184,42 +1002,6 @@ def bend_sigmas(b: Beams, knots: np.ndarray, k: np.ndarray, opts: PoseCorrection
     return out
 
 
-def chi2_quantile(level: float, dof: int) -> float:
-    """Chi-square's quantile, as scipy.stats computes it (2 P^-1(dof/2, level)), from scipy.special: importing
-    scipy.stats added a quarter of a second to every `pilescan-ground` start."""
-    return 2.0 * float(gammaincinv(dof / 2, level))
-
-
-def drift_steps_chi2(x: np.ndarray, step: np.ndarray, comps: tuple[int, ...]) -> tuple[float, int]:
-    """The sum of squares of the knot-to-knot steps of x's (K, 4) components `comps`, in the drift model's step
-    sigmas (`prior_sigmas`), and how many steps that is."""
-    c = list(comps)
-    if len(x) < 2 or not c:
-        return 0.0, 0
-    d = np.diff(x[:, c], axis=0) / step[c]
-    return float(np.sum(d * d)), int(d.size)
-
-
-def is_drift(x_new: np.ndarray, x_old: np.ndarray, step: np.ndarray, comps: tuple[int, ...],
-             level: float = DRIFT_LEVEL) -> bool:
-    """Whether x_new is x_old plus a drift the model allows: its steps' norm (in step sigmas) within x_old's plus
-    the norm a drift reaches at chi-square's `level` (the triangle inequality: the walls' fit has steps of its
-    own, from its own noise, which the registration may smooth or keep, and it may add a drift's worth).
-
-    The pile seen twice observes a shift only through its slope (`register_from_crossings`), linearised about
-    the current points; where the cells seen twice are nearly flat (the floor by home, where a flight starts and
-    ends hovering), millimetres between passes read as metres of shift. Measured: a VIO flight of a ridge
-    registered 3.1 and 6.0 m of along-track shift in its last two knots (0.2 m true) against a step sigma of
-    0.12 m: a sum of squares of 1,273 over 60 steps, against the walls' fit's 1.1 and chi-square's 99 % quantile
-    of 88; the registrations that helped on the paper's piles summed 57-193 over 128-132 steps, with the walls'
-    fit at 21-243."""
-    s_new, n = drift_steps_chi2(x_new, step, comps)
-    if n == 0:
-        return True
-    s_old = drift_steps_chi2(x_old, step, comps)[0]
-    return math.sqrt(s_new) <= math.sqrt(s_old) + math.sqrt(chi2_quantile(level, n))
-
-
 def _height_again(b: Beams, x: np.ndarray, k: np.ndarray, f: np.ndarray, knots: np.ndarray, wall: np.ndarray,
                   voted: np.ndarray, storage: Storage, cell_m: float, step_z_m: float, noise: float, sensor_m: float,
                   max_error_m: float, n_significant: float, max_vertical_error_m: float,
@@ -1251,7 +1033,7 @@ def _height_again(b: Beams, x: np.ndarray, k: np.ndarray, f: np.ndarray, knots: 
     if (z is None or height_refused(z, knots, step_z_m, n_significant, max_vertical_error_m) is not None
             or floor_unconfirmed_note(z, confirmed, open_shift_m) is not None):
         return x, None, None, None, None, None
-    change = _rms(z - x[:, 2])
+    change = rms(z - x[:, 2])
     x_h[:, 2] = z
     return x_h, z_info, (f"the height solved again on the floor once the pile seen at different times aligned the "
                          f"flight ({change:.2f} m RMS change)"), (sigma[-1] if sigma else None), kept, (
@@ -1489,7 +1271,7 @@ def _registered(b: Beams, x: np.ndarray, knots: np.ndarray, k: np.ndarray, f: np
         x_h, info_h, gain_h, n_h = reg_h if reg_h is not None else (x_xy, info, 0.0, 0)
         if n_h > 0 and gain_h > needed(n_h):
             x_out, info_out = x_h, info_h
-            notes.append(f"the heading from the pile seen at different times ({math.degrees(_rms(x_h[:, 3])):.2f} deg "
+            notes.append(f"the heading from the pile seen at different times ({math.degrees(rms(x_h[:, 3])):.2f} deg "
                          "RMS)")
         elif reg_h is not None:  # said, so a surveyor knows an indoor heading's drift is still in the volume
             why = (f"does not show it off: fitting it gains {gain_h:.0f}, where fitting {n_h} knots to noise would "
@@ -1506,8 +1288,6 @@ MAX_PILE_SLOPE = 1.0
 SLOPE_ROUNDS = 3
 """Rounds of the height solution, each with the cells' slopes from the previous one's corrected heights (a
 slope fitted to uncorrected heights takes up the difference between two passes over a cell)."""
-MIN_CELL_POINTS = 3
-"""A cell's points in one knot interval give one height when there are at least this many."""
 
 
 def _flattened(p: np.ndarray, wall: np.ndarray, storage: Storage, cell_m: float, max_error_m: float,
@@ -1594,7 +1374,7 @@ def vertical_from_crossings(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wal
     a_cells = sparse.vstack([a_obs[:, n_knots:], a_pr[r + n_knots:, n_knots:]], format="csr")
     x_cells = irls_huber(a_cells, np.concatenate([b_obs, np.zeros(n_cells)]))
     r_none = a_obs[:, n_knots:] @ x_cells - b_obs
-    spread = max(1.0, _robust_rms(r_full))
+    spread = max(1.0, robust_rms(r_full))
     gain = 2.0 * float(np.sum(huber_loss(r_none / spread)) - np.sum(huber_loss(r_full / spread)))
     if significant_only and not gain > n_knots + n_significant * math.sqrt(2.0 * n_knots):
         return None, None
@@ -1629,7 +1409,7 @@ def crossings_misfit_m(p: np.ndarray, t: np.ndarray, knots: np.ndarray, z: np.nd
         return 0.0, 0.0
     _, cmed, _, _, _ = group_median(inv[again], med[again], med[again])
     _, back = np.unique(inv[again], return_inverse=True)
-    return _robust_rms(med[again] - cmed[back]), float(np.median(sd[again]))
+    return robust_rms(med[again] - cmed[back]), float(np.median(sd[again]))
 
 
 def screen_floor(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, floor: np.ndarray,
@@ -1801,7 +1581,7 @@ def between_times_scatter_m(cell: np.ndarray, med_m: np.ndarray) -> float:
     if not again.any():
         return 0.0
     _, cell_med, _, _, _ = group_median(inv, med_m, med_m)  # per cell (inv: 0 .. cells - 1)
-    return _robust_rms((med_m - cell_med[inv])[again])
+    return robust_rms((med_m - cell_med[inv])[again])
 
 
 def floor_half_width(lowest_m: np.ndarray, level_m: float, tol_m: float, noise_m: float, counts: np.ndarray) -> float:
@@ -1810,7 +1590,7 @@ def floor_half_width(lowest_m: np.ndarray, level_m: float, tol_m: float, noise_m
     (a floor is flat, so that is their own noise), never under BAND sd's of a typical height's median, never over
     tol (the crossings' spread, which on a pile's slopes under pointing noise reaches its toe)."""
     typical = noise_m / math.sqrt(max(float(np.median(counts)), 1.0)) if len(counts) else noise_m
-    scatter = _robust_rms(np.asarray(lowest_m) - level_m) if len(lowest_m) else 0.0
+    scatter = robust_rms(np.asarray(lowest_m) - level_m) if len(lowest_m) else 0.0
     return min(tol_m, BAND * max(scatter, typical))
 
 
@@ -1959,7 +1739,7 @@ def register_from_crossings(b: Beams, x: np.ndarray, x_wall: np.ndarray, knots: 
         a = sparse.vstack([a_obs, a_pr], format="csr")
         rhs = np.concatenate([b_obs, np.asarray(pb)])
         sol = irls_huber(a, rhs)
-        spread = max(1.0, _robust_rms(a_obs @ sol - b_obs))
+        spread = max(1.0, robust_rms(a_obs @ sol - b_obs))
         if spread > 1.0:
             a_obs, b_obs = a_obs / spread, b_obs / spread
             a = sparse.vstack([a_obs, a_pr], format="csr")

@@ -170,3 +170,9 @@ def knot_basis(t: np.ndarray, knots: np.ndarray) -> tuple[np.ndarray, np.ndarray
     k = np.clip(np.searchsorted(knots, t, side="right") - 1, 0, len(knots) - 2)
     f = np.clip((t - knots[k]) / (knots[k + 1] - knots[k]), 0.0, 1.0)
     return k, f
+
+
+MIN_VOTES = 10
+"""A plane's peak needs this many points in a knot interval (fewer: a few stray returns)."""
+MIN_CELL_POINTS = 3
+"""A cell's points in one knot interval give one height when there are at least this many."""

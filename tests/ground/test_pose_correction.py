@@ -16,27 +16,26 @@ from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, SampleFlags, new_reco
 from firmware_py.core.storage import Storage
 from ground.plane_stretches import along_planes, beams, placed_beams, stretch_floor_m
 from ground.pose_correction import (
-    PLANE_NAMES,
-    Component,
-    PoseCorrectionOptions,
     ambiguous_walls,
     apply_pose_correction,
+    crossings_misfit_m,
+    estimate_pose_correction,
+    level_sigma_m,
+    lever_shift,
+    pinned_to_floor,
+    planes,
+)
+from ground.pose_decisions import (
     chi2_quantile,
     crossings_brought_together,
-    crossings_misfit_m,
     draw_sd_m,
-    estimate_pose_correction,
     floor_brought_on,
     floor_is_level,
     is_drift,
     level_clear,
-    level_sigma_m,
-    lever_shift,
-    pinned_to_floor,
     plane_brought_on,
-    planes,
-    prior_sigmas,
 )
+from ground.pose_knots import PLANE_NAMES, Component, PoseCorrectionOptions, prior_sigmas
 from ground.pose_warnings import unconstrained_warning
 from ground.self_calibration import estimate_mount
 
