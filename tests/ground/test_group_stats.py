@@ -3,7 +3,7 @@
 
 import numpy as np
 
-from ground.group_stats import group_median, median_sd_m, medians_by_key, sorted_groups
+from ground.group_stats import group_median, median_sd_m, medians_by_key, rms, robust_rms, sorted_groups
 from ground.pose_correction import MIN_VOTES, PEAK_FRACTION, _peaks
 
 
@@ -42,6 +42,14 @@ def test_that_group_median_gives_each_groups_median_robust_spread_mean_time_and_
 def test_that_a_medians_sd_shrinks_with_its_count_and_is_never_below_the_noise():
     sd = median_sd_m(np.array([0.01, 0.0, 0.04]), np.array([4, 4, 16]), noise_m=0.02)
     assert np.allclose(sd, [1.25 * 0.02 / 2, 1.25 * 0.02 / 2, 1.25 * 0.04 / 4])
+
+
+def test_that_the_robust_rms_is_a_normal_scatters_sigma_and_ignores_a_gross_outlier_the_rms_does_not():
+    r = np.random.default_rng(4).normal(0.0, 0.05, 4000)
+    assert abs(rms(r) - 0.05) < 0.002 and abs(robust_rms(r) - 0.05) < 0.003
+    r[0] = 100.0
+    assert rms(r) > 1.0 and abs(robust_rms(r) - 0.05) < 0.003
+    assert rms(np.zeros(0)) == 0.0 and robust_rms(np.zeros(0)) == 0.0
 
 
 def _peaks_by_loop(h: np.ndarray) -> list[int]:
