@@ -56,6 +56,10 @@ follow leg by leg: where two numbers of the lever arm put the floor and walls on
 The registration on the pile seen twice may trade some of the walls' fit for the crossings', up to MAX_MISFIT times
 what the drift fit left; the height is solved again after it (`_height_again`).
 
+The pieces this module builds on: its planes, options and knots (`ground.pose_knots`), the no-harm decisions above
+(`ground.pose_decisions`), the robust sparse least squares of its linear fits (`ground.huber_lsq`); the report's words
+for what it did are `ground.pose_warnings`.
+
 With the mount's self-calibration (`ground.self_calibration`; item 3 of issue 15): the report calibrates
 the mount first, from the logged poses, and corrects the pose after, with the calibrated mount. The
 other order let the knots' shifts take up part of a constant mount error and the self-calibration then

@@ -23,7 +23,7 @@ BAND = 3.0
 HELD = 1e-9
 """A held component's absolute prior, as a fraction of the free one: it stays at zero."""
 KNOT_SWEEPS = 2.0
-"""Knot spacing in sweep periods (module docstring)."""
+"""Knot spacing in sweep periods (why two: `ground.pose_correction`'s module docstring)."""
 DRIFT_LEVEL = 0.99
 """A registration on the pile seen twice must leave a trajectory the drift model allows: its knot-to-knot steps, in
 the model's step sigmas, no larger in norm than the walls' fit's plus a drift's at this quantile of chi-square.
