@@ -73,6 +73,7 @@ from firmware_py.core.frames import (
 from firmware_py.core.servo_model import command_angles, servo_angles
 from firmware_py.core.storage import Storage
 from ground.blas_threads import one_blas_thread
+from ground.group_stats import robust_rms
 from ground.plane_stretches import beams, planes, stretches_along
 from ground.pose_correction import lever_shift
 from ground.pose_knots import knot_basis
@@ -529,7 +530,7 @@ class _DriftFit:
                 scale /= 2.0
             q, delta = np.clip(q + scale * d_q, lo, hi), delta + scale * d_delta
             jj, r_all = _assign(self.place(q, delta), n, d, BAND * w_idx, prob.allowed(idx))
-            kappa = _robust_rms(r_all[jj >= 0] / np.maximum(sigma[idx][jj >= 0], 1e-9))
+            kappa = robust_rms(r_all[jj >= 0] / np.maximum(sigma[idx][jj >= 0], 1e-9))
             final = np.maximum(kappa * sigma, 0.002)
             window = np.maximum(sigma, np.minimum(window, final))
             if scale * np.abs(d_delta).max() < 1e-3 and np.all(scale * np.abs(d_q) < 1e-5):
@@ -704,10 +705,6 @@ def _cluster_cov(jac: np.ndarray, u: np.ndarray, cluster: np.ndarray) -> np.ndar
     return cov
 
 
-def _robust_rms(r: np.ndarray) -> float:
-    return float(1.4826 * np.median(np.abs(r))) if len(r) else 0.0
-
-
 def _agreeing(prob: _Problem, q: np.ndarray, n: np.ndarray, d: np.ndarray, window: np.ndarray,
               idx: np.ndarray | slice = slice(None)) -> int:
     """How many points (of idx) lie within their window of a plane with the mount q."""
@@ -790,7 +787,7 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     q, j, r = _fit(prob, idx_all, n, d, start, [first])
     # The last window is what the data achieve, not the datasheet: the structure points' robust spread
     # in sensor sigmas (a simulated or a good sensor beats its datasheet), never under 2 mm.
-    kappa = _robust_rms(r[j >= 0] / np.maximum(sigma[j >= 0], 1e-9))
+    kappa = robust_rms(r[j >= 0] / np.maximum(sigma[j >= 0], 1e-9))
     final = np.maximum(kappa * sigma, 0.002)
     windows = [np.maximum(sigma, final), final]
     q, j, r = _fit(prob, idx_all, n, d, q, windows)
@@ -856,13 +853,13 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     # wall or a floor.
     k_on = np.flatnonzero(on)
     same = (np.diff(k_on) == 1) & (j[k_on[1:]] == j[k_on[:-1]])
-    noise_m = _robust_rms(np.diff(r[k_on])[same]) / math.sqrt(2.0) if same.any() else math.inf
+    noise_m = robust_rms(np.diff(r[k_on])[same]) / math.sqrt(2.0) if same.any() else math.inf
     # Nor may they stay farther off than the sensor's own datasheet error: scattered points (no
     # structure in the cloud at all) have neighbours as far apart as anything, so only this tells.
     floor_m = min(max(noise_m, 0.001), noise)
-    if _robust_rms(r[on]) > MAX_MISFIT * floor_m:
+    if robust_rms(r[on]) > MAX_MISFIT * floor_m:
         return not_estimated(f"the mounting model does not explain the floor and walls seen (their points stay "
-                             f"{_robust_rms(r[on]) * 100:.1f} cm off their planes against {floor_m * 100:.1f} cm of "
+                             f"{robust_rms(r[on]) * 100:.1f} cm off their planes against {floor_m * 100:.1f} cm of "
                              "noise)", counts, unexplained=True)
     matters = free & (np.abs(q) * reach > noise)
     # Standard errors: the same fit on every 8th sweep (whole sweeps share their errors); only needed
@@ -883,7 +880,7 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     applied = tuple(bool(m and abs(v) > N_SIGNIFICANT * e) for v, e, m in zip(q, se, matters, strict=True))
     # The same points, on the same planes, before the correction: what it changed.
     r0 = np.einsum("ij,ij->i", prob.points(q0, idx_all[on]), n[j[on]]) - d[j[on]]
-    rms_square, rms_fitted = _robust_rms(r0), _robust_rms(r[on])
+    rms_square, rms_fitted = robust_rms(r0), robust_rms(r[on])
     refused, lever_change = None, None
     if any(applied) and drift is None:
         # Every point's distance from its nearest plane with and without the correction, so the points

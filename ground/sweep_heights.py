@@ -22,7 +22,7 @@ import numpy as np
 
 from firmware_py.core.frames import Boresight, StorageFrame
 from firmware_py.core.storage import Storage
-from ground.group_stats import sorted_groups
+from ground.group_stats import rms, sorted_groups
 from ground.plane_stretches import placed_beams, stretch_floor_m, sweep_ids
 
 MIN_FLOOR_POINTS = 10
@@ -59,7 +59,7 @@ class SweepHeights:
         return np.interp(t, self.t_s, self.dz_m, left=0.0, right=0.0)
 
     def rms_m(self) -> float:
-        return float(np.sqrt(np.mean(np.square(self.dz_m)))) if len(self.dz_m) else 0.0
+        return rms(self.dz_m)
 
     def as_dict(self) -> dict:
         return {"sweeps_used": self.sweeps_used, "sweeps": self.sweeps, "shrink": self.shrink,
