@@ -37,7 +37,8 @@ CLOUD_FILE = "cloud.ply"
 MAX_CLOUD_BYTES = 1_000_000_000
 """Largest cloud read: a day's survey at 500 Hz is about 40 M points of 16 bytes (ground.report's PLY)."""
 BUILDING_TOLERANCE_M = 0.01
-"""The survey must be of the planned building: its dimensions agree to 1 cm (ground.surface_file's test)."""
+"""The survey must be of the planned building: its dimensions agree to 1 cm (the ground station's own tolerance,
+`ground.site_check.SITE_TOLERANCE_M`; the SITL reads the surface file without the ground station)."""
 
 
 @dataclass(frozen=True)
