@@ -7,7 +7,7 @@ the volume by that height times the whole building's floor area (every cell's he
 arm's z entered 0.2 m off read a 30 x 20 m survey 6.8 % low. The pose correction takes such an error out when its
 height brings the floor it rests on onto z = 0 by more than the floor's sightings scatter (each one knot interval's
 median in a cell), up from below always, down from above only where the floor is level and within the barometer's
-walk over the flight (`ground.pose_correction.floor_brought_on`); under a range or pointing noise of centimetres to
+walk over the flight (`ground.pose_decisions.floor_brought_on`); under a range or pointing noise of centimetres to
 decimetres a few centimetres do not pass that, and the walls, vertical, never see a height. What it leaves below
 z = 0 is this check's: the floor a few centimetres low lies within the points' tolerance of z = 0, so the surface
 keeps it as a slightly sunken floor.

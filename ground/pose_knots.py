@@ -144,6 +144,11 @@ def knot_times(t0_s: float, t1_s: float, spacing_s: float) -> np.ndarray:
     return t0_s + np.arange(n + 1) * ((t1_s - t0_s) / n if t1_s > t0_s else spacing_s)
 
 
+def median_spacing_s(knots: np.ndarray) -> float:
+    """The knots' typical spacing (0 for fewer than two)."""
+    return float(np.median(np.diff(knots))) if len(knots) > 1 else 0.0
+
+
 def prior_sigmas(spacing_s: float, speed_m_s: float, opts: PoseCorrectionOptions) -> np.ndarray:
     """(4,) the random-walk prior's sigma of one knot-to-knot change per component."""
     dist = speed_m_s * spacing_s
@@ -176,3 +181,5 @@ MIN_VOTES = 10
 """A plane's peak needs this many points in a knot interval (fewer: a few stray returns)."""
 MIN_CELL_POINTS = 3
 """A cell's points in one knot interval give one height when there are at least this many."""
+STRAY_FRACTION = 0.01
+"""Points beyond a plane a knot interval may hold by chance (glitches, multipath): 1 % of its points."""

@@ -34,14 +34,14 @@ each a scale of the error it describes, not yet a probability):
 - **level**: when the corrected trajectory's level rests on the logged altitude reference (no floor was
   seen, none the walls' feet confirm was kept, or the floor's height was refused), nothing in the data
   checks it: its error is the barometer's walk averaged over the flight
-  (``ground.pose_correction.level_sigma_m``) times the surfaced area. Not fitted: a Gaussian error of a
+  (``ground.pose_height.level_sigma_m``) times the surfaced area. Not fitted: a Gaussian error of a
   stated sigma, so its 90 % half-width is LEVEL_Z sigmas. (A level anchored on a floor seen only away
   from the walls has no level term: the report warns with the other reading's volume and interval,
   ``ground.volume_warnings.open_floor_warning``.)
 - **untied**: when the level rests on a floor but stretches of the flight saw neither that floor nor the same
   pile again on a pass that did, the height there rests on the pile seen from one moment to the next, and the data
   do not check the altitude reference's drift over the stretch: the walk pinned at the tied moments, averaged over
-  each stretch and weighted by its share of the flight (``ground.pose_correction.untied_sigma_m``), times the
+  each stretch and weighted by its share of the flight (``ground.pose_height.untied_sigma_m``), times the
   surfaced area. Not fitted either: LEVEL_Z sigmas.
 
 The interval combines them in quadrature with one scale factor each (``IntervalModel``). The

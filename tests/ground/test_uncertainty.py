@@ -501,7 +501,7 @@ def test_that_a_height_anchored_on_a_floor_the_walls_do_not_confirm_is_warned_ab
 
 
 def test_that_a_level_no_floor_pinned_widens_the_interval_by_its_stated_sigma_not_a_fitted_factor():
-    # The level's sigma is the drift model's (ground.pose_correction.level_sigma_m): a Gaussian error of that sigma
+    # The level's sigma is the drift model's (ground.pose_height.level_sigma_m): a Gaussian error of that sigma
     # has its 90 % two-sided half-width at the normal's 95th percentile, added in quadrature to the rest.
     model = IntervalModel(k_unseen=1, k_interpolation=2, k_noise=1, k_sweeps=1, k_faces=1)
     base = ErrorTerms(interpolation_m3=30.0, unseen_low_m3=10.0, unseen_high_m3=20.0)
