@@ -20,17 +20,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from firmware_py.app import (
-    DEFAULT_I2C_URL,
-    DEFAULT_MAVLINK_URL,
-    DEFAULT_PRESET,
-    DEFAULT_PWM_URL,
-    DEFAULT_RANGEFINDER,
-    DEFAULT_UART_URL,
-    PROG,
-    PayloadApp,
-    PayloadConfig,
-)
+from firmware_py.app import PROG, PayloadApp
 from firmware_py.core.cli import (
     ArgumentParser,
     ConfigTables,
@@ -65,6 +55,15 @@ from firmware_py.hal.pwm import check_pwm_url
 from firmware_py.hal.signing import SigningConfig
 from firmware_py.hal.uart import check_uart_url
 from firmware_py.log_room import check_destination, describe_room, room_s, room_warning
+from firmware_py.payload_config import (
+    DEFAULT_I2C_URL,
+    DEFAULT_MAVLINK_URL,
+    DEFAULT_PRESET,
+    DEFAULT_PWM_URL,
+    DEFAULT_RANGEFINDER,
+    DEFAULT_UART_URL,
+    PayloadConfig,
+)
 
 _HAL_RE = re.compile(r"sitl:(?P<host>[^\s:]+):(?P<port>\d{1,5})")
 

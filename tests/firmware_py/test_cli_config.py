@@ -12,13 +12,13 @@ from pathlib import Path
 
 import pytest
 
-from firmware_py.app import DEFAULT_PWM_URL
 from firmware_py.cli import CONFIG_OPTIONS, build_parser, config_from_args, expand_log_name, main
 from firmware_py.core.cli import ExitCode, parse_with_config
 from firmware_py.core.config_file import parse_config
 from firmware_py.core.frames import Boresight
 from firmware_py.core.header import LogHeader, header_boresight
 from firmware_py.core.servo_model import ServoCalibration
+from firmware_py.payload_config import DEFAULT_PWM_URL
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "examples" / "raspberry-pi.toml"

@@ -13,13 +13,13 @@ from hypothesis import HealthCheck, given
 from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from firmware_py import app as payload_app
 from firmware_py.cli import hal_urls
 from firmware_py.core.cli import UserError
 from firmware_py.core.storage import Storage
 from firmware_py.core.stream_format import parse_stream_url
 from firmware_py.hal import backends, bridge, check_i2c_addr, pwm
 from firmware_py.hal import mavlink_link as ml
+from firmware_py.payload_config import PayloadConfig
 from tests.fuzz_budget import budget
 
 SIM = find_spec("sitl") is not None  # False on the payload-only install (Raspberry Pi): those tests skip
@@ -287,5 +287,5 @@ def test_that_storage_sizes_parse_or_fail_in_one_line(text):
 @given(mavlink_url=urls, i2c_url=urls, pwm_url=urls, stream_url=st.one_of(st.none(), urls))
 def test_that_the_payload_config_refuses_bad_urls_with_one_value_error(mavlink_url, i2c_url, pwm_url, stream_url):
     """PayloadConfig checks the URLs it can before anything is opened (registered schemes are checked later)."""
-    parsed_or_value_error(payload_app.PayloadConfig, mavlink_url=mavlink_url, i2c_url=i2c_url, pwm_url=pwm_url,
+    parsed_or_value_error(PayloadConfig, mavlink_url=mavlink_url, i2c_url=i2c_url, pwm_url=pwm_url,
                           stream_url=stream_url)
