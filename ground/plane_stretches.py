@@ -42,6 +42,23 @@ def planes(storage: Storage) -> tuple[np.ndarray, np.ndarray]:
     return n, np.array([0.0, 0.0, storage.length_m, 0.0, storage.width_m])
 
 
+INSIDE_SIGN = np.array([1.0, 1.0, -1.0, 1.0, -1.0])
+"""Per plane (`planes`' order): the sign of n . p - d on the building's inside, where the pile is."""
+
+
+def nearest_plane(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: float | np.ndarray,
+                  allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(plane index, signed distance) of each point's nearest plane (n, d: `planes`), among those it may lie on when
+    allowed (N, 5) is given (its stretch of sweep runs along them: `stretches_along`); index -1 beyond the window
+    (one for all, or per point) or where no plane is allowed."""
+    dist = p @ n.T - d  # (N, 5)
+    if allowed is not None:
+        dist = np.where(allowed, dist, math.inf)
+    j = np.argmin(np.abs(dist), axis=1)
+    r = dist[np.arange(len(p)), j]
+    return np.where(np.abs(r) <= window, j, -1), r
+
+
 def usable(samples: np.ndarray) -> np.ndarray:
     """(N,) the samples `beams` keeps: every field it reads finite, a range, no flag that excludes it."""
     names = ("x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad", "servo_rad", "range_m", "t_s")

@@ -86,9 +86,11 @@ from firmware_py.core.storage import Storage
 from ground.crossing_cells import grid_cells, in_building
 from ground.group_stats import rms, robust_rms
 from ground.plane_stretches import (
+    INSIDE_SIGN,
     Beams,
     beams,
     body_axes_w,
+    nearest_plane,
     planes,
     stretch_floor_m,
     stretches_along,
@@ -272,20 +274,7 @@ def not_applied(reason: str, knots: np.ndarray | None = None, **kw) -> PoseCorre
     return PoseCorrection(k, np.zeros((len(k), 4)), np.zeros((len(k), 4), dtype=bool), False, reason, **kw)
 
 
-def _assign(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: float,
-            parallel: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(plane index, signed distance) of each point's nearest plane (among those its stretch of sweep runs
-    along, when given); index -1 beyond the window or along none."""
-    dist = p @ n.T - d
-    if parallel is not None:
-        dist = np.where(parallel, dist, math.inf)
-    j = np.argmin(np.abs(dist), axis=1)
-    r = dist[np.arange(len(p)), j]
-    return np.where(np.abs(r) <= window, j, -1), r
 
-
-INSIDE_SIGN = np.array([1.0, 1.0, -1.0, 1.0, -1.0])
-"""Per plane (PLANE_NAMES order): the sign of n . p - d on the building's inside, where the pile is."""
 PEAK_FRACTION = 0.1
 """A peak of the vote counts when it holds at least this fraction of the highest bin's points."""
 
@@ -581,7 +570,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     sensor_m = max(math.hypot(max(range_sigma_m, range_sigma_rel * rng_med), angle_sigma_rad * rng_med,
                               position_sigma_m), resolution_m)
     p0 = b.vehicle_w + b.to_point_w
-    j0, r0 = _assign(p0, n, d, opts.max_position_error_m, b.parallel)
+    j0, r0 = nearest_plane(p0, n, d, opts.max_position_error_m, b.parallel)
     # The data's noise comes from neighbouring samples, which share a pose message: a position error drawn per
     # message (the header's; Appendix A's 0.11 m) is not in it, yet it scatters the points about their planes
     # and no knot seconds apart can fit it (an error-free flight: 0.32 m of "correction" on 1 of 648 runs).
@@ -615,7 +604,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     # a flat part of the pile near where the floor would be must not pass for it.
     b = replace(b, parallel=b.parallel & found[k])
     final = 3.0 * noise
-    j_fit, _ = _assign(corrected_points(b, x, k, f)[0], n, d, BAND * sensor_m, b.parallel)
+    j_fit, _ = nearest_plane(corrected_points(b, x, k, f)[0], n, d, BAND * sensor_m, b.parallel)
     jf = np.maximum(j_fit, 0)
 
     def on_fit_planes(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -632,7 +621,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
             x, _ = _fit_round(b, k, f, n, d, x, window, prior, j_fit, bound)
             if window <= final:
                 break
-            _, r = _assign(corrected_points(b, x, k, f)[0], n, d, BAND * window, b.parallel)
+            _, r = nearest_plane(corrected_points(b, x, k, f)[0], n, d, BAND * window, b.parallel)
             on = j_fit >= 0
             window = max(final, min(window / 2.0, BAND * robust_rms(r[on]) if on.any() else window / 2.0))
         return x
@@ -749,7 +738,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     # The walls decide whether anything is applied (below), and the registration is anchored on them: when the
     # correction so far is too small to matter to them, the registration is not tried (it cost ~6 s on an
     # error-free 94k-sample log, which it never changed: docs/design-notes.md, 2026-11-28).
-    j_pre, _ = _assign(p0, n, d, BAND * sensor_m, b.parallel)
+    j_pre, _ = nearest_plane(p0, n, d, BAND * sensor_m, b.parallel)
     pre = (j_pre >= 0) | on
     jj_pre = np.where(j_pre >= 0, j_pre, j1)[pre]
     to_matter = matters(np.einsum("ij,ij->i", p0[pre], n[jj_pre]) - d[jj_pre], r1[on],
@@ -824,7 +813,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     # The points counted are those on a plane before the correction (the start's window) or after it, of
     # those whose stretch of sweep runs along the plane where the vote found it (so a pile pulled onto the
     # floor does not count as a gain).
-    j_before, _ = _assign(p0, n, d, BAND * sensor_m, b.parallel)
+    j_before, _ = nearest_plane(p0, n, d, BAND * sensor_m, b.parallel)
     both = (j_before >= 0) | on
     jj = np.where(j_before >= 0, j_before, j1)[both]
     r_before = np.einsum("ij,ij->i", p0[both], n[jj]) - d[jj]

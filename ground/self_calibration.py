@@ -74,7 +74,7 @@ from firmware_py.core.servo_model import command_angles, servo_angles
 from firmware_py.core.storage import Storage
 from ground.blas_threads import one_blas_thread
 from ground.group_stats import robust_rms
-from ground.plane_stretches import beams, planes, stretches_along
+from ground.plane_stretches import INSIDE_SIGN, beams, nearest_plane, planes, stretches_along
 from ground.pose_correction import lever_shift
 from ground.pose_knots import knot_basis
 from ground.servo_timing import Resimulated
@@ -313,18 +313,6 @@ class _Problem:
         return at, (None if slope is None else jac)
 
 
-def _assign(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: np.ndarray,
-            allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(plane index, signed distance) of each point's nearest plane, index -1 outside its window. allowed
-    (N, 5): the planes each point may lie on (`_Problem.along`); None: any."""
-    dist = p @ n.T - d  # (N, 5)
-    if allowed is not None:
-        dist = np.where(allowed, dist, np.inf)
-    j = np.argmin(np.abs(dist), axis=1)
-    r = dist[np.arange(len(p)), j]
-    j = np.where(np.abs(r) <= window, j, -1)
-    return j, r
-
 
 def _trim_inside(j: np.ndarray, r: np.ndarray, window: np.ndarray) -> np.ndarray:
     """j with each plane's band holding no more points inside the building than outside it: the inside's
@@ -343,8 +331,6 @@ def _trim_inside(j: np.ndarray, r: np.ndarray, window: np.ndarray) -> np.ndarray
     return out
 
 
-INSIDE_SIGN = np.array([1.0, 1.0, -1.0, 1.0, -1.0])
-"""Per plane (floor, x=0, x=L, y=0, y=W): the sign of n . p - d on the building's inside, where the pile is."""
 BAND = 3.0
 """A fit round takes the points within this many windows of their nearest plane."""
 
@@ -367,7 +353,7 @@ def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.n
     for window in windows:
         prob.angles.linearize(float(q[1]))
         w_idx = window[idx]
-        j, r_in = _assign(prob.points(q, idx), n, d, BAND * w_idx, prob.allowed(idx))
+        j, r_in = nearest_plane(prob.points(q, idx), n, d, BAND * w_idx, prob.allowed(idx))
         j = _trim_inside(j, r_in, w_idx)
         keep = j >= 0
         sel = idx[keep]
@@ -393,7 +379,7 @@ def _fit(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarray, q0: np.n
             q[free] = least_squares(resid, np.clip(q[free], lo, hi), jac="2-point" if jacobian is None else jac,
                                     loss="arctan", f_scale=1.0, bounds=(lo, hi),
                                     x_scale=np.full(int(free.sum()), 0.01), diff_step=1e-6, max_nfev=80).x
-    j, r = _assign(prob.points(q, idx), n, d, BAND * windows[-1][idx], prob.allowed(idx))
+    j, r = nearest_plane(prob.points(q, idx), n, d, BAND * windows[-1][idx], prob.allowed(idx))
     return q, j, r
 
 
@@ -510,13 +496,13 @@ class _DriftFit:
 
         def loss(qq: np.ndarray, dd: np.ndarray, w_idx: np.ndarray) -> float:
             # the arctan loss over every point (one beyond BAND windows of any plane counts as at BAND), the prior
-            u = _assign(self.place(qq, dd), n, d, np.full(len(idx), np.inf), prob.allowed(idx))[1] / w_idx
+            u = nearest_plane(self.place(qq, dd), n, d, np.full(len(idx), np.inf), prob.allowed(idx))[1] / w_idx
             return float(np.sum(np.arctan(np.minimum(u * u, BAND ** 2)))) + self._prior_loss(dd)
 
         for _ in range(DRIFT_ROUNDS):
             prob.angles.linearize(float(q[1]))
             w_idx = window[idx]
-            j, r = _assign(self.place(q, delta), n, d, BAND * w_idx, prob.allowed(idx))
+            j, r = nearest_plane(self.place(q, delta), n, d, BAND * w_idx, prob.allowed(idx))
             j = _trim_inside(j, r, w_idx)
             keep = np.flatnonzero(j >= 0)
             if len(keep) < 50:
@@ -529,7 +515,7 @@ class _DriftFit:
             while scale > 1.0 / 64 and loss(np.clip(q + scale * d_q, lo, hi), delta + scale * d_delta, w_idx) > before:
                 scale /= 2.0
             q, delta = np.clip(q + scale * d_q, lo, hi), delta + scale * d_delta
-            jj, r_all = _assign(self.place(q, delta), n, d, BAND * w_idx, prob.allowed(idx))
+            jj, r_all = nearest_plane(self.place(q, delta), n, d, BAND * w_idx, prob.allowed(idx))
             kappa = robust_rms(r_all[jj >= 0] / np.maximum(sigma[idx][jj >= 0], 1e-9))
             final = np.maximum(kappa * sigma, 0.002)
             window = np.maximum(sigma, np.minimum(window, final))
@@ -553,7 +539,7 @@ class _DriftFit:
         lo, hi = BOUNDS
         prob.angles.linearize(float(q[1]))
         w_idx = window[idx]
-        j, r = _assign(self.place(q, delta, idx), n, d, BAND * w_idx, prob.allowed(idx))
+        j, r = nearest_plane(self.place(q, delta, idx), n, d, BAND * w_idx, prob.allowed(idx))
         j = _trim_inside(j, r, w_idx)
         on = np.flatnonzero(j >= 0)
         if len(on) < 50:
@@ -621,7 +607,7 @@ def _fit_with_drift(prob: _Problem, idx: np.ndarray, n: np.ndarray, d: np.ndarra
         q, delta = q_held, delta_held
         if not moved:
             break
-    j, r = _assign(fit.place(q, delta), n, d, BAND * final[idx], prob.allowed(idx))
+    j, r = nearest_plane(fit.place(q, delta), n, d, BAND * final[idx], prob.allowed(idx))
     return q, j, r, final, fit, delta
 
 
@@ -709,7 +695,7 @@ def _agreeing(prob: _Problem, q: np.ndarray, n: np.ndarray, d: np.ndarray, windo
               idx: np.ndarray | slice = slice(None)) -> int:
     """How many points (of idx) lie within their window of a plane with the mount q."""
     prob.angles.linearize(float(q[1]))
-    return int(np.count_nonzero(_assign(prob.points(q, idx), n, d, window[idx], prob.allowed(idx))[0] >= 0))
+    return int(np.count_nonzero(nearest_plane(prob.points(q, idx), n, d, window[idx], prob.allowed(idx))[0] >= 0))
 
 
 def _jacobian(prob: _Problem, q: np.ndarray, idx: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -839,7 +825,7 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
             q, j, r = _fit(prob, idx_all, n, d, q, windows, free)
         else:  # the drift still fitted beside the mount
             q, delta = joint.held(q, delta, final, free=free)
-            j, r = _assign(joint.place(q, delta), n, d, BAND * final, prob.allowed())
+            j, r = nearest_plane(joint.place(q, delta), n, d, BAND * final, prob.allowed())
         on = j >= 0
     counts = tuple(int(np.count_nonzero(j == k)) for k in range(5))
     at_bound = free & (np.isclose(q, BOUNDS[0], rtol=0, atol=1e-6) | np.isclose(q, BOUNDS[1], rtol=0, atol=1e-6))
@@ -886,8 +872,8 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
         # Every point's distance from its nearest plane with and without the correction, so the points
         # either mount puts on the structure count (not only those the fitted one does).
         prob.angles.linearize(0.0)
-        r_square = _assign(prob.points(q0), n, d, final, prob.allowed())[1]
-        j_square = _assign(prob.points(q0), n, d, BAND * final, prob.allowed())[0]
+        r_square = nearest_plane(prob.points(q0), n, d, final, prob.allowed())[1]
+        j_square = nearest_plane(prob.points(q0), n, d, BAND * final, prob.allowed())[0]
         gain, gain_se = _misfit_gain(r_square / final, r / final, sweep)
         inside, inside_se = _inside_excess(j, r, sweep)
         inside_square, _ = _inside_excess(j_square, r_square, sweep)
@@ -1003,7 +989,7 @@ def plane_set_errors(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame,
     q = np.array(est.values, dtype=float)
     prob.angles.linearize(float(q[1]))
     window = 3.0 * max(est.rms_after_m, 0.002)
-    j, r = _assign(prob.points(q), n, d, np.full(len(s), window))
+    j, r = nearest_plane(prob.points(q), n, d, np.full(len(s), window))
     on = np.flatnonzero(j >= 0)
     jac = _jacobian(prob, q, on, n[j[on]]) / window
     u = r[on] / window
