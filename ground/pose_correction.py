@@ -196,7 +196,8 @@ class PoseCorrection:
     their planes: something else bends the structure (a mounting error). The report then fits the mount with a drift
     (`ground.self_calibration.DriftNuisance`) and tries again."""
     step_sigma: np.ndarray | None = None
-    """(4,) the knots' random-walk prior (`prior_sigmas`: x, y, z in m, heading in rad) when `unexplained`."""
+    """(4,) the knots' random-walk prior (`prior_sigmas`: x, y, z in m, heading in rad) when `unexplained` or applied:
+    the prior a mount fitted with a drift beside it uses (`ground.report`)."""
     drift_fit: np.ndarray | None = None
     """(knots, 4) what the drift model's fit found (to the floor and walls, and the pile seen twice), when
     `unexplained` (not applied: `values` stay zero). A start for the mount fitted with a drift: bent by the mount, it
@@ -904,11 +905,11 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                     f"them) as well as with a drifting pose ({drift_rms * 100:.1f} cm): a lever arm entered off, not a "
                     "drift")
             return PoseCorrection(knots, np.zeros_like(x), np.zeros_like(constrained), True, None,
-                                  lever_change_m=(float(dl[0]), float(dl[1])),
+                                  lever_change_m=(float(dl[0]), float(dl[1])), step_sigma=step,
                                   **{**common, "notes": (*common["notes"], note), "rms_after_m": lever_rms})
     # (a solve that failed numerically gives no term rather than a NaN interval)
     height_sigma = z_sigma[-1] if z_info is not None and z_sigma and math.isfinite(z_sigma[-1]) else None
-    return PoseCorrection(knots, x, constrained, True, None, height_sigma_m=height_sigma,
+    return PoseCorrection(knots, x, constrained, True, None, height_sigma_m=height_sigma, step_sigma=step,
                           level_sigma_m=(None if level_on_floor or opts.open_floor
                                          else level_sigma_m(opts.vertical_walk_m_per_sqrt_s, t1 - t0)),
                           open_floor_shift_m=(open_floor_shift if z_info is not None and open_floor_shift is not None

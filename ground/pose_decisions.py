@@ -229,3 +229,19 @@ def is_drift(x_new: np.ndarray, x_old: np.ndarray, step: np.ndarray, comps: tupl
         return True
     s_old = drift_steps_chi2(x_old, step, comps)[0]
     return math.sqrt(s_new) <= math.sqrt(s_old) + math.sqrt(chi2_quantile(level, n))
+
+
+def explains_more(structure_m: tuple[float, float], structure_noise_m: float, crossings_m: tuple[float, float],
+                  crossings_noise_m: float) -> bool:
+    """Whether the second of two corrections of one flight explains it better than the first: the floor and walls'
+    robust RMS off their planes (structure_m: first, second) and the pile seen at different times' disagreement with
+    itself (crossings_m, `ground.pose_height.crossings_misfit_m`), each squared in its own noise (a reduced
+    chi-square of each kind of evidence) and added. The two kinds see different mounting errors: the floor and walls
+    a servo's offset and scale and the LiDAR's tilt; the pile seen on passes flown in opposite directions a sweep
+    plane yawed off square, which moves each side's points along the track the other way and which the walls beside
+    the track do not see. Equal weights: neither is the other's better judge."""
+    def score(i: int) -> float:
+        return (structure_m[i] / structure_noise_m) ** 2 + (crossings_m[i] / crossings_noise_m) ** 2
+    if not (structure_noise_m > 0 and crossings_noise_m > 0):
+        return False
+    return score(1) < score(0)

@@ -38,7 +38,7 @@ from ground.floor_check import FloorLevel, floor_other_reading, measure_floor
 from ground.log_warnings import log_warnings, sensor_noise_line
 from ground.metadata import printable, sha256_of
 from ground.piles import PILES_CSV, write_piles_csv
-from ground.plane_stretches import Beams, placed_beams, stretch_floor_m
+from ground.plane_stretches import Beams, beams, nearest_plane, placed_beams, planes, stretch_floor_m
 from ground.plausibility import PlausibilityLimits, implausible, in_time, out_of_time, without_implausible
 from ground.pointcloud import N_SIGMA as FLOOR_N_SIGMA
 from ground.pointcloud import (
@@ -57,7 +57,9 @@ from ground.pose_correction import (
     estimate_pose_correction,
     with_closest_wall,
 )
-from ground.pose_knots import KNOT_SWEEPS, PoseCorrectionOptions
+from ground.pose_decisions import explains_more
+from ground.pose_height import crossings_misfit_m
+from ground.pose_knots import BAND, KNOT_SWEEPS, PoseCorrectionOptions, path_speed_m_s
 from ground.pose_source_check import autopilot_params, pose_source_line
 from ground.rangefinder_height import RangefinderShare, estimate_share
 from ground.report_figures import write_outputs
@@ -608,17 +610,57 @@ def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame:
                                       opts, err, mount, share_taken_out, pose)
             if joint is not None:
                 return joint
+        elif opts.self_calibration and pose.applied and est is not None and est.unexplained:
+            # The mount's fit refused because a drift bends the structure, and the drift's fit explained it alone: a
+            # mount error the knots took up as a drift (a LiDAR tilted 2 deg moves the points along the track, which
+            # the knots follow leg by leg; a sweep yawed 2 deg moves each side's points along the track the other
+            # way, which the walls beside the track do not see) passes so. The mount fitted with the drift beside it
+            # is kept when it explains the floor and walls and the pile seen twice better (`explains_more`).
+            plain = _Estimates(est, corrected, boresight, pose)
+            joint = _mount_with_drift(samples, samples if unlifted is None else unlifted, header, storage, frame, lever,
+                                      opts, err, mount, share_taken_out, replace(pose, drift_fit=pose.values))
+            if joint is not None and _explains_more(plain, joint, header, lever, frame, storage):
+                return joint
     return _Estimates(est, corrected, boresight, pose)
+
+
+def _crossings_misfit(e: _Estimates, header: dict, lever: np.ndarray, frame: StorageFrame,
+                      storage: Storage) -> tuple[float, float]:
+    """(misfit, noise) of the pile seen at different times on the estimates' corrected samples
+    (`crossings_misfit_m`), in cells of the pose correction's size (what the vehicle flies in a sweep period), the
+    points near a wall left out as the correction leaves them."""
+    pose = e.pose
+    placed = apply_pose_correction(e.samples, pose, frame)
+    b, _ = beams(placed, lever, frame, e.boresight)
+    p = b.vehicle_w + b.to_point_w
+    n, d = planes(storage)
+    j, _ = nearest_plane(p, n, d, BAND * pose.noise_m)
+    period = _sweep_period_s(header)
+    spacing = float(np.median(np.diff(pose.knot_t_s)))
+    speed = path_speed_m_s(b.t_s, b.vehicle_w, spacing)
+    cell_m = speed * (period or spacing / KNOT_SWEEPS)
+    return crossings_misfit_m(p, b.t_s, pose.knot_t_s, np.zeros(len(pose.knot_t_s)), j >= 1, storage, cell_m,
+                              PoseCorrectionOptions().max_position_error_m, pose.noise_m)
+
+
+def _explains_more(first: _Estimates, second: _Estimates, header: dict, lever: np.ndarray, frame: StorageFrame,
+                   storage: Storage) -> bool:
+    """Whether the second estimates (a mount and a pose) explain the flight better than the first (a pose alone):
+    the floor and walls' misfit and the pile seen at different times', each in its own noise (`explains_more`)."""
+    (c0, n0), (c1, n1) = (_crossings_misfit(e, header, lever, frame, storage) for e in (first, second))
+    noise = min(first.pose.noise_m, second.pose.noise_m)
+    return explains_more((first.pose.rms_after_m, second.pose.rms_after_m), noise, (c0, c1), min(n0, n1))
 
 
 def _mount_with_drift(samples: np.ndarray, unlifted: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
                       lever: np.ndarray, opts: ReportOptions, err: SensorErrorModel, mount: Boresight,
                       share_taken_out: bool, refused: PoseCorrection) -> _Estimates | None:
     """The mount fitted together with a drift of the trajectory (`DriftNuisance`, on the pose correction's knots and
-    prior), when neither explains the building alone: the mount's fit refused (a drift bends the structure), and the
-    drift's fit left it off its planes (a mount error does). The joint estimate is a proposal, used only when the
-    pose correction on the mount it gives is applied, with every check of its own (the drift model must now explain
-    the floor and walls). None: no proposal, or not confirmed.
+    prior), when the mount's fit refused (a drift bends the structure) and the drift's fit either left the structure
+    off its planes (a mount error does; `refused`) or explained it alone (its drift then is `refused.drift_fit`'s
+    start, and the caller keeps the result only if it explains the flight better: `_explains_more`). The joint
+    estimate is a proposal, used only when the pose correction on the mount it gives is applied, with every check of
+    its own (the drift model must now explain the floor and walls). None: no proposal, or not confirmed.
 
     The mount is fitted on the samples as logged (unlifted): the rangefinder's share taken out of their height
     (`_rangefinder_share`) was measured on a cloud the mount bent, and its errors follow the pile, which a drift's
