@@ -476,6 +476,21 @@ def test_that_a_drift_start_of_the_wrong_shape_is_refused():
         DriftNuisance(np.arange(4.0), np.ones(3), np.ones(3), np.zeros((3, 3)))
 
 
+def _assert_found_beside_the_drift(tmp_path, profile: str, fault: str, size: float, tolerance: float) -> None:
+    """(fault: a `FaultSpec` field in degrees, which report.json's self-calibration names alike.) A batch flight of the paper's pile 1 at 2 m/s (a fifth of a firmware flight's cost) on this drift with this one
+    mount fault: the report finds the fault within tolerance, fitted with the drift beside it, corrects the pose on it,
+    and reads within 1 %."""
+    cfg = FlyConfig(mission=Mission(p_traj=0.2, speed_m_s=2.0), stockpile="1", payload="batch", seed=0,
+                    pose_error=profile, faults=FaultSpec(**{fault: size}))
+    fly(cfg, tmp_path / "run", force=True, progress=lambda _m: None)
+    rep = make_report(tmp_path / "run", tmp_path / "rep", ReportOptions(plots=False))
+    cal = rep["self_calibration"]
+    assert cal["fitted_with_drift"] is True and cal[fault]["applied"], cal
+    assert abs(cal[fault]["estimate"] - size) < tolerance
+    assert rep["pose_correction"]["applied"] is True
+    assert abs(signed_error_pct(rep)) < 1.0
+
+
 def test_that_a_mount_proposed_beside_a_drift_is_judged_by_the_pose_correction_not_by_what_the_drift_leaves(tmp_path):
     """A servo 3 deg off on a `flow` flight over the paper's pile 1: the joint fit (the mount with a translation drift
     beside it) finds the offset and leaves the walls about 1 cm off their planes against 0.3 cm of noise, since the
@@ -485,15 +500,7 @@ def test_that_a_mount_proposed_beside_a_drift_is_judged_by_the_pose_correction_n
     -3.2 % here (the firmware's flights of seeds 0 and 1 over piles 1 and 2: -13.9 and -8.4 %). Measured: -0.50 %,
     the offset +3.07 +- 0.09 deg. The batch payload at 2 m/s: a fifth of a firmware flight's cost, and this flight's
     mount was refused as the firmware's were."""
-    cfg = FlyConfig(mission=Mission(p_traj=0.2, speed_m_s=2.0), stockpile="1", payload="batch", seed=0,
-                    pose_error="flow", faults=FaultSpec(servo_offset_deg=3.0))
-    fly(cfg, tmp_path / "run", force=True, progress=lambda _m: None)
-    rep = make_report(tmp_path / "run", tmp_path / "rep", ReportOptions(plots=False))
-    cal = rep["self_calibration"]
-    assert cal["fitted_with_drift"] is True and cal["servo_offset_deg"]["applied"]
-    assert abs(cal["servo_offset_deg"]["estimate"] - 3.0) < 0.2
-    assert rep["pose_correction"]["applied"] is True
-    assert abs(signed_error_pct(rep)) < 1.0
+    _assert_found_beside_the_drift(tmp_path, "flow", "servo_offset_deg", 3.0, 0.2)
 
 
 def test_that_a_sweep_yawed_off_square_that_the_drift_took_up_is_found_with_the_drift_beside_it(tmp_path):
@@ -503,15 +510,7 @@ def test_that_a_sweep_yawed_off_square_that_the_drift_took_up_is_found_with_the_
     drift beside it finds the yaw, and is kept because it explains the pile seen on opposite passes better at no cost
     on the floor and walls (`explains_more`). Before, the yaw was not found (Ve +0.57 %); measured: +2.11 deg, Ve
     +0.35 %."""
-    cfg = FlyConfig(mission=Mission(p_traj=0.2, speed_m_s=2.0), stockpile="1", payload="batch", seed=0,
-                    pose_error="vio", faults=FaultSpec(sweep_yaw_deg=2.0))
-    fly(cfg, tmp_path / "run", force=True, progress=lambda _m: None)
-    rep = make_report(tmp_path / "run", tmp_path / "rep", ReportOptions(plots=False))
-    cal = rep["self_calibration"]
-    assert cal["fitted_with_drift"] is True and cal["sweep_yaw_deg"]["applied"]
-    assert abs(cal["sweep_yaw_deg"]["estimate"] - 2.0) < 0.5
-    assert rep["pose_correction"]["applied"] is True
-    assert abs(signed_error_pct(rep)) < 1.0
+    _assert_found_beside_the_drift(tmp_path, "vio", "sweep_yaw_deg", 2.0, 0.5)
 
 
 def test_that_the_report_corrects_a_mount_fault_and_a_drift_together(drifting_runs, square_report, tmp_path,
