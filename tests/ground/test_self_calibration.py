@@ -477,9 +477,9 @@ def test_that_a_drift_start_of_the_wrong_shape_is_refused():
 
 
 def _assert_found_beside_the_drift(tmp_path, profile: str, fault: str, size: float, tolerance: float) -> None:
-    """(fault: a `FaultSpec` field in degrees, which report.json's self-calibration names alike.) A batch flight of the paper's pile 1 at 2 m/s (a fifth of a firmware flight's cost) on this drift with this one
-    mount fault: the report finds the fault within tolerance, fitted with the drift beside it, corrects the pose on it,
-    and reads within 1 %."""
+    """A batch flight of the paper's pile 1 at 2 m/s (a fifth of a firmware flight's cost) on this drift with this
+    one mount fault (a `FaultSpec` field in degrees, which report.json's self-calibration names alike): the report finds
+    the fault within tolerance, fitted with the drift beside it, corrects the pose on it, and reads within 1 %."""
     cfg = FlyConfig(mission=Mission(p_traj=0.2, speed_m_s=2.0), stockpile="1", payload="batch", seed=0,
                     pose_error=profile, faults=FaultSpec(**{fault: size}))
     fly(cfg, tmp_path / "run", force=True, progress=lambda _m: None)
