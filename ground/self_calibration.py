@@ -1036,8 +1036,8 @@ def describe(est: MountEstimate, base: Boresight = SQUARE) -> str:
         f" on top of the configured boresight ({math.degrees(base.tilt_rad):+.2f} deg tilt, "
         f"{math.degrees(base.sweep_yaw_rad):+.2f} deg sweep-plane yaw)")
     held = [name for name, o in zip(names, est.observable, strict=True) if not o]
-    drift = ("; fitted together with the pose's drift, as neither the mount nor the drift explained the floor and "
-             "walls alone" if est.with_drift else "")
+    drift = ("; fitted together with the pose's drift, as the mount alone did not explain the floor and walls (a "
+             "drift bends them)" if est.with_drift else "")
     return (f"self-calibration from the building applied: {', '.join(parts)}{on_top} (structure points off their "
             f"planes: {est.rms_before_m * 100:.1f} -> {est.rms_after_m * 100:.1f} cm RMS){drift}"
             + (f"; held square, as the structure seen does not constrain it: {', '.join(held)}" if held else ""))
