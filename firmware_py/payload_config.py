@@ -15,6 +15,7 @@ from typing import Any
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
 from firmware_py.core.geodesy import GeodeticPoint
 from firmware_py.core.header import build_log_header, sensor_spec
+from firmware_py.core.numbers import is_finite_number
 from firmware_py.core.pose_source import HEADER_KEY as POSE_SOURCE_KEY
 from firmware_py.core.sensor import Rangefinder
 from firmware_py.core.servo_model import PWM_FRAME_S, ServoCalibration
@@ -54,11 +55,6 @@ plane about it, fit for a building's neighbourhood; farther is a mistake (two di
 def _deg(rad: float) -> float:
     """Degrees as a person wrote them: 1.5, not the 1.5000000000000002 a round trip through radians gives."""
     return float(f"{math.degrees(rad):.12g}")
-
-
-def is_finite_number(v: Any) -> bool:
-    """A real number, finite (not a bool, NaN or infinity): what a numeric option must be."""
-    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
 
 
 @dataclass(frozen=True)

@@ -28,12 +28,12 @@ every later stage treats them as unusable without knowing why.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from firmware_py.core.frames import StorageFrame
+from firmware_py.core.numbers import is_finite_number
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
 from firmware_py.core.sensor_noise import stated_position_sigma_m
 from firmware_py.core.storage import Storage
@@ -85,7 +85,7 @@ class PlausibilityLimits:
 
 
 def _number(v: object) -> float | None:
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+    if not is_finite_number(v):
         return None
     return float(v)
 

@@ -9,7 +9,6 @@ before that, from the time-ordered samples (`ground.despike`), with a threshold 
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from statistics import NormalDist
@@ -17,6 +16,7 @@ from statistics import NormalDist
 import numpy as np
 
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_rays_w
+from firmware_py.core.numbers import is_finite_number
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
 from firmware_py.core.sensor_noise import (
     POSE_STREAM_HZ,
@@ -78,7 +78,7 @@ class SensorErrorModel:
                                               ("sensor", s, "resolution_m", 0.01, MAX_ERROR_M),
                                               ("pose", pose, "position_sigma_m", 0.0, MAX_ERROR_M)):
             v = d.get(name, default)
-            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or not 0 <= v <= most:
+            if not is_finite_number(v) or not 0 <= v <= most:
                 raise ValueError(f"log header {where}.{name} must be a number in [0, {most:g}], got {v!r}")
             values.append(float(v))
         # A simulated survey's noise record (firmware_py.core.sensor_noise) may state more than the spec:

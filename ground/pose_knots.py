@@ -10,6 +10,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from firmware_py.core.numbers import is_finite_number
 from firmware_py.core.waveform import MAX_FREQUENCY_HZ
 from ground.plane_stretches import MAX_HEADING_ERROR_RAD, Beams
 
@@ -107,7 +108,7 @@ class PoseCorrectionOptions:
                                                                                 "crossings_horizontal",
                                                                                 "crossings_heading", "open_floor"):
                 continue
-            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v <= 0:
+            if not is_finite_number(v) or v <= 0:
                 raise ValueError(f"pose correction option {f.name} must be a finite number > 0, got {v!r}")
 
 

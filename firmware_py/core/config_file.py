@@ -52,6 +52,7 @@ from typing import Any
 
 from firmware_py.core.geodesy import ALT_MAX_M, ALT_MIN_M
 from firmware_py.core.header import MAX_LEVER_ARM_M
+from firmware_py.core.numbers import is_number
 from firmware_py.core.safe_read import InputError, read_bounded
 from firmware_py.core.servo_model import ServoCalibration
 from firmware_py.core.stream_format import parse_stream_url
@@ -462,17 +463,13 @@ def _in_range(v: float, m: Mapping[str, Any]) -> bool:
 _URL_RE = re.compile(r"[a-z][a-z0-9+.-]*:\S+", re.ASCII)
 
 
-def _number(v: Any) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool)
-
-
 def _check_value(v: Any, m: Mapping[str, Any], base_dir: Path | None) -> tuple[Any, str | None]:
     """(typed value, None) or (None, what is wrong)."""
     kind: Kind = m["kind"]
     if kind in (Kind.NUMBER, Kind.INTEGER):
         if kind is Kind.INTEGER and not (isinstance(v, int) and not isinstance(v, bool)):
             return None, f"must be an integer, got {_describe(v)}"
-        if not _number(v):
+        if not is_number(v):
             return None, f"must be a number, got {_describe(v)}"
         if not math.isfinite(v):
             return None, f"must be a finite number, got {v}"
@@ -510,7 +507,7 @@ def _check_value(v: Any, m: Mapping[str, Any], base_dir: Path | None) -> tuple[A
             return None, f"must be an array of {n} numbers [{', '.join(names)}], got {_describe(v)}"
         out = []
         for name, x in zip(names, v, strict=True):
-            if not _number(x) or not math.isfinite(x):
+            if not is_number(x) or not math.isfinite(x):
                 return None, f"{name} must be a finite number, got {_describe(x)}"
             out.append(float(x))
         problem = _vector_problem(out, m)

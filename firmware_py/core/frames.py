@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from firmware_py.core.numbers import is_finite_number
+
 
 def rot_body_to_ned(roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
     """R_NED<-B for ZYX Euler angles; inputs broadcast, output shape (..., 3, 3)."""
@@ -77,7 +79,7 @@ class Boresight:
     def __post_init__(self) -> None:
         for name in ("tilt_rad", "sweep_yaw_rad"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or abs(v) > math.pi / 4:
+            if not is_finite_number(v) or abs(v) > math.pi / 4:
                 raise ValueError(f"boresight {name} must be a finite angle within +-45 deg, got {v!r}")
 
     @property

@@ -13,6 +13,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from firmware_py.core.numbers import is_finite_number
+
 EARTH_RADIUS_M = 6_378_137.0
 
 
@@ -79,7 +81,7 @@ class GeodeticPoint:
 
     def __post_init__(self) -> None:
         for name, v in (("latitude", self.lat_deg), ("longitude", self.lon_deg), ("altitude", self.alt_m)):
-            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            if not is_finite_number(v):
                 raise ValueError(f"{name} must be a finite number, got {v!r}")
         if not -90.0 < self.lat_deg < 90.0:
             raise ValueError(f"latitude must be between -90 and 90 deg (a pole has no east), got {self.lat_deg:g}")

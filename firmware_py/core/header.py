@@ -29,6 +29,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from firmware_py.core.frames import Boresight, StorageFrame
+from firmware_py.core.numbers import is_finite_number
 from firmware_py.core.sensor import LIDARLITE_V3, RangefinderSpec
 from firmware_py.core.servo_model import ServoCalibration
 from firmware_py.core.site import Site
@@ -176,7 +177,7 @@ class LogHeader:
     def __post_init__(self) -> None:
         lever = self.lever_arm_body_m
         if not (isinstance(lever, Sequence) and len(lever) == 3
-                and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in lever)):
+                and all(is_finite_number(v) for v in lever)):
             raise ValueError(f"lever arm must be 3 finite numbers, got {lever!r}")
         object.__setattr__(self, "lever_arm_body_m", tuple(float(v) for v in lever))
         if not isinstance(self.source, str) or not self.source:
@@ -283,7 +284,7 @@ def _mapping(d: Any, where: str) -> dict[str, Any]:
 
 def _number(d: dict[str, Any], key: str, where: str) -> float:
     v = d[key]
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+    if not is_finite_number(v):
         raise ValueError(f"log header {where}.{key} must be a finite number, got {v!r}")
     return float(v)
 

@@ -19,11 +19,12 @@ Standard library only: `firmware_py.core` is imported by every program, the payl
 from __future__ import annotations
 
 import json
-import math
 import os
 import stat
 from pathlib import Path
 from typing import Any
+
+from firmware_py.core.numbers import is_finite_number
 
 MAX_JSON_BYTES = 16 * 1024 * 1024
 """Largest JSON file read (truth.json, headers, reports are kilobytes; a mission of 10,000 waypoints
@@ -143,7 +144,7 @@ def json_object(value: Any, where: str) -> dict[str, Any]:
 def json_number(value: Any, where: str, *, minimum: float | None = None, positive: bool = False) -> float:
     """value as a finite float; JSON booleans are refused (True is not 1 m)."""
     kind = "a positive number" if positive else "a finite number"
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+    if not is_finite_number(value):
         raise InputError(f"{where} must be {kind}, got {_json_type(value)} {value!r}")
     v = float(value)
     if positive and v <= 0:

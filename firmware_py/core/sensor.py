@@ -8,12 +8,13 @@ instance, never a different set of constants scattered across the programs.
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, fields, replace
 from enum import Enum
 from typing import Any
 
 import numpy as np
+
+from firmware_py.core.numbers import is_finite_number, is_number
 
 SENSOR_KEYS = ("model", "rate_hz", "max_range_m", "resolution_m", "range_sigma_m", "range_sigma_rel",
                "beam_divergence_rad")
@@ -47,11 +48,11 @@ class RangefinderSpec:
             raise ValueError(f"sensor model must be a non-empty string, got {self.model!r}")
         for name in ("rate_hz", "max_range_m"):
             value = getattr(self, name)
-            if not (_is_number(value) and math.isfinite(value) and value > 0):
+            if not (is_finite_number(value) and value > 0):
                 raise ValueError(f"sensor {name} must be a finite number > 0, got {value!r}")
         for name in ("resolution_m", "range_sigma_m", "range_sigma_rel", "beam_divergence_rad"):
             value = getattr(self, name)
-            if not (_is_number(value) and math.isfinite(value) and value >= 0):
+            if not (is_finite_number(value) and value >= 0):
                 raise ValueError(f"sensor {name} must be a finite number >= 0, got {value!r}")
         for f in fields(self):
             if f.name != "model":
@@ -74,10 +75,6 @@ class RangefinderSpec:
     def with_(self, **changes: Any) -> RangefinderSpec:
         """A copy with some values changed (validated like a new spec)."""
         return replace(self, **changes)
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 LIDARLITE_V3 = RangefinderSpec(
@@ -162,11 +159,11 @@ class ReturnModel:
     def __post_init__(self) -> None:
         for name in ("reference_reflectance", "target_reflectance"):
             v = getattr(self, name)
-            if not (_is_number(v) and 0.0 < v <= 1.0):
+            if not (is_number(v) and 0.0 < v <= 1.0):
                 raise ValueError(f"{name} must be a number in (0, 1], got {v!r}")
-        if not (_is_number(self.dropout_ramp_rel) and 0.0 < self.dropout_ramp_rel <= 1.0):
+        if not (is_number(self.dropout_ramp_rel) and 0.0 < self.dropout_ramp_rel <= 1.0):
             raise ValueError(f"dropout_ramp_rel must be a number in (0, 1], got {self.dropout_ramp_rel!r}")
-        if not (_is_number(self.bias_m) and math.isfinite(self.bias_m) and abs(self.bias_m) <= 1.0):
+        if not (is_finite_number(self.bias_m) and abs(self.bias_m) <= 1.0):
             raise ValueError(f"bias_m must be a finite number within +-1 m, got {self.bias_m!r}")
 
     def effective_range_m(self, max_range_m: float, cos_incidence: np.ndarray | float = 1.0) -> np.ndarray:

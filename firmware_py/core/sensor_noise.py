@@ -24,6 +24,7 @@ from dataclasses import asdict, dataclass
 from enum import StrEnum
 from typing import Any
 
+from firmware_py.core.numbers import is_finite_number
 from firmware_py.core.sensor import RangefinderSpec, ReturnModel, return_model_for
 
 HEADER_KEY = "sensor_noise"
@@ -48,7 +49,7 @@ class AppendixANoise:
 
     def __post_init__(self) -> None:
         for name, v in asdict(self).items():
-            if isinstance(v, bool) or not isinstance(v, int | float) or not (math.isfinite(v) and v >= 0):
+            if not (is_finite_number(v) and v >= 0):
                 raise ValueError(f"noise {name} must be a finite number >= 0, got {v!r}")
 
 
@@ -167,7 +168,7 @@ class SensorNoise:
 
 def _number(d: dict[str, Any], key: str) -> float:
     v = d[key]
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+    if not is_finite_number(v):
         raise ValueError(f"log header sensor_noise.{key} must be a finite number, got {v!r}")
     return float(v)
 
@@ -180,7 +181,7 @@ def _stated(header: Any, key: str) -> float:
     if not isinstance(rec, dict):
         raise ValueError("log header sensor_noise must be a JSON object")
     v = rec.get(key, 0.0)
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
+    if not is_finite_number(v) or v < 0:
         raise ValueError(f"log header sensor_noise.{key} must be a finite number >= 0, got {v!r}")
     return float(v)
 
@@ -217,7 +218,7 @@ def describe_record(rec: Any) -> str:
 
     def num(key: str, scale: float = 1.0) -> str:
         v = rec.get(key)
-        ok = isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+        ok = is_finite_number(v)
         return f"{v * scale:.3g}" if ok else "?"
 
     model = rec.get("model")

@@ -22,6 +22,7 @@ from typing import Any
 
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.geodesy import GeodeticPoint
+from firmware_py.core.numbers import is_finite_number
 
 HEADING_LIMIT_DEG = 360.0
 """A heading is accepted within +-360 deg (so -90 and 270 both work); beyond that it is a typo."""
@@ -43,7 +44,7 @@ class Site:
         if not isinstance(self.corner, GeodeticPoint):
             raise ValueError(f"site corner must be a GeodeticPoint, got {self.corner!r}")
         h = self.heading_rad
-        if isinstance(h, bool) or not isinstance(h, int | float) or not math.isfinite(h) \
+        if not is_finite_number(h) \
                 or abs(h) > math.radians(HEADING_LIMIT_DEG):
             raise ValueError(f"heading must be a finite angle within +-{HEADING_LIMIT_DEG:g} deg, got {h!r} rad")
 
@@ -112,7 +113,7 @@ def site_difference(a: Site, b: Site) -> str | None:
 
 def check_heading_deg(heading_deg: float) -> float:
     """The heading, if finite and within +-HEADING_LIMIT_DEG; ValueError otherwise."""
-    if isinstance(heading_deg, bool) or not isinstance(heading_deg, int | float) or not math.isfinite(heading_deg):
+    if not is_finite_number(heading_deg):
         raise ValueError(f"heading must be a finite number of degrees, got {heading_deg!r}")
     if abs(heading_deg) > HEADING_LIMIT_DEG:
         raise ValueError(f"heading must be within +-{HEADING_LIMIT_DEG:g} deg, got {heading_deg:g}")

@@ -6,11 +6,12 @@ from it and the ground station removes walls and roof with it.
 
 from __future__ import annotations
 
-import math
 import re
 from dataclasses import dataclass
 
 import numpy as np
+
+from firmware_py.core.numbers import is_finite_number
 
 SURFACE_NAMES = ("the wall x = 0", "the wall x = L", "the wall y = 0", "the wall y = W", "the roof")
 """`Storage.nearest_surface`'s names, in its order."""
@@ -28,7 +29,7 @@ class Storage:
         for name in ("length_m", "width_m", "height_m"):
             v = getattr(self, name)
             # bool is an int to Python, but a JSON `true` is not 1 m: refuse it by type
-            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            if not (is_finite_number(v)
                     and 0.5 <= v <= 10_000):
                 raise ValueError(f"storage {name.removesuffix('_m')} must be 0.5-10000 m, got {v}")
 
