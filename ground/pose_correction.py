@@ -195,6 +195,10 @@ class PoseCorrection:
     """Not applied because the drift model, fitted, left the floor and walls more than MAX_MISFIT noise levels off
     their planes: something else bends the structure (a mounting error). The report then fits the mount with a drift
     (`ground.self_calibration.DriftNuisance`) and tries again."""
+    cell_m: float | None = None
+    """The side of the cells the pile seen at different times is compared in (what the vehicle flies in a sweep
+    period), when the fit got that far: a caller comparing two corrections' crossings (`ground.report`) uses the
+    same cells."""
     step_sigma: np.ndarray | None = None
     """(4,) the knots' random-walk prior (`prior_sigmas`: x, y, z in m, heading in rad) when `unexplained` or applied:
     the prior a mount fitted with a drift beside it uses (`ground.report`)."""
@@ -581,6 +585,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         return not_applied(f"the logged path does not move over the sweeps ({t1 - t0:.1f} s of samples): nothing "
                            "along a path to correct the pose from")
     step = prior_sigmas(spacing, speed, opts)
+    cell_m = speed * (period or spacing / KNOT_SWEEPS)  # what the vehicle flies in a sweep period
     absolute = np.array([opts.max_position_error_m] * 3 + [opts.max_heading_error_rad])
     held = np.array([False, False, not opts.vertical or opts.crossings, not opts.heading])
     absolute = np.where(held, absolute * HELD, absolute)  # a held component stays at zero
@@ -669,7 +674,6 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     # the crossings the walls' fit solves the height from the floor plane, when it saw one
     level_on_floor = opts.vertical and not opts.crossings and counts[0] > 0
     if opts.vertical and opts.crossings:
-        cell_m = speed * (period or spacing / KNOT_SWEEPS)
         # how far a floor seen only away from the walls may move the height (`_screen`): anywhere when the height
         # came from the rangefinder, else the barometer's walk over the flight (`PoseCorrectionOptions.open_floor`)
         open_shift = math.inf if opts.open_floor else opts.vertical_walk_m_per_sqrt_s * math.sqrt(t1 - t0)
@@ -824,7 +828,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     n_free = int(constrained.sum())
     needed = n_free + opts.n_significant * math.sqrt(2.0 * max(n_free, 1))
     common = dict(notes=tuple(notes), points=counts, rms_before_m=robust_rms(r_before),
-                  rms_after_m=robust_rms(r1[on]), noise_m=noise, gain=gain, gain_needed=needed)
+                  rms_after_m=robust_rms(r1[on]), noise_m=noise, gain=gain, gain_needed=needed, cell_m=cell_m)
     if drift_misfit > MAX_MISFIT * noise:
         return not_applied(f"not applied: the floor and walls stay {drift_misfit * 100:.1f} cm off their "
                            f"planes "

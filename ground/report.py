@@ -59,7 +59,7 @@ from ground.pose_correction import (
 )
 from ground.pose_decisions import explains_more
 from ground.pose_height import crossings_misfit_m
-from ground.pose_knots import BAND, KNOT_SWEEPS, PoseCorrectionOptions, path_speed_m_s
+from ground.pose_knots import BAND, KNOT_SWEEPS, PoseCorrectionOptions
 from ground.pose_source_check import autopilot_params, pose_source_line
 from ground.rangefinder_height import RangefinderShare, estimate_share
 from ground.report_figures import write_outputs
@@ -619,35 +619,35 @@ def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame:
             plain = _Estimates(est, corrected, boresight, pose)
             joint = _mount_with_drift(samples, samples if unlifted is None else unlifted, header, storage, frame, lever,
                                       opts, err, mount, share_taken_out, replace(pose, drift_fit=pose.values))
-            if joint is not None and _explains_more(plain, joint, header, lever, frame, storage):
+            if joint is not None and _explains_more(plain, joint, lever, frame, storage):
                 return joint
     return _Estimates(est, corrected, boresight, pose)
 
 
-def _crossings_misfit(e: _Estimates, header: dict, lever: np.ndarray, frame: StorageFrame,
-                      storage: Storage) -> tuple[float, float]:
+def _crossings_misfit(e: _Estimates, lever: np.ndarray, frame: StorageFrame, storage: Storage,
+                      cell_m: float) -> tuple[float, float]:
     """(misfit, noise) of the pile seen at different times on the estimates' corrected samples
-    (`crossings_misfit_m`), in cells of the pose correction's size (what the vehicle flies in a sweep period), the
-    points near a wall left out as the correction leaves them."""
+    (`crossings_misfit_m`), in cells of `cell_m`, the points near a wall left out as the correction leaves them."""
     pose = e.pose
     placed = apply_pose_correction(e.samples, pose, frame)
     b, _ = beams(placed, lever, frame, e.boresight)
     p = b.vehicle_w + b.to_point_w
     n, d = planes(storage)
     j, _ = nearest_plane(p, n, d, BAND * pose.noise_m)
-    period = _sweep_period_s(header)
-    spacing = float(np.median(np.diff(pose.knot_t_s)))
-    speed = path_speed_m_s(b.t_s, b.vehicle_w, spacing)
-    cell_m = speed * (period or spacing / KNOT_SWEEPS)
     return crossings_misfit_m(p, b.t_s, pose.knot_t_s, np.zeros(len(pose.knot_t_s)), j >= 1, storage, cell_m,
                               PoseCorrectionOptions().max_position_error_m, pose.noise_m)
 
 
-def _explains_more(first: _Estimates, second: _Estimates, header: dict, lever: np.ndarray, frame: StorageFrame,
+def _explains_more(first: _Estimates, second: _Estimates, lever: np.ndarray, frame: StorageFrame,
                    storage: Storage) -> bool:
     """Whether the second estimates (a mount and a pose) explain the flight better than the first (a pose alone):
-    the floor and walls' misfit and the pile seen at different times', each in its own noise (`explains_more`)."""
-    (c0, n0), (c1, n1) = (_crossings_misfit(e, header, lever, frame, storage) for e in (first, second))
+    the floor and walls' misfit and the pile seen at different times', each in its own noise (`explains_more`). Both
+    are compared in the first pose correction's cells (what the vehicle flies in a sweep period, as that correction
+    measured it), so the comparison is in one grid."""
+    cell_m = first.pose.cell_m or second.pose.cell_m
+    if cell_m is None or not cell_m > 0:
+        return False
+    (c0, n0), (c1, n1) = (_crossings_misfit(e, lever, frame, storage, cell_m) for e in (first, second))
     noise = min(first.pose.noise_m, second.pose.noise_m)
     return explains_more((first.pose.rms_after_m, second.pose.rms_after_m), noise, (c0, c1), min(n0, n1))
 

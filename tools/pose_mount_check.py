@@ -1,12 +1,14 @@
 """Do the mount self-calibration and the pose correction fight? (issue 15, item 3)
 
 Each flight is flown twice with the same drift (the same seed): once with a square mount, once with the servo 3 deg
-off, 5 % over-scaled and the LiDAR tilted 2 deg (the calibration campaign's "all three"). Both are reported as a user
+off, 5 % over-scaled and the LiDAR tilted 2 deg (the calibration campaign's "all three"; `--fault` flies others, one
+at a time or together, and `--sensor-noise` a noisy sensor on both). Both are reported as a user
 reports them (the self-calibration and the pose correction on), the faulted one also without the pose correction.
 What the self-calibration found and whether the pose correction was applied are in the table, and the faulted
 flight's Ve against its square twin's says whether the two corrections together undo the mount fault under a drift.
 
     python -m tools.pose_mount_check --seeds 0 1 2 --piles 1 2 --keep runs/pose-mount --write docs/pose_error.md
+    python -m tools.pose_mount_check --fault sweep_yaw_deg=2 --seeds 3 4 5 --profiles vio flow --keep runs/pm
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import tempfile
 from pathlib import Path
 
 from firmware_py.core.cli import ArgumentParser
+from firmware_py.core.sensor_noise import SensorNoiseModel
 from ground.report import ReportOptions, make_report
 from sitl.faults.injector import FaultSpec
 from sitl.missions.rectangle import Mission
@@ -26,19 +29,42 @@ from tools.doc_sections import write_section
 from tools.pose_correction_campaign import signed_error_pct
 
 MOUNT_FAULTS = {"servo_offset_deg": 3.0, "servo_scale_pct": 5.0, "boresight_deg": 2.0}
-FOUND = (("servo_offset_deg", "deg"), ("servo_scale", ""), ("boresight_tilt_deg", "deg"))
+"""The faults flown unless `--fault` names others: the calibration campaign's "all three"."""
+FOUND = (("servo_offset_deg", "deg"), ("servo_scale", ""), ("boresight_tilt_deg", "deg"), ("sweep_yaw_deg", "deg"))
+"""The self-calibration's parameters (report.json's keys) and their units."""
+FOUND_FOR = {"servo_offset_deg": "servo_offset_deg", "servo_scale_pct": "servo_scale",
+             "boresight_deg": "boresight_tilt_deg", "sweep_yaw_deg": "sweep_yaw_deg"}
+"""Which parameter the self-calibration finds each mount fault (`FaultSpec`'s field) as."""
+SHORT = {"servo_offset_deg": "offset", "servo_scale_pct": "scale", "boresight_deg": "tilt",
+         "sweep_yaw_deg": "sweep yaw"}
+FAULT_WORDS = {"servo_offset_deg": "the servo {:g} deg off", "servo_scale_pct": "the servo {:g} % over-scaled",
+               "boresight_deg": "the LiDAR tilted {:g} deg", "sweep_yaw_deg": "the sweep yawed {:g} deg"}
 PROFILES = ("none", "vio", "flow")
 SECTION = "pose-mount-table"
 TOLERANCE_PP = 0.3
 """A faulted flight counts as undone when its Ve is within this of its square twin's (issue 15's tolerance)."""
 
 
-def flight(work: Path, pile: str, p_traj_pct: int, profile: str, seed: int, faulted: bool) -> Path:
+def run_name(faulted: bool, faults: dict[str, float], noise: SensorNoiseModel, profile: str, pile: str,
+             p_traj_pct: int, seed: int) -> str:
+    """The run folder's name: what was flown (the default faults and no noise keep the names they always had, so a
+    kept folder is reused)."""
+    kind = "square"
+    if faulted:
+        named = "-".join(f"{k}{v:g}" for k, v in sorted(faults.items()))
+        kind = "mount" if faults == MOUNT_FAULTS else f"mount-{named}"
+    if noise is not SensorNoiseModel.NONE:
+        kind += f"-{noise.value}"
+    return f"{kind}-{profile}-{pile}-{p_traj_pct}-{seed}"
+
+
+def flight(work: Path, pile: str, p_traj_pct: int, profile: str, seed: int, faulted: bool,
+           faults: dict[str, float] = MOUNT_FAULTS, noise: SensorNoiseModel = SensorNoiseModel.NONE) -> Path:
     """The flight's run folder, flown unless it is already there (`--keep` reuses it)."""
-    run = work / f"{'mount' if faulted else 'square'}-{profile}-{pile}-{p_traj_pct}-{seed}"
+    run = work / run_name(faulted, faults, noise, profile, pile, p_traj_pct, seed)
     if not (run / "samples.pslog").is_file():
         cfg = FlyConfig(mission=Mission(p_traj=p_traj_pct / 100.0), stockpile=pile, payload="firmware", seed=seed,
-                        pose_error=profile, faults=FaultSpec(**MOUNT_FAULTS) if faulted else None)
+                        pose_error=profile, faults=FaultSpec(**faults) if faulted else None, sensor_noise=noise)
         fly(cfg, run, force=True, progress=lambda _m: None)
     return run
 
@@ -49,16 +75,18 @@ def report(run: Path, pose_correction: bool) -> dict:
                            force=True)
 
 
-def row(work: Path, pile: str, p_traj_pct: int, profile: str, seed: int) -> dict:
-    square = report(flight(work, pile, p_traj_pct, profile, seed, False), True)
-    run = flight(work, pile, p_traj_pct, profile, seed, True)
+def row(work: Path, pile: str, p_traj_pct: int, profile: str, seed: int, faults: dict[str, float] = MOUNT_FAULTS,
+        noise: SensorNoiseModel = SensorNoiseModel.NONE) -> dict:
+    square = report(flight(work, pile, p_traj_pct, profile, seed, False, faults, noise), True)
+    run = flight(work, pile, p_traj_pct, profile, seed, True, faults, noise)
     off, on = report(run, False), report(run, True)
     cal = on.get("self_calibration") or {}
     found = {k: (cal[k]["estimate"], bool(cal[k]["applied"])) for k, _ in FOUND if k in cal}
     return {"pile": pile, "p_traj": p_traj_pct, "profile": profile, "seed": seed,
             "ve_square": signed_error_pct(square), "ve_pose_off": signed_error_pct(off),
             "ve": signed_error_pct(on), "found": found,
-            "pose_applied": bool((on.get("pose_correction") or {}).get("applied"))}
+            "pose_applied": bool((on.get("pose_correction") or {}).get("applied")),
+            "in_interval": on.get("truth_in_interval")}
 
 
 def _found(found: dict) -> str:
@@ -71,35 +99,68 @@ def _found(found: dict) -> str:
     return " / ".join(one(k, u) for k, u in FOUND)
 
 
-def table(rows: list[dict], command: str) -> str:
+def _held(r: dict) -> str:
+    """Whether the faulted flight's 90 % volume interval holds the true volume ("-": the report gave none)."""
+    held = r.get("in_interval")
+    return "-" if held is None else ("yes" if held else "no")
+
+
+def faults_words(faults: dict[str, float]) -> str:
+    """The faults in words ("the servo 3 deg off, 5 % over-scaled and ..."), in `FAULT_WORDS`' order."""
+    words = [FAULT_WORDS[k].format(faults[k]) for k in FAULT_WORDS if k in faults]
+    return words[0] if len(words) == 1 else ", ".join(words[:-1]) + " and " + words[-1]
+
+
+def table(rows: list[dict], command: str, faults: dict[str, float] = MOUNT_FAULTS,
+          noise: SensorNoiseModel = SensorNoiseModel.NONE) -> str:
+    noisy = "no sensor noise" if noise is SensorNoiseModel.NONE else f"sensor noise `{noise.value}`"
     lines = [
-        f"The paper's building (60 x 40 x 15 m, 12 m, 1 m/s), payload firmware in the loop, no sensor noise. Each "
-        f"flight flown with a square mount and with the servo {MOUNT_FAULTS['servo_offset_deg']:g} deg off, "
-        f"{MOUNT_FAULTS['servo_scale_pct']:g} % over-scaled and the LiDAR tilted {MOUNT_FAULTS['boresight_deg']:g} "
-        "deg, the same drift (the seed); signed Ve (eq. 8) from `pilescan-ground report` (the self-calibration and "
-        "the pose correction on; \"pose off\": `--no-pose-correction`). Found: the self-calibration's servo offset / "
-        "scale / tilt, in brackets when not applied. Regenerated by `" + command + "`.",
+        f"The paper's building (60 x 40 x 15 m, 12 m, 1 m/s), payload firmware in the loop, {noisy}. Each flight "
+        f"flown with a square mount and with {faults_words(faults)}, the same drift (the seed); signed Ve (eq. 8) "
+        "from `pilescan-ground report` (the self-calibration and the pose correction on; \"pose off\": "
+        "`--no-pose-correction`). Found: the self-calibration's servo offset / scale / tilt / sweep yaw, in brackets "
+        "when not applied. Regenerated by `" + command + "`.",
         "",
         "| pile | P_traj | profile | seed | Ve, square mount (%) | Ve, faulted, pose off (%) | Ve, faulted (%) | "
-        "found | pose corrected | within " + f"{TOLERANCE_PP:g} pp of the square mount |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "found | pose corrected | within " + f"{TOLERANCE_PP:g} pp of the square mount | "
+        "90 % interval holds the truth |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         near = abs(r["ve"] - r["ve_square"]) <= TOLERANCE_PP
         lines.append(f"| {r['pile']} | {r['p_traj']} % | {r['profile']} | {r['seed']} | {r['ve_square']:+.2f} | "
                      f"{r['ve_pose_off']:+.2f} | {r['ve']:+.2f} | {_found(r['found'])} | "
-                     f"{'yes' if r['pose_applied'] else 'no'} | {'yes' if near else 'no'} |")
-    lines += ["", "| profile | flights | mount found and applied (offset, scale, tilt) | within "
-              f"{TOLERANCE_PP:g} pp | mean \\|Ve - square mount's\\| (pp) |", "|---|---|---|---|---|"]
+                     f"{'yes' if r['pose_applied'] else 'no'} | {'yes' if near else 'no'} | {_held(r)} |")
+    flown = [FOUND_FOR[k] for k in FAULT_WORDS if k in faults]
+    names = ", ".join(SHORT[k] for k in FAULT_WORDS if k in faults)
+    lines += ["", f"| profile | flights | mount found and applied ({names}) | within "
+              f"{TOLERANCE_PP:g} pp | mean \\|Ve - square mount's\\| (pp) | intervals holding the truth |",
+              "|---|---|---|---|---|---|"]
     for profile in PROFILES:
         rs = [r for r in rows if r["profile"] == profile]
         if not rs:
             continue
-        applied = sum(all(r["found"].get(k, (0, False))[1] for k, _ in FOUND) for r in rs)
+        applied = sum(all(r["found"].get(k, (0, False))[1] for k in flown) for r in rs)
         near = sum(abs(r["ve"] - r["ve_square"]) <= TOLERANCE_PP for r in rs)
         gap = statistics.fmean(abs(r["ve"] - r["ve_square"]) for r in rs)
-        lines.append(f"| {profile} | {len(rs)} | {applied}/{len(rs)} | {near}/{len(rs)} | {gap:.2f} |")
+        held = sum(r.get("in_interval") is True for r in rs)
+        n = len(rs)
+        lines.append(f"| {profile} | {n} | {applied}/{n} | {near}/{n} | {gap:.2f} | {held}/{n} |")
     return "\n".join(lines)
+
+
+def fault(text: str) -> tuple[str, float]:
+    """`--fault NAME=VALUE`: a mount fault (`FaultSpec`'s field) and its size."""
+    name, sep, value = text.partition("=")
+    if not sep or name not in FAULT_WORDS:
+        raise ValueError(f"expected NAME=VALUE with NAME one of {', '.join(FAULT_WORDS)}, got {text!r}")
+    try:
+        v = float(value)
+    except ValueError:
+        raise ValueError(f"{name}'s size must be a number, got {value!r}") from None
+    if not math.isfinite(v) or v == 0:
+        raise ValueError(f"{name}'s size must be a finite number other than 0, got {value!r}")
+    return name, v
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -109,11 +170,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--p-traj", type=int, default=20, help="P_traj [%%] (default 20)")
     ap.add_argument("--profiles", nargs="+", default=list(PROFILES), choices=PROFILES,
                     help="pose-error profiles (default: all three)")
+    ap.add_argument("--fault", action="append", default=None, metavar="NAME=VALUE",
+                    help="a mount fault to fly (again for more): " + ", ".join(f"{k}" for k in FAULT_WORDS)
+                    + " (default: " + " ".join(f"{k}={v:g}" for k, v in MOUNT_FAULTS.items()) + ")")
+    ap.add_argument("--sensor-noise", type=SensorNoiseModel, default=SensorNoiseModel.NONE,
+                    choices=list(SensorNoiseModel), help="the sensors' noise on every flight (default none)")
     ap.add_argument("--keep", type=Path, default=None, help="keep the runs in this folder (and reuse them)")
-    ap.add_argument("--write", type=Path, default=None, help=f"page whose {SECTION} section to rewrite")
+    ap.add_argument("--write", type=Path, default=None, help="page whose table section to rewrite")
+    ap.add_argument("--section", default=SECTION, help=f"the section's name (default {SECTION})")
     args = ap.parse_args(argv)
     if not 0 < args.p_traj < 100:
         ap.error(f"--p-traj must be between 0 and 100, got {args.p_traj}")
+    faults = dict(MOUNT_FAULTS)
+    if args.fault:
+        try:
+            faults = dict(fault(f) for f in args.fault)
+        except ValueError as e:
+            ap.error(f"--fault: {e}")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         work = args.keep or Path(tmp)
@@ -121,17 +194,24 @@ def main(argv: list[str] | None = None) -> int:
         for pile in args.piles:
             for profile in args.profiles:
                 for seed in args.seeds[:1] if profile == "none" else args.seeds:  # no drift: every seed flies alike
-                    r = row(work, pile, args.p_traj, profile, seed)
+                    r = row(work, pile, args.p_traj, profile, seed, faults, args.sensor_noise)
                     rows.append(r)
                     print(json.dumps({k: (round(v, 3) if isinstance(v, float) and math.isfinite(v) else v)
                                       for k, v in r.items()}), flush=True)
-    command = ("python -m tools.pose_mount_check --seeds " + " ".join(map(str, args.seeds)) + " --piles "
-               + " ".join(args.piles) + f" --p-traj {args.p_traj}" + (f" --keep {args.keep}" if args.keep else "")
-               + (f" --write {args.write}" if args.write else ""))
-    text = table(rows, command)
+    command = ("python -m tools.pose_mount_check "
+               + "".join(f"--fault {k}={v:g} " for k, v in faults.items() if args.fault)
+               + (f"--sensor-noise {args.sensor_noise.value} " if args.sensor_noise is not SensorNoiseModel.NONE
+                  else "")
+               + "--seeds " + " ".join(map(str, args.seeds)) + " --piles " + " ".join(args.piles)
+               + f" --p-traj {args.p_traj}"
+               + (" --profiles " + " ".join(args.profiles) if args.profiles != list(PROFILES) else "")
+               + (f" --keep {args.keep}" if args.keep else "")
+               + (f" --write {args.write}" if args.write else "")
+               + (f" --section {args.section}" if args.section != SECTION else ""))
+    text = table(rows, command, faults, args.sensor_noise)
     print(text)
     if args.write:
-        write_section(args.write, SECTION, text)
+        write_section(args.write, args.section, text)
     return 0
 
 

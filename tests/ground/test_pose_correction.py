@@ -161,6 +161,12 @@ def trajectory_rms_m(samples: np.ndarray, err: np.ndarray, corr) -> tuple[float,
             float(np.sqrt(np.mean(np.sum((corrected - true_w) ** 2, axis=1)))))
 
 
+def test_that_the_correction_says_the_cells_it_compared_the_pile_seen_twice_in(drifted):
+    # what the vehicle flies in a sweep period: a caller comparing two corrections' crossings uses the same cells
+    _samples, _err, corr = drifted
+    assert corr.cell_m == pytest.approx(SPEED * PERIOD_S, rel=0.05)
+
+
 def test_that_a_level_set_by_a_floor_the_walls_confirm_carries_no_level_term(drifted):
     _samples, _err, corr = drifted
     assert corr.applied and corr.level_sigma_m is None and corr.open_floor_shift_m is None, corr.notes
