@@ -200,8 +200,8 @@ class PoseCorrection:
     period), when the fit got that far: a caller comparing two corrections' crossings (`ground.report`) uses the
     same cells."""
     step_sigma: np.ndarray | None = None
-    """(4,) the knots' random-walk prior (`prior_sigmas`: x, y, z in m, heading in rad) when `unexplained` or applied:
-    the prior a mount fitted with a drift beside it uses (`ground.report`)."""
+    """(4,) the knots' random-walk prior (`prior_sigmas`: x, y, z in m, heading in rad), when the fit got that far: the
+    prior a mount fitted with a drift beside it uses (`ground.report`, when `unexplained` or applied)."""
     drift_fit: np.ndarray | None = None
     """(knots, 4) what the drift model's fit found (to the floor and walls, and the pile seen twice), when
     `unexplained` (not applied: `values` stay zero). A start for the mount fitted with a drift: bent by the mount, it
@@ -828,13 +828,14 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     n_free = int(constrained.sum())
     needed = n_free + opts.n_significant * math.sqrt(2.0 * max(n_free, 1))
     common = dict(notes=tuple(notes), points=counts, rms_before_m=robust_rms(r_before),
-                  rms_after_m=robust_rms(r1[on]), noise_m=noise, gain=gain, gain_needed=needed, cell_m=cell_m)
+                  rms_after_m=robust_rms(r1[on]), noise_m=noise, gain=gain, gain_needed=needed, cell_m=cell_m,
+                  step_sigma=step)
     if drift_misfit > MAX_MISFIT * noise:
         return not_applied(f"not applied: the floor and walls stay {drift_misfit * 100:.1f} cm off their "
                            f"planes "
                            f"after it, against {noise * 100:.1f} cm of noise: a drifting pose does not explain them "
                            "(a mounting error the self-calibration did not fit?)", knots, unexplained=True,
-                           step_sigma=step, drift_fit=x.copy(), **common)
+                           drift_fit=x.copy(), **common)
     # The floor the height rests on counts when the correction brings it up onto z = 0 (`floor_brought_on`): the
     # walls see no height and the fit's points hold no floor it moved, so a height off by a constant (a lever arm's z,
     # an altitude reference's offset) was "too small to matter" to them (measured: a flight whose only error was a
@@ -909,11 +910,11 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                     f"them) as well as with a drifting pose ({drift_rms * 100:.1f} cm): a lever arm entered off, not a "
                     "drift")
             return PoseCorrection(knots, np.zeros_like(x), np.zeros_like(constrained), True, None,
-                                  lever_change_m=(float(dl[0]), float(dl[1])), step_sigma=step,
+                                  lever_change_m=(float(dl[0]), float(dl[1])),
                                   **{**common, "notes": (*common["notes"], note), "rms_after_m": lever_rms})
     # (a solve that failed numerically gives no term rather than a NaN interval)
     height_sigma = z_sigma[-1] if z_info is not None and z_sigma and math.isfinite(z_sigma[-1]) else None
-    return PoseCorrection(knots, x, constrained, True, None, height_sigma_m=height_sigma, step_sigma=step,
+    return PoseCorrection(knots, x, constrained, True, None, height_sigma_m=height_sigma,
                           level_sigma_m=(None if level_on_floor or opts.open_floor
                                          else level_sigma_m(opts.vertical_walk_m_per_sqrt_s, t1 - t0)),
                           open_floor_shift_m=(open_floor_shift if z_info is not None and open_floor_shift is not None
