@@ -18,6 +18,7 @@ import math
 import statistics
 import tempfile
 from pathlib import Path
+from typing import NamedTuple
 
 from firmware_py.core.cli import ArgumentParser
 from firmware_py.core.sensor_noise import SensorNoiseModel
@@ -30,15 +31,27 @@ from tools.pose_correction_campaign import signed_error_pct
 
 MOUNT_FAULTS = {"servo_offset_deg": 3.0, "servo_scale_pct": 5.0, "boresight_deg": 2.0}
 """The faults flown unless `--fault` names others: the calibration campaign's "all three"."""
-FOUND = (("servo_offset_deg", "deg"), ("servo_scale", ""), ("boresight_tilt_deg", "deg"), ("sweep_yaw_deg", "deg"))
-"""The self-calibration's parameters (report.json's keys) and their units."""
-FOUND_FOR = {"servo_offset_deg": "servo_offset_deg", "servo_scale_pct": "servo_scale",
-             "boresight_deg": "boresight_tilt_deg", "sweep_yaw_deg": "sweep_yaw_deg"}
-"""Which parameter the self-calibration finds each mount fault (`FaultSpec`'s field) as."""
-SHORT = {"servo_offset_deg": "offset", "servo_scale_pct": "scale", "boresight_deg": "tilt",
-         "sweep_yaw_deg": "sweep yaw"}
-FAULT_WORDS = {"servo_offset_deg": "the servo {:g} deg off", "servo_scale_pct": "the servo {:g} % over-scaled",
-               "boresight_deg": "the LiDAR tilted {:g} deg", "sweep_yaw_deg": "the sweep yawed {:g} deg"}
+
+
+class MountFault(NamedTuple):
+    """A mount fault `--fault` can fly, by `FaultSpec`'s field: the self-calibration's parameter that finds it
+    (report.json's key) and its unit there ("%": a fraction, shown in percent), its short name and its words in the
+    table."""
+
+    found: str
+    unit: str
+    short: str
+    words: str
+
+
+FAULTS = {
+    "servo_offset_deg": MountFault("servo_offset_deg", "deg", "offset", "the servo {:g} deg off"),
+    "servo_scale_pct": MountFault("servo_scale", "%", "scale", "the servo {:g} % over-scaled"),
+    "boresight_deg": MountFault("boresight_tilt_deg", "deg", "tilt", "the LiDAR tilted {:g} deg"),
+    "sweep_yaw_deg": MountFault("sweep_yaw_deg", "deg", "sweep yaw", "the sweep yawed {:g} deg"),
+}
+"""The four mount faults, in the order the table names them."""
+
 PROFILES = ("none", "vio", "flow")
 SECTION = "pose-mount-table"
 TOLERANCE_PP = 0.3
@@ -81,7 +94,8 @@ def row(work: Path, pile: str, p_traj_pct: int, profile: str, seed: int, faults:
     run = flight(work, pile, p_traj_pct, profile, seed, True, faults, noise)
     off, on = report(run, False), report(run, True)
     cal = on.get("self_calibration") or {}
-    found = {k: (cal[k]["estimate"], bool(cal[k]["applied"])) for k, _ in FOUND if k in cal}
+    found = {f.found: (cal[f.found]["estimate"], bool(cal[f.found]["applied"])) for f in FAULTS.values()
+             if f.found in cal}
     return {"pile": pile, "p_traj": p_traj_pct, "profile": profile, "seed": seed,
             "ve_square": signed_error_pct(square), "ve_pose_off": signed_error_pct(off),
             "ve": signed_error_pct(on), "found": found,
@@ -90,13 +104,13 @@ def row(work: Path, pile: str, p_traj_pct: int, profile: str, seed: int, faults:
 
 
 def _found(found: dict) -> str:
-    def one(key: str, unit: str) -> str:
-        if key not in found:
+    def one(f: MountFault) -> str:
+        if f.found not in found:
             return "-"
-        v, applied = found[key]
-        text = f"{v * 100:+.2f} %" if key == "servo_scale" else f"{v:+.2f} {unit}"
+        v, applied = found[f.found]
+        text = f"{v * 100:+.2f} %" if f.unit == "%" else f"{v:+.2f} {f.unit}"
         return text if applied else f"({text})"
-    return " / ".join(one(k, u) for k, u in FOUND)
+    return " / ".join(one(f) for f in FAULTS.values())
 
 
 def _held(r: dict) -> str:
@@ -106,8 +120,8 @@ def _held(r: dict) -> str:
 
 
 def faults_words(faults: dict[str, float]) -> str:
-    """The faults in words ("the servo 3 deg off, 5 % over-scaled and ..."), in `FAULT_WORDS`' order."""
-    words = [FAULT_WORDS[k].format(faults[k]) for k in FAULT_WORDS if k in faults]
+    """The faults in words ("the servo 3 deg off, the servo 5 % over-scaled and ..."), in `FAULTS`' order."""
+    words = [f.words.format(faults[k]) for k, f in FAULTS.items() if k in faults]
     return words[0] if len(words) == 1 else ", ".join(words[:-1]) + " and " + words[-1]
 
 
@@ -131,8 +145,8 @@ def table(rows: list[dict], command: str, faults: dict[str, float] = MOUNT_FAULT
         lines.append(f"| {r['pile']} | {r['p_traj']} % | {r['profile']} | {r['seed']} | {r['ve_square']:+.2f} | "
                      f"{r['ve_pose_off']:+.2f} | {r['ve']:+.2f} | {_found(r['found'])} | "
                      f"{'yes' if r['pose_applied'] else 'no'} | {'yes' if near else 'no'} | {_held(r)} |")
-    flown = [FOUND_FOR[k] for k in FAULT_WORDS if k in faults]
-    names = ", ".join(SHORT[k] for k in FAULT_WORDS if k in faults)
+    flown = [f.found for k, f in FAULTS.items() if k in faults]
+    names = ", ".join(f.short for k, f in FAULTS.items() if k in faults)
     lines += ["", f"| profile | flights | mount found and applied ({names}) | within "
               f"{TOLERANCE_PP:g} pp | mean \\|Ve - square mount's\\| (pp) | intervals holding the truth |",
               "|---|---|---|---|---|---|"]
@@ -152,8 +166,8 @@ def table(rows: list[dict], command: str, faults: dict[str, float] = MOUNT_FAULT
 def fault(text: str) -> tuple[str, float]:
     """`--fault NAME=VALUE`: a mount fault (`FaultSpec`'s field) and its size."""
     name, sep, value = text.partition("=")
-    if not sep or name not in FAULT_WORDS:
-        raise ValueError(f"expected NAME=VALUE with NAME one of {', '.join(FAULT_WORDS)}, got {text!r}")
+    if not sep or name not in FAULTS:
+        raise ValueError(f"expected NAME=VALUE with NAME one of {', '.join(FAULTS)}, got {text!r}")
     try:
         v = float(value)
     except ValueError:
@@ -171,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--profiles", nargs="+", default=list(PROFILES), choices=PROFILES,
                     help="pose-error profiles (default: all three)")
     ap.add_argument("--fault", action="append", default=None, metavar="NAME=VALUE",
-                    help="a mount fault to fly (again for more): " + ", ".join(f"{k}" for k in FAULT_WORDS)
+                    help="a mount fault to fly (again for more): " + ", ".join(FAULTS)
                     + " (default: " + " ".join(f"{k}={v:g}" for k, v in MOUNT_FAULTS.items()) + ")")
     ap.add_argument("--sensor-noise", type=SensorNoiseModel, default=SensorNoiseModel.NONE,
                     choices=list(SensorNoiseModel), help="the sensors' noise on every flight (default none)")
