@@ -202,6 +202,10 @@ class PoseCorrection:
     step_sigma: np.ndarray | None = None
     """(4,) the knots' random-walk prior (`prior_sigmas`: x, y, z in m, heading in rad), when the fit got that far: the
     prior a mount fitted with a drift beside it uses (`ground.report`, when `unexplained` or applied)."""
+    drift_rms_m: float | None = None
+    """The floor and walls' robust RMS off their planes after the drift model's fit to them, before the registration
+    on the pile seen twice traded some of it (`rms_after_m` is after), when the fit got that far: how well a mount
+    and a drift explain the building, which a caller comparing two mounts reads (`ground.report`)."""
     drift_fit: np.ndarray | None = None
     """(knots, 4) what the drift model's fit found (to the floor and walls, and the pile seen twice), when
     `unexplained` (not applied: `values` stay zero). A start for the mount fitted with a drift: bent by the mount, it
@@ -525,6 +529,18 @@ def _noise_m(j: np.ndarray, r: np.ndarray, floor_m: float) -> float:
     return max(robust_rms(np.diff(r[on])[same]) / math.sqrt(2.0), floor_m)
 
 
+def heading_step_at_walls_m(b: Beams, plane: np.ndarray, step_rad: float) -> float:
+    """What the heading's prior lets it wander between two knots (a random walk's bridge: its RMS between knots is a
+    step over sqrt 6), seen at the walls' median horizontal range: how far off their planes a heading set within
+    that wander leaves the walls' points. plane: each point's plane (`PLANE_NAMES` order, -1: none); 0 without
+    wall points."""
+    wall = plane >= 1
+    if not wall.any() or not step_rad > 0:
+        return 0.0
+    reach_m = float(np.median(np.hypot(b.to_point_w[wall, 0], b.to_point_w[wall, 1])))
+    return reach_m * step_rad / math.sqrt(6.0)
+
+
 def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, storage: Storage,
                              resolution_m: float, range_sigma_m: float = 0.0, range_sigma_rel: float = 0.0,
                              angle_sigma_rad: float = 0.0, sweep_period_s: float | None = None,
@@ -765,8 +781,12 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
             # leaves them more than MAX_MISFIT times as far off as the drift fit did (or the noise, if more) is
             # dropped. (Against the noise alone, an ideal sensor's 0.3 cm range quantum, this refused registrations
             # that took two `flow` flights from 1.15 and 0.84 m of trajectory error to 0.09 m: docs/design-notes.md.)
+            # Nor against less than what the heading's prior lets it wander between two knots, seen at the walls'
+            # range: the registration sets the heading from the pile seen twice, which the walls see that much of
+            # (a LiDAR tilted 2 deg under a `flow` drift, the mount fitted beside the drift: the walls 0.6 cm off
+            # after the drift's fit, 1.9 cm after the registration that took the trajectory from 0.36 to 0.11 m).
             reg_misfit = misfit(x_reg)
-            if reg_misfit > MAX_MISFIT * max(noise, drift_misfit):
+            if reg_misfit > MAX_MISFIT * max(noise, drift_misfit, heading_step_at_walls_m(b, j1, step[3])):
                 notes.append(f"the position from the pile seen at different times was not used: it left the floor "
                              f"and walls {reg_misfit * 100:.1f} cm off their planes, against "
                              f"{drift_misfit * 100:.1f} cm without it")
@@ -829,7 +849,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     needed = n_free + opts.n_significant * math.sqrt(2.0 * max(n_free, 1))
     common = dict(notes=tuple(notes), points=counts, rms_before_m=robust_rms(r_before),
                   rms_after_m=robust_rms(r1[on]), noise_m=noise, gain=gain, gain_needed=needed, cell_m=cell_m,
-                  step_sigma=step)
+                  step_sigma=step, drift_rms_m=drift_misfit)
     if drift_misfit > MAX_MISFIT * noise:
         return not_applied(f"not applied: the floor and walls stay {drift_misfit * 100:.1f} cm off their "
                            f"planes "

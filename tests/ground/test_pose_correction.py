@@ -14,11 +14,12 @@ from scipy import sparse
 from firmware_py.core.frames import SQUARE, StorageFrame, beam_rays_w
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD, SampleFlags, new_records
 from firmware_py.core.storage import Storage
-from ground.plane_stretches import along_planes, beams, placed_beams, stretch_floor_m
+from ground.plane_stretches import Beams, along_planes, beams, placed_beams, stretch_floor_m
 from ground.pose_correction import (
     ambiguous_walls,
     apply_pose_correction,
     estimate_pose_correction,
+    heading_step_at_walls_m,
     level_sigma_m,
     lever_shift,
     planes,
@@ -165,6 +166,24 @@ def test_that_the_correction_says_the_cells_it_compared_the_pile_seen_twice_in(d
     # what the vehicle flies in a sweep period: a caller comparing two corrections' crossings uses the same cells
     _samples, _err, corr = drifted
     assert corr.cell_m == pytest.approx(SPEED * PERIOD_S, rel=0.05)
+
+
+def test_that_the_correction_says_how_far_off_the_drift_fit_left_the_floor_and_walls(drifted):
+    # before the registration on the pile seen twice traded some of it: a caller comparing two mounts reads it
+    _samples, _err, corr = drifted
+    assert corr.applied and corr.drift_rms_m is not None
+    assert 0 < corr.drift_rms_m < 3 * corr.noise_m
+
+
+def test_that_the_heading_s_wander_between_knots_is_seen_at_the_walls_range():
+    # a random walk's bridge between two knots has an RMS of a step over sqrt 6; a wall 8 m away sees it as 8 m times
+    # that; the floor's points (plane 0) and points on no plane (-1) do not count
+    to_point = np.array([[8.0, 0.0, -1.0], [0.0, -8.0, 3.0], [0.0, 0.0, -12.0], [30.0, 0.0, 0.0]])
+    b = Beams(np.arange(4.0), np.zeros((4, 3)), to_point)
+    step = math.radians(0.2)
+    assert heading_step_at_walls_m(b, np.array([1, 3, 0, -1]), step) == pytest.approx(8.0 * step / math.sqrt(6.0))
+    assert heading_step_at_walls_m(b, np.array([0, 0, 0, -1]), step) == 0.0
+    assert heading_step_at_walls_m(b, np.array([1, 3, 0, -1]), 0.0) == 0.0
 
 
 def test_that_a_level_set_by_a_floor_the_walls_confirm_carries_no_level_term(drifted):
@@ -737,7 +756,6 @@ def test_that_a_stretch_up_one_wall_in_a_diagonal_sweep_is_ambiguous_between_the
     # 4 m behind x = 0 and 3 m inside y = 0: the nearer plane was y = 0, which moved a `flow` flight's last knot
     # 0.85 m along its track. Within reach of both, the stretch is ambiguous: the vote's first round leaves it
     # out, and its second gives it to the wall it is nearest once the drift around it is known.
-    from ground.plane_stretches import Beams
     z = np.linspace(1.0, 11.0, 300)
     p = np.column_stack([np.full(300, -4.0), 3.0 + 0.01 * (z - 1.0), z])  # the wall x = 0, logged 4 m off
     vehicle = np.tile([11.9, 8.4, 13.0], (300, 1))
@@ -759,7 +777,6 @@ def test_that_the_vote_gives_an_ambiguous_stretch_to_the_wall_the_drift_around_i
     # x = 0 at y = 20 runs along that wall only; in the last the turn's diagonal sweep puts it at y = 3, along
     # x = 0 and y = 0, 4 m from the first and 3 m from the second as logged. The nearer as logged (y = 0) would move
     # the last knot 3 m along y; the drift the first three intervals show moves it onto x = 0.
-    from ground.plane_stretches import Beams
     from ground.pose_correction import _vote
     z = np.linspace(1.0, 11.0, 200)
     ys = (20.0, 20.0, 20.0, 3.0)
