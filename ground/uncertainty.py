@@ -92,8 +92,8 @@ class ErrorTerms:
 
 
 # --- calibrated pose factor (tools/calibrate_pose_interval.py --write-model) ---
-POSE_FACTOR = 6.95002422210971
-POSE_FACTOR_SOURCE = 'fitted on 38 drifting flights (tools/calibrate_pose_interval.py, 2026-12-05)'
+POSE_FACTOR = 6.953366151617167
+POSE_FACTOR_SOURCE = 'fitted on 38 drifting flights (tools/calibrate_pose_interval.py, 2026-12-06)'
 # --- end of calibrated pose factor ---
 
 
