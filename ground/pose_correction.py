@@ -204,8 +204,9 @@ class PoseCorrection:
     prior a mount fitted with a drift beside it uses (`ground.report`, when `unexplained` or applied)."""
     drift_rms_m: float | None = None
     """The floor and walls' robust RMS off their planes after the drift model's fit to them, before the registration
-    on the pile seen twice traded some of it (`rms_after_m` is after), when the fit got that far: how well a mount
-    and a drift explain the building, which a caller comparing two mounts reads (`ground.report`)."""
+    on the pile seen twice traded some of it (`rms_after_m` is after; with a lever arm applied in place of the knots,
+    the lever arm's), when the fit got that far: how well a mount and a drift explain the building, which a caller
+    comparing two mounts reads (`ground.report`)."""
     drift_fit: np.ndarray | None = None
     """(knots, 4) what the drift model's fit found (to the floor and walls, and the pile seen twice), when
     `unexplained` (not applied: `values` stay zero). A start for the mount fitted with a drift: bent by the mount, it
@@ -931,7 +932,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
                     "drift")
             return PoseCorrection(knots, np.zeros_like(x), np.zeros_like(constrained), True, None,
                                   lever_change_m=(float(dl[0]), float(dl[1])),
-                                  **{**common, "notes": (*common["notes"], note), "rms_after_m": lever_rms})
+                                  **{**common, "notes": (*common["notes"], note), "rms_after_m": lever_rms,
+                                     "drift_rms_m": lever_rms})  # no drift applied: the lever arm is what explains
     # (a solve that failed numerically gives no term rather than a NaN interval)
     height_sigma = z_sigma[-1] if z_info is not None and z_sigma and math.isfinite(z_sigma[-1]) else None
     return PoseCorrection(knots, x, constrained, True, None, height_sigma_m=height_sigma,
