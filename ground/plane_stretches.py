@@ -18,6 +18,7 @@ import numpy as np
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_rays_w, premultiply, rot_body_to_ned
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
 from firmware_py.core.storage import Storage
+from ground.group_stats import robust_rms
 
 
 @dataclass(frozen=True)
@@ -44,6 +45,18 @@ def planes(storage: Storage) -> tuple[np.ndarray, np.ndarray]:
 
 INSIDE_SIGN = np.array([1.0, 1.0, -1.0, 1.0, -1.0])
 """Per plane (`planes`' order): the sign of n . p - d on the building's inside, where the pile is."""
+
+
+def neighbour_noise_m(plane: np.ndarray, r: np.ndarray) -> float | None:
+    """The points' noise along their planes' normals, from consecutive samples on one plane (an error of the pose or
+    the mount moves neighbours alike, so their difference is the noise): the robust RMS of those differences over
+    sqrt 2. plane: each point's plane (-1: none); r: its signed distance from it. None: no two consecutive samples
+    share a plane."""
+    on = np.flatnonzero(plane >= 0)
+    same = (np.diff(on) == 1) & (plane[on[1:]] == plane[on[:-1]])
+    if not same.any():
+        return None
+    return robust_rms(np.diff(r[on])[same]) / math.sqrt(2.0)
 
 
 def nearest_plane(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: float | np.ndarray,

@@ -91,6 +91,7 @@ from ground.plane_stretches import (
     beams,
     body_axes_w,
     nearest_plane,
+    neighbour_noise_m,
     planes,
     stretch_floor_m,
     stretches_along,
@@ -523,11 +524,8 @@ def _soft_l1_linear(a: sparse.csr_matrix, r0: np.ndarray, x0: np.ndarray, free: 
 def _noise_m(j: np.ndarray, r: np.ndarray, floor_m: float) -> float:
     """The structure's noise along its normals: consecutive samples on one plane (a pose error moves
     neighbours alike, so their difference is the noise), never under floor_m."""
-    on = np.flatnonzero(j >= 0)
-    same = (np.diff(on) == 1) & (j[on[1:]] == j[on[:-1]])
-    if not same.any():
-        return floor_m
-    return max(robust_rms(np.diff(r[on])[same]) / math.sqrt(2.0), floor_m)
+    noise_m = neighbour_noise_m(j, r)
+    return floor_m if noise_m is None else max(noise_m, floor_m)
 
 
 def heading_step_at_walls_m(b: Beams, plane: np.ndarray, step_rad: float) -> float:

@@ -74,7 +74,7 @@ from firmware_py.core.servo_model import command_angles, servo_angles
 from firmware_py.core.storage import Storage
 from ground.blas_threads import one_blas_thread
 from ground.group_stats import robust_rms
-from ground.plane_stretches import INSIDE_SIGN, beams, nearest_plane, planes, stretches_along
+from ground.plane_stretches import INSIDE_SIGN, beams, nearest_plane, neighbour_noise_m, planes, stretches_along
 from ground.pose_correction import lever_shift
 from ground.pose_knots import knot_basis
 from ground.servo_timing import Resimulated
@@ -723,18 +723,15 @@ def _along(s: np.ndarray, lever_arm_body_m, frame: StorageFrame, boresight: Bore
     return stretches_along(b, sweep_dir, n, range_sigma_m, range_sigma_rel, angle_sigma_rad, 1e-3, position_sigma_m)
 
 
-def _off_planes(r: np.ndarray, j: np.ndarray, on: np.ndarray, noise: float) -> str | None:
-    """Whether the fitted mount leaves the structure off its planes, and by how much (words); None if it does not.
-    Its residual spread against the data's own noise, read off consecutive samples on the same plane (a mounting
-    error moves neighbours alike, so their difference is the noise): a fit that leaves much more than the noise has
-    explained a pile as a wall or a floor. Nor may they stay farther off than the sensor's own datasheet error
-    (`noise`): scattered points (no structure in the cloud at all) have neighbours as far apart as anything, so only
-    this tells."""
-    k_on = np.flatnonzero(on)
-    same = (np.diff(k_on) == 1) & (j[k_on[1:]] == j[k_on[:-1]])
-    noise_m = robust_rms(np.diff(r[k_on])[same]) / math.sqrt(2.0) if same.any() else math.inf
-    floor_m = min(max(noise_m, 0.001), noise)
-    spread_m = robust_rms(r[on])
+def _off_planes(r: np.ndarray, j: np.ndarray, noise: float) -> str | None:
+    """Whether the fitted mount leaves the structure (the points with a plane, j >= 0) off its planes, and by how
+    much (words); None if it does not. Its residual spread against the data's own noise, read off consecutive samples
+    on the same plane (`neighbour_noise_m`): a fit that leaves much more than the noise has explained a pile as a
+    wall or a floor. Nor may they stay farther off than the sensor's own datasheet error (`noise`): scattered points
+    (no structure in the cloud at all) have neighbours as far apart as anything, so only this tells."""
+    noise_m = neighbour_noise_m(j, r)
+    floor_m = noise if noise_m is None else min(max(noise_m, 0.001), noise)
+    spread_m = robust_rms(r[j >= 0])
     if spread_m > MAX_MISFIT * floor_m:
         return f"their points stay {spread_m * 100:.1f} cm off their planes against {floor_m * 100:.1f} cm of noise"
     return None
@@ -837,7 +834,7 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
             # Weak because the structure stays off its planes (the spread the covariance is read from is a drift's
             # bending, not the noise) is the unexplained case, not a building that shows the mount too little: a
             # LiDAR tilted 2 deg under a `vio` drift over pile 2 was refused so and never fitted beside the drift.
-            off = None if drift is not None else _off_planes(r, j, on, noise)
+            off = None if drift is not None else _off_planes(r, j, noise)
             counts = tuple(int(np.count_nonzero(j == k)) for k in range(5))
             return not_estimated("the floor and walls seen constrain none of the mounting's parameters well "
                                  "enough to tell a deviation that matters" + ("" if off is None else f" ({off})"),
@@ -861,7 +858,7 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     # mount; the pose correction on the mount proposed judges them, with a heading of its own (a `flow` flight with
     # the servo 3 deg off: the joint fit found +2.99 deg and left the walls 0.9 cm off against 0.3 cm of noise;
     # refused here, the report kept neither and read 13.9 % low).
-    off = None if drift is not None else _off_planes(r, j, on, noise)
+    off = None if drift is not None else _off_planes(r, j, noise)
     if off is not None:
         return not_estimated(f"the mounting model does not explain the floor and walls seen ({off})", counts,
                              unexplained=True)

@@ -4,9 +4,10 @@ mount's self-calibration both assign points with."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from firmware_py.core.storage import Storage
-from ground.plane_stretches import INSIDE_SIGN, nearest_plane, planes
+from ground.plane_stretches import INSIDE_SIGN, nearest_plane, neighbour_noise_m, planes
 
 STORAGE = Storage(60.0, 40.0, 15.0)
 
@@ -37,3 +38,13 @@ def test_that_each_point_gets_its_nearest_plane_within_the_window_and_only_among
     allowed[0] = False
     j, r = nearest_plane(p, n, d, 0.05, allowed)
     assert j.tolist() == [-1, 2, -1, 3] and r[3] == 0.02
+
+
+def test_that_the_noise_is_read_off_neighbours_on_one_plane_whatever_moves_them_alike():
+    # a common offset of 5 cm (a pose or mount error) on a plane's points is not noise; their scatter is
+    rng = np.random.default_rng(0)
+    r = 0.05 + rng.normal(0.0, 0.002, 4000)
+    plane = np.repeat([1, 2], 2000)
+    assert neighbour_noise_m(plane, r) == pytest.approx(0.002, rel=0.1)
+    # neighbours on different planes, or one off every plane, are no pair: with no pair left, nothing is measured
+    assert neighbour_noise_m(np.array([0, -1, 1, -1, 2]), np.array([0.0, 1.0, 2.0, 3.0, 4.0])) is None
