@@ -785,10 +785,11 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
             # (a LiDAR tilted 2 deg under a `flow` drift, the mount fitted beside the drift: the walls 0.6 cm off
             # after the drift's fit, 1.9 cm after the registration that took the trajectory from 0.36 to 0.11 m).
             reg_misfit = misfit(x_reg)
-            if reg_misfit > MAX_MISFIT * max(noise, drift_misfit, heading_step_at_walls_m(b, j1, step[3])):
+            bound = MAX_MISFIT * max(noise, drift_misfit, heading_step_at_walls_m(b, j1, step[3]))
+            if reg_misfit > bound:
                 notes.append(f"the position from the pile seen at different times was not used: it left the floor "
-                             f"and walls {reg_misfit * 100:.1f} cm off their planes, against "
-                             f"{drift_misfit * 100:.1f} cm without it")
+                             f"and walls {reg_misfit * 100:.1f} cm off their planes, more than the "
+                             f"{bound * 100:.1f} cm allowed ({drift_misfit * 100:.1f} cm without it)")
                 cross_info, cross_notes = None, []
             else:
                 x = x_reg

@@ -126,6 +126,9 @@ class MountEstimate:
         with_drift: fitted together with a drift of the trajectory (`DriftNuisance`): a proposal, made where neither
             the mount nor the pose explained the building alone, and said so in the report (a tilt traded against an
             along-track drift is less certain than one seen on a steady pose).
+        held: which parameters the caller held as configured (`estimate_mount`'s `held`), not estimated: beside a
+            drift, the report holds the boresight when the flight is explained as well without it
+            (`ground.report`).
     """
 
     values: tuple[float, float, float, float]
@@ -140,6 +143,7 @@ class MountEstimate:
     unexplained: bool = False
     lever_change_m: tuple[float, float, float] | None = None
     with_drift: bool = False
+    held: tuple[bool, bool, bool, bool] = (False, False, False, False)
 
     @property
     def any_applied(self) -> bool:
@@ -154,12 +158,12 @@ class MountEstimate:
     def as_dict(self) -> dict:
         deg = (True, False, True, True)
         out = {}
-        for name, v, e, a, o, is_angle in zip(PARAMS, self.values, self.std_errors, self.applied, self.observable, deg,
-                                              strict=True):
+        for name, v, e, a, o, h, is_angle in zip(PARAMS, self.values, self.std_errors, self.applied, self.observable,
+                                                 self.held, deg, strict=True):
             key = name.replace("_rad", "_deg") if is_angle else name
             f = math.degrees if is_angle else (lambda x: x)
             out[key] = {"estimate": f(v), "std_error": None if math.isnan(e) else f(e), "applied": a,
-                        "observable": o}
+                        "observable": o, "held_as_configured": h}
         out.update(points_per_plane=dict(zip(("floor", "x0", "xL", "y0", "yW"), self.points, strict=True)),
                    rms_before_m=self.rms_before_m, rms_after_m=self.rms_after_m, reason=self.reason,
                    refused=self.refused,
@@ -741,7 +745,8 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
                    range_sigma_m: float, range_sigma_rel: float, resim: Resimulated | None = None,
                    boresight: Boresight = SQUARE, angle_sigma_rad: float = 0.0,
                    position_sigma_m: float = 0.0, drift: DriftNuisance | None = None,
-                   stretches: np.ndarray | None = None) -> MountEstimate:
+                   stretches: np.ndarray | None = None,
+                   held: tuple[bool, bool, bool, bool] | None = None) -> MountEstimate:
     """Estimate the servo offset and scale and the boresight from the building (module docstring).
 
     Args:
@@ -761,6 +766,8 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
         stretches: (N, 5) whether each usable sample's stretch of sweep runs along each plane, placed with this
             boresight and this noise, if the caller has it (the pose correction asks the same: computed once, a
             tenth of each estimate's time); used only when it covers exactly the samples kept here.
+        held: the parameters (PARAMS order) to hold as configured rather than estimate (None: none); the rest are
+            fitted again without them, beside the drift if there is one.
     """
     finite = np.logical_and.reduce([np.isfinite(samples[f]) for f in
                                     ("range_m", "servo_rad", "x_m", "y_m", "z_m", "roll_rad", "pitch_rad", "yaw_rad")])
@@ -800,6 +807,15 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
         q, j, r, final, joint, delta = _fit_with_drift(prob, idx_all, n, d, q, sigma, final, s["t_s"].astype(float),
                                                        drift)
         windows = [np.maximum(sigma, final), final]
+    held = (False,) * 4 if held is None else tuple(bool(h) for h in held)
+    free = ~np.array(held)
+    if not free.all():
+        q = np.where(free, q, 0.0)
+        if joint is None:
+            q, j, r = _fit(prob, idx_all, n, d, q, windows, free)
+        else:
+            q, delta = joint.held(q, delta, final, free=free)
+            j, r = nearest_plane(joint.place(q, delta), n, d, BAND * final, prob.allowed())
     on = j >= 0
     if np.count_nonzero(on) < 50:
         return not_estimated("the building's floor and walls were not found in the cloud",
@@ -818,7 +834,6 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
     # Every parameter that fails is held square at once (one at a time, the tilt and yaw that were
     # weak together each looked fine alone, and a yaw took up a tilt's cosine), then the rest is
     # fitted again and checked again.
-    free = np.ones(4, dtype=bool)
     level = prob.level()
     while True:
         k_on = idx_all[on]
@@ -927,7 +942,7 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
                        "configured)")
     return MountEstimate(tuple(float(v) for v in q), tuple(float(v) for v in se), applied, counts,
                          rms_square, rms_fitted, observable=tuple(bool(f) for f in free), refused=refused,
-                         lever_change_m=lever_change, with_drift=drift is not None)
+                         lever_change_m=lever_change, with_drift=drift is not None, held=held)
 
 
 def lever_alternative(prob: _Problem, idx: np.ndarray, normals: np.ndarray, r_square: np.ndarray,
@@ -1045,9 +1060,12 @@ def describe(est: MountEstimate, base: Boresight = SQUARE) -> str:
     on_top = "" if base.square else (
         f" on top of the configured boresight ({math.degrees(base.tilt_rad):+.2f} deg tilt, "
         f"{math.degrees(base.sweep_yaw_rad):+.2f} deg sweep-plane yaw)")
-    held = [name for name, o in zip(names, est.observable, strict=True) if not o]
+    held = [name for name, o, h in zip(names, est.observable, est.held, strict=True) if not (o or h)]
+    chosen = [name for name, h in zip(names, est.held, strict=True) if h]
     drift = ("; fitted together with the pose's drift, as the mount alone did not explain the floor and walls (a "
              "drift bends them)" if est.with_drift else "")
     return (f"self-calibration from the building applied: {', '.join(parts)}{on_top} (structure points off their "
             f"planes: {est.rms_before_m * 100:.1f} -> {est.rms_after_m * 100:.1f} cm RMS){drift}"
-            + (f"; held square, as the structure seen does not constrain it: {', '.join(held)}" if held else ""))
+            + (f"; held square, as the structure seen does not constrain it: {', '.join(held)}" if held else "")
+            + (f"; held as configured, as the flight is explained as well without them: {', '.join(chosen)}"
+               if chosen else ""))

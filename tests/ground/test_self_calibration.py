@@ -476,6 +476,56 @@ def test_that_the_mount_and_the_drift_fitted_together_end_where_a_further_fit_ha
     assert all(np.abs(d - delta).max() > 1e-4 for _, (_, d), _, _ in groups)  # each group's drift its own
 
 
+def test_that_a_mount_fitted_beside_a_drift_with_its_boresight_held_fits_the_servo_alone_and_says_so(drifting_runs):
+    """The report may hold the boresight as configured (`held`): the tilt and yaw are then exactly the configured
+    ones and not applied, the servo's offset and scale are fitted beside the drift without them and still found, and
+    the report's line and report.json say they were held by choice, not for want of data."""
+    _, skewed = drifting_runs
+    s, h = _usable(skewed)
+    est = estimate_mount(s, h["lever_arm_body_m"], StorageFrame(), STORAGE, h["sensor"]["range_sigma_m"],
+                         h["sensor"]["range_sigma_rel"], Resimulated.from_header(h), drift=_drift_of(s, h),
+                         held=report.BORESIGHT_HELD)
+    assert est.applied == (True, True, False, False)
+    assert est.values[2:] == (0.0, 0.0)
+    assert est.held == (False, False, True, True)
+    assert abs(math.degrees(est.values[0]) - 3.0) < 0.2
+    line = describe(est)
+    assert "held as configured, as the flight is explained as well without them: boresight tilt, sweep-plane yaw" \
+        in line
+    assert "does not constrain" not in line
+    d = est.as_dict()
+    assert d["boresight_tilt_deg"]["held_as_configured"] and not d["servo_scale"]["held_as_configured"]
+
+
+def _estimates(applied):
+    est = MountEstimate((0.01, 0.05, 0.03, 0.03), (0.001,) * 4, applied, (100,) * 5, 0.05, 0.004, with_drift=True)
+    return report._Estimates(est, np.zeros(0, dtype=SAMPLE_DTYPE), SQUARE, None, joint=True)
+
+
+@pytest.mark.parametrize("joint_applied, simpler_found, boresight_better, kept", [
+    ((True, True, True, False), True, False, "simpler"),
+    ((True, True, True, False), True, True, "joint"),
+    ((True, True, True, False), False, None, "joint"),
+    ((True, True, False, False), None, None, "joint"),
+], ids=["no better with it", "better with it", "nothing without it", "no boresight"])
+def test_that_a_boresight_fitted_beside_a_drift_is_kept_only_where_it_explains_the_flight_better(
+        monkeypatch, joint_applied, simpler_found, boresight_better, kept):
+    """Beside a drift a tilt or yaw can take up what the drift's translation cannot follow: the mount with the
+    boresight held is fitted (only when the joint one applied a boresight) and kept unless the boresight explains the
+    floor, walls and pile seen twice better; with nothing applied without it, the joint mount stands."""
+    joint, simpler = _estimates(joint_applied), _estimates((True, True, False, False))
+    asked = []
+
+    def without():
+        asked.append(True)
+        return simpler if simpler_found else None
+
+    monkeypatch.setattr(report, "_explains_more", lambda first, second, *_: boresight_better)
+    got = report._boresight_if_needed(joint, without, np.zeros(3), StorageFrame(), STORAGE)
+    assert got is (simpler if kept == "simpler" else joint)
+    assert bool(asked) == any(joint_applied[2:])
+
+
 def test_that_a_drift_start_of_the_wrong_shape_is_refused():
     with pytest.raises(ValueError, match="start"):
         DriftNuisance(np.arange(4.0), np.ones(3), np.ones(3), np.zeros((3, 3)))
@@ -542,7 +592,10 @@ def test_that_the_report_corrects_a_mount_fault_and_a_drift_together(drifting_ru
     fixed = make_report(skewed, tmp_path / "fixed", ReportOptions(plots=False))
     monkeypatch.undo()
     given = [m for m in starts if m is not None]
-    assert len(given) == 1 and given[0].shape[1] == 3 and np.abs(given[0]).max() > 0.01  # the pose's own drift fit
+    assert given[0].shape[1] == 3 and np.abs(given[0]).max() > 0.01  # the pose's own drift fit
+    # and, the tilt applied beside the servo, once more from the same start with the boresight held; the tilt, which
+    # is there, explains the flight better and is kept
+    assert len(given) == 2 and np.array_equal(given[1], given[0])
     cal = fixed["self_calibration"]
     assert all(cal[k]["applied"] for k in ("servo_offset_deg", "servo_scale", "boresight_tilt_deg"))
     assert abs(cal["servo_offset_deg"]["estimate"] - 3.0) < 0.1
