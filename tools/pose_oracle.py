@@ -24,7 +24,8 @@ height's own route of the correction is judged on.
 
 Each run folder of the campaign (`PROFILE-PILE-PTRAJ-SEED[-NOISE]`, with its `--pose-correction` report beside it)
 gets a sibling `NAME--true-pose` (the re-posed run, its report in `NAME--true-pose/report`), kept and reused on
-the next call (delete it when the flight is flown again). Flights without a pose error, or that crashed, are
+the next call (delete it when the flight is flown again); a kept report is made again when the ground station's code
+has changed since (`tools.source_digest`). Flights without a pose error, or that crashed, are
 skipped.
 """
 
@@ -51,6 +52,7 @@ from tools.pose_correction_campaign import (
     signed_error_pct,
     trajectory_rms_m,
 )
+from tools.source_digest import made_by_this_code, stamp_made_by_this_code
 from tools.workers import worker_pool
 
 SECTION = "pose-oracle-table"
@@ -113,10 +115,11 @@ def repose(run: Path, out: Path, components: tuple[int, ...] = ALL) -> bool:
 def reported(run_p: Path, suffix: str, components: tuple[int, ...], report_args: list[str],
              report_dir: str = "report") -> dict | None:
     """The report of `run_p` re-posed in `components`, in its sibling NAME + suffix, folder report_dir (each made,
-    or reused when it is there); None when there is nothing to re-pose or the report failed (said on stderr)."""
+    or reused when it is there and was made by the code as it is now: `tools.source_digest`); None when there is
+    nothing to re-pose or the report failed (said on stderr)."""
     oracle = run_p.parent / f"{run_p.name}{suffix}"
     rep = oracle / report_dir / "report.json"
-    if not rep.is_file():
+    if not (rep.is_file() and made_by_this_code(rep.parent)):
         if not (oracle / "samples.pslog").is_file() and not repose(run_p, oracle, components):
             return None
         done = subprocess.run([sys.executable, "-m", "ground.cli", "report", str(oracle), "--out", str(rep.parent),
@@ -125,6 +128,7 @@ def reported(run_p: Path, suffix: str, components: tuple[int, ...], report_args:
         if done.returncode != 0:  # left out of the table, and said why
             print(f"pose_oracle: {oracle}: the report failed: {done.stderr.strip()}", file=sys.stderr)
             return None
+        stamp_made_by_this_code(rep.parent)
     return json.loads(rep.read_text())
 
 

@@ -2,6 +2,7 @@
 
 import json
 import math
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.samplelog import SampleLogWriter, new_records, read_samplelog
 from firmware_py.core.storage import Storage
+from tools import pose_oracle, source_digest
 from tools.pose_oracle import (
     HEIGHT,
     HORIZONTAL,
@@ -173,3 +175,38 @@ def test_that_the_horizontal_and_the_height_questions_are_asked_one_at_a_time(tm
     with pytest.raises(SystemExit):
         main(["--runs", str(tmp_path), "--height", "--horizontal"])
     assert "not allowed with" in capsys.readouterr().err
+
+
+def test_that_a_kept_report_is_reused_only_when_the_code_that_made_it_is_the_code_now(tmp_path: Path, monkeypatch):
+    """The oracle keeps the reports it makes; one made by other code (or by a version that did not say) is made
+    again, so a table regenerated after a change is the change's. One made by this code is read as it is."""
+    run = _run(tmp_path, "vio-1-20-0")
+    made = []
+
+    def report(cmd, **_kw):
+        out = Path(cmd[cmd.index("--out") + 1])
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "report.json").write_text(json.dumps({"made": len(made)}))
+        made.append(out)
+        return subprocess.CompletedProcess(cmd, 0, "", "")
+
+    monkeypatch.setattr(pose_oracle.subprocess, "run", report)
+    assert pose_oracle.reported(run, "--true-pose", pose_oracle.ALL, []) == {"made": 0}
+    assert pose_oracle.reported(run, "--true-pose", pose_oracle.ALL, []) == {"made": 0} and len(made) == 1
+    (made[0] / source_digest.MADE_BY).write_text("another code\n")
+    assert pose_oracle.reported(run, "--true-pose", pose_oracle.ALL, []) == {"made": 1}
+    (made[0] / source_digest.MADE_BY).unlink()
+    assert pose_oracle.reported(run, "--true-pose", pose_oracle.ALL, []) == {"made": 2} and len(made) == 3
+
+
+def test_that_the_source_digest_changes_with_any_file_of_the_ground_station(tmp_path: Path, monkeypatch):
+    for package in source_digest.PACKAGES:
+        (tmp_path / package).mkdir()
+        (tmp_path / package / "a.py").write_text("x = 1\n")
+    monkeypatch.setattr(source_digest, "ROOT", tmp_path)
+    source_digest.source_digest.cache_clear()
+    first = source_digest.source_digest()
+    source_digest.source_digest.cache_clear()
+    (tmp_path / "ground" / "a.py").write_text("x = 2\n")
+    assert source_digest.source_digest() != first
+    source_digest.source_digest.cache_clear()
