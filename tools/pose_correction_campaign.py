@@ -10,7 +10,8 @@ times). Writes the table into docs/pose_error.md.
 resumed, or split over processes (each with its --piles) and tabulated by a last call that reads all files.
 
 --reuse (with --keep): a flight already in the folder is not flown again, only reported again with the correction
-(the uncorrected report is kept too when it is there): the same flights before and after a change of the ground code.
+(the uncorrected report is kept too when it is there and was made by the code as it is now, `tools.source_digest`):
+the same flights before and after a change of the ground code.
 
 Both programs run as a user runs them (their command lines, in subprocesses).
 
@@ -41,6 +42,7 @@ from sitl.missions.rectangle import Mission
 from sitl.world.clearance import closest_approach, collision, f450_reach_m
 from sitl.world.shapes import make_shape
 from tools.doc_sections import write_section
+from tools.source_digest import made_by_this_code, stamp_made_by_this_code
 
 SECTION = "pose-correction-table"
 PROFILES = ("none", "vio", "flow")
@@ -185,11 +187,13 @@ def one(profile: str, pile: str, p_traj: int, seed: int, work: Path, reuse: bool
     reps = {}
     for flag in ("--no-pose-correction", "--pose-correction"):
         rep = work / f"{run.name}{flag}"
-        if flown and flag == "--no-pose-correction" and (rep / "report.json").is_file():
+        # the uncorrected report of a kept flight is reused when the code that made it is the code now
+        if flown and flag == "--no-pose-correction" and (rep / "report.json").is_file() and made_by_this_code(rep):
             reps[flag] = json.loads((rep / "report.json").read_text())
             continue
         subprocess.run([py, "-m", "ground.cli", "report", str(run), "--out", str(rep), "--no-plots", "--force",
                         "--quiet", flag], check=True, stdout=subprocess.DEVNULL)
+        stamp_made_by_this_code(rep)
         reps[flag] = json.loads((rep / "report.json").read_text())
     pc = reps["--pose-correction"].get("pose_correction") or {}
     before, after = trajectory_rms_m(truth, pc, reps["--pose-correction"].get("rangefinder_height"))

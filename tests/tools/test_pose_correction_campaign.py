@@ -229,3 +229,37 @@ def test_that_a_flight_fly_refused_before_take_off_is_no_survey_and_is_counted_a
     rows += [{"profile": "flow", "pile": "2", "p_traj": 25, "seed": s, "refused": why} for s in (0, 1)]
     flow = next(line for line in table(rows).splitlines() if "| flow |" in line)
     assert flow.startswith("| 2 | 25 % | flow | 0 | 0.10 |") and flow.endswith("| 0/0 (2 refused by `fly`) |"), flow
+
+
+def test_that_a_kept_flight_s_uncorrected_report_is_reused_only_when_made_by_the_code_now(tmp_path: Path, monkeypatch):
+    """--reuse reports a kept flight with the correction again and keeps its uncorrected report, but only one made by
+    the ground station's code as it is now (`tools.source_digest`): one made by older code is made again, so the
+    table's uncorrected column is the code's too."""
+    import json
+    import subprocess
+
+    from firmware_py.core.storage import Storage
+    from tools import pose_correction_campaign as campaign
+    from tools import source_digest
+    work = tmp_path / "runs"
+    run = work / "vio-1-5-0"
+    run.mkdir(parents=True)
+    (run / "truth.json").write_text(json.dumps({"storage": Storage(30, 20, 10).to_dict()}))
+    made = []
+
+    def report(cmd, **_kw):
+        out = Path(cmd[cmd.index("--out") + 1])
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "report.json").write_text(json.dumps({"volume_m3": 101.0 + len(made), "true_volume_m3": 100.0,
+                                                     "volume_error_pct": 1.0}))
+        made.append(out.name)
+        return subprocess.CompletedProcess(cmd, 0, "", "")
+
+    monkeypatch.setattr(campaign.subprocess, "run", report)
+    first = campaign.one("vio", "1", 5, 0, work, reuse=True)
+    assert made == ["vio-1-5-0--no-pose-correction", "vio-1-5-0--pose-correction"]
+    again = campaign.one("vio", "1", 5, 0, work, reuse=True)
+    assert made[2:] == ["vio-1-5-0--pose-correction"] and again["dv_off_pct"] == first["dv_off_pct"]
+    (work / "vio-1-5-0--no-pose-correction" / source_digest.MADE_BY).write_text("older code\n")
+    campaign.one("vio", "1", 5, 0, work, reuse=True)
+    assert made[3:] == ["vio-1-5-0--no-pose-correction", "vio-1-5-0--pose-correction"]
