@@ -802,20 +802,25 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
         # The wide first window let the pile drag the fit off what most structure points agree on
         # (seen with a coarser search on pile 2): fit again from the search's mount, narrow at once.
         q, j, r = _fit(prob, idx_all, n, d, start, [final, final])
-    joint = None
+    joint, delta = None, None
     if drift is not None:
         q, j, r, final, joint, delta = _fit_with_drift(prob, idx_all, n, d, q, sigma, final, s["t_s"].astype(float),
                                                        drift)
         windows = [np.maximum(sigma, final), final]
+
+    def refit(q: np.ndarray, delta: np.ndarray | None, free: np.ndarray):
+        """(mount, drift, plane, residual) fitted again with only the free parameters moving, the rest square; beside
+        the drift, when there is one."""
+        q = np.where(free, q, 0.0)
+        if joint is None:
+            return delta, *_fit(prob, idx_all, n, d, q, windows, free)
+        q, delta = joint.held(q, delta, final, free=free)
+        return delta, q, *nearest_plane(joint.place(q, delta), n, d, BAND * final, prob.allowed())
+
     held = (False,) * 4 if held is None else tuple(bool(h) for h in held)
     free = ~np.array(held)
     if not free.all():
-        q = np.where(free, q, 0.0)
-        if joint is None:
-            q, j, r = _fit(prob, idx_all, n, d, q, windows, free)
-        else:
-            q, delta = joint.held(q, delta, final, free=free)
-            j, r = nearest_plane(joint.place(q, delta), n, d, BAND * final, prob.allowed())
+        delta, q, j, r = refit(q, delta, free)
     on = j >= 0
     if np.count_nonzero(on) < 50:
         return not_estimated("the building's floor and walls were not found in the cloud",
@@ -854,12 +859,7 @@ def estimate_mount(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, s
             return not_estimated("the floor and walls seen constrain none of the mounting's parameters well "
                                  "enough to tell a deviation that matters" + ("" if off is None else f" ({off})"),
                                  counts, unexplained=off is not None)
-        q = np.where(free, q, 0.0)
-        if joint is None:
-            q, j, r = _fit(prob, idx_all, n, d, q, windows, free)
-        else:  # the drift still fitted beside the mount
-            q, delta = joint.held(q, delta, final, free=free)
-            j, r = nearest_plane(joint.place(q, delta), n, d, BAND * final, prob.allowed())
+        delta, q, j, r = refit(q, delta, free)  # the drift still fitted beside the mount, if there is one
         on = j >= 0
     counts = tuple(int(np.count_nonzero(j == k)) for k in range(5))
     at_bound = free & (np.isclose(q, BOUNDS[0], rtol=0, atol=1e-6) | np.isclose(q, BOUNDS[1], rtol=0, atol=1e-6))
