@@ -63,9 +63,10 @@ quarter faster: on 12,522 nodes 1.37 -> 1.04 s (medians of three; 1,000: 1.23 s,
 
 
 def _threads() -> int:
-    """Threads the chunks and the covariance's trials run on: the cores this process may use. Each chunk (each trial)
-    is independent and numpy lets go of the interpreter in its array and linear-algebra loops, so they run side by
-    side; every result is written to its own place, so the heights are the same to the bit on any count."""
+    """Threads the chunks of `gp_smoothed` run on: the cores this process may use. Each chunk is independent and numpy
+    lets go of the interpreter in its array and linear-algebra loops, so they run side by side; every result is
+    written to its own place, so the heights are the same to the bit on any count. (The covariance's trials run on
+    one: `fit_covariance`.)"""
     return max(1, cores_available())
 
 
@@ -136,6 +137,8 @@ class _Neighbourhoods:
     valid: np.ndarray
     offsets_m: np.ndarray
     spacing_m: np.ndarray
+    pairs: np.ndarray
+    """(n, k, k) 1.0 where both slots are filled, else 0.0."""
 
 
 def _neighbourhoods(xy: np.ndarray, at: np.ndarray, idx: np.ndarray, valid: np.ndarray) -> _Neighbourhoods:
@@ -145,75 +148,89 @@ def _neighbourhoods(xy: np.ndarray, at: np.ndarray, idx: np.ndarray, valid: np.n
     np.square(dist, out=dist)
     dist += np.square(d[:, :, None, 1] - d[:, None, :, 1])
     np.sqrt(dist, out=dist)
-    return _Neighbourhoods(idx, valid, d, dist)
+    fv = valid.astype(float)
+    return _Neighbourhoods(idx, valid, d, dist, fv[:, :, None] * fv[:, None, :])
 
 
-def _correlation(nb: _Neighbourhoods, length_m: float) -> np.ndarray:
+def _correlation(nb: _Neighbourhoods, length_m: float, out: np.ndarray | None = None,
+                 work: np.ndarray | None = None) -> np.ndarray:
     """(n, k, k) the Matern 5/2 correlation between the neighbourhoods' nodes at this length, 0 where a slot is
-    empty: what the covariance's amplitude only scales, so a fit makes it once for every amplitude it tries."""
-    # u = sqrt(5) r / l; the correlation (1 + u + u^2 / 3) exp(-u), in place
-    u = np.multiply(nb.spacing_m, math.sqrt(5.0) / length_m)
-    e = np.exp(-u)
-    poly = 1.0 + u + np.square(u) / 3.0
-    np.multiply(poly, e, out=u)
-    fv = nb.valid.astype(float)
-    u *= fv[:, :, None] * fv[:, None, :]
-    return u
+    empty: what the covariance's amplitude only scales, so a fit makes it once for every amplitude it tries. out: an
+    array of that shape to write it into; work: (2, n, k, k) to compute in. A fit trying a dozen lengths reuses
+    them: each fresh megabyte-sized array is memory the system maps page by page, which cost more than the
+    arithmetic (4.6 -> 1.9 ms on 150 neighbourhoods). The same arithmetic in the same order as (1 + u + u^2 / 3)
+    exp(-u) written out, so the same correlation to the bit."""
+    work = np.empty((2, *nb.spacing_m.shape)) if work is None else work
+    u, e = work[0], work[1]
+    np.multiply(nb.spacing_m, math.sqrt(5.0) / length_m, out=u)  # u = sqrt(5) r / l
+    np.negative(u, out=e)
+    np.exp(e, out=e)
+    poly = np.multiply(u, u, out=out)
+    poly /= 3.0
+    u += 1.0
+    np.add(u, poly, out=poly)
+    poly *= e
+    poly *= nb.pairs
+    return poly
+
+
+HEIGHTS_CORNER = 1e300
+"""The corner `_systems` puts on the diagonal below the heights' column, so that the bordered system is positive
+definite whatever the heights (its Cholesky factor's last rows are then the forward substitution of the drift and the
+heights, `restricted_loglik`); 1e300 less anything the heights can add to it stays positive, and its square root
+squared stays finite."""
 
 
 def _systems(nb: _Neighbourhoods, var: np.ndarray, cov: GpCovariance, corr: np.ndarray | None = None,
-             out: np.ndarray | None = None) -> np.ndarray:
+             out: np.ndarray | None = None, heights: np.ndarray | None = None) -> np.ndarray:
     """The universal-kriging systems of the neighbourhoods: (n, k + 3, k + 3) matrices, the covariance with the
     nodes' variances and a plane's drift (empty slots carry a huge variance and no covariance, so they take no
     weight). corr: `_correlation` at the covariance's length, when the caller has it. out: an array of that shape to
     write them into (every element is written), so a fit trying many covariances reuses one: a new megabyte-sized
-    array each time is fresh memory the system maps page by page, which cost more than filling it."""
+    array each time is fresh memory the system maps page by page, which cost more than filling it. heights: (n, k)
+    the nodes' heights (0 in empty slots), to border the covariance with them as well: (n, k + 4, k + 4), with
+    HEIGHTS_CORNER on the diagonal below the drift's and the heights' columns in place of the drift's zeros."""
     idx, valid, d = nb.idx, nb.valid, nb.offsets_m
     n, k = idx.shape
+    m = k + (3 if heights is None else 4)
     s2 = cov.amplitude_m**2
     corr = _correlation(nb, cov.length_m) if corr is None else corr
-    a = np.empty((n, k + 3, k + 3)) if out is None else out
+    a = np.empty((n, m, m)) if out is None else out
     np.multiply(corr, s2, out=a[:, :k, :k])
     diag = np.where(valid, var[idx], 1e6 * (1.0 + s2)) + 1e-10 * s2
-    a.reshape(n, -1)[:, : k * (k + 4) : k + 4] += diag  # the diagonal of the covariance block, as a strided view
+    a.reshape(n, -1)[:, : k * (m + 1) : m + 1] += diag  # the diagonal of the covariance block, as a strided view
     a[:, :k, k] = 1.0
     a[:, :k, k + 1] = d[..., 0]
     a[:, :k, k + 2] = d[..., 1]
+    if heights is not None:
+        a[:, :k, k + 3] = heights
     a[:, k:, :k] = np.transpose(a[:, :k, k:], (0, 2, 1))
     a[:, k:, k:] = 0.0
+    if heights is not None:
+        a.reshape(n, -1)[:, k * (m + 1) :: m + 1] = HEIGHTS_CORNER
     return a
-
-
-def _forward_solve(low: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """y with low y = b for every system at once: low (n, k, k) lower triangular, b (n, k, r). numpy has no batched
-    triangular solve, and np.linalg.solve would factor each matrix again; k rows of a vectorised substitution cost
-    less than that factorisation (scipy's batched solve_triangular loops over the systems in Python)."""
-    y = np.empty_like(b)
-    for i in range(low.shape[1]):
-        y[:, i, :] = (b[:, i, :] - np.matmul(low[:, i:i + 1, :i], y[:, :i, :])[:, 0, :]) / low[:, i, i, None]
-    return y
 
 
 def restricted_loglik(nb: _Neighbourhoods, z: np.ndarray, var: np.ndarray, cov: GpCovariance,
                       corr: np.ndarray | None = None, scratch: np.ndarray | None = None) -> float:
     """Sum over the neighbourhoods (each around its nodes' centre) of the restricted log-likelihood of their node
     heights under the covariance with a plane's drift; -inf where a neighbourhood's covariance is not positive
-    definite. corr: `_correlation` at the covariance's length, when the caller has it; scratch: `_systems`' out.
+    definite. corr: `_correlation` at the covariance's length, when the caller has it; scratch: `_systems`' out, (n,
+    k + 4, k + 4).
 
-    Through each covariance's Cholesky factor L: with Y = L^-1 [F z], F' C^-1 F = Yf' Yf, the drift's fit beta solves
+    Through the covariance's Cholesky factor L: with Y = L^-1 [F z], F' C^-1 F = Yf' Yf, the drift's fit beta solves
     (Yf' Yf) beta = Yf' Yz, the quadratic form is |Yz - Yf beta|^2 and log det C = 2 sum log diag L. One factorisation
-    and one forward substitution, where an LU determinant and an LU solve factored every matrix twice: the same
-    likelihood (to 1e-12 relative on noisy nodes, 1e-8 on noise-free ones, whose covariances are the worst
-    conditioned); with `scratch` reused, the fit's 71 likelihoods take two thirds of the CPU they took
-    (docs/design-notes.md, "The covariance fit through its Cholesky factor")."""
+    of C bordered by [F z] (`_systems` with the heights) gives both L and, in its last rows, Y': the factorisation
+    carries out the forward substitution as it goes. The same likelihood as the textbook formula (to 1e-12 relative
+    on noisy nodes, 1e-8 on noise-free ones, whose covariances are the worst conditioned); a factorisation and a
+    substitution of their own cost twice the CPU (docs/design-notes.md, "The covariance fit through its Cholesky
+    factor", "The covariance fit, twice as fast")."""
     idx, valid = nb.idx, nb.valid
-    a = _systems(nb, var, cov, corr, scratch)
     k = idx.shape[1]
-    c = a[:, :k, :k]
-    zz = np.where(valid, z[idx], 0.0)
+    a = _systems(nb, var, cov, corr, scratch, heights=np.where(valid, z[idx], 0.0))
     try:
-        low = np.linalg.cholesky(c)
-        y = _forward_solve(low, np.concatenate([a[:, :k, k:], zz[..., None]], axis=2))
+        low = np.linalg.cholesky(a)
+        y = np.transpose(low[:, k:, :k], (0, 2, 1))
         yf, yz = y[..., :3], y[..., 3]
         ftcif = np.einsum("nki,nkj->nij", yf, yf)
         low_f = np.linalg.cholesky(ftcif)  # not positive definite: nodes on one line, no plane to take out
@@ -222,9 +239,9 @@ def restricted_loglik(nb: _Neighbourhoods, z: np.ndarray, var: np.ndarray, cov: 
         return -math.inf
     r = yz - np.einsum("nki,ni->nk", yf, beta)
     q = np.einsum("nk,nk->n", r, r)
-    logdet = 2.0 * np.log(np.diagonal(low, axis1=1, axis2=2)).sum(axis=1)
+    logdet = 2.0 * np.log(np.diagonal(low[:, :k, :k], axis1=1, axis2=2)).sum(axis=1)
     # The empty slots' huge variances add a constant to every covariance's determinant: leave them out.
-    logdet = logdet - np.where(valid, 0.0, np.log(np.diagonal(c, axis1=1, axis2=2))).sum(axis=1)
+    logdet = logdet - np.where(valid, 0.0, np.log(np.diagonal(a[:, :k, :k], axis1=1, axis2=2))).sum(axis=1)
     logdet_f = 2.0 * np.log(np.diagonal(low_f, axis1=1, axis2=2)).sum(axis=1)
     return float(-0.5 * np.sum(q + logdet + logdet_f))
 
@@ -233,28 +250,26 @@ def fit_covariance(xy: np.ndarray, z: np.ndarray, var: np.ndarray, seed: int = 0
                    tree: cKDTree | None = None) -> GpCovariance:
     """The covariance (length, amplitude) that makes the node heights most likely (restricted maximum likelihood)
     over HYPER_NEIGHBOURHOODS sampled neighbourhoods: the grid LENGTHS_M x AMPLITUDES_M, then the half steps around
-    its best. The sample is drawn with a fixed seed: the same nodes give the same surface."""
+    its best. The sample is drawn with a fixed seed: the same nodes give the same surface.
+
+    On one thread, length by length, in three arrays made once: the trials are small (150 systems of 37 unknowns),
+    and on two threads they took 1.5 times the CPU for a tenth less time, where the report's second core is busy with
+    the mount and the pose anyway (docs/design-notes.md, "The covariance fit, twice as fast")."""
     rng = np.random.default_rng(seed)
     centres = xy[rng.choice(len(z), size=min(HYPER_NEIGHBOURHOODS, len(z)), replace=False)]
     idx, valid = octant_neighbours(xy, centres, tree)
     centre = np.where(valid[..., None], xy[idx], 0.0).sum(axis=1) / np.maximum(valid.sum(axis=1), 1)[:, None]
     nb = _neighbourhoods(xy, centre, idx, valid)
     seen: dict[tuple[float, float], float] = {}
-    per_thread = threading.local()  # each thread's systems array, reused from trial to trial
-
-    def loglik(la: tuple[float, float], corr: np.ndarray) -> float:
-        if getattr(per_thread, "systems", None) is None:
-            k = nb.idx.shape[1]
-            per_thread.systems = np.empty((len(nb.idx), k + 3, k + 3))
-        return restricted_loglik(nb, z, var, GpCovariance(*la), corr, per_thread.systems)
+    n, k = nb.idx.shape
+    corr, work, systems = np.empty((n, k, k)), np.empty((2, n, k, k)), np.empty((n, k + 4, k + 4))
 
     def most_likely(trials: list[tuple[float, float]]) -> tuple[float, float]:  # the first of the best, in order
         new = [t for t in dict.fromkeys(trials) if t not in seen]
-        lengths = sorted({la[0] for la in new})
-        with ThreadPoolExecutor(max_workers=_threads()) as pool:
-            corr = dict(zip(lengths, pool.map(lambda length: _correlation(nb, length), lengths), strict=True))
-            values = list(pool.map(lambda la: loglik(la, corr[la[0]]), new))
-        seen.update(zip(new, values, strict=True))
+        for length in sorted({la[0] for la in new}):
+            _correlation(nb, length, corr, work)
+            for la in (t for t in new if t[0] == length):
+                seen[la] = restricted_loglik(nb, z, var, GpCovariance(*la), corr, systems)
         return max(trials, key=lambda la: seen[la])
     best = most_likely([(lv, av) for lv in LENGTHS_M for av in AMPLITUDES_M])
     step_l = math.sqrt(LENGTHS_M[1] / LENGTHS_M[0])

@@ -293,6 +293,22 @@ def test_that_the_restricted_likelihood_is_the_textbook_formula_summed_over_the_
                                                                    rel=1e-6)
 
 
+@pytest.mark.parametrize("offset_m", [0.0, 40.0])
+def test_that_the_likelihood_through_the_bordered_factor_holds_for_noise_free_nodes_high_above_their_origin(offset_m):
+    """Noise-free nodes make the worst conditioned covariances, and heights far from the drift's plane the largest
+    forward substitution: the corner below them (`HEIGHTS_CORNER`) must stay above what they add."""
+    xy = fan_lines()
+    z = hill(xy) * 40.0 + offset_m
+    var = np.zeros(len(xy))
+    at = np.array([[15.2, 10.1], [4.0, 3.0]])
+    idx, valid = octant_neighbours(xy, at)
+    nb = _neighbourhoods(xy, at, idx, valid)
+    for cov in (GpCovariance(64.0, 0.01), GpCovariance(0.25, 40.96)):
+        got = restricted_loglik(nb, z, var, cov)
+        assert np.isfinite(got)
+        assert got == pytest.approx(textbook_loglik(xy, z, var, at, idx, valid, cov), rel=1e-6)
+
+
 def test_that_a_covariance_that_is_not_positive_definite_or_nodes_on_one_line_are_no_candidate():
     xy = fan_lines()
     z = hill(xy)
@@ -314,7 +330,7 @@ def test_that_a_systems_array_reused_from_another_covariance_gives_the_same_like
     k = nb.idx.shape[1]
     cov = GpCovariance(3.0, 0.5)
     alone = restricted_loglik(nb, z, var, cov)
-    scratch = np.full((len(at), k + 3, k + 3), np.nan)  # what no element of the systems may keep
+    scratch = np.full((len(at), k + 4, k + 4), np.nan)  # what no element of the systems may keep
     assert restricted_loglik(nb, z, var, cov, scratch=scratch) == alone
     restricted_loglik(nb, z, var, GpCovariance(32.0, 10.0), scratch=scratch)
     assert restricted_loglik(nb, z, var, cov, scratch=scratch) == alone
