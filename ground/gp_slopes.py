@@ -158,7 +158,7 @@ def _correlation(nb: _Neighbourhoods, length_m: float, out: np.ndarray | None = 
     empty: what the covariance's amplitude only scales, so a fit makes it once for every amplitude it tries. out: an
     array of that shape to write it into; work: (2, n, k, k) to compute in. A fit trying a dozen lengths reuses
     them: each fresh megabyte-sized array is memory the system maps page by page, which cost more than the
-    arithmetic (4.6 -> 1.9 ms on 150 neighbourhoods). The same arithmetic in the same order as (1 + u + u^2 / 3)
+    arithmetic (4.6 -> 1.2 ms on 150 neighbourhoods). The same arithmetic in the same order as (1 + u + u^2 / 3)
     exp(-u) written out, so the same correlation to the bit."""
     work = np.empty((2, *nb.spacing_m.shape)) if work is None else work
     u, e = work[0], work[1]
