@@ -30,6 +30,7 @@ from ground.base import FLOOR, FLOOR_BASE, BaseKind, fitted_floor_base, rebased_
 from ground.blas_threads import one_blas_thread
 from ground.building_check import SizeCheck, check_building
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
+from ground.crossing_cells import not_the_pile, up_noise_m
 from ground.deliverable import add_deliverable
 from ground.despike import SpikeThreshold, why_no_threshold
 from ground.echo_reach import echo_reach, echo_record, echo_warning
@@ -613,7 +614,7 @@ def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame:
             joint = beside_drift(pose)
             if joint is not None:
                 return _boresight_if_needed(joint, partial(beside_drift, pose, held=BORESIGHT_HELD), lever, frame,
-                                            storage)
+                                            storage, err.angle_sigma_rad)
         elif opts.self_calibration and pose.applied and est is not None and est.unexplained:
             # The mount's fit refused because a drift bends the structure, and the drift's fit explained it alone: a
             # mount error the knots took up as a drift (a LiDAR tilted 2 deg moves the points along the track, which
@@ -623,28 +624,31 @@ def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame:
             plain = _Estimates(est, corrected, boresight, pose)
             start = replace(pose, drift_fit=pose.values)
             joint = beside_drift(start)
-            if joint is not None and _explains_more(plain, joint, lever, frame, storage):
+            if joint is not None and _explains_more(plain, joint, lever, frame, storage, err.angle_sigma_rad):
                 return _boresight_if_needed(joint, partial(beside_drift, start, held=BORESIGHT_HELD), lever, frame,
-                                            storage)
+                                            storage, err.angle_sigma_rad)
     return _Estimates(est, corrected, boresight, pose)
 
 
 def _crossings_misfit(e: _Estimates, lever: np.ndarray, frame: StorageFrame, storage: Storage,
-                      cell_m: float) -> tuple[float, float]:
+                      cell_m: float, angle_sigma_rad: float) -> tuple[float, float]:
     """(misfit, noise) of the pile seen at different times on the estimates' corrected samples
-    (`crossings_misfit_m`), in cells of `cell_m`, the points near a wall left out as the correction leaves them."""
+    (`crossings_misfit_m`), in cells of `cell_m`, the points near a wall and those a beam pointing up hit left out as
+    the correction leaves them (`not_the_pile`, with the header's pointing noise angle_sigma_rad)."""
     pose = e.pose
     placed = apply_pose_correction(e.samples, pose, frame)
     b, _ = beams(placed, lever, frame, e.boresight)
     p = b.vehicle_w + b.to_point_w
     n, d = planes(storage)
     j, _ = nearest_plane(p, n, d, BAND * pose.noise_m)
-    return crossings_misfit_m(p, b.t_s, pose.knot_t_s, np.zeros(len(pose.knot_t_s)), j >= 1, storage, cell_m,
-                              PoseCorrectionOptions().max_position_error_m, pose.noise_m)
+    limits = PoseCorrectionOptions()
+    wall = not_the_pile(j >= 1, b.to_point_w, up_noise_m(b.to_point_w, angle_sigma_rad, limits.n_significant))
+    return crossings_misfit_m(p, b.t_s, pose.knot_t_s, np.zeros(len(pose.knot_t_s)), wall, storage, cell_m,
+                              limits.max_position_error_m, pose.noise_m)
 
 
 def _explains_more(first: _Estimates, second: _Estimates, lever: np.ndarray, frame: StorageFrame,
-                   storage: Storage) -> bool:
+                   storage: Storage, angle_sigma_rad: float) -> bool:
     """Whether the second estimates (a mount and a pose) explain the flight better than the first (a pose alone):
     the floor and walls' misfit and the pile seen at different times', each in its own noise (`explains_more`). Both
     are compared in the first pose correction's cells (what the vehicle flies in a sweep period, as that correction
@@ -656,7 +660,7 @@ def _explains_more(first: _Estimates, second: _Estimates, lever: np.ndarray, fra
     cell_m = first.pose.cell_m or second.pose.cell_m
     if cell_m is None or not cell_m > 0:
         return False
-    (c0, n0), (c1, n1) = (_crossings_misfit(e, lever, frame, storage, cell_m) for e in (first, second))
+    (c0, n0), (c1, n1) = (_crossings_misfit(e, lever, frame, storage, cell_m, angle_sigma_rad) for e in (first, second))
     noise = min(first.pose.noise_m, second.pose.noise_m)
     walls = tuple(e.pose.rms_after_m if e.pose.drift_rms_m is None else e.pose.drift_rms_m for e in (first, second))
     return explains_more(walls, noise, (c0, c1), min(n0, n1))
@@ -667,7 +671,7 @@ BORESIGHT_HELD = (False, False, True, True)
 
 
 def _boresight_if_needed(joint: _Estimates, without: Callable[[], _Estimates | None], lever: np.ndarray,
-                         frame: StorageFrame, storage: Storage) -> _Estimates:
+                         frame: StorageFrame, storage: Storage, angle_sigma_rad: float) -> _Estimates:
     """The mount fitted beside a drift, or the same with its boresight held as configured (`without`), when the
     servo's part is applied either way and the boresight does not explain the flight better (`_explains_more`).
 
@@ -683,7 +687,7 @@ def _boresight_if_needed(joint: _Estimates, without: Callable[[], _Estimates | N
     if joint.mount is None or not any(a for a, h in zip(joint.mount.applied, BORESIGHT_HELD, strict=True) if h):
         return joint
     simpler = without()
-    if simpler is None or _explains_more(simpler, joint, lever, frame, storage):
+    if simpler is None or _explains_more(simpler, joint, lever, frame, storage, angle_sigma_rad):
         return joint
     return simpler
 

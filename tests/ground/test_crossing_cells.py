@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from ground.crossing_cells import slope_continues
+from ground.crossing_cells import not_the_pile, slope_continues, up_noise_m
 
 
 def test_that_a_slope_is_used_only_where_it_continues_up_or_down_it():
@@ -22,3 +24,17 @@ def test_that_a_slope_is_used_only_where_it_continues_up_or_down_it():
     keep = slope_continues(sloped, gx, gy, nx * ny, ny)
     assert keep[flank].all()
     assert not keep[step] and not keep[against]
+
+
+def test_that_what_a_beam_pointing_level_or_up_hit_is_no_part_of_the_pile():
+    # the vehicle flies over the pile: at or above its height a beam finds a wall or the roof
+    to_point = np.array([[0.0, 3.0, -2.0], [0.0, 9.0, 0.0], [0.0, 9.0, 0.4], [1.0, 0.0, -7.0]])
+    wall = np.array([False, False, False, True])
+    assert not_the_pile(wall, to_point).tolist() == [False, True, True, True]
+
+
+def test_that_a_beam_up_by_less_than_its_pointing_noise_may_be_a_level_one_and_is_kept():
+    to_point = np.array([[0.0, 9.0, 0.0], [0.0, 9.0, 0.4], [0.0, 9.0, 0.6], [0.0, 9.0, -0.1]])
+    up_m = up_noise_m(to_point, math.radians(1.0))  # three degrees at 9 m: 0.47 m
+    assert np.allclose(up_m, 3 * math.radians(1.0) * np.linalg.norm(to_point, axis=1))
+    assert not_the_pile(np.zeros(4, dtype=bool), to_point, up_m).tolist() == [False, False, True, False]

@@ -521,7 +521,7 @@ def test_that_a_boresight_fitted_beside_a_drift_is_kept_only_where_it_explains_t
         return simpler if simpler_found else None
 
     monkeypatch.setattr(report, "_explains_more", lambda first, second, *_: boresight_better)
-    got = report._boresight_if_needed(joint, without, np.zeros(3), StorageFrame(), STORAGE)
+    got = report._boresight_if_needed(joint, without, np.zeros(3), StorageFrame(), STORAGE, 0.0)
     assert got is (simpler if kept == "simpler" else joint)
     assert bool(asked) == any(joint_applied[2:])
 
