@@ -1073,8 +1073,8 @@ def test_that_a_sweep_wider_than_a_half_turn_leaves_the_walls_above_the_vehicle_
 
 def test_that_under_a_stated_pointing_noise_a_beam_counts_as_pointing_up_only_beyond_it(monkeypatch):
     """With Appendix A's degree of pointing noise and a servo 3 deg off, every beam near the sweep's end is up or
-    down by its noise; leaving out those that drew up moved 7 of 12 such flights by up to 1.8 pp, their trajectories
-    mostly worse. The margin is the header's pointing error, three of it at each point's range."""
+    down by its noise; leaving out those that drew up moved 7 of 12 such flights by up to 1.8 pp, four of them
+    with worse trajectories. The margin is the header's pointing error, three of it at each point's range."""
     import ground.crossing_cells as cc
     import ground.pose_correction as pc
 
