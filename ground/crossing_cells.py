@@ -32,24 +32,25 @@ def flattened(p: np.ndarray, wall: np.ndarray, storage: Storage, cell_m: float, 
     return inside, nx, ny, cid, p[:, 2] - cell_slopes(seen, cid, nx * ny, cell_m, ny, inside)
 
 
-def not_the_pile(wall: np.ndarray, to_point_w: np.ndarray, up_m: float | np.ndarray = 0.0) -> np.ndarray:
+def up_noise_m(to_point_w: np.ndarray, angle_sigma_rad: float, n_sigma: float = 3.0) -> np.ndarray:
+    """How far above the vehicle a level beam's point may lie by its pointing noise alone: n_sigma of the header's
+    pointing error (1 sigma) at each point's range. A position error moves the vehicle and its points together, so it
+    is not in it."""
+    return n_sigma * angle_sigma_rad * np.linalg.norm(np.asarray(to_point_w, dtype=float), axis=1)
+
+
+def not_the_pile(wall: np.ndarray, to_point_w: np.ndarray, angle_sigma_rad: float = 0.0,
+                 n_sigma: float = 3.0) -> np.ndarray:
     """The points the crossings leave out as no part of the pile's surface: the walls' (`wall`, as their fit assigned
     them) and every point a beam pointing level or upward hit (to_point_w (n, 3): from the vehicle to the point, in
-    W, at least up_m above it: the beam's own pointing noise, a few of its standard deviations at the point's range,
-    under which a level beam passes for one pointing up). The vehicle flies over the pile, so what a beam finds at
-    or above the vehicle's height is a wall or the roof. The walls' fit misses such points where the pose is metres
-    off: a sweep wider than a half turn (a servo 5 % over its calibration swings 94.5 deg to each side) reaches the
-    walls above the vehicle, and in the cells beside a wall those points passed for a pile 2 m higher than another
-    pass saw it, which made the registration jump and be refused (docs/design-notes.md, "Beams pointing up are no
-    pile")."""
+    W), up by more than its own pointing noise (`up_noise_m` with the header's angle_sigma_rad), under which a level
+    beam passes for one pointing up. The vehicle flies over the pile, so what a beam finds at or above the vehicle's
+    height is a wall or the roof. The walls' fit misses such points where the pose is metres off: a sweep wider than
+    a half turn (a servo 5 % over its calibration swings 94.5 deg to each side) reaches the walls above the vehicle,
+    and in the cells beside a wall those points passed for a pile 2 m higher than another pass saw it, which made the
+    registration jump and be refused (docs/design-notes.md, "Beams pointing up are no pile")."""
+    up_m = up_noise_m(to_point_w, angle_sigma_rad, n_sigma)
     return np.asarray(wall, dtype=bool) | (np.asarray(to_point_w, dtype=float)[:, 2] >= up_m)
-
-
-def up_noise_m(to_point_w: np.ndarray, angle_sigma_rad: float, n_sigma: float = 3.0) -> np.ndarray:
-    """How far above the vehicle a level beam's point may lie by its pointing noise alone (`not_the_pile`'s up_m):
-    n_sigma of the header's pointing error (1 sigma) at each point's range. A position error moves the vehicle and
-    its points together, so it is not in it."""
-    return n_sigma * angle_sigma_rad * np.linalg.norm(np.asarray(to_point_w, dtype=float), axis=1)
 
 
 def in_building(p: np.ndarray, wall: np.ndarray, storage: Storage, max_error_m: float) -> np.ndarray:

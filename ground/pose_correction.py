@@ -83,7 +83,7 @@ from scipy.spatial import cKDTree
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, rot_body_to_ned
 from firmware_py.core.sensor_noise import POSE_STREAM_HZ
 from firmware_py.core.storage import Storage
-from ground.crossing_cells import grid_cells, in_building, not_the_pile, up_noise_m
+from ground.crossing_cells import grid_cells, in_building, not_the_pile
 from ground.group_stats import rms, robust_rms
 from ground.plane_stretches import (
     INSIDE_SIGN,
@@ -697,8 +697,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         voted = b.parallel[:, 0] & (np.abs(p1[:, 2] + z_at) <= BAND * sensor_m)
         # what the crossings leave out: the walls' points, and what a beam pointing up beyond its own pointing
         # noise hit (a position error moves the vehicle and its points together: not the beam's direction)
-        wall = not_the_pile((j1 >= 1) | (j_fit >= 1), b.to_point_w,
-                            up_noise_m(b.to_point_w, angle_sigma_rad, opts.n_significant))
+        wall = not_the_pile((j1 >= 1) | (j_fit >= 1), b.to_point_w, angle_sigma_rad, opts.n_significant)
 
         def height_from(floor: np.ndarray, shift: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None,
                                                                               str | None]:

@@ -30,7 +30,7 @@ from ground.base import FLOOR, FLOOR_BASE, BaseKind, fitted_floor_base, rebased_
 from ground.blas_threads import one_blas_thread
 from ground.building_check import SizeCheck, check_building
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M, sweep_disagreement_m
-from ground.crossing_cells import not_the_pile, up_noise_m
+from ground.crossing_cells import not_the_pile
 from ground.deliverable import add_deliverable
 from ground.despike import SpikeThreshold, why_no_threshold
 from ground.echo_reach import echo_reach, echo_record, echo_warning
@@ -642,7 +642,7 @@ def _crossings_misfit(e: _Estimates, lever: np.ndarray, frame: StorageFrame, sto
     n, d = planes(storage)
     j, _ = nearest_plane(p, n, d, BAND * pose.noise_m)
     limits = PoseCorrectionOptions()
-    wall = not_the_pile(j >= 1, b.to_point_w, up_noise_m(b.to_point_w, angle_sigma_rad, limits.n_significant))
+    wall = not_the_pile(j >= 1, b.to_point_w, angle_sigma_rad, limits.n_significant)
     return crossings_misfit_m(p, b.t_s, pose.knot_t_s, np.zeros(len(pose.knot_t_s)), wall, storage, cell_m,
                               limits.max_position_error_m, pose.noise_m)
 

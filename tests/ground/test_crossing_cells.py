@@ -37,4 +37,4 @@ def test_that_a_beam_up_by_less_than_its_pointing_noise_may_be_a_level_one_and_i
     to_point = np.array([[0.0, 9.0, 0.0], [0.0, 9.0, 0.4], [0.0, 9.0, 0.6], [0.0, 9.0, -0.1]])
     up_m = up_noise_m(to_point, math.radians(1.0))  # three degrees at 9 m: 0.47 m
     assert np.allclose(up_m, 3 * math.radians(1.0) * np.linalg.norm(to_point, axis=1))
-    assert not_the_pile(np.zeros(4, dtype=bool), to_point, up_m).tolist() == [False, False, True, False]
+    assert not_the_pile(np.zeros(4, dtype=bool), to_point, math.radians(1.0)).tolist() == [False, False, True, False]

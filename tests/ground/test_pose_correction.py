@@ -1081,11 +1081,11 @@ def test_that_under_a_stated_pointing_noise_a_beam_counts_as_pointing_up_only_be
     samples, _ = flight(drift(WALK, HEADING_RATE, seed=4, rate_m_s=RATE), sweep_rad=1.05 * math.pi / 2)
     margins = []
 
-    def spy(to_point_w, angle_sigma_rad, n_sigma=3.0):
+    def spy(wall, to_point_w, angle_sigma_rad=0.0, n_sigma=3.0):
         margins.append((angle_sigma_rad, n_sigma))
-        return cc.up_noise_m(to_point_w, angle_sigma_rad, n_sigma)
+        return cc.not_the_pile(wall, to_point_w, angle_sigma_rad, n_sigma)
 
-    monkeypatch.setattr(pc, "up_noise_m", spy)
+    monkeypatch.setattr(pc, "not_the_pile", spy)
     estimate_pose_correction(samples, LEVER, FRAME, STORAGE, RESOLUTION, 0.0, 0.0, math.radians(1.0), PERIOD_S)
     assert margins == [(math.radians(1.0), PoseCorrectionOptions().n_significant)]
 
