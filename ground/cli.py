@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 from collections.abc import Sequence
 
@@ -33,6 +34,7 @@ from ground.piles import DEFAULT_MIN_PILE_AREA_M2, MassUnit, PileOptions, Volume
 from ground.pose_knots import PoseCorrectionOptions
 from ground.render import fmt_echo, warning_parts
 from ground.report import make_report
+from ground.self_calibration import KnownMount
 from ground.smoothing import DEFAULT_NODE_SLOPES, NodeSlopes
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
 from ground.survey import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions
@@ -136,6 +138,13 @@ def build_parser() -> ArgumentParser:
     r.add_argument("--no-self-calibration", action="store_true",
                    help="do not estimate the servo's zero and scale and the LiDAR's boresight from the floor and "
                         "walls (default: estimate them, apply those that are significant, and say so)")
+    r.add_argument("--mount", type=finite_float, nargs=4, default=None,
+                   metavar=("OFFSET_DEG", "SCALE_PCT", "TILT_DEG", "YAW_DEG"),
+                   help="the mount's errors against the log header's calibration, as measured (on the bench after "
+                        "the flight): the servo's zero offset (deg) and travel scale error (%%: +5 turns 5 %% further "
+                        "per pulse than calibrated), the LiDAR's tilt out of the sweep plane and the sweep plane's "
+                        "yaw (deg); applied in place of the self-calibration from the building, and said so (the "
+                        "conventions report.json's self_calibration reports in; each within 20 deg or 30 %%)")
     pc = r.add_mutually_exclusive_group()
     pc.add_argument("--pose-correction", dest="pose_correction", action="store_true", default=True,
                     help="correct the logged trajectory from the building (the default): the horizontal position "
@@ -283,6 +292,17 @@ def _lever_arm(xyz: Sequence[float] | None) -> tuple[float, float, float] | None
     return (float(xyz[0]), float(xyz[1]), float(xyz[2]))
 
 
+def _mount(values: Sequence[float] | None) -> KnownMount | None:
+    """--mount OFFSET_DEG SCALE_PCT TILT_DEG YAW_DEG, in the code's units and held to `KnownMount`'s limits."""
+    if values is None:
+        return None
+    offset_deg, scale_pct, tilt_deg, yaw_deg = values
+    try:
+        return KnownMount(math.radians(offset_deg), scale_pct / 100.0, math.radians(tilt_deg), math.radians(yaw_deg))
+    except ValueError as exc:
+        raise UserError(f"--mount: {exc}") from None
+
+
 def _baro_walk(value: float) -> float:
     if not 0.0 < value <= MAX_BARO_WALK_M_PER_SQRT_S:
         raise UserError(f"--baro-walk must be > 0 and at most {MAX_BARO_WALK_M_PER_SQRT_S:g} m/sqrt(s), got {value:g}")
@@ -328,7 +348,7 @@ def _report(args) -> int:
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),
                          self_calibration=not args.no_self_calibration, pose_correction=args.pose_correction,
                          baro_walk_m_per_sqrt_s=_baro_walk(args.baro_walk), storage=args.storage,
-                         lever_arm_m=_lever_arm(args.lever_arm),
+                         lever_arm_m=_lever_arm(args.lever_arm), mount=_mount(args.mount),
                          max_interval_pct=args.max_interval_pct,
                          site=args.config_file.site if args.config_file is not None else None,
                          base=base, piles=piles, info=info, exports=exports)

@@ -598,11 +598,13 @@ def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame:
     pose: a constant mount error is partly a constant shift of the structure, which the pose's knots took up
     when they came first (measured: docs/pose_error.md)."""
     est, corrected, boresight, pose = None, samples, mount, None
-    both = opts.self_calibration and opts.pose_correction
+    calibrating = _calibrating(opts)
+    both = calibrating and opts.pose_correction
     placed = _shared_beams(samples, lever, frame, storage, err, mount) if both else None
-    if opts.self_calibration:
+    if opts.mount is not None or calibrating:
         resim = _drive(header, samples)
-        est = _mount_of(samples, lever, frame, storage, err, resim, mount, placed=placed)
+        est = (opts.mount.estimate() if opts.mount is not None
+               else _mount_of(samples, lever, frame, storage, err, resim, mount, placed=placed))
         if est.any_applied:
             corrected, boresight = apply_mount(samples, est, resim, mount)
     if opts.pose_correction:
@@ -610,12 +612,12 @@ def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame:
                         opts.baro_walk_m_per_sqrt_s, placed if corrected is samples and boresight == mount else None)
         beside_drift = partial(_mount_with_drift, samples, samples if unlifted is None else unlifted, header, storage,
                                frame, lever, opts, err, mount, share_taken_out)
-        if opts.self_calibration and pose.unexplained:
+        if calibrating and pose.unexplained:
             joint = beside_drift(pose)
             if joint is not None:
                 return _boresight_if_needed(joint, partial(beside_drift, pose, held=BORESIGHT_HELD), lever, frame,
                                             storage, err.angle_sigma_rad)
-        elif opts.self_calibration and pose.applied and est is not None and est.unexplained:
+        elif calibrating and pose.applied and est is not None and est.unexplained:
             # The mount's fit refused because a drift bends the structure, and the drift's fit explained it alone: a
             # mount error the knots took up as a drift (a LiDAR tilted 2 deg moves the points along the track, which
             # the knots follow leg by leg; a sweep yawed 2 deg moves each side's points along the track the other
@@ -628,6 +630,11 @@ def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame:
                 return _boresight_if_needed(joint, partial(beside_drift, start, held=BORESIGHT_HELD), lever, frame,
                                             storage, err.angle_sigma_rad)
     return _Estimates(est, corrected, boresight, pose)
+
+
+def _calibrating(opts: ReportOptions) -> bool:
+    """Whether the mount is estimated from the building: asked for, and no mount given (`--mount`)."""
+    return opts.self_calibration and opts.mount is None
 
 
 def _crossings_misfit(e: _Estimates, lever: np.ndarray, frame: StorageFrame, storage: Storage,
@@ -749,7 +756,7 @@ def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage:
         # with a drift beside it (`_mount_with_drift`): the drift had no mount to pass for there, and the corrected
         # trajectory's knots took up part of the tilt, which the mount fitted again then dropped (a `flow` flight:
         # the tilt not found again, and the pose then refused on the mount left).
-        for _ in range(0 if first.joint else MOUNT_POSE_ROUNDS):
+        for _ in range(0 if first.joint or not _calibrating(opts) else MOUNT_POSE_ROUNDS):
             if not (pose.applied and est is not None and est.any_applied):
                 break
             again = _mount_of(apply_pose_correction(samples, pose, frame), lever, frame, storage, err, resim, mount)

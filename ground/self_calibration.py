@@ -129,6 +129,8 @@ class MountEstimate:
         held: which parameters the caller held as configured (`estimate_mount`'s `held`), not estimated: beside a
             drift, the report holds the boresight when the flight is explained as well without it
             (`ground.report`).
+        given: not estimated at all: the user's measured mount (`KnownMount`, `--mount`), applied as given; its
+            standard errors and structure RMS are NaN (nothing was fitted).
     """
 
     values: tuple[float, float, float, float]
@@ -144,6 +146,7 @@ class MountEstimate:
     lever_change_m: tuple[float, float, float] | None = None
     with_drift: bool = False
     held: tuple[bool, bool, bool, bool] = (False, False, False, False)
+    given: bool = False
 
     @property
     def any_applied(self) -> bool:
@@ -165,11 +168,51 @@ class MountEstimate:
             out[key] = {"estimate": f(v), "std_error": None if math.isnan(e) else f(e), "applied": a,
                         "observable": o, "held_as_configured": h}
         out.update(points_per_plane=dict(zip(("floor", "x0", "xL", "y0", "yW"), self.points, strict=True)),
-                   rms_before_m=self.rms_before_m, rms_after_m=self.rms_after_m, reason=self.reason,
-                   refused=self.refused,
+                   rms_before_m=_finite_or_none(self.rms_before_m), rms_after_m=_finite_or_none(self.rms_after_m),
+                   reason=self.reason, refused=self.refused,
                    lever_change_m=None if self.lever_change_m is None else list(self.lever_change_m),
-                   fitted_with_drift=self.with_drift)
+                   fitted_with_drift=self.with_drift, given=self.given)
         return out
+
+
+def _finite_or_none(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None  # NaN is no JSON: a given mount fitted nothing
+
+
+@dataclass(frozen=True)
+class KnownMount:
+    """The mount's errors against the log header's calibration as the user measured them (`pilescan-ground report
+    --mount`), applied in place of the self-calibration: the servo's zero offset (rad) and its travel's scale error (a
+    fraction: +0.05 turns 5 % further per pulse than calibrated), the LiDAR's tilt out of the sweep plane and the
+    sweep plane's yaw (rad) on top of the header's boresight; the conventions `MountEstimate` reports in, so a mount the
+    building found can be given back as it was reported. Why: a servo or a mounting measured on the bench after the
+    flight is known better than a building that shows little structure lets the self-calibration find it, and a
+    simulated flight's true mount tells what of its error the calibration leaves (tools.pose_mount_check). Held to
+    BOUNDS, what a mounting can plausibly be off by."""
+
+    servo_offset_rad: float = 0.0
+    servo_scale: float = 0.0
+    tilt_rad: float = 0.0
+    sweep_yaw_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        names = ("servo offset", "servo scale", "tilt", "sweep yaw")
+        for name, v, lo, hi, pct in zip(names, self.values, BOUNDS[0], BOUNDS[1], (False, True, False, False),
+                                        strict=True):
+            if not (math.isfinite(v) and lo <= v <= hi):
+                shown, unit, limit = (v * 100, "%", hi * 100) if pct else (math.degrees(v), " deg", math.degrees(hi))
+                raise ValueError(f"the {name} must be within +/-{limit:g}{unit} (what a mounting can plausibly be off "
+                                 f"by), got {shown:g}{unit}")
+
+    @property
+    def values(self) -> tuple[float, float, float, float]:
+        return (self.servo_offset_rad, self.servo_scale, self.tilt_rad, self.sweep_yaw_rad)
+
+    def estimate(self) -> MountEstimate:
+        """The mount as an estimate the report applies: every parameter that is not zero applied, nothing fitted."""
+        nan = math.nan
+        return MountEstimate(self.values, (nan, nan, nan, nan), tuple(v != 0.0 for v in self.values),
+                             (0, 0, 0, 0, 0), nan, nan, given=True)
 
 
 MAX_MOUNT_RAD = math.pi / 4
@@ -1054,12 +1097,17 @@ def describe(est: MountEstimate, base: Boresight = SQUARE) -> str:
     names = ("servo offset", "servo scale", "boresight tilt", "sweep-plane yaw")
     parts = []
     for name, v, e, a in zip(names, est.values, est.std_errors, est.applied, strict=True):
-        if a:
+        if a and est.given:
+            parts.append(f"{name} {v * 100:+.2f} %" if name == "servo scale" else f"{name} {math.degrees(v):+.2f} deg")
+        elif a:
             parts.append(f"{name} {v * 100:+.2f} +- {e * 100:.2f} %" if name == "servo scale"
                          else f"{name} {math.degrees(v):+.2f} +- {math.degrees(e):.2f} deg")
     on_top = "" if base.square else (
         f" on top of the configured boresight ({math.degrees(base.tilt_rad):+.2f} deg tilt, "
         f"{math.degrees(base.sweep_yaw_rad):+.2f} deg sweep-plane yaw)")
+    if est.given:
+        return (f"the mount as given (--mount) applied in place of the self-calibration from the building: "
+                f"{', '.join(parts)}{on_top}")
     held = [name for name, o, h in zip(names, est.observable, est.held, strict=True) if not (o or h)]
     chosen = [name for name, h in zip(names, est.held, strict=True) if h]
     drift = ("; fitted together with the pose's drift, as the mount alone did not explain the floor and walls (a "

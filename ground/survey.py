@@ -21,7 +21,7 @@ from ground.pointcloud import Cloud
 from ground.pose_correction import PoseCorrection
 from ground.pose_knots import PoseCorrectionOptions
 from ground.rangefinder_height import RangefinderShare
-from ground.self_calibration import MountEstimate
+from ground.self_calibration import KnownMount, MountEstimate
 from ground.servo_timing import ServoTiming
 from ground.smoothing import DEFAULT_NODE_SLOPES, NodeSlopes
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, Grid
@@ -59,6 +59,7 @@ class ReportOptions:
     # believed drift: how far a floor seen only away from the walls may move the height, and the level term's sigma
     storage: Storage | None = None  # the building in place of the log header's (--storage; None: the header's)
     lever_arm_m: tuple[float, float, float] | None = None  # the LiDAR's lever arm for the header's (--lever-arm)
+    mount: KnownMount | None = None  # the mount as measured (--mount), applied in place of the self-calibration
     noise_corrections: bool = False  # the noisy surface's three bias corrections (survey_of_cloud); not yet default
     pointing_bias: bool = False  # points moved back along their beams by the pointing error's bias (pointing_bias)
 

@@ -1,6 +1,7 @@
 """Self-calibration from the building: a mis-mounted LiDAR on a mis-calibrated servo, flown in the
 SITL (the firmware in the loop), is found from the floor and walls; a square one is left alone."""
 
+import json
 import math
 import shutil
 
@@ -18,6 +19,7 @@ from ground.self_calibration import (
     N_GROUPS,
     PLANE_SETS,
     DriftNuisance,
+    KnownMount,
     MountEstimate,
     _DriftFit,
     _trim_inside,
@@ -175,6 +177,42 @@ def test_that_the_report_applies_it_says_so_and_gets_the_volume_back(skewed_run,
     assert raw["self_calibration"] is None
     assert abs(signed_error_pct(fixed) - signed_error_pct(clean)) < 0.3
     assert abs(signed_error_pct(raw) - signed_error_pct(clean)) > abs(signed_error_pct(fixed) - signed_error_pct(clean))
+
+
+def test_that_a_mount_given_is_applied_as_given_in_place_of_the_self_calibration(skewed_run, square_report, tmp_path):
+    """The skewed flight reported with the mount it flew given (`--mount 3 5 2 0`): nothing is estimated, the mount
+    is applied as given and said so, report.json stays JSON (no NaN for the fit that was not made), and the volume
+    comes back to the square flight's."""
+    given = make_report(skewed_run, tmp_path / "given", ReportOptions(
+        plots=False, mount=KnownMount(math.radians(3.0), 0.05, math.radians(2.0), 0.0)))
+    cal = given["self_calibration"]
+    assert cal["given"] is True and cal["rms_before_m"] is None and cal["servo_scale"]["std_error"] is None
+    assert cal["servo_offset_deg"]["estimate"] == pytest.approx(3.0) and cal["servo_offset_deg"]["applied"] is True
+    assert cal["servo_scale"]["estimate"] == pytest.approx(0.05) and cal["boresight_tilt_deg"]["applied"] is True
+    assert cal["sweep_yaw_deg"]["applied"] is False
+    said = [w for w in given["warnings"] if "--mount" in w]
+    assert said == ["the mount as given (--mount) applied in place of the self-calibration from the building: servo "
+                    "offset +3.00 deg, servo scale +5.00 %, boresight tilt +2.00 deg"]
+    assert not any(w.startswith("self-calibration from the building") for w in given["warnings"])
+
+    def no_constant(name):
+        raise AssertionError(f"report.json holds {name}, which is no JSON")
+    json.loads((tmp_path / "given" / "report.json").read_text(), parse_constant=no_constant)
+    assert abs(signed_error_pct(given) - signed_error_pct(square_report)) < 0.3
+
+
+def test_that_a_known_mount_is_held_to_what_a_mounting_can_be_off_by_and_applies_what_is_not_zero():
+    est = KnownMount(servo_scale=-0.02).estimate()
+    assert est.given and est.applied == (False, True, False, False) and est.values == (0.0, -0.02, 0.0, 0.0)
+    assert est.correction()[:2] == (0.0, -0.02)
+    assert not KnownMount().estimate().any_applied
+    assert describe(est).endswith("servo scale -2.00 %")
+    for bad, words in ((dict(servo_offset_rad=math.radians(21)), "servo offset must be within +/-20 deg .*got 21 deg"),
+                       (dict(servo_scale=0.31), "servo scale must be within +/-30% .*got 31%"),
+                       (dict(tilt_rad=math.nan), "tilt must be within"),
+                       (dict(sweep_yaw_rad=-math.inf), "sweep yaw must be within")):
+        with pytest.raises(ValueError, match=words.replace("+", r"\+")):
+            KnownMount(**bad)
 
 
 def test_that_the_tilt_estimated_is_the_deviation_from_the_configured_one(skewed_run):
