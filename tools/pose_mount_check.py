@@ -162,8 +162,9 @@ def table(rows: list[dict], command: str, faults: dict[str, float] = MOUNT_FAULT
     names = ", ".join(f.short for k, f in FAULTS.items() if k in faults)
     lines += ["", f"| profile | flights | mount found and applied ({names}) | within "
               f"{TOLERANCE_PP:g} pp | mean \\|Ve - square mount's\\| (pp) | with the true mount: within "
-              f"{TOLERANCE_PP:g} pp | mean \\|Ve - square mount's\\| (pp) | intervals holding the truth |",
-              "|---|---|---|---|---|---|---|---|"]
+              f"{TOLERANCE_PP:g} pp | mean \\|Ve - square mount's\\| (pp) | the self-calibration's share: mean / max "
+              "\\|Ve - true mount's\\| (pp) | intervals holding the truth |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for profile in PROFILES:
         rs = [r for r in rows if r["profile"] == profile]
         if not rs:
@@ -173,10 +174,11 @@ def table(rows: list[dict], command: str, faults: dict[str, float] = MOUNT_FAULT
         gap = statistics.fmean(abs(r["ve"] - r["ve_square"]) for r in rs)
         near_true = sum(abs(r["ve_true_mount"] - r["ve_square"]) <= TOLERANCE_PP for r in rs)
         gap_true = statistics.fmean(abs(r["ve_true_mount"] - r["ve_square"]) for r in rs)
+        share = [abs(r["ve"] - r["ve_true_mount"]) for r in rs]
         held = sum(r.get("in_interval") is True for r in rs)
         n = len(rs)
         lines.append(f"| {profile} | {n} | {applied}/{n} | {near}/{n} | {gap:.2f} | {near_true}/{n} | {gap_true:.2f} "
-                     f"| {held}/{n} |")
+                     f"| {statistics.fmean(share):.2f} / {max(share):.2f} | {held}/{n} |")
     return "\n".join(lines)
 
 

@@ -25,8 +25,9 @@ def test_that_the_table_has_a_row_a_flight_and_counts_the_flights_brought_back_t
     # a parameter found but not applied is in brackets, and the flight is not within the tolerance
     assert ("| 1 | 20 % | vio | 1 | +0.10 | +4.62 | +4.50 | +0.50 | (+3.00 deg) / (+5.00 %) / (+1.89 deg) / "
             "(+0.12 deg) | no | no | no |" in lines)
-    # with the true mount given: 0.34 and 0.40 pp from the square twin, neither within 0.3 pp
-    assert "| vio | 2 | 1/2 | 1/2 | 2.24 | 0/2 | 0.37 | 1/2 |" in lines
+    # with the true mount given: 0.34 and 0.40 pp from the square twin, neither within 0.3 pp; the self-calibration's
+    # share: 0.42 and 4.00 pp from the true mount's
+    assert "| vio | 2 | 1/2 | 1/2 | 2.24 | 0/2 | 0.37 | 2.21 / 4.00 | 1/2 |" in lines
     assert not any(line.startswith("| flow |") for line in lines)  # no flights, no summary row
 
 
@@ -41,10 +42,10 @@ def test_that_the_summary_counts_a_flight_found_when_the_faults_flown_are_found_
     text = table(rows, "CMD", {"servo_offset_deg": 3.0}, SensorNoiseModel.APPENDIX_A)
     assert "with the servo 3 deg off, the same drift" in text and "sensor noise `appendix-a`" in text
     assert "| profile | flights | mount found and applied (offset) |" in text
-    assert "| flow | 1 | 1/1 | 1/1 | 0.10 | 0/1 | 0.50 | 1/1 |" in text
+    assert "| flow | 1 | 1/1 | 1/1 | 0.10 | 0/1 | 0.50 | 0.40 / 0.40 | 1/1 |" in text
     text = table(rows, "CMD", {"servo_offset_deg": 3.0, "sweep_yaw_deg": 2.0})
     assert "the servo 3 deg off and the sweep yawed 2 deg" in text
-    assert "| flow | 1 | 0/1 | 1/1 | 0.10 | 0/1 | 0.50 | 1/1 |" in text
+    assert "| flow | 1 | 0/1 | 1/1 | 0.10 | 0/1 | 0.50 | 0.40 / 0.40 | 1/1 |" in text
 
 
 def test_that_the_true_mount_is_the_faults_flown_in_the_units_and_signs_the_report_gives_them():
