@@ -19,6 +19,7 @@ from ground.smoothing import (
     box_sum,
     cell_index,
     data_noise_scale,
+    integral_image,
     lepski_select,
     smoothed_nodes,
     vertical_sigma_m,
@@ -241,6 +242,13 @@ def test_that_box_sums_and_window_sizes_are_what_they_say():
             assert b[i, k] == pytest.approx(a[max(0, i - j):i + j + 1, max(0, k - j):k + j + 1].sum())
     assert window_halfwidths(0.25, 2.0) == [0, 1, 2, 4, 8]
     assert window_halfwidths(0.25, 0.0) == [0]
+
+
+def test_that_one_integral_image_for_the_widest_window_gives_every_narrower_window_the_same_sums_to_the_bit():
+    a = np.random.default_rng(8).normal(size=(40, 23)) * 1e3
+    integral = integral_image(a, 8)
+    for j in (0, 1, 2, 4, 8):
+        assert np.array_equal(box_sum(a, j, integral, 8), box_sum(a, j))
 
 
 def test_that_the_report_fits_local_linear_on_request_with_the_headers_sigmas(tmp_path, capsys):
