@@ -219,7 +219,8 @@ def box_sum(a: np.ndarray, j: int, integral: np.ndarray | None = None, j_max: in
     integral (`integral_image(a, j_max)`, j <= j_max) made once for every half-width a caller asks. The same sums to
     the bit either way: the wider padding only adds leading zeros to each running sum, and the four corners are
     combined in the same order. Why: a survey asks each of eleven moments for five windows, and making each
-    window's integral image again was most of the time of the windows' sums."""
+    window's integral image again cost a fifth of the windows' sums (docs/design-notes.md, "The windows' sums from one
+    integral image")."""
     if j == 0:
         return a
     if integral is None:
