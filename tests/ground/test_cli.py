@@ -95,6 +95,21 @@ def test_that_the_ground_options_reach_the_report(run_dir, tmp_path, capsys):
                     "--surface-fit")
 
 
+def test_that_the_mount_given_reaches_the_report_in_the_units_it_reports_in(run_dir, tmp_path, capsys):
+    """`--mount 1.5 -2 0 0.5`: degrees and percent on the command line, the same figures in report.json's
+    self-calibration, marked given, and the console's line says so."""
+    assert main(["report", str(run_dir), "--out", str(tmp_path / "r"), "--no-plots", "--mount", "1.5", "-2", "0",
+                 "0.5"]) == 0
+    cal = json.loads((tmp_path / "r" / "report.json").read_text())["self_calibration"]
+    assert cal["given"] is True
+    assert cal["servo_offset_deg"]["estimate"] == pytest.approx(1.5)
+    assert cal["servo_scale"]["estimate"] == pytest.approx(-0.02)
+    assert cal["sweep_yaw_deg"]["estimate"] == pytest.approx(0.5)
+    assert [c["applied"] for c in (cal["servo_offset_deg"], cal["servo_scale"], cal["boresight_tilt_deg"],
+                                   cal["sweep_yaw_deg"])] == [True, True, False, True]
+    assert "the mount as given (--mount) applied" in capsys.readouterr().out
+
+
 def test_that_bad_inputs_fail_cleanly(run_dir, tmp_path, capsys):
     out = str(tmp_path / "r")
     _one_line_error(capsys, ["report", str(tmp_path / "missing"), "--out", out], "no such run", ExitCode.INPUT)
