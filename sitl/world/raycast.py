@@ -57,7 +57,10 @@ class World:
         TriangleMesh(self._scene, building_triangles(storage).astype(np.float32))
         self._pile_top_m = -math.inf
         if pile is not None and len(pile.mesh.faces):
-            TriangleMesh(self._scene, np.ascontiguousarray(pile.mesh.triangles, dtype=np.float32))
+            # by vertices and faces: embreex copies a flat triangle list element by element, three times as many
+            # (the same triangles in the same order, so the same hits to the bit; docs/design-notes.md)
+            TriangleMesh(self._scene, np.ascontiguousarray(pile.mesh.vertices, dtype=np.float32),
+                         np.ascontiguousarray(pile.mesh.faces, dtype=np.int32))
             self._pile_top_m = float(pile.mesh.bounds[1, 2])
         self._one_d64 = np.empty(3)
         self._one_o32 = np.empty((1, 3), dtype=np.float32)
