@@ -6,9 +6,10 @@ at a time or together, and `--sensor-noise` a noisy sensor on both). Both are re
 reports them (the self-calibration and the pose correction on), the faulted one also without the pose correction.
 What the self-calibration found and whether the pose correction was applied are in the table, and the faulted
 flight's Ve against its square twin's says whether the two corrections together undo the mount fault under a drift.
-The faulted flight is also reported with the mount it flew given (`--mount`, in place of the self-calibration): a
-faulted servo or LiDAR puts its beams elsewhere than the square twin's, so part of the gap is the sweep's own
-sampling, which no calibration removes; that column says how much.
+The faulted flight is also reported with the mount it flew given (`--mount`, in place of the self-calibration): what
+is left then against the square twin is not the calibration's (a faulted servo or LiDAR puts its beams elsewhere, and
+the pose correction's own residual differs on the other sampling), and |Ve as found - Ve with the true mount| is the
+self-calibration's share.
 
     python -m tools.pose_mount_check --seeds 0 1 2 --piles 1 2 --keep runs/pose-mount --write docs/pose_error.md
     python -m tools.pose_mount_check --fault sweep_yaw_deg=2 --seeds 3 4 5 --profiles vio flow --keep runs/pm
