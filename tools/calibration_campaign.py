@@ -39,6 +39,7 @@ from sitl.faults.injector import FaultSpec
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import PAYLOADS, FlyConfig, fly
 from tools.doc_sections import write_section
+from tools.pose_mount_check import true_mount
 from tools.workers import progress_map, worker_pool
 
 SECTION = "calibration-campaign"
@@ -107,8 +108,12 @@ def run_case(case: Case, runs: Path | None = None) -> dict:
                                                                 pose_correction=False))
         t2 = time.perf_counter()
         sets = _plane_sets(run) if case.fault == "all three" else None
+        # the mount it flew given (`--mount`): what a perfect self-calibration would leave
+        given = (make_report(run, Path(tmp) / "given", ReportOptions(plots=False, mount=true_mount(FAULTS[case.fault])))
+                 if FAULTS[case.fault] else None)
     cal = on["self_calibration"] or {}
     return {"case": case, "ve_off": off["volume_error_pct"], "ve_on": on["volume_error_pct"], "cal": cal,
+            "ve_true_mount": None if given is None else given["volume_error_pct"],
             "applied": [k for k, v in cal.items() if isinstance(v, dict) and v.get("applied")],
             "cost_s": (t1 - t0) - (t2 - t1), "plane_sets": sets}
 
@@ -125,18 +130,25 @@ def _estimate(cal: dict, key: str, pct: bool = False) -> str:
     return f"**{text}**" if v.get("applied") else text
 
 
+def _given(r: dict) -> str:
+    """Ve with the mount the flight flew given ("-": a fault-free flight, which has none to give)."""
+    v = r.get("ve_true_mount")
+    return "-" if v is None else f"{v:.2f}"
+
+
 def table(rows: list[dict]) -> str:
     out = ["| pile | sensor noise | mounting (truth) | Ve uncorrected [%] | Ve corrected [%] | "
-           "corrected − fault-free [pp] | offset [deg] | scale [%] | tilt [deg] | sweep yaw [deg] | "
-           "floor / wall points | not estimated or not applied because |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           "corrected − fault-free [pp] | Ve, true mount given [%] | offset [deg] | scale [%] | tilt [deg] | "
+           "sweep yaw [deg] | floor / wall points | not estimated or not applied because |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     clean = {(r["case"].pile, r["case"].noise): r["ve_on"] for r in rows if r["case"].fault == "fault-free"}
     for r in rows:
         c, cal = r["case"], r["cal"]
         pts = cal.get("points_per_plane") or {}
         seen = f"{pts.get('floor', 0)} / {sum(v for k, v in pts.items() if k != 'floor')}" if pts else "-"
         out.append(f"| {c.pile} | {c.noise.value} | {c.fault} | {r['ve_off']:.2f} | {r['ve_on']:.2f} | "
-                   f"{r['ve_on'] - clean[(c.pile, c.noise)]:+.2f} | {_estimate(cal, 'servo_offset_deg')} | "
+                   f"{r['ve_on'] - clean[(c.pile, c.noise)]:+.2f} | {_given(r)} | "
+                   f"{_estimate(cal, 'servo_offset_deg')} | "
                    f"{_estimate(cal, 'servo_scale', pct=True)} | {_estimate(cal, 'boresight_tilt_deg')} | "
                    f"{_estimate(cal, 'sweep_yaw_deg')} | {seen} | {cal.get('reason') or cal.get('refused') or ''} |")
     return "\n".join(out)
@@ -200,10 +212,17 @@ def main(argv: list[str] | None = None) -> int:
                    if isinstance(v, dict) and v.get("observable") is False})
     wall = time.perf_counter() - t0
     seeds = sorted({r["case"].seed for r in checked})
+    command = ("python -m tools.calibration_campaign"
+               + (f" --piles {args.piles}" if args.piles != "1,2" else "")
+               + (f" --phases {args.phases}" if args.phases != 20 else "")
+               + (f" --noise {args.noise}" if args.noise != "none,datasheet,appendix-a" else "")
+               + (f" --payload {pl}" if pl != "firmware" else "")
+               + (f" --runs {args.runs}" if args.runs is not None else "") + f" --jobs {args.jobs}"
+               + f" --write {args.write or 'docs/self_calibration.md'}")
     text = "\n".join([
         "## Self-calibration from the building",
         "",
-        f"Regenerate with `python -m tools.calibration_campaign --write {args.write or 'docs/self_calibration.md'}` "
+        f"Regenerate with `{command}` "
         f"({wall:.0f} s with {args.jobs} job(s){'' if args.runs is None else ', flights reused where kept'}). "
         "The paper's building (60 x 40 x 15 m), P_traj 20 %, 12 m, "
         + ("the payload firmware in the loop (lockstep)" if pl == "firmware" else
@@ -211,7 +230,9 @@ def main(argv: list[str] | None = None) -> int:
         + ", servo start position 0; the mounting faults are the SITL's (`--fault "
         "servo_offset_deg=3`, `servo_scale_pct=5`, `boresight_deg=2`), flown with each sensor noise model "
         f"({', '.join(m.value for m in noises)}: `--sensor-noise`). Each flight is reported with and without "
-        "`--no-self-calibration`; corrected − fault-free is against the fault-free flight with the same noise. "
+        "`--no-self-calibration`, and a faulted one also with the mount it flew given (`--mount`, in place of the "
+        "self-calibration: what a perfect self-calibration would leave); corrected − fault-free is against the "
+        "fault-free flight with the same noise. "
         "Estimates with their standard errors; **bold**: applied. The floor / wall "
         "points are the structure points of the final fit (pile 2 hides nearly all of its floor).",
         "",

@@ -109,6 +109,9 @@ STEPS: tuple[Step, ...] = (
     _step("lever-arm", "tools.lever_arm_check --jobs 2 --write docs/pose_error.md", "docs/pose_error.md"),
     _step("pose-mount", "tools.pose_mount_check --seeds 0 1 2 --piles 1 2 --p-traj 20 --keep runs/pose-mount "
           "--write docs/pose_error.md", "docs/pose_error.md"),
+    _step("self-calibration", "tools.calibration_campaign --runs runs/cal --jobs 2 --write docs/self_calibration.md",
+          "docs/self_calibration.md", "the mounting faults' campaign (about 40 min on a fresh checkout, 15 when "
+          "runs/cal holds its flights)"),
     _step("noise", "tools.reproduce --experiments baseline,noise --write docs/noise.md --rows runs/noise-rows.csv "
           "--jobs 2 --quiet --readme README.md", "docs/noise.md README.md",
           "Appendix A's noise against the clean flights (about 80 min)"),

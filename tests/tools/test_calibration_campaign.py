@@ -21,9 +21,11 @@ def test_that_the_table_bolds_applied_estimates_and_compares_with_the_fault_free
            "servo_scale": {"estimate": 0.0001, "std_error": None, "applied": False}}
     rows = [{"case": Case("1", "fault-free"), "ve_off": 0.12, "ve_on": 0.12, "cal": {}, "applied": []},
             {"case": Case("1", "servo offset 3 deg"), "ve_off": 0.20, "ve_on": 0.10, "cal": cal,
-             "applied": ["servo_offset_deg"]}]
+             "applied": ["servo_offset_deg"], "ve_true_mount": 0.11}]
     text = table(rows)
-    assert "| 1 | none | servo offset 3 deg | 0.20 | 0.10 | -0.02 | **+3.001 ± 0.002** | +0.010 |" in text
+    # the faulted flight with its true mount given beside it; the fault-free one has none to give
+    assert "| 1 | none | servo offset 3 deg | 0.20 | 0.10 | -0.02 | 0.11 | **+3.001 ± 0.002** | +0.010 |" in text
+    assert "| 1 | none | fault-free | 0.12 | 0.12 | +0.00 | - |" in text
     hidden = {**cal, "reason": "the building's floor and walls were seen too little"}
     rows[1] = {**rows[1], "cal": hidden}
     assert "| - | - | - | - | the building's floor and walls were seen too little |" in table(rows)
@@ -62,7 +64,7 @@ def test_that_a_noisy_flight_is_compared_with_the_fault_free_flight_of_the_same_
             {"case": Case("2", "servo offset 3 deg", noise=noisy), "ve_off": 2.9, "ve_on": 0.8, "cal": {},
              "applied": []}]
     text = table(rows)
-    assert "| 2 | datasheet | servo offset 3 deg | 2.90 | 0.80 | +0.20 |" in text
+    assert "| 2 | datasheet | servo offset 3 deg | 2.90 | 0.80 | +0.20 | - |" in text
     assert "| not applied: it holds the planes with points inside the building |" in text
 
 
