@@ -200,7 +200,7 @@ class KnownMount:
         for name, v, lo, hi, pct in zip(names, self.values, BOUNDS[0], BOUNDS[1], (False, True, False, False),
                                         strict=True):
             if not (math.isfinite(v) and lo <= v <= hi):
-                shown, unit, limit = (v * 100, "%", hi * 100) if pct else (math.degrees(v), " deg", math.degrees(hi))
+                shown, unit, limit = (v * 100, " %", hi * 100) if pct else (math.degrees(v), " deg", math.degrees(hi))
                 raise ValueError(f"the {name} must be within +/-{limit:g}{unit} (what a mounting can plausibly be off "
                                  f"by), got {shown:g}{unit}")
 

@@ -174,7 +174,7 @@ CASES = [
     ("ground", ["report", "{d}/good.pslog", "--out", "{t}/r", "--mount", "25", "0", "0", "0"],
      "--mount: the servo offset must be within +/-20 deg"),
     ("ground", ["report", "{d}/good.pslog", "--out", "{t}/r", "--mount", "0", "-40", "0", "0"],
-     "--mount: the servo scale must be within +/-30%"),
+     "--mount: the servo scale must be within +/-30 %"),
     ("ground", ["report", "{d}/good.pslog", "--out", "{t}/r", "--mount", "0", "0", "0", "nan"], "finite"),
     ("ground", ["report", "{d}/empty.pslog", "--out", "{t}/r"], "header is missing or corrupt", INPUT),
     ("ground", ["report", "{d}/random.pslog", "--out", "{t}/r"], "header is missing or corrupt", INPUT),

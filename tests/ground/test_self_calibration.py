@@ -208,7 +208,7 @@ def test_that_a_known_mount_is_held_to_what_a_mounting_can_be_off_by_and_applies
     assert not KnownMount().estimate().any_applied
     assert describe(est).endswith("servo scale -2.00 %")
     for bad, words in ((dict(servo_offset_rad=math.radians(21)), "servo offset must be within +/-20 deg .*got 21 deg"),
-                       (dict(servo_scale=0.31), "servo scale must be within +/-30% .*got 31%"),
+                       (dict(servo_scale=0.31), "servo scale must be within +/-30 % .*got 31 %"),
                        (dict(tilt_rad=math.nan), "tilt must be within"),
                        (dict(sweep_yaw_rad=-math.inf), "sweep yaw must be within")):
         with pytest.raises(ValueError, match=words.replace("+", r"\+")):
