@@ -212,13 +212,7 @@ def main(argv: list[str] | None = None) -> int:
                    if isinstance(v, dict) and v.get("observable") is False})
     wall = time.perf_counter() - t0
     seeds = sorted({r["case"].seed for r in checked})
-    command = ("python -m tools.calibration_campaign"
-               + (f" --piles {args.piles}" if args.piles != "1,2" else "")
-               + (f" --phases {args.phases}" if args.phases != 20 else "")
-               + (f" --noise {args.noise}" if args.noise != "none,datasheet,appendix-a" else "")
-               + (f" --payload {pl}" if pl != "firmware" else "")
-               + (f" --runs {args.runs}" if args.runs is not None else "") + f" --jobs {args.jobs}"
-               + f" --write {args.write or 'docs/self_calibration.md'}")
+    command = " ".join(["python -m tools.calibration_campaign", *(argv if argv is not None else sys.argv[1:])])
     text = "\n".join([
         "## Self-calibration from the building",
         "",
