@@ -12,6 +12,7 @@ from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
 from firmware_py.core.samplelog import SAMPLE_DTYPE, SampleLogWriter, read_samplelog, rewritable_header
 from firmware_py.core.storage import Storage
 from ground import log_warnings, report
+from ground.plane_stretches import beams
 from ground.pose_correction import KNOT_SWEEPS, PoseCorrectionOptions, knot_times, prior_sigmas
 from ground.report import ReportOptions, make_report
 from ground.self_calibration import (
@@ -251,6 +252,22 @@ def test_that_a_floor_hidden_by_the_pile_is_calibrated_from_the_walls_alone(hidd
     raw = make_report(skewed_run, tmp_path / "raw", ReportOptions(plots=False, self_calibration=False))
     assert abs(signed_error_pct(fixed) - signed_error_pct(clean)) < 0.3
     assert abs(signed_error_pct(raw) - signed_error_pct(clean)) > abs(signed_error_pct(fixed) - signed_error_pct(clean))
+
+
+def test_that_without_a_drift_the_walls_carry_the_fit_and_the_floor_only_where_no_wall_is_seen(skewed_run, skewed):
+    """The walls first: where a pile hides the floor, its toe passes for floor under noise (`estimate_mount`'s "Why the
+    walls first"). A building whose walls the sweeps never reach (here: every point within 1 m of a wall taken out)
+    is calibrated from its floor."""
+    assert skewed.points[0] == 0 and sum(skewed.points[1:]) > 1000
+    s, h = _usable(skewed_run)
+    b, _ = beams(s, h["lever_arm_body_m"], StorageFrame(), SQUARE)
+    p = b.vehicle_w + b.to_point_w
+    inside = ((p[:, 0] > 1.0) & (p[:, 0] < STORAGE.length_m - 1.0) & (p[:, 1] > 1.0)
+              & (p[:, 1] < STORAGE.width_m - 1.0))
+    floor = _estimate(skewed_run, keep=lambda _s: inside)
+    assert floor.reason is None and floor.points[1:] == (0, 0, 0, 0) and floor.points[0] > 100
+    assert math.degrees(floor.values[0]) == pytest.approx(3.0, abs=0.15)
+    assert floor.values[1] == pytest.approx(0.05, abs=0.005)  # (not significant: a few hundred floor points)
 
 
 def test_that_without_turns_the_boresight_is_held_square_and_the_servo_still_found(tmp_path):
