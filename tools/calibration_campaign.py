@@ -228,7 +228,8 @@ def main(argv: list[str] | None = None) -> int:
         "self-calibration: what a perfect self-calibration would leave); corrected − fault-free is against the "
         "fault-free flight with the same noise. "
         "Estimates with their standard errors; **bold**: applied. The floor / wall "
-        "points are the structure points of the final fit (pile 2 hides nearly all of its floor).",
+        "points are the structure points of the final fit (on a steady pose the fit takes the walls alone, the "
+        "floor only where they tell nothing: `ground.self_calibration.estimate_mount`).",
         "",
         table(rows),
         "",
