@@ -379,9 +379,12 @@ def _fill_gaps_mission(args, waveform: Waveform | None):
     if not args.quiet:
         m, rec = planned.mission, planned.mission.plan
         minutes = mission_time_s(m, target.energy) / 60
-        print(f"fill-gaps plan: {rec['gap_cells']} unseen cells ({rec['gap_area_m2']:.1f} m²) in {planned.n_regions} "
-              f"region(s) of {args.fill_gaps}; predicted to cover {planned.coverage.gap_pct:.1f} % of them (merged R_a "
-              f"{planned.coverage.merged_ra_pct:.2f} %), {m.path_length_m():.0f} m at {m.speed_m_s:g} m/s, about "
+        bridged = (f", {rec['bridged_cells']} of them inside the report's hull but with no point within "
+                   f"{rec['seen_radius_m']:g} m" if rec["bridged_cells"] else "")
+        print(f"fill-gaps plan: {rec['gap_cells']} unseen cells ({rec['gap_area_m2']:.1f} m²{bridged}) in "
+              f"{planned.n_regions} region(s) of {args.fill_gaps}; predicted to cover {planned.coverage.gap_pct:.1f} "
+              f"% of them (merged R_a {planned.coverage.merged_ra_pct:.2f} %), {m.path_length_m():.0f} m at "
+              f"{m.speed_m_s:g} m/s, about "
               f"{minutes:.1f} min, predicted energy {planned.energy_j / 1000:.1f} kJ ({planned.n_evaluated} missions "
               "evaluated)")
     return planned.mission

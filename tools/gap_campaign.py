@@ -49,6 +49,7 @@ class Flight:
     gap_cells: int | None
     ra_pct: float  # after this flight (the merged report's after the second)
     ve_pct: float
+    bridged_cells: int | None = None  # of the gap cells, those inside the first report's hull far from its points
 
 
 def _report(runs: list[Path], out: Path) -> dict:
@@ -73,14 +74,21 @@ def two_flights(pile: str, first: str, phase: int, gap_pct: float, plant: str, o
         planned = plan_fill_gaps(STORAGE, gaps, target)
     except ValueError as exc:  # the planner refused: said in the table, not hidden
         return [first_row, Flight(pile, first, 2, f"fill-gaps refused: {exc}", 0.0, 0.0, None, 0.0, None, None,
-                                  int(gaps.unseen.sum()), rep1["coverage_ratio_pct"], rep1["volume_error_pct"])]
+                                  int(gaps.unseen.sum()), rep1["coverage_ratio_pct"], rep1["volume_error_pct"],
+                                  None if gaps.bridged is None else int(gaps.bridged.sum()))]
     truth2, _ = fly_and_report(planned.mission, stockpile, phase, run2, plant=plant)
     merged = _report([run1, run2], out / f"{pile}-{first}-k{phase}-merged")
     rec = planned.mission.plan
     return [first_row,
             Flight(pile, first, 2, "fill-gaps", planned.mission.path_length_m(), truth2["flight_time_s"],
                    truth2.get("energy_j"), planned.energy_j, planned.coverage.gap_pct, planned.coverage.merged_ra_pct,
-                   rec["gap_cells"], merged["coverage_ratio_pct"], merged["volume_error_pct"])]
+                   rec["gap_cells"], merged["coverage_ratio_pct"], merged["volume_error_pct"], rec["bridged_cells"])]
+
+
+def _cells(r: Flight) -> str:
+    if r.gap_cells is None:
+        return "-"
+    return f"{r.gap_cells}" + ("" if r.bridged_cells is None else f" ({r.bridged_cells})")
 
 
 def _kj(v: float | None) -> str:
@@ -94,14 +102,16 @@ def page(rows: list[Flight], args) -> str:
            f"start position {args.phase}, `pilescan-ground report` defaults. Flight 1 is the first flight alone; "
            "flight 2 is `--fill-gaps` planned from flight 1's report, and its R_a and Ve are the merged report's "
            "(`pilescan-ground report RUN1 RUN2`). Predicted: the share of flight 1's unseen cells the re-flight "
-           "covers, and the merged R_a, by the coverage model on flight 1's surface.", "",
-           "| pile | flight | mission | path [m] | flight [s] | energy [kJ] | model energy [kJ] | unseen cells | "
-           "predicted: gaps covered [%] / R_a [%] | R_a after [%] | Ve after [%] |",
+           "covers, and the merged R_a, by the coverage model on flight 1's surface. Unseen cells: those flight 1's "
+           "report filled, and (bridged) those inside its points' hull with no point within the seen radius (1 m).",
+           "",
+           "| pile | flight | mission | path [m] | flight [s] | energy [kJ] | model energy [kJ] | "
+           "unseen cells (bridged) | predicted: gaps covered [%] / R_a [%] | R_a after [%] | Ve after [%] |",
            "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         pred = "-" if r.predicted_pct is None else f"{r.predicted_pct:.1f} / {r.predicted_ra_pct:.2f}"
         out.append(f"| {r.pile} | {r.flight} | {r.mission} | {r.path_m:.0f} | {r.flight_s:.1f} | {_kj(r.energy_j)} | "
-                   f"{_kj(r.model_energy_j)} | {'-' if r.gap_cells is None else r.gap_cells} | {pred} | "
+                   f"{_kj(r.model_energy_j)} | {_cells(r)} | {pred} | "
                    f"{r.ra_pct:.2f} | {r.ve_pct:.3f} |")
     return "\n".join(out)
 

@@ -330,6 +330,22 @@ def floor_hits_w(mission, waveform: Waveform, limit: RangeLimit, rate_hz: float,
     return p[ok]
 
 
+def within_reach(points_xy: np.ndarray, shape: tuple[int, int], length_m: float, width_m: float, cell_m: float,
+                 radius_m: float) -> np.ndarray:
+    """(nx, ny) the cells of the grid over [0, L] x [0, W] within radius_m of a point: the distance from each cell to
+    the nearest cell holding one (cells of side cell_m). The coverage model's "seen" (module docstring), and the gap
+    re-flight's test of the cells a report's hull bridged (`sitl.missions.gaps`)."""
+    nx, ny = shape
+    hit = np.zeros((nx, ny), dtype=bool)
+    if len(points_xy):
+        ix = np.clip((points_xy[:, 0] / length_m * nx).astype(int), 0, nx - 1)
+        iy = np.clip((points_xy[:, 1] / width_m * ny).astype(int), 0, ny - 1)
+        hit[ix, iy] = True
+    if not hit.any():
+        return hit
+    return ndimage.distance_transform_edt(~hit) * cell_m <= radius_m
+
+
 def coverage_of_hits(hits_w: np.ndarray, storage: Storage, seen_radius_m: float = DEFAULT_SEEN_RADIUS_M,
                      cell_m: float = COVERAGE_CELL_M, hull_points_w: np.ndarray | None = None) -> Coverage:
     """The floor cells the hits cover (module docstring). hull_points_w (M, 2), optional: points an earlier
@@ -342,11 +358,7 @@ def coverage_of_hits(hits_w: np.ndarray, storage: Storage, seen_radius_m: float 
     if len(hits_w) == 0 or len(hits_w) + len(extra) < 3:
         z = np.zeros((nx, ny), dtype=bool)
         return Coverage(0.0, 0.0, 0.0, len(hits_w), z)
-    ix = np.clip((hits_w[:, 0] / storage.length_m * nx).astype(int), 0, nx - 1)
-    iy = np.clip((hits_w[:, 1] / storage.width_m * ny).astype(int), 0, ny - 1)
-    hit = np.zeros((nx, ny), dtype=bool)
-    hit[ix, iy] = True
-    seen = ndimage.distance_transform_edt(~hit) * cell_m <= seen_radius_m
+    seen = within_reach(hits_w, (nx, ny), storage.length_m, storage.width_m, cell_m, seen_radius_m)
     gx, gy = np.meshgrid(cx, cy, indexing="ij")
     try:
         eq = ConvexHull(np.vstack([hits_w, extra])).equations  # a x + b y + c <= 0 inside every facet

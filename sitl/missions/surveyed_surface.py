@@ -96,11 +96,10 @@ def load_height_field(report_dir: str | Path, storage: Storage) -> HeightField:
     return HeightField(h, length, width, str(path), measured, site if isinstance(site, dict) else None)
 
 
-def measured_cells(cloud_path: Path, length_m: float, width_m: float, shape: tuple[int, int]) -> np.ndarray:
-    """(nx, ny) True where a cell centre lies inside the convex hull of the report's pile points (where its
-    surface was fitted, not filled); ValueError (one line) for an unusable cloud."""
+def cloud_points_xy(cloud_path: Path) -> np.ndarray:
+    """(N, 2) the horizontal positions of the report's pile points (its `cloud.ply`), the non-finite left out;
+    ValueError (one line) for an unusable cloud."""
     import trimesh
-    from scipy.spatial import ConvexHull, QhullError
     try:
         data = read_bounded(cloud_path, MAX_CLOUD_BYTES, "point cloud")
         pts = np.asarray(trimesh.load(io.BytesIO(data), file_type="ply").vertices, dtype=float)[:, :2]
@@ -108,9 +107,16 @@ def measured_cells(cloud_path: Path, length_m: float, width_m: float, shape: tup
         raise ValueError(str(exc)) from None
     except Exception as exc:  # trimesh raises many types for a damaged PLY
         raise ValueError(f"{cloud_path} is not a readable point cloud ({type(exc).__name__}: {exc})"[:300]) from None
+    return pts.reshape(-1, 2)[np.all(np.isfinite(pts.reshape(-1, 2)), axis=1)]
+
+
+def measured_cells(cloud_path: Path, length_m: float, width_m: float, shape: tuple[int, int]) -> np.ndarray:
+    """(nx, ny) True where a cell centre lies inside the convex hull of the report's pile points (where its
+    surface was fitted, not filled); ValueError (one line) for an unusable cloud."""
+    from scipy.spatial import ConvexHull, QhullError
+    pts = cloud_points_xy(cloud_path)
     nx, ny = shape
     gx, gy = np.meshgrid((np.arange(nx) + 0.5) * length_m / nx, (np.arange(ny) + 0.5) * width_m / ny, indexing="ij")
-    pts = pts[np.all(np.isfinite(pts), axis=1)]
     try:
         eq = ConvexHull(pts).equations
     except (QhullError, ValueError):  # fewer than three points, or all on a line: nothing was measured

@@ -110,9 +110,43 @@ def test_that_a_version_1_surface_takes_its_gaps_from_the_clouds_hull_or_is_refu
     d = _report(tmp_path, None)  # no fitted mask, no cloud: what was seen is unknown
     with pytest.raises(ValueError, match="does not say which cells were seen"):
         load_gaps(d, SMALL)
-    d = _report(tmp_path, None, cloud_xy=np.array([[5.0, 4.0], [30.0, 4.0], [30.0, 20.0], [5.0, 20.0]]))
+    d = _report(tmp_path, None, cloud_xy=_dense(5.0, 30.0, 4.0, 20.0))
     gaps = load_gaps(d, SMALL)
     assert gaps.unseen[:10, :].all() and gaps.unseen[:, :8].all() and not gaps.unseen[20:, 20:].any()
+
+
+def _dense(x0: float, x1: float, y0: float, y1: float, step: float = 0.5) -> np.ndarray:
+    """Points every step over a rectangle, as a flight's fans cover the ground they see."""
+    gx, gy = np.meshgrid(np.arange(x0, x1 + 1e-9, step), np.arange(y0, y1 + 1e-9, step), indexing="ij")
+    return np.column_stack([gx.ravel(), gy.ravel()])
+
+
+def test_that_the_cells_a_reports_hull_bridged_far_from_any_point_are_gaps_too(tmp_path, capsys):
+    """Fitted everywhere but the corner block, and the points cover the floor but a 5 x 4 m hole in the middle (a
+    trough a pile's shoulder hid, which the hull's triangles bridged): the hole is a gap as well, but for its rim
+    within the seen radius (1 m: two cells) of the points around it, and counts in the merged R_a as the report's hull
+    did."""
+    pts = _dense(0.0, 30.0, 0.0, 20.0)
+    hole = (pts[:, 0] > 12.5) & (pts[:, 0] < 17.5) & (pts[:, 1] > 8.0) & (pts[:, 1] < 12.0)
+    corner = (pts[:, 0] < 5.0) & (pts[:, 1] < 4.0)
+    gaps = load_gaps(_report(tmp_path, _corner_gap(), cloud_xy=pts[~hole & ~corner]), SMALL)
+    assert gaps.bridged is not None and not (gaps.bridged & ~gaps.unseen).any()
+    ix, iy = np.nonzero(gaps.bridged)
+    # the points' cells: x = 12.5 and 17.5 m are cells 25 and 35, y = 8 and 12 m cells 16 and 24
+    assert set(zip(ix.tolist(), iy.tolist(), strict=True)) == {(i, j) for i in range(28, 33) for j in range(19, 22)}
+    assert int(gaps.unseen.sum()) == 80 + 15 and gaps.unseen[:10, :8].all()
+    assert any((r & gaps.bridged).any() and not (r & ~gaps.bridged).any() for r in gaps.regions)  # the hole's own
+    planned = plan_fill_gaps(SMALL, gaps, _target(), altitude_m=8.0)
+    assert planned.coverage.gap_pct >= 95.0 and planned.coverage.covered[28:33, 19:22].all()
+    # the hole was inside the report's R_a already: the merged R_a counts it whether or not the re-flight covers it
+    assert planned.coverage.merged_ra_pct >= 100.0 * (1 - (80 - planned.coverage.covered[:10, :8].sum()) / 2400) - 1e-9
+    assert main(["plan", "--fill-gaps", str(tmp_path / "report"), "--storage", "30x20x10", "--altitude", "8", "--out",
+                 str(tmp_path / "gaps.waypoints")]) == 0
+    assert "95 unseen cells (23.8 m², 15 of them inside the report's hull but with no point within 1 m)" in \
+        capsys.readouterr().out
+    # without the cloud the fitted mask alone says what was seen, as before
+    (tmp_path / "report" / "cloud.ply").unlink()
+    assert load_gaps(tmp_path / "report", SMALL).bridged is None
 
 
 def test_that_plan_fill_gaps_writes_a_plan_and_says_what_it_covers(tmp_path, capsys):
