@@ -140,14 +140,11 @@ def load_gaps(report_dir: str | Path, storage: Storage, site: Site | None = None
 
 def _bridged(cloud_path: Path, surface: HeightField, seen_radius_m: float) -> np.ndarray | None:
     """The measured cells with no point of the report's cloud within seen_radius_m (module docstring); None without a
-    cloud, or with one that cannot be read (then the fitted mask alone says what was seen, as before the cloud was
-    read here)."""
+    cloud (then the fitted mask alone says what was seen); ValueError (one line) for a cloud that cannot be read, as
+    for a damaged surface file: the plan would otherwise leave out gaps without saying so."""
     if surface.measured is None or not cloud_path.is_file():
         return None
-    try:
-        pts = cloud_points_xy(cloud_path)
-    except ValueError:
-        return None
+    pts = cloud_points_xy(cloud_path)
     nx, _ = surface.measured.shape
     near = within_reach(pts, surface.measured.shape, surface.length_m, surface.width_m, surface.length_m / nx,
                         seen_radius_m)
