@@ -147,7 +147,7 @@ def test_that_the_cells_a_reports_hull_bridged_far_from_any_point_are_gaps_too(t
     # a damaged cloud is refused in one line (the plan would leave its bridges out unsaid); without a cloud the fitted
     # mask alone says what was seen, as before
     (tmp_path / "report" / "cloud.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99\n")
-    with pytest.raises(ValueError, match="cloud.ply is not a readable point cloud"):
+    with pytest.raises(ValueError, match=r"cloud\.ply is not a readable point cloud"):
         load_gaps(tmp_path / "report", SMALL)
     (tmp_path / "report" / "cloud.ply").unlink()
     assert load_gaps(tmp_path / "report", SMALL).bridged is None
