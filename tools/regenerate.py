@@ -112,6 +112,9 @@ STEPS: tuple[Step, ...] = (
     _step("self-calibration", "tools.calibration_campaign --runs runs/cal --jobs 2 --write docs/self_calibration.md",
           "docs/self_calibration.md", "the mounting faults' campaign (about 40 min on a fresh checkout, 15 when "
           "runs/cal holds its flights)"),
+    _step("gaps", "tools.gap_campaign --piles 1 2 corner --first rect-30 coverage-95 --phase 0 --gap-coverage 95 "
+          "--plant jsbsim", "docs/coverage.md", "two-flight surveys: a first flight, then --fill-gaps from its report "
+          "(about 4 min)"),
     _step("noise", "tools.reproduce --experiments baseline,noise --write docs/noise.md --rows runs/noise-rows.csv "
           "--jobs 2 --quiet --readme README.md", "docs/noise.md README.md",
           "Appendix A's noise against the clean flights (about 80 min)"),
