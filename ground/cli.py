@@ -23,6 +23,7 @@ from firmware_py.core.header import MAX_LEVER_ARM_M
 from firmware_py.core.keys import load_key
 from firmware_py.core.rundir import check_free
 from firmware_py.core.storage import Storage
+from firmware_py.core.surface_file import SEEN_RADIUS_M
 from firmware_py.core.version import software_version
 from ground import listen
 from ground.base import BaseKind, BaseSpec
@@ -238,7 +239,10 @@ def format_summary(rep: dict) -> str:
     rows += [("to narrow it", "; ".join(rep["to_narrow_interval"]))] if rep.get("to_narrow_interval") else []
     if truth is not None:  # a reference volume: a simulated survey or --truth-volume
         rows += [("truth", vol(truth)), ("Ve (eq. 8)", pct(rep.get("volume_error_pct")))]
-    rows += [("R_a (eq. 9)", pct(rep.get("coverage_ratio_pct"))),
+    bridged = rep.get("bridged_area_m2")
+    rows += [("R_a (eq. 9)", pct(rep.get("coverage_ratio_pct")) + (
+                 f" ({bridged:,.0f} m² of it with no point within {SEEN_RADIUS_M:g} m: bridged, as much a guess as "
+                 "the fill)" if isinstance(bridged, float) and bridged >= 0.5 else "")),
              ("points used", f"{rep['n_points_used']:,} of {rep['n_samples']:,} samples")]
     rows += [("echoes", fmt_echo(rep["echo"]))] if rep.get("echo") else []
     if "floor_measured" in rep and not rep.get("flights"):  # a merged survey's floors are its flights' own

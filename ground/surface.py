@@ -57,7 +57,7 @@ from scipy import ndimage
 from scipy.interpolate import CloughTocher2DInterpolator, LinearNDInterpolator
 from scipy.spatial import ConvexHull, QhullError
 
-from firmware_py.core.surface_file import MAX_GRID_CELLS, MIN_GRID_CELL_M
+from firmware_py.core.surface_file import MAX_GRID_CELLS, MIN_GRID_CELL_M, SEEN_RADIUS_M
 from ground.blas_threads import one_blas_thread
 from ground.gp_slopes import node_slopes
 from ground.smoothing import DEFAULT_SMOOTHING, NodeSlopes, SmoothingOptions, smoothed_nodes
@@ -370,6 +370,19 @@ def volume_error_pct(volume_m3: float, true_volume_m3: float | None) -> float | 
     if true_volume_m3 is None or not math.isfinite(true_volume_m3) or true_volume_m3 <= 0:
         return None
     return abs(volume_m3 - true_volume_m3) / true_volume_m3 * 100.0
+
+
+def bridged_cells(counts: np.ndarray, fitted: np.ndarray, cell_xy_m: tuple[float, float],
+                  radius_m: float = SEEN_RADIUS_M) -> np.ndarray:
+    """The fitted cells with no point within radius_m (from the cell to the nearest cell holding one): where the
+    points' hull bridges ground no point saw (a trough behind a pile's shoulder, the floor between fans too far apart).
+    They are inside R_a (eq. 9), but their heights are as much a guess as the fill's; the gap re-flight targets them
+    (`sitl.missions.gaps`), and the report gives their area beside R_a."""
+    fitted = np.asarray(fitted, dtype=bool)
+    hit = np.asarray(counts) > 0
+    if not hit.any():
+        return fitted.copy()
+    return fitted & (ndimage.distance_transform_edt(~hit, sampling=cell_xy_m) > radius_m)
 
 
 def reconstructed_ratio_pct(heights: np.ndarray) -> float:

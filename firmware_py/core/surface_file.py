@@ -33,6 +33,11 @@ MIN_GRID_CELL_M = 0.01
 """Finest grid cell of a surface (a LIDAR-Lite's resolution): finer, a grid's cell count leaves the integers."""
 MIN_BUILDING_M = 1e-3
 """Least length, width or height of a surface file's building (a millimetre: no building, but no zero to divide by)."""
+SEEN_RADIUS_M = 1.0
+"""A floor cell counts as seen when a point lies this near it: the coverage planner's test of a flight, the gap
+re-flight's of a report, and the report's bridged area (cells inside R_a with no point this near). The paper's
+baseline sweep (5 rad/s, 0.67 Hz, two fans a period) flown at 1 m/s puts fans 0.75 m apart, so its legs are seen
+between fans; a flight fast enough to open gaps over twice this is not."""
 MAX_GRID_CELLS = 25_000_000
 """The most cells a height grid may have (a header may claim a big building with fine cells: refuse, not
 MemoryError); the ground's Grid enforces it too."""

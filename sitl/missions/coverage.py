@@ -44,16 +44,16 @@ from firmware_py.core.config_file import MIN_YAW_RATE_DEG_S
 from firmware_py.core.frames import StorageFrame
 from firmware_py.core.sensor import RangefinderSpec
 from firmware_py.core.storage import Storage
+from firmware_py.core.surface_file import SEEN_RADIUS_M
 from firmware_py.core.waveform import Waveform
 from sitl.missions.range_check import RangeLimit
 from sitl.missions.surveyed_surface import HeightField, first_hits_w
 
 COVERAGE_CELL_M = 0.25
 """The floor cell: the ground report's default grid (ground.surface.DEFAULT_CELL_M), so R_a compares cell for cell."""
-DEFAULT_SEEN_RADIUS_M = 1.0
-"""A cell counts as seen when a floor hit lies this near (an option): the paper's baseline sweep (5 rad/s,
-0.67 Hz, two fans a period) flown at 1 m/s puts fans 0.75 m apart, so its legs are seen between fans; a
-flight fast enough to open gaps over twice this is not."""
+DEFAULT_SEEN_RADIUS_M = SEEN_RADIUS_M
+"""A cell counts as seen when a floor hit lies this near (an option; `firmware_py.core.surface_file.SEEN_RADIUS_M`
+says why this default, which the report's bridged area takes too)."""
 WALLS = ("south (y = 0)", "east (x = L)", "north (y = W)", "west (x = 0)")
 OFFSET_STEPS = tuple(round(0.05 * k, 2) for k in range(1, 9))
 """Each wall's offset as a share of the building's size across it: 5 % (the paper's nearest) to 40 %."""

@@ -56,6 +56,9 @@ def test_that_the_summary_shows_volumes_in_the_chosen_unit_with_cubic_metres_bes
     columns = {len(line) - len(line[len(label):].lstrip()) for label, line in rows.items()
                if label in ("volume", "base", "R_a (eq. 9)", "Log SHA-256")}
     assert len(columns) == 1  # every value starts in one column
+    # the part of R_a no point saw within the seen radius, said beside it when there is any
+    assert (f"{rep['bridged_area_m2']:,.0f} m² of it with no point within 1 m" in rows["R_a (eq. 9)"]) \
+        == (rep["bridged_area_m2"] >= 0.5)
 
 
 def test_that_the_console_shows_a_warning_of_many_clauses_as_its_headline_with_the_rest_under_it():

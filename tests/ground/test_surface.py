@@ -4,6 +4,7 @@ import pytest
 from ground.smoothing import NodeSlopes, SmoothingOptions
 from ground.surface import (
     Grid,
+    bridged_cells,
     clip_to_building,
     fill_empty,
     fit_heights,
@@ -192,3 +193,20 @@ def test_that_a_surface_with_the_gps_slopes_brings_the_same_nodes_surface_with_s
         fit = fit_surface(pts, g, "local-linear", sigma, SmoothingOptions(slopes=slopes))
         np.testing.assert_array_equal(fit.scipy_slopes_m, plain.heights_m)
         assert np.nanmax(np.abs(fit.heights_m - plain.heights_m)) > 1e-3  # the GP's slopes did change the surface
+
+
+def test_that_the_cells_a_hull_bridges_beyond_the_seen_radius_are_told_apart_from_the_seen_and_the_filled():
+    # 0.25 m cells with points in every fitted cell but a 3 x 2.5 m hole (rows 10-21, columns 10-19); the last four
+    # columns are outside the hull (not fitted) and hold none
+    counts = np.ones((40, 40), dtype=int)
+    counts[10:22, 10:20] = 0
+    fitted = np.ones((40, 40), dtype=bool)
+    fitted[:, 36:] = False
+    counts[:, 36:] = 0
+    bridged = bridged_cells(counts, fitted, (0.25, 0.25))
+    # bridged: more than 1 m (four cells) from the nearest cell with points, so five cells in from every edge
+    expected = np.zeros((40, 40), dtype=bool)
+    expected[14:18, 14:16] = True
+    assert np.array_equal(bridged, expected)
+    assert not bridged_cells(counts, fitted, (0.25, 0.25), radius_m=1.5).any()  # a wider radius sees it all
+    assert np.array_equal(bridged_cells(np.zeros((4, 4)), np.eye(4, dtype=bool), (1.0, 1.0)), np.eye(4, dtype=bool))
