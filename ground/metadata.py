@@ -170,7 +170,9 @@ _LIMITS = {
 _REMEDIES = {
     "unseen": "a re-flight over the ground never seen (pilescan-sitl plan --fill-gaps on this report), or legs "
               "nearer the walls it lies along",
-    "interpolation": "sweep tracks closer together: a smaller P_traj (more legs), a slower flight or a faster sweep",
+    "interpolation": "sweep tracks closer together: a smaller P_traj (more legs), a slower flight or a faster sweep; "
+                     "or a re-flight over the ground the points' hull bridged (pilescan-sitl plan --fill-gaps on this "
+                     "report)",
     "noise": "more points a cell (a slower flight or a higher range rate), a quieter sensor setting, or a steadier "
              "pose estimate (its error is shared by the samples between two pose messages)",
     "blur": "a quieter sensor or shorter ranges (a lower flight)",
