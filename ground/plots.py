@@ -23,11 +23,12 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.cm import ScalarMappable
 from matplotlib.collections import LineCollection
-from matplotlib.colors import LogNorm, Normalize
+from matplotlib.colors import ListedColormap, LogNorm, Normalize
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
 
+from firmware_py.core.surface_file import SEEN_RADIUS_M
 from ground.exports.contours import Contour, draw_contours
 
 DPI = 110
@@ -45,6 +46,8 @@ _MAX_OVERHANG_FRAC = 0.5
 """Data outside the building widens the view by at most this fraction of L or W, so that a single
 wild return does not shrink the storage to a dot."""
 
+BRIDGED_GREY = "0.78"
+"""The coverage figure's bridged cells (`ground.surface.bridged_cells`): a grey the points' colour map never takes."""
 _LEGEND_BELOW = {"loc": "upper right", "bbox_to_anchor": (1.0, -0.07), "fontsize": "small", "frameon": False}
 """Legends of the engineer's grids go under the axes, right of the x label: inside they would hide data."""
 _LEGEND_INSIDE = {"loc": "upper right", "fontsize": "small", "framealpha": 0.85}
@@ -352,8 +355,10 @@ def coverage_figure(
     surface_mask: np.ndarray,
     storage_lw_m: tuple[float, float],
     title: str = "Coverage",
+    bridged: np.ndarray | None = None,
 ) -> Figure:
-    """Points per cell on a log scale (zero -> white) with the fitted-surface boundary outlined.
+    """Points per cell on a log scale (zero -> white) with the fitted-surface boundary outlined, and the fitted
+    cells with no point within the seen radius (bridged: `ground.surface.bridged_cells`) in grey.
 
     The title carries the fraction of cells hit by at least one point: the honest companion of the
     paper's area coverage ratio R_a, which counts where a surface was fitted, not where data was.
@@ -381,19 +386,27 @@ def coverage_figure(
         _no_data(ax)
     else:
         vmax = max(float(c.max()), 2.0)  # LogNorm needs vmax > vmin
-        cmap = colormaps[COVERAGE_CMAP].with_extremes(bad="white")
+        cmap = colormaps[COVERAGE_CMAP].with_extremes(bad=(0.0, 0.0, 0.0, 0.0))  # no points: what lies under
         mesh = _grid_mesh(
             ax, xe, ye, np.ma.masked_less_equal(c, 0), cmap=cmap, norm=LogNorm(vmin=1.0, vmax=vmax), zorder=2
         )
         _colorbar(fig, ax, mesh, "points per cell")
 
+    handles = []
     segs = mask_boundary_segments(xe, ye, m)
     if segs.shape[0] > 0:
         ax.add_collection(LineCollection(segs, colors="black", linewidths=1.1, zorder=4))
-        ax.legend(
-            handles=[Line2D([], [], color="black", linewidth=1.1, label="fitted surface boundary")],
-            **_LEGEND_BELOW,
-        )
+        handles.append(Line2D([], [], color="black", linewidth=1.1, label="fitted surface boundary"))
+    if bridged is not None:
+        if np.shape(bridged) != c.shape:
+            raise ValueError(f"bridged shape {np.shape(bridged)} differs from counts shape {c.shape}")
+        b = np.asarray(bridged, dtype=bool)
+        if b.any():  # grey under the points' colours: the cells between fans too far apart, a trough no beam reached
+            _grid_mesh(ax, xe, ye, np.ma.masked_where(~b, np.ones(b.shape)), cmap=ListedColormap([BRIDGED_GREY]),
+                       vmin=0.0, vmax=1.0, zorder=1)
+            handles.append(Patch(facecolor=BRIDGED_GREY, label=f"bridged: no point within {SEEN_RADIUS_M:g} m"))
+    if handles:
+        ax.legend(handles=handles, **_LEGEND_BELOW)
     ax.set_title(
         f"{title}\n{n_hit:,} of {c.size:,} cells have points ({100 * n_hit / c.size:.1f} %), "
         f"surface on {100 * m.mean():.1f} %"
@@ -409,6 +422,7 @@ def plot_coverage(
     storage_lw_m: tuple[float, float],
     out_png: str | Path,
     title: str = "Coverage",
+    bridged: np.ndarray | None = None,
 ) -> Path:
     """Write the coverage plot (see `coverage_figure`) and return the PNG path."""
-    return save_png(coverage_figure(x_edges, y_edges, counts, surface_mask, storage_lw_m, title), out_png)
+    return save_png(coverage_figure(x_edges, y_edges, counts, surface_mask, storage_lw_m, title, bridged), out_png)

@@ -201,6 +201,16 @@ def test_coverage_plot(tmp_path):
     assert not np.allclose(pixel_rgb(fig, img, 11.0, 5.0), 1.0)
     out = plots.plot_coverage(x_edges, y_edges, counts, mask, (L, W), tmp_path / "cov2.png")
     assert_valid_png(out)
+    # the bridged cells (fitted, no point within the seen radius) in grey, with their own legend entry
+    bridged = np.zeros_like(mask)
+    bridged[0, 1] = True  # a cell without points: grey, not white
+    fig = plots.coverage_figure(x_edges, y_edges, counts, mask, (L, W), bridged=bridged)
+    img = assert_valid_png(plots.save_png(fig, tmp_path / "cov3.png"))
+    assert np.allclose(pixel_rgb(fig, img, 1.0, 3.0), 0.78, atol=0.02)  # cell (0, 1), 2 m cells: grey
+    assert np.allclose(pixel_rgb(fig, img, 1.0, 5.0), 1.0)  # cell (0, 2): still white
+    assert "bridged: no point within 1 m" in [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    with pytest.raises(ValueError, match="bridged shape"):
+        plots.coverage_figure(x_edges, y_edges, counts, mask, (L, W), bridged=bridged[:, :2])
 
 
 @pytest.mark.parametrize("empty_grid", [True, False])
