@@ -25,6 +25,8 @@ from urllib.parse import quote
 
 import numpy as np
 
+from firmware_py.core.surface_file import SEEN_RADIUS_M
+
 ImageMap = Mapping[str, str | Path]
 """Image name (e.g. "cloud_top", "height_map", "coverage") -> image file."""
 
@@ -39,6 +41,7 @@ SUMMARY_KEYS: tuple[str, ...] = (
     "true_volume_m3",
     "volume_error_pct",
     "coverage_ratio_pct",
+    "bridged_area_m2",
     "n_samples",
     "n_points_used",
     "n_points_removed_walls",
@@ -58,7 +61,7 @@ SUMMARY_KEYS: tuple[str, ...] = (
 
 REFERENCE_KEYS = ("true_volume_m3", "volume_error_pct")
 """Rows that exist only with a reference volume (a simulated survey, --truth-volume): dropped without one."""
-OPTIONAL_KEYS = ("echo",)
+OPTIONAL_KEYS = ("echo", "bridged_area_m2")
 """Rows dropped when the report has nothing to say (no return model for the sensor, a merged survey)."""
 
 _SUMMARY_LABELS: dict[str, str] = {
@@ -68,6 +71,7 @@ _SUMMARY_LABELS: dict[str, str] = {
     "true_volume_m3": "True volume (reference)",
     "volume_error_pct": "Volume error Ve (eq. 8)",
     "coverage_ratio_pct": "Area coverage ratio R_a (eq. 9)",
+    "bridged_area_m2": f"… of it with no point within {SEEN_RADIUS_M:g} m (bridged)",
     "n_samples": "LiDAR samples",
     "n_points_used": "Points used for the surface",
     "n_points_removed_walls": "Points removed (walls/roof)",
@@ -368,6 +372,7 @@ _SUMMARY_FORMAT = {
     "true_volume_m3": fmt_volume,
     "volume_error_pct": fmt_pct,
     "coverage_ratio_pct": fmt_pct,
+    "bridged_area_m2": lambda v: _fmt_number(v, ",.0f", " m²"),
     "n_samples": fmt_count,
     "n_points_used": fmt_count,
     "n_points_removed_walls": fmt_count,

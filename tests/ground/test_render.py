@@ -114,7 +114,7 @@ def test_markdown_missing_values_and_no_warnings(tmp_path):
     md = render.write_markdown({"volume_m3": None, "warnings": []}, {}, tmp_path / "r.md").read_text()
     assert "No warnings." in md
     assert "| Stockpile volume | unknown |" in md
-    assert md.count("unknown") >= len(render.SUMMARY_KEYS) - len(render.REFERENCE_KEYS)
+    assert md.count("unknown") >= len(render.SUMMARY_KEYS) - len(render.REFERENCE_KEYS) - len(render.OPTIONAL_KEYS)
     assert "## All figures" not in md and "## Figures" not in md
 
 
