@@ -86,7 +86,6 @@ from ground.surface import (
     MEASURED_MAX_CELL_M,
     STRIP_POLICIES,
     Grid,
-    bridged_cells,
     clip_to_building,
     fill_empty,
     fit_heights,
@@ -1088,8 +1087,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "pose_correction": None if survey.pose is None else survey.pose.as_dict(),
         "rangefinder_height": None if survey.rangefinder is None else survey.rangefinder.as_dict(),
         "uncovered_area_m2": float((~np.isfinite(survey.heights_fit)).sum() * g.cell_area_m2),
-        "bridged_area_m2": float(bridged_cells(survey.counts, np.isfinite(survey.heights_fit), g.cell_xy_m).sum()
-                                 * g.cell_area_m2),
+        "bridged_area_m2": float(survey.bridged.sum() * g.cell_area_m2),
         "storage": survey.storage.to_dict(),
         "building_measured": building_record(survey.building),
         "floor_measured": None if survey.floor is None else survey.floor.as_dict(),

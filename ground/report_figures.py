@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 
 from ground.base import BaseKind
-from ground.surface import bridged_cells
 from ground.survey import Survey
 
 
@@ -55,7 +54,7 @@ def figure_jobs(survey: Survey, report: dict, out: Path, pile_labels: np.ndarray
         FigureJob("coverage", p.plot_coverage, (g.x_edges, g.y_edges, survey.counts, np.isfinite(survey.heights_fit),
                                                 lw, out / "coverage.png"),
                   {"title": f"Coverage (R_a = {ra:.1f} %)",
-                   "bridged": bridged_cells(survey.counts, np.isfinite(survey.heights_fit), g.cell_xy_m)}, 0.44),
+                   "bridged": survey.bridged}, 0.44),
         *page_figure_jobs(survey, report, out, path, pile_labels),
         *correction_figure_jobs(survey, out),
     ]

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -24,7 +25,7 @@ from ground.rangefinder_height import RangefinderShare
 from ground.self_calibration import KnownMount, MountEstimate
 from ground.servo_timing import ServoTiming
 from ground.smoothing import DEFAULT_NODE_SLOPES, NodeSlopes
-from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, Grid
+from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, Grid, bridged_cells
 from ground.uncertainty import ErrorTerms, SurveyErrors
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
 
@@ -97,3 +98,9 @@ class Survey:
     # cells its contacts contradict to the fill (ground.wall_strip); None: heights_fit is that fit
     edge_fit: np.ndarray | None = None  # the surfaced cells' heights with scipy's slopes, where the GP's slopes made
     # heights_fit: the unseen term's slope where sight stopped comes from them (ground.uncertainty.edge_heights_m)
+
+    @cached_property
+    def bridged(self) -> np.ndarray:
+        """The fitted cells with no point within the seen radius (`ground.surface.bridged_cells`): made once for the
+        report's `bridged_area_m2` and its coverage figure."""
+        return bridged_cells(self.counts, np.isfinite(self.heights_fit), self.grid.cell_xy_m)

@@ -82,9 +82,9 @@ class Gaps:
 
     def measured_outline_w(self) -> np.ndarray:
         """(M, 2) the measured cells' corners on the hull of their extent: what widens a merged cloud's hull (the
-        bridged cells are inside it)."""
+        report's fitted cells, the bridged among them)."""
         nx, ny = self.unseen.shape
-        ix, iy = np.nonzero(~self.unseen if self.bridged is None else ~self.unseen | self.bridged)
+        ix, iy = np.nonzero(self.surface.measured)
         if len(ix) == 0:
             return np.empty((0, 2))
         cx, cy = self.surface.length_m / nx, self.surface.width_m / ny
@@ -248,8 +248,8 @@ def predict_gap_coverage(mission, gaps: Gaps, target: CoverageTarget) -> GapCove
                         gaps.surface)
     cov = coverage_of_hits(hits, mission.storage, target.seen_radius_m, gaps.cell_m, gaps.measured_outline_w())
     got = cov.covered & gaps.unseen
-    in_ra = ~gaps.unseen if gaps.bridged is None else ~gaps.unseen | gaps.bridged  # R_a (eq. 9) counts a bridge
-    return GapCoverage(100.0 * got.sum() / gaps.unseen.sum(), 100.0 * (got | in_ra).mean(), got)
+    # the report's fitted cells are in its R_a (eq. 9), the bridged among them
+    return GapCoverage(100.0 * got.sum() / gaps.unseen.sum(), 100.0 * (got | gaps.surface.measured).mean(), got)
 
 
 @dataclass(frozen=True)

@@ -107,7 +107,8 @@ def cloud_points_xy(cloud_path: Path) -> np.ndarray:
         raise ValueError(str(exc)) from None
     except Exception as exc:  # trimesh raises many types for a damaged PLY
         raise ValueError(f"{cloud_path} is not a readable point cloud ({type(exc).__name__}: {exc})"[:300]) from None
-    return pts.reshape(-1, 2)[np.all(np.isfinite(pts.reshape(-1, 2)), axis=1)]
+    pts = pts.reshape(-1, 2)
+    return pts[np.isfinite(pts).all(axis=1)]
 
 
 def measured_cells(cloud_path: Path, length_m: float, width_m: float, shape: tuple[int, int]) -> np.ndarray:
