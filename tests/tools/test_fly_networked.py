@@ -94,7 +94,8 @@ def test_that_the_payload_reads_a_served_tfmini_over_a_pty_and_survives_its_faul
     # The unplugged window: the longest run of flagged samples lasts the 2 s (timeouts every 30 ms).
     runs = np.split(np.flatnonzero(err_flag), np.flatnonzero(np.diff(np.flatnonzero(err_flag)) > 1) + 1)
     longest = max(runs, key=len)
-    assert 1.7 <= s["t_s"][longest[-1]] - s["t_s"][longest[0]] <= 3.0  # real time: a busy machine may stretch it
+    unplugged_s = s["t_s"][longest[-1]] - s["t_s"][longest[0]]
+    assert unplugged_s >= 1.7 and unplugged_s <= 3.0  # real time: a busy machine may stretch it
     assert len(runs) > 5  # and the bad frames, one flagged sample each, scattered
     after = s[longest[-1] + 1:]
     assert np.count_nonzero((after["flags"] & int(EXCLUDE_FROM_CLOUD)) == 0) > 200  # ranging again
