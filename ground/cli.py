@@ -36,7 +36,7 @@ from ground.pose_knots import PoseCorrectionOptions
 from ground.render import fmt_echo, warning_parts
 from ground.report import make_report
 from ground.self_calibration import KnownMount
-from ground.smoothing import DEFAULT_NODE_SLOPES, NodeSlopes
+from ground.smoothing import DEFAULT_CUBIC_LIMIT, DEFAULT_NODE_SLOPES, CubicLimit, NodeSlopes
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
 from ground.survey import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
@@ -123,6 +123,11 @@ def build_parser() -> ArgumentParser:
                         "gaps between sparse fan lines under pointing noise; ground/gp_slopes.py), gp (the same at "
                         "every node, about 0.5 s more) or curvature (scipy's least-curvature slopes through the node "
                         "heights as they are, about 0.2 s less)")
+    r.add_argument("--surface-limit", choices=[c.value for c in CubicLimit], default=DEFAULT_CUBIC_LIMIT.value,
+                   help="where the surface's cubic would leave the range of its triangle's three nodes (a long "
+                        "triangle between sparse tracks, or out to a wall contact): clip (default: held at that "
+                        "range) or linear (the plane through the three nodes there, which keeps the lean from one "
+                        "to the other instead of a flat at one corner's height)")
     r.add_argument("--noise-corrections", action="store_true",
                    help="take off three biases of a surface estimated from noisy points: sigmas from the neighbours' "
                         "range, windows refitted as quadratics, the wall contacts' floor test by the floor's "
@@ -347,6 +352,7 @@ def _report(args) -> int:
                          truth_volume_m3=args.truth_volume, despike=not args.no_despike,
                          surface_fit=args.surface_fit,
                          surface_slopes=NodeSlopes(args.surface_slopes or DEFAULT_NODE_SLOPES),
+                         surface_limit=CubicLimit(args.surface_limit),
                          noise_corrections=args.noise_corrections, pointing_bias=args.pointing_bias,
                          servo_retiming=not args.no_servo_retiming,
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),

@@ -145,15 +145,18 @@ _SLOPES_TEXT = {
 
 
 def method_text(surface_fit: str | None = None, surface_slopes: str | None = None, noise_corrections: bool = False,
-                pointing_bias: bool = False) -> str:
+                pointing_bias: bool = False, surface_limit: str | None = None) -> str:
     """The method paragraph of the report, naming the surface fit the report used (`ground.surface`), where its
-    cubic took its slopes when not scipy's (`ground.gp_slopes`), and the noise corrections asked for
-    (`ground.report.ReportOptions`)."""
+    cubic took its slopes when not scipy's (`ground.gp_slopes`), what it did where it would leave a triangle's data
+    (`ground.smoothing.CubicLimit`), and the noise corrections asked for (`ground.report.ReportOptions`)."""
     surface = _SURFACE_TEXT.get(str(surface_fit), "A surface is fitted to the remaining points and evaluated on a "
                                                   "regular grid; ")  # a report that does not say which
     slopes = _SLOPES_TEXT.get(str(surface_slopes))
     if surface_fit == "local-linear" and slopes is not None:
         surface = surface.replace("through those heights, kept", f"through those heights ({slopes}), kept")
+    if surface_limit == "linear":
+        surface = surface.replace("kept within each triangle's data", "kept within each triangle's data (planar "
+                                  "through the triangle's corners where the cubic would leave them)")
     if noise_corrections:
         surface += ("with the noise corrections asked for, each point is weighed by the noise its neighbours' range "
                     "gives and each smoothing window is refitted as a quadratic where it agrees with the narrower "
@@ -519,7 +522,8 @@ def build_content(report: Mapping[str, Any], images: ImageMap | None) -> ReportC
         piles_note=piles_note(piles),
         config=config_rows, config_file=config_file,
         method=method_text(report.get("surface_fit"), report.get("surface_slopes"),
-                           report.get("noise_corrections") is True, report.get("pointing_bias") is True),
+                           report.get("noise_corrections") is True, report.get("pointing_bias") is True,
+                           report.get("surface_limit")),
         headline=headline(report),
         warnings=_warnings(report),
         summary=summary,

@@ -76,6 +76,7 @@ from ground.servo_timing import Resimulated, ShiftScale, estimate_servo_timing, 
 from ground.site_check import HEADING_TOLERANCE_DEG, SITE_TOLERANCE_M, header_site
 from ground.smoothing import (
     DEFAULT_SMOOTHING,
+    CubicLimit,
     NodeSlopes,
     SmoothingOptions,
     cloud_vertical_sigma_m,
@@ -895,7 +896,7 @@ def survey_of_cloud(cloud: Cloud, storage: Storage, opts: ReportOptions, err: Se
     # bias is wrong in sign at grazing incidence near a wall, where beams turned off the surface hit something else.
     fixes = opts.noise_corrections
     sigma = pile_sigma_m(cloud, structure, err, range_from_neighbours=fixes)
-    smoothing = SmoothingOptions(slopes=opts.surface_slopes, quadratic=fixes)
+    smoothing = SmoothingOptions(slopes=opts.surface_slopes, quadratic=fixes, limit=opts.surface_limit)
     fit, n_clipped, edge = _clipped_fit(pile, grid, opts.surface_fit, sigma, smoothing, storage)
     if opts.pointing_bias and err.angle_sigma_rad > 0:  # a pointing error put every point behind the surface: refit
         bias = along_beam_bias_m(cloud.range_m[~structure], cloud.dirs_w[~structure],
@@ -1070,6 +1071,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "autopilot_params": autopilot_params(log.header or {}),
         "surface_fit": opts.surface_fit,
         "surface_slopes": NodeSlopes(opts.surface_slopes).value,
+        "surface_limit": CubicLimit(opts.surface_limit).value,
         "noise_corrections": opts.noise_corrections,
         "pointing_bias": opts.pointing_bias,
         "n_cells_clipped": survey.n_cells_clipped,

@@ -60,7 +60,7 @@ from scipy.spatial import ConvexHull, QhullError
 from firmware_py.core.surface_file import MAX_GRID_CELLS, MIN_GRID_CELL_M, SEEN_RADIUS_M
 from ground.blas_threads import one_blas_thread
 from ground.gp_slopes import node_slopes
-from ground.smoothing import DEFAULT_SMOOTHING, NodeSlopes, SmoothingOptions, smoothed_nodes
+from ground.smoothing import DEFAULT_SMOOTHING, CubicLimit, NodeSlopes, SmoothingOptions, smoothed_nodes
 from ground.triangulation import delaunay
 
 SURFACE_FITS = ("cubic-limited", "cubic", "linear", "local-linear")
@@ -197,12 +197,13 @@ def fit_surface(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_SURFACE_
         return SurfaceFit(nan, nan.copy(), None)
     if method != "local-linear":
         near = slice(None) if wanted is None else shaping_points(points_w[:, :2], wanted, grid)
-        return _interpolate(points_w[near], grid, method)
+        return _interpolate(points_w[near], grid, method, limit=smoothing.limit)
     nx, ny = grid.shape
     cell_xy = (grid.length_m / nx, grid.width_m / ny)
     exact = sigma_m is None  # exact points: the cell's centroid, no smoothing and no variance
     if exact:
-        sigma, smoothing = np.ones(len(points_w)), SmoothingOptions(max_window_m=0, reject_outliers=False)
+        sigma, smoothing = np.ones(len(points_w)), SmoothingOptions(max_window_m=0, reject_outliers=False,
+                                                                      limit=smoothing.limit)
     else:
         sigma = np.asarray(sigma_m, dtype=float)
         if sigma.shape != (len(points_w),) or not np.all(np.isfinite(sigma) & (sigma > 0)):
@@ -215,7 +216,7 @@ def fit_surface(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_SURFACE_
     if wanted is not None:  # the nodes that shape the surface in the wanted cells
         near = shaping_points(xyz[:, :2], wanted, grid)
         xyz, node_se = xyz[near], None if node_se is None else node_se[near]
-    fit = _interpolate(xyz, grid, "cubic-limited", node_se, smoothing.slopes, smoothing.max_window_m)
+    fit = _interpolate(xyz, grid, "cubic-limited", node_se, smoothing.slopes, smoothing.max_window_m, smoothing.limit)
     fit.se_m[~np.isfinite(fit.heights_m)] = np.nan  # exact: se all NaN
     return fit
 
@@ -234,9 +235,10 @@ def hull_corners(points_w: np.ndarray) -> np.ndarray:
 
 def _interpolate(points_w: np.ndarray, grid: Grid, method: str, also_linear: np.ndarray | None = None,
                  slopes: NodeSlopes = NodeSlopes.CURVATURE,
-                 reach_m: float | None = None) -> SurfaceFit:
+                 reach_m: float | None = None, limit: CubicLimit = CubicLimit.CLIP) -> SurfaceFit:
     """The interpolating fits (cubic-limited, cubic, linear) at the cell centres, and also_linear (one value
     per point, or None) interpolated linearly on the same triangulation as `SurfaceFit.se_m` (NaN without it).
+    cubic-limited: where the cubic leaves its triangle's corners' range, held at it or linear there (`CubicLimit`).
     With `NodeSlopes.GP` and also_linear the nodes' standard errors, the cubic takes its slopes at the nodes from
     `ground.gp_slopes` (scipy's where that cannot fit them); with `NodeSlopes.GP_BRIDGES` from the process at the
     nodes of the triangles longer than reach_m (`ground.gp_slopes.bridge_nodes`) only. The cubic with scipy's
@@ -276,10 +278,22 @@ def _interpolate(points_w: np.ndarray, grid: Grid, method: str, also_linear: np.
         inside = simplex >= 0
         zv = z[tri.simplices[simplex[inside]]]  # (n, 3) heights of each cell's triangle
         lo, hi = zv.min(axis=1), zv.max(axis=1)
-        heights[inside] = np.clip(heights[inside], lo, hi)
+        planar = None if limit is CubicLimit.CLIP else LinearNDInterpolator(tri, z)(cx, cy)[inside]
+        heights[inside] = _limited(heights[inside], lo, hi, planar)
         if plain is not None:
-            plain[inside] = np.clip(plain[inside], lo, hi)
+            plain[inside] = _limited(plain[inside], lo, hi, planar)
         return SurfaceFit(heights, extra, plain)
+
+
+def _limited(cubic: np.ndarray, lo: np.ndarray, hi: np.ndarray, planar: np.ndarray | None) -> np.ndarray:
+    """Cells' cubic heights held within [lo, hi], their triangle's corners' range: clipped to it (planar None), or
+    the plane through the corners (planar) in each cell where the cubic leaves it by more than rounding (a
+    micrometre: a flat's cubic is its plane). Per cell, not per triangle: a triangle where the cubic leaves its
+    range at one cell keeps the cubic in the others (the whole triangle planar read domes between tracks lower:
+    docs/design-notes.md), at the price of a step where the cubic reaches the range."""
+    if planar is None:
+        return np.clip(cubic, lo, hi)
+    return np.where((cubic < lo - 1e-6) | (cubic > hi + 1e-6), planar, cubic)
 
 
 def clip_to_building(heights: np.ndarray, height_m: float,

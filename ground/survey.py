@@ -24,7 +24,7 @@ from ground.pose_knots import PoseCorrectionOptions
 from ground.rangefinder_height import RangefinderShare
 from ground.self_calibration import KnownMount, MountEstimate
 from ground.servo_timing import ServoTiming
-from ground.smoothing import DEFAULT_NODE_SLOPES, NodeSlopes
+from ground.smoothing import DEFAULT_CUBIC_LIMIT, DEFAULT_NODE_SLOPES, CubicLimit, NodeSlopes
 from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, Grid, bridged_cells
 from ground.uncertainty import ErrorTerms, SurveyErrors
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
@@ -44,6 +44,7 @@ class ReportOptions:
     truth_volume_m3: float | None = None
     surface_fit: str = DEFAULT_SURFACE_FIT  # ground.surface.SURFACE_FITS ("cubic" is the paper's)
     surface_slopes: NodeSlopes = DEFAULT_NODE_SLOPES  # local-linear: where its cubic's slopes come from (gp_slopes)
+    surface_limit: CubicLimit = DEFAULT_CUBIC_LIMIT  # where the cubic leaves its triangle's range (CubicLimit)
     servo_retiming: bool = True  # re-estimate the servo's timing when the sweeps disagree (ground.servo_timing)
     despike: bool = True  # leave out isolated one-/two-sample range spikes (ground.despike; threshold from the header)
     max_grid_memory_bytes: int = DEFAULT_MAX_GRID_MEMORY_BYTES  # refuse a --cell whose grid would need more

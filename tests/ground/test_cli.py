@@ -86,6 +86,20 @@ def test_that_the_surface_slopes_option_reaches_the_report(run_dir, tmp_path, ca
     assert make_report(run_dir, tmp_path / "s", by_name)["surface_slopes"] == "gp"
 
 
+def test_that_the_surface_limit_option_reaches_the_report_and_its_method(run_dir, tmp_path, capsys):
+    assert main(["report", str(run_dir), "--out", str(tmp_path / "l"), "--no-plots", "--surface-limit", "linear"]) == 0
+    assert json.loads((tmp_path / "l" / "report.json").read_text())["surface_limit"] == "linear"
+    assert "planar through the triangle's corners" in (tmp_path / "l" / "report.md").read_text()
+    assert main(["report", str(run_dir), "--out", str(tmp_path / "d"), "--no-plots"]) == 0
+    assert json.loads((tmp_path / "d" / "report.json").read_text())["surface_limit"] == "clip"
+    assert "planar through" not in (tmp_path / "d" / "report.md").read_text()
+    capsys.readouterr()
+    _one_line_error(capsys, ["report", str(run_dir), "--out", str(tmp_path / "x"), "--surface-limit", "spline"],
+                    "--surface-limit")
+    assert make_report(run_dir, tmp_path / "s", ReportOptions(plots=False, surface_limit="linear"))["surface_limit"] \
+        == "linear"  # the library's options take the value's name too
+
+
 def test_that_the_ground_options_reach_the_report(run_dir, tmp_path, capsys):
     assert main(["report", str(run_dir), "--out", str(tmp_path / "r"), "--no-plots", "--surface-fit", "linear",
                  "--no-despike", "--no-servo-retiming"]) == 0

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from ground.smoothing import NodeSlopes, SmoothingOptions
+from ground.smoothing import CubicLimit, NodeSlopes, SmoothingOptions
 from ground.surface import (
     Grid,
     bridged_cells,
@@ -103,6 +103,38 @@ def test_that_the_limited_cubic_keeps_the_cubic_on_a_smooth_dome_and_tames_noise
     lim, cub = fit_heights(noisy, g), fit_heights(noisy, g, "cubic")
     assert np.nanmax(lim) <= noisy[:, 2].max() and np.nanmin(lim) >= noisy[:, 2].min()
     assert np.nanmax(np.abs(cub - lim)) > 0.05  # the unlimited one overshoots somewhere
+
+
+def test_that_where_the_cubic_would_leave_a_long_triangle_the_linear_limit_keeps_the_lean_and_the_clip_a_flat():
+    # A steep slope seen densely up to x = 4 m, then nothing until a flat seen from x = 16 m: the cubic across the
+    # 12 m bridge leaves the slope's top at the slope's own gradient and overshoots its corners' range.
+    x, y = np.meshgrid(np.arange(0.1, 20, 0.2), np.arange(0.1, 10, 0.2), indexing="ij")
+    x, y = x.ravel(), y.ravel()
+    seen = (x < 4) | (x > 16)
+    z = np.where(x < 4, 1.5 * x, 3.0)[seen]
+    pts = np.column_stack([x[seen], y[seen], z])
+    g = Grid(20, 10, 0.25)
+    clip, linear = (fit_heights(pts, g, "cubic-limited", smoothing=SmoothingOptions(limit=limit))
+                    for limit in (CubicLimit.CLIP, CubicLimit.LINEAR))
+    cx, _ = g.centres()
+    bridge = (cx > 5) & (cx < 15) & np.isfinite(clip)
+    top = z.max()  # the slope's last height seen
+    assert np.count_nonzero(np.isclose(clip[bridge], top, atol=1e-6)) > 0.2 * np.count_nonzero(bridge)  # the flat
+    changed = bridge & ~np.isclose(clip, linear, atol=1e-9)
+    assert np.count_nonzero(changed) > 0.2 * np.count_nonzero(bridge)
+    assert np.all((linear[bridge] >= 3.0 - 1e-9) & (linear[bridge] <= top + 1e-9))  # within the corners' range
+    cols = bridge.any(axis=1)  # along x across the bridge: the clip stands still for metres, the linear limit falls
+
+    def longest_level_m(h: np.ndarray) -> float:
+        level = np.isclose(np.diff(h[cols], axis=0), 0.0, atol=1e-9)  # a cell the same height as the one before it
+        runs = max(max((len(r) for r in "".join("1" if v else "0" for v in col).split("0")), default=0)
+                   for col in level.T)
+        return runs * 0.25
+    assert longest_level_m(clip) > 2.0 and longest_level_m(linear) == 0.0
+    seen_cells = (cx < 3.5) | (cx > 16.5)
+    np.testing.assert_allclose(clip[seen_cells], linear[seen_cells], rtol=0, atol=1e-6)  # the cubic within: alike
+    with pytest.raises(ValueError, match="cubic limit must be one of clip, linear"):
+        SmoothingOptions(limit="spline")
 
 
 def test_that_an_unknown_fit_is_refused():
