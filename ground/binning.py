@@ -17,6 +17,7 @@ import numpy as np
 from firmware_py.core.storage import Storage
 from ground.pointcloud import N_SIGMA, Cloud, SensorErrorModel, structure_mask
 from ground.report import check_grid_memory
+from ground.smoothing import SmoothingOptions
 from ground.surface import Grid, clip_to_building, fill_empty, fit_heights
 from ground.survey import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions, Survey
 
@@ -130,7 +131,9 @@ def survey_from_points(binner: HeightBinner, storage: Storage, opts: ReportOptio
     check_grid_memory(storage, opts.cell_m, opts.max_grid_memory_bytes)
     pile = binner.points()
     grid = Grid(storage.length_m, storage.width_m, opts.cell_m)
-    fit, n_clipped = clip_to_building(fit_heights(pile, grid, opts.surface_fit), storage.height_m)
+    fit, n_clipped = clip_to_building(fit_heights(pile, grid, opts.surface_fit,
+                                                  smoothing=SmoothingOptions(limit=opts.surface_limit)),
+                                      storage.height_m)
     counts, _, _ = np.histogram2d(pile[:, 0], pile[:, 1], bins=(grid.x_edges, grid.y_edges),
                                   weights=binner.counts())
     path = np.empty((0, 3)) if path_w is None else np.asarray(path_w, dtype=float).reshape(-1, 3)

@@ -37,7 +37,14 @@ from ground.render import fmt_echo, warning_parts
 from ground.report import make_report
 from ground.self_calibration import KnownMount
 from ground.smoothing import DEFAULT_CUBIC_LIMIT, DEFAULT_NODE_SLOPES, CubicLimit, NodeSlopes
-from ground.surface import DEFAULT_CELL_M, DEFAULT_EMPTY_CELLS, DEFAULT_SURFACE_FIT, EMPTY_CELL_POLICIES, SURFACE_FITS
+from ground.surface import (
+    DEFAULT_CELL_M,
+    DEFAULT_EMPTY_CELLS,
+    DEFAULT_SURFACE_FIT,
+    EMPTY_CELL_POLICIES,
+    LIMITED_FITS,
+    SURFACE_FITS,
+)
 from ground.survey import DEFAULT_MAX_GRID_MEMORY_BYTES, ReportOptions
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
 
@@ -123,11 +130,12 @@ def build_parser() -> ArgumentParser:
                         "gaps between sparse fan lines under pointing noise; ground/gp_slopes.py), gp (the same at "
                         "every node, about 0.5 s more) or curvature (scipy's least-curvature slopes through the node "
                         "heights as they are, about 0.2 s less)")
-    r.add_argument("--surface-limit", choices=[c.value for c in CubicLimit], default=DEFAULT_CUBIC_LIMIT.value,
-                   help="where the surface's cubic would leave the range of its triangle's three nodes (a long "
-                        "triangle between sparse tracks, or out to a wall contact): clip (default: held at that "
-                        "range) or linear (the plane through the three nodes there, which keeps the lean from one "
-                        "to the other instead of a flat at one corner's height)")
+    r.add_argument("--surface-limit", choices=[c.value for c in CubicLimit], default=None,
+                   help="where the limited cubic (local-linear, cubic-limited) would leave the range of its "
+                        "triangle's three nodes (a long triangle between sparse tracks, or out to a wall contact): "
+                        f"{DEFAULT_CUBIC_LIMIT.value} (default: held at that range) or linear (the plane through the "
+                        "three nodes there, which keeps the lean from one to the other instead of a flat at one "
+                        "corner's height; not the default: docs/design-notes.md)")
     r.add_argument("--noise-corrections", action="store_true",
                    help="take off three biases of a surface estimated from noisy points: sigmas from the neighbours' "
                         "range, windows refitted as quadratics, the wall contacts' floor test by the floor's "
@@ -330,6 +338,9 @@ def _report(args) -> int:
     if args.surface_slopes is not None and args.surface_fit != "local-linear":
         raise UserError(f"--surface-slopes {args.surface_slopes} applies to the local-linear surface fit only (the "
                         f"others interpolate the points), got --surface-fit {args.surface_fit}")
+    if args.surface_limit is not None and args.surface_fit not in LIMITED_FITS:
+        raise UserError(f"--surface-limit {args.surface_limit} applies to the limited cubic fits only "
+                        f"({', '.join(LIMITED_FITS)}), got --surface-fit {args.surface_fit}")
     cfg = args.config_file
     for option, field_name, value in (("--density", "density_kg_m3", args.density),
                                       ("--min-pile-area", "min_area_m2", args.min_pile_area)):
@@ -352,7 +363,7 @@ def _report(args) -> int:
                          truth_volume_m3=args.truth_volume, despike=not args.no_despike,
                          surface_fit=args.surface_fit,
                          surface_slopes=NodeSlopes(args.surface_slopes or DEFAULT_NODE_SLOPES),
-                         surface_limit=CubicLimit(args.surface_limit),
+                         surface_limit=CubicLimit(args.surface_limit or DEFAULT_CUBIC_LIMIT),
                          noise_corrections=args.noise_corrections, pointing_bias=args.pointing_bias,
                          servo_retiming=not args.no_servo_retiming,
                          max_grid_memory_bytes=int(args.max_grid_memory_mb * 2**20),

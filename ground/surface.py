@@ -64,6 +64,8 @@ from ground.smoothing import DEFAULT_SMOOTHING, CubicLimit, NodeSlopes, Smoothin
 from ground.triangulation import delaunay
 
 SURFACE_FITS = ("cubic-limited", "cubic", "linear", "local-linear")
+LIMITED_FITS = ("local-linear", "cubic-limited")
+"""The fits whose cubic is held within each triangle's node heights (`CubicLimit` says how)."""
 CLIP_TOLERANCE_M = 0.5
 """How far a fitted height may leave the building (below its floor, above its roof) before it is no surface
 (`clip_to_building`)."""

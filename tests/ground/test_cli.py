@@ -96,6 +96,9 @@ def test_that_the_surface_limit_option_reaches_the_report_and_its_method(run_dir
     capsys.readouterr()
     _one_line_error(capsys, ["report", str(run_dir), "--out", str(tmp_path / "x"), "--surface-limit", "spline"],
                     "--surface-limit")
+    for fit in ("cubic", "linear"):  # nothing to limit: given even as the default, it is refused, as --surface-slopes
+        _one_line_error(capsys, ["report", str(run_dir), "--out", str(tmp_path / "y"), "--surface-limit", "clip",
+                                 "--surface-fit", fit], "applies to the limited cubic fits only")
     assert make_report(run_dir, tmp_path / "s", ReportOptions(plots=False, surface_limit="linear"))["surface_limit"] \
         == "linear"  # the library's options take the value's name too
 
