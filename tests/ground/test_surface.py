@@ -1,3 +1,5 @@
+from itertools import groupby
+
 import numpy as np
 import pytest
 
@@ -127,9 +129,8 @@ def test_that_where_the_cubic_would_leave_a_long_triangle_the_linear_limit_keeps
 
     def longest_level_m(h: np.ndarray) -> float:
         level = np.isclose(np.diff(h[cols], axis=0), 0.0, atol=1e-9)  # a cell the same height as the one before it
-        runs = max(max((len(r) for r in "".join("1" if v else "0" for v in col).split("0")), default=0)
-                   for col in level.T)
-        return runs * 0.25
+        return g.cell_xy_m[0] * max((sum(1 for _ in run) for row in level.T for same, run in groupby(row) if same),
+                                    default=0)
     assert longest_level_m(clip) > 2.0 and longest_level_m(linear) == 0.0
     seen_cells = (cx < 3.5) | (cx > 16.5)
     np.testing.assert_allclose(clip[seen_cells], linear[seen_cells], rtol=0, atol=1e-6)  # the cubic within: alike
