@@ -48,6 +48,8 @@ SITE_MAP, SURFACE_3D, SECTIONS = "site_map", "surface_3d", "sections"
 MAP_FIGSIZE_IN = (8.0, 6.0)
 VIEW_FIGSIZE_IN = (8.0, 5.5)
 SECTIONS_FIGSIZE_IN = (8.0, 6.5)
+_OUTLINE_EDGE = [patheffects.withStroke(linewidth=2.4, foreground="0.1")]
+"""The piles' white outline on the map is drawn over a dark edge, so it reads on light and dark heights alike."""
 TARGET_CONTOURS = 8
 """About this many contour lines over the height range, at a 1-2-5 step (0.5 m, 1 m, 2 m ...)."""
 MAX_3D_CELLS_PER_SIDE = 80
@@ -153,7 +155,7 @@ def site_map_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
                     filled: np.ndarray | None = None, pile_labels: np.ndarray | None = None) -> Figure:
     """Height map with contour lines, each pile's name and volume at its centroid, the building's outline,
     a scale bar, metres on the axes, a north arrow when the heading is known, the flight path and the outline of
-    the cells the empty-cell policy filled (`filled`: never seen; legend inside the axes)."""
+    the cells the empty-cell policy filled (`filled`: never seen; legend under the map, clear of the ground)."""
     storage = _storage_lw(storage_lw_m)
     xe, ye = np.asarray(x_edges, float), np.asarray(y_edges, float)
     h = np.asarray(heights, float)
@@ -200,11 +202,17 @@ def site_map_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
         segs = [sg for sg in segs if len(sg)]
         if segs:
             ax.add_collection(LineCollection(np.concatenate(segs), colors="white", linewidths=1.0, zorder=6,
-                                             path_effects=[patheffects.withStroke(linewidth=2.4, foreground="0.1")],
+                                             path_effects=_OUTLINE_EDGE,
                                              label="pile outline (the cells its volume sums)"))
             outlined = True
-    if path.shape[0] > 0 or f.any() or outlined:  # over every line of the map, or they strike through its text
-        ax.legend(loc="upper right", fontsize="small", framealpha=0.85).set_zorder(20)
+    if path.shape[0] > 0 or f.any() or outlined:  # under the map in one row (the layout makes room): inside it hid
+        # the ground it names
+        handles, names = ax.get_legend_handles_labels()
+        leg = fig.legend(handles, names, loc="outside lower center", ncols=len(handles), fontsize="small",
+                         frameon=False)
+        for handle, name in zip(leg.legend_handles, names, strict=True):
+            if name.startswith("pile outline"):  # white as on the map, with its dark edge, or it is lost on the page
+                handle.set_path_effects(_OUTLINE_EDGE)
     _scale_bar(ax, storage[0])
     if compass:
         _north_arrow(ax, heading_deg)

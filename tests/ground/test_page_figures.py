@@ -39,6 +39,12 @@ def two_piles() -> tuple[np.ndarray, dict]:
     return h, pile_table(h, GRID, 0.03, PileOptions(), None)
 
 
+def map_legend(fig):
+    """The site map's one legend: the figure's, under the map."""
+    assert len(fig.legends) == 1 and fig.axes[0].get_legend() is None
+    return fig.legends[0]
+
+
 def test_that_contours_step_1_2_5_from_above_the_floor_to_the_peak():
     assert pf.nice_step(7.3, 8) == 1.0 and pf.nice_step(0.9, 8) == 0.2 and pf.nice_step(40, 8) == 5.0
     levels = pf.contour_levels(np.array([[-0.04, 0.02], [3.1, 7.3]]))
@@ -60,7 +66,7 @@ def test_that_north_in_the_frame_follows_the_x_axis_heading(heading, north):
     assert pf.north_in_frame(heading) == pytest.approx(north, abs=1e-12)
 
 
-def test_that_the_map_names_each_pile_at_its_centroid_with_contours_scale_bar_north_and_path_legend_inside():
+def test_that_the_map_names_each_pile_at_its_centroid_with_contours_scale_bar_north_and_path_legend_under_it():
     h, piles = two_piles()
     path = np.column_stack([np.linspace(2, 38, 50), np.full(50, 10.0)])
     fig = pf.site_map_figure(GRID.x_edges, GRID.y_edges, h, LW, piles, heading_deg=30.0, path_w=path)
@@ -78,9 +84,31 @@ def test_that_the_map_names_each_pile_at_its_centroid_with_contours_scale_bar_no
     n = compass[0].get_position()
     assert math.degrees(math.atan2(n[1], n[0])) == pytest.approx(30.0)
     fig.canvas.draw()
-    leg, frame = ax.get_legend().get_window_extent(), ax.get_window_extent()
-    assert frame.x0 <= leg.x0 and leg.x1 <= frame.x1 and frame.y0 <= leg.y0 and leg.y1 <= frame.y1
-    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["flight path"]
+    leg, frame = map_legend(fig).get_window_extent(), ax.get_window_extent()
+    assert leg.y1 <= frame.y0 and frame.x0 <= leg.x0 and leg.x1 <= frame.x1  # under the map, hiding none of it
+    assert [t.get_text() for t in map_legend(fig).get_texts()] == ["flight path"]
+
+
+def test_that_the_maps_legend_of_path_filled_ground_and_outlines_stays_off_the_map_and_on_the_page():
+    """Inside the map the three entries hid a corner of the ground they name (the demo's pile top at 30 % P_traj)."""
+    from ground.piles import find_piles
+    h, piles = two_piles()
+    filled = np.zeros(h.shape, bool)
+    filled[:8, :] = True
+    path = np.column_stack([np.linspace(2, 38, 50), np.full(50, 10.0)])
+    fig = pf.site_map_figure(GRID.x_edges, GRID.y_edges, h, LW, piles, heading_deg=0.0, path_w=path, filled=filled,
+                             pile_labels=find_piles(h, GRID, 0.03, PileOptions()).labels)
+    ax = fig.axes[0]
+    fig.canvas.draw()
+    leg = map_legend(fig)
+    box, frame, page = leg.get_window_extent(), ax.get_window_extent(), fig.bbox
+    assert len(leg.get_texts()) == 3
+    assert not box.overlaps(frame) and box.y1 <= frame.y0
+    assert page.x0 <= box.x0 and box.x1 <= page.x1 and page.y0 <= box.y0
+    xlabel = ax.xaxis.label.get_window_extent()
+    assert not box.overlaps(xlabel)
+    outline = [hd for hd, t in zip(leg.legend_handles, leg.get_texts(), strict=True) if t.get_text().startswith("pile")]
+    assert outline[0].get_path_effects()  # drawn with the map's dark edge: white alone is lost on the page
 
 
 def test_that_a_pile_label_under_the_scale_bar_or_the_compass_is_moved_clear_of_them():
@@ -115,7 +143,7 @@ def test_that_the_map_outlines_each_pile_as_the_table_sums_it():
         near = segs[(segs[:, :, 0].min(axis=1) >= x0 - 1e-9) & (segs[:, :, 0].max(axis=1) <= x1 + 1e-9)
                     & (segs[:, :, 1].min(axis=1) >= y0 - 1e-9) & (segs[:, :, 1].max(axis=1) <= y1 + 1e-9)]
         assert len(near) > 20
-    assert "pile outline (the cells its volume sums)" in [t.get_text() for t in ax.get_legend().get_texts()]
+    assert "pile outline (the cells its volume sums)" in [t.get_text() for t in map_legend(fig).get_texts()]
     with pytest.raises(ValueError, match="pile_labels shape"):
         pf.site_map_figure(GRID.x_edges, GRID.y_edges, h, LW, piles, pile_labels=labels[:-1])
 
@@ -124,14 +152,16 @@ def test_that_the_map_outlines_the_filled_cells_and_names_them_in_its_legend():
     h, piles = two_piles()
     filled = np.zeros(h.shape, bool)
     filled[:8, :] = True  # a 2 m strip along the wall x = 0, never seen
-    ax = pf.site_map_figure(GRID.x_edges, GRID.y_edges, h, LW, piles, filled=filled).axes[0]
+    fig = pf.site_map_figure(GRID.x_edges, GRID.y_edges, h, LW, piles, filled=filled)
+    ax = fig.axes[0]
     outline = [c for c in ax.collections if c.get_label() == "filled: never seen"]
     assert len(outline) == 1
     xs = np.concatenate([seg[:, 0] for seg in outline[0].get_segments()])
     assert xs.max() == pytest.approx(2.0)  # the strip's inner edge (and the walls it runs along)
-    assert "filled: never seen" in [t.get_text() for t in ax.get_legend().get_texts()]
-    plain = pf.site_map_figure(GRID.x_edges, GRID.y_edges, h, LW, piles).axes[0]
-    assert not [c for c in plain.collections if c.get_label() == "filled: never seen"] and plain.get_legend() is None
+    assert "filled: never seen" in [t.get_text() for t in map_legend(fig).get_texts()]
+    plain = pf.site_map_figure(GRID.x_edges, GRID.y_edges, h, LW, piles)
+    assert not [c for c in plain.axes[0].collections if c.get_label() == "filled: never seen"]
+    assert not plain.legends and plain.axes[0].get_legend() is None
     with pytest.raises(ValueError, match="filled shape"):
         pf.site_map_figure(GRID.x_edges, GRID.y_edges, h, LW, filled=filled[:, :-1])
 
