@@ -27,6 +27,7 @@ from matplotlib.colors import ListedColormap, LogNorm, Normalize
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
+from matplotlib.ticker import FuncFormatter, LogFormatter
 
 from firmware_py.core.surface_file import SEEN_RADIUS_M
 from ground.exports.contours import Contour, draw_contours
@@ -390,7 +391,11 @@ def coverage_figure(
         mesh = _grid_mesh(
             ax, xe, ye, np.ma.masked_less_equal(c, 0), cmap=cmap, norm=LogNorm(vmin=1.0, vmax=vmax), zorder=2
         )
-        _colorbar(fig, ax, mesh, "points per cell")
+        counts_bar = _colorbar(fig, ax, mesh, "points per cell")
+        # Counts as counts: "2, 3, 4, 6" rather than the log axis's "2 x 10^0"; the in-between ticks are named only
+        # where the bar spans about a decade or less (LogFormatter's thresholds), so a wide range is not crowded.
+        counts_bar.ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{v:g}"))
+        counts_bar.ax.yaxis.set_minor_formatter(LogFormatter(labelOnlyBase=False))
 
     handles = []
     segs = mask_boundary_segments(xe, ye, m)

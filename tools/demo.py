@@ -2,13 +2,15 @@
 
 Pile 1 of the paper at P_traj = 20 %, the baseline mission of Table 1, JSBSim plant, with the
 unchanged payload firmware in the loop (MAVLink pose tagging, emulated LIDAR-Lite and servo).
-`--write-readme README.md` puts the printed summary into the README (its demo-summary section).
+`--write-readme README.md` puts the printed summary into the README (its demo-summary section) and the report's
+point-cloud figure beside it (README_FIGURE, under the README's folder), so both are the same flight's.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -17,6 +19,10 @@ from ground.report import ReportOptions, make_report
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import PAYLOADS, FlyConfig, fly
 from tools.doc_sections import write_section
+
+README_FIGURE = Path("docs/figures/demo_cloud_top.png")
+"""The README's picture of the demo flight (the report's point cloud, top view), relative to the README's folder."""
+REPORT_FIGURE = "cloud_top.png"
 
 
 def summary_table(rep: dict, fly_s: float, ground_s: float, flight: dict | None = None) -> str:
@@ -65,6 +71,9 @@ def main(argv: list[str] | None = None) -> int:
     print(table)
     if args.write_readme:
         write_section(args.write_readme, "demo-summary", f"```\n{table}\n```")
+        figure = args.write_readme.resolve().parent / README_FIGURE
+        figure.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(out / "report" / REPORT_FIGURE, figure)
     print(f"report: {(out / 'report' / 'report.html').resolve()}")
     return 0
 

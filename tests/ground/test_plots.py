@@ -213,6 +213,20 @@ def test_coverage_plot(tmp_path):
         plots.coverage_figure(x_edges, y_edges, counts, mask, (L, W), bridged=bridged[:, :2])
 
 
+@pytest.mark.parametrize(("most", "named"), [(8, ["1", "2", "3", "4", "6"]), (2000, ["1", "10", "100", "1000"])])
+def test_that_the_coverage_bar_names_counts_as_plain_numbers(most, named):
+    """A sparse survey's bar runs 1-8 points a cell: "2, 3, 4, 6", not a log axis's "2 x 10^0"; a dense one's names
+    its decades only, so its ticks do not crowd."""
+    counts = np.ones((10, 5), dtype=int)
+    counts[5, 2] = most
+    fig = plots.coverage_figure(np.linspace(0.0, L, 11), np.linspace(0.0, W, 6), counts, counts > 0, (L, W))
+    fig.canvas.draw()
+    bar = fig.axes[0].child_axes[0]
+    labels = [t.get_text() for t in bar.yaxis.get_ticklabels(which="both")
+              if t.get_text() and 1.0 <= t.get_position()[1] <= most]
+    assert sorted(labels, key=float) == named
+
+
 @pytest.mark.parametrize("empty_grid", [True, False])
 def test_coverage_no_data(tmp_path, empty_grid):
     if empty_grid:
