@@ -58,13 +58,14 @@ class FlagTally:
             self.per_flag[flag] += int(np.count_nonzero(f & int(flag)))
 
     def describe(self) -> str:
-        """E.g. "usable 0, no return 2302, faulty 0" or "... faulty 168 (sensor error 168)"."""
-        return f"usable {self.usable}, no return {self.no_return_only}, faulty {self.faulty}" + (
+        """E.g. "usable 0, no return 2,302, faulty 0" or "... faulty 168 (sensor error 168)": thousands grouped, as
+        the live page and the reports print every other count beside it."""
+        return f"usable {self.usable:,}, no return {self.no_return_only:,}, faulty {self.faulty:,}" + (
             f" ({describe_flag_counts({f: n for f, n in self.per_flag.items() if f & FAULT_FLAGS})})"
             if self.faulty else "")
 
 
 def describe_flag_counts(counts: Mapping[SampleFlags, int]) -> str:
-    """Non-zero counts by flag in the operator's words ("sensor error 168, stale pose 3"), or "none"."""
-    parts = [f"{word} {counts.get(flag, 0)}" for flag, word in FLAG_WORDS.items() if counts.get(flag, 0)]
+    """Non-zero counts by flag in the operator's words ("sensor error 1,168, stale pose 3"), or "none"."""
+    parts = [f"{word} {counts.get(flag, 0):,}" for flag, word in FLAG_WORDS.items() if counts.get(flag, 0)]
     return ", ".join(parts) if parts else "none"

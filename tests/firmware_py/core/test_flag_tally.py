@@ -10,7 +10,7 @@ def test_that_samples_flagged_only_no_return_are_no_returns_not_faults():
     t = FlagTally()
     t.add(np.full(2302, int(SampleFlags.NO_RETURN), dtype=np.uint8))
     assert (t.samples, t.usable, t.no_return_only, t.faulty) == (2302, 0, 2302, 0)
-    assert t.describe() == "usable 0, no return 2302, faulty 0"
+    assert t.describe() == "usable 0, no return 2,302, faulty 0"
 
 
 def test_that_any_fault_flag_makes_a_sample_faulty_and_each_flag_is_counted():
@@ -26,4 +26,5 @@ def test_that_any_fault_flag_makes_a_sample_faulty_and_each_flag_is_counted():
 
 def test_that_counts_are_described_by_name_and_nothing_says_none():
     assert describe_flag_counts({SampleFlags.SENSOR_ERROR: 168, SampleFlags.NO_RETURN: 0}) == "sensor error 168"
+    assert describe_flag_counts({SampleFlags.STALE_POSE: 12_345}) == "stale pose 12,345"  # grouped, as the page prints
     assert describe_flag_counts({}) == "none"
