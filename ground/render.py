@@ -192,8 +192,10 @@ _IMAGE_MIME: dict[str, str] = {
     ".svg": "image/svg+xml",
 }
 
-ENGINEER_NOTE = ("Engineer's details: the survey's processing figures, the configuration the payload flew with "
-                 "and how the volume was computed.")
+ENGINEER_HEADING = "Engineer's details"
+ENGINEER_NOTE = ("The survey's processing figures, the configuration the payload flew with and how the volume was "
+                 "computed.")
+"""Under the heading in the HTML and the PDF; the Markdown, which has no heading there, leads with its words."""
 
 _MAX_INLINE_LIST = 12
 """Longer lists/arrays are summarised by length in "All figures" instead of printed."""
@@ -601,7 +603,8 @@ def render_markdown(content: ReportContent, out_dir: Path) -> str:
         lines += ["No warnings."]
     if content.page_images:
         lines += ["", "## Map, 3D view and cross-sections", *_md_figures(content.page_images, out_dir, "###"), ""]
-    lines += ["", "---", "", f"*{ENGINEER_NOTE}*", "", "## Summary", ""]
+    note = f"{ENGINEER_HEADING}: {ENGINEER_NOTE[0].lower()}{ENGINEER_NOTE[1:]}"
+    lines += ["", "---", "", f"*{note}*", "", "## Summary", ""]
     lines += _md_table(("Quantity", "Value"), content.summary)
     if content.images:
         lines += ["", "## Figures", *_md_figures(content.images, out_dir, "###")]
@@ -736,7 +739,7 @@ def render_html(content: ReportContent) -> str:
     parts += _html_warnings(content)
     if content.page_images:
         parts += ["<h2>Map, 3D view and cross-sections</h2>", *_html_figures(content.page_images)]
-    parts += ['<section class="engineer">', "<h2>Engineer's details</h2>", f"<p>{_e(ENGINEER_NOTE)}</p>",
+    parts += ['<section class="engineer">', f"<h2>{_e(ENGINEER_HEADING)}</h2>", f"<p>{_e(ENGINEER_NOTE)}</p>",
               "<h3>Summary</h3>", *_html_table(("Quantity", "Value"), content.summary)]
     if content.images:
         parts += ["<h3>Figures</h3>", *_html_figures(content.images)]

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from ground.render import (
+    ENGINEER_HEADING,
     ENGINEER_NOTE,
     REPORT_TITLE,
     ImageMap,
@@ -282,7 +283,7 @@ def compose(content: ReportContent) -> list[Page]:
         for caption, path in content.page_images:
             p.image(path, caption, 4.6)
     p.new_page()
-    p.heading("Engineer's details", 14.0)
+    p.heading(ENGINEER_HEADING, 14.0)
     p.lines(ENGINEER_NOTE)
     p.heading("Summary", 11.0)
     p.table(("Quantity", "Value"), content.summary, [2.6, p.width_in - 2.6])

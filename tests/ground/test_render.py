@@ -286,6 +286,15 @@ def test_that_the_trajectory_correction_figure_is_an_engineers_figure_with_a_cap
     assert page.index(caption) > page.index(render.ENGINEER_NOTE[:40].replace("'", "&#x27;"))
 
 
+def test_that_the_engineers_part_is_named_once_in_the_html_and_leads_its_note_in_the_markdown(tmp_path, images):
+    """Under its own heading the page said "Engineer's details" twice in a row (heading, then a note starting with it)."""
+    page = render.write_html(full_report(), images, tmp_path / "report.html").read_text()
+    assert page.count("Engineer&#x27;s details") == 1
+    assert "<p>The survey&#x27;s processing figures" in page
+    md = render.write_markdown(full_report(), images, tmp_path / "report.md").read_text()
+    assert "*Engineer's details: the survey's processing figures" in md
+
+
 def test_that_a_value_that_rounds_to_zero_is_shown_without_a_minus_sign():
     """-0.04 m³ shown as '-0.0 m³' reads as a negative volume; the sign below the last digit shown is noise. A
     value that shows a digit keeps its sign."""
