@@ -205,8 +205,8 @@ def site_map_figure(x_edges: np.ndarray, y_edges: np.ndarray, heights: np.ndarra
                                              path_effects=_OUTLINE_EDGE,
                                              label="pile outline (the cells its volume sums)"))
             outlined = True
-    if path.shape[0] > 0 or f.any() or outlined:  # under the map in one row (the layout makes room): inside it hid
-        # the ground it names
+    # The legend goes under the map in one row (the constrained layout makes room): inside, it hid the ground it names.
+    if path.shape[0] > 0 or f.any() or outlined:
         handles, names = ax.get_legend_handles_labels()
         leg = fig.legend(handles, names, loc="outside lower center", ncols=len(handles), fontsize="small",
                          frameon=False)
