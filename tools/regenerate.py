@@ -73,6 +73,8 @@ STEPS: tuple[Step, ...] = (
     _step("unseen", "tools.unseen_campaign", "docs/unseen.md", "the unseen fills on corner and wall-end piles"),
     _step("echo-check", "tools.echo_check --jobs 2 --write docs/unseen.md", "docs/unseen.md",
           "how often the floor-out-of-reach warning spoke over the evaluation set (about 8 min)"),
+    _step("contact-check", "tools.contact_check --jobs 2 --write docs/unseen.md", "docs/unseen.md",
+          "the wall contacts against the true ground over the evaluation set, by noise model"),
     _step("cell-sensitivity", "tools.cell_sensitivity --write docs/cell_sensitivity.md", "docs/cell_sensitivity.md",
           "the volume against the grid's cell, per fill (MEASURED_MAX_CELL_M is read off it)"),
     _step("slopes", "tools.slopes_evalset --jobs 2 --rows runs/slopes-evalset.csv --write docs/surface_estimators.md",

@@ -1,0 +1,157 @@
+"""The wall contacts (`ground.wall_contact`) scored against the true ground over the stored evaluation set.
+
+A wall contact says how high the material meets a wall where a sweep saw it do so: the fill takes it as evidence at the
+walls' feet and in the corners. Each run is surveyed as the report surveys it, its contacts made from the survey's
+placed cloud and structure as the report makes them, and each contact's estimate compared with the true ground at its
+place (the pile's mesh, cast straight down). The table counts, per noise model, the contacts more than OFF_M off and
+those whose bounds miss the truth, split by the leaning test (`WallContacts.leans_as_measured`): a pair whose material
+leans on the wall as measured, and one that passes only within the test's noise allowance, which under a pointing
+error is where the wrong contacts are (docs/design-notes.md, "Wall contacts under a pointing error").
+
+Usage: python -m tools.contact_check [--root runs/evalset] [--noise none datasheet appendix-a] [--p-traj P ...]
+           [--stride 1] [--jobs 2] [--write docs/unseen.md]  (the table into the page's section contact-check)
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ground.pointcloud import SensorErrorModel
+from ground.report import ReportOptions, survey_from_samples
+from ground.wall_contact import wall_contacts
+from tools.doc_sections import write_section
+from tools.evalset import BUILDING_BY_NAME, DEFAULT_ROOT, EvalRun, Instance, load_run, runs_where
+from tools.workers import progress_map, worker_pool
+
+SECTION = "contact-check"
+OFF_M = 1.0
+"""A contact further than this from the true ground at its place is counted wrong (a metre of material at a wall)."""
+NOISES = ("none", "datasheet", "appendix-a")
+GROUPS = ("leaning", "allowance")
+"""The contacts whose material leans on the wall as measured, and those that pass the leaning test only within its
+noise allowance."""
+
+
+def true_mesh(run: EvalRun):
+    """The run's true pile as a mesh: the evaluation set's generated pile (its building, family, seed and altitude in
+    truth.json), or a named stockpile (`stockpile`); None when truth.json names neither."""
+    from sitl.world.shapes import Family
+    from sitl.world.stockpile import resolve
+
+    t = run.truth
+    if t.get("building") in BUILDING_BY_NAME and all(k in t for k in ("family", "seed", "altitude_m")):
+        inst = Instance(str(t["building"]), Family(t["family"]), int(t["seed"]), float(t["altitude_m"]))
+        return inst.shape().pile.mesh
+    if "stockpile" in t:
+        return resolve(str(t["stockpile"]), run.storage).mesh
+    return None
+
+
+def ground_heights_m(mesh, xy: np.ndarray, above_m: float) -> np.ndarray:
+    """The mesh's height straight below each (x, y) (one ray down from above_m each), 0 where it has none (the
+    floor)."""
+    z = np.zeros(len(xy))
+    if len(xy) and len(mesh.faces):  # an empty building's pile has none: the floor everywhere
+        origins = np.column_stack([xy, np.full(len(xy), above_m)])
+        hits, rays, _ = mesh.ray.intersects_location(origins, np.tile([0.0, 0.0, -1.0], (len(xy), 1)),
+                                                     multiple_hits=False)
+        z[rays] = np.maximum(hits[:, 2], 0.0)
+    return z
+
+
+def contact_row(run_dir: str) -> dict | None:
+    """One run's contacts against its true ground: counts and error sums per group (summable over runs); None for a
+    run without a true surface to score against."""
+    r = load_run(run_dir)
+    mesh = true_mesh(r)
+    if mesh is None:
+        return None
+    sv = survey_from_samples(r.samples, r.header, r.storage, r.frame, r.lever_arm_body_m, ReportOptions(plots=False))
+    err = SensorErrorModel.from_header(r.header)
+    c = wall_contacts(sv.cloud, sv.structure, r.storage, err, sv.grid.cell_m)
+    inside = np.clip(c.xy_m, 1e-3, [r.storage.length_m - 1e-3, r.storage.width_m - 1e-3])  # on the wall's inner side
+    truth = ground_heights_m(mesh, inside, 2.0 * r.storage.height_m)
+    miss = c.height_m - truth
+    outside = (truth < c.low_m - 1e-6) | (truth > c.high_m + 1e-6)
+    lean = np.ones(len(c), dtype=bool) if c.leans_as_measured is None else np.asarray(c.leans_as_measured, bool)
+    row = {"run": r.run_id, "noise": r.truth.get("noise", "?"), "p_traj": int(r.truth.get("p_traj_pct", 0)),
+           "family": r.truth.get("family", "?"), "contacts": len(c)}
+    for group, k in zip(GROUPS, (lean, ~lean), strict=True):
+        row.update({f"{group}_n": int(k.sum()), f"{group}_sum_m": float(miss[k].sum()),
+                    f"{group}_sumsq_m2": float((miss[k] ** 2).sum()),
+                    f"{group}_off": int((np.abs(miss[k]) > OFF_M).sum()), f"{group}_outside": int(outside[k].sum())})
+    return row
+
+
+def _group_cells(rows: Sequence[dict], group: str) -> str:
+    n = sum(r[f"{group}_n"] for r in rows)
+    if not n:
+        return "0 | - | - | - | -"
+    mean = sum(r[f"{group}_sum_m"] for r in rows) / n
+    rms = (sum(r[f"{group}_sumsq_m2"] for r in rows) / n) ** 0.5
+    off, out = sum(r[f"{group}_off"] for r in rows), sum(r[f"{group}_outside"] for r in rows)
+    return f"{n:,} | {mean:+.2f} | {rms:.2f} | {100 * off / n:.1f} % | {100 * out / n:.1f} %"
+
+
+def summary(rows: Sequence[dict]) -> list[str]:
+    """The table's lines: per noise model, the contacts of each group, their mean and RMS error (estimate minus the
+    true ground, m), the share more than OFF_M off and the share whose bounds miss the truth."""
+    cols = f"mean (m) | RMS (m) | > {OFF_M:g} m off | truth outside bounds"
+    lines = [f"| noise | runs | contacts | leaning as measured | {cols} | leaning only within the allowance | {cols} |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for noise in [n for n in NOISES if any(r["noise"] == n for r in rows)] + sorted(
+            {r["noise"] for r in rows} - set(NOISES)):
+        rr = [r for r in rows if r["noise"] == noise]
+        lines.append(f"| {noise} | {len(rr)} | {sum(r['contacts'] for r in rr):,} | {_group_cells(rr, 'leaning')} | "
+                     f"{_group_cells(rr, 'allowance')} |")
+    return lines
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m tools.contact_check", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--root", type=Path, default=DEFAULT_ROOT, help="the evaluation set (tools.evalset)")
+    ap.add_argument("--noise", nargs="+", default=list(NOISES), help="noise models (default: all three)")
+    ap.add_argument("--p-traj", type=int, nargs="+", default=None, help="only these P_traj (percent)")
+    ap.add_argument("--stride", type=int, default=1, help="every Nth run only (a quick look)")
+    ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--write", type=Path, default=None, metavar="PAGE",
+                    help=f"also write the table into this page's section {SECTION}")
+    args = ap.parse_args(argv)
+    if args.stride < 1 or args.jobs < 1:
+        print("contact_check: --stride and --jobs must be >= 1", file=sys.stderr)
+        return 2
+    if not (args.root / "runs").is_dir():
+        print(f"contact_check: no stored runs under {args.root} (python -m tools.evalset makes them)", file=sys.stderr)
+        return 2
+    dirs = runs_where(args.root, args.noise, args.p_traj)[::args.stride]
+    if not dirs:
+        print(f"contact_check: no stored runs with noise {' '.join(args.noise)} under {args.root}", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    with worker_pool(args.jobs) as pool:
+        rows = [r for r in progress_map(pool, contact_row, dirs, desc="contact_check", unit="run", chunksize=2) if r]
+    if not rows:
+        print("contact_check: none of the chosen runs states a true surface to score against", file=sys.stderr)
+        return 2
+    table = "\n".join(summary(rows))
+    print(table)
+    if args.write is not None:
+        cmd = "python -m tools.contact_check" + (f" --noise {' '.join(args.noise)}" if list(args.noise) != list(NOISES)
+                                                 else "")
+        cmd += f" --p-traj {' '.join(map(str, args.p_traj))}" if args.p_traj else ""
+        cmd += (f" --stride {args.stride}" if args.stride > 1 else "") + f" --jobs {args.jobs} --write {args.write}"
+        runs = f"{len(rows):,} run{'s' if len(rows) != 1 else ''}"
+        write_section(args.write, SECTION, f"Regenerated by `{cmd}` ({runs} of the evaluation set, "
+                                           f"{(time.perf_counter() - t0) / 60:.1f} min):\n\n{table}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
