@@ -287,7 +287,7 @@ def test_that_the_trajectory_correction_figure_is_an_engineers_figure_with_a_cap
 
 
 def test_that_the_engineers_part_is_named_once_in_the_html_and_leads_its_note_in_the_markdown(tmp_path, images):
-    """Under its own heading the page said "Engineer's details" twice in a row (heading, then a note starting with it)."""
+    """Under its heading the page said "Engineer's details" twice in a row (the heading, then a note led by it)."""
     page = render.write_html(full_report(), images, tmp_path / "report.html").read_text()
     assert page.count("Engineer&#x27;s details") == 1
     assert "<p>The survey&#x27;s processing figures" in page
