@@ -24,6 +24,7 @@ from ground.exports.formats import ExportFormat
 from ground.exports.write import write_exports
 from ground.gp_slopes import forget_fits
 from ground.report import ReportOptions, header_geometry, make_report, survey_from_samples
+from ground.self_calibration import forget_sims
 from ground.smoothing import NodeSlopes
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
@@ -55,6 +56,12 @@ def bench_rays(n: int, repeat: int) -> float:
     return n / med
 
 
+def forget_remembered() -> None:
+    """What a process remembers of the flights it reported (`forget_fits`, `forget_sims`), forgotten."""
+    forget_fits()
+    forget_sims()
+
+
 def _survey(run: Path):
     """The survey of a run directory as the report computes it (default options), and its log header."""
     log = read_samplelog(run / SAMPLES_FILE)
@@ -80,10 +87,10 @@ def main(argv: list[str] | None = None) -> int:
         make_report(run, Path(tmp) / "warm", ReportOptions(plots=False), force=True)  # imports and caches warm
 
         def report_time(source: Path, name: str, opts: ReportOptions) -> float:
-            """A fresh report's median: the remembered covariance fits forgotten before each run, as a new flight
-            has none."""
+            """A fresh report's median: the remembered covariance fits and servo re-simulations forgotten before
+            each run, as a new flight has none."""
             return median_time(lambda: make_report(source, Path(tmp) / name, opts, force=True), args.repeat,
-                               before=forget_fits)[0]
+                               before=forget_remembered)[0]
 
         no_plots = report_time(run, "r1", ReportOptions(plots=False))
         rows.append((f"ground report, no plots ({n:,} samples; the default: the pose correction runs, and is not "

@@ -10,6 +10,7 @@ import pytest
 
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
 from firmware_py.core.samplelog import SAMPLE_DTYPE, SampleLogWriter, read_samplelog, rewritable_header
+from firmware_py.core.servo_model import servo_angles
 from firmware_py.core.storage import Storage
 from ground import log_warnings, report
 from ground.plane_stretches import beams
@@ -22,6 +23,7 @@ from ground.self_calibration import (
     DriftNuisance,
     KnownMount,
     MountEstimate,
+    ServoAngles,
     _DriftFit,
     _trim_inside,
     describe,
@@ -667,3 +669,33 @@ def test_that_the_report_corrects_a_mount_fault_and_a_drift_together(drifting_ru
     assert both_refused["pose_correction"]["applied"] is False
     assert "a drifting pose does not explain them" in both_refused["pose_correction"]["reason"]
     assert abs(signed_error_pct(both_refused) - signed_error_pct(clean)) > 1.0
+
+
+def test_that_a_second_fit_on_the_same_drive_re_simulates_nothing_and_gets_the_same_angles(monkeypatch):
+    """The mount is fitted several times a report on the same samples; each fit's servo re-simulations at the same
+    scales are remembered by the drive and the scale, and what is remembered is what would be computed."""
+    from pathlib import Path
+
+    import ground.self_calibration as sc
+
+    log = read_samplelog(Path(__file__).resolve().parents[1] / "golden" / "samples.pslog")
+    resim = Resimulated.from_header(log.header)
+    assert resim is not None
+    sc.forget_sims()
+    runs = []
+    monkeypatch.setattr(sc, "servo_angles", lambda *a, **k: runs.append(1) or servo_angles(*a, **k))
+    first = ServoAngles(log.samples, resim)
+    at_5pct = first.exact(0.05).copy()
+    assert len(runs) == 2  # the nominal sweep and the 5 % one
+    second = ServoAngles(log.samples, resim)
+    assert np.array_equal(second.exact(0.05), at_5pct) and np.array_equal(second.nominal, first.nominal)
+    assert len(runs) == 2
+    with pytest.raises(ValueError, match="read-only"):
+        second.nominal[0] = 0.0  # shared between the fits: nobody may write into it
+    other = log.samples.copy()
+    other["t_s"] += 0.01  # another drive: its own re-simulation
+    ServoAngles(other, resim)
+    assert len(runs) == 3
+    sc.forget_sims()
+    ServoAngles(log.samples, resim)
+    assert len(runs) == 4
