@@ -102,6 +102,10 @@ off the exact model (95th percentile, paper's sweep), inside the fit's first win
 PARAMS = ("servo_offset_rad", "servo_scale", "boresight_tilt_rad", "sweep_yaw_rad")
 LIN_STEP = 1e-3
 """Scale step of the servo model's tangent (`ServoAngles.linearize`)."""
+BOUNDS = (np.array([-math.radians(20.0), -0.3, -math.radians(20.0), -math.radians(20.0)]),
+          np.array([math.radians(20.0), 0.3, math.radians(20.0), math.radians(20.0)]))
+"""What a mounting can plausibly be off by (the SITL's fault limits); an estimate at a bound is a
+failed fit (data the planes cannot explain), never applied."""
 REMEMBERED_SIMS_BYTES = 64 * 2**20
 """Servo re-simulations kept across `ServoAngles` instances, by their drive and scale (`ServoAngles._sim`), up to this
 many bytes, the least recently used let go first: a report's fits on 20,000 samples re-run about 110 scales (18 MB);
@@ -115,10 +119,6 @@ def forget_sims() -> None:
     only when it forgets them (and the covariance fits, `ground.gp_slopes.forget_fits`) before each run."""
     with _sims_lock:
         _sims.clear()
-BOUNDS = (np.array([-math.radians(20.0), -0.3, -math.radians(20.0), -math.radians(20.0)]),
-          np.array([math.radians(20.0), 0.3, math.radians(20.0), math.radians(20.0)]))
-"""What a mounting can plausibly be off by (the SITL's fault limits); an estimate at a bound is a
-failed fit (data the planes cannot explain), never applied."""
 
 
 @dataclass(frozen=True)
@@ -276,6 +276,7 @@ class ServoAngles:
             self.angle0 = float(resim.waveform.angle(0.0))
             digest = hashlib.blake2b(repr((resim.cal, self.angle0)).encode(), digest_size=20)
             for a in (self.t, self.cmd_t, self.cmd):
+                digest.update(repr(np.shape(a)).encode())
                 digest.update(np.ascontiguousarray(a, dtype=float).tobytes())
             self._drive = digest.digest()
             self.nominal = self._sim(0.0)
