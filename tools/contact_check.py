@@ -1,12 +1,13 @@
 """The wall contacts (`ground.wall_contact`) scored against the true ground over the stored evaluation set.
 
-A wall contact says how high the material meets a wall where a sweep saw it do so: the fill takes it as evidence at the
-walls' feet and in the corners. Each run is surveyed as the report surveys it, its contacts made from the survey's
-placed cloud and structure as the report makes them, and each contact's estimate compared with the true ground at its
-place (the pile's mesh, cast straight down). The table counts, per noise model, the contacts more than OFF_M off and
-those whose bounds miss the truth, split by the leaning test (`WallContacts.leans_as_measured`): a pair whose material
-leans on the wall as measured, and one that passes only within the test's noise allowance, which under a pointing
-error is where the wrong contacts are (docs/design-notes.md, "Wall contacts under a pointing error").
+A wall contact says how high the material meets a wall where a sweep saw it do so: the fill takes it as evidence at
+the walls' feet and in the corners. Each run is surveyed as the report surveys it, its contacts made from the
+survey's placed cloud and structure as the report makes them, and each contact's estimate compared with the true
+ground at its place (the pile cast straight down, `World.heights_below_m`). The table counts, per noise model, the
+contacts more than OFF_M off and those whose bounds miss the truth, split by the leaning test
+(`WallContacts.leans_as_measured`): a pair whose material leans on the wall as measured, and one that passes only
+within the test's noise allowance, which under a pointing error is where the wrong contacts are
+(docs/design-notes.md, "Wall contacts under a pointing error").
 
 Usage: python -m tools.contact_check [--root runs/evalset] [--noise none datasheet appendix-a] [--p-traj P ...]
            [--stride 1] [--jobs 2] [--write docs/unseen.md]  (the table into the page's section contact-check)
@@ -25,7 +26,7 @@ import numpy as np
 from ground.pointcloud import SensorErrorModel
 from ground.report import ReportOptions, survey_from_samples
 from ground.wall_contact import wall_contacts
-from tools.doc_sections import write_section
+from tools.doc_sections import write_evalset_section
 from tools.evalset import BUILDING_BY_NAME, DEFAULT_ROOT, EvalRun, Instance, load_run, runs_where
 from tools.workers import progress_map, worker_pool
 
@@ -38,45 +39,34 @@ GROUPS = ("leaning", "allowance")
 noise allowance."""
 
 
-def true_mesh(run: EvalRun):
-    """The run's true pile as a mesh: the evaluation set's generated pile (its building, family, seed and altitude in
-    truth.json), or a named stockpile (`stockpile`); None when truth.json names neither."""
+def true_pile(run: EvalRun):
+    """The run's true pile (`sitl.world.stockpile.Stockpile`): the evaluation set's generated pile (its building,
+    family, seed and altitude in truth.json), or a named stockpile (`stockpile`); None when truth.json names neither."""
     from sitl.world.shapes import Family
     from sitl.world.stockpile import resolve
 
     t = run.truth
     if t.get("building") in BUILDING_BY_NAME and all(k in t for k in ("family", "seed", "altitude_m")):
-        inst = Instance(str(t["building"]), Family(t["family"]), int(t["seed"]), float(t["altitude_m"]))
-        return inst.shape().pile.mesh
+        return Instance(str(t["building"]), Family(t["family"]), int(t["seed"]), float(t["altitude_m"])).shape().pile
     if "stockpile" in t:
-        return resolve(str(t["stockpile"]), run.storage).mesh
+        return resolve(str(t["stockpile"]), run.storage)
     return None
-
-
-def ground_heights_m(mesh, xy: np.ndarray, above_m: float) -> np.ndarray:
-    """The mesh's height straight below each (x, y) (one ray down from above_m each), 0 where it has none (the
-    floor)."""
-    z = np.zeros(len(xy))
-    if len(xy) and len(mesh.faces):  # an empty building's pile has none: the floor everywhere
-        origins = np.column_stack([xy, np.full(len(xy), above_m)])
-        hits, rays, _ = mesh.ray.intersects_location(origins, np.tile([0.0, 0.0, -1.0], (len(xy), 1)),
-                                                     multiple_hits=False)
-        z[rays] = np.maximum(hits[:, 2], 0.0)
-    return z
 
 
 def contact_row(run_dir: str) -> dict | None:
     """One run's contacts against its true ground: counts and error sums per group (summable over runs); None for a
     run without a true surface to score against."""
+    from sitl.world.raycast import World
+
     r = load_run(run_dir)
-    mesh = true_mesh(r)
-    if mesh is None:
+    pile = true_pile(r)
+    if pile is None:
         return None
     sv = survey_from_samples(r.samples, r.header, r.storage, r.frame, r.lever_arm_body_m, ReportOptions(plots=False))
     err = SensorErrorModel.from_header(r.header)
     c = wall_contacts(sv.cloud, sv.structure, r.storage, err, sv.grid.cell_m)
     inside = np.clip(c.xy_m, 1e-3, [r.storage.length_m - 1e-3, r.storage.width_m - 1e-3])  # on the wall's inner side
-    truth = ground_heights_m(mesh, inside, 2.0 * r.storage.height_m)
+    truth = World(r.storage, pile).heights_below_m(inside)
     miss = c.height_m - truth
     outside = (truth < c.low_m - 1e-6) | (truth > c.high_m + 1e-6)
     lean = np.ones(len(c), dtype=bool) if c.leans_as_measured is None else np.asarray(c.leans_as_measured, bool)
@@ -147,9 +137,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                                  else "")
         cmd += f" --p-traj {' '.join(map(str, args.p_traj))}" if args.p_traj else ""
         cmd += (f" --stride {args.stride}" if args.stride > 1 else "") + f" --jobs {args.jobs} --write {args.write}"
-        runs = f"{len(rows):,} run{'s' if len(rows) != 1 else ''}"
-        write_section(args.write, SECTION, f"Regenerated by `{cmd}` ({runs} of the evaluation set, "
-                                           f"{(time.perf_counter() - t0) / 60:.1f} min):\n\n{table}")
+        write_evalset_section(args.write, SECTION, cmd, len(rows), time.perf_counter() - t0, table)
     return 0
 
 

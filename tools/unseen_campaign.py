@@ -129,15 +129,11 @@ def pile_named(name: str, storage: Storage) -> Stockpile:
     return heightfield_pile(fixtures[name], storage, name) if name in fixtures else paper_pile(name, storage)
 
 
-def true_heights_m(world: World, storage: Storage, max_range_m: float, cell_m: float = DEFAULT_CELL_M) -> np.ndarray:
-    """The pile's height at every cell centre of the report's grid, cast straight down from under the roof:
-    what a fill is scored against in the cells it had to invent."""
-    cx, cy = Grid(storage.length_m, storage.width_m, cell_m).centres()
-    top = storage.height_m - 1e-3
-    origins = np.column_stack([cx.ravel(), cy.ravel(), np.full(cx.size, top)])
-    down = np.tile([0.0, 0.0, -1.0], (cx.size, 1))
-    r = world.cast(origins, down, max_range_m=max(max_range_m, storage.height_m)).range_m
-    return np.clip(top - np.nan_to_num(r, nan=top), 0.0, None).reshape(cx.shape)
+def true_heights_m(world: World, cell_m: float = DEFAULT_CELL_M) -> np.ndarray:
+    """The pile's height at every cell centre of the report's grid, cast straight down from under the roof
+    (`World.heights_below_m`): what a fill is scored against in the cells it had to invent."""
+    cx, cy = Grid(world.storage.length_m, world.storage.width_m, cell_m).centres()
+    return world.heights_below_m(np.column_stack([cx.ravel(), cy.ravel()])).reshape(cx.shape)
 
 
 def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path,
@@ -151,7 +147,7 @@ def run_case(pile_name: str, p_pct: float, positions: list[int], cache_dir: Path
     world = World(storage, pile, base.lidar.max_range_m)
     t = np.arange(int(flown.duration_s * base.lidar.rate_hz) + 1) / base.lidar.rate_hz
     traj = flown.trajectory_at(t)
-    truth = true_heights_m(world, storage, base.lidar.max_range_m)
+    truth = true_heights_m(world)
     rows = []
     for k in positions:
         cfg = replace(base, initial_position=k)

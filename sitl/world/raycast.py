@@ -108,6 +108,15 @@ class World:
         pts = o64 + unit * r[:, None]
         return Hits(r, geom, pts, _cos_incidence(res["Ng"], unit))
 
+    def heights_below_m(self, xy_w: np.ndarray) -> np.ndarray:
+        """The ground's height (the pile's, or the floor's 0) straight below each (x, y) of the storage frame, cast down
+        from just under the roof: what a survey's heights are scored against."""
+        xy = np.asarray(xy_w, dtype=float).reshape(-1, 2)
+        top = self.storage.height_m - 1e-3
+        origins = np.column_stack([xy, np.full(len(xy), top)])
+        r = self.cast(origins, np.tile([0.0, 0.0, -1.0], (len(xy), 1)), max_range_m=self.storage.height_m).range_m
+        return np.clip(top - np.nan_to_num(r, nan=top), 0.0, None)
+
     def cast_one_incidence(self, origin_w, dir_w) -> tuple[float, float]:
         """Range (NaN: no return) and |cos| of the incidence of one ray: the emulated LiDAR's path when a
         noise model needs the incidence (a full intersection query, unlike `cast_one`'s distance only)."""

@@ -1,10 +1,9 @@
 """The contact check over stored evaluation runs: each run's wall contacts against its true ground, by noise."""
 
-import numpy as np
 import pytest
 
 from tests.tools.golden_run import RUN, golden_true_volume_m3, store_golden_run
-from tools.contact_check import OFF_M, contact_row, ground_heights_m, main, summary
+from tools.contact_check import OFF_M, contact_row, main, summary
 
 
 @pytest.fixture(scope="module")
@@ -29,16 +28,6 @@ def test_that_a_run_without_a_true_surface_is_left_out(tmp_path):
     store_golden_run(tmp_path, true_volume_m3=1.0, p_traj_pct=20)  # names no stockpile and no generated pile
     assert contact_row(str(tmp_path / "runs" / RUN)) is None
     assert main(["--root", str(tmp_path)]) == 2
-
-
-def test_that_the_ground_below_is_the_mesh_where_it_stands_and_the_floor_elsewhere():
-    import trimesh
-
-    box = trimesh.creation.box(extents=(2.0, 2.0, 3.0))
-    box.apply_translation((5.0, 5.0, 1.5))  # 3 m high over x, y in [4, 6]
-    z = ground_heights_m(box, np.array([[5.0, 5.0], [9.0, 9.0]]), 30.0)
-    assert z == pytest.approx([3.0, 0.0])
-    assert ground_heights_m(trimesh.Trimesh(), np.array([[1.0, 1.0]]), 30.0) == pytest.approx([0.0])
 
 
 def test_that_the_table_sums_each_group_over_the_runs():

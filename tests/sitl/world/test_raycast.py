@@ -154,3 +154,14 @@ def test_that_the_pile_built_from_its_vertices_and_faces_casts_as_its_triangle_l
     assert np.count_nonzero(theirs["geomID"] == GEOM_PILE) > 10000
     for key in ("tfar", "primID", "geomID", "Ng", "u", "v"):
         assert np.array_equal(ours[key], theirs[key]), key
+
+
+def test_that_the_ground_below_is_the_pile_where_it_stands_and_the_floor_elsewhere():
+    import trimesh
+
+    box = trimesh.creation.box(extents=(2.0, 2.0, 3.0))
+    box.apply_translation((5.0, 5.0, 1.5))  # 3 m high over x, y in [4, 6]
+    storage = Storage(20.0, 12.0, 8.0)
+    world = World(storage, Stockpile(box, volume_under_mesh(box), "box"))
+    assert world.heights_below_m(np.array([[5.0, 5.0], [9.0, 9.0]])) == pytest.approx([3.0, 0.0], abs=1e-5)
+    assert World(storage).heights_below_m(np.array([[1.0, 1.0]])) == pytest.approx([0.0], abs=1e-5)
