@@ -15,7 +15,7 @@ from statistics import NormalDist
 
 import numpy as np
 
-from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_rays_w
+from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_dirs_w, beam_frames_w
 from firmware_py.core.numbers import is_finite_number
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
 from firmware_py.core.sensor_noise import (
@@ -131,6 +131,54 @@ def cloud_from_samples(samples: np.ndarray, lever_arm_body_m, frame: StorageFram
     period, samples in periods where the ranges do not move like a swept beam's (a stuck servo:
     `ground.sweep_check`) are excluded too: their angles are wrong.
     """
+    return posed_beams(samples, lever_arm_body_m, frame, sweep_period_s, spike_threshold).cloud(
+        samples["servo_rad"], samples["sweep_dir"], boresight)
+
+
+@dataclass(frozen=True)
+class PosedBeams:
+    """One flight's samples with what their poses fix of their beams (`posed_beams`): which are usable, the beams'
+    origins and body-to-W rotations. `cloud` places them at any servo angles. Why: the servo's timing search
+    (`ground.servo_timing`) places the same samples at a few hundred candidate angles, and the rotations were a
+    quarter of each try's cost."""
+
+    samples: np.ndarray
+    lever_arm_body_m: np.ndarray
+    frame: StorageFrame
+    sweep_period_s: float | None
+    spike_threshold: SpikeThreshold | None
+    usable: np.ndarray
+    """(n,) the samples placed: flags clear, fields finite (the servo angle as logged), no spike, no stuck sweep."""
+    origins_w: np.ndarray
+    rot_w_body: np.ndarray
+    n_servo_suspect: int
+    n_spikes: int
+
+    def cloud(self, servo_rad: np.ndarray, sweep_dir: np.ndarray, boresight: Boresight = SQUARE) -> Cloud:
+        """The cloud of these samples with these servo angles and sweep directions (n,): `cloud_from_samples` of the
+        samples with those two fields so, to the bit. Angles not finite where the logged ones are (no search makes
+        such), and with a sweep period other angles than the logged ones, are placed by `cloud_from_samples` itself:
+        the spikes are judged on the usable samples, the stuck sweeps on the angles too."""
+        s, use = self.samples, self.usable
+        gamma = np.asarray(servo_rad)[use].astype(float)
+        judged_on_others = self.sweep_period_s is not None and not np.array_equal(servo_rad, s["servo_rad"])
+        if judged_on_others or not np.isfinite(gamma).all():
+            other = s.copy()
+            other["servo_rad"], other["sweep_dir"] = servo_rad, sweep_dir
+            return cloud_from_samples(other, self.lever_arm_body_m, self.frame, self.sweep_period_s,
+                                      self.spike_threshold, boresight)
+        dirs = beam_dirs_w(self.rot_w_body, gamma, boresight)
+        rng = s["range_m"][use].astype(float)
+        pos = np.column_stack([s["x_m"], s["y_m"], s["z_m"]]).astype(float)
+        path = self.frame.ned_to_w(pos[np.isfinite(pos).all(axis=1)])
+        return Cloud(self.origins_w + dirs * rng[:, None], dirs, rng, path, len(s), int(len(s) - use.sum()),
+                     n_servo_suspect=self.n_servo_suspect, n_spikes=self.n_spikes,
+                     sweep_dir=np.asarray(sweep_dir)[use], t_s=s["t_s"][use], servo_rad=gamma, flags=s["flags"][use])
+
+
+def posed_beams(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, sweep_period_s: float | None = None,
+                spike_threshold: SpikeThreshold | None = None) -> PosedBeams:
+    """Which samples `cloud_from_samples` places (its docstring), and their beams' origins and rotations."""
     pos = np.column_stack([samples["x_m"], samples["y_m"], samples["z_m"]]).astype(float)
     fields = [samples[k].astype(float) for k in ("roll_rad", "pitch_rad", "yaw_rad", "servo_rad", "range_m")]
     finite = np.isfinite(pos).all(axis=1) & np.logical_and.reduce([np.isfinite(f) for f in fields])
@@ -144,13 +192,10 @@ def cloud_from_samples(samples: np.ndarray, lever_arm_body_m, frame: StorageFram
         suspect = stuck_sweep_mask(samples["t_s"], samples["range_m"], usable, sweep_period_s,
                                    servo_rad=samples["servo_rad"])
         usable &= ~suspect
-    roll, pitch, yaw, gamma, rng = (f[usable] for f in fields)
-    origins, dirs = beam_rays_w(pos[usable], roll, pitch, yaw, gamma, lever_arm_body_m, frame, boresight)
-    path = frame.ned_to_w(pos[np.isfinite(pos).all(axis=1)])
-    return Cloud(origins + dirs * rng[:, None], dirs, rng, path, len(samples),
-                 int(len(samples) - usable.sum()), n_servo_suspect=int(suspect.sum()),
-                 n_spikes=int(spikes.sum()), sweep_dir=samples["sweep_dir"][usable], t_s=samples["t_s"][usable],
-                 servo_rad=gamma, flags=samples["flags"][usable])
+    roll, pitch, yaw = (f[usable] for f in fields[:3])
+    origins, rot = beam_frames_w(pos[usable], roll, pitch, yaw, lever_arm_body_m, frame)
+    return PosedBeams(samples, np.asarray(lever_arm_body_m, dtype=float), frame, sweep_period_s, spike_threshold,
+                      usable, origins, rot, int(suspect.sum()), int(spikes.sum()))
 
 
 def merge_clouds(clouds: Sequence[Cloud]) -> Cloud:

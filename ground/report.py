@@ -36,6 +36,7 @@ from ground.despike import SpikeThreshold, why_no_threshold
 from ground.echo_reach import echo_reach, echo_record, echo_warning
 from ground.exports.formats import EXPORT_FILES
 from ground.exports.write import check_exports, write_exports
+from ground.figure_jobs import cores_available
 from ground.floor_check import FloorLevel, floor_other_reading, measure_floor
 from ground.log_warnings import log_warnings, sensor_noise_line
 from ground.metadata import printable, sha256_of
@@ -48,6 +49,7 @@ from ground.pointcloud import (
     SensorErrorModel,
     cloud_from_samples,
     merge_clouds,
+    posed_beams,
     stretch_sigma_m,
     structure_mask,
     structure_n_sigma,
@@ -519,15 +521,20 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
     if first is not None:
         return _self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes, mount, first), early
 
+    posed = posed_beams(samples, lever, frame, spike_threshold=spikes)  # the search changes the servo's fields only
+
     def disagreement(s: np.ndarray) -> float | None:  # the survey's cloud, less the stuck-servo check (range-only)
-        cloud = cloud_from_samples(s, lever, frame, spike_threshold=spikes, boresight=mount)
+        cloud = posed.cloud(s["servo_rad"], s["sweep_dir"], mount)
         keep = ~structure_mask(cloud, storage, err)
         return sweep_disagreement_m(cloud.points_w[keep], cloud.sweep_dir[keep], survey.grid, survey.face_spread_m)[0]
 
     motion = _drive(header, samples) or ShiftScale(sweep_center_rad(samples["servo_rad"]))
     halves = np.random.default_rng(0).choice(np.array([-1, 1]), len(survey.pile_points_w))  # seeded: reports replay
     floor, _ = sweep_disagreement_m(survey.pile_points_w, halves, survey.grid, survey.face_spread_m)
-    timing = estimate_servo_timing(samples, disagreement, before, motion, floor_m=floor or 0.0)
+    # The search's candidates on every core: the mount's and the pose's first estimates, on the second core until now,
+    # are not used when the servo is re-timed, and have ended (the pool above waited for them).
+    timing = estimate_servo_timing(samples, disagreement, before, motion, floor_m=floor or 0.0,
+                                   threads=cores_available())
     if timing is None or timing.disagreement_after_m > MAX_SWEEP_DISAGREEMENT_M:
         return replace(survey, servo_timing=timing), None
     retimed = motion.apply(samples, timing.delay_s, timing.gain)

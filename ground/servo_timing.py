@@ -27,7 +27,10 @@ disagreement under the trust threshold; it is reported either way, never applied
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -105,6 +108,7 @@ class Resimulated:
     frame_s: float
     name = "servo model"
     _nominal: dict = field(default_factory=dict, repr=False, compare=False)
+    _nominal_lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
 
     @classmethod
     def from_header(cls, header: dict) -> Resimulated | None:
@@ -137,10 +141,12 @@ class Resimulated:
         out = samples.copy()
         t = samples["t_s"]
         key = (len(t), float(t[0]), float(t[-1])) if len(t) else (0,)
-        if key not in self._nominal:  # the same for every candidate (d, g) of a search
-            self._nominal.clear()
-            self._nominal[key] = self.angles(t)
-        angle = samples["servo_rad"].astype(float) + self.angles(t, delay_s, gain) - self._nominal[key]
+        with self._nominal_lock:  # a search tries its candidates on several threads
+            if key not in self._nominal:  # the same for every candidate (d, g) of a search
+                self._nominal.clear()
+                self._nominal[key] = self.angles(t)
+            nominal = self._nominal[key]
+        angle = samples["servo_rad"].astype(float) + self.angles(t, delay_s, gain) - nominal
         out["servo_rad"] = angle
         if len(samples) > 1:
             turning = np.sign(np.gradient(angle))
@@ -154,7 +160,7 @@ def _grid(lo: float, hi: float, step: float) -> np.ndarray:
 
 def estimate_servo_timing(samples: np.ndarray, disagreement: Callable[[np.ndarray], float | None],
                           before_m: float, motion: ShiftScale | Resimulated | None = None,
-                          floor_m: float = 0.0) -> ServoTiming | None:
+                          floor_m: float = 0.0, threads: int = 1) -> ServoTiming | None:
     """(d, g) that minimise disagreement(motion.apply(samples, d, g)) (module docstring; default
     motion: ShiftScale about the logged sweep's centre); None if it cannot be measured (too few
     cells where both sweep directions land).
@@ -164,22 +170,41 @@ def estimate_servo_timing(samples: np.ndarray, disagreement: Callable[[np.ndarra
     the wrong reason (the far, grazing points, where angle errors matter most, move in), so the
     dead time alone is kept unless the factor improves the agreement by more than floor_m: the
     statistic's own noise (the disagreement of two random halves of the same points).
+
+    threads: how many candidates are tried at once (each is independent: the same (d, g) on any count). The
+    disagreement must then be safe to call from several threads.
     """
     motion = motion if motion is not None else ShiftScale(sweep_center_rad(samples["servo_rad"]))
+    with ThreadPoolExecutor(threads) if threads > 1 else nullcontext() as pool:
+        return _search(samples, disagreement, before_m, motion, floor_m, pool)
+
+
+def _search(samples: np.ndarray, disagreement: Callable[[np.ndarray], float | None], before_m: float,
+            motion: ShiftScale | Resimulated, floor_m: float, pool: ThreadPoolExecutor | None) -> ServoTiming | None:
+    """`estimate_servo_timing`'s search, each grid's new candidates tried on the pool's threads (None: in turn)."""
     evals = 0
     cache: dict[tuple[float, float], float] = {}
+
+    def tried(key: tuple[float, float]) -> float:
+        v = disagreement(motion.apply(samples, key[0], key[1]))
+        return np.inf if v is None else v
 
     def cost(d: float, g: float) -> float:
         nonlocal evals
         key = (round(float(d), 6), round(float(g), 6))
         if key not in cache:
             evals += 1
-            v = disagreement(motion.apply(samples, key[0], key[1]))
-            cache[key] = np.inf if v is None else v
+            cache[key] = tried(key)
         return cache[key]
 
     def best_of(ds, gs) -> tuple[float, float]:
-        return min(((round(float(d), 6), round(float(g), 6)) for d in ds for g in gs), key=lambda dg: cost(*dg))
+        nonlocal evals
+        keys = [(round(float(d), 6), round(float(g), 6)) for d in ds for g in gs]
+        new = [k for k in dict.fromkeys(keys) if k not in cache]
+        if pool is not None and len(new) > 1:
+            cache.update(zip(new, pool.map(tried, new), strict=True))
+            evals += len(new)
+        return min(keys, key=lambda dg: cost(*dg))
 
     fine = np.arange(-FINE_STEPS, FINE_STEPS + 1)
 

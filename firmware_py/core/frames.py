@@ -198,12 +198,24 @@ def beam_rays_w(pos_ned_m: np.ndarray, roll_rad, pitch_rad, yaw_rad, servo_rad,
     Returns:
         (origins (N, 3), directions (N, 3)) in W.
     """
+    origins, r_wb = beam_frames_w(pos_ned_m, roll_rad, pitch_rad, yaw_rad, lever_arm_body_m, frame)
+    return origins, beam_dirs_w(r_wb, servo_rad, boresight)
+
+
+def beam_frames_w(pos_ned_m: np.ndarray, roll_rad, pitch_rad, yaw_rad, lever_arm_body_m,
+                  frame: StorageFrame) -> tuple[np.ndarray, np.ndarray]:
+    """The part of `beam_rays_w` the pose fixes whatever the servo angle: the beams' origins in W (N, 3) and their
+    body-to-W rotations (N, 3, 3). Why apart: a search for the servo's real timing places the same poses' beams at
+    hundreds of other angles (`ground.pointcloud.PosedBeams`), and the rotations are most of the cost."""
     r_nb = rot_body_to_ned(roll_rad, pitch_rad, yaw_rad)
-    r_wn = frame.rot_w_from_ned
-    r_wb = premultiply(r_wn, r_nb)
+    r_wb = premultiply(frame.rot_w_from_ned, r_nb)
     origins = frame.ned_to_w(pos_ned_m) + np.einsum("nij,j->ni", r_wb, np.asarray(lever_arm_body_m, dtype=float))
-    dirs = np.einsum("nij,nj->ni", r_wb, beam_dir_body(servo_rad, boresight))
-    return origins, dirs
+    return origins, r_wb
+
+
+def beam_dirs_w(r_wb: np.ndarray, servo_rad, boresight: Boresight = SQUARE) -> np.ndarray:
+    """(N, 3) unit beam directions in W from the beams' body-to-W rotations (`beam_frames_w`) and servo angles."""
+    return np.einsum("nij,nj->ni", r_wb, beam_dir_body(servo_rad, boresight))
 
 
 def beam_ray_w(pos_ned_m, roll_rad: float, pitch_rad: float, yaw_rad: float, servo_rad: float,

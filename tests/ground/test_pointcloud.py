@@ -1,18 +1,21 @@
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import numpy as np
 
-from firmware_py.core.frames import StorageFrame
-from firmware_py.core.samplelog import SampleFlags, new_records
+from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
+from firmware_py.core.samplelog import SampleFlags, new_records, read_samplelog
 from firmware_py.core.storage import Storage
+from ground.despike import SpikeThreshold
 from ground.pointcloud import (
     Cloud,
     SensorErrorModel,
     beside_walls,
     cloud_from_samples,
     plane_tolerances_m,
+    posed_beams,
     structure_mask,
 )
+from tests.ground.test_live_state import GOLDEN
 
 
 def _samples(n):
@@ -152,3 +155,48 @@ def test_that_a_stretch_broken_in_time_says_nothing():
     cloud = _stretch([2.2, 23.9, 6.9], line)
     gaps = np.cumsum(np.where(np.arange(60) % 20 == 0, 5.0, 0.002))
     assert not structure_mask(replace(cloud, t_s=gaps), STORE, EXACT).any()
+
+
+def _clouds_equal(a: Cloud, b: Cloud) -> bool:
+    """Every field of two clouds the same, to the bit."""
+    return all(np.array_equal(x, y) if isinstance(x, np.ndarray) else x == y
+               for x, y in ((getattr(a, f.name), getattr(b, f.name)) for f in fields(Cloud)))
+
+
+def _golden():
+    log = read_samplelog(GOLDEN / "samples.pslog")
+    return log.samples, log.header
+
+
+def test_that_posed_beams_place_the_samples_at_other_servo_angles_as_cloud_from_samples_does():
+    s, header = _golden()
+    spikes = SpikeThreshold.from_header(header)
+    lever, frame, tilted = [0.05, 0.0, 0.1], StorageFrame((1.0, -2.0, 0.0), 0.3), Boresight(0.02, -0.01)
+    other = s.copy()
+    other["servo_rad"] = s["servo_rad"] * 0.95 + 0.01  # what a re-timed servo's search tries
+    other["sweep_dir"] = -s["sweep_dir"]
+    posed = posed_beams(s, lever, frame, spike_threshold=spikes)
+    assert posed.n_spikes > 0 or posed.usable.sum() < len(s)  # the golden log has samples left out
+    for boresight in (SQUARE, tilted):
+        assert _clouds_equal(posed.cloud(other["servo_rad"], other["sweep_dir"], boresight),
+                             cloud_from_samples(other, lever, frame, spike_threshold=spikes, boresight=boresight))
+        assert _clouds_equal(posed.cloud(s["servo_rad"], s["sweep_dir"], boresight),
+                             cloud_from_samples(s, lever, frame, spike_threshold=spikes, boresight=boresight))
+
+
+def test_that_posed_beams_leave_angles_they_cannot_take_as_they_are_to_cloud_from_samples():
+    s, header = _golden()
+    spikes, period = SpikeThreshold.from_header(header), 1.0 / header["servo"]["frequency_hz"]
+    broken = s.copy()
+    broken["servo_rad"][100:140] = np.nan  # not finite where the logged ones are: the spikes judged without them
+    posed = posed_beams(s, [0, 0, 0], StorageFrame(), spike_threshold=spikes)
+    assert _clouds_equal(posed.cloud(broken["servo_rad"], broken["sweep_dir"]),
+                         cloud_from_samples(broken, [0, 0, 0], StorageFrame(), spike_threshold=spikes))
+    frozen = s.copy()
+    frozen["range_m"][:1500] = 10.0  # ranges a stuck servo gives, judged against the angles' turn
+    still = frozen.copy()
+    still["servo_rad"][:1500] = s["servo_rad"][0]  # angles that do not turn: nothing to judge the ranges against
+    posed = posed_beams(frozen, [0, 0, 0], StorageFrame(), period, spikes)
+    placed = cloud_from_samples(still, [0, 0, 0], StorageFrame(), period, spikes)
+    assert posed.n_servo_suspect > 0 and placed.n_servo_suspect == 0
+    assert _clouds_equal(posed.cloud(still["servo_rad"], still["sweep_dir"]), placed)

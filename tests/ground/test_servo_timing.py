@@ -109,3 +109,24 @@ def test_that_a_drive_is_used_only_for_samples_it_can_have_driven():
     t = 50.0 + np.arange(3000) / 500.0
     assert m.drives(t) and m.drives(t + 800.0)  # a wait on the ground before the first sample
     assert not m.drives(t - 10.0) and not m.drives(t + 1e7) and not m.drives(np.array([np.nan]))
+
+
+def test_that_the_search_on_several_threads_tries_the_same_candidates_and_finds_the_same_timing():
+    """Each candidate is independent: on two threads the search is the same search, only sooner (the report runs it
+    on every core, `ground.report`)."""
+    m = Resimulated.from_header(HEADER)
+    s = triangle_samples(n=3000)
+    s["t_s"] = 50.0 + np.arange(3000) / 500.0
+    real = m.apply(s, 0.06, 0.7)["servo_rad"]
+    tried = {1: [], 2: []}
+
+    def disagreement(threads):
+        def of(candidate):
+            tried[threads].append(float(candidate["servo_rad"][1234]))
+            return float(np.median(np.abs(candidate["servo_rad"] - real)))
+        return of
+
+    one = estimate_servo_timing(s, disagreement(1), before_m=1.0, motion=Resimulated.from_header(HEADER))
+    two = estimate_servo_timing(s, disagreement(2), before_m=1.0, motion=Resimulated.from_header(HEADER), threads=2)
+    assert one == two and one.delay_s == pytest.approx(0.06, abs=0.003) and one.gain == pytest.approx(0.7, abs=0.011)
+    assert sorted(tried[1]) == sorted(tried[2]) and len(tried[1]) == one.evaluations
