@@ -151,6 +151,7 @@ class PosedBeams:
     """(n,) the samples placed: flags clear, fields finite (the servo angle as logged), no spike, no stuck sweep."""
     origins_w: np.ndarray
     rot_w_body: np.ndarray
+    path_w: np.ndarray
     n_servo_suspect: int
     n_spikes: int
 
@@ -169,9 +170,7 @@ class PosedBeams:
                                       self.spike_threshold, boresight)
         dirs = beam_dirs_w(self.rot_w_body, gamma, boresight)
         rng = s["range_m"][use].astype(float)
-        pos = np.column_stack([s["x_m"], s["y_m"], s["z_m"]]).astype(float)
-        path = self.frame.ned_to_w(pos[np.isfinite(pos).all(axis=1)])
-        return Cloud(self.origins_w + dirs * rng[:, None], dirs, rng, path, len(s), int(len(s) - use.sum()),
+        return Cloud(self.origins_w + dirs * rng[:, None], dirs, rng, self.path_w, len(s), int(len(s) - use.sum()),
                      n_servo_suspect=self.n_servo_suspect, n_spikes=self.n_spikes,
                      sweep_dir=np.asarray(sweep_dir)[use], t_s=s["t_s"][use], servo_rad=gamma, flags=s["flags"][use])
 
@@ -194,8 +193,9 @@ def posed_beams(samples: np.ndarray, lever_arm_body_m, frame: StorageFrame, swee
         usable &= ~suspect
     roll, pitch, yaw = (f[usable] for f in fields[:3])
     origins, rot = beam_frames_w(pos[usable], roll, pitch, yaw, lever_arm_body_m, frame)
+    path = frame.ned_to_w(pos[np.isfinite(pos).all(axis=1)])
     return PosedBeams(samples, np.asarray(lever_arm_body_m, dtype=float), frame, sweep_period_s, spike_threshold,
-                      usable, origins, rot, int(suspect.sum()), int(spikes.sum()))
+                      usable, origins, rot, path, int(suspect.sum()), int(spikes.sum()))
 
 
 def merge_clouds(clouds: Sequence[Cloud]) -> Cloud:

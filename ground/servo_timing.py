@@ -28,6 +28,7 @@ disagreement under the trust threshold; it is reported either way, never applied
 from __future__ import annotations
 
 import threading
+from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
@@ -36,7 +37,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from firmware_py.core.header import ServoDrive, waveform_from_dict
-from firmware_py.core.servo_model import ServoCalibration, modelled_sweep
+from firmware_py.core.servo_model import CommandStates, ServoCalibration, angles_at, sweep_states
 from firmware_py.core.waveform import Waveform
 from ground.plausibility import MAX_GAP_S
 
@@ -49,6 +50,9 @@ COARSE_DELAY_STEP_S = 0.025
 COARSE_GAIN_STEP = 0.1
 FINE_STEPS = 5  # each side of the current optimum, at a fifth (then a twenty-fifth) of the coarse step
 MAX_FINE_ROUNDS = 8
+REMEMBERED_STATES_BYTES = 64 * 2**20
+"""What a drive (`Resimulated`) keeps of the servo's states stepped at each speed a search tried (a 187 s flight's
+take 0.2 MB a speed): the search comes back to a speed for every delay it tries there."""
 
 
 @dataclass(frozen=True)
@@ -109,6 +113,8 @@ class Resimulated:
     name = "servo model"
     _nominal: dict = field(default_factory=dict, repr=False, compare=False)
     _nominal_lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+    _states: OrderedDict = field(default_factory=OrderedDict, repr=False, compare=False)
+    _states_lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
 
     @classmethod
     def from_header(cls, header: dict) -> Resimulated | None:
@@ -131,8 +137,29 @@ class Resimulated:
         return len(t) > 0 and float(t.min()) - MAX_GAP_S <= self.t0_s <= float(t.max())
 
     def angles(self, t_s: np.ndarray, delay_s: float = 0.0, gain: float = 1.0) -> np.ndarray:
+        """`modelled_sweep` of this drive at times t_s, the servo delay_s late at gain times its speed; the pulses
+        stepped once a speed (`_sweep_states`), so a search's delays at one speed cost only their queries."""
         cal = replace(self.cal, slew_rad_s=self.cal.slew_rad_s * gain)
-        return modelled_sweep(self.waveform, cal, np.asarray(t_s, dtype=float) - self.t0_s - delay_s, self.frame_s)
+        t = np.asarray(t_s, dtype=float) - self.t0_s - delay_s
+        return angles_at(t, self._sweep_states(cal, t.max() if len(t) else 0.0), cal)
+
+    def _sweep_states(self, cal: ServoCalibration, until_s: float) -> CommandStates:
+        """`sweep_states` of this drive at this calibration to at least until_s: remembered, stepped to the span of
+        the delays searched beyond it, so every delay a search tries at this speed is answered from one stepping
+        (the same angles to the bit: `sweep_states`)."""
+        with self._states_lock:
+            got = self._states.get(cal)
+            if got is not None and len(got.cmd_t_s) and got.cmd_t_s[-1] >= until_s:
+                self._states.move_to_end(cal)
+                return got
+        states = sweep_states(self.waveform, cal, until_s + DELAY_RANGE_S[1] - DELAY_RANGE_S[0], self.frame_s)
+        with self._states_lock:
+            self._states[cal] = states
+            self._states.move_to_end(cal)
+            while len(self._states) > 1 and sum(3 * st.cmd_t_s.nbytes for st in self._states.values()) \
+                    > REMEMBERED_STATES_BYTES:
+                self._states.popitem(last=False)
+        return states
 
     def apply(self, samples: np.ndarray, delay_s: float, gain: float) -> np.ndarray:
         """The logged angles plus what the fault changes (re-simulated faulty minus re-simulated

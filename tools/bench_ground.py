@@ -1,5 +1,6 @@
 """Benchmarks (medians; never asserted in tests): ground report with and without plots, and with plots and every
-export (`--export all`), on a ~100k-sample run, batch ray casting, SITL flight.
+export (`--export all`), on a ~100k-sample run, a pose-corrected one and one whose servo is re-timed, batch ray
+casting, SITL flight.
 Usage: python -m tools.bench_ground [--write docs/benchmarks.md] [--readme README.md]
 """
 
@@ -26,6 +27,7 @@ from ground.gp_slopes import forget_fits
 from ground.report import ReportOptions, header_geometry, make_report, survey_from_samples
 from ground.self_calibration import forget_sims
 from ground.smoothing import NodeSlopes
+from sitl.faults.injector import FaultSpec
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
 from sitl.world.raycast import World
@@ -122,6 +124,12 @@ def main(argv: list[str] | None = None) -> int:
         corrected = report_time(vio_run, "r7", with_pose)
         rows.append((f"ground report, no plots, `--pose-error vio` flight, pose corrected ({vio.n_samples:,} samples)",
                      corrected, ""))
+        slow_run = Path(tmp) / "slow"
+        slow = fly(FlyConfig(mission=Mission(p_traj=0.05), stockpile="1", payload="firmware",
+                             faults=FaultSpec(servo_slow_factor=0.6)), slow_run, force=True)
+        retimed = report_time(slow_run, "r9", ReportOptions(plots=False))
+        rows.append((f"ground report, no plots, a servo at 60 % of its speed (firmware flight, {slow.n_samples:,} "
+                     "samples; the servo's timing searched and re-simulated)", retimed, ""))
         cli = [sys.executable, "-m", "ground.cli", "report", str(run), "--out", str(Path(tmp) / "r3"), "--quiet",
                "--force"]
         cold, _ = median_time(lambda: subprocess.run(cli, check=True), 3)

@@ -100,16 +100,36 @@ def servo_angles(t_s: np.ndarray, cmd_t_s: np.ndarray, cmd_rad: np.ndarray, cal:
     """Batch version: the modelled angle at times t_s (any order), for commands held from cmd_t_s on.
 
     The same exact ServoModel solution as the payload's stepping: the state is stepped from command
-    to command (one Python step per PWM frame), then every query is advanced from the state at the
-    command before it, vectorised. Being exact, the split does not change the angles (to rounding).
-    A command takes effect before a query at the same instant; before the first command the shaft
-    rests at angle0_rad.
+    to command (one Python step per PWM frame, `command_states`), then every query is advanced from the
+    state at the command before it, vectorised (`angles_at`). Being exact, the split does not change the
+    angles (to rounding). A command takes effect before a query at the same instant; before the first
+    command the shaft rests at angle0_rad.
     """
-    t = np.asarray(t_s, dtype=float)
+    return angles_at(t_s, command_states(cmd_t_s, cmd_rad, cal, angle0_rad), cal)
+
+
+@dataclass(frozen=True)
+class CommandStates:
+    """The shaft's angle at each command's instant (`command_states`): the part of `servo_angles` stepped in Python,
+    a PWM frame at a time, which any number of queries then share (`angles_at`)."""
+
+    cmd_t_s: np.ndarray
+    """(m,) the commands' instants, in order."""
+    cmd_rad: np.ndarray
+    """(m,) the commands, in that order."""
+    start_rad: np.ndarray
+    """(m,) the shaft's angle at each command's instant."""
+    angle0_rad: float
+    """Where the shaft rests before the first command."""
+
+
+def command_states(cmd_t_s: np.ndarray, cmd_rad: np.ndarray, cal: ServoCalibration,
+                   angle0_rad: float = 0.0) -> CommandStates:
+    """The angle at each command's instant, stepped in plain floats (`servo_angles`: this loop is the cost of a
+    re-simulation)."""
     order = np.argsort(np.asarray(cmd_t_s, dtype=float), kind="stable")
     ct = np.asarray(cmd_t_s, dtype=float)[order]
     cr = np.asarray(cmd_rad, dtype=float)[order]
-    # The angle at each command's instant, stepped in plain floats (this loop is the cost of a re-simulation).
     steps = np.diff(ct, prepend=ct[0] if len(ct) else 0.0).tolist()
     targets = [float(angle0_rad), *cr.tolist()][:len(ct)]  # each step drives towards the command before it
     slew, lag, angle = cal.slew_rad_s, cal.lag_s, float(angle0_rad)
@@ -117,13 +137,20 @@ def servo_angles(t_s: np.ndarray, cmd_t_s: np.ndarray, cmd_rad: np.ndarray, cal:
     for dt, target in zip(steps, targets, strict=True):
         angle = step_angle(angle, dt, target, slew, lag)
         at_command.append(angle)
-    start = np.array(at_command, dtype=float)
-    out = np.full(len(t), float(angle0_rad))
+    return CommandStates(ct, cr, np.array(at_command, dtype=float), float(angle0_rad))
+
+
+def angles_at(t_s: np.ndarray, states: CommandStates, cal: ServoCalibration) -> np.ndarray:
+    """The modelled angle at times t_s (any order) from the states at the commands (`servo_angles`). Commands after
+    the last query change nothing: states stepped further than the queries need give the same angles."""
+    t = np.asarray(t_s, dtype=float)
+    ct = states.cmd_t_s
+    out = np.full(len(t), states.angle0_rad)
     k = np.searchsorted(ct, t, side="right") - 1
     after = k >= 0
     if after.any():
         kk = k[after]
-        out[after] = _advance(start[kk], t[after] - ct[kk], cr[kk], cal)
+        out[after] = _advance(states.start_rad[kk], t[after] - ct[kk], states.cmd_rad[kk], cal)
     return out
 
 
@@ -161,6 +188,14 @@ def modelled_sweep(waveform: Waveform, cal: ServoCalibration, t_s: np.ndarray,
     calibration, as the SITL's mounting faults fly it): the same pulses drive it, so its targets are mapped,
     and its slew limit acts on the true angle, not on the calibrated one."""
     t = np.asarray(t_s, dtype=float)
-    cmd_t = np.arange(0.0, (t.max() if len(t) else 0.0) + frame_s, frame_s)
+    return angles_at(t, sweep_states(waveform, cal, t.max() if len(t) else 0.0, frame_s, gain, offset_rad), cal)
+
+
+def sweep_states(waveform: Waveform, cal: ServoCalibration, until_s: float, frame_s: float = PWM_FRAME_S,
+                 gain: float = 1.0, offset_rad: float = 0.0) -> CommandStates:
+    """`modelled_sweep`'s states, its pulses from t = 0 to until_s (and one frame on). A pulse is the same whatever the
+    horizon (`np.arange` makes each instant from its index), so states to a later horizon answer the same queries to
+    the bit: a search over the servo's timing steps them once for all its delays (`ground.servo_timing`)."""
+    cmd_t = np.arange(0.0, until_s + frame_s, frame_s)
     cmd = command_angles(waveform, cal, cmd_t, frame_s)
-    return servo_angles(t, cmd_t, gain * cmd + offset_rad, cal, gain * float(waveform.angle(0.0)) + offset_rad)
+    return command_states(cmd_t, gain * cmd + offset_rad, cal, gain * float(waveform.angle(0.0)) + offset_rad)
