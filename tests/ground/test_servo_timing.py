@@ -130,3 +130,20 @@ def test_that_the_search_on_several_threads_tries_the_same_candidates_and_finds_
     two = estimate_servo_timing(s, disagreement(2), before_m=1.0, motion=Resimulated.from_header(HEADER), threads=2)
     assert one == two and one.delay_s == pytest.approx(0.06, abs=0.003) and one.gain == pytest.approx(0.7, abs=0.011)
     assert sorted(tried[1]) == sorted(tried[2]) and len(tried[1]) == one.evaluations
+
+
+def test_that_a_drive_steps_its_pulses_once_a_speed_for_every_delay_and_answers_as_the_model_does(monkeypatch):
+    import ground.servo_timing as st
+
+    m = Resimulated.from_header(HEADER)
+    t = 50.0 + np.arange(3000) / 500.0
+    stepped = []
+    real = st.sweep_states
+    monkeypatch.setattr(st, "sweep_states", lambda *a, **k: stepped.append(a[1].slew_rad_s) or real(*a, **k))
+    for gain in (1.0, 0.6):
+        for delay in (DELAY_RANGE_S[1], 0.0, 0.037, DELAY_RANGE_S[0]):  # the longest horizon asked last
+            cal = ServoCalibration(**{**HEADER["servo_calibration"], "slew_rad_s": 5.0 * gain})
+            assert np.array_equal(m.angles(t, delay, gain), modelled_sweep(m.waveform, cal, t - 50.0 - delay, 0.02))
+    assert stepped == [5.0, 3.0]  # one stepping a speed, to the span of the delays searched
+    m.angles(t + 1.0, 0.0, 1.0)  # later samples than any stepped for: stepped again
+    assert stepped == [5.0, 3.0, 5.0]
