@@ -156,13 +156,15 @@ class PosedBeams:
     n_spikes: int
 
     def cloud(self, servo_rad: np.ndarray, sweep_dir: np.ndarray, boresight: Boresight = SQUARE) -> Cloud:
-        """The cloud of these samples with these servo angles and sweep directions (n,): `cloud_from_samples` of the
-        samples with those two fields so, to the bit. Angles not finite where the logged ones are (no search makes
-        such), and with a sweep period other angles than the logged ones, are placed by `cloud_from_samples` itself:
-        the spikes are judged on the usable samples, the stuck sweeps on the angles too."""
+        """The cloud of these samples with these servo angles and sweep directions (n, in the samples' own field
+        types): `cloud_from_samples` of the samples with those two fields so, to the bit. Angles not finite where the
+        logged ones are (no search makes such), and with a sweep period other angles than the logged ones, are placed
+        by `cloud_from_samples` itself: the spikes are judged on the usable samples, the stuck sweeps on the angles
+        too."""
         s, use = self.samples, self.usable
         gamma = np.asarray(servo_rad)[use].astype(float)
-        judged_on_others = self.sweep_period_s is not None and not np.array_equal(servo_rad, s["servo_rad"])
+        judged_on_others = (self.sweep_period_s is not None
+                            and not np.array_equal(servo_rad, s["servo_rad"], equal_nan=True))
         if judged_on_others or not np.isfinite(gamma).all():
             other = s.copy()
             other["servo_rad"], other["sweep_dir"] = servo_rad, sweep_dir

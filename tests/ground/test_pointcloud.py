@@ -200,3 +200,7 @@ def test_that_posed_beams_leave_angles_they_cannot_take_as_they_are_to_cloud_fro
     placed = cloud_from_samples(still, [0, 0, 0], StorageFrame(), period, spikes)
     assert posed.n_servo_suspect > 0 and placed.n_servo_suspect == 0
     assert _clouds_equal(posed.cloud(still["servo_rad"], still["sweep_dir"]), placed)
+    unlogged = s.copy()
+    unlogged["servo_rad"][7] = np.nan  # the logged angles themselves, one missing, are the logged ones
+    assert cloud_from_samples(unlogged, [0, 0, 0], StorageFrame(), period, spikes).n_excluded == \
+        cloud_from_samples(s, [0, 0, 0], StorageFrame(), period, spikes).n_excluded + int(s["flags"][7] == 0)
