@@ -56,8 +56,6 @@ from __future__ import annotations
 import hashlib
 import math
 import struct
-import threading
-from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -83,6 +81,7 @@ from ground.group_stats import robust_rms
 from ground.plane_stretches import INSIDE_SIGN, beams, nearest_plane, neighbour_noise_m, planes, stretches_along
 from ground.pose_correction import lever_shift
 from ground.pose_knots import knot_basis
+from ground.remembered import Remembered
 from ground.servo_timing import Resimulated
 
 N_GROUPS = 8
@@ -110,15 +109,13 @@ REMEMBERED_SIMS_BYTES = 64 * 2**20
 """Servo re-simulations kept across `ServoAngles` instances, by their drive and scale (`ServoAngles._sim`), up to this
 many bytes, the least recently used let go first: a report's fits on 20,000 samples re-run about 110 scales (18 MB);
 a long flight's full log keeps fewer."""
-_sims: OrderedDict[bytes, np.ndarray] = OrderedDict()
-_sims_lock = threading.Lock()
+_sims: Remembered[np.ndarray] = Remembered(REMEMBERED_SIMS_BYTES, lambda a: a.nbytes)
 
 
 def forget_sims() -> None:
     """Forget the remembered re-simulations: a benchmark that reports one flight again and again times a fresh report
     only when it forgets them (and the covariance fits, `ground.gp_slopes.forget_fits`) before each run."""
-    with _sims_lock:
-        _sims.clear()
+    _sims.clear()
 
 
 @dataclass(frozen=True)
@@ -287,19 +284,13 @@ class ServoAngles:
         re-ran the same scales (a `vio` flight's pose-corrected report: 144 re-simulations, 110 of them distinct, 5 ms
         each on the estimates' thread). What is remembered is what would be computed: the same arrays to the bit."""
         key = self._drive + struct.pack("<d", float(scale))
-        with _sims_lock:
-            got = _sims.get(key)
-            if got is not None:
-                _sims.move_to_end(key)
-                return got
+        got = _sims.get(key)
+        if got is not None:
+            return got
         r = self.resim
         got = servo_angles(self.t, self.cmd_t, (1.0 + scale) * self.cmd, r.cal, (1.0 + scale) * self.angle0)
         got.setflags(write=False)
-        with _sims_lock:
-            _sims[key] = got
-            held = sum(a.nbytes for a in _sims.values())
-            while held > REMEMBERED_SIMS_BYTES and len(_sims) > 1:
-                held -= _sims.popitem(last=False)[1].nbytes
+        _sims.put(key, got)
         return got
 
     def exact(self, scale: float) -> np.ndarray:

@@ -28,7 +28,6 @@ disagreement under the trust threshold; it is reported either way, never applied
 from __future__ import annotations
 
 import threading
-from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
@@ -40,6 +39,7 @@ from firmware_py.core.header import ServoDrive, waveform_from_dict
 from firmware_py.core.servo_model import CommandStates, ServoCalibration, angles_at, sweep_states
 from firmware_py.core.waveform import Waveform
 from ground.plausibility import MAX_GAP_S
+from ground.remembered import Remembered
 
 DELAY_RANGE_S = (-0.05, 0.15)
 """Dead times searched: a faster-than-modelled servo leads (d < 0); 150 ms is 3 pulse periods at
@@ -113,8 +113,9 @@ class Resimulated:
     name = "servo model"
     _nominal: dict = field(default_factory=dict, repr=False, compare=False)
     _nominal_lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
-    _states: OrderedDict = field(default_factory=OrderedDict, repr=False, compare=False)
-    _states_lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+    _states: Remembered[CommandStates] = field(
+        default_factory=lambda: Remembered(REMEMBERED_STATES_BYTES, lambda st: 3 * st.cmd_t_s.nbytes),
+        repr=False, compare=False)
 
     @classmethod
     def from_header(cls, header: dict) -> Resimulated | None:
@@ -147,18 +148,11 @@ class Resimulated:
         """`sweep_states` of this drive at this calibration to at least until_s: remembered, stepped to the span of
         the delays searched beyond it, so every delay a search tries at this speed is answered from one stepping
         (the same angles to the bit: `sweep_states`)."""
-        with self._states_lock:
-            got = self._states.get(cal)
-            if got is not None and len(got.cmd_t_s) and got.cmd_t_s[-1] >= until_s:
-                self._states.move_to_end(cal)
-                return got
+        got = self._states.get(cal, lambda st: len(st.cmd_t_s) > 0 and st.cmd_t_s[-1] >= until_s)
+        if got is not None:
+            return got
         states = sweep_states(self.waveform, cal, until_s + DELAY_RANGE_S[1] - DELAY_RANGE_S[0], self.frame_s)
-        with self._states_lock:
-            self._states[cal] = states
-            self._states.move_to_end(cal)
-            while len(self._states) > 1 and sum(3 * st.cmd_t_s.nbytes for st in self._states.values()) \
-                    > REMEMBERED_STATES_BYTES:
-                self._states.popitem(last=False)
+        self._states.put(cal, states)
         return states
 
     def apply(self, samples: np.ndarray, delay_s: float, gain: float) -> np.ndarray:
