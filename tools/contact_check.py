@@ -15,20 +15,15 @@ Usage: python -m tools.contact_check [--root runs/evalset] [--noise none datashe
 
 from __future__ import annotations
 
-import argparse
-import sys
-import time
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 
 from ground.pointcloud import SensorErrorModel
 from ground.report import ReportOptions, survey_from_samples
 from ground.wall_contact import wall_contacts
-from tools.doc_sections import write_evalset_section
-from tools.evalset import BUILDING_BY_NAME, DEFAULT_ROOT, EvalRun, Instance, load_run, runs_where
-from tools.workers import progress_map, worker_pool
+from tools.evalset import BUILDING_BY_NAME, EvalRun, Instance, load_run
+from tools.evalset_check import EvalsetCheck, check_main
 
 SECTION = "contact-check"
 OFF_M = 1.0
@@ -104,41 +99,10 @@ def summary(rows: Sequence[dict]) -> list[str]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m tools.contact_check", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--root", type=Path, default=DEFAULT_ROOT, help="the evaluation set (tools.evalset)")
-    ap.add_argument("--noise", nargs="+", default=list(NOISES), help="noise models (default: all three)")
-    ap.add_argument("--p-traj", type=int, nargs="+", default=None, help="only these P_traj (percent)")
-    ap.add_argument("--stride", type=int, default=1, help="every Nth run only (a quick look)")
-    ap.add_argument("--jobs", type=int, default=1)
-    ap.add_argument("--write", type=Path, default=None, metavar="PAGE",
-                    help=f"also write the table into this page's section {SECTION}")
-    args = ap.parse_args(argv)
-    if args.stride < 1 or args.jobs < 1:
-        print("contact_check: --stride and --jobs must be >= 1", file=sys.stderr)
-        return 2
-    if not (args.root / "runs").is_dir():
-        print(f"contact_check: no stored runs under {args.root} (python -m tools.evalset makes them)", file=sys.stderr)
-        return 2
-    dirs = runs_where(args.root, args.noise, args.p_traj)[::args.stride]
-    if not dirs:
-        print(f"contact_check: no stored runs with noise {' '.join(args.noise)} under {args.root}", file=sys.stderr)
-        return 2
-    t0 = time.perf_counter()
-    with worker_pool(args.jobs) as pool:
-        rows = [r for r in progress_map(pool, contact_row, dirs, desc="contact_check", unit="run", chunksize=2) if r]
-    if not rows:
-        print("contact_check: none of the chosen runs states a true surface to score against", file=sys.stderr)
-        return 2
-    table = "\n".join(summary(rows))
-    print(table)
-    if args.write is not None:
-        cmd = "python -m tools.contact_check" + (f" --noise {' '.join(args.noise)}" if list(args.noise) != list(NOISES)
-                                                 else "")
-        cmd += f" --p-traj {' '.join(map(str, args.p_traj))}" if args.p_traj else ""
-        cmd += (f" --stride {args.stride}" if args.stride > 1 else "") + f" --jobs {args.jobs} --write {args.write}"
-        write_evalset_section(args.write, SECTION, cmd, len(rows), time.perf_counter() - t0, table)
-    return 0
+    return check_main(EvalsetCheck("contact_check", SECTION, contact_row, summary, NOISES,
+                                   "noise models (default: all three)", chunksize=2, p_traj=True,
+                                   no_rows="none of the chosen runs states a true surface to score against"),
+                      __doc__, argv)
 
 
 if __name__ == "__main__":

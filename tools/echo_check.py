@@ -14,11 +14,7 @@ Usage: python -m tools.echo_check [--root runs/evalset] [--noise datasheet none]
 
 from __future__ import annotations
 
-import argparse
-import sys
-import time
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 
@@ -27,9 +23,8 @@ from ground.echo_reach import echo_warning
 from ground.report import ReportOptions, echo_of, survey_from_samples
 from ground.surface import grid_volume
 from ground.volume_warnings import DEFAULT_MAX_INTERVAL_PCT
-from tools.doc_sections import write_evalset_section
-from tools.evalset import DEFAULT_ROOT, load_run, stored_runs_or_say
-from tools.workers import progress_map, worker_pool
+from tools.evalset import load_run
+from tools.evalset_check import EvalsetCheck, check_main
 
 SECTION = "echo-check"
 HIGH_PCT = 2.0
@@ -67,34 +62,8 @@ def summary(rows: Sequence[dict]) -> list[str]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m tools.echo_check", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--root", type=Path, default=DEFAULT_ROOT, help="the evaluation set (tools.evalset)")
-    ap.add_argument("--noise", nargs="+", default=["datasheet", "none"], help="noise models (default datasheet none)")
-    ap.add_argument("--stride", type=int, default=1, help="every Nth run only (a quick look)")
-    ap.add_argument("--jobs", type=int, default=1)
-    ap.add_argument("--write", type=Path, default=None, metavar="PAGE",
-                    help=f"also write the table into this page's section {SECTION}")
-    args = ap.parse_args(argv)
-    if args.stride < 1 or args.jobs < 1:
-        print("echo_check: --stride and --jobs must be >= 1", file=sys.stderr)
-        return 2
-    dirs = [d for d in stored_runs_or_say(args.root, 1, "echo_check") if any(d.endswith(f"-{n}") for n in args.noise)]
-    dirs = dirs[::args.stride]
-    if not dirs:
-        print(f"echo_check: no stored runs with noise {' '.join(args.noise)} under {args.root}", file=sys.stderr)
-        return 2
-    t0 = time.perf_counter()
-    with worker_pool(args.jobs) as pool:
-        rows = progress_map(pool, echo_row, dirs, desc="echo_check", unit="run", chunksize=4)
-    table = "\n".join(summary(rows))
-    print(table)
-    if args.write is not None:
-        cmd = "python -m tools.echo_check" + (f" --noise {' '.join(args.noise)}"
-                                              if args.noise != ["datasheet", "none"] else "")
-        cmd += (f" --stride {args.stride}" if args.stride > 1 else "") + f" --jobs {args.jobs} --write {args.write}"
-        write_evalset_section(args.write, SECTION, cmd, len(rows), time.perf_counter() - t0, table)
-    return 0
+    return check_main(EvalsetCheck("echo_check", SECTION, echo_row, summary, ("datasheet", "none"),
+                                   "noise models (default datasheet none)"), __doc__, argv)
 
 
 if __name__ == "__main__":
