@@ -38,9 +38,11 @@ def sweep_disagreement_m(points_w: np.ndarray, sweep_dir: np.ndarray, grid: Grid
         q = p[d == direction]
         if face_spread is not None:
             faces |= cell_spread_m(q, grid) > face_spread
-        cnt, _, _ = np.histogram2d(q[:, 0], q[:, 1], bins=(grid.x_edges, grid.y_edges))
-        zs, _, _ = np.histogram2d(q[:, 0], q[:, 1], bins=(grid.x_edges, grid.y_edges), weights=q[:, 2])
-        sums.append((cnt, zs))
+        cell = grid.flat_cells(q)
+        on = cell >= 0
+        size = grid.shape[0] * grid.shape[1]
+        sums.append((np.bincount(cell[on], minlength=size).reshape(grid.shape),
+                     np.bincount(cell[on], weights=q[on, 2], minlength=size).reshape(grid.shape)))
     (c1, z1), (c2, z2) = sums
     both = (c1 >= MIN_POINTS_PER_CELL) & (c2 >= MIN_POINTS_PER_CELL) & ~faces
     n = int(both.sum())

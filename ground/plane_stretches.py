@@ -209,22 +209,34 @@ MAX_HEADING_ERROR_RAD = math.radians(5.0)
 (`PoseCorrectionOptions.max_heading_error_rad`) and how far beside a wall a stretch of it may be seen."""
 
 
+LINE_FIT_CHUNK = 8192
+"""Windows fitted at once by `sliding_line_fit`: their gathered coordinates (2h+1 a window) stay a few MB."""
+
+
 def sliding_line_fit(p: np.ndarray, h: int, at: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For the windows of 2h+1 consecutive points centred on the points at (indices h .. N-h-1): the line through
     each by principal components: its centroid (M, 3), its unit direction (M, 3) and the points' RMS distance from
-    it (M,). From running sums, so a window costs the same whatever its length."""
-    k = 2 * h + 1
-    origin = p.mean(axis=0)
-    q = p - origin  # centred: the running sums of squares stay well conditioned
-    c1 = np.cumsum(np.vstack([np.zeros(3), q]), axis=0)
-    outer = (q[:, :, None] * q[:, None, :]).reshape(len(q), 9)
-    c2 = np.cumsum(np.vstack([np.zeros(9), outer]), axis=0)
-    lo, hi = at - h, at + h + 1
-    mean = (c1[hi] - c1[lo]) / k
-    cov = ((c2[hi] - c2[lo]) / k).reshape(-1, 3, 3) - mean[:, :, None] * mean[:, None, :]
-    vals, vecs = np.linalg.eigh(cov)  # ascending: the last is the line's direction
-    off = np.sqrt(np.maximum(vals[:, 0] + vals[:, 1], 0.0))
-    return mean + origin, vecs[:, :, 2], off
+    it (M,). Each window's own points are gathered, relative to its middle point (so its moments are small numbers):
+    a survey asks for the few per cent of its points beside a wall, and running sums over the whole series would cost
+    the series' length every call (the servo's timing search calls it once a candidate)."""
+    p = np.asarray(p, dtype=float)
+    at = np.asarray(at, dtype=np.int64)
+    offsets = np.arange(-h, h + 1)
+    k = len(offsets)
+    centre, u, off = np.empty((len(at), 3)), np.empty((len(at), 3)), np.empty(len(at))
+    for s in range(0, len(at), LINE_FIT_CHUNK):
+        rows = slice(s, s + LINE_FIT_CHUNK)
+        idx, middle = at[rows, None] + offsets, p[at[rows]]
+        d = [p[idx, j] - middle[:, j, None] for j in range(3)]  # (c, 2h+1) each axis, one contiguous block
+        mean = [dj.sum(axis=1) / k for dj in d]
+        cov = np.empty((len(middle), 3, 3))
+        for i in range(3):
+            for j in range(i, 3):
+                cov[:, i, j] = cov[:, j, i] = np.einsum("ck,ck->c", d[i], d[j]) / k - mean[i] * mean[j]
+        vals, vecs = np.linalg.eigh(cov)  # ascending: the last is the line's direction
+        centre[rows], u[rows] = middle + np.column_stack(mean), vecs[:, :, 2]
+        off[rows] = np.sqrt(np.maximum(vals[:, 0] + vals[:, 1], 0.0))
+    return centre, u, off
 
 
 def wall_stretches(points_w: np.ndarray, t_s: np.ndarray, sweep_dir: np.ndarray, beam_w: np.ndarray,
@@ -255,7 +267,7 @@ def wall_stretches(points_w: np.ndarray, t_s: np.ndarray, sweep_dir: np.ndarray,
     if not len(i):
         return out
     centre, u, off = sliding_line_fit(p, h, i)
-    noise = np.sqrt(np.convolve(np.square(sigma_m), np.ones(2 * h + 1) / (2 * h + 1), mode="valid")[i - h])
+    noise = np.sqrt(np.mean(np.square(sigma_m[i[:, None] + np.arange(-h, h + 1)]), axis=1))  # the window's points'
     own_off = np.linalg.norm(np.cross(p[i] - centre, u), axis=1)  # the point itself lies on the line
     straight = (off <= 3.0 * noise) & (own_off <= 3.0 * sigma_m[i])
     steep = np.abs(u[:, 2]) >= math.sin(math.radians(STEEPEST_PILE_DEG))

@@ -13,6 +13,7 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+from numpy.lib.recfunctions import repack_fields
 
 from firmware_py.core.cli import NoVolumeError, UserError, reading_input
 from firmware_py.core.frames import Boresight, StorageFrame
@@ -533,7 +534,9 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
     floor, _ = sweep_disagreement_m(survey.pile_points_w, halves, survey.grid, survey.face_spread_m)
     # The search's candidates on every core: the mount's and the pose's first estimates, on the second core until now,
     # are not used when the servo is re-timed, and have ended (the pool above waited for them).
-    timing = estimate_servo_timing(samples, disagreement, before, motion, floor_m=floor or 0.0,
+    # The search copies its samples once a candidate: only the fields a candidate changes or is timed by.
+    timed = repack_fields(samples[["t_s", "servo_rad", "sweep_dir"]])
+    timing = estimate_servo_timing(timed, disagreement, before, motion, floor_m=floor or 0.0,
                                    threads=cores_available())
     if timing is None or timing.disagreement_after_m > MAX_SWEEP_DISAGREEMENT_M:
         return replace(survey, servo_timing=timing), None

@@ -145,6 +145,18 @@ class Grid:
         c, _, _ = np.histogram2d(points_xy[:, 0], points_xy[:, 1], bins=(self.x_edges, self.y_edges))
         return c.astype(np.int64)
 
+    def flat_cells(self, points_xy: np.ndarray) -> np.ndarray:
+        """Each point's cell as a flat index into (nx, ny), -1 off the floor (or not finite): the cells
+        `np.histogram2d` over the grid's edges puts them in (the last edge in the last cell), found once for
+        several sums over the same points (`np.bincount`, which adds in the same order)."""
+        nx, ny = self.shape
+        x, y = points_xy[:, 0], points_xy[:, 1]
+        xe, ye = self.x_edges, self.y_edges
+        ix = np.searchsorted(xe, x, side="right") - (x == xe[-1])
+        iy = np.searchsorted(ye, y, side="right") - (y == ye[-1])
+        inside = (ix >= 1) & (ix <= nx) & (iy >= 1) & (iy <= ny)
+        return np.where(inside, (ix - 1) * ny + (iy - 1), -1)
+
 
 def fit_heights(points_w: np.ndarray, grid: Grid, method: str = DEFAULT_SURFACE_FIT,
                 sigma_m: np.ndarray | None = None, smoothing: SmoothingOptions = DEFAULT_SMOOTHING,

@@ -3,11 +3,14 @@ mount's self-calibration both assign points with."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from firmware_py.core.storage import Storage
-from ground.plane_stretches import INSIDE_SIGN, nearest_plane, neighbour_noise_m, planes
+from ground import plane_stretches
+from ground.plane_stretches import INSIDE_SIGN, LINE_FIT_CHUNK, nearest_plane, neighbour_noise_m, planes
 
 STORAGE = Storage(60.0, 40.0, 15.0)
 
@@ -48,3 +51,36 @@ def test_that_the_noise_is_read_off_neighbours_on_one_plane_whatever_moves_them_
     assert neighbour_noise_m(plane, r) == pytest.approx(0.002, rel=0.1)
     # neighbours on different planes, or one off every plane, are no pair: with no pair left, nothing is measured
     assert neighbour_noise_m(np.array([0, -1, 1, -1, 2]), np.array([0.0, 1.0, 2.0, 3.0, 4.0])) is None
+
+
+def _line_fit_by_svd(p: np.ndarray, h: int, at: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The same lines one window at a time, by the singular values of the centred points."""
+    centre, u, off = [], [], []
+    for i in at:
+        w = p[i - h:i + h + 1]
+        c = w.mean(axis=0)
+        _, sv, vt = np.linalg.svd(w - c)
+        centre.append(c)
+        u.append(vt[0])
+        off.append(math.sqrt((sv[1] ** 2 + sv[2] ** 2) / len(w)))
+    return np.array(centre), np.array(u), np.array(off)
+
+
+@pytest.mark.parametrize("chunk", [LINE_FIT_CHUNK, 2])
+def test_that_each_window_s_line_is_its_points_principal_axis_far_from_the_origin_and_across_chunks(monkeypatch, chunk):
+    """The windows are gathered in chunks and taken relative to their middle point: the same line as the window's own
+    principal components, 60 m from the building's corner as at its origin."""
+    monkeypatch.setattr(plane_stretches, "LINE_FIT_CHUNK", chunk)
+    rng = np.random.default_rng(3)
+    s = np.arange(400) * 0.05
+    p = np.column_stack([s, 0.5 * s, np.sin(s)]) + rng.normal(0.0, 0.02, (400, 3)) + np.array([60.0, 40.0, 3.0])
+    at = np.array([16, 17, 100, 250, 383])
+    centre, u, off = plane_stretches.sliding_line_fit(p, 16, at)
+    ref_c, ref_u, ref_off = _line_fit_by_svd(p, 16, at)
+    np.testing.assert_allclose(centre, ref_c, atol=1e-9)
+    np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", u, ref_u)), 1.0, atol=1e-9)  # a direction, either sense
+    np.testing.assert_allclose(off, ref_off, atol=1e-9)
+    straight = np.column_stack([s, s, 2 * s]) + np.array([60.0, 40.0, 0.0])
+    _, u_line, off_line = plane_stretches.sliding_line_fit(straight, 16, at)
+    np.testing.assert_allclose(np.abs(u_line @ np.array([1.0, 1.0, 2.0]) / math.sqrt(6.0)), 1.0, atol=1e-12)
+    assert np.all(off_line < 1e-6)

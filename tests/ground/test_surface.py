@@ -243,3 +243,22 @@ def test_that_the_cells_a_hull_bridges_beyond_the_seen_radius_are_told_apart_fro
     assert np.array_equal(bridged, expected)
     assert not bridged_cells(counts, fitted, (0.25, 0.25), radius_m=1.5).any()  # a wider radius sees it all
     assert np.array_equal(bridged_cells(np.zeros((4, 4)), np.eye(4, dtype=bool), (1.0, 1.0)), np.eye(4, dtype=bool))
+
+
+def test_that_flat_cells_are_the_cells_histogram2d_counts_and_sums_in_to_the_bit():
+    """The sweeps' check sums the points' heights per cell once a candidate of the servo's timing search: one cell
+    lookup for both sums, the same sums as two histograms (the last edge in the last cell, nothing off the floor)."""
+    g = Grid(60.0, 40.0, 0.25)
+    rng = np.random.default_rng(5)
+    p = np.column_stack([rng.uniform(-1.0, 61.0, 5000), rng.uniform(-1.0, 41.0, 5000), rng.normal(3.0, 2.0, 5000)])
+    p[:4, :2] = [[60.0, 40.0], [0.0, 0.0], [60.0, 12.3], [0.25, 40.0]]  # on the edges, the far ones included
+    p[4:6, 0] = np.nan, np.inf
+    cell = g.flat_cells(p)
+    on = cell >= 0
+    size = g.shape[0] * g.shape[1]
+    bins = (g.x_edges, g.y_edges)
+    count, _, _ = np.histogram2d(p[:, 0], p[:, 1], bins=bins)
+    height, _, _ = np.histogram2d(p[:, 0], p[:, 1], bins=bins, weights=p[:, 2])
+    assert np.array_equal(np.bincount(cell[on], minlength=size).reshape(g.shape), count)
+    assert np.array_equal(np.bincount(cell[on], weights=p[on, 2], minlength=size).reshape(g.shape), height)
+    assert cell[0] == size - 1 and cell[1] == 0 and np.all(cell[4:6] == -1)
