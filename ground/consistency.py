@@ -34,13 +34,13 @@ def sweep_disagreement_m(points_w: np.ndarray, sweep_dir: np.ndarray, grid: Grid
     d = np.asarray(sweep_dir)
     faces = np.zeros(grid.shape, dtype=bool)
     sums = []
+    size = grid.shape[0] * grid.shape[1]
     for direction in (1, -1):
         q = p[d == direction]
         if face_spread is not None:
             faces |= cell_spread_m(q, grid) > face_spread
         cell = grid.flat_cells(q)
         on = cell >= 0
-        size = grid.shape[0] * grid.shape[1]
         sums.append((np.bincount(cell[on], minlength=size).reshape(grid.shape),
                      np.bincount(cell[on], weights=q[on, 2], minlength=size).reshape(grid.shape)))
     (c1, z1), (c2, z2) = sums

@@ -267,7 +267,7 @@ def wall_stretches(points_w: np.ndarray, t_s: np.ndarray, sweep_dir: np.ndarray,
     if not len(i):
         return out
     centre, u, off = sliding_line_fit(p, h, i)
-    noise = np.sqrt(np.mean(np.square(sigma_m[i[:, None] + np.arange(-h, h + 1)]), axis=1))  # the window's points'
+    noise = np.sqrt(np.mean(np.square(sigma_m[i[:, None] + np.arange(-h, h + 1)]), axis=1))  # over its own window
     own_off = np.linalg.norm(np.cross(p[i] - centre, u), axis=1)  # the point itself lies on the line
     straight = (off <= 3.0 * noise) & (own_off <= 3.0 * sigma_m[i])
     steep = np.abs(u[:, 2]) >= math.sin(math.radians(STEEPEST_PILE_DEG))

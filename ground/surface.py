@@ -142,8 +142,9 @@ class Grid:
 
     def counts(self, points_xy: np.ndarray) -> np.ndarray:
         """Points per cell, (nx, ny)."""
-        c, _, _ = np.histogram2d(points_xy[:, 0], points_xy[:, 1], bins=(self.x_edges, self.y_edges))
-        return c.astype(np.int64)
+        cell = self.flat_cells(points_xy)
+        nx, ny = self.shape
+        return np.bincount(cell[cell >= 0], minlength=nx * ny).reshape(nx, ny).astype(np.int64)
 
     def flat_cells(self, points_xy: np.ndarray) -> np.ndarray:
         """Each point's cell as a flat index into (nx, ny), -1 off the floor (or not finite): the cells
