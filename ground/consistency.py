@@ -41,8 +41,9 @@ def sweep_disagreement_m(points_w: np.ndarray, sweep_dir: np.ndarray, grid: Grid
             faces |= cell_spread_m(q, grid) > face_spread
         cell = grid.flat_cells(q)
         on = cell >= 0
-        sums.append((np.bincount(cell[on], minlength=size).reshape(grid.shape),
-                     np.bincount(cell[on], weights=q[on, 2], minlength=size).reshape(grid.shape)))
+        cell_on = cell[on]
+        sums.append((np.bincount(cell_on, minlength=size).reshape(grid.shape),
+                     np.bincount(cell_on, weights=q[on, 2], minlength=size).reshape(grid.shape)))
     (c1, z1), (c2, z2) = sums
     both = (c1 >= MIN_POINTS_PER_CELL) & (c2 >= MIN_POINTS_PER_CELL) & ~faces
     n = int(both.sum())

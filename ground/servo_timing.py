@@ -210,9 +210,12 @@ def _search(samples: np.ndarray, disagreement: Callable[[np.ndarray], float | No
         v = disagreement(motion.apply(samples, key[0], key[1]))
         return np.inf if v is None else v
 
+    def key_of(d: float, g: float) -> tuple[float, float]:  # a candidate's name: its delay and gain to a micro-unit
+        return round(float(d), 6), round(float(g), 6)
+
     def cost(d: float, g: float) -> float:
         nonlocal evals
-        key = (round(float(d), 6), round(float(g), 6))
+        key = key_of(d, g)
         if key not in cache:
             evals += 1
             cache[key] = tried(key)
@@ -220,7 +223,7 @@ def _search(samples: np.ndarray, disagreement: Callable[[np.ndarray], float | No
 
     def best_of(ds, gs) -> tuple[float, float]:
         nonlocal evals
-        keys = [(round(float(d), 6), round(float(g), 6)) for d in ds for g in gs]
+        keys = [key_of(d, g) for d in ds for g in gs]
         new = [k for k in dict.fromkeys(keys) if k not in cache]
         if pool is not None and len(new) > 1:
             cache.update(zip(new, pool.map(tried, new), strict=True))
