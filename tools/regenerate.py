@@ -109,6 +109,8 @@ STEPS: tuple[Step, ...] = (
     _step("pose-default", "tools.pose_default_check --phases 3 --paper-phases 20 --jobs 2 --write docs/pose_error.md",
           "docs/pose_error.md"),
     _step("lever-arm", "tools.lever_arm_check --jobs 2 --write docs/pose_error.md", "docs/pose_error.md"),
+    _step("pose-uncorrected", "tools.pose_error_campaign --keep runs/pose-error-table --write docs/pose_error.md",
+          "docs/pose_error.md", "what a drift does to the volume with the correction off (nine flights flown again)"),
     _step("pose-mount", "tools.pose_mount_check --seeds 0 1 2 --piles 1 2 --p-traj 20 --keep runs/pose-mount "
           "--write docs/pose_error.md", "docs/pose_error.md"),
     _step("self-calibration", "tools.calibration_campaign --runs runs/cal --jobs 2 --write docs/self_calibration.md",
