@@ -34,16 +34,12 @@ def sweep_disagreement_m(points_w: np.ndarray, sweep_dir: np.ndarray, grid: Grid
     d = np.asarray(sweep_dir)
     faces = np.zeros(grid.shape, dtype=bool)
     sums = []
-    size = grid.shape[0] * grid.shape[1]
     for direction in (1, -1):
         q = p[d == direction]
         if face_spread is not None:
             faces |= cell_spread_m(q, grid) > face_spread
-        cell = grid.flat_cells(q)
-        on = cell >= 0
-        cell_on = cell[on]
-        sums.append((np.bincount(cell_on, minlength=size).reshape(grid.shape),
-                     np.bincount(cell_on, weights=q[on, 2], minlength=size).reshape(grid.shape)))
+        cell = grid.flat_cells(q)  # one lookup for both sums
+        sums.append((grid.cell_sums(cell), grid.cell_sums(cell, q[:, 2])))
     (c1, z1), (c2, z2) = sums
     both = (c1 >= MIN_POINTS_PER_CELL) & (c2 >= MIN_POINTS_PER_CELL) & ~faces
     n = int(both.sum())

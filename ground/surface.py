@@ -142,9 +142,14 @@ class Grid:
 
     def counts(self, points_xy: np.ndarray) -> np.ndarray:
         """Points per cell, (nx, ny)."""
-        cell = self.flat_cells(points_xy)
+        return self.cell_sums(self.flat_cells(points_xy)).astype(np.int64)
+
+    def cell_sums(self, cells: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+        """Per cell, (nx, ny): the count of the points `flat_cells` put there, or the sum of their weights; points
+        off the floor (-1) add nothing."""
+        on = cells >= 0
         nx, ny = self.shape
-        return np.bincount(cell[cell >= 0], minlength=nx * ny).reshape(nx, ny).astype(np.int64)
+        return np.bincount(cells[on], None if weights is None else weights[on], minlength=nx * ny).reshape(nx, ny)
 
     def flat_cells(self, points_xy: np.ndarray) -> np.ndarray:
         """Each point's cell as a flat index into (nx, ny), -1 off the floor (or not finite): the cells

@@ -254,11 +254,10 @@ def test_that_flat_cells_are_the_cells_histogram2d_counts_and_sums_in_to_the_bit
     p[:4, :2] = [[60.0, 40.0], [0.0, 0.0], [60.0, 12.3], [0.25, 40.0]]  # on the edges, the far ones included
     p[4:6, 0] = np.nan, np.inf
     cell = g.flat_cells(p)
-    on = cell >= 0
     size = g.shape[0] * g.shape[1]
     bins = (g.x_edges, g.y_edges)
     count, _, _ = np.histogram2d(p[:, 0], p[:, 1], bins=bins)
     height, _, _ = np.histogram2d(p[:, 0], p[:, 1], bins=bins, weights=p[:, 2])
-    assert np.array_equal(np.bincount(cell[on], minlength=size).reshape(g.shape), count)
-    assert np.array_equal(np.bincount(cell[on], weights=p[on, 2], minlength=size).reshape(g.shape), height)
+    assert np.array_equal(g.cell_sums(cell), count) and np.array_equal(g.counts(p), count)
+    assert np.array_equal(g.cell_sums(cell, p[:, 2]), height)
     assert cell[0] == size - 1 and cell[1] == 0 and np.all(cell[4:6] == -1)
