@@ -280,11 +280,17 @@ def format_summary(rep: dict) -> str:
 def floor_line(floor: dict | None) -> str:
     """report.json's `floor_measured` in words: where the lowest flat surface lies against z = 0. Above it by more than
     a few centimetres the floor is covered by material, or every height is that much high (a lever arm's z entered too
-    short): the report cannot tell the two apart, the surveyor can (`ground.floor_check`)."""
+    short): the report cannot tell the two apart, the surveyor can (`ground.floor_check`). Its fall, when it has one
+    (`FloorLevel.laid_to_fall`): a floor laid to a fall, or material covering the floor, which again the surveyor
+    tells apart."""
     if not isinstance(floor, dict) or not isinstance(floor.get("level_m"), int | float):
         return "not seen (the material hides it)"
-    return (f"{floor['level_m'] * 100:+.1f} cm from z = 0 (+/-{floor.get('std_error_m', 0.0) * 1000:.1f} mm, over "
+    line = (f"{floor['level_m'] * 100:+.1f} cm from z = 0 (+/-{floor.get('std_error_m', 0.0) * 1000:.1f} mm, over "
             f"{floor.get('cover_pct', 0.0):.0f} % of the building)")
+    if floor.get("laid_to_fall") and isinstance(floor.get("fall_pct"), int | float):
+        line += (f", rising {floor['fall_pct']:.1f} % towards {floor.get('rise_azimuth_deg', 0.0):.0f} deg from x: "
+                 "a floor laid to a fall (--base fitted-floor measures from it) or material covering the floor")
+    return line
 
 
 MAX_BARO_WALK_M_PER_SQRT_S = 1.0

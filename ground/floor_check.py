@@ -35,7 +35,7 @@ import numpy as np
 
 from firmware_py.core.cli import UserError
 from firmware_py.core.storage import Storage
-from ground.base import fit_floor_plane
+from ground.base import MIN_FLOOR_POINTS, PlaneFit, fit_floor_plane
 from ground.pointcloud import N_SIGMA, Cloud, SensorErrorModel, plane_tolerances_m
 from ground.smoothing import cloud_vertical_sigma_m
 from ground.surface import Grid
@@ -44,6 +44,13 @@ from ground.volume_warnings import OtherReading
 
 N_SIGNIFICANT = 3.0
 """A floor lies below z = 0 when its level is this many standard errors below it (and the volume it moves matters)."""
+FLOOR_FALL_SHOWN_PCT = 0.5
+"""A floor's fall the report names (`FloorLevel.laid_to_fall`): half the least a warehouse floor is laid to for
+drainage (1-2 %, `ground.base.MAX_FLOOR_TILT_DEG`). A level floor's fit away from material stays under it: at most
+0.27 % over the 1,197 runs of the evaluation set whose piles leave the floor bare (the whole plane's fit, which a pile's
+toes tilt, up to 0.53 %), while the lowest flat surface of material covering the floor often falls more (145 of the 275
+runs whose piles may hide it and that saw a flat surface: up to 8.8 %), which the report names alike
+(docs/pose_error.md, `floor-level`)."""
 
 
 @dataclass(frozen=True)
@@ -56,6 +63,24 @@ class FloorLevel:
     n_points: int  # points within their band of the level floor
     cover_pct: float  # the building's cells that hold a floor point, %
     n_under_tolerance: int  # points more than their tolerance below z = 0: the surface left them out as glitches
+    rise_x: float = 0.0  # the floor's rise along x (m/m), from its points farther than most from material
+    rise_y: float = 0.0  # ... along y (`far_floor_rise`)
+
+    @property
+    def fall_pct(self) -> float:
+        """The floor's fall away from material, % (`far_floor_rise`)."""
+        return 100.0 * math.hypot(self.rise_x, self.rise_y)
+
+    @property
+    def rise_azimuth_deg(self) -> float:
+        """The direction the floor rises in, from the building's x axis towards y."""
+        return math.degrees(math.atan2(self.rise_y, self.rise_x))
+
+    @property
+    def laid_to_fall(self) -> bool:
+        """The floor (or the lowest flat surface, when material covers the floor) falls by more than a level floor's
+        fit shows (`FLOOR_FALL_SHOWN_PCT`)."""
+        return self.fall_pct >= FLOOR_FALL_SHOWN_PCT
 
     @property
     def below(self) -> bool:
@@ -64,7 +89,9 @@ class FloorLevel:
 
     def as_dict(self) -> dict:
         return {"level_m": self.level_m, "std_error_m": self.std_error_m, "tilt_deg": self.tilt_deg,
-                "n_points": self.n_points, "cover_pct": self.cover_pct, "n_under_tolerance": self.n_under_tolerance}
+                "n_points": self.n_points, "cover_pct": self.cover_pct, "n_under_tolerance": self.n_under_tolerance,
+                "fall_pct": self.fall_pct, "rise_azimuth_deg": self.rise_azimuth_deg,
+                "laid_to_fall": self.laid_to_fall}
 
 
 def measure_floor(cloud: Cloud, structure: np.ndarray, storage: Storage, err: SensorErrorModel,
@@ -106,7 +133,31 @@ def measure_floor(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
     spread = 1.4826 * float(np.median(np.abs(q[:, 2] - level)))
     se = 1.2533 * spread / math.sqrt(max(1, n_cells))
     cover = 100.0 * n_cells / (grid.shape[0] * grid.shape[1])
-    return FloorLevel(level, se, plane.tilt_deg, len(q), cover, int(under.sum()))
+    rise_x, rise_y = far_floor_rise(pts, sigma, plane, band)
+    return FloorLevel(level, se, plane.tilt_deg, len(q), cover, int(under.sum()), rise_x, rise_y)
+
+
+def far_floor_rise(points_w: np.ndarray, sigma_m: np.ndarray, plane: PlaneFit,
+                   band_m: np.ndarray) -> tuple[float, float]:
+    """The rise (along x, along y; m/m) of a plane fitted (weighted least squares) to the floor plane's points that
+    lie farther than half of them from material (the points more than their band above the plane): a pile's toe lies
+    within the band beside the pile and tilts a plane fitted through it (0.53 % on a level floor of the evaluation set),
+    while a floor laid to a fall rises as much far from the piles as near them. The plane's own slopes when no point
+    lies above it or too few lie far off."""
+    from scipy.spatial import cKDTree
+    pts = np.asarray(points_w, dtype=float)
+    above = pts[:, 2] - plane.at(pts[:, 0], pts[:, 1]) > band_m
+    floor = pts[plane.inliers]
+    if not above.any() or len(floor) < MIN_FLOOR_POINTS:
+        return plane.slope_x, plane.slope_y
+    distance = cKDTree(pts[above, :2]).query(floor[:, :2])[0]
+    far = distance >= np.median(distance)
+    a = np.column_stack([np.ones(int(far.sum())), floor[far, :2]])
+    w = 1.0 / np.maximum(np.asarray(sigma_m, dtype=float)[plane.inliers][far], 1e-6)
+    if np.count_nonzero(far) < MIN_FLOOR_POINTS or np.linalg.matrix_rank(a) < 3:
+        return plane.slope_x, plane.slope_y
+    coef = np.linalg.lstsq(a * w[:, None], floor[far, 2] * w, rcond=None)[0]
+    return float(coef[1]), float(coef[2])
 
 
 def floor_lift_m(floor: FloorLevel | None, storage: Storage, interval_half_m3: float | None) -> float | None:
@@ -161,3 +212,17 @@ def floor_warning(floor: FloorLevel | None, storage: Storage, lever_arm_body_m: 
 def _below(z_m: float) -> str:
     """A lever arm's z (body frame, down positive) in words."""
     return f"{abs(z_m):.2f} m {'below' if z_m >= 0 else 'above'}"
+
+
+def fall_warning(floor: FloorLevel | None, height_moved_m: float) -> str | None:
+    """When the pose correction moved the height (height_moved_m: the most it moved it, m) and the floor seen falls
+    (`FloorLevel.laid_to_fall`): the correction takes the floor for the plane z = 0 and reads a floor laid to a fall as
+    an altitude error (the four cones on a floor falling 1.5 %, flown without pose error: every point lowered 0.12 m,
+    the volume over z = 0 13.6 % low; docs/base_and_compare.md). None otherwise."""
+    if floor is None or not floor.laid_to_fall or not height_moved_m > 0.0:
+        return None
+    return (f"the pose correction moved the height by up to {height_moved_m:.2f} m taking the floor for the level "
+            f"plane z = 0, but the floor the sweeps saw rises {floor.fall_pct:.1f} % towards "
+            f"{floor.rise_azimuth_deg:.0f} deg from x: on a floor laid to a fall the correction reads the fall as an "
+            "error of the altitude reference. If the logged pose is known good, report again with "
+            "--no-pose-correction; measure the volume from the floor itself with --base fitted-floor")

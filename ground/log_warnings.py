@@ -17,7 +17,7 @@ from firmware_py.core.storage import Storage
 from ground.base import FLOOR_BASE, BaseKind
 from ground.building_check import size_warning
 from ground.consistency import MAX_SWEEP_DISAGREEMENT_M
-from ground.floor_check import floor_warning
+from ground.floor_check import fall_warning, floor_warning
 from ground.plausibility import MAX_GAP_S, in_time
 from ground.pose_correction import PoseCorrection
 from ground.pose_source_check import pose_source_warnings
@@ -174,6 +174,10 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
     warnings += [w for w in (storage_warning(log.header or {}, survey.storage),
                              size_warning(survey.building, survey.storage, mount_doubtful=doubtful),
                              lever_arm_warning(log.header or {}, opts.lever_arm_m)) if w]
+    if survey.pose is not None and survey.pose.applied:
+        w = fall_warning(survey.floor, float(np.abs(survey.pose.values[:, 2]).max(initial=0.0)))
+        if w:
+            warnings.append(w)
     if opts.base.kind is BaseKind.FLOOR and survey.lever_arm_body_m is not None:  # a fitted floor, or an earlier
         # survey flown alike, takes the height out
         w = floor_warning(survey.floor, survey.storage, survey.lever_arm_body_m, flight_half_m3(survey))

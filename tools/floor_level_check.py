@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ground.floor_check import N_SIGNIFICANT, measure_floor
+from ground.floor_check import FLOOR_FALL_SHOWN_PCT, N_SIGNIFICANT, measure_floor
 from ground.pointcloud import SensorErrorModel, cloud_from_samples, structure_mask
 from ground.surface import DEFAULT_CELL_M, Grid
 from tools.doc_sections import write_section
@@ -45,8 +45,9 @@ def floor_row(run_dir: str, lever_dz_m: float) -> dict:
 
 def summary(rows: Sequence[dict], lever_dz_m: float) -> list[str]:
     """The table's lines: per noise model, the levels of the runs whose floor shows, and the hiding families'."""
-    lines = [f"| runs | noise | no floor | level min | median | max | below z = 0 by > {N_SIGNIFICANT:g} SE |",
-             "|---|---|---:|---:|---:|---:|---:|"]
+    lines = [f"| runs | noise | no floor | level min | median | max | below z = 0 by > {N_SIGNIFICANT:g} SE "
+             f"| fall median | max | named (>= {FLOOR_FALL_SHOWN_PCT:g} %) |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for hiding in (False, True):
         for noise in sorted({r["noise"] for r in rows}):
             rr = [r for r in rows if r["noise"] == noise and (r["family"] in HIDING_FAMILIES) == hiding]
@@ -58,7 +59,10 @@ def summary(rows: Sequence[dict], lever_dz_m: float) -> list[str]:
             what = "piles that may hide the floor" if hiding else "the rest"
             levels = " | ".join(f"{v * 100:+.2f} cm" if seen else "-" for v in (
                 (lv.min(), np.median(lv), lv.max()) if seen else (0.0, 0.0, 0.0)))
-            lines.append(f"| {what} ({len(rr)}) | {noise} | {len(rr) - len(seen)} | {levels} | {below} |")
+            falls = np.array([f.get("fall_pct", 0.0) for f in seen])
+            named = int(np.count_nonzero(falls >= FLOOR_FALL_SHOWN_PCT))
+            fall = f"{np.median(falls):.2f} % | {falls.max():.2f} % | {named}" if seen else "- | - | 0"
+            lines.append(f"| {what} ({len(rr)}) | {noise} | {len(rr) - len(seen)} | {levels} | {below} | {fall} |")
     lines.append(f"(every point moved {lever_dz_m * 100:+.0f} cm down by the lever arm's z)" if lever_dz_m else
                  "(as logged)")
     return lines

@@ -2,6 +2,7 @@
 measured on the floor, taken out by the pose correction when the floor lies below z = 0, warned of when it is left
 there by more than the interval holds, and undone with `pilescan-ground report --lever-arm`."""
 
+import math
 import re
 import shutil
 
@@ -12,7 +13,14 @@ from firmware_py.core.cli import ExitCode
 from firmware_py.core.samplelog import SampleLogWriter, read_samplelog, rewritable_header
 from firmware_py.core.storage import Storage
 from ground.cli import format_summary, main
-from ground.floor_check import N_SIGNIFICANT, FloorLevel, floor_other_reading, floor_warning, measure_floor
+from ground.floor_check import (
+    N_SIGNIFICANT,
+    FloorLevel,
+    fall_warning,
+    floor_other_reading,
+    floor_warning,
+    measure_floor,
+)
 from ground.log_warnings import lever_arm_warning
 from ground.pointcloud import Cloud, SensorErrorModel
 from ground.report import ReportOptions, make_report
@@ -120,6 +128,49 @@ def test_that_the_console_says_where_the_floor_was_seen_and_when_it_was_not():
     assert "floor seen at  -19.8 cm from z = 0 (+/-0.2 mm, over 5 % of the building)" in format_summary(rep)
     assert "floor seen at  not seen (the material hides it)" in format_summary({**rep, "floor_measured": None})
     assert "floor seen at" not in format_summary({**rep, "flights": [{}, {}]})  # each flight's own, in report.json
+
+
+def _floor_with_a_pile(fall_pct: float, azimuth_deg: float, seed: int = 0) -> np.ndarray:
+    """A floor laid to a fall (rising along the azimuth from the origin corner) seen wall to wall around a cone whose
+    toe rises off it, the floor's points far from the cone and near it alike."""
+    rng = np.random.default_rng(seed)
+    n = 12000
+    x, y = rng.uniform(0.5, 29.5, n), rng.uniform(0.5, 19.5, n)
+    a = math.radians(azimuth_deg)
+    floor = fall_pct / 100.0 * (x * math.cos(a) + y * math.sin(a))
+    cone = np.maximum(0.0, 5.0 - 0.7 * np.hypot(x - 12.0, y - 10.0))
+    return np.column_stack([x, y, floor + cone + rng.normal(0.0, 0.02, n)])
+
+
+@pytest.mark.parametrize(("fall_pct", "azimuth_deg"), [(1.5, 30.0), (1.0, -120.0), (2.0, 90.0)])
+def test_that_a_floor_laid_to_a_fall_is_named_with_its_fall_and_direction(fall_pct, azimuth_deg):
+    f = _measured(_floor_with_a_pile(fall_pct, azimuth_deg))
+    assert f.laid_to_fall
+    assert f.fall_pct == pytest.approx(fall_pct, abs=0.05)
+    assert f.rise_azimuth_deg == pytest.approx(azimuth_deg, abs=3.0)
+    line = format_summary({"volume_m3": 100.0, "n_points_used": 1, "n_samples": 1, "floor_measured": f.as_dict()})
+    assert f"rising {fall_pct:.1f} % towards {azimuth_deg:.0f} deg from x" in line and "--base fitted-floor" in line
+
+
+def test_that_a_level_floor_is_not_named_for_the_toe_that_tilts_its_plane():
+    """The toe on one side tilts the plane fitted within the floor's band; the floor far from it does not rise."""
+    f = _measured(_floor_and_toes(0.0, toes=1500))
+    assert 100.0 * math.tan(math.radians(f.tilt_deg)) > 0.05  # the whole plane falls 0.06 % through the toe ...
+    assert not f.laid_to_fall and f.fall_pct < 0.02  # ... the floor away from it 0.01 %
+    assert "rising" not in format_summary({"volume_m3": 1.0, "n_points_used": 1, "n_samples": 1,
+                                           "floor_measured": f.as_dict()})
+    level = _measured(_floor_with_a_pile(0.0, 0.0))
+    assert not level.laid_to_fall
+
+
+def test_that_a_height_correction_on_a_floor_laid_to_a_fall_is_warned_with_the_way_out():
+    sloped = FloorLevel(0.5, 0.003, 1.0, 5000, 20.0, 0, rise_x=0.013, rise_y=0.0075)
+    w = fall_warning(sloped, 0.14)
+    assert w is not None and "up to 0.14 m" in w and "rises 1.5 % towards 30 deg from x" in w
+    assert "--no-pose-correction" in w and "--base fitted-floor" in w
+    assert fall_warning(sloped, 0.0) is None  # the height was not moved
+    assert fall_warning(FloorLevel(0.5, 0.003, 1.0, 5000, 20.0, 0, rise_x=0.003), 0.14) is None  # level
+    assert fall_warning(None, 0.14) is None
 
 
 def test_that_a_lever_arm_given_is_said_only_when_it_is_not_the_header_s():

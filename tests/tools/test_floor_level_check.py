@@ -23,14 +23,15 @@ def test_that_a_run_s_floor_is_measured_at_z0_and_at_the_offset_of_a_lever_arm_e
     assert low["level_m"] == pytest.approx(logged["level_m"] - 0.1, abs=0.01)
 
 
-def test_that_the_table_counts_the_floors_below_z0_apart_for_the_hiding_families():
+def test_that_the_table_counts_the_floors_below_z0_and_those_with_a_fall_apart_for_the_hiding_families():
     rows = [{"run": "a", "family": "cone", "noise": "none", "floor_area_m2": 600.0,
-             "floor": {"level_m": -0.2, "std_error_m": 0.001}},
+             "floor": {"level_m": -0.2, "std_error_m": 0.001, "fall_pct": 1.5}},
             {"run": "b", "family": "cone", "noise": "none", "floor_area_m2": 600.0,
-             "floor": {"level_m": 0.001, "std_error_m": 0.001}},
+             "floor": {"level_m": 0.001, "std_error_m": 0.001, "fall_pct": 0.1}},
             {"run": "c", "family": "irregular", "noise": "none", "floor_area_m2": 600.0, "floor": None}]
     lines = summary(rows, 0.2)
-    assert "| the rest (2) | none | 0 | -20.00 cm | -9.95 cm | +0.10 cm | 1 |" in lines
+    # the floors' falls: their median, the largest, and how many the report names (0.5 % or more)
+    assert "| the rest (2) | none | 0 | -20.00 cm | -9.95 cm | +0.10 cm | 1 | 0.80 % | 1.50 % | 1 |" in lines
     assert any(line.startswith("| piles that may hide the floor (1) | none | 1 |") for line in lines)
     assert "moved +20 cm down" in lines[-1]
 
