@@ -288,8 +288,9 @@ def floor_line(floor: dict | None) -> str:
     line = (f"{floor['level_m'] * 100:+.1f} cm from z = 0 (+/-{floor.get('std_error_m', 0.0) * 1000:.1f} mm, over "
             f"{floor.get('cover_pct', 0.0):.0f} % of the building)")
     if floor.get("laid_to_fall") and isinstance(floor.get("fall_pct"), int | float):
-        line += (f", rising {floor['fall_pct']:.1f} % towards {floor.get('rise_azimuth_deg', 0.0):.0f} deg from x: "
-                 "a floor laid to a fall (--base fitted-floor measures from it) or material covering the floor")
+        towards = round(floor.get("rise_azimuth_deg", 0.0))
+        line += (f", rising {floor['fall_pct']:.1f} % towards {towards:d} deg from x: a floor laid to a fall "
+                 "(--base fitted-floor measures from it) or material covering the floor")
     return line
 
 

@@ -35,7 +35,7 @@ import numpy as np
 
 from firmware_py.core.cli import UserError
 from firmware_py.core.storage import Storage
-from ground.base import MIN_FLOOR_POINTS, PlaneFit, fit_floor_plane
+from ground.base import MIN_FLOOR_POINTS, fit_floor_plane
 from ground.pointcloud import N_SIGMA, Cloud, SensorErrorModel, plane_tolerances_m
 from ground.smoothing import cloud_vertical_sigma_m
 from ground.surface import Grid
@@ -44,13 +44,50 @@ from ground.volume_warnings import OtherReading
 
 N_SIGNIFICANT = 3.0
 """A floor lies below z = 0 when its level is this many standard errors below it (and the volume it moves matters)."""
-FLOOR_FALL_SHOWN_PCT = 0.5
-"""A floor's fall the report names (`FloorLevel.laid_to_fall`): half the least a warehouse floor is laid to for
-drainage (1-2 %, `ground.base.MAX_FLOOR_TILT_DEG`). A level floor's fit away from material stays under it: at most
-0.27 % over the 1,197 runs of the evaluation set whose piles leave the floor bare (the whole plane's fit, which a pile's
-toes tilt, up to 0.53 %), while the lowest flat surface of material covering the floor often falls more (145 of the 275
-runs whose piles may hide it and that saw a flat surface: up to 8.8 %), which the report names alike
+LEAST_LAID_FALL_PCT = 1.0
+"""The least fall a warehouse floor is laid to for drainage (1-2 %, `ground.base.MAX_FLOOR_TILT_DEG`): a floor the pose
+correction's floor route would leave falling this much was not moved by a height error (`FloorFall.laid`,
+`ground.pose_correction.down_onto_a_fall`)."""
+FLOOR_FALL_SHOWN_PCT = LEAST_LAID_FALL_PCT / 2.0
+"""A floor's fall the report names (`FloorLevel.laid_to_fall`): half the least a floor is laid to. A level floor's fit
+away from material stays under it: at most 0.31 % over the 1,197 runs of the evaluation set whose piles leave the
+floor bare (the whole plane's fit, which a pile's toes tilt, up to 0.53 %), while the lowest flat surface of material
+covering the floor often falls more (144 of the 275 runs whose piles may hide it and that saw a flat surface: up to
+8.8 %), which the report names alike
 (docs/pose_error.md, `floor-level`)."""
+
+
+HUBER_ROUNDS = 10
+"""Reweighting rounds of `floor_fall`'s robust plane (its weights settle in a few)."""
+HUBER_K = 1.5
+"""Huber's constant, in robust sigmas of the residuals."""
+
+
+@dataclass(frozen=True)
+class FloorFall:
+    """A floor's slope: its rise along x and along y (m/m)."""
+
+    rise_x: float
+    rise_y: float
+
+    @property
+    def fall_pct(self) -> float:
+        return 100.0 * math.hypot(self.rise_x, self.rise_y)
+
+    @property
+    def rise_azimuth_deg(self) -> float:
+        """The direction the floor rises in, from the building's x axis towards y."""
+        return math.degrees(math.atan2(self.rise_y, self.rise_x))
+
+    @property
+    def laid_to_fall(self) -> bool:
+        """It falls by more than a level floor's fit shows (`FLOOR_FALL_SHOWN_PCT`): named in the report."""
+        return self.fall_pct >= FLOOR_FALL_SHOWN_PCT
+
+    @property
+    def laid(self) -> bool:
+        """It falls as much as a floor is laid to (`LEAST_LAID_FALL_PCT`): no height error makes that."""
+        return self.fall_pct >= LEAST_LAID_FALL_PCT
 
 
 @dataclass(frozen=True)
@@ -64,23 +101,25 @@ class FloorLevel:
     cover_pct: float  # the building's cells that hold a floor point, %
     n_under_tolerance: int  # points more than their tolerance below z = 0: the surface left them out as glitches
     rise_x: float = 0.0  # the floor's rise along x (m/m), from its points farther than most from material
-    rise_y: float = 0.0  # ... along y (`far_floor_rise`)
+    rise_y: float = 0.0  # ... along y (`floor_fall`)
+
+    @property
+    def fall(self) -> FloorFall:
+        """The floor's fall away from material (`floor_fall`): the lowest flat surface's, when material covers the
+        floor."""
+        return FloorFall(self.rise_x, self.rise_y)
 
     @property
     def fall_pct(self) -> float:
-        """The floor's fall away from material, % (`far_floor_rise`)."""
-        return 100.0 * math.hypot(self.rise_x, self.rise_y)
+        return self.fall.fall_pct
 
     @property
     def rise_azimuth_deg(self) -> float:
-        """The direction the floor rises in, from the building's x axis towards y."""
-        return math.degrees(math.atan2(self.rise_y, self.rise_x))
+        return self.fall.rise_azimuth_deg
 
     @property
     def laid_to_fall(self) -> bool:
-        """The floor (or the lowest flat surface, when material covers the floor) falls by more than a level floor's
-        fit shows (`FLOOR_FALL_SHOWN_PCT`)."""
-        return self.fall_pct >= FLOOR_FALL_SHOWN_PCT
+        return self.fall.laid_to_fall
 
     @property
     def below(self) -> bool:
@@ -133,31 +172,41 @@ def measure_floor(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
     spread = 1.4826 * float(np.median(np.abs(q[:, 2] - level)))
     se = 1.2533 * spread / math.sqrt(max(1, n_cells))
     cover = 100.0 * n_cells / (grid.shape[0] * grid.shape[1])
-    rise_x, rise_y = far_floor_rise(pts, sigma, plane, band)
+    # the fall: from the plane's points away from the material above it (`floor_fall`), else the plane's own
+    above = pts[:, 2] - plane.at(pts[:, 0], pts[:, 1]) > band
+    fall = floor_fall(pts[plane.inliers], pts[above, :2], 1.0 / np.maximum(sigma[plane.inliers], 1e-6) ** 2)
+    rise_x, rise_y = (plane.slope_x, plane.slope_y) if fall is None else (fall.rise_x, fall.rise_y)
     return FloorLevel(level, se, plane.tilt_deg, len(q), cover, int(under.sum()), rise_x, rise_y)
 
 
-def far_floor_rise(points_w: np.ndarray, sigma_m: np.ndarray, plane: PlaneFit,
-                   band_m: np.ndarray) -> tuple[float, float]:
-    """The rise (along x, along y; m/m) of a plane fitted (weighted least squares) to the floor plane's points that
-    lie farther than half of them from material (the points more than their band above the plane): a pile's toe lies
-    within the band beside the pile and tilts a plane fitted through it (0.53 % on a level floor of the evaluation set),
-    while a floor laid to a fall rises as much far from the piles as near them. The plane's own slopes when no point
-    lies above it or too few lie far off."""
+def floor_fall(floor_w: np.ndarray, material_xy: np.ndarray, weights: np.ndarray | None = None) -> FloorFall | None:
+    """The fall of a plane fitted to the floor points (N, 3) that lie farther than half of them from material
+    (material_xy, (M, 2): the points above the floor): weighted least squares (weights, default equal), Huber-reweighted
+    so that a stray point does not tilt it. A pile's toe lies within the floor's band beside the pile and tilts a plane
+    fitted through it (0.53 % on a level floor of the evaluation set), while a floor laid to a fall rises as much far
+    from the piles as near them. All the floor points when no material is given; None when too few lie far off or they
+    do not span a plane."""
     from scipy.spatial import cKDTree
-    pts = np.asarray(points_w, dtype=float)
-    above = pts[:, 2] - plane.at(pts[:, 0], pts[:, 1]) > band_m
-    floor = pts[plane.inliers]
-    if not above.any() or len(floor) < MIN_FLOOR_POINTS:
-        return plane.slope_x, plane.slope_y
-    distance = cKDTree(pts[above, :2]).query(floor[:, :2])[0]
-    far = distance >= np.median(distance)
-    a = np.column_stack([np.ones(int(far.sum())), floor[far, :2]])
-    w = 1.0 / np.maximum(np.asarray(sigma_m, dtype=float)[plane.inliers][far], 1e-6)
-    if np.count_nonzero(far) < MIN_FLOOR_POINTS or np.linalg.matrix_rank(a) < 3:
-        return plane.slope_x, plane.slope_y
-    coef = np.linalg.lstsq(a * w[:, None], floor[far, 2] * w, rcond=None)[0]
-    return float(coef[1]), float(coef[2])
+    pts = np.asarray(floor_w, dtype=float)
+    w0 = np.ones(len(pts)) if weights is None else np.asarray(weights, dtype=float)
+    far = np.ones(len(pts), dtype=bool)
+    if len(material_xy) and len(pts):
+        distance = cKDTree(np.asarray(material_xy, dtype=float)).query(pts[:, :2])[0]
+        far = distance >= np.median(distance)
+    pts, w0 = pts[far], w0[far]
+    a = np.column_stack([np.ones(len(pts)), pts[:, :2]])
+    if len(pts) < MIN_FLOOR_POINTS or np.linalg.matrix_rank(a) < 3:
+        return None
+    w = w0
+    for _ in range(HUBER_ROUNDS):
+        sw = np.sqrt(w)
+        coef = np.linalg.lstsq(a * sw[:, None], pts[:, 2] * sw, rcond=None)[0]
+        r = np.abs(pts[:, 2] - a @ coef)
+        scale = 1.4826 * float(np.median(r))
+        if not scale > 0:
+            break
+        w = w0 * np.minimum(1.0, HUBER_K * scale / np.maximum(r, 1e-12))
+    return FloorFall(float(coef[1]), float(coef[2]))
 
 
 def floor_lift_m(floor: FloorLevel | None, storage: Storage, interval_half_m3: float | None) -> float | None:
@@ -223,6 +272,6 @@ def fall_warning(floor: FloorLevel | None, height_moved_m: float) -> str | None:
         return None
     return (f"the pose correction moved the height by up to {height_moved_m:.2f} m taking the floor for the level "
             f"plane z = 0, but the floor the sweeps saw rises {floor.fall_pct:.1f} % towards "
-            f"{floor.rise_azimuth_deg:.0f} deg from x: on a floor laid to a fall the correction reads the fall as an "
-            "error of the altitude reference. If the logged pose is known good, report again with "
+            f"{round(floor.rise_azimuth_deg):d} deg from x: on a floor laid to a fall the correction reads the fall "
+            "as an error of the altitude reference. If the logged pose is known good, report again with "
             "--no-pose-correction; measure the volume from the floor itself with --base fitted-floor")

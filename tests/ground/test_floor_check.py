@@ -15,8 +15,10 @@ from firmware_py.core.storage import Storage
 from ground.cli import format_summary, main
 from ground.floor_check import (
     N_SIGNIFICANT,
+    FloorFall,
     FloorLevel,
     fall_warning,
+    floor_fall,
     floor_other_reading,
     floor_warning,
     measure_floor,
@@ -161,6 +163,25 @@ def test_that_a_level_floor_is_not_named_for_the_toe_that_tilts_its_plane():
                                            "floor_measured": f.as_dict()})
     level = _measured(_floor_with_a_pile(0.0, 0.0))
     assert not level.laid_to_fall
+
+
+def test_that_a_floor_s_fall_is_fitted_away_from_the_material_whose_toe_tilts_it():
+    rng = np.random.default_rng(4)
+    x, y = rng.uniform(0.5, 29.5, 6000), rng.uniform(0.5, 19.5, 6000)
+    toe = np.hypot(x - 15.0, y - 10.0) < 6.0  # a pile's toe within the floor's band: rising 2 cm a metre
+    floor = np.column_stack([x, y, 0.015 * x + np.where(toe, 0.02 * (6.0 - np.hypot(x - 15.0, y - 10.0)), 0.0)
+                             + rng.normal(0.0, 0.01, len(x))])
+    pile = np.column_stack([rng.uniform(13.0, 17.0, 500), rng.uniform(8.0, 12.0, 500)])  # the material above it
+    fall = floor_fall(floor, pile)
+    assert fall.fall_pct == pytest.approx(1.5, abs=0.02) and fall.rise_azimuth_deg == pytest.approx(0.0, abs=1.0)
+    assert fall.laid_to_fall
+    level = floor.copy()
+    level[:, 2] -= 0.015 * x
+    assert floor_fall(level, pile).fall_pct < 0.02  # the toe, away from which the floor is fitted, tilts it not
+    assert not FloorFall(0.004, 0.0).laid_to_fall and FloorFall(0.004, 0.003).laid_to_fall  # named from 0.5 %
+    assert not FloorFall(0.009, 0.0).laid and FloorFall(0.006, 0.008).laid  # as a floor is laid to from 1 %
+    assert floor_fall(floor[:10], pile) is None  # too few points for a floor
+    assert floor_fall(floor, np.zeros((0, 2))).fall_pct == pytest.approx(1.5, abs=0.1)  # no material: all of it
 
 
 def test_that_a_height_correction_on_a_floor_laid_to_a_fall_is_warned_with_the_way_out():
