@@ -267,8 +267,8 @@ def fall_warning(floor: FloorLevel | None, height_moved_m: float) -> str | None:
     """When the pose correction moved the height (height_moved_m: the most it moved it, m) and the floor seen falls
     (`FloorLevel.laid_to_fall`): the correction solves the height from the floor as the plane z = 0 and reads a floor
     laid to a fall as an altitude error (the four cones on a floor falling 1.5 %: flown without pose error, every
-    point lowered 0.12 m until the floor's route refused a floor it would leave falling; flown with a `vio` drift, the
-    height still took 0.3 m of the fall: docs/design-notes.md). None otherwise."""
+    point lowered 0.12 m until the floor's route refused a floor it would leave falling; flown with a `flow` drift, the
+    height solved from the floor flattened it: docs/design-notes.md). None otherwise."""
     if floor is None or not floor.laid_to_fall or not height_moved_m > 0.0:
         return None
     return (f"the pose correction moved the height by up to {height_moved_m:.2f} m taking the floor for the level "
