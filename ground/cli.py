@@ -281,7 +281,7 @@ def floor_line(floor: dict | None) -> str:
     """report.json's `floor_measured` in words: where the lowest flat surface lies against z = 0. Above it by more than
     a few centimetres the floor is covered by material, or every height is that much high (a lever arm's z entered too
     short): the report cannot tell the two apart, the surveyor can (`ground.floor_check`). Its fall, when it has one
-    (`FloorLevel.laid_to_fall`): a floor laid to a fall, or material covering the floor, which again the surveyor
+    (`FloorFall.laid_to_fall`): a floor laid to a fall, or material covering the floor, which again the surveyor
     tells apart."""
     if not isinstance(floor, dict) or not isinstance(floor.get("level_m"), int | float):
         return "not seen (the material hides it)"

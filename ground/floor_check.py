@@ -29,13 +29,13 @@ moves (level x floor area) larger than the volume's own 90 % interval's half-wid
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from firmware_py.core.cli import UserError
 from firmware_py.core.storage import Storage
-from ground.base import MIN_FLOOR_POINTS, fit_floor_plane
+from ground.base import MIN_FLOOR_POINTS, FloorFall, fit_floor_plane
 from ground.pointcloud import N_SIGMA, Cloud, SensorErrorModel, plane_tolerances_m
 from ground.smoothing import cloud_vertical_sigma_m
 from ground.surface import Grid
@@ -44,50 +44,10 @@ from ground.volume_warnings import OtherReading
 
 N_SIGNIFICANT = 3.0
 """A floor lies below z = 0 when its level is this many standard errors below it (and the volume it moves matters)."""
-LEAST_LAID_FALL_PCT = 1.0
-"""The least fall a warehouse floor is laid to for drainage (1-2 %, `ground.base.MAX_FLOOR_TILT_DEG`): a floor the pose
-correction's floor route would leave falling this much was not moved by a height error (`FloorFall.laid`,
-`ground.pose_correction.down_onto_a_fall`)."""
-FLOOR_FALL_SHOWN_PCT = LEAST_LAID_FALL_PCT / 2.0
-"""A floor's fall the report names (`FloorLevel.laid_to_fall`): half the least a floor is laid to. A level floor's fit
-away from material stays under it: at most 0.31 % over the 1,197 runs of the evaluation set whose piles leave the
-floor bare (the whole plane's fit, which a pile's toes tilt, up to 0.53 %), while the lowest flat surface of material
-covering the floor often falls more (144 of the 275 runs whose piles may hide it and that saw a flat surface: up to
-8.8 %), which the report names alike
-(docs/pose_error.md, `floor-level`)."""
-
-
 HUBER_ROUNDS = 10
 """Reweighting rounds of `floor_fall`'s robust plane (its weights settle in a few)."""
 HUBER_K = 1.5
 """Huber's constant, in robust sigmas of the residuals."""
-
-
-@dataclass(frozen=True)
-class FloorFall:
-    """A floor's slope: its rise along x and along y (m/m)."""
-
-    rise_x: float
-    rise_y: float
-
-    @property
-    def fall_pct(self) -> float:
-        return 100.0 * math.hypot(self.rise_x, self.rise_y)
-
-    @property
-    def rise_azimuth_deg(self) -> float:
-        """The direction the floor rises in, from the building's x axis towards y."""
-        return math.degrees(math.atan2(self.rise_y, self.rise_x))
-
-    @property
-    def laid_to_fall(self) -> bool:
-        """It falls by more than a level floor's fit shows (`FLOOR_FALL_SHOWN_PCT`): named in the report."""
-        return self.fall_pct >= FLOOR_FALL_SHOWN_PCT
-
-    @property
-    def laid(self) -> bool:
-        """It falls as much as a floor is laid to (`LEAST_LAID_FALL_PCT`): no height error makes that."""
-        return self.fall_pct >= LEAST_LAID_FALL_PCT
 
 
 @dataclass(frozen=True)
@@ -100,26 +60,7 @@ class FloorLevel:
     n_points: int  # points within their band of the level floor
     cover_pct: float  # the building's cells that hold a floor point, %
     n_under_tolerance: int  # points more than their tolerance below z = 0: the surface left them out as glitches
-    rise_x: float = 0.0  # the floor's rise along x (m/m), from its points farther than most from material
-    rise_y: float = 0.0  # ... along y (`floor_fall`)
-
-    @property
-    def fall(self) -> FloorFall:
-        """The floor's fall away from material (`floor_fall`): the lowest flat surface's, when material covers the
-        floor."""
-        return FloorFall(self.rise_x, self.rise_y)
-
-    @property
-    def fall_pct(self) -> float:
-        return self.fall.fall_pct
-
-    @property
-    def rise_azimuth_deg(self) -> float:
-        return self.fall.rise_azimuth_deg
-
-    @property
-    def laid_to_fall(self) -> bool:
-        return self.fall.laid_to_fall
+    fall: FloorFall = field(default_factory=lambda: FloorFall(0.0, 0.0))  # away from material (`floor_fall`)
 
     @property
     def below(self) -> bool:
@@ -129,8 +70,8 @@ class FloorLevel:
     def as_dict(self) -> dict:
         return {"level_m": self.level_m, "std_error_m": self.std_error_m, "tilt_deg": self.tilt_deg,
                 "n_points": self.n_points, "cover_pct": self.cover_pct, "n_under_tolerance": self.n_under_tolerance,
-                "fall_pct": self.fall_pct, "rise_azimuth_deg": self.rise_azimuth_deg,
-                "laid_to_fall": self.laid_to_fall}
+                "fall_pct": self.fall.fall_pct, "rise_azimuth_deg": self.fall.rise_azimuth_deg,
+                "laid_to_fall": self.fall.laid_to_fall}
 
 
 def measure_floor(cloud: Cloud, structure: np.ndarray, storage: Storage, err: SensorErrorModel,
@@ -175,8 +116,8 @@ def measure_floor(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
     # the fall: from the plane's points away from the material above it (`floor_fall`), else the plane's own
     above = pts[:, 2] - plane.at(pts[:, 0], pts[:, 1]) > band
     fall = floor_fall(pts[plane.inliers], pts[above, :2], 1.0 / np.maximum(sigma[plane.inliers], 1e-6) ** 2)
-    rise_x, rise_y = (plane.slope_x, plane.slope_y) if fall is None else (fall.rise_x, fall.rise_y)
-    return FloorLevel(level, se, plane.tilt_deg, len(q), cover, int(under.sum()), rise_x, rise_y)
+    fall = fall or plane.fall
+    return FloorLevel(level, se, plane.tilt_deg, len(q), cover, int(under.sum()), fall)
 
 
 def floor_fall(floor_w: np.ndarray, material_xy: np.ndarray, weights: np.ndarray | None = None) -> FloorFall | None:
@@ -265,14 +206,14 @@ def _below(z_m: float) -> str:
 
 def fall_warning(floor: FloorLevel | None, height_moved_m: float) -> str | None:
     """When the pose correction moved the height (height_moved_m: the most it moved it, m) and the floor seen falls
-    (`FloorLevel.laid_to_fall`): the correction solves the height from the floor as the plane z = 0 and reads a floor
+    (`FloorFall.laid_to_fall`): the correction solves the height from the floor as the plane z = 0 and reads a floor
     laid to a fall as an altitude error (the four cones on a floor falling 1.5 %: flown without pose error, every
     point lowered 0.12 m until the floor's route refused a floor it would leave falling; flown with a `flow` drift, the
     height solved from the floor flattened it: docs/design-notes.md). None otherwise."""
-    if floor is None or not floor.laid_to_fall or not height_moved_m > 0.0:
+    if floor is None or not floor.fall.laid_to_fall or not height_moved_m > 0.0:
         return None
     return (f"the pose correction moved the height by up to {height_moved_m:.2f} m taking the floor for the level "
-            f"plane z = 0, but the floor the sweeps saw rises {floor.fall_pct:.1f} % towards "
-            f"{round(floor.rise_azimuth_deg):d} deg from x: on a floor laid to a fall the correction reads the fall "
-            "as an error of the altitude reference. If the logged pose is known good, report again with "
+            f"plane z = 0, but the floor the sweeps saw rises {floor.fall.fall_pct:.1f} % towards "
+            f"{round(floor.fall.rise_azimuth_deg):d} deg from x: on a floor laid to a fall the correction reads the "
+            "fall as an error of the altitude reference. If the logged pose is known good, report again with "
             "--no-pose-correction; measure the volume from the floor itself with --base fitted-floor")

@@ -83,8 +83,9 @@ from scipy.spatial import cKDTree
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, rot_body_to_ned
 from firmware_py.core.sensor_noise import POSE_STREAM_HZ
 from firmware_py.core.storage import Storage
+from ground.base import FloorFall
 from ground.crossing_cells import grid_cells, in_building, not_the_pile
-from ground.floor_check import FloorFall, floor_fall
+from ground.floor_check import floor_fall
 from ground.group_stats import rms, robust_rms
 from ground.plane_stretches import (
     INSIDE_SIGN,

@@ -20,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ground.floor_check import FLOOR_FALL_SHOWN_PCT, N_SIGNIFICANT, measure_floor
+from ground.base import FLOOR_FALL_SHOWN_PCT
+from ground.floor_check import N_SIGNIFICANT, measure_floor
 from ground.pointcloud import SensorErrorModel, cloud_from_samples, structure_mask
 from ground.surface import DEFAULT_CELL_M, Grid
 from tools.doc_sections import write_section

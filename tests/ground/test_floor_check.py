@@ -147,9 +147,9 @@ def _floor_with_a_pile(fall_pct: float, azimuth_deg: float, seed: int = 0) -> np
 @pytest.mark.parametrize(("fall_pct", "azimuth_deg"), [(1.5, 30.0), (1.0, -120.0), (2.0, 90.0)])
 def test_that_a_floor_laid_to_a_fall_is_named_with_its_fall_and_direction(fall_pct, azimuth_deg):
     f = _measured(_floor_with_a_pile(fall_pct, azimuth_deg))
-    assert f.laid_to_fall
-    assert f.fall_pct == pytest.approx(fall_pct, abs=0.05)
-    assert f.rise_azimuth_deg == pytest.approx(azimuth_deg, abs=3.0)
+    assert f.fall.laid_to_fall
+    assert f.fall.fall_pct == pytest.approx(fall_pct, abs=0.05)
+    assert f.fall.rise_azimuth_deg == pytest.approx(azimuth_deg, abs=3.0)
     line = format_summary({"volume_m3": 100.0, "n_points_used": 1, "n_samples": 1, "floor_measured": f.as_dict()})
     assert f"rising {fall_pct:.1f} % towards {azimuth_deg:.0f} deg from x" in line and "--base fitted-floor" in line
 
@@ -158,11 +158,11 @@ def test_that_a_level_floor_is_not_named_for_the_toe_that_tilts_its_plane():
     """The toe on one side tilts the plane fitted within the floor's band; the floor far from it does not rise."""
     f = _measured(_floor_and_toes(0.0, toes=1500))
     assert 100.0 * math.tan(math.radians(f.tilt_deg)) > 0.05  # the whole plane falls 0.06 % through the toe ...
-    assert not f.laid_to_fall and f.fall_pct < 0.02  # ... the floor away from it 0.01 %
+    assert not f.fall.laid_to_fall and f.fall.fall_pct < 0.02  # ... the floor away from it 0.01 %
     assert "rising" not in format_summary({"volume_m3": 1.0, "n_points_used": 1, "n_samples": 1,
                                            "floor_measured": f.as_dict()})
     level = _measured(_floor_with_a_pile(0.0, 0.0))
-    assert not level.laid_to_fall
+    assert not level.fall.laid_to_fall
 
 
 def test_that_a_floor_s_fall_is_fitted_away_from_the_material_whose_toe_tilts_it():
@@ -185,12 +185,12 @@ def test_that_a_floor_s_fall_is_fitted_away_from_the_material_whose_toe_tilts_it
 
 
 def test_that_a_height_correction_on_a_floor_laid_to_a_fall_is_warned_with_the_way_out():
-    sloped = FloorLevel(0.5, 0.003, 1.0, 5000, 20.0, 0, rise_x=0.013, rise_y=0.0075)
+    sloped = FloorLevel(0.5, 0.003, 1.0, 5000, 20.0, 0, FloorFall(0.013, 0.0075))
     w = fall_warning(sloped, 0.14)
     assert w is not None and "up to 0.14 m" in w and "rises 1.5 % towards 30 deg from x" in w
     assert "--no-pose-correction" in w and "--base fitted-floor" in w
     assert fall_warning(sloped, 0.0) is None  # the height was not moved
-    assert fall_warning(FloorLevel(0.5, 0.003, 1.0, 5000, 20.0, 0, rise_x=0.003), 0.14) is None  # level
+    assert fall_warning(FloorLevel(0.5, 0.003, 1.0, 5000, 20.0, 0, FloorFall(0.003, 0.0)), 0.14) is None  # level
     assert fall_warning(None, 0.14) is None
 
 
