@@ -11,7 +11,8 @@ applies a correction the survey is also computed without it, so a false correcti
 `--spot PILE,P,MODEL,PHASE` also flies that case with the payload firmware in the loop (`fly`,
 lockstep) and reports it beside its batch twin.
 
-    python -m tools.noise_table --write docs/results.md [--jobs 2] [--spot 1,20,datasheet,0 ...]
+    python -m tools.noise_table --write docs/results.md [--costs docs/sensor_noise.md] [--jobs 2]
+        [--spot 1,20,datasheet,0 ...]
 """
 
 from __future__ import annotations
@@ -182,6 +183,68 @@ def spot_table(spots: list[dict], results: dict[Case, list[dict]]) -> str:
     return "\n".join(out)
 
 
+COSTS_SECTION = "noise-costs"
+NOTED_COST_PP = 0.5
+"""A row whose noise costs more than this over the noise-free row of the same pile and P_traj is named as an exception
+in `costs` (half a point: the size of the paper's own Ve at its best P_traj)."""
+
+
+def _mean(rows: list[dict], key: str) -> float:
+    return statistics.fmean(r[key] for r in rows)
+
+
+def costs(results: dict[Case, list[dict]], spots: list[dict]) -> str:
+    """What the noise costs, read off the rows (docs/sensor_noise.md's section): the self-calibration's corrections,
+    the cost at each P_traj over the noise-free row, the datasheet's no-returns, the despiking, the firmware spots."""
+    by = {(c.pile, c.p_traj_pct, c.model): rows for c, rows in results.items()}
+    noisy = [r for (_, _, m), rows in by.items() if m is not SensorNoiseModel.NONE for r in rows]
+    out = [f"- **Corrections applied by the self-calibration from the building**: "
+           f"{sum(r['self_cal_applied'] for r in noisy)} of the {len(noisy)} noisy surveys (every mount is square, "
+           "so any correction would be false)."]
+    for p in P_TRAJ_PCT:
+        cost = [(statistics.fmean(r["ve_pct"] for r in rows) - _mean(by[(pile, p, SensorNoiseModel.NONE)], "ve_pct"),
+                 pile, m) for (pile, pp, m), rows in by.items() if pp == p and m is not SensorNoiseModel.NONE]
+        worst = max(cost)
+        over = [f"pile {pile} {m.value} {c:+.2f} pp" for c, pile, m in sorted(cost, reverse=True) if c > NOTED_COST_PP]
+        out.append(f"- **P_traj {p} %**: the noise moves the mean Ve by {min(cost)[0]:+.2f} to {worst[0]:+.2f} pp "
+                   f"over the noise-free row of the same pile (the most: pile {worst[1]}, {worst[2].value})"
+                   + (f"; more than {NOTED_COST_PP} pp: {', '.join(over)}." if over else "."))
+    ds = [(pile, p) for pile in PILES for p in P_TRAJ_PCT if (pile, p, SensorNoiseModel.DATASHEET) in by]
+    if ds:
+        share = " / ".join(f"{_mean(by[(PILES[0], p, SensorNoiseModel.DATASHEET)], 'no_return_pct'):.1f}"
+                           for p in P_TRAJ_PCT)
+        plain = " / ".join(f"{_mean(by[(PILES[0], p, SensorNoiseModel.NONE)], 'no_return_pct'):.1f}"
+                           for p in P_TRAJ_PCT)
+        far = max(P_TRAJ_PCT)
+        rows_far = [(pile, by[(pile, far, SensorNoiseModel.NONE)], by[(pile, far, SensorNoiseModel.DATASHEET)])
+                    for pile in PILES]
+        out.append(f"- **The datasheet's no-returns**: {share} % of pile {PILES[0]}'s samples at P_traj "
+                   f"{' / '.join(str(p) for p in P_TRAJ_PCT)} % find no echo ({plain} % without noise: beams beyond "
+                   f"the rated range). At P_traj {far} % the sweep's ends from the middle of the hall reach the walls "
+                   "and corners less often: R_a "
+                   + "; ".join(f"pile {pile} {_mean(a, 'ra_pct'):.1f} -> {_mean(b, 'ra_pct'):.1f} %, Ve "
+                               f"{_stats([r['ve_pct'] for r in b])} % (max {max(r['ve_pct'] for r in b):.2f} %)"
+                               for pile, a, b in rows_far) + ".")
+    out.append(f"- **Despiking** removed {sum(r['spikes'] for r in noisy):,} samples in all {len(noisy)} noisy "
+               "surveys (its threshold allows each sample's pointing error as the header states it).")
+    if spots:
+        pairs = []
+        for s in spots:
+            twin = next((r for r in by.get((s["pile"], s["p"], s["model"]), []) if r["phase"] == s["phase"]), None)
+            batch = f"{twin['ve_nocal_pct']:.2f}" if twin else "-"
+            pairs.append(f"pile {s['pile']} P_traj {s['p']} % {s['model'].value} {s['ve_nocal_pct']:.2f} / {batch}")
+        spread = max(((statistics.pstdev(r["ve_pct"] for r in by[(s["pile"], s["p"], s["model"])]), s)
+                      for s in spots if (s["pile"], s["p"], s["model"]) in by), key=lambda t: t[0], default=None)
+        out.append(f"- **Firmware in the loop against the batch path** ({len(spots)} spot checks, Ve without "
+                   f"self-calibration, firmware / batch at the same start position): {'; '.join(pairs)}. The noise "
+                   "draws differ, so only the spread of the batch rows says whether two figures disagree"
+                   + (f" (the widest: pile {spread[1]['pile']}, P_traj {spread[1]['p']} %, {spread[1]['model'].value},"
+                      f" sd {spread[0]:.2f} pp)" if spread else "")
+                   + f". The self-calibration applied a correction in {sum(s['self_cal_applied'] for s in spots)} of "
+                   "the firmware flights.")
+    return "\n".join(out)
+
+
 def _spot(text: str) -> tuple[str, int, SensorNoiseModel, int]:
     try:
         pile, p, model, phase = text.split(",")
@@ -199,6 +262,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     ap.add_argument("--phases", type=int, default=N_POSITIONS, help="servo start positions per case (default 20)")
     ap.add_argument("--cache", type=Path, default=Path("runs/sweep-cache"), help="flight and case cache")
+    ap.add_argument("--costs", type=Path, default=None,
+                    help="also write what the noise costs, read off the rows, into this page (docs/sensor_noise.md)")
     ap.add_argument("--spot", action="append", default=[], metavar="PILE,P,MODEL,PHASE",
                     help="also fly this case with the firmware in the loop (repeatable)")
     args = ap.parse_args(argv)
@@ -226,6 +291,7 @@ def main(argv: list[str] | None = None) -> int:
         "## Ve with realistic sensing (`--sensor-noise`)",
         "",
         f"Regenerate with `python -m tools.noise_table --write docs/results.md --jobs {args.jobs}"
+        + (f" --costs {args.costs}" if args.costs is not None else "")
         + "".join(f" --spot {s}" for s in args.spot) + f"` ({wall / 60:.1f} min on this run, which computed "
         f"{n_todo} of the {len(cases)} cases; flights and cases are cached in `{args.cache}`{fresh_note}). "
         "The paper's baseline (Table 1: semi-triangular sweep, 1 m/s, 30 deg/s yaw, "
@@ -249,6 +315,10 @@ def main(argv: list[str] | None = None) -> int:
     text = "\n".join(parts)
     if args.write is not None:
         write_section(args.write, SECTION, text)
+    if args.costs is not None:
+        write_section(args.costs, COSTS_SECTION, f"Read off the noise table (docs/results.md) by the command that "
+                      f"writes it, with `--costs {args.costs}` ({args.phases} servo start positions per row):\n\n"
+                      + costs(results, spot_rows))
     return 0
 
 

@@ -67,9 +67,11 @@ STEPS: tuple[Step, ...] = (
     _step("demo", "tools.demo --write-readme README.md", "README.md", "the demo's summary in README"),
     _step("results", "tools.reproduce --write docs/results.md --rows docs/results-rows.csv --jobs 2 --quiet",
           "docs/results.md docs/results-rows.csv", "Table 2 and the paper's experiments (about 25 min)"),
-    _step("noise-table", "tools.noise_table --write docs/results.md --jobs 2 --spot 1,20,none,0 "
+    _step("noise-table", "tools.noise_table --write docs/results.md --costs docs/sensor_noise.md --jobs 2 "
+          "--spot 1,20,none,0 "
           "--spot 1,20,datasheet,0 --spot 2,20,appendix-a,0 --spot 2,20,datasheet,0 --spot 1,30,datasheet,0 "
-          "--spot 2,5,appendix-a,0 --spot 1,5,appendix-a,0", "docs/results.md", "the sensor-noise table"),
+          "--spot 2,5,appendix-a,0 --spot 1,5,appendix-a,0", "docs/results.md docs/sensor_noise.md",
+          "the sensor-noise table and what it costs"),
     _step("unseen", "tools.unseen_campaign", "docs/unseen.md", "the unseen fills on corner and wall-end piles"),
     _step("echo-check", "tools.echo_check --jobs 2 --write docs/unseen.md", "docs/unseen.md",
           "how often the floor-out-of-reach warning spoke over the evaluation set (about 8 min)"),
