@@ -263,3 +263,18 @@ def test_that_a_kept_flight_s_uncorrected_report_is_reused_only_when_made_by_the
     (work / "vio-1-5-0--no-pose-correction" / source_digest.MADE_BY).write_text("older code\n")
     campaign.one("vio", "1", 5, 0, work, reuse=True)
     assert made[3:] == ["vio-1-5-0--no-pose-correction", "vio-1-5-0--pose-correction"]
+
+
+def test_that_the_trajectory_is_judged_over_the_span_the_correction_was_fitted_on():
+    """A networked payload logs the climb and the landing, where no sample is usable and the correction is only held
+    at its end's value: the descent after the last knot is not the survey's trajectory (before and after alike)."""
+    t = np.arange(0.0, 40.0, 0.1)
+    true_w = np.column_stack([t, np.full(len(t), 5.0), np.where(t > 30, 12.0 - (t - 30), 12.0)])
+    est_w = true_w + np.column_stack([np.full(len(t), 0.3), np.zeros(len(t)), np.where(t > 30, -1.0, 0.0)])
+    truth = {"pose_error": {"trajectory": {"t_s": t.tolist(), "true_w_m": true_w.tolist(),
+                                           "estimated_w_m": est_w.tolist()}}}
+    correction = {"applied": True, "knot_t_s": [0.0, 15.0, 30.0], "knot_values": [[-0.3, 0, 0, 0]] * 3}
+    before, after = trajectory_rms_m(truth, correction)
+    assert before == pytest.approx(0.3) and after == pytest.approx(0.0, abs=1e-9)
+    whole, _ = trajectory_rms_m(truth, None)  # no correction: the whole trajectory, the descent's metre in it
+    assert whole > 0.5
