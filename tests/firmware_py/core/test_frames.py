@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from firmware_py.core.frames import (
+    SQUARE,
     Boresight,
     StorageFrame,
     beam_dir_body,
@@ -112,17 +113,18 @@ def test_that_points_follow_eqs_3_to_6_sample_by_sample():
         assert np.allclose(got[i], frame.ned_to_w(p_ned), atol=1e-9)
 
 
+@pytest.mark.parametrize("boresight", [SQUARE, Boresight(math.radians(2.0), math.radians(-3.0))])
 @pytest.mark.parametrize("heading", [0.0, 0.4, -2.5])
-def test_that_the_one_ray_path_equals_the_vectorised_one(heading):
+def test_that_the_one_ray_path_equals_the_vectorised_one(heading, boresight):
     rng = np.random.default_rng(11)
     n = 30
     pos = rng.normal(size=(n, 3)) * 10
     roll, pitch, yaw = rng.uniform(-0.3, 0.3, n), rng.uniform(-0.3, 0.3, n), rng.uniform(-3, 3, n)
     gamma = rng.uniform(-1.5, 1.5, n)
     lever, frame = (0.05, -0.02, 0.1), StorageFrame((1.0, 2.0, -0.5), heading)
-    o, d = beam_rays_w(pos, roll, pitch, yaw, gamma, lever, frame)
+    o, d = beam_rays_w(pos, roll, pitch, yaw, gamma, lever, frame, boresight)
     for i in range(n):
-        oi, di = beam_ray_w(pos[i], roll[i], pitch[i], yaw[i], gamma[i], lever, frame)
+        oi, di = beam_ray_w(pos[i], roll[i], pitch[i], yaw[i], gamma[i], lever, frame, boresight)
         assert np.allclose(oi, o[i], atol=1e-12) and np.allclose(di, d[i], atol=1e-12)
 
 
