@@ -2,7 +2,8 @@
 Mission Planner load them, so the same survey can be flown by a real ArduPilot.
 
 The plan is: home (item 0, ArduPilot's convention), set speed, take off on W0 to the survey
-altitude, the loop's waypoints W1..Wn (Wn = W0), land. Positions are global, converted from the
+altitude, the loop's waypoints W1..Wn (Wn = W0), land; from a take-off spot away from W0 (material below
+it), back over that spot at the survey altitude before the landing there. Positions are global, converted from the
 local NED frame by the same flat-earth mapping the SITL's MAVLink server uses (about the EKF
 origin: the local NED origin, whose lat/lon the plan takes as arguments; `pilescan-sitl plan --origin`
 puts it on the site's floor corner, `--heading` turns the building). Altitudes are relative
@@ -30,9 +31,12 @@ DEFAULT_ORIGIN = DEFAULT_SITE.corner.as_tuple()
 def plan_rows(mission: Mission, frame: StorageFrame, origin=DEFAULT_ORIGIN,
               takeoff_w: tuple[float, float] | None = None) -> list[list[float]]:
     """Rows of (frame, command, p1..p4, x/lat, y/lon, z/alt) for the survey: home and the take-off on W0, or at
-    takeoff_w (W, m: clear floor away from it), then W0 as the first waypoint and the loop. A copter takes off where it
-    stands (ArduPilot ignores the take-off's position): with W0 first, the survey starts at its start wherever the
-    operator put the drone down (reached at once when that is below W0)."""
+    takeoff_w (W, m: clear floor away from it), then W0 as the first waypoint and the loop, and the landing at home.
+    A copter takes off where it stands (ArduPilot ignores the take-off's position): with W0 first, the survey starts at
+    its start wherever the operator put the drone down (reached at once when that is below W0). With takeoff_w the loop
+    ends over the material below W0, so the plan flies back over the take-off spot at the survey altitude and lands
+    there: a landing at W0 would set the copter down on the pile's slope (the simulator's plant, which knows only the
+    floor, descended through 5 m of pile 1)."""
     lat0, lon0, alt0 = origin
     wp = mission.waypoints_w()
     ned = frame.w_to_ned(np.column_stack([wp, np.zeros(len(wp))]))
@@ -48,7 +52,10 @@ def plan_rows(mission: Mission, frame: StorageFrame, origin=DEFAULT_ORIGIN,
                  mission.altitude_m])
     rows += [[MAV_FRAME_GLOBAL_RELATIVE_ALT, MAV_CMD_NAV_WAYPOINT, 0, 0, 0, 0, la, lo, mission.altitude_m]
              for la, lo in ll]
-    rows.append([MAV_FRAME_GLOBAL_RELATIVE_ALT, MAV_CMD_NAV_LAND, 0, 0, 0, 0, ll[-1][0], ll[-1][1], 0.0])
+    if takeoff_w is not None:  # W0 stands over material: back over the clear floor it left, at the survey altitude
+        rows.append([MAV_FRAME_GLOBAL_RELATIVE_ALT, MAV_CMD_NAV_WAYPOINT, 0, 0, 0, 0, home[0], home[1],
+                     mission.altitude_m])
+    rows.append([MAV_FRAME_GLOBAL_RELATIVE_ALT, MAV_CMD_NAV_LAND, 0, 0, 0, 0, home[0], home[1], 0.0])
     return rows
 
 

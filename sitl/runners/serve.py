@@ -324,7 +324,8 @@ class TakeoffSpot:
     def describe(self, w0: tuple[float, float]) -> str:
         return (f"the vehicle waits on clear floor at ({self.xy_w[0]:.1f}, {self.xy_w[1]:.1f}) m, the nearest to the "
                 f"first waypoint ({w0[0]:.1f}, {w0[1]:.1f}) m, where the pile stands {self.material_at_w0_m:.2f} m "
-                "high; it takes off there and flies to the first waypoint at the survey's altitude (the plan says so)")
+                "high; it takes off there and flies to the first waypoint at the survey's altitude, and after the "
+                "loop back over it at that altitude to land (the plan says so)")
 
 
 def material_m(world: World, xy_w: np.ndarray) -> np.ndarray:

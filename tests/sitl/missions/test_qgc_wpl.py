@@ -142,9 +142,10 @@ def frame_w0_global(m: Mission, frame: StorageFrame, origin) -> tuple[float, flo
     return ned_to_global(n, e, origin[0], origin[1])
 
 
-def test_that_a_plan_taking_off_away_from_the_first_waypoint_flies_there_before_the_survey(tmp_path):
+def test_that_a_plan_taking_off_away_from_the_first_waypoint_flies_there_before_the_survey_and_lands_back(tmp_path):
     """`serve` with material below W0 puts the vehicle on clear floor elsewhere (sitl.runners.serve.takeoff_spot):
-    the plan's home and take-off are there, and W0 is the first waypoint, so the survey starts where it should."""
+    the plan's home and take-off are there, and W0 is the first waypoint, so the survey starts where it should; the
+    loop ends over W0's material, so the plan flies back over the spot at the survey altitude and lands there."""
     m, frame, spot = Mission(p_traj=0.2), StorageFrame(), (24.375, 3.375)
     rows = read_qgc_wpl(write_qgc_wpl(tmp_path / "p.waypoints", m, frame, takeoff_w=spot))
     lat0, lon0, _ = DEFAULT_ORIGIN
@@ -153,7 +154,9 @@ def test_that_a_plan_taking_off_away_from_the_first_waypoint_flies_there_before_
     assert np.allclose(at[0], spot, atol=1e-3) and np.allclose(at[2], spot, atol=1e-3)  # home and take-off
     wp = m.waypoints_w()
     assert np.allclose(at[3], wp[0], atol=1e-3) and rows[3][10] == m.altitude_m  # then W0, at the survey altitude
-    assert np.allclose(np.array(at[4:-1]), wp[1:], atol=1e-3) and len(rows) == len(wp) + 4
+    assert np.allclose(np.array(at[4:-2]), wp[1:], atol=1e-3) and len(rows) == len(wp) + 5
+    assert [int(r[3]) for r in rows][-2:] == [16, 21] and rows[-2][10] == m.altitude_m and rows[-1][10] == 0.0
+    assert np.allclose(at[-2], spot, atol=1e-3) and np.allclose(at[-1], spot, atol=1e-3)  # back over it, down there
     assert read_qgc_wpl(write_qgc_wpl(tmp_path / "w0.waypoints", m, frame))[3][8:10] == rows[3][8:10]  # as on W0
     n, e, _ = frame.w_to_ned([spot[0], spot[1], 0.0])
     vehicle = JsbsimVehicle(VehicleConfig(plant=PlantConfig(start_ned_m=(float(n), float(e), 0.0))))
