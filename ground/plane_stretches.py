@@ -59,6 +59,50 @@ def neighbour_noise_m(plane: np.ndarray, r: np.ndarray) -> float | None:
     return robust_rms(np.diff(r[on])[same]) / math.sqrt(2.0)
 
 
+MAX_GAP_STEPS = 4.0
+"""Two samples either side of a point give its beam's turn rate when they lie at most this many median sample spacings
+apart (a gap: flagged samples between them, or the stride of a thinned cloud across a pause)."""
+
+
+@dataclass(frozen=True)
+class TimingSplit:
+    """What a servo timing offset explains of the points' distances from their planes (`beside_a_servo_delay`)."""
+
+    misfit_m: float  # the robust RMS of the distances once the offset is taken out
+    delay_s: float  # the offset: the beam was where the logged angle puts it this much later (negative: earlier)
+
+
+def beside_a_servo_delay(t_s: np.ndarray, beam_w: np.ndarray, r: np.ndarray, plane: np.ndarray,
+                         normals: np.ndarray) -> TimingSplit:
+    """The points' distances from their planes with a servo timing offset fitted beside them. Why: a beam whose servo
+    lags the angle logged for it by tau is placed r (d(t) - d(t - tau)) ~ r d' tau off, d' the beam's turn rate,
+    which flips with the sweep's direction: no drift of the pose explains it (it moves the points of one sweep
+    direction one way and of the other the other way), yet it is no mounting error either. A fraction of a
+    millisecond leaves a centimetre at 20 m, as the networked SITL's servo behind its TCP bridge does (docs/design-
+    notes.md, 2026-12-07). t_s, beam_w: the samples in time order, their beam vectors (vehicle to point, W); r: the
+    signed distances; plane: each point's plane (-1: none), normals: the planes' normals. The offset is fitted on the
+    points within three robust RMS of their plane (least squares); 0 where too few points carry a turn rate."""
+    on = np.flatnonzero(plane >= 0)
+    plain = TimingSplit(robust_rms(r[on]), 0.0)
+    if len(on) < 10 or len(t_s) < 3:
+        return plain
+    rng = np.linalg.norm(beam_w, axis=1)
+    u = beam_w / np.maximum(rng, 1e-9)[:, None]
+    dt = t_s[2:] - t_s[:-2]
+    step = float(np.median(np.diff(t_s)))
+    rate = np.zeros_like(u)
+    ok = (dt > 0) & (dt <= 2.0 * MAX_GAP_STEPS * step)
+    rate[1:-1][ok] = (u[2:][ok] - u[:-2][ok]) / dt[ok, None]
+    a = rng[on] * np.einsum("ij,ij->i", normals[plane[on]], rate[on])
+    rr = r[on]
+    keep = np.abs(rr) <= 3.0 * max(plain.misfit_m, 1e-12)
+    den = float(np.sum(a[keep] ** 2))
+    if not den > 0:
+        return plain
+    tau = float(np.sum(a[keep] * rr[keep]) / den)
+    return TimingSplit(robust_rms(rr - a * tau), tau)
+
+
 def nearest_plane(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: float | np.ndarray,
                   allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(plane index, signed distance) of each point's nearest plane (n, d: `planes`), among those it may lie on when

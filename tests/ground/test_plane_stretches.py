@@ -84,3 +84,31 @@ def test_that_each_window_s_line_is_its_points_principal_axis_far_from_the_origi
     _, u_line, off_line = plane_stretches.sliding_line_fit(straight, 16, at)
     np.testing.assert_allclose(np.abs(u_line @ np.array([1.0, 1.0, 2.0]) / math.sqrt(6.0)), 1.0, atol=1e-12)
     assert np.all(off_line < 1e-6)
+
+
+def _floor_sweeps(delay_s: float, offset_rad: float = 0.0):
+    """A vehicle at 12 m over the floor sweeping a beam +-1 rad across its track at 2 Hz, sampled at 500 Hz, the servo
+    lagging the logged angle by delay_s and off it by offset_rad: the points placed on the logged angle, their beam
+    vectors, their heights (the floor's residuals) and the floor's plane index."""
+    t = np.arange(0.0, 4.0, 0.002)
+    logged = np.arcsin(np.sin(2 * np.pi * 2.0 * t)) * (2.0 / np.pi)  # a triangle wave of +-1 rad
+    true = np.interp(t - delay_s, t, logged) + offset_rad
+    rng = 12.0 / np.cos(true)  # where the true beam met the floor
+    beam = rng[:, None] * np.column_stack([np.zeros_like(t), np.sin(logged), -np.cos(logged)])
+    z = 12.0 + beam[:, 2]
+    return t, beam, z, np.zeros(len(t), dtype=np.int64)
+
+
+def test_that_a_servo_lagging_its_logged_angle_is_found_beside_the_planes_and_taken_out_of_their_misfit():
+    n, _ = planes(STORAGE)
+    t, beam, z, plane = _floor_sweeps(0.5e-3)
+    split = plane_stretches.beside_a_servo_delay(t, beam, z, plane, n)
+    assert split.delay_s == pytest.approx(0.5e-3, rel=0.1)
+    assert split.misfit_m < 0.2 * plane_stretches.robust_rms(z)
+
+
+def test_that_a_servo_offset_the_same_both_ways_is_not_taken_for_a_timing_offset():
+    n, _ = planes(STORAGE)
+    t, beam, z, plane = _floor_sweeps(0.0, offset_rad=math.radians(0.2))
+    split = plane_stretches.beside_a_servo_delay(t, beam, z, plane, n)
+    assert abs(split.delay_s) < 2e-5 and split.misfit_m > 0.9 * plane_stretches.robust_rms(z)
