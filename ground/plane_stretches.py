@@ -69,7 +69,7 @@ class TimingSplit:
     """What a servo timing offset explains of the points' distances from their planes (`beside_a_servo_delay`)."""
 
     misfit_m: float  # the robust RMS of the distances once the offset is taken out
-    delay_s: float  # the offset: the beam was where the logged angle puts it this much later (negative: earlier)
+    delay_s: float  # the offset: the beam reached each logged angle this much after the log says (negative: before)
 
 
 def beside_a_servo_delay(t_s: np.ndarray, beam_w: np.ndarray, r: np.ndarray, plane: np.ndarray,

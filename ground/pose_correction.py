@@ -873,9 +873,9 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         if timed.misfit_m <= MAX_MISFIT * noise and timed.misfit_m ** 2 <= (1.0 - TIMING_SHARE) * drift_misfit ** 2:
             notes.append(f"the floor and walls stayed {drift_misfit * 100:.1f} cm off their planes after the drift's "
                          f"fit, {timed.misfit_m * 100:.1f} cm beside a servo timing offset of "
-                         f"{timed.delay_s * 1e3:+.2f} ms (the beam where the logged angle puts it that much later), "
-                         "which moves the two sweep directions' points opposite ways: the drift is corrected, the "
-                         "offset is not")
+                         f"{timed.delay_s * 1e3:+.2f} ms (the beam reaching each logged angle that much after the log "
+                         "says), which moves the two sweep directions' points opposite ways: the drift is corrected, "
+                         "the offset is not")
             drift_misfit = timed.misfit_m
             common["notes"] = tuple(notes)
     if drift_misfit > MAX_MISFIT * noise:
