@@ -782,8 +782,8 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         return robust_rms(r[j >= 0])
     # What the drift model, fitted to the floor and walls, leaves on them: the measure of whether a drift
     # explains them at all (MAX_MISFIT was measured on it: a drift leaves 1.1-1.5 noise levels, a mount fault ~6)
-    drift_misfit = misfit(x)
-    x_drift = x.copy()  # the fit the misfit was judged on (the registration below may replace x)
+    _, drift_beam, drift_r, drift_j = on_fit_planes(x)  # kept: the registration below may replace x
+    drift_misfit = robust_rms(drift_r[drift_j >= 0])
     if opts.vertical and opts.crossings and opts.crossings_horizontal and to_matter:
         # the height joins the registration when it was solved, or refused only in the frame before it
         z_free = z_info is not None or first_refused is not None
@@ -868,8 +868,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
         # A servo timing offset moves the points of the two sweep directions opposite ways: no drift explains it, nor
         # is it a mounting error; a fraction of a millisecond held flights at this bound (docs/design-notes.md,
         # 2026-12-07). Judged beside it, and said, it is no reason to refuse the drift's correction.
-        _, beam_x, r_x, j_x = on_fit_planes(x_drift)
-        timed = beside_a_servo_delay(b.t_s, beam_x, r_x, j_x, n)
+        timed = beside_a_servo_delay(b.t_s, drift_beam, drift_r, drift_j, n)
         if timed.misfit_m <= MAX_MISFIT * noise and timed.misfit_m ** 2 <= (1.0 - TIMING_SHARE) * drift_misfit ** 2:
             notes.append(f"the floor and walls stayed {drift_misfit * 100:.1f} cm off their planes after the drift's "
                          f"fit, {timed.misfit_m * 100:.1f} cm beside a servo timing offset of "

@@ -209,8 +209,8 @@ def costs(results: dict[Case, list[dict]], spots: list[dict]) -> str:
         out.append(f"- **P_traj {p} %**: the noise moves the mean Ve by {min(cost)[0]:+.2f} to {worst[0]:+.2f} pp "
                    f"over the noise-free row of the same pile (the most: pile {worst[1]}, {worst[2].value})"
                    + (f"; more than {NOTED_COST_PP} pp: {', '.join(over)}." if over else "."))
-    ds = [(pile, p) for pile in PILES for p in P_TRAJ_PCT if (pile, p, SensorNoiseModel.DATASHEET) in by]
-    if ds:
+    if all((pile, p, m) in by for pile in PILES for p in P_TRAJ_PCT
+           for m in (SensorNoiseModel.NONE, SensorNoiseModel.DATASHEET)):  # the rows the bullet reads
         share = " / ".join(f"{_mean(by[(PILES[0], p, SensorNoiseModel.DATASHEET)], 'no_return_pct'):.1f}"
                            for p in P_TRAJ_PCT)
         plain = " / ".join(f"{_mean(by[(PILES[0], p, SensorNoiseModel.NONE)], 'no_return_pct'):.1f}"
