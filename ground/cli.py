@@ -148,7 +148,8 @@ def build_parser() -> ArgumentParser:
                         "derived from the log header; see ground/despike.py)")
     r.add_argument("--no-servo-retiming", action="store_true",
                    help="when the two sweep directions disagree, only warn (default: re-estimate the servo's dead "
-                        "time and speed from the sweeps and use them if they agree; see ground/servo_timing.py)")
+                        "time and speed from the sweeps and use them if they agree, and re-time the servo by a dead "
+                        "time the floor and walls show; see ground/servo_timing.py)")
     r.add_argument("--no-self-calibration", action="store_true",
                    help="do not estimate the servo's zero and scale and the LiDAR's boresight from the floor and "
                         "walls (default: estimate them, apply those that are significant, and say so)")

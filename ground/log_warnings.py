@@ -134,7 +134,13 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
         warnings.append(f"{survey.cloud.n_servo_suspect} samples left out: in those sweep periods the ranges did not "
                         "move like a swept beam's (servo stuck or slow?)")
     st = survey.servo_timing
-    if survey.servo_retimed and st is not None:
+    if survey.servo_retimed and st is not None and st.building_shift_m is not None:
+        warnings.append(f"the servo was re-timed from the floor and walls: it reaches each logged angle "
+                        f"{st.delay_s * 1e3:+.1f} ms after the log says, which moved their points "
+                        f"{st.building_shift_m * 100:.1f} cm (RMS) the two sweep directions opposite ways; the samples "
+                        "were re-timed by it. Measure the servo's lag again (the payload's [payload.servo] lag_s) "
+                        "before the next flight")
+    elif survey.servo_retimed and st is not None:
         how = (f"it answers pulses {st.delay_s * 1e3:.0f} ms late and slews at {st.gain * 100:.0f} % of its "
                "calibrated rate" if st.model == Resimulated.name else
                f"its shaft trails the firmware's model by {st.delay_s * 1e3:.0f} ms and swings {st.gain * 100:.0f} % "

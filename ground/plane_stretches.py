@@ -64,26 +64,53 @@ MAX_GAP_STEPS = 4.0
 apart (a gap: flagged samples between them, or the stride of a thinned cloud across a pause)."""
 
 
+TIMING_ROUNDS = 20
+"""At most this many rounds of `beside_a_servo_delay`'s fit (each keeps the points near their planes once the offset
+found so far is out); it stops earlier when they stay the same."""
+
+
 @dataclass(frozen=True)
 class TimingSplit:
     """What a servo timing offset explains of the points' distances from their planes (`beside_a_servo_delay`)."""
 
     misfit_m: float  # the robust RMS of the distances once the offset is taken out
     delay_s: float  # the offset: the beam reached each logged angle this much after the log says (negative: before)
+    delay_sigma_s: float = math.inf  # its standard error (least squares over the points it was fitted on)
+    shift_m: float = 0.0  # the RMS the offset moves those points along their planes' normals: what it matters
+
+    def significant(self, n_sigma: float, noise_m: float) -> bool:
+        """Whether the offset is both measured (n_sigma standard errors from zero) and large enough to matter: it
+        moves the points more than the data's own noise."""
+        return abs(self.delay_s) > n_sigma * self.delay_sigma_s and self.shift_m > noise_m
+
+    def as_dict(self) -> dict:
+        return {"delay_s": self.delay_s, "delay_sigma_s": self.delay_sigma_s if math.isfinite(self.delay_sigma_s)
+                else None, "shift_m": self.shift_m, "misfit_m": self.misfit_m}
 
 
 def beside_a_servo_delay(t_s: np.ndarray, beam_w: np.ndarray, r: np.ndarray, plane: np.ndarray,
-                         normals: np.ndarray) -> TimingSplit:
+                         normals: np.ndarray, window_m: float | None = None) -> TimingSplit:
     """The points' distances from their planes with a servo timing offset fitted beside them. Why: a beam whose servo
     lags the angle logged for it by tau is placed r (d(t) - d(t - tau)) ~ r d' tau off, d' the beam's turn rate,
     which flips with the sweep's direction: no drift of the pose explains it (it moves the points of one sweep
     direction one way and of the other the other way), yet it is no mounting error either. A fraction of a
     millisecond leaves a centimetre at 20 m, as the networked SITL's servo behind its TCP bridge does (docs/design-
     notes.md, 2026-12-07). t_s, beam_w: the samples in time order, their beam vectors (vehicle to point, W); r: the
-    signed distances; plane: each point's plane (-1: none), normals: the planes' normals. The offset is fitted on the
-    points within three robust RMS of their plane (least squares); 0 where too few points carry a turn rate."""
+    signed distances; plane: each point's plane (-1: none), normals: the planes' normals; window_m: the distance
+    within which a point counts as on its plane for the misfit (None: every point given a plane).
+
+    The offset is fitted by least squares on the points within three robust RMS of their plane once it is taken out,
+    from none, in rounds until those points stay the same: a servo 10 ms late puts the walls' points decimetres off,
+    beyond any window of the noise, which a single fit on the points near their planes would leave out, finding
+    almost no offset (docs/design-notes.md, 2026-12-07 eighty-third session). 0 where too few points carry a turn
+    rate."""
     on = np.flatnonzero(plane >= 0)
-    plain = TimingSplit(robust_rms(r[on]), 0.0)
+    rr = r[on]
+
+    def misfit(left: np.ndarray) -> float:
+        return robust_rms(left if window_m is None else left[np.abs(left) <= window_m])
+
+    plain = TimingSplit(misfit(rr), 0.0)
     if len(on) < 10 or len(t_s) < 3:
         return plain
     rng = np.linalg.norm(beam_w, axis=1)
@@ -94,13 +121,21 @@ def beside_a_servo_delay(t_s: np.ndarray, beam_w: np.ndarray, r: np.ndarray, pla
     ok = (dt > 0) & (dt <= 2.0 * MAX_GAP_STEPS * step)
     rate[1:-1][ok] = (u[2:][ok] - u[:-2][ok]) / dt[ok, None]
     a = rng[on] * np.einsum("ij,ij->i", normals[plane[on]], rate[on])
-    rr = r[on]
-    keep = np.abs(rr) <= 3.0 * max(plain.misfit_m, 1e-12)
-    den = float(np.sum(a[keep] ** 2))
-    if not den > 0:
-        return plain
-    tau = float(np.sum(a[keep] * rr[keep]) / den)
-    return TimingSplit(robust_rms(rr - a * tau), tau)
+    tau, keep, den = 0.0, None, 0.0
+    for _ in range(TIMING_ROUNDS):
+        left = rr - a * tau
+        now = np.abs(left) <= 3.0 * max(robust_rms(left), 1e-12)
+        if keep is not None and np.array_equal(now, keep):
+            break
+        keep = now
+        den = float(np.sum(a[keep] ** 2))
+        if not den > 0:
+            return plain
+        tau = float(np.sum(a[keep] * rr[keep]) / den)
+    left = rr - a * tau
+    n_kept = int(np.count_nonzero(keep))
+    sigma = math.sqrt(float(np.sum(left[keep] ** 2)) / max(n_kept - 1, 1) / den)
+    return TimingSplit(misfit(left), tau, sigma, abs(tau) * math.sqrt(den / n_kept))
 
 
 def nearest_plane(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: float | np.ndarray,

@@ -90,6 +90,7 @@ from ground.group_stats import rms, robust_rms
 from ground.plane_stretches import (
     INSIDE_SIGN,
     Beams,
+    TimingSplit,
     beams,
     beside_a_servo_delay,
     body_axes_w,
@@ -215,6 +216,11 @@ class PoseCorrection:
     """(knots, 4) what the drift model's fit found (to the floor and walls, and the pile seen twice), when
     `unexplained` (not applied: `values` stay zero). A start for the mount fitted with a drift: bent by the mount, it
     is still nearer the drift than none is where the structure pins it only loosely."""
+    servo_delay: TimingSplit | None = None
+    """A servo timing offset fitted beside the drift model's fit to the floor and walls (`ground.plane_stretches.
+    beside_a_servo_delay`), when the fit got that far: the report re-times the servo when it is significant and
+    matters (`TimingSplit.significant`), which the pile seen on opposite sweeps, its usual trigger, shows only for
+    large offsets."""
     lever_change_m: tuple[float, float] | None = None
     """The LiDAR's lever arm moved by this much (body forward, right; m) puts the floor and walls on their planes as
     well as a drift's correction does (`lever_shift`): a lever arm entered off. Applied in place of the knots (which
@@ -279,7 +285,8 @@ class PoseCorrection:
                 "height_unanchored_longest_s": [self.height_unanchored_s[1], self.height_unanchored_s[2]],
                 "closest_wall": None if self.closest_wall is None else dict(
                     zip(("distance_m", "surface", "t_s", "since_start_s"), self.closest_wall, strict=True)),
-                "sweep_heights": None if self.sweep_heights is None else self.sweep_heights.as_dict()}
+                "sweep_heights": None if self.sweep_heights is None else self.sweep_heights.as_dict(),
+                "servo_delay": None if self.servo_delay is None else self.servo_delay.as_dict()}
 
 
 TIMING_SHARE = 0.5
@@ -784,6 +791,9 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     # explains them at all (MAX_MISFIT was measured on it: a drift leaves 1.1-1.5 noise levels, a mount fault ~6)
     _, drift_beam, drift_r, drift_j = on_fit_planes(x)  # kept: the registration below may replace x
     drift_misfit = robust_rms(drift_r[drift_j >= 0])
+    # A servo timing offset moves the points of the two sweep directions opposite ways, which no drift does: fitted
+    # beside the drift's fit, it excuses a misfit (below) and tells the report to re-time the servo (`ground.report`).
+    timed = beside_a_servo_delay(b.t_s, drift_beam, drift_r, j_fit, n, BAND * final)
     if opts.vertical and opts.crossings and opts.crossings_horizontal and to_matter:
         # the height joins the registration when it was solved, or refused only in the frame before it
         z_free = z_info is not None or first_refused is not None
@@ -863,12 +873,11 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     needed = n_free + opts.n_significant * math.sqrt(2.0 * max(n_free, 1))
     common = dict(notes=tuple(notes), points=counts, rms_before_m=robust_rms(r_before),
                   rms_after_m=robust_rms(r1[on]), noise_m=noise, gain=gain, gain_needed=needed, cell_m=cell_m,
-                  step_sigma=step, drift_rms_m=drift_misfit)
+                  step_sigma=step, drift_rms_m=drift_misfit, servo_delay=timed)
     if drift_misfit > MAX_MISFIT * noise:
-        # A servo timing offset moves the points of the two sweep directions opposite ways: no drift explains it, nor
-        # is it a mounting error; a fraction of a millisecond held flights at this bound (docs/design-notes.md,
-        # 2026-12-07). Judged beside it, and said, it is no reason to refuse the drift's correction.
-        timed = beside_a_servo_delay(b.t_s, drift_beam, drift_r, drift_j, n)
+        # No drift explains a servo timing offset, nor is it a mounting error; a fraction of a millisecond held
+        # flights at this bound (docs/design-notes.md, 2026-12-07). Judged beside it, and said, it is no reason to
+        # refuse the drift's correction.
         if timed.misfit_m <= MAX_MISFIT * noise and timed.misfit_m ** 2 <= (1.0 - TIMING_SHARE) * drift_misfit ** 2:
             notes.append(f"the floor and walls stayed {drift_misfit * 100:.1f} cm off their planes after the drift's "
                          f"fit, {timed.misfit_m * 100:.1f} cm beside a servo timing offset of "

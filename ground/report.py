@@ -42,7 +42,7 @@ from ground.floor_check import FloorLevel, floor_other_reading, measure_floor
 from ground.log_warnings import log_warnings, sensor_noise_line
 from ground.metadata import printable, sha256_of
 from ground.piles import PILES_CSV, write_piles_csv
-from ground.plane_stretches import Beams, beams, nearest_plane, placed_beams, planes, stretch_floor_m
+from ground.plane_stretches import Beams, TimingSplit, beams, nearest_plane, placed_beams, planes, stretch_floor_m
 from ground.plausibility import PlausibilityLimits, implausible, in_time, out_of_time, without_implausible
 from ground.pointcloud import N_SIGMA as FLOOR_N_SIGMA
 from ground.pointcloud import (
@@ -75,7 +75,7 @@ from ground.self_calibration import (
     apply_mount,
     estimate_mount,
 )
-from ground.servo_timing import Resimulated, ShiftScale, estimate_servo_timing, sweep_center_rad
+from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
 from ground.site_check import HEADING_TOLERANCE_DEG, SITE_TOLERANCE_M, header_site
 from ground.smoothing import (
     DEFAULT_SMOOTHING,
@@ -513,13 +513,15 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
     # docs/design-notes.md). Used only when the servo is not re-timed, which changes the samples they were made from.
     with ThreadPoolExecutor(max_workers=1) as pool:
         ahead = pool.submit(_first_estimates, samples, header, storage, frame, lever, opts, err, mount,
-                            rangefinder is not None and rangefinder.applied, unlifted)
+                            rangefinder is not None and rangefinder.applied, unlifted, opts.servo_retiming)
         survey = replace(_survey(samples, header, storage, frame, lever, opts, err, spikes, mount), **checked)
         before = survey.sweep_disagreement_m
         retime = opts.servo_retiming and before is not None and before > MAX_SWEEP_DISAGREEMENT_M
         early = None if retime else _EarlyChecks(survey.cloud, survey.structure, _placed_checks(survey, err))
         first = None if retime else ahead.result()
-    if first is not None:
+    timed_by_building = (first is not None and opts.servo_retiming and before is not None
+                         and structure_timing(first.pose) is not None)
+    if first is not None and not timed_by_building:
         return _self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes, mount, first), early
 
     posed = posed_beams(samples, lever, frame, spike_threshold=spikes)  # the search changes the servo's fields only
@@ -538,12 +540,54 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
     timed = repack_fields(samples[["t_s", "servo_rad", "sweep_dir"]])
     timing = estimate_servo_timing(timed, disagreement, before, motion, floor_m=floor or 0.0,
                                    threads=cores_available())
+    if timed_by_building and not (timing is not None and (timing.delay_s, timing.gain) != (0.0, 1.0)
+                                  and timing.disagreement_after_m + (floor or 0.0) < before):
+        # The pile's sweeps do not confirm the offset the building showed (a drift swamps them: the same pile seen
+        # at other times, on other passes): the building's own, a dead time, kept if it fits the building better.
+        return _retimed_by_building(survey, samples, header, storage, frame, lever, opts, err, spikes, mount, first,
+                                    motion, checked, timing), early
     if timing is None or timing.disagreement_after_m > MAX_SWEEP_DISAGREEMENT_M:
         return replace(survey, servo_timing=timing), None
     retimed = motion.apply(samples, timing.delay_s, timing.gain)
     fixed = _survey(retimed, header, storage, frame, lever, opts, err, spikes, mount)
     fixed = replace(fixed, servo_timing=timing, servo_retimed=True, **checked)
     return _self_calibrated(fixed, retimed, header, storage, frame, lever, opts, err, spikes, mount), None
+
+
+def _retimed_by_building(survey: Survey, samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
+                         lever: np.ndarray, opts: ReportOptions, err: SensorErrorModel, spikes: SpikeThreshold | None,
+                         mount: Boresight, first: _Estimates, motion: ShiftScale | Resimulated, checked: dict,
+                         searched: ServoTiming | None) -> Survey:
+    """The survey with the servo re-timed by the offset the floor and walls showed (`structure_timing`), when that
+    leaves them closer to their planes after the drift's fit than the logged timing did; else the survey as logged,
+    with what the search found (not applied). Why the building's fit judges: it is the measure that found the offset,
+    and one the pile's shape cannot fool (a face seen from opposite sides splits the sweeps as a lag does)."""
+    split = structure_timing(first.pose)
+    retimed = motion.apply(samples, split.delay_s, 1.0)
+    fixed = replace(_survey(retimed, header, storage, frame, lever, opts, err, spikes, mount), **checked)
+    timing = ServoTiming(split.delay_s, 1.0, motion.name, survey.sweep_disagreement_m,
+                         fixed.sweep_disagreement_m if fixed.sweep_disagreement_m is not None else math.nan, 0,
+                         building_shift_m=split.shift_m)
+    fixed = _self_calibrated(replace(fixed, servo_timing=timing, servo_retimed=True), retimed, header, storage, frame,
+                             lever, opts, err, spikes, mount)
+    before, after = first.pose.drift_rms_m, None if fixed.pose is None else fixed.pose.drift_rms_m
+    if after is not None and before is not None and after < before:
+        return fixed
+    return replace(_self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes, mount,
+                                    None if first.cut_for_timing else first), servo_timing=searched)
+
+
+def structure_timing(pose: PoseCorrection | None) -> TimingSplit | None:
+    """The servo timing offset the floor and walls show beside the drift's fit (`PoseCorrection.servo_delay`) when
+    it is measured and matters (`TimingSplit.significant`: N_SIGNIFICANT standard errors, and it moves their points by
+    more than the data's noise); None otherwise. Why: the servo's re-timing runs when the pile seen on opposite sweeps
+    disagrees by more than MAX_SWEEP_DISAGREEMENT_M, which a servo a few milliseconds late does not reach, yet it
+    moves the points at 20 m by centimetres to decimetres, the walls and the floor the two sweep directions opposite
+    ways (measured: docs/design-notes.md, 2026-12-07 eighty-third session)."""
+    if pose is None or pose.servo_delay is None:
+        return None
+    split = pose.servo_delay
+    return split if split.significant(N_SIGNIFICANT, pose.noise_m) else None
 
 
 @dataclass(frozen=True)
@@ -557,6 +601,9 @@ class _Estimates:
     boresight: Boresight
     pose: PoseCorrection | None
     joint: bool = False
+    cut_for_timing: bool = False
+    """The pose left unexplained without the mount fitted beside a drift, because the floor and walls show a servo
+    timing offset (`structure_timing`), which the report tries first (`_first_estimates`' timing_first)."""
 
 
 def _mount_of(s: np.ndarray, lever: np.ndarray, frame: StorageFrame, storage: Storage, err: SensorErrorModel,
@@ -604,7 +651,8 @@ def _pose_of(s: np.ndarray, bs: Boresight, header: dict, lever: np.ndarray, fram
 
 def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame, lever: np.ndarray,
                      opts: ReportOptions, err: SensorErrorModel, mount: Boresight,
-                     share_taken_out: bool, unlifted: np.ndarray | None = None) -> _Estimates:
+                     share_taken_out: bool, unlifted: np.ndarray | None = None,
+                     timing_first: bool = False) -> _Estimates:
     """The mount's self-calibration, then the pose's correction with the mount it leaves. The mount before the
     pose: a constant mount error is partly a constant shift of the structure, which the pose's knots took up
     when they came first (measured: docs/pose_error.md)."""
@@ -623,6 +671,13 @@ def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame:
                         opts.baro_walk_m_per_sqrt_s, placed if corrected is samples and boresight == mount else None)
         beside_drift = partial(_mount_with_drift, samples, samples if unlifted is None else unlifted, header, storage,
                                frame, lever, opts, err, mount, share_taken_out)
+        joint_next = calibrating and (pose.unexplained or (pose.applied and est is not None and est.unexplained))
+        if joint_next and timing_first and structure_timing(pose) is not None:
+            # The floor and walls show a servo timing offset: the report re-times the servo first (`_retimed_by_
+            # building`), as a mount fitted with a drift beside it takes up part of it (a servo 3 ms late under a
+            # `flow` drift with the datasheet's noise: a servo scale of +2.7 % applied and the offset gone from the
+            # fit, Ve 1.20 % against 0.51 % without the delay; docs/design-notes.md).
+            return _Estimates(est, corrected, boresight, pose, cut_for_timing=True)
         if calibrating and pose.unexplained:
             joint = beside_drift(pose)
             if joint is not None:
@@ -1094,7 +1149,8 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "sweep_disagreement_m": survey.sweep_disagreement_m,
         "servo_timing": None if st is None else {
             "applied": survey.servo_retimed, "model": st.model, "delay_s": st.delay_s, "gain": st.gain,
-            "disagreement_before_m": st.disagreement_before_m, "disagreement_after_m": st.disagreement_after_m},
+            "disagreement_before_m": st.disagreement_before_m, "disagreement_after_m": st.disagreement_after_m,
+            "building_shift_m": st.building_shift_m},
         "self_calibration": None if survey.mount is None else survey.mount.as_dict(),
         "pose_correction": None if survey.pose is None else survey.pose.as_dict(),
         "rangefinder_height": None if survey.rangefinder is None else survey.rangefinder.as_dict(),

@@ -66,6 +66,9 @@ class ServoTiming:
     disagreement_before_m: float
     disagreement_after_m: float
     evaluations: int
+    building_shift_m: float | None = None
+    """Set when the delay is the one the floor and walls showed beside the pose's drift (`ground.plane_stretches.
+    beside_a_servo_delay`), not the search's: the RMS it moved their points by. Then gain is 1 (a dead time)."""
 
 
 def sweep_center_rad(servo_rad: np.ndarray) -> float:

@@ -1146,11 +1146,13 @@ def test_that_the_report_s_comparison_of_two_estimates_leaves_the_same_points_ou
     assert up.sum() > 100 and wall[up].all()
 
 
-def test_that_a_servo_lagging_its_logged_angle_does_not_stop_a_drift_being_corrected(tmp_path):
+def test_that_a_servo_lagging_its_logged_angle_does_not_stop_a_drift_being_corrected_and_is_re_timed(tmp_path):
     """A `vio` flight whose servo lags the angle the payload logs by 1 ms (the networked SITL's device bridge lags by
     a third of that): no drift explains the points of the two sweep directions moving opposite ways, and the drift's
     fit left the floor and walls 1.2 cm off against 0.3 cm of noise, so the correction was refused (Ve 2.9 %). A
-    timing offset fitted beside the drift explains most of it: the drift is corrected and the offset said."""
+    timing offset fitted beside the drift explains most of it: the correction alone corrects the drift and says the
+    offset, and the report re-times the servo by it (the pile seen on opposite sweeps, its other trigger, disagrees by
+    centimetres only)."""
     from ground.report import ReportOptions, make_report
     from sitl.faults.injector import FaultSpec
     from sitl.missions.rectangle import Mission
@@ -1160,9 +1162,15 @@ def test_that_a_servo_lagging_its_logged_angle_does_not_stop_a_drift_being_corre
                     stockpile="1", payload="firmware", pose_error="vio", seed=0,
                     faults=FaultSpec(servo_delay_ms=1.0))
     fly(cfg, tmp_path / "run", force=True, progress=lambda _m: None)
-    rep = make_report(tmp_path / "run", tmp_path / "rep", ReportOptions(plots=False))
-    pose = rep["pose_correction"]
-    assert pose["applied"], pose["reason"]
-    said = [note for note in pose["notes"] if "servo timing offset" in note]
+    alone = make_report(tmp_path / "run", tmp_path / "alone", ReportOptions(plots=False, servo_retiming=False))
+    assert alone["pose_correction"]["applied"], alone["pose_correction"]["reason"]
+    said = [note for note in alone["pose_correction"]["notes"] if "servo timing offset" in note]
     assert said and 0.5 < float(said[0].split("servo timing offset of ")[1].split(" ms")[0]) < 1.2
-    assert rep["volume_error_pct"] < 1.0
+    assert alone["servo_timing"] is None and alone["volume_error_pct"] < 1.0
+    rep = make_report(tmp_path / "run", tmp_path / "rep", ReportOptions(plots=False))
+    assert rep["pose_correction"]["applied"], rep["pose_correction"]["reason"]
+    timing = rep["servo_timing"]
+    assert timing["applied"] and 0.8e-3 < timing["delay_s"] < 1.2e-3
+    assert abs(rep["pose_correction"]["servo_delay"]["delay_s"]) < 0.2e-3  # the re-timed servo leaves none
+    assert any("re-timed" in w and "floor and walls" in w for w in rep["warnings"])
+    assert rep["volume_error_pct"] < 0.5
