@@ -73,8 +73,9 @@ def unexplained_structure_warning(mount: MountEstimate | None, pose: PoseCorrect
     else:
         tried = "the pose correction does not explain it (the mount's self-calibration was off)"
     return (f"the building's floor and walls do not sit on their planes, and {tried} ({why}): check the log header's "
-            "boresight, lever arm and building frame against the drone; do not trust this volume until they are "
-            "right")
+            "boresight, lever arm and building frame against the drone, and the servo's lag (a servo answering its "
+            "pulses milliseconds later than the payload's servo model puts the two sweep directions' points apart); "
+            "do not trust this volume until they are right")
 
 
 def lever_change_warning(mount: MountEstimate | None, lever_m: np.ndarray | None,

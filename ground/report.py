@@ -519,6 +519,7 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
         retime = opts.servo_retiming and before is not None and before > MAX_SWEEP_DISAGREEMENT_M
         early = None if retime else _EarlyChecks(survey.cloud, survey.structure, _placed_checks(survey, err))
         first = None if retime else ahead.result()
+    # The floor and walls may call for the re-timing too: they show a servo timing offset (`structure_timing`).
     timed_by_building = (first is not None and opts.servo_retiming and before is not None
                          and structure_timing(first.pose) is not None)
     if first is not None and not timed_by_building:
@@ -540,12 +541,11 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
     timed = repack_fields(samples[["t_s", "servo_rad", "sweep_dir"]])
     timing = estimate_servo_timing(timed, disagreement, before, motion, floor_m=floor or 0.0,
                                    threads=cores_available())
-    if timed_by_building and not (timing is not None and (timing.delay_s, timing.gain) != (0.0, 1.0)
-                                  and timing.disagreement_after_m + (floor or 0.0) < before):
-        # The pile's sweeps do not confirm the offset the building showed (a drift swamps them: the same pile seen
-        # at other times, on other passes): the building's own, a dead time, kept if it fits the building better.
+    if timed_by_building:
+        confirmed = (timing is not None and (timing.delay_s, timing.gain) != (0.0, 1.0)
+                     and timing.disagreement_after_m + (floor or 0.0) < before)
         return _retimed_by_building(survey, samples, header, storage, frame, lever, opts, err, spikes, mount, first,
-                                    motion, checked, timing), early
+                                    motion, checked, timing, confirmed), early
     if timing is None or timing.disagreement_after_m > MAX_SWEEP_DISAGREEMENT_M:
         return replace(survey, servo_timing=timing), None
     retimed = motion.apply(samples, timing.delay_s, timing.gain)
@@ -557,19 +557,25 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
 def _retimed_by_building(survey: Survey, samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
                          lever: np.ndarray, opts: ReportOptions, err: SensorErrorModel, spikes: SpikeThreshold | None,
                          mount: Boresight, first: _Estimates, motion: ShiftScale | Resimulated, checked: dict,
-                         searched: ServoTiming | None) -> Survey:
-    """The survey with the servo re-timed by the offset the floor and walls showed (`structure_timing`), when that
-    leaves them closer to their planes after the drift's fit than the logged timing did; else the survey as logged,
-    with what the search found (not applied). Why the building's fit judges: it is the measure that found the offset,
-    and one the pile's shape cannot fool (a face seen from opposite sides splits the sweeps as a lag does)."""
+                         searched: ServoTiming | None, confirmed: bool) -> Survey:
+    """The survey with the servo re-timed when the floor and walls called for it (`structure_timing`): by the
+    search's dead time and speed when the pile's sweeps confirmed them, else by the offset the floor and walls
+    showed, as a dead time. Kept when it leaves the floor and walls closer to their planes
+    after the drift's fit than the logged timing did; else the survey as logged, with what the search found (not
+    applied). Why the building judges: it called for the re-timing, and a pile's shape cannot fool it (a face seen
+    from opposite sides splits the pile's sweeps as a lag does)."""
     split = structure_timing(first.pose)
-    retimed = motion.apply(samples, split.delay_s, 1.0)
+    if confirmed:
+        timing, retimed = searched, motion.apply(samples, searched.delay_s, searched.gain)
+    else:
+        retimed = motion.apply(samples, split.delay_s, 1.0)
+        timing = ServoTiming(split.delay_s, 1.0, motion.name, survey.sweep_disagreement_m, math.nan, 0,
+                             building_shift_m=split.shift_m)
     fixed = replace(_survey(retimed, header, storage, frame, lever, opts, err, spikes, mount), **checked)
-    timing = ServoTiming(split.delay_s, 1.0, motion.name, survey.sweep_disagreement_m,
-                         fixed.sweep_disagreement_m if fixed.sweep_disagreement_m is not None else math.nan, 0,
-                         building_shift_m=split.shift_m)
-    fixed = _self_calibrated(replace(fixed, servo_timing=timing, servo_retimed=True), retimed, header, storage, frame,
-                             lever, opts, err, spikes, mount)
+    if timing.building_shift_m is not None and fixed.sweep_disagreement_m is not None:
+        timing = replace(timing, disagreement_after_m=fixed.sweep_disagreement_m)
+    fixed = _self_calibrated(replace(fixed, servo_timing=timing, servo_retimed=True), retimed, header, storage,
+                             frame, lever, opts, err, spikes, mount)
     before, after = first.pose.drift_rms_m, None if fixed.pose is None else fixed.pose.drift_rms_m
     if after is not None and before is not None and after < before:
         return fixed
