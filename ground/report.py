@@ -560,17 +560,17 @@ def _retimed_by_building(survey: Survey, samples: np.ndarray, header: dict, stor
                          searched: ServoTiming | None, confirmed: bool) -> Survey:
     """The survey with the servo re-timed when the floor and walls called for it (`structure_timing`): by the
     search's dead time and speed when the pile's sweeps confirmed them, else by the offset the floor and walls
-    showed, as a dead time. Kept when it leaves the floor and walls closer to their planes
-    after the drift's fit than the logged timing did; else the survey as logged, with what the search found (not
-    applied). Why the building judges: it called for the re-timing, and a pile's shape cannot fool it (a face seen
-    from opposite sides splits the pile's sweeps as a lag does)."""
+    showed, as a dead time. Kept when it leaves the floor and walls closer to their planes after the drift's fit than
+    the logged timing did; else the survey as logged, with what the search found (not applied). Why the building
+    judges: it called for the re-timing, and a pile's shape cannot fool it (a face seen from opposite sides splits the
+    pile's sweeps as a lag does)."""
     split = structure_timing(first.pose)
     if confirmed:
         timing, retimed = searched, motion.apply(samples, searched.delay_s, searched.gain)
     else:
         retimed = motion.apply(samples, split.delay_s, 1.0)
-        timing = ServoTiming(split.delay_s, 1.0, motion.name, survey.sweep_disagreement_m, math.nan, 0,
-                             building_shift_m=split.shift_m)
+        timing = ServoTiming(split.delay_s, 1.0, motion.name, survey.sweep_disagreement_m,
+                             survey.sweep_disagreement_m, 0, building_shift_m=split.shift_m)  # after: below
     fixed = replace(_survey(retimed, header, storage, frame, lever, opts, err, spikes, mount), **checked)
     if timing.building_shift_m is not None and fixed.sweep_disagreement_m is not None:
         timing = replace(timing, disagreement_after_m=fixed.sweep_disagreement_m)
@@ -608,8 +608,9 @@ class _Estimates:
     pose: PoseCorrection | None
     joint: bool = False
     cut_for_timing: bool = False
-    """The pose left unexplained without the mount fitted beside a drift, because the floor and walls show a servo
-    timing offset (`structure_timing`), which the report tries first (`_first_estimates`' timing_first)."""
+    """The first estimates stopped before the mount fitted beside a drift they would have tried next, because the
+    floor and walls show a servo timing offset (`structure_timing`), which the report re-times first
+    (`_first_estimates`' timing_first)."""
 
 
 def _mount_of(s: np.ndarray, lever: np.ndarray, frame: StorageFrame, storage: Storage, err: SensorErrorModel,
