@@ -79,7 +79,7 @@ class TimingSplit:
 
     misfit_m: float  # the robust RMS of the distances once the offset is taken out
     delay_s: float  # the offset: the beam reached each logged angle this much after the log says (negative: before)
-    delay_sigma_s: float = math.inf  # its standard error (least squares over the points it was fitted on)
+    delay_sigma_s: float = math.inf  # its standard error: least squares', or the flight's stretches' if larger
     shift_m: float = 0.0  # the RMS the offset moves those points along their planes' normals: what it matters
 
     def significant(self, n_sigma: float, noise_m: float) -> bool:
@@ -104,10 +104,10 @@ def beside_a_servo_delay(t_s: np.ndarray, beam_w: np.ndarray, r: np.ndarray, pla
     within which a point counts as on its plane for the misfit (None: every point given a plane).
 
     The offset is fitted by least squares on the points within three robust RMS of their plane once it is taken out,
-    from none, in rounds until those points stay the same: a servo 10 ms late puts the walls' points decimetres off,
-    beyond any window of the noise, which a single fit on the points near their planes would leave out, finding
-    almost no offset (docs/design-notes.md, 2026-12-07 eighty-third session). 0 where too few points carry a turn
-    rate."""
+    from none, in rounds until those points stay the same: a servo 3 ms late puts the walls' points centimetres off,
+    beyond three noise levels, and a single fit on the points near their planes found 1.66 ms of it (2.97 in rounds).
+    A lag that puts them beyond the windows the caller gave them planes in (10 ms) is not reached (docs/design-
+    notes.md, 2026-12-07 eighty-third session). 0 where too few points carry a turn rate."""
     on = np.flatnonzero(plane >= 0)
     rr = r[on]
 
