@@ -56,3 +56,18 @@ def robust_rms(r: np.ndarray) -> float:
     """The RMS a normal scatter would have, from the median absolute value (1.4826 MAD about zero): what gross
     outliers among residuals leave alone (0 of nothing)."""
     return float(1.4826 * np.median(np.abs(r))) if len(r) else 0.0
+
+
+JACKKNIFE_BLOCKS = 10
+"""A jackknife over time cuts a flight into this many blocks (the rangefinder share's, `ground.rangefinder_height`, and
+the servo timing offset's, `ground.plane_stretches.beside_a_servo_delay`): as few as leave its variance estimate
+usable (nine degrees of freedom, about ±25 % on the standard error), so that each block is as long as the flight
+allows and holds what is shared over a stretch of it: a leg or two, several sweeps of each direction. (Blocks
+`ground.rangefinder_height.DRIFT_KNOT_S` long were too short on the longer flights: a rangefinder share 6 of their
+errors from the truth.)"""
+
+
+def jackknife_sd(estimates: np.ndarray) -> float:
+    """The delete-one-block jackknife's standard error from the estimates made with each block left out in turn."""
+    w = np.asarray(estimates, dtype=float)
+    return float(np.sqrt((len(w) - 1) / len(w) * np.sum((w - w.mean()) ** 2)))

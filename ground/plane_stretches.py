@@ -18,7 +18,7 @@ import numpy as np
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame, beam_rays_w, premultiply, rot_body_to_ned
 from firmware_py.core.samplelog import EXCLUDE_FROM_CLOUD
 from firmware_py.core.storage import Storage
-from ground.group_stats import robust_rms
+from ground.group_stats import JACKKNIFE_BLOCKS, jackknife_sd, robust_rms
 
 
 @dataclass(frozen=True)
@@ -64,10 +64,6 @@ MAX_GAP_STEPS = 4.0
 apart (a gap: flagged samples between them, or the stride of a thinned cloud across a pause)."""
 
 
-TIMING_STRETCHES = 10
-"""Stretches of the flight the servo timing offset's jackknife leaves out in turn: a tenth of a survey is a leg or
-two, long enough to hold several sweeps of each direction, and ten leaves its standard error with nine degrees of
-freedom."""
 TIMING_ROUNDS = 20
 """At most this many rounds of `beside_a_servo_delay`'s fit (each keeps the points near their planes once the offset
 found so far is out); it stops earlier when they stay the same."""
@@ -145,16 +141,16 @@ def beside_a_servo_delay(t_s: np.ndarray, beam_w: np.ndarray, r: np.ndarray, pla
     n_kept = int(np.count_nonzero(keep))
     sigma = math.sqrt(float(np.sum(left[keep] ** 2)) / max(n_kept - 1, 1) / den)
     # The points' residuals are not independent (what a drift or a mount leaves runs along the walls for seconds),
-    # so the standard error is also taken from the flight's stretches (a jackknife over TIMING_STRETCHES stretches of
+    # so the standard error is also taken from the flight's stretches (a jackknife over JACKKNIFE_BLOCKS stretches of
     # time, each left out in turn): an offset that a mount's error projects onto the turn rate changes from stretch to
     # stretch, a servo's lag does not (docs/design-notes.md, 2026-12-07 eighty-third session).
-    sigma = max(sigma, jackknife_sigma(a[keep], rr[keep], TIMING_STRETCHES))
+    sigma = max(sigma, slope_jackknife_sd(a[keep], rr[keep], JACKKNIFE_BLOCKS))
     return TimingSplit(misfit(left), tau, sigma, abs(tau) * math.sqrt(den / n_kept))
 
 
-def jackknife_sigma(a: np.ndarray, r: np.ndarray, n_groups: int) -> float:
-    """The delete-one-group jackknife's standard error of the least-squares slope of r on a (no intercept), over
-    n_groups consecutive groups of the points in their order (0 when too few points or groups)."""
+def slope_jackknife_sd(a: np.ndarray, r: np.ndarray, n_groups: int) -> float:
+    """The delete-one-group jackknife's standard error (`jackknife_sd`) of the least-squares slope of r on a (no
+    intercept), over n_groups consecutive groups of the points in their order (0 when too few points or groups)."""
     if len(a) < 2 * n_groups or n_groups < 2:
         return 0.0
     g = np.arange(len(a)) * n_groups // len(a)
@@ -163,8 +159,7 @@ def jackknife_sigma(a: np.ndarray, r: np.ndarray, n_groups: int) -> float:
     rest = saa.sum() - saa
     if not np.all(rest > 0):
         return 0.0
-    slopes = (sar.sum() - sar) / rest
-    return float(math.sqrt((n_groups - 1) / n_groups * np.sum((slopes - slopes.mean()) ** 2)))
+    return jackknife_sd((sar.sum() - sar) / rest)
 
 
 def nearest_plane(p: np.ndarray, n: np.ndarray, d: np.ndarray, window: float | np.ndarray,

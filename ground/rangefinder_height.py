@@ -29,7 +29,7 @@ from scipy.ndimage import distance_transform_edt
 
 from firmware_py.core.frames import SQUARE, Boresight, StorageFrame
 from firmware_py.core.storage import Storage
-from ground.group_stats import group_median
+from ground.group_stats import JACKKNIFE_BLOCKS, group_median, jackknife_sd
 from ground.pointcloud import cloud_from_samples
 
 CELL_M = 1.0
@@ -54,11 +54,6 @@ MIN_POINTS = 3
 STEP_S = 0.1
 """The time grid of the EKF's lag (`_lowpass`) and of the lift over time in the report: on it the reported lift is
 the lift the samples got, linear between (a lag of 0 s leaves the ground below's steps, which it rounds off)."""
-JACKKNIFE_BLOCKS = 10
-"""The jackknife over time (`_Crossings.block_sigma`) cuts a flight into this many blocks, each a tenth of the cells'
-sightings: as few as leave its variance estimate usable (nine degrees of freedom, about ±25 % on the standard
-error), so that each block is as long as the flight allows and holds what is shared over a stretch of it.
-(Blocks DRIFT_KNOT_S long were too short on the longer flights: a share 6 of their errors from the truth.)"""
 
 
 @dataclass(frozen=True)
@@ -263,8 +258,7 @@ class _Crossings:
             ws.append(float(np.linalg.lstsq(design[keep], dz[keep], rcond=None)[0][0]))
         if len(ws) < 3:  # too few blocks left to say anything: no share is believed
             return math.inf
-        w = np.asarray(ws)
-        return float(math.sqrt((len(w) - 1) / len(w) * np.sum((w - w.mean()) ** 2)))
+        return jackknife_sd(np.asarray(ws))
 
 
 def _lowpass(x: np.ndarray, t_s: np.ndarray, tau_s: float) -> np.ndarray:

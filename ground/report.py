@@ -520,9 +520,9 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
         early = None if retime else _EarlyChecks(survey.cloud, survey.structure, _placed_checks(survey, err))
         first = None if retime else ahead.result()
     # The floor and walls may call for the re-timing too: they show a servo timing offset (`structure_timing`).
-    timed_by_building = (first is not None and opts.servo_retiming and before is not None
-                         and structure_timing(first.pose) is not None)
-    if first is not None and not timed_by_building:
+    split = (structure_timing(first.pose) if first is not None and opts.servo_retiming and before is not None
+             else None)
+    if first is not None and split is None:
         return _self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes, mount, first), early
 
     posed = posed_beams(samples, lever, frame, spike_threshold=spikes)  # the search changes the servo's fields only
@@ -541,11 +541,11 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
     timed = repack_fields(samples[["t_s", "servo_rad", "sweep_dir"]])
     timing = estimate_servo_timing(timed, disagreement, before, motion, floor_m=floor or 0.0,
                                    threads=cores_available())
-    if timed_by_building:
+    if split is not None:
         confirmed = (timing is not None and (timing.delay_s, timing.gain) != (0.0, 1.0)
                      and timing.disagreement_after_m + (floor or 0.0) < before)
         return _retimed_by_building(survey, samples, header, storage, frame, lever, opts, err, spikes, mount, first,
-                                    motion, checked, timing, confirmed), early
+                                    split, motion, checked, timing, confirmed), early
     if timing is None or timing.disagreement_after_m > MAX_SWEEP_DISAGREEMENT_M:
         return replace(survey, servo_timing=timing), None
     retimed = motion.apply(samples, timing.delay_s, timing.gain)
@@ -556,15 +556,14 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
 
 def _retimed_by_building(survey: Survey, samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
                          lever: np.ndarray, opts: ReportOptions, err: SensorErrorModel, spikes: SpikeThreshold | None,
-                         mount: Boresight, first: _Estimates, motion: ShiftScale | Resimulated, checked: dict,
-                         searched: ServoTiming | None, confirmed: bool) -> Survey:
-    """The survey with the servo re-timed when the floor and walls called for it (`structure_timing`): by the
+                         mount: Boresight, first: _Estimates, split: TimingSplit, motion: ShiftScale | Resimulated,
+                         checked: dict, searched: ServoTiming | None, confirmed: bool) -> Survey:
+    """The survey with the servo re-timed when the floor and walls called for it (split: `structure_timing`): by the
     search's dead time and speed when the pile's sweeps confirmed them, else by the offset the floor and walls
     showed, as a dead time. Kept when it leaves the floor and walls closer to their planes after the drift's fit than
     the logged timing did; else the survey as logged, with what the search found (not applied). Why the building
     judges: it called for the re-timing, and a pile's shape cannot fool it (a face seen from opposite sides splits the
     pile's sweeps as a lag does)."""
-    split = structure_timing(first.pose)
     if confirmed:
         timing, retimed = searched, motion.apply(samples, searched.delay_s, searched.gain)
     else:
