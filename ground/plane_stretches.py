@@ -89,7 +89,8 @@ class TimingSplit:
 
 
 def beside_a_servo_delay(t_s: np.ndarray, beam_w: np.ndarray, r: np.ndarray, plane: np.ndarray,
-                         normals: np.ndarray, window_m: float | None = None) -> TimingSplit:
+                         normals: np.ndarray, window_m: float | None = None,
+                         groups: np.ndarray | None = None) -> TimingSplit:
     """The points' distances from their planes with a servo timing offset fitted beside them. Why: a beam whose servo
     lags the angle logged for it by tau is placed r (d(t) - d(t - tau)) ~ r d' tau off, d' the beam's turn rate,
     which flips with the sweep's direction: no drift of the pose explains it (it moves the points of one sweep
@@ -103,7 +104,11 @@ def beside_a_servo_delay(t_s: np.ndarray, beam_w: np.ndarray, r: np.ndarray, pla
     from none, in rounds until those points stay the same: a servo 3 ms late puts the walls' points centimetres off,
     beyond three noise levels, and a single fit on the points near their planes found 1.66 ms of it (2.97 in rounds).
     A lag that puts them beyond the windows the caller gave them planes in (10 ms) is not reached (docs/design-
-    notes.md, 2026-12-07 eighty-third session). 0 where too few points carry a turn rate."""
+    notes.md, 2026-12-07 eighty-third session) by the distances a drift's fit leaves; with groups (per point, an
+    integer: its knot interval and plane), it is fitted on distances no fit has touched, each group's points about
+    their own mean (the within-group estimator): a drift moves a plane's points in a knot interval together, a lag
+    moves the two sweep directions' apart, so the offset is found before, and without, the drift's fit (a 10 ms lag
+    under a `flow` drift: 9.8 ms). 0 where too few points carry a turn rate."""
     on = np.flatnonzero(plane >= 0)
     rr = r[on]
 
@@ -126,13 +131,26 @@ def beside_a_servo_delay(t_s: np.ndarray, beam_w: np.ndarray, r: np.ndarray, pla
     rate = np.zeros((len(t_s), 3))
     rate[i] = (unit(beam_w[i + 1]) - unit(beam_w[i - 1])) / dt[ok, None]
     a = np.linalg.norm(beam_w[on], axis=1) * np.einsum("ij,ij->i", normals[plane[on]], rate[on])
+    # a point without a turn rate says nothing of the offset, nor, with groups, may it set its group's mean
+    turned = rate[on].any(axis=1) if groups is not None else np.ones(len(on), dtype=bool)
+    if groups is not None:
+        _, g = np.unique(np.asarray(groups)[on], return_inverse=True)
+    a0, r0 = a, rr
+
+    def about_groups(v: np.ndarray, kept: np.ndarray) -> np.ndarray:
+        w = kept.astype(float)
+        return v - (np.bincount(g, v * w) / np.maximum(np.bincount(g, w), 1.0))[g]
     tau, keep, den = 0.0, None, 0.0
     for _ in range(TIMING_ROUNDS):
+        if groups is not None and keep is not None:
+            a, rr = about_groups(a0, keep), about_groups(r0, keep)
         left = rr - a * tau
-        now = np.abs(left) <= 3.0 * max(robust_rms(left), 1e-12)
+        now = (np.abs(left) <= 3.0 * max(robust_rms(left[turned]), 1e-12)) & turned
         if keep is not None and np.array_equal(now, keep):
             break
         keep = now
+        if groups is not None:
+            a, rr = about_groups(a0, keep), about_groups(r0, keep)
         den = float(np.sum(a[keep] ** 2))
         if not den > 0:
             return plain
@@ -146,6 +164,18 @@ def beside_a_servo_delay(t_s: np.ndarray, beam_w: np.ndarray, r: np.ndarray, pla
     # stretch, a servo's lag does not (docs/design-notes.md, 2026-12-07 eighty-third session).
     sigma = max(sigma, slope_jackknife_sd(a[keep], rr[keep], JACKKNIFE_BLOCKS))
     return TimingSplit(misfit(left), tau, sigma, abs(tau) * math.sqrt(den / n_kept))
+
+
+def angle_bins(servo_rad: np.ndarray) -> np.ndarray:
+    """Each sample's bin of the logged servo angle (0, 1, ...), two median steps between consecutive samples wide: a
+    sweep leaves a point or two in each, so a bin holds both sweep directions' points at the same logged angle, where
+    a mount's error is the same and a servo's lag is not (`beside_a_servo_delay`'s groups)."""
+    a = np.asarray(servo_rad, dtype=float)
+    if len(a) == 0:
+        return np.zeros(0, dtype=np.int64)
+    steps = np.abs(np.diff(a))
+    width = 2.0 * float(np.median(steps[steps > 0])) if (steps > 0).any() else 1.0
+    return np.floor((a - a.min()) / width).astype(np.int64)
 
 
 def slope_jackknife_sd(a: np.ndarray, r: np.ndarray, n_groups: int) -> float:

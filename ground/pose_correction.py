@@ -91,6 +91,7 @@ from ground.plane_stretches import (
     INSIDE_SIGN,
     Beams,
     TimingSplit,
+    angle_bins,
     beams,
     beside_a_servo_delay,
     body_axes_w,
@@ -221,6 +222,11 @@ class PoseCorrection:
     beside_a_servo_delay`), when the fit got that far: the report re-times the servo when it is significant and
     matters (`TimingSplit.significant`), which the pile seen on opposite sweeps, its usual trigger, shows only for
     large offsets."""
+    servo_delay_raw: TimingSplit | None = None
+    """The same offset fitted on the floor's and walls' points as logged, each knot interval's points on a plane about
+    their own mean (`beside_a_servo_delay` with groups), when the fit got that far: a lag of several milliseconds puts
+    the walls decimetres off, beyond the windows the drift's fit gives its points planes in, where `servo_delay` no
+    longer sees it."""
     lever_change_m: tuple[float, float] | None = None
     """The LiDAR's lever arm moved by this much (body forward, right; m) puts the floor and walls on their planes as
     well as a drift's correction does (`lever_shift`): a lever arm entered off. Applied in place of the knots (which
@@ -286,7 +292,28 @@ class PoseCorrection:
                 "closest_wall": None if self.closest_wall is None else dict(
                     zip(("distance_m", "surface", "t_s", "since_start_s"), self.closest_wall, strict=True)),
                 "sweep_heights": None if self.sweep_heights is None else self.sweep_heights.as_dict(),
-                "servo_delay": None if self.servo_delay is None else self.servo_delay.as_dict()}
+                "servo_delay": None if self.servo_delay is None else self.servo_delay.as_dict(),
+                "servo_delay_raw": None if self.servo_delay_raw is None else self.servo_delay_raw.as_dict()}
+
+
+FINAL_WINDOW_NOISE = 3.0
+"""The drift's fit narrows its windows down to this many noise levels (its last window; a point within BAND of them is
+on its plane)."""
+
+
+def timing_as_logged(pose: PoseCorrection) -> TimingSplit | None:
+    """The servo timing offset on the floor and walls as logged (`PoseCorrection.servo_delay_raw`) where the one beside
+    the drift's fit cannot see it: that fit was not made (too few points near their planes), or the offset moves the
+    points further than its last windows reach. Else None: as logged, a knot interval's drift between the two sweep
+    directions' sightings of one angle reads as a few tenths of a millisecond (measured on the pose campaigns' 76
+    drifting flights without a lag: up to 0.73 ms at 8.6 standard errors, moving the points 0.8 cm; the drift's fit
+    there read 0.00-0.03 ms)."""
+    raw = pose.servo_delay_raw
+    if raw is None:
+        return None
+    if pose.servo_delay is None or raw.shift_m > BAND * FINAL_WINDOW_NOISE * pose.noise_m:
+        return raw
+    return None
 
 
 TIMING_SHARE = 0.5
@@ -641,7 +668,17 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     # Only the planes the vote found in a knot interval hold it: where the floor is hidden (under a pile),
     # a flat part of the pile near where the floor would be must not pass for it.
     b = replace(b, parallel=b.parallel & found[k])
-    final = 3.0 * noise
+    # The servo's timing offset on the points as logged, on the planes the start found them near (the vote's reach),
+    # each knot interval's points on a plane at one logged angle (`angle_bins`) about their own mean: that takes the
+    # drift out without its fit, so a lag that puts the walls beyond the fit's windows, or leaves too few points in
+    # them for a fit at all, is found (`beside_a_servo_delay`). The angle's part: a mount's error is the same at one
+    # angle both ways, a lag opposite (within a knot interval and plane alone a servo 3 deg off read as 4 ms of lag).
+    j_raw, r_raw = nearest_plane(p0, n, d, opts.max_position_error_m, b.parallel)
+    bins = angle_bins(samples["servo_rad"][usable(samples)][::stride])
+    timed_raw = (beside_a_servo_delay(b.t_s, b.to_point_w, r_raw, j_raw, n,
+                                      groups=(k * len(d) + j_raw) * (int(bins.max()) + 1) + bins)
+                 if len(bins) == len(b.t_s) and len(bins) else None)  # (placed elsewhere: not these samples')
+    final = FINAL_WINDOW_NOISE * noise
     j_fit, _ = nearest_plane(corrected_points(b, x, k, f)[0], n, d, BAND * sensor_m, b.parallel)
     jf = np.maximum(j_fit, 0)
 
@@ -694,7 +731,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     counts = tuple(int(np.count_nonzero(j1 == i)) for i in range(5))
     if np.count_nonzero(j_fit >= 0) < opts.min_structure_points:  # the start's: the floor's height comes later
         return not_applied(f"too few points on the floor and walls ({int(np.count_nonzero(j_fit >= 0))}) to correct "
-                           "the pose", points=counts)
+                           "the pose", points=counts, noise_m=noise, servo_delay_raw=timed_raw)
     z_info = None
     tied: np.ndarray | None = None  # per knot interval, whether the height is tied to the floor (`floor_anchored`)
     first_refused: str | None = None  # why the height solved before the registration was refused
@@ -873,7 +910,7 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     needed = n_free + opts.n_significant * math.sqrt(2.0 * max(n_free, 1))
     common = dict(notes=tuple(notes), points=counts, rms_before_m=robust_rms(r_before),
                   rms_after_m=robust_rms(r1[on]), noise_m=noise, gain=gain, gain_needed=needed, cell_m=cell_m,
-                  step_sigma=step, drift_rms_m=drift_misfit, servo_delay=timed)
+                  step_sigma=step, drift_rms_m=drift_misfit, servo_delay=timed, servo_delay_raw=timed_raw)
     if drift_misfit > MAX_MISFIT * noise:
         # No drift explains a servo timing offset, nor is it a mounting error; a fraction of a millisecond held
         # flights at this bound (docs/design-notes.md, 2026-12-07). Judged beside it, and said, it is no reason to

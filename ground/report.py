@@ -60,6 +60,7 @@ from ground.pose_correction import (
     PoseCorrection,
     apply_pose_correction,
     estimate_pose_correction,
+    timing_as_logged,
     with_closest_wall,
 )
 from ground.pose_decisions import explains_more
@@ -575,24 +576,29 @@ def _retimed_by_building(survey: Survey, samples: np.ndarray, header: dict, stor
         timing = replace(timing, disagreement_after_m=fixed.sweep_disagreement_m)
     fixed = _self_calibrated(replace(fixed, servo_timing=timing, servo_retimed=True), retimed, header, storage,
                              frame, lever, opts, err, spikes, mount)
+    # (a lag that left too few of their points near them for a drift's fit at all is judged by the fit it allows)
     before, after = first.pose.drift_rms_m, None if fixed.pose is None else fixed.pose.drift_rms_m
-    if after is not None and before is not None and after < before:
+    if after is not None and (before is None or after < before):
         return fixed
     return replace(_self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes, mount,
                                     None if first.cut_for_timing else first), servo_timing=searched)
 
 
-def structure_timing(pose: PoseCorrection | None) -> TimingSplit | None:
+def structure_timing(pose: PoseCorrection | None, as_logged: bool = True) -> TimingSplit | None:
     """The servo timing offset the floor and walls show beside the drift's fit (`PoseCorrection.servo_delay`) when
     it is measured and matters (`TimingSplit.significant`: N_SIGNIFICANT standard errors, and it moves their points by
     more than the data's noise); None otherwise. Why: the servo's re-timing runs when the pile seen on opposite sweeps
     disagrees by more than MAX_SWEEP_DISAGREEMENT_M, which a servo a few milliseconds late does not reach, yet it
     moves the points at 20 m by centimetres to decimetres, the walls and the floor the two sweep directions opposite
     ways (measured: docs/design-notes.md, 2026-12-07 eighty-third session)."""
-    if pose is None or pose.servo_delay is None:
+    if pose is None:
         return None
-    split = pose.servo_delay
-    return split if split.significant(N_SIGNIFICANT, pose.noise_m) else None
+    # beside the drift's fit first (the finer: its points are on their planes); failing that, on the points as logged,
+    # where that fit cannot see it (`timing_as_logged`: a lag that puts the walls beyond its windows)
+    for split in (pose.servo_delay, timing_as_logged(pose) if as_logged else None):
+        if split is not None and split.significant(N_SIGNIFICANT, pose.noise_m):
+            return split
+    return None
 
 
 @dataclass(frozen=True)
@@ -678,7 +684,7 @@ def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame:
         beside_drift = partial(_mount_with_drift, samples, samples if unlifted is None else unlifted, header, storage,
                                frame, lever, opts, err, mount, share_taken_out)
         joint_next = calibrating and (pose.unexplained or (pose.applied and est is not None and est.unexplained))
-        if joint_next and timing_first and structure_timing(pose) is not None:
+        if joint_next and timing_first and structure_timing(pose, as_logged=False) is not None:
             # The floor and walls show a servo timing offset: the report re-times the servo first (`_retimed_by_
             # building`), as a mount fitted with a drift beside it takes up part of it (a servo 3 ms late under a
             # `flow` drift with the datasheet's noise: a servo scale of +2.7 % applied and the offset gone from the

@@ -112,3 +112,53 @@ def test_that_a_servo_offset_the_same_both_ways_is_not_taken_for_a_timing_offset
     t, beam, z, plane = _floor_sweeps(0.0, offset_rad=math.radians(0.2))
     split = plane_stretches.beside_a_servo_delay(t, beam, z, plane, n)
     assert abs(split.delay_s) < 2e-5 and split.misfit_m > 0.9 * plane_stretches.robust_rms(z)
+
+
+def _knot_and_angle_groups(t: np.ndarray, beam: np.ndarray, spacing_s: float = 1.0) -> np.ndarray:
+    """Each point's group as the pose correction forms them: its knot interval (spacing_s) and logged angle's bin."""
+    bins = plane_stretches.angle_bins(np.arctan2(beam[:, 1], -beam[:, 2]))
+    return (t // spacing_s).astype(np.int64) * (int(bins.max()) + 1) + bins
+
+
+def test_that_a_lag_is_found_on_the_planes_as_logged_with_each_knot_interval_and_angle_about_its_own_mean():
+    """The pose correction fits this offset on the floor and walls as logged, before any drift is fitted: their points
+    lie a drift off their planes, a metre from one knot interval to the next. Each knot interval's points at one logged
+    angle about their own mean, the drift goes, and a 10 ms lag is found whole."""
+    n, _ = planes(STORAGE)
+    t, beam, z, plane = _floor_sweeps(0.010)
+    steps = np.random.default_rng(1).uniform(-1.0, 1.0, 8)[(t // 1.0).astype(int)]
+    split = plane_stretches.beside_a_servo_delay(t, beam, z + steps, plane, n, groups=_knot_and_angle_groups(t, beam))
+    assert split.delay_s == pytest.approx(0.010, rel=0.02)
+    assert split.significant(3.0, 0.01)
+    assert split.misfit_m < 0.05 * plane_stretches.robust_rms(z + steps)
+
+
+def test_that_a_servo_offset_or_scale_is_not_taken_for_a_lag_when_each_angle_is_its_own_group():
+    """A servo off or over-scaled puts a point at one logged angle the same distance off whichever way it swept; a
+    lag does not. Grouped by knot interval alone (here 3 s of a 0.6 Hz sweep, the floor seen out to 1.3 rad), the
+    two directions do not see each angle equally often and a 3 deg offset reads as 4 ms of lag; at one angle, as
+    nothing."""
+    n, _ = planes(STORAGE)
+    t = np.arange(0.0, 12.0, 0.002)
+    logged = np.arcsin(np.sin(2 * np.pi * 0.6 * t)) * (2.0 / np.pi) * 1.4
+    interval = (t // 3.0).astype(np.int64)
+    bins = plane_stretches.angle_bins(logged)
+    for offset_rad, scale in ((math.radians(3.0), 1.0), (0.0, 1.05)):
+        true = logged * scale + offset_rad
+        beam = (12.0 / np.cos(true))[:, None] * np.column_stack([np.zeros_like(t), np.sin(logged), -np.cos(logged)])
+        z = 12.0 + beam[:, 2] + 0.3 * np.sin(t / 3.0)  # and a drift
+        plane = np.where(np.abs(true) < 1.3, 0, -1)
+        by_interval, by_angle = (plane_stretches.beside_a_servo_delay(t, beam, z, plane, n, groups=g)
+                                 for g in (interval, interval * (int(bins.max()) + 1) + bins))
+        assert by_interval.significant(3.0, 0.01), (offset_rad, scale)  # what the angle's groups are for
+        assert not by_angle.significant(3.0, 0.01), (offset_rad, scale)
+
+
+def test_that_angle_bins_hold_both_sweep_directions():
+    t = np.arange(0.0, 2.0, 0.002)
+    angle = np.arcsin(np.sin(2 * np.pi * 2.0 * t)) * (2.0 / np.pi)
+    bins = plane_stretches.angle_bins(angle)
+    up = np.gradient(angle) > 0
+    both = np.intersect1d(bins[up], bins[~up])
+    assert len(both) >= 0.9 * len(np.unique(bins)) and bins.min() == 0
+    assert len(plane_stretches.angle_bins(np.zeros(0))) == 0 and np.all(plane_stretches.angle_bins(np.ones(5)) == 0)

@@ -2,6 +2,8 @@
 sample with a pose it cannot vouch for, loses nothing but the unfinished block at a power cut, and the
 ground station leaves out (and says so) what a stuck or mis-modelled servo produced."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -24,20 +26,20 @@ CFG = FlyConfig(mission=Mission(storage=Storage(20, 14, 10), p_traj=0.2, altitud
                 stockpile="1", payload="firmware")
 
 
-def fly(tmp_path, signing_key=None, survey=True, **faults):
+def fly(tmp_path, signing_key=None, survey=True, cfg=CFG, **faults):
     """The flight with these faults: its run, samples, and (unless survey=False: a test of the log and its tags
     alone) the ground station's survey and volume error."""
-    wf = CFG.servo_waveform()
-    header = log_header(CFG, wf)
-    run = fly_firmware(CFG, tmp_path / "s.pslog", header, faults=FaultSpec(seed=3, **faults), seed=3,
+    wf = cfg.servo_waveform()
+    header = log_header(cfg, wf)
+    run = fly_firmware(cfg, tmp_path / "s.pslog", header, faults=FaultSpec(seed=3, **faults), seed=3,
                        signing_key=signing_key)
     log = read_samplelog(tmp_path / "s.pslog")
     s, header = log.samples, log.header  # the runner adds the servo calibration and the sweep's start
     if not survey:
         return run, s, None, None
-    sv = survey_from_samples(s, header, CFG.mission.storage, CFG.frame, np.array(CFG.lever_arm_body_m),
+    sv = survey_from_samples(s, header, cfg.mission.storage, cfg.frame, np.array(cfg.lever_arm_body_m),
                              ReportOptions(plots=False))
-    ve = volume_error_pct(grid_volume(sv.heights, sv.grid), resolve("1", CFG.mission.storage).volume_m3)
+    ve = volume_error_pct(grid_volume(sv.heights, sv.grid), resolve("1", cfg.mission.storage).volume_m3)
     return run, s, sv, ve
 
 
@@ -151,6 +153,21 @@ def test_that_a_servo_a_few_milliseconds_late_is_re_timed_from_the_floor_and_wal
     assert abs(st.delay_s - 0.003) <= 0.0005 and st.gain == 1.0
     assert abs(sv.pose.servo_delay.delay_s) < 0.5e-3  # what the re-timed samples leave on the planes
     assert abs(ve - clean[3]) < 0.1
+
+
+def test_that_a_servo_ten_milliseconds_late_is_re_timed_from_the_floor_and_walls_as_logged(tmp_path):
+    """In a larger building (40 x 25 m at 7 m, 3 m/s) 10 ms moves the walls' far points decimetres, and so few are left
+    near their planes that the drift's fit is not even tried: the offset beside it is never fitted. The floor and
+    walls as logged, each knot interval's points on a plane at one logged angle about their own mean, still show it,
+    and the flight comes out as its twin without the lag (before: not re-timed, Ve 0.34 % against the twin's 0.51 %)."""
+    cfg = replace(CFG, mission=Mission(storage=Storage(40, 25, 10), p_traj=0.2, altitude_m=7.0, speed_m_s=3.0))
+    (tmp_path / "clean").mkdir()
+    (tmp_path / "late").mkdir()
+    *_, ve_clean = fly(tmp_path / "clean", cfg=cfg)
+    _run, _s, sv, ve = fly(tmp_path / "late", cfg=cfg, servo_delay_ms=10)
+    assert sv.pose.servo_delay_raw is not None and sv.servo_retimed
+    assert abs(sv.servo_timing.delay_s - 0.010) <= 0.001
+    assert abs(ve - ve_clean) < 0.1
 
 
 def test_that_the_emulated_servo_acts_on_a_pulse_only_after_its_delay():
