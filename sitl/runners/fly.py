@@ -49,7 +49,7 @@ from sitl.sensing.batch_sampler import sample_flight
 from sitl.sensing.pose_drift import PoseErrorProfile
 from sitl.vehicle.ideal_plant import IdealPlant, Trajectory
 from sitl.world import stockpile as piles
-from sitl.world.clearance import closest_approach, collision, f450_reach_m
+from sitl.world.clearance import closest_approach, collision, f450_pile_approach, f450_reach_m, pile_collision
 from sitl.world.raycast import World
 
 log = logging.getLogger(__name__)
@@ -335,7 +335,9 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
             if cfg.faults is not None and cfg.faults.active:
                 say(f"faults injected: {', '.join(cfg.faults.active)}")
             records, duration_s, energy_j = run.records, run.duration_s, run.energy_j
-            approach = closest_approach(run.true_t_s, cfg.frame.ned_to_w(_ned(run.true_states)), storage)
+            t_true, w_true = run.true_t_s, cfg.frame.ned_to_w(_ned(run.true_states))
+            approach = closest_approach(t_true, w_true, storage)
+            world = World(storage, pile, max_range_m=cfg.lidar.max_range_m)  # for the pile's clearance below
             pose_truth = {}
             if run.true_pose_error is not None:
                 t_end = float(run.true_t_s[-1])
@@ -345,7 +347,8 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
             world = World(storage, pile, max_range_m=cfg.lidar.max_range_m)
             flown = fly_trajectory(cfg, tlog_path, world)
             traj, duration_s, energy_j = flown.trajectory, flown.duration_s, flown.energy_j
-            approach = closest_approach(traj.t_s, cfg.frame.ned_to_w(traj.pos_ned_m), storage)
+            t_true, w_true = traj.t_s, cfg.frame.ned_to_w(traj.pos_ned_m)
+            approach = closest_approach(t_true, w_true, storage)
             mount = cfg.faults or FaultSpec()
             records = sample_flight(traj, wf, world, cfg.lidar, cfg.lever_arm_body_m, cfg.frame,
                                     noise=cfg.noise(), seed=cfg.seed, pose_error=flown.pose_error,
@@ -357,12 +360,21 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
             # The batch path writes a finished flight at once: the commit's fsync is enough.
             with SampleLogWriter(log_path, log_header(cfg, wf), records_per_block=500, fsync=False) as w:
                 w.append(records)
+        # And the pile, over the survey (a lockstep flight starts below its first waypoint, which may be in a pile)
+        surveying = np.asarray(t_true, dtype=float) >= float(t_true[-1]) - duration_s
+        pile_near = f450_pile_approach(np.asarray(t_true)[surveying], np.asarray(w_true)[surveying],
+                                       world.heights_below_m)
         crash = collision(approach, f450_reach_m())
         if crash is not None:
             # A real flight ends there; the physics here would fly on through the wall. No survey is written.
             raise RunFailure(f"{crash}" + (f" (it flew on a {cfg.pose_error.value} pose estimate, which drifts: fly "
                                           "with more room from the walls, a larger P_traj, or a better estimate)"
                                           if cfg.pose_error is not PoseErrorProfile.NONE else ""))
+        crash = pile_collision(pile_near)
+        if crash is not None:  # as through a wall
+            raise RunFailure(f"{crash}: fly higher over it" + (
+                f" (it flew on a {cfg.pose_error.value} pose estimate, whose altitude reference drifts)"
+                if cfg.pose_error is not PoseErrorProfile.NONE else ""))
         pile.mesh.export(folder.staged(PILE_FILE))
         write_qgc_wpl(folder.staged(PLAN_FILE), cfg.mission, cfg.frame, cfg.ekf_origin.as_tuple())
         truth = truth_record(pile, cfg.stockpile, cfg.mission, cfg.frame, plant=cfg.plant, payload=cfg.payload,
@@ -373,6 +385,7 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
                              **({"rangefinder": cfg.rangefinder.value}
                                 if cfg.rangefinder is Rangefinder.TFMINI else {}),
                              closest_approach=approach.to_dict() if approach is not None else None,
+                             closest_pile_approach=pile_near.to_dict() if pile_near is not None else None,
                              **noise_header(cfg), **pose_truth)
         folder.staged(TRUTH_FILE).write_text(json.dumps(truth, indent=2) + "\n")
         folder.commit()

@@ -80,7 +80,7 @@ from sitl.vehicle.jsbsim_plant import PlantConfig
 from sitl.vehicle.jsbsim_vehicle import JsbsimVehicle, VehicleConfig
 from sitl.vehicle.kinematic_vehicle import KinematicVehicle
 from sitl.world import stockpile as piles
-from sitl.world.clearance import closest_approach, collision, f450_reach_m
+from sitl.world.clearance import closest_approach, collision, f450_pile_approach, f450_reach_m, pile_collision
 from sitl.world.raycast import World
 
 VEHICLES = ("jsbsim", "kinematic")
@@ -490,9 +490,13 @@ def _serve(opts: ServeOptions, world: World | None, transport, folder: OutputFol
         traj[POSE_ERROR_KEY]["trajectory"]["clock"] = SIMULATOR_CLOCK
         truth.update(traj)
         # A served flight is not stopped at a wall (a real one would be): the approach is kept and a crash said.
-        approach = closest_approach(a[:, 0], cfg.frame.ned_to_w(a[:, 1:4]), cfg.mission.storage)
+        true_w = cfg.frame.ned_to_w(a[:, 1:4])
+        approach = closest_approach(a[:, 0], true_w, cfg.mission.storage)
         truth["closest_approach"] = approach.to_dict() if approach is not None else None
-        crash = collision(approach, f450_reach_m())
+        # and the pile (the vehicle takes off from floor clear of it: `takeoff_spot`)
+        pile_near = f450_pile_approach(a[:, 0], true_w, world.heights_below_m)
+        truth["closest_pile_approach"] = pile_near.to_dict() if pile_near is not None else None
+        crash = collision(approach, f450_reach_m()) or pile_collision(pile_near)
         if crash is not None:
             log.warning("%s: a real flight would have ended there (the survey in %s is not one a vehicle could "
                         "have flown)", crash, out)

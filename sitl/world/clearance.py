@@ -1,11 +1,16 @@
-"""How close the vehicle's true path came to the building: a flight that touches a wall or the roof crashed.
+"""How close the vehicle's true path came to the building and the pile: a flight that touches a wall, the roof or
+the pile crashed.
 
 The autopilot flies on its estimate (`sitl.sensing.pose_drift`), so an estimate a metre off puts the true
 vehicle a metre off the planned path; near a wall that is a collision, which a real flight does not survive
 and the physics here would not stop. `closest_approach` finds the nearest approach to the four walls and the
 roof over the true trajectory; `fly` refuses to write a survey whose vehicle reached a surface
 (within `f450_reach_m`) and records the approach in truth.json. The floor is left out: the vehicle takes off from
-it and lands on it.
+it and lands on it. Over the pile the vertical room matters: an altitude reference that drifts up (a barometer
+indoors) flies the vehicle down by as much, and a mission planned low over a tall pile has little to give;
+`pile_approach` finds how far the vehicle's landing gear (`f450_below_m`) and propellers (`f450_rotor_height_m`)
+stayed above the pile under them, over the survey (a lockstep flight starts below the first waypoint, which may lie
+inside a pile).
 """
 
 from __future__ import annotations
@@ -44,6 +49,46 @@ def f450_reach_m() -> float:
     return reach
 
 
+@cache
+def f450_below_m() -> float:
+    """How far JSBSim's F450 reaches below its centre of gravity: its lowest ground contact (the landing gear), read
+    from the model the `jsbsim` wheel ships (0.152 m)."""
+    import jsbsim
+
+    root = Path(jsbsim.get_default_root_dir()) / "aircraft" / "F450"
+
+    def z_m(loc: ET.Element) -> float:
+        return float(loc.findtext("z")) * UNIT_M[loc.get("unit", "M").upper()]
+    cg = next((loc for loc in ET.parse(root / "Mass.xml").getroot().iter("location") if loc.get("name") == "CG"), None)
+    contacts = [c.find("location") for c in ET.parse(root / "Gear.xml").getroot().iter("contact")]
+    if cg is None or not contacts:
+        raise RuntimeError("the F450 model shipped with jsbsim declares no centre of gravity or no ground contact")
+    below = max(z_m(cg) - z_m(loc) for loc in contacts)
+    if not below > 0:
+        raise RuntimeError("the F450 model's ground contacts are not below its centre of gravity")
+    return below
+
+
+@cache
+def f450_rotor_height_m() -> float:
+    """How far JSBSim's F450's propellers turn above its centre of gravity (the lowest thruster, read from the model the
+    `jsbsim` wheel ships: 0.025 m): out at the propellers' circle, that is the vehicle's underside."""
+    import jsbsim
+
+    root = Path(jsbsim.get_default_root_dir()) / "aircraft" / "F450"
+    heights = [float(loc.findtext("z")) * UNIT_M[loc.get("unit", "M").upper()]
+               for t in ET.parse(root / "Propulsion.xml").getroot().iter("thruster")
+               if (loc := t.find("location")) is not None]
+    if not heights:
+        raise RuntimeError("the F450 model shipped with jsbsim declares no thruster")
+    return min(heights)
+
+
+RIM_POINTS = 8
+"""Points on the propellers' circle (`f450_reach_m`) where the pile under the vehicle is looked at, beside its centre:
+45 deg apart, a pile's crest narrower than the gap between two (0.27 m at the F450's reach) is missed."""
+
+
 @dataclass(frozen=True)
 class Approach:
     """The nearest the true vehicle centre came to a wall or the roof (t_s on the trajectory's clock)."""
@@ -74,3 +119,45 @@ def collision(approach: Approach | None, reach_m: float) -> str | None:
              else f"{approach.distance_m:.2f} m from it")
     return (f"the vehicle hit {approach.surface} at t = {approach.t_s:.0f} s: its true centre came {where}, "
             f"and its propellers reach {reach_m:.2f} m")
+
+
+def pile_approach(t_s: np.ndarray, true_w_m: np.ndarray, heights_below_m, reach_m: float, below_m: float,
+                  rotor_m: float) -> Approach | None:
+    """The nearest the vehicle came to the pile over a true trajectory (storage frame W, (N, 3) m): the least of its
+    landing gear's height above the pile straight below its centre (below_m: how far the gear reaches below the centre)
+    and its propellers' above the highest pile under their circle (RIM_POINTS on the circle of reach_m, the propellers
+    turning rotor_m above the centre); negative: it went into the pile. heights_below_m: (x, y) -> the ground's height
+    below (`sitl.world.raycast.World.heights_below_m`: 0 on the floor). None: no finite position, or no pile taller than
+    the landing gear under the vehicle (the floor, and a pile's thin toe, are where it takes off and lands)."""
+    t = np.asarray(t_s, dtype=float)
+    w = np.asarray(true_w_m, dtype=float).reshape(-1, 3)
+    ok = np.isfinite(w).all(axis=1) & np.isfinite(t)
+    if not ok.any():
+        return None
+    t, w = t[ok], w[ok]
+    ang = np.arange(RIM_POINTS) * (2.0 * math.pi / RIM_POINTS)
+    ring = np.vstack([[0.0, 0.0], reach_m * np.column_stack([np.cos(ang), np.sin(ang)])])  # (1 + RIM_POINTS, 2)
+    xy = (w[:, None, :2] + ring[None, :, :]).reshape(-1, 2)
+    h = np.asarray(heights_below_m(xy), dtype=float).reshape(len(w), len(ring))
+    rim = h[:, 1:].max(axis=1)
+    # material no taller than the landing gear is ground the vehicle stands on, as the floor (a pile's toe thins to
+    # millimetres, and a served flight's take-off spot beside one had its gear 2 mm "into" it, on its springs)
+    gap = np.minimum(np.where(h[:, 0] > below_m, w[:, 2] - below_m - h[:, 0], math.inf),
+                     np.where(rim > below_m, w[:, 2] + rotor_m - rim, math.inf))
+    if not np.isfinite(gap).any():
+        return None
+    i = int(np.argmin(gap))
+    return Approach(float(gap[i]), "the pile", float(t[i]))
+
+
+def f450_pile_approach(t_s: np.ndarray, true_w_m: np.ndarray, heights_below_m) -> Approach | None:
+    """`pile_approach` for JSBSim's F450 (its reach, landing gear and propellers, read from the model)."""
+    return pile_approach(t_s, true_w_m, heights_below_m, f450_reach_m(), f450_below_m(), f450_rotor_height_m())
+
+
+def pile_collision(approach: Approach | None) -> str | None:
+    """Why the flight crashed into the pile (None: its landing gear and propellers stayed above it: `pile_approach`)."""
+    if approach is None or approach.distance_m > 0.0:
+        return None
+    return (f"the vehicle hit the pile at t = {approach.t_s:.0f} s: its landing gear or propellers came "
+            f"{-approach.distance_m:.2f} m into the pile's surface")

@@ -80,6 +80,14 @@ def test_that_no_pose_error_leaves_truth_and_header_as_before(tmp_path):
     assert "pose_error" not in read_samplelog(tmp_path / "samples.pslog").header
 
 
+def test_that_truth_keeps_how_far_the_vehicle_stayed_above_the_pile(flow_run):
+    """Over the survey only: a lockstep flight starts below its first waypoint, which may lie in the pile. The `flow`
+    estimate reads low over the pile, so the vehicle climbs: more room than the plan's 0.5 m, not less."""
+    _, truth, _, _ = flow_run
+    near = truth["closest_pile_approach"]
+    assert near["surface"] == "the pile" and 0.5 - 0.16 < near["distance_m"] < MISSION.altitude_m
+
+
 def test_that_a_flow_flight_that_would_climb_into_the_roof_is_refused(tmp_path):
     with pytest.raises(ValueError, match="roof"):
         fly(FlyConfig(mission=Mission(storage=Storage(30, 20, 10), p_traj=0.2, altitude_m=8.0), plant="ideal",
@@ -125,8 +133,10 @@ def test_that_serve_keeps_the_true_and_estimated_trajectories_on_the_simulators_
     code = serve(ServeOptions(mission=MISSION, url="udp:127.0.0.1:0", duration_s=1.5, out=out,
                               devices_url="tcp:127.0.0.1:0", pose_error="vio"))
     assert code == 0
-    traj = json.loads((out / "truth.json").read_text())["pose_error"]["trajectory"]
+    truth = json.loads((out / "truth.json").read_text())
+    traj = truth["pose_error"]["trajectory"]
     assert traj["clock"] == SIMULATOR_CLOCK
+    assert "closest_pile_approach" in truth and truth["closest_pile_approach"] is None  # on clear floor, no pile under
     t = np.asarray(traj["t_s"])
     assert len(t) >= 10 and 0.0 <= t[0] and t[-1] <= 1.5 + 0.1 and np.all(np.diff(t) > 0)
     true_w, est_w = np.asarray(traj["true_w_m"]), np.asarray(traj["estimated_w_m"])

@@ -1,17 +1,18 @@
-"""sitl.world.clearance: a true path that reaches a wall or the roof is a crash."""
+"""sitl.world.clearance: a true path that reaches a wall, the roof or the pile is a crash."""
 
 import numpy as np
 import pytest
 
 from firmware_py.core.storage import Storage
-from sitl.world.clearance import closest_approach, collision, f450_reach_m
+from sitl.world import clearance
+from sitl.world.clearance import closest_approach, collision, pile_approach, pile_collision
 
 STORAGE = Storage(60.0, 40.0, 15.0)
 
 
 def test_that_the_f450_reaches_its_propeller_tips_from_the_model_jsbsim_ships():
     # hubs at (+-0.1651, +-0.1651) m, 9.4-inch propellers: 0.2335 + 0.1194 m
-    assert f450_reach_m() == pytest.approx(0.3529, abs=1e-3)
+    assert clearance.f450_reach_m() == pytest.approx(0.3529, abs=1e-3)
 
 
 @pytest.mark.parametrize(("point", "surface", "distance"), [
@@ -36,3 +37,39 @@ def test_that_the_floor_is_no_collision_and_only_a_reach_within_the_propellers_i
     why = collision(closest_approach(t, touching, STORAGE), 0.35)
     assert why is not None and "the wall y = 0" in why and "t = 1 s" in why
     assert collision(closest_approach(t, np.full((3, 3), np.nan), STORAGE), 0.35) is None
+
+
+def test_that_the_f450_s_landing_gear_and_propellers_are_read_from_the_model_jsbsim_ships():
+    assert clearance.f450_below_m() == pytest.approx(0.1524, abs=1e-4)  # the ground contacts 6 in under the CG
+    assert clearance.f450_rotor_height_m() == pytest.approx(0.025, abs=1e-4)  # the thrusters 2.5 cm above it
+
+
+def _cone(xy: np.ndarray) -> np.ndarray:
+    """A cone 5 m tall at (30, 20), its sides at 45 deg (5 m radius), the floor (0) elsewhere."""
+    r = np.hypot(xy[:, 0] - 30.0, xy[:, 1] - 20.0)
+    return np.clip(5.0 - r, 0.0, None)
+
+
+def test_that_the_pile_approach_is_the_least_room_under_the_landing_gear_or_the_propellers():
+    t = np.arange(3.0)
+    path = np.array([[10.0, 20.0, 8.0], [30.0, 20.0, 6.0], [50.0, 20.0, 8.0]])
+    a = pile_approach(t, path, _cone, 0.35, 0.15, 0.025)
+    assert a.surface == "the pile" and a.t_s == 1.0
+    assert a.distance_m == pytest.approx(6.0 - 0.15 - 5.0)  # over the apex: the gear, 0.15 m below the centre
+    assert pile_collision(a) is None
+    # the apex 0.3 m aside, under the propellers' circle: the gear clears the 4.7 m below the centre (4.9 - 0.15), the
+    # propellers (4.925 m) not the 4.95 m under the nearest of the circle's points
+    beside = np.array([[30.0, 20.3, 4.9]])
+    hit = pile_approach(np.zeros(1), beside, _cone, 0.35, 0.15, 0.025)
+    assert hit.distance_m == pytest.approx(4.9 + 0.025 - 4.95) and "hit the pile at t = 0 s" in pile_collision(hit)
+
+
+def test_that_a_path_over_the_floor_alone_has_no_pile_approach():
+    t = np.arange(2.0)
+    over_floor = np.array([[2.0, 2.0, 0.0], [3.0, 2.0, 0.5]])  # the take-off, nowhere near the cone
+    assert pile_approach(t, over_floor, _cone, 0.35, 0.15, 0.025) is None
+    assert pile_approach(t, np.full((2, 3), np.nan), _cone, 0.35, 0.15, 0.025) is None
+    # standing on the cone's toe, where it is thinner than the landing gear is tall: ground, as the floor
+    at_toe = np.array([[35.2, 20.0, 0.15], [35.2, 20.0, 0.15]])  # its propellers over 0-0.15 m of it
+    assert pile_approach(t, at_toe, _cone, 0.35, 0.15, 0.025) is None
+    assert pile_collision(None) is None
