@@ -135,6 +135,13 @@ def pile_approach(t_s: np.ndarray, true_w_m: np.ndarray, heights_below_m, reach_
     if not ok.any():
         return None
     t, w = t[ok], w[ok]
+    # a position every quarter reach along the path: the physics' hundreds of states a second cost 0.9 s a flight,
+    # which the test suite paid on every one; the room is then overstated by at most the slope under the centre times
+    # half that step (4 cm on a 45 deg crest, steeper than any material's angle of repose)
+    step = np.concatenate([[0.0], np.linalg.norm(np.diff(w, axis=0), axis=1)])
+    bins = np.floor(np.cumsum(step) / (0.25 * reach_m))
+    keep = np.concatenate([[True], np.diff(bins) > 0]) if len(bins) > 1 else np.ones(len(w), dtype=bool)
+    t, w = t[keep], w[keep]
     ang = np.arange(RIM_POINTS) * (2.0 * math.pi / RIM_POINTS)
     ring = np.vstack([[0.0, 0.0], reach_m * np.column_stack([np.cos(ang), np.sin(ang)])])  # (1 + RIM_POINTS, 2)
     xy = (w[:, None, :2] + ring[None, :, :]).reshape(-1, 2)

@@ -73,3 +73,15 @@ def test_that_a_path_over_the_floor_alone_has_no_pile_approach():
     at_toe = np.array([[35.2, 20.0, 0.15], [35.2, 20.0, 0.15]])  # its propellers over 0-0.15 m of it
     assert pile_approach(t, at_toe, _cone, 0.35, 0.15, 0.025) is None
     assert pile_collision(None) is None
+
+
+def test_that_a_dense_path_is_looked_at_every_quarter_reach_and_loses_little_room():
+    """The physics' states come hundreds a second; a position every quarter reach along the path finds the least room
+    within the slope times half that step (the cone's 45 deg crest: 4 cm)."""
+    n = 20_000
+    path = np.column_stack([np.linspace(20.0, 40.0, n), np.full(n, 20.0), np.full(n, 6.0)])
+    t = np.arange(n) * 0.001
+    dense = pile_approach(t, path, _cone, 0.35, 0.15, 0.025)
+    every = pile_approach(t[::40], path[::40], _cone, 0.35, 0.15, 0.025)  # 2 cm apart
+    assert dense.distance_m == pytest.approx(every.distance_m, abs=0.045)
+    assert 6.0 - 0.15 - 5.0 <= dense.distance_m <= 6.0 - 0.15 - 5.0 + 0.045
