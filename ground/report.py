@@ -590,7 +590,9 @@ def structure_timing(pose: PoseCorrection | None, as_logged: bool = True) -> Tim
     more than the data's noise); None otherwise. Why: the servo's re-timing runs when the pile seen on opposite sweeps
     disagrees by more than MAX_SWEEP_DISAGREEMENT_M, which a servo a few milliseconds late does not reach, yet it
     moves the points at 20 m by centimetres to decimetres, the walls and the floor the two sweep directions opposite
-    ways (measured: docs/design-notes.md, 2026-12-07 eighty-third session)."""
+    ways (measured: docs/design-notes.md, 2026-12-07 eighty-third session). as_logged: failing that one, the offset
+    on the floor and walls as logged where that fit cannot see a lag (`timing_as_logged`); the first estimates' cut
+    asks without it, as before the mount is calibrated it reads a mount's error as a lag (eighty-fourth session)."""
     if pose is None:
         return None
     # beside the drift's fit first (the finer: its points are on their planes); failing that, on the points as logged,

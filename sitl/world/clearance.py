@@ -91,7 +91,8 @@ RIM_POINTS = 8
 
 @dataclass(frozen=True)
 class Approach:
-    """The nearest the true vehicle centre came to a wall or the roof (t_s on the trajectory's clock)."""
+    """The nearest the true vehicle centre came to a wall or the roof, or the least room the vehicle left under it over
+    the pile (`pile_approach`); t_s on the trajectory's clock."""
 
     distance_m: float  # signed: negative beyond the surface (outside the building)
     surface: str  # "the wall x = 0" ...
