@@ -105,10 +105,11 @@ def beside_a_servo_delay(t_s: np.ndarray, beam_w: np.ndarray, r: np.ndarray, pla
     beyond three noise levels, and a single fit on the points near their planes found 1.66 ms of it (2.97 in rounds).
     A lag that puts them beyond the windows the caller gave them planes in (10 ms) is not reached (docs/design-
     notes.md, 2026-12-07 eighty-third session) by the distances a drift's fit leaves; with groups (per point, an
-    integer: its knot interval and plane), it is fitted on distances no fit has touched, each group's points about
-    their own mean (the within-group estimator): a drift moves a plane's points in a knot interval together, a lag
-    moves the two sweep directions' apart, so the offset is found before, and without, the drift's fit (a 10 ms lag
-    under a `flow` drift: 9.8 ms). 0 where too few points carry a turn rate."""
+    integer: the pose correction's are a knot interval, a plane and a logged angle's bin, `by_angle`), it is fitted
+    on distances no fit has touched, each group's points about their own mean (the within-group estimator): a drift
+    moves a plane's points in a knot interval together, a lag moves the two sweep directions' apart, so the offset is
+    found before, and without, the drift's fit (a 10 ms lag under a `flow` drift: 9.8 ms). 0 where too few points
+    carry a turn rate."""
     on = np.flatnonzero(plane >= 0)
     rr = r[on]
 
@@ -142,9 +143,7 @@ def beside_a_servo_delay(t_s: np.ndarray, beam_w: np.ndarray, r: np.ndarray, pla
         return v - (np.bincount(g, v * w) / np.maximum(np.bincount(g, w), 1.0))[g]
     tau, keep, den = 0.0, None, 0.0
     for _ in range(TIMING_ROUNDS):
-        if groups is not None and keep is not None:
-            a, rr = about_groups(a0, keep), about_groups(r0, keep)
-        left = rr - a * tau
+        left = rr - a * tau  # (with groups: about the means of the points the last round kept)
         now = (np.abs(left) <= 3.0 * max(robust_rms(left[turned]), 1e-12)) & turned
         if keep is not None and np.array_equal(now, keep):
             break
@@ -164,6 +163,13 @@ def beside_a_servo_delay(t_s: np.ndarray, beam_w: np.ndarray, r: np.ndarray, pla
     # stretch, a servo's lag does not (docs/design-notes.md, 2026-12-07 eighty-third session).
     sigma = max(sigma, slope_jackknife_sd(a[keep], rr[keep], JACKKNIFE_BLOCKS))
     return TimingSplit(misfit(left), tau, sigma, abs(tau) * math.sqrt(den / n_kept))
+
+
+def by_angle(groups: np.ndarray, servo_rad: np.ndarray) -> np.ndarray:
+    """The groups (integers, per sample) split further by the logged servo angle's bin (`angle_bins`): the groups
+    `beside_a_servo_delay` fits a lag in, where a mount's error, the same at one angle both ways, cancels."""
+    bins = angle_bins(servo_rad)
+    return np.asarray(groups, dtype=np.int64) * (int(bins.max(initial=0)) + 1) + bins
 
 
 def angle_bins(servo_rad: np.ndarray) -> np.ndarray:

@@ -91,10 +91,10 @@ from ground.plane_stretches import (
     INSIDE_SIGN,
     Beams,
     TimingSplit,
-    angle_bins,
     beams,
     beside_a_servo_delay,
     body_axes_w,
+    by_angle,
     nearest_plane,
     neighbour_noise_m,
     planes,
@@ -223,10 +223,10 @@ class PoseCorrection:
     matters (`TimingSplit.significant`), which the pile seen on opposite sweeps, its usual trigger, shows only for
     large offsets."""
     servo_delay_raw: TimingSplit | None = None
-    """The same offset fitted on the floor's and walls' points as logged, each knot interval's points on a plane about
-    their own mean (`beside_a_servo_delay` with groups), when the fit got that far: a lag of several milliseconds puts
-    the walls decimetres off, beyond the windows the drift's fit gives its points planes in, where `servo_delay` no
-    longer sees it."""
+    """The same offset fitted on the floor's and walls' points as logged, each knot interval's points on a plane at one
+    logged angle about their own mean (`beside_a_servo_delay` with groups, `by_angle`), when the fit got that far: a
+    lag of several milliseconds puts the walls decimetres off, beyond the windows the drift's fit gives its points
+    planes in, where `servo_delay` no longer sees it."""
     lever_change_m: tuple[float, float] | None = None
     """The LiDAR's lever arm moved by this much (body forward, right; m) puts the floor and walls on their planes as
     well as a drift's correction does (`lever_shift`): a lever arm entered off. Applied in place of the knots (which
@@ -674,10 +674,9 @@ def estimate_pose_correction(samples: np.ndarray, lever_arm_body_m, frame: Stora
     # them for a fit at all, is found (`beside_a_servo_delay`). The angle's part: a mount's error is the same at one
     # angle both ways, a lag opposite (within a knot interval and plane alone a servo 3 deg off read as 4 ms of lag).
     j_raw, r_raw = nearest_plane(p0, n, d, opts.max_position_error_m, b.parallel)
-    bins = angle_bins(samples["servo_rad"][usable(samples)][::stride])
-    timed_raw = (beside_a_servo_delay(b.t_s, b.to_point_w, r_raw, j_raw, n,
-                                      groups=(k * len(d) + j_raw) * (int(bins.max()) + 1) + bins)
-                 if len(bins) == len(b.t_s) and len(bins) else None)  # (placed elsewhere: not these samples')
+    servo = samples["servo_rad"][usable(samples)][::stride]
+    timed_raw = (beside_a_servo_delay(b.t_s, b.to_point_w, r_raw, j_raw, n, groups=by_angle(k * len(d) + j_raw, servo))
+                 if len(servo) == len(b.t_s) and len(servo) else None)  # (placed elsewhere: not these samples')
     final = FINAL_WINDOW_NOISE * noise
     j_fit, _ = nearest_plane(corrected_points(b, x, k, f)[0], n, d, BAND * sensor_m, b.parallel)
     jf = np.maximum(j_fit, 0)

@@ -685,19 +685,22 @@ def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame:
                         opts.baro_walk_m_per_sqrt_s, placed if corrected is samples and boresight == mount else None)
         beside_drift = partial(_mount_with_drift, samples, samples if unlifted is None else unlifted, header, storage,
                                frame, lever, opts, err, mount, share_taken_out)
-        joint_next = calibrating and (pose.unexplained or (pose.applied and est is not None and est.unexplained))
-        if joint_next and timing_first and structure_timing(pose, as_logged=False) is not None:
+        # the mount fitted beside the drift is tried next when the drift alone did not explain the floor and walls, or
+        # explained them where the mount's own fit was refused (below)
+        unexplained = calibrating and pose.unexplained
+        refused_mount = calibrating and pose.applied and est is not None and est.unexplained
+        if (unexplained or refused_mount) and timing_first and structure_timing(pose, as_logged=False) is not None:
             # The floor and walls show a servo timing offset: the report re-times the servo first (`_retimed_by_
             # building`), as a mount fitted with a drift beside it takes up part of it (a servo 3 ms late under a
             # `flow` drift with the datasheet's noise: a servo scale of +2.7 % applied and the offset gone from the
             # fit, Ve 1.20 % against 0.51 % without the delay; docs/design-notes.md).
             return _Estimates(est, corrected, boresight, pose, cut_for_timing=True)
-        if calibrating and pose.unexplained:
+        if unexplained:
             joint = beside_drift(pose)
             if joint is not None:
                 return _boresight_if_needed(joint, partial(beside_drift, pose, held=BORESIGHT_HELD), lever, frame,
                                             storage, err.angle_sigma_rad)
-        elif calibrating and pose.applied and est is not None and est.unexplained:
+        elif refused_mount:
             # The mount's fit refused because a drift bends the structure, and the drift's fit explained it alone: a
             # mount error the knots took up as a drift (a LiDAR tilted 2 deg moves the points along the track, which
             # the knots follow leg by leg; a sweep yawed 2 deg moves each side's points along the track the other

@@ -116,8 +116,7 @@ def test_that_a_servo_offset_the_same_both_ways_is_not_taken_for_a_timing_offset
 
 def _knot_and_angle_groups(t: np.ndarray, beam: np.ndarray, spacing_s: float = 1.0) -> np.ndarray:
     """Each point's group as the pose correction forms them: its knot interval (spacing_s) and logged angle's bin."""
-    bins = plane_stretches.angle_bins(np.arctan2(beam[:, 1], -beam[:, 2]))
-    return (t // spacing_s).astype(np.int64) * (int(bins.max()) + 1) + bins
+    return plane_stretches.by_angle((t // spacing_s).astype(np.int64), np.arctan2(beam[:, 1], -beam[:, 2]))
 
 
 def test_that_a_lag_is_found_on_the_planes_as_logged_with_each_knot_interval_and_angle_about_its_own_mean():
@@ -142,14 +141,13 @@ def test_that_a_servo_offset_or_scale_is_not_taken_for_a_lag_when_each_angle_is_
     t = np.arange(0.0, 12.0, 0.002)
     logged = np.arcsin(np.sin(2 * np.pi * 0.6 * t)) * (2.0 / np.pi) * 1.4
     interval = (t // 3.0).astype(np.int64)
-    bins = plane_stretches.angle_bins(logged)
     for offset_rad, scale in ((math.radians(3.0), 1.0), (0.0, 1.05)):
         true = logged * scale + offset_rad
         beam = (12.0 / np.cos(true))[:, None] * np.column_stack([np.zeros_like(t), np.sin(logged), -np.cos(logged)])
         z = 12.0 + beam[:, 2] + 0.3 * np.sin(t / 3.0)  # and a drift
         plane = np.where(np.abs(true) < 1.3, 0, -1)
         by_interval, by_angle = (plane_stretches.beside_a_servo_delay(t, beam, z, plane, n, groups=g)
-                                 for g in (interval, interval * (int(bins.max()) + 1) + bins))
+                                 for g in (interval, plane_stretches.by_angle(interval, logged)))
         assert by_interval.significant(3.0, 0.01), (offset_rad, scale)  # what the angle's groups are for
         assert not by_angle.significant(3.0, 0.01), (offset_rad, scale)
 
