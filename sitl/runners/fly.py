@@ -337,7 +337,7 @@ def fly(cfg: FlyConfig, out_dir: str | Path, force: bool = False,
             records, duration_s, energy_j = run.records, run.duration_s, run.energy_j
             t_true, w_true = run.true_t_s, cfg.frame.ned_to_w(_ned(run.true_states))
             approach = closest_approach(t_true, w_true, storage)
-            world = World(storage, pile, max_range_m=cfg.lidar.max_range_m)  # for the pile's clearance below
+            world = run.world  # the flight's own, for the pile's clearance below
             pose_truth = {}
             if run.true_pose_error is not None:
                 t_end = float(run.true_t_s[-1])

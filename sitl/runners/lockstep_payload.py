@@ -325,6 +325,7 @@ class FirmwareRun:
     faults: dict | None = None  # what the fault injector did (counters), when faults were injected
     result: PayloadResult | None = None  # how the payload program ended (None: it lost power)
     true_pose_error: np.ndarray | None = None  # (N, 4) the estimator's error at true_t_s (None: flown on the truth)
+    world: World | None = None  # the building and pile the flight was ray-cast in (the runner's clearance checks)
 
 
 NOISE_SEED_TAG = 0x5E45
@@ -540,4 +541,5 @@ def fly_firmware(cfg, log_path, header: dict, latency_ms: tuple[float, float] = 
                         "signing": {"payload": dict(payload_signer.stats), "autopilot": dict(server_signer.stats)}
                         if signing_key is not None else None,
                         "autopilot_reboots": sim.server.stats.get("reboots", 0)},
-                       result, None if sim.pose_errors is None else np.array(sim.pose_errors, dtype=float))
+                       result, None if sim.pose_errors is None else np.array(sim.pose_errors, dtype=float),
+                       world)

@@ -30,18 +30,40 @@ UNIT_M = {"M": 1.0, "IN": INCH_M, "FT": 12 * INCH_M}
 """JSBSim's length units, in metres."""
 
 
+def _jsbsim_file(*parts: str) -> ET.Element:
+    """The root element of a file the `jsbsim` wheel ships (parts: its path under JSBSim's root)."""
+    import jsbsim
+
+    return ET.parse(Path(jsbsim.get_default_root_dir()).joinpath(*parts)).getroot()
+
+
+def _coord_m(loc: ET.Element, axis: str) -> float:
+    """One coordinate of a JSBSim <location>, in metres (its unit attribute, metres by default)."""
+    return float(loc.findtext(axis)) * UNIT_M[loc.get("unit", "M").upper()]
+
+
+def _f450_thrusters() -> list[ET.Element]:
+    return list(_jsbsim_file("aircraft", "F450", "Propulsion.xml").iter("thruster"))
+
+
+@cache
+def _f450_cg_z_m() -> float:
+    cg = next((loc for loc in _jsbsim_file("aircraft", "F450", "Mass.xml").iter("location")
+               if loc.get("name") == "CG"), None)
+    if cg is None:
+        raise RuntimeError("the F450 model shipped with jsbsim declares no centre of gravity")
+    return _coord_m(cg, "z")
+
+
 @cache
 def f450_reach_m() -> float:
     """How far JSBSim's F450 reaches from its centre: its farthest propeller hub plus that propeller's radius,
     read from the model the `jsbsim` wheel ships (0.233 m + 9.4 in / 2 = 0.353 m)."""
-    import jsbsim
-
-    root = Path(jsbsim.get_default_root_dir())
     reach = 0.0
-    for thruster in ET.parse(root / "aircraft" / "F450" / "Propulsion.xml").getroot().iter("thruster"):
+    for thruster in _f450_thrusters():
         loc = thruster.find("location")
-        hub = math.hypot(float(loc.findtext("x")), float(loc.findtext("y"))) * UNIT_M[loc.get("unit", "M").upper()]
-        prop = ET.parse(root / "engine" / f"{thruster.get('file')}.xml").getroot().find("diameter")
+        hub = math.hypot(_coord_m(loc, "x"), _coord_m(loc, "y"))
+        prop = _jsbsim_file("engine", f"{thruster.get('file')}.xml").find("diameter")
         dia = float(prop.text) * UNIT_M[prop.get("unit", "IN").upper()]
         reach = max(reach, hub + dia / 2.0)
     if not reach > 0:
@@ -53,17 +75,10 @@ def f450_reach_m() -> float:
 def f450_below_m() -> float:
     """How far JSBSim's F450 reaches below its centre of gravity: its lowest ground contact (the landing gear), read
     from the model the `jsbsim` wheel ships (0.152 m)."""
-    import jsbsim
-
-    root = Path(jsbsim.get_default_root_dir()) / "aircraft" / "F450"
-
-    def z_m(loc: ET.Element) -> float:
-        return float(loc.findtext("z")) * UNIT_M[loc.get("unit", "M").upper()]
-    cg = next((loc for loc in ET.parse(root / "Mass.xml").getroot().iter("location") if loc.get("name") == "CG"), None)
-    contacts = [c.find("location") for c in ET.parse(root / "Gear.xml").getroot().iter("contact")]
-    if cg is None or not contacts:
-        raise RuntimeError("the F450 model shipped with jsbsim declares no centre of gravity or no ground contact")
-    below = max(z_m(cg) - z_m(loc) for loc in contacts)
+    contacts = [c.find("location") for c in _jsbsim_file("aircraft", "F450", "Gear.xml").iter("contact")]
+    if not contacts:
+        raise RuntimeError("the F450 model shipped with jsbsim declares no ground contact")
+    below = max(_f450_cg_z_m() - _coord_m(loc, "z") for loc in contacts)
     if not below > 0:
         raise RuntimeError("the F450 model's ground contacts are not below its centre of gravity")
     return below
@@ -73,11 +88,7 @@ def f450_below_m() -> float:
 def f450_rotor_height_m() -> float:
     """How far JSBSim's F450's propellers turn above its centre of gravity (the lowest thruster, read from the model the
     `jsbsim` wheel ships: 0.025 m): out at the propellers' circle, that is the vehicle's underside."""
-    import jsbsim
-
-    root = Path(jsbsim.get_default_root_dir()) / "aircraft" / "F450"
-    heights = [float(loc.findtext("z")) * UNIT_M[loc.get("unit", "M").upper()]
-               for t in ET.parse(root / "Propulsion.xml").getroot().iter("thruster")
+    heights = [_coord_m(loc, "z") - _f450_cg_z_m() for t in _f450_thrusters()
                if (loc := t.find("location")) is not None]
     if not heights:
         raise RuntimeError("the F450 model shipped with jsbsim declares no thruster")
