@@ -4,6 +4,7 @@ SITL (the firmware in the loop), is found from the floor and walls; a square one
 import json
 import math
 import shutil
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from firmware_py.core.storage import Storage
 from ground import log_warnings, report
 from ground.plane_stretches import beams
 from ground.pose_correction import KNOT_SWEEPS, PoseCorrectionOptions, knot_times, prior_sigmas
+from ground.pose_knots import knot_basis
 from ground.report import ReportOptions, make_report
 from ground.self_calibration import (
     INSIDE_SIGN,
@@ -531,6 +533,31 @@ def test_that_the_mount_and_the_drift_fitted_together_end_where_a_further_fit_ha
     assert np.abs(delta2 - delta).max() < 0.01
     assert len(groups) == N_GROUPS
     assert all(np.abs(d - delta).max() > 1e-4 for _, (_, d), _, _ in groups)  # each group's drift its own
+
+
+def test_that_a_joint_step_solves_the_normal_equations_of_the_whole_jacobian_written_out():
+    """`_DriftFit._step` sums the normal equations knot interval by knot interval (dense, for speed): on points at
+    random times, planes and weights, its step is the one of the whole Jacobian (the drift's columns beside the
+    mount's) with the arctan loss's weights and the prior, and a parameter held does not move."""
+    rng = np.random.default_rng(7)
+    n_pts, n_k = 500, 6
+    t_s = rng.uniform(0.0, 10.0, n_pts)
+    kk, ff = knot_basis(t_s, np.linspace(0.0, 10.0, n_k))
+    normals = rng.normal(size=(4, 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    square = rng.normal(size=(3 * n_k + 4, 3 * n_k + 4))
+    fit = SimpleNamespace(idx=np.arange(n_pts), kk=kk, ff=ff, n=normals, n_k=n_k, p_all=square @ square.T)
+    keep, j = rng.permutation(n_pts)[:400], rng.integers(0, 4, 400)
+    r, w_m = rng.normal(0.0, 0.01, 400), rng.uniform(0.003, 0.02, 400)
+    jac, delta, free = rng.normal(size=(400, 4)), rng.normal(0.0, 0.1, (n_k, 3)), np.array([True, False, True, True])
+    d_delta, d_q = _DriftFit._step(fit, keep, j, r, w_m, np.zeros(4), delta, lambda _q: jac, free)
+    a = np.hstack([_DriftFit._drift_columns(fit, keep, j).toarray(), jac * free])
+    w = 1.0 / (1.0 + (r / w_m) ** 4) / w_m ** 2
+    normal = a.T @ (w[:, None] * a) + fit.p_all + np.diag(np.r_[np.zeros(3 * n_k), ~free])
+    step = np.linalg.solve(normal, -a.T @ (w * r) - fit.p_all @ np.r_[delta.T.ravel(), np.zeros(4)])
+    np.testing.assert_allclose(np.r_[d_delta.T.ravel(), d_q], np.r_[step[:3 * n_k], step[3 * n_k:] * free],
+                               rtol=1e-9, atol=1e-12)
+    assert d_q[1] == 0.0
 
 
 def test_that_a_mount_fitted_beside_a_drift_with_its_boresight_held_fits_the_servo_alone_and_says_so(drifting_runs):
