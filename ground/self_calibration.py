@@ -759,17 +759,24 @@ def _search(prob: _Problem, n: np.ndarray, d: np.ndarray) -> tuple[float, float]
     span = float(np.ptp(prob.gamma))
     step = 2.0 * SEARCH_RESOLUTION_RAD / max(span, SEARCH_RESOLUTION_RAD)
     n_bins = math.ceil(2.0 * hi[0] / SEARCH_RESOLUTION_RAD) + 1
+    top = 2.0 * hi[0] / SEARCH_RESOLUTION_RAD  # |offset| < hi[0]: a bin coordinate in (0, top)
+    scales = np.arange(lo[1], hi[1] + 1e-9, step)
+    ks = np.clip(((scales - lo[1]) // SEARCH_SCALE_NODE).astype(np.int64), 0, len(nodes) - 2)
     best = (0, 0.0, 0.0)
-    for scale in np.arange(lo[1], hi[1] + 1e-9, step):
-        k = min(max(int((scale - lo[1]) // SEARCH_SCALE_NODE), 0), len(nodes) - 2)
-        f = (scale - nodes[k]) / SEARCH_SCALE_NODE
-        off = votes - ((1.0 - f) * moved[k] + f * moved[k + 1])
-        off = off[np.abs(off) < hi[0]]
-        h = np.bincount(((off - lo[0]) / SEARCH_RESOLUTION_RAD).astype(np.int64), minlength=n_bins)
-        h2 = h[:-1] + h[1:]
-        j = int(np.argmax(h2))
-        if h2[j] > best[0]:
-            best = (int(h2[j]), float(scale), lo[0] + (j + 1) * SEARCH_RESOLUTION_RAD)
+    # Node interval by node interval: each vote's bin coordinate at the interval's first node and its change to the
+    # next, made once for the interval's scales; a vote in range at neither end nor between is left out of them all.
+    for k in np.unique(ks):
+        at = (votes - moved[k] - lo[0]) / SEARCH_RESOLUTION_RAD
+        per = (moved[k + 1] - moved[k]) / SEARCH_RESOLUTION_RAD
+        reach = (np.minimum(at, at - per) < top) & (np.maximum(at, at - per) > 0)
+        at, per = at[reach], per[reach]
+        for scale in scales[ks == k]:
+            t = at - (scale - nodes[k]) / SEARCH_SCALE_NODE * per
+            h = np.bincount(t[(t > 0) & (t < top)].astype(np.int64), minlength=n_bins)
+            h2 = h[:-1] + h[1:]
+            j = int(np.argmax(h2))
+            if h2[j] > best[0]:
+                best = (int(h2[j]), float(scale), lo[0] + (j + 1) * SEARCH_RESOLUTION_RAD)
     return best[2], best[1]
 
 
