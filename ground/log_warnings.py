@@ -146,9 +146,12 @@ def log_warnings(survey: Survey, log: SampleLog, opts: ReportOptions) -> list[st
                "calibrated rate" if st.model == Resimulated.name else
                f"its shaft trails the firmware's model by {st.delay_s * 1e3:.0f} ms and swings {st.gain * 100:.0f} % "
                "as far")
+        refined = ("" if st.refined_s is None else
+                   f"; the floor and walls refined the sweeps' {(st.delay_s - st.refined_s) * 1e3:.0f} ms to "
+                   f"{st.delay_s * 1e3:.1f} ms")
         warnings.append(f"the servo's angles were re-estimated from the sweeps ({st.model}): {how} (the two sweep "
                         f"directions disagreed by {st.disagreement_before_m:.2f} m, now "
-                        f"{st.disagreement_after_m:.2f} m); recalibrate the servo before the next flight")
+                        f"{st.disagreement_after_m:.2f} m{refined}); recalibrate the servo before the next flight")
     if survey.cloud.n_spikes:
         warnings.append(f"{survey.cloud.n_spikes} isolated range spikes left out: samples that disagreed with both "
                         "time-neighbours while those agreed (garbage or glitch readings)")

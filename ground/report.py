@@ -76,7 +76,14 @@ from ground.self_calibration import (
     apply_mount,
     estimate_mount,
 )
-from ground.servo_timing import Resimulated, ServoTiming, ShiftScale, estimate_servo_timing, sweep_center_rad
+from ground.servo_timing import (
+    LAST_BUT_ONE_STEP_S,
+    Resimulated,
+    ServoTiming,
+    ShiftScale,
+    estimate_servo_timing,
+    sweep_center_rad,
+)
 from ground.site_check import HEADING_TOLERANCE_DEG, SITE_TOLERANCE_M, header_site
 from ground.smoothing import (
     DEFAULT_SMOOTHING,
@@ -520,10 +527,12 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
         retime = opts.servo_retiming and before is not None and before > MAX_SWEEP_DISAGREEMENT_M
         early = None if retime else _EarlyChecks(survey.cloud, survey.structure, _placed_checks(survey, err))
         first = None if retime else ahead.result()
-    # The floor and walls may call for the re-timing too: they show a servo timing offset (`structure_timing`).
-    split = (structure_timing(first.pose) if first is not None and opts.servo_retiming and before is not None
-             else None)
-    if first is not None and split is None:
+    # The floor and walls may call for the re-timing too: they show a servo timing offset (`structure_timing`), or
+    # one as logged that only the pile's sweeps can confirm (`timing_to_confirm`).
+    asked = first is not None and opts.servo_retiming and before is not None
+    split = structure_timing(first.pose) if asked else None
+    hint = timing_to_confirm(first.pose) if asked and split is None else None
+    if first is not None and split is None and hint is None:
         return _self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes, mount, first), early
 
     posed = posed_beams(samples, lever, frame, spike_threshold=spikes)  # the search changes the servo's fields only
@@ -542,15 +551,22 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
     timed = repack_fields(samples[["t_s", "servo_rad", "sweep_dir"]])
     timing = estimate_servo_timing(timed, disagreement, before, motion, floor_m=floor or 0.0,
                                    threads=cores_available())
-    if split is not None:
+    if split is not None or hint is not None:
         confirmed = (timing is not None and (timing.delay_s, timing.gain) != (0.0, 1.0)
                      and timing.disagreement_after_m + (floor or 0.0) < before)
+        if split is None and not confirmed:  # the offset as logged alone re-times nothing: the survey as logged
+            return replace(_self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes, mount,
+                                            first), servo_timing=timing), early
         return _retimed_by_building(survey, samples, header, storage, frame, lever, opts, err, spikes, mount, first,
-                                    split, motion, checked, timing, confirmed), early
+                                    split or hint, motion, checked, timing, confirmed,
+                                    rangefinder is not None and rangefinder.applied), early
     if timing is None or timing.disagreement_after_m > MAX_SWEEP_DISAGREEMENT_M:
         return replace(survey, servo_timing=timing), None
-    retimed = motion.apply(samples, timing.delay_s, timing.gain)
+    timing, retimed = _refined_by_building(samples, timing, motion, header, storage, frame, lever, opts, err, mount,
+                                           rangefinder is not None and rangefinder.applied)
     fixed = _survey(retimed, header, storage, frame, lever, opts, err, spikes, mount)
+    if timing.refined_s is not None and fixed.sweep_disagreement_m is not None:
+        timing = replace(timing, disagreement_after_m=fixed.sweep_disagreement_m)
     fixed = replace(fixed, servo_timing=timing, servo_retimed=True, **checked)
     return _self_calibrated(fixed, retimed, header, storage, frame, lever, opts, err, spikes, mount), None
 
@@ -558,7 +574,8 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
 def _retimed_by_building(survey: Survey, samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
                          lever: np.ndarray, opts: ReportOptions, err: SensorErrorModel, spikes: SpikeThreshold | None,
                          mount: Boresight, first: _Estimates, split: TimingSplit, motion: ShiftScale | Resimulated,
-                         checked: dict, searched: ServoTiming | None, confirmed: bool) -> Survey:
+                         checked: dict, searched: ServoTiming | None, confirmed: bool, share_taken_out: bool
+                         ) -> Survey:
     """The survey with the servo re-timed when the floor and walls called for it (split: `structure_timing`): by the
     search's dead time and speed when the pile's sweeps confirmed them, else by the offset the floor and walls
     showed, as a dead time. Kept when it leaves the floor and walls closer to their planes after the drift's fit than
@@ -566,13 +583,14 @@ def _retimed_by_building(survey: Survey, samples: np.ndarray, header: dict, stor
     judges: it called for the re-timing, and a pile's shape cannot fool it (a face seen from opposite sides splits the
     pile's sweeps as a lag does)."""
     if confirmed:
-        timing, retimed = searched, motion.apply(samples, searched.delay_s, searched.gain)
+        timing, retimed = _refined_by_building(samples, searched, motion, header, storage, frame, lever, opts, err,
+                                               mount, share_taken_out)
     else:
         retimed = motion.apply(samples, split.delay_s, 1.0)
         timing = ServoTiming(split.delay_s, 1.0, motion.name, survey.sweep_disagreement_m,
                              survey.sweep_disagreement_m, 0, building_shift_m=split.shift_m)  # after: below
     fixed = replace(_survey(retimed, header, storage, frame, lever, opts, err, spikes, mount), **checked)
-    if timing.building_shift_m is not None and fixed.sweep_disagreement_m is not None:
+    if (timing.building_shift_m is not None or timing.refined_s is not None) and fixed.sweep_disagreement_m is not None:
         timing = replace(timing, disagreement_after_m=fixed.sweep_disagreement_m)
     fixed = _self_calibrated(replace(fixed, servo_timing=timing, servo_retimed=True), retimed, header, storage,
                              frame, lever, opts, err, spikes, mount)
@@ -582,6 +600,33 @@ def _retimed_by_building(survey: Survey, samples: np.ndarray, header: dict, stor
         return fixed
     return replace(_self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes, mount,
                                     None if first.cut_for_timing else first), servo_timing=searched)
+
+
+def _refined_by_building(samples: np.ndarray, timing: ServoTiming, motion: ShiftScale | Resimulated, header: dict,
+                         storage: Storage, frame: StorageFrame, lever: np.ndarray, opts: ReportOptions,
+                         err: SensorErrorModel, mount: Boresight, share_taken_out: bool
+                         ) -> tuple[ServoTiming, np.ndarray]:
+    """The search's servo timing with its delay refined by the floor and walls, and the samples re-timed by it. Why:
+    the search's objective (the pile seen on opposite sweeps, a median over cells) is piecewise flat and its last step
+    is a millisecond; under the datasheet's noise it stopped at 9 ms of a 10 ms lag, and the mount's self-calibration
+    then took the rest up as a servo scale (+1.25 %, applied: Ve 1.83 % against the twin's 0.24 %). On the samples it
+    re-timed, the floor and walls measure what is left as a timing offset (`PoseCorrection.servo_delay`, else as
+    logged where that fit cannot see it: 0.97 +- 0.06 ms there). Added when measured (N_SIGNIFICANT standard errors from
+    zero), whether or not it would matter alone, as the servo is re-timed anyway and the building measures its offset
+    finer than the pile's sweeps do; and when within the search's step before its last (LAST_BUT_ONE_STEP_S): further,
+    the pile's sweeps and the building disagree about the servo, and the search's timing stands. A pose correction
+    more a re-timed report (none without the pose correction, which measures the offset)."""
+    retimed = motion.apply(samples, timing.delay_s, timing.gain)
+    if not opts.pose_correction:
+        return timing, retimed
+    pose = _pose_of(retimed, mount, header, lever, frame, storage, err, share_taken_out, opts.baro_walk_m_per_sqrt_s)
+    for split in (pose.servo_delay, timing_as_logged(pose)):
+        if (split is not None and abs(split.delay_s) > N_SIGNIFICANT * split.delay_sigma_s
+                and abs(split.delay_s) <= LAST_BUT_ONE_STEP_S):
+            delay_s = round(timing.delay_s + split.delay_s, 6)
+            return (replace(timing, delay_s=delay_s, refined_s=split.delay_s),
+                    motion.apply(samples, delay_s, timing.gain))
+    return timing, retimed
 
 
 def structure_timing(pose: PoseCorrection | None, as_logged: bool = True) -> TimingSplit | None:
@@ -601,6 +646,21 @@ def structure_timing(pose: PoseCorrection | None, as_logged: bool = True) -> Tim
         if split is not None and split.significant(N_SIGNIFICANT, pose.noise_m):
             return split
     return None
+
+
+def timing_to_confirm(pose: PoseCorrection | None) -> TimingSplit | None:
+    """The servo timing offset on the floor and walls as logged (`PoseCorrection.servo_delay_raw`) when it is measured
+    and matters (`TimingSplit.significant`) but `structure_timing` does not take it (the fit beside the drift was made
+    and does not back it): the report then re-times the servo only if the search over the pile's sweeps confirms a
+    timing (the two directions agree better by more than their own noise). Why: as logged a knot interval's drift
+    reads as a few tenths of a millisecond (`timing_as_logged`), which the pile's sweeps, seconds apart at most, do not
+    show; yet a 10 ms lag under the datasheet's noise (seed 1) was read 9.87 +- 0.27 ms as logged, while the fit beside
+    the drift, on the points its windows kept, read 3.0 +- 1.0 ms, just short of significant, and nothing was re-timed
+    (Ve 2.3 %; docs/design-notes.md, 2026-12-07 eighty-fifth session)."""
+    if pose is None or pose.servo_delay_raw is None:
+        return None
+    raw = pose.servo_delay_raw
+    return raw if raw.significant(N_SIGNIFICANT, pose.noise_m) else None
 
 
 @dataclass(frozen=True)
@@ -1167,7 +1227,7 @@ def summarise(survey: Survey, log: SampleLog, opts: ReportOptions, truth_m3: flo
         "servo_timing": None if st is None else {
             "applied": survey.servo_retimed, "model": st.model, "delay_s": st.delay_s, "gain": st.gain,
             "disagreement_before_m": st.disagreement_before_m, "disagreement_after_m": st.disagreement_after_m,
-            "building_shift_m": st.building_shift_m},
+            "building_shift_m": st.building_shift_m, "refined_by_building_s": st.refined_s},
         "self_calibration": None if survey.mount is None else survey.mount.as_dict(),
         "pose_correction": None if survey.pose is None else survey.pose.as_dict(),
         "rangefinder_height": None if survey.rangefinder is None else survey.rangefinder.as_dict(),

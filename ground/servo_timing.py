@@ -49,6 +49,8 @@ GAIN_RANGE = (0.3, 1.2)
 COARSE_DELAY_STEP_S = 0.025
 COARSE_GAIN_STEP = 0.1
 FINE_STEPS = 5  # each side of the current optimum, at a fifth (then a twenty-fifth) of the coarse step
+LAST_BUT_ONE_STEP_S = COARSE_DELAY_STEP_S / FINE_STEPS
+"""The search's delay step before its last (5 ms): its delay is within it of the sweeps' best, whatever their noise."""
 MAX_FINE_ROUNDS = 8
 REMEMBERED_STATES_BYTES = 64 * 2**20
 """What a drive (`Resimulated`) keeps of the servo's states stepped at each speed a search tried (a 187 s flight's
@@ -69,6 +71,9 @@ class ServoTiming:
     building_shift_m: float | None = None
     """Set when the delay is the one the floor and walls showed beside the pose's drift (`ground.plane_stretches.
     beside_a_servo_delay`), not the search's: the RMS it moved their points by. Then gain is 1 (a dead time)."""
+    refined_s: float | None = None
+    """Set when the floor and walls refined the search's delay (the report's `_refined_by_building`): what they added
+    to it (s); delay_s includes it."""
 
 
 def sweep_center_rad(servo_rad: np.ndarray) -> float:
