@@ -562,13 +562,14 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
                                     rangefinder is not None and rangefinder.applied), early
     if timing is None or timing.disagreement_after_m > MAX_SWEEP_DISAGREEMENT_M:
         return replace(survey, servo_timing=timing), None
-    timing, retimed = _refined_by_building(samples, timing, motion, header, storage, frame, lever, opts, err, mount,
-                                           rangefinder is not None and rangefinder.applied)
+    timing, retimed, pose = _refined_by_building(samples, timing, motion, header, storage, frame, lever, opts, err,
+                                                 mount, rangefinder is not None and rangefinder.applied)
     fixed = _survey(retimed, header, storage, frame, lever, opts, err, spikes, mount)
     if timing.refined_s is not None and fixed.sweep_disagreement_m is not None:
         timing = replace(timing, disagreement_after_m=fixed.sweep_disagreement_m)
     fixed = replace(fixed, servo_timing=timing, servo_retimed=True, **checked)
-    return _self_calibrated(fixed, retimed, header, storage, frame, lever, opts, err, spikes, mount), None
+    return _self_calibrated(fixed, retimed, header, storage, frame, lever, opts, err, spikes, mount,
+                            pose_as_is=pose), None
 
 
 def _retimed_by_building(survey: Survey, samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
@@ -582,9 +583,10 @@ def _retimed_by_building(survey: Survey, samples: np.ndarray, header: dict, stor
     the logged timing did; else the survey as logged, with what the search found (not applied). Why the building
     judges: it called for the re-timing, and a pile's shape cannot fool it (a face seen from opposite sides splits the
     pile's sweeps as a lag does)."""
+    pose = None
     if confirmed:
-        timing, retimed = _refined_by_building(samples, searched, motion, header, storage, frame, lever, opts, err,
-                                               mount, share_taken_out)
+        timing, retimed, pose = _refined_by_building(samples, searched, motion, header, storage, frame, lever, opts,
+                                                     err, mount, share_taken_out)
     else:
         retimed = motion.apply(samples, split.delay_s, 1.0)
         timing = ServoTiming(split.delay_s, 1.0, motion.name, survey.sweep_disagreement_m,
@@ -593,7 +595,7 @@ def _retimed_by_building(survey: Survey, samples: np.ndarray, header: dict, stor
     if (timing.building_shift_m is not None or timing.refined_s is not None) and fixed.sweep_disagreement_m is not None:
         timing = replace(timing, disagreement_after_m=fixed.sweep_disagreement_m)
     fixed = _self_calibrated(replace(fixed, servo_timing=timing, servo_retimed=True), retimed, header, storage,
-                             frame, lever, opts, err, spikes, mount)
+                             frame, lever, opts, err, spikes, mount, pose_as_is=pose)
     # (a lag that left too few of their points near them for a drift's fit at all is judged by the fit it allows)
     before, after = first.pose.drift_rms_m, None if fixed.pose is None else fixed.pose.drift_rms_m
     if after is not None and (before is None or after < before):
@@ -605,7 +607,7 @@ def _retimed_by_building(survey: Survey, samples: np.ndarray, header: dict, stor
 def _refined_by_building(samples: np.ndarray, timing: ServoTiming, motion: ShiftScale | Resimulated, header: dict,
                          storage: Storage, frame: StorageFrame, lever: np.ndarray, opts: ReportOptions,
                          err: SensorErrorModel, mount: Boresight, share_taken_out: bool
-                         ) -> tuple[ServoTiming, np.ndarray]:
+                         ) -> tuple[ServoTiming, np.ndarray, PoseCorrection | None]:
     """The search's servo timing with its delay refined by the floor and walls, and the samples re-timed by it. Why:
     the search's objective (the pile seen on opposite sweeps, a median over cells) is piecewise flat and its last step
     is a millisecond; under the datasheet's noise it stopped at 9 ms of a 10 ms lag, and the mount's self-calibration
@@ -614,19 +616,21 @@ def _refined_by_building(samples: np.ndarray, timing: ServoTiming, motion: Shift
     logged where that fit cannot see it: 0.97 +- 0.06 ms there). Added when measured (N_SIGNIFICANT standard errors from
     zero), whether or not it would matter alone, as the servo is re-timed anyway and the building measures its offset
     finer than the pile's sweeps do; and when within the search's step before its last (LAST_BUT_ONE_STEP_S): further,
-    the pile's sweeps and the building disagree about the servo, and the search's timing stands. A pose correction
-    more a re-timed report (none without the pose correction, which measures the offset)."""
+    the pile's sweeps and the building disagree about the servo, and the search's timing stands. Returns the timing,
+    the samples re-timed by it and, when not refined, the pose's correction made on them with the configured mount
+    (the first estimates use it where the mount's self-calibration applies nothing: a refined report costs one pose
+    correction more, another none; without the pose correction nothing is measured or refined)."""
     retimed = motion.apply(samples, timing.delay_s, timing.gain)
     if not opts.pose_correction:
-        return timing, retimed
+        return timing, retimed, None
     pose = _pose_of(retimed, mount, header, lever, frame, storage, err, share_taken_out, opts.baro_walk_m_per_sqrt_s)
     for split in (pose.servo_delay, timing_as_logged(pose)):
         if (split is not None and abs(split.delay_s) > N_SIGNIFICANT * split.delay_sigma_s
                 and abs(split.delay_s) <= LAST_BUT_ONE_STEP_S):
             delay_s = round(timing.delay_s + split.delay_s, 6)
             return (replace(timing, delay_s=delay_s, refined_s=split.delay_s),
-                    motion.apply(samples, delay_s, timing.gain))
-    return timing, retimed
+                    motion.apply(samples, delay_s, timing.gain), None)
+    return timing, retimed, pose
 
 
 def structure_timing(pose: PoseCorrection | None, as_logged: bool = True) -> TimingSplit | None:
@@ -726,7 +730,7 @@ def _pose_of(s: np.ndarray, bs: Boresight, header: dict, lever: np.ndarray, fram
 def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame, lever: np.ndarray,
                      opts: ReportOptions, err: SensorErrorModel, mount: Boresight,
                      share_taken_out: bool, unlifted: np.ndarray | None = None,
-                     timing_first: bool = False) -> _Estimates:
+                     timing_first: bool = False, pose_as_is: PoseCorrection | None = None) -> _Estimates:
     """The mount's self-calibration, then the pose's correction with the mount it leaves. The mount before the
     pose: a constant mount error is partly a constant shift of the structure, which the pose's knots took up
     when they came first (measured: docs/pose_error.md)."""
@@ -741,8 +745,10 @@ def _first_estimates(samples: np.ndarray, header: dict, storage: Storage, frame:
         if est.any_applied:
             corrected, boresight = apply_mount(samples, est, resim, mount)
     if opts.pose_correction:
-        pose = _pose_of(corrected, boresight, header, lever, frame, storage, err, share_taken_out,
-                        opts.baro_walk_m_per_sqrt_s, placed if corrected is samples and boresight == mount else None)
+        as_is = corrected is samples and boresight == mount  # the mount applied nothing
+        pose = (pose_as_is if as_is and pose_as_is is not None else
+                _pose_of(corrected, boresight, header, lever, frame, storage, err, share_taken_out,
+                         opts.baro_walk_m_per_sqrt_s, placed if as_is else None))
         beside_drift = partial(_mount_with_drift, samples, samples if unlifted is None else unlifted, header, storage,
                                frame, lever, opts, err, mount, share_taken_out)
         # the mount fitted beside the drift is tried next when the drift alone did not explain the floor and walls, or
@@ -879,15 +885,18 @@ def _mount_with_drift(samples: np.ndarray, unlifted: np.ndarray, header: dict, s
 
 def _self_calibrated(survey: Survey, samples: np.ndarray, header: dict, storage: Storage, frame: StorageFrame,
                      lever: np.ndarray, opts: ReportOptions, err: SensorErrorModel,
-                     spikes: SpikeThreshold | None, mount: Boresight, first: _Estimates | None = None) -> Survey:
+                     spikes: SpikeThreshold | None, mount: Boresight, first: _Estimates | None = None,
+                     pose_as_is: PoseCorrection | None = None) -> Survey:
     """The survey again with the mount the building says (ground.self_calibration), when that is
     significant, and then with the trajectory's correction from the building (ground.pose_correction);
     else the survey as it was, with what was found. After the servo re-timing: a late or slow servo
     makes the sweep directions disagree, a mis-mounted one does not. The first estimates (`_first_estimates`)
     may come made; an applied mount is checked again on the corrected trajectory, as under noise a drift can
-    pass for one (`MOUNT_POSE_ROUNDS`)."""
+    pass for one (`MOUNT_POSE_ROUNDS`). pose_as_is: the pose's correction already made on these samples with the
+    configured mount, for the first estimates to use if the mount applies nothing."""
     share_taken_out = survey.rangefinder is not None and survey.rangefinder.applied
-    first = first or _first_estimates(samples, header, storage, frame, lever, opts, err, mount, share_taken_out)
+    first = first or _first_estimates(samples, header, storage, frame, lever, opts, err, mount, share_taken_out,
+                                      pose_as_is=pose_as_is)
     est, pose, corrected, boresight = first.mount, first.pose, first.samples, first.boresight
     resim = _drive(header, samples)
     if pose is not None:

@@ -60,10 +60,11 @@ def _refined(monkeypatch, left: TimingSplit | None, fit: bool = True, pose_corre
     monkeypatch.setattr(report, "_pose_of", lambda *a, **k: _pose(left if fit else None, None if fit else left))
     motion = _Motion()
     searched = ServoTiming(0.009, 1.0, motion.name, 0.24, 0.04, 30)
-    timing, _ = report._refined_by_building(np.zeros(3), searched, motion, {}, Storage(40, 25, 10), StorageFrame(),
-                                            np.zeros(3), ReportOptions(plots=False, pose_correction=pose_correction),
-                                            SensorErrorModel(), SQUARE, False)
-    return timing, motion.applied
+    timing, _, pose = report._refined_by_building(np.zeros(3), searched, motion, {}, Storage(40, 25, 10),
+                                                  StorageFrame(), np.zeros(3),
+                                                  ReportOptions(plots=False, pose_correction=pose_correction),
+                                                  SensorErrorModel(), SQUARE, False)
+    return timing, motion.applied, pose
 
 
 @pytest.mark.parametrize("fit", [True, False], ids=["beside the drift's fit", "as logged"])
@@ -71,19 +72,21 @@ def test_that_the_search_s_delay_takes_what_the_floor_and_walls_still_show(monke
     """The search stops at its millisecond step (9 ms of 10 under the datasheet's noise); the floor and walls on the
     samples it re-timed measure the rest, which is added, whether or not it would move their points by more than
     their noise: the servo is re-timed anyway. The samples are re-timed by the sum."""
-    timing, applied = _refined(monkeypatch, _split(0.00097, 0.00006, 0.02), fit)
+    timing, applied, pose = _refined(monkeypatch, _split(0.00097, 0.00006, 0.02), fit)
     assert math.isclose(timing.delay_s, 0.00997) and math.isclose(timing.refined_s, 0.00097)
     assert timing.gain == 1.0 and applied[-1] == (timing.delay_s, 1.0)
+    assert pose is None  # made on samples the refinement re-timed again: not theirs
 
 
 @pytest.mark.parametrize("left", [_split(0.0002, 0.0001, 0.01), _split(LAST_BUT_ONE_STEP_S + 0.001, 0.0001, 0.2), None],
                          ids=["not measured", "beyond the search's step before its last", "not seen"])
 def test_that_the_search_s_delay_stands_where_the_floor_and_walls_do_not_measure_a_rest_within_its_step(monkeypatch,
                                                                                                          left):
-    timing, applied = _refined(monkeypatch, left)
+    timing, applied, pose = _refined(monkeypatch, left)
     assert timing.delay_s == 0.009 and timing.refined_s is None and applied == [(0.009, 1.0)]
+    assert pose is not None and pose.servo_delay is left  # made on the samples as re-timed: the first estimates' own
 
 
 def test_that_without_the_pose_correction_the_search_s_delay_stands(monkeypatch):
-    timing, applied = _refined(monkeypatch, _split(0.00097, 0.00006, 0.02), pose_correction=False)
-    assert timing.delay_s == 0.009 and timing.refined_s is None and applied == [(0.009, 1.0)]
+    timing, applied, pose = _refined(monkeypatch, _split(0.00097, 0.00006, 0.02), pose_correction=False)
+    assert timing.delay_s == 0.009 and timing.refined_s is None and applied == [(0.009, 1.0)] and pose is None
