@@ -577,12 +577,13 @@ def _retimed_by_building(survey: Survey, samples: np.ndarray, header: dict, stor
                          mount: Boresight, first: _Estimates, split: TimingSplit, motion: ShiftScale | Resimulated,
                          checked: dict, searched: ServoTiming | None, confirmed: bool, share_taken_out: bool
                          ) -> Survey:
-    """The survey with the servo re-timed when the floor and walls called for it (split: `structure_timing`): by the
-    search's dead time and speed when the pile's sweeps confirmed them, else by the offset the floor and walls
-    showed, as a dead time. Kept when it leaves the floor and walls closer to their planes after the drift's fit than
-    the logged timing did; else the survey as logged, with what the search found (not applied). Why the building
-    judges: it called for the re-timing, and a pile's shape cannot fool it (a face seen from opposite sides splits the
-    pile's sweeps as a lag does)."""
+    """The survey with the servo re-timed when the floor and walls called for it (split: `structure_timing`, or
+    `timing_to_confirm`'s offset as logged, which comes here only confirmed): by the search's dead time and speed
+    when the pile's sweeps confirmed them (refined by the floor and walls, `_refined_by_building`), else by the offset
+    the floor and walls showed, as a dead time. Kept when it leaves the floor and walls closer to their planes after
+    the drift's fit than the logged timing did; else the survey as logged, with what the search found (not applied).
+    Why the building judges: it called for the re-timing, and a pile's shape cannot fool it (a face seen from opposite
+    sides splits the pile's sweeps as a lag does)."""
     pose = None
     if confirmed:
         timing, retimed, pose = _refined_by_building(samples, searched, motion, header, storage, frame, lever, opts,
