@@ -78,10 +78,14 @@ class TimingSplit:
     delay_sigma_s: float = math.inf  # its standard error: least squares', or the flight's stretches' if larger
     shift_m: float = 0.0  # the RMS the offset moves those points along their planes' normals: what it matters
 
+    def measured(self, n_sigma: float) -> bool:
+        """Whether the offset lies n_sigma standard errors from zero."""
+        return abs(self.delay_s) > n_sigma * self.delay_sigma_s
+
     def significant(self, n_sigma: float, noise_m: float) -> bool:
-        """Whether the offset is both measured (n_sigma standard errors from zero) and large enough to matter: it
-        moves the points more than the data's own noise."""
-        return abs(self.delay_s) > n_sigma * self.delay_sigma_s and self.shift_m > noise_m
+        """Whether the offset is both measured (`measured`) and large enough to matter: it moves the points more than
+        the data's own noise."""
+        return self.measured(n_sigma) and self.shift_m > noise_m
 
     def as_dict(self) -> dict:
         return {"delay_s": self.delay_s, "delay_sigma_s": self.delay_sigma_s if math.isfinite(self.delay_sigma_s)

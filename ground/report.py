@@ -516,12 +516,13 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
     unlifted = samples
     samples, rangefinder = _rangefinder_share(samples, header, storage, frame, lever, opts, mount)
     checked["rangefinder"] = rangefinder
+    share_taken_out = rangefinder is not None and rangefinder.applied
     # The building's estimates of the mount and the pose need the samples, not the survey: they run beside it, on the
     # second core (measured alone: survey 0.31 s, estimates 0.57 s, in sequence 0.86 s, side by side 0.61 s;
     # docs/design-notes.md). Used only when the servo is not re-timed, which changes the samples they were made from.
     with ThreadPoolExecutor(max_workers=1) as pool:
         ahead = pool.submit(_first_estimates, samples, header, storage, frame, lever, opts, err, mount,
-                            rangefinder is not None and rangefinder.applied, unlifted, opts.servo_retiming)
+                            share_taken_out, unlifted, opts.servo_retiming)
         survey = replace(_survey(samples, header, storage, frame, lever, opts, err, spikes, mount), **checked)
         before = survey.sweep_disagreement_m
         retime = opts.servo_retiming and before is not None and before > MAX_SWEEP_DISAGREEMENT_M
@@ -558,12 +559,11 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
             return replace(_self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes, mount,
                                             first), servo_timing=timing), early
         return _retimed_by_building(survey, samples, header, storage, frame, lever, opts, err, spikes, mount, first,
-                                    split or hint, motion, checked, timing, confirmed,
-                                    rangefinder is not None and rangefinder.applied), early
+                                    split or hint, motion, checked, timing, confirmed, share_taken_out), early
     if timing is None or timing.disagreement_after_m > MAX_SWEEP_DISAGREEMENT_M:
         return replace(survey, servo_timing=timing), None
     timing, retimed, pose = _refined_by_building(samples, timing, motion, header, storage, frame, lever, opts, err,
-                                                 mount, rangefinder is not None and rangefinder.applied)
+                                                 mount, share_taken_out)
     fixed = _survey(retimed, header, storage, frame, lever, opts, err, spikes, mount)
     if timing.refined_s is not None and fixed.sweep_disagreement_m is not None:
         timing = replace(timing, disagreement_after_m=fixed.sweep_disagreement_m)
@@ -625,9 +625,8 @@ def _refined_by_building(samples: np.ndarray, timing: ServoTiming, motion: Shift
     if not opts.pose_correction:
         return timing, retimed, None
     pose = _pose_of(retimed, mount, header, lever, frame, storage, err, share_taken_out, opts.baro_walk_m_per_sqrt_s)
-    for split in (pose.servo_delay, timing_as_logged(pose)):
-        if (split is not None and abs(split.delay_s) > N_SIGNIFICANT * split.delay_sigma_s
-                and abs(split.delay_s) <= LAST_BUT_ONE_STEP_S):
+    for split in _building_timings(pose):
+        if split is not None and split.measured(N_SIGNIFICANT) and abs(split.delay_s) <= LAST_BUT_ONE_STEP_S:
             delay_s = round(timing.delay_s + split.delay_s, 6)
             return (replace(timing, delay_s=delay_s, refined_s=split.delay_s),
                     motion.apply(samples, delay_s, timing.gain), None)
@@ -645,12 +644,17 @@ def structure_timing(pose: PoseCorrection | None, as_logged: bool = True) -> Tim
     asks without it, as before the mount is calibrated it reads a mount's error as a lag (eighty-fourth session)."""
     if pose is None:
         return None
-    # beside the drift's fit first (the finer: its points are on their planes); failing that, on the points as logged,
-    # where that fit cannot see it (`timing_as_logged`: a lag that puts the walls beyond its windows)
-    for split in (pose.servo_delay, timing_as_logged(pose) if as_logged else None):
+    for split in _building_timings(pose, as_logged):
         if split is not None and split.significant(N_SIGNIFICANT, pose.noise_m):
             return split
     return None
+
+
+def _building_timings(pose: PoseCorrection, as_logged: bool = True) -> tuple[TimingSplit | None, TimingSplit | None]:
+    """The servo timing offsets the floor and walls show, in the order they are asked: beside the drift's fit first
+    (the finer: its points are on their planes); failing that, on the points as logged, where that fit cannot see it
+    (`timing_as_logged`: a lag that puts the walls beyond its windows; None unless as_logged)."""
+    return pose.servo_delay, timing_as_logged(pose) if as_logged else None
 
 
 def timing_to_confirm(pose: PoseCorrection | None) -> TimingSplit | None:
