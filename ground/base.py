@@ -117,8 +117,9 @@ FLOOR_FALL_SHOWN_PCT = LEAST_LAID_FALL_PCT / 2.0
 """A floor's fall the report names (`FloorFall.laid_to_fall`): half the least a floor is laid to. A level floor's fit
 away from material stays under it: at most 0.31 % over the 1,197 runs of the evaluation set whose piles leave the
 floor bare (the whole plane's fit, which a pile's toes tilt, up to 0.53 %), while the lowest flat surface of material
-covering the floor often falls more (144 of the 275 runs whose piles may hide it and that saw a flat surface: up to
-8.8 %), which the report names alike (docs/pose_error.md, `floor-level`)."""
+covering the floor may fall more (11 of the 142 runs whose piles may hide it and that saw a floor not lying on
+material, `ground.floor_check.on_material`: up to 5.4 %), which the report names alike (docs/pose_error.md,
+`floor-level`)."""
 
 
 @dataclass(frozen=True)
