@@ -17,7 +17,7 @@ within their noise, none below) through the points that are neither wall nor roo
 (the surface leaves out those beyond their tolerance as glitches; here they may be the floor itself) finds the floor;
 the median height of the points on a level floor there, with a median's standard error, is its level. A plane
 with more points under it than its noise puts there, and a floor's worth of points lower still, lies on material
-(`on_material`: a pile's long flank through a corner of floor at its foot): no floor is reported then.
+(`ground.base.on_material`: a pile's long flank through a corner of floor at its foot): no floor is reported then.
 
 Only a floor *below* z = 0 is warned of. The storage frame puts z = 0 on the floor's lowest corner, so nothing
 solid lies below it; a floor seen above z = 0 everywhere cannot be told from material covering the whole floor (a
@@ -37,7 +37,7 @@ import numpy as np
 
 from firmware_py.core.cli import UserError
 from firmware_py.core.storage import Storage
-from ground.base import BELOW_FLOOR_ALPHA, MIN_FLOOR_POINTS, FloorFall, PlaneFit, fit_floor_plane, points_below
+from ground.base import MIN_FLOOR_POINTS, FloorFall, fit_floor_plane, on_material
 from ground.pointcloud import N_SIGMA, Cloud, SensorErrorModel, plane_tolerances_m
 from ground.smoothing import cloud_vertical_sigma_m
 from ground.surface import Grid
@@ -104,7 +104,7 @@ def measure_floor(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
     # 1.25 of the points' robust spread over the root of the cells they fill (a cell's points share one pose error).
     pts, band = p[keep], N_SIGMA * sigma
     level = float(np.median(pts[plane.inliers, 2]))
-    if on_material(pts, sigma, plane, level):
+    if on_material(pts, sigma, plane, level, N_SIGMA):
         return None
     on = plane.inliers
     for _ in range(20):  # then level: the points within their band of a level floor there, until they stop changing
@@ -123,29 +123,6 @@ def measure_floor(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
     fall = floor_fall(pts[plane.inliers], pts[above, :2], 1.0 / np.maximum(sigma[plane.inliers], 1e-6) ** 2)
     fall = fall or plane.fall
     return FloorLevel(level, se, plane.tilt_deg, len(q), cover, int(under.sum()), fall)
-
-
-def on_material(points_w: np.ndarray, sigma_m: np.ndarray, plane: PlaneFit, level_m: float) -> bool:
-    """The plane with the most floor points lies on material, not on the floor: more points lie under it than its
-    noise puts there (`points_below`, at BELOW_FLOOR_ALPHA), and a floor's worth of points lies lower, more than two
-    bands under its level (`lowest_level_m`). Measured on the evaluation set: no run whose floor is in view has
-    points under its plane beyond its noise (0 of 1,197); of the 315 runs of piles that may hide the floor, 191 have,
-    and the plane climbs material in those whose lowest points lie far under it (the paper's pile 2 leaves a corner of
-    floor at the foot of its long flank, and the plane, through that corner, is 1.8 m up at its level and falls 3.9 %),
-    while the floors under a few stray points stay within their band of the lowest."""
-    band = N_SIGMA * np.asarray(sigma_m, dtype=float)
-    if points_below(points_w, sigma_m, plane, N_SIGMA).p_value >= BELOW_FLOOR_ALPHA:
-        return False
-    return level_m - lowest_level_m(np.asarray(points_w)[:, 2], band) > 2.0 * float(np.median(band))
-
-
-def lowest_level_m(z_m: np.ndarray, band_m: np.ndarray) -> float:
-    """The lowest height that holds a floor's worth of points (MIN_FLOOR_POINTS) within the points' median band
-    either side of it: the median of the first such window from below (stray points under it are passed over)."""
-    z = np.sort(np.asarray(z_m, dtype=float))
-    count = np.searchsorted(z, z + 2.0 * float(np.median(band_m)), side="right") - np.arange(len(z))
-    first = int(np.argmax(count >= MIN_FLOOR_POINTS)) if (count >= MIN_FLOOR_POINTS).any() else 0
-    return float(np.median(z[first:first + max(1, int(count[first]))]))
 
 
 def floor_fall(floor_w: np.ndarray, material_xy: np.ndarray, weights: np.ndarray | None = None) -> FloorFall | None:

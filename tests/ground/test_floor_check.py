@@ -29,6 +29,7 @@ from ground.report import ReportOptions, make_report
 from ground.surface import Grid
 from sitl.missions.rectangle import Mission
 from sitl.runners.fly import FlyConfig, fly
+from tests.ground.test_base import flank_over_a_corner_of_floor
 
 STORAGE = Storage(30, 20, 10)
 ERR = SensorErrorModel(range_sigma_m=0.02)
@@ -88,27 +89,12 @@ def test_that_material_hiding_the_floor_is_never_taken_for_a_floor_below_z0():
     assert cliff is None or cliff.level_m > 0.5
 
 
-def _flank_over_a_corner_of_floor(seed: int = 0) -> np.ndarray:
-    """The paper's pile 2 as the floor check meets it: a long flank falling 2.4 % across the building holds most
-    points, a trough of material dips under it, and a corner of floor lies at z = 0 at its foot."""
-    rng = np.random.default_rng(seed)
-    x, y = rng.uniform(6.0, 29.5, 4000), rng.uniform(0.5, 19.5, 4000)
-    flank = np.column_stack([x, y, 0.3 + 0.03 * x + 0.03 * y])
-    tx, ty = rng.uniform(20.0, 26.0, 400), rng.uniform(8.0, 14.0, 400)
-    trough = np.column_stack([tx, ty, 0.3 + 0.03 * tx + 0.03 * ty - 0.5])
-    fx, fy = rng.uniform(0.5, 5.5, 150), rng.uniform(0.5, 5.0, 150)
-    floor = np.column_stack([fx, fy, np.zeros(150)])
-    pts = np.concatenate([flank, trough, floor])
-    pts[:, 2] += rng.normal(0.0, 0.02, len(pts))
-    return pts
-
-
 def test_that_a_plane_lying_on_material_with_a_floor_s_worth_of_points_under_it_is_no_floor():
     """The plane the most points lie on is the flank's, 1 m up at its level and falling 4.2 %: points lie under it
     and a floor's worth lower still. Before, the report named that flank as a floor laid to a fall, and warned a pose
     correction that had anchored the height on the corner of floor that it had read a fall as a height error."""
-    assert _measured(_flank_over_a_corner_of_floor()) is None
-    assert fall_warning(_measured(_flank_over_a_corner_of_floor()), 0.25) is None
+    assert _measured(flank_over_a_corner_of_floor()) is None
+    assert fall_warning(_measured(flank_over_a_corner_of_floor()), 0.25) is None
 
 
 def test_that_a_floor_with_stray_points_under_it_is_still_the_floor():
