@@ -96,7 +96,7 @@ def height_again(b: Beams, x: np.ndarray, k: np.ndarray, f: np.ndarray, knots: n
     change = rms(z - x[:, 2])
     x_h[:, 2] = z
     return x_h, z_info, (f"the height solved again on the floor once the pile seen at different times aligned the "
-                         f"flight ({change:.2f} m RMS change)"), (sigma[-1] if sigma else None), kept, (
+                         f"flight ({change * 100:.1f} cm RMS change)"), (sigma[-1] if sigma else None), kept, (
                              None if confirmed else float(np.mean(z)))
 
 
