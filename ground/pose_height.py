@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 from scipy import sparse
-from scipy.sparse.csgraph import connected_components
+from scipy.sparse.csgraph import connected_components, maximum_flow
 
 from firmware_py.core.storage import Storage
 from ground.crossing_cells import cell_slopes, flattened, grid_cells, in_building
@@ -129,14 +129,27 @@ in a sweep period and a knot interval is two sweep periods, so one pass sees a c
 next; three apart, the vehicle has left and come back."""
 
 
+MIN_TIE_CELLS = 10
+"""Cells that tie a stretch's height to the floor: seen again on other passes, by routes through the flight that share
+no cell (`floor_anchored`). A tie fixes one number, the stretch's height against the floor's, and this is ten per
+parameter, as MIN_FLOOR_POINTS is for a plane's three. Measured: over the paper's pile 2 at P_traj 5 % the far half
+of the loop (33 knot intervals, 98 s) hangs on 5-8 cells of the middle strip seen at 55-62 deg off nadir from both
+long legs, and its height came out 4-12 cm off over that stretch (`vio` seeds 0-3). On the pose campaigns' 88
+drifting flights, stretches tied by fewer than ten cells: that far half on 5 flights (2 more had it tied by none),
+and 9 s stretches of 4 flights over pile 1 at P_traj 5 % (3-9 cells). The truth falls inside the same intervals for
+any value from 8 to 20 (37 of the 38 paper-pile flights; docs/design-notes.md, "A height tied by a handful of
+cells")."""
+
+
 def floor_anchored(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.ndarray, floor: np.ndarray,
                    storage: Storage, cell_m: float, max_error_m: float = math.inf) -> np.ndarray:
-    """(K - 1,) per knot interval, whether its height is tied to the floor: the floor seen in it, or a cell it saw
-    seen again on another pass (`REVISIT_INTERVALS`) in an interval that is tied (and so on). Elsewhere the
-    height rests on a chain, the pile seen from one interval to the next, whose links' errors add up: measured on
-    the paper's pile 2 at P_traj 5 %, decimetres over 100 s even on the true horizontal pose (docs/design-notes.md).
-    The cells, counts and points are `vertical_from_crossings`' (MIN_CELL_POINTS points in a cell and interval,
-    `in_building`)."""
+    """(K - 1,) per knot interval, whether its height is tied to the floor: the floor seen in it, or MIN_TIE_CELLS
+    cells it saw seen again on other passes (`REVISIT_INTERVALS`) in intervals that are tied, by routes through the
+    flight that share no cell (the maximum flow from the intervals that saw the floor, each cell seen in two
+    intervals a unit of capacity between them). Elsewhere the height rests on a chain, the pile seen from one
+    interval to the next, or on a handful of cells, whose errors add up: measured on the paper's pile 2 at P_traj
+    5 %, decimetres over 100 s even on the true horizontal pose (docs/design-notes.md). The cells, counts and points
+    are `vertical_from_crossings`' (MIN_CELL_POINTS points in a cell and interval, `in_building`)."""
     n_int = len(knots) - 1
     if n_int < 1:
         return np.zeros(0, dtype=bool)
@@ -163,11 +176,31 @@ def floor_anchored(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.nda
         dst.append(interval[d:][revisit])
     i = np.concatenate(src) if src else np.zeros(0, dtype=np.int64)
     j = np.concatenate(dst) if dst else np.zeros(0, dtype=np.int64)
+    return _tied_by_cells(anchor, i, j)
+
+
+def _tied_by_cells(anchor: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Per interval, anchored or joined to the anchored intervals by MIN_TIE_CELLS cells on routes that share none:
+    the maximum flow from a source feeding every anchored interval, each cell's revisit (i, j) a unit of capacity
+    both ways (a cell seen on many passes links each pair of them). Only the intervals connected to an anchor at all
+    are asked (the flow to the rest is 0)."""
+    n_int = len(anchor)
     graph = sparse.coo_matrix((np.ones(len(i)), (i, j)), shape=(n_int, n_int))
     _, label = connected_components(graph, directed=False)
-    tied = np.zeros(label.max() + 1, dtype=bool)
-    tied[label[anchor]] = True
-    return tied[label]
+    reached = np.isin(label, label[anchor]) & ~anchor
+    tied = anchor.copy()
+    if not reached.any():
+        return tied
+    source = n_int
+    big = np.iinfo(np.int32).max // 4
+    rows = np.concatenate([i, j, np.full(int(anchor.sum()), source)])
+    cols = np.concatenate([j, i, np.flatnonzero(anchor)])
+    caps = np.concatenate([np.ones(2 * len(i), dtype=np.int32), np.full(int(anchor.sum()), big, dtype=np.int32)])
+    net = sparse.csr_matrix((caps, (rows, cols)), shape=(n_int + 1, n_int + 1))  # duplicates summed: cells per pair
+    net.sum_duplicates()
+    for v in np.flatnonzero(reached):
+        tied[v] = maximum_flow(net, source, int(v)).flow_value >= MIN_TIE_CELLS
+    return tied
 
 
 def _untied_runs(tied: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

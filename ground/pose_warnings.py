@@ -5,6 +5,7 @@ constrain."""
 from __future__ import annotations
 
 from ground.pose_correction import PoseCorrection
+from ground.pose_height import MIN_TIE_CELLS
 
 WALL_WARNING_M = 0.5
 """A corrected path nearer a wall or the roof than this is warned about: the clearance the SITL's missions keep
@@ -47,8 +48,9 @@ def unanchored_warning(corr: PoseCorrection) -> str | None:
         return None
     flown = float(corr.knot_t_s[-1] - corr.knot_t_s[0])
     return (f"the corrected height is not tied to the floor for {total:.0f} of the {flown:.0f} s flown (the longest "
-            f"stretch {t1 - t0:.0f} s, from t = {t0:.1f} s): there no floor was seen, nor the same pile on another "
-            "pass that saw it, so the height rests on the pile seen from one moment to the next, whose errors add up "
+            f"stretch {t1 - t0:.0f} s, from t = {t0:.1f} s): there no floor was seen, nor enough of the same pile "
+            f"({MIN_TIE_CELLS} cells) on other passes that saw it, so the height rests on the pile seen from one "
+            "moment to the next, or on a handful of cells, whose errors add up "
             "(decimetres over 100 s, measured where a pile hid the floor); the volume's interval carries the "
             "altitude reference's drift over those stretches, which the data could not check. A flight that sees "
             "the floor along the way (legs farther from the walls) ties it")

@@ -38,8 +38,9 @@ each a scale of the error it describes, not yet a probability):
   stated sigma, so its 90 % half-width is LEVEL_Z sigmas. (A level anchored on a floor seen only away
   from the walls has no level term: the report warns with the other reading's volume and interval,
   ``ground.volume_warnings.open_floor_warning``.)
-- **untied**: when the level rests on a floor but stretches of the flight saw neither that floor nor the same
-  pile again on a pass that did, the height there rests on the pile seen from one moment to the next, and the data
+- **untied**: when the level rests on a floor but stretches of the flight saw neither that floor nor enough of the
+  same pile again on passes that did (``ground.pose_height.MIN_TIE_CELLS`` cells, over routes that share none), the
+  height there rests on the pile seen from one moment to the next, or on a handful of cells, and the data
   do not check the altitude reference's drift over the stretch: the walk pinned at the tied moments, averaged over
   each stretch and weighted by its share of the flight (``ground.pose_height.untied_sigma_m``), times the
   surfaced area. Not fitted either: LEVEL_Z sigmas.

@@ -11,6 +11,7 @@ import pytest
 
 from ground.plane_stretches import beams, stretch_floor_m
 from ground.pose_height import (
+    MIN_TIE_CELLS,
     crossings_misfit_m,
     floor_anchored,
     floor_from_below,
@@ -119,11 +120,16 @@ def _sightings(spec: list[tuple[int, float, float, float]], knots: np.ndarray) -
     return np.array(p), np.array(t)
 
 
+def _cells(n: int, first: int, second: int, x0: float, z: float = 3.0) -> list[tuple[int, float, float, float]]:
+    """n pile cells (1.5 m apart along y at x0), each seen in interval first and again in interval second."""
+    return [(iv, x0, 1.2 + 1.5 * c, z) for c in range(n) for iv in (first, second)]
+
+
 def test_that_the_height_is_tied_to_the_floor_only_where_the_floor_or_a_pile_seen_on_another_pass_ties_it():
-    # The floor in intervals 0 and 9; a pile cell seen in interval 0 and again in 6 (another pass) ties 6; a pile
-    # cell seen in 2, 3 and 4 (one pass moving on) ties nothing: that is the chain whose errors add up.
+    # The floor in intervals 0 and 9; MIN_TIE_CELLS pile cells seen in interval 0 and again in 6 (another pass) tie
+    # 6; a pile cell seen in 2, 3 and 4 (one pass moving on) ties nothing: that is the chain whose errors add up.
     knots = np.arange(0.0, 31.0, 3.0)
-    p, t = _sightings([(0, 1.2, 1.2, 0.0), (0, 5.2, 5.2, 3.0), (6, 5.2, 5.2, 3.1), (2, 10.2, 10.2, 2.0),
+    p, t = _sightings([(0, 1.2, 1.2, 0.0), *_cells(MIN_TIE_CELLS, 0, 6, 5.2), (2, 10.2, 10.2, 2.0),
                        (3, 10.2, 10.2, 2.0), (4, 10.2, 10.2, 2.1), (9, 30.2, 20.2, 0.0)], knots)
     floor = p[:, 2] == 0.0
     tied = floor_anchored(p, t, knots, np.zeros(len(p), dtype=bool), floor, STORAGE, 1.5)
@@ -136,6 +142,28 @@ def test_that_the_height_is_tied_to_the_floor_only_where_the_floor_or_a_pile_see
     tied2 = floor_anchored(p2, t2, knots, np.zeros(len(p2), dtype=bool), p2[:, 2] == 0.0, STORAGE, 1.5)
     np.testing.assert_array_equal(np.flatnonzero(tied2), [0])
     assert unanchored_stretches(knots, np.ones(len(knots) - 1, dtype=bool)) == (0.0, 0.0, 0.0)
+
+
+def test_that_a_stretch_hanging_on_a_handful_of_cells_is_not_tied_and_routes_that_share_none_add_up():
+    """The far half of a loop over the paper's pile 2 at P_traj 5 % hangs on 5-7 cells seen from both long legs, and
+    its height came out 4-11 cm off: a tie needs MIN_TIE_CELLS cells, counted over routes that share no cell."""
+    knots = np.arange(0.0, 31.0, 3.0)
+    floor = [(0, 1.2, 1.2, 0.0)]
+
+    def tied(spec):
+        p, t = _sightings(floor + spec, knots)
+        return np.flatnonzero(floor_anchored(p, t, knots, np.zeros(len(p), dtype=bool), p[:, 2] == 0.0, STORAGE,
+                                             1.5))
+
+    np.testing.assert_array_equal(tied(_cells(MIN_TIE_CELLS - 1, 0, 6, 5.2)), [0])  # one cell short: not tied
+    half = MIN_TIE_CELLS // 2
+    # two routes to interval 6 that share no cell: half the cells directly, the rest by way of interval 3
+    routes = _cells(half, 0, 6, 5.2) + _cells(MIN_TIE_CELLS - half, 0, 3, 9.2) + _cells(MIN_TIE_CELLS - half, 3, 6,
+                                                                                          13.2)
+    np.testing.assert_array_equal(tied(routes), [0, 3, 6])
+    # a bottleneck: interval 6 reached only through interval 3, by fewer cells than a tie needs beyond it
+    bottleneck = _cells(MIN_TIE_CELLS, 0, 3, 9.2) + _cells(MIN_TIE_CELLS - 1, 3, 6, 13.2)
+    np.testing.assert_array_equal(tied(bottleneck), [0, 3])
 
 
 def test_that_an_untied_stretch_s_sigma_is_the_walk_pinned_at_its_tied_ends_weighted_by_its_share():
