@@ -121,7 +121,7 @@ FLOOR_FALL_SHOWN_PCT = LEAST_LAID_FALL_PCT / 2.0
 away from material stays under it: at most 0.31 % over the 1,197 runs of the evaluation set whose piles leave the
 floor bare (the whole plane's fit, which a pile's toes tilt, up to 0.53 %), while the lowest flat surface of material
 covering the floor may fall more (11 of the 142 runs whose piles may hide it and that saw a floor not lying on
-material, `ground.floor_check.on_material`: up to 5.4 %), which the report names alike (docs/pose_error.md,
+material, `on_material`: up to 5.4 %), which the report names alike (docs/pose_error.md,
 `floor-level`)."""
 
 
@@ -371,6 +371,8 @@ def lowest_level_m(z_m: np.ndarray, band_m: np.ndarray) -> float:
     """The lowest height that holds a floor's worth of points (MIN_FLOOR_POINTS) within the points' median band
     either side of it: the median of the first such window from below (stray points under it are passed over)."""
     z = np.sort(np.asarray(z_m, dtype=float))
+    if len(z) == 0:
+        return math.nan  # nothing lies lower (on_material's comparison is then False)
     count = np.searchsorted(z, z + 2.0 * float(np.median(band_m)), side="right") - np.arange(len(z))
     first = int(np.argmax(count >= MIN_FLOOR_POINTS)) if (count >= MIN_FLOOR_POINTS).any() else 0
     return float(np.median(z[first:first + max(1, int(count[first]))]))

@@ -198,7 +198,12 @@ def _tied_by_cells(anchor: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarr
     caps = np.concatenate([np.ones(2 * len(i), dtype=np.int32), np.full(int(anchor.sum()), big, dtype=np.int32)])
     net = sparse.csr_matrix((caps, (rows, cols)), shape=(n_int + 1, n_int + 1))  # duplicates summed: cells per pair
     net.sum_duplicates()
-    for v in np.flatnonzero(reached):
+    links = sparse.coo_matrix((np.ones(len(i)), (i, j)), shape=(n_int, n_int)).tocsr()
+    links = links + links.T
+    degree = np.asarray(links.sum(axis=0)).ravel()  # no flow into v exceeds its cells
+    direct = np.asarray(links[anchor].sum(axis=0)).ravel()  # nor falls short of its cells from anchored intervals
+    tied[reached & (direct >= MIN_TIE_CELLS)] = True
+    for v in np.flatnonzero(reached & (direct < MIN_TIE_CELLS) & (degree >= MIN_TIE_CELLS)):
         tied[v] = maximum_flow(net, source, int(v)).flow_value >= MIN_TIE_CELLS
     return tied
 
