@@ -37,7 +37,6 @@ from dataclasses import dataclass, field
 from statistics import NormalDist
 
 import numpy as np
-from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError
 
 from firmware_py.core.config_file import MIN_YAW_RATE_DEG_S
@@ -343,6 +342,7 @@ def within_reach(points_xy: np.ndarray, shape: tuple[int, int], length_m: float,
         hit[ix, iy] = True
     if not hit.any():
         return hit
+    from scipy import ndimage  # here, not at the top: importing it costs every `pilescan-sitl` start 0.24 s
     return ndimage.distance_transform_edt(~hit) * cell_m <= radius_m
 
 
