@@ -353,18 +353,18 @@ def points_below(points_w: np.ndarray, sigma_m: np.ndarray, plane: PlaneFit, n_s
     return BelowFloor(count, tail * n_floor, p, depth)
 
 
-def on_material(points_w: np.ndarray, sigma_m: np.ndarray, plane: PlaneFit, level_m: float, n_sigma: float) -> bool:
+def on_material(under: BelowFloor, z_m: np.ndarray, band_m: np.ndarray, level_m: float) -> bool:
     """The plane with the most floor points lies on material, not on the floor: more points lie under it than its
-    noise puts there (`points_below`, at BELOW_FLOOR_ALPHA), and a floor's worth of points lies lower, more than two
-    bands under its level (`lowest_level_m`). Measured on the evaluation set: no run whose floor is in view has
-    points under its plane beyond its noise (0 of 1,197); of the 315 runs of piles that may hide the floor, 191 have,
-    and the plane climbs material in those whose lowest points lie far under it (the paper's pile 2 leaves a corner of
-    floor at the foot of its long flank, and the plane, through that corner, is 1.8 m up at its level and falls 3.9 %),
-    while the floors under a few stray points stay within their band of the lowest."""
-    band = n_sigma * np.asarray(sigma_m, dtype=float)
-    if points_below(points_w, sigma_m, plane, n_sigma).p_value >= BELOW_FLOOR_ALPHA:
+    noise puts there (under: its `points_below`, at BELOW_FLOOR_ALPHA), and a floor's worth of the points (heights
+    z_m, each with its band) lies lower, more than two bands under its level (`lowest_level_m`). Measured on the
+    evaluation set: no run whose floor is in view has points under its plane beyond its noise (0 of 1,197); of the
+    315 runs of piles that may hide the floor, 191 have, and the plane climbs material in those whose lowest points
+    lie far under it (the paper's pile 2 leaves a corner of floor at the foot of its long flank, and the plane, through
+    that corner, is 1.8 m up at its level and falls 3.9 %), while the floors under a few stray points stay within
+    their band of the lowest."""
+    if under.p_value >= BELOW_FLOOR_ALPHA:
         return False
-    return level_m - lowest_level_m(np.asarray(points_w)[:, 2], band) > 2.0 * float(np.median(band))
+    return level_m - lowest_level_m(z_m, band_m) > 2.0 * float(np.median(band_m))
 
 
 def lowest_level_m(z_m: np.ndarray, band_m: np.ndarray) -> float:
@@ -438,9 +438,10 @@ FLOOR_BASE = Base(BaseKind.FLOOR, "the floor plane z = 0")
 def fitted_floor_base(points_w: np.ndarray, sigma_m: np.ndarray, heights: np.ndarray, grid: Grid,
                       n_sigma: float, max_tilt_deg: float = MAX_FLOOR_TILT_DEG) -> Base:
     plane = fit_floor_plane(points_w, sigma_m, grid, n_sigma, max_tilt_deg)
-    level = float(np.median(np.asarray(points_w, dtype=float)[plane.inliers, 2]))
-    if on_material(points_w, sigma_m, plane, level, n_sigma):
-        under = points_below(points_w, sigma_m, plane, n_sigma)
+    pts = np.asarray(points_w, dtype=float)
+    under = points_below(pts, sigma_m, plane, n_sigma)
+    if on_material(under, pts[:, 2], n_sigma * np.asarray(sigma_m, dtype=float),
+                   float(np.median(pts[plane.inliers, 2]))):
         raise UserError(f"--base fitted-floor: the plane the most points lie on lies on material, not on the floor "
                         f"({under.count} points under it where its noise would put {under.expected:.0f}, and a "
                         "floor's worth of points further down): the floor shows only at the material's foot, too "
@@ -471,7 +472,7 @@ def fitted_floor_base(points_w: np.ndarray, sigma_m: np.ndarray, heights: np.nda
     # A floor's points scatter about it by their own noise; a plane laid through a pile's flank within the band
     # spreads them over the whole band. Their mean square in sigmas tells the two apart: about 1 for a floor (a
     # normal cut at n_sigma), n_sigma^2 / 3 for points spread evenly over the band; the warning sits midway.
-    fp = np.asarray(points_w, dtype=float)[plane.inliers]
+    fp = pts[plane.inliers]
     r = fp[:, 2] - plane.at(fp[:, 0], fp[:, 1])
     spread = float(np.mean((r / np.maximum(np.asarray(sigma_m, dtype=float)[plane.inliers], 1e-6)) ** 2))
     if spread > (1.0 + n_sigma**2 / 3.0) / 2.0:
@@ -479,7 +480,6 @@ def fitted_floor_base(points_w: np.ndarray, sigma_m: np.ndarray, heights: np.nda
                         f"plane, {math.sqrt(spread):.1f} times their noise: they fill its band rather than lie on a "
                         "floor, so the plane may run through the piles (a floor the material hides); the volume over "
                         "it may be far off, compare it with --base floor")
-    under = points_below(points_w, sigma_m, plane, n_sigma)
     if under.p_value < BELOW_FLOOR_ALPHA:
         warnings.append(f"{under.count} points lie more than {n_sigma:g} sigma below the fitted floor (median "
                         f"{under.median_depth_m:.2f} m), where its noise would put {under.expected:.0f}: the plane "

@@ -37,7 +37,7 @@ import numpy as np
 
 from firmware_py.core.cli import UserError
 from firmware_py.core.storage import Storage
-from ground.base import MIN_FLOOR_POINTS, FloorFall, fit_floor_plane, on_material
+from ground.base import MIN_FLOOR_POINTS, FloorFall, fit_floor_plane, on_material, points_below
 from ground.pointcloud import N_SIGMA, Cloud, SensorErrorModel, plane_tolerances_m
 from ground.smoothing import cloud_vertical_sigma_m
 from ground.surface import Grid
@@ -104,7 +104,7 @@ def measure_floor(cloud: Cloud, structure: np.ndarray, storage: Storage, err: Se
     # 1.25 of the points' robust spread over the root of the cells they fill (a cell's points share one pose error).
     pts, band = p[keep], N_SIGMA * sigma
     level = float(np.median(pts[plane.inliers, 2]))
-    if on_material(pts, sigma, plane, level, N_SIGMA):
+    if on_material(points_below(pts, sigma, plane, N_SIGMA), pts[:, 2], band, level):
         return None
     on = plane.inliers
     for _ in range(20):  # then level: the points within their band of a level floor there, until they stop changing

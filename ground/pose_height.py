@@ -182,29 +182,27 @@ def floor_anchored(p: np.ndarray, t: np.ndarray, knots: np.ndarray, wall: np.nda
 def _tied_by_cells(anchor: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
     """Per interval, anchored or joined to the anchored intervals by MIN_TIE_CELLS cells on routes that share none:
     the maximum flow from a source feeding every anchored interval, each cell's revisit (i, j) a unit of capacity
-    both ways (a cell seen on many passes links each pair of them). Only the intervals connected to an anchor at all
-    are asked (the flow to the rest is 0)."""
+    both ways (a cell seen on many passes links each pair of them). Asked only where an interval's own cells do not
+    settle it: the flow to one is at most the cells it shares with any interval, and at least those it shares with
+    anchored ones (and 0 outside an anchored interval's component)."""
     n_int = len(anchor)
-    graph = sparse.coo_matrix((np.ones(len(i)), (i, j)), shape=(n_int, n_int))
-    _, label = connected_components(graph, directed=False)
+    links = sparse.coo_matrix((np.ones(len(i), dtype=np.int32), (i, j)), shape=(n_int, n_int)).tocsr()
+    links = (links + links.T).tocsr()  # duplicates summed: the cells each pair of intervals shares, both ways
+    _, label = connected_components(links, directed=False)
     reached = np.isin(label, label[anchor]) & ~anchor
-    tied = anchor.copy()
-    if not reached.any():
-        return tied
-    source = n_int
-    big = np.iinfo(np.int32).max // 4
-    rows = np.concatenate([i, j, np.full(int(anchor.sum()), source)])
-    cols = np.concatenate([j, i, np.flatnonzero(anchor)])
-    caps = np.concatenate([np.ones(2 * len(i), dtype=np.int32), np.full(int(anchor.sum()), big, dtype=np.int32)])
-    net = sparse.csr_matrix((caps, (rows, cols)), shape=(n_int + 1, n_int + 1))  # duplicates summed: cells per pair
-    net.sum_duplicates()
-    links = sparse.coo_matrix((np.ones(len(i)), (i, j)), shape=(n_int, n_int)).tocsr()
-    links = links + links.T
-    degree = np.asarray(links.sum(axis=0)).ravel()  # no flow into v exceeds its cells
-    direct = np.asarray(links[anchor].sum(axis=0)).ravel()  # nor falls short of its cells from anchored intervals
-    tied[reached & (direct >= MIN_TIE_CELLS)] = True
-    for v in np.flatnonzero(reached & (direct < MIN_TIE_CELLS) & (degree >= MIN_TIE_CELLS)):
-        tied[v] = maximum_flow(net, source, int(v)).flow_value >= MIN_TIE_CELLS
+    degree = np.asarray(links.sum(axis=0)).ravel()
+    direct = np.asarray(links[anchor].sum(axis=0)).ravel()
+    tied = anchor | (reached & (direct >= MIN_TIE_CELLS))
+    ask = np.flatnonzero(reached & (direct < MIN_TIE_CELLS) & (degree >= MIN_TIE_CELLS))
+    if len(ask):
+        source, feeds = n_int, np.flatnonzero(anchor)
+        pairs = links.tocoo()
+        net = sparse.csr_matrix((np.concatenate([pairs.data, np.full(len(feeds), np.iinfo(np.int32).max // 4)]),
+                                 (np.concatenate([pairs.row, np.full(len(feeds), source)]),
+                                  np.concatenate([pairs.col, feeds]))),
+                                shape=(n_int + 1, n_int + 1), dtype=np.int32)
+        for v in ask:
+            tied[v] = maximum_flow(net, source, int(v)).flow_value >= MIN_TIE_CELLS
     return tied
 
 

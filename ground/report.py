@@ -565,8 +565,7 @@ def _survey_from_samples(samples: np.ndarray, header: dict, storage: Storage, fr
     timing, retimed, pose = _refined_by_building(samples, timing, motion, header, storage, frame, lever, opts, err,
                                                  mount, share_taken_out)
     fixed = _survey(retimed, header, storage, frame, lever, opts, err, spikes, mount)
-    if timing.refined_s is not None and fixed.sweep_disagreement_m is not None:
-        timing = replace(timing, disagreement_after_m=fixed.sweep_disagreement_m)
+    timing = _after_measured(timing, fixed)
     fixed = replace(fixed, servo_timing=timing, servo_retimed=True, **checked)
     return _self_calibrated(fixed, retimed, header, storage, frame, lever, opts, err, spikes, mount,
                             pose_as_is=pose), None
@@ -593,8 +592,7 @@ def _retimed_by_building(survey: Survey, samples: np.ndarray, header: dict, stor
         timing = ServoTiming(split.delay_s, 1.0, motion.name, survey.sweep_disagreement_m,
                              survey.sweep_disagreement_m, 0, building_shift_m=split.shift_m)  # after: below
     fixed = replace(_survey(retimed, header, storage, frame, lever, opts, err, spikes, mount), **checked)
-    if (timing.building_shift_m is not None or timing.refined_s is not None) and fixed.sweep_disagreement_m is not None:
-        timing = replace(timing, disagreement_after_m=fixed.sweep_disagreement_m)
+    timing = _after_measured(timing, fixed)
     fixed = _self_calibrated(replace(fixed, servo_timing=timing, servo_retimed=True), retimed, header, storage,
                              frame, lever, opts, err, spikes, mount, pose_as_is=pose)
     # (a lag that left too few of their points near them for a drift's fit at all is judged by the fit it allows)
@@ -603,6 +601,15 @@ def _retimed_by_building(survey: Survey, samples: np.ndarray, header: dict, stor
         return fixed
     return replace(_self_calibrated(survey, samples, header, storage, frame, lever, opts, err, spikes, mount,
                                     None if first.cut_for_timing else first), servo_timing=searched)
+
+
+def _after_measured(timing: ServoTiming, fixed: Survey) -> ServoTiming:
+    """The timing with the sweeps' disagreement after it as the re-timed survey measured it, when its delay is not the
+    search's own (the floor and walls set it, `building_shift_m`, or refined it, `refined_s`): the search only
+    measured the disagreement at the delays it tried."""
+    if (timing.building_shift_m is None and timing.refined_s is None) or fixed.sweep_disagreement_m is None:
+        return timing
+    return replace(timing, disagreement_after_m=fixed.sweep_disagreement_m)
 
 
 def _refined_by_building(samples: np.ndarray, timing: ServoTiming, motion: ShiftScale | Resimulated, header: dict,
